@@ -1,0 +1,3 @@
+from dobhil.cli.main import main
+
+raise SystemExit(main())

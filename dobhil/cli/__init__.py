@@ -1,0 +1,1 @@
+"""The ``dobhil`` command line: one module per subcommand, each with ``register(subparsers)``."""

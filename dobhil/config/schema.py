@@ -1,0 +1,207 @@
+"""Every configuration key of dobhil, in one place.
+
+The frozen dataclasses below *are* the key table: a key ``section.name`` is the
+field ``name`` of the section dataclass, and its ``metadata`` says the unit, what
+values are allowed and what it means. ``dobhil.config.load`` validates YAML and
+``--set key=value`` overrides against these fields; ``docs/config.md`` is
+generated from them (``python tools/gen_config_doc.py``). All values are SI.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from enum import IntEnum
+from typing import Any
+
+
+class Check(IntEnum):
+    """What values a numeric key allows."""
+
+    ANY = 0
+    POSITIVE = 1
+    NONNEGATIVE = 2
+
+
+def key(default: Any, doc: str, *, unit: str = "", check: Check = Check.ANY,
+        choices: tuple[str, ...] = (), structural: bool = False) -> Any:
+    """A config key: a dataclass field carrying its documentation and constraint.
+
+    ``structural`` keys change the shape of the synthesised matrices (model
+    kinds, delay length) and cannot be swept.
+    """
+    meta = {"doc": doc, "unit": unit, "check": check, "choices": choices,
+            "structural": structural or bool(choices)}
+    return field(default=default, metadata=meta)
+
+
+@dataclass(frozen=True)
+class PlantConfig:
+    """The exact servo (the emulator's plant; J_m, b_m of the paper)."""
+
+    inertia: float = key(0.25, "exact inertia J_m", unit="kg m^2", check=Check.POSITIVE)
+    viscous_friction: float = key(0.0, "exact viscous friction b_m", unit="N m s/rad",
+                                  check=Check.NONNEGATIVE)
+    coulomb_friction: float = key(0.0, "Coulomb friction (emulator only, unmodelled by the analysis)",
+                                  unit="N m", check=Check.NONNEGATIVE)
+    torque_limit: float = key(50.0, "motor torque limit of the emulated drive", unit="N m",
+                              check=Check.POSITIVE)
+    initial_position: float = key(0.0, "emulated initial position", unit="rad")
+    disturbance: str = key("none", "unknown disturbance torque profile tau_d^u (emulator)",
+                           choices=("none", "constant", "step", "sine"))
+    disturbance_amplitude: float = key(0.0, "amplitude of the disturbance torque", unit="N m")
+    disturbance_frequency: float = key(1.0, "frequency of a sine disturbance", unit="Hz",
+                                       check=Check.POSITIVE)
+    disturbance_start: float = key(0.0, "time at which a step disturbance starts", unit="s",
+                                   check=Check.NONNEGATIVE)
+
+
+@dataclass(frozen=True)
+class EnvironmentConfig:
+    """The environment touched by the servo: a spring-damper (D_env, K_env)."""
+
+    stiffness: float = key(1.0e4, "environment stiffness K_env", unit="N m/rad",
+                           check=Check.NONNEGATIVE)
+    damping: float = key(50.0, "environment damping D_env", unit="N m s/rad",
+                         check=Check.NONNEGATIVE)
+    contact_position: float = key(0.0, "position at which the environment engages (emulator)",
+                                  unit="rad")
+
+
+@dataclass(frozen=True)
+class DesignConfig:
+    """The controller: DOb, RTOb, force gain, velocity source, sampling."""
+
+    nominal_inertia: float = key(0.25, "nominal inertia J_mn of the DOb", unit="kg m^2",
+                                 check=Check.POSITIVE)
+    nominal_friction: float = key(0.0, "nominal viscous friction b_mn of the DOb",
+                                  unit="N m s/rad", check=Check.NONNEGATIVE)
+    identified_inertia: float = key(0.25, "identified inertia J_mi of the RTOb", unit="kg m^2",
+                                    check=Check.POSITIVE)
+    identified_friction: float = key(0.0, "identified viscous friction b_mi of the RTOb",
+                                     unit="N m s/rad", check=Check.NONNEGATIVE)
+    dob_bandwidth: float = key(500.0, "DOb bandwidth g_DOb", unit="rad/s", check=Check.POSITIVE)
+    rtob_bandwidth: float = key(500.0, "RTOb bandwidth g_RTOb", unit="rad/s",
+                                check=Check.POSITIVE)
+    force_gain: float = key(2.0, "proportional force gain C_f", check=Check.NONNEGATIVE)
+    disturbance_model: str = key("constant", "disturbance model (A_D, C_D) of the DOb",
+                                 choices=("constant", "ramp", "sinusoid"))
+    disturbance_frequency: float = key(10.0, "frequency of the DOb's sinusoid model",
+                                       unit="rad/s", check=Check.POSITIVE)
+    interaction_model: str = key("constant", "interaction torque model (A_R, C_R) of the RTOb",
+                                 choices=("constant", "ramp", "sinusoid"))
+    interaction_frequency: float = key(10.0, "frequency of the RTOb's sinusoid model",
+                                       unit="rad/s", check=Check.POSITIVE)
+    velocity_source: str = key("measured", "velocity fed to the observers",
+                               choices=("measured", "estimated"))
+    velocity_filter_bandwidth: float = key(2000.0, "bandwidth g_v of the velocity estimate "
+                                           "g_v s/(s+g_v) q", unit="rad/s", check=Check.POSITIVE)
+    delay_samples: int = key(0, "transport delay of the torque command in whole samples",
+                             check=Check.NONNEGATIVE, structural=True)
+    discretization: str = key("zoh", "how the observers are discretised",
+                              choices=("zoh", "euler"))
+
+
+@dataclass(frozen=True)
+class LoopConfig:
+    """The runtime loop."""
+
+    period: float = key(1.0e-3, "control period T_s", unit="s", check=Check.POSITIVE)
+    duration: float = key(1.0, "run duration", unit="s", check=Check.POSITIVE)
+    feedback_timeout: float = key(5.0e-3, "no fresh feedback for this long stops the run",
+                                  unit="s", check=Check.POSITIVE)
+    torque_limit: float = key(20.0, "host-side torque saturation", unit="N m",
+                              check=Check.POSITIVE)
+    position_min: float = key(-100.0, "lowest allowed position", unit="rad")
+    position_max: float = key(100.0, "highest allowed position", unit="rad")
+    velocity_limit: float = key(100.0, "largest allowed |velocity|", unit="rad/s",
+                                check=Check.POSITIVE)
+    timing: str = key("lockstep", "how the loop is clocked", choices=("lockstep", "realtime"))
+    realtime_priority: int = key(0, "SCHED_FIFO priority on Linux (0: none)",
+                                 check=Check.NONNEGATIVE)
+
+
+@dataclass(frozen=True)
+class ReferenceConfig:
+    """The interaction torque reference tau_int^ref of a run."""
+
+    kind: str = key("step", "reference signal",
+                    choices=("step", "ramp", "sine", "chirp", "square", "csv"))
+    amplitude: float = key(1.0, "amplitude (step height, ramp end value, sine amplitude)",
+                           unit="N m")
+    offset: float = key(0.0, "value added to the signal", unit="N m")
+    start: float = key(0.0, "time the signal starts", unit="s", check=Check.NONNEGATIVE)
+    frequency: float = key(1.0, "frequency (sine, square; chirp start)", unit="Hz",
+                           check=Check.POSITIVE)
+    frequency_end: float = key(50.0, "chirp end frequency", unit="Hz", check=Check.POSITIVE)
+    ramp_time: float = key(0.1, "ramp duration", unit="s", check=Check.POSITIVE)
+    file: str = key("", "CSV file with columns time,tau_ref (kind csv)")
+
+
+@dataclass(frozen=True)
+class SensorConfig:
+    """The emulated encoder and velocity estimate."""
+
+    encoder_resolution: int = key(0, "encoder counts per revolution (0: no quantisation)",
+                                  check=Check.NONNEGATIVE)
+    velocity_noise: float = key(0.0, "standard deviation of the velocity estimate noise",
+                                unit="rad/s", check=Check.NONNEGATIVE)
+    seed: int = key(0, "seed of the emulator's randomness", check=Check.NONNEGATIVE)
+
+
+@dataclass(frozen=True)
+class DriveConfig:
+    """Which drive and which bus."""
+
+    profile: str = key("odrive-0.6", "drive profile under drivers/ (name or path)")
+    interface: str = key("virtual", "python-can interface name")
+    channel: str = key("dobhil", "python-can channel")
+    bitrate: int = key(1_000_000, "CAN bitrate", unit="bit/s", check=Check.POSITIVE)
+    latency: float = key(0.0, "emulated bus latency (real-time emulation)", unit="s",
+                         check=Check.NONNEGATIVE)
+    jitter: float = key(0.0, "emulated bus latency jitter, standard deviation", unit="s",
+                        check=Check.NONNEGATIVE)
+
+
+@dataclass(frozen=True)
+class AnalysisConfig:
+    """Settings of the analysis only."""
+
+    step_duration: float = key(0.0, "step response horizon (0: automatic)", unit="s",
+                               check=Check.NONNEGATIVE)
+
+
+@dataclass(frozen=True)
+class Config:
+    """A complete, validated configuration."""
+
+    plant: PlantConfig = field(default_factory=PlantConfig)
+    environment: EnvironmentConfig = field(default_factory=EnvironmentConfig)
+    design: DesignConfig = field(default_factory=DesignConfig)
+    loop: LoopConfig = field(default_factory=LoopConfig)
+    reference: ReferenceConfig = field(default_factory=ReferenceConfig)
+    sensor: SensorConfig = field(default_factory=SensorConfig)
+    drive: DriveConfig = field(default_factory=DriveConfig)
+    analysis: AnalysisConfig = field(default_factory=AnalysisConfig)
+
+    def flat(self) -> dict[str, Any]:
+        """Every key as ``section.name -> value``."""
+        return {name: getattr(getattr(self, name.split(".")[0]), name.split(".")[1])
+                for name in key_fields()}
+
+    def replace(self, **sections: Any) -> Config:
+        return dataclasses.replace(self, **sections)
+
+
+def _section_types() -> dict[str, type]:
+    return {"plant": PlantConfig, "environment": EnvironmentConfig, "design": DesignConfig,
+            "loop": LoopConfig, "reference": ReferenceConfig, "sensor": SensorConfig,
+            "drive": DriveConfig, "analysis": AnalysisConfig}
+
+
+SECTIONS: dict[str, type] = _section_types()
+
+
+def key_fields() -> dict[str, dataclasses.Field[Any]]:
+    """``section.name -> dataclass field`` for every key."""
+    return {f"{s}.{f.name}": f for s, cls in SECTIONS.items() for f in dataclasses.fields(cls)}

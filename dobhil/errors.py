@@ -1,0 +1,48 @@
+"""The exception root of dobhil and its specific subclasses.
+
+Each subclass also inherits the matching builtin (the python-can habit:
+``CanTimeoutError(CanError, TimeoutError)``), so callers can catch either.
+Messages say what was expected and what came, in one line.
+"""
+
+from __future__ import annotations
+
+
+class DobhilError(Exception):
+    """Root of every error raised by dobhil."""
+
+
+class ConfigError(DobhilError, ValueError):
+    """A configuration key, value or file is not acceptable."""
+
+
+class SynthesisError(DobhilError, ValueError):
+    """The requested observer or loop cannot be synthesised (e.g. unobservable model)."""
+
+
+class BusError(DobhilError, OSError):
+    """A CAN bus could not be opened or used."""
+
+
+class DriveError(DobhilError):
+    """A drive did not behave as its protocol promises."""
+
+
+class DriveTimeoutError(DriveError, TimeoutError):
+    """A drive did not answer in time."""
+
+
+class DriveFaultError(DriveError):
+    """A drive reported a fault (axis error, watchdog, emergency)."""
+
+
+class CodecError(DriveError, ValueError):
+    """A CAN frame could not be encoded or decoded by a drive codec."""
+
+
+class LogFileError(DobhilError, ValueError):
+    """A log file is missing, empty, truncated or not of the expected format."""
+
+
+class ReplayMismatchError(DobhilError, AssertionError):
+    """Replay did not reproduce the recorded commands."""

@@ -1,0 +1,125 @@
+"""The force-control loop assembled in state space (Eqs. 18-20), continuous or sampled.
+
+State ``[x_p, xi, w]``: the plant with its environment (``x_p = [q, dq]``), the
+controller of :mod:`dobhil.synthesis.controller`, and -- sampled only -- a chain
+of ``delay_samples`` torque commands in transit. Inputs and outputs are named
+(:data:`INPUTS`, :data:`OUTPUTS`). ``tau_per`` is an extra input added to the
+performance torque: with ``force_gain = 0`` the loop from ``tau_per`` to
+``tau_int^`` is the open loop L of Eq. (26) with the inner DOb loop closed, and
+``A(C_f) = A(0) - C_f B_per C_int^`` exactly.
+
+The sampled loop is what the runtime does against the emulator in lockstep: at
+sample k the controller reads ``x_p(kT)``, computes ``u_k``; the plant integrates
+``u_{k-d}`` exactly (zero-order hold) over ``[kT, (k+1)T]``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from dobhil.synthesis.controller import (DIS, INT, ControllerSS, continuous_controller,
+                                         discretize, sampled_controller)
+from dobhil.synthesis.models import plant_matrices
+from dobhil.synthesis.params import Array, Discretization, Params
+
+INPUTS: tuple[str, ...] = ("tau_ref", "tau_per", "tau_du", "tau_i", "eta_q", "eta_dq")
+OUTPUTS: tuple[str, ...] = ("tau_int_hat", "tau_dis_hat", "tau_int", "q", "dq", "u")
+
+
+@dataclass(frozen=True)
+class LoopSS:
+    """Batched state-space matrices of the loop; ``dt`` None when continuous."""
+
+    a: Array
+    b: Array
+    c: Array
+    d: Array
+    dt: float | None
+
+    def input_index(self, name: str) -> int:
+        return INPUTS.index(name)
+
+    def output_index(self, name: str) -> int:
+        return OUTPUTS.index(name)
+
+    def siso(self, inp: str, out: str) -> tuple[Array, Array, Array, Array]:
+        i, o = INPUTS.index(inp), OUTPUTS.index(out)
+        return self.a, self.b[..., :, i:i + 1], self.c[..., o:o + 1, :], self.d[..., o:o + 1, i:i + 1]
+
+
+def plant_of(params: Params) -> tuple[Array, Array, Array]:
+    return plant_matrices(params.value("inertia"), params.value("viscous_friction"),
+                          params.value("stiffness"), params.value("damping"))
+
+
+def loop(params: Params, *, sampled: bool, force_gain: Array | float | None = None) -> LoopSS:
+    """The loop at ``force_gain`` (default: the design's C_f; 0 gives the open loop)."""
+    ctrl = sampled_controller(params) if sampled else continuous_controller(params)
+    cf = params.value("force_gain") if force_gain is None else np.asarray(force_gain, float)
+    a_p, b_p, c_int = plant_of(params)
+    if sampled:
+        a_p, b_p = discretize(a_p, b_p, ctrl.dt or 0.0, Discretization.ZOH)
+    delay = params.structure.delay_samples if sampled else 0
+    return _assemble(a_p, b_p, c_int, ctrl, np.broadcast_to(cf, params.batch_shape), delay)
+
+
+def _assemble(a_p: Array, b_p: Array, c_int: Array, ctrl: ControllerSS, cf: Array,
+              delay: int) -> LoopSS:
+    shape = cf.shape
+    nc, m = ctrl.order, ctrl.b_y.shape[-1]
+    n = 2 + nc + delay
+    xp, xc, w = slice(0, 2), slice(2, 2 + nc), slice(2 + nc, n)
+    c_y = np.eye(2)[:m]        # y = C_y x_p + E_eta eta (eta = [eta_q, eta_dq])
+    e_eta = np.eye(2)[:m]
+    cfe = cf[..., None, None]
+    # u = G y + K_xi xi + C_f tau_ref + tau_per
+    g = ctrl.d_y[..., DIS:DIS + 1, :] - cfe * ctrl.d_y[..., INT:INT + 1, :]
+    u_state = np.zeros(shape + (1, n))
+    u_state[..., :, xp] = g @ c_y
+    u_state[..., :, xc] = ctrl.c[..., DIS:DIS + 1, :] - cfe * ctrl.c[..., INT:INT + 1, :]
+    u_in = np.zeros(shape + (1, len(INPUTS)))
+    u_in[..., 0, 0] = cf
+    u_in[..., 0, 1] = 1.0
+    u_in[..., :, 4:6] = g @ e_eta
+    # which signal drives the plant: u itself, or the oldest command in transit
+    p_state, p_in = (u_state, u_in) if delay == 0 else (_select(shape, n, 2 + nc + delay - 1),
+                                                        np.zeros(shape + (1, len(INPUTS))))
+    a = np.zeros(shape + (n, n))
+    b = np.zeros(shape + (n, len(INPUTS)))
+    a[..., xp, :] = b_p @ p_state
+    a[..., xp, xp] += a_p
+    b[..., xp, :] = b_p @ p_in
+    b[..., xp, 2:3] -= b_p
+    a[..., xc, :] = ctrl.b_u @ u_state
+    a[..., xc, xp] += ctrl.b_y @ c_y
+    a[..., xc, xc] += ctrl.a
+    b[..., xc, :] = ctrl.b_u @ u_in
+    b[..., xc, 3:4] += ctrl.b_i
+    b[..., xc, 4:6] += ctrl.b_y @ e_eta
+    if delay:
+        a[..., 2 + nc:2 + nc + 1, :] = u_state
+        b[..., 2 + nc:2 + nc + 1, :] = u_in
+        for j in range(1, delay):
+            a[..., 2 + nc + j, 2 + nc + j - 1] = 1.0
+    c = np.zeros(shape + (len(OUTPUTS), n))
+    d = np.zeros(shape + (len(OUTPUTS), len(INPUTS)))
+    for row in (INT, DIS):
+        out = 0 if row == INT else 1
+        c[..., out, xc] = ctrl.c[..., row, :]
+        c[..., out:out + 1, xp] = ctrl.d_y[..., row:row + 1, :] @ c_y
+        d[..., out:out + 1, 4:6] = ctrl.d_y[..., row:row + 1, :] @ e_eta
+    c[..., 2:3, xp] = c_int
+    c[..., 3, 0] = 1.0
+    c[..., 4, 1] = 1.0
+    c[..., 5:6, :] = u_state
+    d[..., 5:6, :] = u_in
+    del w
+    return LoopSS(a=a, b=b, c=c, d=d, dt=ctrl.dt)
+
+
+def _select(shape: tuple[int, ...], n: int, index: int) -> Array:
+    row = np.zeros(shape + (1, n))
+    row[..., 0, index] = 1.0
+    return row
