@@ -1,0 +1,173 @@
+"""The analysis of one design, continuous (the paper) and sampled (the runtime).
+
+:func:`analyze` computes; :func:`as_json` and :func:`as_text` present. Plots are
+in :mod:`dobhil.plotting` and take the same :class:`DomainAnalysis` objects.
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from dataclasses import dataclass, field
+from typing import Any
+
+import control
+import numpy as np
+
+from dobhil.analysis.metrics import StepMetrics, step_metrics, step_response
+from dobhil.analysis.stability import GainMap, gain_map, is_stable
+from dobhil.analysis.transfer import LoopSystems
+from dobhil.config.schema import Config
+from dobhil.synthesis.params import Params, params_from_config
+
+
+@dataclass(frozen=True)
+class DomainAnalysis:
+    """Everything computed for one domain (continuous or sampled)."""
+
+    sampled: bool
+    params: Params
+    systems: LoopSystems
+    gains: GainMap
+    closed_loop_poles: np.ndarray
+    stable: bool
+    margins: dict[str, float | None]
+    step: StepMetrics
+    step_force: StepMetrics
+    step_time: np.ndarray = field(repr=False)
+    step_estimate: np.ndarray = field(repr=False)
+    step_true: np.ndarray = field(repr=False)
+
+    @property
+    def sample_time(self) -> float | None:
+        return self.systems.closed.dt
+
+
+@dataclass(frozen=True)
+class Analysis:
+    config: Config
+    continuous: DomainAnalysis
+    discrete: DomainAnalysis
+
+
+def analyze(config: Config) -> Analysis:
+    params = params_from_config(config)
+    return Analysis(config=config,
+                    continuous=analyze_domain(params, sampled=False,
+                                              duration=config.analysis.step_duration),
+                    discrete=analyze_domain(params, sampled=True,
+                                            duration=config.analysis.step_duration))
+
+
+def analyze_domain(params: Params, *, sampled: bool, duration: float = 0.0) -> DomainAnalysis:
+    systems = LoopSystems.build(params, sampled=sampled)
+    a, b, c, _ = systems.open.siso("tau_per", "tau_int_hat")
+    gains = gain_map(a, b, c, sampled=sampled)
+    cl_poles = np.linalg.eigvals(systems.closed.a)
+    stable = bool(is_stable(cl_poles[None], sampled)[0])
+    closed, force = systems.system("closed_loop"), systems.system("force")
+    t, y_hat = step_response(closed, duration) if stable else (np.zeros(0), np.zeros(0))
+    y_true = step_response(force, float(t[-1]))[1] if stable else np.zeros(0)
+    return DomainAnalysis(
+        sampled=sampled, params=params, systems=systems, gains=gains,
+        closed_loop_poles=cl_poles, stable=stable,
+        margins=margins(systems.system("open_loop"), float(params.value("force_gain"))),
+        step=step_metrics(t, y_hat, stable=stable, final=_dc(closed) if stable else None),
+        step_force=step_metrics(t, y_true, stable=stable, final=_dc(force) if stable else None),
+        step_time=t, step_estimate=y_hat, step_true=y_true)
+
+
+def _dc(sys: control.StateSpace) -> float:
+    return float(np.real(control.dcgain(sys)))
+
+
+def margins(open_loop: control.StateSpace, force_gain: float) -> dict[str, float | None]:
+    """Gain and phase margins of the loop ``C_f L`` (python-control)."""
+    if force_gain <= 0:
+        return {k: None for k in ("gain_margin", "gain_margin_db", "phase_margin_deg",
+                                  "phase_crossover_freq", "gain_crossover_freq",
+                                  "stability_margin")}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        gm, pm, sm, wpc, wgc, _ = control.stability_margins(force_gain * open_loop)
+    return {"gain_margin": _finite(gm),
+            "gain_margin_db": _finite(20 * math.log10(gm)) if gm and gm > 0 and math.isfinite(gm) else None,
+            "phase_margin_deg": _finite(pm), "phase_crossover_freq": _finite(wpc),
+            "gain_crossover_freq": _finite(wgc), "stability_margin": _finite(sm)}
+
+
+def _finite(x: Any) -> float | None:
+    try:
+        v = float(x)
+    except (TypeError, ValueError):
+        return None
+    return v if math.isfinite(v) else None
+
+
+def _pairs(values: np.ndarray) -> list[list[float]]:
+    v = values[~np.isnan(values)]
+    return [[float(z.real), float(z.imag)] for z in sorted(v, key=lambda z: (z.real, z.imag))]
+
+
+def domain_json(d: DomainAnalysis) -> dict[str, Any]:
+    g = d.gains
+    kmax = float(g.max_stable_gain)
+    out: dict[str, Any] = {
+        "open_loop": {"poles": _pairs(g.poles), "zeros": _pairs(g.zeros),
+                      "relative_degree": int(g.relative_degree),
+                      "minimum_phase": bool(g.minimum_phase)},
+        "closed_loop": {"force_gain": float(d.params.value("force_gain")),
+                        "poles": _pairs(d.closed_loop_poles), "stable": d.stable},
+        "max_stable_force_gain": None if math.isinf(kmax) else kmax,
+        "stable_force_gain_intervals": [[lo, None if math.isinf(hi) else hi]
+                                        for lo, hi in g.intervals()],
+        "margins": d.margins,
+        "step": {k: v for k, v in d.step.as_dict().items()},
+        "step_true_force": d.step_force.as_dict(),
+    }
+    if d.sampled:
+        out["sample_time"] = d.sample_time
+        out["delay_samples"] = d.params.structure.delay_samples
+    return out
+
+
+def as_json(a: Analysis) -> dict[str, Any]:
+    return {"continuous": domain_json(a.continuous), "discrete": domain_json(a.discrete)}
+
+
+def _fmt(x: float | None, unit: str = "", digits: int = 4) -> str:
+    return "-" if x is None else f"{x:.{digits}g}{unit}"
+
+
+def _domain_text(name: str, d: dict[str, Any]) -> list[str]:
+    ol, cl, st = d["open_loop"], d["closed_loop"], d["step"]
+    kmax = d["max_stable_force_gain"]
+    intervals = ", ".join(f"({lo:.4g}, {'inf' if hi is None else f'{hi:.4g}'})"
+                          for lo, hi in d["stable_force_gain_intervals"]) or "none"
+    m = d["margins"]
+    return [
+        f"{name}:",
+        f"  open loop L: relative degree {ol['relative_degree']}, "
+        f"{'minimum phase' if ol['minimum_phase'] else 'NON-minimum phase'}; "
+        f"zeros {', '.join(_complex_str(z) for z in ol['zeros']) or 'none'}",
+        f"  closed loop at C_f = {cl['force_gain']:.4g}: {'stable' if cl['stable'] else 'UNSTABLE'}",
+        f"  max stable C_f: {'unbounded' if kmax is None else f'{kmax:.6g}'}; "
+        f"stable C_f intervals: {intervals}",
+        f"  margins: gain {_fmt(m['gain_margin_db'], ' dB')}, phase {_fmt(m['phase_margin_deg'], ' deg')}",
+        f"  step (tau_int^): overshoot {_fmt(st['overshoot_pct'], ' %')}, rise {_fmt(st['rise_time'], ' s')}, "
+        f"settling {_fmt(st['settling_time'], ' s')}, steady-state error {_fmt(st['steady_state_error'])}",
+    ]
+
+
+def _complex_str(z: list[float]) -> str:
+    re, im = z
+    return f"{re:.4g}" if abs(im) < 1e-9 else f"{re:.4g}{'+' if im >= 0 else '-'}{abs(im):.4g}j"
+
+
+def as_text(a: Analysis) -> str:
+    j = as_json(a)
+    ts = j["discrete"]["sample_time"]
+    lines = _domain_text("continuous (paper)", j["continuous"])
+    lines += _domain_text(f"sampled (T = {ts:g} s, delay {j['discrete']['delay_samples']} samples)",
+                          j["discrete"])
+    return "\n".join(lines)

@@ -1,0 +1,176 @@
+"""Stability of the force loop over the whole range of the force gain C_f, exactly.
+
+The closed loop at gain k has the state matrix ``A(k) = A0 - k B C`` (see
+:mod:`dobhil.synthesis.loop`), i.e. the characteristic polynomial
+``D(s) + k N(s)`` with ``L = N / D``. Stability can only change at a gain where a
+root crosses the stability boundary (the imaginary axis, or the unit circle for
+the sampled loop). Those gains are found exactly from the root locus'
+boundary crossings: ``D(jw) + k N(jw) = 0`` needs
+``Im(D(jw) conj(N(jw))) = 0`` -- a real polynomial in w -- and then
+``k = -Re(D conj N) / |N|^2``; a root through infinity (equal degrees) gives
+``k = -d_n / n_n``. The sampled loop is mapped onto the same problem by the
+bilinear map ``z = (1 + w) / (1 - w)`` (unit circle -> imaginary axis). Between two
+consecutive crossing gains the verdict is constant, so one eigenvalue test of
+``A(k)`` per interval decides it (no gain grid). Everything is batched.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from math import comb
+
+import numpy as np
+from numpy.typing import NDArray
+
+from dobhil.analysis.polynomials import (Array, CArray, batched_roots, eval_poly,
+                                         poly_from_roots, zeros_and_numerator)
+
+#: a pole counts as stable when Re(s) < -STABILITY_TOL * scale (continuous) or
+#: |z| < 1 - STABILITY_TOL (sampled)
+STABILITY_TOL = 1e-9
+
+
+@dataclass(frozen=True)
+class GainMap:
+    """Batched results; intervals are padded with NaN (``hi = inf`` when unbounded)."""
+
+    poles: CArray                 # open-loop poles, batch + (n,)
+    zeros: CArray                 # open-loop zeros, batch + (n-1,), NaN padded
+    relative_degree: NDArray[np.int64]
+    minimum_phase: NDArray[np.bool_]
+    crossings: Array              # boundary-crossing gains, sorted, NaN padded
+    interval_lo: Array            # stable intervals (lo, hi), NaN padded
+    interval_hi: Array
+    max_stable_gain: Array        # largest k with (0, k) all stable; inf: unbounded; 0: none
+    sampled: bool
+
+    def intervals(self, index: tuple[int, ...] = ()) -> list[tuple[float, float]]:
+        lo, hi = self.interval_lo[index], self.interval_hi[index]
+        return [(float(a), float(b)) for a, b in zip(lo, hi) if not np.isnan(a)]
+
+
+def is_stable(poles: CArray, sampled: bool) -> NDArray[np.bool_]:
+    """Every pole strictly inside the stability region (NaN entries ignored)."""
+    p = np.where(np.isnan(poles), -1.0 if not sampled else 0.0, poles)
+    if sampled:
+        return np.all(np.abs(p) < 1.0 - STABILITY_TOL, axis=-1)
+    scale = np.maximum(np.nanmax(np.abs(p), axis=-1, initial=0.0), 1.0)
+    return np.all(p.real < -STABILITY_TOL * scale[..., None], axis=-1)
+
+
+def gain_map(a0: Array, b: Array, c: Array, *, sampled: bool) -> GainMap:
+    """Poles, zeros, crossings and stable gain intervals of ``A0 - k B C`` for k > 0."""
+    poles = np.linalg.eigvals(a0)
+    zeros, num, rel = zeros_and_numerator(a0, b, c)
+    den = poly_from_roots(poles)
+    minimum_phase = _minimum_phase(zeros, sampled)
+    if sampled:
+        den, num = _bilinear(den), _bilinear(num)
+        scale_roots = np.concatenate([_to_w(poles), _to_w(zeros)], axis=-1)
+    else:
+        scale_roots = np.concatenate([poles, zeros], axis=-1)
+    crossings = _crossing_gains(den, num, scale_roots)
+    lo, hi, kmax = _intervals(a0, b, c, crossings, sampled)
+    return GainMap(poles=poles, zeros=zeros, relative_degree=rel, minimum_phase=minimum_phase,
+                   crossings=crossings, interval_lo=lo, interval_hi=hi, max_stable_gain=kmax,
+                   sampled=sampled)
+
+
+def _minimum_phase(zeros: CArray, sampled: bool) -> NDArray[np.bool_]:
+    z = np.where(np.isnan(zeros), 0.0 if sampled else -1.0, zeros)
+    if sampled:
+        return np.all(np.abs(z) < 1.0, axis=-1)
+    return np.all(z.real < 0.0, axis=-1)
+
+
+def _to_w(z: CArray) -> CArray:
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return (z - 1.0) / (z + 1.0)
+
+
+def _bilinear(coef: Array) -> Array:
+    """Coefficients in w of ``(1 - w)^n p((1 + w) / (1 - w))`` (z-coefficients in)."""
+    n = coef.shape[-1] - 1
+    basis = np.zeros((n + 1, n + 1))
+    for p in range(n + 1):  # row for z^p: (1 + w)^p (1 - w)^(n - p)
+        basis[n - p] = np.convolve(_binom(p, 1.0), _binom(n - p, -1.0))
+    return coef @ basis
+
+
+def _binom(n: int, sign: float) -> Array:
+    """Coefficients of (sign w + 1)^n, highest power first."""
+    return np.array([comb(n, j) * sign ** (n - j) for j in range(n + 1)])
+
+
+def _scaled(den: Array, num: Array, roots: CArray) -> tuple[Array, Array]:
+    """Both polynomials in s = w0 s^ with w0 the largest finite root magnitude."""
+    mags = np.where(np.isfinite(roots) & (np.abs(roots) < 1e12), np.abs(roots), 0.0)
+    w0 = np.maximum(mags.max(axis=-1, initial=0.0), 1e-12)
+    n = den.shape[-1] - 1
+    powers = w0[..., None] ** np.arange(n, -1, -1)
+    d, m = den * powers, num * powers
+    norm = np.maximum(np.abs(d).max(axis=-1, keepdims=True), 1e-300)
+    return d / norm, m / norm
+
+
+def _crossing_gains(den: Array, num: Array, roots: CArray) -> Array:
+    """Positive gains at which a root of D + k N lies on the imaginary axis (sorted)."""
+    d, m = _scaled(den, num, roots)
+    n = d.shape[-1] - 1
+    jpow = 1j ** np.arange(n, -1, -1)
+    dj, nj = d * jpow, m * np.conj(jpow)          # D(jw), conj(N(jw)) as polynomials in w
+    prod = np.zeros(d.shape[:-1] + (2 * n + 1,), dtype=complex)
+    for i in range(n + 1):
+        prod[..., i:i + n + 1] += dj[..., i:i + 1] * nj
+    omegas = batched_roots(prod.imag)
+    real = np.abs(omegas.imag) <= 1e-6 * (1.0 + np.abs(omegas.real))
+    w = np.where(real & (omegas.real >= 0), omegas.real, np.nan)
+    dv = eval_poly(d, 1j * w)
+    nv = eval_poly(m, 1j * w)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        k = -(dv * np.conj(nv)).real / np.abs(nv) ** 2
+        k_inf = np.where(np.abs(m[..., 0]) > 1e-13, -d[..., 0] / m[..., 0], np.nan)
+    k = np.concatenate([k, k_inf[..., None]], axis=-1)
+    # w = 0 with D(0) = 0 (the integrator) gives k = 0 up to rounding: not a crossing
+    k_floor = 1e-9 * np.abs(d).max(axis=-1) / np.maximum(np.abs(m).max(axis=-1), 1e-300)
+    k = np.where(np.isfinite(k) & (k > k_floor[..., None]), k, np.nan)
+    return np.sort(k, axis=-1)
+
+
+def _intervals(a0: Array, b: Array, c: Array, crossings: Array,
+               sampled: bool) -> tuple[Array, Array, Array]:
+    """Test one gain inside every interval between consecutive crossings."""
+    batch = crossings.shape[:-1]
+    edges = np.concatenate([np.zeros(batch + (1,)), crossings], axis=-1)
+    count = np.sum(~np.isnan(crossings), axis=-1)
+    last = np.take_along_axis(edges, count[..., None], axis=-1)
+    upper = np.concatenate([crossings, np.full(batch + (1,), np.nan)], axis=-1)
+    idx = np.arange(upper.shape[-1])
+    upper = np.where(idx == count[..., None], np.inf, upper)
+    test = np.where(np.isinf(upper), np.where(last > 0, 2.0 * last, 1.0),
+                    0.5 * (edges + np.where(np.isnan(upper), 0.0, upper)))
+    valid = ~np.isnan(upper)
+    k = np.where(valid, test, 0.0)
+    acl = a0[..., None, :, :] - k[..., :, None, None] * (b @ c)[..., None, :, :]
+    stable = is_stable(np.linalg.eigvals(acl), sampled) & valid
+    lo, hi = _merge(edges, upper, stable)
+    first_ok = stable[..., 0]
+    kmax = np.where(first_ok, hi[..., 0], 0.0)
+    return lo, hi, kmax
+
+
+def _merge(edges: Array, upper: Array, stable: NDArray[np.bool_]) -> tuple[Array, Array]:
+    """Join adjacent stable intervals (a crossing that touches but does not cross)."""
+    batch, m = stable.shape[:-1], stable.shape[-1]
+    flat_s = stable.reshape(-1, m)
+    flat_e, flat_u = edges.reshape(-1, m), upper.reshape(-1, m)
+    lo = np.full(flat_s.shape, np.nan)
+    hi = np.full(flat_s.shape, np.nan)
+    starts = flat_s & ~np.concatenate([np.zeros((flat_s.shape[0], 1), bool), flat_s[:, :-1]], 1)
+    ends = flat_s & ~np.concatenate([flat_s[:, 1:], np.zeros((flat_s.shape[0], 1), bool)], 1)
+    rank_s = np.cumsum(starts, axis=1) - 1
+    rows, cols = np.nonzero(starts)
+    lo[rows, rank_s[rows, cols]] = flat_e[rows, cols]
+    rows, cols = np.nonzero(ends)
+    hi[rows, rank_s[rows, cols]] = flat_u[rows, cols]
+    return lo.reshape(batch + (m,)), hi.reshape(batch + (m,))

@@ -1,0 +1,36 @@
+"""``dobhil analyze CONFIG [--set k=v]... [--json] [--plot DIR]``."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+from dobhil.cli.common import add_config_args, config_from_args
+
+
+def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+    p = sub.add_parser("analyze", help="analyse a design: poles, zeros, stable gains, margins, step")
+    add_config_args(p)
+    p.add_argument("--json", action="store_true", help="print one JSON object")
+    p.add_argument("--plot", metavar="DIR", type=Path, help="write root locus, step and Bode PNGs")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from dobhil.analysis.report import analyze, as_json, as_text
+    config = config_from_args(args)
+    result = analyze(config)
+    if args.json:
+        json.dump(as_json(result), sys.stdout)
+        sys.stdout.write("\n")
+    else:
+        print(as_text(result))
+    if args.plot:
+        from dobhil.plotting.figures import analysis_figures
+        paths = analysis_figures(result.continuous, result.discrete, args.plot,
+                                 f"({Path(args.config).stem})")
+        if not args.json:
+            print("wrote " + ", ".join(str(p) for p in paths))
+    return 0

@@ -1,0 +1,155 @@
+"""``dobhil log``: inspect, recover, export and import recordings.
+
+- ``dobhil log info FILE [--json]``
+- ``dobhil log recover FILE [-o OUT]``         (default OUT: ``FILE.recovered.mcap``)
+- ``dobhil log export FILE --topic T --format csv [-o OUT]``
+- ``dobhil log export FILE --can --format candump|asc|blf [-o OUT]``
+- ``dobhil log import CANLOG -o FILE.mcap``
+
+Bad input ends in one :class:`~dobhil.errors.LogFileError` line (exit 2). Progress
+bars go to stderr and only when it is a terminal.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any
+
+from dobhil.errors import LogFileError
+
+Progress = Callable[[int], None]
+
+
+@contextmanager
+def _progress(desc: str, total: int | None) -> Iterator[Progress]:
+    """A tqdm update function on stderr, silent when stderr is not a terminal."""
+    from tqdm import tqdm
+
+    with tqdm(total=total, desc=desc, unit="msg", file=sys.stderr, disable=not sys.stderr.isatty()) as bar:
+        yield bar.update
+
+
+def _total(path: str) -> int | None:
+    from dobhil.recording.reader import open_log
+
+    log = open_log(path)
+    return sum(c.message_count for c in log.channels()) if log.has_summary else None
+
+
+def _stamp(ns: int) -> str:
+    return datetime.fromtimestamp(ns / 1e9, tz=timezone.utc).isoformat(timespec="milliseconds")
+
+
+def _info_lines(info: Any) -> Iterator[str]:
+    yield f"file:       {info.path}{'' if info.has_summary else '  (no summary: scanned)'}"
+    yield f"messages:   {info.message_count}"
+    yield f"time:       {_stamp(info.start_ns)} .. {_stamp(info.end_ns)} ({info.duration_s:.3f} s)"
+    yield f"stop:       {info.stop_reason or '-'}"
+    if info.dropped is not None:
+        yield f"dropped:    {info.dropped}"
+    yield "channels:"
+    for c in info.channels:
+        yield f"  {c.topic:<20} {c.message_count:>10}  {c.schema_name} ({c.message_encoding})"
+    for name, record in info.metadata.items():
+        yield f"metadata {name}:"
+        yield from (f"  {k} = {v}" for k, v in record.items())
+    if info.attachments:
+        yield f"attachments: {', '.join(info.attachments)}"
+
+
+def _cmd_info(args: argparse.Namespace) -> int:
+    from dobhil.recording.reader import open_log
+
+    info = open_log(args.file).info()
+    if args.json:
+        print(json.dumps(info.to_dict(), indent=2))
+    else:
+        print("\n".join(_info_lines(info)))
+    return 0
+
+
+def _cmd_recover(args: argparse.Namespace) -> int:
+    from dobhil.recording.recover import recover
+
+    with _progress("recover", None) as update:
+        report = recover(args.file, args.output, progress=update)
+    print(f"recovered {report.message_count} messages to {report.output} ({report.stopped_because})")
+    if report.message_count:
+        print(f"time: {_stamp(report.start_ns)} .. {_stamp(report.end_ns)} ({report.duration_s:.3f} s)")
+    for topic, count in report.counts:
+        print(f"  {topic:<20} {count:>10}")
+    if report.skipped_chunks:
+        print(f"skipped {report.skipped_chunks} damaged chunks")
+    return 0
+
+
+def _cmd_export(args: argparse.Namespace) -> int:
+    if args.can == (args.topic is not None):
+        raise LogFileError("give exactly one of --topic T or --can")
+    return _export_can(args) if args.can else _export_topic(args)
+
+
+def _export_topic(args: argparse.Namespace) -> int:
+    from dobhil.recording.export import default_output, export_csv
+
+    if args.format != "csv":
+        raise LogFileError(f"--topic exports only --format csv, got {args.format!r}")
+    out = args.output or default_output(args.file, args.topic)
+    with _progress("export", _total(args.file)) as update:
+        count = export_csv(args.file, args.topic, out, progress=update)
+    print(f"wrote {count} rows of {args.topic} to {out}")
+    return 0
+
+
+def _export_can(args: argparse.Namespace) -> int:
+    from dobhil.recording.canlog import default_output, export_can, parse_format
+
+    fmt = parse_format(args.format)
+    out = args.output or default_output(args.file, fmt)
+    with _progress("export", _total(args.file)) as update:
+        count = export_can(args.file, out, fmt, progress=update)
+    print(f"wrote {count} CAN frames to {out}")
+    return 0
+
+
+def _cmd_import(args: argparse.Namespace) -> int:
+    from dobhil.recording.canlog import import_can
+
+    if Path(args.output).resolve() == Path(args.canlog).resolve():
+        raise LogFileError(f"{args.output}: output is the input file")
+    with _progress("import", None) as update:
+        count = import_can(args.canlog, args.output, progress=update)
+    print(f"imported {count} CAN frames to {args.output}")
+    return 0
+
+
+def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+    """Add ``dobhil log`` and its sub-subcommands."""
+    parser = subparsers.add_parser("log", help="inspect, recover, export and import recordings")
+    sub = parser.add_subparsers(dest="log_command", metavar="ACTION")
+    sub.required = True
+    info = sub.add_parser("info", help="channels, counts, duration, metadata, stop reason")
+    info.add_argument("file")
+    info.add_argument("--json", action="store_true", help="print JSON")
+    info.set_defaults(func=_cmd_info)
+    rec = sub.add_parser("recover", help="salvage a recording cut short into a new file")
+    rec.add_argument("file")
+    rec.add_argument("-o", "--output", help="output (default FILE.recovered.mcap)")
+    rec.set_defaults(func=_cmd_recover)
+    exp = sub.add_parser("export", help="one topic to CSV, or CAN frames to candump/asc/blf")
+    exp.add_argument("file")
+    exp.add_argument("--topic", help="topic to export as CSV")
+    exp.add_argument("--can", action="store_true", help="export /can/rx and /can/tx frames")
+    exp.add_argument("--format", required=True, choices=("csv", "candump", "asc", "blf"))
+    exp.add_argument("-o", "--output", help="output file (default next to FILE)")
+    exp.set_defaults(func=_cmd_export)
+    imp = sub.add_parser("import", help="record a python-can readable CAN log as MCAP")
+    imp.add_argument("canlog")
+    imp.add_argument("-o", "--output", required=True, help="MCAP file to write")
+    imp.set_defaults(func=_cmd_import)

@@ -1,0 +1,1 @@
+"""PNG figures (matplotlib, Agg backend, imported only when a plot is asked for)."""

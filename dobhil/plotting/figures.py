@@ -1,0 +1,133 @@
+"""Root locus, step response, Bode and sweep heat-map figures for reports.
+
+Computing is elsewhere (:mod:`dobhil.analysis`); these functions only draw.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+if TYPE_CHECKING:
+    from matplotlib.axes import Axes
+    from matplotlib.figure import Figure
+
+    from dobhil.analysis.report import DomainAnalysis
+
+
+def _plt():  # type: ignore[no-untyped-def]
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    return plt
+
+
+def save(fig: Figure, path: Path) -> Path:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=150, bbox_inches="tight")
+    _plt().close(fig)
+    return path
+
+
+def locus_points(d: DomainAnalysis, num: int = 1500) -> tuple[np.ndarray, np.ndarray]:
+    """(gains, closed-loop poles per gain) covering the crossings of the design."""
+    a, b, c, _ = d.systems.open.siso("tau_per", "tau_int_hat")
+    cross = d.gains.crossings[~np.isnan(d.gains.crossings)]
+    ref = float(np.median(cross)) if cross.size else max(float(d.params.value("force_gain")), 1.0)
+    k = np.unique(np.concatenate([np.logspace(np.log10(ref) - 4, np.log10(ref) + 3, num), cross]))
+    return k, np.linalg.eigvals(a[None] - k[:, None, None] * (b @ c)[None])
+
+
+def root_locus(ax: Axes, d: DomainAnalysis, title: str = "") -> None:
+    k, poles = locus_points(d)
+    g = d.gains
+    if d.sampled:
+        th = np.linspace(0, 2 * np.pi, 400)
+        ax.plot(np.cos(th), np.sin(th), color="0.6", lw=0.8, ls="--", label="unit circle")
+    else:
+        ax.axvline(0.0, color="0.6", lw=0.8, ls="--")
+    ax.plot(poles.real, poles.imag, ".", ms=1.2, color="tab:blue")
+    ol, zz = g.poles, g.zeros[~np.isnan(g.zeros)]
+    ax.plot(ol.real, ol.imag, "x", ms=8, mew=2, color="k", label="open-loop poles")
+    ax.plot(zz.real, zz.imag, "o", ms=8, mfc="none", mew=1.5, color="tab:red", label="zeros")
+    cf = float(d.params.value("force_gain"))
+    ax.plot(d.closed_loop_poles.real, d.closed_loop_poles.imag, "s", ms=5, color="tab:green",
+            label=f"poles at C_f = {cf:g}")
+    kmax = float(g.max_stable_gain)
+    sub = "unbounded C_f" if np.isinf(kmax) else f"max stable C_f = {kmax:.4g}"
+    ax.set_title(f"{title}\n{sub}" if title else sub, fontsize=9)
+    ax.set_xlabel("Re(z)" if d.sampled else "Re(s) [rad/s]")
+    ax.set_ylabel("Im(z)" if d.sampled else "Im(s) [rad/s]")
+    _limits(ax, np.concatenate([ol, zz, d.closed_loop_poles]), d.sampled)
+    ax.grid(True, alpha=0.3)
+    ax.legend(fontsize=7, loc="best")
+
+
+def _limits(ax: Axes, pts: np.ndarray, sampled: bool) -> None:
+    if sampled:
+        r = max(1.2, float(np.abs(pts).max()) * 1.1)
+        ax.set_xlim(-r, r)
+        ax.set_ylim(-r, r)
+        ax.set_aspect("equal")
+        return
+    r = float(np.abs(pts).max()) * 1.3 or 1.0
+    ax.set_xlim(-r, 0.6 * r)
+    ax.set_ylim(-r, r)
+
+
+def step_plot(ax: Axes, d: DomainAnalysis, label: str = "") -> None:
+    if not d.stable:
+        ax.text(0.5, 0.5, "closed loop unstable", transform=ax.transAxes, ha="center")
+        return
+    t = d.step_time * 1e3
+    style = {"drawstyle": "steps-post"} if d.sampled else {}
+    ax.plot(t, d.step_estimate, label=label or "estimated interaction torque", **style)
+
+
+def bode(axes: tuple[Axes, Axes], sys, label: str) -> None:  # type: ignore[no-untyped-def]
+    import control
+    nyq = np.pi / sys.dt if sys.dt else 1e5
+    w = np.logspace(0, np.log10(nyq * 0.999), 600)
+    resp = control.frequency_response(sys, w)
+    mag = np.abs(np.asarray(resp.complex).reshape(-1))
+    ph = np.unwrap(np.angle(np.asarray(resp.complex).reshape(-1))) * 180 / np.pi
+    axes[0].semilogx(w, 20 * np.log10(np.maximum(mag, 1e-300)), label=label)
+    axes[1].semilogx(w, ph, label=label)
+
+
+def analysis_figures(continuous: DomainAnalysis, discrete: DomainAnalysis, out: Path,
+                     title: str = "") -> list[Path]:
+    """root_locus.png, step.png and bode.png for a design, continuous beside sampled."""
+    plt = _plt()
+    paths = []
+    fig, ax = plt.subplots(1, 2, figsize=(11, 5))
+    root_locus(ax[0], continuous, "continuous (paper)")
+    root_locus(ax[1], discrete, f"sampled, T = {discrete.sample_time:g} s")
+    fig.suptitle(f"Root locus of 1 + C_f L {title}")
+    paths.append(save(fig, out / "root_locus.png"))
+    fig, ax = plt.subplots(figsize=(7, 4.5))
+    step_plot(ax, continuous, "estimated tau_int (continuous)")
+    step_plot(ax, discrete, "estimated tau_int (sampled)")
+    if continuous.stable:
+        ax.plot(continuous.step_time * 1e3, continuous.step_true, "--", label="true tau_int (continuous)")
+    ax.set_xlabel("time [ms]")
+    ax.set_ylabel("interaction torque / reference")
+    ax.set_title(f"Unit step of tau_int^ref {title}")
+    ax.grid(True, alpha=0.3)
+    ax.legend(fontsize=8)
+    paths.append(save(fig, out / "step.png"))
+    fig, ax = plt.subplots(2, 1, figsize=(7, 6), sharex=True)
+    cf = float(continuous.params.value("force_gain")) or 1.0
+    bode((ax[0], ax[1]), cf * continuous.systems.system("open_loop"), "C_f L(s)")
+    bode((ax[0], ax[1]), cf * discrete.systems.system("open_loop"), "C_f L(z)")
+    ax[0].set_ylabel("magnitude [dB]")
+    ax[1].set_ylabel("phase [deg]")
+    ax[1].set_xlabel("frequency [rad/s]")
+    for a in ax:
+        a.grid(True, which="both", alpha=0.3)
+    ax[0].legend(fontsize=8)
+    ax[0].set_title(f"Open loop C_f L {title}")
+    paths.append(save(fig, out / "bode.png"))
+    return paths
