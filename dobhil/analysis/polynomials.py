@@ -84,10 +84,10 @@ def zeros_and_numerator(a: Array, b: Array, c: Array) -> tuple[CArray, Array, ND
 
 
 def eval_poly(coef: Array, x: CArray) -> CArray:
-    """Horner evaluation of batched coefficients at batched points x (same batch)."""
-    out = np.zeros(np.broadcast_shapes(coef.shape[:-1], x.shape), dtype=complex)
+    """Horner evaluation: coefficients batch + (n+1,) at points batch + (m,)."""
+    out = np.zeros(x.shape, dtype=complex)
     for j in range(coef.shape[-1]):
-        out = out * x + coef[..., j]
+        out = out * x + coef[..., j, None]
     return out
 
 

@@ -1,0 +1,342 @@
+"""The drive boundary: public methods here, protocol hooks in each subclass.
+
+Like python-can's ``BusABC.recv()`` / ``_recv_internal()``: :class:`Drive` owns timeouts,
+state and safety (enable handshake wait, fault detection, a ``disable()`` that never
+raises); a protocol module fills in :meth:`Drive._enable_frames`,
+:meth:`Drive._disable_frames`, :meth:`Drive._torque_frame`, :meth:`Drive._decode` and
+optionally :meth:`Drive._is_enabled_confirmation`.
+
+Protocol modules report what they decode as protocol-neutral events:
+:class:`MotionEvent` (position/velocity in rad, rad/s) and :class:`StateEvent`
+(whether the drive follows torque commands, its error code, and text for messages).
+
+Hot path (``send_torque``, ``poll``): no logging, no printing, no blocking beyond the
+given timeout; the torque frame may be a preallocated message the hook refills.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from abc import ABC, abstractmethod
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from enum import IntEnum
+from typing import ClassVar, Union
+
+import can
+
+from dobhil.drives.profile import DriveProfile
+from dobhil.errors import BusError, DriveError, DriveFaultError, DriveTimeoutError
+
+__all__ = [
+    "Drive",
+    "DriveEvent",
+    "DriveState",
+    "DriveStatus",
+    "Feedback",
+    "MotionEvent",
+    "StateEvent",
+]
+
+Clock = Callable[[], float]
+
+
+class DriveState(IntEnum):
+    DISABLED = 0
+    ENABLED = 1
+    FAULT = 2
+
+
+@dataclass(frozen=True, slots=True)
+class Feedback:
+    """Newest motion sample. ``timestamp``: drive clock [s] when the frame was read."""
+
+    timestamp: float
+    position: float  # rad
+    velocity: float  # rad/s
+    seq: int  # counts motion frames received from this drive
+
+
+@dataclass(frozen=True, slots=True)
+class DriveStatus:
+    state: DriveState
+    error_code: int = 0
+    watchdog_tripped: bool = False
+    last_heartbeat: float | None = None  # drive clock [s]
+    detail: str = ""  # last fault / enable / disable-failure text, one line
+
+
+@dataclass(frozen=True, slots=True)
+class MotionEvent:
+    position: float  # rad
+    velocity: float  # rad/s
+
+
+@dataclass(frozen=True, slots=True)
+class StateEvent:
+    active: bool  # the drive follows torque commands (e.g. ODrive CLOSED_LOOP_CONTROL)
+    error_code: int
+    watchdog_tripped: bool
+    state_text: str  # e.g. "IDLE"
+    error_text: str  # e.g. "0x01000000 (WATCHDOG_TIMER_EXPIRED)"
+
+
+DriveEvent = Union[MotionEvent, StateEvent]
+_NO_EVENTS: tuple[DriveEvent, ...] = ()
+
+
+class Drive(ABC):
+    """One servo drive on a python-can bus, commanded in torque [Nm].
+
+    The bus is borrowed, not owned: the caller shuts it down. ``clock`` is the time
+    source of timeouts and timestamps (``time.monotonic`` by default; a lockstep
+    emulator passes its simulated clock).
+    """
+
+    protocol: ClassVar[str] = ""
+    active_state_text: ClassVar[str] = "enabled"
+
+    def __init__(
+        self, bus: can.BusABC, profile: DriveProfile, *, clock: Clock = time.monotonic
+    ) -> None:
+        self._bus = bus
+        self._profile = profile
+        self._clock = clock
+        self._state = DriveState.DISABLED
+        self._feedback: Feedback | None = None
+        self._seq = 0
+        self._last_state: StateEvent | None = None
+        self._last_heartbeat: float | None = None
+        self._detail = ""
+        self._status_cache: DriveStatus | None = None
+
+    # -- public API -----------------------------------------------------------
+
+    @property
+    def profile(self) -> DriveProfile:
+        return self._profile
+
+    @property
+    def node_id(self) -> int:
+        return self._profile.node_id
+
+    @property
+    def feedback(self) -> Feedback | None:
+        """Newest feedback seen so far (fresh or not)."""
+        return self._feedback
+
+    @property
+    def status(self) -> DriveStatus:
+        if self._status_cache is None:
+            last = self._last_state
+            self._status_cache = DriveStatus(
+                state=self._state,
+                error_code=last.error_code if last else 0,
+                watchdog_tripped=last.watchdog_tripped if last else False,
+                last_heartbeat=self._last_heartbeat,
+                detail=self._detail,
+            )
+        return self._status_cache
+
+    def enable(self, timeout: float | None = None) -> None:
+        """Run the enable handshake and wait for the drive to confirm it.
+
+        Raises DriveTimeoutError naming what was awaited and what was last seen,
+        BusError if the frames cannot be sent.
+        """
+        wait = self._profile.enable_timeout if timeout is None else timeout
+        self._set_state(DriveState.DISABLED, "")
+        self._last_state = None
+        self._send_all(self._enable_frames(), "enable")
+        if self._await_enabled(self._clock() + wait):
+            self._set_state(DriveState.ENABLED, "")
+            return
+        raise DriveTimeoutError(self._enable_timeout_text(wait))
+
+    def disable(self) -> bool:
+        """Zero torque, then the protocol's disable frames. Never raises.
+
+        Returns True if every frame was sent; otherwise the failure is in
+        ``status.detail`` and the host side is marked DISABLED anyway.
+        """
+        frames: list[can.Message] = []
+        try:
+            frames = [self._torque_frame(0.0), *self._disable_frames()]
+            for frame in frames:
+                self._bus.send(frame)
+        except Exception as exc:  # safety path: record, never throw
+            self._set_state(DriveState.DISABLED, f"disable of node {self.node_id} failed: {exc}")
+            return False
+        self._set_state(DriveState.DISABLED, "")
+        return True
+
+    def send_torque(self, tau_nm: float) -> None:
+        """Send one torque command [Nm]; non-blocking. Clamping is the controller's job."""
+        if not math.isfinite(tau_nm):
+            raise DriveError(f"torque: expected a finite value in Nm, got {tau_nm!r}")
+        if self._state is not DriveState.ENABLED:
+            self._raise_not_enabled()
+        try:
+            self._bus.send(self._torque_frame(tau_nm), 0.0)
+        except can.CanError as exc:
+            raise BusError(f"torque frame to node {self.node_id} not sent: {exc}") from exc
+
+    def poll(self, timeout: float) -> Feedback | None:
+        """Read frames for up to ``timeout`` s; return the newest fresh feedback or None.
+
+        Everything already queued is read first; the call returns as soon as a
+        motion frame has been read. Raises DriveFaultError while the drive is faulted.
+        """
+        fresh = self._drain()
+        if not fresh and timeout > 0:
+            fresh = self._wait_for_motion(self._clock() + timeout)
+        if self._state is DriveState.FAULT:
+            raise DriveFaultError(self._detail)
+        return self._feedback if fresh else None
+
+    def __enter__(self) -> Drive:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.disable()
+
+    # -- protocol hooks -------------------------------------------------------
+
+    @abstractmethod
+    def _enable_frames(self) -> Sequence[can.Message]:
+        """Frames of the enable handshake, in order."""
+
+    @abstractmethod
+    def _disable_frames(self) -> Sequence[can.Message]:
+        """Frames that take the drive out of torque control (after a zero torque)."""
+
+    @abstractmethod
+    def _torque_frame(self, tau_nm: float) -> can.Message:
+        """The torque command frame (may be a preallocated message, refilled)."""
+
+    @abstractmethod
+    def _decode(self, msg: can.Message) -> Sequence[DriveEvent]:
+        """Events in one received frame; () for frames not from this drive."""
+
+    def _keepalive_frames(self) -> Sequence[can.Message]:
+        """Frames repeated while enable() waits: keep the drive's watchdog fed and ask
+        for status. Default: a zero torque command."""
+        return (self._torque_frame(0.0),)
+
+    def _is_enabled_confirmation(self, event: StateEvent) -> bool:
+        """True if ``event`` confirms the enable handshake."""
+        return event.active and event.error_code == 0
+
+    # -- internals ------------------------------------------------------------
+
+    def _send_all(self, frames: Sequence[can.Message], what: str) -> None:
+        try:
+            for frame in frames:
+                self._bus.send(frame)
+        except can.CanError as exc:
+            raise BusError(f"{what} frames to node {self.node_id} not sent: {exc}") from exc
+
+    def _keepalive_interval(self) -> float:
+        watchdog = self._profile.watchdog_timeout
+        return watchdog / 4 if watchdog > 0 else self._profile.heartbeat_msg_rate
+
+    def _await_enabled(self, deadline: float) -> bool:
+        interval = self._keepalive_interval()
+        next_keepalive = self._clock()
+        while True:
+            now = self._clock()
+            if now >= deadline:
+                return False
+            if now >= next_keepalive:
+                self._send_all(self._keepalive_frames(), "keepalive")
+                next_keepalive = now + interval
+            msg = self._bus.recv(min(deadline, next_keepalive) - now)
+            if msg is not None and self._handle_for_enable(msg):
+                return True
+
+    def _drain(self) -> bool:
+        fresh = False
+        msg = self._bus.recv(0.0)
+        while msg is not None:
+            fresh = self._handle(msg) or fresh
+            msg = self._bus.recv(0.0)
+        return fresh
+
+    def _wait_for_motion(self, deadline: float) -> bool:
+        while True:
+            remaining = deadline - self._clock()
+            if remaining <= 0:
+                return False
+            msg = self._bus.recv(remaining)
+            if msg is None:
+                return False
+            if self._handle(msg):
+                return True
+
+    def _handle(self, msg: can.Message) -> bool:
+        """Apply one frame; True if it carried motion feedback."""
+        fresh = False
+        for event in self._decode(msg):
+            if isinstance(event, MotionEvent):
+                self._on_motion(event)
+                fresh = True
+            else:
+                self._on_state(event)
+        return fresh
+
+    def _handle_for_enable(self, msg: can.Message) -> bool:
+        confirmed = False
+        for event in self._decode(msg):
+            if isinstance(event, MotionEvent):
+                self._on_motion(event)
+            else:
+                self._record_state(event)
+                confirmed = confirmed or self._is_enabled_confirmation(event)
+        return confirmed
+
+    def _on_motion(self, event: MotionEvent) -> None:
+        self._seq += 1
+        self._feedback = Feedback(self._clock(), event.position, event.velocity, self._seq)
+
+    def _record_state(self, event: StateEvent) -> None:
+        self._last_state = event
+        self._last_heartbeat = self._clock()
+        self._status_cache = None
+
+    def _on_state(self, event: StateEvent) -> None:
+        self._record_state(event)
+        if self._state is not DriveState.ENABLED:
+            return
+        if event.error_code != 0 or not event.active:
+            self._set_state(DriveState.FAULT, self._fault_text(event))
+
+    def _fault_text(self, event: StateEvent) -> str:
+        what = "watchdog expired" if event.watchdog_tripped else "fault"
+        return (
+            f"node {self.node_id} {what}: expected {self.active_state_text} with no error, "
+            f"got {event.state_text} with error {event.error_text}"
+        )
+
+    def _set_state(self, state: DriveState, detail: str) -> None:
+        self._state = state
+        self._detail = detail
+        self._status_cache = None
+
+    def _raise_not_enabled(self) -> None:
+        if self._state is DriveState.FAULT:
+            raise DriveFaultError(self._detail)
+        raise DriveError(f"send_torque needs an enabled drive, node {self.node_id} is DISABLED")
+
+    def _enable_timeout_text(self, wait: float) -> str:
+        last = self._last_state
+        if last is None:
+            return (
+                f"no heartbeat from node {self.node_id} within {wait:g} s "
+                f"(waiting for {self.active_state_text})"
+            )
+        return (
+            f"node {self.node_id} not enabled within {wait:g} s: expected "
+            f"{self.active_state_text} with no error, last seen {last.state_text} "
+            f"with error {last.error_text}"
+        )

@@ -1,0 +1,107 @@
+"""ODrive CAN Simple drive (firmware 0.6 default, 0.5 via the profile's ``firmware``).
+
+Enable: Clear_Errors, Set_Controller_Mode(TORQUE_CONTROL, PASSTHROUGH), Set_Input_Torque(0),
+Set_Axis_State(CLOSED_LOOP_CONTROL); confirmed by a heartbeat in CLOSED_LOOP_CONTROL with
+Axis_Error 0. Disable: Set_Input_Torque(0), Set_Axis_State(IDLE). Feedback: the cyclic
+Get_Encoder_Estimates and Heartbeat frames (rates configured on the drive to match the
+profile). Layouts and error bits: :mod:`dobhil.drives.odrive.codec`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import ClassVar
+
+import can
+
+from dobhil.drives.base import Clock, Drive, DriveEvent, MotionEvent, StateEvent
+from dobhil.drives.odrive import codec
+from dobhil.drives.odrive.codec import AxisState, CmdId, ControlMode, Firmware, InputMode
+from dobhil.drives.profile import DriveProfile
+from dobhil.errors import CodecError, ConfigError
+
+__all__ = ["ODriveDrive"]
+
+_NO_EVENTS: tuple[DriveEvent, ...] = ()
+
+
+def _state_name(state: int) -> str:
+    return state.name if isinstance(state, AxisState) else f"state {state}"
+
+
+class ODriveDrive(Drive):
+    protocol: ClassVar[str] = "odrive"
+    active_state_text: ClassVar[str] = "CLOSED_LOOP_CONTROL"
+
+    def __init__(self, bus: can.BusABC, profile: DriveProfile, **kwargs: Clock) -> None:
+        super().__init__(bus, profile, **kwargs)
+        self._firmware = _firmware_of(profile)
+        if not 0 <= profile.node_id <= codec.MAX_NODE_ID:
+            raise ConfigError(f"node_id: expected 0..63 for ODrive, got {profile.node_id}")
+        self._watchdog_bit = codec.watchdog_bit(self._firmware)
+        self._heartbeat_id = codec.arbitration_id(profile.node_id, CmdId.HEARTBEAT)
+        self._encoder_id = codec.arbitration_id(profile.node_id, CmdId.GET_ENCODER_ESTIMATES)
+        self._heartbeat_spec = codec.spec_for(CmdId.HEARTBEAT, self._firmware)
+        self._encoder_spec = codec.spec_for(CmdId.GET_ENCODER_ESTIMATES, self._firmware)
+        self._torque_spec = codec.spec_for(CmdId.SET_INPUT_TORQUE, self._firmware)
+        self._torque_msg = self._encode(codec.SetInputTorque(0.0))
+
+    @property
+    def firmware(self) -> Firmware:
+        return self._firmware
+
+    def _encode(self, msg: object) -> can.Message:
+        return codec.encode(msg, node_id=self.node_id, firmware=self._firmware)
+
+    # -- hooks ----------------------------------------------------------------
+
+    def _enable_frames(self) -> Sequence[can.Message]:
+        return (
+            self._encode(codec.ClearErrors()),
+            self._encode(codec.SetControllerMode(ControlMode.TORQUE_CONTROL, InputMode.PASSTHROUGH)),
+            self._encode(codec.SetInputTorque(0.0)),
+            self._encode(codec.SetAxisState(AxisState.CLOSED_LOOP_CONTROL)),
+        )
+
+    def _disable_frames(self) -> Sequence[can.Message]:
+        return (self._encode(codec.SetAxisState(AxisState.IDLE)),)
+
+    def _keepalive_frames(self) -> Sequence[can.Message]:
+        """Zero torque (feeds the watchdog) and an RTR heartbeat request (fast confirmation)."""
+        return (self._torque_frame(0.0), self._encode(codec.Request(CmdId.HEARTBEAT)))
+
+    def _torque_frame(self, tau_nm: float) -> can.Message:
+        self._torque_spec.pack_into(self._torque_msg.data, tau_nm)
+        return self._torque_msg
+
+    def _decode(self, msg: can.Message) -> Sequence[DriveEvent]:
+        arb = msg.arbitration_id
+        if msg.is_extended_id or msg.is_remote_frame or msg.is_error_frame:
+            return _NO_EVENTS
+        try:
+            if arb == self._encoder_id and len(msg.data):
+                est = self._encoder_spec.decode_data(msg.data)
+                return (MotionEvent(est.position_rad, est.velocity_rad_s),)
+            if arb == self._heartbeat_id and len(msg.data):
+                return (self._state_event(self._heartbeat_spec.decode_data(msg.data)),)
+        except CodecError:
+            return _NO_EVENTS  # a malformed frame is not feedback; the next one will be
+        return _NO_EVENTS
+
+    def _state_event(self, hb: codec.Heartbeat) -> StateEvent:
+        return StateEvent(
+            active=hb.axis_state == AxisState.CLOSED_LOOP_CONTROL,
+            error_code=hb.axis_error,
+            watchdog_tripped=bool(hb.axis_error & self._watchdog_bit),
+            state_text=_state_name(hb.axis_state),
+            error_text=codec.describe_errors(hb.axis_error, self._firmware),
+        )
+
+
+def _firmware_of(profile: DriveProfile) -> Firmware:
+    try:
+        return Firmware.parse(profile.firmware)
+    except CodecError:
+        raise ConfigError(
+            f"firmware: expected '0.5' or '0.6' for ODrive, got {profile.firmware!r}"
+        ) from None

@@ -1,0 +1,125 @@
+"""Drive profiles: one frozen :class:`DriveProfile` per YAML file under ``drivers/``.
+
+``load_profile(name_or_path)`` accepts a path to a YAML file, or a profile name looked
+up as ``<drivers_dir>/<name>.yaml``. ``drivers/`` sits at the repository root, not inside
+the package, so the default directory is ``Path(__file__).resolve().parents[2] /
+"drivers"`` — right for a source checkout and an editable install; a wheel install
+must pass ``drivers_dir=`` or an explicit path. Every key is documented in
+``drivers/README.md``. Validation is protocol-neutral; each protocol checks its own
+values (e.g. ODrive firmware and node id range) when the drive is made.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from collections.abc import Mapping
+from dataclasses import dataclass, field, fields
+from pathlib import Path
+from types import MappingProxyType
+from typing import Any
+
+import yaml
+
+from dobhil.errors import ConfigError
+
+__all__ = ["DriveProfile", "default_drivers_dir", "load_profile", "profile_from_mapping"]
+
+
+@dataclass(frozen=True, kw_only=True)
+class DriveProfile:
+    """What the host must know about one drive. Times in s, torques in Nm, speeds in rad/s."""
+
+    protocol: str  # implementation name, e.g. "odrive"
+    firmware: str  # protocol-specific version string, e.g. "0.6"
+    node_id: int
+    torque_limit: float  # [Nm] drive-side clamp (emulator) and controller bound
+    velocity_limit: float  # [rad/s]
+    encoder_msg_rate: float  # [s] period of cyclic position/velocity frames
+    heartbeat_msg_rate: float  # [s] period of cyclic status frames
+    watchdog_timeout: float  # [s] drive-side command watchdog; 0 disables it
+    enable_timeout: float  # [s] default wait of Drive.enable()
+    bus: Mapping[str, Any] = field(default_factory=lambda: MappingProxyType({}), hash=False)
+    name: str = ""  # where the profile came from (file stem), for messages
+
+    def bus_kwargs(self) -> dict[str, Any]:
+        """Extra keyword arguments for ``can.Bus(...)`` (interface, channel, bitrate, ...)."""
+        return dict(self.bus)
+
+
+# key -> (accepted types, description of allowed values, check)
+_POSITIVE = ("a number > 0", lambda v: math.isfinite(v) and v > 0)
+_RULES: Mapping[str, tuple[tuple[type, ...], str, Any]] = MappingProxyType({
+    "protocol": ((str,), "a protocol name such as 'odrive'", lambda v: bool(v)),
+    "firmware": ((str,), "a quoted version string such as '0.6'", lambda v: bool(v)),
+    "node_id": ((int,), "an integer >= 0", lambda v: v >= 0),
+    "torque_limit": ((int, float), *_POSITIVE),
+    "velocity_limit": ((int, float), *_POSITIVE),
+    "encoder_msg_rate": ((int, float), *_POSITIVE),
+    "heartbeat_msg_rate": ((int, float), *_POSITIVE),
+    "watchdog_timeout": ((int, float), "a number >= 0 (0 disables)", lambda v: math.isfinite(v) and v >= 0),
+    "enable_timeout": ((int, float), *_POSITIVE),
+    "bus": ((dict,), "a mapping of can.Bus keyword arguments", lambda v: all(isinstance(k, str) for k in v)),
+    "name": ((str,), "a string", lambda v: True),
+})
+_OPTIONAL = frozenset({"bus", "name"})
+
+
+def default_drivers_dir() -> Path:
+    """``<repo>/drivers`` (source checkout / editable install)."""
+    return Path(__file__).resolve().parents[2] / "drivers"
+
+
+def _check_value(key: str, value: Any, source: str) -> Any:
+    types, allowed, ok = _RULES[key]
+    type_ok = isinstance(value, types) and not isinstance(value, bool)
+    if not type_ok or not ok(value):
+        raise ConfigError(f"{source}: {key}: expected {allowed}, got {value!r}")
+    if float in types:
+        return float(value)
+    if key == "bus":
+        return MappingProxyType(dict(value))
+    return value
+
+
+def profile_from_mapping(data: Mapping[str, Any], *, source: str = "<profile>") -> DriveProfile:
+    """Validate a mapping and build a DriveProfile; ConfigError names key, value and rule."""
+    if not isinstance(data, Mapping):
+        raise ConfigError(f"{source}: expected a mapping of profile keys, got {type(data).__name__}")
+    allowed = ", ".join(_RULES)
+    for key in data:
+        if key not in _RULES:
+            raise ConfigError(f"{source}: unknown key {key!r} (allowed: {allowed})")
+    for f in fields(DriveProfile):
+        if f.name not in data and f.name not in _OPTIONAL:
+            raise ConfigError(f"{source}: missing key {f.name!r} ({_RULES[f.name][1]})")
+    values = {key: _check_value(key, value, source) for key, value in data.items()}
+    return DriveProfile(**values)
+
+
+def _resolve(name_or_path: str | os.PathLike[str], drivers_dir: Path | None) -> Path:
+    text = os.fspath(name_or_path)
+    candidate = Path(text)
+    if candidate.suffix in (".yaml", ".yml") or os.sep in text or "/" in text:
+        if candidate.is_file():
+            return candidate
+        raise ConfigError(f"profile file {text!r} does not exist")
+    directory = drivers_dir if drivers_dir is not None else default_drivers_dir()
+    path = directory / f"{text}.yaml"
+    if path.is_file():
+        return path
+    known = sorted(p.stem for p in directory.glob("*.yaml")) if directory.is_dir() else []
+    raise ConfigError(f"drive profile {text!r}: expected one of {known} in {directory}")
+
+
+def load_profile(
+    name_or_path: str | os.PathLike[str], *, drivers_dir: Path | None = None
+) -> DriveProfile:
+    """Load ``drivers/<name>.yaml`` (or an explicit YAML path) into a DriveProfile."""
+    path = _resolve(name_or_path, drivers_dir)
+    try:
+        data = yaml.safe_load(path.read_text(encoding="utf-8"))
+    except (OSError, yaml.YAMLError) as exc:
+        raise ConfigError(f"{path}: cannot read drive profile: {exc}") from None
+    data = {"name": path.stem, **(data or {})} if isinstance(data, Mapping) else data
+    return profile_from_mapping(data, source=str(path))

@@ -1,0 +1,367 @@
+"""The exact servo and its environment, integrated for the emulator.
+
+The linear part is the analysis' model itself, not a copy of its equations:
+:func:`dobhil.synthesis.models.plant_matrices` (in contact) and
+:func:`dobhil.synthesis.models.servo_matrices` (free motion), discretised with
+:func:`dobhil.synthesis.controller.discretize` (zero-order hold, exact for an input
+held constant). With ``x = [q, dq]`` and ``e = q - q_c`` (``q_c`` the contact
+position)::
+
+    contact (e >= 0):  x' = A_env x + B (u - tau_d^u - tau_c),  tau_int = K e + D dq
+    free    (e <  0):  x' = A_srv x + B (u - tau_d^u - tau_c),  tau_int = 0
+
+``plant_matrices`` puts the environment's rest position at 0; the emulator keeps
+its state *relative to the contact position* (``e`` instead of ``q``), which is
+the exact change of variables (the free servo does not depend on ``q`` at all, so
+the same ``e`` serves both modes) and is better conditioned than adding
+``K q_c`` as a constant input. With ``q_c = 0`` the relative state is ``q``
+itself, bit for bit.
+
+The contact is linear while ``e >= 0``: the damper may pull (``tau_int < 0``
+while the servo retracts inside the environment). Clipping the force at 0 would
+be more physical but would make the emulator differ from the analysis model even
+when the servo starts in contact; keeping it linear makes the emulator *exactly*
+the analysed plant whenever it stays in contact, and the contact opens only when
+the position leaves the environment.
+
+Nonlinear parts are sub-stepped (``substeps`` per call, each with the input held):
+
+- the mode (contact or free) is taken at the start of each sub-step; a contact
+  transition is therefore placed with an error of at most one sub-step;
+- Coulomb friction ``tau_c = F_c sign(dq)`` with a Karnopp stiction band: when
+  ``|dq| <= v_s`` and the rest of the torque acting at zero velocity,
+  ``u - tau_d^u - K e`` (``K e`` in contact only), is within ``+-F_c`` the servo
+  sticks for the sub-step (``dq = 0``, ``q`` kept); inside the band but with a
+  larger torque, friction opposes that torque. ``v_s`` defaults to
+  ``2 F_c h / J`` (twice the velocity Coulomb friction alone removes in a
+  sub-step ``h``), so a servo decelerating to rest lands in the band instead of
+  chattering across zero;
+- the unknown disturbance ``tau_d^u(t)``: none, constant, step (``A`` from
+  ``start``) or sine (``A sin(2 pi f (t - start))`` from ``start``, 0 before),
+  sampled at the middle of each sub-step (exact for a step that starts on a
+  sub-step boundary, second order for the sine).
+
+When nothing nonlinear is active during a call (no Coulomb friction, the
+disturbance constant over the call, and the mode unchanged at the end of the
+call) the call is one exact ZOH step: with the servo in contact from the start it
+is bit for bit the analysis' discretised plant ``x+ = Phi x + Gamma (u - tau_d^u)``.
+A mode change inside such a call makes the call redo itself sub-stepped.
+
+The motor torque is clamped to ``plant.torque_limit`` and held over the call.
+Sensor side: :attr:`Plant.position` is the true position rounded to the nearest
+encoder count (``sensor.encoder_resolution`` counts per revolution, 0: exact);
+:attr:`Plant.velocity` is the true velocity plus Gaussian noise of standard
+deviation ``sensor.velocity_noise`` from ``numpy.random.default_rng(sensor.seed)``,
+one draw per call (and one at construction), so a run is reproducible whatever
+reads the sensors and how often. Both are plain attributes, refreshed by
+:meth:`Plant.step`.
+
+Hot path: the 2x2 ZOH matrices of each mode are precomputed per ``dt`` (and per
+sub-step) with the synthesis functions and unpacked to Python floats; a call does
+scalar arithmetic only.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from enum import IntEnum
+
+import numpy as np
+
+from dobhil.config.schema import Config
+from dobhil.synthesis.controller import discretize
+from dobhil.synthesis.models import plant_matrices, servo_matrices
+from dobhil.synthesis.params import Discretization
+
+__all__ = ["DisturbanceKind", "Plant", "PlantTruth", "Propagator"]
+
+_NOISE_BLOCK = 1024    # velocity noise is drawn in blocks of this many samples
+_CACHE_SIZE = 64       # distinct dt values whose ZOH matrices are kept
+
+
+class DisturbanceKind(IntEnum):
+    """Profile of the unknown disturbance torque tau_d^u (``plant.disturbance``)."""
+
+    NONE = 0
+    CONSTANT = 1
+    STEP = 2
+    SINE = 3
+
+
+@dataclass(frozen=True)
+class PlantTruth:
+    """Ground truth of the emulated plant at one instant (SI units)."""
+
+    q: float          # true position [rad]
+    dq: float         # true velocity [rad/s]
+    tau_motor: float  # motor torque applied over the last step, after the clamp [N m]
+    tau_int: float    # interaction torque with the environment [N m]
+    t: float          # emulator time [s]
+
+
+@dataclass(frozen=True)
+class Propagator:
+    """ZOH of one mode over one interval: ``x+ = [[p00, p01], [p10, p11]] x + [g0, g1] w``."""
+
+    p00: float
+    p01: float
+    p10: float
+    p11: float
+    g0: float
+    g1: float
+
+    @classmethod
+    def of(cls, a: np.ndarray, b: np.ndarray, h: float) -> Propagator:
+        phi, gamma = discretize(a, b, h, Discretization.ZOH)
+        return cls(float(phi[0, 0]), float(phi[0, 1]), float(phi[1, 0]), float(phi[1, 1]),
+                   float(gamma[0, 0]), float(gamma[1, 0]))
+
+
+@dataclass(frozen=True)
+class _Step:
+    """Everything a call with one ``dt`` needs."""
+
+    free: Propagator       # whole dt, free motion
+    contact: Propagator    # whole dt, in contact
+    free_sub: Propagator   # one sub-step
+    contact_sub: Propagator
+    h: float               # sub-step length
+    stiction: float        # stiction band v_s [rad/s]
+
+
+class Plant:
+    """The emulated servo plus environment (see the module docstring)."""
+
+    position: float  # measured position [rad] (quantised)
+    velocity: float  # measured velocity [rad/s] (noisy)
+
+    def __init__(self, *, inertia: float, viscous_friction: float = 0.0,
+                 coulomb_friction: float = 0.0, torque_limit: float = math.inf,
+                 stiffness: float = 0.0, damping: float = 0.0, contact_position: float = 0.0,
+                 initial_position: float = 0.0,
+                 disturbance: DisturbanceKind = DisturbanceKind.NONE,
+                 disturbance_amplitude: float = 0.0, disturbance_frequency: float = 1.0,
+                 disturbance_start: float = 0.0, encoder_resolution: int = 0,
+                 velocity_noise: float = 0.0, seed: int = 0, substeps: int = 10,
+                 stiction_velocity: float | None = None) -> None:
+        if inertia <= 0:
+            raise ValueError(f"inertia: expected > 0 kg m^2, got {inertia}")
+        if substeps < 1:
+            raise ValueError(f"substeps: expected >= 1, got {substeps}")
+        if torque_limit <= 0:
+            raise ValueError(f"torque_limit: expected > 0 N m, got {torque_limit}")
+        self.inertia = float(inertia)
+        self.viscous_friction = float(viscous_friction)
+        self.coulomb_friction = float(coulomb_friction)
+        self.torque_limit = float(torque_limit)
+        self.stiffness = float(stiffness)
+        self.damping = float(damping)
+        self.contact_position = float(contact_position)
+        self.initial_position = float(initial_position)
+        self.disturbance = DisturbanceKind(disturbance)
+        self.disturbance_amplitude = float(disturbance_amplitude)
+        self.disturbance_frequency = float(disturbance_frequency)
+        self.disturbance_start = float(disturbance_start)
+        self.encoder_resolution = int(encoder_resolution)
+        self.velocity_noise = float(velocity_noise)
+        self.seed = int(seed)
+        self.substeps = int(substeps)
+        self.stiction_velocity = stiction_velocity
+        self._a_free, self._b_free = servo_matrices(self.inertia, self.viscous_friction)
+        self._a_contact, self._b_contact, _ = plant_matrices(
+            self.inertia, self.viscous_friction, self.stiffness, self.damping)
+        self._count = (2.0 * math.pi / self.encoder_resolution) if self.encoder_resolution else 0.0
+        self._omega = 2.0 * math.pi * self.disturbance_frequency
+        self._cache: dict[float, _Step] = {}
+        self._dt = math.nan
+        self._zoh: _Step | None = None
+        self.reset()
+
+    @classmethod
+    def from_config(cls, config: Config, *, substeps: int = 10,
+                    stiction_velocity: float | None = None) -> Plant:
+        """The plant of ``config.plant``, ``config.environment`` and ``config.sensor``."""
+        p, env, s = config.plant, config.environment, config.sensor
+        return cls(inertia=p.inertia, viscous_friction=p.viscous_friction,
+                   coulomb_friction=p.coulomb_friction, torque_limit=p.torque_limit,
+                   stiffness=env.stiffness, damping=env.damping,
+                   contact_position=env.contact_position, initial_position=p.initial_position,
+                   disturbance=DisturbanceKind[p.disturbance.upper()],
+                   disturbance_amplitude=p.disturbance_amplitude,
+                   disturbance_frequency=p.disturbance_frequency,
+                   disturbance_start=p.disturbance_start,
+                   encoder_resolution=s.encoder_resolution, velocity_noise=s.velocity_noise,
+                   seed=s.seed, substeps=substeps, stiction_velocity=stiction_velocity)
+
+    # -- state ----------------------------------------------------------------
+
+    def reset(self) -> None:
+        """Back to the initial position, at rest, time 0, the noise sequence restarted."""
+        self._e = self.initial_position - self.contact_position
+        self._dq = 0.0
+        self._t = 0.0
+        self._tau_motor = 0.0
+        self._tau_coulomb = 0.0
+        self._rng = np.random.default_rng(self.seed)
+        self._noise: list[float] = []
+        self._noise_index = 0
+        self._sense()
+
+    @property
+    def time(self) -> float:
+        return self._t
+
+    @property
+    def true_position(self) -> float:
+        return self._e + self.contact_position
+
+    @property
+    def true_velocity(self) -> float:
+        return self._dq
+
+    @property
+    def in_contact(self) -> bool:
+        return self._e >= 0.0
+
+    @property
+    def motor_torque(self) -> float:
+        """Torque applied over the last step (after the clamp)."""
+        return self._tau_motor
+
+    @property
+    def friction_torque(self) -> float:
+        """Coulomb friction torque over the last sub-step (opposing the motion)."""
+        return self._tau_coulomb
+
+    @property
+    def interaction_torque(self) -> float:
+        """``K (q - q_c) + D dq`` in contact, 0 in free motion."""
+        e = self._e
+        return self.stiffness * e + self.damping * self._dq if e >= 0.0 else 0.0
+
+    @property
+    def disturbance_torque(self) -> float:
+        """tau_d^u at the current time."""
+        return self.disturbance_at(self._t)
+
+    def truth(self) -> PlantTruth:
+        return PlantTruth(q=self.true_position, dq=self._dq, tau_motor=self._tau_motor,
+                          tau_int=self.interaction_torque, t=self._t)
+
+    def disturbance_at(self, t: float) -> float:
+        """The disturbance profile tau_d^u(t)."""
+        kind = self.disturbance
+        if kind is DisturbanceKind.NONE:
+            return 0.0
+        if kind is DisturbanceKind.CONSTANT:
+            return self.disturbance_amplitude
+        if t < self.disturbance_start:
+            return 0.0
+        if kind is DisturbanceKind.STEP:
+            return self.disturbance_amplitude
+        return self.disturbance_amplitude * math.sin(self._omega * (t - self.disturbance_start))
+
+    # -- integration ----------------------------------------------------------
+
+    def step(self, torque_nm: float, dt: float) -> None:
+        """Advance ``dt`` seconds with the motor torque ``torque_nm`` (clamped) held."""
+        lim = self.torque_limit
+        u = lim if torque_nm > lim else (-lim if torque_nm < -lim else float(torque_nm))
+        self._tau_motor = u
+        zoh = self._zoh if dt == self._dt else self._load(dt)
+        t0 = self._t
+        tau_d = self._constant_disturbance(t0, dt)
+        if tau_d is None or self.coulomb_friction or not self._exact_step(u - tau_d, zoh):
+            self._substeps(u, tau_d, t0, zoh)
+        self._t = t0 + dt
+        self._sense()
+
+    def _exact_step(self, w: float, zoh: _Step) -> bool:
+        """One ZOH step in the current mode; False (state untouched) if the mode changed."""
+        e, dq = self._e, self._dq
+        contact = e >= 0.0
+        p = zoh.contact if contact else zoh.free
+        ne = p.p00 * e + p.p01 * dq + p.g0 * w
+        if (ne >= 0.0) is not contact:
+            return False
+        self._e = ne
+        self._dq = p.p10 * e + p.p11 * dq + p.g1 * w
+        self._tau_coulomb = 0.0
+        return True
+
+    def _constant_disturbance(self, t0: float, dt: float) -> float | None:
+        """tau_d^u if it is constant over ``[t0, t0 + dt]``, else None."""
+        kind = self.disturbance
+        if kind is DisturbanceKind.NONE:
+            return 0.0
+        if kind is DisturbanceKind.CONSTANT:
+            return self.disturbance_amplitude
+        if kind is DisturbanceKind.STEP and not t0 < self.disturbance_start < t0 + dt:
+            return self.disturbance_at(t0 + 0.5 * dt)
+        return None
+
+    def _substeps(self, u: float, tau_d: float | None, t0: float, zoh: _Step) -> None:
+        """``substeps`` ZOH sub-steps; ``tau_d`` the disturbance if constant over the call."""
+        e, dq = self._e, self._dq
+        h, vs, fc = zoh.h, zoh.stiction, self.coulomb_friction
+        k = self.stiffness
+        pc, pf = zoh.contact_sub, zoh.free_sub
+        tau_c = 0.0
+        for i in range(self.substeps):
+            w = u - (tau_d if tau_d is not None else self.disturbance_at(t0 + (i + 0.5) * h))
+            contact = e >= 0.0
+            if fc > 0.0:
+                if dq > vs:
+                    tau_c = fc
+                elif dq < -vs:
+                    tau_c = -fc
+                else:
+                    f = w - k * e if contact else w
+                    if -fc <= f <= fc:     # stuck: friction balances f
+                        dq = 0.0
+                        tau_c = f
+                        continue
+                    tau_c = fc if f > 0.0 else -fc
+                w -= tau_c
+            p = pc if contact else pf
+            e, dq = (p.p00 * e + p.p01 * dq + p.g0 * w,
+                     p.p10 * e + p.p11 * dq + p.g1 * w)
+        self._e, self._dq, self._tau_coulomb = e, dq, tau_c
+
+    def _load(self, dt: float) -> _Step:
+        """The ZOH matrices for ``dt`` (cached)."""
+        if not dt > 0.0:
+            raise ValueError(f"dt: expected > 0 s, got {dt}")
+        zoh = self._cache.get(dt)
+        if zoh is None:
+            if len(self._cache) >= _CACHE_SIZE:
+                self._cache.clear()
+            h = dt / self.substeps
+            vs = (self.stiction_velocity if self.stiction_velocity is not None
+                  else 2.0 * self.coulomb_friction * h / self.inertia)
+            zoh = _Step(free=Propagator.of(self._a_free, self._b_free, dt),
+                        contact=Propagator.of(self._a_contact, self._b_contact, dt),
+                        free_sub=Propagator.of(self._a_free, self._b_free, h),
+                        contact_sub=Propagator.of(self._a_contact, self._b_contact, h),
+                        h=h, stiction=vs)
+            self._cache[dt] = zoh
+        self._dt, self._zoh = dt, zoh
+        return zoh
+
+    # -- sensors --------------------------------------------------------------
+
+    def _sense(self) -> None:
+        q = self._e + self.contact_position
+        c = self._count
+        self.position = round(q / c) * c if c else q
+        noise = self.velocity_noise
+        self.velocity = self._dq + noise * self._draw() if noise else self._dq
+
+    def _draw(self) -> float:
+        i = self._noise_index
+        if i >= len(self._noise):
+            self._noise = self._rng.standard_normal(_NOISE_BLOCK).tolist()
+            i = 0
+        self._noise_index = i + 1
+        return self._noise[i]

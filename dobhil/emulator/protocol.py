@@ -1,0 +1,320 @@
+"""Emulated drive, protocol side: a real participant on a python-can bus.
+
+:class:`EmulatedDrive` owns its bus, answers frames addressed to its node and keeps the
+protocol state; the dynamics are injected as a :class:`PlantLike`. Each protocol
+subclass (``dobhil.emulator.odrive``) fills in the hooks :meth:`EmulatedDrive._on_frame`,
+:meth:`EmulatedDrive._on_time`, :meth:`EmulatedDrive._plant_torque` and
+:meth:`EmulatedDrive._cyclic_frames`.
+
+Two timing modes, one state machine:
+
+- **lockstep** (deterministic, no threads): :meth:`EmulatedDrive.handle_pending` applies
+  every frame already received without blocking; :meth:`EmulatedDrive.advance` steps the
+  plant ``dt`` with the current torque and emits the cyclic frames that fall due in that
+  interval. :class:`LockstepBus` is the host's view of such a bus: whenever the host
+  waits on ``recv(timeout)``, simulated time advances instead of wall time, so a
+  :class:`dobhil.drives.base.Drive` built with ``clock=lockstep_bus.clock`` runs its
+  timeouts in simulated seconds.
+- **real time**: :meth:`EmulatedDrive.start` runs a thread on absolute
+  ``time.perf_counter`` deadlines (period = the profile's encoder rate) with optional
+  seeded latency and jitter before received commands take effect; :meth:`EmulatedDrive.stop`
+  joins it and re-raises anything the thread raised.
+"""
+
+from __future__ import annotations
+
+import heapq
+import random
+import threading
+import time
+from abc import ABC, abstractmethod
+from collections.abc import Callable, Sequence
+from typing import Any, Protocol
+
+import can
+
+from dobhil.drives.profile import DriveProfile
+
+__all__ = ["EmulatedDrive", "LockstepBus", "PlantLike"]
+
+_EPS = 1e-9
+_MAX_LAG_PERIODS = 10  # real time: ticks later than this are skipped, not replayed
+
+
+class PlantLike(Protocol):
+    """The injected dynamics (not part of this package's protocol code)."""
+
+    position: float  # rad, measured
+    velocity: float  # rad/s, measured
+
+    def step(self, torque_nm: float, dt: float) -> None:
+        """Advance ``dt`` seconds with this motor torque."""
+
+
+class _Cyclic:
+    """One cyclic stream: emit at k * period for k = 1, 2, ..."""
+
+    __slots__ = ("period", "make", "index")
+
+    def __init__(self, period: float, make: Callable[[], can.Message]) -> None:
+        self.period = period
+        self.make = make
+        self.index = 1
+
+    def due(self, now: float) -> int:
+        count = 0
+        while self.index * self.period <= now + _EPS:
+            self.index += 1
+            count += 1
+        return count
+
+
+class EmulatedDrive(ABC):
+    """Base of emulated drives. The bus is owned: :meth:`close` shuts it down."""
+
+    def __init__(
+        self, bus: can.BusABC, profile: DriveProfile, plant: PlantLike, *,
+        latency: float = 0.0, jitter: float = 0.0, seed: int = 0,
+    ) -> None:
+        if latency < 0 or jitter < 0:
+            raise ValueError(f"latency and jitter: expected >= 0 s, got {latency}, {jitter}")
+        self._bus = bus
+        self._profile = profile
+        self._plant = plant
+        self._latency = latency
+        self._jitter = jitter
+        self._rng = random.Random(seed)
+        self._time = 0.0
+        self._delayed: list[tuple[float, int, can.Message]] = []
+        self._delay_seq = 0
+        self._last_apply = 0.0
+        self._cyclic: list[_Cyclic] = []
+        self._thread: threading.Thread | None = None
+        self._stop_event = threading.Event()
+        self._thread_error: BaseException | None = None
+        self.frames_received = 0
+        self.frames_sent = 0
+        self.send_errors = 0
+        self.overruns = 0
+
+    # -- observables ----------------------------------------------------------
+
+    @property
+    def profile(self) -> DriveProfile:
+        return self._profile
+
+    @property
+    def plant(self) -> PlantLike:
+        return self._plant
+
+    @property
+    def time(self) -> float:
+        """Emulator time [s]: simulated in lockstep, ticks * period in real time."""
+        return self._time
+
+    @property
+    def applied_torque(self) -> float:
+        """Torque [Nm] the plant receives now."""
+        return self._plant_torque()
+
+    # -- lockstep -------------------------------------------------------------
+
+    def handle_pending(self) -> int:
+        """Apply every frame already received (never blocks); returns how many were read."""
+        count = 0
+        msg = self._bus.recv(0.0)
+        while msg is not None:
+            count += 1
+            self._receive(msg, self._time)
+            msg = self._bus.recv(0.0)
+        self._apply_due(self._time)
+        return count
+
+    def advance(self, dt: float) -> None:
+        """Step the plant ``dt`` s with the current torque; emit cyclic frames due by then."""
+        if dt <= 0:
+            raise ValueError(f"dt: expected > 0 s, got {dt}")
+        self._plant.step(self._plant_torque(), dt)
+        self._time += dt
+        self._apply_due(self._time)
+        self._on_time(self._time)
+        self._emit_cyclic(self._time)
+
+    # -- real time ------------------------------------------------------------
+
+    def start(self) -> None:
+        """Run on a thread of its own (period = the profile's encoder rate)."""
+        if self._thread is not None:
+            raise RuntimeError("emulator already started")
+        self._stop_event.clear()
+        self._thread = threading.Thread(
+            target=self._run_guarded, name=f"{type(self).__name__}-node{self._profile.node_id}"
+        )
+        self._thread.start()
+
+    def stop(self, timeout: float = 2.0) -> None:
+        """Stop and join the thread; re-raise what it raised. No-op if not started."""
+        thread, self._thread = self._thread, None
+        if thread is None:
+            return
+        self._stop_event.set()
+        thread.join(timeout)
+        if thread.is_alive():
+            raise RuntimeError(f"{thread.name} did not stop within {timeout} s")
+        error, self._thread_error = self._thread_error, None
+        if error is not None:
+            raise error
+
+    @property
+    def running(self) -> bool:
+        return self._thread is not None
+
+    def close(self) -> None:
+        """Stop the thread (if any) and shut the owned bus down."""
+        try:
+            self.stop()
+        finally:
+            self._bus.shutdown()
+
+    def __enter__(self) -> EmulatedDrive:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # -- hooks ----------------------------------------------------------------
+
+    @abstractmethod
+    def _on_frame(self, msg: can.Message) -> None:
+        """Apply one received frame (ignore frames not addressed to this node)."""
+
+    @abstractmethod
+    def _on_time(self, now: float) -> None:
+        """Time-driven protocol behaviour at ``now`` (watchdogs)."""
+
+    @abstractmethod
+    def _plant_torque(self) -> float:
+        """Torque [Nm] applied to the plant in the current protocol state."""
+
+    @abstractmethod
+    def _cyclic_frames(self) -> Sequence[tuple[float, Callable[[], can.Message]]]:
+        """(period [s], frame factory) of each cyclic message."""
+
+    # -- helpers for subclasses -------------------------------------------------
+
+    def _send(self, msg: can.Message) -> None:
+        try:
+            self._bus.send(msg)
+        except can.CanError:
+            self.send_errors += 1
+            return
+        self.frames_sent += 1
+
+    # -- internals ------------------------------------------------------------
+
+    def _receive(self, msg: can.Message, now: float) -> None:
+        self.frames_received += 1
+        delay = self._latency + (self._rng.uniform(0.0, self._jitter) if self._jitter else 0.0)
+        if delay <= 0.0 and not self._delayed:
+            self._on_frame(msg)
+            return
+        apply_at = max(now + delay, self._last_apply)  # CAN keeps frame order
+        self._last_apply = apply_at
+        self._delay_seq += 1
+        heapq.heappush(self._delayed, (apply_at, self._delay_seq, msg))
+
+    def _apply_due(self, now: float) -> None:
+        while self._delayed and self._delayed[0][0] <= now + _EPS:
+            self._on_frame(heapq.heappop(self._delayed)[2])
+
+    def _emit_cyclic(self, now: float) -> None:
+        if not self._cyclic:
+            self._cyclic = [_Cyclic(p, make) for p, make in self._cyclic_frames()]
+        for stream in self._cyclic:
+            for _ in range(stream.due(now)):
+                self._send(stream.make())
+
+    def _run_guarded(self) -> None:
+        try:
+            self._run()
+        except BaseException as exc:  # surfaced by stop()
+            self._thread_error = exc
+
+    def _run(self) -> None:
+        period = self._profile.encoder_msg_rate
+        start = time.perf_counter()
+        tick = 1
+        while not self._stop_event.is_set():
+            tick_start = start + (tick - 1) * period
+            self._receive_until(start + tick * period, tick_start)
+            self.advance(period)
+            tick += 1
+            lag = time.perf_counter() - (start + tick * period)
+            if lag > _MAX_LAG_PERIODS * period:
+                skipped = int(lag / period)
+                tick += skipped
+                self.overruns += skipped
+
+    def _receive_until(self, deadline: float, tick_start: float) -> None:
+        while not self._stop_event.is_set():
+            remaining = deadline - time.perf_counter()
+            if remaining <= 0:
+                return
+            msg = self._bus.recv(remaining)
+            if msg is not None:
+                now = self._time + max(0.0, time.perf_counter() - tick_start)
+                self._receive(msg, now)
+                self._apply_due(now)
+
+
+class LockstepBus(can.BusABC):
+    """Host-side view of a bus shared with lockstep emulators.
+
+    ``recv(timeout)`` first lets every emulator apply what it received; if no frame is
+    waiting for the host it advances every emulator by ``dt`` and tries again, until
+    ``timeout`` simulated seconds have passed. ``recv(0)`` never advances time. The
+    wrapped bus is borrowed: :meth:`shutdown` leaves it open.
+    """
+
+    def __init__(
+        self, inner: can.BusABC, emulators: Sequence[EmulatedDrive], *, dt: float, **kwargs: Any
+    ) -> None:
+        if dt <= 0 or not emulators:
+            raise ValueError(f"LockstepBus needs dt > 0 and an emulator, got dt={dt}, {len(emulators)}")
+        self._inner = inner
+        self._emulators = tuple(emulators)
+        self._dt = dt
+        self.channel_info = f"lockstep over {inner.channel_info}"
+        super().__init__(channel=None, **kwargs)
+
+    def clock(self) -> float:
+        """Simulated time [s] (pass as ``clock=`` to the host's Drive)."""
+        return self._emulators[0].time
+
+    def step(self) -> None:
+        """One lockstep tick: every emulator applies pending frames, then advances ``dt``."""
+        for emulator in self._emulators:
+            emulator.handle_pending()
+        for emulator in self._emulators:
+            emulator.advance(self._dt)
+
+    def send(self, msg: can.Message, timeout: float | None = None) -> None:
+        self._inner.send(msg, timeout)
+
+    def recv(self, timeout: float | None = None) -> can.Message | None:
+        if timeout is None:
+            raise ValueError("LockstepBus.recv needs a finite timeout (simulated seconds)")
+        end = self.clock() + timeout
+        while True:
+            for emulator in self._emulators:
+                emulator.handle_pending()
+            msg = self._inner.recv(0.0)
+            if msg is not None:
+                return msg
+            if self.clock() + _EPS >= end:
+                return None
+            for emulator in self._emulators:
+                emulator.advance(self._dt)
+
+    def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
+        return self.recv(0.0 if timeout is None else timeout), False

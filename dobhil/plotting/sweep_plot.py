@@ -1,0 +1,51 @@
+"""Heat-map of the largest stable force gain over a swept grid."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from dobhil.analysis.sweep import SweepResult
+from dobhil.plotting.figures import _plt, save
+
+
+def heatmap(result: SweepResult, path: Path) -> Path:
+    plt = _plt()
+    from matplotlib.colors import LogNorm
+    k = result.max_stable_gain.astype(float)
+    finite = k[np.isfinite(k) & (k > 0)]
+    fig, ax = plt.subplots(figsize=(8, 6))
+    kind = "sampled" if result.sampled else "continuous"
+    if len(result.axes) == 1:
+        ax.semilogy(result.axes[0].values, np.where(np.isinf(k), np.nan, k), "-o", ms=3)
+        ax.set_xlabel(result.axes[0].key)
+        ax.set_ylabel("max stable C_f (gaps: unbounded)")
+    else:
+        x, y = result.axes[0], result.axes[1]
+        shown = np.where(np.isinf(k), np.nan, np.where(k > 0, k, np.nan))
+        norm = LogNorm(finite.min(), finite.max()) if finite.size and finite.max() > finite.min() else None
+        mesh = ax.pcolormesh(y.values, x.values, shown, shading="auto", cmap="viridis", norm=norm)
+        unb = np.isinf(k)
+        if unb.any():
+            ax.contourf(y.values, x.values, unb.astype(float), levels=[0.5, 1.5], colors="none",
+                        hatches=["//"])
+        if (result.interval_count > 1).any():
+            ax.contour(y.values, x.values, (result.interval_count > 1).astype(float), levels=[0.5],
+                       colors="red", linewidths=1.0)
+        ax.contour(y.values, x.values, result.stable.astype(float), levels=[0.5], colors="white",
+                   linewidths=1.5)
+        fig.colorbar(mesh, ax=ax, label="max stable C_f")
+        ax.set_xlabel(y.key)
+        ax.set_ylabel(x.key)
+        if _log_spaced(y.values):
+            ax.set_xscale("log")
+        if _log_spaced(x.values):
+            ax.set_yscale("log")
+    ax.set_title(f"Max stable force gain ({kind}); hatched: unbounded; white: stability at "
+                 f"the design C_f; red: conditionally stable", fontsize=9)
+    return save(fig, path)
+
+
+def _log_spaced(v: np.ndarray) -> bool:
+    return v.size > 2 and bool(np.all(v > 0)) and np.allclose(np.diff(np.log(v)), np.log(v[1] / v[0]))
