@@ -124,6 +124,11 @@ def _coerce_str(name: str, raw: Any, choices: tuple[str, ...]) -> str:
 
 
 def _coerce_number(name: str, raw: Any, kind: type) -> float | int:
+    if isinstance(raw, str):  # YAML 1.1 reads 1e-3 (no dot) as a string
+        try:
+            raw = float(raw)
+        except ValueError:
+            pass
     if isinstance(raw, bool) or not isinstance(raw, (int, float)):
         raise ConfigError(f"{name} = {raw!r}: wrong type {type(raw).__name__}; "
                           f"allowed: {'an integer' if kind is int else 'a number'}")

@@ -98,7 +98,7 @@ class ForceController:
             if self.measures_velocity:
                 raise ValueError("this controller measures the velocity: dq must be given")
             dq = 0.0
-        return self._kernel(self._xi, q, dq, tau_ref)
+        return self._kernel(self._xi, float(q), float(dq), float(tau_ref))
 
     def reset(self) -> None:
         """Observer state to zero."""

@@ -9,6 +9,7 @@ profile). Layouts and error bits: :mod:`dobhil.drives.odrive.codec`.
 
 from __future__ import annotations
 
+import time
 from collections.abc import Sequence
 from typing import ClassVar
 
@@ -33,8 +34,10 @@ class ODriveDrive(Drive):
     protocol: ClassVar[str] = "odrive"
     active_state_text: ClassVar[str] = "CLOSED_LOOP_CONTROL"
 
-    def __init__(self, bus: can.BusABC, profile: DriveProfile, **kwargs: Clock) -> None:
-        super().__init__(bus, profile, **kwargs)
+    def __init__(
+        self, bus: can.BusABC, profile: DriveProfile, *, clock: Clock = time.monotonic
+    ) -> None:
+        super().__init__(bus, profile, clock=clock)
         self._firmware = _firmware_of(profile)
         if not 0 <= profile.node_id <= codec.MAX_NODE_ID:
             raise ConfigError(f"node_id: expected 0..63 for ODrive, got {profile.node_id}")

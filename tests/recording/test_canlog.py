@@ -1,0 +1,96 @@
+"""CAN frames out to candump/ASC/BLF and back in, through python-can's own readers."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import can
+import pytest
+
+from dobhil.errors import LogFileError
+from dobhil.recording.canlog import CanLogFormat, default_output, export_can, import_can, parse_format
+from dobhil.recording.reader import open_log
+from dobhil.recording.recorder import Recorder, RecordMode
+from dobhil.recording.schemas import Direction
+
+T0 = 1_700_000_000.0
+
+FRAMES = (
+    (Direction.RX, can.Message(timestamp=T0, arbitration_id=0x123, data=bytes(range(8)), channel="can0")),
+    (Direction.TX, can.Message(timestamp=T0 + 0.001, arbitration_id=0x1ABCDEF, is_extended_id=True,
+                               data=b"\x01\x02\x03", channel="can0")),
+    (Direction.RX, can.Message(timestamp=T0 + 0.0015, arbitration_id=0x456, is_remote_frame=True, dlc=0,
+                               channel="can0")),
+    (Direction.TX, can.Message(timestamp=T0 + 0.002, arbitration_id=0x001, data=b"", channel="can0")),
+    (Direction.RX, can.Message(timestamp=T0 + 0.003, arbitration_id=0x7FF, is_fd=True, bitrate_switch=True,
+                               data=bytes(range(12)), channel="can0")),
+)
+
+#: Timestamp resolution of each format (candump and ASC write microseconds).
+RESOLUTION = {CanLogFormat.CANDUMP: 2e-6, CanLogFormat.ASC: 2e-6, CanLogFormat.BLF: 2e-6}
+
+
+def record(path: Path) -> Path:
+    with Recorder(path, metadata={}, mode=RecordMode.BACKPRESSURE) as rec:
+        for i, (direction, msg) in enumerate(FRAMES):
+            rec.write_frame(msg, direction, 1_000 + i)
+        rec.write("/drive/command", 1_000, {"torque": 0.0})
+    return path
+
+
+def key(msg: can.Message) -> tuple[object, ...]:
+    return (msg.arbitration_id, msg.is_extended_id, msg.is_remote_frame, msg.is_fd, msg.bitrate_switch,
+            bytes(msg.data), msg.is_rx)
+
+
+@pytest.mark.parametrize("fmt", list(CanLogFormat), ids=lambda f: f.name.lower())
+def test_export_reads_back_through_python_can(tmp_path: Path, fmt: CanLogFormat) -> None:
+    src = record(tmp_path / "run.mcap")
+    out = default_output(src, fmt)
+    assert export_can(src, out, fmt) == len(FRAMES)
+    back = list(can.LogReader(out))
+    assert [key(m) for m in back] == [key(m) if d == Direction.RX else key(_tx(m)) for d, m in FRAMES]
+    first = back[0].timestamp
+    for got, (_, want) in zip(back, FRAMES):
+        assert got.timestamp - first == pytest.approx(want.timestamp - T0, abs=RESOLUTION[fmt])
+
+
+def _tx(msg: can.Message) -> can.Message:
+    return can.Message(**{**{s: getattr(msg, s) for s in ("timestamp", "arbitration_id", "is_extended_id",
+                                                         "is_remote_frame", "is_fd", "bitrate_switch",
+                                                         "dlc", "data", "channel")}, "is_rx": False})
+
+
+@pytest.mark.parametrize("fmt", list(CanLogFormat), ids=lambda f: f.name.lower())
+def test_import_round_trip(tmp_path: Path, fmt: CanLogFormat) -> None:
+    src = record(tmp_path / "run.mcap")
+    canlog = default_output(src, fmt)
+    export_can(src, canlog, fmt)
+    assert import_can(canlog, tmp_path / "back.mcap") == len(FRAMES)
+    log = open_log(tmp_path / "back.mcap")
+    assert set(log.topics()) == {"/can/rx", "/can/tx"}
+    original = [(t, p["arbitration_id"], p["data"], p["is_remote_frame"], p["is_fd"])
+                for t, _, p in open_log(src).iter_messages(["/can/rx", "/can/tx"])]
+    imported = [(t, p["arbitration_id"], p["data"], p["is_remote_frame"], p["is_fd"])
+                for t, _, p in log.iter_messages()]
+    assert imported == original
+    assert log.metadata()["import"]["source"] == canlog.name
+
+
+def test_export_without_can_frames_and_bad_format(tmp_path: Path) -> None:
+    path = tmp_path / "run.mcap"
+    with Recorder(path, metadata={}, mode=RecordMode.LOSSY) as rec:
+        rec.write("/drive/command", 1, {"torque": 0.0})
+    with pytest.raises(LogFileError, match="no CAN frames"):
+        export_can(path, tmp_path / "x.log", CanLogFormat.CANDUMP)
+    with pytest.raises(LogFileError, match="unknown CAN log format 'pcap'"):
+        parse_format("pcap")
+
+
+def test_import_rejects_missing_and_unknown_files(tmp_path: Path) -> None:
+    with pytest.raises(LogFileError, match="no such file"):
+        import_can(tmp_path / "none.log", tmp_path / "out.mcap")
+    odd = tmp_path / "frames.xyz"
+    odd.write_text("hello\n")
+    with pytest.raises(LogFileError, match="not a CAN log"):
+        import_can(odd, tmp_path / "out.mcap")

@@ -1,0 +1,135 @@
+"""``dobhil log``: output of each action and one-line errors (exit 2) on bad files."""
+
+from __future__ import annotations
+
+import csv
+import json
+from pathlib import Path
+
+import can
+import pytest
+
+from dobhil.cli.main import main
+from dobhil.recording.recorder import Recorder, RecordMode
+from dobhil.recording.schemas import Direction, EventKind
+
+
+@pytest.fixture
+def run_file(tmp_path: Path) -> Path:
+    path = tmp_path / "run.mcap"
+    meta = {"config": {"loop.rate_hz": "1000"}, "run": {"start_time": "2026-01-01T00:00:00"}}
+    with Recorder(path, metadata=meta, mode=RecordMode.BACKPRESSURE) as rec:
+        rec.event(EventKind.ENABLE, "start", log_time_ns=1_000_000_000)
+        for i in range(100):
+            t = 1_000_000_000 + i * 1_000_000
+            rec.write("/drive/feedback", t, {"position": 0.1 * i, "velocity": 1.0, "axis_state": 8, "axis_error": 0})
+            rec.write_frame(can.Message(arbitration_id=0x10, data=bytes([i])), Direction.RX, t)
+        rec.close("reference finished")
+    return path
+
+
+def bad_files(tmp_path: Path, good: Path) -> dict[str, tuple[Path, str]]:
+    empty = tmp_path / "empty.mcap"
+    empty.write_bytes(b"")
+    text = tmp_path / "text.mcap"
+    text.write_text("not mcap at all\n")
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(good.read_bytes()[:-100])
+    return {
+        "missing": (tmp_path / "none.mcap", "no such file"),
+        "empty": (empty, "empty file"),
+        "not-mcap": (text, "not an MCAP file (bad magic)"),
+        "truncated": (cut, "truncated"),
+    }
+
+
+ACTIONS = {
+    "info": lambda f: ["log", "info", str(f)],
+    "export-csv": lambda f: ["log", "export", str(f), "--topic", "/drive/feedback", "--format", "csv"],
+    "export-can": lambda f: ["log", "export", str(f), "--can", "--format", "candump"],
+}
+
+
+@pytest.mark.parametrize("action", list(ACTIONS))
+@pytest.mark.parametrize("case", ["missing", "empty", "not-mcap", "truncated"])
+def test_bad_files_give_one_line_and_exit_2(
+    tmp_path: Path, run_file: Path, capsys: pytest.CaptureFixture[str], action: str, case: str
+) -> None:
+    path, expected = bad_files(tmp_path, run_file)[case]
+    capsys.readouterr()
+    assert main(ACTIONS[action](path)) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and expected in err and "Traceback" not in err
+
+
+@pytest.mark.parametrize("case", ["missing", "empty", "not-mcap"])
+def test_recover_bad_files_give_one_line_and_exit_2(
+    tmp_path: Path, run_file: Path, capsys: pytest.CaptureFixture[str], case: str
+) -> None:
+    path, expected = bad_files(tmp_path, run_file)[case]
+    capsys.readouterr()
+    assert main(["log", "recover", str(path)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and expected in err
+
+
+def test_info_text_and_json(run_file: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["log", "info", str(run_file)]) == 0
+    text = capsys.readouterr().out
+    assert "reference finished" in text and "/drive/feedback" in text and "loop.rate_hz = 1000" in text
+    assert main(["log", "info", str(run_file), "--json"]) == 0
+    info = json.loads(capsys.readouterr().out)
+    counts = {c["topic"]: c["message_count"] for c in info["channels"]}
+    assert counts == {"/events": 2, "/drive/feedback": 100, "/can/rx": 100}
+    assert info["stop_reason"] == "reference finished" and info["dropped"] == 0
+    assert info["duration_s"] == pytest.approx(0.099)
+    assert info["metadata"]["config"] == {"loop.rate_hz": "1000"}
+
+
+def test_recover_truncated_file_by_cli(tmp_path: Path, run_file: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    cut = bad_files(tmp_path, run_file)["truncated"][0]
+    assert main(["log", "recover", str(cut)]) == 0
+    out = capsys.readouterr().out
+    assert "recovered 202 messages" in out and (tmp_path / "cut.recovered.mcap").is_file()
+    assert main(["log", "info", str(tmp_path / "cut.recovered.mcap")]) == 0
+
+
+def test_export_csv_columns_from_schema(tmp_path: Path, run_file: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "fb.csv"
+    assert main(["log", "export", str(run_file), "--topic", "/drive/feedback", "--format", "csv", "-o", str(out)]) == 0
+    rows = list(csv.reader(out.open()))
+    assert rows[0] == ["log_time_ns", "position", "velocity", "axis_state", "axis_error"]
+    assert len(rows) == 101 and rows[1] == ["1000000000", "0.0", "1.0", "8", "0"]
+    assert main(["log", "export", str(run_file), "--topic", "/can/rx", "--format", "csv"]) == 0
+    can_rows = list(csv.DictReader((tmp_path / "run.can_rx.csv").open()))
+    assert can_rows[5]["data"] == "5" and can_rows[5]["is_fd"] == "false"
+
+
+def test_export_unknown_topic_lists_available(run_file: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["log", "export", str(run_file), "--topic", "/nope", "--format", "csv"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "available: " in err and "/drive/feedback" in err
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["--can", "--format", "csv"],
+        ["--topic", "/can/rx", "--format", "blf"],
+        ["--topic", "/can/rx", "--can", "--format", "csv"],
+        ["--format", "csv"],
+    ],
+)
+def test_export_flag_mismatch(run_file: Path, capsys: pytest.CaptureFixture[str], argv: list[str]) -> None:
+    assert main(["log", "export", str(run_file), *argv]) == 2
+    assert capsys.readouterr().err.count("\n") == 1
+
+
+def test_export_can_and_import_by_cli(tmp_path: Path, run_file: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["log", "export", str(run_file), "--can", "--format", "asc"]) == 0
+    asc = tmp_path / "run.asc"
+    assert len(list(can.LogReader(asc))) == 100
+    assert main(["log", "import", str(asc), "-o", str(tmp_path / "back.mcap")]) == 0
+    assert "imported 100 CAN frames" in capsys.readouterr().out
+    assert main(["log", "import", str(tmp_path / "none.asc"), "-o", str(tmp_path / "x.mcap")]) == 2
+    assert capsys.readouterr().err.count("\n") == 1

@@ -1,0 +1,92 @@
+"""Crash safety: a recorder killed with SIGKILL leaves a file ``recover`` salvages."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from dobhil.errors import LogFileError
+from dobhil.recording.reader import open_log
+from dobhil.recording.recorder import Recorder, RecordMode
+from dobhil.recording.recover import default_output, recover
+
+ROOT = Path(__file__).resolve().parents[2]
+
+CHILD = """
+import sys, time
+from dobhil.recording.recorder import Recorder, RecordMode
+rec = Recorder(sys.argv[1], metadata={"run": {"who": "child"}},
+               attachments=[("config.yaml", "application/yaml", b"a: 1\\n")], mode=RecordMode.LOSSY)
+print("ready", flush=True)
+i = 0
+while True:
+    rec.write("/loop", time.time_ns(), {"cycle": i, "period_error": 0.0, "exec_time": 1e-5, "overrun": False})
+    i += 1
+    time.sleep(0.0002)
+"""
+
+
+@pytest.mark.skipif(sys.platform == "win32", reason="SIGKILL")
+def test_kill_9_loses_at_most_about_one_second(tmp_path: Path) -> None:
+    path = tmp_path / "run.mcap"
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
+    child = subprocess.Popen([sys.executable, "-c", CHILD, str(path)], stdout=subprocess.PIPE, env=env, cwd=ROOT)
+    try:
+        assert child.stdout is not None and child.stdout.readline().strip() == b"ready"
+        start_ns = time.time_ns()
+        time.sleep(2.5)
+    finally:
+        child.send_signal(signal.SIGKILL)
+        child.wait()
+        child.stdout.close()  # type: ignore[union-attr]
+    run_s = (time.time_ns() - start_ns) / 1e9
+    with pytest.raises(LogFileError, match="truncated"):
+        open_log(path)
+    report = recover(path)
+    assert report.output == str(default_output(path)) and not report.complete
+    assert report.message_count > 0
+    assert report.duration_s >= run_s - 1.5
+    log = open_log(report.output)
+    info = log.info()
+    assert info.message_count == report.message_count
+    assert info.metadata["run"] == {"who": "child"}
+    assert info.attachments == ("config.yaml",)
+
+
+def test_recover_a_complete_file_copies_everything(tmp_path: Path) -> None:
+    path = tmp_path / "run.mcap"
+    with Recorder(path, metadata={"run": {"a": "1"}}, mode=RecordMode.BACKPRESSURE) as rec:
+        for i in range(1000):
+            rec.write("/drive/command", i, {"torque": float(i)})
+    report = recover(path, tmp_path / "out.mcap")
+    assert report.complete and report.counts == (("/drive/command", 1000),)
+    assert (report.start_ns, report.end_ns) == (0, 999)
+    original = list(open_log(path).iter_messages())
+    assert list(open_log(tmp_path / "out.mcap").iter_messages()) == original
+
+
+def test_recover_a_cut_file_keeps_whole_chunks(tmp_path: Path) -> None:
+    path = tmp_path / "run.mcap"
+    with Recorder(path, metadata={}, mode=RecordMode.BACKPRESSURE) as rec:
+        for i in range(50_000):
+            rec.write("/drive/command", i, {"torque": float(i)})
+    cut = tmp_path / "cut.mcap"
+    data = path.read_bytes()
+    cut.write_bytes(data[: len(data) // 2])
+    report = recover(cut)
+    assert 0 < report.message_count < 50_000
+    times = [t for _, t, _ in open_log(report.output).iter_messages()]
+    assert times == list(range(report.message_count))
+
+
+def test_recover_refuses_to_overwrite_its_input(tmp_path: Path) -> None:
+    path = tmp_path / "run.mcap"
+    Recorder(path, metadata={}, mode=RecordMode.LOSSY).close()
+    with pytest.raises(LogFileError, match="onto the input"):
+        recover(path, path)

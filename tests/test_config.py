@@ -1,0 +1,43 @@
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from dobhil.config import load_config, to_yaml
+from dobhil.errors import ConfigError
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_config_doc_is_generated_from_the_key_table() -> None:
+    import importlib.util
+    spec = importlib.util.spec_from_file_location("gen", ROOT / "tools" / "gen_config_doc.py")
+    mod = importlib.util.module_from_spec(spec)  # type: ignore[arg-type]
+    spec.loader.exec_module(mod)  # type: ignore[union-attr]
+    assert (ROOT / "docs" / "config.md").read_text() == mod.render()
+
+
+def test_every_shipped_config_loads() -> None:
+    for path in sorted((ROOT / "configs").rglob("*.yaml")):
+        load_config(path)
+
+
+def test_resolved_yaml_round_trips(tmp_path: Path) -> None:
+    cfg = load_config(ROOT / "configs/paper/fig2c.yaml", ["loop.period=5e-4"])
+    out = tmp_path / "c.yaml"
+    out.write_text(to_yaml(cfg))
+    assert load_config(out) == cfg
+
+
+@pytest.mark.parametrize("text,message", [
+    ("[1, 2]", "expected a mapping"),
+    ("plant: {inertia: 0}", "plant.inertia = 0.0: must be > 0"),
+    ("loop: {position_min: 1, position_max: 0}", "must be below"),
+    ("design: {delay_samples: -1}", "must be >= 0"),
+])
+def test_bad_files(tmp_path: Path, text: str, message: str) -> None:
+    p = tmp_path / "c.yaml"
+    p.write_text(text)
+    with pytest.raises(ConfigError, match=message.replace("(", r"\(").replace(".", r"\.")):
+        load_config(p)

@@ -1,0 +1,119 @@
+"""Reference signals: each kind at literal times, csv parsing and its errors."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import pytest
+
+from dobhil.config.schema import ReferenceConfig
+from dobhil.errors import ConfigError
+from dobhil.runtime.references import CsvReference, Reference, ReferenceKind, make_reference
+
+R2 = math.sqrt(0.5)
+
+
+def _ref(**kw: object) -> Reference:
+    ref = make_reference(ReferenceConfig(**kw), duration=2.0)  # type: ignore[arg-type]
+    assert isinstance(ref, Reference)
+    return ref
+
+
+def test_step() -> None:
+    ref = _ref(kind="step", amplitude=3.0, offset=0.5, start=0.2)
+    assert ref.kind is ReferenceKind.STEP
+    assert [ref.value(t) for t in (0.0, 0.1999, 0.2, 5.0)] == [0.5, 0.5, 3.5, 3.5]
+
+
+def test_ramp() -> None:
+    ref = _ref(kind="ramp", amplitude=2.0, start=0.1, ramp_time=0.4)
+    assert ref.value(0.05) == 0.0
+    assert ref.value(0.1) == 0.0
+    assert ref.value(0.3) == pytest.approx(1.0)
+    assert ref.value(0.5) == 2.0 and ref.value(9.0) == 2.0
+
+
+def test_sine() -> None:
+    ref = _ref(kind="sine", amplitude=2.0, offset=1.0, frequency=5.0, start=0.1)
+    assert ref.value(0.0) == 1.0
+    assert ref.value(0.1) == 1.0
+    assert ref.value(0.15) == pytest.approx(3.0)      # quarter period
+    assert ref.value(0.25) == pytest.approx(-1.0)     # three quarters
+    assert ref.value(0.3) == pytest.approx(1.0, abs=1e-12)
+
+
+def test_chirp_sweeps_linearly_over_the_run() -> None:
+    ref = _ref(kind="chirp", amplitude=1.0, frequency=1.0, frequency_end=3.0)
+    # phase(t) = 2 pi (t + t^2 / 2) over T = 2 s
+    assert ref.value(0.0) == 0.0
+    assert ref.value(0.5) == pytest.approx(math.sin(2 * math.pi * 0.625))
+    assert ref.value(0.5) == pytest.approx(-R2)
+    assert ref.value(1.0) == pytest.approx(0.0, abs=1e-12)   # phase 3 pi
+    # after the sweep it stays at 3 Hz, phase continuous: phase(2.25) = 2 pi (4 + 0.75)
+    assert ref.value(2.25) == pytest.approx(-1.0)
+    assert ref.value(2.0 - 1e-9) == pytest.approx(ref.value(2.0 + 1e-9), abs=1e-6)
+
+
+def test_chirp_needs_a_duration_after_its_start() -> None:
+    with pytest.raises(ConfigError, match="duration"):
+        make_reference(ReferenceConfig(kind="chirp"))
+    with pytest.raises(ConfigError, match="reference.start"):
+        make_reference(ReferenceConfig(kind="chirp", start=3.0), duration=2.0)
+
+
+def test_square() -> None:
+    ref = _ref(kind="square", amplitude=2.0, offset=0.5, frequency=10.0, start=0.1)
+    assert ref.value(0.05) == 0.5
+    assert ref.value(0.1) == 2.5
+    assert ref.value(0.14) == 2.5
+    assert ref.value(0.16) == -1.5
+    assert ref.value(0.21) == 2.5
+
+
+def _write(tmp_path: Path, text: str, name: str = "ref.csv") -> Path:
+    path = tmp_path / name
+    path.write_text(text, encoding="utf-8")
+    return path
+
+
+def test_csv_interpolates_and_holds(tmp_path: Path) -> None:
+    _write(tmp_path, "time,tau_ref\n0.1,1.0\n0.3,3.0\n\n0.5, -1.0\n")
+    ref = make_reference(ReferenceConfig(kind="csv", file="ref.csv", offset=0.5), tmp_path)
+    assert isinstance(ref, CsvReference) and ref.kind is ReferenceKind.CSV
+    assert ref.value(0.0) == 1.5
+    assert ref.value(0.1) == 1.5
+    assert ref.value(0.2) == pytest.approx(2.5)
+    assert ref.value(0.3) == 3.5
+    assert ref.value(0.45) == pytest.approx(0.5)
+    assert ref.value(0.5) == -0.5 and ref.value(7.0) == -0.5
+
+
+def test_csv_absolute_path_and_single_row(tmp_path: Path) -> None:
+    path = _write(tmp_path, "time , tau_ref\n0.0,2.0\n")
+    ref = make_reference(ReferenceConfig(kind="csv", file=str(path)), "/nonexistent")
+    assert ref.value(-1.0) == 2.0 and ref.value(1.0) == 2.0
+
+
+@pytest.mark.parametrize(("text", "message"), [
+    ("", "empty file"),
+    ("t,tau\n0,1\n", "line 1: expected the header 'time,tau_ref', got 't,tau'"),
+    ("time,tau_ref\n", "no data rows"),
+    ("time,tau_ref\n0,1\n0.1,abc\n", "line 3: tau_ref 'abc' is not a number"),
+    ("time,tau_ref\n0,1\nx,2\n", "line 3: time 'x' is not a number"),
+    ("time,tau_ref\n0,1\n0.1,2,3\n", "line 3: expected 2 columns"),
+    ("time,tau_ref\n0,1\n0.2,2\n0.2,3\n", "line 4: time 0.2 does not increase"),
+    ("time,tau_ref\n0,1\n0.1,nan\n", "line 3: tau_ref 'nan' is not finite"),
+])
+def test_csv_errors(tmp_path: Path, text: str, message: str) -> None:
+    _write(tmp_path, text)
+    with pytest.raises(ConfigError, match=message) as info:
+        make_reference(ReferenceConfig(kind="csv", file="ref.csv"), tmp_path)
+    assert "\n" not in str(info.value)
+
+
+def test_csv_missing_file(tmp_path: Path) -> None:
+    with pytest.raises(ConfigError, match="does not exist"):
+        make_reference(ReferenceConfig(kind="csv", file="missing.csv"), tmp_path)
+    with pytest.raises(ConfigError, match="needs a file"):
+        make_reference(ReferenceConfig(kind="csv"), tmp_path)

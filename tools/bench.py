@@ -1,0 +1,122 @@
+#!/usr/bin/env python3
+"""dobhil's speed and memory targets, as ratios against baselines run in the same process.
+
+``python tools/bench.py --json`` prints one JSON object. Each ratio compares
+dobhil with a baseline doing the same work in the same run, so the numbers
+mean the same on a loaded or an idle machine; absolute rates are printed for
+context. Targets (2-core machine) are in TARGETS; ``--check`` exits 1 if one
+is missed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from dobhil.analysis.stability import gain_map, is_stable  # noqa: E402
+from dobhil.analysis.sweep import parse_vary, sweep  # noqa: E402
+from dobhil.config import load_config  # noqa: E402
+from dobhil.synthesis.loop import loop  # noqa: E402
+from dobhil.synthesis.params import params_from_config  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+TARGETS: dict[str, float] = {"sweep_speedup_vs_python_control": 100.0}
+
+
+def timed(fn: Callable[[], object], repeat: int = 3) -> float:
+    best = float("inf")
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        fn()
+        best = min(best, time.perf_counter() - t0)
+    return best
+
+
+def sweep_grid(n: int) -> list:  # type: ignore[type-arg]
+    return [parse_vary(f"design.identified_inertia=0.05:0.6:{n}"),
+            parse_vary(f"environment.stiffness=log:1e3:1e5:{n}")]
+
+
+def python_control_point(config, ji: float, k: float) -> tuple[bool, bool, float]:  # type: ignore[no-untyped-def]
+    """The sweep's question for one point, answered with python-control and numpy."""
+    import control
+    params = params_from_config(config).replace(identified_inertia=ji, stiffness=k)
+    a, b, c, d = loop(params, sampled=False, force_gain=0.0).siso("tau_per", "tau_int_hat")
+    sys_ = control.ss(a, b, c, d)
+    tf = control.ss2tf(sys_)
+    minimum_phase = bool(np.all(np.real(tf.zeros()) < 0))
+    cf = float(config.design.force_gain)
+    stable = bool(np.all(np.real(control.feedback(cf * sys_).poles()) < 0))
+    num, den = np.asarray(tf.num[0][0], float), np.asarray(tf.den[0][0], float)
+    gains = sorted(g for g in _crossings(num, den) if g > 1e-9)
+    edges = [0.0, *gains]
+    kmax = float("inf")
+    for lo, hi in zip(edges, [*gains, float("inf")]):
+        test = 2 * lo if np.isinf(hi) else 0.5 * (lo + hi)
+        if not np.all(np.real(control.feedback(test * sys_).poles()) < 0):
+            kmax = lo
+            break
+    return stable, minimum_phase, kmax
+
+
+def _crossings(num: np.ndarray, den: np.ndarray) -> list[float]:
+    n = max(num.size, den.size)
+    num, den = np.pad(num, (n - num.size, 0)), np.pad(den, (n - den.size, 0))
+    jp = 1j ** np.arange(n - 1, -1, -1)
+    prod = np.polymul(den * jp, np.conj(num * jp))
+    out = []
+    for w in np.roots(prod.imag):
+        if abs(w.imag) < 1e-6 * (1 + abs(w.real)) and w.real >= 0:
+            dv, nv = np.polyval(den, 1j * w.real), np.polyval(num, 1j * w.real)
+            if abs(nv) > 0:
+                out.append(float(-(dv * np.conj(nv)).real / abs(nv) ** 2))
+    return out
+
+
+def bench_sweep() -> dict[str, float]:
+    config = load_config(ROOT / "configs/paper/fig2b.yaml")
+    big = sweep_grid(60)
+    t_ours = timed(lambda: sweep(config, big, sampled=False))
+    ours = 60 * 60 / t_ours
+    small = sweep_grid(6)
+    pts = [(float(ji), float(k)) for ji in small[0].values for k in small[1].values]
+    t_base = timed(lambda: [python_control_point(config, ji, k) for ji, k in pts], repeat=1)
+    base = len(pts) / t_base
+    t_sampled = timed(lambda: sweep(config, big, sampled=True), repeat=1)
+    return {"sweep_points_per_s": ours, "sweep_sampled_points_per_s": 3600 / t_sampled,
+            "python_control_points_per_s": base, "sweep_speedup_vs_python_control": ours / base}
+
+
+BENCHES: dict[str, Callable[[], dict[str, float]]] = {"sweep": bench_sweep}
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--json", action="store_true", help="print one JSON object")
+    ap.add_argument("--check", action="store_true", help="exit 1 when a target is missed")
+    ap.add_argument("--only", choices=sorted(BENCHES), action="append")
+    args = ap.parse_args()
+    results: dict[str, float] = {}
+    for name in args.only or BENCHES:
+        results.update(BENCHES[name]())
+    rounded = {k: round(v, 3) for k, v in results.items()}
+    if args.json:
+        print(json.dumps(rounded))
+    else:
+        for k, v in rounded.items():
+            target = TARGETS.get(k)
+            print(f"{k:40s} {v:>14,.3f}" + (f"   (target >= {target:g})" if target else ""))
+    missed = [k for k, t in TARGETS.items() if k in results and results[k] < t]
+    return 1 if args.check and missed else 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
