@@ -116,7 +116,8 @@ class LoopConfig:
     position_max: float = key(100.0, "highest allowed position", unit="rad")
     velocity_limit: float = key(100.0, "largest allowed |velocity|", unit="rad/s",
                                 check=Check.POSITIVE)
-    timing: str = key("lockstep", "how the loop is clocked", choices=("lockstep", "realtime"))
+    timing: str = key("realtime", "how the loop is clocked (lockstep needs the emulator)",
+                      choices=("lockstep", "realtime"))
     realtime_priority: int = key(0, "SCHED_FIFO priority on Linux (0: none)",
                                  check=Check.NONNEGATIVE)
 
@@ -154,9 +155,10 @@ class DriveConfig:
     """Which drive and which bus."""
 
     profile: str = key("odrive-0.6", "drive profile under drivers/ (name or path)")
-    interface: str = key("virtual", "python-can interface name")
-    channel: str = key("dobhil", "python-can channel")
-    bitrate: int = key(1_000_000, "CAN bitrate", unit="bit/s", check=Check.POSITIVE)
+    interface: str = key("", "python-can interface name (empty: the profile's bus; --bus wins)")
+    channel: str = key("", "python-can channel (with drive.interface)")
+    bitrate: int = key(1_000_000, "CAN bitrate (0: leave to the interface)", unit="bit/s",
+                       check=Check.NONNEGATIVE)
     latency: float = key(0.0, "emulated bus latency (real-time emulation)", unit="s",
                          check=Check.NONNEGATIVE)
     jitter: float = key(0.0, "emulated bus latency jitter, standard deviation", unit="s",

@@ -1,0 +1,34 @@
+"""Why a run ended: one IntEnum, one record."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from enum import IntEnum
+
+
+class StopReason(IntEnum):
+    """Every way a run can end. Each one ends with zero torque sent and the drive disabled."""
+
+    DONE = 0              # the run lasted its duration
+    FEEDBACK_TIMEOUT = 1  # no fresh feedback for loop.feedback_timeout
+    POSITION_LIMIT = 2
+    VELOCITY_LIMIT = 3
+    NON_FINITE = 4        # NaN or infinity in feedback, reference or command
+    DRIVE_FAULT = 5       # the drive reported a fault (axis error, watchdog, Estop)
+    SIGNAL = 6            # SIGINT / SIGTERM / stop requested
+    EXCEPTION = 7         # an exception in the loop (re-raised to the caller)
+    ENABLE_FAILED = 8     # the drive could not be enabled
+
+
+@dataclass(frozen=True)
+class Stop:
+    reason: StopReason
+    detail: str
+    cycle: int
+    time: float
+
+    def line(self) -> str:
+        """The one-line account of the stop."""
+        name = self.reason.name.lower()
+        at = f" at cycle {self.cycle} (t = {self.time:.4f} s)" if self.cycle >= 0 else ""
+        return f"stopped: {name}{at}" + (f": {self.detail}" if self.detail else "")
