@@ -28,7 +28,11 @@ from dobhil.synthesis.loop import loop  # noqa: E402
 from dobhil.synthesis.params import params_from_config  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
-TARGETS: dict[str, float] = {"sweep_speedup_vs_python_control": 100.0}
+TARGETS: dict[str, float] = {
+    "sweep_speedup_vs_python_control": 100.0,
+    "lockstep_cycles_per_s": 5000.0,
+    "lockstep_vs_bare_bus_ratio": 0.4,
+}
 
 
 def timed(fn: Callable[[], object], repeat: int = 3) -> float:
@@ -95,7 +99,69 @@ def bench_sweep() -> dict[str, float]:
             "python_control_points_per_s": base, "sweep_speedup_vs_python_control": ours / base}
 
 
-BENCHES: dict[str, Callable[[], dict[str, float]]] = {"sweep": bench_sweep}
+def bench_controller() -> dict[str, float]:
+    """Median time of one ForceController.step (the paper's design, measured velocity)."""
+    from dobhil.runtime.session import build_controller, load_drive_profile
+    config = load_config(ROOT / "configs/demo.yaml")
+    ctrl = build_controller(config, load_drive_profile(config))
+    step = ctrl.step
+    samples = []
+    for _ in range(31):
+        t0 = time.perf_counter()
+        for i in range(2000):
+            step(1e-4, 0.0, 1.0)
+        samples.append((time.perf_counter() - t0) / 2000)
+    return {"controller_step_us_median": float(np.median(samples)) * 1e6}
+
+
+def _bare_bus_cycles_per_s(cycles: int) -> float:
+    """The lockstep run's frames (one feedback, one command per cycle) on bare virtual buses."""
+    import can
+    from dobhil.runtime.buses import private_virtual_channel
+    ch = private_virtual_channel()
+    drive_side = can.Bus(interface="virtual", channel=ch)
+    host_side = can.Bus(interface="virtual", channel=ch)
+    feedback = can.Message(arbitration_id=0x069, data=bytes(8), is_extended_id=False)
+    command = can.Message(arbitration_id=0x06E, data=bytes(4), is_extended_id=False)
+    try:
+        t0 = time.perf_counter()
+        for _ in range(cycles):
+            drive_side.send(feedback)
+            host_side.recv(1.0)
+            host_side.send(command)
+            drive_side.recv(1.0)
+        return cycles / (time.perf_counter() - t0)
+    finally:
+        drive_side.shutdown()
+        host_side.shutdown()
+
+
+def _lockstep_cycles_per_s(duration: float) -> float:
+    from dobhil.runtime.session import RunSession
+    config = load_config(ROOT / "configs/demo.yaml", [f"loop.duration={duration}"])
+    with RunSession(config, emulate=True, lockstep=True) as session:
+        t0 = time.perf_counter()
+        result = session.run()
+        return result.cycles / (time.perf_counter() - t0)
+
+
+def bench_lockstep() -> dict[str, float]:
+    """Lockstep emulated runs against the same frames on bare virtual buses, interleaved."""
+    ours, bare = [], []
+    for _ in range(5):  # interleaved pairs: a load change hits both sides of a pair
+        ours.append(_lockstep_cycles_per_s(4.0))
+        bare.append(_bare_bus_cycles_per_s(8000))
+    ratios = [o / b for o, b in zip(ours, bare)]
+    return {"lockstep_cycles_per_s": float(np.median(ours)),
+            "bare_bus_cycles_per_s": float(np.median(bare)),
+            "lockstep_vs_bare_bus_ratio": float(np.median(ratios))}
+
+
+BENCHES: dict[str, Callable[[], dict[str, float]]] = {
+    "sweep": bench_sweep,
+    "controller": bench_controller,
+    "lockstep": bench_lockstep,
+}
 
 
 def main() -> int:

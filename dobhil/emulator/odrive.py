@@ -63,6 +63,9 @@ class EmulatedODrive(EmulatedDrive):
         self.frames_rejected = 0
         self._last_feed = 0.0
         self._watchdog_bit = codec.watchdog_bit(self.firmware)
+        self._encoder_spec = codec.spec_for(CmdId.GET_ENCODER_ESTIMATES, self.firmware)
+        self._encoder_id = codec.arbitration_id(self.node_id, CmdId.GET_ENCODER_ESTIMATES)
+        self._torque_spec = codec.spec_for(CmdId.SET_INPUT_TORQUE, self.firmware)
         self._handlers: dict[type, Callable[[Any], None]] = {
             codec.SetAxisState: self._set_axis_state,
             codec.SetControllerMode: self._set_controller_mode,
@@ -111,6 +114,15 @@ class EmulatedODrive(EmulatedDrive):
         if node != self.node_id:
             return
         self._maybe_feed(cmd, msg)
+        if cmd == CmdId.SET_INPUT_TORQUE and not msg.is_remote_frame:
+            try:  # hot path (every period): the table's scale, no dataclass
+                (torque,) = self._torque_spec.unpack_si(msg.data)
+            except CodecError:
+                self.frames_rejected += 1
+                return
+            limit = self._profile.torque_limit
+            self.input_torque = min(max(torque, -limit), limit)
+            return
         try:
             decoded = codec.decode_message(msg, self.firmware)
         except CodecError:
@@ -131,7 +143,11 @@ class EmulatedODrive(EmulatedDrive):
         return self._encode(codec.Heartbeat(self.axis_error, self.axis_state))
 
     def _encoder_frame(self) -> can.Message:
-        return self._encode(codec.EncoderEstimates(self._plant.position, self._plant.velocity))
+        # hot path (every period): the table's scales through pack_into, no dataclass
+        msg = can.Message(arbitration_id=self._encoder_id, is_extended_id=False,
+                          data=bytearray(self._encoder_spec.size))
+        self._encoder_spec.pack_into(msg.data, self._plant.position, self._plant.velocity)
+        return msg
 
     def _reply_for(self, cmd: CmdId) -> Any:
         applied = self._plant_torque()

@@ -119,14 +119,20 @@ class EmulatedDrive(ABC):
 
     # -- lockstep -------------------------------------------------------------
 
-    def handle_pending(self) -> int:
-        """Apply every frame already received (never blocks); returns how many were read."""
+    def handle_pending(self, limit: int | None = None) -> int:
+        """Apply the frames already received (never blocks); returns how many were read.
+
+        ``limit``: read at most this many (a caller that knows how many frames were
+        sent saves the final empty read).
+        """
         count = 0
-        msg = self._bus.recv(0.0)
-        while msg is not None:
+        recv = self._bus.recv
+        while limit is None or count < limit:
+            msg = recv(0.0)
+            if msg is None:
+                break
             count += 1
             self._receive(msg, self._time)
-            msg = self._bus.recv(0.0)
         self._apply_due(self._time)
         return count
 
@@ -274,6 +280,10 @@ class LockstepBus(can.BusABC):
     waiting for the host it advances every emulator by ``dt`` and tries again, until
     ``timeout`` simulated seconds have passed. ``recv(0)`` never advances time. The
     wrapped bus is borrowed: :meth:`shutdown` leaves it open.
+
+    The host and these emulators must be the only participants of the channel (a
+    private ``virtual`` channel): the bus counts the frames in flight in each
+    direction and reads exactly those, so no read comes back empty.
     """
 
     def __init__(
@@ -285,6 +295,8 @@ class LockstepBus(can.BusABC):
         self._emulators = tuple(emulators)
         self._dt = dt
         self.channel_info = f"lockstep over {inner.channel_info}"
+        self._to_emulators = 0  # host frames the emulators have not read yet
+        self._to_host = 0       # emulator frames the host has not read yet
         super().__init__(channel=None, **kwargs)
 
     def clock(self) -> float:
@@ -293,28 +305,51 @@ class LockstepBus(can.BusABC):
 
     def step(self) -> None:
         """One lockstep tick: every emulator applies pending frames, then advances ``dt``."""
-        for emulator in self._emulators:
-            emulator.handle_pending()
-        for emulator in self._emulators:
-            emulator.advance(self._dt)
+        self._deliver_host_frames()
+        self._advance_all()
 
     def send(self, msg: can.Message, timeout: float | None = None) -> None:
         self._inner.send(msg, timeout)
+        self._to_emulators += 1
 
     def recv(self, timeout: float | None = None) -> can.Message | None:
         if timeout is None:
             raise ValueError("LockstepBus.recv needs a finite timeout (simulated seconds)")
         end = self.clock() + timeout
+        # The host and the emulators are the only participants of the channel, and the
+        # host is inside this call: the bus counts the frames in flight each way, so no
+        # read comes back empty (the bare-bus cost is two reads per cycle, so is this).
+        if self._to_emulators:
+            self._deliver_host_frames()
         while True:
-            for emulator in self._emulators:
-                emulator.handle_pending()
-            msg = self._inner.recv(0.0)
-            if msg is not None:
-                return msg
+            if self._to_host > 0:
+                msg = self._inner.recv(0.0)
+                if msg is not None:
+                    self._to_host -= 1
+                    return msg
+                self._to_host = 0
             if self.clock() + _EPS >= end:
                 return None
-            for emulator in self._emulators:
-                emulator.advance(self._dt)
+            self._advance_all()
+
+    def _sent_by_emulators(self) -> int:
+        total = 0
+        for emulator in self._emulators:
+            total += emulator.frames_sent
+        return total
+
+    def _deliver_host_frames(self) -> None:
+        before = self._sent_by_emulators()
+        count, self._to_emulators = self._to_emulators, 0
+        for emulator in self._emulators:
+            emulator.handle_pending(count)
+        self._to_host += self._sent_by_emulators() - before
+
+    def _advance_all(self) -> None:
+        before = self._sent_by_emulators()
+        for emulator in self._emulators:
+            emulator.advance(self._dt)
+        self._to_host += self._sent_by_emulators() - before
 
     def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
         return self.recv(0.0 if timeout is None else timeout), False

@@ -26,7 +26,7 @@ from __future__ import annotations
 import math
 import struct
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, field, fields
 from enum import IntEnum, IntFlag
 from types import MappingProxyType
 from typing import Any, Union
@@ -366,6 +366,12 @@ class MessageSpec:
     cls: type
     struct: struct.Struct
     slots: tuple[Slot, ...]
+    #: each slot's scale to SI (1.0 for unscaled slots); derived, for the hot paths
+    scales: tuple[float, ...] = field(init=False, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        scales = tuple(float(getattr(s, "scale", None) or 1.0) for s in self.slots)
+        object.__setattr__(self, "scales", scales)
 
     @property
     def size(self) -> int:
@@ -380,6 +386,18 @@ class MessageSpec:
     def pack_into(self, buffer: bytearray, *values: float) -> None:
         """Hot path: pack SI scalar values (slot order) into ``buffer`` without a dataclass."""
         self.struct.pack_into(buffer, 0, *[v / s.scale for v, s in zip(values, self.slots)])  # type: ignore[union-attr,operator]
+
+    def unpack_si(self, data: bytes | bytearray) -> tuple[float, ...]:
+        """Hot path: the scaled slots' SI values, in slot order, without a dataclass.
+
+        Only for messages whose slots all carry a scale factor (e.g. encoder
+        estimates, input torque); the scales are those of the one table.
+        """
+        if len(data) < self.struct.size:
+            raise CodecError(
+                f"{self.name} (0x{self.cmd:02X}) needs {self.size} data bytes, got {len(data)}"
+            )
+        return tuple(v * s for v, s in zip(self.struct.unpack_from(data, 0), self.scales))
 
     def decode_data(self, data: bytes | bytearray) -> Any:
         if len(data) < self.size:

@@ -83,8 +83,8 @@ class ODriveDrive(Drive):
             return _NO_EVENTS
         try:
             if arb == self._encoder_id and len(msg.data):
-                est = self._encoder_spec.decode_data(msg.data)
-                return (MotionEvent(est.position_rad, est.velocity_rad_s),)
+                position, velocity = self._encoder_spec.unpack_si(msg.data)
+                return (MotionEvent(position, velocity),)
             if arb == self._heartbeat_id and len(msg.data):
                 return (self._state_event(self._heartbeat_spec.decode_data(msg.data)),)
         except CodecError:
