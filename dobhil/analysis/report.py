@@ -96,6 +96,33 @@ def margins(open_loop: control.StateSpace, force_gain: float) -> dict[str, float
             "gain_crossover_freq": _finite(wgc), "stability_margin": _finite(sm)}
 
 
+#: closed-loop transfer functions summarised in the report (all exist as python-control
+#: objects through :class:`LoopSystems`)
+SENSITIVITIES = ("disturbance", "disturbance_force", "identified_disturbance", "noise_q",
+                 "noise_dq", "noise_q_force", "noise_dq_force")
+
+
+def sensitivities(d: DomainAnalysis) -> dict[str, dict[str, float | None]]:
+    """DC gain and peak gain (with its frequency) of the disturbance and noise responses."""
+    out: dict[str, dict[str, float | None]] = {}
+    for name in SENSITIVITIES:
+        try:
+            sys = d.systems.system(name)
+        except KeyError:
+            continue
+        out[name] = _gain_summary(sys) if d.stable else {"dc_gain": None, "peak_gain": None,
+                                                         "peak_frequency": None}
+    return out
+
+
+def _gain_summary(sys: control.StateSpace) -> dict[str, float | None]:
+    top = np.pi / sys.dt if sys.dt else 1e6
+    w = np.logspace(-1, np.log10(top * 0.999), 800)
+    mag = np.abs(np.asarray(control.frequency_response(sys, w).complex).reshape(-1))
+    i = int(np.argmax(mag))
+    return {"dc_gain": _finite(_dc(sys)), "peak_gain": float(mag[i]), "peak_frequency": float(w[i])}
+
+
 def _finite(x: Any) -> float | None:
     try:
         v = float(x)
@@ -124,6 +151,7 @@ def domain_json(d: DomainAnalysis) -> dict[str, Any]:
         "margins": d.margins,
         "step": {k: v for k, v in d.step.as_dict().items()},
         "step_true_force": d.step_force.as_dict(),
+        "sensitivities": sensitivities(d),
     }
     if d.sampled:
         out["sample_time"] = d.sample_time

@@ -14,7 +14,7 @@ import control
 import numpy as np
 
 from dobhil.synthesis.loop import LoopSS, loop
-from dobhil.synthesis.params import Params
+from dobhil.synthesis.params import Params, VelocitySource
 
 #: name -> (input, output, at C_f (True) or open loop (False))
 TRANSFER_FUNCTIONS: dict[str, tuple[str, str, bool]] = {
@@ -46,7 +46,6 @@ class LoopSystems:
     def build(cls, params: Params, *, sampled: bool) -> LoopSystems:
         if params.batch_shape != ():
             raise ValueError("transfer functions are built for a single design")
-        from dobhil.synthesis.params import VelocitySource
         measured = params.structure.velocity_source is VelocitySource.MEASURED
         return cls(open=loop(params, sampled=sampled, force_gain=0.0),
                    closed=loop(params, sampled=sampled), measures_velocity=measured)

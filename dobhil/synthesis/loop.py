@@ -70,7 +70,7 @@ def _assemble(a_p: Array, b_p: Array, c_int: Array, ctrl: ControllerSS, cf: Arra
     shape = cf.shape
     nc, m = ctrl.order, ctrl.b_y.shape[-1]
     n = 2 + nc + delay
-    xp, xc, w = slice(0, 2), slice(2, 2 + nc), slice(2 + nc, n)
+    xp, xc = slice(0, 2), slice(2, 2 + nc)
     c_y = np.eye(2)[:m]        # y = C_y x_p + E_eta eta (eta = [eta_q, eta_dq])
     e_eta = np.eye(2)[:m]
     cfe = cf[..., None, None]
@@ -115,7 +115,6 @@ def _assemble(a_p: Array, b_p: Array, c_int: Array, ctrl: ControllerSS, cf: Arra
     c[..., 4, 1] = 1.0
     c[..., 5:6, :] = u_state
     d[..., 5:6, :] = u_in
-    del w
     return LoopSS(a=a, b=b, c=c, d=d, dt=ctrl.dt)
 
 
