@@ -32,6 +32,8 @@ TARGETS: dict[str, float] = {
     "sweep_speedup_vs_python_control": 100.0,
     "lockstep_cycles_per_s": 5000.0,
     "lockstep_vs_bare_bus_ratio": 0.4,
+    "logged_vs_unlogged_ratio": 0.6,
+    "replay_cycles_per_s": 20000.0,
 }
 
 
@@ -157,10 +159,81 @@ def bench_lockstep() -> dict[str, float]:
             "lockstep_vs_bare_bus_ratio": float(np.median(ratios))}
 
 
+def _logged_run(duration: float, path: Path | None) -> float:
+    """Cycles/s of a lockstep demo run, recorded to ``path`` (None: not recorded); the
+    time includes finishing the file."""
+    from dobhil.recording.sink import RunLog, run_recorded
+    from dobhil.runtime.session import RunSession
+    config = load_config(ROOT / "configs/demo.yaml", [f"loop.duration={duration}"])
+    log = None if path is None else RunLog(path, config, fsync=False)
+    hooks = {} if log is None else {"sink": log.sink, "bus_wrapper": log.wrap_bus}
+    with RunSession(config, emulate=True, lockstep=True, **hooks) as session:
+        t0 = time.perf_counter()
+        result = run_recorded(session, log)
+        return result.cycles / (time.perf_counter() - t0)
+
+
+def bench_logging() -> dict[str, float]:
+    """Recorder alone; lockstep runs with and without full logging, interleaved pairs."""
+    import tempfile
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "bench.mcap"
+        logged, plain = [], []
+        for _ in range(5):
+            plain.append(_logged_run(4.0, None))
+            logged.append(_logged_run(4.0, path))
+        ratios = [a / b for a, b in zip(logged, plain)]
+        msgs = _recorder_msgs_per_s(path)
+        replay_rate = _replay_cycles_per_s(path)
+    return {"mcap_log_msgs_per_s": msgs, "lockstep_logged_cycles_per_s": float(np.median(logged)),
+            "lockstep_unlogged_cycles_per_s": float(np.median(plain)),
+            "logged_vs_unlogged_ratio": float(np.median(ratios)), "replay_cycles_per_s": replay_rate}
+
+
+def _recorder_msgs_per_s(recorded: Path) -> float:
+    """Messages/s the recorder writes on its own: the raw records of a recorded run's
+    cycles and frames, re-recorded (encode + write + finish) without the loop."""
+    from dobhil.drives.base import DriveState, DriveStatus, Feedback
+    from dobhil.recording.fastlog import RawKind
+    from dobhil.recording.recorder import Recorder, RecordMode
+    from dobhil.runtime.controller import ControlOutput
+    import can
+    status = DriveStatus(DriveState.ENABLED)
+    frame = can.Message(arbitration_id=0x069, data=bytes(range(8)), is_extended_id=False, timestamp=1.5)
+    records = []
+    for k in range(20000):
+        t = 1_000_000_000 + k * 1_000_000
+        records.append((RawKind.FRAME_RX, t, frame, frame.data))
+        records.append((RawKind.CYCLE, t, k, Feedback(0.0, 1e-4 * k, 0.1, k), ControlOutput(0.2, 0.19, 0.01, 0.02, 0.03, 0.03),
+                        0.0, 3e-5, False, status, (1e-4 * k, 0.1, 0.03, 0.19)))
+        records.append((RawKind.FRAME_TX, t, frame, bytes(frame.data)))
+    best = 0.0
+    for _ in range(3):
+        t0 = time.perf_counter()
+        with Recorder(recorded.with_suffix(".rec.mcap"), metadata={}, mode=RecordMode.BACKPRESSURE, fsync=False) as rec:
+            for i in range(0, len(records), 256):
+                rec.write_batch(records[i:i + 256])
+        best = max(best, rec.written / (time.perf_counter() - t0))
+    return best
+
+
+def _replay_cycles_per_s(recorded: Path) -> float:
+    """Cycles/s of ``replay()`` of a recorded 4 s run, reading the file included."""
+    from dobhil.runtime.replay import replay
+    best = 0.0
+    for _ in range(3):
+        t0 = time.perf_counter()
+        result = replay(recorded)
+        best = max(best, result.recording.cycles / (time.perf_counter() - t0))
+    assert result.first_mismatch() is None
+    return best
+
+
 BENCHES: dict[str, Callable[[], dict[str, float]]] = {
     "sweep": bench_sweep,
     "controller": bench_controller,
     "lockstep": bench_lockstep,
+    "logging": bench_logging,
 }
 
 

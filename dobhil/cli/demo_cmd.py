@@ -19,22 +19,35 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     add_config_args(p, required=False)
     p.add_argument("--out", type=Path, default=Path("out/demo"), help="output directory")
     p.add_argument("--realtime", action="store_true", help="real time instead of lockstep")
+    p.add_argument("--log", type=Path, metavar="FILE.mcap",
+                   help="MCAP recording (default: OUT/run-YYYYmmdd-HHMMSS.mcap)")
+    p.add_argument("--no-log", action="store_true", help="do not record the run")
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
-    from dobhil.cli.run_cmd import EXIT_STOPPED, report
+    from dobhil.cli.run_cmd import EXIT_STOPPED, log_hooks, make_log, report, run_logged
     from dobhil.config import load_config
     from dobhil.plotting.run_plot import run_figure
+    from dobhil.recording.sink import default_log_path
+    from dobhil.runtime.loop import StopRequest
     from dobhil.runtime.session import RunSession, summary
+    from dobhil.runtime.signals import stop_on_signals
     path = Path(args.config) if args.config else demo_config_path()
     config = load_config(path, args.overrides)
-    with RunSession(config, emulate=True, lockstep=not args.realtime,
-                    config_dir=path.parent) as session:
-        result = session.run()
+    log_path = None if args.no_log else (args.log or default_log_path(args.out))
+    log = make_log(log_path, config, path)
+    with stop_on_signals(StopRequest()) as request, \
+            RunSession(config, emulate=True, lockstep=not args.realtime, config_dir=path.parent,
+                       stop_request=request, **log_hooks(log)) as session:
+        result = run_logged(session, log)
         info = summary(session, result)
+    if log is not None:
+        info["log"] = str(log.path)
     report(info, result.stop.line(), as_json=False)
     png = run_figure(result.trace, args.out / "demo_run.png",
                      "dobhil demo: contact, then a force step (emulated ODrive, 1 kHz)")
     print(f"wrote {png}")
+    if log is not None:
+        print(f"next: dobhil report {log.path} --out {args.out / 'report'}")
     return 0 if result.stop.reason.name == "DONE" else EXIT_STOPPED

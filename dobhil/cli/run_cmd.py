@@ -7,6 +7,7 @@ import json
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 from dobhil.cli.common import add_config_args, config_from_args
 
@@ -25,6 +26,8 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     p.add_argument("--duration", type=float, metavar="S", help="override loop.duration")
     p.add_argument("--summary-json", action="store_true", help="print the summary as one JSON object")
     p.add_argument("--plot", type=Path, metavar="FILE.png", help="plot reference and interaction torque")
+    p.add_argument("--log", type=Path, metavar="FILE.mcap",
+                   help="record the run to MCAP (see docs/recording.md)")
     p.set_defaults(func=run)
     e = sub.add_parser("emulate", help="run the drive emulator alone on a bus (vcan0, a hub)")
     add_config_args(e)
@@ -38,17 +41,43 @@ def run(args: argparse.Namespace) -> int:
     from dobhil.runtime.session import RunSession, summary
     from dobhil.runtime.signals import stop_on_signals
     config = config_from_args(args)
+    log = make_log(args.log, config, args.config)
     with stop_on_signals(StopRequest()) as request, \
             RunSession(config, bus=args.bus, emulate=args.emulate,
                        lockstep=True if args.lockstep else None, duration=args.duration,
-                       config_dir=Path(args.config).parent, stop_request=request) as session:
-        result = session.run()
+                       config_dir=Path(args.config).parent, stop_request=request,
+                       **log_hooks(log)) as session:
+        result = run_logged(session, log)
         info = summary(session, result)
+    if log is not None:
+        info["log"] = str(log.path)
     report(info, result.stop.line(), as_json=args.summary_json)
     if args.plot:
         from dobhil.plotting.run_plot import run_figure
         sys.stderr.write(f"wrote {run_figure(result.trace, args.plot)}\n")
     return 0 if result.stop.reason.name == "DONE" else EXIT_STOPPED
+
+
+def make_log(path: Path | None, config: Any, config_file: str | Path | None) -> Any:
+    """A :class:`~dobhil.recording.sink.RunLog` for ``path`` (None: no recording)."""
+    if path is None:
+        return None
+    from dobhil.errors import LogFileError
+    from dobhil.recording.sink import RunLog
+    if path.suffix != ".mcap":
+        raise LogFileError(f"--log {path}: expected a .mcap file name")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    return RunLog(path, config, config_file=config_file)
+
+
+def log_hooks(log: Any) -> dict[str, Any]:
+    """RunSession keyword arguments that record the run (none without a log)."""
+    return {} if log is None else {"sink": log.sink, "bus_wrapper": log.wrap_bus}
+
+
+def run_logged(session: Any, log: Any) -> Any:
+    from dobhil.recording.sink import run_recorded
+    return run_recorded(session, log)
 
 
 def report(info: dict, stop_line: str, *, as_json: bool) -> None:  # type: ignore[type-arg]
@@ -66,6 +95,8 @@ def report(info: dict, stop_line: str, *, as_json: bool) -> None:  # type: ignor
               f"true tau_int {true} N m, q {f['q']:.6f} rad")
     print(f"loop: exec time p50 {t['exec_time_p50'] * 1e6:.0f} us, p99 {t['exec_time_p99'] * 1e6:.0f} us; "
           f"period error p99 {t['period_error_p99'] * 1e6:.0f} us, max {t['period_error_max'] * 1e6:.0f} us")
+    if info.get("log"):
+        print(f"log: {info['log']}")
     if not info["drive_disabled"]:
         print("WARNING: the disable frames could not be sent; check the drive")
 

@@ -264,6 +264,11 @@ class Plant:
 
     # -- integration ----------------------------------------------------------
 
+    def prepare(self, dt: float) -> None:
+        """Compute the ZOH matrices of ``dt`` now (the first :meth:`step` of a new ``dt``
+        otherwise does it: four matrix exponentials, tens of ms on a loaded machine)."""
+        self._load(dt)
+
     def step(self, torque_nm: float, dt: float) -> None:
         """Advance ``dt`` seconds with the motor torque ``torque_nm`` (clamped) held."""
         lim = self.torque_limit

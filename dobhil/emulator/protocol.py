@@ -152,6 +152,9 @@ class EmulatedDrive(ABC):
         """Run on a thread of its own (period = the profile's encoder rate)."""
         if self._thread is not None:
             raise RuntimeError("emulator already started")
+        prepare = getattr(self._plant, "prepare", None)
+        if callable(prepare):  # one-off set-up cost here, not in the first real-time tick
+            prepare(self._profile.encoder_msg_rate)
         self._stop_event.clear()
         self._thread = threading.Thread(
             target=self._run_guarded, name=f"{type(self).__name__}-node{self._profile.node_id}"

@@ -97,11 +97,20 @@ def export_can(
     count = 0
     with _writer(out_path, fmt) as writer:
         for _, log_time_ns, payload in log.iter_messages(topics):
-            writer.on_message_received(payload_to_message(payload, log_time_ns))
+            msg = payload_to_message(payload, log_time_ns)
+            if fmt is CanLogFormat.BLF:
+                msg.channel = _blf_channel(msg.channel)
+            writer.on_message_received(msg)
             count += 1
             if progress is not None:
                 progress(1)
     return count
+
+
+def _blf_channel(channel: Any) -> int | None:
+    """BLF stores channels as small integers: a name that is not one becomes the default."""
+    number = can.util.channel2int(channel)
+    return number if number is not None and 0 <= number <= 0xFFFF else None
 
 
 def _writer(out_path: str | os.PathLike[str], fmt: CanLogFormat) -> can.io.generic.MessageWriter:

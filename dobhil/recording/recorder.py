@@ -34,6 +34,8 @@ from typing import Any, BinaryIO, Callable, Final
 import can
 from mcap.writer import CompressionType, Writer
 
+from dobhil.recording.fastlog import FastWriter, FrameEncoder, encode_raw, messages_per_record
+
 from dobhil import __version__
 from dobhil.errors import LogFileError
 from dobhil.recording.schemas import (
@@ -52,6 +54,8 @@ from dobhil.recording.schemas import (
 CHUNK_SIZE: Final = 256 * 1024
 #: Most records the writer thread handles between two looks at the flush clock.
 _BATCH: Final = 4096
+#: LOSSY mode: raw records encoded between two hand-backs of the GIL.
+_YIELD_EVERY: Final = 16
 #: Name of the metadata record the recorder writes on close.
 RECORDING_METADATA: Final = "recording"
 
@@ -68,6 +72,15 @@ class _Stop:
     """Queue sentinel: finish the file, optionally after a stop event."""
 
     reason: str | None
+    detail: str = ""
+
+
+@dataclass(frozen=True)
+class _Batch:
+    """Raw records (:mod:`dobhil.recording.fastlog`) encoded by the writer thread."""
+
+    records: list[tuple[Any, ...]]
+    count: int
 
 
 _Item = tuple[Topic, int, bytes]
@@ -135,7 +148,8 @@ class Recorder:
         self._size = queue_size
         self._interval = flush_interval
         self._fsync = fsync
-        self._queue: queue.SimpleQueue[_Item | _Stop] = queue.SimpleQueue()
+        self._queue: queue.SimpleQueue[_Item | _Batch | _Stop] = queue.SimpleQueue()
+        self._frames = FrameEncoder()
         self._room = threading.Event()
         # Counters: itertools.count is atomic under the GIL, so callers in several
         # threads (control loop, CAN notifier) neither lose nor double counts.
@@ -178,6 +192,14 @@ class Recorder:
         topic = Topic.CAN_RX if direction == Direction.RX else Topic.CAN_TX
         return self._put((topic, log_time_ns, encode(frame_payload(msg, direction))), force=False)
 
+    def write_batch(self, records: list[tuple[Any, ...]]) -> bool:
+        """Record raw records (see :mod:`~dobhil.recording.fastlog`), JSON-encoded by the
+        writer thread; False if the whole batch was dropped (LOSSY, queue full)."""
+        if not records:
+            return True
+        count = sum(map(messages_per_record, records))
+        return self._put_batch(_Batch(records, count), records[-1][1])
+
     def event(
         self, kind: EventKind, reason: str, detail: str = "", *, log_time_ns: int | None = None
     ) -> None:
@@ -185,13 +207,13 @@ class Recorder:
         stamp = self._default_time() if log_time_ns is None else log_time_ns
         self._put((Topic.EVENTS, stamp, encode(event_payload(EventKind(kind), reason, detail))), force=True)
 
-    def close(self, stop_reason: str | None = None) -> None:
+    def close(self, stop_reason: str | None = None, detail: str = "") -> None:
         """Drain the queue, write a stop event if a reason is given, finish the file."""
         if not self._thread.is_alive() and self._file.closed:
             self._raise_failure()
             return
         self._accepting = False
-        self._queue.put(_Stop(stop_reason))
+        self._queue.put(_Stop(stop_reason, detail))
         self._thread.join()
         self._file.close()
         self._raise_failure()
@@ -219,6 +241,23 @@ class Recorder:
         self._queue.put(item)
         return True
 
+    def _put_batch(self, batch: _Batch, last_ns: int) -> bool:
+        if not self._accepting:
+            self._raise_failure()
+            raise LogFileError(f"{self.path}: recorder is closed")
+        if self._enqueued - self._dequeued >= self._size:
+            if self.mode == RecordMode.LOSSY:
+                for _ in range(batch.count):
+                    self._dropped = next(self._drop_count)
+                self._last_drop_ns = last_ns
+                return False
+            self._wait_for_room()
+        self._last_log_ns = last_ns
+        for _ in range(batch.count):
+            self._enqueued = next(self._enqueue_count)
+        self._queue.put(batch)
+        return True
+
     def _wait_for_room(self) -> None:
         while self._enqueued - self._dequeued >= self._size:
             self._room.clear()
@@ -244,7 +283,7 @@ class Recorder:
             file = open(self.path, "wb")  # noqa: SIM115 - closed by close()
         except OSError as exc:
             raise LogFileError(f"{self.path}: cannot create: {exc.strerror}") from exc
-        writer = Writer(file, chunk_size=CHUNK_SIZE, compression=chunk_compression())
+        writer = FastWriter(file, chunk_size=CHUNK_SIZE, compression=chunk_compression())
         writer.start(profile="", library=f"dobhil/{__version__}")
         for name, record in metadata.items():
             writer.add_metadata(name, {str(k): str(v) for k, v in record.items()})
@@ -293,10 +332,13 @@ class Recorder:
         self._take(item)
         return None
 
-    def _take(self, item: _Item) -> None:
+    def _take(self, item: _Item | _Batch) -> None:
         """Write one dequeued item and tell a waiting caller there is room."""
-        self._dequeued += 1
-        self._write_message(*item)
+        if isinstance(item, _Batch):
+            self._write_batch(item)
+        else:
+            self._dequeued += 1
+            self._write_message(*item)
         if not self._room.is_set():
             self._room.set()
 
@@ -307,6 +349,29 @@ class Recorder:
             channel = self._register(TOPIC_SPECS[topic])
         self._writer.add_message(channel, log_time_ns, data, log_time_ns)
         self._written += 1
+
+    def _write_batch(self, batch: _Batch) -> None:
+        """Encode and write a batch; in LOSSY (real-time) mode hand the GIL back to the
+        control loop every few records, so a batch never delays a cycle by a switch interval."""
+        if self.mode == RecordMode.LOSSY:
+            records = batch.records
+            for i in range(0, len(records), _YIELD_EVERY):
+                self._write_records(records[i:i + _YIELD_EVERY])
+                time.sleep(0)
+        else:
+            self._write_records(batch.records)
+        self._dequeued += batch.count
+
+    def _write_records(self, records: list[tuple[Any, ...]]) -> None:
+        channels = self._channels
+        out = []
+        for topic, t, data in encode_raw(records, self._frames):
+            channel = channels.get(topic)
+            if channel is None:
+                channel = self._register(TOPIC_SPECS[topic])
+            out.append((channel, t, data))
+        self._writer.add_messages(out)
+        self._written += len(out)
 
     def _register(self, spec: TopicSpec) -> int:
         schema = self._schemas.get(spec.schema_name)
@@ -335,7 +400,7 @@ class Recorder:
         self._drain_rest()
         self._report_drops()
         if stop.reason is not None:
-            payload = event_payload(EventKind.STOP, stop.reason)
+            payload = event_payload(EventKind.STOP, stop.reason, stop.detail)
             self._write_message(Topic.EVENTS, self._default_time(), encode(payload))
         self._writer.add_metadata(RECORDING_METADATA, self._summary(stop))
         self._writer.finish()

@@ -184,6 +184,8 @@ _SPECS: Final = (
             _num("velocity", "rad/s", "motor-side velocity"),
             _int("axis_state", "drive state code"),
             _int("axis_error", "drive error code (0: none)"),
+            _int("seq", "motion frames received from the drive so far (Feedback.seq)"),
+            _int("cycle", "control cycle that used this feedback (-1: controller.initialize)"),
         ),
     ),
     TopicSpec(

@@ -105,7 +105,9 @@ class TimingStats:
 
     @classmethod
     def of(cls, trace: Trace) -> TimingStats:
-        pe, ex = np.abs(trace["period_error"]), trace["exec_time"]
+        # rows of deadlines skipped after an overrun were never run: NaN, left out
+        ran = np.isfinite(trace["exec_time"])
+        pe, ex = np.abs(trace["period_error"][ran]), trace["exec_time"][ran]
         if pe.size == 0:
             return cls(0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
         p = np.percentile
@@ -190,6 +192,7 @@ class ForceLoop:
         return self.clock() - self._t0
 
     def _enable_and_run(self) -> Stop:
+        self._t0 = self.clock()  # stop times before the first cycle: from the enable
         try:
             self.drive.enable()
         except DriveError as exc:

@@ -1,0 +1,340 @@
+"""The analysis of a recorded run (``dobhil report``): force response, estimation, timing, bus.
+
+:func:`load_run` reads a dobhil MCAP log into per-cycle arrays (:class:`RunData`);
+:func:`analyse` computes the summary:
+
+- step metrics of the force response: reference steps are detected in ``tau_ref``
+  (a jump larger than 5 % of its range, and the start when the reference does not
+  start at 0); the estimated interaction torque after each step is normalised to the
+  step and measured with :func:`dobhil.analysis.metrics.step_metrics`;
+- RMS tracking error ``tau_ref - tau_int_hat`` (and against the true torque when emulated);
+- estimation error ``tau_int_hat - tau_int`` against the emulator's ground truth;
+- loop timing statistics, overruns;
+- CAN frames per second and bus load: bits per frame 47 + 8 DLC plus the worst-case
+  stuff bits ``floor((34 + 8 DLC - 1) / 4)`` (11-bit identifiers; 29-bit: 67 + 8 DLC and
+  ``floor((54 + 8 DLC - 1) / 4)``) at ``drive.bitrate``;
+- records the recorder dropped (``/events`` ``kind=loss``);
+- the measured force response against the sampled closed loop of the recorded config
+  (``LoopSystems.build(params, sampled=True).system("closed_loop")`` driven by the
+  recorded reference with ``control.forced_response``): RMS and max difference.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from typing import Any, Final
+
+import numpy as np
+from numpy.typing import NDArray
+
+from dobhil.config.schema import Config
+from dobhil.errors import LogFileError
+from dobhil.recording.reader import open_log
+
+Array = NDArray[np.float64]
+ProgressFn = Callable[[int], None]
+
+_CONTROLLER: Final = ("tau_ref", "tau_int_hat", "tau_dis_hat", "tau_per", "u_unsat", "u_sat")
+#: A reference jump larger than this fraction of the reference range is a step.
+STEP_FRACTION: Final = 0.05
+
+
+@dataclass
+class RunData:
+    """Per-cycle arrays of one recorded run (NaN where a value was not recorded)."""
+
+    path: str
+    config: Config | None
+    metadata: Mapping[str, Mapping[str, str]]
+    t: Array
+    signals: dict[str, Array] = field(default_factory=dict)
+    frames: dict[str, list[int]] = field(default_factory=dict)   # topic -> DLCs
+    frame_ext: dict[str, int] = field(default_factory=dict)      # topic -> extended-id frames
+    span_s: float = 0.0                                          # first to last CAN frame
+    events: list[dict[str, Any]] = field(default_factory=list)
+
+    def has(self, name: str) -> bool:
+        return name in self.signals and bool(np.any(np.isfinite(self.signals[name])))
+
+    def __getitem__(self, name: str) -> Array:
+        return self.signals[name]
+
+
+def load_run(path: str | os.PathLike[str], progress: ProgressFn | None = None) -> RunData:
+    """Read a dobhil run log; LogFileError if it is not one."""
+    from dobhil.runtime.replay import _iter, _loads, recorded_config
+    log = open_log(path)
+    name = os.fspath(path)
+    log.require_topic("/controller")
+    meta = log.metadata()
+    config = recorded_config(meta, name) if meta.get("config") else None
+    per: dict[str, list[Any]] = {k: [] for k in ("controller", "feedback", "truth", "loop")}
+    frames: dict[str, list[int]] = {"/can/rx": [], "/can/tx": []}
+    ext = {"/can/rx": 0, "/can/tx": 0}
+    times: list[int] = []
+    events: list[dict[str, Any]] = []
+    bounds = [None, None]
+    topics = ("/controller", "/drive/feedback", "/emulator/truth", "/loop", "/can/rx", "/can/tx", "/events")
+    for i, (topic, t, data) in enumerate(_iter(path, [x for x in topics if x in log.topics()])):
+        _take(topic, t, _loads(data), per, frames, ext, times, events, bounds)
+        if progress is not None and i % 1000 == 999:
+            progress(1000)
+    return _assemble(name, config, meta, per, frames, ext, times, events, bounds)
+
+
+def _take(topic: str, t: int, p: dict[str, Any], per: dict[str, list[Any]], frames: dict[str, list[int]],
+          ext: dict[str, int], times: list[int], events: list[dict[str, Any]], bounds: list[Any]) -> None:
+    if topic == "/controller":
+        per["controller"].append((p["cycle"], t, *(_f(p[k]) for k in _CONTROLLER)))
+    elif topic == "/drive/feedback":
+        if p.get("cycle", 0) >= 0:
+            per["feedback"].append((p.get("cycle", len(per["feedback"])), _f(p["position"]), _f(p["velocity"])))
+    elif topic == "/emulator/truth":
+        per["truth"].append((_f(p["q"]), _f(p["dq"]), _f(p["tau_motor"]), _f(p["tau_int"])))
+    elif topic == "/loop":
+        per["loop"].append((p["cycle"], _f(p["period_error"]), _f(p["exec_time"]), float(bool(p["overrun"]))))
+    elif topic == "/events":
+        events.append({**p, "log_time_ns": t})
+    else:
+        frames[topic].append(int(p["dlc"]))
+        ext[topic] += bool(p["is_extended_id"])
+        bounds[0] = t if bounds[0] is None else min(bounds[0], t)
+        bounds[1] = t if bounds[1] is None else max(bounds[1], t)
+
+
+def _f(v: Any) -> float:
+    return float("nan") if v is None else float(v)
+
+
+def _by_cycle(rows: list[tuple[Any, ...]], index: Mapping[int, int], n: int, width: int) -> Array:
+    out = np.full((n, width), np.nan)
+    for row in rows:
+        i = index.get(row[0])
+        if i is not None:
+            out[i] = row[1:]
+    return out
+
+
+def _assemble(name: str, config: Config | None, meta: Mapping[str, Mapping[str, str]],
+              per: dict[str, list[Any]], frames: dict[str, list[int]], ext: dict[str, int], times: list[int],
+              events: list[dict[str, Any]], bounds: list[Any]) -> RunData:
+    ctrl = sorted(per["controller"])
+    if not ctrl:
+        raise LogFileError(f"{name}: no /controller records (the run stopped before its first cycle)")
+    index = {row[0]: i for i, row in enumerate(ctrl)}
+    n = len(ctrl)
+    stamps = np.array([row[1] for row in ctrl], dtype=np.int64)
+    data = RunData(path=name, config=config, metadata=meta, t=(stamps - stamps[0]) / 1e9,
+                   frames=frames, frame_ext=ext, events=events,
+                   span_s=0.0 if bounds[0] is None else (bounds[1] - bounds[0]) / 1e9)
+    values = np.array([row[2:] for row in ctrl], dtype=float)
+    data.signals.update({k: values[:, i] for i, k in enumerate(_CONTROLLER)})
+    data.signals["cycle"] = np.array([row[0] for row in ctrl], dtype=float)
+    fb = _by_cycle(per["feedback"], index, n, 2)
+    data.signals.update(q=fb[:, 0], dq=fb[:, 1])
+    loop = _by_cycle(per["loop"], index, n, 3)
+    data.signals.update(period_error=loop[:, 0], exec_time=loop[:, 1], overrun=loop[:, 2])
+    truth = np.full((n, 4), np.nan)
+    if per["truth"]:
+        rows = np.array(per["truth"][:n], dtype=float)
+        truth[:rows.shape[0]] = rows
+    data.signals.update(q_true=truth[:, 0], dq_true=truth[:, 1], tau_motor=truth[:, 2], tau_int_true=truth[:, 3])
+    return data
+
+
+# -- analysis ------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class StepInfo:
+    """One detected reference step and the force response's metrics after it."""
+
+    time: float
+    start: float
+    end: float
+    metrics: dict[str, float | None]
+
+
+def detect_steps(t: Array, ref: Array) -> list[tuple[int, float, float]]:
+    """(index, value before, value after) of every reference step."""
+    finite = ref[np.isfinite(ref)]
+    if finite.size == 0:
+        return []
+    span = max(float(np.ptp(np.concatenate([finite, [0.0]]))), 1e-12)
+    steps: list[tuple[int, float, float]] = []
+    if abs(ref[0]) > STEP_FRACTION * span:
+        steps.append((0, 0.0, float(ref[0])))
+    jumps = np.nonzero(np.abs(np.diff(ref)) > STEP_FRACTION * span)[0] + 1
+    steps.extend((int(i), float(ref[i - 1]), float(ref[i])) for i in jumps)
+    return steps
+
+
+def step_infos(data: RunData) -> list[StepInfo]:
+    from dobhil.analysis.metrics import step_metrics
+    t, ref, y = data.t, data["tau_ref"], data["tau_int_hat"]
+    steps = detect_steps(t, ref)
+    out = []
+    for j, (i, a, b) in enumerate(steps):
+        end = steps[j + 1][0] if j + 1 < len(steps) else t.size
+        seg_t, seg_y = t[i:end] - t[i], (y[i:end] - a) / (b - a)
+        m = step_metrics(seg_t, seg_y, target=1.0).as_dict()
+        out.append(StepInfo(float(t[i]), a, b, _scale(m, b - a)))
+    return out
+
+
+def _scale(m: dict[str, float | None], height: float) -> dict[str, float | None]:
+    """Metrics of the normalised response back in N m where they are torques."""
+    out = dict(m)
+    for key in ("steady_state_error", "final_value", "peak"):
+        if out.get(key) is not None:
+            out[f"{key}_nm"] = float(out[key]) * height  # type: ignore[arg-type]
+    return out
+
+
+def _rms(x: Array) -> float | None:
+    x = x[np.isfinite(x)]
+    return float(np.sqrt(np.mean(x ** 2))) if x.size else None
+
+
+def _amax(x: Array) -> float | None:
+    x = x[np.isfinite(x)]
+    return float(np.abs(x).max()) if x.size else None
+
+
+def _pct(x: Array, q: float) -> float | None:
+    x = x[np.isfinite(x)]
+    return float(np.percentile(x, q)) if x.size else None
+
+
+def frame_bits(dlc: int, extended: bool = False) -> int:
+    """Bits on the wire of a data frame incl. worst-case stuffing (EOF, IFS included)."""
+    base, stuffable = (67, 54) if extended else (47, 34)
+    return base + 8 * dlc + (stuffable + 8 * dlc - 1) // 4
+
+
+def bus_stats(data: RunData) -> dict[str, Any]:
+    bitrate = float(data.metadata.get("bus", {}).get("bitrate", 0) or 0)
+    if not bitrate and data.config is not None:
+        bitrate = float(data.config.drive.bitrate)
+    span = data.span_s or (float(data.t[-1]) if data.t.size else 0.0)
+    out: dict[str, Any] = {"bitrate": bitrate or None, "duration_s": span}
+    bits = 0
+    for topic, dlcs in data.frames.items():
+        key = topic.rsplit("/", 1)[-1]
+        out[f"{key}_frames"] = len(dlcs)
+        out[f"{key}_frames_per_s"] = len(dlcs) / span if span > 0 else None
+        ext = data.frame_ext.get(topic, 0)
+        bits += sum(frame_bits(d) for d in dlcs) + ext * (frame_bits(0, True) - frame_bits(0))
+    out["bits_per_s"] = bits / span if span > 0 else None
+    out["bus_load"] = (bits / span / bitrate) if span > 0 and bitrate else None
+    return out
+
+
+def prediction(data: RunData) -> tuple[Array | None, dict[str, Any]]:
+    """The sampled closed loop of the recorded config driven by the recorded reference."""
+    if data.config is None:
+        return None, {"available": False, "why": "no recorded config"}
+    import control
+
+    from dobhil.analysis.transfer import LoopSystems
+    from dobhil.synthesis.params import params_from_config
+    sys_ = LoopSystems.build(params_from_config(data.config), sampled=True).system("closed_loop")
+    ref = np.nan_to_num(data["tau_ref"])
+    t = np.arange(ref.size) * float(sys_.dt)
+    y = np.asarray(control.forced_response(sys_, T=t, U=ref).outputs).reshape(-1)
+    diff = data["tau_int_hat"] - y
+    return y, {"available": True, "rms_difference": _rms(diff), "max_difference": _amax(diff),
+               "system": "LoopSystems(sampled=True).closed_loop: tau_ref -> tau_int_hat"}
+
+
+def analyse(data: RunData) -> tuple[dict[str, Any], Array | None]:
+    """The report summary (JSON-ready) and the predicted tau_int_hat."""
+    predicted, pred_info = prediction(data)
+    ref, est, true = data["tau_ref"], data["tau_int_hat"], data["tau_int_true"]
+    summary: dict[str, Any] = {
+        "file": data.path, "cycles": int(data.t.size), "duration_s": float(data.t[-1]) if data.t.size else 0.0,
+        "run": dict(data.metadata.get("run", {})),
+        "stop": next((e["reason"] for e in reversed(data.events) if e.get("kind") == "stop"), None),
+        "steps": [s.__dict__ for s in step_infos(data)],
+        "tracking": {"rms_error_estimated": _rms(ref - est), "max_error_estimated": _amax(ref - est),
+                     "rms_error_true": _rms(ref - true) if data.has("tau_int_true") else None},
+        "estimation": ({"rms_error": _rms(est - true), "max_error": _amax(est - true)}
+                       if data.has("tau_int_true") else None),
+        "loop_timing": _timing(data),
+        "bus": bus_stats(data),
+        "dropped": int(sum(int(e.get("count", 0)) for e in data.events if e.get("kind") == "loss")),
+        "prediction": pred_info,
+    }
+    return summary, predicted
+
+
+def _timing(data: RunData) -> dict[str, Any]:
+    ex, pe = data["exec_time"], np.abs(data["period_error"])
+    return {"exec_time_p50": _pct(ex, 50), "exec_time_p99": _pct(ex, 99), "exec_time_max": _amax(ex),
+            "period_error_p50": _pct(pe, 50), "period_error_p99": _pct(pe, 99), "period_error_max": _amax(pe),
+            "overruns": int(np.nansum(data["overrun"]))}
+
+
+def summary_text(s: Mapping[str, Any]) -> str:
+    """The short text version of the summary."""
+    def us(v: float | None) -> str:
+        return "-" if v is None else f"{v * 1e6:.0f} us"
+
+    def nm(v: float | None) -> str:
+        return "-" if v is None else f"{v:.4g} N m"
+
+    lines = [f"run: {s['file']}", f"cycles: {s['cycles']} ({s['duration_s']:.3f} s), stop: {s['stop'] or '-'}"]
+    for st in s["steps"]:
+        m = st["metrics"]
+        def fmt(k: str, scale: float = 1.0, unit: str = "") -> str:
+            return "-" if m.get(k) is None else f"{m[k] * scale:.3g}{unit}"
+        lines.append(f"step at {st['time']:.3f} s ({st['start']:.3g} -> {st['end']:.3g} N m): "
+                     f"overshoot {fmt('overshoot_pct', 1, ' %')}, rise {fmt('rise_time', 1e3, ' ms')}, "
+                     f"settling {fmt('settling_time', 1e3, ' ms')}, "
+                     f"steady-state error {fmt('steady_state_error_nm', 1, ' N m')}")
+    tr = s["tracking"]
+    lines.append(f"tracking: RMS(tau_ref - tau_int^) {nm(tr['rms_error_estimated'])}"
+                 + (f", RMS(tau_ref - tau_int) {nm(tr['rms_error_true'])}" if tr["rms_error_true"] is not None else ""))
+    if s["estimation"]:
+        lines.append(f"estimation: RMS(tau_int^ - tau_int) {nm(s['estimation']['rms_error'])}, "
+                     f"max {nm(s['estimation']['max_error'])}")
+    p = s["prediction"]
+    if p.get("available"):
+        lines.append(f"analysis prediction vs measured tau_int^: RMS {nm(p['rms_difference'])}, "
+                     f"max {nm(p['max_difference'])}")
+    lt = s["loop_timing"]
+    lines.append(f"loop: exec p50 {us(lt['exec_time_p50'])}, p99 {us(lt['exec_time_p99'])}, "
+                 f"max {us(lt['exec_time_max'])}; |period error| p99 {us(lt['period_error_p99'])}; "
+                 f"overruns {lt['overruns']}")
+    b = s["bus"]
+    load = "-" if b["bus_load"] is None else f"{b['bus_load'] * 100:.1f} %"
+    fps = "-" if b.get("rx_frames_per_s") is None else f"{b['rx_frames_per_s']:.0f} rx + {b['tx_frames_per_s']:.0f} tx"
+    rate = "?" if not b["bitrate"] else f"{b['bitrate']:.0f}"
+    lines.append(f"bus: {fps} frames/s, load {load} at {rate} bit/s; dropped records {s['dropped']}")
+    return "\n".join(lines) + "\n"
+
+
+def write_report(path: str | os.PathLike[str], out_dir: str | os.PathLike[str],
+                 progress: ProgressFn | None = None) -> tuple[dict[str, Any], list[str]]:
+    """Figures, summary.json and summary.txt in ``out_dir``; (summary, written files)."""
+    from pathlib import Path
+
+    from dobhil.plotting.report_figures import report_figures
+    data = load_run(path, progress)
+    summary, predicted = analyse(data)
+    out = Path(out_dir)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise LogFileError(f"{out}: cannot create: {exc.strerror}") from exc
+    files = [str(p) for p in report_figures(data, predicted, summary, out)]
+    (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+    (out / "summary.txt").write_text(summary_text(summary))
+    return summary, [*files, str(out / "summary.json"), str(out / "summary.txt")]
+
+
+__all__ = ["RunData", "StepInfo", "analyse", "bus_stats", "detect_steps", "frame_bits", "load_run",
+           "prediction", "step_infos", "summary_text", "write_report"]

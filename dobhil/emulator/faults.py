@@ -1,0 +1,252 @@
+"""Fault injection: small, composable faults applied by a python-can bus wrapper.
+
+A :class:`Fault` looks at one frame at a time, in one direction (frames the wrapped
+side *receives* or *sends*), and returns the frames to pass on: none (dropped), the
+frame itself, a changed copy, or the frame plus injected ones. :class:`FaultyBus`
+chains faults in front of any ``can.BusABC``; :func:`faulty` makes the
+``bus_wrapper=`` callable :class:`dobhil.runtime.session.RunSession` takes::
+
+    wrapper = faulty(SilenceAfter(seconds=0.2), CorruptFeedback.odrive(3, at=100))
+    with RunSession(config, emulate=True, bus_wrapper=wrapper) as s: ...
+
+On the host side (``bus_wrapper``) receive faults model what the drive sends and the
+host sees (silence, NaN, lost frames); send faults model what the host puts on the
+bus (an injected Estop). To fault the drive side instead, wrap the emulator's bus
+with ``FaultyBus(bus, faults, owns_inner=True)``.
+
+Time: faults that trigger on time read the wrapper's clock, the inner bus's
+``clock()`` if it has one (a :class:`~dobhil.emulator.protocol.LockstepBus`: simulated
+seconds) or ``time.monotonic``; the clock starts at 0 when the wrapper is made.
+Randomness is seeded: a faulted run is reproducible in lockstep.
+
+A new fault (roadmap: a fault-injection and fuzzing campaign) is one new subclass of
+:class:`Fault` in this module: set :attr:`Fault.direction` and write :meth:`Fault.apply`.
+"""
+
+from __future__ import annotations
+
+import math
+import random
+import struct
+import time
+from abc import ABC, abstractmethod
+from collections import deque
+from collections.abc import Callable, Collection, Sequence
+from enum import Enum
+from typing import Any, ClassVar
+
+import can
+
+__all__ = [
+    "CorruptFeedback",
+    "Direction",
+    "DropFrames",
+    "Fault",
+    "FaultyBus",
+    "InjectFrame",
+    "SilenceAfter",
+    "faulty",
+]
+
+_ODRIVE_ENCODER_CMD = 0x09   # Get_Encoder_Estimates: pos f32 @0 [turns], vel f32 @4 [turns/s]
+_ODRIVE_FIELDS = {"position": 0, "velocity": 4}
+
+
+class Direction(Enum):
+    RECV = "recv"   # frames the wrapped side receives
+    SEND = "send"   # frames the wrapped side sends
+
+
+def _copy(msg: can.Message, data: bytes | bytearray) -> can.Message:
+    return can.Message(timestamp=msg.timestamp, arbitration_id=msg.arbitration_id,
+                       is_extended_id=msg.is_extended_id, is_remote_frame=msg.is_remote_frame,
+                       is_error_frame=msg.is_error_frame, channel=msg.channel, dlc=len(data),
+                       data=bytearray(data), is_rx=msg.is_rx)
+
+
+class Fault(ABC):
+    """One fault. ``ids``: the arbitration ids it acts on (None: every frame);
+    other frames pass untouched and are not counted."""
+
+    direction: ClassVar[Direction] = Direction.RECV
+
+    def __init__(self, ids: Collection[int] | None = None) -> None:
+        self.ids = None if ids is None else frozenset(ids)
+        self.matched = 0   # frames of ``ids`` seen so far
+        self.applied = 0   # frames this fault dropped, changed or injected
+
+    def matches(self, msg: can.Message) -> bool:
+        return self.ids is None or msg.arbitration_id in self.ids
+
+    def __call__(self, msg: can.Message, now: float) -> Sequence[can.Message]:
+        if not self.matches(msg):
+            return (msg,)
+        index = self.matched
+        self.matched += 1
+        return self.apply(msg, index, now)
+
+    @abstractmethod
+    def apply(self, msg: can.Message, index: int, now: float) -> Sequence[can.Message]:
+        """Frames to pass on for the ``index``-th matching frame (0-based) at ``now`` [s]."""
+
+
+class SilenceAfter(Fault):
+    """The drive goes silent: every matching frame after the first ``frames`` of them,
+    or after ``seconds`` on the wrapper's clock, is dropped. With ``ids`` the ODrive
+    encoder id, ``frames`` counts control cycles."""
+
+    def __init__(self, *, frames: int | None = None, seconds: float | None = None,
+                 ids: Collection[int] | None = None) -> None:
+        if (frames is None) == (seconds is None):
+            raise ValueError("SilenceAfter: give exactly one of frames= or seconds=")
+        if (frames is not None and frames < 0) or (seconds is not None and not seconds >= 0):
+            raise ValueError(f"SilenceAfter: expected >= 0, got frames={frames}, seconds={seconds}")
+        super().__init__(ids)
+        self.frames = frames
+        self.seconds = seconds
+
+    def apply(self, msg: can.Message, index: int, now: float) -> Sequence[can.Message]:
+        silent = index >= self.frames if self.frames is not None else now >= self.seconds  # type: ignore[operator]
+        if silent:
+            self.applied += 1
+            return ()
+        return (msg,)
+
+
+class CorruptFeedback(Fault):
+    """Replaces the little-endian float32 at byte ``offset`` of matching frames
+    ``at`` .. ``at + count - 1`` (0-based) by ``value`` (NaN by default)."""
+
+    def __init__(self, arbitration_id: int, *, offset: int = 0, value: float = math.nan,
+                 at: int = 0, count: int = 1) -> None:
+        if offset < 0 or offset > 4 or at < 0 or count < 1:
+            raise ValueError(f"CorruptFeedback: offset 0..4, at >= 0, count >= 1; "
+                             f"got {offset}, {at}, {count}")
+        super().__init__((arbitration_id,))
+        self.offset = offset
+        self.value = float(value)
+        self.at = at
+        self.count = count
+
+    @classmethod
+    def odrive(cls, node_id: int, field: str = "position", **kwargs: Any) -> CorruptFeedback:
+        """On an ODrive's Get_Encoder_Estimates (both firmwares share the layout)."""
+        if field not in _ODRIVE_FIELDS:
+            raise ValueError(f"field: expected one of {sorted(_ODRIVE_FIELDS)}, got {field!r}")
+        return cls(node_id << 5 | _ODRIVE_ENCODER_CMD, offset=_ODRIVE_FIELDS[field], **kwargs)
+
+    def apply(self, msg: can.Message, index: int, now: float) -> Sequence[can.Message]:
+        if not self.at <= index < self.at + self.count or len(msg.data) < self.offset + 4:
+            return (msg,)
+        data = bytearray(msg.data)
+        struct.pack_into("<f", data, self.offset, self.value)
+        self.applied += 1
+        return (_copy(msg, data),)
+
+
+class DropFrames(Fault):
+    """Each matching frame is lost with ``probability`` (seeded)."""
+
+    def __init__(self, probability: float, *, seed: int = 0,
+                 ids: Collection[int] | None = None) -> None:
+        if not 0.0 <= probability <= 1.0:
+            raise ValueError(f"probability: expected 0..1, got {probability}")
+        super().__init__(ids)
+        self.probability = float(probability)
+        self._rng = random.Random(seed)
+
+    def apply(self, msg: can.Message, index: int, now: float) -> Sequence[can.Message]:
+        if self._rng.random() < self.probability:
+            self.applied += 1
+            return ()
+        return (msg,)
+
+
+class InjectFrame(Fault):
+    """Sends ``frame`` once, right after the ``after``-th matching frame the wrapped side
+    sends (0-based), e.g. an Estop in the middle of a run. Send direction."""
+
+    direction: ClassVar[Direction] = Direction.SEND
+
+    def __init__(self, frame: can.Message, *, after: int,
+                 ids: Collection[int] | None = None) -> None:
+        if after < 0:
+            raise ValueError(f"after: expected >= 0, got {after}")
+        super().__init__(ids)
+        self.frame = frame
+        self.after = after
+
+    def apply(self, msg: can.Message, index: int, now: float) -> Sequence[can.Message]:
+        if index == self.after:
+            self.applied += 1
+            return (msg, self.frame)
+        return (msg,)
+
+
+class FaultyBus(can.BusABC):
+    """``inner`` with ``faults`` applied in order to what it receives and sends.
+
+    The inner bus is borrowed (a session shuts it down) unless ``owns_inner``.
+    ``recv(timeout)`` keeps the timeout in the inner bus's time (simulated seconds
+    over a LockstepBus): dropped frames do not end the wait early.
+    """
+
+    def __init__(self, inner: can.BusABC, faults: Sequence[Fault], *,
+                 clock: Callable[[], float] | None = None, owns_inner: bool = False,
+                 **kwargs: Any) -> None:
+        self._inner = inner
+        self._recv_faults = [f for f in faults if f.direction is Direction.RECV]
+        self._send_faults = [f for f in faults if f.direction is Direction.SEND]
+        self.faults = tuple(faults)
+        inner_clock = getattr(inner, "clock", None)
+        self._clock = clock or (inner_clock if callable(inner_clock) else time.monotonic)
+        self._t0 = self._clock()
+        self._owns_inner = owns_inner
+        self._pending: deque[can.Message] = deque()
+        self.channel_info = f"faulty {inner.channel_info}"
+        super().__init__(channel=None, **kwargs)
+
+    def now(self) -> float:
+        """Seconds since the wrapper was made, on its clock."""
+        return self._clock() - self._t0
+
+    @staticmethod
+    def _chain(faults: Sequence[Fault], msg: can.Message, now: float) -> list[can.Message]:
+        frames = [msg]
+        for fault in faults:
+            frames = [out for frame in frames for out in fault(frame, now)]
+        return frames
+
+    def send(self, msg: can.Message, timeout: float | None = None) -> None:
+        for frame in self._chain(self._send_faults, msg, self.now()):
+            self._inner.send(frame, timeout)
+
+    def recv(self, timeout: float | None = None) -> can.Message | None:
+        if self._pending:
+            return self._pending.popleft()
+        deadline = None if timeout is None else self._clock() + timeout
+        while True:
+            remaining = None if deadline is None else max(0.0, deadline - self._clock())
+            msg = self._inner.recv(remaining)
+            if msg is None:
+                return None
+            frames = self._chain(self._recv_faults, msg, self.now())
+            if frames:
+                self._pending.extend(frames[1:])
+                return frames[0]
+
+    def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
+        return self.recv(timeout), False
+
+    def shutdown(self) -> None:
+        if self._owns_inner:
+            self._inner.shutdown()
+        super().shutdown()
+
+
+def faulty(*faults: Fault, clock: Callable[[], float] | None = None
+           ) -> Callable[[can.BusABC], FaultyBus]:
+    """A ``bus_wrapper`` for RunSession applying ``faults`` on the host side."""
+    def wrap(inner: can.BusABC) -> FaultyBus:
+        return FaultyBus(inner, faults, clock=clock)
+    return wrap

@@ -1,0 +1,101 @@
+"""``dobhil replay``: bit-exact verification, a changed frame found, overrides, bad files."""
+
+from __future__ import annotations
+
+import json
+import struct
+from pathlib import Path
+
+import pytest
+from mcap.reader import make_reader
+from mcap.writer import Writer
+
+from dobhil.cli.main import main
+from dobhil.drives.odrive import codec
+from dobhil.runtime.replay import replay
+from tests.recording.test_run_logging import logged_lockstep_run
+
+
+@pytest.fixture(scope="module")
+def recorded(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    path = tmp_path_factory.mktemp("replay") / "run.mcap"
+    logged_lockstep_run(path, duration=0.4)
+    return path
+
+
+def rewrite_with_altered_frame(src: Path, dst: Path, motion_index: int) -> None:
+    """Copy ``src`` to ``dst`` with the velocity of the ``motion_index``-th encoder frame changed
+    (the measured-velocity observers do not use the position)."""
+    encoder_cmd = codec.CmdId.GET_ENCODER_ESTIMATES
+    seen = 0
+    with open(src, "rb") as f_in, open(dst, "wb") as f_out:
+        reader = make_reader(f_in)
+        summary = reader.get_summary()
+        assert summary is not None
+        writer = Writer(f_out)
+        writer.start()
+        schemas = {sid: writer.register_schema(s.name, s.encoding, s.data) for sid, s in summary.schemas.items()}
+        channels = {cid: writer.register_channel(c.topic, c.message_encoding, schemas[c.schema_id])
+                    for cid, c in summary.channels.items()}
+        for record in reader.iter_metadata():
+            writer.add_metadata(record.name, record.metadata)
+        for _, channel, message in reader.iter_messages(log_time_order=False):
+            data = message.data
+            if channel.topic == "/can/rx":
+                p = json.loads(data)
+                if p["arbitration_id"] & 0x1F == encoder_cmd:
+                    seen += 1
+                    if seen == motion_index:
+                        pos, vel = struct.unpack("<ff", bytes(p["data"]))
+                        p["data"] = list(struct.pack("<ff", pos, vel + 1e-3))
+                        data = json.dumps(p).encode()
+            writer.add_message(channels[channel.id], message.log_time, data, message.publish_time)
+        writer.finish()
+
+
+def test_verify_reproduces_the_recorded_commands(recorded: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    result = replay(recorded)
+    assert result.first_mismatch() is None
+    assert result.recording.cycles == 400
+    assert main(["replay", str(recorded), "--verify"]) == 0
+    assert "bit for bit" in capsys.readouterr().out
+
+
+def test_one_changed_feedback_frame_fails_and_says_where(recorded: Path, tmp_path: Path,
+                                                         capsys: pytest.CaptureFixture[str]) -> None:
+    bad = tmp_path / "altered.mcap"
+    rewrite_with_altered_frame(recorded, bad, motion_index=150)
+    mismatch = replay(bad).first_mismatch()
+    assert mismatch is not None and 140 <= mismatch.cycle <= 150
+    capsys.readouterr()
+    assert main(["replay", str(bad), "--verify"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and f"cycle {mismatch.cycle}" in err[0] and "recorded" in err[0] and "replayed" in err[0]
+
+
+def test_override_shows_another_tuning(recorded: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    csv_path, png = tmp_path / "r.csv", tmp_path / "r.png"
+    code = main(["replay", str(recorded), "--set", "design.identified_inertia=0.2", "--json",
+                 "--out", str(csv_path), "--plot", str(png)])
+    assert code == 0
+    info = json.loads(capsys.readouterr().out)
+    assert not info["identical"] and info["difference"]["u_sat"]["max_abs"] > 0
+    assert csv_path.read_text().count("\n") == 401 and png.stat().st_size > 10000
+
+
+@pytest.mark.parametrize("command", ["replay", "report"])
+@pytest.mark.parametrize("case", ["empty", "not-mcap", "truncated", "missing"])
+def test_bad_files_one_line_exit_2(recorded: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str],
+                                   command: str, case: str) -> None:
+    path = tmp_path / f"{case}.mcap"
+    if case == "empty":
+        path.write_bytes(b"")
+    elif case == "not-mcap":
+        path.write_text("hello\n")
+    elif case == "truncated":
+        path.write_bytes(recorded.read_bytes()[: recorded.stat().st_size // 2])
+    args = [command, str(path)] + (["--out", str(tmp_path / "rep")] if command == "report" else [])
+    capsys.readouterr()
+    assert main(args) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "Traceback" not in err

@@ -1,0 +1,64 @@
+"""``dobhil report``: figures and summary of a recorded run; the demo's default log."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from dobhil.analysis.run_report import detect_steps, frame_bits
+from dobhil.cli.main import main
+from tests.recording.test_run_logging import logged_lockstep_run
+
+
+def test_detect_steps() -> None:
+    t = np.arange(10) * 1e-3
+    ref = np.array([0.2] * 5 + [1.0] * 5)
+    assert detect_steps(t, ref) == [(0, 0.0, 0.2), (5, 0.2, 1.0)]
+
+
+def test_frame_bits() -> None:
+    assert frame_bits(8) == 47 + 64 + 24 and frame_bits(0) == 47 + 8
+
+
+def test_demo_then_report(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["demo", "--out", str(tmp_path), "--set", "loop.duration=0.8"]) == 0
+    logs = list(tmp_path.glob("run-*.mcap"))
+    assert len(logs) == 1
+    capsys.readouterr()
+    out = tmp_path / "report"
+    assert main(["report", str(logs[0]), "--out", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "step at 0.600 s" in text and "bus:" in text
+    for name in ("force", "tracking_error", "position", "commands", "loop_timing"):
+        assert (out / f"{name}.png").stat().st_size > 10000
+    summary = json.loads((out / "summary.json").read_text())
+    step = summary["steps"][-1]
+    assert step["time"] == pytest.approx(0.6) and step["metrics"]["overshoot_pct"] is not None
+    assert summary["estimation"]["rms_error"] is not None and summary["dropped"] == 0
+    assert summary["prediction"]["available"] and summary["prediction"]["rms_difference"] < 0.5
+    assert 0.1 < summary["bus"]["bus_load"] < 0.5
+    assert summary["bus"]["rx_frames_per_s"] == pytest.approx(1010, rel=0.05)
+
+
+def test_report_without_truth_or_steps(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    path = tmp_path / "run.mcap"
+    logged_lockstep_run(path, duration=0.2)
+    assert main(["report", str(path), "--out", str(tmp_path / "r"), "--json"]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert summary["cycles"] == 200 and summary["stop"] == "done"
+
+
+def test_foxglove_layout_names_recorded_fields() -> None:
+    from dobhil.recording.schemas import SPECS_BY_NAME
+    root = Path(__file__).resolve().parents[2]
+    layout = json.loads((root / "tools" / "foxglove-layout.json").read_text())
+    assert {"configById", "layout", "globalVariables", "userNodes"} <= set(layout)
+    paths = [p["value"] for k, c in layout["configById"].items() if k.startswith("Plot!") for p in c["paths"]]
+    assert "/controller.tau_int_hat" in paths and "/loop.exec_time" in paths
+    for path in paths:
+        topic, field = path.rsplit(".", 1)
+        assert field in SPECS_BY_NAME[topic].keys, path
+    assert layout["configById"]["RawMessages!events"]["topicPath"] == "/events"

@@ -1,0 +1,151 @@
+"""Recording a run: every frame on the bus, the per-cycle channels, SIGINT and SIGKILL."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from collections import Counter
+from pathlib import Path
+
+import can
+import pytest
+from mcap.reader import make_reader
+
+from dobhil.config import load_config
+from dobhil.recording.canlog import CanLogFormat, default_output, export_can
+from dobhil.recording.reader import open_log
+from dobhil.recording.recover import recover
+from dobhil.recording.sink import RunLog, run_recorded
+from dobhil.runtime.session import RunSession
+
+ROOT = Path(__file__).resolve().parents[2]
+DEMO = ROOT / "configs" / "demo.yaml"
+TOPICS = {"/can/rx", "/can/tx", "/drive/feedback", "/drive/command", "/controller", "/loop",
+          "/emulator/truth", "/events"}
+
+
+def logged_lockstep_run(path: Path, duration: float = 0.3) -> tuple[list[can.Message], int, int]:
+    """A lockstep demo run recorded to ``path``; every frame a sniffer saw, the cycles and
+    the frames the emulated drive sent."""
+    config = load_config(DEMO, [f"loop.duration={duration}"])
+    log = RunLog(path, config, config_file=DEMO, fsync=False)
+    with RunSession(config, emulate=True, lockstep=True, sink=log.sink, bus_wrapper=log.wrap_bus) as session:
+        sniffer = can.Bus(interface="virtual", channel=session.bus_spec.channel)
+        try:
+            result = run_recorded(session, log)
+            seen = []
+            msg = sniffer.recv(0.0)
+            while msg is not None:
+                seen.append(msg)
+                msg = sniffer.recv(0.0)
+        finally:
+            sniffer.shutdown()
+        assert session.emulator is not None
+        sent_by_drive = session.emulator.frames_sent
+    return seen, result.cycles, sent_by_drive
+
+
+Run = tuple[Path, list[can.Message], int, int]
+
+
+@pytest.fixture(scope="module")
+def run_log(tmp_path_factory: pytest.TempPathFactory) -> Run:
+    path = tmp_path_factory.mktemp("run") / "run.mcap"
+    return (path, *logged_lockstep_run(path))
+
+
+def test_every_frame_and_channel_with_plain_mcap_reader(run_log: Run) -> None:
+    path, seen, cycles, sent_by_drive = run_log
+    with open(path, "rb") as f:
+        reader = make_reader(f)
+        summary = reader.get_summary()
+        assert summary is not None
+        schemas = {c.topic: summary.schemas[c.schema_id] for c in summary.channels.values()}
+        assert set(schemas) == TOPICS
+        assert all(s.encoding == "jsonschema" and s.data for s in schemas.values())
+        counts: Counter[str] = Counter()
+        frames: list[tuple[str, int, bytes]] = []
+        import json
+        for _, channel, message in reader.iter_messages(log_time_order=False):
+            counts[channel.topic] += 1
+            if channel.topic.startswith("/can/"):
+                p = json.loads(message.data)
+                frames.append((p["direction"], p["arbitration_id"], bytes(p["data"])))
+    assert counts["/can/rx"] + counts["/can/tx"] == len(seen)
+    assert sorted((f[1], f[2]) for f in frames) == sorted((m.arbitration_id, bytes(m.data)) for m in seen)
+    assert counts["/can/rx"] == sent_by_drive  # the drive's counter: every frame it sent
+    assert counts["/can/tx"] == len(seen) - sent_by_drive
+    assert Counter(d for d, _, _ in frames) == {"rx": counts["/can/rx"], "tx": counts["/can/tx"]}
+    for topic in ("/controller", "/loop", "/drive/command", "/emulator/truth"):
+        assert counts[topic] == cycles
+    assert counts["/drive/feedback"] == cycles + 1  # + the feedback controller.initialize used
+    meta = open_log(path).metadata()
+    assert {"config", "versions", "bus", "run", "drive", "recording"} <= set(meta)
+    assert meta["recording"]["dropped"] == "0" and meta["bus"]["bitrate"] == "1000000"
+    assert {"demo.yaml", "config.resolved.yaml"} <= {a for a, _, _ in open_log(path).attachments()}
+
+
+def test_events_enable_disable_stop(run_log: Run) -> None:
+    events = [p for _, _, p in open_log(run_log[0]).iter_messages(["/events"])]
+    kinds = [e["kind"] for e in events]
+    assert kinds[0] == "enable" and "disable" in kinds and kinds[-1] == "stop"
+    assert events[-1]["reason"] == "done"
+
+
+@pytest.mark.parametrize("fmt", list(CanLogFormat), ids=lambda f: f.name.lower())
+def test_can_export_of_a_run_reads_back(run_log: Run, tmp_path: Path,
+                                        fmt: CanLogFormat) -> None:
+    path, seen, _, _ = run_log
+    out = default_output(tmp_path / "frames.mcap", fmt)
+    count = export_can(path, out, fmt)
+    with can.LogReader(out) as reader:
+        back = [(m.arbitration_id, bytes(m.data)) for m in reader]
+    assert count == len(seen) == len(back)
+    assert sorted(back) == sorted((m.arbitration_id, bytes(m.data)) for m in seen)
+
+
+def _start_realtime_run(path: Path, duration: float) -> subprocess.Popen[bytes]:
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    return subprocess.Popen([sys.executable, "-m", "dobhil", "run", str(DEMO), "--emulate",
+                             "--duration", str(duration), "--log", str(path),
+                             # a recording test, not a timing one: tolerate a loaded machine
+                             "--set", "loop.feedback_timeout=0.2"],
+                            env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+
+
+def _wait_for_cycles(path: Path, proc: subprocess.Popen[bytes], seconds: float) -> None:
+    deadline = time.monotonic() + 20
+    while time.monotonic() < deadline and (not path.exists() or path.stat().st_size < 20000):
+        assert proc.poll() is None, proc.communicate()
+        time.sleep(0.05)
+    time.sleep(seconds)
+
+
+def test_sigint_leaves_a_complete_file_with_stop_signal(tmp_path: Path) -> None:
+    path = tmp_path / "rt.mcap"
+    proc = _start_realtime_run(path, 30.0)
+    _wait_for_cycles(path, proc, 0.5)
+    proc.send_signal(signal.SIGINT)
+    out, err = proc.communicate(timeout=20)
+    assert proc.returncode == 1, err
+    info = open_log(path).info()
+    assert info.has_summary and info.stop_reason == "signal"
+    counts = {c.topic: c.message_count for c in info.channels}
+    assert counts["/controller"] > 100 and counts["/can/rx"] > 100
+    assert info.metadata["recording"]["mode"] == "lossy"
+
+
+def test_sigkill_leaves_a_recoverable_file(tmp_path: Path) -> None:
+    path = tmp_path / "killed.mcap"
+    proc = _start_realtime_run(path, 30.0)
+    _wait_for_cycles(path, proc, 2.5)
+    proc.kill()
+    proc.communicate(timeout=20)
+    report = recover(path, tmp_path / "rec.mcap")
+    counts = dict(report.counts)
+    # at least everything older than about a second: > 1 s of 1 kHz cycles survived
+    assert counts.get("/controller", 0) >= 1000
+    assert open_log(tmp_path / "rec.mcap").has_summary

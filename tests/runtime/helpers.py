@@ -1,0 +1,162 @@
+"""Shared by the runtime tests: configs, relaxed real-time profiles, a bus sniffer,
+the safe-stop checks and a condition wait (never a wall-clock assertion)."""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass
+from pathlib import Path
+from types import TracebackType
+
+import can
+import numpy as np
+import yaml
+
+from dobhil.config import Config, load_config
+from dobhil.drives.odrive import codec
+from dobhil.drives.odrive.codec import AxisState, CmdId, Firmware
+from dobhil.runtime.loop import Timing
+from dobhil.runtime.session import RunSession
+from dobhil.runtime.stop import Stop, StopReason
+
+REPO = Path(__file__).resolve().parents[2]
+DEMO = REPO / "configs" / "demo.yaml"
+DRIVERS = REPO / "drivers"
+FIRMWARES = ("odrive-0.6", "odrive-0.5")
+NODE = 3
+
+#: contact from the start (q0 = q_c = 0) and a 1 N m step from t = 0: the analysed loop
+STEP_FROM_ZERO = ("plant.initial_position=0", "reference.offset=0", "reference.amplitude=1",
+                  "reference.start=0")
+#: real time on a loaded 2-core CI machine: a generous feedback timeout
+REALTIME_SLACK = ("loop.feedback_timeout=0.05",)
+
+
+def demo_config(*overrides: str) -> Config:
+    return load_config(DEMO, list(overrides))
+
+
+def write_profile(tmp_path: Path, name: str, **changes: object) -> Path:
+    """A copy of ``drivers/<name>.yaml`` with ``changes`` (firmware, node id ... kept)."""
+    data = yaml.safe_load((DRIVERS / f"{name}.yaml").read_text(encoding="utf-8"))
+    data.update(changes)
+    data["bus"] = {}
+    path = tmp_path / f"{name}-{'-'.join(sorted(changes)) or 'copy'}.yaml"
+    path.write_text(yaml.safe_dump(data), encoding="utf-8")
+    return path
+
+
+def realtime_profile(tmp_path: Path, name: str, **changes: object) -> Path:
+    """The shipped profile with only the drive watchdog and enable wait relaxed, so a
+    scheduling hiccup of a loaded CI machine is not a drive fault (rates unchanged)."""
+    return write_profile(tmp_path, name, **{"watchdog_timeout": 0.25, "enable_timeout": 2.0,
+                                            **changes})
+
+
+def wait_until(condition: Callable[[], bool], timeout: float = 5.0) -> bool:
+    """Poll ``condition`` until it holds or ``timeout`` s pass (a bound, not a measurement)."""
+    end = time.monotonic() + timeout
+    while not condition():
+        if time.monotonic() > end:
+            return condition()
+        time.sleep(0.005)
+    return True
+
+
+@dataclass(frozen=True)
+class HostCommands:
+    """What the host sent to the node, decoded."""
+
+    torques: list[float]
+    axis_states: list[int]
+    estops: int
+
+
+class Sniffer:
+    """An extra ``virtual`` bus on a channel: sees every frame the others send."""
+
+    def __init__(self, channel: str) -> None:
+        self.bus = can.Bus(interface="virtual", channel=channel)
+        self.frames: list[can.Message] = []
+
+    def drain(self) -> list[can.Message]:
+        msg = self.bus.recv(0.0)
+        while msg is not None:
+            self.frames.append(msg)
+            msg = self.bus.recv(0.0)
+        return self.frames
+
+    def host_commands(self, firmware: Firmware, node: int = NODE) -> HostCommands:
+        torques: list[float] = []
+        states: list[int] = []
+        estops = 0
+        for msg in self.drain():
+            got_node, cmd = codec.split_id(msg.arbitration_id)
+            if got_node != node or msg.is_remote_frame:
+                continue
+            if cmd == CmdId.SET_INPUT_TORQUE:
+                torques.append(codec.decode_message(msg, firmware).torque_nm)
+            elif cmd == CmdId.SET_AXIS_STATE:
+                states.append(int(codec.decode_message(msg, firmware).requested_state))
+            elif cmd == CmdId.ESTOP:
+                estops += 1
+        return HostCommands(torques, states, estops)
+
+    def close(self) -> None:
+        self.bus.shutdown()
+
+    def __enter__(self) -> Sniffer:
+        return self
+
+    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
+                 tb: TracebackType | None) -> None:
+        self.close()
+
+
+def firmware_of(session: RunSession) -> Firmware:
+    return Firmware.parse(session.profile.firmware)
+
+
+def settle_emulator(session: RunSession) -> bool:
+    """Let the emulator take the frames in flight (the disable); True once it is IDLE
+    with zero torque. Lockstep: it reads what is pending; real time: wait for its thread."""
+    emu = session.emulator
+    assert emu is not None
+
+    def idle() -> bool:
+        return emu.axis_state == AxisState.IDLE and emu.applied_torque == 0.0  # type: ignore[attr-defined]
+
+    if session.timing is Timing.LOCKSTEP:
+        emu.handle_pending()
+        return idle()
+    return wait_until(idle)
+
+
+def assert_stopped_safely(session: RunSession, sniffer: Sniffer, stop: Stop,
+                          reason: StopReason, *, words: Iterable[str] = (),
+                          emulated: bool = True) -> HostCommands:
+    """The checks every stop must pass: why, in one line; zero torque was the last torque
+    command; IDLE was requested last; the emulated drive ends IDLE with zero torque."""
+    line = stop.line()
+    assert stop.reason is reason, line
+    assert "\n" not in line and reason.name.lower() in line
+    for word in words:
+        assert word.lower() in line.lower(), (word, line)
+    sent = sniffer.host_commands(firmware_of(session))
+    assert sent.torques and sent.torques[-1] == 0.0, sent.torques[-3:]
+    assert sent.axis_states and sent.axis_states[-1] == AxisState.IDLE, sent.axis_states
+    if emulated:
+        assert settle_emulator(session), "emulator not IDLE with zero torque after the stop"
+    return sent
+
+
+def finite_tail(values: np.ndarray, t: np.ndarray, seconds: float) -> np.ndarray:
+    """The finite samples of the last ``seconds`` (skipped deadlines are NaN rows)."""
+    keep = np.isfinite(values) & (t >= t[np.isfinite(t)][-1] - seconds)
+    return values[keep]
+
+
+def isclose_rel(a: float, b: float, rel: float) -> bool:
+    return math.isclose(a, b, rel_tol=rel)

@@ -1,0 +1,125 @@
+"""Across processes: a python-can-remote hub (loopback only), ``dobhil emulate`` in a
+second process, and the force loop in this one, all on ``remote:ws://127.0.0.1:PORT/``.
+
+The websocket hub adds milliseconds of latency, so the loop runs slowly enough for it:
+200 Hz, observer bandwidths 100 rad/s (``dobhil analyze --set design.delay_samples=1``
+and ``=2``: stable, max C_f 10.3 and 3.9 > C_f = 2), a 50 ms feedback timeout. The true
+interaction torque lives in the other process; the estimate must reach the reference.
+"""
+
+from __future__ import annotations
+
+import os
+import socket
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from dobhil.runtime.session import RunSession
+from dobhil.runtime.stop import StopReason
+
+from .helpers import DEMO, REPO, demo_config, finite_tail, write_profile
+
+STARTUP_TIMEOUT = 30.0   # s, a bound for a loaded CI machine, not a measurement
+
+
+def free_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def accepts(port: int) -> bool:
+    try:
+        with socket.create_connection(("127.0.0.1", port), timeout=0.5):
+            return True
+    except OSError:
+        return False
+
+
+def child_env() -> dict[str, str]:
+    """Children import this checkout of dobhil, whatever is installed."""
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(REPO), env.get("PYTHONPATH")]))
+    return env
+
+
+def stop_process(proc: subprocess.Popen[bytes]) -> None:
+    if proc.poll() is None:
+        proc.terminate()
+        try:
+            proc.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait(timeout=10)
+
+
+@pytest.fixture
+def hub(tmp_path: Path) -> Iterator[int]:
+    """``python -m can_remote`` serving a virtual channel on 127.0.0.1; yields its port."""
+    port = free_port()
+    log = (tmp_path / "hub.log").open("wb")
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "can_remote", "-i", "virtual", "-c", f"dobhil-xp-{port}",
+         "-H", "127.0.0.1", "-p", str(port)],
+        stdout=log, stderr=subprocess.STDOUT, env=child_env(), cwd=REPO)
+    try:
+        deadline = time.monotonic() + STARTUP_TIMEOUT
+        while not accepts(port):
+            if proc.poll() is not None or time.monotonic() > deadline:
+                pytest.skip(f"python-can-remote hub did not start on 127.0.0.1:{port}: "
+                            f"{(tmp_path / 'hub.log').read_text(errors='replace')[-300:]!r}")
+            time.sleep(0.05)
+        yield port
+    finally:
+        stop_process(proc)
+        log.close()
+
+
+def slow_overrides(tmp_path: Path) -> list[str]:
+    profile = write_profile(tmp_path, "odrive-0.6", encoder_msg_rate=5e-3,
+                            heartbeat_msg_rate=0.05, watchdog_timeout=0.5, enable_timeout=5.0)
+    return [f"drive.profile={profile}", "loop.period=5e-3", "loop.feedback_timeout=0.05",
+            "design.dob_bandwidth=100", "design.rtob_bandwidth=100", "plant.initial_position=0",
+            "reference.offset=0", "reference.amplitude=1", "reference.start=0",
+            "loop.duration=1.5"]
+
+
+def test_force_loop_across_processes(tmp_path: Path, hub: int) -> None:
+    """The loop in this process converges on a drive emulated by another process,
+    through the hub: stop reason done, tau_int^ at the 1 N m reference."""
+    url = f"ws://127.0.0.1:{hub}/"
+    overrides = slow_overrides(tmp_path)
+    out = tmp_path / "emulate.log"
+    with out.open("wb") as log:
+        emulate = subprocess.Popen(
+            [sys.executable, "-m", "dobhil", "emulate", str(DEMO), "--bus", f"remote:{url}",
+             "--duration", "60", *[a for o in overrides for a in ("--set", o)]],
+            stdout=log, stderr=subprocess.STDOUT, env=child_env(), cwd=REPO)
+    try:
+        deadline = time.monotonic() + STARTUP_TIMEOUT
+        while "emulating odrive" not in out.read_text(errors="replace"):
+            assert emulate.poll() is None, out.read_text(errors="replace")
+            assert time.monotonic() < deadline, "dobhil emulate did not start"
+            time.sleep(0.05)
+        config = demo_config(*overrides)
+        with RunSession(config, bus=f"remote:{url}") as session:
+            assert session.bus_spec.interface == "remote"
+            assert "bitrate" in session.bus_spec.kwargs   # the remote bus takes it along
+            result = session.run()
+        assert result.stop.reason is StopReason.DONE, result.stop.line()
+        assert result.disabled
+        tail = finite_tail(result.trace["tau_int_hat"], result.trace["t"], 0.2)
+        assert tail.size >= 10
+        assert abs(float(np.mean(tail)) - 1.0) < 0.03
+        assert np.all(np.isnan(result.trace["tau_int_true"]))   # not visible from here
+    finally:
+        stop_process(emulate)
+    text = out.read_text(errors="replace")
+    assert emulate.returncode == 0, text
+    assert "emulator stopped" in text
