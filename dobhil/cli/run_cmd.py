@@ -47,6 +47,7 @@ def run(args: argparse.Namespace) -> int:
                        lockstep=True if args.lockstep else None, duration=args.duration,
                        config_dir=Path(args.config).parent, stop_request=request,
                        **log_hooks(log)) as session:
+        warn_realtime(session)
         result = run_logged(session, log)
         info = summary(session, result)
     if log is not None:
@@ -56,6 +57,15 @@ def run(args: argparse.Namespace) -> int:
         from dobhil.plotting.run_plot import run_figure
         sys.stderr.write(f"wrote {run_figure(result.trace, args.plot)}\n")
     return 0 if result.stop.reason.name == "DONE" else EXIT_STOPPED
+
+
+def warn_realtime(session: Any) -> None:
+    """Ask for SCHED_FIFO / locked memory for a real-time run; warn (before the loop) if refused."""
+    from dobhil.runtime.loop import Timing
+    from dobhil.runtime.realtime import apply_realtime
+    if session.timing is Timing.REALTIME:
+        for line in apply_realtime(session.config.loop.realtime_priority):
+            sys.stderr.write(f"dobhil run: warning: {line}\n")
 
 
 def make_log(path: Path | None, config: Any, config_file: str | Path | None) -> Any:
@@ -84,6 +94,9 @@ def report(info: dict, stop_line: str, *, as_json: bool) -> None:  # type: ignor
     if as_json:
         json.dump(info, sys.stdout)
         sys.stdout.write("\n")
+        return
+    if info["cycles"] == 0:  # nothing ran (e.g. the drive never answered): the reason only
+        sys.stderr.write(f"dobhil run: {stop_line}\n")
         return
     f, t = info["final"], info["loop_timing"]
     print(f"{info['cycles']} cycles ({info['timing']}, T = {info['period']:g} s, bus {info['bus']}"

@@ -109,6 +109,11 @@ class CycleRecorder:
         self.truth: Truth | None = None
         self.drive: Drive | None = None
         self.stopped: Stop | None = None
+        self.on_started: Callable[[Feedback], None] | None = None
+
+    def started(self, fb: Feedback) -> None:
+        if self.on_started is not None:
+            self.on_started(fb)
 
     def cycle(self, k: int, t: float, fb: Feedback, out: ControlOutput, period_error: float,
               exec_time: float, overrun: bool) -> None:
@@ -181,23 +186,12 @@ class RunLog:
             plant = session.plant
             self.sink.truth = lambda: (plant.true_position, plant.true_velocity,
                                        plant.motor_torque, plant.interaction_torque)
-        self._hook_initialize(session)
+        self.sink.on_started = self._initialized
 
-    def _hook_initialize(self, session: RunSession) -> None:
-        controller = session.controller
-        original = controller.initialize
-        drive = session.drive
-
-        def initialize(q: float, dq: float | None = 0.0) -> None:
-            original(q, dq)
-            self._initialized(drive)
-
-        controller.initialize = initialize  # type: ignore[method-assign]
-
-    def _initialized(self, drive: Drive) -> None:
-        fb, status = drive.feedback, drive.status
-        if fb is None:
-            return
+    def _initialized(self, fb: Feedback) -> None:
+        """The feedback ``controller.initialize`` used (cycle -1) and the enable event."""
+        assert self._session is not None
+        status = self._session.drive.status
         t = self.sink.clock_ns()
         self.batcher.buffer.append((RawKind.FEEDBACK, t, fb.position, fb.velocity, int(status.state),
                                     status.error_code, fb.seq, -1))

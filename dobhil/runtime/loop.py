@@ -51,7 +51,10 @@ class Reference(Protocol):
 
 
 class CycleSink(Protocol):
-    """Receives every cycle; must never block (the recorder's lossy mode)."""
+    """Receives the run as it goes; must never block (the recorder's lossy mode)."""
+
+    def started(self, fb: Feedback) -> None:
+        """The drive is enabled and the controller initialised from ``fb``."""
 
     def cycle(self, k: int, t: float, fb: Feedback, out: ControlOutput, period_error: float,
               exec_time: float, overrun: bool) -> None: ...
@@ -200,6 +203,8 @@ class ForceLoop:
         try:
             first = self._first_feedback()
             self.controller.initialize(first.position, first.velocity)
+            if self.sink is not None:
+                self.sink.started(first)
             self._t0 = self.clock()
             if self.settings.timing is Timing.LOCKSTEP:
                 self._run_lockstep()

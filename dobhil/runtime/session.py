@@ -139,7 +139,19 @@ class RunSession:
                          settings=self.settings, sink=self.sink, stop_request=self.stop_request,
                          truth=self.truth if self.plant is not None else None,
                          **({"clock": self._clock} if self._clock else {}))
-        return loop.run()
+        try:
+            return loop.run()
+        finally:
+            self._settle()
+
+    def _settle(self) -> None:
+        """Lockstep: the emulator reads the final frames (zero torque, disable) now, so its
+        state after the run is what the drive would be in; real time does this by itself."""
+        if self.timing is Timing.LOCKSTEP and self.emulator is not None:
+            try:
+                self.emulator.handle_pending()
+            except Exception:  # noqa: BLE001 -- the run's own outcome matters more
+                pass
 
     def close(self) -> None:
         """Stop the emulator thread and shut every bus down (never raises twice)."""

@@ -3,7 +3,6 @@ the safe-stop checks and a condition wait (never a wall-clock assertion)."""
 
 from __future__ import annotations
 
-import math
 import time
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
@@ -156,7 +155,3 @@ def finite_tail(values: np.ndarray, t: np.ndarray, seconds: float) -> np.ndarray
     """The finite samples of the last ``seconds`` (skipped deadlines are NaN rows)."""
     keep = np.isfinite(values) & (t >= t[np.isfinite(t)][-1] - seconds)
     return values[keep]
-
-
-def isclose_rel(a: float, b: float, rel: float) -> bool:
-    return math.isclose(a, b, rel_tol=rel)

@@ -71,6 +71,7 @@ def test_no_drive_answers(tmp_path: Path, capsys: pytest.CaptureFixture[str]) ->
     code = main(["run", str(DEMO), "--bus", f"virtual:nobody-{os.getpid()}",
                  "--set", f"drive.profile={profile}"])
     captured = capsys.readouterr()
-    lines = [line for line in captured.out.splitlines() if "no heartbeat" in line]
+    lines = captured.err.splitlines()
     assert code != 0
-    assert len(lines) == 1 and "enable_failed" in lines[0] and "node 3" in lines[0], captured.out
+    assert captured.out == ""
+    assert len(lines) == 1 and "enable_failed" in lines[0] and "no heartbeat from node 3" in lines[0], captured.err

@@ -26,6 +26,7 @@ from dobhil.config import Config
 from dobhil.drives.base import Feedback
 from dobhil.drives.odrive import codec
 from dobhil.drives.odrive.codec import AxisState, CmdId, Firmware
+from dobhil.drives.profile import load_profile
 from dobhil.emulator.faults import (CorruptFeedback, DropFrames, Fault, InjectFrame,
                                    SilenceAfter, faulty)
 from dobhil.emulator.odrive import EmulatedODrive
@@ -36,7 +37,6 @@ from dobhil.runtime.loop import RunResult, StopRequest
 from dobhil.runtime.session import RunSession, summary
 from dobhil.runtime.signals import stop_on_signals
 from dobhil.runtime.stop import Stop, StopReason
-from dobhil.drives.profile import load_profile
 
 from .helpers import (NODE, REALTIME_SLACK, STEP_FROM_ZERO, HostCommands, Sniffer,
                       assert_stopped_safely, demo_config, realtime_profile)
@@ -68,6 +68,10 @@ class Recorder:
     stops: list[Stop] = field(default_factory=list)
     cycles: int = 0
     fired_at: int = -1
+    started_with: Feedback | None = None
+
+    def started(self, fb: Feedback) -> None:
+        self.started_with = fb
 
     def cycle(self, k: int, t: float, fb: Feedback, out: ControlOutput, period_error: float,
               exec_time: float, overrun: bool) -> None:
