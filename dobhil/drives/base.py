@@ -42,6 +42,10 @@ __all__ = [
 Clock = Callable[[], float]
 
 
+#: heartbeats a drive may miss in a row before the host calls it a fault
+HEARTBEAT_MISSES = 3
+
+
 class DriveState(IntEnum):
     DISABLED = 0
     ENABLED = 1
@@ -191,9 +195,23 @@ class Drive(ABC):
         fresh = self._drain()
         if not fresh and timeout > 0:
             fresh = self._wait_for_motion(self._clock() + timeout)
+        if self._state is DriveState.ENABLED:
+            self._check_heartbeat()
         if self._state is DriveState.FAULT:
             raise DriveFaultError(self._detail)
         return self._feedback if fresh else None
+
+    def _check_heartbeat(self) -> None:
+        """A drive whose status frames stop is a fault, even if motion frames still come."""
+        rate = self._profile.heartbeat_msg_rate
+        last = self._last_heartbeat
+        if last is None or rate <= 0:
+            return
+        silent = self._clock() - last
+        if silent > HEARTBEAT_MISSES * rate:
+            self._set_state(DriveState.FAULT,
+                            f"no heartbeat from node {self.node_id} for {silent:.3f} s "
+                            f"(expected every {rate:g} s)")
 
     def __enter__(self) -> Drive:
         return self

@@ -146,6 +146,16 @@ def test_feedback_timeout_when_the_drive_goes_silent(tmp_path: Path, timing: str
 
 
 @pytest.mark.parametrize("timing", TIMINGS)
+def test_lost_heartbeat_is_a_drive_fault(tmp_path: Path, timing: str) -> None:
+    """Encoder frames keep coming but the heartbeats stop: after three missed heartbeat
+    periods the host calls it a drive fault (the drive's state is no longer known)."""
+    heartbeat = codec.arbitration_id(NODE, CmdId.HEARTBEAT)
+    out = run_case(safety_config(tmp_path, timing), timing, StopReason.DRIVE_FAULT,
+                   words=["no heartbeat from node"], faults=[SilenceAfter(frames=1, ids={heartbeat})])
+    assert out.stop.time < 0.4
+
+
+@pytest.mark.parametrize("timing", TIMINGS)
 def test_position_limit(tmp_path: Path, timing: str) -> None:
     """1 N m into 1e4 N m/rad is 1e-4 rad: above a 5e-5 rad position limit."""
     run_case(safety_config(tmp_path, timing, "loop.position_max=5e-5"), timing,
