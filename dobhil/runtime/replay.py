@@ -33,9 +33,7 @@ from dobhil.drives.profile import DriveProfile
 from dobhil.errors import LogFileError
 from dobhil.recording.canlog import payload_to_message
 from dobhil.recording.reader import DAMAGE_ERRORS, open_log
-from dobhil.runtime.controller import ForceController
-from dobhil.synthesis.controller import sampled_controller
-from dobhil.synthesis.params import params_from_config
+from dobhil.runtime.session import build_controller
 
 Array = NDArray[np.float64]
 
@@ -246,12 +244,6 @@ def decode_feedback(recording: Recording) -> tuple[list[float], list[float]]:
             pos.append(fb.position)
             vel.append(fb.velocity)
     return pos, vel
-
-
-def build_controller(config: Config, profile: DriveProfile) -> ForceController:
-    """The run's controller (same as :func:`dobhil.runtime.session.build_controller`)."""
-    limit = min(config.loop.torque_limit, profile.torque_limit)
-    return ForceController(sampled_controller(params_from_config(config)), torque_limit=limit)
 
 
 def replay(path: str | os.PathLike[str], overrides: Sequence[str] = ()) -> ReplayResult:
