@@ -21,7 +21,6 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from dobhil.analysis.stability import gain_map, is_stable  # noqa: E402
 from dobhil.analysis.sweep import parse_vary, sweep  # noqa: E402
 from dobhil.config import load_config  # noqa: E402
 from dobhil.synthesis.loop import loop  # noqa: E402
@@ -174,39 +173,50 @@ def _logged_run(duration: float, path: Path | None) -> float:
 
 
 def bench_logging() -> dict[str, float]:
-    """Recorder alone; lockstep runs with and without full logging, interleaved pairs."""
+    """Recorder alone; lockstep runs with and without full logging, interleaved pairs.
+
+    ``logged_vs_unlogged_ratio`` (the target) is the steady state: 20 s (simulated)
+    runs, ~0.7 s of wall time each. Run logging writes from a separate process whose
+    start (~0.1 s: a fresh interpreter importing mcap) is paid once per run, like
+    opening the file; on very short runs it dominates, so
+    ``logged_vs_unlogged_ratio_4s_run`` (no target) shows a 4 s run with it included.
+    Both include finishing the file."""
     import tempfile
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / "bench.mcap"
-        logged, plain = [], []
-        for _ in range(5):
-            plain.append(_logged_run(4.0, None))
-            logged.append(_logged_run(4.0, path))
-        ratios = [a / b for a, b in zip(logged, plain)]
+        short_logged, short_plain = _logged_pairs(4.0, path, 3)
+        logged, plain = _logged_pairs(20.0, Path(tmp) / "bench20.mcap", 3)
         msgs = _recorder_msgs_per_s(path)
         replay_rate = _replay_cycles_per_s(path)
     return {"mcap_log_msgs_per_s": msgs, "lockstep_logged_cycles_per_s": float(np.median(logged)),
             "lockstep_unlogged_cycles_per_s": float(np.median(plain)),
-            "logged_vs_unlogged_ratio": float(np.median(ratios)), "replay_cycles_per_s": replay_rate}
+            "logged_vs_unlogged_ratio": float(np.median([a / b for a, b in zip(logged, plain)])),
+            "logged_vs_unlogged_ratio_4s_run": float(np.median(
+                [a / b for a, b in zip(short_logged, short_plain)])),
+            "replay_cycles_per_s": replay_rate}
+
+
+def _logged_pairs(duration: float, path: Path, pairs: int) -> tuple[list[float], list[float]]:
+    """Cycles/s of ``pairs`` interleaved (unlogged, logged) runs: a load change hits both."""
+    logged, plain = [], []
+    for _ in range(pairs):
+        plain.append(_logged_run(duration, None))
+        logged.append(_logged_run(duration, path))
+    return logged, plain
 
 
 def _recorder_msgs_per_s(recorded: Path) -> float:
-    """Messages/s the recorder writes on its own: the raw records of a recorded run's
+    """Messages/s the recorder writes on its own: flat raw records like a recorded run's
     cycles and frames, re-recorded (encode + write + finish) without the loop."""
-    from dobhil.drives.base import DriveState, DriveStatus, Feedback
     from dobhil.recording.fastlog import RawKind
     from dobhil.recording.recorder import Recorder, RecordMode
-    from dobhil.runtime.controller import ControlOutput
-    import can
-    status = DriveStatus(DriveState.ENABLED)
-    frame = can.Message(arbitration_id=0x069, data=bytes(range(8)), is_extended_id=False, timestamp=1.5)
     records = []
     for k in range(20000):
         t = 1_000_000_000 + k * 1_000_000
-        records.append((RawKind.FRAME_RX, t, frame, frame.data))
-        records.append((RawKind.CYCLE, t, k, Feedback(0.0, 1e-4 * k, 0.1, k), ControlOutput(0.2, 0.19, 0.01, 0.02, 0.03, 0.03),
-                        0.0, 3e-5, False, status, (1e-4 * k, 0.1, 0.03, 0.19)))
-        records.append((RawKind.FRAME_TX, t, frame, bytes(frame.data)))
+        records.append((RawKind.FRAME_RX, t, 0x069, 0, 8, bytes(range(8)), 1.5, "bench"))
+        records.append((RawKind.CYCLE, t, k, 1e-4 * k, 0.1, k, 0.2, 0.19, 0.01, 0.02, 0.03, 0.03,
+                        0.0, 3e-5, False, 8, 0, 1e-4 * k, 0.1, 0.03, 0.19))
+        records.append((RawKind.FRAME_TX, t, 0x06E, 0, 4, bytes(4), 0.0, "bench"))
     best = 0.0
     for _ in range(3):
         t0 = time.perf_counter()

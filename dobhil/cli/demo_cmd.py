@@ -26,7 +26,8 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
 
 
 def run(args: argparse.Namespace) -> int:
-    from dobhil.cli.run_cmd import EXIT_STOPPED, log_hooks, make_log, report, run_logged
+    from dobhil.cli.run_cmd import (EXIT_STOPPED, closing_on_error, log_hooks, make_log, report,
+                                    run_logged)
     from dobhil.config import load_config
     from dobhil.plotting.run_plot import run_figure
     from dobhil.recording.sink import default_log_path
@@ -37,7 +38,7 @@ def run(args: argparse.Namespace) -> int:
     config = load_config(path, args.overrides)
     log_path = None if args.no_log else (args.log or default_log_path(args.out))
     log = make_log(log_path, config, path)
-    with stop_on_signals(StopRequest()) as request, \
+    with closing_on_error(log), stop_on_signals(StopRequest()) as request, \
             RunSession(config, emulate=True, lockstep=not args.realtime, config_dir=path.parent,
                        stop_request=request, **log_hooks(log)) as session:
         result = run_logged(session, log)

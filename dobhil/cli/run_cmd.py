@@ -6,6 +6,8 @@ import argparse
 import json
 import sys
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -42,7 +44,7 @@ def run(args: argparse.Namespace) -> int:
     from dobhil.runtime.signals import stop_on_signals
     config = config_from_args(args)
     log = make_log(args.log, config, args.config)
-    with stop_on_signals(StopRequest()) as request, \
+    with closing_on_error(log), stop_on_signals(StopRequest()) as request, \
             RunSession(config, bus=args.bus, emulate=args.emulate,
                        lockstep=True if args.lockstep else None, duration=args.duration,
                        config_dir=Path(args.config).parent, stop_request=request,
@@ -78,6 +80,17 @@ def make_log(path: Path | None, config: Any, config_file: str | Path | None) -> 
         raise LogFileError(f"--log {path}: expected a .mcap file name")
     path.parent.mkdir(parents=True, exist_ok=True)
     return RunLog(path, config, config_file=config_file)
+
+
+@contextmanager
+def closing_on_error(log: Any) -> Iterator[None]:
+    """Close (and remove, if nothing ran) the log when the run cannot even start."""
+    try:
+        yield
+    except BaseException as exc:
+        if log is not None:
+            log.abort(exc)
+        raise
 
 
 def log_hooks(log: Any) -> dict[str, Any]:

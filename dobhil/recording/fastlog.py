@@ -1,14 +1,17 @@
-"""The fast path of run logging: raw records from the loop thread, JSON and MCAP in the writer thread.
+"""The fast path of run logging: flat records from the loop thread, JSON and MCAP in the writer.
 
-The control loop must not pay for logging, so the loop thread only appends plain
-tuples (:class:`RawKind` first) to a shared list (:class:`Batcher`); the recorder's
-writer thread turns a batch of them into messages:
+The control loop must not pay for logging, so the loop thread only appends flat
+tuples of plain values (:class:`RawKind` first; floats, ints, bools, str, bytes,
+None -- no objects) to a shared list (:class:`Batcher`). Plain values are what
+:mod:`marshal` serialises fastest, so a batch crosses to the writer *process*
+(:mod:`~dobhil.recording.writerproc`) for the price of one ``marshal.dumps``; the
+thread :class:`~dobhil.recording.recorder.Recorder` takes the same records.
+The writer turns a batch into messages:
 
-- :func:`encode_raw` expands one raw record into ``(Topic, log_time_ns, json_bytes)``
-  messages with precomputed ``%``-templates. Floats go through ``%r`` (``repr``),
-  which round-trips exactly, so replay reads back the very same doubles; a message
-  holding ``nan``/``inf`` is re-encoded through :func:`~dobhil.recording.schemas.encode`
-  (non-finite numbers become ``null``).
+- :func:`encode_raw` expands one record into ``(Topic, log_time_ns, json_bytes)``
+  messages (orjson when importable, else precomputed ``%``-templates). Floats are
+  written in their shortest exact form (``repr``), so replay reads back the very same
+  doubles; non-finite numbers become ``null``.
 - :class:`FastWriter` is :class:`mcap.writer.Writer` with a batched ``add_messages``
   that writes message records straight into the chunk buffer (one ``struct.pack``
   each) instead of building record objects; the file is the same MCAP.
@@ -16,6 +19,7 @@ writer thread turns a batch of them into messages:
 
 from __future__ import annotations
 
+import json
 import struct
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from enum import IntEnum
@@ -27,17 +31,35 @@ from mcap.data_stream import RecordBuilder
 from mcap.records import MessageIndex
 from mcap.writer import Writer
 
-from dobhil.recording.schemas import Topic, encode
+from dobhil.recording.schemas import EventKind, Topic, encode
 
 
 class RawKind(IntEnum):
-    """First element of a raw record tuple."""
+    """First element of a raw record tuple; the rest is plain values, laid out as commented."""
 
-    FRAME_RX = 1      # (kind, t_ns, can.Message, data)
-    FRAME_TX = 2      # (kind, t_ns, can.Message, data)
-    CYCLE = 3         # (kind, t_ns, k, Feedback, ControlOutput, period_error, exec_time, overrun, DriveStatus, truth|None)
-    FEEDBACK = 4      # (kind, t_ns, position, velocity, axis_state, axis_error, seq, cycle)
+    FRAME_RX = 1   # (kind, t_ns, arbitration_id, flags, dlc, data, timestamp, channel)
+    FRAME_TX = 2   # same as FRAME_RX
+    CYCLE = 3      # (kind, t_ns, k, position, velocity, seq, tau_ref, tau_int_hat, tau_dis_hat, tau_per,
+    #                 u_unsat, u, period_error, exec_time, overrun, axis_state, axis_error[, q, dq, tau_motor, tau_int])
+    FEEDBACK = 4   # (kind, t_ns, position, velocity, axis_state, axis_error, seq, cycle)
+    EVENT = 5      # (kind, t_ns, EventKind, reason, detail)
+    LOSS = 6       # (kind, t_ns, count, total): records dropped before this one (LOSSY)
 
+
+class FrameFlag(IntEnum):
+    """Bits of a frame record's ``flags``: the booleans of a python-can message."""
+
+    EXTENDED_ID = 1
+    REMOTE_FRAME = 2
+    ERROR_FRAME = 4
+    FD = 8
+    BITRATE_SWITCH = 16
+    ERROR_STATE_INDICATOR = 32
+
+
+#: Length of a CYCLE record without and with the emulator truth.
+CYCLE_LEN: Final = 17
+CYCLE_TRUTH_LEN: Final = 21
 
 Encoded = tuple[Topic, int, bytes]
 
@@ -51,7 +73,23 @@ _LOOP: Final = '{"cycle":%d,"period_error":%r,"exec_time":%r,"overrun":%s}'
 _TRUTH: Final = '{"q":%r,"dq":%r,"tau_motor":%r,"tau_int":%r}'
 
 
-def _checked(topic: Topic, text: str) -> bytes:
+def frame_flags(msg: Any) -> int:
+    """The :class:`FrameFlag` bits of a python-can message."""
+    return (msg.is_extended_id | msg.is_remote_frame << 1 | msg.is_error_frame << 2 | msg.is_fd << 3
+            | msg.bitrate_switch << 4 | msg.error_state_indicator << 5)
+
+
+def event_payload(kind: EventKind, reason: str, detail: str = "", count: int = 0) -> dict[str, Any]:
+    """The ``/events`` payload."""
+    return {"kind": kind.name.lower(), "reason": reason, "detail": detail, "count": count}
+
+
+def loss_payload(count: int, total: int) -> dict[str, Any]:
+    """The ``/events`` ``kind=loss`` payload for ``count`` records dropped (``total`` so far)."""
+    return event_payload(EventKind.LOSS, f"{count} records dropped (queue full)", f"total {total}", count)
+
+
+def _checked(text: str) -> bytes:
     """JSON bytes of a template result; non-finite numbers re-encoded as null."""
     data = text.encode()
     if b"nan" in data or b"inf" in data:
@@ -61,80 +99,78 @@ def _checked(topic: Topic, text: str) -> bytes:
 
 def _plain_dict(data: bytes) -> dict[str, Any]:
     """The template's JSON with Python's nan/inf spellings read back (json accepts them)."""
-    import json
     return json.loads(data.replace(b"nan", b"NaN").replace(b"inf", b"Infinity"))
 
 
 class FrameEncoder:
-    """CAN frame JSON with the constant part per (id, flags, dlc, channel) cached."""
+    """CAN frame JSON with the constant part per (id, flags, dlc, channel, direction) cached."""
 
     def __init__(self) -> None:
-        self._heads: dict[tuple[Any, ...], str] = {}
+        self._heads: dict[tuple[Any, ...], tuple[str, str]] = {}
 
-    def __call__(self, topic: Topic, t_ns: int, msg: Any, data: bytes | bytearray) -> bytes:
-        direction = "rx" if topic is Topic.CAN_RX else "tx"
-        key = (msg.arbitration_id, msg.is_extended_id, msg.is_remote_frame, msg.is_error_frame,
-               msg.is_fd, msg.bitrate_switch, msg.error_state_indicator, msg.dlc, msg.channel, direction)
+    def __call__(self, rec: Sequence[Any]) -> bytes:
+        _, t_ns, arb, flags, dlc, data, stamp, channel = rec
+        key = (arb, flags, dlc, channel, rec[0])
         head = self._heads.get(key)
         if head is None:
-            head = self._heads[key] = _frame_head(key)
-        stamp = msg.timestamp or t_ns / 1e9
+            head = self._heads[key] = _frame_head(arb, flags, dlc, channel, rec[0] == RawKind.FRAME_RX)
+        stamp = stamp or t_ns / 1e9
         body = (f'{{"timestamp":{stamp!r},{head[0]},"data":[{",".join([_BYTE[b] for b in data])}],'
                 f'"data_hex":"{bytes(data).hex()}",{head[1]}}}')
         return body.encode()
 
 
-def _frame_head(key: tuple[Any, ...]) -> tuple[str, str]:
-    arb, ext, rtr, err, fd, brs, esi, dlc, channel, direction = key
-    flags = (f'"arbitration_id":{arb},"is_extended_id":{_BOOL[bool(ext)]},'
-             f'"is_remote_frame":{_BOOL[bool(rtr)]},"is_error_frame":{_BOOL[bool(err)]},'
-             f'"is_fd":{_BOOL[bool(fd)]},"bitrate_switch":{_BOOL[bool(brs)]},'
-             f'"error_state_indicator":{_BOOL[bool(esi)]},"dlc":{dlc}')
-    import json
-    tail = f'"direction":"{direction}","channel":{json.dumps("" if channel is None else str(channel))}'
-    return flags, tail
+def _frame_head(arb: int, flags: int, dlc: int, channel: Any, rx: bool) -> tuple[str, str]:
+    bits = [_BOOL[bool(flags & f)] for f in FrameFlag]
+    head = (f'"arbitration_id":{arb},"is_extended_id":{bits[0]},"is_remote_frame":{bits[1]},'
+            f'"is_error_frame":{bits[2]},"is_fd":{bits[3]},"bitrate_switch":{bits[4]},'
+            f'"error_state_indicator":{bits[5]},"dlc":{dlc}')
+    tail = f'"direction":"{"rx" if rx else "tx"}","channel":{json.dumps("" if channel is None else str(channel))}'
+    return head, tail
 
 
-def encode_raw(records: Iterable[tuple[Any, ...]], frames: FrameEncoder) -> Iterator[Encoded]:
+def encode_raw(records: Iterable[Sequence[Any]], frames: FrameEncoder) -> Iterator[Encoded]:
     """The messages of a batch of raw records, in order."""
     for rec in records:
         kind = rec[0]
         if kind == RawKind.CYCLE:
             yield from _cycle_messages(rec)
         elif kind == RawKind.FRAME_RX:
-            yield Topic.CAN_RX, rec[1], frames(Topic.CAN_RX, rec[1], rec[2], rec[3])
+            yield Topic.CAN_RX, rec[1], frames(rec)
         elif kind == RawKind.FRAME_TX:
-            yield Topic.CAN_TX, rec[1], frames(Topic.CAN_TX, rec[1], rec[2], rec[3])
+            yield Topic.CAN_TX, rec[1], frames(rec)
         elif kind == RawKind.FEEDBACK:
-            yield Topic.DRIVE_FEEDBACK, rec[1], _checked(Topic.DRIVE_FEEDBACK, _FEEDBACK % rec[2:])
+            yield Topic.DRIVE_FEEDBACK, rec[1], _checked(_FEEDBACK % tuple(rec[2:]))
+        elif kind == RawKind.EVENT:
+            yield Topic.EVENTS, rec[1], encode(event_payload(EventKind(rec[2]), rec[3], rec[4]))
+        elif kind == RawKind.LOSS:
+            yield Topic.EVENTS, rec[1], encode(loss_payload(rec[2], rec[3]))
 
 
-def _cycle_messages(rec: tuple[Any, ...]) -> Iterator[Encoded]:
-    _, t, k, fb, out, period_error, exec_time, overrun, status, truth = rec
-    yield Topic.DRIVE_FEEDBACK, t, _checked(
-        Topic.DRIVE_FEEDBACK, _FEEDBACK % (fb.position, fb.velocity, status.state, status.error_code, fb.seq, k))
-    yield Topic.CONTROLLER, t, _checked(Topic.CONTROLLER, _CONTROLLER % (*out, k))
-    yield Topic.DRIVE_COMMAND, t, _checked(Topic.DRIVE_COMMAND, _COMMAND % (out[5],))
-    yield Topic.LOOP, t, _checked(Topic.LOOP, _LOOP % (k, period_error, exec_time, _BOOL[bool(overrun)]))
-    if truth is not None:
-        yield Topic.EMULATOR_TRUTH, t, _checked(Topic.EMULATOR_TRUTH, _TRUTH % truth)
+def _cycle_messages(rec: Sequence[Any]) -> Iterator[Encoded]:
+    t, k = rec[1], rec[2]
+    yield Topic.DRIVE_FEEDBACK, t, _checked(_FEEDBACK % (rec[3], rec[4], rec[15], rec[16], rec[5], k))
+    yield Topic.CONTROLLER, t, _checked(_CONTROLLER % (*rec[6:12], k))
+    yield Topic.DRIVE_COMMAND, t, _checked(_COMMAND % (rec[11],))
+    yield Topic.LOOP, t, _checked(_LOOP % (k, rec[12], rec[13], _BOOL[bool(rec[14])]))
+    if len(rec) > CYCLE_LEN:
+        yield Topic.EMULATOR_TRUTH, t, _checked(_TRUTH % tuple(rec[17:21]))
 
 
-def _cycle_messages_orjson(rec: tuple[Any, ...]) -> Iterator[Encoded]:
+def _cycle_messages_orjson(rec: Sequence[Any]) -> Iterator[Encoded]:
     """:func:`_cycle_messages` through orjson (exact shortest floats, NaN as null)."""
-    _, t, k, fb, out, period_error, exec_time, overrun, status, truth = rec
     dumps = _orjson_dumps
-    yield Topic.DRIVE_FEEDBACK, t, dumps({"position": fb.position, "velocity": fb.velocity,
-                                          "axis_state": int(status.state), "axis_error": status.error_code,
-                                          "seq": fb.seq, "cycle": k})
-    yield Topic.CONTROLLER, t, dumps({"tau_ref": out[0], "tau_int_hat": out[1], "tau_dis_hat": out[2],
-                                      "tau_per": out[3], "u_unsat": out[4], "u_sat": out[5], "cycle": k})
-    yield Topic.DRIVE_COMMAND, t, dumps({"torque": out[5]})
-    yield Topic.LOOP, t, dumps({"cycle": k, "period_error": period_error, "exec_time": exec_time,
-                                "overrun": bool(overrun)})
-    if truth is not None:
-        yield Topic.EMULATOR_TRUTH, t, dumps({"q": truth[0], "dq": truth[1], "tau_motor": truth[2],
-                                              "tau_int": truth[3]})
+    t, k = rec[1], rec[2]
+    yield Topic.DRIVE_FEEDBACK, t, dumps({"position": rec[3], "velocity": rec[4], "axis_state": rec[15],
+                                          "axis_error": rec[16], "seq": rec[5], "cycle": k})
+    yield Topic.CONTROLLER, t, dumps({"tau_ref": rec[6], "tau_int_hat": rec[7], "tau_dis_hat": rec[8],
+                                      "tau_per": rec[9], "u_unsat": rec[10], "u_sat": rec[11], "cycle": k})
+    yield Topic.DRIVE_COMMAND, t, dumps({"torque": rec[11]})
+    yield Topic.LOOP, t, dumps({"cycle": k, "period_error": rec[12], "exec_time": rec[13],
+                                "overrun": bool(rec[14])})
+    if len(rec) > CYCLE_LEN:
+        yield Topic.EMULATOR_TRUTH, t, dumps({"q": rec[17], "dq": rec[18], "tau_motor": rec[19],
+                                              "tau_int": rec[20]})
 
 
 try:  # optional: about twice as fast as the templates
@@ -146,9 +182,9 @@ else:
 
 
 def messages_per_record(rec: Sequence[Any]) -> int:
-    """How many messages a raw record becomes (for queue accounting)."""
+    """How many messages a raw record becomes (for loss and queue accounting)."""
     if rec[0] == RawKind.CYCLE:
-        return 4 if rec[9] is None else 5
+        return 4 if len(rec) <= CYCLE_LEN else 5
     return 1
 
 
@@ -226,4 +262,5 @@ class FastWriter(Writer):
                 self._Writer__finalize_chunk()  # type: ignore[attr-defined]
 
 
-__all__ = ["Batcher", "FastWriter", "FrameEncoder", "RawKind", "encode_raw", "messages_per_record"]
+__all__ = ["CYCLE_LEN", "CYCLE_TRUTH_LEN", "Batcher", "FastWriter", "FrameEncoder", "FrameFlag", "RawKind",
+           "encode_raw", "event_payload", "frame_flags", "loss_payload", "messages_per_record"]

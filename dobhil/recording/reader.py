@@ -25,7 +25,7 @@ from mcap.stream_reader import StreamReader
 from mcap.summary import Summary
 
 from dobhil.errors import LogFileError
-from dobhil.recording.recorder import RECORDING_METADATA
+from dobhil.recording.filewriter import RECORDING_METADATA
 from dobhil.recording.schemas import EventKind, Topic, decode, spec_for
 
 MAGIC: Final = b"\x89MCAP0\r\n"

@@ -1,5 +1,10 @@
 """The MCAP recorder: the caller encodes and enqueues, one writer thread writes.
 
+This is the general-purpose recorder (``dobhil log import``, tools, tests). Run logging
+uses a writer *process* instead (:mod:`~dobhil.recording.writerproc`), so the control
+loop does not share the GIL with the encoding; both write through the same
+:class:`~dobhil.recording.filewriter.LogFileWriter`.
+
 :class:`Recorder` turns each record into compact JSON in the caller's thread
 (so the payload may be reused right after :meth:`Recorder.write`) and puts it
 on an unbounded C queue whose length is bounded by two single-writer counters:
@@ -10,7 +15,7 @@ on an unbounded C queue whose length is bounded by two single-writer counters:
   record ``kind=loss`` with the count as soon as it runs again, and the total is
   in the ``recording`` metadata record written on close.
 
-The writer thread owns the :class:`mcap.writer.Writer`. Every ``flush_interval``
+The writer thread owns the :class:`~dobhil.recording.filewriter.LogFileWriter`. Every ``flush_interval``
 seconds it ends the current chunk, flushes and fsyncs the file, so a ``kill -9``
 loses at most about that much (``dobhil log recover`` salvages the rest). Events
 (:meth:`Recorder.event`) are never dropped. A failure of the writer thread (disk
@@ -26,45 +31,27 @@ import threading
 import time
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
-from enum import IntEnum
 from pathlib import Path
 from types import TracebackType
-from typing import Any, BinaryIO, Callable, Final
+from typing import Any, Callable, Final
 
 import can
-from mcap.writer import CompressionType, Writer
 
-from dobhil.recording.fastlog import FastWriter, FrameEncoder, encode_raw, messages_per_record
-
-from dobhil import __version__
 from dobhil.errors import LogFileError
-from dobhil.recording.schemas import (
-    MESSAGE_ENCODING,
-    SCHEMA_ENCODING,
-    TOPIC_SPECS,
-    Direction,
-    EventKind,
-    Topic,
-    TopicSpec,
-    encode,
-    spec_for,
+from dobhil.recording.fastlog import event_payload, loss_payload, messages_per_record
+from dobhil.recording.filewriter import (
+    CHUNK_SIZE,
+    RECORDING_METADATA,
+    LogFileWriter,
+    RecordMode,
+    chunk_compression,
 )
+from dobhil.recording.schemas import Direction, EventKind, Topic, encode, spec_for
 
-#: Chunks end at this size or every ``flush_interval``, whichever comes first.
-CHUNK_SIZE: Final = 256 * 1024
 #: Most records the writer thread handles between two looks at the flush clock.
 _BATCH: Final = 4096
 #: LOSSY mode: raw records encoded between two hand-backs of the GIL.
 _YIELD_EVERY: Final = 16
-#: Name of the metadata record the recorder writes on close.
-RECORDING_METADATA: Final = "recording"
-
-
-class RecordMode(IntEnum):
-    """What ``write`` does when the queue is full."""
-
-    BACKPRESSURE = 1  # wait for room, lose nothing (lockstep)
-    LOSSY = 2  # never wait; drop and count (real time)
 
 
 @dataclass(frozen=True)
@@ -86,17 +73,6 @@ class _Batch:
 _Item = tuple[Topic, int, bytes]
 
 
-def chunk_compression() -> CompressionType:
-    """zstd if importable, else lz4, else none."""
-    for module, kind in (("zstandard", CompressionType.ZSTD), ("lz4.frame", CompressionType.LZ4)):
-        try:
-            __import__(module)
-        except ImportError:
-            continue
-        return kind
-    return CompressionType.NONE
-
-
 def frame_payload(msg: can.Message, direction: Direction) -> dict[str, Any]:
     """The ``/can/rx`` or ``/can/tx`` payload of a python-can message."""
     data = bytes(msg.data or b"")
@@ -115,11 +91,6 @@ def frame_payload(msg: can.Message, direction: Direction) -> dict[str, Any]:
         "direction": direction.name.lower(),
         "channel": "" if msg.channel is None else str(msg.channel),
     }
-
-
-def event_payload(kind: EventKind, reason: str, detail: str = "", count: int = 0) -> dict[str, Any]:
-    """The ``/events`` payload."""
-    return {"kind": kind.name.lower(), "reason": reason, "detail": detail, "count": count}
 
 
 class Recorder:
@@ -149,7 +120,6 @@ class Recorder:
         self._interval = flush_interval
         self._fsync = fsync
         self._queue: queue.SimpleQueue[_Item | _Batch | _Stop] = queue.SimpleQueue()
-        self._frames = FrameEncoder()
         self._room = threading.Event()
         # Counters: itertools.count is atomic under the GIL, so callers in several
         # threads (control loop, CAN notifier) neither lose nor double counts.
@@ -161,12 +131,9 @@ class Recorder:
         self._reported_drops = 0
         self._last_drop_ns = 0
         self._last_log_ns = 0
-        self._written = 0
         self._accepting = True
         self._failure: BaseException | None = None
-        self._channels: dict[Topic, int] = {}
-        self._schemas: dict[str, int] = {}
-        self._file, self._writer = self._open(metadata, attachments)
+        self._log = self._open(metadata, attachments)
         self._thread = threading.Thread(target=self._run, name=f"dobhil-recorder:{self.path.name}", daemon=True)
         self._thread.start()
 
@@ -180,7 +147,7 @@ class Recorder:
     @property
     def written(self) -> int:
         """Messages written to the file so far (by the writer thread)."""
-        return self._written
+        return self._log.written
 
     def write(self, topic: str | Topic, log_time_ns: int, payload: Mapping[str, Any]) -> bool:
         """Record one payload; False if dropped (LOSSY, queue full)."""
@@ -209,13 +176,13 @@ class Recorder:
 
     def close(self, stop_reason: str | None = None, detail: str = "") -> None:
         """Drain the queue, write a stop event if a reason is given, finish the file."""
-        if not self._thread.is_alive() and self._file.closed:
+        if not self._thread.is_alive() and self._log.file.closed:
             self._raise_failure()
             return
         self._accepting = False
         self._queue.put(_Stop(stop_reason, detail))
         self._thread.join()
-        self._file.close()
+        self._log.close()
         self._raise_failure()
 
     def __enter__(self) -> Recorder:
@@ -278,20 +245,17 @@ class Recorder:
 
     def _open(
         self, metadata: Mapping[str, Mapping[str, Any]], attachments: Iterable[tuple[str, str, bytes]]
-    ) -> tuple[BinaryIO, Writer]:
+    ) -> LogFileWriter:
         try:
             file = open(self.path, "wb")  # noqa: SIM115 - closed by close()
         except OSError as exc:
             raise LogFileError(f"{self.path}: cannot create: {exc.strerror}") from exc
-        writer = FastWriter(file, chunk_size=CHUNK_SIZE, compression=chunk_compression())
-        writer.start(profile="", library=f"dobhil/{__version__}")
-        for name, record in metadata.items():
-            writer.add_metadata(name, {str(k): str(v) for k, v in record.items()})
-        now = time.time_ns()
-        for name, media_type, data in attachments:
-            writer.add_attachment(create_time=now, log_time=now, name=name, media_type=media_type, data=data)
-        file.flush()
-        return file, writer
+        try:
+            return LogFileWriter(file, metadata=metadata, attachments=attachments, mode=self.mode,
+                                 fsync=self._fsync)
+        except BaseException:
+            file.close()
+            raise
 
     def _run(self) -> None:
         try:
@@ -344,43 +308,19 @@ class Recorder:
 
     def _write_message(self, topic: Topic, log_time_ns: int, data: bytes) -> None:
         """Write one message (the hook tests override to slow the writer down)."""
-        channel = self._channels.get(topic)
-        if channel is None:
-            channel = self._register(TOPIC_SPECS[topic])
-        self._writer.add_message(channel, log_time_ns, data, log_time_ns)
-        self._written += 1
+        self._log.write_message(topic, log_time_ns, data)
 
     def _write_batch(self, batch: _Batch) -> None:
         """Encode and write a batch; in LOSSY (real-time) mode hand the GIL back to the
-        control loop every few records, so a batch never delays a cycle by a switch interval."""
+        caller every few records, so a batch never delays it by a switch interval."""
         if self.mode == RecordMode.LOSSY:
             records = batch.records
             for i in range(0, len(records), _YIELD_EVERY):
-                self._write_records(records[i:i + _YIELD_EVERY])
+                self._log.write_records(records[i:i + _YIELD_EVERY])
                 time.sleep(0)
         else:
-            self._write_records(batch.records)
+            self._log.write_records(batch.records)
         self._dequeued += batch.count
-
-    def _write_records(self, records: list[tuple[Any, ...]]) -> None:
-        channels = self._channels
-        out = []
-        for topic, t, data in encode_raw(records, self._frames):
-            channel = channels.get(topic)
-            if channel is None:
-                channel = self._register(TOPIC_SPECS[topic])
-            out.append((channel, t, data))
-        self._writer.add_messages(out)
-        self._written += len(out)
-
-    def _register(self, spec: TopicSpec) -> int:
-        schema = self._schemas.get(spec.schema_name)
-        if schema is None:
-            schema = self._writer.register_schema(spec.schema_name, SCHEMA_ENCODING, spec.schema_bytes())
-            self._schemas[spec.schema_name] = schema
-        channel = self._writer.register_channel(spec.name, MESSAGE_ENCODING, schema)
-        self._channels[spec.topic] = channel
-        return channel
 
     def _report_drops(self) -> None:
         dropped = self._dropped
@@ -388,13 +328,11 @@ class Recorder:
             return
         count = dropped - self._reported_drops
         self._reported_drops = dropped
-        payload = event_payload(EventKind.LOSS, f"{count} records dropped (queue full)", f"total {dropped}", count)
-        self._write_message(Topic.EVENTS, self._last_drop_ns, encode(payload))
+        self._log.dropped = dropped
+        self._write_message(Topic.EVENTS, self._last_drop_ns, encode(loss_payload(count, dropped)))
 
     def _flush(self) -> None:
-        self._writer.flush()
-        if self._fsync:
-            os.fsync(self._file.fileno())
+        self._log.flush()
 
     def _finish(self, stop: _Stop) -> None:
         self._drain_rest()
@@ -402,11 +340,7 @@ class Recorder:
         if stop.reason is not None:
             payload = event_payload(EventKind.STOP, stop.reason, stop.detail)
             self._write_message(Topic.EVENTS, self._default_time(), encode(payload))
-        self._writer.add_metadata(RECORDING_METADATA, self._summary(stop))
-        self._writer.finish()
-        self._file.flush()
-        if self._fsync:
-            os.fsync(self._file.fileno())
+        self._log.finish(stop.reason)
 
     def _drain_rest(self) -> None:
         """Items a racing caller put after the stop sentinel."""
@@ -417,14 +351,6 @@ class Recorder:
                 return
             if not isinstance(item, _Stop):
                 self._take(item)
-
-    def _summary(self, stop: _Stop) -> dict[str, str]:
-        return {
-            "mode": self.mode.name.lower(),
-            "written": str(self._written),
-            "dropped": str(self._dropped),
-            "stop_reason": stop.reason or "",
-        }
 
 
 class CanRecordListener(can.Listener):
@@ -454,6 +380,7 @@ __all__ = [
     "CanRecordListener",
     "RecordMode",
     "Recorder",
+    "chunk_compression",
     "event_payload",
     "frame_payload",
     "record_can_bus",

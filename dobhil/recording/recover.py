@@ -22,7 +22,7 @@ from mcap.writer import Writer
 from dobhil import __version__
 from dobhil.errors import LogFileError
 from dobhil.recording.reader import DAMAGE_ERRORS, check_mcap_head
-from dobhil.recording.recorder import CHUNK_SIZE, chunk_compression
+from dobhil.recording.filewriter import CHUNK_SIZE, chunk_compression
 
 ProgressFn = Callable[[int], None]
 

@@ -4,7 +4,7 @@ Use::
 
     log = RunLog(path, config, config_file=...)
     with RunSession(config, ..., sink=log.sink, bus_wrapper=log.wrap_bus) as session:
-        log.start(session)          # metadata, recorder, hooks
+        log.start(session)          # metadata to the writer process, hooks
         try:
             result = session.run()
         finally:
@@ -21,6 +21,12 @@ apart from its origin.
 
 Modes: lockstep records with back-pressure (nothing lost), real time lossy (the loop
 never waits; losses become ``/events`` ``kind=loss``).
+
+Where the work happens: the loop thread only appends flat tuples of plain values and,
+every :data:`BATCH_SIZE` records, hands the batch to the writer process
+(:class:`~dobhil.recording.writerproc.WriterProcess`, started when the :class:`RunLog` is
+created, before the session and the loop). JSON encoding, MCAP writing, compression and
+flushing run there, on another core, instead of competing with the loop for the GIL.
 """
 
 from __future__ import annotations
@@ -39,10 +45,12 @@ from typing import TYPE_CHECKING, Any, Final
 import can
 
 from dobhil import __version__
+from dobhil.errors import LogFileError
 from dobhil.recording.fastlog import Batcher, RawKind
-from dobhil.recording.recorder import Recorder, RecordMode
+from dobhil.recording.filewriter import RecordMode
 from dobhil.recording.schemas import EventKind
 from dobhil.recording.tap import RecordingBus
+from dobhil.recording.writerproc import WriterProcess
 
 if TYPE_CHECKING:
     from dobhil.config.schema import Config
@@ -57,12 +65,10 @@ Truth = Callable[[], tuple[float, float, float, float]]
 
 #: Packages whose versions go to the ``versions`` metadata record.
 _PACKAGES: Final = ("python-can", "mcap", "numpy", "scipy", "control", "pyyaml", "zstandard", "lz4")
-_CYCLE: Final = RawKind.CYCLE
-#: Raw records per batch handed to the writer thread.
+_CYCLE: Final = int(RawKind.CYCLE)
+_EVENT: Final = int(RawKind.EVENT)
+#: Raw records per batch handed to the writer process (~85 cycles: one pipe write each).
 BATCH_SIZE: Final = 256
-#: Real time: the GIL switch interval while recording [s] (default 5 ms), so the control
-#: loop waking from its sleep waits at most this long for the writer thread.
-REALTIME_SWITCH_INTERVAL: Final = 2e-4
 
 
 def default_log_path(directory: Path, now: datetime | None = None) -> Path:
@@ -99,7 +105,12 @@ def versions() -> dict[str, str]:
 
 
 class CycleRecorder:
-    """The :class:`~dobhil.runtime.loop.CycleSink`: one raw tuple per cycle, never blocks."""
+    """The :class:`~dobhil.runtime.loop.CycleSink`: one flat tuple per cycle, never blocks.
+
+    The tuple holds plain values only (the CYCLE layout of
+    :class:`~dobhil.recording.fastlog.RawKind`), so the batch is marshalled without
+    touching an object.
+    """
 
     def __init__(self, batcher: Batcher) -> None:
         self._batcher = batcher
@@ -119,8 +130,13 @@ class CycleRecorder:
               exec_time: float, overrun: bool) -> None:
         buf = self._buffer
         truth = self.truth
-        buf.append((_CYCLE, self.clock_ns(), k, fb, out, period_error, exec_time, overrun,
-                    self.drive.status, None if truth is None else truth()))  # type: ignore[union-attr]
+        status = self.drive.status  # type: ignore[union-attr]
+        if truth is None:
+            buf.append((_CYCLE, self.clock_ns(), k, fb.position, fb.velocity, fb.seq, *out, period_error,
+                        exec_time, overrun, int(status.state), status.error_code))
+        else:
+            buf.append((_CYCLE, self.clock_ns(), k, fb.position, fb.velocity, fb.seq, *out, period_error,
+                        exec_time, overrun, int(status.state), status.error_code, *truth()))
         if len(buf) >= self._size:
             self._batcher.flush()
 
@@ -130,7 +146,13 @@ class CycleRecorder:
 
 
 class RunLog:
-    """Records one :class:`~dobhil.runtime.session.RunSession` to ``path``."""
+    """Records one :class:`~dobhil.runtime.session.RunSession` to ``path``.
+
+    Creating it creates the file (a bad path raises :class:`~dobhil.errors.LogFileError`
+    here) and starts the writer process, so the process is ready by the time the loop
+    runs; :meth:`finish` or :meth:`abort` always closes it (a log aborted before
+    :meth:`start` leaves no file).
+    """
 
     def __init__(self, path: str | os.PathLike[str], config: Config, *,
                  config_file: str | os.PathLike[str] | None = None,
@@ -138,15 +160,13 @@ class RunLog:
         self.path = Path(path)
         self.config = config
         self._config_file = None if config_file is None else Path(config_file)
-        self._flush_interval = flush_interval
-        self._fsync = fsync
-        self.recorder: Recorder | None = None
         self.batcher = Batcher(self._hand_over, BATCH_SIZE)
         self.sink = CycleRecorder(self.batcher)
         self.tap: RecordingBus | None = None
         self._session: RunSession | None = None
         self._pending: list[list[tuple[Any, ...]]] = []
-        self._switch_interval: float | None = None
+        self._opened = False
+        self.writer: WriterProcess | None = WriterProcess(self.path, flush_interval=flush_interval, fsync=fsync)
 
     # -- wiring --------------------------------------------------------------
 
@@ -167,19 +187,17 @@ class RunLog:
         return lambda: origin + round(sim() * 1e9)
 
     def start(self, session: RunSession) -> None:
-        """Open the recorder with the run's metadata; hook truth and initialisation."""
+        """Send the run's metadata to the writer process; hook truth and initialisation."""
         from dobhil.runtime.loop import Timing
+        if self.writer is None:
+            raise LogFileError(f"{self.path}: the log is closed")
         self._session = session
         lockstep = session.timing is Timing.LOCKSTEP
         mode = RecordMode.BACKPRESSURE if lockstep else RecordMode.LOSSY
-        self.recorder = Recorder(self.path, metadata=self._metadata(session), mode=mode,
-                                 attachments=self._attachments(), flush_interval=self._flush_interval,
-                                 fsync=self._fsync)
-        if not lockstep:
-            self._switch_interval = sys.getswitchinterval()
-            sys.setswitchinterval(REALTIME_SWITCH_INTERVAL)
+        self.writer.open(self._metadata(session), self._attachments(), mode)
+        self._opened = True
         for batch in self._pending:
-            self.recorder.write_batch(batch)
+            self.writer.send(batch)
         self._pending.clear()
         self.sink.drive = session.drive
         if session.plant is not None:
@@ -193,7 +211,7 @@ class RunLog:
         assert self._session is not None
         status = self._session.drive.status
         t = self.sink.clock_ns()
-        self.batcher.buffer.append((RawKind.FEEDBACK, t, fb.position, fb.velocity, int(status.state),
+        self.batcher.buffer.append((int(RawKind.FEEDBACK), t, fb.position, fb.velocity, int(status.state),
                                     status.error_code, fb.seq, -1))
         self.event(EventKind.ENABLE, "drive enabled",
                    json.dumps({"seq": fb.seq, "position": fb.position, "velocity": fb.velocity}))
@@ -201,10 +219,11 @@ class RunLog:
     # -- events and end ------------------------------------------------------
 
     def event(self, kind: EventKind, reason: str, detail: str = "") -> None:
-        """An ``/events`` record after everything appended so far."""
-        self.batcher.flush()
-        if self.recorder is not None:
-            self.recorder.event(kind, reason, detail, log_time_ns=self.sink.clock_ns())
+        """An ``/events`` record after everything appended so far, sent at once (never
+        dropped: a dropped batch's events go with the next one)."""
+        if self.writer is not None:
+            self.batcher.buffer.append((_EVENT, self.sink.clock_ns(), int(kind), reason, detail))
+            self.batcher.flush()
 
     def finish(self, result: RunResult) -> None:
         """Disable/fault/watchdog events, the stop event, summary and footer."""
@@ -231,19 +250,26 @@ class RunLog:
                         "" if exc is None else f"{type(exc).__name__}: {exc}")
 
     def _close(self, reason: str, detail: str) -> None:
-        if self._switch_interval is not None:
-            sys.setswitchinterval(self._switch_interval)
-            self._switch_interval = None
-        self.batcher.flush()
-        if self.recorder is not None:
-            recorder, self.recorder = self.recorder, None
-            recorder.close(reason, detail)
+        """The last records (never dropped: the loop is over), stop event, summary; joins
+        the writer process."""
+        if self.writer is None:
+            return
+        writer, self.writer = self.writer, None
+        rest = self.batcher.buffer.copy()
+        self.batcher.buffer.clear()
+        try:
+            if self._opened and rest:
+                writer.send(rest, force=True)
+        finally:
+            writer.close(reason, detail)
 
     def _hand_over(self, batch: list[tuple[Any, ...]]) -> None:
-        if self.recorder is None:
-            self._pending.append(batch)
+        if self.writer is None:
+            return
+        if self._opened:
+            self.writer.send(batch)
         else:
-            self.recorder.write_batch(batch)
+            self._pending.append(batch)
 
     # -- metadata ------------------------------------------------------------
 

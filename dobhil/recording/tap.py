@@ -2,18 +2,19 @@
 
 :class:`RecordingBus` is what :class:`~dobhil.runtime.session.RunSession` gets as
 ``bus_wrapper``: ``send`` and ``recv`` pass through to the wrapped bus (with
-lockstep, the :class:`~dobhil.emulator.protocol.LockstepBus`) and append one raw
-record per frame to a :class:`~dobhil.recording.fastlog.Batcher`; everything else
-(``shutdown`` aside, which leaves the wrapped bus to its owner) is delegated.
-Received messages are kept by reference (python-can hands out a new message per
-receive); sent ones are copied (drives refill a preallocated torque frame).
+lockstep, the :class:`~dobhil.emulator.protocol.LockstepBus`) and append one flat raw
+record per frame (plain values only, see :class:`~dobhil.recording.fastlog.RawKind`) to a
+:class:`~dobhil.recording.fastlog.Batcher`; everything else (``shutdown`` aside, which
+leaves the wrapped bus to its owner) is delegated. The payload of a received message is
+kept by reference until the batch is marshalled (python-can hands out a new message per
+receive); a sent one is copied (drives refill a preallocated torque frame).
 """
 
 from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from typing import Any
+from typing import Any, Final
 
 import can
 
@@ -21,8 +22,8 @@ from dobhil.recording.fastlog import Batcher, RawKind
 
 ClockNs = Callable[[], int]
 
-_RX = RawKind.FRAME_RX
-_TX = RawKind.FRAME_TX
+_RX: Final = int(RawKind.FRAME_RX)  # plain ints: marshal refuses IntEnum members
+_TX: Final = int(RawKind.FRAME_TX)
 
 
 class RecordingBus(can.BusABC):
@@ -46,13 +47,20 @@ class RecordingBus(can.BusABC):
     def send(self, msg: can.Message, timeout: float | None = None) -> None:
         self._inner.send(msg, timeout)
         self.sent += 1
-        self._append((_TX, self._clock_ns(), msg, bytes(msg.data)))
+        # flags: fastlog.frame_flags inlined (a call costs as much as the record)
+        self._append((_TX, self._clock_ns(), msg.arbitration_id,
+                      msg.is_extended_id | msg.is_remote_frame << 1 | msg.is_error_frame << 2 | msg.is_fd << 3
+                      | msg.bitrate_switch << 4 | msg.error_state_indicator << 5,
+                      msg.dlc, bytes(msg.data), msg.timestamp, msg.channel))
 
     def recv(self, timeout: float | None = None) -> can.Message | None:
         msg = self._inner.recv(timeout)
         if msg is not None:
             self.received += 1
-            self._append((_RX, self._clock_ns(), msg, msg.data))
+            self._append((_RX, self._clock_ns(), msg.arbitration_id,
+                          msg.is_extended_id | msg.is_remote_frame << 1 | msg.is_error_frame << 2
+                          | msg.is_fd << 3 | msg.bitrate_switch << 4 | msg.error_state_indicator << 5,
+                          msg.dlc, msg.data, msg.timestamp, msg.channel))
         return msg
 
     def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:

@@ -1,4 +1,4 @@
-"""Recording a run: every frame on the bus, the per-cycle channels, SIGINT and SIGKILL."""
+"""Recording a run: every frame on the bus, the per-cycle channels, Ctrl-C and SIGKILL."""
 
 from __future__ import annotations
 
@@ -15,10 +15,12 @@ import pytest
 from mcap.reader import make_reader
 
 from dobhil.config import load_config
+from dobhil.errors import LogFileError
 from dobhil.recording.canlog import CanLogFormat, default_output, export_can
 from dobhil.recording.reader import open_log
 from dobhil.recording.recover import recover
 from dobhil.recording.sink import RunLog, run_recorded
+from dobhil.recording.writerchild import PARENT_EXITED
 from dobhil.runtime.session import RunSession
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -108,12 +110,13 @@ def test_can_export_of_a_run_reads_back(run_log: Run, tmp_path: Path,
 
 
 def _start_realtime_run(path: Path, duration: float) -> subprocess.Popen[bytes]:
+    """``dobhil run --log`` in its own process group (the group a terminal's Ctrl-C hits)."""
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     return subprocess.Popen([sys.executable, "-m", "dobhil", "run", str(DEMO), "--emulate",
                              "--duration", str(duration), "--log", str(path),
                              # a recording test, not a timing one: tolerate a loaded machine
                              "--set", "loop.feedback_timeout=0.2"],
-                            env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+                            env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True)
 
 
 def _wait_for_cycles(path: Path, proc: subprocess.Popen[bytes], seconds: float) -> None:
@@ -124,28 +127,73 @@ def _wait_for_cycles(path: Path, proc: subprocess.Popen[bytes], seconds: float) 
     time.sleep(seconds)
 
 
-def test_sigint_leaves_a_complete_file_with_stop_signal(tmp_path: Path) -> None:
+def _group_alive(pgid: int) -> bool:
+    try:
+        os.killpg(pgid, 0)
+    except ProcessLookupError:
+        return False
+    return True
+
+
+def _wait_for_group_exit(pgid: int) -> None:
+    """The writer process (same group) is gone too: it has finished the file."""
+    deadline = time.monotonic() + 20
+    while _group_alive(pgid) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert not _group_alive(pgid), "the writer process outlived its parent"
+
+
+def test_ctrl_c_to_the_process_group_leaves_a_complete_file_with_stop_signal(tmp_path: Path) -> None:
     path = tmp_path / "rt.mcap"
     proc = _start_realtime_run(path, 30.0)
     _wait_for_cycles(path, proc, 0.5)
-    proc.send_signal(signal.SIGINT)
+    os.killpg(proc.pid, signal.SIGINT)  # the writer process gets it too, and ignores it
     out, err = proc.communicate(timeout=20)
     assert proc.returncode == 1, err
+    _wait_for_group_exit(proc.pid)
     info = open_log(path).info()
     assert info.has_summary and info.stop_reason == "signal"
     counts = {c.topic: c.message_count for c in info.channels}
     assert counts["/controller"] > 100 and counts["/can/rx"] > 100
     assert info.metadata["recording"]["mode"] == "lossy"
+    events = [p for _, _, p in open_log(path).iter_messages(["/events"])]
+    assert [e["kind"] for e in events][0] == "enable" and events[-1]["kind"] == "stop"
 
 
-def test_sigkill_leaves_a_recoverable_file(tmp_path: Path) -> None:
+def test_sigkill_of_the_run_the_writer_finishes_the_file(tmp_path: Path) -> None:
     path = tmp_path / "killed.mcap"
     proc = _start_realtime_run(path, 30.0)
     _wait_for_cycles(path, proc, 2.5)
-    proc.kill()
+    proc.kill()  # the main process only: the writer sees end of file on its pipe
     proc.communicate(timeout=20)
+    _wait_for_group_exit(proc.pid)
+    info = open_log(path).info()
+    assert info.has_summary and info.stop_reason == PARENT_EXITED
+    counts = {c.topic: c.message_count for c in info.channels}
+    # everything the loop handed over: > 2 s of 1 kHz cycles (one batch may be lost)
+    assert counts["/controller"] >= 2000
+    report = recover(path, tmp_path / "rec.mcap")
+    assert report.complete and dict(report.counts)["/controller"] == counts["/controller"]
+
+
+def test_sigkill_of_run_and_writer_leaves_a_recoverable_file(tmp_path: Path) -> None:
+    path = tmp_path / "killed.mcap"
+    proc = _start_realtime_run(path, 30.0)
+    _wait_for_cycles(path, proc, 2.5)
+    os.killpg(proc.pid, signal.SIGKILL)  # power-loss like: nobody finishes the file
+    proc.communicate(timeout=20)
+    _wait_for_group_exit(proc.pid)
+    assert not open_log_ok(path)
     report = recover(path, tmp_path / "rec.mcap")
     counts = dict(report.counts)
-    # at least everything older than about a second: > 1 s of 1 kHz cycles survived
-    assert counts.get("/controller", 0) >= 1000
+    # at least everything older than about a second (the writer flushes every second)
+    assert not report.complete and counts.get("/controller", 0) >= 1000
     assert open_log(tmp_path / "rec.mcap").has_summary
+
+
+def open_log_ok(path: Path) -> bool:
+    try:
+        open_log(path)
+    except LogFileError:
+        return False
+    return True

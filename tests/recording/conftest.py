@@ -1,0 +1,43 @@
+"""Recording tests also fail if they leave a child process behind (the writer process)."""
+
+from __future__ import annotations
+
+import os
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+
+def child_processes() -> set[int]:
+    """Pids whose parent is this process (zombies included: a child not waited for)."""
+    me = os.getpid()
+    out = set()
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            stat = (entry / "stat").read_text()
+        except OSError:
+            continue
+        fields = stat[stat.rindex(")") + 2:].split()
+        if int(fields[1]) == me:
+            out.add(int(entry.name))
+    return out
+
+
+@pytest.fixture(autouse=True)
+def no_leaked_child_processes() -> Iterator[None]:
+    if not Path("/proc/self/stat").exists():  # pragma: no cover - not Linux
+        yield
+        return
+    before = child_processes()
+    yield
+    deadline = time.monotonic() + 2.0  # a subprocess the test killed may still be reaped
+    leaked = child_processes() - before
+    while leaked and time.monotonic() < deadline:
+        time.sleep(0.05)
+        leaked = child_processes() - before
+    if leaked:
+        pytest.fail(f"test left child processes behind: {sorted(leaked)}")
