@@ -151,9 +151,16 @@ class _NoBus:
 
 def _iter(path: str | os.PathLike[str], topics: Sequence[str]) -> Iterator[tuple[str, int, bytes]]:
     from mcap.reader import make_reader
+
+    from dobhil.recording.fastread import iter_payloads
     with open(path, "rb") as f:
         try:
-            for _, channel, message in make_reader(f).iter_messages(topics=list(topics), log_time_order=False):
+            reader = make_reader(f)
+            summary = reader.get_summary()
+            if summary is not None and summary.chunk_indexes:
+                yield from iter_payloads(f, summary, topics)
+                return
+            for _, channel, message in reader.iter_messages(topics=list(topics), log_time_order=False):
                 yield channel.topic, message.log_time, message.data
         except DAMAGE_ERRORS as exc:
             raise LogFileError(f"{os.fspath(path)}: damaged data ({exc}); try `dobhil log recover`") from exc
