@@ -26,6 +26,7 @@ from typing import Any, Final
 import can
 import numpy as np
 from numpy.typing import NDArray
+from orjson import loads as _loads
 
 from dobhil.config.schema import Config
 from dobhil.drives.base import Drive
@@ -41,12 +42,6 @@ Array = NDArray[np.float64]
 OUTPUTS: Final = ("tau_ref", "tau_int_hat", "tau_dis_hat", "tau_per", "u_unsat", "u_sat")
 #: Outputs compared by the verification (tau_ref is an input).
 COMPARED: Final = OUTPUTS[1:]
-
-try:  # optional, faster
-    from orjson import loads as _loads
-except ImportError:  # pragma: no cover
-    _loads = json.loads
-
 
 @dataclass(frozen=True)
 class Recording:
