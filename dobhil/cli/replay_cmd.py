@@ -64,7 +64,7 @@ def _print(info: dict) -> None:  # type: ignore[type-arg]
 
 def _write_csv(result, path: Path) -> None:  # type: ignore[no-untyped-def]
     try:
-        handle = open(path, "w", newline="", encoding="utf-8")  # noqa: SIM115
+        handle = open(path, "w", newline="", encoding="utf-8")
     except OSError as exc:
         raise LogFileError(f"{path}: cannot create: {exc.strerror}") from exc
     with handle:

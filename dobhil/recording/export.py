@@ -52,7 +52,7 @@ def export_csv(
     log = open_log(mcap_path)
     columns = log.schema_properties(topic)
     try:
-        sink = open(out, "w", newline="", encoding="utf-8")  # noqa: SIM115 - closed below
+        sink = open(out, "w", newline="", encoding="utf-8")
     except OSError as exc:
         raise LogFileError(f"{os.fspath(out)}: cannot create: {exc.strerror}") from exc
     count = 0

@@ -33,7 +33,8 @@ from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from types import TracebackType
-from typing import Any, Callable, Final
+from typing import Any, Final
+from collections.abc import Callable
 
 import can
 
@@ -247,7 +248,7 @@ class Recorder:
         self, metadata: Mapping[str, Mapping[str, Any]], attachments: Iterable[tuple[str, str, bytes]]
     ) -> LogFileWriter:
         try:
-            file = open(self.path, "wb")  # noqa: SIM115 - closed by close()
+            file = open(self.path, "wb")
         except OSError as exc:
             raise LogFileError(f"{self.path}: cannot create: {exc.strerror}") from exc
         try:
@@ -260,7 +261,7 @@ class Recorder:
     def _run(self) -> None:
         try:
             self._loop()
-        except BaseException as exc:  # noqa: BLE001 - handed to the caller
+        except BaseException as exc:
             self._failure = exc
             self._accepting = False
             self._room.set()

@@ -167,7 +167,7 @@ def recover(
     if target.resolve() == Path(path).resolve():
         raise LogFileError(f"{os.fspath(path)}: recovering onto the input file is refused; give -o OUT")
     try:
-        sink = open(target, "wb")  # noqa: SIM115 - closed below
+        sink = open(target, "wb")
     except OSError as exc:
         raise LogFileError(f"{os.fspath(target)}: cannot create: {exc.strerror}") from exc
     with sink, open(path, "rb") as source:

@@ -243,7 +243,7 @@ def main(argv: Sequence[str]) -> None:
     code = 0
     try:
         status: tuple[Any, ...] = _Writer(FrameReader(data_fd), file, argv[3]).serve()
-    except BaseException as exc:  # noqa: BLE001 - reported to the parent
+    except BaseException as exc:
         status, code = (int(Status.FAILED), _one_line(exc)), 1
         try:
             file.close()

@@ -211,7 +211,7 @@ class WriterProcess:
 
 def _create(path: Path) -> BinaryIO:
     try:
-        return open(path, "wb")  # noqa: SIM115 - handed to the writer process, closed here
+        return open(path, "wb")
     except OSError as exc:
         raise LogFileError(f"{path}: cannot create: {exc.strerror}") from exc
 

@@ -60,7 +60,7 @@ def open_bus(spec: BusSpec) -> can.BusABC:
         kwargs.pop("bitrate", None) if spec.interface == "virtual" else None
     try:
         return can.Bus(interface=spec.interface, channel=spec.channel, **kwargs)
-    except Exception as exc:  # noqa: BLE001 -- every backend raises its own kind
+    except Exception as exc:
         text = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         raise BusError(f"bus {spec.describe()} cannot be opened: {text}") from None
 

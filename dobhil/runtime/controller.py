@@ -164,6 +164,6 @@ def _dot(row: NDArray[np.float64], names: list[str]) -> str:
 
 def _compile(source: str) -> Kernel:
     namespace: dict[str, object] = {"Out": ControlOutput}
-    exec(compile(source, "<dobhil.runtime.controller kernel>", "exec"), namespace)  # noqa: S102
+    exec(compile(source, "<dobhil.runtime.controller kernel>", "exec"), namespace)
     kernel: Kernel = namespace["kernel"]  # type: ignore[assignment]
     return kernel

@@ -326,6 +326,6 @@ class ForceLoop:
         try:
             if self.sink is not None:
                 self.sink.stop(stop)
-        except Exception:  # noqa: BLE001 -- the drive must still be stopped
+        except Exception:
             pass
         return bool(self.drive.disable())

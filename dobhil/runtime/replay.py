@@ -238,7 +238,7 @@ def decode_feedback(recording: Recording) -> tuple[list[float], list[float]]:
     from dobhil.drives.registry import make_drive
     drive: Drive = make_drive(_NoBus(), recording.profile, clock=lambda: 0.0)  # type: ignore[arg-type]
     pos, vel = [float("nan")], [float("nan")]
-    handle = drive._handle  # noqa: SLF001 - the run's own decoding path, seq included
+    handle = drive._handle
     for msg in recording.frames:
         if handle(msg):
             fb = drive.feedback

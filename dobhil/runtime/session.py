@@ -150,7 +150,7 @@ class RunSession:
         if self.timing is Timing.LOCKSTEP and self.emulator is not None:
             try:
                 self.emulator.handle_pending()
-            except Exception:  # noqa: BLE001 -- the run's own outcome matters more
+            except Exception:
                 pass
 
     def close(self) -> None:
@@ -159,12 +159,12 @@ class RunSession:
         if self.emulator is not None:
             try:
                 self.emulator.stop()
-            except BaseException as exc:  # noqa: BLE001
+            except BaseException as exc:
                 errors.append(exc)
         for bus in reversed(self._buses):
             try:
                 bus.shutdown()
-            except Exception as exc:  # noqa: BLE001
+            except Exception as exc:
                 errors.append(exc)
         self._buses.clear()
         if errors:
