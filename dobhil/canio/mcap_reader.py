@@ -1,0 +1,90 @@
+"""``can.LogReader("run.mcap")``: python-can's log reader for dobhil recordings.
+
+Yields the frames of ``/can/rx`` (``is_rx=True``) and ``/can/tx`` (``is_rx=False``) in
+log-time order as :class:`can.Message` objects: bus timestamp in seconds, channel,
+identifier and every flag (extended, remote, error, FD, BRS, ESI), DLC and data. Other
+topics are not CAN frames and are skipped. This is what makes ``python -m can.logconvert
+run.mcap run.blf`` and ``python -m can.player run.mcap`` work.
+
+A finished file is read through its chunk index. A file without a summary (its writer
+was killed) is read front to back: every complete frame is yielded, then a ValueError
+says the file is truncated and how to complete it.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Iterator
+from io import BufferedIOBase
+from typing import IO, Any, BinaryIO, Final, cast
+
+import can
+from can.io.generic import BinaryIOMessageReader
+from mcap.reader import NonSeekingReader, make_reader
+
+from dobhil.canio.frames import FRAME_TOPIC_NAMES, frame_message
+
+MAGIC: Final = b"\x89MCAP0\r\n"
+
+
+class McapReader(BinaryIOMessageReader):
+    """Reads the CAN frames of an MCAP file (path or seekable binary file object)."""
+
+    def __init__(self, file: str | os.PathLike[str] | BinaryIO | BufferedIOBase, **kwargs: Any) -> None:
+        if kwargs:
+            raise ValueError(f"MCAP reader: unknown option(s) {', '.join(sorted(kwargs))}; it takes none")
+        self.name = os.fspath(file) if isinstance(file, (str, os.PathLike)) else str(getattr(file, "name", "MCAP"))
+        super().__init__(file, mode="rb")
+        try:
+            head = self.file.read(len(MAGIC))
+            self.file.seek(0)
+        except BaseException:
+            self.file.close()
+            raise
+        if head != MAGIC:
+            self.file.close()
+            raise ValueError(f"{self.name}: not an MCAP file (bad magic)")
+        self.frames_read = 0
+
+    def __iter__(self) -> Iterator[can.Message]:
+        try:
+            for log_time, data in self._records():
+                msg = frame_message(data, log_time)
+                self.frames_read += 1
+                yield msg
+        except (KeyError, TypeError) as exc:
+            raise ValueError(f"{self.name}: /can/* message {self.frames_read + 1} is not a dobhil CAN frame "
+                             f"(missing {exc})") from exc
+        finally:
+            self.stop()
+
+    def _records(self) -> Iterator[tuple[int, bytes]]:
+        """(log time, data) of each frame message; indexed when there is a summary."""
+        reader = make_reader(cast(IO[bytes], self.file))
+        try:
+            summary = reader.get_summary()
+        except Exception:  # no footer: a writer killed before stop()
+            summary = None
+        if summary is not None and summary.chunk_indexes:
+            topics = {c.topic for c in summary.channels.values()}
+            if not topics & set(FRAME_TOPIC_NAMES):
+                listed = ", ".join(sorted(topics)) or "none"
+                raise ValueError(f"{self.name}: no CAN frames (no /can/rx or /can/tx topic; topics: {listed})")
+            for _, _, message in reader.iter_messages(topics=FRAME_TOPIC_NAMES, log_time_order=True):
+                yield message.log_time, message.data
+            return
+        yield from self._scan()
+
+    def _scan(self) -> Iterator[tuple[int, bytes]]:
+        """Front to back, for a file without chunk index; file order is the writer's order."""
+        self.file.seek(0)
+        stream = NonSeekingReader(cast(IO[bytes], self.file)).iter_messages(topics=FRAME_TOPIC_NAMES, log_time_order=False)
+        try:
+            for _, _, message in stream:
+                yield message.log_time, message.data
+        except Exception as exc:
+            raise ValueError(f"{self.name}: truncated or damaged after {self.frames_read} frames ({exc}); "
+                             f"`dobhil log recover {self.name}` writes a complete copy") from exc
+
+
+__all__ = ["McapReader"]

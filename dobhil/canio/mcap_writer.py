@@ -1,0 +1,149 @@
+"""``can.Logger("x.mcap")``: python-can's log writer for MCAP, with dobhil's topics.
+
+Every frame goes to ``/can/rx`` (python-can's ``is_rx``) or ``/can/tx`` with the JSON
+schema of a dobhil recording, so ``dobhil log info``, ``can.LogReader`` and Foxglove
+read the file like one ``dobhil run --log`` wrote. Both channels are registered at the
+start: an empty capture is still a CAN log. Log time is the frame's timestamp (the
+wall clock for a frame without one).
+
+The file is finished (summary, footer) by :meth:`McapWriter.stop`, which python-can's
+``can.logger`` calls on Ctrl-C and ``can.logconvert`` at the end. Until then the chunk
+in progress is written out every ``flush_interval`` seconds, so a killed logger loses
+at most that much and ``dobhil log recover`` completes the file.
+
+Keyword arguments (``python -m can.logger ... -f x.mcap --compression=lz4``):
+``compression`` (``zstd``, ``lz4`` or ``none``; default: zstd if installed, else lz4,
+else none), ``chunk_size`` (bytes) and ``flush_interval`` (seconds).
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+import threading
+import time
+from datetime import datetime, timezone
+from io import BufferedIOBase
+from pathlib import Path
+from typing import IO, Any, BinaryIO, Final, cast
+
+import can
+from can.io.generic import BinaryIOMessageWriter
+from mcap.exceptions import UnsupportedCompressionError
+from mcap.writer import CompressionType, Writer
+
+from dobhil import __version__
+from dobhil.canio.frames import FRAME_TOPICS, Topic, channel_spec, frame_json, topic_of
+
+#: Name of the metadata record written at the start (and ``.stop`` at the end).
+METADATA: Final = "python-can"
+CHUNK_SIZE: Final = 256 * 1024
+_COMPRESSION: Final = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}
+
+
+def program_name(argv0: str | None = None) -> str:
+    """What is writing: ``can.logger`` for ``python -m can.logger``, else the script's name."""
+    path = Path(sys.argv[0] if argv0 is None else argv0)
+    can_dir = Path(can.__file__).resolve().parent
+    try:
+        inside = path.resolve().parent == can_dir
+    except OSError:
+        inside = False
+    return f"can.{path.stem}" if inside else (path.name or "python")
+
+
+def _utc_now() -> str:
+    return datetime.now(timezone.utc).isoformat(timespec="milliseconds")
+
+
+class McapWriter(BinaryIOMessageWriter):
+    """Writes CAN frames to an MCAP file (path or binary file object, owned either way)."""
+
+    def __init__(self, file: str | os.PathLike[str] | BinaryIO | BufferedIOBase, append: bool = False, *,
+                 compression: str | None = None, chunk_size: int = CHUNK_SIZE, flush_interval: float = 1.0,
+                 **kwargs: Any) -> None:
+        if kwargs:
+            raise ValueError(f"MCAP writer: unknown option(s) {', '.join(sorted(kwargs))}; "
+                             f"allowed: compression, chunk_size, flush_interval")
+        if append:
+            raise ValueError("MCAP writer: cannot append to an MCAP file (it ends with a summary); "
+                             "write a new file")
+        if compression is not None and str(compression).lower() not in _COMPRESSION:
+            raise ValueError(f"MCAP writer: compression {compression!r}; allowed: {', '.join(_COMPRESSION)}")
+        if not chunk_size > 0 or not flush_interval > 0:
+            raise ValueError(f"MCAP writer: chunk_size and flush_interval must be > 0, "
+                             f"got {chunk_size!r}, {flush_interval!r}")
+        super().__init__(file, mode="wb")
+        self._lock = threading.Lock()
+        self._interval = float(flush_interval)
+        self._next_flush = time.monotonic() + self._interval
+        self._counts = {topic: 0 for topic in FRAME_TOPICS}
+        self._stopped = False
+        try:
+            self._writer = self._start(compression, int(chunk_size))
+            self._channels = {topic: self._register(topic) for topic in FRAME_TOPICS}
+            self._writer.flush()
+        except BaseException:
+            self.file.close()
+            raise
+
+    def _start(self, compression: str | None, chunk_size: int) -> Writer:
+        """The mcap writer, header and start metadata written; the first compression installed
+        of zstd, lz4, none unless one is asked for."""
+        kinds = [_COMPRESSION[compression.lower()]] if compression else list(_COMPRESSION.values())
+        for kind in kinds:
+            try:
+                writer = Writer(cast(IO[bytes], self.file), chunk_size=chunk_size, compression=kind)
+            except UnsupportedCompressionError:
+                if compression:
+                    raise ValueError(f"MCAP writer: compression {compression!r} is not installed") from None
+                continue
+            break
+        writer.start(profile="", library=f"dobhil/{__version__} (python-can {can.__version__})")
+        writer.add_metadata(METADATA, {
+            "writer": f"{__name__}.{type(self).__name__}", "program": program_name(),
+            "dobhil": __version__, "python-can": can.__version__, "started": _utc_now(),
+        })
+        return writer
+
+    def _register(self, topic: Topic) -> int:
+        name, schema_name, schema, schema_encoding, message_encoding = channel_spec(topic)
+        schema_id = self._writer.register_schema(schema_name, schema_encoding, schema)
+        return self._writer.register_channel(name, message_encoding, schema_id)
+
+    @property
+    def frames_written(self) -> int:
+        """Frames written so far (both topics)."""
+        return sum(self._counts.values())
+
+    def on_message_received(self, msg: can.Message) -> None:
+        topic = topic_of(msg)
+        data = frame_json(msg)
+        stamp = msg.timestamp
+        log_ns = max(0, round(stamp * 1e9)) if stamp else time.time_ns()
+        with self._lock:
+            if self._stopped:
+                raise ValueError("MCAP writer: message after stop()")
+            sequence = self._counts[topic]
+            self._writer.add_message(self._channels[topic], log_ns, data, log_ns, sequence=sequence & 0xFFFFFFFF)
+            self._counts[topic] = sequence + 1
+            if time.monotonic() >= self._next_flush:
+                self._writer.flush()
+                self._next_flush = time.monotonic() + self._interval
+
+    def stop(self) -> None:
+        """Write the summary and footer and close the file (again: no-op)."""
+        with self._lock:
+            if self._stopped:
+                return
+            self._stopped = True
+            try:
+                rx, tx = (self._counts[t] for t in FRAME_TOPICS)
+                self._writer.add_metadata(f"{METADATA}.stop", {
+                    "frames": str(rx + tx), "rx": str(rx), "tx": str(tx), "stopped": _utc_now()})
+                self._writer.finish()
+            finally:
+                super().stop()
+
+
+__all__ = ["METADATA", "McapWriter", "program_name"]

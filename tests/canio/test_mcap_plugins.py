@@ -1,0 +1,236 @@
+"""``.mcap`` in python-can: ``can.LogReader``/``can.Logger`` plugins, and python-can's own
+tools (``can.logconvert``, ``can.player``, ``can.logger``) on dobhil recordings."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import can
+import can.logconvert
+import can.player
+import pytest
+
+from dobhil.canio.mcap_reader import McapReader
+from dobhil.canio.mcap_writer import METADATA, McapWriter, program_name
+from dobhil.cli.main import main as dobhil_main
+from dobhil.recording.reader import open_log
+from dobhil.recording.schemas import SPECS_BY_NAME
+
+REPO = Path(__file__).resolve().parents[2]
+DEMO = REPO / "configs" / "demo.yaml"
+T0 = 1_700_000_000.0
+BOUND = 30.0  # s: how long a loaded CI machine may take to start a process, not a measurement
+
+#: Every flag python-can has, classic and FD, both directions, with and without channel.
+FRAMES = (
+    can.Message(timestamp=T0, arbitration_id=0x123, data=bytes(range(8)), channel="can0"),
+    can.Message(timestamp=T0 + 0.001, arbitration_id=0x1ABCDEF, is_extended_id=True, data=b"\x01\x02\x03",
+                is_rx=False, channel="can0"),
+    can.Message(timestamp=T0 + 0.0015, arbitration_id=0x456, is_extended_id=False, is_remote_frame=True, dlc=6),
+    can.Message(timestamp=T0 + 0.002, arbitration_id=0x001, is_extended_id=False, data=b"", is_rx=False),
+    can.Message(timestamp=T0 + 0.003, arbitration_id=0x7FF, is_extended_id=False, is_fd=True, bitrate_switch=True,
+                data=bytes(range(12)), channel="vcan1"),
+    can.Message(timestamp=T0 + 0.004, arbitration_id=0x18DAF110, is_extended_id=True, is_fd=True,
+                error_state_indicator=True, data=bytes(range(64)), channel="vcan1"),
+    can.Message(timestamp=T0 + 0.005, arbitration_id=0x20000004, is_extended_id=True, is_error_frame=True, dlc=8,
+                data=bytes([0, 4, 0, 0, 0, 0, 0, 0]), channel="can0"),
+    can.Message(timestamp=T0 + 0.0051234567, arbitration_id=0x3FF, is_extended_id=False, is_fd=True,
+                bitrate_switch=True, error_state_indicator=True, data=b"\xff" * 48, is_rx=False),
+)
+
+
+def flags(msg: can.Message) -> tuple[object, ...]:
+    return (msg.arbitration_id, msg.is_extended_id, msg.is_remote_frame, msg.is_error_frame, msg.is_fd,
+            msg.bitrate_switch, msg.error_state_indicator, msg.dlc, bytes(msg.data), msg.is_rx)
+
+
+def write(path: Path, frames: tuple[can.Message, ...] = FRAMES) -> Path:
+    with can.Logger(path) as logger:
+        assert isinstance(logger, McapWriter)
+        for msg in frames:
+            logger(msg)
+    return path
+
+
+def test_round_trip_keeps_every_flag_timestamp_and_channel(tmp_path: Path) -> None:
+    path = write(tmp_path / "frames.mcap")
+    with can.LogReader(path) as reader:
+        assert isinstance(reader, McapReader)
+        back = list(reader)
+    assert len(back) == len(FRAMES)
+    for want, got in zip(FRAMES, back):
+        assert want.equals(got, timestamp_delta=None), f"{want} != {got}"
+        assert got.timestamp == want.timestamp   # the very same double
+        assert flags(got) == flags(want)
+
+
+def test_file_is_a_dobhil_recording(tmp_path: Path) -> None:
+    """``dobhil log info`` reads it: a summary, /can/rx and /can/tx with the schema of the
+    one topic table, counts per direction, who wrote it."""
+    path = write(tmp_path / "frames.mcap")
+    log = open_log(path)
+    info = log.info()
+    assert info.has_summary
+    counts = {c.topic: c.message_count for c in info.channels}
+    assert counts == {"/can/rx": sum(m.is_rx for m in FRAMES), "/can/tx": sum(not m.is_rx for m in FRAMES)}
+    assert {c.schema_name for c in info.channels} == {"dobhil.CanFrame"}
+    assert {c.message_encoding for c in info.channels} == {"json"}
+    for topic in counts:
+        assert log.schema_properties(topic) == SPECS_BY_NAME[topic].keys
+    started, stopped = info.metadata[METADATA], info.metadata[f"{METADATA}.stop"]
+    assert started["writer"] == "dobhil.canio.mcap_writer.McapWriter"
+    assert stopped["frames"] == str(len(FRAMES))
+    payloads = [p for _, _, p in log.iter_messages(["/can/rx", "/can/tx"])]
+    assert [p["direction"] for p in payloads] == ["rx" if m.is_rx else "tx" for m in FRAMES]
+    assert payloads[0]["data_hex"] == "0001020304050607"
+
+
+def test_program_name() -> None:
+    assert program_name(can.__file__.replace("__init__.py", "logger.py")) == "can.logger"
+    assert program_name("/usr/bin/my-tool") == "my-tool"
+
+
+def test_empty_capture_and_bad_options(tmp_path: Path) -> None:
+    empty = write(tmp_path / "empty.mcap", ())
+    assert list(can.LogReader(empty)) == []
+    assert {c.topic for c in open_log(empty).channels()} == {"/can/rx", "/can/tx"}
+    with pytest.raises(ValueError, match="cannot append"):
+        can.Logger(tmp_path / "a.mcap", append=True)
+    with pytest.raises(ValueError, match="unknown option.*level"):
+        can.Logger(tmp_path / "b.mcap", level=3)
+    with pytest.raises(ValueError, match="compression 'gzip'"):
+        can.Logger(tmp_path / "c.mcap", compression="gzip")
+    with can.Logger(tmp_path / "d.mcap", compression="none") as logger:
+        logger(FRAMES[0])
+    assert len(list(can.LogReader(tmp_path / "d.mcap"))) == 1
+    logger.stop()   # again: no-op
+    with pytest.raises(ValueError, match="after stop"):
+        logger(FRAMES[0])
+
+
+def test_reader_errors_are_one_clear_line(tmp_path: Path) -> None:
+    text = tmp_path / "frames.mcap"
+    text.write_text("not mcap\n")
+    with pytest.raises(ValueError, match="not an MCAP file"):
+        can.LogReader(text)
+    with pytest.raises(ValueError, match="unknown option"):
+        can.LogReader(write(tmp_path / "ok.mcap"), channel=1)
+    from dobhil.recording.recorder import Recorder, RecordMode
+    no_can = tmp_path / "no-can.mcap"
+    with Recorder(no_can, metadata={}, mode=RecordMode.BACKPRESSURE) as rec:
+        rec.write("/drive/command", 1_000, {"torque": 0.0})
+    with pytest.raises(ValueError, match=r"no CAN frames.*/drive/command"):
+        list(can.LogReader(no_can))
+
+
+def test_truncated_file_yields_what_is_complete_then_says_so(tmp_path: Path) -> None:
+    """A logger killed before stop(): every flushed frame is read, then a ValueError."""
+    path = tmp_path / "live.mcap"
+    logger = McapWriter(path, flush_interval=1e-9)   # a chunk per frame
+    try:
+        for msg in FRAMES[:5]:
+            logger(msg)
+        cut = tmp_path / "cut.mcap"
+        shutil.copyfile(path, cut)
+    finally:
+        logger.stop()
+    got: list[can.Message] = []
+    with pytest.raises(ValueError, match="truncated.*dobhil log recover"):
+        for msg in can.LogReader(cut):
+            got.append(msg)
+    assert [flags(m) for m in got] == [flags(m) for m in FRAMES[:5]]
+
+
+@pytest.fixture(scope="module")
+def run_log(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A lockstep emulated run recorded by ``dobhil run --log`` (the CLI, in process)."""
+    path = tmp_path_factory.mktemp("run") / "run.mcap"
+    code = dobhil_main(["run", str(DEMO), "--emulate", "--lockstep", "--duration", "0.3", "--log", str(path)])
+    assert code == 0
+    return path
+
+
+def test_frame_count_equals_log_info(run_log: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """``sum(1 for _ in can.LogReader(run.mcap))`` is /can/rx + /can/tx of ``dobhil log info``,
+    in log-time order, each frame as the recording has it."""
+    capsys.readouterr()
+    assert dobhil_main(["log", "info", str(run_log), "--json"]) == 0
+    info = json.loads(capsys.readouterr().out)
+    counts = {c["topic"]: c["message_count"] for c in info["channels"]}
+    assert counts["/can/rx"] > 250 and counts["/can/tx"] > 250   # 0.3 s at 1 kHz, both ways
+    assert sum(1 for _ in can.LogReader(run_log)) == counts["/can/rx"] + counts["/can/tx"]
+
+    frames = list(can.LogReader(run_log))
+    assert sum(m.is_rx for m in frames) == counts["/can/rx"]
+    recorded = list(open_log(run_log).iter_messages(["/can/rx", "/can/tx"]))
+    assert [(m.arbitration_id, list(m.data), m.is_rx, m.timestamp) for m in frames] == \
+        [(p["arbitration_id"], p["data"], p["direction"] == "rx", p["timestamp"]) for _, _, p in recorded]
+    log_times = [t for _, t, _ in recorded]
+    assert log_times == sorted(log_times)
+
+
+def test_logconvert_to_blf_reads_back_with_python_can(run_log: Path, tmp_path: Path,
+                                                      monkeypatch: pytest.MonkeyPatch) -> None:
+    blf = tmp_path / "run.blf"
+    monkeypatch.setattr(sys, "argv", ["can.logconvert", str(run_log), str(blf)])
+    can.logconvert.main()
+    ours = list(can.LogReader(run_log))
+    with can.BLFReader(blf) as reader:
+        theirs = list(reader)
+    assert [flags(m) for m in theirs] == [flags(m) for m in ours]
+    for a, b in zip(ours, theirs):
+        assert b.timestamp == pytest.approx(a.timestamp, abs=2e-6)
+
+
+def test_player_sends_a_recording_onto_a_virtual_bus(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                                     capsys: pytest.CaptureFixture[str]) -> None:
+    """``python -m can.player FILE.mcap -i virtual``: python-can's own main(), in process."""
+    path = write(tmp_path / "frames.mcap")
+    channel = f"player-{os.getpid()}"
+    with can.Bus(interface="virtual", channel=channel) as listener:
+        monkeypatch.setattr(sys, "argv", ["can.player", "-i", "virtual", "-c", channel, "--error-frames",
+                                          "--ignore-timestamps", str(path)])
+        can.player.main()
+        got = [listener.recv(1.0) for _ in FRAMES]
+        assert listener.recv(0.0) is None
+    assert [flags(m) for m in got if m is not None] == [flags(m)[:-1] + (True,) for m in FRAMES]
+
+
+def test_can_logger_in_a_subprocess_on_the_dobhil_bus(tmp_path: Path) -> None:
+    """``python -m can.logger -i dobhil -c demo -f x.mcap``, stopped with Ctrl-C (SIGINT):
+    a finished file (summary), the emulated drive's frames, written by can.logger."""
+    out = tmp_path / "capture.mcap"
+    proc = subprocess.Popen([sys.executable, "-u", "-m", "can.logger", "-i", "dobhil", "-c", "demo", "-f", str(out)],
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, cwd=tmp_path,
+                            env={**os.environ, "PYTHONUNBUFFERED": "1"})
+    try:
+        assert proc.stdout is not None
+        line = proc.stdout.readline().decode()
+        assert line.startswith("Connected to DobhilBus: dobhil emulated odrive"), line
+        deadline = time.monotonic() + BOUND
+        while not out.exists() or out.stat().st_size < 2000:   # frames flushed (every second)
+            assert time.monotonic() < deadline and proc.poll() is None
+            time.sleep(0.05)
+        proc.send_signal(signal.SIGINT)
+        rest = proc.communicate(timeout=BOUND)[0].decode()
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 0, rest
+    info = open_log(out).info()
+    assert info.has_summary
+    counts = {c.topic: c.message_count for c in info.channels}
+    assert counts["/can/rx"] > 100 and counts["/can/tx"] == 0
+    assert info.metadata[METADATA]["program"] == "can.logger"
+    assert int(info.metadata[f"{METADATA}.stop"]["frames"]) == counts["/can/rx"]
+    frames = list(can.LogReader(out))
+    assert len(frames) == counts["/can/rx"] and {m.channel for m in frames} == {"demo"}
+    assert {m.arbitration_id for m in frames} >= {3 << 5 | 0x01, 3 << 5 | 0x09}   # heartbeat, encoder
