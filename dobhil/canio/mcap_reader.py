@@ -78,7 +78,8 @@ class McapReader(BinaryIOMessageReader):
     def _scan(self) -> Iterator[tuple[int, bytes]]:
         """Front to back, for a file without chunk index; file order is the writer's order."""
         self.file.seek(0)
-        stream = NonSeekingReader(cast(IO[bytes], self.file)).iter_messages(topics=FRAME_TOPIC_NAMES, log_time_order=False)
+        reader = NonSeekingReader(cast(IO[bytes], self.file))
+        stream = reader.iter_messages(topics=FRAME_TOPIC_NAMES, log_time_order=False)
         try:
             for _, _, message in stream:
                 yield message.log_time, message.data
