@@ -45,7 +45,10 @@ def relaxed_profile(tmp_path: Path) -> Path:
 
 def test_registered_as_a_python_can_interface() -> None:
     assert "dobhil" in can.VALID_INTERFACES
+    before = set(threading.enumerate())
     found = can.detect_available_configs("dobhil")
+    # python-can's detection leaves its thread pool to finish by itself
+    assert wait_until(lambda: not [t for t in threading.enumerate() if t not in before])
     assert {c["channel"] for c in found} == set(shipped_configs())
     assert {"demo", "paper/fig2c"} <= set(shipped_configs())
     assert all(c["interface"] == "dobhil" for c in found)

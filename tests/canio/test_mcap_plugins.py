@@ -234,3 +234,9 @@ def test_can_logger_in_a_subprocess_on_the_dobhil_bus(tmp_path: Path) -> None:
     frames = list(can.LogReader(out))
     assert len(frames) == counts["/can/rx"] and {m.channel for m in frames} == {"demo"}
     assert {m.arbitration_id for m in frames} >= {3 << 5 | 0x01, 3 << 5 | 0x09}   # heartbeat, encoder
+
+
+def test_gzip_compressed_mcap(tmp_path: Path) -> None:
+    """``x.mcap.gz``: python-can's gzip wrapping around the plugins (read without an index)."""
+    path = write(tmp_path / "frames.mcap.gz")
+    assert [flags(m) for m in can.LogReader(path)] == [flags(m) for m in FRAMES]
