@@ -25,6 +25,18 @@ from mcap.reader import NonSeekingReader, make_reader
 from dobhil.canio.frames import FRAME_TOPIC_NAMES, frame_message
 
 MAGIC: Final = b"\x89MCAP0\r\n"
+#: (device, inode) of the files McapReaders of this process have open: the writer refuses
+#: them (``can.logconvert run.mcap run.mcap`` would otherwise destroy its input).
+_OPEN_INPUTS: Final[set[tuple[int, int]]] = set()
+
+
+def is_open_input(path: str | os.PathLike[str]) -> bool:
+    """Whether ``path`` is a file an McapReader of this process is reading."""
+    try:
+        st = os.stat(path)
+    except OSError:
+        return False
+    return (st.st_dev, st.st_ino) in _OPEN_INPUTS
 
 
 class McapReader(BinaryIOMessageReader):
@@ -45,6 +57,16 @@ class McapReader(BinaryIOMessageReader):
             self.file.close()
             raise ValueError(f"{self.name}: not an MCAP file (bad magic)")
         self.frames_read = 0
+        st = os.fstat(self.file.fileno()) if hasattr(self.file, "fileno") else None
+        self._key = (st.st_dev, st.st_ino) if st is not None else None
+        if self._key is not None:
+            _OPEN_INPUTS.add(self._key)
+
+    def stop(self) -> None:
+        if self._key is not None:
+            _OPEN_INPUTS.discard(self._key)
+            self._key = None
+        super().stop()
 
     def __iter__(self) -> Iterator[can.Message]:
         try:
@@ -88,4 +110,4 @@ class McapReader(BinaryIOMessageReader):
                              f"`dobhil log recover {self.name}` writes a complete copy") from exc
 
 
-__all__ = ["McapReader"]
+__all__ = ["McapReader", "is_open_input"]

@@ -33,6 +33,7 @@ from mcap.exceptions import UnsupportedCompressionError
 from mcap.writer import CompressionType, Writer
 
 from dobhil import __version__
+from dobhil.canio.mcap_reader import is_open_input
 from dobhil.canio.frames import FRAME_TOPICS, Topic, channel_spec, frame_json, topic_of
 
 #: Name of the metadata record written at the start (and ``.stop`` at the end).
@@ -73,6 +74,8 @@ class McapWriter(BinaryIOMessageWriter):
         if not chunk_size > 0 or not flush_interval > 0:
             raise ValueError(f"MCAP writer: chunk_size and flush_interval must be > 0, "
                              f"got {chunk_size!r}, {flush_interval!r}")
+        if isinstance(file, (str, os.PathLike)) and is_open_input(file):
+            raise ValueError(f"MCAP writer: {os.fspath(file)} is being read as input; write to another file")
         super().__init__(file, mode="wb")
         self._lock = threading.Lock()
         self._interval = float(flush_interval)

@@ -240,3 +240,13 @@ def test_gzip_compressed_mcap(tmp_path: Path) -> None:
     """``x.mcap.gz``: python-can's gzip wrapping around the plugins (read without an index)."""
     path = write(tmp_path / "frames.mcap.gz")
     assert [flags(m) for m in can.LogReader(path)] == [flags(m) for m in FRAMES]
+
+
+def test_logconvert_onto_its_own_input_is_refused(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    path = write(tmp_path / "frames.mcap")
+    before = path.read_bytes()
+    monkeypatch.setattr(sys, "argv", ["can.logconvert", str(path), str(path)])
+    with pytest.raises(ValueError, match="is being read as input"):
+        can.logconvert.main()
+    assert path.read_bytes() == before
+    write(tmp_path / "frames.mcap")   # once the reader is closed, overwriting is python-can's usual
