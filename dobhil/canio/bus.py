@@ -75,21 +75,34 @@ class DobhilBus(can.BusABC):
             plant = Plant.from_config(self.config)
         except DobhilError as exc:
             raise EmulatedBusError(f"dobhil bus {name!r}: {exc}") from None
-        private = private_virtual_channel()
-        self._host = VirtualBus(private, receive_own_messages=receive_own_messages)
-        try:
-            drive = self.config.drive
-            self.emulator: EmulatedDrive = make_emulated_drive(
-                VirtualBus(private), profile, plant,
-                latency=drive.latency, jitter=drive.jitter, seed=self.config.sensor.seed)
-            self.emulator.start()
-        except BaseException:
-            self._host.shutdown()
-            raise
         self._name = name
+        self._closed = False
         self.channel_info = (f"dobhil emulated {profile.protocol} (firmware {profile.firmware}, "
                              f"node {profile.node_id}) of {path}")
-        super().__init__(channel=name, can_filters=can_filters, **kwargs)
+        private = private_virtual_channel()
+        self._host = VirtualBus(private, receive_own_messages=receive_own_messages)
+        emulator_bus = VirtualBus(private)
+        emulator: EmulatedDrive | None = None
+        try:
+            drive = self.config.drive
+            emulator = make_emulated_drive(emulator_bus, profile, plant, latency=drive.latency,
+                                           jitter=drive.jitter, seed=self.config.sensor.seed)
+            self.emulator: EmulatedDrive = emulator
+            super().__init__(channel=name, can_filters=can_filters, **kwargs)
+            emulator.start()
+        except BaseException as exc:
+            self._closed = True
+            can.BusABC.shutdown(self)   # a no-op unless BusABC.__init__ ran
+            try:
+                if emulator is not None:
+                    emulator.close()   # stops its thread (if started), shuts its bus down
+                else:
+                    emulator_bus.shutdown()
+            finally:
+                self._host.shutdown()
+            if isinstance(exc, DobhilError):
+                raise EmulatedBusError(f"dobhil bus {name!r}: {exc}") from None
+            raise
 
     @property
     def plant(self) -> Any:
@@ -107,8 +120,9 @@ class DobhilBus(can.BusABC):
 
     def shutdown(self) -> None:
         """Stop the emulator thread (re-raising what it raised) and close the channel."""
-        if self._is_shutdown:
+        if self._closed:
             return
+        self._closed = True
         super().shutdown()
         try:
             self.emulator.close()

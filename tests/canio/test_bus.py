@@ -174,3 +174,19 @@ def test_odrive_can_client_through_the_dobhil_interface(tmp_path: Path) -> None:
     finally:
         bus.shutdown()
     assert {t for t in threading.enumerate() if t.is_alive()} <= before
+
+
+def test_a_bus_that_cannot_start_leaves_nothing_running(monkeypatch: pytest.MonkeyPatch) -> None:
+    from dobhil.emulator.protocol import EmulatedDrive
+
+    def refuse(self: EmulatedDrive) -> None:
+        raise RuntimeError("emulator refused to start")
+
+    before = set(threading.enumerate())
+    monkeypatch.setattr(EmulatedDrive, "start", refuse)
+    with pytest.raises(RuntimeError, match="refused"):
+        can.Bus(interface="dobhil", channel="demo")
+    assert set(threading.enumerate()) == before
+    # both ends of the private channel were shut down: no virtual channel is left open
+    from can.interfaces import virtual
+    assert not [c for c in virtual.channels if str(c).startswith("dobhil-")]
