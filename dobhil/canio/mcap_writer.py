@@ -11,7 +11,7 @@ The file is finished (summary, footer) by :meth:`McapWriter.stop`, which python-
 in progress is written out every ``flush_interval`` seconds, so a killed logger loses
 at most that much and ``dobhil log recover`` completes the file.
 
-Keyword arguments (``python -m can.logger ... -f x.mcap --compression=lz4``):
+Keyword arguments (on python-can's command lines ``--compression=lz4``, ``--flush-interval=0.5``):
 ``compression`` (``zstd``, ``lz4`` or ``none``; default: zstd if installed, else lz4,
 else none), ``chunk_size`` (bytes) and ``flush_interval`` (seconds).
 """

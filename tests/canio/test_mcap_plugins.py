@@ -7,6 +7,7 @@ import json
 import os
 import shutil
 import signal
+import socket
 import subprocess
 import sys
 import time
@@ -250,3 +251,84 @@ def test_logconvert_onto_its_own_input_is_refused(tmp_path: Path, monkeypatch: p
         can.logconvert.main()
     assert path.read_bytes() == before
     write(tmp_path / "frames.mcap")   # once the reader is closed, overwriting is python-can's usual
+
+
+def _free_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def _accepts(port: int) -> bool:
+    try:
+        with socket.create_connection(("127.0.0.1", port), timeout=0.5):
+            return True
+    except OSError:
+        return False
+
+
+def _stop(proc: subprocess.Popen[bytes]) -> None:
+    if proc.poll() is None:
+        proc.terminate()
+        try:
+            proc.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait(timeout=10)
+
+
+def _frames_so_far(path: Path, sentinel: int) -> int:
+    """Frames other than ``sentinel`` in a capture still being written (complete chunks)."""
+    count = 0
+    try:
+        for msg in McapReader(path):
+            count += msg.arbitration_id != sentinel
+    except ValueError:   # truncated: the logger is still running
+        pass
+    return count
+
+
+def test_player_to_logger_across_processes(run_log: Path, tmp_path: Path) -> None:
+    """``can.player run.mcap`` in one process, ``can.logger -f capture.mcap`` in another, on a
+    python-can-remote hub (127.0.0.1): the capture holds every frame of the run, in order."""
+    pytest.importorskip("can_remote")
+    port = _free_port()
+    url = f"ws://127.0.0.1:{port}/"
+    hub_log = (tmp_path / "hub.log").open("wb")
+    hub = subprocess.Popen([sys.executable, "-m", "can_remote", "-i", "virtual", "-c", f"canio-{port}",
+                            "-H", "127.0.0.1", "-p", str(port)], stdout=hub_log, stderr=subprocess.STDOUT)
+    procs = [hub]
+    sentinel = 0x7FE
+    try:
+        deadline = time.monotonic() + BOUND
+        while not _accepts(port):
+            if hub.poll() is not None or time.monotonic() > deadline:
+                pytest.skip("python-can-remote hub did not start on 127.0.0.1")
+            time.sleep(0.05)
+        capture = tmp_path / "capture.mcap"
+        logger = subprocess.Popen([sys.executable, "-u", "-m", "can.logger", "-i", "remote", "-c", url,
+                                   "-f", str(capture), "--flush-interval=0.05"],
+                                  stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
+        procs.append(logger)
+        assert logger.stdout is not None
+        assert logger.stdout.readline().decode().startswith("Connected to")
+        player = subprocess.run([sys.executable, "-m", "can.player", "-i", "remote", "-c", url, str(run_log)],
+                                capture_output=True, timeout=BOUND * 4)
+        assert player.returncode == 0, player.stdout + player.stderr
+        expected = list(can.LogReader(run_log))
+        with can.Bus(interface="remote", channel=url) as poke:   # keeps the logger's chunks flushing
+            while _frames_so_far(capture, sentinel) < len(expected):
+                assert time.monotonic() < deadline + BOUND * 4 and logger.poll() is None
+                poke.send(can.Message(arbitration_id=sentinel, is_extended_id=False))
+                time.sleep(0.1)
+        logger.send_signal(signal.SIGINT)
+        logger.communicate(timeout=BOUND)
+        assert logger.returncode == 0
+    finally:
+        for proc in reversed(procs):
+            _stop(proc)
+        hub_log.close()
+    got = [m for m in can.LogReader(capture) if m.arbitration_id != sentinel]
+    assert [flags(m)[:-1] for m in got] == [flags(m)[:-1] for m in expected]
+    assert all(m.is_rx for m in got)   # everything the logger captured was received
+    assert open_log(capture).info().metadata[METADATA]["program"] == "can.logger"
