@@ -14,6 +14,7 @@ says the file is truncated and how to complete it.
 from __future__ import annotations
 
 import os
+from collections import Counter
 from collections.abc import Iterator
 from io import BufferedIOBase
 from typing import IO, Any, BinaryIO, Final, cast
@@ -27,7 +28,7 @@ from dobhil.canio.frames import FRAME_TOPIC_NAMES, frame_message
 MAGIC: Final = b"\x89MCAP0\r\n"
 #: (device, inode) of the files McapReaders of this process have open: the writer refuses
 #: them (``can.logconvert run.mcap run.mcap`` would otherwise destroy its input).
-_OPEN_INPUTS: Final[set[tuple[int, int]]] = set()
+_OPEN_INPUTS: Final[Counter[tuple[int, int]]] = Counter()
 
 
 def is_open_input(path: str | os.PathLike[str]) -> bool:
@@ -36,7 +37,16 @@ def is_open_input(path: str | os.PathLike[str]) -> bool:
         st = os.stat(path)
     except OSError:
         return False
-    return (st.st_dev, st.st_ino) in _OPEN_INPUTS
+    return _OPEN_INPUTS[(st.st_dev, st.st_ino)] > 0
+
+
+def _file_key(file: Any) -> tuple[int, int] | None:
+    """(device, inode) of an open file; None for in-memory streams."""
+    try:
+        st = os.fstat(file.fileno())
+    except (AttributeError, OSError, ValueError):   # io.UnsupportedOperation is both
+        return None
+    return st.st_dev, st.st_ino
 
 
 class McapReader(BinaryIOMessageReader):
@@ -57,14 +67,13 @@ class McapReader(BinaryIOMessageReader):
             self.file.close()
             raise ValueError(f"{self.name}: not an MCAP file (bad magic)")
         self.frames_read = 0
-        st = os.fstat(self.file.fileno()) if hasattr(self.file, "fileno") else None
-        self._key = (st.st_dev, st.st_ino) if st is not None else None
+        self._key = _file_key(self.file)
         if self._key is not None:
-            _OPEN_INPUTS.add(self._key)
+            _OPEN_INPUTS[self._key] += 1
 
     def stop(self) -> None:
         if self._key is not None:
-            _OPEN_INPUTS.discard(self._key)
+            _OPEN_INPUTS[self._key] -= 1
             self._key = None
         super().stop()
 
