@@ -53,6 +53,10 @@ def program_name(argv0: str | None = None) -> str:
     return f"can.{path.stem}" if inside else (path.name or "python")
 
 
+def _positive(value: Any) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and value > 0
+
+
 def _utc_now() -> str:
     return datetime.now(timezone.utc).isoformat(timespec="milliseconds")
 
@@ -69,9 +73,10 @@ class McapWriter(BinaryIOMessageWriter):
         if append:
             raise ValueError("MCAP writer: cannot append to an MCAP file (it ends with a summary); "
                              "write a new file")
-        if compression is not None and str(compression).lower() not in _COMPRESSION:
+        compression = None if compression is None else str(compression).lower()
+        if compression is not None and compression not in _COMPRESSION:
             raise ValueError(f"MCAP writer: compression {compression!r}; allowed: {', '.join(_COMPRESSION)}")
-        if not chunk_size > 0 or not flush_interval > 0:
+        if not _positive(chunk_size) or not _positive(flush_interval):
             raise ValueError(f"MCAP writer: chunk_size and flush_interval must be > 0, "
                              f"got {chunk_size!r}, {flush_interval!r}")
         if isinstance(file, (str, os.PathLike)) and is_open_input(file):
@@ -93,7 +98,7 @@ class McapWriter(BinaryIOMessageWriter):
     def _start(self, compression: str | None, chunk_size: int) -> Writer:
         """The mcap writer, header and start metadata written; the first compression installed
         of zstd, lz4, none unless one is asked for."""
-        kinds = [_COMPRESSION[compression.lower()]] if compression else list(_COMPRESSION.values())
+        kinds = [_COMPRESSION[compression]] if compression else list(_COMPRESSION.values())
         for kind in kinds:
             try:
                 writer = Writer(cast(IO[bytes], self.file), chunk_size=chunk_size, compression=kind)
