@@ -51,7 +51,8 @@ class LiveClient:
         )
         self.ws: ClientConnection = connection.__enter__()  # the context-manager form websockets asks for
         self.subprotocol = self.ws.subprotocol
-        self.channels: dict[str, dict[str, Any]] = {}
+        self.channels: dict[str, dict[str, Any]] = {}  # advertised now
+        self.advertised: dict[str, dict[str, Any]] = {}  # ever advertised (unadvertise keeps them here)
         self.server_info: dict[str, Any] = {}
         self.texts: list[dict[str, Any]] = []
         self._topics_by_subscription: dict[int, str] = {}
@@ -73,6 +74,7 @@ class LiveClient:
             self.server_info = message
         elif op == "advertise":
             self.channels.update({c["topic"]: c for c in message["channels"]})
+            self.advertised.update({c["topic"]: c for c in message["channels"]})
         elif op == "unadvertise":
             gone = set(message["channelIds"])
             self.channels = {t: c for t, c in self.channels.items() if c["id"] not in gone}

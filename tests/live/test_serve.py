@@ -68,7 +68,7 @@ def test_serve_delivers_recorded_topics_byte_for_byte(recorded: Path, serving: s
     with LiveClient(url) as client:
         client.subscribe(TOPICS)
         received = client.collect(counts_at_least({t: len(expected[t]) for t in TOPICS}), timeout=120)
-        advertised = dict(client.channels)
+        advertised = dict(client.advertised)
     out, err = serving.communicate(timeout=60)
     assert serving.returncode == 0, err
     assert set(advertised) == set(schemas)  # every recorded topic, no other

@@ -55,7 +55,7 @@ def test_client_receives_payloads_intact_and_valid() -> None:
             for topic in TOPICS:
                 server.publish(topic, sent[topic][i], 1_000_000_000 + i * 1_000_000)
         received = client.collect(counts_at_least({t: n for t in TOPICS}), timeout=30)
-        advertised = client.channels
+        advertised = client.advertised
     assert server.dropped == 0 and server.sent == 2 * n
     for topic in TOPICS:
         got = [r for r in received if r.topic == topic]
