@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import signal
 import subprocess
 import sys
 from collections.abc import Iterator
@@ -103,3 +104,55 @@ def test_bad_input_is_one_line_exit_2(tmp_path: Path, recorded: Path, args: list
     assert proc.returncode == 2, (proc.stdout, proc.stderr)
     assert proc.stderr.count("\n") == 1 and what in proc.stderr and "Traceback" not in proc.stderr
     assert proc.stdout == ""
+
+
+def test_truncated_file_is_one_line_exit_2(tmp_path: Path, recorded: Path) -> None:
+    cut = tmp_path / "cut.mcap"
+    data = recorded.read_bytes()
+    cut.write_bytes(data[: len(data) // 2])
+    proc = _dobhil("log", "serve", str(cut), "--live", "127.0.0.1:0")
+    assert proc.returncode == 2 and proc.stderr.count("\n") == 1 and "truncated" in proc.stderr, proc.stderr
+
+
+def test_interrupt_while_waiting_for_a_client_stops_cleanly(recorded: Path) -> None:
+    proc = subprocess.Popen([sys.executable, "-m", "dobhil", "log", "serve", str(recorded), "--live", "127.0.0.1:0"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        assert proc.stdout is not None
+        url = proc.stdout.readline().split(" on ", 1)[1].split()[0]
+        proc.send_signal(signal.SIGINT)
+        out, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+    assert proc.returncode == 130 and "interrupted" in err and "Traceback" not in err, err
+    with pytest.raises(OSError):  # nothing listens any more
+        LiveClient(url, open_timeout=5)
+
+
+def test_loop_starts_over_with_a_new_session(recorded: Path) -> None:
+    expected = _recorded_messages(recorded, "/controller")
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "dobhil", "log", "serve", str(recorded), "--live", "127.0.0.1:0", "--speed", "4",
+         "--loop"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )
+    try:
+        assert proc.stdout is not None
+        url = proc.stdout.readline().split(" on ", 1)[1].split()[0]
+        with LiveClient(url) as client:
+            client.subscribe(["/controller"])
+            first_session = client.server_info["sessionId"]
+            received = client.collect(counts_at_least({"/controller": 2 * len(expected) + 1}), timeout=120)
+            new_session = client.server_info["sessionId"]
+        proc.send_signal(signal.SIGINT)
+        proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+    assert proc.returncode == 130
+    got = [(r.log_time_ns, r.payload) for r in received]
+    assert got[: 2 * len(expected)] == expected + expected  # each pass as recorded
+    assert new_session != first_session
