@@ -229,8 +229,8 @@ class LiveServer:
                 return
             try:
                 channel.log(payload, log_time=log_time)
-            except (OverflowError, TypeError, ValueError, RuntimeError):
-                with self._drop_lock:  # e.g. a negative log time; counted, never fatal
+            except Exception:  # e.g. a negative log time: counted, and the sender keeps going
+                with self._drop_lock:
                     self._dropped += 1
                 self._failed += 1
                 continue

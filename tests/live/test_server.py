@@ -10,6 +10,8 @@ import time
 
 import jsonschema
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from live_client import LiveClient, counts_at_least
 
 from dobhil.live import LiveServer, LiveUnavailableError
@@ -158,3 +160,18 @@ def test_without_sdk_cli_serve_exits_2_with_one_line(tmp_path) -> None:  # type:
     assert proc.returncode == 2, proc.stderr
     assert proc.stderr.strip().count("\n") == 0
     assert "pip install 'dobhil[live]'" in proc.stderr and "Traceback" not in proc.stderr
+
+
+@settings(max_examples=25, deadline=None)
+@given(
+    times=st.lists(st.integers(-5, 2**64 + 5), max_size=300),
+    max_pending=st.integers(1, 50),
+)
+def test_every_publish_is_sent_or_counted(times: list[int], max_pending: int) -> None:
+    with _server(max_pending=max_pending) as server:
+        for t in times:
+            server.publish("/can/rx", b'{"dlc": 8}', t)
+        assert server.flush(timeout=30)
+        bad = sum(1 for t in times if not 0 <= t < 2**64)  # log times the SDK refuses
+        assert server.sent + server.dropped == len(times)
+        assert server.dropped >= bad
