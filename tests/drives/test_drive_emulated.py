@@ -302,7 +302,7 @@ def test_lockstep_answers_rtr_requests(make_rig: Callable[..., Rig]) -> None:
         CmdId.GET_TORQUES: codec.Torques(0.5, 0.5),
         CmdId.GET_ERROR: codec.GetError(0, 0),
         CmdId.GET_BUS_VOLTAGE_CURRENT: codec.BusVoltageCurrent(24.0, 0.0),
-        CmdId.HEARTBEAT: codec.Heartbeat(0, AxisState.CLOSED_LOOP_CONTROL),
+        CmdId.HEARTBEAT: codec.Heartbeat(0, AxisState.CLOSED_LOOP_CONTROL, trajectory_done=True),
     }
     for cmd, reply in expected.items():
         rig.send_raw(codec.Request(cmd))

@@ -70,7 +70,10 @@ class ODriveDrive(Drive):
         return (self._encode(codec.SetAxisState(AxisState.IDLE)),)
 
     def _keepalive_frames(self) -> Sequence[can.Message]:
-        """Zero torque (feeds the watchdog) and an RTR heartbeat request (fast confirmation)."""
+        """Zero torque (feeds the watchdog) and, on 0.6, an RTR heartbeat request (fast
+        confirmation; firmware 0.5.6 ignores heartbeat RTRs, so 0.5 waits for the cyclic one)."""
+        if self._firmware is Firmware.V0_5:
+            return (self._torque_frame(0.0),)
         return (self._torque_frame(0.0), self._encode(codec.Request(CmdId.HEARTBEAT)))
 
     def _torque_frame(self, tau_nm: float) -> can.Message:
@@ -97,7 +100,7 @@ class ODriveDrive(Drive):
             error_code=hb.axis_error,
             watchdog_tripped=bool(hb.axis_error & self._watchdog_bit),
             state_text=_state_name(hb.axis_state),
-            error_text=codec.describe_errors(hb.axis_error, self._firmware),
+            error_text=codec.describe_heartbeat(hb, self._firmware),
         )
 
 
