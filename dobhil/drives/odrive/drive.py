@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Sequence
-from typing import ClassVar
+from typing import TYPE_CHECKING, ClassVar
 
 import can
 
@@ -20,6 +20,9 @@ from dobhil.drives.odrive import codec
 from dobhil.drives.odrive.codec import AxisState, CmdId, ControlMode, Firmware, InputMode
 from dobhil.drives.profile import DriveProfile
 from dobhil.errors import CodecError, ConfigError
+
+if TYPE_CHECKING:
+    from dobhil.drives.preflight import PreflightProbe
 
 __all__ = ["ODriveDrive"]
 
@@ -75,6 +78,11 @@ class ODriveDrive(Drive):
         if self._firmware is Firmware.V0_5:
             return (self._torque_frame(0.0),)
         return (self._torque_frame(0.0), self._encode(codec.Request(CmdId.HEARTBEAT)))
+
+    @classmethod
+    def preflight_probe(cls, profile: DriveProfile) -> PreflightProbe:
+        from dobhil.drives.odrive.preflight import ODrivePreflight
+        return ODrivePreflight(profile)
 
     def _torque_frame(self, tau_nm: float) -> can.Message:
         self._torque_spec.pack_into(self._torque_msg.data, tau_nm)
