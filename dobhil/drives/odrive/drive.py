@@ -1,7 +1,7 @@
 """ODrive CAN Simple drive (firmware 0.6 default, 0.5 via the profile's ``firmware``).
 
-Enable: Clear_Errors, Set_Controller_Mode(TORQUE_CONTROL, PASSTHROUGH), Set_Input_Torque(0),
-Set_Axis_State(CLOSED_LOOP_CONTROL); confirmed by a heartbeat in CLOSED_LOOP_CONTROL with
+Enable: Set_Input_Torque(0) (feeds the watchdog), Clear_Errors, Set_Controller_Mode(TORQUE_CONTROL,
+PASSTHROUGH), Set_Input_Torque(0), Set_Axis_State(CLOSED_LOOP_CONTROL); confirmed by a heartbeat in CLOSED_LOOP_CONTROL with
 Axis_Error 0. Disable: Set_Input_Torque(0), Set_Axis_State(IDLE). Feedback: the cyclic
 Get_Encoder_Estimates and Heartbeat frames (rates configured on the drive to match the
 profile). Layouts and error bits: :mod:`dobhil.drives.odrive.codec`.
@@ -62,7 +62,12 @@ class ODriveDrive(Drive):
     # -- hooks ----------------------------------------------------------------
 
     def _enable_frames(self) -> Sequence[can.Message]:
+        # Set_Input_Torque(0) first feeds the watchdog: it runs in every axis state
+        # (0.5.6 main.cpp), so an idle drive nobody fed shows WATCHDOG_TIMER_EXPIRED, and
+        # on 0.6 only setpoints are known to feed it -- cleared without a feed, the bit
+        # could come back before Set_Axis_State arrives and the request be refused.
         return (
+            self._encode(codec.SetInputTorque(0.0)),
             self._encode(codec.ClearErrors()),
             self._encode(codec.SetControllerMode(ControlMode.TORQUE_CONTROL, InputMode.PASSTHROUGH)),
             self._encode(codec.SetInputTorque(0.0)),
