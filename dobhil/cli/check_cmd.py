@@ -22,7 +22,7 @@ from dobhil.errors import ConfigError
 EXIT_MISMATCH = 1
 
 
-def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg,unused-ignore]
     p = sub.add_parser("check", help="measure the drive on the bus (no enable) and compare with the profile")
     add_config_args(p)
     p.add_argument("--bus", metavar="INTERFACE:CHANNEL",

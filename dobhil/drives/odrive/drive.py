@@ -1,7 +1,8 @@
 """ODrive CAN Simple drive (firmware 0.6 default, 0.5 via the profile's ``firmware``).
 
-Enable: Set_Input_Torque(0) (feeds the watchdog), Clear_Errors, Set_Controller_Mode(TORQUE_CONTROL,
-PASSTHROUGH), Set_Input_Torque(0), Set_Axis_State(CLOSED_LOOP_CONTROL); confirmed by a heartbeat in CLOSED_LOOP_CONTROL with
+Enable: Set_Input_Torque(0) (feeds the watchdog), Clear_Errors,
+Set_Controller_Mode(TORQUE_CONTROL, PASSTHROUGH), Set_Input_Torque(0),
+Set_Axis_State(CLOSED_LOOP_CONTROL); confirmed by a heartbeat in CLOSED_LOOP_CONTROL with
 Axis_Error 0. Disable: Set_Input_Torque(0), Set_Axis_State(IDLE). Feedback: the cyclic
 Get_Encoder_Estimates and Heartbeat frames (rates configured on the drive to match the
 profile). Layouts and error bits: :mod:`dobhil.drives.odrive.codec`.
