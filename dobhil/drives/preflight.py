@@ -5,7 +5,9 @@ only frames it sends are the protocol's read requests, e.g. ODrive Get_Version R
 finds the nodes on the bus, measures each node's motion-feedback and status periods and
 their jitter, reads firmware version and state where the protocol allows, looks at the
 bus (python-can's ``bus.state`` where the interface reports it, error frames, load), and
-compares all of it with the drive profile and the loop period. Each mismatch is one
+compares all of it with the drive profile and the loop period. On SocketCAN the
+kernel's view of the interface (controller state, bit rate, queue length, restart-ms;
+:mod:`dobhil.drives.socketcan_link`) is checked too. Each mismatch is one
 line saying what to set on the drive (``set <axis>.config.can.encoder_msg_rate_ms = 1
 (now 10 ms)``) or in the config.
 
@@ -33,6 +35,7 @@ from typing import Any
 import can
 
 from dobhil.drives.profile import DriveProfile
+from dobhil.drives.socketcan_link import link_info, link_problems
 
 __all__ = [
     "DEFAULT_WINDOW",
@@ -349,12 +352,16 @@ def run_preflight(
                                BusReport(_bus_state(bus), 0, 0, 0.0, bitrate, 0.0),
                                tuple([*profile_rate_findings(profile, period), finding]))
     when = stamp or (lambda m: m.timestamp if m.timestamp > 0 else clock())
+    link = link_info(bus)  # SocketCAN: the kernel's controller state, bit rate, queue
+    link_found = [Finding(Severity.MISMATCH if bad else Severity.NOTE, text)
+                  for bad, text in (link_problems(link, bitrate) if link is not None else [])]
+    state = link.state if link is not None and link.state else _bus_state(bus)
+    bitrate = link.bitrate if link is not None and link.bitrate else bitrate
     cap = _listen(bus, probe, window, clock, when)
     nodes = tuple(_node_report(probe, n, log, window) for n, log in sorted(cap.nodes.items()))
     command_bits = frame_bits(can.Message(dlc=8, is_extended_id=False)) / period
-    bus_report = BusReport(_bus_state(bus), cap.frames, cap.error_frames, cap.bits / window,
-                           bitrate, command_bits)
-    findings = [*profile_rate_findings(profile, period),
+    bus_report = BusReport(state, cap.frames, cap.error_frames, cap.bits / window, bitrate, command_bits)
+    findings = [*profile_rate_findings(profile, period), *link_found,
                 *_bus_findings(bus_report, cap.send_errors),
                 *_node_findings(probe, nodes, period, feedback_timeout, window)]
     return PreflightReport(profile.name or profile.protocol, profile.node_id, window, nodes,
@@ -374,9 +381,12 @@ def _node_report(probe: PreflightProbe, node: int, log: _NodeLog, window: float)
 # Comparisons
 
 
+_KERNEL_STATES = ("ERROR-ACTIVE", "ERROR-WARNING", "ERROR-PASSIVE", "BUS-OFF", "STOPPED", "SLEEPING")
+
+
 def _bus_findings(bus: BusReport, send_errors: list[str]) -> list[Finding]:
     out: list[Finding] = []
-    if bus.state not in ("ACTIVE", "unknown"):
+    if bus.state not in ("ACTIVE", "unknown") and bus.state not in _KERNEL_STATES:  # those: socketcan_link
         out.append(Finding(Severity.MISMATCH, f"bus state {bus.state}: check wiring, termination "
                                               "(120 ohm at both ends) and that every node uses the same bit rate"))
     if bus.error_frames:

@@ -301,3 +301,31 @@ def test_emulated_runs_skip_the_preflight(capsys: pytest.CaptureFixture[str]) ->
     code = main(["run", str(DEMO), "--emulate", "--lockstep", "--duration", "0.01", "--summary-json"])
     info = json.loads(capsys.readouterr().out)
     assert code == 0 and info["preflight"] is None
+
+
+# -- SocketCAN link facts (the kernel's JSON, literal) -----------------------------------------
+
+IP_CAN0 = """[{"ifindex":4,"ifname":"can0","flags":["NOARP","UP","LOWER_UP","ECHO"],"mtu":16,
+"qdisc":"pfifo_fast","operstate":"UP","linkmode":"DEFAULT","group":"default","txqlen":10,
+"link_type":"can","promiscuity":0,"min_mtu":0,"max_mtu":0,"linkinfo":{"info_kind":"can",
+"info_data":{"ctrlmode":[],"state":"BUS-OFF","berr_counter":{"tx":248,"rx":0},"restart_ms":0,
+"bittiming":{"bitrate":250000,"sample_point":"0.875","tq":250,"prop_seg":6,"phase_seg1":7,
+"phase_seg2":2,"sjw":1,"brp":10}}},"num_tx_queues":1,"num_rx_queues":1}]"""
+IP_VCAN0 = """[{"ifindex":5,"ifname":"vcan0","flags":["NOARP","UP","LOWER_UP"],"mtu":72,
+"qdisc":"noqueue","operstate":"UNKNOWN","txqlen":1000,"link_type":"can",
+"linkinfo":{"info_kind":"vcan"}}]"""
+
+
+def test_socketcan_link_facts_parse_and_compare() -> None:
+    from dobhil.drives.socketcan_link import LinkInfo, link_problems, parse_link
+    can0 = parse_link(IP_CAN0)
+    assert can0 == LinkInfo("can0", "can", 10, "BUS-OFF", 250000, 0)
+    problems = link_problems(can0, 1_000_000)
+    assert [bad for bad, _ in problems] == [True, True, False, True]
+    texts_ = [t for _, t in problems]
+    assert texts_[0].startswith("can0 is BUS-OFF")
+    assert texts_[1] == "can0 txqueuelen 10: bursts fail with ENOBUFS; sudo ip link set can0 txqueuelen 1000"
+    assert "restart-ms 100" in texts_[2] and "runs at 250000 bit/s, drive.bitrate is 1000000" in texts_[3]
+    vcan0 = parse_link(IP_VCAN0)
+    assert vcan0 == LinkInfo("vcan0", "vcan", 1000, None, None, None) and link_problems(vcan0, 1_000_000) == []
+    assert parse_link("") is None and parse_link("[]") is None and parse_link('[{"txqlen": "x"}]') is not None
