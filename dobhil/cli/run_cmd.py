@@ -48,10 +48,12 @@ def run(args: argparse.Namespace) -> int:
     try:
         return run_checked(args)
     except PreflightError as exc:  # the drive is not set up for this run: nothing was enabled
-        mismatches = exc.report.mismatches()  # type: ignore[attr-defined]
-        for line in mismatches[:-1]:
-            sys.stderr.write(f"dobhil run: mismatch: {line}\n")
-        sys.stderr.write(f"dobhil run: refused to enable: {mismatches[-1]} "
+        from dobhil.drives.preflight import Severity
+        found = [f for f in exc.report.findings if f.severity is Severity.MISMATCH]  # type: ignore[attr-defined]
+        stale = [f for f in found if f.stale_feedback]
+        for finding in [f for f in found if not f.stale_feedback] + stale[1:]:
+            sys.stderr.write(f"dobhil run: mismatch: {finding.text}\n")
+        sys.stderr.write(f"dobhil run: refused to enable: {stale[0].text if stale else 'preflight'} "
                          "(dobhil check CONFIG shows all it measured; --no-preflight skips)\n")
         return EXIT_STOPPED
 

@@ -228,7 +228,8 @@ def test_check_and_run_against_a_factory_drive(emulated: tuple[str, EmulatedODri
     captured = capsys.readouterr()
     assert code == 1 and captured.out == ""
     lines = captured.err.splitlines()
-    assert lines[-1].startswith("dobhil run: refused to enable:"), captured.err
+    assert lines[-1].startswith("dobhil run: refused to enable: node 3 is not on the bus"), captured.err
+    assert any("watchdog looks off" in line for line in lines[:-1])   # printed, not the reason
     assert any(re.search(r"encoder_msg_rate_ms = 1 \(now (9\.\d+|10\.?\d*) ms", line) for line in lines)
     # nothing was enabled: the drive never left its power-on mode and state
     assert emu.axis_state is AxisState.IDLE and emu.control_mode == ControlMode.POSITION_CONTROL
