@@ -147,12 +147,12 @@ class RunSession:
         if not self.preflight_enabled:
             return None
         if self.preflight_report is None:
-            lock = self.timing is Timing.LOCKSTEP and self._clock is not None
+            sim = self._clock if self.timing is Timing.LOCKSTEP else None  # simulated time
             self.preflight_report = run_preflight(
                 self._unwrapped_host, self.profile, period=self.config.loop.period,
                 feedback_timeout=self.config.loop.feedback_timeout, window=self.preflight_window,
                 bitrate=self.bus_spec.kwargs.get("bitrate") or None,
-                **({"clock": self._clock, "stamp": lambda _m: self._clock()} if lock and self._clock else {}))
+                **({"clock": sim, "stamp": lambda _m: sim()} if sim is not None else {}))
         if self.preflight_report.stale_feedback:
             raise PreflightError(self.preflight_report)
         return self.preflight_report

@@ -330,3 +330,14 @@ def test_socketcan_link_facts_parse_and_compare() -> None:
     vcan0 = parse_link(IP_VCAN0)
     assert vcan0 == LinkInfo("vcan0", "vcan", 1000, None, None, None) and link_problems(vcan0, 1_000_000) == []
     assert parse_link("") is None and parse_link("[]") is None and parse_link('[{"txqlen": "x"}]') is not None
+
+
+def test_forced_preflight_in_lockstep_measures_simulated_time() -> None:
+    """preflight=True on a lockstep session listens on the simulated clock (exact periods)."""
+    with RunSession(demo_config(), emulate=True, lockstep=True, duration=0.01, preflight=True,
+                    preflight_window=0.2) as session:
+        result = session.run()
+        report = session.preflight_report
+    assert report is not None and report.ok, report and report.lines()
+    assert report.nodes[0].motion.period == pytest.approx(1e-3, abs=1e-12)
+    assert result.stop.reason.name == "DONE"
