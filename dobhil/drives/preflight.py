@@ -58,6 +58,8 @@ DEFAULT_WINDOW = 0.5
 #: a measured period may exceed the expected one by this factor before it is a mismatch
 #: (bus and host timestamp jitter; a 1 ms stream measured at 1.02 ms is fine, 2 ms is not)
 PERIOD_TOLERANCE = 1.25
+#: a window of this many periods holds at least two frames of a stream, whatever its phase
+RESOLVE_PERIODS = 3
 #: load above this fraction of the bit rate leaves too little room for retransmissions
 MAX_LOAD = 0.8
 
@@ -455,10 +457,14 @@ def _rate_findings(probe: PreflightProbe, node: NodeReport, period: float,
     set_status = (f"set {probe.setting(Setting.STATUS_RATE)} = "
                   f"{probe.setting_value(Setting.STATUS_RATE, want_status)}")
     if status.period is None:
-        if want_status * 2 <= window or status.count == 0:
+        if window >= RESOLVE_PERIODS * want_status or status.count == 0:
             now = "off" if status.count == 0 else f"1 frame in {_ms(window)}"
             out.append(Finding(Severity.MISMATCH, f"node {node.node} {probe.status_name()}: {set_status} "
                                                   f"(now {now})"))
+        else:
+            out.append(Finding(Severity.NOTE, f"a {_ms(window)} window cannot measure a {_ms(want_status)} "
+                                              f"{probe.status_name()}: listen at least "
+                                              f"{RESOLVE_PERIODS * want_status:g} s"))
     elif status.period > want_status * PERIOD_TOLERANCE:
         out.append(Finding(Severity.MISMATCH,
                            f"{set_status} (now {_ms(status.period)}; the run calls a drive silent for "

@@ -116,6 +116,10 @@ def test_slow_heartbeat_and_missing_encoder_stream() -> None:
     report = lockstep_preflight(bare("odrive-0.6", heartbeat_msg_rate=0.4), bare("odrive-0.6"), window=1.0)
     assert "set <axis>.config.can.heartbeat_msg_rate_ms = 100 (now 400 ms;" in texts(report)[0]
     assert not report.stale_feedback
+    # a window too short to see two heartbeats of the profile's period: a note, not a verdict
+    report = lockstep_preflight(bare("odrive-0.6"), bare("odrive-0.6"), window=0.15)
+    assert report.ok and texts(report, Severity.NOTE) == [
+        "a 150 ms window cannot measure a 100 ms heartbeat: listen at least 0.3 s"]
     # a period the window cannot resolve at all (one frame)
     report = lockstep_preflight(bare("odrive-0.6", encoder_msg_rate=0.4), bare("odrive-0.6"), window=0.5)
     assert any("encoder_msg_rate_ms = 1 (now 1 frame in 500 ms)" in t for t in texts(report)), report.lines()
@@ -335,7 +339,7 @@ def test_socketcan_link_facts_parse_and_compare() -> None:
 def test_forced_preflight_in_lockstep_measures_simulated_time() -> None:
     """preflight=True on a lockstep session listens on the simulated clock (exact periods)."""
     with RunSession(demo_config(), emulate=True, lockstep=True, duration=0.01, preflight=True,
-                    preflight_window=0.2) as session:
+                    preflight_window=0.35) as session:
         result = session.run()
         report = session.preflight_report
     assert report is not None and report.ok, report and report.lines()
