@@ -36,6 +36,19 @@ class DriveFaultError(DriveError):
     """A drive reported a fault (axis error, watchdog, emergency)."""
 
 
+class PreflightError(DriveError):
+    """The drive's measured settings do not allow a safe run (e.g. stale feedback).
+
+    ``report`` is the :class:`dobhil.drives.preflight.PreflightReport`; the message is
+    its mismatches on one line.
+    """
+
+    def __init__(self, report: object) -> None:
+        self.report = report
+        lines: list[str] = getattr(report, "mismatches", lambda: [])()
+        super().__init__("preflight refused the run: " + "; ".join(lines))
+
+
 class CodecError(DriveError, ValueError):
     """A CAN frame could not be encoded or decoded by a drive codec."""
 

@@ -23,6 +23,7 @@ _SUBCOMMANDS: tuple[str, ...] = (
     "dobhil.cli.sweep_cmd",
     "dobhil.cli.paper_cmd",
     "dobhil.cli.run_cmd",
+    "dobhil.cli.check_cmd",
     "dobhil.cli.log_cmd",
     "dobhil.cli.replay_cmd",
     "dobhil.cli.report_cmd",

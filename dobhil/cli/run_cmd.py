@@ -30,6 +30,11 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     p.add_argument("--plot", type=Path, metavar="FILE.png", help="plot reference and interaction torque")
     p.add_argument("--log", type=Path, metavar="FILE.mcap",
                    help="record the run to MCAP (see docs/recording.md)")
+    p.add_argument("--no-preflight", action="store_true",
+                   help="do not measure the drive before enabling it (see dobhil check; "
+                        "always skipped with --emulate, whose emulator is built from the profile)")
+    p.add_argument("--preflight-window", type=float, metavar="S", default=None,
+                   help="how long the preflight listens (default 0.5 s)")
     p.set_defaults(func=run)
     e = sub.add_parser("emulate", help="run the drive emulator alone on a bus (vcan0, a hub)")
     add_config_args(e)
@@ -39,6 +44,23 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
 
 
 def run(args: argparse.Namespace) -> int:
+    from dobhil.errors import PreflightError
+    try:
+        return run_checked(args)
+    except PreflightError as exc:  # the drive is not set up for this run: nothing was enabled
+        from dobhil.drives.preflight import Severity
+        found = [f for f in exc.report.findings if f.severity is Severity.MISMATCH]  # type: ignore[attr-defined]
+        stale = [f for f in found if f.stale_feedback]
+        for finding in [f for f in found if not f.stale_feedback] + stale[1:]:
+            sys.stderr.write(f"dobhil run: mismatch: {finding.text}\n")
+        sys.stderr.write(f"dobhil run: refused to enable: {stale[0].text if stale else 'preflight'} "
+                         "(dobhil check CONFIG shows all it measured; --no-preflight skips)\n")
+        return EXIT_STOPPED
+
+
+def run_checked(args: argparse.Namespace) -> int:
+    """``dobhil run`` after the preflight (raises PreflightError when it refuses)."""
+    from dobhil.cli.check_cmd import preflight_kwargs
     from dobhil.runtime.loop import StopRequest
     from dobhil.runtime.session import RunSession, summary
     from dobhil.runtime.signals import stop_on_signals
@@ -48,7 +70,8 @@ def run(args: argparse.Namespace) -> int:
             RunSession(config, bus=args.bus, emulate=args.emulate,
                        lockstep=True if args.lockstep else None, duration=args.duration,
                        config_dir=Path(args.config).parent, stop_request=request,
-                       **log_hooks(log)) as session:
+                       **log_hooks(log), **preflight_kwargs(args)) as session:
+        report_preflight(session.preflight())
         warn_realtime(session)
         result = run_logged(session, log)
         info = summary(session, result)
@@ -59,6 +82,18 @@ def run(args: argparse.Namespace) -> int:
         from dobhil.plotting.run_plot import run_figure
         sys.stderr.write(f"wrote {run_figure(result.trace, args.plot)}\n")
     return 0 if result.stop.reason.name == "DONE" else EXIT_STOPPED
+
+
+def report_preflight(report: Any) -> None:
+    """A passed preflight on stderr: its mismatches and notes, and one line per node
+    measured (nothing when it was skipped)."""
+    if report is None:
+        return
+    for finding in report.findings:
+        sys.stderr.write(f"dobhil run: preflight: {finding.severity.name.lower()}: {finding.text}\n")
+    for node in report.nodes:
+        if node.node == report.node_id:
+            sys.stderr.write(f"dobhil run: preflight: node {node.node}: {node.summary}\n")
 
 
 def warn_realtime(session: Any) -> None:

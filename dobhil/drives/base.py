@@ -22,12 +22,15 @@ from abc import ABC, abstractmethod
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from enum import IntEnum
-from typing import ClassVar, Union
+from typing import TYPE_CHECKING, ClassVar
 
 import can
 
 from dobhil.drives.profile import DriveProfile
 from dobhil.errors import BusError, DriveError, DriveFaultError, DriveTimeoutError
+
+if TYPE_CHECKING:
+    from dobhil.drives.preflight import PreflightProbe
 
 __all__ = [
     "Drive",
@@ -86,7 +89,7 @@ class StateEvent:
     error_text: str  # e.g. "0x01000000 (WATCHDOG_TIMER_EXPIRED)"
 
 
-DriveEvent = Union[MotionEvent, StateEvent]
+DriveEvent = MotionEvent | StateEvent
 _NO_EVENTS: tuple[DriveEvent, ...] = ()
 
 
@@ -245,6 +248,12 @@ class Drive(ABC):
     def _is_enabled_confirmation(self, event: StateEvent) -> bool:
         """True if ``event`` confirms the enable handshake."""
         return event.active and event.error_code == 0
+
+    @classmethod
+    def preflight_probe(cls, profile: DriveProfile) -> PreflightProbe | None:
+        """The protocol's preflight hooks (:mod:`dobhil.drives.preflight`): how to read
+        its frames and name its settings. None: no preflight for this protocol yet."""
+        return None
 
     # -- internals ------------------------------------------------------------
 

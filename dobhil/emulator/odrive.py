@@ -1,34 +1,56 @@
 """Emulated ODrive (CAN Simple), drive side; firmware 0.6 default, 0.5 via the profile.
 
-Follows the layouts of :mod:`dobhil.drives.odrive.codec` (official DBCs 0.6.10 / 0.5.6).
-Behaviour emulated:
+Follows the layouts of :mod:`dobhil.drives.odrive.codec` (official DBCs 0.6.10 / 0.5.6)
+and, where behaviour is concerned, the 0.5.6 firmware source (tag fw-v0.5.6 of
+odriverobotics/ODrive); 0.6 firmware is not public, so 0.6 behaviour beyond the DBC is
+an assumption, marked as such below. Behaviour emulated:
 
 - axis states IDLE and CLOSED_LOOP_CONTROL (other requested states are ignored);
-  CLOSED_LOOP_CONTROL is refused while Axis_Error is nonzero (Clear_Errors first);
+  CLOSED_LOOP_CONTROL is refused while Axis_Error is nonzero (Clear_Errors first); on
+  0.6 the heartbeat's Procedure_Result then says DISARMED (assumption: 0.6 reports a
+  refused or aborted closed-loop request as DISARMED), SUCCESS after a granted request;
 - torque reaches the plant only in CLOSED_LOOP_CONTROL with control mode
   TORQUE_CONTROL (power-on default is POSITION_CONTROL, as on a fresh ODrive);
-- Set_Input_Torque is clamped to ``profile.torque_limit``;
+- Set_Input_Torque is clamped to ``profile.torque_limit`` (0.5.6 ``controller.cpp``:
+  ``if (torque > Tlim) ... if (torque < -Tlim)``, so +-inf clamps to the limit). NaN
+  passes that clamp in the firmware and makes the FOC modulation NaN: the motor sets
+  MODULATION_IS_NAN, the axis MOTOR_FAILED and disarms (``foc.cpp``). The emulator does
+  the same on 0.5 and never hands NaN to the plant; on 0.6 it disarms with
+  MISSING_INPUT (assumption);
 - Estop: IDLE plus the ESTOP_REQUESTED bit; Clear_Errors clears every bit;
-- ``Get_*`` requests (RTR or zero-length frames) for Heartbeat, Get_Encoder_Estimates,
-  Get_Iq, Get_Bus_Voltage_Current and, on 0.6, Get_Error and Get_Torques are answered;
-- watchdog (``profile.watchdog_timeout`` > 0): in CLOSED_LOOP_CONTROL without a feed for
-  the timeout -> IDLE plus WATCHDOG_TIMER_EXPIRED (0x800 on 0.5, 0x01000000 on 0.6).
-  Fed on 0.5 by every frame addressed to the node (the reference's fact); on 0.6 by the
-  setpoint frames Set_Input_Pos/Vel/Torque only — an assumption (not confirmed against
-  0.6 firmware) that is the stricter of the two: RTR polling alone does not keep the
-  axis alive. Entering CLOSED_LOOP_CONTROL feeds it.
-- cyclic Heartbeat and Get_Encoder_Estimates at the profile's rates.
+- ``Get_*`` requests (RTR or zero-length frames) for Get_Encoder_Estimates, Get_Iq,
+  Get_Bus_Voltage_Current; on 0.6 also Heartbeat, Get_Version, Get_Error and
+  Get_Torques; on 0.5 Get_Motor/Encoder/Sensorless/Controller_Error. Firmware 0.5.6
+  ignores heartbeat RTRs (``can_simple.cpp``: "We don't currently do anything to
+  respond to ODrive heartbeat messages") and has no Get_Version (id 0 is CANopen NMT);
+- watchdog (``profile.watchdog_timeout`` > 0) checked in every axis state, as 0.5.6's
+  ``main.cpp`` does: without a feed for the timeout the WATCHDOG_TIMER_EXPIRED bit is set
+  (0x800 on 0.5, 0x01000000 on 0.6) and the axis drops to IDLE. An idle axis nobody
+  talks to therefore shows the bit, like a real drive. Fed on 0.5 by every frame
+  addressed to the node (``CANSimple::do_command``); on 0.6 by the setpoint frames
+  Set_Input_Pos/Vel/Torque only -- an assumption (not confirmed against 0.6 firmware)
+  that is the stricter of the two. Entering CLOSED_LOOP_CONTROL feeds it.
+  :attr:`EmulatedODrive.watchdog_tripped` is True only if the watchdog disarmed the
+  motor (expired in CLOSED_LOOP_CONTROL); :attr:`EmulatedODrive.watchdog_error` is the bit;
+- heartbeat Trajectory_Done is 1 (0.5.6 ``controller.hpp``: ``trajectory_done_ = true``;
+  no trajectory runs in torque control);
+- cyclic Heartbeat and Get_Encoder_Estimates at the profile's rates; a position or
+  velocity beyond float32 range goes out as +-inf (what a float32 drive variable holds);
+- any frame, well-formed or not (ids above 0x7FF, any DLC, RTR, error frames), is
+  applied or counted in ``frames_rejected``; none stops the emulator.
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Sequence
 from typing import Any
 
 import can
 
 from dobhil.drives.odrive import codec
-from dobhil.drives.odrive.codec import AxisState, CmdId, ControlMode, Firmware, InputMode
+from dobhil.drives.odrive.codec import (AxisState, CmdId, ControlMode, Firmware, InputMode,
+                                        ProcedureResult06)
 from dobhil.drives.profile import DriveProfile
 from dobhil.emulator.protocol import EmulatedDrive, PlantLike
 from dobhil.errors import CodecError
@@ -39,8 +61,18 @@ __all__ = ["EmulatedODrive"]
 _FEEDS_06 = frozenset({0x0C, CmdId.SET_INPUT_VEL, CmdId.SET_INPUT_TORQUE})
 _DRIVE_TO_HOST = (
     codec.Heartbeat, codec.EncoderEstimates, codec.Iq, codec.Torques, codec.GetError,
-    codec.BusVoltageCurrent,
+    codec.BusVoltageCurrent, codec.Version, codec.MotorErrorMsg, codec.EncoderErrorMsg,
+    codec.SensorlessErrorMsg, codec.ControllerErrorMsg,
 )
+_FLOAT32_MAX = 3.4028234663852886e38
+#: what the emulated 0.6 drive reports to Get_Version: protocol 2, ODrive Pro hardware
+#: 4.4.58, firmware 0.6.10 (the DBC's version); values of the emulator, not of a drive
+EMULATED_VERSION_06 = codec.Version(2, 4, 4, 58, 0, 6, 10, 0)
+
+
+def _float32_or_inf(value: float, scale: float) -> float:
+    """``value`` [SI], or +-inf if it does not fit float32 after scaling to wire units."""
+    return value if abs(value / scale) <= _FLOAT32_MAX else math.copysign(math.inf, value)
 
 
 class EmulatedODrive(EmulatedDrive):
@@ -60,7 +92,10 @@ class EmulatedODrive(EmulatedDrive):
         self.control_mode: int = ControlMode.POSITION_CONTROL
         self.input_mode: int = InputMode.PASSTHROUGH
         self.input_torque = 0.0
+        self.procedure_result: int = ProcedureResult06.SUCCESS
+        self.motor_error = 0  # 0.5 Get_Motor_Error code (heartbeat motor flag)
         self.frames_rejected = 0
+        self.watchdog_tripped = False
         self._last_feed = 0.0
         self._watchdog_bit = codec.watchdog_bit(self.firmware)
         self._encoder_spec = codec.spec_for(CmdId.GET_ENCODER_ESTIMATES, self.firmware)
@@ -78,7 +113,8 @@ class EmulatedODrive(EmulatedDrive):
     # -- observables ----------------------------------------------------------
 
     @property
-    def watchdog_tripped(self) -> bool:
+    def watchdog_error(self) -> bool:
+        """The watchdog's Axis_Error bit is set (also on an idle axis nobody feeds)."""
         return bool(self.axis_error & self._watchdog_bit)
 
     # -- hooks ----------------------------------------------------------------
@@ -98,18 +134,17 @@ class EmulatedODrive(EmulatedDrive):
         )
 
     def _on_time(self, now: float) -> None:
+        """The firmware's watchdog_check(), in every axis state (0.5.6 ``main.cpp``)."""
         timeout = self._profile.watchdog_timeout
-        if (
-            timeout > 0
-            and self.axis_state == AxisState.CLOSED_LOOP_CONTROL
-            and now - self._last_feed >= timeout - 1e-9
-        ):
-            self.axis_state = AxisState.IDLE
+        if timeout > 0 and now - self._last_feed >= timeout - 1e-9:
+            if self.axis_state == AxisState.CLOSED_LOOP_CONTROL:
+                self.watchdog_tripped = True
+                self._disarm()
             self.axis_error |= self._watchdog_bit
 
     def _on_frame(self, msg: can.Message) -> None:
-        if msg.is_extended_id or msg.is_error_frame:
-            return
+        if msg.is_extended_id or msg.is_error_frame or not 0 <= msg.arbitration_id <= 0x7FF:
+            return  # not CAN Simple on this bus (the firmware filters 11-bit node ids)
         node, cmd = codec.split_id(msg.arbitration_id)
         if node != self.node_id:
             return
@@ -120,8 +155,7 @@ class EmulatedODrive(EmulatedDrive):
             except CodecError:
                 self.frames_rejected += 1
                 return
-            limit = self._profile.torque_limit
-            self.input_torque = min(max(torque, -limit), limit)
+            self._apply_torque(torque)
             return
         try:
             decoded = codec.decode_message(msg, self.firmware)
@@ -139,29 +173,47 @@ class EmulatedODrive(EmulatedDrive):
     def _encode(self, msg: Any) -> can.Message:
         return codec.encode(msg, node_id=self.node_id, firmware=self.firmware)
 
+    def _heartbeat(self) -> codec.Heartbeat:
+        if self.firmware is Firmware.V0_6:
+            return codec.Heartbeat(self.axis_error, self.axis_state,
+                                   procedure_result=self.procedure_result, trajectory_done=True)
+        return codec.Heartbeat(self.axis_error, self.axis_state, trajectory_done=True,
+                               motor_error_flag=self.motor_error != 0)
+
     def _heartbeat_frame(self) -> can.Message:
-        return self._encode(codec.Heartbeat(self.axis_error, self.axis_state))
+        return self._encode(self._heartbeat())
 
     def _encoder_frame(self) -> can.Message:
         # hot path (every period): the table's scales through pack_into, no dataclass
         msg = can.Message(arbitration_id=self._encoder_id, is_extended_id=False,
-                          data=bytearray(self._encoder_spec.size))
-        self._encoder_spec.pack_into(msg.data, self._plant.position, self._plant.velocity)
+                          data=self._encoder_spec.new_frame_data())
+        spec, position, velocity = self._encoder_spec, self._plant.position, self._plant.velocity
+        try:
+            spec.pack_into(msg.data, position, velocity)
+        except CodecError:  # beyond float32: what a float32 estimate would hold
+            spec.pack_into(msg.data, _float32_or_inf(position, spec.scales[0]),
+                           _float32_or_inf(velocity, spec.scales[1]))
         return msg
 
     def _reply_for(self, cmd: CmdId) -> Any:
         applied = self._plant_torque()
-        replies: dict[CmdId, Callable[[], Any]] = {
-            CmdId.HEARTBEAT: lambda: codec.Heartbeat(self.axis_error, self.axis_state),
-            CmdId.GET_ENCODER_ESTIMATES: lambda: codec.EncoderEstimates(
-                self._plant.position, self._plant.velocity),
+        common: dict[CmdId, Callable[[], Any]] = {
             CmdId.GET_IQ: lambda: codec.Iq(
                 self.input_torque / self.torque_constant, applied / self.torque_constant),
             CmdId.GET_BUS_VOLTAGE_CURRENT: lambda: codec.BusVoltageCurrent(self.bus_voltage, 0.0),
+        }
+        per_firmware: dict[CmdId, Callable[[], Any]] = {
+            CmdId.HEARTBEAT: self._heartbeat,
+            CmdId.GET_VERSION: lambda: EMULATED_VERSION_06,
             CmdId.GET_TORQUES: lambda: codec.Torques(self.input_torque, applied),
             CmdId.GET_ERROR: lambda: codec.GetError(self.axis_error, self.axis_error),
+        } if self.firmware is Firmware.V0_6 else {
+            CmdId.GET_MOTOR_ERROR: lambda: codec.MotorErrorMsg(self.motor_error),
+            CmdId.GET_ENCODER_ERROR: lambda: codec.EncoderErrorMsg(0),
+            CmdId.GET_SENSORLESS_ERROR: lambda: codec.SensorlessErrorMsg(0),
+            CmdId.GET_CONTROLLER_ERROR: lambda: codec.ControllerErrorMsg(0),
         }
-        make = replies.get(cmd)
+        make = common.get(cmd) or per_firmware.get(cmd)
         return make() if make is not None else None
 
     # -- commands -------------------------------------------------------------
@@ -173,8 +225,13 @@ class EmulatedODrive(EmulatedDrive):
     def _set_axis_state(self, msg: codec.SetAxisState) -> None:
         if msg.requested_state == AxisState.IDLE:
             self.axis_state = AxisState.IDLE
-        elif msg.requested_state == AxisState.CLOSED_LOOP_CONTROL and self.axis_error == 0:
+            self.procedure_result = ProcedureResult06.SUCCESS
+        elif msg.requested_state == AxisState.CLOSED_LOOP_CONTROL:
+            if self.axis_error != 0:
+                self.procedure_result = ProcedureResult06.DISARMED
+                return
             self.axis_state = AxisState.CLOSED_LOOP_CONTROL
+            self.procedure_result = ProcedureResult06.SUCCESS
             self._last_feed = self._time
 
     def _set_controller_mode(self, msg: codec.SetControllerMode) -> None:
@@ -182,14 +239,35 @@ class EmulatedODrive(EmulatedDrive):
         self.input_mode = msg.input_mode
 
     def _set_input_torque(self, msg: codec.SetInputTorque) -> None:
+        self._apply_torque(msg.torque_nm)
+
+    def _apply_torque(self, torque: float) -> None:
+        """The firmware's clamp (inf -> the limit); NaN faults the axis, as the FOC would."""
+        if math.isnan(torque):
+            self.input_torque = 0.0
+            if self.firmware is Firmware.V0_5:
+                self.motor_error |= codec.MotorError05.MODULATION_IS_NAN
+                self.axis_error |= codec.AxisError05.MOTOR_FAILED
+            else:
+                self.axis_error |= codec.ODriveError06.MISSING_INPUT
+            if self.axis_state == AxisState.CLOSED_LOOP_CONTROL:
+                self._disarm()
+            return
         limit = self._profile.torque_limit
-        self.input_torque = min(max(msg.torque_nm, -limit), limit)
+        self.input_torque = min(max(torque, -limit), limit)
+
+    def _disarm(self) -> None:
+        """An error ends closed-loop control (0.6: Procedure_Result DISARMED, assumption)."""
+        self.axis_state = AxisState.IDLE
+        self.procedure_result = ProcedureResult06.DISARMED
 
     def _clear_errors(self, _msg: codec.ClearErrors) -> None:
         self.axis_error = 0
+        self.motor_error = 0
+        self.watchdog_tripped = False
 
     def _estop(self, _msg: codec.Estop) -> None:
-        self.axis_state = AxisState.IDLE
+        self._disarm()
         self.axis_error |= codec.estop_bit(self.firmware)
 
     def _answer(self, msg: codec.Request) -> None:

@@ -18,12 +18,13 @@ import can
 
 from dobhil.config.schema import Config
 from dobhil.drives.base import Drive
+from dobhil.drives.preflight import DEFAULT_WINDOW, PreflightReport, profile_rate_findings, run_preflight
 from dobhil.drives.profile import DriveProfile, load_profile
 from dobhil.drives.registry import make_drive
 from dobhil.emulator.plant import Plant
 from dobhil.emulator.protocol import EmulatedDrive, LockstepBus
 from dobhil.emulator.registry import make_emulated_drive
-from dobhil.errors import ConfigError
+from dobhil.errors import ConfigError, PreflightError
 from dobhil.runtime.buses import BusSpec, open_bus, private_virtual_channel, resolve_bus
 from dobhil.runtime.controller import ForceController
 from dobhil.runtime.loop import (CycleSink, ForceLoop, Limits, LoopSettings, RunResult, StopRequest,
@@ -41,12 +42,10 @@ def load_drive_profile(config: Config, base_dir: Path | None = None) -> DrivePro
 
 
 def check_rates(profile: DriveProfile, period: float) -> None:
-    """The drive must send feedback at least once per control period."""
-    if profile.encoder_msg_rate > period * (1 + 1e-9):
-        raise ConfigError(
-            f"drive profile {profile.name or profile.protocol!r} sends encoder estimates every "
-            f"{profile.encoder_msg_rate:g} s, slower than loop.period = {period:g} s; set its "
-            f"encoder_msg_rate (and the drive's) to the loop period")
+    """The drive must send feedback at least once per control period (the profile's
+    promise; :meth:`RunSession.preflight` measures what the drive really does)."""
+    for finding in profile_rate_findings(profile, period):
+        raise ConfigError(finding.text)
 
 
 def build_controller(config: Config, profile: DriveProfile) -> ForceController:
@@ -69,7 +68,8 @@ class RunSession:
                  lockstep: bool | None = None, duration: float | None = None,
                  config_dir: Path | None = None, sink: CycleSink | None = None,
                  stop_request: StopRequest | None = None,
-                 bus_wrapper: Callable[[can.BusABC], can.BusABC] | None = None) -> None:
+                 bus_wrapper: Callable[[can.BusABC], can.BusABC] | None = None,
+                 preflight: bool | None = None, preflight_window: float = DEFAULT_WINDOW) -> None:
         lockstep = (config.loop.timing == "lockstep") if lockstep is None else lockstep
         if lockstep and not emulate:
             raise ConfigError("lockstep timing needs the in-process emulator (--emulate); "
@@ -90,6 +90,12 @@ class RunSession:
         self.emulator: EmulatedDrive | None = None
         self._buses: list[can.BusABC] = []
         self._wrapper = bus_wrapper
+        # preflight: on for a drive this session did not build; off with --emulate, whose
+        # emulator is made from this very profile (a measurement could only restate it, and
+        # in lockstep listening would advance the simulated plant before the run)
+        self.preflight_enabled = (not emulate) if preflight is None else preflight
+        self.preflight_window = preflight_window
+        self.preflight_report: PreflightReport | None = None
         self.bus_spec = (BusSpec("virtual", private_virtual_channel()) if emulate
                          else resolve_bus(config, self.profile, bus))
         try:
@@ -118,6 +124,7 @@ class RunSession:
                 clock["clock"] = lock.clock
             else:
                 self.emulator.start()
+        self._unwrapped_host = host  # the preflight listens here: not recorded as the run's frames
         if self._wrapper is not None:
             host = self._add(self._wrapper(host))
         self.host_bus = host
@@ -134,7 +141,24 @@ class RunSession:
         assert self.plant is not None
         return self.plant.interaction_torque, self.plant.true_position
 
+    def preflight(self) -> PreflightReport | None:
+        """Measure the drive before it is enabled (once; None when skipped). Raises
+        PreflightError if a run would sample stale feedback (or find no drive)."""
+        if not self.preflight_enabled:
+            return None
+        if self.preflight_report is None:
+            sim = self._clock if self.timing is Timing.LOCKSTEP else None  # simulated time
+            self.preflight_report = run_preflight(
+                self._unwrapped_host, self.profile, period=self.config.loop.period,
+                feedback_timeout=self.config.loop.feedback_timeout, window=self.preflight_window,
+                bitrate=self.bus_spec.kwargs.get("bitrate") or None,
+                **({"clock": sim, "stamp": lambda _m: sim()} if sim is not None else {}))
+        if self.preflight_report.stale_feedback:
+            raise PreflightError(self.preflight_report)
+        return self.preflight_report
+
     def run(self) -> RunResult:
+        self.preflight()
         loop = ForceLoop(drive=self.drive, controller=self.controller, reference=self.reference,
                          settings=self.settings, sink=self.sink, stop_request=self.stop_request,
                          truth=self.truth if self.plant is not None else None,
@@ -195,6 +219,7 @@ def summary(session: RunSession, result: RunResult) -> dict[str, Any]:
         "period": session.settings.period, "bus": session.bus_spec.describe(),
         "emulated": session.emulator is not None,
         "watchdog_tripped": bool(getattr(session.emulator, "watchdog_tripped", False)),
+        "preflight": None if session.preflight_report is None else session.preflight_report.as_dict(),
         "final": final,
         "loop_timing": dataclasses.asdict(result.timing),
     }

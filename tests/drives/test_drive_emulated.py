@@ -302,7 +302,7 @@ def test_lockstep_answers_rtr_requests(make_rig: Callable[..., Rig]) -> None:
         CmdId.GET_TORQUES: codec.Torques(0.5, 0.5),
         CmdId.GET_ERROR: codec.GetError(0, 0),
         CmdId.GET_BUS_VOLTAGE_CURRENT: codec.BusVoltageCurrent(24.0, 0.0),
-        CmdId.HEARTBEAT: codec.Heartbeat(0, AxisState.CLOSED_LOOP_CONTROL),
+        CmdId.HEARTBEAT: codec.Heartbeat(0, AxisState.CLOSED_LOOP_CONTROL, trajectory_done=True),
     }
     for cmd, reply in expected.items():
         rig.send_raw(codec.Request(cmd))
@@ -351,7 +351,8 @@ def test_load_profile_by_path_and_missing_name(tmp_path: Path) -> None:
     path = tmp_path / "mine.yaml"
     path.write_text("\n".join(f"{k}: {v!r}" for k, v in _mapping().items()), encoding="utf-8")
     assert load_profile(path).name == "mine"
-    with pytest.raises(ConfigError, match=r"drive profile 'nope': expected one of \['odrive-0.5', 'odrive-0.6'\]"):
+    known = r"\['odrive-0.5', 'odrive-0.6', 'odrive-0.6-factory'\]"
+    with pytest.raises(ConfigError, match=rf"drive profile 'nope': expected one of {known}"):
         load_profile("nope")
 
 

@@ -23,10 +23,10 @@ def frame(msg: object, node_id: int = 3, firmware: Firmware = Firmware.V0_6) -> 
 @pytest.mark.parametrize(
     ("msg", "node_id", "expected"),
     [
-        (codec.SetInputTorque(1.5), 3, (0x06E, "00 00 c0 3f")),
-        (codec.SetInputTorque(-2.0), 0, (0x00E, "00 00 00 c0")),
-        (codec.SetAxisState(AxisState.CLOSED_LOOP_CONTROL), 3, (0x067, "08 00 00 00")),
-        (codec.SetAxisState(AxisState.IDLE), 63, (0x7E7, "01 00 00 00")),
+        (codec.SetInputTorque(1.5), 3, (0x06E, "00 00 c0 3f 00 00 00 00")),
+        (codec.SetInputTorque(-2.0), 0, (0x00E, "00 00 00 c0 00 00 00 00")),
+        (codec.SetAxisState(AxisState.CLOSED_LOOP_CONTROL), 3, (0x067, "08 00 00 00 00 00 00 00")),
+        (codec.SetAxisState(AxisState.IDLE), 63, (0x7E7, "01 00 00 00 00 00 00 00")),
         (
             codec.SetControllerMode(ControlMode.TORQUE_CONTROL, InputMode.PASSTHROUGH), 3,
             (0x06B, "01 00 00 00 01 00 00 00"),
@@ -161,6 +161,71 @@ def test_firmware_parse() -> None:
 
 def test_hot_path_pack_into_matches_encode() -> None:
     spec = codec.spec_for(CmdId.SET_INPUT_TORQUE)
-    buf = bytearray(4)
+    buf = spec.new_frame_data()
     spec.pack_into(buf, 1.5)
     assert bytes(buf) == codec.encode_data(codec.SetInputTorque(1.5))
+    assert len(buf) == 8
+
+
+@pytest.mark.parametrize("firmware", BOTH)
+def test_every_data_message_is_sent_with_dlc_8_zero_padded(firmware: Firmware) -> None:
+    """The DBCs give every data message DLC 8 (Clear_Errors/Reboot: 0 on 0.5, 1 on 0.6)."""
+    short = {CmdId.ESTOP: 0, CmdId.CLEAR_ERRORS: 0 if firmware is Firmware.V0_5 else 1,
+             CmdId.REBOOT: 0 if firmware is Firmware.V0_5 else 1}
+    for spec in codec.specs(firmware):
+        assert spec.dlc == short.get(spec.cmd, 8), spec.name
+    frame_ = codec.encode(codec.SetAxisState(AxisState.IDLE), node_id=3, firmware=firmware)
+    assert frame_.dlc == 8 and bytes(frame_.data) == bytes.fromhex("0100000000000000")
+
+
+def test_requests_carry_the_data_frames_dlc() -> None:
+    rtr = codec.encode(codec.Request(CmdId.HEARTBEAT), node_id=3)
+    assert rtr.is_remote_frame and rtr.dlc == 8 and rtr.arbitration_id == 0x061
+    version = codec.encode(codec.Request(CmdId.GET_VERSION), node_id=3)
+    assert version.arbitration_id == 0x060 and version.is_remote_frame
+
+
+def test_get_version_literal_bytes_06_only() -> None:
+    v = codec.decode(0x060, bytes([2, 4, 4, 58, 0, 6, 10, 0]))
+    assert v == codec.Version(2, 4, 4, 58, 0, 6, 10, 0)
+    assert v.firmware_text == "0.6.10" and v.hardware_text == "4.4.58"
+    with pytest.raises(CodecError, match="0x00 for firmware 0.5"):
+        codec.decode(0x060, bytes(8), Firmware.V0_5)
+
+
+def test_05_component_error_messages() -> None:
+    m = codec.decode(0x063, (0x00010000).to_bytes(8, "little"), Firmware.V0_5)
+    assert m == codec.MotorErrorMsg(0x10000)
+    assert codec.describe_flags(m.motor_error, codec.MotorError05) == "0x00010000 (MODULATION_IS_NAN)"
+    assert codec.decode(0x064, bytes([4, 0, 0, 0, 0, 0, 0, 0]), Firmware.V0_5) == codec.EncoderErrorMsg(4)
+    assert codec.decode(0x07D, bytes([1]) + bytes(7), Firmware.V0_5) == codec.ControllerErrorMsg(1)
+    assert frame(codec.MotorErrorMsg(0x800000000), 3, Firmware.V0_5) == (0x063, "00 00 00 00 08 00 00 00")
+
+
+def test_complete_05_axis_error_table() -> None:
+    """The four bits missing before (issue 9) name themselves; nothing is 'unknown'."""
+    for bit, name in ((0x40, "MOTOR_FAILED"), (0x80, "SENSORLESS_ESTIMATOR_FAILED"),
+                      (0x100, "ENCODER_FAILED"), (0x200, "CONTROLLER_FAILED")):
+        assert codec.describe_errors(bit, Firmware.V0_5) == f"0x{bit:08X} ({name})"
+
+
+def test_heartbeat_description_per_firmware() -> None:
+    hb6 = codec.decode(0x061, bytes.fromhex("0000000101030100"))
+    assert hb6.procedure_result == codec.ProcedureResult06.DISARMED
+    assert codec.describe_heartbeat(hb6, Firmware.V0_6) == (
+        "0x01000000 (WATCHDOG_TIMER_EXPIRED); last state request DISARMED")
+    hb5 = codec.decode(0x061, bytes.fromhex("4000000001010080"), Firmware.V0_5)
+    assert hb5.trajectory_done and hb5.motor_error_flag
+    assert codec.describe_heartbeat(hb5, Firmware.V0_5) == (
+        "0x00000040 (MOTOR_FAILED); motor error flag set")
+    assert codec.procedure_result_name(99) == "procedure result 99"
+
+
+def test_float32_overflow_is_a_codec_error() -> None:
+    with pytest.raises(CodecError, match="Get_Encoder_Estimates: cannot encode"):
+        codec.encode(codec.EncoderEstimates(1e308, 0.0), node_id=3)
+    spec = codec.spec_for(CmdId.GET_ENCODER_ESTIMATES)
+    with pytest.raises(CodecError, match="cannot encode"):
+        spec.pack_into(spec.new_frame_data(), 1e308, 0.0)
+    inf = codec.encode(codec.SetInputTorque(math.inf), node_id=3)  # inf is a float32 value
+    assert codec.decode_message(inf).torque_nm == math.inf

@@ -66,10 +66,17 @@ def test_lockstep_needs_emulate(capsys: pytest.CaptureFixture[str]) -> None:
 
 def test_no_drive_answers(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     """Real time on a channel where nobody answers: one clear line saying the drive did
-    not answer, a non-zero exit, no thread or bus left (conftest)."""
+    not answer, a non-zero exit, no thread or bus left (conftest). The preflight finds
+    no drive and refuses before enabling; without it, the enable handshake times out."""
     profile = realtime_profile(tmp_path, "odrive-0.6", enable_timeout=0.3)
     code = main(["run", str(DEMO), "--bus", f"virtual:nobody-{os.getpid()}",
-                 "--set", f"drive.profile={profile}"])
+                 "--set", f"drive.profile={profile}", "--preflight-window", "0.2"])
+    captured = capsys.readouterr()
+    lines = captured.err.splitlines()
+    assert code == 1 and captured.out == ""
+    assert len(lines) == 1 and "refused to enable" in lines[0] and "no heartbeat" in lines[0], captured.err
+    code = main(["run", str(DEMO), "--bus", f"virtual:nobody-{os.getpid()}",
+                 "--set", f"drive.profile={profile}", "--no-preflight"])
     captured = capsys.readouterr()
     lines = captured.err.splitlines()
     assert code != 0

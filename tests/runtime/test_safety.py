@@ -331,7 +331,8 @@ def test_enable_failed_lockstep_drive_never_answers() -> None:
 
 
 def enable_failed_realtime(config: Config, channel: str) -> tuple[Stop, HostCommands, RunSession]:
-    with RunSession(config, bus=f"virtual:{channel}") as session, \
+    # the enable path itself (--no-preflight); tests/runtime/test_preflight.py: the refusal
+    with RunSession(config, bus=f"virtual:{channel}", preflight=False) as session, \
             Sniffer(session.bus_spec.channel) as sniffer:
         result = session.run()
         sent = assert_stopped_safely(session, sniffer, result.stop, StopReason.ENABLE_FAILED,

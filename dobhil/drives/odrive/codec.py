@@ -11,11 +11,29 @@ checks every message of this table against both files.
 - Heartbeat (0x01): 0.6 = Axis_Error u32, Axis_State u8, Procedure_Result u8,
   Trajectory_Done bit 48; 0.5 = Axis_Error u32, Axis_State u8, Motor_Error_Flag bit 40,
   Encoder_Error_Flag bit 48, Controller_Error_Flag bit 56, Trajectory_Done bit 63.
-- Clear_Errors (0x18) and Reboot (0x16): DLC 0 on 0.5, one byte on 0.6.
-- Get_Error (0x03) and Get_Torques (0x1C) exist on 0.6 only (0.5 uses those ids for
-  Get_Motor_Error and Get_ADC_Voltage, which this codec does not implement).
+- Frame length: every message is encoded with the DLC its DBC gives it (8 for every
+  data message, zero padding after the payload; 0 for Estop; Clear_Errors (0x18) and
+  Reboot (0x16): DLC 0 on 0.5, 1 on 0.6). Firmware reads commands without a length
+  check, but DBC-strict peers (cantools, odrive-can's mock) drop shorter frames.
+  Decoding accepts any length >= the payload (the firmware's leniency).
+- ``Get_*`` requests are RTR frames whose DLC is the data frame's DLC (as CAN asks of
+  requesters, so two requests on one id never collide with different lengths).
+- Get_Version (0x00), Get_Error (0x03) and Get_Torques (0x1C) exist on 0.6 only; 0.5
+  uses 0x03/0x04/0x05/0x1D for Get_Motor_Error/Get_Encoder_Error/Get_Sensorless_Error/
+  Get_Controller_Error (firmware 0.5.6 ``can_simple.cpp``; 0x00 is the CANopen NMT id
+  there, which 0.5.6 ignores: a 0.5 drive never answers Get_Version).
+- Error tables: firmware 0.5 (``AxisError05``, ``MotorError05``, ``EncoderError05``,
+  ``ControllerError05``, ``SensorlessError05``) from ``tools/odrive/enums.py`` of tag
+  fw-v0.5.6 of odriverobotics/ODrive (generated from ``odrive-interface.yaml``) and the
+  0.5.6 DBC's value tables; firmware 0.6 (``ODriveError06``, ``ProcedureResult06``) from
+  the 0.6.10 DBC's value tables and ``odrive_can.enums`` (copied from firmware 0.6.7).
+  The 0.5 heartbeat carries Axis_Error plus one flag byte each for motor, encoder and
+  controller errors (their codes come from the Get_*_Error messages); the 0.6
+  heartbeat carries the active ODriveError bits and Procedure_Result.
 - Watchdog error bit: 0x800 AxisError.WATCHDOG_TIMER_EXPIRED on 0.5,
   0x01000000 ODriveError.WATCHDOG_TIMER_EXPIRED on 0.6.
+- Floats that do not fit float32 (|x| > 3.4e38 after unit scaling) are a CodecError,
+  never a silent inf; NaN and inf themselves are representable and pass through.
 
 One table (:data:`_TABLE`) of messages drives both :func:`encode` and :func:`decode`;
 each scale factor is written once.
@@ -29,7 +47,7 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, fields
 from enum import IntEnum, IntFlag
 from types import MappingProxyType
-from typing import Any, Union
+from typing import Any
 
 import can
 
@@ -37,6 +55,18 @@ from dobhil.errors import CodecError
 
 __all__ = [
     "AxisError05",
+    "ControllerError05",
+    "ControllerErrorMsg",
+    "EncoderError05",
+    "EncoderErrorMsg",
+    "MotorError05",
+    "MotorErrorMsg",
+    "ProcedureResult06",
+    "SensorlessError05",
+    "SensorlessErrorMsg",
+    "Version",
+    "describe_heartbeat",
+    "specs",
     "AxisState",
     "BusVoltageCurrent",
     "ClearErrors",
@@ -96,11 +126,18 @@ class Firmware(IntEnum):
 
 
 class CmdId(IntEnum):
-    """Command ids (5 bit) of the messages this codec implements."""
+    """Command ids (5 bit) of the messages this codec implements.
 
+    0.5 and 0.6 use some ids for different messages: the 0.5 names are aliases.
+    """
+
+    GET_VERSION = 0x00  # 0.6 only
     HEARTBEAT = 0x01
     ESTOP = 0x02
     GET_ERROR = 0x03  # 0.6 only
+    GET_MOTOR_ERROR = 0x03  # 0.5 only
+    GET_ENCODER_ERROR = 0x04  # 0.5 only
+    GET_SENSORLESS_ERROR = 0x05  # 0.5 only
     SET_AXIS_STATE = 0x07
     GET_ENCODER_ESTIMATES = 0x09
     SET_CONTROLLER_MODE = 0x0B
@@ -112,6 +149,7 @@ class CmdId(IntEnum):
     GET_BUS_VOLTAGE_CURRENT = 0x17
     CLEAR_ERRORS = 0x18
     GET_TORQUES = 0x1C  # 0.6 only
+    GET_CONTROLLER_ERROR = 0x1D  # 0.5 only
 
 
 class AxisState(IntEnum):
@@ -154,9 +192,13 @@ class InputMode(IntEnum):
 
 
 class AxisError05(IntFlag):
-    """Axis error bits of firmware 0.5 (the heartbeat's Axis_Error)."""
+    """Axis error bits of firmware 0.5 (the heartbeat's Axis_Error), complete for 0.5.6."""
 
     INVALID_STATE = 0x00000001
+    MOTOR_FAILED = 0x00000040
+    SENSORLESS_ESTIMATOR_FAILED = 0x00000080
+    ENCODER_FAILED = 0x00000100
+    CONTROLLER_FAILED = 0x00000200
     WATCHDOG_TIMER_EXPIRED = 0x00000800
     MIN_ENDSTOP_PRESSED = 0x00001000
     MAX_ENDSTOP_PRESSED = 0x00002000
@@ -166,8 +208,97 @@ class AxisError05(IntFlag):
     UNKNOWN_POSITION = 0x00080000
 
 
+class MotorError05(IntFlag):
+    """Motor error bits of firmware 0.5.6 (Get_Motor_Error; heartbeat: motor flag)."""
+
+    PHASE_RESISTANCE_OUT_OF_RANGE = 0x00000001
+    PHASE_INDUCTANCE_OUT_OF_RANGE = 0x00000002
+    DRV_FAULT = 0x00000008
+    CONTROL_DEADLINE_MISSED = 0x00000010
+    MODULATION_MAGNITUDE = 0x00000080
+    CURRENT_SENSE_SATURATION = 0x00000400
+    CURRENT_LIMIT_VIOLATION = 0x00001000
+    MODULATION_IS_NAN = 0x00010000
+    MOTOR_THERMISTOR_OVER_TEMP = 0x00020000
+    FET_THERMISTOR_OVER_TEMP = 0x00040000
+    TIMER_UPDATE_MISSED = 0x00080000
+    CURRENT_MEASUREMENT_UNAVAILABLE = 0x00100000
+    CONTROLLER_FAILED = 0x00200000
+    I_BUS_OUT_OF_RANGE = 0x00400000
+    BRAKE_RESISTOR_DISARMED = 0x00800000
+    SYSTEM_LEVEL = 0x01000000
+    BAD_TIMING = 0x02000000
+    UNKNOWN_PHASE_ESTIMATE = 0x04000000
+    UNKNOWN_PHASE_VEL = 0x08000000
+    UNKNOWN_TORQUE = 0x10000000
+    UNKNOWN_CURRENT_COMMAND = 0x20000000
+    UNKNOWN_CURRENT_MEASUREMENT = 0x40000000
+    UNKNOWN_VBUS_VOLTAGE = 0x80000000
+    UNKNOWN_VOLTAGE_COMMAND = 0x100000000
+    UNKNOWN_GAINS = 0x200000000
+    CONTROLLER_INITIALIZING = 0x400000000
+    UNBALANCED_PHASES = 0x800000000
+
+
+class EncoderError05(IntFlag):
+    """Encoder error bits of firmware 0.5.6 (Get_Encoder_Error; heartbeat: encoder flag)."""
+
+    UNSTABLE_GAIN = 0x00000001
+    CPR_POLEPAIRS_MISMATCH = 0x00000002
+    NO_RESPONSE = 0x00000004
+    UNSUPPORTED_ENCODER_MODE = 0x00000008
+    ILLEGAL_HALL_STATE = 0x00000010
+    INDEX_NOT_FOUND_YET = 0x00000020
+    ABS_SPI_TIMEOUT = 0x00000040
+    ABS_SPI_COM_FAIL = 0x00000080
+    ABS_SPI_NOT_READY = 0x00000100
+    HALL_NOT_CALIBRATED_YET = 0x00000200
+
+
+class ControllerError05(IntFlag):
+    """Controller error bits of firmware 0.5.6 (Get_Controller_Error; heartbeat: controller flag)."""
+
+    OVERSPEED = 0x00000001
+    INVALID_INPUT_MODE = 0x00000002
+    UNSTABLE_GAIN = 0x00000004
+    INVALID_MIRROR_AXIS = 0x00000008
+    INVALID_LOAD_ENCODER = 0x00000010
+    INVALID_ESTIMATE = 0x00000020
+    INVALID_CIRCULAR_RANGE = 0x00000040
+    SPINOUT_DETECTED = 0x00000080
+
+
+class SensorlessError05(IntFlag):
+    """Sensorless estimator error bits of firmware 0.5.6 (Get_Sensorless_Error)."""
+
+    UNSTABLE_GAIN = 0x00000001
+    UNKNOWN_CURRENT_MEASUREMENT = 0x00000002
+
+
+class ProcedureResult06(IntEnum):
+    """Why the last state request ended (0.6 heartbeat byte 5; 0.6.10 DBC value table)."""
+
+    SUCCESS = 0
+    BUSY = 1
+    CANCELLED = 2
+    DISARMED = 3
+    NO_RESPONSE = 4
+    POLE_PAIR_CPR_MISMATCH = 5
+    PHASE_RESISTANCE_OUT_OF_RANGE = 6
+    PHASE_INDUCTANCE_OUT_OF_RANGE = 7
+    UNBALANCED_PHASES = 8
+    INVALID_MOTOR_TYPE = 9
+    ILLEGAL_HALL_STATE = 10
+    TIMEOUT = 11
+    HOMING_WITHOUT_ENDSTOP = 12
+    INVALID_STATE = 13
+    NOT_CALIBRATED = 14
+    NOT_CONVERGING = 15
+
+
 class ODriveError06(IntFlag):
-    """Error bits of firmware 0.6 (the heartbeat's Axis_Error = active errors)."""
+    """Error bits of firmware 0.6 (the heartbeat's Axis_Error = active errors; also
+    Get_Error's Active_Errors and Disarm_Reason), complete for the 0.6.10 DBC."""
 
     INITIALIZING = 0x00000001
     SYSTEM_LEVEL = 0x00000002
@@ -207,16 +338,44 @@ def estop_bit(firmware: Firmware) -> int:
     return int(_error_enum(firmware)["ESTOP_REQUESTED"])
 
 
-def describe_errors(code: int, firmware: Firmware) -> str:
+def describe_flags(code: int, enum: type[IntFlag]) -> str:
     """``0x01000800`` -> ``"0x01000800 (WATCHDOG_TIMER_EXPIRED|DC_BUS_OVER_REGEN_CURRENT)"``."""
     if code == 0:
         return "0x00000000 (none)"
-    enum = _error_enum(firmware)
     names = [m.name for m in enum if m.value & code and m.name]
     unknown = code & ~sum(m.value for m in enum)
     if unknown:
         names.append(f"unknown 0x{unknown:08X}")
     return f"0x{code:08X} ({'|'.join(names)})"
+
+
+def describe_errors(code: int, firmware: Firmware) -> str:
+    """The heartbeat's Axis_Error of ``firmware`` with its bit names."""
+    return describe_flags(code, _error_enum(firmware))
+
+
+def procedure_result_name(value: int) -> str:
+    """``3`` -> ``"DISARMED"``; unknown values as ``"procedure result 99"``."""
+    try:
+        return ProcedureResult06(value).name
+    except ValueError:
+        return f"procedure result {value}"
+
+
+def describe_heartbeat(hb: Heartbeat, firmware: Firmware) -> str:
+    """Axis_Error with names plus what else the heartbeat says about a fault:
+    on 0.6 a Procedure_Result other than SUCCESS, on 0.5 the motor/encoder/controller
+    error flags (the codes themselves: Get_Motor_Error etc.)."""
+    text = describe_errors(hb.axis_error, firmware)
+    extra: list[str] = []
+    if firmware is Firmware.V0_6:
+        if hb.procedure_result != ProcedureResult06.SUCCESS:
+            extra.append(f"last state request {procedure_result_name(hb.procedure_result)}")
+    else:
+        flags = (("motor", hb.motor_error_flag), ("encoder", hb.encoder_error_flag),
+                 ("controller", hb.controller_error_flag))
+        extra.extend(f"{name} error flag set" for name, on in flags if on)
+    return f"{text}; {', '.join(extra)}" if extra else text
 
 
 def _enum_or_int(enum: type[IntEnum]) -> Callable[[int], int]:
@@ -247,6 +406,57 @@ class Heartbeat:
 @dataclass(frozen=True, slots=True)
 class Estop:
     pass
+
+
+@dataclass(frozen=True, slots=True)
+class Version:
+    """Get_Version reply (0.6 only): protocol, hardware and firmware version bytes."""
+
+    protocol_version: int
+    hw_major: int
+    hw_minor: int
+    hw_variant: int
+    fw_major: int
+    fw_minor: int
+    fw_revision: int
+    fw_unreleased: int
+
+    @property
+    def firmware_text(self) -> str:
+        dev = "-dev" if self.fw_unreleased else ""
+        return f"{self.fw_major}.{self.fw_minor}.{self.fw_revision}{dev}"
+
+    @property
+    def hardware_text(self) -> str:
+        return f"{self.hw_major}.{self.hw_minor}.{self.hw_variant}"
+
+
+@dataclass(frozen=True, slots=True)
+class MotorErrorMsg:
+    """Get_Motor_Error reply (0.5 only; the firmware sends the 64-bit code)."""
+
+    motor_error: int
+
+
+@dataclass(frozen=True, slots=True)
+class EncoderErrorMsg:
+    """Get_Encoder_Error reply (0.5 only)."""
+
+    encoder_error: int
+
+
+@dataclass(frozen=True, slots=True)
+class SensorlessErrorMsg:
+    """Get_Sensorless_Error reply (0.5 only)."""
+
+    sensorless_error: int
+
+
+@dataclass(frozen=True, slots=True)
+class ControllerErrorMsg:
+    """Get_Controller_Error reply (0.5 only)."""
+
+    controller_error: int
 
 
 @dataclass(frozen=True, slots=True)
@@ -324,11 +534,12 @@ class Request:
     cmd: CmdId
 
 
-ODriveMessage = Union[
-    Heartbeat, Estop, GetError, SetAxisState, EncoderEstimates, SetControllerMode,
-    SetInputVel, SetInputTorque, SetLimits, Iq, Reboot, BusVoltageCurrent, ClearErrors,
-    Torques, Request,
-]
+ODriveMessage = (
+    Heartbeat | Estop | GetError | Version | MotorErrorMsg | EncoderErrorMsg | SensorlessErrorMsg
+    | ControllerErrorMsg | SetAxisState | EncoderEstimates | SetControllerMode
+    | SetInputVel | SetInputTorque | SetLimits | Iq | Reboot | BusVoltageCurrent | ClearErrors
+    | Torques | Request
+)
 
 
 # ---------------------------------------------------------------------------
@@ -354,7 +565,7 @@ class Flags:
     bits: tuple[tuple[str, int], ...]
 
 
-Slot = Union[Scalar, Flags]
+Slot = Scalar | Flags
 
 
 @dataclass(frozen=True)
@@ -366,26 +577,43 @@ class MessageSpec:
     cls: type
     struct: struct.Struct
     slots: tuple[Slot, ...]
+    #: frame length on the wire (the DBC's DLC); the payload is zero-padded to it
+    dlc: int = 8
     #: each slot's scale to SI (1.0 for unscaled slots); derived, for the hot paths
     scales: tuple[float, ...] = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         scales = tuple(float(getattr(s, "scale", None) or 1.0) for s in self.slots)
         object.__setattr__(self, "scales", scales)
+        if not self.struct.size <= self.dlc <= 8:
+            raise ValueError(f"{self.name}: payload {self.struct.size} B does not fit DLC {self.dlc}")
 
     @property
     def size(self) -> int:
+        """Payload bytes that carry data (the frame's DLC may add zero padding)."""
         return self.struct.size
 
     def encode_data(self, msg: Any) -> bytes:
+        """The frame's data: the payload, zero-padded to the DBC's DLC."""
         try:
-            return self.struct.pack(*[_to_wire(slot, msg) for slot in self.slots])
-        except (struct.error, TypeError, ValueError) as exc:
+            payload = self.struct.pack(*[_to_wire(slot, msg) for slot in self.slots])
+        except (struct.error, TypeError, ValueError, OverflowError) as exc:
             raise CodecError(f"{self.name}: cannot encode {msg!r}: {exc}") from None
+        return payload.ljust(self.dlc, b"\x00")
+
+    def new_frame_data(self) -> bytearray:
+        """A zeroed data buffer of the DBC's length, for :meth:`pack_into`."""
+        return bytearray(self.dlc)
 
     def pack_into(self, buffer: bytearray, *values: float) -> None:
-        """Hot path: pack SI scalar values (slot order) into ``buffer`` without a dataclass."""
-        self.struct.pack_into(buffer, 0, *[v / s.scale for v, s in zip(values, self.slots)])  # type: ignore[union-attr,operator]
+        """Hot path: pack SI scalar values (slot order) into ``buffer`` without a dataclass.
+
+        CodecError if a value does not fit the wire type (e.g. beyond float32 range).
+        """
+        try:
+            self.struct.pack_into(buffer, 0, *[v / s.scale for v, s in zip(values, self.slots)])  # type: ignore[union-attr,operator]
+        except (struct.error, OverflowError) as exc:
+            raise CodecError(f"{self.name}: cannot encode {values!r}: {exc}") from None
 
     def unpack_si(self, data: bytes | bytearray) -> tuple[float, ...]:
         """Hot path: the scaled slots' SI values, in slot order, without a dataclass.
@@ -428,9 +656,13 @@ def _from_wire(slot: Slot, value: int | float, out: dict[str, Any]) -> None:
         out[slot.name] = slot.convert(int(value))
 
 
-def _spec(cmd: CmdId, cls: type, fmt: str, *slots: Slot) -> MessageSpec:
-    name = "_".join(part.capitalize() for part in cmd.name.split("_"))
-    return MessageSpec(cmd, name, cls, struct.Struct("<" + fmt), tuple(slots))
+def _spec(cmd: CmdId, cls: type, fmt: str, *slots: Slot, dlc: int | None = None,
+          name: str | None = None) -> MessageSpec:
+    """One table entry; ``dlc`` defaults to the DBC's 8 (0 for an empty payload)."""
+    packed = struct.Struct("<" + fmt)
+    name = name or "_".join(part.capitalize() for part in cmd.name.split("_"))
+    length = dlc if dlc is not None else (8 if packed.size else 0)
+    return MessageSpec(cmd, name, cls, packed, tuple(slots), length)
 
 
 _STATE = _enum_or_int(AxisState)
@@ -473,6 +705,10 @@ _ONLY_05: tuple[MessageSpec, ...] = (
     ),
     _spec(CmdId.REBOOT, Reboot, ""),
     _spec(CmdId.CLEAR_ERRORS, ClearErrors, ""),
+    _spec(CmdId.GET_MOTOR_ERROR, MotorErrorMsg, "Q", Scalar("motor_error"), name="Get_Motor_Error"),
+    _spec(CmdId.GET_ENCODER_ERROR, EncoderErrorMsg, "I", Scalar("encoder_error")),
+    _spec(CmdId.GET_SENSORLESS_ERROR, SensorlessErrorMsg, "I", Scalar("sensorless_error")),
+    _spec(CmdId.GET_CONTROLLER_ERROR, ControllerErrorMsg, "I", Scalar("controller_error")),
 )
 
 _ONLY_06: tuple[MessageSpec, ...] = (
@@ -481,9 +717,14 @@ _ONLY_06: tuple[MessageSpec, ...] = (
         Scalar("axis_error"), Scalar("axis_state", convert=_STATE),
         Scalar("procedure_result"), Flags((("trajectory_done", 0x01),)),
     ),
+    _spec(
+        CmdId.GET_VERSION, Version, "BBBBBBBB",
+        *(Scalar(name) for name in ("protocol_version", "hw_major", "hw_minor", "hw_variant",
+                                    "fw_major", "fw_minor", "fw_revision", "fw_unreleased")),
+    ),
     _spec(CmdId.GET_ERROR, GetError, "II", Scalar("active_errors"), Scalar("disarm_reason")),
-    _spec(CmdId.REBOOT, Reboot, "B", Scalar("action")),
-    _spec(CmdId.CLEAR_ERRORS, ClearErrors, "B", Scalar("identify")),
+    _spec(CmdId.REBOOT, Reboot, "B", Scalar("action"), dlc=1),
+    _spec(CmdId.CLEAR_ERRORS, ClearErrors, "B", Scalar("identify"), dlc=1),
     _spec(CmdId.GET_TORQUES, Torques, "ff", Scalar("target_nm", 1.0), Scalar("estimate_nm", 1.0)),
 )
 
@@ -522,6 +763,11 @@ def split_id(arb_id: int) -> tuple[int, int]:
     return arb_id >> 5, arb_id & 0x1F
 
 
+def specs(firmware: Firmware = Firmware.V0_6) -> tuple[MessageSpec, ...]:
+    """Every message this codec implements for ``firmware``, by command id."""
+    return tuple(spec for _, spec in sorted(_TABLE[firmware].items()))
+
+
 def spec_for(cmd: int, firmware: Firmware = Firmware.V0_6) -> MessageSpec:
     """The table entry of ``cmd`` for ``firmware``; CodecError if unknown."""
     try:
@@ -552,7 +798,7 @@ def encode(msg: Any, *, node_id: int, firmware: Firmware = Firmware.V0_6) -> can
         spec = spec_for(msg.cmd, firmware)
         return can.Message(
             arbitration_id=arbitration_id(node_id, spec.cmd), is_extended_id=False,
-            is_remote_frame=True, dlc=0,
+            is_remote_frame=True, dlc=spec.dlc,
         )
     spec = _spec_of(msg, firmware)
     return can.Message(
@@ -569,7 +815,8 @@ def decode(
 
     An RTR frame, or a zero-length data frame on a message whose payload is not empty,
     decodes to :class:`Request`. A payload shorter than the table's layout raises
-    CodecError; longer payloads (DBC DLC 8 padding) are accepted.
+    CodecError; longer payloads (DBC DLC 8 padding) are accepted. CodecError is the
+    only exception this raises, whatever ``arb_id`` and ``data`` are.
     """
     spec = spec_for(split_id(arb_id)[1], firmware)
     if is_remote or (len(data) == 0 and spec.size > 0):

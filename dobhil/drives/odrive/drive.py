@@ -1,6 +1,7 @@
 """ODrive CAN Simple drive (firmware 0.6 default, 0.5 via the profile's ``firmware``).
 
-Enable: Clear_Errors, Set_Controller_Mode(TORQUE_CONTROL, PASSTHROUGH), Set_Input_Torque(0),
+Enable: Set_Input_Torque(0) (feeds the watchdog), Clear_Errors,
+Set_Controller_Mode(TORQUE_CONTROL, PASSTHROUGH), Set_Input_Torque(0),
 Set_Axis_State(CLOSED_LOOP_CONTROL); confirmed by a heartbeat in CLOSED_LOOP_CONTROL with
 Axis_Error 0. Disable: Set_Input_Torque(0), Set_Axis_State(IDLE). Feedback: the cyclic
 Get_Encoder_Estimates and Heartbeat frames (rates configured on the drive to match the
@@ -11,7 +12,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Sequence
-from typing import ClassVar
+from typing import TYPE_CHECKING, ClassVar
 
 import can
 
@@ -20,6 +21,9 @@ from dobhil.drives.odrive import codec
 from dobhil.drives.odrive.codec import AxisState, CmdId, ControlMode, Firmware, InputMode
 from dobhil.drives.profile import DriveProfile
 from dobhil.errors import CodecError, ConfigError
+
+if TYPE_CHECKING:
+    from dobhil.drives.preflight import PreflightProbe
 
 __all__ = ["ODriveDrive"]
 
@@ -59,7 +63,12 @@ class ODriveDrive(Drive):
     # -- hooks ----------------------------------------------------------------
 
     def _enable_frames(self) -> Sequence[can.Message]:
+        # Set_Input_Torque(0) first feeds the watchdog: it runs in every axis state
+        # (0.5.6 main.cpp), so an idle drive nobody fed shows WATCHDOG_TIMER_EXPIRED, and
+        # on 0.6 only setpoints are known to feed it -- cleared without a feed, the bit
+        # could come back before Set_Axis_State arrives and the request be refused.
         return (
+            self._encode(codec.SetInputTorque(0.0)),
             self._encode(codec.ClearErrors()),
             self._encode(codec.SetControllerMode(ControlMode.TORQUE_CONTROL, InputMode.PASSTHROUGH)),
             self._encode(codec.SetInputTorque(0.0)),
@@ -70,8 +79,16 @@ class ODriveDrive(Drive):
         return (self._encode(codec.SetAxisState(AxisState.IDLE)),)
 
     def _keepalive_frames(self) -> Sequence[can.Message]:
-        """Zero torque (feeds the watchdog) and an RTR heartbeat request (fast confirmation)."""
+        """Zero torque (feeds the watchdog) and, on 0.6, an RTR heartbeat request (fast
+        confirmation; firmware 0.5.6 ignores heartbeat RTRs, so 0.5 waits for the cyclic one)."""
+        if self._firmware is Firmware.V0_5:
+            return (self._torque_frame(0.0),)
         return (self._torque_frame(0.0), self._encode(codec.Request(CmdId.HEARTBEAT)))
+
+    @classmethod
+    def preflight_probe(cls, profile: DriveProfile) -> PreflightProbe:
+        from dobhil.drives.odrive.preflight import ODrivePreflight
+        return ODrivePreflight(profile)
 
     def _torque_frame(self, tau_nm: float) -> can.Message:
         self._torque_spec.pack_into(self._torque_msg.data, tau_nm)
@@ -97,7 +114,7 @@ class ODriveDrive(Drive):
             error_code=hb.axis_error,
             watchdog_tripped=bool(hb.axis_error & self._watchdog_bit),
             state_text=_state_name(hb.axis_state),
-            error_text=codec.describe_errors(hb.axis_error, self._firmware),
+            error_text=codec.describe_heartbeat(hb, self._firmware),
         )
 
 

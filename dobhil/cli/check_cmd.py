@@ -1,0 +1,75 @@
+"""``dobhil check``: measure the drive on the bus without enabling it (the preflight).
+
+Exit codes: 0 the drive matches the profile and ``loop.period``; 1 mismatches found
+(each printed as one line saying what to set); 2 bad input (config, bus, arguments).
+``dobhil run`` runs the same preflight before it enables a drive and refuses to start
+when a run would sample stale feedback (``--no-preflight`` skips it).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from pathlib import Path
+from typing import Any
+
+from dobhil.cli.common import add_config_args, config_from_args
+from dobhil.errors import ConfigError
+
+#: exit code when the drive does not match (bad input stays 2)
+EXIT_MISMATCH = 1
+
+
+def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg,unused-ignore]
+    p = sub.add_parser("check", help="measure the drive on the bus (no enable) and compare with the profile")
+    add_config_args(p)
+    p.add_argument("--bus", metavar="INTERFACE:CHANNEL",
+                   help="any python-can interface, e.g. socketcan:can0 (default: config/profile)")
+    p.add_argument("--window", type=float, metavar="S", default=None,
+                   help="how long to listen (default 0.5 s: five ODrive heartbeats)")
+    p.add_argument("--json", action="store_true", help="print the report as one JSON object")
+    p.set_defaults(func=check)
+
+
+def window_of(value: float | None, option: str) -> float:
+    from dobhil.drives.preflight import DEFAULT_WINDOW
+    if value is None:
+        return DEFAULT_WINDOW
+    if not (math.isfinite(value) and 0 < value <= 60):
+        raise ConfigError(f"{option} {value!r}: expected seconds, > 0 and <= 60")
+    return value
+
+
+def preflight_kwargs(args: argparse.Namespace) -> dict[str, Any]:
+    """RunSession keyword arguments from ``dobhil run``'s preflight options."""
+    kwargs: dict[str, Any] = {"preflight_window": window_of(args.preflight_window, "--preflight-window")}
+    if args.no_preflight:
+        kwargs["preflight"] = False
+    return kwargs
+
+
+def check(args: argparse.Namespace) -> int:
+    from dobhil.drives.preflight import run_preflight
+    from dobhil.runtime.buses import open_bus, resolve_bus
+    from dobhil.runtime.session import load_drive_profile
+    config = config_from_args(args)
+    window = window_of(args.window, "--window")
+    profile = load_drive_profile(config, Path(args.config).parent)
+    spec = resolve_bus(config, profile, args.bus)
+    bus = open_bus(spec)
+    try:
+        report = run_preflight(bus, profile, period=config.loop.period,
+                               feedback_timeout=config.loop.feedback_timeout, window=window,
+                               bitrate=spec.kwargs.get("bitrate") or None)
+    finally:
+        bus.shutdown()
+    if args.json:
+        json.dump({"bus": spec.describe(), **report.as_dict()}, sys.stdout)
+        sys.stdout.write("\n")
+    else:
+        print(f"bus {spec.describe()}")
+        for line in report.lines():
+            print(line)
+    return 0 if report.ok else EXIT_MISMATCH

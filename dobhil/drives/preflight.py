@@ -1,0 +1,481 @@
+"""Preflight: measure what a drive actually does on the bus before trusting the profile.
+
+:func:`run_preflight` listens on a bus for a short window WITHOUT enabling anything (the
+only frames it sends are the protocol's read requests, e.g. ODrive Get_Version RTRs),
+finds the nodes on the bus, measures each node's motion-feedback and status periods and
+their jitter, reads firmware version and state where the protocol allows, looks at the
+bus (python-can's ``bus.state`` where the interface reports it, error frames, load), and
+compares all of it with the drive profile and the loop period. On SocketCAN the
+kernel's view of the interface (controller state, bit rate, queue length, restart-ms;
+:mod:`dobhil.drives.socketcan_link`) is checked too. Each mismatch is one
+line saying what to set on the drive (``set <axis>.config.can.encoder_msg_rate_ms = 1
+(now 10 ms)``) or in the config.
+
+The protocol-neutral part lives here; what frames mean and what the drive-side settings
+are called is a :class:`PreflightProbe`, returned by the protocol's
+:meth:`dobhil.drives.base.Drive.preflight_probe` hook (ODrive:
+:mod:`dobhil.drives.odrive.preflight`). A protocol without a probe gets a report that
+says so, never a silent pass.
+
+:func:`profile_rate_findings` is the profile-only part (feedback at least once per
+loop period), shared with :func:`dobhil.runtime.session.check_rates`: one place.
+"""
+
+from __future__ import annotations
+
+import math
+import statistics
+import time
+from abc import ABC, abstractmethod
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from enum import IntEnum
+from typing import Any
+
+import can
+
+from dobhil.drives.profile import DriveProfile
+from dobhil.drives.socketcan_link import link_info, link_problems
+
+__all__ = [
+    "DEFAULT_WINDOW",
+    "BusReport",
+    "Finding",
+    "NodeReport",
+    "Observation",
+    "PreflightProbe",
+    "PreflightReport",
+    "Rate",
+    "Setting",
+    "Severity",
+    "Stream",
+    "profile_rate_findings",
+    "run_preflight",
+]
+
+#: default listening window [s]: 5 heartbeats at the ODrive's 100 ms default
+DEFAULT_WINDOW = 0.5
+#: a measured period may exceed the expected one by this factor before it is a mismatch
+#: (bus and host timestamp jitter; a 1 ms stream measured at 1.02 ms is fine, 2 ms is not)
+PERIOD_TOLERANCE = 1.25
+#: a window of this many periods holds at least two frames of a stream, whatever its phase
+RESOLVE_PERIODS = 3
+#: load above this fraction of the bit rate leaves too little room for retransmissions
+MAX_LOAD = 0.8
+
+
+class Stream(IntEnum):
+    """What a frame is, to the preflight."""
+
+    STATUS = 1   # cyclic status (ODrive heartbeat)
+    MOTION = 2   # cyclic motion feedback (ODrive encoder estimates)
+    VERSION = 3  # a reply to the probe's version request
+
+
+class Setting(IntEnum):
+    """Drive-side settings a finding may ask to change."""
+
+    NODE_ID = 1
+    MOTION_RATE = 2
+    STATUS_RATE = 3
+
+
+class Severity(IntEnum):
+    NOTE = 1      # worth knowing, nothing to change
+    MISMATCH = 2  # the drive or the config must change
+
+
+@dataclass(frozen=True)
+class Finding:
+    severity: Severity
+    text: str  # one line
+    stale_feedback: bool = False  # a run would sample stale (held) feedback: refuse it
+
+
+@dataclass(frozen=True)
+class Observation:
+    """One frame as the probe reads it."""
+
+    node: int
+    stream: Stream
+    data: bytes = b""
+
+
+@dataclass(frozen=True)
+class Rate:
+    """A cyclic stream over the window: period = span / (count - 1); jitter = standard
+    deviation of the intervals; max_gap = the longest interval. None below 2 frames."""
+
+    count: int
+    period: float | None = None
+    jitter: float | None = None
+    max_gap: float | None = None
+
+    @classmethod
+    def of(cls, times: Sequence[float]) -> Rate:
+        if len(times) < 2:
+            return cls(len(times))
+        gaps = [b - a for a, b in zip(times, times[1:])]
+        return cls(len(times), (times[-1] - times[0]) / len(gaps), statistics.pstdev(gaps), max(gaps))
+
+    def describe(self, what: str) -> str:
+        if self.period is None:
+            return f"{what}: {self.count} frame{'s' if self.count != 1 else ''}"
+        return (f"{what} every {_ms(self.period)} (jitter {_ms(self.jitter or 0.0)}, "
+                f"max gap {_ms(self.max_gap or 0.0)}, {self.count} frames)")
+
+
+@dataclass(frozen=True)
+class NodeReport:
+    node: int
+    motion: Rate
+    status: Rate
+    status_data: bytes = b""          # payload of the last status frame
+    version_data: bytes | None = None  # payload of the version reply, if any
+    summary: str = ""                 # the probe's words: state, errors, firmware
+    window: float = 0.0               # how long the preflight listened [s]
+
+
+@dataclass(frozen=True)
+class BusReport:
+    state: str                  # python-can BusState name, or "unknown"
+    frames: int
+    error_frames: int
+    bits_per_s: float
+    bitrate: int | None
+    run_bits_per_s: float       # what the run adds: one command frame per loop period
+
+    @property
+    def load(self) -> float | None:
+        return self.bits_per_s / self.bitrate if self.bitrate else None
+
+    @property
+    def run_load(self) -> float | None:
+        """Measured traffic plus the run's command frames, as a fraction of the bit rate."""
+        return (self.bits_per_s + self.run_bits_per_s) / self.bitrate if self.bitrate else None
+
+
+@dataclass(frozen=True)
+class PreflightReport:
+    profile: str
+    node_id: int
+    window: float
+    nodes: tuple[NodeReport, ...]
+    bus: BusReport
+    findings: tuple[Finding, ...]
+
+    @property
+    def ok(self) -> bool:
+        return not any(f.severity is Severity.MISMATCH for f in self.findings)
+
+    @property
+    def stale_feedback(self) -> bool:
+        return any(f.stale_feedback for f in self.findings)
+
+    def mismatches(self) -> list[str]:
+        return [f.text for f in self.findings if f.severity is Severity.MISMATCH]
+
+    def lines(self) -> list[str]:
+        """What was measured, then one line per finding (``mismatch:``/``note:``)."""
+        out = [f"listened {_ms(self.window)} for profile {self.profile!r} (node {self.node_id}): "
+               f"{self.bus.frames} frames, bus {self.bus.state}, {self.bus.error_frames} error frames"
+               + (f", load {self.bus.load:.0%} (with the run's commands {self.bus.run_load:.0%} "
+                  f"of {self.bus.bitrate} bit/s)" if self.bus.load is not None
+                  and self.bus.run_load is not None else "")]
+        out += [f"node {n.node}: {n.summary}" for n in self.nodes]
+        out += [f"{'mismatch' if f.severity is Severity.MISMATCH else 'note'}: {f.text}"
+                for f in self.findings]
+        out.append("preflight: ok" if self.ok else
+                   f"preflight: {len(self.mismatches())} mismatch(es)"
+                   + (" -- a run would sample stale feedback" if self.stale_feedback else ""))
+        return out
+
+    def as_dict(self) -> dict[str, Any]:
+        return {
+            "ok": self.ok, "stale_feedback": self.stale_feedback, "profile": self.profile,
+            "node_id": self.node_id, "window": self.window,
+            "nodes": [{"node": n.node, "summary": n.summary,
+                       "motion": _rate_dict(n.motion), "status": _rate_dict(n.status)}
+                      for n in self.nodes],
+            "bus": {"state": self.bus.state, "frames": self.bus.frames,
+                    "error_frames": self.bus.error_frames, "bits_per_s": self.bus.bits_per_s,
+                    "bitrate": self.bus.bitrate, "load": self.bus.load, "run_load": self.bus.run_load},
+            "findings": [{"severity": f.severity.name.lower(), "text": f.text,
+                          "stale_feedback": f.stale_feedback} for f in self.findings],
+        }
+
+
+class PreflightProbe(ABC):
+    """A protocol's part of the preflight: what frames mean, what settings are called."""
+
+    def __init__(self, profile: DriveProfile) -> None:
+        self.profile = profile
+
+    @abstractmethod
+    def requests(self, node: int) -> Sequence[can.Message]:
+        """Read-only requests to send to ``node`` when it is first expected or seen."""
+
+    @abstractmethod
+    def observe(self, msg: can.Message) -> Observation | None:
+        """What ``msg`` is (None: not a frame the preflight measures). Never raises."""
+
+    @abstractmethod
+    def setting(self, which: Setting) -> str:
+        """The drive-side name of a setting, e.g. ``<axis>.config.can.encoder_msg_rate_ms``."""
+
+    def setting_value(self, which: Setting, value: float) -> str:
+        """A value in the setting's unit; default: periods in whole milliseconds."""
+        return str(int(value)) if which is Setting.NODE_ID else f"{value * 1e3:g}"
+
+    @abstractmethod
+    def node_summary(self, node: NodeReport) -> str:
+        """State, errors and firmware of ``node`` in words (one line)."""
+
+    @abstractmethod
+    def node_findings(self, node: NodeReport) -> list[Finding]:
+        """Protocol checks of the profile's node: firmware version, state, errors."""
+
+    def motion_name(self) -> str:
+        return "motion feedback"
+
+    def status_name(self) -> str:
+        return "status"
+
+
+# ---------------------------------------------------------------------------
+# Profile-only checks (no bus)
+
+
+def profile_rate_findings(profile: DriveProfile, period: float) -> list[Finding]:
+    """The profile must promise feedback at least once per loop period."""
+    if profile.encoder_msg_rate > period * (1 + 1e-9):
+        return [Finding(Severity.MISMATCH,
+                        f"drive profile {profile.name or profile.protocol!r} sends encoder estimates every "
+                        f"{profile.encoder_msg_rate:g} s, slower than loop.period = {period:g} s; set its "
+                        f"encoder_msg_rate (and the drive's) to the loop period", stale_feedback=True)]
+    return []
+
+
+# ---------------------------------------------------------------------------
+# Listening
+
+
+@dataclass
+class _NodeLog:
+    motion: list[float] = field(default_factory=list)
+    status: list[float] = field(default_factory=list)
+    status_data: bytes = b""
+    version_data: bytes | None = None
+
+
+@dataclass
+class _Capture:
+    nodes: dict[int, _NodeLog] = field(default_factory=dict)
+    frames: int = 0
+    error_frames: int = 0
+    bits: int = 0
+    send_errors: list[str] = field(default_factory=list)
+
+
+def frame_bits(msg: can.Message) -> int:
+    """Bits of ``msg`` on the wire (the run report's formula: worst-case stuffing)."""
+    from dobhil.analysis.run_report import frame_bits as bits
+    return bits(msg.dlc, msg.is_extended_id)
+
+
+def _listen(bus: can.BusABC, probe: PreflightProbe, window: float, clock: Callable[[], float],
+            stamp: Callable[[can.Message], float]) -> _Capture:
+    cap = _Capture()
+    asked: set[int] = set()
+
+    def ask(node: int) -> None:
+        asked.add(node)
+        for request in probe.requests(node):
+            try:
+                bus.send(request, 0.0)
+            except can.CanError as exc:
+                cap.send_errors.append(str(exc).splitlines()[0] if str(exc) else type(exc).__name__)
+
+    ask(probe.profile.node_id)
+    end = clock() + window
+    while (now := clock()) < end:
+        msg = bus.recv(end - now)
+        if msg is None:
+            continue
+        cap.frames += 1
+        cap.bits += frame_bits(msg)
+        if msg.is_error_frame:
+            cap.error_frames += 1
+            continue
+        obs = probe.observe(msg)
+        if obs is None:
+            continue
+        log = cap.nodes.setdefault(obs.node, _NodeLog())
+        if obs.stream is Stream.MOTION:
+            log.motion.append(stamp(msg))
+        elif obs.stream is Stream.STATUS:
+            log.status.append(stamp(msg))
+            log.status_data = obs.data
+        else:
+            log.version_data = obs.data
+        if obs.node not in asked:
+            ask(obs.node)
+    return cap
+
+
+def _bus_state(bus: can.BusABC) -> str:
+    try:
+        return str(bus.state.name)
+    except Exception:  # an interface without state reporting
+        return "unknown"
+
+
+def run_preflight(
+    bus: can.BusABC, profile: DriveProfile, *, period: float, feedback_timeout: float | None = None,
+    window: float = DEFAULT_WINDOW, bitrate: int | None = None,
+    clock: Callable[[], float] = time.monotonic,
+    stamp: Callable[[can.Message], float] | None = None,
+) -> PreflightReport:
+    """Listen ``window`` s on ``bus`` (borrowed, not enabled, not shut down) and compare.
+
+    ``stamp``: a frame's time [s]; default its receive timestamp (kernel time on
+    SocketCAN) or ``clock()`` when the interface gives none. Pass ``clock``/``stamp`` of a
+    simulated clock for a lockstep bus.
+    """
+    if not (math.isfinite(window) and window > 0):
+        from dobhil.errors import ConfigError
+        raise ConfigError(f"preflight window: expected a number of seconds > 0, got {window!r}")
+    from dobhil.drives.registry import drive_class
+    probe = drive_class(profile.protocol).preflight_probe(profile)
+    if probe is None:
+        finding = Finding(Severity.NOTE, f"no preflight for protocol {profile.protocol!r} yet: "
+                                         "its settings are taken on trust")
+        return PreflightReport(profile.name or profile.protocol, profile.node_id, window, (),
+                               BusReport(_bus_state(bus), 0, 0, 0.0, bitrate, 0.0),
+                               tuple([*profile_rate_findings(profile, period), finding]))
+    when = stamp or (lambda m: m.timestamp if m.timestamp > 0 else clock())
+    link = link_info(bus)  # SocketCAN: the kernel's controller state, bit rate, queue
+    link_found = [Finding(Severity.MISMATCH if bad else Severity.NOTE, text)
+                  for bad, text in (link_problems(link, bitrate) if link is not None else [])]
+    state = link.state if link is not None and link.state else _bus_state(bus)
+    bitrate = link.bitrate if link is not None and link.bitrate else bitrate
+    cap = _listen(bus, probe, window, clock, when)
+    nodes = tuple(_node_report(probe, n, log, window) for n, log in sorted(cap.nodes.items()))
+    command_bits = frame_bits(can.Message(dlc=8, is_extended_id=False)) / period
+    bus_report = BusReport(state, cap.frames, cap.error_frames, cap.bits / window, bitrate, command_bits)
+    findings = [*profile_rate_findings(profile, period), *link_found,
+                *_bus_findings(bus_report, cap.send_errors),
+                *_node_findings(probe, nodes, period, feedback_timeout, window)]
+    return PreflightReport(profile.name or profile.protocol, profile.node_id, window, nodes,
+                           bus_report, tuple(findings))
+
+
+def _node_report(probe: PreflightProbe, node: int, log: _NodeLog, window: float) -> NodeReport:
+    bare = NodeReport(node, Rate.of(log.motion), Rate.of(log.status), log.status_data, log.version_data,
+                      window=window)
+    rates = f"{bare.motion.describe(probe.motion_name())}; {bare.status.describe(probe.status_name())}"
+    summary = probe.node_summary(bare)
+    return NodeReport(node, bare.motion, bare.status, bare.status_data, bare.version_data,
+                      f"{rates}; {summary}" if summary else rates, window)
+
+
+# ---------------------------------------------------------------------------
+# Comparisons
+
+
+_KERNEL_STATES = ("ERROR-ACTIVE", "ERROR-WARNING", "ERROR-PASSIVE", "BUS-OFF", "STOPPED", "SLEEPING")
+
+
+def _bus_findings(bus: BusReport, send_errors: list[str]) -> list[Finding]:
+    out: list[Finding] = []
+    if bus.state not in ("ACTIVE", "unknown") and bus.state not in _KERNEL_STATES:  # those: socketcan_link
+        out.append(Finding(Severity.MISMATCH, f"bus state {bus.state}: check wiring, termination "
+                                              "(120 ohm at both ends) and that every node uses the same bit rate"))
+    if bus.error_frames:
+        out.append(Finding(Severity.MISMATCH, f"{bus.error_frames} error frames while listening: check wiring, "
+                                              "termination and bit rate"))
+    if send_errors:
+        out.append(Finding(Severity.MISMATCH, f"read request not sent: {send_errors[0]} (bus off or "
+                                              "transmit queue full? raise txqueuelen, set restart-ms)"))
+    if bus.run_load is not None and bus.run_load > MAX_LOAD:
+        out.append(Finding(Severity.MISMATCH,
+                           f"bus load with the run's commands would be {bus.run_load:.0%} of {bus.bitrate} "
+                           f"bit/s (measured {bus.load or 0.0:.0%}): use a higher bit rate (1 Mbit/s on the "
+                           "drive and the interface) or a longer loop.period"))
+    return out
+
+
+def _node_findings(probe: PreflightProbe, nodes: tuple[NodeReport, ...], period: float,
+                   feedback_timeout: float | None, window: float) -> list[Finding]:
+    profile = probe.profile
+    by_id = {n.node: n for n in nodes}
+    subject = by_id.get(profile.node_id)
+    out: list[Finding] = []
+    if subject is None:
+        if not nodes:
+            return [Finding(Severity.MISMATCH,
+                            f"no {probe.status_name()} or {probe.motion_name()} from any node within "
+                            f"{_ms(window)}: check power, wiring, the bus bit rate and the interface",
+                            stale_feedback=True)]
+        found = ", ".join(str(n.node) for n in nodes)
+        name = profile.name or profile.protocol
+        out.append(Finding(Severity.MISMATCH,
+                           f"node {profile.node_id} is not on the bus, node(s) {found} are: set "
+                           f"{probe.setting(Setting.NODE_ID)} = {profile.node_id} on the drive, or "
+                           f"node_id: {nodes[0].node} in profile {name!r}", stale_feedback=True))
+        if len(nodes) != 1:
+            return out
+        subject = nodes[0]  # the only drive there: check the rest of its settings too
+    out += _rate_findings(probe, subject, period, feedback_timeout, window)
+    out += probe.node_findings(subject)
+    return out
+
+
+def _rate_findings(probe: PreflightProbe, node: NodeReport, period: float,
+                   feedback_timeout: float | None, window: float) -> list[Finding]:
+    profile = probe.profile
+    out: list[Finding] = []
+    motion, status = node.motion, node.status
+    want_motion = min(profile.encoder_msg_rate, period)
+    set_motion = (f"set {probe.setting(Setting.MOTION_RATE)} = "
+                  f"{probe.setting_value(Setting.MOTION_RATE, want_motion)}")
+    if motion.period is None:
+        now = "off" if motion.count == 0 else f"1 frame in {_ms(window)}"
+        out.append(Finding(Severity.MISMATCH, f"node {node.node} sends no cyclic {probe.motion_name()}: "
+                                              f"{set_motion} (now {now})", stale_feedback=True))
+    elif motion.period > want_motion * PERIOD_TOLERANCE:
+        held = motion.period / period
+        out.append(Finding(Severity.MISMATCH,
+                           f"{set_motion} (now {_ms(motion.period)}; loop.period {_ms(period)} would use each "
+                           f"sample {held:.0f} times)", stale_feedback=motion.period > period * PERIOD_TOLERANCE))
+    elif feedback_timeout is not None and motion.max_gap is not None and motion.max_gap > feedback_timeout:
+        out.append(Finding(Severity.MISMATCH,
+                           f"node {node.node}'s {probe.motion_name()} paused up to {_ms(motion.max_gap)}, "
+                           f"longer than loop.feedback_timeout {_ms(feedback_timeout)}: the run would stop; "
+                           "check bus load and other senders"))
+    want_status = profile.heartbeat_msg_rate
+    set_status = (f"set {probe.setting(Setting.STATUS_RATE)} = "
+                  f"{probe.setting_value(Setting.STATUS_RATE, want_status)}")
+    if status.period is None:
+        if window >= RESOLVE_PERIODS * want_status or status.count == 0:
+            now = "off" if status.count == 0 else f"1 frame in {_ms(window)}"
+            out.append(Finding(Severity.MISMATCH, f"node {node.node} {probe.status_name()}: {set_status} "
+                                                  f"(now {now})"))
+        else:
+            out.append(Finding(Severity.NOTE, f"a {_ms(window)} window cannot measure a {_ms(want_status)} "
+                                              f"{probe.status_name()}: listen at least "
+                                              f"{RESOLVE_PERIODS * want_status:g} s"))
+    elif status.period > want_status * PERIOD_TOLERANCE:
+        out.append(Finding(Severity.MISMATCH,
+                           f"{set_status} (now {_ms(status.period)}; the run calls a drive silent for "
+                           f"3 x {_ms(want_status)} faulted)"))
+    return out
+
+
+def _rate_dict(rate: Rate) -> dict[str, Any]:
+    return {"count": rate.count, "period": rate.period, "jitter": rate.jitter, "max_gap": rate.max_gap}
+
+
+def _ms(seconds: float) -> str:
+    ms = seconds * 1e3
+    return f"{ms:.3g} ms" if ms < 100 else f"{ms:.0f} ms"

@@ -1,0 +1,347 @@
+"""Preflight (issue 9, item 1): measure the drive on the bus without enabling it.
+
+Deterministic measurements run in lockstep on the simulated clock (exact periods); the
+CLI checks run in real time against an emulator thread on a private ``virtual`` channel,
+as ``dobhil emulate`` + ``dobhil check``/``dobhil run`` would on vcan0 or can0. Nothing
+asserts wall-clock time: real-time checks only assert what a loaded machine cannot change
+(node ids, firmware, a 10x rate difference, the refusal).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import itertools
+import json
+import math
+import re
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import can
+import pytest
+
+from dobhil.cli.main import main
+from dobhil.drives import DriveProfile, load_profile
+from dobhil.drives.odrive.codec import AxisState, ControlMode
+from dobhil.drives.preflight import PreflightReport, Rate, Severity, run_preflight
+from dobhil.emulator.odrive import EmulatedODrive
+from dobhil.emulator.plant import Plant
+from dobhil.emulator.protocol import LockstepBus
+from dobhil.errors import PreflightError
+from dobhil.runtime.session import RunSession
+
+from .helpers import DEMO, REALTIME_SLACK, demo_config, realtime_profile
+
+_CHANNELS = itertools.count()
+EXIT_USAGE = 2
+
+
+def bare(name: str, **changes: Any) -> DriveProfile:
+    return dataclasses.replace(load_profile(name), bus={}, **changes)
+
+
+def lockstep_preflight(emulated: DriveProfile, expected: DriveProfile, *, window: float = 0.5,
+                       period: float = 1e-3, feedback_timeout: float | None = None) -> PreflightReport:
+    """The emulator runs ``emulated`` settings; the host expects ``expected``."""
+    channel = f"preflight-lock-{next(_CHANNELS)}"
+    host = can.Bus(interface="virtual", channel=channel)
+    emu = EmulatedODrive(can.Bus(interface="virtual", channel=channel), emulated,
+                         Plant.from_config(demo_config()))
+    lock = LockstepBus(host, [emu], dt=1e-3)
+    try:
+        return run_preflight(lock, expected, period=period, feedback_timeout=feedback_timeout,
+                             window=window, bitrate=1_000_000, clock=lock.clock,
+                             stamp=lambda _m: lock.clock())
+    finally:
+        lock.shutdown()
+        emu.close()
+        host.shutdown()
+
+
+def texts(report: PreflightReport, severity: Severity = Severity.MISMATCH) -> list[str]:
+    return [f.text for f in report.findings if f.severity is severity]
+
+
+# -- measurements, lockstep (exact) ------------------------------------------------------------
+
+def test_factory_drive_measured_exactly() -> None:
+    report = lockstep_preflight(bare("odrive-0.6-factory"), bare("odrive-0.6"))
+    (node,) = report.nodes
+    assert node.node == 0
+    assert node.motion.count == 50 and node.motion.period == pytest.approx(0.010, abs=1e-9)
+    assert node.motion.jitter == pytest.approx(0.0, abs=1e-9)
+    assert node.status.count == 4 and node.status.period == pytest.approx(0.100, abs=1e-9)
+    assert "firmware 0.6.10 (Get_Version)" in node.summary and "IDLE" in node.summary
+    found = texts(report)
+    assert found == [
+        "node 3 is not on the bus, node(s) 0 are: set <axis>.config.can.node_id = 3 on the drive, "
+        "or node_id: 0 in profile 'odrive-0.6'",
+        "set <axis>.config.can.encoder_msg_rate_ms = 1 (now 10 ms; loop.period 1 ms would use each "
+        "sample 10 times)",
+        "node 0's watchdog looks off (idle, unfed for 0.5 s, no WATCHDOG_TIMER_EXPIRED): set "
+        "<axis>.config.enable_watchdog = True and <axis>.config.watchdog_timeout = 0.05",
+    ]
+    assert report.stale_feedback and not report.ok
+
+
+def test_matching_drive_passes_and_its_idle_watchdog_bit_is_expected() -> None:
+    report = lockstep_preflight(bare("odrive-0.6"), bare("odrive-0.6"))
+    assert report.ok, report.lines()
+    (node,) = report.nodes
+    assert node.motion.count == 500 and node.motion.period == pytest.approx(1e-3, abs=1e-9)
+    assert "WATCHDOG_TIMER_EXPIRED" in node.summary   # idle and unfed: expected, enable clears it
+    assert report.lines()[-1] == "preflight: ok"
+    assert 0 < (report.bus.load or 0) < (report.bus.run_load or 0) < 1
+
+
+@pytest.mark.parametrize(("drive", "profile", "words"), [
+    ("odrive-0.5", "odrive-0.6", "runs firmware 0.5 (heartbeat layout; no Get_Version reply), profile "
+                                 "'odrive-0.6' is for 0.6: use drive.profile odrive-0.5"),
+    ("odrive-0.6", "odrive-0.5", "runs firmware 0.6.10 (Get_Version), profile 'odrive-0.5' is for 0.5: "
+                                 "use drive.profile odrive-0.6"),
+])
+def test_firmware_family_mismatch_names_the_profile_to_use(drive: str, profile: str, words: str) -> None:
+    report = lockstep_preflight(bare(drive), bare(profile))
+    assert any(words in text for text in texts(report)), report.lines()
+    assert not report.stale_feedback
+
+
+def test_05_drive_with_05_profile_passes() -> None:
+    report = lockstep_preflight(bare("odrive-0.5"), bare("odrive-0.5"))
+    assert report.ok, report.lines()
+
+
+def test_slow_heartbeat_and_missing_encoder_stream() -> None:
+    report = lockstep_preflight(bare("odrive-0.6", heartbeat_msg_rate=0.4), bare("odrive-0.6"), window=1.0)
+    assert "set <axis>.config.can.heartbeat_msg_rate_ms = 100 (now 400 ms;" in texts(report)[0]
+    assert not report.stale_feedback
+    # a window too short to see two heartbeats of the profile's period: a note, not a verdict
+    report = lockstep_preflight(bare("odrive-0.6"), bare("odrive-0.6"), window=0.15)
+    assert report.ok and texts(report, Severity.NOTE) == [
+        "a 150 ms window cannot measure a 100 ms heartbeat: listen at least 0.3 s"]
+    # a period the window cannot resolve at all (one frame)
+    report = lockstep_preflight(bare("odrive-0.6", encoder_msg_rate=0.4), bare("odrive-0.6"), window=0.5)
+    assert any("encoder_msg_rate_ms = 1 (now 1 frame in 500 ms)" in t for t in texts(report)), report.lines()
+    assert report.stale_feedback
+
+
+def test_feedback_gap_above_the_timeout_is_a_mismatch() -> None:
+    report = lockstep_preflight(bare("odrive-0.6", encoder_msg_rate=4e-3), bare("odrive-0.6", encoder_msg_rate=4e-3),
+                                period=4e-3, feedback_timeout=3e-3)
+    assert any("paused up to 4 ms, longer than loop.feedback_timeout 3 ms" in t for t in texts(report))
+
+
+def test_rate_statistics() -> None:
+    r = Rate.of([0.0, 0.001, 0.003, 0.004])
+    assert r.count == 4 and r.period == pytest.approx(0.004 / 3)
+    assert r.max_gap == pytest.approx(0.002) and r.jitter == pytest.approx(math.sqrt(2 / 9) * 1e-3)
+    assert Rate.of([1.0]).period is None and Rate.of([]).count == 0
+
+
+# -- the bus -----------------------------------------------------------------------------------
+
+class StateBus(can.BusABC):
+    """A virtual bus that reports a python-can bus state."""
+
+    def __init__(self, channel: str, state: can.BusState) -> None:
+        self._inner = can.Bus(interface="virtual", channel=channel)
+        self._state = state
+        super().__init__(channel=channel)
+
+    @property
+    def state(self) -> can.BusState:
+        return self._state
+
+    def send(self, msg: can.Message, timeout: float | None = None) -> None:
+        self._inner.send(msg, timeout)
+
+    def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
+        return self._inner.recv(timeout), False
+
+    def shutdown(self) -> None:
+        self._inner.shutdown()
+        super().shutdown()
+
+
+def test_bus_error_state_and_error_frames_are_mismatches() -> None:
+    channel = f"preflight-state-{next(_CHANNELS)}"
+    bus = StateBus(channel, can.BusState.PASSIVE)
+    other = can.Bus(interface="virtual", channel=channel)
+    try:
+        other.send(can.Message(is_error_frame=True, arbitration_id=0x20000080, is_extended_id=True))
+        report = run_preflight(bus, bare("odrive-0.6"), period=1e-3, window=0.05)
+    finally:
+        bus.shutdown()
+        other.shutdown()
+    found = " | ".join(texts(report))
+    assert "bus state PASSIVE" in found and "1 error frames" in found
+    assert "no heartbeat or encoder estimates from any node" in found and report.stale_feedback
+
+
+def test_bus_too_slow_for_the_loop() -> None:
+    """250 kbit/s (an ODrive's default) cannot carry 1 kHz feedback plus 1 kHz commands."""
+    channel = f"preflight-slow-{next(_CHANNELS)}"
+    host = can.Bus(interface="virtual", channel=channel)
+    emu = EmulatedODrive(can.Bus(interface="virtual", channel=channel), bare("odrive-0.6"),
+                         Plant.from_config(demo_config()))
+    lock = LockstepBus(host, [emu], dt=1e-3)
+    try:
+        report = run_preflight(lock, bare("odrive-0.6"), period=1e-3, window=0.5, bitrate=250_000,
+                               clock=lock.clock, stamp=lambda _m: lock.clock())
+    finally:
+        lock.shutdown()
+        emu.close()
+        host.shutdown()
+    assert any(t.startswith("bus load with the run's commands would be") and "of 250000 bit/s" in t
+               for t in texts(report)), report.lines()
+
+
+# -- dobhil check / dobhil run against an emulator thread (real time) --------------------------
+
+@pytest.fixture
+def emulated(request: pytest.FixtureRequest) -> Iterator[tuple[str, EmulatedODrive]]:
+    """An emulator thread running profile ``request.param`` on a fresh virtual channel."""
+    channel = f"preflight-rt-{next(_CHANNELS)}"
+    profile = request.param if isinstance(request.param, DriveProfile) else bare(request.param)
+    emu = EmulatedODrive(can.Bus(interface="virtual", channel=channel), profile,
+                         Plant.from_config(demo_config()))
+    emu.start()
+    try:
+        yield channel, emu
+    finally:
+        emu.close()
+
+
+@pytest.mark.parametrize("emulated", ["odrive-0.6-factory"], indirect=True)
+def test_check_and_run_against_a_factory_drive(emulated: tuple[str, EmulatedODrive],
+                                               capsys: pytest.CaptureFixture[str]) -> None:
+    channel, emu = emulated
+    code = main(["check", str(DEMO), "--bus", f"virtual:{channel}"])
+    out = capsys.readouterr().out
+    assert code == 1, out
+    assert "mismatch: node 3 is not on the bus, node(s) 0 are: set <axis>.config.can.node_id = 3" in out
+    assert re.search(r"mismatch: set <axis>\.config\.can\.encoder_msg_rate_ms = 1 \(now (9\.\d+|10\.?\d*) ms", out), out
+    assert out.splitlines()[-1].endswith("a run would sample stale feedback")
+
+    code = main(["check", str(DEMO), "--bus", f"virtual:{channel}", "--json", "--window", "0.3"])
+    report = json.loads(capsys.readouterr().out)
+    assert code == 1 and report["stale_feedback"] and report["nodes"][0]["node"] == 0
+
+    code = main(["run", str(DEMO), "--bus", f"virtual:{channel}"])
+    captured = capsys.readouterr()
+    assert code == 1 and captured.out == ""
+    lines = captured.err.splitlines()
+    assert lines[-1].startswith("dobhil run: refused to enable: node 3 is not on the bus"), captured.err
+    assert any("watchdog looks off" in line for line in lines[:-1])   # printed, not the reason
+    assert any(re.search(r"encoder_msg_rate_ms = 1 \(now (9\.\d+|10\.?\d*) ms", line) for line in lines)
+    # nothing was enabled: the drive never left its power-on mode and state
+    assert emu.axis_state is AxisState.IDLE and emu.control_mode == ControlMode.POSITION_CONTROL
+
+
+@pytest.mark.parametrize("emulated", ["odrive-0.6"], indirect=True)
+def test_check_passes_with_matching_settings(emulated: tuple[str, EmulatedODrive],
+                                             capsys: pytest.CaptureFixture[str]) -> None:
+    channel, _ = emulated
+    code = main(["check", str(DEMO), "--bus", f"virtual:{channel}", "--set", REALTIME_SLACK[0]])
+    out = capsys.readouterr().out
+    assert code == 0, out
+    assert out.splitlines()[-1] == "preflight: ok"
+    assert "node 3: encoder estimates every" in out and "firmware 0.6.10 (Get_Version)" in out
+
+
+def test_run_passes_preflight_and_runs(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    profile_path = realtime_profile(tmp_path, "odrive-0.6")
+    channel = f"preflight-run-{next(_CHANNELS)}"
+    emu = EmulatedODrive(can.Bus(interface="virtual", channel=channel), load_profile(profile_path),
+                         Plant.from_config(demo_config()))
+    emu.start()
+    try:
+        code = main(["run", str(DEMO), "--bus", f"virtual:{channel}", "--duration", "0.1",
+                     "--set", f"drive.profile={profile_path}", "--set", REALTIME_SLACK[0]])
+    finally:
+        emu.close()
+    captured = capsys.readouterr()
+    assert "dobhil run: preflight: node 3: encoder estimates every" in captured.err, captured.err
+    assert code == 0, captured.err + captured.out
+    assert "stop: done" in captured.out or "done" in captured.out
+
+
+def test_session_preflight_refuses_before_enable(tmp_path: Path) -> None:
+    """The same refusal for a program using RunSession: PreflightError from run(), with
+    the report; nothing was sent but the read-only Get_Version request."""
+    profile_path = realtime_profile(tmp_path, "odrive-0.6")
+    channel = f"preflight-session-{next(_CHANNELS)}"
+    config = demo_config(f"drive.profile={profile_path}")
+    emu = EmulatedODrive(can.Bus(interface="virtual", channel=channel), bare("odrive-0.6-factory"),
+                         Plant.from_config(config))
+    emu.start()
+    try:
+        with RunSession(config, bus=f"virtual:{channel}", preflight_window=0.3) as session:
+            with pytest.raises(PreflightError, match="encoder_msg_rate_ms = 1") as info:
+                session.run()
+            assert info.value.report is session.preflight_report
+    finally:
+        emu.close()
+    # all it sent: Get_Version RTRs to node 3 (nobody there) and to node 0 (found)
+    assert emu.frames_received == 2 and emu.frames_rejected == 0
+    assert emu.axis_state is AxisState.IDLE and emu.control_mode == ControlMode.POSITION_CONTROL
+
+
+@pytest.mark.parametrize("argv", [["--window", "0"], ["--window", "nan"], ["--window", "1e400"]])
+def test_bad_window_is_one_line_exit_2(argv: list[str], capsys: pytest.CaptureFixture[str]) -> None:
+    code = main(["check", str(DEMO), "--bus", "virtual:nobody", *argv])
+    err = capsys.readouterr().err.strip()
+    assert code == EXIT_USAGE and "\n" not in err and "--window" in err
+
+
+def test_run_preflight_window_is_validated(capsys: pytest.CaptureFixture[str]) -> None:
+    code = main(["run", str(DEMO), "--bus", "virtual:nobody", "--preflight-window", "-1"])
+    err = capsys.readouterr().err.strip()
+    assert code == EXIT_USAGE and "--preflight-window" in err and "\n" not in err
+
+
+def test_emulated_runs_skip_the_preflight(capsys: pytest.CaptureFixture[str]) -> None:
+    """--emulate builds the emulator from the profile itself: nothing to measure."""
+    code = main(["run", str(DEMO), "--emulate", "--lockstep", "--duration", "0.01", "--summary-json"])
+    info = json.loads(capsys.readouterr().out)
+    assert code == 0 and info["preflight"] is None
+
+
+# -- SocketCAN link facts (the kernel's JSON, literal) -----------------------------------------
+
+IP_CAN0 = """[{"ifindex":4,"ifname":"can0","flags":["NOARP","UP","LOWER_UP","ECHO"],"mtu":16,
+"qdisc":"pfifo_fast","operstate":"UP","linkmode":"DEFAULT","group":"default","txqlen":10,
+"link_type":"can","promiscuity":0,"min_mtu":0,"max_mtu":0,"linkinfo":{"info_kind":"can",
+"info_data":{"ctrlmode":[],"state":"BUS-OFF","berr_counter":{"tx":248,"rx":0},"restart_ms":0,
+"bittiming":{"bitrate":250000,"sample_point":"0.875","tq":250,"prop_seg":6,"phase_seg1":7,
+"phase_seg2":2,"sjw":1,"brp":10}}},"num_tx_queues":1,"num_rx_queues":1}]"""
+IP_VCAN0 = """[{"ifindex":5,"ifname":"vcan0","flags":["NOARP","UP","LOWER_UP"],"mtu":72,
+"qdisc":"noqueue","operstate":"UNKNOWN","txqlen":1000,"link_type":"can",
+"linkinfo":{"info_kind":"vcan"}}]"""
+
+
+def test_socketcan_link_facts_parse_and_compare() -> None:
+    from dobhil.drives.socketcan_link import LinkInfo, link_problems, parse_link
+    can0 = parse_link(IP_CAN0)
+    assert can0 == LinkInfo("can0", "can", 10, "BUS-OFF", 250000, 0)
+    problems = link_problems(can0, 1_000_000)
+    assert [bad for bad, _ in problems] == [True, True, False, True]
+    texts_ = [t for _, t in problems]
+    assert texts_[0].startswith("can0 is BUS-OFF")
+    assert texts_[1] == "can0 txqueuelen 10: bursts fail with ENOBUFS; sudo ip link set can0 txqueuelen 1000"
+    assert "restart-ms 100" in texts_[2] and "runs at 250000 bit/s, drive.bitrate is 1000000" in texts_[3]
+    vcan0 = parse_link(IP_VCAN0)
+    assert vcan0 == LinkInfo("vcan0", "vcan", 1000, None, None, None) and link_problems(vcan0, 1_000_000) == []
+    assert parse_link("") is None and parse_link("[]") is None and parse_link('[{"txqlen": "x"}]') is not None
+
+
+def test_forced_preflight_in_lockstep_measures_simulated_time() -> None:
+    """preflight=True on a lockstep session listens on the simulated clock (exact periods)."""
+    with RunSession(demo_config(), emulate=True, lockstep=True, duration=0.01, preflight=True,
+                    preflight_window=0.35) as session:
+        result = session.run()
+        report = session.preflight_report
+    assert report is not None and report.ok, report and report.lines()
+    assert report.nodes[0].motion.period == pytest.approx(1e-3, abs=1e-12)
+    assert result.stop.reason.name == "DONE"
