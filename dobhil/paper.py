@@ -24,7 +24,9 @@ class Fact:
 
 
 def paper_dir() -> Path:
-    return Path(__file__).resolve().parents[1] / "configs" / "paper"
+    """The shipped ``paper/`` configs (``configs/paper`` in the repository)."""
+    from dobhil.data import configs_dir
+    return configs_dir() / "paper"
 
 
 def fig2_cases(directory: Path | None = None) -> dict[str, Config]:

@@ -39,6 +39,7 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
 
 
 def run(args: argparse.Namespace) -> int:
+    from dobhil.config import resolve_config
     from dobhil.runtime.loop import StopRequest
     from dobhil.runtime.session import RunSession, summary
     from dobhil.runtime.signals import stop_on_signals
@@ -47,7 +48,7 @@ def run(args: argparse.Namespace) -> int:
     with closing_on_error(log), stop_on_signals(StopRequest()) as request, \
             RunSession(config, bus=args.bus, emulate=args.emulate,
                        lockstep=True if args.lockstep else None, duration=args.duration,
-                       config_dir=Path(args.config).parent, stop_request=request,
+                       config_dir=resolve_config(args.config).parent, stop_request=request,
                        **log_hooks(log)) as session:
         warn_realtime(session)
         result = run_logged(session, log)
@@ -134,8 +135,9 @@ def emulate(args: argparse.Namespace) -> int:
     from dobhil.runtime.loop import StopRequest
     from dobhil.runtime.session import load_drive_profile
     from dobhil.runtime.signals import stop_on_signals
+    from dobhil.config import resolve_config
     config = config_from_args(args)
-    profile = load_drive_profile(config, Path(args.config).parent)
+    profile = load_drive_profile(config, resolve_config(args.config).parent)
     spec = BusSpec.parse(args.bus)
     bus = open_bus(spec)
     emulator = make_emulated_drive(bus, profile, Plant.from_config(config),

@@ -15,16 +15,34 @@ from typing import Any
 import yaml
 
 from dobhil.config.schema import SECTIONS, Check, Config, key_fields
+from dobhil.data import configs_dir, shipped_configs, shipped_file
 from dobhil.errors import ConfigError
 
 
 def load_config(path: str | Path | None = None, overrides: Iterable[str] = ()) -> Config:
-    """Read ``path`` (YAML; None for the defaults), apply ``key=value`` overrides, validate."""
-    flat = _flatten(read_yaml(path), "") if path is not None else {}
+    """Read ``path`` (a YAML file or a shipped config name, see :func:`resolve_config`; None
+    for the defaults), apply ``key=value`` overrides, validate."""
+    flat = _flatten(read_yaml(resolve_config(path)), "") if path is not None else {}
     for item in overrides:
         name, value = parse_override(item)
         flat[name] = value
     return build_config(flat, source=str(path) if path else "defaults")
+
+
+def resolve_config(path: str | Path) -> Path:
+    """The file of a config given as a path or as a shipped name (``demo``, ``paper/fig2c``).
+
+    An existing path is always that file; otherwise a shipped config of that name; otherwise
+    ConfigError listing the shipped names.
+    """
+    p = Path(path)
+    if p.exists():
+        return p
+    found = shipped_file(configs_dir(), str(path))
+    if found is not None:
+        return found
+    raise ConfigError(f"config {str(path)!r}: no such file, and not a shipped config name; shipped: "
+                      f"{', '.join(shipped_configs())} (dobhil init DIR copies them for editing)")
 
 
 def read_yaml(path: str | Path) -> dict[str, Any]:

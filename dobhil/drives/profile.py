@@ -1,12 +1,12 @@
 """Drive profiles: one frozen :class:`DriveProfile` per YAML file under ``drivers/``.
 
 ``load_profile(name_or_path)`` accepts a path to a YAML file, or a profile name looked
-up as ``<drivers_dir>/<name>.yaml``. ``drivers/`` sits at the repository root, not inside
-the package, so the default directory is ``Path(__file__).resolve().parents[2] /
-"drivers"`` — right for a source checkout and an editable install; a wheel install
-must pass ``drivers_dir=`` or an explicit path. Every key is documented in
-``drivers/README.md``. Validation is protocol-neutral; each protocol checks its own
-values (e.g. ODrive firmware and node id range) when the drive is made.
+up as ``<name>.yaml`` in the nearest ``drivers/`` directory above ``near`` (the config's
+directory: the layout of the repository and of ``dobhil init``), then among the shipped
+profiles (``drivers/`` of the repository, installed as ``dobhil.data.drivers``; see
+:mod:`dobhil.data`). Every key is documented in ``drivers/README.md``. Validation is
+protocol-neutral; each protocol checks its own values (e.g. ODrive firmware and node id
+range) when the drive is made.
 """
 
 from __future__ import annotations
@@ -66,8 +66,19 @@ _OPTIONAL = frozenset({"bus", "name"})
 
 
 def default_drivers_dir() -> Path:
-    """``<repo>/drivers`` (source checkout / editable install)."""
-    return Path(__file__).resolve().parents[2] / "drivers"
+    """The shipped profiles (``drivers/`` of the repository, ``dobhil.data.drivers`` installed)."""
+    from dobhil.data import drivers_dir
+    return drivers_dir()
+
+
+def _near(name: str, near: Path) -> Path | None:
+    """``drivers/<name>.yaml`` in ``near`` or the closest of its parents that has one."""
+    start = near.resolve()
+    for directory in (start, *start.parents):
+        path = directory / "drivers" / f"{name}.yaml"
+        if path.is_file():
+            return path
+    return None
 
 
 def _check_value(key: str, value: Any, source: str) -> Any:
@@ -97,26 +108,32 @@ def profile_from_mapping(data: Mapping[str, Any], *, source: str = "<profile>") 
     return DriveProfile(**values)
 
 
-def _resolve(name_or_path: str | os.PathLike[str], drivers_dir: Path | None) -> Path:
+def _resolve(name_or_path: str | os.PathLike[str], drivers_dir: Path | None, near: Path | None) -> Path:
     text = os.fspath(name_or_path)
     candidate = Path(text)
     if candidate.suffix in (".yaml", ".yml") or os.sep in text or "/" in text:
         if candidate.is_file():
             return candidate
         raise ConfigError(f"profile file {text!r} does not exist")
+    found = _near(text, near) if near is not None and drivers_dir is None else None
+    if found is not None:
+        return found
     directory = drivers_dir if drivers_dir is not None else default_drivers_dir()
     path = directory / f"{text}.yaml"
     if path.is_file():
         return path
     known = sorted(p.stem for p in directory.glob("*.yaml")) if directory.is_dir() else []
-    raise ConfigError(f"drive profile {text!r}: expected one of {known} in {directory}")
+    where = f"in {directory}" if drivers_dir is not None else \
+        f"(shipped), or {text}.yaml in a drivers/ directory above the config, or a path to a .yaml file"
+    raise ConfigError(f"drive profile {text!r}: expected one of {known} {where}")
 
 
 def load_profile(
-    name_or_path: str | os.PathLike[str], *, drivers_dir: Path | None = None
+    name_or_path: str | os.PathLike[str], *, drivers_dir: Path | None = None, near: Path | None = None
 ) -> DriveProfile:
-    """Load ``drivers/<name>.yaml`` (or an explicit YAML path) into a DriveProfile."""
-    path = _resolve(name_or_path, drivers_dir)
+    """Load a profile by name (from ``drivers_dir``, else a ``drivers/`` above ``near``, else the
+    shipped ones) or an explicit YAML path into a DriveProfile."""
+    path = _resolve(name_or_path, drivers_dir, near)
     try:
         data = yaml.safe_load(path.read_text(encoding="utf-8"))
     except (OSError, yaml.YAMLError) as exc:

@@ -37,7 +37,7 @@ def load_drive_profile(config: Config, base_dir: Path | None = None) -> DrivePro
     name = config.drive.profile
     candidate = (base_dir / name) if base_dir and not Path(name).is_absolute() else Path(name)
     return load_profile(str(candidate) if candidate.suffix in (".yaml", ".yml") and candidate.exists()
-                        else name)
+                        else name, near=base_dir)
 
 
 def check_rates(profile: DriveProfile, period: float) -> None:
