@@ -16,7 +16,7 @@ def demo_config_path() -> Path:
     return resolve_config("demo")
 
 
-def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = sub.add_parser("demo", help="emulated force-control run of configs/demo.yaml, with a plot")
     add_config_args(p, required=False)
     p.add_argument("--out", type=Path, default=Path("out/demo"), help="output directory")

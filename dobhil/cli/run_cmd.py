@@ -17,7 +17,7 @@ from dobhil.cli.common import add_config_args, config_from_args
 EXIT_STOPPED = 1
 
 
-def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = sub.add_parser("run", help="run the force-control loop on a drive (or the emulator)")
     add_config_args(p)
     p.add_argument("--bus", metavar="INTERFACE:CHANNEL",
@@ -104,7 +104,7 @@ def run_logged(session: Any, log: Any) -> Any:
     return run_recorded(session, log)
 
 
-def report(info: dict, stop_line: str, *, as_json: bool) -> None:  # type: ignore[type-arg]
+def report(info: dict[str, Any], stop_line: str, *, as_json: bool) -> None:
     if as_json:
         json.dump(info, sys.stdout)
         sys.stdout.write("\n")

@@ -22,7 +22,7 @@ from abc import ABC, abstractmethod
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from enum import IntEnum
-from typing import ClassVar, Union
+from typing import ClassVar
 
 import can
 
@@ -86,7 +86,7 @@ class StateEvent:
     error_text: str  # e.g. "0x01000000 (WATCHDOG_TIMER_EXPIRED)"
 
 
-DriveEvent = Union[MotionEvent, StateEvent]
+DriveEvent = MotionEvent | StateEvent
 _NO_EVENTS: tuple[DriveEvent, ...] = ()
 
 

@@ -181,7 +181,7 @@ def summary(session: RunSession, result: RunResult) -> dict[str, Any]:
     """The ``--summary-json`` object."""
     tr = result.trace
     last = tr.n - 1
-    final = {"tau_ref": None, "tau_int_hat": None, "tau_int_true": None, "q": None}
+    final: dict[str, float | None] = {"tau_ref": None, "tau_int_hat": None, "tau_int_true": None, "q": None}
     if last >= 0:
         d = tr.data
         true = float(d["tau_int_true"][last])

@@ -29,7 +29,7 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, fields
 from enum import IntEnum, IntFlag
 from types import MappingProxyType
-from typing import Any, Union
+from typing import Any
 
 import can
 
@@ -324,11 +324,11 @@ class Request:
     cmd: CmdId
 
 
-ODriveMessage = Union[
-    Heartbeat, Estop, GetError, SetAxisState, EncoderEstimates, SetControllerMode,
-    SetInputVel, SetInputTorque, SetLimits, Iq, Reboot, BusVoltageCurrent, ClearErrors,
-    Torques, Request,
-]
+ODriveMessage = (
+    Heartbeat | Estop | GetError | SetAxisState | EncoderEstimates | SetControllerMode
+    | SetInputVel | SetInputTorque | SetLimits | Iq | Reboot | BusVoltageCurrent | ClearErrors
+    | Torques | Request
+)
 
 
 # ---------------------------------------------------------------------------
@@ -354,7 +354,7 @@ class Flags:
     bits: tuple[tuple[str, int], ...]
 
 
-Slot = Union[Scalar, Flags]
+Slot = Scalar | Flags
 
 
 @dataclass(frozen=True)
