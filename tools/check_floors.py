@@ -81,7 +81,7 @@ def _run(cmd: list[str], log: Path, cwd: Path = ROOT) -> tuple[int, str]:
 
 
 def _last_line(text: str) -> str:
-    lines = [ln for ln in text.strip().splitlines() if ln.strip()]
+    lines = [ln for ln in text.strip().splitlines() if ln.strip() and not ln.startswith("WARNING:")]
     return lines[-1] if lines else ""
 
 

@@ -21,6 +21,7 @@ from typing import Any
 
 import yaml
 
+from dobhil.config.yamlio import safe_load, where
 from dobhil.errors import ConfigError
 
 __all__ = ["DriveProfile", "default_drivers_dir", "load_profile", "profile_from_mapping"]
@@ -81,11 +82,27 @@ def _near(name: str, near: Path) -> Path | None:
     return None
 
 
+def _as_number(value: Any) -> Any:
+    """A number key's value as YAML 1.2 reads it: ``1e-9`` (a string to PyYAML's YAML 1.1)
+    becomes a float; an integer too large for a float becomes inf (rejected as not finite)."""
+    if isinstance(value, str):
+        try:
+            return float(value)
+        except ValueError:
+            return value
+    if isinstance(value, int) and not isinstance(value, bool) and value.bit_length() > 1000:
+        return math.inf
+    return value
+
+
 def _check_value(key: str, value: Any, source: str) -> Any:
     types, allowed, ok = _RULES[key]
+    if float in types:
+        value = _as_number(value)
     type_ok = isinstance(value, types) and not isinstance(value, bool)
     if not type_ok or not ok(value):
-        raise ConfigError(f"{source}: {key}: expected {allowed}, got {value!r}")
+        shown = repr(value) if len(repr(value)) <= 60 else repr(value)[:57] + "..."
+        raise ConfigError(f"{source}: {key}: expected {allowed}, got {shown}")
     if float in types:
         return float(value)
     if key == "bus":
@@ -135,8 +152,10 @@ def load_profile(
     shipped ones) or an explicit YAML path into a DriveProfile."""
     path = _resolve(name_or_path, drivers_dir, near)
     try:
-        data = yaml.safe_load(path.read_text(encoding="utf-8"))
-    except (OSError, yaml.YAMLError) as exc:
-        raise ConfigError(f"{path}: cannot read drive profile: {exc}") from None
+        data = safe_load(path.read_text(encoding="utf-8"))
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"{path}: YAML error in drive profile{where(exc)}") from None
+    except (OSError, ValueError, RecursionError) as exc:
+        raise ConfigError(f"{path}: cannot read drive profile: {' '.join(str(exc).split())}") from None
     data = {"name": path.stem, **(data or {})} if isinstance(data, Mapping) else data
     return profile_from_mapping(data, source=str(path))
