@@ -5,7 +5,7 @@ Every other setting is in pyproject.toml."""
 
 from pathlib import Path
 
-from setuptools import find_packages, setup
+from setuptools import find_namespace_packages, setup
 
 ROOT = Path(__file__).resolve().parent
 #: package -> top-level directory it is built from
@@ -27,7 +27,8 @@ def data_packages() -> dict[str, str]:
 MAPPED = data_packages()
 
 setup(
-    packages=find_packages(include=["dobhil", "dobhil.*"]) + list(MAPPED),
+    # namespace discovery, as pyproject's `find` does: some subpackages have no __init__.py
+    packages=find_namespace_packages(include=["dobhil", "dobhil.*"], exclude=["*.__pycache__"]) + list(MAPPED),
     package_dir={pkg: path for pkg, path in MAPPED.items() if pkg in DATA},
     package_data={"dobhil": ["py.typed"], **{pkg: ["*"] for pkg in MAPPED}},
     exclude_package_data={"": ["*.pyc", "__pycache__"]},
