@@ -120,3 +120,14 @@ def test_a_closed_stdout_is_no_traceback(tmp_path: Path) -> None:
     proc.stderr.close()
     assert proc.wait(timeout=120) == EXIT_BROKEN_PIPE
     assert "Traceback" not in err and "BrokenPipe" not in err, err
+
+
+def test_a_broken_pipe_that_is_not_stdout_is_not_hidden(monkeypatch: pytest.MonkeyPatch) -> None:
+    import dobhil.cli.init_cmd as init_cmd
+
+    def broken(args: object) -> int:
+        raise BrokenPipeError(32, "a worker's pipe")
+
+    monkeypatch.setattr(init_cmd, "run", broken)
+    with pytest.raises(BrokenPipeError, match="worker"):
+        main(["init", "anywhere"])

@@ -12,6 +12,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import os
+import select
 import sys
 from collections.abc import Sequence
 
@@ -73,12 +74,24 @@ def main(argv: Sequence[str] | None = None) -> int:
         code = _main(argv)
         sys.stdout.flush()  # a closed pipe shows here, not as a traceback at exit
     except BrokenPipeError:
+        if not _stdout_gone():
+            raise  # another pipe (a worker process, a socket): a real failure, not ours to hide
         # the reader (e.g. ``head``) has gone: stop quietly; point stdout at devnull so the
         # interpreter's final flush does not complain either
         devnull = os.open(os.devnull, os.O_WRONLY)
         os.dup2(devnull, sys.stdout.fileno())
         return EXIT_BROKEN_PIPE
     return code
+
+
+def _stdout_gone() -> bool:
+    """Whether stdout is a pipe whose reader has closed it (poll reports an error on it)."""
+    try:
+        poller = select.poll()
+        poller.register(sys.stdout.fileno(), select.POLLOUT)
+        return any(events & (select.POLLERR | select.POLLHUP) for _, events in poller.poll(0))
+    except (AttributeError, OSError, ValueError):  # no poll (Windows), no real file descriptor
+        return False
 
 
 def _main(argv: Sequence[str] | None) -> int:
