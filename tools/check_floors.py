@@ -12,6 +12,7 @@ has been run with it.
     python tools/check_floors.py                 # all floors, the whole suite
     python tools/check_floors.py --pin mcap==1.5.0 -- tests/recording   # try a candidate
     python tools/check_floors.py --keep /tmp/floors --json
+    python tools/check_floors.py --python python3.10                # the floors on another Python
 
 Exit code 0 when every floor installed and the suite passed, 1 otherwise.
 """
@@ -91,6 +92,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--pin", action="append", default=[], metavar="NAME==VERSION",
                     help="use this version instead of a declared floor (to try a candidate)")
     ap.add_argument("--keep", type=Path, metavar="DIR", help="build the venv here and keep it")
+    ap.add_argument("--python", default=sys.executable, metavar="PATH",
+                    help="interpreter of the fresh venv (default: this one)")
     ap.add_argument("--json", action="store_true", help="print the result as JSON")
     ap.add_argument("pytest_args", nargs="*", help="arguments for pytest (default: the whole suite)")
     args = ap.parse_args(argv)
@@ -103,11 +106,12 @@ def main(argv: list[str] | None = None) -> int:
     work.mkdir(parents=True, exist_ok=True)
     venv, log = work / "venv", work / "floors.log"
     py = venv / "bin" / "python"
-    result: dict[str, object] = {"python": sys.version.split()[0], "pins": pins, "unfloored": unfloored,
-                                 "log": str(log)}
+    version = subprocess.run([args.python, "-c", "import sys; print(sys.version.split()[0])"],
+                             capture_output=True, text=True, check=True).stdout.strip()
+    result: dict[str, object] = {"python": version, "pins": pins, "unfloored": unfloored, "log": str(log)}
     t0 = time.monotonic()
     steps = [
-        ("venv", [sys.executable, "-m", "venv", "--clear", str(venv)]),
+        ("venv", [args.python, "-m", "venv", "--clear", str(venv)]),
         ("install floors", [str(py), "-m", "pip", "install", "--quiet", *pins]),
         ("install dobhil", [str(py), "-m", "pip", "install", "--quiet", "--no-deps", str(ROOT)]),
         ("pip check", [str(py), "-m", "pip", "check"]),
