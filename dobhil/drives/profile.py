@@ -140,9 +140,9 @@ def _resolve(name_or_path: str | os.PathLike[str], drivers_dir: Path | None, nea
     if path.is_file():
         return path
     known = sorted(p.stem for p in directory.glob("*.yaml")) if directory.is_dir() else []
-    where = f"in {directory}" if drivers_dir is not None else \
+    hint = f"in {directory}" if drivers_dir is not None else \
         f"(shipped), or {text}.yaml in a drivers/ directory above the config, or a path to a .yaml file"
-    raise ConfigError(f"drive profile {text!r}: expected one of {known} {where}")
+    raise ConfigError(f"drive profile {text!r}: expected one of {known} {hint}")
 
 
 def load_profile(
