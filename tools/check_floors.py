@@ -64,9 +64,9 @@ def floors(extras: tuple[str, ...] = EXTRAS) -> list[Floor]:
         m = _REQ.match(req)
         if m is None or m.group(1).lower() == project["name"]:
             continue
-        name, spec = m.group(1), m.group(3)
+        name, spec, marker = m.group(1), m.group(3), m.group(4) or ""
         low = _FLOOR.search(spec)
-        out.append(Floor(name, spec, f"{name}=={low.group(1)}" if low else None))
+        out.append(Floor(name, spec, f"{name}=={low.group(1)}{marker}" if low else None))
     return out
 
 
@@ -99,7 +99,7 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
 
     declared = floors()
-    override = {p.split("==")[0].lower(): p for p in args.pin}
+    override = {p.split("==")[0].strip().lower(): p for p in args.pin}
     pins = [override.get(f.name.lower(), f.pin) for f in declared if f.pin]
     unfloored = [f.name for f in declared if f.pin is None]
     work = args.keep or Path(tempfile.mkdtemp(prefix="dobhil-floors-"))
