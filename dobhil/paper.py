@@ -24,7 +24,9 @@ class Fact:
 
 
 def paper_dir() -> Path:
-    return Path(__file__).resolve().parents[1] / "configs" / "paper"
+    """The shipped ``paper/`` configs (``configs/paper`` in the repository)."""
+    from dobhil.data import configs_dir
+    return configs_dir() / "paper"
 
 
 def fig2_cases(directory: Path | None = None) -> dict[str, Config]:
@@ -82,9 +84,16 @@ def fig2_facts(cases: dict[str, Config]) -> list[Fact]:
     return facts
 
 
+def _overshoot(a: DomainAnalysis) -> float:
+    """Step overshoot [%]: inf when unstable, NaN when undefined (zero final value)."""
+    if not a.stable:
+        return float("inf")
+    return float("nan") if a.step.overshoot_pct is None else a.step.overshoot_pct
+
+
 def fig3_facts(cases: dict[float, Config]) -> list[Fact]:
     res = {r: continuous(cfg) for r, cfg in cases.items()}
-    over = {r: (a.step.overshoot_pct if a.stable else float("inf")) for r, a in res.items()}
+    over = {r: _overshoot(a) for r, a in res.items()}
     ordered = [over[r] for r in sorted(over)]
     ev = ", ".join(f"J_mi={r:g}J_m: " + ("unstable" if np.isinf(o) else f"{o:.1f} %")
                    for r, o in sorted(over.items()))

@@ -8,11 +8,13 @@ leading batch shape.
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 from numpy.typing import NDArray
 
 Array = NDArray[np.float64]
-CArray = NDArray[np.complex128]
+CArray = NDArray[np.inexact[Any]]  # complex, or real where every value is (np.roots, eigvals)
 
 #: a Markov parameter C A^j B counts as zero below this fraction of |C| |A|^j |B|
 MARKOV_RTOL = 1e-9

@@ -30,8 +30,8 @@ import can
 from can.interfaces.virtual import VirtualBus
 from can.typechecking import AutoDetectedConfig, CanFilters
 
-from dobhil.canio.configs import config_path, shipped_configs
-from dobhil.config import Config, load_config
+from dobhil.config import Config, load_config, resolve_config
+from dobhil.data import shipped_configs
 from dobhil.emulator.plant import Plant
 from dobhil.emulator.protocol import EmulatedDrive
 from dobhil.emulator.registry import make_emulated_drive
@@ -69,7 +69,7 @@ class DobhilBus(can.BusABC):
                  overrides: Overrides = None, receive_own_messages: bool = False, **kwargs: Any) -> None:
         name = DEFAULT_CONFIG if channel is None else str(channel)
         try:
-            path = config_path(name)
+            path = resolve_config(name)
             self.config: Config = load_config(path, override_items(overrides))
             profile = load_drive_profile(self.config, path.parent)
             plant = Plant.from_config(self.config)

@@ -9,7 +9,8 @@ from dobhil.config import Config, load_config
 
 def add_config_args(parser: argparse.ArgumentParser, *, required: bool = True) -> None:
     parser.add_argument("config", metavar="CONFIG", nargs=None if required else "?",
-                        help="YAML config (see docs/config.md)")
+                        help="YAML config file, or a shipped config name (demo, paper/fig2c; "
+                        "see docs/config.md)")
     parser.add_argument("--set", dest="overrides", action="append", default=[],
                         metavar="KEY=VALUE", help="override a config key (repeatable)")
 

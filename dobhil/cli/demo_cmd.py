@@ -11,10 +11,12 @@ from dobhil.cli.common import add_config_args
 
 
 def demo_config_path() -> Path:
-    return Path(__file__).resolve().parents[2] / "configs" / "demo.yaml"
+    """The shipped ``demo`` config (``configs/demo.yaml`` in the repository)."""
+    from dobhil.config import resolve_config
+    return resolve_config("demo")
 
 
-def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = sub.add_parser("demo", help="emulated force-control run of configs/demo.yaml, with a plot")
     add_config_args(p, required=False)
     p.add_argument("--out", type=Path, default=Path("out/demo"), help="output directory")
@@ -34,7 +36,8 @@ def run(args: argparse.Namespace) -> int:
     from dobhil.runtime.loop import StopRequest
     from dobhil.runtime.session import RunSession, summary
     from dobhil.runtime.signals import stop_on_signals
-    path = Path(args.config) if args.config else demo_config_path()
+    from dobhil.config import resolve_config
+    path = resolve_config(args.config) if args.config else demo_config_path()
     config = load_config(path, args.overrides)
     log_path = None if args.no_log else (args.log or default_log_path(args.out))
     log = make_log(log_path, config, path)

@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import os
+import select
 import sys
 from collections.abc import Sequence
 
@@ -28,9 +30,20 @@ _SUBCOMMANDS: tuple[str, ...] = (
     "dobhil.cli.replay_cmd",
     "dobhil.cli.report_cmd",
     "dobhil.cli.demo_cmd",
+    "dobhil.cli.init_cmd",
 )
 
 EXIT_USAGE = 2
+#: exit code when the reader of stdout went away (``dobhil ... | head``): 128 + SIGPIPE, as a shell reports
+EXIT_BROKEN_PIPE = 141
+
+DESCRIPTION = ("Robust force control of servo drives over CAN with the disturbance observer (DOb) and "
+               "reaction torque observer (RTOb): design and check the controller, run it on a drive "
+               "through python-can or against the plant emulator, record every run to MCAP, replay "
+               "and analyse it.")
+EPILOG = ("CONFIG is a YAML file or the name of a shipped config (demo, paper/fig2c); "
+          "'dobhil init DIR' copies them for editing. 'dobhil COMMAND --help' shows a command's options. "
+          "Exit codes: 0 done, 1 safety stop or failed check, 2 bad input.")
 
 
 class _Parser(argparse.ArgumentParser):
@@ -42,7 +55,7 @@ class _Parser(argparse.ArgumentParser):
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = _Parser(prog="dobhil", description=__doc__.splitlines()[0])
+    parser = _Parser(prog="dobhil", description=DESCRIPTION, epilog=EPILOG)
     parser.add_argument("--version", action="version", version=f"dobhil {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
     sub.required = True
@@ -58,6 +71,31 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    try:
+        code = _main(argv)
+        sys.stdout.flush()  # a closed pipe shows here, not as a traceback at exit
+    except BrokenPipeError:
+        if not _stdout_gone():
+            raise  # another pipe (a worker process, a socket): a real failure, not ours to hide
+        # the reader (e.g. ``head``) has gone: stop quietly; point stdout at devnull so the
+        # interpreter's final flush does not complain either
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        return EXIT_BROKEN_PIPE
+    return code
+
+
+def _stdout_gone() -> bool:
+    """Whether stdout is a pipe whose reader has closed it (poll reports an error on it)."""
+    try:
+        poller = select.poll()
+        poller.register(sys.stdout.fileno(), select.POLLOUT)
+        return any(events & (select.POLLERR | select.POLLHUP) for _, events in poller.poll(0))
+    except (AttributeError, OSError, ValueError):  # no poll (Windows), no real file descriptor
+        return False
+
+
+def _main(argv: Sequence[str] | None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     try:

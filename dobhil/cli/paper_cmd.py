@@ -8,7 +8,7 @@ from pathlib import Path
 from dobhil.errors import DobhilError
 
 
-def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = sub.add_parser("paper", help="reproduce the paper's Fig. 2 and Fig. 3 and check its claims")
     p.add_argument("--out", type=Path, default=Path("out/paper"), help="output directory")
     p.set_defaults(func=run)

@@ -12,14 +12,18 @@ import csv
 import json
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 from dobhil.errors import LogFileError
+
+if TYPE_CHECKING:
+    from dobhil.runtime.replay import ReplayResult
 
 #: exit code of a verification that found a difference
 EXIT_MISMATCH = 1
 
 
-def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = sub.add_parser("replay", help="re-run the controller offline on a recorded run's feedback")
     p.add_argument("file", metavar="FILE.mcap")
     p.add_argument("--verify", action="store_true",
@@ -51,7 +55,7 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _print(info: dict) -> None:  # type: ignore[type-arg]
+def _print(info: dict[str, Any]) -> None:
     over = ", ".join(info["overrides"]) or "recorded config"
     print(f"replayed {info['cycles']} cycles of {info['file']} with {over}")
     if info["identical"]:
@@ -62,7 +66,7 @@ def _print(info: dict) -> None:  # type: ignore[type-arg]
         print(f"  {name:<12} replayed - recorded: max |.| {d['max_abs']:.6g} N m, RMS {d['rms']:.6g} N m")
 
 
-def _write_csv(result, path: Path) -> None:  # type: ignore[no-untyped-def]
+def _write_csv(result: ReplayResult, path: Path) -> None:
     try:
         handle = open(path, "w", newline="", encoding="utf-8")
     except OSError as exc:

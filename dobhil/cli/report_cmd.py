@@ -13,7 +13,7 @@ import sys
 from pathlib import Path
 
 
-def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = sub.add_parser("report", help="plots and a summary (step metrics, errors, timing, bus) of a recorded run")
     p.add_argument("file", metavar="FILE.mcap")
     p.add_argument("--out", type=Path, required=True, metavar="DIR", help="output directory")

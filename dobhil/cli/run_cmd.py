@@ -17,7 +17,7 @@ from dobhil.cli.common import add_config_args, config_from_args
 EXIT_STOPPED = 1
 
 
-def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = sub.add_parser("run", help="run the force-control loop on a drive (or the emulator)")
     add_config_args(p)
     p.add_argument("--bus", metavar="INTERFACE:CHANNEL",
@@ -61,6 +61,7 @@ def run(args: argparse.Namespace) -> int:
 def run_checked(args: argparse.Namespace) -> int:
     """``dobhil run`` after the preflight (raises PreflightError when it refuses)."""
     from dobhil.cli.check_cmd import preflight_kwargs
+    from dobhil.config import resolve_config
     from dobhil.runtime.loop import StopRequest
     from dobhil.runtime.session import RunSession, summary
     from dobhil.runtime.signals import stop_on_signals
@@ -69,7 +70,7 @@ def run_checked(args: argparse.Namespace) -> int:
     with closing_on_error(log), stop_on_signals(StopRequest()) as request, \
             RunSession(config, bus=args.bus, emulate=args.emulate,
                        lockstep=True if args.lockstep else None, duration=args.duration,
-                       config_dir=Path(args.config).parent, stop_request=request,
+                       config_dir=resolve_config(args.config).parent, stop_request=request,
                        **log_hooks(log), **preflight_kwargs(args)) as session:
         report_preflight(session.preflight())
         warn_realtime(session)
@@ -138,7 +139,7 @@ def run_logged(session: Any, log: Any) -> Any:
     return run_recorded(session, log)
 
 
-def report(info: dict, stop_line: str, *, as_json: bool) -> None:  # type: ignore[type-arg]
+def report(info: dict[str, Any], stop_line: str, *, as_json: bool) -> None:
     if as_json:
         json.dump(info, sys.stdout)
         sys.stdout.write("\n")
@@ -169,8 +170,9 @@ def emulate(args: argparse.Namespace) -> int:
     from dobhil.runtime.loop import StopRequest
     from dobhil.runtime.session import load_drive_profile
     from dobhil.runtime.signals import stop_on_signals
+    from dobhil.config import resolve_config
     config = config_from_args(args)
-    profile = load_drive_profile(config, Path(args.config).parent)
+    profile = load_drive_profile(config, resolve_config(args.config).parent)
     spec = BusSpec.parse(args.bus)
     bus = open_bus(spec)
     emulator = make_emulated_drive(bus, profile, Plant.from_config(config),

@@ -10,21 +10,40 @@ import dataclasses
 import math
 from collections.abc import Iterable, Mapping
 from pathlib import Path
-from typing import Any
+from typing import Any, NoReturn
 
 import yaml
 
 from dobhil.config.schema import SECTIONS, Check, Config, key_fields
+from dobhil.config.yamlio import safe_load, where
+from dobhil.data import configs_dir, shipped_configs, shipped_file
 from dobhil.errors import ConfigError
 
 
 def load_config(path: str | Path | None = None, overrides: Iterable[str] = ()) -> Config:
-    """Read ``path`` (YAML; None for the defaults), apply ``key=value`` overrides, validate."""
-    flat = _flatten(read_yaml(path), "") if path is not None else {}
+    """Read ``path`` (a YAML file or a shipped config name, see :func:`resolve_config`; None
+    for the defaults), apply ``key=value`` overrides, validate."""
+    flat = _flatten(read_yaml(resolve_config(path)), "") if path is not None else {}
     for item in overrides:
         name, value = parse_override(item)
         flat[name] = value
     return build_config(flat, source=str(path) if path else "defaults")
+
+
+def resolve_config(path: str | Path) -> Path:
+    """The file of a config given as a path or as a shipped name (``demo``, ``paper/fig2c``).
+
+    An existing path is always that file; otherwise a shipped config of that name; otherwise
+    ConfigError listing the shipped names.
+    """
+    p = Path(path)
+    if p.exists():
+        return p
+    found = shipped_file(configs_dir(), str(path))
+    if found is not None:
+        return found
+    raise ConfigError(f"config {str(path)!r}: no such file, and not a shipped config name; shipped: "
+                      f"{', '.join(shipped_configs())} (dobhil init DIR copies them for editing)")
 
 
 def read_yaml(path: str | Path) -> dict[str, Any]:
@@ -37,22 +56,17 @@ def read_yaml(path: str | Path) -> dict[str, Any]:
     except (IsADirectoryError, PermissionError, UnicodeDecodeError) as exc:
         raise ConfigError(f"config file {p} cannot be read: {exc.__class__.__name__}") from None
     try:
-        data = yaml.safe_load(text)
+        data = safe_load(text)
     except yaml.YAMLError as exc:
-        raise ConfigError(f"{p}: YAML syntax error{_yaml_where(exc)}") from None
+        raise ConfigError(f"{p}: YAML syntax error{where(exc)}") from None
+    except (ValueError, RecursionError) as exc:  # e.g. an integer of more than 4300 digits
+        raise ConfigError(f"{p}: unreadable value: {str(exc).splitlines()[0]}") from None
     if data is None:
         return {}
     if not isinstance(data, dict):
         raise ConfigError(f"{p}: expected a mapping of sections (plant:, design:, ...), "
                           f"got a {type(data).__name__}")
     return data
-
-
-def _yaml_where(exc: yaml.YAMLError) -> str:
-    mark = getattr(exc, "problem_mark", None)
-    problem = getattr(exc, "problem", None) or ""
-    where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
-    return f"{where}: {problem}" if problem else where
 
 
 def _flatten(data: Mapping[str, Any], prefix: str) -> dict[str, Any]:
@@ -72,8 +86,8 @@ def parse_override(item: str) -> tuple[str, Any]:
     if not sep or not name.strip():
         raise ConfigError(f"--set {item!r}: expected key=value, e.g. design.force_gain=3")
     try:
-        value = yaml.safe_load(text) if text.strip() else ""
-    except yaml.YAMLError:
+        value = safe_load(text) if text.strip() else ""
+    except (yaml.YAMLError, ValueError, RecursionError):
         value = text
     return name.strip(), value
 
@@ -114,32 +128,70 @@ def coerce(name: str, raw: Any, f: dataclasses.Field[Any]) -> Any:
     return value
 
 
+def _show(raw: Any) -> str:
+    """``repr(raw)``, short: a value quoted in a one-line error."""
+    if isinstance(raw, int) and not isinstance(raw, bool) and raw.bit_length() > 64:
+        return f"<an integer of {len(str(raw)) if raw.bit_length() < 14_000 else 'thousands of'} digits>"
+    text = repr(raw)
+    return text if len(text) <= 60 else text[:57] + "..."
+
+
 def _coerce_str(name: str, raw: Any, choices: tuple[str, ...]) -> str:
     if not isinstance(raw, str):
         allowed = f"one of {', '.join(choices)}" if choices else "a string"
-        raise ConfigError(f"{name} = {raw!r}: wrong type {type(raw).__name__}; allowed: {allowed}")
+        raise ConfigError(f"{name} = {_show(raw)}: wrong type {type(raw).__name__}; allowed: {allowed}")
     if choices and raw not in choices:
         raise ConfigError(f"{name} = {raw!r}: not allowed; allowed: {', '.join(choices)}")
     return raw
 
 
+#: no key has a physical value beyond this magnitude (SI units); larger numbers are typos,
+#: and would overflow the drive's float32 fields or the simulation
+MAX_MAGNITUDE = 1e15
+#: integer keys (counts, seeds, bit rates) fit a signed 64-bit integer
+MAX_INT = 2**63 - 1
+
+
 def _coerce_number(name: str, raw: Any, kind: type) -> float | int:
     if isinstance(raw, str):  # YAML 1.1 reads 1e-3 (no dot) as a string
         try:
-            raw = float(raw)
+            number = float(raw)
         except ValueError:
             pass
+        else:
+            return _coerce_number(name, number, kind) if math.isfinite(number) else _not_finite(name, raw)
     if isinstance(raw, bool) or not isinstance(raw, (int, float)):
-        raise ConfigError(f"{name} = {raw!r}: wrong type {type(raw).__name__}; "
+        raise ConfigError(f"{name} = {_show(raw)}: wrong type {type(raw).__name__}; "
                           f"allowed: {'an integer' if kind is int else 'a number'}")
     if kind is int:
-        if float(raw) != int(raw):
-            raise ConfigError(f"{name} = {raw!r}: must be a whole number")
-        return int(raw)
-    value = float(raw)
-    if not math.isfinite(value):
-        raise ConfigError(f"{name} = {raw!r}: must be a finite number")
+        return _coerce_int(name, raw)
+    try:
+        value = float(raw)
+    except OverflowError:  # an integer beyond the float range
+        value = math.inf
+    else:
+        if not math.isfinite(value):  # nan or inf from YAML (.nan, .inf)
+            _not_finite(name, raw)
+    if abs(value) > MAX_MAGNITUDE:
+        raise ConfigError(f"{name} = {_show(raw)}: outside the physical range; allowed: "
+                          f"|value| <= {MAX_MAGNITUDE:g} (SI units)")
     return value
+
+
+def _not_finite(name: str, raw: Any) -> NoReturn:
+    raise ConfigError(f"{name} = {_show(raw)}: must be a finite number")
+
+
+def _coerce_int(name: str, raw: int | float) -> int:
+    if isinstance(raw, float):
+        if not math.isfinite(raw):
+            _not_finite(name, raw)
+        if raw != int(raw):
+            raise ConfigError(f"{name} = {_show(raw)}: must be a whole number")
+        raw = int(raw)
+    if abs(raw) > MAX_INT:
+        raise ConfigError(f"{name} = {_show(raw)}: too large; allowed: |value| <= 2**63 - 1")
+    return raw
 
 
 def _check_range(name: str, value: float, check: Check) -> None:

@@ -1,12 +1,12 @@
 """Drive profiles: one frozen :class:`DriveProfile` per YAML file under ``drivers/``.
 
 ``load_profile(name_or_path)`` accepts a path to a YAML file, or a profile name looked
-up as ``<drivers_dir>/<name>.yaml``. ``drivers/`` sits at the repository root, not inside
-the package, so the default directory is ``Path(__file__).resolve().parents[2] /
-"drivers"`` — right for a source checkout and an editable install; a wheel install
-must pass ``drivers_dir=`` or an explicit path. Every key is documented in
-``drivers/README.md``. Validation is protocol-neutral; each protocol checks its own
-values (e.g. ODrive firmware and node id range) when the drive is made.
+up as ``<name>.yaml`` in the nearest ``drivers/`` directory above ``near`` (the config's
+directory: the layout of the repository and of ``dobhil init``), then among the shipped
+profiles (``drivers/`` of the repository, installed as ``dobhil.data.drivers``; see
+:mod:`dobhil.data`). Every key is documented in ``drivers/README.md``. Validation is
+protocol-neutral; each protocol checks its own values (e.g. ODrive firmware and node id
+range) when the drive is made.
 """
 
 from __future__ import annotations
@@ -21,6 +21,7 @@ from typing import Any
 
 import yaml
 
+from dobhil.config.yamlio import safe_load, where
 from dobhil.errors import ConfigError
 
 __all__ = ["DriveProfile", "default_drivers_dir", "load_profile", "profile_from_mapping"]
@@ -66,15 +67,42 @@ _OPTIONAL = frozenset({"bus", "name"})
 
 
 def default_drivers_dir() -> Path:
-    """``<repo>/drivers`` (source checkout / editable install)."""
-    return Path(__file__).resolve().parents[2] / "drivers"
+    """The shipped profiles (``drivers/`` of the repository, ``dobhil.data.drivers`` installed)."""
+    from dobhil.data import drivers_dir
+    return drivers_dir()
+
+
+def _near(name: str, near: Path) -> Path | None:
+    """``drivers/<name>.yaml`` in ``near`` or the closest of its parents that has one."""
+    start = near.resolve()
+    for directory in (start, *start.parents):
+        path = directory / "drivers" / f"{name}.yaml"
+        if path.is_file():
+            return path
+    return None
+
+
+def _as_number(value: Any) -> Any:
+    """A number key's value as YAML 1.2 reads it: ``1e-9`` (a string to PyYAML's YAML 1.1)
+    becomes a float; an integer too large for a float becomes inf (rejected as not finite)."""
+    if isinstance(value, str):
+        try:
+            return float(value)
+        except ValueError:
+            return value
+    if isinstance(value, int) and not isinstance(value, bool) and value.bit_length() > 1000:
+        return math.inf
+    return value
 
 
 def _check_value(key: str, value: Any, source: str) -> Any:
     types, allowed, ok = _RULES[key]
+    if float in types:
+        value = _as_number(value)
     type_ok = isinstance(value, types) and not isinstance(value, bool)
     if not type_ok or not ok(value):
-        raise ConfigError(f"{source}: {key}: expected {allowed}, got {value!r}")
+        shown = repr(value) if len(repr(value)) <= 60 else repr(value)[:57] + "..."
+        raise ConfigError(f"{source}: {key}: expected {allowed}, got {shown}")
     if float in types:
         return float(value)
     if key == "bus":
@@ -97,29 +125,37 @@ def profile_from_mapping(data: Mapping[str, Any], *, source: str = "<profile>") 
     return DriveProfile(**values)
 
 
-def _resolve(name_or_path: str | os.PathLike[str], drivers_dir: Path | None) -> Path:
+def _resolve(name_or_path: str | os.PathLike[str], drivers_dir: Path | None, near: Path | None) -> Path:
     text = os.fspath(name_or_path)
     candidate = Path(text)
     if candidate.suffix in (".yaml", ".yml") or os.sep in text or "/" in text:
         if candidate.is_file():
             return candidate
         raise ConfigError(f"profile file {text!r} does not exist")
+    found = _near(text, near) if near is not None and drivers_dir is None else None
+    if found is not None:
+        return found
     directory = drivers_dir if drivers_dir is not None else default_drivers_dir()
     path = directory / f"{text}.yaml"
     if path.is_file():
         return path
     known = sorted(p.stem for p in directory.glob("*.yaml")) if directory.is_dir() else []
-    raise ConfigError(f"drive profile {text!r}: expected one of {known} in {directory}")
+    hint = f"in {directory}" if drivers_dir is not None else \
+        f"(shipped), or {text}.yaml in a drivers/ directory above the config, or a path to a .yaml file"
+    raise ConfigError(f"drive profile {text!r}: expected one of {known} {hint}")
 
 
 def load_profile(
-    name_or_path: str | os.PathLike[str], *, drivers_dir: Path | None = None
+    name_or_path: str | os.PathLike[str], *, drivers_dir: Path | None = None, near: Path | None = None
 ) -> DriveProfile:
-    """Load ``drivers/<name>.yaml`` (or an explicit YAML path) into a DriveProfile."""
-    path = _resolve(name_or_path, drivers_dir)
+    """Load a profile by name (from ``drivers_dir``, else a ``drivers/`` above ``near``, else the
+    shipped ones) or an explicit YAML path into a DriveProfile."""
+    path = _resolve(name_or_path, drivers_dir, near)
     try:
-        data = yaml.safe_load(path.read_text(encoding="utf-8"))
-    except (OSError, yaml.YAMLError) as exc:
-        raise ConfigError(f"{path}: cannot read drive profile: {exc}") from None
+        data = safe_load(path.read_text(encoding="utf-8"))
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"{path}: YAML error in drive profile{where(exc)}") from None
+    except (OSError, ValueError, RecursionError) as exc:
+        raise ConfigError(f"{path}: cannot read drive profile: {' '.join(str(exc).split())}") from None
     data = {"name": path.stem, **(data or {})} if isinstance(data, Mapping) else data
     return profile_from_mapping(data, source=str(path))

@@ -274,7 +274,7 @@ class Plant:
         lim = self.torque_limit
         u = lim if torque_nm > lim else (-lim if torque_nm < -lim else float(torque_nm))
         self._tau_motor = u
-        zoh = self._zoh if dt == self._dt else self._load(dt)
+        zoh = self._zoh if dt == self._dt and self._zoh is not None else self._load(dt)
         t0 = self._t
         tau_d = self._constant_disturbance(t0, dt)
         if tau_d is None or self.coulomb_friction or not self._exact_step(u - tau_d, zoh):

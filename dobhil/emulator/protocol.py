@@ -313,7 +313,7 @@ class LockstepBus(can.BusABC):
         self.channel_info = f"lockstep over {inner.channel_info}"
         self._to_emulators = 0  # host frames the emulators have not read yet
         self._to_host = 0       # emulator frames the host has not read yet
-        super().__init__(channel=None, **kwargs)  # type: ignore[arg-type]  # no channel of its own
+        super().__init__(channel=self.channel_info, **kwargs)
 
     def clock(self) -> float:
         """Simulated time [s] (pass as ``clock=`` to the host's Drive)."""

@@ -82,7 +82,8 @@ def error_figure(data: RunData, path: Path) -> Path:
     ax = axes[0, 0]
     ax.plot(t, data["tau_ref"] - data["tau_int_hat"], lw=1.0, label="$\\tau^{ref} - \\hat\\tau_{int}$")
     if data.has("tau_int_true"):
-        ax.plot(t, data["tau_ref"] - data["tau_int_true"], lw=1.0, alpha=0.8, label="$\\tau^{ref} - \\tau_{int}$ (true)")
+        ax.plot(t, data["tau_ref"] - data["tau_int_true"], lw=1.0, alpha=0.8,
+                label="$\\tau^{ref} - \\tau_{int}$ (true)")
     _finish(ax, "tracking error [N m]")
     ax.set_title(_title(data, "Force tracking error"))
     if rows == 2:

@@ -156,4 +156,5 @@ def import_can(
     return count
 
 
-__all__ = ["FORMATS", "CanLogFormat", "default_output", "export_can", "import_can", "parse_format", "payload_to_message"]
+__all__ = ["FORMATS", "CanLogFormat", "default_output", "export_can", "import_can", "parse_format",
+           "payload_to_message"]

@@ -27,7 +27,7 @@ from dobhil.recording.filewriter import CHUNK_SIZE, chunk_compression
 ProgressFn = Callable[[int], None]
 
 #: Errors that mean "the data ends or is damaged here".
-_DAMAGED: Final = (*DAMAGE_ERRORS, MemoryError)
+_DAMAGED: Final[tuple[type[BaseException], ...]] = (*DAMAGE_ERRORS, MemoryError)
 #: Largest record a recovery will try to read (a damaged length field must not allocate GiBs).
 _RECORD_LIMIT: Final = 1 << 30
 

@@ -37,7 +37,7 @@ class RecordingBus(can.BusABC):
         self.channel_info = f"recording {inner.channel_info}"
         self.sent = 0
         self.received = 0
-        super().__init__(channel=getattr(inner, "channel", None), **kwargs)
+        super().__init__(channel=self.channel_info, **kwargs)
 
     @property
     def inner(self) -> can.BusABC:

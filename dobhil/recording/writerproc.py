@@ -303,7 +303,7 @@ def _plain(value: Any) -> Any:
 def _read_status(conn: Connection) -> Sequence[Any] | None:
     try:
         if conn.poll(0):
-            return marshal.loads(conn.recv_bytes())  # type: ignore[no-any-return]
+            return marshal.loads(conn.recv_bytes())
     except (EOFError, OSError, ValueError):
         return None
     return None

@@ -127,7 +127,7 @@ def _fixed_point_map(ss: ControllerSS) -> NDArray[np.float64]:
     """``(I - A)^-1 B_y``: the state at rest for a constant measurement and u = 0."""
     n = ss.order
     try:
-        return np.linalg.solve(np.eye(n) - ss.a, ss.b_y)
+        return np.asarray(np.linalg.solve(np.eye(n) - ss.a, ss.b_y), dtype=np.float64)
     except np.linalg.LinAlgError:
         raise SynthesisError("sampled observer has a pole at z = 1: no state at rest") from None
 

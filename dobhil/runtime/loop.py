@@ -316,9 +316,10 @@ class ForceLoop:
         self._last_out = out
 
     def _emit(self, k: int, fb: Feedback, overrun: bool) -> None:
-        if self.sink is not None:
+        out = self._last_out  # set by the cycle just stored; None only before the first
+        if self.sink is not None and out is not None:
             d = self.trace.data
-            self.sink.cycle(k, float(d["t"][k]), fb, self._last_out, float(d["period_error"][k]),
+            self.sink.cycle(k, float(d["t"][k]), fb, out, float(d["period_error"][k]),
                             float(d["exec_time"][k]), overrun)
 
     def _safe_stop(self, stop: Stop) -> bool:

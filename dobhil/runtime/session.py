@@ -38,7 +38,7 @@ def load_drive_profile(config: Config, base_dir: Path | None = None) -> DrivePro
     name = config.drive.profile
     candidate = (base_dir / name) if base_dir and not Path(name).is_absolute() else Path(name)
     return load_profile(str(candidate) if candidate.suffix in (".yaml", ".yml") and candidate.exists()
-                        else name)
+                        else name, near=base_dir)
 
 
 def check_rates(profile: DriveProfile, period: float) -> None:
@@ -205,7 +205,7 @@ def summary(session: RunSession, result: RunResult) -> dict[str, Any]:
     """The ``--summary-json`` object."""
     tr = result.trace
     last = tr.n - 1
-    final = {"tau_ref": None, "tau_int_hat": None, "tau_int_true": None, "q": None}
+    final: dict[str, float | None] = {"tau_ref": None, "tau_int_hat": None, "tau_int_true": None, "q": None}
     if last >= 0:
         d = tr.data
         true = float(d["tau_int_true"][last])

@@ -18,7 +18,7 @@ from dobhil.errors import SynthesisError
 from dobhil.synthesis.params import Array, SignalModel
 
 
-def servo_matrices(inertia: Array, friction: Array) -> tuple[Array, Array]:
+def servo_matrices(inertia: Array | float, friction: Array | float) -> tuple[Array, Array]:
     """(A, B) of Eq. (28) for inertia J and viscous friction b (D equals B)."""
     inertia, friction = np.broadcast_arrays(np.asarray(inertia, float), np.asarray(friction, float))
     a = np.zeros(inertia.shape + (2, 2))
@@ -29,8 +29,8 @@ def servo_matrices(inertia: Array, friction: Array) -> tuple[Array, Array]:
     return a, b
 
 
-def plant_matrices(inertia: Array, friction: Array, stiffness: Array,
-                   damping: Array) -> tuple[Array, Array, Array]:
+def plant_matrices(inertia: Array | float, friction: Array | float, stiffness: Array | float,
+                   damping: Array | float) -> tuple[Array, Array, Array]:
     """The exact servo in contact with the environment: (A, B, C_int).
 
     ``x' = A x + B (u - tau_d^u)`` and ``tau_int = C_int x``. This is the one

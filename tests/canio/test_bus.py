@@ -16,7 +16,8 @@ import pytest
 import yaml
 
 from dobhil.canio.bus import DobhilBus, EmulatedBusError, override_items
-from dobhil.canio.configs import config_path, shipped_configs
+from dobhil.config import resolve_config
+from dobhil.data import shipped_configs
 
 REPO = Path(__file__).resolve().parents[2]
 NODE = 3  # drivers/odrive-0.6.yaml
@@ -112,10 +113,10 @@ def test_overrides_config_path_and_bad_channels(tmp_path: Path) -> None:
                    overrides="plant.inertia=0.1,plant.initial_position=-0.02") as bus:
         assert bus.config.plant.inertia == 0.1
         assert bus.plant.true_position == pytest.approx(-0.02)
-    assert config_path("paper/fig2c") == REPO / "configs" / "paper" / "fig2c.yaml"
-    with pytest.raises(EmulatedBusError, match=r"no config 'nope'.*demo, paper/fig2a"):
+    assert resolve_config("paper/fig2c").resolve() == (REPO / "configs" / "paper" / "fig2c.yaml").resolve()
+    with pytest.raises(EmulatedBusError, match=r"config 'nope'.*shipped: demo, paper/fig2a"):
         can.Bus(interface="dobhil", channel="nope")
-    with pytest.raises(can.CanInitializationError, match="does not exist"):
+    with pytest.raises(can.CanInitializationError, match="missing.yaml"):
         can.Bus(interface="dobhil", channel=str(tmp_path / "missing.yaml"))
     with pytest.raises(EmulatedBusError, match="unknown config key 'plant.inertai'"):
         can.Bus(interface="dobhil", channel="demo", overrides=["plant.inertai=1"])

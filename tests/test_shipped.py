@@ -1,0 +1,133 @@
+"""Shipped configs and drive profiles: found by name from any directory, ``dobhil init``,
+and the command line's plain help and quiet broken pipe."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from dobhil.cli.main import DESCRIPTION, EXIT_BROKEN_PIPE, main
+from dobhil.config import load_config, resolve_config
+from dobhil.data import configs_dir, copy_shipped, drivers_dir, shipped_configs, shipped_profiles
+from dobhil.drives.profile import load_profile
+from dobhil.errors import ConfigError, DobhilError
+from dobhil.runtime.session import load_drive_profile
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _repo_files(top: str) -> list[str]:
+    base = ROOT / top
+    return sorted(p.relative_to(base).as_posix() for p in base.rglob("*")
+                  if p.is_file() and p.name != "__init__.py" and "__pycache__" not in p.parts)
+
+
+def test_the_shipped_files_are_the_repository_directories() -> None:
+    for top, directory in (("configs", configs_dir()), ("drivers", drivers_dir())):
+        shipped = sorted(p.relative_to(directory).as_posix() for p in directory.rglob("*")
+                         if p.is_file() and p.name != "__init__.py" and "__pycache__" not in p.parts)
+        assert shipped == _repo_files(top)
+        for rel in shipped:
+            assert (directory / rel).read_bytes() == (ROOT / top / rel).read_bytes()
+    assert {"demo", "paper/fig2c"} <= set(shipped_configs())
+    assert {"odrive-0.5", "odrive-0.6"} <= set(shipped_profiles())
+
+
+@pytest.mark.parametrize("name", ["demo", "paper/fig2c", "paper/fig3.yaml"])
+def test_a_shipped_config_name_works_from_any_directory(name: str, tmp_path: Path,
+                                                        monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.chdir(tmp_path)
+    stem = name.removesuffix(".yaml")
+    assert resolve_config(name) == configs_dir() / f"{stem}.yaml"
+    assert load_config(name) == load_config(ROOT / "configs" / f"{stem}.yaml")
+
+
+def test_a_path_is_always_a_path(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.chdir(tmp_path)
+    Path("demo").write_text("design: {force_gain: 7}\n")  # a local file named like a shipped config
+    assert load_config("demo").design.force_gain == 7.0
+    with pytest.raises(ConfigError, match="no such file"):
+        load_config("configs/demo.yaml")  # not here, and not a name
+
+
+def test_an_unknown_config_is_one_line_listing_the_shipped_names(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]) -> None:
+    monkeypatch.chdir(tmp_path)
+    assert main(["analyze", "nope"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "Traceback" not in err
+    assert "config 'nope'" in err and "demo, paper/fig2a" in err
+
+
+def test_a_profile_name_works_from_any_directory(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.chdir(tmp_path)
+    profile = load_profile("odrive-0.6")
+    assert profile.name == "odrive-0.6" and profile.protocol == "odrive"
+    with pytest.raises(ConfigError, match=r"drive profile 'nope': expected one of \['odrive-0.5', 'odrive-0.6'"):
+        load_profile("nope")
+
+
+def test_init_copies_everything_and_an_edited_profile_is_used(tmp_path: Path,
+                                                               capsys: pytest.CaptureFixture[str]) -> None:
+    dest = tmp_path / "lab"
+    assert main(["init", str(dest)]) == 0
+    assert "copied" in capsys.readouterr().out
+    assert sorted(p.relative_to(dest / "configs").as_posix() for p in (dest / "configs").rglob("*")
+                  if p.is_file()) == _repo_files("configs")
+    assert sorted(p.relative_to(dest / "drivers").as_posix() for p in (dest / "drivers").rglob("*")
+                  if p.is_file()) == _repo_files("drivers")
+    # the copy is the user's: a profile name in a copied config finds the edited profile
+    profile_file = dest / "drivers" / "odrive-0.6.yaml"
+    profile_file.write_text(profile_file.read_text().replace("torque_limit:", "torque_limit: 0.75 #"))
+    for config_file in (dest / "configs" / "demo.yaml", dest / "configs" / "paper" / "fig3.yaml"):
+        config = load_config(config_file)
+        assert load_drive_profile(config, config_file.parent).torque_limit == 0.75
+    assert load_drive_profile(load_config("demo"), configs_dir()).torque_limit != 0.75
+
+
+def test_init_never_overwrites(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    dest = tmp_path / "lab"
+    (dest / "drivers").mkdir(parents=True)
+    mine = dest / "drivers" / "odrive-0.6.yaml"
+    mine.write_text("my own\n")
+    assert main(["init", str(dest)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "odrive-0.6.yaml exists" in err
+    assert mine.read_text() == "my own\n"
+    assert not (dest / "configs").exists()  # nothing written when anything would be overwritten
+    with pytest.raises(DobhilError, match="not a directory"):
+        copy_shipped(mine)
+
+
+def test_help_is_a_plain_description(capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as exc:
+        main(["--help"])
+    assert exc.value.code == 0
+    out = capsys.readouterr().out
+    assert DESCRIPTION.split()[0] in out and "init" in out
+    assert "``" not in out and "Entry point" not in out
+
+
+def test_a_closed_stdout_is_no_traceback(tmp_path: Path) -> None:
+    proc = subprocess.Popen([sys.executable, "-m", "dobhil", "analyze", "paper/fig2c"], cwd=tmp_path,
+                            stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    assert proc.stdout is not None and proc.stderr is not None
+    proc.stdout.close()  # the reader went away, as `dobhil ... | head -0` does
+    err = proc.stderr.read().decode()
+    proc.stderr.close()
+    assert proc.wait(timeout=120) == EXIT_BROKEN_PIPE
+    assert "Traceback" not in err and "BrokenPipe" not in err, err
+
+
+def test_a_broken_pipe_that_is_not_stdout_is_not_hidden(monkeypatch: pytest.MonkeyPatch) -> None:
+    import dobhil.cli.init_cmd as init_cmd
+
+    def broken(args: object) -> int:
+        raise BrokenPipeError(32, "a worker's pipe")
+
+    monkeypatch.setattr(init_cmd, "run", broken)
+    with pytest.raises(BrokenPipeError, match="worker"):
+        main(["init", "anywhere"])
