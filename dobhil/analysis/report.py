@@ -14,10 +14,12 @@ from typing import Any
 import control
 import numpy as np
 
+from dobhil.analysis.effective import EffectiveObserver, effective_observers
 from dobhil.analysis.metrics import StepMetrics, step_metrics, step_response
 from dobhil.analysis.stability import GainMap, gain_map, is_stable
 from dobhil.analysis.transfer import LoopSystems
 from dobhil.config.schema import Config
+from dobhil.synthesis.controller import continuous_controller, sampled_controller
 from dobhil.synthesis.params import Params, params_from_config
 
 
@@ -37,6 +39,7 @@ class DomainAnalysis:
     step_time: np.ndarray = field(repr=False)
     step_estimate: np.ndarray = field(repr=False)
     step_true: np.ndarray = field(repr=False)
+    observers: dict[str, EffectiveObserver] = field(default_factory=dict)
 
     @property
     def sample_time(self) -> float | None:
@@ -74,7 +77,9 @@ def analyze_domain(params: Params, *, sampled: bool, duration: float = 0.0) -> D
         margins=margins(systems.system("open_loop"), float(params.value("force_gain"))),
         step=step_metrics(t, y_hat, stable=stable, final=_dc(closed) if stable else None),
         step_force=step_metrics(t, y_true, stable=stable, final=_dc(force) if stable else None),
-        step_time=t, step_estimate=y_hat, step_true=y_true)
+        step_time=t, step_estimate=y_hat, step_true=y_true,
+        observers=effective_observers(sampled_controller(params) if sampled
+                                      else continuous_controller(params)))
 
 
 def _dc(sys: control.StateSpace) -> float:
@@ -152,10 +157,14 @@ def domain_json(d: DomainAnalysis) -> dict[str, Any]:
         "step": {k: v for k, v in d.step.as_dict().items()},
         "step_true_force": d.step_force.as_dict(),
         "sensitivities": sensitivities(d),
+        "observers": {k: v.as_dict() for k, v in d.observers.items()},
     }
     if d.sampled:
+        s = d.params.structure
         out["sample_time"] = d.sample_time
-        out["delay_samples"] = d.params.structure.delay_samples
+        out["delay_samples"] = s.delay_samples
+        out["input_delay"] = s.input_delay
+        out["discretization"] = s.discretization.name.lower()
     return out
 
 
@@ -184,7 +193,19 @@ def _domain_text(name: str, d: dict[str, Any]) -> list[str]:
         f"  margins: gain {_fmt(m['gain_margin_db'], ' dB')}, phase {_fmt(m['phase_margin_deg'], ' deg')}",
         f"  step (tau_int^): overshoot {_fmt(st['overshoot_pct'], ' %')}, rise {_fmt(st['rise_time'], ' s')}, "
         f"settling {_fmt(st['settling_time'], ' s')}, steady-state error {_fmt(st['steady_state_error'])}",
+        *(_observer_text(label, d["observers"][key])
+          for key, label in (("dob", "DOb  (J_mn, b_mn)"), ("rtob", "RTOb (J_mi, b_mi)"))),
     ]
+
+
+def _observer_text(label: str, o: dict[str, float | None]) -> str:
+    bw, friction = o["bandwidth"], o["friction"]
+    if friction is not None and o["inertia"] is not None and abs(friction) < 1e-9 * max(
+            1.0, abs(o["inertia"]) * (bw or 1.0)):
+        friction = 0.0   # rounding of a zero
+    return (f"  {label} as it runs: inertia {_fmt(o['inertia'], ' kg m^2', 6)}, friction "
+            f"{_fmt(friction, ' N m s/rad', 4)}, torque gain {_fmt(o['torque_gain'], '', 6)}, "
+            f"bandwidth (-3 dB) {'above Nyquist' if bw is None else _fmt(bw, ' rad/s')}")
 
 
 def _complex_str(z: list[float]) -> str:
@@ -196,6 +217,8 @@ def as_text(a: Analysis) -> str:
     j = as_json(a)
     ts = j["discrete"]["sample_time"]
     lines = _domain_text("continuous (paper)", j["continuous"])
-    lines += _domain_text(f"sampled (T = {ts:g} s, delay {j['discrete']['delay_samples']} samples)",
-                          j["discrete"])
+    dj = j["discrete"]
+    delay = f"delay {dj['delay_samples']} samples" + (f" + {dj['input_delay']:g} s"
+                                                      if dj["input_delay"] else "")
+    lines += _domain_text(f"sampled (T = {ts:g} s, {delay}, {dj['discretization']} controller)", dj)
     return "\n".join(lines)

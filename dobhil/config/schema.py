@@ -98,8 +98,11 @@ class DesignConfig:
                                            "g_v s/(s+g_v) q", unit="rad/s", check=Check.POSITIVE)
     delay_samples: int = key(0, "transport delay of the torque command in whole samples",
                              check=Check.NONNEGATIVE, structural=True)
-    discretization: str = key("zoh", "how the observers are discretised",
-                              choices=("zoh", "euler"))
+    discretization: str = key("parabolic", "how the controller is sampled: torque by zero-order "
+                              "hold; measured signals by a parabola through the last, this and "
+                              "the next sample (parabolic: exact inertia and friction), a "
+                              "triangle (foh: ramp-invariant), held (zoh) or forward Euler (euler)",
+                              choices=("parabolic", "foh", "zoh", "euler"))
     input_delay: float = key(0.0, "fraction of a period between the feedback sample and the "
                              "torque reaching the plant (compute + bus latency); below "
                              "loop.period", unit="s", check=Check.NONNEGATIVE, structural=True)
