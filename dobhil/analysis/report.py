@@ -15,7 +15,7 @@ import control
 import numpy as np
 
 from dobhil.analysis.effective import EffectiveObserver, effective_observers
-from dobhil.analysis.metrics import StepMetrics, step_metrics, step_response
+from dobhil.analysis.metrics import StepMetrics, step_metrics, step_responses
 from dobhil.analysis.stability import GainMap, gain_map, is_stable
 from dobhil.analysis.transfer import LoopSystems
 from dobhil.config.schema import Config
@@ -69,8 +69,10 @@ def analyze_domain(params: Params, *, sampled: bool, duration: float = 0.0) -> D
     cl_poles = np.linalg.eigvals(systems.closed.a)
     stable = bool(is_stable(cl_poles[None], sampled)[0])
     closed, force = systems.system("closed_loop"), systems.system("force")
-    t, y_hat = step_response(closed, duration) if stable else (np.zeros(0), np.zeros(0))
-    y_true = step_response(force, float(t[-1]))[1] if stable else np.zeros(0)
+    if stable:
+        t, (y_hat, y_true) = step_responses([closed, force], duration)
+    else:
+        t, y_hat, y_true = np.zeros(0), np.zeros(0), np.zeros(0)
     return DomainAnalysis(
         sampled=sampled, params=params, systems=systems, gains=gains,
         closed_loop_poles=cl_poles, stable=stable,

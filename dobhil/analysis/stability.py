@@ -24,10 +24,15 @@ from numpy.typing import NDArray
 
 from dobhil.analysis.polynomials import (Array, CArray, batched_roots, eval_poly,
                                          poly_from_roots, zeros_and_numerator)
+from dobhil.synthesis.numerics import balance
 
 #: a pole counts as stable when Re(s) < -STABILITY_TOL * scale (continuous) or
 #: |z| < 1 - STABILITY_TOL (sampled)
 STABILITY_TOL = 1e-9
+
+#: an open-loop pole within this (relative) distance of the stability boundary is taken
+#: to lie on it exactly (the loop's integrator: structurally at s = 0 / z = 1)
+MARGINAL_RTOL = 1e-10
 
 
 @dataclass(frozen=True)
@@ -60,20 +65,44 @@ def is_stable(poles: CArray, sampled: bool) -> NDArray[np.bool_]:
 
 def gain_map(a0: Array, b: Array, c: Array, *, sampled: bool) -> GainMap:
     """Poles, zeros, crossings and stable gain intervals of ``A0 - k B C`` for k > 0."""
+    a0, b, c = balance(a0, b, c)
     poles = np.linalg.eigvals(a0)
     zeros, num, rel = zeros_and_numerator(a0, b, c)
+    poles, marginal = _snap_marginal(poles, sampled)
     den = poly_from_roots(poles)
     minimum_phase = _minimum_phase(zeros, sampled)
     if sampled:
         den, num = _bilinear(den), _bilinear(num)
         scale_roots = np.concatenate([_to_w(poles), _to_w(zeros)], axis=-1)
+        marginal_w = np.where(marginal, _to_w(poles).imag, np.nan)
     else:
         scale_roots = np.concatenate([poles, zeros], axis=-1)
-    crossings = _crossing_gains(den, num, scale_roots)
+        marginal_w = np.where(marginal, poles.imag, np.nan)
+    crossings = _crossing_gains(den, num, scale_roots, marginal_w)
     lo, hi, kmax = _intervals(a0, b, c, crossings, sampled)
     return GainMap(poles=poles, zeros=zeros, relative_degree=rel, minimum_phase=minimum_phase,
                    crossings=crossings, interval_lo=lo, interval_hi=hi, max_stable_gain=kmax,
                    sampled=sampled)
+
+
+def _snap_marginal(poles: CArray, sampled: bool) -> tuple[CArray, NDArray[np.bool_]]:
+    """Open-loop poles on the stability boundary up to rounding, put on it exactly.
+
+    The loop's integrator sits at s = 0 (z = 1) by construction; eigenvalues return it
+    at +-1e-15 or so. Left there, the root locus' crossing at k = 0 shows up as a
+    crossing at a tiny positive gain (a spurious unstable sliver). Snapped, the crossing
+    at its frequency is known to happen at k = 0 and is dropped."""
+    if sampled:
+        mag = np.abs(poles)
+        marginal = np.abs(mag - 1.0) <= MARGINAL_RTOL
+        snapped = np.where(marginal, poles / np.where(marginal, mag, 1.0), poles)
+        snapped = np.where(marginal & (np.abs(snapped - 1.0) <= MARGINAL_RTOL), 1.0, snapped)
+    else:
+        scale = np.maximum(np.max(np.abs(poles), axis=-1, keepdims=True), 1e-300)
+        marginal = np.abs(poles.real) <= MARGINAL_RTOL * scale
+        snapped = np.where(marginal, 1j * poles.imag, poles)
+        snapped = np.where(marginal & (np.abs(snapped) <= MARGINAL_RTOL * scale), 0.0, snapped)
+    return snapped.astype(complex), marginal
 
 
 def _minimum_phase(zeros: CArray, sampled: bool) -> NDArray[np.bool_]:
@@ -102,7 +131,7 @@ def _binom(n: int, sign: float) -> Array:
     return np.array([comb(n, j) * sign ** (n - j) for j in range(n + 1)])
 
 
-def _scaled(den: Array, num: Array, roots: CArray) -> tuple[Array, Array]:
+def _scaled(den: Array, num: Array, roots: CArray) -> tuple[Array, Array, Array]:
     """Both polynomials in s = w0 s^ with w0 the largest finite root magnitude."""
     mags = np.where(np.isfinite(roots) & (np.abs(roots) < 1e12), np.abs(roots), 0.0)
     w0 = np.maximum(mags.max(axis=-1, initial=0.0), 1e-12)
@@ -110,12 +139,16 @@ def _scaled(den: Array, num: Array, roots: CArray) -> tuple[Array, Array]:
     powers = w0[..., None] ** np.arange(n, -1, -1)
     d, m = den * powers, num * powers
     norm = np.maximum(np.abs(d).max(axis=-1, keepdims=True), 1e-300)
-    return d / norm, m / norm
+    return d / norm, m / norm, w0
 
 
-def _crossing_gains(den: Array, num: Array, roots: CArray) -> Array:
-    """Positive gains at which a root of D + k N lies on the imaginary axis (sorted)."""
-    d, m = _scaled(den, num, roots)
+def _crossing_gains(den: Array, num: Array, roots: CArray, marginal_w: Array) -> Array:
+    """Positive gains at which a root of D + k N lies on the imaginary axis (sorted).
+
+    ``marginal_w``: frequencies (NaN padded) of open-loop poles on the axis; a root of
+    D + k N there has k = 0 exactly (unless N vanishes too: a cancellation, which the
+    interval tests see), so those candidates are not crossings."""
+    d, m, w0 = _scaled(den, num, roots)
     n = d.shape[-1] - 1
     jpow = 1j ** np.arange(n, -1, -1)
     dj, nj = d * jpow, m * np.conj(jpow)          # D(jw), conj(N(jw)) as polynomials in w
@@ -125,6 +158,11 @@ def _crossing_gains(den: Array, num: Array, roots: CArray) -> Array:
     omegas = batched_roots(prod.imag)
     real = np.abs(omegas.imag) <= 1e-6 * (1.0 + np.abs(omegas.real))
     w = np.where(real & (omegas.real >= 0), omegas.real, np.nan)
+    mw = np.abs(marginal_w) / w0[..., None]
+    with np.errstate(invalid="ignore"):
+        at_pole = np.any(np.abs(w[..., :, None] - mw[..., None, :])
+                         <= 1e-6 * (1.0 + mw[..., None, :]), axis=-1)
+    w = np.where(at_pole, np.nan, w)
     dv = eval_poly(d, 1j * w)
     nv = eval_poly(m, 1j * w)
     with np.errstate(divide="ignore", invalid="ignore"):
