@@ -19,6 +19,7 @@ from dobhil.analysis.metrics import StepMetrics, step_metrics, step_responses
 from dobhil.analysis.stability import GainMap, gain_map, is_stable
 from dobhil.analysis.transfer import LoopSystems
 from dobhil.config.schema import Config
+from dobhil.errors import AnalysisError, ConfigError, DobhilError
 from dobhil.synthesis.controller import continuous_controller, sampled_controller
 from dobhil.synthesis.params import Params, params_from_config
 
@@ -53,17 +54,46 @@ class Analysis:
     discrete: DomainAnalysis
 
 
+#: shortest step horizon that may be asked for (0 means automatic)
+MIN_STEP_DURATION = 1e-6
+
+
 def analyze(config: Config) -> Analysis:
+    """Both domains of one design; a design the analysis cannot answer raises
+    :class:`~dobhil.errors.AnalysisError` (one line), never a numpy error."""
+    duration = config.analysis.step_duration
+    if 0.0 < duration < MIN_STEP_DURATION:
+        raise ConfigError(f"analysis.step_duration = {duration!r}: must be 0 (automatic) or at "
+                          f"least {MIN_STEP_DURATION:g} s")
     params = params_from_config(config)
     return Analysis(config=config,
-                    continuous=analyze_domain(params, sampled=False,
-                                              duration=config.analysis.step_duration),
-                    discrete=analyze_domain(params, sampled=True,
-                                            duration=config.analysis.step_duration))
+                    continuous=_answered(params, sampled=False, duration=duration),
+                    discrete=_answered(params, sampled=True, duration=duration))
+
+
+def _answered(params: Params, *, sampled: bool, duration: float) -> DomainAnalysis:
+    name = "sampled" if sampled else "continuous"
+    try:
+        with np.errstate(all="ignore"):
+            return analyze_domain(params, sampled=sampled, duration=duration)
+    except DobhilError:
+        raise
+    except (np.linalg.LinAlgError, ValueError, ZeroDivisionError, OverflowError) as exc:
+        raise AnalysisError(f"the {name} analysis cannot answer this design "
+                            f"({_why(exc)}); check that it is within the keys' ranges") from None
+
+
+def _why(exc: Exception) -> str:
+    text = str(exc).splitlines()[0] if str(exc) else exc.__class__.__name__
+    return text[:120]
 
 
 def analyze_domain(params: Params, *, sampled: bool, duration: float = 0.0) -> DomainAnalysis:
     systems = LoopSystems.build(params, sampled=sampled)
+    if not all(np.all(np.isfinite(m)) for m in (systems.closed.a, systems.closed.b,
+                                               systems.closed.c)):
+        raise AnalysisError(f"the {'sampled' if sampled else 'continuous'} loop's matrices "
+                            "overflow for this design (a value too large or too small)")
     a, b, c, _ = systems.open.siso("tau_per", "tau_int_hat")
     gains = gain_map(a, b, c, sampled=sampled)
     cl_poles = np.linalg.eigvals(systems.closed.a)
