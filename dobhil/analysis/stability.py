@@ -201,13 +201,15 @@ def _margins_at(a0: Array, bc: Array, k: Array, sampled: bool) -> Array:
 
 
 #: fractions of each bounded interval between crossings where stability is tested
-TEST_FRACTIONS = (0.02, 0.5, 0.98)
-#: multiples of the last crossing (or of the gain scale) tested in the unbounded interval
-TAIL_FACTORS = (1.5, 10.0, 1000.0)
+TEST_FRACTIONS = (1e-9, 1e-6, 1e-3, 0.02, 0.5, 0.98)
+#: multiples of the last crossing tested in the unbounded interval, and of the gain
+#: scale ``|A0| / |BC|`` when there is no crossing at all
+TAIL_FACTORS = (1.0 + 1e-6, 1.001, 1.5, 10.0, 1e3, 1e6)
+SCALE_FACTORS = (1e-9, 1e-6, 1e-3, 1.0, 1e3, 1e6)
 
 
 def _test_gains(crossings: Array, kscale: Array) -> tuple[Array, Array]:
-    """Test gains (batch + (m+1, 3)) and the interval edges (batch + (m+1,), lo)."""
+    """Test gains (batch + (m+1, 6)) and the interval edges (batch + (m+1,), lo)."""
     batch = crossings.shape[:-1]
     edges = np.concatenate([np.zeros(batch + (1,)), crossings], axis=-1)
     upper = np.concatenate([crossings, np.full(batch + (1,), np.nan)], axis=-1)
@@ -217,18 +219,18 @@ def _test_gains(crossings: Array, kscale: Array) -> tuple[Array, Array]:
     tail = idx == count[..., None]
     frac = np.asarray(TEST_FRACTIONS)
     bounded = edges[..., None] + (upper - edges)[..., None] * frac
-    base = np.where(last > 0, last, kscale[..., None])
-    unbounded = base[..., None] * np.asarray(TAIL_FACTORS)
+    unbounded = np.where(last[..., None] > 0, last[..., None] * np.asarray(TAIL_FACTORS),
+                         kscale[..., None, None] * np.asarray(SCALE_FACTORS))
     gains = np.where(tail[..., None], unbounded, bounded)
     return gains, edges
 
 
 def _verify(a0: Array, bc: Array, crossings: Array, sampled: bool, kscale: Array) -> Array:
     """Crossings completed by eigenvalue tests: inside every interval between two
-    crossings, three gains must agree (all strictly stable or all strictly unstable).
+    crossings, six gains must agree (all strictly stable or all strictly unstable).
     Where they do not, the root locus crossed the boundary at a gain the polynomial
     roots missed (high order, clustered roots): it is found by bracketing the spectral
-    margin (Brent) and added. Designs that agree -- nearly all -- cost three
+    margin (Brent) and added. Designs that agree -- nearly all -- cost six
     eigenvalue problems per interval and nothing else."""
     gains, _ = _test_gains(crossings, kscale)
     margin = _margins_at(a0, bc, gains, sampled).reshape(gains.shape[:-2] + (-1,))
@@ -264,13 +266,59 @@ def _verify(a0: Array, bc: Array, crossings: Array, sampled: bool, kscale: Array
     return out
 
 
+#: relative half-widths tried, in turn, to bracket each crossing for polishing
+POLISH_BRACKETS = (1e-6, 1e-3, 0.03, 0.2)
+POLISH_ITERATIONS = 30
+
+
+def _polish(a0: Array, bc: Array, crossings: Array, sampled: bool) -> Array:
+    """Each crossing gain refined on the eigenvalues themselves: bracketed where the
+    spectral margin of ``A0 - k BC`` changes sign, then regula falsi (Illinois), all
+    crossings of all designs at once. The polynomial roots locate a crossing to
+    rounding only when the poles are well separated; with clusters near z = 1 (small
+    g T) they can be percent off, the eigenvalues stay right to ~1e-12."""
+    k = crossings
+    lo, hi = np.full(k.shape, np.nan), np.full(k.shape, np.nan)
+    f_lo, f_hi = np.full(k.shape, np.nan), np.full(k.shape, np.nan)
+    todo = np.isfinite(k)
+    for delta in POLISH_BRACKETS:
+        if not todo.any():
+            break
+        k0, k1 = np.where(todo, k * (1 - delta), np.nan), np.where(todo, k * (1 + delta), np.nan)
+        m0, m1 = _margins_at(a0, bc, k0, sampled), _margins_at(a0, bc, k1, sampled)
+        found = todo & (m0 * m1 < 0)
+        lo, hi = np.where(found, k0, lo), np.where(found, k1, hi)
+        f_lo, f_hi = np.where(found, m0, f_lo), np.where(found, m1, f_hi)
+        todo &= ~found
+    active = np.isfinite(lo)
+    side = np.zeros(k.shape, int)
+    for _ in range(POLISH_ITERATIONS):
+        if not active.any():
+            break
+        with np.errstate(invalid="ignore", divide="ignore"):
+            x = np.where(active, (lo * f_hi - hi * f_lo) / (f_hi - f_lo), np.nan)
+        x = np.where(active & ~((x > lo) & (x < hi)), 0.5 * (lo + hi), x)
+        fx = _margins_at(a0, bc, x, sampled)
+        left = active & (fx * f_lo > 0)            # root in [x, hi]
+        right = active & ~left                     # root in [lo, x]
+        lo, f_lo = np.where(left, x, lo), np.where(left, fx, f_lo)
+        hi, f_hi = np.where(right, x, hi), np.where(right, fx, f_hi)
+        # Illinois: halve the stale end's value when the same end moves twice
+        f_hi = np.where(left & (side == 1), 0.5 * f_hi, f_hi)
+        f_lo = np.where(right & (side == -1), 0.5 * f_lo, f_lo)
+        side = np.where(left, 1, np.where(right, -1, side))
+        active &= (hi - lo) > 1e-13 * hi
+    polished = np.where(np.isfinite(lo), 0.5 * (lo + hi), k)
+    return np.sort(polished, axis=-1)
+
+
 def _intervals(a0: Array, b: Array, c: Array, crossings: Array,
                sampled: bool) -> tuple[Array, Array, Array]:
-    """Stability of every interval between consecutive (verified) crossings."""
+    """Stability of every interval between consecutive (polished, verified) crossings."""
     bc = b @ c
     kscale = (np.linalg.norm(a0, axis=(-2, -1))
               / np.maximum(np.linalg.norm(bc, axis=(-2, -1)), 1e-300))
-    crossings = _verify(a0, bc, crossings, sampled, kscale)
+    crossings = _verify(a0, bc, _polish(a0, bc, crossings, sampled), sampled, kscale)
     batch = crossings.shape[:-1]
     edges = np.concatenate([np.zeros(batch + (1,)), crossings], axis=-1)
     count = np.sum(~np.isnan(crossings), axis=-1)
