@@ -76,7 +76,7 @@ def step_grid(sys: control.StateSpace, duration: float = 0.0) -> list[tuple[floa
                                 f"loop.period = {sys.dt!r} s; at most {MAX_STEP_SAMPLES} allowed")
         return [(float(sys.dt), count)]
     _, fastest = _continuous_rates(np.asarray(sys.poles()), 0.0)
-    layers = []
+    layers: list[tuple[float, int]] = []
     dt = 1.0 / (25.0 * fastest)
     while dt * LAYER_POINTS < tf and len(layers) < 40:
         layers.append((dt, LAYER_POINTS + 1))

@@ -96,7 +96,7 @@ def analyze_domain(params: Params, *, sampled: bool, duration: float = 0.0) -> D
                             "overflow for this design (a value too large or too small)")
     a, b, c, _ = systems.open.siso("tau_per", "tau_int_hat")
     gains = gain_map(a, b, c, sampled=sampled)
-    cl_poles = np.linalg.eigvals(systems.closed.a)
+    cl_poles = np.asarray(np.linalg.eigvals(systems.closed.a), dtype=complex)
     stable = bool(is_stable(cl_poles[None], sampled)[0])
     closed, force = systems.system("closed_loop"), systems.system("force")
     if stable:

@@ -67,7 +67,7 @@ def is_stable(poles: CArray, sampled: bool) -> NDArray[np.bool_]:
 def gain_map(a0: Array, b: Array, c: Array, *, sampled: bool) -> GainMap:
     """Poles, zeros, crossings and stable gain intervals of ``A0 - k B C`` for k > 0."""
     a0, b, c = balance(a0, b, c)
-    poles = np.linalg.eigvals(a0)
+    poles = np.asarray(np.linalg.eigvals(a0), dtype=complex)
     zeros, num, rel = zeros_and_numerator(a0, b, c)
     poles, marginal = _snap_marginal(poles, sampled)
     den = poly_from_roots(poles)
@@ -249,7 +249,8 @@ def _verify(a0: Array, bc: Array, crossings: Array, sampled: bool, kscale: Array
         found = []
         for j in np.nonzero(bad_pairs[index])[0]:
             k0, k1 = float(flat_k[index][j]), float(flat_k[index][j + 1])
-            f = lambda k: float(_spectral_margin(a0[index] - k * bc[index], sampled))  # noqa: E731
+            def f(k: float, at: tuple[int, ...] = index) -> float:
+                return float(_spectral_margin(a0[at] - k * bc[at], sampled))
             try:
                 found.append(float(scipy.optimize.brentq(f, k0, k1, xtol=1e-15 * k1,
                                                          rtol=1e-15)))

@@ -167,6 +167,7 @@ def _answer(a: np.ndarray, b: np.ndarray, c: np.ndarray, cf: np.ndarray, ok: np.
 def _points(a: np.ndarray, b: np.ndarray, c: np.ndarray, cf: np.ndarray,
             sampled: bool) -> tuple[np.ndarray, ...]:
     gm = gain_map(a, b, c, sampled=sampled)
-    stable = is_stable(np.linalg.eigvals(a - cf[:, None, None] * (b @ c)), sampled)
+    stable = is_stable(np.asarray(np.linalg.eigvals(a - cf[:, None, None] * (b @ c)), dtype=complex),
+                       sampled)
     count = np.sum(~np.isnan(gm.interval_lo), axis=-1)
     return stable, gm.minimum_phase, gm.max_stable_gain, count
