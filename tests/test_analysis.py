@@ -49,7 +49,7 @@ def test_stable_gain_intervals_agree_with_a_dense_gain_scan(overrides: list[str]
         assert e == pytest.approx(ch, rel=1e-3)
     assert bool(first) == (g.intervals()[0][0] == 0.0 if g.intervals() else False)
     # exactness: just inside each bound is stable, just outside is not
-    for lo, hi in g.intervals():
+    for _lo, hi in g.intervals():
         if np.isfinite(hi):
             inside, outside = hi * (1 - 1e-6), hi * (1 + 1e-6)
             st = is_stable(np.linalg.eigvals(np.stack([a - inside * b @ c, a - outside * b @ c])),
