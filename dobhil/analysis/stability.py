@@ -200,8 +200,12 @@ def _margins_at(a0: Array, bc: Array, k: Array, sampled: bool) -> Array:
     return out.reshape(shape)
 
 
-#: fractions of each bounded interval between crossings where stability is tested
-TEST_FRACTIONS = (1e-9, 1e-6, 1e-3, 0.02, 0.5, 0.98)
+#: where each bounded interval (lo, hi) between crossings is tested: at these fractions
+#: of the way when hi/lo < 10, at these fractions of the log-distance when wider, and for
+#: the first interval (0, hi) at ``hi`` times a geometric sequence from
+#: ``min(1e-9, 1e-9 kscale / hi)`` up to 0.98 (small gains, however far the first crossing)
+TEST_FRACTIONS = (1e-3, 0.02, 0.3, 0.5, 0.7, 0.98)
+LOG_FRACTIONS = (0.02, 0.2, 0.4, 0.6, 0.8, 0.98)
 #: multiples of the last crossing tested in the unbounded interval, and of the gain
 #: scale ``|A0| / |BC|`` when there is no crossing at all
 TAIL_FACTORS = (1.0 + 1e-6, 1.001, 1.5, 10.0, 1e3, 1e6)
@@ -217,8 +221,14 @@ def _test_gains(crossings: Array, kscale: Array) -> tuple[Array, Array]:
     last = np.take_along_axis(edges, count[..., None], axis=-1)
     idx = np.arange(upper.shape[-1])
     tail = idx == count[..., None]
-    frac = np.asarray(TEST_FRACTIONS)
-    bounded = edges[..., None] + (upper - edges)[..., None] * frac
+    lo, hi = edges[..., None], upper[..., None]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        linear = lo + (hi - lo) * np.asarray(TEST_FRACTIONS)
+        logs = lo * (hi / lo) ** np.asarray(LOG_FRACTIONS)
+        f_min = np.minimum(1e-9, 1e-9 * kscale[..., None, None] / hi)
+        geo = hi * f_min ** (1.0 - np.linspace(0.0, 1.0, len(TEST_FRACTIONS))) * np.asarray(
+            [1.0] * (len(TEST_FRACTIONS) - 1) + [0.98])
+        bounded = np.where(lo == 0, geo, np.where(hi / lo < 10.0, linear, logs))
     unbounded = np.where(last[..., None] > 0, last[..., None] * np.asarray(TAIL_FACTORS),
                          kscale[..., None, None] * np.asarray(SCALE_FACTORS))
     gains = np.where(tail[..., None], unbounded, bounded)
