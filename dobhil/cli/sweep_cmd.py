@@ -64,14 +64,18 @@ def _summary(result: SweepResult) -> None:
     import numpy as np
     n = result.stable.size
     finite = result.max_stable_gain[np.isfinite(result.max_stable_gain)]
+    n_unbounded = int(np.isinf(result.max_stable_gain).sum())
     kind = "sampled" if result.sampled else "continuous"
     print(f"{n} points ({kind}): {int(result.stable.sum())} stable at their C_f, "
           f"{int(result.minimum_phase.sum())} minimum phase, "
-          f"{n - finite.size} with unbounded C_f, "
+          f"{n_unbounded} with unbounded C_f, "
           f"{int((result.interval_count > 1).sum())} conditionally stable")
+    if result.unanswered:
+        print(f"{result.unanswered} points could not be analysed (their matrices overflow or "
+              "numpy cannot decompose them); they are left empty in --out")
     if finite.size:
         print(f"largest C_f safe over the whole grid: {float(finite.min()):.6g}")
-    else:
+    elif n_unbounded:
         print("largest C_f safe over the whole grid: unbounded")
 
 

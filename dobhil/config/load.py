@@ -14,7 +14,7 @@ from typing import Any, NoReturn
 
 import yaml
 
-from dobhil.config.schema import SECTIONS, Check, Config, key_fields
+from dobhil.config.schema import SECTIONS, Check, Config, check_maximum, key_fields
 from dobhil.config.yamlio import safe_load, where
 from dobhil.data import configs_dir, shipped_configs, shipped_file
 from dobhil.errors import ConfigError
@@ -125,6 +125,8 @@ def coerce(name: str, raw: Any, f: dataclasses.Field[Any]) -> Any:
         return _coerce_str(name, raw, meta["choices"])
     value = _coerce_number(name, raw, kind)
     _check_range(name, value, meta["check"])
+    if (problem := check_maximum(name, value, meta)) is not None:
+        raise ConfigError(problem)
     return value
 
 
