@@ -100,6 +100,9 @@ class DesignConfig:
                              check=Check.NONNEGATIVE, structural=True)
     discretization: str = key("zoh", "how the observers are discretised",
                               choices=("zoh", "euler"))
+    input_delay: float = key(0.0, "fraction of a period between the feedback sample and the "
+                             "torque reaching the plant (compute + bus latency); below "
+                             "loop.period", unit="s", check=Check.NONNEGATIVE, structural=True)
 
 
 @dataclass(frozen=True)

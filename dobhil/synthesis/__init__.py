@@ -8,9 +8,11 @@
 - :mod:`loop`        the closed loop with plant and environment (Eqs. 18-20)
 """
 
-from dobhil.synthesis.controller import ControllerSS, continuous_controller, sampled_controller
-from dobhil.synthesis.loop import INPUTS, OUTPUTS, LoopSS, loop
+from dobhil.synthesis.controller import (ControllerSS, continuous_controller, discretize_delayed,
+                                         sampled_controller)
+from dobhil.synthesis.loop import INPUTS, OUTPUTS, LoopSS, loop, sampled_plant
 from dobhil.synthesis.params import Params, params_from_config
 
 __all__ = ["INPUTS", "OUTPUTS", "ControllerSS", "LoopSS", "Params", "continuous_controller",
-           "loop", "params_from_config", "sampled_controller"]
+           "discretize_delayed", "loop", "params_from_config", "sampled_controller",
+           "sampled_plant"]

@@ -144,3 +144,25 @@ def discretize(a: Array, b: Array, period: float,
     block[..., :n, n:] = b * period
     e = scipy.linalg.expm(block)
     return e[..., :n, :n], e[..., :n, n:]
+
+
+def discretize_delayed(a: Array, b: Array, period: float,
+                       input_delay: float) -> tuple[Array, Array, Array]:
+    """(Phi, Gamma0, Gamma1) of ``x' = A x + B w`` sampled at ``period`` when the command
+    computed at ``t_k`` reaches the plant at ``t_k + input_delay`` and is held until the
+    next one arrives (the modified z-transform, as an augmented state)::
+
+        x[k+1] = Phi x[k] + Gamma0 w[k] + Gamma1 w[k-1]
+        Gamma0 = int_0^{T-tau} e^{A s} ds B
+        Gamma1 = e^{A (T-tau)} int_0^{tau} e^{A s} ds B
+
+    ``0 <= input_delay <= period`` (batched in A, B). ``input_delay = 0`` gives the
+    zero-order hold (Gamma1 = 0); ``input_delay = period`` one whole sample of delay
+    (Gamma0 = 0). Exact: both pieces come from one matrix exponential each.
+    """
+    if not 0.0 <= input_delay <= period:
+        raise ValueError(f"input_delay must lie in [0, period]; got {input_delay!r}")
+    rest = period - input_delay
+    phi_rest, gamma0 = discretize(a, b, rest, Discretization.ZOH)
+    phi_tau, gamma_tau = discretize(a, b, input_delay, Discretization.ZOH)
+    return phi_rest @ phi_tau, gamma0, phi_rest @ gamma_tau

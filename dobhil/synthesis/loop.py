@@ -10,7 +10,9 @@ performance torque: with ``force_gain = 0`` the loop from ``tau_per`` to
 
 The sampled loop is what the runtime does against the emulator in lockstep: at
 sample k the controller reads ``x_p(kT)``, computes ``u_k``; the plant integrates
-``u_{k-d}`` exactly (zero-order hold) over ``[kT, (k+1)T]``.
+``u_{k-d}`` exactly (zero-order hold) over ``[kT, (k+1)T]`` -- or, with a fractional
+``design.input_delay`` tau, ``u_{k-d-1}`` over ``[kT, kT + tau]`` and ``u_{k-d}`` over
+``[kT + tau, (k+1)T]`` (:func:`sampled_plant`; one more command in transit).
 """
 
 from __future__ import annotations
@@ -20,9 +22,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from dobhil.synthesis.controller import (DIS, INT, ControllerSS, continuous_controller,
-                                         discretize, sampled_controller)
+                                         discretize_delayed, sampled_controller)
 from dobhil.synthesis.models import plant_matrices
-from dobhil.synthesis.params import Array, Discretization, Params
+from dobhil.synthesis.params import Array, Params
 
 INPUTS: tuple[str, ...] = ("tau_ref", "tau_per", "tau_du", "tau_i", "eta_q", "eta_dq")
 OUTPUTS: tuple[str, ...] = ("tau_int_hat", "tau_dis_hat", "tau_int", "q", "dq", "u")
@@ -59,17 +61,35 @@ def loop(params: Params, *, sampled: bool, force_gain: Array | float | None = No
     ctrl = sampled_controller(params) if sampled else continuous_controller(params)
     cf = params.value("force_gain") if force_gain is None else np.asarray(force_gain, float)
     a_p, b_p, c_int = plant_of(params)
+    b_late = np.zeros_like(b_p)
+    delay = 0
     if sampled:
-        a_p, b_p = discretize(a_p, b_p, ctrl.dt or 0.0, Discretization.ZOH)
-    delay = params.structure.delay_samples if sampled else 0
-    return _assemble(a_p, b_p, c_int, ctrl, np.broadcast_to(cf, params.batch_shape), delay)
+        a_p, b_p, b_late = sampled_plant(params)
+        delay = params.structure.delay_samples
+    return _assemble(a_p, b_p, b_late, c_int, ctrl, np.broadcast_to(cf, params.batch_shape),
+                     delay, late=sampled and params.structure.input_delay > 0)
 
 
-def _assemble(a_p: Array, b_p: Array, c_int: Array, ctrl: ControllerSS, cf: Array,
-              delay: int) -> LoopSS:
+def sampled_plant(params: Params) -> tuple[Array, Array, Array]:
+    """(Phi, Gamma0, Gamma1) of the plant with its environment, sampled at ``loop.period``
+    with the torque arriving ``design.input_delay`` after each feedback sample::
+
+        x[k+1] = Phi x[k] + Gamma0 u[k-d] + Gamma1 u[k-d-1]     (d = design.delay_samples)
+
+    (:func:`~dobhil.synthesis.controller.discretize_delayed`). This is the one sampled
+    plant: the sampled loop below uses it, and an emulator stepping in lockstep can too.
+    """
+    a_p, b_p, _ = plant_of(params)
+    period = float(np.asarray(params.period).reshape(-1)[0])
+    return discretize_delayed(a_p, b_p, period, params.structure.input_delay)
+
+
+def _assemble(a_p: Array, b_p: Array, b_late: Array, c_int: Array, ctrl: ControllerSS,
+              cf: Array, delay: int, *, late: bool) -> LoopSS:
     shape = cf.shape
     nc, m = ctrl.order, ctrl.b_y.shape[-1]
-    n = 2 + nc + delay
+    chain = delay + (1 if late else 0)   # commands in transit: u[k-1] .. u[k-chain]
+    n = 2 + nc + chain
     xp, xc = slice(0, 2), slice(2, 2 + nc)
     c_y = np.eye(2)[:m]        # y = C_y x_p + E_eta eta (eta = [eta_q, eta_dq])
     e_eta = np.eye(2)[:m]
@@ -83,25 +103,34 @@ def _assemble(a_p: Array, b_p: Array, c_int: Array, ctrl: ControllerSS, cf: Arra
     u_in[..., 0, 0] = cf
     u_in[..., 0, 1] = 1.0
     u_in[..., :, 4:6] = g @ e_eta
-    # which signal drives the plant: u itself, or the oldest command in transit
-    p_state, p_in = (u_state, u_in) if delay == 0 else (_select(shape, n, 2 + nc + delay - 1),
-                                                        np.zeros(shape + (1, len(INPUTS))))
+
+    def command(age: int) -> tuple[Array, Array]:
+        """State and input rows of u[k - age]."""
+        if age == 0:
+            return u_state, u_in
+        return _select(shape, n, 2 + nc + age - 1), np.zeros(shape + (1, len(INPUTS)))
+
     a = np.zeros(shape + (n, n))
     b = np.zeros(shape + (n, len(INPUTS)))
+    p_state, p_in = command(delay)
     a[..., xp, :] = b_p @ p_state
-    a[..., xp, xp] += a_p
     b[..., xp, :] = b_p @ p_in
-    b[..., xp, 2:3] -= b_p
+    if late:
+        l_state, l_in = command(delay + 1)
+        a[..., xp, :] += b_late @ l_state
+        b[..., xp, :] += b_late @ l_in
+    a[..., xp, xp] += a_p
+    b[..., xp, 2:3] -= b_p + b_late   # tau_du held over the period like the torque
     a[..., xc, :] = ctrl.b_u @ u_state
     a[..., xc, xp] += ctrl.b_y @ c_y
     a[..., xc, xc] += ctrl.a
     b[..., xc, :] = ctrl.b_u @ u_in
     b[..., xc, 3:4] += ctrl.b_i
     b[..., xc, 4:6] += ctrl.b_y @ e_eta
-    if delay:
+    if chain:
         a[..., 2 + nc:2 + nc + 1, :] = u_state
         b[..., 2 + nc:2 + nc + 1, :] = u_in
-        for j in range(1, delay):
+        for j in range(1, chain):
             a[..., 2 + nc + j, 2 + nc + j - 1] = 1.0
     c = np.zeros(shape + (len(OUTPUTS), n))
     d = np.zeros(shape + (len(OUTPUTS), len(INPUTS)))

@@ -17,6 +17,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from dobhil.config.schema import Config
+from dobhil.errors import ConfigError
 
 Array = NDArray[np.float64]
 
@@ -35,8 +36,12 @@ class VelocitySource(IntEnum):
 
 
 class Discretization(IntEnum):
-    ZOH = 0
-    EULER = 1
+    """How the controller is sampled (see :mod:`dobhil.synthesis.controller`)."""
+
+    ZOH = 0        # everything held: the step-invariant equivalent (the old default)
+    EULER = 1      # forward Euler
+    FOH = 2        # measured signals by a triangle hold (ramp-invariant), torque by ZOH
+    PARABOLIC = 3  # measured signals by a parabola through y[k-1..k+1], torque by ZOH
 
 
 @dataclass(frozen=True)
@@ -48,6 +53,7 @@ class Structure:
     velocity_source: VelocitySource = VelocitySource.MEASURED
     delay_samples: int = 0
     discretization: Discretization = Discretization.ZOH
+    input_delay: float = 0.0    # fractional torque delay [s], 0 <= input_delay < period
 
 
 @dataclass(frozen=True)
@@ -113,14 +119,24 @@ def structure_from_config(config: Config) -> Structure:
         velocity_source=VelocitySource[d.velocity_source.upper()],
         delay_samples=int(d.delay_samples),
         discretization=Discretization[d.discretization.upper()],
+        input_delay=float(d.input_delay),
     )
 
 
 def params_from_config(config: Config, **arrays: Any) -> Params:
     """Params of ``config``; ``arrays`` (config key with dots replaced by ``__``) override
     single values with arrays, e.g. ``environment__stiffness=np.logspace(3, 5, 50)``."""
+    check_design(config)
     flat = config.flat()
     values = {field: flat[key] for key, field in PARAM_KEYS.items()}
     for name, value in arrays.items():
         values[PARAM_KEYS[name.replace("__", ".")]] = value
     return Params(**values, structure=structure_from_config(config))
+
+
+def check_design(config: Config) -> None:
+    """Constraints of the sampled model between keys (one line each, ConfigError)."""
+    d, period = config.design, config.loop.period
+    if not 0.0 <= d.input_delay < period:
+        raise ConfigError(f"design.input_delay = {d.input_delay!r}: must be >= 0 and below "
+                          f"loop.period = {period!r} (whole samples go in design.delay_samples)")
