@@ -94,8 +94,10 @@ def resolve_timing(config: Config, profile: DriveProfile, lockstep: bool | None)
 
 def lockstep_latency(config: Config) -> float:
     """When the lockstep emulator applies a command after the sample it was computed
-    from: ``design.input_delay`` (the fractional compute + bus delay the analysis models)."""
-    return float(getattr(config.design, "input_delay", 0.0))
+    from: the delay the sampled analysis models, ``design.delay_samples`` whole periods
+    plus ``design.input_delay`` (the fractional compute + bus delay)."""
+    d = config.design
+    return d.delay_samples * config.loop.period + d.input_delay
 
 
 class RunSession:
