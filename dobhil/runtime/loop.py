@@ -380,13 +380,10 @@ class ForceLoop:
             if self.sink is not None:
                 self.sink.started(first)
             self._t0 = self.clock()
-            timing = self.settings.timing
-            if timing is Timing.LOCKSTEP:
-                self._run_lockstep()
-            elif timing is Timing.FEEDBACK:
-                self._run_feedback(first)
-            else:
+            if self.settings.timing is Timing.HOST:
                 self._run_host()
+            else:
+                self._run_feedback(first, self.settings.timing is Timing.FEEDBACK)
         except _Halt as halt:
             return Stop(halt.reason, halt.detail, self._at, self._now())
         except DriveFaultError as exc:
@@ -404,20 +401,13 @@ class ForceLoop:
                         f"no feedback within {self.settings.feedback_timeout:g} s of enabling")
         return fb
 
-    def _run_lockstep(self) -> None:
-        timeout = self.settings.feedback_timeout
-        period = self.settings.period
-        for k in range(self.settings.cycles):
-            start = time.perf_counter()
-            fb = self.drive.poll(timeout)
-            if fb is None:
-                raise _Halt(StopReason.FEEDBACK_TIMEOUT,
-                            f"no fresh feedback for {timeout:g} s (simulated)")
-            self._cycle(k, k * period, fb, 0.0, start, False)
-            self._emit(k, fb, False)
+    def _run_feedback(self, first: Feedback, timed: bool) -> None:
+        """One cycle per feedback frame, the command sent as soon as it is computed.
 
-    def _run_feedback(self, first: Feedback) -> None:
-        """One cycle per feedback frame, the command sent as soon as it is computed."""
+        Frames that came while a cycle ran are skipped (the newest is used) and their
+        cycle indices with them, so cycle ``k`` is always the drive's ``k``-th frame.
+        ``timed``: real time (feedback timing); otherwise lockstep, where waiting
+        advances the emulator and the cycle time is exactly ``k T``."""
         s = self.settings
         period, timeout, n = s.period, s.feedback_timeout, s.cycles
         clock, poll = self.clock, self.drive.poll
@@ -428,25 +418,29 @@ class ForceLoop:
             wake = clock()
             start = time.perf_counter()
             if fb is None:
-                raise _Halt(StopReason.FEEDBACK_TIMEOUT,
-                            f"no fresh feedback for {timeout:g} s (limit {timeout:g} s)")
+                raise _Halt(StopReason.FEEDBACK_TIMEOUT, f"no fresh feedback for {timeout:g} s"
+                            + ("" if timed else " (simulated)"))
             frames = fb.seq - last_seq   # 1 unless frames came while the last cycle ran
             last_seq = fb.seq
             late = frames > 1
             if late:
-                self.overruns += 1
+                self.overruns += timed   # lockstep: a lost frame, never a late host
                 self.skipped += frames - 1
                 k += frames - 1
                 if k >= n:
                     break
-            error = (wake - last_wake) - frames * period if last_wake == last_wake else 0.0
-            last_wake = wake
-            self._cycle(k, wake - self._t0, fb, error, start, True)
+            if timed:
+                error = (wake - last_wake) - frames * period if last_wake == last_wake else 0.0
+                last_wake = wake
+                self._cycle(k, wake - self._t0, fb, error, start, True)
+            else:
+                self._cycle(k, k * period, fb, 0.0, start, False)
             if late:
                 self.trace.data["overrun"][self.trace.last] = 1.0
             self._emit(k, fb, late)
             k += 1
-            self._gc.between_cycles(last_wake + period - clock(), period)
+            if timed:
+                self._gc.between_cycles(last_wake + period - clock(), period)
 
     def _run_host(self) -> None:
         s = self.settings
