@@ -273,11 +273,14 @@ class Drive(ABC):
         """Read frames for up to ``timeout`` s; return the newest fresh feedback or None.
 
         Everything already queued is read first; the call returns as soon as a
-        motion frame has been read. Raises DriveFaultError while the drive is faulted.
+        motion frame has been read, with whatever came queued behind it (a burst of late
+        frames gives its newest). Raises DriveFaultError while the drive is faulted.
         """
         fresh = self._drain()
         if not fresh and timeout > 0:
             fresh = self._wait_for_motion(self._clock() + timeout)
+            if fresh:
+                self._drain()
         if self._state is DriveState.ENABLED:
             self._check_heartbeat()
         if self._state is DriveState.FAULT:
