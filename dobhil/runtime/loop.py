@@ -206,6 +206,8 @@ class Histogram:
         cumulative = np.cumsum(np.frombuffer(self.counts, dtype=np.int64))
         rank = max(1, math.ceil(p / 100.0 * self.n))
         index = int(np.searchsorted(cumulative, rank))
+        if index >= self.BINS - 1:   # the overflow bin: only the maximum is known
+            return self.max
         return min((index + 0.5) * self.BIN, self.max)
 
 
@@ -425,7 +427,7 @@ class ForceLoop:
             late = frames > 1
             if late:
                 self.overruns += timed   # lockstep: a lost frame, never a late host
-                self.skipped += frames - 1
+                self.skipped += min(frames - 1, n - k)
                 k += frames - 1
                 if k >= n:
                     break
@@ -473,7 +475,7 @@ class ForceLoop:
             self.overruns += 1
             self.trace.data["overrun"][self.trace.last] = 1.0
             nxt = int((now - t0) / period) + 1
-            self.skipped += nxt - k - 1
+            self.skipped += min(nxt, self.settings.cycles) - k - 1
         self._emit(k, fb, overrun)
         deadline = t0 + nxt * period
         self._gc.between_cycles(deadline - self.clock(), period)
