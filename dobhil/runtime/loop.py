@@ -118,9 +118,9 @@ class LoopSettings:
 
 
 FIELDS = ("t", "q", "dq", "tau_ref", "tau_int_hat", "tau_dis_hat", "tau_per", "u_unsat", "u",
-          "period_error", "exec_time", "overrun", "tau_int_true", "q_true")
+          "period_error", "exec_time", "overrun", "tau_int_true", "q_true", "latency")
 
-#: rows a Trace keeps at most (14 float64 fields: 15 MB); longer runs are decimated
+#: rows a Trace keeps at most (15 float64 fields: 16 MB); longer runs are decimated
 TRACE_ROWS = 1 << 17
 
 
@@ -215,7 +215,8 @@ class Histogram:
 class TimingStats:
     """Timing of the cycles run. ``period_error``: lateness of the cycle start against
     its deadline (host), or the deviation of the feedback frame interval from the period
-    (feedback); ``latency``: feedback frame received -> command sent (0 in lockstep)."""
+    (feedback); ``latency``: feedback frame received (the bus's stamp) -> command sent,
+    per cycle also in the trace (0 in lockstep: simulated)."""
 
     period_error_p50: float
     period_error_p99: float
@@ -504,12 +505,14 @@ class ForceLoop:
                         f"(tau_ref = {out.tau_ref!r}, tau_int^ = {out.tau_int_hat!r})")
         self.drive.send_torque(out.u)
         exec_time = time.perf_counter() - start
+        latency = math.nan
         if timed:
             self.period_error.add(abs(period_error))
             if fb.rx_time == fb.rx_time:   # not NaN: the bus stamped the frame
-                self.latency.add(time.time() - fb.rx_time)
+                latency = time.time() - fb.rx_time
+                self.latency.add(latency)
         self.exec_time.add(exec_time)
-        self._store(k, t, q, dq, out, period_error, exec_time)
+        self._store(k, t, q, dq, out, period_error, exec_time, latency)
         self.cycles += 1
         self._at = k + 1
 
@@ -525,7 +528,7 @@ class ForceLoop:
                         f"|dq| = {abs(dq):.6g} rad/s above {lim.velocity_limit:g}")
 
     def _store(self, k: int, t: float, q: float, dq: float, out: ControlOutput,
-               period_error: float, exec_time: float) -> None:
+               period_error: float, exec_time: float, latency: float) -> None:
         trace = self.trace
         r = trace.row(k)
         d = trace.data
@@ -533,6 +536,7 @@ class ForceLoop:
         d["tau_ref"][r], d["tau_int_hat"][r], d["tau_dis_hat"][r] = out.tau_ref, out.tau_int_hat, out.tau_dis_hat
         d["tau_per"][r], d["u_unsat"][r], d["u"][r] = out.tau_per, out.u_unsat, out.u
         d["period_error"][r], d["exec_time"][r], d["overrun"][r] = period_error, exec_time, 0.0
+        d["latency"][r] = latency
         if self.truth is not None:
             d["tau_int_true"][r], d["q_true"][r] = self.truth()
         trace.last = r

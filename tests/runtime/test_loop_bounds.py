@@ -97,6 +97,7 @@ def test_gc_is_restored_after_a_real_time_run(tmp_path: Path) -> None:
     assert result.stop.reason is StopReason.DONE, result.stop.line()
     assert gc.isenabled() and gc.get_freeze_count() == 0
     assert result.timing.latency_max > 0   # frame received -> command sent, measured
+    assert np.nanmax(result.trace["latency"]) > 0
 
 
 def test_a_stop_request_before_the_start_never_enables(tmp_path: Path) -> None:
