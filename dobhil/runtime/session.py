@@ -118,6 +118,10 @@ class RunSession:
         check_rates(self.profile, config.loop.period)
         self.timing = resolve_timing(config, self.profile, lockstep)
         self.settings = loop_settings(config, self.timing, duration)
+        if not self.settings.duration / self.settings.period < 2.0 ** 53:
+            raise ConfigError(f"a run of {self.settings.duration!r} s at loop.period = "
+                              f"{self.settings.period!r} s has too many cycles to count; "
+                              f"allowed: fewer than 2**53")
         self.controller = build_controller(config, self.profile)
         self.reference = make_reference(config.reference, config_dir,
                                         duration=self.settings.duration)

@@ -106,6 +106,8 @@ ROWS: dict[str, Row] = {
     "silence": Row(lambda t: [SilenceAfter(frames=AT, ids={ENCODER})],
                    StopReason.FEEDBACK_TIMEOUT, ("no fresh feedback",)),
     "late-frames": Row(lambda t: [HoldFrames(at=AT, count=3, ids={ENCODER})], StopReason.DONE),
+    "late-beyond-timeout": Row(lambda t: [HoldFrames(at=AT, count=60, ids={ENCODER})],
+                               StopReason.FEEDBACK_TIMEOUT, ("no fresh feedback",)),
     "nan-position": Row(lambda t: _bad_feedback(t, float("nan")), StopReason.NON_FINITE,
                         ("non-finite feedback",)),
     "inf-velocity": Row(lambda t: _bad_feedback(t, float("inf"), "velocity"),

@@ -145,3 +145,9 @@ def test_summary_counts_cycles_run_and_skipped(capsys: pytest.CaptureFixture[str
     assert main(["run", str(DEMO), "--emulate", "--lockstep", "--summary-json"]) == 0
     info = json.loads(one_line(capsys.readouterr().out))
     assert info["cycles"] == 1200 and info["skipped"] == 0 and info["timing"] == "lockstep"
+
+
+def test_a_duration_too_long_to_count_is_one_line(capsys: pytest.CaptureFixture[str]) -> None:
+    code = main(["run", str(DEMO), "--emulate", "--lockstep", "--duration", "1e308"])
+    err = one_line(capsys.readouterr().err)
+    assert code == EXIT_USAGE and "too many cycles" in err
