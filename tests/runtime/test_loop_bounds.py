@@ -13,7 +13,8 @@ import numpy as np
 import pytest
 
 from dobhil.drives.odrive.codec import Firmware
-from dobhil.runtime.loop import TRACE_ROWS, ForceLoop, Histogram, StopRequest, Timing, Trace
+from dobhil.runtime.loop import (TRACE_ROWS, ForceLoop, Histogram, StopRequest, Timing, Trace,
+                                 _QuietGc)
 from dobhil.runtime.session import RunSession
 from dobhil.runtime.stop import StopReason
 
@@ -87,14 +88,33 @@ def test_lockstep_stats_come_from_the_histograms() -> None:
     assert 0 < timing.exec_time_p50 <= timing.exec_time_p99 <= timing.exec_time_max
 
 
-def test_gc_is_restored_after_a_real_time_run(tmp_path: Path) -> None:
+class GcProbe:
+    """A sink noting the collector's state during the cycles."""
+
+    def __init__(self) -> None:
+        self.seen: list[tuple[bool, int]] = []
+
+    def started(self, fb: object) -> None:
+        pass
+
+    def cycle(self, k: int, *args: object) -> None:
+        if k % 50 == 0:
+            self.seen.append((gc.isenabled(), gc.get_freeze_count()))
+
+    def stop(self, stop: object) -> None:
+        pass
+
+
+def test_gc_is_off_during_the_cycles_and_restored_after(tmp_path: Path) -> None:
     profile = realtime_profile(tmp_path, "odrive-0.6")
     config = demo_config(f"drive.profile={profile}", *REALTIME_SLACK, "loop.duration=0.2")
     assert gc.isenabled() and gc.get_freeze_count() == 0
-    with RunSession(config, emulate=True, lockstep=False) as session:
+    probe = GcProbe()
+    with RunSession(config, emulate=True, lockstep=False, sink=probe) as session:  # type: ignore[arg-type]
         assert session.timing is Timing.FEEDBACK
         result = session.run()
     assert result.stop.reason is StopReason.DONE, result.stop.line()
+    assert probe.seen and all(not on and frozen > 0 for on, frozen in probe.seen)
     assert gc.isenabled() and gc.get_freeze_count() == 0
     assert result.timing.latency_max > 0   # frame received -> command sent, measured
     assert np.nanmax(result.trace["latency"]) > 0
@@ -142,3 +162,23 @@ def test_feedback_timing_needs_one_frame_per_period(tmp_path: Path) -> None:
     profile = realtime_profile(tmp_path, "odrive-0.6", encoder_msg_rate=5e-4)
     with pytest.raises(ConfigError, match="loop.timing: host"):
         RunSession(demo_config(f"drive.profile={profile}", "loop.timing=feedback"), emulate=True)
+
+
+def test_young_generation_is_collected_between_cycles_only_with_time_left() -> None:
+    quiet = _QuietGc()
+    was = gc.isenabled()
+    gc.disable()
+    try:
+        young = [[i] for i in range(2 * gc.get_threshold()[0])]   # alive: counted
+        before = gc.get_count()[0]
+        quiet.between_cycles(slack=0.0, period=1e-3)          # no time left: not now
+        assert quiet.collections == 0 and gc.get_count()[0] >= before
+        quiet.between_cycles(slack=0.5e-3, period=1e-3)       # half a period left: now
+        assert quiet.collections == 1 and gc.get_count()[0] < before
+        hoard = [[i] for i in range(_QuietGc.HARD * gc.get_threshold()[0])]
+        quiet.between_cycles(slack=0.0, period=1e-3)          # past the bound: anyway
+        assert quiet.collections == 2
+        del hoard, young
+    finally:
+        if was:
+            gc.enable()
