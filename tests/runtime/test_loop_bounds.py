@@ -175,7 +175,7 @@ def test_young_generation_is_collected_between_cycles_only_with_time_left() -> N
         assert quiet.collections == 0 and gc.get_count()[0] >= before
         quiet.between_cycles(slack=0.5e-3, period=1e-3)       # half a period left: now
         assert quiet.collections == 1 and gc.get_count()[0] < before
-        hoard = [[i] for i in range(_QuietGc.HARD * gc.get_threshold()[0])]
+        hoard = [[i] for i in range((_QuietGc.HARD + 1) * gc.get_threshold()[0])]
         quiet.between_cycles(slack=0.0, period=1e-3)          # past the bound: anyway
         assert quiet.collections == 2
         del hoard, young
