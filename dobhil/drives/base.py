@@ -378,8 +378,8 @@ class Drive(ABC):
         """Read status frames until one says the drive left torque control."""
         wait = self._confirm_timeout() if timeout is None else timeout
         deadline = self._clock() + wait
-        not_acked = (f"did not acknowledge {self.disabled_state_text} "
-                     f"(no status frame within {wait:g} s)")
+        seen: StateEvent | None = None
+        why = f"no status frame within {wait:g} s"
         try:
             while True:
                 remaining = deadline - self._clock()
@@ -393,12 +393,16 @@ class Drive(ABC):
                         self._on_motion(event)
                         continue
                     self._record_state(event)
+                    seen = event
                     if self._is_disabled_confirmation(event):
                         return SafeStopReport(self.node_id, frames, Confirmation.CONFIRMED)
         except Exception as exc:  # safety path: a bus that cannot be read confirms nothing
-            not_acked = (f"did not acknowledge {self.disabled_state_text} "
-                         f"(status not readable: {exc})")
-        return SafeStopReport(self.node_id, frames, Confirmation.NOT_ACKNOWLEDGED, not_acked)
+            why = f"status not readable: {exc}"
+        else:
+            if seen is not None:
+                why = f"still {seen.state_text} after {wait:g} s"
+        return SafeStopReport(self.node_id, frames, Confirmation.NOT_ACKNOWLEDGED,
+                              f"did not acknowledge {self.disabled_state_text} ({why})")
 
     def _keepalive_interval(self) -> float:
         watchdog = self._profile.watchdog_timeout

@@ -50,6 +50,7 @@ __all__ = [
     "HoldFrames",
     "InjectFrame",
     "InjectReceived",
+    "LoseSent",
     "SilenceAfter",
     "faulty",
 ]
@@ -192,6 +193,14 @@ class InjectFrame(Fault):
             self.applied += 1
             return (msg, self.frame)
         return (msg,)
+
+
+class LoseSent(SilenceAfter):
+    """Frames the wrapped side sends are lost on the way (after the first ``frames`` of
+    them, or after ``seconds``): the sender's ``send`` succeeds, the drive never sees
+    them. Send direction."""
+
+    direction: ClassVar[Direction] = Direction.SEND
 
 
 class InjectReceived(InjectFrame):

@@ -30,7 +30,7 @@ from dobhil.drives.odrive import codec
 from dobhil.drives.odrive.codec import AxisState, CmdId, Firmware
 from dobhil.emulator.bus_faults import InterfaceGone, RefuseSend
 from dobhil.emulator.faults import (CorruptFeedback, Fault, Flood, HoldFrames, InjectFrame,
-                                    InjectReceived, SilenceAfter, faulty)
+                                    InjectReceived, LoseSent, SilenceAfter, faulty)
 from dobhil.runtime.controller import ControlOutput
 from dobhil.runtime.loop import RunResult, StopRequest, Timing
 from dobhil.runtime.session import RunSession, summary
@@ -38,13 +38,14 @@ from dobhil.runtime.signals import stop_on_signals
 from dobhil.runtime.stop import Stop, StopReason
 
 from .helpers import (NODE, REALTIME_SLACK, STEP_FROM_ZERO, Sniffer, assert_stopped_safely,
-                      demo_config, realtime_profile, wait_until)
+                      demo_config, realtime_profile, wait_until, write_profile)
 
 TIMINGS = ("lockstep", "feedback", "host")
 TIMING = {"lockstep": Timing.LOCKSTEP, "feedback": Timing.FEEDBACK, "host": Timing.HOST}
 FW = Firmware.V0_6
 ENCODER = codec.arbitration_id(NODE, CmdId.GET_ENCODER_ESTIMATES)
 TORQUE = codec.arbitration_id(NODE, CmdId.SET_INPUT_TORQUE)
+AXIS_STATE = codec.arbitration_id(NODE, CmdId.SET_AXIS_STATE)
 NODE_IDS = frozenset(codec.arbitration_id(NODE, c) for c in CmdId)
 AT = 100   # the fault strikes around the 100th frame (0.1 s into a 0.4 s run)
 
@@ -84,6 +85,7 @@ class Row:
     words: tuple[str, ...] = ()
     signum: int = 0            # a signal sent to this process at cycle AT
     bus_dead: bool = False     # the safe stop cannot reach the drive
+    idle_lost: bool = False    # the disable frame is lost on the bus (no watchdog either)
 
 
 def _spoofed_idle() -> list[Fault]:
@@ -123,6 +125,8 @@ ROWS: dict[str, Row] = {
                             ("not sent", "No buffer space"), bus_dead=True),
     "interface-gone": Row(lambda t: [InterfaceGone(after=AT, ids={TORQUE})],
                           StopReason.BUS_ERROR, ("No such device",), bus_dead=True),
+    "idle-lost": Row(lambda t: [LoseSent(frames=1, ids={AXIS_STATE})], StopReason.SIGNAL,
+                     ("received SIGINT",), signum=signal.SIGINT, idle_lost=True),
     "foreign-flood": Row(lambda t: [Flood(3, avoid=NODE_IDS, seed=5)], StopReason.DONE),
     "sigint": Row(lambda t: [], StopReason.SIGNAL, ("received SIGINT",), signum=signal.SIGINT),
     "sigterm": Row(lambda t: [], StopReason.SIGNAL, ("received SIGTERM",),
@@ -130,11 +134,14 @@ ROWS: dict[str, Row] = {
 }
 
 
-def matrix_config(tmp_path: Path, timing: str) -> Config:
+def matrix_config(tmp_path: Path, timing: str, **profile_changes: object) -> Config:
     base = (*STEP_FROM_ZERO, "loop.duration=0.4")
-    if timing == "lockstep":
+    if timing == "lockstep" and not profile_changes:
         return demo_config("drive.profile=odrive-0.6", *base)
-    profile = realtime_profile(tmp_path, "odrive-0.6")
+    if timing == "lockstep":
+        profile = write_profile(tmp_path, "odrive-0.6", **profile_changes)
+        return demo_config(f"drive.profile={profile}", *base)
+    profile = realtime_profile(tmp_path, "odrive-0.6", **profile_changes)
     return demo_config(f"drive.profile={profile}", f"loop.timing={timing}", *base, *REALTIME_SLACK)
 
 
@@ -164,7 +171,7 @@ def watchdog_stops_it(session: RunSession) -> bool:
 @pytest.mark.parametrize("name", list(ROWS))
 def test_fault(tmp_path: Path, timing: str, name: str) -> None:
     row = ROWS[name]
-    config = matrix_config(tmp_path, timing)
+    config = matrix_config(tmp_path, timing, **({"watchdog_timeout": 0} if row.idle_lost else {}))
     faults = row.faults(timing)
     sink = Sink(action=kill_self(row.signum) if row.signum else None)
     with stop_on_signals(StopRequest()) as request, \
@@ -187,6 +194,17 @@ def check_row(row: Row, result: RunResult, sink: Sink, session: RunSession,
     assert [f.what for f in report.frames] == ["zero torque", "IDLE"]
     info = summary(session, result)
     assert info["stop_reason"] == row.reason.name.lower()
+    if row.idle_lost:   # sent, but the drive never saw it: still enabled, said loudly
+        assert report.sent and report.confirmation is Confirmation.NOT_ACKNOWLEDGED
+        assert not result.disabled
+        assert report.warning() == ("drive may still be enabled: node 3 did not acknowledge "
+                                    "IDLE (still CLOSED_LOOP_CONTROL after 0.3 s); cut power")
+        sent = sniffer.host_commands(FW)
+        assert sent.torques[-1] == 0.0 and AxisState.IDLE not in sent.axis_states
+        emu = session.emulator
+        assert emu is not None and emu.axis_state == AxisState.CLOSED_LOOP_CONTROL  # type: ignore[attr-defined]
+        assert emu.applied_torque == 0.0   # the zero torque did arrive
+        return
     if row.bus_dead:
         assert not report.sent and report.confirmation is Confirmation.NOT_SENT
         assert not result.disabled
