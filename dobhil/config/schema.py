@@ -125,9 +125,9 @@ class LoopConfig:
                       choices=("feedback", "host", "lockstep", "realtime"))
     realtime_priority: int = key(0, "SCHED_FIFO priority on Linux (0: none)",
                                  check=Check.NONNEGATIVE)
-    spin: float = key(2.0e-4, "host timing: spin on the clock for this long before each "
-                      "deadline instead of sleeping (0: sleep only)", unit="s",
-                      check=Check.NONNEGATIVE)
+    spin: float = key(2.0e-4, "spin (instead of sleeping) for this long before each deadline "
+                      "(host timing) or around each expected feedback frame (feedback timing); "
+                      "0: sleep only", unit="s", check=Check.NONNEGATIVE)
     cpu_affinity: int = key(-1, "pin the control thread to this CPU (-1: no pinning)")
 
 

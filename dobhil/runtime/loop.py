@@ -11,8 +11,11 @@ Timing (:class:`Timing`):
 - **feedback** (the default for drives that stream feedback): each cycle is triggered by
   the drive's feedback frame and the command goes out at once, so the feedback-to-command
   latency is the computation time, never a fraction of a period that drifts between the
-  drive's clock and the host's. Frames that came while a cycle was late are skipped (the
-  newest is used) and counted; no frame for ``loop.feedback_timeout`` stops the run.
+  drive's clock and the host's. The wait blocks on the bus until ``loop.spin`` s before
+  the frame is expected (one period after the last), then spins on the bus around that
+  instant, then blocks again. Frames that came while a cycle was late are skipped (the
+  newest is used) and counted; no frame for ``loop.feedback_timeout`` after the last one
+  stops the run.
 - **host**: absolute deadlines ``t0 + k T`` on the host clock, for drives that need a
   host-timed request. The cycle reads the newest feedback without blocking, then sleeps
   to the next deadline -- ``time.sleep`` to ``loop.spin`` s before it, then a spin on the
@@ -417,7 +420,8 @@ class ForceLoop:
         last_seq, last_wake = first.seq, math.nan
         k = 0
         while k < n:
-            fb = poll(timeout)
+            fb = self._wait_frame(last_wake + period, last_wake + timeout) if timed and \
+                last_wake == last_wake else poll(timeout)
             wake = clock()
             start = time.perf_counter()
             if fb is None:
@@ -444,6 +448,26 @@ class ForceLoop:
             k += 1
             if timed:
                 self._gc.between_cycles(last_wake + period - clock(), period)
+
+    def _wait_frame(self, expected: float, deadline: float) -> Feedback | None:
+        """Feedback timing: the next frame, expected at ``expected`` and given up at
+        ``deadline`` (loop clock). Blocks on the bus to ``loop.spin`` s before the
+        expected time (a frame that comes early ends the wait at once), then spins on the
+        bus until ``loop.spin`` s after it (a blocked thread wakes up tens of
+        microseconds or more late), then blocks again until the deadline."""
+        poll, clock, spin = self.drive.poll, self.clock, self.settings.spin
+        if spin > 0:
+            early = expected - spin - clock()
+            if early > 0:
+                fb = poll(early)
+                if fb is not None:
+                    return fb
+            end = min(expected + spin, deadline)
+            while clock() < end:
+                fb = poll(0.0)
+                if fb is not None:
+                    return fb
+        return poll(max(deadline - clock(), 0.0))
 
     def _run_host(self) -> None:
         s = self.settings
