@@ -159,7 +159,11 @@ class RunSession:
                 host = lock
                 clock["clock"] = lock.clock
             else:
-                self.emulator.start(priority_drop=EMULATOR_PRIORITY_DROP)
+                # host timing: the emulator below the loop, which keeps its own deadlines;
+                # feedback timing: the emulator is the loop's clock (the drive it stands
+                # for has a CPU of its own) and keeps its priority
+                drop = EMULATOR_PRIORITY_DROP if self.timing is Timing.HOST else 0
+                self.emulator.start(priority_drop=drop)
         if self._wrapper is not None:
             host = self._add(self._wrapper(host))
         self.host_bus = host
