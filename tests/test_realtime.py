@@ -70,3 +70,17 @@ def test_a_cpu_we_may_not_use_is_bad_input() -> None:
     missing = max(os.sched_getaffinity(0)) + 1
     with pytest.raises(ConfigError, match=f"loop.cpu_affinity = {missing}: not a CPU"):
         apply_realtime(0, missing)
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="Linux")
+def test_lower_priority_of_another_process() -> None:
+    """The writer process is lowered from the process that started it."""
+    import subprocess
+    child = subprocess.Popen([sys.executable, "-c", "import sys; sys.stdin.read()"],
+                             stdin=subprocess.PIPE)
+    try:
+        before = os.getpriority(os.PRIO_PROCESS, child.pid)
+        assert lower_priority(4, pid=child.pid) == ""
+        assert os.getpriority(os.PRIO_PROCESS, child.pid) == min(before + 4, 19)
+    finally:
+        child.communicate(b"")

@@ -5,9 +5,10 @@
   CAP_SYS_NICE / CAP_IPC_LOCK, or rtprio/memlock limits in /etc/security/limits.conf).
   When they are refused the run goes on with normal scheduling and the caller gets a
   warning line to show -- before the loop starts, never from inside it.
-- :func:`lower_priority`: the other side -- the recording writer process and the
-  emulator thread raise their own nice value, so the loop wins the CPU when it is
-  short. Lowering one's own priority needs no privilege.
+- :func:`lower_priority`: the other side -- the emulator thread (host timing), the
+  ``dobhil emulate`` process and the recording writer process get a higher nice value,
+  so the loop wins the CPU when it is short. Lowering the priority of one's own thread
+  or process needs no privilege.
 
 On Linux the nice value, the scheduling policy and the affinity are per *thread*; each
 function here acts on the thread that calls it.
@@ -46,14 +47,16 @@ def apply_realtime(priority: int, cpu: int = -1) -> list[str]:
     return [*warnings, *(w for w in (_set_fifo(priority), _lock_memory()) if w)]
 
 
-def lower_priority(increment: int = WRITER_PRIORITY_DROP) -> str:
-    """Raise the calling thread's nice value by ``increment`` (Linux: this thread only;
-    elsewhere the process). Returns a warning, or "" when done. Never raises."""
+def lower_priority(increment: int = WRITER_PRIORITY_DROP, pid: int = 0) -> str:
+    """Raise the nice value of the calling thread (``pid`` 0; Linux: this thread only,
+    elsewhere the process) or of process ``pid`` (e.g. the writer process, from the
+    process that started it: no import of the runtime needed there) by ``increment``.
+    Returns a warning, or "" when done. Never raises."""
     if increment <= 0 or not hasattr(os, "setpriority"):
         return "" if increment <= 0 else "lowering the priority is not supported here"
     try:
-        current = os.getpriority(os.PRIO_PROCESS, 0)
-        os.setpriority(os.PRIO_PROCESS, 0, min(current + increment, 19))
+        current = os.getpriority(os.PRIO_PROCESS, pid)
+        os.setpriority(os.PRIO_PROCESS, pid, min(current + increment, 19))
     except OSError as exc:
         return f"priority not lowered ({exc.strerror or exc})"
     return ""
