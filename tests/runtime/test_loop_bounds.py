@@ -182,3 +182,27 @@ def test_young_generation_is_collected_between_cycles_only_with_time_left() -> N
     finally:
         if was:
             gc.enable()
+
+
+def test_any_duration_is_accepted_or_one_config_error() -> None:
+    """Property: every float as ``--duration`` either makes a session whose cycle count
+    is a positive integer, or a ConfigError; never another exception."""
+    hypothesis = pytest.importorskip("hypothesis")
+    from hypothesis import strategies as st
+
+    from dobhil.errors import ConfigError
+    config = demo_config()
+
+    @hypothesis.settings(max_examples=60, deadline=None, derandomize=True)
+    @hypothesis.given(st.floats(allow_nan=True, allow_infinity=True))
+    def check(duration: float) -> None:
+        try:
+            session = RunSession(config, emulate=True, lockstep=True, duration=duration)
+        except ConfigError as exc:
+            assert "\n" not in str(exc)
+            return
+        with session:
+            assert math.isfinite(duration) and duration > 0
+            assert session.settings.cycles >= 1
+
+    check()
