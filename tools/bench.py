@@ -4,7 +4,8 @@
 ``python tools/bench.py --json`` prints one JSON object. Each ratio compares
 dobhil with a baseline doing the same work in the same run, so the numbers
 mean the same on a loaded or an idle machine; absolute rates are printed for
-context. Targets (2-core machine) are in TARGETS; ``--check`` exits 1 if one
+context. Targets (2-core machine) are in TARGETS (lower bounds) and TARGETS_MAX
+(upper bounds); ``--check`` exits 1 if one
 is missed.
 """
 

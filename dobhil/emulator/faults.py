@@ -50,6 +50,7 @@ __all__ = [
     "HoldFrames",
     "InjectFrame",
     "InjectReceived",
+    "KeepEvery",
     "LoseSent",
     "SilenceAfter",
     "faulty",
@@ -193,6 +194,25 @@ class InjectFrame(Fault):
             self.applied += 1
             return (msg, self.frame)
         return (msg,)
+
+
+class KeepEvery(Fault):
+    """Only every ``n``-th matching frame (from ``at`` on, 0-based) gets through: a drive
+    streaming ``n`` times slower than its profile says (an ODrive at its factory 10 ms
+    encoder rate under a 1 ms profile)."""
+
+    def __init__(self, n: int, *, at: int = 0, ids: Collection[int] | None = None) -> None:
+        if n < 2 or at < 0:
+            raise ValueError(f"KeepEvery: n >= 2, at >= 0; got {n}, {at}")
+        super().__init__(ids)
+        self.n = n
+        self.at = at
+
+    def apply(self, msg: can.Message, index: int, now: float) -> Sequence[can.Message]:
+        if index < self.at or (index - self.at) % self.n == 0:
+            return (msg,)
+        self.applied += 1
+        return ()
 
 
 class LoseSent(SilenceAfter):

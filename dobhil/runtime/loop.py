@@ -274,6 +274,36 @@ class _Halt(Exception):
         self.detail = detail
 
 
+class _RateWatch:
+    """Feedback that comes slower than ``loop.period`` (a drive still at its factory
+    rate, 10 ms on an ODrive) would run the controller on held samples or at the wrong
+    sample time without any error: ``RUN`` frame intervals in a row longer than ``SLOW``
+    periods each stop the run. Intervals are taken from the frames' bus stamps (real
+    time) or the drive clock (lockstep), per frame received (a burst after a late cycle
+    is not slow)."""
+
+    SLOW = 1.5
+    RUN = 10
+
+    def __init__(self, period: float) -> None:
+        self.period = period
+        self.last = math.nan
+        self.slow = 0
+
+    def frame(self, stamp: float, frames: int) -> None:
+        last, self.last = self.last, stamp
+        if not (stamp - last > self.SLOW * self.period * frames):   # NaN: no verdict
+            self.slow = 0
+            return
+        self.slow += 1
+        if self.slow >= self.RUN:
+            every = (stamp - last) / max(frames, 1)
+            raise _Halt(StopReason.FEEDBACK_TIMEOUT,
+                        f"feedback frames come every {every * 1e3:.3g} ms ({self.RUN} in a row), "
+                        f"expected every loop.period = {self.period * 1e3:g} ms: set the drive's "
+                        f"encoder message rate to the loop period")
+
+
 class _QuietGc:
     """Keeps the garbage collector out of the cycles (see the module docstring)."""
 
@@ -336,6 +366,7 @@ class ForceLoop:
         self._at = 0         # index of the next cycle (for the stop record)
         self._t0 = 0.0
         self._last_out: ControlOutput | None = None
+        self._rate = _RateWatch(settings.period)
         self._last = (0.0, 0.0, 0.0)   # t, period error, exec time of the newest cycle
         self._gc = _QuietGc()
         self.period_error = Histogram()
@@ -429,6 +460,7 @@ class ForceLoop:
                             + ("" if timed else " (simulated)"))
             frames = fb.seq - last_seq   # 1 unless frames came while the last cycle ran
             last_seq = fb.seq
+            self._rate.frame(fb.rx_time if timed else fb.timestamp, frames)
             late = frames > 1
             if late:
                 self.overruns += timed   # lockstep: a lost frame, never a late host
@@ -475,6 +507,7 @@ class ForceLoop:
         t0 = self._t0
         k = 0
         last_fresh = t0
+        last_seq = self.drive.feedback.seq if self.drive.feedback is not None else 0
         n = s.cycles
         while k < n:
             wake = self.clock()
@@ -482,6 +515,8 @@ class ForceLoop:
             fb = self.drive.poll(0.0)
             if fb is not None:
                 last_fresh = wake
+                self._rate.frame(fb.rx_time, fb.seq - last_seq)
+                last_seq = fb.seq
             elif wake - last_fresh > timeout:
                 raise _Halt(StopReason.FEEDBACK_TIMEOUT,
                             f"no fresh feedback for {wake - last_fresh:.4f} s (limit {timeout:g} s)")

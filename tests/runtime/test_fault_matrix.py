@@ -30,7 +30,7 @@ from dobhil.drives.odrive import codec
 from dobhil.drives.odrive.codec import AxisState, CmdId, Firmware
 from dobhil.emulator.bus_faults import InterfaceGone, RefuseSend
 from dobhil.emulator.faults import (CorruptFeedback, Fault, Flood, HoldFrames, InjectFrame,
-                                    InjectReceived, LoseSent, SilenceAfter, faulty)
+                                    InjectReceived, KeepEvery, LoseSent, SilenceAfter, faulty)
 from dobhil.runtime.controller import ControlOutput
 from dobhil.runtime.loop import RunResult, StopRequest, Timing
 from dobhil.runtime.session import RunSession, summary
@@ -110,6 +110,10 @@ ROWS: dict[str, Row] = {
     "late-frames": Row(lambda t: [HoldFrames(at=AT, count=3, ids={ENCODER})], StopReason.DONE),
     "late-beyond-timeout": Row(lambda t: [HoldFrames(at=AT, count=60, ids={ENCODER})],
                                StopReason.FEEDBACK_TIMEOUT, ("no fresh feedback",)),
+    "drive-slower-than-profile": Row(lambda t: [KeepEvery(4, at=AT, ids={ENCODER})],
+                                     StopReason.FEEDBACK_TIMEOUT,
+                                     ("frames come every", "expected every loop.period = 1 ms",
+                                      "encoder message rate")),
     "nan-position": Row(lambda t: _bad_feedback(t, float("nan")), StopReason.NON_FINITE,
                         ("non-finite feedback",)),
     "inf-velocity": Row(lambda t: _bad_feedback(t, float("inf"), "velocity"),
