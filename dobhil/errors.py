@@ -20,6 +20,10 @@ class SynthesisError(DobhilError, ValueError):
     """The requested observer or loop cannot be synthesised (e.g. unobservable model)."""
 
 
+class AnalysisError(DobhilError, ValueError):
+    """A valid design the analysis cannot answer (one line saying why)."""
+
+
 class BusError(DobhilError, OSError):
     """A CAN bus could not be opened or used."""
 

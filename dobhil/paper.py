@@ -84,7 +84,9 @@ def fig2_facts(cases: dict[str, Config]) -> list[Fact]:
 
 def fig3_facts(cases: dict[float, Config]) -> list[Fact]:
     res = {r: continuous(cfg) for r, cfg in cases.items()}
-    over = {r: (a.step.overshoot_pct if a.stable else float("inf")) for r, a in res.items()}
+    over: dict[float, float] = {
+        r: (a.step.overshoot_pct if a.stable and a.step.overshoot_pct is not None else float("inf"))
+        for r, a in res.items()}
     ordered = [over[r] for r in sorted(over)]
     ev = ", ".join(f"J_mi={r:g}J_m: " + ("unstable" if np.isinf(o) else f"{o:.1f} %")
                    for r, o in sorted(over.items()))

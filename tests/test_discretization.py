@@ -116,3 +116,103 @@ def test_sampled_plant_is_discretize_delayed_of_the_plant() -> None:
 def test_input_delay_must_be_below_the_period(value: str) -> None:
     with pytest.raises(ConfigError, match="input_delay"):
         params_from_config(load_config("configs/paper/fig2a.yaml", [f"design.input_delay={value}"]))
+
+
+# --- the sampled controller: effective inertia and friction from the matrices' DC behaviour
+
+
+def _controller(discretization: str, source: str, g: float, period: float = T):
+    from dobhil.synthesis.controller import sampled_controller
+    config = load_config(None, [f"design.discretization={discretization}",
+                                f"design.velocity_source={source}", f"design.dob_bandwidth={g}",
+                                f"design.rtob_bandwidth={g}", "design.nominal_inertia=0.25",
+                                "design.identified_inertia=0.125", f"loop.period={period}",
+                                "design.nominal_friction=0.0", "design.identified_friction=0.0",
+                                "design.velocity_filter_bandwidth=1000"])
+    return sampled_controller(params_from_config(config))
+
+
+def _steady_estimates(ctrl, accel: float, vel: float, torque: float, steps: int = 400):
+    """Run the controller's matrices on q = vel t + accel t^2/2 (and its velocity), a
+    constant torque; the estimates [tau_dis^, tau_int^] at the end (transients gone)."""
+    x = np.zeros(ctrl.order)
+    for k in range(steps + 1):
+        t = k * ctrl.dt
+        y = np.array([vel * t + 0.5 * accel * t * t, vel + accel * t])[:ctrl.b_y.shape[-1]]
+        out = ctrl.c @ x + ctrl.d_y @ y
+        x = ctrl.a @ x + ctrl.b_y @ y + ctrl.b_u[:, 0] * torque
+    return out
+
+
+@pytest.mark.parametrize("g", [500.0, 1000.0])
+@pytest.mark.parametrize("source", ["measured", "estimated"])
+def test_sampled_observers_have_the_configured_inertia_and_no_friction(g: float,
+                                                                       source: str) -> None:
+    """At T = 1 ms the default (parabolic) controller's observers read, in steady state,
+    tau^ = u - J a - b v with the configured J (DOb 0.25, RTOb 0.125) and b = 0."""
+    ctrl = _controller("parabolic", source, g)
+    gain = _steady_estimates(ctrl, 0.0, 0.0, 1.0)
+    np.testing.assert_allclose(gain, [1.0, 1.0], rtol=1e-9)
+    inertia = -_steady_estimates(ctrl, 1.0, 0.0, 0.0) / gain
+    np.testing.assert_allclose(inertia, [0.25, 0.125], rtol=1e-6)
+    friction = -_steady_estimates(ctrl, 0.0, 1.0, 0.0) / gain
+    np.testing.assert_allclose(friction, [0.0, 0.0], atol=1e-6)
+
+
+@pytest.mark.parametrize("g", [500.0, 1000.0])
+def test_step_invariant_controller_scales_the_differentiator(g: float) -> None:
+    """The old ZOH equivalent: J gT/(1 - e^-gT) with measured velocity (1.27x at 500 rad/s,
+    1.58x at 1000), and viscous friction read at constant velocity when it is estimated;
+    the triangle hold (foh) is exact with measured velocity only."""
+    factor = g * T / (1.0 - np.exp(-g * T))
+    zoh = _controller("zoh", "measured", g)
+    np.testing.assert_allclose(-_steady_estimates(zoh, 1.0, 0.0, 0.0), [0.25 * factor,
+                                                                       0.125 * factor], rtol=1e-9)
+    if g == 500.0:   # the defaults (g_v = 2000 rad/s): the issue's 174 N m s/rad
+        from dobhil.synthesis.controller import sampled_controller
+        defaults = load_config(None, ["design.discretization=zoh",
+                                      "design.velocity_source=estimated"])
+        friction = -_steady_estimates(sampled_controller(params_from_config(defaults)),
+                                      0.0, 1.0, 0.0)
+        assert friction[0] == pytest.approx(173.7, abs=0.1)
+    foh = _controller("foh", "measured", g)
+    np.testing.assert_allclose(-_steady_estimates(foh, 1.0, 0.0, 0.0), [0.25, 0.125], rtol=1e-6)
+    foh_est = _controller("foh", "estimated", g)
+    assert abs(-_steady_estimates(foh_est, 1.0, 0.0, 0.0)[0] / 0.25 - 1.0) > 0.01
+    np.testing.assert_allclose(_steady_estimates(foh_est, 0.0, 1.0, 0.0), [0.0, 0.0], atol=1e-6)
+
+
+@pytest.mark.parametrize("discretization", ["parabolic", "foh", "zoh", "euler"])
+@pytest.mark.parametrize("source", ["measured", "estimated"])
+def test_effective_observer_report_matches_the_simulation(discretization: str,
+                                                          source: str) -> None:
+    from dobhil.analysis.effective import effective_observers
+    ctrl = _controller(discretization, source, 300.0)
+    eff = effective_observers(ctrl)
+    sim_b = -_steady_estimates(ctrl, 0.0, 1.0, 0.0)
+    sim_j = -_steady_estimates(ctrl, 1.0, 0.0, 0.0) - sim_b * 400 * ctrl.dt  # minus b v(t_end)
+    assert eff["dob"].inertia == pytest.approx(sim_j[0], rel=1e-7)
+    assert eff["rtob"].inertia == pytest.approx(sim_j[1], rel=1e-7)
+    assert eff["dob"].friction == pytest.approx(sim_b[0], rel=1e-7, abs=1e-6)
+    assert eff["rtob"].friction == pytest.approx(sim_b[1], rel=1e-7, abs=1e-6)
+
+
+def test_effective_bandwidth_of_the_continuous_observer_is_g() -> None:
+    from dobhil.analysis.effective import effective_observers
+    from dobhil.synthesis.controller import continuous_controller
+    params = params_from_config(load_config("configs/paper/fig2b.yaml"))
+    eff = effective_observers(continuous_controller(params))
+    assert eff["dob"].bandwidth == pytest.approx(500.0, rel=1e-9)
+    assert eff["rtob"].bandwidth == pytest.approx(1000.0, rel=1e-9)
+    assert eff["rtob"].inertia == pytest.approx(0.25, rel=1e-12)
+
+
+@pytest.mark.parametrize("discretization", ["parabolic", "foh"])
+def test_hold_controllers_have_no_torque_feedthrough_and_stable_observers(
+        discretization: str) -> None:
+    """The runtime's explicit saturation needs outputs free of u: the ControllerSS form
+    has no D_u at all, and the state update is the only place u enters."""
+    for source in ("measured", "estimated"):
+        ctrl = _controller(discretization, source, 1000.0)
+        assert np.max(np.abs(np.linalg.eigvals(ctrl.a))) < 1.0
+        assert not hasattr(ctrl, "d_u")

@@ -11,6 +11,8 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
+from dobhil.synthesis.numerics import balance
+
 Array = NDArray[np.float64]
 CArray = NDArray[np.complex128]
 
@@ -43,7 +45,12 @@ def markov_parameters(a: Array, b: Array, c: Array) -> Array:
 
 
 def relative_degree(a: Array, b: Array, c: Array) -> NDArray[np.int64]:
-    """First j+1 with ``C A^j B`` not zero (n+1 when the transfer function is zero)."""
+    """First j+1 with ``C A^j B`` not zero (n+1 when the transfer function is zero).
+
+    On a balanced realisation (:func:`~dobhil.synthesis.numerics.balance`), so that
+    ``|C| |A|^j |B|`` -- the size of the rounding in ``C A^j B`` -- is the system's own
+    scale and not that of an ill-scaled basis (a state in rad next to one in N m)."""
+    a, b, c = balance(a, b, c)
     n = a.shape[-1]
     h = markov_parameters(a, b, c)
     an = np.maximum(np.linalg.norm(a, ord=2, axis=(-2, -1)), 1e-300)
@@ -61,6 +68,7 @@ def zeros_and_numerator(a: Array, b: Array, c: Array) -> tuple[CArray, Array, ND
     """
     n = a.shape[-1]
     batch = a.shape[:-2]
+    a, b, c = balance(a, b, c)
     rel = relative_degree(a, b, c)
     h = markov_parameters(a, b, c)
     zeros = np.full(batch + (max(n - 1, 0),), np.nan + 0j)
@@ -95,8 +103,11 @@ def batched_roots(coef: Array) -> CArray:
     """Roots of each polynomial, padded with NaN (leading near-zero terms dropped)."""
     batch, width = coef.shape[:-1], coef.shape[-1]
     flat = coef.reshape(-1, width)
+    valid = np.all(np.isfinite(flat), axis=-1)
+    flat = np.where(valid[:, None], flat, 0.0)
     big = np.abs(flat).max(axis=-1, keepdims=True)
     lead = np.argmax(np.abs(flat) > 1e-13 * np.maximum(big, 1e-300), axis=-1)
+    lead = np.where(valid & (big[:, 0] > 0), lead, width - 1)   # no roots for those
     out = np.full((flat.shape[0], width - 1), np.nan + 0j)
     for first in np.unique(lead):
         rows = np.nonzero(lead == first)[0]

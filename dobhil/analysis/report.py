@@ -14,10 +14,13 @@ from typing import Any
 import control
 import numpy as np
 
-from dobhil.analysis.metrics import StepMetrics, step_metrics, step_response
+from dobhil.analysis.effective import EffectiveObserver, effective_observers
+from dobhil.analysis.metrics import StepMetrics, step_metrics, step_responses
 from dobhil.analysis.stability import GainMap, gain_map, is_stable
 from dobhil.analysis.transfer import LoopSystems
 from dobhil.config.schema import Config
+from dobhil.errors import AnalysisError, ConfigError, DobhilError
+from dobhil.synthesis.controller import continuous_controller, sampled_controller
 from dobhil.synthesis.params import Params, params_from_config
 
 
@@ -37,6 +40,7 @@ class DomainAnalysis:
     step_time: np.ndarray = field(repr=False)
     step_estimate: np.ndarray = field(repr=False)
     step_true: np.ndarray = field(repr=False)
+    observers: dict[str, EffectiveObserver] = field(default_factory=dict)
 
     @property
     def sample_time(self) -> float | None:
@@ -50,31 +54,64 @@ class Analysis:
     discrete: DomainAnalysis
 
 
+#: shortest step horizon that may be asked for (0 means automatic)
+MIN_STEP_DURATION = 1e-6
+
+
 def analyze(config: Config) -> Analysis:
+    """Both domains of one design; a design the analysis cannot answer raises
+    :class:`~dobhil.errors.AnalysisError` (one line), never a numpy error."""
+    duration = config.analysis.step_duration
+    if 0.0 < duration < MIN_STEP_DURATION:
+        raise ConfigError(f"analysis.step_duration = {duration!r}: must be 0 (automatic) or at "
+                          f"least {MIN_STEP_DURATION:g} s")
     params = params_from_config(config)
     return Analysis(config=config,
-                    continuous=analyze_domain(params, sampled=False,
-                                              duration=config.analysis.step_duration),
-                    discrete=analyze_domain(params, sampled=True,
-                                            duration=config.analysis.step_duration))
+                    continuous=_answered(params, sampled=False, duration=duration),
+                    discrete=_answered(params, sampled=True, duration=duration))
+
+
+def _answered(params: Params, *, sampled: bool, duration: float) -> DomainAnalysis:
+    name = "sampled" if sampled else "continuous"
+    try:
+        with np.errstate(all="ignore"):
+            return analyze_domain(params, sampled=sampled, duration=duration)
+    except DobhilError:
+        raise
+    except (np.linalg.LinAlgError, ValueError, ZeroDivisionError, OverflowError) as exc:
+        raise AnalysisError(f"the {name} analysis cannot answer this design "
+                            f"({_why(exc)}); check that it is within the keys' ranges") from None
+
+
+def _why(exc: Exception) -> str:
+    text = str(exc).splitlines()[0] if str(exc) else exc.__class__.__name__
+    return text[:120]
 
 
 def analyze_domain(params: Params, *, sampled: bool, duration: float = 0.0) -> DomainAnalysis:
     systems = LoopSystems.build(params, sampled=sampled)
+    if not all(np.all(np.isfinite(m)) for m in (systems.closed.a, systems.closed.b,
+                                               systems.closed.c)):
+        raise AnalysisError(f"the {'sampled' if sampled else 'continuous'} loop's matrices "
+                            "overflow for this design (a value too large or too small)")
     a, b, c, _ = systems.open.siso("tau_per", "tau_int_hat")
     gains = gain_map(a, b, c, sampled=sampled)
-    cl_poles = np.linalg.eigvals(systems.closed.a)
+    cl_poles = np.asarray(np.linalg.eigvals(systems.closed.a), dtype=complex)
     stable = bool(is_stable(cl_poles[None], sampled)[0])
     closed, force = systems.system("closed_loop"), systems.system("force")
-    t, y_hat = step_response(closed, duration) if stable else (np.zeros(0), np.zeros(0))
-    y_true = step_response(force, float(t[-1]))[1] if stable else np.zeros(0)
+    if stable:
+        t, (y_hat, y_true) = step_responses([closed, force], duration)
+    else:
+        t, y_hat, y_true = np.zeros(0), np.zeros(0), np.zeros(0)
     return DomainAnalysis(
         sampled=sampled, params=params, systems=systems, gains=gains,
         closed_loop_poles=cl_poles, stable=stable,
         margins=margins(systems.system("open_loop"), float(params.value("force_gain"))),
         step=step_metrics(t, y_hat, stable=stable, final=_dc(closed) if stable else None),
         step_force=step_metrics(t, y_true, stable=stable, final=_dc(force) if stable else None),
-        step_time=t, step_estimate=y_hat, step_true=y_true)
+        step_time=t, step_estimate=y_hat, step_true=y_true,
+        observers=effective_observers(sampled_controller(params) if sampled
+                                      else continuous_controller(params)))
 
 
 def _dc(sys: control.StateSpace) -> float:
@@ -152,10 +189,14 @@ def domain_json(d: DomainAnalysis) -> dict[str, Any]:
         "step": {k: v for k, v in d.step.as_dict().items()},
         "step_true_force": d.step_force.as_dict(),
         "sensitivities": sensitivities(d),
+        "observers": {k: v.as_dict() for k, v in d.observers.items()},
     }
     if d.sampled:
+        s = d.params.structure
         out["sample_time"] = d.sample_time
-        out["delay_samples"] = d.params.structure.delay_samples
+        out["delay_samples"] = s.delay_samples
+        out["input_delay"] = s.input_delay
+        out["discretization"] = s.discretization.name.lower()
     return out
 
 
@@ -184,7 +225,19 @@ def _domain_text(name: str, d: dict[str, Any]) -> list[str]:
         f"  margins: gain {_fmt(m['gain_margin_db'], ' dB')}, phase {_fmt(m['phase_margin_deg'], ' deg')}",
         f"  step (tau_int^): overshoot {_fmt(st['overshoot_pct'], ' %')}, rise {_fmt(st['rise_time'], ' s')}, "
         f"settling {_fmt(st['settling_time'], ' s')}, steady-state error {_fmt(st['steady_state_error'])}",
+        *(_observer_text(label, d["observers"][key])
+          for key, label in (("dob", "DOb  (J_mn, b_mn)"), ("rtob", "RTOb (J_mi, b_mi)"))),
     ]
+
+
+def _observer_text(label: str, o: dict[str, float | None]) -> str:
+    bw, friction = o["bandwidth"], o["friction"]
+    if friction is not None and o["inertia"] is not None and abs(friction) < 1e-9 * max(
+            1.0, abs(o["inertia"]) * (bw or 1.0)):
+        friction = 0.0   # rounding of a zero
+    return (f"  {label} as it runs: inertia {_fmt(o['inertia'], ' kg m^2', 6)}, friction "
+            f"{_fmt(friction, ' N m s/rad', 4)}, torque gain {_fmt(o['torque_gain'], '', 6)}, "
+            f"bandwidth (-3 dB) {'above Nyquist' if bw is None else _fmt(bw, ' rad/s')}")
 
 
 def _complex_str(z: list[float]) -> str:
@@ -196,6 +249,8 @@ def as_text(a: Analysis) -> str:
     j = as_json(a)
     ts = j["discrete"]["sample_time"]
     lines = _domain_text("continuous (paper)", j["continuous"])
-    lines += _domain_text(f"sampled (T = {ts:g} s, delay {j['discrete']['delay_samples']} samples)",
-                          j["discrete"])
+    dj = j["discrete"]
+    delay = f"delay {dj['delay_samples']} samples" + (f" + {dj['input_delay']:g} s"
+                                                      if dj["input_delay"] else "")
+    lines += _domain_text(f"sampled (T = {ts:g} s, {delay}, {dj['discretization']} controller)", dj)
     return "\n".join(lines)

@@ -20,14 +20,20 @@ from dataclasses import dataclass
 from math import comb
 
 import numpy as np
+import scipy.optimize
 from numpy.typing import NDArray
 
 from dobhil.analysis.polynomials import (Array, CArray, batched_roots, eval_poly,
                                          poly_from_roots, zeros_and_numerator)
+from dobhil.synthesis.numerics import balance
 
 #: a pole counts as stable when Re(s) < -STABILITY_TOL * scale (continuous) or
 #: |z| < 1 - STABILITY_TOL (sampled)
 STABILITY_TOL = 1e-9
+
+#: an open-loop pole within this (relative) distance of the stability boundary is taken
+#: to lie on it exactly (the loop's integrator: structurally at s = 0 / z = 1)
+MARGINAL_RTOL = 1e-10
 
 
 @dataclass(frozen=True)
@@ -60,20 +66,44 @@ def is_stable(poles: CArray, sampled: bool) -> NDArray[np.bool_]:
 
 def gain_map(a0: Array, b: Array, c: Array, *, sampled: bool) -> GainMap:
     """Poles, zeros, crossings and stable gain intervals of ``A0 - k B C`` for k > 0."""
-    poles = np.linalg.eigvals(a0)
+    a0, b, c = balance(a0, b, c)
+    poles = np.asarray(np.linalg.eigvals(a0), dtype=complex)
     zeros, num, rel = zeros_and_numerator(a0, b, c)
+    poles, marginal = _snap_marginal(poles, sampled)
     den = poly_from_roots(poles)
     minimum_phase = _minimum_phase(zeros, sampled)
     if sampled:
         den, num = _bilinear(den), _bilinear(num)
         scale_roots = np.concatenate([_to_w(poles), _to_w(zeros)], axis=-1)
+        marginal_w = np.where(marginal, _to_w(poles).imag, np.nan)
     else:
         scale_roots = np.concatenate([poles, zeros], axis=-1)
-    crossings = _crossing_gains(den, num, scale_roots)
+        marginal_w = np.where(marginal, poles.imag, np.nan)
+    crossings = _crossing_gains(den, num, scale_roots, marginal_w)
     lo, hi, kmax = _intervals(a0, b, c, crossings, sampled)
     return GainMap(poles=poles, zeros=zeros, relative_degree=rel, minimum_phase=minimum_phase,
                    crossings=crossings, interval_lo=lo, interval_hi=hi, max_stable_gain=kmax,
                    sampled=sampled)
+
+
+def _snap_marginal(poles: CArray, sampled: bool) -> tuple[CArray, NDArray[np.bool_]]:
+    """Open-loop poles on the stability boundary up to rounding, put on it exactly.
+
+    The loop's integrator sits at s = 0 (z = 1) by construction; eigenvalues return it
+    at +-1e-15 or so. Left there, the root locus' crossing at k = 0 shows up as a
+    crossing at a tiny positive gain (a spurious unstable sliver). Snapped, the crossing
+    at its frequency is known to happen at k = 0 and is dropped."""
+    if sampled:
+        mag = np.abs(poles)
+        marginal = np.abs(mag - 1.0) <= MARGINAL_RTOL
+        snapped = np.where(marginal, poles / np.where(marginal, mag, 1.0), poles)
+        snapped = np.where(marginal & (np.abs(snapped - 1.0) <= MARGINAL_RTOL), 1.0, snapped)
+    else:
+        scale = np.maximum(np.max(np.abs(poles), axis=-1, keepdims=True), 1e-300)
+        marginal = np.abs(poles.real) <= MARGINAL_RTOL * scale
+        snapped = np.where(marginal, 1j * poles.imag, poles)
+        snapped = np.where(marginal & (np.abs(snapped) <= MARGINAL_RTOL * scale), 0.0, snapped)
+    return snapped.astype(complex), marginal
 
 
 def _minimum_phase(zeros: CArray, sampled: bool) -> NDArray[np.bool_]:
@@ -102,7 +132,7 @@ def _binom(n: int, sign: float) -> Array:
     return np.array([comb(n, j) * sign ** (n - j) for j in range(n + 1)])
 
 
-def _scaled(den: Array, num: Array, roots: CArray) -> tuple[Array, Array]:
+def _scaled(den: Array, num: Array, roots: CArray) -> tuple[Array, Array, Array]:
     """Both polynomials in s = w0 s^ with w0 the largest finite root magnitude."""
     mags = np.where(np.isfinite(roots) & (np.abs(roots) < 1e12), np.abs(roots), 0.0)
     w0 = np.maximum(mags.max(axis=-1, initial=0.0), 1e-12)
@@ -110,12 +140,16 @@ def _scaled(den: Array, num: Array, roots: CArray) -> tuple[Array, Array]:
     powers = w0[..., None] ** np.arange(n, -1, -1)
     d, m = den * powers, num * powers
     norm = np.maximum(np.abs(d).max(axis=-1, keepdims=True), 1e-300)
-    return d / norm, m / norm
+    return d / norm, m / norm, w0
 
 
-def _crossing_gains(den: Array, num: Array, roots: CArray) -> Array:
-    """Positive gains at which a root of D + k N lies on the imaginary axis (sorted)."""
-    d, m = _scaled(den, num, roots)
+def _crossing_gains(den: Array, num: Array, roots: CArray, marginal_w: Array) -> Array:
+    """Positive gains at which a root of D + k N lies on the imaginary axis (sorted).
+
+    ``marginal_w``: frequencies (NaN padded) of open-loop poles on the axis; a root of
+    D + k N there has k = 0 exactly (unless N vanishes too: a cancellation, which the
+    interval tests see), so those candidates are not crossings."""
+    d, m, w0 = _scaled(den, num, roots)
     n = d.shape[-1] - 1
     jpow = 1j ** np.arange(n, -1, -1)
     dj, nj = d * jpow, m * np.conj(jpow)          # D(jw), conj(N(jw)) as polynomials in w
@@ -125,6 +159,11 @@ def _crossing_gains(den: Array, num: Array, roots: CArray) -> Array:
     omegas = batched_roots(prod.imag)
     real = np.abs(omegas.imag) <= 1e-6 * (1.0 + np.abs(omegas.real))
     w = np.where(real & (omegas.real >= 0), omegas.real, np.nan)
+    mw = np.abs(marginal_w) / w0[..., None]
+    with np.errstate(invalid="ignore"):
+        at_pole = np.any(np.abs(w[..., :, None] - mw[..., None, :])
+                         <= 1e-6 * (1.0 + mw[..., None, :]), axis=-1)
+    w = np.where(at_pole, np.nan, w)
     dv = eval_poly(d, 1j * w)
     nv = eval_poly(m, 1j * w)
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -137,9 +176,150 @@ def _crossing_gains(den: Array, num: Array, roots: CArray) -> Array:
     return np.sort(k, axis=-1)
 
 
+def _spectral_margin(a: Array, sampled: bool) -> Array:
+    """How far outside the stability region the worst pole is (negative: inside),
+    relative: ``max |z| - 1`` sampled, ``max Re(s) / max(1, |s|_max)`` continuous."""
+    poles = np.linalg.eigvals(a)
+    if sampled:
+        return np.max(np.abs(poles), axis=-1) - 1.0
+    scale = np.maximum(np.max(np.abs(poles), axis=-1), 1.0)
+    return np.max(poles.real, axis=-1) / scale
+
+
+def _margins_at(a0: Array, bc: Array, k: Array, sampled: bool) -> Array:
+    """Spectral margin of ``A0 - k BC`` at every finite entry of k (batch + (p,)); NaN
+    elsewhere. Only the finite entries are computed."""
+    shape = k.shape
+    flat = k.reshape(a0.shape[:-2] + (-1,))
+    out = np.full(flat.shape, np.nan)
+    mask = np.isfinite(flat)
+    if mask.any():
+        batch_idx = np.nonzero(mask)[:-1]
+        acl = a0[batch_idx] - flat[mask][:, None, None] * bc[batch_idx]
+        out[mask] = _spectral_margin(acl, sampled)
+    return out.reshape(shape)
+
+
+#: fractions of each bounded interval between crossings where stability is tested
+TEST_FRACTIONS = (1e-9, 1e-6, 1e-3, 0.02, 0.5, 0.98)
+#: multiples of the last crossing tested in the unbounded interval, and of the gain
+#: scale ``|A0| / |BC|`` when there is no crossing at all
+TAIL_FACTORS = (1.0 + 1e-6, 1.001, 1.5, 10.0, 1e3, 1e6)
+SCALE_FACTORS = (1e-9, 1e-6, 1e-3, 1.0, 1e3, 1e6)
+
+
+def _test_gains(crossings: Array, kscale: Array) -> tuple[Array, Array]:
+    """Test gains (batch + (m+1, 6)) and the interval edges (batch + (m+1,), lo)."""
+    batch = crossings.shape[:-1]
+    edges = np.concatenate([np.zeros(batch + (1,)), crossings], axis=-1)
+    upper = np.concatenate([crossings, np.full(batch + (1,), np.nan)], axis=-1)
+    count = np.sum(~np.isnan(crossings), axis=-1)
+    last = np.take_along_axis(edges, count[..., None], axis=-1)
+    idx = np.arange(upper.shape[-1])
+    tail = idx == count[..., None]
+    frac = np.asarray(TEST_FRACTIONS)
+    bounded = edges[..., None] + (upper - edges)[..., None] * frac
+    unbounded = np.where(last[..., None] > 0, last[..., None] * np.asarray(TAIL_FACTORS),
+                         kscale[..., None, None] * np.asarray(SCALE_FACTORS))
+    gains = np.where(tail[..., None], unbounded, bounded)
+    return gains, edges
+
+
+def _verify(a0: Array, bc: Array, crossings: Array, sampled: bool, kscale: Array) -> Array:
+    """Crossings completed by eigenvalue tests: inside every interval between two
+    crossings, six gains must agree (all strictly stable or all strictly unstable).
+    Where they do not, the root locus crossed the boundary at a gain the polynomial
+    roots missed (high order, clustered roots): it is found by bracketing the spectral
+    margin (Brent) and added. Designs that agree -- nearly all -- cost six
+    eigenvalue problems per interval and nothing else."""
+    gains, _ = _test_gains(crossings, kscale)
+    margin = _margins_at(a0, bc, gains, sampled).reshape(gains.shape[:-2] + (-1,))
+    flat_k = gains.reshape(margin.shape)
+    tol = STABILITY_TOL
+    verdict = np.where(margin < -tol, 1, np.where(margin > tol, -1, 0))
+    # consecutive decided verdicts that differ inside one interval
+    slots = np.repeat(np.arange(gains.shape[-2]), gains.shape[-1])
+    bad_pairs = ((verdict[..., :-1] * verdict[..., 1:]) < 0) & (slots[:-1] == slots[1:])
+    bad = np.any(bad_pairs, axis=-1)
+    if not bad.any():
+        return crossings
+    out = crossings.copy()
+    width = out.shape[-1]
+    for index in (i for i in np.ndindex(bad.shape) if bad[i]):
+        found = []
+        for j in np.nonzero(bad_pairs[index])[0]:
+            k0, k1 = float(flat_k[index][j]), float(flat_k[index][j + 1])
+            def f(k: float, at: tuple[int, ...] = index) -> float:
+                return float(_spectral_margin(a0[at] - k * bc[at], sampled))
+            try:
+                found.append(float(scipy.optimize.brentq(f, k0, k1, xtol=1e-15 * k1,
+                                                         rtol=1e-15)))
+            except ValueError:
+                continue
+        merged = np.sort(np.concatenate([out[index][~np.isnan(out[index])], found]))
+        row = np.full(max(width, merged.size), np.nan)
+        row[:merged.size] = merged
+        if row.size > width:   # widen the padded array for everyone
+            pad = np.full(out.shape[:-1] + (row.size - width,), np.nan)
+            out = np.concatenate([out, pad], axis=-1)
+            width = row.size
+        out[index] = row
+    return out
+
+
+#: relative half-widths tried, in turn, to bracket each crossing for polishing
+POLISH_BRACKETS = (1e-6, 1e-3, 0.03, 0.2)
+POLISH_ITERATIONS = 30
+
+
+def _polish(a0: Array, bc: Array, crossings: Array, sampled: bool) -> Array:
+    """Each crossing gain refined on the eigenvalues themselves: bracketed where the
+    spectral margin of ``A0 - k BC`` changes sign, then regula falsi (Illinois), all
+    crossings of all designs at once. The polynomial roots locate a crossing to
+    rounding only when the poles are well separated; with clusters near z = 1 (small
+    g T) they can be percent off, the eigenvalues stay right to ~1e-12."""
+    k = crossings
+    lo, hi = np.full(k.shape, np.nan), np.full(k.shape, np.nan)
+    f_lo, f_hi = np.full(k.shape, np.nan), np.full(k.shape, np.nan)
+    todo = np.isfinite(k)
+    for delta in POLISH_BRACKETS:
+        if not todo.any():
+            break
+        k0, k1 = np.where(todo, k * (1 - delta), np.nan), np.where(todo, k * (1 + delta), np.nan)
+        m0, m1 = _margins_at(a0, bc, k0, sampled), _margins_at(a0, bc, k1, sampled)
+        found = todo & (m0 * m1 < 0)
+        lo, hi = np.where(found, k0, lo), np.where(found, k1, hi)
+        f_lo, f_hi = np.where(found, m0, f_lo), np.where(found, m1, f_hi)
+        todo &= ~found
+    active = np.isfinite(lo)
+    side = np.zeros(k.shape, int)
+    for _ in range(POLISH_ITERATIONS):
+        if not active.any():
+            break
+        with np.errstate(invalid="ignore", divide="ignore"):
+            x = np.where(active, (lo * f_hi - hi * f_lo) / (f_hi - f_lo), np.nan)
+        x = np.where(active & ~((x > lo) & (x < hi)), 0.5 * (lo + hi), x)
+        fx = _margins_at(a0, bc, x, sampled)
+        left = active & (fx * f_lo > 0)            # root in [x, hi]
+        right = active & ~left                     # root in [lo, x]
+        lo, f_lo = np.where(left, x, lo), np.where(left, fx, f_lo)
+        hi, f_hi = np.where(right, x, hi), np.where(right, fx, f_hi)
+        # Illinois: halve the stale end's value when the same end moves twice
+        f_hi = np.where(left & (side == 1), 0.5 * f_hi, f_hi)
+        f_lo = np.where(right & (side == -1), 0.5 * f_lo, f_lo)
+        side = np.where(left, 1, np.where(right, -1, side))
+        active &= (hi - lo) > 1e-13 * hi
+    polished = np.where(np.isfinite(lo), 0.5 * (lo + hi), k)
+    return np.sort(polished, axis=-1)
+
+
 def _intervals(a0: Array, b: Array, c: Array, crossings: Array,
                sampled: bool) -> tuple[Array, Array, Array]:
-    """Test one gain inside every interval between consecutive crossings."""
+    """Stability of every interval between consecutive (polished, verified) crossings."""
+    bc = b @ c
+    kscale = (np.linalg.norm(a0, axis=(-2, -1))
+              / np.maximum(np.linalg.norm(bc, axis=(-2, -1)), 1e-300))
+    crossings = _verify(a0, bc, _polish(a0, bc, crossings, sampled), sampled, kscale)
     batch = crossings.shape[:-1]
     edges = np.concatenate([np.zeros(batch + (1,)), crossings], axis=-1)
     count = np.sum(~np.isnan(crossings), axis=-1)
@@ -147,12 +327,11 @@ def _intervals(a0: Array, b: Array, c: Array, crossings: Array,
     upper = np.concatenate([crossings, np.full(batch + (1,), np.nan)], axis=-1)
     idx = np.arange(upper.shape[-1])
     upper = np.where(idx == count[..., None], np.inf, upper)
-    test = np.where(np.isinf(upper), np.where(last > 0, 2.0 * last, 1.0),
+    test = np.where(np.isinf(upper), np.where(last > 0, 2.0 * last, kscale[..., None]),
                     0.5 * (edges + np.where(np.isnan(upper), 0.0, upper)))
     valid = ~np.isnan(upper)
-    k = np.where(valid, test, 0.0)
-    acl = a0[..., None, :, :] - k[..., :, None, None] * (b @ c)[..., None, :, :]
-    stable = is_stable(np.linalg.eigvals(acl), sampled) & valid
+    margin = _margins_at(a0, bc, np.where(valid, test, np.nan), sampled)
+    stable = valid & (margin < -STABILITY_TOL)
     lo, hi = _merge(edges, upper, stable)
     first_ok = stable[..., 0]
     kmax = np.where(first_ok, hi[..., 0], 0.0)

@@ -32,21 +32,27 @@ class SweepResult:
     sampled: bool
     stable: np.ndarray              # at the design's C_f (or the swept one)
     minimum_phase: np.ndarray
-    max_stable_gain: np.ndarray     # inf when unbounded
+    max_stable_gain: np.ndarray     # inf when unbounded, NaN where the point was not answered
     interval_count: np.ndarray      # number of stable C_f intervals (>1: conditionally stable)
 
     @property
     def shape(self) -> tuple[int, ...]:
         return tuple(a.values.size for a in self.axes)
 
+    @property
+    def unanswered(self) -> int:
+        return int(np.isnan(self.max_stable_gain).sum())
+
     def rows(self) -> list[dict[str, float | bool | None]]:
         out = []
         for idx in itertools.product(*(range(n) for n in self.shape)):
             row: dict[str, float | bool | None] = {a.key: float(a.values[i]) for a, i in zip(self.axes, idx)}
             k = float(self.max_stable_gain[idx])
-            row.update(stable=bool(self.stable[idx]), minimum_phase=bool(self.minimum_phase[idx]),
-                       max_stable_force_gain=None if np.isinf(k) else k,
-                       stable_intervals=int(self.interval_count[idx]))
+            answered = not np.isnan(k)
+            row.update(stable=bool(self.stable[idx]) if answered else None,
+                       minimum_phase=bool(self.minimum_phase[idx]) if answered else None,
+                       max_stable_force_gain=None if np.isinf(k) or not answered else k,
+                       stable_intervals=int(self.interval_count[idx]) if answered else None)
             out.append(row)
         return out
 
@@ -66,11 +72,15 @@ def parse_vary(spec: str) -> Axis:
     parts = (rng[4:] if log else rng).split(":")
     try:
         start, stop, num = float(parts[0]), float(parts[1]), int(parts[2])
-    except (ValueError, IndexError):
+    except (ValueError, IndexError, OverflowError):
         raise ConfigError(f"--vary {spec!r}: range must be start:stop:num (num a whole number), "
                           "optionally log:start:stop:num") from None
+    if not (np.isfinite(start) and np.isfinite(stop)):
+        raise ConfigError(f"--vary {spec!r}: start and stop must be finite numbers")
     if num < 1 or len(parts) != 3:
         raise ConfigError(f"--vary {spec!r}: num must be >= 1")
+    if num > MAX_AXIS_POINTS:
+        raise ConfigError(f"--vary {spec!r}: at most {MAX_AXIS_POINTS} values per axis")
     if log and (start <= 0 or stop <= 0):
         raise ConfigError(f"--vary {spec!r}: a log axis needs positive start and stop")
     values = np.geomspace(start, stop, num) if log else np.linspace(start, stop, num)
@@ -78,9 +88,18 @@ def parse_vary(spec: str) -> Axis:
     return Axis(name, values)
 
 
+#: largest number of values on one axis, and of points in a grid
+MAX_AXIS_POINTS = 100_000
+MAX_GRID_POINTS = 5_000_000
+
+
 def _check_axis(name: str, values: np.ndarray) -> None:
-    from dobhil.config.schema import Check
-    check = key_fields()[name].metadata["check"]
+    from dobhil.config.schema import Check, check_maximum
+    meta = key_fields()[name].metadata
+    problem = check_maximum(f"--vary {name}", float(values.max()), meta)
+    if problem is not None:
+        raise ConfigError(problem)
+    check = meta["check"]
     if check is Check.POSITIVE and np.any(values <= 0):
         raise ConfigError(f"--vary {name}: every value must be > 0 (got min {values.min():g})")
     if check is Check.NONNEGATIVE and np.any(values < 0):
@@ -92,6 +111,9 @@ def sweep(config: Config, axes: Sequence[Axis], *, sampled: bool, chunk: int = 4
     """Stability, minimum phase and the stable C_f range over the grid of ``axes``."""
     if len({a.key for a in axes}) != len(axes):
         raise ConfigError("--vary: each key may be varied once")
+    total = int(np.prod([a.values.size for a in axes]))
+    if total > MAX_GRID_POINTS:
+        raise ConfigError(f"--vary: the grid has {total} points; at most {MAX_GRID_POINTS}")
     grids = np.meshgrid(*(a.values for a in axes), indexing="ij")
     flat = {a.key: g.reshape(-1) for a, g in zip(axes, grids)}
     total = grids[0].size
@@ -104,13 +126,48 @@ def sweep(config: Config, axes: Sequence[Axis], *, sampled: bool, chunk: int = 4
 
 def _chunk(config: Config, values: dict[str, np.ndarray], sampled: bool,
            progress: Callable[[int], None] | None) -> tuple[np.ndarray, ...]:
+    """One chunk of the grid. A point whose matrices overflow, or that numpy cannot
+    decompose, is answered as unknown (NaN gain, not stable) without stopping the rest."""
     params = params_from_config(config, **{k.replace(".", "__"): v for k, v in values.items()})
-    open_loop = loop(params, sampled=sampled, force_gain=0.0)
-    a, b, c, _ = open_loop.siso("tau_per", "tau_int_hat")
-    gm = gain_map(a, b, c, sampled=sampled)
-    cf = params.value("force_gain")
-    stable = is_stable(np.linalg.eigvals(a - cf[:, None, None] * (b @ c)), sampled)
+    with np.errstate(all="ignore"):
+        open_loop = loop(params, sampled=sampled, force_gain=0.0)
+        a, b, c, _ = open_loop.siso("tau_per", "tau_int_hat")
+        cf = params.value("force_gain")
+        ok = np.all(np.isfinite(a), axis=(-2, -1)) & np.all(np.isfinite(b * c.swapaxes(-1, -2)),
+                                                             axis=(-2, -1))
+        result = _answer(a, b, c, cf, ok, sampled)
     if progress:
         progress(cf.size)
+    return result
+
+
+def _answer(a: np.ndarray, b: np.ndarray, c: np.ndarray, cf: np.ndarray, ok: np.ndarray,
+            sampled: bool) -> tuple[np.ndarray, ...]:
+    n = cf.size
+    stable = np.zeros(n, bool)
+    minimum_phase = np.zeros(n, bool)
+    kmax = np.full(n, np.nan)
+    count = np.zeros(n, int)
+    idx = np.nonzero(ok)[0]
+    try:
+        parts = [(idx, _points(a[idx], b[idx], c[idx], cf[idx], sampled))] if idx.size else []
+    except (np.linalg.LinAlgError, ValueError):   # one bad point: answer the rest one by one
+        parts = []
+        for i in idx:
+            try:
+                parts.append((np.array([i]), _points(a[i:i + 1], b[i:i + 1], c[i:i + 1],
+                                                     cf[i:i + 1], sampled)))
+            except (np.linalg.LinAlgError, ValueError):
+                continue
+    for where, (st, mp, km, cnt) in parts:
+        stable[where], minimum_phase[where], kmax[where], count[where] = st, mp, km, cnt
+    return stable, minimum_phase, kmax, count
+
+
+def _points(a: np.ndarray, b: np.ndarray, c: np.ndarray, cf: np.ndarray,
+            sampled: bool) -> tuple[np.ndarray, ...]:
+    gm = gain_map(a, b, c, sampled=sampled)
+    stable = is_stable(np.asarray(np.linalg.eigvals(a - cf[:, None, None] * (b @ c)), dtype=complex),
+                       sampled)
     count = np.sum(~np.isnan(gm.interval_lo), axis=-1)
     return stable, gm.minimum_phase, gm.max_stable_gain, count

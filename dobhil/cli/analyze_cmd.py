@@ -10,7 +10,7 @@ from pathlib import Path
 from dobhil.cli.common import add_config_args, config_from_args
 
 
-def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("analyze", help="analyse a design: poles, zeros, stable gains, margins, step")
     add_config_args(p)
     p.add_argument("--json", action="store_true", help="print one JSON object")

@@ -6,15 +6,21 @@ import argparse
 import csv
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from dobhil.cli.common import add_config_args, config_from_args
 from dobhil.errors import ConfigError
+
+if TYPE_CHECKING:
+    from collections.abc import Callable
+
+    from dobhil.analysis.sweep import SweepResult
 
 #: grids at least this large show a progress bar (on a terminal)
 PROGRESS_MIN_POINTS = 20_000
 
 
-def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("sweep", help="stability, minimum phase and max stable C_f over a grid")
     add_config_args(p)
     p.add_argument("--vary", action="append", required=True, metavar="KEY=START:STOP:NUM",
@@ -46,29 +52,34 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _run_with_progress(work, total: int):  # type: ignore[no-untyped-def]
+def _run_with_progress(work: Callable[[Callable[[int], None]], SweepResult],
+                       total: int) -> SweepResult:
     from tqdm import tqdm
     disable = total < PROGRESS_MIN_POINTS or not sys.stderr.isatty()
     with tqdm(total=total, unit="pt", disable=disable, file=sys.stderr) as bar:
         return work(bar.update)
 
 
-def _summary(result) -> None:  # type: ignore[no-untyped-def]
+def _summary(result: SweepResult) -> None:
     import numpy as np
     n = result.stable.size
     finite = result.max_stable_gain[np.isfinite(result.max_stable_gain)]
+    n_unbounded = int(np.isinf(result.max_stable_gain).sum())
     kind = "sampled" if result.sampled else "continuous"
     print(f"{n} points ({kind}): {int(result.stable.sum())} stable at their C_f, "
           f"{int(result.minimum_phase.sum())} minimum phase, "
-          f"{n - finite.size} with unbounded C_f, "
+          f"{n_unbounded} with unbounded C_f, "
           f"{int((result.interval_count > 1).sum())} conditionally stable")
+    if result.unanswered:
+        print(f"{result.unanswered} points could not be analysed (their matrices overflow or "
+              "numpy cannot decompose them); they are left empty in --out")
     if finite.size:
         print(f"largest C_f safe over the whole grid: {float(finite.min()):.6g}")
-    else:
+    elif n_unbounded:
         print("largest C_f safe over the whole grid: unbounded")
 
 
-def _write_csv(result, path: Path) -> None:  # type: ignore[no-untyped-def]
+def _write_csv(result: SweepResult, path: Path) -> None:
     rows = result.rows()
     path.parent.mkdir(parents=True, exist_ok=True)
     with path.open("w", newline="") as fh:

@@ -14,7 +14,7 @@ from typing import Any
 
 import yaml
 
-from dobhil.config.schema import SECTIONS, Check, Config, key_fields
+from dobhil.config.schema import SECTIONS, Check, Config, check_maximum, key_fields
 from dobhil.errors import ConfigError
 
 
@@ -111,6 +111,8 @@ def coerce(name: str, raw: Any, f: dataclasses.Field[Any]) -> Any:
         return _coerce_str(name, raw, meta["choices"])
     value = _coerce_number(name, raw, kind)
     _check_range(name, value, meta["check"])
+    if (problem := check_maximum(name, value, meta)) is not None:
+        raise ConfigError(problem)
     return value
 
 
@@ -124,6 +126,9 @@ def _coerce_str(name: str, raw: Any, choices: tuple[str, ...]) -> str:
 
 
 def _coerce_number(name: str, raw: Any, kind: type) -> float | int:
+    if isinstance(raw, int) and not isinstance(raw, bool) and abs(raw) > 2 ** 1023:
+        raise ConfigError(f"{name} = {str(raw)[:20]}... ({len(str(raw))} digits): too large; "
+                          "allowed: a finite number")
     if isinstance(raw, str):  # YAML 1.1 reads 1e-3 (no dot) as a string
         try:
             raw = float(raw)

@@ -24,24 +24,40 @@ class Check(IntEnum):
 
 
 def key(default: Any, doc: str, *, unit: str = "", check: Check = Check.ANY,
-        choices: tuple[str, ...] = (), structural: bool = False) -> Any:
+        choices: tuple[str, ...] = (), structural: bool = False,
+        maximum: float | None = None) -> Any:
     """A config key: a dataclass field carrying its documentation and constraint.
 
     ``structural`` keys change the shape of the synthesised matrices (model
-    kinds, delay length) and cannot be swept.
+    kinds, delay length) and cannot be swept. ``maximum``: the largest physically
+    meaningful value (checked by :func:`check_maximum`).
     """
+    if maximum is not None:
+        doc = f"{doc}; at most {maximum:g}"
     meta = {"doc": doc, "unit": unit, "check": check, "choices": choices,
-            "structural": structural or bool(choices)}
+            "structural": structural or bool(choices), "maximum": maximum}
     return field(default=default, metadata=meta)
+
+
+def check_maximum(name: str, value: float, meta: Any) -> str | None:
+    """The one-line complaint when ``value`` exceeds the key's ``maximum`` (else None)."""
+    top = meta.get("maximum")
+    if top is None or value <= top:
+        return None
+    low = {Check.POSITIVE: "> 0", Check.NONNEGATIVE: ">= 0"}.get(meta["check"], "")
+    allowed = f"{low} and <= {top:g}" if low else f"<= {top:g}"
+    unit = f" {meta['unit']}" if meta.get("unit") else ""
+    return f"{name} = {value!r}: out of range; allowed: {allowed}{unit}"
 
 
 @dataclass(frozen=True)
 class PlantConfig:
     """The exact servo (the emulator's plant; J_m, b_m of the paper)."""
 
-    inertia: float = key(0.25, "exact inertia J_m", unit="kg m^2", check=Check.POSITIVE)
+    inertia: float = key(0.25, "exact inertia J_m", unit="kg m^2", check=Check.POSITIVE,
+                          maximum=1e6)
     viscous_friction: float = key(0.0, "exact viscous friction b_m", unit="N m s/rad",
-                                  check=Check.NONNEGATIVE)
+                                  check=Check.NONNEGATIVE, maximum=1e7)
     coulomb_friction: float = key(0.0, "Coulomb friction (emulator only, unmodelled by the analysis)",
                                   unit="N m", check=Check.NONNEGATIVE)
     torque_limit: float = key(50.0, "motor torque limit of the emulated drive", unit="N m",
@@ -61,9 +77,9 @@ class EnvironmentConfig:
     """The environment touched by the servo: a spring-damper (D_env, K_env)."""
 
     stiffness: float = key(1.0e4, "environment stiffness K_env", unit="N m/rad",
-                           check=Check.NONNEGATIVE)
+                           check=Check.NONNEGATIVE, maximum=1e10)
     damping: float = key(50.0, "environment damping D_env", unit="N m s/rad",
-                         check=Check.NONNEGATIVE)
+                         check=Check.NONNEGATIVE, maximum=1e7)
     contact_position: float = key(0.0, "position at which the environment engages (emulator)",
                                   unit="rad")
 
@@ -73,33 +89,39 @@ class DesignConfig:
     """The controller: DOb, RTOb, force gain, velocity source, sampling."""
 
     nominal_inertia: float = key(0.25, "nominal inertia J_mn of the DOb", unit="kg m^2",
-                                 check=Check.POSITIVE)
+                                 check=Check.POSITIVE, maximum=1e6)
     nominal_friction: float = key(0.0, "nominal viscous friction b_mn of the DOb",
-                                  unit="N m s/rad", check=Check.NONNEGATIVE)
+                                  unit="N m s/rad", check=Check.NONNEGATIVE, maximum=1e7)
     identified_inertia: float = key(0.25, "identified inertia J_mi of the RTOb", unit="kg m^2",
-                                    check=Check.POSITIVE)
+                                    check=Check.POSITIVE, maximum=1e6)
     identified_friction: float = key(0.0, "identified viscous friction b_mi of the RTOb",
-                                     unit="N m s/rad", check=Check.NONNEGATIVE)
-    dob_bandwidth: float = key(500.0, "DOb bandwidth g_DOb", unit="rad/s", check=Check.POSITIVE)
+                                     unit="N m s/rad", check=Check.NONNEGATIVE, maximum=1e7)
+    dob_bandwidth: float = key(500.0, "DOb bandwidth g_DOb", unit="rad/s", check=Check.POSITIVE,
+                               maximum=1e7)
     rtob_bandwidth: float = key(500.0, "RTOb bandwidth g_RTOb", unit="rad/s",
-                                check=Check.POSITIVE)
-    force_gain: float = key(2.0, "proportional force gain C_f", check=Check.NONNEGATIVE)
+                                check=Check.POSITIVE, maximum=1e7)
+    force_gain: float = key(2.0, "proportional force gain C_f", check=Check.NONNEGATIVE,
+                            maximum=1e6)
     disturbance_model: str = key("constant", "disturbance model (A_D, C_D) of the DOb",
                                  choices=("constant", "ramp", "sinusoid"))
     disturbance_frequency: float = key(10.0, "frequency of the DOb's sinusoid model",
-                                       unit="rad/s", check=Check.POSITIVE)
+                                       unit="rad/s", check=Check.POSITIVE, maximum=1e7)
     interaction_model: str = key("constant", "interaction torque model (A_R, C_R) of the RTOb",
                                  choices=("constant", "ramp", "sinusoid"))
     interaction_frequency: float = key(10.0, "frequency of the RTOb's sinusoid model",
-                                       unit="rad/s", check=Check.POSITIVE)
+                                       unit="rad/s", check=Check.POSITIVE, maximum=1e7)
     velocity_source: str = key("measured", "velocity fed to the observers",
                                choices=("measured", "estimated"))
     velocity_filter_bandwidth: float = key(2000.0, "bandwidth g_v of the velocity estimate "
-                                           "g_v s/(s+g_v) q", unit="rad/s", check=Check.POSITIVE)
+                                           "g_v s/(s+g_v) q", unit="rad/s", check=Check.POSITIVE,
+                                           maximum=1e8)
     delay_samples: int = key(0, "transport delay of the torque command in whole samples",
-                             check=Check.NONNEGATIVE, structural=True)
-    discretization: str = key("zoh", "how the observers are discretised",
-                              choices=("zoh", "euler"))
+                             check=Check.NONNEGATIVE, structural=True, maximum=20)
+    discretization: str = key("parabolic", "how the controller is sampled: torque by zero-order "
+                              "hold; measured signals by a parabola through the last, this and "
+                              "the next sample (parabolic: exact inertia and friction), a "
+                              "triangle (foh: ramp-invariant), held (zoh) or forward Euler (euler)",
+                              choices=("parabolic", "foh", "zoh", "euler"))
     input_delay: float = key(0.0, "fraction of a period between the feedback sample and the "
                              "torque reaching the plant (compute + bus latency); below "
                              "loop.period", unit="s", check=Check.NONNEGATIVE, structural=True)
@@ -109,7 +131,8 @@ class DesignConfig:
 class LoopConfig:
     """The runtime loop."""
 
-    period: float = key(1.0e-3, "control period T_s", unit="s", check=Check.POSITIVE)
+    period: float = key(1.0e-3, "control period T_s", unit="s", check=Check.POSITIVE,
+                        maximum=10.0)
     duration: float = key(1.0, "run duration", unit="s", check=Check.POSITIVE)
     feedback_timeout: float = key(5.0e-3, "no fresh feedback for this long stops the run",
                                   unit="s", check=Check.POSITIVE)
@@ -178,8 +201,8 @@ class DriveConfig:
 class AnalysisConfig:
     """Settings of the analysis only."""
 
-    step_duration: float = key(0.0, "step response horizon (0: automatic)", unit="s",
-                               check=Check.NONNEGATIVE)
+    step_duration: float = key(0.0, "step response horizon (0: automatic, else at least 1e-6 s)",
+                               unit="s", check=Check.NONNEGATIVE, maximum=1e4)
 
 
 @dataclass(frozen=True)

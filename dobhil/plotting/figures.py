@@ -6,7 +6,7 @@ Computing is elsewhere (:mod:`dobhil.analysis`); these functions only draw.
 from __future__ import annotations
 
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -17,7 +17,7 @@ if TYPE_CHECKING:
     from dobhil.analysis.report import DomainAnalysis
 
 
-def _plt():  # type: ignore[no-untyped-def]
+def _plt() -> Any:
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -82,11 +82,11 @@ def step_plot(ax: Axes, d: DomainAnalysis, label: str = "") -> None:
         ax.text(0.5, 0.5, "closed loop unstable", transform=ax.transAxes, ha="center")
         return
     t = d.step_time * 1e3
-    style = {"drawstyle": "steps-post"} if d.sampled else {}
+    style: dict[str, Any] = {"drawstyle": "steps-post"} if d.sampled else {}
     ax.plot(t, d.step_estimate, label=label or "estimated interaction torque", **style)
 
 
-def bode(axes: tuple[Axes, Axes], sys, label: str) -> None:  # type: ignore[no-untyped-def]
+def bode(axes: tuple[Axes, Axes], sys: Any, label: str) -> None:
     import control
     nyq = np.pi / sys.dt if sys.dt else 1e5
     w = np.logspace(0, np.log10(nyq * 0.999), 600)

@@ -124,11 +124,107 @@ def sampled_controller(params: Params) -> ControllerSS:
     period = float(np.asarray(params.period).reshape(-1)[0])
     if np.ndim(params.period) and np.ptp(np.asarray(params.period)) > 0:
         raise ValueError("a batch of designs must share one loop.period")
+    method = params.structure.discretization
+    if method in (Discretization.FOH, Discretization.PARABOLIC):
+        return _polynomial_hold(balanced(cont), period, 1 if method is Discretization.FOH else 2)
     b_all = np.concatenate([cont.b_y, cont.b_u, cont.b_i], axis=-1)
-    phi, gamma = discretize(cont.a, b_all, period, params.structure.discretization)
+    phi, gamma = discretize(cont.a, b_all, period, method)
     m = cont.b_y.shape[-1]
     return ControllerSS(a=phi, b_y=gamma[..., :, :m], b_u=gamma[..., :, m:m + 1],
                         b_i=gamma[..., :, m + 1:m + 2], c=cont.c, d_y=cont.d_y,
+                        force_gain=cont.force_gain, dt=period,
+                        measures_velocity=cont.measures_velocity)
+
+
+def balanced(ctrl: ControllerSS) -> ControllerSS:
+    """The same controller in a diagonally rescaled state (``x = S x~``, S a power of two
+    per state) whose rows and columns of A are balanced (Osborne's iteration, batched).
+
+    The position filter state and the observers' torque states differ in scale by
+    ``g_v g J`` (about 1e5); unbalanced, ``(I - Phi)`` has a condition number near
+    1e10 and the at-rest estimate loses six digits. Powers of two keep it exact."""
+    a = ctrl.a
+    n = a.shape[-1]
+    scale = np.ones(a.shape[:-1])
+    off = ~np.eye(n, dtype=bool)
+    for _ in range(8):
+        m = np.abs(a * scale[..., None, :] / scale[..., :, None]) * off
+        rows, cols = m.sum(axis=-1), m.sum(axis=-2)
+        ok = (rows > 0) & (cols > 0)
+        f = np.where(ok, np.exp2(np.round(0.5 * np.log2(np.where(ok, rows / np.where(ok, cols, 1.0),
+                                                                  1.0)))), 1.0)
+        if np.all(f == 1.0):
+            break
+        scale = scale * f
+    inv = 1.0 / scale
+    return ControllerSS(a=a * scale[..., None, :] * inv[..., :, None],
+                        b_y=ctrl.b_y * inv[..., :, None], b_u=ctrl.b_u * inv[..., :, None],
+                        b_i=ctrl.b_i * inv[..., :, None], c=ctrl.c * scale[..., None, :],
+                        d_y=ctrl.d_y, force_gain=ctrl.force_gain, dt=ctrl.dt,
+                        measures_velocity=ctrl.measures_velocity)
+
+
+def hold_moments(a: Array, b: Array, period: float) -> tuple[Array, Array, Array, Array]:
+    """(Phi, G0, G1, G2) with ``G_j = int_0^T e^{A(T-t)} B (t/T)^j dt`` (batched).
+
+    One matrix exponential of the system driven by the polynomial basis
+    ``1, t/T, (t/T)^2 / 2`` (a chain of integrators in the time ``t/T``)."""
+    n, p = a.shape[-1], b.shape[-1]
+    size = n + 3 * p
+    block = np.zeros(np.broadcast_shapes(a.shape[:-2], b.shape[:-2]) + (size, size))
+    block[..., :n, :n] = a * period
+    block[..., :n, n:n + p] = b * period
+    eye = np.eye(p)
+    block[..., n:n + p, n + p:n + 2 * p] = eye
+    block[..., n + p:n + 2 * p, n + 2 * p:] = eye
+    e = scipy.linalg.expm(block)
+    phi = e[..., :n, :n]
+    return (phi, e[..., :n, n:n + p], e[..., :n, n + p:n + 2 * p],
+            2.0 * e[..., :n, n + 2 * p:])
+
+
+def _polynomial_hold(cont: ControllerSS, period: float, order: int) -> ControllerSS:
+    """The measured signals through a polynomial hold, the torque through a ZOH.
+
+    Between samples the measurement is taken as the polynomial through
+    ``y[k+1], y[k]`` (order 1: the triangle hold, exact for ramps) or through
+    ``y[k+1], y[k], y[k-1]`` (order 2: exact for parabolas). With
+    ``y(kT + theta T) = sum_i l_i(theta) y[k+1-i]``::
+
+        x[k+1] = Phi x[k] + E0 y[k+1] + E1 y[k] + E2 y[k-1] + Gamma_u u[k]
+
+    and the state ``xi = x - E0 y`` (plus ``y[k-1]`` for order 2) removes the
+    future sample: ``xi[k+1] = Phi xi + (Phi E0 + E1) y[k] + E2 y[k-1] + Gamma_u u``,
+    outputs ``C xi + (D + C E0) y``. The outputs gain a feedthrough from the
+    measurement, never from the torque, so saturation stays explicit. The
+    observer poles stay at ``exp(-g T)``; the hold's own poles are at z = 0.
+    """
+    phi, g0, g1, g2 = hold_moments(cont.a, cont.b_y, period)
+    _, gamma = discretize(cont.a, np.concatenate([cont.b_u, cont.b_i], axis=-1), period,
+                          Discretization.ZOH)
+    if order == 1:
+        e0, e1, e2 = g1, g0 - g1, np.zeros_like(g0)
+    else:
+        e0, e1, e2 = 0.5 * (g1 + g2), g0 - g2, 0.5 * (g2 - g1)
+    m = cont.b_y.shape[-1]
+    flat = np.abs(e2).reshape(-1, *e2.shape[-2:]).max(axis=(0, 1)) if e2.size else np.zeros(m)
+    past = [j for j in range(m) if order == 2 and flat[j] > 0.0]   # y[k-1] kept for these
+    n, w = cont.order, len(past)
+    shape = cont.a.shape[:-2]
+    a = np.zeros(shape + (n + w, n + w))
+    b_y = np.zeros(shape + (n + w, m))
+    b_u = np.zeros(shape + (n + w, 1))
+    b_i = np.zeros(shape + (n + w, 1))
+    c = np.zeros(shape + (2, n + w))
+    a[..., :n, :n] = phi
+    b_y[..., :n, :] = phi @ e0 + e1
+    for i, j in enumerate(past):
+        a[..., :n, n + i] = e2[..., :, j]
+        b_y[..., n + i, j] = 1.0
+    b_u[..., :n, :] = gamma[..., :, 0:1]
+    b_i[..., :n, :] = gamma[..., :, 1:2]
+    c[..., :, :n] = cont.c
+    return ControllerSS(a=a, b_y=b_y, b_u=b_u, b_i=b_i, c=c, d_y=cont.d_y + cont.c @ e0,
                         force_gain=cont.force_gain, dt=period,
                         measures_velocity=cont.measures_velocity)
 

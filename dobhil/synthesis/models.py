@@ -47,31 +47,32 @@ def plant_matrices(inertia: Array, friction: Array, stiffness: Array,
     return a, b, c_int
 
 
-def signal_model(kind: SignalModel, omega: Array) -> tuple[Array, Array]:
+def signal_model(kind: SignalModel, omega: Array, scale: Array | float = 1.0) -> tuple[Array, Array]:
     """(A_S, C_S) of a torque model ``x_S' = A_S x_S, tau = C_S x_S``.
 
-    - CONSTANT: the paper's model, tau' = 0.
-    - RAMP: tau'' = 0 (a torque changing at a constant rate).
-    - SINUSOID: a bias plus a sinusoid of frequency omega [rad/s]
-      (``x_S = [c, s, s']``, ``s'' = -omega^2 s``, ``tau = c + s``); the bias keeps
-      a constant interaction torque observable, which a pure sinusoid model
-      would reject.
+    - CONSTANT: the paper's model, d tau/dt = 0.
+    - RAMP: d^2 tau/dt^2 = 0 (a torque changing at a constant rate).
+    - SINUSOID: a bias plus a sinusoid of frequency omega [rad/s],
+      d^3 tau/dt^3 = -omega^2 d tau/dt; the bias keeps a constant interaction
+      torque observable, which a pure sinusoid model would reject.
+
+    The state is the torque and its derivatives in units of ``scale`` [rad/s]:
+    ``x_S = [tau, tau_dot / h, tau_ddot / h^2]`` with ``h = scale``. With ``h`` the
+    observer bandwidth every entry of A_S and of the observer gain is of order
+    ``h`` (a ``[bias, sin, cos]`` basis gives gains of order ``g^3 / omega^2`` and
+    eigenvalues numpy cannot resolve). Any basis gives the same observer transfer
+    functions: for one output, the observer with all its poles at ``-g`` is
+    unique up to a change of basis.
     """
-    omega = np.asarray(omega, float)
-    if kind is SignalModel.CONSTANT:
-        return np.zeros(omega.shape + (1, 1)), np.ones(omega.shape + (1, 1))
-    if kind is SignalModel.RAMP:
-        a = np.zeros(omega.shape + (2, 2))
-        a[..., 0, 1] = 1.0
-        c = np.zeros(omega.shape + (1, 2))
-        c[..., 0, 0] = 1.0
-        return a, c
-    a = np.zeros(omega.shape + (3, 3))
-    a[..., 1, 2] = 1.0
-    a[..., 2, 1] = -omega ** 2
-    c = np.zeros(omega.shape + (1, 3))
+    omega, h = np.broadcast_arrays(np.asarray(omega, float), np.asarray(scale, float))
+    k = {SignalModel.CONSTANT: 1, SignalModel.RAMP: 2, SignalModel.SINUSOID: 3}[kind]
+    a = np.zeros(omega.shape + (k, k))
+    for j in range(k - 1):
+        a[..., j, j + 1] = h
+    if kind is SignalModel.SINUSOID:
+        a[..., 2, 1] = -omega ** 2 / h
+    c = np.zeros(omega.shape + (1, k))
     c[..., 0, 0] = 1.0
-    c[..., 0, 1] = 1.0
     return a, c
 
 

@@ -52,8 +52,10 @@ def aux_observer(model: SignalModel, omega: Array, inertia: Array, friction: Arr
                  bandwidth: Array) -> AuxObserver:
     """The observer of the torque ``model`` acting on the servo model (inertia, friction)."""
     a_m, b_m = servo_matrices(inertia, friction)
-    a_s, c_s = signal_model(model, omega)
-    ell = observer_gain(a_s, c_s, bandwidth)
+    g = np.asarray(bandwidth, float)
+    a1, c_s = signal_model(model, np.asarray(omega, float) / g)   # time in units of 1/g
+    ell = g[..., None, None] * observer_gain(a1, c_s, np.ones_like(g))
+    a_s = g[..., None, None] * a1
     row = np.array([[0.0, 1.0]])
     gain = np.asarray(inertia, float)[..., None, None] * ell * row
     a_aux = a_s - ell @ c_s

@@ -52,7 +52,7 @@ class Structure:
     interaction_model: SignalModel = SignalModel.CONSTANT
     velocity_source: VelocitySource = VelocitySource.MEASURED
     delay_samples: int = 0
-    discretization: Discretization = Discretization.ZOH
+    discretization: Discretization = Discretization.PARABOLIC
     input_delay: float = 0.0    # fractional torque delay [s], 0 <= input_delay < period
 
 
