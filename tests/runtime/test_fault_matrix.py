@@ -10,8 +10,9 @@ saw on the bus (zero torque, then IDLE) and the drive's final state -- or, where
 itself is gone, that the run says loudly that the drive may still be enabled and that
 the drive's own watchdog is then what stops it.
 
-Not here (they need the recording redesign of issue 10): writer killed, disk full,
-``dobhil log recover``.
+SIGKILL of the emulator or of the loop process: ``test_process_kill.py`` (across
+processes). Not here (they need the recording redesign of issue 10): writer killed, disk
+full, the log's events, ``dobhil log recover``.
 """
 
 from __future__ import annotations
