@@ -267,6 +267,9 @@ def _realtime_run(duration: float, timing: str, path: Path | None):  # type: ign
     config = load_config(ROOT / "configs/demo.yaml", [
         f"loop.duration={duration}", f"loop.timing={timing}", "loop.feedback_timeout=0.05"])
     log = None if path is None else RunLog(path, config, fsync=False)
+    if log is not None:   # as dobhil run does: the writer below the loop
+        from dobhil.cli.run_cmd import lower_writer
+        lower_writer(log)
     hooks = {} if log is None else {"sink": log.sink, "bus_wrapper": log.wrap_bus}
     with RunSession(config, emulate=True, lockstep=False, **hooks) as session:
         return run_recorded(session, log)

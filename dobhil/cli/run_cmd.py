@@ -82,7 +82,17 @@ def make_log(path: Path | None, config: Any, config_file: str | Path | None) -> 
     if path.suffix != ".mcap":
         raise LogFileError(f"--log {path}: expected a .mcap file name")
     path.parent.mkdir(parents=True, exist_ok=True)
-    return RunLog(path, config, config_file=config_file)
+    log = RunLog(path, config, config_file=config_file)
+    lower_writer(log)
+    return log
+
+
+def lower_writer(log: Any) -> None:
+    """The writer process below the loop (nice +10): it is lossy in real time and may lag."""
+    from dobhil.runtime.realtime import WRITER_PRIORITY_DROP, lower_priority
+    writer = getattr(log, "writer", None)
+    if writer is not None:
+        lower_priority(WRITER_PRIORITY_DROP, pid=writer.pid)
 
 
 @contextmanager

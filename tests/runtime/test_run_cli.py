@@ -151,3 +151,17 @@ def test_a_duration_too_long_to_count_is_one_line(capsys: pytest.CaptureFixture[
     code = main(["run", str(DEMO), "--emulate", "--lockstep", "--duration", "1e308"])
     err = one_line(capsys.readouterr().err)
     assert code == EXIT_USAGE and "too many cycles" in err
+
+
+@pytest.mark.skipif(not hasattr(os, "getpriority"), reason="POSIX nice values")
+def test_run_log_writer_runs_below_the_loop(tmp_path: Path) -> None:
+    """``dobhil run --log``: the writer process gets nice +10 (it may lag; the loop not)."""
+    from dobhil.cli.run_cmd import make_log
+    from dobhil.config import load_config
+    from dobhil.runtime.realtime import WRITER_PRIORITY_DROP
+    log = make_log(tmp_path / "run.mcap", load_config(DEMO), DEMO)
+    try:
+        own = os.getpriority(os.PRIO_PROCESS, 0)
+        assert os.getpriority(os.PRIO_PROCESS, log.writer.pid) == min(own + WRITER_PRIORITY_DROP, 19)
+    finally:
+        log.abort(None)
