@@ -49,7 +49,7 @@ def test_stable_gain_intervals_agree_with_a_dense_gain_scan(overrides: list[str]
         assert e == pytest.approx(ch, rel=1e-3)
     assert bool(first) == (g.intervals()[0][0] == 0.0 if g.intervals() else False)
     # exactness: just inside each bound is stable, just outside is not
-    for lo, hi in g.intervals():
+    for _lo, hi in g.intervals():
         if np.isfinite(hi):
             inside, outside = hi * (1 - 1e-6), hi * (1 + 1e-6)
             st = is_stable(np.linalg.eigvals(np.stack([a - inside * b @ c, a - outside * b @ c])),
@@ -167,3 +167,84 @@ def test_yaml_syntax_error_names_the_line(tmp_path, capsys: pytest.CaptureFixtur
 def test_sweep_rejects_structural_keys(capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["sweep", "configs/paper/fig2a.yaml", "--vary", "design.delay_samples=0:2:3"]) == 2
     assert "cannot be swept" in capsys.readouterr().err
+
+
+# --- issue 8's failing designs, and issue 9's bad analysis inputs
+
+FIG2A = "configs/paper/fig2a.yaml"
+CRASHED = [
+    ["environment.damping=0", "design.rtob_bandwidth=2000"],
+    ["design.interaction_model=ramp"],
+    ["design.disturbance_model=sinusoid", "design.disturbance_frequency=1",
+     "design.dob_bandwidth=2000"],
+]
+
+
+@pytest.mark.parametrize("overrides", CRASHED)
+def test_designs_that_crashed_are_answered(overrides: list[str],
+                                           capsys: pytest.CaptureFixture[str]) -> None:
+    path = "configs/paper/fig2c.yaml" if "design.disturbance_model=sinusoid" in overrides else FIG2A
+    out = run_json(capsys, "analyze", path, "--json", *(f"--set={o}" for o in overrides))
+    cont = out["continuous"]
+    if overrides == CRASHED[0]:   # J_mi = J_m, D_env = 0: L ~ (s + g_D) K / (s^4 ...)
+        assert cont["open_loop"]["relative_degree"] == 3
+    a, b, c = open_loop(overrides, False, path)
+    first, changes = brute_force_changes(a, b, c, False)
+    edges = sorted({e for iv in cont["stable_force_gain_intervals"] for e in iv if e and e > 0})
+    assert len(edges) == len(changes)
+
+
+def test_the_sweep_that_crashed_answers_every_point(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["sweep", FIG2A, "--set", "design.rtob_bandwidth=2000", "--vary",
+                 "environment.damping=0:100:11", "--vary", "design.dob_bandwidth=500:1000:3"]) == 0
+    out = capsys.readouterr().out
+    assert out.startswith("33 points") and "could not be analysed" not in out
+
+
+def test_the_integrator_is_no_unstable_sliver(capsys: pytest.CaptureFixture[str]) -> None:
+    args = ["design.identified_inertia=1.0", "design.dob_bandwidth=70", "environment.stiffness=232",
+            "loop.period=0.00018", "design.force_gain=0.1", "design.discretization=zoh"]
+    d = run_json(capsys, "analyze", FIG2A, "--json", *(f"--set={o}" for o in args))["discrete"]
+    assert d["stable_force_gain_intervals"][0][0] == 0.0
+    assert d["stable_force_gain_intervals"][0][1] == pytest.approx(0.46523, abs=5e-6)
+    assert d["max_stable_force_gain"] == d["stable_force_gain_intervals"][0][1]
+
+
+def test_fast_oscillation_on_slow_settling_keeps_its_overshoot(
+        capsys: pytest.CaptureFixture[str]) -> None:
+    args = ["design.force_gain=40", "environment.stiffness=600", "environment.damping=200",
+            "plant.inertia=0.06", "design.identified_inertia=0.06", "design.nominal_inertia=0.04"]
+    step = run_json(capsys, "analyze", FIG2A, "--json",
+                    *(f"--set={o}" for o in args))["continuous"]["step"]
+    assert step["overshoot_pct"] == pytest.approx(48.5, abs=0.5)
+
+
+def test_conditionally_stable_loop_reports_zero_max_gain(capsys: pytest.CaptureFixture[str]) -> None:
+    """Unstable for small C_f (20 samples of delay), stable on a band: max 0, band listed."""
+    d = run_json(capsys, "analyze", FIG2A, "--json", "--set",
+                 "design.delay_samples=20")["discrete"]
+    (lo, hi), = d["stable_force_gain_intervals"]
+    assert lo == pytest.approx(0.3819, rel=1e-3) and hi == pytest.approx(2.963, rel=1e-3)
+    assert d["max_stable_force_gain"] == 0.0
+
+
+BAD_ANALYSIS = [
+    (["analyze", FIG2A, "--set", "design.force_gain=1e308"], "design.force_gain"),
+    (["analyze", FIG2A, "--set", "design.delay_samples=200"], "<= 20"),
+    (["analyze", FIG2A, "--set", "analysis.step_duration=1e-320"], "analysis.step_duration"),
+    (["analyze", FIG2A, "--set", "analysis.step_duration=1847"], "samples"),
+    (["analyze", FIG2A, "--set", "design.force_gain=" + "1" + "0" * 399], "400 digits"),
+    (["analyze", FIG2A, "--set", "plant.inertia=1e-300"], "cannot answer"),
+    (["sweep", FIG2A, "--vary", "k=nan:2:3"], "unknown config key"),
+    (["sweep", FIG2A, "--vary", "design.force_gain=nan:2:3"], "finite"),
+    (["sweep", FIG2A, "--vary", "design.force_gain=0:1e9:3"], "<= 1e+06"),
+    (["analyze", FIG2A, "--set", "design.input_delay=0.001"], "design.input_delay"),
+]
+
+
+@pytest.mark.parametrize("argv,message", BAD_ANALYSIS)
+def test_bad_analysis_input_is_one_line_and_exit_2(argv: list[str], message: str,
+                                                   capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert message in err and err.count("\n") == 1 and "Traceback" not in err

@@ -162,3 +162,18 @@ def test_estimated_velocity_tends_to_measured_as_filter_speeds_up() -> None:
     ref = l_at("measured", 1.0)
     slow, fast = abs(l_at("estimated", 500.0) - ref), abs(l_at("estimated", 1e6) - ref)
     assert fast < 1e-3 * abs(ref) < slow
+
+
+@pytest.mark.parametrize("model", ["ramp", "sinusoid"])
+@pytest.mark.parametrize("ratio", [1.0, 1000.0])
+def test_torque_model_basis_is_well_conditioned(model: str, ratio: float) -> None:
+    """Every entry of the observer's matrices is of order g (not g^3 / omega^2), so numpy
+    resolves its (repeated) poles: the characteristic polynomial is (s + g)^k to 1e-12."""
+    from dobhil.synthesis.observers import aux_observer
+    from dobhil.synthesis.params import SignalModel
+    g = 2000.0
+    obs = aux_observer(SignalModel[model.upper()], g / ratio, 0.3, 0.0, g)
+    assert np.abs(obs.a).max() <= 10 * g and np.abs(obs.gain).max() <= 10 * g * 0.3
+    k = obs.order
+    np.testing.assert_allclose(np.poly(obs.a) / g ** np.arange(k + 1), np.poly(np.full(k, -1.0)),
+                               rtol=0, atol=1e-12)
