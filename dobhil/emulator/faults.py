@@ -307,7 +307,7 @@ class FaultyBus(can.BusABC):
         self._owns_inner = owns_inner
         self._pending: deque[can.Message] = deque()
         self.channel_info = f"faulty {inner.channel_info}"
-        super().__init__(channel=None, **kwargs)
+        super().__init__(channel=None, **kwargs)  # type: ignore[arg-type]  # no channel of its own
 
     def now(self) -> float:
         """Seconds since the wrapper was made, on its clock."""
