@@ -161,6 +161,11 @@ def test_no_valid_design_crashes_the_analysis(overrides: list[str]) -> None:
         cf = d["closed_loop"]["force_gain"]
         inside = any(lo < cf < (np.inf if hi is None else hi) for lo, hi in intervals)
         edge = any(abs(cf - e) <= 1e-6 * e for iv in intervals for e in iv if e)
-        assert edge or inside == d["closed_loop"]["stable"]
+        # a closed-loop pole within 1e-7 of the boundary (e.g. a free servo, K_env = 0,
+        # drifting in position) is marginal: either verdict is right
+        sampled = domain == "discrete"
+        marginal = abs(float(_margin(result.discrete.systems.closed.a if sampled
+                                     else result.continuous.systems.closed.a, sampled))) < 1e-7
+        assert edge or marginal or inside == d["closed_loop"]["stable"]
         if d["closed_loop"]["stable"]:
             assert d["step"]["final_value"] is not None

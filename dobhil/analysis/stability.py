@@ -200,8 +200,12 @@ def _margins_at(a0: Array, bc: Array, k: Array, sampled: bool) -> Array:
     return out.reshape(shape)
 
 
-#: fractions of each bounded interval between crossings where stability is tested
-TEST_FRACTIONS = (1e-9, 1e-6, 1e-3, 0.02, 0.5, 0.98)
+#: where each bounded interval (lo, hi) between crossings is tested: at these fractions
+#: of the way when hi/lo < 10, at these fractions of the log-distance when wider, and for
+#: the first interval (0, hi) at ``hi`` times a geometric sequence from
+#: ``min(1e-9, 1e-9 kscale / hi)`` up to 0.98 (small gains, however far the first crossing)
+TEST_FRACTIONS = (1e-3, 0.02, 0.3, 0.5, 0.7, 0.98)
+LOG_FRACTIONS = (0.02, 0.2, 0.4, 0.6, 0.8, 0.98)
 #: multiples of the last crossing tested in the unbounded interval, and of the gain
 #: scale ``|A0| / |BC|`` when there is no crossing at all
 TAIL_FACTORS = (1.0 + 1e-6, 1.001, 1.5, 10.0, 1e3, 1e6)
@@ -217,38 +221,50 @@ def _test_gains(crossings: Array, kscale: Array) -> tuple[Array, Array]:
     last = np.take_along_axis(edges, count[..., None], axis=-1)
     idx = np.arange(upper.shape[-1])
     tail = idx == count[..., None]
-    frac = np.asarray(TEST_FRACTIONS)
-    bounded = edges[..., None] + (upper - edges)[..., None] * frac
+    lo, hi = edges[..., None], upper[..., None]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        linear = lo + (hi - lo) * np.asarray(TEST_FRACTIONS)
+        logs = lo * (hi / lo) ** np.asarray(LOG_FRACTIONS)
+        f_min = np.minimum(1e-9, 1e-9 * kscale[..., None, None] / hi)
+        geo = hi * f_min ** (1.0 - np.linspace(0.0, 1.0, len(TEST_FRACTIONS))) * np.asarray(
+            [1.0] * (len(TEST_FRACTIONS) - 1) + [0.98])
+        bounded = np.where(lo == 0, geo, np.where(hi / lo < 10.0, linear, logs))
     unbounded = np.where(last[..., None] > 0, last[..., None] * np.asarray(TAIL_FACTORS),
                          kscale[..., None, None] * np.asarray(SCALE_FACTORS))
     gains = np.where(tail[..., None], unbounded, bounded)
     return gains, edges
 
 
-def _verify(a0: Array, bc: Array, crossings: Array, sampled: bool, kscale: Array) -> Array:
+def _verify(a0: Array, bc: Array, crossings: Array, sampled: bool,
+            kscale: Array) -> tuple[Array, Array | None]:
     """Crossings completed by eigenvalue tests: inside every interval between two
     crossings, six gains must agree (all strictly stable or all strictly unstable).
     Where they do not, the root locus crossed the boundary at a gain the polynomial
     roots missed (high order, clustered roots): it is found by bracketing the spectral
     margin (Brent) and added. Designs that agree -- nearly all -- cost six
-    eigenvalue problems per interval and nothing else."""
+    eigenvalue problems per interval and nothing else. Returns the crossings and, when
+    they are unchanged, the test margins (batch + (m+1, 6))."""
     gains, _ = _test_gains(crossings, kscale)
     margin = _margins_at(a0, bc, gains, sampled).reshape(gains.shape[:-2] + (-1,))
     flat_k = gains.reshape(margin.shape)
     tol = STABILITY_TOL
     verdict = np.where(margin < -tol, 1, np.where(margin > tol, -1, 0))
-    # consecutive decided verdicts that differ inside one interval
-    slots = np.repeat(np.arange(gains.shape[-2]), gains.shape[-1])
-    bad_pairs = ((verdict[..., :-1] * verdict[..., 1:]) < 0) & (slots[:-1] == slots[1:])
-    bad = np.any(bad_pairs, axis=-1)
+    # an interval holding both a strictly stable and a strictly unstable test gain
+    per_slot = verdict.reshape(gains.shape)
+    bad = np.any(np.any(per_slot > 0, axis=-1) & np.any(per_slot < 0, axis=-1), axis=-1)
     if not bad.any():
-        return crossings
+        return crossings, margin.reshape(gains.shape)
     out = crossings.copy()
     width = out.shape[-1]
     for index in (i for i in np.ndindex(bad.shape) if bad[i]):
         found = []
-        for j in np.nonzero(bad_pairs[index])[0]:
-            k0, k1 = float(flat_k[index][j]), float(flat_k[index][j + 1])
+        decided = np.nonzero(verdict[index] != 0)[0]     # skip the undecided gains
+        slots = decided // gains.shape[-1]
+        for j0, j1, s0, s1 in zip(decided[:-1], decided[1:], slots[:-1], slots[1:]):
+            if s0 != s1 or verdict[index][j0] == verdict[index][j1]:
+                continue
+            k0, k1 = float(flat_k[index][j0]), float(flat_k[index][j1])
+
             def f(k: float, at: tuple[int, ...] = index) -> float:
                 return float(_spectral_margin(a0[at] - k * bc[at], sampled))
             try:
@@ -264,7 +280,7 @@ def _verify(a0: Array, bc: Array, crossings: Array, sampled: bool, kscale: Array
             out = np.concatenate([out, pad], axis=-1)
             width = row.size
         out[index] = row
-    return out
+    return out, None
 
 
 #: relative half-widths tried, in turn, to bracket each crossing for polishing
@@ -319,19 +335,22 @@ def _intervals(a0: Array, b: Array, c: Array, crossings: Array,
     bc = b @ c
     kscale = (np.linalg.norm(a0, axis=(-2, -1))
               / np.maximum(np.linalg.norm(bc, axis=(-2, -1)), 1e-300))
-    crossings = _verify(a0, bc, _polish(a0, bc, crossings, sampled), sampled, kscale)
+    crossings, margin = _verify(a0, bc, _polish(a0, bc, crossings, sampled), sampled, kscale)
+    if margin is None:
+        gains, _ = _test_gains(crossings, kscale)
+        margin = _margins_at(a0, bc, gains, sampled)
     batch = crossings.shape[:-1]
     edges = np.concatenate([np.zeros(batch + (1,)), crossings], axis=-1)
     count = np.sum(~np.isnan(crossings), axis=-1)
-    last = np.take_along_axis(edges, count[..., None], axis=-1)
     upper = np.concatenate([crossings, np.full(batch + (1,), np.nan)], axis=-1)
     idx = np.arange(upper.shape[-1])
     upper = np.where(idx == count[..., None], np.inf, upper)
-    test = np.where(np.isinf(upper), np.where(last > 0, 2.0 * last, kscale[..., None]),
-                    0.5 * (edges + np.where(np.isnan(upper), 0.0, upper)))
     valid = ~np.isnan(upper)
-    margin = _margins_at(a0, bc, np.where(valid, test, np.nan), sampled)
-    stable = valid & (margin < -STABILITY_TOL)
+    # stable: some test gain strictly stable, none strictly unstable (a slow pole within
+    # rounding of the boundary at the others does not make it unstable)
+    with np.errstate(invalid="ignore"):
+        stable = (valid & np.any(margin < -STABILITY_TOL, axis=-1)
+                  & ~np.any(margin > STABILITY_TOL, axis=-1))
     lo, hi = _merge(edges, upper, stable)
     first_ok = stable[..., 0]
     kmax = np.where(first_ok, hi[..., 0], 0.0)

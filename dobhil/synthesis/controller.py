@@ -16,15 +16,21 @@ Velocity estimated from position: the pseudo-differentiator
 ``v = g_v s / (s + g_v) q``, realised as ``z' = g_v (q - z)``, ``v = g_v (q - z)``.
 
 Sampling (:func:`sampled_controller`): the runtime executes exactly the matrices
-returned here -- this is the one source of the sampled observer. The default
-discretisation is the zero-order-hold (step-invariant) equivalent of the whole
-continuous controller, its inputs held over each period: it is exact for the
-torque input (the drive holds the torque command for a period), it maps every
-observer pole to ``exp(-g T)`` so the bandwidth is kept and the observers stay
-stable for any ``g T`` (``g T = 1`` at 1 kHz and 1000 rad/s), and it keeps the
-observer outputs free of direct feedthrough from ``u``, so saturation needs no
-algebraic loop. ``euler`` (forward Euler, what many hand-written observers do)
-is available for comparison; it goes unstable for ``g T > 2``.
+returned here -- this is the one source of the sampled observer. The torque input
+is discretised by zero-order hold, exactly (the drive holds the command for a
+period). The measured signals are not held -- they move between samples and the
+observers differentiate them -- so by default (``parabolic``) they pass through the
+parabola through ``y[k-1], y[k], y[k+1]``: the sampled observers then have exactly
+the configured inertia and friction at low frequency, with measured or estimated
+velocity (:mod:`dobhil.analysis.effective` computes them from the matrices).
+``foh`` (the triangle, ramp-invariant hold) is exact with measured velocity only.
+Both keep every observer pole at ``exp(-g T)`` (the bandwidth is kept and the
+observers stay stable for any ``g T``) and have no direct feedthrough from ``u``,
+so saturation needs no algebraic loop; the outputs do gain a feedthrough from the
+measurement. Their state is ``S^-1 (xi - E0 y)`` (S a diagonal balancing in powers of
+two), followed by ``y[k-1]`` for the parabola. ``zoh`` (the step-invariant equivalent of the whole controller, the
+former default) scales every differentiator by ``gT / (1 - e^-gT)``; ``euler``
+(forward Euler) goes unstable for ``g T > 2``. Both are kept for comparison.
 """
 
 from __future__ import annotations
