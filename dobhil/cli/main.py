@@ -96,8 +96,11 @@ def _stdout_gone() -> bool:
 
 
 def _main(argv: Sequence[str] | None) -> int:
-    parser = build_parser()
-    args = parser.parse_args(argv)
+    try:  # Ctrl-C while the subcommands are imported: one line, no traceback
+        args = build_parser().parse_args(argv)
+    except KeyboardInterrupt:
+        sys.stderr.write("dobhil: interrupted\n")
+        return 130
     try:
         return int(args.func(args) or 0)
     except DobhilError as exc:

@@ -63,8 +63,9 @@ def run_checked(args: argparse.Namespace) -> int:
     from dobhil.cli.check_cmd import preflight_kwargs
     from dobhil.config import resolve_config
     from dobhil.runtime.loop import StopRequest
-    from dobhil.runtime.session import RunSession, summary
+    from dobhil.runtime.session import RunSession, check_duration, summary
     from dobhil.runtime.signals import stop_on_signals
+    check_duration(args.duration)
     config = config_from_args(args)
     log = make_log(args.log, config, args.config)
     with closing_on_error(log), stop_on_signals(StopRequest()) as request, \
@@ -101,8 +102,9 @@ def warn_realtime(session: Any) -> None:
     """Ask for SCHED_FIFO / locked memory for a real-time run; warn (before the loop) if refused."""
     from dobhil.runtime.loop import Timing
     from dobhil.runtime.realtime import apply_realtime
-    if session.timing is Timing.REALTIME:
-        for line in apply_realtime(session.config.loop.realtime_priority):
+    if session.timing is not Timing.LOCKSTEP:
+        loop = session.config.loop
+        for line in apply_realtime(loop.realtime_priority, loop.cpu_affinity):
             sys.stderr.write(f"dobhil run: warning: {line}\n")
 
 
@@ -115,7 +117,17 @@ def make_log(path: Path | None, config: Any, config_file: str | Path | None) -> 
     if path.suffix != ".mcap":
         raise LogFileError(f"--log {path}: expected a .mcap file name")
     path.parent.mkdir(parents=True, exist_ok=True)
-    return RunLog(path, config, config_file=config_file)
+    log = RunLog(path, config, config_file=config_file)
+    lower_writer(log)
+    return log
+
+
+def lower_writer(log: Any) -> None:
+    """The writer process below the loop (nice +10): it is lossy in real time and may lag."""
+    from dobhil.runtime.realtime import WRITER_PRIORITY_DROP, lower_priority
+    writer = getattr(log, "writer", None)
+    if writer is not None:
+        lower_priority(WRITER_PRIORITY_DROP, pid=writer.pid)
 
 
 @contextmanager
@@ -140,37 +152,49 @@ def run_logged(session: Any, log: Any) -> Any:
 
 
 def report(info: dict[str, Any], stop_line: str, *, as_json: bool) -> None:
+    warning = info.get("drive_warning") or ""
     if as_json:
         json.dump(info, sys.stdout)
         sys.stdout.write("\n")
+        if warning:
+            sys.stderr.write(f"WARNING: {warning}\n")
         return
     if info["cycles"] == 0:  # nothing ran (e.g. the drive never answered): the reason only
         sys.stderr.write(f"dobhil run: {stop_line}\n")
+        if warning:
+            sys.stderr.write(f"WARNING: {warning}\n")
         return
     f, t = info["final"], info["loop_timing"]
+    skipped = info.get("skipped", 0)
     print(f"{info['cycles']} cycles ({info['timing']}, T = {info['period']:g} s, bus {info['bus']}"
-          f"{', emulated' if info['emulated'] else ''}); overruns {info['overruns']}")
+          f"{', emulated' if info['emulated'] else ''}); overruns {info['overruns']}"
+          + (f", {skipped} {'frames' if info['timing'] == 'feedback' else 'deadlines'} skipped"
+             if skipped else ""))
     print(stop_line)
     if f["tau_ref"] is not None:
         true = "-" if f["tau_int_true"] is None else f"{f['tau_int_true']:.4f}"
         print(f"final: tau_ref {f['tau_ref']:.4f} N m, tau_int^ {f['tau_int_hat']:.4f} N m, "
               f"true tau_int {true} N m, q {f['q']:.6f} rad")
     print(f"loop: exec time p50 {t['exec_time_p50'] * 1e6:.0f} us, p99 {t['exec_time_p99'] * 1e6:.0f} us; "
-          f"period error p99 {t['period_error_p99'] * 1e6:.0f} us, max {t['period_error_max'] * 1e6:.0f} us")
+          f"period error p99 {t['period_error_p99'] * 1e6:.0f} us, max {t['period_error_max'] * 1e6:.0f} us"
+          + (f"; latency p99 {t['latency_p99'] * 1e6:.0f} us" if t.get("latency_p99") else ""))
     if info.get("log"):
         print(f"log: {info['log']}")
-    if not info["drive_disabled"]:
-        print("WARNING: the disable frames could not be sent; check the drive")
+    if warning:
+        sys.stdout.flush()
+        sys.stderr.write(f"WARNING: {warning}\n")
 
 
 def emulate(args: argparse.Namespace) -> int:
+    from dobhil.config import resolve_config
     from dobhil.emulator.plant import Plant
     from dobhil.emulator.registry import make_emulated_drive
     from dobhil.runtime.buses import BusSpec, open_bus
     from dobhil.runtime.loop import StopRequest
-    from dobhil.runtime.session import load_drive_profile
+    from dobhil.runtime.realtime import EMULATOR_PRIORITY_DROP
+    from dobhil.runtime.session import check_duration, load_drive_profile
     from dobhil.runtime.signals import stop_on_signals
-    from dobhil.config import resolve_config
+    check_duration(args.duration)
     config = config_from_args(args)
     profile = load_drive_profile(config, resolve_config(args.config).parent)
     spec = BusSpec.parse(args.bus)
@@ -181,7 +205,7 @@ def emulate(args: argparse.Namespace) -> int:
     print(f"emulating {profile.protocol} node {profile.node_id} (firmware {profile.firmware}) "
           f"on {spec.describe()}; Ctrl-C to stop", flush=True)
     with stop_on_signals(StopRequest()) as request:
-        emulator.start()
+        emulator.start(priority_drop=EMULATOR_PRIORITY_DROP)
         try:
             end = time.monotonic() + (args.duration or float("inf"))
             while not request.is_set() and time.monotonic() < end:

@@ -142,10 +142,16 @@ class LoopConfig:
     position_max: float = key(100.0, "highest allowed position", unit="rad")
     velocity_limit: float = key(100.0, "largest allowed |velocity|", unit="rad/s",
                                 check=Check.POSITIVE)
-    timing: str = key("realtime", "how the loop is clocked (lockstep needs the emulator)",
-                      choices=("lockstep", "realtime"))
+    timing: str = key("feedback", "how the loop is clocked: feedback (each cycle triggered by "
+                      "the drive's feedback frame), host (host-clock deadlines; realtime is an "
+                      "older name of it) or lockstep (simulated; needs the emulator)",
+                      choices=("feedback", "host", "lockstep", "realtime"))
     realtime_priority: int = key(0, "SCHED_FIFO priority on Linux (0: none)",
                                  check=Check.NONNEGATIVE)
+    spin: float = key(2.0e-4, "spin (instead of sleeping) for this long before each deadline "
+                      "(host timing) or around each expected feedback frame (feedback timing); "
+                      "0: sleep only", unit="s", check=Check.NONNEGATIVE)
+    cpu_affinity: int = key(-1, "pin the control thread to this CPU (-1: no pinning)")
 
 
 @dataclass(frozen=True)

@@ -12,6 +12,14 @@ Protocol modules report what they decode as protocol-neutral events:
 
 Hot path (``send_torque``, ``poll``): no logging, no printing, no blocking beyond the
 given timeout; the torque frame may be a preallocated message the hook refills.
+
+Safe stop (:meth:`Drive.safe_stop`): every frame of it -- zero torque, then each disable
+frame -- is attempted on its own, whatever happened to the one before (a bus that
+refuses one frame may take the next), each with its own :class:`FrameResult`; then the
+drive's own status frames must confirm that it left torque control. What was sent and
+what was confirmed comes back as a :class:`SafeStopReport`, whose
+:meth:`~SafeStopReport.warning` is the one loud line a user must see when the drive may
+still be enabled.
 """
 
 from __future__ import annotations
@@ -22,6 +30,7 @@ from abc import ABC, abstractmethod
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from enum import IntEnum
+from functools import partial
 from typing import TYPE_CHECKING, ClassVar
 
 import can
@@ -33,12 +42,15 @@ if TYPE_CHECKING:
     from dobhil.drives.preflight import PreflightProbe
 
 __all__ = [
+    "Confirmation",
     "Drive",
     "DriveEvent",
     "DriveState",
     "DriveStatus",
     "Feedback",
+    "FrameResult",
     "MotionEvent",
+    "SafeStopReport",
     "StateEvent",
 ]
 
@@ -47,6 +59,9 @@ Clock = Callable[[], float]
 
 #: heartbeats a drive may miss in a row before the host calls it a fault
 HEARTBEAT_MISSES = 3
+#: wall-clock seconds a safe-stop frame is retried while the bus refuses it (ENOBUFS:
+#: a full transmit queue drains within a few frame times)
+SAFE_STOP_RETRY = 0.02
 
 
 class DriveState(IntEnum):
@@ -57,12 +72,15 @@ class DriveState(IntEnum):
 
 @dataclass(frozen=True, slots=True)
 class Feedback:
-    """Newest motion sample. ``timestamp``: drive clock [s] when the frame was read."""
+    """Newest motion sample. ``timestamp``: drive clock [s] when the frame was read;
+    ``rx_time``: the bus's receive stamp of the frame (python-can ``Message.timestamp``,
+    ``time.time()`` seconds; NaN if the bus gave none)."""
 
     timestamp: float
     position: float  # rad
     velocity: float  # rad/s
     seq: int  # counts motion frames received from this drive
+    rx_time: float = math.nan
 
 
 @dataclass(frozen=True, slots=True)
@@ -72,6 +90,53 @@ class DriveStatus:
     watchdog_tripped: bool = False
     last_heartbeat: float | None = None  # drive clock [s]
     detail: str = ""  # last fault / enable / disable-failure text, one line
+
+
+class Confirmation(IntEnum):
+    """What the drive said after the safe-stop frames."""
+
+    CONFIRMED = 0         # a status frame after the disable frames: out of torque control
+    NOT_ACKNOWLEDGED = 1  # frames sent, but no status frame confirmed it in time
+    NOT_SENT = 2          # a safe-stop frame could not be put on the bus
+    NEVER_SEEN = 3        # nothing was ever heard from the drive: nothing to confirm
+    NOT_ASKED = 4         # sent without waiting for a confirmation (``disable()``)
+
+
+@dataclass(frozen=True, slots=True)
+class FrameResult:
+    """One safe-stop frame: what it was, whether it went out, and why not."""
+
+    what: str   # e.g. "zero torque", "IDLE"
+    sent: bool
+    error: str = ""
+
+
+@dataclass(frozen=True, slots=True)
+class SafeStopReport:
+    """Every safe-stop frame's result and what the drive confirmed."""
+
+    node_id: int
+    frames: tuple[FrameResult, ...]
+    confirmation: Confirmation
+    detail: str = ""  # one line: why it is not confirmed (empty when it is)
+
+    @property
+    def sent(self) -> bool:
+        """Every safe-stop frame went out."""
+        return all(f.sent for f in self.frames)
+
+    @property
+    def safe(self) -> bool:
+        """Known to be out of torque control (or never heard of: never enabled by us)."""
+        return self.sent and self.confirmation in (Confirmation.CONFIRMED,
+                                                   Confirmation.NEVER_SEEN,
+                                                   Confirmation.NOT_ASKED)
+
+    def warning(self) -> str:
+        """The one loud line when the drive may still be enabled; empty when safe."""
+        if self.safe:
+            return ""
+        return f"drive may still be enabled: node {self.node_id} {self.detail}; cut power"
 
 
 @dataclass(frozen=True, slots=True)
@@ -103,6 +168,8 @@ class Drive(ABC):
 
     protocol: ClassVar[str] = ""
     active_state_text: ClassVar[str] = "enabled"
+    #: what the disable frames ask for, in messages ("IDLE" on an ODrive)
+    disabled_state_text: ClassVar[str] = "disable"
 
     def __init__(
         self, bus: can.BusABC, profile: DriveProfile, *, clock: Clock = time.monotonic
@@ -162,42 +229,61 @@ class Drive(ABC):
         raise DriveTimeoutError(self._enable_timeout_text(wait))
 
     def disable(self) -> bool:
-        """Zero torque, then the protocol's disable frames. Never raises.
+        """Zero torque, then the protocol's disable frames, without waiting for a
+        confirmation. Never raises. True if every frame was sent; otherwise the failure
+        is in ``status.detail`` and the host side is marked DISABLED anyway."""
+        return self.safe_stop(confirm=False).sent
 
-        Returns True if every frame was sent; otherwise the failure is in
-        ``status.detail`` and the host side is marked DISABLED anyway.
-        """
-        frames: list[can.Message] = []
+    def safe_stop(self, *, confirm: bool = True, timeout: float | None = None) -> SafeStopReport:
+        """Zero torque, then each disable frame -- every one attempted, whatever happened
+        to the others -- then (``confirm``) wait up to ``timeout`` s (default: three
+        heartbeat periods) for a status frame saying the drive left torque control.
+        Never raises; the host side is marked DISABLED whatever happens."""
+        results = [self._send_safely("zero torque", partial(self._torque_frame, 0.0))]
         try:
-            frames = [self._torque_frame(0.0), *self._disable_frames()]
-            for frame in frames:
-                self._bus.send(frame)
-        except Exception as exc:  # safety path: record, never throw
-            self._set_state(DriveState.DISABLED, f"disable of node {self.node_id} failed: {exc}")
-            return False
-        self._set_state(DriveState.DISABLED, "")
-        return True
+            names = tuple(self._disable_frame_names())
+        except Exception:  # safety path: a broken hook still gets its frame attempted
+            names = (self.disabled_state_text,)
+        for i, name in enumerate(names):
+            results.append(self._send_safely(name, partial(self._disable_frame, i)))
+        failed = [r for r in results if not r.sent]
+        if failed:
+            detail = "; ".join(f"{r.what} frame not sent ({r.error})" for r in failed)
+            report = SafeStopReport(self.node_id, tuple(results), Confirmation.NOT_SENT, detail)
+        elif not confirm:
+            report = SafeStopReport(self.node_id, tuple(results), Confirmation.NOT_ASKED)
+        elif self._last_heartbeat is None:
+            report = SafeStopReport(self.node_id, tuple(results), Confirmation.NEVER_SEEN)
+        else:
+            report = self._confirm_disabled(tuple(results), timeout)
+        failure = "" if report.safe else f"disable of node {self.node_id} failed: {report.detail}"
+        self._set_state(DriveState.DISABLED, failure)
+        return report
 
     def send_torque(self, tau_nm: float) -> None:
-        """Send one torque command [Nm]; non-blocking. Clamping is the controller's job."""
+        """Send one torque command [Nm]; non-blocking. Clamping is the controller's job.
+        Raises BusError when the bus refuses the frame (ENOBUFS, interface gone)."""
         if not math.isfinite(tau_nm):
             raise DriveError(f"torque: expected a finite value in Nm, got {tau_nm!r}")
         if self._state is not DriveState.ENABLED:
             self._raise_not_enabled()
         try:
             self._bus.send(self._torque_frame(tau_nm), 0.0)
-        except can.CanError as exc:
+        except (can.CanError, OSError) as exc:
             raise BusError(f"torque frame to node {self.node_id} not sent: {exc}") from exc
 
     def poll(self, timeout: float) -> Feedback | None:
         """Read frames for up to ``timeout`` s; return the newest fresh feedback or None.
 
         Everything already queued is read first; the call returns as soon as a
-        motion frame has been read. Raises DriveFaultError while the drive is faulted.
+        motion frame has been read, with whatever came queued behind it (a burst of late
+        frames gives its newest). Raises DriveFaultError while the drive is faulted.
         """
         fresh = self._drain()
         if not fresh and timeout > 0:
             fresh = self._wait_for_motion(self._clock() + timeout)
+            if fresh:
+                self._drain()
         if self._state is DriveState.ENABLED:
             self._check_heartbeat()
         if self._state is DriveState.FAULT:
@@ -255,14 +341,77 @@ class Drive(ABC):
         its frames and name its settings. None: no preflight for this protocol yet."""
         return None
 
+    def _is_disabled_confirmation(self, event: StateEvent) -> bool:
+        """True if ``event`` (received after the disable frames) confirms the disable."""
+        return not event.active
+
+    def _disable_frame(self, index: int) -> can.Message:
+        return self._disable_frames()[index]
+
+    def _disable_frame_names(self) -> Sequence[str]:
+        """A name per disable frame, for the safe-stop report."""
+        count = len(self._disable_frames())
+        if count == 1:
+            return (self.disabled_state_text,)
+        return tuple(f"{self.disabled_state_text} {i + 1}/{count}" for i in range(count))
+
     # -- internals ------------------------------------------------------------
 
     def _send_all(self, frames: Sequence[can.Message], what: str) -> None:
         try:
             for frame in frames:
                 self._bus.send(frame)
-        except can.CanError as exc:
+        except (can.CanError, OSError) as exc:
             raise BusError(f"{what} frames to node {self.node_id} not sent: {exc}") from exc
+
+    def _send_safely(self, what: str, make: Callable[[], can.Message]) -> FrameResult:
+        """One safe-stop frame, retried for up to SAFE_STOP_RETRY s of wall time while
+        the bus refuses it. Never raises."""
+        give_up = time.monotonic() + SAFE_STOP_RETRY
+        while True:
+            try:
+                self._bus.send(make())
+                return FrameResult(what, True)
+            except Exception as exc:  # safety path: every frame gets its own attempt
+                error = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+                if time.monotonic() >= give_up:
+                    return FrameResult(what, False, error)
+                time.sleep(0.001)
+
+    def _confirm_timeout(self) -> float:
+        rate = self._profile.heartbeat_msg_rate
+        return HEARTBEAT_MISSES * rate if rate > 0 else self._profile.enable_timeout
+
+    def _confirm_disabled(self, frames: tuple[FrameResult, ...],
+                          timeout: float | None) -> SafeStopReport:
+        """Read status frames until one says the drive left torque control."""
+        wait = self._confirm_timeout() if timeout is None else timeout
+        deadline = self._clock() + wait
+        seen: StateEvent | None = None
+        why = f"no status frame within {wait:g} s"
+        try:
+            while True:
+                remaining = deadline - self._clock()
+                if remaining <= 0:
+                    break
+                msg = self._bus.recv(remaining)
+                if msg is None:
+                    break
+                for event in self._decode(msg):
+                    if isinstance(event, MotionEvent):
+                        self._on_motion(event)
+                        continue
+                    self._record_state(event)
+                    seen = event
+                    if self._is_disabled_confirmation(event):
+                        return SafeStopReport(self.node_id, frames, Confirmation.CONFIRMED)
+        except Exception as exc:  # safety path: a bus that cannot be read confirms nothing
+            why = f"status not readable: {exc}"
+        else:
+            if seen is not None:
+                why = f"still {seen.state_text} after {wait:g} s"
+        return SafeStopReport(self.node_id, frames, Confirmation.NOT_ACKNOWLEDGED,
+                              f"did not acknowledge {self.disabled_state_text} ({why})")
 
     def _keepalive_interval(self) -> float:
         watchdog = self._profile.watchdog_timeout
@@ -284,10 +433,13 @@ class Drive(ABC):
 
     def _drain(self) -> bool:
         fresh = False
-        msg = self._bus.recv(0.0)
-        while msg is not None:
-            fresh = self._handle(msg) or fresh
+        try:
             msg = self._bus.recv(0.0)
+            while msg is not None:
+                fresh = self._handle(msg) or fresh
+                msg = self._bus.recv(0.0)
+        except (can.CanError, OSError) as exc:
+            raise self._read_error(exc) from exc
         return fresh
 
     def _wait_for_motion(self, deadline: float) -> bool:
@@ -295,18 +447,24 @@ class Drive(ABC):
             remaining = deadline - self._clock()
             if remaining <= 0:
                 return False
-            msg = self._bus.recv(remaining)
+            try:
+                msg = self._bus.recv(remaining)
+            except (can.CanError, OSError) as exc:
+                raise self._read_error(exc) from exc
             if msg is None:
                 return False
             if self._handle(msg):
                 return True
+
+    def _read_error(self, exc: BaseException) -> BusError:
+        return BusError(f"bus read for node {self.node_id} failed: {exc}")
 
     def _handle(self, msg: can.Message) -> bool:
         """Apply one frame; True if it carried motion feedback."""
         fresh = False
         for event in self._decode(msg):
             if isinstance(event, MotionEvent):
-                self._on_motion(event)
+                self._on_motion(event, msg.timestamp)
                 fresh = True
             else:
                 self._on_state(event)
@@ -322,9 +480,10 @@ class Drive(ABC):
                 confirmed = confirmed or self._is_enabled_confirmation(event)
         return confirmed
 
-    def _on_motion(self, event: MotionEvent) -> None:
+    def _on_motion(self, event: MotionEvent, rx_time: float = math.nan) -> None:
         self._seq += 1
-        self._feedback = Feedback(self._clock(), event.position, event.velocity, self._seq)
+        self._feedback = Feedback(self._clock(), event.position, event.velocity, self._seq,
+                                  rx_time or math.nan)
 
     def _record_state(self, event: StateEvent) -> None:
         self._last_state = event

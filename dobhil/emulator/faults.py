@@ -20,7 +20,10 @@ seconds) or ``time.monotonic``; the clock starts at 0 when the wrapper is made.
 Randomness is seeded: a faulted run is reproducible in lockstep.
 
 A new fault (roadmap: a fault-injection and fuzzing campaign) is one new subclass of
-:class:`Fault` in this module: set :attr:`Fault.direction` and write :meth:`Fault.apply`.
+:class:`Fault`: set :attr:`Fault.direction` and write :meth:`Fault.apply` (and
+:meth:`Fault.check` for a fault of the bus itself, which may raise before any frame
+moves). Frame faults live here; the bus failing (refused sends, the interface going
+away) in :mod:`dobhil.emulator.bus_faults`.
 """
 
 from __future__ import annotations
@@ -43,7 +46,12 @@ __all__ = [
     "DropFrames",
     "Fault",
     "FaultyBus",
+    "Flood",
+    "HoldFrames",
     "InjectFrame",
+    "InjectReceived",
+    "KeepEvery",
+    "LoseSent",
     "SilenceAfter",
     "faulty",
 ]
@@ -88,6 +96,11 @@ class Fault(ABC):
     @abstractmethod
     def apply(self, msg: can.Message, index: int, now: float) -> Sequence[can.Message]:
         """Frames to pass on for the ``index``-th matching frame (0-based) at ``now`` [s]."""
+
+    def check(self, direction: Direction, now: float) -> None:
+        """Called before every send and receive of the wrapped bus, frame or not; a
+        fault of the bus itself raises here (python-can's ``CanOperationError``)."""
+        return None
 
 
 class SilenceAfter(Fault):
@@ -183,6 +196,96 @@ class InjectFrame(Fault):
         return (msg,)
 
 
+class KeepEvery(Fault):
+    """Only every ``n``-th matching frame (from ``at`` on, 0-based) gets through: a drive
+    streaming ``n`` times slower than its profile says (an ODrive at its factory 10 ms
+    encoder rate under a 1 ms profile)."""
+
+    def __init__(self, n: int, *, at: int = 0, ids: Collection[int] | None = None) -> None:
+        if n < 2 or at < 0:
+            raise ValueError(f"KeepEvery: n >= 2, at >= 0; got {n}, {at}")
+        super().__init__(ids)
+        self.n = n
+        self.at = at
+
+    def apply(self, msg: can.Message, index: int, now: float) -> Sequence[can.Message]:
+        if index < self.at or (index - self.at) % self.n == 0:
+            return (msg,)
+        self.applied += 1
+        return ()
+
+
+class LoseSent(SilenceAfter):
+    """Frames the wrapped side sends are lost on the way (after the first ``frames`` of
+    them, or after ``seconds``): the sender's ``send`` succeeds, the drive never sees
+    them. Send direction."""
+
+    direction: ClassVar[Direction] = Direction.SEND
+
+
+class InjectReceived(InjectFrame):
+    """Delivers ``frame`` once, right after the ``after``-th matching frame the wrapped
+    side receives (0-based): a frame that was never sent by the drive, e.g. a spoofed
+    heartbeat. Receive direction."""
+
+    direction: ClassVar[Direction] = Direction.RECV
+
+
+class HoldFrames(Fault):
+    """Late frames: matching frames ``at`` .. ``at + count - 1`` (0-based) are held back
+    and delivered together with the next one, in order (a stall of ``count`` frames on
+    the way, then a burst)."""
+
+    def __init__(self, *, at: int, count: int, ids: Collection[int] | None = None) -> None:
+        if at < 0 or count < 1:
+            raise ValueError(f"HoldFrames: at >= 0, count >= 1; got {at}, {count}")
+        super().__init__(ids)
+        self.at = at
+        self.count = count
+        self._held: list[can.Message] = []
+
+    def apply(self, msg: can.Message, index: int, now: float) -> Sequence[can.Message]:
+        if self.at <= index < self.at + self.count:
+            self._held.append(msg)
+            self.applied += 1
+            return ()
+        if self._held:
+            held, self._held = self._held, []
+            return (*held, msg)
+        return (msg,)
+
+
+class Flood(Fault):
+    """Foreign traffic: each matching frame is followed by ``per_frame`` frames of other
+    participants (other node ids, extended ids, remote frames), seeded. Receive
+    direction."""
+
+    def __init__(self, per_frame: int, *, avoid: Collection[int] = (), seed: int = 0,
+                 ids: Collection[int] | None = None) -> None:
+        if per_frame < 1:
+            raise ValueError(f"per_frame: expected >= 1, got {per_frame}")
+        super().__init__(ids)
+        self.per_frame = per_frame
+        self.avoid = frozenset(avoid)
+        self._rng = random.Random(seed)
+
+    def _foreign(self) -> can.Message:
+        rng = self._rng
+        extended = rng.random() < 0.25
+        while True:
+            arb = rng.randrange(1 << 29) if extended else rng.randrange(0x800)
+            if extended or arb not in self.avoid:
+                break
+        size = rng.randrange(9)
+        return can.Message(arbitration_id=arb, is_extended_id=extended,
+                           is_remote_frame=rng.random() < 0.1, dlc=size,
+                           data=bytes(rng.randrange(256) for _ in range(size)))
+
+    def apply(self, msg: can.Message, index: int, now: float) -> Sequence[can.Message]:
+        self.applied += self.per_frame
+        return (msg, *(self._foreign() for _ in range(self.per_frame)))
+
+
 class FaultyBus(can.BusABC):
     """``inner`` with ``faults`` applied in order to what it receives and sends.
 
@@ -218,10 +321,16 @@ class FaultyBus(can.BusABC):
         return frames
 
     def send(self, msg: can.Message, timeout: float | None = None) -> None:
-        for frame in self._chain(self._send_faults, msg, self.now()):
+        now = self.now()
+        for fault in self.faults:
+            fault.check(Direction.SEND, now)
+        for frame in self._chain(self._send_faults, msg, now):
             self._inner.send(frame, timeout)
 
     def recv(self, timeout: float | None = None) -> can.Message | None:
+        now = self.now()
+        for fault in self.faults:
+            fault.check(Direction.RECV, now)
         if self._pending:
             return self._pending.popleft()
         deadline = None if timeout is None else self._clock() + timeout

@@ -10,8 +10,13 @@ Two timing modes, one state machine:
 
 - **lockstep** (deterministic, no threads): :meth:`EmulatedDrive.handle_pending` applies
   every frame already received without blocking; :meth:`EmulatedDrive.advance` steps the
-  plant ``dt`` with the current torque and emits the cyclic frames that fall due in that
-  interval. :class:`LockstepBus` is the host's view of such a bus: whenever the host
+  plant ``dt`` and emits the cyclic frames that fall due in that interval. A received
+  frame takes effect ``latency`` s after it was received (the host's compute and bus
+  delay, ``design.input_delay``), exactly: the plant steps to that instant with the torque
+  held so far, the frame is applied, and the plant steps on -- each piece an exact ZOH
+  step of the plant, so a command computed from the sample at ``t_k`` acts from
+  ``t_k + latency``, as the sampled analysis with a fractional input delay models.
+  :class:`LockstepBus` is the host's view of such a bus: whenever the host
   waits on ``recv(timeout)``, simulated time advances instead of wall time, so a
   :class:`dobhil.drives.base.Drive` built with ``clock=lockstep_bus.clock`` runs its
   timeouts in simulated seconds.
@@ -34,6 +39,7 @@ from typing import Any, Protocol
 import can
 
 from dobhil.drives.profile import DriveProfile
+from dobhil.runtime.realtime import lower_priority
 
 __all__ = ["EmulatedDrive", "LockstepBus", "PlantLike"]
 
@@ -92,6 +98,7 @@ class EmulatedDrive(ABC):
         self._thread: threading.Thread | None = None
         self._stop_event = threading.Event()
         self._thread_error: BaseException | None = None
+        self._priority_drop = 0
         self.frames_received = 0
         self.frame_errors = 0  # frames whose handling raised (a bug: tests demand 0)
         self.last_frame_error = ""
@@ -139,9 +146,33 @@ class EmulatedDrive(ABC):
         return count
 
     def advance(self, dt: float) -> None:
-        """Step the plant ``dt`` s with the current torque; emit cyclic frames due by then."""
+        """Step the plant ``dt`` s; frames due inside the interval take effect at their
+        instant (the plant steps to it with the torque held so far). Emit the cyclic
+        frames due by the end."""
         if dt <= 0:
             raise ValueError(f"dt: expected > 0 s, got {dt}")
+        end = self._time + dt
+        rest = dt
+        delayed = self._delayed
+        while delayed and delayed[0][0] < end - _EPS:
+            at = delayed[0][0]
+            if at > self._time + _EPS:
+                # the pieces' lengths are rounded to 1e-12 s, so a periodic delay gives
+                # the same two lengths every period (the plant caches its ZOH matrices
+                # per length); the end of the step stays exact
+                self._plant.step(self._plant_torque(), round(at - self._time, 12))
+                self._time = at
+                rest = round(end - at, 12)
+            self._apply_due(at)
+        self._plant.step(self._plant_torque(), rest)
+        self._time = end
+        self._apply_due(self._time)
+        self._on_time(self._time)
+        self._emit_cyclic(self._time)
+
+    def _advance_held(self, dt: float) -> None:
+        """Real time: step the whole ``dt`` with the current torque (frames received
+        meanwhile were applied when their wall-clock delay ran out)."""
         self._plant.step(self._plant_torque(), dt)
         self._time += dt
         self._apply_due(self._time)
@@ -150,14 +181,16 @@ class EmulatedDrive(ABC):
 
     # -- real time ------------------------------------------------------------
 
-    def start(self) -> None:
-        """Run on a thread of its own (period = the profile's encoder rate)."""
+    def start(self, *, priority_drop: int = 0) -> None:
+        """Run on a thread of its own (period = the profile's encoder rate), its nice
+        value raised by ``priority_drop`` where the OS allows (below the control loop)."""
         if self._thread is not None:
             raise RuntimeError("emulator already started")
         prepare = getattr(self._plant, "prepare", None)
         if callable(prepare):  # one-off set-up cost here, not in the first real-time tick
             prepare(self._profile.encoder_msg_rate)
         self._stop_event.clear()
+        self._priority_drop = priority_drop
         self._thread = threading.Thread(
             target=self._run_guarded, name=f"{type(self).__name__}-node{self._profile.node_id}"
         )
@@ -258,6 +291,8 @@ class EmulatedDrive(ABC):
 
     def _run_guarded(self) -> None:
         try:
+            if self._priority_drop:
+                lower_priority(self._priority_drop)  # this thread only (Linux)
             self._run()
         except BaseException as exc:  # surfaced by stop()
             self._thread_error = exc
@@ -269,7 +304,7 @@ class EmulatedDrive(ABC):
         while not self._stop_event.is_set():
             tick_start = start + (tick - 1) * period
             self._receive_until(start + tick * period, tick_start)
-            self.advance(period)
+            self._advance_held(period)
             tick += 1
             lag = time.perf_counter() - (start + tick * period)
             if lag > _MAX_LAG_PERIODS * period:

@@ -3,47 +3,75 @@
 One cycle: read the newest feedback from the drive, check it (age, limits,
 finiteness), compute the controller (:class:`~dobhil.runtime.controller.ForceController`),
 check the command, send it. No printing, logging or file I/O in the cycle: per-cycle
-values go into preallocated arrays (:class:`Trace`) and to an optional non-blocking
-``sink`` (the MCAP recorder in its lossy mode).
+values go into a bounded :class:`Trace` (for plots), timing into fixed-size histograms
+(:class:`TimingStats`), and to an optional non-blocking ``sink`` (the recorder).
 
-Timing:
+Timing (:class:`Timing`):
 
+- **feedback** (the default for drives that stream feedback): each cycle is triggered by
+  the drive's feedback frame and the command goes out at once, so the feedback-to-command
+  latency is the computation time, never a fraction of a period that drifts between the
+  drive's clock and the host's. The wait blocks on the bus until ``loop.spin`` s before
+  the frame is expected (one period after the last), then spins on the bus around that
+  instant, then blocks again. Frames that came while a cycle was late are skipped (the
+  newest is used) and counted; no frame for ``loop.feedback_timeout`` after the last one
+  stops the run.
+- **host**: absolute deadlines ``t0 + k T`` on the host clock, for drives that need a
+  host-timed request. The cycle reads the newest feedback without blocking, then sleeps
+  to the next deadline -- ``time.sleep`` to ``loop.spin`` s before it, then a spin on the
+  clock (sleep alone wakes up tens to hundreds of microseconds late). A cycle that ends
+  after the next deadline is an overrun: counted, the missed deadlines skipped (as
+  ros2_control does), never replayed in a burst.
 - **lockstep**: the bus is a :class:`dobhil.emulator.protocol.LockstepBus`; waiting for
-  feedback advances the emulator by one period, so the loop runs as fast as the machine
-  allows and exactly as the sampled analysis models it.
-- **real time**: absolute deadlines ``t0 + k T``; the cycle reads the newest feedback
-  without blocking, and sleeps to the next deadline. A cycle that finishes after the
-  next deadline is an overrun: it is counted and the missed deadlines are skipped
-  (as ros2_control does), never replayed in a burst.
+  feedback advances the emulator by one period, so the loop is feedback-synchronous in
+  simulated time, runs as fast as the machine allows and exactly as the sampled analysis
+  models it (the emulator applies each command ``design.input_delay`` after the sample).
+
+Garbage collection (feedback and host): everything alive at start-up is collected once
+and frozen (``gc.freeze``) before the drive is enabled, the collector is disabled during
+the cycles, and the young generations are collected *between* cycles when the time to
+the next deadline (or expected frame) allows, or when they grow past a hard bound. The
+collector's state is restored after the run.
 
 Safety: every way out of :meth:`ForceLoop.run` -- done, feedback timeout, position or
-velocity limit, non-finite value, drive fault, stop request (SIGINT/SIGTERM), or any
-exception -- sends zero torque and disables the drive, and is recorded as a
+velocity limit, non-finite value, drive fault, bus error, stop request (SIGINT/SIGTERM),
+or any exception -- runs the drive's safe stop (zero torque, then the disable frames,
+each attempted on its own, then a confirmation from the drive) and is recorded as a
 :class:`~dobhil.runtime.stop.Stop`. Exceptions are re-raised after the safe stop.
 """
 
 from __future__ import annotations
 
+import gc
 import math
 import threading
 import time
+from array import array
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from enum import IntEnum
 from typing import Protocol
 
 import numpy as np
 from numpy.typing import NDArray
 
-from dobhil.drives.base import Drive, Feedback
-from dobhil.errors import DriveError, DriveFaultError
+from dobhil.drives.base import Drive, Feedback, SafeStopReport
+from dobhil.errors import BusError, DriveError, DriveFaultError
 from dobhil.runtime.controller import ControlOutput, ForceController
 from dobhil.runtime.stop import Stop, StopReason
 
 
 class Timing(IntEnum):
-    LOCKSTEP = 0
-    REALTIME = 1
+    """How cycles are clocked."""
+
+    LOCKSTEP = 0   # simulated time, one cycle per emulated feedback frame
+    HOST = 1       # host-clock deadlines (``loop.timing: host``)
+    FEEDBACK = 2   # each cycle triggered by the drive's feedback frame
+    REALTIME = 1   # older name of HOST (``loop.timing: realtime``)
+
+    @property
+    def label(self) -> str:
+        return self.name.lower()
 
 
 class Reference(Protocol):
@@ -61,12 +89,20 @@ class CycleSink(Protocol):
 
     def stop(self, stop: Stop) -> None: ...
 
+    def safe_stop(self, report: SafeStopReport) -> None:
+        """After the safe stop: each frame's result and the drive's confirmation
+        (one event each). Optional for sinks written before it existed."""
+
 
 @dataclass(frozen=True)
 class Limits:
     position_min: float
     position_max: float
     velocity_limit: float
+
+
+#: default ``loop.spin``: seconds spun on the clock before a host-timing deadline
+SPIN = 2.0e-4
 
 
 @dataclass(frozen=True)
@@ -76,56 +112,142 @@ class LoopSettings:
     feedback_timeout: float
     timing: Timing
     limits: Limits
+    spin: float = SPIN
+
+    @property
+    def cycles(self) -> int:
+        """Cycles (deadlines, or feedback frames) the run lasts."""
+        return int(math.ceil(self.duration / self.period))
 
 
 FIELDS = ("t", "q", "dq", "tau_ref", "tau_int_hat", "tau_dis_hat", "tau_per", "u_unsat", "u",
-          "period_error", "exec_time", "overrun", "tau_int_true", "q_true")
+          "period_error", "exec_time", "overrun", "tau_int_true", "q_true", "latency")
+
+#: rows a Trace keeps at most (15 float64 fields: 16 MB); longer runs are decimated
+TRACE_ROWS = 1 << 17
 
 
-@dataclass
 class Trace:
-    """Per-cycle values in preallocated arrays (filled up to ``n``)."""
+    """Per-cycle values for plots and summaries, bounded in memory.
 
-    capacity: int
-    data: dict[str, NDArray[np.float64]] = field(default_factory=dict)
-    n: int = 0
+    Row ``j`` holds cycle ``j * stride``. A run of up to ``max_rows`` cycles keeps every
+    cycle (stride 1); when a longer run fills the rows, every other row is dropped and
+    the stride doubles, so a run of any length holds at most ``max_rows`` rows spread
+    over the whole run (the MCAP recording keeps every cycle). Deadlines skipped after
+    an overrun are NaN rows. The newest cycle is always available (:meth:`latest`).
+    """
 
-    def __post_init__(self) -> None:
-        self.data = {name: np.full(self.capacity, np.nan) for name in FIELDS}
+    def __init__(self, cycles: int, max_rows: int = TRACE_ROWS) -> None:
+        if max_rows < 2:
+            raise ValueError(f"max_rows: expected >= 2, got {max_rows}")
+        self.cycles = max(int(cycles), 1)
+        self.capacity = min(self.cycles, max_rows + max_rows % 2)
+        self.stride = 1
+        self.n = 0
+        self.last = -1   # row of the newest cycle (``capacity``: the scratch row)
+        # one extra row: the newest cycle when the stride does not keep it
+        self.data: dict[str, NDArray[np.float64]] = {
+            name: np.full(self.capacity + 1, np.nan) for name in FIELDS}
 
     def __getitem__(self, name: str) -> NDArray[np.float64]:
         return self.data[name][:self.n]
 
+    def row(self, k: int) -> int:
+        """The row cycle ``k`` is written to (cycles come in increasing order)."""
+        stride = self.stride
+        if k % stride:
+            return self.capacity
+        r = k // stride
+        if r >= self.capacity:
+            self._decimate()
+            return self.row(k)
+        if r >= self.n:
+            self.n = r + 1
+        return r
+
+    def latest(self, name: str) -> float:
+        """The newest cycle's value of ``name`` (NaN before the first cycle)."""
+        return float(self.data[name][self.last]) if self.last >= 0 else math.nan
+
+    def _decimate(self) -> None:
+        half = self.capacity // 2
+        for values in self.data.values():
+            values[:half] = values[0:self.capacity:2].copy()
+            values[half:self.capacity] = np.nan
+        self.stride *= 2
+        self.n = (self.n + 1) // 2
+
+
+class Histogram:
+    """Counts of durations in 1 us bins up to 100 ms (longer ones in the last bin) and
+    the exact maximum: percentiles of a run of any length in fixed memory, and one
+    array increment per sample in the cycle."""
+
+    BIN = 1e-6
+    BINS = 100_000
+
+    def __init__(self) -> None:
+        self.counts = array("q", bytes(8 * self.BINS))
+        self.n = 0
+        self.max = 0.0
+
+    def add(self, x: float) -> None:
+        i = int(x * 1e6)
+        if i >= self.BINS:
+            i = self.BINS - 1
+        elif i < 0:
+            i = 0
+        self.counts[i] += 1
+        self.n += 1
+        if x > self.max:
+            self.max = x
+
+    def percentile(self, p: float) -> float:
+        """The ``p``-th percentile (bin centre, at most the maximum); 0 when empty."""
+        if self.n == 0:
+            return 0.0
+        cumulative = np.cumsum(np.frombuffer(self.counts, dtype=np.int64))
+        rank = max(1, math.ceil(p / 100.0 * self.n))
+        index = int(np.searchsorted(cumulative, rank))
+        if index >= self.BINS - 1:   # the overflow bin: only the maximum is known
+            return self.max
+        return min((index + 0.5) * self.BIN, self.max)
+
 
 @dataclass(frozen=True)
 class TimingStats:
+    """Timing of the cycles run. ``period_error``: lateness of the cycle start against
+    its deadline (host), or the deviation of the feedback frame interval from the period
+    (feedback); ``latency``: feedback frame received (the bus's stamp) -> command sent,
+    per cycle also in the trace (0 in lockstep: simulated)."""
+
     period_error_p50: float
     period_error_p99: float
     period_error_max: float
     exec_time_p50: float
     exec_time_p99: float
     exec_time_max: float
+    latency_p50: float = 0.0
+    latency_p99: float = 0.0
+    latency_max: float = 0.0
 
     @classmethod
-    def of(cls, trace: Trace) -> TimingStats:
-        # rows of deadlines skipped after an overrun were never run: NaN, left out
-        ran = np.isfinite(trace["exec_time"])
-        pe, ex = np.abs(trace["period_error"][ran]), trace["exec_time"][ran]
-        if pe.size == 0:
-            return cls(0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
-        p = np.percentile
-        return cls(float(p(pe, 50)), float(p(pe, 99)), float(pe.max()),
-                   float(p(ex, 50)), float(p(ex, 99)), float(ex.max()))
+    def of(cls, period_error: Histogram, exec_time: Histogram, latency: Histogram) -> TimingStats:
+        return cls(period_error.percentile(50), period_error.percentile(99), period_error.max,
+                   exec_time.percentile(50), exec_time.percentile(99), exec_time.max,
+                   latency.percentile(50), latency.percentile(99), latency.max)
 
 
 @dataclass(frozen=True)
 class RunResult:
-    cycles: int
-    overruns: int
+    cycles: int             # cycles run
+    overruns: int           # cycles that ended late (host) / found a frame missed (feedback)
     stop: Stop
     timing: TimingStats
     trace: Trace
-    disabled: bool          # the drive acknowledged the disable (or the attempt failed: False)
+    disabled: bool          # the safe stop went out and the drive confirmed it
+    skipped: int = 0        # deadlines (host) or feedback frames (feedback) skipped
+    safe_stop: SafeStopReport | None = None
 
 
 class StopRequest:
@@ -152,13 +274,84 @@ class _Halt(Exception):
         self.detail = detail
 
 
+class _RateWatch:
+    """Feedback that comes slower than ``loop.period`` (a drive still at its factory
+    rate, 10 ms on an ODrive) would run the controller on held samples or at the wrong
+    sample time without any error: ``RUN`` frame intervals in a row longer than ``SLOW``
+    periods each stop the run. Intervals are taken from the frames' bus stamps (real
+    time) or the drive clock (lockstep), per frame received (a burst after a late cycle
+    is not slow)."""
+
+    SLOW = 1.5
+    RUN = 10
+
+    def __init__(self, period: float) -> None:
+        self.period = period
+        self.last = math.nan
+        self.slow = 0
+
+    def frame(self, stamp: float, frames: int) -> None:
+        last, self.last = self.last, stamp
+        if not (stamp - last > self.SLOW * self.period * frames):   # NaN: no verdict
+            self.slow = 0
+            return
+        self.slow += 1
+        if self.slow >= self.RUN:
+            every = (stamp - last) / max(frames, 1)
+            raise _Halt(StopReason.FEEDBACK_TIMEOUT,
+                        f"feedback frames come every {every * 1e3:.3g} ms ({self.RUN} in a row), "
+                        f"expected every loop.period = {self.period * 1e3:g} ms: set the drive's "
+                        f"encoder message rate to the loop period")
+
+
+class _QuietGc:
+    """Keeps the garbage collector out of the cycles (see the module docstring)."""
+
+    #: collect between cycles only with at least this fraction of a period left
+    SLACK = 0.3
+    #: collect anyway once the young generation is this many thresholds large
+    HARD = 20
+
+    def __init__(self) -> None:
+        self._was_enabled = False
+        self._active = False
+        self._threshold = gc.get_threshold()[0] or 700
+        self.collections = 0
+
+    def start(self) -> None:
+        self._was_enabled = gc.isenabled()
+        gc.collect()
+        gc.freeze()
+        gc.disable()
+        self._active = True
+
+    def between_cycles(self, slack: float, period: float) -> None:
+        """Collect the young generations if due and ``slack`` s are left before the
+        next deadline (or if they grew past the hard bound)."""
+        count = gc.get_count()[0]
+        if count < self._threshold:
+            return
+        if slack > self.SLACK * period or count >= self.HARD * self._threshold:
+            gc.collect(1)
+            self.collections += 1
+
+    def stop(self) -> None:
+        if not self._active:
+            return
+        self._active = False
+        gc.unfreeze()
+        if self._was_enabled:
+            gc.enable()
+
+
 class ForceLoop:
     """Runs the controller against a drive until the duration ends or something stops it."""
 
     def __init__(self, *, drive: Drive, controller: ForceController, reference: Reference,
                  settings: LoopSettings, clock: Callable[[], float] = time.perf_counter,
                  truth: Callable[[], tuple[float, float]] | None = None,
-                 sink: CycleSink | None = None, stop_request: StopRequest | None = None) -> None:
+                 sink: CycleSink | None = None, stop_request: StopRequest | None = None,
+                 trace_rows: int = TRACE_ROWS) -> None:
         self.drive = drive
         self.controller = controller
         self.reference = reference
@@ -167,11 +360,19 @@ class ForceLoop:
         self.truth = truth
         self.sink = sink
         self.stop_request = stop_request or StopRequest()
-        self.cycles = 0
+        self.cycles = 0      # cycles run
         self.overruns = 0
+        self.skipped = 0     # deadlines / feedback frames skipped
+        self._at = 0         # index of the next cycle (for the stop record)
         self._t0 = 0.0
         self._last_out: ControlOutput | None = None
-        self.trace = Trace(int(math.ceil(settings.duration / settings.period)) + 1)
+        self._rate = _RateWatch(settings.period)
+        self._last = (0.0, 0.0, 0.0)   # t, period error, exec time of the newest cycle
+        self._gc = _QuietGc()
+        self.period_error = Histogram()
+        self.exec_time = Histogram()
+        self.latency = Histogram()
+        self.trace = Trace(settings.cycles, trace_rows)
 
     # -- public --------------------------------------------------------------
 
@@ -181,13 +382,17 @@ class ForceLoop:
         try:
             stop = self._enable_and_run()
         except BaseException as exc:
-            stop = Stop(StopReason.EXCEPTION, f"{type(exc).__name__}: {exc}", self.cycles,
+            self._gc.stop()
+            stop = Stop(StopReason.EXCEPTION, f"{type(exc).__name__}: {exc}", self._at,
                         self._now())
             self._safe_stop(stop)
             raise
-        disabled = self._safe_stop(stop)
-        return RunResult(cycles=self.cycles, overruns=self.overruns, stop=stop,
-                         timing=TimingStats.of(self.trace), trace=self.trace, disabled=disabled)
+        self._gc.stop()
+        report = self._safe_stop(stop)
+        timing = TimingStats.of(self.period_error, self.exec_time, self.latency)
+        return RunResult(cycles=self.cycles, overruns=self.overruns, stop=stop, timing=timing,
+                         trace=self.trace, disabled=report.safe, skipped=self.skipped,
+                         safe_stop=report)
 
     # -- internals -------------------------------------------------------------
 
@@ -196,8 +401,14 @@ class ForceLoop:
 
     def _enable_and_run(self) -> Stop:
         self._t0 = self.clock()  # stop times before the first cycle: from the enable
+        if self.stop_request.is_set():   # a signal during start-up: never enable
+            return Stop(StopReason.SIGNAL, self.stop_request.why or "stop requested", -1, 0.0)
+        if self.settings.timing is not Timing.LOCKSTEP:
+            self._gc.start()
         try:
             self.drive.enable()
+        except BusError as exc:
+            return Stop(StopReason.BUS_ERROR, str(exc), -1, 0.0)
         except DriveError as exc:
             return Stop(StopReason.ENABLE_FAILED, str(exc), -1, 0.0)
         try:
@@ -206,15 +417,17 @@ class ForceLoop:
             if self.sink is not None:
                 self.sink.started(first)
             self._t0 = self.clock()
-            if self.settings.timing is Timing.LOCKSTEP:
-                self._run_lockstep()
+            if self.settings.timing is Timing.HOST:
+                self._run_host()
             else:
-                self._run_realtime()
+                self._run_feedback(first, self.settings.timing is Timing.FEEDBACK)
         except _Halt as halt:
-            return Stop(halt.reason, halt.detail, self.cycles, self._now())
+            return Stop(halt.reason, halt.detail, self._at, self._now())
         except DriveFaultError as exc:
-            return Stop(StopReason.DRIVE_FAULT, str(exc), self.cycles, self._now())
-        return Stop(StopReason.DONE, f"ran {self.settings.duration:g} s", self.cycles, self._now())
+            return Stop(StopReason.DRIVE_FAULT, str(exc), self._at, self._now())
+        except BusError as exc:
+            return Stop(StopReason.BUS_ERROR, str(exc), self._at, self._now())
+        return Stop(StopReason.DONE, f"ran {self.settings.duration:g} s", self._at, self._now())
 
     def _first_feedback(self) -> Feedback:
         fb = self.drive.poll(self.settings.feedback_timeout)
@@ -225,59 +438,121 @@ class ForceLoop:
                         f"no feedback within {self.settings.feedback_timeout:g} s of enabling")
         return fb
 
-    def _cycle_count(self) -> int:
-        return self.trace.capacity - 1
+    def _run_feedback(self, first: Feedback, timed: bool) -> None:
+        """One cycle per feedback frame, the command sent as soon as it is computed.
 
-    def _run_lockstep(self) -> None:
-        timeout = self.settings.feedback_timeout
-        period = self.settings.period
-        for k in range(self._cycle_count()):
+        Frames that came while a cycle ran are skipped (the newest is used) and their
+        cycle indices with them, so cycle ``k`` is always the drive's ``k``-th frame.
+        ``timed``: real time (feedback timing); otherwise lockstep, where waiting
+        advances the emulator and the cycle time is exactly ``k T``."""
+        s = self.settings
+        period, timeout, n = s.period, s.feedback_timeout, s.cycles
+        clock, poll = self.clock, self.drive.poll
+        last_seq, last_wake = first.seq, math.nan
+        k = 0
+        while k < n:
+            fb = self._wait_frame(last_wake + period, last_wake + timeout) if timed and \
+                last_wake == last_wake else poll(timeout)
+            wake = clock()
             start = time.perf_counter()
-            fb = self.drive.poll(timeout)
             if fb is None:
-                raise _Halt(StopReason.FEEDBACK_TIMEOUT,
-                            f"no fresh feedback for {timeout:g} s (simulated)")
-            self._cycle(k, k * period, fb, 0.0, start)
-            self._emit(k, fb, False)
+                raise _Halt(StopReason.FEEDBACK_TIMEOUT, f"no fresh feedback for {timeout:g} s"
+                            + ("" if timed else " (simulated)"))
+            frames = fb.seq - last_seq   # 1 unless frames came while the last cycle ran
+            last_seq = fb.seq
+            self._rate.frame(fb.rx_time if timed else fb.timestamp, frames)
+            late = frames > 1
+            if late:
+                self.overruns += timed   # lockstep: a lost frame, never a late host
+                self.skipped += min(frames - 1, n - k)
+                k += frames - 1
+                if k >= n:
+                    break
+            if timed:
+                error = (wake - last_wake) - frames * period if last_wake == last_wake else 0.0
+                last_wake = wake
+                self._cycle(k, wake - self._t0, fb, error, start, True)
+            else:
+                self._cycle(k, k * period, fb, 0.0, start, False)
+            if late:
+                self.trace.data["overrun"][self.trace.last] = 1.0
+            self._emit(k, fb, late)
+            k += 1
+            if timed:
+                self._gc.between_cycles(last_wake + period - clock(), period)
 
-    def _run_realtime(self) -> None:
+    def _wait_frame(self, expected: float, deadline: float) -> Feedback | None:
+        """Feedback timing: the next frame, expected at ``expected`` and given up at
+        ``deadline`` (loop clock). Blocks on the bus to ``loop.spin`` s before the
+        expected time (a frame that comes early ends the wait at once), then spins on the
+        bus until ``loop.spin`` s after it (a blocked thread wakes up tens of
+        microseconds or more late), then blocks again until the deadline."""
+        poll, clock, spin = self.drive.poll, self.clock, self.settings.spin
+        if spin > 0:
+            early = expected - spin - clock()
+            if early > 0:
+                fb = poll(early)
+                if fb is not None:
+                    return fb
+            end = min(expected + spin, deadline)
+            while clock() < end:
+                fb = poll(0.0)
+                if fb is not None:
+                    return fb
+        return poll(max(deadline - clock(), 0.0))
+
+    def _run_host(self) -> None:
         s = self.settings
         period, timeout = s.period, s.feedback_timeout
         t0 = self._t0
         k = 0
         last_fresh = t0
-        n = self._cycle_count()
+        last_seq = self.drive.feedback.seq if self.drive.feedback is not None else 0
+        n = s.cycles
         while k < n:
             wake = self.clock()
             start = time.perf_counter()
             fb = self.drive.poll(0.0)
             if fb is not None:
                 last_fresh = wake
+                self._rate.frame(fb.rx_time, fb.seq - last_seq)
+                last_seq = fb.seq
             elif wake - last_fresh > timeout:
                 raise _Halt(StopReason.FEEDBACK_TIMEOUT,
                             f"no fresh feedback for {wake - last_fresh:.4f} s (limit {timeout:g} s)")
             fb = fb or self.drive.feedback
             if fb is None:
                 raise _Halt(StopReason.FEEDBACK_TIMEOUT, "no feedback")
-            self._cycle(k, wake - t0, fb, wake - (t0 + k * period), start)
+            self._cycle(k, wake - t0, fb, wake - (t0 + k * period), start, True)
             k = self._next_deadline(k, fb, t0, period)
 
     def _next_deadline(self, k: int, fb: Feedback, t0: float, period: float) -> int:
-        """Count an overrun and skip the missed deadlines; sleep to the next one."""
+        """Count an overrun and skip the missed deadlines; sleep (then spin) to the next."""
         nxt = k + 1
         now = self.clock()
         overrun = now > t0 + nxt * period
         if overrun:
             self.overruns += 1
-            self.trace.data["overrun"][k] = 1.0
+            self.trace.data["overrun"][self.trace.last] = 1.0
             nxt = int((now - t0) / period) + 1
+            self.skipped += min(nxt, self.settings.cycles) - k - 1
         self._emit(k, fb, overrun)
-        delay = t0 + nxt * period - self.clock()
-        if delay > 0:
-            time.sleep(delay)
+        deadline = t0 + nxt * period
+        self._gc.between_cycles(deadline - self.clock(), period)
+        self._sleep_until(deadline)
         return nxt
 
-    def _cycle(self, k: int, t: float, fb: Feedback, period_error: float, start: float) -> None:
+    def _sleep_until(self, deadline: float) -> None:
+        """``time.sleep`` to ``loop.spin`` s before ``deadline``, then spin on the clock."""
+        clock = self.clock
+        remaining = deadline - clock() - self.settings.spin
+        if remaining > 0:
+            time.sleep(remaining)
+        while clock() < deadline:
+            pass
+
+    def _cycle(self, k: int, t: float, fb: Feedback, period_error: float, start: float,
+               timed: bool) -> None:
         if self.stop_request.is_set():
             raise _Halt(StopReason.SIGNAL, self.stop_request.why or "stop requested")
         q, dq = fb.position, fb.velocity
@@ -289,8 +564,16 @@ class ForceLoop:
                         f"(tau_ref = {out.tau_ref!r}, tau_int^ = {out.tau_int_hat!r})")
         self.drive.send_torque(out.u)
         exec_time = time.perf_counter() - start
-        self._store(k, t, q, dq, out, period_error, exec_time)
-        self.cycles = k + 1
+        latency = math.nan
+        if timed:
+            self.period_error.add(abs(period_error))
+            if fb.rx_time == fb.rx_time:   # not NaN: the bus stamped the frame
+                latency = time.time() - fb.rx_time
+                self.latency.add(latency)
+        self.exec_time.add(exec_time)
+        self._store(k, t, q, dq, out, period_error, exec_time, latency)
+        self.cycles += 1
+        self._at = k + 1
 
     def _check_feedback(self, q: float, dq: float) -> None:
         lim = self.settings.limits
@@ -304,29 +587,39 @@ class ForceLoop:
                         f"|dq| = {abs(dq):.6g} rad/s above {lim.velocity_limit:g}")
 
     def _store(self, k: int, t: float, q: float, dq: float, out: ControlOutput,
-               period_error: float, exec_time: float) -> None:
-        d = self.trace.data
-        d["t"][k], d["q"][k], d["dq"][k] = t, q, dq
-        d["tau_ref"][k], d["tau_int_hat"][k], d["tau_dis_hat"][k] = out.tau_ref, out.tau_int_hat, out.tau_dis_hat
-        d["tau_per"][k], d["u_unsat"][k], d["u"][k] = out.tau_per, out.u_unsat, out.u
-        d["period_error"][k], d["exec_time"][k], d["overrun"][k] = period_error, exec_time, 0.0
+               period_error: float, exec_time: float, latency: float) -> None:
+        trace = self.trace
+        r = trace.row(k)
+        d = trace.data
+        d["t"][r], d["q"][r], d["dq"][r] = t, q, dq
+        d["tau_ref"][r], d["tau_int_hat"][r], d["tau_dis_hat"][r] = out.tau_ref, out.tau_int_hat, out.tau_dis_hat
+        d["tau_per"][r], d["u_unsat"][r], d["u"][r] = out.tau_per, out.u_unsat, out.u
+        d["period_error"][r], d["exec_time"][r], d["overrun"][r] = period_error, exec_time, 0.0
+        d["latency"][r] = latency
         if self.truth is not None:
-            d["tau_int_true"][k], d["q_true"][k] = self.truth()
-        self.trace.n = k + 1
+            d["tau_int_true"][r], d["q_true"][r] = self.truth()
+        trace.last = r
         self._last_out = out
+        self._last = (t, period_error, exec_time)
 
     def _emit(self, k: int, fb: Feedback, overrun: bool) -> None:
         out = self._last_out  # set by the cycle just stored; None only before the first
         if self.sink is not None and out is not None:
-            d = self.trace.data
-            self.sink.cycle(k, float(d["t"][k]), fb, out, float(d["period_error"][k]),
-                            float(d["exec_time"][k]), overrun)
+            t, period_error, exec_time = self._last
+            self.sink.cycle(k, t, fb, out, period_error, exec_time, overrun)
 
-    def _safe_stop(self, stop: Stop) -> bool:
-        """Zero torque, disable; never raises. Returns whether the disable went through."""
+    def _safe_stop(self, stop: Stop) -> SafeStopReport:
+        """Zero torque, disable, confirm; never raises. The sink hears of each step."""
         try:
             if self.sink is not None:
                 self.sink.stop(stop)
         except Exception:
             pass
-        return bool(self.drive.disable())
+        report = self.drive.safe_stop()
+        hook = getattr(self.sink, "safe_stop", None)
+        if hook is not None:
+            try:
+                hook(report)
+            except Exception:
+                pass
+        return report

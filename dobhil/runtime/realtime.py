@@ -1,9 +1,17 @@
-"""Optional real-time scheduling of the control thread (Linux): SCHED_FIFO and locked memory.
+"""Scheduling of the control thread and of the work around it (Linux first).
 
-Both need privileges (root or CAP_SYS_NICE / CAP_IPC_LOCK, or rtprio/memlock limits in
-/etc/security/limits.conf). When they are refused the run goes on with normal
-scheduling and the caller gets a warning line to show -- before the loop starts,
-never from inside it.
+- :func:`apply_realtime`: SCHED_FIFO and locked memory for the control thread, and its
+  CPU affinity (``loop.cpu_affinity``). FIFO and locking need privileges (root or
+  CAP_SYS_NICE / CAP_IPC_LOCK, or rtprio/memlock limits in /etc/security/limits.conf).
+  When they are refused the run goes on with normal scheduling and the caller gets a
+  warning line to show -- before the loop starts, never from inside it.
+- :func:`lower_priority`: the other side -- the emulator thread (host timing), the
+  ``dobhil emulate`` process and the recording writer process get a higher nice value,
+  so the loop wins the CPU when it is short. Lowering the priority of one's own thread
+  or process needs no privilege.
+
+On Linux the nice value, the scheduling policy and the affinity are per *thread*; each
+function here acts on the thread that calls it.
 """
 
 from __future__ import annotations
@@ -13,17 +21,59 @@ import ctypes.util
 import os
 import sys
 
+from dobhil.errors import ConfigError
+
 _MCL_CURRENT, _MCL_FUTURE = 1, 2
 
 
-def apply_realtime(priority: int) -> list[str]:
-    """Ask for SCHED_FIFO at ``priority`` (0: do nothing) and lock memory; return warnings."""
+#: nice increment of the recording writer process (lossy in real time: it may lag)
+WRITER_PRIORITY_DROP = 10
+#: nice increment of an emulator thread or process (it stands for the drive: a little only)
+EMULATOR_PRIORITY_DROP = 3
+
+
+def apply_realtime(priority: int, cpu: int = -1) -> list[str]:
+    """Pin the calling thread to ``cpu`` (-1: do not), ask for SCHED_FIFO at ``priority``
+    (0: do not) and lock memory; return warnings. A CPU this process may not use is a
+    ConfigError (bad input), not a warning."""
+    warnings: list[str] = []
+    if cpu >= 0:
+        warnings.extend(w for w in (_pin(cpu),) if w)
     if priority <= 0:
-        return []
+        return warnings
     if not sys.platform.startswith("linux"):
-        return [f"loop.realtime_priority = {priority}: SCHED_FIFO is only available on Linux; "
-                "running with normal scheduling"]
-    return [w for w in (_set_fifo(priority), _lock_memory()) if w]
+        return [*warnings, f"loop.realtime_priority = {priority}: SCHED_FIFO is only available "
+                "on Linux; running with normal scheduling"]
+    return [*warnings, *(w for w in (_set_fifo(priority), _lock_memory()) if w)]
+
+
+def lower_priority(increment: int = WRITER_PRIORITY_DROP, pid: int = 0) -> str:
+    """Raise the nice value of the calling thread (``pid`` 0; Linux: this thread only,
+    elsewhere the process) or of process ``pid`` (e.g. the writer process, from the
+    process that started it: no import of the runtime needed there) by ``increment``.
+    Returns a warning, or "" when done. Never raises."""
+    if increment <= 0 or not hasattr(os, "setpriority"):
+        return "" if increment <= 0 else "lowering the priority is not supported here"
+    try:
+        current = os.getpriority(os.PRIO_PROCESS, pid)
+        os.setpriority(os.PRIO_PROCESS, pid, min(current + increment, 19))
+    except OSError as exc:
+        return f"priority not lowered ({exc.strerror or exc})"
+    return ""
+
+
+def _pin(cpu: int) -> str:
+    if not hasattr(os, "sched_setaffinity"):
+        return f"loop.cpu_affinity = {cpu}: CPU affinity is not supported here; not pinned"
+    allowed = sorted(os.sched_getaffinity(0))
+    if cpu not in allowed:
+        raise ConfigError(f"loop.cpu_affinity = {cpu}: not a CPU this process may use; "
+                          f"allowed: {', '.join(map(str, allowed))} (or -1: no pinning)")
+    try:
+        os.sched_setaffinity(0, {cpu})
+    except OSError as exc:
+        return f"loop.cpu_affinity = {cpu} refused ({exc.strerror or exc}); not pinned"
+    return ""
 
 
 def _set_fifo(priority: int) -> str:

@@ -10,6 +10,7 @@ whole run is deterministic.
 from __future__ import annotations
 
 import dataclasses
+import math
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -27,6 +28,7 @@ from dobhil.emulator.registry import make_emulated_drive
 from dobhil.errors import ConfigError, PreflightError
 from dobhil.runtime.buses import BusSpec, open_bus, private_virtual_channel, resolve_bus
 from dobhil.runtime.controller import ForceController
+from dobhil.runtime.realtime import EMULATOR_PRIORITY_DROP
 from dobhil.runtime.loop import (CycleSink, ForceLoop, Limits, LoopSettings, RunResult, StopRequest,
                                  Timing)
 from dobhil.runtime.references import make_reference
@@ -58,7 +60,43 @@ def loop_settings(config: Config, timing: Timing, duration: float | None) -> Loo
     lp = config.loop
     return LoopSettings(period=lp.period, duration=duration or lp.duration,
                         feedback_timeout=lp.feedback_timeout, timing=timing,
-                        limits=Limits(lp.position_min, lp.position_max, lp.velocity_limit))
+                        limits=Limits(lp.position_min, lp.position_max, lp.velocity_limit),
+                        spin=lp.spin)
+
+
+def check_duration(duration: float | None, what: str = "--duration") -> None:
+    """A run lasts a finite, positive number of seconds (None: the config's)."""
+    if duration is not None and not (math.isfinite(duration) and duration > 0):
+        raise ConfigError(f"{what} {duration!r}: expected a finite number of seconds > 0")
+
+
+def resolve_timing(config: Config, profile: DriveProfile, lockstep: bool | None) -> Timing:
+    """``loop.timing`` (``realtime``: the older name of ``host``), or lockstep when asked;
+    a real-time run of a lockstep config (``demo --realtime``) is feedback-synchronous.
+    Feedback timing needs the drive to stream feedback once per ``loop.period``."""
+    name = config.loop.timing
+    if lockstep is None:
+        lockstep = name == "lockstep"
+    if lockstep:
+        return Timing.LOCKSTEP
+    if name in ("host", "realtime"):
+        return Timing.HOST
+    period, rate = config.loop.period, profile.encoder_msg_rate
+    if abs(rate - period) > 1e-9 * period:
+        raise ConfigError(
+            f"loop.timing = feedback runs one cycle per feedback frame, but drive profile "
+            f"{profile.name or profile.protocol!r} sends encoder estimates every {rate:g} s and "
+            f"loop.period = {period:g} s; make them equal (on the drive too) or set "
+            f"loop.timing: host")
+    return Timing.FEEDBACK
+
+
+def lockstep_latency(config: Config) -> float:
+    """When the lockstep emulator applies a command after the sample it was computed
+    from: the delay the sampled analysis models, ``design.delay_samples`` whole periods
+    plus ``design.input_delay`` (the fractional compute + bus delay)."""
+    d = config.design
+    return d.delay_samples * config.loop.period + d.input_delay
 
 
 class RunSession:
@@ -74,13 +112,16 @@ class RunSession:
         if lockstep and not emulate:
             raise ConfigError("lockstep timing needs the in-process emulator (--emulate); "
                               "a real drive runs in real time")
-        if duration is not None and not duration > 0:
-            raise ConfigError(f"--duration {duration!r}: must be > 0")
+        check_duration(duration)
         self.config = config
         self.profile = load_drive_profile(config, config_dir)
         check_rates(self.profile, config.loop.period)
-        self.timing = Timing.LOCKSTEP if lockstep else Timing.REALTIME
+        self.timing = resolve_timing(config, self.profile, lockstep)
         self.settings = loop_settings(config, self.timing, duration)
+        if not self.settings.duration / self.settings.period < 2.0 ** 53:
+            raise ConfigError(f"a run of {self.settings.duration!r} s at loop.period = "
+                              f"{self.settings.period!r} s has too many cycles to count; "
+                              f"allowed: fewer than 2**53")
         self.controller = build_controller(config, self.profile)
         self.reference = make_reference(config.reference, config_dir,
                                         duration=self.settings.duration)
@@ -113,9 +154,10 @@ class RunSession:
             self.plant = Plant.from_config(self.config)
             emu_bus = self._add(open_bus(self.bus_spec))
             d = self.config.drive
+            lockstep = self.timing is Timing.LOCKSTEP
             self.emulator = make_emulated_drive(emu_bus, self.profile, self.plant,
-                                                latency=0.0 if self.timing is Timing.LOCKSTEP else d.latency,
-                                                jitter=0.0 if self.timing is Timing.LOCKSTEP else d.jitter,
+                                                latency=lockstep_latency(self.config) if lockstep else d.latency,
+                                                jitter=0.0 if lockstep else d.jitter,
                                                 seed=self.config.sensor.seed)
             if self.timing is Timing.LOCKSTEP:
                 lock = LockstepBus(host, [self.emulator], dt=self.config.loop.period)
@@ -123,7 +165,11 @@ class RunSession:
                 host = lock
                 clock["clock"] = lock.clock
             else:
-                self.emulator.start()
+                # host timing: the emulator below the loop, which keeps its own deadlines;
+                # feedback timing: the emulator is the loop's clock (the drive it stands
+                # for has a CPU of its own) and keeps its priority
+                drop = EMULATOR_PRIORITY_DROP if self.timing is Timing.HOST else 0
+                self.emulator.start(priority_drop=drop)
         self._unwrapped_host = host  # the preflight listens here: not recorded as the run's frames
         if self._wrapper is not None:
             host = self._add(self._wrapper(host))
@@ -204,18 +250,22 @@ class RunSession:
 def summary(session: RunSession, result: RunResult) -> dict[str, Any]:
     """The ``--summary-json`` object."""
     tr = result.trace
-    last = tr.n - 1
-    final: dict[str, float | None] = {"tau_ref": None, "tau_int_hat": None, "tau_int_true": None, "q": None}
-    if last >= 0:
-        d = tr.data
-        true = float(d["tau_int_true"][last])
-        final = {"tau_ref": float(d["tau_ref"][last]), "tau_int_hat": float(d["tau_int_hat"][last]),
-                 "tau_int_true": None if true != true else true, "q": float(d["q"][last])}
+    final: dict[str, float | None] = {"tau_ref": None, "tau_int_hat": None, "tau_int_true": None,
+                                      "q": None}
+    if tr.last >= 0:
+        true = tr.latest("tau_int_true")
+        final = {"tau_ref": tr.latest("tau_ref"), "tau_int_hat": tr.latest("tau_int_hat"),
+                 "tau_int_true": None if true != true else true, "q": tr.latest("q")}
+    report = result.safe_stop
     return {
-        "cycles": result.cycles, "overruns": result.overruns,
+        "cycles": result.cycles, "skipped": result.skipped, "overruns": result.overruns,
         "stop_reason": result.stop.reason.name.lower(), "stop_detail": result.stop.detail,
         "drive_disabled": result.disabled,
-        "timing": "lockstep" if session.timing is Timing.LOCKSTEP else "realtime",
+        "drive_warning": report.warning() if report is not None else "",
+        "safe_stop": None if report is None else {
+            "frames": [{"what": f.what, "sent": f.sent, "error": f.error} for f in report.frames],
+            "confirmation": report.confirmation.name.lower()},
+        "timing": session.timing.label,
         "period": session.settings.period, "bus": session.bus_spec.describe(),
         "emulated": session.emulator is not None,
         "watchdog_tripped": bool(getattr(session.emulator, "watchdog_tripped", False)),

@@ -18,6 +18,7 @@ class StopReason(IntEnum):
     SIGNAL = 6            # SIGINT / SIGTERM / stop requested
     EXCEPTION = 7         # an exception in the loop (re-raised to the caller)
     ENABLE_FAILED = 8     # the drive could not be enabled
+    BUS_ERROR = 9         # the CAN bus failed (send refused, ENOBUFS, interface gone)
 
 
 @dataclass(frozen=True)

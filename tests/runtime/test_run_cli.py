@@ -82,3 +82,93 @@ def test_no_drive_answers(tmp_path: Path, capsys: pytest.CaptureFixture[str]) ->
     assert code != 0
     assert captured.out == ""
     assert len(lines) == 1 and "enable_failed" in lines[0] and "no heartbeat from node 3" in lines[0], captured.err
+
+
+@pytest.mark.parametrize("value", ["inf", "nan", "-1", "0", "-inf"])
+def test_bad_run_duration_is_one_line_exit_2(value: str, capsys: pytest.CaptureFixture[str]) -> None:
+    code = main(["run", str(DEMO), "--emulate", "--lockstep", f"--duration={value}"])
+    err = one_line(capsys.readouterr().err)
+    assert code == EXIT_USAGE and "--duration" in err and "finite number of seconds > 0" in err
+
+
+@pytest.mark.parametrize("value", ["-1", "nan", "inf"])
+def test_bad_emulate_duration_is_one_line_exit_2(value: str,
+                                                 capsys: pytest.CaptureFixture[str]) -> None:
+    code = main(["emulate", str(DEMO), "--bus", "virtual:never-opened", f"--duration={value}"])
+    err = one_line(capsys.readouterr().err)
+    assert code == EXIT_USAGE and "--duration" in err
+
+
+def test_ctrl_c_while_the_cli_starts_is_one_line(monkeypatch: pytest.MonkeyPatch,
+                                                 capsys: pytest.CaptureFixture[str]) -> None:
+    """SIGINT while the subcommands are still being imported (the first tens of ms)."""
+    import importlib
+
+    def interrupted(name: str) -> object:
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(importlib, "import_module", interrupted)
+    code = main(["run", str(DEMO), "--emulate", "--lockstep"])
+    assert code == 130 and one_line(capsys.readouterr().err) == "dobhil: interrupted"
+
+
+def test_bus_error_is_a_stop_with_the_loud_line(monkeypatch: pytest.MonkeyPatch,
+                                                capsys: pytest.CaptureFixture[str]) -> None:
+    """The bus refuses every frame from the 500th on (ENOBUFS for good): a stop line
+    ``bus_error``, exit 1 (not 2: not bad input), the summary has the safe-stop frames
+    and the one loud line names the node and what to do."""
+    import errno
+
+    import can
+
+    from dobhil.emulator.protocol import LockstepBus
+    sent = [0]
+    original = LockstepBus.send
+
+    def failing(self: LockstepBus, msg: can.Message, timeout: float | None = None) -> None:
+        sent[0] += 1
+        if sent[0] >= 500:
+            raise can.CanOperationError("Failed to transmit: No buffer space available",
+                                        error_code=errno.ENOBUFS)
+        original(self, msg, timeout)
+
+    monkeypatch.setattr(LockstepBus, "send", failing)
+    code = main(["run", str(DEMO), "--emulate", "--lockstep", "--summary-json"])
+    captured = capsys.readouterr()
+    info = json.loads(one_line(captured.out))
+    assert code == 1
+    assert info["stop_reason"] == "bus_error" and "not sent" in info["stop_detail"]
+    assert info["drive_disabled"] is False
+    assert [f["what"] for f in info["safe_stop"]["frames"]] == ["zero torque", "IDLE"]
+    assert not any(f["sent"] for f in info["safe_stop"]["frames"])
+    warning = one_line(captured.err)
+    assert warning.startswith("WARNING: drive may still be enabled: node 3 ")
+    assert warning.endswith("; cut power")
+
+
+def test_summary_counts_cycles_run_and_skipped(capsys: pytest.CaptureFixture[str]) -> None:
+    """Cycles run and frames skipped are reported apart (lost feedback frames here:
+    the cycles of frames never received did not run)."""
+    assert main(["run", str(DEMO), "--emulate", "--lockstep", "--summary-json"]) == 0
+    info = json.loads(one_line(capsys.readouterr().out))
+    assert info["cycles"] == 1200 and info["skipped"] == 0 and info["timing"] == "lockstep"
+
+
+def test_a_duration_too_long_to_count_is_one_line(capsys: pytest.CaptureFixture[str]) -> None:
+    code = main(["run", str(DEMO), "--emulate", "--lockstep", "--duration", "1e308"])
+    err = one_line(capsys.readouterr().err)
+    assert code == EXIT_USAGE and "too many cycles" in err
+
+
+@pytest.mark.skipif(not hasattr(os, "getpriority"), reason="POSIX nice values")
+def test_run_log_writer_runs_below_the_loop(tmp_path: Path) -> None:
+    """``dobhil run --log``: the writer process gets nice +10 (it may lag; the loop not)."""
+    from dobhil.cli.run_cmd import make_log
+    from dobhil.config import load_config
+    from dobhil.runtime.realtime import WRITER_PRIORITY_DROP
+    log = make_log(tmp_path / "run.mcap", load_config(DEMO), DEMO)
+    try:
+        own = os.getpriority(os.PRIO_PROCESS, 0)
+        assert os.getpriority(os.PRIO_PROCESS, log.writer.pid) == min(own + WRITER_PRIORITY_DROP, 19)
+    finally:
+        log.abort(None)

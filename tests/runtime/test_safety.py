@@ -97,7 +97,7 @@ def run_case(config: Config, timing: str, reason: StopReason, *, words: Iterable
              faults: Iterable[Fault] = (), sink: Recorder | None = None,
              stop_request: StopRequest | None = None,
              prepare: Callable[[RunSession], None] | None = None,
-             raises: type[BaseException] | None = None) -> Outcome:
+             raises: type[BaseException] | None = None, confirmed: bool = True) -> Outcome:
     """Run with the emulator, check the safe stop inside the session, return what happened."""
     sink = sink or Recorder()
     faults = tuple(faults)
@@ -111,7 +111,7 @@ def run_case(config: Config, timing: str, reason: StopReason, *, words: Iterable
         if raises is None:
             result = session.run()
             stop = result.stop
-            assert result.disabled
+            assert result.disabled is confirmed
             assert sink.stops == [stop]
         else:
             with pytest.raises(raises):
@@ -148,11 +148,18 @@ def test_feedback_timeout_when_the_drive_goes_silent(tmp_path: Path, timing: str
 @pytest.mark.parametrize("timing", TIMINGS)
 def test_lost_heartbeat_is_a_drive_fault(tmp_path: Path, timing: str) -> None:
     """Encoder frames keep coming but the heartbeats stop: after three missed heartbeat
-    periods the host calls it a drive fault (the drive's state is no longer known)."""
+    periods the host calls it a drive fault (the drive's state is no longer known). The
+    safe-stop frames go out, but nothing confirms the drive left torque control: the
+    result says so, with the loud line."""
     heartbeat = codec.arbitration_id(NODE, CmdId.HEARTBEAT)
     out = run_case(safety_config(tmp_path, timing), timing, StopReason.DRIVE_FAULT,
-                   words=["no heartbeat from node"], faults=[SilenceAfter(frames=1, ids={heartbeat})])
+                   words=["no heartbeat from node"], faults=[SilenceAfter(frames=1, ids={heartbeat})],
+                   confirmed=False)
     assert out.stop.time < 0.4
+    assert out.result is not None and out.result.safe_stop is not None
+    assert out.result.safe_stop.warning() == ("drive may still be enabled: node 3 did not "
+                                              "acknowledge IDLE (no status frame within 0.3 s); "
+                                              "cut power")
 
 
 @pytest.mark.parametrize("timing", TIMINGS)

@@ -37,6 +37,7 @@ def _state_name(state: int) -> str:
 class ODriveDrive(Drive):
     protocol: ClassVar[str] = "odrive"
     active_state_text: ClassVar[str] = "CLOSED_LOOP_CONTROL"
+    disabled_state_text: ClassVar[str] = "IDLE"
 
     def __init__(
         self, bus: can.BusABC, profile: DriveProfile, *, clock: Clock = time.monotonic
