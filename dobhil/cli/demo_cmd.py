@@ -14,7 +14,7 @@ def demo_config_path() -> Path:
     return Path(__file__).resolve().parents[2] / "configs" / "demo.yaml"
 
 
-def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("demo", help="emulated force-control run of configs/demo.yaml, with a plot")
     add_config_args(p, required=False)
     p.add_argument("--out", type=Path, default=Path("out/demo"), help="output directory")
@@ -26,29 +26,31 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
 
 
 def run(args: argparse.Namespace) -> int:
-    from dobhil.cli.run_cmd import (EXIT_STOPPED, closing_on_error, log_hooks, make_log, report,
-                                    run_logged)
+    from dobhil.cli.recording import abort, default_log_path, open_run_log, record_run
+    from dobhil.cli.run_cmd import EXIT_STOPPED, log_hooks, report
     from dobhil.config import load_config
+    from dobhil.files import check_output
     from dobhil.plotting.run_plot import run_figure
-    from dobhil.recording.sink import default_log_path
     from dobhil.runtime.loop import StopRequest
     from dobhil.runtime.session import RunSession, summary
     from dobhil.runtime.signals import stop_on_signals
     path = Path(args.config) if args.config else demo_config_path()
     config = load_config(path, args.overrides)
-    log_path = None if args.no_log else (args.log or default_log_path(args.out))
-    log = make_log(log_path, config, path)
-    with closing_on_error(log), stop_on_signals(StopRequest()) as request, \
-            RunSession(config, emulate=True, lockstep=not args.realtime, config_dir=path.parent,
-                       stop_request=request, **log_hooks(log)) as session:
-        result = run_logged(session, log)
-        info = summary(session, result)
+    png = check_output(args.out / "demo_run.png", inputs=[path], what="--out")
+    log = open_run_log(None if args.no_log else (args.log or default_log_path(args.out)))
+    try:
+        with stop_on_signals(StopRequest()) as request, \
+                RunSession(config, emulate=True, lockstep=not args.realtime, config_dir=path.parent,
+                           stop_request=request, **log_hooks(log)) as session:
+            result = record_run(session, log, path)
+            info = summary(session, result)
+    except BaseException as exc:
+        abort(log, exc)
+        raise
     if log is not None:
         info["log"] = str(log.path)
     report(info, result.stop.line(), as_json=False)
-    png = run_figure(result.trace, args.out / "demo_run.png",
-                     "dobhil demo: contact, then a force step (emulated ODrive, 1 kHz)")
-    print(f"wrote {png}")
+    print(f"wrote {run_figure(result.trace, png, 'dobhil demo: contact, then a force step (emulated ODrive, 1 kHz)')}")
     if log is not None:
         print(f"next: dobhil report {log.path} --out {args.out / 'report'}")
     return 0 if result.stop.reason.name == "DONE" else EXIT_STOPPED

@@ -1,7 +1,7 @@
 """``dobhil replay FILE.mcap [--verify] [--set k=v]... [--plot F.png] [--out F.csv] [--json]``.
 
 Re-runs the recorded run's controller on its recorded feedback frames
-(:mod:`dobhil.runtime.replay`). ``--verify`` demands bit-identical outputs and exits 1
+(:mod:`dobhil.replay`). ``--verify`` demands bit-identical outputs and exits 1
 with one line naming the first differing cycle otherwise.
 """
 
@@ -12,14 +12,14 @@ import csv
 import json
 import sys
 from pathlib import Path
+from typing import Any
 
-from dobhil.errors import LogFileError
 
 #: exit code of a verification that found a difference
 EXIT_MISMATCH = 1
 
 
-def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("replay", help="re-run the controller offline on a recorded run's feedback")
     p.add_argument("file", metavar="FILE.mcap")
     p.add_argument("--verify", action="store_true",
@@ -33,7 +33,12 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
 
 
 def run(args: argparse.Namespace) -> int:
-    from dobhil.runtime.replay import replay
+    from dobhil.files import check_output
+    from dobhil.replay import replay
+    if args.out:
+        check_output(args.out, inputs=[args.file], suffix=".csv", what="--out")
+    if args.plot:
+        check_output(args.plot, inputs=[args.file], suffix=".png", what="--plot")
     result = replay(args.file, args.overrides)
     info = result.summary()
     if args.out:
@@ -51,7 +56,7 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _print(info: dict) -> None:  # type: ignore[type-arg]
+def _print(info: dict[str, Any]) -> None:
     over = ", ".join(info["overrides"]) or "recorded config"
     print(f"replayed {info['cycles']} cycles of {info['file']} with {over}")
     if info["identical"]:
@@ -62,12 +67,9 @@ def _print(info: dict) -> None:  # type: ignore[type-arg]
         print(f"  {name:<12} replayed - recorded: max |.| {d['max_abs']:.6g} N m, RMS {d['rms']:.6g} N m")
 
 
-def _write_csv(result, path: Path) -> None:  # type: ignore[no-untyped-def]
-    try:
-        handle = open(path, "w", newline="", encoding="utf-8")
-    except OSError as exc:
-        raise LogFileError(f"{path}: cannot create: {exc.strerror}") from exc
-    with handle:
+def _write_csv(result: Any, path: Path) -> None:
+    from dobhil.files import atomic_path
+    with atomic_path(path) as tmp, open(tmp, "w", newline="", encoding="utf-8") as handle:
         writer = csv.writer(handle)
         writer.writerow(result.header())
         writer.writerows(result.rows())

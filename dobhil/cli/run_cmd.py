@@ -6,8 +6,6 @@ import argparse
 import json
 import sys
 import time
-from collections.abc import Iterator
-from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -17,7 +15,7 @@ from dobhil.cli.common import add_config_args, config_from_args
 EXIT_STOPPED = 1
 
 
-def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("run", help="run the force-control loop on a drive (or the emulator)")
     add_config_args(p)
     p.add_argument("--bus", metavar="INTERFACE:CHANNEL",
@@ -39,19 +37,27 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
 
 
 def run(args: argparse.Namespace) -> int:
+    from dobhil.cli.recording import abort, open_run_log, record_run
+    from dobhil.files import check_output
     from dobhil.runtime.loop import StopRequest
     from dobhil.runtime.session import RunSession, summary
     from dobhil.runtime.signals import stop_on_signals
     config = config_from_args(args)
-    log = make_log(args.log, config, args.config)
-    with closing_on_error(log), stop_on_signals(StopRequest()) as request, \
-            RunSession(config, bus=args.bus, emulate=args.emulate,
-                       lockstep=True if args.lockstep else None, duration=args.duration,
-                       config_dir=Path(args.config).parent, stop_request=request,
-                       **log_hooks(log)) as session:
-        warn_realtime(session)
-        result = run_logged(session, log)
-        info = summary(session, result)
+    if args.plot:
+        check_output(args.plot, inputs=[args.config], suffix=".png", what="--plot")
+    log = open_run_log(args.log)
+    try:
+        with stop_on_signals(StopRequest()) as request, \
+                RunSession(config, bus=args.bus, emulate=args.emulate,
+                           lockstep=True if args.lockstep else None, duration=args.duration,
+                           config_dir=Path(args.config).parent, stop_request=request,
+                           **log_hooks(log)) as session:
+            warn_realtime(session)
+            result = record_run(session, log, args.config)
+            info = summary(session, result)
+    except BaseException as exc:
+        abort(log, exc)
+        raise
     if log is not None:
         info["log"] = str(log.path)
     report(info, result.stop.line(), as_json=args.summary_json)
@@ -70,40 +76,12 @@ def warn_realtime(session: Any) -> None:
             sys.stderr.write(f"dobhil run: warning: {line}\n")
 
 
-def make_log(path: Path | None, config: Any, config_file: str | Path | None) -> Any:
-    """A :class:`~dobhil.recording.sink.RunLog` for ``path`` (None: no recording)."""
-    if path is None:
-        return None
-    from dobhil.errors import LogFileError
-    from dobhil.recording.sink import RunLog
-    if path.suffix != ".mcap":
-        raise LogFileError(f"--log {path}: expected a .mcap file name")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    return RunLog(path, config, config_file=config_file)
-
-
-@contextmanager
-def closing_on_error(log: Any) -> Iterator[None]:
-    """Close (and remove, if nothing ran) the log when the run cannot even start."""
-    try:
-        yield
-    except BaseException as exc:
-        if log is not None:
-            log.abort(exc)
-        raise
-
-
 def log_hooks(log: Any) -> dict[str, Any]:
     """RunSession keyword arguments that record the run (none without a log)."""
-    return {} if log is None else {"sink": log.sink, "bus_wrapper": log.wrap_bus}
+    return {} if log is None else {"sink": log, "bus_wrapper": log.wrap_bus}
 
 
-def run_logged(session: Any, log: Any) -> Any:
-    from dobhil.recording.sink import run_recorded
-    return run_recorded(session, log)
-
-
-def report(info: dict, stop_line: str, *, as_json: bool) -> None:  # type: ignore[type-arg]
+def report(info: dict[str, Any], stop_line: str, *, as_json: bool) -> None:
     if as_json:
         json.dump(info, sys.stdout)
         sys.stdout.write("\n")

@@ -36,7 +36,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from dobhil.drives.base import Drive, Feedback
-from dobhil.errors import DriveError, DriveFaultError
+from dobhil.errors import DriveError, DriveFaultError, RecorderError
 from dobhil.runtime.controller import ControlOutput, ForceController
 from dobhil.runtime.stop import Stop, StopReason
 
@@ -51,7 +51,9 @@ class Reference(Protocol):
 
 
 class CycleSink(Protocol):
-    """Receives the run as it goes; must never block (the recorder's lossy mode)."""
+    """Receives the run as it goes; must never block (the recorder's lossy mode). A sink
+    whose output failed raises :class:`~dobhil.errors.RecorderError` from ``cycle``: the
+    loop stops safely with reason ``recorder_failed``."""
 
     def started(self, fb: Feedback) -> None:
         """The drive is enabled and the controller initialised from ``fb``."""
@@ -318,8 +320,11 @@ class ForceLoop:
     def _emit(self, k: int, fb: Feedback, overrun: bool) -> None:
         if self.sink is not None:
             d = self.trace.data
-            self.sink.cycle(k, float(d["t"][k]), fb, self._last_out, float(d["period_error"][k]),
-                            float(d["exec_time"][k]), overrun)
+            try:
+                self.sink.cycle(k, float(d["t"][k]), fb, self._last_out, float(d["period_error"][k]),
+                                float(d["exec_time"][k]), overrun)
+            except RecorderError as exc:
+                raise _Halt(StopReason.RECORDER_FAILED, str(exc)) from exc
 
     def _safe_stop(self, stop: Stop) -> bool:
         """Zero torque, disable; never raises. Returns whether the disable went through."""

@@ -128,6 +128,11 @@ class RunSession:
         self._buses.append(bus)
         return bus
 
+    @property
+    def sim_clock(self) -> Callable[[], float] | None:
+        """Simulated time [s] of a lockstep run (the log clock); None in real time."""
+        return self._clock
+
     # -- running -------------------------------------------------------------
 
     def truth(self) -> tuple[float, float]:

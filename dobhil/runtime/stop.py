@@ -18,6 +18,7 @@ class StopReason(IntEnum):
     SIGNAL = 6            # SIGINT / SIGTERM / stop requested
     EXCEPTION = 7         # an exception in the loop (re-raised to the caller)
     ENABLE_FAILED = 8     # the drive could not be enabled
+    RECORDER_FAILED = 10  # the run's recorder failed (disk full, ...): the record would be lost
 
 
 @dataclass(frozen=True)
