@@ -5,6 +5,7 @@
 - ``dobhil log export FILE --topic T --format csv [-o OUT]``
 - ``dobhil log export FILE --can --format candump|asc|blf [-o OUT]``
 - ``dobhil log import CANLOG -o FILE.mcap``
+- ``dobhil log serve FILE [--live [HOST:]PORT] [--speed X] [--loop]``  (Foxglove live view)
 
 Bad input ends in one :class:`~dobhil.errors.LogFileError` line (exit 2); an output that
 is one of the inputs is refused, and outputs appear only when complete. Progress
@@ -128,6 +129,12 @@ def _cmd_import(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_serve(args: argparse.Namespace) -> int:
+    from dobhil.live.cli import serve_command
+
+    return serve_command(args.file, live=args.live, speed=args.speed, loop=args.loop)
+
+
 def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     """Add ``dobhil log`` and its sub-subcommands."""
     parser = subparsers.add_parser("log", help="inspect, recover, export and import recordings")
@@ -152,3 +159,9 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     imp.add_argument("canlog")
     imp.add_argument("-o", "--output", required=True, help="MCAP file to write")
     imp.set_defaults(func=_cmd_import)
+    srv = sub.add_parser("serve", help="play a recording to Foxglove over WebSocket at its recorded pace")
+    srv.add_argument("file")
+    srv.add_argument("--live", default="8765", metavar="[HOST:]PORT", help="listen address (default 127.0.0.1:8765)")
+    srv.add_argument("--speed", type=float, default=1.0, help="factor of the recorded pace (default 1)")
+    srv.add_argument("--loop", action="store_true", help="start over at the end until Ctrl-C")
+    srv.set_defaults(func=_cmd_serve)

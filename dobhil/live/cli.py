@@ -1,0 +1,39 @@
+"""The ``dobhil log serve`` command body (the parser lives in :mod:`dobhil.cli.log_cmd`)."""
+
+from __future__ import annotations
+
+import os
+import time
+from typing import Final
+
+from dobhil.live.address import parse_live_address
+from dobhil.live.playback import RecordedChannel, check_speed, load_channels, serve_recording
+from dobhil.live.server import LiveServer, import_sdk
+
+_FLUSH_S: Final = 5.0
+_GRACE_S: Final = 0.5
+
+
+def serve_command(path: str | os.PathLike[str], *, live: str, speed: float, loop: bool) -> int:
+    """Check every input, then serve ``path`` until played (or Ctrl-C with ``loop``)."""
+    host, port = parse_live_address(live)
+    check_speed(speed)
+    import_sdk()
+    load_channels(path)
+    with LiveServer(host=host, port=port) as server:
+
+        def ready(channels: tuple[RecordedChannel, ...]) -> None:
+            topics = ", ".join(c.topic for c in channels)
+            print(f"serving {os.fspath(path)} on {server.url} ({topics})", flush=True)
+            print("in Foxglove: Open connection > Foxglove WebSocket > " + server.url, flush=True)
+            print("waiting for a client to subscribe (Ctrl-C to stop)", flush=True)
+
+        report = serve_recording(path, server, speed=speed, loop=loop, on_ready=ready)
+        server.flush(timeout=_FLUSH_S)
+        time.sleep(_GRACE_S)  # the SDK writes its per-client outboxes; stopping would cut them
+    print(
+        f"served {report.published} messages in {report.passes} pass(es), {report.wall_s:.3f} s; "
+        f"dropped {server.dropped}",
+        flush=True,
+    )
+    return 0

@@ -1,0 +1,158 @@
+"""``dobhil log serve``: a recorded lockstep run reaches a WebSocket client as recorded."""
+
+from __future__ import annotations
+
+import json
+import signal
+import subprocess
+import sys
+from collections.abc import Iterator
+from pathlib import Path
+
+import jsonschema
+import pytest
+from live_client import LiveClient, counts_at_least
+from mcap.reader import make_reader
+
+REPO = Path(__file__).resolve().parents[2]
+TOPICS = ("/controller", "/can/rx")
+
+
+def _dobhil(*args: str, timeout: float = 180) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([sys.executable, "-m", "dobhil", *args], capture_output=True, text=True, timeout=timeout)
+
+
+@pytest.fixture(scope="module")
+def recorded(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    path = tmp_path_factory.mktemp("serve") / "run.mcap"
+    proc = _dobhil("run", str(REPO / "configs" / "demo.yaml"), "--emulate", "--lockstep", "--duration", "0.5",
+                   "--log", str(path))
+    assert proc.returncode == 0, proc.stderr
+    return path
+
+
+def _recorded_messages(path: Path, topic: str) -> list[tuple[int, bytes]]:
+    with open(path, "rb") as f:
+        return [(m.log_time, m.data) for _, _, m in make_reader(f).iter_messages(topics=[topic])]
+
+
+def _recorded_schemas(path: Path) -> dict[str, tuple[str, bytes]]:
+    with open(path, "rb") as f:
+        summary = make_reader(f).get_summary()
+    assert summary is not None
+    return {c.topic: (summary.schemas[c.schema_id].name, summary.schemas[c.schema_id].data)
+            for c in summary.channels.values()}
+
+
+@pytest.fixture
+def serving(recorded: Path) -> Iterator[subprocess.Popen[str]]:
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "dobhil", "log", "serve", str(recorded), "--live", "127.0.0.1:0", "--speed", "0.25"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )
+    try:
+        yield proc
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        proc.communicate(timeout=30)
+
+
+def test_serve_delivers_recorded_topics_byte_for_byte(recorded: Path, serving: subprocess.Popen[str]) -> None:
+    assert serving.stdout is not None
+    first = serving.stdout.readline()
+    assert first.startswith(f"serving {recorded} on ws://127.0.0.1:"), first
+    url = first.split(" on ", 1)[1].split()[0]
+    expected = {t: _recorded_messages(recorded, t) for t in TOPICS}
+    assert all(expected.values())
+    schemas = _recorded_schemas(recorded)
+    with LiveClient(url) as client:
+        client.subscribe(TOPICS)
+        received = client.collect(counts_at_least({t: len(expected[t]) for t in TOPICS}), timeout=120)
+        advertised = dict(client.advertised)
+    out, err = serving.communicate(timeout=60)
+    assert serving.returncode == 0, err
+    assert set(advertised) == set(schemas)  # every recorded topic, no other
+    for topic, channel in advertised.items():
+        assert (channel["schemaName"], channel["schema"].encode()) == schemas[topic]
+        assert (channel["encoding"], channel["schemaEncoding"]) == ("json", "jsonschema")
+    for topic in TOPICS:
+        got = [(r.log_time_ns, r.payload) for r in received if r.topic == topic]
+        assert got == expected[topic]
+        schema = json.loads(advertised[topic]["schema"])
+        for _, payload in got[:50]:
+            jsonschema.validate(json.loads(payload), schema)
+    assert "dropped 0" in out.strip().splitlines()[-1], out
+
+
+@pytest.mark.parametrize(
+    ("args", "what"),
+    [
+        (["missing.mcap"], "no such file"),
+        (["not.mcap"], "not an MCAP file"),
+        (["RUN", "--speed", "0"], "--speed"),
+        (["RUN", "--speed", "nan"], "--speed"),
+        (["RUN", "--live", "host:port"], "[HOST:]PORT"),
+        (["RUN", "--live", "70000"], "out of range"),
+    ],
+)
+def test_bad_input_is_one_line_exit_2(tmp_path: Path, recorded: Path, args: list[str], what: str) -> None:
+    (tmp_path / "not.mcap").write_text("hello")
+    args = [str(recorded) if a == "RUN" else str(tmp_path / a) if a.endswith(".mcap") else a for a in args]
+    proc = _dobhil("log", "serve", *args, "--live", "127.0.0.1:0") if "--live" not in args else _dobhil(
+        "log", "serve", *args)
+    assert proc.returncode == 2, (proc.stdout, proc.stderr)
+    assert proc.stderr.count("\n") == 1 and what in proc.stderr and "Traceback" not in proc.stderr
+    assert proc.stdout == ""
+
+
+def test_truncated_file_is_one_line_exit_2(tmp_path: Path, recorded: Path) -> None:
+    cut = tmp_path / "cut.mcap"
+    data = recorded.read_bytes()
+    cut.write_bytes(data[: len(data) // 2])
+    proc = _dobhil("log", "serve", str(cut), "--live", "127.0.0.1:0")
+    assert proc.returncode == 2 and proc.stderr.count("\n") == 1 and "truncated" in proc.stderr, proc.stderr
+
+
+def test_interrupt_while_waiting_for_a_client_stops_cleanly(recorded: Path) -> None:
+    proc = subprocess.Popen([sys.executable, "-m", "dobhil", "log", "serve", str(recorded), "--live", "127.0.0.1:0"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        assert proc.stdout is not None
+        url = proc.stdout.readline().split(" on ", 1)[1].split()[0]
+        proc.send_signal(signal.SIGINT)
+        out, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+    assert proc.returncode == 130 and "interrupted" in err and "Traceback" not in err, err
+    with pytest.raises(OSError):  # nothing listens any more
+        LiveClient(url, open_timeout=5)
+
+
+def test_loop_starts_over_with_a_new_session(recorded: Path) -> None:
+    expected = _recorded_messages(recorded, "/controller")
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "dobhil", "log", "serve", str(recorded), "--live", "127.0.0.1:0", "--speed", "4",
+         "--loop"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )
+    try:
+        assert proc.stdout is not None
+        url = proc.stdout.readline().split(" on ", 1)[1].split()[0]
+        with LiveClient(url) as client:
+            client.subscribe(["/controller"])
+            first_session = client.server_info["sessionId"]
+            received = client.collect(counts_at_least({"/controller": 2 * len(expected) + 1}), timeout=120)
+            new_session = client.server_info["sessionId"]
+        proc.send_signal(signal.SIGINT)
+        proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+    assert proc.returncode == 130
+    got = [(r.log_time_ns, r.payload) for r in received]
+    assert got[: 2 * len(expected)] == expected + expected  # each pass as recorded
+    assert new_session != first_session
