@@ -22,11 +22,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--log", type=Path, metavar="FILE.mcap",
                    help="MCAP recording (default: OUT/run-YYYYmmdd-HHMMSS.mcap)")
     p.add_argument("--no-log", action="store_true", help="do not record the run")
+    p.add_argument("--live", metavar="[HOST:]PORT", help="serve the run to Foxglove over WebSocket as well")
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
-    from dobhil.cli.recording import abort, default_log_path, open_run_log, record_run
+    from dobhil.cli.recording import abort, default_log_path, live_address, open_run_log, record_run
     from dobhil.cli.run_cmd import EXIT_STOPPED, log_hooks, report
     from dobhil.config import load_config
     from dobhil.files import check_output
@@ -37,7 +38,8 @@ def run(args: argparse.Namespace) -> int:
     path = Path(args.config) if args.config else demo_config_path()
     config = load_config(path, args.overrides)
     png = check_output(args.out / "demo_run.png", inputs=[path], what="--out")
-    log = open_run_log(None if args.no_log else (args.log or default_log_path(args.out)))
+    log_path = None if args.no_log else (args.log or default_log_path(args.out))
+    log = open_run_log(log_path, live=live_address(args.live, log_path))
     try:
         with stop_on_signals(StopRequest()) as request, \
                 RunSession(config, emulate=True, lockstep=not args.realtime, config_dir=path.parent,

@@ -43,6 +43,20 @@ def default_log_path(directory: Path, now: datetime | None = None) -> Path:
     return path
 
 
+def live_address(text: str | None, log: Path | None) -> tuple[str, int] | None:
+    """``--live [HOST:]PORT`` checked before a run: the address, the SDK there, a log to serve it."""
+    if text is None:
+        return None
+    from dobhil.errors import ConfigError
+    from dobhil.live import parse_live_address
+    from dobhil.live.server import import_sdk
+    if log is None:
+        raise ConfigError("--live needs a log (--log FILE.mcap): the live view is served by the log's writer")
+    address = parse_live_address(text)
+    import_sdk()
+    return address.host, address.port
+
+
 def open_run_log(path: Path | None, *, live: tuple[str, int] | None = None, fsync: bool = True) -> RunLog | None:
     """A :class:`RunLog` for ``path`` (checked first: one line if it cannot be written)."""
     if path is None:
@@ -102,6 +116,9 @@ def begin(log: RunLog, session: RunSession, config_file: str | os.PathLike[str] 
               truth=None if plant is None else (lambda: (plant.true_position, plant.true_velocity,
                                                          plant.motor_torque, plant.interaction_torque)),
               drive=drive)
+    if log.live_port is not None and log.live is not None:
+        sys.stderr.write(f"live view: ws://{log.live[0]}:{log.live_port}\n")
+        sys.stderr.flush()
 
 
 def record_run(session: RunSession, log: RunLog | None, config_file: str | os.PathLike[str] | None = None) -> RunResult:
@@ -146,4 +163,4 @@ def abort(log: RunLog | None, exc: BaseException) -> None:
         _close_quietly(log, exc)
 
 
-__all__ = ["abort", "begin", "default_log_path", "open_run_log", "record_run", "run_metadata", "versions"]
+__all__ = ["abort", "begin", "default_log_path", "live_address", "open_run_log", "record_run", "run_metadata", "versions"]

@@ -28,6 +28,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--plot", type=Path, metavar="FILE.png", help="plot reference and interaction torque")
     p.add_argument("--log", type=Path, metavar="FILE.mcap",
                    help="record the run to MCAP (see docs/recording.md)")
+    p.add_argument("--live", metavar="[HOST:]PORT",
+                   help="serve the run to Foxglove over WebSocket while it records (127.0.0.1 unless a host "
+                        "is given; needs --log and the [live] extra)")
     p.set_defaults(func=run)
     e = sub.add_parser("emulate", help="run the drive emulator alone on a bus (vcan0, a hub)")
     add_config_args(e)
@@ -37,7 +40,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from dobhil.cli.recording import abort, open_run_log, record_run
+    from dobhil.cli.recording import abort, live_address, open_run_log, record_run
     from dobhil.files import check_output
     from dobhil.runtime.loop import StopRequest
     from dobhil.runtime.session import RunSession, summary
@@ -45,7 +48,7 @@ def run(args: argparse.Namespace) -> int:
     config = config_from_args(args)
     if args.plot:
         check_output(args.plot, inputs=[args.config], suffix=".png", what="--plot")
-    log = open_run_log(args.log)
+    log = open_run_log(args.log, live=live_address(args.live, args.log))
     try:
         with stop_on_signals(StopRequest()) as request, \
                 RunSession(config, bus=args.bus, emulate=args.emulate,

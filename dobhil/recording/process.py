@@ -73,6 +73,7 @@ class Control(IntEnum):
 class Status(IntEnum):
     DONE = 0  # (DONE, written, dropped)
     FAILED = 1  # (FAILED, one-line reason)
+    LIVE = 2  # (LIVE, port): the live view listens (sent after OPEN when one was asked for)
 
 
 class WriterProcess:
@@ -89,6 +90,7 @@ class WriterProcess:
         self._carry: list[tuple[Any, ...]] = []
         self._failure: str | None = None
         self._closed = False
+        self.live_port: int | None = None
         self._queue: queue.Queue[bytes | None] = queue.Queue(QUEUE_BATCHES)
         with open(self.path, "xb"):  # the caller checked the path: this only fails on a race
             pass
@@ -108,6 +110,19 @@ class WriterProcess:
         files = [(str(n), str(m), bytes(d)) for n, m, d in attachments]
         self._put(marshal.dumps((int(Control.OPEN), int(self.mode), self._interval, self._fsync, meta, files,
                                  live)), force=True)
+        if live is not None:
+            self.live_port = self._wait_for_live()
+
+    def _wait_for_live(self) -> int:
+        """The live view's port, once the writer process listens; RecorderError if it cannot."""
+        status = self._status.recv_bytes() if self._status.poll(JOIN_TIMEOUT) else None
+        message = None if status is None else marshal.loads(status)
+        if message is not None and message[0] == Status.LIVE:
+            return int(message[1])
+        self._closed = True
+        self._join()
+        self._failure = str(message[1]) if message is not None else "the live view did not start"
+        raise RecorderError(f"{self.path}: {self._failure}")
 
     def send(self, records: list[tuple[Any, ...]], *, force: bool = False) -> bool:
         """Hand a batch over; False if dropped (LOSSY and the writer lags; never with ``force``).
@@ -277,7 +292,7 @@ def _read_status(conn: Connection) -> Sequence[Any] | None:
 # -- the child ---------------------------------------------------------------------------
 
 
-def _serve(conn: Connection, path: str) -> tuple[Any, ...]:
+def _serve(conn: Connection, status: Connection, path: str) -> tuple[Any, ...]:
     try:
         first = marshal.loads(conn.recv_bytes())
     except EOFError:
@@ -287,7 +302,9 @@ def _serve(conn: Connection, path: str) -> tuple[Any, ...]:
                     fsync=fsync)
     try:
         if live is not None:
-            log.add_output(_live_server(*live))
+            server = _live_server(*live)
+            log.add_output(server)
+            status.send_bytes(marshal.dumps((int(Status.LIVE), server.port)))
         return _write_until_stop(conn, log, interval)
     except BaseException:
         log.close()
@@ -330,7 +347,7 @@ def main(argv: Sequence[str] | None = None) -> None:
     status_conn = Connection(int(status_fd), readable=False)
     code = 0
     try:
-        status = _serve(Connection(int(data_fd), writable=False), path)
+        status = _serve(Connection(int(data_fd), writable=False), status_conn, path)
     except BaseException as exc:  # one line for the parent, whatever it was
         status, code = (int(Status.FAILED), f"{type(exc).__name__}: {' '.join(str(exc).split())}"), 1
     try:

@@ -97,6 +97,11 @@ class RunLog:
     def dropped(self) -> int:
         return 0 if self._writer is None else self._writer.dropped
 
+    @property
+    def live_port(self) -> int | None:
+        """The port the live view listens on (after :meth:`begin`), None without one."""
+        return None if self._writer is None else self._writer.live_port
+
     def wrap_bus(self, bus: can.BusABC) -> can.BusABC:
         """The session's ``bus_wrapper``: every frame on ``/can/rx`` and ``/can/tx``."""
         self.tap = RecordingBus(bus, self.records)

@@ -57,6 +57,9 @@ class Output(Protocol):
 
     def close(self) -> None: ...
 
+    @property
+    def dropped(self) -> int: ...
+
 
 def chunk_compression() -> CompressionType:
     """zstd if importable, else lz4, else none."""
@@ -156,8 +159,11 @@ class LogWriter:
         """Stop event (if a reason is given), summary metadata, footer; close the file."""
         if stop_reason is not None:
             self.write([event_record(EventKind.STOP, self.last_log_ns or time.time_ns(), stop_reason, detail)])
-        self._mcap.add_metadata(RECORDING_METADATA, {"mode": self.mode.name.lower(), "written": str(self.written),
-                                                     "dropped": str(self.dropped), "stop_reason": stop_reason or ""})
+        summary = {"mode": self.mode.name.lower(), "written": str(self.written), "dropped": str(self.dropped),
+                   "stop_reason": stop_reason or ""}
+        if self._outputs:
+            summary["live_dropped"] = str(sum(out.dropped for out in self._outputs))
+        self._mcap.add_metadata(RECORDING_METADATA, summary)
         self._mcap.finish()
         self.flush()
         self.close()
