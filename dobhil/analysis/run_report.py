@@ -295,7 +295,7 @@ def summary_text(s: Mapping[str, Any]) -> str:
     lines = [f"run: {s['file']}", f"cycles: {s['cycles']} ({s['duration_s']:.3f} s), stop: {s['stop'] or '-'}"]
     for st in s["steps"]:
         m = st["metrics"]
-        def fmt(k: str, scale: float = 1.0, unit: str = "") -> str:
+        def fmt(k: str, scale: float = 1.0, unit: str = "", m: Mapping[str, Any] = m) -> str:
             return "-" if m.get(k) is None else f"{m[k] * scale:.3g}{unit}"
         lines.append(f"step at {st['time']:.3f} s ({st['start']:.3g} -> {st['end']:.3g} N m): "
                      f"overshoot {fmt('overshoot_pct', 1, ' %')}, rise {fmt('rise_time', 1e3, ' ms')}, "

@@ -163,4 +163,5 @@ def abort(log: RunLog | None, exc: BaseException) -> None:
         _close_quietly(log, exc)
 
 
-__all__ = ["abort", "begin", "default_log_path", "live_address", "open_run_log", "record_run", "run_metadata", "versions"]
+__all__ = ["abort", "begin", "default_log_path", "live_address", "open_run_log", "record_run", "run_metadata",
+           "versions"]

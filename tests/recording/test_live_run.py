@@ -12,10 +12,10 @@ import pytest
 
 pytest.importorskip("foxglove")
 pytest.importorskip("websockets")
-from live_client import LiveClient, counts_at_least  # noqa: E402
+from live_client import LiveClient, counts_at_least
 
-from dobhil.cli.main import main  # noqa: E402
-from dobhil.recording.reader import open_log  # noqa: E402
+from dobhil.cli.main import main
+from dobhil.recording.reader import open_log
 
 ROOT = Path(__file__).resolve().parents[2]
 DEMO = ROOT / "configs" / "demo.yaml"

@@ -13,7 +13,6 @@ from typing import Any
 
 import pytest
 
-from dobhil.errors import RecorderError
 from dobhil.recording.process import QUEUE_BATCHES, WriterProcess
 from dobhil.recording.reader import open_log
 from dobhil.recording.schemas import CYCLE, EventKind, event_record
