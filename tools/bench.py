@@ -33,6 +33,7 @@ TARGETS: dict[str, float] = {
     "lockstep_vs_bare_bus_ratio": 0.4,
     "logged_vs_unlogged_ratio": 0.6,
     "replay_cycles_per_s": 20000.0,
+    "live_logged_vs_unlogged_ratio": 0.5,
 }
 #: Targets that are ceilings (smaller is better).
 CEILINGS: dict[str, float] = {"loop_thread_log_cost_us_median": 1.4}
@@ -309,12 +310,74 @@ def bench_handover() -> dict[str, float]:
     return {"loop_thread_log_cost_us_median": float(np.median(costs))}
 
 
+_LIVE_CLIENT = """
+import sys
+sys.path.insert(0, sys.argv[2])
+from live_client import LiveClient
+with LiveClient(sys.argv[1]) as client:
+    topics = ["/can/rx", "/can/tx", "/drive/feedback", "/drive/command", "/controller", "/loop", "/emulator/truth"]
+    client.subscribe(topics)
+    print("subscribed", flush=True)
+    try:
+        client.drain(quiet=5.0)
+    except Exception:
+        pass
+"""
+
+
+def _live_run(duration: float, path: Path, live: bool) -> float:
+    """Cycles/s of a logged lockstep demo run, with ``live``: served to a client subscribed to
+    every topic (a separate process, so its work is not this process's)."""
+    import subprocess
+
+    from dobhil.cli.recording import open_run_log, record_run
+    from dobhil.runtime.session import RunSession
+    config = load_config(ROOT / "configs/demo.yaml", [f"loop.duration={duration}"])
+    path.unlink(missing_ok=True)
+    log = open_run_log(path, live=("127.0.0.1", 0) if live else None, fsync=False)
+    assert log is not None
+    clients: list[subprocess.Popen[str]] = []
+
+    def connect(log: object) -> None:
+        url = f"ws://127.0.0.1:{log.live_port}"  # type: ignore[attr-defined]
+        client = subprocess.Popen([sys.executable, "-c", _LIVE_CLIENT, url, str(ROOT / "tests")],
+                                  stdout=subprocess.PIPE, text=True)
+        clients.append(client)
+        assert client.stdout is not None and client.stdout.readline().strip() == "subscribed"
+
+    with RunSession(config, emulate=True, lockstep=True, sink=log, bus_wrapper=log.wrap_bus) as session:
+        t0 = time.perf_counter()
+        result = record_run(session, log, on_begin=connect if live else None)
+        rate = result.cycles / (time.perf_counter() - t0)
+    for client in clients:
+        client.wait(30)
+    return rate
+
+
+def bench_live() -> dict[str, float]:
+    """Logged lockstep runs served live to a connected client over the same runs not served."""
+    import tempfile
+    try:
+        import foxglove  # noqa: F401
+        import websockets  # noqa: F401
+    except ImportError:
+        return {}
+    served, plain = [], []
+    with tempfile.TemporaryDirectory() as tmp:
+        for _ in range(3):
+            plain.append(_live_run(10.0, Path(tmp) / "plain.mcap", live=False))
+            served.append(_live_run(10.0, Path(tmp) / "live.mcap", live=True))
+    return {"lockstep_live_cycles_per_s": float(np.median(served)),
+            "live_logged_vs_unlogged_ratio": float(np.median([a / b for a, b in zip(served, plain)]))}
+
+
 BENCHES: dict[str, Callable[[], dict[str, float]]] = {
     "sweep": bench_sweep,
     "controller": bench_controller,
     "lockstep": bench_lockstep,
     "logging": bench_logging,
     "handover": bench_handover,
+    "live": bench_live,
 }
 
 

@@ -14,6 +14,7 @@ import os
 import platform
 import sys
 import time
+from collections.abc import Callable
 from datetime import datetime, timezone
 from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
@@ -121,12 +122,16 @@ def begin(log: RunLog, session: RunSession, config_file: str | os.PathLike[str] 
         sys.stderr.flush()
 
 
-def record_run(session: RunSession, log: RunLog | None, config_file: str | os.PathLike[str] | None = None) -> RunResult:
-    """``session.run()`` recorded by ``log``; a writer failure is the stop reason ``recorder_failed``."""
+def record_run(session: RunSession, log: RunLog | None, config_file: str | os.PathLike[str] | None = None, *,
+               on_begin: Callable[[RunLog], object] | None = None) -> RunResult:
+    """``session.run()`` recorded by ``log``; a writer failure is the stop reason ``recorder_failed``.
+    ``on_begin`` runs once the log is open, before the loop (e.g. to connect a live client)."""
     if log is None:
         return session.run()
     try:
         begin(log, session, config_file)
+        if on_begin is not None:
+            on_begin(log)
         result = session.run()
     except BaseException as exc:
         _close_quietly(log, exc)
