@@ -1,15 +1,9 @@
-"""Logs to and from other formats: one topic to CSV; CAN frames to and from python-can's logs.
+"""Logs to and from other formats, outputs checked first and written under a temporary name.
 
-- :func:`export_csv`: a ``log_time_ns`` column, then one per property of the JSON schema
-  stored in the file (old recordings export with their own columns). Lists become
-  space-separated integers, booleans ``true``/``false``, ``null`` an empty cell.
-- :func:`export_can`: ``/can/rx`` and ``/can/tx`` (``is_rx=False``) through python-can's
-  writers: candump (``.log``), Vector ASC (``.asc``), Vector BLF (``.blf``).
-- :func:`import_can`: any log :class:`can.LogReader` reads, recorded through the one
-  :class:`~dobhil.recording.writer.LogWriter`.
-
-Outputs are checked first (never an input) and written under a temporary name, renamed
-when complete (:mod:`dobhil.files`).
+- :func:`export_csv`: ``log_time_ns``, then one column per property of the schema stored
+  in the file; lists space-separated, booleans ``true``/``false``, ``null`` empty.
+- :func:`export_can` / :func:`import_can`: ``/can/rx`` and ``/can/tx`` to and from any log
+  python-can writes or reads (candump, ASC, BLF), through python-can's own classes.
 """
 
 from __future__ import annotations

@@ -1,32 +1,15 @@
-"""The writer process of a recorded run: record batches in through a pipe, one MCAP file out.
+"""The writer process of a recorded run: batches of records in through a pipe, one MCAP file out.
 
-Why a process: encoding ~7 JSON messages per control cycle, chunking and compressing
-them costs a good part of a control cycle. In a thread of the loop's process that work
-holds the GIL the loop needs: in lockstep the costs add up, in real time a cycle waits
-for the GIL. In its own interpreter it runs on another core.
-
-Parent side (:class:`WriterProcess`): the loop thread ``marshal``-s a batch of flat records
-(plain tuples, see :mod:`~dobhil.recording.schemas`) and puts the bytes on a bounded
-:class:`queue.Queue`; a sender thread passes them on with ``Connection.send_bytes``
-(blocking in the system call, GIL released). Modes
-(:class:`~dobhil.recording.writer.RecordMode`):
-
-- ``BACKPRESSURE`` (lockstep): a full queue makes the loop wait; nothing is lost.
-- ``LOSSY`` (real time): a full queue drops the batch and counts its messages; its
-  ``/events`` records go with the next batch. Before the next batch that gets through,
-  a ``LOSS`` message makes the writer record an ``/events`` ``kind=loss``.
-
-Memory is bounded by design: at most :data:`QUEUE_BATCHES` batches wait in the parent.
-
-Child side (:func:`main`): a fresh interpreter (``subprocess``, not a fork of the threaded
-parent, and not ``multiprocessing``'s spawn, which re-imports the parent's ``__main__``
-and starts a resource tracker). It reads with ``Connection.recv_bytes``, writes through
-:class:`~dobhil.recording.writer.LogWriter`, flushes and fsyncs every ``flush_interval``,
-ignores SIGINT/SIGTERM (blocked from before the exec, so no race: the parent handles
-them and closes the log), and sends one status message back. On end of file (the parent
-died, e.g. SIGKILL) it writes what it got and finishes with :data:`PARENT_EXITED`. A
-failure (disk full, ...) ends the child with a one-line ``FAILED`` status, which the
-parent raises as :class:`~dobhil.errors.RecorderError` at the next hand-over.
+A process, not a thread: encoding and writing ~7 messages per cycle would hold the GIL the
+loop needs. The loop thread ``marshal``-s a batch and puts it on a bounded queue (at most
+:data:`QUEUE_BATCHES`: bounded memory); a sender thread passes it on with
+``Connection.send_bytes``. ``BACKPRESSURE`` waits for room, ``LOSSY`` drops and counts
+(events kept for the next batch; a ``LOSS`` message becomes an ``/events`` ``kind=loss``).
+The child is a fresh interpreter (``subprocess``: no fork of a threaded parent, no
+re-import of the parent's ``__main__``), ignores SIGINT/SIGTERM (blocked before the exec),
+flushes and fsyncs every ``flush_interval``, finishes the file on ``STOP`` or, if the parent
+died, on end of file (:data:`PARENT_EXITED`), and reports one status. A failure (disk full)
+is raised as :class:`~dobhil.errors.RecorderError` at the next hand-over.
 """
 
 from __future__ import annotations

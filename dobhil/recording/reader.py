@@ -1,20 +1,12 @@
-"""Reading a dobhil log: :class:`LogFile`, opened once, checked before anything uses it.
+"""Reading a dobhil log: :class:`LogFile`, opened once and checked before anything uses it.
 
-:meth:`LogFile.open` reads the file front to back once, through the ``mcap`` package's
-public :class:`~mcap.stream_reader.StreamReader` (data-section CRC) and
-:func:`~mcap.stream_reader.get_chunk_data_stream` (every chunk's CRC), and tells apart,
-in one :class:`~dobhil.errors.LogFileError` line each:
-
-- complete (it opens);
-- cut short (no footer: a killed run) -- run ``dobhil log recover``;
-- damaged at byte N (a CRC, a record or the summary does not check out);
-- not a dobhil log (another tool's MCAP: its header names the writer);
-- metadata that is not valid (the ``config`` record against the config schema, the numbers
-  the tools use as numbers).
-
-Messages are then read chunk by chunk with a small slicer (:meth:`LogFile.iter_payloads`:
-``struct`` over the decompressed chunk, CRC checked again), because the ``mcap`` reader
-builds a Python object per record and made replay spend most of its time reading.
+One pass with the ``mcap`` package's public :class:`~mcap.stream_reader.StreamReader`
+(data-section CRC) and :func:`~mcap.stream_reader.get_chunk_data_stream` (each chunk's
+CRC) tells apart, one :class:`~dobhil.errors.LogFileError` line each: complete; cut short
+(run ``dobhil log recover``); damaged at byte N; not a dobhil log (written by X); invalid
+metadata (the config against its schema, numbers as numbers). Messages are then sliced
+from each decompressed, CRC-checked chunk with ``struct`` (:meth:`LogFile.iter_payloads`):
+the ``mcap`` reader's object per record made replay spend most of its time reading.
 """
 
 from __future__ import annotations

@@ -1,10 +1,8 @@
 """Salvage a log cut short (``kill -9``, power loss) or damaged into a new, complete file.
 
-The source is read front to back with the ``mcap`` package's
-:class:`~mcap.stream_reader.StreamReader`, chunks whole and CRC-checked, so a damaged chunk
-costs only itself. Reading stops at the first record that cannot be read (normally where
-the data ends); every schema, channel, message, metadata record and attachment before it
-goes to a new file with a fresh summary, written under a temporary name and renamed.
+Read front to back with :class:`~mcap.stream_reader.StreamReader`, chunks whole and
+CRC-checked (a damaged chunk costs only itself), until the first unreadable record;
+everything before goes to a new file with a fresh summary, renamed when complete.
 """
 
 from __future__ import annotations

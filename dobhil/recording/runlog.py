@@ -1,17 +1,11 @@
-"""Recording one run: the cycle sink, the bus tap and the events, handing flat records over.
+"""Recording one run: :class:`RunLog` is the runtime's cycle sink and bus tap.
 
-:class:`RunLog` implements the runtime's ``CycleSink`` protocol (``started``, ``cycle``,
-``stop``) and wraps the host bus (:meth:`RunLog.wrap_bus`); it knows nothing of the
-runtime. Whoever wires it to a session (``dobhil.cli.recording``) passes plain values:
-metadata, the log clock (simulated time in lockstep), the emulator truth as a callable,
-the drive (duck-typed: its ``status``).
-
-The loop thread only appends flat tuples (:mod:`~dobhil.recording.schemas`) to one list
-and, every :data:`BATCH_SIZE` records, hands the list to the writer process
-(:class:`~dobhil.recording.process.WriterProcess`), which was started when the
-:class:`RunLog` was created, before the session. A writer failure (disk full) surfaces
-as :class:`~dobhil.errors.RecorderError` from :meth:`RunLog.cycle`, which the loop turns
-into the stop reason ``recorder_failed``.
+It implements the ``CycleSink`` protocol (``started``, ``cycle``, ``stop``) and wraps the
+host bus, knowing nothing of the runtime: the wiring (``dobhil.cli.recording``) passes
+plain values. The loop thread only appends flat records to one list and hands every
+:data:`BATCH_SIZE` of them to the writer process (started with the :class:`RunLog`,
+before the session). A writer failure surfaces as :class:`~dobhil.errors.RecorderError`
+from :meth:`RunLog.cycle`, which the loop turns into the stop reason ``recorder_failed``.
 """
 
 from __future__ import annotations

@@ -1,22 +1,13 @@
 """The one table of recorded topics: each topic's fields, JSON schema and encoder live here.
 
-Every channel uses message encoding ``json`` and schema encoding ``jsonschema``, so
-Foxglove opens a recording without plugins; ``docs/recording.md`` documents the same table
-(a test checks it).
-
-What the writer receives are *records*: flat tuples of plain values (floats, ints, bools,
-str, bytes), cheap to build on the loop thread and to ``marshal`` to the writer process:
-
-- ``(Topic, log_time_ns, *values)``: one message of that topic, values in the topic's
-  field order -- except the CAN topics, whose values are the compact
-  ``(arbitration_id, flags, dlc, data, timestamp, channel)`` (:func:`can_frame_record`);
-- ``(CYCLE, log_time_ns, *values)``: one control cycle, values named by
-  :data:`CYCLE_FIELDS`; it becomes one message of each topic in :data:`CYCLE_TOPICS`
-  (``/emulator/truth`` only when the record carries the truth values).
-
-Public names other packages use: :data:`TOPIC_SPECS` / :func:`spec_for` (the table),
-:func:`can_frame_record`, :func:`can_frame_payload` and :func:`can_frame_message`
-(encode and decode a CAN frame record).
+Channels are JSON with a JSON schema (Foxglove opens them without plugins); the table is
+documented in ``docs/recording.md`` (a test checks it). Records are flat tuples, cheap to
+build on the loop thread and to ``marshal``: ``(Topic, log_time_ns, *values)`` with the
+topic's field values in order -- for the CAN topics the compact
+``(arbitration_id, flags, dlc, data, timestamp, channel)`` of :func:`can_frame_record` --
+or ``(CYCLE, log_time_ns, *values)`` named by :data:`CYCLE_FIELDS`, one message per topic
+of :data:`CYCLE_TOPICS`. Public: :data:`TOPIC_SPECS`, :func:`spec_for`,
+:func:`can_frame_record`, :func:`can_frame_payload`, :func:`can_frame_message`.
 """
 
 from __future__ import annotations

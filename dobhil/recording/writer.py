@@ -1,14 +1,10 @@
 """One MCAP file being written, through the public :class:`mcap.writer.Writer`.
 
-:class:`LogWriter` is the only code that writes a dobhil log: the writer process of a run
-(:mod:`~dobhil.recording.process`) and ``dobhil log import`` both use it. It writes the
-header, metadata and attachments at once, registers a channel (from the topic table)
-when its first message comes, encodes records (:func:`~dobhil.recording.schemas.messages`),
-ends the chunk and flushes (and fsyncs) on request, and finishes the file with the
-``recording`` metadata record. A second output -- a live view -- gets every encoded
-message too (:meth:`LogWriter.add_output`).
-
-Imports neither python-can nor numpy: the writer process starts quickly.
+:class:`LogWriter` is the only code that writes a dobhil log (the run's writer process and
+``dobhil log import``): header, metadata and attachments at once, a channel from the topic
+table on its first message, records encoded by the table, chunk ended and file flushed
+(and fsynced) on request, the ``recording`` summary on finish. A second output (the live
+view) gets every encoded message too. No python-can, no numpy: the process starts fast.
 """
 
 from __future__ import annotations
