@@ -142,9 +142,7 @@ class RunLog:
             self._hand_over(force=False)
 
     def stop(self, stop: Any) -> None:
-        """The loop has stopped: hand the rest over (the drive is being disabled)."""
-        if self.failed is None:
-            self._hand_over(force=False)
+        """The loop has stopped; :meth:`end` hands the rest over, none dropped."""
 
     # -- events and the end ------------------------------------------------------------
 
