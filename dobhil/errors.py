@@ -61,5 +61,10 @@ class LogFileError(DobhilError, ValueError):
     """A log file is missing, empty, truncated or not of the expected format."""
 
 
+class RecorderError(DobhilError, OSError):
+    """The recorder of a run failed (disk full, writer process gone); the run stops with
+    reason ``recorder_failed``."""
+
+
 class ReplayMismatchError(DobhilError, AssertionError):
     """Replay did not reproduce the recorded commands."""

@@ -34,11 +34,13 @@ TARGETS: dict[str, float] = {
     "lockstep_vs_bare_bus_ratio": 0.4,
     "logged_vs_unlogged_ratio": 0.6,
     "replay_cycles_per_s": 20000.0,
+    "live_logged_vs_unlogged_ratio": 0.5,
 }
-#: targets that are upper bounds
+#: targets that are upper bounds (smaller is better)
 TARGETS_MAX: dict[str, float] = {
     "rt_logged_vs_unlogged_overrun_ratio": 1.2,
     "rt_vs_bare_period_error_p99_ratio": 2.0,
+    "loop_thread_log_cost_us_median": 1.4,
 }
 
 
@@ -115,7 +117,7 @@ def bench_controller() -> dict[str, float]:
     samples = []
     for _ in range(31):
         t0 = time.perf_counter()
-        for i in range(2000):
+        for _ in range(2000):
             step(1e-4, 0.0, 1.0)
         samples.append((time.perf_counter() - t0) / 2000)
     return {"controller_step_us_median": float(np.median(samples)) * 1e6}
@@ -167,14 +169,16 @@ def bench_lockstep() -> dict[str, float]:
 def _logged_run(duration: float, path: Path | None) -> float:
     """Cycles/s of a lockstep demo run, recorded to ``path`` (None: not recorded); the
     time includes finishing the file."""
-    from dobhil.recording.sink import RunLog, run_recorded
+    from dobhil.cli.recording import open_run_log, record_run
     from dobhil.runtime.session import RunSession
     config = load_config(ROOT / "configs/demo.yaml", [f"loop.duration={duration}"])
-    log = None if path is None else RunLog(path, config, fsync=False)
-    hooks = {} if log is None else {"sink": log.sink, "bus_wrapper": log.wrap_bus}
+    if path is not None:
+        path.unlink(missing_ok=True)
+    log = open_run_log(path, fsync=False)
+    hooks = {} if log is None else {"sink": log, "bus_wrapper": log.wrap_bus}
     with RunSession(config, emulate=True, lockstep=True, **hooks) as session:
         t0 = time.perf_counter()
-        result = run_recorded(session, log)
+        result = record_run(session, log)
         return result.cycles / (time.perf_counter() - t0)
 
 
@@ -212,30 +216,30 @@ def _logged_pairs(duration: float, path: Path, pairs: int) -> tuple[list[float],
 
 
 def _recorder_msgs_per_s(recorded: Path) -> float:
-    """Messages/s the recorder writes on its own: flat raw records like a recorded run's
-    cycles and frames, re-recorded (encode + write + finish) without the loop."""
-    from dobhil.recording.fastlog import RawKind
-    from dobhil.recording.recorder import Recorder, RecordMode
+    """Messages/s the one writer (LogWriter) encodes and writes on its own: records like a
+    recorded run's cycles and frames, without the loop."""
+    from dobhil.recording.schemas import CYCLE
+    from dobhil.recording.writer import LogWriter
     records = []
     for k in range(20000):
         t = 1_000_000_000 + k * 1_000_000
-        records.append((RawKind.FRAME_RX, t, 0x069, 0, 8, bytes(range(8)), 1.5, "bench"))
-        records.append((RawKind.CYCLE, t, k, 1e-4 * k, 0.1, k, 0.2, 0.19, 0.01, 0.02, 0.03, 0.03,
+        records.append((1, t, 0x069, 0, 8, bytes(range(8)), 1.5, "bench"))
+        records.append((CYCLE, t, k, 1e-4 * k, 0.1, k, 0.2, 0.19, 0.01, 0.02, 0.03, 0.03,
                         0.0, 3e-5, False, 8, 0, 1e-4 * k, 0.1, 0.03, 0.19))
-        records.append((RawKind.FRAME_TX, t, 0x06E, 0, 4, bytes(4), 0.0, "bench"))
+        records.append((2, t, 0x06E, 0, 4, bytes(4), 0.0, "bench"))
     best = 0.0
     for _ in range(3):
         t0 = time.perf_counter()
-        with Recorder(recorded.with_suffix(".rec.mcap"), metadata={}, mode=RecordMode.BACKPRESSURE, fsync=False) as rec:
-            for i in range(0, len(records), 256):
-                rec.write_batch(records[i:i + 256])
-        best = max(best, rec.written / (time.perf_counter() - t0))
+        log = LogWriter(open(recorded.with_suffix(".rec.mcap"), "wb"), metadata={}, fsync=False)
+        log.write(records)
+        log.finish(None)
+        best = max(best, log.written / (time.perf_counter() - t0))
     return best
 
 
 def _replay_cycles_per_s(recorded: Path) -> float:
     """Cycles/s of ``replay()`` of a recorded 4 s run, reading the file included."""
-    from dobhil.runtime.replay import replay
+    from dobhil.replay import replay
     best = 0.0
     for _ in range(3):
         t0 = time.perf_counter()
@@ -262,17 +266,15 @@ def _bare_loop_period_errors(duration: float, period: float = 1e-3) -> list[floa
 
 def _realtime_run(duration: float, timing: str, path: Path | None):  # type: ignore[no-untyped-def]
     """An emulated real-time demo run (``loop.timing``), recorded to ``path`` or not."""
-    from dobhil.recording.sink import RunLog, run_recorded
+    from dobhil.cli.recording import open_run_log, record_run
+    from dobhil.cli.run_cmd import log_hooks, lower_writer
     from dobhil.runtime.session import RunSession
     config = load_config(ROOT / "configs/demo.yaml", [
         f"loop.duration={duration}", f"loop.timing={timing}", "loop.feedback_timeout=0.05"])
-    log = None if path is None else RunLog(path, config, fsync=False)
-    if log is not None:   # as dobhil run does: the writer below the loop
-        from dobhil.cli.run_cmd import lower_writer
-        lower_writer(log)
-    hooks = {} if log is None else {"sink": log.sink, "bus_wrapper": log.wrap_bus}
-    with RunSession(config, emulate=True, lockstep=False, **hooks) as session:
-        return run_recorded(session, log)
+    log = open_run_log(path, fsync=False)
+    lower_writer(log)  # as dobhil run does: the writer below the loop
+    with RunSession(config, emulate=True, lockstep=False, **log_hooks(log)) as session:
+        return record_run(session, log)
 
 
 def bench_realtime(rounds: int = 3, seconds: float = 2.0) -> dict[str, float]:
@@ -319,12 +321,141 @@ def bench_realtime(rounds: int = 3, seconds: float = 2.0) -> dict[str, float]:
             "rt_vs_bare_period_error_p99_ratio": float(np.median(ratios))}
 
 
+class _StubBus:
+    """The cheapest bus there is: ``recv`` returns one prebuilt frame, ``send`` does nothing."""
+
+    def __init__(self) -> None:
+        import can
+        self.channel_info = "stub"
+        self.channel = "stub"
+        self.frame = can.Message(arbitration_id=0x069, data=bytes(8), is_extended_id=False)
+
+    def send(self, msg: object, timeout: float | None = None) -> None:
+        return None
+
+    def recv(self, timeout: float | None = None) -> object:
+        return self.frame
+
+
+def _handover_us(cycles: int, log: object | None, period: float = 2e-4) -> float:
+    """Loop-thread time per cycle [us] spent in one received and one sent frame plus, when
+    ``log`` is given, the recording's tap and cycle sink handing records over. Each cycle is
+    padded to ``period`` (the loop's own work), so the writer keeps up as in a run."""
+    import can
+    from types import SimpleNamespace
+
+    from dobhil.runtime.controller import ControlOutput
+    stub = _StubBus()
+    bus = stub if log is None else log.wrap_bus(stub)  # type: ignore[attr-defined]
+    cycle = None if log is None else log.cycle  # type: ignore[attr-defined]
+    fb = SimpleNamespace(position=1e-4, velocity=0.0, seq=1)
+    out = ControlOutput(1.0, 0.99, 0.01, 0.02, 0.03, 0.03)
+    cmd = can.Message(arbitration_id=0x06E, data=bytes(4), is_extended_id=False)
+    clock = time.perf_counter
+    spent = []
+    for k in range(cycles):
+        t0 = clock()
+        bus.recv(0.0)
+        bus.send(cmd)
+        if cycle is not None:
+            cycle(k, k * 1e-3, fb, out, 0.0, 3e-5, False)
+        t1 = clock()
+        spent.append(t1 - t0)
+        while clock() - t0 < period:
+            pass
+    # the mean over blocks of a batch's cycles: the batch hand-over is paid once per ~85 cycles
+    blocks = [sum(spent[i:i + 850]) / 850 for i in range(0, cycles - 849, 850)]
+    return float(np.median(blocks)) * 1e6
+
+
+def bench_handover() -> dict[str, float]:
+    """What logging costs the loop thread per cycle: the tap's two frame records and the cycle
+    record, with batches handed to a live writer process, against the same frames unlogged."""
+    import tempfile
+
+    from dobhil.recording.runlog import RunLog
+    with tempfile.TemporaryDirectory() as tmp:
+        costs = []
+        for i in range(3):
+            log = RunLog(Path(tmp) / f"h{i}.mcap", fsync=False)
+            log.begin(metadata={}, attachments=[], lossy=False, truth=lambda: (0.0, 0.0, 0.0, 0.0))
+            plain = _handover_us(8500, None)
+            logged = _handover_us(8500, log)
+            log.end("done")
+            log.tap.shutdown()  # type: ignore[union-attr]
+            costs.append(logged - plain)
+    return {"loop_thread_log_cost_us_median": float(np.median(costs))}
+
+
+_LIVE_CLIENT = """
+import sys
+sys.path.insert(0, sys.argv[2])
+from live_client import LiveClient
+with LiveClient(sys.argv[1]) as client:
+    topics = ["/can/rx", "/can/tx", "/drive/feedback", "/drive/command", "/controller", "/loop", "/emulator/truth"]
+    client.subscribe(topics)
+    print("subscribed", flush=True)
+    try:
+        client.drain(quiet=5.0)
+    except Exception:
+        pass
+"""
+
+
+def _live_run(duration: float, path: Path, live: bool) -> float:
+    """Cycles/s of a logged lockstep demo run, with ``live``: served to a client subscribed to
+    every topic (a separate process, so its work is not this process's)."""
+    import subprocess
+
+    from dobhil.cli.recording import open_run_log, record_run
+    from dobhil.runtime.session import RunSession
+    config = load_config(ROOT / "configs/demo.yaml", [f"loop.duration={duration}"])
+    path.unlink(missing_ok=True)
+    log = open_run_log(path, live=("127.0.0.1", 0) if live else None, fsync=False)
+    assert log is not None
+    clients: list[subprocess.Popen[str]] = []
+
+    def connect(log: object) -> None:
+        url = f"ws://127.0.0.1:{log.live_port}"  # type: ignore[attr-defined]
+        client = subprocess.Popen([sys.executable, "-c", _LIVE_CLIENT, url, str(ROOT / "tests")],
+                                  stdout=subprocess.PIPE, text=True)
+        clients.append(client)
+        assert client.stdout is not None and client.stdout.readline().strip() == "subscribed"
+
+    with RunSession(config, emulate=True, lockstep=True, sink=log, bus_wrapper=log.wrap_bus) as session:
+        t0 = time.perf_counter()
+        result = record_run(session, log, on_begin=connect if live else None)
+        rate = result.cycles / (time.perf_counter() - t0)
+    for client in clients:
+        client.wait(30)
+    return rate
+
+
+def bench_live() -> dict[str, float]:
+    """Logged lockstep runs served live to a connected client over the same runs not served."""
+    import tempfile
+    try:
+        import foxglove  # noqa: F401
+        import websockets  # noqa: F401
+    except ImportError:
+        return {}
+    served, plain = [], []
+    with tempfile.TemporaryDirectory() as tmp:
+        for _ in range(3):
+            plain.append(_live_run(10.0, Path(tmp) / "plain.mcap", live=False))
+            served.append(_live_run(10.0, Path(tmp) / "live.mcap", live=True))
+    return {"lockstep_live_cycles_per_s": float(np.median(served)),
+            "live_logged_vs_unlogged_ratio": float(np.median([a / b for a, b in zip(served, plain)]))}
+
+
 BENCHES: dict[str, Callable[[], dict[str, float]]] = {
     "sweep": bench_sweep,
     "controller": bench_controller,
     "lockstep": bench_lockstep,
     "logging": bench_logging,
     "realtime": bench_realtime,
+    "handover": bench_handover,
+    "live": bench_live,
 }
 
 

@@ -21,7 +21,6 @@
 
 from __future__ import annotations
 
-import json
 import os
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
@@ -31,6 +30,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from dobhil.config.schema import Config
+from dobhil.drives.bus_load import frame_bits
 from dobhil.errors import LogFileError
 from dobhil.recording.reader import open_log
 
@@ -40,6 +40,8 @@ ProgressFn = Callable[[int], None]
 _CONTROLLER: Final = ("tau_ref", "tau_int_hat", "tau_dis_hat", "tau_per", "u_unsat", "u_sat")
 #: A reference jump larger than this fraction of the reference range is a step.
 STEP_FRACTION: Final = 0.05
+#: Largest command delay [samples] the prediction models (each sample is a state of the model).
+MAX_PREDICTION_DELAY: Final = 1000
 
 
 @dataclass
@@ -64,13 +66,9 @@ class RunData:
 
 
 def load_run(path: str | os.PathLike[str], progress: ProgressFn | None = None) -> RunData:
-    """Read a dobhil run log; LogFileError if it is not one."""
-    from dobhil.runtime.replay import _iter, _loads, recorded_config
-    log = open_log(path)
+    """Read a dobhil run log (checked by :class:`~dobhil.recording.reader.LogFile`)."""
+    from orjson import loads
     name = os.fspath(path)
-    log.require_topic("/controller")
-    meta = log.metadata()
-    config = recorded_config(meta, name) if meta.get("config") else None
     per: dict[str, list[Any]] = {k: [] for k in ("controller", "feedback", "truth", "loop")}
     frames: dict[str, list[int]] = {"/can/rx": [], "/can/tx": []}
     ext = {"/can/rx": 0, "/can/tx": 0}
@@ -78,11 +76,17 @@ def load_run(path: str | os.PathLike[str], progress: ProgressFn | None = None) -
     events: list[dict[str, Any]] = []
     bounds = [None, None]
     topics = ("/controller", "/drive/feedback", "/emulator/truth", "/loop", "/can/rx", "/can/tx", "/events")
-    for i, (topic, t, data) in enumerate(_iter(path, [x for x in topics if x in log.topics()])):
-        _take(topic, t, _loads(data), per, frames, ext, times, events, bounds)
-        if progress is not None and i % 1000 == 999:
-            progress(1000)
-    return _assemble(name, config, meta, per, frames, ext, times, events, bounds)
+    with open_log(path) as log:
+        log.require_topic("/controller")
+        try:
+            for i, (topic, t, data) in enumerate(log.iter_payloads(topics)):
+                _take(topic, t, loads(data), per, frames, ext, times, events, bounds)
+                if progress is not None and i % 1000 == 999:
+                    progress(1000)
+        except (KeyError, TypeError, ValueError) as exc:
+            raise LogFileError(f"{name}: a recorded message does not match its schema ({type(exc).__name__}: "
+                               f"{exc})") from None
+        return _assemble(name, log.config, log.metadata, per, frames, ext, times, events, bounds)
 
 
 def _take(topic: str, t: int, p: dict[str, Any], per: dict[str, list[Any]], frames: dict[str, list[int]],
@@ -209,12 +213,6 @@ def _pct(x: Array, q: float) -> float | None:
     return float(np.percentile(x, q)) if x.size else None
 
 
-def frame_bits(dlc: int, extended: bool = False) -> int:
-    """Bits on the wire of a data frame incl. worst-case stuffing (EOF, IFS included)."""
-    base, stuffable = (67, 54) if extended else (47, 34)
-    return base + 8 * dlc + (stuffable + 8 * dlc - 1) // 4
-
-
 def bus_stats(data: RunData) -> dict[str, Any]:
     bitrate = float(data.metadata.get("bus", {}).get("bitrate", 0) or 0)
     if not bitrate and data.config is not None:
@@ -237,6 +235,9 @@ def prediction(data: RunData) -> tuple[Array | None, dict[str, Any]]:
     """The sampled closed loop of the recorded config driven by the recorded reference."""
     if data.config is None:
         return None, {"available": False, "why": "no recorded config"}
+    if data.config.design.delay_samples > MAX_PREDICTION_DELAY:
+        return None, {"available": False, "why": f"design.delay_samples = {data.config.design.delay_samples} "
+                                                  f"is above {MAX_PREDICTION_DELAY} (the model would be too large)"}
     import control
 
     from dobhil.analysis.transfer import LoopSystems
@@ -317,24 +318,13 @@ def summary_text(s: Mapping[str, Any]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def write_report(path: str | os.PathLike[str], out_dir: str | os.PathLike[str],
-                 progress: ProgressFn | None = None) -> tuple[dict[str, Any], list[str]]:
-    """Figures, summary.json and summary.txt in ``out_dir``; (summary, written files)."""
-    from pathlib import Path
-
-    from dobhil.plotting.report_figures import report_figures
+def report(path: str | os.PathLike[str], progress: ProgressFn | None = None) -> tuple[RunData, dict[str, Any],
+                                                                                  Array | None]:
+    """The run's data, its summary and the predicted tau_int_hat (the CLI draws and writes them)."""
     data = load_run(path, progress)
     summary, predicted = analyse(data)
-    out = Path(out_dir)
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise LogFileError(f"{out}: cannot create: {exc.strerror}") from exc
-    files = [str(p) for p in report_figures(data, predicted, summary, out)]
-    (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
-    (out / "summary.txt").write_text(summary_text(summary))
-    return summary, [*files, str(out / "summary.json"), str(out / "summary.txt")]
+    return data, summary, predicted
 
 
-__all__ = ["RunData", "StepInfo", "analyse", "bus_stats", "detect_steps", "frame_bits", "load_run",
-           "prediction", "step_infos", "summary_text", "write_report"]
+__all__ = ["RunData", "StepInfo", "analyse", "bus_stats", "detect_steps", "load_run",
+           "prediction", "report", "step_infos", "summary_text"]

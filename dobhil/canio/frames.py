@@ -11,9 +11,8 @@ from typing import Final
 
 import can
 
-from dobhil.recording.canlog import payload_to_message
-from dobhil.recording.recorder import frame_payload
-from dobhil.recording.schemas import MESSAGE_ENCODING, SCHEMA_ENCODING, TOPIC_SPECS, Direction, Topic, decode, encode
+from dobhil.recording.schemas import (MESSAGE_ENCODING, SCHEMA_ENCODING, TOPIC_SPECS, Direction, Topic,
+                                      can_frame_message, can_frame_record, decode)
 
 #: The two frame topics, received first.
 FRAME_TOPICS: Final = (Topic.CAN_RX, Topic.CAN_TX)
@@ -28,12 +27,14 @@ def topic_of(msg: can.Message) -> Topic:
 
 def frame_json(msg: can.Message) -> bytes:
     """The JSON message of a frame on :func:`topic_of` its direction."""
-    return encode(frame_payload(msg, Direction.RX if msg.is_rx else Direction.TX))
+    topic = topic_of(msg)
+    record = can_frame_record(msg, Direction.RX if msg.is_rx else Direction.TX, 0)
+    return TOPIC_SPECS[topic].encode(record[2:])
 
 
 def frame_message(data: bytes, log_time_ns: int) -> can.Message:
     """The python-can message of a recorded frame (bus time, else log time)."""
-    return payload_to_message(decode(data), log_time_ns)
+    return can_frame_message(decode(data), log_time_ns)
 
 
 def channel_spec(topic: Topic) -> tuple[str, str, bytes, str, str]:

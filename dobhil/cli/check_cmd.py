@@ -52,6 +52,7 @@ def preflight_kwargs(args: argparse.Namespace) -> dict[str, Any]:
 
 def check(args: argparse.Namespace) -> int:
     from dobhil.drives.preflight import run_preflight
+    from dobhil.drives.registry import preflight_probe
     from dobhil.runtime.buses import open_bus, resolve_bus
     from dobhil.runtime.session import load_drive_profile
     config = config_from_args(args)
@@ -62,7 +63,7 @@ def check(args: argparse.Namespace) -> int:
     try:
         report = run_preflight(bus, profile, period=config.loop.period,
                                feedback_timeout=config.loop.feedback_timeout, window=window,
-                               bitrate=spec.kwargs.get("bitrate") or None)
+                               bitrate=spec.kwargs.get("bitrate") or None, probe=preflight_probe(profile))
     finally:
         bus.shutdown()
     if args.json:

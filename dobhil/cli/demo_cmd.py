@@ -24,34 +24,38 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p.add_argument("--log", type=Path, metavar="FILE.mcap",
                    help="MCAP recording (default: OUT/run-YYYYmmdd-HHMMSS.mcap)")
     p.add_argument("--no-log", action="store_true", help="do not record the run")
+    p.add_argument("--live", metavar="[HOST:]PORT", help="serve the run to Foxglove over WebSocket as well")
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
-    from dobhil.cli.run_cmd import (EXIT_STOPPED, closing_on_error, log_hooks, make_log, report,
-                                    run_logged)
+    from dobhil.cli.recording import abort, default_log_path, live_address, open_run_log, record_run
+    from dobhil.cli.run_cmd import EXIT_STOPPED, log_hooks, report
     from dobhil.config import load_config
+    from dobhil.files import check_output
     from dobhil.plotting.run_plot import run_figure
-    from dobhil.recording.sink import default_log_path
     from dobhil.runtime.loop import StopRequest
     from dobhil.runtime.session import RunSession, summary
     from dobhil.runtime.signals import stop_on_signals
     from dobhil.config import resolve_config
     path = resolve_config(args.config) if args.config else demo_config_path()
     config = load_config(path, args.overrides)
+    png = check_output(args.out / "demo_run.png", inputs=[path], what="--out")
     log_path = None if args.no_log else (args.log or default_log_path(args.out))
-    log = make_log(log_path, config, path)
-    with closing_on_error(log), stop_on_signals(StopRequest()) as request, \
-            RunSession(config, emulate=True, lockstep=not args.realtime, config_dir=path.parent,
-                       stop_request=request, **log_hooks(log)) as session:
-        result = run_logged(session, log)
-        info = summary(session, result)
+    log = open_run_log(log_path, live=live_address(args.live, log_path))
+    try:
+        with stop_on_signals(StopRequest()) as request, \
+                RunSession(config, emulate=True, lockstep=not args.realtime, config_dir=path.parent,
+                           stop_request=request, **log_hooks(log)) as session:
+            result = record_run(session, log, path)
+            info = summary(session, result)
+    except BaseException as exc:
+        abort(log, exc)
+        raise
     if log is not None:
         info["log"] = str(log.path)
     report(info, result.stop.line(), as_json=False)
-    png = run_figure(result.trace, args.out / "demo_run.png",
-                     "dobhil demo: contact, then a force step (emulated ODrive, 1 kHz)")
-    print(f"wrote {png}")
+    print(f"wrote {run_figure(result.trace, png, 'dobhil demo: contact, then a force step (emulated ODrive, 1 kHz)')}")
     if log is not None:
         print(f"next: dobhil report {log.path} --out {args.out / 'report'}")
     return 0 if result.stop.reason.name == "DONE" else EXIT_STOPPED

@@ -7,7 +7,8 @@
 - ``dobhil log import CANLOG -o FILE.mcap``
 - ``dobhil log serve FILE [--live [HOST:]PORT] [--speed X] [--loop]``  (Foxglove live view)
 
-Bad input ends in one :class:`~dobhil.errors.LogFileError` line (exit 2). Progress
+Bad input ends in one :class:`~dobhil.errors.LogFileError` line (exit 2); an output that
+is one of the inputs is refused, and outputs appear only when complete. Progress
 bars go to stderr and only when it is a terminal.
 """
 
@@ -19,7 +20,6 @@ import sys
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from datetime import datetime, timezone
-from pathlib import Path
 from typing import Any
 
 from dobhil.errors import LogFileError
@@ -39,8 +39,8 @@ def _progress(desc: str, total: int | None) -> Iterator[Progress]:
 def _total(path: str) -> int | None:
     from dobhil.recording.reader import open_log
 
-    log = open_log(path)
-    return sum(c.message_count for c in log.channels()) if log.has_summary else None
+    with open_log(path) as log:
+        return sum(c.message_count for c in log.channels())
 
 
 def _stamp(ns: int) -> str:
@@ -48,7 +48,7 @@ def _stamp(ns: int) -> str:
 
 
 def _info_lines(info: Any) -> Iterator[str]:
-    yield f"file:       {info.path}{'' if info.has_summary else '  (no summary: scanned)'}"
+    yield f"file:       {info.path}"
     yield f"messages:   {info.message_count}"
     yield f"time:       {_stamp(info.start_ns)} .. {_stamp(info.end_ns)} ({info.duration_s:.3f} s)"
     yield f"stop:       {info.stop_reason or '-'}"
@@ -67,7 +67,8 @@ def _info_lines(info: Any) -> Iterator[str]:
 def _cmd_info(args: argparse.Namespace) -> int:
     from dobhil.recording.reader import open_log
 
-    info = open_log(args.file).info()
+    with open_log(args.file) as log:
+        info = log.info()
     if args.json:
         print(json.dumps(info.to_dict(), indent=2))
     else:
@@ -97,11 +98,11 @@ def _cmd_export(args: argparse.Namespace) -> int:
 
 
 def _export_topic(args: argparse.Namespace) -> int:
-    from dobhil.recording.export import default_output, export_csv
+    from dobhil.recording.convert import default_csv_output, export_csv
 
     if args.format != "csv":
         raise LogFileError(f"--topic exports only --format csv, got {args.format!r}")
-    out = args.output or default_output(args.file, args.topic)
+    out = args.output or default_csv_output(args.file, args.topic)
     with _progress("export", _total(args.file)) as update:
         count = export_csv(args.file, args.topic, out, progress=update)
     print(f"wrote {count} rows of {args.topic} to {out}")
@@ -109,10 +110,10 @@ def _export_topic(args: argparse.Namespace) -> int:
 
 
 def _export_can(args: argparse.Namespace) -> int:
-    from dobhil.recording.canlog import default_output, export_can, parse_format
+    from dobhil.recording.convert import default_can_output, export_can, parse_format
 
     fmt = parse_format(args.format)
-    out = args.output or default_output(args.file, fmt)
+    out = args.output or default_can_output(args.file, fmt)
     with _progress("export", _total(args.file)) as update:
         count = export_can(args.file, out, fmt, progress=update)
     print(f"wrote {count} CAN frames to {out}")
@@ -120,10 +121,8 @@ def _export_can(args: argparse.Namespace) -> int:
 
 
 def _cmd_import(args: argparse.Namespace) -> int:
-    from dobhil.recording.canlog import import_can
+    from dobhil.recording.convert import import_can
 
-    if Path(args.output).resolve() == Path(args.canlog).resolve():
-        raise LogFileError(f"{args.output}: output is the input file")
     with _progress("import", None) as update:
         count = import_can(args.canlog, args.output, progress=update)
     print(f"imported {count} CAN frames to {args.output}")

@@ -1,7 +1,7 @@
 """``dobhil replay FILE.mcap [--verify] [--set k=v]... [--plot F.png] [--out F.csv] [--json]``.
 
 Re-runs the recorded run's controller on its recorded feedback frames
-(:mod:`dobhil.runtime.replay`). ``--verify`` demands bit-identical outputs and exits 1
+(:mod:`dobhil.replay`). ``--verify`` demands bit-identical outputs and exits 1
 with one line naming the first differing cycle otherwise.
 """
 
@@ -12,12 +12,7 @@ import csv
 import json
 import sys
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
-
-from dobhil.errors import LogFileError
-
-if TYPE_CHECKING:
-    from dobhil.runtime.replay import ReplayResult
+from typing import Any
 
 #: exit code of a verification that found a difference
 EXIT_MISMATCH = 1
@@ -37,7 +32,12 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from dobhil.runtime.replay import replay
+    from dobhil.files import check_output
+    from dobhil.replay import replay
+    if args.out:
+        check_output(args.out, inputs=[args.file], suffix=".csv", what="--out")
+    if args.plot:
+        check_output(args.plot, inputs=[args.file], suffix=".png", what="--plot")
     result = replay(args.file, args.overrides)
     info = result.summary()
     if args.out:
@@ -66,12 +66,9 @@ def _print(info: dict[str, Any]) -> None:
         print(f"  {name:<12} replayed - recorded: max |.| {d['max_abs']:.6g} N m, RMS {d['rms']:.6g} N m")
 
 
-def _write_csv(result: ReplayResult, path: Path) -> None:
-    try:
-        handle = open(path, "w", newline="", encoding="utf-8")
-    except OSError as exc:
-        raise LogFileError(f"{path}: cannot create: {exc.strerror}") from exc
-    with handle:
+def _write_csv(result: Any, path: Path) -> None:
+    from dobhil.files import atomic_path
+    with atomic_path(path) as tmp, open(tmp, "w", newline="", encoding="utf-8") as handle:
         writer = csv.writer(handle)
         writer.writerow(result.header())
         writer.writerows(result.rows())

@@ -1,8 +1,10 @@
 """``dobhil report FILE.mcap --out DIR [--json]``: figures and a summary of a recorded run.
 
-Writes force.png, tracking_error.png, position.png, commands.png, loop_timing.png,
-summary.json and summary.txt (:mod:`dobhil.analysis.run_report`). A progress bar goes
-to stderr when it is a terminal.
+The analysis (:mod:`dobhil.analysis.run_report`) returns data; this command draws
+force.png, tracking_error.png, position.png, commands.png, loop_timing.png
+(:mod:`dobhil.plotting.report_figures`) and writes summary.json and summary.txt, each
+under a temporary name renamed when complete. A progress bar goes to stderr when it is a
+terminal.
 """
 
 from __future__ import annotations
@@ -11,6 +13,8 @@ import argparse
 import json
 import sys
 from pathlib import Path
+
+_FIGURES = ("force", "tracking_error", "position", "commands", "loop_timing")
 
 
 def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -21,15 +25,32 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p.set_defaults(func=run)
 
 
+def _check_out_dir(out: Path, source: str) -> None:
+    from dobhil.files import OutputError, check_output
+    if out.exists() and not out.is_dir():
+        raise OutputError(f"--out {out}: not a directory")
+    for name in (*(f"{n}.png" for n in _FIGURES), "summary.json", "summary.txt"):
+        check_output(out / name, inputs=[source], what="--out")
+
+
 def run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
-    from dobhil.analysis.run_report import summary_text, write_report
+    from dobhil.analysis.run_report import report, summary_text
+    from dobhil.files import atomic_path
+    from dobhil.plotting.report_figures import report_figures
     from dobhil.recording.reader import open_log
-    log = open_log(args.file)
-    total = sum(c.message_count for c in log.channels()) if log.has_summary else None
+    _check_out_dir(args.out, args.file)
+    with open_log(args.file) as log:
+        total = sum(c.message_count for c in log.channels())
     with tqdm(total=total, desc="report", unit="msg", file=sys.stderr, disable=not sys.stderr.isatty()) as bar:
-        summary, files = write_report(args.file, args.out, progress=bar.update)
+        data, summary, predicted = report(args.file, progress=bar.update)
+    args.out.mkdir(parents=True, exist_ok=True)
+    files = report_figures(data, predicted, summary, args.out)
+    for name, text in (("summary.json", json.dumps(summary, indent=2) + "\n"), ("summary.txt", summary_text(summary))):
+        with atomic_path(args.out / name) as tmp:
+            tmp.write_text(text)
+        files.append(args.out / name)
     if args.json:
         print(json.dumps(summary))
     else:

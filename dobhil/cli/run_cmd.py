@@ -6,8 +6,6 @@ import argparse
 import json
 import sys
 import time
-from collections.abc import Iterator
-from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -35,6 +33,9 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
                         "always skipped with --emulate, whose emulator is built from the profile)")
     p.add_argument("--preflight-window", type=float, metavar="S", default=None,
                    help="how long the preflight listens (default 0.5 s)")
+    p.add_argument("--live", metavar="[HOST:]PORT",
+                   help="serve the run to Foxglove over WebSocket while it records (127.0.0.1 unless a host "
+                        "is given; needs --log and the [live] extra)")
     p.set_defaults(func=run)
     e = sub.add_parser("emulate", help="run the drive emulator alone on a bus (vcan0, a hub)")
     add_config_args(e)
@@ -62,21 +63,30 @@ def run_checked(args: argparse.Namespace) -> int:
     """``dobhil run`` after the preflight (raises PreflightError when it refuses)."""
     from dobhil.cli.check_cmd import preflight_kwargs
     from dobhil.config import resolve_config
+    from dobhil.cli.recording import abort, live_address, open_run_log, record_run
+    from dobhil.files import check_output
     from dobhil.runtime.loop import StopRequest
     from dobhil.runtime.session import RunSession, check_duration, summary
     from dobhil.runtime.signals import stop_on_signals
     check_duration(args.duration)
     config = config_from_args(args)
-    log = make_log(args.log, config, args.config)
-    with closing_on_error(log), stop_on_signals(StopRequest()) as request, \
-            RunSession(config, bus=args.bus, emulate=args.emulate,
-                       lockstep=True if args.lockstep else None, duration=args.duration,
-                       config_dir=resolve_config(args.config).parent, stop_request=request,
-                       **log_hooks(log), **preflight_kwargs(args)) as session:
-        report_preflight(session.preflight())
-        warn_realtime(session)
-        result = run_logged(session, log)
-        info = summary(session, result)
+    if args.plot:
+        check_output(args.plot, inputs=[args.config], suffix=".png", what="--plot")
+    log = open_run_log(args.log, live=live_address(args.live, args.log))
+    lower_writer(log)
+    try:
+        with stop_on_signals(StopRequest()) as request, \
+                RunSession(config, bus=args.bus, emulate=args.emulate,
+                           lockstep=True if args.lockstep else None, duration=args.duration,
+                           config_dir=resolve_config(args.config).parent, stop_request=request,
+                           **log_hooks(log), **preflight_kwargs(args)) as session:
+            report_preflight(session.preflight())
+            warn_realtime(session)
+            result = record_run(session, log, args.config)
+            info = summary(session, result)
+    except BaseException as exc:
+        abort(log, exc)
+        raise
     if log is not None:
         info["log"] = str(log.path)
     report(info, result.stop.line(), as_json=args.summary_json)
@@ -108,47 +118,16 @@ def warn_realtime(session: Any) -> None:
             sys.stderr.write(f"dobhil run: warning: {line}\n")
 
 
-def make_log(path: Path | None, config: Any, config_file: str | Path | None) -> Any:
-    """A :class:`~dobhil.recording.sink.RunLog` for ``path`` (None: no recording)."""
-    if path is None:
-        return None
-    from dobhil.errors import LogFileError
-    from dobhil.recording.sink import RunLog
-    if path.suffix != ".mcap":
-        raise LogFileError(f"--log {path}: expected a .mcap file name")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    log = RunLog(path, config, config_file=config_file)
-    lower_writer(log)
-    return log
-
-
 def lower_writer(log: Any) -> None:
     """The writer process below the loop (nice +10): it is lossy in real time and may lag."""
     from dobhil.runtime.realtime import WRITER_PRIORITY_DROP, lower_priority
-    writer = getattr(log, "writer", None)
-    if writer is not None:
-        lower_priority(WRITER_PRIORITY_DROP, pid=writer.pid)
-
-
-@contextmanager
-def closing_on_error(log: Any) -> Iterator[None]:
-    """Close (and remove, if nothing ran) the log when the run cannot even start."""
-    try:
-        yield
-    except BaseException as exc:
-        if log is not None:
-            log.abort(exc)
-        raise
+    if log is not None and log.writer_pid is not None:
+        lower_priority(WRITER_PRIORITY_DROP, pid=log.writer_pid)
 
 
 def log_hooks(log: Any) -> dict[str, Any]:
     """RunSession keyword arguments that record the run (none without a log)."""
-    return {} if log is None else {"sink": log.sink, "bus_wrapper": log.wrap_bus}
-
-
-def run_logged(session: Any, log: Any) -> Any:
-    from dobhil.recording.sink import run_recorded
-    return run_recorded(session, log)
+    return {} if log is None else {"sink": log, "bus_wrapper": log.wrap_bus}
 
 
 def report(info: dict[str, Any], stop_line: str, *, as_json: bool) -> None:

@@ -34,6 +34,7 @@ from typing import Any
 
 import can
 
+from dobhil.drives.bus_load import frame_bits as wire_bits
 from dobhil.drives.profile import DriveProfile
 from dobhil.drives.socketcan_link import link_info, link_problems
 
@@ -278,9 +279,8 @@ class _Capture:
 
 
 def frame_bits(msg: can.Message) -> int:
-    """Bits of ``msg`` on the wire (the run report's formula: worst-case stuffing)."""
-    from dobhil.analysis.run_report import frame_bits as bits
-    return bits(msg.dlc, msg.is_extended_id)
+    """Bits of ``msg`` on the wire (worst-case stuffing)."""
+    return wire_bits(msg.dlc, msg.is_extended_id)
 
 
 def _listen(bus: can.BusABC, probe: PreflightProbe, window: float, clock: Callable[[], float],
@@ -335,8 +335,12 @@ def run_preflight(
     window: float = DEFAULT_WINDOW, bitrate: int | None = None,
     clock: Callable[[], float] = time.monotonic,
     stamp: Callable[[can.Message], float] | None = None,
+    probe: PreflightProbe | None,
 ) -> PreflightReport:
     """Listen ``window`` s on ``bus`` (borrowed, not enabled, not shut down) and compare.
+
+    ``probe``: the protocol's part, :func:`dobhil.drives.registry.preflight_probe` of the
+    profile (None: the protocol has no preflight yet; the report says so).
 
     ``stamp``: a frame's time [s]; default its receive timestamp (kernel time on
     SocketCAN) or ``clock()`` when the interface gives none. Pass ``clock``/``stamp`` of a
@@ -345,8 +349,6 @@ def run_preflight(
     if not (math.isfinite(window) and window > 0):
         from dobhil.errors import ConfigError
         raise ConfigError(f"preflight window: expected a number of seconds > 0, got {window!r}")
-    from dobhil.drives.registry import drive_class
-    probe = drive_class(profile.protocol).preflight_probe(profile)
     if probe is None:
         finding = Finding(Severity.NOTE, f"no preflight for protocol {profile.protocol!r} yet: "
                                          "its settings are taken on trust")

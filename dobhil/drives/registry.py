@@ -9,7 +9,7 @@ from __future__ import annotations
 import importlib
 from collections.abc import Mapping
 from types import MappingProxyType
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import can
 
@@ -17,7 +17,10 @@ from dobhil.drives.base import Drive
 from dobhil.drives.profile import DriveProfile
 from dobhil.errors import ConfigError
 
-__all__ = ["DRIVE_CLASSES", "drive_class", "make_drive"]
+if TYPE_CHECKING:
+    from dobhil.drives.preflight import PreflightProbe
+
+__all__ = ["DRIVE_CLASSES", "drive_class", "make_drive", "preflight_probe"]
 
 #: protocol name -> (module, class name)
 DRIVE_CLASSES: Mapping[str, tuple[str, str]] = MappingProxyType({
@@ -42,3 +45,8 @@ def drive_class(protocol: str) -> type[Drive]:
 def make_drive(bus: can.BusABC, profile: DriveProfile, **kwargs: Any) -> Drive:
     """Build the drive of ``profile.protocol`` on ``bus`` (kwargs go to its constructor)."""
     return drive_class(profile.protocol)(bus, profile, **kwargs)
+
+
+def preflight_probe(profile: DriveProfile) -> PreflightProbe | None:
+    """The preflight part of ``profile.protocol`` (None: that protocol has none yet)."""
+    return drive_class(profile.protocol).preflight_probe(profile)

@@ -14,7 +14,7 @@ if TYPE_CHECKING:
     from matplotlib.axes import Axes
 
     from dobhil.analysis.run_report import RunData
-    from dobhil.runtime.replay import ReplayResult
+    from dobhil.replay import ReplayResult
 
 
 def _finish(ax: Axes, ylabel: str, legend: bool = True) -> None:

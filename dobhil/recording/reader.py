@@ -1,59 +1,46 @@
-"""Validated reading of dobhil recordings.
+"""Reading a dobhil log: :class:`LogFile`, opened once and checked before anything uses it.
 
-:func:`open_log` checks a file before anything else reads it and turns every way
-it can be unusable into one :class:`~dobhil.errors.LogFileError` line: missing,
-empty, not MCAP (bad magic), truncated (no footer, e.g. after ``kill -9``). The
-returned :class:`LogFile` uses the summary section (statistics, chunk indexes)
-when the file has one and falls back to one linear scan when it has not.
+One pass with the ``mcap`` package's public :class:`~mcap.stream_reader.StreamReader`
+(data-section CRC) and :func:`~mcap.stream_reader.get_chunk_data_stream` (each chunk's
+CRC) tells apart, one :class:`~dobhil.errors.LogFileError` line each: complete; cut short
+(run ``dobhil log recover``); damaged at byte N; not a dobhil log (written by X); invalid
+metadata (the config against its schema, numbers as numbers). Messages are then sliced
+from each decompressed, CRC-checked chunk with ``struct`` (:meth:`LogFile.iter_payloads`):
+the ``mcap`` reader's object per record made replay spend most of its time reading.
 """
 
 from __future__ import annotations
 
-import io
+import json
 import os
 import struct
 from collections.abc import Iterable, Iterator, Mapping
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 from types import MappingProxyType
-from typing import Any, Final
+from typing import Any, BinaryIO, Final
 
-from mcap.exceptions import McapError
-from mcap.reader import make_reader
-from mcap.records import Footer
-from mcap.stream_reader import StreamReader
-from mcap.summary import Summary
+from mcap.records import Attachment, Channel, Chunk, Footer, Header, Metadata, Schema, Statistics
+from mcap.stream_reader import StreamReader, get_chunk_data_stream
 
 from dobhil.errors import LogFileError
-from dobhil.recording.filewriter import RECORDING_METADATA
-from dobhil.recording.schemas import EventKind, Topic, decode, spec_for
+from dobhil.recording.schemas import EventKind, decode
+from dobhil.recording.writer import LIBRARY, RECORDING_METADATA
 
 MAGIC: Final = b"\x89MCAP0\r\n"
-#: Opcode byte + length + three u64 fields + u32 crc, then the closing magic.
-_FOOTER_TAIL: Final = 1 + 8 + 8 + 8 + 4 + len(MAGIC)
-
-
-def _damage_errors() -> tuple[type[BaseException], ...]:
-    """What mcap and its decompressors raise on damaged or cut data."""
-    errors: list[type[BaseException]] = [McapError, struct.error, ValueError, EOFError, KeyError, RuntimeError]
-    try:
-        import zstandard
-    except ImportError:
-        return tuple(errors)
-    return (*errors, zstandard.ZstdError)
-
-
-#: Errors the mcap library and the decompressors raise on damaged data.
-DAMAGE_ERRORS: Final = _damage_errors()
-_DAMAGED: Final = DAMAGE_ERRORS
+_RECORD: Final = struct.Struct("<BQ")            # opcode, length
+_MESSAGE: Final = struct.Struct("<HIQQ")         # channel, sequence, log time, publish time
+_OP_MESSAGE: Final = 0x05
+#: Numbers in metadata the tools use as numbers: (record, key) -> type.
+_NUMERIC: Final = {("recording", "dropped"): int, ("recording", "written"): int, ("bus", "bitrate"): float,
+                   ("run", "torque_limit"): float, ("run", "period"): float, ("run", "duration"): float}
+_STOP: Final = EventKind.STOP.name.lower()
 
 Message = tuple[str, int, dict[str, Any]]
 
 
 @dataclass(frozen=True)
 class ChannelInfo:
-    """One channel of a recording and how many messages it holds."""
-
     topic: str
     schema_name: str
     message_encoding: str
@@ -62,7 +49,7 @@ class ChannelInfo:
 
 @dataclass(frozen=True)
 class LogInfo:
-    """What ``dobhil log info`` shows about a recording."""
+    """What ``dobhil log info`` shows."""
 
     path: str
     channels: tuple[ChannelInfo, ...]
@@ -73,21 +60,30 @@ class LogInfo:
     attachments: tuple[str, ...]
     stop_reason: str | None
     dropped: int | None
-    has_summary: bool
+    has_summary: bool = True
 
     @property
     def duration_s(self) -> float:
-        """Time between the first and the last message."""
         return (self.end_ns - self.start_ns) / 1e9
 
     def to_dict(self) -> dict[str, Any]:
-        """Plain JSON-ready dict (``dobhil log info --json``)."""
         out = {f.name: getattr(self, f.name) for f in fields(self)}
-        out["channels"] = [asdict(c) for c in self.channels]
-        out["metadata"] = {k: dict(v) for k, v in self.metadata.items()}
-        out["attachments"] = list(self.attachments)
-        out["duration_s"] = self.duration_s
+        out.update(channels=[asdict(c) for c in self.channels], metadata={k: dict(v) for k, v in self.metadata.items()},
+                   attachments=list(self.attachments), duration_s=self.duration_s)
         return out
+
+
+@dataclass
+class _Scan:
+    """What the one pass over the file collected."""
+
+    library: str = ""
+    schemas: dict[int, Schema] = field(default_factory=dict)
+    channels: dict[int, Channel] = field(default_factory=dict)
+    metadata: dict[str, Mapping[str, str]] = field(default_factory=dict)
+    attachments: list[tuple[str, str, bytes]] = field(default_factory=list)
+    chunks: list[tuple[int, int]] = field(default_factory=list)  # (offset, uncompressed size)
+    statistics: Statistics | None = None
 
 
 def _fail(path: str | os.PathLike[str], what: str) -> LogFileError:
@@ -95,7 +91,7 @@ def _fail(path: str | os.PathLike[str], what: str) -> LogFileError:
 
 
 def check_mcap_head(path: str | os.PathLike[str]) -> int:
-    """Size of ``path`` after checking it exists, is not empty and starts like MCAP."""
+    """Size of ``path`` after checking it exists, is a non-empty file and starts like MCAP."""
     p = Path(path)
     if not p.exists():
         raise _fail(path, "no such file")
@@ -110,172 +106,217 @@ def check_mcap_head(path: str | os.PathLike[str]) -> int:
     return size
 
 
-def _read_footer(path: str | os.PathLike[str], size: int) -> Footer:
-    truncated = _fail(path, "truncated (no footer); try `dobhil log recover`")
-    if size < len(MAGIC) + _FOOTER_TAIL:
-        raise truncated
-    with open(path, "rb") as f:
-        f.seek(size - _FOOTER_TAIL)
-        tail = f.read()
-        if tail[-len(MAGIC):] != MAGIC:
-            raise truncated
+def _records(f: BinaryIO, path: str | os.PathLike[str]) -> Iterator[tuple[int, Any]]:
+    """(offset, record) of the whole file, CRCs checked; damage named by its byte."""
+    reader = StreamReader(f, emit_chunks=True, validate_crcs=True, record_size_limit=os.fstat(f.fileno()).st_size)
+    records = reader.records
+    while True:
+        pos = f.tell()
         try:
-            record = next(StreamReader(io.BytesIO(tail), skip_magic=True).records)
-        except _DAMAGED as exc:
-            raise truncated from exc
-    if not isinstance(record, Footer) or record.summary_start >= size:
-        raise truncated
-    return record
+            record = next(records)
+            if isinstance(record, Chunk):
+                get_chunk_data_stream(record, validate_crc=True)
+        except StopIteration:
+            return
+        except Exception as exc:  # mcap, zstd, lz4 and struct errors alike: the bytes are wrong
+            raise _fail(path, f"damaged at byte {pos} ({type(exc).__name__}: {exc}); "
+                              "`dobhil log recover` saves the intact chunks") from exc
+        yield pos, record
 
 
-def _read_summary(path: str | os.PathLike[str], footer: Footer) -> Summary | None:
-    if footer.summary_start == 0:
+def _scan(f: BinaryIO, path: str | os.PathLike[str]) -> _Scan:
+    scan = _Scan()
+    for pos, record in _records(f, path):
+        if isinstance(record, Header):
+            scan.library = record.library
+            if not record.library.startswith("dobhil/"):
+                raise _fail(path, f"not a dobhil log (written by {record.library or 'an unnamed writer'!r})")
+        elif isinstance(record, Schema):
+            scan.schemas[record.id] = record
+        elif isinstance(record, Channel):
+            scan.channels[record.id] = record
+        elif isinstance(record, Metadata):
+            scan.metadata[record.name] = MappingProxyType(dict(record.metadata))
+        elif isinstance(record, Attachment):
+            scan.attachments.append((record.name, record.media_type, record.data))
+        elif isinstance(record, Chunk):
+            scan.chunks.append((pos, record.uncompressed_size))
+        elif isinstance(record, Statistics):
+            scan.statistics = record
+        elif isinstance(record, Footer):
+            break
+    return scan
+
+
+def _validate_metadata(path: str | os.PathLike[str], metadata: Mapping[str, Mapping[str, str]]) -> Any:
+    """The recorded :class:`~dobhil.config.Config` (None without one); LogFileError naming a bad value."""
+    for (name, key), kind in _NUMERIC.items():
+        value = metadata.get(name, {}).get(key)
+        if value is not None:
+            try:
+                kind(value)
+            except ValueError:
+                raise _fail(path, f"metadata {name}.{key} = {value!r} is not a number") from None
+    record = metadata.get("config")
+    if not record:
         return None
+    from dobhil.config import build_config
     try:
-        with open(path, "rb") as f:
-            return make_reader(f).get_summary()
-    except _DAMAGED as exc:
-        raise _fail(path, f"damaged summary ({exc}); try `dobhil log recover`") from exc
-
-
-def open_log(path: str | os.PathLike[str]) -> LogFile:
-    """A validated recording; LogFileError (one line) if it cannot be read."""
-    size = check_mcap_head(path)
-    footer = _read_footer(path, size)
-    return LogFile(Path(path), _read_summary(path, footer))
+        return build_config({k: json.loads(v) for k, v in record.items()}, source=f"{os.fspath(path)} config")
+    except (ValueError, TypeError) as exc:
+        raise _fail(path, f"invalid recorded config: {' '.join(str(exc).split())}") from None
 
 
 class LogFile:
-    """A validated MCAP recording; each method opens the file for its own use."""
+    """A complete, checked dobhil log; the file stays open until :meth:`close`."""
 
-    def __init__(self, path: Path, summary: Summary | None) -> None:
-        self.path = path
-        self._summary = summary
+    def __init__(self, path: Path, file: BinaryIO, scan: _Scan, config: Any) -> None:
+        self.path, self._file, self._scan, self.config = path, file, scan, config
+
+    @classmethod
+    def open(cls, path: str | os.PathLike[str]) -> LogFile:
+        size = check_mcap_head(path)
+        f = open(path, "rb")
+        try:
+            f.seek(max(0, size - len(MAGIC)))
+            if f.read() != MAGIC or size < 2 * len(MAGIC) + 9:
+                f.seek(len(MAGIC))
+                _check_header(f, path)
+                raise _fail(path, "cut short (no footer): run `dobhil log recover` on it")
+            f.seek(0)
+            scan = _scan(f, path)
+            return cls(Path(path), f, scan, _validate_metadata(path, scan.metadata))
+        except BaseException:
+            f.close()
+            raise
+
+    def close(self) -> None:
+        self._file.close()
+
+    def __enter__(self) -> LogFile:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
 
     @property
-    def has_summary(self) -> bool:
-        """Whether the file has a summary section (every clean dobhil recording has)."""
-        return self._summary is not None
+    def library(self) -> str:
+        return self._scan.library
 
-    def topics(self) -> tuple[str, ...]:
-        """Topic names of every channel, in channel order."""
-        return tuple(c.topic for c in self.channels())
+    @property
+    def metadata(self) -> Mapping[str, Mapping[str, str]]:
+        return MappingProxyType(self._scan.metadata)
+
+    @property
+    def attachments(self) -> tuple[tuple[str, str, bytes], ...]:
+        return tuple(self._scan.attachments)
 
     def channels(self) -> tuple[ChannelInfo, ...]:
-        """Channels with their message counts."""
-        if self._summary is None:
-            return self._scan_channels()
-        stats = self._summary.statistics
+        stats = self._scan.statistics
         counts = stats.channel_message_counts if stats is not None else {}
-        return tuple(self._channel_info(c.id, counts.get(c.id, 0)) for c in self._summary.channels.values())
+        out = []
+        for c in self._scan.channels.values():
+            schema = self._scan.schemas.get(c.schema_id)
+            out.append(ChannelInfo(c.topic, schema.name if schema else "", c.message_encoding, counts.get(c.id, 0)))
+        return tuple(out)
 
-    def _channel_info(self, channel_id: int, count: int) -> ChannelInfo:
-        assert self._summary is not None
-        channel = self._summary.channels[channel_id]
-        schema = self._summary.schemas.get(channel.schema_id)
-        return ChannelInfo(channel.topic, schema.name if schema else "", channel.message_encoding, count)
-
-    def _scan_channels(self) -> tuple[ChannelInfo, ...]:
-        counts: dict[tuple[str, str, str], int] = {}
-        with open(self.path, "rb") as f:
-            for schema, channel, _ in self._guard(make_reader(f).iter_messages(log_time_order=False)):
-                key = (channel.topic, schema.name if schema else "", channel.message_encoding)
-                counts[key] = counts.get(key, 0) + 1
-        return tuple(ChannelInfo(*key, count) for key, count in counts.items())
-
-    def time_range(self) -> tuple[int, int]:
-        """(first, last) message log time in ns; (0, 0) when there are no messages."""
-        stats = self._summary.statistics if self._summary is not None else None
-        if stats is not None:
-            return stats.message_start_time, stats.message_end_time
-        times = [t for _, t, _ in self.iter_messages()]
-        return (min(times), max(times)) if times else (0, 0)
-
-    def metadata(self) -> Mapping[str, Mapping[str, str]]:
-        """Metadata records by name (config, versions, bus, run, recording)."""
-        with open(self.path, "rb") as f:
-            records = {m.name: MappingProxyType(dict(m.metadata)) for m in self._guard(make_reader(f).iter_metadata())}
-        return MappingProxyType(records)
-
-    def attachments(self) -> tuple[tuple[str, str, bytes], ...]:
-        """Attachments as (name, media_type, data)."""
-        with open(self.path, "rb") as f:
-            return tuple((a.name, a.media_type, a.data) for a in self._guard(make_reader(f).iter_attachments()))
-
-    def iter_messages(self, topics: Iterable[str | Topic] | None = None) -> Iterator[Message]:
-        """(topic, log_time_ns, payload) in log-time order, optionally for some topics."""
-        wanted = None if topics is None else [self._topic_name(t) for t in topics]
-        with open(self.path, "rb") as f:
-            for _, channel, message in self._guard(make_reader(f).iter_messages(topics=wanted)):
-                yield channel.topic, message.log_time, decode(message.data)
-
-    def _topic_name(self, topic: str | Topic) -> str:
-        return spec_for(topic).name if isinstance(topic, Topic) else topic
+    def topics(self) -> tuple[str, ...]:
+        return tuple(c.topic for c in self._scan.channels.values())
 
     def require_topic(self, topic: str) -> None:
-        """LogFileError naming the available topics if ``topic`` is not recorded."""
-        available = self.topics()
-        if topic not in available:
-            listed = ", ".join(available) or "none"
-            raise _fail(self.path, f"no topic {topic!r}; available: {listed}")
+        if topic not in self.topics():
+            raise _fail(self.path, f"no topic {topic!r}; available: {', '.join(self.topics()) or 'none'}")
 
     def schema_properties(self, topic: str) -> tuple[str, ...]:
-        """Property names of a topic's JSON schema, as stored in the file."""
+        """Property names of a topic's JSON schema as stored in the file."""
         self.require_topic(topic)
-        with open(self.path, "rb") as f:
-            reader = make_reader(f)
-            summary = self._summary or _scan_summary(reader)
-        for channel in summary.channels.values():
-            schema = summary.schemas.get(channel.schema_id)
-            if channel.topic == topic and schema is not None and schema.data:
-                return tuple(decode(schema.data).get("properties", {}))
-        return ()
+        channel = next(c for c in self._scan.channels.values() if c.topic == topic)
+        schema = self._scan.schemas.get(channel.schema_id)
+        try:
+            return tuple(json.loads(schema.data)["properties"]) if schema else ()
+        except (ValueError, KeyError, TypeError) as exc:
+            raise _fail(self.path, f"the schema of {topic} is not a JSON schema ({exc})") from None
+
+    def iter_payloads(self, topics: Iterable[str] | None = None) -> Iterator[tuple[str, int, bytes]]:
+        """(topic, log_time_ns, JSON bytes) in file order (the order written)."""
+        wanted = {cid: c.topic for cid, c in self._scan.channels.items() if topics is None or c.topic in set(topics)}
+        for offset, size in self._scan.chunks:
+            yield from _chunk_messages(self._chunk_data(offset, size), wanted)
+
+    def iter_messages(self, topics: Iterable[str] | None = None) -> Iterator[Message]:
+        """(topic, log_time_ns, payload dict) in file order."""
+        for topic, t, data in self.iter_payloads(topics):
+            try:
+                yield topic, t, decode(data)
+            except ValueError:
+                raise _fail(self.path, f"a {topic} message at log time {t} is not JSON") from None
+
+    def time_range(self) -> tuple[int, int]:
+        stats = self._scan.statistics
+        return (stats.message_start_time, stats.message_end_time) if stats is not None else (0, 0)
 
     def stop_reason(self) -> str | None:
-        """Reason of the last ``/events`` record of kind stop, if any."""
         if "/events" not in self.topics():
             return None
-        reasons = [p["reason"] for _, _, p in self.iter_messages(["/events"]) if p.get("kind") == _STOP]
+        reasons = [p.get("reason") for _, _, p in self.iter_messages(["/events"]) if p.get("kind") == _STOP]
         return reasons[-1] if reasons else None
 
     def info(self) -> LogInfo:
-        """Channels, counts, time range, metadata, attachments and stop reason."""
         channels = self.channels()
         start, end = self.time_range()
-        metadata = self.metadata()
-        dropped = metadata.get(RECORDING_METADATA, {}).get("dropped")
-        return LogInfo(
-            path=os.fspath(self.path),
-            channels=channels,
-            message_count=sum(c.message_count for c in channels),
-            start_ns=start,
-            end_ns=end,
-            metadata=metadata,
-            attachments=tuple(name for name, _, _ in self.attachments()),
-            stop_reason=self.stop_reason(),
-            dropped=None if dropped is None else int(dropped),
-            has_summary=self.has_summary,
-        )
+        dropped = self.metadata.get(RECORDING_METADATA, {}).get("dropped")
+        return LogInfo(path=os.fspath(self.path), channels=channels,
+                       message_count=sum(c.message_count for c in channels), start_ns=start, end_ns=end,
+                       metadata=self.metadata,
+                       attachments=tuple(a for a, _, _ in self.attachments), stop_reason=self.stop_reason(),
+                       dropped=None if dropped is None else int(dropped))
 
-    def _guard(self, records: Iterator[Any]) -> Iterator[Any]:
-        """Re-raise mcap's damage errors as one-line LogFileErrors."""
+    def _chunk_data(self, offset: int, size: int) -> bytes:
+        """The chunk's records, decompressed, CRC checked (again: the file may have changed)."""
         try:
-            yield from records
-        except _DAMAGED as exc:
-            raise _fail(self.path, f"damaged data ({exc}); try `dobhil log recover`") from exc
+            stream, _ = get_chunk_data_stream(_chunk_at(self._file, offset), validate_crc=True)
+            return stream.read(size)
+        except LogFileError:
+            raise
+        except Exception as exc:
+            raise _fail(self.path, f"damaged at byte {offset} ({type(exc).__name__}: {exc})") from exc
 
 
-_STOP: Final = EventKind.STOP.name.lower()
+def _check_header(f: BinaryIO, path: str | os.PathLike[str]) -> None:
+    """A cut-short file written by another tool is still named as foreign."""
+    try:
+        record = next(StreamReader(f, skip_magic=True).records)
+    except Exception:
+        return
+    if isinstance(record, Header) and not record.library.startswith("dobhil/"):
+        raise _fail(path, f"not a dobhil log (written by {record.library or 'an unnamed writer'!r})")
 
 
-def _scan_summary(reader: Any) -> Summary:
-    """Schemas and channels of a file without summary, by reading its messages."""
-    summary = Summary()
-    for schema, channel, _ in reader.iter_messages(log_time_order=False):
-        summary.channels[channel.id] = channel
-        if schema is not None:
-            summary.schemas[schema.id] = schema
-    return summary
+def _chunk_at(f: BinaryIO, offset: int) -> Chunk:
+    f.seek(offset)
+    record = next(StreamReader(f, skip_magic=True, emit_chunks=True).records)
+    if not isinstance(record, Chunk):
+        raise ValueError(f"expected a chunk, found {type(record).__name__}")
+    return record
 
 
-__all__ = ["ChannelInfo", "LogFile", "LogInfo", "MAGIC", "check_mcap_head", "open_log"]
+def _chunk_messages(records: bytes, wanted: Mapping[int, str]) -> Iterator[tuple[str, int, bytes]]:
+    head, msg_head = _RECORD.unpack_from, _MESSAGE.unpack_from
+    pos, end = 0, len(records)
+    while pos < end:
+        opcode, length = head(records, pos)
+        body = pos + 9
+        if opcode == _OP_MESSAGE:
+            channel, _, log_time, _ = msg_head(records, body)
+            topic = wanted.get(channel)
+            if topic is not None:
+                yield topic, log_time, records[body + 22:body + length]
+        pos = body + length
+
+
+def open_log(path: str | os.PathLike[str]) -> LogFile:
+    """:meth:`LogFile.open`."""
+    return LogFile.open(path)
+
+
+__all__ = ["LIBRARY", "MAGIC", "ChannelInfo", "LogFile", "LogInfo", "check_mcap_head", "open_log"]

@@ -1,34 +1,38 @@
-"""The recorded channels: one table of topics, their JSON schemas and a cheap encoder.
+"""The one table of recorded topics: each topic's fields, JSON schema and encoder live here.
 
-Every channel uses message encoding ``json`` with schema encoding ``jsonschema``,
-so Foxglove opens a recording without plugins. The table :data:`TOPIC_SPECS` is
-the single source of truth; ``docs/recording.md`` describes the same table.
-
-Encoding is on the hot path of the control loop, so :func:`encode` is one call to
-a prebuilt compact :class:`json.JSONEncoder`; only payloads it rejects (NaN or
-infinity, numpy integers) take a slower path that writes non-finite numbers as
-``null`` and numpy scalars as plain numbers.
+Channels are JSON with a JSON schema (Foxglove opens them without plugins); the table is
+documented in ``docs/recording.md`` (a test checks it). Records are flat tuples, cheap to
+build on the loop thread and to ``marshal``: ``(Topic, log_time_ns, *values)`` with the
+topic's field values in order -- for the CAN topics the compact
+``(arbitration_id, flags, dlc, data, timestamp, channel)`` of :func:`can_frame_record` --
+or ``(CYCLE, log_time_ns, *values)`` named by :data:`CYCLE_FIELDS`, one message per topic
+of :data:`CYCLE_TOPICS`. Public: :data:`TOPIC_SPECS`, :func:`spec_for`,
+:func:`can_frame_record`, :func:`can_frame_payload`, :func:`can_frame_message`.
 """
 
 from __future__ import annotations
 
 import json
-import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
+from functools import cached_property
 from enum import IntEnum
+from operator import itemgetter
 from types import MappingProxyType
 from typing import Any, Final
 
+import orjson
+
 from dobhil.errors import LogFileError
 
-#: Schema encoding and message encoding of every dobhil channel.
 SCHEMA_ENCODING: Final = "jsonschema"
 MESSAGE_ENCODING: Final = "json"
+#: First element of a cycle record (topic records start with their Topic).
+CYCLE: Final = 0
 
 
 class Topic(IntEnum):
-    """Every topic dobhil records; :data:`TOPIC_SPECS` maps each to its schema."""
+    """Every topic dobhil records."""
 
     CAN_RX = 1
     CAN_TX = 2
@@ -41,8 +45,6 @@ class Topic(IntEnum):
 
 
 class FieldKind(IntEnum):
-    """JSON type of one payload field."""
-
     NUMBER = 1
     INTEGER = 2
     BOOLEAN = 3
@@ -69,15 +71,21 @@ class EventKind(IntEnum):
     INFO = 7
 
 
-_KIND_JSON: Final[Mapping[FieldKind, Mapping[str, Any]]] = MappingProxyType(
-    {
-        FieldKind.NUMBER: {"type": "number"},
-        FieldKind.INTEGER: {"type": "integer"},
-        FieldKind.BOOLEAN: {"type": "boolean"},
-        FieldKind.STRING: {"type": "string"},
-        FieldKind.BYTES: {"type": "array", "items": {"type": "integer", "minimum": 0, "maximum": 255}},
-    }
-)
+class FrameFlag(IntEnum):
+    """Bits of a CAN frame record's ``flags``: the booleans of a python-can message."""
+
+    EXTENDED_ID = 1
+    REMOTE_FRAME = 2
+    ERROR_FRAME = 4
+    FD = 8
+    BITRATE_SWITCH = 16
+    ERROR_STATE_INDICATOR = 32
+
+
+_JSON_TYPE: Final[dict[FieldKind, dict[str, Any]]] = {
+                     FieldKind.NUMBER: {"type": ["number", "null"]}, FieldKind.INTEGER: {"type": "integer"},
+                     FieldKind.BOOLEAN: {"type": "boolean"}, FieldKind.STRING: {"type": "string"},
+                     FieldKind.BYTES: {"type": "array", "items": {"type": "integer", "minimum": 0, "maximum": 255}}}
 
 
 @dataclass(frozen=True)
@@ -91,52 +99,47 @@ class Field:
     choices: tuple[str, ...] = ()
 
     def json_schema(self) -> dict[str, Any]:
-        """The JSON-schema property of this field."""
-        prop: dict[str, Any] = {**_KIND_JSON[self.kind]}
         unit = f" [{self.unit}]" if self.unit else ""
-        prop["description"] = f"{self.description}{unit}"
+        prop: dict[str, Any] = {**_JSON_TYPE[self.kind], "description": f"{self.description}{unit}"}
         if self.choices:
             prop["enum"] = list(self.choices)
         return prop
 
 
+Encoder = Callable[[Sequence[Any]], bytes]
+
+
 @dataclass(frozen=True)
 class TopicSpec:
-    """One channel: topic name, schema name, fields in their canonical order."""
+    """One channel: topic name, schema name, fields in canonical order, and its encoder
+    (record values -> JSON bytes)."""
 
     topic: Topic
     name: str
     schema_name: str
     description: str
     fields: tuple[Field, ...]
+    encoder: Encoder | None = None  # None: the values are the fields, in order
 
-    @property
+    @cached_property
     def keys(self) -> tuple[str, ...]:
-        """Field names in canonical order (the CSV column order)."""
         return tuple(f.name for f in self.fields)
 
     def json_schema(self) -> dict[str, Any]:
-        """The channel's JSON schema: ``title``, ``type: object``, ``properties``."""
-        return {
-            "$schema": "https://json-schema.org/draft/2020-12/schema",
-            "title": self.schema_name,
-            "description": self.description,
-            "type": "object",
-            "properties": {f.name: f.json_schema() for f in self.fields},
-            "required": list(self.keys),
-        }
+        return {"$schema": "https://json-schema.org/draft/2020-12/schema", "title": self.schema_name,
+                "description": self.description, "type": "object",
+                "properties": {f.name: f.json_schema() for f in self.fields}, "required": list(self.keys)}
 
     def schema_bytes(self) -> bytes:
-        """The JSON schema as stored in the MCAP schema record."""
         return json.dumps(self.json_schema(), indent=1).encode()
 
-    def from_values(self, values: Sequence[Any]) -> dict[str, Any]:
-        """A payload dict from values given in canonical field order."""
-        if len(values) != len(self.fields):
-            raise LogFileError(
-                f"{self.name}: expected {len(self.fields)} values {self.keys}, got {len(values)}"
-            )
-        return dict(zip(self.keys, values))
+    @cached_property
+    def encode(self) -> Encoder:
+        """record values -> JSON payload (NaN and infinity as ``null``)."""
+        if self.encoder is not None:
+            return self.encoder
+        keys, dumps, numpy = self.keys, orjson.dumps, orjson.OPT_SERIALIZE_NUMPY
+        return lambda values: dumps(dict(zip(keys, values)), option=numpy)
 
 
 def _num(name: str, unit: str, description: str) -> Field:
@@ -155,162 +158,170 @@ def _str(name: str, description: str, choices: tuple[str, ...] = ()) -> Field:
     return Field(name, FieldKind.STRING, description, choices=choices)
 
 
+# -- CAN frames ----------------------------------------------------------------
+
 _CAN_FIELDS: Final = (
-    _num("timestamp", "s", "bus timestamp of the frame"),
-    _int("arbitration_id", "CAN identifier"),
-    _bool("is_extended_id", "29-bit identifier"),
-    _bool("is_remote_frame", "remote transmission request"),
-    _bool("is_error_frame", "error frame"),
-    _bool("is_fd", "CAN FD frame"),
+    _num("timestamp", "s", "bus timestamp of the frame"), _int("arbitration_id", "CAN identifier"),
+    _bool("is_extended_id", "29-bit identifier"), _bool("is_remote_frame", "remote transmission request"),
+    _bool("is_error_frame", "error frame"), _bool("is_fd", "CAN FD frame"),
     _bool("bitrate_switch", "CAN FD bit rate switch"),
-    _bool("error_state_indicator", "CAN FD error state indicator"),
-    _int("dlc", "data length in bytes"),
-    Field("data", FieldKind.BYTES, "payload bytes"),
-    _str("data_hex", "payload as lower-case hex"),
+    _bool("error_state_indicator", "CAN FD error state indicator"), _int("dlc", "data length in bytes"),
+    Field("data", FieldKind.BYTES, "payload bytes"), _str("data_hex", "payload as lower-case hex"),
     _str("direction", "direction seen by dobhil", ("rx", "tx")),
     _str("channel", "bus channel name ('' when unknown)"),
 )
 
+
+def frame_flags(msg: Any) -> int:
+    """The :class:`FrameFlag` bits of a python-can message."""
+    return (msg.is_extended_id | msg.is_remote_frame << 1 | msg.is_error_frame << 2 | msg.is_fd << 3
+            | msg.bitrate_switch << 4 | msg.error_state_indicator << 5)
+
+
+def can_frame_record(msg: Any, direction: Direction, log_time_ns: int) -> tuple[Any, ...]:
+    """The record of a python-can message on ``/can/rx`` or ``/can/tx``."""
+    topic = Topic.CAN_RX if direction is Direction.RX else Topic.CAN_TX
+    return (int(topic), log_time_ns, msg.arbitration_id, frame_flags(msg), msg.dlc, bytes(msg.data or b""),
+            msg.timestamp, msg.channel)
+
+
+def can_frame_payload(values: Sequence[Any], direction: Direction) -> dict[str, Any]:
+    """The ``/can/*`` payload of a frame record's values (after topic and log time)."""
+    arb, flags, dlc, data, stamp, channel = values
+    data = bytes(data)
+    bits = {f: bool(flags & f) for f in FrameFlag}
+    return {"timestamp": float(stamp or 0.0), "arbitration_id": arb,
+            "is_extended_id": bits[FrameFlag.EXTENDED_ID], "is_remote_frame": bits[FrameFlag.REMOTE_FRAME],
+            "is_error_frame": bits[FrameFlag.ERROR_FRAME], "is_fd": bits[FrameFlag.FD],
+            "bitrate_switch": bits[FrameFlag.BITRATE_SWITCH],
+            "error_state_indicator": bits[FrameFlag.ERROR_STATE_INDICATOR], "dlc": dlc, "data": list(data),
+            "data_hex": data.hex(), "direction": direction.name.lower(),
+            "channel": "" if channel is None else str(channel)}
+
+
+def can_frame_message(payload: Mapping[str, Any], log_time_ns: int) -> Any:
+    """The python-can message of a ``/can/*`` payload (bus timestamp, else the log time)."""
+    import can
+    return can.Message(timestamp=payload.get("timestamp") or log_time_ns / 1e9,
+                       arbitration_id=payload["arbitration_id"], is_extended_id=payload["is_extended_id"],
+                       is_remote_frame=payload["is_remote_frame"], is_error_frame=payload["is_error_frame"],
+                       is_fd=payload["is_fd"], bitrate_switch=payload.get("bitrate_switch", False),
+                       error_state_indicator=payload.get("error_state_indicator", False), dlc=payload["dlc"],
+                       data=bytes(payload["data"]), is_rx=payload["direction"] != "tx",
+                       channel=payload.get("channel") or None, check=False)
+
+
+def _frame_encoder(direction: Direction) -> Encoder:
+    return lambda values: orjson.dumps(can_frame_payload(values, direction))
+
+
+def _event_encoder(values: Sequence[Any]) -> bytes:
+    kind, reason, detail, count = values
+    return orjson.dumps({"kind": EventKind(kind).name.lower(), "reason": reason, "detail": detail, "count": count})
+
+
+# -- the table -------------------------------------------------------------------
+
 _SPECS: Final = (
-    TopicSpec(Topic.CAN_RX, "/can/rx", "dobhil.CanFrame", "CAN frame received", _CAN_FIELDS),
-    TopicSpec(Topic.CAN_TX, "/can/tx", "dobhil.CanFrame", "CAN frame sent", _CAN_FIELDS),
-    TopicSpec(
-        Topic.DRIVE_FEEDBACK,
-        "/drive/feedback",
-        "dobhil.DriveFeedback",
-        "drive feedback decoded from the bus",
-        (
-            _num("position", "rad", "motor-side position"),
-            _num("velocity", "rad/s", "motor-side velocity"),
-            _int("axis_state", "drive state code"),
-            _int("axis_error", "drive error code (0: none)"),
-            _int("seq", "motion frames received from the drive so far (Feedback.seq)"),
-            _int("cycle", "control cycle that used this feedback (-1: controller.initialize)"),
-        ),
-    ),
-    TopicSpec(
-        Topic.DRIVE_COMMAND,
-        "/drive/command",
-        "dobhil.DriveCommand",
-        "torque command sent to the drive",
-        (_num("torque", "N m", "commanded motor torque"),),
-    ),
-    TopicSpec(
-        Topic.CONTROLLER,
-        "/controller",
-        "dobhil.Controller",
-        "controller internals of one cycle",
-        (
-            _num("tau_ref", "N m", "torque reference"),
-            _num("tau_int_hat", "N m", "estimated interaction torque (RTOb)"),
-            _num("tau_dis_hat", "N m", "estimated disturbance torque (DOb)"),
-            _num("tau_per", "N m", "performance torque"),
-            _num("u_unsat", "N m", "control output before saturation"),
-            _num("u_sat", "N m", "control output after saturation"),
-            _int("cycle", "control cycle index"),
-        ),
-    ),
-    TopicSpec(
-        Topic.LOOP,
-        "/loop",
-        "dobhil.Loop",
-        "timing of one control cycle",
-        (
-            _int("cycle", "control cycle index"),
-            _num("period_error", "s", "actual minus nominal period"),
-            _num("exec_time", "s", "time spent computing the cycle"),
-            _bool("overrun", "the cycle missed its deadline"),
-        ),
-    ),
-    TopicSpec(
-        Topic.EMULATOR_TRUTH,
-        "/emulator/truth",
-        "dobhil.EmulatorTruth",
-        "ground truth of the plant emulator",
-        (
-            _num("q", "rad", "position"),
-            _num("dq", "rad/s", "velocity"),
-            _num("tau_motor", "N m", "motor torque applied"),
-            _num("tau_int", "N m", "interaction torque applied"),
-        ),
-    ),
-    TopicSpec(
-        Topic.EVENTS,
-        "/events",
-        "dobhil.Event",
-        "state changes, faults and recorder notes",
-        (
-            _str("kind", "event kind", tuple(k.name.lower() for k in EventKind)),
-            _str("reason", "one-line reason"),
-            _str("detail", "free-form detail"),
-            _int("count", "records lost (kind=loss), else 0"),
-        ),
-    ),
+    TopicSpec(Topic.CAN_RX, "/can/rx", "dobhil.CanFrame", "CAN frame received", _CAN_FIELDS,
+              _frame_encoder(Direction.RX)),
+    TopicSpec(Topic.CAN_TX, "/can/tx", "dobhil.CanFrame", "CAN frame sent", _CAN_FIELDS,
+              _frame_encoder(Direction.TX)),
+    TopicSpec(Topic.DRIVE_FEEDBACK, "/drive/feedback", "dobhil.DriveFeedback", "drive feedback decoded from the bus",
+              (_num("position", "rad", "motor-side position"), _num("velocity", "rad/s", "motor-side velocity"),
+               _int("axis_state", "drive state code"), _int("axis_error", "drive error code (0: none)"),
+               _int("seq", "motion frames received from the drive so far (Feedback.seq)"),
+               _int("cycle", "control cycle that used this feedback (-1: controller.initialize)"))),
+    TopicSpec(Topic.DRIVE_COMMAND, "/drive/command", "dobhil.DriveCommand", "torque command sent to the drive",
+              (_num("torque", "N m", "commanded motor torque"),)),
+    TopicSpec(Topic.CONTROLLER, "/controller", "dobhil.Controller", "controller internals of one cycle",
+              (_num("tau_ref", "N m", "torque reference"),
+               _num("tau_int_hat", "N m", "estimated interaction torque (RTOb)"),
+               _num("tau_dis_hat", "N m", "estimated disturbance torque (DOb)"),
+               _num("tau_per", "N m", "performance torque"),
+               _num("u_unsat", "N m", "control output before saturation"),
+               _num("u_sat", "N m", "control output after saturation"), _int("cycle", "control cycle index"))),
+    TopicSpec(Topic.LOOP, "/loop", "dobhil.Loop", "timing of one control cycle",
+              (_int("cycle", "control cycle index"), _num("period_error", "s", "actual minus nominal period"),
+               _num("exec_time", "s", "time spent computing the cycle"),
+               _bool("overrun", "the cycle missed its deadline"))),
+    TopicSpec(Topic.EMULATOR_TRUTH, "/emulator/truth", "dobhil.EmulatorTruth", "ground truth of the plant emulator",
+              (_num("q", "rad", "position"), _num("dq", "rad/s", "velocity"),
+               _num("tau_motor", "N m", "motor torque applied"), _num("tau_int", "N m", "interaction torque applied"))),
+    TopicSpec(Topic.EVENTS, "/events", "dobhil.Event", "state changes, faults and recorder notes",
+              (_str("kind", "event kind", tuple(k.name.lower() for k in EventKind)),
+               _str("reason", "one-line reason"), _str("detail", "free-form detail"),
+               _int("count", "records lost (kind=loss), else 0")), _event_encoder),
 )
 
-#: Topic -> spec, the one table of channels.
+#: Topic -> spec: the one table of channels.
 TOPIC_SPECS: Final[Mapping[Topic, TopicSpec]] = MappingProxyType({s.topic: s for s in _SPECS})
 #: Topic name ("/can/rx") -> spec.
 SPECS_BY_NAME: Final[Mapping[str, TopicSpec]] = MappingProxyType({s.name: s for s in _SPECS})
 
 
-def spec_for(topic: str | Topic) -> TopicSpec:
-    """The spec of a topic given by name or enum; LogFileError if unknown."""
-    spec = TOPIC_SPECS.get(topic) if isinstance(topic, Topic) else SPECS_BY_NAME.get(topic)
+def spec_for(topic: str | int) -> TopicSpec:
+    """The spec of a topic given by name or number; LogFileError if unknown."""
+    spec = SPECS_BY_NAME.get(topic) if isinstance(topic, str) else TOPIC_SPECS.get(Topic(topic))
     if spec is None:
         raise LogFileError(f"unknown topic {topic!r}; expected one of {', '.join(SPECS_BY_NAME)}")
     return spec
 
 
-def _plain(value: Any) -> Any:
-    """``default`` hook of the encoder: numpy scalars and arrays to Python values."""
-    for attr in ("tolist", "item"):
-        method = getattr(value, attr, None)
-        if method is not None:
-            return method()
-    if isinstance(value, (bytes, bytearray, memoryview)):
-        return list(value)
-    raise TypeError(f"cannot record {type(value).__name__} as JSON")
+# -- the cycle record --------------------------------------------------------------
+
+#: Values of a cycle record after (CYCLE, log_time_ns); the truth values are optional.
+CYCLE_FIELDS: Final = ("cycle", "position", "velocity", "seq", "tau_ref", "tau_int_hat", "tau_dis_hat", "tau_per",
+                       "u_unsat", "u_sat", "period_error", "exec_time", "overrun", "axis_state", "axis_error",
+                       "q", "dq", "tau_motor", "tau_int")
+#: Record length of a cycle without the emulator truth.
+CYCLE_LEN_NO_TRUTH: Final = 2 + CYCLE_FIELDS.index("q")
+_ALIASES: Final = {"torque": "u_sat"}  # /drive/command.torque is the saturated output
 
 
-def _finite(value: Any) -> Any:
-    """Non-finite floats (also inside lists) replaced by None."""
-    if isinstance(value, float):
-        return value if math.isfinite(value) else None
-    if isinstance(value, (list, tuple)):
-        return [_finite(v) for v in value]
-    return value
+def _view(spec: TopicSpec) -> tuple[Topic, Encoder, int]:
+    """(topic, cycle record -> JSON, shortest record holding its values) of a cycle topic."""
+    idx = [2 + CYCLE_FIELDS.index(_ALIASES.get(k, k)) for k in spec.keys]
+    get, encode = itemgetter(*idx), spec.encode
+    if len(idx) == 1:
+        return spec.topic, lambda r, i=idx[0]: encode((r[i],)), idx[0] + 1
+    return spec.topic, lambda r: encode(get(r)), max(idx) + 1
 
 
-_STRICT = json.JSONEncoder(separators=(",", ":"), check_circular=False, allow_nan=False, default=_plain)
+#: (topic, cycle record -> JSON, shortest record holding its values) of every cycle topic.
+CYCLE_TOPICS: Final = tuple(_view(TOPIC_SPECS[t]) for t in (Topic.DRIVE_FEEDBACK, Topic.CONTROLLER,
+                                                             Topic.DRIVE_COMMAND, Topic.LOOP, Topic.EMULATOR_TRUTH))
 
 
-def encode(payload: Mapping[str, Any]) -> bytes:
-    """Compact JSON of a payload; NaN and infinity become ``null``."""
-    try:
-        return _STRICT.encode(payload).encode()
-    except ValueError:
-        plain = json.loads(json.dumps(payload, default=_plain))
-        return _STRICT.encode({k: _finite(v) for k, v in plain.items()}).encode()
+def messages(record: Sequence[Any]) -> Iterator[tuple[Topic, int, bytes]]:
+    """The ``(topic, log_time_ns, json)`` messages of one record."""
+    kind, t = record[0], record[1]
+    if kind != CYCLE:
+        yield Topic(kind), t, TOPIC_SPECS[Topic(kind)].encode(record[2:])
+        return
+    n = len(record)
+    for topic, encode, needs in CYCLE_TOPICS:
+        if n >= needs:
+            yield topic, t, encode(record)
+
+
+def message_count(record: Sequence[Any]) -> int:
+    """How many messages a record becomes (loss accounting)."""
+    if record[0] != CYCLE:
+        return 1
+    return sum(len(record) >= needs for _, _, needs in CYCLE_TOPICS)
+
+
+def event_record(kind: EventKind, log_time_ns: int, reason: str, detail: str = "", count: int = 0) -> tuple[Any, ...]:
+    return (int(Topic.EVENTS), log_time_ns, int(kind), reason, detail, count)
 
 
 def decode(data: bytes) -> dict[str, Any]:
     """The payload dict of a recorded JSON message."""
-    return json.loads(data)
+    return orjson.loads(data)
 
 
-__all__ = [
-    "MESSAGE_ENCODING",
-    "SCHEMA_ENCODING",
-    "SPECS_BY_NAME",
-    "TOPIC_SPECS",
-    "Direction",
-    "EventKind",
-    "Field",
-    "FieldKind",
-    "Topic",
-    "TopicSpec",
-    "decode",
-    "encode",
-    "spec_for",
-]
+__all__ = ["CYCLE", "CYCLE_FIELDS", "CYCLE_TOPICS", "MESSAGE_ENCODING", "SCHEMA_ENCODING", "SPECS_BY_NAME",
+           "TOPIC_SPECS", "Direction", "EventKind", "Field", "FieldKind", "FrameFlag", "Topic", "TopicSpec",
+           "can_frame_message", "can_frame_payload", "can_frame_record", "decode", "event_record",
+           "frame_flags", "message_count", "messages", "spec_for"]

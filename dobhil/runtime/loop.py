@@ -56,7 +56,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from dobhil.drives.base import Drive, Feedback, SafeStopReport
-from dobhil.errors import BusError, DriveError, DriveFaultError
+from dobhil.errors import BusError, DriveError, DriveFaultError, RecorderError
 from dobhil.runtime.controller import ControlOutput, ForceController
 from dobhil.runtime.stop import Stop, StopReason
 
@@ -79,7 +79,9 @@ class Reference(Protocol):
 
 
 class CycleSink(Protocol):
-    """Receives the run as it goes; must never block (the recorder's lossy mode)."""
+    """Receives the run as it goes; must never block (the recorder's lossy mode). A sink
+    whose output failed raises :class:`~dobhil.errors.RecorderError` from ``cycle``: the
+    loop stops safely with reason ``recorder_failed``."""
 
     def started(self, fb: Feedback) -> None:
         """The drive is enabled and the controller initialised from ``fb``."""
@@ -606,7 +608,10 @@ class ForceLoop:
         out = self._last_out  # set by the cycle just stored; None only before the first
         if self.sink is not None and out is not None:
             t, period_error, exec_time = self._last
-            self.sink.cycle(k, t, fb, out, period_error, exec_time, overrun)
+            try:
+                self.sink.cycle(k, t, fb, out, period_error, exec_time, overrun)
+            except RecorderError as exc:
+                raise _Halt(StopReason.RECORDER_FAILED, str(exc)) from exc
 
     def _safe_stop(self, stop: Stop) -> SafeStopReport:
         """Zero torque, disable, confirm; never raises. The sink hears of each step."""

@@ -21,7 +21,7 @@ from dobhil.config.schema import Config
 from dobhil.drives.base import Drive
 from dobhil.drives.preflight import DEFAULT_WINDOW, PreflightReport, profile_rate_findings, run_preflight
 from dobhil.drives.profile import DriveProfile, load_profile
-from dobhil.drives.registry import make_drive
+from dobhil.drives.registry import make_drive, preflight_probe
 from dobhil.emulator.plant import Plant
 from dobhil.emulator.protocol import EmulatedDrive, LockstepBus
 from dobhil.emulator.registry import make_emulated_drive
@@ -181,6 +181,11 @@ class RunSession:
         self._buses.append(bus)
         return bus
 
+    @property
+    def sim_clock(self) -> Callable[[], float] | None:
+        """Simulated time [s] of a lockstep run (the log clock); None in real time."""
+        return self._clock
+
     # -- running -------------------------------------------------------------
 
     def truth(self) -> tuple[float, float]:
@@ -198,6 +203,7 @@ class RunSession:
                 self._unwrapped_host, self.profile, period=self.config.loop.period,
                 feedback_timeout=self.config.loop.feedback_timeout, window=self.preflight_window,
                 bitrate=self.bus_spec.kwargs.get("bitrate") or None,
+                probe=preflight_probe(self.profile),
                 **({"clock": sim, "stamp": lambda _m: sim()} if sim is not None else {}))
         if self.preflight_report.stale_feedback:
             raise PreflightError(self.preflight_report)

@@ -19,6 +19,7 @@ class StopReason(IntEnum):
     EXCEPTION = 7         # an exception in the loop (re-raised to the caller)
     ENABLE_FAILED = 8     # the drive could not be enabled
     BUS_ERROR = 9         # the CAN bus failed (send refused, ENOBUFS, interface gone)
+    RECORDER_FAILED = 10  # the run's recorder failed (disk full, ...): the record would be lost
 
 
 @dataclass(frozen=True)

@@ -123,10 +123,15 @@ def test_reader_errors_are_one_clear_line(tmp_path: Path) -> None:
         can.LogReader(text)
     with pytest.raises(ValueError, match="unknown option"):
         can.LogReader(write(tmp_path / "ok.mcap"), channel=1)
-    from dobhil.recording.recorder import Recorder, RecordMode
+    from mcap.writer import Writer
     no_can = tmp_path / "no-can.mcap"
-    with Recorder(no_can, metadata={}, mode=RecordMode.BACKPRESSURE) as rec:
-        rec.write("/drive/command", 1_000, {"torque": 0.0})
+    with open(no_can, "wb") as stream:
+        writer = Writer(stream)
+        writer.start()
+        schema = writer.register_schema("dobhil.DriveCommand", "jsonschema", b"{}")
+        channel = writer.register_channel("/drive/command", "json", schema)
+        writer.add_message(channel, log_time=1_000, publish_time=1_000, data=b'{"torque": 0.0}')
+        writer.finish()
     with pytest.raises(ValueError, match=r"no CAN frames.*/drive/command"):
         list(can.LogReader(no_can))
 
@@ -171,8 +176,10 @@ def test_frame_count_equals_log_info(run_log: Path, capsys: pytest.CaptureFixtur
     frames = list(can.LogReader(run_log))
     assert sum(m.is_rx for m in frames) == counts["/can/rx"]
     recorded = list(open_log(run_log).iter_messages(["/can/rx", "/can/tx"]))
+    # a sent frame has no bus timestamp (0.0 in the record): the reader gives its log time
     assert [(m.arbitration_id, list(m.data), m.is_rx, m.timestamp) for m in frames] == \
-        [(p["arbitration_id"], p["data"], p["direction"] == "rx", p["timestamp"]) for _, _, p in recorded]
+        [(p["arbitration_id"], p["data"], p["direction"] == "rx", p["timestamp"] or t / 1e9)
+         for _, t, p in recorded]
     log_times = [t for _, t, _ in recorded]
     assert log_times == sorted(log_times)
 

@@ -16,7 +16,7 @@ from live_client import LiveClient, counts_at_least
 
 from dobhil.live import LiveServer, LiveUnavailableError
 from dobhil.live.server import INSTALL_HINT, LiveChannelError, LiveServerError
-from dobhil.recording.schemas import encode, spec_for
+from dobhil.recording.schemas import spec_for
 
 TOPICS = ("/controller", "/can/rx")
 
@@ -31,7 +31,7 @@ def _payloads(topic: str, n: int) -> list[bytes]:
                    "error_state_indicator": False, "dlc": 8, "data": [i % 256, 0, 0, 0, 1, 2, 3, 4],
                    "data_hex": f"{i % 256:02x}00000001020304", "direction": "rx", "channel": "demo"}
                   for i in range(n)]
-    return [encode(v) for v in values]
+    return [json.dumps(v, separators=(",", ":")).encode() for v in values]
 
 
 def _server(**kwargs: int) -> LiveServer:

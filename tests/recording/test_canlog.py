@@ -8,10 +8,11 @@ import can
 import pytest
 
 from dobhil.errors import LogFileError
-from dobhil.recording.canlog import CanLogFormat, default_output, export_can, import_can, parse_format
+from dobhil.recording.convert import CanLogFormat, export_can, import_can, parse_format
+from dobhil.recording.convert import default_can_output as default_output
 from dobhil.recording.reader import open_log
-from dobhil.recording.recorder import Recorder, RecordMode
 from dobhil.recording.schemas import Direction
+from tests.recording.helpers import command, frame, write_log
 
 T0 = 1_700_000_000.0
 
@@ -31,11 +32,8 @@ RESOLUTION = {CanLogFormat.CANDUMP: 2e-6, CanLogFormat.ASC: 2e-6, CanLogFormat.B
 
 
 def record(path: Path) -> Path:
-    with Recorder(path, metadata={}, mode=RecordMode.BACKPRESSURE) as rec:
-        for i, (direction, msg) in enumerate(FRAMES):
-            rec.write_frame(msg, direction, 1_000 + i)
-        rec.write("/drive/command", 1_000, {"torque": 0.0})
-    return path
+    records = [frame(msg, direction, 1_000 + i) for i, (direction, msg) in enumerate(FRAMES)]
+    return write_log(path, [*records, command(1_000, 0.0)])
 
 
 def key(msg: can.Message) -> tuple[object, ...]:
@@ -74,13 +72,11 @@ def test_import_round_trip(tmp_path: Path, fmt: CanLogFormat) -> None:
     imported = [(t, p["arbitration_id"], p["data"], p["is_remote_frame"], p["is_fd"])
                 for t, _, p in log.iter_messages()]
     assert imported == original
-    assert log.metadata()["import"]["source"] == canlog.name
+    assert log.metadata["import"]["source"] == canlog.name
 
 
 def test_export_without_can_frames_and_bad_format(tmp_path: Path) -> None:
-    path = tmp_path / "run.mcap"
-    with Recorder(path, metadata={}, mode=RecordMode.LOSSY) as rec:
-        rec.write("/drive/command", 1, {"torque": 0.0})
+    path = write_log(tmp_path / "run.mcap", [command(1, 0.0)])
     with pytest.raises(LogFileError, match="no CAN frames"):
         export_can(path, tmp_path / "x.log", CanLogFormat.CANDUMP)
     with pytest.raises(LogFileError, match="unknown CAN log format 'pcap'"):
@@ -94,3 +90,12 @@ def test_import_rejects_missing_and_unknown_files(tmp_path: Path) -> None:
     odd.write_text("hello\n")
     with pytest.raises(LogFileError, match="not a CAN log"):
         import_can(odd, tmp_path / "out.mcap")
+
+
+@pytest.mark.parametrize("head", [b"LOGG", b"\x00\x01"], ids=["blf-magic", "random"])
+def test_import_of_a_garbage_blf_is_one_line(tmp_path: Path, head: bytes) -> None:
+    bad = tmp_path / "garbage.blf"
+    bad.write_bytes(head + bytes(range(256)) * 4)
+    with pytest.raises(LogFileError, match="garbage.blf"):
+        import_can(bad, tmp_path / "out.mcap")
+    assert not (tmp_path / "out.mcap").exists() and not list(tmp_path.glob(".*partial*"))

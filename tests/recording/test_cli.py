@@ -10,22 +10,18 @@ import can
 import pytest
 
 from dobhil.cli.main import main
-from dobhil.recording.recorder import Recorder, RecordMode
 from dobhil.recording.schemas import Direction, EventKind
+from tests.recording.helpers import event, feedback, frame, write_log
 
 
 @pytest.fixture
 def run_file(tmp_path: Path) -> Path:
-    path = tmp_path / "run.mcap"
-    meta = {"config": {"loop.rate_hz": "1000"}, "run": {"start_time": "2026-01-01T00:00:00"}}
-    with Recorder(path, metadata=meta, mode=RecordMode.BACKPRESSURE) as rec:
-        rec.event(EventKind.ENABLE, "start", log_time_ns=1_000_000_000)
-        for i in range(100):
-            t = 1_000_000_000 + i * 1_000_000
-            rec.write("/drive/feedback", t, {"position": 0.1 * i, "velocity": 1.0, "axis_state": 8, "axis_error": 0})
-            rec.write_frame(can.Message(arbitration_id=0x10, data=bytes([i])), Direction.RX, t)
-        rec.close("reference finished")
-    return path
+    meta = {"config": {"loop.period": "0.001"}, "run": {"start_time": "2026-01-01T00:00:00"}}
+    records = [event(EventKind.ENABLE, 1_000_000_000, "start")]
+    for i in range(100):
+        t = 1_000_000_000 + i * 1_000_000
+        records += [feedback(t, 0.1 * i), frame(can.Message(arbitration_id=0x10, data=bytes([i])), Direction.RX, t)]
+    return write_log(tmp_path / "run.mcap", records, metadata=meta, stop="reference finished")
 
 
 def bad_files(tmp_path: Path, good: Path) -> dict[str, tuple[Path, str]]:
@@ -39,7 +35,7 @@ def bad_files(tmp_path: Path, good: Path) -> dict[str, tuple[Path, str]]:
         "missing": (tmp_path / "none.mcap", "no such file"),
         "empty": (empty, "empty file"),
         "not-mcap": (text, "not an MCAP file (bad magic)"),
-        "truncated": (cut, "truncated"),
+        "truncated": (cut, "cut short"),
     }
 
 
@@ -76,14 +72,14 @@ def test_recover_bad_files_give_one_line_and_exit_2(
 def test_info_text_and_json(run_file: Path, capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["log", "info", str(run_file)]) == 0
     text = capsys.readouterr().out
-    assert "reference finished" in text and "/drive/feedback" in text and "loop.rate_hz = 1000" in text
+    assert "reference finished" in text and "/drive/feedback" in text and "loop.period = 0.001" in text
     assert main(["log", "info", str(run_file), "--json"]) == 0
     info = json.loads(capsys.readouterr().out)
     counts = {c["topic"]: c["message_count"] for c in info["channels"]}
     assert counts == {"/events": 2, "/drive/feedback": 100, "/can/rx": 100}
     assert info["stop_reason"] == "reference finished" and info["dropped"] == 0
     assert info["duration_s"] == pytest.approx(0.099)
-    assert info["metadata"]["config"] == {"loop.rate_hz": "1000"}
+    assert info["metadata"]["config"] == {"loop.period": "0.001"}
 
 
 def test_recover_truncated_file_by_cli(tmp_path: Path, run_file: Path, capsys: pytest.CaptureFixture[str]) -> None:
@@ -99,7 +95,7 @@ def test_export_csv_columns_from_schema(tmp_path: Path, run_file: Path, capsys: 
     assert main(["log", "export", str(run_file), "--topic", "/drive/feedback", "--format", "csv", "-o", str(out)]) == 0
     rows = list(csv.reader(out.open()))
     assert rows[0] == ["log_time_ns", "position", "velocity", "axis_state", "axis_error", "seq", "cycle"]
-    assert len(rows) == 101 and rows[1] == ["1000000000", "0.0", "1.0", "8", "0", "", ""]
+    assert len(rows) == 101 and rows[1] == ["1000000000", "0.0", "1.0", "8", "0", "0", "0"]
     assert main(["log", "export", str(run_file), "--topic", "/can/rx", "--format", "csv"]) == 0
     can_rows = list(csv.DictReader((tmp_path / "run.can_rx.csv").open()))
     assert can_rows[5]["data"] == "5" and can_rows[5]["is_fd"] == "false"

@@ -12,22 +12,26 @@ from pathlib import Path
 import pytest
 
 from dobhil.errors import LogFileError
+from dobhil.files import OutputError
 from dobhil.recording.reader import open_log
-from dobhil.recording.recorder import Recorder, RecordMode
 from dobhil.recording.recover import default_output, recover
+from tests.recording.helpers import command, write_log
 
 ROOT = Path(__file__).resolve().parents[2]
 
 CHILD = """
 import sys, time
-from dobhil.recording.recorder import Recorder, RecordMode
-rec = Recorder(sys.argv[1], metadata={"run": {"who": "child"}},
-               attachments=[("config.yaml", "application/yaml", b"a: 1\\n")], mode=RecordMode.LOSSY)
+from dobhil.recording.writer import LogWriter, RecordMode
+log = LogWriter(open(sys.argv[1], "wb"), metadata={"run": {"who": "child"}},
+                attachments=[("config.yaml", "application/yaml", b"a: 1\\n")], mode=RecordMode.LOSSY)
 print("ready", flush=True)
-i = 0
+i, next_flush = 0, time.monotonic() + 1.0
 while True:
-    rec.write("/loop", time.time_ns(), {"cycle": i, "period_error": 0.0, "exec_time": 1e-5, "overrun": False})
+    log.write([(6, time.time_ns(), i, 0.0, 1e-5, False)])
     i += 1
+    if time.monotonic() > next_flush:
+        log.flush()
+        next_flush += 1.0
     time.sleep(0.0002)
 """
 
@@ -46,7 +50,7 @@ def test_kill_9_loses_at_most_about_one_second(tmp_path: Path) -> None:
         child.wait()
         child.stdout.close()  # type: ignore[union-attr]
     run_s = (time.time_ns() - start_ns) / 1e9
-    with pytest.raises(LogFileError, match="truncated"):
+    with pytest.raises(LogFileError, match="cut short"):
         open_log(path)
     report = recover(path)
     assert report.output == str(default_output(path)) and not report.complete
@@ -60,10 +64,7 @@ def test_kill_9_loses_at_most_about_one_second(tmp_path: Path) -> None:
 
 
 def test_recover_a_complete_file_copies_everything(tmp_path: Path) -> None:
-    path = tmp_path / "run.mcap"
-    with Recorder(path, metadata={"run": {"a": "1"}}, mode=RecordMode.BACKPRESSURE) as rec:
-        for i in range(1000):
-            rec.write("/drive/command", i, {"torque": float(i)})
+    path = write_log(tmp_path / "run.mcap", [command(i, float(i)) for i in range(1000)], metadata={"run": {"a": "1"}})
     report = recover(path, tmp_path / "out.mcap")
     assert report.complete and report.counts == (("/drive/command", 1000),)
     assert (report.start_ns, report.end_ns) == (0, 999)
@@ -72,10 +73,7 @@ def test_recover_a_complete_file_copies_everything(tmp_path: Path) -> None:
 
 
 def test_recover_a_cut_file_keeps_whole_chunks(tmp_path: Path) -> None:
-    path = tmp_path / "run.mcap"
-    with Recorder(path, metadata={}, mode=RecordMode.BACKPRESSURE) as rec:
-        for i in range(50_000):
-            rec.write("/drive/command", i, {"torque": float(i)})
+    path = write_log(tmp_path / "run.mcap", [command(i, float(i)) for i in range(50_000)])
     cut = tmp_path / "cut.mcap"
     data = path.read_bytes()
     cut.write_bytes(data[: len(data) // 2])
@@ -86,7 +84,6 @@ def test_recover_a_cut_file_keeps_whole_chunks(tmp_path: Path) -> None:
 
 
 def test_recover_refuses_to_overwrite_its_input(tmp_path: Path) -> None:
-    path = tmp_path / "run.mcap"
-    Recorder(path, metadata={}, mode=RecordMode.LOSSY).close()
-    with pytest.raises(LogFileError, match="onto the input"):
+    path = write_log(tmp_path / "run.mcap", [])
+    with pytest.raises(OutputError, match="is an input"):
         recover(path, path)

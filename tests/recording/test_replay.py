@@ -12,7 +12,7 @@ from mcap.writer import Writer
 
 from dobhil.cli.main import main
 from dobhil.drives.odrive import codec
-from dobhil.runtime.replay import replay
+from dobhil.replay import replay
 from tests.recording.test_run_logging import logged_lockstep_run
 
 
@@ -33,7 +33,7 @@ def rewrite_with_altered_frame(src: Path, dst: Path, motion_index: int) -> None:
         summary = reader.get_summary()
         assert summary is not None
         writer = Writer(f_out)
-        writer.start()
+        writer.start(library="dobhil/test (one frame altered)")
         schemas = {sid: writer.register_schema(s.name, s.encoding, s.data) for sid, s in summary.schemas.items()}
         channels = {cid: writer.register_channel(c.topic, c.message_encoding, schemas[c.schema_id])
                     for cid, c in summary.channels.items()}

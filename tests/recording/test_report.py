@@ -8,7 +8,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from dobhil.analysis.run_report import detect_steps, frame_bits
+from dobhil.analysis.run_report import detect_steps
+from dobhil.drives.bus_load import frame_bits
 from dobhil.cli.main import main
 from tests.recording.test_run_logging import logged_lockstep_run
 

@@ -16,11 +16,13 @@ from mcap.reader import make_reader
 
 from dobhil.config import load_config
 from dobhil.errors import LogFileError
-from dobhil.recording.canlog import CanLogFormat, default_output, export_can
+from dobhil.cli.recording import record_run
+from dobhil.recording.convert import CanLogFormat, export_can
+from dobhil.recording.convert import default_can_output as default_output
+from dobhil.recording.process import PARENT_EXITED
 from dobhil.recording.reader import open_log
 from dobhil.recording.recover import recover
-from dobhil.recording.sink import RunLog, run_recorded
-from dobhil.recording.writerchild import PARENT_EXITED
+from dobhil.recording.runlog import RunLog
 from dobhil.runtime.session import RunSession
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -33,11 +35,11 @@ def logged_lockstep_run(path: Path, duration: float = 0.3) -> tuple[list[can.Mes
     """A lockstep demo run recorded to ``path``; every frame a sniffer saw, the cycles and
     the frames the emulated drive sent."""
     config = load_config(DEMO, [f"loop.duration={duration}"])
-    log = RunLog(path, config, config_file=DEMO, fsync=False)
-    with RunSession(config, emulate=True, lockstep=True, sink=log.sink, bus_wrapper=log.wrap_bus) as session:
+    log = RunLog(path, fsync=False)
+    with RunSession(config, emulate=True, lockstep=True, sink=log, bus_wrapper=log.wrap_bus) as session:
         sniffer = can.Bus(interface="virtual", channel=session.bus_spec.channel)
         try:
-            result = run_recorded(session, log)
+            result = record_run(session, log, DEMO)
             seen = []
             msg = sniffer.recv(0.0)
             while msg is not None:
@@ -84,10 +86,10 @@ def test_every_frame_and_channel_with_plain_mcap_reader(run_log: Run) -> None:
     for topic in ("/controller", "/loop", "/drive/command", "/emulator/truth"):
         assert counts[topic] == cycles
     assert counts["/drive/feedback"] == cycles + 1  # + the feedback controller.initialize used
-    meta = open_log(path).metadata()
+    meta = open_log(path).metadata
     assert {"config", "versions", "bus", "run", "drive", "recording"} <= set(meta)
     assert meta["recording"]["dropped"] == "0" and meta["bus"]["bitrate"] == "1000000"
-    assert {"demo.yaml", "config.resolved.yaml"} <= {a for a, _, _ in open_log(path).attachments()}
+    assert {"demo.yaml", "config.resolved.yaml"} <= {a for a, _, _ in open_log(path).attachments}
 
 
 def test_events_enable_disable_stop(run_log: Run) -> None:
@@ -188,7 +190,7 @@ def test_sigkill_of_run_and_writer_leaves_a_recoverable_file(tmp_path: Path) -> 
     counts = dict(report.counts)
     # at least everything older than about a second (the writer flushes every second)
     assert not report.complete and counts.get("/controller", 0) >= 1000
-    assert open_log(tmp_path / "rec.mcap").has_summary
+    assert open_log(tmp_path / "rec.mcap").info().message_count == report.message_count
 
 
 def open_log_ok(path: Path) -> bool:

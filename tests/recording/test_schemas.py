@@ -11,7 +11,21 @@ import numpy as np
 import pytest
 
 from dobhil.errors import LogFileError
-from dobhil.recording.schemas import SPECS_BY_NAME, TOPIC_SPECS, EventKind, Topic, decode, encode, spec_for
+from dobhil.recording.schemas import (
+    CYCLE,
+    SPECS_BY_NAME,
+    TOPIC_SPECS,
+    Direction,
+    EventKind,
+    Topic,
+    can_frame_message,
+    can_frame_payload,
+    can_frame_record,
+    decode,
+    message_count,
+    messages,
+    spec_for,
+)
 
 EXPECTED_TOPICS = {
     "/can/rx", "/can/tx", "/drive/feedback", "/drive/command",
@@ -45,28 +59,45 @@ def test_required_fields_of_the_brief() -> None:
 
 
 def test_encode_is_compact_and_round_trips() -> None:
-    payload = {"torque": 1.5}
-    assert encode(payload) == b'{"torque":1.5}'
-    assert decode(encode(payload)) == payload
+    spec = spec_for("/drive/command")
+    assert spec.encode((1.5,)) == b'{"torque":1.5}'
+    assert decode(spec.encode((1.5,))) == {"torque": 1.5}
 
 
 def test_non_finite_numbers_become_null() -> None:
-    out = decode(encode({"q": math.nan, "dq": math.inf, "tau_motor": 1.0, "tau_int": [1.0, -math.inf]}))
-    assert out == {"q": None, "dq": None, "tau_motor": 1.0, "tau_int": [1.0, None]}
+    out = decode(spec_for(Topic.EMULATOR_TRUTH).encode((math.nan, math.inf, 1.0, -math.inf)))
+    assert out == {"q": None, "dq": None, "tau_motor": 1.0, "tau_int": None}
 
 
 def test_numpy_scalars_are_plain_numbers() -> None:
-    out = decode(encode({"cycle": np.int64(3), "overrun": np.bool_(True), "exec_time": np.float32(0.5)}))
-    assert out == {"cycle": 3, "overrun": True, "exec_time": 0.5}
+    out = decode(spec_for("/loop").encode((np.int64(3), np.float32(0.5), np.float64(1e-4), np.bool_(True))))
+    assert out == {"cycle": 3, "period_error": 0.5, "exec_time": 1e-4, "overrun": True}
 
 
-def test_from_values_uses_field_order() -> None:
-    spec = spec_for("/loop")
-    assert spec.from_values((1, 0.0, 1e-4, False)) == {
-        "cycle": 1, "period_error": 0.0, "exec_time": 1e-4, "overrun": False,
-    }
-    with pytest.raises(LogFileError, match="expected 4 values"):
-        spec.from_values((1,))
+def test_a_cycle_record_becomes_one_message_per_cycle_topic() -> None:
+    record = (CYCLE, 7, 3, 0.1, 0.2, 4, 1.0, 0.9, 0.01, 0.5, 0.6, 0.55, 1e-6, 2e-5, False, 8, 0)
+    out = {topic: decode(data) for topic, t, data in messages(record)}
+    assert set(out) == {Topic.DRIVE_FEEDBACK, Topic.CONTROLLER, Topic.DRIVE_COMMAND, Topic.LOOP}
+    assert out[Topic.DRIVE_FEEDBACK] == {"position": 0.1, "velocity": 0.2, "axis_state": 8, "axis_error": 0,
+                                         "seq": 4, "cycle": 3}
+    assert out[Topic.DRIVE_COMMAND] == {"torque": 0.55} and out[Topic.CONTROLLER]["u_unsat"] == 0.6
+    assert out[Topic.LOOP] == {"cycle": 3, "period_error": 1e-6, "exec_time": 2e-5, "overrun": False}
+    assert message_count(record) == 4 and message_count((*record, 1.0, 2.0, 3.0, 4.0)) == 5
+    truth = {t: decode(d) for t, _, d in messages((*record, 1.0, 2.0, 3.0, 4.0))}[Topic.EMULATOR_TRUTH]
+    assert truth == {"q": 1.0, "dq": 2.0, "tau_motor": 3.0, "tau_int": 4.0}
+
+
+def test_can_frame_record_payload_and_message_round_trip() -> None:
+    import can
+    msg = can.Message(timestamp=12.5, arbitration_id=0x1ABCDEF, is_extended_id=True, data=b"\x01\xff",
+                      channel="vcan0")
+    record = can_frame_record(msg, Direction.TX, 99)
+    assert record[:2] == (int(Topic.CAN_TX), 99)
+    payload = can_frame_payload(record[2:], Direction.TX)
+    assert payload["data"] == [1, 255] and payload["data_hex"] == "01ff" and payload["direction"] == "tx"
+    assert payload == decode(TOPIC_SPECS[Topic.CAN_TX].encode(record[2:]))
+    back = can_frame_message(payload, 99)
+    assert back.equals(msg, timestamp_delta=None, check_direction=False) and not back.is_rx
 
 
 def test_unknown_topic_is_one_line_error() -> None:

@@ -13,12 +13,10 @@ from typing import Any
 
 import pytest
 
-from dobhil.errors import LogFileError
-from dobhil.recording.fastlog import RawKind
-from dobhil.recording.filewriter import RecordMode
+from dobhil.recording.process import QUEUE_BATCHES, WriterProcess
 from dobhil.recording.reader import open_log
-from dobhil.recording.schemas import EventKind
-from dobhil.recording.writerproc import WriterProcess
+from dobhil.recording.schemas import CYCLE, EventKind, event_record
+from dobhil.recording.writer import RecordMode
 
 from tests.recording.conftest import child_processes
 
@@ -28,7 +26,7 @@ META = {"run": {"who": "test"}}
 def cycle(k: int) -> tuple[Any, ...]:
     """A flat CYCLE record with truth (5 messages)."""
     t = 1_000_000_000 + k * 1_000_000
-    return (int(RawKind.CYCLE), t, k, 1e-4 * k, 0.1, k, 0.2, 0.19, 0.01, 0.02, 0.03, 0.03,
+    return (CYCLE, t, k, 1e-4 * k, 0.1, k, 0.2, 0.19, 0.01, 0.02, 0.03, 0.03,
             0.0, 3e-5, False, 8, 0, 1e-4 * k, 0.1, 0.03, 0.19)
 
 
@@ -53,7 +51,7 @@ def test_backpressure_round_trip_and_the_process_is_joined(tmp_path: Path) -> No
     writer.open(META, [("config.yaml", "application/yaml", b"a: 1\n")], RecordMode.BACKPRESSURE)
     for i in range(0, 5120, 256):
         assert writer.send(batch(i))
-    writer.send([(int(RawKind.EVENT), 7, int(EventKind.INFO), "note", "x")])
+    writer.send([event_record(EventKind.INFO, 7, "note", "x")])
     writer.close("done", "all good")
     writer.close("again")  # idempotent
     assert writer.pid not in child_processes()
@@ -62,8 +60,6 @@ def test_backpressure_round_trip_and_the_process_is_joined(tmp_path: Path) -> No
     assert counts["/controller"] == counts["/emulator/truth"] == 5120
     assert info.stop_reason == "done" and info.metadata["run"] == {"who": "test"}
     assert info.metadata["recording"]["mode"] == "backpressure" and writer.written == info.message_count
-    with pytest.raises(LogFileError, match="closed"):
-        writer.send(batch(0))
 
 
 def test_backpressure_blocks_while_the_writer_lags_and_loses_nothing(tmp_path: Path) -> None:
@@ -82,7 +78,7 @@ def test_backpressure_blocks_while_the_writer_lags_and_loses_nothing(tmp_path: P
         time.sleep(1.0)
         in_flight = sent[0]
         time.sleep(0.3)
-        assert sent[0] == in_flight < 200  # blocked: a bounded number of batches in flight
+        assert sent[0] == in_flight <= QUEUE_BATCHES + 8  # blocked: a bounded number of batches in flight
     thread.join(30)
     assert not thread.is_alive()
     writer.close("done")
@@ -100,7 +96,7 @@ def test_lossy_never_blocks_drops_are_counted_and_events_kept(tmp_path: Path) ->
         for i in range(0, 256 * 200, 256):
             records = batch(i)
             if i == 256 * 150:
-                records.append((int(RawKind.EVENT), records[-1][1], int(EventKind.INFO), "kept", ""))
+                records.append(event_record(EventKind.INFO, records[-1][1], "kept"))
             accepted += writer.send(records)
         elapsed = time.perf_counter() - t0
     assert elapsed < 5.0 and 0 < accepted < 200
@@ -131,25 +127,10 @@ def test_the_writer_ignores_sigint_and_sigterm(tmp_path: Path) -> None:
 def test_closed_before_open_leaves_no_file(tmp_path: Path) -> None:
     path = tmp_path / "run.mcap"
     writer = WriterProcess(path)
-    writer.close("not run")
+    writer.abandon()
     assert not path.exists()
 
 
 def test_bad_path_fails_at_once(tmp_path: Path) -> None:
-    with pytest.raises(LogFileError, match="cannot create"):
+    with pytest.raises(OSError):
         WriterProcess(tmp_path / "missing" / "run.mcap")
-
-
-@pytest.mark.skipif(not Path("/dev/full").exists(), reason="needs /dev/full")
-def test_disk_full_reaches_the_caller_as_one_line() -> None:
-    writer = WriterProcess("/dev/full", fsync=False)
-    writer.open(META, [], RecordMode.BACKPRESSURE)
-    with pytest.raises(LogFileError) as err:
-        for i in range(0, 256 * 400, 256):
-            writer.send(batch(i))
-        writer.close("done")
-    message = str(err.value)
-    assert "recorder failed" in message and "No space left" in message and "\n" not in message
-    with pytest.raises(LogFileError, match="No space left"):
-        writer.close()
-    assert writer.pid not in child_processes()

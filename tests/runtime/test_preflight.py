@@ -24,6 +24,7 @@ import pytest
 from dobhil.cli.main import main
 from dobhil.drives import DriveProfile, load_profile
 from dobhil.drives.odrive.codec import AxisState, ControlMode
+from dobhil.drives.registry import preflight_probe
 from dobhil.drives.preflight import PreflightReport, Rate, Severity, run_preflight
 from dobhil.emulator.odrive import EmulatedODrive
 from dobhil.emulator.plant import Plant
@@ -50,7 +51,7 @@ def lockstep_preflight(emulated: DriveProfile, expected: DriveProfile, *, window
                          Plant.from_config(demo_config()))
     lock = LockstepBus(host, [emu], dt=1e-3)
     try:
-        return run_preflight(lock, expected, period=period, feedback_timeout=feedback_timeout,
+        return run_preflight(lock, expected, probe=preflight_probe(expected), period=period, feedback_timeout=feedback_timeout,
                              window=window, bitrate=1_000_000, clock=lock.clock,
                              stamp=lambda _m: lock.clock())
     finally:
@@ -170,7 +171,7 @@ def test_bus_error_state_and_error_frames_are_mismatches() -> None:
     other = can.Bus(interface="virtual", channel=channel)
     try:
         other.send(can.Message(is_error_frame=True, arbitration_id=0x20000080, is_extended_id=True))
-        report = run_preflight(bus, bare("odrive-0.6"), period=1e-3, window=0.05)
+        report = run_preflight(bus, bare("odrive-0.6"), probe=preflight_probe(bare("odrive-0.6")), period=1e-3, window=0.05)
     finally:
         bus.shutdown()
         other.shutdown()
@@ -187,7 +188,7 @@ def test_bus_too_slow_for_the_loop() -> None:
                          Plant.from_config(demo_config()))
     lock = LockstepBus(host, [emu], dt=1e-3)
     try:
-        report = run_preflight(lock, bare("odrive-0.6"), period=1e-3, window=0.5, bitrate=250_000,
+        report = run_preflight(lock, bare("odrive-0.6"), probe=preflight_probe(bare("odrive-0.6")), period=1e-3, window=0.5, bitrate=250_000,
                                clock=lock.clock, stamp=lambda _m: lock.clock())
     finally:
         lock.shutdown()

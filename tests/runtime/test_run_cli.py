@@ -163,12 +163,14 @@ def test_a_duration_too_long_to_count_is_one_line(capsys: pytest.CaptureFixture[
 @pytest.mark.skipif(not hasattr(os, "getpriority"), reason="POSIX nice values")
 def test_run_log_writer_runs_below_the_loop(tmp_path: Path) -> None:
     """``dobhil run --log``: the writer process gets nice +10 (it may lag; the loop not)."""
-    from dobhil.cli.run_cmd import make_log
-    from dobhil.config import load_config
+    from dobhil.cli.recording import abort, open_run_log
+    from dobhil.cli.run_cmd import lower_writer
     from dobhil.runtime.realtime import WRITER_PRIORITY_DROP
-    log = make_log(tmp_path / "run.mcap", load_config(DEMO), DEMO)
+    log = open_run_log(tmp_path / "run.mcap")
+    assert log is not None and log.writer_pid is not None
+    lower_writer(log)
     try:
         own = os.getpriority(os.PRIO_PROCESS, 0)
-        assert os.getpriority(os.PRIO_PROCESS, log.writer.pid) == min(own + WRITER_PRIORITY_DROP, 19)
+        assert os.getpriority(os.PRIO_PROCESS, log.writer_pid) == min(own + WRITER_PRIORITY_DROP, 19)
     finally:
-        log.abort(None)
+        abort(log, KeyboardInterrupt())

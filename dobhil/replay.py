@@ -30,10 +30,10 @@ from orjson import loads as _loads
 
 from dobhil.config.schema import Config
 from dobhil.drives.base import Drive
-from dobhil.drives.profile import DriveProfile
-from dobhil.errors import LogFileError
-from dobhil.recording.canlog import payload_to_message
-from dobhil.recording.reader import DAMAGE_ERRORS, open_log
+from dobhil.drives.profile import DriveProfile, profile_from_mapping
+from dobhil.errors import ConfigError, LogFileError
+from dobhil.recording.reader import LogFile, open_log
+from dobhil.recording.schemas import can_frame_message
 from dobhil.runtime.session import build_controller
 
 Array = NDArray[np.float64]
@@ -144,72 +144,59 @@ class _NoBus:
         return None
 
 
-def _iter(path: str | os.PathLike[str], topics: Sequence[str]) -> Iterator[tuple[str, int, bytes]]:
-    from mcap.reader import make_reader
-
-    from dobhil.recording.fastread import iter_payloads
-    with open(path, "rb") as f:
-        try:
-            reader = make_reader(f)
-            summary = reader.get_summary()
-            if summary is not None and summary.chunk_indexes:
-                yield from iter_payloads(f, summary, topics)
-                return
-            for _, channel, message in reader.iter_messages(topics=list(topics), log_time_order=False):
-                yield channel.topic, message.log_time, message.data
-        except DAMAGE_ERRORS as exc:
-            raise LogFileError(f"{os.fspath(path)}: damaged data ({exc}); try `dobhil log recover`") from exc
-
-
-def recorded_config(meta: Mapping[str, Mapping[str, str]], path: str, overrides: Iterable[str] = ()) -> Config:
-    """The run's config from its metadata, with ``--set`` overrides on top."""
+def recorded_config(log: LogFile, overrides: Iterable[str] = ()) -> Config:
+    """The run's config (checked when the log was opened), with ``--set`` overrides on top."""
     from dobhil.config import build_config, parse_override
-    record = meta.get("config")
+    if log.config is None:
+        raise LogFileError(f"{log.path}: no 'config' metadata (not a recorded run?)")
+    if not overrides:
+        return log.config
+    flat = {**log.config.flat(), **dict(parse_override(item) for item in overrides)}
+    return build_config(flat, source=f"{log.path} config")
+
+
+def recorded_profile(log: LogFile) -> DriveProfile:
+    record = log.metadata.get("drive")
     if not record:
-        raise LogFileError(f"{path}: no 'config' metadata (not a dobhil run log?)")
+        raise LogFileError(f"{log.path}: no 'drive' metadata (not a recorded run?)")
     try:
-        flat = {k: json.loads(v) for k, v in record.items()}
-    except ValueError as exc:
-        raise LogFileError(f"{path}: unreadable 'config' metadata ({exc})") from exc
-    flat.update(dict(parse_override(item) for item in overrides))
-    return build_config(flat, source=f"{path} config")
-
-
-def recorded_profile(meta: Mapping[str, Mapping[str, str]], path: str) -> DriveProfile:
-    record = meta.get("drive")
-    if not record:
-        raise LogFileError(f"{path}: no 'drive' metadata (not a dobhil run log?)")
-    return DriveProfile(**{k: json.loads(v) for k, v in record.items()})
+        return profile_from_mapping({k: json.loads(v) for k, v in record.items()}, source=f"{log.path} drive")
+    except (ValueError, ConfigError) as exc:
+        raise LogFileError(f"{log.path}: invalid recorded drive profile: {exc}") from None
 
 
 def load_recording(path: str | os.PathLike[str], overrides: Iterable[str] = ()) -> tuple[Recording, Config]:
     """The recording and the config to replay with (recorded + overrides)."""
-    log = open_log(path)
-    name = os.fspath(path)
-    for topic in ("/can/rx", "/drive/feedback", "/controller"):
-        log.require_topic(topic)
-    meta = log.metadata()
-    base = recorded_config(meta, name)
-    config = recorded_config(meta, name, overrides) if overrides else base
-    profile = recorded_profile(meta, name)
+    with open_log(path) as log:
+        for topic in ("/can/rx", "/drive/feedback", "/controller"):
+            log.require_topic(topic)
+        base = recorded_config(log)
+        config = recorded_config(log, overrides)
+        profile = recorded_profile(log)
+        parts = _read(log)
+    return _assemble(os.fspath(path), base, profile, *parts), config
+
+
+def _read(log: LogFile) -> tuple[list[can.Message], int | None, dict[int, int], list[tuple[int, int, list[float]]]]:
     frames: list[can.Message] = []
     seqs: dict[int, int] = {}
     initial: int | None = None
     controller: list[tuple[int, int, list[float]]] = []
-    for topic, t, data in _iter(path, ("/can/rx", "/drive/feedback", "/controller")):
-        p = _loads(data)
-        if topic == "/controller":
-            controller.append((p["cycle"], t, [_num(p[k]) for k in OUTPUTS]))
-        elif topic == "/drive/feedback":
-            if p.get("cycle") is None or p.get("seq") is None:
-                raise LogFileError(f"{name}: /drive/feedback has no seq/cycle (recorded before replay support)")
-            if p["cycle"] < 0:
-                initial = p["seq"]
+    try:
+        for topic, t, data in log.iter_payloads(("/can/rx", "/drive/feedback", "/controller")):
+            p = _loads(data)
+            if topic == "/controller":
+                controller.append((int(p["cycle"]), t, [_num(p[k]) for k in OUTPUTS]))
+            elif topic == "/can/rx":
+                frames.append(can_frame_message(p, t))
+            elif p["cycle"] < 0:
+                initial = int(p["seq"])
             else:
-                seqs[p["cycle"]] = p["seq"]
-        else:
-            frames.append(payload_to_message(p, t))
-    return _assemble(name, base, profile, frames, initial, seqs, controller), config
+                seqs[int(p["cycle"])] = int(p["seq"])
+    except (KeyError, TypeError, ValueError) as exc:
+        raise LogFileError(f"{log.path}: a recorded message does not match its schema ({type(exc).__name__}: "
+                           f"{exc})") from None
+    return frames, initial, seqs, controller
 
 
 def _num(value: Any) -> float:

@@ -1,0 +1,172 @@
+"""Wiring a run to its recording: the one place that knows both the runtime and recording.
+
+The runtime defines the ``CycleSink`` protocol and a ``bus_wrapper`` hook; recording's
+:class:`~dobhil.recording.runlog.RunLog` implements them and takes plain values. Here
+the session's description becomes the log's metadata, the session's clocks and plant the
+log's clock and truth, and the run's end the log's events and stop reason.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import platform
+import sys
+import time
+from collections.abc import Callable
+from datetime import datetime, timezone
+from importlib.metadata import PackageNotFoundError, version
+from pathlib import Path
+from typing import Any, Final
+
+from dobhil import __version__
+from dobhil.config import Config, to_yaml
+from dobhil.errors import RecorderError
+from dobhil.files import check_new_output
+from dobhil.recording.runlog import RunLog
+from dobhil.recording.schemas import EventKind
+from dobhil.runtime.loop import RunResult, Timing
+from dobhil.runtime.session import RunSession
+from dobhil.runtime.stop import Stop, StopReason
+
+_PACKAGES: Final = ("python-can", "mcap", "numpy", "scipy", "control", "pyyaml", "orjson", "zstandard")
+_PROFILE_KEYS: Final = ("protocol", "firmware", "node_id", "torque_limit", "velocity_limit", "encoder_msg_rate",
+                        "heartbeat_msg_rate", "watchdog_timeout", "enable_timeout", "name")
+
+
+def default_log_path(directory: Path, now: datetime | None = None) -> Path:
+    """``DIR/run-YYYYmmdd-HHMMSS.mcap`` (``-2``, ``-3`` ... if taken)."""
+    stamp = (now or datetime.now()).strftime("%Y%m%d-%H%M%S")
+    path, n = directory / f"run-{stamp}.mcap", 2
+    while path.exists():
+        path, n = directory / f"run-{stamp}-{n}.mcap", n + 1
+    return path
+
+
+def live_address(text: str | None, log: Path | None) -> tuple[str, int] | None:
+    """``--live [HOST:]PORT`` checked before a run: the address, the SDK there, a log to serve it."""
+    if text is None:
+        return None
+    from dobhil.errors import ConfigError
+    from dobhil.live import parse_live_address
+    from dobhil.live.server import import_sdk
+    if log is None:
+        raise ConfigError("--live needs a log (--log FILE.mcap): the live view is served by the log's writer")
+    address = parse_live_address(text)
+    import_sdk()
+    return address.host, address.port
+
+
+def open_run_log(path: Path | None, *, live: tuple[str, int] | None = None, fsync: bool = True) -> RunLog | None:
+    """A :class:`RunLog` for ``path`` (checked first: one line if it cannot be written)."""
+    if path is None:
+        return None
+    check_new_output(path, suffix=".mcap", what="--log")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    return RunLog(path, live=live, fsync=fsync)
+
+
+def versions() -> dict[str, str]:
+    out = {"dobhil": __version__, "python": platform.python_version()}
+    for name in _PACKAGES:
+        try:
+            out[name] = version(name)
+        except PackageNotFoundError:
+            continue
+    return out
+
+
+def run_metadata(session: RunSession, config_file: str | os.PathLike[str] | None) -> dict[str, dict[str, Any]]:
+    """The ``config``, ``versions``, ``bus``, ``drive`` and ``run`` metadata records."""
+    spec, profile, config = session.bus_spec, session.profile, session.config
+    lockstep = session.timing is Timing.LOCKSTEP
+    return {
+        "config": {k: json.dumps(v) for k, v in config.flat().items()},
+        "versions": {**versions(), "drive_firmware": profile.firmware},
+        "bus": {"interface": spec.interface, "channel": spec.channel,
+                "bitrate": spec.kwargs.get("bitrate", config.drive.bitrate),
+                "emulated": session.emulator is not None, "lockstep": lockstep},
+        "drive": {k: json.dumps(getattr(profile, k)) for k in _PROFILE_KEYS},
+        "run": {"start_time": datetime.now(timezone.utc).isoformat(timespec="milliseconds"),
+                "start_time_ns": time.time_ns(), "timing": session.timing.label,
+                "log_clock": "simulated" if lockstep else "wall", "period": repr(session.settings.period),
+                "duration": repr(session.settings.duration),
+                "torque_limit": repr(session.controller.torque_limit),
+                "measures_velocity": session.controller.measures_velocity,
+                "config_file": "" if config_file is None else os.fspath(config_file),
+                "command": " ".join(sys.argv), "host": platform.node()},
+    }
+
+
+def _attachments(config: Config, config_file: str | os.PathLike[str] | None) -> list[tuple[str, str, bytes]]:
+    out = [("config.resolved.yaml", "application/yaml", to_yaml(config).encode())]
+    if config_file is not None and Path(config_file).is_file():
+        out.insert(0, (Path(config_file).name, "application/yaml", Path(config_file).read_bytes()))
+    return out
+
+
+def begin(log: RunLog, session: RunSession, config_file: str | os.PathLike[str] | None) -> None:
+    """Metadata, clock (simulated time in lockstep), truth and drive status to the log."""
+    sim = session.sim_clock
+    origin = time.time_ns()
+    drive, plant = session.drive, session.plant
+    log.begin(metadata=run_metadata(session, config_file), attachments=_attachments(session.config, config_file),
+              lossy=session.timing is not Timing.LOCKSTEP,
+              clock_ns=None if sim is None else (lambda: origin + round(sim() * 1e9)),
+              truth=None if plant is None else (lambda: (plant.true_position, plant.true_velocity,
+                                                         plant.motor_torque, plant.interaction_torque)),
+              drive=drive)
+    if log.live_port is not None and log.live is not None:
+        sys.stderr.write(f"live view: ws://{log.live[0]}:{log.live_port}\n")
+        sys.stderr.flush()
+
+
+def record_run(session: RunSession, log: RunLog | None, config_file: str | os.PathLike[str] | None = None, *,
+               on_begin: Callable[[RunLog], object] | None = None) -> RunResult:
+    """``session.run()`` recorded by ``log``; a writer failure is the stop reason ``recorder_failed``.
+    ``on_begin`` runs once the log is open, before the loop (e.g. to connect a live client)."""
+    if log is None:
+        return session.run()
+    try:
+        begin(log, session, config_file)
+        if on_begin is not None:
+            on_begin(log)
+        result = session.run()
+    except BaseException as exc:
+        _close_quietly(log, exc)
+        raise
+    return _end(log, session, result)
+
+
+def _end(log: RunLog, session: RunSession, result: RunResult) -> RunResult:
+    stop = result.stop
+    status = session.drive.status
+    if stop.reason is StopReason.DRIVE_FAULT:
+        log.event(EventKind.FAULT, stop.detail or "drive fault")
+    if status.watchdog_tripped or bool(getattr(session.emulator, "watchdog_tripped", False)):
+        log.event(EventKind.WATCHDOG, "drive watchdog expired")
+    log.event(EventKind.DISABLE, "drive disabled" if result.disabled else "disable frames not sent", status.detail)
+    try:
+        log.end(stop.reason.name.lower(), stop.line())
+    except RecorderError as exc:
+        if stop.reason is not StopReason.RECORDER_FAILED:
+            return dataclasses.replace(result, stop=Stop(StopReason.RECORDER_FAILED, str(exc), stop.cycle, stop.time))
+    return result
+
+
+def _close_quietly(log: RunLog, exc: BaseException) -> None:
+    try:
+        log.end("exception", f"{type(exc).__name__}: {exc}")
+    except RecorderError:
+        pass
+
+
+def abort(log: RunLog | None, exc: BaseException) -> None:
+    """Close the log of a run that could not even start (no file left if nothing ran)."""
+    if log is not None:
+        _close_quietly(log, exc)
+
+
+__all__ = ["abort", "begin", "default_log_path", "live_address", "open_run_log", "record_run", "run_metadata",
+           "versions"]

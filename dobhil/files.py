@@ -1,0 +1,75 @@
+"""Output files that never destroy an input and never leave half a file.
+
+Every command that writes checks its outputs before it starts (:func:`check_output`: not
+one of its inputs after resolving links, not a directory, in a writable place, the right
+suffix) and writes through :func:`atomic_path`: a temporary name in the same directory,
+renamed over the target only when the output is complete.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Iterable, Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+from dobhil.errors import DobhilError
+
+
+class OutputError(DobhilError, ValueError):
+    """An output path that cannot or must not be written."""
+
+
+def _same(a: Path, b: Path) -> bool:
+    try:
+        return a.exists() and b.exists() and os.path.samefile(a, b)
+    except OSError:
+        return False
+
+
+def check_output(path: str | os.PathLike[str], *, inputs: Iterable[str | os.PathLike[str]] = (),
+                 suffix: str | Iterable[str] | None = None, what: str = "output", new: bool = False) -> Path:
+    """``path`` if it can be written; :class:`OutputError` (one line) if not."""
+    p = Path(path)
+    for source in inputs:
+        if _same(p, Path(source)) or p.resolve() == Path(source).resolve():
+            raise OutputError(f"{what} {p}: is an input of this command; refusing to overwrite it")
+    suffixes = (suffix,) if isinstance(suffix, str) else tuple(suffix or ())
+    if suffixes and p.suffix.lower() not in suffixes:
+        raise OutputError(f"{what} {p}: expected a {' or '.join(suffixes)} file name")
+    if p.is_dir():
+        raise OutputError(f"{what} {p}: is a directory")
+    if new and p.exists():
+        raise OutputError(f"{what} {p}: exists; refusing to overwrite a recording")
+    parent = next(d for d in (p.absolute().parent, *p.absolute().parents) if d.exists())
+    if not parent.is_dir():
+        raise OutputError(f"{what} {p}: {parent} is not a directory")
+    if not os.access(parent, os.W_OK | os.X_OK) or (p.exists() and not os.access(p, os.W_OK)):
+        raise OutputError(f"{what} {p}: not writable (permissions or a read-only file system)")
+    return p
+
+
+def check_new_output(path: str | os.PathLike[str], *, suffix: str, what: str) -> Path:
+    """:func:`check_output` for a file that must not exist yet (a recording)."""
+    return check_output(path, suffix=suffix, what=what, new=True)
+
+
+@contextmanager
+def atomic_path(path: str | os.PathLike[str]) -> Iterator[Path]:
+    """A temporary path next to ``path`` (same suffix) to write; renamed to ``path`` when the
+    block ends normally, removed when it raises."""
+    target = Path(path)
+    target.parent.mkdir(parents=True, exist_ok=True)
+    tmp = target.with_name(f".{target.stem}.{os.getpid()}.partial{target.suffix}")
+    try:
+        yield tmp
+        os.replace(tmp, target)
+    except OSError as exc:
+        tmp.unlink(missing_ok=True)
+        raise OutputError(f"{target}: cannot write: {exc.strerror or exc}") from exc
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+
+
+__all__ = ["OutputError", "atomic_path", "check_new_output", "check_output"]

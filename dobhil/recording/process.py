@@ -1,0 +1,343 @@
+"""The writer process of a recorded run: batches of records in through a pipe, one MCAP file out.
+
+A process, not a thread: encoding and writing ~7 messages per cycle would hold the GIL the
+loop needs. The loop thread ``marshal``-s a batch and puts it on a bounded queue (at most
+:data:`QUEUE_BATCHES`: bounded memory); a sender thread passes it on with
+``Connection.send_bytes``. ``BACKPRESSURE`` waits for room, ``LOSSY`` drops and counts
+(events kept for the next batch; a ``LOSS`` message becomes an ``/events`` ``kind=loss``).
+The child is a fresh interpreter (``subprocess``: no fork of a threaded parent, no
+re-import of the parent's ``__main__``), ignores SIGINT/SIGTERM (blocked before the exec),
+flushes and fsyncs every ``flush_interval``, finishes the file on ``STOP`` or, if the parent
+died, on end of file (:data:`PARENT_EXITED`), and reports one status. A failure (disk full)
+is raised as :class:`~dobhil.errors.RecorderError` at the next hand-over.
+"""
+
+from __future__ import annotations
+
+import marshal
+import os
+import queue
+import signal
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Iterator, Mapping, Sequence
+from contextlib import contextmanager
+from enum import IntEnum
+from multiprocessing import Pipe
+from multiprocessing.connection import Connection
+from pathlib import Path
+from typing import Any, Final
+
+import dobhil
+from dobhil.errors import RecorderError
+from dobhil.recording.schemas import Topic, message_count
+from dobhil.recording.writer import LogWriter, RecordMode
+
+#: Batches that may wait in the parent (bounded memory: ~256 records each).
+QUEUE_BATCHES: Final = 64
+#: Seconds ``close`` waits for the writer process to finish the file.
+JOIN_TIMEOUT: Final = 60.0
+#: ``stop_reason`` of a file finished because the parent went away without closing it.
+PARENT_EXITED: Final = "parent exited"
+_EVENTS: Final = int(Topic.EVENTS)
+_BOOT: Final = "import sys; sys.path.insert(0, sys.argv[1]); from dobhil.recording.process import main; main()"
+
+
+class Control(IntEnum):
+    """First element of a control message (a tuple; record batches are lists)."""
+
+    OPEN = 100  # (OPEN, mode, flush_interval, fsync, metadata, attachments, live)
+    LOSS = 101  # (LOSS, log_time_ns, count, total)
+    STOP = 102  # (STOP, stop_reason | None, detail, dropped_total)
+
+
+class Status(IntEnum):
+    DONE = 0  # (DONE, written, dropped)
+    FAILED = 1  # (FAILED, one-line reason)
+    LIVE = 2  # (LIVE, port): the live view listens (sent after OPEN when one was asked for)
+
+
+class WriterProcess:
+    """A writer process recording to ``path``; the file is created here (a bad path raises)."""
+
+    def __init__(self, path: str | os.PathLike[str], *, flush_interval: float = 1.0, fsync: bool = True) -> None:
+        self.path = Path(path)
+        self.mode = RecordMode.BACKPRESSURE
+        self.dropped = 0
+        self.written = 0
+        self._interval, self._fsync = flush_interval, fsync
+        self._reported = 0
+        self._last_drop_ns = 0
+        self._carry: list[tuple[Any, ...]] = []
+        self._failure: str | None = None
+        self._closed = False
+        self.live_port: int | None = None
+        self._queue: queue.Queue[bytes | None] = queue.Queue(QUEUE_BATCHES)
+        with open(self.path, "xb"):  # the caller checked the path: this only fails on a race
+            pass
+        self._proc, self._conn, self._status = _spawn(self.path)
+        self._sender = threading.Thread(target=self._send_all, name="dobhil-log-sender", daemon=True)
+        self._sender.start()
+
+    @property
+    def pid(self) -> int:
+        return self._proc.pid
+
+    def open(self, metadata: Mapping[str, Mapping[str, Any]], attachments: Sequence[tuple[str, str, bytes]],
+             mode: RecordMode, live: tuple[str, int] | None = None) -> None:
+        """Header, metadata, attachments, the mode, and the live view's address (if any)."""
+        self.mode = RecordMode(mode)
+        meta = {str(n): {str(k): str(v) for k, v in r.items()} for n, r in metadata.items()}
+        files = [(str(n), str(m), bytes(d)) for n, m, d in attachments]
+        self._put(marshal.dumps((int(Control.OPEN), int(self.mode), self._interval, self._fsync, meta, files,
+                                 live)), force=True)
+        if live is not None:
+            self.live_port = self._wait_for_live()
+
+    def _wait_for_live(self) -> int:
+        """The live view's port, once the writer process listens; RecorderError if it cannot."""
+        status = self._status.recv_bytes() if self._status.poll(JOIN_TIMEOUT) else None
+        message = None if status is None else marshal.loads(status)
+        if message is not None and message[0] == Status.LIVE:
+            return int(message[1])
+        self._closed = True
+        self._join()
+        self._failure = str(message[1]) if message is not None else "the live view did not start"
+        raise RecorderError(f"{self.path}: {self._failure}")
+
+    def send(self, records: list[tuple[Any, ...]], *, force: bool = False) -> bool:
+        """Hand a batch over; False if dropped (LOSSY and the writer lags; never with ``force``).
+        Raises :class:`RecorderError` once the writer has failed."""
+        if self._failure is not None:
+            raise RecorderError(f"{self.path}: recorder failed: {self._failure}")
+        if self._carry:
+            records, self._carry = self._carry + records, []
+        if not records:
+            return True
+        if self.dropped != self._reported and not self._report_loss(force=force):
+            return self._drop(records)
+        if not self._put(_dumps(records), force=force):
+            return self._drop(records)
+        return True
+
+    def close(self, stop_reason: str | None = None, detail: str = "") -> None:
+        """Stop event (if a reason is given), summary, footer; waits for the process.
+        Raises :class:`RecorderError` if the writer failed. Idempotent."""
+        if not self._closed:
+            self._closed = True
+            if self._carry:
+                self.send([], force=True)
+            stop = (int(Control.STOP), stop_reason, detail, self.dropped)
+            if self.dropped != self._reported:
+                self._report_loss(force=True)
+            self._put(marshal.dumps(stop), force=True)
+            self._join()
+        if self._failure is not None:
+            raise RecorderError(f"{self.path}: recorder failed: {self._failure}")
+
+    def abandon(self) -> None:
+        """Close without a run (nothing was opened): the empty file is removed."""
+        self._closed = True
+        self._join()
+        if self.path.exists() and self.path.stat().st_size == 0:
+            self.path.unlink()
+
+    # -- internals ---------------------------------------------------------------
+
+    def _put(self, data: bytes, *, force: bool) -> bool:
+        if self.mode is RecordMode.LOSSY and not force:
+            try:
+                self._queue.put_nowait(data)
+            except queue.Full:
+                return False
+            return True
+        while self._failure is None:
+            try:
+                self._queue.put(data, timeout=0.2)
+                return True
+            except queue.Full:
+                continue
+        return False
+
+    def _drop(self, records: list[tuple[Any, ...]]) -> bool:
+        if self._failure is not None:
+            raise RecorderError(f"{self.path}: recorder failed: {self._failure}")
+        self._carry = [r for r in records if r[0] == _EVENTS]
+        self.dropped += sum(message_count(r) for r in records if r[0] != _EVENTS)
+        self._last_drop_ns = records[-1][1]
+        return False
+
+    def _report_loss(self, *, force: bool) -> bool:
+        """The LOSS message of the messages dropped since the last one; False if it did not fit."""
+        loss = (int(Control.LOSS), self._last_drop_ns, self.dropped - self._reported, self.dropped)
+        if not self._put(marshal.dumps(loss), force=force):
+            return False
+        self._reported = self.dropped
+        return True
+
+    def _send_all(self) -> None:
+        """The sender thread: queue to pipe until the sentinel or a broken pipe."""
+        while (data := self._queue.get()) is not None:
+            try:
+                self._conn.send_bytes(data)
+            except OSError:
+                self._failure = self._child_failure()
+                return
+
+    def _child_failure(self) -> str:
+        try:
+            self._proc.wait(JOIN_TIMEOUT)
+        except subprocess.TimeoutExpired:
+            self._proc.kill()
+        status = _read_status(self._status)
+        if status is not None and status[0] == Status.FAILED:
+            return str(status[1])
+        return f"writer process ended early (exit code {self._proc.poll()})"
+
+    def _join(self) -> None:
+        while self._sender.is_alive():
+            try:
+                self._queue.put(None, timeout=0.2)
+                break
+            except queue.Full:
+                continue
+        self._sender.join()
+        self._conn.close()
+        try:
+            self._proc.wait(JOIN_TIMEOUT)
+        except subprocess.TimeoutExpired:
+            self._proc.kill()
+            self._proc.wait()
+            self._failure = self._failure or f"writer process did not finish within {JOIN_TIMEOUT:g} s"
+        status = _read_status(self._status)
+        self._status.close()
+        if status is not None and status[0] == Status.DONE:
+            self.written = status[1]
+        elif self._failure is None:
+            self._failure = str(status[1]) if status is not None else f"writer exit code {self._proc.returncode}"
+
+
+def _spawn(path: Path) -> tuple[subprocess.Popen[bytes], Connection, Connection]:
+    data_r, data_w = Pipe(duplex=False)
+    status_r, status_w = Pipe(duplex=False)
+    fds = (data_r.fileno(), status_w.fileno())
+    root = str(Path(dobhil.__file__).resolve().parent.parent)
+    argv = [sys.executable, "-c", _BOOT, root, *map(str, fds), os.fspath(path)]
+    try:
+        with _signals_blocked():
+            proc = subprocess.Popen(argv, pass_fds=fds, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL)
+    except OSError as exc:
+        path.unlink()
+        raise RecorderError(f"{path}: cannot start the writer process: {exc}") from exc
+    finally:
+        data_r.close()
+        status_w.close()
+    return proc, data_w, status_r
+
+
+@contextmanager
+def _signals_blocked() -> Iterator[None]:
+    """SIGINT/SIGTERM blocked in this thread; a child started meanwhile inherits the mask."""
+    old = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT, signal.SIGTERM})
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, old)
+
+
+def _dumps(records: list[tuple[Any, ...]]) -> bytes:
+    """``marshal`` data of a batch; values marshal refuses (numpy ints, enums) made plain."""
+    try:
+        return marshal.dumps(records)
+    except ValueError:
+        return marshal.dumps([tuple(_plain(v) for v in r) for r in records])
+
+
+def _plain(value: Any) -> Any:
+    if isinstance(value, (bool, str, bytes)) or value is None:
+        return value
+    if hasattr(value, "__index__"):
+        return int(value)
+    return float(value)
+
+
+def _read_status(conn: Connection) -> Sequence[Any] | None:
+    try:
+        if conn.poll(0):
+            return marshal.loads(conn.recv_bytes())
+    except (EOFError, OSError, ValueError):
+        return None
+    return None
+
+
+# -- the child ---------------------------------------------------------------------------
+
+
+def _serve(conn: Connection, status: Connection, path: str) -> tuple[Any, ...]:
+    try:
+        first = marshal.loads(conn.recv_bytes())
+    except EOFError:
+        return (int(Status.DONE), 0, 0)  # closed before a run started
+    _, mode, interval, fsync, metadata, attachments, live = first
+    log = LogWriter(open(path, "wb"), metadata=metadata, attachments=attachments, mode=RecordMode(mode),
+                    fsync=fsync)
+    try:
+        if live is not None:
+            server = _live_server(*live)
+            log.add_output(server)
+            status.send_bytes(marshal.dumps((int(Status.LIVE), server.port)))
+        return _write_until_stop(conn, log, interval)
+    except BaseException:
+        log.close()
+        raise
+
+
+def _live_server(host: str, port: int) -> Any:
+    from dobhil.live import LiveServer  # optional extra [live]
+    return LiveServer(host=host, port=port)
+
+
+def _write_until_stop(conn: Connection, log: LogWriter, interval: float) -> tuple[Any, ...]:
+    next_flush = time.monotonic() + interval
+    while True:
+        if conn.poll(max(0.0, next_flush - time.monotonic())):
+            try:
+                message = marshal.loads(conn.recv_bytes())
+            except EOFError:
+                log.finish(PARENT_EXITED, "the recording process ended without closing the log")
+                return (int(Status.DONE), log.written, log.dropped)
+            if type(message) is list:
+                log.write(message)
+            elif message[0] == Control.LOSS:
+                log.loss(message[2], message[3], message[1])
+            else:
+                _, reason, detail, log.dropped = message
+                log.finish(reason, detail)
+                return (int(Status.DONE), log.written, log.dropped)
+        if time.monotonic() >= next_flush:
+            log.flush()
+            next_flush = time.monotonic() + interval
+
+
+def main(argv: Sequence[str] | None = None) -> None:
+    """``DATA_FD STATUS_FD PATH``: serve, send one status, exit."""
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, signal.SIG_IGN)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT, signal.SIGTERM})
+    data_fd, status_fd, path = (argv or sys.argv[2:])[:3]
+    status_conn = Connection(int(status_fd), readable=False)
+    code = 0
+    try:
+        status = _serve(Connection(int(data_fd), writable=False), status_conn, path)
+    except BaseException as exc:  # one line for the parent, whatever it was
+        status, code = (int(Status.FAILED), f"{type(exc).__name__}: {' '.join(str(exc).split())}"), 1
+    try:
+        status_conn.send_bytes(marshal.dumps(status))
+    except OSError:
+        pass  # the parent is gone: nobody to tell
+    sys.exit(code)
+
+
+__all__ = ["JOIN_TIMEOUT", "PARENT_EXITED", "QUEUE_BATCHES", "WriterProcess", "main"]

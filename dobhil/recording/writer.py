@@ -1,0 +1,187 @@
+"""One MCAP file being written, through the public :class:`mcap.writer.Writer`.
+
+:class:`LogWriter` is the only code that writes a dobhil log (the run's writer process and
+``dobhil log import``): header, metadata and attachments at once, a channel from the topic
+table on its first message, records encoded by the table, chunk ended and file flushed
+(and fsynced) on request, the ``recording`` summary on finish. A second output (the live
+view) gets every encoded message too. No python-can, no numpy: the process starts fast.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from collections.abc import Callable, Iterable, Mapping, Sequence
+from enum import IntEnum
+from typing import Any, BinaryIO, Final, Protocol
+
+from mcap.writer import CompressionType, Writer
+
+from dobhil import __version__
+from dobhil.recording.schemas import (
+    MESSAGE_ENCODING,
+    SCHEMA_ENCODING,
+    TOPIC_SPECS,
+    CYCLE,
+    CYCLE_TOPICS,
+    EventKind,
+    Topic,
+    event_record,
+)
+
+#: Chunks end at this size or at every flush, whichever comes first.
+CHUNK_SIZE: Final = 256 * 1024
+#: Name of the metadata record written on close.
+RECORDING_METADATA: Final = "recording"
+#: Header ``library`` of every file dobhil writes (the reader checks it).
+LIBRARY: Final = f"dobhil/{__version__}"
+
+
+class RecordMode(IntEnum):
+    """What the sender does when the writer lags."""
+
+    BACKPRESSURE = 1  # wait for room, lose nothing (lockstep)
+    LOSSY = 2  # never wait; drop and count (real time)
+
+
+class Output(Protocol):
+    """A second output of every message (the live view)."""
+
+    def add_channel(self, topic: str, *, schema_name: str, json_schema: dict[str, Any]) -> None: ...
+
+    def publish(self, topic: str, payload: bytes, log_time_ns: int) -> None: ...
+
+    def close(self) -> None: ...
+
+    @property
+    def dropped(self) -> int: ...
+
+
+def chunk_compression() -> CompressionType:
+    """zstd if importable, else lz4, else none."""
+    for module, kind in (("zstandard", CompressionType.ZSTD), ("lz4.frame", CompressionType.LZ4)):
+        try:
+            __import__(module)
+        except ImportError:
+            continue
+        return kind
+    return CompressionType.NONE
+
+
+_NAMES: Final = {t: s.name for t, s in TOPIC_SPECS.items()}
+
+
+class _Channels(dict[Topic, int]):
+    """Topic -> channel id, registered (from the topic table) on first use."""
+
+    def __init__(self, register: Callable[[Topic], int]) -> None:
+        super().__init__()
+        self._register = register
+
+    def __missing__(self, topic: Topic) -> int:
+        channel = self[topic] = self._register(topic)
+        return channel
+
+
+class LogWriter:
+    """Writes records to ``file`` (owned: closed by :meth:`finish` or :meth:`close`).
+    Not thread-safe: one thread (or process) writes."""
+
+    def __init__(self, file: BinaryIO, *, metadata: Mapping[str, Mapping[str, Any]],
+                 attachments: Iterable[Sequence[Any]] = (), mode: RecordMode = RecordMode.BACKPRESSURE,
+                 fsync: bool = True, library: str = LIBRARY) -> None:
+        self.file = file
+        self.mode = RecordMode(mode)
+        self.fsync = fsync
+        self.written = 0
+        self.dropped = 0
+        self.last_log_ns = 0
+        self._outputs: list[Output] = []
+        self._channel = _Channels(self._register)
+        self._schemas: dict[str, int] = {}
+        self._mcap = Writer(file, chunk_size=CHUNK_SIZE, compression=chunk_compression(), enable_data_crcs=True)
+        self._mcap.start(profile="", library=library)
+        for name, record in metadata.items():
+            self._mcap.add_metadata(name, {str(k): str(v) for k, v in record.items()})
+        now = time.time_ns()
+        for name, media_type, data in attachments:
+            self._mcap.add_attachment(create_time=now, log_time=now, name=name, media_type=media_type, data=data)
+        file.flush()
+
+    def add_output(self, output: Output) -> None:
+        """Send every message to ``output`` as well, every topic of the table announced now."""
+        for spec in TOPIC_SPECS.values():
+            output.add_channel(spec.name, schema_name=spec.schema_name, json_schema=spec.json_schema())
+        self._outputs.append(output)
+
+    def write(self, records: Iterable[Sequence[Any]]) -> None:
+        """Encode and write records, in order."""
+        add, channel, outputs = self._mcap.add_message, self._channel, self._outputs
+        written, last = self.written, self.last_log_ns
+        for record in records:
+            kind, t = record[0], record[1]
+            if kind == CYCLE:
+                n = len(record)
+                for topic, encode, needs in CYCLE_TOPICS:
+                    if n >= needs:
+                        data = encode(record)
+                        add(channel[topic], t, data, t)
+                        written += 1
+                        for out in outputs:
+                            out.publish(_NAMES[topic], data, t)
+            else:
+                topic = Topic(kind)
+                data = TOPIC_SPECS[topic].encode(record[2:])
+                add(channel[topic], t, data, t)
+                written += 1
+                for out in outputs:
+                    out.publish(_NAMES[topic], data, t)
+            last = max(last, t)
+        self.written, self.last_log_ns = written, last
+
+    def loss(self, count: int, total: int, log_time_ns: int) -> None:
+        """The ``/events`` ``kind=loss`` record of ``count`` messages the sender dropped."""
+        self.dropped = total
+        self.write([event_record(EventKind.LOSS, log_time_ns, f"{count} messages dropped (writer lagging)",
+                                 f"total {total}", count)])
+
+    def flush(self) -> None:
+        """End the chunk, flush and (if asked) fsync: a crash loses nothing older."""
+        self._mcap.flush()
+        if self.fsync:
+            os.fsync(self.file.fileno())
+
+    def finish(self, stop_reason: str | None, detail: str = "") -> None:
+        """Stop event (if a reason is given), summary metadata, footer; close the file."""
+        if stop_reason is not None:
+            self.write([event_record(EventKind.STOP, self.last_log_ns or time.time_ns(), stop_reason, detail)])
+        summary = {"mode": self.mode.name.lower(), "written": str(self.written), "dropped": str(self.dropped),
+                   "stop_reason": stop_reason or ""}
+        if self._outputs:
+            summary["live_dropped"] = str(sum(out.dropped for out in self._outputs))
+        self._mcap.add_metadata(RECORDING_METADATA, summary)
+        self._mcap.finish()
+        self.flush()
+        self.close()
+
+    def close(self) -> None:
+        """Close the file (and the other outputs) without finishing it."""
+        for out in self._outputs:
+            out.close()
+        self._outputs.clear()
+        try:
+            self.file.close()
+        except OSError:
+            pass
+
+    def _register(self, topic: Topic) -> int:
+        spec = TOPIC_SPECS[topic]
+        schema = self._schemas.get(spec.schema_name)
+        if schema is None:
+            schema = self._schemas[spec.schema_name] = self._mcap.register_schema(
+                spec.schema_name, SCHEMA_ENCODING, spec.schema_bytes())
+        return self._mcap.register_channel(spec.name, MESSAGE_ENCODING, schema)
+
+
+__all__ = ["CHUNK_SIZE", "LIBRARY", "RECORDING_METADATA", "LogWriter", "Output", "RecordMode",
+           "chunk_compression"]

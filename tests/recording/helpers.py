@@ -1,0 +1,37 @@
+"""Writing small logs for tests through the one writer, :class:`LogWriter`."""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import can
+
+from dobhil.recording.schemas import Direction, EventKind, Topic, can_frame_record, event_record
+from dobhil.recording.writer import LogWriter, RecordMode
+
+
+def write_log(path: Path, records: Iterable[Sequence[Any]], *, metadata: Mapping[str, Mapping[str, Any]] | None = None,
+              attachments: Sequence[tuple[str, str, bytes]] = (), stop: str | None = None,
+              mode: RecordMode = RecordMode.BACKPRESSURE) -> Path:
+    log = LogWriter(open(path, "wb"), metadata=metadata or {}, attachments=attachments, mode=mode, fsync=False)
+    log.write(records)
+    log.finish(stop)
+    return path
+
+
+def frame(msg: can.Message, direction: Direction, t: int) -> tuple[Any, ...]:
+    return can_frame_record(msg, direction, t)
+
+
+def command(t: int, torque: float) -> tuple[Any, ...]:
+    return (int(Topic.DRIVE_COMMAND), t, torque)
+
+
+def feedback(t: int, position: float, velocity: float = 1.0, seq: int = 0, cycle: int = 0) -> tuple[Any, ...]:
+    return (int(Topic.DRIVE_FEEDBACK), t, position, velocity, 8, 0, seq, cycle)
+
+
+def event(kind: EventKind, t: int, reason: str, detail: str = "") -> tuple[Any, ...]:
+    return event_record(kind, t, reason, detail)

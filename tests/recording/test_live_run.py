@@ -1,0 +1,56 @@
+"""``dobhil run --live``: a WebSocket client connected during a lockstep run receives its messages."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+pytest.importorskip("foxglove")
+pytest.importorskip("websockets")
+from live_client import LiveClient, counts_at_least
+
+from dobhil.cli.main import main
+from dobhil.recording.reader import open_log
+
+ROOT = Path(__file__).resolve().parents[2]
+DEMO = ROOT / "configs" / "demo.yaml"
+
+
+def test_a_client_receives_controller_and_can_rx_during_a_lockstep_run(tmp_path: Path) -> None:
+    path = tmp_path / "live.mcap"
+    proc = subprocess.Popen([sys.executable, "-m", "dobhil", "run", str(DEMO), "--emulate", "--lockstep",
+                             "--duration", "600", "--log", str(path), "--live", "127.0.0.1:0"],
+                            env={**os.environ, "PYTHONPATH": str(ROOT)}, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    try:
+        assert proc.stderr is not None
+        line = proc.stderr.readline()
+        assert line.startswith("live view: ws://127.0.0.1:"), line + proc.stderr.read()
+        with LiveClient(line.split()[-1]) as client:
+            client.subscribe(["/controller", "/can/rx"])
+            received = client.collect(counts_at_least({"/controller": 50, "/can/rx": 50}), timeout=60)
+        assert proc.poll() is None  # received during the run
+    finally:
+        proc.send_signal(signal.SIGINT)
+        out, err = proc.communicate(timeout=60)
+    assert proc.returncode == 1 and "stopped: signal" in out, err
+    cycles = [int(r.payload.split(b'"cycle":')[1].split(b"}")[0]) for r in received if r.topic == "/controller"]
+    assert cycles == sorted(cycles)  # in order
+    recorded = open_log(path).info()
+    assert recorded.stop_reason == "signal" and recorded.metadata["recording"]["live_dropped"] == "0"
+
+
+def test_live_needs_a_log_and_a_valid_address(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    base = ["run", str(DEMO), "--emulate", "--lockstep", "--duration", "0.1"]
+    for extra, words in ((["--live", "8765"], "--live needs a log"),
+                         (["--live", "host:port", "--log", str(tmp_path / "a.mcap")], "port")):
+        capsys.readouterr()
+        assert main([*base, *extra]) == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and words in err
+    assert not list(tmp_path.iterdir())
