@@ -13,6 +13,10 @@
 - CAN frames per second and bus load: bits per frame 47 + 8 DLC plus the worst-case
   stuff bits ``floor((34 + 8 DLC - 1) / 4)`` (11-bit identifiers; 29-bit: 67 + 8 DLC and
   ``floor((54 + 8 DLC - 1) / 4)``) at ``drive.bitrate``;
+- command latency: per command frame on ``/can/tx``, the log time since the last frame
+  received on ``/can/rx`` (the feedback that triggered the cycle), against the latency the
+  sampled analysis assumed (``design.input_delay`` + ``design.delay_samples`` periods);
+  in lockstep the log clock is simulated and the latency is not measurable;
 - records the recorder dropped (``/events`` ``kind=loss``);
 - the measured force response against the sampled closed loop of the recorded config
   (``LoopSystems.build(params, sampled=True).system("closed_loop")`` driven by the
@@ -56,6 +60,7 @@ class RunData:
     frames: dict[str, list[int]] = field(default_factory=dict)   # topic -> DLCs
     frame_ext: dict[str, int] = field(default_factory=dict)      # topic -> extended-id frames
     span_s: float = 0.0                                          # first to last CAN frame
+    frame_times: dict[str, list[int]] = field(default_factory=dict)  # topic -> log times [ns]
     events: list[dict[str, Any]] = field(default_factory=list)
 
     def has(self, name: str) -> bool:
@@ -71,6 +76,7 @@ def load_run(path: str | os.PathLike[str], progress: ProgressFn | None = None) -
     name = os.fspath(path)
     per: dict[str, list[Any]] = {k: [] for k in ("controller", "feedback", "truth", "loop")}
     frames: dict[str, list[int]] = {"/can/rx": [], "/can/tx": []}
+    frame_times: dict[str, list[int]] = {"/can/rx": [], "/can/tx": []}
     ext = {"/can/rx": 0, "/can/tx": 0}
     times: list[int] = []
     events: list[dict[str, Any]] = []
@@ -81,12 +87,16 @@ def load_run(path: str | os.PathLike[str], progress: ProgressFn | None = None) -
         try:
             for i, (topic, t, data) in enumerate(log.iter_payloads(topics)):
                 _take(topic, t, loads(data), per, frames, ext, times, events, bounds)
+                if topic in frame_times:
+                    frame_times[topic].append(t)
                 if progress is not None and i % 1000 == 999:
                     progress(1000)
         except (KeyError, TypeError, ValueError) as exc:
             raise LogFileError(f"{name}: a recorded message does not match its schema ({type(exc).__name__}: "
                                f"{exc})") from None
-        return _assemble(name, log.config, log.metadata, per, frames, ext, times, events, bounds)
+        run = _assemble(name, log.config, log.metadata, per, frames, ext, times, events, bounds)
+    run.frame_times = frame_times
+    return run
 
 
 def _take(topic: str, t: int, p: dict[str, Any], per: dict[str, list[Any]], frames: dict[str, list[int]],
@@ -231,6 +241,39 @@ def bus_stats(data: RunData) -> dict[str, Any]:
     return out
 
 
+def latency_stats(data: RunData) -> dict[str, Any]:
+    """Measured command latency (feedback frame received -> command frame sent, log clock)
+    against the one the sampled analysis assumed."""
+    out: dict[str, Any] = {"assumed_s": None, "measured": False}
+    period = None
+    if data.config is not None:
+        design, period = data.config.design, data.config.loop.period
+        out["assumed_s"] = design.input_delay + design.delay_samples * period
+    if data.metadata.get("run", {}).get("log_clock") == "simulated":
+        out["why"] = "lockstep: the log clock is simulated (the emulator applies the assumed delay)"
+        return out
+    rx = np.asarray(data.frame_times.get("/can/rx", []), dtype=np.int64)
+    tx = np.asarray(data.frame_times.get("/can/tx", []), dtype=np.int64)
+    if rx.size == 0 or tx.size == 0:
+        out["why"] = "no frames in both directions"
+        return out
+    rx.sort()
+    last = np.searchsorted(rx, tx, side="right") - 1
+    lat = (tx[last >= 0] - rx[last[last >= 0]]) / 1e9
+    if period is not None:   # a command long after any feedback is not a cycle's answer
+        lat = lat[lat < period]
+    if lat.size == 0:
+        out["why"] = "no command within a period of a received frame"
+        return out
+    p50, p99 = float(np.percentile(lat, 50)), float(np.percentile(lat, 99))
+    out.update(measured=True, p50_s=p50, p99_s=p99, max_s=float(lat.max()), commands=int(lat.size))
+    if out["assumed_s"] is not None and period is not None:
+        # the analysis models the median; a spread of more than a tenth of a period is not modelled
+        out["p50_minus_assumed_s"] = p50 - out["assumed_s"]
+        out["matches"] = bool(abs(p50 - out["assumed_s"]) <= 0.1 * period)
+    return out
+
+
 def prediction(data: RunData) -> tuple[Array | None, dict[str, Any]]:
     """The sampled closed loop of the recorded config driven by the recorded reference."""
     if data.config is None:
@@ -266,6 +309,7 @@ def analyse(data: RunData) -> tuple[dict[str, Any], Array | None]:
                        if data.has("tau_int_true") else None),
         "loop_timing": _timing(data),
         "bus": bus_stats(data),
+        "latency": latency_stats(data),
         "dropped": int(sum(int(e.get("count", 0)) for e in data.events if e.get("kind") == "loss")),
         "prediction": pred_info,
     }
@@ -310,6 +354,16 @@ def summary_text(s: Mapping[str, Any]) -> str:
     lines.append(f"loop: exec p50 {us(lt['exec_time_p50'])}, p99 {us(lt['exec_time_p99'])}, "
                  f"max {us(lt['exec_time_max'])}; |period error| p99 {us(lt['period_error_p99'])}; "
                  f"overruns {lt['overruns']}")
+    la = s.get("latency") or {}
+    if la.get("measured"):
+        assumed = "-" if la.get("assumed_s") is None else us(la["assumed_s"])
+        verdict = "" if "matches" not in la else ("; matches the analysis" if la["matches"] else
+                                                  "; differs from the analysis by more than 0.1 T: set "
+                                                  f"design.input_delay = {la['p50_s']:.6f}")
+        lines.append(f"command latency: p50 {us(la['p50_s'])}, p99 {us(la['p99_s'])}, max {us(la['max_s'])}; "
+                     f"assumed by the analysis {assumed}{verdict}")
+    elif la:
+        lines.append(f"command latency: not measured ({la.get('why', '-')})")
     b = s["bus"]
     load = "-" if b["bus_load"] is None else f"{b['bus_load'] * 100:.1f} %"
     fps = "-" if b.get("rx_frames_per_s") is None else f"{b['rx_frames_per_s']:.0f} rx + {b['tx_frames_per_s']:.0f} tx"
@@ -326,5 +380,5 @@ def report(path: str | os.PathLike[str], progress: ProgressFn | None = None) -> 
     return data, summary, predicted
 
 
-__all__ = ["RunData", "StepInfo", "analyse", "bus_stats", "detect_steps", "load_run",
+__all__ = ["RunData", "StepInfo", "analyse", "bus_stats", "detect_steps", "latency_stats", "load_run",
            "prediction", "report", "step_infos", "summary_text"]

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from dobhil.analysis.run_report import detect_steps
+from dobhil.analysis.run_report import RunData, detect_steps, latency_stats, summary_text
 from dobhil.drives.bus_load import frame_bits
 from dobhil.cli.main import main
 from tests.recording.test_run_logging import logged_lockstep_run
@@ -63,3 +63,33 @@ def test_foxglove_layout_names_recorded_fields() -> None:
         topic, field = path.rsplit(".", 1)
         assert field in SPECS_BY_NAME[topic].keys, path
     assert layout["configById"]["RawMessages!events"]["topicPath"] == "/events"
+
+
+def _latency_run(rx_ms: list[float], tx_ms: list[float], *, clock: str, input_delay: float) -> RunData:
+    from dobhil.config import load_config
+    config = load_config("demo", [f"design.input_delay={input_delay}"])
+    return RunData(path="x", config=config, metadata={"run": {"log_clock": clock}}, t=np.zeros(1),
+                   frame_times={"/can/rx": [round(x * 1e6) for x in rx_ms],
+                                "/can/tx": [round(x * 1e6) for x in tx_ms]})
+
+
+def test_latency_is_measured_against_the_assumed_input_delay() -> None:
+    """Each command's latency is its log time since the last received frame; a command later
+    than a period after any feedback is not a cycle's answer and is left out."""
+    rx = [0.0, 1.0, 1.05, 2.0, 3.0]                 # 1.05: a heartbeat between two feedback frames
+    tx = [0.30, 1.30, 2.25, 3.40, 9.0]              # 9.0: long after the last feedback
+    lat = latency_stats(_latency_run(rx, tx, clock="wall", input_delay=3e-4))
+    assert lat["measured"] and lat["commands"] == 4
+    assert lat["p50_s"] == pytest.approx(0.275e-3) and lat["max_s"] == pytest.approx(0.4e-3)
+    assert lat["assumed_s"] == pytest.approx(3e-4) and lat["matches"]
+    far = latency_stats(_latency_run(rx, tx, clock="wall", input_delay=0.0))
+    assert far["measured"] and not far["matches"]    # 0.275 ms off at T = 1 ms: more than 0.1 T
+    text = summary_text({"file": "x", "cycles": 0, "duration_s": 0.0, "stop": None, "steps": [],
+                         "tracking": {"rms_error_estimated": None, "rms_error_true": None}, "estimation": None,
+                         "prediction": {}, "latency": far,
+                         "loop_timing": {k: None for k in ("exec_time_p50", "exec_time_p99", "exec_time_max",
+                                                           "period_error_p99")} | {"overruns": 0},
+                         "bus": {"bus_load": None, "bitrate": None}, "dropped": 0})
+    assert "set design.input_delay = 0.000275" in text
+    simulated = latency_stats(_latency_run(rx, tx, clock="simulated", input_delay=0.0))
+    assert not simulated["measured"] and "lockstep" in simulated["why"]
