@@ -11,8 +11,8 @@ itself is gone, that the run says loudly that the drive may still be enabled and
 the drive's own watchdog is then what stops it.
 
 SIGKILL of the emulator or of the loop process: ``test_process_kill.py`` (across
-processes). Not here (they need the recording redesign of issue 10): writer killed, disk
-full, the log's events, ``dobhil log recover``.
+processes). The recorder's rows (writer killed, disk full, ``dobhil log recover``):
+``test_recorder_faults.py``.
 """
 
 from __future__ import annotations
