@@ -277,7 +277,7 @@ def _realtime_run(duration: float, timing: str, path: Path | None):  # type: ign
         return record_run(session, log)
 
 
-def bench_realtime(rounds: int = 3, seconds: float = 2.0) -> dict[str, float]:
+def bench_realtime(rounds: int = 3, seconds: float = 6.0) -> dict[str, float]:
     """Real-time quality, in one run, interleaved rounds of: the bare sleeping loop,
     host-timed emulated runs without and with logging, a feedback-timed run.
 
