@@ -7,7 +7,6 @@ import json
 import os
 import shutil
 import signal
-import socket
 import subprocess
 import sys
 import time
@@ -22,6 +21,7 @@ from dobhil.canio.mcap_reader import McapReader
 from dobhil.canio.mcap_writer import METADATA, McapWriter, program_name
 from dobhil.cli.main import main as dobhil_main
 from dobhil.recording.reader import open_log
+from tests.runtime.hub import accepts, free_port
 from dobhil.recording.schemas import SPECS_BY_NAME
 
 REPO = Path(__file__).resolve().parents[2]
@@ -260,20 +260,6 @@ def test_logconvert_onto_its_own_input_is_refused(tmp_path: Path, monkeypatch: p
     write(tmp_path / "frames.mcap")   # once the reader is closed, overwriting is python-can's usual
 
 
-def _free_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
-def _accepts(port: int) -> bool:
-    try:
-        with socket.create_connection(("127.0.0.1", port), timeout=0.5):
-            return True
-    except OSError:
-        return False
-
-
 def _stop(proc: subprocess.Popen[bytes]) -> None:
     if proc.poll() is None:
         proc.terminate()
@@ -299,7 +285,7 @@ def test_player_to_logger_across_processes(run_log: Path, tmp_path: Path) -> Non
     """``can.player run.mcap`` in one process, ``can.logger -f capture.mcap`` in another, on a
     python-can-remote hub (127.0.0.1): the capture holds every frame of the run, in order."""
     pytest.importorskip("can_remote")
-    port = _free_port()
+    port = free_port()
     url = f"ws://127.0.0.1:{port}/"
     hub_log = (tmp_path / "hub.log").open("wb")
     hub = subprocess.Popen([sys.executable, "-m", "can_remote", "-i", "virtual", "-c", f"canio-{port}",
@@ -308,7 +294,7 @@ def test_player_to_logger_across_processes(run_log: Path, tmp_path: Path) -> Non
     sentinel = 0x7FE
     try:
         deadline = time.monotonic() + BOUND
-        while not _accepts(port):
+        while not accepts(port):
             if hub.poll() is not None or time.monotonic() > deadline:
                 pytest.skip("python-can-remote hub did not start on 127.0.0.1")
             time.sleep(0.05)

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -20,7 +19,7 @@ from dobhil.runtime.session import RunSession
 from dobhil.runtime.stop import StopReason
 
 from .helpers import DEMO, REPO, demo_config, finite_tail, write_profile
-from .hub import STARTUP_TIMEOUT, child_env, stop_process
+from .hub import child_env, stop_process, wait_for_emulator
 
 def slow_overrides(tmp_path: Path) -> list[str]:
     profile = write_profile(tmp_path, "odrive-0.6", encoder_msg_rate=5e-3,
@@ -43,11 +42,7 @@ def test_force_loop_across_processes(tmp_path: Path, hub: int) -> None:
              "--duration", "60", *[a for o in overrides for a in ("--set", o)]],
             stdout=log, stderr=subprocess.STDOUT, env=child_env(), cwd=REPO)
     try:
-        deadline = time.monotonic() + STARTUP_TIMEOUT
-        while "emulating odrive" not in out.read_text(errors="replace"):
-            assert emulate.poll() is None, out.read_text(errors="replace")
-            assert time.monotonic() < deadline, "dobhil emulate did not start"
-            time.sleep(0.05)
+        wait_for_emulator(emulate, out)
         config = demo_config(*overrides)
         with RunSession(config, bus=f"remote:{url}") as session:
             assert session.bus_spec.interface == "remote"

@@ -51,8 +51,8 @@ def lockstep_preflight(emulated: DriveProfile, expected: DriveProfile, *, window
                          Plant.from_config(demo_config()))
     lock = LockstepBus(host, [emu], dt=1e-3)
     try:
-        return run_preflight(lock, expected, probe=preflight_probe(expected), period=period, feedback_timeout=feedback_timeout,
-                             window=window, bitrate=1_000_000, clock=lock.clock,
+        return run_preflight(lock, expected, probe=preflight_probe(expected), period=period,
+                             feedback_timeout=feedback_timeout, window=window, bitrate=1_000_000, clock=lock.clock,
                              stamp=lambda _m: lock.clock())
     finally:
         lock.shutdown()
@@ -171,7 +171,8 @@ def test_bus_error_state_and_error_frames_are_mismatches() -> None:
     other = can.Bus(interface="virtual", channel=channel)
     try:
         other.send(can.Message(is_error_frame=True, arbitration_id=0x20000080, is_extended_id=True))
-        report = run_preflight(bus, bare("odrive-0.6"), probe=preflight_probe(bare("odrive-0.6")), period=1e-3, window=0.05)
+        profile = bare("odrive-0.6")
+        report = run_preflight(bus, profile, probe=preflight_probe(profile), period=1e-3, window=0.05)
     finally:
         bus.shutdown()
         other.shutdown()

@@ -15,7 +15,6 @@ import os
 import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import can
@@ -29,7 +28,7 @@ from dobhil.runtime.session import RunSession
 from dobhil.runtime.stop import StopReason
 
 from .helpers import DEMO, REPO, demo_config, wait_until
-from .hub import STARTUP_TIMEOUT, child_env, stop_process
+from .hub import STARTUP_TIMEOUT, child_env, stop_process, wait_for_emulator
 from .test_cross_process import slow_overrides
 
 
@@ -68,11 +67,7 @@ def test_emulator_killed(tmp_path: Path, hub: int) -> None:
     emulate = start_child(["emulate", str(DEMO), "--bus", url, "--duration", "60",
                            *sets(overrides)], out)
     try:
-        deadline = time.monotonic() + STARTUP_TIMEOUT
-        while "emulating odrive" not in out.read_text(errors="replace"):
-            assert emulate.poll() is None, out.read_text(errors="replace")
-            assert time.monotonic() < deadline, "dobhil emulate did not start"
-            time.sleep(0.05)
+        wait_for_emulator(emulate, out)
         sink = KillAt(emulate.pid, at=60)   # 0.3 s into the run at 200 Hz
         with RunSession(demo_config(*overrides, "loop.duration=10"), bus=url,
                         sink=sink) as session:  # type: ignore[arg-type]
