@@ -189,8 +189,9 @@ def test_bus_too_slow_for_the_loop() -> None:
                          Plant.from_config(demo_config()))
     lock = LockstepBus(host, [emu], dt=1e-3)
     try:
-        report = run_preflight(lock, bare("odrive-0.6"), probe=preflight_probe(bare("odrive-0.6")), period=1e-3, window=0.5, bitrate=250_000,
-                               clock=lock.clock, stamp=lambda _m: lock.clock())
+        profile = bare("odrive-0.6")
+        report = run_preflight(lock, profile, probe=preflight_probe(profile), period=1e-3, window=0.5,
+                               bitrate=250_000, clock=lock.clock, stamp=lambda _m: lock.clock())
     finally:
         lock.shutdown()
         emu.close()
