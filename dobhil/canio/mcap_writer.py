@@ -19,9 +19,12 @@ else none), ``chunk_size`` (bytes) and ``flush_interval`` (seconds).
 from __future__ import annotations
 
 import os
+import signal
 import sys
 import threading
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from datetime import datetime, timezone
 from io import BufferedIOBase
 from pathlib import Path
@@ -39,6 +42,7 @@ from dobhil.canio.frames import FRAME_TOPICS, Topic, channel_spec, frame_json, t
 #: Name of the metadata record written at the start (and ``.stop`` at the end).
 METADATA: Final = "python-can"
 CHUNK_SIZE: Final = 256 * 1024
+_DEFERRED: Final = {signal.SIGINT, signal.SIGTERM}
 _COMPRESSION: Final = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}
 
 
@@ -55,6 +59,21 @@ def program_name(argv0: str | None = None) -> str:
 
 def _positive(value: Any) -> bool:
     return isinstance(value, (int, float)) and not isinstance(value, bool) and value > 0
+
+
+@contextmanager
+def _signals_deferred() -> Iterator[None]:
+    """SIGINT/SIGTERM held back while one frame is written and counted: a Ctrl-C (how
+    ``can.logger`` is stopped) must not land between the two, or the stop metadata would
+    count one frame less than the file holds. Their handlers run right after."""
+    if not hasattr(signal, "pthread_sigmask"):
+        yield
+        return
+    old = signal.pthread_sigmask(signal.SIG_BLOCK, _DEFERRED)
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, old)
 
 
 def _utc_now() -> str:
@@ -129,7 +148,7 @@ class McapWriter(BinaryIOMessageWriter):
         data = frame_json(msg)
         stamp = msg.timestamp
         log_ns = max(0, round(stamp * 1e9)) if stamp else time.time_ns()
-        with self._lock:
+        with self._lock, _signals_deferred():
             if self._stopped:
                 raise ValueError("MCAP writer: message after stop()")
             sequence = self._counts[topic]
