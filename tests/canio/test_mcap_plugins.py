@@ -21,7 +21,7 @@ from dobhil.canio.mcap_reader import McapReader
 from dobhil.canio.mcap_writer import METADATA, McapWriter, program_name
 from dobhil.cli.main import main as dobhil_main
 from dobhil.recording.reader import open_log
-from tests.runtime.hub import accepts, free_port
+from tests.runtime.hub import accepts, free_port, stop_process
 from dobhil.recording.schemas import SPECS_BY_NAME
 
 REPO = Path(__file__).resolve().parents[2]
@@ -260,16 +260,6 @@ def test_logconvert_onto_its_own_input_is_refused(tmp_path: Path, monkeypatch: p
     write(tmp_path / "frames.mcap")   # once the reader is closed, overwriting is python-can's usual
 
 
-def _stop(proc: subprocess.Popen[bytes]) -> None:
-    if proc.poll() is None:
-        proc.terminate()
-        try:
-            proc.wait(timeout=10)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait(timeout=10)
-
-
 def _frames_so_far(path: Path, sentinel: int) -> int:
     """Frames other than ``sentinel`` in a capture still being written (complete chunks)."""
     count = 0
@@ -319,7 +309,7 @@ def test_player_to_logger_across_processes(run_log: Path, tmp_path: Path) -> Non
         assert logger.returncode == 0
     finally:
         for proc in reversed(procs):
-            _stop(proc)
+            stop_process(proc)
         hub_log.close()
     got = [m for m in can.LogReader(capture) if m.arbitration_id != sentinel]
     assert [flags(m)[:-1] for m in got] == [flags(m)[:-1] for m in expected]
