@@ -4,7 +4,10 @@ Each subcommand lives in its own module of this package and exposes
 ``register(subparsers: argparse._SubParsersAction) -> None``; the parser it adds
 sets ``func=callable(args) -> int``. Any :class:`dobhil.errors.DobhilError`
 (and argparse usage errors) end in one line on stderr and exit code 2, with no
-traceback.
+traceback; so does an operating-system refusal on a named file (``--out /proc/x``:
+the error names the path). Any other exception is a bug in dobhil: one
+``internal error`` line and exit code 3; ``DOBHIL_DEBUG=1`` in the environment prints
+the traceback as well (for every error, bad input included).
 """
 
 from __future__ import annotations
@@ -14,6 +17,7 @@ import importlib
 import os
 import select
 import sys
+import traceback
 from collections.abc import Sequence
 
 from dobhil import __version__
@@ -34,6 +38,10 @@ _SUBCOMMANDS: tuple[str, ...] = (
 )
 
 EXIT_USAGE = 2
+#: exit code of an unexpected exception (a bug in dobhil, not bad input)
+EXIT_INTERNAL = 3
+#: environment variable that makes every error also print its traceback
+DEBUG_ENV = "DOBHIL_DEBUG"
 #: exit code when the reader of stdout went away (``dobhil ... | head``): 128 + SIGPIPE, as a shell reports
 EXIT_BROKEN_PIPE = 141
 
@@ -43,7 +51,8 @@ DESCRIPTION = ("Robust force control of servo drives over CAN with the disturban
                "and analyse it.")
 EPILOG = ("CONFIG is a YAML file or the name of a shipped config (demo, paper/fig2c); "
           "'dobhil init DIR' copies them for editing. 'dobhil COMMAND --help' shows a command's options. "
-          "Exit codes: 0 done, 1 safety stop or failed check, 2 bad input.")
+          "Exit codes: 0 done, 1 safety stop or failed check, 2 bad input, 3 internal error "
+          f"(a bug; {DEBUG_ENV}=1 shows its traceback).")
 
 
 class _Parser(argparse.ArgumentParser):
@@ -101,11 +110,51 @@ def _main(argv: Sequence[str] | None) -> int:
     except KeyboardInterrupt:
         sys.stderr.write("dobhil: interrupted\n")
         return 130
+    except Exception as exc:  # a subcommand that cannot be imported: a broken install
+        return _internal("", exc)
     try:
         return int(args.func(args) or 0)
     except DobhilError as exc:
-        sys.stderr.write(f"dobhil {args.command}: error: {exc}\n")
-        return EXIT_USAGE
+        return _fail(f"dobhil {args.command}: error: {_one_line(exc)}", EXIT_USAGE)
     except KeyboardInterrupt:
         sys.stderr.write(f"dobhil {args.command}: interrupted\n")
         return 130
+    except BrokenPipeError:
+        raise  # main() tells a closed stdout from a real failure
+    except OSError as exc:
+        if exc.filename is None:
+            return _internal(args.command, exc)
+        # the system refused a file the command was given or derived from its arguments
+        # (a read-only place, /proc, a name too long, a disk full): one line naming it
+        where = _path(exc.filename) + (f" -> {_path(exc.filename2)}" if exc.filename2 is not None else "")
+        return _fail(f"dobhil {args.command}: error: {where}: {exc.strerror or _one_line(exc)}", EXIT_USAGE)
+    except Exception as exc:
+        return _internal(args.command, exc)
+
+
+def _path(name: object) -> str:
+    return os.fsdecode(name) if isinstance(name, (str, bytes, os.PathLike)) else str(name)
+
+
+def _one_line(exc: BaseException) -> str:
+    text = " ".join(str(exc).split())
+    return text if text else type(exc).__name__
+
+
+def _debug() -> bool:
+    return os.environ.get(DEBUG_ENV, "") not in ("", "0")
+
+
+def _fail(line: str, code: int) -> int:
+    if _debug():
+        traceback.print_exc()
+    sys.stderr.write(line + "\n")
+    return code
+
+
+def _internal(command: str, exc: Exception) -> int:
+    """An exception no check anticipated: a bug, said as one, with the way to its traceback."""
+    hint = "the traceback is above" if _debug() else f"{DEBUG_ENV}=1 shows the traceback"
+    prog = f"dobhil {command}" if command else "dobhil"
+    return _fail(f"{prog}: internal error: {type(exc).__name__}: {_one_line(exc)[:300]} "
+                 f"(a bug in dobhil; {hint}; please report it)", EXIT_INTERNAL)

@@ -18,12 +18,22 @@ def run(args: argparse.Namespace) -> int:
     return reproduce(args.out)
 
 
+def _outputs(out: Path) -> tuple[Path, Path]:
+    """The two figure paths in ``out``, checked before any work (one line if unwritable)."""
+    from dobhil.files import OutputError, check_output
+    if out.exists() and not out.is_dir():
+        raise OutputError(f"--out {out}: exists and is not a directory")
+    return (check_output(out / "fig2_root_locus.png", suffix=".png", what="--out"),
+            check_output(out / "fig3_step.png", suffix=".png", what="--out"))
+
+
 def reproduce(out: Path) -> int:
     from dobhil import paper
     from dobhil.plotting.paper_figures import fig2, fig3
+    targets = _outputs(out)
     cases2, cases3 = paper.fig2_cases(), paper.fig3_cases()
     facts = paper.fig2_facts(cases2) + paper.fig3_facts(cases3)
-    paths = [fig2(cases2, out / "fig2_root_locus.png"), fig3(cases3, out / "fig3_step.png")]
+    paths = [fig2(cases2, targets[0]), fig3(cases3, targets[1])]
     print("Section IV claims, checked:")
     for f in facts:
         print(f"  [{'ok' if f.holds else 'FAILS'}] {f.claim} -- {f.evidence}")

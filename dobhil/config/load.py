@@ -15,7 +15,7 @@ from typing import Any, NoReturn
 import yaml
 
 from dobhil.config.schema import SECTIONS, Check, Config, check_maximum, key_fields
-from dobhil.config.yamlio import safe_load, where
+from dobhil.config.yamlio import TextFileError, read_text_file, safe_load, where
 from dobhil.data import configs_dir, shipped_configs, shipped_file
 from dobhil.errors import ConfigError
 
@@ -36,13 +36,20 @@ def resolve_config(path: str | Path) -> Path:
     An existing path is always that file; otherwise a shipped config of that name; otherwise
     ConfigError listing the shipped names.
     """
+    if not str(path).strip():
+        raise ConfigError(f"config {str(path)!r}: empty; expected a YAML file or a shipped config name: "
+                          f"{', '.join(shipped_configs())}")
     p = Path(path)
-    if p.exists():
-        return p
+    try:
+        if p.exists():
+            return p
+    except (OSError, ValueError) as exc:  # a name too long for the file system, a NUL byte
+        raise ConfigError(f"config {_show(str(path))}: not a usable file name "
+                          f"({getattr(exc, 'strerror', None) or exc})") from None
     found = shipped_file(configs_dir(), str(path))
     if found is not None:
         return found
-    raise ConfigError(f"config {str(path)!r}: no such file, and not a shipped config name; shipped: "
+    raise ConfigError(f"config {_show(str(path))}: no such file, and not a shipped config name; shipped: "
                       f"{', '.join(shipped_configs())} (dobhil init DIR copies them for editing)")
 
 
@@ -50,11 +57,11 @@ def read_yaml(path: str | Path) -> dict[str, Any]:
     """The mapping in a YAML file, or ConfigError naming the file (and line) at fault."""
     p = Path(path)
     try:
-        text = p.read_text(encoding="utf-8")
+        text = read_text_file(p)
     except FileNotFoundError:
         raise ConfigError(f"config file {p} does not exist") from None
-    except (IsADirectoryError, PermissionError, UnicodeDecodeError) as exc:
-        raise ConfigError(f"config file {p} cannot be read: {exc.__class__.__name__}") from None
+    except TextFileError as exc:
+        raise ConfigError(f"config file {p} {exc}") from None
     try:
         data = safe_load(text)
     except yaml.YAMLError as exc:

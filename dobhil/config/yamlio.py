@@ -8,13 +8,20 @@ like any syntax error, so callers report them the same way.
 
 from __future__ import annotations
 
+import os
+import stat
+from pathlib import Path
 from typing import Any
 
 import yaml
 from yaml.constructor import ConstructorError
 from yaml.nodes import MappingNode
 
-__all__ = ["UniqueKeyLoader", "safe_load", "where"]
+__all__ = ["MAX_TEXT_BYTES", "UniqueKeyLoader", "TextFileError", "read_text_file", "safe_load", "where"]
+
+#: the largest YAML file dobhil reads (configs and profiles are a few kB; a larger file is
+#: not one, and PyYAML would take minutes over it)
+MAX_TEXT_BYTES = 1 << 20
 
 _MERGE_TAG = "tag:yaml.org,2002:merge"
 
@@ -51,3 +58,39 @@ def where(exc: yaml.YAMLError) -> str:
     problem = getattr(exc, "problem", None) or ""
     at = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
     return f"{at}: {problem}" if problem else at
+
+
+class TextFileError(ValueError):
+    """A text file that cannot be read; the message is one line (no path: callers add it)."""
+
+
+def read_text_file(path: str | os.PathLike[str], *, limit: int = MAX_TEXT_BYTES) -> str:
+    """The UTF-8 text of a regular file of at most ``limit`` bytes, or :class:`TextFileError`.
+
+    A FIFO or a device (``/dev/zero``) is refused before it is opened: reading one would
+    block or never end. Missing files raise :class:`FileNotFoundError` (callers word it).
+    """
+    p = Path(path)
+    try:
+        info = p.stat()
+    except FileNotFoundError:
+        raise
+    except OSError as exc:
+        raise TextFileError(f"cannot be read: {exc.strerror or exc.__class__.__name__}") from None
+    if stat.S_ISDIR(info.st_mode):
+        raise TextFileError("is a directory, not a file")
+    if not stat.S_ISREG(info.st_mode):
+        raise TextFileError("is not a regular file (a FIFO, socket or device)")
+    if info.st_size > limit:
+        raise TextFileError(f"is too large ({info.st_size} bytes; at most {limit} allowed)")
+    try:
+        with p.open("rb") as fh:
+            data = fh.read(limit + 1)
+    except OSError as exc:
+        raise TextFileError(f"cannot be read: {exc.strerror or exc.__class__.__name__}") from None
+    if len(data) > limit:  # grew since stat
+        raise TextFileError(f"is too large (more than {limit} bytes)")
+    try:
+        return data.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise TextFileError(f"is not UTF-8 text (byte 0x{data[exc.start]:02x} at offset {exc.start})") from None

@@ -76,8 +76,11 @@ def shipped_file(directory: Path, name: str) -> Path | None:
     stems = [name] if name.endswith(_SUFFIXES) else [name + s for s in _SUFFIXES]
     for stem in stems:
         path = directory / stem
-        if path.is_file():
-            return path
+        try:
+            if path.is_file():
+                return path
+        except (OSError, ValueError):  # a name too long for the file system: not shipped
+            return None
     return None
 
 

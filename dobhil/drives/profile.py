@@ -21,7 +21,7 @@ from typing import Any
 
 import yaml
 
-from dobhil.config.yamlio import safe_load, where
+from dobhil.config.yamlio import TextFileError, read_text_file, safe_load, where
 from dobhil.errors import ConfigError
 
 __all__ = ["DriveProfile", "default_drivers_dir", "load_profile", "profile_from_mapping"]
@@ -72,12 +72,27 @@ def default_drivers_dir() -> Path:
     return drivers_dir()
 
 
+def _is_file(path: Path) -> bool:
+    """``path.is_file()``, False for a name the file system cannot even look up (too long)."""
+    try:
+        return path.is_file()
+    except (OSError, ValueError):
+        return False
+
+
+def _exists(path: Path) -> bool:
+    try:
+        return path.exists()
+    except (OSError, ValueError):
+        return False
+
+
 def _near(name: str, near: Path) -> Path | None:
     """``drivers/<name>.yaml`` in ``near`` or the closest of its parents that has one."""
     start = near.resolve()
     for directory in (start, *start.parents):
         path = directory / "drivers" / f"{name}.yaml"
-        if path.is_file():
+        if _is_file(path):
             return path
     return None
 
@@ -129,15 +144,15 @@ def _resolve(name_or_path: str | os.PathLike[str], drivers_dir: Path | None, nea
     text = os.fspath(name_or_path)
     candidate = Path(text)
     if candidate.suffix in (".yaml", ".yml") or os.sep in text or "/" in text:
-        if candidate.is_file():
-            return candidate
+        if _exists(candidate):
+            return candidate  # a directory, FIFO or device is refused, with its reason, when read
         raise ConfigError(f"profile file {text!r} does not exist")
     found = _near(text, near) if near is not None and drivers_dir is None else None
     if found is not None:
         return found
     directory = drivers_dir if drivers_dir is not None else default_drivers_dir()
     path = directory / f"{text}.yaml"
-    if path.is_file():
+    if _is_file(path):
         return path
     known = sorted(p.stem for p in directory.glob("*.yaml")) if directory.is_dir() else []
     hint = f"in {directory}" if drivers_dir is not None else \
@@ -152,7 +167,9 @@ def load_profile(
     shipped ones) or an explicit YAML path into a DriveProfile."""
     path = _resolve(name_or_path, drivers_dir, near)
     try:
-        data = safe_load(path.read_text(encoding="utf-8"))
+        data = safe_load(read_text_file(path))
+    except TextFileError as exc:
+        raise ConfigError(f"{path}: cannot read drive profile: it {exc}") from None
     except yaml.YAMLError as exc:
         raise ConfigError(f"{path}: YAML error in drive profile{where(exc)}") from None
     except (OSError, ValueError, RecursionError) as exc:
