@@ -8,8 +8,15 @@ from pathlib import Path
 
 def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = sub.add_parser("init", help="copy the shipped configs and drive profiles into DIR to edit them")
-    p.add_argument("dir", metavar="DIR", type=Path, help="target directory (created; nothing is overwritten)")
+    p.add_argument("dir", metavar="DIR", type=_directory, help="target directory (created; nothing is overwritten)")
     p.set_defaults(func=run)
+
+
+def _directory(text: str) -> Path:
+    """DIR as given; an empty string is refused (``Path("")`` would quietly be ``.``)."""
+    if not text.strip():
+        raise argparse.ArgumentTypeError("empty; give a directory, e.g. dobhil init my-project")
+    return Path(text)
 
 
 def run(args: argparse.Namespace) -> int:

@@ -96,24 +96,41 @@ def copy_shipped(dest: Path) -> list[Path]:
     Never overwrites: when any target exists nothing is written and DobhilError names it.
     On any failure the files written so far are removed. Returns the files written.
     """
-    if dest.exists() and not dest.is_dir():
-        raise DobhilError(f"{dest} exists and is not a directory")
-    plan = [(src, dest / top / src.relative_to(root))
-            for top, root in (("configs", configs_dir()), ("drivers", drivers_dir()))
-            for src in _shipped_files(root)]
-    clash = [dst for _, dst in plan if dst.exists()]
+    if not str(dest).strip():
+        raise DobhilError("target directory '': empty; give a directory, e.g. dobhil init my-project")
+    try:
+        if dest.exists() and not dest.is_dir():
+            raise DobhilError(f"{dest} exists and is not a directory")
+        plan = [(src, dest / top / src.relative_to(root))
+                for top, root in (("configs", configs_dir()), ("drivers", drivers_dir()))
+                for src in _shipped_files(root)]
+        blocked = [d for d in {dst.parent for _, dst in plan} | {dest} if d.exists() and not d.is_dir()]
+        clash = [dst for _, dst in plan if dst.exists() or dst.is_symlink()]
+    except OSError as exc:  # a name the file system refuses (too long, a loop of links)
+        raise DobhilError(f"cannot write {dest}: {exc.strerror or exc}") from None
+    if blocked:
+        raise DobhilError(f"{min(blocked)} exists and is not a directory; init never overwrites: "
+                          "remove it or choose another directory")
     if clash:
         raise DobhilError(f"{clash[0]} exists ({len(clash)} of {len(plan)} files would be overwritten); "
                           "init never overwrites: remove them or choose another directory")
     written: list[Path] = []
+    made: list[Path] = []  # directories this call created, removed again on failure
     try:
         for src, dst in plan:
+            missing = [d for d in (dst.parent, *dst.parent.parents) if not d.exists()]
             dst.parent.mkdir(parents=True, exist_ok=True)
+            made.extend(reversed(missing))
             with dst.open("xb") as fh:  # exclusive: a file that appeared meanwhile is not overwritten
                 written.append(dst)
                 fh.write(src.read_bytes())
     except OSError as exc:
         for path in written:
             path.unlink(missing_ok=True)
+        for directory in reversed(made):
+            try:
+                directory.rmdir()  # only if empty: never removes what was there before
+            except OSError:
+                pass
         raise DobhilError(f"cannot write {dest}: {exc.strerror or exc}") from None
     return written

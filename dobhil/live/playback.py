@@ -46,10 +46,17 @@ class PlaybackReport:
     wall_s: float
 
 
+#: Slowest and fastest playback: beyond these a recording would take years to play (and
+#: ``time.sleep`` overflows), or every message would go out at once anyway.
+MIN_SPEED: Final = 1e-3
+MAX_SPEED: Final = 1e6
+
+
 def check_speed(speed: float) -> float:
-    """``speed`` if it is a positive finite factor, else one ConfigError line."""
-    if not (math.isfinite(speed) and speed > 0):
-        raise ConfigError(f"--speed must be a positive finite factor of recorded pace (e.g. 1, 0.5, 10), got {speed}")
+    """``speed`` if it is a factor in [MIN_SPEED, MAX_SPEED], else one ConfigError line."""
+    if not (math.isfinite(speed) and MIN_SPEED <= speed <= MAX_SPEED):
+        raise ConfigError(f"--speed must be a positive finite factor of recorded pace (e.g. 1, 0.5, 10) "
+                          f"from {MIN_SPEED:g} to {MAX_SPEED:g}, got {speed}")
     return speed
 
 

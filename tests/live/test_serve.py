@@ -92,6 +92,8 @@ def test_serve_delivers_recorded_topics_byte_for_byte(recorded: Path, serving: s
         (["not.mcap"], "not an MCAP file"),
         (["RUN", "--speed", "0"], "--speed"),
         (["RUN", "--speed", "nan"], "--speed"),
+        (["RUN", "--speed", "1e-300"], "from 0.001 to 1e+06"),  # would sleep past time.sleep's range
+        (["RUN", "--speed", "1e300"], "from 0.001 to 1e+06"),
         (["RUN", "--live", "host:port"], "[HOST:]PORT"),
         (["RUN", "--live", "70000"], "out of range"),
     ],
