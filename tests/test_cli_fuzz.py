@@ -36,10 +36,8 @@ from dobhil.config import key_fields
 ROOT = Path(__file__).resolve().parents[1]
 #: commands whose valid command lines run a loop or serve until a client comes
 LONG_RUNNING = {"run", "emulate", "demo", "serve"}
-#: options whose value is a file written by the command (fuzzed only with names in the
-#: scratch directory: a hostile *output* name is tested by hand below)
 KEYS = sorted(key_fields())
-FUZZ = settings(max_examples=120, derandomize=True, deadline=None, database=None,
+FUZZ = settings(max_examples=150, derandomize=True, deadline=None, database=None,
                 suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
 
 
@@ -174,7 +172,8 @@ sets = st.builds(lambda key, value: f"{key}={value}",
 VALID_POSITIONAL = {"analyze": "demo", "sweep": "demo", "check": "demo", "replay": "good.mcap",
                     "report": "good.mcap", "info": "good.mcap", "recover": "good.mcap",
                     "export": "good.mcap", "import": "good.mcap", "init": "fresh"}
-#: output values: fresh names inside the scratch directory (hostile ones are tested by hand)
+#: values of options naming a file the command writes: fresh names inside the scratch
+#: directory (hostile output names are tested by hand below)
 outputs = st.sampled_from(["o1.png", "o2.csv", "o3.mcap", "o4.blf", "o5", "out/o6.png", "o7.txt"])
 OUTPUT_OPTIONS = {"--plot", "--out", "--output", "--log"}
 
@@ -283,3 +282,13 @@ def test_the_installed_command_reads_no_fifo(scratch: Path) -> None:
     exe = shutil.which("dobhil") or str(Path(sys.executable).parent / "dobhil")
     done = subprocess.run([exe, "analyze", "fifo.yaml"], cwd=scratch, capture_output=True, text=True, timeout=60)
     assert done.returncode == 2 and "not a regular file" in done.stderr, done.stderr
+
+
+@pytest.mark.skipif(shutil.which("sh") is None, reason="needs a POSIX shell")
+@pytest.mark.parametrize(("redirect", "code"), [(">&-", 0), ("2>&-", 2)])
+def test_a_closed_stdout_or_stderr_is_no_traceback(scratch: Path, redirect: str, code: int) -> None:
+    """Started with stdout (or stderr) closed, Python's sys.stdout (sys.stderr) is None."""
+    config = "demo" if redirect == ">&-" else "nonexistent.yaml"
+    done = subprocess.run(["sh", "-c", f'"$0" -m dobhil analyze {config} {redirect}', sys.executable],
+                          cwd=scratch, capture_output=True, text=True, timeout=120)
+    assert done.returncode == code and "Traceback" not in done.stderr, done.stderr

@@ -59,7 +59,7 @@ class _Parser(argparse.ArgumentParser):
     """argparse with one-line errors (exit code 2) instead of usage dumps."""
 
     def error(self, message: str) -> None:  # type: ignore[override]
-        sys.stderr.write(f"{self.prog}: error: {message}\n")
+        _say(f"{self.prog}: error: {message}")
         raise SystemExit(EXIT_USAGE)
 
 
@@ -82,7 +82,8 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: Sequence[str] | None = None) -> int:
     try:
         code = _main(argv)
-        sys.stdout.flush()  # a closed pipe shows here, not as a traceback at exit
+        if sys.stdout is not None:  # None when started with stdout closed (``dobhil ... >&-``)
+            sys.stdout.flush()  # a closed pipe shows here, not as a traceback at exit
     except BrokenPipeError:
         if not _stdout_gone():
             raise  # another pipe (a worker process, a socket): a real failure, not ours to hide
@@ -108,7 +109,7 @@ def _main(argv: Sequence[str] | None) -> int:
     try:  # Ctrl-C while the subcommands are imported: one line, no traceback
         args = build_parser().parse_args(argv)
     except KeyboardInterrupt:
-        sys.stderr.write("dobhil: interrupted\n")
+        _say("dobhil: interrupted")
         return 130
     except Exception as exc:  # a subcommand that cannot be imported: a broken install
         return _internal("", exc)
@@ -117,7 +118,7 @@ def _main(argv: Sequence[str] | None) -> int:
     except DobhilError as exc:
         return _fail(f"dobhil {args.command}: error: {_one_line(exc)}", EXIT_USAGE)
     except KeyboardInterrupt:
-        sys.stderr.write(f"dobhil {args.command}: interrupted\n")
+        _say(f"dobhil {args.command}: interrupted")
         return 130
     except BrokenPipeError:
         raise  # main() tells a closed stdout from a real failure
@@ -146,10 +147,16 @@ def _debug() -> bool:
 
 
 def _fail(line: str, code: int) -> int:
-    if _debug():
+    if _debug() and sys.stderr is not None:
         traceback.print_exc()
-    sys.stderr.write(line + "\n")
+    _say(line)
     return code
+
+
+def _say(line: str) -> None:
+    """One line on stderr (none when dobhil was started with stderr closed)."""
+    if sys.stderr is not None:
+        sys.stderr.write(line + "\n")
 
 
 def _internal(command: str, exc: Exception) -> int:
