@@ -50,7 +50,16 @@ def check_output(path: str | os.PathLike[str], *, inputs: Iterable[str | os.Path
 
 
 def check_new_output(path: str | os.PathLike[str], *, suffix: str, what: str) -> Path:
-    """:func:`check_output` for a file that must not exist yet (a recording)."""
+    """:func:`check_output` for a file that must not exist yet (a recording).
+
+    A recording stores its own name (UTF-8 metadata), so a name that is not valid UTF-8
+    (a byte such as 0xff from the shell, a lone surrogate to Python) is refused here,
+    before the run, rather than failing the recorder mid-run."""
+    try:
+        os.fspath(path).encode("utf-8")
+    except UnicodeEncodeError:
+        shown = os.fsencode(path).decode("utf-8", "backslashreplace")
+        raise OutputError(f"{what} {shown}: the file name is not valid UTF-8; choose another name") from None
     return check_output(path, suffix=suffix, what=what, new=True)
 
 

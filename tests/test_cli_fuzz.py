@@ -73,6 +73,11 @@ def _options(parser: argparse.ArgumentParser) -> list[tuple[str, bool]]:
 
 # -- the scratch directory every command line runs in -----------------------------------------
 
+#: "billion laughs": nine levels of nine aliases, 9**9 references in 300 bytes of YAML
+BOMB = "[&a [1,1,1,1,1,1,1,1,1], " + ", ".join(
+    f"&{b} [{', '.join([f'*{a}'] * 9)}]" for a, b in zip("abcdefgh", "bcdefghi")) + "]"
+
+
 def _scratch(root: Path) -> None:
     """Hostile input files, and one good recording, in ``root``."""
     (root / "empty.yaml").write_text("")
@@ -91,6 +96,9 @@ def _scratch(root: Path) -> None:
     (root / "garbage.mcap").write_bytes(b"\x89MCAP0\r\n" + bytes(range(256)) * 8)
     (root / "text.mcap").write_text("not an mcap\n")
     (root / "garbage.blf").write_bytes(b"LOGG" + bytes(100))
+    (root / "bomb.yaml").write_text(f"design:\n  force_gain: {BOMB}\n")
+    profile = (ROOT / "drivers" / "odrive-0.6.yaml").read_text()
+    (root / "bomb-profile.yaml").write_text(profile.replace("\ntorque_limit:", f"\ntorque_limit: {BOMB}\n#", 1))
     (root / "bad.asc").write_text("date Mon Jan 1 00:00:00 2024\nbase hex timestamps absolute\n0.1 1 zz Rx d 8\n")
     good = root / "good.mcap"
     code, _, err = run_cli(["run", "demo", "--emulate", "--lockstep", "--duration", "0.05", "--log", str(good)])
@@ -224,7 +232,9 @@ HAND_PICKED = [
     [*RUN, "--set", "drive.profile=dir.yaml"], [*RUN, "--set", "drive.profile=" + "x" * 300],
     [*RUN, "--log", "dir.mcap"], [*RUN, "--log", "good.mcap"], [*RUN, "--log", "x.txt"],
     [*RUN, "--plot", "good.mcap"], [*RUN, "--live", "abc", "--log", "l.mcap"], [*RUN, "--live", "1"],
-    [*RUN, "--preflight-window", "nan"], ["run", "fifo.yaml", "--emulate"], ["run", "demo", "--lockstep"],
+    [*RUN, "--preflight-window", "nan"], [*RUN, "--log", "\udcfd.mcap"],
+    [*RUN, "--set", "drive.profile=bomb-profile.yaml"], ["analyze", "bomb.yaml"],
+    ["analyze", "demo", "--set", f"design.force_gain={BOMB}"], ["run", "fifo.yaml", "--emulate"], ["run", "demo", "--lockstep"],
     ["emulate", "demo", "--bus", "virtual:fuzz", "--duration", "-1"],
     ["emulate", "demo", "--bus", "x", "--duration", "0.05"],
     ["emulate", "fifo.yaml", "--bus", "virtual:fuzz", "--duration", "0.05"],

@@ -15,7 +15,7 @@ from typing import Any, NoReturn
 import yaml
 
 from dobhil.config.schema import SECTIONS, Check, Config, check_maximum, key_fields
-from dobhil.config.yamlio import TextFileError, read_text_file, safe_load, where
+from dobhil.config.yamlio import TextFileError, read_text_file, safe_load, show_value, where
 from dobhil.data import configs_dir, shipped_configs, shipped_file
 from dobhil.errors import ConfigError
 
@@ -91,7 +91,7 @@ def parse_override(item: str) -> tuple[str, Any]:
     """``"design.force_gain=3"`` -> ``("design.force_gain", 3)`` (value parsed as YAML)."""
     name, sep, text = item.partition("=")
     if not sep or not name.strip():
-        raise ConfigError(f"--set {item!r}: expected key=value, e.g. design.force_gain=3")
+        raise ConfigError(f"--set {_show(item)}: expected key=value, e.g. design.force_gain=3")
     try:
         value = safe_load(text) if text.strip() else ""
     except (yaml.YAMLError, ValueError, RecursionError):
@@ -117,10 +117,10 @@ def build_config(flat: Mapping[str, Any], *, source: str = "config") -> Config:
 def _unknown_key(name: str, fields: Mapping[str, Any]) -> str:
     section = name.split(".")[0]
     if section not in SECTIONS:
-        return (f"unknown config section {section!r} in key {name!r}; "
+        return (f"unknown config section {_show(section)} in key {_show(name)}; "
                 f"allowed sections: {', '.join(SECTIONS)}")
     allowed = ", ".join(k.split(".")[1] for k in fields if k.startswith(section + "."))
-    return f"unknown config key {name!r}; {section} allows: {allowed}"
+    return f"unknown config key {_show(name)}; {section} allows: {allowed}"
 
 
 def coerce(name: str, raw: Any, f: dataclasses.Field[Any]) -> Any:
@@ -138,11 +138,8 @@ def coerce(name: str, raw: Any, f: dataclasses.Field[Any]) -> Any:
 
 
 def _show(raw: Any) -> str:
-    """``repr(raw)``, short: a value quoted in a one-line error."""
-    if isinstance(raw, int) and not isinstance(raw, bool) and raw.bit_length() > 64:
-        return f"<an integer of {len(str(raw)) if raw.bit_length() < 14_000 else 'thousands of'} digits>"
-    text = repr(raw)
-    return text if len(text) <= 60 else text[:57] + "..."
+    """``repr(raw)``, short: a value quoted in a one-line error (see :func:`show_value`)."""
+    return show_value(raw)
 
 
 def _coerce_str(name: str, raw: Any, choices: tuple[str, ...]) -> str:
@@ -150,7 +147,7 @@ def _coerce_str(name: str, raw: Any, choices: tuple[str, ...]) -> str:
         allowed = f"one of {', '.join(choices)}" if choices else "a string"
         raise ConfigError(f"{name} = {_show(raw)}: wrong type {type(raw).__name__}; allowed: {allowed}")
     if choices and raw not in choices:
-        raise ConfigError(f"{name} = {raw!r}: not allowed; allowed: {', '.join(choices)}")
+        raise ConfigError(f"{name} = {_show(raw)}: not allowed; allowed: {', '.join(choices)}")
     return raw
 
 

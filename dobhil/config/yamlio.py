@@ -9,6 +9,7 @@ like any syntax error, so callers report them the same way.
 from __future__ import annotations
 
 import os
+import reprlib
 import stat
 from pathlib import Path
 from typing import Any
@@ -17,7 +18,8 @@ import yaml
 from yaml.constructor import ConstructorError
 from yaml.nodes import MappingNode
 
-__all__ = ["MAX_TEXT_BYTES", "UniqueKeyLoader", "TextFileError", "read_text_file", "safe_load", "where"]
+__all__ = ["MAX_TEXT_BYTES", "UniqueKeyLoader", "TextFileError", "read_text_file", "safe_load", "show_value",
+           "where"]
 
 #: the largest YAML file dobhil reads (configs and profiles are a few kB; a larger file is
 #: not one, and PyYAML would take minutes over it)
@@ -94,3 +96,27 @@ def read_text_file(path: str | os.PathLike[str], *, limit: int = MAX_TEXT_BYTES)
         return data.decode("utf-8")
     except UnicodeDecodeError as exc:
         raise TextFileError(f"is not UTF-8 text (byte 0x{data[exc.start]:02x} at offset {exc.start})") from None
+
+
+def _short_repr() -> reprlib.Repr:
+    r = reprlib.Repr()
+    r.maxlevel, r.maxlist, r.maxtuple, r.maxdict, r.maxset = 2, 4, 4, 3, 4
+    r.maxstring = r.maxother = 50
+    return r
+
+
+_SHORT = _short_repr()
+
+
+def show_value(value: Any, width: int = 60) -> str:
+    """A value read from YAML, quoted in a one-line error: short whatever its size.
+
+    ``repr`` would take forever on an alias bomb (``&a [..] &b [*a, *a, ..]`` nests 9**9
+    references in a few hundred bytes) and fails on an integer of more than 4300 digits;
+    :mod:`reprlib` stops at a depth and a length.
+    """
+    if isinstance(value, int) and not isinstance(value, bool) and value.bit_length() > 64:
+        digits = len(str(value)) if value.bit_length() < 14_000 else "thousands of"
+        return f"<an integer of {digits} digits>"
+    text = " ".join(_SHORT.repr(value).split())
+    return text if len(text) <= width else text[: width - 3] + "..."

@@ -21,7 +21,7 @@ from typing import Any
 
 import yaml
 
-from dobhil.config.yamlio import TextFileError, read_text_file, safe_load, where
+from dobhil.config.yamlio import TextFileError, read_text_file, safe_load, show_value, where
 from dobhil.errors import ConfigError
 
 __all__ = ["DriveProfile", "default_drivers_dir", "load_profile", "profile_from_mapping"]
@@ -116,8 +116,7 @@ def _check_value(key: str, value: Any, source: str) -> Any:
         value = _as_number(value)
     type_ok = isinstance(value, types) and not isinstance(value, bool)
     if not type_ok or not ok(value):
-        shown = repr(value) if len(repr(value)) <= 60 else repr(value)[:57] + "..."
-        raise ConfigError(f"{source}: {key}: expected {allowed}, got {shown}")
+        raise ConfigError(f"{source}: {key}: expected {allowed}, got {show_value(value)}")
     if float in types:
         return float(value)
     if key == "bus":
