@@ -20,6 +20,12 @@ class OutputError(DobhilError, ValueError):
     """An output path that cannot or must not be written."""
 
 
+#: top-level directories of Linux's special file systems: nothing there is an output file
+#: (/dev/stdout is a link to /proc/self/fd/1; the atomic rename would replace a device);
+#: /dev/shm, a RAM disk of ordinary files, is allowed
+_SPECIAL = ("dev", "proc", "sys")
+
+
 def _same(a: Path, b: Path) -> bool:
     try:
         return a.exists() and b.exists() and os.path.samefile(a, b)
@@ -39,6 +45,15 @@ def check_output(path: str | os.PathLike[str], *, inputs: Iterable[str | os.Path
         raise OutputError(f"{what} {p}: expected a {' or '.join(suffixes)} file name")
     if p.is_dir():
         raise OutputError(f"{what} {p}: is a directory")
+    for where in (Path(os.path.abspath(p)), Path(os.path.realpath(p))):  # as given, and its link's end
+        if len(where.parts) > 1 and where.parts[1] in _SPECIAL and where.parts[1:3] != ("dev", "shm"):
+            raise OutputError(f"{what} {p}: is in /{where.parts[1]} (a special file system: devices, "
+                              "processes); dobhil writes whole files: give a file name")
+    if p.exists() and not p.is_file():
+        # a device (/dev/null, /dev/stdout), FIFO or socket: the atomic rename would put a
+        # regular file in its place (as root, /dev/null itself)
+        raise OutputError(f"{what} {p}: is not a regular file (a device, FIFO or socket); "
+                          "dobhil writes whole files: give a file name")
     if new and p.exists():
         raise OutputError(f"{what} {p}: exists; refusing to overwrite a recording")
     parent = next(d for d in (p.absolute().parent, *p.absolute().parents) if d.exists())
@@ -68,6 +83,8 @@ def atomic_path(path: str | os.PathLike[str]) -> Iterator[Path]:
     """A temporary path next to ``path`` (same suffix) to write; renamed to ``path`` when the
     block ends normally, removed when it raises."""
     target = Path(path)
+    if target.is_symlink():  # write through the link: the rename must not replace the link itself
+        target = Path(os.path.realpath(target))
     target.parent.mkdir(parents=True, exist_ok=True)
     tmp = target.with_name(f".{target.stem}.{os.getpid()}.partial{target.suffix}")
     try:
