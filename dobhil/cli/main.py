@@ -153,10 +153,16 @@ def _fail(line: str, code: int) -> int:
     return code
 
 
+#: characters that end a line for ``str.splitlines`` (and for most terminals and log
+#: readers): in an error line, an argument holding one is shown escaped, so it stays one line
+_LINE_BREAKS = {ord(c): c.encode("unicode_escape").decode("ascii")
+                for c in "\n\r\x0b\x0c\x1c\x1d\x1e\x85\u2028\u2029"}
+
+
 def _say(line: str) -> None:
     """One line on stderr (none when dobhil was started with stderr closed)."""
     if sys.stderr is not None:
-        sys.stderr.write(line + "\n")
+        sys.stderr.write(line.translate(_LINE_BREAKS) + "\n")
 
 
 def _internal(command: str, exc: Exception) -> int:
