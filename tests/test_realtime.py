@@ -10,7 +10,7 @@ import pytest
 
 from dobhil.errors import ConfigError
 from dobhil.runtime import realtime
-from dobhil.runtime.realtime import apply_realtime, lower_priority
+from dobhil.runtime.realtime import apply_realtime, lower_priority, run_in_background
 
 
 def test_no_priority_asks_for_nothing(monkeypatch: pytest.MonkeyPatch) -> None:
@@ -82,5 +82,17 @@ def test_lower_priority_of_another_process() -> None:
         before = os.getpriority(os.PRIO_PROCESS, child.pid)
         assert lower_priority(4, pid=child.pid) == ""
         assert os.getpriority(os.PRIO_PROCESS, child.pid) == min(before + 4, 19)
+    finally:
+        child.communicate(b"")
+
+
+@pytest.mark.skipif(not hasattr(os, "SCHED_IDLE"), reason="Linux scheduling policies")
+def test_run_in_background_gives_another_process_idle_time_only() -> None:
+    import subprocess
+    child = subprocess.Popen([sys.executable, "-c", "import sys; sys.stdin.read()"], stdin=subprocess.PIPE)
+    try:
+        assert os.sched_getscheduler(child.pid) == os.SCHED_OTHER
+        assert run_in_background(child.pid) == ""
+        assert os.sched_getscheduler(child.pid) == os.SCHED_IDLE
     finally:
         child.communicate(b"")

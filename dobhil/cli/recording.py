@@ -27,6 +27,7 @@ from dobhil.files import check_new_output
 from dobhil.recording.runlog import RunLog
 from dobhil.recording.schemas import EventKind
 from dobhil.runtime.loop import RunResult, Timing
+from dobhil.runtime.realtime import run_in_background
 from dobhil.runtime.session import RunSession
 from dobhil.runtime.stop import Stop, StopReason
 
@@ -111,6 +112,8 @@ def begin(log: RunLog, session: RunSession, config_file: str | os.PathLike[str] 
     sim = session.sim_clock
     origin = time.time_ns()
     drive, plant = session.drive, session.plant
+    if session.timing is not Timing.LOCKSTEP and log.writer_pid is not None:
+        run_in_background(log.writer_pid)  # lossy: it may lag, never delay the loop
     log.begin(metadata=run_metadata(session, config_file), attachments=_attachments(session.config, config_file),
               lossy=session.timing is not Timing.LOCKSTEP,
               clock_ns=None if sim is None else (lambda: origin + round(sim() * 1e9)),

@@ -174,3 +174,21 @@ def test_run_log_writer_runs_below_the_loop(tmp_path: Path) -> None:
         assert os.getpriority(os.PRIO_PROCESS, log.writer_pid) == min(own + WRITER_PRIORITY_DROP, 19)
     finally:
         abort(log, KeyboardInterrupt())
+
+
+@pytest.mark.skipif(not hasattr(os, "SCHED_IDLE"), reason="Linux scheduling policies")
+@pytest.mark.parametrize("lockstep", [False, True])
+def test_a_real_time_writer_only_gets_idle_cpu(tmp_path: Path, lockstep: bool) -> None:
+    """Real time (lossy): the writer process runs SCHED_IDLE, so a waking loop preempts it at
+    once; lockstep (back-pressure, the loop waits for it): normal scheduling."""
+    from dobhil.cli.recording import open_run_log, record_run
+    from dobhil.config import load_config
+    from dobhil.runtime.session import RunSession
+    config = load_config(DEMO, ["loop.duration=0.05", "loop.timing=host"])
+    log = open_run_log(tmp_path / "run.mcap", fsync=False)
+    assert log is not None and log.writer_pid is not None
+    pid = log.writer_pid
+    seen: list[int] = []
+    with RunSession(config, emulate=True, lockstep=lockstep, sink=log, bus_wrapper=log.wrap_bus) as session:
+        record_run(session, log, on_begin=lambda _: seen.append(os.sched_getscheduler(pid)))
+    assert seen == [os.SCHED_OTHER if lockstep else os.SCHED_IDLE]
