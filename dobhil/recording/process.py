@@ -1,15 +1,15 @@
 """The writer process of a recorded run: batches of records in through a pipe, one MCAP file out.
 
 A process, not a thread: encoding and writing ~7 messages per cycle would hold the GIL the
-loop needs. The loop thread ``marshal``-s a batch and puts it on a bounded queue (at most
-:data:`QUEUE_BATCHES`: bounded memory); a sender thread passes it on with
-``Connection.send_bytes``. ``BACKPRESSURE`` waits for room, ``LOSSY`` drops and counts
-(events kept for the next batch; a ``LOSS`` message becomes an ``/events`` ``kind=loss``).
-The child is a fresh interpreter (``subprocess``: no fork of a threaded parent, no
-re-import of the parent's ``__main__``), ignores SIGINT/SIGTERM (blocked before the exec),
-flushes and fsyncs every ``flush_interval``, finishes the file on ``STOP`` or, if the parent
-died, on end of file (:data:`PARENT_EXITED`), and reports one status. A failure (disk full)
-is raised as :class:`~dobhil.errors.RecorderError` at the next hand-over.
+loop needs. The loop thread puts a batch (a list) on a bounded queue (at most
+:data:`QUEUE_BATCHES`); a sender thread prepares it (``prepare``: flattening references),
+``marshal``-s it and writes it to a pipe. ``BACKPRESSURE`` waits for room; ``LOSSY`` drops
+and counts (events kept for the next batch; a ``LOSS`` message becomes ``/events``
+``kind=loss``). The child is a fresh interpreter (``subprocess``: no fork of a threaded
+parent), ignores SIGINT/SIGTERM (blocked before the exec), flushes and fsyncs every
+``flush_interval``, finishes the file on ``STOP`` or, if the parent died, on end of file
+(:data:`PARENT_EXITED`), and reports one status. A failure (disk full) is raised as
+:class:`~dobhil.errors.RecorderError` at the next hand-over.
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from enum import IntEnum
 from multiprocessing import Pipe
@@ -62,8 +62,10 @@ class Status(IntEnum):
 class WriterProcess:
     """A writer process recording to ``path``; the file is created here (a bad path raises)."""
 
-    def __init__(self, path: str | os.PathLike[str], *, flush_interval: float = 1.0, fsync: bool = True) -> None:
+    def __init__(self, path: str | os.PathLike[str], *, flush_interval: float = 1.0, fsync: bool = True,
+                 prepare: Callable[[list[tuple[Any, ...]]], list[tuple[Any, ...]]] = list) -> None:
         self.path = Path(path)
+        self._prepare = prepare
         self.mode = RecordMode.BACKPRESSURE
         self.dropped = 0
         self.written = 0
@@ -74,7 +76,7 @@ class WriterProcess:
         self._failure: str | None = None
         self._closed = False
         self.live_port: int | None = None
-        self._queue: queue.Queue[bytes | None] = queue.Queue(QUEUE_BATCHES)
+        self._queue: queue.Queue[bytes | list[tuple[Any, ...]] | None] = queue.Queue(QUEUE_BATCHES)
         with open(self.path, "xb"):  # the caller checked the path: this only fails on a race
             pass
         self._proc, self._conn, self._status = _spawn(self.path)
@@ -118,7 +120,7 @@ class WriterProcess:
             return True
         if self.dropped != self._reported and not self._report_loss(force=force):
             return self._drop(records)
-        if not self._put(_dumps(records), force=force):
+        if not self._put(records, force=force):
             return self._drop(records)
         return True
 
@@ -146,7 +148,7 @@ class WriterProcess:
 
     # -- internals ---------------------------------------------------------------
 
-    def _put(self, data: bytes, *, force: bool) -> bool:
+    def _put(self, data: bytes | list[tuple[Any, ...]], *, force: bool) -> bool:
         if self.mode is RecordMode.LOSSY and not force:
             try:
                 self._queue.put_nowait(data)
@@ -164,6 +166,7 @@ class WriterProcess:
     def _drop(self, records: list[tuple[Any, ...]]) -> bool:
         if self._failure is not None:
             raise RecorderError(f"{self.path}: recorder failed: {self._failure}")
+        records = self._prepare(records)
         self._carry = [r for r in records if r[0] == _EVENTS]
         self.dropped += sum(message_count(r) for r in records if r[0] != _EVENTS)
         self._last_drop_ns = records[-1][1]
@@ -178,12 +181,20 @@ class WriterProcess:
         return True
 
     def _send_all(self) -> None:
-        """The sender thread: queue to pipe until the sentinel or a broken pipe."""
-        while (data := self._queue.get()) is not None:
+        """The sender thread: queue to pipe until the sentinel, a broken pipe or a record it
+        cannot encode (the writer is then told to stop: the file stays readable)."""
+        while (item := self._queue.get()) is not None:
+            try:
+                data = item if type(item) is bytes else _dumps(self._prepare(item))
+            except Exception as exc:  # a bug, not the disk: still one line at the next hand-over
+                self._failure = f"cannot encode a record: {type(exc).__name__}: {exc}"
+                data = marshal.dumps((int(Control.STOP), "recorder_failed", self._failure, self.dropped))
             try:
                 self._conn.send_bytes(data)
             except OSError:
                 self._failure = self._child_failure()
+                return
+            if self._failure is not None:
                 return
 
     def _child_failure(self) -> str:

@@ -2,10 +2,12 @@
 
 It implements the ``CycleSink`` protocol (``started``, ``cycle``, ``stop``) and wraps the
 host bus, knowing nothing of the runtime: the wiring (``dobhil.cli.recording``) passes
-plain values. The loop thread only appends flat records to one list and hands every
-:data:`BATCH_SIZE` of them to the writer process (started with the :class:`RunLog`,
-before the session). A writer failure surfaces as :class:`~dobhil.errors.RecorderError`
-from :meth:`RunLog.cycle`, which the loop turns into the stop reason ``recorder_failed``.
+plain values. The loop thread only appends short tuples of *references* (the frame, the
+feedback, the controller output: objects nobody changes afterwards) to one list and
+hands every :data:`BATCH_SIZE` of them to the writer process's sender thread, which
+flattens them (:func:`flatten`) and serializes them while the loop sleeps. A writer
+failure surfaces as :class:`~dobhil.errors.RecorderError` from :meth:`RunLog.cycle`,
+which the loop turns into the stop reason ``recorder_failed``.
 """
 
 from __future__ import annotations
@@ -19,7 +21,7 @@ from typing import Any, Final
 import can
 
 from dobhil.recording.process import WriterProcess
-from dobhil.recording.schemas import CYCLE, EventKind, Topic, event_record
+from dobhil.recording.schemas import CYCLE, EventKind, Topic, event_record, frame_flags
 from dobhil.recording.writer import RecordMode
 
 ClockNs = Callable[[], int]
@@ -28,6 +30,8 @@ BATCH_SIZE: Final = 256
 _RX: Final = int(Topic.CAN_RX)
 _TX: Final = int(Topic.CAN_TX)
 _FEEDBACK: Final = int(Topic.DRIVE_FEEDBACK)
+#: Kinds of the loop thread's records of references, flattened off the loop thread
+_REF_RX, _REF_TX, _REF_CYCLE = -1, -2, -3
 _NO_DRIVE: Final = SimpleNamespace(status=SimpleNamespace(state=0, error_code=0))
 
 
@@ -49,17 +53,13 @@ class RecordingBus(can.BusABC):
 
     def send(self, msg: can.Message, timeout: float | None = None) -> None:
         self._inner.send(msg, timeout)
-        # flags inlined (schemas.frame_flags): a call costs as much as the record
-        self._append((_TX, self.clock_ns(), msg.arbitration_id, msg.is_extended_id | msg.is_remote_frame << 1
-                      | msg.is_error_frame << 2 | msg.is_fd << 3 | msg.bitrate_switch << 4
-                      | msg.error_state_indicator << 5, msg.dlc, bytes(msg.data), msg.timestamp, msg.channel))
+        # a sender may refill a preallocated message's data (drives do): the data is copied
+        self._append((_REF_TX, self.clock_ns(), msg, bytes(msg.data)))
 
     def recv(self, timeout: float | None = None) -> can.Message | None:
         msg = self._inner.recv(timeout)
-        if msg is not None:  # python-can hands out a new message per receive: data kept by reference
-            self._append((_RX, self.clock_ns(), msg.arbitration_id, msg.is_extended_id | msg.is_remote_frame << 1
-                          | msg.is_error_frame << 2 | msg.is_fd << 3 | msg.bitrate_switch << 4
-                          | msg.error_state_indicator << 5, msg.dlc, msg.data, msg.timestamp, msg.channel))
+        if msg is not None:  # python-can hands out a new message per receive: kept by reference
+            self._append((_REF_RX, self.clock_ns(), msg))
         return msg
 
     def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
@@ -84,7 +84,8 @@ class RunLog:
         self.drive: Any = _NO_DRIVE
         self.tap: RecordingBus | None = None
         self.failed: str | None = None
-        self._writer: WriterProcess | None = WriterProcess(path, flush_interval=flush_interval, fsync=fsync)
+        self._writer: WriterProcess | None = WriterProcess(path, flush_interval=flush_interval, fsync=fsync,
+                                                           prepare=flatten)
         self._opened = False
 
     @property
@@ -133,16 +134,11 @@ class RunLog:
 
     def cycle(self, k: int, t: float, fb: Any, out: Sequence[float], period_error: float, exec_time: float,
               overrun: bool) -> None:
-        """One flat record per cycle; never blocks in real time (lossy)."""
+        """One record of references per cycle; never blocks in real time (lossy)."""
         records = self.records
-        status = self.drive.status
         truth = self.truth
-        if truth is None:
-            records.append((CYCLE, self.clock_ns(), k, fb.position, fb.velocity, fb.seq, *out, period_error,
-                            exec_time, overrun, int(status.state), status.error_code))
-        else:
-            records.append((CYCLE, self.clock_ns(), k, fb.position, fb.velocity, fb.seq, *out, period_error,
-                            exec_time, overrun, int(status.state), status.error_code, *truth()))
+        records.append((_REF_CYCLE, self.clock_ns(), k, fb, out, period_error, exec_time, overrun, self.drive.status,
+                        None if truth is None else truth()))
         if len(records) >= BATCH_SIZE:
             self._hand_over(force=False)
 
@@ -193,4 +189,23 @@ class RunLog:
             raise
 
 
-__all__ = ["BATCH_SIZE", "RecordingBus", "RunLog"]
+def flatten(records: list[tuple[Any, ...]]) -> list[tuple[Any, ...]]:
+    """The loop thread's records of references as the flat records of the topic table."""
+    out = []
+    for r in records:
+        kind = r[0]
+        if kind == _REF_CYCLE:
+            _, t, k, fb, o, period_error, exec_time, overrun, status, truth = r
+            flat = (CYCLE, t, k, fb.position, fb.velocity, fb.seq, *o, period_error, exec_time, overrun,
+                    int(status.state), status.error_code)
+            out.append(flat if truth is None else (*flat, *truth))
+        elif kind == _REF_RX or kind == _REF_TX:
+            msg = r[2]
+            out.append((_RX if kind == _REF_RX else _TX, r[1], msg.arbitration_id, frame_flags(msg), msg.dlc,
+                        msg.data if kind == _REF_RX else r[3], msg.timestamp, msg.channel))
+        else:
+            out.append(r)
+    return out
+
+
+__all__ = ["BATCH_SIZE", "RecordingBus", "RunLog", "flatten"]
