@@ -43,14 +43,16 @@ JOIN_TIMEOUT: Final = 60.0
 PARENT_EXITED: Final = "parent exited"
 _EVENTS: Final = int(Topic.EVENTS)
 _BOOT: Final = "import sys; sys.path.insert(0, sys.argv[1]); from dobhil.recording.process import main; main()"
+Records = list[tuple[Any, ...]]
 
 
 class Control(IntEnum):
-    """First element of a control message (a tuple; record batches are lists)."""
+    """First element of a message to the child; ``dropped`` is the running total of
+    messages the parent dropped, ``at`` the log time of the last one."""
 
     OPEN = 100  # (OPEN, mode, flush_interval, fsync, metadata, attachments, live)
-    LOSS = 101  # (LOSS, log_time_ns, count, total)
-    STOP = 102  # (STOP, stop_reason | None, detail, dropped_total)
+    BATCH = 101  # (BATCH, dropped, at, records)
+    STOP = 102  # (STOP, dropped, at, stop_reason | None, detail)
 
 
 class Status(IntEnum):
@@ -63,20 +65,17 @@ class WriterProcess:
     """A writer process recording to ``path``; the file is created here (a bad path raises)."""
 
     def __init__(self, path: str | os.PathLike[str], *, flush_interval: float = 1.0, fsync: bool = True,
-                 prepare: Callable[[list[tuple[Any, ...]]], list[tuple[Any, ...]]] = list) -> None:
+                 prepare: Callable[[Records], Records] = list) -> None:
         self.path = Path(path)
-        self._prepare = prepare
         self.mode = RecordMode.BACKPRESSURE
-        self.dropped = 0
-        self.written = 0
-        self._interval, self._fsync = flush_interval, fsync
-        self._reported = 0
-        self._last_drop_ns = 0
-        self._carry: list[tuple[Any, ...]] = []
+        self.dropped = self.written = 0
+        self.live_port: int | None = None
+        self._prepare, self._interval, self._fsync = prepare, flush_interval, fsync
+        self._loss = (0, 0)  # (dropped, log time of the last dropped): one object, read by the sender
+        self._carry: Records = []
         self._failure: str | None = None
         self._closed = False
-        self.live_port: int | None = None
-        self._queue: queue.Queue[bytes | list[tuple[Any, ...]] | None] = queue.Queue(QUEUE_BATCHES)
+        self._queue: queue.Queue[bytes | Records | None] = queue.Queue(QUEUE_BATCHES)
         with open(self.path, "xb"):  # the caller checked the path: this only fails on a race
             pass
         self._proc, self._conn, self._status = _spawn(self.path)
@@ -100,8 +99,7 @@ class WriterProcess:
 
     def _wait_for_live(self) -> int:
         """The live view's port, once the writer process listens; RecorderError if it cannot."""
-        status = self._status.recv_bytes() if self._status.poll(JOIN_TIMEOUT) else None
-        message = None if status is None else marshal.loads(status)
+        message = marshal.loads(self._status.recv_bytes()) if self._status.poll(JOIN_TIMEOUT) else None
         if message is not None and message[0] == Status.LIVE:
             return int(message[1])
         self._closed = True
@@ -109,20 +107,20 @@ class WriterProcess:
         self._failure = str(message[1]) if message is not None else "the live view did not start"
         raise RecorderError(f"{self.path}: {self._failure}")
 
-    def send(self, records: list[tuple[Any, ...]], *, force: bool = False) -> bool:
+    def send(self, records: Records, *, force: bool = False) -> bool:
         """Hand a batch over; False if dropped (LOSSY and the writer lags; never with ``force``).
         Raises :class:`RecorderError` once the writer has failed."""
-        if self._failure is not None:
-            raise RecorderError(f"{self.path}: recorder failed: {self._failure}")
+        self._raise_failure()
         if self._carry:
             records, self._carry = self._carry + records, []
-        if not records:
+        if not records or self._put(records, force=force):
             return True
-        if self.dropped != self._reported and not self._report_loss(force=force):
-            return self._drop(records)
-        if not self._put(records, force=force):
-            return self._drop(records)
-        return True
+        self._raise_failure()
+        records = self._prepare(records)
+        self._carry = [r for r in records if r[0] == _EVENTS]  # events are never dropped
+        self.dropped += sum(message_count(r) for r in records if r[0] != _EVENTS)
+        self._loss = (self.dropped, records[-1][1])
+        return False
 
     def close(self, stop_reason: str | None = None, detail: str = "") -> None:
         """Stop event (if a reason is given), summary, footer; waits for the process.
@@ -131,13 +129,9 @@ class WriterProcess:
             self._closed = True
             if self._carry:
                 self.send([], force=True)
-            stop = (int(Control.STOP), stop_reason, detail, self.dropped)
-            if self.dropped != self._reported:
-                self._report_loss(force=True)
-            self._put(marshal.dumps(stop), force=True)
+            self._put(marshal.dumps((int(Control.STOP), *self._loss, stop_reason, detail)), force=True)
             self._join()
-        if self._failure is not None:
-            raise RecorderError(f"{self.path}: recorder failed: {self._failure}")
+        self._raise_failure()
 
     def abandon(self) -> None:
         """Close without a run (nothing was opened): the empty file is removed."""
@@ -148,56 +142,43 @@ class WriterProcess:
 
     # -- internals ---------------------------------------------------------------
 
-    def _put(self, data: bytes | list[tuple[Any, ...]], *, force: bool) -> bool:
+    def _raise_failure(self) -> None:
+        if self._failure is not None:
+            raise RecorderError(f"{self.path}: recorder failed: {self._failure}")
+
+    def _put(self, item: bytes | Records, *, force: bool) -> bool:
         if self.mode is RecordMode.LOSSY and not force:
             try:
-                self._queue.put_nowait(data)
+                self._queue.put_nowait(item)
             except queue.Full:
                 return False
             return True
         while self._failure is None:
             try:
-                self._queue.put(data, timeout=0.2)
+                self._queue.put(item, timeout=0.2)
                 return True
             except queue.Full:
                 continue
         return False
-
-    def _drop(self, records: list[tuple[Any, ...]]) -> bool:
-        if self._failure is not None:
-            raise RecorderError(f"{self.path}: recorder failed: {self._failure}")
-        records = self._prepare(records)
-        self._carry = [r for r in records if r[0] == _EVENTS]
-        self.dropped += sum(message_count(r) for r in records if r[0] != _EVENTS)
-        self._last_drop_ns = records[-1][1]
-        return False
-
-    def _report_loss(self, *, force: bool) -> bool:
-        """The LOSS message of the messages dropped since the last one; False if it did not fit."""
-        loss = (int(Control.LOSS), self._last_drop_ns, self.dropped - self._reported, self.dropped)
-        if not self._put(marshal.dumps(loss), force=force):
-            return False
-        self._reported = self.dropped
-        return True
 
     def _send_all(self) -> None:
         """The sender thread: queue to pipe until the sentinel, a broken pipe or a record it
         cannot encode (the writer is then told to stop: the file stays readable)."""
         while (item := self._queue.get()) is not None:
             try:
-                data = item if type(item) is bytes else _dumps(self._prepare(item))
+                data = item if isinstance(item, bytes) else _batch(self._loss, self._prepare(item))
             except Exception as exc:  # a bug, not the disk: still one line at the next hand-over
                 self._failure = f"cannot encode a record: {type(exc).__name__}: {exc}"
-                data = marshal.dumps((int(Control.STOP), "recorder_failed", self._failure, self.dropped))
+                data = marshal.dumps((int(Control.STOP), *self._loss, "recorder_failed", self._failure))
             try:
                 self._conn.send_bytes(data)
             except OSError:
-                self._failure = self._child_failure()
+                self._failure = self._ended_early()
                 return
             if self._failure is not None:
                 return
 
-    def _child_failure(self) -> str:
+    def _ended_early(self) -> str:
         try:
             self._proc.wait(JOIN_TIMEOUT)
         except subprocess.TimeoutExpired:
@@ -258,29 +239,25 @@ def _signals_blocked() -> Iterator[None]:
         signal.pthread_sigmask(signal.SIG_SETMASK, old)
 
 
-def _dumps(records: list[tuple[Any, ...]]) -> bytes:
-    """``marshal`` data of a batch; values marshal refuses (numpy ints, enums) made plain."""
+def _batch(loss: tuple[int, int], records: Records) -> bytes:
+    """The BATCH message; values marshal refuses (numpy ints, enums) made plain."""
     try:
-        return marshal.dumps(records)
+        return marshal.dumps((int(Control.BATCH), *loss, records))
     except ValueError:
-        return marshal.dumps([tuple(_plain(v) for v in r) for r in records])
+        return marshal.dumps((int(Control.BATCH), *loss, [tuple(map(_plain, r)) for r in records]))
 
 
 def _plain(value: Any) -> Any:
     if isinstance(value, (bool, str, bytes)) or value is None:
         return value
-    if hasattr(value, "__index__"):
-        return int(value)
-    return float(value)
+    return int(value) if hasattr(value, "__index__") else float(value)
 
 
 def _read_status(conn: Connection) -> Sequence[Any] | None:
     try:
-        if conn.poll(0):
-            return marshal.loads(conn.recv_bytes())
+        return marshal.loads(conn.recv_bytes()) if conn.poll(0) else None
     except (EOFError, OSError, ValueError):
         return None
-    return None
 
 
 # -- the child ---------------------------------------------------------------------------
@@ -296,7 +273,8 @@ def _serve(conn: Connection, status: Connection, path: str) -> tuple[Any, ...]:
                     fsync=fsync)
     try:
         if live is not None:
-            server = _live_server(*live)
+            from dobhil.live import LiveServer  # optional extra [live]
+            server = LiveServer(host=live[0], port=live[1])
             log.add_output(server)
             status.send_bytes(marshal.dumps((int(Status.LIVE), server.port)))
         return _write_until_stop(conn, log, interval)
@@ -305,27 +283,21 @@ def _serve(conn: Connection, status: Connection, path: str) -> tuple[Any, ...]:
         raise
 
 
-def _live_server(host: str, port: int) -> Any:
-    from dobhil.live import LiveServer  # optional extra [live]
-    return LiveServer(host=host, port=port)
-
-
 def _write_until_stop(conn: Connection, log: LogWriter, interval: float) -> tuple[Any, ...]:
     next_flush = time.monotonic() + interval
     while True:
         if conn.poll(max(0.0, next_flush - time.monotonic())):
             try:
-                message = marshal.loads(conn.recv_bytes())
+                kind, dropped, at, *rest = marshal.loads(conn.recv_bytes())
             except EOFError:
                 log.finish(PARENT_EXITED, "the recording process ended without closing the log")
                 return (int(Status.DONE), log.written, log.dropped)
-            if type(message) is list:
-                log.write(message)
-            elif message[0] == Control.LOSS:
-                log.loss(message[2], message[3], message[1])
+            if dropped > log.dropped:
+                log.loss(dropped - log.dropped, dropped, at)
+            if kind == Control.BATCH:
+                log.write(rest[0])
             else:
-                _, reason, detail, log.dropped = message
-                log.finish(reason, detail)
+                log.finish(*rest)
                 return (int(Status.DONE), log.written, log.dropped)
         if time.monotonic() >= next_flush:
             log.flush()
