@@ -83,14 +83,9 @@ class RunLog:
         self.truth: Callable[[], tuple[float, float, float, float]] | None = None
         self.drive: Any = _NO_DRIVE
         self.tap: RecordingBus | None = None
-        self.failed: str | None = None
         self._writer: WriterProcess | None = WriterProcess(path, flush_interval=flush_interval, fsync=fsync,
                                                            prepare=flatten)
         self._opened = False
-
-    @property
-    def dropped(self) -> int:
-        return 0 if self._writer is None else self._writer.dropped
 
     @property
     def writer_pid(self) -> int | None:
@@ -140,7 +135,7 @@ class RunLog:
         records.append((_REF_CYCLE, self.clock_ns(), k, fb, out, period_error, exec_time, overrun, self.drive.status,
                         None if truth is None else truth()))
         if len(records) >= BATCH_SIZE:
-            self._hand_over(force=False)
+            self._hand_over()
 
     def stop(self, stop: Any) -> None:
         """The loop has stopped; :meth:`end` hands the rest over, none dropped."""
@@ -171,22 +166,17 @@ class RunLog:
             writer.abandon()
             return
         try:
-            if self.failed is None and self.records:
+            if self.records:
                 writer.send(self.records.copy(), force=True)
         finally:
             self.records.clear()
             writer.close(stop_reason, detail)
 
-    def _hand_over(self, *, force: bool) -> None:
-        if self._writer is None or not self._opened:
-            return
-        batch = self.records.copy()
-        self.records.clear()
-        try:
-            self._writer.send(batch, force=force)
-        except Exception as exc:
-            self.failed = str(exc)
-            raise
+    def _hand_over(self) -> None:
+        if self._writer is not None and self._opened:
+            batch = self.records.copy()
+            self.records.clear()
+            self._writer.send(batch)
 
 
 def flatten(records: list[tuple[Any, ...]]) -> list[tuple[Any, ...]]:
