@@ -1,6 +1,7 @@
 """MCAP recording of dobhil runs: one write path, one reader, and the tools around them.
 
-    loop thread --records--> RunLog (runlog) --batches--> writer process (process)
+    loop thread --references--> RunLog (runlog) --batches--> sender thread: flatten,
+        marshal --> writer process (process)
         --> LogWriter (writer) --> mcap.writer.Writer --> run.mcap [--> live view]
     run.mcap --> LogFile (reader) --> log info / export / replay / report; recover
 
