@@ -1,10 +1,10 @@
 """Offline replay of a recorded run: the recorded feedback frames through the drive codec,
 the controller re-run on them.
 
-:func:`load_recording` reads what a replay needs from a dobhil MCAP file: the
+:func:`replay` reads what it needs from a dobhil MCAP file: the
 resolved config and drive profile (metadata), every ``/can/rx`` frame, the feedback
 ``seq`` each cycle used and the one ``controller.initialize`` used (``/drive/feedback``,
-``cycle = -1``), and the recorded ``/controller`` values. :func:`replay` decodes the
+``cycle = -1``), and the recorded ``/controller`` values; it decodes the
 frames with the run's own drive class (so ``seq`` counts motion frames exactly as at
 run time), re-runs :class:`~dobhil.runtime.controller.ForceController` -- deterministic
 generated code -- with the recorded reference, and compares:
@@ -93,9 +93,8 @@ class ReplayResult:
         return data[:, OUTPUTS.index(name)]
 
     def first_mismatch(self) -> Mismatch | None:
-        """First cycle and signal whose bits differ (NaN equal to NaN), or None."""
-        rec = self.recording.recorded[:, 1:]
-        rep = self.replayed[:, 1:]
+        """The first cycle and signal whose bits differ (NaN equal to NaN), or None."""
+        rec, rep = self.recording.recorded[:, 1:], self.replayed[:, 1:]
         differ = (rec.view(np.int64) != rep.view(np.int64)) & ~(np.isnan(rec) & np.isnan(rep))
         rows = np.nonzero(differ.any(axis=1))[0]
         if rows.size == 0:
@@ -165,18 +164,6 @@ def recorded_profile(log: LogFile) -> DriveProfile:
         raise LogFileError(f"{log.path}: invalid recorded drive profile: {exc}") from None
 
 
-def load_recording(path: str | os.PathLike[str], overrides: Iterable[str] = ()) -> tuple[Recording, Config]:
-    """The recording and the config to replay with (recorded + overrides)."""
-    with open_log(path) as log:
-        for topic in ("/can/rx", "/drive/feedback", "/controller"):
-            log.require_topic(topic)
-        base = recorded_config(log)
-        config = recorded_config(log, overrides)
-        profile = recorded_profile(log)
-        parts = _read(log)
-    return _assemble(os.fspath(path), base, profile, *parts), config
-
-
 def _read(log: LogFile) -> tuple[list[can.Message], int | None, dict[int, int], list[tuple[int, int, list[float]]]]:
     frames: list[can.Message] = []
     seqs: dict[int, int] = {}
@@ -220,48 +207,41 @@ def _assemble(name: str, config: Config, profile: DriveProfile, frames: list[can
                      recorded=np.array([v for _, _, v in controller], dtype=float).reshape(-1, len(OUTPUTS)))
 
 
-def decode_feedback(recording: Recording) -> tuple[list[float], list[float]]:
-    """(position, velocity) indexed by feedback seq (index 0 unused), decoded by the drive class."""
-    from dobhil.drives.registry import make_drive
-    drive: Drive = make_drive(_NoBus(), recording.profile, clock=lambda: 0.0)  # type: ignore[arg-type]
-    pos, vel = [float("nan")], [float("nan")]
-    handle = drive._handle
-    for msg in recording.frames:
-        if handle(msg):
-            fb = drive.feedback
-            assert fb is not None
-            pos.append(fb.position)
-            vel.append(fb.velocity)
-    return pos, vel
-
-
 def replay(path: str | os.PathLike[str], overrides: Sequence[str] = ()) -> ReplayResult:
     """Re-run the controller of ``path`` (with ``overrides``) on its recorded feedback frames."""
-    recording, config = load_recording(path, overrides)
-    return replay_recording(recording, config, tuple(overrides))
-
-
-def replay_recording(recording: Recording, config: Config, overrides: tuple[str, ...] = ()) -> ReplayResult:
-    pos, vel = decode_feedback(recording)
-    n_fb = len(pos) - 1
-    seq = recording.seq
+    with open_log(path) as log:
+        for topic in ("/can/rx", "/drive/feedback", "/controller"):
+            log.require_topic(topic)
+        config = recorded_config(log, overrides)
+        recording = _assemble(os.fspath(path), recorded_config(log), recorded_profile(log), *_read(log))
+    pos, vel = _decode_feedback(recording)
+    n_fb, seq = len(pos) - 1, recording.seq
     if recording.initial_seq > n_fb or (seq.size and int(seq.max()) > n_fb) or recording.initial_seq < 1:
         raise LogFileError(f"{recording.path}: feedback seq beyond the {n_fb} motion frames on /can/rx")
     ctrl = build_controller(config, recording.profile)
     ctrl.initialize(pos[recording.initial_seq], vel[recording.initial_seq])
-    step = ctrl.step
-    measured = ctrl.measures_velocity
-    refs = recording.recorded[:, 0].tolist()
+    step, refs = ctrl.step, recording.recorded[:, 0].tolist()
     q = [pos[s] for s in seq.tolist()]
     dq = [vel[s] for s in seq.tolist()]
-    if measured:
+    if ctrl.measures_velocity:
         out = [step(a, b, r) for a, b, r in zip(q, dq, refs)]
     else:
         out = [step(a, None, r) for a, r in zip(q, refs)]
-    replayed = np.array(out, dtype=float).reshape(-1, len(OUTPUTS))
-    return ReplayResult(recording=recording, config=config, overrides=overrides,
-                        position=np.array(q), velocity=np.array(dq), replayed=replayed)
+    return ReplayResult(recording=recording, config=config, overrides=tuple(overrides), position=np.array(q),
+                        velocity=np.array(dq), replayed=np.array(out, dtype=float).reshape(-1, len(OUTPUTS)))
 
 
-__all__ = ["COMPARED", "OUTPUTS", "Mismatch", "Recording", "ReplayResult", "decode_feedback", "load_recording",
-           "replay", "replay_recording"]
+def _decode_feedback(recording: Recording) -> tuple[list[float], list[float]]:
+    """(position, velocity) indexed by feedback seq (index 0 unused), decoded by the run's own
+    drive class, so ``seq`` counts motion frames exactly as at run time."""
+    from dobhil.drives.registry import make_drive
+    drive: Drive = make_drive(_NoBus(), recording.profile, clock=lambda: 0.0)  # type: ignore[arg-type]
+    pos, vel = [float("nan")], [float("nan")]
+    for msg in recording.frames:
+        if drive._handle(msg) and drive.feedback is not None:
+            pos.append(drive.feedback.position)
+            vel.append(drive.feedback.velocity)
+    return pos, vel
+
+
+__all__ = ["COMPARED", "OUTPUTS", "Mismatch", "Recording", "ReplayResult", "replay"]

@@ -274,8 +274,6 @@ def spec_for(topic: str | int) -> TopicSpec:
 CYCLE_FIELDS: Final = ("cycle", "position", "velocity", "seq", "tau_ref", "tau_int_hat", "tau_dis_hat", "tau_per",
                        "u_unsat", "u_sat", "period_error", "exec_time", "overrun", "axis_state", "axis_error",
                        "q", "dq", "tau_motor", "tau_int")
-#: Record length of a cycle without the emulator truth.
-CYCLE_LEN_NO_TRUTH: Final = 2 + CYCLE_FIELDS.index("q")
 _ALIASES: Final = {"torque": "u_sat"}  # /drive/command.torque is the saturated output
 
 
