@@ -9,7 +9,6 @@ renamed over the target only when the output is complete.
 from __future__ import annotations
 
 import os
-import stat
 from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -27,29 +26,6 @@ class OutputError(DobhilError, ValueError):
 _SPECIAL = ("dev", "proc", "sys")
 
 
-def shown(path: str | os.PathLike[str]) -> str:
-    """``path`` as text that can be printed and written: bytes that are not UTF-8 as ``\\xNN``."""
-    return os.fsencode(path).decode("utf-8", "backslashreplace")
-
-
-def input_problem(path: str | os.PathLike[str]) -> str | None:
-    """Why ``path`` cannot be read as an input file (one phrase), or None: missing, a
-    directory, a FIFO or device (reading would block or never end), empty, unreadable."""
-    try:
-        info = os.stat(path)
-    except FileNotFoundError:
-        return "no such file"
-    except OSError as exc:
-        return f"cannot be read ({exc.strerror or exc})"
-    if stat.S_ISDIR(info.st_mode):
-        return "is a directory, not a file"
-    if not stat.S_ISREG(info.st_mode):
-        return "is not a regular file (a FIFO, socket or device)"
-    if info.st_size == 0:
-        return "empty file"
-    return None if os.access(path, os.R_OK) else "cannot be read (permission denied)"
-
-
 def _same(a: Path, b: Path) -> bool:
     try:
         return a.exists() and b.exists() and os.path.samefile(a, b)
@@ -60,27 +36,7 @@ def _same(a: Path, b: Path) -> bool:
 def check_output(path: str | os.PathLike[str], *, inputs: Iterable[str | os.PathLike[str]] = (),
                  suffix: str | Iterable[str] | None = None, what: str = "output", new: bool = False) -> Path:
     """``path`` if it can be written; :class:`OutputError` (one line) if not."""
-    try:
-        return _check_output(Path(path), inputs, suffix, what, new)
-    except OSError as exc:  # a name too long, a loop of links, a directory we may not search
-        raise OutputError(f"{what} {path}: {exc.strerror or exc}") from None
-
-
-def check_output_dir(path: str | os.PathLike[str], *, what: str = "output directory") -> Path:
-    """``path`` if files can be written in it (created when missing); :class:`OutputError` if not."""
     p = Path(path)
-    try:
-        if p.exists() and not p.is_dir():
-            raise OutputError(f"{what} {p}: exists and is not a directory")
-        _outside_special_file_systems(p, what)
-        _in_writable_place(p, p.absolute(), what)
-    except OSError as exc:
-        raise OutputError(f"{what} {path}: {exc.strerror or exc}") from None
-    return p
-
-
-def _check_output(p: Path, inputs: Iterable[str | os.PathLike[str]], suffix: str | Iterable[str] | None,
-                  what: str, new: bool) -> Path:
     for source in inputs:
         if _same(p, Path(source)) or p.resolve() == Path(source).resolve():
             raise OutputError(f"{what} {p}: is an input of this command; refusing to overwrite it")
@@ -89,7 +45,10 @@ def _check_output(p: Path, inputs: Iterable[str | os.PathLike[str]], suffix: str
         raise OutputError(f"{what} {p}: expected a {' or '.join(suffixes)} file name")
     if p.is_dir():
         raise OutputError(f"{what} {p}: is a directory")
-    _outside_special_file_systems(p, what)
+    for where in (Path(os.path.abspath(p)), Path(os.path.realpath(p))):  # as given, and its link's end
+        if len(where.parts) > 1 and where.parts[1] in _SPECIAL and where.parts[1:3] != ("dev", "shm"):
+            raise OutputError(f"{what} {p}: is in /{where.parts[1]} (a special file system: devices, "
+                              "processes); dobhil writes whole files: give a file name")
     if p.exists() and not p.is_file():
         # a device (/dev/null, /dev/stdout), FIFO or socket: the atomic rename would put a
         # regular file in its place (as root, /dev/null itself)
@@ -97,26 +56,12 @@ def _check_output(p: Path, inputs: Iterable[str | os.PathLike[str]], suffix: str
                           "dobhil writes whole files: give a file name")
     if new and p.exists():
         raise OutputError(f"{what} {p}: exists; refusing to overwrite a recording")
-    _in_writable_place(p, p.absolute().parent, what)
-    if p.exists() and not os.access(p, os.W_OK):
-        raise OutputError(f"{what} {p}: not writable (permissions or a read-only file system)")
-    return p
-
-
-def _outside_special_file_systems(p: Path, what: str) -> None:
-    for where in (Path(os.path.abspath(p)), Path(os.path.realpath(p))):  # as given, and its link's end
-        if len(where.parts) > 1 and where.parts[1] in _SPECIAL and where.parts[1:3] != ("dev", "shm"):
-            raise OutputError(f"{what} {p}: is in /{where.parts[1]} (a special file system: devices, "
-                              "processes); dobhil writes whole files: give a file name")
-
-
-def _in_writable_place(p: Path, start: Path, what: str) -> None:
-    """The nearest existing directory at or above ``start`` lets us create ``p``."""
-    parent = next(d for d in (start, *start.parents) if d.exists())
+    parent = next(d for d in (p.absolute().parent, *p.absolute().parents) if d.exists())
     if not parent.is_dir():
         raise OutputError(f"{what} {p}: {parent} is not a directory")
-    if not os.access(parent, os.W_OK | os.X_OK):
+    if not os.access(parent, os.W_OK | os.X_OK) or (p.exists() and not os.access(p, os.W_OK)):
         raise OutputError(f"{what} {p}: not writable (permissions or a read-only file system)")
+    return p
 
 
 def check_new_output(path: str | os.PathLike[str], *, suffix: str, what: str) -> Path:
@@ -128,7 +73,8 @@ def check_new_output(path: str | os.PathLike[str], *, suffix: str, what: str) ->
     try:
         os.fspath(path).encode("utf-8")
     except UnicodeEncodeError:
-        raise OutputError(f"{what} {shown(path)}: the file name is not valid UTF-8; choose another name") from None
+        shown = os.fsencode(path).decode("utf-8", "backslashreplace")
+        raise OutputError(f"{what} {shown}: the file name is not valid UTF-8; choose another name") from None
     return check_output(path, suffix=suffix, what=what, new=True)
 
 

@@ -36,7 +36,6 @@ from numpy.typing import NDArray
 from dobhil.config.schema import Config
 from dobhil.drives.bus_load import frame_bits
 from dobhil.errors import LogFileError
-from dobhil.files import shown
 from dobhil.recording.reader import open_log
 
 Array = NDArray[np.float64]
@@ -142,7 +141,7 @@ def _assemble(name: str, config: Config | None, meta: Mapping[str, Mapping[str, 
     index = {row[0]: i for i, row in enumerate(ctrl)}
     n = len(ctrl)
     stamps = np.array([row[1] for row in ctrl], dtype=np.int64)
-    data = RunData(path=shown(name), config=config, metadata=meta, t=(stamps - stamps[0]) / 1e9,
+    data = RunData(path=name, config=config, metadata=meta, t=(stamps - stamps[0]) / 1e9,
                    frames=frames, frame_ext=ext, events=events,
                    span_s=0.0 if bounds[0] is None else (bounds[1] - bounds[0]) / 1e9)
     values = np.array([row[2:] for row in ctrl], dtype=float)

@@ -21,9 +21,6 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
 def run(args: argparse.Namespace) -> int:
     from dobhil.analysis.report import analyze, as_json, as_text
     config = config_from_args(args)
-    if args.plot:
-        from dobhil.files import check_output_dir
-        check_output_dir(args.plot, what="--plot")
     result = analyze(config)
     if args.json:
         json.dump(as_json(result), sys.stdout)

@@ -20,8 +20,7 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     add_config_args(p)
     p.add_argument("--bus", metavar="INTERFACE:CHANNEL",
                    help="any python-can interface, e.g. socketcan:can0 (default: config/profile)")
-    p.add_argument("--emulate", action="store_true",
-                   help="run against the in-process emulator (on a private virtual bus: no --bus)")
+    p.add_argument("--emulate", action="store_true", help="run against the in-process emulator")
     p.add_argument("--lockstep", action="store_true",
                    help="deterministic, as fast as possible (needs --emulate)")
     p.add_argument("--duration", type=float, metavar="S", help="override loop.duration")
@@ -69,12 +68,7 @@ def run_checked(args: argparse.Namespace) -> int:
     from dobhil.runtime.loop import StopRequest
     from dobhil.runtime.session import RunSession, check_duration, summary
     from dobhil.runtime.signals import stop_on_signals
-    from dobhil.errors import ConfigError
     check_duration(args.duration)
-    if args.emulate and args.bus:
-        raise ConfigError(f"--bus {args.bus} with --emulate: the in-process emulator runs on a private "
-                          "virtual bus; drop --bus, or run `dobhil emulate CONFIG --bus IF:CH` beside "
-                          "`dobhil run CONFIG --bus IF:CH`")
     config = config_from_args(args)
     if args.plot:
         check_output(args.plot, inputs=[args.config], suffix=".png", what="--plot")

@@ -32,21 +32,12 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p.set_defaults(func=run)
 
 
-#: figure formats --plot writes (matplotlib's, by the file name)
-PLOT_SUFFIXES = (".png", ".svg", ".pdf")
-
-
 def run(args: argparse.Namespace) -> int:
     from dobhil.analysis.sweep import parse_vary, sweep
     config = config_from_args(args)
     axes = [parse_vary(v) for v in args.vary]
     if args.plot and len(axes) > 2:
         raise ConfigError("--plot draws one or two swept keys; got " + str(len(axes)))
-    from dobhil.files import check_output
-    if args.plot:  # checked before the sweep, not after it
-        check_output(args.plot, inputs=[args.config], suffix=PLOT_SUFFIXES, what="--plot")
-    if args.out:
-        check_output(args.out, inputs=[args.config], suffix=".csv", what="--out")
     total = 1
     for a in axes:
         total *= a.values.size

@@ -168,8 +168,7 @@ class ReferenceConfig:
                            check=Check.POSITIVE)
     frequency_end: float = key(50.0, "chirp end frequency", unit="Hz", check=Check.POSITIVE)
     ramp_time: float = key(0.1, "ramp duration", unit="s", check=Check.POSITIVE)
-    file: str = key("", "CSV file with columns time,tau_ref (kind csv); relative: from the config file's "
-                    "directory, or from the working directory when given with --set")
+    file: str = key("", "CSV file with columns time,tau_ref (kind csv)")
 
 
 @dataclass(frozen=True)

@@ -24,7 +24,6 @@ from mcap.records import Attachment, Channel, Chunk, Footer, Header, Metadata, S
 from mcap.stream_reader import StreamReader, get_chunk_data_stream
 
 from dobhil.errors import LogFileError
-from dobhil.files import input_problem
 from dobhil.recording.schemas import EventKind, decode
 from dobhil.recording.writer import LIBRARY, RECORDING_METADATA
 
@@ -93,11 +92,15 @@ def _fail(path: str | os.PathLike[str], what: str) -> LogFileError:
 
 def check_mcap_head(path: str | os.PathLike[str]) -> int:
     """Size of ``path`` after checking it exists, is a non-empty file and starts like MCAP."""
-    problem = input_problem(path)
-    if problem is not None:
-        raise _fail(path, problem)
-    size = os.stat(path).st_size
-    with open(path, "rb") as f:
+    p = Path(path)
+    if not p.exists():
+        raise _fail(path, "no such file")
+    if not p.is_file():
+        raise _fail(path, "not a regular file")
+    size = p.stat().st_size
+    if size == 0:
+        raise _fail(path, "empty file")
+    with open(p, "rb") as f:
         if f.read(len(MAGIC)) != MAGIC:
             raise _fail(path, "not an MCAP file (bad magic)")
     return size

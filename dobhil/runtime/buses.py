@@ -2,10 +2,7 @@
 
 from __future__ import annotations
 
-import logging
 import uuid
-from collections.abc import Iterator
-from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -61,34 +58,11 @@ def open_bus(spec: BusSpec) -> can.BusABC:
     kwargs = dict(spec.kwargs)
     if spec.interface in ("virtual", "remote"):
         kwargs.pop("bitrate", None) if spec.interface == "virtual" else None
-    with _python_can_warnings() as warned:
-        try:
-            bus = can.Bus(interface=spec.interface, channel=spec.channel, **kwargs)
-        except Exception as exc:
-            text = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-            if warned and not isinstance(exc, (can.CanError, OSError, ValueError, ImportError)):
-                # an interface whose vendor library is missing fails with whatever it hits
-                # next (NameError ...); what python-can warned on import says why
-                text = f"{warned[-1]} ({type(exc).__name__}: {text})"
-            raise BusError(f"bus {spec.describe()} cannot be opened: {text}") from None
-    for line in warned:  # opened after all: the warnings still matter (e.g. timestamps)
-        logging.getLogger("can").warning("%s", line)
-    return bus
-
-
-@contextmanager
-def _python_can_warnings() -> Iterator[list[str]]:
-    """python-can's warnings while a bus opens, held back (first lines), so that a failure
-    is one line on stderr instead of the library's lines before ours."""
-    lines: list[str] = []
-    handler = logging.Handler(logging.WARNING)
-    handler.emit = lambda record: lines.append((record.getMessage().splitlines() or [""])[0].strip())  # type: ignore[method-assign]
-    root = logging.getLogger()  # python-can's interfaces log under "can" and names of their own
-    root.addHandler(handler)
     try:
-        yield lines
-    finally:
-        root.removeHandler(handler)
+        return can.Bus(interface=spec.interface, channel=spec.channel, **kwargs)
+    except Exception as exc:
+        text = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise BusError(f"bus {spec.describe()} cannot be opened: {text}") from None
 
 
 def private_virtual_channel() -> str:

@@ -26,7 +26,6 @@ from enum import IntEnum
 from pathlib import Path
 
 from dobhil.config.schema import ReferenceConfig
-from dobhil.config.yamlio import TextFileError, read_text_file
 from dobhil.errors import ConfigError
 
 __all__ = ["CsvReference", "Reference", "ReferenceKind", "make_reference", "read_csv"]
@@ -141,19 +140,15 @@ def make_reference(config: ReferenceConfig, base_dir: str | Path | None = None, 
                      ramp_time=config.ramp_time, duration=duration)
 
 
-#: the largest reference CSV read (about an hour of samples at 1 kHz)
-MAX_CSV_BYTES = 256 * 1024 * 1024
-
-
 def read_csv(path: str | Path) -> tuple[list[float], list[float]]:
     """``(times, values)`` of a ``time,tau_ref`` CSV file; ConfigError (one line) if bad."""
     p = Path(path)
-    try:  # a regular file of bounded size: a FIFO or /dev/zero would block the run forever
-        text = read_text_file(p, limit=MAX_CSV_BYTES).removeprefix("\ufeff")
+    try:
+        text = p.read_text(encoding="utf-8-sig")
     except FileNotFoundError:
         raise ConfigError(f"reference file {p} does not exist") from None
-    except TextFileError as exc:
-        raise ConfigError(f"reference file {p} {exc}") from None
+    except (IsADirectoryError, PermissionError, UnicodeDecodeError) as exc:
+        raise ConfigError(f"reference file {p} cannot be read: {exc.__class__.__name__}") from None
     lines = text.splitlines()
     if not lines:
         raise ConfigError(f"{p}: empty file, expected the header 'time,tau_ref'")
