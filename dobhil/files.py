@@ -35,8 +35,35 @@ def _same(a: Path, b: Path) -> bool:
 
 def check_output(path: str | os.PathLike[str], *, inputs: Iterable[str | os.PathLike[str]] = (),
                  suffix: str | Iterable[str] | None = None, what: str = "output", new: bool = False) -> Path:
-    """``path`` if it can be written; :class:`OutputError` (one line) if not."""
+    """``path`` if it can be written; :class:`OutputError` (one line) if not (also when the
+    system refuses to look at it: a name too long, a loop of links, no permission)."""
+    try:
+        return _check_output(Path(path), list(inputs), suffix, what, new)
+    except OutputError:
+        raise
+    except OSError as exc:
+        shown = os.fsencode(path).decode("utf-8", "backslashreplace")
+        raise OutputError(f"{what} {shown}: not a usable file name ({exc.strerror or type(exc).__name__})") from None
+
+
+def check_output_dir(path: str | os.PathLike[str], names: Iterable[str], *,
+                     inputs: Iterable[str | os.PathLike[str]] = (), what: str = "output") -> Path:
+    """Directory ``path`` (created later if missing) if each of ``names`` can be written in it."""
     p = Path(path)
+    try:
+        is_other = p.exists() and not p.is_dir()
+    except OSError as exc:
+        shown = os.fsencode(path).decode("utf-8", "backslashreplace")
+        raise OutputError(f"{what} {shown}: not a usable directory name ({exc.strerror or type(exc).__name__})") from None
+    if is_other:
+        raise OutputError(f"{what} {p}: exists and is not a directory; give a directory")
+    for name in names:
+        check_output(p / name, inputs=inputs, what=what)
+    return p
+
+
+def _check_output(p: Path, inputs: list[str | os.PathLike[str]], suffix: str | Iterable[str] | None,
+                  what: str, new: bool) -> Path:
     for source in inputs:
         if _same(p, Path(source)) or p.resolve() == Path(source).resolve():
             raise OutputError(f"{what} {p}: is an input of this command; refusing to overwrite it")
@@ -98,4 +125,4 @@ def atomic_path(path: str | os.PathLike[str]) -> Iterator[Path]:
         raise
 
 
-__all__ = ["OutputError", "atomic_path", "check_new_output", "check_output"]
+__all__ = ["OutputError", "atomic_path", "check_new_output", "check_output", "check_output_dir"]
