@@ -9,6 +9,7 @@ renamed over the target only when the output is complete.
 from __future__ import annotations
 
 import os
+import stat
 from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -54,7 +55,8 @@ def check_output_dir(path: str | os.PathLike[str], names: Iterable[str], *,
         is_other = p.exists() and not p.is_dir()
     except OSError as exc:
         shown = os.fsencode(path).decode("utf-8", "backslashreplace")
-        raise OutputError(f"{what} {shown}: not a usable directory name ({exc.strerror or type(exc).__name__})") from None
+        why = exc.strerror or type(exc).__name__
+        raise OutputError(f"{what} {shown}: not a usable directory name ({why})") from None
     if is_other:
         raise OutputError(f"{what} {p}: exists and is not a directory; give a directory")
     for name in names:
@@ -105,6 +107,22 @@ def check_new_output(path: str | os.PathLike[str], *, suffix: str, what: str) ->
     return check_output(path, suffix=suffix, what=what, new=True)
 
 
+def input_problem(path: str | os.PathLike[str]) -> str | None:
+    """Why ``path`` cannot be read as an input file (one phrase), or None if it is a regular file."""
+    p = Path(path)
+    try:
+        info = p.stat()
+    except FileNotFoundError:
+        return "no such file"
+    except OSError as exc:
+        return f"cannot be read ({exc.strerror or type(exc).__name__})"
+    if stat.S_ISDIR(info.st_mode):
+        return "is a directory, not a file"
+    if not stat.S_ISREG(info.st_mode):
+        return "is not a regular file (a FIFO, socket or device)"
+    return None
+
+
 @contextmanager
 def atomic_path(path: str | os.PathLike[str]) -> Iterator[Path]:
     """A temporary path next to ``path`` (same suffix) to write; renamed to ``path`` when the
@@ -125,4 +143,4 @@ def atomic_path(path: str | os.PathLike[str]) -> Iterator[Path]:
         raise
 
 
-__all__ = ["OutputError", "atomic_path", "check_new_output", "check_output", "check_output_dir"]
+__all__ = ["OutputError", "atomic_path", "check_new_output", "check_output", "check_output_dir", "input_problem"]

@@ -129,8 +129,8 @@ def make_reference(config: ReferenceConfig, base_dir: str | Path | None = None, 
                    duration: float | None = None) -> Reference | CsvReference:
     """The reference of ``config``; a relative csv ``file`` is taken from ``base_dir``
     (the directory of the config file naming it; default: the working directory; a
-    ``--set`` override is made absolute by :func:`dobhil.config.load_config`); ``duration`` (the run's, ``loop.duration``)
-    is needed by the chirp."""
+    ``--set`` override is made absolute by :func:`dobhil.config.load_config`);
+    ``duration`` (the run's, ``loop.duration``) is needed by the chirp."""
     kind = ReferenceKind[config.kind.upper()]
     if kind is ReferenceKind.CSV:
         if not config.file:
