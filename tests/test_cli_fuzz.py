@@ -252,7 +252,48 @@ HAND_PICKED = [
     ["init", ""], ["init", "good.mcap"], ["init", "x" * 300], ["init", "fifo.yaml"],
     ["check", "demo", "--bus", "dobhil:fifo.yaml", "--window", "0.05"],
     ["check", "demo", "--bus", "dobhil:" + "x" * 300, "--window", "0.05"],
+    [*RUN, "--set", "reference.kind=csv", "--set", "reference.file=/dev/zero"],
+    [*RUN, "--set", "reference.kind=csv", "--set", "reference.file=fifo.yaml"],
+    [*RUN, "--bus", "nonexistent:x"], [*RUN, "--plot", "x" * 300 + ".png"],
+    ["log", "recover", "good.mcap", "-o", "recovered.txt"],
 ]
+
+#: bad input found only after the work, once: (command line, words the one line must hold);
+#: each must be refused before the work starts (nothing on stdout, nothing written)
+EARLY = [
+    (["sweep", "demo", "--vary", "design.force_gain=1:2:3", "--plot", "sweep.txt"], ".png or .svg or .pdf"),
+    (["sweep", "demo", "--vary", "design.force_gain=1:2:3", "--out", "good.mcap/x.csv"], "not a directory"),
+    (["sweep", "demo", "--vary", "design.force_gain=1:2:3", "--plot", "x" * 300 + ".png"], "too long"),
+    (["analyze", "demo", "--plot", "good.mcap"], "not a directory"),
+    (["analyze", "demo", "--plot", "good.mcap/sub"], "not a directory"),
+    (["analyze", "demo", "--plot", "x" * 300], "too long"),
+    (["log", "import", "dir.mcap", "-o", "imported.mcap"], "is a directory"),
+    (["log", "import", "fifo.mcap", "-o", "imported.mcap"], "FIFO"),
+    (["log", "recover", "good.mcap", "-o", "recovered.txt"], ".mcap"),
+    ([*RUN, "--bus", "nonexistent:x"], "--emulate"),
+    ([*RUN, "--set", "reference.kind=csv", "--set", "reference.file=/dev/zero"], "not a regular file"),
+]
+
+
+@pytest.mark.parametrize(("argv", "words"), EARLY, ids=lambda a: " ".join(a)[:60] if isinstance(a, list) else "")
+def test_bad_input_is_refused_before_the_work(scratch: Path, argv: list[str], words: str) -> None:
+    with _chdir(scratch):
+        before = set(os.listdir("."))
+        code, out, err = run_cli(argv)
+        after = set(os.listdir("."))
+    assert_clean(argv, code, err)
+    assert code == 2 and words in err, err
+    assert out == "", out  # no analysis, sweep summary or run printed: refused first
+    assert after == before, after ^ before
+
+
+def test_report_of_a_file_named_in_no_encoding(scratch: Path, tmp_path: Path) -> None:
+    """A recording whose name is not UTF-8 (0xff from the shell) is reported, its name escaped."""
+    source = tmp_path / "run\udcff.mcap"
+    source.write_bytes((scratch / "good.mcap").read_bytes())
+    code, out, err = run_cli(["report", str(source), "--out", str(tmp_path / "rep")])
+    assert code == 0 and "Traceback" not in err, err
+    assert "run\\xff.mcap" in (tmp_path / "rep" / "summary.txt").read_text(encoding="utf-8")
 
 
 @pytest.mark.parametrize("argv", HAND_PICKED, ids=lambda a: " ".join(a)[:60])
