@@ -176,14 +176,15 @@ hostile = st.one_of(st.sampled_from(INPUT_FILES + NUMBERS + ODD),
                     st.from_regex(r"-?[0-9]{1,3}(\.[0-9]{0,3})?(e-?[0-9]{1,3})?", fullmatch=True))
 sets = st.builds(lambda key, value: f"{key}={value}",
                  st.sampled_from(KEYS + ["design", "design.", "nokey", "design.force_gain.x", ""]),
-                 st.one_of(st.sampled_from(NUMBERS + ODD[:30]), shell_text))
+                 st.one_of(st.sampled_from(NUMBERS + ODD[:30] + INPUT_FILES), shell_text))
 #: a valid first positional half of the time, so options are fuzzed past the config check
 VALID_POSITIONAL = {"analyze": "demo", "sweep": "demo", "check": "demo", "replay": "good.mcap",
                     "report": "good.mcap", "info": "good.mcap", "recover": "good.mcap",
                     "export": "good.mcap", "import": "good.mcap", "init": "fresh"}
 #: values of options naming a file the command writes: fresh names inside the scratch
 #: directory (hostile output names are tested by hand below)
-outputs = st.sampled_from(["o1.png", "o2.csv", "o3.mcap", "o4.blf", "o5", "out/o6.png", "o7.txt"])
+outputs = st.sampled_from(["o1.png", "o2.csv", "o3.mcap", "o4.blf", "o5", "out/o6.png", "o7.txt", "o8.svg",
+                          "good.mcap/o9.png", "x" * 300 + ".png"])
 OUTPUT_OPTIONS = {"--plot", "--out", "--output", "--log"}
 
 
