@@ -42,9 +42,11 @@ def check_output(path: str | os.PathLike[str], *, inputs: Iterable[str | os.Path
         return _check_output(Path(path), list(inputs), suffix, what, new)
     except OutputError:
         raise
-    except OSError as exc:
+    except (OSError, RuntimeError) as exc:  # RuntimeError: Path.resolve() in a loop of symbolic links
         shown = os.fsencode(path).decode("utf-8", "backslashreplace")
-        raise OutputError(f"{what} {shown}: not a usable file name ({exc.strerror or type(exc).__name__})") from None
+        why = getattr(exc, "strerror", None) or ("a loop of symbolic links" if isinstance(exc, RuntimeError)
+                                                 else type(exc).__name__)
+        raise OutputError(f"{what} {shown}: not a usable file name ({why})") from None
 
 
 def check_output_dir(path: str | os.PathLike[str], names: Iterable[str], *,
@@ -66,8 +68,13 @@ def check_output_dir(path: str | os.PathLike[str], names: Iterable[str], *,
 
 def _check_output(p: Path, inputs: list[str | os.PathLike[str]], suffix: str | Iterable[str] | None,
                   what: str, new: bool) -> Path:
+    p.resolve()  # raises for a loop of symbolic links (and a name the system refuses)
     for source in inputs:
-        if _same(p, Path(source)) or p.resolve() == Path(source).resolve():
+        try:
+            resolved = Path(source).resolve()
+        except (OSError, RuntimeError):  # an unusable input: its own check says so
+            continue
+        if _same(p, Path(source)) or p.resolve() == resolved:
             raise OutputError(f"{what} {p}: is an input of this command; refusing to overwrite it")
     suffixes = (suffix,) if isinstance(suffix, str) else tuple(suffix or ())
     if suffixes and p.suffix.lower() not in suffixes:

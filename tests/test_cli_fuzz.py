@@ -99,6 +99,8 @@ def _scratch(root: Path) -> None:
     (root / "bomb.yaml").write_text(f"design:\n  force_gain: {BOMB}\n")
     profile = (ROOT / "drivers" / "odrive-0.6.yaml").read_text()
     (root / "bomb-profile.yaml").write_text(profile.replace("\ntorque_limit:", f"\ntorque_limit: {BOMB}\n#", 1))
+    (root / "loop").symlink_to(root / "loop2")
+    (root / "loop2").symlink_to(root / "loop")
     (root / "bad.asc").write_text("date Mon Jan 1 00:00:00 2024\nbase hex timestamps absolute\n0.1 1 zz Rx d 8\n")
     good = root / "good.mcap"
     code, _, err = run_cli(["run", "demo", "--emulate", "--lockstep", "--duration", "0.05", "--log", str(good)])
@@ -271,6 +273,9 @@ EARLY = [
     (["log", "import", "dir.mcap", "-o", "imported.mcap"], "is a directory"),
     (["log", "import", "fifo.mcap", "-o", "imported.mcap"], "FIFO"),
     (["log", "recover", "good.mcap", "-o", "recovered.txt"], ".mcap"),
+    (["log", "info", "dir.mcap"], "is a directory"),
+    (["analyze", "demo", "--plot", "loop"], "loop of symbolic links"),
+    (["report", "loop", "--out", "report-out"], "symbolic links"),
     ([*RUN, "--bus", "nonexistent:x"], "--emulate"),
     ([*RUN, "--set", "reference.kind=csv", "--set", "reference.file=/dev/zero"], "not a regular file"),
 ]

@@ -90,3 +90,15 @@ def test_an_unwritable_output_directory_is_refused(tmp_path: Path) -> None:
     locked.mkdir(mode=0o500)
     with pytest.raises(OutputError, match="not writable"):
         check_output_dir(locked / "plots", ["a.png"], what="--plot")
+
+
+def test_a_loop_of_symbolic_links_is_one_line(tmp_path: Path) -> None:
+    """ELOOP (Path.resolve raises RuntimeError for it) as an output, an input and a directory."""
+    (tmp_path / "a").symlink_to(tmp_path / "b")
+    (tmp_path / "b").symlink_to(tmp_path / "a")
+    with pytest.raises(OutputError, match="loop of symbolic links"):
+        check_output(tmp_path / "a", what="--out")
+    with pytest.raises(OutputError, match="loop of symbolic links"):
+        check_output_dir(tmp_path / "a", ["x.png"], what="--plot")
+    assert check_output(tmp_path / "fine.csv", inputs=[tmp_path / "a"]) == tmp_path / "fine.csv"
+    assert "symbolic links" in str(input_problem(tmp_path / "a"))
