@@ -9,6 +9,7 @@ renamed over the target only when the output is complete.
 from __future__ import annotations
 
 import os
+import stat
 from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -35,10 +36,45 @@ def _same(a: Path, b: Path) -> bool:
 
 def check_output(path: str | os.PathLike[str], *, inputs: Iterable[str | os.PathLike[str]] = (),
                  suffix: str | Iterable[str] | None = None, what: str = "output", new: bool = False) -> Path:
-    """``path`` if it can be written; :class:`OutputError` (one line) if not."""
+    """``path`` if it can be written; :class:`OutputError` (one line) if not (also when the
+    system refuses to look at it: a name too long, a loop of links, no permission)."""
+    try:
+        return _check_output(Path(path), list(inputs), suffix, what, new)
+    except OutputError:
+        raise
+    except (OSError, RuntimeError) as exc:  # RuntimeError: Path.resolve() in a loop of symbolic links
+        shown = os.fsencode(path).decode("utf-8", "backslashreplace")
+        why = getattr(exc, "strerror", None) or ("a loop of symbolic links" if isinstance(exc, RuntimeError)
+                                                 else type(exc).__name__)
+        raise OutputError(f"{what} {shown}: not a usable file name ({why})") from None
+
+
+def check_output_dir(path: str | os.PathLike[str], names: Iterable[str], *,
+                     inputs: Iterable[str | os.PathLike[str]] = (), what: str = "output") -> Path:
+    """Directory ``path`` (created later if missing) if each of ``names`` can be written in it."""
     p = Path(path)
+    try:
+        is_other = p.exists() and not p.is_dir()
+    except OSError as exc:
+        shown = os.fsencode(path).decode("utf-8", "backslashreplace")
+        why = exc.strerror or type(exc).__name__
+        raise OutputError(f"{what} {shown}: not a usable directory name ({why})") from None
+    if is_other:
+        raise OutputError(f"{what} {p}: exists and is not a directory; give a directory")
+    for name in names:
+        check_output(p / name, inputs=inputs, what=what)
+    return p
+
+
+def _check_output(p: Path, inputs: list[str | os.PathLike[str]], suffix: str | Iterable[str] | None,
+                  what: str, new: bool) -> Path:
+    p.resolve()  # raises for a loop of symbolic links (and a name the system refuses)
     for source in inputs:
-        if _same(p, Path(source)) or p.resolve() == Path(source).resolve():
+        try:
+            resolved = Path(source).resolve()
+        except (OSError, RuntimeError):  # an unusable input: its own check says so
+            continue
+        if _same(p, Path(source)) or p.resolve() == resolved:
             raise OutputError(f"{what} {p}: is an input of this command; refusing to overwrite it")
     suffixes = (suffix,) if isinstance(suffix, str) else tuple(suffix or ())
     if suffixes and p.suffix.lower() not in suffixes:
@@ -78,6 +114,22 @@ def check_new_output(path: str | os.PathLike[str], *, suffix: str, what: str) ->
     return check_output(path, suffix=suffix, what=what, new=True)
 
 
+def input_problem(path: str | os.PathLike[str]) -> str | None:
+    """Why ``path`` cannot be read as an input file (one phrase), or None if it is a regular file."""
+    p = Path(path)
+    try:
+        info = p.stat()
+    except FileNotFoundError:
+        return "no such file"
+    except OSError as exc:
+        return f"cannot be read ({exc.strerror or type(exc).__name__})"
+    if stat.S_ISDIR(info.st_mode):
+        return "is a directory, not a file"
+    if not stat.S_ISREG(info.st_mode):
+        return "is not a regular file (a FIFO, socket or device)"
+    return None
+
+
 @contextmanager
 def atomic_path(path: str | os.PathLike[str]) -> Iterator[Path]:
     """A temporary path next to ``path`` (same suffix) to write; renamed to ``path`` when the
@@ -98,4 +150,4 @@ def atomic_path(path: str | os.PathLike[str]) -> Iterator[Path]:
         raise
 
 
-__all__ = ["OutputError", "atomic_path", "check_new_output", "check_output"]
+__all__ = ["OutputError", "atomic_path", "check_new_output", "check_output", "check_output_dir", "input_problem"]

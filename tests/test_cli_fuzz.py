@@ -99,6 +99,8 @@ def _scratch(root: Path) -> None:
     (root / "bomb.yaml").write_text(f"design:\n  force_gain: {BOMB}\n")
     profile = (ROOT / "drivers" / "odrive-0.6.yaml").read_text()
     (root / "bomb-profile.yaml").write_text(profile.replace("\ntorque_limit:", f"\ntorque_limit: {BOMB}\n#", 1))
+    (root / "loop").symlink_to(root / "loop2")
+    (root / "loop2").symlink_to(root / "loop")
     (root / "bad.asc").write_text("date Mon Jan 1 00:00:00 2024\nbase hex timestamps absolute\n0.1 1 zz Rx d 8\n")
     good = root / "good.mcap"
     code, _, err = run_cli(["run", "demo", "--emulate", "--lockstep", "--duration", "0.05", "--log", str(good)])
@@ -176,14 +178,15 @@ hostile = st.one_of(st.sampled_from(INPUT_FILES + NUMBERS + ODD),
                     st.from_regex(r"-?[0-9]{1,3}(\.[0-9]{0,3})?(e-?[0-9]{1,3})?", fullmatch=True))
 sets = st.builds(lambda key, value: f"{key}={value}",
                  st.sampled_from(KEYS + ["design", "design.", "nokey", "design.force_gain.x", ""]),
-                 st.one_of(st.sampled_from(NUMBERS + ODD[:30]), shell_text))
+                 st.one_of(st.sampled_from(NUMBERS + ODD[:30] + INPUT_FILES), shell_text))
 #: a valid first positional half of the time, so options are fuzzed past the config check
 VALID_POSITIONAL = {"analyze": "demo", "sweep": "demo", "check": "demo", "replay": "good.mcap",
                     "report": "good.mcap", "info": "good.mcap", "recover": "good.mcap",
                     "export": "good.mcap", "import": "good.mcap", "init": "fresh"}
 #: values of options naming a file the command writes: fresh names inside the scratch
 #: directory (hostile output names are tested by hand below)
-outputs = st.sampled_from(["o1.png", "o2.csv", "o3.mcap", "o4.blf", "o5", "out/o6.png", "o7.txt"])
+outputs = st.sampled_from(["o1.png", "o2.csv", "o3.mcap", "o4.blf", "o5", "out/o6.png", "o7.txt", "o8.svg",
+                          "good.mcap/o9.png", "x" * 300 + ".png"])
 OUTPUT_OPTIONS = {"--plot", "--out", "--output", "--log"}
 
 
@@ -252,7 +255,51 @@ HAND_PICKED = [
     ["init", ""], ["init", "good.mcap"], ["init", "x" * 300], ["init", "fifo.yaml"],
     ["check", "demo", "--bus", "dobhil:fifo.yaml", "--window", "0.05"],
     ["check", "demo", "--bus", "dobhil:" + "x" * 300, "--window", "0.05"],
+    [*RUN, "--set", "reference.kind=csv", "--set", "reference.file=/dev/zero"],
+    [*RUN, "--set", "reference.kind=csv", "--set", "reference.file=fifo.yaml"],
+    [*RUN, "--bus", "nonexistent:x"], [*RUN, "--plot", "x" * 300 + ".png"],
+    ["log", "recover", "good.mcap", "-o", "recovered.txt"],
 ]
+
+#: bad input found only after the work, once: (command line, words the one line must hold);
+#: each must be refused before the work starts (nothing on stdout, nothing written)
+EARLY = [
+    (["sweep", "demo", "--vary", "design.force_gain=1:2:3", "--plot", "sweep.txt"], ".png or .svg or .pdf"),
+    (["sweep", "demo", "--vary", "design.force_gain=1:2:3", "--out", "good.mcap/x.csv"], "not a directory"),
+    (["sweep", "demo", "--vary", "design.force_gain=1:2:3", "--plot", "x" * 300 + ".png"], "too long"),
+    (["analyze", "demo", "--plot", "good.mcap"], "not a directory"),
+    (["analyze", "demo", "--plot", "good.mcap/sub"], "not a directory"),
+    (["analyze", "demo", "--plot", "x" * 300], "too long"),
+    (["log", "import", "dir.mcap", "-o", "imported.mcap"], "is a directory"),
+    (["log", "import", "fifo.mcap", "-o", "imported.mcap"], "FIFO"),
+    (["log", "recover", "good.mcap", "-o", "recovered.txt"], ".mcap"),
+    (["log", "info", "dir.mcap"], "is a directory"),
+    (["analyze", "demo", "--plot", "loop"], "loop of symbolic links"),
+    (["report", "loop", "--out", "report-out"], "symbolic links"),
+    ([*RUN, "--bus", "nonexistent:x"], "--emulate"),
+    ([*RUN, "--set", "reference.kind=csv", "--set", "reference.file=/dev/zero"], "not a regular file"),
+]
+
+
+@pytest.mark.parametrize(("argv", "words"), EARLY, ids=lambda a: " ".join(a)[:60] if isinstance(a, list) else "")
+def test_bad_input_is_refused_before_the_work(scratch: Path, argv: list[str], words: str) -> None:
+    with _chdir(scratch):
+        before = set(os.listdir("."))
+        code, out, err = run_cli(argv)
+        after = set(os.listdir("."))
+    assert_clean(argv, code, err)
+    assert code == 2 and words in err, err
+    assert out == "", out  # no analysis, sweep summary or run printed: refused first
+    assert after == before, after ^ before
+
+
+def test_report_of_a_file_named_in_no_encoding(scratch: Path, tmp_path: Path) -> None:
+    """A recording whose name is not UTF-8 (0xff from the shell) is reported, its name escaped."""
+    source = tmp_path / "run\udcff.mcap"
+    source.write_bytes((scratch / "good.mcap").read_bytes())
+    code, out, err = run_cli(["report", str(source), "--out", str(tmp_path / "rep")])
+    assert code == 0 and "Traceback" not in err, err
+    assert "run\\xff.mcap" in (tmp_path / "rep" / "summary.txt").read_text(encoding="utf-8")
 
 
 @pytest.mark.parametrize("argv", HAND_PICKED, ids=lambda a: " ".join(a)[:60])

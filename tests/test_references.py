@@ -117,3 +117,40 @@ def test_csv_missing_file(tmp_path: Path) -> None:
         make_reference(ReferenceConfig(kind="csv", file="missing.csv"), tmp_path)
     with pytest.raises(ConfigError, match="needs a file"):
         make_reference(ReferenceConfig(kind="csv"), tmp_path)
+
+
+def test_a_device_or_fifo_as_reference_file_is_refused_at_once(tmp_path: Path) -> None:
+    """/dev/zero never ends and a FIFO blocks: both are refused before they are opened."""
+    import os
+    fifo = tmp_path / "ref.fifo"
+    os.mkfifo(fifo)
+    for name in ("/dev/zero", str(fifo), str(tmp_path)):
+        with pytest.raises(ConfigError, match="not a regular file|is a directory"):
+            make_reference(ReferenceConfig(kind="csv", file=name))
+
+
+def test_a_relative_reference_file_is_taken_from_the_config_files_directory(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """In a config file: from that file's directory; in --set: from the working directory."""
+    from dobhil.cli.main import main
+    from dobhil.config import load_config
+    configs, elsewhere = tmp_path / "configs", tmp_path / "work"
+    configs.mkdir()
+    elsewhere.mkdir()
+    (configs / "ref.csv").write_text("time,tau_ref\n0,0.5\n")
+    (elsewhere / "other.csv").write_text("time,tau_ref\n0,0.25\n")
+    demo = (Path(__file__).resolve().parents[1] / "configs" / "demo.yaml").read_text()
+    config_file = configs / "csv.yaml"
+    config_file.write_text(demo.replace("reference:\n  kind: step", "reference:\n  kind: csv\n  file: ref.csv"))
+    monkeypatch.chdir(elsewhere)
+    config = load_config(config_file)
+    assert config.reference.file == "ref.csv"
+    assert make_reference(config.reference, config_file.parent).value(1.0) == pytest.approx(0.5 + 0.2)
+    overridden = load_config(config_file, ["reference.file=other.csv"])
+    assert overridden.reference.file == str(elsewhere / "other.csv")
+    assert make_reference(overridden.reference, config_file.parent).value(1.0) == pytest.approx(0.25 + 0.2)
+    run = ["run", str(config_file), "--emulate", "--lockstep", "--duration", "0.05"]
+    assert main(run) == 0
+    assert main([*run, "--set", "reference.file=other.csv"]) == 0
+    assert main(["run", "demo", "--emulate", "--lockstep", "--duration", "0.05", "--set", "reference.kind=csv",
+                 "--set", "reference.file=other.csv"]) == 0  # a shipped config: still the working directory

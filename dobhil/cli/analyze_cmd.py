@@ -10,6 +10,10 @@ from pathlib import Path
 from dobhil.cli.common import add_config_args, config_from_args
 
 
+#: the files ``--plot DIR`` writes (:func:`dobhil.plotting.figures.analysis_figures`)
+PLOT_NAMES = ("root_locus.png", "step.png", "bode.png")
+
+
 def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = sub.add_parser("analyze", help="analyse a design: poles, zeros, stable gains, margins, step")
     add_config_args(p)
@@ -21,6 +25,9 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
 def run(args: argparse.Namespace) -> int:
     from dobhil.analysis.report import analyze, as_json, as_text
     config = config_from_args(args)
+    if args.plot:  # before the analysis: a bad directory fails at once, not after it
+        from dobhil.files import check_output_dir
+        check_output_dir(args.plot, PLOT_NAMES, inputs=[args.config], what="--plot")
     result = analyze(config)
     if args.json:
         json.dump(as_json(result), sys.stdout)

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 from pathlib import Path
 
@@ -23,6 +24,11 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p.add_argument("--out", type=Path, required=True, metavar="DIR", help="output directory")
     p.add_argument("--json", action="store_true", help="print the summary as JSON instead of text")
     p.set_defaults(func=run)
+
+
+def _utf8(text: str) -> str:
+    """``text`` with the undecodable bytes of a file name (lone surrogates) as ``\\xff`` escapes."""
+    return os.fsencode(text).decode("utf-8", "backslashreplace")
 
 
 def _check_out_dir(out: Path, source: str) -> None:
@@ -47,13 +53,14 @@ def run(args: argparse.Namespace) -> int:
         data, summary, predicted = report(args.file, progress=bar.update)
     args.out.mkdir(parents=True, exist_ok=True)
     files = report_figures(data, predicted, summary, args.out)
-    for name, text in (("summary.json", json.dumps(summary, indent=2) + "\n"), ("summary.txt", summary_text(summary))):
+    text = _utf8(summary_text(summary))  # a file name that is not UTF-8 is shown escaped (\xff)
+    for name, body in (("summary.json", json.dumps(summary, indent=2) + "\n"), ("summary.txt", text)):
         with atomic_path(args.out / name) as tmp:
-            tmp.write_text(text)
+            tmp.write_text(body, encoding="utf-8")
         files.append(args.out / name)
     if args.json:
         print(json.dumps(summary))
     else:
-        sys.stdout.write(summary_text(summary))
-        print(f"wrote {len(files)} files to {args.out}")
+        sys.stdout.write(text)
+        print(_utf8(f"wrote {len(files)} files to {args.out}"))
     return 0

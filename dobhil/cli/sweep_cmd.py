@@ -20,6 +20,9 @@ Progress = Callable[[int], None]
 #: grids at least this large show a progress bar (on a terminal)
 PROGRESS_MIN_POINTS = 20_000
 
+#: --plot formats (matplotlib picks the format from the suffix)
+PLOT_SUFFIXES = (".png", ".svg", ".pdf")
+
 
 def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = sub.add_parser("sweep", help="stability, minimum phase and max stable C_f over a grid")
@@ -38,6 +41,7 @@ def run(args: argparse.Namespace) -> int:
     axes = [parse_vary(v) for v in args.vary]
     if args.plot and len(axes) > 2:
         raise ConfigError("--plot draws one or two swept keys; got " + str(len(axes)))
+    _check_outputs(args)
     total = 1
     for a in axes:
         total *= a.values.size
@@ -51,6 +55,17 @@ def run(args: argparse.Namespace) -> int:
         from dobhil.plotting.sweep_plot import heatmap
         print(f"wrote {heatmap(result, args.plot)}")
     return 0
+
+
+def _check_outputs(args: argparse.Namespace) -> None:
+    """--out and --plot before the sweep runs (it can take minutes)."""
+    from dobhil.files import check_output
+    if args.out:
+        check_output(args.out, inputs=[args.config], suffix=".csv", what="--out")
+    if args.plot:
+        check_output(args.plot, inputs=[args.config], suffix=PLOT_SUFFIXES, what="--plot")
+        if args.out and Path(args.out).absolute() == Path(args.plot).absolute():
+            raise ConfigError("--out and --plot name the same file; give two names")
 
 
 def _run_with_progress(work: Callable[[Progress], SweepResult], total: int) -> SweepResult:
@@ -80,9 +95,9 @@ def _summary(result: SweepResult) -> None:
 
 
 def _write_csv(result: SweepResult, path: Path) -> None:
+    from dobhil.files import atomic_path
     rows = result.rows()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with path.open("w", newline="") as fh:
+    with atomic_path(path) as tmp, tmp.open("w", newline="") as fh:
         writer = csv.DictWriter(fh, fieldnames=list(rows[0]))
         writer.writeheader()
         for row in rows:

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import os
 from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Any, NoReturn
@@ -20,12 +21,19 @@ from dobhil.data import configs_dir, shipped_configs, shipped_file
 from dobhil.errors import ConfigError
 
 
+#: keys naming a file: relative in a config file, from that file's directory (the run
+#: resolves them); relative in a ``--set`` override, from the working directory
+CWD_PATH_KEYS = ("reference.file",)
+
+
 def load_config(path: str | Path | None = None, overrides: Iterable[str] = ()) -> Config:
     """Read ``path`` (a YAML file or a shipped config name, see :func:`resolve_config`; None
     for the defaults), apply ``key=value`` overrides, validate."""
     flat = _flatten(read_yaml(resolve_config(path)), "") if path is not None else {}
     for item in overrides:
         name, value = parse_override(item)
+        if name in CWD_PATH_KEYS and isinstance(value, str) and value:
+            value = os.path.abspath(value)  # a path typed on the command line: from the working directory
         flat[name] = value
     return build_config(flat, source=str(path) if path else "defaults")
 

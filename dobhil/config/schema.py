@@ -168,7 +168,8 @@ class ReferenceConfig:
                            check=Check.POSITIVE)
     frequency_end: float = key(50.0, "chirp end frequency", unit="Hz", check=Check.POSITIVE)
     ramp_time: float = key(0.1, "ramp duration", unit="s", check=Check.POSITIVE)
-    file: str = key("", "CSV file with columns time,tau_ref (kind csv)")
+    file: str = key("", "CSV file with columns time,tau_ref (kind csv); a relative path is "
+                          "taken from the config file's directory (from the working directory in --set)")
 
 
 @dataclass(frozen=True)

@@ -26,9 +26,12 @@ def _plt() -> Any:
 
 
 def save(fig: Figure, path: Path) -> Path:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=150, bbox_inches="tight")
-    _plt().close(fig)
+    from dobhil.files import atomic_path
+    try:
+        with atomic_path(path) as tmp:  # a complete file or none
+            fig.savefig(tmp, dpi=150, bbox_inches="tight")
+    finally:
+        _plt().close(fig)
     return path
 
 

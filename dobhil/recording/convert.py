@@ -19,7 +19,7 @@ from typing import Any, Final
 import can
 
 from dobhil.errors import LogFileError
-from dobhil.files import atomic_path, check_output
+from dobhil.files import atomic_path, check_output, input_problem
 from dobhil.recording.reader import open_log
 from dobhil.recording.schemas import Direction, can_frame_message, can_frame_record
 from dobhil.recording.writer import LogWriter
@@ -114,8 +114,9 @@ def _blf_channel(channel: Any) -> int | None:
 
 
 def _can_reader(path: Path) -> Any:
-    if not path.is_file():
-        raise LogFileError(f"{path}: no such file")
+    problem = input_problem(path)
+    if problem is not None:
+        raise LogFileError(f"{path}: {problem}; expected a CAN log file python-can reads (.asc, .blf, .log, .trc, ...)")
     if path.stat().st_size == 0:
         raise LogFileError(f"{path}: empty file")
     try:

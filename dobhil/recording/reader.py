@@ -24,6 +24,7 @@ from mcap.records import Attachment, Channel, Chunk, Footer, Header, Metadata, S
 from mcap.stream_reader import StreamReader, get_chunk_data_stream
 
 from dobhil.errors import LogFileError
+from dobhil.files import input_problem
 from dobhil.recording.schemas import EventKind, decode
 from dobhil.recording.writer import LIBRARY, RECORDING_METADATA
 
@@ -93,10 +94,9 @@ def _fail(path: str | os.PathLike[str], what: str) -> LogFileError:
 def check_mcap_head(path: str | os.PathLike[str]) -> int:
     """Size of ``path`` after checking it exists, is a non-empty file and starts like MCAP."""
     p = Path(path)
-    if not p.exists():
-        raise _fail(path, "no such file")
-    if not p.is_file():
-        raise _fail(path, "not a regular file")
+    problem = input_problem(p)  # no such file, a directory, a FIFO, a loop of links, ...
+    if problem is not None:
+        raise _fail(path, problem)
     size = p.stat().st_size
     if size == 0:
         raise _fail(path, "empty file")

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import uuid
 from dataclasses import dataclass, field
 from typing import Any
@@ -58,11 +59,58 @@ def open_bus(spec: BusSpec) -> can.BusABC:
     kwargs = dict(spec.kwargs)
     if spec.interface in ("virtual", "remote"):
         kwargs.pop("bitrate", None) if spec.interface == "virtual" else None
-    try:
-        return can.Bus(interface=spec.interface, channel=spec.channel, **kwargs)
-    except Exception as exc:
-        text = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-        raise BusError(f"bus {spec.describe()} cannot be opened: {text}") from None
+    with _CaughtWarnings() as caught:  # python-can logs a missing driver library on import
+        try:
+            return can.Bus(interface=spec.interface, channel=spec.channel, **kwargs)
+        except Exception as exc:
+            text = " ".join(str(exc).split()) or type(exc).__name__
+            error = exc
+    raise BusError(f"bus {spec.describe()} cannot be opened: {_explain(spec.interface, text, caught.lines)}") from error
+
+
+#: what to install when an interface's driver library is missing (python-can's own wording
+#: names the library, not how to get it)
+_INSTALL_HINTS: dict[str, str] = {
+    "pcan": "install PEAK-System's PCAN-Basic library (libpcanbasic)",
+    "kvaser": "install Kvaser CANlib (libcanlib)",
+    "serial": "pip install pyserial", "slcan": "pip install pyserial",
+    "seeedstudio": "pip install pyserial", "robotell": "pip install pyserial",
+    "cantact": "pip install cantact", "gs_usb": "pip install gs_usb", "neovi": "pip install python-ics",
+    "canalystii": "pip install canalystii",
+}
+
+
+def _explain(interface: str, text: str, warned: list[str]) -> str:
+    """python-can's error, the warnings it logged while loading the interface, and a hint."""
+    def missing(t: str) -> bool:
+        return any(k in t.lower() for k in ("not found", "not installed", "unavailable", "no module",
+                                            "cannot import", "without the"))
+    # the warnings matter when the error itself is obscure (kvaser: "name ... is not defined")
+    notes = [] if missing(text) else [w for w in dict.fromkeys(warned) if w.lower() not in text.lower()]
+    line = text.rstrip(".") + "".join(f"; {n.rstrip('.')}" for n in notes)
+    hint = _INSTALL_HINTS.get(interface) if missing(line) else None
+    return f"{line} ({hint})" if hint else line
+
+
+class _CaughtWarnings(logging.Handler):
+    """Collects the log records python-can emits while a bus opens, instead of letting
+    Python's last-resort handler print them to stderr above dobhil's own one line."""
+
+    def __init__(self) -> None:
+        super().__init__(logging.WARNING)
+        self.lines: list[str] = []
+
+    def emit(self, record: logging.LogRecord) -> None:
+        self.lines.append(" ".join(record.getMessage().split()))
+
+    def __enter__(self) -> _CaughtWarnings:
+        # on the root logger: python-can's interfaces log under "can.*" and some under their
+        # own names ("seeedbus"); a handler here also keeps the last-resort print away
+        logging.getLogger().addHandler(self)
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        logging.getLogger().removeHandler(self)
 
 
 def private_virtual_channel() -> str:

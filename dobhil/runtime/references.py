@@ -26,11 +26,14 @@ from enum import IntEnum
 from pathlib import Path
 
 from dobhil.config.schema import ReferenceConfig
+from dobhil.config.yamlio import TextFileError, read_text_file
 from dobhil.errors import ConfigError
 
 __all__ = ["CsvReference", "Reference", "ReferenceKind", "make_reference", "read_csv"]
 
 CSV_HEADER: tuple[str, str] = ("time", "tau_ref")
+#: the largest reference file read (hours of samples at 1 kHz; a larger file is not one)
+CSV_MAX_BYTES = 256 << 20
 
 
 class ReferenceKind(IntEnum):
@@ -125,8 +128,9 @@ class CsvReference:
 def make_reference(config: ReferenceConfig, base_dir: str | Path | None = None, *,
                    duration: float | None = None) -> Reference | CsvReference:
     """The reference of ``config``; a relative csv ``file`` is taken from ``base_dir``
-    (default: the working directory); ``duration`` (the run's, ``loop.duration``)
-    is needed by the chirp."""
+    (the directory of the config file naming it; default: the working directory; a
+    ``--set`` override is made absolute by :func:`dobhil.config.load_config`);
+    ``duration`` (the run's, ``loop.duration``) is needed by the chirp."""
     kind = ReferenceKind[config.kind.upper()]
     if kind is ReferenceKind.CSV:
         if not config.file:
@@ -143,12 +147,12 @@ def make_reference(config: ReferenceConfig, base_dir: str | Path | None = None, 
 def read_csv(path: str | Path) -> tuple[list[float], list[float]]:
     """``(times, values)`` of a ``time,tau_ref`` CSV file; ConfigError (one line) if bad."""
     p = Path(path)
-    try:
-        text = p.read_text(encoding="utf-8-sig")
+    try:  # a regular file of bounded size: /dev/zero or a FIFO would never end
+        text = read_text_file(p, limit=CSV_MAX_BYTES).removeprefix("\ufeff")
     except FileNotFoundError:
         raise ConfigError(f"reference file {p} does not exist") from None
-    except (IsADirectoryError, PermissionError, UnicodeDecodeError) as exc:
-        raise ConfigError(f"reference file {p} cannot be read: {exc.__class__.__name__}") from None
+    except TextFileError as exc:
+        raise ConfigError(f"reference file {p} {exc}") from None
     lines = text.splitlines()
     if not lines:
         raise ConfigError(f"{p}: empty file, expected the header 'time,tau_ref'")

@@ -112,6 +112,10 @@ class RunSession:
         if lockstep and not emulate:
             raise ConfigError("lockstep timing needs the in-process emulator (--emulate); "
                               "a real drive runs in real time")
+        if emulate and bus:
+            raise ConfigError(f"--bus {bus} with --emulate: the emulator runs on its own private virtual "
+                              "bus; drop --bus, or run 'dobhil emulate CONFIG --bus ...' beside "
+                              "'dobhil run CONFIG --bus ...'")
         check_duration(duration)
         self.config = config
         self.profile = load_drive_profile(config, config_dir)
