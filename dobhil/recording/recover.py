@@ -11,7 +11,6 @@ import os
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import BinaryIO
 
 from mcap.records import Attachment, Channel, Chunk, Footer, McapRecord, Message, Metadata, Schema
 from mcap.stream_reader import StreamReader, breakup_chunk
@@ -107,19 +106,6 @@ def default_output(path: str | os.PathLike[str]) -> Path:
     return Path(path).with_suffix(".recovered.mcap")
 
 
-def _copy_all(source: BinaryIO, copier: _Copier) -> str:
-    """Copy until the footer or the first unreadable record; say why it stopped."""
-    size = os.fstat(source.fileno()).st_size
-    pos = 0
-    try:
-        for record in StreamReader(source, emit_chunks=True, record_size_limit=size).records:
-            copier.copy(record)
-            pos = source.tell()
-    except Exception as exc:  # the data ends or is damaged here
-        return f"cut short or damaged at byte {pos} ({type(exc).__name__})"
-    return "footer reached" if copier.complete else "end of data"
-
-
 def recover(path: str | os.PathLike[str], out: str | os.PathLike[str] | None = None, *,
             progress: ProgressFn | None = None) -> RecoveryReport:
     """Every complete record of ``path`` to ``out`` (default ``*.recovered.mcap``)."""
@@ -128,13 +114,19 @@ def recover(path: str | os.PathLike[str], out: str | os.PathLike[str] | None = N
     with atomic_path(target) as tmp, open(tmp, "wb") as sink, open(path, "rb") as source:
         writer = Writer(sink, chunk_size=CHUNK_SIZE, compression=chunk_compression(), enable_data_crcs=True)
         writer.start(profile="", library=f"{LIBRARY} recover")
-        copier = _Copier(writer, progress)
-        why = _copy_all(source, copier)
+        copier, pos, why = _Copier(writer, progress), 0, ""
+        limit = os.fstat(source.fileno()).st_size
+        try:  # until the footer or the first unreadable record
+            for record in StreamReader(source, emit_chunks=True, record_size_limit=limit).records:
+                copier.copy(record)
+                pos = source.tell()
+        except Exception as exc:  # the data ends or is damaged here
+            why = f"cut short or damaged at byte {pos} ({type(exc).__name__})"
         writer.finish()
     first, last = copier.times or [0, 0]
     return RecoveryReport(source=os.fspath(path), output=os.fspath(target), counts=tuple(sorted(copier.counts.items())),
                           start_ns=first, end_ns=last, complete=copier.complete, skipped_chunks=copier.skipped,
-                          stopped_because=why)
+                          stopped_because=why or ("footer reached" if copier.complete else "end of data"))
 
 
 __all__ = ["RecoveryReport", "default_output", "recover"]
