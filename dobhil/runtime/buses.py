@@ -59,12 +59,17 @@ def open_bus(spec: BusSpec) -> can.BusABC:
     kwargs = dict(spec.kwargs)
     if spec.interface in ("virtual", "remote"):
         kwargs.pop("bitrate", None) if spec.interface == "virtual" else None
+    error: Exception | None = None
     with _CaughtWarnings() as caught:  # python-can logs a missing driver library on import
         try:
-            return can.Bus(interface=spec.interface, channel=spec.channel, **kwargs)
+            bus = can.Bus(interface=spec.interface, channel=spec.channel, **kwargs)
         except Exception as exc:
             text = " ".join(str(exc).split()) or type(exc).__name__
             error = exc
+    if error is None:  # opened after all: what python-can warned of still matters (timestamps ...)
+        for line in caught.lines:
+            logging.getLogger("can").warning("%s", line)
+        return bus
     raise BusError(f"bus {spec.describe()} cannot be opened: {_explain(spec.interface, text, caught.lines)}") from error
 
 

@@ -52,3 +52,21 @@ def test_the_command_prints_one_line_for_an_interface_without_its_library() -> N
     assert done.returncode == 2, done.stderr
     assert len(done.stderr.strip().splitlines()) == 1, done.stderr
     assert "serial:/dev/nonexistent-tty" in done.stderr
+
+
+def test_warnings_of_a_bus_that_opens_are_still_shown(monkeypatch: pytest.MonkeyPatch,
+                                                       caplog: pytest.LogCaptureFixture) -> None:
+    """As python-can's pcan backend does when it opens without the uptime library: the
+    warning (timestamps relative to boot) matters to the run, so it is not swallowed."""
+    real_bus = can.Bus
+
+    def opening_bus(**kwargs: Any) -> can.BusABC:
+        logging.getLogger("can.pcan").warning("uptime library not available, timestamps are relative to boot")
+        return real_bus(interface="virtual", channel="warned")
+
+    monkeypatch.setattr(buses.can, "Bus", opening_bus)
+    with caplog.at_level(logging.WARNING, logger="can"):
+        bus = open_bus(BusSpec("pcan", "PCAN_USBBUS1"))
+    bus.shutdown()
+    assert [r.getMessage() for r in caplog.records if r.name == "can"] == [
+        "uptime library not available, timestamps are relative to boot"]
