@@ -27,6 +27,12 @@ class OutputError(DobhilError, ValueError):
 _SPECIAL = ("dev", "proc", "sys")
 
 
+def shown(path: str | os.PathLike[str]) -> str:
+    """``path`` as text that can be printed and written: bytes of a name that are not UTF-8
+    (lone surrogates to Python) as ``\\xff`` escapes."""
+    return os.fsencode(path).decode("utf-8", "backslashreplace")
+
+
 def _same(a: Path, b: Path) -> bool:
     try:
         return a.exists() and b.exists() and os.path.samefile(a, b)
@@ -43,10 +49,9 @@ def check_output(path: str | os.PathLike[str], *, inputs: Iterable[str | os.Path
     except OutputError:
         raise
     except (OSError, RuntimeError) as exc:  # RuntimeError: Path.resolve() in a loop of symbolic links
-        shown = os.fsencode(path).decode("utf-8", "backslashreplace")
         why = getattr(exc, "strerror", None) or ("a loop of symbolic links" if isinstance(exc, RuntimeError)
                                                  else type(exc).__name__)
-        raise OutputError(f"{what} {shown}: not a usable file name ({why})") from None
+        raise OutputError(f"{what} {shown(path)}: not a usable file name ({why})") from None
 
 
 def check_output_dir(path: str | os.PathLike[str], names: Iterable[str], *,
@@ -56,9 +61,8 @@ def check_output_dir(path: str | os.PathLike[str], names: Iterable[str], *,
     try:
         is_other = p.exists() and not p.is_dir()
     except OSError as exc:
-        shown = os.fsencode(path).decode("utf-8", "backslashreplace")
         why = exc.strerror or type(exc).__name__
-        raise OutputError(f"{what} {shown}: not a usable directory name ({why})") from None
+        raise OutputError(f"{what} {shown(path)}: not a usable directory name ({why})") from None
     if is_other:
         raise OutputError(f"{what} {p}: exists and is not a directory; give a directory")
     for name in names:
@@ -109,8 +113,7 @@ def check_new_output(path: str | os.PathLike[str], *, suffix: str, what: str) ->
     try:
         os.fspath(path).encode("utf-8")
     except UnicodeEncodeError:
-        shown = os.fsencode(path).decode("utf-8", "backslashreplace")
-        raise OutputError(f"{what} {shown}: the file name is not valid UTF-8; choose another name") from None
+        raise OutputError(f"{what} {shown(path)}: the file name is not valid UTF-8; choose another name") from None
     return check_output(path, suffix=suffix, what=what, new=True)
 
 
@@ -150,4 +153,5 @@ def atomic_path(path: str | os.PathLike[str]) -> Iterator[Path]:
         raise
 
 
-__all__ = ["OutputError", "atomic_path", "check_new_output", "check_output", "check_output_dir", "input_problem"]
+__all__ = ["OutputError", "atomic_path", "check_new_output", "check_output", "check_output_dir", "input_problem",
+           "shown"]

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import sys
 from pathlib import Path
 
@@ -26,11 +25,6 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p.set_defaults(func=run)
 
 
-def _utf8(text: str) -> str:
-    """``text`` with the undecodable bytes of a file name (lone surrogates) as ``\\xff`` escapes."""
-    return os.fsencode(text).decode("utf-8", "backslashreplace")
-
-
 def _check_out_dir(out: Path, source: str) -> None:
     from dobhil.files import OutputError, check_output
     if out.exists() and not out.is_dir():
@@ -43,7 +37,7 @@ def run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from dobhil.analysis.run_report import report, summary_text
-    from dobhil.files import atomic_path
+    from dobhil.files import atomic_path, shown
     from dobhil.plotting.report_figures import report_figures
     from dobhil.recording.reader import open_log
     _check_out_dir(args.out, args.file)
@@ -53,7 +47,7 @@ def run(args: argparse.Namespace) -> int:
         data, summary, predicted = report(args.file, progress=bar.update)
     args.out.mkdir(parents=True, exist_ok=True)
     files = report_figures(data, predicted, summary, args.out)
-    text = _utf8(summary_text(summary))  # a file name that is not UTF-8 is shown escaped (\xff)
+    text = shown(summary_text(summary))  # a file name that is not UTF-8 is shown escaped (\xff)
     for name, body in (("summary.json", json.dumps(summary, indent=2) + "\n"), ("summary.txt", text)):
         with atomic_path(args.out / name) as tmp:
             tmp.write_text(body, encoding="utf-8")
@@ -62,5 +56,5 @@ def run(args: argparse.Namespace) -> int:
         print(json.dumps(summary))
     else:
         sys.stdout.write(text)
-        print(_utf8(f"wrote {len(files)} files to {args.out}"))
+        print(shown(f"wrote {len(files)} files to {args.out}"))
     return 0
