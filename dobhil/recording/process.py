@@ -4,12 +4,13 @@ A process, not a thread: encoding and writing ~7 messages per cycle would hold t
 loop needs. The loop thread puts a batch (a list) on a bounded queue (at most
 :data:`QUEUE_BATCHES`); a sender thread prepares it (``prepare``: flattening references),
 ``marshal``-s it and writes it to a pipe. ``BACKPRESSURE`` waits for room; ``LOSSY`` drops
-and counts (events kept for the next batch; a ``LOSS`` message becomes ``/events``
-``kind=loss``). The child is a fresh interpreter (``subprocess``: no fork of a threaded
-parent), ignores SIGINT/SIGTERM (blocked before the exec), flushes and fsyncs every
-``flush_interval``, finishes the file on ``STOP`` or, if the parent died, on end of file
-(:data:`PARENT_EXITED`), and reports one status. A failure (disk full) is raised as
-:class:`~dobhil.errors.RecorderError` at the next hand-over.
+and counts (events kept for the next batch; the running drop total rides on every batch,
+and the child writes each increase as ``/events`` ``kind=loss``). The child is a fresh
+interpreter (``subprocess``: no fork of a threaded parent), ignores SIGINT/SIGTERM (blocked
+before the exec), flushes and fsyncs every ``flush_interval``, finishes the file on
+``STOP`` or, if the parent died, on end of file (:data:`PARENT_EXITED`), and reports one
+status. A failure (disk full) is raised as :class:`~dobhil.errors.RecorderError` at the
+next hand-over.
 """
 
 from __future__ import annotations

@@ -21,14 +21,12 @@ from typing import Any, Final
 import can
 
 from dobhil.recording.process import WriterProcess
-from dobhil.recording.schemas import CYCLE, EventKind, Topic, event_record, frame_flags
+from dobhil.recording.schemas import CYCLE, Direction, EventKind, Topic, can_frame_record, event_record
 from dobhil.recording.writer import RecordMode
 
 ClockNs = Callable[[], int]
 #: Records per batch handed to the writer process (~85 cycles).
 BATCH_SIZE: Final = 256
-_RX: Final = int(Topic.CAN_RX)
-_TX: Final = int(Topic.CAN_TX)
 _FEEDBACK: Final = int(Topic.DRIVE_FEEDBACK)
 #: Kinds of the loop thread's records of references, flattened off the loop thread
 _REF_RX, _REF_TX, _REF_CYCLE = -1, -2, -3
@@ -189,10 +187,11 @@ def flatten(records: list[tuple[Any, ...]]) -> list[tuple[Any, ...]]:
             flat = (CYCLE, t, k, fb.position, fb.velocity, fb.seq, *o, period_error, exec_time, overrun,
                     int(status.state), status.error_code)
             out.append(flat if truth is None else (*flat, *truth))
-        elif kind == _REF_RX or kind == _REF_TX:
-            msg = r[2]
-            out.append((_RX if kind == _REF_RX else _TX, r[1], msg.arbitration_id, frame_flags(msg), msg.dlc,
-                        msg.data if kind == _REF_RX else r[3], msg.timestamp, msg.channel))
+        elif kind == _REF_RX:
+            out.append(can_frame_record(r[2], Direction.RX, r[1]))
+        elif kind == _REF_TX:  # the data as it was sent (the message may have been refilled since)
+            frame = can_frame_record(r[2], Direction.TX, r[1])
+            out.append((*frame[:5], r[3], *frame[6:]))
         else:
             out.append(r)
     return out

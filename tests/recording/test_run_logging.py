@@ -9,6 +9,7 @@ import sys
 import time
 from collections import Counter
 from pathlib import Path
+from typing import Any
 
 import can
 import pytest
@@ -199,3 +200,27 @@ def open_log_ok(path: Path) -> bool:
     except LogFileError:
         return False
     return True
+
+
+def test_a_sent_frame_is_recorded_with_the_data_it_had_when_sent() -> None:
+    """Drives refill one preallocated torque message every cycle: the tap keeps a copy of
+    the data as sent, while the rest of the frame is flattened later, off the loop thread."""
+    from dobhil.recording.runlog import RecordingBus, flatten
+    from dobhil.recording.schemas import Topic
+    records: list[tuple[Any, ...]] = []
+    inner = can.Bus(interface="virtual", channel="refill-test", receive_own_messages=True)
+    tap = RecordingBus(inner, records)
+    try:
+        msg = can.Message(arbitration_id=0x06E, data=bytes(4), is_extended_id=False)
+        for value in (1, 2):
+            msg.data[0] = value
+            tap.send(msg)
+        assert tap.recv(1.0) is not None
+        msg.data[0] = 9  # refilled after the last send
+        flat = flatten(records)
+    finally:
+        tap.shutdown()
+        inner.shutdown()
+    assert [(r[0], bytes(r[5])[0]) for r in flat] == [(int(Topic.CAN_TX), 1), (int(Topic.CAN_TX), 2),
+                                                        (int(Topic.CAN_RX), 1)]
+    assert all(r[2] == 0x06E and r[4] == 4 for r in flat)
