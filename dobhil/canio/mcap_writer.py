@@ -63,17 +63,27 @@ def _positive(value: Any) -> bool:
 
 @contextmanager
 def _signals_deferred() -> Iterator[None]:
-    """SIGINT/SIGTERM held back while one frame is written and counted: a Ctrl-C (how
-    ``can.logger`` is stopped) must not land between the two, or the stop metadata would
-    count one frame less than the file holds. Their handlers run right after."""
-    if not hasattr(signal, "pthread_sigmask"):
+    """SIGINT/SIGTERM handled only after one frame is written and counted: a Ctrl-C (how
+    ``can.logger`` is stopped) must not raise inside ``add_message`` (a frame in the
+    chunk but not counted, or a record half built). Blocking the signal is not enough:
+    the process's other threads (an interface's own, like the ``dobhil`` bus's emulator)
+    still take it and the main thread raises at its next bytecode. So the Python handlers
+    are swapped for one that notes the signal, and the noted ones run right after. Only the
+    main thread runs Python signal handlers: elsewhere there is nothing to defer."""
+    if threading.current_thread() is not threading.main_thread():
         yield
         return
-    old = signal.pthread_sigmask(signal.SIG_BLOCK, _DEFERRED)
+    noted: list[int] = []
+    saved: dict[int, Any] = {s: h for s in _DEFERRED if callable(h := signal.getsignal(s))}
+    for sig in saved:
+        signal.signal(sig, lambda signum, _frame: noted.append(signum))
     try:
         yield
     finally:
-        signal.pthread_sigmask(signal.SIG_SETMASK, old)
+        for sig, handler in saved.items():
+            signal.signal(sig, handler)
+        for signum in noted:
+            saved[signum](signum, None)
 
 
 def _utc_now() -> str:
