@@ -2,11 +2,10 @@
 
 It implements the ``CycleSink`` protocol (``started``, ``cycle``, ``stop``) and wraps the
 host bus, knowing nothing of the runtime: the wiring (``dobhil.cli.recording``) passes
-plain values. The loop thread only appends short tuples of *references* (the frame, the
-feedback, the controller output: objects nobody changes afterwards) to one list and
-hands every :data:`BATCH_SIZE` of them to the writer process's sender thread, which
-flattens them (:func:`flatten`) and serializes them while the loop sleeps. A writer
-failure surfaces as :class:`~dobhil.errors.RecorderError` from :meth:`RunLog.cycle`,
+plain values. The loop thread packs each record into a
+:class:`~dobhil.recording.process.Batch` and writes a full batch to the writer process
+after a cycle's command went out; no thread of the loop's process touches the log. A
+writer failure surfaces as :class:`~dobhil.errors.RecorderError` from :meth:`RunLog.cycle`,
 which the loop turns into the stop reason ``recorder_failed``.
 """
 
@@ -20,16 +19,13 @@ from typing import Any, Final
 
 import can
 
-from dobhil.recording.process import WriterProcess
-from dobhil.recording.schemas import CYCLE, Direction, EventKind, Topic, can_frame_record, event_record
+from dobhil.recording.process import Batch, Kind, WriterProcess
+from dobhil.recording.schemas import EventKind, Topic, event_record
 from dobhil.recording.writer import RecordMode
 
 ClockNs = Callable[[], int]
-#: Records per batch handed to the writer process (~85 cycles).
-BATCH_SIZE: Final = 256
 _FEEDBACK: Final = int(Topic.DRIVE_FEEDBACK)
-#: Kinds of the loop thread's records of references, flattened off the loop thread
-_REF_RX, _REF_TX, _REF_CYCLE = -1, -2, -3
+_TX: Final = int(Kind.TX)
 _NO_DRIVE: Final = SimpleNamespace(status=SimpleNamespace(state=0, error_code=0))
 
 
@@ -42,22 +38,21 @@ class RecordingBus(can.BusABC):
     the base's filtering is lost; ``_recv_internal`` serves any other caller.
     """
 
-    def __init__(self, inner: can.BusABC, records: list[tuple[Any, ...]], **kwargs: Any) -> None:
+    def __init__(self, inner: can.BusABC, batch: Batch, **kwargs: Any) -> None:
         self._inner = inner
-        self._append = records.append
+        self._frame, self._receive = batch.frame, batch.receive
         self.clock_ns: ClockNs = time.time_ns
         self.channel_info = f"recording {inner.channel_info}"
         super().__init__(channel=getattr(inner, "channel", None) or "", **kwargs)
 
     def send(self, msg: can.Message, timeout: float | None = None) -> None:
         self._inner.send(msg, timeout)
-        # a sender may refill a preallocated message's data (drives do): the data is copied
-        self._append((_REF_TX, self.clock_ns(), msg, bytes(msg.data)))
+        self._frame(_TX, self.clock_ns(), msg)
 
     def recv(self, timeout: float | None = None) -> can.Message | None:
         msg = self._inner.recv(timeout)
-        if msg is not None:  # python-can hands out a new message per receive: kept by reference
-            self._append((_REF_RX, self.clock_ns(), msg))
+        if msg is not None:
+            self._receive(self.clock_ns(), msg)
         return msg
 
     def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
@@ -76,14 +71,12 @@ class RunLog:
                  flush_interval: float = 1.0, fsync: bool = True) -> None:
         self.path = os.fspath(path)
         self.live = live
-        self.records: list[tuple[Any, ...]] = []
         self.clock_ns: ClockNs = time.time_ns
         self.truth: Callable[[], tuple[float, float, float, float]] | None = None
         self.drive: Any = _NO_DRIVE
         self.tap: RecordingBus | None = None
-        self._writer: WriterProcess | None = WriterProcess(path, flush_interval=flush_interval, fsync=fsync,
-                                                           prepare=flatten)
-        self._opened = False
+        self._writer: WriterProcess | None = WriterProcess(path, flush_interval=flush_interval, fsync=fsync)
+        self._batch = Batch(self._writer)
 
     @property
     def writer_pid(self) -> int | None:
@@ -97,7 +90,7 @@ class RunLog:
 
     def wrap_bus(self, bus: can.BusABC) -> can.BusABC:
         """The session's ``bus_wrapper``: every frame on ``/can/rx`` and ``/can/tx``."""
-        self.tap = RecordingBus(bus, self.records)
+        self.tap = RecordingBus(bus, self._batch)
         return self.tap
 
     def begin(self, *, metadata: Mapping[str, Mapping[str, Any]], attachments: Sequence[tuple[str, str, bytes]],
@@ -107,8 +100,7 @@ class RunLog:
         and the drive (its ``status.state`` and ``status.error_code`` go to ``/drive/feedback``)."""
         assert self._writer is not None, "the log is closed"
         mode = RecordMode.LOSSY if lossy else RecordMode.BACKPRESSURE
-        self._writer.open(metadata, attachments, mode, self.live)
-        self._opened = True
+        self._writer.open(metadata, attachments, mode, self.live, early=self._batch.take())
         self.clock_ns = clock_ns or time.time_ns
         if self.tap is not None:
             self.tap.clock_ns = self.clock_ns
@@ -121,19 +113,15 @@ class RunLog:
         """The feedback ``controller.initialize`` used (``cycle = -1``) and the enable event."""
         status = self.drive.status
         t = self.clock_ns()
-        self.records.append((_FEEDBACK, t, fb.position, fb.velocity, int(status.state), status.error_code, fb.seq,
-                             -1))
-        self.records.append(event_record(EventKind.ENABLE, t, "drive enabled", f"seq {fb.seq}"))
+        self._batch.record((_FEEDBACK, t, fb.position, fb.velocity, int(status.state), status.error_code, fb.seq, -1))
+        self._batch.record(event_record(EventKind.ENABLE, t, "drive enabled", f"seq {fb.seq}"))
 
     def cycle(self, k: int, t: float, fb: Any, out: Sequence[float], period_error: float, exec_time: float,
               overrun: bool) -> None:
-        """One record of references per cycle; never blocks in real time (lossy)."""
-        records = self.records
+        """One packed record per cycle; never blocks in real time (lossy)."""
         truth = self.truth
-        records.append((_REF_CYCLE, self.clock_ns(), k, fb, out, period_error, exec_time, overrun, self.drive.status,
-                        None if truth is None else truth()))
-        if len(records) >= BATCH_SIZE:
-            self._hand_over()
+        self._batch.cycle(self.clock_ns(), k, fb, out, period_error, exec_time, overrun, self.drive.status,
+                          None if truth is None else truth())
 
     def stop(self, stop: Any) -> None:
         """The loop has stopped; :meth:`end` hands the rest over, none dropped."""
@@ -152,7 +140,7 @@ class RunLog:
 
     def event(self, kind: EventKind, reason: str, detail: str = "") -> None:
         """An ``/events`` record after everything appended so far (events are never dropped)."""
-        self.records.append(event_record(kind, self.clock_ns(), reason, detail))
+        self._batch.record(event_record(kind, self.clock_ns(), reason, detail))
 
     def end(self, stop_reason: str | None, detail: str = "") -> None:
         """The last records, the stop event, summary and footer; waits for the writer.
@@ -160,41 +148,10 @@ class RunLog:
         writer, self._writer = self._writer, None
         if writer is None:
             return
-        if not self._opened:
+        if not writer.opened:
             writer.abandon()
             return
-        try:
-            if self.records:
-                writer.send(self.records.copy(), force=True)
-        finally:
-            self.records.clear()
-            writer.close(stop_reason, detail)
-
-    def _hand_over(self) -> None:
-        if self._writer is not None and self._opened:
-            batch = self.records.copy()
-            self.records.clear()
-            self._writer.send(batch)
+        writer.close(stop_reason, detail, rest=self._batch.take())
 
 
-def flatten(records: list[tuple[Any, ...]]) -> list[tuple[Any, ...]]:
-    """The loop thread's records of references as the flat records of the topic table."""
-    out = []
-    for r in records:
-        kind = r[0]
-        if kind == _REF_CYCLE:
-            _, t, k, fb, o, period_error, exec_time, overrun, status, truth = r
-            flat = (CYCLE, t, k, fb.position, fb.velocity, fb.seq, *o, period_error, exec_time, overrun,
-                    int(status.state), status.error_code)
-            out.append(flat if truth is None else (*flat, *truth))
-        elif kind == _REF_RX:
-            out.append(can_frame_record(r[2], Direction.RX, r[1]))
-        elif kind == _REF_TX:  # the data as it was sent (the message may have been refilled since)
-            frame = can_frame_record(r[2], Direction.TX, r[1])
-            out.append((*frame[:5], r[3], *frame[6:]))
-        else:
-            out.append(r)
-    return out
-
-
-__all__ = ["BATCH_SIZE", "RecordingBus", "RunLog", "flatten"]
+__all__ = ["RecordingBus", "RunLog"]

@@ -9,7 +9,6 @@ import sys
 import time
 from collections import Counter
 from pathlib import Path
-from typing import Any
 
 import can
 import pytest
@@ -203,13 +202,16 @@ def open_log_ok(path: Path) -> bool:
 
 
 def test_a_sent_frame_is_recorded_with_the_data_it_had_when_sent() -> None:
-    """Drives refill one preallocated torque message every cycle: the tap keeps a copy of
-    the data as sent, while the rest of the frame is flattened later, off the loop thread."""
-    from dobhil.recording.runlog import RecordingBus, flatten
+    """Drives refill one preallocated torque message every cycle: the tap packs the frame
+    as it is when sent."""
+    from types import SimpleNamespace
+
+    from dobhil.recording.process import Batch, unpack
+    from dobhil.recording.runlog import RecordingBus
     from dobhil.recording.schemas import Topic
-    records: list[tuple[Any, ...]] = []
+    batch = Batch(SimpleNamespace(opened=False))  # type: ignore[arg-type]
     inner = can.Bus(interface="virtual", channel="refill-test", receive_own_messages=True)
-    tap = RecordingBus(inner, records)
+    tap = RecordingBus(inner, batch)
     try:
         msg = can.Message(arbitration_id=0x06E, data=bytes(4), is_extended_id=False)
         for value in (1, 2):
@@ -217,10 +219,11 @@ def test_a_sent_frame_is_recorded_with_the_data_it_had_when_sent() -> None:
             tap.send(msg)
         assert tap.recv(1.0) is not None
         msg.data[0] = 9  # refilled after the last send
-        flat = flatten(records)
+        flat = unpack(batch.take())[0]
     finally:
         tap.shutdown()
         inner.shutdown()
     assert [(r[0], bytes(r[5])[0]) for r in flat] == [(int(Topic.CAN_TX), 1), (int(Topic.CAN_TX), 2),
                                                         (int(Topic.CAN_RX), 1)]
     assert all(r[2] == 0x06E and r[4] == 4 for r in flat)
+    assert flat[-1][7] == "refill-test"  # the received frame's channel, named on first use

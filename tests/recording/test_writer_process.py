@@ -1,4 +1,5 @@
-"""The writer process of run logging: modes, signals, failures, no process left behind."""
+"""The writer process of run logging and the packed hand-over: modes, signals, failures,
+round trips against literal records, no process left behind."""
 
 from __future__ import annotations
 
@@ -9,29 +10,35 @@ import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Any
+from types import SimpleNamespace
 
+import can
 import pytest
 
-from dobhil.recording.process import QUEUE_BATCHES, WriterProcess
+from dobhil.errors import RecorderError
+from dobhil.recording.process import BATCH_BYTES, PIPE_SIZE, TEXT_LIMIT, Batch, Kind, WriterProcess, unpack
 from dobhil.recording.reader import open_log
-from dobhil.recording.schemas import CYCLE, EventKind, event_record
+from dobhil.recording.schemas import CYCLE, EventKind, Topic, event_record
 from dobhil.recording.writer import RecordMode
+from dobhil.runtime.controller import ControlOutput
 
 from tests.recording.conftest import child_processes
 
 META = {"run": {"who": "test"}}
+STATUS = SimpleNamespace(state=8, error_code=0)
+OUT = ControlOutput(0.2, 0.19, 0.01, 0.02, 0.03, 0.03)
 
 
-def cycle(k: int) -> tuple[Any, ...]:
-    """A flat CYCLE record with truth (5 messages)."""
-    t = 1_000_000_000 + k * 1_000_000
-    return (CYCLE, t, k, 1e-4 * k, 0.1, k, 0.2, 0.19, 0.01, 0.02, 0.03, 0.03,
-            0.0, 3e-5, False, 8, 0, 1e-4 * k, 0.1, 0.03, 0.19)
+def cycle(batch: Batch, k: int) -> None:
+    """A cycle with truth (5 messages) at log time 1 s + k ms."""
+    fb = SimpleNamespace(position=1e-4 * k, velocity=0.1, seq=k)
+    batch.cycle(1_000_000_000 + k * 1_000_000, k, fb, OUT, 0.0, 3e-5, False, STATUS, (1e-4 * k, 0.1, 0.03, 0.19))
 
 
-def batch(start: int, n: int = 256) -> list[tuple[Any, ...]]:
-    return [cycle(k) for k in range(start, start + n)]
+def opened(path: Path, mode: RecordMode) -> tuple[WriterProcess, Batch]:
+    writer = WriterProcess(path, fsync=False)
+    writer.open(META, [("config.yaml", "application/yaml", b"a: 1\n")], mode)
+    return writer, Batch(writer)
 
 
 @contextmanager
@@ -44,32 +51,69 @@ def stopped(proc: WriterProcess) -> Iterator[None]:
         os.kill(proc.pid, signal.SIGCONT)
 
 
+def counts(path: Path) -> dict[str, int]:
+    return {c.topic: c.message_count for c in open_log(path).info().channels}
+
+
+def test_packed_records_unpack_to_the_flat_records_of_the_topic_table() -> None:
+    """Literal records in, the same flat tuples out: a cycle with and without truth, an FD
+    frame, a remote frame without data, channels str / int / None, an event."""
+    batch = Batch(SimpleNamespace(opened=False))  # type: ignore[arg-type]
+    fb = SimpleNamespace(position=0.5, velocity=-1.25, seq=7)
+    batch.cycle(11, 3, fb, OUT, 1e-6, 2e-5, True, STATUS, None)
+    batch.cycle(12, 4, fb, OUT, 0.0, 0.0, False, STATUS, (1.0, 2.0, 3.0, 4.0))
+    fd = can.Message(arbitration_id=0x1ABCDEF, is_extended_id=True, is_fd=True, bitrate_switch=True,
+                     data=bytes(range(64)), channel="can0", timestamp=5.5)
+    rtr = can.Message(arbitration_id=0x07B, is_extended_id=False, is_remote_frame=True, dlc=8, channel=1)
+    plain = can.Message(arbitration_id=0x069, is_extended_id=False, data=b"\x01\x02", channel=None)
+    for kind, msg in ((Kind.RX, fd), (Kind.TX, rtr), (Kind.RX, plain)):
+        batch.frame(kind, 13, msg)
+    batch.record(event_record(EventKind.INFO, 14, "note", "x" * 5000))
+    records, used = unpack(batch.take())
+    assert used > 0
+    assert records[0] == (CYCLE, 11, 3, 0.5, -1.25, 7, *OUT, 1e-6, 2e-5, True, 8, 0)
+    assert records[1] == (CYCLE, 12, 4, 0.5, -1.25, 7, *OUT, 0.0, 0.0, False, 8, 0, 1.0, 2.0, 3.0, 4.0)
+    assert records[2] == (int(Topic.CAN_RX), 13, 0x1ABCDEF, 1 | 8 | 16, 64, bytes(range(64)), 5.5, "can0")
+    assert records[3] == (int(Topic.CAN_TX), 13, 0x07B, 2, 8, b"", 0.0, "1")
+    assert records[4] == (int(Topic.CAN_RX), 13, 0x069, 0, 2, b"\x01\x02", 0.0, "")
+    assert records[5] == (int(Topic.EVENTS), 14, int(EventKind.INFO), "note", "x" * TEXT_LIMIT, 0)
+    assert len(records) == 6
+
+
+def test_a_record_cut_by_a_read_waits_for_the_rest() -> None:
+    batch = Batch(SimpleNamespace(opened=False))  # type: ignore[arg-type]
+    batch.record(event_record(EventKind.INFO, 1, "a"))
+    batch.record(event_record(EventKind.INFO, 2, "b"))
+    data = batch.take()
+    records, used = unpack(data[:-3])
+    assert [r[1] for r in records] == [1] and used < len(data)
+    assert [r[1] for r in unpack(data[used:])[0]] == [2]
+
+
 def test_backpressure_round_trip_and_the_process_is_joined(tmp_path: Path) -> None:
     path = tmp_path / "run.mcap"
-    writer = WriterProcess(path, fsync=False)
+    writer, batch = opened(path, RecordMode.BACKPRESSURE)
     assert writer.pid in child_processes()
-    writer.open(META, [("config.yaml", "application/yaml", b"a: 1\n")], RecordMode.BACKPRESSURE)
-    for i in range(0, 5120, 256):
-        assert writer.send(batch(i))
-    writer.send([event_record(EventKind.INFO, 7, "note", "x")])
-    writer.close("done", "all good")
+    for k in range(5120):
+        cycle(batch, k)
+    batch.record(event_record(EventKind.INFO, 7, "note", "x"))
+    writer.close("done", "all good", rest=batch.take())
     writer.close("again")  # idempotent
     assert writer.pid not in child_processes()
     info = open_log(path).info()
-    counts = {c.topic: c.message_count for c in info.channels}
-    assert counts["/controller"] == counts["/emulator/truth"] == 5120
+    assert counts(path)["/controller"] == counts(path)["/emulator/truth"] == 5120
     assert info.stop_reason == "done" and info.metadata["run"] == {"who": "test"}
     assert info.metadata["recording"]["mode"] == "backpressure" and writer.written == info.message_count
 
 
 def test_backpressure_blocks_while_the_writer_lags_and_loses_nothing(tmp_path: Path) -> None:
-    writer = WriterProcess(tmp_path / "run.mcap", fsync=False)
-    writer.open(META, [], RecordMode.BACKPRESSURE)
+    writer, batch = opened(tmp_path / "run.mcap", RecordMode.BACKPRESSURE)
     sent = [0]
+    total = 3 * PIPE_SIZE // 158  # three pipes full of cycle records
 
     def produce() -> None:
-        for i in range(0, 256 * 200, 256):
-            writer.send(batch(i))
+        for k in range(total):
+            cycle(batch, k)
             sent[0] += 1
 
     with stopped(writer):
@@ -78,39 +122,52 @@ def test_backpressure_blocks_while_the_writer_lags_and_loses_nothing(tmp_path: P
         time.sleep(1.0)
         in_flight = sent[0]
         time.sleep(0.3)
-        assert sent[0] == in_flight <= QUEUE_BATCHES + 8  # blocked: a bounded number of batches in flight
+        assert sent[0] == in_flight < total  # blocked: at most a pipe full in flight
+        assert in_flight * 158 <= PIPE_SIZE + 2 * BATCH_BYTES
     thread.join(30)
     assert not thread.is_alive()
-    writer.close("done")
-    counts = {c.topic: c.message_count for c in open_log(tmp_path / "run.mcap").info().channels}
-    assert counts["/loop"] == 256 * 200
+    writer.close("done", rest=batch.take())
+    assert counts(tmp_path / "run.mcap")["/loop"] == total
 
 
 def test_lossy_never_blocks_drops_are_counted_and_events_kept(tmp_path: Path) -> None:
     path = tmp_path / "run.mcap"
-    writer = WriterProcess(path, fsync=False)
-    writer.open(META, [], RecordMode.LOSSY)
-    accepted = 0
+    writer, batch = opened(path, RecordMode.LOSSY)
+    total = 2 * PIPE_SIZE // 158
     with stopped(writer):
         t0 = time.perf_counter()
-        for i in range(0, 256 * 200, 256):
-            records = batch(i)
-            if i == 256 * 150:
-                records.append(event_record(EventKind.INFO, records[-1][1], "kept"))
-            accepted += writer.send(records)
+        for k in range(total):
+            cycle(batch, k)
+            if k == total - 1000:
+                batch.record(event_record(EventKind.INFO, 1_000_000_000 + k * 1_000_000, "kept"))
         elapsed = time.perf_counter() - t0
-    assert elapsed < 5.0 and 0 < accepted < 200
-    writer.close("done")
+    assert elapsed < 5.0 and writer.dropped > 0
+    writer.close("done", rest=batch.take())
     log = open_log(path)
     info = log.info()
-    counts = {c.topic: c.message_count for c in info.channels}
-    assert counts["/loop"] == 256 * accepted
+    written = counts(path)["/loop"]
+    assert 0 < written < total
     events = [p for _, _, p in log.iter_messages(["/events"])]
     losses = [e for e in events if e["kind"] == "loss"]
-    assert sum(e["count"] for e in losses) == writer.dropped == 5 * 256 * (200 - accepted)
+    assert sum(e["count"] for e in losses) == writer.dropped == 5 * (total - written)
     assert info.metadata["recording"]["dropped"] == str(writer.dropped)
     assert [e["reason"] for e in events if e["kind"] == "info"] == ["kept"]
     assert events[-1]["kind"] == "stop"
+
+
+@pytest.mark.parametrize("mode", [RecordMode.BACKPRESSURE, RecordMode.LOSSY])
+def test_a_record_that_cannot_be_packed_fails_the_recorder_in_one_line(tmp_path: Path, mode: RecordMode) -> None:
+    """A bug, not the disk: RecorderError at once and at every later hand-over, and the file
+    ends readable with stop reason recorder_failed."""
+    writer, batch = opened(tmp_path / "bad.mcap", mode)
+    cycle(batch, 0)
+    fb = SimpleNamespace(position="not a number", velocity=0.0, seq=1)
+    with pytest.raises(RecorderError, match="cannot encode a record: .*error"):
+        batch.cycle(1, 1, fb, OUT, 0.0, 0.0, False, STATUS, None)
+    with pytest.raises(RecorderError, match="cannot encode a record"):
+        writer.close("done", rest=batch.take())
+    with open_log(tmp_path / "bad.mcap") as log:
+        assert log.metadata["recording"]["stop_reason"] == "recorder_failed"
 
 
 def test_the_writer_ignores_sigint_and_sigterm(tmp_path: Path) -> None:
@@ -118,10 +175,22 @@ def test_the_writer_ignores_sigint_and_sigterm(tmp_path: Path) -> None:
     os.kill(writer.pid, signal.SIGINT)  # may arrive before the child ignores it: blocked until then
     writer.open(META, [], RecordMode.BACKPRESSURE)
     os.kill(writer.pid, signal.SIGTERM)
-    writer.send(batch(0))
+    batch = Batch(writer)
+    for k in range(300):
+        cycle(batch, k)
     time.sleep(0.2)
-    writer.close("done")
+    writer.close("done", rest=batch.take())
     assert open_log(tmp_path / "run.mcap").info().stop_reason == "done"
+
+
+def test_a_writer_killed_is_a_recorder_error_at_the_next_write(tmp_path: Path) -> None:
+    writer, batch = opened(tmp_path / "run.mcap", RecordMode.LOSSY)
+    os.kill(writer.pid, signal.SIGKILL)
+    with pytest.raises(RecorderError, match="writer process ended early"):
+        for k in range(10_000):
+            cycle(batch, k)
+    with pytest.raises(RecorderError):
+        writer.close("done")
 
 
 def test_closed_before_open_leaves_no_file(tmp_path: Path) -> None:
@@ -134,3 +203,13 @@ def test_closed_before_open_leaves_no_file(tmp_path: Path) -> None:
 def test_bad_path_fails_at_once(tmp_path: Path) -> None:
     with pytest.raises(OSError):
         WriterProcess(tmp_path / "missing" / "run.mcap")
+
+
+def test_any_record_round_trips(tmp_path: Path) -> None:
+    """Whatever the records' values, what the file holds is what was packed (count)."""
+    writer, batch = opened(tmp_path / "run.mcap", RecordMode.BACKPRESSURE)
+    for k in range(50):
+        batch.frame(Kind.RX, k, can.Message(arbitration_id=k, data=bytes([k] * (k % 9)), is_extended_id=False))
+    writer.close("done", rest=batch.take())
+    rows = [p for _, _, p in open_log(tmp_path / "run.mcap").iter_messages(["/can/rx"])]
+    assert [(r["arbitration_id"], r["dlc"], r["data"]) for r in rows] == [(k, k % 9, [k] * (k % 9)) for k in range(50)]

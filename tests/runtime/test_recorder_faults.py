@@ -115,25 +115,3 @@ def test_recorder_fault(tmp_path: Path, timing: str, fault: str) -> None:
     if fault == "disk-full":
         assert path.stat().st_size <= 150_000
 
-
-@pytest.mark.parametrize("lossy", [False, True])
-def test_a_record_the_sender_cannot_encode_fails_the_recorder_in_one_line(tmp_path: Path, lossy: bool) -> None:
-    """A record the sender thread cannot flatten (a bug, not the disk) must not hang the loop
-    in back-pressure: the next hand-over raises RecorderError and the file stays readable."""
-    from dobhil.errors import RecorderError
-    from dobhil.recording.process import WriterProcess
-
-    def prepare(records: list[tuple[Any, ...]]) -> list[tuple[Any, ...]]:
-        raise ValueError("not a record")
-
-    from dobhil.recording.writer import RecordMode
-    writer = WriterProcess(tmp_path / "bad.mcap", fsync=False, prepare=prepare)
-    writer.open({}, [], RecordMode.LOSSY if lossy else RecordMode.BACKPRESSURE)
-    with pytest.raises(RecorderError, match="cannot encode a record: ValueError: not a record"):
-        for _ in range(1000):
-            writer.send([(1, 2, 3)])
-            time.sleep(0.001)
-    with pytest.raises(RecorderError, match="cannot encode a record"):
-        writer.close("done")
-    with open_log(tmp_path / "bad.mcap") as log:
-        assert log.metadata["recording"]["stop_reason"] == "recorder_failed"
