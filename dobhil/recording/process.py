@@ -176,7 +176,9 @@ class Batch:
             self.writer.count_dropped(*_dropped(bytes(view)))
             kept = b"".join(self.kept)
             if len(kept) > BATCH_BYTES // 2:  # a writer stuck for good: memory stays bounded
+                self.writer.count_dropped(len(self.kept), 0)
                 kept, self.kept = b"", []
+                self._channels.clear()  # their names go again
             self.buf[:len(kept)] = kept
             self.pos = len(kept)
             return
