@@ -343,10 +343,12 @@ class _StubBus:
         return self.frame
 
 
-def _handover_us(cycles: int, log: object | None, period: float = 2e-4) -> float:
+def _handover_us(cycles: int, log: object | None, period: float = 2e-4, sleep: bool = False) -> tuple[float, float]:
     """Loop-thread time per cycle [us] spent in one received and one sent frame plus, when
-    ``log`` is given, the recording's tap and cycle sink handing records over. Each cycle is
-    padded to ``period`` (the loop's own work), so the writer keeps up as in a run."""
+    ``log`` is given, the recording's tap and cycle sink handing records over; and the CPU
+    time per cycle [us] of the whole process (every thread: what a helper thread costs shows
+    here, not in the first figure). Each cycle is padded to ``period`` (the loop's own work),
+    spinning, or with ``sleep`` sleeping (so the CPU figure counts the work only)."""
     import can
     from types import SimpleNamespace
 
@@ -359,6 +361,7 @@ def _handover_us(cycles: int, log: object | None, period: float = 2e-4) -> float
     cmd = can.Message(arbitration_id=0x06E, data=bytes(4), is_extended_id=False)
     clock = time.perf_counter
     spent = []
+    cpu0 = time.process_time()
     for k in range(cycles):
         t0 = clock()
         bus.recv(0.0)
@@ -367,32 +370,43 @@ def _handover_us(cycles: int, log: object | None, period: float = 2e-4) -> float
             cycle(k, k * 1e-3, fb, out, 0.0, 3e-5, False)
         t1 = clock()
         spent.append(t1 - t0)
-        while clock() - t0 < period:
-            pass
-    # the mean over blocks of a batch's cycles: the batch hand-over is paid once per ~85 cycles
+        if sleep:
+            time.sleep(period)
+        else:
+            while clock() - t0 < period:
+                pass
+    cpu = (time.process_time() - cpu0) / cycles * 1e6
+    # the mean over blocks of a batch's cycles: the batch hand-over is paid once per ~14 cycles
     blocks = [sum(spent[i:i + 850]) / 850 for i in range(0, cycles - 849, 850)]
-    return float(np.median(blocks)) * 1e6
+    return float(np.median(blocks)) * 1e6, cpu
 
 
 def bench_handover() -> dict[str, float]:
     """What logging costs the loop thread per cycle: the tap's two frame records and the cycle
     record, with batches handed to a live writer process, against the same frames unlogged;
-    and that cost in controller steps measured in the same run (the machine-free figure)."""
+    that cost in controller steps measured in the same run (the machine-free figure); and
+    the CPU time logging adds to the loop's whole process, at 1 kHz with sleeps between cycles."""
     import tempfile
 
     from dobhil.recording.runlog import RunLog
     with tempfile.TemporaryDirectory() as tmp:
-        costs = []
+        costs, cpu = [], []
         for i in range(3):
-            log = RunLog(Path(tmp) / f"h{i}.mcap", fsync=False)
-            log.begin(metadata={}, attachments=[], lossy=False, truth=lambda: (0.0, 0.0, 0.0, 0.0))
-            plain = _handover_us(8500, None)
-            logged = _handover_us(8500, log)
-            log.end("done")
-            log.tap.shutdown()  # type: ignore[union-attr]
-            costs.append(logged - plain)
+            for sleep in (False, True):
+                log = RunLog(Path(tmp) / f"h{i}{sleep}.mcap", fsync=False)
+                log.begin(metadata={}, attachments=[], lossy=sleep, truth=lambda: (0.0, 0.0, 0.0, 0.0))
+                period = 1e-3 if sleep else 2e-4
+                plain = _handover_us(3000 if sleep else 8500, None, period, sleep)
+                logged = _handover_us(3000 if sleep else 8500, log, period, sleep)
+                log.end("done")
+                log.tap.shutdown()  # type: ignore[union-attr]
+                if sleep:
+                    cpu.append(logged[1] - plain[1])
+                else:
+                    costs.append(logged[0] - plain[0])
     cost, step = float(np.median(costs)), _controller_step_us()
-    return {"loop_thread_log_cost_us_median": cost, "loop_thread_log_cost_vs_controller_step": cost / step}
+    return {"loop_thread_log_cost_us_median": cost, "loop_thread_log_cost_vs_controller_step": cost / step,
+            "loop_process_log_cpu_us_per_cycle": float(np.median(cpu))}
 
 
 _LIVE_CLIENT = """
