@@ -213,3 +213,29 @@ def test_any_record_round_trips(tmp_path: Path) -> None:
     writer.close("done", rest=batch.take())
     rows = [p for _, _, p in open_log(tmp_path / "run.mcap").iter_messages(["/can/rx"])]
     assert [(r["arbitration_id"], r["dlc"], r["data"]) for r in rows] == [(k, k % 9, [k] * (k % 9)) for k in range(50)]
+
+
+def test_frames_before_the_log_opens_are_recorded_first(tmp_path: Path) -> None:
+    """A preflight or an enable handshake talks on the tapped bus before ``begin``: those
+    frames wait in memory (whatever their number) and reach the file first, in order."""
+    from dobhil.recording.runlog import RunLog
+    path = tmp_path / "run.mcap"
+    log = RunLog(path, fsync=False)
+    inner = can.Bus(interface="virtual", channel="early-test", receive_own_messages=True)
+    tap = log.wrap_bus(inner)
+    try:
+        for k in range(300):  # several batches' worth
+            tap.send(can.Message(arbitration_id=0x100 + k % 16, data=k.to_bytes(2, "little"), is_extended_id=False))
+            assert tap.recv(1.0) is not None
+        log.begin(metadata=META, attachments=[], lossy=True)
+        tap.send(can.Message(arbitration_id=0x7FF, data=b"\xff", is_extended_id=False))
+        log.end("done")
+    finally:
+        tap.shutdown()
+        inner.shutdown()
+    with open_log(path) as recorded:
+        tx = [p for _, _, p in recorded.iter_messages(["/can/tx"])]
+        rx = [p for _, _, p in recorded.iter_messages(["/can/rx"])]
+    assert [int.from_bytes(bytes(p["data"]), "little") for p in tx[:300]] == list(range(300))
+    assert tx[-1]["arbitration_id"] == 0x7FF and len(tx) == 301
+    assert len(rx) == 300 and {p["channel"] for p in rx} == {"early-test"}
