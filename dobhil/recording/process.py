@@ -138,10 +138,14 @@ class Batch:
         except (KeyError, TypeError):
             channel = self._channel(msg.channel)
         pos = self.pos
-        _FRAME.pack_into(self.buf, pos, kind, 23 + n, t, msg.arbitration_id & 0xFFFFFFFF,
-                         msg.is_extended_id | msg.is_remote_frame << 1 | msg.is_error_frame << 2 | msg.is_fd << 3
-                         | msg.bitrate_switch << 4 | msg.error_state_indicator << 5,
-                         msg.dlc & 0xFF, msg.timestamp or 0.0, channel)
+        try:
+            _FRAME.pack_into(self.buf, pos, kind, 23 + n, t, msg.arbitration_id & 0xFFFFFFFF,
+                             msg.is_extended_id | msg.is_remote_frame << 1 | msg.is_error_frame << 2
+                             | msg.is_fd << 3 | msg.bitrate_switch << 4 | msg.error_state_indicator << 5,
+                             msg.dlc & 0xFF, msg.timestamp or 0.0, channel)
+        except (struct.error, TypeError) as exc:  # never raised into a bus call: the next hand-over tells
+            self.writer.refuse(f"cannot encode a CAN frame: {type(exc).__name__}: {exc}")
+            return
         if n:
             self.buf[pos + 28:pos + 28 + n] = data
         self.pos = pos + 28 + n

@@ -239,3 +239,19 @@ def test_frames_before_the_log_opens_are_recorded_first(tmp_path: Path) -> None:
     assert [int.from_bytes(bytes(p["data"]), "little") for p in tx[:300]] == list(range(300))
     assert tx[-1]["arbitration_id"] == 0x7FF and len(tx) == 301
     assert len(rx) == 300 and {p["channel"] for p in rx} == {"early-test"}
+
+
+def test_a_frame_that_cannot_be_packed_never_raises_into_the_bus_call(tmp_path: Path) -> None:
+    """The tap sits inside the drive's send and receive: a frame it cannot encode is the
+    recorder's failure, raised by the next hand-over (the loop stops recorder_failed)."""
+    writer, batch = opened(tmp_path / "bad.mcap", RecordMode.LOSSY)
+    odd = can.Message(arbitration_id=0x069, data=b"\x01", is_extended_id=False)
+    odd.timestamp = "noon"  # type: ignore[assignment]
+    batch.frame(Kind.TX, 1, odd)  # no exception here
+    with pytest.raises(RecorderError, match="cannot encode a CAN frame"):
+        for k in range(100):
+            cycle(batch, k)
+    with pytest.raises(RecorderError):
+        writer.close("done", rest=batch.take())
+    with open_log(tmp_path / "bad.mcap") as log:
+        assert log.metadata["recording"]["stop_reason"] == "recorder_failed"
