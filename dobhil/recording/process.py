@@ -37,7 +37,7 @@ from typing import Any, Final
 
 import dobhil
 from dobhil.errors import RecorderError
-from dobhil.recording.schemas import CYCLE, Topic, message_count
+from dobhil.recording.schemas import CYCLE, Topic, frame_flags, message_count
 from dobhil.recording.writer import LogWriter, RecordMode
 
 #: Seconds ``close`` waits for the writer process to finish the file.
@@ -88,7 +88,8 @@ _CYCLE: Final = struct.Struct("<BIqqddq6dd d?qq")
 _CYCLE_TRUTH: Final = struct.Struct(_CYCLE.format + "4d")
 # kind, length, log time, arbitration id, flags, dlc, bus timestamp, channel number
 _FRAME: Final = struct.Struct("<BIqIBBdB")
-_MESSAGES: Final = {Kind.CYCLE: message_count((CYCLE,) + (0,) * 16), Kind.RX: 1, Kind.TX: 1, Kind.MARSHAL: 0,
+#: Messages a packed cycle or frame becomes (marshalled records are never dropped: not counted).
+_MESSAGES: Final = {Kind.CYCLE: message_count((CYCLE,) + (0,) * 16), Kind.RX: 1, Kind.TX: 1,
                     Kind.CYCLE_TRUTH: message_count((CYCLE,) + (0,) * 20)}
 _TOPIC: Final = {Kind.RX: int(Topic.CAN_RX), Kind.TX: int(Topic.CAN_TX)}
 
@@ -139,9 +140,7 @@ class Batch:
             channel = self._channel(msg.channel)
         pos = self.pos
         try:
-            _FRAME.pack_into(self.buf, pos, kind, 23 + n, t, msg.arbitration_id & 0xFFFFFFFF,
-                             msg.is_extended_id | msg.is_remote_frame << 1 | msg.is_error_frame << 2
-                             | msg.is_fd << 3 | msg.bitrate_switch << 4 | msg.error_state_indicator << 5,
+            _FRAME.pack_into(self.buf, pos, kind, 23 + n, t, msg.arbitration_id & 0xFFFFFFFF, frame_flags(msg),
                              msg.dlc & 0xFF, msg.timestamp or 0.0, channel)
         except (struct.error, TypeError) as exc:  # never raised into a bus call: the next hand-over tells
             self.writer.refuse(f"cannot encode a CAN frame: {type(exc).__name__}: {exc}")
