@@ -15,7 +15,7 @@ import json
 import os
 import struct
 from collections.abc import Iterable, Iterator, Mapping
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 from types import MappingProxyType
 from typing import Any, BinaryIO, Final
@@ -61,7 +61,6 @@ class LogInfo:
     attachments: tuple[str, ...]
     stop_reason: str | None
     dropped: int | None
-    has_summary: bool = True
 
     @property
     def duration_s(self) -> float:
@@ -72,19 +71,6 @@ class LogInfo:
         out.update(channels=[asdict(c) for c in self.channels], metadata={k: dict(v) for k, v in self.metadata.items()},
                    attachments=list(self.attachments), duration_s=self.duration_s)
         return out
-
-
-@dataclass
-class _Scan:
-    """What the one pass over the file collected."""
-
-    library: str = ""
-    schemas: dict[int, Schema] = field(default_factory=dict)
-    channels: dict[int, Channel] = field(default_factory=dict)
-    metadata: dict[str, Mapping[str, str]] = field(default_factory=dict)
-    attachments: list[tuple[str, str, bytes]] = field(default_factory=list)
-    chunks: list[tuple[int, int]] = field(default_factory=list)  # (offset, uncompressed size)
-    statistics: Statistics | None = None
 
 
 def _fail(path: str | os.PathLike[str], what: str) -> LogFileError:
@@ -124,28 +110,31 @@ def _records(f: BinaryIO, path: str | os.PathLike[str]) -> Iterator[tuple[int, A
         yield pos, record
 
 
-def _scan(f: BinaryIO, path: str | os.PathLike[str]) -> _Scan:
-    scan = _Scan()
-    for pos, record in _records(f, path):
+def _scan(log: LogFile, f: BinaryIO) -> None:
+    for pos, record in _records(f, log.path):
         if isinstance(record, Header):
-            scan.library = record.library
-            if not record.library.startswith("dobhil/"):
-                raise _fail(path, f"not a dobhil log (written by {record.library or 'an unnamed writer'!r})")
+            log.library = record.library
+            _check_library(log.path, record)
         elif isinstance(record, Schema):
-            scan.schemas[record.id] = record
+            log.schemas[record.id] = record
         elif isinstance(record, Channel):
-            scan.channels[record.id] = record
+            log.channel_records[record.id] = record
         elif isinstance(record, Metadata):
-            scan.metadata[record.name] = MappingProxyType(dict(record.metadata))
+            log.metadata[record.name] = MappingProxyType(dict(record.metadata))
         elif isinstance(record, Attachment):
-            scan.attachments.append((record.name, record.media_type, record.data))
+            log.attachments.append((record.name, record.media_type, record.data))
         elif isinstance(record, Chunk):
-            scan.chunks.append((pos, record.uncompressed_size))
+            log.chunks.append((pos, record.uncompressed_size))
         elif isinstance(record, Statistics):
-            scan.statistics = record
+            log.statistics = record
         elif isinstance(record, Footer):
             break
-    return scan
+
+
+def _check_library(path: str | os.PathLike[str], header: Any) -> None:
+    if not isinstance(header, Header) or not header.library.startswith("dobhil/"):
+        library = getattr(header, "library", "") or "an unnamed writer"
+        raise _fail(path, f"not a dobhil log (written by {library!r})")
 
 
 def _validate_metadata(path: str | os.PathLike[str], metadata: Mapping[str, Mapping[str, str]]) -> Any:
@@ -168,24 +157,39 @@ def _validate_metadata(path: str | os.PathLike[str], metadata: Mapping[str, Mapp
 
 
 class LogFile:
-    """A complete, checked dobhil log; the file stays open until :meth:`close`."""
+    """A complete, checked dobhil log (:meth:`open`); the file stays open until :meth:`close`."""
 
-    def __init__(self, path: Path, file: BinaryIO, scan: _Scan, config: Any) -> None:
-        self.path, self._file, self._scan, self.config = path, file, scan, config
+    def __init__(self, path: str | os.PathLike[str], file: BinaryIO) -> None:
+        self.path, self._file = Path(path), file
+        self.library = ""
+        self.schemas: dict[int, Schema] = {}
+        self.channel_records: dict[int, Channel] = {}
+        self.metadata: dict[str, Mapping[str, str]] = {}
+        self.attachments: list[tuple[str, str, bytes]] = []
+        self.chunks: list[tuple[int, int]] = []  # (offset, uncompressed size)
+        self.statistics: Statistics | None = None
+        self.config: Any = None
 
     @classmethod
     def open(cls, path: str | os.PathLike[str]) -> LogFile:
         size = check_mcap_head(path)
-        f = open(path, "rb")
+        log = cls(path, open(path, "rb"))
+        f = log._file
         try:
             f.seek(max(0, size - len(MAGIC)))
             if f.read() != MAGIC or size < 2 * len(MAGIC) + 9:
                 f.seek(len(MAGIC))
-                _check_header(f, path)
+                try:
+                    header = next(StreamReader(f, skip_magic=True).records)
+                except Exception:
+                    header = None  # not even a header: cut short is all we know
+                if header is not None:
+                    _check_library(path, header)
                 raise _fail(path, "cut short (no footer): run `dobhil log recover` on it")
             f.seek(0)
-            scan = _scan(f, path)
-            return cls(Path(path), f, scan, _validate_metadata(path, scan.metadata))
+            _scan(log, f)
+            log.config = _validate_metadata(path, log.metadata)
+            return log
         except BaseException:
             f.close()
             raise
@@ -199,29 +203,13 @@ class LogFile:
     def __exit__(self, *exc: object) -> None:
         self.close()
 
-    @property
-    def library(self) -> str:
-        return self._scan.library
-
-    @property
-    def metadata(self) -> Mapping[str, Mapping[str, str]]:
-        return MappingProxyType(self._scan.metadata)
-
-    @property
-    def attachments(self) -> tuple[tuple[str, str, bytes], ...]:
-        return tuple(self._scan.attachments)
-
     def channels(self) -> tuple[ChannelInfo, ...]:
-        stats = self._scan.statistics
-        counts = stats.channel_message_counts if stats is not None else {}
-        out = []
-        for c in self._scan.channels.values():
-            schema = self._scan.schemas.get(c.schema_id)
-            out.append(ChannelInfo(c.topic, schema.name if schema else "", c.message_encoding, counts.get(c.id, 0)))
-        return tuple(out)
+        counts = self.statistics.channel_message_counts if self.statistics is not None else {}
+        return tuple(ChannelInfo(c.topic, getattr(self.schemas.get(c.schema_id), "name", ""), c.message_encoding,
+                                 counts.get(c.id, 0)) for c in self.channel_records.values())
 
     def topics(self) -> tuple[str, ...]:
-        return tuple(c.topic for c in self._scan.channels.values())
+        return tuple(c.topic for c in self.channel_records.values())
 
     def require_topic(self, topic: str) -> None:
         if topic not in self.topics():
@@ -230,8 +218,8 @@ class LogFile:
     def schema_properties(self, topic: str) -> tuple[str, ...]:
         """Property names of a topic's JSON schema as stored in the file."""
         self.require_topic(topic)
-        channel = next(c for c in self._scan.channels.values() if c.topic == topic)
-        schema = self._scan.schemas.get(channel.schema_id)
+        channel = next(c for c in self.channel_records.values() if c.topic == topic)
+        schema = self.schemas.get(channel.schema_id)
         try:
             return tuple(json.loads(schema.data)["properties"]) if schema else ()
         except (ValueError, KeyError, TypeError) as exc:
@@ -239,8 +227,8 @@ class LogFile:
 
     def iter_payloads(self, topics: Iterable[str] | None = None) -> Iterator[tuple[str, int, bytes]]:
         """(topic, log_time_ns, JSON bytes) in file order (the order written)."""
-        wanted = {cid: c.topic for cid, c in self._scan.channels.items() if topics is None or c.topic in set(topics)}
-        for offset, size in self._scan.chunks:
+        wanted = {cid: c.topic for cid, c in self.channel_records.items() if topics is None or c.topic in set(topics)}
+        for offset, size in self.chunks:
             yield from _chunk_messages(self._chunk_data(offset, size), wanted)
 
     def iter_messages(self, topics: Iterable[str] | None = None) -> Iterator[Message]:
@@ -251,10 +239,6 @@ class LogFile:
             except ValueError:
                 raise _fail(self.path, f"a {topic} message at log time {t} is not JSON") from None
 
-    def time_range(self) -> tuple[int, int]:
-        stats = self._scan.statistics
-        return (stats.message_start_time, stats.message_end_time) if stats is not None else (0, 0)
-
     def stop_reason(self) -> str | None:
         if "/events" not in self.topics():
             return None
@@ -262,14 +246,12 @@ class LogFile:
         return reasons[-1] if reasons else None
 
     def info(self) -> LogInfo:
-        channels = self.channels()
-        start, end = self.time_range()
+        channels, stats = self.channels(), self.statistics
         dropped = self.metadata.get(RECORDING_METADATA, {}).get("dropped")
-        return LogInfo(path=os.fspath(self.path), channels=channels,
-                       message_count=sum(c.message_count for c in channels), start_ns=start, end_ns=end,
-                       metadata=self.metadata,
-                       attachments=tuple(a for a, _, _ in self.attachments), stop_reason=self.stop_reason(),
-                       dropped=None if dropped is None else int(dropped))
+        return LogInfo(os.fspath(self.path), channels, sum(c.message_count for c in channels),
+                       stats.message_start_time if stats else 0, stats.message_end_time if stats else 0,
+                       MappingProxyType(self.metadata), tuple(a for a, _, _ in self.attachments), self.stop_reason(),
+                       None if dropped is None else int(dropped))
 
     def _chunk_data(self, offset: int, size: int) -> bytes:
         """The chunk's records, decompressed, CRC checked (again: the file may have changed)."""
@@ -280,16 +262,6 @@ class LogFile:
             raise
         except Exception as exc:
             raise _fail(self.path, f"damaged at byte {offset} ({type(exc).__name__}: {exc})") from exc
-
-
-def _check_header(f: BinaryIO, path: str | os.PathLike[str]) -> None:
-    """A cut-short file written by another tool is still named as foreign."""
-    try:
-        record = next(StreamReader(f, skip_magic=True).records)
-    except Exception:
-        return
-    if isinstance(record, Header) and not record.library.startswith("dobhil/"):
-        raise _fail(path, f"not a dobhil log (written by {record.library or 'an unnamed writer'!r})")
 
 
 def _chunk_at(f: BinaryIO, offset: int) -> Chunk:
@@ -314,9 +286,7 @@ def _chunk_messages(records: bytes, wanted: Mapping[int, str]) -> Iterator[tuple
         pos = body + length
 
 
-def open_log(path: str | os.PathLike[str]) -> LogFile:
-    """:meth:`LogFile.open`."""
-    return LogFile.open(path)
+open_log = LogFile.open
 
 
 __all__ = ["LIBRARY", "MAGIC", "ChannelInfo", "LogFile", "LogInfo", "check_mcap_head", "open_log"]

@@ -2,11 +2,10 @@
 
 It implements the ``CycleSink`` protocol (``started``, ``cycle``, ``stop``) and wraps the
 host bus, knowing nothing of the runtime: the wiring (``dobhil.cli.recording``) passes
-plain values. The loop thread packs each record into a
-:class:`~dobhil.recording.process.Batch` and writes a full batch to the writer process
-after a cycle's command went out; no thread of the loop's process touches the log. A
-writer failure surfaces as :class:`~dobhil.errors.RecorderError` from :meth:`RunLog.cycle`,
-which the loop turns into the stop reason ``recorder_failed``.
+plain values. It is the loop side of the hand-over (:class:`~dobhil.recording.process.Batch`):
+no thread of the loop's process touches the log. A writer failure surfaces as
+:class:`~dobhil.errors.RecorderError` from :meth:`RunLog.cycle`, which the loop turns
+into the stop reason ``recorder_failed``.
 """
 
 from __future__ import annotations
@@ -14,23 +13,21 @@ from __future__ import annotations
 import os
 import time
 from collections.abc import Callable, Mapping, Sequence
-from types import SimpleNamespace
 from typing import Any, Final
 
 import can
 
-from dobhil.recording.process import Batch, Kind, WriterProcess
+from dobhil.recording.process import Batch, WriterProcess
 from dobhil.recording.schemas import EventKind, Topic, event_record
 from dobhil.recording.writer import RecordMode
 
-ClockNs = Callable[[], int]
 _FEEDBACK: Final = int(Topic.DRIVE_FEEDBACK)
-_TX: Final = int(Kind.TX)
-_NO_DRIVE: Final = SimpleNamespace(status=SimpleNamespace(state=0, error_code=0))
+_RX: Final = int(Topic.CAN_RX)
+_TX: Final = int(Topic.CAN_TX)
 
 
 class RecordingBus(can.BusABC):
-    """Appends a record per frame sent or received on the bus it wraps (borrowed, not owned).
+    """Records every frame sent or received on the bus it wraps (borrowed, not owned).
 
     ``recv`` is overridden, not only ``_recv_internal``: :meth:`can.BusABC.recv` spends as
     long on its per-frame timing and debug logging as the record itself, on the loop thread.
@@ -40,19 +37,18 @@ class RecordingBus(can.BusABC):
 
     def __init__(self, inner: can.BusABC, batch: Batch, **kwargs: Any) -> None:
         self._inner = inner
-        self._frame, self._receive = batch.frame, batch.receive
-        self.clock_ns: ClockNs = time.time_ns
+        self._frame = batch.frame
         self.channel_info = f"recording {inner.channel_info}"
         super().__init__(channel=getattr(inner, "channel", None) or "", **kwargs)
 
     def send(self, msg: can.Message, timeout: float | None = None) -> None:
         self._inner.send(msg, timeout)
-        self._frame(_TX, self.clock_ns(), msg)
+        self._frame(_TX, msg)
 
     def recv(self, timeout: float | None = None) -> can.Message | None:
         msg = self._inner.recv(timeout)
         if msg is not None:
-            self._receive(self.clock_ns(), msg)
+            self._frame(_RX, msg)
         return msg
 
     def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
@@ -64,64 +60,53 @@ class RecordingBus(can.BusABC):
         return getattr(self._inner, name)
 
 
-class RunLog:
+class RunLog(Batch):
     """Records one run to ``path`` (the writer process starts now: a bad path raises here)."""
 
     def __init__(self, path: str | os.PathLike[str], *, live: tuple[str, int] | None = None,
                  flush_interval: float = 1.0, fsync: bool = True) -> None:
+        super().__init__(WriterProcess(path, flush_interval=flush_interval, fsync=fsync))
         self.path = os.fspath(path)
         self.live = live
-        self.clock_ns: ClockNs = time.time_ns
-        self.truth: Callable[[], tuple[float, float, float, float]] | None = None
-        self.drive: Any = _NO_DRIVE
         self.tap: RecordingBus | None = None
-        self._writer: WriterProcess | None = WriterProcess(path, flush_interval=flush_interval, fsync=fsync)
-        self._batch = Batch(self._writer)
+        self._closed = False
 
     @property
     def writer_pid(self) -> int | None:
         """The writer process (for its scheduling priority), None once closed."""
-        return None if self._writer is None else self._writer.pid
+        return None if self._closed else self.writer.pid
 
     @property
     def live_port(self) -> int | None:
         """The port the live view listens on (after :meth:`begin`), None without one."""
-        return None if self._writer is None else self._writer.live_port
+        return None if self._closed else self.writer.live_port
 
     def wrap_bus(self, bus: can.BusABC) -> can.BusABC:
         """The session's ``bus_wrapper``: every frame on ``/can/rx`` and ``/can/tx``."""
-        self.tap = RecordingBus(bus, self._batch)
+        self.tap = RecordingBus(bus, self)
         return self.tap
 
     def begin(self, *, metadata: Mapping[str, Mapping[str, Any]], attachments: Sequence[tuple[str, str, bytes]],
-              lossy: bool, clock_ns: ClockNs | None = None,
+              lossy: bool, clock_ns: Callable[[], int] | None = None,
               truth: Callable[[], tuple[float, float, float, float]] | None = None, drive: Any = None) -> None:
         """Header and metadata; the log clock, the emulator truth ``(q, dq, tau_motor, tau_int)``
         and the drive (its ``status.state`` and ``status.error_code`` go to ``/drive/feedback``)."""
-        assert self._writer is not None, "the log is closed"
+        assert not self._closed, "the log is closed"
         mode = RecordMode.LOSSY if lossy else RecordMode.BACKPRESSURE
-        self._writer.open(metadata, attachments, mode, self.live, early=self._batch.take())
+        self.writer.open(metadata, attachments, mode, self.live, early=self.take())
         self.clock_ns = clock_ns or time.time_ns
-        if self.tap is not None:
-            self.tap.clock_ns = self.clock_ns
         self.truth = truth
-        self.drive = drive if drive is not None else _NO_DRIVE
+        if drive is not None:
+            self.drive = drive
 
-    # -- the CycleSink ---------------------------------------------------------------
+    # -- the CycleSink (``cycle`` is the batch's) ---------------------------------------
 
     def started(self, fb: Any) -> None:
         """The feedback ``controller.initialize`` used (``cycle = -1``) and the enable event."""
         status = self.drive.status
         t = self.clock_ns()
-        self._batch.record((_FEEDBACK, t, fb.position, fb.velocity, int(status.state), status.error_code, fb.seq, -1))
-        self._batch.record(event_record(EventKind.ENABLE, t, "drive enabled", f"seq {fb.seq}"))
-
-    def cycle(self, k: int, t: float, fb: Any, out: Sequence[float], period_error: float, exec_time: float,
-              overrun: bool) -> None:
-        """One packed record per cycle; never blocks in real time (lossy)."""
-        truth = self.truth
-        self._batch.cycle(self.clock_ns(), k, fb, out, period_error, exec_time, overrun, self.drive.status,
-                          None if truth is None else truth())
+        self.record((_FEEDBACK, t, fb.position, fb.velocity, int(status.state), status.error_code, fb.seq, -1))
+        self.record(event_record(EventKind.ENABLE, t, "drive enabled", f"seq {fb.seq}"))
 
     def stop(self, stop: Any) -> None:
         """The loop has stopped; :meth:`end` hands the rest over, none dropped."""
@@ -140,18 +125,18 @@ class RunLog:
 
     def event(self, kind: EventKind, reason: str, detail: str = "") -> None:
         """An ``/events`` record after everything appended so far (events are never dropped)."""
-        self._batch.record(event_record(kind, self.clock_ns(), reason, detail))
+        self.record(event_record(kind, self.clock_ns(), reason, detail))
 
     def end(self, stop_reason: str | None, detail: str = "") -> None:
         """The last records, the stop event, summary and footer; waits for the writer.
         Raises :class:`~dobhil.errors.RecorderError` if the writer failed (once)."""
-        writer, self._writer = self._writer, None
-        if writer is None:
+        if self._closed:
             return
-        if not writer.opened:
-            writer.abandon()
+        self._closed = True
+        if not self.writer.opened:
+            self.writer.abandon()
             return
-        writer.close(stop_reason, detail, rest=self._batch.take())
+        self.writer.close(stop_reason, detail, rest=self.take())
 
 
 __all__ = ["RecordingBus", "RunLog"]

@@ -83,27 +83,23 @@ class FrameFlag(IntEnum):
 
 
 _JSON_TYPE: Final[dict[FieldKind, dict[str, Any]]] = {
-                     FieldKind.NUMBER: {"type": ["number", "null"]}, FieldKind.INTEGER: {"type": "integer"},
-                     FieldKind.BOOLEAN: {"type": "boolean"}, FieldKind.STRING: {"type": "string"},
-                     FieldKind.BYTES: {"type": "array", "items": {"type": "integer", "minimum": 0, "maximum": 255}}}
+    FieldKind.NUMBER: {"type": ["number", "null"]}, FieldKind.INTEGER: {"type": "integer"},
+    FieldKind.BOOLEAN: {"type": "boolean"}, FieldKind.STRING: {"type": "string"},
+    FieldKind.BYTES: {"type": "array", "items": {"type": "integer", "minimum": 0, "maximum": 255}}}
 
 
 @dataclass(frozen=True)
 class Field:
-    """One property of a payload: name, JSON type, unit and meaning."""
+    """One property of a payload: name, JSON type, meaning (with its unit), allowed values."""
 
     name: str
     kind: FieldKind
     description: str
-    unit: str = ""
     choices: tuple[str, ...] = ()
 
     def json_schema(self) -> dict[str, Any]:
-        unit = f" [{self.unit}]" if self.unit else ""
-        prop: dict[str, Any] = {**_JSON_TYPE[self.kind], "description": f"{self.description}{unit}"}
-        if self.choices:
-            prop["enum"] = list(self.choices)
-        return prop
+        return {**_JSON_TYPE[self.kind], "description": self.description,
+                **({"enum": list(self.choices)} if self.choices else {})}
 
 
 Encoder = Callable[[Sequence[Any]], bytes]
@@ -111,15 +107,15 @@ Encoder = Callable[[Sequence[Any]], bytes]
 
 @dataclass(frozen=True)
 class TopicSpec:
-    """One channel: topic name, schema name, fields in canonical order, and its encoder
-    (record values -> JSON bytes)."""
+    """One channel: topic, names, fields in canonical order, encoder (values -> JSON bytes;
+    None: the values are the fields, in order; NaN and infinity become ``null``)."""
 
     topic: Topic
     name: str
     schema_name: str
     description: str
     fields: tuple[Field, ...]
-    encoder: Encoder | None = None  # None: the values are the fields, in order
+    encoder: Encoder | None = None
 
     @cached_property
     def keys(self) -> tuple[str, ...]:
@@ -135,40 +131,29 @@ class TopicSpec:
 
     @cached_property
     def encode(self) -> Encoder:
-        """record values -> JSON payload (NaN and infinity as ``null``)."""
-        if self.encoder is not None:
-            return self.encoder
         keys, dumps, numpy = self.keys, orjson.dumps, orjson.OPT_SERIALIZE_NUMPY
-        return lambda values: dumps(dict(zip(keys, values)), option=numpy)
+        return self.encoder or (lambda values: dumps(dict(zip(keys, values)), option=numpy))
 
 
-def _num(name: str, unit: str, description: str) -> Field:
-    return Field(name, FieldKind.NUMBER, description, unit)
+def _fields(kind: FieldKind, *pairs: str) -> tuple[Field, ...]:
+    """Fields of one kind from ``name, description, name, description, ...``."""
+    return tuple(Field(n, kind, d) for n, d in zip(pairs[::2], pairs[1::2]))
 
 
-def _int(name: str, description: str) -> Field:
-    return Field(name, FieldKind.INTEGER, description)
-
-
-def _bool(name: str, description: str) -> Field:
-    return Field(name, FieldKind.BOOLEAN, description)
-
-
-def _str(name: str, description: str, choices: tuple[str, ...] = ()) -> Field:
-    return Field(name, FieldKind.STRING, description, choices=choices)
+N, I, B = FieldKind.NUMBER, FieldKind.INTEGER, FieldKind.BOOLEAN
 
 
 # -- CAN frames ----------------------------------------------------------------
 
 _CAN_FIELDS: Final = (
-    _num("timestamp", "s", "bus timestamp of the frame"), _int("arbitration_id", "CAN identifier"),
-    _bool("is_extended_id", "29-bit identifier"), _bool("is_remote_frame", "remote transmission request"),
-    _bool("is_error_frame", "error frame"), _bool("is_fd", "CAN FD frame"),
-    _bool("bitrate_switch", "CAN FD bit rate switch"),
-    _bool("error_state_indicator", "CAN FD error state indicator"), _int("dlc", "data length in bytes"),
-    Field("data", FieldKind.BYTES, "payload bytes"), _str("data_hex", "payload as lower-case hex"),
-    _str("direction", "direction seen by dobhil", ("rx", "tx")),
-    _str("channel", "bus channel name ('' when unknown)"),
+    *_fields(N, "timestamp", "bus timestamp of the frame [s]"), *_fields(I, "arbitration_id", "CAN identifier"),
+    *_fields(B, "is_extended_id", "29-bit identifier", "is_remote_frame", "remote transmission request",
+             "is_error_frame", "error frame", "is_fd", "CAN FD frame", "bitrate_switch", "CAN FD bit rate switch",
+             "error_state_indicator", "CAN FD error state indicator"),
+    *_fields(I, "dlc", "data length in bytes"), Field("data", FieldKind.BYTES, "payload bytes"),
+    Field("data_hex", FieldKind.STRING, "payload as lower-case hex"),
+    Field("direction", FieldKind.STRING, "direction seen by dobhil", ("rx", "tx")),
+    Field("channel", FieldKind.STRING, "bus channel name ('' when unknown)"),
 )
 
 
@@ -228,30 +213,28 @@ _SPECS: Final = (
     TopicSpec(Topic.CAN_TX, "/can/tx", "dobhil.CanFrame", "CAN frame sent", _CAN_FIELDS,
               _frame_encoder(Direction.TX)),
     TopicSpec(Topic.DRIVE_FEEDBACK, "/drive/feedback", "dobhil.DriveFeedback", "drive feedback decoded from the bus",
-              (_num("position", "rad", "motor-side position"), _num("velocity", "rad/s", "motor-side velocity"),
-               _int("axis_state", "drive state code"), _int("axis_error", "drive error code (0: none)"),
-               _int("seq", "motion frames received from the drive so far (Feedback.seq)"),
-               _int("cycle", "control cycle that used this feedback (-1: controller.initialize)"))),
+              _fields(N, "position", "motor-side position [rad]", "velocity", "motor-side velocity [rad/s]")
+              + _fields(I, "axis_state", "drive state code", "axis_error", "drive error code (0: none)",
+                        "seq", "motion frames received from the drive so far (Feedback.seq)",
+                        "cycle", "control cycle that used this feedback (-1: controller.initialize)")),
     TopicSpec(Topic.DRIVE_COMMAND, "/drive/command", "dobhil.DriveCommand", "torque command sent to the drive",
-              (_num("torque", "N m", "commanded motor torque"),)),
+              _fields(N, "torque", "commanded motor torque [N m]")),
     TopicSpec(Topic.CONTROLLER, "/controller", "dobhil.Controller", "controller internals of one cycle",
-              (_num("tau_ref", "N m", "torque reference"),
-               _num("tau_int_hat", "N m", "estimated interaction torque (RTOb)"),
-               _num("tau_dis_hat", "N m", "estimated disturbance torque (DOb)"),
-               _num("tau_per", "N m", "performance torque"),
-               _num("u_unsat", "N m", "control output before saturation"),
-               _num("u_sat", "N m", "control output after saturation"), _int("cycle", "control cycle index"))),
+              _fields(N, "tau_ref", "torque reference [N m]", "tau_int_hat", "estimated interaction torque (RTOb) [N m]",
+                      "tau_dis_hat", "estimated disturbance torque (DOb) [N m]", "tau_per", "performance torque [N m]",
+                      "u_unsat", "control output before saturation [N m]",
+                      "u_sat", "control output after saturation [N m]") + _fields(I, "cycle", "control cycle index")),
     TopicSpec(Topic.LOOP, "/loop", "dobhil.Loop", "timing of one control cycle",
-              (_int("cycle", "control cycle index"), _num("period_error", "s", "actual minus nominal period"),
-               _num("exec_time", "s", "time spent computing the cycle"),
-               _bool("overrun", "the cycle missed its deadline"))),
+              _fields(I, "cycle", "control cycle index") + _fields(N, "period_error", "actual minus nominal period [s]",
+                                                                   "exec_time", "time spent computing the cycle [s]")
+              + _fields(B, "overrun", "the cycle missed its deadline")),
     TopicSpec(Topic.EMULATOR_TRUTH, "/emulator/truth", "dobhil.EmulatorTruth", "ground truth of the plant emulator",
-              (_num("q", "rad", "position"), _num("dq", "rad/s", "velocity"),
-               _num("tau_motor", "N m", "motor torque applied"), _num("tau_int", "N m", "interaction torque applied"))),
+              _fields(N, "q", "position [rad]", "dq", "velocity [rad/s]", "tau_motor", "motor torque applied [N m]",
+                      "tau_int", "interaction torque applied [N m]")),
     TopicSpec(Topic.EVENTS, "/events", "dobhil.Event", "state changes, faults and recorder notes",
-              (_str("kind", "event kind", tuple(k.name.lower() for k in EventKind)),
-               _str("reason", "one-line reason"), _str("detail", "free-form detail"),
-               _int("count", "records lost (kind=loss), else 0")), _event_encoder),
+              (Field("kind", FieldKind.STRING, "event kind", tuple(k.name.lower() for k in EventKind)),
+               *_fields(FieldKind.STRING, "reason", "one-line reason", "detail", "free-form detail"),
+               *_fields(I, "count", "records lost (kind=loss), else 0")), _event_encoder),
 )
 
 #: Topic -> spec: the one table of channels.

@@ -16,7 +16,7 @@ import can
 import pytest
 
 from dobhil.errors import RecorderError
-from dobhil.recording.process import BATCH_BYTES, PIPE_SIZE, TEXT_LIMIT, Batch, Kind, WriterProcess, unpack
+from dobhil.recording.process import BATCH_RECORDS, PIPE_SIZE, Batch, WriterProcess, encode, unpack
 from dobhil.recording.reader import open_log
 from dobhil.recording.schemas import CYCLE, EventKind, Topic, event_record
 from dobhil.recording.writer import RecordMode
@@ -25,14 +25,24 @@ from dobhil.runtime.controller import ControlOutput
 from tests.recording.conftest import child_processes
 
 META = {"run": {"who": "test"}}
-STATUS = SimpleNamespace(state=8, error_code=0)
+DRIVE = SimpleNamespace(status=SimpleNamespace(state=8, error_code=0))
 OUT = ControlOutput(0.2, 0.19, 0.01, 0.02, 0.03, 0.03)
+
+
+RX, TX = int(Topic.CAN_RX), int(Topic.CAN_TX)
 
 
 def cycle(batch: Batch, k: int) -> None:
     """A cycle with truth (5 messages) at log time 1 s + k ms."""
     fb = SimpleNamespace(position=1e-4 * k, velocity=0.1, seq=k)
-    batch.cycle(1_000_000_000 + k * 1_000_000, k, fb, OUT, 0.0, 3e-5, False, STATUS, (1e-4 * k, 0.1, 0.03, 0.19))
+    batch.clock_ns = lambda: 1_000_000_000 + k * 1_000_000
+    batch.drive, batch.truth = DRIVE, lambda: (1e-4 * k, 0.1, 0.03, 0.19)
+    batch.cycle(k, k * 1e-3, fb, OUT, 0.0, 3e-5, False)
+
+
+#: Pipe bytes of one cycle record with truth.
+CYCLE_BYTES = len(encode([(CYCLE, k, k, *(0.5 + k,) * 3, *OUT, 0.0, 3e-5, False, 8, 0, *(k + 0.25,) * 4)
+                           for k in range(BATCH_RECORDS)])) // BATCH_RECORDS
 
 
 def opened(path: Path, mode: RecordMode) -> tuple[WriterProcess, Batch]:
@@ -55,36 +65,42 @@ def counts(path: Path) -> dict[str, int]:
     return {c.topic: c.message_count for c in open_log(path).info().channels}
 
 
-def test_packed_records_unpack_to_the_flat_records_of_the_topic_table() -> None:
+def test_batched_records_unpack_to_the_flat_records_of_the_topic_table() -> None:
     """Literal records in, the same flat tuples out: a cycle with and without truth, an FD
-    frame, a remote frame without data, channels str / int / None, an event."""
+    frame, a remote frame without data, channels str / int / None, a long event, numpy
+    values exact."""
+    import numpy as np
     batch = Batch(SimpleNamespace(opened=False))  # type: ignore[arg-type]
-    fb = SimpleNamespace(position=0.5, velocity=-1.25, seq=7)
-    batch.cycle(11, 3, fb, OUT, 1e-6, 2e-5, True, STATUS, None)
-    batch.cycle(12, 4, fb, OUT, 0.0, 0.0, False, STATUS, (1.0, 2.0, 3.0, 4.0))
+    fb = SimpleNamespace(position=0.5, velocity=np.float64(-1.25), seq=np.int64(7))
+    batch.clock_ns = lambda: 11
     fd = can.Message(arbitration_id=0x1ABCDEF, is_extended_id=True, is_fd=True, bitrate_switch=True,
                      data=bytes(range(64)), channel="can0", timestamp=5.5)
     rtr = can.Message(arbitration_id=0x07B, is_extended_id=False, is_remote_frame=True, dlc=8, channel=1)
     plain = can.Message(arbitration_id=0x069, is_extended_id=False, data=b"\x01\x02", channel=None)
-    for kind, msg in ((Kind.RX, fd), (Kind.TX, rtr), (Kind.RX, plain)):
-        batch.frame(kind, 13, msg)
-    batch.record(event_record(EventKind.INFO, 14, "note", "x" * 5000))
-    records, used = unpack(batch.take())
-    assert used > 0
+    batch.drive = DRIVE
+    for i in range(40):
+        batch.truth = None
+        batch.cycle(3, 0.003, fb, OUT, 1e-6, 2e-5, True)
+        batch.truth = lambda: (1.0, 2.0, 3.0, 4.0)
+        batch.cycle(4, 0.004, fb, OUT, 0.0, 0.0, False)
+        for topic, msg in ((RX, fd), (TX, rtr), (RX, plain)):
+            batch.frame(topic, msg)
+        batch.record(event_record(EventKind.INFO, 14, "note", f"{i:03}" + "\u00e9" * 5000))
+    taken = batch.take()
+    data = b"".join(encode(taken[i:i + 7]) for i in range(0, 240, 7))
+    records, used = unpack(data)
+    assert used == len(data) and len(records) == 6 * 40
     assert records[0] == (CYCLE, 11, 3, 0.5, -1.25, 7, *OUT, 1e-6, 2e-5, True, 8, 0)
-    assert records[1] == (CYCLE, 12, 4, 0.5, -1.25, 7, *OUT, 0.0, 0.0, False, 8, 0, 1.0, 2.0, 3.0, 4.0)
-    assert records[2] == (int(Topic.CAN_RX), 13, 0x1ABCDEF, 1 | 8 | 16, 64, bytes(range(64)), 5.5, "can0")
-    assert records[3] == (int(Topic.CAN_TX), 13, 0x07B, 2, 8, b"", 0.0, "1")
-    assert records[4] == (int(Topic.CAN_RX), 13, 0x069, 0, 2, b"\x01\x02", 0.0, "")
-    assert records[5] == (int(Topic.EVENTS), 14, int(EventKind.INFO), "note", "x" * TEXT_LIMIT, 0)
-    assert len(records) == 6
+    assert type(records[0][4]) is np.float64 and type(records[0][5]) is np.int64  # exact, not bytes
+    assert records[1] == (CYCLE, 11, 4, 0.5, -1.25, 7, *OUT, 0.0, 0.0, False, 8, 0, 1.0, 2.0, 3.0, 4.0)
+    assert records[2] == (RX, 11, 0x1ABCDEF, 1 | 8 | 16, 64, bytes(range(64)), 5.5, "can0")
+    assert records[3] == (TX, 11, 0x07B, 2, 8, b"", 0.0, 1)
+    assert records[4] == (RX, 11, 0x069, 0, 2, b"\x01\x02", 0.0, None)
+    assert records[5] == (int(Topic.EVENTS), 14, int(EventKind.INFO), "note", "000" + "\u00e9" * 5000, 0)
 
 
-def test_a_record_cut_by_a_read_waits_for_the_rest() -> None:
-    batch = Batch(SimpleNamespace(opened=False))  # type: ignore[arg-type]
-    batch.record(event_record(EventKind.INFO, 1, "a"))
-    batch.record(event_record(EventKind.INFO, 2, "b"))
-    data = batch.take()
+def test_a_batch_cut_by_a_read_waits_for_the_rest() -> None:
+    data = encode([event_record(EventKind.INFO, 1, "a")]) + encode([event_record(EventKind.INFO, 2, "b")])
     records, used = unpack(data[:-3])
     assert [r[1] for r in records] == [1] and used < len(data)
     assert [r[1] for r in unpack(data[used:])[0]] == [2]
@@ -109,7 +125,7 @@ def test_backpressure_round_trip_and_the_process_is_joined(tmp_path: Path) -> No
 def test_backpressure_blocks_while_the_writer_lags_and_loses_nothing(tmp_path: Path) -> None:
     writer, batch = opened(tmp_path / "run.mcap", RecordMode.BACKPRESSURE)
     sent = [0]
-    total = 3 * PIPE_SIZE // 158  # three pipes full of cycle records
+    total = 3 * PIPE_SIZE // CYCLE_BYTES  # three pipes full of cycle records
 
     def produce() -> None:
         for k in range(total):
@@ -123,7 +139,7 @@ def test_backpressure_blocks_while_the_writer_lags_and_loses_nothing(tmp_path: P
         in_flight = sent[0]
         time.sleep(0.3)
         assert sent[0] == in_flight < total  # blocked: at most a pipe full in flight
-        assert in_flight * 158 <= PIPE_SIZE + 2 * BATCH_BYTES
+        assert in_flight * CYCLE_BYTES <= PIPE_SIZE + 2 * BATCH_RECORDS * CYCLE_BYTES
     thread.join(30)
     assert not thread.is_alive()
     writer.close("done", rest=batch.take())
@@ -133,7 +149,7 @@ def test_backpressure_blocks_while_the_writer_lags_and_loses_nothing(tmp_path: P
 def test_lossy_never_blocks_drops_are_counted_and_events_kept(tmp_path: Path) -> None:
     path = tmp_path / "run.mcap"
     writer, batch = opened(path, RecordMode.LOSSY)
-    total = 2 * PIPE_SIZE // 158
+    total = 2 * PIPE_SIZE // CYCLE_BYTES
     with stopped(writer):
         t0 = time.perf_counter()
         for k in range(total):
@@ -156,15 +172,21 @@ def test_lossy_never_blocks_drops_are_counted_and_events_kept(tmp_path: Path) ->
 
 
 @pytest.mark.parametrize("mode", [RecordMode.BACKPRESSURE, RecordMode.LOSSY])
-def test_a_record_that_cannot_be_packed_fails_the_recorder_in_one_line(tmp_path: Path, mode: RecordMode) -> None:
-    """A bug, not the disk: RecorderError at once and at every later hand-over, and the file
+@pytest.mark.parametrize(("value", "match"), [(lambda: 0, "cannot encode a record: .*Error"),
+                                              (object(), "TypeError: Type is not JSON serializable")])
+def test_a_record_that_cannot_be_encoded_fails_the_recorder_in_one_line(tmp_path: Path, mode: RecordMode,
+                                                                        value: object, match: str) -> None:
+    """A bug, not the disk, whether the loop cannot hand the value over or the writer cannot
+    encode it: RecorderError within a few hand-overs and at every later one, and the file
     ends readable with stop reason recorder_failed."""
     writer, batch = opened(tmp_path / "bad.mcap", mode)
     cycle(batch, 0)
-    fb = SimpleNamespace(position="not a number", velocity=0.0, seq=1)
-    with pytest.raises(RecorderError, match="cannot encode a record: .*error"):
-        batch.cycle(1, 1, fb, OUT, 0.0, 0.0, False, STATUS, None)
-    with pytest.raises(RecorderError, match="cannot encode a record"):
+    fb = SimpleNamespace(position=value, velocity=0.0, seq=1)
+    with pytest.raises(RecorderError, match=match):
+        for k in range(100_000):
+            batch.cycle(k, k * 1e-3, fb, OUT, 0.0, 0.0, False)
+            time.sleep(1e-5 if k % BATCH_RECORDS == 0 else 0)
+    with pytest.raises(RecorderError, match=match):
         writer.close("done", rest=batch.take())
     with open_log(tmp_path / "bad.mcap") as log:
         assert log.metadata["recording"]["stop_reason"] == "recorder_failed"
@@ -209,7 +231,7 @@ def test_any_record_round_trips(tmp_path: Path) -> None:
     """Whatever the records' values, what the file holds is what was packed (count)."""
     writer, batch = opened(tmp_path / "run.mcap", RecordMode.BACKPRESSURE)
     for k in range(50):
-        batch.frame(Kind.RX, k, can.Message(arbitration_id=k, data=bytes([k] * (k % 9)), is_extended_id=False))
+        batch.frame(RX, can.Message(arbitration_id=k, data=bytes([k] * (k % 9)), is_extended_id=False))
     writer.close("done", rest=batch.take())
     rows = [p for _, _, p in open_log(tmp_path / "run.mcap").iter_messages(["/can/rx"])]
     assert [(r["arbitration_id"], r["dlc"], r["data"]) for r in rows] == [(k, k % 9, [k] * (k % 9)) for k in range(50)]
@@ -241,17 +263,27 @@ def test_frames_before_the_log_opens_are_recorded_first(tmp_path: Path) -> None:
     assert len(rx) == 300 and {p["channel"] for p in rx} == {"early-test"}
 
 
-def test_a_frame_that_cannot_be_packed_never_raises_into_the_bus_call(tmp_path: Path) -> None:
-    """The tap sits inside the drive's send and receive: a frame it cannot encode is the
-    recorder's failure, raised by the next hand-over (the loop stops recorder_failed)."""
+def test_a_frame_the_writer_cannot_encode_never_raises_into_the_bus_call(tmp_path: Path) -> None:
+    """The tap sits inside the drive's send and receive: a frame the writer's encoder refuses
+    is the recorder's failure, raised by a later hand-over (the loop stops recorder_failed),
+    and the writer finishes the file with that stop reason."""
     writer, batch = opened(tmp_path / "bad.mcap", RecordMode.LOSSY)
     odd = can.Message(arbitration_id=0x069, data=b"\x01", is_extended_id=False)
     odd.timestamp = "noon"  # type: ignore[assignment]
-    batch.frame(Kind.TX, 1, odd)  # no exception here
-    with pytest.raises(RecorderError, match="cannot encode a CAN frame"):
-        for k in range(100):
-            cycle(batch, k)
+    batch.frame(TX, odd)  # no exception here
+    batch.frame(TX, object())  # nor here: not a message at all
+    with pytest.raises(RecorderError, match="cannot encode a CAN frame: AttributeError"):
+        cycle(batch, 0)
     with pytest.raises(RecorderError):
         writer.close("done", rest=batch.take())
-    with open_log(tmp_path / "bad.mcap") as log:
-        assert log.metadata["recording"]["stop_reason"] == "recorder_failed"
+    writer, batch = opened(tmp_path / "noon.mcap", RecordMode.LOSSY)
+    batch.frame(TX, odd)
+    with pytest.raises(RecorderError, match="could not convert string to float: 'noon'"):
+        for k in range(100_000):
+            cycle(batch, k)
+            time.sleep(1e-5 if k % 100 == 0 else 0)
+    with pytest.raises(RecorderError):
+        writer.close("done", rest=batch.take())
+    for name in ("bad.mcap", "noon.mcap"):
+        with open_log(tmp_path / name) as log:
+            assert log.metadata["recording"]["stop_reason"] == "recorder_failed"
