@@ -1,35 +1,30 @@
 """Offline replay of a recorded run: the recorded feedback frames through the drive codec,
 the controller re-run on them.
 
-:func:`replay` reads what it needs from a dobhil MCAP file: the
-resolved config and drive profile (metadata), every ``/can/rx`` frame, the feedback
-``seq`` each cycle used and the one ``controller.initialize`` used (``/drive/feedback``,
-``cycle = -1``), and the recorded ``/controller`` values; it decodes the
-frames with the run's own drive class (so ``seq`` counts motion frames exactly as at
-run time), re-runs :class:`~dobhil.runtime.controller.ForceController` -- deterministic
-generated code -- with the recorded reference, and compares:
-
-- with the recorded config, every output must be identical bit for bit
-  (:meth:`ReplayResult.first_mismatch`, ``dobhil replay --verify``);
-- with overrides (``--set design.identified_inertia=...``) it shows what that tuning
-  would have commanded and estimated on the same measured data.
+:func:`replay` reads the run's config and drive profile (metadata), every ``/can/rx``
+frame, the feedback ``seq`` each cycle used (``/drive/feedback``; ``cycle = -1``: the one
+``controller.initialize`` used) and the recorded ``/controller`` values; it decodes the
+frames with the run's own drive class (so ``seq`` counts motion frames exactly as at run
+time) and re-runs the controller -- deterministic generated code -- on the recorded
+reference. With the recorded config every output must be identical bit for bit
+(:meth:`ReplayResult.first_mismatch`, ``dobhil replay --verify``); with overrides
+(``--set design.identified_inertia=...``) it shows what that tuning would have done.
 """
 
 from __future__ import annotations
 
 import json
 import os
-from collections.abc import Iterable, Iterator, Mapping, Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from typing import Any, Final
 
 import can
 import numpy as np
 from numpy.typing import NDArray
-from orjson import loads as _loads
+from orjson import loads
 
 from dobhil.config.schema import Config
-from dobhil.drives.base import Drive
 from dobhil.drives.profile import DriveProfile, profile_from_mapping
 from dobhil.errors import ConfigError, LogFileError
 from dobhil.recording.reader import LogFile, open_log
@@ -42,6 +37,8 @@ Array = NDArray[np.float64]
 OUTPUTS: Final = ("tau_ref", "tau_int_hat", "tau_dis_hat", "tau_per", "u_unsat", "u_sat")
 #: Outputs compared by the verification (tau_ref is an input).
 COMPARED: Final = OUTPUTS[1:]
+_TOPICS: Final = ("/can/rx", "/drive/feedback", "/controller")
+
 
 @dataclass(frozen=True)
 class Recording:
@@ -89,8 +86,7 @@ class ReplayResult:
     replayed: Array                          # (n, 6) replayed OUTPUTS
 
     def column(self, name: str, which: str = "replayed") -> Array:
-        data = self.replayed if which == "replayed" else self.recording.recorded
-        return data[:, OUTPUTS.index(name)]
+        return (self.replayed if which == "replayed" else self.recording.recorded)[:, OUTPUTS.index(name)]
 
     def first_mismatch(self) -> Mismatch | None:
         """The first cycle and signal whose bits differ (NaN equal to NaN), or None."""
@@ -106,19 +102,16 @@ class ReplayResult:
 
     def summary(self) -> dict[str, Any]:
         """Differences replayed - recorded (max |.|, RMS) per output, and the cycle count."""
-        out: dict[str, Any] = {"file": self.recording.path, "cycles": self.recording.cycles,
-                               "overrides": list(self.overrides)}
         mismatch = self.first_mismatch()
-        out["identical"] = mismatch is None
-        out["first_mismatch"] = None if mismatch is None else mismatch.line()
         diffs = {}
         for name in COMPARED:
             d = self.column(name) - self.column(name, "recorded")
             d = d[np.isfinite(d)]
             diffs[name] = {"max_abs": float(np.abs(d).max()) if d.size else 0.0,
                            "rms": float(np.sqrt(np.mean(d ** 2))) if d.size else 0.0}
-        out["difference"] = diffs
-        return out
+        return {"file": self.recording.path, "cycles": self.recording.cycles, "overrides": list(self.overrides),
+                "identical": mismatch is None, "first_mismatch": None if mismatch is None else mismatch.line(),
+                "difference": diffs}
 
     def rows(self) -> Iterator[list[float]]:
         """CSV rows: cycle, t, q, dq, then recorded and replayed outputs."""
@@ -129,8 +122,84 @@ class ReplayResult:
 
     @staticmethod
     def header() -> list[str]:
-        return ["cycle", "t", "q", "dq", *(f"recorded_{n}" for n in OUTPUTS),
-                *(f"replayed_{n}" for n in COMPARED)]
+        return ["cycle", "t", "q", "dq", *(f"recorded_{n}" for n in OUTPUTS), *(f"replayed_{n}" for n in COMPARED)]
+
+
+def recorded_config(log: LogFile, overrides: Sequence[str] = ()) -> Config:
+    """The run's config (checked when the log was opened), with ``--set`` overrides on top."""
+    from dobhil.config import build_config, parse_override
+    if log.config is None:
+        raise LogFileError(f"{log.path}: no 'config' metadata (not a recorded run?)")
+    if not overrides:
+        return log.config
+    return build_config({**log.config.flat(), **dict(parse_override(item) for item in overrides)},
+                        source=f"{log.path} config")
+
+
+def _profile(log: LogFile) -> DriveProfile:
+    record = log.metadata.get("drive")
+    if not record:
+        raise LogFileError(f"{log.path}: no 'drive' metadata (not a recorded run?)")
+    try:
+        return profile_from_mapping({k: json.loads(v) for k, v in record.items()}, source=f"{log.path} drive")
+    except (ValueError, ConfigError) as exc:
+        raise LogFileError(f"{log.path}: invalid recorded drive profile: {exc}") from None
+
+
+def _read(log: LogFile, name: str) -> Recording:
+    frames: list[can.Message] = []
+    seqs: dict[int, int] = {}
+    initial: int | None = None
+    controller: list[tuple[int, int, list[float]]] = []
+    try:
+        for topic, t, data in log.iter_payloads(_TOPICS):
+            p = loads(data)
+            if topic == "/controller":
+                controller.append((int(p["cycle"]), t, [float("nan") if p[k] is None else float(p[k])
+                                                        for k in OUTPUTS]))
+            elif topic == "/can/rx":
+                frames.append(can_frame_message(p, t))
+            elif p["cycle"] < 0:
+                initial = int(p["seq"])
+            else:
+                seqs[int(p["cycle"])] = int(p["seq"])
+    except (KeyError, TypeError, ValueError) as exc:
+        raise LogFileError(f"{name}: a recorded message does not match its schema ({type(exc).__name__}: "
+                           f"{exc})") from None
+    if initial is None:
+        raise LogFileError(f"{name}: no initial feedback record (cycle -1) on /drive/feedback")
+    controller.sort(key=lambda c: c[0])
+    missing = [c for c, _, _ in controller if c not in seqs]
+    if missing:
+        raise LogFileError(f"{name}: cycle {missing[0]} has /controller but no /drive/feedback record")
+    cycle = np.array([c for c, _, _ in controller], dtype=np.int64)
+    times = np.array([t for _, t, _ in controller], dtype=np.int64)
+    return Recording(name, recorded_config(log), _profile(log), tuple(frames), initial, cycle,
+                     np.array([seqs[int(c)] for c in cycle], dtype=np.int64),
+                     (times - (times[0] if times.size else 0)) / 1e9,
+                     np.array([v for _, _, v in controller], dtype=float).reshape(-1, len(OUTPUTS)))
+
+
+def replay(path: str | os.PathLike[str], overrides: Sequence[str] = ()) -> ReplayResult:
+    """Re-run the controller of ``path`` (with ``overrides``) on its recorded feedback frames."""
+    with open_log(path) as log:
+        for topic in _TOPICS:
+            log.require_topic(topic)
+        config = recorded_config(log, overrides)
+        recording = _read(log, os.fspath(path))
+    pos, vel = _decode_feedback(recording)
+    n_fb, seq = len(pos) - 1, recording.seq
+    if recording.initial_seq > n_fb or (seq.size and int(seq.max()) > n_fb) or recording.initial_seq < 1:
+        raise LogFileError(f"{recording.path}: feedback seq beyond the {n_fb} motion frames on /can/rx")
+    ctrl = build_controller(config, recording.profile)
+    ctrl.initialize(pos[recording.initial_seq], vel[recording.initial_seq])
+    step, refs = ctrl.step, recording.recorded[:, 0].tolist()
+    q = [pos[s] for s in seq.tolist()]
+    dq = [vel[s] for s in seq.tolist()]
+    measured = dq if ctrl.measures_velocity else [None] * len(q)
+    out = [step(a, b, r) for a, b, r in zip(q, measured, refs)]
+    return ReplayResult(recording, config, tuple(overrides), np.array(q), np.array(dq),
+                        np.array(out, dtype=float).reshape(-1, len(OUTPUTS)))
 
 
 class _NoBus:
@@ -143,105 +212,17 @@ class _NoBus:
         return None
 
 
-def recorded_config(log: LogFile, overrides: Iterable[str] = ()) -> Config:
-    """The run's config (checked when the log was opened), with ``--set`` overrides on top."""
-    from dobhil.config import build_config, parse_override
-    if log.config is None:
-        raise LogFileError(f"{log.path}: no 'config' metadata (not a recorded run?)")
-    if not overrides:
-        return log.config
-    flat = {**log.config.flat(), **dict(parse_override(item) for item in overrides)}
-    return build_config(flat, source=f"{log.path} config")
-
-
-def recorded_profile(log: LogFile) -> DriveProfile:
-    record = log.metadata.get("drive")
-    if not record:
-        raise LogFileError(f"{log.path}: no 'drive' metadata (not a recorded run?)")
-    try:
-        return profile_from_mapping({k: json.loads(v) for k, v in record.items()}, source=f"{log.path} drive")
-    except (ValueError, ConfigError) as exc:
-        raise LogFileError(f"{log.path}: invalid recorded drive profile: {exc}") from None
-
-
-def _read(log: LogFile) -> tuple[list[can.Message], int | None, dict[int, int], list[tuple[int, int, list[float]]]]:
-    frames: list[can.Message] = []
-    seqs: dict[int, int] = {}
-    initial: int | None = None
-    controller: list[tuple[int, int, list[float]]] = []
-    try:
-        for topic, t, data in log.iter_payloads(("/can/rx", "/drive/feedback", "/controller")):
-            p = _loads(data)
-            if topic == "/controller":
-                controller.append((int(p["cycle"]), t, [_num(p[k]) for k in OUTPUTS]))
-            elif topic == "/can/rx":
-                frames.append(can_frame_message(p, t))
-            elif p["cycle"] < 0:
-                initial = int(p["seq"])
-            else:
-                seqs[int(p["cycle"])] = int(p["seq"])
-    except (KeyError, TypeError, ValueError) as exc:
-        raise LogFileError(f"{log.path}: a recorded message does not match its schema ({type(exc).__name__}: "
-                           f"{exc})") from None
-    return frames, initial, seqs, controller
-
-
-def _num(value: Any) -> float:
-    return float("nan") if value is None else float(value)
-
-
-def _assemble(name: str, config: Config, profile: DriveProfile, frames: list[can.Message], initial: int | None,
-              seqs: Mapping[int, int], controller: list[tuple[int, int, list[float]]]) -> Recording:
-    if initial is None:
-        raise LogFileError(f"{name}: no initial feedback record (cycle -1) on /drive/feedback")
-    controller.sort(key=lambda c: c[0])
-    missing = [c for c, _, _ in controller if c not in seqs]
-    if missing:
-        raise LogFileError(f"{name}: cycle {missing[0]} has /controller but no /drive/feedback record")
-    cycle = np.array([c for c, _, _ in controller], dtype=np.int64)
-    times = np.array([t for _, t, _ in controller], dtype=np.int64)
-    t0 = times[0] if times.size else 0
-    return Recording(path=name, config=config, profile=profile, frames=tuple(frames), initial_seq=initial,
-                     cycle=cycle, seq=np.array([seqs[int(c)] for c in cycle], dtype=np.int64),
-                     time=(times - t0) / 1e9,
-                     recorded=np.array([v for _, _, v in controller], dtype=float).reshape(-1, len(OUTPUTS)))
-
-
-def replay(path: str | os.PathLike[str], overrides: Sequence[str] = ()) -> ReplayResult:
-    """Re-run the controller of ``path`` (with ``overrides``) on its recorded feedback frames."""
-    with open_log(path) as log:
-        for topic in ("/can/rx", "/drive/feedback", "/controller"):
-            log.require_topic(topic)
-        config = recorded_config(log, overrides)
-        recording = _assemble(os.fspath(path), recorded_config(log), recorded_profile(log), *_read(log))
-    pos, vel = _decode_feedback(recording)
-    n_fb, seq = len(pos) - 1, recording.seq
-    if recording.initial_seq > n_fb or (seq.size and int(seq.max()) > n_fb) or recording.initial_seq < 1:
-        raise LogFileError(f"{recording.path}: feedback seq beyond the {n_fb} motion frames on /can/rx")
-    ctrl = build_controller(config, recording.profile)
-    ctrl.initialize(pos[recording.initial_seq], vel[recording.initial_seq])
-    step, refs = ctrl.step, recording.recorded[:, 0].tolist()
-    q = [pos[s] for s in seq.tolist()]
-    dq = [vel[s] for s in seq.tolist()]
-    if ctrl.measures_velocity:
-        out = [step(a, b, r) for a, b, r in zip(q, dq, refs)]
-    else:
-        out = [step(a, None, r) for a, r in zip(q, refs)]
-    return ReplayResult(recording=recording, config=config, overrides=tuple(overrides), position=np.array(q),
-                        velocity=np.array(dq), replayed=np.array(out, dtype=float).reshape(-1, len(OUTPUTS)))
-
-
 def _decode_feedback(recording: Recording) -> tuple[list[float], list[float]]:
     """(position, velocity) indexed by feedback seq (index 0 unused), decoded by the run's own
     drive class, so ``seq`` counts motion frames exactly as at run time."""
     from dobhil.drives.registry import make_drive
-    drive: Drive = make_drive(_NoBus(), recording.profile, clock=lambda: 0.0)  # type: ignore[arg-type]
+    drive = make_drive(_NoBus(), recording.profile, clock=lambda: 0.0)  # type: ignore[arg-type]
     pos, vel = [float("nan")], [float("nan")]
     for msg in recording.frames:
-        if drive._handle(msg) and drive.feedback is not None:
+        if drive.apply(msg) and drive.feedback is not None:
             pos.append(drive.feedback.position)
             vel.append(drive.feedback.velocity)
     return pos, vel
 
 
-__all__ = ["COMPARED", "OUTPUTS", "Mismatch", "Recording", "ReplayResult", "replay"]
+__all__ = ["COMPARED", "OUTPUTS", "Mismatch", "Recording", "ReplayResult", "recorded_config", "replay"]

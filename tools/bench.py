@@ -376,7 +376,7 @@ def _handover_us(cycles: int, log: object | None, period: float = 2e-4, sleep: b
             while clock() - t0 < period:
                 pass
     cpu = (time.process_time() - cpu0) / cycles * 1e6
-    # the mean over blocks of a batch's cycles: the batch hand-over is paid once per ~14 cycles
+    # the mean over blocks of 850 cycles: the batch hand-over is paid once per ~40 cycles
     blocks = [sum(spent[i:i + 850]) / 850 for i in range(0, cycles - 849, 850)]
     return float(np.median(blocks)) * 1e6, cpu
 

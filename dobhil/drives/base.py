@@ -459,6 +459,11 @@ class Drive(ABC):
     def _read_error(self, exc: BaseException) -> BusError:
         return BusError(f"bus read for node {self.node_id} failed: {exc}")
 
+    def apply(self, msg: can.Message) -> bool:
+        """Apply one frame received elsewhere (a recorded one: replay); True if it carried
+        motion feedback."""
+        return self._handle(msg)
+
     def _handle(self, msg: can.Message) -> bool:
         """Apply one frame; True if it carried motion feedback."""
         fresh = False

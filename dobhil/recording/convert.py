@@ -72,18 +72,11 @@ def export_csv(mcap_path: str | os.PathLike[str], topic: str, out: str | os.Path
                progress: ProgressFn | None = None) -> int:
     """``topic`` of the recording to ``out`` as CSV; the row count."""
     check_output(out, inputs=[mcap_path], what="output")
-    with open_log(mcap_path) as log:
-        columns = log.schema_properties(topic)
-        count = 0
-        with atomic_path(out) as tmp, open(tmp, "w", newline="", encoding="utf-8") as sink:
-            writer = csv.writer(sink)
-            writer.writerow(["log_time_ns", *columns])
-            for _, t, payload in log.iter_messages([topic]):
-                writer.writerow([str(t), *(cell(payload.get(c)) for c in columns)])
-                count += 1
-                if progress is not None:
-                    progress(1)
-    return count
+    with open_log(mcap_path) as log, atomic_path(out) as tmp, open(tmp, "w", newline="", encoding="utf-8") as sink:
+        columns, writer = log.schema_properties(topic), csv.writer(sink)
+        writer.writerow(["log_time_ns", *columns])
+        return _each(log.iter_messages([topic]), progress,
+                     lambda t, p: writer.writerow([str(t), *(cell(p.get(c)) for c in columns)]))
 
 
 def export_can(mcap_path: str | os.PathLike[str], out: str | os.PathLike[str], fmt: CanLogFormat, *,
@@ -94,23 +87,24 @@ def export_can(mcap_path: str | os.PathLike[str], out: str | os.PathLike[str], f
         topics = [t for t in _CAN_TOPICS if t in log.topics()]
         if not topics:
             raise LogFileError(f"{os.fspath(mcap_path)}: no CAN frames (no /can/rx or /can/tx topic)")
-        count = 0
         with atomic_path(out) as tmp, FORMATS[fmt][1](tmp) as writer:
-            for _, t, payload in log.iter_messages(topics):
+            def write(t: int, payload: Any) -> None:
                 msg = can_frame_message(payload, t)
-                if fmt is CanLogFormat.BLF:
-                    msg.channel = _blf_channel(msg.channel)
+                if fmt is CanLogFormat.BLF:  # BLF stores channels as small integers
+                    number = can.util.channel2int(msg.channel)
+                    msg.channel = number if number is not None and 0 <= number <= 0xFFFF else None
                 writer.on_message_received(msg)
-                count += 1
-                if progress is not None:
-                    progress(1)
+            return _each(log.iter_messages(topics), progress, write)
+
+
+def _each(messages: Any, progress: ProgressFn | None, write: Callable[[int, Any], Any]) -> int:
+    count = 0
+    for _, t, payload in messages:
+        write(t, payload)
+        count += 1
+        if progress is not None:
+            progress(1)
     return count
-
-
-def _blf_channel(channel: Any) -> int | None:
-    """BLF stores channels as small integers: a name that is not one becomes the default."""
-    number = can.util.channel2int(channel)
-    return number if number is not None and 0 <= number <= 0xFFFF else None
 
 
 def _can_reader(path: Path) -> Any:

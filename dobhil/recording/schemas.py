@@ -140,17 +140,17 @@ def _fields(kind: FieldKind, *pairs: str) -> tuple[Field, ...]:
     return tuple(Field(n, kind, d) for n, d in zip(pairs[::2], pairs[1::2]))
 
 
-N, I, B = FieldKind.NUMBER, FieldKind.INTEGER, FieldKind.BOOLEAN
+_N, _I, _B = FieldKind.NUMBER, FieldKind.INTEGER, FieldKind.BOOLEAN
 
 
 # -- CAN frames ----------------------------------------------------------------
 
 _CAN_FIELDS: Final = (
-    *_fields(N, "timestamp", "bus timestamp of the frame [s]"), *_fields(I, "arbitration_id", "CAN identifier"),
-    *_fields(B, "is_extended_id", "29-bit identifier", "is_remote_frame", "remote transmission request",
+    *_fields(_N, "timestamp", "bus timestamp of the frame [s]"), *_fields(_I, "arbitration_id", "CAN identifier"),
+    *_fields(_B, "is_extended_id", "29-bit identifier", "is_remote_frame", "remote transmission request",
              "is_error_frame", "error frame", "is_fd", "CAN FD frame", "bitrate_switch", "CAN FD bit rate switch",
              "error_state_indicator", "CAN FD error state indicator"),
-    *_fields(I, "dlc", "data length in bytes"), Field("data", FieldKind.BYTES, "payload bytes"),
+    *_fields(_I, "dlc", "data length in bytes"), Field("data", FieldKind.BYTES, "payload bytes"),
     Field("data_hex", FieldKind.STRING, "payload as lower-case hex"),
     Field("direction", FieldKind.STRING, "direction seen by dobhil", ("rx", "tx")),
     Field("channel", FieldKind.STRING, "bus channel name ('' when unknown)"),
@@ -213,28 +213,30 @@ _SPECS: Final = (
     TopicSpec(Topic.CAN_TX, "/can/tx", "dobhil.CanFrame", "CAN frame sent", _CAN_FIELDS,
               _frame_encoder(Direction.TX)),
     TopicSpec(Topic.DRIVE_FEEDBACK, "/drive/feedback", "dobhil.DriveFeedback", "drive feedback decoded from the bus",
-              _fields(N, "position", "motor-side position [rad]", "velocity", "motor-side velocity [rad/s]")
-              + _fields(I, "axis_state", "drive state code", "axis_error", "drive error code (0: none)",
+              _fields(_N, "position", "motor-side position [rad]", "velocity", "motor-side velocity [rad/s]")
+              + _fields(_I, "axis_state", "drive state code", "axis_error", "drive error code (0: none)",
                         "seq", "motion frames received from the drive so far (Feedback.seq)",
                         "cycle", "control cycle that used this feedback (-1: controller.initialize)")),
     TopicSpec(Topic.DRIVE_COMMAND, "/drive/command", "dobhil.DriveCommand", "torque command sent to the drive",
-              _fields(N, "torque", "commanded motor torque [N m]")),
+              _fields(_N, "torque", "commanded motor torque [N m]")),
     TopicSpec(Topic.CONTROLLER, "/controller", "dobhil.Controller", "controller internals of one cycle",
-              _fields(N, "tau_ref", "torque reference [N m]", "tau_int_hat", "estimated interaction torque (RTOb) [N m]",
+              _fields(_N, "tau_ref", "torque reference [N m]",
+                      "tau_int_hat", "estimated interaction torque (RTOb) [N m]",
                       "tau_dis_hat", "estimated disturbance torque (DOb) [N m]", "tau_per", "performance torque [N m]",
                       "u_unsat", "control output before saturation [N m]",
-                      "u_sat", "control output after saturation [N m]") + _fields(I, "cycle", "control cycle index")),
+                      "u_sat", "control output after saturation [N m]") + _fields(_I, "cycle", "control cycle index")),
     TopicSpec(Topic.LOOP, "/loop", "dobhil.Loop", "timing of one control cycle",
-              _fields(I, "cycle", "control cycle index") + _fields(N, "period_error", "actual minus nominal period [s]",
-                                                                   "exec_time", "time spent computing the cycle [s]")
-              + _fields(B, "overrun", "the cycle missed its deadline")),
+              _fields(_I, "cycle", "control cycle index")
+              + _fields(_N, "period_error", "actual minus nominal period [s]",
+                        "exec_time", "time spent computing the cycle [s]")
+              + _fields(_B, "overrun", "the cycle missed its deadline")),
     TopicSpec(Topic.EMULATOR_TRUTH, "/emulator/truth", "dobhil.EmulatorTruth", "ground truth of the plant emulator",
-              _fields(N, "q", "position [rad]", "dq", "velocity [rad/s]", "tau_motor", "motor torque applied [N m]",
+              _fields(_N, "q", "position [rad]", "dq", "velocity [rad/s]", "tau_motor", "motor torque applied [N m]",
                       "tau_int", "interaction torque applied [N m]")),
     TopicSpec(Topic.EVENTS, "/events", "dobhil.Event", "state changes, faults and recorder notes",
               (Field("kind", FieldKind.STRING, "event kind", tuple(k.name.lower() for k in EventKind)),
                *_fields(FieldKind.STRING, "reason", "one-line reason", "detail", "free-form detail"),
-               *_fields(I, "count", "records lost (kind=loss), else 0")), _event_encoder),
+               *_fields(_I, "count", "records lost (kind=loss), else 0")), _event_encoder),
 )
 
 #: Topic -> spec: the one table of channels.
