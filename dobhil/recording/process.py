@@ -143,12 +143,13 @@ def encode(records: Sequence[tuple[Any, ...]]) -> bytes:
     return _LENGTH.pack(len(data)) + data
 
 
-def unpack(data: bytes) -> tuple[list[tuple[Any, ...]], int]:
-    """The records of the whole batches in ``data``, and where the first incomplete one starts."""
-    out: list[tuple[Any, ...]] = []
+def unpack(data: bytes) -> tuple[list[list[tuple[Any, ...]]], int]:
+    """The batches (record lists) wholly in ``data``, and where the first incomplete one
+    starts. A control message always travels alone in its batch."""
+    out: list[list[tuple[Any, ...]]] = []
     pos, end, length = 0, len(data), _LENGTH.unpack_from
     while pos + 4 <= end and (stop := pos + 4 + length(data, pos)[0]) <= end:
-        out += pickle.loads(data[pos + 4:stop])
+        out.append(pickle.loads(data[pos + 4:stop]))
         pos = stop
     return out, pos
 
@@ -377,16 +378,13 @@ def _serve(fd: int, status: Connection, path: str) -> tuple[Any, ...]:
                     return (int(Status.DONE), 0, 0)  # closed before a run started
                 log.finish(PARENT_EXITED, "the recording process ended without closing the log")
                 return (int(Status.DONE), log.written, log.dropped)
-            records, used = unpack(pending + chunk) if chunk else ([], 0)
+            batches, used = unpack(pending + chunk) if chunk else ([], 0)
             pending = (pending + chunk)[used:] if chunk else pending
-            start = 0
-            for i, r in enumerate(records):  # control messages among the records
+            for batch in batches:
+                r = batch[0] if len(batch) == 1 else (0,)
                 if r[0] < Control.OPEN:
-                    continue
-                if start < i:
-                    log.write(records[start:i])
-                start = i + 1
-                if r[0] == Control.OPEN:
+                    log.write(batch)
+                elif r[0] == Control.OPEN:
                     log, interval = _open(path, status, r[1], r[3], r[4], r[5], r[6]), r[2]
                     next_flush = time.monotonic() + interval
                 elif r[0] == Control.LOSS and r[1] > log.dropped:
@@ -394,8 +392,6 @@ def _serve(fd: int, status: Connection, path: str) -> tuple[Any, ...]:
                 elif r[0] == Control.STOP:
                     log.finish(r[1], r[2])
                     return (int(Status.DONE), log.written, log.dropped)
-            if start < len(records):
-                log.write(records[start:])
             if log is not None and time.monotonic() >= next_flush:
                 log.flush()
                 next_flush = time.monotonic() + interval

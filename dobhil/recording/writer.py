@@ -18,16 +18,8 @@ from typing import Any, BinaryIO, Final, Protocol
 from mcap.writer import CompressionType, Writer
 
 from dobhil import __version__
-from dobhil.recording.schemas import (
-    MESSAGE_ENCODING,
-    SCHEMA_ENCODING,
-    TOPIC_SPECS,
-    CYCLE,
-    CYCLE_TOPICS,
-    EventKind,
-    Topic,
-    event_record,
-)
+from dobhil.recording.schemas import (CYCLE, CYCLE_TOPICS, MESSAGE_ENCODING, SCHEMA_ENCODING, TOPIC_SPECS, EventKind,
+                                      Topic, event_record)
 
 #: Chunks end at this size or at every flush, whichever comes first.
 CHUNK_SIZE: Final = 256 * 1024

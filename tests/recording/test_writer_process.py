@@ -88,7 +88,8 @@ def test_batched_records_unpack_to_the_flat_records_of_the_topic_table() -> None
         batch.record(event_record(EventKind.INFO, 14, "note", f"{i:03}" + "\u00e9" * 5000))
     taken = batch.take()
     data = b"".join(encode(taken[i:i + 7]) for i in range(0, 240, 7))
-    records, used = unpack(data)
+    batches, used = unpack(data)
+    records = [r for batch in batches for r in batch]
     assert used == len(data) and len(records) == 6 * 40
     assert records[0] == (CYCLE, 11, 3, 0.5, -1.25, 7, *OUT, 1e-6, 2e-5, True, 8, 0)
     assert type(records[0][4]) is np.float64 and type(records[0][5]) is np.int64  # exact, not bytes
@@ -101,9 +102,9 @@ def test_batched_records_unpack_to_the_flat_records_of_the_topic_table() -> None
 
 def test_a_batch_cut_by_a_read_waits_for_the_rest() -> None:
     data = encode([event_record(EventKind.INFO, 1, "a")]) + encode([event_record(EventKind.INFO, 2, "b")])
-    records, used = unpack(data[:-3])
-    assert [r[1] for r in records] == [1] and used < len(data)
-    assert [r[1] for r in unpack(data[used:])[0]] == [2]
+    batches, used = unpack(data[:-3])
+    assert batches == [[event_record(EventKind.INFO, 1, "a")]] and used < len(data)
+    assert unpack(data[used:]) == ([[event_record(EventKind.INFO, 2, "b")]], len(data) - used)
 
 
 def test_backpressure_round_trip_and_the_process_is_joined(tmp_path: Path) -> None:
