@@ -1,12 +1,13 @@
 """Reading a dobhil log: :class:`LogFile`, opened once and checked before anything uses it.
 
-One pass with the ``mcap`` package's public :class:`~mcap.stream_reader.StreamReader`
+A pass with the ``mcap`` package's public :class:`~mcap.stream_reader.StreamReader`
 (data-section CRC) and :func:`~mcap.stream_reader.get_chunk_data_stream` (each chunk's
 CRC) tells apart, one :class:`~dobhil.errors.LogFileError` line each: complete; cut short
 (run ``dobhil log recover``); damaged at byte N; not a dobhil log (written by X); invalid
-metadata (the config against its schema, numbers as numbers). Messages are then sliced
-from each decompressed, CRC-checked chunk with ``struct`` (:meth:`LogFile.iter_payloads`):
-the ``mcap`` reader's object per record made replay spend most of its time reading.
+metadata (the config against its schema, numbers as numbers). Reading messages is such a
+pass again, each decompressed, CRC-checked chunk sliced with ``struct``
+(:meth:`LogFile.iter_payloads`): the ``mcap`` reader's object per record made replay spend
+most of its time reading.
 """
 
 from __future__ import annotations
@@ -18,7 +19,7 @@ from collections.abc import Iterable, Iterator, Mapping
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 from types import MappingProxyType
-from typing import Any, BinaryIO, Final
+from typing import Any, Final
 
 from mcap.records import Attachment, Channel, Chunk, Footer, Header, Metadata, Schema, Statistics
 from mcap.stream_reader import StreamReader, get_chunk_data_stream
@@ -92,26 +93,31 @@ def check_mcap_head(path: str | os.PathLike[str]) -> int:
     return size
 
 
-def _records(f: BinaryIO, path: str | os.PathLike[str]) -> Iterator[tuple[int, Any]]:
-    """(offset, record) of the whole file, CRCs checked; damage named by its byte."""
-    reader = StreamReader(f, emit_chunks=True, validate_crcs=True, record_size_limit=os.fstat(f.fileno()).st_size)
-    records = reader.records
-    while True:
-        pos = f.tell()
-        try:
-            record = next(records)
-            if isinstance(record, Chunk):
-                get_chunk_data_stream(record, validate_crc=True)
-        except StopIteration:
-            return
-        except Exception as exc:  # mcap, zstd, lz4 and struct errors alike: the bytes are wrong
-            raise _fail(path, f"damaged at byte {pos} ({type(exc).__name__}: {exc}); "
-                              "`dobhil log recover` saves the intact chunks") from exc
-        yield pos, record
+def _records(path: str | os.PathLike[str]) -> Iterator[tuple[Any, bytes]]:
+    """(record, its records if a chunk) of the whole file, CRCs checked; damage named by its byte."""
+    with open(path, "rb") as f:
+        records = StreamReader(f, emit_chunks=True, validate_crcs=True,
+                               record_size_limit=os.fstat(f.fileno()).st_size).records
+        while True:
+            pos = f.tell()
+            try:
+                record = next(records)
+                if isinstance(record, Chunk):
+                    stream, size = get_chunk_data_stream(record, validate_crc=True)
+                    yield record, stream.read(size)
+                    continue
+            except StopIteration:
+                return
+            except Exception as exc:  # mcap, zstd, lz4 and struct errors alike: the bytes are wrong
+                raise _fail(path, f"damaged at byte {pos} ({type(exc).__name__}: {exc}); "
+                                  "`dobhil log recover` saves the intact chunks") from exc
+            yield record, b""
+            if isinstance(record, Footer):
+                return
 
 
-def _scan(log: LogFile, f: BinaryIO) -> None:
-    for pos, record in _records(f, log.path):
+def _scan(log: LogFile) -> None:
+    for record, _ in _records(log.path):
         if isinstance(record, Header):
             log.library = record.library
             _check_library(log.path, record)
@@ -123,12 +129,8 @@ def _scan(log: LogFile, f: BinaryIO) -> None:
             log.metadata[record.name] = MappingProxyType(dict(record.metadata))
         elif isinstance(record, Attachment):
             log.attachments.append((record.name, record.media_type, record.data))
-        elif isinstance(record, Chunk):
-            log.chunks.append((pos, record.uncompressed_size))
         elif isinstance(record, Statistics):
             log.statistics = record
-        elif isinstance(record, Footer):
-            break
 
 
 def _check_library(path: str | os.PathLike[str], header: Any) -> None:
@@ -157,25 +159,22 @@ def _validate_metadata(path: str | os.PathLike[str], metadata: Mapping[str, Mapp
 
 
 class LogFile:
-    """A complete, checked dobhil log (:meth:`open`); the file stays open until :meth:`close`."""
+    """A complete, checked dobhil log (:meth:`open`); every read is a CRC-checked pass."""
 
-    def __init__(self, path: str | os.PathLike[str], file: BinaryIO) -> None:
-        self.path, self._file = Path(path), file
+    def __init__(self, path: str | os.PathLike[str]) -> None:
+        self.path = Path(path)
         self.library = ""
         self.schemas: dict[int, Schema] = {}
         self.channel_records: dict[int, Channel] = {}
         self.metadata: dict[str, Mapping[str, str]] = {}
         self.attachments: list[tuple[str, str, bytes]] = []
-        self.chunks: list[tuple[int, int]] = []  # (offset, uncompressed size)
         self.statistics: Statistics | None = None
         self.config: Any = None
 
     @classmethod
     def open(cls, path: str | os.PathLike[str]) -> LogFile:
         size = check_mcap_head(path)
-        log = cls(path, open(path, "rb"))
-        f = log._file
-        try:
+        with open(path, "rb") as f:
             f.seek(max(0, size - len(MAGIC)))
             if f.read() != MAGIC or size < 2 * len(MAGIC) + 9:
                 f.seek(len(MAGIC))
@@ -186,16 +185,13 @@ class LogFile:
                 if header is not None:
                     _check_library(path, header)
                 raise _fail(path, "cut short (no footer): run `dobhil log recover` on it")
-            f.seek(0)
-            _scan(log, f)
-            log.config = _validate_metadata(path, log.metadata)
-            return log
-        except BaseException:
-            f.close()
-            raise
+        log = cls(path)
+        _scan(log)
+        log.config = _validate_metadata(path, log.metadata)
+        return log
 
     def close(self) -> None:
-        self._file.close()
+        """Nothing is held open between reads (kept for ``with``)."""
 
     def __enter__(self) -> LogFile:
         return self
@@ -228,8 +224,9 @@ class LogFile:
     def iter_payloads(self, topics: Iterable[str] | None = None) -> Iterator[tuple[str, int, bytes]]:
         """(topic, log_time_ns, JSON bytes) in file order (the order written)."""
         wanted = {cid: c.topic for cid, c in self.channel_records.items() if topics is None or c.topic in set(topics)}
-        for offset, size in self.chunks:
-            yield from _chunk_messages(self._chunk_data(offset, size), wanted)
+        for _, data in _records(self.path):
+            if data:
+                yield from _chunk_messages(data, wanted)
 
     def iter_messages(self, topics: Iterable[str] | None = None) -> Iterator[Message]:
         """(topic, log_time_ns, payload dict) in file order."""
@@ -252,25 +249,6 @@ class LogFile:
                        stats.message_start_time if stats else 0, stats.message_end_time if stats else 0,
                        MappingProxyType(self.metadata), tuple(a for a, _, _ in self.attachments), self.stop_reason(),
                        None if dropped is None else int(dropped))
-
-    def _chunk_data(self, offset: int, size: int) -> bytes:
-        """The chunk's records, decompressed, CRC checked (again: the file may have changed)."""
-        try:
-            stream, _ = get_chunk_data_stream(_chunk_at(self._file, offset), validate_crc=True)
-            return stream.read(size)
-        except LogFileError:
-            raise
-        except Exception as exc:
-            raise _fail(self.path, f"damaged at byte {offset} ({type(exc).__name__}: {exc})") from exc
-
-
-def _chunk_at(f: BinaryIO, offset: int) -> Chunk:
-    f.seek(offset)
-    record = next(StreamReader(f, skip_magic=True, emit_chunks=True).records)
-    if not isinstance(record, Chunk):
-        raise ValueError(f"expected a chunk, found {type(record).__name__}")
-    return record
-
 
 def _chunk_messages(records: bytes, wanted: Mapping[int, str]) -> Iterator[tuple[str, int, bytes]]:
     head, msg_head = _RECORD.unpack_from, _MESSAGE.unpack_from

@@ -1,13 +1,9 @@
-"""The one table of recorded topics: each topic's fields, JSON schema and encoder live here.
+"""The one table of recorded topics (:data:`TOPIC_SPECS`): each topic's fields, JSON schema
+and encoder live here; ``docs/recording.md`` lists them (a test checks it).
 
-Channels are JSON with a JSON schema (Foxglove opens them without plugins); the table is
-documented in ``docs/recording.md`` (a test checks it). Records are flat tuples, cheap to
-build on the loop thread and to ``marshal``: ``(Topic, log_time_ns, *values)`` with the
-topic's field values in order -- for the CAN topics the compact
-``(arbitration_id, flags, dlc, data, timestamp, channel)`` of :func:`can_frame_record` --
-or ``(CYCLE, log_time_ns, *values)`` named by :data:`CYCLE_FIELDS`, one message per topic
-of :data:`CYCLE_TOPICS`. Public: :data:`TOPIC_SPECS`, :func:`spec_for`,
-:func:`can_frame_record`, :func:`can_frame_payload`, :func:`can_frame_message`.
+Records are flat tuples, cheap to build on the loop thread: ``(Topic, log_time_ns, *values)``
+(CAN topics: ``arbitration_id, flags, dlc, data, timestamp, channel``), or
+``(CYCLE, log_time_ns, *CYCLE_FIELDS)``: one message per topic of :data:`CYCLE_TOPICS`.
 """
 
 from __future__ import annotations
@@ -72,14 +68,18 @@ class EventKind(IntEnum):
 
 
 class FrameFlag(IntEnum):
-    """Bits of a CAN frame record's ``flags``: the booleans of a python-can message."""
+    """Bits of a CAN frame record's ``flags``: the booleans of a python-can message (the
+    attribute is the lower-case name)."""
 
-    EXTENDED_ID = 1
-    REMOTE_FRAME = 2
-    ERROR_FRAME = 4
-    FD = 8
+    IS_EXTENDED_ID = 1
+    IS_REMOTE_FRAME = 2
+    IS_ERROR_FRAME = 4
+    IS_FD = 8
     BITRATE_SWITCH = 16
     ERROR_STATE_INDICATOR = 32
+
+
+_FLAGS: Final = tuple((f.name.lower(), f) for f in FrameFlag)
 
 
 _JSON_TYPE: Final[dict[FieldKind, dict[str, Any]]] = {
@@ -157,30 +157,19 @@ _CAN_FIELDS: Final = (
 )
 
 
-def frame_flags(msg: Any) -> int:
-    """The :class:`FrameFlag` bits of a python-can message."""
-    return (msg.is_extended_id | msg.is_remote_frame << 1 | msg.is_error_frame << 2 | msg.is_fd << 3
-            | msg.bitrate_switch << 4 | msg.error_state_indicator << 5)
-
-
 def can_frame_record(msg: Any, direction: Direction, log_time_ns: int) -> tuple[Any, ...]:
     """The record of a python-can message on ``/can/rx`` or ``/can/tx``."""
     topic = Topic.CAN_RX if direction is Direction.RX else Topic.CAN_TX
-    return (int(topic), log_time_ns, msg.arbitration_id, frame_flags(msg), msg.dlc, bytes(msg.data or b""),
-            msg.timestamp, msg.channel)
+    return (int(topic), log_time_ns, msg.arbitration_id, sum(f for n, f in _FLAGS if getattr(msg, n)), msg.dlc,
+            bytes(msg.data or b""), msg.timestamp, msg.channel)
 
 
 def can_frame_payload(values: Sequence[Any], direction: Direction) -> dict[str, Any]:
     """The ``/can/*`` payload of a frame record's values (after topic and log time)."""
     arb, flags, dlc, data, stamp, channel = values
     data = bytes(data)
-    bits = {f: bool(flags & f) for f in FrameFlag}
-    return {"timestamp": float(stamp or 0.0), "arbitration_id": arb,
-            "is_extended_id": bits[FrameFlag.EXTENDED_ID], "is_remote_frame": bits[FrameFlag.REMOTE_FRAME],
-            "is_error_frame": bits[FrameFlag.ERROR_FRAME], "is_fd": bits[FrameFlag.FD],
-            "bitrate_switch": bits[FrameFlag.BITRATE_SWITCH],
-            "error_state_indicator": bits[FrameFlag.ERROR_STATE_INDICATOR], "dlc": dlc, "data": list(data),
-            "data_hex": data.hex(), "direction": direction.name.lower(),
+    return {"timestamp": float(stamp or 0.0), "arbitration_id": arb, **{n: bool(flags & f) for n, f in _FLAGS},
+            "dlc": dlc, "data": list(data), "data_hex": data.hex(), "direction": direction.name.lower(),
             "channel": "" if channel is None else str(channel)}
 
 
@@ -188,10 +177,8 @@ def can_frame_message(payload: Mapping[str, Any], log_time_ns: int) -> Any:
     """The python-can message of a ``/can/*`` payload (bus timestamp, else the log time)."""
     import can
     return can.Message(timestamp=payload.get("timestamp") or log_time_ns / 1e9,
-                       arbitration_id=payload["arbitration_id"], is_extended_id=payload["is_extended_id"],
-                       is_remote_frame=payload["is_remote_frame"], is_error_frame=payload["is_error_frame"],
-                       is_fd=payload["is_fd"], bitrate_switch=payload.get("bitrate_switch", False),
-                       error_state_indicator=payload.get("error_state_indicator", False), dlc=payload["dlc"],
+                       arbitration_id=payload["arbitration_id"], **{n: bool(payload.get(n, False)) for n, _ in _FLAGS},
+                       dlc=payload["dlc"],
                        data=bytes(payload["data"]), is_rx=payload["direction"] != "tx",
                        channel=payload.get("channel") or None, check=False)
 
@@ -307,4 +294,4 @@ def decode(data: bytes) -> dict[str, Any]:
 __all__ = ["CYCLE", "CYCLE_FIELDS", "CYCLE_TOPICS", "MESSAGE_ENCODING", "SCHEMA_ENCODING", "SPECS_BY_NAME",
            "TOPIC_SPECS", "Direction", "EventKind", "Field", "FieldKind", "FrameFlag", "Topic", "TopicSpec",
            "can_frame_message", "can_frame_payload", "can_frame_record", "decode", "event_record",
-           "frame_flags", "message_count", "messages", "spec_for"]
+           "message_count", "messages", "spec_for"]
