@@ -19,7 +19,7 @@ from collections.abc import Iterable, Iterator, Mapping
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 from types import MappingProxyType
-from typing import Any, Final
+from typing import Any, BinaryIO, Final
 
 from mcap.records import Attachment, Channel, Chunk, Footer, Header, Metadata, Schema, Statistics
 from mcap.stream_reader import StreamReader, get_chunk_data_stream
@@ -93,31 +93,28 @@ def check_mcap_head(path: str | os.PathLike[str]) -> int:
     return size
 
 
-def _records(path: str | os.PathLike[str]) -> Iterator[tuple[Any, bytes]]:
-    """(record, its records if a chunk) of the whole file, CRCs checked; damage named by its byte."""
-    with open(path, "rb") as f:
-        records = StreamReader(f, emit_chunks=True, validate_crcs=True,
-                               record_size_limit=os.fstat(f.fileno()).st_size).records
-        while True:
-            pos = f.tell()
-            try:
-                record = next(records)
-                if isinstance(record, Chunk):
-                    stream, size = get_chunk_data_stream(record, validate_crc=True)
-                    yield record, stream.read(size)
-                    continue
-            except StopIteration:
-                return
-            except Exception as exc:  # mcap, zstd, lz4 and struct errors alike: the bytes are wrong
-                raise _fail(path, f"damaged at byte {pos} ({type(exc).__name__}: {exc}); "
-                                  "`dobhil log recover` saves the intact chunks") from exc
-            yield record, b""
-            if isinstance(record, Footer):
-                return
+def _records(f: BinaryIO, path: str | os.PathLike[str]) -> Iterator[tuple[int, Any]]:
+    """(offset, record) to the footer, CRCs checked (each chunk's too); damage named by its byte."""
+    records = StreamReader(f, emit_chunks=True, validate_crcs=True,
+                           record_size_limit=os.fstat(f.fileno()).st_size).records
+    while True:
+        pos = f.tell()
+        try:
+            record = next(records)
+            if isinstance(record, Chunk):
+                get_chunk_data_stream(record, validate_crc=True)
+        except StopIteration:
+            return
+        except Exception as exc:  # mcap, zstd, lz4 and struct errors alike: the bytes are wrong
+            raise _fail(path, f"damaged at byte {pos} ({type(exc).__name__}: {exc}); "
+                              "`dobhil log recover` saves the intact chunks") from exc
+        yield pos, record
+        if isinstance(record, Footer):
+            return
 
 
-def _scan(log: LogFile) -> None:
-    for record, _ in _records(log.path):
+def _scan(log: LogFile, f: BinaryIO) -> None:
+    for pos, record in _records(f, log.path):
         if isinstance(record, Header):
             log.library = record.library
             _check_library(log.path, record)
@@ -129,6 +126,8 @@ def _scan(log: LogFile) -> None:
             log.metadata[record.name] = MappingProxyType(dict(record.metadata))
         elif isinstance(record, Attachment):
             log.attachments.append((record.name, record.media_type, record.data))
+        elif isinstance(record, Chunk):
+            log.chunks.append((pos, record.uncompressed_size))
         elif isinstance(record, Statistics):
             log.statistics = record
 
@@ -159,7 +158,7 @@ def _validate_metadata(path: str | os.PathLike[str], metadata: Mapping[str, Mapp
 
 
 class LogFile:
-    """A complete, checked dobhil log (:meth:`open`); every read is a CRC-checked pass."""
+    """A complete, checked dobhil log (:meth:`open`); nothing is held open between reads."""
 
     def __init__(self, path: str | os.PathLike[str]) -> None:
         self.path = Path(path)
@@ -168,6 +167,7 @@ class LogFile:
         self.channel_records: dict[int, Channel] = {}
         self.metadata: dict[str, Mapping[str, str]] = {}
         self.attachments: list[tuple[str, str, bytes]] = []
+        self.chunks: list[tuple[int, int]] = []  # (offset, uncompressed size)
         self.statistics: Statistics | None = None
         self.config: Any = None
 
@@ -185,8 +185,9 @@ class LogFile:
                 if header is not None:
                     _check_library(path, header)
                 raise _fail(path, "cut short (no footer): run `dobhil log recover` on it")
-        log = cls(path)
-        _scan(log)
+            log = cls(path)
+            f.seek(0)
+            _scan(log, f)
         log.config = _validate_metadata(path, log.metadata)
         return log
 
@@ -222,10 +223,19 @@ class LogFile:
             raise _fail(self.path, f"the schema of {topic} is not a JSON schema ({exc})") from None
 
     def iter_payloads(self, topics: Iterable[str] | None = None) -> Iterator[tuple[str, int, bytes]]:
-        """(topic, log_time_ns, JSON bytes) in file order (the order written)."""
+        """(topic, log_time_ns, JSON bytes) in file order (the order written); each chunk read
+        by its offset and CRC-checked again (the file may have changed)."""
         wanted = {cid: c.topic for cid, c in self.channel_records.items() if topics is None or c.topic in set(topics)}
-        for _, data in _records(self.path):
-            if data:
+        with open(self.path, "rb") as f:
+            for offset, size in self.chunks:
+                try:
+                    f.seek(offset)
+                    chunk = next(StreamReader(f, skip_magic=True, emit_chunks=True).records)
+                    if not isinstance(chunk, Chunk):
+                        raise ValueError(f"expected a chunk, found {type(chunk).__name__}")
+                    data = get_chunk_data_stream(chunk, validate_crc=True)[0].read(size)
+                except Exception as exc:
+                    raise _fail(self.path, f"damaged at byte {offset} ({type(exc).__name__}: {exc})") from exc
                 yield from _chunk_messages(data, wanted)
 
     def iter_messages(self, topics: Iterable[str] | None = None) -> Iterator[Message]:

@@ -177,8 +177,10 @@ def can_frame_message(payload: Mapping[str, Any], log_time_ns: int) -> Any:
     """The python-can message of a ``/can/*`` payload (bus timestamp, else the log time)."""
     import can
     return can.Message(timestamp=payload.get("timestamp") or log_time_ns / 1e9,
-                       arbitration_id=payload["arbitration_id"], **{n: bool(payload.get(n, False)) for n, _ in _FLAGS},
-                       dlc=payload["dlc"],
+                       arbitration_id=payload["arbitration_id"], is_extended_id=payload["is_extended_id"],
+                       is_remote_frame=payload["is_remote_frame"], is_error_frame=payload["is_error_frame"],
+                       is_fd=payload["is_fd"], bitrate_switch=payload.get("bitrate_switch", False),
+                       error_state_indicator=payload.get("error_state_indicator", False), dlc=payload["dlc"],
                        data=bytes(payload["data"]), is_rx=payload["direction"] != "tx",
                        channel=payload.get("channel") or None, check=False)
 
