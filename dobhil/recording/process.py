@@ -1,22 +1,16 @@
 """The hand-over of a recorded run: :class:`Batch` on the loop thread, the writer process
-at the other end of a pipe.
+at the other end of a pipe (``docs/recording.md`` has the diagram and the guarantees).
 
-No thread of the loop's process touches the log. The loop thread appends flat records
-(tuples of the topic table) to a :class:`Batch` and, every ``BATCH_RECORDS``, after a
-cycle's command went out, pickles them and writes them to the pipe with one ``os.write``.
-In real time (``LOSSY``: a non-blocking pipe) a batch the pipe has no room for is dropped
-and counted at once -- its events carried into the next batch, the running total carried
-over as a ``LOSS`` record the child writes as ``/events`` ``kind=loss``; a batch the pipe
-took only part of is finished before anything else (the stream stays whole); in lockstep
-(``BACKPRESSURE``) the write waits. (A sender thread in the loop's process, tried first,
-held the GIL the loop thread then waited for: ms late.)
-
-The child is a fresh interpreter (``subprocess``: no fork of a threaded parent) with
-SIGINT/SIGTERM ignored (blocked before the exec); it polls the pipe (no write of the
-loop's has to wake it), writes through :class:`LogWriter`, flushes and fsyncs every
-``flush_interval``, finishes the file on ``STOP`` or, if the parent died, on end of file
-(:data:`PARENT_EXITED`), and sends one status. Its failure (disk full, a record its
-encoder refuses) is a :class:`~dobhil.errors.RecorderError` at the loop's next hand-over.
+No thread of the loop's process touches the log: the loop thread appends flat records to a
+:class:`Batch` and, every ``BATCH_RECORDS``, after a cycle's command, pickles them into the
+pipe with one ``os.write`` (a sender thread, tried first, held the GIL the loop then waited
+for: ms late). Real time (``LOSSY``, non-blocking): a batch with no room is dropped and
+counted (events kept, the total sent as a ``LOSS`` record); one the pipe took in part is
+finished before anything else. Lockstep (``BACKPRESSURE``): the write waits. The child, a
+fresh interpreter ignoring SIGINT/SIGTERM, polls the pipe, writes through
+:class:`LogWriter`, flushes every ``flush_interval``, finishes the file on ``STOP`` or when
+the parent dies (:data:`PARENT_EXITED`), and sends one status; its failure (disk full, a
+record its encoder refuses) is a :class:`~dobhil.errors.RecorderError` at the next hand-over.
 """
 
 from __future__ import annotations

@@ -1,11 +1,9 @@
 """Recording one run: :class:`RunLog` is the runtime's cycle sink and bus tap.
 
-It implements the ``CycleSink`` protocol (``started``, ``cycle``, ``stop``) and wraps the
-host bus, knowing nothing of the runtime: the wiring (``dobhil.cli.recording``) passes
-plain values. It is the loop side of the hand-over (:class:`~dobhil.recording.process.Batch`):
-no thread of the loop's process touches the log. A writer failure surfaces as
-:class:`~dobhil.errors.RecorderError` from :meth:`RunLog.cycle`, which the loop turns
-into the stop reason ``recorder_failed``.
+It implements the ``CycleSink`` protocol and wraps the host bus, knowing nothing of the
+runtime (``dobhil.cli.recording`` wires it with plain values). It is the loop side of the
+hand-over (a :class:`~dobhil.recording.process.Batch`); a writer failure surfaces as
+:class:`~dobhil.errors.RecorderError` from ``cycle``: the loop stops ``recorder_failed``.
 """
 
 from __future__ import annotations
@@ -28,12 +26,8 @@ _TX: Final = int(Topic.CAN_TX)
 
 class RecordingBus(can.BusABC):
     """Records every frame sent or received on the bus it wraps (borrowed, not owned).
-
-    ``recv`` is overridden, not only ``_recv_internal``: :meth:`can.BusABC.recv` spends as
-    long on its per-frame timing and debug logging as the record itself, on the loop thread.
-    The wrapper has no filters of its own (the wrapped bus applies its own), so nothing of
-    the base's filtering is lost; ``_recv_internal`` serves any other caller.
-    """
+    ``recv`` itself is overridden: :meth:`can.BusABC.recv`'s timing and debug logging cost
+    as much as the record; the wrapped bus applies its own filters."""
 
     def __init__(self, inner: can.BusABC, batch: Batch, **kwargs: Any) -> None:
         self._inner = inner

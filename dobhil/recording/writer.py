@@ -1,10 +1,10 @@
 """One MCAP file being written, through the public :class:`mcap.writer.Writer`.
 
-:class:`LogWriter` is the only code that writes a dobhil log (the run's writer process and
-``dobhil log import``): header, metadata and attachments at once, a channel from the topic
-table on its first message, records encoded by the table, chunk ended and file flushed
-(and fsynced) on request, the ``recording`` summary on finish. A second output (the live
-view) gets every encoded message too. No python-can, no numpy: the process starts fast.
+:class:`LogWriter` writes every dobhil log of a run or ``dobhil log import`` (python-can's
+``can.Logger`` plugin, :mod:`dobhil.canio`, writes CAN-only logs with the same topic table):
+header, metadata, attachments, a channel per topic on its first message, records encoded by
+the table, flush (and fsync) on request, the ``recording`` summary on finish, every message
+to a second output (the live view) too. No python-can, no numpy: the process starts fast.
 """
 
 from __future__ import annotations
