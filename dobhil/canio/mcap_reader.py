@@ -6,9 +6,10 @@ identifier and every flag (extended, remote, error, FD, BRS, ESI), DLC and data.
 topics are not CAN frames and are skipped. This is what makes ``python -m can.logconvert
 run.mcap run.blf`` and ``python -m can.player run.mcap`` work.
 
-A finished file is read through its chunk index. A file without a summary (its writer
-was killed) is read front to back: every complete frame is yielded, then a ValueError
-says the file is truncated and how to complete it.
+A finished file is read through its chunk index, chunk and data CRCs checked: damaged
+bytes are a ValueError naming the damage, never frames read silently. A file without a
+summary (its writer was killed) is read front to back: every complete frame is yielded,
+then a ValueError says the file is truncated and how to complete it.
 """
 
 from __future__ import annotations
@@ -90,26 +91,31 @@ class McapReader(BinaryIOMessageReader):
             self.stop()
 
     def _records(self) -> Iterator[tuple[int, bytes]]:
-        """(log time, data) of each frame message; indexed when there is a summary."""
-        reader = make_reader(cast(IO[bytes], self.file))
+        """(log time, data) of each frame message, chunk and data CRCs checked; indexed when
+        there is a summary."""
+        reader = make_reader(cast(IO[bytes], self.file), validate_crcs=True)
         try:
             summary = reader.get_summary()
         except Exception:  # no footer: a writer killed before stop()
             summary = None
-        if summary is not None and summary.chunk_indexes:
-            topics = {c.topic for c in summary.channels.values()}
-            if not topics & set(FRAME_TOPIC_NAMES):
-                listed = ", ".join(sorted(topics)) or "none"
-                raise ValueError(f"{self.name}: no CAN frames (no /can/rx or /can/tx topic; topics: {listed})")
+        if summary is None or not summary.chunk_indexes:
+            yield from self._scan()
+            return
+        topics = {c.topic for c in summary.channels.values()}
+        if not topics & set(FRAME_TOPIC_NAMES):
+            listed = ", ".join(sorted(topics)) or "none"
+            raise ValueError(f"{self.name}: no CAN frames (no /can/rx or /can/tx topic; topics: {listed})")
+        try:
             for _, _, message in reader.iter_messages(topics=FRAME_TOPIC_NAMES, log_time_order=True):
                 yield message.log_time, message.data
-            return
-        yield from self._scan()
+        except Exception as exc:  # a CRC, zstd or lz4 error: the bytes are wrong
+            raise ValueError(f"{self.name}: damaged after {self.frames_read} frames ({type(exc).__name__}: "
+                             f"{exc}); `dobhil log recover {self.name}` saves the intact chunks") from exc
 
     def _scan(self) -> Iterator[tuple[int, bytes]]:
         """Front to back, for a file without chunk index; file order is the writer's order."""
         self.file.seek(0)
-        reader = NonSeekingReader(cast(IO[bytes], self.file))
+        reader = NonSeekingReader(cast(IO[bytes], self.file), validate_crcs=True)
         stream = reader.iter_messages(topics=FRAME_TOPIC_NAMES, log_time_order=False)
         try:
             for _, _, message in stream:

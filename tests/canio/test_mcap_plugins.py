@@ -154,6 +154,32 @@ def test_truncated_file_yields_what_is_complete_then_says_so(tmp_path: Path) -> 
     assert [flags(m) for m in got] == [flags(m) for m in FRAMES[:5]]
 
 
+@pytest.mark.parametrize("compression", ["none", "zstd"])
+def test_a_damaged_chunk_is_one_value_error_not_silent_frames(tmp_path: Path, compression: str) -> None:
+    """Bytes flipped inside a chunk: uncompressed, only its CRC tells; compressed, the
+    decompressor too. Either way one ValueError naming the damage, as python-can's tools
+    expect of a reader."""
+    path = tmp_path / "frames.mcap"
+    with McapWriter(path, compression=compression, chunk_size=64) as logger:
+        for k in range(40):
+            logger(can.Message(arbitration_id=0x100 + k, data=bytes([k] * 8), is_extended_id=False,
+                               timestamp=1.0 + k))
+    data = bytearray(path.read_bytes())
+    with open(path, "rb") as f:
+        from mcap.reader import make_reader
+        summary = make_reader(f).get_summary()
+    assert summary is not None
+    chunk = sorted(summary.chunk_indexes, key=lambda c: c.chunk_start_offset)[1]
+    middle = chunk.chunk_start_offset + chunk.chunk_length // 2
+    for i in range(middle, middle + 8):
+        data[i] ^= 0xFF
+    bad = tmp_path / "bad.mcap"
+    bad.write_bytes(bytes(data))
+    with pytest.raises(ValueError, match="damaged .*dobhil log recover"):
+        list(can.LogReader(bad))
+    assert len(list(can.LogReader(path))) == 40
+
+
 @pytest.fixture(scope="module")
 def run_log(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A lockstep emulated run recorded by ``dobhil run --log`` (the CLI, in process)."""
