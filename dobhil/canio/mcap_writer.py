@@ -28,20 +28,21 @@ from contextlib import contextmanager
 from datetime import datetime, timezone
 from io import BufferedIOBase
 from pathlib import Path
-from typing import IO, Any, BinaryIO, Final, cast
+from typing import Any, BinaryIO, Final, cast
 
 import can
 from can.io.generic import BinaryIOMessageWriter
 from mcap.exceptions import UnsupportedCompressionError
-from mcap.writer import CompressionType, Writer
+from mcap.writer import CompressionType
 
 from dobhil import __version__
 from dobhil.canio.mcap_reader import is_open_input
-from dobhil.canio.frames import FRAME_TOPICS, Topic, channel_spec, frame_json, topic_of
+from dobhil.canio.frames import FRAME_TOPICS, topic_of
+from dobhil.recording.schemas import Direction, can_frame_record
+from dobhil.recording.writer import CHUNK_SIZE, LogWriter
 
 #: Name of the metadata record written at the start (and ``.stop`` at the end).
 METADATA: Final = "python-can"
-CHUNK_SIZE: Final = 256 * 1024
 _DEFERRED: Final = {signal.SIGINT, signal.SIGTERM}
 _COMPRESSION: Final = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}
 
@@ -91,7 +92,8 @@ def _utc_now() -> str:
 
 
 class McapWriter(BinaryIOMessageWriter):
-    """Writes CAN frames to an MCAP file (path or binary file object, owned either way)."""
+    """Writes CAN frames to an MCAP file (path or binary file object, owned either way)
+    through recording's :class:`~dobhil.recording.writer.LogWriter`: one writer of dobhil logs."""
 
     def __init__(self, file: str | os.PathLike[str] | BinaryIO | BufferedIOBase, append: bool = False, *,
                  compression: str | None = None, chunk_size: int = CHUNK_SIZE, flush_interval: float = 1.0,
@@ -116,37 +118,21 @@ class McapWriter(BinaryIOMessageWriter):
         self._next_flush = time.monotonic() + self._interval
         self._counts = {topic: 0 for topic in FRAME_TOPICS}
         self._stopped = False
+        metadata = {METADATA: {"writer": f"{__name__}.{type(self).__name__}", "program": program_name(),
+                               "dobhil": __version__, "python-can": can.__version__, "started": _utc_now()}}
         try:
-            self._writer = self._start(compression, int(chunk_size))
-            self._channels = {topic: self._register(topic) for topic in FRAME_TOPICS}
-            self._writer.flush()
+            self._log = LogWriter(cast(BinaryIO, self.file), metadata=metadata, fsync=False,
+                                  library=f"dobhil/{__version__} (python-can {can.__version__})",
+                                  compression=_COMPRESSION[compression] if compression else None,
+                                  chunk_size=int(chunk_size))
+        except UnsupportedCompressionError:
+            self.file.close()
+            raise ValueError(f"MCAP writer: compression {compression!r} is not installed") from None
         except BaseException:
             self.file.close()
             raise
-
-    def _start(self, compression: str | None, chunk_size: int) -> Writer:
-        """The mcap writer, header and start metadata written; the first compression installed
-        of zstd, lz4, none unless one is asked for."""
-        kinds = [_COMPRESSION[compression]] if compression else list(_COMPRESSION.values())
-        for kind in kinds:
-            try:
-                writer = Writer(cast(IO[bytes], self.file), chunk_size=chunk_size, compression=kind)
-            except UnsupportedCompressionError:
-                if compression:
-                    raise ValueError(f"MCAP writer: compression {compression!r} is not installed") from None
-                continue
-            break
-        writer.start(profile="", library=f"dobhil/{__version__} (python-can {can.__version__})")
-        writer.add_metadata(METADATA, {
-            "writer": f"{__name__}.{type(self).__name__}", "program": program_name(),
-            "dobhil": __version__, "python-can": can.__version__, "started": _utc_now(),
-        })
-        return writer
-
-    def _register(self, topic: Topic) -> int:
-        name, schema_name, schema, schema_encoding, message_encoding = channel_spec(topic)
-        schema_id = self._writer.register_schema(schema_name, schema_encoding, schema)
-        return self._writer.register_channel(name, message_encoding, schema_id)
+        self._log.register(*FRAME_TOPICS)  # an empty capture is still a CAN log
+        self._log.flush()
 
     @property
     def frames_written(self) -> int:
@@ -155,17 +141,16 @@ class McapWriter(BinaryIOMessageWriter):
 
     def on_message_received(self, msg: can.Message) -> None:
         topic = topic_of(msg)
-        data = frame_json(msg)
         stamp = msg.timestamp
-        log_ns = max(0, round(stamp * 1e9)) if stamp else time.time_ns()
+        record = can_frame_record(msg, Direction.RX if msg.is_rx else Direction.TX,
+                                  max(0, round(stamp * 1e9)) if stamp else time.time_ns())
         with self._lock, _signals_deferred():
             if self._stopped:
                 raise ValueError("MCAP writer: message after stop()")
-            sequence = self._counts[topic]
-            self._writer.add_message(self._channels[topic], log_ns, data, log_ns, sequence=sequence & 0xFFFFFFFF)
-            self._counts[topic] = sequence + 1
+            self._log.write((record,))
+            self._counts[topic] += 1
             if time.monotonic() >= self._next_flush:
-                self._writer.flush()
+                self._log.flush()
                 self._next_flush = time.monotonic() + self._interval
 
     def stop(self) -> None:
@@ -176,9 +161,8 @@ class McapWriter(BinaryIOMessageWriter):
             self._stopped = True
             try:
                 rx, tx = (self._counts[t] for t in FRAME_TOPICS)
-                self._writer.add_metadata(f"{METADATA}.stop", {
-                    "frames": str(rx + tx), "rx": str(rx), "tx": str(tx), "stopped": _utc_now()})
-                self._writer.finish()
+                self._log.finish(None, metadata={f"{METADATA}.stop": {
+                    "frames": str(rx + tx), "rx": str(rx), "tx": str(tx), "stopped": _utc_now()}})
             finally:
                 super().stop()
 

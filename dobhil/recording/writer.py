@@ -1,10 +1,10 @@
 """One MCAP file being written, through the public :class:`mcap.writer.Writer`.
 
-:class:`LogWriter` writes every dobhil log of a run or ``dobhil log import`` (python-can's
-``can.Logger`` plugin, :mod:`dobhil.canio`, writes CAN-only logs with the same topic table):
-header, metadata, attachments, a channel per topic on its first message, records encoded by
-the table, flush (and fsync) on request, the ``recording`` summary on finish, every message
-to a second output (the live view) too. No python-can, no numpy: the process starts fast.
+:class:`LogWriter` writes every dobhil log: a run's, ``dobhil log import``'s and those of
+python-can's ``can.Logger("x.mcap")`` (:mod:`dobhil.canio`): header, metadata, attachments,
+a channel per topic on its first message, records encoded by the table, flush (and fsync)
+on request, the ``recording`` summary on finish, every message to a second output (the
+live view) too. No python-can, no numpy: the process starts fast.
 """
 
 from __future__ import annotations
@@ -81,7 +81,8 @@ class LogWriter:
 
     def __init__(self, file: BinaryIO, *, metadata: Mapping[str, Mapping[str, Any]],
                  attachments: Iterable[Sequence[Any]] = (), mode: RecordMode = RecordMode.BACKPRESSURE,
-                 fsync: bool = True, library: str = LIBRARY) -> None:
+                 fsync: bool = True, library: str = LIBRARY, compression: CompressionType | None = None,
+                 chunk_size: int = CHUNK_SIZE) -> None:
         self.file = file
         self.mode = RecordMode(mode)
         self.fsync = fsync
@@ -91,7 +92,8 @@ class LogWriter:
         self._outputs: list[Output] = []
         self._channel = _Channels(self._register)
         self._schemas: dict[str, int] = {}
-        self._mcap = Writer(file, chunk_size=CHUNK_SIZE, compression=chunk_compression(), enable_data_crcs=True)
+        self._mcap = Writer(file, chunk_size=chunk_size, compression=compression or chunk_compression(),
+                            enable_data_crcs=True)
         self._mcap.start(profile="", library=library)
         for name, record in metadata.items():
             self._mcap.add_metadata(name, {str(k): str(v) for k, v in record.items()})
@@ -99,6 +101,11 @@ class LogWriter:
         for name, media_type, data in attachments:
             self._mcap.add_attachment(create_time=now, log_time=now, name=name, media_type=media_type, data=data)
         file.flush()
+
+    def register(self, *topics: Topic) -> None:
+        """Channels for ``topics`` now (they are registered on first use otherwise)."""
+        for topic in topics:
+            _ = self._channel[topic]
 
     def add_output(self, output: Output) -> None:
         """Send every message to ``output`` as well, every topic of the table announced now."""
@@ -143,8 +150,11 @@ class LogWriter:
         if self.fsync:
             os.fsync(self.file.fileno())
 
-    def finish(self, stop_reason: str | None, detail: str = "") -> None:
-        """Stop event (if a reason is given), summary metadata, footer; close the file."""
+    def finish(self, stop_reason: str | None, detail: str = "",
+               metadata: Mapping[str, Mapping[str, str]] | None = None) -> None:
+        """Stop event (if a reason is given), more ``metadata``, the summary, footer; close the file."""
+        for name, record in (metadata or {}).items():
+            self._mcap.add_metadata(name, dict(record))
         if stop_reason is not None:
             self.write([event_record(EventKind.STOP, self.last_log_ns or time.time_ns(), stop_reason, detail)])
         summary = {"mode": self.mode.name.lower(), "written": str(self.written), "dropped": str(self.dropped),
