@@ -31,7 +31,7 @@ from typing import Any, Final
 
 import dobhil
 from dobhil.errors import RecorderError
-from dobhil.recording.schemas import Topic, message_count
+from dobhil.recording.schemas import Topic, frame_flags, message_count
 from dobhil.recording.writer import LogWriter, RecordMode
 
 #: Seconds ``close`` waits for the writer process to finish the file.
@@ -92,10 +92,8 @@ class Batch:
         a new message per receive). Never raises into the bus call that recorded it."""
         try:
             records = self.records
-            records.append((topic, self.clock_ns(), msg.arbitration_id,
-                            msg.is_extended_id | msg.is_remote_frame << 1 | msg.is_error_frame << 2
-                            | msg.is_fd << 3 | msg.bitrate_switch << 4 | msg.error_state_indicator << 5,
-                            msg.dlc, msg.data if topic == _RX else bytes(msg.data), msg.timestamp, msg.channel))
+            records.append((topic, self.clock_ns(), msg.arbitration_id, frame_flags(msg), msg.dlc,
+                            msg.data if topic == _RX else bytes(msg.data), msg.timestamp, msg.channel))
             if len(records) >= 4 * BATCH_RECORDS:  # no cycle for a while: enable, preflight
                 self.flush()
         except RecorderError as exc:

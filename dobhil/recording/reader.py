@@ -4,10 +4,10 @@ A pass with the ``mcap`` package's public :class:`~mcap.stream_reader.StreamRead
 (data-section CRC) and :func:`~mcap.stream_reader.get_chunk_data_stream` (each chunk's
 CRC) tells apart, one :class:`~dobhil.errors.LogFileError` line each: complete; cut short
 (run ``dobhil log recover``); damaged at byte N; not a dobhil log (written by X); invalid
-metadata (the config against its schema, numbers as numbers). Reading messages is such a
-pass again, each decompressed, CRC-checked chunk sliced with ``struct``
-(:meth:`LogFile.iter_payloads`): the ``mcap`` reader's object per record made replay spend
-most of its time reading.
+metadata (the config against its schema, numbers as numbers). Messages are then read chunk
+by chunk at the offsets found, each decompressed, CRC-checked again and sliced with
+``struct`` (:meth:`LogFile.iter_payloads`): the ``mcap`` reader's object per record made
+replay spend most of its time reading.
 """
 
 from __future__ import annotations

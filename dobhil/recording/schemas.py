@@ -157,11 +157,18 @@ _CAN_FIELDS: Final = (
 )
 
 
+def frame_flags(msg: Any) -> int:
+    """The :class:`FrameFlag` bits of a python-can message (spelled out: the loop thread
+    calls it for every frame it records)."""
+    return (msg.is_extended_id | msg.is_remote_frame << 1 | msg.is_error_frame << 2 | msg.is_fd << 3
+            | msg.bitrate_switch << 4 | msg.error_state_indicator << 5)
+
+
 def can_frame_record(msg: Any, direction: Direction, log_time_ns: int) -> tuple[Any, ...]:
     """The record of a python-can message on ``/can/rx`` or ``/can/tx``."""
     topic = Topic.CAN_RX if direction is Direction.RX else Topic.CAN_TX
-    return (int(topic), log_time_ns, msg.arbitration_id, sum(f for n, f in _FLAGS if getattr(msg, n)), msg.dlc,
-            bytes(msg.data or b""), msg.timestamp, msg.channel)
+    return (int(topic), log_time_ns, msg.arbitration_id, frame_flags(msg), msg.dlc, bytes(msg.data or b""),
+            msg.timestamp, msg.channel)
 
 
 def can_frame_payload(values: Sequence[Any], direction: Direction) -> dict[str, Any]:
@@ -296,4 +303,4 @@ def decode(data: bytes) -> dict[str, Any]:
 __all__ = ["CYCLE", "CYCLE_FIELDS", "CYCLE_TOPICS", "MESSAGE_ENCODING", "SCHEMA_ENCODING", "SPECS_BY_NAME",
            "TOPIC_SPECS", "Direction", "EventKind", "Field", "FieldKind", "FrameFlag", "Topic", "TopicSpec",
            "can_frame_message", "can_frame_payload", "can_frame_record", "decode", "event_record",
-           "message_count", "messages", "spec_for"]
+           "frame_flags", "message_count", "messages", "spec_for"]

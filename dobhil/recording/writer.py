@@ -92,8 +92,8 @@ class LogWriter:
         self._outputs: list[Output] = []
         self._channel = _Channels(self._register)
         self._schemas: dict[str, int] = {}
-        self._mcap = Writer(file, chunk_size=chunk_size, compression=compression or chunk_compression(),
-                            enable_data_crcs=True)
+        kind = chunk_compression() if compression is None else compression
+        self._mcap = Writer(file, chunk_size=chunk_size, compression=kind, enable_data_crcs=True)
         self._mcap.start(profile="", library=library)
         for name, record in metadata.items():
             self._mcap.add_metadata(name, {str(k): str(v) for k, v in record.items()})

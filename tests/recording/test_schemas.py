@@ -111,3 +111,19 @@ def test_docs_list_every_topic_and_field() -> None:
         assert f"`{spec.name}` — `{spec.schema_name}`" in doc
         for f in spec.fields:
             assert f"| `{f.name}` |" in doc
+
+
+def test_frame_flags_spelled_out_agree_with_the_enum() -> None:
+    """The loop's spelled-out bit expression and :class:`FrameFlag` (named as python-can's
+    attributes) say the same, one flag at a time and all together."""
+    import can
+
+    from dobhil.recording.schemas import FrameFlag, frame_flags
+    for flag in FrameFlag:
+        msg = can.Message(arbitration_id=1, is_extended_id=False, check=False)
+        setattr(msg, flag.name.lower(), True)
+        assert frame_flags(msg) == flag
+    everything = can.Message(arbitration_id=1, check=False)
+    for flag in FrameFlag:
+        setattr(everything, flag.name.lower(), True)
+    assert frame_flags(everything) == sum(FrameFlag)
