@@ -229,10 +229,10 @@ def _recorder_msgs_per_s(recorded: Path) -> float:
     records = []
     for k in range(20000):
         t = 1_000_000_000 + k * 1_000_000
-        records.append((1, t, 0x069, 0, 8, bytes(range(8)), 1.5, "bench"))
+        records.append((1, t, 0x069, *(False,) * 6, 8, bytes(range(8)), 1.5, "bench"))
         records.append((CYCLE, t, k, 1e-4 * k, 0.1, k, 0.2, 0.19, 0.01, 0.02, 0.03, 0.03,
                         0.0, 3e-5, False, 8, 0, 1e-4 * k, 0.1, 0.03, 0.19))
-        records.append((2, t, 0x06E, 0, 4, bytes(4), 0.0, "bench"))
+        records.append((2, t, 0x06E, *(False,) * 6, 4, bytes(4), 0.0, "bench"))
     best = 0.0
     for _ in range(3):
         t0 = time.perf_counter()

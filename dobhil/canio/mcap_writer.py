@@ -12,8 +12,7 @@ in progress is written out every ``flush_interval`` seconds, so a killed logger 
 at most that much and ``dobhil log recover`` completes the file.
 
 Keyword arguments (on python-can's command lines ``--compression=lz4``, ``--flush-interval=0.5``):
-``compression`` (``zstd``, ``lz4`` or ``none``; default: zstd if installed, else lz4,
-else none), ``chunk_size`` (bytes) and ``flush_interval`` (seconds).
+``compression`` (``zstd``, ``lz4`` or ``none``; default zstd), ``chunk_size`` (bytes) and ``flush_interval`` (seconds).
 """
 
 from __future__ import annotations
@@ -123,7 +122,7 @@ class McapWriter(BinaryIOMessageWriter):
         try:
             self._log = LogWriter(cast(BinaryIO, self.file), metadata=metadata, fsync=False,
                                   library=f"dobhil/{__version__} (python-can {can.__version__})",
-                                  compression=_COMPRESSION[compression] if compression else None,
+                                  compression=_COMPRESSION[compression or "zstd"],
                                   chunk_size=int(chunk_size))
         except UnsupportedCompressionError:
             self.file.close()

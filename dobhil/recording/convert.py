@@ -59,13 +59,9 @@ def default_csv_output(mcap_path: str | os.PathLike[str], topic: str) -> Path:
 
 
 def cell(value: Any) -> str:
-    if value is None:
-        return ""
     if isinstance(value, bool):
         return "true" if value else "false"
-    if isinstance(value, list):
-        return " ".join(cell(v) for v in value)
-    return str(value)
+    return "" if value is None else " ".join(map(cell, value)) if isinstance(value, list) else str(value)
 
 
 def export_csv(mcap_path: str | os.PathLike[str], topic: str, out: str | os.PathLike[str], *,
@@ -99,9 +95,8 @@ def export_can(mcap_path: str | os.PathLike[str], out: str | os.PathLike[str], f
 
 def _each(messages: Any, progress: ProgressFn | None, write: Callable[[int, Any], Any]) -> int:
     count = 0
-    for _, t, payload in messages:
+    for count, (_, t, payload) in enumerate(messages, 1):
         write(t, payload)
-        count += 1
         if progress is not None:
             progress(1)
     return count
@@ -124,15 +119,13 @@ def import_can(canlog: str | os.PathLike[str], out: str | os.PathLike[str], *,
     """Every frame of a python-can readable log into a new MCAP; the frame count."""
     source = Path(canlog)
     check_output(out, inputs=[source], suffix=".mcap", what="output")
-    count = 0
-    meta = {"import": {"source": source.name, "format": source.suffix.lstrip(".").lower()}}
+    count, meta = 0, {"import": {"source": source.name, "format": source.suffix.lstrip(".").lower()}}
     with _can_reader(source) as reader, atomic_path(out) as tmp:
         log = LogWriter(open(tmp, "wb"), metadata=meta, fsync=False)
         try:
-            for msg in reader:
-                direction = Direction.RX if msg.is_rx else Direction.TX
-                log.write([can_frame_record(msg, direction, round((msg.timestamp or 0.0) * 1e9))])
-                count += 1
+            for count, msg in enumerate(reader, 1):
+                log.write([can_frame_record(msg, Direction.RX if msg.is_rx else Direction.TX,
+                                            round((msg.timestamp or 0.0) * 1e9))])
                 if progress is not None:
                     progress(1)
         except Exception as exc:  # whatever a damaged log makes the reader raise

@@ -1,16 +1,11 @@
-"""The hand-over of a recorded run: :class:`Batch` on the loop thread, the writer process
-at the other end of a pipe (``docs/recording.md`` has the diagram and the guarantees).
+"""The hand-over of a recorded run (``docs/recording.md`` has the diagram and guarantees).
 
-No thread of the loop's process touches the log: the loop thread appends flat records to a
-:class:`Batch` and, every ``BATCH_RECORDS``, after a cycle's command, pickles them into the
-pipe with one ``os.write`` (a sender thread, tried first, held the GIL the loop then waited
-for: ms late). Real time (``LOSSY``, non-blocking): a batch with no room is dropped and
-counted (events kept, the total sent as a ``LOSS`` record); one the pipe took in part is
-finished before anything else. Lockstep (``BACKPRESSURE``): the write waits. The child, a
-fresh interpreter ignoring SIGINT/SIGTERM, polls the pipe, writes through
-:class:`LogWriter`, flushes every ``flush_interval``, finishes the file on ``STOP`` or when
-the parent dies (:data:`PARENT_EXITED`), and sends one status; its failure (disk full, a
-record its encoder refuses) is a :class:`~dobhil.errors.RecorderError` at the next hand-over.
+The loop thread appends flat records to a :class:`Batch` and, every ``BATCH_RECORDS``, after
+a cycle's command, pickles them into a pipe with one ``os.write`` (no thread: a sender thread
+held the GIL the loop then waited for). ``LOSSY``: never blocks; a batch with no room is
+dropped and counted, one taken in part is finished first. ``BACKPRESSURE``: the write waits.
+The writer process ignores SIGINT/SIGTERM, writes through :class:`LogWriter`, flushes every
+``flush_interval``, finishes the file on ``STOP`` or when the parent dies, sends one status.
 """
 
 from __future__ import annotations
@@ -31,7 +26,7 @@ from typing import Any, Final
 
 import dobhil
 from dobhil.errors import RecorderError
-from dobhil.recording.schemas import Topic, frame_flags, message_count
+from dobhil.recording.schemas import Topic, message_count
 from dobhil.recording.writer import LogWriter, RecordMode
 
 #: Seconds ``close`` waits for the writer process to finish the file.
@@ -89,10 +84,12 @@ class Batch:
 
     def frame(self, topic: int, msg: Any) -> None:
         """A frame as it is now (the drive refills its torque message; python-can hands out
-        a new message per receive). Never raises into the bus call that recorded it."""
+        a new message per receive): ``schemas.can_frame_record`` spelled out for speed.
+        Never raises into the bus call that recorded it."""
         try:
             records = self.records
-            records.append((topic, self.clock_ns(), msg.arbitration_id, frame_flags(msg), msg.dlc,
+            records.append((topic, self.clock_ns(), msg.arbitration_id, msg.is_extended_id, msg.is_remote_frame,
+                            msg.is_error_frame, msg.is_fd, msg.bitrate_switch, msg.error_state_indicator, msg.dlc,
                             msg.data if topic == _RX else bytes(msg.data), msg.timestamp, msg.channel))
             if len(records) >= 4 * BATCH_RECORDS:  # no cycle for a while: enable, preflight
                 self.flush()
@@ -223,25 +220,20 @@ class WriterProcess:
 
     def close(self, stop_reason: str | None = None, detail: str = "", rest: Sequence[tuple[Any, ...]] = ()) -> None:
         """The ``rest`` of the records, none dropped; stop event (if a reason is given),
-        summary, footer; waits for the process. Raises :class:`RecorderError` if the writer
-        failed. Idempotent."""
+        summary, footer; waits for the process (never opened: the empty file is removed).
+        Raises :class:`RecorderError` if the writer failed. Idempotent."""
         if not self._closed:
-            if self._failure is None:
-                try:
+            try:
+                if self.opened and self._failure is None:
                     self._stop(self.encode(rest), stop_reason, detail)
-                except RecorderError:
-                    pass  # noted: raised below
+            except RecorderError:
+                pass  # refused (the file finished recorder_failed): raised below
             self._closed = True
             self._join()
+            if not self.opened and self.path.exists() and self.path.stat().st_size == 0:
+                self.path.unlink()
         if self._failure is not None:
             raise self._fail(self._failure)
-
-    def abandon(self) -> None:
-        """Close without a run (nothing was opened): the empty file is removed."""
-        self._closed = True
-        self._join()
-        if self.path.exists() and self.path.stat().st_size == 0:
-            self.path.unlink()
 
     def refuse(self, why: str) -> RecorderError:
         """A record that cannot be encoded (a bug, not the disk): the file is finished with

@@ -1,13 +1,11 @@
 """Reading a dobhil log: :class:`LogFile`, opened once and checked before anything uses it.
 
-A pass with the ``mcap`` package's public :class:`~mcap.stream_reader.StreamReader`
-(data-section CRC) and :func:`~mcap.stream_reader.get_chunk_data_stream` (each chunk's
-CRC) tells apart, one :class:`~dobhil.errors.LogFileError` line each: complete; cut short
-(run ``dobhil log recover``); damaged at byte N; not a dobhil log (written by X); invalid
-metadata (the config against its schema, numbers as numbers). Messages are then read chunk
-by chunk at the offsets found, each decompressed, CRC-checked again and sliced with
-``struct`` (:meth:`LogFile.iter_payloads`): the ``mcap`` reader's object per record made
-replay spend most of its time reading.
+One pass with the ``mcap`` package's public :class:`~mcap.stream_reader.StreamReader`
+(data and chunk CRCs) tells apart, one :class:`~dobhil.errors.LogFileError` line each:
+complete; cut short; damaged at byte N; not a dobhil log (written by X); invalid metadata.
+Messages are then read chunk by chunk at the offsets found, each CRC-checked again and sliced
+with ``struct``: the ``mcap`` reader's object per record made replay spend most of its time
+reading.
 """
 
 from __future__ import annotations
@@ -259,6 +257,7 @@ class LogFile:
                        stats.message_start_time if stats else 0, stats.message_end_time if stats else 0,
                        MappingProxyType(self.metadata), tuple(a for a, _, _ in self.attachments), self.stop_reason(),
                        None if dropped is None else int(dropped))
+
 
 def _chunk_messages(records: bytes, wanted: Mapping[int, str]) -> Iterator[tuple[str, int, bytes]]:
     head, msg_head = _RECORD.unpack_from, _MESSAGE.unpack_from

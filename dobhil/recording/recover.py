@@ -18,7 +18,7 @@ from mcap.writer import Writer
 
 from dobhil.files import atomic_path, check_output
 from dobhil.recording.reader import check_mcap_head
-from dobhil.recording.writer import CHUNK_SIZE, LIBRARY, chunk_compression
+from dobhil.recording.writer import CHUNK_SIZE, COMPRESSION, LIBRARY
 
 ProgressFn = Callable[[int], None]
 
@@ -112,7 +112,7 @@ def recover(path: str | os.PathLike[str], out: str | os.PathLike[str] | None = N
     check_mcap_head(path)
     target = check_output(default_output(path) if out is None else out, inputs=[path], suffix=".mcap", what="output")
     with atomic_path(target) as tmp, open(tmp, "wb") as sink, open(path, "rb") as source:
-        writer = Writer(sink, chunk_size=CHUNK_SIZE, compression=chunk_compression(), enable_data_crcs=True)
+        writer = Writer(sink, chunk_size=CHUNK_SIZE, compression=COMPRESSION, enable_data_crcs=True)
         writer.start(profile="", library=f"{LIBRARY} recover")
         copier, pos, why = _Copier(writer, progress), 0, ""
         limit = os.fstat(source.fileno()).st_size

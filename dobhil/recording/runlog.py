@@ -127,9 +127,6 @@ class RunLog(Batch):
         if self._closed:
             return
         self._closed = True
-        if not self.writer.opened:
-            self.writer.abandon()
-            return
         self.writer.close(stop_reason, detail, rest=self.take())
 
 

@@ -2,14 +2,14 @@
 and encoder live here; ``docs/recording.md`` lists them (a test checks it).
 
 Records are flat tuples, cheap to build on the loop thread: ``(Topic, log_time_ns, *values)``
-(CAN topics: ``arbitration_id, flags, dlc, data, timestamp, channel``), or
-``(CYCLE, log_time_ns, *CYCLE_FIELDS)``: one message per topic of :data:`CYCLE_TOPICS`.
+(CAN topics: :data:`FRAME_ATTRIBUTES`), or
+``(CYCLE, log_time_ns, *CYCLE_FIELDS)``; :data:`VIEWS` gives the messages of each.
 """
 
 from __future__ import annotations
 
 import json
-from collections.abc import Callable, Iterator, Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from functools import cached_property
 from enum import IntEnum
@@ -65,21 +65,6 @@ class EventKind(IntEnum):
     WATCHDOG = 5
     LOSS = 6
     INFO = 7
-
-
-class FrameFlag(IntEnum):
-    """Bits of a CAN frame record's ``flags``: the booleans of a python-can message (the
-    attribute is the lower-case name)."""
-
-    IS_EXTENDED_ID = 1
-    IS_REMOTE_FRAME = 2
-    IS_ERROR_FRAME = 4
-    IS_FD = 8
-    BITRATE_SWITCH = 16
-    ERROR_STATE_INDICATOR = 32
-
-
-_FLAGS: Final = tuple((f.name.lower(), f) for f in FrameFlag)
 
 
 _JSON_TYPE: Final[dict[FieldKind, dict[str, Any]]] = {
@@ -157,27 +142,27 @@ _CAN_FIELDS: Final = (
 )
 
 
-def frame_flags(msg: Any) -> int:
-    """The :class:`FrameFlag` bits of a python-can message (spelled out: the loop thread
-    calls it for every frame it records)."""
-    return (msg.is_extended_id | msg.is_remote_frame << 1 | msg.is_error_frame << 2 | msg.is_fd << 3
-            | msg.bitrate_switch << 4 | msg.error_state_indicator << 5)
+#: The python-can message attributes a CAN frame record holds, in order.
+FRAME_ATTRIBUTES: Final = ("arbitration_id", "is_extended_id", "is_remote_frame", "is_error_frame", "is_fd",
+                           "bitrate_switch", "error_state_indicator", "dlc", "data", "timestamp", "channel")
 
 
 def can_frame_record(msg: Any, direction: Direction, log_time_ns: int) -> tuple[Any, ...]:
-    """The record of a python-can message on ``/can/rx`` or ``/can/tx``."""
+    """The record of a python-can message on ``/can/rx`` or ``/can/tx`` (the data copied)."""
     topic = Topic.CAN_RX if direction is Direction.RX else Topic.CAN_TX
-    return (int(topic), log_time_ns, msg.arbitration_id, frame_flags(msg), msg.dlc, bytes(msg.data or b""),
-            msg.timestamp, msg.channel)
+    values = [getattr(msg, a) for a in FRAME_ATTRIBUTES]
+    values[8] = bytes(values[8] or b"")
+    return (int(topic), log_time_ns, *values)
 
 
 def can_frame_payload(values: Sequence[Any], direction: Direction) -> dict[str, Any]:
     """The ``/can/*`` payload of a frame record's values (after topic and log time)."""
-    arb, flags, dlc, data, stamp, channel = values
+    arb, ext, rtr, err, fd, brs, esi, dlc, data, stamp, channel = values
     data = bytes(data)
-    return {"timestamp": float(stamp or 0.0), "arbitration_id": arb, **{n: bool(flags & f) for n, f in _FLAGS},
-            "dlc": dlc, "data": list(data), "data_hex": data.hex(), "direction": direction.name.lower(),
-            "channel": "" if channel is None else str(channel)}
+    return {"timestamp": float(stamp or 0.0), "arbitration_id": arb, "is_extended_id": bool(ext),
+            "is_remote_frame": bool(rtr), "is_error_frame": bool(err), "is_fd": bool(fd), "bitrate_switch": bool(brs),
+            "error_state_indicator": bool(esi), "dlc": dlc, "data": list(data), "data_hex": data.hex(),
+            "direction": direction.name.lower(), "channel": "" if channel is None else str(channel)}
 
 
 def can_frame_message(payload: Mapping[str, Any], log_time_ns: int) -> Any:
@@ -258,37 +243,34 @@ CYCLE_FIELDS: Final = ("cycle", "position", "velocity", "seq", "tau_ref", "tau_i
 _ALIASES: Final = {"torque": "u_sat"}  # /drive/command.torque is the saturated output
 
 
-def _view(spec: TopicSpec) -> tuple[Topic, Encoder, int]:
-    """(topic, cycle record -> JSON, shortest record holding its values) of a cycle topic."""
+def _view(spec: TopicSpec, in_cycle: bool) -> tuple[Topic, Encoder, int]:
+    """(topic, record -> JSON, shortest record holding its values) of a message in a cycle
+    record or in a record of its own."""
+    encode = spec.encode
+    if not in_cycle:
+        return spec.topic, lambda r: encode(r[2:]), 0
     idx = [2 + CYCLE_FIELDS.index(_ALIASES.get(k, k)) for k in spec.keys]
-    get, encode = itemgetter(*idx), spec.encode
     if len(idx) == 1:
         return spec.topic, lambda r, i=idx[0]: encode((r[i],)), idx[0] + 1
+    get = itemgetter(*idx)
     return spec.topic, lambda r: encode(get(r)), max(idx) + 1
 
 
-#: (topic, cycle record -> JSON, shortest record holding its values) of every cycle topic.
-CYCLE_TOPICS: Final = tuple(_view(TOPIC_SPECS[t]) for t in (Topic.DRIVE_FEEDBACK, Topic.CONTROLLER,
-                                                             Topic.DRIVE_COMMAND, Topic.LOOP, Topic.EMULATOR_TRUTH))
+#: Record kind (CYCLE or a Topic) -> the views of each message the record becomes.
+VIEWS: Final[Mapping[int, tuple[tuple[Topic, Encoder, int], ...]]] = MappingProxyType({
+    CYCLE: tuple(_view(TOPIC_SPECS[t], True) for t in (Topic.DRIVE_FEEDBACK, Topic.CONTROLLER, Topic.DRIVE_COMMAND,
+                                                        Topic.LOOP, Topic.EMULATOR_TRUTH)),
+    **{int(t): (_view(s, False),) for t, s in TOPIC_SPECS.items()}})
 
 
-def messages(record: Sequence[Any]) -> Iterator[tuple[Topic, int, bytes]]:
+def messages(record: Sequence[Any]) -> list[tuple[Topic, int, bytes]]:
     """The ``(topic, log_time_ns, json)`` messages of one record."""
-    kind, t = record[0], record[1]
-    if kind != CYCLE:
-        yield Topic(kind), t, TOPIC_SPECS[Topic(kind)].encode(record[2:])
-        return
-    n = len(record)
-    for topic, encode, needs in CYCLE_TOPICS:
-        if n >= needs:
-            yield topic, t, encode(record)
+    return [(topic, record[1], encode(record)) for topic, encode, needs in VIEWS[record[0]] if len(record) >= needs]
 
 
 def message_count(record: Sequence[Any]) -> int:
     """How many messages a record becomes (loss accounting)."""
-    if record[0] != CYCLE:
-        return 1
-    return sum(len(record) >= needs for _, _, needs in CYCLE_TOPICS)
+    return sum(len(record) >= needs for _, _, needs in VIEWS[record[0]])
 
 
 def event_record(kind: EventKind, log_time_ns: int, reason: str, detail: str = "", count: int = 0) -> tuple[Any, ...]:
@@ -300,7 +282,7 @@ def decode(data: bytes) -> dict[str, Any]:
     return orjson.loads(data)
 
 
-__all__ = ["CYCLE", "CYCLE_FIELDS", "CYCLE_TOPICS", "MESSAGE_ENCODING", "SCHEMA_ENCODING", "SPECS_BY_NAME",
-           "TOPIC_SPECS", "Direction", "EventKind", "Field", "FieldKind", "FrameFlag", "Topic", "TopicSpec",
-           "can_frame_message", "can_frame_payload", "can_frame_record", "decode", "event_record",
-           "frame_flags", "message_count", "messages", "spec_for"]
+__all__ = ["CYCLE", "CYCLE_FIELDS", "FRAME_ATTRIBUTES", "MESSAGE_ENCODING", "SCHEMA_ENCODING", "SPECS_BY_NAME",
+           "TOPIC_SPECS", "VIEWS", "Direction", "EventKind", "Field", "FieldKind", "Topic", "TopicSpec",
+           "can_frame_message", "can_frame_payload", "can_frame_record", "decode", "event_record", "message_count",
+           "messages", "spec_for"]

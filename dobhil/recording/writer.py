@@ -18,11 +18,13 @@ from typing import Any, BinaryIO, Final, Protocol
 from mcap.writer import CompressionType, Writer
 
 from dobhil import __version__
-from dobhil.recording.schemas import (CYCLE, CYCLE_TOPICS, MESSAGE_ENCODING, SCHEMA_ENCODING, TOPIC_SPECS, EventKind,
-                                      Topic, event_record)
+from dobhil.recording.schemas import (MESSAGE_ENCODING, SCHEMA_ENCODING, TOPIC_SPECS, VIEWS, EventKind, Topic,
+                                      event_record)
 
 #: Chunks end at this size or at every flush, whichever comes first.
 CHUNK_SIZE: Final = 256 * 1024
+#: Chunk compression (``zstandard`` is a dependency of ``mcap``).
+COMPRESSION: Final = CompressionType.ZSTD
 #: Name of the metadata record written on close.
 RECORDING_METADATA: Final = "recording"
 #: Header ``library`` of every file dobhil writes (the reader checks it).
@@ -49,17 +51,6 @@ class Output(Protocol):
     def dropped(self) -> int: ...
 
 
-def chunk_compression() -> CompressionType:
-    """zstd if importable, else lz4, else none."""
-    for module, kind in (("zstandard", CompressionType.ZSTD), ("lz4.frame", CompressionType.LZ4)):
-        try:
-            __import__(module)
-        except ImportError:
-            continue
-        return kind
-    return CompressionType.NONE
-
-
 _NAMES: Final = {t: s.name for t, s in TOPIC_SPECS.items()}
 
 
@@ -81,7 +72,7 @@ class LogWriter:
 
     def __init__(self, file: BinaryIO, *, metadata: Mapping[str, Mapping[str, Any]],
                  attachments: Iterable[Sequence[Any]] = (), mode: RecordMode = RecordMode.BACKPRESSURE,
-                 fsync: bool = True, library: str = LIBRARY, compression: CompressionType | None = None,
+                 fsync: bool = True, library: str = LIBRARY, compression: CompressionType = COMPRESSION,
                  chunk_size: int = CHUNK_SIZE) -> None:
         self.file = file
         self.mode = RecordMode(mode)
@@ -92,8 +83,7 @@ class LogWriter:
         self._outputs: list[Output] = []
         self._channel = _Channels(self._register)
         self._schemas: dict[str, int] = {}
-        kind = chunk_compression() if compression is None else compression
-        self._mcap = Writer(file, chunk_size=chunk_size, compression=kind, enable_data_crcs=True)
+        self._mcap = Writer(file, chunk_size=chunk_size, compression=compression, enable_data_crcs=True)
         self._mcap.start(profile="", library=library)
         for name, record in metadata.items():
             self._mcap.add_metadata(name, {str(k): str(v) for k, v in record.items()})
@@ -118,23 +108,14 @@ class LogWriter:
         add, channel, outputs = self._mcap.add_message, self._channel, self._outputs
         written, last = self.written, self.last_log_ns
         for record in records:
-            kind, t = record[0], record[1]
-            if kind == CYCLE:
-                n = len(record)
-                for topic, encode, needs in CYCLE_TOPICS:
-                    if n >= needs:
-                        data = encode(record)
-                        add(channel[topic], t, data, t)
-                        written += 1
-                        for out in outputs:
-                            out.publish(_NAMES[topic], data, t)
-            else:
-                topic = Topic(kind)
-                data = TOPIC_SPECS[topic].encode(record[2:])
-                add(channel[topic], t, data, t)
-                written += 1
-                for out in outputs:
-                    out.publish(_NAMES[topic], data, t)
+            t, n = record[1], len(record)
+            for topic, encode, needs in VIEWS[record[0]]:
+                if n >= needs:
+                    data = encode(record)
+                    add(channel[topic], t, data, t)
+                    written += 1
+                    for out in outputs:
+                        out.publish(_NAMES[topic], data, t)
             last = max(last, t)
         self.written, self.last_log_ns = written, last
 
@@ -185,5 +166,4 @@ class LogWriter:
         return self._mcap.register_channel(spec.name, MESSAGE_ENCODING, schema)
 
 
-__all__ = ["CHUNK_SIZE", "LIBRARY", "RECORDING_METADATA", "LogWriter", "Output", "RecordMode",
-           "chunk_compression"]
+__all__ = ["CHUNK_SIZE", "COMPRESSION", "LIBRARY", "RECORDING_METADATA", "LogWriter", "Output", "RecordMode"]

@@ -208,7 +208,8 @@ def test_a_sent_frame_is_recorded_with_the_data_it_had_when_sent() -> None:
 
     from dobhil.recording.process import Batch
     from dobhil.recording.runlog import RecordingBus
-    from dobhil.recording.schemas import Topic
+    from dobhil.recording.schemas import FRAME_ATTRIBUTES, Topic
+    data = 2 + FRAME_ATTRIBUTES.index("data")
     batch = Batch(SimpleNamespace(opened=False))  # type: ignore[arg-type]
     inner = can.Bus(interface="virtual", channel="refill-test", receive_own_messages=True)
     tap = RecordingBus(inner, batch)
@@ -223,7 +224,7 @@ def test_a_sent_frame_is_recorded_with_the_data_it_had_when_sent() -> None:
     finally:
         tap.shutdown()
         inner.shutdown()
-    assert [(r[0], bytes(r[5])[0]) for r in flat] == [(int(Topic.CAN_TX), 1), (int(Topic.CAN_TX), 2),
+    assert [(r[0], bytes(r[data])[0]) for r in flat] == [(int(Topic.CAN_TX), 1), (int(Topic.CAN_TX), 2),
                                                         (int(Topic.CAN_RX), 1)]
-    assert all(r[2] == 0x06E and r[4] == 4 for r in flat)
-    assert flat[-1][7] == "refill-test"  # the received frame's channel, named on first use
+    assert all(r[2] == 0x06E and r[data - 1] == 4 for r in flat)
+    assert flat[-1][-1] == "refill-test"  # the received frame's channel, named on first use

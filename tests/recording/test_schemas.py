@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import math
 from pathlib import Path
+from types import SimpleNamespace
 
 import jsonschema
 import numpy as np
@@ -113,17 +114,21 @@ def test_docs_list_every_topic_and_field() -> None:
             assert f"| `{f.name}` |" in doc
 
 
-def test_frame_flags_spelled_out_agree_with_the_enum() -> None:
-    """The loop's spelled-out bit expression and :class:`FrameFlag` (named as python-can's
-    attributes) say the same, one flag at a time and all together."""
+def test_the_loops_frame_record_is_the_tables() -> None:
+    """:meth:`Batch.frame` spells :func:`can_frame_record` out for speed: both give the same
+    record for every flag alone and all together, received (data kept) and sent (copied)."""
     import can
 
-    from dobhil.recording.schemas import FrameFlag, frame_flags
-    for flag in FrameFlag:
-        msg = can.Message(arbitration_id=1, is_extended_id=False, check=False)
-        setattr(msg, flag.name.lower(), True)
-        assert frame_flags(msg) == flag
-    everything = can.Message(arbitration_id=1, check=False)
-    for flag in FrameFlag:
-        setattr(everything, flag.name.lower(), True)
-    assert frame_flags(everything) == sum(FrameFlag)
+    from dobhil.recording.process import Batch
+    from dobhil.recording.schemas import FRAME_ATTRIBUTES
+    flags = [a for a in FRAME_ATTRIBUTES if a.startswith(("is_", "bitrate", "error"))]
+    assert len(flags) == 6
+    batch = Batch(SimpleNamespace(opened=False))  # type: ignore[arg-type]
+    batch.clock_ns = lambda: 7
+    for on in [[f] for f in flags] + [flags]:
+        msg = can.Message(arbitration_id=0x1F, data=b"\x01\x02", channel="can1", timestamp=2.5, check=False)
+        for name in on:
+            setattr(msg, name, True)
+        for direction, topic in ((Direction.RX, Topic.CAN_RX), (Direction.TX, Topic.CAN_TX)):
+            batch.frame(int(topic), msg)
+            assert batch.take() == [can_frame_record(msg, direction, 7)]

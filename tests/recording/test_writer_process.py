@@ -94,9 +94,10 @@ def test_batched_records_unpack_to_the_flat_records_of_the_topic_table() -> None
     assert records[0] == (CYCLE, 11, 3, 0.5, -1.25, 7, *OUT, 1e-6, 2e-5, True, 8, 0)
     assert type(records[0][4]) is np.float64 and type(records[0][5]) is np.int64  # exact, not bytes
     assert records[1] == (CYCLE, 11, 4, 0.5, -1.25, 7, *OUT, 0.0, 0.0, False, 8, 0, 1.0, 2.0, 3.0, 4.0)
-    assert records[2] == (RX, 11, 0x1ABCDEF, 1 | 8 | 16, 64, bytes(range(64)), 5.5, "can0")
-    assert records[3] == (TX, 11, 0x07B, 2, 8, b"", 0.0, 1)
-    assert records[4] == (RX, 11, 0x069, 0, 2, b"\x01\x02", 0.0, None)
+    no, yes = False, True
+    assert records[2] == (RX, 11, 0x1ABCDEF, yes, no, no, yes, yes, no, 64, bytes(range(64)), 5.5, "can0")
+    assert records[3] == (TX, 11, 0x07B, no, yes, no, no, no, no, 8, b"", 0.0, 1)
+    assert records[4] == (RX, 11, 0x069, no, no, no, no, no, no, 2, b"\x01\x02", 0.0, None)
     assert records[5] == (int(Topic.EVENTS), 14, int(EventKind.INFO), "note", "000" + "\u00e9" * 5000, 0)
 
 
@@ -219,7 +220,7 @@ def test_a_writer_killed_is_a_recorder_error_at_the_next_write(tmp_path: Path) -
 def test_closed_before_open_leaves_no_file(tmp_path: Path) -> None:
     path = tmp_path / "run.mcap"
     writer = WriterProcess(path)
-    writer.abandon()
+    writer.close()
     assert not path.exists()
 
 
