@@ -1,14 +1,9 @@
-"""Offline replay of a recorded run: the recorded feedback frames through the drive codec,
-the controller re-run on them.
-
-:func:`replay` reads the run's config and drive profile (metadata), every ``/can/rx``
-frame, the feedback ``seq`` each cycle used (``/drive/feedback``; ``cycle = -1``: the one
-``controller.initialize`` used) and the recorded ``/controller`` values; it decodes the
-frames with the run's own drive class (so ``seq`` counts motion frames exactly as at run
-time) and re-runs the controller -- deterministic generated code -- on the recorded
-reference. With the recorded config every output must be identical bit for bit
-(:meth:`ReplayResult.first_mismatch`, ``dobhil replay --verify``); with overrides
-(``--set design.identified_inertia=...``) it shows what that tuning would have done.
+"""Offline replay: a recorded run's ``/can/rx`` frames decoded by the run's own drive class
+(``seq`` counts motion frames as at run time), the controller -- deterministic generated
+code -- re-run on the feedback each cycle used (``/drive/feedback``; ``cycle = -1``: the one
+``controller.initialize`` used) and the recorded reference. With the recorded config every
+output is identical bit for bit (``dobhil replay --verify``); with ``--set`` overrides it
+shows what that tuning would have done.
 """
 
 from __future__ import annotations
@@ -102,13 +97,12 @@ class ReplayResult:
 
     def summary(self) -> dict[str, Any]:
         """Differences replayed - recorded (max |.|, RMS) per output, and the cycle count."""
-        mismatch = self.first_mismatch()
-        diffs = {}
+        mismatch, diffs = self.first_mismatch(), {}
         for name in COMPARED:
             d = self.column(name) - self.column(name, "recorded")
             d = d[np.isfinite(d)]
-            diffs[name] = {"max_abs": float(np.abs(d).max()) if d.size else 0.0,
-                           "rms": float(np.sqrt(np.mean(d ** 2))) if d.size else 0.0}
+            d = d if d.size else np.zeros(1)
+            diffs[name] = {"max_abs": float(np.abs(d).max()), "rms": float(np.sqrt(np.mean(d ** 2)))}
         return {"file": self.recording.path, "cycles": self.recording.cycles, "overrides": list(self.overrides),
                 "identical": mismatch is None, "first_mismatch": None if mismatch is None else mismatch.line(),
                 "difference": diffs}

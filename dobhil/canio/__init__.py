@@ -11,6 +11,8 @@ Registered as entry points (``pyproject.toml``) that python-can 4.x discovers by
   ``can.Bus(interface="dobhil", channel="demo")`` is a bus with the emulated drive and
   plant of a config behind it, in real time.
 
+:mod:`~dobhil.canio.canlog` converts CAN logs in python-can's formats to and from
+recordings (``dobhil log export --can``, ``dobhil log import``).
 :mod:`~dobhil.canio.frames` is the only module that knows how dobhil records a frame.
 Nothing is imported here, so python-can loads only the plugin it asks for.
 """

@@ -110,7 +110,7 @@ def _export_topic(args: argparse.Namespace) -> int:
 
 
 def _export_can(args: argparse.Namespace) -> int:
-    from dobhil.recording.convert import default_can_output, export_can, parse_format
+    from dobhil.canio.canlog import default_can_output, export_can, parse_format
 
     fmt = parse_format(args.format)
     out = args.output or default_can_output(args.file, fmt)
@@ -121,7 +121,7 @@ def _export_can(args: argparse.Namespace) -> int:
 
 
 def _cmd_import(args: argparse.Namespace) -> int:
-    from dobhil.recording.convert import import_can
+    from dobhil.canio.canlog import import_can
 
     with _progress("import", None) as update:
         count = import_can(args.canlog, args.output, progress=update)

@@ -3,7 +3,7 @@
 The loop thread appends flat records to a :class:`Batch` and, every ``BATCH_RECORDS``, after
 a cycle's command, pickles them into a pipe with one ``os.write`` (no thread: a sender thread
 held the GIL the loop then waited for). ``LOSSY``: never blocks; a batch with no room is
-dropped and counted, one taken in part is finished first. ``BACKPRESSURE``: the write waits.
+dropped and counted (a ``loss`` event), one taken in part is finished first. ``BACKPRESSURE``: the write waits.
 The writer process ignores SIGINT/SIGTERM, writes through :class:`LogWriter`, flushes every
 ``flush_interval``, finishes the file on ``STOP`` or when the parent dies, sends one status.
 """
@@ -26,7 +26,7 @@ from typing import Any, Final
 
 import dobhil
 from dobhil.errors import RecorderError
-from dobhil.recording.schemas import Topic, message_count
+from dobhil.recording.schemas import EventKind, Topic, event_record, message_count
 from dobhil.recording.writer import LogWriter, RecordMode
 
 #: Seconds ``close`` waits for the writer process to finish the file.
@@ -49,7 +49,6 @@ class Control(IntEnum):
     """First element of a control message, sent among the records."""
 
     OPEN = 100  # (OPEN, mode, flush_interval, fsync, metadata, attachments, live)
-    LOSS = 101  # (LOSS, dropped so far, log time of the last dropped)
     STOP = 102  # (STOP, stop_reason | None, detail)
 
 
@@ -103,7 +102,8 @@ class Batch:
         self.records.append(tuple(record))
 
     def flush(self) -> None:
-        """Hand the records over; dropped if the writer lags (events kept for the next)."""
+        """Hand the records over; dropped if the writer lags: the events kept for the next,
+        with a ``loss`` event counting the rest."""
         if self._failure is not None:
             failure, self._failure = self._failure, None
             raise failure
@@ -112,11 +112,12 @@ class Batch:
         records, self.records = self.records, []
         if not self.writer.write(self.writer.encode(records)):
             kept = [r for r in records if r[0] == _EVENTS]
-            self.writer.count_dropped(sum(message_count(r) for r in records) - len(kept), records[-1][1])
+            lost = sum(message_count(r) for r in records) - len(kept)
             if len(kept) > BATCH_RECORDS:  # a writer stuck for good: memory stays bounded
-                self.writer.count_dropped(len(kept), kept[-1][1])
-                kept = []
-            self.records[:0] = kept
+                lost, kept = lost + len(kept), []
+            self.writer.dropped += lost
+            self.records[:0] = [*kept, event_record(EventKind.LOSS, records[-1][1], f"{lost} messages dropped "
+                                                    "(writer lagging)", f"total {self.writer.dropped}", lost)]
 
     def take(self) -> list[tuple[Any, ...]]:
         """Every record not yet handed over; the batch is empty after."""
@@ -150,10 +151,9 @@ class WriterProcess:
         self.path = Path(path)
         self.mode = RecordMode.BACKPRESSURE
         self.opened = self._closed = False
-        self.dropped = self.written = self._last_drop = 0
+        self.dropped = self.written = 0
         self.live_port: int | None = None
         self._interval, self._fsync = flush_interval, fsync
-        self._loss = b""  # the loss record still to go over (it rides on the next batch)
         self._tail = b""  # the part of a batch the pipe has not taken yet: goes first
         self._failure: str | None = None
         with open(self.path, "xb"):  # the caller checked the path: this only fails on a race
@@ -190,21 +190,19 @@ class WriterProcess:
         if self._failure is not None:
             raise self._fail(self._failure)
         if self.mode is not RecordMode.LOSSY:
-            self._send(self._loss + data)
-        else:
-            try:
+            self._send(data)
+            return True
+        try:
+            if self._tail:
+                self._tail = self._tail[os.write(self._fd, self._tail):]
                 if self._tail:
-                    self._tail = self._tail[os.write(self._fd, self._tail):]
-                    if self._tail:
-                        return False
-                data = self._loss + data if self._loss else data
-                self._tail = data[os.write(self._fd, data):]
-            except BlockingIOError:
-                return False
-            except OSError:
-                raise self._fail(self._ended_early()) from None
-        self._loss = b""
-        return True
+                    return False
+            self._tail = data[os.write(self._fd, data):]
+            return True
+        except BlockingIOError:
+            return False
+        except OSError:
+            raise self._fail(self._ended_early()) from None
 
     def encode(self, records: Sequence[tuple[Any, ...]]) -> bytes:
         """:func:`encode`; a record that cannot be pickled is refused (:meth:`refuse`)."""
@@ -212,11 +210,6 @@ class WriterProcess:
             return encode(records)
         except (pickle.PicklingError, TypeError, ValueError, AttributeError) as exc:
             raise self.refuse(f"cannot encode a record: {type(exc).__name__}: {exc}") from None
-
-    def count_dropped(self, messages: int, last_time: int) -> None:
-        self.dropped += messages
-        self._last_drop = max(self._last_drop, last_time)
-        self._loss = encode([(Control.LOSS, self.dropped, self._last_drop)])
 
     def close(self, stop_reason: str | None = None, detail: str = "", rest: Sequence[tuple[Any, ...]] = ()) -> None:
         """The ``rest`` of the records, none dropped; stop event (if a reason is given),
@@ -249,7 +242,7 @@ class WriterProcess:
     def _stop(self, data: bytes, stop_reason: str | None, detail: str) -> None:
         try:
             os.set_blocking(self._fd, True)
-            self._send(self._loss + data + encode([(Control.STOP, stop_reason, detail)]))
+            self._send(data + encode([(Control.STOP, stop_reason, detail)]))
         except (RecorderError, OSError):
             pass  # the failure is noted; close raises it
 
@@ -371,8 +364,6 @@ def _serve(fd: int, status: Connection, path: str) -> tuple[Any, ...]:
                 elif r[0] == Control.OPEN:
                     log, interval = _open(path, status, r[1], r[3], r[4], r[5], r[6]), r[2]
                     next_flush = time.monotonic() + interval
-                elif r[0] == Control.LOSS and r[1] > log.dropped:
-                    log.loss(r[1] - log.dropped, r[1], r[2])
                 elif r[0] == Control.STOP:
                     log.finish(r[1], r[2])
                     return (int(Status.DONE), log.written, log.dropped)

@@ -111,25 +111,6 @@ def _records(f: BinaryIO, path: str | os.PathLike[str]) -> Iterator[tuple[int, A
             return
 
 
-def _scan(log: LogFile, f: BinaryIO) -> None:
-    for pos, record in _records(f, log.path):
-        if isinstance(record, Header):
-            log.library = record.library
-            _check_library(log.path, record)
-        elif isinstance(record, Schema):
-            log.schemas[record.id] = record
-        elif isinstance(record, Channel):
-            log.channel_records[record.id] = record
-        elif isinstance(record, Metadata):
-            log.metadata[record.name] = MappingProxyType(dict(record.metadata))
-        elif isinstance(record, Attachment):
-            log.attachments.append((record.name, record.media_type, record.data))
-        elif isinstance(record, Chunk):
-            log.chunks.append((pos, record.uncompressed_size))
-        elif isinstance(record, Statistics):
-            log.statistics = record
-
-
 def _check_library(path: str | os.PathLike[str], header: Any) -> None:
     if not isinstance(header, Header) or not header.library.startswith("dobhil/"):
         library = getattr(header, "library", "") or "an unnamed writer"
@@ -156,47 +137,53 @@ def _validate_metadata(path: str | os.PathLike[str], metadata: Mapping[str, Mapp
 
 
 class LogFile:
-    """A complete, checked dobhil log (:meth:`open`); nothing is held open between reads."""
+    """A complete, checked dobhil log, opened and checked at once; nothing is held open
+    between reads."""
 
     def __init__(self, path: str | os.PathLike[str]) -> None:
-        self.path = Path(path)
-        self.library = ""
+        size = check_mcap_head(path)
+        self.path, self.library = Path(path), ""
         self.schemas: dict[int, Schema] = {}
         self.channel_records: dict[int, Channel] = {}
         self.metadata: dict[str, Mapping[str, str]] = {}
         self.attachments: list[tuple[str, str, bytes]] = []
         self.chunks: list[tuple[int, int]] = []  # (offset, uncompressed size)
         self.statistics: Statistics | None = None
-        self.config: Any = None
-
-    @classmethod
-    def open(cls, path: str | os.PathLike[str]) -> LogFile:
-        size = check_mcap_head(path)
         with open(path, "rb") as f:
             f.seek(max(0, size - len(MAGIC)))
             if f.read() != MAGIC or size < 2 * len(MAGIC) + 9:
                 f.seek(len(MAGIC))
                 try:
-                    header = next(StreamReader(f, skip_magic=True).records)
+                    _check_library(path, next(StreamReader(f, skip_magic=True).records))
+                except LogFileError:
+                    raise
                 except Exception:
-                    header = None  # not even a header: cut short is all we know
-                if header is not None:
-                    _check_library(path, header)
+                    pass  # not even a header: cut short is all we know
                 raise _fail(path, "cut short (no footer): run `dobhil log recover` on it")
-            log = cls(path)
             f.seek(0)
-            _scan(log, f)
-        log.config = _validate_metadata(path, log.metadata)
-        return log
+            for pos, record in _records(f, path):
+                if isinstance(record, Header):
+                    self.library = record.library
+                    _check_library(path, record)
+                elif isinstance(record, Schema):
+                    self.schemas[record.id] = record
+                elif isinstance(record, Channel):
+                    self.channel_records[record.id] = record
+                elif isinstance(record, Metadata):
+                    self.metadata[record.name] = MappingProxyType(dict(record.metadata))
+                elif isinstance(record, Attachment):
+                    self.attachments.append((record.name, record.media_type, record.data))
+                elif isinstance(record, Chunk):
+                    self.chunks.append((pos, record.uncompressed_size))
+                elif isinstance(record, Statistics):
+                    self.statistics = record
+        self.config: Any = _validate_metadata(path, self.metadata)
 
-    def close(self) -> None:
-        """Nothing is held open between reads (kept for ``with``)."""
-
-    def __enter__(self) -> LogFile:
+    def __enter__(self) -> LogFile:  # nothing is held open between reads: ``with`` only reads well
         return self
 
     def __exit__(self, *exc: object) -> None:
-        self.close()
+        pass
 
     def channels(self) -> tuple[ChannelInfo, ...]:
         counts = self.statistics.channel_message_counts if self.statistics is not None else {}
@@ -273,7 +260,7 @@ def _chunk_messages(records: bytes, wanted: Mapping[int, str]) -> Iterator[tuple
         pos = body + length
 
 
-open_log = LogFile.open
+open_log = LogFile
 
 
 __all__ = ["LIBRARY", "MAGIC", "ChannelInfo", "LogFile", "LogInfo", "check_mcap_head", "open_log"]

@@ -47,15 +47,15 @@ class RecoveryReport:
 
 @dataclass
 class _Copier:
-    """Copies records into ``writer``, renumbering schemas and channels."""
+    """Copies records into ``writer``, schemas and channels renumbered."""
 
     writer: Writer
     progress: ProgressFn | None
     schemas: dict[int, Schema] = field(default_factory=dict)
-    ids: dict[int, int] = field(default_factory=dict)
+    ids: dict[int, int] = field(default_factory=dict)  # schema id in the source -> in the copy
     channels: dict[int, tuple[int, str]] = field(default_factory=dict)
     counts: dict[str, int] = field(default_factory=dict)
-    times: list[int] = field(default_factory=list)  # [first, last]
+    times: tuple[int, int] | None = None  # first, last log time
     skipped: int = 0
     complete: bool = False
 
@@ -71,10 +71,20 @@ class _Copier:
         elif isinstance(record, Schema):
             self.schemas.setdefault(record.id, record)
         elif isinstance(record, Channel) and record.id not in self.channels:
+            schema = self.schemas.get(record.schema_id)
+            if schema is not None and record.schema_id not in self.ids:
+                self.ids[record.schema_id] = self.writer.register_schema(schema.name, schema.encoding, schema.data)
             self.channels[record.id] = (self.writer.register_channel(
-                record.topic, record.message_encoding, self._schema(record.schema_id), record.metadata), record.topic)
+                record.topic, record.message_encoding, self.ids.get(record.schema_id, 0), record.metadata),
+                record.topic)
         elif isinstance(record, Message) and record.channel_id in self.channels:
-            self._message(record)
+            channel, topic = self.channels[record.channel_id]
+            self.writer.add_message(channel, record.log_time, record.data, record.publish_time, record.sequence)
+            self.counts[topic] = self.counts.get(topic, 0) + 1
+            first, last = self.times or (record.log_time, record.log_time)
+            self.times = (min(first, record.log_time), max(last, record.log_time))
+            if self.progress is not None:
+                self.progress(1)
         elif isinstance(record, Metadata):
             self.writer.add_metadata(record.name, record.metadata)
         elif isinstance(record, Attachment):
@@ -82,23 +92,6 @@ class _Copier:
                                        record.data)
         elif isinstance(record, Footer):
             self.complete = True
-
-    def _schema(self, schema_id: int) -> int:
-        schema = self.schemas.get(schema_id)
-        if schema is None:
-            return 0
-        if schema_id not in self.ids:
-            self.ids[schema_id] = self.writer.register_schema(schema.name, schema.encoding, schema.data)
-        return self.ids[schema_id]
-
-    def _message(self, m: Message) -> None:
-        channel, topic = self.channels[m.channel_id]
-        self.writer.add_message(channel, m.log_time, m.data, m.publish_time, m.sequence)
-        self.counts[topic] = self.counts.get(topic, 0) + 1
-        first, last = self.times or [m.log_time, m.log_time]
-        self.times = [min(first, m.log_time), max(last, m.log_time)]
-        if self.progress is not None:
-            self.progress(1)
 
 
 def default_output(path: str | os.PathLike[str]) -> Path:
@@ -115,15 +108,15 @@ def recover(path: str | os.PathLike[str], out: str | os.PathLike[str] | None = N
         writer = Writer(sink, chunk_size=CHUNK_SIZE, compression=COMPRESSION, enable_data_crcs=True)
         writer.start(profile="", library=f"{LIBRARY} recover")
         copier, pos, why = _Copier(writer, progress), 0, ""
-        limit = os.fstat(source.fileno()).st_size
         try:  # until the footer or the first unreadable record
-            for record in StreamReader(source, emit_chunks=True, record_size_limit=limit).records:
+            for record in StreamReader(source, emit_chunks=True, record_size_limit=os.fstat(source.fileno()).st_size
+                                       ).records:
                 copier.copy(record)
                 pos = source.tell()
         except Exception as exc:  # the data ends or is damaged here
             why = f"cut short or damaged at byte {pos} ({type(exc).__name__})"
         writer.finish()
-    first, last = copier.times or [0, 0]
+    first, last = copier.times or (0, 0)
     return RecoveryReport(source=os.fspath(path), output=os.fspath(target), counts=tuple(sorted(copier.counts.items())),
                           start_ns=first, end_ns=last, complete=copier.complete, skipped_chunks=copier.skipped,
                           stopped_because=why or ("footer reached" if copier.complete else "end of data"))

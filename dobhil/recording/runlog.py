@@ -1,10 +1,7 @@
-"""Recording one run: :class:`RunLog` is the runtime's cycle sink and bus tap.
-
-It implements the ``CycleSink`` protocol and wraps the host bus, knowing nothing of the
-runtime (``dobhil.cli.recording`` wires it with plain values). It is the loop side of the
-hand-over (a :class:`~dobhil.recording.process.Batch`); a writer failure surfaces as
-:class:`~dobhil.errors.RecorderError` from ``cycle``: the loop stops ``recorder_failed``.
-"""
+"""Recording one run: :class:`RunLog`, the runtime's ``CycleSink`` and bus tap, knowing
+nothing of the runtime (``dobhil.cli.recording`` wires it with plain values). A writer
+failure is a :class:`~dobhil.errors.RecorderError` from ``cycle``: the loop stops
+``recorder_failed``."""
 
 from __future__ import annotations
 
@@ -67,12 +64,12 @@ class RunLog(Batch):
 
     @property
     def writer_pid(self) -> int | None:
-        """The writer process (for its scheduling priority), None once closed."""
+        """The writer process (to set its priority), None once closed."""
         return None if self._closed else self.writer.pid
 
     @property
     def live_port(self) -> int | None:
-        """The port the live view listens on (after :meth:`begin`), None without one."""
+        """The live view's port (after :meth:`begin`), None without one."""
         return None if self._closed else self.writer.live_port
 
     def wrap_bus(self, bus: can.BusABC) -> can.BusABC:
@@ -93,8 +90,6 @@ class RunLog(Batch):
         if drive is not None:
             self.drive = drive
 
-    # -- the CycleSink (``cycle`` is the batch's) ---------------------------------------
-
     def started(self, fb: Any) -> None:
         """The feedback ``controller.initialize`` used (``cycle = -1``) and the enable event."""
         status = self.drive.status
@@ -104,8 +99,6 @@ class RunLog(Batch):
 
     def stop(self, stop: Any) -> None:
         """The loop has stopped; :meth:`end` hands the rest over, none dropped."""
-
-    # -- events and the end ------------------------------------------------------------
 
     def safe_stop(self, report: Any) -> None:
         """The sink's safe-stop hook: one ``disable`` event per safe-stop frame (sent or why

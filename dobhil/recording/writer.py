@@ -52,6 +52,7 @@ class Output(Protocol):
 
 
 _NAMES: Final = {t: s.name for t, s in TOPIC_SPECS.items()}
+_EVENTS, _LOSS = int(Topic.EVENTS), int(EventKind.LOSS)
 
 
 class _Channels(dict[Topic, int]):
@@ -109,6 +110,8 @@ class LogWriter:
         written, last = self.written, self.last_log_ns
         for record in records:
             t, n = record[1], len(record)
+            if record[0] == _EVENTS and record[2] == _LOSS:  # the sender's count of messages it dropped
+                self.dropped += record[5]
             for topic, encode, needs in VIEWS[record[0]]:
                 if n >= needs:
                     data = encode(record)
@@ -118,12 +121,6 @@ class LogWriter:
                         out.publish(_NAMES[topic], data, t)
             last = max(last, t)
         self.written, self.last_log_ns = written, last
-
-    def loss(self, count: int, total: int, log_time_ns: int) -> None:
-        """The ``/events`` ``kind=loss`` record of ``count`` messages the sender dropped."""
-        self.dropped = total
-        self.write([event_record(EventKind.LOSS, log_time_ns, f"{count} messages dropped (writer lagging)",
-                                 f"total {total}", count)])
 
     def flush(self) -> None:
         """End the chunk, flush and (if asked) fsync: a crash loses nothing older."""

@@ -17,8 +17,8 @@ from mcap.reader import make_reader
 from dobhil.config import load_config
 from dobhil.errors import LogFileError
 from dobhil.cli.recording import record_run
-from dobhil.recording.convert import CanLogFormat, export_can
-from dobhil.recording.convert import default_can_output as default_output
+from dobhil.canio.canlog import CanLogFormat, export_can
+from dobhil.canio.canlog import default_can_output as default_output
 from dobhil.recording.process import PARENT_EXITED
 from dobhil.recording.reader import open_log
 from dobhil.recording.recover import recover

@@ -8,8 +8,8 @@ import can
 import pytest
 
 from dobhil.errors import LogFileError
-from dobhil.recording.convert import CanLogFormat, export_can, import_can, parse_format
-from dobhil.recording.convert import default_can_output as default_output
+from dobhil.canio.canlog import CanLogFormat, export_can, import_can, parse_format
+from dobhil.canio.canlog import default_can_output as default_output
 from dobhil.recording.reader import open_log
 from dobhil.recording.schemas import Direction
 from tests.recording.helpers import command, frame, write_log
