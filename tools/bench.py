@@ -388,12 +388,13 @@ def bench_handover() -> dict[str, float]:
     the CPU time logging adds to the loop's whole process, at 1 kHz with sleeps between cycles."""
     import tempfile
 
+    from dobhil.recording.process import WriterProcess
     from dobhil.recording.runlog import RunLog
     with tempfile.TemporaryDirectory() as tmp:
         costs, cpu = [], []
         for i in range(3):
             for sleep in (False, True):
-                log = RunLog(Path(tmp) / f"h{i}{sleep}.mcap", fsync=False)
+                log = RunLog(WriterProcess(Path(tmp) / f"h{i}{sleep}.mcap", fsync=False))
                 log.begin(metadata={}, attachments=[], lossy=sleep, truth=lambda: (0.0, 0.0, 0.0, 0.0))
                 period = 1e-3 if sleep else 2e-4
                 plain = _handover_us(3000 if sleep else 8500, None, period, sleep)

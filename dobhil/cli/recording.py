@@ -24,6 +24,7 @@ from dobhil import __version__
 from dobhil.config import Config, to_yaml
 from dobhil.errors import RecorderError
 from dobhil.files import check_new_output
+from dobhil.recording.process import WriterProcess
 from dobhil.recording.runlog import RunLog
 from dobhil.recording.schemas import EventKind
 from dobhil.runtime.loop import RunResult, Timing
@@ -65,7 +66,7 @@ def open_run_log(path: Path | None, *, live: tuple[str, int] | None = None, fsyn
         return None
     check_new_output(path, suffix=".mcap", what="--log")
     path.parent.mkdir(parents=True, exist_ok=True)
-    return RunLog(path, live=live, fsync=fsync)
+    return RunLog(WriterProcess(path, fsync=fsync), live=live)
 
 
 def versions() -> dict[str, str]:

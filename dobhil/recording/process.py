@@ -1,11 +1,11 @@
-"""The hand-over of a recorded run (``docs/recording.md`` has the diagram and guarantees).
+"""The writer process of a recorded run and the pipe to it (``docs/recording.md`` has the
+diagram and the guarantees).
 
-The loop thread appends flat records to a :class:`Batch` and, every ``BATCH_RECORDS``, after
-a cycle's command, pickles them into a pipe with one ``os.write`` (no thread: a sender thread
-held the GIL the loop then waited for). ``LOSSY``: never blocks; a batch with no room is
-dropped and counted (a ``loss`` event), one taken in part is finished first. ``BACKPRESSURE``: the write waits.
-The writer process ignores SIGINT/SIGTERM, writes through :class:`LogWriter`, flushes every
-``flush_interval``, finishes the file on ``STOP`` or when the parent dies, sends one status.
+Batches of records arrive pickled, one ``os.write`` each (:class:`WriterProcess`):
+``LOSSY`` never blocks (a batch with no room is refused, one taken in part is finished
+first), ``BACKPRESSURE`` waits. The process ignores SIGINT/SIGTERM, writes through
+:class:`LogWriter`, flushes every ``flush_interval``, finishes the file on ``STOP`` or when
+the parent dies, and sends one status.
 """
 
 from __future__ import annotations
@@ -17,16 +17,14 @@ import struct
 import subprocess
 import sys
 import time
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from enum import IntEnum
 from multiprocessing.connection import Connection
 from pathlib import Path
-from types import SimpleNamespace
 from typing import Any, Final
 
 import dobhil
 from dobhil.errors import RecorderError
-from dobhil.recording.schemas import EventKind, Topic, event_record, message_count
 from dobhil.recording.writer import LogWriter, RecordMode
 
 #: Seconds ``close`` waits for the writer process to finish the file.
@@ -35,14 +33,10 @@ JOIN_TIMEOUT: Final = 60.0
 PARENT_EXITED: Final = "parent exited"
 #: Bytes of pipe asked for (Linux, F_SETPIPE_SZ): ~4 s of a 1 kHz run before real time drops.
 PIPE_SIZE: Final = 1 << 20
-#: Records handed over at once (~40 cycles with their frames, ~10 KiB pickled).
-BATCH_RECORDS: Final = 128
 #: Seconds the writer sleeps when the pipe is empty.
 POLL: Final = 0.002
 _LENGTH: Final = struct.Struct("<I")
 _BOOT: Final = "import sys; sys.path.insert(0, sys.argv[1]); from dobhil.recording.process import main; main()"
-_EVENTS: Final = int(Topic.EVENTS)
-_RX: Final = int(Topic.CAN_RX)
 
 
 class Control(IntEnum):
@@ -56,73 +50,6 @@ class Status(IntEnum):
     DONE = 0  # (DONE, written, dropped)
     FAILED = 1  # (FAILED, one-line reason)
     READY = 2  # (READY, live view port | None): the file is open (and the live view listens)
-
-
-class Batch:
-    """The loop side: records kept in a list, handed to ``writer`` every ``BATCH_RECORDS``;
-    before the writer is open they wait (a preflight talks on the tapped bus). ``truth``
-    gives the emulator's ``(q, dq, tau_motor, tau_int)``, ``drive.status`` the drive state."""
-
-    def __init__(self, writer: WriterProcess) -> None:
-        self.writer = writer
-        self.clock_ns: Callable[[], int] = time.time_ns
-        self.truth: Callable[[], tuple[float, float, float, float]] | None = None
-        self.drive: Any = SimpleNamespace(status=SimpleNamespace(state=0, error_code=0))
-        self.records: list[tuple[Any, ...]] = []
-        self._failure: RecorderError | None = None
-
-    def cycle(self, k: int, t: float, fb: Any, out: Sequence[float], period_error: float, exec_time: float,
-              overrun: bool) -> None:
-        """The ``CycleSink`` hook: a cycle record (``schemas.CYCLE_FIELDS``); the one place a
-        writer failure is raised on the loop thread, after the cycle's command went out."""
-        records, status, truth = self.records, self.drive.status, self.truth
-        records.append((0, self.clock_ns(), k, fb.position, fb.velocity, fb.seq, *out, period_error, exec_time,
-                        overrun, status.state, status.error_code, *(truth() if truth is not None else ())))
-        if len(records) >= BATCH_RECORDS or self._failure is not None:
-            self.flush()
-
-    def frame(self, topic: int, msg: Any) -> None:
-        """A frame as it is now (the drive refills its torque message; python-can hands out
-        a new message per receive): ``schemas.can_frame_record`` spelled out for speed.
-        Never raises into the bus call that recorded it."""
-        try:
-            records = self.records
-            records.append((topic, self.clock_ns(), msg.arbitration_id, msg.is_extended_id, msg.is_remote_frame,
-                            msg.is_error_frame, msg.is_fd, msg.bitrate_switch, msg.error_state_indicator, msg.dlc,
-                            msg.data if topic == _RX else bytes(msg.data), msg.timestamp, msg.channel))
-            if len(records) >= 4 * BATCH_RECORDS:  # no cycle for a while: enable, preflight
-                self.flush()
-        except RecorderError as exc:
-            self._failure = exc  # the next cycle raises it
-        except Exception as exc:  # not a python-can message
-            self._failure = self.writer.refuse(f"cannot encode a CAN frame: {type(exc).__name__}: {exc}")
-
-    def record(self, record: Sequence[Any]) -> None:
-        """A flat record of the topic table (an event): never dropped."""
-        self.records.append(tuple(record))
-
-    def flush(self) -> None:
-        """Hand the records over; dropped if the writer lags: the events kept for the next,
-        with a ``loss`` event counting the rest."""
-        if self._failure is not None:
-            failure, self._failure = self._failure, None
-            raise failure
-        if not self.writer.opened:
-            return
-        records, self.records = self.records, []
-        if not self.writer.write(self.writer.encode(records)):
-            kept = [r for r in records if r[0] == _EVENTS]
-            lost = sum(message_count(r) for r in records) - len(kept)
-            if len(kept) > BATCH_RECORDS:  # a writer stuck for good: memory stays bounded
-                lost, kept = lost + len(kept), []
-            self.writer.dropped += lost
-            self.records[:0] = [*kept, event_record(EventKind.LOSS, records[-1][1], f"{lost} messages dropped "
-                                                    "(writer lagging)", f"total {self.writer.dropped}", lost)]
-
-    def take(self) -> list[tuple[Any, ...]]:
-        """Every record not yet handed over; the batch is empty after."""
-        records, self.records = self.records, []
-        return records
 
 
 def encode(records: Sequence[tuple[Any, ...]]) -> bytes:
@@ -398,5 +325,4 @@ def main(argv: Sequence[str] | None = None) -> None:
     sys.exit(code)
 
 
-__all__ = ["BATCH_RECORDS", "JOIN_TIMEOUT", "PARENT_EXITED", "PIPE_SIZE", "Batch", "WriterProcess", "encode",
-           "main", "unpack"]
+__all__ = ["JOIN_TIMEOUT", "PARENT_EXITED", "PIPE_SIZE", "WriterProcess", "encode", "main", "unpack"]

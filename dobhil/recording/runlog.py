@@ -1,24 +1,34 @@
-"""Recording one run: :class:`RunLog`, the runtime's ``CycleSink`` and bus tap, knowing
-nothing of the runtime (``dobhil.cli.recording`` wires it with plain values). A writer
+"""Recording one run, the loop side: :class:`RunLog`, the runtime's ``CycleSink`` and bus tap,
+knowing nothing of the runtime (``dobhil.cli.recording`` wires it with plain values).
+
+Records are flat tuples of the topic table appended to a list; every ``BATCH_RECORDS``,
+after a cycle's command, they are pickled into the writer process's pipe with one
+``os.write`` (no thread: a sender thread held the GIL the loop then waited for). A writer
 failure is a :class:`~dobhil.errors.RecorderError` from ``cycle``: the loop stops
-``recorder_failed``."""
+``recorder_failed``.
+"""
 
 from __future__ import annotations
 
-import os
 import time
+from pathlib import Path
 from collections.abc import Callable, Mapping, Sequence
+from types import SimpleNamespace
 from typing import Any, Final
 
 import can
 
-from dobhil.recording.process import Batch, WriterProcess
-from dobhil.recording.schemas import EventKind, Topic, event_record
+from dobhil.errors import RecorderError
+from dobhil.recording.process import WriterProcess
+from dobhil.recording.schemas import EventKind, Topic, event_record, message_count
 from dobhil.recording.writer import RecordMode
 
+#: Records handed over at once (~40 cycles with their frames, ~10 KiB pickled).
+BATCH_RECORDS: Final = 128
 _FEEDBACK: Final = int(Topic.DRIVE_FEEDBACK)
 _RX: Final = int(Topic.CAN_RX)
 _TX: Final = int(Topic.CAN_TX)
+_EVENTS: Final = int(Topic.EVENTS)
 
 
 class RecordingBus(can.BusABC):
@@ -26,9 +36,9 @@ class RecordingBus(can.BusABC):
     ``recv`` itself is overridden: :meth:`can.BusABC.recv`'s timing and debug logging cost
     as much as the record; the wrapped bus applies its own filters."""
 
-    def __init__(self, inner: can.BusABC, batch: Batch, **kwargs: Any) -> None:
+    def __init__(self, inner: can.BusABC, log: RunLog, **kwargs: Any) -> None:
         self._inner = inner
-        self._frame = batch.frame
+        self._frame = log.frame
         self.channel_info = f"recording {inner.channel_info}"
         super().__init__(channel=getattr(inner, "channel", None) or "", **kwargs)
 
@@ -51,16 +61,23 @@ class RecordingBus(can.BusABC):
         return getattr(self._inner, name)
 
 
-class RunLog(Batch):
-    """Records one run to ``path`` (the writer process starts now: a bad path raises here)."""
+class RunLog:
+    """Records one run through ``writer`` (started, not yet open: records wait until
+    :meth:`begin`, as a preflight talks on the tapped bus)."""
 
-    def __init__(self, path: str | os.PathLike[str], *, live: tuple[str, int] | None = None,
-                 flush_interval: float = 1.0, fsync: bool = True) -> None:
-        super().__init__(WriterProcess(path, flush_interval=flush_interval, fsync=fsync))
-        self.path = os.fspath(path)
-        self.live = live
+    def __init__(self, writer: WriterProcess, *, live: tuple[str, int] | None = None) -> None:
+        self.writer, self.live = writer, live
+        self.clock_ns: Callable[[], int] = time.time_ns
+        self.truth: Callable[[], tuple[float, float, float, float]] | None = None
+        self.drive: Any = SimpleNamespace(status=SimpleNamespace(state=0, error_code=0))
+        self.records: list[tuple[Any, ...]] = []
         self.tap: RecordingBus | None = None
+        self._failure: RecorderError | None = None
         self._closed = False
+
+    @property
+    def path(self) -> Path:
+        return self.writer.path
 
     @property
     def writer_pid(self) -> int | None:
@@ -89,6 +106,59 @@ class RunLog(Batch):
         self.truth = truth
         if drive is not None:
             self.drive = drive
+
+    def cycle(self, k: int, t: float, fb: Any, out: Sequence[float], period_error: float, exec_time: float,
+              overrun: bool) -> None:
+        """The ``CycleSink`` hook: a cycle record (``schemas.CYCLE_FIELDS``); the one place a
+        writer failure is raised on the loop thread, after the cycle's command went out."""
+        records, status, truth = self.records, self.drive.status, self.truth
+        records.append((0, self.clock_ns(), k, fb.position, fb.velocity, fb.seq, *out, period_error, exec_time,
+                        overrun, status.state, status.error_code, *(truth() if truth is not None else ())))
+        if len(records) >= BATCH_RECORDS or self._failure is not None:
+            self.flush()
+
+    def frame(self, topic: int, msg: Any) -> None:
+        """A frame as it is now (the drive refills its torque message; python-can hands out
+        a new message per receive): ``schemas.can_frame_record`` spelled out for speed.
+        Never raises into the bus call that recorded it."""
+        try:
+            records = self.records
+            records.append((topic, self.clock_ns(), msg.arbitration_id, msg.is_extended_id, msg.is_remote_frame,
+                            msg.is_error_frame, msg.is_fd, msg.bitrate_switch, msg.error_state_indicator, msg.dlc,
+                            msg.data if topic == _RX else bytes(msg.data), msg.timestamp, msg.channel))
+            if len(records) >= 4 * BATCH_RECORDS:  # no cycle for a while: enable, preflight
+                self.flush()
+        except RecorderError as exc:
+            self._failure = exc  # the next cycle raises it
+        except Exception as exc:  # not a python-can message
+            self._failure = self.writer.refuse(f"cannot encode a CAN frame: {type(exc).__name__}: {exc}")
+
+    def record(self, record: Sequence[Any]) -> None:
+        """A flat record of the topic table (an event): never dropped."""
+        self.records.append(tuple(record))
+
+    def flush(self) -> None:
+        """Hand the records over; dropped if the writer lags: the events kept for the next,
+        with a ``loss`` event counting the rest."""
+        if self._failure is not None:
+            failure, self._failure = self._failure, None
+            raise failure
+        if not self.writer.opened:
+            return
+        records, self.records = self.records, []
+        if not self.writer.write(self.writer.encode(records)):
+            kept = [r for r in records if r[0] == _EVENTS]
+            lost = sum(message_count(r) for r in records) - len(kept)
+            if len(kept) > BATCH_RECORDS:  # a writer stuck for good: memory stays bounded
+                lost, kept = lost + len(kept), []
+            self.writer.dropped += lost
+            self.records[:0] = [*kept, event_record(EventKind.LOSS, records[-1][1], f"{lost} messages dropped "
+                                                    "(writer lagging)", f"total {self.writer.dropped}", lost)]
+
+    def take(self) -> list[tuple[Any, ...]]:
+        """Every record not yet handed over; none are left after."""
+        records, self.records = self.records, []
+        return records
 
     def started(self, fb: Any) -> None:
         """The feedback ``controller.initialize`` used (``cycle = -1``) and the enable event."""
@@ -123,4 +193,4 @@ class RunLog(Batch):
         self.writer.close(stop_reason, detail, rest=self.take())
 
 
-__all__ = ["RecordingBus", "RunLog"]
+__all__ = ["BATCH_RECORDS", "RecordingBus", "RunLog"]

@@ -19,7 +19,7 @@ from dobhil.errors import LogFileError
 from dobhil.cli.recording import record_run
 from dobhil.canio.canlog import CanLogFormat, export_can
 from dobhil.canio.canlog import default_can_output as default_output
-from dobhil.recording.process import PARENT_EXITED
+from dobhil.recording.process import PARENT_EXITED, WriterProcess
 from dobhil.recording.reader import open_log
 from dobhil.recording.recover import recover
 from dobhil.recording.runlog import RunLog
@@ -35,7 +35,7 @@ def logged_lockstep_run(path: Path, duration: float = 0.3) -> tuple[list[can.Mes
     """A lockstep demo run recorded to ``path``; every frame a sniffer saw, the cycles and
     the frames the emulated drive sent."""
     config = load_config(DEMO, [f"loop.duration={duration}"])
-    log = RunLog(path, fsync=False)
+    log = RunLog(WriterProcess(path, fsync=False))
     with RunSession(config, emulate=True, lockstep=True, sink=log, bus_wrapper=log.wrap_bus) as session:
         sniffer = can.Bus(interface="virtual", channel=session.bus_spec.channel)
         try:
@@ -206,11 +206,10 @@ def test_a_sent_frame_is_recorded_with_the_data_it_had_when_sent() -> None:
     as it is when sent."""
     from types import SimpleNamespace
 
-    from dobhil.recording.process import Batch
-    from dobhil.recording.runlog import RecordingBus
+    from dobhil.recording.runlog import RecordingBus, RunLog
     from dobhil.recording.schemas import FRAME_ATTRIBUTES, Topic
     data = 2 + FRAME_ATTRIBUTES.index("data")
-    batch = Batch(SimpleNamespace(opened=False))  # type: ignore[arg-type]
+    batch = RunLog(SimpleNamespace(opened=False))  # type: ignore[arg-type]
     inner = can.Bus(interface="virtual", channel="refill-test", receive_own_messages=True)
     tap = RecordingBus(inner, batch)
     try:

@@ -115,15 +115,15 @@ def test_docs_list_every_topic_and_field() -> None:
 
 
 def test_the_loops_frame_record_is_the_tables() -> None:
-    """:meth:`Batch.frame` spells :func:`can_frame_record` out for speed: both give the same
+    """:meth:`RunLog.frame` spells :func:`can_frame_record` out for speed: both give the same
     record for every flag alone and all together, received (data kept) and sent (copied)."""
     import can
 
-    from dobhil.recording.process import Batch
+    from dobhil.recording.runlog import RunLog
     from dobhil.recording.schemas import FRAME_ATTRIBUTES
     flags = [a for a in FRAME_ATTRIBUTES if a.startswith(("is_", "bitrate", "error"))]
     assert len(flags) == 6
-    batch = Batch(SimpleNamespace(opened=False))  # type: ignore[arg-type]
+    batch = RunLog(SimpleNamespace(opened=False))  # type: ignore[arg-type]
     batch.clock_ns = lambda: 7
     for on in [[f] for f in flags] + [flags]:
         msg = can.Message(arbitration_id=0x1F, data=b"\x01\x02", channel="can1", timestamp=2.5, check=False)

@@ -16,7 +16,8 @@ import can
 import pytest
 
 from dobhil.errors import RecorderError
-from dobhil.recording.process import BATCH_RECORDS, PIPE_SIZE, Batch, WriterProcess, encode, unpack
+from dobhil.recording.process import PIPE_SIZE, WriterProcess, encode, unpack
+from dobhil.recording.runlog import BATCH_RECORDS, RunLog
 from dobhil.recording.reader import open_log
 from dobhil.recording.schemas import CYCLE, EventKind, Topic, event_record
 from dobhil.recording.writer import RecordMode
@@ -32,7 +33,7 @@ OUT = ControlOutput(0.2, 0.19, 0.01, 0.02, 0.03, 0.03)
 RX, TX = int(Topic.CAN_RX), int(Topic.CAN_TX)
 
 
-def cycle(batch: Batch, k: int) -> None:
+def cycle(batch: RunLog, k: int) -> None:
     """A cycle with truth (5 messages) at log time 1 s + k ms."""
     fb = SimpleNamespace(position=1e-4 * k, velocity=0.1, seq=k)
     batch.clock_ns = lambda: 1_000_000_000 + k * 1_000_000
@@ -45,10 +46,10 @@ CYCLE_BYTES = len(encode([(CYCLE, k, k, *(0.5 + k,) * 3, *OUT, 0.0, 3e-5, False,
                            for k in range(BATCH_RECORDS)])) // BATCH_RECORDS
 
 
-def opened(path: Path, mode: RecordMode) -> tuple[WriterProcess, Batch]:
+def opened(path: Path, mode: RecordMode) -> tuple[WriterProcess, RunLog]:
     writer = WriterProcess(path, fsync=False)
     writer.open(META, [("config.yaml", "application/yaml", b"a: 1\n")], mode)
-    return writer, Batch(writer)
+    return writer, RunLog(writer)
 
 
 @contextmanager
@@ -70,7 +71,7 @@ def test_batched_records_unpack_to_the_flat_records_of_the_topic_table() -> None
     frame, a remote frame without data, channels str / int / None, a long event, numpy
     values exact."""
     import numpy as np
-    batch = Batch(SimpleNamespace(opened=False))  # type: ignore[arg-type]
+    batch = RunLog(SimpleNamespace(opened=False))  # type: ignore[arg-type]
     fb = SimpleNamespace(position=0.5, velocity=np.float64(-1.25), seq=np.int64(7))
     batch.clock_ns = lambda: 11
     fd = can.Message(arbitration_id=0x1ABCDEF, is_extended_id=True, is_fd=True, bitrate_switch=True,
@@ -199,7 +200,7 @@ def test_the_writer_ignores_sigint_and_sigterm(tmp_path: Path) -> None:
     os.kill(writer.pid, signal.SIGINT)  # may arrive before the child ignores it: blocked until then
     writer.open(META, [], RecordMode.BACKPRESSURE)
     os.kill(writer.pid, signal.SIGTERM)
-    batch = Batch(writer)
+    batch = RunLog(writer)
     for k in range(300):
         cycle(batch, k)
     time.sleep(0.2)
@@ -242,9 +243,8 @@ def test_any_record_round_trips(tmp_path: Path) -> None:
 def test_frames_before_the_log_opens_are_recorded_first(tmp_path: Path) -> None:
     """A preflight or an enable handshake talks on the tapped bus before ``begin``: those
     frames wait in memory (whatever their number) and reach the file first, in order."""
-    from dobhil.recording.runlog import RunLog
     path = tmp_path / "run.mcap"
-    log = RunLog(path, fsync=False)
+    log = RunLog(WriterProcess(path, fsync=False))
     inner = can.Bus(interface="virtual", channel="early-test", receive_own_messages=True)
     tap = log.wrap_bus(inner)
     try:
