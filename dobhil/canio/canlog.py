@@ -15,11 +15,11 @@ from typing import Any, Final
 
 import can
 
-from dobhil.canio.frames import FRAME_TOPIC_NAMES
+from dobhil.canio.frames import FRAME_TOPIC_NAMES, topic_of
 from dobhil.errors import LogFileError
 from dobhil.files import atomic_path, check_output, input_problem
 from dobhil.recording.reader import open_log
-from dobhil.recording.schemas import Direction, can_frame_message, can_frame_record
+from dobhil.recording.schemas import can_frame_message, can_frame_record
 from dobhil.recording.writer import LogWriter
 
 ProgressFn = Callable[[int], None]
@@ -94,7 +94,7 @@ def import_can(canlog: str | os.PathLike[str], out: str | os.PathLike[str], *,
         log = LogWriter(open(tmp, "wb"), metadata=meta, fsync=False)
         try:
             for msg in reader:
-                log.write([can_frame_record(msg, Direction.RX if msg.is_rx else Direction.TX,
+                log.write([can_frame_record(msg, topic_of(msg),
                                             round((msg.timestamp or 0.0) * 1e9))])
                 count += 1
                 if progress is not None:

@@ -37,7 +37,7 @@ from mcap.writer import CompressionType
 from dobhil import __version__
 from dobhil.canio.mcap_reader import is_open_input
 from dobhil.canio.frames import FRAME_TOPICS, topic_of
-from dobhil.recording.schemas import Direction, can_frame_record
+from dobhil.recording.schemas import can_frame_record
 from dobhil.recording.writer import CHUNK_SIZE, LogWriter
 
 #: Name of the metadata record written at the start (and ``.stop`` at the end).
@@ -141,8 +141,7 @@ class McapWriter(BinaryIOMessageWriter):
     def on_message_received(self, msg: can.Message) -> None:
         topic = topic_of(msg)
         stamp = msg.timestamp
-        record = can_frame_record(msg, Direction.RX if msg.is_rx else Direction.TX,
-                                  max(0, round(stamp * 1e9)) if stamp else time.time_ns())
+        record = can_frame_record(msg, topic, max(0, round(stamp * 1e9)) if stamp else time.time_ns())
         with self._lock, _signals_deferred():
             if self._stopped:
                 raise ValueError("MCAP writer: message after stop()")

@@ -1,11 +1,8 @@
-"""The writer process of a recorded run and the pipe to it (``docs/recording.md`` has the
-diagram and the guarantees).
-
-Batches of records arrive pickled, one ``os.write`` each (:class:`WriterProcess`):
-``LOSSY`` never blocks (a batch with no room is refused, one taken in part is finished
-first), ``BACKPRESSURE`` waits. The process ignores SIGINT/SIGTERM, writes through
-:class:`LogWriter`, flushes every ``flush_interval``, finishes the file on ``STOP`` or when
-the parent dies, and sends one status.
+"""The writer process of a recorded run and the pipe to it (``docs/recording.md``: diagram,
+guarantees). Batches arrive pickled, one ``os.write`` each: ``LOSSY`` never blocks (no room:
+refused; taken in part: finished first), ``BACKPRESSURE`` waits. The process ignores
+SIGINT/SIGTERM, writes through :class:`LogWriter`, flushes every ``flush_interval``,
+finishes the file on ``STOP`` or when the parent dies, and sends one status.
 """
 
 from __future__ import annotations
@@ -86,10 +83,7 @@ class WriterProcess:
         with open(self.path, "xb"):  # the caller checked the path: this only fails on a race
             pass
         self._proc, self._fd, self._status = _spawn(self.path)
-
-    @property
-    def pid(self) -> int:
-        return self._proc.pid
+        self.pid = self._proc.pid
 
     def open(self, metadata: Mapping[str, Mapping[str, Any]], attachments: Sequence[tuple[str, str, bytes]],
              mode: RecordMode, live: tuple[str, int] | None = None, early: Sequence[tuple[Any, ...]] = ()) -> None:

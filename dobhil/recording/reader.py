@@ -1,11 +1,9 @@
-"""Reading a dobhil log: :class:`LogFile`, opened once and checked before anything uses it.
-
-One pass with the ``mcap`` package's public :class:`~mcap.stream_reader.StreamReader`
-(data and chunk CRCs) tells apart, one :class:`~dobhil.errors.LogFileError` line each:
-complete; cut short; damaged at byte N; not a dobhil log (written by X); invalid metadata.
-Messages are then read chunk by chunk at the offsets found, each CRC-checked again and sliced
-with ``struct``: the ``mcap`` reader's object per record made replay spend most of its time
-reading.
+"""Reading a dobhil log: :class:`LogFile`, checked before anything uses it. One pass with the
+``mcap`` package's public :class:`~mcap.stream_reader.StreamReader` (data and chunk CRCs)
+tells apart, one :class:`~dobhil.errors.LogFileError` line each: complete; cut short; damaged
+at byte N; not a dobhil log (written by X); invalid metadata. Messages are then read chunk by
+chunk at the offsets found, CRC-checked again, sliced with ``struct`` (the ``mcap`` reader's
+object per record made replay spend most of its time reading).
 """
 
 from __future__ import annotations
@@ -25,7 +23,7 @@ from mcap.stream_reader import StreamReader, get_chunk_data_stream
 from dobhil.errors import LogFileError
 from dobhil.files import input_problem
 from dobhil.recording.schemas import EventKind, decode
-from dobhil.recording.writer import LIBRARY, RECORDING_METADATA
+from dobhil.recording.writer import RECORDING_METADATA
 
 MAGIC: Final = b"\x89MCAP0\r\n"
 _RECORD: Final = struct.Struct("<BQ")            # opcode, length
@@ -66,10 +64,8 @@ class LogInfo:
         return (self.end_ns - self.start_ns) / 1e9
 
     def to_dict(self) -> dict[str, Any]:
-        out = {f.name: getattr(self, f.name) for f in fields(self)}
-        out.update(channels=[asdict(c) for c in self.channels], metadata={k: dict(v) for k, v in self.metadata.items()},
-                   attachments=list(self.attachments), duration_s=self.duration_s)
-        return out
+        return {**{f.name: getattr(self, f.name) for f in fields(self)}, "channels": [asdict(c) for c in self.channels],
+                "metadata": {k: dict(v) for k, v in self.metadata.items()}, "duration_s": self.duration_s}
 
 
 def _fail(path: str | os.PathLike[str], what: str) -> LogFileError:
@@ -263,4 +259,4 @@ def _chunk_messages(records: bytes, wanted: Mapping[int, str]) -> Iterator[tuple
 open_log = LogFile
 
 
-__all__ = ["LIBRARY", "MAGIC", "ChannelInfo", "LogFile", "LogInfo", "check_mcap_head", "open_log"]
+__all__ = ["MAGIC", "ChannelInfo", "LogFile", "LogInfo", "check_mcap_head", "open_log"]

@@ -1,8 +1,7 @@
-"""Salvage a log cut short (``kill -9``, power loss) or damaged into a new, complete file.
-
-Read front to back with :class:`~mcap.stream_reader.StreamReader`, chunks whole and
-CRC-checked (a damaged chunk costs only itself), until the first unreadable record;
-everything before goes to a new file with a fresh summary, renamed when complete.
+"""Salvage a log cut short (``kill -9``, power loss) or damaged into a new, complete file: read
+front to back with :class:`~mcap.stream_reader.StreamReader`, chunks whole and CRC-checked (a
+damaged chunk costs only itself), until the first unreadable record; everything before goes to
+a new file with a fresh summary, renamed when complete.
 """
 
 from __future__ import annotations

@@ -1,11 +1,9 @@
 """Recording one run, the loop side: :class:`RunLog`, the runtime's ``CycleSink`` and bus tap,
-knowing nothing of the runtime (``dobhil.cli.recording`` wires it with plain values).
-
-Records are flat tuples of the topic table appended to a list; every ``BATCH_RECORDS``,
-after a cycle's command, they are pickled into the writer process's pipe with one
-``os.write`` (no thread: a sender thread held the GIL the loop then waited for). A writer
-failure is a :class:`~dobhil.errors.RecorderError` from ``cycle``: the loop stops
-``recorder_failed``.
+knowing nothing of the runtime (``dobhil.cli.recording`` wires it with plain values). Records
+are flat tuples of the topic table; every ``BATCH_RECORDS``, after a cycle's command, they are
+pickled into the writer process's pipe with one ``os.write`` (no thread: a sender thread held
+the GIL the loop then waited for). A writer failure is a :class:`~dobhil.errors.RecorderError`
+from ``cycle``: the loop stops ``recorder_failed``.
 """
 
 from __future__ import annotations

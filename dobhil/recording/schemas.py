@@ -1,9 +1,8 @@
-"""The one table of recorded topics (:data:`TOPIC_SPECS`): each topic's fields, JSON schema
-and encoder live here; ``docs/recording.md`` lists them (a test checks it).
-
-Records are flat tuples, cheap to build on the loop thread: ``(Topic, log_time_ns, *values)``
-(CAN topics: :data:`FRAME_ATTRIBUTES`), or
-``(CYCLE, log_time_ns, *CYCLE_FIELDS)``; :data:`VIEWS` gives the messages of each.
+"""The one table of recorded topics (:data:`TOPIC_SPECS`): each topic's fields, JSON schema and
+encoder; ``docs/recording.md`` lists them (a test checks it). Records are flat tuples, cheap to
+build on the loop thread: ``(Topic, log_time_ns, *values)`` (CAN topics:
+:data:`FRAME_ATTRIBUTES`) or ``(CYCLE, log_time_ns, *CYCLE_FIELDS)``; :data:`VIEWS` gives the
+messages of each.
 """
 
 from __future__ import annotations
@@ -46,13 +45,6 @@ class FieldKind(IntEnum):
     BOOLEAN = 3
     STRING = 4
     BYTES = 5  # a list of integers 0..255
-
-
-class Direction(IntEnum):
-    """Direction of a CAN frame as seen by dobhil."""
-
-    RX = 1
-    TX = 2
 
 
 class EventKind(IntEnum):
@@ -147,22 +139,21 @@ FRAME_ATTRIBUTES: Final = ("arbitration_id", "is_extended_id", "is_remote_frame"
                            "bitrate_switch", "error_state_indicator", "dlc", "data", "timestamp", "channel")
 
 
-def can_frame_record(msg: Any, direction: Direction, log_time_ns: int) -> tuple[Any, ...]:
+def can_frame_record(msg: Any, topic: Topic, log_time_ns: int) -> tuple[Any, ...]:
     """The record of a python-can message on ``/can/rx`` or ``/can/tx`` (the data copied)."""
-    topic = Topic.CAN_RX if direction is Direction.RX else Topic.CAN_TX
     values = [getattr(msg, a) for a in FRAME_ATTRIBUTES]
     values[8] = bytes(values[8] or b"")
     return (int(topic), log_time_ns, *values)
 
 
-def can_frame_payload(values: Sequence[Any], direction: Direction) -> dict[str, Any]:
+def can_frame_payload(values: Sequence[Any], topic: Topic) -> dict[str, Any]:
     """The ``/can/*`` payload of a frame record's values (after topic and log time)."""
     arb, ext, rtr, err, fd, brs, esi, dlc, data, stamp, channel = values
     data = bytes(data)
     return {"timestamp": float(stamp or 0.0), "arbitration_id": arb, "is_extended_id": bool(ext),
             "is_remote_frame": bool(rtr), "is_error_frame": bool(err), "is_fd": bool(fd), "bitrate_switch": bool(brs),
             "error_state_indicator": bool(esi), "dlc": dlc, "data": list(data), "data_hex": data.hex(),
-            "direction": direction.name.lower(), "channel": "" if channel is None else str(channel)}
+            "direction": "rx" if topic == Topic.CAN_RX else "tx", "channel": "" if channel is None else str(channel)}
 
 
 def can_frame_message(payload: Mapping[str, Any], log_time_ns: int) -> Any:
@@ -177,8 +168,8 @@ def can_frame_message(payload: Mapping[str, Any], log_time_ns: int) -> Any:
                        channel=payload.get("channel") or None, check=False)
 
 
-def _frame_encoder(direction: Direction) -> Encoder:
-    return lambda values: orjson.dumps(can_frame_payload(values, direction))
+def _frame_encoder(topic: Topic) -> Encoder:
+    return lambda values: orjson.dumps(can_frame_payload(values, topic))
 
 
 def _event_encoder(values: Sequence[Any]) -> bytes:
@@ -190,9 +181,9 @@ def _event_encoder(values: Sequence[Any]) -> bytes:
 
 _SPECS: Final = (
     TopicSpec(Topic.CAN_RX, "/can/rx", "dobhil.CanFrame", "CAN frame received", _CAN_FIELDS,
-              _frame_encoder(Direction.RX)),
+              _frame_encoder(Topic.CAN_RX)),
     TopicSpec(Topic.CAN_TX, "/can/tx", "dobhil.CanFrame", "CAN frame sent", _CAN_FIELDS,
-              _frame_encoder(Direction.TX)),
+              _frame_encoder(Topic.CAN_TX)),
     TopicSpec(Topic.DRIVE_FEEDBACK, "/drive/feedback", "dobhil.DriveFeedback", "drive feedback decoded from the bus",
               _fields(_N, "position", "motor-side position [rad]", "velocity", "motor-side velocity [rad/s]")
               + _fields(_I, "axis_state", "drive state code", "axis_error", "drive error code (0: none)",
@@ -283,6 +274,6 @@ def decode(data: bytes) -> dict[str, Any]:
 
 
 __all__ = ["CYCLE", "CYCLE_FIELDS", "FRAME_ATTRIBUTES", "MESSAGE_ENCODING", "SCHEMA_ENCODING", "SPECS_BY_NAME",
-           "TOPIC_SPECS", "VIEWS", "Direction", "EventKind", "Field", "FieldKind", "Topic", "TopicSpec",
+           "TOPIC_SPECS", "VIEWS", "EventKind", "Field", "FieldKind", "Topic", "TopicSpec",
            "can_frame_message", "can_frame_payload", "can_frame_record", "decode", "event_record", "message_count",
            "messages", "spec_for"]

@@ -1,17 +1,15 @@
-"""One MCAP file being written, through the public :class:`mcap.writer.Writer`.
-
-:class:`LogWriter` writes every dobhil log: a run's, ``dobhil log import``'s and those of
-python-can's ``can.Logger("x.mcap")`` (:mod:`dobhil.canio`): header, metadata, attachments,
-a channel per topic on its first message, records encoded by the table, flush (and fsync)
-on request, the ``recording`` summary on finish, every message to a second output (the
-live view) too. No python-can, no numpy: the process starts fast.
+"""One MCAP file being written, through the public :class:`mcap.writer.Writer`: every dobhil
+log (a run's, ``dobhil log import``'s, python-can's ``can.Logger("x.mcap")``'s) is written by
+:class:`LogWriter`: header, metadata, attachments, a channel per topic on its first message,
+records encoded by the table, flush (and fsync), the ``recording`` summary on finish, every
+message to a second output (the live view) too. No python-can, no numpy: it starts fast.
 """
 
 from __future__ import annotations
 
 import os
 import time
-from collections.abc import Callable, Iterable, Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from enum import IntEnum
 from typing import Any, BinaryIO, Final, Protocol
 
@@ -55,18 +53,6 @@ _NAMES: Final = {t: s.name for t, s in TOPIC_SPECS.items()}
 _EVENTS, _LOSS = int(Topic.EVENTS), int(EventKind.LOSS)
 
 
-class _Channels(dict[Topic, int]):
-    """Topic -> channel id, registered (from the topic table) on first use."""
-
-    def __init__(self, register: Callable[[Topic], int]) -> None:
-        super().__init__()
-        self._register = register
-
-    def __missing__(self, topic: Topic) -> int:
-        channel = self[topic] = self._register(topic)
-        return channel
-
-
 class LogWriter:
     """Writes records to ``file`` (owned: closed by :meth:`finish` or :meth:`close`).
     Not thread-safe: one thread (or process) writes."""
@@ -78,11 +64,9 @@ class LogWriter:
         self.file = file
         self.mode = RecordMode(mode)
         self.fsync = fsync
-        self.written = 0
-        self.dropped = 0
-        self.last_log_ns = 0
+        self.written = self.dropped = self.last_log_ns = 0
         self._outputs: list[Output] = []
-        self._channel = _Channels(self._register)
+        self._channels: dict[Topic, int] = {}  # registered on a topic's first message
         self._schemas: dict[str, int] = {}
         self._mcap = Writer(file, chunk_size=chunk_size, compression=compression, enable_data_crcs=True)
         self._mcap.start(profile="", library=library)
@@ -95,8 +79,8 @@ class LogWriter:
 
     def register(self, *topics: Topic) -> None:
         """Channels for ``topics`` now (they are registered on first use otherwise)."""
-        for topic in topics:
-            _ = self._channel[topic]
+        for topic in (t for t in topics if t not in self._channels):
+            self._register(topic)
 
     def add_output(self, output: Output) -> None:
         """Send every message to ``output`` as well, every topic of the table announced now."""
@@ -106,7 +90,7 @@ class LogWriter:
 
     def write(self, records: Iterable[Sequence[Any]]) -> None:
         """Encode and write records, in order."""
-        add, channel, outputs = self._mcap.add_message, self._channel, self._outputs
+        add, channels, outputs = self._mcap.add_message, self._channels, self._outputs
         written, last = self.written, self.last_log_ns
         for record in records:
             t, n = record[1], len(record)
@@ -115,7 +99,7 @@ class LogWriter:
             for topic, encode, needs in VIEWS[record[0]]:
                 if n >= needs:
                     data = encode(record)
-                    add(channel[topic], t, data, t)
+                    add(channels.get(topic) or self._register(topic), t, data, t)
                     written += 1
                     for out in outputs:
                         out.publish(_NAMES[topic], data, t)
@@ -160,7 +144,8 @@ class LogWriter:
         if schema is None:
             schema = self._schemas[spec.schema_name] = self._mcap.register_schema(
                 spec.schema_name, SCHEMA_ENCODING, spec.schema_bytes())
-        return self._mcap.register_channel(spec.name, MESSAGE_ENCODING, schema)
+        channel = self._channels[topic] = self._mcap.register_channel(spec.name, MESSAGE_ENCODING, schema)
+        return channel  # > 0: the writer numbers channels from 1
 
 
 __all__ = ["CHUNK_SIZE", "COMPRESSION", "LIBRARY", "RECORDING_METADATA", "LogWriter", "Output", "RecordMode"]

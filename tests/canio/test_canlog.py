@@ -11,19 +11,19 @@ from dobhil.errors import LogFileError
 from dobhil.canio.canlog import CanLogFormat, export_can, import_can, parse_format
 from dobhil.canio.canlog import default_can_output as default_output
 from dobhil.recording.reader import open_log
-from dobhil.recording.schemas import Direction
+from dobhil.recording.schemas import Topic
 from tests.recording.helpers import command, frame, write_log
 
 T0 = 1_700_000_000.0
 
 FRAMES = (
-    (Direction.RX, can.Message(timestamp=T0, arbitration_id=0x123, data=bytes(range(8)), channel="can0")),
-    (Direction.TX, can.Message(timestamp=T0 + 0.001, arbitration_id=0x1ABCDEF, is_extended_id=True,
+    (Topic.CAN_RX, can.Message(timestamp=T0, arbitration_id=0x123, data=bytes(range(8)), channel="can0")),
+    (Topic.CAN_TX, can.Message(timestamp=T0 + 0.001, arbitration_id=0x1ABCDEF, is_extended_id=True,
                                data=b"\x01\x02\x03", channel="can0")),
-    (Direction.RX, can.Message(timestamp=T0 + 0.0015, arbitration_id=0x456, is_remote_frame=True, dlc=0,
+    (Topic.CAN_RX, can.Message(timestamp=T0 + 0.0015, arbitration_id=0x456, is_remote_frame=True, dlc=0,
                                channel="can0")),
-    (Direction.TX, can.Message(timestamp=T0 + 0.002, arbitration_id=0x001, data=b"", channel="can0")),
-    (Direction.RX, can.Message(timestamp=T0 + 0.003, arbitration_id=0x7FF, is_fd=True, bitrate_switch=True,
+    (Topic.CAN_TX, can.Message(timestamp=T0 + 0.002, arbitration_id=0x001, data=b"", channel="can0")),
+    (Topic.CAN_RX, can.Message(timestamp=T0 + 0.003, arbitration_id=0x7FF, is_fd=True, bitrate_switch=True,
                                data=bytes(range(12)), channel="can0")),
 )
 
@@ -47,7 +47,7 @@ def test_export_reads_back_through_python_can(tmp_path: Path, fmt: CanLogFormat)
     out = default_output(src, fmt)
     assert export_can(src, out, fmt) == len(FRAMES)
     back = list(can.LogReader(out))
-    assert [key(m) for m in back] == [key(m) if d == Direction.RX else key(_tx(m)) for d, m in FRAMES]
+    assert [key(m) for m in back] == [key(m) if d == Topic.CAN_RX else key(_tx(m)) for d, m in FRAMES]
     first = back[0].timestamp
     for got, (_, want) in zip(back, FRAMES):
         assert got.timestamp - first == pytest.approx(want.timestamp - T0, abs=RESOLUTION[fmt])

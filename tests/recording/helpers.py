@@ -8,7 +8,7 @@ from typing import Any
 
 import can
 
-from dobhil.recording.schemas import Direction, EventKind, Topic, can_frame_record, event_record
+from dobhil.recording.schemas import EventKind, Topic, can_frame_record, event_record
 from dobhil.recording.writer import LogWriter, RecordMode
 
 
@@ -21,7 +21,7 @@ def write_log(path: Path, records: Iterable[Sequence[Any]], *, metadata: Mapping
     return path
 
 
-def frame(msg: can.Message, direction: Direction, t: int) -> tuple[Any, ...]:
+def frame(msg: can.Message, direction: Topic, t: int) -> tuple[Any, ...]:
     return can_frame_record(msg, direction, t)
 
 

@@ -10,7 +10,7 @@ import can
 import pytest
 
 from dobhil.cli.main import main
-from dobhil.recording.schemas import Direction, EventKind
+from dobhil.recording.schemas import EventKind, Topic
 from tests.recording.helpers import event, feedback, frame, write_log
 
 
@@ -20,7 +20,7 @@ def run_file(tmp_path: Path) -> Path:
     records = [event(EventKind.ENABLE, 1_000_000_000, "start")]
     for i in range(100):
         t = 1_000_000_000 + i * 1_000_000
-        records += [feedback(t, 0.1 * i), frame(can.Message(arbitration_id=0x10, data=bytes([i])), Direction.RX, t)]
+        records += [feedback(t, 0.1 * i), frame(can.Message(arbitration_id=0x10, data=bytes([i])), Topic.CAN_RX, t)]
     return write_log(tmp_path / "run.mcap", records, metadata=meta, stop="reference finished")
 
 

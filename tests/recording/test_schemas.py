@@ -16,7 +16,6 @@ from dobhil.recording.schemas import (
     CYCLE,
     SPECS_BY_NAME,
     TOPIC_SPECS,
-    Direction,
     EventKind,
     Topic,
     can_frame_message,
@@ -92,9 +91,9 @@ def test_can_frame_record_payload_and_message_round_trip() -> None:
     import can
     msg = can.Message(timestamp=12.5, arbitration_id=0x1ABCDEF, is_extended_id=True, data=b"\x01\xff",
                       channel="vcan0")
-    record = can_frame_record(msg, Direction.TX, 99)
+    record = can_frame_record(msg, Topic.CAN_TX, 99)
     assert record[:2] == (int(Topic.CAN_TX), 99)
-    payload = can_frame_payload(record[2:], Direction.TX)
+    payload = can_frame_payload(record[2:], Topic.CAN_TX)
     assert payload["data"] == [1, 255] and payload["data_hex"] == "01ff" and payload["direction"] == "tx"
     assert payload == decode(TOPIC_SPECS[Topic.CAN_TX].encode(record[2:]))
     back = can_frame_message(payload, 99)
@@ -129,6 +128,6 @@ def test_the_loops_frame_record_is_the_tables() -> None:
         msg = can.Message(arbitration_id=0x1F, data=b"\x01\x02", channel="can1", timestamp=2.5, check=False)
         for name in on:
             setattr(msg, name, True)
-        for direction, topic in ((Direction.RX, Topic.CAN_RX), (Direction.TX, Topic.CAN_TX)):
+        for topic in (Topic.CAN_RX, Topic.CAN_TX):
             batch.frame(int(topic), msg)
-            assert batch.take() == [can_frame_record(msg, direction, 7)]
+            assert batch.take() == [can_frame_record(msg, topic, 7)]
