@@ -40,7 +40,6 @@ class Recording:
     """What a replay needs from one log."""
 
     path: str
-    config: Config
     profile: DriveProfile
     frames: tuple[can.Message, ...]          # /can/rx in receive order
     initial_seq: int                         # feedback seq controller.initialize used
@@ -168,7 +167,7 @@ def _read(log: LogFile, name: str) -> Recording:
         raise LogFileError(f"{name}: cycle {missing[0]} has /controller but no /drive/feedback record")
     cycle = np.array([c for c, _, _ in controller], dtype=np.int64)
     times = np.array([t for _, t, _ in controller], dtype=np.int64)
-    return Recording(name, recorded_config(log), _profile(log), tuple(frames), initial, cycle,
+    return Recording(name, _profile(log), tuple(frames), initial, cycle,
                      np.array([seqs[int(c)] for c in cycle], dtype=np.int64),
                      (times - (times[0] if times.size else 0)) / 1e9,
                      np.array([v for _, _, v in controller], dtype=float).reshape(-1, len(OUTPUTS)))

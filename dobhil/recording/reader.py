@@ -34,9 +34,6 @@ _NUMERIC: Final = {("recording", "dropped"): int, ("recording", "written"): int,
                    ("run", "torque_limit"): float, ("run", "period"): float, ("run", "duration"): float}
 _STOP: Final = EventKind.STOP.name.lower()
 
-Message = tuple[str, int, dict[str, Any]]
-
-
 @dataclass(frozen=True)
 class ChannelInfo:
     topic: str
@@ -219,7 +216,7 @@ class LogFile:
                     raise _fail(self.path, f"damaged at byte {offset} ({type(exc).__name__}: {exc})") from exc
                 yield from _chunk_messages(data, wanted)
 
-    def iter_messages(self, topics: Iterable[str] | None = None) -> Iterator[Message]:
+    def iter_messages(self, topics: Iterable[str] | None = None) -> Iterator[tuple[str, int, dict[str, Any]]]:
         """(topic, log_time_ns, payload dict) in file order."""
         for topic, t, data in self.iter_payloads(topics):
             try:

@@ -23,10 +23,7 @@ from dobhil.recording.writer import RecordMode
 
 #: Records handed over at once (~40 cycles with their frames, ~10 KiB pickled).
 BATCH_RECORDS: Final = 128
-_FEEDBACK: Final = int(Topic.DRIVE_FEEDBACK)
-_RX: Final = int(Topic.CAN_RX)
-_TX: Final = int(Topic.CAN_TX)
-_EVENTS: Final = int(Topic.EVENTS)
+_RX, _TX, _FEEDBACK, _EVENTS = (int(t) for t in (Topic.CAN_RX, Topic.CAN_TX, Topic.DRIVE_FEEDBACK, Topic.EVENTS))
 
 
 class RecordingBus(can.BusABC):

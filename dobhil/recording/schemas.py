@@ -120,8 +120,6 @@ def _fields(kind: FieldKind, *pairs: str) -> tuple[Field, ...]:
 _N, _I, _B = FieldKind.NUMBER, FieldKind.INTEGER, FieldKind.BOOLEAN
 
 
-# -- CAN frames ----------------------------------------------------------------
-
 _CAN_FIELDS: Final = (
     *_fields(_N, "timestamp", "bus timestamp of the frame [s]"), *_fields(_I, "arbitration_id", "CAN identifier"),
     *_fields(_B, "is_extended_id", "29-bit identifier", "is_remote_frame", "remote transmission request",
@@ -225,8 +223,6 @@ def spec_for(topic: str | int) -> TopicSpec:
     return spec
 
 
-# -- the cycle record --------------------------------------------------------------
-
 #: Values of a cycle record after (CYCLE, log_time_ns); the truth values are optional.
 CYCLE_FIELDS: Final = ("cycle", "position", "velocity", "seq", "tau_ref", "tau_int_hat", "tau_dis_hat", "tau_per",
                        "u_unsat", "u_sat", "period_error", "exec_time", "overrun", "axis_state", "axis_error",
@@ -274,6 +270,5 @@ def decode(data: bytes) -> dict[str, Any]:
 
 
 __all__ = ["CYCLE", "CYCLE_FIELDS", "FRAME_ATTRIBUTES", "MESSAGE_ENCODING", "SCHEMA_ENCODING", "SPECS_BY_NAME",
-           "TOPIC_SPECS", "VIEWS", "EventKind", "Field", "FieldKind", "Topic", "TopicSpec",
-           "can_frame_message", "can_frame_payload", "can_frame_record", "decode", "event_record", "message_count",
-           "messages", "spec_for"]
+           "TOPIC_SPECS", "VIEWS", "EventKind", "Field", "FieldKind", "Topic", "TopicSpec", "can_frame_message",
+           "can_frame_payload", "can_frame_record", "decode", "event_record", "message_count", "messages", "spec_for"]
