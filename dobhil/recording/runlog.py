@@ -9,8 +9,8 @@ from ``cycle``: the loop stops ``recorder_failed``.
 from __future__ import annotations
 
 import time
-from pathlib import Path
 from collections.abc import Callable, Mapping, Sequence
+from pathlib import Path
 from types import SimpleNamespace
 from typing import Any, Final
 
@@ -24,6 +24,7 @@ from dobhil.recording.writer import RecordMode
 #: Records handed over at once (~40 cycles with their frames, ~10 KiB pickled).
 BATCH_RECORDS: Final = 128
 _RX, _TX, _FEEDBACK, _EVENTS = (int(t) for t in (Topic.CAN_RX, Topic.CAN_TX, Topic.DRIVE_FEEDBACK, Topic.EVENTS))
+_LOSS: Final = int(EventKind.LOSS)
 
 
 class RecordingBus(can.BusABC):
@@ -143,12 +144,16 @@ class RunLog:
         records, self.records = self.records, []
         if not self.writer.write(self.writer.encode(records)):
             kept = [r for r in records if r[0] == _EVENTS]
-            lost = sum(message_count(r) for r in records) - len(kept)
+            lost, carried = sum(message_count(r) for r in records) - len(kept), 0
             if len(kept) > BATCH_RECORDS:  # a writer stuck for good: memory stays bounded
-                lost, kept = lost + len(kept), []
+                carried = sum(r[5] for r in kept if r[2] == _LOSS)  # earlier losses fold into this one
+                lost += sum(r[2] != _LOSS for r in kept)
+                kept = []
             self.writer.dropped += lost
-            self.records[:0] = [*kept, event_record(EventKind.LOSS, records[-1][1], f"{lost} messages dropped "
-                                                    "(writer lagging)", f"total {self.writer.dropped}", lost)]
+            if lost + carried:
+                kept.append(event_record(EventKind.LOSS, records[-1][1], f"{lost + carried} messages dropped "
+                                         "(writer lagging)", f"total {self.writer.dropped}", lost + carried))
+            self.records[:0] = kept
 
     def take(self) -> list[tuple[Any, ...]]:
         """Every record not yet handed over; none are left after."""

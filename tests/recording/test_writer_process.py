@@ -102,6 +102,30 @@ def test_batched_records_unpack_to_the_flat_records_of_the_topic_table() -> None
     assert records[5] == (int(Topic.EVENTS), 14, int(EventKind.INFO), "note", "000" + "\u00e9" * 5000, 0)
 
 
+def test_a_writer_stuck_for_good_bounds_the_kept_events_and_still_counts_every_loss(tmp_path: Path) -> None:
+    """More events than a batch while the writer is frozen: the kept events are dropped too
+    (memory bounded), earlier loss events fold into the next, and what reaches the file
+    still adds up: the loss counts = the drop count = the metadata."""
+    path = tmp_path / "run.mcap"
+    writer, batch = opened(path, RecordMode.LOSSY)
+    total = 3 * PIPE_SIZE // CYCLE_BYTES
+    with stopped(writer):
+        for k in range(total):
+            cycle(batch, k)
+            if k % 20 == 0:
+                batch.record(event_record(EventKind.INFO, 1_000_000_000 + k * 1_000_000, "note"))
+        assert len(batch.records) <= 3 * BATCH_RECORDS  # bounded however long it lags
+    writer.close("done", rest=batch.take())
+    log = open_log(path)
+    events = [p for _, _, p in log.iter_messages(["/events"])]
+    losses = [e["count"] for e in events if e["kind"] == "loss"]
+    written = counts(path)
+    notes, sent = sum(e["kind"] == "info" for e in events), len(range(0, total, 20))
+    assert 0 < notes < sent and losses
+    assert sum(losses) == writer.dropped == log.info().dropped
+    assert writer.dropped == 5 * (total - written["/loop"]) + sent - notes
+
+
 def test_a_batch_cut_by_a_read_waits_for_the_rest() -> None:
     data = encode([event_record(EventKind.INFO, 1, "a")]) + encode([event_record(EventKind.INFO, 2, "b")])
     batches, used = unpack(data[:-3])
