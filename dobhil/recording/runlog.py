@@ -48,9 +48,6 @@ class RecordingBus(can.BusABC):
             self._frame(_RX, msg)
         return msg
 
-    def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
-        return self.recv(timeout), False
-
     def __getattr__(self, name: str) -> Any:
         if name.startswith("_"):
             raise AttributeError(name)
