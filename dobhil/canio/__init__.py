@@ -13,6 +13,6 @@ Registered as entry points (``pyproject.toml``) that python-can 4.x discovers by
 
 :mod:`~dobhil.canio.canlog` converts CAN logs in python-can's formats to and from
 recordings (``dobhil log export --can``, ``dobhil log import``).
-:mod:`~dobhil.canio.frames` is the only module that knows how dobhil records a frame.
+:mod:`~dobhil.canio.frames` names the frame topics; the frame codec is recording's (``schemas``).
 Nothing is imported here, so python-can loads only the plugin it asks for.
 """

@@ -25,8 +25,8 @@ from can.io.generic import BinaryIOMessageReader
 from mcap.reader import NonSeekingReader, make_reader
 
 from dobhil.canio.frames import FRAME_TOPIC_NAMES, frame_message
+from dobhil.recording.reader import MAGIC
 
-MAGIC: Final = b"\x89MCAP0\r\n"
 #: (device, inode) of the files McapReaders of this process have open: the writer refuses
 #: them (``can.logconvert run.mcap run.mcap`` would otherwise destroy its input).
 _OPEN_INPUTS: Final[Counter[tuple[int, int]]] = Counter()

@@ -250,11 +250,6 @@ VIEWS: Final[Mapping[int, tuple[tuple[Topic, Encoder, int], ...]]] = MappingProx
     **{int(t): (_view(s, False),) for t, s in TOPIC_SPECS.items()}})
 
 
-def messages(record: Sequence[Any]) -> list[tuple[Topic, int, bytes]]:
-    """The ``(topic, log_time_ns, json)`` messages of one record."""
-    return [(topic, record[1], encode(record)) for topic, encode, needs in VIEWS[record[0]] if len(record) >= needs]
-
-
 def message_count(record: Sequence[Any]) -> int:
     """How many messages a record becomes (loss accounting)."""
     return sum(len(record) >= needs for _, _, needs in VIEWS[record[0]])
@@ -271,4 +266,4 @@ def decode(data: bytes) -> dict[str, Any]:
 
 __all__ = ["CYCLE", "CYCLE_FIELDS", "FRAME_ATTRIBUTES", "MESSAGE_ENCODING", "SCHEMA_ENCODING", "SPECS_BY_NAME",
            "TOPIC_SPECS", "VIEWS", "EventKind", "Field", "FieldKind", "Topic", "TopicSpec", "can_frame_message",
-           "can_frame_payload", "can_frame_record", "decode", "event_record", "message_count", "messages", "spec_for"]
+           "can_frame_payload", "can_frame_record", "decode", "event_record", "message_count", "spec_for"]

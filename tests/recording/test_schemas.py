@@ -23,7 +23,6 @@ from dobhil.recording.schemas import (
     can_frame_record,
     decode,
     message_count,
-    messages,
     spec_for,
 )
 
@@ -74,16 +73,27 @@ def test_numpy_scalars_are_plain_numbers() -> None:
     assert out == {"cycle": 3, "period_error": 0.5, "exec_time": 1e-4, "overrun": True}
 
 
-def test_a_cycle_record_becomes_one_message_per_cycle_topic() -> None:
+def test_a_cycle_record_becomes_one_message_per_cycle_topic(tmp_path: Path) -> None:
+    """Through the one writer: the messages a cycle record becomes, with and without truth."""
+    from dobhil.recording.reader import open_log
+    from dobhil.recording.writer import LogWriter
+
+    def written(record: tuple[object, ...]) -> dict[str, dict[str, object]]:
+        path = tmp_path / f"{len(record)}.mcap"
+        log = LogWriter(open(path, "wb"), metadata={}, fsync=False)
+        log.write([record])
+        log.finish(None)
+        return {topic: payload for topic, _, payload in open_log(path).iter_messages()}
+
     record = (CYCLE, 7, 3, 0.1, 0.2, 4, 1.0, 0.9, 0.01, 0.5, 0.6, 0.55, 1e-6, 2e-5, False, 8, 0)
-    out = {topic: decode(data) for topic, t, data in messages(record)}
-    assert set(out) == {Topic.DRIVE_FEEDBACK, Topic.CONTROLLER, Topic.DRIVE_COMMAND, Topic.LOOP}
-    assert out[Topic.DRIVE_FEEDBACK] == {"position": 0.1, "velocity": 0.2, "axis_state": 8, "axis_error": 0,
-                                         "seq": 4, "cycle": 3}
-    assert out[Topic.DRIVE_COMMAND] == {"torque": 0.55} and out[Topic.CONTROLLER]["u_unsat"] == 0.6
-    assert out[Topic.LOOP] == {"cycle": 3, "period_error": 1e-6, "exec_time": 2e-5, "overrun": False}
+    out = written(record)
+    assert set(out) == {"/drive/feedback", "/controller", "/drive/command", "/loop"}
+    assert out["/drive/feedback"] == {"position": 0.1, "velocity": 0.2, "axis_state": 8, "axis_error": 0,
+                                      "seq": 4, "cycle": 3}
+    assert out["/drive/command"] == {"torque": 0.55} and out["/controller"]["u_unsat"] == 0.6
+    assert out["/loop"] == {"cycle": 3, "period_error": 1e-6, "exec_time": 2e-5, "overrun": False}
     assert message_count(record) == 4 and message_count((*record, 1.0, 2.0, 3.0, 4.0)) == 5
-    truth = {t: decode(d) for t, _, d in messages((*record, 1.0, 2.0, 3.0, 4.0))}[Topic.EMULATOR_TRUTH]
+    truth = written((*record, 1.0, 2.0, 3.0, 4.0))["/emulator/truth"]
     assert truth == {"q": 1.0, "dq": 2.0, "tau_motor": 3.0, "tau_int": 4.0}
 
 
