@@ -28,7 +28,7 @@ from dobhil.recording.process import WriterProcess
 from dobhil.recording.runlog import RunLog
 from dobhil.recording.schemas import EventKind
 from dobhil.runtime.loop import RunResult, Timing
-from dobhil.runtime.realtime import run_in_background
+from dobhil.realtime import run_in_background
 from dobhil.runtime.session import RunSession
 from dobhil.runtime.stop import Stop, StopReason
 

@@ -28,7 +28,7 @@ from dobhil.emulator.registry import make_emulated_drive
 from dobhil.errors import ConfigError, PreflightError
 from dobhil.runtime.buses import BusSpec, open_bus, private_virtual_channel, resolve_bus
 from dobhil.runtime.controller import ForceController
-from dobhil.runtime.realtime import EMULATOR_PRIORITY_DROP
+from dobhil.realtime import EMULATOR_PRIORITY_DROP
 from dobhil.runtime.loop import (CycleSink, ForceLoop, Limits, LoopSettings, RunResult, StopRequest,
                                  Timing)
 from dobhil.runtime.references import make_reference
