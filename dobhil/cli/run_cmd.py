@@ -166,12 +166,13 @@ def report(info: dict[str, Any], stop_line: str, *, as_json: bool) -> None:
 
 def emulate(args: argparse.Namespace) -> int:
     from dobhil.config import resolve_config
+    from dobhil.drives.profile import load_drive_profile
     from dobhil.emulator.plant import Plant
     from dobhil.emulator.registry import make_emulated_drive
+    from dobhil.realtime import EMULATOR_PRIORITY_DROP
     from dobhil.runtime.buses import BusSpec, open_bus
     from dobhil.runtime.loop import StopRequest
-    from dobhil.realtime import EMULATOR_PRIORITY_DROP
-    from dobhil.runtime.session import check_duration, load_drive_profile
+    from dobhil.runtime.session import check_duration
     from dobhil.runtime.signals import stop_on_signals
     check_duration(args.duration)
     config = config_from_args(args)
