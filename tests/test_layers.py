@@ -180,7 +180,7 @@ def test_no_import_circle_between_modules() -> None:
 
 
 def test_the_report_and_its_figures_are_no_circle() -> None:
-    assert "dobhil.plotting.report_figures" not in GRAPH["dobhil.analysis.run_report"]
+    assert "dobhil.plotting.report_figures" not in GRAPH["dobhil.run_report"]
 
 
 @pytest.mark.parametrize(("low", "high"), [("dobhil.recording", "dobhil.runtime"),

@@ -13,7 +13,7 @@ from dobhil.plotting.figures import _plt, save
 if TYPE_CHECKING:
     from matplotlib.axes import Axes
 
-    from dobhil.analysis.run_report import RunData
+    from dobhil.run_report import RunData
     from dobhil.replay import ReplayResult
 
 
