@@ -179,10 +179,6 @@ def test_no_import_circle_between_modules() -> None:
     assert cycles() == []
 
 
-def test_the_report_and_its_figures_are_no_circle() -> None:
-    assert "dobhil.plotting.report_figures" not in GRAPH["dobhil.run_report"]
-
-
 @pytest.mark.parametrize(("low", "high"), [("dobhil.recording", "dobhil.runtime"),
                                            ("dobhil.runtime", "dobhil.recording")])
 def test_recording_and_runtime_do_not_import_each_other(low: str, high: str) -> None:
