@@ -38,13 +38,20 @@ def module_name(path: Path) -> str:
 MODULES = {module_name(p): p for p in PACKAGE.rglob("*.py")}
 
 
+#: A module named in a string: ``dobhil.emulator.odrive`` (or an entry point, ``module:name``).
+MODULE_NAME = re.compile(r"dobhil(?:\.\w+)+(?::\w+)?")
+
+
 def imported_names(source: str, module: str, is_package: bool) -> Iterator[tuple[int, str]]:
     """``(line, name)`` of every dotted name ``source`` (the text of ``module``) imports, at any
     level (functions and TYPE_CHECKING too), relative imports resolved; ``from a import b``
-    gives ``a`` and ``a.b`` (``b`` may be a module or a name in ``a``)."""
+    gives ``a`` and ``a.b`` (``b`` may be a module or a name in ``a``). A string that is a
+    dobhil module name counts too: registries import by name (``importlib.import_module``)."""
     package = module if is_package else module.rpartition(".")[0]
     for node in ast.walk(ast.parse(source)):
-        if isinstance(node, ast.Import):
+        if isinstance(node, ast.Constant) and isinstance(node.value, str) and MODULE_NAME.fullmatch(node.value):
+            yield node.lineno, node.value.partition(":")[0]
+        elif isinstance(node, ast.Import):
             yield from ((node.lineno, alias.name) for alias in node.names)
         elif isinstance(node, ast.ImportFrom):
             base = node.module or ""
@@ -158,6 +165,9 @@ IN_A_METHOD = "class A:\n    def f(self) -> None:\n        import dobhil.runtime
     ("dobhil.config.load", False, IN_A_METHOD,
      ["dobhil.config.load:3: dobhil.config.load imports dobhil.runtime.loop (dobhil.runtime: a higher layer "
       "than dobhil.config)"]),
+    ("dobhil.emulator.registry", False, "import importlib\nCLASSES = {'x': ('dobhil.runtime.loop', 'ForceLoop')}\n",
+     ["dobhil.emulator.registry:2: dobhil.emulator.registry imports dobhil.runtime.loop (dobhil.runtime: "
+      "a higher layer than dobhil.emulator)"]),
     # a peer of the same layer
     ("dobhil.canio.bus", False, "import dobhil.runtime\n",
      ["dobhil.canio.bus:1: dobhil.canio.bus imports dobhil.runtime (dobhil.runtime: a peer in the same layer "
@@ -167,6 +177,8 @@ IN_A_METHOD = "class A:\n    def f(self) -> None:\n        import dobhil.runtime
      "from dobhil import __version__\nfrom dobhil.errors import RecorderError\nimport os\n", []),
     ("dobhil.cli.main", False, "def f() -> None:\n    from dobhil.runtime.session import RunSession\n", []),
     ("dobhil.runtime.session", False, "from dobhil.realtime import lower_priority\n", []),
+    ("dobhil.emulator.registry", False, "CLASSES = {'odrive': ('dobhil.emulator.odrive', 'EmulatedODrive')}\n"
+     "DOC = 'like :mod:`dobhil.runtime.loop`'\n", []),
     # a module of a package no layer names
     ("dobhil.newpackage.thing", False, "", ["dobhil.newpackage.thing: module dobhil.newpackage.thing is in no "
                                             "layer of LAYERS"]),
