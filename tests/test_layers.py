@@ -143,6 +143,13 @@ def test_every_layer_entry_is_a_module_of_the_package() -> None:
     assert [p for p in entries if p not in MODULES and not any(m.startswith(p + ".") for m in MODULES)] == []
 
 
+def test_the_package_docstring_lists_the_layers() -> None:
+    """``dobhil/__init__.py`` shows the order to a reader: its items must be :data:`LAYERS`."""
+    text = ast.get_docstring(ast.parse((PACKAGE / "__init__.py").read_text())) or ""
+    items = [set(re.findall(r"``(dobhil\.\w+)``", item)) for item in text.split("\n- ")[1:]]
+    assert items == [set(layer) - {"dobhil"} for layer in LAYERS if set(layer) - {"dobhil", "dobhil.__main__"}]
+
+
 FUNCTION_LEVEL = "def start() -> None:\n    from dobhil.runtime.realtime import lower_priority\n    lower_priority()\n"
 TYPE_CHECKING_ONLY = "from typing import TYPE_CHECKING\nif TYPE_CHECKING:\n    from dobhil.replay import ReplayResult\n"
 IN_A_METHOD = "class A:\n    def f(self) -> None:\n        import dobhil.runtime.loop as loop\n"
