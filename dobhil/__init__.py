@@ -1,16 +1,25 @@
 """dobhil: robust DOb/RTOb force control of servo drives over CAN.
 
-Subpackages, one concept each:
+Subpackages and modules, one concept each, one item per layer, lowest first (``LAYERS`` in
+``tests/test_layers.py`` declares the order and checks every import against it: a package
+imports only lower layers, and those of one layer never import each other):
 
+- ``dobhil.errors``     the error types (exit codes)
+- ``dobhil.files``, ``dobhil.data``, ``dobhil.realtime``: safe output files, the shipped
+  configs and drive profiles, thread and process scheduling
 - ``dobhil.config``     run/design configuration (YAML, ``--set key=value``, validation)
-- ``dobhil.synthesis``  the paper's observers in state space, continuous and sampled
-- ``dobhil.analysis``   transfer functions, stability, margins, step metrics, sweeps
-- ``dobhil.plotting``   PNG figures (matplotlib, imported only when asked)
-- ``dobhil.drives``     drive base class and protocol implementations (codecs are pure)
-- ``dobhil.emulator``   plant-plus-environment emulator, a real participant on a CAN bus
-- ``dobhil.runtime``    the force-control loop, references, safety
-- ``dobhil.recording``  MCAP recording, replay support, log tools
-- ``dobhil.cli``        the ``dobhil`` command
+- ``dobhil.synthesis``  the paper's observers in state space, continuous and sampled;
+  ``dobhil.drives``     drive profiles, base class and protocol implementations (codecs are pure)
+- ``dobhil.analysis``   transfer functions, stability, margins, step metrics, sweeps;
+  ``dobhil.emulator``   plant-plus-environment emulator, a real participant on a CAN bus;
+  ``dobhil.recording``  MCAP writing (the writer process), reading, recovery, conversion
+- ``dobhil.plotting``   PNG figures of what it is given (matplotlib, imported only when asked);
+  ``dobhil.runtime``    the force-control loop, references, safety;
+  ``dobhil.canio``      python-can plugins (the ``dobhil`` bus, MCAP as a CAN log);
+  ``dobhil.live``       the Foxglove live view; ``dobhil.run_report`` the report of a recorded run
+- ``dobhil.replay``     a recorded run replayed through the controller;
+  ``dobhil.paper``      the paper's Section IV reproduced and checked
+- ``dobhil.cli``        the ``dobhil`` command (one module per command)
 """
 
 from __future__ import annotations

@@ -1,15 +1,33 @@
-"""Layers point one way: no import circle in the package, recording and the runtime apart,
-and no dependency's private names anywhere in ``dobhil/``."""
+"""Layers point one way: the package order declared once (:data:`LAYERS`), no import circle
+in the package, and no dependency's private names anywhere in ``dobhil/``."""
 
 from __future__ import annotations
 
 import ast
 import re
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
 
 PACKAGE = Path(__file__).resolve().parents[1] / "dobhil"
+
+#: The package order, lowest first. A module may import only its own package and packages of
+#: lower layers; the packages of one layer are independent of each other (the plant emulator
+#: and the recording, say, or the loop and the python-can plugins). Every module of ``dobhil/``
+#: belongs to exactly one entry ("dobhil" is the package root: ``__version__``).
+LAYERS: list[tuple[str, ...]] = [
+    ("dobhil", "dobhil.errors"),                            # the root: version, error types
+    ("dobhil.files", "dobhil.data", "dobhil.realtime"),     # the OS: files, shipped data, scheduling
+    ("dobhil.config",),                                     # keys, loading, validation
+    ("dobhil.synthesis", "dobhil.drives"),                  # the observers; drive profiles and codecs
+    ("dobhil.analysis", "dobhil.emulator", "dobhil.recording"),  # the design analysed; the plant; logs
+    ("dobhil.plotting", "dobhil.runtime", "dobhil.canio",   # figures; the loop; python-can plugins;
+     "dobhil.live", "dobhil.run_report"),                   # the live view; the report of a recorded run
+    ("dobhil.replay", "dobhil.paper"),                      # a log replayed; the paper reproduced
+    ("dobhil.cli",),                                        # the command
+    ("dobhil.__main__",),                                   # ``python -m dobhil``
+]
 
 
 def module_name(path: Path) -> str:
@@ -20,20 +38,61 @@ def module_name(path: Path) -> str:
 MODULES = {module_name(p): p for p in PACKAGE.rglob("*.py")}
 
 
-def imports(path: Path) -> set[str]:
-    """Every dobhil module ``path`` imports, at any level (functions and TYPE_CHECKING too)."""
-    out: set[str] = set()
-    package = module_name(path) if path.name == "__init__.py" else module_name(path).rpartition(".")[0]
-    for node in ast.walk(ast.parse(path.read_text())):
-        if isinstance(node, ast.Import):
-            out.update(alias.name for alias in node.names)
+#: A module named in a string: ``dobhil.emulator.odrive`` (or an entry point, ``module:name``).
+MODULE_NAME = re.compile(r"dobhil(?:\.\w+)+(?::\w+)?")
+
+
+def imported_names(source: str, module: str, is_package: bool) -> Iterator[tuple[int, str]]:
+    """``(line, name)`` of every dotted name ``source`` (the text of ``module``) imports, at any
+    level (functions and TYPE_CHECKING too), relative imports resolved; ``from a import b``
+    gives ``a`` and ``a.b`` (``b`` may be a module or a name in ``a``). A string that is a
+    dobhil module name counts too: registries import by name (``importlib.import_module``)."""
+    package = module if is_package else module.rpartition(".")[0]
+    for node in ast.walk(ast.parse(source)):
+        if isinstance(node, ast.Constant) and isinstance(node.value, str) and MODULE_NAME.fullmatch(node.value):
+            yield node.lineno, node.value.partition(":")[0]
+        elif isinstance(node, ast.Import):
+            yield from ((node.lineno, alias.name) for alias in node.names)
         elif isinstance(node, ast.ImportFrom):
             base = node.module or ""
             if node.level:
                 base = ".".join([*package.split(".")[: len(package.split(".")) - node.level + 1], base]).strip(".")
-            out.add(base)
-            out.update(f"{base}.{alias.name}" for alias in node.names)
-    return {m for m in out if m in MODULES}
+            yield node.lineno, base
+            yield from ((node.lineno, f"{base}.{alias.name}") for alias in node.names)
+
+
+def imports(path: Path) -> set[str]:
+    """Every dobhil module ``path`` imports, at any level (functions and TYPE_CHECKING too)."""
+    name = module_name(path)
+    return {m for _, m in imported_names(path.read_text(), name, path.name == "__init__.py") if m in MODULES}
+
+
+def layer_entry(module: str) -> str | None:
+    """The :data:`LAYERS` entry ``module`` belongs to (the longest that contains it)."""
+    inside = [p for layer in LAYERS for p in layer
+              if module == p or (p != "dobhil" and module.startswith(p + "."))]
+    return max(inside, key=len, default=None)
+
+
+def layer_index(entry: str) -> int:
+    return next(i for i, layer in enumerate(LAYERS) if entry in layer)
+
+
+def layer_problems(source: str, module: str, is_package: bool = False, where: str = "") -> list[str]:
+    """Each import of ``source`` (module ``module``) against :data:`LAYERS`, one line each:
+    where, the line, the module, what it imports and why that is not allowed."""
+    own = layer_entry(module)
+    if own is None:
+        return [f"{where or module}: module {module} is in no layer of LAYERS"]
+    problems, seen = [], set()
+    for line, name in sorted(set(imported_names(source, module, is_package))):
+        target = layer_entry(name) if name == "dobhil" or name.startswith("dobhil.") else own
+        if target is None or target == own or layer_index(target) < layer_index(own) or (line, target) in seen:
+            continue
+        seen.add((line, target))  # ``from a.b import c``: one line for a.b, not another for a.b.c
+        how = "a peer in the same layer as" if layer_index(target) == layer_index(own) else "a higher layer than"
+        problems.append(f"{where or module}:{line}: {module} imports {name} ({target}: {how} {own})")
+    return problems
 
 
 GRAPH = {name: imports(path) - {name} for name, path in MODULES.items()}
@@ -71,17 +130,79 @@ def cycles() -> list[list[str]]:
     return out
 
 
+def test_every_import_follows_the_layers() -> None:
+    problems = [problem for name, path in sorted(MODULES.items())
+                for problem in layer_problems(path.read_text(), name, path.name == "__init__.py",
+                                              str(path.relative_to(PACKAGE.parent)))]
+    assert problems == [], "imports against LAYERS:\n" + "\n".join(problems)
+
+
+def test_every_layer_entry_is_a_module_of_the_package() -> None:
+    entries = [p for layer in LAYERS for p in layer]
+    assert len(entries) == len(set(entries))
+    assert [p for p in entries if p not in MODULES and not any(m.startswith(p + ".") for m in MODULES)] == []
+
+
+def test_the_package_docstring_lists_the_layers() -> None:
+    """``dobhil/__init__.py`` shows the order to a reader: its items must be :data:`LAYERS`."""
+    text = ast.get_docstring(ast.parse((PACKAGE / "__init__.py").read_text())) or ""
+    items = [set(re.findall(r"``(dobhil\.\w+)``", item)) for item in text.split("\n- ")[1:]]
+    assert items == [set(layer) - {"dobhil"} for layer in LAYERS if set(layer) - {"dobhil", "dobhil.__main__"}]
+
+
+FUNCTION_LEVEL = "def start() -> None:\n    from dobhil.runtime.realtime import lower_priority\n    lower_priority()\n"
+TYPE_CHECKING_ONLY = "from typing import TYPE_CHECKING\nif TYPE_CHECKING:\n    from dobhil.replay import ReplayResult\n"
+IN_A_METHOD = "class A:\n    def f(self) -> None:\n        import dobhil.runtime.loop as loop\n"
+
+
+@pytest.mark.parametrize(("module", "is_package", "source", "expected"), [
+    # upward, however it is written
+    ("dobhil.emulator.protocol", False, FUNCTION_LEVEL,
+     ["dobhil.emulator.protocol:2: dobhil.emulator.protocol imports dobhil.runtime.realtime (dobhil.runtime: "
+      "a higher layer than dobhil.emulator)"]),
+    ("dobhil.emulator.protocol", False, "from ..runtime import realtime\n",
+     ["dobhil.emulator.protocol:1: dobhil.emulator.protocol imports dobhil.runtime (dobhil.runtime: "
+      "a higher layer than dobhil.emulator)"]),
+    ("dobhil.emulator", True, "from .. import runtime\n",
+     ["dobhil.emulator:1: dobhil.emulator imports dobhil.runtime (dobhil.runtime: a higher layer than "
+      "dobhil.emulator)"]),
+    ("dobhil.plotting.report_figures", False, TYPE_CHECKING_ONLY,
+     ["dobhil.plotting.report_figures:3: dobhil.plotting.report_figures imports dobhil.replay (dobhil.replay: "
+      "a higher layer than dobhil.plotting)"]),
+    ("dobhil.config.load", False, IN_A_METHOD,
+     ["dobhil.config.load:3: dobhil.config.load imports dobhil.runtime.loop (dobhil.runtime: a higher layer "
+      "than dobhil.config)"]),
+    ("dobhil.emulator.registry", False, "import importlib\nCLASSES = {'x': ('dobhil.runtime.loop', 'ForceLoop')}\n",
+     ["dobhil.emulator.registry:2: dobhil.emulator.registry imports dobhil.runtime.loop (dobhil.runtime: "
+      "a higher layer than dobhil.emulator)"]),
+    # a peer of the same layer
+    ("dobhil.canio.bus", False, "import dobhil.runtime\n",
+     ["dobhil.canio.bus:1: dobhil.canio.bus imports dobhil.runtime (dobhil.runtime: a peer in the same layer "
+      "as dobhil.canio)"]),
+    # allowed: own package (relative too), lower layers, the root, other libraries
+    ("dobhil.recording.process", False, "from . import writer\nfrom .writer import LogWriter\nimport dobhil\n"
+     "from dobhil import __version__\nfrom dobhil.errors import RecorderError\nimport os\n", []),
+    ("dobhil.cli.main", False, "def f() -> None:\n    from dobhil.runtime.session import RunSession\n", []),
+    ("dobhil.runtime.session", False, "from dobhil.realtime import lower_priority\n", []),
+    ("dobhil.emulator.registry", False, "CLASSES = {'odrive': ('dobhil.emulator.odrive', 'EmulatedODrive')}\n"
+     "DOC = 'like :mod:`dobhil.runtime.loop`'\n", []),
+    # a module of a package no layer names
+    ("dobhil.newpackage.thing", False, "", ["dobhil.newpackage.thing: module dobhil.newpackage.thing is in no "
+                                            "layer of LAYERS"]),
+])
+def test_the_layer_check(module: str, is_package: bool, source: str, expected: list[str]) -> None:
+    assert layer_problems(source, module, is_package) == expected
+
+
 def test_no_import_circle_between_modules() -> None:
     assert cycles() == []
-
-
-def test_the_report_and_its_figures_are_no_circle() -> None:
-    assert "dobhil.plotting.report_figures" not in GRAPH["dobhil.analysis.run_report"]
 
 
 @pytest.mark.parametrize(("low", "high"), [("dobhil.recording", "dobhil.runtime"),
                                            ("dobhil.runtime", "dobhil.recording")])
 def test_recording_and_runtime_do_not_import_each_other(low: str, high: str) -> None:
+    """Beyond the layers (recording is below the runtime): the loop knows its recorder only
+    as a ``CycleSink``."""
     offenders = {m: sorted(i for i in deps if i == high or i.startswith(high + "."))
                  for m, deps in GRAPH.items() if m == low or m.startswith(low + ".")}
     assert {m: d for m, d in offenders.items() if d} == {}

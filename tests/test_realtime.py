@@ -9,8 +9,8 @@ from typing import Any
 import pytest
 
 from dobhil.errors import ConfigError
-from dobhil.runtime import realtime
-from dobhil.runtime.realtime import apply_realtime, lower_priority, run_in_background
+from dobhil import realtime
+from dobhil.realtime import apply_realtime, lower_priority, run_in_background
 
 
 def test_no_priority_asks_for_nothing(monkeypatch: pytest.MonkeyPatch) -> None:

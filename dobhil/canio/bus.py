@@ -32,12 +32,11 @@ from can.typechecking import AutoDetectedConfig, CanFilters
 
 from dobhil.config import Config, load_config, resolve_config
 from dobhil.data import shipped_configs
+from dobhil.drives.profile import load_drive_profile
 from dobhil.emulator.plant import Plant
 from dobhil.emulator.protocol import EmulatedDrive
-from dobhil.emulator.registry import make_emulated_drive
+from dobhil.emulator.registry import make_emulated_drive, private_virtual_channel
 from dobhil.errors import BusError, DobhilError
-from dobhil.runtime.buses import private_virtual_channel
-from dobhil.runtime.session import load_drive_profile
 
 #: The channel when none is given.
 DEFAULT_CONFIG = "demo"

@@ -27,8 +27,9 @@ from dobhil.files import check_new_output
 from dobhil.recording.process import WriterProcess
 from dobhil.recording.runlog import RunLog
 from dobhil.recording.schemas import EventKind
+from dobhil.recording.writer import LiveView
 from dobhil.runtime.loop import RunResult, Timing
-from dobhil.runtime.realtime import run_in_background
+from dobhil.realtime import run_in_background
 from dobhil.runtime.session import RunSession
 from dobhil.runtime.stop import Stop, StopReason
 
@@ -46,21 +47,22 @@ def default_log_path(directory: Path, now: datetime | None = None) -> Path:
     return path
 
 
-def live_address(text: str | None, log: Path | None) -> tuple[str, int] | None:
-    """``--live [HOST:]PORT`` checked before a run: the address, the SDK there, a log to serve it."""
+def live_address(text: str | None, log: Path | None) -> LiveView | None:
+    """``--live [HOST:]PORT`` checked before a run: the address, the SDK there, a log to serve it;
+    the live view the log's writer process serves (a :class:`~dobhil.live.LiveServer` there)."""
     if text is None:
         return None
     from dobhil.errors import ConfigError
-    from dobhil.live import parse_live_address
+    from dobhil.live import LiveServer, parse_live_address
     from dobhil.live.server import import_sdk
     if log is None:
         raise ConfigError("--live needs a log (--log FILE.mcap): the live view is served by the log's writer")
     address = parse_live_address(text)
     import_sdk()
-    return address.host, address.port
+    return LiveView(LiveServer, address.host, address.port)
 
 
-def open_run_log(path: Path | None, *, live: tuple[str, int] | None = None, fsync: bool = True) -> RunLog | None:
+def open_run_log(path: Path | None, *, live: LiveView | None = None, fsync: bool = True) -> RunLog | None:
     """A :class:`RunLog` for ``path`` (checked first: one line if it cannot be written)."""
     if path is None:
         return None
@@ -122,7 +124,7 @@ def begin(log: RunLog, session: RunSession, config_file: str | os.PathLike[str] 
                                                          plant.motor_torque, plant.interaction_torque)),
               drive=drive)
     if log.live_port is not None and log.live is not None:
-        sys.stderr.write(f"live view: ws://{log.live[0]}:{log.live_port}\n")
+        sys.stderr.write(f"live view: ws://{log.live.host}:{log.live_port}\n")
         sys.stderr.flush()
 
 

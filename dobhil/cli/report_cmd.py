@@ -1,6 +1,6 @@
 """``dobhil report FILE.mcap --out DIR [--json]``: figures and a summary of a recorded run.
 
-The analysis (:mod:`dobhil.analysis.run_report`) returns data; this command draws
+The analysis (:mod:`dobhil.run_report`) returns data; this command draws
 force.png, tracking_error.png, position.png, commands.png, loop_timing.png
 (:mod:`dobhil.plotting.report_figures`) and writes summary.json and summary.txt, each
 under a temporary name renamed when complete. A progress bar goes to stderr when it is a
@@ -36,7 +36,7 @@ def _check_out_dir(out: Path, source: str) -> None:
 def run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
-    from dobhil.analysis.run_report import report, summary_text
+    from dobhil.run_report import report, summary_text
     from dobhil.files import atomic_path, shown
     from dobhil.plotting.report_figures import report_figures
     from dobhil.recording.reader import open_log

@@ -111,7 +111,7 @@ def report_preflight(report: Any) -> None:
 def warn_realtime(session: Any) -> None:
     """Ask for SCHED_FIFO / locked memory for a real-time run; warn (before the loop) if refused."""
     from dobhil.runtime.loop import Timing
-    from dobhil.runtime.realtime import apply_realtime
+    from dobhil.realtime import apply_realtime
     if session.timing is not Timing.LOCKSTEP:
         loop = session.config.loop
         for line in apply_realtime(loop.realtime_priority, loop.cpu_affinity):
@@ -120,7 +120,7 @@ def warn_realtime(session: Any) -> None:
 
 def lower_writer(log: Any) -> None:
     """The writer process below the loop (nice +10): it is lossy in real time and may lag."""
-    from dobhil.runtime.realtime import WRITER_PRIORITY_DROP, lower_priority
+    from dobhil.realtime import WRITER_PRIORITY_DROP, lower_priority
     if log is not None and log.writer_pid is not None:
         lower_priority(WRITER_PRIORITY_DROP, pid=log.writer_pid)
 
@@ -166,12 +166,13 @@ def report(info: dict[str, Any], stop_line: str, *, as_json: bool) -> None:
 
 def emulate(args: argparse.Namespace) -> int:
     from dobhil.config import resolve_config
+    from dobhil.drives.profile import load_drive_profile
     from dobhil.emulator.plant import Plant
     from dobhil.emulator.registry import make_emulated_drive
+    from dobhil.realtime import EMULATOR_PRIORITY_DROP
     from dobhil.runtime.buses import BusSpec, open_bus
     from dobhil.runtime.loop import StopRequest
-    from dobhil.runtime.realtime import EMULATOR_PRIORITY_DROP
-    from dobhil.runtime.session import check_duration, load_drive_profile
+    from dobhil.runtime.session import check_duration
     from dobhil.runtime.signals import stop_on_signals
     check_duration(args.duration)
     config = config_from_args(args)

@@ -21,10 +21,11 @@ from typing import Any
 
 import yaml
 
+from dobhil.config.schema import Config
 from dobhil.config.yamlio import TextFileError, read_text_file, safe_load, show_value, where
 from dobhil.errors import ConfigError
 
-__all__ = ["DriveProfile", "default_drivers_dir", "load_profile", "profile_from_mapping"]
+__all__ = ["DriveProfile", "default_drivers_dir", "load_drive_profile", "load_profile", "profile_from_mapping"]
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -175,3 +176,12 @@ def load_profile(
         raise ConfigError(f"{path}: cannot read drive profile: {' '.join(str(exc).split())}") from None
     data = {"name": path.stem, **(data or {})} if isinstance(data, Mapping) else data
     return profile_from_mapping(data, source=str(path))
+
+
+def load_drive_profile(config: Config, base_dir: Path | None = None) -> DriveProfile:
+    """The profile ``drive.profile`` of ``config`` names: a YAML file relative to ``base_dir``
+    (the config's directory) if there is one, else a profile name looked up near it."""
+    name = config.drive.profile
+    candidate = (base_dir / name) if base_dir and not Path(name).is_absolute() else Path(name)
+    return load_profile(str(candidate) if candidate.suffix in (".yaml", ".yml") and candidate.exists()
+                        else name, near=base_dir)

@@ -39,7 +39,7 @@ from typing import Any, Protocol
 import can
 
 from dobhil.drives.profile import DriveProfile
-from dobhil.runtime.realtime import lower_priority
+from dobhil.realtime import lower_priority
 
 __all__ = ["EmulatedDrive", "LockstepBus", "PlantLike"]
 

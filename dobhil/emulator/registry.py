@@ -6,6 +6,7 @@ A new protocol's emulator is one new module plus one line in :data:`EMULATOR_CLA
 from __future__ import annotations
 
 import importlib
+import uuid
 from collections.abc import Mapping
 from types import MappingProxyType
 from typing import Any
@@ -32,3 +33,12 @@ def make_emulated_drive(bus: can.BusABC, profile: DriveProfile, plant: PlantLike
                           f"emulated: {', '.join(sorted(EMULATOR_CLASSES))}") from None
     cls = getattr(importlib.import_module(module_name), class_name)
     return cls(bus, profile, plant, **kwargs)
+
+
+def private_virtual_channel() -> str:
+    """A virtual-bus channel name no other run in this process uses.
+
+    It ends in a letter: python-can's log writers read trailing digits of a channel name
+    as the channel number (``can.util.channel2int``), and BLF stores it in 16 bits, so a
+    name ending in many digits would make ``can.logconvert run.mcap run.blf`` fail."""
+    return f"dobhil-{uuid.uuid4().hex[:12]}-private"

@@ -2,19 +2,50 @@
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
+from numpy.typing import NDArray
 
 from dobhil.plotting.figures import _plt, save
 
 if TYPE_CHECKING:
     from matplotlib.axes import Axes
 
-    from dobhil.analysis.run_report import RunData
-    from dobhil.replay import ReplayResult
+    from dobhil.config.schema import Config
+
+# The shapes drawn here, named rather than imported: the report and the replay are above
+# plotting (they read logs, run the controller); mypy checks their classes against these.
+
+
+class RecordedRun(Protocol):
+    """A recorded run (``dobhil.run_report.RunData``): per-cycle arrays by name."""
+
+    @property
+    def t(self) -> NDArray[np.float64]: ...
+    @property
+    def config(self) -> Config | None: ...
+    @property
+    def metadata(self) -> Mapping[str, Mapping[str, str]]: ...
+    def has(self, name: str) -> bool: ...
+    def __getitem__(self, name: str) -> NDArray[np.float64]: ...
+
+
+class Timed(Protocol):
+    @property
+    def time(self) -> NDArray[np.float64]: ...
+
+
+class Replayed(Protocol):
+    """A replay (``dobhil.replay.ReplayResult``): recorded and replayed outputs by name."""
+
+    @property
+    def recording(self) -> Timed: ...
+    @property
+    def overrides(self) -> Sequence[str]: ...
+    def column(self, name: str, which: str = "replayed") -> NDArray[np.float64]: ...
 
 
 def _finish(ax: Axes, ylabel: str, legend: bool = True) -> None:
@@ -33,7 +64,7 @@ def _zoom_window(summary: Mapping[str, Any], t: np.ndarray) -> tuple[float, floa
     return main["time"] - 0.1 * max(settle, 0.02), main["time"] + min(3 * max(settle, 0.02), float(t[-1]))
 
 
-def force_figure(data: RunData, predicted: np.ndarray | None, summary: Mapping[str, Any], path: Path) -> Path:
+def force_figure(data: RecordedRun, predicted: np.ndarray | None, summary: Mapping[str, Any], path: Path) -> Path:
     plt = _plt()
     t = data.t
     zoom = _zoom_window(summary, t)
@@ -65,7 +96,7 @@ def _fit_y(ax: Axes, t: np.ndarray, window: tuple[float, float], series: list[np
         ax.set_ylim(lo - pad, hi + pad)
 
 
-def _title(data: RunData, what: str) -> str:
+def _title(data: RecordedRun, what: str) -> str:
     run = data.metadata.get("run", {})
     timing = run.get("timing", "")
     cfg = data.config
@@ -74,7 +105,7 @@ def _title(data: RunData, what: str) -> str:
     return f"{what} ({timing}{design})"
 
 
-def error_figure(data: RunData, path: Path) -> Path:
+def error_figure(data: RecordedRun, path: Path) -> Path:
     plt = _plt()
     t = data.t
     rows = 2 if data.has("tau_int_true") else 1
@@ -95,7 +126,7 @@ def error_figure(data: RunData, path: Path) -> Path:
     return save(fig, path)
 
 
-def position_figure(data: RunData, path: Path) -> Path:
+def position_figure(data: RecordedRun, path: Path) -> Path:
     plt = _plt()
     t = data.t
     fig, ax = plt.subplots(2, 1, figsize=(9, 6), sharex=True)
@@ -115,7 +146,7 @@ def position_figure(data: RunData, path: Path) -> Path:
     return save(fig, path)
 
 
-def command_figure(data: RunData, path: Path) -> Path:
+def command_figure(data: RecordedRun, path: Path) -> Path:
     plt = _plt()
     t = data.t
     fig, ax = plt.subplots(figsize=(9, 4.5))
@@ -133,7 +164,7 @@ def command_figure(data: RunData, path: Path) -> Path:
     return save(fig, path)
 
 
-def timing_figure(data: RunData, path: Path) -> Path:
+def timing_figure(data: RecordedRun, path: Path) -> Path:
     plt = _plt()
     fig, ax = plt.subplots(1, 2, figsize=(10, 4))
     ex = data["exec_time"][np.isfinite(data["exec_time"])] * 1e6
@@ -158,7 +189,7 @@ def timing_figure(data: RunData, path: Path) -> Path:
     return save(fig, path)
 
 
-def report_figures(data: RunData, predicted: np.ndarray | None, summary: Mapping[str, Any],
+def report_figures(data: RecordedRun, predicted: np.ndarray | None, summary: Mapping[str, Any],
                    out: Path) -> list[Path]:
     """force.png, tracking_error.png, position.png, commands.png, loop_timing.png."""
     return [force_figure(data, predicted, summary, out / "force.png"),
@@ -168,7 +199,7 @@ def report_figures(data: RunData, predicted: np.ndarray | None, summary: Mapping
             timing_figure(data, out / "loop_timing.png")]
 
 
-def replay_figure(result: ReplayResult, path: Path) -> Path:
+def replay_figure(result: Replayed, path: Path) -> Path:
     """Recorded vs replayed command and estimates over the same measured feedback."""
     plt = _plt()
     t = result.recording.time

@@ -3,14 +3,22 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Protocol
 
 import numpy as np
+from numpy.typing import NDArray
 
 from dobhil.plotting.figures import _plt, save
-from dobhil.runtime.loop import Trace
 
 
-def run_figure(trace: Trace, path: Path, title: str = "") -> Path:
+class Columns(Protocol):
+    """Per-cycle values by name (the runtime's ``Trace``): plotting sits beside the runtime
+    and draws what it is given, so it names the shape, not the loop's class."""
+
+    def __getitem__(self, name: str) -> NDArray[np.float64]: ...
+
+
+def run_figure(trace: Columns, path: Path, title: str = "") -> Path:
     plt = _plt()
     t = trace["t"]
     fig, ax = plt.subplots(3, 1, figsize=(9, 8), sharex=True,

@@ -22,7 +22,7 @@ from typing import Any, Final
 
 import dobhil
 from dobhil.errors import RecorderError
-from dobhil.recording.writer import LogWriter, RecordMode
+from dobhil.recording.writer import LiveView, LogWriter, RecordMode
 
 #: Seconds ``close`` waits for the writer process to finish the file.
 JOIN_TIMEOUT: Final = 60.0
@@ -86,8 +86,8 @@ class WriterProcess:
         self.pid = self._proc.pid
 
     def open(self, metadata: Mapping[str, Mapping[str, Any]], attachments: Sequence[tuple[str, str, bytes]],
-             mode: RecordMode, live: tuple[str, int] | None = None, early: Sequence[tuple[Any, ...]] = ()) -> None:
-        """Header, metadata, attachments, the mode, the live view's address (if any); waits
+             mode: RecordMode, live: LiveView | None = None, early: Sequence[tuple[Any, ...]] = ()) -> None:
+        """Header, metadata, attachments, the mode, the live view (if any); waits
         until the writer is ready (its start-up never competes with the loop); then the
         ``early`` records (taken before the log was open)."""
         self.mode = RecordMode(mode)
@@ -247,12 +247,11 @@ def _read_status(conn: Connection) -> Sequence[Any] | None:
 
 
 def _open(path: str, status: Connection, mode: int, fsync: bool, metadata: Any, attachments: Any,
-          live: Any) -> LogWriter:
+          live: LiveView | None) -> LogWriter:
     log = LogWriter(open(path, "wb"), metadata=metadata, attachments=attachments, mode=RecordMode(mode), fsync=fsync)
     port = None
     if live is not None:
-        from dobhil.live import LiveServer  # optional extra [live]
-        server = LiveServer(host=live[0], port=live[1])
+        server = live.serve(host=live.host, port=live.port)
         log.add_output(server)
         port = server.port
     status.send_bytes(pickle.dumps((int(Status.READY), port)))

@@ -19,7 +19,7 @@ import can
 from dobhil.errors import RecorderError
 from dobhil.recording.process import WriterProcess
 from dobhil.recording.schemas import EventKind, Topic, event_record, message_count
-from dobhil.recording.writer import RecordMode
+from dobhil.recording.writer import LiveView, RecordMode
 
 #: Records handed over at once (~40 cycles with their frames, ~10 KiB pickled).
 BATCH_RECORDS: Final = 128
@@ -58,7 +58,7 @@ class RunLog:
     """Records one run through ``writer`` (started, not yet open: records wait until
     :meth:`begin`, as a preflight talks on the tapped bus)."""
 
-    def __init__(self, writer: WriterProcess, *, live: tuple[str, int] | None = None) -> None:
+    def __init__(self, writer: WriterProcess, *, live: LiveView | None = None) -> None:
         self.writer, self.live = writer, live
         self.clock_ns: Callable[[], int] = time.time_ns
         self.truth: Callable[[], tuple[float, float, float, float]] | None = None

@@ -9,7 +9,8 @@ from __future__ import annotations
 
 import os
 import time
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
+from dataclasses import dataclass
 from enum import IntEnum
 from typing import Any, BinaryIO, Final, Protocol
 
@@ -44,6 +45,26 @@ class Output(Protocol):
     def close(self) -> None: ...
     @property
     def dropped(self) -> int: ...
+
+
+class LiveOutput(Output, Protocol):
+    """An :class:`Output` listening on a port: the live view."""
+
+    @property
+    def port(self) -> int: ...
+
+
+@dataclass(frozen=True)
+class LiveView:
+    """The live view a writer process serves: ``serve(host=host, port=port)`` makes its output.
+
+    The caller names ``serve`` (``dobhil.live.LiveServer``): the live view is above the
+    recording, which so never imports it. It crosses to the writer process pickled, ``serve``
+    by reference (a class or function at module level), imported there when unpickled."""
+
+    serve: Callable[..., LiveOutput]
+    host: str
+    port: int
 
 
 _NAMES: Final = {t: s.name for t, s in TOPIC_SPECS.items()}
@@ -145,4 +166,5 @@ class LogWriter:
         return channel  # > 0: the writer numbers channels from 1
 
 
-__all__ = ["CHUNK_SIZE", "COMPRESSION", "LIBRARY", "RECORDING_METADATA", "LogWriter", "Output", "RecordMode"]
+__all__ = ["CHUNK_SIZE", "COMPRESSION", "LIBRARY", "RECORDING_METADATA", "LiveOutput", "LiveView", "LogWriter",
+           "Output", "RecordMode"]

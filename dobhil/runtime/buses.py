@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import logging
-import uuid
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -116,12 +115,3 @@ class _CaughtWarnings(logging.Handler):
 
     def __exit__(self, *exc: object) -> None:
         logging.getLogger().removeHandler(self)
-
-
-def private_virtual_channel() -> str:
-    """A virtual-bus channel name no other run in this process uses.
-
-    It ends in a letter: python-can's log writers read trailing digits of a channel name
-    as the channel number (``can.util.channel2int``), and BLF stores it in 16 bits, so a
-    name ending in many digits would make ``can.logconvert run.mcap run.blf`` fail."""
-    return f"dobhil-{uuid.uuid4().hex[:12]}-private"

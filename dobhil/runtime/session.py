@@ -20,27 +20,20 @@ import can
 from dobhil.config.schema import Config
 from dobhil.drives.base import Drive
 from dobhil.drives.preflight import DEFAULT_WINDOW, PreflightReport, profile_rate_findings, run_preflight
-from dobhil.drives.profile import DriveProfile, load_profile
+from dobhil.drives.profile import DriveProfile, load_drive_profile
 from dobhil.drives.registry import make_drive, preflight_probe
 from dobhil.emulator.plant import Plant
 from dobhil.emulator.protocol import EmulatedDrive, LockstepBus
-from dobhil.emulator.registry import make_emulated_drive
+from dobhil.emulator.registry import make_emulated_drive, private_virtual_channel
 from dobhil.errors import ConfigError, PreflightError
-from dobhil.runtime.buses import BusSpec, open_bus, private_virtual_channel, resolve_bus
+from dobhil.runtime.buses import BusSpec, open_bus, resolve_bus
 from dobhil.runtime.controller import ForceController
-from dobhil.runtime.realtime import EMULATOR_PRIORITY_DROP
+from dobhil.realtime import EMULATOR_PRIORITY_DROP
 from dobhil.runtime.loop import (CycleSink, ForceLoop, Limits, LoopSettings, RunResult, StopRequest,
                                  Timing)
 from dobhil.runtime.references import make_reference
 from dobhil.synthesis.controller import sampled_controller
 from dobhil.synthesis.params import params_from_config
-
-
-def load_drive_profile(config: Config, base_dir: Path | None = None) -> DriveProfile:
-    name = config.drive.profile
-    candidate = (base_dir / name) if base_dir and not Path(name).is_absolute() else Path(name)
-    return load_profile(str(candidate) if candidate.suffix in (".yaml", ".yml") and candidate.exists()
-                        else name, near=base_dir)
 
 
 def check_rates(profile: DriveProfile, period: float) -> None:

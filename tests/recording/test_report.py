@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from dobhil.analysis.run_report import RunData, detect_steps, latency_stats, summary_text
+from dobhil.run_report import RunData, detect_steps, latency_stats, summary_text
 from dobhil.drives.bus_load import frame_bits
 from dobhil.cli.main import main
 from tests.recording.test_run_logging import logged_lockstep_run

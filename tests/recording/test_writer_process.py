@@ -20,10 +20,11 @@ from dobhil.recording.process import PIPE_SIZE, WriterProcess, encode, unpack
 from dobhil.recording.runlog import BATCH_RECORDS, RunLog
 from dobhil.recording.reader import open_log
 from dobhil.recording.schemas import CYCLE, EventKind, Topic, event_record
-from dobhil.recording.writer import RecordMode
+from dobhil.recording.writer import LiveView, RecordMode
 from dobhil.runtime.controller import ControlOutput
 
 from tests.recording.conftest import child_processes
+from tests.recording.live_double import FileOutput
 
 META = {"run": {"who": "test"}}
 DRIVE = SimpleNamespace(status=SimpleNamespace(state=8, error_code=0))
@@ -147,6 +148,23 @@ def test_backpressure_round_trip_and_the_process_is_joined(tmp_path: Path) -> No
     assert counts(path)["/controller"] == counts(path)["/emulator/truth"] == 5120
     assert info.stop_reason == "done" and info.metadata["run"] == {"who": "test"}
     assert info.metadata["recording"]["mode"] == "backpressure" and writer.written == info.message_count
+
+
+def test_the_writer_process_serves_the_live_view_it_is_given(tmp_path: Path) -> None:
+    """The recording imports no live view: the caller names what to serve (a LiveView), the
+    writer process makes it there, reports its port, sends it every message and closes it."""
+    served = tmp_path / "served.txt"
+    writer = WriterProcess(tmp_path / "run.mcap", fsync=False)
+    writer.open(META, [], RecordMode.BACKPRESSURE, LiveView(FileOutput, str(served), 4321))
+    assert writer.live_port == 4321
+    batch = RunLog(writer)
+    for k in range(3):
+        cycle(batch, k)
+    writer.close("done", rest=batch.take())
+    lines = served.read_text().splitlines()
+    assert "channel /controller dobhil.Controller" in lines and lines[-1] == "closed"
+    assert [line for line in lines if line.startswith("/controller ")] == [
+        f"/controller {1_000_000_000 + k * 1_000_000}" for k in range(3)]
 
 
 def test_backpressure_blocks_while_the_writer_lags_and_loses_nothing(tmp_path: Path) -> None:

@@ -165,7 +165,7 @@ def test_run_log_writer_runs_below_the_loop(tmp_path: Path) -> None:
     """``dobhil run --log``: the writer process gets nice +10 (it may lag; the loop not)."""
     from dobhil.cli.recording import abort, open_run_log
     from dobhil.cli.run_cmd import lower_writer
-    from dobhil.runtime.realtime import WRITER_PRIORITY_DROP
+    from dobhil.realtime import WRITER_PRIORITY_DROP
     log = open_run_log(tmp_path / "run.mcap")
     assert log is not None and log.writer_pid is not None
     lower_writer(log)

@@ -19,7 +19,8 @@
   leave SCHED_IDLE again, so it is used only where the writer may lag (lossy, real time).
 
 On Linux the nice value, the scheduling policy and the affinity are per *thread*; each
-function here acts on the thread that calls it.
+function here acts on the thread that calls it. Only the OS is below this module: the
+runtime, the emulator and the command all use it, and none of them needs another to do so.
 """
 
 from __future__ import annotations
@@ -58,7 +59,7 @@ def apply_realtime(priority: int, cpu: int = -1) -> list[str]:
 def lower_priority(increment: int = WRITER_PRIORITY_DROP, pid: int = 0) -> str:
     """Raise the nice value of the calling thread (``pid`` 0; Linux: this thread only,
     elsewhere the process) or of process ``pid`` (e.g. the writer process, from the
-    process that started it: no import of the runtime needed there) by ``increment``.
+    process that started it: the writer itself imports nothing for it) by ``increment``.
     Returns a warning, or "" when done. Never raises."""
     if increment <= 0 or not hasattr(os, "setpriority"):
         return "" if increment <= 0 else "lowering the priority is not supported here"
