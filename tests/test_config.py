@@ -41,3 +41,11 @@ def test_bad_files(tmp_path: Path, text: str, message: str) -> None:
     p.write_text(text)
     with pytest.raises(ConfigError, match=message.replace("(", r"\(").replace(".", r"\.")):
         load_config(p)
+
+
+def test_a_key_set_twice_takes_the_last_value() -> None:
+    """As the README says: a repeated ``--set`` is not an error; the last one wins, as
+    command-line options do (a key twice in one YAML mapping is an error: test_bad_files)."""
+    first = load_config("demo", ["loop.period=0.002", "loop.period=0.0005"])
+    second = load_config("demo", ["loop.period=0.0005", "loop.period=0.002"])
+    assert (first.loop.period, second.loop.period) == (0.0005, 0.002)
