@@ -18,11 +18,17 @@ an assumption, marked as such below. Behaviour emulated:
   the same on 0.5 and never hands NaN to the plant; on 0.6 it disarms with
   MISSING_INPUT (assumption);
 - Estop: IDLE plus the ESTOP_REQUESTED bit; Clear_Errors clears every bit;
-- ``Get_*`` requests (RTR or zero-length frames) for Get_Encoder_Estimates, Get_Iq,
-  Get_Bus_Voltage_Current; on 0.6 also Heartbeat, Get_Version, Get_Error and
-  Get_Torques; on 0.5 Get_Motor/Encoder/Sensorless/Controller_Error. Firmware 0.5.6
-  ignores heartbeat RTRs (``can_simple.cpp``: "We don't currently do anything to
-  respond to ODrive heartbeat messages") and has no Get_Version (id 0 is CANopen NMT);
+- ``Get_*`` requests, an RTR frame or a zero-length data frame (0.5.6 ``can_simple.cpp``:
+  ``if (msg.rtr || msg.len == 0)``), answered with the DLC-8 reply: Get_Encoder_Estimates
+  (the cyclic frame's values), Get_Iq and Get_Bus_Voltage_Current on both; on 0.5
+  Get_Motor/Encoder/Sensorless/Controller_Error; on 0.6 Heartbeat, Get_Version, Get_Error
+  and Get_Torques (0.6: the same rule for every drive-to-host message, an assumption).
+  Firmware 0.5.6 ignores heartbeat RTRs (``can_simple.cpp``: "We don't currently do
+  anything to respond to ODrive heartbeat messages") and has no Get_Version (id 0 is
+  CANopen NMT). 0.5.6 answers Get_Controller_Error to a data frame too; the emulator
+  answers requests only, so that an interface echoing the drive's own reply back cannot
+  make it answer itself. Not emulated (no answer): 0.5 Get_Encoder_Count,
+  Get_Sensorless_Estimates, Get_ADC_Voltage; 0.6 Get_Temperature, Get_Powers;
 - watchdog (``profile.watchdog_timeout`` > 0) checked in every axis state, as 0.5.6's
   ``main.cpp`` does: without a feed for the timeout the WATCHDOG_TIMER_EXPIRED bit is set
   (0x800 on 0.5, 0x01000000 on 0.6) and the axis drops to IDLE. An idle axis nobody
@@ -273,6 +279,10 @@ class EmulatedODrive(EmulatedDrive):
     def _answer(self, msg: codec.Request) -> None:
         if msg.cmd == CmdId.CLEAR_ERRORS:  # zero-length Clear_Errors on 0.6
             self._clear_errors(codec.ClearErrors())
+            return
+        if msg.cmd == CmdId.GET_ENCODER_ESTIMATES:
+            # the cyclic frame itself: the same estimates, float32 overflow sent as +-inf
+            self._send(self._encoder_frame())
             return
         reply = self._reply_for(msg.cmd)
         if reply is not None:

@@ -106,6 +106,37 @@ def test_heartbeat_rtr_and_shutdown_without_leaks() -> None:
         bus.send(can.Message(arbitration_id=1))
 
 
+@pytest.mark.parametrize("profile", ["odrive-0.5", "odrive-0.6"])
+def test_encoder_estimates_requests_answered(tmp_path: Path, profile: str) -> None:
+    """Get_Encoder_Estimates requested by RTR and by a zero-length frame is answered (DLC 8)
+    by the emulator behind the interface. Heartbeat and encoder estimates run at the same
+    rate, and each tick sends the estimates before the heartbeat, so once a heartbeat is
+    read the estimates frames read beyond the heartbeat count are exactly the replies."""
+    data = yaml.safe_load((REPO / "drivers" / f"{profile}.yaml").read_text(encoding="utf-8"))
+    data.update(encoder_msg_rate=0.02, heartbeat_msg_rate=0.02, watchdog_timeout=0, bus={})
+    path = tmp_path / f"{profile}-slow.yaml"
+    path.write_text(yaml.safe_dump(data), encoding="utf-8")
+    estimates = (NODE << 5) | 0x09
+    heartbeat = (NODE << 5) | 0x01
+    with can.Bus(interface="dobhil", channel="demo", overrides=[f"drive.profile={path}"]) as bus:
+        bus.send(can.Message(arbitration_id=estimates, is_extended_id=False, is_remote_frame=True, dlc=8))
+        bus.send(can.Message(arbitration_id=estimates, is_extended_id=False, data=b""))
+        counts = {estimates: 0, heartbeat: 0}
+        extra = 0
+        end = time.monotonic() + BOUND
+        while time.monotonic() < end:
+            msg = bus.recv(0.5)
+            if msg is None or msg.arbitration_id not in counts:
+                continue
+            assert msg.dlc == 8 and not msg.is_remote_frame
+            counts[msg.arbitration_id] += 1
+            if msg.arbitration_id == heartbeat:   # every cyclic pair complete here
+                extra = counts[estimates] - counts[heartbeat]
+                if extra >= 2 and counts[heartbeat] >= 3:
+                    break
+    assert extra == 2, counts
+
+
 def test_overrides_config_path_and_bad_channels(tmp_path: Path) -> None:
     assert override_items("plant.inertia=0.1, loop.period=0.002") == ("plant.inertia=0.1", "loop.period=0.002")
     assert override_items({"plant.inertia": 0.1}) == ("plant.inertia=0.1",)
