@@ -210,6 +210,75 @@ def test_odrive_can_client_through_the_dobhil_interface(tmp_path: Path) -> None:
     assert {t for t in threading.enumerate() if t.is_alive()} <= before
 
 
+SHIPPED_WATCHDOG = 0.05   # s, drivers/odrive-0.6.yaml (the profile of configs/demo.yaml)
+
+
+async def _readme_sequence_once() -> tuple[str | None, float]:
+    """README, "Ecosystem": ``ODriveCAN(axis_id=3, can_bus=can.Bus(interface="dobhil",
+    channel="demo"))`` (shipped config and profile: 50 ms watchdog), used as odrive-can's
+    documentation shows: start, clear_errors, set_controller_mode, a task sending torque
+    every 5 ms, await set_axis_state("CLOSED_LOOP_CONTROL"), check_errors. Returns the
+    failure (None if none) and the host's longest gap between watchdog-feeding frames."""
+    from odrive_can.odrive import ODriveCAN
+
+    bus = can.Bus(interface="dobhil", channel="demo")
+    drv = ODriveCAN(axis_id=3, can_bus=bus)
+    sent: list[float] = []
+
+    async def torque() -> None:
+        while True:
+            drv.set_input_torque(0.0)
+            sent.append(time.monotonic())
+            await asyncio.sleep(0.005)
+
+    await drv.start()
+    task: asyncio.Task[None] | None = None
+    failure: str | None = None
+    try:
+        drv.clear_errors()
+        sent.append(time.monotonic())
+        drv.set_controller_mode("TORQUE_CONTROL", "PASSTHROUGH")
+        task = asyncio.create_task(torque())
+        await drv.set_axis_state("CLOSED_LOOP_CONTROL")
+        drv.check_errors()
+        if drv.axis_state != "CLOSED_LOOP_CONTROL":
+            failure = f"axis state {drv.axis_state}"
+    except Exception as exc:  # the client's TimeoutError or DriveError: the outcome under test
+        failure = f"{type(exc).__name__}: {exc}"
+    finally:
+        if task is not None:
+            task.cancel()
+        drv.stop()   # Set_Axis_State IDLE, joins its reader thread
+        bus.shutdown()   # the client shuts it down only when garbage-collected
+    gaps = [b - a for a, b in zip(sent, sent[1:])]
+    return failure, max(gaps, default=0.0)
+
+
+def test_readme_odrive_can_sentence_20_times_in_a_row() -> None:
+    """The README's odrive-can sentence, exactly as written, 20 times in a row (issue 16:
+    on the 0.6 profile Clear_Errors did not feed the emulated watchdog, and about 2 of 3
+    tries timed out or raised WATCHDOG_TIMER_EXPIRED).
+
+    A try may fail only if the host itself paused: its longest gap between feeding frames
+    (Clear_Errors, the torque commands) reached half the watchdog timeout (the emulator may
+    work off up to 10 ms of ticks before it reads a frame that waited); such a try is not
+    counted and is repeated, at most 20 times."""
+    pytest.importorskip("odrive_can")
+    before = set(threading.enumerate())
+    passed, excused = 0, []
+    while passed < 20:
+        failure, gap = asyncio.run(_readme_sequence_once())
+        if failure is None:
+            passed += 1
+            continue
+        assert gap >= SHIPPED_WATCHDOG / 2, (
+            f"try {passed + len(excused) + 1} failed with the host's longest gap "
+            f"{gap * 1e3:.1f} ms: {failure}")
+        excused.append(gap)
+        assert len(excused) <= 20, f"the host paused >= 25 ms in 21 tries: {excused}"
+    assert {t for t in threading.enumerate() if t.is_alive()} <= before
+
+
 def test_a_bus_that_cannot_start_leaves_nothing_running(monkeypatch: pytest.MonkeyPatch) -> None:
     from dobhil.emulator.protocol import EmulatedDrive
 

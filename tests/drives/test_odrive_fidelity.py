@@ -268,3 +268,31 @@ def test_every_get_request_is_answered_with_the_dbc_reply(bench: Bench, request_
     assert est["Pos_Estimate"] * 2 * math.pi == pytest.approx(1.5, rel=1e-6)
     assert est["Vel_Estimate"] * 2 * math.pi == pytest.approx(-0.25, rel=1e-6)
     assert bench.emu.frame_errors == 0, bench.emu.last_frame_error
+
+
+@pytest.mark.parametrize("form", ["data", "zero-length", "rtr"])
+def test_clear_errors_feeds_the_watchdog_of_an_idle_axis(bench: Bench, form: str) -> None:
+    """An axis left idle past the watchdog timeout shows the bit. Clear_Errors, in any
+    form, clears it and feeds the watchdog, so a Set_Axis_State sent later (here one
+    tick short of the timeout) is granted: odrive-can's documented sequence works
+    whatever emulator ticks fall between its frames (issue 16; 0.6 without the feed
+    flagged the bit again at the next tick and refused closed loop)."""
+    timeout_ticks = round(bench.emu.profile.watchdog_timeout / DT)
+    bench.tick(timeout_ticks + 5)
+    assert bench.emu.watchdog_error and not bench.emu.watchdog_tripped
+    clear = codec.arbitration_id(3, CmdId.CLEAR_ERRORS)
+    if form == "data":
+        bench.send(codec.ClearErrors())
+    elif form == "zero-length":
+        bench.raw(arbitration_id=clear, is_extended_id=False, data=b"")
+    else:
+        bench.raw(arbitration_id=clear, is_extended_id=False, is_remote_frame=True, dlc=1)
+    bench.tick(timeout_ticks - 1)
+    assert not bench.emu.watchdog_error
+    bench.send(codec.SetControllerMode(ControlMode.TORQUE_CONTROL, InputMode.PASSTHROUGH))
+    bench.send(codec.SetAxisState(AxisState.CLOSED_LOOP_CONTROL))
+    bench.tick()
+    assert bench.emu.axis_state is AxisState.CLOSED_LOOP_CONTROL and bench.emu.axis_error == 0
+    # the stricter 0.6 rule is kept: without setpoints the armed axis trips at the timeout
+    bench.tick(timeout_ticks)
+    assert bench.emu.watchdog_tripped and bench.emu.axis_state is AxisState.IDLE
