@@ -10,11 +10,20 @@ A finished file is read through its chunk index, chunk and data CRCs checked: da
 bytes are a ValueError naming the damage, never frames read silently. A file without a
 summary (its writer was killed) is read front to back: every complete frame is yielded,
 then a ValueError says the file is truncated and how to complete it.
+
+A gzip stream (python-can opens ``x.mcap.gz`` with ``gzip.open``) is first copied,
+decompressed, to an anonymous temporary file: python-can's ``.gz`` writer truncates its
+output before any writer is called, so ``can.logconvert x.mcap.gz x.mcap.gz`` would
+otherwise read an emptied input and leave nothing; with the copy it writes the input's
+frames back (an interrupted conversion of a file onto itself keeps what was written).
 """
 
 from __future__ import annotations
 
+import gzip
 import os
+import shutil
+import tempfile
 from collections import Counter
 from collections.abc import Iterator
 from io import BufferedIOBase
@@ -50,6 +59,21 @@ def _file_key(file: Any) -> tuple[int, int] | None:
     return st.st_dev, st.st_ino
 
 
+def _decompressed_copy(stream: gzip.GzipFile) -> BinaryIO:
+    """The whole stream in an anonymous temporary file (gone when closed); ``stream``
+    is closed. Also spares the indexed read gzip's slow seeks."""
+    copy = cast(BinaryIO, tempfile.TemporaryFile())
+    try:
+        shutil.copyfileobj(stream, copy, 1 << 20)
+        copy.seek(0)
+    except BaseException:
+        copy.close()
+        raise
+    finally:
+        stream.close()
+    return copy
+
+
 class McapReader(BinaryIOMessageReader):
     """Reads the CAN frames of an MCAP file (path or seekable binary file object)."""
 
@@ -71,6 +95,12 @@ class McapReader(BinaryIOMessageReader):
         self._key = _file_key(self.file)
         if self._key is not None:
             _OPEN_INPUTS[self._key] += 1
+        if isinstance(self.file, gzip.GzipFile):
+            try:
+                self.file = _decompressed_copy(self.file)
+            except BaseException:
+                self.stop()
+                raise
 
     def stop(self) -> None:
         if self._key is not None:
