@@ -34,15 +34,15 @@ an assumption, marked as such below. Behaviour emulated:
   (0x800 on 0.5, 0x01000000 on 0.6) and the axis drops to IDLE. An idle axis nobody
   talks to therefore shows the bit, like a real drive. Fed on 0.5 by every frame
   addressed to the node (``CANSimple::do_command``); entering CLOSED_LOOP_CONTROL feeds
-  it (``axis.cpp``). On 0.6 (firmware not public: an assumption, not confirmed on a
-  drive) it is fed by the setpoint frames Set_Input_Pos/Vel/Torque and by Clear_Errors
-  in any form (data, zero-length or RTR). Clear_Errors must feed it: otherwise an axis
-  that sat idle past the timeout flags the bit again at the next check, before the
-  Set_Axis_State that follows, and the sequence documented clients use (odrive-can:
+  it on both (0.5.6 ``axis.cpp``). On 0.6 (firmware not public: an assumption, not
+  confirmed on a drive) it is fed by the setpoint frames Set_Input_Pos/Vel/Torque and by
+  Clear_Errors in any form (data, zero-length or RTR). Clear_Errors must feed it:
+  otherwise an axis that sat idle past the timeout flags the bit again at the next check,
+  before the Set_Axis_State that follows, and the sequence documented clients use (odrive-can:
   Clear_Errors, Set_Controller_Mode, Set_Axis_State CLOSED_LOOP_CONTROL, then setpoints)
   is refused at random, depending on whether a check falls between two frames sent
-  back to back. Set_Controller_Mode and Set_Axis_State do not feed it on 0.6 (the
-  stricter choice: nothing but setpoints keeps an armed axis armed).
+  back to back. Set_Controller_Mode and a refused Set_Axis_State do not feed it on 0.6
+  (the stricter choice: nothing but setpoints keeps an armed axis armed).
   :attr:`EmulatedODrive.watchdog_tripped` is True only if the watchdog disarmed the
   motor (expired in CLOSED_LOOP_CONTROL); :attr:`EmulatedODrive.watchdog_error` is the bit;
 - heartbeat Trajectory_Done is 1 (0.5.6 ``controller.hpp``: ``trajectory_done_ = true``;
