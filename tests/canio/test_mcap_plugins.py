@@ -273,7 +273,7 @@ def test_can_logger_in_a_subprocess_on_the_dobhil_bus(tmp_path: Path) -> None:
 
 
 def test_gzip_compressed_mcap(tmp_path: Path) -> None:
-    """``x.mcap.gz``: python-can's gzip wrapping around the plugins (read without an index)."""
+    """``x.mcap.gz``: python-can's gzip wrapping around the plugins (read from a decompressed copy)."""
     path = write(tmp_path / "frames.mcap.gz")
     assert [flags(m) for m in can.LogReader(path)] == [flags(m) for m in FRAMES]
 
