@@ -278,6 +278,22 @@ def test_gzip_compressed_mcap(tmp_path: Path) -> None:
     assert [flags(m) for m in can.LogReader(path)] == [flags(m) for m in FRAMES]
 
 
+def test_truncated_gz_yields_what_is_complete_then_says_how_to_recover(tmp_path: Path) -> None:
+    """A .mcap.gz cut short (a logger killed under gzip): the frames of the complete chunks,
+    then a ValueError naming the way to recover it (recover reads MCAP, not gzip)."""
+    frames = tuple(can.Message(timestamp=T0 + k * 1e-3, arbitration_id=k & 0x7FF, is_extended_id=False,
+                               data=os.urandom(8)) for k in range(3000))
+    whole = write(tmp_path / "whole.mcap.gz", frames)
+    cut = tmp_path / "cut.mcap.gz"
+    cut.write_bytes(whole.read_bytes()[: whole.stat().st_size // 2])
+    read: list[can.Message] = []
+    with pytest.raises(ValueError, match=r"truncated.*`zcat .*cut\.mcap\.gz > x\.mcap` then `dobhil log recover"):
+        for msg in can.LogReader(cut):
+            read.append(msg)
+    assert 0 < len(read) < len(frames)
+    assert [flags(m) for m in read] == [flags(m) for m in frames[: len(read)]]
+
+
 def test_logconvert_onto_its_own_input_is_refused(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """Refused before the output is opened, the input intact; an OSError, as python-can's
     writers raise for an output they cannot open (and a ValueError, as before)."""
