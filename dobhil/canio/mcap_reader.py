@@ -15,7 +15,8 @@ A gzip stream (python-can opens ``x.mcap.gz`` with ``gzip.open``) is first copie
 decompressed, to an anonymous temporary file: python-can's ``.gz`` writer truncates its
 output before any writer is called, so ``can.logconvert x.mcap.gz x.mcap.gz`` would
 otherwise read an emptied input and leave nothing; with the copy it writes the input's
-frames back (an interrupted conversion of a file onto itself keeps what was written).
+frames back (an interrupted conversion of a file onto itself keeps what was written). A
+gzip stream cut short is copied up to its end and read like any truncated file.
 """
 
 from __future__ import annotations
