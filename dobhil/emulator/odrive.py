@@ -17,7 +17,8 @@ an assumption, marked as such below. Behaviour emulated:
   MODULATION_IS_NAN, the axis MOTOR_FAILED and disarms (``foc.cpp``). The emulator does
   the same on 0.5 and never hands NaN to the plant; on 0.6 it disarms with
   MISSING_INPUT (assumption);
-- Estop: IDLE plus the ESTOP_REQUESTED bit; Clear_Errors clears every bit;
+- Estop (any frame on its id, RTR included, as 0.5.6 ``can_simple.cpp``; 0.6 assumed the
+  same): IDLE plus the ESTOP_REQUESTED bit; Clear_Errors clears every bit;
 - ``Get_*`` requests, an RTR frame or a zero-length data frame (0.5.6 ``can_simple.cpp``:
   ``if (msg.rtr || msg.len == 0)``), answered with the DLC-8 reply: Get_Encoder_Estimates
   (the cyclic frame's values), Get_Iq and Get_Bus_Voltage_Current on both; on 0.5
@@ -289,6 +290,11 @@ class EmulatedODrive(EmulatedDrive):
     def _answer(self, msg: codec.Request) -> None:
         if msg.cmd == CmdId.CLEAR_ERRORS:  # zero-length Clear_Errors on 0.6
             self._clear_errors(codec.ClearErrors())
+            return
+        if msg.cmd == CmdId.ESTOP:
+            # 0.5.6 estops on any frame with the Estop id, RTR included (can_simple.cpp has no
+            # rtr check there); 0.6 assumed the same: an Estop in any form stops the axis
+            self._estop(codec.Estop())
             return
         if msg.cmd == CmdId.GET_ENCODER_ESTIMATES:
             # the cyclic frame itself: the same estimates, float32 overflow sent as +-inf

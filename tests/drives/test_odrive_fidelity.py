@@ -296,3 +296,15 @@ def test_clear_errors_feeds_the_watchdog_of_an_idle_axis(bench: Bench, form: str
     # the stricter 0.6 rule is kept: without setpoints the armed axis trips at the timeout
     bench.tick(timeout_ticks)
     assert bench.emu.watchdog_tripped and bench.emu.axis_state is AxisState.IDLE
+
+
+def test_an_estop_rtr_stops_the_axis(bench: Bench) -> None:
+    """0.5.6 runs estop_callback for any frame on the Estop id, RTR included (no rtr check
+    in can_simple.cpp); the emulator does the same on both firmwares (0.6: assumption)."""
+    bench.enable()
+    assert bench.emu.axis_state is AxisState.CLOSED_LOOP_CONTROL
+    bench.raw(arbitration_id=codec.arbitration_id(3, CmdId.ESTOP), is_extended_id=False,
+              is_remote_frame=True, dlc=0)
+    bench.tick()
+    assert bench.emu.axis_state is AxisState.IDLE
+    assert bench.emu.axis_error & codec.estop_bit(bench.emu.firmware)
