@@ -10,11 +10,21 @@ A finished file is read through its chunk index, chunk and data CRCs checked: da
 bytes are a ValueError naming the damage, never frames read silently. A file without a
 summary (its writer was killed) is read front to back: every complete frame is yielded,
 then a ValueError says the file is truncated and how to complete it.
+
+A gzip stream (python-can opens ``x.mcap.gz`` with ``gzip.open``) is first copied,
+decompressed, to an anonymous temporary file: python-can's ``.gz`` writer truncates its
+output before any writer is called, so ``can.logconvert x.mcap.gz x.mcap.gz`` would
+otherwise read an emptied input and leave nothing; with the copy it writes the input's
+frames back (an interrupted conversion of a file onto itself keeps what was written). A
+gzip stream cut short is copied up to its end and read like any truncated file.
 """
 
 from __future__ import annotations
 
+import gzip
 import os
+import tempfile
+import zlib
 from collections import Counter
 from collections.abc import Iterator
 from io import BufferedIOBase
@@ -50,6 +60,35 @@ def _file_key(file: Any) -> tuple[int, int] | None:
     return st.st_dev, st.st_ino
 
 
+#: Bytes decompressed per read when copying a gzip input (a truncated stream loses at most
+#: the read that hits its end).
+_COPY_CHUNK: Final = 1 << 16
+
+
+def _decompressed_copy(stream: gzip.GzipFile) -> BinaryIO:
+    """The whole stream in an anonymous temporary file (gone when closed); ``stream``
+    is closed. Also spares the indexed read gzip's slow seeks."""
+    copy = cast(BinaryIO, tempfile.TemporaryFile())
+    try:
+        while True:
+            try:
+                chunk = stream.read(_COPY_CHUNK)
+            except (EOFError, OSError, zlib.error):
+                # a truncated or damaged gzip stream (a logger killed): what came before is
+                # copied, and reading the copy yields its frames, then says it is truncated
+                break
+            if not chunk:
+                break
+            copy.write(chunk)
+        copy.seek(0)
+    except BaseException:
+        copy.close()
+        raise
+    finally:
+        stream.close()
+    return copy
+
+
 class McapReader(BinaryIOMessageReader):
     """Reads the CAN frames of an MCAP file (path or seekable binary file object)."""
 
@@ -71,6 +110,15 @@ class McapReader(BinaryIOMessageReader):
         self._key = _file_key(self.file)
         if self._key is not None:
             _OPEN_INPUTS[self._key] += 1
+        self._recover = f"`dobhil log recover {self.name}`"
+        if isinstance(self.file, gzip.GzipFile):
+            # dobhil log recover reads MCAP, not gzip: decompress what there is first
+            self._recover = f"`zcat {self.name} > x.mcap` then `dobhil log recover x.mcap`"
+            try:
+                self.file = _decompressed_copy(self.file)
+            except BaseException:
+                self.stop()
+                raise
 
     def stop(self) -> None:
         if self._key is not None:
@@ -110,7 +158,7 @@ class McapReader(BinaryIOMessageReader):
                 yield message.log_time, message.data
         except Exception as exc:  # a CRC, zstd or lz4 error: the bytes are wrong
             raise ValueError(f"{self.name}: damaged after {self.frames_read} frames ({type(exc).__name__}: "
-                             f"{exc}); `dobhil log recover {self.name}` saves the intact chunks") from exc
+                             f"{exc}); {self._recover} saves the intact chunks") from exc
 
     def _scan(self) -> Iterator[tuple[int, bytes]]:
         """Front to back, for a file without chunk index; file order is the writer's order."""
@@ -122,7 +170,7 @@ class McapReader(BinaryIOMessageReader):
                 yield message.log_time, message.data
         except Exception as exc:
             raise ValueError(f"{self.name}: truncated or damaged after {self.frames_read} frames ({exc}); "
-                             f"`dobhil log recover {self.name}` writes a complete copy") from exc
+                             f"{self._recover} writes a complete copy") from exc
 
 
 __all__ = ["McapReader", "is_open_input"]

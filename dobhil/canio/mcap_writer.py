@@ -13,6 +13,15 @@ at most that much and ``dobhil log recover`` completes the file.
 
 Keyword arguments (on python-can's command lines ``--compression=lz4``, ``--flush-interval=0.5``):
 ``compression`` (``zstd``, ``lz4`` or ``none``; default zstd), ``chunk_size`` (bytes) and ``flush_interval`` (seconds).
+
+Errors are what python-can's own writers raise: an output that cannot be opened (a
+missing folder: FileNotFoundError, as ``can.ASCWriter`` and ``can.BLFWriter`` raise) is
+the OSError of ``open``. An output that is a file this process reads as input
+(``can.logconvert run.mcap run.mcap``) is refused before it is opened, the input left
+intact (python-can's writers would truncate it: its ``.asc`` and ``.log`` inputs end up
+empty), with :class:`OutputIsInputError`, an OSError as well. python-can's programs
+(``can.logconvert``, ``can.logger``) show a traceback for any writer error, for their own
+formats too; its last line is the one-line reason.
 """
 
 from __future__ import annotations
@@ -86,6 +95,13 @@ def _signals_deferred() -> Iterator[None]:
             saved[signum](signum, None)
 
 
+class OutputIsInputError(OSError, ValueError):
+    """The output is a file this process is reading as input: refused, nothing written.
+
+    An OSError, as python-can's writers raise for an output they cannot open, and a
+    ValueError, as this writer's other refusals (and as it was before)."""
+
+
 def _utc_now() -> str:
     return datetime.now(timezone.utc).isoformat(timespec="milliseconds")
 
@@ -110,7 +126,8 @@ class McapWriter(BinaryIOMessageWriter):
             raise ValueError(f"MCAP writer: chunk_size and flush_interval must be > 0, "
                              f"got {chunk_size!r}, {flush_interval!r}")
         if isinstance(file, (str, os.PathLike)) and is_open_input(file):
-            raise ValueError(f"MCAP writer: {os.fspath(file)} is being read as input; write to another file")
+            raise OutputIsInputError(f"MCAP writer: {os.fspath(file)} is being read as input; "
+                                     f"write to another file (the input is left as it was)")
         super().__init__(file, mode="wb")
         self._lock = threading.Lock()
         self._interval = float(flush_interval)
@@ -165,4 +182,4 @@ class McapWriter(BinaryIOMessageWriter):
                 super().stop()
 
 
-__all__ = ["METADATA", "McapWriter", "program_name"]
+__all__ = ["METADATA", "McapWriter", "OutputIsInputError", "program_name"]

@@ -17,19 +17,33 @@ an assumption, marked as such below. Behaviour emulated:
   MODULATION_IS_NAN, the axis MOTOR_FAILED and disarms (``foc.cpp``). The emulator does
   the same on 0.5 and never hands NaN to the plant; on 0.6 it disarms with
   MISSING_INPUT (assumption);
-- Estop: IDLE plus the ESTOP_REQUESTED bit; Clear_Errors clears every bit;
-- ``Get_*`` requests (RTR or zero-length frames) for Get_Encoder_Estimates, Get_Iq,
-  Get_Bus_Voltage_Current; on 0.6 also Heartbeat, Get_Version, Get_Error and
-  Get_Torques; on 0.5 Get_Motor/Encoder/Sensorless/Controller_Error. Firmware 0.5.6
-  ignores heartbeat RTRs (``can_simple.cpp``: "We don't currently do anything to
-  respond to ODrive heartbeat messages") and has no Get_Version (id 0 is CANopen NMT);
+- Estop (any frame on its id, RTR included, as 0.5.6 ``can_simple.cpp``; 0.6 assumed the
+  same): IDLE plus the ESTOP_REQUESTED bit; Clear_Errors clears every bit;
+- ``Get_*`` requests, an RTR frame or a zero-length data frame (0.5.6 ``can_simple.cpp``:
+  ``if (msg.rtr || msg.len == 0)``), answered with the DLC-8 reply: Get_Encoder_Estimates
+  (the cyclic frame's values), Get_Iq and Get_Bus_Voltage_Current on both; on 0.5
+  Get_Motor/Encoder/Sensorless/Controller_Error; on 0.6 Heartbeat, Get_Version, Get_Error
+  and Get_Torques (0.6: the same rule for every drive-to-host message, an assumption).
+  Firmware 0.5.6 ignores heartbeat RTRs (``can_simple.cpp``: "We don't currently do
+  anything to respond to ODrive heartbeat messages") and has no Get_Version (id 0 is
+  CANopen NMT). 0.5.6 answers Get_Controller_Error to a data frame too; the emulator
+  answers requests only, so that an interface echoing the drive's own reply back cannot
+  make it answer itself. Not emulated (no answer): 0.5 Get_Encoder_Count,
+  Get_Sensorless_Estimates, Get_ADC_Voltage; 0.6 Get_Temperature, Get_Powers;
 - watchdog (``profile.watchdog_timeout`` > 0) checked in every axis state, as 0.5.6's
   ``main.cpp`` does: without a feed for the timeout the WATCHDOG_TIMER_EXPIRED bit is set
   (0x800 on 0.5, 0x01000000 on 0.6) and the axis drops to IDLE. An idle axis nobody
   talks to therefore shows the bit, like a real drive. Fed on 0.5 by every frame
-  addressed to the node (``CANSimple::do_command``); on 0.6 by the setpoint frames
-  Set_Input_Pos/Vel/Torque only -- an assumption (not confirmed against 0.6 firmware)
-  that is the stricter of the two. Entering CLOSED_LOOP_CONTROL feeds it.
+  addressed to the node (``CANSimple::do_command``); entering CLOSED_LOOP_CONTROL feeds
+  it on both (0.5.6 ``axis.cpp``). On 0.6 (firmware not public: an assumption, not
+  confirmed on a drive) it is fed by the setpoint frames Set_Input_Pos/Vel/Torque and by
+  Clear_Errors in any form (data, zero-length or RTR). Clear_Errors must feed it:
+  otherwise an axis that sat idle past the timeout flags the bit again at the next check,
+  before the Set_Axis_State that follows, and the sequence documented clients use (odrive-can:
+  Clear_Errors, Set_Controller_Mode, Set_Axis_State CLOSED_LOOP_CONTROL, then setpoints)
+  is refused at random, depending on whether a check falls between two frames sent
+  back to back. Set_Controller_Mode and a refused Set_Axis_State do not feed it on 0.6
+  (the stricter choice: nothing but setpoints keeps an armed axis armed).
   :attr:`EmulatedODrive.watchdog_tripped` is True only if the watchdog disarmed the
   motor (expired in CLOSED_LOOP_CONTROL); :attr:`EmulatedODrive.watchdog_error` is the bit;
 - heartbeat Trajectory_Done is 1 (0.5.6 ``controller.hpp``: ``trajectory_done_ = true``;
@@ -262,6 +276,9 @@ class EmulatedODrive(EmulatedDrive):
         self.procedure_result = ProcedureResult06.DISARMED
 
     def _clear_errors(self, _msg: codec.ClearErrors) -> None:
+        # feeds the watchdog (0.5: as every frame does; 0.6: the assumption in the
+        # module docstring), or a long-idle axis would flag it again at the next check
+        self._last_feed = self._time
         self.axis_error = 0
         self.motor_error = 0
         self.watchdog_tripped = False
@@ -273,6 +290,15 @@ class EmulatedODrive(EmulatedDrive):
     def _answer(self, msg: codec.Request) -> None:
         if msg.cmd == CmdId.CLEAR_ERRORS:  # zero-length Clear_Errors on 0.6
             self._clear_errors(codec.ClearErrors())
+            return
+        if msg.cmd == CmdId.ESTOP:
+            # 0.5.6 estops on any frame with the Estop id, RTR included (can_simple.cpp has no
+            # rtr check there); 0.6 assumed the same: an Estop in any form stops the axis
+            self._estop(codec.Estop())
+            return
+        if msg.cmd == CmdId.GET_ENCODER_ESTIMATES:
+            # the cyclic frame itself: the same estimates, float32 overflow sent as +-inf
+            self._send(self._encoder_frame())
             return
         reply = self._reply_for(msg.cmd)
         if reply is not None:

@@ -3,6 +3,7 @@ tools (``can.logconvert``, ``can.player``, ``can.logger``) on dobhil recordings.
 
 from __future__ import annotations
 
+import errno
 import json
 import os
 import shutil
@@ -18,7 +19,7 @@ import can.player
 import pytest
 
 from dobhil.canio.mcap_reader import McapReader
-from dobhil.canio.mcap_writer import METADATA, McapWriter, program_name
+from dobhil.canio.mcap_writer import METADATA, McapWriter, OutputIsInputError, program_name
 from dobhil.cli.main import main as dobhil_main
 from dobhil.recording.reader import open_log
 from tests.runtime.hub import accepts, free_port, stop_process
@@ -272,19 +273,70 @@ def test_can_logger_in_a_subprocess_on_the_dobhil_bus(tmp_path: Path) -> None:
 
 
 def test_gzip_compressed_mcap(tmp_path: Path) -> None:
-    """``x.mcap.gz``: python-can's gzip wrapping around the plugins (read without an index)."""
+    """``x.mcap.gz``: python-can's gzip wrapping around the plugins (read from a decompressed copy)."""
     path = write(tmp_path / "frames.mcap.gz")
     assert [flags(m) for m in can.LogReader(path)] == [flags(m) for m in FRAMES]
 
 
+def test_truncated_gz_yields_what_is_complete_then_says_how_to_recover(tmp_path: Path) -> None:
+    """A .mcap.gz cut short (a logger killed under gzip): the frames of the complete chunks,
+    then a ValueError naming the way to recover it (recover reads MCAP, not gzip)."""
+    frames = tuple(can.Message(timestamp=T0 + k * 1e-3, arbitration_id=k & 0x7FF, is_extended_id=False,
+                               data=os.urandom(8)) for k in range(3000))
+    whole = write(tmp_path / "whole.mcap.gz", frames)
+    cut = tmp_path / "cut.mcap.gz"
+    cut.write_bytes(whole.read_bytes()[: whole.stat().st_size // 2])
+    read: list[can.Message] = []
+    with pytest.raises(ValueError, match=r"truncated.*`zcat .*cut\.mcap\.gz > x\.mcap` then `dobhil log recover"):
+        for msg in can.LogReader(cut):
+            read.append(msg)
+    assert 0 < len(read) < len(frames)
+    assert [flags(m) for m in read] == [flags(m) for m in frames[: len(read)]]
+
+
 def test_logconvert_onto_its_own_input_is_refused(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Refused before the output is opened, the input intact; an OSError, as python-can's
+    writers raise for an output they cannot open (and a ValueError, as before)."""
     path = write(tmp_path / "frames.mcap")
     before = path.read_bytes()
     monkeypatch.setattr(sys, "argv", ["can.logconvert", str(path), str(path)])
-    with pytest.raises(ValueError, match="is being read as input"):
+    with pytest.raises(OutputIsInputError, match="is being read as input") as info:
         can.logconvert.main()
+    assert isinstance(info.value, OSError) and isinstance(info.value, ValueError)
     assert path.read_bytes() == before
     write(tmp_path / "frames.mcap")   # once the reader is closed, overwriting is python-can's usual
+
+
+def test_missing_output_folder_raises_what_python_cans_writers_raise(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A missing folder: FileNotFoundError (same errno) from can.Logger for .mcap as for
+    python-can's own .asc and .blf writers, directly and through can.logconvert; no
+    folder or file is created."""
+    source = write(tmp_path / "frames.mcap")
+    missing = tmp_path / "missing"
+    raised = {}
+    for suffix in (".mcap", ".asc", ".blf"):
+        with pytest.raises(OSError) as direct:
+            can.Logger(missing / f"out{suffix}")
+        monkeypatch.setattr(sys, "argv", ["can.logconvert", str(source), str(missing / f"conv{suffix}")])
+        with pytest.raises(OSError) as converted:
+            can.logconvert.main()
+        raised[suffix] = {(type(e.value), e.value.errno) for e in (direct, converted)}
+    assert raised[".mcap"] == raised[".asc"] == raised[".blf"] == {(FileNotFoundError, errno.ENOENT)}
+    assert not missing.exists()
+
+
+def test_logconvert_gz_onto_itself_keeps_the_frames(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """python-can's .gz writer truncates its output before any writer is called: the
+    reader works from a decompressed copy, so every frame is written back. The input is
+    larger than gzip's read buffer (8 KiB), or the first read would have held all of it."""
+    frames = tuple(can.Message(timestamp=T0 + k * 1e-3, arbitration_id=k & 0x7FF, is_extended_id=False,
+                               data=os.urandom(8)) for k in range(3000))
+    path = write(tmp_path / "frames.mcap.gz", frames)
+    assert path.stat().st_size > 4 * 8192
+    monkeypatch.setattr(sys, "argv", ["can.logconvert", str(path), str(path)])
+    can.logconvert.main()
+    assert [flags(m) for m in can.LogReader(path)] == [flags(m) for m in frames]
 
 
 def _frames_so_far(path: Path, sentinel: int) -> int:
