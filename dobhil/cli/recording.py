@@ -47,7 +47,8 @@ def default_log_path(directory: Path, now: datetime | None = None) -> Path:
 
 
 def live_address(text: str | None, log: Path | None) -> tuple[str, int] | None:
-    """``--live [HOST:]PORT`` checked before a run: the address, the SDK there, a log to serve it."""
+    """``--live [HOST:]PORT`` checked before a run: the address (resolvable, free to listen on),
+    the SDK there, a log to serve it; one warning line when it is not a loopback address."""
     if text is None:
         return None
     from dobhil.errors import ConfigError
@@ -55,8 +56,13 @@ def live_address(text: str | None, log: Path | None) -> tuple[str, int] | None:
     from dobhil.live.server import import_sdk
     if log is None:
         raise ConfigError("--live needs a log (--log FILE.mcap): the live view is served by the log's writer")
+    from dobhil.live.address import check_bindable, exposure_warning
     address = parse_live_address(text)
     import_sdk()
+    check_bindable(address)  # before the log exists: a refused address leaves no stub behind
+    warning = exposure_warning(address)
+    if warning is not None:
+        sys.stderr.write(f"warning: {warning}\n")
     return address.host, address.port
 
 
