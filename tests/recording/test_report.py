@@ -57,8 +57,10 @@ def test_foxglove_layout_names_recorded_fields() -> None:
     root = Path(__file__).resolve().parents[2]
     layout = json.loads((root / "tools" / "foxglove-layout.json").read_text())
     assert {"configById", "layout", "globalVariables", "userNodes"} <= set(layout)
-    paths = [p["value"] for k, c in layout["configById"].items() if k.startswith("Plot!") for p in c["paths"]]
+    paths = [p["value"] for k, c in layout["configById"].items() if k.startswith(("Plot!", "StateTransitions!"))
+             for p in c["paths"]]
     assert "/controller.tau_int_hat" in paths and "/loop.exec_time" in paths
+    assert "/drive/feedback.drive_state" in paths  # by name: dobhil's codes read as the drive's
     for path in paths:
         topic, field = path.rsplit(".", 1)
         assert field in SPECS_BY_NAME[topic].keys, path
