@@ -81,3 +81,17 @@ def test_live_on_loopback_prints_no_exposure_warning(tmp_path: Path, capsys: pyt
     capsys.readouterr()
     assert live_address("127.0.0.2:0", tmp_path / "a.mcap") == ("127.0.0.2", 0)
     assert capsys.readouterr().err == ""
+
+
+def test_live_beyond_loopback_prints_one_warning_line(tmp_path: Path, capsys: pytest.CaptureFixture[str],
+                                                      monkeypatch: pytest.MonkeyPatch) -> None:
+    """Issue 16 (13): the warning, without binding a public interface (the bind check is
+    stubbed; the address is only classified)."""
+    import dobhil.live.address as address
+    monkeypatch.setattr(address, "check_bindable", lambda _address: None)
+    from dobhil.cli.recording import live_address
+    capsys.readouterr()
+    assert live_address("0.0.0.0:8799", tmp_path / "a.mcap") == ("0.0.0.0", 8799)
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith("warning: the live view on 0.0.0.0:8799 (every network interface)")
+    assert "anyone" in err and "read-only" in err
