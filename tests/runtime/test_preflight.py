@@ -396,3 +396,13 @@ def test_forced_preflight_in_lockstep_measures_simulated_time() -> None:
     assert report is not None and report.ok, report and report.lines()
     assert report.nodes[0].motion.period == pytest.approx(1e-3, abs=1e-12)
     assert result.stop.reason.name == "DONE"
+
+
+def test_a_drive_slower_than_the_profile_but_fast_enough_for_the_loop_is_not_called_stale() -> None:
+    """The profile promises 0.5 ms, the drive sends every 1 ms, the loop runs at 1 ms: a
+    mismatch with the profile, but each period gets a fresh sample (no '1 times'), and the
+    run is not refused."""
+    report = lockstep_preflight(bare("odrive-0.6"), bare("odrive-0.6", encoder_msg_rate=5e-4))
+    (text,) = [t for t in texts(report) if "encoder_msg_rate_ms" in t]
+    assert "each loop period still gets a fresh sample" in text and "times" not in text, text
+    assert not report.refuses and report.lines()[-1].endswith("it prints them and runs")
