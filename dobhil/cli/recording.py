@@ -140,6 +140,11 @@ def record_run(session: RunSession, log: RunLog | None, config_file: str | os.Pa
         return session.run()
     try:
         begin(log, session, config_file)
+    except BaseException as exc:
+        _close_quietly(log, exc)
+        _discard_unopened(log)
+        raise
+    try:
         if on_begin is not None:
             on_begin(log)
         result = session.run()
@@ -163,6 +168,14 @@ def _end(log: RunLog, session: RunSession, result: RunResult) -> RunResult:
         if stop.reason is not StopReason.RECORDER_FAILED:
             return dataclasses.replace(result, stop=Stop(StopReason.RECORDER_FAILED, str(exc), stop.cycle, stop.time))
     return result
+
+
+def _discard_unopened(log: RunLog) -> None:
+    """Remove the file of a log whose writer never got ready (e.g. its live view could not
+    listen, taken after ``live_address`` checked it): it holds no run, only a header, and
+    left behind it would block the rerun with the same ``--log`` (a new file: ours)."""
+    if not log.writer.opened:
+        log.path.unlink(missing_ok=True)
 
 
 def _close_quietly(log: RunLog, exc: BaseException) -> None:

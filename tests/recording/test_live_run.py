@@ -95,3 +95,24 @@ def test_live_beyond_loopback_prints_one_warning_line(tmp_path: Path, capsys: py
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and err.startswith("warning: the live view on 0.0.0.0:8799 (every network interface)")
     assert "anyone" in err and "read-only" in err
+
+
+def test_a_port_taken_after_the_check_still_leaves_no_log(tmp_path: Path, capsys: pytest.CaptureFixture[str],
+                                                          monkeypatch: pytest.MonkeyPatch) -> None:
+    """The race the early check cannot close (the port taken between the check and the
+    writer's server): the writer never gets ready, and the header-only file is removed."""
+    import socket
+
+    import dobhil.live.address as address
+    monkeypatch.setattr(address, "check_bindable", lambda _address: None)  # as if taken after the check
+    path = tmp_path / "a.mcap"
+    base = ["run", str(DEMO), "--emulate", "--lockstep", "--duration", "0.05", "--log", str(path)]
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen(1)
+        capsys.readouterr()
+        assert main([*base, "--live", f"127.0.0.1:{taken.getsockname()[1]}"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "cannot listen" in err, err
+    assert not list(tmp_path.iterdir())
+    assert main(base) == 0 and path.is_file()
