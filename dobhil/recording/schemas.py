@@ -184,7 +184,7 @@ def drive_state_name(code: int) -> str:
 def _feedback_encoder(values: Sequence[Any]) -> bytes:
     position, velocity, state, error, seq, cycle = values
     return orjson.dumps({"position": position, "velocity": velocity, "drive_state": drive_state_name(int(state)),
-                         "axis_error": error, "seq": seq, "cycle": cycle})
+                         "axis_error": error, "seq": seq, "cycle": cycle}, option=orjson.OPT_SERIALIZE_NUMPY)
 
 
 def _event_encoder(values: Sequence[Any]) -> bytes:

@@ -156,3 +156,7 @@ def test_drive_state_is_recorded_by_name_not_as_a_code_a_drive_uses_otherwise() 
     assert drive_state_name(7) == "code 7"
     spec = spec_for("/drive/feedback")
     assert "axis_state" not in spec.keys and spec.json_schema()["properties"]["drive_state"]["type"] == "string"
+    import numpy as np  # the loop hands numpy values over as they are (the default encoder takes them too)
+    payload = spec.encode((np.float64(0.5), np.float64(-1.25), np.int64(2), np.int64(0), np.int64(7), -1))
+    assert json.loads(payload) == {"position": 0.5, "velocity": -1.25, "drive_state": "fault", "axis_error": 0,
+                                   "seq": 7, "cycle": -1}
