@@ -353,8 +353,8 @@ def prediction(data: RunData, contact: Contact | None = None,
     steps = step_infos(data, contact) if steps is None else steps
     start = _prediction_start(data, contact, steps)
     if start is None:
-        return None, {"available": False, "why": "no reference step taken in contact (the analysis is of the "
-                                                  "loop in contact)"}
+        what = "no reference step taken in contact" if steps else "no reference step, and contact not all along"
+        return None, {"available": False, "why": f"{what} (the analysis is of the loop in contact)"}
     if data.config.design.delay_samples > MAX_PREDICTION_DELAY:
         return None, {"available": False, "why": f"design.delay_samples = {data.config.design.delay_samples} "
                                                   f"is above {MAX_PREDICTION_DELAY} (the model would be too large)"}
