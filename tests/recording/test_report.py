@@ -151,3 +151,11 @@ def test_latency_verdict_covers_the_spread_with_a_stated_tolerance() -> None:
     line = next(x for x in text.splitlines() if x.startswith("command latency"))
     assert "does not match the analysis (tolerance +-100 us (0.1 T))" in line and "p99 off by" in line
     assert "p50 off" not in line and "set design.input_delay" not in line  # the median is where it was assumed
+
+
+def test_no_prediction_compared_for_a_run_never_in_contact() -> None:
+    """The analysed loop is the loop in contact: a run that never touched the environment
+    gets no prediction comparison (it used to be compared over the whole run)."""
+    from dobhil.analysis.run_report import prediction
+    predicted, info = prediction(_contact_run([-0.005] * 10, truth=True))
+    assert predicted is None and not info["available"] and "no reference step taken in contact" in info["why"]
