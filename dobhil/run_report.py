@@ -3,10 +3,16 @@
 :func:`load_run` reads a dobhil MCAP log into per-cycle arrays (:class:`RunData`);
 :func:`analyse` computes the summary:
 
-- step metrics of the force response: reference steps are detected in ``tau_ref``
-  (a jump larger than 5 % of its range, and the start when the reference does not
-  start at 0); the estimated interaction torque after each step is normalised to the
-  step and measured with :func:`dobhil.analysis.metrics.step_metrics`;
+- step metrics of the force response, for steps taken in contact only: reference steps
+  are detected in ``tau_ref`` (a jump larger than 5 % of its range, and the start when
+  the reference does not start at 0); a step is in contact when the servo touches the
+  environment from the step to the next one (:func:`contact_mask`: the emulator's true
+  position where the log has it, else the measured position, against the config's
+  ``environment.contact_position``). A step that starts in free motion (the demo's first:
+  the servo crosses a gap, then hits the environment) is listed without metrics: its
+  "overshoot" would be the impact. The estimated interaction torque after each step in
+  contact is normalised to the step and measured with
+  :func:`dobhil.analysis.metrics.step_metrics`;
 - RMS tracking error ``tau_ref - tau_int_hat`` (and against the true torque when emulated);
 - estimation error ``tau_int_hat - tau_int`` against the emulator's ground truth;
 - loop timing statistics, overruns;
@@ -15,12 +21,17 @@
   ``floor((54 + 8 DLC - 1) / 4)``) at ``drive.bitrate``;
 - command latency: per command frame on ``/can/tx``, the log time since the last frame
   received on ``/can/rx`` (the feedback that triggered the cycle), against the latency the
-  sampled analysis assumed (``design.input_delay`` + ``design.delay_samples`` periods);
-  in lockstep the log clock is simulated and the latency is not measurable;
+  sampled analysis assumed (``design.input_delay`` + ``design.delay_samples`` periods): it
+  matches when the median and the 99th percentile are both within
+  ``LATENCY_TOLERANCE`` periods of it (the analysis models one fixed delay, so a spread
+  beyond that is not modelled); in lockstep the log clock is simulated and the latency is
+  not measurable;
 - records the recorder dropped (``/events`` ``kind=loss``);
 - the measured force response against the sampled closed loop of the recorded config
   (``LoopSystems.build(params, sampled=True).system("closed_loop")`` driven by the
-  recorded reference with ``control.forced_response``): RMS and max difference.
+  recorded reference with ``control.forced_response``): RMS and max difference, from the
+  first step taken in contact on (the loop at rest at the reference before it), over the
+  samples in contact: the analysed loop is the loop in contact.
 """
 
 from __future__ import annotations
@@ -46,6 +57,8 @@ _CONTROLLER: Final = ("tau_ref", "tau_int_hat", "tau_dis_hat", "tau_per", "u_uns
 STEP_FRACTION: Final = 0.05
 #: Largest command delay [samples] the prediction models (each sample is a state of the model).
 MAX_PREDICTION_DELAY: Final = 1000
+#: The measured latency matches the analysis' within this many loop periods (median and p99).
+LATENCY_TOLERANCE: Final = 0.1
 
 
 @dataclass
@@ -164,12 +177,46 @@ def _assemble(name: str, config: Config | None, meta: Mapping[str, Mapping[str, 
 
 @dataclass(frozen=True)
 class StepInfo:
-    """One detected reference step and the force response's metrics after it."""
+    """One detected reference step and the force response's metrics after it (None: not
+    taken in contact, ``why`` says what the servo did instead)."""
 
     time: float
     start: float
     end: float
-    metrics: dict[str, float | None]
+    metrics: dict[str, float | None] | None
+    in_contact: bool | None = None  # None: contact not known (no config)
+    why: str = ""
+
+
+@dataclass(frozen=True)
+class Contact:
+    """Where the servo touched the environment: ``mask[i]`` per cycle (None: not known)."""
+
+    mask: NDArray[np.bool_] | None
+    source: str  # in words, for the report
+
+    def throughout(self, start: int, end: int) -> bool | None:
+        return None if self.mask is None else bool(self.mask[start:end].all()) and end > start
+
+
+def contact_mask(data: RunData) -> Contact:
+    """In contact where the position is at or beyond ``environment.contact_position``: the
+    emulator's true position when recorded (exact), else the measured one (within one
+    encoder count, ``sensor.encoder_resolution``)."""
+    if data.config is None:
+        return Contact(None, "not known (no recorded config)")
+    q_c = data.config.environment.contact_position
+    if data.has("q_true"):
+        q = data["q_true"]
+        return Contact(np.nan_to_num(q, nan=-np.inf) >= q_c,
+                       f"emulator truth: true position >= environment.contact_position ({q_c:g} rad)")
+    if data.has("q"):
+        counts = data.config.sensor.encoder_resolution
+        quantum = 2 * np.pi / counts if counts else 0.0
+        return Contact(np.nan_to_num(data["q"], nan=-np.inf) >= q_c - quantum,
+                       f"measured position >= environment.contact_position ({q_c:g} rad) from the config"
+                       + (f", within one encoder count ({quantum:.3g} rad)" if quantum else ""))
+    return Contact(None, "not known (no position recorded)")
 
 
 def detect_steps(t: Array, ref: Array) -> list[tuple[int, float, float]]:
@@ -186,17 +233,35 @@ def detect_steps(t: Array, ref: Array) -> list[tuple[int, float, float]]:
     return steps
 
 
-def step_infos(data: RunData) -> list[StepInfo]:
+def step_infos(data: RunData, contact: Contact | None = None) -> list[StepInfo]:
+    """Every reference step; metrics for those taken in contact (all when contact is not known)."""
     from dobhil.analysis.metrics import step_metrics
     t, ref, y = data.t, data["tau_ref"], data["tau_int_hat"]
+    contact = contact or contact_mask(data)
     steps = detect_steps(t, ref)
     out = []
     for j, (i, a, b) in enumerate(steps):
         end = steps[j + 1][0] if j + 1 < len(steps) else t.size
+        touching = contact.throughout(i, end)
+        if touching is False:
+            out.append(StepInfo(float(t[i]), a, b, None, False, _not_in_contact(contact, t, i, end)))
+            continue
         seg_t, seg_y = t[i:end] - t[i], (y[i:end] - a) / (b - a)
         m = step_metrics(seg_t, seg_y, target=1.0).as_dict()
-        out.append(StepInfo(float(t[i]), a, b, _scale(m, b - a)))
+        out.append(StepInfo(float(t[i]), a, b, _scale(m, b - a), touching))
     return out
+
+
+def _not_in_contact(contact: Contact, t: Array, start: int, end: int) -> str:
+    """Why a step has no metrics: when the servo touched (or left) the environment."""
+    assert contact.mask is not None
+    segment = contact.mask[start:end]
+    if not segment[0]:
+        touched = np.nonzero(segment)[0]
+        return ("in free motion at the step; did not touch the environment before the next step or the end"
+                if not touched.size
+                else f"in free motion at the step; touched the environment at {t[start + touched[0]]:.3f} s")
+    return f"lost contact at {t[start + int(np.argmin(segment))]:.3f} s"
 
 
 def _scale(m: dict[str, float | None], height: float) -> dict[str, float | None]:
@@ -268,16 +333,28 @@ def latency_stats(data: RunData) -> dict[str, Any]:
     p50, p99 = float(np.percentile(lat, 50)), float(np.percentile(lat, 99))
     out.update(measured=True, p50_s=p50, p99_s=p99, max_s=float(lat.max()), commands=int(lat.size))
     if out["assumed_s"] is not None and period is not None:
-        # the analysis models the median; a spread of more than a tenth of a period is not modelled
-        out["p50_minus_assumed_s"] = p50 - out["assumed_s"]
-        out["matches"] = bool(abs(p50 - out["assumed_s"]) <= 0.1 * period)
+        # the analysis models one fixed delay: the median must sit on it and the spread
+        # (p99) stay within the same tolerance, else the analysis is of another loop
+        tolerance = LATENCY_TOLERANCE * period
+        out.update(tolerance_s=tolerance, p50_minus_assumed_s=p50 - out["assumed_s"],
+                   p99_minus_assumed_s=p99 - out["assumed_s"])
+        out["matches"] = bool(abs(p50 - out["assumed_s"]) <= tolerance and abs(p99 - out["assumed_s"]) <= tolerance)
     return out
 
 
-def prediction(data: RunData) -> tuple[Array | None, dict[str, Any]]:
-    """The sampled closed loop of the recorded config driven by the recorded reference."""
+def prediction(data: RunData, contact: Contact | None = None,
+               steps: list[StepInfo] | None = None) -> tuple[Array | None, dict[str, Any]]:
+    """The sampled closed loop of the recorded config driven by the recorded reference, from
+    the first step taken in contact on (NaN before it), the loop at rest at the reference
+    before that step: the analysed loop is the loop in contact."""
     if data.config is None:
         return None, {"available": False, "why": "no recorded config"}
+    contact = contact or contact_mask(data)
+    steps = step_infos(data, contact) if steps is None else steps
+    start = _prediction_start(data, contact, steps)
+    if start is None:
+        what = "no reference step taken in contact" if steps else "no reference step, and contact not all along"
+        return None, {"available": False, "why": f"{what} (the analysis is of the loop in contact)"}
     if data.config.design.delay_samples > MAX_PREDICTION_DELAY:
         return None, {"available": False, "why": f"design.delay_samples = {data.config.design.delay_samples} "
                                                   f"is above {MAX_PREDICTION_DELAY} (the model would be too large)"}
@@ -286,23 +363,45 @@ def prediction(data: RunData) -> tuple[Array | None, dict[str, Any]]:
     from dobhil.analysis.transfer import LoopSystems
     from dobhil.synthesis.params import params_from_config
     sys_ = LoopSystems.build(params_from_config(data.config), sampled=True).system("closed_loop")
-    ref = np.nan_to_num(data["tau_ref"])
+    index, before = start
+    ref = np.nan_to_num(data["tau_ref"][index:]) - before   # at rest at `before`: a step from 0
     t = np.arange(ref.size) * float(sys_.dt)
-    y = np.asarray(control.forced_response(sys_, T=t, U=ref).outputs).reshape(-1)
+    y = np.full(data.t.size, np.nan)
+    y[index:] = before * float(np.real(control.dcgain(sys_))) + np.asarray(
+        control.forced_response(sys_, T=t, U=ref).outputs).reshape(-1)
     diff = data["tau_int_hat"] - y
+    if contact.mask is not None:
+        diff = np.where(contact.mask, diff, np.nan)
     return y, {"available": True, "rms_difference": _rms(diff), "max_difference": _amax(diff),
-               "system": "LoopSystems(sampled=True).closed_loop: tau_ref -> tau_int_hat"}
+               "from_s": float(data.t[index]),
+               "system": "LoopSystems(sampled=True).closed_loop: tau_ref -> tau_int_hat, in contact"}
+
+
+def _prediction_start(data: RunData, contact: Contact, steps: list[StepInfo]) -> tuple[int, float] | None:
+    """(index, reference before) where the prediction starts: the first step in contact;
+    the start of the run when there is no step and the servo is in contact all along (or
+    contact is not known)."""
+    for s in steps:
+        if s.in_contact is not False:
+            return int(np.searchsorted(data.t, s.time)), s.start
+    if not steps and (contact.mask is None or bool(contact.mask.all())):
+        return 0, 0.0
+    return None
 
 
 def analyse(data: RunData) -> tuple[dict[str, Any], Array | None]:
     """The report summary (JSON-ready) and the predicted tau_int_hat."""
-    predicted, pred_info = prediction(data)
+    contact = contact_mask(data)
+    steps = step_infos(data, contact)
+    predicted, pred_info = prediction(data, contact, steps)
     ref, est, true = data["tau_ref"], data["tau_int_hat"], data["tau_int_true"]
     summary: dict[str, Any] = {
         "file": data.path, "cycles": int(data.t.size), "duration_s": float(data.t[-1]) if data.t.size else 0.0,
         "run": dict(data.metadata.get("run", {})),
         "stop": next((e["reason"] for e in reversed(data.events) if e.get("kind") == "stop"), None),
-        "steps": [s.__dict__ for s in step_infos(data)],
+        "contact": {"source": contact.source,
+                    "first_s": _first_contact(data.t, contact)},
+        "steps": [s.__dict__ for s in steps],
         "tracking": {"rms_error_estimated": _rms(ref - est), "max_error_estimated": _amax(ref - est),
                      "rms_error_true": _rms(ref - true) if data.has("tau_int_true") else None},
         "estimation": ({"rms_error": _rms(est - true), "max_error": _amax(est - true)}
@@ -314,6 +413,12 @@ def analyse(data: RunData) -> tuple[dict[str, Any], Array | None]:
         "prediction": pred_info,
     }
     return summary, predicted
+
+
+def _first_contact(t: Array, contact: Contact) -> float | None:
+    if contact.mask is None or not contact.mask.any():
+        return None
+    return float(t[int(np.argmax(contact.mask))])
 
 
 def _timing(data: RunData) -> dict[str, Any]:
@@ -332,14 +437,13 @@ def summary_text(s: Mapping[str, Any]) -> str:
         return "-" if v is None else f"{v:.4g} N m"
 
     lines = [f"run: {s['file']}", f"cycles: {s['cycles']} ({s['duration_s']:.3f} s), stop: {s['stop'] or '-'}"]
+    contact = s.get("contact") or {}
+    if s["steps"] and contact:
+        first = contact.get("first_s")
+        lines.append(f"contact: {contact['source']}; first at "
+                     f"{'-' if first is None else f'{first:.3f} s'}; step metrics only for steps taken in contact")
     for st in s["steps"]:
-        m = st["metrics"]
-        def fmt(k: str, scale: float = 1.0, unit: str = "", m: Mapping[str, Any] = m) -> str:
-            return "-" if m.get(k) is None else f"{m[k] * scale:.3g}{unit}"
-        lines.append(f"step at {st['time']:.3f} s ({st['start']:.3g} -> {st['end']:.3g} N m): "
-                     f"overshoot {fmt('overshoot_pct', 1, ' %')}, rise {fmt('rise_time', 1e3, ' ms')}, "
-                     f"settling {fmt('settling_time', 1e3, ' ms')}, "
-                     f"steady-state error {fmt('steady_state_error_nm', 1, ' N m')}")
+        lines.append(_step_line(st))
     tr = s["tracking"]
     lines.append(f"tracking: RMS(tau_ref - tau_int^) {nm(tr['rms_error_estimated'])}"
                  + (f", RMS(tau_ref - tau_int) {nm(tr['rms_error_true'])}" if tr["rms_error_true"] is not None else ""))
@@ -357,11 +461,8 @@ def summary_text(s: Mapping[str, Any]) -> str:
     la = s.get("latency") or {}
     if la.get("measured"):
         assumed = "-" if la.get("assumed_s") is None else us(la["assumed_s"])
-        verdict = "" if "matches" not in la else ("; matches the analysis" if la["matches"] else
-                                                  "; differs from the analysis by more than 0.1 T: set "
-                                                  f"design.input_delay = {la['p50_s']:.6f}")
         lines.append(f"command latency: p50 {us(la['p50_s'])}, p99 {us(la['p99_s'])}, max {us(la['max_s'])}; "
-                     f"assumed by the analysis {assumed}{verdict}")
+                     f"assumed by the analysis {assumed}{_latency_verdict(la)}")
     elif la:
         lines.append(f"command latency: not measured ({la.get('why', '-')})")
     b = s["bus"]
@@ -372,6 +473,33 @@ def summary_text(s: Mapping[str, Any]) -> str:
     return "\n".join(lines) + "\n"
 
 
+def _step_line(st: Mapping[str, Any]) -> str:
+    head = f"step at {st['time']:.3f} s ({st['start']:.3g} -> {st['end']:.3g} N m): "
+    m = st["metrics"]
+    if m is None:
+        return head + f"not taken in contact ({st.get('why') or '-'}): no step metrics"
+
+    def fmt(k: str, scale: float = 1.0, unit: str = "") -> str:
+        return "-" if m.get(k) is None else f"{m[k] * scale:.3g}{unit}"
+    return head + (f"overshoot {fmt('overshoot_pct', 1, ' %')}, rise {fmt('rise_time', 1e3, ' ms')}, "
+                   f"settling {fmt('settling_time', 1e3, ' ms')}, "
+                   f"steady-state error {fmt('steady_state_error_nm', 1, ' N m')}")
+
+
+def _latency_verdict(la: Mapping[str, Any]) -> str:
+    """Matches or not, with the tolerance, and what is off (older summaries: no verdict)."""
+    if "matches" not in la or "tolerance_s" not in la:
+        return ""
+    tol = f"+-{la['tolerance_s'] * 1e6:.0f} us ({LATENCY_TOLERANCE:g} T)"
+    if la["matches"]:
+        return f"; p50 and p99 within {tol} of it: matches the analysis"
+    off = [f"{k} off by {la[f'{k}_minus_assumed_s'] * 1e6:+.0f} us" for k in ("p50", "p99")
+           if abs(la[f"{k}_minus_assumed_s"]) > la["tolerance_s"]]
+    advice = (f"; set design.input_delay = {la['p50_s']:.6f} for the median" if abs(la["p50_minus_assumed_s"])
+              > la["tolerance_s"] else "; the spread is not in the analysis (a fixed delay)")
+    return f"; does not match the analysis (tolerance {tol}): {', '.join(off)}{advice}"
+
+
 def report(path: str | os.PathLike[str], progress: ProgressFn | None = None) -> tuple[RunData, dict[str, Any],
                                                                                   Array | None]:
     """The run's data, its summary and the predicted tau_int_hat (the CLI draws and writes them)."""
@@ -380,5 +508,5 @@ def report(path: str | os.PathLike[str], progress: ProgressFn | None = None) -> 
     return data, summary, predicted
 
 
-__all__ = ["RunData", "StepInfo", "analyse", "bus_stats", "detect_steps", "latency_stats", "load_run",
-           "prediction", "report", "step_infos", "summary_text"]
+__all__ = ["LATENCY_TOLERANCE", "Contact", "RunData", "StepInfo", "analyse", "bus_stats", "contact_mask",
+           "detect_steps", "latency_stats", "load_run", "prediction", "report", "step_infos", "summary_text"]

@@ -60,6 +60,8 @@ def export_can(mcap_path: str | os.PathLike[str], out: str | os.PathLike[str], f
             raise LogFileError(f"{os.fspath(mcap_path)}: no CAN frames (no /can/rx or /can/tx topic)")
         with atomic_path(out) as tmp, FORMATS[fmt][1](tmp) as writer:
             count = 0
+            if isinstance(writer, can.ASCWriter):
+                _start_at_earliest(writer, log, topics)
             for _, t, payload in log.iter_messages(topics):
                 msg = can_frame_message(payload, t)
                 if fmt is CanLogFormat.BLF:  # BLF stores channels as small integers
@@ -72,14 +74,27 @@ def export_can(mcap_path: str | os.PathLike[str], out: str | os.PathLike[str], f
             return count
 
 
+def _start_at_earliest(writer: can.ASCWriter, log: Any, topics: list[str]) -> None:
+    """ASC times are relative to the first line written, and python-can writes a frame
+    older than that as an absolute time (which reads back as another date). Frames are
+    exported in log-time order, where a received frame may be older than a command sent
+    before it was read: so the file starts at the earliest frame (one event line)."""
+    earliest = min((p.get("timestamp") or t / 1e9 for _, t, p in log.iter_messages(topics)), default=None)
+    if earliest is not None:
+        writer.log_event("dobhil log export", earliest)
+
+
 def _can_reader(path: Path) -> Any:
     problem = input_problem(path)
     if problem is not None:
         raise LogFileError(f"{path}: {problem}; expected a CAN log file python-can reads (.asc, .blf, .log, .trc, ...)")
     if path.stat().st_size == 0:
         raise LogFileError(f"{path}: empty file")
+    # ASC: absolute times (its Begin Triggerblock date plus each line's offset), as every
+    # other format gives; python-can's default for ASC is times from 0, i.e. 1970
+    absolute = {"relative_timestamp": False} if path.suffix.lower() == ".asc" else {}
     try:
-        return can.LogReader(path)
+        return can.LogReader(path, **absolute)
     except Exception as exc:  # python-can readers raise what their parsers raise
         raise LogFileError(f"{path}: not a CAN log python-can reads ({type(exc).__name__}: {exc})") from exc
 

@@ -3,7 +3,10 @@
 Exit codes: 0 the drive matches the profile and ``loop.period``; 1 mismatches found
 (each printed as one line saying what to set); 2 bad input (config, bus, arguments).
 ``dobhil run`` runs the same preflight before it enables a drive and refuses to start
-when a run would sample stale feedback (``--no-preflight`` skips it).
+when a run would sample stale feedback or the axis is already in closed loop
+(``--no-preflight`` skips it); other mismatches it prints and runs, and the last line
+here says which of the two the found mismatches mean. A bus that cannot be opened
+names the way to try without hardware (``--bus dobhil:demo``).
 """
 
 from __future__ import annotations

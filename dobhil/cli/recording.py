@@ -48,8 +48,9 @@ def default_log_path(directory: Path, now: datetime | None = None) -> Path:
 
 
 def live_address(text: str | None, log: Path | None) -> LiveView | None:
-    """``--live [HOST:]PORT`` checked before a run: the address, the SDK there, a log to serve it;
-    the live view the log's writer process serves (a :class:`~dobhil.live.LiveServer` there)."""
+    """``--live [HOST:]PORT`` checked before a run: the address (resolvable, free to listen on),
+    the SDK there, a log to serve it; one warning line when it is not a loopback address. The
+    live view the log's writer process serves (a :class:`~dobhil.live.LiveServer` there)."""
     if text is None:
         return None
     from dobhil.errors import ConfigError
@@ -57,8 +58,13 @@ def live_address(text: str | None, log: Path | None) -> LiveView | None:
     from dobhil.live.server import import_sdk
     if log is None:
         raise ConfigError("--live needs a log (--log FILE.mcap): the live view is served by the log's writer")
+    from dobhil.live.address import check_bindable, exposure_warning
     address = parse_live_address(text)
     import_sdk()
+    check_bindable(address)  # before the log exists: a refused address leaves no stub behind
+    warning = exposure_warning(address)
+    if warning is not None:
+        sys.stderr.write(f"warning: {warning}\n")
     return LiveView(LiveServer, address.host, address.port)
 
 
@@ -136,6 +142,11 @@ def record_run(session: RunSession, log: RunLog | None, config_file: str | os.Pa
         return session.run()
     try:
         begin(log, session, config_file)
+    except BaseException as exc:
+        _close_quietly(log, exc)
+        _discard_unopened(log)
+        raise
+    try:
         if on_begin is not None:
             on_begin(log)
         result = session.run()
@@ -159,6 +170,14 @@ def _end(log: RunLog, session: RunSession, result: RunResult) -> RunResult:
         if stop.reason is not StopReason.RECORDER_FAILED:
             return dataclasses.replace(result, stop=Stop(StopReason.RECORDER_FAILED, str(exc), stop.cycle, stop.time))
     return result
+
+
+def _discard_unopened(log: RunLog) -> None:
+    """Remove the file of a log whose writer never got ready (e.g. its live view could not
+    listen, taken after ``live_address`` checked it): it holds no run, only a header, and
+    left behind it would block the rerun with the same ``--log`` (a new file: ours)."""
+    if not log.writer.opened:
+        log.path.unlink(missing_ok=True)
 
 
 def _close_quietly(log: RunLog, exc: BaseException) -> None:

@@ -51,10 +51,10 @@ def run(args: argparse.Namespace) -> int:
     except PreflightError as exc:  # the drive is not set up for this run: nothing was enabled
         from dobhil.drives.preflight import Severity
         found = [f for f in exc.report.findings if f.severity is Severity.MISMATCH]  # type: ignore[attr-defined]
-        stale = [f for f in found if f.stale_feedback]
-        for finding in [f for f in found if not f.stale_feedback] + stale[1:]:
+        refusing = [f for f in found if f.stale_feedback] + [f for f in found if f.refuses_run]
+        for finding in [f for f in found if not f.refuses] + refusing[1:]:
             sys.stderr.write(f"dobhil run: mismatch: {finding.text}\n")
-        sys.stderr.write(f"dobhil run: refused to enable: {stale[0].text if stale else 'preflight'} "
+        sys.stderr.write(f"dobhil run: refused to enable: {refusing[0].text if refusing else 'preflight'} "
                          "(dobhil check CONFIG shows all it measured; --no-preflight skips)\n")
         return EXIT_STOPPED
 
@@ -98,11 +98,13 @@ def run_checked(args: argparse.Namespace) -> int:
 
 def report_preflight(report: Any) -> None:
     """A passed preflight on stderr: its mismatches and notes, and one line per node
-    measured (nothing when it was skipped)."""
+    measured (nothing when it was skipped). A mismatch here is one the run does not refuse
+    on: its line says the run goes on, whatever the finding's own words."""
     if report is None:
         return
     for finding in report.findings:
-        sys.stderr.write(f"dobhil run: preflight: {finding.severity.name.lower()}: {finding.text}\n")
+        kind = "mismatch (not refused: the run goes on)" if finding.severity.name == "MISMATCH" else "note"
+        sys.stderr.write(f"dobhil run: preflight: {kind}: {finding.text}\n")
     for node in report.nodes:
         if node.node == report.node_id:
             sys.stderr.write(f"dobhil run: preflight: node {node.node}: {node.summary}\n")

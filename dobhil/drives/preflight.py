@@ -91,6 +91,13 @@ class Finding:
     severity: Severity
     text: str  # one line
     stale_feedback: bool = False  # a run would sample stale (held) feedback: refuse it
+    refuses_run: bool = False     # another reason dobhil run refuses to enable (e.g. the axis is driven)
+
+    @property
+    def refuses(self) -> bool:
+        """``dobhil run`` refuses to enable the drive on this finding (every other mismatch
+        is printed and the run goes on: its words must not claim otherwise)."""
+        return self.stale_feedback or self.refuses_run
 
 
 @dataclass(frozen=True)
@@ -173,6 +180,11 @@ class PreflightReport:
     def stale_feedback(self) -> bool:
         return any(f.stale_feedback for f in self.findings)
 
+    @property
+    def refuses(self) -> bool:
+        """``dobhil run`` refuses to enable the drive (stale feedback, or another refusing finding)."""
+        return any(f.refuses for f in self.findings)
+
     def mismatches(self) -> list[str]:
         return [f.text for f in self.findings if f.severity is Severity.MISMATCH]
 
@@ -186,14 +198,22 @@ class PreflightReport:
         out += [f"node {n.node}: {n.summary}" for n in self.nodes]
         out += [f"{'mismatch' if f.severity is Severity.MISMATCH else 'note'}: {f.text}"
                 for f in self.findings]
-        out.append("preflight: ok" if self.ok else
-                   f"preflight: {len(self.mismatches())} mismatch(es)"
-                   + (" -- a run would sample stale feedback" if self.stale_feedback else ""))
+        out.append("preflight: ok" if self.ok else f"preflight: {len(self.mismatches())} mismatch(es) -- "
+                   + self._verdict())
         return out
+
+    def _verdict(self) -> str:
+        """What ``dobhil run`` does with these mismatches, in the words it acts on."""
+        if self.stale_feedback:
+            return "dobhil run refuses to enable: a run would sample stale feedback"
+        if self.refuses:
+            return "dobhil run refuses to enable: " + next(f.text for f in self.findings if f.refuses).split(":")[0]
+        return "dobhil run does not refuse these: it prints them and runs"
 
     def as_dict(self) -> dict[str, Any]:
         return {
-            "ok": self.ok, "stale_feedback": self.stale_feedback, "profile": self.profile,
+            "ok": self.ok, "stale_feedback": self.stale_feedback, "refuses_run": self.refuses,
+            "profile": self.profile,
             "node_id": self.node_id, "window": self.window,
             "nodes": [{"node": n.node, "summary": n.summary,
                        "motion": _rate_dict(n.motion), "status": _rate_dict(n.status)}
@@ -202,7 +222,7 @@ class PreflightReport:
                     "error_frames": self.bus.error_frames, "bits_per_s": self.bus.bits_per_s,
                     "bitrate": self.bus.bitrate, "load": self.bus.load, "run_load": self.bus.run_load},
             "findings": [{"severity": f.severity.name.lower(), "text": f.text,
-                          "stale_feedback": f.stale_feedback} for f in self.findings],
+                          "stale_feedback": f.stale_feedback, "refuses_run": f.refuses} for f in self.findings],
         }
 
 
@@ -446,15 +466,19 @@ def _rate_findings(probe: PreflightProbe, node: NodeReport, period: float,
         out.append(Finding(Severity.MISMATCH, f"node {node.node} sends no cyclic {probe.motion_name()}: "
                                               f"{set_motion} (now {now})", stale_feedback=True))
     elif motion.period > want_motion * PERIOD_TOLERANCE:
-        held = motion.period / period
-        out.append(Finding(Severity.MISMATCH,
-                           f"{set_motion} (now {_ms(motion.period)}; loop.period {_ms(period)} would use each "
-                           f"sample {held:.0f} times)", stale_feedback=motion.period > period * PERIOD_TOLERANCE))
+        stale = motion.period > period * PERIOD_TOLERANCE
+        why = (f"loop.period {_ms(period)} would use each sample {motion.period / period:.0f} times" if stale else
+               f"the profile's encoder_msg_rate is {_ms(profile.encoder_msg_rate)}; each loop period still "
+               "gets a fresh sample")
+        out.append(Finding(Severity.MISMATCH, f"{set_motion} (now {_ms(motion.period)}; {why})",
+                           stale_feedback=stale))
     elif feedback_timeout is not None and motion.max_gap is not None and motion.max_gap > feedback_timeout:
+        # one pause in the window is no verdict on the run (it may not come back): the run
+        # goes on, and stops only if a pause this long happens while it runs
         out.append(Finding(Severity.MISMATCH,
                            f"node {node.node}'s {probe.motion_name()} paused up to {_ms(motion.max_gap)}, "
-                           f"longer than loop.feedback_timeout {_ms(feedback_timeout)}: the run would stop; "
-                           "check bus load and other senders"))
+                           f"longer than loop.feedback_timeout {_ms(feedback_timeout)}: a pause like it during "
+                           "a run stops that run (feedback timeout); check bus load and other senders"))
     want_status = profile.heartbeat_msg_rate
     set_status = (f"set {probe.setting(Setting.STATUS_RATE)} = "
                   f"{probe.setting_value(Setting.STATUS_RATE, want_status)}")

@@ -3,10 +3,11 @@
 from __future__ import annotations
 
 import os
+import sys
 import time
 from typing import Final
 
-from dobhil.live.address import parse_live_address
+from dobhil.live.address import exposure_warning, parse_live_address
 from dobhil.live.playback import RecordedChannel, check_speed, load_channels, serve_recording
 from dobhil.live.server import LiveServer, import_sdk
 
@@ -16,10 +17,14 @@ _GRACE_S: Final = 0.5
 
 def serve_command(path: str | os.PathLike[str], *, live: str, speed: float, loop: bool) -> int:
     """Check every input, then serve ``path`` until played (or Ctrl-C with ``loop``)."""
-    host, port = parse_live_address(live)
+    address = parse_live_address(live)
+    host, port = address
     check_speed(speed)
     import_sdk()
     load_channels(path)
+    warning = exposure_warning(address)
+    if warning is not None:
+        print(f"warning: {warning}", file=sys.stderr, flush=True)
     with LiveServer(host=host, port=port) as server:
 
         def ready(channels: tuple[RecordedChannel, ...]) -> None:

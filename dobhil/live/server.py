@@ -117,6 +117,9 @@ class LiveServer:
                 context=self._context,
                 server_listener=self._subscriptions,
                 message_backlog_size=backlog,
+                # read-only for whoever connects: no client publishing, parameters, services,
+                # assets or connection graph (the SDK refuses each with an error status)
+                capabilities=[],
             )
         except RuntimeError as exc:
             raise LiveServerError(f"live view cannot listen on {host}:{port}: {exc}") from exc

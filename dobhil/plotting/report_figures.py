@@ -56,7 +56,7 @@ def _finish(ax: Axes, ylabel: str, legend: bool = True) -> None:
 
 
 def _zoom_window(summary: Mapping[str, Any], t: np.ndarray) -> tuple[float, float] | None:
-    steps = summary.get("steps") or []
+    steps = [s for s in summary.get("steps") or [] if s.get("metrics") is not None]  # those taken in contact
     if not steps:
         return None
     main = max(steps, key=lambda s: abs(s["end"] - s["start"]))
@@ -75,12 +75,13 @@ def force_figure(data: RecordedRun, predicted: np.ndarray | None, summary: Mappi
         if data.has("tau_int_true"):
             ax.plot(t, data["tau_int_true"], lw=1.0, alpha=0.85, label="true $\\tau_{int}$ (emulator)")
         if predicted is not None:
-            ax.plot(t, predicted, ":", lw=1.4, color="tab:red", label="analysis prediction (sampled closed loop)")
+            ax.plot(t, predicted, ":", lw=1.4, color="tab:red",
+                    label="analysis prediction (sampled closed loop, in contact)")
         _finish(ax, "interaction torque [N m]")
         if k == 1 and zoom:
             ax.set_xlim(*zoom)
             _fit_y(ax, t, zoom, [data["tau_ref"], data["tau_int_hat"], data["tau_int_true"]])
-            ax.set_title("zoom on the largest reference step", fontsize=9)
+            ax.set_title("zoom on the largest reference step taken in contact", fontsize=9)
     axes[-1, 0].set_xlabel("time [s]")
     axes[0, 0].set_title(_title(data, "Force response"))
     return save(fig, path)

@@ -65,6 +65,7 @@ class RunLog:
         self.drive: Any = SimpleNamespace(status=SimpleNamespace(state=0, error_code=0))
         self.records: list[tuple[Any, ...]] = []
         self.tap: RecordingBus | None = None
+        self._simulated = False  # lockstep: frames stamped on the simulated log clock
         self._failure: RecorderError | None = None
         self._closed = False
 
@@ -96,6 +97,7 @@ class RunLog:
         mode = RecordMode.LOSSY if lossy else RecordMode.BACKPRESSURE
         self.writer.open(metadata, attachments, mode, self.live, early=self.take())
         self.clock_ns = clock_ns or time.time_ns
+        self._simulated = clock_ns is not None
         self.truth = truth
         if drive is not None:
             self.drive = drive
@@ -113,12 +115,19 @@ class RunLog:
     def frame(self, topic: int, msg: Any) -> None:
         """A frame as it is now (the drive refills its torque message; python-can hands out
         a new message per receive): ``schemas.can_frame_record`` spelled out for speed.
-        Never raises into the bus call that recorded it."""
+        Never raises into the bus call that recorded it.
+
+        Its bus timestamp: a sent frame's is the log clock now, just after the send (its
+        message carries none, 0.0), which in real time is the wall clock that received
+        frames are stamped on (SocketCAN, virtual); a received frame keeps the interface's.
+        In lockstep (a simulated log clock) both directions get the simulated time, so a
+        CAN export of the run has one time base."""
         try:
-            records = self.records
-            records.append((topic, self.clock_ns(), msg.arbitration_id, msg.is_extended_id, msg.is_remote_frame,
+            records, t = self.records, self.clock_ns()
+            stamp = t / 1e9 if topic == _TX or self._simulated else msg.timestamp
+            records.append((topic, t, msg.arbitration_id, msg.is_extended_id, msg.is_remote_frame,
                             msg.is_error_frame, msg.is_fd, msg.bitrate_switch, msg.error_state_indicator, msg.dlc,
-                            msg.data if topic == _RX else bytes(msg.data), msg.timestamp, msg.channel))
+                            msg.data if topic == _RX else bytes(msg.data), stamp, msg.channel))
             if len(records) >= 4 * BATCH_RECORDS:  # no cycle for a while: enable, preflight
                 self.flush()
         except RecorderError as exc:

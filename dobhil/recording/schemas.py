@@ -170,6 +170,23 @@ def _frame_encoder(topic: Topic) -> Encoder:
     return lambda values: orjson.dumps(can_frame_payload(values, topic))
 
 
+#: ``/drive/feedback.drive_state`` by dobhil's ``DriveState`` code (``dobhil.drives.base``; a
+#: test checks they match). Names, not the codes: a drive's own state codes differ (ODrive's
+#: 1 is IDLE, dobhil's 1 is enabled), and a number in Foxglove reads as the drive's.
+DRIVE_STATE_NAMES: Final = ("disabled", "enabled", "fault")
+
+
+def drive_state_name(code: int) -> str:
+    """The recorded name of a ``DriveState`` code (``code N`` for one this table lacks)."""
+    return DRIVE_STATE_NAMES[code] if 0 <= code < len(DRIVE_STATE_NAMES) else f"code {code}"
+
+
+def _feedback_encoder(values: Sequence[Any]) -> bytes:
+    position, velocity, state, error, seq, cycle = values
+    return orjson.dumps({"position": position, "velocity": velocity, "drive_state": drive_state_name(int(state)),
+                         "axis_error": error, "seq": seq, "cycle": cycle}, option=orjson.OPT_SERIALIZE_NUMPY)
+
+
 def _event_encoder(values: Sequence[Any]) -> bytes:
     kind, reason, detail, count = values
     return orjson.dumps({"kind": EventKind(kind).name.lower(), "reason": reason, "detail": detail, "count": count})
@@ -184,9 +201,12 @@ _SPECS: Final = (
               _frame_encoder(Topic.CAN_TX)),
     TopicSpec(Topic.DRIVE_FEEDBACK, "/drive/feedback", "dobhil.DriveFeedback", "drive feedback decoded from the bus",
               _fields(_N, "position", "motor-side position [rad]", "velocity", "motor-side velocity [rad/s]")
-              + _fields(_I, "axis_state", "drive state code", "axis_error", "drive error code (0: none)",
+              + (Field("drive_state", FieldKind.STRING, "dobhil's drive state (not the drive's own state code): "
+                       + ", ".join(DRIVE_STATE_NAMES)),)
+              + _fields(_I, "axis_error", "the drive's own error code (ODrive: axis error bits; 0: none)",
                         "seq", "motion frames received from the drive so far (Feedback.seq)",
-                        "cycle", "control cycle that used this feedback (-1: controller.initialize)")),
+                        "cycle", "control cycle that used this feedback (-1: controller.initialize)"),
+              _feedback_encoder),
     TopicSpec(Topic.DRIVE_COMMAND, "/drive/command", "dobhil.DriveCommand", "torque command sent to the drive",
               _fields(_N, "torque", "commanded motor torque [N m]")),
     TopicSpec(Topic.CONTROLLER, "/controller", "dobhil.Controller", "controller internals of one cycle",
@@ -227,7 +247,8 @@ def spec_for(topic: str | int) -> TopicSpec:
 CYCLE_FIELDS: Final = ("cycle", "position", "velocity", "seq", "tau_ref", "tau_int_hat", "tau_dis_hat", "tau_per",
                        "u_unsat", "u_sat", "period_error", "exec_time", "overrun", "axis_state", "axis_error",
                        "q", "dq", "tau_motor", "tau_int")
-_ALIASES: Final = {"torque": "u_sat"}  # /drive/command.torque is the saturated output
+#: /drive/command.torque is the saturated output; drive_state is named from the cycle's state code
+_ALIASES: Final = {"torque": "u_sat", "drive_state": "axis_state"}
 
 
 def _view(spec: TopicSpec, in_cycle: bool) -> tuple[Topic, Encoder, int]:
@@ -264,6 +285,7 @@ def decode(data: bytes) -> dict[str, Any]:
     return orjson.loads(data)
 
 
-__all__ = ["CYCLE", "CYCLE_FIELDS", "FRAME_ATTRIBUTES", "MESSAGE_ENCODING", "SCHEMA_ENCODING", "SPECS_BY_NAME",
-           "TOPIC_SPECS", "VIEWS", "EventKind", "Field", "FieldKind", "Topic", "TopicSpec", "can_frame_message",
-           "can_frame_payload", "can_frame_record", "decode", "event_record", "message_count", "spec_for"]
+__all__ = ["CYCLE", "CYCLE_FIELDS", "DRIVE_STATE_NAMES", "FRAME_ATTRIBUTES", "MESSAGE_ENCODING", "SCHEMA_ENCODING",
+           "SPECS_BY_NAME", "TOPIC_SPECS", "VIEWS", "EventKind", "Field", "FieldKind", "Topic", "TopicSpec",
+           "can_frame_message", "can_frame_payload", "can_frame_record", "decode", "drive_state_name", "event_record",
+           "message_count", "spec_for"]

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Final
 
 import can
 
@@ -69,7 +69,16 @@ def open_bus(spec: BusSpec) -> can.BusABC:
         for line in caught.lines:
             logging.getLogger("can").warning("%s", line)
         return bus
-    raise BusError(f"bus {spec.describe()} cannot be opened: {_explain(spec.interface, text, caught.lines)}") from error
+    hint = "" if spec.interface in _SOFTWARE_BUSES else f" ({NO_HARDWARE_HINT})"
+    raise BusError(f"bus {spec.describe()} cannot be opened: {_explain(spec.interface, text, caught.lines)}"
+                   f"{hint}") from error
+
+
+#: python-can interfaces that need no CAN hardware (dobhil's emulated drive, in-process, a hub)
+_SOFTWARE_BUSES: Final = frozenset({"dobhil", "virtual", "remote", "udp_multicast"})
+#: said when a hardware bus cannot be opened: the way to try dobhil without one
+NO_HARDWARE_HINT: Final = ("no CAN hardware here? --bus dobhil:demo is a bus with the emulated drive "
+                           "on it; dobhil run --emulate runs the emulator itself")
 
 
 #: what to install when an interface's driver library is missing (python-can's own wording

@@ -191,7 +191,8 @@ class RunSession:
 
     def preflight(self) -> PreflightReport | None:
         """Measure the drive before it is enabled (once; None when skipped). Raises
-        PreflightError if a run would sample stale feedback (or find no drive)."""
+        PreflightError if a run would sample stale feedback (or find no drive), or on another
+        refusing finding (:attr:`~dobhil.drives.preflight.Finding.refuses`)."""
         if not self.preflight_enabled:
             return None
         if self.preflight_report is None:
@@ -202,7 +203,7 @@ class RunSession:
                 bitrate=self.bus_spec.kwargs.get("bitrate") or None,
                 probe=preflight_probe(self.profile),
                 **({"clock": sim, "stamp": lambda _m: sim()} if sim is not None else {}))
-        if self.preflight_report.stale_feedback:
+        if self.preflight_report.refuses:
             raise PreflightError(self.preflight_report)
         return self.preflight_report
 

@@ -99,3 +99,18 @@ def test_import_of_a_garbage_blf_is_one_line(tmp_path: Path, head: bytes) -> Non
     with pytest.raises(LogFileError, match="garbage.blf"):
         import_can(bad, tmp_path / "out.mcap")
     assert not (tmp_path / "out.mcap").exists() and not list(tmp_path.glob(".*partial*"))
+
+
+def test_asc_starts_at_the_earliest_frame_even_when_a_later_line_is_older(tmp_path: Path) -> None:
+    """In log order a received frame may be older than a command logged before it; ASC times
+    are relative to the file's start, and python-can writes an older frame as an absolute
+    time (another date when read back): the export starts at the earliest frame."""
+    late = can.Message(timestamp=T0 + 0.5, arbitration_id=0x00C, data=b"\x01", channel="can0")
+    early = can.Message(timestamp=T0, arbitration_id=0x009, data=b"\x02", channel="can0")
+    src = write_log(tmp_path / "run.mcap", [frame(late, Topic.CAN_TX, 1_000), frame(early, Topic.CAN_RX, 2_000)])
+    out = tmp_path / "run.asc"
+    export_can(src, out, CanLogFormat.ASC)
+    with can.ASCReader(out, relative_timestamp=False) as reader:
+        back = {m.arbitration_id: m.timestamp for m in reader}
+    assert back[0x009] == pytest.approx(T0, abs=1e-3) and back[0x00C] == pytest.approx(T0 + 0.5, abs=1e-3)
+    assert back[0x00C] - back[0x009] == pytest.approx(0.5, abs=RESOLUTION[CanLogFormat.ASC])

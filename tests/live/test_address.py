@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
+import socket
+
 import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
 from dobhil.errors import ConfigError
-from dobhil.live import DEFAULT_HOST, LiveAddressError, parse_live_address
+from dobhil.live import DEFAULT_HOST, LiveAddress, LiveAddressError, parse_live_address
+from dobhil.live.address import check_bindable, exposure_warning, is_loopback, shown
 
 
 @pytest.mark.parametrize(
@@ -51,3 +54,38 @@ def test_anything_parses_or_fails_in_one_line(text: str) -> None:
         assert "\n" not in str(exc)
     else:
         assert host and 0 <= port <= 65535
+
+
+@pytest.mark.parametrize(("host", "loopback"), [
+    ("127.0.0.1", True), ("127.0.0.2", True), ("localhost", True), ("::1", True),
+    ("0.0.0.0", False), ("::", False), ("192.0.2.7", False), ("no-such-host.invalid", False),
+])
+def test_loopback_classification(host: str, loopback: bool) -> None:
+    assert is_loopback(host) is loopback
+
+
+@pytest.mark.parametrize("host", ["0.0.0.0", "::", "192.0.2.7"])
+def test_a_non_loopback_address_gets_one_warning_line_naming_it(host: str) -> None:
+    """No address is bound here: the warning is built from the address alone."""
+    address = LiveAddress(host, 8799)
+    line = exposure_warning(address)
+    assert line is not None and "\n" not in line
+    assert shown(address) in line and "anyone" in line and "read-only" in line and "127.0.0.1" in line
+
+
+@pytest.mark.parametrize("host", ["127.0.0.1", "127.0.0.2", "localhost", "::1"])
+def test_loopback_addresses_get_no_warning(host: str) -> None:
+    assert exposure_warning(LiveAddress(host, 8799)) is None
+
+
+def test_check_bindable_names_a_busy_port_and_an_unknown_host() -> None:
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen(1)
+        busy = LiveAddress("127.0.0.1", taken.getsockname()[1])
+        with pytest.raises(LiveAddressError, match="in use") as info:
+            check_bindable(busy)
+        assert "\n" not in str(info.value) and shown(busy) in str(info.value)
+    with pytest.raises(LiveAddressError, match="not known"):
+        check_bindable(LiveAddress("no-such-host.invalid", 8799))
+    check_bindable(LiveAddress("127.0.0.2", 0))  # a free loopback address passes

@@ -175,3 +175,45 @@ def test_every_publish_is_sent_or_counted(times: list[int], max_pending: int) ->
         bad = sum(1 for t in times if not 0 <= t < 2**64)  # log times the SDK refuses
         assert server.sent + server.dropped == len(times)
         assert server.dropped >= bad
+
+
+def test_a_client_cannot_publish_call_services_or_change_anything() -> None:
+    """The live view is read-only whoever connects (docs/foxglove.md): the server offers no
+    capability, refuses every write a Foxglove client can send, and serves the same
+    channels and data afterwards, to this client and to a new one."""
+    import struct
+    writes = [
+        json.dumps({"op": "advertise", "channels": [{"id": 7, "topic": "/controller", "encoding": "json",
+                                                     "schemaName": "x"}]}),
+        struct.pack("<BI", 1, 7) + b'{"tau_ref": 99}',                   # clientMessageData on it
+        json.dumps({"op": "setParameters", "parameters": [{"name": "design.force_gain", "value": 9}], "id": "s"}),
+        json.dumps({"op": "getParameters", "parameterNames": [], "id": "g"}),
+        json.dumps({"op": "subscribeParameterUpdates", "parameterNames": ["design.force_gain"]}),
+        struct.pack("<BIII", 2, 1, 1, 4) + b"json{}",                    # serviceCallRequest
+        json.dumps({"op": "fetchAsset", "uri": "file:///etc/passwd", "requestId": 1}),
+        json.dumps({"op": "subscribeConnectionGraph"}),
+    ]
+    payloads = _payloads("/controller", 5)
+    with _server() as server, LiveClient(server.url) as client:
+        client.wait_for_channels(TOPICS)
+        assert client.server_info["capabilities"] == []
+        before = dict(client.channels)
+        for frame in writes:
+            client.ws.send(frame)
+        client.subscribe(["/controller"])
+        assert server.wait_for_subscriber(timeout=10)
+        for i, payload in enumerate(payloads):
+            server.publish("/controller", payload, 1_000 + i)
+        received = client.collect(counts_at_least({"/controller": len(payloads)}), timeout=30)
+        client.drain(0.5)
+        refusals = [t for t in client.texts if t.get("op") in ("status", "serviceCallFailure")]
+        with LiveClient(server.url) as other:
+            other.wait_for_channels(TOPICS)
+            other_channels = dict(other.channels)
+        assert client.channels == before and other_channels.keys() == before.keys()
+    assert [r.payload for r in received] == payloads    # nothing of the client's got in
+    assert all(t.get("level", 2) == 2 for t in refusals)  # each refusal an error
+    words = " ".join(t["message"] for t in refusals)
+    for capability in ("clientPublish", "parameters", "parametersSubscribe", "services", "assets"):
+        assert f"support {capability}" in words, words
+    assert not [t for t in client.texts if t.get("op") in ("parameterValues", "serviceCallResponse", "fetchAssetResponse")]

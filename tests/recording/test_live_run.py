@@ -54,3 +54,67 @@ def test_live_needs_a_log_and_a_valid_address(tmp_path: Path, capsys: pytest.Cap
         err = capsys.readouterr().err
         assert err.count("\n") == 1 and words in err
     assert not list(tmp_path.iterdir())
+
+
+@pytest.mark.parametrize("where", ["busy", "unknown host"])
+def test_live_that_cannot_listen_leaves_no_log_and_the_rerun_works(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str], where: str) -> None:
+    """The address is checked before the log is opened: a refused --live leaves no stub
+    (which would block the rerun with the same --log)."""
+    import socket
+    path = tmp_path / "a.mcap"
+    base = ["run", str(DEMO), "--emulate", "--lockstep", "--duration", "0.05", "--log", str(path)]
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen(1)
+        live = f"127.0.0.1:{taken.getsockname()[1]}" if where == "busy" else "no-such-host.invalid:8799"
+        capsys.readouterr()
+        assert main([*base, "--live", live]) == 2
+        err = capsys.readouterr().err
+    assert err.count("\n") == 1 and ("in use" in err if where == "busy" else "not known" in err), err
+    assert not list(tmp_path.iterdir())
+    assert main(base) == 0 and path.is_file()
+
+
+def test_live_on_loopback_prints_no_exposure_warning(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from dobhil.cli.recording import live_address
+    capsys.readouterr()
+    view = live_address("127.0.0.2:0", tmp_path / "a.mcap")
+    assert view is not None and (view.host, view.port) == ("127.0.0.2", 0)
+    assert capsys.readouterr().err == ""
+
+
+def test_live_beyond_loopback_prints_one_warning_line(tmp_path: Path, capsys: pytest.CaptureFixture[str],
+                                                      monkeypatch: pytest.MonkeyPatch) -> None:
+    """Issue 16 (13): the warning, without binding a public interface (the bind check is
+    stubbed; the address is only classified)."""
+    import dobhil.live.address as address
+    monkeypatch.setattr(address, "check_bindable", lambda _address: None)
+    from dobhil.cli.recording import live_address
+    capsys.readouterr()
+    view = live_address("0.0.0.0:8799", tmp_path / "a.mcap")
+    assert view is not None and (view.host, view.port) == ("0.0.0.0", 8799)
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith("warning: the live view on 0.0.0.0:8799 (every network interface)")
+    assert "anyone" in err and "read-only" in err
+
+
+def test_a_port_taken_after_the_check_still_leaves_no_log(tmp_path: Path, capsys: pytest.CaptureFixture[str],
+                                                          monkeypatch: pytest.MonkeyPatch) -> None:
+    """The race the early check cannot close (the port taken between the check and the
+    writer's server): the writer never gets ready, and the header-only file is removed."""
+    import socket
+
+    import dobhil.live.address as address
+    monkeypatch.setattr(address, "check_bindable", lambda _address: None)  # as if taken after the check
+    path = tmp_path / "a.mcap"
+    base = ["run", str(DEMO), "--emulate", "--lockstep", "--duration", "0.05", "--log", str(path)]
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen(1)
+        capsys.readouterr()
+        assert main([*base, "--live", f"127.0.0.1:{taken.getsockname()[1]}"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "cannot listen" in err, err
+    assert not list(tmp_path.iterdir())
+    assert main(base) == 0 and path.is_file()

@@ -36,10 +36,20 @@ def test_demo_then_report(tmp_path: Path, capsys: pytest.CaptureFixture[str]) ->
     for name in ("force", "tracking_error", "position", "commands", "loop_timing"):
         assert (out / f"{name}.png").stat().st_size > 10000
     summary = json.loads((out / "summary.json").read_text())
-    step = summary["steps"][-1]
-    assert step["time"] == pytest.approx(0.6) and step["metrics"]["overshoot_pct"] is not None
+    # issue 16 (7): the first "step" (0 -> 0.2 N m) crosses the gap and hits the environment:
+    # no step metrics (they were an 825 % "overshoot"); the step at 0.6 s is taken in contact
+    approach, step = summary["steps"]
+    assert approach["time"] == 0.0 and approach["in_contact"] is False and approach["metrics"] is None
+    assert "touched the environment at 0.1" in approach["why"]
+    assert "step at 0.000 s (0 -> 0.2 N m): not taken in contact" in text
+    assert step["time"] == pytest.approx(0.6) and step["in_contact"] and step["metrics"]["overshoot_pct"] < 100
+    assert summary["contact"]["source"].startswith("emulator truth") and "only for steps taken in contact" in text
     assert summary["estimation"]["rms_error"] is not None and summary["dropped"] == 0
-    assert summary["prediction"]["available"] and summary["prediction"]["rms_difference"] < 0.5
+    # the analysed loop is the loop in contact: from the step in contact on, the prediction
+    # is the lockstep run (the emulator is the analysed plant in contact) to rounding
+    prediction = summary["prediction"]
+    assert prediction["available"] and prediction["from_s"] == pytest.approx(0.6)
+    assert prediction["rms_difference"] < 1e-6 and prediction["max_difference"] < 1e-6
     assert 0.1 < summary["bus"]["bus_load"] < 0.5
     assert summary["bus"]["rx_frames_per_s"] == pytest.approx(1010, rel=0.05)
 
@@ -57,8 +67,10 @@ def test_foxglove_layout_names_recorded_fields() -> None:
     root = Path(__file__).resolve().parents[2]
     layout = json.loads((root / "tools" / "foxglove-layout.json").read_text())
     assert {"configById", "layout", "globalVariables", "userNodes"} <= set(layout)
-    paths = [p["value"] for k, c in layout["configById"].items() if k.startswith("Plot!") for p in c["paths"]]
+    paths = [p["value"] for k, c in layout["configById"].items() if k.startswith(("Plot!", "StateTransitions!"))
+             for p in c["paths"]]
     assert "/controller.tau_int_hat" in paths and "/loop.exec_time" in paths
+    assert "/drive/feedback.drive_state" in paths  # by name: dobhil's codes read as the drive's
     for path in paths:
         topic, field = path.rsplit(".", 1)
         assert field in SPECS_BY_NAME[topic].keys, path
@@ -93,3 +105,57 @@ def test_latency_is_measured_against_the_assumed_input_delay() -> None:
     assert "set design.input_delay = 0.000275" in text
     simulated = latency_stats(_latency_run(rx, tx, clock="simulated", input_delay=0.0))
     assert not simulated["measured"] and "lockstep" in simulated["why"]
+
+
+def _contact_run(q: list[float], *, truth: bool) -> RunData:
+    """A reference 0 -> 0.2 at cycle 0 and 0.2 -> 1 at cycle 5 (demo config: contact at 0 rad)."""
+    from dobhil.config import load_config
+    n = len(q)
+    ref = np.array([0.2] * 5 + [1.0] * (n - 5))
+    position = np.array(q)
+    signals = {"tau_ref": ref, "tau_int_hat": ref * 0.9, "q": position, "q_true": position if truth else
+               np.full(n, np.nan)}
+    return RunData(path="x", config=load_config("demo"), metadata={}, t=np.arange(n) * 1e-3, signals=signals)
+
+
+@pytest.mark.parametrize("truth", [True, False])
+def test_step_metrics_only_for_steps_taken_in_contact(truth: bool) -> None:
+    """In contact where the position reaches environment.contact_position: the emulator's
+    true position when recorded, else the measured one."""
+    from dobhil.run_report import contact_mask, step_infos
+    q = [-0.005, -0.003, -0.001, 0.0, 1e-5, 2e-5, 3e-5, 4e-5, 5e-5, 5e-5]
+    data = _contact_run(q, truth=truth)
+    assert contact_mask(data).source.startswith("emulator truth" if truth else "measured position")
+    first, second = step_infos(data)
+    assert first.in_contact is False and first.metrics is None and "touched the environment at 0.003 s" in first.why
+    assert second.in_contact is True and second.metrics is not None
+    # contact lost after the second step: no metrics for it either
+    lost = step_infos(_contact_run([*q[:7], -1e-3, *q[8:]], truth=truth))[1]
+    assert lost.metrics is None and lost.why == "lost contact at 0.007 s"
+
+
+def test_latency_verdict_covers_the_spread_with_a_stated_tolerance() -> None:
+    """Issue 16 (7): 'p99 278 us, assumed 0 us: matches the analysis' contradicted itself.
+    The verdict now needs p50 and p99 within 0.1 T of the assumed delay and says so."""
+    rx = [float(k) for k in range(100)]
+    tx = [k + (0.278 if k >= 95 else 0.02) for k in range(100)]   # median 20 us, 5 % slow commands
+    lat = latency_stats(_latency_run(rx, tx, clock="wall", input_delay=0.0))
+    assert lat["p50_s"] == pytest.approx(20e-6) and lat["p99_s"] > 0.1e-3
+    assert lat["tolerance_s"] == pytest.approx(0.1e-3) and not lat["matches"]
+    text = summary_text({"file": "x", "cycles": 0, "duration_s": 0.0, "stop": None, "steps": [],
+                         "tracking": {"rms_error_estimated": None, "rms_error_true": None}, "estimation": None,
+                         "prediction": {}, "latency": lat,
+                         "loop_timing": {k: None for k in ("exec_time_p50", "exec_time_p99", "exec_time_max",
+                                                           "period_error_p99")} | {"overruns": 0},
+                         "bus": {"bus_load": None, "bitrate": None}, "dropped": 0})
+    line = next(x for x in text.splitlines() if x.startswith("command latency"))
+    assert "does not match the analysis (tolerance +-100 us (0.1 T))" in line and "p99 off by" in line
+    assert "p50 off" not in line and "set design.input_delay" not in line  # the median is where it was assumed
+
+
+def test_no_prediction_compared_for_a_run_never_in_contact() -> None:
+    """The analysed loop is the loop in contact: a run that never touched the environment
+    gets no prediction comparison (it used to be compared over the whole run)."""
+    from dobhil.run_report import prediction
+    predicted, info = prediction(_contact_run([-0.005] * 10, truth=True))
+    assert predicted is None and not info["available"] and "no reference step taken in contact" in info["why"]

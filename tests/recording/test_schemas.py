@@ -85,10 +85,10 @@ def test_a_cycle_record_becomes_one_message_per_cycle_topic(tmp_path: Path) -> N
         log.finish(None)
         return {topic: payload for topic, _, payload in open_log(path).iter_messages()}
 
-    record = (CYCLE, 7, 3, 0.1, 0.2, 4, 1.0, 0.9, 0.01, 0.5, 0.6, 0.55, 1e-6, 2e-5, False, 8, 0)
+    record = (CYCLE, 7, 3, 0.1, 0.2, 4, 1.0, 0.9, 0.01, 0.5, 0.6, 0.55, 1e-6, 2e-5, False, 1, 0)
     out = written(record)
     assert set(out) == {"/drive/feedback", "/controller", "/drive/command", "/loop"}
-    assert out["/drive/feedback"] == {"position": 0.1, "velocity": 0.2, "axis_state": 8, "axis_error": 0,
+    assert out["/drive/feedback"] == {"position": 0.1, "velocity": 0.2, "drive_state": "enabled", "axis_error": 0,
                                       "seq": 4, "cycle": 3}
     assert out["/drive/command"] == {"torque": 0.55} and out["/controller"]["u_unsat"] == 0.6
     assert out["/loop"] == {"cycle": 3, "period_error": 1e-6, "exec_time": 2e-5, "overrun": False}
@@ -140,4 +140,23 @@ def test_the_loops_frame_record_is_the_tables() -> None:
             setattr(msg, name, True)
         for topic in (Topic.CAN_RX, Topic.CAN_TX):
             batch.frame(int(topic), msg)
-            assert batch.take() == [can_frame_record(msg, topic, 7)]
+            want = can_frame_record(msg, topic, 7)
+            if topic == Topic.CAN_TX:  # a sent frame is stamped with its send time on the log clock
+                want = (*want[:-2], 7 / 1e9, want[-1])
+            assert batch.take() == [want]
+
+
+def test_drive_state_is_recorded_by_name_not_as_a_code_a_drive_uses_otherwise() -> None:
+    """Issue 16 (7): ``/drive/feedback`` held dobhil's DriveState code (1 = enabled), which
+    reads as ODrive's (1 = IDLE) in Foxglove: the record names the state."""
+    from dobhil.drives.base import DriveState
+    from dobhil.recording.schemas import DRIVE_STATE_NAMES, drive_state_name
+    assert DRIVE_STATE_NAMES == tuple(s.name.lower() for s in sorted(DriveState))
+    assert [drive_state_name(int(s)) for s in DriveState] == ["disabled", "enabled", "fault"]
+    assert drive_state_name(7) == "code 7"
+    spec = spec_for("/drive/feedback")
+    assert "axis_state" not in spec.keys and spec.json_schema()["properties"]["drive_state"]["type"] == "string"
+    import numpy as np  # the loop hands numpy values over as they are (the default encoder takes them too)
+    payload = spec.encode((np.float64(0.5), np.float64(-1.25), np.int64(2), np.int64(0), np.int64(7), -1))
+    assert json.loads(payload) == {"position": 0.5, "velocity": -1.25, "drive_state": "fault", "axis_error": 0,
+                                   "seq": 7, "cycle": -1}

@@ -98,7 +98,7 @@ def test_batched_records_unpack_to_the_flat_records_of_the_topic_table() -> None
     assert records[1] == (CYCLE, 11, 4, 0.5, -1.25, 7, *OUT, 0.0, 0.0, False, 8, 0, 1.0, 2.0, 3.0, 4.0)
     no, yes = False, True
     assert records[2] == (RX, 11, 0x1ABCDEF, yes, no, no, yes, yes, no, 64, bytes(range(64)), 5.5, "can0")
-    assert records[3] == (TX, 11, 0x07B, no, yes, no, no, no, no, 8, b"", 0.0, 1)
+    assert records[3] == (TX, 11, 0x07B, no, yes, no, no, no, no, 8, b"", 11 / 1e9, 1)  # sent: stamped at send
     assert records[4] == (RX, 11, 0x069, no, no, no, no, no, no, 2, b"\x01\x02", 0.0, None)
     assert records[5] == (int(Topic.EVENTS), 14, int(EventKind.INFO), "note", "000" + "\u00e9" * 5000, 0)
 
@@ -321,7 +321,7 @@ def test_a_frame_the_writer_cannot_encode_never_raises_into_the_bus_call(tmp_pat
     with pytest.raises(RecorderError):
         writer.close("done", rest=batch.take())
     writer, batch = opened(tmp_path / "noon.mcap", RecordMode.LOSSY)
-    batch.frame(TX, odd)
+    batch.frame(RX, odd)  # a received frame keeps its own stamp (a sent one gets the log clock's)
     with pytest.raises(RecorderError, match="could not convert string to float: 'noon'"):
         for k in range(100_000):
             cycle(batch, k)

@@ -92,6 +92,7 @@ def test_matching_drive_passes_and_its_idle_watchdog_bit_is_expected() -> None:
     (node,) = report.nodes
     assert node.motion.count == 500 and node.motion.period == pytest.approx(1e-3, abs=1e-9)
     assert "WATCHDOG_TIMER_EXPIRED" in node.summary   # idle and unfed: expected, enable clears it
+    assert "(expected: the watchdog is on and nothing feeds an idle axis; enable clears it)" in node.summary
     assert report.lines()[-1] == "preflight: ok"
     assert 0 < (report.bus.load or 0) < (report.bus.run_load or 0) < 1
 
@@ -131,6 +132,53 @@ def test_feedback_gap_above_the_timeout_is_a_mismatch() -> None:
     report = lockstep_preflight(bare("odrive-0.6", encoder_msg_rate=4e-3), bare("odrive-0.6", encoder_msg_rate=4e-3),
                                 period=4e-3, feedback_timeout=3e-3)
     assert any("paused up to 4 ms, longer than loop.feedback_timeout 3 ms" in t for t in texts(report))
+
+
+def test_a_mismatch_the_run_does_not_refuse_does_not_claim_the_run_would_stop(
+        capsys: pytest.CaptureFixture[str]) -> None:
+    """Issue 16 (6): a feedback pause in the window is a mismatch the run goes on with;
+    neither the finding, nor check's verdict, nor the run's preflight line may say the
+    run would stop."""
+    from dobhil.cli.run_cmd import report_preflight
+    report = lockstep_preflight(bare("odrive-0.6", encoder_msg_rate=4e-3), bare("odrive-0.6", encoder_msg_rate=4e-3),
+                                period=4e-3, feedback_timeout=3e-3)
+    assert not report.ok and not report.refuses
+    assert not any("would stop" in line for line in report.lines()), report.lines()
+    assert report.lines()[-1].endswith("dobhil run does not refuse these: it prints them and runs")
+    capsys.readouterr()
+    report_preflight(report)
+    err = capsys.readouterr().err
+    mismatches = [line for line in err.splitlines() if "mismatch" in line]
+    assert mismatches and all("the run goes on" in line for line in mismatches), err
+
+
+def test_an_axis_already_in_closed_loop_refuses_the_run() -> None:
+    """'another host may be driving it; set it IDLE first' is acted on: the run refuses."""
+    from dobhil.drives.odrive import codec
+    from dobhil.drives.preflight import BusReport, NodeReport
+    profile = bare("odrive-0.6")
+    probe = preflight_probe(profile)
+    assert probe is not None
+    heartbeat = codec.encode(codec.Heartbeat(0, AxisState.CLOSED_LOOP_CONTROL), node_id=3).data
+    node = NodeReport(3, Rate.of([0.0, 1e-3]), Rate.of([0.0, 0.1]), bytes(heartbeat), window=0.5)
+    findings = probe.node_findings(node)
+    assert [f.refuses for f in findings if "CLOSED_LOOP_CONTROL" in f.text] == [True]
+    report = PreflightReport("odrive-0.6", 3, 0.5, (node,), BusReport("ACTIVE", 0, 0, 0.0, None, 0.0),
+                             tuple(findings))
+    assert report.refuses and not report.stale_feedback
+    assert report.lines()[-1].endswith("dobhil run refuses to enable: node 3 is already in CLOSED_LOOP_CONTROL")
+    assert report.as_dict()["refuses_run"]
+
+
+def test_a_bus_that_cannot_be_opened_names_the_emulated_bus(capsys: pytest.CaptureFixture[str]) -> None:
+    """Issue 16 (6): without CAN hardware, check says how to try it anyway."""
+    code = main(["check", str(DEMO), "--bus", "socketcan:dobhil-no-such-can"])
+    err = capsys.readouterr().err
+    assert code == EXIT_USAGE and err.count("\n") == 1
+    assert "cannot be opened" in err and "--bus dobhil:demo" in err and "--emulate" in err, err
+    code = main(["check", str(DEMO), "--bus", "dobhil:demo", "--window", "0.3", "--json"])
+    report = json.loads(capsys.readouterr().out)
+    assert code in (0, 1) and [n["node"] for n in report["nodes"]] == [3]  # the hint's bus works
 
 
 def test_rate_statistics() -> None:
@@ -348,3 +396,13 @@ def test_forced_preflight_in_lockstep_measures_simulated_time() -> None:
     assert report is not None and report.ok, report and report.lines()
     assert report.nodes[0].motion.period == pytest.approx(1e-3, abs=1e-12)
     assert result.stop.reason.name == "DONE"
+
+
+def test_a_drive_slower_than_the_profile_but_fast_enough_for_the_loop_is_not_called_stale() -> None:
+    """The profile promises 0.5 ms, the drive sends every 1 ms, the loop runs at 1 ms: a
+    mismatch with the profile, but each period gets a fresh sample (no '1 times'), and the
+    run is not refused."""
+    report = lockstep_preflight(bare("odrive-0.6"), bare("odrive-0.6", encoder_msg_rate=5e-4))
+    (text,) = [t for t in texts(report) if "encoder_msg_rate_ms" in t]
+    assert "each loop period still gets a fresh sample" in text and "times" not in text, text
+    assert not report.refuses and report.lines()[-1].endswith("it prints them and runs")

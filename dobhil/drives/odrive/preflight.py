@@ -11,8 +11,9 @@
   heartbeat_rate_ms}`` (0.5.6 ``odrive-interface.yaml``), ``<axis>`` being e.g.
   ``odrv0.axis0`` in odrivetool.
 - State and errors from the heartbeat: an axis already in CLOSED_LOOP_CONTROL is a
-  mismatch (someone else drives it); errors are notes, since enabling clears them, except
-  that the watchdog bit of an idle axis is expected (the watchdog runs in every state).
+  mismatch on which ``dobhil run`` refuses to enable (someone else drives it); errors are
+  notes, since enabling clears them, except that the watchdog bit of an idle axis is
+  expected (the watchdog runs in every state) and the node's summary says so.
 """
 
 from __future__ import annotations
@@ -107,8 +108,18 @@ class ODrivePreflight(PreflightProbe):
         family, firmware_text = self._family(node)
         hb = self._heartbeat(node, family or self.firmware)
         state = "no heartbeat" if hb is None else (
-            f"{_state_name(hb.axis_state)}, error {codec.describe_heartbeat(hb, family or self.firmware)}")
+            f"{_state_name(hb.axis_state)}, error {codec.describe_heartbeat(hb, family or self.firmware)}"
+            + self._expected_watchdog(hb, family or self.firmware))
         return f"{state}; firmware {firmware_text}"
+
+    def _expected_watchdog(self, hb: codec.Heartbeat, firmware: Firmware) -> str:
+        """Words for a watchdog bit that is no fault: on an idle axis with the watchdog on,
+        nothing feeds it (the preflight sends no commands), so it expires; enable clears it."""
+        watchdog = codec.watchdog_bit(firmware)
+        if (hb.axis_error & watchdog and not hb.axis_error & ~watchdog and hb.axis_state == AxisState.IDLE
+                and self.profile.watchdog_timeout > 0):
+            return " (expected: the watchdog is on and nothing feeds an idle axis; enable clears it)"
+        return ""
 
     def node_findings(self, node: NodeReport) -> list[Finding]:
         family, firmware_text = self._family(node)
@@ -127,7 +138,7 @@ class ODrivePreflight(PreflightProbe):
         if hb.axis_state == AxisState.CLOSED_LOOP_CONTROL:
             out.append(Finding(Severity.MISMATCH,
                                f"node {node.node} is already in CLOSED_LOOP_CONTROL: another host may be "
-                               "driving it; set it IDLE first"))
+                               "driving it; set it IDLE first", refuses_run=True))
         watchdog = codec.watchdog_bit(family or self.firmware)
         if hb.axis_error & ~watchdog:
             out.append(Finding(Severity.NOTE, f"node {node.node} reports error "
