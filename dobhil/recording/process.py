@@ -1,8 +1,9 @@
 """The writer process of a recorded run and the pipe to it (``docs/recording.md``: diagram,
 guarantees). Batches arrive pickled, one ``os.write`` each: ``LOSSY`` never blocks (no room:
 refused; taken in part: finished first), ``BACKPRESSURE`` waits. The process ignores
-SIGINT/SIGTERM, writes through :class:`LogWriter`, flushes every ``flush_interval``,
-finishes the file on ``STOP`` or when the parent dies, and sends one status.
+SIGINT/SIGTERM, writes through :class:`LogWriter`, hands each chunk to the OS every
+``write_interval`` and fsyncs every ``flush_interval``, finishes the file on ``STOP`` or
+when the parent dies, and sends one status.
 """
 
 from __future__ import annotations
@@ -32,6 +33,10 @@ PARENT_EXITED: Final = "parent exited"
 PIPE_SIZE: Final = 1 << 20
 #: Seconds the writer sleeps when the pipe is empty.
 POLL: Final = 0.002
+#: Seconds between chunks handed to the OS: what a SIGKILL of run and writer loses at most
+#: of what the writer has read (an unfinished chunk lives in the writer's memory only);
+#: chunks also end at ``CHUNK_SIZE`` (about 0.2 s of a 1 kHz run).
+WRITE_INTERVAL: Final = 0.1
 _LENGTH: Final = struct.Struct("<I")
 _BOOT: Final = "import sys; sys.path.insert(0, sys.argv[1]); from dobhil.recording.process import main; main()"
 
@@ -39,7 +44,7 @@ _BOOT: Final = "import sys; sys.path.insert(0, sys.argv[1]); from dobhil.recordi
 class Control(IntEnum):
     """First element of a control message, sent among the records."""
 
-    OPEN = 100  # (OPEN, mode, flush_interval, fsync, metadata, attachments, live)
+    OPEN = 100  # (OPEN, mode, (flush_interval, write_interval), fsync, metadata, attachments, live)
     STOP = 102  # (STOP, stop_reason | None, detail)
 
 
@@ -71,13 +76,14 @@ def unpack(data: bytes) -> tuple[list[list[tuple[Any, ...]]], int]:
 class WriterProcess:
     """A writer process recording to ``path``; the file is created here (a bad path raises)."""
 
-    def __init__(self, path: str | os.PathLike[str], *, flush_interval: float = 1.0, fsync: bool = True) -> None:
+    def __init__(self, path: str | os.PathLike[str], *, flush_interval: float = 1.0, fsync: bool = True,
+                 write_interval: float = WRITE_INTERVAL) -> None:
         self.path = Path(path)
         self.mode = RecordMode.BACKPRESSURE
         self.opened = self._closed = False
         self.dropped = self.written = 0
         self.live_port: int | None = None
-        self._interval, self._fsync = flush_interval, fsync
+        self._interval, self._fsync = (flush_interval, write_interval), fsync
         self._tail = b""  # the part of a batch the pipe has not taken yet: goes first
         self._failure: str | None = None
         with open(self.path, "xb"):  # the caller checked the path: this only fails on a race
@@ -260,9 +266,10 @@ def _open(path: str, status: Connection, mode: int, fsync: bool, metadata: Any, 
 
 
 def _serve(fd: int, status: Connection, path: str) -> tuple[Any, ...]:
-    """Read (polling: no write of the loop's wakes this process), write, flush on time."""
+    """Read (polling: no write of the loop's wakes this process), write, hand chunks to the
+    OS and fsync on time."""
     log: Any = None  # a LogWriter once OPEN (always the first message) came
-    pending, interval, next_flush = b"", 1.0, 0.0
+    pending, (sync_every, write_every), next_sync, next_write = b"", (1.0, WRITE_INTERVAL), 0.0, 0.0
     os.set_blocking(fd, False)
     try:
         while True:
@@ -283,14 +290,16 @@ def _serve(fd: int, status: Connection, path: str) -> tuple[Any, ...]:
                 if r[0] < Control.OPEN:
                     log.write(batch)
                 elif r[0] == Control.OPEN:
-                    log, interval = _open(path, status, r[1], r[3], r[4], r[5], r[6]), r[2]
-                    next_flush = time.monotonic() + interval
+                    log, (sync_every, write_every) = _open(path, status, r[1], r[3], r[4], r[5], r[6]), r[2]
+                    next_write, next_sync = time.monotonic() + write_every, time.monotonic() + sync_every
                 elif r[0] == Control.STOP:
                     log.finish(r[1], r[2])
                     return (int(Status.DONE), log.written, log.dropped)
-            if log is not None and time.monotonic() >= next_flush:
-                log.flush()
-                next_flush = time.monotonic() + interval
+            if log is not None and (now := time.monotonic()) >= next_write:
+                sync = now >= next_sync
+                log.flush(sync)
+                next_write = now + write_every
+                next_sync = now + sync_every if sync else next_sync
     except BaseException as exc:  # a record the encoder refuses: the file finished, if the disk lets it
         if log is not None:
             try:
@@ -319,4 +328,4 @@ def main(argv: Sequence[str] | None = None) -> None:
     sys.exit(code)
 
 
-__all__ = ["JOIN_TIMEOUT", "PARENT_EXITED", "PIPE_SIZE", "WriterProcess", "encode", "main", "unpack"]
+__all__ = ["JOIN_TIMEOUT", "PARENT_EXITED", "PIPE_SIZE", "WRITE_INTERVAL", "WriterProcess", "encode", "main", "unpack"]

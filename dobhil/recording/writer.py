@@ -103,10 +103,11 @@ class LogWriter:
             last = max(last, t)
         self.written, self.last_log_ns = written, last
 
-    def flush(self) -> None:
-        """End the chunk, flush and (if asked) fsync: a crash loses nothing older."""
-        self._mcap.flush()
-        if self.fsync:
+    def flush(self, sync: bool = True) -> None:
+        """End the chunk and hand it to the OS (a killed process then loses nothing older);
+        with ``sync`` (and ``fsync``) also fsync (a power loss then loses nothing older)."""
+        self._mcap.flush()  # flushes the file object too
+        if sync and self.fsync:
             os.fsync(self.file.fileno())
 
     def finish(self, stop_reason: str | None, detail: str = "",

@@ -313,3 +313,30 @@ def test_a_frame_the_writer_cannot_encode_never_raises_into_the_bus_call(tmp_pat
     for name in ("bad.mcap", "noon.mcap"):
         with open_log(tmp_path / name) as log:
             assert log.metadata["recording"]["stop_reason"] == "recorder_failed"
+
+
+def test_records_reach_the_os_every_write_interval_not_only_at_fsync(tmp_path: Path) -> None:
+    """A SIGKILL of run and writer loses what the writer holds in memory, its unfinished
+    chunk: chunks go to the OS every ``write_interval``, whatever the fsync interval (here
+    1000 s: before, the chunk waited for it). Waits (up to 30 s, a bound on failure only)
+    until a copy of the file holds the records, then kills the writer: the file holds them."""
+    from dobhil.recording.recover import recover
+    path = tmp_path / "run.mcap"
+    writer = WriterProcess(path, fsync=False, flush_interval=1000.0)
+    writer.open(META, [], RecordMode.LOSSY)
+    batch = RunLog(writer)
+    for k in range(50):  # far below a chunk's size: only the interval ends the chunk
+        cycle(batch, k)
+    batch.flush()
+    deadline, tries, found = time.monotonic() + 30.0, 0, 0
+    while found < 50 and time.monotonic() < deadline:
+        tries += 1
+        copy = tmp_path / f"copy{tries}.mcap"
+        copy.write_bytes(path.read_bytes())
+        found = dict(recover(copy, tmp_path / f"rec{tries}.mcap").counts).get("/controller", 0)
+        time.sleep(0.05)
+    os.kill(writer.pid, signal.SIGKILL)
+    with pytest.raises(RecorderError):
+        writer.close("done")
+    assert found == 50
+    assert dict(recover(path, tmp_path / "killed.mcap").counts)["/controller"] == 50
