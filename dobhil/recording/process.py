@@ -38,6 +38,7 @@ POLL: Final = 0.002
 #: chunks also end at ``CHUNK_SIZE`` (about 0.2 s of a 1 kHz run).
 WRITE_INTERVAL: Final = 0.1
 _LENGTH: Final = struct.Struct("<I")
+_INT: Final = struct.Struct("i")
 _BOOT: Final = "import sys; sys.path.insert(0, sys.argv[1]); from dobhil.recording.process import main; main()"
 
 
@@ -130,6 +131,11 @@ class WriterProcess:
             return False
         except OSError:
             raise self._fail(self._ended_early()) from None
+
+    def queued(self) -> int:
+        """Bytes handed over the writer has not read yet (a batch's unsent part included);
+        where the OS cannot tell (not Linux or a BSD), the unsent part only."""
+        return _waiting(self._fd) + len(self._tail)
 
     def encode(self, records: Sequence[tuple[Any, ...]]) -> bytes:
         """:func:`encode`; a record that cannot be pickled is refused (:meth:`refuse`)."""
@@ -240,6 +246,16 @@ def _spawn(path: Path) -> tuple[subprocess.Popen[bytes], int, Connection]:
         os.close(data_r)
         os.close(status_w)
     return proc, data_w, Connection(status_r, writable=False)
+
+
+def _waiting(fd: int) -> int:
+    """Bytes in the pipe ``fd`` (FIONREAD: Linux and the BSDs; else 0)."""
+    try:
+        from fcntl import ioctl
+        from termios import FIONREAD
+        return int(_INT.unpack(ioctl(fd, FIONREAD, b"\0\0\0\0"))[0])
+    except (ImportError, OSError, ValueError):
+        return 0
 
 
 def _read_status(conn: Connection) -> Sequence[Any] | None:

@@ -340,3 +340,38 @@ def test_records_reach_the_os_every_write_interval_not_only_at_fsync(tmp_path: P
         writer.close("done")
     assert found == 50
     assert dict(recover(path, tmp_path / "killed.mcap").counts)["/controller"] == 50
+
+
+def test_foreign_frames_are_shed_before_the_loops_own_records(tmp_path: Path) -> None:
+    """A writer frozen while the bus floods (100 foreign frames per cycle, 5x what the pipe
+    holds): every cycle, every sent frame and every frame of the drive's ids reaches the
+    file; the foreign frames are shed (at the tap beyond FOREIGN_CAP, at the hand-over while
+    the pipe is half full) and every one is counted: kept + loss counts = sent, and the
+    loss counts = the drop count = the metadata."""
+    from dobhil.recording.runlog import FOREIGN_CAP
+    path = tmp_path / "run.mcap"
+    log = RunLog(WriterProcess(path, fsync=False))
+    log.begin(metadata=META, attachments=[], lossy=True, own_ids={0x069})
+    own = can.Message(arbitration_id=0x069, data=bytes(8), is_extended_id=False)
+    cmd = can.Message(arbitration_id=0x06E, data=bytes(4), is_extended_id=False)
+    junk = [can.Message(arbitration_id=0x100 + i, data=bytes([i]) * 8, is_extended_id=False) for i in range(100)]
+    cycles = 1800  # the own records: ~460 KiB, within the half of the pipe kept for them
+    assert 100 * cycles * 60 > 5 * PIPE_SIZE
+    with stopped(log.writer):
+        for k in range(cycles):
+            for msg in junk:
+                log.frame(RX, msg)
+            log.frame(RX, own)
+            log.frame(TX, cmd)
+            cycle(log, k)
+            assert len(log.foreign) <= FOREIGN_CAP
+    log.end("done")
+    with open_log(path) as recorded:
+        rx = [p["arbitration_id"] for _, _, p in recorded.iter_messages(["/can/rx"])]
+        events = [p for _, _, p in recorded.iter_messages(["/events"])]
+        info = recorded.info()
+    assert counts(path)["/loop"] == counts(path)["/can/tx"] == rx.count(0x069) == cycles
+    losses = [e["count"] for e in events if e["kind"] == "loss"]
+    assert all("foreign" in e["reason"] for e in events if e["kind"] == "loss")
+    assert 0 < sum(losses) == log.writer.dropped == info.dropped
+    assert len(rx) - cycles + sum(losses) == 100 * cycles
