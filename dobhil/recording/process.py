@@ -19,7 +19,7 @@ from collections.abc import Mapping, Sequence
 from enum import IntEnum
 from multiprocessing.connection import Connection
 from pathlib import Path
-from typing import Any, Final
+from typing import Any, Final, NamedTuple, cast
 
 import dobhil
 from dobhil.errors import RecorderError
@@ -43,16 +43,47 @@ _BOOT: Final = "import sys; sys.path.insert(0, sys.argv[1]); from dobhil.recordi
 
 
 class Control(IntEnum):
-    """First element of a control message, sent among the records."""
+    """First element (``kind``) of a control message, sent among the records."""
 
-    OPEN = 100  # (OPEN, mode, (flush_interval, write_interval), fsync, metadata, attachments, live)
-    STOP = 102  # (STOP, stop_reason | None, detail)
+    OPEN = 100  # an Open
+    STOP = 102  # a Stop
 
 
 class Status(IntEnum):
-    DONE = 0  # (DONE, written, dropped)
-    FAILED = 1  # (FAILED, one-line reason)
-    READY = 2  # (READY, live view port | None): the file is open (and the live view listens)
+    DONE = 0  # the file is finished: Reply.written, Reply.dropped
+    FAILED = 1  # Reply.reason, one line
+    READY = 2  # the file is open (and the live view listens: Reply.port)
+
+
+class Open(NamedTuple):
+    """Control message: open the file."""
+
+    kind: int  # Control.OPEN
+    mode: int  # RecordMode
+    sync_interval: float  # fsync every (s)
+    write_interval: float  # chunk to the OS every (s)
+    fsync: bool
+    metadata: dict[str, dict[str, str]]
+    attachments: list[tuple[str, str, bytes]]
+    live: tuple[str, int] | None
+
+
+class Stop(NamedTuple):
+    """Control message: finish the file."""
+
+    kind: int  # Control.STOP
+    stop_reason: str | None
+    detail: str
+
+
+class Reply(NamedTuple):
+    """The writer's status messages to the parent."""
+
+    status: int  # Status
+    port: int | None = None
+    reason: str = ""
+    written: int = 0
+    dropped: int = 0
 
 
 def encode(records: Sequence[tuple[Any, ...]]) -> bytes:
@@ -100,14 +131,14 @@ class WriterProcess:
         self.mode = RecordMode(mode)
         meta = {str(n): {str(k): str(v) for k, v in r.items()} for n, r in metadata.items()}
         files = [(str(n), str(m), bytes(d)) for n, m, d in attachments]
-        self._send(encode([(Control.OPEN, int(self.mode), self._interval, self._fsync, meta, files, live)]))
-        message = pickle.loads(self._status.recv_bytes()) if self._status.poll(JOIN_TIMEOUT) else None
-        if message is None or message[0] != Status.READY:
+        self._send(encode([Open(Control.OPEN, int(self.mode), *self._interval, self._fsync, meta, files, live)]))
+        message: Reply | None = _read_status(self._status, JOIN_TIMEOUT)
+        if message is None or message.status != Status.READY:
             self._closed = True
             self._join()
-            self._failure = str(message[1]) if message is not None else "the writer process did not start"
+            self._failure = message.reason if message is not None else "the writer process did not start"
             raise RecorderError(f"{self.path}: {self._failure}")
-        self.live_port = message[1]
+        self.live_port = message.port
         self._send(self.encode(early))
         os.set_blocking(self._fd, self.mode is not RecordMode.LOSSY)
         self.opened = True
@@ -175,7 +206,7 @@ class WriterProcess:
     def _stop(self, data: bytes, stop_reason: str | None, detail: str) -> None:
         try:
             os.set_blocking(self._fd, True)
-            self._send(data + encode([(Control.STOP, stop_reason, detail)]))
+            self._send(data + encode([Stop(Control.STOP, stop_reason, detail)]))
         except (RecorderError, OSError):
             pass  # the failure is noted; close raises it
 
@@ -192,8 +223,8 @@ class WriterProcess:
     def _ended_early(self) -> str:
         self._wait()
         status = _read_status(self._status)
-        if status is not None and status[0] == Status.FAILED:
-            return str(status[1])
+        if status is not None and status.status == Status.FAILED:
+            return status.reason
         return f"writer process ended early (exit code {self._proc.poll()})"
 
     def _join(self) -> None:
@@ -204,10 +235,10 @@ class WriterProcess:
             self._failure = self._failure or f"writer process did not finish within {JOIN_TIMEOUT:g} s"
         status = _read_status(self._status)
         self._status.close()
-        if status is not None and status[0] == Status.DONE:
-            self.written = status[1]
+        if status is not None and status.status == Status.DONE:
+            self.written = status.written
         elif self._failure is None:
-            self._failure = str(status[1]) if status is not None else f"writer exit code {self._proc.returncode}"
+            self._failure = status.reason if status is not None else f"writer exit code {self._proc.returncode}"
 
     def _wait(self) -> bool:
         """Wait for the process (killed after ``JOIN_TIMEOUT``); False if it had to be."""
@@ -258,9 +289,9 @@ def _waiting(fd: int) -> int:
         return 0
 
 
-def _read_status(conn: Connection) -> Sequence[Any] | None:
+def _read_status(conn: Connection, timeout: float = 0.0) -> Reply | None:
     try:
-        return pickle.loads(conn.recv_bytes()) if conn.poll(0) else None
+        return pickle.loads(conn.recv_bytes()) if conn.poll(timeout) else None
     except (EOFError, OSError, ValueError):
         return None
 
@@ -277,11 +308,11 @@ def _open(path: str, status: Connection, mode: int, fsync: bool, metadata: Any, 
         server = LiveServer(host=live[0], port=live[1])
         log.add_output(server)
         port = server.port
-    status.send_bytes(pickle.dumps((int(Status.READY), port)))
+    status.send_bytes(pickle.dumps(Reply(int(Status.READY), port=port)))
     return log
 
 
-def _serve(fd: int, status: Connection, path: str) -> tuple[Any, ...]:
+def _serve(fd: int, status: Connection, path: str) -> Reply:
     """Read (polling: no write of the loop's wakes this process), write, hand chunks to the
     OS and fsync on time."""
     log: Any = None  # a LogWriter once OPEN (always the first message) came
@@ -296,21 +327,24 @@ def _serve(fd: int, status: Connection, path: str) -> tuple[Any, ...]:
                 chunk = None
             if chunk == b"":  # the parent went away without closing the log
                 if log is None:
-                    return (int(Status.DONE), 0, 0)  # closed before a run started
+                    return Reply(int(Status.DONE))  # closed before a run started
                 log.finish(PARENT_EXITED, "the recording process ended without closing the log")
-                return (int(Status.DONE), log.written, log.dropped)
+                return Reply(int(Status.DONE), written=log.written, dropped=log.dropped)
             batches, used = unpack(pending + chunk) if chunk else ([], 0)
             pending = (pending + chunk)[used:] if chunk else pending
             for batch in batches:
-                r = batch[0] if len(batch) == 1 else (0,)
-                if r[0] < Control.OPEN:
+                kind = batch[0][0] if len(batch) == 1 else 0  # a control message travels alone
+                if kind < Control.OPEN:
                     log.write(batch)
-                elif r[0] == Control.OPEN:
-                    log, (sync_every, write_every) = _open(path, status, r[1], r[3], r[4], r[5], r[6]), r[2]
+                elif kind == Control.OPEN:
+                    o = cast(Open, batch[0])
+                    log = _open(path, status, o.mode, o.fsync, o.metadata, o.attachments, o.live)
+                    sync_every, write_every = o.sync_interval, o.write_interval
                     next_write, next_sync = time.monotonic() + write_every, time.monotonic() + sync_every
-                elif r[0] == Control.STOP:
-                    log.finish(r[1], r[2])
-                    return (int(Status.DONE), log.written, log.dropped)
+                elif kind == Control.STOP:
+                    stop = cast(Stop, batch[0])
+                    log.finish(stop.stop_reason, stop.detail)
+                    return Reply(int(Status.DONE), written=log.written, dropped=log.dropped)
             if log is not None and (now := time.monotonic()) >= next_write:
                 sync = now >= next_sync
                 log.flush(sync)
@@ -336,7 +370,7 @@ def main(argv: Sequence[str] | None = None) -> None:
     try:
         status = _serve(int(data_fd), status_conn, path)
     except BaseException as exc:  # one line for the parent, whatever it was
-        status, code = (int(Status.FAILED), f"{type(exc).__name__}: {' '.join(str(exc).split())}"), 1
+        status, code = Reply(int(Status.FAILED), reason=f"{type(exc).__name__}: {' '.join(str(exc).split())}"), 1
     try:
         status_conn.send_bytes(pickle.dumps(status))
     except OSError:

@@ -24,7 +24,7 @@ import can
 
 from dobhil.errors import RecorderError
 from dobhil.recording.process import PIPE_SIZE, WriterProcess
-from dobhil.recording.schemas import EventKind, Topic, event_record, message_count
+from dobhil.recording.schemas import RECORD_TYPES, EventKind, Topic, event_record, message_count, named
 from dobhil.recording.writer import RecordMode
 
 #: Records handed over at once (~40 cycles with their frames, ~10 KiB pickled).
@@ -124,8 +124,9 @@ class RunLog:
 
     def cycle(self, k: int, t: float, fb: Any, out: Sequence[float], period_error: float, exec_time: float,
               overrun: bool) -> None:
-        """The ``CycleSink`` hook: a cycle record (``schemas.CYCLE_FIELDS``); the one place a
-        writer failure is raised on the loop thread, after the cycle's command went out."""
+        """The ``CycleSink`` hook: a cycle record (a ``schemas.CycleRecord``, built as a plain
+        tuple in its field order: see ``schemas``); the one place a writer failure is raised
+        on the loop thread, after the cycle's command went out."""
         records, status, truth = self.records, self.drive.status, self.truth
         records.append((0, self.clock_ns(), k, fb.position, fb.velocity, fb.seq, *out, period_error, exec_time,
                         overrun, status.state, status.error_code, *(truth() if truth is not None else ())))
@@ -134,27 +135,34 @@ class RunLog:
 
     def frame(self, topic: int, msg: Any) -> None:
         """A frame as it is now (the drive refills its torque message; python-can hands out
-        a new message per receive): ``schemas.can_frame_record`` spelled out for speed.
+        a new message per receive): ``schemas.can_frame_record`` spelled out for speed (a
+        ``FrameRecord`` as a plain tuple in its field order).
         A foreign frame beyond ``FOREIGN_CAP`` is shed here (counted): a flood costs the
         loop a count, not a record. Never raises into the bus call that recorded it."""
         try:
-            records, data = self.records, msg.data
-            if topic != _RX:
-                data = bytes(data)
-            elif self._own and msg.arbitration_id not in self._own:
-                records = self.foreign
-                if len(records) >= FOREIGN_CAP:
-                    self.shed += 1
-                    return
+            if topic == _RX and (own := self._own) and msg.arbitration_id not in own:
+                self._foreign_frame(msg)
+                return
+            records = self.records
             records.append((topic, self.clock_ns(), msg.arbitration_id, msg.is_extended_id, msg.is_remote_frame,
                             msg.is_error_frame, msg.is_fd, msg.bitrate_switch, msg.error_state_indicator, msg.dlc,
-                            data, msg.timestamp, msg.channel))
-            if len(records) >= 4 * BATCH_RECORDS and records is self.records:  # no cycle for a while: enable
+                            msg.data if topic == _RX else bytes(msg.data), msg.timestamp, msg.channel))
+            if len(records) >= 4 * BATCH_RECORDS:  # no cycle for a while: enable, preflight
                 self.flush()
         except RecorderError as exc:
             self._failure = exc  # the next cycle raises it
         except Exception as exc:  # not a python-can message
             self._failure = self.writer.refuse(f"cannot encode a CAN frame: {type(exc).__name__}: {exc}")
+
+    def _foreign_frame(self, msg: Any) -> None:
+        """A received frame of another participant: kept up to ``FOREIGN_CAP``, else shed."""
+        foreign = self.foreign
+        if len(foreign) >= FOREIGN_CAP:
+            self.shed += 1
+            return
+        foreign.append((_RX, self.clock_ns(), msg.arbitration_id, msg.is_extended_id, msg.is_remote_frame,
+                        msg.is_error_frame, msg.is_fd, msg.bitrate_switch, msg.error_state_indicator, msg.dlc,
+                        msg.data, msg.timestamp, msg.channel))
 
     def record(self, record: Sequence[Any]) -> None:
         """A flat record of the topic table (an event): never dropped."""
@@ -174,17 +182,22 @@ class RunLog:
         else:
             self.foreign = self.records
         if not self.writer.write(self.writer.encode(records)):
-            kept = [r for r in records if r[0] == _EVENTS]
-            lost, carried = sum(message_count(r) for r in records) - len(kept), 0
-            if len(kept) > BATCH_RECORDS:  # a writer stuck for good: memory stays bounded
-                carried = sum(r[5] for r in kept if r[2] == _LOSS)  # earlier losses fold into this one
-                lost += sum(r[2] != _LOSS for r in kept)
-                kept = []
-            self.writer.dropped += lost
-            if lost + carried:
-                kept.append(event_record(EventKind.LOSS, records[-1][1], f"{lost + carried} messages dropped "
-                                         "(writer lagging)", f"total {self.writer.dropped}", lost + carried))
-            self.records[:0] = kept
+            self._drop(records)
+
+    def _drop(self, records: list[tuple[Any, ...]]) -> None:
+        """A batch the writer had no room for: its events kept for the next, a ``loss`` event
+        counting the rest (read by name: this path is rare)."""
+        kept = [r for r in map(named, records) if r.kind == _EVENTS]
+        lost, carried = sum(message_count(r) for r in records) - len(kept), 0
+        if len(kept) > BATCH_RECORDS:  # a writer stuck for good: memory stays bounded
+            carried = sum(r.lost for r in kept if r.event == _LOSS)  # earlier losses fold into this one
+            lost += sum(r.event != _LOSS for r in kept)
+            kept = []
+        self.writer.dropped += lost
+        if lost + carried:
+            kept.append(event_record(EventKind.LOSS, named(records[-1]).log_time_ns, f"{lost + carried} messages "
+                                     "dropped (writer lagging)", f"total {self.writer.dropped}", lost + carried))
+        self.records[:0] = kept
 
     def _with_foreign(self, records: list[tuple[Any, ...]]) -> list[tuple[Any, ...]]:
         """``records`` and the foreign frames if the pipe is less than half full, else the
@@ -220,7 +233,9 @@ class RunLog:
         """The feedback ``controller.initialize`` used (``cycle = -1``) and the enable event."""
         status = self.drive.status
         t = self.clock_ns()
-        self.record((_FEEDBACK, t, fb.position, fb.velocity, int(status.state), status.error_code, fb.seq, -1))
+        self.record(RECORD_TYPES[_FEEDBACK](kind=_FEEDBACK, log_time_ns=t, position=fb.position, velocity=fb.velocity,
+                                            axis_state=int(status.state), axis_error=status.error_code, seq=fb.seq,
+                                            cycle=-1))
         self.record(event_record(EventKind.ENABLE, t, "drive enabled", f"seq {fb.seq}"))
 
     def stop(self, stop: Any) -> None:

@@ -375,3 +375,35 @@ def test_foreign_frames_are_shed_before_the_loops_own_records(tmp_path: Path) ->
     assert all("foreign" in e["reason"] for e in events if e["kind"] == "loss")
     assert 0 < sum(losses) == log.writer.dropped == info.dropped
     assert len(rx) - cycles + sum(losses) == 100 * cycles
+
+
+def test_records_cross_the_hand_over_with_names() -> None:
+    """What the loop thread builds (plain tuples, for speed) is laid out by the named record
+    types: after the pickled hand-over every field reads back by name, as given."""
+    from dobhil.recording.schemas import CycleRecord, EventRecord, FrameRecord, named
+    log = RunLog(SimpleNamespace(opened=False))  # type: ignore[arg-type]
+    log.clock_ns = lambda: 42
+    log.drive, log.truth = DRIVE, lambda: (1.0, 2.0, 3.0, 4.0)
+    fb = SimpleNamespace(position=0.5, velocity=-1.25, seq=7)
+    msg = can.Message(arbitration_id=0x069, data=b"\x01\x02", is_extended_id=False, channel="c", timestamp=5.5)
+    log.started(fb)
+    log.frame(RX, msg)
+    log.frame(TX, msg)
+    log.cycle(3, 0.003, fb, OUT, 1e-6, 2e-5, True)
+    log.truth = None
+    log.cycle(4, 0.004, fb, OUT, 0.0, 0.0, False)
+    (batch,), _ = unpack(encode(log.take()))
+    feedback, enable, rx, tx, cycle3, cycle4 = map(named, batch)
+    assert (feedback.kind, feedback.cycle, feedback.seq, feedback.axis_state) == (int(Topic.DRIVE_FEEDBACK), -1, 7, 8)
+    assert type(enable) is EventRecord and (enable.event, enable.reason, enable.lost) == (EventKind.ENABLE,
+                                                                                          "drive enabled", 0)
+    for frame, kind in ((rx, RX), (tx, TX)):
+        assert type(frame) is FrameRecord and frame.kind == kind and frame.log_time_ns == 42
+        assert (frame.arbitration_id, bytes(frame.data), frame.dlc, frame.channel) == (0x069, b"\x01\x02", 2, "c")
+        assert frame.timestamp == 5.5 and not frame.is_extended_id
+    assert type(cycle3) is CycleRecord and (cycle3.cycle, cycle3.position, cycle3.velocity, cycle3.seq) == (3, 0.5,
+                                                                                                          -1.25, 7)
+    assert (cycle3.tau_ref, cycle3.u_sat, cycle3.period_error, cycle3.exec_time, cycle3.overrun) == (
+        OUT.tau_ref, OUT.u, 1e-6, 2e-5, True)
+    assert (cycle3.axis_state, cycle3.axis_error, cycle3.q, cycle3.tau_int) == (8, 0, 1.0, 4.0)
+    assert cycle4.cycle == 4 and len(cycle4) == len(CycleRecord._fields) - 4  # no truth: the fields are absent
