@@ -395,7 +395,8 @@ def bench_handover() -> dict[str, float]:
         for i in range(3):
             for sleep in (False, True):
                 log = RunLog(WriterProcess(Path(tmp) / f"h{i}{sleep}.mcap", fsync=False))
-                log.begin(metadata={}, attachments=[], lossy=sleep, truth=lambda: (0.0, 0.0, 0.0, 0.0))
+                log.begin(metadata={}, attachments=[], lossy=sleep, truth=lambda: (0.0, 0.0, 0.0, 0.0),
+                          own_ids={0x069})  # the stub's frame is the drive's, as in a run
                 period = 1e-3 if sleep else 2e-4
                 plain = _handover_us(3000 if sleep else 8500, None, period, sleep)
                 logged = _handover_us(3000 if sleep else 8500, log, period, sleep)
