@@ -396,7 +396,8 @@ def bench_handover() -> dict[str, float]:
         for i in range(3):
             for sleep in (False, True):
                 log = RunLog(WriterProcess(Path(tmp) / f"h{i}{sleep}.mcap", fsync=False))
-                log.begin(metadata={}, attachments=[], lossy=sleep, truth=lambda: (0.0, 0.0, 0.0, 0.0))
+                log.begin(metadata={}, attachments=[], lossy=sleep, truth=lambda: (0.0, 0.0, 0.0, 0.0),
+                          own_ids={0x069})  # the stub's frame is the drive's, as in a run
                 period = 1e-3 if sleep else 2e-4
                 plain = _handover_us(3000 if sleep else 8500, None, period, sleep)
                 logged = _handover_us(3000 if sleep else 8500, log, period, sleep)
@@ -472,6 +473,43 @@ def bench_live() -> dict[str, float]:
             "live_logged_vs_unlogged_ratio": float(np.median([a / b for a, b in zip(served, plain)]))}
 
 
+def _killed_run_loss_s(tmp: Path, i: int, seconds: float) -> float:
+    """A real-time emulated ``dobhil run --log`` SIGKILLed with its writer (the process group)
+    ``seconds`` into the run: the kill time minus the newest ``/loop`` record ``recover`` salvages."""
+    import os
+    import signal
+    import subprocess
+
+    from dobhil.recording.reader import open_log
+    from dobhil.recording.recover import recover
+    path = tmp / f"kill{i}.mcap"
+    run = subprocess.Popen([sys.executable, "-m", "dobhil", "run", str(ROOT / "configs/demo.yaml"), "--emulate",
+                            "--duration", "60", "--log", str(path), "--set", "loop.feedback_timeout=0.2"],
+                           env={**os.environ, "PYTHONPATH": str(ROOT)}, stdout=subprocess.DEVNULL,
+                           stderr=subprocess.DEVNULL, start_new_session=True)
+    while not path.exists() or path.stat().st_size < 20000:  # the run has begun
+        time.sleep(0.05)
+    time.sleep(seconds)
+    killed_ns = time.time_ns()
+    os.killpg(run.pid, signal.SIGKILL)
+    run.wait()
+    time.sleep(0.3)  # the writer is gone too (same group)
+    saved = tmp / f"kill{i}.recovered.mcap"
+    recover(path, saved)
+    return (killed_ns - max(t for _, t, _ in open_log(saved).iter_messages(["/loop"]))) / 1e9
+
+
+def bench_kill(runs: int = 12) -> dict[str, float]:
+    """Log lost to a SIGKILL of a real-time run and its writer, pooled over ``runs`` runs
+    (killed 2 to 3 s in); every sample printed to stderr."""
+    import tempfile
+    with tempfile.TemporaryDirectory() as tmp:
+        losses = [_killed_run_loss_s(Path(tmp), i, 2.0 + 0.09 * i) for i in range(runs)]
+    print("sigkill loss samples [s]:", " ".join(f"{x:.3f}" for x in losses), file=sys.stderr)
+    return {"sigkill_loss_s_median": float(np.median(losses)), "sigkill_loss_s_max": max(losses),
+            "sigkill_loss_over_0.25s_fraction": sum(x > 0.25 for x in losses) / runs}
+
+
 BENCHES: dict[str, Callable[[], dict[str, float]]] = {
     "sweep": bench_sweep,
     "controller": bench_controller,
@@ -480,6 +518,7 @@ BENCHES: dict[str, Callable[[], dict[str, float]]] = {
     "realtime": bench_realtime,
     "handover": bench_handover,
     "live": bench_live,
+    "kill": bench_kill,
 }
 
 

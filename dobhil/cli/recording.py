@@ -128,7 +128,7 @@ def begin(log: RunLog, session: RunSession, config_file: str | os.PathLike[str] 
               clock_ns=None if sim is None else (lambda: origin + round(sim() * 1e9)),
               truth=None if plant is None else (lambda: (plant.true_position, plant.true_velocity,
                                                          plant.motor_torque, plant.interaction_torque)),
-              drive=drive)
+              drive=drive, own_ids=drive.frame_ids)
     if log.live_port is not None and log.live is not None:
         sys.stderr.write(f"live view: ws://{log.live.host}:{log.live_port}\n")
         sys.stderr.flush()

@@ -196,6 +196,12 @@ class Drive(ABC):
         return self._profile.node_id
 
     @property
+    def frame_ids(self) -> frozenset[int] | None:
+        """Arbitration ids of this drive's frames (None: not known), e.g. for a recorder to
+        tell them from foreign traffic."""
+        return None
+
+    @property
     def feedback(self) -> Feedback | None:
         """Newest feedback seen so far (fresh or not)."""
         return self._feedback

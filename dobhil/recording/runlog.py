@@ -4,12 +4,18 @@ are flat tuples of the topic table; every ``BATCH_RECORDS``, after a cycle's com
 pickled into the writer process's pipe with one ``os.write`` (no thread: a sender thread held
 the GIL the loop then waited for). A writer failure is a :class:`~dobhil.errors.RecorderError`
 from ``cycle``: the loop stops ``recorder_failed``.
+
+In real time, frames received from other ids than the drive's (``own_ids``) are foreign: they
+wait in a list of their own, capped at ``FOREIGN_CAP`` per hand-over, and ride along only while
+the pipe is less than half full; the rest are shed and counted (``loss`` events). A flood of
+foreign traffic so never takes the room the loop's own records (cycles, sent frames, the drive's
+frames, events) need.
 """
 
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Collection, Mapping, Sequence
 from pathlib import Path
 from types import SimpleNamespace
 from typing import Any, Final
@@ -17,12 +23,19 @@ from typing import Any, Final
 import can
 
 from dobhil.errors import RecorderError
-from dobhil.recording.process import WriterProcess
-from dobhil.recording.schemas import EventKind, Topic, event_record, message_count
+from dobhil.recording.process import PIPE_SIZE, WriterProcess
+from dobhil.recording.schemas import RECORD_TYPES, EventKind, Topic, event_record, message_count, named
 from dobhil.recording.writer import LiveView, RecordMode
 
 #: Records handed over at once (~40 cycles with their frames, ~10 KiB pickled).
 BATCH_RECORDS: Final = 128
+#: Foreign frames kept per hand-over (~70 KiB pickled); more are shed at once, counted.
+FOREIGN_CAP: Final = 8 * BATCH_RECORDS
+#: Foreign frames ride along only while the pipe holds less than this: the rest of it is
+#: kept for the loop's own records (half of 1 MiB: ~2 s of a 1 kHz run).
+FOREIGN_ROOM: Final = PIPE_SIZE // 2
+#: Pipe bytes of a foreign frame, about (pickled: 50 to 70).
+FOREIGN_BYTES: Final = 64
 _RX, _TX, _FEEDBACK, _EVENTS = (int(t) for t in (Topic.CAN_RX, Topic.CAN_TX, Topic.DRIVE_FEEDBACK, Topic.EVENTS))
 _LOSS: Final = int(EventKind.LOSS)
 
@@ -64,6 +77,10 @@ class RunLog:
         self.truth: Callable[[], tuple[float, float, float, float]] | None = None
         self.drive: Any = SimpleNamespace(status=SimpleNamespace(state=0, error_code=0))
         self.records: list[tuple[Any, ...]] = []
+        #: foreign frames (real time, the drive's ids known), else the same list as ``records``
+        self.foreign: list[tuple[Any, ...]] = self.records
+        self.shed = 0  # foreign frames dropped since the last loss event
+        self._own: frozenset[int] = frozenset()
         self.tap: RecordingBus | None = None
         self._simulated = False  # lockstep: frames stamped on the simulated log clock
         self._failure: RecorderError | None = None
@@ -90,12 +107,17 @@ class RunLog:
 
     def begin(self, *, metadata: Mapping[str, Mapping[str, Any]], attachments: Sequence[tuple[str, str, bytes]],
               lossy: bool, clock_ns: Callable[[], int] | None = None,
-              truth: Callable[[], tuple[float, float, float, float]] | None = None, drive: Any = None) -> None:
+              truth: Callable[[], tuple[float, float, float, float]] | None = None, drive: Any = None,
+              own_ids: Collection[int] | None = None) -> None:
         """Header and metadata; the log clock, the emulator truth ``(q, dq, tau_motor, tau_int)``
-        and the drive (its ``status.state`` and ``status.error_code`` go to ``/drive/feedback``)."""
+        and the drive (its ``status.state`` and ``status.error_code`` go to ``/drive/feedback``);
+        ``own_ids``: the arbitration ids of the drive's frames (``lossy`` only: other frames
+        received are foreign, shed first; None: every frame is the loop's own)."""
         assert not self._closed, "the log is closed"
         mode = RecordMode.LOSSY if lossy else RecordMode.BACKPRESSURE
         self.writer.open(metadata, attachments, mode, self.live, early=self.take())
+        if lossy and own_ids is not None:
+            self._own, self.foreign = frozenset(own_ids), []
         self.clock_ns = clock_ns or time.time_ns
         self._simulated = clock_ns is not None
         self.truth = truth
@@ -104,8 +126,9 @@ class RunLog:
 
     def cycle(self, k: int, t: float, fb: Any, out: Sequence[float], period_error: float, exec_time: float,
               overrun: bool) -> None:
-        """The ``CycleSink`` hook: a cycle record (``schemas.CYCLE_FIELDS``); the one place a
-        writer failure is raised on the loop thread, after the cycle's command went out."""
+        """The ``CycleSink`` hook: a cycle record (a ``schemas.CycleRecord``, built as a plain
+        tuple in its field order: see ``schemas``); the one place a writer failure is raised
+        on the loop thread, after the cycle's command went out."""
         records, status, truth = self.records, self.drive.status, self.truth
         records.append((0, self.clock_ns(), k, fb.position, fb.velocity, fb.seq, *out, period_error, exec_time,
                         overrun, status.state, status.error_code, *(truth() if truth is not None else ())))
@@ -114,8 +137,10 @@ class RunLog:
 
     def frame(self, topic: int, msg: Any) -> None:
         """A frame as it is now (the drive refills its torque message; python-can hands out
-        a new message per receive): ``schemas.can_frame_record`` spelled out for speed.
-        Never raises into the bus call that recorded it.
+        a new message per receive): ``schemas.can_frame_record`` spelled out for speed (a
+        ``FrameRecord`` as a plain tuple in its field order).
+        A foreign frame beyond ``FOREIGN_CAP`` is shed here (counted): a flood costs the
+        loop a count, not a record. Never raises into the bus call that recorded it.
 
         Its bus timestamp: a sent frame's is the log clock now, just after the send (its
         message carries none, 0.0), which in real time is the wall clock that received
@@ -123,6 +148,9 @@ class RunLog:
         In lockstep (a simulated log clock) both directions get the simulated time, so a
         CAN export of the run has one time base."""
         try:
+            if topic == _RX and (own := self._own) and msg.arbitration_id not in own:
+                self._foreign_frame(msg)
+                return
             records, t = self.records, self.clock_ns()
             stamp = t / 1e9 if topic == _TX or self._simulated else msg.timestamp
             records.append((topic, t, msg.arbitration_id, msg.is_extended_id, msg.is_remote_frame,
@@ -135,42 +163,88 @@ class RunLog:
         except Exception as exc:  # not a python-can message
             self._failure = self.writer.refuse(f"cannot encode a CAN frame: {type(exc).__name__}: {exc}")
 
+    def _foreign_frame(self, msg: Any) -> None:
+        """A received frame of another participant: kept up to ``FOREIGN_CAP``, else shed."""
+        foreign = self.foreign
+        if len(foreign) >= FOREIGN_CAP:
+            self.shed += 1
+            return
+        foreign.append((_RX, self.clock_ns(), msg.arbitration_id, msg.is_extended_id, msg.is_remote_frame,
+                        msg.is_error_frame, msg.is_fd, msg.bitrate_switch, msg.error_state_indicator, msg.dlc,
+                        msg.data, msg.timestamp, msg.channel))
+
     def record(self, record: Sequence[Any]) -> None:
         """A flat record of the topic table (an event): never dropped."""
         self.records.append(tuple(record))
 
     def flush(self) -> None:
-        """Hand the records over; dropped if the writer lags: the events kept for the next,
-        with a ``loss`` event counting the rest."""
+        """Hand the records over (with the foreign frames, if the pipe has room for them); dropped
+        if the writer lags: the events kept for the next, with a ``loss`` event counting the rest."""
         if self._failure is not None:
             failure, self._failure = self._failure, None
             raise failure
         if not self.writer.opened:
             return
         records, self.records = self.records, []
+        if self.foreign is not records:
+            records = self._with_foreign(records)
+        else:
+            self.foreign = self.records
         if not self.writer.write(self.writer.encode(records)):
-            kept = [r for r in records if r[0] == _EVENTS]
-            lost, carried = sum(message_count(r) for r in records) - len(kept), 0
-            if len(kept) > BATCH_RECORDS:  # a writer stuck for good: memory stays bounded
-                carried = sum(r[5] for r in kept if r[2] == _LOSS)  # earlier losses fold into this one
-                lost += sum(r[2] != _LOSS for r in kept)
-                kept = []
-            self.writer.dropped += lost
-            if lost + carried:
-                kept.append(event_record(EventKind.LOSS, records[-1][1], f"{lost + carried} messages dropped "
-                                         "(writer lagging)", f"total {self.writer.dropped}", lost + carried))
-            self.records[:0] = kept
+            self._drop(records)
+
+    def _drop(self, records: list[tuple[Any, ...]]) -> None:
+        """A batch the writer had no room for: its events kept for the next, a ``loss`` event
+        counting the rest (read by name: this path is rare)."""
+        kept = [r for r in map(named, records) if r.kind == _EVENTS]
+        lost, carried = sum(message_count(r) for r in records) - len(kept), 0
+        if len(kept) > BATCH_RECORDS:  # a writer stuck for good: memory stays bounded
+            carried = sum(r.lost for r in kept if r.event == _LOSS)  # earlier losses fold into this one
+            lost += sum(r.event != _LOSS for r in kept)
+            kept = []
+        self.writer.dropped += lost
+        if lost + carried:
+            kept.append(event_record(EventKind.LOSS, named(records[-1]).log_time_ns, f"{lost + carried} messages "
+                                     "dropped (writer lagging)", f"total {self.writer.dropped}", lost + carried))
+        self.records[:0] = kept
+
+    def _with_foreign(self, records: list[tuple[Any, ...]]) -> list[tuple[Any, ...]]:
+        """``records`` and the foreign frames if the pipe is less than half full, else the
+        foreign frames shed; a ``loss`` event counts what was shed."""
+        foreign, self.foreign = self.foreign, []
+        if foreign and self.writer.queued() + FOREIGN_BYTES * len(foreign) < FOREIGN_ROOM:
+            records += foreign
+        else:
+            self.shed += len(foreign)
+        if self.shed:
+            self.writer.dropped += self.shed
+            records.append(event_record(EventKind.LOSS, self.clock_ns(), f"{self.shed} foreign frames dropped "
+                                        "(bus flood, writer lagging)", f"total {self.writer.dropped}", self.shed))
+            self.shed = 0
+        return records
 
     def take(self) -> list[tuple[Any, ...]]:
-        """Every record not yet handed over; none are left after."""
+        """Every record not yet handed over (foreign frames included); none are left after."""
         records, self.records = self.records, []
+        if self.foreign is not records:
+            records += self.foreign
+            self.foreign = []
+            if self.shed:
+                self.writer.dropped += self.shed
+                records.append(event_record(EventKind.LOSS, self.clock_ns(), f"{self.shed} foreign frames dropped "
+                                            "(bus flood)", f"total {self.writer.dropped}", self.shed))
+                self.shed = 0
+        else:
+            self.foreign = self.records
         return records
 
     def started(self, fb: Any) -> None:
         """The feedback ``controller.initialize`` used (``cycle = -1``) and the enable event."""
         status = self.drive.status
         t = self.clock_ns()
-        self.record((_FEEDBACK, t, fb.position, fb.velocity, int(status.state), status.error_code, fb.seq, -1))
+        self.record(RECORD_TYPES[_FEEDBACK](kind=_FEEDBACK, log_time_ns=t, position=fb.position, velocity=fb.velocity,
+                                            drive_state=int(status.state), axis_error=status.error_code, seq=fb.seq,
+                                            cycle=-1))
         self.record(event_record(EventKind.ENABLE, t, "drive enabled", f"seq {fb.seq}"))
 
     def stop(self, stop: Any) -> None:
@@ -199,4 +273,4 @@ class RunLog:
         self.writer.close(stop_reason, detail, rest=self.take())
 
 
-__all__ = ["BATCH_RECORDS", "RecordingBus", "RunLog"]
+__all__ = ["BATCH_RECORDS", "FOREIGN_CAP", "FOREIGN_ROOM", "RecordingBus", "RunLog"]

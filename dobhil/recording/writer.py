@@ -18,7 +18,7 @@ from mcap.writer import CompressionType, Writer
 
 from dobhil import __version__
 from dobhil.recording.schemas import (MESSAGE_ENCODING, SCHEMA_ENCODING, TOPIC_SPECS, VIEWS, EventKind, Topic,
-                                      event_record)
+                                      event_record, named)
 
 #: Chunks end at this size or at every flush, whichever comes first.
 CHUNK_SIZE: Final = 256 * 1024
@@ -107,14 +107,14 @@ class LogWriter:
         self._outputs.append(output)
 
     def write(self, records: Iterable[Sequence[Any]]) -> None:
-        """Encode and write records, in order."""
+        """Encode and write records (flat tuples of the topic table, named here), in order."""
         add, channels, outputs = self._mcap.add_message, self._channels, self._outputs
         written, last = self.written, self.last_log_ns
-        for record in records:
-            t, n = record[1], len(record)
-            if record[0] == _EVENTS and record[2] == _LOSS:  # the sender's count of messages it dropped
-                self.dropped += record[5]
-            for topic, encode, needs in VIEWS[record[0]]:
+        for record in map(named, records):
+            t, n = record.log_time_ns, len(record)
+            if record.kind == _EVENTS and record.event == _LOSS:  # the sender's count of messages it dropped
+                self.dropped += record.lost
+            for topic, encode, needs in VIEWS[record.kind]:
                 if n >= needs:
                     data = encode(record)
                     add(channels.get(topic) or self._register(topic), t, data, t)
@@ -124,10 +124,11 @@ class LogWriter:
             last = max(last, t)
         self.written, self.last_log_ns = written, last
 
-    def flush(self) -> None:
-        """End the chunk, flush and (if asked) fsync: a crash loses nothing older."""
-        self._mcap.flush()
-        if self.fsync:
+    def flush(self, sync: bool = True) -> None:
+        """End the chunk and hand it to the OS (a killed process then loses nothing older);
+        with ``sync`` (and ``fsync``) also fsync (a power loss then loses nothing older)."""
+        self._mcap.flush()  # flushes the file object too
+        if sync and self.fsync:
             os.fsync(self.file.fileno())
 
     def finish(self, stop_reason: str | None, detail: str = "",

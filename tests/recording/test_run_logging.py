@@ -188,7 +188,7 @@ def test_sigkill_of_run_and_writer_leaves_a_recoverable_file(tmp_path: Path) -> 
     assert not open_log_ok(path)
     report = recover(path, tmp_path / "rec.mcap")
     counts = dict(report.counts)
-    # at least everything older than about a second (the writer flushes every second)
+    # at least everything older than a second (chunks go to the OS every 0.05 s; the writer may lag)
     assert not report.complete and counts.get("/controller", 0) >= 1000
     assert open_log(tmp_path / "rec.mcap").info().message_count == report.message_count
 

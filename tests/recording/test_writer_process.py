@@ -331,3 +331,98 @@ def test_a_frame_the_writer_cannot_encode_never_raises_into_the_bus_call(tmp_pat
     for name in ("bad.mcap", "noon.mcap"):
         with open_log(tmp_path / name) as log:
             assert log.metadata["recording"]["stop_reason"] == "recorder_failed"
+
+
+def test_records_reach_the_os_every_write_interval_not_only_at_fsync(tmp_path: Path) -> None:
+    """A SIGKILL of run and writer loses what the writer holds in memory, its unfinished
+    chunk: chunks go to the OS every ``write_interval``, whatever the fsync interval (here
+    1000 s: before, the chunk waited for it). Waits (up to 30 s, a bound on failure only)
+    until a copy of the file holds the records, then kills the writer: the file holds them."""
+    from dobhil.recording.recover import recover
+    path = tmp_path / "run.mcap"
+    writer = WriterProcess(path, fsync=False, flush_interval=1000.0)
+    writer.open(META, [], RecordMode.LOSSY)
+    batch = RunLog(writer)
+    for k in range(50):  # far below a chunk's size: only the interval ends the chunk
+        cycle(batch, k)
+    batch.flush()
+    deadline, tries, found = time.monotonic() + 30.0, 0, 0
+    while found < 50 and time.monotonic() < deadline:
+        tries += 1
+        copy = tmp_path / f"copy{tries}.mcap"
+        copy.write_bytes(path.read_bytes())
+        found = dict(recover(copy, tmp_path / f"rec{tries}.mcap").counts).get("/controller", 0)
+        time.sleep(0.05)
+    os.kill(writer.pid, signal.SIGKILL)
+    with pytest.raises(RecorderError):
+        writer.close("done")
+    assert found == 50
+    assert dict(recover(path, tmp_path / "killed.mcap").counts)["/controller"] == 50
+
+
+def test_foreign_frames_are_shed_before_the_loops_own_records(tmp_path: Path) -> None:
+    """A writer frozen while the bus floods (100 foreign frames per cycle, 5x what the pipe
+    holds): every cycle, every sent frame and every frame of the drive's ids reaches the
+    file; the foreign frames are shed (at the tap beyond FOREIGN_CAP, at the hand-over while
+    the pipe is half full) and every one is counted: kept + loss counts = sent, and the
+    loss counts = the drop count = the metadata."""
+    from dobhil.recording.runlog import FOREIGN_CAP
+    path = tmp_path / "run.mcap"
+    log = RunLog(WriterProcess(path, fsync=False))
+    log.begin(metadata=META, attachments=[], lossy=True, own_ids={0x069})
+    own = can.Message(arbitration_id=0x069, data=bytes(8), is_extended_id=False)
+    cmd = can.Message(arbitration_id=0x06E, data=bytes(4), is_extended_id=False)
+    junk = [can.Message(arbitration_id=0x100 + i, data=bytes([i]) * 8, is_extended_id=False) for i in range(100)]
+    cycles = 1800  # the own records: ~460 KiB, within the half of the pipe kept for them
+    assert 100 * cycles * 60 > 5 * PIPE_SIZE
+    with stopped(log.writer):
+        for k in range(cycles):
+            for msg in junk:
+                log.frame(RX, msg)
+            log.frame(RX, own)
+            log.frame(TX, cmd)
+            cycle(log, k)
+            assert len(log.foreign) <= FOREIGN_CAP
+    log.end("done")
+    with open_log(path) as recorded:
+        rx = [p["arbitration_id"] for _, _, p in recorded.iter_messages(["/can/rx"])]
+        events = [p for _, _, p in recorded.iter_messages(["/events"])]
+        info = recorded.info()
+    assert counts(path)["/loop"] == counts(path)["/can/tx"] == rx.count(0x069) == cycles
+    losses = [e["count"] for e in events if e["kind"] == "loss"]
+    assert all("foreign" in e["reason"] for e in events if e["kind"] == "loss")
+    assert 0 < sum(losses) == log.writer.dropped == info.dropped
+    assert len(rx) - cycles + sum(losses) == 100 * cycles
+
+
+def test_records_cross_the_hand_over_with_names() -> None:
+    """What the loop thread builds (plain tuples, for speed) is laid out by the named record
+    types: after the pickled hand-over every field reads back by name, as given."""
+    from dobhil.recording.schemas import CycleRecord, EventRecord, FrameRecord, named
+    log = RunLog(SimpleNamespace(opened=False))  # type: ignore[arg-type]
+    log.clock_ns = lambda: 42
+    log.drive, log.truth = DRIVE, lambda: (1.0, 2.0, 3.0, 4.0)
+    fb = SimpleNamespace(position=0.5, velocity=-1.25, seq=7)
+    msg = can.Message(arbitration_id=0x069, data=b"\x01\x02", is_extended_id=False, channel="c", timestamp=5.5)
+    log.started(fb)
+    log.frame(RX, msg)
+    log.frame(TX, msg)
+    log.cycle(3, 0.003, fb, OUT, 1e-6, 2e-5, True)
+    log.truth = None
+    log.cycle(4, 0.004, fb, OUT, 0.0, 0.0, False)
+    (batch,), _ = unpack(encode(log.take()))
+    feedback, enable, rx, tx, cycle3, cycle4 = map(named, batch)
+    assert (feedback.kind, feedback.cycle, feedback.seq, feedback.drive_state) == (int(Topic.DRIVE_FEEDBACK), -1, 7, 8)
+    assert type(enable) is EventRecord and (enable.event, enable.reason, enable.lost) == (EventKind.ENABLE,
+                                                                                          "drive enabled", 0)
+    for frame, kind in ((rx, RX), (tx, TX)):
+        assert type(frame) is FrameRecord and frame.kind == kind and frame.log_time_ns == 42
+        assert (frame.arbitration_id, bytes(frame.data), frame.dlc, frame.channel) == (0x069, b"\x01\x02", 2, "c")
+        assert not frame.is_extended_id
+    assert (rx.timestamp, tx.timestamp) == (5.5, 42 / 1e9)  # a sent frame: its send time on the log clock
+    assert type(cycle3) is CycleRecord and (cycle3.cycle, cycle3.position, cycle3.velocity, cycle3.seq) == (3, 0.5,
+                                                                                                          -1.25, 7)
+    assert (cycle3.tau_ref, cycle3.u_sat, cycle3.period_error, cycle3.exec_time, cycle3.overrun) == (
+        OUT.tau_ref, OUT.u, 1e-6, 2e-5, True)
+    assert (cycle3.axis_state, cycle3.axis_error, cycle3.q, cycle3.tau_int) == (8, 0, 1.0, 4.0)
+    assert cycle4.cycle == 4 and len(cycle4) == len(CycleRecord._fields) - 4  # no truth: the fields are absent

@@ -55,6 +55,11 @@ class ODriveDrive(Drive):
         self._torque_msg = self._encode(codec.SetInputTorque(0.0))
 
     @property
+    def frame_ids(self) -> frozenset[int]:
+        """The node's 32 command ids (``node_id << 5 | cmd``)."""
+        return frozenset(codec.arbitration_id(self.node_id, cmd) for cmd in range(32))
+
+    @property
     def firmware(self) -> Firmware:
         return self._firmware
 
