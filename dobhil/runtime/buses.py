@@ -125,3 +125,20 @@ def private_virtual_channel() -> str:
     as the channel number (``can.util.channel2int``), and BLF stores it in 16 bits, so a
     name ending in many digits would make ``can.logconvert run.mcap run.blf`` fail."""
     return f"dobhil-{uuid.uuid4().hex[:12]}-private"
+
+
+def shutdown_bus(bus: can.BusABC) -> str:
+    """Shut ``bus`` down; "" if that went well, else one line saying what failed. Never
+    raises: a bus whose link is already gone fails its own shutdown (python-can-remote
+    with its hub stopped: ENOTCONN), and that must not hide how the run ended. The base
+    class's shutdown then runs on its own, so python-can does not try again (and print
+    a traceback) when the object is collected."""
+    try:
+        bus.shutdown()
+        return ""
+    except Exception as exc:
+        try:
+            can.BusABC.shutdown(bus)
+        except Exception:
+            pass
+        return " ".join(f"{type(exc).__name__}: {exc}".split())
