@@ -66,7 +66,7 @@ HEARTBEAT_MISSES = 3
 SAFE_STOP_RETRY = 0.02
 #: longest single blocking read of a wait that can be cancelled: a stop request (SIGINT,
 #: SIGTERM) is seen within this, whatever the wait's own timeout
-WAIT_SLICE = 0.05
+WAIT_SLICE = 0.02
 
 
 class DriveState(IntEnum):
