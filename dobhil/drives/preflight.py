@@ -295,7 +295,7 @@ def _listen(bus: can.BusABC, probe: PreflightProbe, window: float, clock: Callab
         for request in probe.requests(node):
             try:
                 bus.send(request, 0.0)
-            except can.CanError as exc:
+            except Exception as exc:  # any interface's refusal (a transport's own, too)
                 cap.send_errors.append(str(exc).splitlines()[0] if str(exc) else type(exc).__name__)
 
     ask(probe.profile.node_id)

@@ -37,7 +37,13 @@ Safety: every way out of :meth:`ForceLoop.run` -- done, feedback timeout, positi
 velocity limit, non-finite value, drive fault, bus error, stop request (SIGINT/SIGTERM),
 or any exception -- runs the drive's safe stop (zero torque, then the disable frames,
 each attempted on its own, then a confirmation from the drive) and is recorded as a
-:class:`~dobhil.runtime.stop.Stop`. Exceptions are re-raised after the safe stop.
+:class:`~dobhil.runtime.stop.Stop`. Exceptions are re-raised after the safe stop
+(``ForceLoop.ended`` still holds the stop and the safe stop's report). Any failure of the
+bus, whatever the interface raises, is ``bus_error``. Waits longer than
+:data:`~dobhil.drives.base.WAIT_SLICE` -- the enable, the first feedback, a silent
+drive, a long host period -- are cut into slices, so a stop request ends them within
+one; a request made during the safe stop's confirmation wait ends that wait too
+(unconfirmed: the loud warning), the one that stopped the run does not.
 """
 
 from __future__ import annotations

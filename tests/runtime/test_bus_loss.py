@@ -294,3 +294,27 @@ def test_tell_unfinished_is_silent_before_the_loop(capsys: pytest.CaptureFixture
     tell_unfinished(None)
     assert capsys.readouterr().err == ""
 
+
+
+def test_bus_gone_during_the_preflight(tmp_path: Path) -> None:
+    """The bus fails while the preflight listens (before anything is enabled): the
+    preflight ends there and refuses the run in one line (``dobhil run``: exit 1),
+    instead of the transport's exception escaping as an internal error."""
+    from dobhil.drives.preflight import run_preflight
+    from dobhil.drives.profile import load_profile
+    from dobhil.drives.registry import preflight_probe
+
+    profile = load_profile("odrive-0.6")
+    inner = can.Bus(interface="virtual", channel=f"preflight-gone-{os.getpid()}")
+    bus = DyingBus(inner, *KINDS["hub-gone"][:3])
+    bus.kill()
+    try:
+        report = run_preflight(bus, profile, period=1e-3, window=0.5, probe=preflight_probe(profile))
+    finally:
+        bus.dead = False
+        bus.shutdown()
+        inner.shutdown()
+    assert report.stale_feedback
+    texts = [f.text for f in report.findings if f.stale_feedback]
+    assert texts[0] == ("bus read failed while listening: TransportClosed: Status: 1006, "
+                        "reason: Socket closed unexpectedly"), texts
