@@ -36,6 +36,7 @@ from typing import TYPE_CHECKING, ClassVar
 import can
 
 from dobhil.drives.profile import DriveProfile
+from dobhil.drives.waits import WAIT_SLICE, Cancel
 from dobhil.errors import BusError, DriveError, DriveFaultError, DriveTimeoutError, WaitCancelled
 
 if TYPE_CHECKING:
@@ -55,8 +56,6 @@ __all__ = [
 ]
 
 Clock = Callable[[], float]
-#: ``cancel`` of the waits: the reason to stop waiting (e.g. "received SIGINT"), "" to go on
-Cancel = Callable[[], str]
 
 
 #: heartbeats a drive may miss in a row before the host calls it a fault
@@ -64,9 +63,6 @@ HEARTBEAT_MISSES = 3
 #: wall-clock seconds a safe-stop frame is retried while the bus refuses it (ENOBUFS:
 #: a full transmit queue drains within a few frame times)
 SAFE_STOP_RETRY = 0.02
-#: longest single blocking read of a wait that can be cancelled: a stop request (SIGINT,
-#: SIGTERM) is seen within this, whatever the wait's own timeout
-WAIT_SLICE = 0.02
 
 
 class DriveState(IntEnum):

@@ -34,10 +34,10 @@ from typing import Any
 
 import can
 
-from dobhil.drives.base import WAIT_SLICE, Cancel
 from dobhil.drives.bus_load import frame_bits as wire_bits
 from dobhil.drives.profile import DriveProfile
 from dobhil.drives.socketcan_link import link_info, link_problems
+from dobhil.drives.waits import WAIT_SLICE, Cancel
 
 __all__ = [
     "DEFAULT_WINDOW",

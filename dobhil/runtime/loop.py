@@ -40,7 +40,7 @@ each attempted on its own, then a confirmation from the drive) and is recorded a
 :class:`~dobhil.runtime.stop.Stop`. Exceptions are re-raised after the safe stop
 (``ForceLoop.ended`` still holds the stop and the safe stop's report). Any failure of the
 bus, whatever the interface raises, is ``bus_error``. Waits longer than
-:data:`~dobhil.drives.base.WAIT_SLICE` -- the enable, the first feedback, a silent
+:data:`~dobhil.drives.waits.WAIT_SLICE` -- the enable, the first feedback, a silent
 drive, a long host period -- are cut into slices, so a stop request ends them within
 one; a request made during the safe stop's confirmation wait ends that wait too
 (unconfirmed: the loud warning), the one that stopped the run does not.
@@ -61,7 +61,8 @@ from typing import Protocol
 import numpy as np
 from numpy.typing import NDArray
 
-from dobhil.drives.base import WAIT_SLICE, Cancel, Drive, Feedback, SafeStopReport
+from dobhil.drives.base import Drive, Feedback, SafeStopReport
+from dobhil.drives.waits import WAIT_SLICE, Cancel
 from dobhil.errors import BusError, DriveError, DriveFaultError, RecorderError, WaitCancelled
 from dobhil.runtime.controller import ControlOutput, ForceController
 from dobhil.runtime.stop import Stop, StopReason
