@@ -200,3 +200,70 @@ def test_the_signal_that_stopped_the_run_does_not_cut_the_confirmation() -> None
     assert cancel() == ""
     request.set("received SIGTERM")
     assert cancel() == "received SIGTERM"
+
+
+class SignalAtCycle:
+    """A sink that sends SIGINT to this process ``after`` s past cycle ``at`` and keeps
+    when it did and when the loop's stop came."""
+
+    def __init__(self, at: int, after: float) -> None:
+        self.at, self.after = at, after
+        self.sent = 0.0
+        self.stopped = 0.0
+        self.timer: threading.Timer | None = None
+
+    def started(self, fb: Feedback) -> None:
+        pass
+
+    def cycle(self, k: int, t: float, fb: Feedback, out: ControlOutput, period_error: float,
+              exec_time: float, overrun: bool) -> None:
+        if k >= self.at and self.timer is None:
+            self.timer = threading.Timer(self.after, self._kill)
+            self.timer.start()
+
+    def _kill(self) -> None:
+        self.sent = time.monotonic()
+        os.kill(os.getpid(), signal.SIGINT)
+
+    def stop(self, stop: Stop) -> None:
+        self.stopped = time.monotonic()
+
+
+def run_until_signal(config: object, sink: SignalAtCycle, faults: list[object]) -> Stop:
+    with stop_on_signals(StopRequest()) as request:
+        try:
+            with RunSession(config, emulate=True, sink=sink, stop_request=request,  # type: ignore[arg-type]
+                            bus_wrapper=faulty(*faults) if faults else None) as session:  # type: ignore[arg-type]
+                result = session.run()
+        finally:
+            if sink.timer is not None:
+                sink.timer.join()
+    return result.stop
+
+
+def test_sigint_while_a_silent_drive_is_awaited(tmp_path: Path) -> None:
+    """Feedback timing with a 30 s loop.feedback_timeout: the drive's encoder frames stop
+    after 50, and a SIGINT during the wait for the next one ends it within 0.2 s (the
+    wait is cut into slices), as ``signal``, not as a feedback timeout 30 s later."""
+    from dobhil.emulator.faults import SilenceAfter
+    profile = write_profile(tmp_path, "odrive-0.6", watchdog_timeout=0.0, enable_timeout=5.0)
+    encoder = codec.arbitration_id(NODE, CmdId.GET_ENCODER_ESTIMATES)
+    config = demo_config(f"drive.profile={profile}", "loop.timing=feedback", *STEP_FROM_ZERO,
+                         "loop.duration=10", "loop.feedback_timeout=30")
+    sink = SignalAtCycle(at=5, after=0.5)   # the silence starts some 50 ms in
+    stop = run_until_signal(config, sink, [SilenceAfter(frames=50, ids={encoder})])
+    assert stop.reason is StopReason.SIGNAL and "received SIGINT" in stop.line(), stop.line()
+    assert sink.sent > 0 and sink.stopped - sink.sent < ANSWER, sink.stopped - sink.sent
+
+
+def test_sigint_during_a_long_host_period(tmp_path: Path) -> None:
+    """Host timing at loop.period = 2 s: a SIGINT while the loop sleeps to the next
+    deadline ends the run within 0.2 s, not at the deadline (the drive's watchdog off:
+    commands 2 s apart would trip it)."""
+    profile = write_profile(tmp_path, "odrive-0.6", watchdog_timeout=0.0)
+    config = demo_config(f"drive.profile={profile}", "loop.timing=host", "loop.period=2",
+                         "loop.duration=20", "loop.feedback_timeout=5", *STEP_FROM_ZERO)
+    sink = SignalAtCycle(at=0, after=0.2)
+    stop = run_until_signal(config, sink, [])
+    assert stop.reason is StopReason.SIGNAL and stop.cycle == 1, stop.line()
+    assert sink.sent > 0 and sink.stopped - sink.sent < ANSWER, sink.stopped - sink.sent
