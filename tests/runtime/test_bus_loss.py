@@ -217,7 +217,7 @@ def test_interface_dies(tmp_path: Path, timing: str, kind: str) -> None:
     sink = KillAt(lambda: buses[0].kill())
     config = matrix_config(tmp_path, timing)
     session = RunSession(config, emulate=True, lockstep=timing == "lockstep", bus_wrapper=wrap,
-                         sink=sink)  # type: ignore[arg-type]
+                         sink=sink)
     try:
         result = session.run()
         info = summary(session, result)
@@ -247,7 +247,7 @@ def test_virtual_bus_shut_down_mid_run(tmp_path: Path) -> None:
     holder: list[RunSession] = []
     sink = KillAt(lambda: holder[0].host_bus.shutdown())
     config = matrix_config(tmp_path, "feedback")
-    with RunSession(config, emulate=True, sink=sink) as session:  # type: ignore[arg-type]
+    with RunSession(config, emulate=True, sink=sink) as session:
         holder.append(session)
         assert session.timing is Timing.FEEDBACK
         result = session.run()
@@ -278,7 +278,7 @@ def test_an_exception_still_tells_the_stop_and_the_warning(capsys: pytest.Captur
 
     config = matrix_config(Path(), "lockstep")
     session = RunSession(config, emulate=True, lockstep=True, bus_wrapper=wrap,
-                         sink=KillAt(die))  # type: ignore[arg-type]
+                         sink=KillAt(die))
     try:
         with pytest.raises(Boom):
             session.run()

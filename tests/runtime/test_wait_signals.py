@@ -26,7 +26,8 @@ import pytest
 from dobhil.drives.base import Confirmation, Feedback, SafeStopReport
 from dobhil.drives.odrive import codec
 from dobhil.drives.odrive.codec import CmdId
-from dobhil.emulator.faults import LoseSent, faulty
+from dobhil.config import Config
+from dobhil.emulator.faults import Fault, LoseSent, SilenceAfter, faulty
 from dobhil.runtime.controller import ControlOutput
 from dobhil.runtime.loop import StopRequest
 from dobhil.runtime.session import RunSession
@@ -176,7 +177,7 @@ def test_sigint_during_the_safe_stop_confirmation_wait(tmp_path: Path) -> None:
     lost = LoseSent(frames=1, ids={AXIS_STATE})   # the enable request passes, IDLE is lost
     with stop_on_signals(StopRequest()) as request:
         try:
-            with RunSession(config, emulate=True, sink=sink, stop_request=request,  # type: ignore[arg-type]
+            with RunSession(config, emulate=True, sink=sink, stop_request=request,
                             bus_wrapper=faulty(lost)) as session:
                 result = session.run()
         finally:
@@ -229,11 +230,11 @@ class SignalAtCycle:
         self.stopped = time.monotonic()
 
 
-def run_until_signal(config: object, sink: SignalAtCycle, faults: list[object]) -> Stop:
+def run_until_signal(config: Config, sink: SignalAtCycle, faults: list[Fault]) -> Stop:
     with stop_on_signals(StopRequest()) as request:
         try:
-            with RunSession(config, emulate=True, sink=sink, stop_request=request,  # type: ignore[arg-type]
-                            bus_wrapper=faulty(*faults) if faults else None) as session:  # type: ignore[arg-type]
+            with RunSession(config, emulate=True, sink=sink, stop_request=request,
+                            bus_wrapper=faulty(*faults) if faults else None) as session:
                 result = session.run()
         finally:
             if sink.timer is not None:
@@ -245,7 +246,6 @@ def test_sigint_while_a_silent_drive_is_awaited(tmp_path: Path) -> None:
     """Feedback timing with a 30 s loop.feedback_timeout: the drive's encoder frames stop
     after 50, and a SIGINT during the wait for the next one ends it within 0.2 s (the
     wait is cut into slices), as ``signal``, not as a feedback timeout 30 s later."""
-    from dobhil.emulator.faults import SilenceAfter
     profile = write_profile(tmp_path, "odrive-0.6", watchdog_timeout=0.0, enable_timeout=5.0)
     encoder = codec.arbitration_id(NODE, CmdId.GET_ENCODER_ESTIMATES)
     config = demo_config(f"drive.profile={profile}", "loop.timing=feedback", *STEP_FROM_ZERO,
