@@ -229,6 +229,9 @@ class SignalAtCycle:
     def stop(self, stop: Stop) -> None:
         self.stopped = time.monotonic()
 
+    def safe_stop(self, report: SafeStopReport) -> None:
+        pass
+
 
 def run_until_signal(config: Config, sink: SignalAtCycle, faults: list[Fault]) -> Stop:
     with stop_on_signals(StopRequest()) as request:
