@@ -12,8 +12,10 @@ from __future__ import annotations
 
 import errno
 import os
+import signal
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -28,6 +30,7 @@ from dobhil.drives.odrive import codec
 from dobhil.drives.odrive.codec import CmdId
 from dobhil.runtime.controller import ControlOutput
 from dobhil.runtime.loop import Timing
+from dobhil.runtime.buses import shutdown_bus
 from dobhil.runtime.session import RunSession, summary
 from dobhil.runtime.stop import Stop, StopReason
 
@@ -82,6 +85,66 @@ def wait_for_torque_frames(url: str, count: int) -> None:
             seen += msg is not None and msg.arbitration_id == TORQUE
     finally:
         sniffer.shutdown()
+
+
+def test_hub_frozen_mid_run(tmp_path: Path) -> None:
+    """The hub is frozen (SIGSTOP) mid-run: the run stops (no feedback), cannot have the
+    disable confirmed and says so; the remote bus's shutdown, which would wait for the
+    frozen hub for ever, is given up after a bound: exit 1, the stop line, the warning.
+    (The emulator, its sends blocked, is not asked anything here.)"""
+    overrides = [a for o in slow_overrides(tmp_path) for a in ("--set", o)]
+    with hub_process(tmp_path) as (hub, port):
+        url = f"remote:ws://127.0.0.1:{port}/"
+        emu_out, run_out = tmp_path / "emulate.log", tmp_path / "run.log"
+        emulate = dobhil(["emulate", str(DEMO), "--bus", url, *overrides], emu_out)
+        run = None
+        try:
+            wait_for_emulator(emulate, emu_out)
+            run = dobhil(["run", str(DEMO), "--bus", url, "--no-preflight", "--duration", "60",
+                          *overrides], run_out)
+            wait_for_torque_frames(url[len("remote:"):], 20)
+            os.kill(hub.pid, signal.SIGSTOP)
+            try:
+                run.wait(timeout=60)
+            finally:
+                os.kill(hub.pid, signal.SIGCONT)
+        finally:
+            for proc in (run, emulate):
+                if proc is not None:
+                    stop_process(proc)
+    text = run_out.read_text(errors="replace")
+    stops = [line for line in text.splitlines() if line.startswith("stopped:")]
+    assert run.returncode == 1, text
+    assert len(stops) == 1 and stops[0].startswith("stopped: feedback_timeout"), text
+    assert "WARNING: drive may still be enabled: node 3" in text and "cut power" in text, text
+    assert "shutdown did not finish within 2 s" in text, text
+    assert "Traceback" not in text and "internal error" not in text, text
+
+
+def test_a_hanging_shutdown_is_given_up() -> None:
+    """shutdown_bus returns within its bound when the bus's own shutdown never does, and
+    marks the bus shut down (python-can does not try again when it is collected)."""
+    release = threading.Event()
+
+    class Hanging(can.BusABC):
+        def __init__(self) -> None:
+            super().__init__(channel="hanging")
+
+        def send(self, msg: can.Message, timeout: float | None = None) -> None:
+            pass
+
+        def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
+            return None, False
+
+        def shutdown(self) -> None:
+            release.wait()
+            super().shutdown()
+
+    bus = Hanging()
+    try:
+        assert shutdown_bus(bus, timeout=0.05) == "shutdown did not finish within 0.05 s"
+    finally:
+        release.set()
 
 
 def test_hub_stopped_mid_run(tmp_path: Path) -> None:
