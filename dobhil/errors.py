@@ -40,6 +40,11 @@ class DriveFaultError(DriveError):
     """A drive reported a fault (axis error, watchdog, emergency)."""
 
 
+class WaitCancelled(DriveError):
+    """A wait for a drive was cut short by a stop request (SIGINT, SIGTERM); the
+    message names the request and the wait."""
+
+
 class PreflightError(DriveError):
     """The drive's measured settings do not allow a safe run (e.g. stale feedback).
 

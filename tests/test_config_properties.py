@@ -159,13 +159,13 @@ def _profile(tmp_path: Path, **changes: str) -> Path:
     return path
 
 
-def test_a_profile_reads_1e_minus_9_as_a_number(tmp_path: Path) -> None:
-    profile = load_profile(_profile(tmp_path, watchdog_timeout="1e-9", encoder_msg_rate="1e-3"))
-    assert profile.watchdog_timeout == 1e-9 and profile.encoder_msg_rate == 1e-3
+def test_a_profile_reads_2e_minus_2_as_a_number(tmp_path: Path) -> None:
+    profile = load_profile(_profile(tmp_path, watchdog_timeout="2e-2", encoder_msg_rate="1e-3"))
+    assert profile.watchdog_timeout == 2e-2 and profile.encoder_msg_rate == 1e-3
 
 
 @pytest.mark.parametrize(("value", "message"), [
-    ("9" * 400, "torque_limit: expected a number > 0, got inf"),
+    ("9" * 400, "torque_limit: expected a number > 0 and <= 10000 Nm, got inf"),
     ("9" * 5000, "cannot read drive profile"),
     (".nan", "got nan"),
     ("1e400", "got inf"),

@@ -74,6 +74,7 @@ def run_checked(args: argparse.Namespace) -> int:
         check_output(args.plot, inputs=[args.config], suffix=".png", what="--plot")
     log = open_run_log(args.log, live=live_address(args.live, args.log))
     lower_writer(log)
+    session: Any = None
     try:
         with stop_on_signals(StopRequest()) as request, \
                 RunSession(config, bus=args.bus, emulate=args.emulate,
@@ -86,14 +87,31 @@ def run_checked(args: argparse.Namespace) -> int:
             info = summary(session, result)
     except BaseException as exc:
         abort(log, exc)
+        tell_unfinished(session)
         raise
     if log is not None:
         info["log"] = str(log.path)
     report(info, result.stop.line(), as_json=args.summary_json)
+    for problem in session.shutdown_problems:  # after the run's account, never instead of it
+        if result.stop.reason.name != "BUS_ERROR":   # there the bus is already known gone
+            sys.stderr.write(f"dobhil run: warning: bus shutdown failed: {problem}\n")
     if args.plot:
         from dobhil.plotting.run_plot import run_figure
         sys.stderr.write(f"wrote {run_figure(result.trace, args.plot)}\n")
     return 0 if result.stop.reason.name == "DONE" else EXIT_STOPPED
+
+
+def tell_unfinished(session: Any) -> None:
+    """An exception ended the run after the loop started: its stop line and, when the
+    disable is not confirmed, the loud warning, before the error line main() prints."""
+    ended = getattr(getattr(session, "loop", None), "ended", None)
+    if ended is None:
+        return
+    stop, safe_stop = ended
+    sys.stdout.flush()
+    sys.stderr.write(f"dobhil run: {stop.line()}\n")
+    if safe_stop.warning():
+        sys.stderr.write(f"WARNING: {safe_stop.warning()}\n")
 
 
 def report_preflight(report: Any) -> None:
@@ -190,10 +208,33 @@ def emulate(args: argparse.Namespace) -> int:
         emulator.start(priority_drop=EMULATOR_PRIORITY_DROP)
         try:
             end = time.monotonic() + (args.duration or float("inf"))
-            while not request.is_set() and time.monotonic() < end:
+            # the thread ends by itself when its bus fails (a hub stopped, an interface gone)
+            while not request.is_set() and time.monotonic() < end and emulator.alive:
                 time.sleep(0.05)
         finally:
-            emulator.close()
-    print(f"emulator stopped: {emulator.frames_received} frames received, "
-          f"{emulator.frames_sent} sent", flush=True)
+            lost, problem = stop_emulator(emulator, bus)
+    counts = f"{emulator.frames_received} frames received, {emulator.frames_sent} sent"
+    if lost:
+        sys.stdout.flush()
+        sys.stderr.write(f"dobhil emulate: stopped: bus {spec.describe()} lost ({lost}); {counts}\n")
+        return EXIT_STOPPED
+    print(f"emulator stopped: {counts}", flush=True)
+    if problem:
+        sys.stderr.write(f"dobhil emulate: warning: bus shutdown failed: {problem}\n")
     return 0
+
+
+def stop_emulator(emulator: Any, bus: Any) -> tuple[str, str]:
+    """Stop the emulator's thread, then shut its bus down: (why the bus was lost, why its
+    shutdown failed), "" each when it did not. Any other error of the thread is raised
+    (a bug), after the bus is shut down."""
+    from dobhil.errors import BusError
+    from dobhil.runtime.buses import shutdown_bus
+    lost = ""
+    try:
+        emulator.stop()
+    except BusError as exc:
+        lost = str(exc)
+    finally:
+        problem = shutdown_bus(bus)
+    return lost, problem

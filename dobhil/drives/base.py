@@ -36,7 +36,8 @@ from typing import TYPE_CHECKING, ClassVar
 import can
 
 from dobhil.drives.profile import DriveProfile
-from dobhil.errors import BusError, DriveError, DriveFaultError, DriveTimeoutError
+from dobhil.drives.waits import WAIT_SLICE, Cancel
+from dobhil.errors import BusError, DriveError, DriveFaultError, DriveTimeoutError, WaitCancelled
 
 if TYPE_CHECKING:
     from dobhil.drives.preflight import PreflightProbe
@@ -219,17 +220,18 @@ class Drive(ABC):
             )
         return self._status_cache
 
-    def enable(self, timeout: float | None = None) -> None:
+    def enable(self, timeout: float | None = None, *, cancel: Cancel | None = None) -> None:
         """Run the enable handshake and wait for the drive to confirm it.
 
         Raises DriveTimeoutError naming what was awaited and what was last seen,
-        BusError if the frames cannot be sent.
+        BusError if the frames cannot be sent or the bus cannot be read, WaitCancelled
+        within WAIT_SLICE s of ``cancel()`` returning a reason.
         """
         wait = self._profile.enable_timeout if timeout is None else timeout
         self._set_state(DriveState.DISABLED, "")
         self._last_state = None
         self._send_all(self._enable_frames(), "enable")
-        if self._await_enabled(self._clock() + wait):
+        if self._await_enabled(self._clock() + wait, cancel):
             self._set_state(DriveState.ENABLED, "")
             return
         raise DriveTimeoutError(self._enable_timeout_text(wait))
@@ -240,10 +242,12 @@ class Drive(ABC):
         is in ``status.detail`` and the host side is marked DISABLED anyway."""
         return self.safe_stop(confirm=False).sent
 
-    def safe_stop(self, *, confirm: bool = True, timeout: float | None = None) -> SafeStopReport:
+    def safe_stop(self, *, confirm: bool = True, timeout: float | None = None,
+                  cancel: Cancel | None = None) -> SafeStopReport:
         """Zero torque, then each disable frame -- every one attempted, whatever happened
         to the others -- then (``confirm``) wait up to ``timeout`` s (default: three
-        heartbeat periods) for a status frame saying the drive left torque control.
+        heartbeat periods) for a status frame saying the drive left torque control; a
+        reason from ``cancel()`` ends that wait within WAIT_SLICE s, unconfirmed.
         Never raises; the host side is marked DISABLED whatever happens."""
         results = [self._send_safely("zero torque", partial(self._torque_frame, 0.0))]
         try:
@@ -261,7 +265,7 @@ class Drive(ABC):
         elif self._last_heartbeat is None:
             report = SafeStopReport(self.node_id, tuple(results), Confirmation.NEVER_SEEN)
         else:
-            report = self._confirm_disabled(tuple(results), timeout)
+            report = self._confirm_disabled(tuple(results), timeout, cancel)
         failure = "" if report.safe else f"disable of node {self.node_id} failed: {report.detail}"
         self._set_state(DriveState.DISABLED, failure)
         return report
@@ -273,10 +277,12 @@ class Drive(ABC):
             raise DriveError(f"torque: expected a finite value in Nm, got {tau_nm!r}")
         if self._state is not DriveState.ENABLED:
             self._raise_not_enabled()
+        frame = self._torque_frame(tau_nm)
         try:
-            self._bus.send(self._torque_frame(tau_nm), 0.0)
-        except (can.CanError, OSError) as exc:
-            raise BusError(f"torque frame to node {self.node_id} not sent: {exc}") from exc
+            self._bus.send(frame, 0.0)
+        except Exception as exc:  # whatever the interface raises: python-can-remote, say,
+            # raises its own transport errors when the hub is gone
+            raise BusError(f"torque frame to node {self.node_id} not sent: {_one_line(exc)}") from exc
 
     def poll(self, timeout: float) -> Feedback | None:
         """Read frames for up to ``timeout`` s; return the newest fresh feedback or None.
@@ -364,11 +370,18 @@ class Drive(ABC):
     # -- internals ------------------------------------------------------------
 
     def _send_all(self, frames: Sequence[can.Message], what: str) -> None:
-        try:
-            for frame in frames:
+        for frame in frames:
+            try:
                 self._bus.send(frame)
-        except (can.CanError, OSError) as exc:
-            raise BusError(f"{what} frames to node {self.node_id} not sent: {exc}") from exc
+            except Exception as exc:  # any interface's failure (see send_torque)
+                raise BusError(f"{what} frames to node {self.node_id} not sent: {_one_line(exc)}") from exc
+
+    def _recv(self, timeout: float) -> can.Message | None:
+        """``bus.recv`` outside the cycle; any failure of the bus is a BusError."""
+        try:
+            return self._bus.recv(timeout)
+        except Exception as exc:  # python-can's, the OS's or a transport's own error
+            raise self._read_error(exc) from exc
 
     def _send_safely(self, what: str, make: Callable[[], can.Message]) -> FrameResult:
         """One safe-stop frame, retried for up to SAFE_STOP_RETRY s of wall time while
@@ -388,21 +401,27 @@ class Drive(ABC):
         rate = self._profile.heartbeat_msg_rate
         return HEARTBEAT_MISSES * rate if rate > 0 else self._profile.enable_timeout
 
-    def _confirm_disabled(self, frames: tuple[FrameResult, ...],
-                          timeout: float | None) -> SafeStopReport:
-        """Read status frames until one says the drive left torque control."""
+    def _confirm_disabled(self, frames: tuple[FrameResult, ...], timeout: float | None,
+                          cancel: Cancel | None) -> SafeStopReport:
+        """Read status frames until one says the drive left torque control (or the
+        wait is cancelled)."""
         wait = self._confirm_timeout() if timeout is None else timeout
         deadline = self._clock() + wait
         seen: StateEvent | None = None
         why = f"no status frame within {wait:g} s"
+        cancelled = ""
         try:
             while True:
                 remaining = deadline - self._clock()
                 if remaining <= 0:
                     break
-                msg = self._bus.recv(remaining)
-                if msg is None:
+                cancelled = cancel() if cancel is not None else ""
+                if cancelled:
+                    why = f"confirmation wait cut short: {cancelled}"
                     break
+                msg = self._bus.recv(min(remaining, WAIT_SLICE))
+                if msg is None:
+                    continue
                 for event in self._decode(msg):
                     if isinstance(event, MotionEvent):
                         self._on_motion(event)
@@ -414,7 +433,7 @@ class Drive(ABC):
         except Exception as exc:  # safety path: a bus that cannot be read confirms nothing
             why = f"status not readable: {exc}"
         else:
-            if seen is not None:
+            if seen is not None and not cancelled:
                 why = f"still {seen.state_text} after {wait:g} s"
         return SafeStopReport(self.node_id, frames, Confirmation.NOT_ACKNOWLEDGED,
                               f"did not acknowledge {self.disabled_state_text} ({why})")
@@ -423,39 +442,43 @@ class Drive(ABC):
         watchdog = self._profile.watchdog_timeout
         return watchdog / 4 if watchdog > 0 else self._profile.heartbeat_msg_rate
 
-    def _await_enabled(self, deadline: float) -> bool:
+    def _await_enabled(self, deadline: float, cancel: Cancel | None) -> bool:
         interval = self._keepalive_interval()
         next_keepalive = self._clock()
         while True:
             now = self._clock()
             if now >= deadline:
                 return False
+            why = cancel() if cancel is not None else ""
+            if why:
+                raise WaitCancelled(f"{why} while waiting for node {self.node_id} to enable")
             if now >= next_keepalive:
                 self._send_all(self._keepalive_frames(), "keepalive")
                 next_keepalive = now + interval
-            msg = self._bus.recv(min(deadline, next_keepalive) - now)
+            msg = self._recv(min(deadline - now, next_keepalive - now, WAIT_SLICE))
             if msg is not None and self._handle_for_enable(msg):
                 return True
 
     def _drain(self) -> bool:
         fresh = False
-        try:
-            msg = self._bus.recv(0.0)
-            while msg is not None:
-                fresh = self._handle(msg) or fresh
-                msg = self._bus.recv(0.0)
-        except (can.CanError, OSError) as exc:
-            raise self._read_error(exc) from exc
-        return fresh
+        recv = self._bus.recv
+        while True:
+            try:
+                msg = recv(0.0)
+            except Exception as exc:  # any interface's read failure is the bus's
+                raise self._read_error(exc) from exc
+            if msg is None:
+                return fresh
+            fresh = self._handle(msg) or fresh
 
     def _wait_for_motion(self, deadline: float) -> bool:
         while True:
             remaining = deadline - self._clock()
             if remaining <= 0:
                 return False
-            try:
+            try:  # inline, not _recv: one call less per cycle
                 msg = self._bus.recv(remaining)
-            except (can.CanError, OSError) as exc:
+            except Exception as exc:
                 raise self._read_error(exc) from exc
             if msg is None:
                 return False
@@ -463,7 +486,7 @@ class Drive(ABC):
                 return True
 
     def _read_error(self, exc: BaseException) -> BusError:
-        return BusError(f"bus read for node {self.node_id} failed: {exc}")
+        return BusError(f"bus read for node {self.node_id} failed: {_one_line(exc)}")
 
     def apply(self, msg: can.Message) -> bool:
         """Apply one frame received elsewhere (a recorded one: replay); True if it carried
@@ -537,3 +560,12 @@ class Drive(ABC):
             f"{self.active_state_text} with no error, last seen {last.state_text} "
             f"with error {last.error_text}"
         )
+
+
+def _one_line(exc: BaseException) -> str:
+    """An exception as one line, its type named when its text alone says little (a
+    transport's ``Status: 1006, reason: Socket closed unexpectedly``)."""
+    text = " ".join(str(exc).split())
+    if isinstance(exc, (can.CanError, OSError)) and text:
+        return text
+    return f"{type(exc).__name__}: {text}" if text else type(exc).__name__

@@ -37,6 +37,7 @@ import can
 from dobhil.drives.bus_load import frame_bits as wire_bits
 from dobhil.drives.profile import DriveProfile
 from dobhil.drives.socketcan_link import link_info, link_problems
+from dobhil.drives.waits import WAIT_SLICE, Cancel
 
 __all__ = [
     "DEFAULT_WINDOW",
@@ -296,6 +297,7 @@ class _Capture:
     error_frames: int = 0
     bits: int = 0
     send_errors: list[str] = field(default_factory=list)
+    read_error: str = ""   # the bus failed while listening (gone): listening ended there
 
 
 def frame_bits(msg: can.Message) -> int:
@@ -304,7 +306,7 @@ def frame_bits(msg: can.Message) -> int:
 
 
 def _listen(bus: can.BusABC, probe: PreflightProbe, window: float, clock: Callable[[], float],
-            stamp: Callable[[can.Message], float]) -> _Capture:
+            stamp: Callable[[can.Message], float], cancel: Cancel | None) -> _Capture:
     cap = _Capture()
     asked: set[int] = set()
 
@@ -313,13 +315,19 @@ def _listen(bus: can.BusABC, probe: PreflightProbe, window: float, clock: Callab
         for request in probe.requests(node):
             try:
                 bus.send(request, 0.0)
-            except can.CanError as exc:
+            except Exception as exc:  # any interface's refusal (a transport's own, too)
                 cap.send_errors.append(str(exc).splitlines()[0] if str(exc) else type(exc).__name__)
 
     ask(probe.profile.node_id)
     end = clock() + window
     while (now := clock()) < end:
-        msg = bus.recv(end - now)
+        if cancel is not None and cancel():
+            break   # the caller stops (SIGINT): what was heard so far is all there is
+        try:  # in slices: a stop request is seen within WAIT_SLICE s
+            msg = bus.recv(min(end - now, WAIT_SLICE))
+        except Exception as exc:  # any interface's failure: the bus is gone
+            cap.read_error = " ".join(f"{type(exc).__name__}: {exc}".split())
+            break
         if msg is None:
             continue
         cap.frames += 1
@@ -355,7 +363,7 @@ def run_preflight(
     window: float = DEFAULT_WINDOW, bitrate: int | None = None,
     clock: Callable[[], float] = time.monotonic,
     stamp: Callable[[can.Message], float] | None = None,
-    probe: PreflightProbe | None,
+    probe: PreflightProbe | None, cancel: Cancel | None = None,
 ) -> PreflightReport:
     """Listen ``window`` s on ``bus`` (borrowed, not enabled, not shut down) and compare.
 
@@ -365,6 +373,9 @@ def run_preflight(
     ``stamp``: a frame's time [s]; default its receive timestamp (kernel time on
     SocketCAN) or ``clock()`` when the interface gives none. Pass ``clock``/``stamp`` of a
     simulated clock for a lockstep bus.
+
+    ``cancel``: listening ends within WAIT_SLICE s of it returning a reason (SIGINT);
+    the report then covers only what was heard (the caller stops anyway).
     """
     if not (math.isfinite(window) and window > 0):
         from dobhil.errors import ConfigError
@@ -381,12 +392,12 @@ def run_preflight(
                   for bad, text in (link_problems(link, bitrate) if link is not None else [])]
     state = link.state if link is not None and link.state else _bus_state(bus)
     bitrate = link.bitrate if link is not None and link.bitrate else bitrate
-    cap = _listen(bus, probe, window, clock, when)
+    cap = _listen(bus, probe, window, clock, when, cancel)
     nodes = tuple(_node_report(probe, n, log, window) for n, log in sorted(cap.nodes.items()))
     command_bits = frame_bits(can.Message(dlc=8, is_extended_id=False)) / period
     bus_report = BusReport(state, cap.frames, cap.error_frames, cap.bits / window, bitrate, command_bits)
     findings = [*profile_rate_findings(profile, period), *link_found,
-                *_bus_findings(bus_report, cap.send_errors),
+                *_bus_findings(bus_report, cap.send_errors, cap.read_error),
                 *_node_findings(probe, nodes, period, feedback_timeout, window)]
     return PreflightReport(profile.name or profile.protocol, profile.node_id, window, nodes,
                            bus_report, tuple(findings))
@@ -408,8 +419,11 @@ def _node_report(probe: PreflightProbe, node: int, log: _NodeLog, window: float)
 _KERNEL_STATES = ("ERROR-ACTIVE", "ERROR-WARNING", "ERROR-PASSIVE", "BUS-OFF", "STOPPED", "SLEEPING")
 
 
-def _bus_findings(bus: BusReport, send_errors: list[str]) -> list[Finding]:
+def _bus_findings(bus: BusReport, send_errors: list[str], read_error: str = "") -> list[Finding]:
     out: list[Finding] = []
+    if read_error:   # nothing can be measured, nor a run made, on a bus that is gone
+        out.append(Finding(Severity.MISMATCH, f"bus read failed while listening: {read_error}",
+                           stale_feedback=True))
     if bus.state not in ("ACTIVE", "unknown") and bus.state not in _KERNEL_STATES:  # those: socketcan_link
         out.append(Finding(Severity.MISMATCH, f"bus state {bus.state}: check wiring, termination "
                                               "(120 ohm at both ends) and that every node uses the same bit rate"))

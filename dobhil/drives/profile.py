@@ -44,27 +44,61 @@ class DriveProfile:
     bus: Mapping[str, Any] = field(default_factory=lambda: MappingProxyType({}), hash=False)
     name: str = ""  # where the profile came from (file stem), for messages
 
+    def __post_init__(self) -> None:
+        # the bounds hold for a profile built in code too (dataclasses.replace, tests):
+        # the emulator and the waits rely on them
+        for key in _BOUNDED:
+            _check_value(key, getattr(self, key), f"drive profile {self.name or self.protocol!r}")
+
     def bus_kwargs(self) -> dict[str, Any]:
         """Extra keyword arguments for ``can.Bus(...)`` (interface, channel, bitrate, ...)."""
         return dict(self.bus)
 
 
+def _within(low: float, high: float, unit: str) -> tuple[str, Any]:
+    return (f"a number from {low:g} to {high:g} {unit}",
+            lambda v: math.isfinite(v) and low <= v <= high)
+
+
+# Physically meaningful bounds (drivers/README.md says why each): a value outside them is
+# a typo or a unit mistake, and some would hang a run -- a heartbeat every 1e-9 s makes
+# the lockstep emulator emit a million frames per simulated millisecond, an enable
+# timeout of 1e300 s waits forever.
+#: CAN arbitration ids have 29 bits at most (extended frames)
+MAX_NODE_ID = (1 << 29) - 1
+#: no CAN frame, CAN FD included, is shorter on the wire than ~20 us
+MIN_FRAME_PERIOD = 1e-5
+#: a status frame is a liveness signal: faster than 1 kHz tells nothing more
+MIN_HEARTBEAT = 1e-3
+#: slower cyclic frames than this would leave a drive unwatched for too long
+MAX_FRAME_PERIOD = 10.0
+#: waits for a drive (enable, watchdog): a minute is longer than any drive takes
+MAX_WAIT = 60.0
+#: torque and speed bounds: beyond any servo drive on CAN (a unit mistake)
+MAX_TORQUE = 1e4
+MAX_VELOCITY = 1e4
+
 # key -> (accepted types, description of allowed values, check)
-_POSITIVE = ("a number > 0", lambda v: math.isfinite(v) and v > 0)
 _RULES: Mapping[str, tuple[tuple[type, ...], str, Any]] = MappingProxyType({
     "protocol": ((str,), "a protocol name such as 'odrive'", lambda v: bool(v)),
     "firmware": ((str,), "a quoted version string such as '0.6'", lambda v: bool(v)),
-    "node_id": ((int,), "an integer >= 0", lambda v: v >= 0),
-    "torque_limit": ((int, float), *_POSITIVE),
-    "velocity_limit": ((int, float), *_POSITIVE),
-    "encoder_msg_rate": ((int, float), *_POSITIVE),
-    "heartbeat_msg_rate": ((int, float), *_POSITIVE),
-    "watchdog_timeout": ((int, float), "a number >= 0 (0 disables)", lambda v: math.isfinite(v) and v >= 0),
-    "enable_timeout": ((int, float), *_POSITIVE),
+    "node_id": ((int,), f"an integer from 0 to {MAX_NODE_ID} (29-bit CAN id)",
+                lambda v: 0 <= v <= MAX_NODE_ID),
+    "torque_limit": ((int, float), f"a number > 0 and <= {MAX_TORQUE:g} Nm",
+                     lambda v: math.isfinite(v) and 0 < v <= MAX_TORQUE),
+    "velocity_limit": ((int, float), f"a number > 0 and <= {MAX_VELOCITY:g} rad/s",
+                       lambda v: math.isfinite(v) and 0 < v <= MAX_VELOCITY),
+    "encoder_msg_rate": ((int, float), *_within(MIN_FRAME_PERIOD, MAX_FRAME_PERIOD, "s")),
+    "heartbeat_msg_rate": ((int, float), *_within(MIN_HEARTBEAT, MAX_FRAME_PERIOD, "s")),
+    "watchdog_timeout": ((int, float), f"0 (off) or a number from {MIN_HEARTBEAT:g} to {MAX_WAIT:g} s",
+                         lambda v: math.isfinite(v) and (v == 0 or MIN_HEARTBEAT <= v <= MAX_WAIT)),
+    "enable_timeout": ((int, float), *_within(MIN_HEARTBEAT, MAX_WAIT, "s")),
     "bus": ((dict,), "a mapping of can.Bus keyword arguments", lambda v: all(isinstance(k, str) for k in v)),
     "name": ((str,), "a string", lambda v: True),
 })
 _OPTIONAL = frozenset({"bus", "name"})
+_BOUNDED = ("node_id", "torque_limit", "velocity_limit", "encoder_msg_rate", "heartbeat_msg_rate",
+            "watchdog_timeout", "enable_timeout")
 
 
 def default_drivers_dir() -> Path:

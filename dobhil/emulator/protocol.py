@@ -39,6 +39,7 @@ from typing import Any, Protocol
 import can
 
 from dobhil.drives.profile import DriveProfile
+from dobhil.errors import BusError
 from dobhil.realtime import lower_priority
 
 __all__ = ["EmulatedDrive", "LockstepBus", "PlantLike"]
@@ -213,6 +214,13 @@ class EmulatedDrive(ABC):
     def running(self) -> bool:
         return self._thread is not None
 
+    @property
+    def alive(self) -> bool:
+        """The thread runs; False once it ended by itself (its bus failed: :meth:`stop`
+        raises the BusError) or was never started."""
+        thread = self._thread
+        return thread is not None and thread.is_alive()
+
     def close(self) -> None:
         """Stop the thread (if any) and shut the owned bus down."""
         try:
@@ -249,9 +257,11 @@ class EmulatedDrive(ABC):
     def _send(self, msg: can.Message) -> None:
         try:
             self._bus.send(msg)
-        except can.CanError:
+        except can.CanError:   # refused (ENOBUFS): counted, the drive goes on
             self.send_errors += 1
             return
+        except Exception as exc:  # a transport's own error (a hub gone): the bus is gone
+            raise BusError(f"{self._bus.channel_info}: send failed: {type(exc).__name__}: {exc}") from exc
         self.frames_sent += 1
 
     # -- internals ------------------------------------------------------------
@@ -317,7 +327,10 @@ class EmulatedDrive(ABC):
             remaining = deadline - time.perf_counter()
             if remaining <= 0:
                 return
-            msg = self._bus.recv(remaining)
+            try:
+                msg = self._bus.recv(remaining)
+            except Exception as exc:  # the bus is gone: the thread ends, stop() raises this
+                raise BusError(f"{self._bus.channel_info}: read failed: {type(exc).__name__}: {exc}") from exc
             if msg is not None:
                 now = self._time + max(0.0, time.perf_counter() - tick_start)
                 self._receive(msg, now)

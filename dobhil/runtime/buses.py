@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import threading
 from dataclasses import dataclass, field
 from typing import Any, Final
 
@@ -124,3 +125,37 @@ class _CaughtWarnings(logging.Handler):
 
     def __exit__(self, *exc: object) -> None:
         logging.getLogger().removeHandler(self)
+
+
+#: seconds a bus's shutdown may take before it is given up (a python-can-remote bus whose
+#: hub is frozen waits for the hub's close answer for ever)
+SHUTDOWN_TIMEOUT = 2.0
+
+
+def shutdown_bus(bus: can.BusABC, timeout: float = SHUTDOWN_TIMEOUT) -> str:
+    """Shut ``bus`` down; "" if that went well, else one line saying what failed. Never
+    raises and never takes longer than ``timeout`` s: a bus whose link is already gone
+    fails its own shutdown (python-can-remote with its hub stopped: ENOTCONN) or waits
+    for ever (its hub frozen), and neither may hide how the run ended. The shutdown runs
+    on a daemon thread (left behind if it hangs: the process still exits); after a
+    failure the base class's shutdown runs on its own, so python-can does not try again
+    (and print a traceback) when the object is collected."""
+    outcome: list[str] = []
+
+    def shut() -> None:
+        try:
+            bus.shutdown()
+            outcome.append("")
+        except Exception as exc:
+            outcome.append(" ".join(f"{type(exc).__name__}: {exc}".split()))
+
+    thread = threading.Thread(target=shut, name="dobhil-bus-shutdown", daemon=True)
+    thread.start()
+    thread.join(timeout)
+    problem = outcome[0] if outcome else f"shutdown did not finish within {timeout:g} s"
+    if problem:
+        try:
+            can.BusABC.shutdown(bus)
+        except Exception:
+            pass
+    return problem

@@ -37,7 +37,13 @@ Safety: every way out of :meth:`ForceLoop.run` -- done, feedback timeout, positi
 velocity limit, non-finite value, drive fault, bus error, stop request (SIGINT/SIGTERM),
 or any exception -- runs the drive's safe stop (zero torque, then the disable frames,
 each attempted on its own, then a confirmation from the drive) and is recorded as a
-:class:`~dobhil.runtime.stop.Stop`. Exceptions are re-raised after the safe stop.
+:class:`~dobhil.runtime.stop.Stop`. Exceptions are re-raised after the safe stop
+(``ForceLoop.ended`` still holds the stop and the safe stop's report). Any failure of the
+bus, whatever the interface raises, is ``bus_error``. Waits longer than
+:data:`~dobhil.drives.waits.WAIT_SLICE` -- the enable, the first feedback, a silent
+drive, a long host period -- are cut into slices, so a stop request ends them within
+one; a request made during the safe stop's confirmation wait ends that wait too
+(unconfirmed: the loud warning), the one that stopped the run does not.
 """
 
 from __future__ import annotations
@@ -56,7 +62,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from dobhil.drives.base import Drive, Feedback, SafeStopReport
-from dobhil.errors import BusError, DriveError, DriveFaultError, RecorderError
+from dobhil.drives.waits import WAIT_SLICE, Cancel
+from dobhil.errors import BusError, DriveError, DriveFaultError, RecorderError, WaitCancelled
 from dobhil.runtime.controller import ControlOutput, ForceController
 from dobhil.runtime.stop import Stop, StopReason
 
@@ -253,18 +260,34 @@ class RunResult:
 
 
 class StopRequest:
-    """A thread-safe flag the loop polls every cycle (set by signal handlers)."""
+    """A thread-safe flag the loop polls every cycle (set by signal handlers), and the
+    ``cancel`` of every wait before, during and after the cycles (within WAIT_SLICE s)."""
 
     def __init__(self) -> None:
         self._event = threading.Event()
         self.why = ""
+        self.count = 0   # requests so far: a wait started after one sees only newer ones
 
     def set(self, why: str) -> None:
         self.why = why
+        self.count += 1
         self._event.set()
 
     def is_set(self) -> bool:
         return self._event.is_set()
+
+    def reason(self) -> str:
+        """Why a stop was requested; "" while none was (a wait's ``cancel``)."""
+        return (self.why or "stop requested") if self._event.is_set() else ""
+
+    def newer(self) -> Cancel:
+        """A ``cancel`` that answers only requests made after this call: the safe stop
+        that a SIGINT started still waits for its confirmation, a second one ends it."""
+        seen = self.count
+
+        def cancel() -> str:
+            return self.reason() if self.count != seen else ""
+        return cancel
 
 
 class _Halt(Exception):
@@ -370,6 +393,8 @@ class ForceLoop:
         self._last_out: ControlOutput | None = None
         self._rate = _RateWatch(settings.period)
         self._last = (0.0, 0.0, 0.0)   # t, period error, exec time of the newest cycle
+        #: how the run ended and the safe stop's report, also when run() raised
+        self.ended: tuple[Stop, SafeStopReport] | None = None
         self._gc = _QuietGc()
         self.period_error = Histogram()
         self.exec_time = Histogram()
@@ -387,10 +412,11 @@ class ForceLoop:
             self._gc.stop()
             stop = Stop(StopReason.EXCEPTION, f"{type(exc).__name__}: {exc}", self._at,
                         self._now())
-            self._safe_stop(stop)
+            self.ended = (stop, self._safe_stop(stop))
             raise
         self._gc.stop()
         report = self._safe_stop(stop)
+        self.ended = (stop, report)
         timing = TimingStats.of(self.period_error, self.exec_time, self.latency)
         return RunResult(cycles=self.cycles, overruns=self.overruns, stop=stop, timing=timing,
                          trace=self.trace, disabled=report.safe, skipped=self.skipped,
@@ -408,7 +434,9 @@ class ForceLoop:
         if self.settings.timing is not Timing.LOCKSTEP:
             self._gc.start()
         try:
-            self.drive.enable()
+            self.drive.enable(cancel=self.stop_request.reason)
+        except WaitCancelled as exc:   # before DriveError, its base
+            return Stop(StopReason.SIGNAL, str(exc), -1, self._now())
         except BusError as exc:
             return Stop(StopReason.BUS_ERROR, str(exc), -1, 0.0)
         except DriveError as exc:
@@ -432,7 +460,7 @@ class ForceLoop:
         return Stop(StopReason.DONE, f"ran {self.settings.duration:g} s", self._at, self._now())
 
     def _first_feedback(self) -> Feedback:
-        fb = self.drive.poll(self.settings.feedback_timeout)
+        fb = self._poll_or_stop(self.clock() + self.settings.feedback_timeout)
         if fb is None:
             fb = self.drive.feedback
         if fb is None:
@@ -458,6 +486,7 @@ class ForceLoop:
             wake = clock()
             start = time.perf_counter()
             if fb is None:
+                self._check_stop_request()
                 raise _Halt(StopReason.FEEDBACK_TIMEOUT, f"no fresh feedback for {timeout:g} s"
                             + ("" if timed else " (simulated)"))
             frames = fb.seq - last_seq   # 1 unless frames came while the last cycle ran
@@ -501,7 +530,23 @@ class ForceLoop:
                 fb = poll(0.0)
                 if fb is not None:
                     return fb
-        return poll(max(deadline - clock(), 0.0))
+        return self._poll_or_stop(deadline)
+
+    def _poll_or_stop(self, deadline: float) -> Feedback | None:
+        """Feedback by ``deadline`` (loop clock), or None; waits longer than WAIT_SLICE
+        are cut into slices so a stop request (SIGINT) ends them within one."""
+        poll, clock = self.drive.poll, self.clock
+        while True:
+            remaining = deadline - clock()
+            if remaining <= WAIT_SLICE:
+                return poll(max(remaining, 0.0))
+            fb = poll(WAIT_SLICE)
+            if fb is not None or self.stop_request.is_set():
+                return fb
+
+    def _check_stop_request(self) -> None:
+        if self.stop_request.is_set():
+            raise _Halt(StopReason.SIGNAL, self.stop_request.why or "stop requested")
 
     def _run_host(self) -> None:
         s = self.settings
@@ -546,8 +591,13 @@ class ForceLoop:
 
     def _sleep_until(self, deadline: float) -> None:
         """``time.sleep`` to ``loop.spin`` s before ``deadline``, then spin on the clock."""
-        clock = self.clock
+        clock, stop = self.clock, self.stop_request
         remaining = deadline - clock() - self.settings.spin
+        while remaining > WAIT_SLICE:   # slices: a long loop.period still answers a SIGINT
+            time.sleep(WAIT_SLICE)
+            if stop.is_set():
+                return   # the next cycle stops
+            remaining = deadline - clock() - self.settings.spin
         if remaining > 0:
             time.sleep(remaining)
         while clock() < deadline:
@@ -555,7 +605,7 @@ class ForceLoop:
 
     def _cycle(self, k: int, t: float, fb: Feedback, period_error: float, start: float,
                timed: bool) -> None:
-        if self.stop_request.is_set():
+        if self.stop_request.is_set():   # inline: the cycle's cost
             raise _Halt(StopReason.SIGNAL, self.stop_request.why or "stop requested")
         q, dq = fb.position, fb.velocity
         self._check_feedback(q, dq)
@@ -620,7 +670,9 @@ class ForceLoop:
                 self.sink.stop(stop)
         except Exception:
             pass
-        report = self.drive.safe_stop()
+        # a request made during the confirmation wait ends it (unconfirmed, said loudly);
+        # the one that stopped the run does not
+        report = self.drive.safe_stop(cancel=self.stop_request.newer())
         hook = getattr(self.sink, "safe_stop", None)
         if hook is not None:
             try:

@@ -26,7 +26,7 @@ from dobhil.emulator.plant import Plant
 from dobhil.emulator.protocol import EmulatedDrive, LockstepBus
 from dobhil.emulator.registry import make_emulated_drive, private_virtual_channel
 from dobhil.errors import ConfigError, PreflightError
-from dobhil.runtime.buses import BusSpec, open_bus, resolve_bus
+from dobhil.runtime.buses import BusSpec, open_bus, resolve_bus, shutdown_bus
 from dobhil.runtime.controller import ForceController
 from dobhil.realtime import EMULATOR_PRIORITY_DROP
 from dobhil.runtime.loop import (CycleSink, ForceLoop, Limits, LoopSettings, RunResult, StopRequest,
@@ -127,6 +127,8 @@ class RunSession:
         self.plant: Plant | None = None
         self.emulator: EmulatedDrive | None = None
         self._buses: list[can.BusABC] = []
+        #: buses whose shutdown failed (one line each; close() does not raise for them)
+        self.shutdown_problems: list[str] = []
         self._wrapper = bus_wrapper
         # preflight: on for a drive this session did not build; off with --emulate, whose
         # emulator is made from this very profile (a measurement could only restate it, and
@@ -134,6 +136,7 @@ class RunSession:
         self.preflight_enabled = (not emulate) if preflight is None else preflight
         self.preflight_window = preflight_window
         self.preflight_report: PreflightReport | None = None
+        self.loop: ForceLoop | None = None   # the run's loop, once run() started it
         self.bus_spec = (BusSpec("virtual", private_virtual_channel()) if emulate
                          else resolve_bus(config, self.profile, bus))
         try:
@@ -201,8 +204,13 @@ class RunSession:
                 self._unwrapped_host, self.profile, period=self.config.loop.period,
                 feedback_timeout=self.config.loop.feedback_timeout, window=self.preflight_window,
                 bitrate=self.bus_spec.kwargs.get("bitrate") or None,
-                probe=preflight_probe(self.profile),
+                probe=preflight_probe(self.profile), cancel=self.stop_request.reason,
                 **({"clock": sim, "stamp": lambda _m: sim()} if sim is not None else {}))
+        if self.stop_request.is_set():
+            # cut short by SIGINT/SIGTERM: a partial measurement says nothing, and the
+            # loop stops at once with the signal as its reason (never enabling)
+            self.preflight_enabled = False
+            return None
         if self.preflight_report.refuses:
             raise PreflightError(self.preflight_report)
         return self.preflight_report
@@ -213,6 +221,7 @@ class RunSession:
                          settings=self.settings, sink=self.sink, stop_request=self.stop_request,
                          truth=self.truth if self.plant is not None else None,
                          **({"clock": self._clock} if self._clock else {}))
+        self.loop = loop
         try:
             return loop.run()
         finally:
@@ -228,7 +237,9 @@ class RunSession:
                 pass
 
     def close(self) -> None:
-        """Stop the emulator thread and shut every bus down (never raises twice)."""
+        """Stop the emulator thread and shut every bus down (never raises twice). A bus
+        that fails to shut down (its link already gone) is noted in
+        ``shutdown_problems``, not raised: how the run ended must still be told."""
         errors: list[BaseException] = []
         if self.emulator is not None:
             try:
@@ -236,10 +247,9 @@ class RunSession:
             except BaseException as exc:
                 errors.append(exc)
         for bus in reversed(self._buses):
-            try:
-                bus.shutdown()
-            except Exception as exc:
-                errors.append(exc)
+            problem = shutdown_bus(bus)
+            if problem:
+                self.shutdown_problems.append(f"{bus.channel_info}: {problem}")
         self._buses.clear()
         if errors:
             raise errors[0]

@@ -337,8 +337,8 @@ def _mapping(**changes: Any) -> dict[str, Any]:
         (dict(torque_limt=1.0), r"unknown key 'torque_limt' \(allowed: protocol, "),
         (dict(node_id=None), r"missing key 'node_id'"),
         (dict(firmware=0.6), r"firmware: expected a quoted version string such as '0.6', got 0.6"),
-        (dict(torque_limit=-1), r"torque_limit: expected a number > 0, got -1"),
-        (dict(node_id=True), r"node_id: expected an integer >= 0, got True"),
+        (dict(torque_limit=-1), r"torque_limit: expected a number > 0 and <= 10000 Nm, got -1"),
+        (dict(node_id=True), r"node_id: expected an integer from 0 to 536870911 \(29-bit CAN id\), got True"),
         (dict(bus="can0"), r"bus: expected a mapping"),
     ],
 )
