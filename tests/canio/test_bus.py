@@ -201,6 +201,9 @@ assert bus.recv(5.0) is not None
 print(getattr(bus.emulator, "pid", 0), flush=True)
 if sys.argv[1] == "raise":
     raise RuntimeError("the program failed")
+if sys.argv[1] == "sleep":
+    import time
+    time.sleep(60)
 """
 
 
@@ -254,3 +257,30 @@ def _alive(pid: int) -> bool:
             return f.read().split()[2] != "Z"
     except OSError:
         return True
+
+
+def test_the_emulator_dies_with_a_killed_program(tmp_path: Path) -> None:
+    """No orphan: a program SIGKILLed with the bus open (no atexit, nothing closed by
+    hand) takes the emulator's process with it -- it reads the end of its socket."""
+    import select
+    import signal
+    import subprocess
+    import sys
+
+    script = tmp_path / "killed.py"
+    script.write_text(PROGRAM, encoding="utf-8")
+    proc = subprocess.Popen([sys.executable, str(script), "sleep"], stdout=subprocess.PIPE,
+                            stderr=subprocess.DEVNULL, text=True, cwd=tmp_path)
+    try:
+        assert proc.stdout is not None
+        ready, _, _ = select.select([proc.stdout], [], [], 60)
+        assert ready, "the program did not open the bus"
+        child = int(proc.stdout.readline())
+        assert _alive(child)
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(timeout=10)
+        assert wait_until(lambda: not _alive(child)), "the emulator's process outlived its program"
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()

@@ -400,3 +400,61 @@ def test_dropped_frames_are_reproducible_in_lockstep() -> None:
     assert dropped1 == dropped2 > 10
     assert stop1 == stop2
     np.testing.assert_array_equal(trace1, trace2)
+
+
+# -- the host starves the emulated drive ---------------------------------------------------
+
+def test_a_starved_emulated_drive_is_the_host_too_slow_not_the_drive(tmp_path: Path) -> None:
+    """Real time: the emulated drive's process is stopped (SIGSTOP) for three feedback
+    timeouts after 100 cycles, as a loaded host would starve it. The feedback stops, but
+    the drive is not to blame: the stop says host_too_slow (the emulator's own measure of
+    not being scheduled), and once it runs again the drive confirms the safe stop."""
+    sink = Recorder(at=100)
+    timers: list[threading.Timer] = []
+
+    def arm(session: RunSession) -> None:
+        emulator = session.emulator
+        assert emulator is not None
+        pid = getattr(emulator, "pid", None)
+        assert pid is not None   # a process of its own
+        pause = 3 * session.settings.feedback_timeout
+
+        def starve() -> None:
+            os.kill(pid, signal.SIGSTOP)
+            timer = threading.Timer(pause, os.kill, (pid, signal.SIGCONT))
+            timers.append(timer)
+            timer.start()
+
+        sink.action = starve
+
+    try:
+        out = run_case(safety_config(tmp_path, "realtime"), "realtime", StopReason.HOST_TOO_SLOW,
+                       words=["no fresh feedback", "not scheduled", "host is too slow"],
+                       sink=sink, prepare=arm)
+    finally:
+        for timer in timers:
+            timer.join()
+    assert out.summary is not None and out.summary["stop_reason"] == "host_too_slow"
+    assert out.stop.cycle >= 100 and not out.watchdog_tripped
+
+
+def test_an_emulated_drive_that_dies_is_one_line(tmp_path: Path) -> None:
+    """Real time: the emulated drive's process is killed during the run. The run stops
+    on bus_error naming how it ended (one line, no traceback), and says loudly that the
+    disable could not be confirmed."""
+    sink = Recorder(at=100)
+
+    def arm(session: RunSession) -> None:
+        pid = getattr(session.emulator, "pid", None)
+        assert pid is not None
+        sink.action = lambda: os.kill(pid, signal.SIGKILL)
+
+    config = safety_config(tmp_path, "realtime")
+    with RunSession(config, emulate=True, lockstep=False, sink=sink) as session:
+        arm(session)
+        result = session.run()
+    line = result.stop.line()
+    assert result.stop.reason is StopReason.BUS_ERROR, line
+    assert "\n" not in line and "emulated drive's process was killed by signal SIGKILL" in line, line
+    assert result.safe_stop is not None and not result.disabled
+    assert result.safe_stop.warning().endswith("cut power")
