@@ -33,6 +33,8 @@ __all__ = ["PipeBus", "RecordKind", "socket_pair"]
 #: kind, stamp [s since the epoch], arbitration id, flags, DLC (then the data bytes)
 _FRAME = struct.Struct("<BdIBB")
 _RECORD_MAX = _FRAME.size + 64
+#: the longest a send waits for room when no timeout is given [s]
+SEND_WAIT_MAX = 0.05
 
 
 class RecordKind(IntEnum):
@@ -90,14 +92,17 @@ class PipeBus(can.BusABC):
     ``gone``: the text of the error raised when the peer's end is closed (called then, so
     it can name the peer's exit code). ``mirror``: a bus (a ``virtual`` one) that gets a
     copy of every frame sent or received, so in-process observers keep seeing the traffic.
+    ``send_wait``: how long a send without a timeout waits for room (0: a full buffer
+    refuses the frame at once, as a CAN controller's full queue does).
     The socket is owned: :meth:`shutdown` closes it (the peer then reads the end).
     """
 
     def __init__(self, sock: socket.socket, channel: Any = None, *,
                  gone: Callable[[], str] = lambda: "the other end of the bus is closed",
                  mirror: can.BusABC | None = None, receive_own_messages: bool = False,
-                 **kwargs: Any) -> None:
+                 send_wait: float = SEND_WAIT_MAX, **kwargs: Any) -> None:
         self._sock = sock
+        self._send_wait = send_wait
         self._gone = gone
         self._mirror = mirror
         self._own: deque[can.Message] | None = deque() if receive_own_messages else None
@@ -107,16 +112,18 @@ class PipeBus(can.BusABC):
         super().__init__(channel=channel, **kwargs)
 
     def send(self, msg: can.Message, timeout: float | None = None) -> None:
+        """Send, waiting at most ``timeout`` s for room (None: at most ``send_wait``: a
+        peer that stopped reading never hangs the sender)."""
         record = encode_frame(msg)
-        end = None if timeout is None else time.monotonic() + timeout
+        end = time.monotonic() + (self._send_wait if timeout is None else timeout)
         while True:
             try:
                 self._sock.send(record)
                 break
             except BlockingIOError:
                 # the peer is not reading (stopped, or starved): never wait longer than asked
-                remaining = None if end is None else end - time.monotonic()
-                if remaining is not None and remaining <= 0:
+                remaining = end - time.monotonic()
+                if remaining <= 0:
                     raise can.CanOperationError("pipe bus: the receiving end is not reading "
                                                 "(its buffer is full)") from None
                 select.select([], [self._sock], [], remaining)
