@@ -58,3 +58,31 @@ def test_a_peer_that_does_not_read_never_blocks_the_sender() -> None:
         with pytest.raises(can.CanOperationError, match="not reading"):
             for _ in range(1_000_000):
                 host.send(msg)   # timeout None: bounded by send_wait
+
+
+def test_the_drives_end_holds_the_newest_frame_of_each_id_while_the_host_stalls() -> None:
+    """A host that stopped reading finds, once it reads again, the drive's newest frame
+    of each id after the ones that fitted in the buffer (not only the oldest of its stall)."""
+    a, b = socket_pair()
+    with PipeBus(a, "host") as host, PipeBus(b, "drive", send_wait=0.0, coalesce=True) as drive:
+        filler = can.Message(arbitration_id=0x10, is_extended_id=False, data=bytes(8))
+        fitted = 0
+        while drive.replaced == 0:   # full once a held frame of id 0x10 is superseded
+            drive.send(filler)
+            fitted += 1
+        drive.send(can.Message(arbitration_id=0x20, is_extended_id=False, data=b"old"))
+        drive.send(can.Message(arbitration_id=0x20, is_extended_id=False, data=b"new"))
+        assert drive.replaced == 2
+        got = []
+        msg = host.recv(0.0)
+        while msg is not None:
+            got.append(msg)
+            msg = host.recv(0.0)
+        drive.recv(0.0)   # the drive's next look at its bus sends what it held
+        msg = host.recv(1.0)
+        while msg is not None:
+            got.append(msg)
+            msg = host.recv(0.0)
+        assert [bytes(m.data) for m in got[-1:]] == [b"new"]
+        assert [m.arbitration_id for m in got[-2:]] == [0x10, 0x20]
+        assert len(got) == fitted   # the ones that fitted, and the two held (one of each id)

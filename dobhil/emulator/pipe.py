@@ -92,17 +92,23 @@ class PipeBus(can.BusABC):
     ``gone``: the text of the error raised when the peer's end is closed (called then, so
     it can name the peer's exit code). ``mirror``: a bus (a ``virtual`` one) that gets a
     copy of every frame sent or received, so in-process observers keep seeing the traffic.
-    ``send_wait``: how long a send without a timeout waits for room (0: a full buffer
-    refuses the frame at once, as a CAN controller's full queue does).
+    ``send_wait``: how long a send without a timeout waits for room. ``coalesce`` (the
+    drive's end): a frame that finds the buffer full is not lost but held, the newest
+    per arbitration id (as a CAN controller's transmit mailbox holds one frame per
+    message), and goes out first once the reader has made room -- a host that stalled
+    then reads the drive's newest heartbeat and estimates, not only the oldest frames of
+    its stall; ``replaced`` counts the frames a newer one of the same id superseded.
     The socket is owned: :meth:`shutdown` closes it (the peer then reads the end).
     """
 
     def __init__(self, sock: socket.socket, channel: Any = None, *,
                  gone: Callable[[], str] = lambda: "the other end of the bus is closed",
                  mirror: can.BusABC | None = None, receive_own_messages: bool = False,
-                 send_wait: float = SEND_WAIT_MAX, **kwargs: Any) -> None:
+                 send_wait: float = SEND_WAIT_MAX, coalesce: bool = False, **kwargs: Any) -> None:
         self._sock = sock
         self._send_wait = send_wait
+        self._held: dict[int, bytes] | None = {} if coalesce else None
+        self.replaced = 0
         self._gone = gone
         self._mirror = mirror
         self._own: deque[can.Message] | None = deque() if receive_own_messages else None
@@ -115,6 +121,15 @@ class PipeBus(can.BusABC):
         """Send, waiting at most ``timeout`` s for room (None: at most ``send_wait``: a
         peer that stopped reading never hangs the sender)."""
         record = encode_frame(msg)
+        held = self._held
+        if held is not None and (held and not self._flush_held() or not self._try_send(record)):
+            if held.pop(msg.arbitration_id, None) is not None:
+                self.replaced += 1
+            held[msg.arbitration_id] = record   # the newest of its id, last in line
+            return
+        if held is not None:
+            self._copy(msg)
+            return
         end = time.monotonic() + (self._send_wait if timeout is None else timeout)
         while True:
             try:
@@ -137,7 +152,28 @@ class PipeBus(can.BusABC):
             self._own.append(own)
         self._copy(msg)
 
+    def _try_send(self, record: bytes) -> bool:
+        try:
+            self._sock.send(record)
+        except BlockingIOError:
+            return False
+        except OSError as exc:
+            raise can.CanOperationError(f"{self._gone()} ({exc.strerror or exc})") from exc
+        return True
+
+    def _flush_held(self) -> bool:
+        """Send the held frames, oldest first, while there is room; True when all went."""
+        held = self._held
+        while held:
+            key = next(iter(held))
+            if not self._try_send(held[key]):
+                return False
+            del held[key]
+        return True
+
     def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
+        if self._held:
+            self._flush_held()
         if self._own:
             return self._own.popleft(), False
         end = None if timeout is None else time.monotonic() + timeout

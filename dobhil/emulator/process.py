@@ -468,8 +468,9 @@ def child_main(sock_fd: int, status_fd: int) -> None:
         closed.append(True)
         return "host end closed"
 
-    # a host that stops reading loses frames (counted), never stalls the drive's ticks
-    bus = PipeBus(sock, "emulator", gone=gone, send_wait=0.0)
+    # a host that stops reading never stalls the drive's ticks: frames that find no room
+    # are held, the newest per id, and go out once the host reads again
+    bus = PipeBus(sock, "emulator", gone=gone, send_wait=0.0, coalesce=True)
     try:
         spec = pickle.load(sys.stdin.buffer)
         _serve(bus, status, spec)
