@@ -31,8 +31,13 @@ ROOT = Path(__file__).resolve().parents[1]
 DRIVE_BLAMED = ("feedback_timeout", "drive_fault")
 
 
+#: ``--set`` items for every run (``--set loop.spin=0`` ...)
+SETTINGS: list[str] = []
+
+
 def run_command(config: str, duration: float, json_out: bool = True) -> list[str]:
     return [sys.executable, "-m", "dobhil", "run", config, "--emulate", "--duration", str(duration),
+            *(x for item in SETTINGS for x in ("--set", item)),
             *(["--summary-json"] if json_out else [])]
 
 
@@ -79,8 +84,11 @@ def main() -> int:
     parser.add_argument("--parallel", type=int, default=2, help="real-time runs alongside")
     parser.add_argument("--hogs", type=int, default=1, help="CPU-bound processes alongside")
     parser.add_argument("--config", default="demo")
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                        help="a config override for every run (repeatable)")
     parser.add_argument("--json", action="store_true")
     args = parser.parse_args()
+    SETTINGS.extend(args.set)
     load_before = os.getloadavg()
     background = start_background(args.config, args.duration, args.parallel, args.hogs)
     reasons: Counter[str] = Counter()
