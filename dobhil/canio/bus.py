@@ -2,9 +2,11 @@
 
 :class:`DobhilBus` is a python-can bus whose only other participant is the plant
 emulator of a config (drive profile, plant, environment, sensor, bus latency), running
-in real time on a thread of its own, exactly as ``dobhil run --emulate`` runs it: a
-private ``virtual`` channel joins this bus and the emulator. Any python-can program
-can so talk to an emulated drive without hardware or a kernel module:
+in real time in a process of its own, exactly as ``dobhil run --emulate`` runs it
+(:class:`~dobhil.emulator.process.EmulatorProcess`: a socket pair joins this bus and the
+emulator; no thread here, so a program that never calls :meth:`DobhilBus.shutdown` still
+ends, and the emulator with it). Any python-can program can so talk to an emulated drive
+without hardware or a kernel module:
 
 .. code-block:: console
 
@@ -17,8 +19,8 @@ can so talk to an emulated drive without hardware or a kernel module:
 ``key=value`` items: a mapping, a list of strings, or one string with items separated by
 commas (the form ``--bus-kwargs`` can pass).
 
-Each bus has its own emulated drive (and time); :meth:`DobhilBus.shutdown` stops the
-emulator's thread and closes both ends of the private channel.
+Each bus has its own emulated drive (and time) in its own process; :meth:`DobhilBus.shutdown`
+closes this end, and the emulator's process ends.
 """
 
 from __future__ import annotations
@@ -27,16 +29,14 @@ from collections.abc import Iterable, Mapping, Sequence
 from typing import Any
 
 import can
-from can.interfaces.virtual import VirtualBus
 from can.typechecking import AutoDetectedConfig, CanFilters
 
 from dobhil.config import Config, load_config, resolve_config
 from dobhil.data import shipped_configs
 from dobhil.drives.profile import load_drive_profile
-from dobhil.emulator.plant import Plant
-from dobhil.emulator.protocol import EmulatedDrive
-from dobhil.emulator.registry import make_emulated_drive, private_virtual_channel
-from dobhil.errors import BusError, DobhilError
+from dobhil.emulator.process import EmulatorProcess, EmulatorSpec, PlantView
+from dobhil.emulator.registry import EMULATOR_CLASSES
+from dobhil.errors import BusError, ConfigError, DobhilError
 
 #: The channel when none is given.
 DEFAULT_CONFIG = "demo"
@@ -71,62 +71,51 @@ class DobhilBus(can.BusABC):
             path = resolve_config(name)
             self.config: Config = load_config(path, override_items(overrides))
             profile = load_drive_profile(self.config, path.parent)
-            plant = Plant.from_config(self.config)
+            if profile.protocol not in EMULATOR_CLASSES:
+                raise ConfigError(f"no emulator for protocol {profile.protocol!r}; "
+                                  f"emulated: {', '.join(sorted(EMULATOR_CLASSES))}")
         except DobhilError as exc:
             raise EmulatedBusError(f"dobhil bus {name!r}: {exc}") from None
         self._name = name
-        self._closed = False
+        self._closed = True   # until the emulator runs: shutdown() has nothing to stop
         self.channel_info = (f"dobhil emulated {profile.protocol} (firmware {profile.firmware}, "
                              f"node {profile.node_id}) of {path}")
-        private = private_virtual_channel()
-        self._host = VirtualBus(private, receive_own_messages=receive_own_messages)
-        emulator_bus = VirtualBus(private)
-        emulator: EmulatedDrive | None = None
         try:
-            drive = self.config.drive
-            emulator = make_emulated_drive(emulator_bus, profile, plant, latency=drive.latency,
-                                           jitter=drive.jitter, seed=self.config.sensor.seed)
-            self.emulator: EmulatedDrive = emulator
+            self.emulator: EmulatorProcess = EmulatorProcess(
+                EmulatorSpec.of(self.config, profile), channel=name,
+                receive_own_messages=receive_own_messages)
+        except DobhilError as exc:
+            raise EmulatedBusError(f"dobhil bus {name!r}: {exc}") from None
+        self._host = self.emulator.bus
+        self._closed = False
+        try:
             super().__init__(channel=name, can_filters=can_filters, **kwargs)
-            emulator.start()
-        except BaseException as exc:
-            self._closed = True
-            can.BusABC.shutdown(self)   # a no-op unless BusABC.__init__ ran
-            try:
-                if emulator is not None:
-                    emulator.close()   # stops its thread (if started), shuts its bus down
-                else:
-                    emulator_bus.shutdown()
-            finally:
-                self._host.shutdown()
-            if isinstance(exc, DobhilError):
-                raise EmulatedBusError(f"dobhil bus {name!r}: {exc}") from None
+        except BaseException:
+            self.shutdown()
             raise
 
     @property
-    def plant(self) -> Any:
-        """The emulated plant (ground truth: ``true_position``, ``interaction_torque``, ...)."""
+    def plant(self) -> PlantView:
+        """The emulated plant's ground truth (``true_position``, ``interaction_torque``, ...),
+        as the emulator's process published it after its newest tick."""
         return self.emulator.plant
 
     def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
-        msg = self._host.recv(timeout)
-        if msg is not None:
-            msg.channel = self._name
-        return msg, False
+        return self._host.recv(timeout), False
 
     def send(self, msg: can.Message, timeout: float | None = None) -> None:
         self._host.send(msg, timeout)
 
     def shutdown(self) -> None:
-        """Stop the emulator thread (re-raising what it raised) and close the channel."""
+        """Close this end of the bus; the emulator's process ends (joined, killed if it does not)."""
         if self._closed:
+            can.BusABC.shutdown(self)   # a no-op unless BusABC.__init__ ran
             return
         self._closed = True
-        super().shutdown()
         try:
-            self.emulator.close()
+            super().shutdown()
         finally:
-            self._host.shutdown()
+            self.emulator.close()
 
     @staticmethod
     def _detect_available_configs() -> Sequence[AutoDetectedConfig]:

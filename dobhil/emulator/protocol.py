@@ -308,13 +308,23 @@ class EmulatedDrive(ABC):
             self._thread_error = exc
 
     def _run(self) -> None:
+        self.run_realtime()
+
+    def run_realtime(self, on_tick: Callable[[float, float], None] | None = None) -> None:
+        """The real-time ticks on the calling thread, until :meth:`stop` (from another
+        thread) or until the bus raises. ``on_tick(deadline, lateness)`` after each tick:
+        its deadline (``time.perf_counter``) and how late its frames went out -- the
+        emulator's own measure of being starved (a process of its own publishes it)."""
         period = self._profile.encoder_msg_rate
         start = time.perf_counter()
         tick = 1
         while not self._stop_event.is_set():
             tick_start = start + (tick - 1) * period
-            self._receive_until(start + tick * period, tick_start)
+            deadline = start + tick * period
+            self._receive_until(deadline, tick_start)
             self._advance_held(period)
+            if on_tick is not None:
+                on_tick(deadline, time.perf_counter() - deadline)
             tick += 1
             lag = time.perf_counter() - (start + tick * period)
             if lag > _MAX_LAG_PERIODS * period:

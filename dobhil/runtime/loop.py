@@ -15,7 +15,9 @@ Timing (:class:`Timing`):
   the frame is expected (one period after the last), then spins on the bus around that
   instant, then blocks again. Frames that came while a cycle was late are skipped (the
   newest is used) and counted; no frame for ``loop.feedback_timeout`` after the last one
-  stops the run.
+  stops the run (``host_too_slow`` instead of ``feedback_timeout`` when the ``starved``
+  hook says the emulated drive itself was not scheduled meanwhile: the host, not the
+  drive, is to blame).
 - **host**: absolute deadlines ``t0 + k T`` on the host clock, for drives that need a
   host-timed request. The cycle reads the newest feedback without blocking, then sleeps
   to the next deadline -- ``time.sleep`` to ``loop.spin`` s before it, then a spin on the
@@ -376,13 +378,17 @@ class ForceLoop:
                  settings: LoopSettings, clock: Callable[[], float] = time.perf_counter,
                  truth: Callable[[], tuple[float, float]] | None = None,
                  sink: CycleSink | None = None, stop_request: StopRequest | None = None,
-                 trace_rows: int = TRACE_ROWS) -> None:
+                 trace_rows: int = TRACE_ROWS,
+                 starved: Callable[[float], str] | None = None) -> None:
         self.drive = drive
         self.controller = controller
         self.reference = reference
         self.settings = settings
         self.clock = clock
         self.truth = truth
+        # an emulated drive in a process of its own says whether it was starved during a
+        # silent window of this many seconds ("" if not): a timeout is then the host's fault
+        self.starved = starved
         self.sink = sink
         self.stop_request = stop_request or StopRequest()
         self.cycles = 0      # cycles run
@@ -464,9 +470,17 @@ class ForceLoop:
         if fb is None:
             fb = self.drive.feedback
         if fb is None:
-            raise _Halt(StopReason.FEEDBACK_TIMEOUT,
-                        f"no feedback within {self.settings.feedback_timeout:g} s of enabling")
+            raise self._silent(f"no feedback within {self.settings.feedback_timeout:g} s of enabling",
+                               self.settings.feedback_timeout)
         return fb
+
+    def _silent(self, detail: str, window: float) -> _Halt:
+        """The stop for no fresh feedback during the last ``window`` s: the drive went
+        silent, or the host starved the emulated drive (``host_too_slow``)."""
+        why = self.starved(window) if self.starved is not None else ""
+        if why:
+            return _Halt(StopReason.HOST_TOO_SLOW, f"{detail}: {why}")
+        return _Halt(StopReason.FEEDBACK_TIMEOUT, detail)
 
     def _run_feedback(self, first: Feedback, timed: bool) -> None:
         """One cycle per feedback frame, the command sent as soon as it is computed.
@@ -487,8 +501,8 @@ class ForceLoop:
             start = time.perf_counter()
             if fb is None:
                 self._check_stop_request()
-                raise _Halt(StopReason.FEEDBACK_TIMEOUT, f"no fresh feedback for {timeout:g} s"
-                            + ("" if timed else " (simulated)"))
+                raise self._silent(f"no fresh feedback for {timeout:g} s"
+                                   + ("" if timed else " (simulated)"), timeout)
             frames = fb.seq - last_seq   # 1 unless frames came while the last cycle ran
             last_seq = fb.seq
             self._rate.frame(fb.rx_time if timed else fb.timestamp, frames)
@@ -565,8 +579,8 @@ class ForceLoop:
                 self._rate.frame(fb.rx_time, fb.seq - last_seq)
                 last_seq = fb.seq
             elif wake - last_fresh > timeout:
-                raise _Halt(StopReason.FEEDBACK_TIMEOUT,
-                            f"no fresh feedback for {wake - last_fresh:.4f} s (limit {timeout:g} s)")
+                raise self._silent(f"no fresh feedback for {wake - last_fresh:.4f} s (limit {timeout:g} s)",
+                                   wake - last_fresh)
             fb = fb or self.drive.feedback
             if fb is None:
                 raise _Halt(StopReason.FEEDBACK_TIMEOUT, "no feedback")

@@ -1,10 +1,12 @@
 """A run put together from a config: buses, (emulated) drive, controller, reference, loop.
 
 :class:`RunSession` owns everything it opens -- buses, the emulator and its thread --
-and closes all of it, whatever happens (context manager). With ``emulate`` the plant
-emulator runs in this process on a private python-can ``virtual`` channel; with
-``lockstep`` the host bus is a :class:`~dobhil.emulator.protocol.LockstepBus` and the
-whole run is deterministic.
+and closes all of it, whatever happens (context manager). With ``emulate`` in real time
+the plant emulator runs in a process of its own
+(:class:`~dobhil.emulator.process.EmulatorProcess`: the loop cannot starve it), and every
+frame is copied to a private python-can ``virtual`` channel (``bus_spec``) that in-process
+observers may watch; with ``lockstep`` the emulator runs in this process behind a
+:class:`~dobhil.emulator.protocol.LockstepBus` and the whole run is deterministic.
 """
 
 from __future__ import annotations
@@ -21,8 +23,9 @@ from dobhil.config.schema import Config
 from dobhil.drives.base import Drive
 from dobhil.drives.preflight import DEFAULT_WINDOW, PreflightReport, profile_rate_findings, run_preflight
 from dobhil.drives.profile import DriveProfile, load_drive_profile
-from dobhil.drives.registry import make_drive, preflight_probe
+from dobhil.drives.registry import drive_class, make_drive, preflight_probe
 from dobhil.emulator.plant import Plant
+from dobhil.emulator.process import EmulatorProcess, EmulatorSpec, PlantView
 from dobhil.emulator.protocol import EmulatedDrive, LockstepBus
 from dobhil.emulator.registry import make_emulated_drive, private_virtual_channel
 from dobhil.errors import ConfigError, PreflightError
@@ -124,8 +127,8 @@ class RunSession:
                                         duration=self.settings.duration)
         self.sink = sink
         self.stop_request = stop_request or StopRequest()
-        self.plant: Plant | None = None
-        self.emulator: EmulatedDrive | None = None
+        self.plant: Plant | PlantView | None = None
+        self.emulator: EmulatedDrive | EmulatorProcess | None = None
         self._buses: list[can.BusABC] = []
         #: buses whose shutdown failed (one line each; close() does not raise for them)
         self.shutdown_problems: list[str] = []
@@ -150,26 +153,29 @@ class RunSession:
     def _open(self, emulate: bool) -> Drive:
         host = self._add(open_bus(self.bus_spec))
         clock: dict[str, Any] = {}
-        if emulate:
+        if emulate and self.timing is Timing.LOCKSTEP:
             self.plant = Plant.from_config(self.config)
             emu_bus = self._add(open_bus(self.bus_spec))
-            d = self.config.drive
-            lockstep = self.timing is Timing.LOCKSTEP
             self.emulator = make_emulated_drive(emu_bus, self.profile, self.plant,
-                                                latency=lockstep_latency(self.config) if lockstep else d.latency,
-                                                jitter=0.0 if lockstep else d.jitter,
+                                                latency=lockstep_latency(self.config), jitter=0.0,
                                                 seed=self.config.sensor.seed)
-            if self.timing is Timing.LOCKSTEP:
-                lock = LockstepBus(host, [self.emulator], dt=self.config.loop.period)
-                self._add(lock)
-                host = lock
-                clock["clock"] = lock.clock
-            else:
-                # host timing: the emulator below the loop, which keeps its own deadlines;
-                # feedback timing: the emulator is the loop's clock (the drive it stands
-                # for has a CPU of its own) and keeps its priority
-                drop = EMULATOR_PRIORITY_DROP if self.timing is Timing.HOST else 0
-                self.emulator.start(priority_drop=drop)
+            lock = LockstepBus(host, [self.emulator], dt=self.config.loop.period)
+            self._add(lock)
+            host = lock
+            clock["clock"] = lock.clock
+        elif emulate:
+            # host timing: the emulator below the loop, which keeps its own deadlines;
+            # feedback timing: the emulator is the loop's clock (the drive it stands
+            # for has a CPU of its own) and keeps its priority
+            drop = EMULATOR_PRIORITY_DROP if self.timing is Timing.HOST else 0
+            drive_class(self.profile.protocol)   # imported now: the drive streams from its start
+            mirror = host   # the private virtual channel: a copy of every frame
+            # its clock starts with the enable: no frames pile up while the host starts up
+            spec = EmulatorSpec.of(self.config, self.profile, priority_drop=drop, on_first_frame=True)
+            emulator = EmulatorProcess(spec, channel=self.bus_spec.channel, mirror=mirror)
+            self.emulator = emulator
+            self.plant = emulator.plant
+            host = self._add(emulator.bus)
         self._unwrapped_host = host  # the preflight listens here: not recorded as the run's frames
         if self._wrapper is not None:
             host = self._add(self._wrapper(host))
@@ -189,6 +195,8 @@ class RunSession:
     # -- running -------------------------------------------------------------
 
     def truth(self) -> tuple[float, float]:
+        if isinstance(self.emulator, EmulatorProcess):
+            return self.emulator.truth()   # both of one tick
         assert self.plant is not None
         return self.plant.interaction_torque, self.plant.true_position
 
@@ -220,6 +228,8 @@ class RunSession:
         loop = ForceLoop(drive=self.drive, controller=self.controller, reference=self.reference,
                          settings=self.settings, sink=self.sink, stop_request=self.stop_request,
                          truth=self.truth if self.plant is not None else None,
+                         starved=self.emulator.starved if isinstance(self.emulator, EmulatorProcess)
+                         else None,
                          **({"clock": self._clock} if self._clock else {}))
         self.loop = loop
         try:
@@ -230,15 +240,15 @@ class RunSession:
     def _settle(self) -> None:
         """Lockstep: the emulator reads the final frames (zero torque, disable) now, so its
         state after the run is what the drive would be in; real time does this by itself."""
-        if self.timing is Timing.LOCKSTEP and self.emulator is not None:
+        if self.timing is Timing.LOCKSTEP and isinstance(self.emulator, EmulatedDrive):
             try:
                 self.emulator.handle_pending()
             except Exception:
                 pass
 
     def close(self) -> None:
-        """Stop the emulator thread and shut every bus down (never raises twice). A bus
-        that fails to shut down (its link already gone) is noted in
+        """Stop the emulator (its thread or process) and shut every bus down (never raises
+        twice). A bus that fails to shut down (its link already gone) is noted in
         ``shutdown_problems``, not raised: how the run ended must still be told."""
         errors: list[BaseException] = []
         if self.emulator is not None:

@@ -20,6 +20,7 @@ class StopReason(IntEnum):
     ENABLE_FAILED = 8     # the drive could not be enabled
     BUS_ERROR = 9         # the CAN bus failed (send refused, ENOBUFS, interface gone)
     RECORDER_FAILED = 10  # the run's recorder failed (disk full, ...): the record would be lost
+    HOST_TOO_SLOW = 11    # no fresh feedback because the emulated drive itself was not scheduled
 
 
 @dataclass(frozen=True)

@@ -67,7 +67,7 @@ def official_dbc() -> object:
 
 def test_heartbeat_rtr_and_shutdown_without_leaks() -> None:
     """Cyclic heartbeat and encoder frames arrive on their own; an RTR request is answered;
-    shutdown stops the emulator thread (no thread left behind)."""
+    the emulator runs in a process of its own (no thread here); shutdown ends it."""
     db: Any = official_dbc()
     frame_id = {name: db.get_message_by_name(f"Axis{NODE}_{name}").frame_id
                 for name in ("Heartbeat", "Get_Encoder_Estimates", "Get_Bus_Voltage_Current")}
@@ -76,7 +76,7 @@ def test_heartbeat_rtr_and_shutdown_without_leaks() -> None:
     try:
         assert isinstance(bus, DobhilBus)
         assert "odrive" in bus.channel_info and "demo.yaml" in bus.channel_info
-        assert len(set(threading.enumerate()) - before) == 1   # the emulator thread
+        assert set(threading.enumerate()) == before and bus.emulator.running
         seen: dict[int, can.Message] = {}
         end = time.monotonic() + BOUND
         while frame_id["Heartbeat"] not in seen and time.monotonic() < end:   # every 100 ms
@@ -100,7 +100,7 @@ def test_heartbeat_rtr_and_shutdown_without_leaks() -> None:
         assert db.decode_message(request, reply.data)["Bus_Voltage"] == pytest.approx(24.0)
     finally:
         bus.shutdown()
-    assert set(threading.enumerate()) == before
+    assert set(threading.enumerate()) == before and not bus.emulator.running
     bus.shutdown()   # again: no-op
     with pytest.raises(can.CanOperationError):
         bus.send(can.Message(arbitration_id=1))
@@ -180,16 +180,107 @@ def test_odrive_can_client_through_the_dobhil_interface(tmp_path: Path) -> None:
 
 
 def test_a_bus_that_cannot_start_leaves_nothing_running(monkeypatch: pytest.MonkeyPatch) -> None:
-    from dobhil.emulator.protocol import EmulatedDrive
+    from dobhil.emulator.process import EmulatorProcess
 
-    def refuse(self: EmulatedDrive) -> None:
+    def refuse(self: EmulatorProcess, child_end: object) -> None:
         raise RuntimeError("emulator refused to start")
 
     before = set(threading.enumerate())
-    monkeypatch.setattr(EmulatedDrive, "start", refuse)
+    monkeypatch.setattr(EmulatorProcess, "_start", refuse)
     with pytest.raises(RuntimeError, match="refused"):
         can.Bus(interface="dobhil", channel="demo")
-    assert set(threading.enumerate()) == before
-    # both ends of the private channel were shut down: no virtual channel is left open
-    from can.interfaces import virtual
-    assert not [c for c in virtual.channels if str(c).startswith("dobhil-")]
+    assert set(threading.enumerate()) == before   # and the conftest: no bus left open
+
+
+#: a program that opens the dobhil bus, takes a frame, says so, then ends (normally, or by
+#: an exception) without shutdown()
+PROGRAM = """
+import sys, can
+bus = can.Bus(interface="dobhil", channel="demo")
+assert bus.recv(5.0) is not None
+print(getattr(bus.emulator, "pid", 0), flush=True)
+if sys.argv[1] == "raise":
+    raise RuntimeError("the program failed")
+if sys.argv[1] == "sleep":
+    import time
+    time.sleep(60)
+"""
+
+
+@pytest.mark.parametrize("how", ["return", "raise"])
+def test_a_program_that_never_shuts_the_bus_down_still_ends(tmp_path: Path, how: str) -> None:
+    """python-can must not keep the interpreter alive: no thread holds it, and the
+    emulator's process ends with the program (it reads the end of its socket)."""
+    import os
+    import select
+    import subprocess
+    import sys
+
+    script = tmp_path / "no_shutdown.py"   # a plain script: no __main__ guard
+    script.write_text(PROGRAM, encoding="utf-8")
+    proc = subprocess.Popen([sys.executable, str(script), how], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, cwd=tmp_path)
+    try:
+        assert proc.stdout is not None
+        ready, _, _ = select.select([proc.stdout], [], [], 60)   # a bound against a hang
+        assert ready, "the program did not open the bus"
+        line = proc.stdout.readline()   # the bus is open and a frame came
+        assert line.strip().isdigit(), (line, proc.stderr.read() if proc.stderr else "")
+        child = int(line)
+        start = time.monotonic()
+        try:
+            code = proc.wait(timeout=10)   # a bound against a hang; the 2 s is checked below
+        except subprocess.TimeoutExpired:
+            code = None
+        ended = time.monotonic() - start
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    err = proc.stderr.read() if proc.stderr else ""
+    assert code is not None and ended < 2.0, f"the program took {ended:.2f} s to end after its last statement"
+    assert code == (0 if how == "return" else 1), err
+    if how == "raise":
+        assert "RuntimeError: the program failed" in err
+    assert wait_until(lambda: not _alive(child)), "the emulator's process outlived the program"
+    assert os.getpid() != child
+
+
+def _alive(pid: int) -> bool:
+    import os
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    try:   # a zombie child of the (ended) program is reaped by init: gone for good soon
+        with open(f"/proc/{pid}/stat", encoding="ascii") as f:
+            return f.read().split()[2] != "Z"
+    except OSError:
+        return True
+
+
+def test_the_emulator_dies_with_a_killed_program(tmp_path: Path) -> None:
+    """No orphan: a program SIGKILLed with the bus open (no atexit, nothing closed by
+    hand) takes the emulator's process with it -- it reads the end of its socket."""
+    import select
+    import signal
+    import subprocess
+    import sys
+
+    script = tmp_path / "killed.py"
+    script.write_text(PROGRAM, encoding="utf-8")
+    proc = subprocess.Popen([sys.executable, str(script), "sleep"], stdout=subprocess.PIPE,
+                            stderr=subprocess.DEVNULL, text=True, cwd=tmp_path)
+    try:
+        assert proc.stdout is not None
+        ready, _, _ = select.select([proc.stdout], [], [], 60)
+        assert ready, "the program did not open the bus"
+        child = int(proc.stdout.readline())
+        assert _alive(child)
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(timeout=10)
+        assert wait_until(lambda: not _alive(child)), "the emulator's process outlived its program"
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()

@@ -1,0 +1,512 @@
+"""The real-time emulated drive in a process of its own, so the loop it serves cannot starve it.
+
+A drive has a CPU of its own; an emulator thread in the host's interpreter does not: it
+needs the interpreter lock the control loop holds while it spins around each expected
+frame, and a loop thread preempted while holding the lock stops the drive as well (on a
+busy 2-core machine: feedback pauses of 14-88 ms, runs stopped on ``feedback_timeout``).
+:class:`EmulatorProcess` runs the same :class:`~dobhil.emulator.protocol.EmulatedDrive`
+and the same :class:`~dobhil.emulator.plant.Plant` in a child process instead:
+
+- frames cross on a :class:`~dobhil.emulator.pipe.PipeBus` (a local socket pair): the
+  host's end is the bus the host talks on (``bus``); no thread on either side;
+- the child publishes its state after every tick into shared memory (an unlinked
+  temporary file both processes map; a sequence counter around each write, so a reader
+  retries instead of mixing two ticks, and never waits for the child): the ground truth
+  (:attr:`EmulatorProcess.plant`, a :class:`PlantView`), the protocol state the host may
+  look at (``axis_state``, ``watchdog_tripped`` ...), frame counters, and how late its
+  own ticks ran (:meth:`EmulatorProcess.starved`: the host, not the drive, is to blame
+  when the emulated drive itself was not scheduled);
+- the child dies with its parent: it blocks on its end of the socket pair, and reads the
+  end of the stream when the parent's end closes -- also when the parent is killed. It
+  ignores SIGINT and SIGTERM (a Ctrl-C reaches the whole process group, and the drive must
+  outlive the host's safe stop to confirm the disable, as a real drive would);
+- every failure of the child reaches the host as one line: a FAILED record before it
+  exits, or the end of the stream with its exit code (:class:`~can.CanOperationError` on
+  the host's bus, a ``bus_error`` stop of the run), never a traceback;
+- the child is a fresh interpreter (``subprocess``, the two file descriptors passed to
+  it, its spec pickled on its stdin), not a ``multiprocessing`` process: those re-run the
+  parent's main module, and a python-can program opening ``can.Bus(interface="dobhil")``
+  at the top of a script without a ``__main__`` guard would start itself again; never a
+  bare ``fork`` of a process that may have threads. Start-up costs an interpreter and
+  the imports (about a second on a loaded 2-core machine), once per bus.
+
+The lockstep path (deterministic, simulated time) stays in-process: it has no clock to
+fall behind.
+"""
+
+from __future__ import annotations
+
+import atexit
+import dataclasses
+import gc
+import math
+import mmap
+import os
+import pickle
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+from array import array
+from pathlib import Path
+from dataclasses import dataclass
+from enum import IntEnum
+from typing import Any, cast
+
+import can
+
+from dobhil.config.schema import Config
+from dobhil.drives.profile import DriveProfile
+from dobhil.emulator.pipe import PipeBus, RecordKind, socket_pair
+from dobhil.errors import BusError
+
+__all__ = ["EmulatorProcess", "EmulatorSpec", "PlantView", "Slot"]
+
+#: how long a child may take to start (a loaded 2-core machine importing numpy): a bound
+START_TIMEOUT = 60.0
+#: how long a child may take to end after its bus closed, before it is killed
+STOP_TIMEOUT = 2.0
+#: a tick this many periods late is a stall of the emulated drive (it missed a frame)
+STALL_PERIODS = 1.0
+#: the share of a silent window the emulated drive must have stalled for the host to be blamed
+STARVED_SHARE = 0.5
+_READ_TRIES = 64
+
+
+class Slot(IntEnum):
+    """Layout of the shared status block (float64 each)."""
+
+    SEQ = 0               # odd while the child writes
+    TIME = 1              # emulator time [s]
+    DEADLINE = 2          # perf_counter deadline of the newest tick
+    TRUE_POSITION = 3
+    TRUE_VELOCITY = 4
+    MOTOR_TORQUE = 5
+    INTERACTION_TORQUE = 6
+    POSITION = 7          # measured (encoder)
+    VELOCITY = 8
+    APPLIED_TORQUE = 9
+    FRAMES_RECEIVED = 10
+    FRAMES_SENT = 11
+    SEND_ERRORS = 12
+    FRAME_ERRORS = 13
+    OVERRUNS = 14         # ticks the emulator skipped (far behind)
+    LATE_TICKS = 15       # ticks at least STALL_PERIODS late
+    MAX_LATENESS = 16
+    STALL_START = 17      # perf_counter deadline of the newest stalled tick
+    STALL_LENGTH = 18     # how late it ran [s]
+    AXIS_STATE = 19       # protocol state (NaN when the protocol has none)
+    AXIS_ERROR = 20
+    WATCHDOG_TRIPPED = 21
+    FRAMES_REJECTED = 22
+
+
+#: protocol state published when the emulator has it (an attribute of that name)
+OBSERVED: dict[str, Slot] = {"axis_state": Slot.AXIS_STATE, "axis_error": Slot.AXIS_ERROR,
+                             "watchdog_tripped": Slot.WATCHDOG_TRIPPED,
+                             "frames_rejected": Slot.FRAMES_REJECTED}
+
+
+@dataclass(frozen=True)
+class EmulatorSpec:
+    """What the child builds its emulated drive from (picklable)."""
+
+    config: Config
+    profile: DriveProfile
+    latency: float = 0.0
+    jitter: float = 0.0
+    seed: int = 0
+    priority_drop: int = 0   # nice increment of the child (0: the drive's own CPU)
+    #: the drive's clock starts with the host's first frame (power on when the host is
+    #: ready): a run's host starts up without frames piling up for it; False: at once
+    on_first_frame: bool = False
+
+    @classmethod
+    def of(cls, config: Config, profile: DriveProfile, *, priority_drop: int = 0,
+           on_first_frame: bool = False) -> EmulatorSpec:
+        d = config.drive
+        # the profile's bus settings are the host's business (and a read-only mapping)
+        return cls(config, dataclasses.replace(profile, bus={}), d.latency, d.jitter,
+                   config.sensor.seed, priority_drop, on_first_frame)
+
+
+class PlantView:
+    """The child's plant as the host sees it: the ground truth of the newest tick."""
+
+    def __init__(self, owner: EmulatorProcess) -> None:
+        self._owner = owner
+
+    def _get(self, slot: Slot) -> float:
+        return self._owner.snapshot()[slot]
+
+    @property
+    def true_position(self) -> float:
+        return self._get(Slot.TRUE_POSITION)
+
+    @property
+    def true_velocity(self) -> float:
+        return self._get(Slot.TRUE_VELOCITY)
+
+    @property
+    def motor_torque(self) -> float:
+        return self._get(Slot.MOTOR_TORQUE)
+
+    @property
+    def interaction_torque(self) -> float:
+        return self._get(Slot.INTERACTION_TORQUE)
+
+    @property
+    def position(self) -> float:
+        return self._get(Slot.POSITION)
+
+    @property
+    def velocity(self) -> float:
+        return self._get(Slot.VELOCITY)
+
+    @property
+    def time(self) -> float:
+        return self._get(Slot.TIME)
+
+
+class _Shared:
+    """The status block: float64 slots in an unlinked temporary file both processes map."""
+
+    def __init__(self, fd: int | None = None) -> None:
+        size = len(Slot) * 8
+        self._file = None
+        if fd is None:
+            self._file = tempfile.TemporaryFile()
+            fd = self._file.fileno()
+            os.ftruncate(fd, size)
+        self.fd = fd
+        self._map = mmap.mmap(fd, size)
+        self.values = memoryview(self._map).cast("d")
+        if self._file is not None:
+            self.values[:] = array("d", [math.nan] * len(Slot))
+            self.values[Slot.SEQ] = 0.0
+
+
+def _child_env() -> dict[str, str]:
+    """The parent's environment, with the directory of this very dobhil first on the path
+    (the parent may have put a source tree on ``sys.path`` by hand)."""
+    env = dict(os.environ)
+    root = str(Path(__file__).resolve().parents[2])
+    env["PYTHONPATH"] = os.pathsep.join([root, *filter(None, [env.get("PYTHONPATH")])])
+    return env
+
+
+class EmulatorProcess:
+    """An emulated drive in a child process; ``bus`` is the host's end of its bus."""
+
+    def __init__(self, spec: EmulatorSpec, *, channel: Any = None, mirror: can.BusABC | None = None,
+                 receive_own_messages: bool = False, start_timeout: float = START_TIMEOUT) -> None:
+        self.spec = spec
+        self.profile = spec.profile
+        self._closed = False
+        self._process: subprocess.Popen[bytes] | None = None
+        host_end, child_end = socket_pair()
+        self._shared = _Shared()
+        self._last = cast("list[float]", self._shared.values.tolist())
+        self.bus = PipeBus(host_end, channel, gone=self._gone, mirror=mirror,
+                           receive_own_messages=receive_own_messages)
+        try:
+            try:
+                self._process = self._start(child_end)
+            finally:
+                child_end.close()   # the child's copy is its own: ours would hide its end
+            self._wait_ready(start_timeout)
+        except BaseException:
+            self.close()
+            raise
+        # a program that never closes this still ends without waiting for it: the child
+        # reads the end of its stream once this process's end is closed -- here, or by the
+        # kernel when the process ends in any way
+        atexit.register(self.close)
+
+    # -- life -----------------------------------------------------------------
+
+    def _start(self, child_end: socket.socket) -> subprocess.Popen[bytes]:
+        fds = (child_end.fileno(), self._shared.fd)
+        code = f"from {__name__} import child_main; child_main({fds[0]}, {fds[1]})"
+        process = subprocess.Popen([sys.executable, "-c", code], pass_fds=fds, stdin=subprocess.PIPE,
+                                   stdout=subprocess.DEVNULL, env=_child_env(), close_fds=True)
+        assert process.stdin is not None
+        try:
+            process.stdin.write(pickle.dumps(self.spec))
+            process.stdin.close()
+        except OSError:
+            pass   # it is gone already: the wait for READY says how
+        return process
+
+    def _wait_ready(self, timeout: float) -> None:
+        try:
+            record = self.bus.read_record(time.monotonic() + timeout)
+        except can.CanOperationError as exc:
+            raise BusError(f"emulated drive did not start: {exc}") from None
+        if record is None:
+            raise BusError(f"emulated drive did not start within {timeout:g} s")
+        text = record[1:].decode("utf-8", "replace")
+        if record[0] == RecordKind.FAILED:
+            raise BusError(f"emulated drive did not start: {text}")
+        self.bus.peer_text = text
+
+    def _gone(self) -> str:
+        process = self._process
+        code = None
+        if process is not None:
+            try:
+                code = process.wait(0.2)   # it is ending: its exit code names how
+            except subprocess.TimeoutExpired:
+                pass
+        how = ("is still running" if code is None else f"exited with code {code}" if code >= 0
+               else f"was killed by signal {signal.Signals(-code).name}")
+        return f"the emulated drive's process {how} (its bus end closed)"
+
+    @property
+    def pid(self) -> int | None:
+        return None if self._process is None else self._process.pid
+
+    @property
+    def running(self) -> bool:
+        return not self._closed and self._process is not None and self._process.poll() is None
+
+    def stop(self, timeout: float = STOP_TIMEOUT) -> None:
+        """Close the host's end (the child reads the end of its stream and exits); kill it
+        if it has not ended within ``timeout`` s. Never raises: a failure of the child
+        reached the host as a bus error while it ran."""
+        if self._closed:
+            return
+        self._closed = True
+        atexit.unregister(self.close)
+        self.bus.shutdown()
+        process = self._process
+        if process is None:
+            return
+        try:
+            process.wait(timeout)
+        except subprocess.TimeoutExpired:
+            process.kill()
+            process.wait()
+        self.snapshot()
+
+    close = stop
+
+    def __enter__(self) -> EmulatorProcess:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # -- observables -----------------------------------------------------------
+
+    def snapshot(self) -> list[float]:
+        """The newest consistent status block (the last one read if the child is writing
+        every time it is looked at: the reader never waits for the child)."""
+        status = self._shared.values
+        if status[Slot.SEQ] == self._last[Slot.SEQ]:
+            return self._last   # no tick since: several reads in one cycle cost one look
+        for _ in range(_READ_TRIES):
+            seq = status[Slot.SEQ]
+            if seq % 2 == 0:
+                values = cast("list[float]", status.tolist())   # a 'd' view: floats
+                if values[Slot.SEQ] == seq:
+                    self._last = values
+                    break
+        return self._last
+
+    @property
+    def plant(self) -> PlantView:
+        return PlantView(self)
+
+    def truth(self) -> tuple[float, float]:
+        """Interaction torque [N m] and true position [rad] of one tick."""
+        s = self.snapshot()
+        return s[Slot.INTERACTION_TORQUE], s[Slot.TRUE_POSITION]
+
+    def _count(self, slot: Slot) -> int:
+        value = self.snapshot()[slot]
+        return int(value) if value == value else 0
+
+    @property
+    def time(self) -> float:
+        return self.snapshot()[Slot.TIME]
+
+    @property
+    def applied_torque(self) -> float:
+        return self.snapshot()[Slot.APPLIED_TORQUE]
+
+    @property
+    def axis_state(self) -> int:
+        return self._count(Slot.AXIS_STATE)
+
+    @property
+    def axis_error(self) -> int:
+        return self._count(Slot.AXIS_ERROR)
+
+    @property
+    def watchdog_tripped(self) -> bool:
+        return self.snapshot()[Slot.WATCHDOG_TRIPPED] == 1.0
+
+    @property
+    def frames_received(self) -> int:
+        return self._count(Slot.FRAMES_RECEIVED)
+
+    @property
+    def frames_sent(self) -> int:
+        return self._count(Slot.FRAMES_SENT)
+
+    @property
+    def frames_rejected(self) -> int:
+        return self._count(Slot.FRAMES_REJECTED)
+
+    @property
+    def send_errors(self) -> int:
+        return self._count(Slot.SEND_ERRORS)
+
+    @property
+    def frame_errors(self) -> int:
+        return self._count(Slot.FRAME_ERRORS)
+
+    @property
+    def overruns(self) -> int:
+        return self._count(Slot.OVERRUNS)
+
+    @property
+    def late_ticks(self) -> int:
+        """Ticks the emulated drive ran at least a period late (it was not scheduled)."""
+        return self._count(Slot.LATE_TICKS)
+
+    @property
+    def max_lateness(self) -> float:
+        return self.snapshot()[Slot.MAX_LATENESS]
+
+    def stalled(self, window: float, now: float | None = None) -> float:
+        """How long the emulated drive was stalled (not scheduled) during the last
+        ``window`` s: its newest stalled tick, or the tick it owes now."""
+        now = time.perf_counter() if now is None else now
+        s = self.snapshot()
+        begin, period = now - window, self.profile.encoder_msg_rate
+        past = _overlap(s[Slot.STALL_START], s[Slot.STALL_START] + s[Slot.STALL_LENGTH], begin, now)
+        due = s[Slot.DEADLINE] + period   # the next tick's deadline
+        ongoing = _overlap(due, now, begin, now) if now - due >= STALL_PERIODS * period else 0.0
+        return max(past, ongoing)
+
+    def starved(self, window: float) -> str:
+        """Why the feedback stopped if the host, not the drive, is to blame: the emulated
+        drive was itself not scheduled for at least half of the silent ``window``; "" if not."""
+        stall = self.stalled(window)
+        if not stall >= STARVED_SHARE * window:   # NaN: nothing published
+            return ""
+        return (f"the emulated drive itself was not scheduled for {stall * 1e3:.0f} ms of them "
+                "(the host is too slow, not the drive)")
+
+
+def _overlap(a0: float, a1: float, b0: float, b1: float) -> float:
+    length = min(a1, b1) - max(a0, b0)
+    return length if length > 0 else 0.0
+
+
+# -- the child ---------------------------------------------------------------------
+
+class _Publisher:
+    """Writes the status block after every tick (the child's side of :meth:`snapshot`)."""
+
+    def __init__(self, status: Any, emulator: Any, plant: Any) -> None:
+        self._status = status
+        self._emulator = emulator
+        self._plant = plant
+        self._period = emulator.profile.encoder_msg_rate
+        self._observed = [(slot, name) for name, slot in OBSERVED.items() if hasattr(emulator, name)]
+        status[Slot.SEQ] = 0.0
+        for slot in (Slot.LATE_TICKS, Slot.MAX_LATENESS, Slot.STALL_LENGTH):
+            status[slot] = 0.0
+        status[Slot.STALL_START] = -math.inf
+
+    def tick(self, deadline: float, lateness: float) -> None:
+        s, emu, plant = self._status, self._emulator, self._plant
+        seq = s[Slot.SEQ] + 1.0
+        s[Slot.SEQ] = seq
+        s[Slot.TIME] = emu.time
+        s[Slot.DEADLINE] = deadline
+        s[Slot.TRUE_POSITION] = plant.true_position
+        s[Slot.TRUE_VELOCITY] = plant.true_velocity
+        s[Slot.MOTOR_TORQUE] = plant.motor_torque
+        s[Slot.INTERACTION_TORQUE] = plant.interaction_torque
+        s[Slot.POSITION] = plant.position
+        s[Slot.VELOCITY] = plant.velocity
+        s[Slot.APPLIED_TORQUE] = emu.applied_torque
+        s[Slot.FRAMES_RECEIVED] = emu.frames_received
+        s[Slot.FRAMES_SENT] = emu.frames_sent
+        s[Slot.SEND_ERRORS] = emu.send_errors
+        s[Slot.FRAME_ERRORS] = emu.frame_errors
+        s[Slot.OVERRUNS] = emu.overruns
+        for slot, name in self._observed:
+            s[slot] = float(getattr(emu, name))
+        if lateness >= STALL_PERIODS * self._period:
+            s[Slot.LATE_TICKS] += 1.0
+            s[Slot.STALL_START] = deadline
+            s[Slot.STALL_LENGTH] = lateness
+        if lateness > s[Slot.MAX_LATENESS]:
+            s[Slot.MAX_LATENESS] = lateness
+        s[Slot.SEQ] = seq + 1.0
+
+
+def child_main(sock_fd: int, status_fd: int) -> None:
+    """The child: read its spec, build the emulated drive, say READY, tick until the
+    host's end closes."""
+    # the drive outlives the host's signals: it must confirm the host's safe stop
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    sock = socket.socket(fileno=sock_fd)
+    sock.setblocking(False)
+    status = _Shared(status_fd).values
+    closed: list[bool] = []
+
+    def gone() -> str:
+        closed.append(True)
+        return "host end closed"
+
+    # a host that stops reading never stalls the drive's ticks: frames that find no room
+    # are held, the newest per id, and go out once the host reads again
+    bus = PipeBus(sock, "emulator", gone=gone, send_wait=0.0, coalesce=True)
+    try:
+        spec = pickle.load(sys.stdin.buffer)
+        _serve(bus, status, spec)
+    except can.CanOperationError as exc:
+        if not closed:
+            _fail(bus, f"emulated drive stopped: {exc}")
+    except BaseException as exc:  # one line to the host, never a traceback
+        _fail(bus, f"emulated drive failed: {type(exc).__name__}: {exc}")
+    finally:
+        bus.shutdown()
+
+
+def _fail(bus: PipeBus, text: str) -> None:
+    bus.send_text(RecordKind.FAILED, text)
+    bus.shutdown()
+    sys.exit(1)
+
+
+def _serve(bus: PipeBus, status: Any, spec: EmulatorSpec) -> None:
+    from dobhil.emulator.plant import Plant
+    from dobhil.emulator.registry import make_emulated_drive
+    from dobhil.runtime.realtime import lower_priority
+
+    if spec.priority_drop:
+        lower_priority(spec.priority_drop)   # the whole child: it has one thread
+    plant = Plant.from_config(spec.config)
+    emulator = make_emulated_drive(bus, spec.profile, plant, latency=spec.latency,
+                                   jitter=spec.jitter, seed=spec.seed)
+    plant.prepare(spec.profile.encoder_msg_rate)   # set-up cost before READY, not in a tick
+    publisher = _Publisher(status, emulator, plant)
+    publisher.tick(math.nan, 0.0)
+    # everything imported and built so far is never garbage: out of the collector's way, or
+    # a full collection over it (numpy, the config ...) stalls a tick for ~10 ms
+    gc.collect()
+    gc.freeze()
+    bus.send_text(RecordKind.READY, f"{spec.profile.protocol} node {spec.profile.node_id}")
+    if spec.on_first_frame:
+        bus.wait_readable()
+    emulator.run_realtime(publisher.tick)
