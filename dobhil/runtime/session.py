@@ -1,6 +1,6 @@
 """A run put together from a config: buses, (emulated) drive, controller, reference, loop.
 
-:class:`RunSession` owns everything it opens -- buses, the emulator and its thread --
+:class:`RunSession` owns everything it opens -- buses, the emulator and its process --
 and closes all of it, whatever happens (context manager). With ``emulate`` in real time
 the plant emulator runs in a process of its own
 (:class:`~dobhil.emulator.process.EmulatorProcess`: the loop cannot starve it), and every
