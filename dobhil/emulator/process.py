@@ -492,7 +492,7 @@ def _fail(bus: PipeBus, text: str) -> None:
 def _serve(bus: PipeBus, status: Any, spec: EmulatorSpec) -> None:
     from dobhil.emulator.plant import Plant
     from dobhil.emulator.registry import make_emulated_drive
-    from dobhil.runtime.realtime import lower_priority
+    from dobhil.realtime import lower_priority
 
     if spec.priority_drop:
         lower_priority(spec.priority_drop)   # the whole child: it has one thread
