@@ -37,6 +37,38 @@ def foreign_frames(n: int) -> list[can.Message]:
     return out
 
 
+class WithForeign(can.BusABC):
+    """The run's bus with other participants on it: what they send on ``channel`` (a
+    ``virtual`` channel) is received here among the drive's frames. A real-time emulated
+    drive is a process of its own joined to the loop by a socket pair, so a flood cannot
+    share that pair; this puts it on the loop's side of the bus, where a real bus has it."""
+
+    def __init__(self, host: can.BusABC, channel: str) -> None:
+        self.host = host
+        self.others = can.Bus(interface="virtual", channel=channel)
+        super().__init__(channel=host.channel_info)
+
+    def send(self, msg: can.Message, timeout: float | None = None) -> None:
+        self.host.send(msg, timeout)
+
+    def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
+        deadline = None if timeout is None else time.perf_counter() + timeout
+        while True:
+            msg = self.others.recv(0)
+            if msg is not None:
+                return msg, False
+            left = None if deadline is None else deadline - time.perf_counter()
+            if left is not None and left <= 0:
+                return None, False
+            msg = self.host.recv(1e-3 if left is None else min(left, 1e-3))
+            if msg is not None:
+                return msg, False
+
+    def shutdown(self) -> None:
+        self.others.shutdown()   # the host bus is the session's: it shuts that down
+        super().shutdown()
+
+
 class Flood:
     """A participant of the bus sending ``rate`` foreign frames per second, in bursts every 5 ms."""
 
@@ -81,12 +113,20 @@ def test_a_bus_flood_sheds_foreign_frames_and_keeps_every_record_of_the_loop(tmp
     path = tmp_path / "flood.mcap"
     log = open_run_log(path, fsync=False)
     assert log is not None
-    with RunSession(config, emulate=True, lockstep=False, sink=log, bus_wrapper=log.wrap_bus) as session:
-        flood = Flood(session.bus_spec.channel, FLOOD_PER_DRIVE_FRAME * DRIVE_RATE)
+    channel, joined = f"flood-{time.monotonic_ns()}-x", []
+
+    def join(bus: can.BusABC) -> can.BusABC:
+        joined.append(WithForeign(bus, channel))
+        return log.wrap_bus(joined[-1])
+
+    with RunSession(config, emulate=True, lockstep=False, sink=log, bus_wrapper=join) as session:
+        flood = Flood(channel, FLOOD_PER_DRIVE_FRAME * DRIVE_RATE)
         try:
             result = record_run(session, log, DEMO, on_begin=flood.start)
         finally:
             flood.stop()
+            for bus in joined:
+                bus.shutdown()
     with open_log(path) as recorded:
         counts = {c.topic: c.message_count for c in recorded.info().channels}
         rx = [p["arbitration_id"] for _, _, p in recorded.iter_messages(["/can/rx"])]
