@@ -9,6 +9,7 @@ import subprocess
 import sys
 import time
 from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import pytest
@@ -58,8 +59,10 @@ def stop_process(proc: subprocess.Popen[bytes]) -> None:
             proc.wait(timeout=10)
 
 
-def serve_hub(tmp_path: Path) -> Iterator[int]:
-    """``python -m can_remote`` serving a virtual channel on 127.0.0.1; yields its port."""
+@contextmanager
+def hub_process(tmp_path: Path) -> Iterator[tuple[subprocess.Popen[bytes], int]]:
+    """``python -m can_remote`` serving a virtual channel on 127.0.0.1: its process (a test
+    may stop or freeze it mid-run) and its port."""
     port = free_port()
     log = (tmp_path / "hub.log").open("wb")
     proc = subprocess.Popen(
@@ -73,9 +76,15 @@ def serve_hub(tmp_path: Path) -> Iterator[int]:
                 pytest.skip(f"python-can-remote hub did not start on 127.0.0.1:{port}: "
                             f"{(tmp_path / 'hub.log').read_text(errors='replace')[-300:]!r}")
             time.sleep(0.05)
-        yield port
+        yield proc, port
     finally:
         stop_process(proc)
         log.close()
+
+
+def serve_hub(tmp_path: Path) -> Iterator[int]:
+    """The hub of :func:`hub_process`; yields its port."""
+    with hub_process(tmp_path) as (_proc, port):
+        yield port
 
 

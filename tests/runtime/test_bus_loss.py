@@ -36,7 +36,7 @@ from dobhil.runtime.session import RunSession, summary
 from dobhil.runtime.stop import Stop, StopReason
 
 from .helpers import DEMO, NODE, REPO, wait_until
-from .hub import STARTUP_TIMEOUT, accepts, child_env, free_port, stop_process, wait_for_emulator
+from .hub import STARTUP_TIMEOUT, child_env, hub_process, stop_process, wait_for_emulator
 from .test_cross_process import slow_overrides
 from .test_fault_matrix import matrix_config, watchdog_stops_it
 
@@ -45,28 +45,6 @@ AT = 100   # cycle at which the bus dies
 
 
 # -- across processes: the hub stopped ---------------------------------------------------
-
-@contextmanager
-def hub_process(tmp_path: Path) -> Iterator[tuple[subprocess.Popen[bytes], int]]:
-    """A python-can-remote hub on 127.0.0.1 (as ``hub.serve_hub``), its process handed
-    out so the test can stop it mid-run."""
-    port = free_port()
-    log = (tmp_path / "hub.log").open("wb")
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "can_remote", "-i", "virtual", "-c", f"dobhil-loss-{port}",
-         "-H", "127.0.0.1", "-p", str(port)],
-        stdout=log, stderr=subprocess.STDOUT, env=child_env(), cwd=REPO)
-    try:
-        deadline = time.monotonic() + STARTUP_TIMEOUT
-        while not accepts(port):
-            if proc.poll() is not None or time.monotonic() > deadline:
-                pytest.skip("python-can-remote hub did not start")
-            time.sleep(0.05)
-        yield proc, port
-    finally:
-        stop_process(proc)
-        log.close()
-
 
 def dobhil(args: list[str], out: Path) -> subprocess.Popen[bytes]:
     with out.open("wb") as f:
@@ -88,31 +66,41 @@ def wait_for_torque_frames(url: str, count: int) -> None:
         sniffer.shutdown()
 
 
+Proc = subprocess.Popen[bytes]
+
+
+@contextmanager
+def run_on_hub(tmp_path: Path) -> Iterator[tuple[Proc, str, Path, Path, list[Proc]]]:
+    """``dobhil emulate`` and ``dobhil run`` (60 s) on a hub, mid-run (20 torque commands
+    through the hub): the hub's process, its URL, the emulator's and the run's outputs,
+    and [run, emulate], stopped on the way out whatever the test did to the hub."""
+    overrides = [a for o in slow_overrides(tmp_path) for a in ("--set", o)]
+    with hub_process(tmp_path) as (hub, port):
+        url = f"remote:ws://127.0.0.1:{port}/"
+        emu_out, run_out = tmp_path / "emulate.log", tmp_path / "run.log"
+        procs = [dobhil(["emulate", str(DEMO), "--bus", url, *overrides], emu_out)]
+        try:
+            wait_for_emulator(procs[0], emu_out)
+            procs.insert(0, dobhil(["run", str(DEMO), "--bus", url, "--no-preflight", "--duration", "60",
+                                    *overrides], run_out))
+            wait_for_torque_frames(url[len("remote:"):], 20)
+            yield hub, url, emu_out, run_out, procs
+        finally:
+            for proc in procs:
+                stop_process(proc)
+
+
 def test_hub_frozen_mid_run(tmp_path: Path) -> None:
     """The hub is frozen (SIGSTOP) mid-run: the run stops (no feedback), cannot have the
     disable confirmed and says so; the remote bus's shutdown, which would wait for the
     frozen hub for ever, is given up after a bound: exit 1, the stop line, the warning.
     (The emulator, its sends blocked, is not asked anything here.)"""
-    overrides = [a for o in slow_overrides(tmp_path) for a in ("--set", o)]
-    with hub_process(tmp_path) as (hub, port):
-        url = f"remote:ws://127.0.0.1:{port}/"
-        emu_out, run_out = tmp_path / "emulate.log", tmp_path / "run.log"
-        emulate = dobhil(["emulate", str(DEMO), "--bus", url, *overrides], emu_out)
-        run = None
+    with run_on_hub(tmp_path) as (hub, _url, _emu_out, run_out, (run, _emulate)):
+        os.kill(hub.pid, signal.SIGSTOP)
         try:
-            wait_for_emulator(emulate, emu_out)
-            run = dobhil(["run", str(DEMO), "--bus", url, "--no-preflight", "--duration", "60",
-                          *overrides], run_out)
-            wait_for_torque_frames(url[len("remote:"):], 20)
-            os.kill(hub.pid, signal.SIGSTOP)
-            try:
-                run.wait(timeout=60)
-            finally:
-                os.kill(hub.pid, signal.SIGCONT)
+            run.wait(timeout=60)
         finally:
-            for proc in (run, emulate):
-                if proc is not None:
-                    stop_process(proc)
+            os.kill(hub.pid, signal.SIGCONT)
     text = run_out.read_text(errors="replace")
     stops = [line for line in text.splitlines() if line.startswith("stopped:")]
     assert run.returncode == 1, text
@@ -152,24 +140,10 @@ def test_hub_stopped_mid_run(tmp_path: Path) -> None:
     """``dobhil run`` and ``dobhil emulate`` on a hub; the hub is stopped mid-run. The
     run: exit 1, its stop line, the loud warning (the safe stop cannot reach the drive);
     the emulator: notices, one line, exit 1. No traceback from either."""
-    overrides = [a for o in slow_overrides(tmp_path) for a in ("--set", o)]
-    with hub_process(tmp_path) as (hub, port):
-        url = f"remote:ws://127.0.0.1:{port}/"
-        emu_out, run_out = tmp_path / "emulate.log", tmp_path / "run.log"
-        emulate = dobhil(["emulate", str(DEMO), "--bus", url, *overrides], emu_out)
-        run = None
-        try:
-            wait_for_emulator(emulate, emu_out)
-            run = dobhil(["run", str(DEMO), "--bus", url, "--no-preflight", "--duration", "60",
-                          *overrides], run_out)
-            wait_for_torque_frames(url[len("remote:"):], 20)
-            stop_process(hub)
-            run.wait(timeout=60)
-            emulate.wait(timeout=60)
-        finally:
-            for proc in (run, emulate):
-                if proc is not None:
-                    stop_process(proc)
+    with run_on_hub(tmp_path) as (hub, url, emu_out, run_out, (run, emulate)):
+        stop_process(hub)
+        run.wait(timeout=60)
+        emulate.wait(timeout=60)
     text = run_out.read_text(errors="replace")
     stops = [line for line in text.splitlines() if line.startswith("stopped:")]
     assert run.returncode == 1, text
