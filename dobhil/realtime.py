@@ -39,6 +39,9 @@ _MCL_CURRENT, _MCL_FUTURE = 1, 2
 WRITER_PRIORITY_DROP = 10
 #: nice increment of an emulator thread or process (it stands for the drive: a little only)
 EMULATOR_PRIORITY_DROP = 3
+#: nice decrement of an emulated drive's own process in feedback timing, where allowed: it
+#: stands for a drive with a CPU of its own, which no other process on the host can delay
+EMULATOR_PRIORITY_BOOST = 5
 
 
 def apply_realtime(priority: int, cpu: int = -1) -> list[str]:
@@ -68,6 +71,20 @@ def lower_priority(increment: int = WRITER_PRIORITY_DROP, pid: int = 0) -> str:
         os.setpriority(os.PRIO_PROCESS, pid, min(current + increment, 19))
     except OSError as exc:
         return f"priority not lowered ({exc.strerror or exc})"
+    return ""
+
+
+def raise_priority(boost: int = EMULATOR_PRIORITY_BOOST) -> str:
+    """Lower the nice value of the calling process by ``boost`` where the OS allows it
+    (root, CAP_SYS_NICE or RLIMIT_NICE: an ordinary user may not). Returns a warning, or ""
+    when done. Never raises."""
+    if boost <= 0 or not hasattr(os, "setpriority"):
+        return "" if boost <= 0 else "raising the priority is not supported here"
+    try:
+        current = os.getpriority(os.PRIO_PROCESS, 0)
+        os.setpriority(os.PRIO_PROCESS, 0, max(current - boost, -20))
+    except OSError as exc:
+        return f"priority not raised ({exc.strerror or exc})"
     return ""
 
 
