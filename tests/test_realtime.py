@@ -96,3 +96,19 @@ def test_run_in_background_gives_another_process_idle_time_only() -> None:
         assert os.sched_getscheduler(child.pid) == os.SCHED_IDLE
     finally:
         child.communicate(b"")
+
+
+@pytest.mark.skipif(not hasattr(os, "setpriority"), reason="no nice values here")
+def test_raise_priority_where_allowed_else_one_warning() -> None:
+    """In a child (pytest keeps its own priority): the nice value drops by the boost where
+    the OS allows it (root, CAP_SYS_NICE), else it stays and one warning says why."""
+    import subprocess
+    code = ("import os; from dobhil.realtime import raise_priority; before = os.getpriority(os.PRIO_PROCESS, 0);"
+            " warning = raise_priority(5); print(before, os.getpriority(os.PRIO_PROCESS, 0), repr(warning))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split(" ", 2)
+    before, after, warning = int(out[0]), int(out[1]), out[2].strip()
+    if warning == "''":
+        assert after == max(before - 5, -20)
+    else:
+        assert after == before and "priority not raised" in warning
+    assert realtime.raise_priority(0) == ""   # no boost asked: nothing done
