@@ -436,7 +436,9 @@ def _live_run(duration: float, path: Path, live: bool) -> float:
     from dobhil.runtime.session import RunSession
     config = load_config(ROOT / "configs/demo.yaml", [f"loop.duration={duration}"])
     path.unlink(missing_ok=True)
-    log = open_run_log(path, live=("127.0.0.1", 0) if live else None, fsync=False)
+    from dobhil.live import LiveServer
+    from dobhil.recording.writer import LiveView
+    log = open_run_log(path, live=LiveView(LiveServer, "127.0.0.1", 0) if live else None, fsync=False)
     assert log is not None
     clients: list[subprocess.Popen[str]] = []
 
