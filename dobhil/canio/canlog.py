@@ -6,6 +6,7 @@ records as ``can.Logger("x.mcap")``); outputs checked first and written under a 
 
 from __future__ import annotations
 
+import math
 import os
 from collections.abc import Callable, Mapping
 from enum import IntEnum
@@ -81,7 +82,20 @@ def _start_at_earliest(writer: can.ASCWriter, log: Any, topics: list[str]) -> No
     before it was read: so the file starts at the earliest frame (one event line)."""
     earliest = min((p.get("timestamp") or t / 1e9 for _, t, p in log.iter_messages(topics)), default=None)
     if earliest is not None:
-        writer.log_event("dobhil log export", earliest)
+        writer.log_event("dobhil log export", asc_start(earliest))
+
+
+def asc_start(earliest: float) -> float:
+    """A start time for an ASC file, at or before ``earliest``, that python-can reads back
+    as it wrote it. Workaround: python-can's ASCWriter writes the header's milliseconds
+    without leading zeros (``12:00:07.46`` for 46 ms) and its reader takes them as a
+    fraction (0.46 s), so a start in the first 100 ms of a second would read back up to
+    0.9 s late. A whole millisecond (the header holds no more) from 100 to 999 reads back
+    exactly: the nearest one at or before ``earliest``."""
+    ms = math.floor(earliest * 1000)
+    if ms % 1000 < 100:
+        ms -= ms % 1000 + 1   # the last millisecond of the second before
+    return ms / 1000
 
 
 def _can_reader(path: Path) -> Any:

@@ -74,3 +74,20 @@ def test_asc_export_then_import_keeps_the_date(lockstep_log: Path, tmp_path: Pat
     assert datetime.datetime.fromtimestamp(imported[0], tz=datetime.timezone.utc).year == year
     assert imported[0] == pytest.approx(original[0], abs=ASC_START_RESOLUTION)
     assert imported[-1] == pytest.approx(original[-1], abs=ASC_START_RESOLUTION)
+
+
+@pytest.mark.parametrize("earliest", [1796190707.0463517, 1796190707.0, 1796190707.0999, 1796190707.1, 1796190707.5004])
+def test_an_asc_start_reads_back_as_written(tmp_path: Path, earliest: float) -> None:
+    """python-can writes an ASC header's milliseconds unpadded (46 ms as ``.46``) and reads
+    them as a fraction: the export starts at a time that survives that (whole ms, >= 100)."""
+    import can
+
+    from dobhil.canio.canlog import asc_start
+    start = asc_start(earliest)
+    assert start <= earliest and earliest - start < 0.101 and round(start * 1000) % 1000 >= 100
+    path = tmp_path / "start.asc"
+    with can.ASCWriter(path) as writer:
+        writer.log_event("start", start)
+        writer.on_message_received(can.Message(arbitration_id=0x69, data=b"\x01", timestamp=earliest))
+    (msg,) = list(can.LogReader(path, relative_timestamp=False))
+    assert msg.timestamp == pytest.approx(earliest, abs=1e-5)
