@@ -64,27 +64,25 @@ def lower_priority(increment: int = WRITER_PRIORITY_DROP, pid: int = 0) -> str:
     elsewhere the process) or of process ``pid`` (e.g. the writer process, from the
     process that started it: the writer itself imports nothing for it) by ``increment``.
     Returns a warning, or "" when done. Never raises."""
-    if increment <= 0 or not hasattr(os, "setpriority"):
-        return "" if increment <= 0 else "lowering the priority is not supported here"
-    try:
-        current = os.getpriority(os.PRIO_PROCESS, pid)
-        os.setpriority(os.PRIO_PROCESS, pid, min(current + increment, 19))
-    except OSError as exc:
-        return f"priority not lowered ({exc.strerror or exc})"
-    return ""
+    return _renice(increment, pid, "lowered") if increment > 0 else ""
 
 
 def raise_priority(boost: int = EMULATOR_PRIORITY_BOOST) -> str:
     """Lower the nice value of the calling process by ``boost`` where the OS allows it
     (root, CAP_SYS_NICE or RLIMIT_NICE: an ordinary user may not). Returns a warning, or ""
     when done. Never raises."""
-    if boost <= 0 or not hasattr(os, "setpriority"):
-        return "" if boost <= 0 else "raising the priority is not supported here"
+    return _renice(-boost, 0, "raised") if boost > 0 else ""
+
+
+def _renice(delta: int, pid: int, done: str) -> str:
+    """Add ``delta`` to the nice value of ``pid`` (0: the calling thread), within -20..19."""
+    if not hasattr(os, "setpriority"):
+        return f"the priority cannot be {done} here"
     try:
-        current = os.getpriority(os.PRIO_PROCESS, 0)
-        os.setpriority(os.PRIO_PROCESS, 0, max(current - boost, -20))
+        current = os.getpriority(os.PRIO_PROCESS, pid)
+        os.setpriority(os.PRIO_PROCESS, pid, max(-20, min(current + delta, 19)))
     except OSError as exc:
-        return f"priority not raised ({exc.strerror or exc})"
+        return f"priority not {done} ({exc.strerror or exc})"
     return ""
 
 
