@@ -89,7 +89,7 @@ def test_a_missing_answer_is_canopens_timeout_on_the_drives_clock() -> None:
     link = link_on(bus, [], bus.clock, timeout=5.0)
     start = time.monotonic()
     with link.session(None), pytest.raises(canopen.SdoCommunicationError, match="No SDO response"):
-        link.node.sdo[0x6502].raw
+        link.node.sdo[0x6502].read()
     assert time.monotonic() - start < 2.0   # 5 s on the simulated clock, not the wall's
     assert bus.now == pytest.approx(5.0, abs=WAIT_SLICE)
     # canopen sent its own abort (0x05040000: SDO protocol timed out) and did not wait for it
@@ -101,7 +101,7 @@ def test_an_abort_from_the_node_is_canopens_abort() -> None:
     bus = ScriptedBus({bytes.fromhex("40 02 65 00"): [frame(0x585, "80 02 65 00 00 00 02 06")]})
     link = link_on(bus, [], bus.clock)
     with link.session(None), pytest.raises(canopen.SdoAbortedError) as info:
-        link.node.sdo[0x6502].raw
+        link.node.sdo[0x6502].read()
     assert info.value.code == 0x06020000
 
 
@@ -110,7 +110,7 @@ def test_a_cancel_ends_the_wait_within_a_slice() -> None:
     link = link_on(bus, [], bus.clock, timeout=10.0)
     with link.session(lambda: "received SIGINT" if bus.now > 0.1 else ""), \
             pytest.raises(WaitCancelled, match="received SIGINT while waiting for an SDO answer"):
-        link.node.sdo[0x6502].raw
+        link.node.sdo[0x6502].read()
     assert bus.now <= 0.1 + 2 * WAIT_SLICE
 
 
