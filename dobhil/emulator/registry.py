@@ -20,6 +20,7 @@ from dobhil.errors import ConfigError
 #: protocol name -> (module, class name)
 EMULATOR_CLASSES: Mapping[str, tuple[str, str]] = MappingProxyType({
     "odrive": ("dobhil.emulator.odrive", "EmulatedODrive"),
+    "cia402": ("dobhil.emulator.cia402", "EmulatedCiA402"),
 })
 
 
