@@ -39,24 +39,22 @@ import struct
 import time
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
-from dataclasses import dataclass
-from pathlib import Path
 from typing import TYPE_CHECKING, Any, ClassVar
 
 import can
 import canopen
 from canopen.emcy import EmcyError
-from canopen.objectdictionary import ObjectDictionary, ObjectDictionaryError, ODVariable
 
 from dobhil.drives.base import Clock, Drive, DriveEvent, MotionEvent, SafeStopReport, StateEvent
 from dobhil.drives.cia402 import codec
 from dobhil.drives.cia402.codec import CST_MODE, Cob, Controlword, Mapped, NmtState, PowerState
+from dobhil.drives.cia402.eds import layouts_of, load_od
 from dobhil.drives.cia402.link import CanopenLink
 from dobhil.drives.cia402.rules import CIA402_RULES
 from dobhil.drives.periodic import native_periodic
 from dobhil.drives.profile import DriveProfile, ProtocolRules
 from dobhil.drives.waits import Cancel
-from dobhil.errors import CodecError, ConfigError, DriveError, DriveFaultError, DriveTimeoutError
+from dobhil.errors import CodecError, DriveError, DriveFaultError, DriveTimeoutError
 
 if TYPE_CHECKING:
     from canopen.pdo import PdoMap
@@ -70,20 +68,7 @@ RATED_TORQUE_TOLERANCE = 0.01
 RATED_TORQUE_UNITS = {"mNm": 1e-3, "uNm": 1e-6}
 #: CiA 301 EMCY code of a heartbeat or life-guarding error: the node's watchdog on the host
 EMCY_HEARTBEAT = 0x8130
-#: objects the drive reads or writes besides the mapped ones (the EDS must have them)
-_REQUIRED = {0x1006: "communication cycle period", 0x1017: "producer heartbeat time",
-             0x1018: "identity", 0x6060: "modes of operation", 0x6076: "motor rated torque",
-             0x6502: "supported drive modes"}
 _OUT_OF_TORQUE = frozenset(PowerState) - {PowerState.OPERATION_ENABLED, PowerState.UNKNOWN}
-
-
-@dataclass(frozen=True, slots=True)
-class Layouts:
-    """The three PDOs' structs, derived from the object dictionary's data types."""
-
-    rpdo: struct.Struct
-    status: struct.Struct
-    motion: struct.Struct
 
 
 class CiA402Drive(Drive):
@@ -193,7 +178,7 @@ class CiA402Drive(Drive):
                  lambda n: self._map(n.tpdo[self._tpdo_n + 1], codec.TPDO_MOTION)),
                 ("timing set", self._write_timing),
                 ("CST mode set", lambda n: setattr(n.sdo[0x6060], "raw", CST_MODE)),
-                ("operational", lambda n: n.nmt.send_command(codec.NmtCommand.START)),
+                ("operational", self._start_node),
             )
             for what, step in steps:
                 if self._clock() > deadline:
@@ -273,6 +258,12 @@ class CiA402Drive(Drive):
         node.sdo[0x1006].raw = round(self._period * 1e6)
         heartbeat = self.profile.heartbeat_period
         node.sdo[0x1017].raw = round(heartbeat * 1e3) if heartbeat else 0
+
+    def _start_node(self, node: Any) -> None:
+        node.nmt.send_command(codec.NmtCommand.START)
+        # commanded, not yet heard: a boot-up or pre-operational heartbeat from before the
+        # command must not count against the node (its next heartbeat tells)
+        self._nmt = -1
 
     def _startup_frame(self, msg: can.Message) -> None:
         """A frame read while waiting for an SDO answer that is not one: the drive's."""
@@ -442,94 +433,3 @@ def emcy_text(code: int) -> str:
 
 def _reached(reached: Sequence[str]) -> str:
     return ", ".join(reached) if reached else "nothing"
-
-
-# -- object dictionary and layouts -------------------------------------------
-
-
-def eds_path(profile: DriveProfile) -> Path:
-    """The profile's ``cia402.eds``: a path, or relative to the profile's directory."""
-    name = Path(str(profile.options["eds"]))
-    base = getattr(profile, "directory", None)
-    candidates = [name] if name.is_absolute() else \
-        [*([Path(base) / name] if base else []), name, _shipped(name)]
-    for path in candidates:
-        if path.is_file():
-            return path
-    raise ConfigError(f"drive profile {profile.name!r}: cia402.eds: file {str(name)!r} not found "
-                      f"(relative to the profile's directory, or a path)")
-
-
-def _shipped(name: Path) -> Path:
-    from dobhil.drives.profile import default_drivers_dir
-    return default_drivers_dir() / name
-
-
-def load_od(profile: DriveProfile) -> ObjectDictionary:
-    """The profile's EDS read by canopen, with every object the drive uses; ConfigError
-    (one line) otherwise."""
-    path = eds_path(profile)
-    try:
-        od = canopen.import_od(str(path), profile.node_id)
-    except (ObjectDictionaryError, ValueError, KeyError, OSError) as exc:
-        raise ConfigError(f"{path}: not a readable EDS: {' '.join(str(exc).split())}") from None
-    objects = {**_REQUIRED, **{m.index: m.name for m in (*codec.RPDO_CST, *codec.TPDO_STATUS,
-                                                          *codec.TPDO_MOTION)}}
-    for index, name in objects.items():
-        if index not in od:
-            raise ConfigError(f"{path}: object 0x{index:04X} ({name}) missing: a CiA 402 drive in CST "
-                              "needs it")
-    _check_eds_values(od, path)
-    return od
-
-
-def _check_eds_values(od: ObjectDictionary, path: Path) -> None:
-    modes = _default(od, 0x6502)
-    if modes is not None and not int(modes) >> codec.CST_SUPPORTED_BIT & 1:
-        raise ConfigError(f"{path}: 0x6502 (supported drive modes) = 0x{int(modes):08X} has no cyclic "
-                          f"synchronous torque (bit {codec.CST_SUPPORTED_BIT}); dobhil drives CST only")
-    rated = _default(od, 0x6076)
-    if rated is not None and int(rated) <= 0:
-        raise ConfigError(f"{path}: 0x6076 (motor rated torque) = {rated}: a rated torque of 0 makes "
-                          "every per mille torque 0; give the motor's rated torque")
-
-
-def _default(od: ObjectDictionary, index: int) -> Any:
-    var = od[index]
-    return var.default if isinstance(var, ODVariable) else None
-
-
-def layouts_of(od: ObjectDictionary, profile: DriveProfile) -> Layouts:
-    """The PDOs' structs from the data types canopen gives the mapped objects (a PDO map
-    built offline: canopen's ``PdoMap.add_variable`` on a node that is on no bus). A
-    mapping beyond 64 bits is refused in one line."""
-    node = canopen.RemoteNode(profile.node_id, od)
-    opts = profile.options
-    maps = ((node.rpdo, int(opts["rpdo"]), codec.RPDO_CST), (node.tpdo, int(opts["tpdo"]), codec.TPDO_STATUS),
-            (node.tpdo, int(opts["tpdo"]) + 1, codec.TPDO_MOTION))
-    structs = []
-    for pdos, number, objects in maps:
-        types = pdo_data_types(pdos, number, objects)
-        try:
-            structs.append(codec.layout_struct(types))
-        except CodecError as exc:
-            names = " + ".join(f"{m.label} {len_bits(t)} bits" for m, t in zip(objects, types))
-            raise ConfigError(f"drive profile {profile.name!r}: PDO {number} mapping does not fit: "
-                              f"{names}: {exc}") from None
-    return Layouts(*structs)
-
-
-def len_bits(data_type: int) -> int:
-    return codec.layout_bits([data_type])
-
-
-def pdo_data_types(pdos: Any, number: int, objects: Sequence[Mapped]) -> list[int]:
-    """Data types of ``objects`` as canopen maps them into PDO ``number`` (offline)."""
-    try:
-        pdo = pdos[number]
-    except KeyError:
-        raise ConfigError(f"the EDS has no PDO {number} (its communication and mapping records)") from None
-    pdo.clear()
-    for obj in objects:
-        pdo.add_variable(obj.index, obj.subindex)
-    return [var.od.data_type for var in pdo.map]
