@@ -18,7 +18,7 @@ from dobhil.emulator.cia402 import EmulatedCiA402, PowerState
 from dobhil.emulator.plant import Plant
 from dobhil.emulator.registry import private_virtual_channel
 
-from .cia402_rig import NODE, OPTIONS, cia402_profile
+from .cia402_rig import NODE, cia402_profile
 
 EDS = str(drivers_dir() / "cia402-emulated.eds")
 BOUND = 10.0   # [s] generous: a loaded 2-core machine
@@ -28,8 +28,7 @@ class Client:
     def __init__(self) -> None:
         channel = private_virtual_channel()
         self.emu = EmulatedCiA402(can.Bus(interface="virtual", channel=channel),
-                                  cia402_profile(encoder_msg_rate=0.002), Plant(inertia=0.01),
-                                  options=OPTIONS)
+                                  cia402_profile(feedback_period=0.002), Plant(inertia=0.01))
         self.emu.start()
         self.network = canopen.Network()
         self.network.connect(interface="virtual", channel=channel)

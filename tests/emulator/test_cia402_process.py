@@ -37,7 +37,7 @@ def _send(bus: can.BusABC, can_id: int, data: bytes | list[int] = b"") -> None:
 
 
 def test_emulator_process_answers_sdo_nmt_and_sync() -> None:
-    spec = EmulatorSpec.of(load_config("demo"), cia402_profile(encoder_msg_rate=0.002))
+    spec = EmulatorSpec.of(load_config("demo"), cia402_profile(feedback_period=0.002))
     with EmulatorProcess(spec) as process:
         bus = process.bus
         _send(bus, SDO_RX, upload(0x6502))
