@@ -359,3 +359,22 @@ def test_an_eds_the_drive_would_refuse_ends_in_its_one_line(tmp_path: Path, drop
     finally:
         bus.shutdown()
     assert "\n" not in str(info.value)
+
+
+def test_sync_from_the_lockstep_bus_periodic_send_is_answered_at_each_period(rig: Lockstep) -> None:
+    enable_cst(rig)
+    task = rig.bus.send_periodic(can.Message(arbitration_id=SYNC, data=b"", is_extended_id=False), 0.002)
+    try:
+        start = rig.emu.time
+        rig.run(0.0105)
+        after = [(round(t - start, 9), can_id) for t, can_id, _ in rig.seen if t > start]
+        # each SYNC (echoed to the host first, as SocketCAN loops BCM frames back), then its TPDOs
+        assert after == [(k * 0.002, can_id) for k in range(1, 6) for can_id in (SYNC, TPDO1, TPDO2)]
+        assert round(rig.emu.time - start, 9) == 0.011    # between the SYNCs of 10 and 12 ms
+        rig.rpdo(0x0F, 200)
+        rig.read()
+        assert rig.emu.applied_torque == 0.0  # received, latched until the next SYNC
+        rig.run(0.001)
+        assert round(rig.emu.time - start, 9) == 0.012 and rig.emu.applied_torque == 0.2
+    finally:
+        task.stop()
