@@ -76,6 +76,7 @@ from canopen.objectdictionary import ODVariable
 from canopen.sdo import SdoAbortedError, SdoVariable
 
 from dobhil.drives.cia402.eds import load_od
+from dobhil.drives.cia402.link import quiet_canopen
 from dobhil.drives.profile import DriveProfile
 from dobhil.emulator.protocol import EmulatedDrive, PlantLike
 from dobhil.errors import ConfigError
@@ -103,6 +104,8 @@ _I16 = struct.Struct("<h")
 _I8 = struct.Struct("<b")
 _PDO_INVALID = 1 << 31
 _NMT, _HEARTBEAT = 0x000, 0x700
+#: SDO abort (ccs 4), no object, code 0x05040001: client/server command specifier not valid
+_SDO_ABORT_UNKNOWN_COMMAND = bytes([0x80, 0, 0, 0]) + (0x05040001).to_bytes(4, "little")
 
 
 class PowerState(IntEnum):
@@ -401,7 +404,24 @@ class EmulatedCiA402(EmulatedDrive):
             return
         if self._pdo_dirty:
             self._compile_pdos()
+        if can_id == self.node.sdo.rx_cobid:
+            self._sdo_request(data, msg.timestamp)
+            return
         self.network.notify(can_id, data, msg.timestamp)
+
+    def _sdo_request(self, data: bytearray, timestamp: float) -> None:
+        """canopen's SDO server, around two of its failure paths (canopen 2.4.1): a segment
+        request with no transfer in progress makes its own abort raise (it packs the
+        transfer's index, None: ``struct.error``), and it logs refused requests (block
+        transfers) through Python's last-resort handler, i.e. prints them. Here the abort
+        is sent for it (0x05040001, command specifier not valid) and its log kept quiet:
+        a drive answers a bad request on the bus, it does not print."""
+        with quiet_canopen():
+            try:
+                self.network.notify(self.node.sdo.rx_cobid, data, timestamp)
+            except struct.error:
+                self.frames_rejected += 1
+                self.network.send_message(self.node.sdo.tx_cobid, _SDO_ABORT_UNKNOWN_COMMAND)
 
     # -- boot and NMT -----------------------------------------------------------
 

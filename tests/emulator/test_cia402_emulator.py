@@ -378,3 +378,12 @@ def test_sync_from_the_lockstep_bus_periodic_send_is_answered_at_each_period(rig
         assert round(rig.emu.time - start, 9) == 0.012 and rig.emu.applied_torque == 0.2
     finally:
         task.stop()
+
+
+@pytest.mark.parametrize("request_", ["6000000000000000", "0000000000000000", "c000000000000000"])
+def test_an_sdo_segment_outside_a_transfer_is_aborted_not_raised_nor_printed(
+        rig: Lockstep, request_: str, capsys: pytest.CaptureFixture[str]) -> None:
+    response = rig.sdo(bytes.fromhex(request_))
+    assert response[0] == 0x80 and struct.unpack("<I", response[4:])[0] in (0x05040001, 0x05040005)
+    assert rig.emu.frame_errors == 0 and capsys.readouterr().err == ""
+    assert rig.value(0x6502) == 0x380      # and the server still answers
