@@ -224,7 +224,8 @@ class PreflightReport:
         if self.stale_feedback:
             return "dobhil run refuses to enable: a run would sample stale feedback"
         if self.refuses:
-            return "dobhil run refuses to enable: " + next(f.text for f in self.findings if f.refuses).split(":")[0]
+            # the finding's head, up to its first ": " (an object such as 0x1018:01 has no space)
+            return "dobhil run refuses to enable: " + next(f.text for f in self.findings if f.refuses).split(": ")[0]
         return "dobhil run does not refuse these: it prints them and runs"
 
     def as_dict(self) -> dict[str, Any]:
