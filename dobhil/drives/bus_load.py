@@ -105,9 +105,14 @@ class BusBudget:
                 f"{rate_text(1.0 / self.period, 'Hz')} is over {MAX_BUDGET * 100:.0f} %: use "
                 + ", or ".join(ways))
 
+    def loop_bits(self) -> int:
+        """Bits of the frames sent once per loop period (the ones a run adds to a bus on
+        which the drive's own periodic frames already stream)."""
+        return sum(f.bits for f in self.frames if f.every is None)
+
     def _split(self) -> tuple[float, float]:
         """(bits sent once per loop period, bits per second whatever the period)."""
-        per_cycle = sum(f.bits for f in self.frames if f.every is None)
+        per_cycle = self.loop_bits()
         per_second = sum(f.bits / f.every for f in self.frames if f.every is not None)
         return per_cycle, per_second
 

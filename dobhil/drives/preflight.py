@@ -375,9 +375,11 @@ def frame_bits(msg: can.Message) -> int:
 
 
 def listen_window(bus: can.BusABC, probe: PreflightProbe, window: float, clock: Callable[[], float],
-                  stamp: Callable[[can.Message], float], cancel: Cancel | None) -> Capture:
-    """The default window: the probe's read requests, then every frame for ``window`` s."""
-    cap = Capture()
+                  stamp: Callable[[can.Message], float], cancel: Cancel | None,
+                  cap: Capture | None = None) -> Capture:
+    """The default window: the probe's read requests, then every frame for ``window`` s
+    (into ``cap`` when given: the rest of a window a probe began by asking)."""
+    cap = Capture() if cap is None else cap
     asked: set[int] = set()
 
     def ask(node: int) -> None:
@@ -449,9 +451,13 @@ def run_preflight(
     bitrate = link.bitrate if link is not None and link.bitrate else bitrate
     cap = probe.listen(bus, window, clock, when, cancel)
     nodes = tuple(_node_report(probe, n, log, window) for n, log in sorted(cap.nodes.items()))
-    command_bits = frame_bits(can.Message(dlc=8, is_extended_id=False)) / period
-    bus_report = BusReport(state, cap.frames, cap.error_frames, cap.bits / window, bitrate, command_bits)
     bus_budget = probe.budget(period, bitrate)
+    # what the run adds to what was heard: the frames it sends or triggers each loop period
+    # (the budget's; ODrive: the torque command; CiA 402: SYNC, RPDO and the TPDOs answering
+    # SYNC), or one 8-byte command frame when the protocol lists none
+    command_bits = (bus_budget.loop_bits() if bus_budget is not None
+                    else frame_bits(can.Message(dlc=8, is_extended_id=False))) / period
+    bus_report = BusReport(state, cap.frames, cap.error_frames, cap.bits / window, bitrate, command_bits)
     node_found = [cap.verdict] if cap.verdict is not None else _node_findings(
         probe, nodes, period, feedback_timeout, window)
     findings = [*profile_rate_findings(profile, period), *link_found,
