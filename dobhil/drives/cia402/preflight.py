@@ -193,9 +193,9 @@ class CiA402Preflight(PreflightProbe):
                 try:
                     self.values[read] = self._upload(node, read)
                 except SdoAbortedError as exc:
+                    why = "dobhil needs it to run the drive in CST" if read in _NEEDED else "the drive lacks it"
                     cap.findings.append(Finding(
-                        Severity.MISMATCH, f"node {node.id}: SDO upload of {read.label()} aborted: {exc} "
-                                           f"({'dobhil needs it to run the drive in CST' if read in _NEEDED else 'the drive lacks it'})",
+                        Severity.MISMATCH, f"node {node.id}: SDO upload of {read.label()} aborted: {exc} ({why})",
                         refuses_run=read in _NEEDED))
             rpdo, tpdo = self._pdo_numbers()
             for name, index in ((f"RPDO{rpdo}", 0x1600 + rpdo - 1), (f"TPDO{tpdo}", 0x1A00 + tpdo - 1),
@@ -355,9 +355,14 @@ def _nmt_state(byte: int) -> str:
 
 
 def _eds_path(profile: DriveProfile, eds: str) -> Path:
-    """The EDS as the drive finds it: a path, or relative to the profile's directory."""
-    source = getattr(profile, "source", None)
+    """The EDS as the drive finds it: a path; else relative to the profile's directory
+    (when the profile knows it), the working directory, then the shipped drivers/."""
     path = Path(eds)
-    if path.is_absolute() or source is None:
+    if path.is_absolute():
         return path
-    return Path(source).parent / path
+    directory = getattr(profile, "directory", None)
+    from dobhil.data import drivers_dir
+    for base in ([Path(directory)] if directory else []) + [Path.cwd(), drivers_dir()]:
+        if (base / path).is_file():
+            return base / path
+    return path

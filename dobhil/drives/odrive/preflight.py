@@ -79,9 +79,14 @@ class ODrivePreflight(PreflightProbe):
         profile's periods (the drive sends them by itself, whatever the loop does)."""
         def dlc(cmd: CmdId) -> int:
             return codec.spec_for(cmd, self.firmware).dlc
-        return (CycleFrame("torque command", dlc(CmdId.SET_INPUT_TORQUE)),
-                CycleFrame("encoder estimates", dlc(CmdId.GET_ENCODER_ESTIMATES), every=self.profile.encoder_msg_rate),
-                CycleFrame("heartbeat", dlc(CmdId.HEARTBEAT), every=self.profile.heartbeat_msg_rate))
+        profile = self.profile
+        frames = [CycleFrame("torque command", dlc(CmdId.SET_INPUT_TORQUE))]
+        if profile.feedback_period:   # ODrive's rules require both periods; None only in code
+            frames.append(CycleFrame("encoder estimates", dlc(CmdId.GET_ENCODER_ESTIMATES),
+                                     every=profile.feedback_period))
+        if profile.heartbeat_period:
+            frames.append(CycleFrame("heartbeat", dlc(CmdId.HEARTBEAT), every=profile.heartbeat_period))
+        return tuple(frames)
 
     def status_name(self) -> str:
         return "heartbeat"
