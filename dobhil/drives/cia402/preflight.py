@@ -195,7 +195,7 @@ class CiA402Preflight(PreflightProbe):
                 except SdoAbortedError as exc:
                     why = "dobhil needs it to run the drive in CST" if read in _NEEDED else "the drive lacks it"
                     cap.findings.append(Finding(
-                        Severity.MISMATCH, f"node {node.id}: SDO upload of {read.label()} aborted: {exc} ({why})",
+                        Severity.MISMATCH, f"node {node.id} aborted the SDO upload of {read.label()}: {exc} ({why})",
                         refuses_run=read in _NEEDED))
             rpdo, tpdo = self._pdo_numbers()
             for name, index in ((f"RPDO{rpdo}", 0x1600 + rpdo - 1), (f"TPDO{tpdo}", 0x1A00 + tpdo - 1),
@@ -308,14 +308,14 @@ class CiA402Preflight(PreflightProbe):
         measured = raw * TORQUE_UNITS[unit]
         expected = self.options.get("rated_torque")
         if raw == 0:
-            return [Finding(Severity.MISMATCH, f"node {node}: 0x6076 motor rated torque is 0: every torque "
+            return [Finding(Severity.MISMATCH, f"node {node}'s motor rated torque 0x6076 is 0: every torque "
                                                "command is per mille of it; set it on the drive", refuses_run=True)]
         if expected is None or abs(measured - float(expected)) <= TORQUE_UNITS[unit] / 2 + 1e-9 * measured:
             return []
         other = next(u for u in TORQUE_UNITS if u != unit)
         return [Finding(Severity.MISMATCH,
-                        f"node {node}: 0x6076 motor rated torque = {raw} {unit} = {measured:.6g} Nm, profile "
-                        f"cia402.rated_torque is {float(expected):g} Nm: every torque would be scaled by "
+                        f"node {node}'s motor rated torque 0x6076 = {raw} {unit} = {measured:.6g} Nm is not the "
+                        f"profile's cia402.rated_torque {float(expected):g} Nm: every torque would be scaled by "
                         f"{measured / float(expected):.4g}; set cia402.rated_torque: {measured:.6g} (or, if 0x6076 "
                         f"is in {other} on this drive, cia402.rated_torque_unit: {other} = "
                         f"{raw * TORQUE_UNITS[other]:.6g} Nm)", refuses_run=True)]
