@@ -22,6 +22,7 @@ from dobhil.drives.cia402.preflight import CiA402Preflight
 from dobhil.drives.preflight import PreflightReport, Severity, run_preflight
 from dobhil.drives.profile import DriveProfile
 from dobhil.drives.waits import WAIT_SLICE
+from dobhil.errors import ConfigError
 
 REPO = Path(__file__).resolve().parents[2]
 EMULATED_EDS = REPO / "drivers" / "cia402-emulated.eds"
@@ -127,9 +128,9 @@ def test_the_heartbeat_setting_differs_a_note(node: tuple[str, canopen.LocalNode
         "start-up writes it"]
 
 
-def test_pdo_mapping_checked_against_the_eds(tmp_path: Path, node: tuple[str, canopen.LocalNode]) -> None:
-    """An EDS that types 0x6077 as INTEGER32 makes TPDO1 16 + 32 + 32 = 80 bits: over 64."""
-    channel, _ = node
+def test_a_pdo_mapping_that_does_not_fit_is_bad_input(tmp_path: Path) -> None:
+    """An EDS that types 0x6077 as INTEGER32 makes TPDO1 16 + 32 + 32 = 80 bits: over a
+    PDO's 64. The drive's own check refuses it in one line before anything is sent."""
     text = EMULATED_EDS.read_text()
     start = text.index("[6077]")
     end = text.index("\n[", start + 1)
@@ -137,7 +138,15 @@ def test_pdo_mapping_checked_against_the_eds(tmp_path: Path, node: tuple[str, ca
     assert section != text[start:end]
     wide = tmp_path / "wide.eds"
     wide.write_text(text[:start] + section + text[end:])
-    assert texts(check(channel, profile(eds=wide))) == ["TPDO1 mapping needs 80 bits, a PDO carries 64"]
+    bus = SilentBus()
+    expected = profile(eds=wide)
+    try:
+        with pytest.raises(ConfigError, match="PDO 1 mapping does not fit") as info:
+            run_preflight(bus, expected, period=1e-3, window=0.5, probe=CiA402Preflight(expected),
+                          clock=bus.clock)
+    finally:
+        bus.shutdown()
+    assert "\n" not in str(info.value) and "80 bits" in str(info.value) and bus.sent == []
 
 
 def test_over_budget_at_250_kbit(node: tuple[str, canopen.LocalNode]) -> None:

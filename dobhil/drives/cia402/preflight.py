@@ -14,12 +14,15 @@ NMT command sent:
 - supported drive modes 0x6502: bit 9 = cyclic synchronous torque (CST), the mode dobhil
   runs in (CiA 402);
 - motor rated torque 0x6076 in the profile's ``cia402.rated_torque_unit`` (mNm per
-  CiA 402, uNm on an EPOS4), in Nm against ``cia402.rated_torque``: every torque
-  command is per mille of it, so a wrong value scales every torque, and the run refuses;
-- the PDO mapping: the mapping parameters of the profile's RPDO and TPDOs exist on the
-  node (0x1600 + n - 1, 0x1A00 + n - 1 sub 0), and SPEC-17's mapping of each PDO
-  (:data:`~dobhil.drives.cia402.codec.RPDO_CST`, ``TPDO_STATUS``, ``TPDO_MOTION``), typed
-  by the profile's EDS, fits a PDO's 64 bits with every object PDO-mappable;
+  CiA 402, uNm on an EPOS4), in Nm against ``cia402.rated_torque`` within the drive's
+  own tolerance: every torque command is per mille of it, so a wrong value scales every
+  torque, and the run refuses (the drive's start-up would refuse it too);
+- the PDO mapping: SPEC-17's mapping of each PDO, typed by the profile's EDS, fits a
+  PDO's 64 bits (:func:`dobhil.drives.cia402.eds.layouts_of`, the drive's own check: an
+  EDS that does not fit, or lacks an object the drive needs, is bad input, one line,
+  before anything is sent), every mapped object is PDO-mappable in the EDS, and the
+  mapping parameters of the profile's RPDO and TPDOs exist on the node (0x1600 + n - 1,
+  0x1A00 + n - 1, sub 0);
 - producer heartbeat time 0x1017 against the profile's ``heartbeat_period`` (the drive's
   start-up writes it: a difference is a note; the period is measured while listening);
 - statusword 0x6041: a drive already in Operation enabled may be driven by another
@@ -36,7 +39,6 @@ from __future__ import annotations
 
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any
 
 import can
@@ -45,19 +47,21 @@ from canopen.objectdictionary import ObjectDictionary
 from canopen.sdo import SdoAbortedError, SdoCommunicationError
 
 from dobhil.drives.bus_load import CycleFrame
-from dobhil.drives.cia402.codec import (CST_SUPPORTED_BIT, MAX_PDO_BITS, RPDO_CST, TPDO_MOTION, TPDO_STATUS, Cob,
-                                        Mapped, NmtState, PowerState, layout_bits, power_state)
+from dobhil.drives.cia402.codec import (CST_SUPPORTED_BIT, RPDO_CST, TPDO_MOTION, TPDO_STATUS, Cob, Mapped,
+                                        NmtState, PowerState, layout_bits, power_state)
+from dobhil.drives.cia402.drive import RATED_TORQUE_TOLERANCE, RATED_TORQUE_UNITS
+from dobhil.drives.cia402.eds import layouts_of, load_od
 from dobhil.drives.cia402.link import CanopenLink
 from dobhil.drives.preflight import (Capture, Finding, NodeReport, Observation, PreflightProbe, Setting,
                                      Severity, Stream, listen_window)
 from dobhil.drives.profile import DriveProfile
 from dobhil.drives.waits import Cancel
-from dobhil.errors import CodecError, WaitCancelled
+from dobhil.errors import WaitCancelled
 
 __all__ = ["TORQUE_UNITS", "CiA402Preflight", "SdoRead"]
 
-#: 0x6076's unit on the wire -> Nm
-TORQUE_UNITS = {"mNm": 1e-3, "uNm": 1e-6}
+#: 0x6076's unit on the wire -> Nm (the drive's table)
+TORQUE_UNITS = RATED_TORQUE_UNITS
 _TPDO_COBS = frozenset({Cob.TPDO1, Cob.TPDO2, Cob.TPDO3, Cob.TPDO4})
 
 
@@ -159,12 +163,18 @@ class CiA402Preflight(PreflightProbe):
                stamp: Callable[[can.Message], float], cancel: Cancel | None) -> Capture:
         cap = Capture()
         end = clock() + window
-        od = self._object_dictionary(cap)
+        # the drive's own checks of the EDS first: bad input is one line (ConfigError, exit
+        # 2) before anything is sent
+        od = load_od(self.profile)
+        layouts = layouts_of(od, self.profile)
+        for (name, _), layout in zip(self._mappings(*self._pdo_numbers()),
+                                     (layouts.rpdo, layouts.status, layouts.motion)):
+            self.mapping_sizes[name] = layout.size * 8
 
         def take(msg: can.Message) -> None:
             cap.take(msg, self, stamp)
 
-        link = CanopenLink(bus, od if od is not None else ObjectDictionary(), node_id=self.profile.node_id,
+        link = CanopenLink(bus, od, node_id=self.profile.node_id,
                            clock=clock, sdo_timeout=self._sdo_timeout(), on_frame=take)
         # the node's SDO answers go to canopen's client; counted here too (bus load, the node heard)
         link.network.subscribe(Cob.SDO_TX + self.profile.node_id,
@@ -182,8 +192,8 @@ class CiA402Preflight(PreflightProbe):
             listen_window(bus, self, end - clock(), clock, stamp, cancel, cap)
         if unanswered:
             cap.verdict = Finding(Severity.MISMATCH, unanswered + self._others(cap), refuses_run=True)
-        elif od is not None:
-            cap.findings += self._mapping_findings(od)
+        else:
+            cap.findings += self._mappable_findings(od)
         return cap
 
     def _read_all(self, node: canopen.RemoteNode, cap: Capture) -> str:
@@ -239,19 +249,6 @@ class CiA402Preflight(PreflightProbe):
     @staticmethod
     def _mappings(rpdo: int, tpdo: int) -> tuple[tuple[str, tuple[Mapped, ...]], ...]:
         return ((f"RPDO{rpdo}", RPDO_CST), (f"TPDO{tpdo}", TPDO_STATUS), (f"TPDO{tpdo + 1}", TPDO_MOTION))
-
-    def _object_dictionary(self, cap: Capture) -> ObjectDictionary | None:
-        """The profile's EDS (None, with a note, when it cannot be read)."""
-        eds = self.options.get("eds")
-        if not eds:
-            return None
-        path = _eds_path(self.profile, str(eds))
-        try:
-            return canopen.import_od(str(path), self.profile.node_id)
-        except Exception as exc:   # canopen raises what its parser meets (OSError, ValueError ...)
-            cap.findings.append(Finding(Severity.NOTE, f"EDS {path} not read ({type(exc).__name__}: {exc}): "
-                                                       "PDO sizes not checked"))
-            return None
 
     # -- what the node said -------------------------------------------------------
 
@@ -310,7 +307,7 @@ class CiA402Preflight(PreflightProbe):
         if raw == 0:
             return [Finding(Severity.MISMATCH, f"node {node}'s motor rated torque 0x6076 is 0: every torque "
                                                "command is per mille of it; set it on the drive", refuses_run=True)]
-        if expected is None or abs(measured - float(expected)) <= TORQUE_UNITS[unit] / 2 + 1e-9 * measured:
+        if expected is None or abs(measured - float(expected)) <= RATED_TORQUE_TOLERANCE * float(expected):
             return []
         other = next(u for u in TORQUE_UNITS if u != unit)
         return [Finding(Severity.MISMATCH,
@@ -320,30 +317,12 @@ class CiA402Preflight(PreflightProbe):
                         f"is in {other} on this drive, cia402.rated_torque_unit: {other} = "
                         f"{raw * TORQUE_UNITS[other]:.6g} Nm)", refuses_run=True)]
 
-    def _mapping_findings(self, od: ObjectDictionary) -> list[Finding]:
-        """SPEC-17's mapping typed by the EDS: each PDO within 64 bits, every object mappable."""
-        out: list[Finding] = []
-        for name, mapping in self._mappings(*self._pdo_numbers()):
-            types = []
-            for m in mapping:
-                var = od.get_variable(m.index, m.subindex)
-                if var is None:
-                    out.append(Finding(Severity.MISMATCH, f"{name}: {m.label} is not in the EDS", refuses_run=True))
-                    continue
-                types.append(var.data_type or 0)
-                if not var.pdo_mappable:
-                    out.append(Finding(Severity.MISMATCH, f"{name}: {m.label} is not PDO-mappable in the EDS",
-                                       refuses_run=True))
-            try:
-                bits = layout_bits(types)
-            except CodecError as exc:
-                out.append(Finding(Severity.MISMATCH, f"{name}: {exc}", refuses_run=True))
-                continue
-            self.mapping_sizes[name] = bits
-            if bits > MAX_PDO_BITS:
-                out.append(Finding(Severity.MISMATCH, f"{name} mapping needs {bits} bits, a PDO carries "
-                                                      f"{MAX_PDO_BITS}", refuses_run=True))
-        return out
+    def _mappable_findings(self, od: ObjectDictionary) -> list[Finding]:
+        """Every object SPEC-17 maps is PDO-mappable in the EDS (else the node aborts the
+        drive's mapping write at start-up, 0x06040041)."""
+        return [Finding(Severity.MISMATCH, f"{name}: {m.label} is not PDO-mappable in the EDS", refuses_run=True)
+                for name, mapping in self._mappings(*self._pdo_numbers()) for m in mapping
+                if (var := od.get_variable(m.index, m.subindex)) is not None and not var.pdo_mappable]
 
 
 def _nmt_state(byte: int) -> str:
@@ -352,17 +331,3 @@ def _nmt_state(byte: int) -> str:
         return NmtState(byte & 0x7F).name.lower().replace("_", "-")
     except ValueError:
         return f"state 0x{byte & 0x7F:02X}"
-
-
-def _eds_path(profile: DriveProfile, eds: str) -> Path:
-    """The EDS as the drive finds it: a path; else relative to the profile's directory
-    (when the profile knows it), the working directory, then the shipped drivers/."""
-    path = Path(eds)
-    if path.is_absolute():
-        return path
-    directory = getattr(profile, "directory", None)
-    from dobhil.data import drivers_dir
-    for base in ([Path(directory)] if directory else []) + [Path.cwd(), drivers_dir()]:
-        if (base / path).is_file():
-            return base / path
-    return path
