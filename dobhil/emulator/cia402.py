@@ -289,13 +289,14 @@ class _EmulatorNetwork(canopen.Network):
 
 
 def eds_path(name: str | Path, profile: DriveProfile) -> Path:
-    """The EDS file ``name``: as given if it exists (absolute, or relative to the working
-    directory), else beside the profile's file, else among the shipped drive profiles."""
+    """The EDS file ``name``: absolute as given; relative in the profile's directory
+    (``profile.directory`` where the profile loader sets it), else the working directory,
+    else among the shipped drive profiles (``drivers/``)."""
     path = Path(name)
     candidates = [path]
-    source = getattr(profile, "source", None) or getattr(profile, "path", None)
-    if not path.is_absolute() and source:
-        candidates.append(Path(source).parent / path)
+    directory = getattr(profile, "directory", None)   # not every DriveProfile has one yet
+    if not path.is_absolute() and directory:
+        candidates.insert(0, Path(directory) / path)
     if not path.is_absolute():
         candidates.append(drivers_dir() / path)
     for candidate in candidates:
@@ -308,18 +309,15 @@ def eds_path(name: str | Path, profile: DriveProfile) -> Path:
 class EmulatedCiA402(EmulatedDrive):
     """A CiA 402 servo drive in CST on a python-can bus, dynamics from the injected plant.
 
-    ``options``: the profile's ``cia402:`` section (defaults: :data:`DEFAULT_OPTIONS`);
-    ``None`` reads ``profile.options``. ``over_torque_cycles``: SYNCs in a row above the
-    torque limits before the over-torque fault.
+    Its settings are the profile's ``cia402:`` section (``profile.options``; a key it lacks,
+    as in a profile built in code, from :data:`DEFAULT_OPTIONS`). ``over_torque_cycles``:
+    SYNCs in a row above the torque limits before the over-torque fault.
     """
 
     def __init__(self, bus: can.BusABC, profile: DriveProfile, plant: PlantLike, *,
-                 options: Mapping[str, Any] | None = None, over_torque_cycles: int = 3,
-                 **kwargs: Any) -> None:
+                 over_torque_cycles: int = 3, **kwargs: Any) -> None:
         super().__init__(bus, profile, plant, **kwargs)
-        if options is None:
-            options = getattr(profile, "options", None) or {}
-        self.options: Mapping[str, Any] = {**DEFAULT_OPTIONS, **options}
+        self.options: Mapping[str, Any] = {**DEFAULT_OPTIONS, **profile.options}
         self._torque_unit = _choice(self.options, "rated_torque_unit", RATED_TORQUE_UNITS)
         ppr, gear = float(self.options["position_per_rev"]), float(self.options["gear_ratio"])
         self._inc_per_rad = ppr * gear / (2.0 * math.pi)
