@@ -64,8 +64,10 @@ __all__ = [
     "Severity",
     "Stream",
     "budget_findings",
+    "configured_bitrate",
     "listen_window",
     "profile_rate_findings",
+    "run_budget",
     "run_preflight",
 ]
 
@@ -465,6 +467,23 @@ def run_preflight(
                 *budget_findings(bus_budget), *node_found, *cap.findings]
     return PreflightReport(profile.name or profile.protocol, profile.node_id, window, nodes,
                            bus_report, tuple(findings), bus_budget)
+
+
+def run_budget(profile: DriveProfile, period: float, bitrate: int | None) -> BusBudget | None:
+    """The bus budget of a run of ``profile`` at ``period`` (None: its protocol lists no
+    frames), without a bus: what ``dobhil analyze`` and an emulated ``dobhil run`` say."""
+    from dobhil.drives.registry import preflight_probe
+    probe = preflight_probe(profile)
+    return None if probe is None else probe.budget(period, bitrate)
+
+
+def configured_bitrate(drive_bitrate: int, profile: DriveProfile) -> int | None:
+    """The bit rate a run opens its bus with: ``drive.bitrate``, else the profile's
+    ``bus.bitrate`` (as :func:`dobhil.runtime.buses.resolve_bus` gives them); None: unknown."""
+    try:
+        return int(drive_bitrate or profile.bus.get("bitrate") or 0) or None
+    except (TypeError, ValueError):
+        return None
 
 
 def budget_findings(bus_budget: BusBudget | None) -> list[Finding]:

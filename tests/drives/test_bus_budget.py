@@ -9,6 +9,7 @@ floor((34 + 8 DLC - 1) / 4); ``frame_bits``), not by the code under test.
 from __future__ import annotations
 
 import dataclasses
+from pathlib import Path
 
 import pytest
 
@@ -22,6 +23,7 @@ from dobhil.drives.registry import preflight_probe
 #   DLC 4: 47 + 32 + floor(65 / 4) = 79 + 16 = 95    (RPDO1: controlword + target torque)
 #   DLC 5: 47 + 40 + floor(73 / 4) = 87 + 18 = 105   (TPDO2: velocity + mode display)
 #   DLC 8: 47 + 64 + floor(97 / 4) = 111 + 24 = 135  (TPDO1; every ODrive frame)
+REPO = Path(__file__).resolve().parents[2]
 HAND_BITS = {0: 55, 1: 65, 4: 95, 5: 105, 8: 135}
 
 CIA402_FRAMES = (CycleFrame("SYNC", 0), CycleFrame("RPDO1", 4), CycleFrame("TPDO1", 8),
@@ -115,3 +117,25 @@ def test_rate_text() -> None:
     assert [rate_text(v, "bit/s") for v in (1_000_000, 250_000, 125_000, 800)] == [
         "1 Mbit/s", "250 kbit/s", "125 kbit/s", "800 bit/s"]
     assert [rate_text(v, "Hz") for v in (1000.0, 500.0, 4000.0)] == ["1 kHz", "500 Hz", "4 kHz"]
+
+
+def test_analyze_and_an_emulated_run_say_the_budget(capsys: pytest.CaptureFixture[str]) -> None:
+    """dobhil analyze prints the budget of the config's drive profile at loop.period and
+    drive.bitrate; a run (here emulated, no preflight) says an over-budget bus on stderr,
+    and runs."""
+    import json
+
+    from dobhil.cli.main import main
+    demo = str(REPO / "configs" / "demo.yaml")
+    assert main(["analyze", demo]) == 0
+    assert capsys.readouterr().out.splitlines()[-1] == (
+        "bus budget: 271 bits per cycle (torque command 135 + encoder estimates 135 + heartbeat 135 x 0.01) "
+        "= 27.1 % of 1 Mbit/s at 1 kHz")
+    assert main(["analyze", demo, "--json", "--set", "drive.bitrate=250000"]) == 0
+    info = json.loads(capsys.readouterr().out)["bus_budget"]
+    assert info["over"] and info["load"] == pytest.approx(271.35 / 250) and info["bitrate"] == 250_000
+    assert main(["run", demo, "--emulate", "--lockstep", "--duration", "0.01", "--set", "drive.bitrate=250000"]) == 0
+    err = capsys.readouterr().err
+    assert err.splitlines() == ["dobhil run: note (not refused: the run goes on): bus budget 109 % of 250 kbit/s "
+                                "at 1 kHz is over 70 %: use a higher bit rate (500 kbit/s on the drive and the "
+                                "interface: 54 %), or a slower loop (loop.period >= 3.5 ms), or fewer axes on this bus"]
