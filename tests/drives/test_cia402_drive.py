@@ -309,8 +309,10 @@ def _drop_section(text: str, name: str) -> str:
     (lambda t: re.sub(r"(\[6076\](?:\n.*)*?DefaultValue=)1000", r"\g<1>0", t),
      "0x6076 (motor rated torque) = 0: a rated torque of 0"),
     (lambda t: re.sub(r"(\[6077\](?:\n.*)*?DataType=)0x0003", r"\g<1>0x0004", t),
-     "PDO 1 mapping does not fit: 0x6041:00 (statusword) 16 bits + 0x6064:00 (position actual value) "
+     "TPDO 1 mapping does not fit: 0x6041:00 (statusword) 16 bits + 0x6064:00 (position actual value) "
      "32 bits + 0x6077:00 (torque actual value) 32 bits: PDO mapping needs 80 bits, a PDO carries 64"),
+    (lambda t: re.sub(r"(\[6061\](?:\n.*)*?DataType=)0x0002", r"\g<1>0x0003", t),
+     "0x6061:00 (modes of operation display) is INTEGER16 in the EDS, CiA 402 has INTEGER8"),
 ])
 def test_a_bad_eds_is_one_config_line(tmp_path: Path, change: Any, says: str) -> None:
     eds = _eds_variant(tmp_path, change)
@@ -352,3 +354,27 @@ def test_node_id_must_be_a_canopen_one() -> None:
     data["node_id"] = 5
     with pytest.raises(ConfigError, match="missing key 'feedback_period'"):
         profile_from_mapping(data, source="p")
+
+
+def test_a_recorded_run_decodes_without_its_eds(tmp_path: Path) -> None:
+    """A replay rebuilds the profile from the log (no directory, the EDS maybe elsewhere):
+    the drive is made all the same and decodes with the standard layouts; only a start-up
+    needs the file, and says so in one line."""
+    gone = profile(eds="gone.eds")
+    drive = CiA402Drive(SimBus(), gone, clock=lambda: 0.0)  # type: ignore[arg-type]
+    drive.apply(can.Message(arbitration_id=0x185, data=bytes.fromhex("37 12 00 04 00 00 f4 01"),
+                            is_extended_id=False))
+    assert drive.apply(can.Message(arbitration_id=0x285, data=bytes.fromhex("3c 00 00 00 0a"),
+                                   is_extended_id=False))
+    fb = drive.feedback
+    assert fb is not None
+    assert fb.position == pytest.approx(math.pi / 2) and fb.velocity == pytest.approx(2 * math.pi)
+    with pytest.raises(ConfigError, match=r"cia402.eds: file 'gone.eds' not found"):
+        drive.enable()
+
+
+def test_a_profile_file_whose_eds_is_missing_is_refused_when_the_drive_is_made(tmp_path: Path) -> None:
+    import dataclasses
+    from_file = dataclasses.replace(profile(eds="gone.eds"), directory=str(tmp_path))
+    with pytest.raises(ConfigError, match=rf"cia402.eds: file 'gone.eds' not found in {re.escape(str(tmp_path))}"):
+        CiA402Drive(SimBus(), from_file)  # type: ignore[arg-type]

@@ -44,11 +44,12 @@ from typing import TYPE_CHECKING, Any, ClassVar
 import can
 import canopen
 from canopen.emcy import EmcyError
+from canopen.objectdictionary import ObjectDictionary
 
 from dobhil.drives.base import Clock, Drive, DriveEvent, MotionEvent, SafeStopReport, StateEvent
 from dobhil.drives.cia402 import codec
 from dobhil.drives.cia402.codec import CST_MODE, Cob, Controlword, Mapped, NmtState, PowerState
-from dobhil.drives.cia402.eds import layouts_of, load_od
+from dobhil.drives.cia402.eds import STANDARD_LAYOUTS, EdsNotFound, load_od
 from dobhil.drives.cia402.link import CanopenLink
 from dobhil.drives.cia402.rules import CIA402_RULES
 from dobhil.drives.periodic import native_periodic
@@ -87,8 +88,17 @@ class CiA402Drive(Drive):
         self._period = profile.feedback_period
         self._scale = codec.UnitScale.of(position_per_rev=opts["position_per_rev"],
                                          velocity_unit=opts["velocity_unit"], gear_ratio=opts["gear_ratio"])
-        self._od = load_od(profile)
-        self._layouts = layouts_of(self._od, profile)
+        # the EDS is checked now (bad input: one line before anything is sent). A profile
+        # rebuilt from a log (no directory) may come without it and needs none to decode:
+        # the layouts are the standard's; only a start-up would need it
+        try:
+            self._od: ObjectDictionary | None = load_od(profile)
+            self._missing: EdsNotFound | None = None
+        except EdsNotFound as exc:
+            if profile.directory:
+                raise
+            self._od, self._missing = None, exc
+        self._layouts = STANDARD_LAYOUTS
         self._rpdo_n, self._tpdo_n = int(opts["rpdo"]), int(opts["tpdo"])
         self._rpdo_id = Cob.rpdo(self._rpdo_n, node)
         self._status_id = Cob.tpdo(self._tpdo_n, node)
@@ -158,6 +168,9 @@ class CiA402Drive(Drive):
     # -- start-up ---------------------------------------------------------------
 
     def _prepare(self, deadline: float, cancel: Cancel | None) -> None:
+        if self._od is None:
+            assert self._missing is not None
+            raise self._missing
         reached: list[str] = []
         link = self._link or CanopenLink(self._bus, self._od, node_id=self.node_id, clock=self._clock,
                                          sdo_timeout=float(self.profile.options["sdo_timeout"]),
@@ -202,7 +215,7 @@ class CiA402Drive(Drive):
 
     def _sdo_failure(self, link: CanopenLink, exc: Exception) -> str:
         index, sub = link.adapter.last_object
-        var = self._od.get_variable(index, sub)
+        var = link.node.object_dictionary.get_variable(index, sub)
         obj = f"SDO 0x{index:04X}:{sub:02X} ({var.name if var is not None else 'not in the EDS'})"
         if isinstance(exc, canopen.SdoAbortedError):
             text = canopen.SdoAbortedError.CODES.get(exc.code, "unknown abort code")
@@ -213,7 +226,8 @@ class CiA402Drive(Drive):
 
     def _read_identity(self, node: Any) -> None:
         record = node.sdo[0x1018]
-        present = [sub for sub in (1, 2, 3, 4) if self._od.get_variable(0x1018, sub) is not None]
+        od = node.object_dictionary
+        present = [sub for sub in (1, 2, 3, 4) if od.get_variable(0x1018, sub) is not None]
         self.identity = tuple(int(record[sub].raw) for sub in present)
 
     def _read_status(self, node: Any) -> None:
@@ -221,7 +235,7 @@ class CiA402Drive(Drive):
         with its error code 0x603F."""
         statusword = int(node.sdo[0x6041].raw)
         self._note_statusword(statusword)
-        if self._power in (PowerState.FAULT, PowerState.FAULT_REACTION_ACTIVE) and 0x603F in self._od:
+        if self._power in (PowerState.FAULT, PowerState.FAULT_REACTION_ACTIVE) and 0x603F in node.object_dictionary:
             self._emcy = int(node.sdo[0x603F].raw)
 
     def _check_modes(self, node: Any) -> None:

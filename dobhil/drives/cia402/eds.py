@@ -24,7 +24,8 @@ from dobhil.drives.cia402.link import quiet_canopen
 from dobhil.drives.profile import DriveProfile, default_drivers_dir
 from dobhil.errors import CodecError, ConfigError
 
-__all__ = ["REQUIRED_OBJECTS", "Layouts", "eds_path", "layouts_of", "load_od", "pdo_data_types"]
+__all__ = ["REQUIRED_OBJECTS", "STANDARD_LAYOUTS", "EdsNotFound", "Layouts", "check_od", "eds_path", "load_od",
+           "pdo_data_types"]
 
 #: objects the drive reads or writes besides the mapped ones (the EDS must have them)
 REQUIRED_OBJECTS = {0x1006: "communication cycle period", 0x1017: "producer heartbeat time",
@@ -41,50 +42,61 @@ class Layouts:
     motion: struct.Struct
 
 
+class EdsNotFound(ConfigError):
+    """The profile's EDS is not there (a replay needs none: the layouts are the standard's)."""
+
+
 def eds_path(profile: DriveProfile) -> Path:
-    """The profile's ``cia402.eds``: a path, or relative to the profile's directory."""
+    """The profile's ``cia402.eds``: a path, or relative to the profile's directory (the
+    shipped profiles' directory for a profile without one: built in code, or from a log)."""
     name = Path(str(profile.options["eds"]))
-    base = getattr(profile, "directory", None)
-    candidates = [name] if name.is_absolute() else \
-        [*([Path(base) / name] if base else []), name, _shipped(name)]
+    if name.is_absolute():
+        candidates = [name]
+    elif profile.directory:
+        candidates = [Path(profile.directory) / name]
+    else:
+        candidates = [name, default_drivers_dir() / name]
     for path in candidates:
         if path.is_file():
             return path
-    raise ConfigError(f"drive profile {profile.name!r}: cia402.eds: file {str(name)!r} not found "
-                      f"(relative to the profile's directory, or a path)")
-
-
-def _shipped(name: Path) -> Path:
-    return default_drivers_dir() / name
+    where = f"in {profile.directory}" if profile.directory and not name.is_absolute() else "(a path, or " \
+        "relative to the profile's directory)"
+    raise EdsNotFound(f"drive profile {profile.name!r}: cia402.eds: file {str(name)!r} not found {where}")
 
 
 def load_od(profile: DriveProfile) -> ObjectDictionary:
-    """The profile's EDS read by canopen, with every object the drive uses; ConfigError
-    (one line) otherwise."""
+    """The profile's EDS read by canopen and checked (:func:`check_od`); ConfigError (one
+    line) otherwise, EdsNotFound when there is no such file."""
     path = eds_path(profile)
     try:
-        od = canopen.import_od(str(path), profile.node_id)
+        with quiet_canopen():
+            od = canopen.import_od(str(path), profile.node_id)
     except (ObjectDictionaryError, ValueError, KeyError, OSError) as exc:
         raise ConfigError(f"{path}: not a readable EDS: {' '.join(str(exc).split())}") from None
-    objects = {**REQUIRED_OBJECTS, **{m.index: m.name for m in (*codec.RPDO_CST, *codec.TPDO_STATUS,
-                                                          *codec.TPDO_MOTION)}}
-    for index, name in objects.items():
-        if index not in od:
-            raise ConfigError(f"{path}: object 0x{index:04X} ({name}) missing: a CiA 402 drive in CST "
-                              "needs it")
-    _check_eds_values(od, path)
+    check_od(od, profile, str(path))
     return od
 
 
-def _check_eds_values(od: ObjectDictionary, path: Path) -> None:
+def check_od(od: ObjectDictionary, profile: DriveProfile, source: str) -> None:
+    """Every object the drive uses is there; the EDS's defaults allow CST with a rated
+    torque; the PDOs the profile names exist and take the mapping with the standard's data
+    types (so a recorded run decodes with them, EDS or not)."""
+    objects = {**REQUIRED_OBJECTS, **{m.index: m.name for m in (*codec.RPDO_CST, *codec.TPDO_STATUS,
+                                                                 *codec.TPDO_MOTION)}}
+    for index, name in objects.items():
+        if index not in od:
+            raise ConfigError(f"{source}: object 0x{index:04X} ({name}) missing: a CiA 402 drive in CST "
+                              "needs it")
     modes = _default(od, 0x6502)
     if modes is not None and not int(modes) >> codec.CST_SUPPORTED_BIT & 1:
-        raise ConfigError(f"{path}: 0x6502 (supported drive modes) = 0x{int(modes):08X} has no cyclic "
+        raise ConfigError(f"{source}: 0x6502 (supported drive modes) = 0x{int(modes):08X} has no cyclic "
                           f"synchronous torque (bit {codec.CST_SUPPORTED_BIT}); dobhil drives CST only")
     rated = _default(od, 0x6076)
     if rated is not None and int(rated) <= 0:
-        raise ConfigError(f"{path}: 0x6076 (motor rated torque) = {rated}: a rated torque of 0 makes "
+        raise ConfigError(f"{source}: 0x6076 (motor rated torque) = {rated}: a rated torque of 0 makes "
                           "every per mille torque 0; give the motor's rated torque")
+    with quiet_canopen():  # canopen logs a warning beyond 64 bits: the ConfigError says it
+        _check_mapping(od, profile, source)
 
 
 def _default(od: ObjectDictionary, index: int) -> Any:
@@ -92,41 +104,45 @@ def _default(od: ObjectDictionary, index: int) -> Any:
     return var.default if isinstance(var, ODVariable) else None
 
 
-def layouts_of(od: ObjectDictionary, profile: DriveProfile) -> Layouts:
-    """The PDOs' structs from the data types canopen gives the mapped objects (a PDO map
-    built offline: canopen's ``PdoMap.add_variable`` on a node that is on no bus). A
-    mapping beyond 64 bits is refused in one line."""
-    with quiet_canopen():  # canopen logs a warning beyond 64 bits: the ConfigError says it
-        return _layouts(od, profile)
+#: the three PDOs: their structs, the standard's data types (codec's tables)
+STANDARD_LAYOUTS = Layouts(codec.RPDO_CST_STRUCT, codec.TPDO_STATUS_STRUCT, codec.TPDO_MOTION_STRUCT)
 
 
-def _layouts(od: ObjectDictionary, profile: DriveProfile) -> Layouts:
+def _check_mapping(od: ObjectDictionary, profile: DriveProfile, source: str) -> None:
+    """The data types canopen gives the mapped objects (a PDO map built offline: its
+    ``PdoMap.add_variable`` on a node that is on no bus): within 64 bits, and the
+    standard's (the drive decodes with :data:`STANDARD_LAYOUTS`)."""
     node = canopen.RemoteNode(profile.node_id, od)
-    opts = profile.options
-    maps = ((node.rpdo, int(opts["rpdo"]), codec.RPDO_CST), (node.tpdo, int(opts["tpdo"]), codec.TPDO_STATUS),
-            (node.tpdo, int(opts["tpdo"]) + 1, codec.TPDO_MOTION))
-    structs = []
-    for pdos, number, objects in maps:
-        types = pdo_data_types(pdos, number, objects)
+    rpdo, tpdo = int(profile.options["rpdo"]), int(profile.options["tpdo"])
+    for kind, pdos, number, objects in (("RPDO", node.rpdo, rpdo, codec.RPDO_CST),
+                                        ("TPDO", node.tpdo, tpdo, codec.TPDO_STATUS),
+                                        ("TPDO", node.tpdo, tpdo + 1, codec.TPDO_MOTION)):
+        types = pdo_data_types(pdos, number, objects, f"{source}: {kind}{number}")
         try:
-            structs.append(codec.layout_struct(types))
+            codec.layout_struct(types)
         except CodecError as exc:
-            names = " + ".join(f"{m.label} {len_bits(t)} bits" for m, t in zip(objects, types))
-            raise ConfigError(f"drive profile {profile.name!r}: PDO {number} mapping does not fit: "
-                              f"{names}: {exc}") from None
-    return Layouts(*structs)
+            names = " + ".join(f"{m.label} {codec.layout_bits([t])} bits" for m, t in zip(objects, types))
+            raise ConfigError(f"{source}: {kind} {number} mapping does not fit: {names}: {exc}") from None
+        for obj, data_type in zip(objects, types):
+            if data_type != obj.data_type:
+                raise ConfigError(f"{source}: {obj.label} is {_type_name(data_type)} in the EDS, "
+                                  f"CiA 402 has {_type_name(obj.data_type)}")
 
 
-def len_bits(data_type: int) -> int:
-    return codec.layout_bits([data_type])
+def _type_name(data_type: int) -> str:
+    try:
+        return codec.DataType(data_type).name
+    except ValueError:
+        return f"data type 0x{data_type:04X}"
 
 
-def pdo_data_types(pdos: Any, number: int, objects: Sequence[Mapped]) -> list[int]:
+def pdo_data_types(pdos: Any, number: int, objects: Sequence[Mapped], what: str) -> list[int]:
     """Data types of ``objects`` as canopen maps them into PDO ``number`` (offline)."""
     try:
         pdo = pdos[number]
     except KeyError:
-        raise ConfigError(f"the EDS has no PDO {number} (its communication and mapping records)") from None
+        raise ConfigError(f"{what}: the EDS has no such PDO (its communication and mapping "
+                          "records)") from None
     pdo.clear()
     for obj in objects:
         pdo.add_variable(obj.index, obj.subindex)
