@@ -28,6 +28,8 @@ What canopen's LocalNode does not do, this module does (drive-protocols.md, CiA 
   every SYNC) goes out, its bytes the mapped objects' values as the object dictionary
   encodes them (little-endian, their data types). Event-driven (254/255) and RTR-only
   TPDOs are not sent;
+- the object dictionary is read and checked by the drive's own
+  :func:`dobhil.drives.cia402.eds.load_od` (one line for an EDS without 0x6071 or CST);
 - process values read live (SDO or TPDO): 0x6041 statusword, 0x6064 position [increments:
   ``position_per_rev`` per motor revolution, ``gear_ratio`` motor revolutions per joint
   revolution, wrapped to 32 bits as an encoder counter does], 0x606C velocity
@@ -59,12 +61,12 @@ fault took the torque away) and ``frames_rejected``.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import struct
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from enum import IntEnum
-from pathlib import Path
 from typing import Any
 
 import can
@@ -73,7 +75,8 @@ from canopen.network import PeriodicMessageTask
 from canopen.objectdictionary import ODVariable
 from canopen.sdo import SdoAbortedError, SdoVariable
 
-from dobhil.data import drivers_dir
+from dobhil.drives.cia402.eds import load_od
+from dobhil.drives.cia402.link import quiet_canopen
 from dobhil.drives.profile import DriveProfile
 from dobhil.emulator.protocol import EmulatedDrive, PlantLike
 from dobhil.errors import ConfigError
@@ -101,6 +104,8 @@ _I16 = struct.Struct("<h")
 _I8 = struct.Struct("<b")
 _PDO_INVALID = 1 << 31
 _NMT, _HEARTBEAT = 0x000, 0x700
+#: SDO abort (ccs 4), no object, code 0x05040001: client/server command specifier not valid
+_SDO_ABORT_UNKNOWN_COMMAND = bytes([0x80, 0, 0, 0]) + (0x05040001).to_bytes(4, "little")
 
 
 class PowerState(IntEnum):
@@ -288,24 +293,6 @@ class _EmulatorNetwork(canopen.Network):
         return _ClockTask(self._owner, can_id, data, period)
 
 
-def eds_path(name: str | Path, profile: DriveProfile) -> Path:
-    """The EDS file ``name``: absolute as given; relative in the profile's directory
-    (``profile.directory`` where the profile loader sets it), else the working directory,
-    else among the shipped drive profiles (``drivers/``)."""
-    path = Path(name)
-    candidates = [path]
-    directory = getattr(profile, "directory", None)   # not every DriveProfile has one yet
-    if not path.is_absolute() and directory:
-        candidates.insert(0, Path(directory) / path)
-    if not path.is_absolute():
-        candidates.append(drivers_dir() / path)
-    for candidate in candidates:
-        if candidate.is_file():
-            return candidate
-    raise ConfigError(f"drive profile {profile.name or profile.protocol!r}: cia402.eds: no such file "
-                      f"{str(name)!r} (looked in {', '.join(str(c.parent) for c in candidates)})")
-
-
 class EmulatedCiA402(EmulatedDrive):
     """A CiA 402 servo drive in CST on a python-can bus, dynamics from the injected plant.
 
@@ -318,13 +305,15 @@ class EmulatedCiA402(EmulatedDrive):
                  over_torque_cycles: int = 3, **kwargs: Any) -> None:
         super().__init__(bus, profile, plant, **kwargs)
         self.options: Mapping[str, Any] = {**DEFAULT_OPTIONS, **profile.options}
+        # the drive's own reading of the EDS: a bad one (no 0x6071, no CST, a rated torque
+        # of 0) ends in the one line the drive gives, before any frame
+        od = load_od(dataclasses.replace(profile, options=self.options))
         self._torque_unit = _choice(self.options, "rated_torque_unit", RATED_TORQUE_UNITS)
         ppr, gear = float(self.options["position_per_rev"]), float(self.options["gear_ratio"])
         self._inc_per_rad = ppr * gear / (2.0 * math.pi)
         self._vel_per_rad_s = _choice(self.options, "velocity_unit", VELOCITY_UNITS)(ppr) * gear / (2.0 * math.pi)
         self.over_torque_cycles = over_torque_cycles
         self.node_id = profile.node_id
-        od = canopen.objectdictionary.import_od(str(eds_path(self.options["eds"], profile)), self.node_id)
         self.node = canopen.LocalNode(self.node_id, od)
         self.network = _EmulatorNetwork(self, bus)
         self._clock_tasks: list[_ClockTask] = []
@@ -415,7 +404,24 @@ class EmulatedCiA402(EmulatedDrive):
             return
         if self._pdo_dirty:
             self._compile_pdos()
+        if can_id == self.node.sdo.rx_cobid:
+            self._sdo_request(data, msg.timestamp)
+            return
         self.network.notify(can_id, data, msg.timestamp)
+
+    def _sdo_request(self, data: bytearray, timestamp: float) -> None:
+        """canopen's SDO server, around two of its failure paths (canopen 2.4.1): a segment
+        request with no transfer in progress makes its own abort raise (it packs the
+        transfer's index, None: ``struct.error``), and it logs refused requests (block
+        transfers) through Python's last-resort handler, i.e. prints them. Here the abort
+        is sent for it (0x05040001, command specifier not valid) and its log kept quiet:
+        a drive answers a bad request on the bus, it does not print."""
+        with quiet_canopen():
+            try:
+                self.network.notify(self.node.sdo.rx_cobid, data, timestamp)
+            except struct.error:
+                self.frames_rejected += 1
+                self.network.send_message(self.node.sdo.tx_cobid, _SDO_ABORT_UNKNOWN_COMMAND)
 
     # -- boot and NMT -----------------------------------------------------------
 

@@ -58,3 +58,17 @@ def test_emulator_process_answers_sdo_nmt_and_sync() -> None:
             assert time.monotonic() < end, (process.axis_state, process.applied_torque)
             time.sleep(0.01)
         assert process.axis_error == 0 and process.frame_errors == 0 and not process.watchdog_tripped
+
+
+def test_can_bus_interface_dobhil_with_a_cia402_config() -> None:
+    # python-can's own entry: the demo's plant on the emulated CiA 402 node (its profile
+    # from the shipped drivers/cia402-emulated.yaml), SYNCs sent by this test
+    with can.Bus(interface="dobhil", channel="demo", overrides="drive.profile=cia402-emulated") as bus:
+        assert "cia402" in bus.channel_info
+        _send(bus, SDO_RX, upload(0x1018, 2))
+        assert _frames(bus, {SDO_TX})[SDO_TX] == bytes.fromhex("4318100202040000")   # product 0x402
+        _send(bus, 0x000, [0x01, NODE])
+        _send(bus, SYNC)
+        frames = _frames(bus, {TPDO1, TPDO2})
+        assert struct.unpack_from("<H", frames[TPDO1])[0] == 0x0250   # switch on disabled
+        assert len(frames[TPDO1]) == 8 and len(frames[TPDO2]) == 5
