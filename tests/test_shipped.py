@@ -65,7 +65,8 @@ def test_a_profile_name_works_from_any_directory(tmp_path: Path, monkeypatch: py
     monkeypatch.chdir(tmp_path)
     profile = load_profile("odrive-0.6")
     assert profile.name == "odrive-0.6" and profile.protocol == "odrive"
-    with pytest.raises(ConfigError, match=r"drive profile 'nope': expected one of \[.*'epos4', 'odrive-0.5', 'odrive-0.6'"):
+    with pytest.raises(ConfigError,
+                       match=r"drive profile 'nope': expected one of \[.*'epos4', 'odrive-0.5', 'odrive-0.6'"):
         load_profile("nope")
 
 
