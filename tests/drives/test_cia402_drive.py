@@ -378,3 +378,24 @@ def test_a_profile_file_whose_eds_is_missing_is_refused_when_the_drive_is_made(t
     from_file = dataclasses.replace(profile(eds="gone.eds"), directory=str(tmp_path))
     with pytest.raises(ConfigError, match=rf"cia402.eds: file 'gone.eds' not found in {re.escape(str(tmp_path))}"):
         CiA402Drive(SimBus(), from_file)  # type: ignore[arg-type]
+
+
+def test_without_native_periodic_send_the_hosts_heartbeat_rides_with_the_torque_frames() -> None:
+    bus = HostSyncBus()
+    node = FakeNode(bus)
+    drive = CiA402Drive(bus, profile(consumer_heartbeat=0.05), clock=bus.clock)  # type: ignore[arg-type]
+    drive.enable()
+    assert node.sdo[0x1016][1].raw == 127 << 16 | 50     # host 127 watched for 50 ms
+    for _ in range(120):
+        drive.send_torque(0.0)
+        drive.poll(0.01)
+        bus.now += 0.001   # the host's loop period (the node answers at once on this bus)
+    beats = [m.timestamp for m in bus.sent if m.arbitration_id == 0x77F]
+    assert all(bytes(m.data) == b"\x05" for m in bus.sent if m.arbitration_id == 0x77F)
+    gaps = [b - a for a, b in zip(beats, beats[1:])]
+    assert len(beats) >= 10 and max(gaps) <= 0.0125 + 1e-9   # every 12 SYNC periods (50 ms / 4)
+
+
+def test_the_hosts_heartbeat_id_must_not_be_the_nodes() -> None:
+    with pytest.raises(ConfigError, match="cia402.host_node_id: expected an id other than the node's"):
+        CiA402Drive(SimBus(), profile(consumer_heartbeat=0.05, host_node_id=5))  # type: ignore[arg-type]

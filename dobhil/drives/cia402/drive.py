@@ -46,7 +46,7 @@ import canopen
 from canopen.emcy import EmcyError
 from canopen.objectdictionary import ObjectDictionary
 
-from dobhil.drives.base import Clock, Drive, DriveEvent, MotionEvent, SafeStopReport, StateEvent
+from dobhil.drives.base import Clock, Confirmation, Drive, DriveEvent, MotionEvent, SafeStopReport, StateEvent
 from dobhil.drives.cia402 import codec
 from dobhil.drives.cia402.codec import CST_MODE, Cob, Controlword, Mapped, NmtState, PowerState
 from dobhil.drives.cia402.eds import STANDARD_LAYOUTS, EdsNotFound, load_od
@@ -55,7 +55,7 @@ from dobhil.drives.cia402.rules import CIA402_RULES
 from dobhil.drives.periodic import native_periodic
 from dobhil.drives.profile import DriveProfile, ProtocolRules
 from dobhil.drives.waits import Cancel
-from dobhil.errors import CodecError, DriveError, DriveFaultError, DriveTimeoutError
+from dobhil.errors import CodecError, ConfigError, DriveError, DriveFaultError, DriveTimeoutError
 
 if TYPE_CHECKING:
     from canopen.pdo import PdoMap
@@ -69,6 +69,8 @@ RATED_TORQUE_TOLERANCE = 0.01
 RATED_TORQUE_UNITS = {"mNm": 1e-3, "uNm": 1e-6}
 #: CiA 301 EMCY code of a heartbeat or life-guarding error: the node's watchdog on the host
 EMCY_HEARTBEAT = 0x8130
+#: the host sends its heartbeat this many times per consumer time of the node (0x1016)
+HOST_HEARTBEATS_PER_CONSUMER_TIME = 4
 _OUT_OF_TORQUE = frozenset(PowerState) - {PowerState.OPERATION_ENABLED, PowerState.UNKNOWN}
 
 
@@ -109,6 +111,16 @@ class CiA402Drive(Drive):
         self._sync_task: Any = None
         self._native_sync = False
         self._sync_msg = can.Message(arbitration_id=Cob.SYNC, data=b"", is_extended_id=False)
+        self._host_id = int(opts["host_node_id"])
+        if self._host_id == node and float(opts["consumer_heartbeat"]) > 0:
+            raise ConfigError(f"drive profile {profile.name!r}: cia402.host_node_id: expected an id other "
+                              f"than the node's ({node}): the host's heartbeat 0x{Cob.HEARTBEAT + node:03X} "
+                              "would be the node's own")
+        self._host_heartbeat = can.Message(arbitration_id=Cob.HEARTBEAT + self._host_id,
+                                           data=bytes((NmtState.OPERATIONAL,)), is_extended_id=False)
+        self._host_heartbeat_task: Any = None
+        self._host_heartbeat_due: float | None = None  # without native periodic send
+        self._host_heartbeat_period = 0.0
         # hot path: one preallocated RPDO refilled per cycle
         self._rpdo_msg = can.Message(arbitration_id=self._rpdo_id, is_extended_id=False,
                                      data=bytearray(self._layouts.rpdo.size))
@@ -150,20 +162,30 @@ class CiA402Drive(Drive):
         super().send_torque(tau_nm)
         if not self._native_sync:
             self._send_sync()
+            if self._host_heartbeat_due is not None:
+                self._host_heartbeat_if_due()
 
     def safe_stop(self, *, confirm: bool = True, timeout: float | None = None,
                   cancel: Cancel | None = None) -> SafeStopReport:
         """The base's safe stop, then the periodic SYNC stopped: after the confirmation
         (the node needed SYNCs to apply the RPDOs and to answer), or at once when not
-        confirming (the safe-stop frames carried their own SYNCs)."""
+        confirming (the safe-stop frames carried their own SYNCs). A node watching the
+        host's heartbeat (``consumer_heartbeat``) is told to stop watching first when the
+        stop was confirmed, so the host's heartbeat ending is not a fault on it."""
+        report: SafeStopReport | None = None
         try:
-            return super().safe_stop(confirm=confirm, timeout=timeout, cancel=cancel)
+            report = super().safe_stop(confirm=confirm, timeout=timeout, cancel=cancel)
+            return report
         finally:
+            if report is not None and report.confirmation is Confirmation.CONFIRMED:
+                self._stop_watching_host(cancel)
             self._stop_sync()
 
     def close(self) -> None:
-        """Stop the periodic SYNC (if any). The bus is borrowed: it stays open."""
+        """Stop the periodic SYNC and host heartbeat (if any). The bus is borrowed: it
+        stays open."""
         self._stop_sync()
+        self._stop_host_heartbeat()
 
     # -- start-up ---------------------------------------------------------------
 
@@ -272,6 +294,54 @@ class CiA402Drive(Drive):
         node.sdo[0x1006].raw = round(self._period * 1e6)
         heartbeat = self.profile.heartbeat_period
         node.sdo[0x1017].raw = round(heartbeat * 1e3) if heartbeat else 0
+        consumer = float(self.profile.options["consumer_heartbeat"])
+        if consumer > 0:
+            # the host's heartbeat first: a consumer watches from the first one it hears
+            # a whole number of SYNC periods: the SYNC's clock is the one a native
+            # periodic send surely keeps (the lockstep bus takes whole steps only)
+            cycles = max(1, int(consumer / HOST_HEARTBEATS_PER_CONSUMER_TIME / self._period))
+            self._start_host_heartbeat(cycles * self._period)
+            node.sdo[0x1016][1].raw = self._host_id << 16 | round(consumer * 1e3)
+
+    # -- the host's heartbeat (for the node's consumer 0x1016) ------------------
+
+    def _start_host_heartbeat(self, period: float) -> None:
+        """Every ``period``: natively where SYNC is native, else with the torque frames."""
+        self._stop_host_heartbeat()
+        self._host_heartbeat_period = period
+        if native_periodic(self._bus):
+            self._host_heartbeat_task = self._bus.send_periodic(self._host_heartbeat, period)
+        else:
+            self._host_heartbeat_due = self._clock()
+            self._host_heartbeat_if_due()
+
+    def _host_heartbeat_if_due(self) -> None:
+        due, now = self._host_heartbeat_due, self._clock()
+        if due is not None and now >= due:
+            self._send_all((self._host_heartbeat,), "host heartbeat")
+            period = self._host_heartbeat_period
+            self._host_heartbeat_due = due + period if now < due + period else now + period  # no bursts
+
+    def _stop_host_heartbeat(self) -> None:
+        task, self._host_heartbeat_task = self._host_heartbeat_task, None
+        self._host_heartbeat_due = None
+        if task is not None:
+            try:
+                task.stop()
+            except Exception:  # a bus already gone stops its tasks with it
+                pass
+
+    def _stop_watching_host(self, cancel: Cancel | None) -> None:
+        """0x1016:01 = 0 by SDO, then the host's heartbeat stopped; never raises (a node
+        that did not hear it faults on the missing heartbeat, disabled already)."""
+        if self._link is None or (self._host_heartbeat_task is None and self._host_heartbeat_due is None):
+            return
+        try:
+            with self._link.session(cancel):
+                self._link.node.sdo[0x1016][1].raw = 0
+        except Exception:  # safety path: the run is over, the drive disabled
+            pass
+        self._stop_host_heartbeat()
 
     def _start_node(self, node: Any) -> None:
         node.nmt.send_command(codec.NmtCommand.START)
@@ -347,6 +417,8 @@ class CiA402Drive(Drive):
     def _keepalive_frames(self) -> Sequence[can.Message]:
         """The RPDO with the controlword the state machine is at and zero torque (and a
         SYNC to apply it and be answered, when no periodic SYNC runs)."""
+        if self._host_heartbeat_due is not None:
+            self._host_heartbeat_if_due()
         return self._command_frames()
 
     def _disable_frames(self) -> Sequence[can.Message]:
