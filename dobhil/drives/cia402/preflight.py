@@ -18,7 +18,7 @@ NMT command sent:
   own tolerance: every torque command is per mille of it, so a wrong value scales every
   torque, and the run refuses (the drive's start-up would refuse it too);
 - the PDO mapping: SPEC-17's mapping of each PDO, typed by the profile's EDS, fits a
-  PDO's 64 bits (:func:`dobhil.drives.cia402.eds.layouts_of`, the drive's own check: an
+  PDO's 64 bits (:func:`dobhil.drives.cia402.eds.load_od`, the drive's own check: an
   EDS that does not fit, or lacks an object the drive needs, is bad input, one line,
   before anything is sent), every mapped object is PDO-mappable in the EDS, and the
   mapping parameters of the profile's RPDO and TPDOs exist on the node (0x1600 + n - 1,
@@ -32,7 +32,8 @@ Listening for the rest of the window hears heartbeats (0x700 + id: NMT state, pe
 SDO replies and TPDOs (none before the drive's start-up: a TPDO answers SYNC, in NMT
 operational). The bus budget per SYNC: SYNC (0 bytes), the RPDO (4: controlword +
 target torque), TPDO1 (8: statusword + position + torque actual), TPDO2 (5: velocity +
-mode display), and the heartbeat's share (1 byte every ``heartbeat_period``).
+mode display), and the heartbeat's share (1 byte every ``heartbeat_period``; the host's
+own, for ``consumer_heartbeat``, at the drive's period for it).
 """
 
 from __future__ import annotations
@@ -49,8 +50,8 @@ from canopen.sdo import SdoAbortedError, SdoCommunicationError
 from dobhil.drives.bus_load import CycleFrame
 from dobhil.drives.cia402.codec import (CST_SUPPORTED_BIT, RPDO_CST, TPDO_MOTION, TPDO_STATUS, Cob, Mapped,
                                         NmtState, PowerState, layout_bits, power_state)
-from dobhil.drives.cia402.drive import RATED_TORQUE_TOLERANCE, RATED_TORQUE_UNITS
-from dobhil.drives.cia402.eds import layouts_of, load_od
+from dobhil.drives.cia402.drive import HOST_HEARTBEATS_PER_CONSUMER_TIME, RATED_TORQUE_TOLERANCE, RATED_TORQUE_UNITS
+from dobhil.drives.cia402.eds import STANDARD_LAYOUTS, load_od
 from dobhil.drives.cia402.link import CanopenLink
 from dobhil.drives.preflight import (Capture, Finding, NodeReport, Observation, PreflightProbe, Setting,
                                      Severity, Stream, listen_window)
@@ -155,6 +156,10 @@ class CiA402Preflight(PreflightProbe):
         heartbeat = self.profile.heartbeat_period
         if heartbeat:
             frames.append(CycleFrame("heartbeat", 1, every=heartbeat))
+        consumer = float(self.options.get("consumer_heartbeat", 0.0))
+        if consumer > 0:   # the host's own heartbeat for the node's consumer 0x1016 (the drive's period)
+            cycles = max(1, int(consumer / HOST_HEARTBEATS_PER_CONSUMER_TIME / period))
+            frames.append(CycleFrame("host heartbeat", 1, every=cycles * period))
         return tuple(frames)
 
     # -- the window: SDO reads, then listening ----------------------------------
@@ -165,8 +170,8 @@ class CiA402Preflight(PreflightProbe):
         end = clock() + window
         # the drive's own checks of the EDS first: bad input is one line (ConfigError, exit
         # 2) before anything is sent
-        od = load_od(self.profile)
-        layouts = layouts_of(od, self.profile)
+        od = load_od(self.profile)   # checks the mapping fits, with the standard's data types
+        layouts = STANDARD_LAYOUTS
         for (name, _), layout in zip(self._mappings(*self._pdo_numbers()),
                                      (layouts.rpdo, layouts.status, layouts.motion)):
             self.mapping_sizes[name] = layout.size * 8
