@@ -60,6 +60,8 @@ from dobhil.errors import CodecError, ConfigError, DriveError, DriveFaultError, 
 if TYPE_CHECKING:
     from canopen.pdo import PdoMap
 
+    from dobhil.drives.preflight import PreflightProbe
+
 __all__ = ["CiA402Drive"]
 
 _NO_EVENTS: tuple[DriveEvent, ...] = ()
@@ -157,6 +159,14 @@ class CiA402Drive(Drive):
     def rated_torque(self) -> float:
         """[Nm] the rated torque the per mille values refer to."""
         return self._rated
+
+    @classmethod
+    def preflight_probe(cls, profile: DriveProfile) -> PreflightProbe | None:
+        """SDO reads of identity, modes, rated torque, heartbeat, statusword and the PDO
+        mapping parameters, then listening (:mod:`dobhil.drives.cia402.preflight`)."""
+        # imported here: the probe imports this module (its rated-torque tolerance)
+        from dobhil.drives.cia402.preflight import CiA402Preflight
+        return CiA402Preflight(profile)
 
     def send_torque(self, tau_nm: float) -> None:
         super().send_torque(tau_nm)
