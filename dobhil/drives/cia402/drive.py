@@ -102,6 +102,11 @@ class CiA402Drive(Drive):
             if profile.directory:
                 raise
             self._od, self._missing = None, exc
+        if self._od is not None and 0x60C2 in self._od:
+            try:
+                codec.interpolation_period(self._period)
+            except CodecError as exc:
+                raise ConfigError(f"drive profile {profile.name!r}: feedback_period: {exc}") from None
         self._layouts = STANDARD_LAYOUTS
         self._rpdo_n, self._tpdo_n = int(opts["rpdo"]), int(opts["tpdo"])
         self._rpdo_id = Cob.rpdo(self._rpdo_n, node)
@@ -301,7 +306,16 @@ class CiA402Drive(Drive):
         pdo.save()
 
     def _write_timing(self, node: Any) -> None:
-        node.sdo[0x1006].raw = round(self._period * 1e6)
+        """The SYNC period where the node has it: 0x1006 [us] (CiA 301) and 0x60C2, the
+        interpolation time period CSx modes use (value :01 times 10 ** index :02 s; a
+        maxon EPOS4 has only this one); the heartbeats."""
+        od = node.object_dictionary
+        if 0x1006 in od:
+            node.sdo[0x1006].raw = round(self._period * 1e6)
+        if 0x60C2 in od:
+            value, exponent = codec.interpolation_period(self._period)
+            node.sdo[0x60C2][1].raw = value
+            node.sdo[0x60C2][2].raw = exponent
         heartbeat = self.profile.heartbeat_period
         node.sdo[0x1017].raw = round(heartbeat * 1e3) if heartbeat else 0
         consumer = float(self.profile.options["consumer_heartbeat"])
