@@ -234,6 +234,9 @@ def _one_line_start_up_failure(drive: CiA402Drive, node: FakeNode | None) -> str
     assert drive.status.state is not DriveState.ENABLED
     if node is not None:
         assert node.state != "operation enabled" and 15 not in node.controlwords
+    # nothing was enabled, and the safe stop says so: no "drive may still be enabled"
+    report = drive.safe_stop()
+    assert report.safe and report.warning() == ""
     return text
 
 
@@ -443,3 +446,20 @@ def test_the_epos4_profile_loads_and_its_eds_passes_the_checks() -> None:
     epos4 = load_profile(PROFILE.parent / "epos4.yaml")
     drive = CiA402Drive(SimBus(), epos4)  # type: ignore[arg-type]
     assert drive.profile.options["rated_torque_unit"] == "uNm"
+
+
+def test_a_bus_that_refuses_a_request_at_start_up_is_one_bus_error_line() -> None:
+    from dobhil.errors import BusError
+    bus, node, drive = rig()
+    sent = bus.send
+
+    def refuse_sdo(msg: can.Message, timeout: float | None = None) -> None:
+        if msg.arbitration_id == 0x605 and msg.data[1:3] == bytes.fromhex("02 65"):
+            raise can.CanOperationError("Transmit buffer full")
+        sent(msg, timeout)
+
+    bus.send = refuse_sdo  # type: ignore[method-assign]
+    with pytest.raises(BusError) as info:
+        drive.enable()
+    assert str(info.value) == ("node 5: SDO 0x6502:00 (Supported drive modes): Transmit buffer full "
+                               "(reached: pre-operational, identity read, statusword read)")

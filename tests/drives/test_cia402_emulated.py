@@ -191,6 +191,7 @@ def test_a_node_reporting_no_cst_ends_start_up_in_one_line(rig: Rig) -> None:
                                "torque (bit 9), the only mode dobhil drives (reached: pre-operational, "
                                "identity read, statusword read)")
     assert rig.emu.statusword & 0x6F != 0x27
+    assert rig.drive.safe_stop().warning() == ""   # never operational: nothing to cut power for
 
 
 def test_profile_built_in_code_needs_the_feedback_period() -> None:

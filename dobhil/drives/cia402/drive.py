@@ -55,7 +55,7 @@ from dobhil.drives.cia402.rules import CIA402_RULES
 from dobhil.drives.periodic import native_periodic
 from dobhil.drives.profile import DriveProfile, ProtocolRules
 from dobhil.drives.waits import Cancel
-from dobhil.errors import CodecError, ConfigError, DriveError, DriveFaultError, DriveTimeoutError
+from dobhil.errors import BusError, CodecError, ConfigError, DriveError, DriveFaultError, DriveTimeoutError
 
 if TYPE_CHECKING:
     from canopen.pdo import PdoMap
@@ -133,6 +133,7 @@ class CiA402Drive(Drive):
                                      data=bytearray(self._layouts.rpdo.size))
         self._controlword = int(Controlword.SHUTDOWN)
         self._fault_reset_sent = False
+        self._operational_commanded = False  # NMT start sent by this session's start-up
         # decoded state (TPDO1 and TPDO2 of one SYNC make one feedback sample)
         self._statusword = -1
         self._power = PowerState.UNKNOWN
@@ -189,6 +190,11 @@ class CiA402Drive(Drive):
         stop was confirmed, so the host's heartbeat ending is not a fault on it."""
         report: SafeStopReport | None = None
         try:
+            # a node this session never put in NMT operational processed none of our PDOs:
+            # whatever its power state, we did not enable it, and there are no TPDOs to
+            # confirm anything with (the frames still go out: harmless, and a node that was
+            # operational after all takes them)
+            confirm = confirm and self._operational_commanded
             report = super().safe_stop(confirm=confirm, timeout=timeout, cancel=cancel)
             return report
         finally:
@@ -214,6 +220,7 @@ class CiA402Drive(Drive):
                                          on_frame=self._startup_frame)
         self._link = link
         self._fault_reset_sent = False
+        self._operational_commanded = False
         with link.session(cancel), self._one_line(link, reached):
             node = link.node
             steps: Sequence[tuple[str, Callable[[Any], None]]] = (
@@ -249,11 +256,20 @@ class CiA402Drive(Drive):
             if "(reached: " in str(exc):
                 raise
             raise type(exc)(f"node {self.node_id}: {exc} (reached: {_reached(reached)})") from None
+        except (can.CanError, OSError) as exc:  # the bus refused a request or cannot be read
+            raise BusError(f"node {self.node_id}: {self._sdo_object(link)}: "
+                           f"{' '.join(str(exc).split()) or type(exc).__name__} "
+                           f"(reached: {_reached(reached)})") from exc
 
-    def _sdo_failure(self, link: CanopenLink, exc: Exception) -> str:
+    @staticmethod
+    def _sdo_object(link: CanopenLink) -> str:
+        """``SDO 0x6502:00 (Supported drive modes)``: the transfer started last."""
         index, sub = link.adapter.last_object
         var = link.node.object_dictionary.get_variable(index, sub)
-        obj = f"SDO 0x{index:04X}:{sub:02X} ({var.name if var is not None else 'not in the EDS'})"
+        return f"SDO 0x{index:04X}:{sub:02X} ({var.name if var is not None else 'not in the EDS'})"
+
+    def _sdo_failure(self, link: CanopenLink, exc: Exception) -> str:
+        obj = self._sdo_object(link)
         if isinstance(exc, canopen.SdoAbortedError):
             text = canopen.SdoAbortedError.CODES.get(exc.code, "unknown abort code")
             return f"{obj} aborted by the node: 0x{exc.code:08X} ({text})"
@@ -368,6 +384,7 @@ class CiA402Drive(Drive):
         self._stop_host_heartbeat()
 
     def _start_node(self, node: Any) -> None:
+        self._operational_commanded = True
         node.nmt.send_command(codec.NmtCommand.START)
         # commanded, not yet heard: a boot-up or pre-operational heartbeat from before the
         # command must not count against the node (its next heartbeat tells)
@@ -383,7 +400,11 @@ class CiA402Drive(Drive):
         self._stop_sync()
         self._native_sync = native_periodic(self._bus)
         if self._native_sync:
-            self._sync_task = self._bus.send_periodic(self._sync_msg, self._period)
+            try:
+                self._sync_task = self._bus.send_periodic(self._sync_msg, self._period)
+            except Exception as exc:  # whatever the interface raises (see Drive.send_torque)
+                raise BusError(f"node {self.node_id}: periodic SYNC not started: "
+                               f"{' '.join(str(exc).split()) or type(exc).__name__}") from exc
 
     def _stop_sync(self) -> None:
         task, self._sync_task = self._sync_task, None
