@@ -207,6 +207,8 @@ class _Pdo:
     trans_type: int
     entries: tuple[_Entry, ...]
     countdown: int = 1
+    #: a TPDO's bytes, one reader per entry (built with the PDO: no lookups per SYNC)
+    readers: tuple[Callable[[], bytes], ...] = ()
 
     @property
     def size(self) -> int:
@@ -610,11 +612,27 @@ class EmulatedCiA402(EmulatedDrive):
         rpdos = [self._read_pdo(n + 1, 0x1400 + n, 0x1600 + n) for n in range(512) if 0x1400 + n in od]
         tpdos = [self._read_pdo(n + 1, 0x1800 + n, 0x1A00 + n) for n in range(512) if 0x1800 + n in od]
         self._rpdos = {pdo.cob_id: pdo for pdo in rpdos if pdo is not None}
-        self._tpdos = tuple(pdo for pdo in tpdos if pdo is not None and pdo.synchronous)
+        self._tpdos = tuple(dataclasses.replace(pdo, readers=tuple(self._reader(e) for e in pdo.entries))
+                            for pdo in tpdos if pdo is not None and pdo.synchronous)
         self._rpdo_ids = tuple(self._rpdos)
         for cob_id in self._rpdo_ids:
             self.network.subscribe(cob_id, self._on_rpdo)
         self._pending.clear()
+
+    def _reader(self, entry: _Entry) -> Callable[[], bytes]:
+        """The bytes of one TPDO entry: a process value encoded by canopen as its object's
+        data type, or what the object dictionary holds (as an SDO upload reads it)."""
+        if entry.index < 0x1000:
+            zeros = bytes(entry.size)
+            return lambda: zeros
+        live = self._live.get(entry.index)
+        if live is not None:
+            obj = self.node.object_dictionary[entry.index]
+            var = obj if isinstance(obj, ODVariable) else obj[entry.subindex]
+            encode = var.encode_raw
+            return lambda: encode(live())
+        get_data, index, subindex, size = self.node.get_data, entry.index, entry.subindex, entry.size
+        return lambda: get_data(index, subindex)[:size]
 
     def _on_rpdo(self, can_id: int, data: bytearray, timestamp: float) -> None:
         pdo = self._rpdos.get(can_id)
@@ -650,15 +668,12 @@ class EmulatedCiA402(EmulatedDrive):
         for number in sorted(pending):
             self._apply(pending[number])
         self._check_over_torque()
-        get_data = self.node.get_data
         for pdo in self._tpdos:
             pdo.countdown -= 1
             if pdo.countdown > 0:
                 continue
             pdo.countdown = max(pdo.trans_type, 1)
-            payload = b"".join(bytes(entry.size) if entry.index < 0x1000
-                               else get_data(entry.index, entry.subindex)[:entry.size]
-                               for entry in pdo.entries)
+            payload = b"".join([read() for read in pdo.readers])
             self._send(can.Message(arbitration_id=pdo.cob_id, is_extended_id=False, data=payload))
 
     # -- the drive ----------------------------------------------------------------
