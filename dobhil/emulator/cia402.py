@@ -18,7 +18,8 @@ What canopen's LocalNode does not do, this module does (drive-protocols.md, CiA 
   The node boots (boot-up frame, NMT pre-operational) at its first tick or frame, and again
   after an NMT reset (node: the whole object dictionary back to the EDS; communication:
   0x1000-0x1FFF); canopen's slave only changes its state on a reset;
-- PDOs, only in NMT operational, from the object dictionary as the host configured it by
+- SDO in NMT pre-operational and operational (not stopped: CiA 301; canopen's server
+  would answer in any state); PDOs only in NMT operational, from the object dictionary as the host configured it by
   SDO (0x1400-0x1403/0x1600-0x1603, 0x1800-0x1803/0x1A00-0x1A03; a mapping entry must
   name a mappable object with its own size, at most 64 bits in all, or the SDO write is
   aborted with CiA 301's code). Synchronous RPDOs (transmission type 0-240) are latched at
@@ -388,7 +389,8 @@ class EmulatedCiA402(EmulatedDrive):
         if self._pdo_dirty:
             self._compile_pdos()
         if can_id == self.node.sdo.rx_cobid:
-            self._sdo_request(data, msg.timestamp)
+            if self.nmt_state != "STOPPED":   # CiA 301: a stopped node answers NMT only
+                self._sdo_request(data, msg.timestamp)
             return
         self.network.notify(can_id, data, msg.timestamp)
 

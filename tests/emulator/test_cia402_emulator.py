@@ -388,3 +388,14 @@ def test_an_sdo_segment_outside_a_transfer_is_aborted_not_raised_nor_printed(
     assert response[0] == 0x80 and struct.unpack("<I", response[4:])[0] in (0x05040001, 0x05040005)
     assert rig.emu.frame_errors == 0 and capsys.readouterr().err == ""
     assert rig.value(0x6502) == 0x380      # and the server still answers
+
+
+def test_a_stopped_node_answers_nmt_only_and_keeps_its_heartbeat(rig: Lockstep) -> None:
+    rig.write(0x1017, 0, 10, 2)
+    configure_wire_mapping(rig)
+    rig.send(0x000, [0x02, NODE])            # NMT stop
+    rig.send(0x605, upload(0x1018, 1))
+    assert rig.sync() == {}                  # neither SDO nor PDO
+    assert (HEARTBEAT, b"\x04") in rig.run(0.01)
+    rig.send(0x000, [0x01, NODE])
+    assert set(rig.sync()) == {TPDO1, TPDO2} and rig.value(0x1018, 1) == 0
