@@ -51,7 +51,8 @@ def bus_budget(config: Any, config_path: Path) -> tuple[str, dict[str, Any] | No
     profile; a profile that cannot be read makes the line say so (the design is still
     analysed: the profile matters to the bus, not to the analysis)."""
     from dobhil.config import resolve_config
-    from dobhil.drives.preflight import configured_bitrate, run_budget
+    from dobhil.cli.check_cmd import run_budget
+    from dobhil.drives.preflight import configured_bitrate
     from dobhil.drives.profile import load_drive_profile
     from dobhil.errors import ConfigError
     try:

@@ -137,7 +137,8 @@ def report_preflight(report: Any) -> None:
 def warn_budget(session: Any) -> None:
     """A bus budget over 70 % is said, not refused (the frames may still fit; late
     feedback then shows in the run's timing)."""
-    from dobhil.drives.preflight import configured_bitrate, run_budget
+    from dobhil.cli.check_cmd import run_budget
+    from dobhil.drives.preflight import configured_bitrate
     # an emulated bus has no bit rate: the budget is the one the configured bus would carry
     bitrate = (session.bus_spec.kwargs.get("bitrate")
                or configured_bitrate(session.config.drive.bitrate, session.profile))

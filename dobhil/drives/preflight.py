@@ -67,7 +67,6 @@ __all__ = [
     "configured_bitrate",
     "listen_window",
     "profile_rate_findings",
-    "run_budget",
     "run_preflight",
 ]
 
@@ -467,14 +466,6 @@ def run_preflight(
                 *budget_findings(bus_budget), *node_found, *cap.findings]
     return PreflightReport(profile.name or profile.protocol, profile.node_id, window, nodes,
                            bus_report, tuple(findings), bus_budget)
-
-
-def run_budget(profile: DriveProfile, period: float, bitrate: int | None) -> BusBudget | None:
-    """The bus budget of a run of ``profile`` at ``period`` (None: its protocol lists no
-    frames), without a bus: what ``dobhil analyze`` and an emulated ``dobhil run`` say."""
-    from dobhil.drives.registry import preflight_probe
-    probe = preflight_probe(profile)
-    return None if probe is None else probe.budget(period, bitrate)
 
 
 def configured_bitrate(drive_bitrate: int, profile: DriveProfile) -> int | None:

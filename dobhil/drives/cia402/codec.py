@@ -35,7 +35,10 @@ __all__ = [
     "DATA_TYPE_FORMATS",
     "EMCY_LAYOUT",
     "FAULT_RESET_BIT",
+    "HOST_HEARTBEATS_PER_CONSUMER_TIME",
     "MAX_PDO_BITS",
+    "RATED_TORQUE_TOLERANCE",
+    "RATED_TORQUE_UNITS",
     "RPDO_CST",
     "RPDO_CST_STRUCT",
     "STATUSWORD_TABLE",
@@ -236,6 +239,14 @@ def torque_from_per_mille(value: int, rated_nm: float) -> float:
 
 
 # -- units ----------------------------------------------------------------------
+
+
+#: newton-metres per unit of 0x6076 (mNm per CiA 402; uNm on a maxon EPOS4)
+RATED_TORQUE_UNITS: Mapping[str, float] = MappingProxyType({"mNm": 1e-3, "uNm": 1e-6})
+#: rated torque of the node within this fraction of the profile's, else refused (start-up, preflight)
+RATED_TORQUE_TOLERANCE = 0.01
+#: the host sends its heartbeat this many times per consumer time of the node (0x1016)
+HOST_HEARTBEATS_PER_CONSUMER_TIME = 4
 
 
 class VelocityUnit(IntEnum):

@@ -49,6 +49,9 @@ from canopen.objectdictionary import ObjectDictionary
 from dobhil.drives.base import Clock, Confirmation, Drive, DriveEvent, MotionEvent, SafeStopReport, StateEvent
 from dobhil.drives.cia402 import codec
 from dobhil.drives.cia402.codec import CST_MODE, Cob, Controlword, Mapped, NmtState, PowerState
+# in the codec (not here) so that the preflight probe shares them without importing the drive
+from dobhil.drives.cia402.codec import (HOST_HEARTBEATS_PER_CONSUMER_TIME, RATED_TORQUE_TOLERANCE,
+                                        RATED_TORQUE_UNITS)
 from dobhil.drives.cia402.eds import STANDARD_LAYOUTS, EdsNotFound, load_od
 from dobhil.drives.cia402.link import CanopenLink
 from dobhil.drives.cia402.rules import CIA402_RULES
@@ -65,14 +68,8 @@ if TYPE_CHECKING:
 __all__ = ["CiA402Drive"]
 
 _NO_EVENTS: tuple[DriveEvent, ...] = ()
-#: rated torque of the node within this fraction of the profile's, else refused
-RATED_TORQUE_TOLERANCE = 0.01
-#: newton-metres per unit of 0x6076
-RATED_TORQUE_UNITS = {"mNm": 1e-3, "uNm": 1e-6}
 #: CiA 301 EMCY code of a heartbeat or life-guarding error: the node's watchdog on the host
 EMCY_HEARTBEAT = 0x8130
-#: the host sends its heartbeat this many times per consumer time of the node (0x1016)
-HOST_HEARTBEATS_PER_CONSUMER_TIME = 4
 _OUT_OF_TORQUE = frozenset(PowerState) - {PowerState.OPERATION_ENABLED, PowerState.UNKNOWN}
 
 

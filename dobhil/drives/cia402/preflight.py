@@ -48,9 +48,9 @@ from canopen.objectdictionary import ObjectDictionary
 from canopen.sdo import SdoAbortedError, SdoCommunicationError
 
 from dobhil.drives.bus_load import CycleFrame
-from dobhil.drives.cia402.codec import (CST_SUPPORTED_BIT, RPDO_CST, TPDO_MOTION, TPDO_STATUS, Cob, Mapped,
-                                        NmtState, PowerState, layout_bits, power_state)
-from dobhil.drives.cia402.drive import HOST_HEARTBEATS_PER_CONSUMER_TIME, RATED_TORQUE_TOLERANCE, RATED_TORQUE_UNITS
+from dobhil.drives.cia402.codec import (CST_SUPPORTED_BIT, HOST_HEARTBEATS_PER_CONSUMER_TIME,
+                                        RATED_TORQUE_TOLERANCE, RATED_TORQUE_UNITS, RPDO_CST, TPDO_MOTION,
+                                        TPDO_STATUS, Cob, Mapped, NmtState, PowerState, layout_bits, power_state)
 from dobhil.drives.cia402.eds import STANDARD_LAYOUTS, load_od
 from dobhil.drives.cia402.link import CanopenLink
 from dobhil.drives.preflight import (Capture, Finding, NodeReport, Observation, PreflightProbe, Setting,
