@@ -164,6 +164,7 @@ def _variant(tmp_path: Path, eds_change: Any = None, **section: Any) -> Path:
 
 
 @pytest.mark.parametrize(("eds_change", "section", "says"), [
+    (lambda t: re.sub(r"\[6071\]\n(?:[^\[\n].*\n|\n)*", "", t), {}, "object 0x6071 (target torque) missing"),
     (lambda t: re.sub(r"(\[6502\](?:\n.*)*?DefaultValue=)0x00000380", r"\g<1>0x00000180", t), {},
      "has no cyclic synchronous torque (bit 9)"),
     (lambda t: re.sub(r"(\[6076\](?:\n.*)*?DefaultValue=)1000", r"\g<1>0", t), {},
