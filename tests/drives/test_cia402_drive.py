@@ -345,6 +345,9 @@ def test_the_shipped_profile_loads_and_finds_its_eds() -> None:
     assert shipped.protocol == "cia402" and shipped.options["rated_torque_unit"] == "mNm"
     drive = CiA402Drive(SimBus(), shipped)  # type: ignore[arg-type]
     assert drive.frame_ids >= {0x0, 0x80, 0x85, 0x185, 0x285, 0x205, 0x585, 0x605, 0x705}
+    assert 0x77F not in drive.frame_ids and 0x706 not in drive.frame_ids and 0x186 not in drive.frame_ids
+    watched = CiA402Drive(SimBus(), profile(consumer_heartbeat=0.05))  # type: ignore[arg-type]
+    assert 0x77F in watched.frame_ids   # the host's own heartbeat
 
 
 def test_node_id_must_be_a_canopen_one() -> None:

@@ -146,11 +146,13 @@ class CiA402Drive(Drive):
 
     @property
     def frame_ids(self) -> frozenset[int]:
-        """SYNC, NMT, and this node's EMCY, PDOs, SDO and heartbeat."""
+        """SYNC, NMT, and this node's EMCY, PDOs, SDO and heartbeat (and the host's own
+        heartbeat when the node watches it)."""
         node = self.node_id
         pdos = {Cob.tpdo(n, node) for n in range(1, 5)} | {Cob.rpdo(n, node) for n in range(1, 5)}
+        host = {self._host_heartbeat.arbitration_id} if float(self.profile.options["consumer_heartbeat"]) else set()
         return frozenset({Cob.NMT, Cob.SYNC, Cob.EMCY + node, Cob.SDO_TX + node, Cob.SDO_RX + node,
-                          Cob.HEARTBEAT + node} | pdos)
+                          Cob.HEARTBEAT + node} | pdos | host)
 
     @property
     def feedback_streams(self) -> bool:
