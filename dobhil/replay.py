@@ -134,7 +134,9 @@ def _profile(log: LogFile) -> DriveProfile:
     if not record:
         raise LogFileError(f"{log.path}: no 'drive' metadata (not a recorded run?)")
     try:
-        return profile_from_mapping({k: json.loads(v) for k, v in record.items()}, source=f"{log.path} drive")
+        values = {k: json.loads(v) for k, v in record.items()}
+        # an optional key recorded as null (command_delay_periods of a drive without one)
+        return profile_from_mapping({k: v for k, v in values.items() if v is not None}, source=f"{log.path} drive")
     except (ValueError, ConfigError) as exc:
         raise LogFileError(f"{log.path}: invalid recorded drive profile: {exc}") from None
 

@@ -35,7 +35,8 @@ from dobhil.runtime.stop import Stop, StopReason
 
 _PACKAGES: Final = ("python-can", "mcap", "numpy", "scipy", "control", "pyyaml", "orjson", "zstandard")
 _PROFILE_KEYS: Final = ("protocol", "firmware", "node_id", "torque_limit", "velocity_limit", "encoder_msg_rate",
-                        "heartbeat_msg_rate", "watchdog_timeout", "enable_timeout", "name")
+                        "heartbeat_msg_rate", "watchdog_timeout", "enable_timeout", "name",
+                        "command_delay_periods")
 
 
 def default_log_path(directory: Path, now: datetime | None = None) -> Path:

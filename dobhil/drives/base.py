@@ -82,6 +82,15 @@ class Feedback:
     velocity: float  # rad/s
     seq: int  # counts motion frames received from this drive
     rx_time: float = math.nan
+    #: the bus stamp (same clock as ``rx_time``) of the instant the drive sampled this
+    #: feedback (a CiA 402 SYNC); NaN when unknown
+    sampled_at: float = math.nan
+
+    @property
+    def sample_latency(self) -> float:
+        """The drive's sample instant -> this feedback received [s], both bus stamps
+        (NaN when either is unknown): what the sample is old when the host reads it."""
+        return self.rx_time - self.sampled_at
 
 
 @dataclass(frozen=True, slots=True)
@@ -195,6 +204,12 @@ class Drive(ABC):
     @property
     def node_id(self) -> int:
         return self._profile.node_id
+
+    @property
+    def feedback_streams(self) -> bool:
+        """The drive sends feedback cyclically by itself (``loop.timing: feedback`` can
+        follow it); False when it comes only when the host asks for it every cycle."""
+        return True
 
     @property
     def frame_ids(self) -> frozenset[int] | None:

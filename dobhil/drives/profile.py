@@ -43,6 +43,8 @@ class DriveProfile:
     enable_timeout: float  # [s] default wait of Drive.enable()
     bus: Mapping[str, Any] = field(default_factory=lambda: MappingProxyType({}), hash=False)
     name: str = ""  # where the profile came from (file stem), for messages
+    #: the protocol applies each command this many loop periods after its sample (None: not set)
+    command_delay_periods: int | None = None
 
     def __post_init__(self) -> None:
         # the bounds hold for a profile built in code too (dataclasses.replace, tests):
@@ -95,8 +97,9 @@ _RULES: Mapping[str, tuple[tuple[type, ...], str, Any]] = MappingProxyType({
     "enable_timeout": ((int, float), *_within(MIN_HEARTBEAT, MAX_WAIT, "s")),
     "bus": ((dict,), "a mapping of can.Bus keyword arguments", lambda v: all(isinstance(k, str) for k in v)),
     "name": ((str,), "a string", lambda v: True),
+    "command_delay_periods": ((int,), "an integer from 0 to 20", lambda v: 0 <= v <= 20),
 })
-_OPTIONAL = frozenset({"bus", "name"})
+_OPTIONAL = frozenset({"bus", "name", "command_delay_periods"})
 _BOUNDED = ("node_id", "torque_limit", "velocity_limit", "encoder_msg_rate", "heartbeat_msg_rate",
             "watchdog_timeout", "enable_timeout")
 

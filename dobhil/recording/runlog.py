@@ -38,6 +38,7 @@ FOREIGN_ROOM: Final = PIPE_SIZE // 2
 FOREIGN_BYTES: Final = 64
 _RX, _TX, _FEEDBACK, _EVENTS = (int(t) for t in (Topic.CAN_RX, Topic.CAN_TX, Topic.DRIVE_FEEDBACK, Topic.EVENTS))
 _LOSS: Final = int(EventKind.LOSS)
+_NAN: Final = float("nan")
 
 
 class RecordingBus(can.BusABC):
@@ -130,8 +131,11 @@ class RunLog:
         tuple in its field order: see ``schemas``); the one place a writer failure is raised
         on the loop thread, after the cycle's command went out."""
         records, status, truth = self.records, self.drive.status, self.truth
+        # the loop's measure (dobhil.drives.base.Feedback.sample_latency): NaN on a simulated
+        # log clock, where the stamps are of two clocks
+        sampled = _NAN if self._simulated else getattr(fb, "sample_latency", _NAN)
         records.append((0, self.clock_ns(), k, fb.position, fb.velocity, fb.seq, *out, period_error, exec_time,
-                        overrun, status.state, status.error_code, *(truth() if truth is not None else ())))
+                        overrun, sampled, status.state, status.error_code, *(truth() if truth is not None else ())))
         if len(records) >= BATCH_RECORDS or self._failure is not None:
             self.flush()
 
