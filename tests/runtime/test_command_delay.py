@@ -130,3 +130,21 @@ def test_the_run_report_uses_the_recorded_profiles_delay() -> None:
     for meta in ({"drive": {"command_delay_periods": "null"}}, {"drive": {}}, {}):   # ODrive, older logs
         old = RunData(path="x", config=config, metadata=meta, t=np.zeros(0))
         assert command_delay_periods(old) is None and design_config(old) is config
+
+
+def test_a_recorded_run_replays_and_reports_with_the_recorded_delay(tmp_path: Path,
+                                                                      capsys: pytest.CaptureFixture[str]) -> None:
+    from dobhil.replay import replay
+    from dobhil.run_report import latency_stats, load_run
+    log = tmp_path / "run.mcap"
+    profile = _latched(tmp_path)
+    assert main(["run", "demo", "--emulate", "--lockstep", "--set", f"drive.profile={profile}", "--set",
+                 FRACTION[0], "--duration", "0.1", "--log", str(log)]) == 0
+    err = capsys.readouterr().err
+    assert "command_delay_periods = 1" in err
+    result = replay(log)
+    assert result.recording.profile.command_delay_periods == 1 and result.first_mismatch() is None
+    assert main(["replay", str(log), "--verify"]) == 0
+    assert "bit for bit" in capsys.readouterr().out
+    latency = latency_stats(load_run(log))
+    assert latency["protocol_delay_periods"] == 1 and latency["assumed_s"] == pytest.approx(1e-3)
