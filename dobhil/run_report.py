@@ -528,6 +528,11 @@ def _step_line(st: Mapping[str, Any]) -> str:
 
 def _latency_verdict(la: Mapping[str, Any]) -> str:
     """Matches or not, with the tolerance, and what is off (older summaries: no verdict)."""
+    if "protocol_delay_periods" in la and "matches" in la:
+        n = la["protocol_delay_periods"]
+        return (f"; the drive applies each command {n} period{'' if n == 1 else 's'} after its sample "
+                + ("(every command in time for it)" if la["matches"] else
+                   "but p99 is above a period: some commands miss the drive's latch"))
     if "matches" not in la or "tolerance_s" not in la:
         return ""
     tol = f"+-{la['tolerance_s'] * 1e6:.0f} us ({LATENCY_TOLERANCE:g} T)"

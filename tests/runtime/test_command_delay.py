@@ -148,3 +148,9 @@ def test_a_recorded_run_replays_and_reports_with_the_recorded_delay(tmp_path: Pa
     assert "bit for bit" in capsys.readouterr().out
     latency = latency_stats(load_run(log))
     assert latency["protocol_delay_periods"] == 1 and latency["assumed_s"] == pytest.approx(1e-3)
+
+
+def test_the_report_line_of_a_latched_drive() -> None:
+    from dobhil.run_report import _latency_verdict
+    assert "in time for it" in _latency_verdict({"protocol_delay_periods": 1, "matches": True})
+    assert "miss the drive's latch" in _latency_verdict({"protocol_delay_periods": 1, "matches": False})
