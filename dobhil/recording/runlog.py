@@ -22,6 +22,7 @@ from typing import Any, Final
 
 import can
 
+from dobhil.drives.periodic import native_periodic
 from dobhil.errors import RecorderError
 from dobhil.recording.process import PIPE_SIZE, WriterProcess
 from dobhil.recording.schemas import RECORD_TYPES, EventKind, Topic, event_record, message_count, named
@@ -61,6 +62,25 @@ class RecordingBus(can.BusABC):
         if msg is not None:
             self._frame(_RX, msg)
         return msg
+
+    @property
+    def native_periodic(self) -> bool:
+        """As the wrapped bus (:func:`dobhil.drives.periodic.native_periodic`): its periodic
+        send is forwarded to it."""
+        return native_periodic(self._inner)
+
+    def _send_periodic_internal(
+        self, msgs: Sequence[can.Message] | can.Message, period: float, duration: float | None = None,
+        autostart: bool = True, modifier_callback: Callable[[can.Message], None] | None = None,
+    ) -> can.broadcastmanager.CyclicSendTaskABC:
+        """A wrapped bus that sends periodic frames itself (SocketCAN's broadcast manager,
+        the lockstep bus, the emulator process's) does so here too: its echo of each frame
+        is recorded on ``/can/rx`` as it is read. Otherwise python-can's thread sends them
+        through :meth:`send`, recorded on ``/can/tx``."""
+        if native_periodic(self._inner):
+            return self._inner.send_periodic(msgs, period, duration, autostart=autostart,
+                                             modifier_callback=modifier_callback)
+        return super()._send_periodic_internal(msgs, period, duration, autostart, modifier_callback)
 
     def __getattr__(self, name: str) -> Any:
         if name.startswith("_"):
