@@ -64,7 +64,7 @@ def test_a_pipe_without_a_ticking_peer_uses_python_cans_thread() -> None:
 def test_the_emulator_process_sends_the_frames_echoes_them_and_its_drive_reads_them() -> None:
     config = demo_config()
     profile = load_drive_profile(config, DEMO.parent)
-    period = profile.encoder_msg_rate
+    period = profile.feedback_period
     estimates = (profile.node_id << 5) | CmdId.GET_ENCODER_ESTIMATES
     with can.Bus(interface="virtual", channel="pipe-periodic-mirror") as mirror, \
             can.Bus(interface="virtual", channel="pipe-periodic-mirror") as observer, \
@@ -126,7 +126,7 @@ def _stop_read(proc: EmulatorProcess, bus: can.BusABC, stream: list[can.Message]
             stream.append(msg)
     answered = next(i for i, m in enumerate(stream) if m.arbitration_id == reply)
     now = proc.time
-    assert wait_until(lambda: proc.time >= now + 10 * proc.profile.encoder_msg_rate, 30.0)
+    assert wait_until(lambda: proc.time >= now + 10 * proc.profile.feedback_period, 30.0)
     while (msg := bus.recv(0.0)) is not None:
         stream.append(msg)
     assert len(stream) > answered + 10   # the drive's own frames went on
@@ -137,7 +137,7 @@ def test_shutdown_stops_the_childs_tasks() -> None:
     config = demo_config()
     profile = load_drive_profile(config, DEMO.parent)
     with EmulatorProcess(EmulatorSpec.of(config, profile)) as proc:
-        proc.bus.send_periodic(_msg(), profile.encoder_msg_rate)
+        proc.bus.send_periodic(_msg(), profile.feedback_period)
         stream: list[can.Message] = []
         end = time.monotonic() + 30.0
         while sum(m.arbitration_id == SYNC for m in stream) < 3 and time.monotonic() < end:
