@@ -92,6 +92,16 @@ def resolve_timing(config: Config, profile: DriveProfile, lockstep: bool | None)
     return Timing.FEEDBACK
 
 
+def check_feedback_streams(timing: Timing, drive: Drive) -> None:
+    """A loop timed by feedback needs a drive that streams it on its own; one that only
+    answers the host each cycle (CiA 402 without a native periodic SYNC) cannot start it."""
+    if timing is Timing.FEEDBACK and not drive.feedback_streams:
+        raise ConfigError(
+            f"loop.timing = feedback runs one cycle per feedback frame, but node {drive.node_id} "
+            f"({drive.protocol}) only sends feedback when the host asks for it on this bus; "
+            f"set loop.timing: host")
+
+
 def lockstep_latency(config: Config) -> float:
     """When the lockstep emulator applies a command after the sample it was computed
     from: the delay the sampled analysis models, ``design.delay_samples`` whole periods
@@ -152,6 +162,7 @@ class RunSession:
                          else resolve_bus(config, self.profile, bus))
         try:
             self.drive = self._open(emulate)
+            check_feedback_streams(self.timing, self.drive)
         except BaseException:
             self.close()
             raise
