@@ -164,6 +164,7 @@ def _variant(tmp_path: Path, eds_change: Any = None, **section: Any) -> Path:
 
 
 @pytest.mark.parametrize(("eds_change", "section", "says"), [
+    (lambda t: re.sub(r"\[6071\]\n(?:[^\[\n].*\n|\n)*", "", t), {}, "object 0x6071 (target torque) missing"),
     (lambda t: re.sub(r"(\[6502\](?:\n.*)*?DefaultValue=)0x00000380", r"\g<1>0x00000180", t), {},
      "has no cyclic synchronous torque (bit 9)"),
     (lambda t: re.sub(r"(\[6076\](?:\n.*)*?DefaultValue=)1000", r"\g<1>0", t), {},
@@ -191,6 +192,7 @@ def test_a_node_reporting_no_cst_ends_start_up_in_one_line(rig: Rig) -> None:
                                "torque (bit 9), the only mode dobhil drives (reached: pre-operational, "
                                "identity read, statusword read)")
     assert rig.emu.statusword & 0x6F != 0x27
+    assert rig.drive.safe_stop().warning() == ""   # never operational: nothing to cut power for
 
 
 def test_profile_built_in_code_needs_the_feedback_period() -> None:

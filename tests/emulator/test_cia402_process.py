@@ -72,3 +72,27 @@ def test_can_bus_interface_dobhil_with_a_cia402_config() -> None:
         frames = _frames(bus, {TPDO1, TPDO2})
         assert struct.unpack_from("<H", frames[TPDO1])[0] == 0x0250   # switch on disabled
         assert len(frames[TPDO1]) == 8 and len(frames[TPDO2]) == 5
+
+
+def test_sync_sent_periodically_by_the_emulator_process_is_answered_each_time() -> None:
+    # the host's PipeBus.send_periodic: the child sends the SYNC at its own tick starts (as
+    # SocketCAN's broadcast manager would), echoes it to the host, then its node answers it
+    spec = EmulatorSpec.of(load_config("demo"), cia402_profile(feedback_period=0.002))
+    with EmulatorProcess(spec) as process:
+        bus = process.bus
+        _send(bus, 0x000, [0x01, NODE])
+        _frames(bus, {HEARTBEAT})                                  # booted
+        task = bus.send_periodic(can.Message(arbitration_id=SYNC, data=b"", is_extended_id=False), 0.002)
+        try:
+            order: list[int] = []
+            end = time.monotonic() + BOUND
+            while order.count(TPDO2) < 20:
+                assert time.monotonic() < end, order
+                msg = bus.recv(0.1)
+                if msg is not None:
+                    order.append(msg.arbitration_id)
+        finally:
+            task.stop()
+        first = order.index(SYNC)
+        cycles = order[first:first + 3 * 19]
+        assert cycles == [SYNC, TPDO1, TPDO2] * 19             # every SYNC, then its two TPDOs

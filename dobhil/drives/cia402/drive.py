@@ -58,7 +58,7 @@ from dobhil.drives.cia402.rules import CIA402_RULES
 from dobhil.drives.periodic import native_periodic
 from dobhil.drives.profile import DriveProfile, ProtocolRules
 from dobhil.drives.waits import Cancel
-from dobhil.errors import CodecError, ConfigError, DriveError, DriveFaultError, DriveTimeoutError
+from dobhil.errors import BusError, CodecError, ConfigError, DriveError, DriveFaultError, DriveTimeoutError
 
 if TYPE_CHECKING:
     from canopen.pdo import PdoMap
@@ -99,6 +99,11 @@ class CiA402Drive(Drive):
             if profile.directory:
                 raise
             self._od, self._missing = None, exc
+        if self._od is not None and 0x60C2 in self._od:
+            try:
+                codec.interpolation_period(self._period)
+            except CodecError as exc:
+                raise ConfigError(f"drive profile {profile.name!r}: feedback_period: {exc}") from None
         self._layouts = STANDARD_LAYOUTS
         self._rpdo_n, self._tpdo_n = int(opts["rpdo"]), int(opts["tpdo"])
         self._rpdo_id = Cob.rpdo(self._rpdo_n, node)
@@ -125,6 +130,7 @@ class CiA402Drive(Drive):
                                      data=bytearray(self._layouts.rpdo.size))
         self._controlword = int(Controlword.SHUTDOWN)
         self._fault_reset_sent = False
+        self._operational_commanded = False  # NMT start sent by this session's start-up
         # decoded state (TPDO1 and TPDO2 of one SYNC make one feedback sample)
         self._statusword = -1
         self._power = PowerState.UNKNOWN
@@ -140,11 +146,13 @@ class CiA402Drive(Drive):
 
     @property
     def frame_ids(self) -> frozenset[int]:
-        """SYNC, NMT, and this node's EMCY, PDOs, SDO and heartbeat."""
+        """SYNC, NMT, and this node's EMCY, PDOs, SDO and heartbeat (and the host's own
+        heartbeat when the node watches it)."""
         node = self.node_id
         pdos = {Cob.tpdo(n, node) for n in range(1, 5)} | {Cob.rpdo(n, node) for n in range(1, 5)}
+        host = {self._host_heartbeat.arbitration_id} if float(self.profile.options["consumer_heartbeat"]) else set()
         return frozenset({Cob.NMT, Cob.SYNC, Cob.EMCY + node, Cob.SDO_TX + node, Cob.SDO_RX + node,
-                          Cob.HEARTBEAT + node} | pdos)
+                          Cob.HEARTBEAT + node} | pdos | host)
 
     @property
     def feedback_streams(self) -> bool:
@@ -181,6 +189,11 @@ class CiA402Drive(Drive):
         stop was confirmed, so the host's heartbeat ending is not a fault on it."""
         report: SafeStopReport | None = None
         try:
+            # a node this session never put in NMT operational processed none of our PDOs:
+            # whatever its power state, we did not enable it, and there are no TPDOs to
+            # confirm anything with (the frames still go out: harmless, and a node that was
+            # operational after all takes them)
+            confirm = confirm and self._operational_commanded
             report = super().safe_stop(confirm=confirm, timeout=timeout, cancel=cancel)
             return report
         finally:
@@ -206,6 +219,7 @@ class CiA402Drive(Drive):
                                          on_frame=self._startup_frame)
         self._link = link
         self._fault_reset_sent = False
+        self._operational_commanded = False
         with link.session(cancel), self._one_line(link, reached):
             node = link.node
             steps: Sequence[tuple[str, Callable[[Any], None]]] = (
@@ -241,11 +255,20 @@ class CiA402Drive(Drive):
             if "(reached: " in str(exc):
                 raise
             raise type(exc)(f"node {self.node_id}: {exc} (reached: {_reached(reached)})") from None
+        except (can.CanError, OSError) as exc:  # the bus refused a request or cannot be read
+            raise BusError(f"node {self.node_id}: {self._sdo_object(link)}: "
+                           f"{' '.join(str(exc).split()) or type(exc).__name__} "
+                           f"(reached: {_reached(reached)})") from exc
 
-    def _sdo_failure(self, link: CanopenLink, exc: Exception) -> str:
+    @staticmethod
+    def _sdo_object(link: CanopenLink) -> str:
+        """``SDO 0x6502:00 (Supported drive modes)``: the transfer started last."""
         index, sub = link.adapter.last_object
         var = link.node.object_dictionary.get_variable(index, sub)
-        obj = f"SDO 0x{index:04X}:{sub:02X} ({var.name if var is not None else 'not in the EDS'})"
+        return f"SDO 0x{index:04X}:{sub:02X} ({var.name if var is not None else 'not in the EDS'})"
+
+    def _sdo_failure(self, link: CanopenLink, exc: Exception) -> str:
+        obj = self._sdo_object(link)
         if isinstance(exc, canopen.SdoAbortedError):
             text = canopen.SdoAbortedError.CODES.get(exc.code, "unknown abort code")
             return f"{obj} aborted by the node: 0x{exc.code:08X} ({text})"
@@ -298,7 +321,16 @@ class CiA402Drive(Drive):
         pdo.save()
 
     def _write_timing(self, node: Any) -> None:
-        node.sdo[0x1006].raw = round(self._period * 1e6)
+        """The SYNC period where the node has it: 0x1006 [us] (CiA 301) and 0x60C2, the
+        interpolation time period CSx modes use (value :01 times 10 ** index :02 s; a
+        maxon EPOS4 has only this one); the heartbeats."""
+        od = node.object_dictionary
+        if 0x1006 in od:
+            node.sdo[0x1006].raw = round(self._period * 1e6)
+        if 0x60C2 in od:
+            value, exponent = codec.interpolation_period(self._period)
+            node.sdo[0x60C2][1].raw = value
+            node.sdo[0x60C2][2].raw = exponent
         heartbeat = self.profile.heartbeat_period
         node.sdo[0x1017].raw = round(heartbeat * 1e3) if heartbeat else 0
         consumer = float(self.profile.options["consumer_heartbeat"])
@@ -351,6 +383,7 @@ class CiA402Drive(Drive):
         self._stop_host_heartbeat()
 
     def _start_node(self, node: Any) -> None:
+        self._operational_commanded = True
         node.nmt.send_command(codec.NmtCommand.START)
         # commanded, not yet heard: a boot-up or pre-operational heartbeat from before the
         # command must not count against the node (its next heartbeat tells)
@@ -366,7 +399,11 @@ class CiA402Drive(Drive):
         self._stop_sync()
         self._native_sync = native_periodic(self._bus)
         if self._native_sync:
-            self._sync_task = self._bus.send_periodic(self._sync_msg, self._period)
+            try:
+                self._sync_task = self._bus.send_periodic(self._sync_msg, self._period)
+            except Exception as exc:  # whatever the interface raises (see Drive.send_torque)
+                raise BusError(f"node {self.node_id}: periodic SYNC not started: "
+                               f"{' '.join(str(exc).split()) or type(exc).__name__}") from exc
 
     def _stop_sync(self) -> None:
         task, self._sync_task = self._sync_task, None
