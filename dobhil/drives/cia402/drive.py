@@ -20,7 +20,7 @@ controlword bit 7, once).
 
 Cycle: the RPDO (controlword 0x0F, target torque per mille of the rated torque) goes out,
 the node applies it at the next SYNC, samples and answers with both TPDOs; the motion
-event comes with the second one. EMCY (0x80 + node), a statusword out of Operation
+event comes with the second one (none when the first of that SYNC was lost). EMCY (0x80 + node), a statusword out of Operation
 enabled, an NMT state other than operational in the heartbeat (0x700 + node) or a lost
 heartbeat are faults.
 
