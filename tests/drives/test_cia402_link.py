@@ -60,8 +60,9 @@ def link_on(bus: object, seen: list[can.Message], clock: object, timeout: float 
 
 def test_an_sdo_read_finds_its_answer_queued_and_hands_other_frames_on() -> None:
     heartbeat, tpdo = frame(0x705, "7f"), frame(0x185, "37 12 00 10 00 00 f4 01")
+    short_emcy = frame(0x85, "10 23")                   # canopen's EMCY consumer cannot unpack it
     answer = frame(0x585, "43 18 10 01 78 56 34 12")   # expedited upload, 4 bytes: 0x12345678
-    bus = ScriptedBus({bytes.fromhex("40 18 10 01"): [heartbeat, tpdo, answer]})
+    bus = ScriptedBus({bytes.fromhex("40 18 10 01"): [heartbeat, short_emcy, tpdo, answer]})
     seen: list[can.Message] = []
     link = link_on(bus, seen, bus.clock)
     threads = threading.active_count()
@@ -70,7 +71,7 @@ def test_an_sdo_read_finds_its_answer_queued_and_hands_other_frames_on() -> None
     assert vendor == 0x12345678
     assert bytes(bus.sent[0].data) == bytes.fromhex("40 18 10 01 00 00 00 00")
     assert bus.sent[0].arbitration_id == 0x605
-    assert seen == [heartbeat, tpdo]                     # the drive's frames, in order
+    assert seen == [heartbeat, short_emcy, tpdo]         # the drive's frames, in order
     assert link.node.nmt.state == "PRE-OPERATIONAL"      # and canopen saw them too (notify)
     assert link.adapter.last_object == (0x1018, 1)
     assert threading.active_count() == threads           # nothing ran in another thread

@@ -20,9 +20,9 @@ controlword bit 7, once).
 
 Cycle: the RPDO (controlword 0x0F, target torque per mille of the rated torque) goes out,
 the node applies it at the next SYNC, samples and answers with both TPDOs; the motion
-event comes with the second one (none when the first of that SYNC was lost). EMCY (0x80 + node), a statusword out of Operation
-enabled, an NMT state other than operational in the heartbeat (0x700 + node) or a lost
-heartbeat are faults.
+event comes with the second one (none when the first of that SYNC was lost). EMCY
+(0x80 + node), a statusword out of Operation enabled, an NMT state other than operational
+in the heartbeat (0x700 + node) or a lost heartbeat are faults.
 
 Safe stop: zero torque, quick stop (0x02), SYNC, disable voltage (0x00), SYNC -- each
 attempted on its own; the SYNCs make the node apply each RPDO whatever SYNC source ran

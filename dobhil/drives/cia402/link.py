@@ -120,7 +120,10 @@ class SdoBusAdapter:
         if msg.is_error_frame or msg.is_remote_frame:
             return False
         if self.network is not None:
-            self.network.notify(msg.arbitration_id, msg.data, msg.timestamp)
+            try:
+                self.network.notify(msg.arbitration_id, msg.data, msg.timestamp)
+            except Exception:  # as canopen's own MessageListener: a callback's failure on a
+                pass           # malformed frame (an EMCY of 2 bytes) must not end the read
         if msg.arbitration_id == self._response_id:
             return True
         self._on_frame(msg)
