@@ -86,6 +86,8 @@ def run_checked(args: argparse.Namespace) -> int:
                            reset_faults=args.reset_faults,
                            **log_hooks(log), **preflight_kwargs(args)) as session:
             report_preflight(session.preflight())
+            if session.preflight_report is None:   # the preflight says it otherwise
+                warn_budget(session)
             warn_realtime(session)
             result = record_run(session, log, args.config)
             info = summary(session, result)
@@ -130,6 +132,19 @@ def report_preflight(report: Any) -> None:
     for node in report.nodes:
         if node.node == report.node_id:
             sys.stderr.write(f"dobhil run: preflight: node {node.node}: {node.summary}\n")
+
+
+def warn_budget(session: Any) -> None:
+    """A bus budget over 70 % is said, not refused (the frames may still fit; late
+    feedback then shows in the run's timing)."""
+    from dobhil.cli.check_cmd import run_budget
+    from dobhil.drives.preflight import configured_bitrate
+    # an emulated bus has no bit rate: the budget is the one the configured bus would carry
+    bitrate = (session.bus_spec.kwargs.get("bitrate")
+               or configured_bitrate(session.config.drive.bitrate, session.profile))
+    budget = run_budget(session.profile, session.settings.period, bitrate)
+    if budget is not None and budget.over:
+        sys.stderr.write(f"dobhil run: note (not refused: the run goes on): {budget.advice()}\n")
 
 
 def warn_realtime(session: Any) -> None:

@@ -234,6 +234,9 @@ def _one_line_start_up_failure(drive: CiA402Drive, node: FakeNode | None) -> str
     assert drive.status.state is not DriveState.ENABLED
     if node is not None:
         assert node.state != "operation enabled" and 15 not in node.controlwords
+    # nothing was enabled, and the safe stop says so: no "drive may still be enabled"
+    report = drive.safe_stop()
+    assert report.safe and report.warning() == ""
     return text
 
 
@@ -342,6 +345,9 @@ def test_the_shipped_profile_loads_and_finds_its_eds() -> None:
     assert shipped.protocol == "cia402" and shipped.options["rated_torque_unit"] == "mNm"
     drive = CiA402Drive(SimBus(), shipped)  # type: ignore[arg-type]
     assert drive.frame_ids >= {0x0, 0x80, 0x85, 0x185, 0x285, 0x205, 0x585, 0x605, 0x705}
+    assert 0x77F not in drive.frame_ids and 0x706 not in drive.frame_ids and 0x186 not in drive.frame_ids
+    watched = CiA402Drive(SimBus(), profile(consumer_heartbeat=0.05))  # type: ignore[arg-type]
+    assert 0x77F in watched.frame_ids   # the host's own heartbeat
 
 
 def test_node_id_must_be_a_canopen_one() -> None:
@@ -378,3 +384,85 @@ def test_a_profile_file_whose_eds_is_missing_is_refused_when_the_drive_is_made(t
     from_file = dataclasses.replace(profile(eds="gone.eds"), directory=str(tmp_path))
     with pytest.raises(ConfigError, match=rf"cia402.eds: file 'gone.eds' not found in {re.escape(str(tmp_path))}"):
         CiA402Drive(SimBus(), from_file)  # type: ignore[arg-type]
+
+
+def test_without_native_periodic_send_the_hosts_heartbeat_rides_with_the_torque_frames() -> None:
+    bus = HostSyncBus()
+    node = FakeNode(bus)
+    drive = CiA402Drive(bus, profile(consumer_heartbeat=0.05), clock=bus.clock)  # type: ignore[arg-type]
+    drive.enable()
+    assert node.sdo[0x1016][1].raw == 127 << 16 | 50     # host 127 watched for 50 ms
+    for _ in range(120):
+        drive.send_torque(0.0)
+        drive.poll(0.01)
+        bus.now += 0.001   # the host's loop period (the node answers at once on this bus)
+    beats = [m.timestamp for m in bus.sent if m.arbitration_id == 0x77F]
+    assert all(bytes(m.data) == b"\x05" for m in bus.sent if m.arbitration_id == 0x77F)
+    gaps = [b - a for a, b in zip(beats, beats[1:])]
+    assert len(beats) >= 10 and max(gaps) <= 0.0125 + 1e-9   # every 12 SYNC periods (50 ms / 4)
+
+
+def test_the_hosts_heartbeat_id_must_not_be_the_nodes() -> None:
+    with pytest.raises(ConfigError, match="cia402.host_node_id: expected an id other than the node's"):
+        CiA402Drive(SimBus(), profile(consumer_heartbeat=0.05, host_node_id=5))  # type: ignore[arg-type]
+
+
+def _od_with_60c2_instead_of_1006() -> Any:
+    """The emulated node's dictionary as a maxon EPOS4 has it: no 0x1006, 0x60C2 instead."""
+    from canopen.objectdictionary import ODRecord, ODVariable
+    od = canopen.import_od(str(EDS), 5)
+    del od[0x1006]
+    record = ODRecord("Interpolation time period", 0x60C2)
+    for sub, name, data_type in ((0, "Highest sub-index supported", 0x05), (1, "Interpolation time period value", 0x05),
+                                 (2, "Interpolation time index", 0x02)):
+        var = ODVariable(name, 0x60C2, sub)
+        var.data_type, var.access_type, var.default = data_type, "rw", 2 if sub == 0 else 0
+        record.add_member(var)
+    od.add_object(record)
+    return od
+
+
+def test_a_node_without_0x1006_gets_the_sync_period_in_0x60c2(tmp_path: Path) -> None:
+    od = _od_with_60c2_instead_of_1006()
+    eds = tmp_path / "epos-like.eds"
+    canopen.export_od(od, str(eds))
+    bus = SimBus()
+    node = FakeNode(bus, od=canopen.import_od(str(eds), 5))
+    drive = CiA402Drive(bus, profile(eds=str(eds)), clock=bus.clock)  # type: ignore[arg-type]
+    drive.enable()
+    assert (node.sdo[0x60C2][1].raw, node.sdo[0x60C2][2].raw) == (1, -3)   # 1 * 10^-3 s
+    with pytest.raises(ConfigError, match=r"feedback_period: interpolation time period 0x60C2"):
+        import dataclasses
+        CiA402Drive(bus, dataclasses.replace(profile(eds=str(eds)), feedback_period=0.0012345))  # type: ignore[arg-type]
+
+
+def test_a_node_with_neither_0x1006_nor_0x60c2_is_refused(tmp_path: Path) -> None:
+    od = canopen.import_od(str(EDS), 5)
+    del od[0x1006]
+    eds = tmp_path / "no-period.eds"
+    canopen.export_od(od, str(eds))
+    with pytest.raises(ConfigError, match=r"neither 0x1006 \(communication cycle period\) nor 0x60C2"):
+        CiA402Drive(SimBus(), profile(eds=str(eds)))  # type: ignore[arg-type]
+
+
+def test_the_epos4_profile_loads_and_its_eds_passes_the_checks() -> None:
+    epos4 = load_profile(PROFILE.parent / "epos4.yaml")
+    drive = CiA402Drive(SimBus(), epos4)  # type: ignore[arg-type]
+    assert drive.profile.options["rated_torque_unit"] == "uNm"
+
+
+def test_a_bus_that_refuses_a_request_at_start_up_is_one_bus_error_line() -> None:
+    from dobhil.errors import BusError
+    bus, node, drive = rig()
+    sent = bus.send
+
+    def refuse_sdo(msg: can.Message, timeout: float | None = None) -> None:
+        if msg.arbitration_id == 0x605 and msg.data[1:3] == bytes.fromhex("02 65"):
+            raise can.CanOperationError("Transmit buffer full")
+        sent(msg, timeout)
+
+    bus.send = refuse_sdo  # type: ignore[method-assign]
+    with pytest.raises(BusError) as info:
+        drive.enable()
+    assert str(info.value) == ("node 5: SDO 0x6502:00 (Supported drive modes): Transmit buffer full "
+                               "(reached: pre-operational, identity read, statusword read)")

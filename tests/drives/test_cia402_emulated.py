@@ -164,6 +164,7 @@ def _variant(tmp_path: Path, eds_change: Any = None, **section: Any) -> Path:
 
 
 @pytest.mark.parametrize(("eds_change", "section", "says"), [
+    (lambda t: re.sub(r"\[6071\]\n(?:[^\[\n].*\n|\n)*", "", t), {}, "object 0x6071 (target torque) missing"),
     (lambda t: re.sub(r"(\[6502\](?:\n.*)*?DefaultValue=)0x00000380", r"\g<1>0x00000180", t), {},
      "has no cyclic synchronous torque (bit 9)"),
     (lambda t: re.sub(r"(\[6076\](?:\n.*)*?DefaultValue=)1000", r"\g<1>0", t), {},
@@ -191,6 +192,7 @@ def test_a_node_reporting_no_cst_ends_start_up_in_one_line(rig: Rig) -> None:
                                "torque (bit 9), the only mode dobhil drives (reached: pre-operational, "
                                "identity read, statusword read)")
     assert rig.emu.statusword & 0x6F != 0x27
+    assert rig.drive.safe_stop().warning() == ""   # never operational: nothing to cut power for
 
 
 def test_profile_built_in_code_needs_the_feedback_period() -> None:
@@ -198,3 +200,45 @@ def test_profile_built_in_code_needs_the_feedback_period() -> None:
     del data["feedback_period"]
     with pytest.raises(ConfigError, match="missing key 'feedback_period'"):
         profile_from_mapping(data, source="p")
+
+
+def _consumer_rig(consumer: float) -> Rig:
+    import dataclasses
+    made = Rig()
+    made.profile = dataclasses.replace(made.profile, options={**made.profile.options,
+                                                              "consumer_heartbeat": consumer})
+    made.drive = made.new_drive()
+    return made
+
+
+def test_the_node_watches_the_hosts_heartbeat_and_stops_watching_after_a_clean_stop() -> None:
+    made = _consumer_rig(0.05)
+    try:
+        made.drive.enable()
+        for _ in range(300):   # 0.3 s: six consumer times
+            made.drive.send_torque(0.1)
+            assert made.drive.poll(0.01) is not None
+        assert made.emu._last_host_heartbeat is not None          # it heard the host
+        assert made.drive.safe_stop().confirmation is Confirmation.CONFIRMED
+        made.bus.recv(0.5)     # the host's heartbeat has stopped: the node must not care
+        assert made.emu.axis_error == 0 and made.emu.statusword & 0x4F != 0x08
+    finally:
+        made.close()
+
+
+def test_a_host_heartbeat_that_stops_is_a_fault_on_the_node() -> None:
+    made = _consumer_rig(0.05)
+    try:
+        made.drive.enable()
+        for _ in range(30):   # the node watches from the first heartbeat it hears on
+            made.drive.send_torque(0.1)
+            made.drive.poll(0.01)
+        made.drive._stop_host_heartbeat()   # the host as if its process had died
+        with pytest.raises(DriveFaultError) as info:
+            for _ in range(300):
+                made.drive.send_torque(0.1)
+                made.drive.poll(0.01)
+        assert "EMCY 0x8130" in str(info.value)
+        assert made.drive.status.watchdog_tripped
+    finally:
+        made.close()

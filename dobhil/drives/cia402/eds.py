@@ -28,7 +28,7 @@ __all__ = ["REQUIRED_OBJECTS", "STANDARD_LAYOUTS", "EdsNotFound", "Layouts", "ch
            "pdo_data_types"]
 
 #: objects the drive reads or writes besides the mapped ones (the EDS must have them)
-REQUIRED_OBJECTS = {0x1006: "communication cycle period", 0x1017: "producer heartbeat time",
+REQUIRED_OBJECTS = {0x1017: "producer heartbeat time",
                     0x1018: "identity", 0x6060: "modes of operation", 0x6076: "motor rated torque",
                     0x6502: "supported drive modes"}
 
@@ -87,6 +87,9 @@ def check_od(od: ObjectDictionary, profile: DriveProfile, source: str) -> None:
         if index not in od:
             raise ConfigError(f"{source}: object 0x{index:04X} ({name}) missing: a CiA 402 drive in CST "
                               "needs it")
+    if 0x1006 not in od and 0x60C2 not in od:
+        raise ConfigError(f"{source}: neither 0x1006 (communication cycle period) nor 0x60C2 (interpolation "
+                          "time period) in it: the node must be told the SYNC period")
     modes = _default(od, 0x6502)
     if modes is not None and not int(modes) >> codec.CST_SUPPORTED_BIT & 1:
         raise ConfigError(f"{source}: 0x6502 (supported drive modes) = 0x{int(modes):08X} has no cyclic "
