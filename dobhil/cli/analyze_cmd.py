@@ -8,7 +8,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from dobhil.cli.common import add_config_args, config_from_args
+from dobhil.cli.common import add_config_args, config_from_args, design_on_drive
 
 
 #: the files ``--plot DIR`` writes (:func:`dobhil.plotting.figures.analysis_figures`)
@@ -25,7 +25,9 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from dobhil.analysis.report import analyze, as_json, as_text
-    config = config_from_args(args)
+    # the design on its drive: a protocol that fixes the command delay sets it (the note
+    # goes to stderr with --json, whose stdout is one JSON object)
+    config = design_on_drive(config_from_args(args), args, sys.stderr if args.json else None)
     if args.plot:  # before the analysis: a bad directory fails at once, not after it
         from dobhil.files import check_output_dir
         check_output_dir(args.plot, PLOT_NAMES, inputs=[args.config], what="--plot")

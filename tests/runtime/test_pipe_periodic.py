@@ -145,3 +145,17 @@ def test_shutdown_stops_the_childs_tasks() -> None:
                 stream.append(msg)
         proc.bus.stop_all_periodic_tasks()   # what the bus's shutdown does first
         _stop_read(proc, proc.bus, stream)
+
+
+def test_the_dobhil_interface_is_native_too() -> None:
+    """``can.Bus(interface="dobhil")``: the emulator's process sends them, the bus reads the echoes."""
+    with can.Bus(interface="dobhil", channel="demo") as bus:
+        assert native_periodic(bus)
+        task = bus.send_periodic(_msg(b"\x07"), 0.002)
+        end = time.monotonic() + 30.0
+        echoes = 0
+        while echoes < 3 and time.monotonic() < end:
+            msg = bus.recv(0.5)
+            echoes += msg is not None and msg.arbitration_id == SYNC and bytes(msg.data) == b"\x07"
+        assert echoes == 3
+        task.stop()
