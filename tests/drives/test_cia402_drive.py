@@ -13,6 +13,8 @@ from typing import Any
 import can
 import canopen
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from dobhil.drives.base import Confirmation, DriveState
 from dobhil.drives.cia402.drive import CiA402Drive
@@ -466,3 +468,13 @@ def test_a_bus_that_refuses_a_request_at_start_up_is_one_bus_error_line() -> Non
         drive.enable()
     assert str(info.value) == ("node 5: SDO 0x6502:00 (Supported drive modes): Transmit buffer full "
                                "(reached: pre-operational, identity read, statusword read)")
+
+
+@settings(deadline=None, max_examples=60)
+@given(st.lists(st.tuples(st.sampled_from([0x80, 0x85, 0x185, 0x285, 0x705, 0x585, 0x205, 0x77F, 0x186]),
+                          st.binary(max_size=8)), max_size=30))
+def test_no_frame_makes_the_decoder_raise(frames: list[tuple[int, bytes]]) -> None:
+    """Short, long or garbled frames of this node's ids are ignored or decoded, never raised."""
+    drive = CiA402Drive(SimBus(), profile(), clock=lambda: 0.0)  # type: ignore[arg-type]
+    for arb, data in frames:
+        drive.apply(can.Message(arbitration_id=arb, data=data, is_extended_id=False))
