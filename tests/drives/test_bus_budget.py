@@ -139,3 +139,15 @@ def test_analyze_and_an_emulated_run_say_the_budget(capsys: pytest.CaptureFixtur
     assert err.splitlines() == ["dobhil run: note (not refused: the run goes on): bus budget 109 % of 250 kbit/s "
                                 "at 1 kHz is over 70 %: use a higher bit rate (500 kbit/s on the drive and the "
                                 "interface: 54 %), or a slower loop (loop.period >= 3.5 ms), or fewer axes on this bus"]
+
+
+def test_cia402_budget_counts_the_hosts_heartbeat() -> None:
+    # drivers/epos4.yaml watches the host (consumer_heartbeat 0.1 s): the host sends its
+    # 1-byte heartbeat (65 bits) 4 times per 0.1 s = every 25 ms = 25 cycles -> 2.6 bits per
+    # cycle, on top of 390 + 0.65 (the node's own heartbeat): 393.25 bits -> "39.3 %"
+    probe = preflight_probe(load_profile("epos4"))
+    assert probe is not None
+    b = probe.budget(1e-3, 1_000_000)
+    assert b is not None and b.bits_per_cycle == pytest.approx(393.25)
+    assert b.line() == ("bus budget: 393 bits per cycle (SYNC 55 + RPDO1 95 + TPDO1 135 + TPDO2 105 + "
+                        "heartbeat 65 x 0.01 + host heartbeat 65 x 0.04) = 39.3 % of 1 Mbit/s at 1 kHz")
