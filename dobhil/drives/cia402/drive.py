@@ -234,6 +234,8 @@ class CiA402Drive(Drive):
                 (f"TPDO{self._tpdo_n + 1} mapped",
                  lambda n: self._map(n.tpdo[self._tpdo_n + 1], codec.TPDO_MOTION)),
                 ("timing set", self._write_timing),
+                # whatever a previous run left in it, the node takes zero until our first RPDO
+                ("target torque zeroed", lambda n: setattr(n.sdo[0x6071], "raw", 0)),
                 ("CST mode set", lambda n: setattr(n.sdo[0x6060], "raw", CST_MODE)),
                 ("operational", self._start_node),
             )
