@@ -490,3 +490,19 @@ def test_a_sample_whose_position_tpdo_was_lost_is_no_sample() -> None:
     drive.apply(frame(0x185, "37 12 00 04 00 00 00 00"))
     assert drive.apply(frame(0x285, "3c 00 00 00 0a"))               # both: one sample
     assert not drive.apply(frame(0x285, "3c 00 00 00 0a"))           # the next SYNC's TPDO1 lost
+
+
+def test_a_target_torque_left_from_before_is_zeroed_before_the_node_goes_operational() -> None:
+    bus, node, drive = rig()
+    node.sdo[0x6071].raw = 500   # a previous run's last command
+    at_start: list[int] = []
+    send = bus.send
+
+    def watch(msg: can.Message, timeout: float | None = None) -> None:
+        if msg.arbitration_id == 0 and bytes(msg.data) == b"\x01\x05":   # NMT start node 5
+            at_start.append(node.sdo[0x6071].raw)
+        send(msg, timeout)
+
+    bus.send = watch  # type: ignore[method-assign]
+    drive.enable()
+    assert at_start == [0]

@@ -257,8 +257,3 @@ def test_a_recorded_lockstep_run_replays_bit_for_bit(tmp_path: Path, capsys: pyt
     assert "identical: every command and estimate reproduced bit for bit" in out, out
 
 
-
-def test_a_target_torque_left_from_before_is_zeroed_before_the_node_goes_operational(rig: Rig) -> None:
-    rig.emu.node.sdo[0x6071].raw = 500   # a previous run's last command
-    rig.drive.enable()
-    assert rig.emu.target_torque == 0
