@@ -202,3 +202,7 @@ def test_interpolation_time_period_0x60c2(period: float, value: tuple[int, int])
 def test_an_interpolation_period_without_a_whole_value_is_refused() -> None:
     with pytest.raises(CodecError, match="0x60C2"):
         codec.interpolation_period(0.0012345)
+
+
+def test_the_fault_bit() -> None:
+    assert codec.is_fault(0x0218) and codec.is_fault(0x021F) and not codec.is_fault(0x1237)

@@ -61,7 +61,6 @@ __all__ = [
     "fault_reset_edge",
     "interpolation_period",
     "is_fault",
-    "nmt_frame_data",
     "layout_bits",
     "layout_struct",
     "next_controlword",
@@ -427,7 +426,3 @@ def encode_rpdo(controlword: int, torque_per_mille: int) -> bytes:
     """The 4 data bytes of the CST RPDO."""
     return RPDO_CST_STRUCT.pack(controlword, torque_per_mille)
 
-
-def nmt_frame_data(command: NmtCommand, node_id: int) -> bytes:
-    """Data of an NMT frame (COB-ID 0) addressed to ``node_id`` (0: all nodes)."""
-    return bytes((command, node_id))

@@ -548,7 +548,7 @@ class CiA402Drive(Drive):
         power = self._power
         nmt_ok = self._nmt in (-1, NmtState.OPERATIONAL)
         active = (power is PowerState.OPERATION_ENABLED and self._mode == CST_MODE and nmt_ok
-                  and not self._statusword & codec.STATUSWORD_FAULT_BIT)
+                  and not codec.is_fault(self._statusword))
         code = self._emcy
         return StateEvent(active=active, error_code=code, watchdog_tripped=code == EMCY_HEARTBEAT,
                           state_text=self._state_text(nmt_ok), error_text=self._emcy_text(),
