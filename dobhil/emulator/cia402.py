@@ -101,6 +101,7 @@ MODE_BITS: Mapping[int, int] = {1: 0, 2: 1, 3: 2, 4: 3, 6: 5, 7: 6, 8: 7, 9: 8, 
 _U8, _U16, _U32 = struct.Struct("<B"), struct.Struct("<H"), struct.Struct("<I")
 _I16 = struct.Struct("<h")
 _I8 = struct.Struct("<b")
+_I16_MAX = 32767
 _PDO_INVALID = 1 << 31
 _NMT, _HEARTBEAT = 0x000, 0x700
 #: SDO abort (ccs 4), no object, code 0x05040001: client/server command specifier not valid
@@ -411,14 +412,16 @@ class EmulatedCiA402(EmulatedDrive):
     # -- boot and NMT -----------------------------------------------------------
 
     def _load_application(self) -> None:
-        """The application's variables from the object dictionary (power-on, reset node)."""
+        """The application's variables from the object dictionary (power-on, reset node).
+        Objects an EDS may lack (a maxon EPOS4 has no 0x6072) take what the drive does
+        without them: no max torque but the profile's limit, quick stop option 2."""
         raw = self._raw
         self._controlword = raw(0x6040)
         self.mode = raw(0x6060)
         self._target_pm = raw(0x6071)
-        self._max_pm = raw(0x6072)
+        self._max_pm = raw(0x6072, default=_I16_MAX)
         self._rated_nm = raw(0x6076) * self._torque_unit
-        self._quick_stop_option = raw(0x605A)
+        self._quick_stop_option = raw(0x605A, default=2)
         self.error_code = 0
         self.error_register = 0
         self._over_count = 0
@@ -428,15 +431,18 @@ class EmulatedCiA402(EmulatedDrive):
 
     def _load_communication(self) -> None:
         """The communication objects' effects (power-on, reset communication)."""
-        self._write_sync_id(0, _U32.pack(self._raw(0x1005)))
-        self._write_consumer_heartbeat(1, _U32.pack(self._raw(0x1016, 1)))
+        self._write_sync_id(0, _U32.pack(self._raw(0x1005, default=0x80)))
+        self._write_consumer_heartbeat(1, _U32.pack(self._raw(0x1016, 1, default=0)))
         self._rpdos: dict[int, _Pdo] = {}
         self._tpdos: tuple[_Pdo, ...] = ()
         self._pending: dict[int, list[tuple[_Entry, bytes]]] = {}
         self._pdo_dirty = True
 
-    def _raw(self, index: int, subindex: int = 0) -> int:
-        """An integer object's value, read through canopen's SDO server object (no frame)."""
+    def _raw(self, index: int, subindex: int = 0, *, default: int | None = None) -> int:
+        """An integer object's value, read through canopen's SDO server object (no frame);
+        ``default`` when the object dictionary has no such object (None: it must have it)."""
+        if default is not None and index not in self.node.object_dictionary:
+            return default
         entry = self.node.sdo[index]
         if not isinstance(entry, SdoVariable):
             entry = entry[subindex]
@@ -688,7 +694,7 @@ class EmulatedCiA402(EmulatedDrive):
     def _update_torque(self) -> None:
         """The torque the plant gets in operation enabled + CST: 0x6071 clamped to 0x6072
         (per mille) and to the profile's limit (Nm)."""
-        limit_pm = min(self._max_pm, 32767)
+        limit_pm = min(self._max_pm, _I16_MAX)
         target = min(max(self._target_pm, -limit_pm), limit_pm)
         torque = target * self._rated_nm / 1000.0
         limit = self._profile.torque_limit
