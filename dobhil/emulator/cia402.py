@@ -18,12 +18,13 @@ What canopen's LocalNode does not do, this module does (drive-protocols.md, CiA 
   The node boots (boot-up frame, NMT pre-operational) at its first tick or frame, and again
   after an NMT reset (node: the whole object dictionary back to the EDS; communication:
   0x1000-0x1FFF); canopen's slave only changes its state on a reset;
-- SDO in NMT pre-operational and operational (not stopped: CiA 301; canopen's server
-  would answer in any state); PDOs only in NMT operational, from the object dictionary as the host configured it by
-  SDO (0x1400-0x1403/0x1600-0x1603, 0x1800-0x1803/0x1A00-0x1A03; a mapping entry must
-  name a mappable object with its own size, at most 64 bits in all, or the SDO write is
-  aborted with CiA 301's code). Synchronous RPDOs (transmission type 0-240) are latched at
-  the next SYNC, asynchronous ones (254/255) applied at once; an RPDO shorter than its
+- SDO in NMT pre-operational and operational (not stopped, as CiA 301 says; canopen's
+  server would answer in any state). PDOs only in NMT operational, from the object
+  dictionary as the host configured it by SDO (0x1400-0x1403/0x1600-0x1603,
+  0x1800-0x1803/0x1A00-0x1A03; a mapping entry must name a mappable object with its own
+  size, at most 64 bits in all, or the SDO write is aborted with CiA 301's code).
+  Synchronous RPDOs (transmission type 0-240) are latched at the next SYNC, asynchronous
+  ones (254/255) applied at once; an RPDO shorter than its
   mapping is dropped with EMCY 0x8210. On SYNC (COB-ID 0x1005): the latched RPDOs are
   applied, then every enabled synchronous TPDO due (type n: every n-th SYNC; type 0:
   every SYNC) goes out, its bytes the mapped objects' values as the object dictionary
@@ -31,6 +32,8 @@ What canopen's LocalNode does not do, this module does (drive-protocols.md, CiA 
   TPDOs are not sent;
 - the object dictionary is read and checked by the drive's own
   :func:`dobhil.drives.cia402.eds.load_od` (one line for an EDS without 0x6071 or CST);
+  objects an EDS may lack take what a drive does without them (no 0x6072, as on a maxon
+  EPOS4: the profile's torque limit alone; no 0x605A: quick stop option 2);
 - process values read live (SDO or TPDO): 0x6041 statusword, 0x6064 position [increments:
   ``position_per_rev`` per motor revolution, ``gear_ratio`` motor revolutions per joint
   revolution, wrapped to 32 bits as an encoder counter does], 0x606C velocity
@@ -94,13 +97,13 @@ DEFAULT_OPTIONS: Mapping[str, Any] = {
     **{key: rule.default for key, rule in CIA402_RULES.section.items() if not rule.required},
     "eds": "cia402-emulated.eds", "rated_torque": 1.0, "position_per_rev": 4096,
 }
-CST = CST_MODE
 #: modes of operation by their bit in 0x6502 (CiA 402)
 MODE_BITS: Mapping[int, int] = {1: 0, 2: 1, 3: 2, 4: 3, 6: 5, 7: 6, 8: 7, 9: 8, 10: 9}
 
 _U8, _U16, _U32 = struct.Struct("<B"), struct.Struct("<H"), struct.Struct("<I")
 _I16 = struct.Struct("<h")
 _I8 = struct.Struct("<b")
+_I16_MAX = 32767
 _PDO_INVALID = 1 << 31
 _NMT, _HEARTBEAT = 0x000, 0x700
 #: SDO abort (ccs 4), no object, code 0x05040001: client/server command specifier not valid
@@ -356,7 +359,7 @@ class EmulatedCiA402(EmulatedDrive):
     # -- hooks ----------------------------------------------------------------
 
     def _plant_torque(self) -> float:
-        if self.state is PowerState.OPERATION_ENABLED and self.mode == CST:
+        if self.state is PowerState.OPERATION_ENABLED and self.mode == CST_MODE:
             return self._torque_nm
         return 0.0
 
@@ -411,14 +414,16 @@ class EmulatedCiA402(EmulatedDrive):
     # -- boot and NMT -----------------------------------------------------------
 
     def _load_application(self) -> None:
-        """The application's variables from the object dictionary (power-on, reset node)."""
+        """The application's variables from the object dictionary (power-on, reset node).
+        Objects an EDS may lack (a maxon EPOS4 has no 0x6072) take what the drive does
+        without them: no max torque but the profile's limit, quick stop option 2."""
         raw = self._raw
         self._controlword = raw(0x6040)
         self.mode = raw(0x6060)
         self._target_pm = raw(0x6071)
-        self._max_pm = raw(0x6072)
+        self._max_pm = raw(0x6072, default=_I16_MAX)
         self._rated_nm = raw(0x6076) * self._torque_unit
-        self._quick_stop_option = raw(0x605A)
+        self._quick_stop_option = raw(0x605A, default=2)
         self.error_code = 0
         self.error_register = 0
         self._over_count = 0
@@ -428,15 +433,18 @@ class EmulatedCiA402(EmulatedDrive):
 
     def _load_communication(self) -> None:
         """The communication objects' effects (power-on, reset communication)."""
-        self._write_sync_id(0, _U32.pack(self._raw(0x1005)))
-        self._write_consumer_heartbeat(1, _U32.pack(self._raw(0x1016, 1)))
+        self._write_sync_id(0, _U32.pack(self._raw(0x1005, default=0x80)))
+        self._write_consumer_heartbeat(1, _U32.pack(self._raw(0x1016, 1, default=0)))
         self._rpdos: dict[int, _Pdo] = {}
         self._tpdos: tuple[_Pdo, ...] = ()
         self._pending: dict[int, list[tuple[_Entry, bytes]]] = {}
         self._pdo_dirty = True
 
-    def _raw(self, index: int, subindex: int = 0) -> int:
-        """An integer object's value, read through canopen's SDO server object (no frame)."""
+    def _raw(self, index: int, subindex: int = 0, *, default: int | None = None) -> int:
+        """An integer object's value, read through canopen's SDO server object (no frame);
+        ``default`` when the object dictionary has no such object (None: it must have it)."""
+        if default is not None and index not in self.node.object_dictionary:
+            return default
         entry = self.node.sdo[index]
         if not isinstance(entry, SdoVariable):
             entry = entry[subindex]
@@ -688,7 +696,7 @@ class EmulatedCiA402(EmulatedDrive):
     def _update_torque(self) -> None:
         """The torque the plant gets in operation enabled + CST: 0x6071 clamped to 0x6072
         (per mille) and to the profile's limit (Nm)."""
-        limit_pm = min(self._max_pm, 32767)
+        limit_pm = min(self._max_pm, _I16_MAX)
         target = min(max(self._target_pm, -limit_pm), limit_pm)
         torque = target * self._rated_nm / 1000.0
         limit = self._profile.torque_limit
@@ -700,7 +708,7 @@ class EmulatedCiA402(EmulatedDrive):
         """One SYNC of the over-torque watch: above 0x6072 or the profile's limit (half a
         per mille of slack: the host rounds to whole per mille) ``over_torque_cycles`` times
         in a row faults."""
-        if self.state is not PowerState.OPERATION_ENABLED or self.mode != CST:
+        if self.state is not PowerState.OPERATION_ENABLED or self.mode != CST_MODE:
             return
         target = abs(self._target_pm)
         limit_pm = self._profile.torque_limit / self._rated_nm * 1000.0 + 0.5
@@ -735,7 +743,7 @@ class EmulatedCiA402(EmulatedDrive):
 
     def _statusword(self) -> int:
         enabled = self.state is PowerState.OPERATION_ENABLED
-        return statusword(self.state, follows_target=enabled and self.mode == CST,
+        return statusword(self.state, follows_target=enabled and self.mode == CST_MODE,
                           limited=enabled and self._limited)
 
     def _position(self) -> int:

@@ -54,6 +54,7 @@ class Lockstep:
         profile = kwargs.pop("profile", cia402_profile())
         self.emu = EmulatedCiA402(self.emu_bus, profile, self.plant, **kwargs)
         self.bus = LockstepBus(self.inner, [self.emu], dt=DT)
+        self.node = profile.node_id
         self.seen: list[tuple[float, int, bytes]] = []   # (emulator time, id, data) of every frame read
 
     def close(self) -> None:
@@ -81,8 +82,8 @@ class Lockstep:
 
     def sdo(self, request: bytes) -> bytes:
         """One SDO request; its one response."""
-        self.send(SDO_RX, request)
-        answers = [data for can_id, data in self.read() if can_id == SDO_TX]
+        self.send(0x600 + self.node, request)
+        answers = [data for can_id, data in self.read() if can_id == 0x580 + self.node]
         assert len(answers) == 1, answers
         return answers[0]
 
@@ -103,16 +104,16 @@ class Lockstep:
         return dict(self.read())
 
     def rpdo(self, controlword: int, torque: int = 0) -> None:
-        self.send(RPDO1, struct.pack("<Hh", controlword, torque))
+        self.send(0x200 + self.node, struct.pack("<Hh", controlword, torque))
 
 
 def configure_wire_mapping(rig: Lockstep) -> None:
     """SPEC-17's wire mapping written by SDO the way CiA 301 says (and canopen's
     PdoMap.save does): PDO invalid, count 0, entries, count, valid again."""
     for com, mapping, cob, entries in (
-        (0x1400, 0x1600, RPDO1, [0x60400010, 0x60710010]),
-        (0x1800, 0x1A00, TPDO1, [0x60410010, 0x60640020, 0x60770010]),
-        (0x1801, 0x1A01, TPDO2, [0x606C0020, 0x60610008]),
+        (0x1400, 0x1600, 0x200 + rig.node, [0x60400010, 0x60710010]),
+        (0x1800, 0x1A00, 0x180 + rig.node, [0x60410010, 0x60640020, 0x60770010]),
+        (0x1801, 0x1A01, 0x280 + rig.node, [0x606C0020, 0x60610008]),
     ):
         rig.write(com, 1, cob | 1 << 31, 4)
         rig.write(com, 2, 1, 1)                    # synchronous, every SYNC
@@ -127,7 +128,7 @@ def enable_cst(rig: Lockstep) -> None:
     """Mapping, NMT operational, mode CST by SDO, then shutdown / switch on / enable
     operation by RPDO, each applied at a SYNC."""
     configure_wire_mapping(rig)
-    rig.send(0x000, [0x01, NODE])
+    rig.send(0x000, [0x01, rig.node])
     rig.write(0x6060, 0, 10, 1)
     for controlword in (0x06, 0x07, 0x0F):
         rig.rpdo(controlword)

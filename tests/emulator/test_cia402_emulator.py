@@ -443,3 +443,27 @@ def test_every_commanded_transition_of_canopens_state402_table() -> None:
         finally:
             rig.close()
     assert checked == 13
+
+
+def test_an_eds_without_max_torque_is_clamped_by_the_profile_alone() -> None:
+    # maxon's EPOS4 object dictionary (drivers/epos4.eds) has no 0x6072: the node runs,
+    # its torque bounded by the profile's torque_limit (1 Nm), 0x6076 in uNm
+    from dobhil.drives.profile import load_profile
+    rig = Lockstep(profile=load_profile("epos4"))
+    try:
+        assert rig.node == 1
+        assert rig.sdo(upload(0x6076)) == bytes([0x43, 0x76, 0x60, 0]) + (512871).to_bytes(4, "little")
+        abort = rig.sdo(upload(0x6072))
+        assert abort[0] == 0x80 and struct.unpack("<I", abort[4:])[0] == 0x06020000
+        enable_cst(rig)
+        rig.rpdo(0x0F, 1000)                     # 0.513 Nm
+        assert struct.unpack_from("<H", rig.sync()[0x181])[0] == SW_ENABLED_CST
+        assert rig.emu.applied_torque == pytest.approx(0.512871)
+        rig.rpdo(0x0F, 1900)                     # 0.97 Nm: within the profile's 1 Nm
+        rig.sync()
+        assert rig.emu.applied_torque == pytest.approx(1.9 * 0.512871)
+        rig.rpdo(0x0F, 3000)                     # 1.54 Nm: the profile's 1 Nm
+        rig.sync()
+        assert rig.emu.applied_torque == 1.0
+    finally:
+        rig.close()

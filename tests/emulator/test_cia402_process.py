@@ -7,15 +7,19 @@ Waits poll with a generous bound; nothing asserts wall-clock timing."""
 from __future__ import annotations
 
 import struct
+import threading
 import time
 
 import can
 import canopen
+import pytest
 
+from dobhil.cli.main import main
 from dobhil.config import load_config
 from dobhil.data import drivers_dir
 from dobhil.emulator.cia402 import PowerState
 from dobhil.emulator.process import EmulatorProcess, EmulatorSpec
+from dobhil.emulator.registry import private_virtual_channel
 
 from .cia402_rig import HEARTBEAT, NODE, RPDO1, SDO_RX, SDO_TX, SYNC, TPDO1, TPDO2, cia402_profile, download, upload
 
@@ -135,3 +139,30 @@ def test_canopens_client_drives_the_node_behind_a_dobhil_bus() -> None:
     finally:
         network.sync.stop()
         network.disconnect()
+
+
+def test_dobhil_emulate_serves_a_cia402_config(capsys: pytest.CaptureFixture[str]) -> None:
+    # `dobhil emulate` on a virtual channel of this process, the test's client on another
+    # thread: boot-up, SDO, NMT start and a SYNC answered with the TPDOs
+    channel = private_virtual_channel()
+    got: dict[int, bytes] = {}
+    client_bus = can.Bus(interface="virtual", channel=channel)
+
+    def client() -> None:
+        try:
+            got.update(_frames(client_bus, {HEARTBEAT}))
+            _send(client_bus, SDO_RX, upload(0x6502))
+            _send(client_bus, 0x000, [0x01, NODE])
+            _send(client_bus, SYNC)
+            got.update(_frames(client_bus, {SDO_TX, TPDO1, TPDO2}))
+        finally:
+            client_bus.shutdown()
+
+    thread = threading.Thread(target=client)
+    thread.start()
+    code = main(["emulate", "demo", "--set", "drive.profile=cia402-emulated", "--bus", f"virtual:{channel}",
+                 "--duration", "3"])
+    thread.join()
+    assert code == 0 and "emulating cia402 node 5" in capsys.readouterr().out
+    assert got[HEARTBEAT] == b"\x00" and got[SDO_TX] == bytes.fromhex("4302650080030000")
+    assert len(got[TPDO1]) == 8 and len(got[TPDO2]) == 5
