@@ -506,3 +506,13 @@ def test_a_target_torque_left_from_before_is_zeroed_before_the_node_goes_operati
     bus.send = watch  # type: ignore[method-assign]
     drive.enable()
     assert at_start == [0]
+
+
+def test_consumer_heartbeat_needs_0x1016_in_the_eds(tmp_path: Path) -> None:
+    od = canopen.import_od(str(EDS), 5)
+    del od[0x1016]
+    eds = tmp_path / "no-consumer.eds"
+    canopen.export_od(od, str(eds))
+    CiA402Drive(SimBus(), profile(eds=str(eds)))  # type: ignore[arg-type]   # not asked for: fine
+    with pytest.raises(ConfigError, match=r"cia402.consumer_heartbeat: expected 0, the EDS has no 0x1016"):
+        CiA402Drive(SimBus(), profile(eds=str(eds), consumer_heartbeat=0.05))  # type: ignore[arg-type]

@@ -99,6 +99,9 @@ class CiA402Drive(Drive):
             if profile.directory:
                 raise
             self._od, self._missing = None, exc
+        if self._od is not None and float(opts["consumer_heartbeat"]) > 0 and 0x1016 not in self._od:
+            raise ConfigError(f"drive profile {profile.name!r}: cia402.consumer_heartbeat: expected 0, the EDS "
+                              "has no 0x1016 (consumer heartbeat time): this node cannot watch the host")
         if self._od is not None and 0x60C2 in self._od:
             try:
                 codec.interpolation_period(self._period)
