@@ -9,6 +9,10 @@ and the same :class:`~dobhil.emulator.plant.Plant` in a child process instead:
 
 - frames cross on a :class:`~dobhil.emulator.pipe.PipeBus` (a local socket pair): the
   host's end is the bus the host talks on (``bus``); no thread on either side;
+- a periodic send on the host's end (python-can ``send_periodic``: a CiA 402 SYNC) is
+  done by the child, on the emulated drive's tick clock: each frame due goes out at the
+  start of a tick, echoed to the host first, then read by the emulated drive -- as the
+  kernel's broadcast manager sends it on SocketCAN, outside the host's interpreter;
 - the child publishes its state after every tick into shared memory (an unlinked
   temporary file both processes map; a sequence counter around each write, so a reader
   retries instead of mixing two ticks, and never waits for the child): the ground truth
@@ -50,10 +54,10 @@ import sys
 import tempfile
 import time
 from array import array
+from collections.abc import Callable
 from pathlib import Path
 from dataclasses import dataclass
 from enum import IntEnum
-from collections.abc import Callable
 from typing import Any, cast
 
 import can
