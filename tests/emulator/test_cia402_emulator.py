@@ -174,9 +174,25 @@ def test_controlword_by_rpdo_reaches_operation_enabled_in_cst_at_the_syncs(rig: 
     assert rig.emu.axis_state == PowerState.OPERATION_ENABLED   # the drive's code, published as an int
 
 
-def test_tpdos_decoded_by_canopens_own_pdo_map(rig: Lockstep) -> None:
-    rig.plant.position, rig.plant.velocity = 1.5, -2.0     # a plant that holds still
-    rig.plant.step = lambda torque, dt: None               # type: ignore[method-assign]
+class HeldPlant:
+    """A plant that holds its reading whatever the torque (for the units of the TPDOs)."""
+
+    def __init__(self, position: float, velocity: float) -> None:
+        self.position, self.velocity = position, velocity
+
+    def step(self, torque_nm: float, dt: float) -> None:
+        pass
+
+
+def test_tpdos_decoded_by_canopens_own_pdo_map() -> None:
+    rig = Lockstep(HeldPlant(1.5, -2.0))
+    try:
+        _tpdos_decoded_by_canopen(rig)
+    finally:
+        rig.close()
+
+
+def _tpdos_decoded_by_canopen(rig: Lockstep) -> None:
     enable_cst(rig)
     rig.rpdo(0x0F, 250)
     frames = rig.sync()
@@ -191,7 +207,7 @@ def test_tpdos_decoded_by_canopens_own_pdo_map(rig: Lockstep) -> None:
         pdo.cob_id, pdo.enabled, pdo.trans_type = cob, True, 1
         pdo.subscribe()
     for cob in (TPDO1, TPDO2):
-        network.notify(cob, frames[cob], 0.0)
+        network.notify(cob, bytearray(frames[cob]), 0.0)
     assert node.tpdo[1][0x6041].raw == SW_ENABLED_CST
     assert node.tpdo[1][0x6064].raw == round(1.5 / (2 * 3.141592653589793) * 4096)   # 978
     assert node.tpdo[1][0x6077].raw == 250       # per mille of 1 Nm
