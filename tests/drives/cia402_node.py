@@ -4,7 +4,9 @@ What it is made of, and why:
 
 - canopen's own :class:`canopen.LocalNode` gives the SDO server, the NMT slave, the
   heartbeat producer and EMCY: other people's code, so a dobhil drive that talks to
-  it is checked against an implementation dobhil did not write.
+  it is checked against an implementation dobhil did not write. Its object dictionary
+  is the project's EDS (``drivers/cia402-emulated.eds``): only the objects, read by
+  canopen's EDS parser.
 - canopen's ``LocalNode`` does not send TPDOs on SYNC, nor apply RPDOs (canopen
   issue #555): :meth:`TestNode402._on_sync` does both, from the mapping the host wrote
   into the node's object dictionary by SDO (read back with canopen's own ``PdoMap.read``).
@@ -41,10 +43,12 @@ from typing import Any
 import can
 import canopen
 from can.broadcastmanager import CyclicSendTaskABC
-from canopen import objectdictionary as od
 from canopen.pdo import PdoMap
 
-__all__ = ["NodeState", "PumpBus", "PumpedNetwork", "TestNode402", "build_od", "next_state"]
+__all__ = ["EDS", "NodeState", "PumpBus", "PumpedNetwork", "TestNode402", "next_state"]
+
+#: the project's EDS of a CiA 402 servo (objects only: the behaviour here is this file's)
+EDS = Path(__file__).resolve().parents[2] / "drivers" / "cia402-emulated.eds"
 
 SYNC_ID = 0x80
 CST = 10
@@ -96,82 +100,6 @@ def next_state(state: NodeState, cw: int, previous_cw: int) -> NodeState:
         return {_S.READY_TO_SWITCH_ON: _S.SWITCHED_ON, _S.SWITCHED_ON: _S.OPERATION_ENABLED,
                 _S.QUICK_STOP_ACTIVE: _S.OPERATION_ENABLED}.get(state, state)
     return state
-
-
-# ---------------------------------------------------------------------------
-# The object dictionary (in code: the objects SPEC-17 uses, CiA 301/402 types)
-
-
-def _var(index: int, sub: int, name: str, dtype: int, access: str, default: int | None) -> od.ODVariable:
-    var = od.ODVariable(name, index, sub)
-    var.data_type, var.access_type, var.default = dtype, access, default
-    var.pdo_mappable = index >= 0x6000
-    return var
-
-
-def _record(index: int, name: str, members: Iterable[od.ODVariable]) -> od.ODRecord:
-    record = od.ODRecord(name, index)
-    for member in members:
-        record.add_member(member)
-    return record
-
-
-def _pdo_objects(node_id: int) -> list[od.ODRecord]:
-    objs = []
-    for base_com, base_map, cob in ((0x1400, 0x1600, 0x200), (0x1800, 0x1A00, 0x180)):
-        for n in range(4):
-            com = base_com + n
-            objs.append(_record(com, f"PDO communication {com:04X}", [
-                _var(com, 0, "Highest sub-index", od.UNSIGNED8, "const", 5),
-                _var(com, 1, "COB-ID", od.UNSIGNED32, "rw", (cob + 0x100 * n + node_id) | 1 << 31),
-                _var(com, 2, "Transmission type", od.UNSIGNED8, "rw", 0xFF),
-                _var(com, 3, "Inhibit time", od.UNSIGNED16, "rw", 0),
-                _var(com, 5, "Event timer", od.UNSIGNED16, "rw", 0)]))
-            mapping = base_map + n
-            objs.append(_record(mapping, f"PDO mapping {mapping:04X}", [
-                _var(mapping, 0, "Number of entries", od.UNSIGNED8, "rw", 0),
-                *(_var(mapping, s, f"Mapped object {s}", od.UNSIGNED32, "rw", 0) for s in range(1, 9))]))
-    return objs
-
-
-def build_od(node_id: int, *, rated_torque_mnm: int = 1000, supported_modes: int = 1 << 9,
-             with_target_torque: bool = True) -> canopen.ObjectDictionary:
-    """The node's object dictionary, built in code (an EDS can replace it: ``eds=``)."""
-    d = canopen.ObjectDictionary()
-    d.node_id = node_id
-    for obj in [
-        _var(0x1000, 0, "Device type", od.UNSIGNED32, "ro", 0x00020192),
-        _var(0x1001, 0, "Error register", od.UNSIGNED8, "ro", 0),
-        _var(0x1005, 0, "COB-ID SYNC", od.UNSIGNED32, "rw", SYNC_ID),
-        _var(0x1006, 0, "Communication cycle period", od.UNSIGNED32, "rw", 0),
-        _var(0x1014, 0, "COB-ID EMCY", od.UNSIGNED32, "ro", 0x80 + node_id),
-        _record(0x1016, "Consumer heartbeat time", [
-            _var(0x1016, 0, "Number of entries", od.UNSIGNED8, "ro", 1),
-            _var(0x1016, 1, "Consumer heartbeat time 1", od.UNSIGNED32, "rw", 0)]),
-        _var(0x1017, 0, "Producer heartbeat time", od.UNSIGNED16, "rw", 0),
-        _record(0x1018, "Identity", [
-            _var(0x1018, 0, "Number of entries", od.UNSIGNED8, "ro", 4),
-            _var(0x1018, 1, "Vendor-ID", od.UNSIGNED32, "ro", 0x00000D0B),
-            _var(0x1018, 2, "Product code", od.UNSIGNED32, "ro", 0x00402402),
-            _var(0x1018, 3, "Revision number", od.UNSIGNED32, "ro", 0x00010000),
-            _var(0x1018, 4, "Serial number", od.UNSIGNED32, "ro", 17)]),
-        *_pdo_objects(node_id),
-        _var(0x603F, 0, "Error code", od.UNSIGNED16, "ro", 0),
-        _var(0x6040, 0, "Controlword", od.UNSIGNED16, "rw", 0),
-        _var(0x6041, 0, "Statusword", od.UNSIGNED16, "ro", 0),
-        _var(0x6060, 0, "Modes of operation", od.INTEGER8, "rw", 0),
-        _var(0x6061, 0, "Modes of operation display", od.INTEGER8, "ro", 0),
-        _var(0x6064, 0, "Position actual value", od.INTEGER32, "ro", 0),
-        _var(0x606C, 0, "Velocity actual value", od.INTEGER32, "ro", 0),
-        _var(0x6072, 0, "Max torque", od.UNSIGNED16, "rw", 3000),
-        _var(0x6076, 0, "Motor rated torque", od.UNSIGNED32, "rw", rated_torque_mnm),
-        _var(0x6077, 0, "Torque actual value", od.INTEGER16, "ro", 0),
-        _var(0x6502, 0, "Supported drive modes", od.UNSIGNED32, "ro", supported_modes),
-    ]:
-        d.add_object(obj)
-    if with_target_torque:
-        d.add_object(_var(0x6071, 0, "Target torque", od.INTEGER16, "rw", 0))
-    return d
 
 
 # ---------------------------------------------------------------------------
@@ -249,8 +177,7 @@ class TestNode402:
     __test__ = False  # not a pytest class
 
     def __init__(self, bus: can.BusABC, node_id: int = 5, *, inertia: float = 0.01,
-                 eds: Path | None = None, position_per_rev: int = 4096,
-                 od_factory: Callable[[int], canopen.ObjectDictionary] = build_od) -> None:
+                 eds: Path = EDS, position_per_rev: int = 4096) -> None:
         self.bus = bus
         self.simulated = True
         self.time = 0.0
@@ -267,7 +194,7 @@ class TestNode402:
         self._last_sync: float | None = None
         self._pdo_dirty = True
         self.network = _NodeNetwork(bus, self)
-        self.node = canopen.LocalNode(node_id, str(eds) if eds else od_factory(node_id))
+        self.node = canopen.LocalNode(node_id, str(eds))
         self.network.add_node(self.node)
         self.node.add_read_callback(self._on_read)
         self.node.add_write_callback(self._on_write)

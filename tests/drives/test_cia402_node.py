@@ -13,7 +13,7 @@ import can
 import canopen
 import pytest
 
-from .cia402_node import NodeState, PumpedNetwork, TestNode402, build_od, next_state
+from .cia402_node import EDS, NodeState, PumpedNetwork, TestNode402, next_state
 
 NODE = 5
 _CHANNELS = itertools.count()
@@ -41,7 +41,7 @@ def pair() -> Iterator[Pair]:
     channel = f"cia402-node-{next(_CHANNELS)}"
     node = TestNode402(can.Bus(interface="virtual", channel=channel), NODE, inertia=0.01)
     host = PumpedNetwork(can.Bus(interface="virtual", channel=channel), node)
-    remote = canopen.RemoteNode(NODE, build_od(NODE))
+    remote = canopen.RemoteNode(NODE, str(EDS))
     host.add_node(remote)
     sniff = can.Bus(interface="virtual", channel=channel)
     node.boot()
@@ -78,10 +78,10 @@ def _map_pdos(remote: canopen.RemoteNode) -> None:
 def test_sdo_upload_of_identity_literal_bytes(pair: Pair) -> None:
     pair.frames()
     # CiA 301 expedited upload request of 1018:01, and the 4-byte expedited answer
-    pair.raw(0x605, bytes.fromhex("4018100100000000"))
+    pair.raw(0x605, bytes.fromhex("4018100200000000"))
     answer = [m for m in pair.frames() if m.arbitration_id == 0x585]
-    assert [bytes(m.data) for m in answer] == [bytes.fromhex("43181001 0B0D0000")]
-    assert pair.remote.sdo[0x1018][2].raw == 0x00402402
+    assert [bytes(m.data) for m in answer] == [bytes.fromhex("4318100202040000")]
+    assert pair.remote.sdo[0x1018][3].raw == 0x00010000
     assert pair.remote.sdo[0x1000].raw == 0x00020192
 
 
@@ -236,12 +236,12 @@ def test_real_time_with_canopens_notifier() -> None:
     channel = f"cia402-node-{next(_CHANNELS)}"
     node = TestNode402(can.Bus(interface="virtual", channel=channel), NODE)
     host = canopen.Network(can.Bus(interface="virtual", channel=channel))
-    remote = canopen.RemoteNode(NODE, build_od(NODE))
+    remote = canopen.RemoteNode(NODE, str(EDS))
     host.add_node(remote)
     host.connect()
     try:
         node.start()
-        assert remote.sdo[0x1018][1].raw == 0x00000D0B
+        assert remote.sdo[0x1018][2].raw == 0x402
         remote.sdo[0x1017].raw = 20
         remote.nmt.wait_for_heartbeat(timeout=2.0)
         assert remote.nmt.state == "PRE-OPERATIONAL"
