@@ -45,7 +45,7 @@ import canopen
 from can.broadcastmanager import CyclicSendTaskABC
 from canopen.pdo import PdoMap
 
-__all__ = ["EDS", "NodeState", "PumpBus", "PumpedNetwork", "TestNode402", "next_state"]
+__all__ = ["EDS", "HostSyncPumpBus", "NodeState", "PumpBus", "PumpedNetwork", "TestNode402", "next_state"]
 
 #: the project's EDS of a CiA 402 servo (objects only: the behaviour here is this file's)
 EDS = Path(__file__).resolve().parents[2] / "drivers" / "cia402-emulated.eds"
@@ -188,6 +188,7 @@ class TestNode402:
         self.mode = 0
         self.syncs = 0
         self.torques: list[float] = []   # torque [Nm] applied at each SYNC
+        self.controlwords: list[int] = []  # every controlword received (SDO or RPDO)
         self.emcy_sent: list[int] = []
         self.error_code = 0
         self._tasks: list[SimTask] = []
@@ -321,6 +322,7 @@ class TestNode402:
 
     def _controlword(self, cw: int) -> None:
         previous, self.cw = self.cw, cw
+        self.controlwords.append(cw)
         self.state = next_state(self.state, cw, previous)
         if self.state is NodeState.SWITCH_ON_DISABLED and previous & 0x80 == 0 and cw & 0x80:
             self.error_code = 0
@@ -395,11 +397,9 @@ class PumpBus(can.BusABC):
 
     native_periodic = True
 
-    def __init__(self, channel: str, node: TestNode402, *, echo_periodic: bool = True,
-                 **kwargs: Any) -> None:
+    def __init__(self, channel: str, node: TestNode402, **kwargs: Any) -> None:
         self._inner = can.Bus(interface="virtual", channel=channel, receive_own_messages=False)
         self._node = node
-        self._echo = echo_periodic
         self._queue: deque[can.Message] = deque()
         self._tasks: list[SimTask] = []
         self.time = 0.0
@@ -448,9 +448,8 @@ class PumpBus(can.BusABC):
         self._node.run_due(self.time)
 
     def _fire(self, msg: can.Message) -> None:
-        if self._echo:
-            self._collect()
-            self._queue.append(_stamped(msg, self.time))
+        self._collect()
+        self._queue.append(_stamped(msg, self.time))
         self.send(msg)
 
     def _collect(self) -> None:
@@ -467,6 +466,13 @@ class PumpBus(can.BusABC):
     def shutdown(self) -> None:
         super().shutdown()
         self._inner.shutdown()
+
+
+class HostSyncPumpBus(PumpBus):
+    """A pumped bus without native periodic send (a python-can interface whose
+    ``send_periodic`` is a thread of this process): the host sends SYNC itself."""
+
+    native_periodic = False
 
 
 def _stamped(msg: can.Message, t: float) -> can.Message:
