@@ -20,7 +20,7 @@ from numpy.typing import NDArray
 from orjson import loads
 
 from dobhil.config.schema import Config
-from dobhil.drives.profile import DriveProfile, profile_from_mapping
+from dobhil.drives.profile import RENAMED_KEYS, DriveProfile, profile_from_mapping
 from dobhil.errors import ConfigError, LogFileError
 from dobhil.recording.reader import LogFile, open_log
 from dobhil.recording.schemas import can_frame_message
@@ -129,12 +129,19 @@ def recorded_config(log: LogFile, overrides: Sequence[str] = ()) -> Config:
                         source=f"{log.path} config")
 
 
+def _renamed(record: dict[str, Any]) -> dict[str, Any]:
+    """A recorded profile under today's key names: a user's YAML with an old name is
+    refused, but a log written before the rename is not the user's to edit."""
+    return {RENAMED_KEYS.get(k, k): v for k, v in record.items()}
+
+
 def _profile(log: LogFile) -> DriveProfile:
     record = log.metadata.get("drive")
     if not record:
         raise LogFileError(f"{log.path}: no 'drive' metadata (not a recorded run?)")
     try:
-        return profile_from_mapping({k: json.loads(v) for k, v in record.items()}, source=f"{log.path} drive")
+        return profile_from_mapping(_renamed({k: json.loads(v) for k, v in record.items()}),
+                                    source=f"{log.path} drive")
     except (ValueError, ConfigError) as exc:
         raise LogFileError(f"{log.path}: invalid recorded drive profile: {exc}") from None
 

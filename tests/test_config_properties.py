@@ -160,8 +160,8 @@ def _profile(tmp_path: Path, **changes: str) -> Path:
 
 
 def test_a_profile_reads_2e_minus_2_as_a_number(tmp_path: Path) -> None:
-    profile = load_profile(_profile(tmp_path, watchdog_timeout="2e-2", encoder_msg_rate="1e-3"))
-    assert profile.watchdog_timeout == 2e-2 and profile.encoder_msg_rate == 1e-3
+    profile = load_profile(_profile(tmp_path, watchdog_timeout="2e-2", feedback_period="1e-3"))
+    assert profile.watchdog_timeout == 2e-2 and profile.feedback_period == 1e-3
 
 
 @pytest.mark.parametrize(("value", "message"), [

@@ -35,7 +35,7 @@ from dobhil.config import Config, load_config, resolve_config
 from dobhil.data import shipped_configs
 from dobhil.drives.profile import load_drive_profile
 from dobhil.emulator.process import EmulatorProcess, EmulatorSpec, PlantView
-from dobhil.emulator.registry import EMULATOR_CLASSES
+from dobhil.emulator.registry import emulated_protocols
 from dobhil.errors import BusError, ConfigError, DobhilError
 
 #: The channel when none is given.
@@ -71,9 +71,9 @@ class DobhilBus(can.BusABC):
             path = resolve_config(name)
             self.config: Config = load_config(path, override_items(overrides))
             profile = load_drive_profile(self.config, path.parent)
-            if profile.protocol not in EMULATOR_CLASSES:
+            if profile.protocol not in emulated_protocols():
                 raise ConfigError(f"no emulator for protocol {profile.protocol!r}; "
-                                  f"emulated: {', '.join(sorted(EMULATOR_CLASSES))}")
+                                  f"emulated: {', '.join(emulated_protocols())}")
         except DobhilError as exc:
             raise EmulatedBusError(f"dobhil bus {name!r}: {exc}") from None
         self._name = name

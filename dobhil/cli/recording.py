@@ -22,6 +22,7 @@ from typing import Any, Final
 
 from dobhil import __version__
 from dobhil.config import Config, to_yaml
+from dobhil.drives.profile import DriveProfile
 from dobhil.errors import RecorderError
 from dobhil.files import check_new_output
 from dobhil.recording.process import WriterProcess
@@ -34,8 +35,8 @@ from dobhil.runtime.session import RunSession
 from dobhil.runtime.stop import Stop, StopReason
 
 _PACKAGES: Final = ("python-can", "mcap", "numpy", "scipy", "control", "pyyaml", "orjson", "zstandard")
-_PROFILE_KEYS: Final = ("protocol", "firmware", "node_id", "torque_limit", "velocity_limit", "encoder_msg_rate",
-                        "heartbeat_msg_rate", "watchdog_timeout", "enable_timeout", "name")
+_PROFILE_KEYS: Final = ("protocol", "firmware", "node_id", "torque_limit", "velocity_limit", "feedback_period",
+                        "heartbeat_period", "watchdog_timeout", "enable_timeout", "command_delay_periods", "name")
 
 
 def default_log_path(directory: Path, now: datetime | None = None) -> Path:
@@ -87,6 +88,15 @@ def versions() -> dict[str, str]:
     return out
 
 
+def drive_metadata(profile: DriveProfile) -> dict[str, str]:
+    """The profile as the log keeps it (JSON per key): the common keys and, when it has
+    settings, the protocol's section under the protocol's name, as in the YAML file."""
+    out = {k: json.dumps(getattr(profile, k)) for k in _PROFILE_KEYS}
+    if profile.options:
+        out[profile.protocol] = json.dumps(dict(profile.options))
+    return out
+
+
 def run_metadata(session: RunSession, config_file: str | os.PathLike[str] | None) -> dict[str, dict[str, Any]]:
     """The ``config``, ``versions``, ``bus``, ``drive`` and ``run`` metadata records."""
     spec, profile, config = session.bus_spec, session.profile, session.config
@@ -97,7 +107,7 @@ def run_metadata(session: RunSession, config_file: str | os.PathLike[str] | None
         "bus": {"interface": spec.interface, "channel": spec.channel,
                 "bitrate": spec.kwargs.get("bitrate", config.drive.bitrate),
                 "emulated": session.emulator is not None, "lockstep": lockstep},
-        "drive": {k: json.dumps(getattr(profile, k)) for k in _PROFILE_KEYS},
+        "drive": drive_metadata(profile),
         "run": {"start_time": datetime.now(timezone.utc).isoformat(timespec="milliseconds"),
                 "start_time_ns": time.time_ns(), "timing": session.timing.label,
                 "log_clock": "simulated" if lockstep else "wall", "period": repr(session.settings.period),

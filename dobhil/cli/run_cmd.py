@@ -33,6 +33,9 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
                         "always skipped with --emulate, whose emulator is built from the profile)")
     p.add_argument("--preflight-window", type=float, metavar="S", default=None,
                    help="how long the preflight listens (default 0.5 s)")
+    p.add_argument("--reset-faults", action="store_true",
+                   help="clear a drive fault (CiA 402 controlword bit 7) before enabling; "
+                        "off: a faulted drive refuses to enable")
     p.add_argument("--live", metavar="[HOST:]PORT",
                    help="serve the run to Foxglove over WebSocket while it records (127.0.0.1 unless a host "
                         "is given; needs --log and the [live] extra)")
@@ -80,6 +83,7 @@ def run_checked(args: argparse.Namespace) -> int:
                 RunSession(config, bus=args.bus, emulate=args.emulate,
                            lockstep=True if args.lockstep else None, duration=args.duration,
                            config_dir=resolve_config(args.config).parent, stop_request=request,
+                           reset_faults=args.reset_faults,
                            **log_hooks(log), **preflight_kwargs(args)) as session:
             report_preflight(session.preflight())
             warn_realtime(session)

@@ -2,9 +2,17 @@
 
 Like python-can's ``BusABC.recv()`` / ``_recv_internal()``: :class:`Drive` owns timeouts,
 state and safety (enable handshake wait, fault detection, a ``disable()`` that never
-raises); a protocol module fills in :meth:`Drive._enable_frames`,
+raises); a protocol module fills in :meth:`Drive._enable_start`,
 :meth:`Drive._disable_frames`, :meth:`Drive._torque_frame`, :meth:`Drive._decode` and
-optionally :meth:`Drive._is_enabled_confirmation`.
+optionally :meth:`Drive._prepare`, :meth:`Drive._enable_step` and
+:meth:`Drive._is_enabled_confirmation`, and says how its profiles are validated
+(:attr:`Drive.profile_rules`).
+
+Enabling is a state machine stepped on what the drive reports: ``_prepare`` (start-up
+before any torque, e.g. CiA 402's NMT and SDO set-up), the ``_enable_start`` frames, then
+each :class:`StateEvent` goes through ``_enable_step``, which answers with the next
+frames (a CiA 402 controlword per power state) or raises to end the enable at once,
+until ``_is_enabled_confirmation`` says the drive follows torque commands.
 
 Protocol modules report what they decode as protocol-neutral events:
 :class:`MotionEvent` (position/velocity in rad, rad/s) and :class:`StateEvent`
@@ -35,9 +43,9 @@ from typing import TYPE_CHECKING, ClassVar
 
 import can
 
-from dobhil.drives.profile import DriveProfile
+from dobhil.drives.profile import DriveProfile, ProtocolRules
 from dobhil.drives.waits import WAIT_SLICE, Cancel
-from dobhil.errors import BusError, DriveError, DriveFaultError, DriveTimeoutError, WaitCancelled
+from dobhil.errors import BusError, ConfigError, DriveError, DriveFaultError, DriveTimeoutError, WaitCancelled
 
 if TYPE_CHECKING:
     from dobhil.drives.preflight import PreflightProbe
@@ -63,6 +71,9 @@ HEARTBEAT_MISSES = 3
 #: wall-clock seconds a safe-stop frame is retried while the bus refuses it (ENOBUFS:
 #: a full transmit queue drains within a few frame times)
 SAFE_STOP_RETRY = 0.02
+#: keepalive interval of enable() when neither a watchdog nor a heartbeat period sets
+#: one: often enough to ask a drive for status, seldom enough to load no bus
+DEFAULT_KEEPALIVE = 0.1
 
 
 class DriveState(IntEnum):
@@ -75,13 +86,16 @@ class DriveState(IntEnum):
 class Feedback:
     """Newest motion sample. ``timestamp``: drive clock [s] when the frame was read;
     ``rx_time``: the bus's receive stamp of the frame (python-can ``Message.timestamp``,
-    ``time.time()`` seconds; NaN if the bus gave none)."""
+    ``time.time()`` seconds; NaN if the bus gave none); ``sampled_at``: the bus stamp (same
+    clock as ``rx_time``) of the instant the drive sampled it (CiA 402: the SYNC's), NaN
+    when the protocol does not tell (ODrive)."""
 
     timestamp: float
     position: float  # rad
     velocity: float  # rad/s
     seq: int  # counts motion frames received from this drive
     rx_time: float = math.nan
+    sampled_at: float = math.nan
 
 
 @dataclass(frozen=True, slots=True)
@@ -144,6 +158,7 @@ class SafeStopReport:
 class MotionEvent:
     position: float  # rad
     velocity: float  # rad/s
+    sampled_at: float = math.nan  # bus stamp of the sampling instant (CiA 402: the SYNC's); NaN: unknown
 
 
 @dataclass(frozen=True, slots=True)
@@ -153,6 +168,7 @@ class StateEvent:
     watchdog_tripped: bool
     state_text: str  # e.g. "IDLE"
     error_text: str  # e.g. "0x01000000 (WATCHDOG_TIMER_EXPIRED)"
+    state: int = -1  # the drive's own state code (ODrive axis state, CiA 402 statusword); -1: none
 
 
 DriveEvent = MotionEvent | StateEvent
@@ -171,11 +187,25 @@ class Drive(ABC):
     active_state_text: ClassVar[str] = "enabled"
     #: what the disable frames ask for, in messages ("IDLE" on an ODrive)
     disabled_state_text: ClassVar[str] = "disable"
+    #: how this protocol's profiles are validated: its section, narrower common keys and
+    #: the optional common keys it needs (read by :mod:`dobhil.drives.profile` through the
+    #: registry when a profile is loaded)
+    profile_rules: ClassVar[ProtocolRules] = ProtocolRules()
 
     def __init__(
-        self, bus: can.BusABC, profile: DriveProfile, *, clock: Clock = time.monotonic
+        self, bus: can.BusABC, profile: DriveProfile, *, clock: Clock = time.monotonic,
+        reset_faults: bool = False,
     ) -> None:
+        """``reset_faults``: the enable may clear a drive fault first (``dobhil run
+        --reset-faults``); off, a faulted drive refuses to enable (protocols that clear
+        errors as part of their enable, like ODrive's Clear_Errors, are not affected)."""
+        for key in sorted(self.profile_rules.requires):
+            # a profile read from YAML was refused already; one built in code is caught here
+            if getattr(profile, key) is None:
+                raise ConfigError(f"drive profile {profile.name or profile.protocol!r}: missing key "
+                                  f"{key!r} (protocol {self.protocol!r} needs it)")
         self._bus = bus
+        self._reset_faults = reset_faults
         self._profile = profile
         self._clock = clock
         self._state = DriveState.DISABLED
@@ -203,6 +233,13 @@ class Drive(ABC):
         return None
 
     @property
+    def feedback_streams(self) -> bool:
+        """True when the drive sends motion feedback on its own every period; False when
+        it only answers the host each cycle (CiA 402 without a native periodic SYNC): a
+        loop timed by feedback cannot run on it."""
+        return True
+
+    @property
     def feedback(self) -> Feedback | None:
         """Newest feedback seen so far (fresh or not)."""
         return self._feedback
@@ -225,13 +262,16 @@ class Drive(ABC):
 
         Raises DriveTimeoutError naming what was awaited and what was last seen,
         BusError if the frames cannot be sent or the bus cannot be read, WaitCancelled
-        within WAIT_SLICE s of ``cancel()`` returning a reason.
+        within WAIT_SLICE s of ``cancel()`` returning a reason, DriveError /
+        DriveFaultError from the protocol's start-up or enable steps (one line).
         """
         wait = self._profile.enable_timeout if timeout is None else timeout
+        deadline = self._clock() + wait
         self._set_state(DriveState.DISABLED, "")
         self._last_state = None
-        self._send_all(self._enable_frames(), "enable")
-        if self._await_enabled(self._clock() + wait, cancel):
+        self._prepare(deadline, cancel)
+        self._send_all(self._enable_start(), "enable")
+        if self._await_enabled(deadline, cancel):
             self._set_state(DriveState.ENABLED, "")
             return
         raise DriveTimeoutError(self._enable_timeout_text(wait))
@@ -304,10 +344,10 @@ class Drive(ABC):
 
     def _check_heartbeat(self) -> None:
         """A drive whose status frames stop is a fault, even if motion frames still come."""
-        rate = self._profile.heartbeat_msg_rate
+        rate = self._profile.heartbeat_period
         last = self._last_heartbeat
-        if last is None or rate <= 0:
-            return
+        if last is None or rate is None or rate <= 0:
+            return  # no heartbeat watched
         silent = self._clock() - last
         if silent > HEARTBEAT_MISSES * rate:
             self._set_state(DriveState.FAULT,
@@ -322,9 +362,22 @@ class Drive(ABC):
 
     # -- protocol hooks -------------------------------------------------------
 
+    def _prepare(self, deadline: float, cancel: Cancel | None) -> None:
+        """Start-up before any torque (CiA 402: NMT, SDO reads, PDO mapping, SYNC start),
+        done by ``deadline`` (drive clock) and cancellable between slices of WAIT_SLICE s.
+        Raises DriveError (one line: node, object, state reached), BusError or
+        WaitCancelled. Default: nothing to prepare."""
+        return None  # (a hook, not abstract: ODrive has nothing to prepare)
+
     @abstractmethod
-    def _enable_frames(self) -> Sequence[can.Message]:
-        """Frames of the enable handshake, in order."""
+    def _enable_start(self) -> Sequence[can.Message]:
+        """Frames that start the enable handshake, in order."""
+
+    def _enable_step(self, event: StateEvent) -> Sequence[can.Message]:
+        """Frames to send next, given a state the drive reported while enable() waits
+        (a CiA 402 controlword for its power state). May raise DriveFaultError or
+        DriveError to end the enable at once (a fault it must not clear). Default: none."""
+        return ()
 
     @abstractmethod
     def _disable_frames(self) -> Sequence[can.Message]:
@@ -398,8 +451,8 @@ class Drive(ABC):
                 time.sleep(0.001)
 
     def _confirm_timeout(self) -> float:
-        rate = self._profile.heartbeat_msg_rate
-        return HEARTBEAT_MISSES * rate if rate > 0 else self._profile.enable_timeout
+        rate = self._profile.heartbeat_period
+        return HEARTBEAT_MISSES * rate if rate else self._profile.enable_timeout
 
     def _confirm_disabled(self, frames: tuple[FrameResult, ...], timeout: float | None,
                           cancel: Cancel | None) -> SafeStopReport:
@@ -440,7 +493,9 @@ class Drive(ABC):
 
     def _keepalive_interval(self) -> float:
         watchdog = self._profile.watchdog_timeout
-        return watchdog / 4 if watchdog > 0 else self._profile.heartbeat_msg_rate
+        if watchdog > 0:
+            return watchdog / 4
+        return self._profile.heartbeat_period or DEFAULT_KEEPALIVE
 
     def _await_enabled(self, deadline: float, cancel: Cancel | None) -> bool:
         interval = self._keepalive_interval()
@@ -509,15 +564,22 @@ class Drive(ABC):
         for event in self._decode(msg):
             if isinstance(event, MotionEvent):
                 self._on_motion(event)
-            else:
-                self._record_state(event)
-                confirmed = confirmed or self._is_enabled_confirmation(event)
+                continue
+            self._record_state(event)
+            try:
+                frames = self._enable_step(event)
+            except DriveFaultError as exc:
+                self._set_state(DriveState.FAULT, str(exc))
+                raise
+            if frames:
+                self._send_all(frames, "enable step")
+            confirmed = confirmed or self._is_enabled_confirmation(event)
         return confirmed
 
     def _on_motion(self, event: MotionEvent, rx_time: float = math.nan) -> None:
         self._seq += 1
         self._feedback = Feedback(self._clock(), event.position, event.velocity, self._seq,
-                                  rx_time or math.nan)
+                                  rx_time or math.nan, event.sampled_at)
 
     def _record_state(self, event: StateEvent) -> None:
         self._last_state = event

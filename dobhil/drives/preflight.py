@@ -270,11 +270,11 @@ class PreflightProbe(ABC):
 
 def profile_rate_findings(profile: DriveProfile, period: float) -> list[Finding]:
     """The profile must promise feedback at least once per loop period."""
-    if profile.encoder_msg_rate > period * (1 + 1e-9):
+    if profile.feedback_period is not None and profile.feedback_period > period * (1 + 1e-9):
         return [Finding(Severity.MISMATCH,
                         f"drive profile {profile.name or profile.protocol!r} sends encoder estimates every "
-                        f"{profile.encoder_msg_rate:g} s, slower than loop.period = {period:g} s; set its "
-                        f"encoder_msg_rate (and the drive's) to the loop period", stale_feedback=True)]
+                        f"{profile.feedback_period:g} s, slower than loop.period = {period:g} s; set its "
+                        f"feedback_period (and the drive's) to the loop period", stale_feedback=True)]
     return []
 
 
@@ -471,8 +471,18 @@ def _rate_findings(probe: PreflightProbe, node: NodeReport, period: float,
                    feedback_timeout: float | None, window: float) -> list[Finding]:
     profile = probe.profile
     out: list[Finding] = []
-    motion, status = node.motion, node.status
-    want_motion = min(profile.encoder_msg_rate, period)
+    if profile.feedback_period is not None:   # None: feedback does not stream, no rate to check
+        out += _motion_findings(probe, node, period, feedback_timeout, window, profile.feedback_period)
+    if profile.heartbeat_period is not None:   # None: no heartbeat watched, none to check
+        out += _status_findings(probe, node, window, profile.heartbeat_period)
+    return out
+
+
+def _motion_findings(probe: PreflightProbe, node: NodeReport, period: float, feedback_timeout: float | None,
+                     window: float, feedback_period: float) -> list[Finding]:
+    out: list[Finding] = []
+    motion = node.motion
+    want_motion = min(feedback_period, period)
     set_motion = (f"set {probe.setting(Setting.MOTION_RATE)} = "
                   f"{probe.setting_value(Setting.MOTION_RATE, want_motion)}")
     if motion.period is None:
@@ -482,7 +492,7 @@ def _rate_findings(probe: PreflightProbe, node: NodeReport, period: float,
     elif motion.period > want_motion * PERIOD_TOLERANCE:
         stale = motion.period > period * PERIOD_TOLERANCE
         why = (f"loop.period {_ms(period)} would use each sample {motion.period / period:.0f} times" if stale else
-               f"the profile's encoder_msg_rate is {_ms(profile.encoder_msg_rate)}; each loop period still "
+               f"the profile's feedback_period is {_ms(feedback_period)}; each loop period still "
                "gets a fresh sample")
         out.append(Finding(Severity.MISMATCH, f"{set_motion} (now {_ms(motion.period)}; {why})",
                            stale_feedback=stale))
@@ -493,7 +503,12 @@ def _rate_findings(probe: PreflightProbe, node: NodeReport, period: float,
                            f"node {node.node}'s {probe.motion_name()} paused up to {_ms(motion.max_gap)}, "
                            f"longer than loop.feedback_timeout {_ms(feedback_timeout)}: a pause like it during "
                            "a run stops that run (feedback timeout); check bus load and other senders"))
-    want_status = profile.heartbeat_msg_rate
+    return out
+
+
+def _status_findings(probe: PreflightProbe, node: NodeReport, window: float, want_status: float) -> list[Finding]:
+    out: list[Finding] = []
+    status = node.status
     set_status = (f"set {probe.setting(Setting.STATUS_RATE)} = "
                   f"{probe.setting_value(Setting.STATUS_RATE, want_status)}")
     if status.period is None:

@@ -4,20 +4,28 @@
 up as ``<name>.yaml`` in the nearest ``drivers/`` directory above ``near`` (the config's
 directory: the layout of the repository and of ``dobhil init``), then among the shipped
 profiles (``drivers/`` of the repository, installed as ``dobhil.data.drivers``; see
-:mod:`dobhil.data`). Every key is documented in ``drivers/README.md``. Validation is
-protocol-neutral; each protocol checks its own values (e.g. ODrive firmware and node id
-range) when the drive is made.
+:mod:`dobhil.data`). Every key is documented in ``drivers/README.md``.
+
+A profile has the common keys (:data:`COMMON_RULES`) and, under the key named after its
+protocol (``odrive:``, ``cia402:``), a section of that protocol's own settings. One
+validator checks both, with one error style (``<source>: <key>: expected <allowed>, got
+<value>``): the protocol's :class:`ProtocolRules` -- ``Drive.profile_rules`` of the
+protocol's drive class, found through :mod:`dobhil.drives.registry` when a mapping is
+validated -- say which keys its section has, how it narrows common keys (an ODrive node
+id has 6 bits) and which optional common keys it needs (an ODrive streams feedback and
+heartbeats, so it needs both periods). The validated section is
+:attr:`DriveProfile.options`, read-only, its defaults filled in.
 """
 
 from __future__ import annotations
 
 import math
 import os
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, fields
 from pathlib import Path
 from types import MappingProxyType
-from typing import Any
+from typing import Any, Final
 
 import yaml
 
@@ -25,39 +33,109 @@ from dobhil.config.schema import Config
 from dobhil.config.yamlio import TextFileError, read_text_file, safe_load, show_value, where
 from dobhil.errors import ConfigError
 
-__all__ = ["DriveProfile", "default_drivers_dir", "load_drive_profile", "load_profile", "profile_from_mapping"]
+__all__ = [
+    "COMMON_RULES",
+    "REQUIRED",
+    "RENAMED_KEYS",
+    "DriveProfile",
+    "ProtocolRules",
+    "Rule",
+    "default_drivers_dir",
+    "load_drive_profile",
+    "load_profile",
+    "profile_from_mapping",
+]
 
 
-@dataclass(frozen=True, kw_only=True)
-class DriveProfile:
-    """What the host must know about one drive. Times in s, torques in Nm, speeds in rad/s."""
+class _Required:
+    """The type of :data:`REQUIRED` (a sentinel: ``None`` is a real default)."""
 
-    protocol: str  # implementation name, e.g. "odrive"
-    firmware: str  # protocol-specific version string, e.g. "0.6"
-    node_id: int
-    torque_limit: float  # [Nm] drive-side clamp (emulator) and controller bound
-    velocity_limit: float  # [rad/s]
-    encoder_msg_rate: float  # [s] period of cyclic position/velocity frames
-    heartbeat_msg_rate: float  # [s] period of cyclic status frames
-    watchdog_timeout: float  # [s] drive-side command watchdog; 0 disables it
-    enable_timeout: float  # [s] default wait of Drive.enable()
-    bus: Mapping[str, Any] = field(default_factory=lambda: MappingProxyType({}), hash=False)
-    name: str = ""  # where the profile came from (file stem), for messages
-
-    def __post_init__(self) -> None:
-        # the bounds hold for a profile built in code too (dataclasses.replace, tests):
-        # the emulator and the waits rely on them
-        for key in _BOUNDED:
-            _check_value(key, getattr(self, key), f"drive profile {self.name or self.protocol!r}")
-
-    def bus_kwargs(self) -> dict[str, Any]:
-        """Extra keyword arguments for ``can.Bus(...)`` (interface, channel, bitrate, ...)."""
-        return dict(self.bus)
+    def __repr__(self) -> str:
+        return "REQUIRED"
 
 
-def _within(low: float, high: float, unit: str) -> tuple[str, Any]:
-    return (f"a number from {low:g} to {high:g} {unit}",
-            lambda v: math.isfinite(v) and low <= v <= high)
+#: ``Rule.default`` of a key that must be given
+REQUIRED: Final = _Required()
+
+_EMPTY: Mapping[str, Any] = MappingProxyType({})
+
+
+@dataclass(frozen=True)
+class Rule:
+    """What one profile key accepts: its types, the allowed values in words (the error
+    message's ``expected ...``), the check of a value of the right type, and its default
+    (:data:`REQUIRED`: it must be given; ``None``: optional and unset when absent).
+
+    A number key (``float`` in ``types``) reads a string as YAML 1.2 does (``1e-9`` is a
+    number) and gives a float; a ``bool`` is never an int or a float unless ``types``
+    names ``bool``; a ``dict`` key gives a read-only mapping."""
+
+    types: tuple[type, ...]
+    allowed: str
+    check: Callable[[Any], bool]
+    default: Any = REQUIRED
+
+    @property
+    def required(self) -> bool:
+        return self.default is REQUIRED
+
+    @classmethod
+    def number(cls, low: float, high: float, unit: str, default: Any = REQUIRED) -> Rule:
+        """A finite number from ``low`` to ``high`` (inclusive), e.g. a period in s."""
+        return cls((int, float), f"a number from {low:g} to {high:g} {unit}".rstrip(),
+                   lambda v: math.isfinite(v) and low <= v <= high, default)
+
+    @classmethod
+    def integer(cls, low: int, high: int, default: Any = REQUIRED) -> Rule:
+        """An integer from ``low`` to ``high`` (inclusive)."""
+        return cls((int,), f"an integer from {low} to {high}", lambda v: low <= v <= high, default)
+
+    @classmethod
+    def one_of(cls, *choices: Any, default: Any = REQUIRED) -> Rule:
+        """One of ``choices`` (all of one type), e.g. a unit name."""
+        types = tuple(sorted({type(c) for c in choices}, key=lambda t: t.__name__))
+        return cls(types, "one of " + ", ".join(repr(c) for c in choices), lambda v: v in choices, default)
+
+    def validate(self, key: str, value: Any, source: str) -> Any:
+        """``value`` as the profile keeps it; ConfigError (one line) naming ``key``, what is
+        allowed and ``value`` when the rule refuses it."""
+        if value is None and self.default is None:
+            return None  # an optional key left empty (``key:`` in YAML) is unset
+        numeric = float in self.types
+        if numeric:
+            value = _as_number(value)
+        type_ok = isinstance(value, self.types) and (bool in self.types or not isinstance(value, bool))
+        if not type_ok or not _passes(self.check, value):
+            raise ConfigError(f"{source}: {key}: expected {self.allowed}, got {show_value(value)}")
+        if numeric and not isinstance(value, bool):
+            return float(value)
+        if isinstance(value, dict):
+            return MappingProxyType(dict(value))
+        return value
+
+
+def _passes(check: Callable[[Any], bool], value: Any) -> bool:
+    """A check that raises on an odd value (a comparison of a huge int) refuses it."""
+    try:
+        return bool(check(value))
+    except (TypeError, ValueError, OverflowError, ArithmeticError):
+        return False
+
+
+@dataclass(frozen=True)
+class ProtocolRules:
+    """A protocol's part of profile validation (``Drive.profile_rules``).
+
+    - ``section``: the keys of its section (the mapping under the protocol's name);
+      an unknown key there is refused, a missing one gets its rule's default.
+    - ``common``: narrower rules for common keys (checked after the common rule), e.g.
+      ODrive's node id 0..63; the message names the protocol's rule.
+    - ``requires``: optional common keys this protocol needs (ODrive: ``feedback_period``,
+      ``heartbeat_period``)."""
+
+    section: Mapping[str, Rule] = field(default_factory=lambda: _EMPTY)
+    common: Mapping[str, Rule] = field(default_factory=lambda: _EMPTY)
+    requires: frozenset[str] = frozenset()
 
 
 # Physically meaningful bounds (drivers/README.md says why each): a value outside them is
@@ -77,28 +155,99 @@ MAX_WAIT = 60.0
 #: torque and speed bounds: beyond any servo drive on CAN (a unit mistake)
 MAX_TORQUE = 1e4
 MAX_VELOCITY = 1e4
+#: a protocol that delays each command by more loop periods than this is not a loop
+#: for force control (and the sampled analysis' state grows with it)
+MAX_COMMAND_DELAY = 16
 
-# key -> (accepted types, description of allowed values, check)
-_RULES: Mapping[str, tuple[tuple[type, ...], str, Any]] = MappingProxyType({
-    "protocol": ((str,), "a protocol name such as 'odrive'", lambda v: bool(v)),
-    "firmware": ((str,), "a quoted version string such as '0.6'", lambda v: bool(v)),
-    "node_id": ((int,), f"an integer from 0 to {MAX_NODE_ID} (29-bit CAN id)",
-                lambda v: 0 <= v <= MAX_NODE_ID),
-    "torque_limit": ((int, float), f"a number > 0 and <= {MAX_TORQUE:g} Nm",
-                     lambda v: math.isfinite(v) and 0 < v <= MAX_TORQUE),
-    "velocity_limit": ((int, float), f"a number > 0 and <= {MAX_VELOCITY:g} rad/s",
-                       lambda v: math.isfinite(v) and 0 < v <= MAX_VELOCITY),
-    "encoder_msg_rate": ((int, float), *_within(MIN_FRAME_PERIOD, MAX_FRAME_PERIOD, "s")),
-    "heartbeat_msg_rate": ((int, float), *_within(MIN_HEARTBEAT, MAX_FRAME_PERIOD, "s")),
-    "watchdog_timeout": ((int, float), f"0 (off) or a number from {MIN_HEARTBEAT:g} to {MAX_WAIT:g} s",
-                         lambda v: math.isfinite(v) and (v == 0 or MIN_HEARTBEAT <= v <= MAX_WAIT)),
-    "enable_timeout": ((int, float), *_within(MIN_HEARTBEAT, MAX_WAIT, "s")),
-    "bus": ((dict,), "a mapping of can.Bus keyword arguments", lambda v: all(isinstance(k, str) for k in v)),
-    "name": ((str,), "a string", lambda v: True),
+#: the common keys, in the order of the README's table; each protocol's drive class
+#: may narrow them (``ProtocolRules.common``) and require the optional ones it needs
+COMMON_RULES: Mapping[str, Rule] = MappingProxyType({
+    "protocol": Rule((str,), "a protocol name such as 'odrive'", lambda v: bool(v)),
+    "firmware": Rule((str,), "a quoted version string such as '0.6'", lambda v: bool(v)),
+    "node_id": Rule((int,), f"an integer from 0 to {MAX_NODE_ID} (29-bit CAN id)",
+                    lambda v: 0 <= v <= MAX_NODE_ID),
+    "torque_limit": Rule((int, float), f"a number > 0 and <= {MAX_TORQUE:g} Nm",
+                         lambda v: math.isfinite(v) and 0 < v <= MAX_TORQUE),
+    "velocity_limit": Rule((int, float), f"a number > 0 and <= {MAX_VELOCITY:g} rad/s",
+                           lambda v: math.isfinite(v) and 0 < v <= MAX_VELOCITY),
+    "feedback_period": Rule.number(MIN_FRAME_PERIOD, MAX_FRAME_PERIOD, "s", default=None),
+    "heartbeat_period": Rule.number(MIN_HEARTBEAT, MAX_FRAME_PERIOD, "s", default=None),
+    "watchdog_timeout": Rule((int, float), f"0 (off) or a number from {MIN_HEARTBEAT:g} to {MAX_WAIT:g} s",
+                             lambda v: math.isfinite(v) and (v == 0 or MIN_HEARTBEAT <= v <= MAX_WAIT), 0.0),
+    "enable_timeout": Rule.number(MIN_HEARTBEAT, MAX_WAIT, "s"),
+    "command_delay_periods": Rule.integer(0, MAX_COMMAND_DELAY, default=None),
+    "bus": Rule((dict,), "a mapping of can.Bus keyword arguments",
+                lambda v: all(isinstance(k, str) for k in v), _EMPTY),
+    "name": Rule((str,), "a string", lambda v: True, ""),
 })
-_OPTIONAL = frozenset({"bus", "name"})
-_BOUNDED = ("node_id", "torque_limit", "velocity_limit", "encoder_msg_rate", "heartbeat_msg_rate",
-            "watchdog_timeout", "enable_timeout")
+
+#: keys of older profiles -> their new names (refused with one line naming the new one:
+#: ``encoder_msg_rate`` was never a rate but a period in seconds)
+RENAMED_KEYS: Mapping[str, str] = MappingProxyType({
+    "encoder_msg_rate": "feedback_period",
+    "heartbeat_msg_rate": "heartbeat_period",
+})
+
+_BOUNDED = ("node_id", "torque_limit", "velocity_limit", "feedback_period", "heartbeat_period",
+            "watchdog_timeout", "enable_timeout", "command_delay_periods")
+
+
+@dataclass(frozen=True, kw_only=True)
+class DriveProfile:
+    """What the host must know about one drive. Times in s, torques in Nm, speeds in rad/s."""
+
+    protocol: str  # implementation name, e.g. "odrive"
+    firmware: str  # protocol-specific version string, e.g. "0.6"
+    node_id: int
+    torque_limit: float  # [Nm] drive-side clamp (emulator) and controller bound
+    velocity_limit: float  # [rad/s]
+    enable_timeout: float  # [s] default wait of Drive.enable()
+    watchdog_timeout: float = 0.0  # [s] drive-side command watchdog; 0 disables it
+    #: [s] period of the drive's cyclic motion feedback (ODrive encoder estimates; CiA 402
+    #: the SYNC period); None: the protocol does not stream feedback on its own
+    feedback_period: float | None = None
+    #: [s] period of the drive's status / heartbeat frames; None: no heartbeat watched
+    heartbeat_period: float | None = None
+    #: loop periods after its feedback sample that the protocol itself applies a command
+    #: (CiA 402 synchronous RPDO: 1); None: not fixed by the protocol
+    command_delay_periods: int | None = None
+    bus: Mapping[str, Any] = field(default_factory=lambda: _EMPTY, hash=False)
+    name: str = ""  # where the profile came from (file stem), for messages
+    #: the protocol's section (``odrive:``, ``cia402:``), validated, defaults filled in
+    options: Mapping[str, Any] = field(default_factory=lambda: _EMPTY, hash=False)
+
+    def __post_init__(self) -> None:
+        # the bounds hold for a profile built in code too (dataclasses.replace, tests):
+        # the emulator and the waits rely on them
+        source = f"drive profile {self.name or self.protocol!r}"
+        for key in _BOUNDED:
+            COMMON_RULES[key].validate(key, getattr(self, key), source)
+        # read-only whatever the caller passed (a dict in code)
+        for key in ("bus", "options"):
+            value = getattr(self, key)
+            if not isinstance(value, MappingProxyType):
+                object.__setattr__(self, key, MappingProxyType(dict(value)))
+
+    def bus_kwargs(self) -> dict[str, Any]:
+        """Extra keyword arguments for ``can.Bus(...)`` (interface, channel, bitrate, ...)."""
+        return dict(self.bus)
+
+    def __reduce__(self) -> tuple[Any, ...]:
+        # pickled to the emulator's process: a read-only mapping cannot be pickled, so
+        # the mappings travel as dicts and __post_init__ makes them read-only again
+        values = {f.name: _plain(getattr(self, f.name)) for f in fields(self)}
+        return (_rebuild, (values,))
+
+
+def _plain(value: Any) -> Any:
+    """``value`` with every read-only mapping in it made a dict (picklable)."""
+    if isinstance(value, Mapping):
+        return {k: _plain(v) for k, v in value.items()}
+    return value
+
+
+def _rebuild(values: dict[str, Any]) -> DriveProfile:
+    return DriveProfile(**values)
 
 
 def default_drivers_dir() -> Path:
@@ -145,32 +294,103 @@ def _as_number(value: Any) -> Any:
     return value
 
 
-def _check_value(key: str, value: Any, source: str) -> Any:
-    types, allowed, ok = _RULES[key]
-    if float in types:
-        value = _as_number(value)
-    type_ok = isinstance(value, types) and not isinstance(value, bool)
-    if not type_ok or not ok(value):
-        raise ConfigError(f"{source}: {key}: expected {allowed}, got {show_value(value)}")
-    if float in types:
-        return float(value)
-    if key == "bus":
-        return MappingProxyType(dict(value))
-    return value
+@dataclass(frozen=True)
+class _Lookup:
+    rules: Callable[[str], ProtocolRules]
+    protocols: Callable[[], tuple[str, ...]]
+
+
+# The protocols' rules come from the drive classes, which the registry finds (built in or
+# by entry point). This module cannot import the registry, not even in a function: the
+# registry imports the drive classes and they import this module (an import circle the
+# layer check refuses). So the registry hands its two look-ups in when it is imported --
+# always before a profile is read, since ``dobhil.drives/__init__`` imports it and every
+# import of this module runs that package's ``__init__`` first.
+_lookup: list[_Lookup] = []
+
+
+def use_protocol_lookup(rules: Callable[[str], ProtocolRules], protocols: Callable[[], tuple[str, ...]]) -> None:
+    """Called once by :mod:`dobhil.drives.registry`: how to find a protocol's rules
+    (a ConfigError for an unknown or broken one) and the names of all protocols."""
+    _lookup[:] = [_Lookup(rules, protocols)]
+
+
+def _protocol_rules(protocol: str, source: str) -> ProtocolRules:
+    """``profile_rules`` of ``protocol``'s drive class (imported only now: a protocol's
+    module is imported when a profile of it is read)."""
+    try:
+        return _lookup[0].rules(protocol)
+    except ConfigError as exc:
+        raise ConfigError(f"{source}: {exc}") from None
+
+
+def _known_protocols() -> tuple[str, ...]:
+    return _lookup[0].protocols()
+
+
+def _check_keys(data: Mapping[str, Any], protocol: str, rules: ProtocolRules, source: str) -> None:
+    """Unknown keys (a section of another protocol told apart), then missing ones."""
+    for key in data:
+        if key in COMMON_RULES or key == protocol:
+            continue
+        if isinstance(key, str) and key in _known_protocols():
+            raise ConfigError(f"{source}: {key}: a section of protocol {key!r}, but this profile's "
+                              f"protocol is {protocol!r} (its section is {protocol}:)")
+        allowed = ", ".join((*COMMON_RULES, protocol))
+        raise ConfigError(f"{source}: unknown key {show_value(key)} (allowed: {allowed})")
+    for key, rule in COMMON_RULES.items():
+        if key not in data and rule.required:
+            raise ConfigError(f"{source}: missing key {key!r} ({rule.allowed})")
+
+
+def _section(value: Any, protocol: str, rules: ProtocolRules, source: str) -> Mapping[str, Any]:
+    """The protocol's section validated by its rules, defaults filled in, read-only."""
+    if value is None:
+        value = {}
+    if not isinstance(value, Mapping):
+        raise ConfigError(f"{source}: {protocol}: expected a mapping of {protocol} settings "
+                          f"({', '.join(rules.section) or 'none defined'}), got {show_value(value)}")
+    for key in value:
+        if key not in rules.section:
+            allowed = ", ".join(rules.section) or "none"
+            raise ConfigError(f"{source}: unknown key {show_value(f'{protocol}.{key}')} "
+                              f"(allowed in {protocol}: {allowed})")
+    options: dict[str, Any] = {}
+    for key, rule in rules.section.items():
+        if key in value:
+            options[key] = rule.validate(f"{protocol}.{key}", value[key], source)
+        elif rule.required:
+            raise ConfigError(f"{source}: missing key {protocol}.{key} ({rule.allowed})")
+        else:
+            options[key] = rule.default
+    return MappingProxyType(options)
 
 
 def profile_from_mapping(data: Mapping[str, Any], *, source: str = "<profile>") -> DriveProfile:
     """Validate a mapping and build a DriveProfile; ConfigError names key, value and rule."""
     if not isinstance(data, Mapping):
         raise ConfigError(f"{source}: expected a mapping of profile keys, got {type(data).__name__}")
-    allowed = ", ".join(_RULES)
-    for key in data:
-        if key not in _RULES:
-            raise ConfigError(f"{source}: unknown key {key!r} (allowed: {allowed})")
-    for f in fields(DriveProfile):
-        if f.name not in data and f.name not in _OPTIONAL:
-            raise ConfigError(f"{source}: missing key {f.name!r} ({_RULES[f.name][1]})")
-    values = {key: _check_value(key, value, source) for key, value in data.items()}
+    for old, new in RENAMED_KEYS.items():
+        if old in data:
+            raise ConfigError(f"{source}: {old}: renamed to {new} (a period in seconds)")
+    if "protocol" not in data:
+        raise ConfigError(f"{source}: missing key 'protocol' ({COMMON_RULES['protocol'].allowed})")
+    protocol = COMMON_RULES["protocol"].validate("protocol", data["protocol"], source)
+    rules = _protocol_rules(protocol, source)
+    _check_keys(data, protocol, rules, source)
+    values: dict[str, Any] = {}
+    for key, rule in COMMON_RULES.items():
+        if key not in data:
+            continue
+        values[key] = rule.validate(key, data[key], source)
+        narrower = rules.common.get(key)
+        if narrower is not None and values[key] is not None:
+            values[key] = narrower.validate(key, values[key], source)
+    for key in sorted(rules.requires):
+        if values.get(key) is None:  # absent, or left empty
+            raise ConfigError(f"{source}: missing key {key!r} ({COMMON_RULES[key].allowed}; "
+                              f"protocol {protocol!r} needs it)")
+    values["options"] = _section(data.get(protocol), protocol, rules, source)
     return DriveProfile(**values)
 
 

@@ -1,52 +1,137 @@
-"""Drive implementations by protocol name, imported lazily (python-can interface style).
+"""Drive implementations by protocol name: built-in ones and entry points.
 
-A new protocol (CiA 402, MIT) is one new module plus one line in :data:`DRIVE_CLASSES`;
-protocol modules never import each other.
+As python-can finds interfaces (its ``BACKENDS`` table beside the ``can.interface``
+entry points), a protocol is found in two places:
+
+- :data:`DRIVE_CLASSES`, the built-in table, so a source tree that was never installed
+  (no entry-point metadata) still knows its own protocols;
+- the entry-point group ``dobhil.drives`` (:data:`ENTRY_POINT_GROUP`) of any installed
+  distribution: name ``<protocol>`` -> its :class:`~dobhil.drives.base.Drive` subclass
+  (names ending in ``.emulator`` are emulated drives: :mod:`dobhil.emulator.registry`).
+  A protocol can live in another package without editing dobhil.
+
+A built-in protocol wins over an entry point of the same name. Classes are imported
+lazily, when a profile of that protocol is read or a drive of it is made.
 """
 
 from __future__ import annotations
 
 import importlib
 from collections.abc import Mapping
+from importlib.metadata import EntryPoint, entry_points
 from types import MappingProxyType
 from typing import TYPE_CHECKING, Any
 
 import can
 
 from dobhil.drives.base import Drive
-from dobhil.drives.profile import DriveProfile
+from dobhil.drives.profile import DriveProfile, ProtocolRules, use_protocol_lookup
 from dobhil.errors import ConfigError
 
 if TYPE_CHECKING:
     from dobhil.drives.preflight import PreflightProbe
 
-__all__ = ["DRIVE_CLASSES", "drive_class", "make_drive", "preflight_probe"]
+__all__ = [
+    "DRIVE_CLASSES",
+    "EMULATOR_SUFFIX",
+    "ENTRY_POINT_GROUP",
+    "drive_class",
+    "load_object",
+    "make_drive",
+    "plugin_entry_points",
+    "preflight_probe",
+    "profile_rules",
+    "protocols",
+]
 
-#: protocol name -> (module, class name)
+#: the entry-point group of drive classes (``<protocol>``) and emulated drives
+#: (``<protocol>.emulator``): ``dobhil.drives``, named after this package (as python-can's
+#: ``can.interface`` is after its own). Derived, not written out: the layer check reads a
+#: string that spells a dobhil module as an import of it, and this package's ``__init__``
+#: imports this module (a circle that is not one).
+ENTRY_POINT_GROUP = __name__.rpartition(".")[0]
+#: entry-point names ending in this name an emulated drive, not a drive class
+EMULATOR_SUFFIX = ".emulator"
+
+#: built-in protocols: name -> (module, class name)
 DRIVE_CLASSES: Mapping[str, tuple[str, str]] = MappingProxyType({
     "odrive": ("dobhil.drives.odrive.drive", "ODriveDrive"),
 })
 
 
-def drive_class(protocol: str) -> type[Drive]:
-    """The Drive subclass of ``protocol``; ConfigError if unknown."""
+def plugin_entry_points() -> dict[str, EntryPoint]:
+    """The group's entry points by name (the first of a name wins, in ``sys.path`` order,
+    as importlib.metadata lists them). Read on each call: cheap next to making a drive,
+    and a distribution installed (or put on ``sys.path``) since is seen."""
+    found: dict[str, EntryPoint] = {}
+    for ep in entry_points(group=ENTRY_POINT_GROUP):
+        found.setdefault(ep.name, ep)
+    return found
+
+
+def load_object(name: str, builtin: tuple[str, str] | None, ep: EntryPoint | None) -> Any:
+    """The object a built-in table row or an entry point names; a failure to import it
+    is one line naming the entry (and the error), not a traceback."""
+    if builtin is not None:
+        module_name, attr = builtin
+        where = f"{module_name}:{attr}"
+        what = f"built-in {name!r}"
+    else:
+        assert ep is not None
+        where = ep.value
+        what = f"entry point {name!r} (group {ENTRY_POINT_GROUP})"
     try:
-        module_name, class_name = DRIVE_CLASSES[protocol]
-    except KeyError:
-        raise ConfigError(
-            f"protocol: expected one of {sorted(DRIVE_CLASSES)}, got {protocol!r}"
-        ) from None
-    cls = getattr(importlib.import_module(module_name), class_name)
+        if builtin is not None:
+            return getattr(importlib.import_module(builtin[0]), builtin[1])
+        assert ep is not None
+        return ep.load()
+    except Exception as exc:  # whatever a third-party module raises on import
+        text = " ".join(str(exc).split())
+        raise ConfigError(f"{what} = {where} failed to load: {type(exc).__name__}"
+                          f"{': ' + text if text else ''}") from None
+
+
+def protocols() -> tuple[str, ...]:
+    """Every protocol a profile may name: built-in and entry points, sorted."""
+    names = set(DRIVE_CLASSES)
+    names.update(n for n in plugin_entry_points() if not n.endswith(EMULATOR_SUFFIX))
+    return tuple(sorted(names))
+
+
+def drive_class(protocol: str) -> type[Drive]:
+    """The Drive subclass of ``protocol``; ConfigError (one line) if unknown or broken."""
+    builtin = DRIVE_CLASSES.get(protocol)
+    ep = None if builtin is not None or protocol.endswith(EMULATOR_SUFFIX) else \
+        plugin_entry_points().get(protocol)
+    if builtin is None and ep is None:
+        raise ConfigError(f"protocol: expected one of {list(protocols())}, got {protocol!r}")
+    cls = load_object(protocol, builtin, ep)
     if not (isinstance(cls, type) and issubclass(cls, Drive)):
-        raise ConfigError(f"protocol {protocol!r}: {module_name}.{class_name} is not a Drive")
+        where = f"{builtin[0]}.{builtin[1]}" if builtin is not None else ep.value if ep else "?"
+        raise ConfigError(f"protocol {protocol!r}: {where} is not a dobhil Drive class")
     return cls
 
 
-def make_drive(bus: can.BusABC, profile: DriveProfile, **kwargs: Any) -> Drive:
-    """Build the drive of ``profile.protocol`` on ``bus`` (kwargs go to its constructor)."""
-    return drive_class(profile.protocol)(bus, profile, **kwargs)
+def profile_rules(protocol: str) -> ProtocolRules:
+    """How ``protocol`` validates its profiles (its drive class's ``profile_rules``)."""
+    rules = drive_class(protocol).profile_rules
+    if not isinstance(rules, ProtocolRules):
+        raise ConfigError(f"protocol {protocol!r}: profile_rules is not a ProtocolRules")
+    return rules
+
+
+def make_drive(bus: can.BusABC, profile: DriveProfile, *, reset_faults: bool = False,
+               **kwargs: Any) -> Drive:
+    """Build the drive of ``profile.protocol`` on ``bus`` (kwargs go to its constructor).
+    ``reset_faults``: the drive may clear a fault before enabling (``dobhil run
+    --reset-faults``); off, a faulted drive refuses to enable."""
+    return drive_class(profile.protocol)(bus, profile, reset_faults=reset_faults, **kwargs)
 
 
 def preflight_probe(profile: DriveProfile) -> PreflightProbe | None:
     """The preflight part of ``profile.protocol`` (None: that protocol has none yet)."""
     return drive_class(profile.protocol).preflight_probe(profile)
+
+
+# profile validation asks this registry for a protocol's rules (see use_protocol_lookup)
+use_protocol_lookup(profile_rules, protocols)

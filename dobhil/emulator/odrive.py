@@ -67,7 +67,7 @@ from dobhil.drives.odrive.codec import (AxisState, CmdId, ControlMode, Firmware,
                                         ProcedureResult06)
 from dobhil.drives.profile import DriveProfile
 from dobhil.emulator.protocol import EmulatedDrive, PlantLike
-from dobhil.errors import CodecError
+from dobhil.errors import CodecError, ConfigError
 
 __all__ = ["EmulatedODrive"]
 
@@ -142,10 +142,11 @@ class EmulatedODrive(EmulatedDrive):
         return 0.0
 
     def _cyclic_frames(self) -> Sequence[tuple[float, Callable[[], can.Message]]]:
-        return (
-            (self._profile.encoder_msg_rate, self._encoder_frame),
-            (self._profile.heartbeat_msg_rate, self._heartbeat_frame),
-        )
+        feedback, heartbeat = self._profile.feedback_period, self._profile.heartbeat_period
+        if feedback is None or heartbeat is None:  # the ODrive's profile rules require both
+            raise ConfigError(f"drive profile {self._profile.name!r}: an ODrive needs feedback_period "
+                              "and heartbeat_period")
+        return ((feedback, self._encoder_frame), (heartbeat, self._heartbeat_frame))
 
     def _on_time(self, now: float) -> None:
         """The firmware's watchdog_check(), in every axis state (0.5.6 ``main.cpp``)."""

@@ -60,6 +60,7 @@ import can
 from dobhil.config.schema import Config
 from dobhil.drives.profile import DriveProfile
 from dobhil.emulator.pipe import PipeBus, RecordKind, socket_pair
+from dobhil.emulator.protocol import tick_period
 from dobhil.errors import BusError
 
 __all__ = ["EmulatorProcess", "EmulatorSpec", "PlantView", "Slot"]
@@ -387,7 +388,7 @@ class EmulatorProcess:
         ``window`` s: its newest stalled tick, or the tick it owes now."""
         now = time.perf_counter() if now is None else now
         s = self.snapshot()
-        begin, period = now - window, self.profile.encoder_msg_rate
+        begin, period = now - window, tick_period(self.profile)
         past = _overlap(s[Slot.STALL_START], s[Slot.STALL_START] + s[Slot.STALL_LENGTH], begin, now)
         due = s[Slot.DEADLINE] + period   # the next tick's deadline
         ongoing = _overlap(due, now, begin, now) if now - due >= STALL_PERIODS * period else 0.0
@@ -417,7 +418,7 @@ class _Publisher:
         self._status = status
         self._emulator = emulator
         self._plant = plant
-        self._period = emulator.profile.encoder_msg_rate
+        self._period = emulator.tick_period
         self._observed = [(slot, name) for name, slot in OBSERVED.items() if hasattr(emulator, name)]
         status[Slot.SEQ] = 0.0
         for slot in (Slot.LATE_TICKS, Slot.MAX_LATENESS, Slot.STALL_LENGTH):
@@ -505,7 +506,7 @@ def _serve(bus: PipeBus, status: Any, spec: EmulatorSpec) -> None:
     plant = Plant.from_config(spec.config)
     emulator = make_emulated_drive(bus, spec.profile, plant, latency=spec.latency,
                                    jitter=spec.jitter, seed=spec.seed)
-    plant.prepare(spec.profile.encoder_msg_rate)   # set-up cost before READY, not in a tick
+    plant.prepare(tick_period(spec.profile))   # set-up cost before READY, not in a tick
     publisher = _Publisher(status, emulator, plant)
     publisher.tick(math.nan, 0.0)
     # everything imported and built so far is never garbage: out of the collector's way, or

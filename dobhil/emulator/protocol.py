@@ -46,6 +46,14 @@ __all__ = ["EmulatedDrive", "LockstepBus", "PlantLike"]
 
 _EPS = 1e-9
 _MAX_LAG_PERIODS = 10  # real time: ticks later than this are skipped, not replayed
+#: [s] real-time tick of an emulated drive whose protocol streams no feedback of its own
+DEFAULT_TICK = 1e-3
+
+
+def tick_period(profile: DriveProfile) -> float:
+    """[s] an emulated drive's real-time tick: the profile's ``feedback_period`` (its
+    cyclic frames are due on it), or :data:`DEFAULT_TICK` when the protocol streams none."""
+    return DEFAULT_TICK if profile.feedback_period is None else profile.feedback_period
 
 
 class PlantLike(Protocol):
@@ -182,14 +190,19 @@ class EmulatedDrive(ABC):
 
     # -- real time ------------------------------------------------------------
 
+    @property
+    def tick_period(self) -> float:
+        """[s] the real-time tick (:func:`tick_period` of the profile)."""
+        return tick_period(self._profile)
+
     def start(self, *, priority_drop: int = 0) -> None:
-        """Run on a thread of its own (period = the profile's encoder rate), its nice
+        """Run on a thread of its own (period: :attr:`tick_period`), its nice
         value raised by ``priority_drop`` where the OS allows (below the control loop)."""
         if self._thread is not None:
             raise RuntimeError("emulator already started")
         prepare = getattr(self._plant, "prepare", None)
         if callable(prepare):  # one-off set-up cost here, not in the first real-time tick
-            prepare(self._profile.encoder_msg_rate)
+            prepare(self.tick_period)
         self._stop_event.clear()
         self._priority_drop = priority_drop
         self._thread = threading.Thread(
@@ -315,7 +328,7 @@ class EmulatedDrive(ABC):
         thread) or until the bus raises. ``on_tick(deadline, lateness)`` after each tick:
         its deadline (``time.perf_counter``) and how late its frames went out -- the
         emulator's own measure of being starved (a process of its own publishes it)."""
-        period = self._profile.encoder_msg_rate
+        period = self.tick_period
         start = time.perf_counter()
         tick = 1
         while not self._stop_event.is_set():

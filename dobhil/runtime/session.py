@@ -77,7 +77,12 @@ def resolve_timing(config: Config, profile: DriveProfile, lockstep: bool | None)
         return Timing.LOCKSTEP
     if name in ("host", "realtime"):
         return Timing.HOST
-    period, rate = config.loop.period, profile.encoder_msg_rate
+    period, rate = config.loop.period, profile.feedback_period
+    if rate is None:
+        raise ConfigError(
+            f"loop.timing = feedback runs one cycle per feedback frame, but drive profile "
+            f"{profile.name or profile.protocol!r} has no feedback_period (its feedback does not "
+            f"stream); set loop.timing: host")
     if abs(rate - period) > 1e-9 * period:
         raise ConfigError(
             f"loop.timing = feedback runs one cycle per feedback frame, but drive profile "
@@ -103,7 +108,8 @@ class RunSession:
                  config_dir: Path | None = None, sink: CycleSink | None = None,
                  stop_request: StopRequest | None = None,
                  bus_wrapper: Callable[[can.BusABC], can.BusABC] | None = None,
-                 preflight: bool | None = None, preflight_window: float = DEFAULT_WINDOW) -> None:
+                 preflight: bool | None = None, preflight_window: float = DEFAULT_WINDOW,
+                 reset_faults: bool = False) -> None:
         lockstep = (config.loop.timing == "lockstep") if lockstep is None else lockstep
         if lockstep and not emulate:
             raise ConfigError("lockstep timing needs the in-process emulator (--emulate); "
@@ -139,6 +145,8 @@ class RunSession:
         self.preflight_enabled = (not emulate) if preflight is None else preflight
         self.preflight_window = preflight_window
         self.preflight_report: PreflightReport | None = None
+        #: the drive may clear a fault before enabling (``dobhil run --reset-faults``)
+        self.reset_faults = reset_faults
         self.loop: ForceLoop | None = None   # the run's loop, once run() started it
         self.bus_spec = (BusSpec("virtual", private_virtual_channel()) if emulate
                          else resolve_bus(config, self.profile, bus))
@@ -181,7 +189,7 @@ class RunSession:
             host = self._add(self._wrapper(host))
         self.host_bus = host
         self._clock = clock.get("clock")
-        return make_drive(host, self.profile, **clock)
+        return make_drive(host, self.profile, reset_faults=self.reset_faults, **clock)
 
     def _add(self, bus: can.BusABC) -> can.BusABC:
         self._buses.append(bus)

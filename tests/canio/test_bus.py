@@ -39,7 +39,7 @@ def relaxed_profile(tmp_path: Path) -> Path:
     a scheduling hiccup of a loaded machine must not trip the watchdog, and odrive-can
     hands every frame to its asyncio loop one by one (node, firmware, heartbeat unchanged)."""
     data = yaml.safe_load((REPO / "drivers" / "odrive-0.6.yaml").read_text(encoding="utf-8"))
-    data.update(watchdog_timeout=0.5, encoder_msg_rate=0.01, bus={})
+    data.update(watchdog_timeout=0.5, feedback_period=0.01, bus={})
     path = tmp_path / "odrive-0.6-relaxed.yaml"
     path.write_text(yaml.safe_dump(data), encoding="utf-8")
     return path

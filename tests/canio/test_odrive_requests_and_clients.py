@@ -28,7 +28,7 @@ def test_encoder_estimates_requests_answered(tmp_path: Path, profile: str) -> No
     rate, and each tick sends the estimates before the heartbeat, so once a heartbeat is
     read the estimates frames read beyond the heartbeat count are exactly the replies."""
     data = yaml.safe_load((REPO / "drivers" / f"{profile}.yaml").read_text(encoding="utf-8"))
-    data.update(encoder_msg_rate=0.02, heartbeat_msg_rate=0.02, watchdog_timeout=0, bus={})
+    data.update(feedback_period=0.02, heartbeat_period=0.02, watchdog_timeout=0, bus={})
     path = tmp_path / f"{profile}-slow.yaml"
     path.write_text(yaml.safe_dump(data), encoding="utf-8")
     estimates = (NODE << 5) | 0x09

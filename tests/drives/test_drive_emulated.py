@@ -58,7 +58,7 @@ def test_fake_plant_is_plantlike() -> None:
 
 def test_profile(name: str, **changes: Any) -> DriveProfile:
     """The shipped profile with rates slow enough for a loaded CI machine in real time."""
-    base = dict(encoder_msg_rate=0.002, heartbeat_msg_rate=0.02, watchdog_timeout=0.1,
+    base = dict(feedback_period=0.002, heartbeat_period=0.02, watchdog_timeout=0.1,
                 enable_timeout=2.0, bus={})
     return dataclasses.replace(load_profile(name), **{**base, **changes})
 
@@ -114,14 +114,14 @@ def make_rig(request: pytest.FixtureRequest) -> Iterator[Callable[..., Rig]]:
         emu = EmulatedODrive(emu_bus, emu_profile, plant, latency=latency, jitter=jitter, seed=7)
         closers: list[Callable[[], None]] = [emu.close, host_bus.shutdown]
         if mode == "lockstep":
-            host: can.BusABC = LockstepBus(host_bus, [emu], dt=profile.encoder_msg_rate)
+            host: can.BusABC = LockstepBus(host_bus, [emu], dt=profile.feedback_period)
             clock = host.clock  # type: ignore[attr-defined]
             closers.insert(0, host.shutdown)
         else:
             host, clock = host_bus, time.monotonic
             emu.start()
         drive = make_drive(host, profile, clock=clock)
-        rig = Rig(mode, drive, emu, plant, host, clock, profile.encoder_msg_rate, closers)
+        rig = Rig(mode, drive, emu, plant, host, clock, profile.feedback_period, closers)
         rigs.append(rig)
         return rig
 
@@ -325,7 +325,7 @@ def test_shipped_profiles_load() -> None:
 
 def _mapping(**changes: Any) -> dict[str, Any]:
     data = dict(protocol="odrive", firmware="0.6", node_id=3, torque_limit=2.0,
-                velocity_limit=50.0, encoder_msg_rate=0.001, heartbeat_msg_rate=0.1,
+                velocity_limit=50.0, feedback_period=0.001, heartbeat_period=0.1,
                 watchdog_timeout=0.05, enable_timeout=1.0)
     data.update(changes)
     return {k: v for k, v in data.items() if v is not None}

@@ -171,7 +171,7 @@ def test_frames_that_are_not_can_simple_do_not_stop_the_emulator(bench: Bench) -
 
 
 def test_realtime_emulator_survives_an_id_above_0x7ff() -> None:
-    profile = dataclasses.replace(load_profile("odrive-0.6"), bus={}, encoder_msg_rate=0.002)
+    profile = dataclasses.replace(load_profile("odrive-0.6"), bus={}, feedback_period=0.002)
     channel = f"fidelity-{next(_CHANNELS)}"
     host = can.Bus(interface="virtual", channel=channel)
     emu = EmulatedODrive(can.Bus(interface="virtual", channel=channel), profile, FakePlant())
@@ -209,7 +209,7 @@ def test_enable_failure_line_names_the_procedure_result() -> None:
         emu.axis_error = codec.ODriveError06.DC_BUS_UNDER_VOLTAGE
 
     emu._handlers[codec.ClearErrors] = stuck  # a persistent fault
-    lock = LockstepBus(host, [emu], dt=profile.encoder_msg_rate)
+    lock = LockstepBus(host, [emu], dt=profile.feedback_period)
     drive = make_drive(lock, profile, clock=lock.clock)
     try:
         with pytest.raises(DriveTimeoutError, match=r"DC_BUS_UNDER_VOLTAGE\); last state request DISARMED"):

@@ -29,8 +29,8 @@ SHIPPED = yaml.safe_load((REPO / "drivers" / "odrive-0.6.yaml").read_text(encodi
 BOUNDS: dict[str, tuple[float, float, bool]] = {
     "torque_limit": (math.nextafter(0.0, 1.0), 1e4, False),
     "velocity_limit": (math.nextafter(0.0, 1.0), 1e4, False),
-    "encoder_msg_rate": (1e-5, 10.0, False),
-    "heartbeat_msg_rate": (1e-3, 10.0, False),
+    "feedback_period": (1e-5, 10.0, False),
+    "heartbeat_period": (1e-3, 10.0, False),
     "watchdog_timeout": (1e-3, 60.0, True),
     "enable_timeout": (1e-3, 60.0, False),
 }
@@ -59,10 +59,14 @@ def test_numeric_keys_accept_exactly_their_bounds(key: str, value: float) -> Non
 
 @settings(max_examples=200, derandomize=True, deadline=None, database=None)
 @given(value=st.integers(-2**40, 2**40))
-def test_node_id_fits_a_29_bit_can_id(value: int) -> None:
+def test_node_id_fits_a_29_bit_can_id_and_the_protocol_narrows_it(value: int) -> None:
+    """The common rule first (29 bits), then the protocol's own (ODrive: 6 bits)."""
     data = {**SHIPPED, "node_id": value}
-    if 0 <= value < 2**29:
+    if 0 <= value <= 63:
         assert profile_from_mapping(data).node_id == value
+    elif 0 <= value < 2**29:
+        with pytest.raises(ConfigError, match=f"^p.yaml: node_id: expected 0..63 for ODrive, got {value}$"):
+            profile_from_mapping(data, source="p.yaml")
     else:
         with pytest.raises(ConfigError, match="node_id: expected an integer from 0 to 536870911"):
             profile_from_mapping(data)
@@ -71,8 +75,8 @@ def test_node_id_fits_a_29_bit_can_id(value: int) -> None:
 def test_a_profile_built_in_code_is_bounded_too() -> None:
     """dataclasses.replace (the tests', an embedding program's way) checks the same."""
     shipped = load_profile("odrive-0.6")
-    with pytest.raises(ConfigError, match="heartbeat_msg_rate: expected a number from 0.001 to 10 s, got 1e-09"):
-        dataclasses.replace(shipped, heartbeat_msg_rate=1e-9)
+    with pytest.raises(ConfigError, match="heartbeat_period: expected a number from 0.001 to 10 s, got 1e-09"):
+        dataclasses.replace(shipped, heartbeat_period=1e-9)
     with pytest.raises(ConfigError, match="enable_timeout: expected a number from 0.001 to 60 s"):
         dataclasses.replace(shipped, enable_timeout=1e300)
 
@@ -80,17 +84,17 @@ def test_a_profile_built_in_code_is_bounded_too() -> None:
 def test_the_documented_bounds_are_the_code_s() -> None:
     """drivers/README.md's table and this test's BOUNDS say what the code enforces."""
     readme = (REPO / "drivers" / "README.md").read_text(encoding="utf-8")
-    assert profile_module.MIN_FRAME_PERIOD == BOUNDS["encoder_msg_rate"][0]
-    assert profile_module.MIN_HEARTBEAT == BOUNDS["heartbeat_msg_rate"][0]
+    assert profile_module.MIN_FRAME_PERIOD == BOUNDS["feedback_period"][0]
+    assert profile_module.MIN_HEARTBEAT == BOUNDS["heartbeat_period"][0]
     for key, (_low, high, _off) in BOUNDS.items():
         row = next(line for line in readme.splitlines() if line.startswith(f"| `{key}` |"))
         assert f"{high:g}" in row, (key, row)
 
 
 HOSTILE: list[tuple[str, Any, list[str]]] = [
-    ("heartbeat_msg_rate", 1e-9, ["run", "--emulate", "--lockstep"]),
+    ("heartbeat_period", 1e-9, ["run", "--emulate", "--lockstep"]),
     ("enable_timeout", 1e300, ["run", "--bus", "virtual:dobhil-hostile", "--no-preflight"]),
-    ("encoder_msg_rate", 1e-9, ["emulate", "--bus", "virtual:dobhil-hostile", "--duration", "1"]),
+    ("feedback_period", 1e-9, ["emulate", "--bus", "virtual:dobhil-hostile", "--duration", "1"]),
     ("watchdog_timeout", 1e-9, ["run", "--emulate"]),
 ]
 

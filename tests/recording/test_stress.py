@@ -106,7 +106,7 @@ def test_a_bus_flood_sheds_foreign_frames_and_keeps_every_record_of_the_loop(tmp
     the log; foreign frames are shed and counted (loss events = metadata), never a record
     of the loop. (The drive runs at 200 Hz: the flood is 22,000 frames/s, what one Python
     thread sends here; the loop overruns and skips cycles under it, and records each it runs.)"""
-    profile = write_profile(tmp_path, "odrive-0.6", encoder_msg_rate=5e-3, heartbeat_msg_rate=0.05,
+    profile = write_profile(tmp_path, "odrive-0.6", feedback_period=5e-3, heartbeat_period=0.05,
                             watchdog_timeout=0.5, enable_timeout=5.0)
     config = load_config(DEMO, [f"drive.profile={profile}", "loop.period=5e-3", "loop.feedback_timeout=0.2",
                                 "design.dob_bandwidth=100", "design.rtob_bandwidth=100", "loop.duration=3"])

@@ -22,8 +22,8 @@ from .helpers import DEMO, REPO, demo_config, finite_tail, write_profile
 from .hub import child_env, stop_process, wait_for_emulator
 
 def slow_overrides(tmp_path: Path) -> list[str]:
-    profile = write_profile(tmp_path, "odrive-0.6", encoder_msg_rate=5e-3,
-                            heartbeat_msg_rate=0.05, watchdog_timeout=0.5, enable_timeout=5.0)
+    profile = write_profile(tmp_path, "odrive-0.6", feedback_period=5e-3,
+                            heartbeat_period=0.05, watchdog_timeout=0.5, enable_timeout=5.0)
     return [f"drive.profile={profile}", "loop.period=5e-3", "loop.feedback_timeout=0.05",
             "design.dob_bandwidth=100", "design.rtob_bandwidth=100", "plant.initial_position=0",
             "reference.offset=0", "reference.amplitude=1", "reference.start=0",

@@ -112,7 +112,7 @@ def test_lockstep_with_input_delay_is_the_delayed_analysis(delay: tuple[str, ...
 def test_fast_sampling_approaches_the_continuous_loop(tmp_path: Path) -> None:
     """At 20 kHz (drive sending encoder estimates every 50 us) the run follows the
     continuous (paper) step response within 2 % of the step."""
-    profile = write_profile(tmp_path, "odrive-0.6", encoder_msg_rate=5e-5)
+    profile = write_profile(tmp_path, "odrive-0.6", feedback_period=5e-5)
     config, t, tau_hat = step_run("loop.period=5e-5", "loop.feedback_timeout=1e-3",
                                   f"drive.profile={profile}")
     continuous = analysis_step(config, t, sampled=False)

@@ -159,7 +159,7 @@ def test_realtime_is_an_alias_of_host() -> None:
 
 def test_feedback_timing_needs_one_frame_per_period(tmp_path: Path) -> None:
     from dobhil.errors import ConfigError
-    profile = realtime_profile(tmp_path, "odrive-0.6", encoder_msg_rate=5e-4)
+    profile = realtime_profile(tmp_path, "odrive-0.6", feedback_period=5e-4)
     with pytest.raises(ConfigError, match="loop.timing: host"):
         RunSession(demo_config(f"drive.profile={profile}", "loop.timing=feedback"), emulate=True)
 

@@ -115,7 +115,7 @@ def test_05_drive_with_05_profile_passes() -> None:
 
 
 def test_slow_heartbeat_and_missing_encoder_stream() -> None:
-    report = lockstep_preflight(bare("odrive-0.6", heartbeat_msg_rate=0.4), bare("odrive-0.6"), window=1.0)
+    report = lockstep_preflight(bare("odrive-0.6", heartbeat_period=0.4), bare("odrive-0.6"), window=1.0)
     assert "set <axis>.config.can.heartbeat_msg_rate_ms = 100 (now 400 ms;" in texts(report)[0]
     assert not report.stale_feedback
     # a window too short to see two heartbeats of the profile's period: a note, not a verdict
@@ -123,13 +123,13 @@ def test_slow_heartbeat_and_missing_encoder_stream() -> None:
     assert report.ok and texts(report, Severity.NOTE) == [
         "a 150 ms window cannot measure a 100 ms heartbeat: listen at least 0.3 s"]
     # a period the window cannot resolve at all (one frame)
-    report = lockstep_preflight(bare("odrive-0.6", encoder_msg_rate=0.4), bare("odrive-0.6"), window=0.5)
+    report = lockstep_preflight(bare("odrive-0.6", feedback_period=0.4), bare("odrive-0.6"), window=0.5)
     assert any("encoder_msg_rate_ms = 1 (now 1 frame in 500 ms)" in t for t in texts(report)), report.lines()
     assert report.stale_feedback
 
 
 def test_feedback_gap_above_the_timeout_is_a_mismatch() -> None:
-    report = lockstep_preflight(bare("odrive-0.6", encoder_msg_rate=4e-3), bare("odrive-0.6", encoder_msg_rate=4e-3),
+    report = lockstep_preflight(bare("odrive-0.6", feedback_period=4e-3), bare("odrive-0.6", feedback_period=4e-3),
                                 period=4e-3, feedback_timeout=3e-3)
     assert any("paused up to 4 ms, longer than loop.feedback_timeout 3 ms" in t for t in texts(report))
 
@@ -140,7 +140,7 @@ def test_a_mismatch_the_run_does_not_refuse_does_not_claim_the_run_would_stop(
     neither the finding, nor check's verdict, nor the run's preflight line may say the
     run would stop."""
     from dobhil.cli.run_cmd import report_preflight
-    report = lockstep_preflight(bare("odrive-0.6", encoder_msg_rate=4e-3), bare("odrive-0.6", encoder_msg_rate=4e-3),
+    report = lockstep_preflight(bare("odrive-0.6", feedback_period=4e-3), bare("odrive-0.6", feedback_period=4e-3),
                                 period=4e-3, feedback_timeout=3e-3)
     assert not report.ok and not report.refuses
     assert not any("would stop" in line for line in report.lines()), report.lines()
@@ -402,7 +402,7 @@ def test_a_drive_slower_than_the_profile_but_fast_enough_for_the_loop_is_not_cal
     """The profile promises 0.5 ms, the drive sends every 1 ms, the loop runs at 1 ms: a
     mismatch with the profile, but each period gets a fresh sample (no '1 times'), and the
     run is not refused."""
-    report = lockstep_preflight(bare("odrive-0.6"), bare("odrive-0.6", encoder_msg_rate=5e-4))
+    report = lockstep_preflight(bare("odrive-0.6"), bare("odrive-0.6", feedback_period=5e-4))
     (text,) = [t for t in texts(report) if "encoder_msg_rate_ms" in t]
     assert "each loop period still gets a fresh sample" in text and "times" not in text, text
     assert not report.refuses and report.lines()[-1].endswith("it prints them and runs")

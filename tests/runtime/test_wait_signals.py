@@ -169,7 +169,7 @@ def test_sigint_during_the_safe_stop_confirmation_wait(tmp_path: Path) -> None:
     would wait three heartbeats (3 s here; the drive's 2 s watchdog would make it IDLE
     only after the signal). A SIGINT in that wait ends it within 0.2 s: unconfirmed,
     the warning names the signal."""
-    profile = write_profile(tmp_path, "odrive-0.6", heartbeat_msg_rate=1.0, watchdog_timeout=2.0,
+    profile = write_profile(tmp_path, "odrive-0.6", heartbeat_period=1.0, watchdog_timeout=2.0,
                             enable_timeout=5.0)
     config = demo_config(f"drive.profile={profile}", "loop.timing=feedback", *STEP_FROM_ZERO,
                          "loop.duration=0.2", *REALTIME_SLACK)

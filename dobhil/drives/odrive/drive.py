@@ -19,7 +19,7 @@ import can
 from dobhil.drives.base import Clock, Drive, DriveEvent, MotionEvent, StateEvent
 from dobhil.drives.odrive import codec
 from dobhil.drives.odrive.codec import AxisState, CmdId, ControlMode, Firmware, InputMode
-from dobhil.drives.profile import DriveProfile
+from dobhil.drives.profile import DriveProfile, ProtocolRules, Rule
 from dobhil.errors import CodecError, ConfigError
 
 if TYPE_CHECKING:
@@ -39,10 +39,26 @@ class ODriveDrive(Drive):
     active_state_text: ClassVar[str] = "CLOSED_LOOP_CONTROL"
     disabled_state_text: ClassVar[str] = "IDLE"
 
+    #: node ids have 6 bits (``node_id << 5 | cmd``); the firmware selects layouts;
+    #: the drive streams encoder estimates and heartbeats, so it needs both periods.
+    #: Its section (``odrive:``) has no keys yet: accepted when empty.
+    profile_rules: ClassVar[ProtocolRules] = ProtocolRules(
+        section={},
+        common={
+            "node_id": Rule((int,), f"0..{codec.MAX_NODE_ID} for ODrive",
+                            lambda v: 0 <= v <= codec.MAX_NODE_ID),
+            "firmware": Rule((str,), "'0.5' or '0.6' for ODrive", lambda v: _parses(v)),
+        },
+        requires=frozenset({"feedback_period", "heartbeat_period"}),
+    )
+
     def __init__(
-        self, bus: can.BusABC, profile: DriveProfile, *, clock: Clock = time.monotonic
+        self, bus: can.BusABC, profile: DriveProfile, *, clock: Clock = time.monotonic,
+        reset_faults: bool = False,
     ) -> None:
-        super().__init__(bus, profile, clock=clock)
+        # reset_faults changes nothing here: the enable always sends Clear_Errors (an
+        # ODrive latches errors until told, and the handshake has always cleared them)
+        super().__init__(bus, profile, clock=clock, reset_faults=reset_faults)
         self._firmware = _firmware_of(profile)
         if not 0 <= profile.node_id <= codec.MAX_NODE_ID:
             raise ConfigError(f"node_id: expected 0..63 for ODrive, got {profile.node_id}")
@@ -68,7 +84,7 @@ class ODriveDrive(Drive):
 
     # -- hooks ----------------------------------------------------------------
 
-    def _enable_frames(self) -> Sequence[can.Message]:
+    def _enable_start(self) -> Sequence[can.Message]:
         # Set_Input_Torque(0) first feeds the watchdog: it runs in every axis state
         # (0.5.6 main.cpp), so an idle drive nobody fed shows WATCHDOG_TIMER_EXPIRED, and
         # on 0.6 only setpoints are known to feed it -- cleared without a feed, the bit
@@ -121,7 +137,16 @@ class ODriveDrive(Drive):
             watchdog_tripped=bool(hb.axis_error & self._watchdog_bit),
             state_text=_state_name(hb.axis_state),
             error_text=codec.describe_heartbeat(hb, self._firmware),
+            state=int(hb.axis_state),
         )
+
+
+def _parses(firmware: str) -> bool:
+    try:
+        Firmware.parse(firmware)
+    except CodecError:
+        return False
+    return True
 
 
 def _firmware_of(profile: DriveProfile) -> Firmware:

@@ -160,7 +160,7 @@ class ODrivePreflight(PreflightProbe):
         sends feeds it on 0.6 (0.5: the one Get_Version request does): an idle axis whose
         last heartbeat came more than two timeouts after listening began shows the bit."""
         timeout = self.profile.watchdog_timeout
-        heartbeat = node.status.period or self.profile.heartbeat_msg_rate
+        heartbeat = node.status.period or self.profile.heartbeat_period or 0.0
         return (timeout > 0 and hb.axis_state == AxisState.IDLE and not hb.axis_error & watchdog
                 and node.status.count >= 2 and node.window >= 2 * timeout + 2 * heartbeat)
 
