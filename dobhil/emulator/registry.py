@@ -26,6 +26,7 @@ __all__ = ["EMULATOR_CLASSES", "emulated_protocols", "emulator_class", "make_emu
 #: built-in emulated drives: protocol name -> (module, class name)
 EMULATOR_CLASSES: Mapping[str, tuple[str, str]] = MappingProxyType({
     "odrive": ("dobhil.emulator.odrive", "EmulatedODrive"),
+    "cia402": ("dobhil.emulator.cia402", "EmulatedCiA402"),
 })
 
 

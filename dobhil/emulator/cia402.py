@@ -1,0 +1,746 @@
+"""Emulated CiA 402 servo drive (CANopen, cyclic synchronous torque), drive side.
+
+The CANopen services are canopen's, not ours: a :class:`canopen.LocalNode` built from the
+project's EDS (``drivers/cia402-emulated.eds``, the profile's ``cia402.eds``) gives the
+SDO server (expedited and segmented), the NMT slave, the EMCY producer and the object
+dictionary store. It sits on a :class:`canopen.Network` that is never ``connect()``-ed
+(no notifier thread): every frame the emulator receives goes to ``network.notify()``,
+canopen's documented entry for a custom interface, and everything canopen sends goes
+through the emulator's counted send (``Network.send_message``, the hook canopen names for
+a custom backend), so lockstep stays deterministic and real time has one thread.
+
+What canopen's LocalNode does not do, this module does (drive-protocols.md, CiA 402):
+
+- heartbeat producer in emulator time: canopen's NMT slave starts a python-can periodic
+  task (a thread) for 0x1017; ``send_periodic`` of the network is answered with a task of
+  this emulator's clock instead (:class:`_ClockTask`), so the period written by SDO, the
+  state byte canopen keeps up to date and the boot-up frame are canopen's, the timing ours.
+  The node boots (boot-up frame, NMT pre-operational) at its first tick or frame, and again
+  after an NMT reset (node: the whole object dictionary back to the EDS; communication:
+  0x1000-0x1FFF); canopen's slave only changes its state on a reset;
+- PDOs, only in NMT operational, from the object dictionary as the host configured it by
+  SDO (0x1400-0x1403/0x1600-0x1603, 0x1800-0x1803/0x1A00-0x1A03; a mapping entry must
+  name a mappable object with its own size, at most 64 bits in all, or the SDO write is
+  aborted with CiA 301's code). Synchronous RPDOs (transmission type 0-240) are latched at
+  the next SYNC, asynchronous ones (254/255) applied at once; an RPDO shorter than its
+  mapping is dropped with EMCY 0x8210. On SYNC (COB-ID 0x1005): the latched RPDOs are
+  applied, then every enabled synchronous TPDO due (type n: every n-th SYNC; type 0:
+  every SYNC) goes out, its bytes the mapped objects' values as the object dictionary
+  encodes them (little-endian, their data types). Event-driven (254/255) and RTR-only
+  TPDOs are not sent;
+- process values read live (SDO or TPDO): 0x6041 statusword, 0x6064 position [increments:
+  ``position_per_rev`` per motor revolution, ``gear_ratio`` motor revolutions per joint
+  revolution, wrapped to 32 bits as an encoder counter does], 0x606C velocity
+  (``velocity_unit``: rpm, increments_per_s or milli_rpm of the motor), 0x6077 torque actual
+  [per mille of 0x6076], 0x6061 mode display, 0x603F error code, 0x1001 error register;
+- the CiA 402 power state machine on the controlword (:data:`TRANSITIONS`; fault reset on
+  the rising edge of bit 7), the statusword of drive-protocols.md (plus bit 4 voltage
+  enabled, bit 9 remote, bit 11 internal limit active while the torque is clamped, bit 12
+  in CST when the drive follows 0x6071). Quick stop option 0x605A: 0 disables at once,
+  1-4 go to switch on disabled at the next tick (torque is zero from the quick stop on: the
+  emulator has no torque ramp), 5-8 stay in quick stop active (enable operation resumes);
+- modes 0x6060 -> 0x6061: 0 or a mode of 0x6502 (CSP 8, CSV 9, CST 10), anything else is
+  aborted (SDO) or dropped (RPDO). Torque reaches the plant only in operation enabled AND
+  CST: 0x6071 per mille of 0x6076 (``rated_torque_unit``), clamped to 0x6072 and to the
+  profile's ``torque_limit``. CSP and CSV are accepted but produce no torque here;
+- faults: over-torque -- 0x6071 above 0x6072 or above the profile's torque limit (half a
+  per mille of slack for the host's rounding) for ``over_torque_cycles`` SYNCs in a row --
+  EMCY 0x8311 (excess torque), error register 0x21; heartbeat consumer (0x1016, from the
+  first heartbeat of the producer on) timed out: EMCY 0x8130, register 0x11; NMT
+  operational left while operation enabled (CiA 402 0x6007 default: fault): EMCY 0x8100,
+  register 0x11. Each ends in FAULT with torque off at once, 0x603F = the code; a fault
+  reset clears them and sends the EMCY error reset (code 0).
+
+Observables for :class:`~dobhil.emulator.process.EmulatorProcess` (``OBSERVED``):
+``axis_state`` (the :class:`PowerState`, whose value is the statusword's state bits),
+``axis_error`` (the EMCY code, 0 none), ``watchdog_tripped`` (a heartbeat-consumer or NMT
+fault took the torque away) and ``frames_rejected``.
+"""
+
+from __future__ import annotations
+
+import math
+import struct
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
+from enum import IntEnum
+from pathlib import Path
+from typing import Any
+
+import can
+import canopen
+from canopen.network import PeriodicMessageTask
+from canopen.objectdictionary import ODVariable
+from canopen.sdo import SdoAbortedError, SdoVariable
+
+from dobhil.data import drivers_dir
+from dobhil.drives.profile import DriveProfile
+from dobhil.emulator.protocol import EmulatedDrive, PlantLike
+from dobhil.errors import ConfigError
+
+__all__ = ["Command", "EmcyCode", "EmulatedCiA402", "PowerState", "TRANSITIONS", "decode_command",
+           "statusword"]
+
+#: the profile's ``cia402:`` section as the emulator reads it, defaults filled in
+DEFAULT_OPTIONS: Mapping[str, Any] = {
+    "eds": "cia402-emulated.eds", "rated_torque_unit": "mNm", "position_per_rev": 4096,
+    "velocity_unit": "rpm", "gear_ratio": 1.0,
+}
+#: [Nm] per unit of 0x6076
+RATED_TORQUE_UNITS: Mapping[str, float] = {"mNm": 1e-3, "uNm": 1e-6}
+#: 0x606C per motor revolution per second, given the increments per revolution
+VELOCITY_UNITS: Mapping[str, Callable[[float], float]] = {
+    "rpm": lambda ppr: 60.0, "milli_rpm": lambda ppr: 60_000.0, "increments_per_s": lambda ppr: ppr,
+}
+CST = 10
+#: modes of operation by their bit in 0x6502 (CiA 402)
+MODE_BITS: Mapping[int, int] = {1: 0, 2: 1, 3: 2, 4: 3, 6: 5, 7: 6, 8: 7, 9: 8, 10: 9}
+
+_U8, _U16, _U32 = struct.Struct("<B"), struct.Struct("<H"), struct.Struct("<I")
+_I16 = struct.Struct("<h")
+_I8 = struct.Struct("<b")
+_PDO_INVALID = 1 << 31
+_NMT, _HEARTBEAT = 0x000, 0x700
+
+
+class PowerState(IntEnum):
+    """CiA 402 power states; each value is the statusword's state bits (bits 0-3, 5, 6)."""
+
+    NOT_READY_TO_SWITCH_ON = 0x00
+    SWITCH_ON_DISABLED = 0x40
+    READY_TO_SWITCH_ON = 0x21
+    SWITCHED_ON = 0x23
+    OPERATION_ENABLED = 0x27
+    QUICK_STOP_ACTIVE = 0x07
+    FAULT_REACTION_ACTIVE = 0x0F
+    FAULT = 0x08
+
+
+class Command(IntEnum):
+    """Controlword commands (bits 0-3; fault reset, bit 7, is an edge and apart)."""
+
+    SHUTDOWN = 0x06
+    SWITCH_ON = 0x07            # also "disable operation" (same bits)
+    ENABLE_OPERATION = 0x0F
+    DISABLE_VOLTAGE = 0x00
+    QUICK_STOP = 0x02
+
+
+class EmcyCode(IntEnum):
+    """CiA 301 / CiA 402 emergency error codes this drive produces."""
+
+    NO_ERROR = 0x0000
+    COMMUNICATION = 0x8100      # NMT operational left while enabled (0x6007 "fault")
+    HEARTBEAT = 0x8130          # life guard / heartbeat consumer error
+    PDO_LENGTH = 0x8210         # PDO not processed due to length error
+    EXCESS_TORQUE = 0x8311
+
+
+class ErrorRegister(IntEnum):
+    """0x1001 bits (CiA 301)."""
+
+    GENERIC = 0x01
+    COMMUNICATION = 0x10
+    PROFILE = 0x20
+
+
+_S = PowerState
+_C = Command
+#: (state, command) -> next state, CiA 402 transitions 2-12 (16 in code: it depends on 0x605A)
+TRANSITIONS: Mapping[tuple[PowerState, Command], PowerState] = {
+    (_S.SWITCH_ON_DISABLED, _C.SHUTDOWN): _S.READY_TO_SWITCH_ON,                  # 2
+    (_S.READY_TO_SWITCH_ON, _C.SWITCH_ON): _S.SWITCHED_ON,                        # 3
+    (_S.READY_TO_SWITCH_ON, _C.ENABLE_OPERATION): _S.OPERATION_ENABLED,           # 3 + 4
+    (_S.READY_TO_SWITCH_ON, _C.DISABLE_VOLTAGE): _S.SWITCH_ON_DISABLED,           # 7
+    (_S.READY_TO_SWITCH_ON, _C.QUICK_STOP): _S.SWITCH_ON_DISABLED,                # 7
+    (_S.SWITCHED_ON, _C.ENABLE_OPERATION): _S.OPERATION_ENABLED,                  # 4
+    (_S.SWITCHED_ON, _C.SHUTDOWN): _S.READY_TO_SWITCH_ON,                         # 6
+    (_S.SWITCHED_ON, _C.DISABLE_VOLTAGE): _S.SWITCH_ON_DISABLED,                  # 10
+    (_S.SWITCHED_ON, _C.QUICK_STOP): _S.SWITCH_ON_DISABLED,                       # 10
+    (_S.OPERATION_ENABLED, _C.SWITCH_ON): _S.SWITCHED_ON,                         # 5
+    (_S.OPERATION_ENABLED, _C.SHUTDOWN): _S.READY_TO_SWITCH_ON,                   # 8
+    (_S.OPERATION_ENABLED, _C.DISABLE_VOLTAGE): _S.SWITCH_ON_DISABLED,            # 9
+    (_S.OPERATION_ENABLED, _C.QUICK_STOP): _S.QUICK_STOP_ACTIVE,                  # 11
+    (_S.QUICK_STOP_ACTIVE, _C.DISABLE_VOLTAGE): _S.SWITCH_ON_DISABLED,            # 12
+}
+_FAULTED = frozenset({_S.FAULT, _S.FAULT_REACTION_ACTIVE})
+
+# statusword bits beside the state bits
+SW_VOLTAGE_ENABLED = 1 << 4
+SW_REMOTE = 1 << 9
+SW_INTERNAL_LIMIT = 1 << 11
+SW_FOLLOWS_TARGET = 1 << 12     # CST: the target torque is used
+
+
+def decode_command(controlword: int) -> Command:
+    """The command of bits 0-3 (CiA 402 table; bit 7, fault reset, is not looked at)."""
+    if not controlword & 0x02:
+        return Command.DISABLE_VOLTAGE
+    if not controlword & 0x04:
+        return Command.QUICK_STOP
+    if not controlword & 0x01:
+        return Command.SHUTDOWN
+    return Command.ENABLE_OPERATION if controlword & 0x08 else Command.SWITCH_ON
+
+
+def statusword(state: PowerState, *, follows_target: bool = False, limited: bool = False) -> int:
+    """The statusword of ``state``: its state bits, voltage enabled (the emulated DC link is
+    always on), remote (controlled over CAN), internal limit, CST target followed."""
+    return (state | SW_VOLTAGE_ENABLED | SW_REMOTE | (SW_INTERNAL_LIMIT if limited else 0)
+            | (SW_FOLLOWS_TARGET if follows_target else 0))
+
+
+def _choice(options: Mapping[str, Any], key: str, allowed: Mapping[str, Any]) -> Any:
+    value = options[key]
+    if value not in allowed:
+        raise ConfigError(f"cia402.{key}: expected one of {', '.join(map(repr, allowed))}, got {value!r}")
+    return allowed[value]
+
+
+def _wrap32(value: float) -> int:
+    """A 32-bit signed counter's reading of ``value`` (an encoder counter wraps)."""
+    return ((int(round(value)) + (1 << 31)) % (1 << 32)) - (1 << 31)
+
+
+def _clamp(value: float, low: int, high: int) -> int:
+    if not math.isfinite(value):
+        return high if value > 0 else low if value < 0 else 0
+    return min(max(int(round(value)), low), high)
+
+
+@dataclass(frozen=True)
+class _Entry:
+    """One PDO mapping entry: object, sub-index, size in bytes; index < 0x1000 is a dummy."""
+
+    index: int
+    subindex: int
+    size: int
+
+
+@dataclass
+class _Pdo:
+    number: int
+    cob_id: int
+    trans_type: int
+    entries: tuple[_Entry, ...]
+    countdown: int = 1
+
+    @property
+    def size(self) -> int:
+        return sum(entry.size for entry in self.entries)
+
+    @property
+    def synchronous(self) -> bool:
+        return self.trans_type <= 240
+
+
+class _ClockTask(PeriodicMessageTask):
+    """A periodic frame of canopen's (the heartbeat) sent on the emulator's clock.
+
+    canopen's NMT slave asks its network for ``send_periodic`` and gets a python-can task
+    (a thread); the emulator's network answers with this instead: the frame goes out at
+    ``start + k * period`` of emulator time, ``update`` changes its data as canopen's
+    task does. It deliberately does not run ``PeriodicMessageTask.__init__`` (that starts
+    the bus's periodic send)."""
+
+    def __init__(self, owner: EmulatedCiA402, can_id: int, data: bytes, period: float) -> None:
+        self.period = period
+        self.msg = can.Message(arbitration_id=can_id, is_extended_id=can_id > 0x7FF, data=bytes(data))
+        self._owner = owner
+        self._start_time = owner.time
+        self._count = 1
+        owner._clock_tasks.append(self)
+
+    def due(self, now: float) -> bool:
+        """True once per period reached (a long stall skips the missed ones)."""
+        elapsed = now - self._start_time
+        if self._count * self.period > elapsed + 1e-9:
+            return False
+        self._count = max(self._count, int(elapsed / self.period + 1e-9)) + 1
+        return True
+
+    def stop(self) -> None:
+        if self in self._owner._clock_tasks:
+            self._owner._clock_tasks.remove(self)
+
+    def update(self, data: bytes) -> None:
+        self.msg = can.Message(arbitration_id=self.msg.arbitration_id, is_extended_id=self.msg.is_extended_id,
+                               data=bytes(data))
+
+
+class _EmulatorNetwork(canopen.Network):
+    """canopen's network on the emulator's bus, never connected: frames come in through
+    :meth:`notify` (called by the emulator), go out through the emulator's counted send."""
+
+    def __init__(self, owner: EmulatedCiA402, bus: can.BusABC) -> None:
+        super().__init__(bus)
+        self._owner = owner
+
+    def send_message(self, can_id: int, data: bytes, remote: bool = False) -> None:
+        # canopen's documented hook for a custom backend: the emulator counts what it sends
+        # (LockstepBus reads exactly that many frames) and survives a refused send
+        self._owner._send(can.Message(arbitration_id=can_id, is_extended_id=can_id > 0x7FF,
+                                      data=bytes(data), is_remote_frame=remote))
+
+    def send_periodic(self, can_id: int, data: bytes, period: float,
+                      remote: bool = False) -> PeriodicMessageTask:
+        # the heartbeat runs on the emulator's clock, not on a python-can thread
+        return _ClockTask(self._owner, can_id, data, period)
+
+
+def eds_path(name: str | Path, profile: DriveProfile) -> Path:
+    """The EDS file ``name``: as given if it exists (absolute, or relative to the working
+    directory), else beside the profile's file, else among the shipped drive profiles."""
+    path = Path(name)
+    candidates = [path]
+    source = getattr(profile, "source", None) or getattr(profile, "path", None)
+    if not path.is_absolute() and source:
+        candidates.append(Path(source).parent / path)
+    if not path.is_absolute():
+        candidates.append(drivers_dir() / path)
+    for candidate in candidates:
+        if candidate.is_file():
+            return candidate
+    raise ConfigError(f"drive profile {profile.name or profile.protocol!r}: cia402.eds: no such file "
+                      f"{str(name)!r} (looked in {', '.join(str(c.parent) for c in candidates)})")
+
+
+class EmulatedCiA402(EmulatedDrive):
+    """A CiA 402 servo drive in CST on a python-can bus, dynamics from the injected plant.
+
+    ``options``: the profile's ``cia402:`` section (defaults: :data:`DEFAULT_OPTIONS`);
+    ``None`` reads ``profile.options``. ``over_torque_cycles``: SYNCs in a row above the
+    torque limits before the over-torque fault.
+    """
+
+    def __init__(self, bus: can.BusABC, profile: DriveProfile, plant: PlantLike, *,
+                 options: Mapping[str, Any] | None = None, over_torque_cycles: int = 3,
+                 **kwargs: Any) -> None:
+        super().__init__(bus, profile, plant, **kwargs)
+        if options is None:
+            options = getattr(profile, "options", None) or {}
+        self.options: Mapping[str, Any] = {**DEFAULT_OPTIONS, **options}
+        self._torque_unit = _choice(self.options, "rated_torque_unit", RATED_TORQUE_UNITS)
+        ppr, gear = float(self.options["position_per_rev"]), float(self.options["gear_ratio"])
+        self._inc_per_rad = ppr * gear / (2.0 * math.pi)
+        self._vel_per_rad_s = _choice(self.options, "velocity_unit", VELOCITY_UNITS)(ppr) * gear / (2.0 * math.pi)
+        self.over_torque_cycles = over_torque_cycles
+        self.node_id = profile.node_id
+        od = canopen.objectdictionary.import_od(str(eds_path(self.options["eds"], profile)), self.node_id)
+        self.node = canopen.LocalNode(self.node_id, od)
+        self.network = _EmulatorNetwork(self, bus)
+        self._clock_tasks: list[_ClockTask] = []
+        self.network.add_node(self.node)
+        self.node.add_write_callback(self._on_write)
+        self.node.add_read_callback(self._on_read)
+        self.network.subscribe(_NMT, self._on_nmt)   # after the NMT slave's: sees its new state
+        self.state = PowerState.NOT_READY_TO_SWITCH_ON
+        self.frames_rejected = 0
+        self.watchdog_tripped = False
+        self.sync_count = 0
+        self._booted = False
+        self._nmt_before = ""
+        self._sync_id: int | None = None
+        self._consumer_id: int | None = None
+        self._consumer_timeout = 0.0
+        self._last_host_heartbeat: float | None = None
+        self._rpdo_ids: tuple[int, ...] = ()
+        self._writers: dict[int, Callable[[int, bytes], None]] = {
+            0x6040: self._write_controlword, 0x6060: self._write_mode, 0x6071: self._write_target,
+            0x6072: self._write_max_torque, 0x6076: self._write_rated_torque,
+            0x605A: self._write_quick_stop_option, 0x1005: self._write_sync_id,
+            0x1016: self._write_consumer_heartbeat,
+        }
+        self._live: dict[int, Callable[[], int]] = {
+            0x6041: self._statusword, 0x6064: self._position, 0x606C: self._velocity,
+            0x6077: self._torque_actual, 0x6061: lambda: self.mode, 0x603F: lambda: self.error_code,
+            0x1001: lambda: self.error_register,
+        }
+        self._load_application()
+
+    # -- observables ----------------------------------------------------------
+
+    @property
+    def axis_state(self) -> int:
+        return int(self.state)
+
+    @property
+    def axis_error(self) -> int:
+        return self.error_code
+
+    @property
+    def nmt_state(self) -> str:
+        """canopen's name of the NMT state ('PRE-OPERATIONAL', 'OPERATIONAL', ...)."""
+        return str(self.node.nmt.state)
+
+    @property
+    def statusword(self) -> int:
+        return self._statusword()
+
+    @property
+    def target_torque(self) -> int:
+        """0x6071 in effect [per mille of rated torque]."""
+        return self._target_pm
+
+    # -- hooks ----------------------------------------------------------------
+
+    def _plant_torque(self) -> float:
+        if self.state is PowerState.OPERATION_ENABLED and self.mode == CST:
+            return self._torque_nm
+        return 0.0
+
+    def _cyclic_frames(self) -> Sequence[tuple[float, Callable[[], can.Message]]]:
+        return ()   # TPDOs answer SYNC; the heartbeat runs on _ClockTask
+
+    def _on_time(self, now: float) -> None:
+        if not self._booted:
+            self._boot()
+        for task in tuple(self._clock_tasks):
+            if task.due(now):
+                self._send(task.msg)
+        if self.state is PowerState.QUICK_STOP_ACTIVE and 1 <= self._quick_stop_option <= 4:
+            self._enter(PowerState.SWITCH_ON_DISABLED)   # the stop is done: no ramp here
+        timeout, last = self._consumer_timeout, self._last_host_heartbeat
+        if timeout > 0 and last is not None and now - last > timeout + 1e-9:
+            self._last_host_heartbeat = None    # watched again from the next heartbeat on
+            self.watchdog_tripped |= self._fault(EmcyCode.HEARTBEAT,
+                                                 ErrorRegister.GENERIC | ErrorRegister.COMMUNICATION)
+
+    def _on_frame(self, msg: can.Message) -> None:
+        if not self._booted:
+            self._boot()
+        if msg.is_extended_id or msg.is_error_frame or msg.is_remote_frame:
+            return   # CANopen (CiA 301) uses 11-bit data frames; RTR of PDOs is not emulated
+        can_id, data = msg.arbitration_id, msg.data
+        if (can_id == _NMT and len(data) < 2) or (can_id == self.node.sdo.rx_cobid and len(data) != 8):
+            self.frames_rejected += 1   # canopen's handlers expect these lengths
+            return
+        if self._pdo_dirty:
+            self._compile_pdos()
+        self.network.notify(can_id, data, msg.timestamp)
+
+    # -- boot and NMT -----------------------------------------------------------
+
+    def _load_application(self) -> None:
+        """The application's variables from the object dictionary (power-on, reset node)."""
+        raw = self._raw
+        self._controlword = raw(0x6040)
+        self.mode = raw(0x6060)
+        self._target_pm = raw(0x6071)
+        self._max_pm = raw(0x6072)
+        self._rated_nm = raw(0x6076) * self._torque_unit
+        self._quick_stop_option = raw(0x605A)
+        self.error_code = 0
+        self.error_register = 0
+        self._over_count = 0
+        self._limited = False
+        self._update_torque()
+        self._load_communication()
+
+    def _load_communication(self) -> None:
+        """The communication objects' effects (power-on, reset communication)."""
+        self._write_sync_id(0, _U32.pack(self._raw(0x1005)))
+        self._write_consumer_heartbeat(1, _U32.pack(self._raw(0x1016, 1)))
+        self._rpdos: dict[int, _Pdo] = {}
+        self._tpdos: tuple[_Pdo, ...] = ()
+        self._pending: dict[int, list[tuple[_Entry, bytes]]] = {}
+        self._pdo_dirty = True
+
+    def _raw(self, index: int, subindex: int = 0) -> int:
+        """An integer object's value, read through canopen's SDO server object (no frame)."""
+        entry = self.node.sdo[index]
+        if not isinstance(entry, SdoVariable):
+            entry = entry[subindex]
+        return int(entry.raw)
+
+    def _boot(self) -> None:
+        """Power on / reset: boot-up frame, NMT pre-operational (canopen's slave starts the
+        heartbeat of 0x1017 then), the power state machine to switch on disabled."""
+        self._booted = True
+        self.node.nmt.state = "INITIALISING"       # canopen sends the boot-up frame
+        self.node.nmt.state = "PRE-OPERATIONAL"
+        self._nmt_before = self.nmt_state
+        if self.state is PowerState.NOT_READY_TO_SWITCH_ON:
+            self._enter(PowerState.SWITCH_ON_DISABLED)  # transition 1: self-test passed
+
+    def _on_nmt(self, can_id: int, data: bytearray, timestamp: float) -> None:
+        command, node = data[0], data[1]
+        if node not in (0, self.node_id):
+            return
+        before, self._nmt_before = self._nmt_before, self.nmt_state
+        if command in (0x81, 0x82):   # reset node / reset communication
+            for task in tuple(self._clock_tasks):
+                task.stop()
+            self._reset(application=command == 0x81)
+        elif before == "OPERATIONAL" and self._nmt_before != "OPERATIONAL":
+            self._pending.clear()
+            if self.state is PowerState.OPERATION_ENABLED:   # 0x6007 default: fault
+                self.watchdog_tripped |= self._fault(EmcyCode.COMMUNICATION,
+                                                     ErrorRegister.GENERIC | ErrorRegister.COMMUNICATION)
+
+    def _reset(self, *, application: bool) -> None:
+        store = self.node.data_store
+        for index in [i for i in store if application or i < 0x2000]:
+            del store[index]
+        if application:   # the drive restarts; a communication reset leaves its state alone
+            self.state = PowerState.NOT_READY_TO_SWITCH_ON
+            self.watchdog_tripped = False
+            self._load_application()
+        else:
+            self._load_communication()
+        self._boot()
+
+    def _operational(self) -> bool:
+        return self.node.nmt.state == "OPERATIONAL"
+
+    # -- object dictionary callbacks ------------------------------------------------
+
+    def _on_read(self, index: int, subindex: int, od: ODVariable) -> int | None:
+        live = self._live.get(index)
+        return None if live is None else live()
+
+    def _on_write(self, index: int, subindex: int, od: ODVariable, data: bytes) -> None:
+        """Before canopen stores a value (SDO or RPDO): check it, act on it; an
+        SdoAbortedError aborts the SDO transfer and nothing is stored."""
+        if 0x1400 <= index <= 0x1BFF:
+            self._check_pdo_write(index, subindex, bytes(data))
+            self._pdo_dirty = True
+        writer = self._writers.get(index)
+        if writer is not None:
+            writer(subindex, bytes(data))
+
+    def _write_controlword(self, _sub: int, data: bytes) -> None:
+        (value,) = _U16.unpack(data)
+        previous, self._controlword = self._controlword, value
+        if self.state in _FAULTED:
+            if value & 0x80 and not previous & 0x80:
+                self._fault_reset()
+            return
+        command = decode_command(value)
+        target = TRANSITIONS.get((self.state, command))
+        if (self.state is PowerState.QUICK_STOP_ACTIVE and command is Command.ENABLE_OPERATION
+                and 5 <= self._quick_stop_option <= 8):
+            target = PowerState.OPERATION_ENABLED     # transition 16
+        if target is PowerState.QUICK_STOP_ACTIVE and self._quick_stop_option == 0:
+            target = PowerState.SWITCH_ON_DISABLED    # option 0: disable drive function
+        if target is not None:
+            self._enter(target)
+
+    def _write_mode(self, _sub: int, data: bytes) -> None:
+        (mode,) = _I8.unpack(data)
+        bit = MODE_BITS.get(mode)
+        if mode != 0 and (bit is None or not self._raw(0x6502) >> bit & 1):
+            raise SdoAbortedError(0x06090030)   # value range of parameter exceeded
+        self.mode = mode
+
+    def _write_target(self, _sub: int, data: bytes) -> None:
+        (self._target_pm,) = _I16.unpack(data)
+        self._update_torque()
+
+    def _write_max_torque(self, _sub: int, data: bytes) -> None:
+        (self._max_pm,) = _U16.unpack(data)
+        self._update_torque()
+
+    def _write_rated_torque(self, _sub: int, data: bytes) -> None:
+        (value,) = _U32.unpack(data)
+        if value == 0:
+            raise SdoAbortedError(0x06090032)   # value of parameter written too low
+        self._rated_nm = value * self._torque_unit
+        self._update_torque()
+
+    def _write_quick_stop_option(self, _sub: int, data: bytes) -> None:
+        (value,) = _I16.unpack(data)
+        if not 0 <= value <= 8:
+            raise SdoAbortedError(0x06090030)
+        self._quick_stop_option = value
+
+    def _write_sync_id(self, _sub: int, data: bytes) -> None:
+        (value,) = _U32.unpack(data)
+        if self._sync_id is not None:
+            self.network.unsubscribe(self._sync_id, self._on_sync)
+        self._sync_id = value & 0x7FF
+        self.network.subscribe(self._sync_id, self._on_sync)
+
+    def _write_consumer_heartbeat(self, sub: int, data: bytes) -> None:
+        if sub != 1:
+            return
+        (value,) = _U32.unpack(data)
+        if self._consumer_id is not None:
+            self.network.unsubscribe(self._consumer_id, self._on_host_heartbeat)
+        producer, millis = (value >> 16) & 0x7F, value & 0xFFFF
+        self._consumer_id = _HEARTBEAT + producer if producer and millis else None
+        self._consumer_timeout = millis / 1000.0 if self._consumer_id is not None else 0.0
+        self._last_host_heartbeat = None
+        if self._consumer_id is not None:
+            self.network.subscribe(self._consumer_id, self._on_host_heartbeat)
+
+    def _on_host_heartbeat(self, can_id: int, data: bytearray, timestamp: float) -> None:
+        self._last_host_heartbeat = self._time
+
+    # -- PDOs ---------------------------------------------------------------------
+
+    def _check_pdo_write(self, index: int, subindex: int, data: bytes) -> None:
+        """CiA 301's checks of a mapping write (communication parameters are taken as written)."""
+        if not (0x1600 <= index <= 0x17FF or 0x1A00 <= index <= 0x1BFF):
+            return
+        if subindex == 0:
+            (count,) = _U8.unpack(data)
+            entries = [self._entry(self._raw(index, s)) for s in range(1, count + 1)] if count else []
+            if count > 8 or sum(entry.size for entry in entries) > 8:
+                raise SdoAbortedError(0x06040042)   # PDO length exceeded
+            return
+        (value,) = _U32.unpack(data)
+        self._entry(value)
+
+    def _entry(self, value: int) -> _Entry:
+        """A mapping entry, checked: an existing, mappable object of that size (or a dummy)."""
+        index, subindex, bits = value >> 16, (value >> 8) & 0xFF, value & 0xFF
+        if value == 0 or 0x0002 <= index <= 0x0007:   # empty, or a dummy of a standard type
+            return _Entry(index, subindex, bits // 8)
+        if index not in self.node.object_dictionary:
+            raise SdoAbortedError(0x06020000)   # object does not exist
+        obj = self.node.object_dictionary[index]
+        var = obj if isinstance(obj, ODVariable) else obj[subindex] if subindex in obj else None
+        if var is None:
+            raise SdoAbortedError(0x06090011)   # sub-index does not exist
+        if not var.pdo_mappable or len(var) != bits:
+            raise SdoAbortedError(0x06040041)   # object cannot be mapped to the PDO
+        return _Entry(index, subindex, bits // 8)
+
+    def _read_pdo(self, number: int, com: int, mapping: int) -> _Pdo | None:
+        cob_id = self._raw(com, 1)
+        if cob_id & _PDO_INVALID:
+            return None
+        count = self._raw(mapping, 0)
+        entries = tuple(self._entry(self._raw(mapping, s)) for s in range(1, count + 1))
+        trans_type = self._raw(com, 2)
+        return _Pdo(number, cob_id & 0x7FF, trans_type, entries, countdown=max(trans_type, 1))
+
+    def _compile_pdos(self) -> None:
+        """The PDOs as the object dictionary defines them now (after any SDO write to them)."""
+        self._pdo_dirty = False
+        od = self.node.object_dictionary
+        for cob_id in self._rpdo_ids:
+            self.network.unsubscribe(cob_id, self._on_rpdo)
+        rpdos = [self._read_pdo(n + 1, 0x1400 + n, 0x1600 + n) for n in range(512) if 0x1400 + n in od]
+        tpdos = [self._read_pdo(n + 1, 0x1800 + n, 0x1A00 + n) for n in range(512) if 0x1800 + n in od]
+        self._rpdos = {pdo.cob_id: pdo for pdo in rpdos if pdo is not None}
+        self._tpdos = tuple(pdo for pdo in tpdos if pdo is not None and pdo.synchronous)
+        self._rpdo_ids = tuple(self._rpdos)
+        for cob_id in self._rpdo_ids:
+            self.network.subscribe(cob_id, self._on_rpdo)
+        self._pending.clear()
+
+    def _on_rpdo(self, can_id: int, data: bytearray, timestamp: float) -> None:
+        pdo = self._rpdos.get(can_id)
+        if pdo is None or not self._operational():
+            return
+        if len(data) < pdo.size:
+            self.frames_rejected += 1
+            self.node.emcy.send(EmcyCode.PDO_LENGTH, self.error_register | ErrorRegister.COMMUNICATION)
+            return
+        values, offset = [], 0
+        for entry in pdo.entries:
+            values.append((entry, bytes(data[offset:offset + entry.size])))
+            offset += entry.size
+        if pdo.synchronous:
+            self._pending[pdo.number] = values    # applied at the next SYNC
+        else:
+            self._apply(values)
+
+    def _apply(self, values: list[tuple[_Entry, bytes]]) -> None:
+        for entry, raw in values:
+            if entry.index < 0x1000:
+                continue   # dummy
+            try:
+                self.node.set_data(entry.index, entry.subindex, raw)
+            except SdoAbortedError:
+                self.frames_rejected += 1   # a value the drive refuses (a mode it lacks)
+
+    def _on_sync(self, can_id: int, data: bytearray, timestamp: float) -> None:
+        if not self._operational():
+            return
+        self.sync_count += 1
+        pending, self._pending = self._pending, {}
+        for number in sorted(pending):
+            self._apply(pending[number])
+        self._check_over_torque()
+        get_data = self.node.get_data
+        for pdo in self._tpdos:
+            pdo.countdown -= 1
+            if pdo.countdown > 0:
+                continue
+            pdo.countdown = max(pdo.trans_type, 1)
+            payload = b"".join(bytes(entry.size) if entry.index < 0x1000
+                               else get_data(entry.index, entry.subindex)[:entry.size]
+                               for entry in pdo.entries)
+            self._send(can.Message(arbitration_id=pdo.cob_id, is_extended_id=False, data=payload))
+
+    # -- the drive ----------------------------------------------------------------
+
+    def _enter(self, state: PowerState) -> None:
+        self.state = state
+        if state is not PowerState.OPERATION_ENABLED:
+            self._over_count = 0
+
+    def _update_torque(self) -> None:
+        """The torque the plant gets in operation enabled + CST: 0x6071 clamped to 0x6072
+        (per mille) and to the profile's limit (Nm)."""
+        limit_pm = min(self._max_pm, 32767)
+        target = min(max(self._target_pm, -limit_pm), limit_pm)
+        torque = target * self._rated_nm / 1000.0
+        limit = self._profile.torque_limit
+        clamped = min(max(torque, -limit), limit)
+        self._torque_nm = clamped
+        self._limited = clamped != self._target_pm * self._rated_nm / 1000.0
+
+    def _check_over_torque(self) -> None:
+        """One SYNC of the over-torque watch: above 0x6072 or the profile's limit (half a
+        per mille of slack: the host rounds to whole per mille) ``over_torque_cycles`` times
+        in a row faults."""
+        if self.state is not PowerState.OPERATION_ENABLED or self.mode != CST:
+            return
+        target = abs(self._target_pm)
+        limit_pm = self._profile.torque_limit / self._rated_nm * 1000.0 + 0.5
+        if target > self._max_pm or target > limit_pm:
+            self._over_count += 1
+            if self._over_count >= self.over_torque_cycles:
+                self._fault(EmcyCode.EXCESS_TORQUE, ErrorRegister.GENERIC | ErrorRegister.PROFILE)
+        else:
+            self._over_count = 0
+
+    def _fault(self, code: EmcyCode, register: int) -> bool:
+        """Into FAULT (torque off at once), 0x603F/0x1001 set, the EMCY sent; True if it
+        took the torque away (it was in operation enabled). A fault in FAULT is ignored."""
+        if self.state in _FAULTED:
+            return False
+        was_enabled = self.state is PowerState.OPERATION_ENABLED
+        self._enter(PowerState.FAULT)
+        self.error_code, self.error_register = int(code), int(register)
+        if self.nmt_state != "STOPPED":
+            self.node.emcy.send(code, register)
+        return was_enabled
+
+    def _fault_reset(self) -> None:
+        """Transition 15: FAULT -> switch on disabled, errors cleared, EMCY error reset."""
+        self._enter(PowerState.SWITCH_ON_DISABLED)
+        self.error_code = self.error_register = 0
+        self.watchdog_tripped = False
+        if self.nmt_state != "STOPPED":
+            self.node.emcy.reset()
+
+    # -- process values (read live: SDO upload or TPDO) ----------------------------------
+
+    def _statusword(self) -> int:
+        enabled = self.state is PowerState.OPERATION_ENABLED
+        return statusword(self.state, follows_target=enabled and self.mode == CST,
+                          limited=enabled and self._limited)
+
+    def _position(self) -> int:
+        return _wrap32(self._plant.position * self._inc_per_rad)
+
+    def _velocity(self) -> int:
+        return _clamp(self._plant.velocity * self._vel_per_rad_s, -(1 << 31), (1 << 31) - 1)
+
+    def _torque_actual(self) -> int:
+        return _clamp(self._plant_torque() / self._rated_nm * 1000.0, -32768, 32767)

@@ -1,0 +1,339 @@
+"""The emulated CiA 402 node in lockstep, frame by frame: literal bytes of CiA 301 / CiA 402
+(drive-protocols.md section 3), the TPDOs also decoded by canopen's own PDO map."""
+
+from __future__ import annotations
+
+import struct
+from collections.abc import Iterator
+
+import can
+import canopen
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from dobhil.data import drivers_dir
+from dobhil.emulator.cia402 import (TRANSITIONS, Command, EmcyCode, PowerState, decode_command,
+                                    statusword)
+from dobhil.emulator.plant import Plant
+from dobhil.emulator.registry import make_emulated_drive
+
+from .cia402_rig import (EMCY, HEARTBEAT, NODE, RPDO1, SDO_TX, SYNC, TPDO1, TPDO2, Lockstep,
+                         cia402_profile, configure_wire_mapping, download, enable_cst, upload)
+
+# statuswords as drive-protocols.md gives the state bits, plus voltage enabled (0x10) and
+# remote (0x200); operation enabled in CST also bit 12 (the target torque is followed)
+SW_SWITCH_ON_DISABLED = 0x0250
+SW_READY = 0x0231
+SW_SWITCHED_ON = 0x0233
+SW_ENABLED_CST = 0x1237
+SW_FAULT = 0x0218
+
+
+@pytest.fixture
+def rig() -> Iterator[Lockstep]:
+    rig = Lockstep()
+    try:
+        yield rig
+    finally:
+        rig.close()
+
+
+def tpdo1(frames: dict[int, bytes]) -> tuple[int, int, int]:
+    """(statusword, position, torque actual) of TPDO1."""
+    return struct.unpack("<HiH", frames[TPDO1])[0], *struct.unpack("<ih", frames[TPDO1][2:])
+
+
+# -- pure tables ---------------------------------------------------------------------
+
+@pytest.mark.parametrize("controlword, command", [
+    (0x06, Command.SHUTDOWN), (0x0E, Command.SHUTDOWN), (0x07, Command.SWITCH_ON),
+    (0x0F, Command.ENABLE_OPERATION), (0x00, Command.DISABLE_VOLTAGE), (0x0D, Command.DISABLE_VOLTAGE),
+    (0x02, Command.QUICK_STOP), (0x0B, Command.QUICK_STOP), (0x8F, Command.ENABLE_OPERATION)])
+def test_controlword_commands_follow_the_cia402_table(controlword: int, command: Command) -> None:
+    assert decode_command(controlword) is command
+
+
+def test_statusword_masks_of_drive_protocols_md() -> None:
+    masks = {PowerState.NOT_READY_TO_SWITCH_ON: (0x4F, 0x00), PowerState.SWITCH_ON_DISABLED: (0x4F, 0x40),
+             PowerState.READY_TO_SWITCH_ON: (0x6F, 0x21), PowerState.SWITCHED_ON: (0x6F, 0x23),
+             PowerState.OPERATION_ENABLED: (0x6F, 0x27), PowerState.QUICK_STOP_ACTIVE: (0x6F, 0x07),
+             PowerState.FAULT_REACTION_ACTIVE: (0x4F, 0x0F), PowerState.FAULT: (0x4F, 0x08)}
+    for state, (mask, value) in masks.items():
+        assert [other for other in PowerState if statusword(other) & mask == value] == [state]
+    # and canopen's own table reads each state back by name
+    from canopen.profiles.p402 import State402
+    for state in PowerState:
+        names = [name for name, (mask, value) in State402.SW_MASK.items() if statusword(state) & mask == value]
+        assert names == [state.name.replace("_", " ")]
+
+
+def test_every_transition_leaves_the_fault_states_alone() -> None:
+    assert not {state for state, _ in TRANSITIONS} & {PowerState.FAULT, PowerState.FAULT_REACTION_ACTIVE}
+
+
+# -- start-up, SDO, NMT, heartbeat --------------------------------------------------------
+
+def test_boots_with_a_boot_up_frame_and_answers_sdo_in_pre_operational(rig: Lockstep) -> None:
+    assert rig.read() == []
+    assert rig.run(0.001) == [(HEARTBEAT, b"\x00")]    # boot-up at the first tick
+    assert rig.emu.nmt_state == "PRE-OPERATIONAL"
+    # identity 0x1018 and supported modes 0x6502 (CST bit 9), literal responses
+    assert rig.sdo(upload(0x1018, 2)) == bytes.fromhex("4318100202040000")
+    assert rig.sdo(upload(0x1018, 3)) == bytes.fromhex("4318100300000100")
+    assert rig.sdo(upload(0x6502)) == bytes.fromhex("4302650080030000")
+    assert rig.sdo(upload(0x6076)) == bytes.fromhex("43766000e8030000")   # 1000 mNm
+    assert rig.sdo(upload(0x6041)) == bytes.fromhex("4b41600050020000")   # switch on disabled
+    # segmented upload of 0x1008 (29 bytes: "dobhil emulated CiA 402 drive")
+    assert rig.sdo(upload(0x1008)) == bytes.fromhex("410810001d000000")
+    text, toggle = b"", 0x00
+    while True:
+        segment = rig.sdo(bytes([0x60 | toggle]) + bytes(7))
+        assert segment[0] & 0xE0 == 0x00 and segment[0] & 0x10 == toggle
+        text += segment[1:8 - (segment[0] >> 1 & 7)]
+        toggle ^= 0x10
+        if segment[0] & 0x01:
+            break
+    assert text == b"dobhil emulated CiA 402 drive"
+
+
+@pytest.mark.parametrize("request_, abort", [
+    (download(0x6041, 0, 0x0F, 2), 0x06010002),       # statusword is read-only
+    (download(0x2000, 0, 1, 1), 0x06020000),          # no such object
+    (download(0x6060, 0, 1, 1), 0x06090030),          # profile position: not in 0x6502
+    (download(0x1600, 1, 0x60760020, 4), 0x06040041),  # rated torque is not PDO-mappable
+    (download(0x1600, 1, 0x60400020, 4), 0x06040041),  # controlword mapped with the wrong size
+    (download(0x6076, 0, 0, 4), 0x06090032),          # a rated torque of 0
+])
+def test_sdo_writes_the_drive_refuses_are_aborted_with_cia301_codes(
+        rig: Lockstep, request_: bytes, abort: int) -> None:
+    response = rig.sdo(request_)
+    assert response[:4] == bytes([0x80]) + request_[1:4]
+    assert struct.unpack("<I", response[4:])[0] == abort
+
+
+def test_a_mapping_longer_than_a_frame_is_refused(rig: Lockstep) -> None:
+    rig.write(0x1A00, 0, 0, 1)
+    for sub, entry in enumerate([0x60640020, 0x606C0020, 0x60410010], 1):
+        rig.write(0x1A00, sub, entry, 4)
+    response = rig.sdo(download(0x1A00, 0, 3, 1))   # 80 bits
+    assert response[0] == 0x80 and struct.unpack("<I", response[4:])[0] == 0x06040042
+    rig.write(0x1A00, 0, 2, 1)   # 64 bits fit
+
+
+def test_heartbeat_runs_on_emulated_time_with_the_period_written_by_sdo(rig: Lockstep) -> None:
+    rig.run(0.5)
+    assert [f for f in rig.seen if f[1] == HEARTBEAT] == [(0.001, HEARTBEAT, b"\x00")]   # 0x1017 = 0: none
+    rig.write(0x1017, 0, 100, 2)
+    start = rig.emu.time
+    rig.run(0.35)
+    rig.send(0x000, [0x01, NODE])          # NMT start: the state byte follows
+    rig.run(0.2)
+    beats = [(round(t - start, 9), data) for t, can_id, data in rig.seen if can_id == HEARTBEAT][1:]
+    assert beats == [(0.1, b"\x7f"), (0.2, b"\x7f"), (0.3, b"\x7f"), (0.4, b"\x05"), (0.5, b"\x05")]
+
+
+def test_nmt_reset_node_boots_again_with_the_eds_values(rig: Lockstep) -> None:
+    rig.write(0x1017, 0, 50, 2)
+    rig.write(0x6060, 0, 10, 1)
+    rig.send(0x000, [0x01, NODE])
+    rig.read()
+    assert rig.emu.nmt_state == "OPERATIONAL"
+    rig.send(0x000, [0x81, 0])             # reset node, broadcast
+    assert rig.read() == [(HEARTBEAT, b"\x00")]
+    assert rig.emu.nmt_state == "PRE-OPERATIONAL"
+    assert rig.value(0x1017, fmt="<H") == 0 and rig.value(0x6060, fmt="<b") == 0
+    assert not [can_id for can_id, _ in rig.run(0.2) if can_id == HEARTBEAT]   # 0x1017 = 0 again
+
+
+# -- PDOs, SYNC, the state machine ------------------------------------------------------------
+
+def test_no_pdo_outside_operational(rig: Lockstep) -> None:
+    configure_wire_mapping(rig)
+    rig.rpdo(0x06)
+    assert rig.sync() == {}
+    assert rig.emu.state is PowerState.SWITCH_ON_DISABLED   # the RPDO was not taken either
+    rig.send(0x000, [0x01, NODE])
+    assert set(rig.sync()) == {TPDO1, TPDO2}
+
+
+def test_controlword_by_rpdo_reaches_operation_enabled_in_cst_at_the_syncs(rig: Lockstep) -> None:
+    configure_wire_mapping(rig)
+    rig.send(0x000, [0x01, NODE])
+    rig.write(0x6060, 0, 10, 1)
+    assert tpdo1(rig.sync())[0] == SW_SWITCH_ON_DISABLED
+    seen = []
+    for controlword in (0x06, 0x07, 0x0F):
+        rig.rpdo(controlword)
+        assert rig.read(0.01) == []       # no SYNC: nothing applied, nothing sent
+        seen.append(tpdo1(rig.sync())[0])
+    assert seen == [SW_READY, SW_SWITCHED_ON, SW_ENABLED_CST]
+    assert rig.emu.axis_state == PowerState.OPERATION_ENABLED == 0x27
+
+
+def test_tpdos_decoded_by_canopens_own_pdo_map(rig: Lockstep) -> None:
+    rig.plant.position, rig.plant.velocity = 1.5, -2.0     # a plant that holds still
+    rig.plant.step = lambda torque, dt: None               # type: ignore[method-assign]
+    enable_cst(rig)
+    rig.rpdo(0x0F, 250)
+    frames = rig.sync()
+    # canopen's client-side view: a RemoteNode with the same EDS and mapping, fed the frames
+    network = canopen.Network()
+    node = network.add_node(NODE, str(drivers_dir() / "cia402-emulated.eds"))
+    for number, cob, names in ((1, TPDO1, (0x6041, 0x6064, 0x6077)), (2, TPDO2, (0x606C, 0x6061))):
+        pdo = node.tpdo[number]
+        pdo.clear()
+        for index in names:
+            pdo.add_variable(index)
+        pdo.cob_id, pdo.enabled, pdo.trans_type = cob, True, 1
+        pdo.subscribe()
+    for cob in (TPDO1, TPDO2):
+        network.notify(cob, frames[cob], 0.0)
+    assert node.tpdo[1][0x6041].raw == SW_ENABLED_CST
+    assert node.tpdo[1][0x6064].raw == round(1.5 / (2 * 3.141592653589793) * 4096)   # 978
+    assert node.tpdo[1][0x6077].raw == 250       # per mille of 1 Nm
+    assert node.tpdo[2][0x606C].raw == round(-2.0 * 60 / (2 * 3.141592653589793))   # -19 rpm
+    assert node.tpdo[2][0x6061].raw == 10
+    assert frames[TPDO1] == bytes.fromhex("3712" "d2030000" "fa00")
+    assert frames[TPDO2] == bytes.fromhex("edffffff" "0a")
+
+
+def test_torque_reaches_the_plant_at_the_next_sync_and_accelerates_it_by_tau_over_j(rig: Lockstep) -> None:
+    enable_cst(rig)
+    rig.rpdo(0x0F, 500)                     # 0.5 Nm
+    rig.run(0.01)
+    assert rig.emu.applied_torque == 0.0    # latched, not applied: no SYNC yet
+    rig.sync()
+    assert rig.emu.applied_torque == 0.5
+    v0, t0 = rig.plant.velocity, rig.emu.time
+    rig.run(0.1)
+    acceleration = (rig.plant.velocity - v0) / (rig.emu.time - t0)
+    assert acceleration == pytest.approx(0.5 / 0.01, rel=1e-9)
+    assert tpdo1(rig.sync())[2] == 500      # torque actual, per mille
+
+
+def test_target_torque_is_clamped_to_max_torque_and_the_profile_limit(rig: Lockstep) -> None:
+    enable_cst(rig)
+    rig.write(0x6072, 0, 1500, 2)
+    rig.rpdo(0x0F, -1800)
+    sw, _, torque = tpdo1(rig.sync())
+    assert rig.emu.applied_torque == -1.5 and torque == -1500 and sw & 0x0800   # internal limit
+    rig.write(0x6072, 0, 3000, 2)
+    rig.rpdo(0x0F, 2000)                     # the profile's 2 Nm: at the limit, no fault
+    for _ in range(5):
+        sw, _, torque = tpdo1(rig.sync())
+    assert rig.emu.applied_torque == 2.0 and not sw & 0x0800 and rig.emu.state is PowerState.OPERATION_ENABLED
+
+
+def test_over_torque_faults_with_an_emcy_and_a_fault_reset_clears_it(rig: Lockstep) -> None:
+    enable_cst(rig)
+    rig.rpdo(0x0F, 3100)                     # above 0x6072 = 3000
+    for _ in range(2):
+        assert EMCY not in rig.sync()
+    frames = rig.sync()                      # the third SYNC in a row
+    assert frames[EMCY] == bytes.fromhex("1183" "21" "0000000000")   # 0x8311, register 0x21
+    assert tpdo1(frames)[0] == SW_FAULT and tpdo1(frames)[2] == 0
+    assert rig.emu.applied_torque == 0.0 and rig.emu.axis_error == EmcyCode.EXCESS_TORQUE
+    assert rig.value(0x603F, fmt="<H") == 0x8311 and rig.value(0x1001, fmt="<B") == 0x21
+    rig.rpdo(0x0F, 0)
+    assert tpdo1(rig.sync())[0] == SW_FAULT  # no way out but a fault reset
+    rig.rpdo(0x80)
+    frames = rig.sync()
+    assert frames[EMCY] == bytes(8) and tpdo1(frames)[0] == SW_SWITCH_ON_DISABLED
+    assert rig.emu.axis_error == 0 and rig.value(0x603F, fmt="<H") == 0
+
+
+def test_disable_voltage_takes_the_torque_away_at_once(rig: Lockstep) -> None:
+    enable_cst(rig)
+    rig.rpdo(0x0F, 400)
+    rig.sync()
+    assert rig.emu.applied_torque == 0.4
+    rig.rpdo(0x00, 400)                      # by RPDO: from the SYNC that applies it
+    assert tpdo1(rig.sync())[0] == SW_SWITCH_ON_DISABLED and rig.emu.applied_torque == 0.0
+    for controlword in (0x06, 0x0F):
+        rig.rpdo(controlword, 400)
+        rig.sync()
+    assert rig.emu.applied_torque == 0.4
+    rig.write(0x6040, 0, 0x00, 2)            # by SDO: at once, no SYNC needed
+    assert rig.emu.applied_torque == 0.0 and rig.emu.state is PowerState.SWITCH_ON_DISABLED
+
+
+@pytest.mark.parametrize("option, after", [(2, PowerState.SWITCH_ON_DISABLED), (6, PowerState.QUICK_STOP_ACTIVE)])
+def test_quick_stop_follows_the_quick_stop_option_code(option: int, after: PowerState) -> None:
+    rig = Lockstep()
+    try:
+        rig.write(0x605A, 0, option, 2)
+        enable_cst(rig)
+        rig.rpdo(0x0F, 300)
+        rig.sync()
+        rig.rpdo(0x02, 300)                  # quick stop
+        rig.sync()
+        assert rig.emu.state is PowerState.QUICK_STOP_ACTIVE and rig.emu.applied_torque == 0.0
+        rig.run(0.002)
+        assert rig.emu.state is after
+    finally:
+        rig.close()
+
+
+def test_heartbeat_consumer_timeout_faults_and_trips_the_watchdog(rig: Lockstep) -> None:
+    enable_cst(rig)
+    rig.write(0x1016, 1, 0x7F << 16 | 50, 4)   # host node 0x7F, 50 ms
+    rig.rpdo(0x0F, 100)
+    rig.sync()
+    rig.run(0.2)
+    assert rig.emu.state is PowerState.OPERATION_ENABLED   # watched only from the first heartbeat on
+    for _ in range(3):
+        rig.send(0x77F, [0x05])
+        rig.run(0.04)
+    assert rig.emu.state is PowerState.OPERATION_ENABLED and not rig.emu.watchdog_tripped
+    frames = rig.run(0.02)
+    assert (EMCY, bytes.fromhex("3081110000000000")) in frames       # 0x8130, register 0x11
+    assert rig.emu.state is PowerState.FAULT and rig.emu.watchdog_tripped and rig.emu.applied_torque == 0.0
+
+
+def test_leaving_operational_while_enabled_faults(rig: Lockstep) -> None:
+    enable_cst(rig)
+    rig.send(0x000, [0x80, NODE])            # pre-operational
+    frames = rig.read()
+    assert (EMCY, bytes.fromhex("0081110000000000")) in frames
+    assert rig.emu.state is PowerState.FAULT and rig.emu.applied_torque == 0.0
+
+
+def test_a_short_rpdo_is_dropped_with_an_emcy(rig: Lockstep) -> None:
+    enable_cst(rig)
+    rig.send(RPDO1, [0x0F, 0x00, 0xF4])       # 3 of 4 bytes
+    assert (EMCY, bytes.fromhex("1082100000000000")) in rig.read()
+    assert rig.emu.frames_rejected == 1 and rig.emu.state is PowerState.OPERATION_ENABLED
+
+
+def test_made_by_the_registry_from_the_profile_protocol() -> None:
+    channel_bus = can.Bus(interface="virtual", channel="cia402-registry-test-x")
+    emulator = make_emulated_drive(channel_bus, cia402_profile(), Plant(inertia=0.01))
+    try:
+        assert type(emulator).__name__ == "EmulatedCiA402"
+    finally:
+        emulator.close()
+
+
+@settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(st.lists(st.tuples(st.sampled_from([0x000, SYNC, RPDO1, 0x605, 0x77F, 0x123, 0x7FF]),
+                          st.binary(max_size=8), st.booleans()), max_size=30))
+def test_no_frame_makes_the_node_raise(frames: list[tuple[int, bytes, bool]]) -> None:
+    rig = Lockstep()
+    try:
+        enable_cst(rig)
+        for can_id, data, remote in frames:
+            if remote:
+                rig.bus.send(can.Message(arbitration_id=can_id, is_remote_frame=True, dlc=len(data),
+                                         is_extended_id=False))
+            else:
+                rig.send(can_id, data)
+            rig.read(0.001)
+        assert rig.emu.frame_errors == 0, rig.emu.last_frame_error
+    finally:
+        rig.close()
+
+
+def test_a_frame_before_the_first_tick_boots_the_node_first(rig: Lockstep) -> None:
+    rig.send(0x605, upload(0x1000))        # device type: profile 402, servo drive
+    assert rig.read() == [(HEARTBEAT, b"\x00"), (SDO_TX, bytes.fromhex("4300100092010200"))]
