@@ -47,7 +47,7 @@ from dobhil.runtime.loop import RunResult
 from dobhil.runtime.session import RunSession, summary
 from dobhil.runtime.stop import StopReason
 
-from ..runtime.helpers import (REALTIME_SLACK, STEP_FROM_ZERO, Sniffer, demo_config,
+from tests.runtime.helpers import (REALTIME_SLACK, STEP_FROM_ZERO, Sniffer, demo_config,
                                finite_tail, realtime_profile, wait_until)
 
 AT = 100            # a fault strikes around the 100th cycle of a 0.4 s run
@@ -308,7 +308,10 @@ class Outcome:
     summary: dict[str, Any]
 
 
-def run(config: Config, protocol: Protocol, timing: str, faults: Sequence[Fault] = ()) -> Outcome:
+def run(config: Config, protocol: Protocol, timing: str, faults: Sequence[Fault] = (), *,
+        settle: bool = True) -> Outcome:
+    """Run with the emulated drive; ``settle``: then wait for it to be out of torque
+    control with zero torque (real time: a bound; False where it must not be)."""
     with RunSession(config, emulate=True, lockstep=timing == "lockstep",
                     bus_wrapper=faulty(*faults) if faults else None) as session, \
             Sniffer(session.bus_spec.channel) as sniffer:
@@ -323,7 +326,7 @@ def run(config: Config, protocol: Protocol, timing: str, faults: Sequence[Fault]
             emu.handle_pending()  # type: ignore[union-attr]
             settled = idle()
         else:
-            settled = wait_until(idle)
+            settled = wait_until(idle) if settle else idle()
         return Outcome(result, protocol.decode(sniffer.drain()), settled, summary(session, result))
 
 
@@ -372,7 +375,7 @@ def test_fault_the_protocols_way_is_a_drive_fault(tmp_path: Path, protocol: Prot
 def test_unconfirmed_safe_stop_says_so_loudly(tmp_path: Path, protocol: Protocol,
                                               timing: str) -> None:
     config = suite_config(tmp_path, protocol, timing, **protocol.profile_changes)
-    out = run(config, protocol, timing, protocol.lose_disable())
+    out = run(config, protocol, timing, protocol.lose_disable(), settle=False)
     report = out.result.safe_stop
     assert out.result.stop.reason is StopReason.DONE
     assert report is not None and report.sent and report.confirmation is Confirmation.NOT_ACKNOWLEDGED
@@ -381,7 +384,7 @@ def test_unconfirmed_safe_stop_says_so_loudly(tmp_path: Path, protocol: Protocol
     assert warning.startswith(f"drive may still be enabled: node {protocol.node} did not acknowledge ")
     assert warning.endswith("; cut power") and "\n" not in warning
     assert out.summary["drive_warning"] == warning and out.summary["drive_disabled"] is False
-    assert out.commands.torques[-1] == 0.0
+    assert out.commands.torques[-1] == 0.0 and not out.settled   # still in torque control
 
 
 def test_closed_loop_reaches_the_force_reference(tmp_path: Path, protocol: Protocol,
