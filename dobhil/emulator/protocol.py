@@ -29,20 +29,24 @@ Two timing modes, one state machine:
 from __future__ import annotations
 
 import heapq
+import math
 import random
 import threading
 import time
 from abc import ABC, abstractmethod
+from collections import deque
 from collections.abc import Callable, Sequence
 from typing import Any, Protocol
 
 import can
+from can.broadcastmanager import (LimitedDurationCyclicSendTaskABC, ModifiableCyclicTaskABC,
+                                  RestartableCyclicTaskABC)
 
 from dobhil.drives.profile import DriveProfile
 from dobhil.errors import BusError
 from dobhil.realtime import lower_priority
 
-__all__ = ["EmulatedDrive", "LockstepBus", "PlantLike"]
+__all__ = ["EmulatedDrive", "LockstepBus", "LockstepPeriodicTask", "PlantLike"]
 
 _EPS = 1e-9
 _MAX_LAG_PERIODS = 10  # real time: ticks later than this are skipped, not replayed
@@ -360,6 +364,62 @@ class EmulatedDrive(ABC):
                 self._apply_due(now)
 
 
+class LockstepPeriodicTask(LimitedDurationCyclicSendTaskABC, ModifiableCyclicTaskABC,
+                           RestartableCyclicTaskABC):
+    """A periodic send of a :class:`LockstepBus`, in simulated time.
+
+    Its frames go out every ``period`` s of the lockstep clock (a whole number of steps
+    ``dt``), the first one period after :meth:`start` -- as the kernel's broadcast manager
+    does without TX_ANNOUNCE -- each message of ``messages`` in turn. ``duration``:
+    simulated seconds after which it stops by itself (None: until :meth:`stop`).
+    ``modify_data`` (python-can's) changes the frames from the next one on. The bus
+    sends them (:meth:`LockstepBus._fire_periodic`); the task only counts steps.
+    """
+
+    def __init__(self, bus: LockstepBus, messages: Sequence[can.Message] | can.Message, period: float,
+                 steps: int, duration: float | None = None, *, autostart: bool = True,
+                 modifier_callback: Callable[[can.Message], None] | None = None) -> None:
+        super().__init__(messages, period, duration)
+        self._bus = bus
+        self.steps = steps            # lockstep steps per period
+        self._modifier = modifier_callback
+        self.next_step = -1           # bus step of the next frame (-1: stopped)
+        self._last_step = -1          # the last step a frame may go out at (-1: no end)
+        self._index = 0               # the message sent next
+        if autostart:
+            self.start()
+
+    @property
+    def running(self) -> bool:
+        return self.next_step >= 0
+
+    def start(self) -> None:
+        """(Re)start: the next frame one period from now."""
+        now = self._bus.steps
+        self.next_step = now + self.steps
+        self._last_step = -1 if self.duration is None else \
+            now + self.steps * math.floor(self.duration / self.period + _EPS)
+        self._index = 0
+        self._bus._schedule(self)
+        if self._last_step >= 0 and self.next_step > self._last_step:
+            self.stop()   # shorter than one period: nothing to send
+
+    def stop(self) -> None:
+        self.next_step = -1
+        self._bus._unschedule(self)
+
+    def _frame(self) -> can.Message:
+        """The frame due now; advances to the next message and the next period."""
+        msg = self.messages[self._index % len(self.messages)]
+        self._index += 1
+        if self._modifier is not None:
+            self._modifier(msg)
+        self.next_step += self.steps
+        if 0 <= self._last_step < self.next_step:
+            self.stop()
+        return msg
+
+
 class LockstepBus(can.BusABC):
     """Host-side view of a bus shared with lockstep emulators.
 
@@ -371,7 +431,21 @@ class LockstepBus(can.BusABC):
     The host and these emulators must be the only participants of the channel (a
     private ``virtual`` channel): the bus counts the frames in flight in each
     direction and reads exactly those, so no read comes back empty.
+
+    Periodic send (python-can's ``send_periodic``) is native here, in simulated time:
+    a task's frame goes out at every ``k * period`` (k = 1, 2, ...) after its start, the
+    period a whole number of steps ``dt``. At that instant -- right after the emulators
+    advanced to it, before anything else happens at it -- the emulators read it (and
+    answer it at the same simulated instant: a CiA 402 node's TPDOs on a SYNC), and the
+    host's ``recv`` returns it too, before those answers, stamped with the simulated
+    time, as SocketCAN loops the kernel's broadcast-manager frames back to the other
+    sockets of the host. Deterministic, like everything else here. An emulator built
+    with a ``latency`` applies a periodic frame that much later too (it cannot tell who
+    sent it): protocols that latch commands on such a frame run with latency 0.
     """
+
+    #: send_periodic runs outside the host's Python threads (dobhil.drives.periodic)
+    native_periodic = True
 
     def __init__(
         self, inner: can.BusABC, emulators: Sequence[EmulatedDrive], *, dt: float, **kwargs: Any
@@ -384,7 +458,16 @@ class LockstepBus(can.BusABC):
         self.channel_info = f"lockstep over {inner.channel_info}"
         self._to_emulators = 0  # host frames the emulators have not read yet
         self._to_host = 0       # emulator frames the host has not read yet
+        self.steps = 0          # steps dt taken (the periodic tasks' clock: exact)
+        self._tasks: list[LockstepPeriodicTask] = []   # running, in start order
+        #: frames for the host taken off the inner bus in order, and the periodic frames'
+        #: echoes between them (the host reads this first)
+        self._host_queue: deque[can.Message] = deque()
         super().__init__(channel=self.channel_info, **kwargs)
+
+    @property
+    def dt(self) -> float:
+        return self._dt
 
     def clock(self) -> float:
         """Simulated time [s] (pass as ``clock=`` to the host's Drive)."""
@@ -409,6 +492,8 @@ class LockstepBus(can.BusABC):
         if self._to_emulators:
             self._deliver_host_frames()
         while True:
+            if self._host_queue:
+                return self._host_queue.popleft()
             if self._to_host > 0:
                 msg = self._inner.recv(0.0)
                 if msg is not None:
@@ -437,6 +522,61 @@ class LockstepBus(can.BusABC):
         for emulator in self._emulators:
             emulator.advance(self._dt)
         self._to_host += self._sent_by_emulators() - before
+        self.steps += 1
+        if self._tasks:
+            self._fire_periodic()
+
+    # -- periodic send (python-can's hook for a backend's own periodic send) ----------
+
+    def _send_periodic_internal(
+        self, msgs: Sequence[can.Message] | can.Message, period: float, duration: float | None = None,
+        autostart: bool = True, modifier_callback: Callable[[can.Message], None] | None = None,
+    ) -> LockstepPeriodicTask:
+        steps = round(period / self._dt) if math.isfinite(period) and period > 0 else 0
+        if steps < 1 or abs(steps * self._dt - period) > 1e-9 * period:
+            raise ValueError(f"send_periodic period {period!r} s: expected a whole multiple (>= 1) of "
+                             f"the lockstep step dt = {self._dt!r} s")
+        return LockstepPeriodicTask(self, msgs, period, steps, duration, autostart=autostart,
+                                    modifier_callback=modifier_callback)
+
+    def _schedule(self, task: LockstepPeriodicTask) -> None:
+        if task not in self._tasks:
+            self._tasks.append(task)
+
+    def _unschedule(self, task: LockstepPeriodicTask) -> None:
+        if task in self._tasks:
+            self._tasks.remove(task)
+
+    def _fire_periodic(self) -> None:
+        """The periodic frames due at this step: to the emulators, which read them (and
+        answer) now, and echoed to the host after the frames the emulators sent before."""
+        due = [task for task in self._tasks if task.next_step == self.steps]
+        if not due:
+            return
+        self._take_host_frames()
+        now = self.clock()
+        for task in due:
+            msg = task._frame()
+            self._inner.send(msg)
+            self._host_queue.append(can.Message(
+                timestamp=now, arbitration_id=msg.arbitration_id, is_extended_id=msg.is_extended_id,
+                is_remote_frame=msg.is_remote_frame, is_error_frame=msg.is_error_frame, is_fd=msg.is_fd,
+                bitrate_switch=msg.bitrate_switch, error_state_indicator=msg.error_state_indicator,
+                dlc=msg.dlc, data=msg.data, channel=msg.channel, is_rx=True, check=False))
+        self._to_emulators += len(due)
+        self._deliver_host_frames()
+
+    def _take_host_frames(self) -> None:
+        """Move the frames in flight to the host off the inner bus, in order, so what
+        comes after them (an echo) is read after them."""
+        recv, queue = self._inner.recv, self._host_queue
+        while self._to_host > 0:
+            msg = recv(0.0)
+            if msg is None:
+                self._to_host = 0
+                break
+            self._to_host -= 1
+            queue.append(msg)
 
     def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
         return self.recv(0.0 if timeout is None else timeout), False

@@ -1,0 +1,535 @@
+"""CiA 402 servo drive in cyclic synchronous torque (CST), over CANopen through canopen.
+
+Start-up (:meth:`CiA402Drive._prepare`, before any torque), by SDO through
+:mod:`dobhil.drives.cia402.link` (canopen without its notifier thread): NMT
+pre-operational; identity 0x1018; statusword 0x6041 (and error code 0x603F when in
+fault); supported modes 0x6502 (bit 9: CST); rated torque 0x6076 in the profile's unit,
+checked against the profile's ``rated_torque``; the PDO mapping written with canopen's
+``node.rpdo``/``node.tpdo`` (RPDO n: controlword 0x6040 + target torque 0x6071; TPDO n:
+statusword 0x6041 + position 0x6064 + torque actual 0x6077; TPDO n+1: velocity 0x606C +
+mode display 0x6061; all synchronous, transmission type 1); communication cycle period
+0x1006; producer heartbeat 0x1017; mode of operation 0x6060 = 10 (CST); NMT operational;
+then SYNC (0x80) every ``feedback_period``: python-can ``send_periodic`` where it runs
+outside this process's Python threads (:func:`dobhil.drives.periodic.native_periodic`),
+else sent by the drive right after each torque frame (``feedback_streams`` is False).
+
+Enable: the power state machine stepped on the TPDO's statusword (shutdown, switch on,
+enable operation), confirmed by Operation enabled with 0x6061 = 10. A node in FAULT
+ends the enable with its EMCY code, unless ``reset_faults`` (one rising edge of
+controlword bit 7, once).
+
+Cycle: the RPDO (controlword 0x0F, target torque per mille of the rated torque) goes out,
+the node applies it at the next SYNC, samples and answers with both TPDOs; the motion
+event comes with the second one. EMCY (0x80 + node), a statusword out of Operation
+enabled, an NMT state other than operational in the heartbeat (0x700 + node) or a lost
+heartbeat are faults.
+
+Safe stop: zero torque, quick stop (0x02), SYNC, disable voltage (0x00), SYNC -- each
+attempted on its own; the SYNCs make the node apply each RPDO whatever SYNC source ran
+(the periodic one stops after the confirmation, a statusword out of Operation enabled).
+
+Replay: :meth:`apply` decodes recorded frames with the layouts the profile fixes (its
+EDS's data types of the mapped objects), no start-up needed.
+"""
+
+from __future__ import annotations
+
+import math
+import struct
+import time
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, ClassVar
+
+import can
+import canopen
+from canopen.emcy import EmcyError
+from canopen.objectdictionary import ObjectDictionary, ObjectDictionaryError, ODVariable
+
+from dobhil.drives.base import Clock, Drive, DriveEvent, MotionEvent, SafeStopReport, StateEvent
+from dobhil.drives.cia402 import codec
+from dobhil.drives.cia402.codec import CST_MODE, Cob, Controlword, Mapped, NmtState, PowerState
+from dobhil.drives.cia402.link import CanopenLink
+from dobhil.drives.cia402.rules import CIA402_RULES
+from dobhil.drives.periodic import native_periodic
+from dobhil.drives.profile import DriveProfile, ProtocolRules
+from dobhil.drives.waits import Cancel
+from dobhil.errors import CodecError, ConfigError, DriveError, DriveFaultError, DriveTimeoutError
+
+if TYPE_CHECKING:
+    from canopen.pdo import PdoMap
+
+__all__ = ["CiA402Drive"]
+
+_NO_EVENTS: tuple[DriveEvent, ...] = ()
+#: rated torque of the node within this fraction of the profile's, else refused
+RATED_TORQUE_TOLERANCE = 0.01
+#: newton-metres per unit of 0x6076
+RATED_TORQUE_UNITS = {"mNm": 1e-3, "uNm": 1e-6}
+#: CiA 301 EMCY code of a heartbeat or life-guarding error: the node's watchdog on the host
+EMCY_HEARTBEAT = 0x8130
+#: objects the drive reads or writes besides the mapped ones (the EDS must have them)
+_REQUIRED = {0x1006: "communication cycle period", 0x1017: "producer heartbeat time",
+             0x1018: "identity", 0x6060: "modes of operation", 0x6076: "motor rated torque",
+             0x6502: "supported drive modes"}
+_OUT_OF_TORQUE = frozenset(PowerState) - {PowerState.OPERATION_ENABLED, PowerState.UNKNOWN}
+
+
+@dataclass(frozen=True, slots=True)
+class Layouts:
+    """The three PDOs' structs, derived from the object dictionary's data types."""
+
+    rpdo: struct.Struct
+    status: struct.Struct
+    motion: struct.Struct
+
+
+class CiA402Drive(Drive):
+    protocol: ClassVar[str] = "cia402"
+    active_state_text: ClassVar[str] = "operation enabled in CST"
+    disabled_state_text: ClassVar[str] = "disable voltage"
+    profile_rules: ClassVar[ProtocolRules] = CIA402_RULES
+
+    def __init__(self, bus: can.BusABC, profile: DriveProfile, *, clock: Clock = time.monotonic,
+                 reset_faults: bool = False) -> None:
+        super().__init__(bus, profile, clock=clock, reset_faults=reset_faults)
+        opts = profile.options
+        node = profile.node_id
+        self._rated = float(opts["rated_torque"])
+        assert profile.feedback_period is not None  # the rules require it (the base checks)
+        self._period = profile.feedback_period
+        self._scale = codec.UnitScale.of(position_per_rev=opts["position_per_rev"],
+                                         velocity_unit=opts["velocity_unit"], gear_ratio=opts["gear_ratio"])
+        self._od = load_od(profile)
+        self._layouts = layouts_of(self._od, profile)
+        self._rpdo_n, self._tpdo_n = int(opts["rpdo"]), int(opts["tpdo"])
+        self._rpdo_id = Cob.rpdo(self._rpdo_n, node)
+        self._status_id = Cob.tpdo(self._tpdo_n, node)
+        self._motion_id = Cob.tpdo(self._tpdo_n + 1, node)
+        self._emcy_id = Cob.EMCY + node
+        self._heartbeat_id = Cob.HEARTBEAT + node
+        self._link: CanopenLink | None = None  # made at start-up: replay never needs it
+        self._sync_task: Any = None
+        self._native_sync = False
+        self._sync_msg = can.Message(arbitration_id=Cob.SYNC, data=b"", is_extended_id=False)
+        # hot path: one preallocated RPDO refilled per cycle
+        self._rpdo_msg = can.Message(arbitration_id=self._rpdo_id, is_extended_id=False,
+                                     data=bytearray(self._layouts.rpdo.size))
+        self._controlword = int(Controlword.SHUTDOWN)
+        self._fault_reset_sent = False
+        # decoded state (TPDO1 and TPDO2 of one SYNC make one feedback sample)
+        self._statusword = -1
+        self._power = PowerState.UNKNOWN
+        self._mode = 0
+        self._position = math.nan
+        self._torque_actual = math.nan
+        self._nmt = -1
+        self._emcy = 0
+        self._sync_at = math.nan
+        self.identity: tuple[int, ...] = ()
+
+    # -- public ---------------------------------------------------------------
+
+    @property
+    def frame_ids(self) -> frozenset[int]:
+        """SYNC, NMT, and this node's EMCY, PDOs, SDO and heartbeat."""
+        node = self.node_id
+        pdos = {Cob.tpdo(n, node) for n in range(1, 5)} | {Cob.rpdo(n, node) for n in range(1, 5)}
+        return frozenset({Cob.NMT, Cob.SYNC, Cob.EMCY + node, Cob.SDO_TX + node, Cob.SDO_RX + node,
+                          Cob.HEARTBEAT + node} | pdos)
+
+    @property
+    def feedback_streams(self) -> bool:
+        """False when the drive itself sends SYNC after each torque frame (no native
+        periodic send on this bus): feedback then only comes when the host commands."""
+        return self._native_sync or native_periodic(self._bus)
+
+    @property
+    def rated_torque(self) -> float:
+        """[Nm] the rated torque the per mille values refer to."""
+        return self._rated
+
+    def send_torque(self, tau_nm: float) -> None:
+        super().send_torque(tau_nm)
+        if not self._native_sync:
+            self._send_sync()
+
+    def safe_stop(self, *, confirm: bool = True, timeout: float | None = None,
+                  cancel: Cancel | None = None) -> SafeStopReport:
+        """The base's safe stop, then the periodic SYNC stopped: after the confirmation
+        (the node needed SYNCs to apply the RPDOs and to answer), or at once when not
+        confirming (the safe-stop frames carried their own SYNCs)."""
+        try:
+            return super().safe_stop(confirm=confirm, timeout=timeout, cancel=cancel)
+        finally:
+            self._stop_sync()
+
+    def close(self) -> None:
+        """Stop the periodic SYNC (if any). The bus is borrowed: it stays open."""
+        self._stop_sync()
+
+    # -- start-up ---------------------------------------------------------------
+
+    def _prepare(self, deadline: float, cancel: Cancel | None) -> None:
+        reached: list[str] = []
+        link = self._link or CanopenLink(self._bus, self._od, node_id=self.node_id, clock=self._clock,
+                                         sdo_timeout=float(self.profile.options["sdo_timeout"]),
+                                         on_frame=self._startup_frame)
+        self._link = link
+        self._fault_reset_sent = False
+        with link.session(cancel), self._one_line(link, reached):
+            node = link.node
+            steps: Sequence[tuple[str, Callable[[Any], None]]] = (
+                ("pre-operational", lambda n: n.nmt.send_command(codec.NmtCommand.PRE_OPERATIONAL)),
+                ("identity read", self._read_identity),
+                ("statusword read", self._read_status),
+                ("supported modes read", self._check_modes),
+                ("rated torque read", self._check_rated_torque),
+                (f"RPDO{self._rpdo_n} mapped", lambda n: self._map(n.rpdo[self._rpdo_n], codec.RPDO_CST)),
+                (f"TPDO{self._tpdo_n} mapped", lambda n: self._map(n.tpdo[self._tpdo_n], codec.TPDO_STATUS)),
+                (f"TPDO{self._tpdo_n + 1} mapped",
+                 lambda n: self._map(n.tpdo[self._tpdo_n + 1], codec.TPDO_MOTION)),
+                ("timing set", self._write_timing),
+                ("CST mode set", lambda n: setattr(n.sdo[0x6060], "raw", CST_MODE)),
+                ("operational", lambda n: n.nmt.send_command(codec.NmtCommand.START)),
+            )
+            for what, step in steps:
+                if self._clock() > deadline:
+                    raise DriveTimeoutError("start-up not done in time")
+                step(node)
+                reached.append(what)
+        self._start_sync()
+
+    @contextmanager
+    def _one_line(self, link: CanopenLink, reached: list[str]) -> Iterator[None]:
+        """Any SDO abort or timeout of start-up as one line: node, object, state reached."""
+        try:
+            yield
+        except (canopen.SdoAbortedError, canopen.SdoCommunicationError) as exc:
+            what = self._sdo_failure(link, exc)
+            raise DriveError(f"node {self.node_id}: {what} (reached: {_reached(reached)})") from None
+        except DriveError as exc:  # a refusal of ours (modes, rated torque, fault), a timeout
+            if "(reached: " in str(exc):
+                raise
+            raise type(exc)(f"node {self.node_id}: {exc} (reached: {_reached(reached)})") from None
+
+    def _sdo_failure(self, link: CanopenLink, exc: Exception) -> str:
+        index, sub = link.adapter.last_object
+        var = self._od.get_variable(index, sub)
+        obj = f"SDO 0x{index:04X}:{sub:02X} ({var.name if var is not None else 'not in the EDS'})"
+        if isinstance(exc, canopen.SdoAbortedError):
+            text = canopen.SdoAbortedError.CODES.get(exc.code, "unknown abort code")
+            return f"{obj} aborted by the node: 0x{exc.code:08X} ({text})"
+        if "No SDO response" in str(exc):
+            return f"{obj} timed out after {link.adapter.timeout:g} s"
+        return f"{obj} failed: {' '.join(str(exc).split())}"
+
+    def _read_identity(self, node: Any) -> None:
+        record = node.sdo[0x1018]
+        present = [sub for sub in (1, 2, 3, 4) if self._od.get_variable(0x1018, sub) is not None]
+        self.identity = tuple(int(record[sub].raw) for sub in present)
+
+    def _read_status(self, node: Any) -> None:
+        """The statusword before anything is enabled: a node in fault is refused (or reset)
+        with its error code 0x603F."""
+        statusword = int(node.sdo[0x6041].raw)
+        self._note_statusword(statusword)
+        if self._power in (PowerState.FAULT, PowerState.FAULT_REACTION_ACTIVE) and 0x603F in self._od:
+            self._emcy = int(node.sdo[0x603F].raw)
+
+    def _check_modes(self, node: Any) -> None:
+        modes = int(node.sdo[0x6502].raw)
+        if not modes >> codec.CST_SUPPORTED_BIT & 1:
+            raise DriveError(f"0x6502 (supported drive modes) = 0x{modes:08X}: no cyclic synchronous "
+                             f"torque (bit {codec.CST_SUPPORTED_BIT}), the only mode dobhil drives")
+
+    def _check_rated_torque(self, node: Any) -> None:
+        unit = self.profile.options["rated_torque_unit"]
+        raw = int(node.sdo[0x6076].raw)
+        rated = raw * RATED_TORQUE_UNITS[unit]
+        if rated <= 0:
+            raise DriveError(f"0x6076 (motor rated torque) = {raw} {unit}: a rated torque of 0 makes "
+                             "every per mille torque 0; set the motor's rated torque on the drive")
+        if abs(rated - self._rated) > RATED_TORQUE_TOLERANCE * self._rated:
+            raise DriveError(f"0x6076 (motor rated torque) = {raw} {unit} = {rated:g} Nm, the profile's "
+                             f"cia402.rated_torque is {self._rated:g} Nm (more than 1 % apart: "
+                             "wrong rated_torque_unit or a different motor?)")
+        self._rated = rated  # the node's own value: per mille refers to it exactly
+
+    def _map(self, pdo: PdoMap, objects: Sequence[Mapped]) -> None:
+        """Write one PDO's mapping with canopen (read its COB-ID, clear, add the objects,
+        synchronous, enabled, save)."""
+        pdo.read()
+        pdo.clear()
+        for obj in objects:
+            pdo.add_variable(obj.index, obj.subindex)
+        pdo.trans_type = 1
+        pdo.enabled = True
+        pdo.save()
+
+    def _write_timing(self, node: Any) -> None:
+        node.sdo[0x1006].raw = round(self._period * 1e6)
+        heartbeat = self.profile.heartbeat_period
+        node.sdo[0x1017].raw = round(heartbeat * 1e3) if heartbeat else 0
+
+    def _startup_frame(self, msg: can.Message) -> None:
+        """A frame read while waiting for an SDO answer that is not one: the drive's."""
+        self.apply(msg)
+
+    # -- SYNC -----------------------------------------------------------------
+
+    def _start_sync(self) -> None:
+        self._stop_sync()
+        self._native_sync = native_periodic(self._bus)
+        if self._native_sync:
+            self._sync_task = self._bus.send_periodic(self._sync_msg, self._period)
+
+    def _stop_sync(self) -> None:
+        task, self._sync_task = self._sync_task, None
+        if task is not None:
+            try:
+                task.stop()
+            except Exception:  # a bus already gone stops its tasks with it
+                pass
+
+    def _send_sync(self) -> None:
+        self._send_all((self._sync_msg,), "SYNC")
+        self._sync_at = time.time()  # the host's send time: the bus stamps of received frames' clock
+
+    # -- hooks ----------------------------------------------------------------
+
+    def _enable_start(self) -> Sequence[can.Message]:
+        self._statusword = -1  # the first TPDO's statusword is news, whatever the SDO read said
+        self._controlword = int(Controlword.SHUTDOWN) if self._power is PowerState.UNKNOWN else \
+            int(codec.next_controlword(self._power) or self._controlword)
+        return self._command_frames()
+
+    def _enable_step(self, event: StateEvent) -> Sequence[can.Message]:
+        power = PowerState(event.state) if 0 <= event.state < len(PowerState) else PowerState.UNKNOWN
+        if power in (PowerState.FAULT, PowerState.FAULT_REACTION_ACTIVE):
+            return self._on_fault_while_enabling(power)
+        command = codec.next_controlword(power)
+        if command is None or command == self._controlword:
+            return ()
+        self._controlword = int(command)
+        return self._command_frames()
+
+    def _on_fault_while_enabling(self, power: PowerState) -> Sequence[can.Message]:
+        if power is PowerState.FAULT_REACTION_ACTIVE:
+            return ()  # becomes FAULT by itself
+        if not self._reset_faults:
+            raise DriveFaultError(f"node {self.node_id} is in fault: {self._emcy_text()}; not reset "
+                                  "(dobhil run --reset-faults resets it)")
+        if self._fault_reset_sent:
+            # once: the node applies it at a SYNC still to come; if it stays in fault, the
+            # enable's timeout says so with the last state and error seen
+            return ()
+        self._fault_reset_sent = True
+        frames: list[can.Message] = []
+        for word in codec.fault_reset_edge(self._controlword):
+            self._controlword = int(word)
+            frames.extend(self._command_frames())
+        return frames
+
+    def _is_enabled_confirmation(self, event: StateEvent) -> bool:
+        return event.active and event.error_code == 0
+
+    def _is_disabled_confirmation(self, event: StateEvent) -> bool:
+        return event.state in _OUT_OF_TORQUE
+
+    def _keepalive_frames(self) -> Sequence[can.Message]:
+        """The RPDO with the controlword the state machine is at and zero torque (and a
+        SYNC to apply it and be answered, when no periodic SYNC runs)."""
+        return self._command_frames()
+
+    def _disable_frames(self) -> Sequence[can.Message]:
+        return (self._rpdo(Controlword.QUICK_STOP, 0), self._sync_msg,
+                self._rpdo(Controlword.DISABLE_VOLTAGE, 0), self._sync_msg)
+
+    def _disable_frame_names(self) -> Sequence[str]:
+        return ("quick stop", "SYNC", "disable voltage", "SYNC")
+
+    def _torque_frame(self, tau_nm: float) -> can.Message:
+        self._layouts.rpdo.pack_into(self._rpdo_msg.data, 0, self._controlword,
+                                     codec.per_mille(tau_nm, self._rated))
+        return self._rpdo_msg
+
+    def _command_frames(self) -> Sequence[can.Message]:
+        frame = self._rpdo(self._controlword, 0)
+        return (frame,) if self._native_sync else (frame, self._sync_msg)
+
+    def _rpdo(self, controlword: int, torque: int) -> can.Message:
+        return can.Message(arbitration_id=self._rpdo_id, is_extended_id=False,
+                           data=self._layouts.rpdo.pack(controlword, torque))
+
+    # -- decoding -------------------------------------------------------------
+
+    def _decode(self, msg: can.Message) -> Sequence[DriveEvent]:
+        arb = msg.arbitration_id
+        if msg.is_extended_id or msg.is_remote_frame or msg.is_error_frame:
+            return _NO_EVENTS
+        data = msg.data
+        try:
+            if arb == self._motion_id:
+                return self._on_motion_pdo(data)
+            if arb == self._status_id:
+                return self._on_status_pdo(data)
+            if arb == Cob.SYNC:
+                self._sync_at = msg.timestamp or math.nan
+                return _NO_EVENTS
+            if arb == self._heartbeat_id and len(data):
+                self._nmt = data[0] & 0x7F
+                return (self._state_event(),)
+            if arb == self._emcy_id:
+                self._emcy = codec.decode_emcy(data).code
+                return (self._state_event(),)
+        except (CodecError, struct.error):  # a malformed frame is not feedback; the next one will be
+            return _NO_EVENTS
+        return _NO_EVENTS
+
+    def _on_status_pdo(self, data: bytearray) -> Sequence[DriveEvent]:
+        statusword, position, torque = self._layouts.status.unpack_from(data)
+        self._position = position * self._scale.rad_per_increment
+        self._torque_actual = codec.torque_from_per_mille(torque, self._rated)
+        if statusword == self._statusword:
+            return _NO_EVENTS
+        self._note_statusword(statusword)
+        return (self._state_event(),)
+
+    def _on_motion_pdo(self, data: bytearray) -> Sequence[DriveEvent]:
+        velocity, mode = self._layouts.motion.unpack_from(data)
+        motion = MotionEvent(self._position, velocity * self._scale.rad_s_per_velocity_count,
+                             self._sync_at)
+        if mode == self._mode:
+            return (motion,)
+        self._mode = mode
+        return (self._state_event(), motion)
+
+    def _note_statusword(self, statusword: int) -> None:
+        self._statusword = statusword
+        self._power = codec.power_state(statusword)
+        if self._power is PowerState.SWITCH_ON_DISABLED:
+            self._emcy = 0  # a fault reset went through
+
+    def _state_event(self) -> StateEvent:
+        power = self._power
+        nmt_ok = self._nmt in (-1, NmtState.OPERATIONAL)
+        active = (power is PowerState.OPERATION_ENABLED and self._mode == CST_MODE and nmt_ok
+                  and not self._statusword & codec.STATUSWORD_FAULT_BIT)
+        code = self._emcy
+        return StateEvent(active=active, error_code=code, watchdog_tripped=code == EMCY_HEARTBEAT,
+                          state_text=self._state_text(nmt_ok), error_text=self._emcy_text(),
+                          state=int(power))
+
+    def _state_text(self, nmt_ok: bool) -> str:
+        text = self._power.text
+        if self._mode != CST_MODE and self._power is PowerState.OPERATION_ENABLED:
+            text += f" in mode {self._mode}"
+        return text if nmt_ok else f"{text}, NMT {NmtState.text(self._nmt)}"
+
+    def _emcy_text(self) -> str:
+        if not self._emcy:
+            return "none"
+        return f"EMCY 0x{self._emcy:04X} ({emcy_text(self._emcy)})"
+
+
+def emcy_text(code: int) -> str:
+    """canopen's description of an EMCY error code (its table of CiA 301 code classes)."""
+    return EmcyError(code, 0, b"", 0.0).get_desc() or "no description"
+
+
+def _reached(reached: Sequence[str]) -> str:
+    return ", ".join(reached) if reached else "nothing"
+
+
+# -- object dictionary and layouts -------------------------------------------
+
+
+def eds_path(profile: DriveProfile) -> Path:
+    """The profile's ``cia402.eds``: a path, or relative to the profile's directory."""
+    name = Path(str(profile.options["eds"]))
+    base = getattr(profile, "directory", None)
+    candidates = [name] if name.is_absolute() else \
+        [*([Path(base) / name] if base else []), name, _shipped(name)]
+    for path in candidates:
+        if path.is_file():
+            return path
+    raise ConfigError(f"drive profile {profile.name!r}: cia402.eds: file {str(name)!r} not found "
+                      f"(relative to the profile's directory, or a path)")
+
+
+def _shipped(name: Path) -> Path:
+    from dobhil.drives.profile import default_drivers_dir
+    return default_drivers_dir() / name
+
+
+def load_od(profile: DriveProfile) -> ObjectDictionary:
+    """The profile's EDS read by canopen, with every object the drive uses; ConfigError
+    (one line) otherwise."""
+    path = eds_path(profile)
+    try:
+        od = canopen.import_od(str(path), profile.node_id)
+    except (ObjectDictionaryError, ValueError, KeyError, OSError) as exc:
+        raise ConfigError(f"{path}: not a readable EDS: {' '.join(str(exc).split())}") from None
+    objects = {**_REQUIRED, **{m.index: m.name for m in (*codec.RPDO_CST, *codec.TPDO_STATUS,
+                                                          *codec.TPDO_MOTION)}}
+    for index, name in objects.items():
+        if index not in od:
+            raise ConfigError(f"{path}: object 0x{index:04X} ({name}) missing: a CiA 402 drive in CST "
+                              "needs it")
+    _check_eds_values(od, path)
+    return od
+
+
+def _check_eds_values(od: ObjectDictionary, path: Path) -> None:
+    modes = _default(od, 0x6502)
+    if modes is not None and not int(modes) >> codec.CST_SUPPORTED_BIT & 1:
+        raise ConfigError(f"{path}: 0x6502 (supported drive modes) = 0x{int(modes):08X} has no cyclic "
+                          f"synchronous torque (bit {codec.CST_SUPPORTED_BIT}); dobhil drives CST only")
+    rated = _default(od, 0x6076)
+    if rated is not None and int(rated) <= 0:
+        raise ConfigError(f"{path}: 0x6076 (motor rated torque) = {rated}: a rated torque of 0 makes "
+                          "every per mille torque 0; give the motor's rated torque")
+
+
+def _default(od: ObjectDictionary, index: int) -> Any:
+    var = od[index]
+    return var.default if isinstance(var, ODVariable) else None
+
+
+def layouts_of(od: ObjectDictionary, profile: DriveProfile) -> Layouts:
+    """The PDOs' structs from the data types canopen gives the mapped objects (a PDO map
+    built offline: canopen's ``PdoMap.add_variable`` on a node that is on no bus). A
+    mapping beyond 64 bits is refused in one line."""
+    node = canopen.RemoteNode(profile.node_id, od)
+    opts = profile.options
+    maps = ((node.rpdo, int(opts["rpdo"]), codec.RPDO_CST), (node.tpdo, int(opts["tpdo"]), codec.TPDO_STATUS),
+            (node.tpdo, int(opts["tpdo"]) + 1, codec.TPDO_MOTION))
+    structs = []
+    for pdos, number, objects in maps:
+        types = pdo_data_types(pdos, number, objects)
+        try:
+            structs.append(codec.layout_struct(types))
+        except CodecError as exc:
+            names = " + ".join(f"{m.label} {len_bits(t)} bits" for m, t in zip(objects, types))
+            raise ConfigError(f"drive profile {profile.name!r}: PDO {number} mapping does not fit: "
+                              f"{names}: {exc}") from None
+    return Layouts(*structs)
+
+
+def len_bits(data_type: int) -> int:
+    return codec.layout_bits([data_type])
+
+
+def pdo_data_types(pdos: Any, number: int, objects: Sequence[Mapped]) -> list[int]:
+    """Data types of ``objects`` as canopen maps them into PDO ``number`` (offline)."""
+    try:
+        pdo = pdos[number]
+    except KeyError:
+        raise ConfigError(f"the EDS has no PDO {number} (its communication and mapping records)") from None
+    pdo.clear()
+    for obj in objects:
+        pdo.add_variable(obj.index, obj.subindex)
+    return [var.od.data_type for var in pdo.map]

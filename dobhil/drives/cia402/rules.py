@@ -1,0 +1,63 @@
+"""The ``cia402:`` section of a drive profile and what CiA 402 asks of the common keys.
+
+Validated by :mod:`dobhil.drives.profile` with the same validator and error style as every
+key (``<source>: cia402.rated_torque_unit: expected one of 'mNm', 'uNm', got 'Nm'``);
+``drivers/README.md`` documents each key. Pure: no canopen, so a profile loads without it.
+"""
+
+from __future__ import annotations
+
+import math
+from types import MappingProxyType
+from typing import Any
+
+from dobhil.drives.profile import Rule, ProtocolRules
+
+__all__ = ["CIA402_RULES", "RATED_TORQUE_UNITS", "VELOCITY_UNITS"]
+
+#: the unit of 0x6076 on a drive: mNm per CiA 402, uNm on a maxon EPOS4
+RATED_TORQUE_UNITS = ("mNm", "uNm")
+#: the unit of 0x606C velocity actual
+VELOCITY_UNITS = ("rpm", "increments_per_s", "milli_rpm")
+#: the pre-defined connection set has four PDOs each way; the motion TPDO is tpdo + 1
+MAX_RPDO, MAX_TPDO = 4, 3
+#: SDO answers: a node answers within milliseconds; 10 s is a unit mistake
+MAX_SDO_TIMEOUT = 10.0
+
+
+def _positive(limit: float) -> Any:
+    return lambda v: math.isfinite(v) and 0 < v <= limit
+
+
+def _one_of(values: tuple[str, ...]) -> str:
+    return "one of " + ", ".join(repr(v) for v in values)
+
+
+CIA402_RULES = ProtocolRules(
+    section=MappingProxyType({
+        "eds": Rule((str,), "the node's EDS file (relative to the profile's directory, or a path)",
+                    lambda v: bool(v)),
+        "rated_torque": Rule((int, float), "a number > 0 and <= 10000 Nm (the motor's rated torque, "
+                             "0x6076 after rated_torque_unit)", _positive(1e4)),
+        "rated_torque_unit": Rule((str,), _one_of(RATED_TORQUE_UNITS), lambda v: v in RATED_TORQUE_UNITS,
+                                  default="mNm"),
+        "position_per_rev": Rule((int, float), "a number > 0 (increments of 0x6064 per motor revolution)",
+                                 _positive(1e12)),
+        "velocity_unit": Rule((str,), _one_of(VELOCITY_UNITS), lambda v: v in VELOCITY_UNITS,
+                              default="rpm"),
+        "gear_ratio": Rule((int, float), "a number > 0 (motor turns per output turn)", _positive(1e6),
+                           default=1.0),
+        "rpdo": Rule((int,), f"an RPDO number from 1 to {MAX_RPDO}", lambda v: 1 <= v <= MAX_RPDO,
+                     default=1),
+        "tpdo": Rule((int,), f"a TPDO number from 1 to {MAX_TPDO} (the motion TPDO is the next one)",
+                     lambda v: 1 <= v <= MAX_TPDO, default=1),
+        "sdo_timeout": Rule((int, float), f"a number > 0 and <= {MAX_SDO_TIMEOUT:g} s",
+                            _positive(MAX_SDO_TIMEOUT), default=0.3),
+        "consumer_heartbeat": Rule((int, float), "0 (off) or a number from 0.001 to 60 s",
+                                   lambda v: math.isfinite(v) and (v == 0 or 1e-3 <= v <= 60.0), default=0.0),
+    }),
+    common=MappingProxyType({
+        "node_id": Rule((int,), "an integer from 1 to 127 (CANopen node id)", lambda v: 1 <= v <= 127),
+    }),
+    requires=frozenset({"feedback_period"}),
+)

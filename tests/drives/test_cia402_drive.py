@@ -1,0 +1,354 @@
+"""CiA402Drive against a node of the test's own (canopen's LocalNode + a small state machine,
+:mod:`tests.drives.cia402_fake`), in simulated time: start-up, enable, cycle, faults, safe
+stop, replay; and every start-up failure as one line with nothing enabled."""
+
+from __future__ import annotations
+
+import math
+import re
+import time
+from pathlib import Path
+from typing import Any
+
+import can
+import canopen
+import pytest
+
+from dobhil.drives.base import Confirmation, DriveState
+from dobhil.drives.cia402.drive import CiA402Drive
+from dobhil.drives.profile import load_profile, profile_from_mapping
+from dobhil.errors import ConfigError, DriveError, DriveFaultError, DriveTimeoutError, WaitCancelled
+
+from .cia402_fake import EDS, EXPECTED_MAPS, FakeNode, SimBus
+
+PROFILE = Path(__file__).resolve().parents[2] / "drivers" / "cia402-emulated.yaml"
+
+
+def profile(**section: Any) -> Any:
+    import yaml
+    data = yaml.safe_load(PROFILE.read_text())
+    data["cia402"] = {**data["cia402"], "eds": str(EDS), **section}
+    return profile_from_mapping(data, source="test profile")
+
+
+def rig(*, bus: SimBus | None = None, reset_faults: bool = False, **node: Any) -> tuple[SimBus, FakeNode, CiA402Drive]:
+    bus = bus or SimBus()
+    fake = FakeNode(bus, **node)
+    drive = CiA402Drive(bus, profile(), clock=bus.clock, reset_faults=reset_faults)  # type: ignore[arg-type]
+    return bus, fake, drive
+
+
+class HostSyncBus(SimBus):
+    """A bus whose send_periodic would be a Python thread of this process: the drive must
+    send SYNC itself (the node's own heartbeat still runs in simulated time)."""
+
+    native_periodic = False
+
+
+# -- start-up and enable ------------------------------------------------------
+
+def test_start_up_maps_the_node_and_enables_cst() -> None:
+    bus, node, drive = rig()
+    drive.enable()
+    assert drive.status.state is DriveState.ENABLED
+    sdo = node.sdo
+    for index, entries in EXPECTED_MAPS.items():
+        assert node.mapping(index) == entries
+    assert sdo[0x1400][2].raw == 1 and sdo[0x1800][2].raw == 1 and sdo[0x1801][2].raw == 1
+    assert not sdo[0x1400][1].raw & 0x80000000 and not sdo[0x1801][1].raw & 0x80000000
+    assert sdo[0x1006].raw == 1000 and sdo[0x1017].raw == 100 and sdo[0x6060].raw == 10
+    assert node.local.nmt.state == "OPERATIONAL"
+    assert node.state == "operation enabled"
+    assert [cw for i, cw in enumerate(node.controlwords) if i == 0 or cw != node.controlwords[i - 1]] == [6, 7, 15]
+    assert drive.identity and drive.feedback_streams
+    # the periodic SYNC runs in the bus (simulated time), not in a thread of this process
+    assert [t.period for t in bus.tasks if not t.stopped and t.msg.arbitration_id == 0x80] == [0.001]
+
+
+def test_a_node_in_fault_is_refused_with_its_error_code_unless_reset_is_asked() -> None:
+    bus, node, drive = rig()
+    node.state = "fault"
+    node.sdo[0x603F].raw = 0x2310
+    node._publish()
+    with pytest.raises(DriveFaultError) as info:
+        drive.enable()
+    assert str(info.value) == ("node 5 is in fault: EMCY 0x2310 (Current); not reset "
+                               "(dobhil run --reset-faults resets it)")
+    assert node.state == "fault" and 0x80 not in node.controlwords
+    assert drive.status.state is DriveState.FAULT
+
+
+def test_reset_faults_gives_one_rising_edge_then_enables() -> None:
+    bus, node, drive = rig(reset_faults=True)
+    node.state = "fault"
+    node._publish()
+    drive.enable()
+    assert node.state == "operation enabled"
+    edges = [cw for prev, cw in zip([0, *node.controlwords], node.controlwords) if cw & 0x80 and not prev & 0x80]
+    assert edges == [0x80]
+
+
+def test_a_node_that_stays_in_fault_after_the_reset_ends_the_enable() -> None:
+    bus, node, drive = rig(reset_faults=True)
+    node.state = "fault"
+    node.sdo[0x603F].raw = 0x5000
+    node._publish()
+    node._command = lambda cw: node.controlwords.append(cw)  # type: ignore[method-assign]
+    with pytest.raises(DriveTimeoutError, match=r"last seen fault with error EMCY 0x5000 \(Device Hardware\)"):
+        drive.enable()
+    edges = [cw for prev, cw in zip([0, *node.controlwords], node.controlwords) if cw & 0x80 and not prev & 0x80]
+    assert edges == [0x80]   # one reset, not one per status frame
+
+
+def test_without_native_periodic_send_the_drive_sends_sync_itself() -> None:
+    bus, node, drive = rig(bus=HostSyncBus())
+    drive.enable()
+    assert not drive.feedback_streams
+    assert not [t for t in bus.tasks if t.msg.arbitration_id == 0x80]
+    before = time.time()
+    drive.send_torque(0.25)
+    assert [m.arbitration_id for m in bus.sent[-2:]] == [0x205, 0x80]   # the RPDO, then its SYNC
+    fb = drive.poll(0.01)
+    # sampled at the SYNC the host sent: its send time, on the clock of python-can's stamps
+    assert fb is not None and before <= fb.sampled_at <= time.time()
+    assert node.torque == pytest.approx(0.25)
+
+
+# -- cycle ------------------------------------------------------------------
+
+def test_closed_cycle_torque_reaches_the_node_and_feedback_follows() -> None:
+    bus, node, drive = rig(inertia=0.01)
+    drive.enable()
+    first = drive.poll(0.01)
+    assert first is not None
+    for _ in range(100):
+        drive.send_torque(0.5)
+        fb = drive.poll(0.01)
+        assert fb is not None
+        assert fb.sampled_at == node.last_sync            # the SYNC that sampled it
+        assert fb.rx_time >= fb.sampled_at
+    assert node.torque == pytest.approx(0.5)              # 500 per mille of 1 Nm
+    # 100 periods of 0.5 Nm on 0.01 kg m^2 (the first command acts one SYNC later)
+    assert fb.velocity == pytest.approx(0.5 / 0.01 * 0.099, rel=0.05)
+    assert fb.position == pytest.approx(node.position, abs=2 * math.pi / 4096)   # one increment
+
+
+def test_safe_stop_is_confirmed_by_the_statusword_then_sync_stops() -> None:
+    bus, node, drive = rig()
+    drive.enable()
+    drive.send_torque(0.3)
+    drive.poll(0.01)
+    report = drive.safe_stop()
+    assert report.confirmation is Confirmation.CONFIRMED and report.safe
+    assert [f.what for f in report.frames] == ["zero torque", "quick stop", "SYNC", "disable voltage", "SYNC"]
+    assert node.state == "switch on disabled" and node.torque == 0.0
+    assert not [t for t in bus.tasks if t.msg.arbitration_id == 0x80 and not t.stopped]
+
+
+def test_disable_without_confirmation_still_gets_the_rpdos_applied() -> None:
+    bus, node, drive = rig()
+    drive.enable()
+    assert drive.disable()
+    assert node.state == "switch on disabled"   # the safe-stop SYNCs applied the RPDOs
+
+
+# -- faults while running ---------------------------------------------------
+
+def test_emcy_stops_the_run_with_its_code_and_canopens_text() -> None:
+    bus, node, drive = rig()
+    drive.enable()
+    drive.send_torque(0.1)
+    drive.poll(0.01)
+    node.fault(0x2310)
+    with pytest.raises(DriveFaultError) as info:
+        for _ in range(5):
+            drive.send_torque(0.1)
+            drive.poll(0.01)
+    assert "EMCY 0x2310 (Current)" in str(info.value)
+    assert drive.status.error_code == 0x2310 and drive.status.state is DriveState.FAULT
+
+
+def test_an_nmt_state_change_is_a_fault() -> None:
+    bus, node, drive = rig()
+    drive.enable()
+    node.network.notify(0, bytearray([0x80, 5]), bus.now)   # someone put it pre-operational
+    with pytest.raises(DriveFaultError, match="NMT pre-operational"):
+        for _ in range(300):
+            drive.send_torque(0.0)
+            drive.poll(0.01)
+
+
+def test_a_lost_heartbeat_is_a_fault() -> None:
+    bus, node, drive = rig()
+    drive.enable()
+    node.local.nmt.stop_heartbeat()
+    with pytest.raises(DriveFaultError, match="no heartbeat from node 5"):
+        for _ in range(1000):
+            drive.send_torque(0.0)
+            drive.poll(0.01)
+    assert bus.now < 0.5   # three heartbeat periods of 0.1 s, and the enable's few ms
+
+
+# -- replay -----------------------------------------------------------------
+
+def test_apply_decodes_recorded_frames_without_start_up() -> None:
+    bus, node, drive = rig()
+    drive.enable()
+    received: list[can.Message] = []
+    for _ in range(20):
+        drive.send_torque(0.4)
+        drive.poll(0.01)
+    # every frame the host read: record them by wrapping recv from now on
+    original = bus.recv
+
+    def recording(timeout: float | None = None) -> can.Message | None:
+        msg = original(timeout)
+        if msg is not None:
+            received.append(msg)
+        return msg
+
+    bus.recv = recording  # type: ignore[method-assign]
+    live = []
+    for _ in range(20):
+        drive.send_torque(0.4)
+        fb = drive.poll(0.01)
+        assert fb is not None
+        live.append((fb.position, fb.velocity, fb.sampled_at))
+    replayer = CiA402Drive(bus, profile(), clock=lambda: 0.0)  # type: ignore[arg-type]
+    replayed = []
+    for msg in received:
+        if replayer.apply(msg):
+            fb = replayer.feedback
+            assert fb is not None
+            replayed.append((fb.position, fb.velocity, fb.sampled_at))
+    assert replayed == live
+
+
+# -- start-up failures: one line, nothing enabled -----------------------------
+
+def _one_line_start_up_failure(drive: CiA402Drive, node: FakeNode | None) -> str:
+    with pytest.raises(DriveError) as info:
+        drive.enable()
+    text = str(info.value)
+    assert "\n" not in text and text.startswith("node 5: ")
+    assert drive.status.state is not DriveState.ENABLED
+    if node is not None:
+        assert node.state != "operation enabled" and 15 not in node.controlwords
+    return text
+
+
+def test_a_silent_node_times_out_naming_the_object() -> None:
+    bus = SimBus()
+    bus.node = None
+    bus.send = lambda msg, timeout=None: bus.sent.append(msg)  # type: ignore[method-assign]
+    drive = CiA402Drive(bus, profile(), clock=bus.clock)  # type: ignore[arg-type]
+    text = _one_line_start_up_failure(drive, None)
+    assert text == "node 5: SDO 0x1018:01 (Vendor-ID) timed out after 0.3 s (reached: pre-operational)"
+
+
+def test_an_abort_names_the_object_and_what_was_reached() -> None:
+    od = canopen.import_od(str(EDS), 5)
+    del od[0x6502]  # this node's dictionary lacks it: its SDO server aborts
+    bus, node, drive = rig(od=od)
+    text = _one_line_start_up_failure(drive, node)
+    assert re.fullmatch(r"node 5: SDO 0x6502:00 \(Supported drive modes\) aborted by the node: 0x06020000 "
+                        r"\(Object does not exist\) \(reached: pre-operational, identity read, "
+                        r"statusword read\)", text), text
+
+
+def test_a_node_without_cst_is_refused() -> None:
+    bus, node, drive = rig()
+    node.sdo[0x6502].raw = 0x00000080
+    text = _one_line_start_up_failure(drive, node)
+    assert "0x6502 (supported drive modes) = 0x00000080: no cyclic synchronous torque (bit 9)" in text
+    assert text.endswith("(reached: pre-operational, identity read, statusword read)")
+
+
+@pytest.mark.parametrize(("rated_mnm", "says"), [
+    (0, "0x6076 (motor rated torque) = 0 mNm: a rated torque of 0"),
+    (1020, "= 1020 mNm = 1.02 Nm, the profile's cia402.rated_torque is 1 Nm (more than 1 % apart"),
+])
+def test_a_rated_torque_of_0_or_another_is_refused(rated_mnm: int, says: str) -> None:
+    bus, node, drive = rig(rated_mnm=rated_mnm)
+    assert says in _one_line_start_up_failure(drive, node)
+
+
+def test_a_rated_torque_within_1_percent_is_the_nodes() -> None:
+    bus, node, drive = rig(rated_mnm=1005)
+    drive.enable()
+    assert drive.rated_torque == pytest.approx(1.005)
+
+
+def test_a_cancel_ends_start_up() -> None:
+    bus = SimBus()
+    bus.node = None
+    bus.send = lambda msg, timeout=None: None  # type: ignore[method-assign]
+    drive = CiA402Drive(bus, profile(sdo_timeout=5.0), clock=bus.clock)  # type: ignore[arg-type]
+    with pytest.raises(WaitCancelled, match="received SIGTERM"):
+        drive.enable(cancel=lambda: "received SIGTERM" if bus.now > 0.05 else "")
+    assert bus.now < 0.1
+
+
+# -- bad input in the profile or EDS: ConfigError at construction ----------------
+
+def _eds_variant(tmp_path: Path, change: Any) -> Path:
+    text = EDS.read_text()
+    path = tmp_path / "variant.eds"
+    path.write_text(change(text))
+    return path
+
+
+def _drop_section(text: str, name: str) -> str:
+    return re.sub(rf"\[{name}\]\n(?:[^\[\n].*\n|\n)*", "", text)
+
+
+@pytest.mark.parametrize(("change", "says"), [
+    (lambda t: _drop_section(t, "6071"), "object 0x6071 (target torque) missing"),
+    (lambda t: re.sub(r"(\[6502\](?:\n.*)*?DefaultValue=)0x00000380", r"\g<1>0x00000180", t),
+     "0x6502 (supported drive modes) = 0x00000180 has no cyclic synchronous torque (bit 9)"),
+    (lambda t: re.sub(r"(\[6076\](?:\n.*)*?DefaultValue=)1000", r"\g<1>0", t),
+     "0x6076 (motor rated torque) = 0: a rated torque of 0"),
+    (lambda t: re.sub(r"(\[6077\](?:\n.*)*?DataType=)0x0003", r"\g<1>0x0004", t),
+     "PDO 1 mapping does not fit: 0x6041:00 (statusword) 16 bits + 0x6064:00 (position actual value) "
+     "32 bits + 0x6077:00 (torque actual value) 32 bits: PDO mapping needs 80 bits, a PDO carries 64"),
+])
+def test_a_bad_eds_is_one_config_line(tmp_path: Path, change: Any, says: str) -> None:
+    eds = _eds_variant(tmp_path, change)
+    with pytest.raises(ConfigError) as info:
+        CiA402Drive(SimBus(), profile(eds=str(eds)))  # type: ignore[arg-type]
+    assert says in str(info.value) and "\n" not in str(info.value)
+
+
+def test_an_unknown_section_key_is_one_config_line() -> None:
+    with pytest.raises(ConfigError, match=r"unknown key 'cia402.rated_torq' \(allowed in cia402: eds, "):
+        profile(rated_torq=1.0)
+
+
+@pytest.mark.parametrize(("key", "value", "says"), [
+    ("rated_torque", 0, "cia402.rated_torque: expected a number > 0"),
+    ("rated_torque_unit", "Nm", "cia402.rated_torque_unit: expected one of 'mNm', 'uNm', got 'Nm'"),
+    ("velocity_unit", "rad/s", "cia402.velocity_unit: expected one of 'rpm', 'increments_per_s', 'milli_rpm'"),
+    ("tpdo", 4, "cia402.tpdo: expected a TPDO number from 1 to 3"),
+])
+def test_section_values_are_checked(key: str, value: Any, says: str) -> None:
+    with pytest.raises(ConfigError, match=re.escape(says)):
+        profile(**{key: value})
+
+
+def test_the_shipped_profile_loads_and_finds_its_eds() -> None:
+    shipped = load_profile(PROFILE)
+    assert shipped.protocol == "cia402" and shipped.options["rated_torque_unit"] == "mNm"
+    drive = CiA402Drive(SimBus(), shipped)  # type: ignore[arg-type]
+    assert drive.frame_ids >= {0x0, 0x80, 0x85, 0x185, 0x285, 0x205, 0x585, 0x605, 0x705}
+
+
+def test_node_id_must_be_a_canopen_one() -> None:
+    import yaml
+    data = yaml.safe_load(PROFILE.read_text())
+    data["node_id"] = 0
+    with pytest.raises(ConfigError, match="node_id: expected an integer from 1 to 127"):
+        profile_from_mapping(data, source="p")
+    del data["feedback_period"]
+    data["node_id"] = 5
+    with pytest.raises(ConfigError, match="missing key 'feedback_period'"):
+        profile_from_mapping(data, source="p")
