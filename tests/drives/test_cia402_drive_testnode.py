@@ -35,6 +35,7 @@ from dobhil.runtime.stop import StopReason
 from .cia402_node import HostSyncPumpBus, NodeState, PumpBus, TestNode402
 
 NODE = 5
+PERIOD = 0.001   # the profile's feedback_period (SYNC period)
 DEMO = Path(__file__).resolve().parents[2] / "configs" / "demo.yaml"
 RAD_PER_INC = 2 * math.pi / 4096
 RAD_S_PER_RPM = 2 * math.pi / 60
@@ -49,12 +50,17 @@ class Rig:
     drive: Drive
 
     def run(self, seconds: float, torque: float | None = None) -> None:
-        """Host loop for ``seconds`` of simulated time (torque sent each cycle if given)."""
+        """Host loop of 1 ms cycles for ``seconds`` of simulated time (torque sent each
+        cycle if given): without periodic SYNC the feedback answers the command at once,
+        so each cycle also waits for its deadline."""
         end = self.bus.clock() + seconds
-        while self.bus.clock() < end:
+        while self.bus.clock() < end - 1e-9:
+            deadline = self.bus.clock() + PERIOD
             if torque is not None:
                 self.drive.send_torque(torque)
-            self.drive.poll(0.001)
+            self.drive.poll(PERIOD)
+            if self.bus.clock() < deadline:
+                self.bus.advance(deadline - self.bus.clock())
 
     def next_feedback(self) -> Any:
         fb = None
@@ -188,25 +194,45 @@ def test_fault_with_emcy_is_a_drive_fault_with_its_code(rig: Rig) -> None:
     assert rig.node.torque == 0.0
 
 
+class FaultAtCycle:
+    """A cycle sink that puts the node in fault (statusword fault bit + EMCY) at cycle ``at``."""
+
+    def __init__(self, node: TestNode402, at: int, code: int) -> None:
+        self.node, self.at, self.code = node, at, code
+
+    def started(self, fb: Any) -> None:
+        pass
+
+    def cycle(self, k: int, *args: Any) -> None:
+        if k == self.at:
+            self.node.fault(self.code)
+
+    def stop(self, stop: Any) -> None:
+        pass
+
+
 def test_node_fault_stops_a_run_as_drive_fault(make_rig: Callable[..., Rig]) -> None:
-    config = load_config(DEMO, ["drive.profile=cia402-emulated",
-                                                "loop.duration=0.5"])
+    config = load_config(DEMO, ["drive.profile=cia402-emulated", "loop.duration=0.5"])
     rig = make_rig(inertia=config.plant.inertia)
-    node = rig.node
-
-    def fault_at_sync_100(can_id: int, data: bytes, timestamp: float) -> None:
-        if node.syncs == 100 and node.state is NodeState.OPERATION_ENABLED:
-            node.fault(0x7500)
-
-    node.network.subscribe(0x80, fault_at_sync_100)
     loop = ForceLoop(drive=rig.drive, controller=build_controller(config, rig.drive.profile),
                      reference=make_reference(config.reference, None, duration=0.5),
-                     settings=loop_settings(config, Timing.LOCKSTEP, None), clock=rig.bus.clock)
+                     settings=loop_settings(config, Timing.LOCKSTEP, None), clock=rig.bus.clock,
+                     sink=FaultAtCycle(rig.node, 100, 0x7500))
     result = loop.run()
     assert result.stop.reason is StopReason.DRIVE_FAULT, result.stop.line()
-    assert "0x7500" in result.stop.detail and 90 <= result.cycles <= 110
+    assert "EMCY 0x7500" in result.stop.detail and result.stop.cycle == 101
     assert result.safe_stop is not None and result.safe_stop.safe
-    assert node.torque == 0.0 and node.state is NodeState.FAULT
+    assert rig.node.torque == 0.0 and rig.node.state is NodeState.FAULT
+
+
+def test_node_booting_while_the_host_listens_enables_at_once(make_rig: Callable[..., Rig]) -> None:
+    """The node's boot-up frame (NMT state 0) reaches the host during start-up (the rig
+    boots it after the host's bus is open); after the host's own NMT start the drive must
+    not wait for the next heartbeat to believe the node operational: the enable is
+    confirmed at the SYNC whose statusword says Operation enabled."""
+    rig = make_rig()
+    rig.drive.enable()
+    assert rig.node.syncs == 3      # shutdown, switch on, enable operation: one SYNC each
 
 
 def test_node_in_fault_is_not_enabled_unless_reset_is_asked(make_rig: Callable[..., Rig]) -> None:
