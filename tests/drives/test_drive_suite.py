@@ -114,7 +114,7 @@ ODRIVE = Protocol(
     last_states=(int(AxisState.IDLE),), fault_words=("ESTOP_REQUESTED",),
     decode=_odrive_commands,
     fault=lambda: [InjectFrame(codec.encode(codec.Estop(), node_id=_OD_NODE, firmware=Firmware.V0_6),
-                               after=AT, ids={_OD_TORQUE})],
+                               after=0, ids={_OD_TORQUE})],
     lose_disable=lambda: [LoseSent(frames=1, ids={_OD_AXIS_STATE})],
     profile_changes={"watchdog_timeout": 0},   # else its watchdog would disable it anyway
 )
@@ -142,17 +142,18 @@ def _cia402_commands(frames: Sequence[can.Message]) -> Commands:
 
 
 class OverTorque(Fault):
-    """The host's RPDOs from the ``at``-th on ask for more than the drive's max torque
-    (0x6072 = 3000 per mille): the node's own over-torque fault (EMCY 0x8311, fault bit)."""
+    """``count`` of the host's RPDOs ask for more than the drive's max torque (0x6072 =
+    3000 per mille), more SYNCs in a row than the node tolerates (3): the node's own
+    over-torque fault (EMCY 0x8311, fault bit). Later frames (the safe stop) pass as sent."""
 
     direction = Direction.SEND
 
-    def __init__(self, *, at: int, per_mille: int = 3500) -> None:
+    def __init__(self, *, per_mille: int = 3500, count: int = 5) -> None:
         super().__init__((_C_RPDO,))
-        self.at, self.per_mille = at, per_mille
+        self.per_mille, self.count = per_mille, count
 
     def apply(self, msg: can.Message, index: int, now: float) -> Sequence[can.Message]:
-        if index < self.at or len(msg.data) != _RPDO.size:
+        if index >= self.count or len(msg.data) != _RPDO.size:
             return (msg,)
         word, _torque = _RPDO.unpack(msg.data)
         self.applied += 1
@@ -189,11 +190,48 @@ CIA402 = Protocol(
     stopped_states=frozenset({SWITCH_ON_DISABLED, FAULT}),
     last_states=(_QUICK_STOP, _DISABLE_VOLTAGE), fault_words=("0x8311",),
     decode=_cia402_commands,
-    fault=lambda: [OverTorque(at=AT)],
+    fault=lambda: [OverTorque()],
     lose_disable=lambda: [LoseControlwords(frozenset({_QUICK_STOP, _DISABLE_VOLTAGE}))],
 )
 
 PROTOCOLS = {p.name: p for p in (ODRIVE, CIA402)}
+
+
+class Armed(Fault):
+    """``inner`` acts only once armed, from the run's cycle AT on (:class:`ArmAt`): the run
+    says when a fault strikes, not the number of frames its start-up happened to take."""
+
+    def __init__(self, inner: Fault) -> None:
+        super().__init__(None)
+        self.inner = inner
+        self.direction = inner.direction  # type: ignore[misc]
+        self.armed = False
+
+    def __call__(self, msg: can.Message, now: float) -> Sequence[can.Message]:
+        return self.inner(msg, now) if self.armed else (msg,)
+
+    def apply(self, msg: can.Message, index: int, now: float) -> Sequence[can.Message]:
+        raise AssertionError("Armed delegates in __call__")
+
+
+@dataclass
+class ArmAt:
+    """A cycle sink arming ``faults`` after cycle ``at``."""
+
+    faults: Sequence[Fault]
+    at: int = AT
+
+    def started(self, fb: Any) -> None:
+        pass
+
+    def cycle(self, k: int, *args: Any) -> None:
+        if k >= self.at:
+            for fault in self.faults:
+                if isinstance(fault, Armed):
+                    fault.armed = True
+
+    def stop(self, stop: Any) -> None:
+        pass
 TIMINGS = ("lockstep", "realtime")
 
 
@@ -309,11 +347,13 @@ class Outcome:
 
 
 def run(config: Config, protocol: Protocol, timing: str, faults: Sequence[Fault] = (), *,
-        settle: bool = True) -> Outcome:
-    """Run with the emulated drive; ``settle``: then wait for it to be out of torque
-    control with zero torque (real time: a bound; False where it must not be)."""
-    with RunSession(config, emulate=True, lockstep=timing == "lockstep",
-                    bus_wrapper=faulty(*faults) if faults else None) as session, \
+        armed: Sequence[Fault] = (), settle: bool = True) -> Outcome:
+    """Run with the emulated drive, ``faults`` from the start and ``armed`` ones from cycle
+    AT on; ``settle``: then wait for it to be out of torque control with zero torque (real
+    time: a bound; False where it must not be)."""
+    wrapped = [*faults, *(Armed(f) for f in armed)]
+    with RunSession(config, emulate=True, lockstep=timing == "lockstep", sink=ArmAt(wrapped),
+                    bus_wrapper=faulty(*wrapped) if wrapped else None) as session, \
             Sniffer(session.bus_spec.channel) as sniffer:
         result = session.run()
         emu = session.emulator
@@ -359,17 +399,19 @@ def test_run_that_lasts_its_duration_stops_safely(tmp_path: Path, protocol: Prot
 
 def test_feedback_timeout_when_the_drive_goes_silent(tmp_path: Path, protocol: Protocol,
                                                      timing: str) -> None:
-    faults = [SilenceAfter(frames=AT, ids=protocol.feedback_ids)]
-    out = run(suite_config(tmp_path, protocol, timing), protocol, timing, faults)
+    silence = SilenceAfter(frames=0, ids=protocol.feedback_ids)
+    out = run(suite_config(tmp_path, protocol, timing), protocol, timing, armed=[silence])
     assert_stopped_safely(out, protocol, StopReason.FEEDBACK_TIMEOUT, ["no fresh feedback"])
-    assert 0 < out.result.stop.cycle <= AT
+    assert out.result.stop.cycle > AT and silence.applied > 0
+    if timing == "lockstep":
+        assert out.result.stop.cycle == AT + 1
 
 
 def test_fault_the_protocols_way_is_a_drive_fault(tmp_path: Path, protocol: Protocol,
                                                   timing: str) -> None:
-    out = run(suite_config(tmp_path, protocol, timing), protocol, timing, protocol.fault())
+    out = run(suite_config(tmp_path, protocol, timing), protocol, timing, armed=protocol.fault())
     assert_stopped_safely(out, protocol, StopReason.DRIVE_FAULT, protocol.fault_words)
-    assert out.result.stop.time < 0.4
+    assert out.result.stop.cycle > AT and out.result.stop.time < 0.4
 
 
 def test_unconfirmed_safe_stop_says_so_loudly(tmp_path: Path, protocol: Protocol,
