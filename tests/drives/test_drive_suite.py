@@ -37,6 +37,7 @@ import pytest
 from dobhil.config import Config
 from dobhil.drives import DriveState, load_profile, make_drive
 from dobhil.drives.base import Confirmation, Drive
+from dobhil.drives.periodic import native_periodic
 from dobhil.drives.odrive import codec
 from dobhil.drives.odrive.codec import AxisState, CmdId, Firmware
 from dobhil.emulator.plant import Plant
@@ -463,3 +464,37 @@ def test_summary_has_the_same_fields_for_every_protocol(tmp_path: Path) -> None:
     odrive, cia402 = shapes["odrive-0.6"], shapes["cia402-emulated"]
     assert odrive.keys() == cia402.keys()
     assert odrive == cia402
+
+
+# ---------------------------------------------------------------------------
+# The fault wrapper keeps a protocol's periodic frames where they belong
+
+
+def test_fault_wrapper_forwards_periodic_send_to_the_bus_it_wraps() -> None:
+    """FaultyBus is as native as its inner bus; the periodic SYNC is the inner bus's (send
+    faults do not drop it), its echo passes the receive faults."""
+    from .cia402_node import PumpBus, TestNode402
+
+    channel = f"drive-suite-{next(_CHANNELS)}"
+    node = TestNode402(can.Bus(interface="virtual", channel=channel), _C_NODE)
+    pumped = PumpBus(channel, node)
+    seen: list[float] = []
+    node.network.subscribe(0x80, lambda can_id, data, t: seen.append(t))
+    lose_all_sync = LoseSent(frames=0, ids={0x80})
+    drop_echo = SilenceAfter(frames=0, ids={0x80})
+    wrapper = faulty(lose_all_sync, drop_echo)(pumped)
+    plain = faulty()(can.Bus(interface="virtual", channel=channel + "-plain"))
+    try:
+        assert native_periodic(wrapper) and not native_periodic(plain)
+        task = wrapper.send_periodic(can.Message(arbitration_id=0x80, data=b"", is_extended_id=False),
+                                     0.001)
+        assert wrapper.recv(0.0105) is None          # echoes dropped by the receive fault
+        assert seen == pytest.approx([0.001 * k for k in range(1, 11)])   # yet every SYNC went out
+        assert drop_echo.applied == 10 and lose_all_sync.applied == 0
+        task.stop()
+    finally:
+        plain.shutdown()
+        plain._inner.shutdown()  # type: ignore[attr-defined]
+        wrapper.shutdown()
+        pumped.shutdown()
+        node.close()
