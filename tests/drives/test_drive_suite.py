@@ -81,6 +81,7 @@ class Protocol:
     decode: Callable[[Sequence[can.Message]], Commands]
     fault: Callable[[], list[Fault]]   # the protocol's fault, injected around cycle AT
     lose_disable: Callable[[], list[Fault]]   # the drive never sees the disable
+    torque_quantum: float              # [Nm] resolution of the torque command on the wire
     profile_changes: dict[str, Any] = dataclasses.field(default_factory=dict)
 
     def __str__(self) -> str:
@@ -117,6 +118,7 @@ ODRIVE = Protocol(
     fault=lambda: [InjectFrame(codec.encode(codec.Estop(), node_id=_OD_NODE, firmware=Firmware.V0_6),
                                after=0, ids={_OD_TORQUE})],
     lose_disable=lambda: [LoseSent(frames=1, ids={_OD_AXIS_STATE})],
+    torque_quantum=2.0 ** -23,                 # float32 at 1 N m
     profile_changes={"watchdog_timeout": 0},   # else its watchdog would disable it anyway
 )
 
@@ -193,6 +195,7 @@ CIA402 = Protocol(
     decode=_cia402_commands,
     fault=lambda: [OverTorque()],
     lose_disable=lambda: [LoseControlwords(frozenset({_QUICK_STOP, _DISABLE_VOLTAGE}))],
+    torque_quantum=1e-3,                       # 1 per mille of the 1 N m rated torque
 )
 
 PROTOCOLS = {p.name: p for p in (ODRIVE, CIA402)}
@@ -433,7 +436,11 @@ def test_unconfirmed_safe_stop_says_so_loudly(tmp_path: Path, protocol: Protocol
 def test_closed_loop_reaches_the_force_reference(tmp_path: Path, protocol: Protocol,
                                                  timing: str) -> None:
     """Demo loop (contact from 5 mrad away at 0.2 N m, then a step to 1 N m at 0.6 s):
-    the TRUE interaction torque settles on the reference, the estimate agrees."""
+    the TRUE interaction torque settles on the reference, the estimate agrees. The bound
+    comes from the run: the spread of its own last 100 ms plus half the protocol's torque
+    quantum (the loop's steady state does not depend on timing, so real time and
+    lockstep share it; a real-time run on a busy machine skips cycles, never the
+    equilibrium)."""
     config = suite_config(tmp_path, protocol, timing, "loop.duration=1.0", step=False)
     out = run(config, protocol, timing)
     assert_stopped_safely(out, protocol, StopReason.DONE)
@@ -442,9 +449,9 @@ def test_closed_loop_reaches_the_force_reference(tmp_path: Path, protocol: Proto
     tail_true = finite_tail(tr["tau_int_true"], tr["t"], 0.1)
     tail_hat = finite_tail(tr["tau_int_hat"], tr["t"], 0.1)
     assert tail_true.size >= 10 and tr["tau_ref"][-1] == 1.0
-    tol = 1e-3 if timing == "lockstep" else 0.03
-    assert abs(float(np.mean(tail_true)) - 1.0) < tol
-    assert abs(float(np.mean(tail_hat)) - 1.0) < tol
+    for tail in (tail_true, tail_hat):
+        bound = float(np.ptp(tail)) + protocol.torque_quantum / 2 + 1e-9
+        assert abs(float(np.mean(tail)) - 1.0) <= bound, (float(np.mean(tail)), bound)
 
 
 def test_summary_has_the_same_fields_for_every_protocol(tmp_path: Path) -> None:
