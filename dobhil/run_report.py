@@ -36,6 +36,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
@@ -46,6 +47,7 @@ from numpy.typing import NDArray
 
 from dobhil.config.schema import Config
 from dobhil.drives.bus_load import frame_bits
+from dobhil.drives.timing import with_command_delay
 from dobhil.errors import LogFileError
 from dobhil.recording.reader import open_log
 
@@ -122,7 +124,8 @@ def _take(topic: str, t: int, p: dict[str, Any], per: dict[str, list[Any]], fram
     elif topic == "/emulator/truth":
         per["truth"].append((_f(p["q"]), _f(p["dq"]), _f(p["tau_motor"]), _f(p["tau_int"])))
     elif topic == "/loop":
-        per["loop"].append((p["cycle"], _f(p["period_error"]), _f(p["exec_time"]), float(bool(p["overrun"]))))
+        per["loop"].append((p["cycle"], _f(p["period_error"]), _f(p["exec_time"]), float(bool(p["overrun"])),
+                            _f(p.get("sample_latency"))))   # absent in logs before it
     elif topic == "/events":
         events.append({**p, "log_time_ns": t})
     else:
@@ -162,8 +165,9 @@ def _assemble(name: str, config: Config | None, meta: Mapping[str, Mapping[str, 
     data.signals["cycle"] = np.array([row[0] for row in ctrl], dtype=float)
     fb = _by_cycle(per["feedback"], index, n, 2)
     data.signals.update(q=fb[:, 0], dq=fb[:, 1])
-    loop = _by_cycle(per["loop"], index, n, 3)
-    data.signals.update(period_error=loop[:, 0], exec_time=loop[:, 1], overrun=loop[:, 2])
+    loop = _by_cycle(per["loop"], index, n, 4)
+    data.signals.update(period_error=loop[:, 0], exec_time=loop[:, 1], overrun=loop[:, 2],
+                        sample_latency=loop[:, 3])
     truth = np.full((n, 4), np.nan)
     if per["truth"]:
         rows = np.array(per["truth"][:n], dtype=float)
@@ -306,14 +310,39 @@ def bus_stats(data: RunData) -> dict[str, Any]:
     return out
 
 
+def command_delay_periods(data: RunData) -> int | None:
+    """The recorded drive profile's ``command_delay_periods`` (None: not set, or a log
+    recorded before it existed)."""
+    raw = data.metadata.get("drive", {}).get("command_delay_periods")
+    try:
+        value = json.loads(raw) if raw else None
+    except ValueError:
+        return None
+    return value if isinstance(value, int) and not isinstance(value, bool) else None
+
+
+def design_config(data: RunData) -> Config | None:
+    """The recorded config as the run used it: with the drive protocol's command delay
+    (:func:`dobhil.drives.timing.with_command_delay`, as the run's controller had it)."""
+    if data.config is None:
+        return None
+    return with_command_delay(data.config, command_delay_periods(data))[0]
+
+
 def latency_stats(data: RunData) -> dict[str, Any]:
     """Measured command latency (feedback frame received -> command frame sent, log clock)
-    against the one the sampled analysis assumed."""
+    against the one the sampled analysis assumed. A drive whose protocol applies commands
+    a fixed number of periods after their sample (CiA 402: at the next SYNC) makes the
+    assumed delay itself: the command must only be in time for it (within a period)."""
     out: dict[str, Any] = {"assumed_s": None, "measured": False}
     period = None
-    if data.config is not None:
-        design, period = data.config.design, data.config.loop.period
+    config = design_config(data)
+    latched = command_delay_periods(data)
+    if config is not None:
+        design, period = config.design, config.loop.period
         out["assumed_s"] = design.input_delay + design.delay_samples * period
+        if latched is not None:
+            out["protocol_delay_periods"] = latched
     if data.metadata.get("run", {}).get("log_clock") == "simulated":
         out["why"] = "lockstep: the log clock is simulated (the emulator applies the assumed delay)"
         return out
@@ -332,7 +361,10 @@ def latency_stats(data: RunData) -> dict[str, Any]:
         return out
     p50, p99 = float(np.percentile(lat, 50)), float(np.percentile(lat, 99))
     out.update(measured=True, p50_s=p50, p99_s=p99, max_s=float(lat.max()), commands=int(lat.size))
-    if out["assumed_s"] is not None and period is not None:
+    if latched is not None and period is not None:
+        # the protocol's latch makes the assumed delay: a command in time for it is exact
+        out["matches"] = bool(p99 < period)
+    elif out["assumed_s"] is not None and period is not None:
         # the analysis models one fixed delay: the median must sit on it and the spread
         # (p99) stay within the same tolerance, else the analysis is of another loop
         tolerance = LATENCY_TOLERANCE * period
@@ -347,7 +379,8 @@ def prediction(data: RunData, contact: Contact | None = None,
     """The sampled closed loop of the recorded config driven by the recorded reference, from
     the first step taken in contact on (NaN before it), the loop at rest at the reference
     before that step: the analysed loop is the loop in contact."""
-    if data.config is None:
+    config = design_config(data)
+    if config is None:
         return None, {"available": False, "why": "no recorded config"}
     contact = contact or contact_mask(data)
     steps = step_infos(data, contact) if steps is None else steps
@@ -355,14 +388,14 @@ def prediction(data: RunData, contact: Contact | None = None,
     if start is None:
         what = "no reference step taken in contact" if steps else "no reference step, and contact not all along"
         return None, {"available": False, "why": f"{what} (the analysis is of the loop in contact)"}
-    if data.config.design.delay_samples > MAX_PREDICTION_DELAY:
-        return None, {"available": False, "why": f"design.delay_samples = {data.config.design.delay_samples} "
+    if config.design.delay_samples > MAX_PREDICTION_DELAY:
+        return None, {"available": False, "why": f"design.delay_samples = {config.design.delay_samples} "
                                                   f"is above {MAX_PREDICTION_DELAY} (the model would be too large)"}
     import control
 
     from dobhil.analysis.transfer import LoopSystems
     from dobhil.synthesis.params import params_from_config
-    sys_ = LoopSystems.build(params_from_config(data.config), sampled=True).system("closed_loop")
+    sys_ = LoopSystems.build(params_from_config(config), sampled=True).system("closed_loop")
     index, before = start
     ref = np.nan_to_num(data["tau_ref"][index:]) - before   # at rest at `before`: a step from 0
     t = np.arange(ref.size) * float(sys_.dt)
@@ -423,9 +456,13 @@ def _first_contact(t: Array, contact: Contact) -> float | None:
 
 def _timing(data: RunData) -> dict[str, Any]:
     ex, pe = data["exec_time"], np.abs(data["period_error"])
-    return {"exec_time_p50": _pct(ex, 50), "exec_time_p99": _pct(ex, 99), "exec_time_max": _amax(ex),
-            "period_error_p50": _pct(pe, 50), "period_error_p99": _pct(pe, 99), "period_error_max": _amax(pe),
-            "overruns": int(np.nansum(data["overrun"]))}
+    out = {"exec_time_p50": _pct(ex, 50), "exec_time_p99": _pct(ex, 99), "exec_time_max": _amax(ex),
+           "period_error_p50": _pct(pe, 50), "period_error_p99": _pct(pe, 99), "period_error_max": _amax(pe),
+           "overruns": int(np.nansum(data["overrun"]))}
+    sl = data.signals.get("sample_latency")
+    if sl is not None and np.isfinite(sl).any():   # only where the drive's sample instant was known
+        out.update(sample_latency_p50=_pct(sl, 50), sample_latency_p99=_pct(sl, 99), sample_latency_max=_amax(sl))
+    return out
 
 
 def summary_text(s: Mapping[str, Any]) -> str:
@@ -458,6 +495,9 @@ def summary_text(s: Mapping[str, Any]) -> str:
     lines.append(f"loop: exec p50 {us(lt['exec_time_p50'])}, p99 {us(lt['exec_time_p99'])}, "
                  f"max {us(lt['exec_time_max'])}; |period error| p99 {us(lt['period_error_p99'])}; "
                  f"overruns {lt['overruns']}")
+    if lt.get("sample_latency_p99") is not None:
+        lines.append(f"sample latency (drive sample -> feedback received): p50 {us(lt['sample_latency_p50'])}, "
+                     f"p99 {us(lt['sample_latency_p99'])}, max {us(lt['sample_latency_max'])}")
     la = s.get("latency") or {}
     if la.get("measured"):
         assumed = "-" if la.get("assumed_s") is None else us(la["assumed_s"])
@@ -488,6 +528,11 @@ def _step_line(st: Mapping[str, Any]) -> str:
 
 def _latency_verdict(la: Mapping[str, Any]) -> str:
     """Matches or not, with the tolerance, and what is off (older summaries: no verdict)."""
+    if "protocol_delay_periods" in la and "matches" in la:
+        n = la["protocol_delay_periods"]
+        return (f"; the drive applies each command {n} period{'' if n == 1 else 's'} after its sample "
+                + ("(every command in time for it)" if la["matches"] else
+                   "but p99 is above a period: some commands miss the drive's latch"))
     if "matches" not in la or "tolerance_s" not in la:
         return ""
     tol = f"+-{la['tolerance_s'] * 1e6:.0f} us ({LATENCY_TOLERANCE:g} T)"

@@ -25,7 +25,7 @@ closes this end, and the emulator's process ends.
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from typing import Any
 
 import can
@@ -99,6 +99,17 @@ class DobhilBus(can.BusABC):
         """The emulated plant's ground truth (``true_position``, ``interaction_torque``, ...),
         as the emulator's process published it after its newest tick."""
         return self.emulator.plant
+
+    #: periodic frames (a CiA 402 SYNC) are sent by the emulator's process on its own clock
+    #: and echoed back, as SocketCAN's broadcast manager does (dobhil.drives.periodic)
+    native_periodic = True
+
+    def _send_periodic_internal(
+        self, msgs: Sequence[can.Message] | can.Message, period: float, duration: float | None = None,
+        autostart: bool = True, modifier_callback: Callable[[can.Message], None] | None = None,
+    ) -> can.broadcastmanager.CyclicSendTaskABC:
+        return self._host.send_periodic(msgs, period, duration, autostart=autostart,
+                                        modifier_callback=modifier_callback)
 
     def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
         return self._host.recv(timeout), False

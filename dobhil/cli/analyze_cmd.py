@@ -6,8 +6,9 @@ import argparse
 import json
 import sys
 from pathlib import Path
+from typing import Any
 
-from dobhil.cli.common import add_config_args, config_from_args
+from dobhil.cli.common import add_config_args, config_from_args, design_on_drive
 
 
 #: the files ``--plot DIR`` writes (:func:`dobhil.plotting.figures.analysis_figures`)
@@ -24,16 +25,20 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from dobhil.analysis.report import analyze, as_json, as_text
-    config = config_from_args(args)
+    # the design on its drive: a protocol that fixes the command delay sets it (the note
+    # goes to stderr with --json, whose stdout is one JSON object)
+    config = design_on_drive(config_from_args(args), args, sys.stderr if args.json else None)
     if args.plot:  # before the analysis: a bad directory fails at once, not after it
         from dobhil.files import check_output_dir
         check_output_dir(args.plot, PLOT_NAMES, inputs=[args.config], what="--plot")
     result = analyze(config)
+    budget_line, budget = bus_budget(config, Path(args.config))
     if args.json:
-        json.dump(as_json(result), sys.stdout)
+        json.dump({**as_json(result), "bus_budget": budget}, sys.stdout)
         sys.stdout.write("\n")
     else:
         print(as_text(result))
+        print(budget_line)
     if args.plot:
         from dobhil.plotting.figures import analysis_figures
         paths = analysis_figures(result.continuous, result.discrete, args.plot,
@@ -41,3 +46,23 @@ def run(args: argparse.Namespace) -> int:
         if not args.json:
             print("wrote " + ", ".join(str(p) for p in paths))
     return 0
+
+
+def bus_budget(config: Any, config_path: Path) -> tuple[str, dict[str, Any] | None]:
+    """The run's bus budget (its line, and its dict for --json) from the config's drive
+    profile; a profile that cannot be read makes the line say so (the design is still
+    analysed: the profile matters to the bus, not to the analysis)."""
+    from dobhil.config import resolve_config
+    from dobhil.cli.check_cmd import run_budget
+    from dobhil.drives.preflight import configured_bitrate
+    from dobhil.drives.profile import load_drive_profile
+    from dobhil.errors import ConfigError
+    try:
+        profile = load_drive_profile(config, resolve_config(str(config_path)).parent)
+        budget = run_budget(profile, config.loop.period, configured_bitrate(config.drive.bitrate, profile))
+    except ConfigError as exc:
+        return f"bus budget: not computed ({exc})", None
+    if budget is None:
+        return f"bus budget: not computed (protocol {profile.protocol!r} lists no frames)", None
+    line = budget.line() + (f"; {budget.advice()}" if budget.over else "")
+    return line, {"line": budget.line(), "advice": budget.advice(), **budget.as_dict()}

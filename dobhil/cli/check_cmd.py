@@ -77,3 +77,11 @@ def check(args: argparse.Namespace) -> int:
         for line in report.lines():
             print(line)
     return 0 if report.ok else EXIT_MISMATCH
+
+
+def run_budget(profile: Any, period: float, bitrate: int | None) -> Any:
+    """The bus budget of a run of ``profile`` at ``period`` (None: its protocol lists no
+    frames), without a bus: what ``dobhil analyze`` and an emulated ``dobhil run`` say."""
+    from dobhil.drives.registry import preflight_probe
+    probe = preflight_probe(profile)
+    return None if probe is None else probe.budget(period, bitrate)

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import argparse
+import sys
+from typing import TextIO
 
 from dobhil.config import Config, load_config
 
@@ -17,3 +19,18 @@ def add_config_args(parser: argparse.ArgumentParser, *, required: bool = True) -
 
 def config_from_args(args: argparse.Namespace) -> Config:
     return load_config(args.config, args.overrides)
+
+
+def design_on_drive(config: Config, args: argparse.Namespace, out: TextIO | None = None) -> Config:
+    """The config as the design runs on its drive profile (``drive.profile``, looked up
+    near the config): the protocol's command delay when the profile fixes one
+    (:func:`dobhil.drives.timing.effective_config`), its one-line note printed to
+    ``out`` (stdout by default) when that changed the design's values."""
+    from dobhil.config.load import resolve_config
+    from dobhil.drives.profile import load_drive_profile
+    from dobhil.drives.timing import effective_config
+    profile = load_drive_profile(config, resolve_config(args.config).parent)
+    config, note = effective_config(config, profile)
+    if note:
+        print(note, file=out or sys.stdout)
+    return config

@@ -85,7 +85,11 @@ def run_checked(args: argparse.Namespace) -> int:
                            config_dir=resolve_config(args.config).parent, stop_request=request,
                            reset_faults=args.reset_faults,
                            **log_hooks(log), **preflight_kwargs(args)) as session:
+            if session.design_note:   # the drive's protocol fixes the command delay
+                sys.stderr.write(f"dobhil run: {session.design_note}\n")
             report_preflight(session.preflight())
+            if session.preflight_report is None:   # the preflight says it otherwise
+                warn_budget(session)
             warn_realtime(session)
             result = record_run(session, log, args.config)
             info = summary(session, result)
@@ -130,6 +134,19 @@ def report_preflight(report: Any) -> None:
     for node in report.nodes:
         if node.node == report.node_id:
             sys.stderr.write(f"dobhil run: preflight: node {node.node}: {node.summary}\n")
+
+
+def warn_budget(session: Any) -> None:
+    """A bus budget over 70 % is said, not refused (the frames may still fit; late
+    feedback then shows in the run's timing)."""
+    from dobhil.cli.check_cmd import run_budget
+    from dobhil.drives.preflight import configured_bitrate
+    # an emulated bus has no bit rate: the budget is the one the configured bus would carry
+    bitrate = (session.bus_spec.kwargs.get("bitrate")
+               or configured_bitrate(session.config.drive.bitrate, session.profile))
+    budget = run_budget(session.profile, session.settings.period, bitrate)
+    if budget is not None and budget.over:
+        sys.stderr.write(f"dobhil run: note (not refused: the run goes on): {budget.advice()}\n")
 
 
 def warn_realtime(session: Any) -> None:
@@ -181,6 +198,10 @@ def report(info: dict[str, Any], stop_line: str, *, as_json: bool) -> None:
     print(f"loop: exec time p50 {t['exec_time_p50'] * 1e6:.0f} us, p99 {t['exec_time_p99'] * 1e6:.0f} us; "
           f"period error p99 {t['period_error_p99'] * 1e6:.0f} us, max {t['period_error_max'] * 1e6:.0f} us"
           + (f"; latency p99 {t['latency_p99'] * 1e6:.0f} us" if t.get("latency_p99") else ""))
+    sampled = info.get("sample_latency_us")
+    if sampled:   # the drive's sample instant (its SYNC) -> its feedback received
+        print(f"sample latency: p50 {sampled['p50']:.0f} us, p99 {sampled['p99']:.0f} us, "
+              f"max {sampled['max']:.0f} us")
     if info.get("log"):
         print(f"log: {info['log']}")
     if warning:

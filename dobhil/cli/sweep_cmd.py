@@ -9,7 +9,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from dobhil.cli.common import add_config_args, config_from_args
+from dobhil.cli.common import add_config_args, config_from_args, design_on_drive
 from dobhil.errors import ConfigError
 
 if TYPE_CHECKING:
@@ -37,7 +37,7 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from dobhil.analysis.sweep import parse_vary, sweep
-    config = config_from_args(args)
+    config = design_on_drive(config_from_args(args), args)   # the protocol's command delay
     axes = [parse_vary(v) for v in args.vary]
     if args.plot and len(axes) > 2:
         raise ConfigError("--plot draws one or two swept keys; got " + str(len(axes)))

@@ -97,6 +97,12 @@ class Feedback:
     rx_time: float = math.nan
     sampled_at: float = math.nan
 
+    @property
+    def sample_latency(self) -> float:
+        """The drive's sample instant -> this feedback received [s], both bus stamps
+        (NaN when either is unknown): what the sample is old when the host reads it."""
+        return self.rx_time - self.sampled_at
+
 
 @dataclass(frozen=True, slots=True)
 class DriveStatus:

@@ -1,7 +1,27 @@
 """How many bits a CAN frame takes on the wire: the one formula the preflight's measured
-bus load and the run report's bus load both use."""
+bus load, the run report's bus load and the bus budget all use.
+
+The bus budget (:class:`BusBudget`) is the load a run puts on the bus by design, before
+anything is measured: the frames of one loop period (each protocol lists its own through
+:meth:`dobhil.drives.preflight.PreflightProbe.cycle_frames`) times their bits on the
+wire, against the bit rate. A bus loaded over :data:`MAX_BUDGET` has too little room
+left for retransmissions after an error frame, SDO traffic and a second node's frames:
+frames then queue behind each other and the feedback arrives late.
+"""
 
 from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+__all__ = ["MAX_BUDGET", "STANDARD_BITRATES", "BusBudget", "CycleFrame", "budget", "frame_bits", "rate_text"]
+
+#: a budget above this fraction of the bit rate is a finding (room for retransmissions,
+#: SDO transfers and other nodes' frames: above it one retransmission delays the next cycle)
+MAX_BUDGET = 0.7
+#: the CiA 301 bit rates a suggestion may name (at most 1 Mbit/s: classic CAN)
+STANDARD_BITRATES = (125_000, 250_000, 500_000, 800_000, 1_000_000)
 
 
 def frame_bits(dlc: int, extended: bool = False) -> int:
@@ -10,4 +30,121 @@ def frame_bits(dlc: int, extended: bool = False) -> int:
     return base + 8 * dlc + (stuffable + 8 * dlc - 1) // 4
 
 
-__all__ = ["frame_bits"]
+@dataclass(frozen=True)
+class CycleFrame:
+    """One frame a run puts on the bus: once per loop period (``every`` None), or every
+    ``every`` seconds whatever the loop does (a heartbeat, a drive's own stream)."""
+
+    name: str
+    dlc: int
+    every: float | None = None
+    extended: bool = False
+
+    @property
+    def bits(self) -> int:
+        """Bits of one such frame on the wire."""
+        return frame_bits(self.dlc, self.extended)
+
+    def per_cycle(self, period: float) -> float:
+        """How many of this frame one loop period carries (a heartbeat's share: < 1)."""
+        return 1.0 if self.every is None else period / self.every
+
+    def describe(self, period: float) -> str:
+        share = self.per_cycle(period)
+        if math.isclose(share, 1.0, rel_tol=1e-9):
+            return f"{self.name} {self.bits}"
+        return f"{self.name} {self.bits} x {share:.3g}"
+
+
+@dataclass(frozen=True)
+class BusBudget:
+    """The frames of one loop period against the bit rate (None: unknown)."""
+
+    frames: tuple[CycleFrame, ...]
+    period: float
+    bitrate: int | None
+    #: what "fewer frames" means for this protocol, in the advice
+    fewer: str = "fewer axes on this bus"
+
+    @property
+    def bits_per_cycle(self) -> float:
+        return sum(f.bits * f.per_cycle(self.period) for f in self.frames)
+
+    @property
+    def load(self) -> float | None:
+        """Bits per cycle over the bits one period holds at the bit rate."""
+        return self.bits_per_cycle / (self.bitrate * self.period) if self.bitrate else None
+
+    @property
+    def over(self) -> bool:
+        return self.load is not None and self.load > MAX_BUDGET
+
+    def line(self) -> str:
+        """``bus budget: 391 bits per cycle (SYNC 55 + ...) = 39.1 % of 1 Mbit/s at 1 kHz``."""
+        head = (f"bus budget: {self.bits_per_cycle:.0f} bits per cycle ("
+                + " + ".join(f.describe(self.period) for f in self.frames) + ")")
+        if self.load is None:
+            return f"{head} at {rate_text(1.0 / self.period, 'Hz')}; bit rate unknown (set drive.bitrate)"
+        return (f"{head} = {self.load * 100:.1f} % of {rate_text(self.bitrate or 0, 'bit/s')} at "
+                f"{rate_text(1.0 / self.period, 'Hz')}")
+
+    def advice(self) -> str:
+        """What to change when the budget is over :data:`MAX_BUDGET` (empty when it is not)."""
+        if not self.over or not self.bitrate:
+            return ""
+        ways = []
+        faster = [b for b in STANDARD_BITRATES if b > self.bitrate and self._load_at(b, self.period) <= MAX_BUDGET]
+        if faster:
+            ways.append(f"a higher bit rate ({rate_text(faster[0], 'bit/s')} on the drive and the interface: "
+                        f"{self._load_at(faster[0], self.period) * 100:.0f} %)")
+        slowest = self._shortest_period(self.bitrate)
+        if slowest is not None:
+            ways.append(f"a slower loop (loop.period >= {slowest * 1e3:.3g} ms)")
+        ways.append(self.fewer)
+        return (f"bus budget {(self.load or 0.0) * 100:.0f} % of {rate_text(self.bitrate, 'bit/s')} at "
+                f"{rate_text(1.0 / self.period, 'Hz')} is over {MAX_BUDGET * 100:.0f} %: use "
+                + ", or ".join(ways))
+
+    def loop_bits(self) -> int:
+        """Bits of the frames sent once per loop period (the ones a run adds to a bus on
+        which the drive's own periodic frames already stream)."""
+        return sum(f.bits for f in self.frames if f.every is None)
+
+    def _split(self) -> tuple[float, float]:
+        """(bits sent once per loop period, bits per second whatever the period)."""
+        per_cycle = self.loop_bits()
+        per_second = sum(f.bits / f.every for f in self.frames if f.every is not None)
+        return per_cycle, per_second
+
+    def _load_at(self, bitrate: float, period: float) -> float:
+        per_cycle, per_second = self._split()
+        return (per_cycle / period + per_second) / bitrate
+
+    def _shortest_period(self, bitrate: float) -> float | None:
+        """The shortest loop period whose budget is within MAX_BUDGET at ``bitrate``
+        (rounded up to 10 us); None when the loop-independent frames alone exceed it."""
+        per_cycle, per_second = self._split()
+        room = MAX_BUDGET * bitrate - per_second
+        if room <= 0 or per_cycle <= 0:
+            return None
+        return math.ceil(per_cycle / room * 1e5 - 1e-9) / 1e5
+
+    def as_dict(self) -> dict[str, object]:
+        return {"bits_per_cycle": self.bits_per_cycle, "load": self.load, "bitrate": self.bitrate,
+                "period": self.period, "over": self.over,
+                "frames": [{"name": f.name, "bits": f.bits, "per_cycle": f.per_cycle(self.period)}
+                           for f in self.frames]}
+
+
+def budget(frames: Sequence[CycleFrame], period: float, bitrate: int | None, *,
+           fewer: str = "fewer axes on this bus") -> BusBudget | None:
+    """The budget of ``frames`` (None when the protocol lists none: nothing to say)."""
+    return BusBudget(tuple(frames), period, bitrate or None, fewer) if frames else None
+
+
+def rate_text(value: float, unit: str) -> str:
+    """``1 Mbit/s``, ``250 kbit/s``, ``1 kHz``, ``500 Hz``: the way bit and loop rates are said."""
+    for scale, prefix in ((1e6, "M"), (1e3, "k")):
+        if value >= scale:
+            return f"{value / scale:.4g} {prefix}{unit}"
+    return f"{value:.4g} {unit}"

@@ -14,8 +14,17 @@ line saying what to set on the drive (``set <axis>.config.can.encoder_msg_rate_m
 The protocol-neutral part lives here; what frames mean and what the drive-side settings
 are called is a :class:`PreflightProbe`, returned by the protocol's
 :meth:`dobhil.drives.base.Drive.preflight_probe` hook (ODrive:
-:mod:`dobhil.drives.odrive.preflight`). A protocol without a probe gets a report that
-says so, never a silent pass.
+:mod:`dobhil.drives.odrive.preflight`; CiA 402: :mod:`dobhil.drives.cia402.preflight`).
+A protocol without a probe gets a report that says so, never a silent pass.
+
+How the window is spent is the probe's :meth:`PreflightProbe.listen` hook: by default
+the listening above (ODrive: its state and rates stream by themselves); a protocol whose
+drive says what it is only when asked (CiA 402: SDO reads of its object dictionary)
+overrides it, asks, and listens for the rest of the window through the same
+:class:`Capture`. The **bus budget** (:class:`dobhil.drives.bus_load.BusBudget`): the
+frames a run puts on the bus per loop period (the probe's
+:meth:`PreflightProbe.cycle_frames`) against the bit rate, one line, and a finding with
+what to change above 70 %.
 
 :func:`profile_rate_findings` is the profile-only part (feedback at least once per
 loop period), shared with :func:`dobhil.runtime.session.check_rates`: one place.
@@ -34,6 +43,8 @@ from typing import Any
 
 import can
 
+from dobhil.drives.bus_load import BusBudget, CycleFrame
+from dobhil.drives.bus_load import budget as make_budget
 from dobhil.drives.bus_load import frame_bits as wire_bits
 from dobhil.drives.profile import DriveProfile
 from dobhil.drives.socketcan_link import link_info, link_problems
@@ -42,6 +53,7 @@ from dobhil.drives.waits import WAIT_SLICE, Cancel
 __all__ = [
     "DEFAULT_WINDOW",
     "BusReport",
+    "Capture",
     "Finding",
     "NodeReport",
     "Observation",
@@ -51,6 +63,9 @@ __all__ = [
     "Setting",
     "Severity",
     "Stream",
+    "budget_findings",
+    "configured_bitrate",
+    "listen_window",
     "profile_rate_findings",
     "run_preflight",
 ]
@@ -172,6 +187,7 @@ class PreflightReport:
     nodes: tuple[NodeReport, ...]
     bus: BusReport
     findings: tuple[Finding, ...]
+    budget: BusBudget | None = None   # the run's frames per loop period vs the bit rate
 
     @property
     def ok(self) -> bool:
@@ -196,6 +212,7 @@ class PreflightReport:
                + (f", load {self.bus.load:.0%} (with the run's commands {self.bus.run_load:.0%} "
                   f"of {self.bus.bitrate} bit/s)" if self.bus.load is not None
                   and self.bus.run_load is not None else "")]
+        out += [self.budget.line()] if self.budget is not None else []
         out += [f"node {n.node}: {n.summary}" for n in self.nodes]
         out += [f"{'mismatch' if f.severity is Severity.MISMATCH else 'note'}: {f.text}"
                 for f in self.findings]
@@ -208,7 +225,8 @@ class PreflightReport:
         if self.stale_feedback:
             return "dobhil run refuses to enable: a run would sample stale feedback"
         if self.refuses:
-            return "dobhil run refuses to enable: " + next(f.text for f in self.findings if f.refuses).split(":")[0]
+            # the finding's head, up to its first ": " (an object such as 0x1018:01 has no space)
+            return "dobhil run refuses to enable: " + next(f.text for f in self.findings if f.refuses).split(": ")[0]
         return "dobhil run does not refuse these: it prints them and runs"
 
     def as_dict(self) -> dict[str, Any]:
@@ -222,6 +240,7 @@ class PreflightReport:
             "bus": {"state": self.bus.state, "frames": self.bus.frames,
                     "error_frames": self.bus.error_frames, "bits_per_s": self.bus.bits_per_s,
                     "bitrate": self.bus.bitrate, "load": self.bus.load, "run_load": self.bus.run_load},
+            "bus_budget": None if self.budget is None else {"line": self.budget.line(), **self.budget.as_dict()},
             "findings": [{"severity": f.severity.name.lower(), "text": f.text,
                           "stale_feedback": f.stale_feedback, "refuses_run": f.refuses} for f in self.findings],
         }
@@ -263,6 +282,28 @@ class PreflightProbe(ABC):
     def status_name(self) -> str:
         return "status"
 
+    #: the measured stream periods are compared with the profile (False: the protocol's
+    #: start-up sets them itself and its probe reads and compares the settings instead)
+    checks_rates: bool = True
+    #: what "fewer frames" means in the bus budget's advice
+    budget_fewer: str = "fewer axes on this bus"
+
+    def listen(self, bus: can.BusABC, window: float, clock: Callable[[], float],
+               stamp: Callable[[can.Message], float], cancel: Cancel | None) -> Capture:
+        """Spend the window on ``bus``: default, send :meth:`requests` and listen (a
+        protocol that must ask its drive, e.g. by SDO, overrides this and fills the same
+        :class:`Capture`, its findings included). Within WAIT_SLICE s of ``cancel()``."""
+        return listen_window(bus, self, window, clock, stamp, cancel)
+
+    def cycle_frames(self, period: float) -> Sequence[CycleFrame]:
+        """The frames a run puts on the bus per loop ``period`` (for the bus budget);
+        default: none known, no budget."""
+        return ()
+
+    def budget(self, period: float, bitrate: int | None) -> BusBudget | None:
+        """The bus budget of a run at ``period`` on ``bitrate`` (None: no frames known)."""
+        return make_budget(self.cycle_frames(period), period, bitrate, fewer=self.budget_fewer)
+
 
 # ---------------------------------------------------------------------------
 # Profile-only checks (no bus)
@@ -291,13 +332,42 @@ class _NodeLog:
 
 
 @dataclass
-class _Capture:
+class Capture:
+    """What the window gave: frames per node and stream, bus counts, and (a probe that
+    asks its drive) the probe's own findings. Filled by one thread at a time: the
+    listening loop, or a notifier's thread that is stopped before the capture is read."""
+
     nodes: dict[int, _NodeLog] = field(default_factory=dict)
     frames: int = 0
     error_frames: int = 0
     bits: int = 0
     send_errors: list[str] = field(default_factory=list)
     read_error: str = ""   # the bus failed while listening (gone): listening ended there
+    findings: list[Finding] = field(default_factory=list)  # the probe's, from what it asked
+    #: the probe's one verdict on the profile's node (e.g. it never answered): it replaces
+    #: the node findings, so that one cause is one line
+    verdict: Finding | None = None
+
+    def take(self, msg: can.Message, probe: PreflightProbe, stamp: Callable[[can.Message], float]) -> int | None:
+        """Count ``msg`` and log what the probe reads in it; the node it came from (None:
+        not a frame the preflight measures)."""
+        self.frames += 1
+        self.bits += frame_bits(msg)
+        if msg.is_error_frame:
+            self.error_frames += 1
+            return None
+        obs = probe.observe(msg)
+        if obs is None:
+            return None
+        log = self.nodes.setdefault(obs.node, _NodeLog())
+        if obs.stream is Stream.MOTION:
+            log.motion.append(stamp(msg))
+        elif obs.stream is Stream.STATUS:
+            log.status.append(stamp(msg))
+            log.status_data = obs.data
+        else:
+            log.version_data = obs.data
+        return obs.node
 
 
 def frame_bits(msg: can.Message) -> int:
@@ -305,9 +375,12 @@ def frame_bits(msg: can.Message) -> int:
     return wire_bits(msg.dlc, msg.is_extended_id)
 
 
-def _listen(bus: can.BusABC, probe: PreflightProbe, window: float, clock: Callable[[], float],
-            stamp: Callable[[can.Message], float], cancel: Cancel | None) -> _Capture:
-    cap = _Capture()
+def listen_window(bus: can.BusABC, probe: PreflightProbe, window: float, clock: Callable[[], float],
+                  stamp: Callable[[can.Message], float], cancel: Cancel | None,
+                  cap: Capture | None = None) -> Capture:
+    """The default window: the probe's read requests, then every frame for ``window`` s
+    (into ``cap`` when given: the rest of a window a probe began by asking)."""
+    cap = Capture() if cap is None else cap
     asked: set[int] = set()
 
     def ask(node: int) -> None:
@@ -330,24 +403,9 @@ def _listen(bus: can.BusABC, probe: PreflightProbe, window: float, clock: Callab
             break
         if msg is None:
             continue
-        cap.frames += 1
-        cap.bits += frame_bits(msg)
-        if msg.is_error_frame:
-            cap.error_frames += 1
-            continue
-        obs = probe.observe(msg)
-        if obs is None:
-            continue
-        log = cap.nodes.setdefault(obs.node, _NodeLog())
-        if obs.stream is Stream.MOTION:
-            log.motion.append(stamp(msg))
-        elif obs.stream is Stream.STATUS:
-            log.status.append(stamp(msg))
-            log.status_data = obs.data
-        else:
-            log.version_data = obs.data
-        if obs.node not in asked:
-            ask(obs.node)
+        node = cap.take(msg, probe, stamp)
+        if node is not None and node not in asked:
+            ask(node)
     return cap
 
 
@@ -392,15 +450,39 @@ def run_preflight(
                   for bad, text in (link_problems(link, bitrate) if link is not None else [])]
     state = link.state if link is not None and link.state else _bus_state(bus)
     bitrate = link.bitrate if link is not None and link.bitrate else bitrate
-    cap = _listen(bus, probe, window, clock, when, cancel)
+    cap = probe.listen(bus, window, clock, when, cancel)
     nodes = tuple(_node_report(probe, n, log, window) for n, log in sorted(cap.nodes.items()))
-    command_bits = frame_bits(can.Message(dlc=8, is_extended_id=False)) / period
+    bus_budget = probe.budget(period, bitrate)
+    # what the run adds to what was heard: the frames it sends or triggers each loop period
+    # (the budget's; ODrive: the torque command; CiA 402: SYNC, RPDO and the TPDOs answering
+    # SYNC), or one 8-byte command frame when the protocol lists none
+    command_bits = (bus_budget.loop_bits() if bus_budget is not None
+                    else frame_bits(can.Message(dlc=8, is_extended_id=False))) / period
     bus_report = BusReport(state, cap.frames, cap.error_frames, cap.bits / window, bitrate, command_bits)
+    node_found = [cap.verdict] if cap.verdict is not None else _node_findings(
+        probe, nodes, period, feedback_timeout, window)
     findings = [*profile_rate_findings(profile, period), *link_found,
                 *_bus_findings(bus_report, cap.send_errors, cap.read_error),
-                *_node_findings(probe, nodes, period, feedback_timeout, window)]
+                *budget_findings(bus_budget), *node_found, *cap.findings]
     return PreflightReport(profile.name or profile.protocol, profile.node_id, window, nodes,
-                           bus_report, tuple(findings))
+                           bus_report, tuple(findings), bus_budget)
+
+
+def configured_bitrate(drive_bitrate: int, profile: DriveProfile) -> int | None:
+    """The bit rate a run opens its bus with: ``drive.bitrate``, else the profile's
+    ``bus.bitrate`` (as :func:`dobhil.runtime.buses.resolve_bus` gives them); None: unknown."""
+    try:
+        return int(drive_bitrate or profile.bus.get("bitrate") or 0) or None
+    except (TypeError, ValueError):
+        return None
+
+
+def budget_findings(bus_budget: BusBudget | None) -> list[Finding]:
+    """Over :data:`~dobhil.drives.bus_load.MAX_BUDGET`: what to change. A run does not
+    refuse on it (the frames may still fit; late ones show in the run's timing), it says it."""
+    if bus_budget is None or not bus_budget.over:
+        return []
+    return [Finding(Severity.MISMATCH, bus_budget.advice())]
 
 
 def _node_report(probe: PreflightProbe, node: int, log: _NodeLog, window: float) -> NodeReport:
@@ -462,7 +544,8 @@ def _node_findings(probe: PreflightProbe, nodes: tuple[NodeReport, ...], period:
         if len(nodes) != 1:
             return out
         subject = nodes[0]  # the only drive there: check the rest of its settings too
-    out += _rate_findings(probe, subject, period, feedback_timeout, window)
+    if probe.checks_rates:
+        out += _rate_findings(probe, subject, period, feedback_timeout, window)
     out += probe.node_findings(subject)
     return out
 

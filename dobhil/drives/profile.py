@@ -215,6 +215,9 @@ class DriveProfile:
     name: str = ""  # where the profile came from (file stem), for messages
     #: the protocol's section (``odrive:``, ``cia402:``), validated, defaults filled in
     options: Mapping[str, Any] = field(default_factory=lambda: _EMPTY, hash=False)
+    #: the directory of the file it was read from ("" when built in code or from a log):
+    #: a section's relative paths (``cia402.eds``) are relative to it
+    directory: str = ""
 
     def __post_init__(self) -> None:
         # the bounds hold for a profile built in code too (dataclasses.replace, tests):
@@ -366,8 +369,10 @@ def _section(value: Any, protocol: str, rules: ProtocolRules, source: str) -> Ma
     return MappingProxyType(options)
 
 
-def profile_from_mapping(data: Mapping[str, Any], *, source: str = "<profile>") -> DriveProfile:
-    """Validate a mapping and build a DriveProfile; ConfigError names key, value and rule."""
+def profile_from_mapping(data: Mapping[str, Any], *, source: str = "<profile>",
+                         directory: str = "") -> DriveProfile:
+    """Validate a mapping and build a DriveProfile; ConfigError names key, value and rule.
+    ``directory``: where the profile's file is (for a section's relative paths)."""
     if not isinstance(data, Mapping):
         raise ConfigError(f"{source}: expected a mapping of profile keys, got {type(data).__name__}")
     for old, new in RENAMED_KEYS.items():
@@ -391,7 +396,7 @@ def profile_from_mapping(data: Mapping[str, Any], *, source: str = "<profile>") 
             raise ConfigError(f"{source}: missing key {key!r} ({COMMON_RULES[key].allowed}; "
                               f"protocol {protocol!r} needs it)")
     values["options"] = _section(data.get(protocol), protocol, rules, source)
-    return DriveProfile(**values)
+    return DriveProfile(**values, directory=directory)
 
 
 def _resolve(name_or_path: str | os.PathLike[str], drivers_dir: Path | None, near: Path | None) -> Path:
@@ -429,7 +434,7 @@ def load_profile(
     except (OSError, ValueError, RecursionError) as exc:
         raise ConfigError(f"{path}: cannot read drive profile: {' '.join(str(exc).split())}") from None
     data = {"name": path.stem, **(data or {})} if isinstance(data, Mapping) else data
-    return profile_from_mapping(data, source=str(path))
+    return profile_from_mapping(data, source=str(path), directory=str(path.resolve().parent))
 
 
 def load_drive_profile(config: Config, base_dir: Path | None = None) -> DriveProfile:

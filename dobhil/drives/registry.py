@@ -56,6 +56,7 @@ EMULATOR_SUFFIX = ".emulator"
 #: built-in protocols: name -> (module, class name)
 DRIVE_CLASSES: Mapping[str, tuple[str, str]] = MappingProxyType({
     "odrive": ("dobhil.drives.odrive.drive", "ODriveDrive"),
+    "cia402": ("dobhil.drives.cia402.drive", "CiA402Drive"),
 })
 
 

@@ -18,7 +18,8 @@ What canopen's LocalNode does not do, this module does (drive-protocols.md, CiA 
   The node boots (boot-up frame, NMT pre-operational) at its first tick or frame, and again
   after an NMT reset (node: the whole object dictionary back to the EDS; communication:
   0x1000-0x1FFF); canopen's slave only changes its state on a reset;
-- PDOs, only in NMT operational, from the object dictionary as the host configured it by
+- SDO in NMT pre-operational and operational (not stopped: CiA 301; canopen's server
+  would answer in any state); PDOs only in NMT operational, from the object dictionary as the host configured it by
   SDO (0x1400-0x1403/0x1600-0x1603, 0x1800-0x1803/0x1A00-0x1A03; a mapping entry must
   name a mappable object with its own size, at most 64 bits in all, or the SDO write is
   aborted with CiA 301's code). Synchronous RPDOs (transmission type 0-240) are latched at
@@ -28,6 +29,8 @@ What canopen's LocalNode does not do, this module does (drive-protocols.md, CiA 
   every SYNC) goes out, its bytes the mapped objects' values as the object dictionary
   encodes them (little-endian, their data types). Event-driven (254/255) and RTR-only
   TPDOs are not sent;
+- the object dictionary is read and checked by the drive's own
+  :func:`dobhil.drives.cia402.eds.load_od` (one line for an EDS without 0x6071 or CST);
 - process values read live (SDO or TPDO): 0x6041 statusword, 0x6064 position [increments:
   ``position_per_rev`` per motor revolution, ``gear_ratio`` motor revolutions per joint
   revolution, wrapped to 32 bits as an encoder counter does], 0x606C velocity
@@ -52,19 +55,20 @@ What canopen's LocalNode does not do, this module does (drive-protocols.md, CiA 
   reset clears them and sends the EMCY error reset (code 0).
 
 Observables for :class:`~dobhil.emulator.process.EmulatorProcess` (``OBSERVED``):
-``axis_state`` (the :class:`PowerState`, whose value is the statusword's state bits),
+``axis_state`` (the drive's :class:`~dobhil.drives.cia402.codec.PowerState` code, the
+same the host's CiA 402 drive reports),
 ``axis_error`` (the EMCY code, 0 none), ``watchdog_tripped`` (a heartbeat-consumer or NMT
 fault took the torque away) and ``frames_rejected``.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import struct
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from enum import IntEnum
-from pathlib import Path
 from typing import Any
 
 import can
@@ -73,26 +77,24 @@ from canopen.network import PeriodicMessageTask
 from canopen.objectdictionary import ODVariable
 from canopen.sdo import SdoAbortedError, SdoVariable
 
-from dobhil.data import drivers_dir
+from dobhil.drives.cia402.codec import CST_MODE, STATUSWORD_TABLE, PowerState, UnitScale, per_mille
+from dobhil.drives.cia402.drive import RATED_TORQUE_UNITS
+from dobhil.drives.cia402.eds import load_od
+from dobhil.drives.cia402.link import quiet_canopen
+from dobhil.drives.cia402.rules import CIA402_RULES
 from dobhil.drives.profile import DriveProfile
 from dobhil.emulator.protocol import EmulatedDrive, PlantLike
-from dobhil.errors import ConfigError
 
 __all__ = ["Command", "EmcyCode", "EmulatedCiA402", "PowerState", "TRANSITIONS", "decode_command",
            "statusword"]
 
-#: the profile's ``cia402:`` section as the emulator reads it, defaults filled in
+#: the ``cia402:`` section of a profile built in code without one: the section's own
+#: defaults (its rules), and the shipped emulated node's values for the keys it requires
 DEFAULT_OPTIONS: Mapping[str, Any] = {
-    "eds": "cia402-emulated.eds", "rated_torque_unit": "mNm", "position_per_rev": 4096,
-    "velocity_unit": "rpm", "gear_ratio": 1.0,
+    **{key: rule.default for key, rule in CIA402_RULES.section.items() if not rule.required},
+    "eds": "cia402-emulated.eds", "rated_torque": 1.0, "position_per_rev": 4096,
 }
-#: [Nm] per unit of 0x6076
-RATED_TORQUE_UNITS: Mapping[str, float] = {"mNm": 1e-3, "uNm": 1e-6}
-#: 0x606C per motor revolution per second, given the increments per revolution
-VELOCITY_UNITS: Mapping[str, Callable[[float], float]] = {
-    "rpm": lambda ppr: 60.0, "milli_rpm": lambda ppr: 60_000.0, "increments_per_s": lambda ppr: ppr,
-}
-CST = 10
+CST = CST_MODE
 #: modes of operation by their bit in 0x6502 (CiA 402)
 MODE_BITS: Mapping[int, int] = {1: 0, 2: 1, 3: 2, 4: 3, 6: 5, 7: 6, 8: 7, 9: 8, 10: 9}
 
@@ -101,19 +103,8 @@ _I16 = struct.Struct("<h")
 _I8 = struct.Struct("<b")
 _PDO_INVALID = 1 << 31
 _NMT, _HEARTBEAT = 0x000, 0x700
-
-
-class PowerState(IntEnum):
-    """CiA 402 power states; each value is the statusword's state bits (bits 0-3, 5, 6)."""
-
-    NOT_READY_TO_SWITCH_ON = 0x00
-    SWITCH_ON_DISABLED = 0x40
-    READY_TO_SWITCH_ON = 0x21
-    SWITCHED_ON = 0x23
-    OPERATION_ENABLED = 0x27
-    QUICK_STOP_ACTIVE = 0x07
-    FAULT_REACTION_ACTIVE = 0x0F
-    FAULT = 0x08
+#: SDO abort (ccs 4), no object, code 0x05040001: client/server command specifier not valid
+_SDO_ABORT_UNKNOWN_COMMAND = bytes([0x80, 0, 0, 0]) + (0x05040001).to_bytes(4, "little")
 
 
 class Command(IntEnum):
@@ -186,15 +177,8 @@ def decode_command(controlword: int) -> Command:
 def statusword(state: PowerState, *, follows_target: bool = False, limited: bool = False) -> int:
     """The statusword of ``state``: its state bits, voltage enabled (the emulated DC link is
     always on), remote (controlled over CAN), internal limit, CST target followed."""
-    return (state | SW_VOLTAGE_ENABLED | SW_REMOTE | (SW_INTERNAL_LIMIT if limited else 0)
+    return (STATUSWORD_TABLE[state][1] | SW_VOLTAGE_ENABLED | SW_REMOTE | (SW_INTERNAL_LIMIT if limited else 0)
             | (SW_FOLLOWS_TARGET if follows_target else 0))
-
-
-def _choice(options: Mapping[str, Any], key: str, allowed: Mapping[str, Any]) -> Any:
-    value = options[key]
-    if value not in allowed:
-        raise ConfigError(f"cia402.{key}: expected one of {', '.join(map(repr, allowed))}, got {value!r}")
-    return allowed[value]
 
 
 def _wrap32(value: float) -> int:
@@ -224,6 +208,8 @@ class _Pdo:
     trans_type: int
     entries: tuple[_Entry, ...]
     countdown: int = 1
+    #: a TPDO's bytes, one reader per entry (built with the PDO: no lookups per SYNC)
+    readers: tuple[Callable[[], bytes], ...] = ()
 
     @property
     def size(self) -> int:
@@ -288,45 +274,30 @@ class _EmulatorNetwork(canopen.Network):
         return _ClockTask(self._owner, can_id, data, period)
 
 
-def eds_path(name: str | Path, profile: DriveProfile) -> Path:
-    """The EDS file ``name``: as given if it exists (absolute, or relative to the working
-    directory), else beside the profile's file, else among the shipped drive profiles."""
-    path = Path(name)
-    candidates = [path]
-    source = getattr(profile, "source", None) or getattr(profile, "path", None)
-    if not path.is_absolute() and source:
-        candidates.append(Path(source).parent / path)
-    if not path.is_absolute():
-        candidates.append(drivers_dir() / path)
-    for candidate in candidates:
-        if candidate.is_file():
-            return candidate
-    raise ConfigError(f"drive profile {profile.name or profile.protocol!r}: cia402.eds: no such file "
-                      f"{str(name)!r} (looked in {', '.join(str(c.parent) for c in candidates)})")
-
-
 class EmulatedCiA402(EmulatedDrive):
     """A CiA 402 servo drive in CST on a python-can bus, dynamics from the injected plant.
 
-    ``options``: the profile's ``cia402:`` section (defaults: :data:`DEFAULT_OPTIONS`);
-    ``None`` reads ``profile.options``. ``over_torque_cycles``: SYNCs in a row above the
-    torque limits before the over-torque fault.
+    Its settings are the profile's ``cia402:`` section (``profile.options``; a key it lacks,
+    as in a profile built in code, from :data:`DEFAULT_OPTIONS`). ``over_torque_cycles``:
+    SYNCs in a row above the torque limits before the over-torque fault.
     """
 
     def __init__(self, bus: can.BusABC, profile: DriveProfile, plant: PlantLike, *,
-                 options: Mapping[str, Any] | None = None, over_torque_cycles: int = 3,
-                 **kwargs: Any) -> None:
+                 over_torque_cycles: int = 3, **kwargs: Any) -> None:
         super().__init__(bus, profile, plant, **kwargs)
-        if options is None:
-            options = getattr(profile, "options", None) or {}
-        self.options: Mapping[str, Any] = {**DEFAULT_OPTIONS, **options}
-        self._torque_unit = _choice(self.options, "rated_torque_unit", RATED_TORQUE_UNITS)
-        ppr, gear = float(self.options["position_per_rev"]), float(self.options["gear_ratio"])
-        self._inc_per_rad = ppr * gear / (2.0 * math.pi)
-        self._vel_per_rad_s = _choice(self.options, "velocity_unit", VELOCITY_UNITS)(ppr) * gear / (2.0 * math.pi)
+        self.options: Mapping[str, Any] = {**DEFAULT_OPTIONS, **profile.options}
+        # the drive's own reading of the EDS: a bad one (no 0x6071, no CST, a rated torque
+        # of 0) ends in the one line the drive gives, before any frame
+        od = load_od(dataclasses.replace(profile, options=self.options))
+        # the drive's units (one source): what the host decodes, this node encodes
+        self._torque_unit = RATED_TORQUE_UNITS[self.options["rated_torque_unit"]]
+        scale = UnitScale.of(position_per_rev=float(self.options["position_per_rev"]),
+                             velocity_unit=str(self.options["velocity_unit"]),
+                             gear_ratio=float(self.options["gear_ratio"]))
+        self._inc_per_rad = 1.0 / scale.rad_per_increment
+        self._vel_per_rad_s = 1.0 / scale.rad_s_per_velocity_count
         self.over_torque_cycles = over_torque_cycles
         self.node_id = profile.node_id
-        od = canopen.objectdictionary.import_od(str(eds_path(self.options["eds"], profile)), self.node_id)
         self.node = canopen.LocalNode(self.node_id, od)
         self.network = _EmulatorNetwork(self, bus)
         self._clock_tasks: list[_ClockTask] = []
@@ -417,7 +388,25 @@ class EmulatedCiA402(EmulatedDrive):
             return
         if self._pdo_dirty:
             self._compile_pdos()
+        if can_id == self.node.sdo.rx_cobid:
+            if self.nmt_state != "STOPPED":   # CiA 301: a stopped node answers NMT only
+                self._sdo_request(data, msg.timestamp)
+            return
         self.network.notify(can_id, data, msg.timestamp)
+
+    def _sdo_request(self, data: bytearray, timestamp: float) -> None:
+        """canopen's SDO server, around two of its failure paths (canopen 2.4.1): a segment
+        request with no transfer in progress makes its own abort raise (it packs the
+        transfer's index, None: ``struct.error``), and it logs refused requests (block
+        transfers) through Python's last-resort handler, i.e. prints them. Here the abort
+        is sent for it (0x05040001, command specifier not valid) and its log kept quiet:
+        a drive answers a bad request on the bus, it does not print."""
+        with quiet_canopen():
+            try:
+                self.network.notify(self.node.sdo.rx_cobid, data, timestamp)
+            except struct.error:
+                self.frames_rejected += 1
+                self.network.send_message(self.node.sdo.tx_cobid, _SDO_ABORT_UNKNOWN_COMMAND)
 
     # -- boot and NMT -----------------------------------------------------------
 
@@ -625,11 +614,27 @@ class EmulatedCiA402(EmulatedDrive):
         rpdos = [self._read_pdo(n + 1, 0x1400 + n, 0x1600 + n) for n in range(512) if 0x1400 + n in od]
         tpdos = [self._read_pdo(n + 1, 0x1800 + n, 0x1A00 + n) for n in range(512) if 0x1800 + n in od]
         self._rpdos = {pdo.cob_id: pdo for pdo in rpdos if pdo is not None}
-        self._tpdos = tuple(pdo for pdo in tpdos if pdo is not None and pdo.synchronous)
+        self._tpdos = tuple(dataclasses.replace(pdo, readers=tuple(self._reader(e) for e in pdo.entries))
+                            for pdo in tpdos if pdo is not None and pdo.synchronous)
         self._rpdo_ids = tuple(self._rpdos)
         for cob_id in self._rpdo_ids:
             self.network.subscribe(cob_id, self._on_rpdo)
         self._pending.clear()
+
+    def _reader(self, entry: _Entry) -> Callable[[], bytes]:
+        """The bytes of one TPDO entry: a process value encoded by canopen as its object's
+        data type, or what the object dictionary holds (as an SDO upload reads it)."""
+        if entry.index < 0x1000:
+            zeros = bytes(entry.size)
+            return lambda: zeros
+        live = self._live.get(entry.index)
+        if live is not None:
+            obj = self.node.object_dictionary[entry.index]
+            var = obj if isinstance(obj, ODVariable) else obj[entry.subindex]
+            encode = var.encode_raw
+            return lambda: encode(live())
+        get_data, index, subindex, size = self.node.get_data, entry.index, entry.subindex, entry.size
+        return lambda: get_data(index, subindex)[:size]
 
     def _on_rpdo(self, can_id: int, data: bytearray, timestamp: float) -> None:
         pdo = self._rpdos.get(can_id)
@@ -665,15 +670,12 @@ class EmulatedCiA402(EmulatedDrive):
         for number in sorted(pending):
             self._apply(pending[number])
         self._check_over_torque()
-        get_data = self.node.get_data
         for pdo in self._tpdos:
             pdo.countdown -= 1
             if pdo.countdown > 0:
                 continue
             pdo.countdown = max(pdo.trans_type, 1)
-            payload = b"".join(bytes(entry.size) if entry.index < 0x1000
-                               else get_data(entry.index, entry.subindex)[:entry.size]
-                               for entry in pdo.entries)
+            payload = b"".join([read() for read in pdo.readers])
             self._send(can.Message(arbitration_id=pdo.cob_id, is_extended_id=False, data=payload))
 
     # -- the drive ----------------------------------------------------------------
@@ -743,4 +745,4 @@ class EmulatedCiA402(EmulatedDrive):
         return _clamp(self._plant.velocity * self._vel_per_rad_s, -(1 << 31), (1 << 31) - 1)
 
     def _torque_actual(self) -> int:
-        return _clamp(self._plant_torque() / self._rated_nm * 1000.0, -32768, 32767)
+        return per_mille(self._plant_torque(), self._rated_nm)   # quantised as 0x6071 is

@@ -11,28 +11,50 @@ interpreter lock is released while waiting.
 
 Each record is one byte of kind and a payload: a frame (its fields and the sender's
 ``time.time()`` stamp, which the receiver keeps as the frame's timestamp, like a bus
-stamp at reception), or a line of text from the peer (its failure, or that it is
-ready). An empty read means the peer's end is closed: the process is gone.
+stamp at reception), a line of text from the peer (its failure, or that it is
+ready), or a periodic send's start, change or stop. An empty read means the peer's end
+is closed: the process is gone.
+
+Periodic send (python-can's ``send_periodic``) on the host's end with a ticking peer
+(``periodic_peer``, the emulator process): the task goes to the peer as a record, and
+the peer sends the frames on its own clock -- outside the host's interpreter, as the
+kernel's broadcast manager does on SocketCAN (:func:`dobhil.drives.periodic.native_periodic`
+says so). The peer keeps its tasks in a :class:`PeriodicTable` and asks it, at the start of
+each of its ticks, which frames are due; it echoes each to the host (as SocketCAN loops
+broadcast-manager frames back to the other sockets) and hands it to the emulated drive.
 """
 
 from __future__ import annotations
 
+import math
 import select
 import socket
 import struct
 import time
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from enum import IntEnum
 from typing import Any
 
 import can
+from can.broadcastmanager import (CyclicSendTaskABC, LimitedDurationCyclicSendTaskABC,
+                                  ModifiableCyclicTaskABC, RestartableCyclicTaskABC)
 
-__all__ = ["PipeBus", "RecordKind", "socket_pair"]
+__all__ = ["PeriodicTable", "PipeBus", "PipePeriodicTask", "RecordKind", "socket_pair"]
 
 #: kind, stamp [s since the epoch], arbitration id, flags, DLC (then the data bytes)
 _FRAME = struct.Struct("<BdIBB")
-_RECORD_MAX = _FRAME.size + 64
+#: the longest line of text a record carries
+_TEXT_MAX = _FRAME.size + 64
+#: kind, task id, period [s], duration [s] (NaN: none), frame count (then per frame: its
+#: record's length in one byte and the record)
+_PERIODIC = struct.Struct("<BIddB")
+#: kind, task id
+_PERIODIC_STOP = struct.Struct("<BI")
+#: frames one periodic task may cycle through (python-can sends them one per period)
+PERIODIC_FRAMES_MAX = 16
+_RECORD_MAX = _PERIODIC.size + PERIODIC_FRAMES_MAX * (1 + _TEXT_MAX)
 #: the longest a send waits for room when no timeout is given [s]
 SEND_WAIT_MAX = 0.05
 
@@ -41,6 +63,9 @@ class RecordKind(IntEnum):
     FRAME = 0
     READY = 1    # the peer is set up (text: what it is)
     FAILED = 2   # the peer failed (text: why, one line); it exits next
+    PERIODIC_START = 3    # the peer sends these frames every period from now on
+    PERIODIC_MODIFY = 4   # ... these frames instead, keeping its timing
+    PERIODIC_STOP = 5     # ... no more
 
 
 class _Flag(IntEnum):
@@ -82,8 +107,120 @@ def decode_frame(record: bytes, channel: Any) -> can.Message:
                        data=record[_FRAME.size:], channel=channel, is_rx=True, check=False)
 
 
+_PERIODIC_KINDS = frozenset({RecordKind.PERIODIC_START, RecordKind.PERIODIC_MODIFY, RecordKind.PERIODIC_STOP})
+
+
 def text_record(kind: RecordKind, text: str) -> bytes:
-    return bytes([kind]) + " ".join(text.split()).encode("utf-8", "replace")[:_RECORD_MAX - 1]
+    return bytes([kind]) + " ".join(text.split()).encode("utf-8", "replace")[:_TEXT_MAX - 1]
+
+
+def periodic_record(kind: RecordKind, task_id: int, messages: Sequence[can.Message] = (),
+                    period: float = math.nan, duration: float | None = None) -> bytes:
+    """A periodic task's start or change (its frames, period, duration) or stop."""
+    if kind == RecordKind.PERIODIC_STOP:
+        return _PERIODIC_STOP.pack(kind, task_id)
+    frames = [encode_frame(msg) for msg in messages]
+    return (_PERIODIC.pack(kind, task_id, period, math.nan if duration is None else duration, len(frames))
+            + b"".join(bytes([len(f)]) + f for f in frames))
+
+
+@dataclass
+class _PeerTask:
+    frames: tuple[can.Message, ...]
+    period: float
+    start: float           # peer clock [s] when it started
+    end: float             # the last instant a frame may go out (inf: none)
+    sent: int = 0          # frames sent so far: the next is due at start + (sent + 1) * period
+
+
+class PeriodicTable:
+    """The peer's side of periodic send: the tasks the host started, and which frames
+    are due at an instant of the peer's clock (``clock``, set by the peer: its drive's
+    time; a task started now sends its first frame one period from now).
+
+    Frame ``k`` (k = 1, 2, ...) of a task is due at ``start + k * period`` (no sum of
+    periods, no drift) and goes out at the first :meth:`due` at or after it: exact
+    when the period is a whole number of the peer's ticks, else up to a tick late."""
+
+    def __init__(self, clock: Callable[[], float] = lambda: 0.0) -> None:
+        self.clock = clock
+        self._tasks: dict[int, _PeerTask] = {}
+
+    def __len__(self) -> int:
+        return len(self._tasks)
+
+    def record(self, record: bytes, channel: Any = None) -> None:
+        """Apply a PERIODIC_* record from the host."""
+        kind = record[0]
+        if kind == RecordKind.PERIODIC_STOP:
+            self._tasks.pop(_PERIODIC_STOP.unpack_from(record)[1], None)
+            return
+        _, task_id, period, duration, count = _PERIODIC.unpack_from(record)
+        frames, at = [], _PERIODIC.size
+        for _ in range(count):
+            size = record[at]
+            frames.append(decode_frame(record[at + 1:at + 1 + size], channel))
+            at += 1 + size
+        if not (frames and math.isfinite(period) and period > 0):
+            return   # the host's end checked these: nothing to send
+        task = self._tasks.get(task_id)
+        if kind == RecordKind.PERIODIC_MODIFY and task is not None:
+            task.frames = tuple(frames)
+            return
+        now = self.clock()
+        end = now + duration if math.isfinite(duration) else math.inf
+        self._tasks[task_id] = _PeerTask(tuple(frames), period, now, end)
+
+    def due(self, now: float) -> list[can.Message]:
+        """The frames due by ``now`` (peer clock), in task order; ended tasks are dropped."""
+        if not self._tasks:
+            return []
+        out: list[can.Message] = []
+        for task_id in sorted(self._tasks):
+            task = self._tasks[task_id]
+            slack = 1e-6 * task.period   # the peer's clock is a sum of ticks: rounding
+            while True:
+                at = task.start + (task.sent + 1) * task.period
+                if at > now + slack:
+                    break
+                if at > task.end + slack:
+                    del self._tasks[task_id]
+                    break
+                out.append(task.frames[task.sent % len(task.frames)])
+                task.sent += 1
+        return out
+
+
+class PipePeriodicTask(LimitedDurationCyclicSendTaskABC, ModifiableCyclicTaskABC, RestartableCyclicTaskABC):
+    """A periodic send the host's :class:`PipeBus` handed to its peer (python-can's task
+    interface): :meth:`start` (again) from now, :meth:`stop`, :meth:`modify_data`."""
+
+    def __init__(self, bus: PipeBus, task_id: int, messages: Sequence[can.Message] | can.Message,
+                 period: float, duration: float | None = None, autostart: bool = True) -> None:
+        super().__init__(messages, period, duration)
+        if len(self.messages) > PERIODIC_FRAMES_MAX:
+            raise ValueError(f"send_periodic: at most {PERIODIC_FRAMES_MAX} frames per task, "
+                             f"got {len(self.messages)}")
+        self._bus = bus
+        self.task_id = task_id
+        if autostart:
+            self.start()
+
+    def start(self) -> None:
+        self._bus.send_record(periodic_record(RecordKind.PERIODIC_START, self.task_id, self.messages,
+                                              self.period, self.duration))
+
+    def modify_data(self, messages: Sequence[can.Message] | can.Message) -> None:
+        super().modify_data(messages)
+        self._bus.send_record(periodic_record(RecordKind.PERIODIC_MODIFY, self.task_id, self.messages,
+                                              self.period, self.duration))
+
+    def stop(self) -> None:
+        """Best effort: a peer that is gone sends nothing anyway."""
+        try:
+            self._bus.send_record(periodic_record(RecordKind.PERIODIC_STOP, self.task_id))
+        except can.CanError:
+            pass
 
 
 class PipeBus(can.BusABC):
@@ -98,13 +235,24 @@ class PipeBus(can.BusABC):
     message), and goes out first once the reader has made room -- a host that stalled
     then reads the drive's newest heartbeat and estimates, not only the oldest frames of
     its stall; ``replaced`` counts the frames a newer one of the same id superseded.
+    ``periodic_peer`` (the host's end of an emulator process): the peer sends periodic
+    frames itself (:attr:`native_periodic`); otherwise python-can's thread does, here.
+    ``serve_periodic`` (the peer's end): keep the tasks the host starts in
+    :attr:`periodic` (a :class:`PeriodicTable`), for the peer to send.
     The socket is owned: :meth:`shutdown` closes it (the peer then reads the end).
     """
+
+    #: send_periodic runs outside this process (dobhil.drives.periodic): the peer sends
+    native_periodic: bool
 
     def __init__(self, sock: socket.socket, channel: Any = None, *,
                  gone: Callable[[], str] = lambda: "the other end of the bus is closed",
                  mirror: can.BusABC | None = None, receive_own_messages: bool = False,
-                 send_wait: float = SEND_WAIT_MAX, coalesce: bool = False, **kwargs: Any) -> None:
+                 send_wait: float = SEND_WAIT_MAX, coalesce: bool = False,
+                 periodic_peer: bool = False, serve_periodic: bool = False, **kwargs: Any) -> None:
+        self.native_periodic = periodic_peer
+        self.periodic = PeriodicTable() if serve_periodic else None
+        self._next_task = 0
         self._sock = sock
         self._send_wait = send_wait
         self._held: dict[int, bytes] | None = {} if coalesce else None
@@ -186,6 +334,10 @@ class PipeBus(can.BusABC):
                 msg = decode_frame(record, self._channel)
                 self._copy(msg)
                 return msg, False
+            if kind in _PERIODIC_KINDS:
+                if self.periodic is not None:
+                    self.periodic.record(record, self._channel)
+                continue
             text = record[1:].decode("utf-8", "replace")
             if kind == RecordKind.FAILED:
                 raise can.CanOperationError(text)
@@ -209,6 +361,38 @@ class PipeBus(can.BusABC):
             if not record:
                 raise can.CanOperationError(self._gone())
             return record
+
+    def send_record(self, record: bytes) -> None:
+        """A record other than a frame (a periodic task's) to the peer, waiting for room as
+        :meth:`send` does; CanOperationError when it cannot go."""
+        end = time.monotonic() + self._send_wait
+        while True:
+            try:
+                self._sock.send(record)
+                return
+            except BlockingIOError:
+                remaining = end - time.monotonic()
+                if remaining <= 0:
+                    raise can.CanOperationError("pipe bus: the receiving end is not reading "
+                                                "(its buffer is full)") from None
+                select.select([], [self._sock], [], remaining)
+            except OSError as exc:
+                raise can.CanOperationError(f"{self._gone()} ({exc.strerror or exc})") from exc
+
+    def _send_periodic_internal(
+        self, msgs: Sequence[can.Message] | can.Message, period: float, duration: float | None = None,
+        autostart: bool = True, modifier_callback: Callable[[can.Message], None] | None = None,
+    ) -> CyclicSendTaskABC:
+        """The peer sends it (``periodic_peer``); python-can's thread does otherwise, and
+        for a ``modifier_callback`` (it runs in this process: SocketCAN falls back so too)."""
+        if not self.native_periodic or modifier_callback is not None:
+            return super()._send_periodic_internal(msgs, period, duration, autostart, modifier_callback)
+        if not (math.isfinite(period) and period > 0):
+            raise ValueError(f"send_periodic period {period!r}: expected a finite number of seconds > 0")
+        if duration is not None and not duration >= 0:
+            raise ValueError(f"send_periodic duration {duration!r}: expected a number of seconds >= 0")
+        self._next_task += 1
+        return PipePeriodicTask(self, self._next_task, msgs, period, duration, autostart)
 
     def wait_readable(self) -> None:
         """Block until a record (or the end of the stream) can be read; nothing is read."""

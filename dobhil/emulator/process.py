@@ -53,6 +53,7 @@ from array import array
 from pathlib import Path
 from dataclasses import dataclass
 from enum import IntEnum
+from collections.abc import Callable
 from typing import Any, cast
 
 import can
@@ -210,8 +211,9 @@ class EmulatorProcess:
         host_end, child_end = socket_pair()
         self._shared = _Shared()
         self._last = cast("list[float]", self._shared.values.tolist())
+        # periodic frames (a CiA 402 SYNC) are sent by the child on its own clock
         self.bus = PipeBus(host_end, channel, gone=self._gone, mirror=mirror,
-                           receive_own_messages=receive_own_messages)
+                           receive_own_messages=receive_own_messages, periodic_peer=True)
         try:
             try:
                 self._process = self._start(child_end)
@@ -471,7 +473,7 @@ def child_main(sock_fd: int, status_fd: int) -> None:
 
     # a host that stops reading never stalls the drive's ticks: frames that find no room
     # are held, the newest per id, and go out once the host reads again
-    bus = PipeBus(sock, "emulator", gone=gone, send_wait=0.0, coalesce=True)
+    bus = PipeBus(sock, "emulator", gone=gone, send_wait=0.0, coalesce=True, serve_periodic=True)
     try:
         spec = pickle.load(sys.stdin.buffer)
         _serve(bus, status, spec)
@@ -516,4 +518,26 @@ def _serve(bus: PipeBus, status: Any, spec: EmulatorSpec) -> None:
     bus.send_text(RecordKind.READY, f"{spec.profile.protocol} node {spec.profile.node_id}")
     if spec.on_first_frame:
         bus.wait_readable()
-    emulator.run_realtime(publisher.tick)
+    emulator.run_realtime(publisher.tick, _periodic_sender(bus, emulator))
+
+
+def _periodic_sender(bus: PipeBus, emulator: Any) -> Callable[[], None]:
+    """At each tick's start: the periodic frames the host asked for that are due, echoed to
+    the host first (on the wire before any answer; the host's end copies it to its mirror),
+    then read by the emulated drive -- sent by this process on the drive's clock, outside
+    the host's interpreter, as the kernel's broadcast manager sends on SocketCAN."""
+    table = bus.periodic
+    assert table is not None
+    table.clock = lambda: emulator.time
+
+    def at_tick_start() -> None:
+        if not len(table):
+            return
+        for msg in table.due(emulator.time):
+            msg.timestamp = time.time()   # the table's own copy, stamped as it goes out
+            try:
+                bus.send(msg)   # never blocks (held when the host is not reading)
+            except can.CanError:
+                pass   # the host's end is gone: the next read says so
+            emulator.deliver(msg)
+    return at_tick_start

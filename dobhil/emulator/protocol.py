@@ -251,6 +251,13 @@ class EmulatedDrive(ABC):
     def __exit__(self, *exc: object) -> None:
         self.close()
 
+    def deliver(self, msg: can.Message) -> None:
+        """A frame the bus itself puts on the wire now (a periodic frame the emulator
+        process sends for the host, as a kernel's broadcast manager would), received as
+        if read from the bus at the emulator's current time."""
+        self._receive(msg, self._time)
+        self._apply_due(self._time)
+
     # -- hooks ----------------------------------------------------------------
 
     @abstractmethod
@@ -327,17 +334,22 @@ class EmulatedDrive(ABC):
     def _run(self) -> None:
         self.run_realtime()
 
-    def run_realtime(self, on_tick: Callable[[float, float], None] | None = None) -> None:
+    def run_realtime(self, on_tick: Callable[[float, float], None] | None = None,
+                     at_tick_start: Callable[[], None] | None = None) -> None:
         """The real-time ticks on the calling thread, until :meth:`stop` (from another
         thread) or until the bus raises. ``on_tick(deadline, lateness)`` after each tick:
         its deadline (``time.perf_counter``) and how late its frames went out -- the
-        emulator's own measure of being starved (a process of its own publishes it)."""
+        emulator's own measure of being starved (a process of its own publishes it).
+        ``at_tick_start()`` before each tick reads the bus: a bus that sends periodic
+        frames itself delivers them then (:meth:`deliver`)."""
         period = self.tick_period
         start = time.perf_counter()
         tick = 1
         while not self._stop_event.is_set():
             tick_start = start + (tick - 1) * period
             deadline = start + tick * period
+            if at_tick_start is not None:
+                at_tick_start()
             self._receive_until(deadline, tick_start)
             self._advance_held(period)
             if on_tick is not None:

@@ -22,6 +22,7 @@ from typing import Any, Final
 
 import can
 
+from dobhil.drives.periodic import native_periodic
 from dobhil.errors import RecorderError
 from dobhil.recording.process import PIPE_SIZE, WriterProcess
 from dobhil.recording.schemas import RECORD_TYPES, EventKind, Topic, event_record, message_count, named
@@ -38,6 +39,7 @@ FOREIGN_ROOM: Final = PIPE_SIZE // 2
 FOREIGN_BYTES: Final = 64
 _RX, _TX, _FEEDBACK, _EVENTS = (int(t) for t in (Topic.CAN_RX, Topic.CAN_TX, Topic.DRIVE_FEEDBACK, Topic.EVENTS))
 _LOSS: Final = int(EventKind.LOSS)
+_NAN: Final = float("nan")
 
 
 class RecordingBus(can.BusABC):
@@ -60,6 +62,25 @@ class RecordingBus(can.BusABC):
         if msg is not None:
             self._frame(_RX, msg)
         return msg
+
+    @property
+    def native_periodic(self) -> bool:
+        """As the wrapped bus (:func:`dobhil.drives.periodic.native_periodic`): its periodic
+        send is forwarded to it."""
+        return native_periodic(self._inner)
+
+    def _send_periodic_internal(
+        self, msgs: Sequence[can.Message] | can.Message, period: float, duration: float | None = None,
+        autostart: bool = True, modifier_callback: Callable[[can.Message], None] | None = None,
+    ) -> can.broadcastmanager.CyclicSendTaskABC:
+        """A wrapped bus that sends periodic frames itself (SocketCAN's broadcast manager,
+        the lockstep bus, the emulator process's) does so here too: its echo of each frame
+        is recorded on ``/can/rx`` as it is read. Otherwise python-can's thread sends them
+        through :meth:`send`, recorded on ``/can/tx``."""
+        if native_periodic(self._inner):
+            return self._inner.send_periodic(msgs, period, duration, autostart=autostart,
+                                             modifier_callback=modifier_callback)
+        return super()._send_periodic_internal(msgs, period, duration, autostart, modifier_callback)
 
     def __getattr__(self, name: str) -> Any:
         if name.startswith("_"):
@@ -130,8 +151,11 @@ class RunLog:
         tuple in its field order: see ``schemas``); the one place a writer failure is raised
         on the loop thread, after the cycle's command went out."""
         records, status, truth = self.records, self.drive.status, self.truth
+        # the loop's measure (dobhil.drives.base.Feedback.sample_latency): NaN on a simulated
+        # log clock, where the stamps are of two clocks
+        sampled = _NAN if self._simulated else getattr(fb, "sample_latency", _NAN)
         records.append((0, self.clock_ns(), k, fb.position, fb.velocity, fb.seq, *out, period_error, exec_time,
-                        overrun, status.state, status.error_code, *(truth() if truth is not None else ())))
+                        overrun, sampled, status.state, status.error_code, *(truth() if truth is not None else ())))
         if len(records) >= BATCH_RECORDS or self._failure is not None:
             self.flush()
 

@@ -184,6 +184,7 @@ class CycleRecord(NamedTuple):
     period_error: float
     exec_time: float
     overrun: bool
+    sample_latency: float  # the drive's sample (SYNC) -> its feedback received [s]; NaN: unknown
     axis_state: int
     axis_error: int
     q: float
@@ -277,7 +278,9 @@ _SPECS: Final = (
               _fields(_I, "cycle", "control cycle index")
               + _fields(_N, "period_error", "actual minus nominal period [s]",
                         "exec_time", "time spent computing the cycle [s]")
-              + _fields(_B, "overrun", "the cycle missed its deadline")),
+              + _fields(_B, "overrun", "the cycle missed its deadline")
+              + _fields(_N, "sample_latency", "the drive's sample instant (its SYNC) to its feedback received, "
+                        "bus stamps [s]; null when unknown (ODrive, lockstep; absent in logs before it)")),
     TopicSpec(Topic.EMULATOR_TRUTH, "/emulator/truth", "dobhil.EmulatorTruth", "ground truth of the plant emulator",
               _fields(_N, "q", "position [rad]", "dq", "velocity [rad/s]", "tau_motor", "motor torque applied [N m]",
                       "tau_int", "interaction torque applied [N m]")),

@@ -132,9 +132,9 @@ class LoopSettings:
 
 
 FIELDS = ("t", "q", "dq", "tau_ref", "tau_int_hat", "tau_dis_hat", "tau_per", "u_unsat", "u",
-          "period_error", "exec_time", "overrun", "tau_int_true", "q_true", "latency")
+          "period_error", "exec_time", "overrun", "tau_int_true", "q_true", "latency", "sample_latency")
 
-#: rows a Trace keeps at most (15 float64 fields: 16 MB); longer runs are decimated
+#: rows a Trace keeps at most (16 float64 fields: 17 MB); longer runs are decimated
 TRACE_ROWS = 1 << 17
 
 
@@ -230,7 +230,10 @@ class TimingStats:
     """Timing of the cycles run. ``period_error``: lateness of the cycle start against
     its deadline (host), or the deviation of the feedback frame interval from the period
     (feedback); ``latency``: feedback frame received (the bus's stamp) -> command sent,
-    per cycle also in the trace (0 in lockstep: simulated)."""
+    per cycle also in the trace (0 in lockstep: simulated); ``sample_latency``: the
+    instant the drive sampled the feedback (``Feedback.sampled_at``, a CiA 402 SYNC as
+    the bus stamped it) -> the feedback received (the bus's stamp), None when no cycle
+    had both stamps (ODrive; lockstep, where it is not measured)."""
 
     period_error_p50: float
     period_error_p99: float
@@ -241,12 +244,19 @@ class TimingStats:
     latency_p50: float = 0.0
     latency_p99: float = 0.0
     latency_max: float = 0.0
+    sample_latency_p50: float | None = None
+    sample_latency_p99: float | None = None
+    sample_latency_max: float | None = None
 
     @classmethod
-    def of(cls, period_error: Histogram, exec_time: Histogram, latency: Histogram) -> TimingStats:
+    def of(cls, period_error: Histogram, exec_time: Histogram, latency: Histogram,
+           sample_latency: Histogram | None = None) -> TimingStats:
+        sampled = sample_latency if sample_latency is not None and sample_latency.n else None
         return cls(period_error.percentile(50), period_error.percentile(99), period_error.max,
                    exec_time.percentile(50), exec_time.percentile(99), exec_time.max,
-                   latency.percentile(50), latency.percentile(99), latency.max)
+                   latency.percentile(50), latency.percentile(99), latency.max,
+                   *((sampled.percentile(50), sampled.percentile(99), sampled.max) if sampled is not None
+                     else (None, None, None)))
 
 
 @dataclass(frozen=True)
@@ -405,6 +415,7 @@ class ForceLoop:
         self.period_error = Histogram()
         self.exec_time = Histogram()
         self.latency = Histogram()
+        self.sample_latency = Histogram()
         self.trace = Trace(settings.cycles, trace_rows)
 
     # -- public --------------------------------------------------------------
@@ -423,7 +434,7 @@ class ForceLoop:
         self._gc.stop()
         report = self._safe_stop(stop)
         self.ended = (stop, report)
-        timing = TimingStats.of(self.period_error, self.exec_time, self.latency)
+        timing = TimingStats.of(self.period_error, self.exec_time, self.latency, self.sample_latency)
         return RunResult(cycles=self.cycles, overruns=self.overruns, stop=stop, timing=timing,
                          trace=self.trace, disabled=report.safe, skipped=self.skipped,
                          safe_stop=report)
@@ -630,14 +641,21 @@ class ForceLoop:
                         f"(tau_ref = {out.tau_ref!r}, tau_int^ = {out.tau_int_hat!r})")
         self.drive.send_torque(out.u)
         exec_time = time.perf_counter() - start
-        latency = math.nan
+        latency = sample_latency = math.nan
         if timed:
             self.period_error.add(abs(period_error))
             if fb.rx_time == fb.rx_time:   # not NaN: the bus stamped the frame
                 latency = time.time() - fb.rx_time
                 self.latency.add(latency)
+                # the drive's sample instant (its SYNC) -> its feedback received, both bus
+                # stamps; lockstep (not timed) leaves it NaN: there the SYNC's stamp is
+                # simulated and the frames' are the wall clock, and the emulated drive
+                # answers at the SYNC's very instant (0 by construction, not a measurement)
+                sample_latency = fb.sample_latency
+                if sample_latency == sample_latency:
+                    self.sample_latency.add(sample_latency)
         self.exec_time.add(exec_time)
-        self._store(k, t, q, dq, out, period_error, exec_time, latency)
+        self._store(k, t, q, dq, out, period_error, exec_time, latency, sample_latency)
         self.cycles += 1
         self._at = k + 1
 
@@ -653,7 +671,7 @@ class ForceLoop:
                         f"|dq| = {abs(dq):.6g} rad/s above {lim.velocity_limit:g}")
 
     def _store(self, k: int, t: float, q: float, dq: float, out: ControlOutput,
-               period_error: float, exec_time: float, latency: float) -> None:
+               period_error: float, exec_time: float, latency: float, sample_latency: float) -> None:
         trace = self.trace
         r = trace.row(k)
         d = trace.data
@@ -661,7 +679,7 @@ class ForceLoop:
         d["tau_ref"][r], d["tau_int_hat"][r], d["tau_dis_hat"][r] = out.tau_ref, out.tau_int_hat, out.tau_dis_hat
         d["tau_per"][r], d["u_unsat"][r], d["u"][r] = out.tau_per, out.u_unsat, out.u
         d["period_error"][r], d["exec_time"][r], d["overrun"][r] = period_error, exec_time, 0.0
-        d["latency"][r] = latency
+        d["latency"][r], d["sample_latency"][r] = latency, sample_latency
         if self.truth is not None:
             d["tau_int_true"][r], d["q_true"][r] = self.truth()
         trace.last = r

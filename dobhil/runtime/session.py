@@ -24,6 +24,7 @@ from dobhil.drives.base import Drive
 from dobhil.drives.preflight import DEFAULT_WINDOW, PreflightReport, profile_rate_findings, run_preflight
 from dobhil.drives.profile import DriveProfile, load_drive_profile
 from dobhil.drives.registry import drive_class, make_drive, preflight_probe
+from dobhil.drives.timing import effective_config
 from dobhil.emulator.plant import Plant
 from dobhil.emulator.process import EmulatorProcess, EmulatorSpec, PlantView
 from dobhil.emulator.protocol import EmulatedDrive, LockstepBus
@@ -47,9 +48,12 @@ def check_rates(profile: DriveProfile, period: float) -> None:
 
 
 def build_controller(config: Config, profile: DriveProfile) -> ForceController:
-    """The runtime controller: the sampled synthesis, saturated at the tighter torque limit."""
+    """The runtime controller: the sampled synthesis of the design on this drive (its
+    protocol's command delay, :func:`~dobhil.drives.timing.effective_config`), saturated
+    at the tighter torque limit. ``dobhil replay`` rebuilds it with this very function."""
     limit = min(config.loop.torque_limit, profile.torque_limit)
-    return ForceController(sampled_controller(params_from_config(config)), torque_limit=limit)
+    design, _ = effective_config(config, profile)
+    return ForceController(sampled_controller(params_from_config(design)), torque_limit=limit)
 
 
 def loop_settings(config: Config, timing: Timing, duration: float | None) -> LoopSettings:
@@ -92,12 +96,28 @@ def resolve_timing(config: Config, profile: DriveProfile, lockstep: bool | None)
     return Timing.FEEDBACK
 
 
-def lockstep_latency(config: Config) -> float:
+def lockstep_latency(config: Config, profile: DriveProfile) -> float:
     """When the lockstep emulator applies a command after the sample it was computed
     from: the delay the sampled analysis models, ``design.delay_samples`` whole periods
-    plus ``design.input_delay`` (the fractional compute + bus delay)."""
+    plus ``design.input_delay`` (the fractional compute + bus delay) -- or 0 when the
+    drive's protocol fixes the delay itself (``command_delay_periods``): the emulated
+    drive's own latch (a CiA 402 RPDO applied at the next SYNC) makes it, and a latency
+    on top would count it twice."""
+    if profile.command_delay_periods is not None:
+        return 0.0
     d = config.design
     return d.delay_samples * config.loop.period + d.input_delay
+
+
+def check_feedback_timing(timing: Timing, drive: Drive, profile: DriveProfile) -> None:
+    """``loop.timing: feedback`` follows the drive's own feedback stream; a drive that
+    sends feedback only when the host asks for it each cycle (CiA 402 on a bus without
+    native periodic send: the host sends the SYNC after each command) has none to follow."""
+    if timing is Timing.FEEDBACK and not drive.feedback_streams:
+        raise ConfigError(
+            f"loop.timing = feedback follows the drive's feedback stream, but drive profile "
+            f"{profile.name or profile.protocol!r} sends feedback only when the host asks for it "
+            f"each cycle on this bus (no native periodic send); set loop.timing: host")
 
 
 class RunSession:
@@ -121,6 +141,9 @@ class RunSession:
         check_duration(duration)
         self.config = config
         self.profile = load_drive_profile(config, config_dir)
+        #: the design on this drive: the protocol's command delay, when it fixes one (the
+        #: run's controller, its lockstep emulator); ``design_note`` says what that changed
+        self.design_config, self.design_note = effective_config(config, self.profile)
         check_rates(self.profile, config.loop.period)
         self.timing = resolve_timing(config, self.profile, lockstep)
         self.settings = loop_settings(config, self.timing, duration)
@@ -152,6 +175,7 @@ class RunSession:
                          else resolve_bus(config, self.profile, bus))
         try:
             self.drive = self._open(emulate)
+            check_feedback_timing(self.timing, self.drive, self.profile)
         except BaseException:
             self.close()
             raise
@@ -165,7 +189,8 @@ class RunSession:
             self.plant = Plant.from_config(self.config)
             emu_bus = self._add(open_bus(self.bus_spec))
             self.emulator = make_emulated_drive(emu_bus, self.profile, self.plant,
-                                                latency=lockstep_latency(self.config), jitter=0.0,
+                                                latency=lockstep_latency(self.config, self.profile),
+                                                jitter=0.0,
                                                 seed=self.config.sensor.seed)
             lock = LockstepBus(host, [self.emulator], dt=self.config.loop.period)
             self._add(lock)
@@ -303,5 +328,17 @@ def summary(session: RunSession, result: RunResult) -> dict[str, Any]:
         "watchdog_tripped": bool(getattr(session.emulator, "watchdog_tripped", False)),
         "preflight": None if session.preflight_report is None else session.preflight_report.as_dict(),
         "final": final,
-        "loop_timing": dataclasses.asdict(result.timing),
+        # a sample latency only where one was measured (absent, not null, otherwise)
+        "loop_timing": {k: v for k, v in dataclasses.asdict(result.timing).items() if v is not None},
+        **sample_latency_us(result),
     }
+
+
+def sample_latency_us(result: RunResult) -> dict[str, Any]:
+    """``{"sample_latency_us": {"p50", "p99", "max"}}`` when any cycle measured the drive's
+    sample -> feedback received latency (:attr:`Feedback.sample_latency`), else ``{}``."""
+    t = result.timing
+    if t.sample_latency_p50 is None or t.sample_latency_p99 is None or t.sample_latency_max is None:
+        return {}
+    return {"sample_latency_us": {"p50": t.sample_latency_p50 * 1e6, "p99": t.sample_latency_p99 * 1e6,
+                                  "max": t.sample_latency_max * 1e6}}

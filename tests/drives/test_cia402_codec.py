@@ -189,3 +189,16 @@ def test_emcy_decoding_equals_canopens() -> None:
     with pytest.raises(CodecError):
         codec.decode_emcy(b"\x10\x23")
     assert struct.unpack("<HB", data[:3]) == (0x2310, 3)
+
+
+@pytest.mark.parametrize(("period", "value"), [
+    (0.001, (1, -3)), (0.0025, (25, -4)), (0.0005, (5, -4)), (0.002, (2, -3)), (0.1, (1, -1)), (2.0, (2, 0)),
+])
+def test_interpolation_time_period_0x60c2(period: float, value: tuple[int, int]) -> None:
+    assert codec.interpolation_period(period) == value
+    assert value[0] * 10.0 ** value[1] == pytest.approx(period)
+
+
+def test_an_interpolation_period_without_a_whole_value_is_refused() -> None:
+    with pytest.raises(CodecError, match="0x60C2"):
+        codec.interpolation_period(0.0012345)

@@ -13,6 +13,8 @@ from typing import Any
 import can
 import canopen
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from dobhil.drives.base import Confirmation, DriveState
 from dobhil.drives.cia402.drive import CiA402Drive
@@ -234,6 +236,9 @@ def _one_line_start_up_failure(drive: CiA402Drive, node: FakeNode | None) -> str
     assert drive.status.state is not DriveState.ENABLED
     if node is not None:
         assert node.state != "operation enabled" and 15 not in node.controlwords
+    # nothing was enabled, and the safe stop says so: no "drive may still be enabled"
+    report = drive.safe_stop()
+    assert report.safe and report.warning() == ""
     return text
 
 
@@ -309,8 +314,10 @@ def _drop_section(text: str, name: str) -> str:
     (lambda t: re.sub(r"(\[6076\](?:\n.*)*?DefaultValue=)1000", r"\g<1>0", t),
      "0x6076 (motor rated torque) = 0: a rated torque of 0"),
     (lambda t: re.sub(r"(\[6077\](?:\n.*)*?DataType=)0x0003", r"\g<1>0x0004", t),
-     "PDO 1 mapping does not fit: 0x6041:00 (statusword) 16 bits + 0x6064:00 (position actual value) "
+     "TPDO 1 mapping does not fit: 0x6041:00 (statusword) 16 bits + 0x6064:00 (position actual value) "
      "32 bits + 0x6077:00 (torque actual value) 32 bits: PDO mapping needs 80 bits, a PDO carries 64"),
+    (lambda t: re.sub(r"(\[6061\](?:\n.*)*?DataType=)0x0002", r"\g<1>0x0003", t),
+     "0x6061:00 (modes of operation display) is INTEGER16 in the EDS, CiA 402 has INTEGER8"),
 ])
 def test_a_bad_eds_is_one_config_line(tmp_path: Path, change: Any, says: str) -> None:
     eds = _eds_variant(tmp_path, change)
@@ -340,6 +347,9 @@ def test_the_shipped_profile_loads_and_finds_its_eds() -> None:
     assert shipped.protocol == "cia402" and shipped.options["rated_torque_unit"] == "mNm"
     drive = CiA402Drive(SimBus(), shipped)  # type: ignore[arg-type]
     assert drive.frame_ids >= {0x0, 0x80, 0x85, 0x185, 0x285, 0x205, 0x585, 0x605, 0x705}
+    assert 0x77F not in drive.frame_ids and 0x706 not in drive.frame_ids and 0x186 not in drive.frame_ids
+    watched = CiA402Drive(SimBus(), profile(consumer_heartbeat=0.05))  # type: ignore[arg-type]
+    assert 0x77F in watched.frame_ids   # the host's own heartbeat
 
 
 def test_node_id_must_be_a_canopen_one() -> None:
@@ -352,3 +362,119 @@ def test_node_id_must_be_a_canopen_one() -> None:
     data["node_id"] = 5
     with pytest.raises(ConfigError, match="missing key 'feedback_period'"):
         profile_from_mapping(data, source="p")
+
+
+def test_a_recorded_run_decodes_without_its_eds(tmp_path: Path) -> None:
+    """A replay rebuilds the profile from the log (no directory, the EDS maybe elsewhere):
+    the drive is made all the same and decodes with the standard layouts; only a start-up
+    needs the file, and says so in one line."""
+    gone = profile(eds="gone.eds")
+    drive = CiA402Drive(SimBus(), gone, clock=lambda: 0.0)  # type: ignore[arg-type]
+    drive.apply(can.Message(arbitration_id=0x185, data=bytes.fromhex("37 12 00 04 00 00 f4 01"),
+                            is_extended_id=False))
+    assert drive.apply(can.Message(arbitration_id=0x285, data=bytes.fromhex("3c 00 00 00 0a"),
+                                   is_extended_id=False))
+    fb = drive.feedback
+    assert fb is not None
+    assert fb.position == pytest.approx(math.pi / 2) and fb.velocity == pytest.approx(2 * math.pi)
+    with pytest.raises(ConfigError, match=r"cia402.eds: file 'gone.eds' not found"):
+        drive.enable()
+
+
+def test_a_profile_file_whose_eds_is_missing_is_refused_when_the_drive_is_made(tmp_path: Path) -> None:
+    import dataclasses
+    from_file = dataclasses.replace(profile(eds="gone.eds"), directory=str(tmp_path))
+    with pytest.raises(ConfigError, match=rf"cia402.eds: file 'gone.eds' not found in {re.escape(str(tmp_path))}"):
+        CiA402Drive(SimBus(), from_file)  # type: ignore[arg-type]
+
+
+def test_without_native_periodic_send_the_hosts_heartbeat_rides_with_the_torque_frames() -> None:
+    bus = HostSyncBus()
+    node = FakeNode(bus)
+    drive = CiA402Drive(bus, profile(consumer_heartbeat=0.05), clock=bus.clock)  # type: ignore[arg-type]
+    drive.enable()
+    assert node.sdo[0x1016][1].raw == 127 << 16 | 50     # host 127 watched for 50 ms
+    for _ in range(120):
+        drive.send_torque(0.0)
+        drive.poll(0.01)
+        bus.now += 0.001   # the host's loop period (the node answers at once on this bus)
+    beats = [m.timestamp for m in bus.sent if m.arbitration_id == 0x77F]
+    assert all(bytes(m.data) == b"\x05" for m in bus.sent if m.arbitration_id == 0x77F)
+    gaps = [b - a for a, b in zip(beats, beats[1:])]
+    assert len(beats) >= 10 and max(gaps) <= 0.0125 + 1e-9   # every 12 SYNC periods (50 ms / 4)
+
+
+def test_the_hosts_heartbeat_id_must_not_be_the_nodes() -> None:
+    with pytest.raises(ConfigError, match="cia402.host_node_id: expected an id other than the node's"):
+        CiA402Drive(SimBus(), profile(consumer_heartbeat=0.05, host_node_id=5))  # type: ignore[arg-type]
+
+
+def _od_with_60c2_instead_of_1006() -> Any:
+    """The emulated node's dictionary as a maxon EPOS4 has it: no 0x1006, 0x60C2 instead."""
+    from canopen.objectdictionary import ODRecord, ODVariable
+    od = canopen.import_od(str(EDS), 5)
+    del od[0x1006]
+    record = ODRecord("Interpolation time period", 0x60C2)
+    for sub, name, data_type in ((0, "Highest sub-index supported", 0x05), (1, "Interpolation time period value", 0x05),
+                                 (2, "Interpolation time index", 0x02)):
+        var = ODVariable(name, 0x60C2, sub)
+        var.data_type, var.access_type, var.default = data_type, "rw", 2 if sub == 0 else 0
+        record.add_member(var)
+    od.add_object(record)
+    return od
+
+
+def test_a_node_without_0x1006_gets_the_sync_period_in_0x60c2(tmp_path: Path) -> None:
+    od = _od_with_60c2_instead_of_1006()
+    eds = tmp_path / "epos-like.eds"
+    canopen.export_od(od, str(eds))
+    bus = SimBus()
+    node = FakeNode(bus, od=canopen.import_od(str(eds), 5))
+    drive = CiA402Drive(bus, profile(eds=str(eds)), clock=bus.clock)  # type: ignore[arg-type]
+    drive.enable()
+    assert (node.sdo[0x60C2][1].raw, node.sdo[0x60C2][2].raw) == (1, -3)   # 1 * 10^-3 s
+    with pytest.raises(ConfigError, match=r"feedback_period: interpolation time period 0x60C2"):
+        import dataclasses
+        CiA402Drive(bus, dataclasses.replace(profile(eds=str(eds)), feedback_period=0.0012345))  # type: ignore[arg-type]
+
+
+def test_a_node_with_neither_0x1006_nor_0x60c2_is_refused(tmp_path: Path) -> None:
+    od = canopen.import_od(str(EDS), 5)
+    del od[0x1006]
+    eds = tmp_path / "no-period.eds"
+    canopen.export_od(od, str(eds))
+    with pytest.raises(ConfigError, match=r"neither 0x1006 \(communication cycle period\) nor 0x60C2"):
+        CiA402Drive(SimBus(), profile(eds=str(eds)))  # type: ignore[arg-type]
+
+
+def test_the_epos4_profile_loads_and_its_eds_passes_the_checks() -> None:
+    epos4 = load_profile(PROFILE.parent / "epos4.yaml")
+    drive = CiA402Drive(SimBus(), epos4)  # type: ignore[arg-type]
+    assert drive.profile.options["rated_torque_unit"] == "uNm"
+
+
+def test_a_bus_that_refuses_a_request_at_start_up_is_one_bus_error_line() -> None:
+    from dobhil.errors import BusError
+    bus, node, drive = rig()
+    sent = bus.send
+
+    def refuse_sdo(msg: can.Message, timeout: float | None = None) -> None:
+        if msg.arbitration_id == 0x605 and msg.data[1:3] == bytes.fromhex("02 65"):
+            raise can.CanOperationError("Transmit buffer full")
+        sent(msg, timeout)
+
+    bus.send = refuse_sdo  # type: ignore[method-assign]
+    with pytest.raises(BusError) as info:
+        drive.enable()
+    assert str(info.value) == ("node 5: SDO 0x6502:00 (Supported drive modes): Transmit buffer full "
+                               "(reached: pre-operational, identity read, statusword read)")
+
+
+@settings(deadline=None, max_examples=60)
+@given(st.lists(st.tuples(st.sampled_from([0x80, 0x85, 0x185, 0x285, 0x705, 0x585, 0x205, 0x77F, 0x186]),
+                          st.binary(max_size=8)), max_size=30))
+def test_no_frame_makes_the_decoder_raise(frames: list[tuple[int, bytes]]) -> None:
+    """Short, long or garbled frames of this node's ids are ignored or decoded, never raised."""
+    drive = CiA402Drive(SimBus(), profile(), clock=lambda: 0.0)  # type: ignore[arg-type]
+    for arb, data in frames:
+        drive.apply(can.Message(arbitration_id=arb, data=data, is_extended_id=False))

@@ -127,6 +127,8 @@ def test_against_canopens_own_sdo_server() -> None:
         link = link_on(host, [], time.monotonic, timeout=1.0)
         with link.session(None):
             assert link.node.sdo[0x1018][1].raw == 0xCAFE
+            # a segmented upload: one answer awaited per segment request
+            assert link.node.sdo[0x1008].raw == local.sdo[0x1008].raw and len(local.sdo[0x1008].raw) > 4
             assert link.node.sdo[0x6502].raw & (1 << 9)
             link.node.sdo[0x1006].raw = 1000
             pdo = link.node.tpdo[2]

@@ -26,8 +26,9 @@ OPTIONS = {"eds": "cia402-emulated.eds", "rated_torque": 1.0, "rated_torque_unit
 def cia402_profile(**changes: Any) -> DriveProfile:
     """The emulated node's profile (SPEC-17), built in code."""
     base: dict[str, Any] = dict(protocol="cia402", firmware="1.0", node_id=NODE, torque_limit=2.0,
-                                velocity_limit=50.0, encoder_msg_rate=DT, heartbeat_msg_rate=0.1,
-                                watchdog_timeout=0.0, enable_timeout=2.0, name="cia402-emulated")
+                                velocity_limit=50.0, feedback_period=DT, heartbeat_period=0.1,
+                                command_delay_periods=1, watchdog_timeout=0.0, enable_timeout=2.0,
+                                name="cia402-emulated", options=OPTIONS)
     return DriveProfile(**{**base, **changes})
 
 
@@ -50,7 +51,6 @@ class Lockstep:
         self.emu_bus = can.Bus(interface="virtual", channel=channel)
         self.inner = can.Bus(interface="virtual", channel=channel)
         self.plant = plant if plant is not None else Plant(inertia=0.01)
-        kwargs.setdefault("options", OPTIONS)
         profile = kwargs.pop("profile", cia402_profile())
         self.emu = EmulatedCiA402(self.emu_bus, profile, self.plant, **kwargs)
         self.bus = LockstepBus(self.inner, [self.emu], dt=DT)

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import struct
 from collections.abc import Iterator
+from pathlib import Path
 
 import can
 import canopen
@@ -17,8 +18,9 @@ from dobhil.emulator.cia402 import (TRANSITIONS, Command, EmcyCode, PowerState, 
                                     statusword)
 from dobhil.emulator.plant import Plant
 from dobhil.emulator.registry import make_emulated_drive
+from dobhil.errors import ConfigError
 
-from .cia402_rig import (EMCY, HEARTBEAT, NODE, RPDO1, SDO_TX, SYNC, TPDO1, TPDO2, Lockstep,
+from .cia402_rig import (EMCY, HEARTBEAT, NODE, OPTIONS, RPDO1, SDO_TX, SYNC, TPDO1, TPDO2, Lockstep,
                          cia402_profile, configure_wire_mapping, download, enable_cst, upload)
 
 # statuswords as drive-protocols.md gives the state bits, plus voltage enabled (0x10) and
@@ -59,11 +61,12 @@ def test_statusword_masks_of_drive_protocols_md() -> None:
              PowerState.READY_TO_SWITCH_ON: (0x6F, 0x21), PowerState.SWITCHED_ON: (0x6F, 0x23),
              PowerState.OPERATION_ENABLED: (0x6F, 0x27), PowerState.QUICK_STOP_ACTIVE: (0x6F, 0x07),
              PowerState.FAULT_REACTION_ACTIVE: (0x4F, 0x0F), PowerState.FAULT: (0x4F, 0x08)}
+    states = list(masks)     # PowerState.UNKNOWN is the host's, never the node's
     for state, (mask, value) in masks.items():
-        assert [other for other in PowerState if statusword(other) & mask == value] == [state]
+        assert [other for other in states if statusword(other) & mask == value] == [state]
     # and canopen's own table reads each state back by name
     from canopen.profiles.p402 import State402
-    for state in PowerState:
+    for state in states:
         names = [name for name, (mask, value) in State402.SW_MASK.items() if statusword(state) & mask == value]
         assert names == [state.name.replace("_", " ")]
 
@@ -168,7 +171,7 @@ def test_controlword_by_rpdo_reaches_operation_enabled_in_cst_at_the_syncs(rig: 
         assert rig.read(0.01) == []       # no SYNC: nothing applied, nothing sent
         seen.append(tpdo1(rig.sync())[0])
     assert seen == [SW_READY, SW_SWITCHED_ON, SW_ENABLED_CST]
-    assert rig.emu.axis_state == PowerState.OPERATION_ENABLED == 0x27
+    assert rig.emu.axis_state == PowerState.OPERATION_ENABLED   # the drive's code, published as an int
 
 
 def test_tpdos_decoded_by_canopens_own_pdo_map(rig: Lockstep) -> None:
@@ -337,3 +340,62 @@ def test_no_frame_makes_the_node_raise(frames: list[tuple[int, bytes, bool]]) ->
 def test_a_frame_before_the_first_tick_boots_the_node_first(rig: Lockstep) -> None:
     rig.send(0x605, upload(0x1000))        # device type: profile 402, servo drive
     assert rig.read() == [(HEARTBEAT, b"\x00"), (SDO_TX, bytes.fromhex("4300100092010200"))]
+
+
+@pytest.mark.parametrize("drop, says", [("[6071]", "0x6071"), ("DefaultValue=0x00000380", "cyclic synchronous torque")])
+def test_an_eds_the_drive_would_refuse_ends_in_its_one_line(tmp_path: Path, drop: str, says: str) -> None:
+    text = (drivers_dir() / "cia402-emulated.eds").read_text()
+    if drop.startswith("["):   # the whole object
+        head, _, rest = text.partition(drop + "\n")
+        text = head + rest.partition("\n\n")[2]
+    else:                      # 0x6502 without CST
+        text = text.replace(drop, "DefaultValue=0x00000180")
+    eds = tmp_path / "bad.eds"
+    eds.write_text(text)
+    profile = cia402_profile(options={**OPTIONS, "eds": str(eds)})
+    bus = can.Bus(interface="virtual", channel="cia402-bad-eds-x")
+    try:
+        with pytest.raises(ConfigError, match=says) as info:
+            make_emulated_drive(bus, profile, Plant(inertia=0.01))
+    finally:
+        bus.shutdown()
+    assert "\n" not in str(info.value)
+
+
+def test_sync_from_the_lockstep_bus_periodic_send_is_answered_at_each_period(rig: Lockstep) -> None:
+    enable_cst(rig)
+    task = rig.bus.send_periodic(can.Message(arbitration_id=SYNC, data=b"", is_extended_id=False), 0.002)
+    try:
+        start = rig.emu.time
+        rig.run(0.0105)
+        after = [(round(t - start, 9), can_id) for t, can_id, _ in rig.seen if t > start]
+        # each SYNC (echoed to the host first, as SocketCAN loops BCM frames back), then its TPDOs
+        assert after == [(k * 0.002, can_id) for k in range(1, 6) for can_id in (SYNC, TPDO1, TPDO2)]
+        assert round(rig.emu.time - start, 9) == 0.011    # between the SYNCs of 10 and 12 ms
+        rig.rpdo(0x0F, 200)
+        rig.read()
+        assert rig.emu.applied_torque == 0.0  # received, latched until the next SYNC
+        rig.run(0.001)
+        assert round(rig.emu.time - start, 9) == 0.012 and rig.emu.applied_torque == 0.2
+    finally:
+        task.stop()
+
+
+@pytest.mark.parametrize("request_", ["6000000000000000", "0000000000000000", "c000000000000000"])
+def test_an_sdo_segment_outside_a_transfer_is_aborted_not_raised_nor_printed(
+        rig: Lockstep, request_: str, capsys: pytest.CaptureFixture[str]) -> None:
+    response = rig.sdo(bytes.fromhex(request_))
+    assert response[0] == 0x80 and struct.unpack("<I", response[4:])[0] in (0x05040001, 0x05040005)
+    assert rig.emu.frame_errors == 0 and capsys.readouterr().err == ""
+    assert rig.value(0x6502) == 0x380      # and the server still answers
+
+
+def test_a_stopped_node_answers_nmt_only_and_keeps_its_heartbeat(rig: Lockstep) -> None:
+    rig.write(0x1017, 0, 10, 2)
+    configure_wire_mapping(rig)
+    rig.send(0x000, [0x02, NODE])            # NMT stop
+    rig.send(0x605, upload(0x1018, 1))
+    assert rig.sync() == {}                  # neither SDO nor PDO
+    assert (HEARTBEAT, b"\x04") in rig.run(0.01)
+    rig.send(0x000, [0x01, NODE])
+    assert set(rig.sync()) == {TPDO1, TPDO2} and rig.value(0x1018, 1) == 0

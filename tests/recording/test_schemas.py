@@ -69,8 +69,9 @@ def test_non_finite_numbers_become_null() -> None:
 
 
 def test_numpy_scalars_are_plain_numbers() -> None:
-    out = decode(spec_for("/loop").encode((np.int64(3), np.float32(0.5), np.float64(1e-4), np.bool_(True))))
-    assert out == {"cycle": 3, "period_error": 0.5, "exec_time": 1e-4, "overrun": True}
+    out = decode(spec_for("/loop").encode((np.int64(3), np.float32(0.5), np.float64(1e-4), np.bool_(True),
+                                           np.float64(2.5e-4))))
+    assert out == {"cycle": 3, "period_error": 0.5, "exec_time": 1e-4, "overrun": True, "sample_latency": 2.5e-4}
 
 
 def test_a_cycle_record_becomes_one_message_per_cycle_topic(tmp_path: Path) -> None:
@@ -85,13 +86,15 @@ def test_a_cycle_record_becomes_one_message_per_cycle_topic(tmp_path: Path) -> N
         log.finish(None)
         return {topic: payload for topic, _, payload in open_log(path).iter_messages()}
 
-    record = (CYCLE, 7, 3, 0.1, 0.2, 4, 1.0, 0.9, 0.01, 0.5, 0.6, 0.55, 1e-6, 2e-5, False, 1, 0)
+    record = (CYCLE, 7, 3, 0.1, 0.2, 4, 1.0, 0.9, 0.01, 0.5, 0.6, 0.55, 1e-6, 2e-5, False, 3e-4, 1, 0)
     out = written(record)
     assert set(out) == {"/drive/feedback", "/controller", "/drive/command", "/loop"}
     assert out["/drive/feedback"] == {"position": 0.1, "velocity": 0.2, "drive_state": "enabled", "axis_error": 0,
                                       "seq": 4, "cycle": 3}
     assert out["/drive/command"] == {"torque": 0.55} and out["/controller"]["u_unsat"] == 0.6
-    assert out["/loop"] == {"cycle": 3, "period_error": 1e-6, "exec_time": 2e-5, "overrun": False}
+    assert out["/loop"] == {"cycle": 3, "period_error": 1e-6, "exec_time": 2e-5, "overrun": False,
+                            "sample_latency": 3e-4}
+    assert written((*record[:15], math.nan, *record[16:]))["/loop"]["sample_latency"] is None
     assert message_count(record) == 4 and message_count((*record, 1.0, 2.0, 3.0, 4.0)) == 5
     truth = written((*record, 1.0, 2.0, 3.0, 4.0))["/emulator/truth"]
     assert truth == {"q": 1.0, "dq": 2.0, "tau_motor": 3.0, "tau_int": 4.0}

@@ -73,7 +73,7 @@ def test_batched_records_unpack_to_the_flat_records_of_the_topic_table() -> None
     values exact."""
     import numpy as np
     batch = RunLog(SimpleNamespace(opened=False))  # type: ignore[arg-type]
-    fb = SimpleNamespace(position=0.5, velocity=np.float64(-1.25), seq=np.int64(7))
+    fb = SimpleNamespace(position=0.5, velocity=np.float64(-1.25), seq=np.int64(7), sample_latency=2.5e-4)
     batch.clock_ns = lambda: 11
     fd = can.Message(arbitration_id=0x1ABCDEF, is_extended_id=True, is_fd=True, bitrate_switch=True,
                      data=bytes(range(64)), channel="can0", timestamp=5.5)
@@ -93,9 +93,9 @@ def test_batched_records_unpack_to_the_flat_records_of_the_topic_table() -> None
     batches, used = unpack(data)
     records = [r for batch in batches for r in batch]
     assert used == len(data) and len(records) == 6 * 40
-    assert records[0] == (CYCLE, 11, 3, 0.5, -1.25, 7, *OUT, 1e-6, 2e-5, True, 8, 0)
+    assert records[0] == (CYCLE, 11, 3, 0.5, -1.25, 7, *OUT, 1e-6, 2e-5, True, 2.5e-4, 8, 0)
     assert type(records[0][4]) is np.float64 and type(records[0][5]) is np.int64  # exact, not bytes
-    assert records[1] == (CYCLE, 11, 4, 0.5, -1.25, 7, *OUT, 0.0, 0.0, False, 8, 0, 1.0, 2.0, 3.0, 4.0)
+    assert records[1] == (CYCLE, 11, 4, 0.5, -1.25, 7, *OUT, 0.0, 0.0, False, 2.5e-4, 8, 0, 1.0, 2.0, 3.0, 4.0)
     no, yes = False, True
     assert records[2] == (RX, 11, 0x1ABCDEF, yes, no, no, yes, yes, no, 64, bytes(range(64)), 5.5, "can0")
     assert records[3] == (TX, 11, 0x07B, no, yes, no, no, no, no, 8, b"", 11 / 1e9, 1)  # sent: stamped at send

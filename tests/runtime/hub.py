@@ -40,10 +40,10 @@ def child_env() -> dict[str, str]:
     return env
 
 
-def wait_for_emulator(proc: subprocess.Popen[bytes], out: Path) -> None:
+def wait_for_emulator(proc: subprocess.Popen[bytes], out: Path, protocol: str = "odrive") -> None:
     """Until ``dobhil emulate`` (writing to ``out``) says it runs; fails if it died or is slow."""
     deadline = time.monotonic() + STARTUP_TIMEOUT
-    while "emulating odrive" not in out.read_text(errors="replace"):
+    while f"emulating {protocol}" not in out.read_text(errors="replace"):
         assert proc.poll() is None, out.read_text(errors="replace")
         assert time.monotonic() < deadline, "dobhil emulate did not start"
         time.sleep(0.05)

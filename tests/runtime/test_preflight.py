@@ -95,6 +95,8 @@ def test_matching_drive_passes_and_its_idle_watchdog_bit_is_expected() -> None:
     assert "(expected: the watchdog is on and nothing feeds an idle axis; enable clears it)" in node.summary
     assert report.lines()[-1] == "preflight: ok"
     assert 0 < (report.bus.load or 0) < (report.bus.run_load or 0) < 1
+    assert report.lines()[1] == ("bus budget: 271 bits per cycle (torque command 135 + encoder estimates 135 + "
+                                 "heartbeat 135 x 0.01) = 27.1 % of 1 Mbit/s at 1 kHz")
 
 
 @pytest.mark.parametrize(("drive", "profile", "words"), [
@@ -246,6 +248,13 @@ def test_bus_too_slow_for_the_loop() -> None:
         host.shutdown()
     assert any(t.startswith("bus load with the run's commands would be") and "of 250000 bit/s" in t
                for t in texts(report)), report.lines()
+    # the budget, computed (tests/drives/test_bus_budget.py: 271.35 bits per 250 = 109 %):
+    # its line after the measured one, and a finding that says what to change, not refused
+    line = report.lines()[1]
+    assert line.startswith("bus budget: 271 bits per cycle") and "108.5 % of 250 kbit/s" in line
+    assert any(t.startswith("bus budget 109 % of 250 kbit/s at 1 kHz is over 70 %: use a higher bit rate")
+               for t in texts(report)), report.lines()
+    assert report.as_dict()["bus_budget"]["over"] and not report.refuses
 
 
 # -- dobhil check / dobhil run against an emulator thread (real time) --------------------------

@@ -35,7 +35,10 @@ __all__ = [
     "DATA_TYPE_FORMATS",
     "EMCY_LAYOUT",
     "FAULT_RESET_BIT",
+    "HOST_HEARTBEATS_PER_CONSUMER_TIME",
     "MAX_PDO_BITS",
+    "RATED_TORQUE_TOLERANCE",
+    "RATED_TORQUE_UNITS",
     "RPDO_CST",
     "RPDO_CST_STRUCT",
     "STATUSWORD_TABLE",
@@ -56,6 +59,7 @@ __all__ = [
     "decode_emcy",
     "encode_rpdo",
     "fault_reset_edge",
+    "interpolation_period",
     "is_fault",
     "nmt_frame_data",
     "layout_bits",
@@ -237,6 +241,14 @@ def torque_from_per_mille(value: int, rated_nm: float) -> float:
 # -- units ----------------------------------------------------------------------
 
 
+#: newton-metres per unit of 0x6076 (mNm per CiA 402; uNm on a maxon EPOS4)
+RATED_TORQUE_UNITS: Mapping[str, float] = MappingProxyType({"mNm": 1e-3, "uNm": 1e-6})
+#: rated torque of the node within this fraction of the profile's, else refused (start-up, preflight)
+RATED_TORQUE_TOLERANCE = 0.01
+#: the host sends its heartbeat this many times per consumer time of the node (0x1016)
+HOST_HEARTBEATS_PER_CONSUMER_TIME = 4
+
+
 class VelocityUnit(IntEnum):
     """Unit of 0x606C velocity actual on a drive (the profile's ``velocity_unit``)."""
 
@@ -397,6 +409,18 @@ def is_fault(statusword: int) -> bool:
 RPDO_CST_STRUCT = layout_struct([m.data_type for m in RPDO_CST])
 TPDO_STATUS_STRUCT = layout_struct([m.data_type for m in TPDO_STATUS])
 TPDO_MOTION_STRUCT = layout_struct([m.data_type for m in TPDO_MOTION])
+
+
+def interpolation_period(period: float) -> tuple[int, int]:
+    """0x60C2's (value U8, index I8) for ``period`` s = value * 10 ** index, the largest
+    unit that gives a whole value up to 255 (1 ms: (1, -3); 2.5 ms: (25, -4)); CodecError
+    when none does (a period not a whole number of microseconds, or above 255 s)."""
+    for exponent in range(0, -7, -1):
+        value = round(period / 10.0 ** exponent)
+        if 1 <= value <= 0xFF and math.isclose(value * 10.0 ** exponent, period, rel_tol=1e-9):
+            return value, exponent
+    raise CodecError(f"interpolation time period 0x60C2: {period!r} s is no whole value up to 255 "
+                     "of a power-of-ten second unit")
 
 
 def encode_rpdo(controlword: int, torque_per_mille: int) -> bytes:

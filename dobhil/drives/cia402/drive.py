@@ -39,51 +39,38 @@ import struct
 import time
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
-from dataclasses import dataclass
-from pathlib import Path
 from typing import TYPE_CHECKING, Any, ClassVar
 
 import can
 import canopen
 from canopen.emcy import EmcyError
-from canopen.objectdictionary import ObjectDictionary, ObjectDictionaryError, ODVariable
+from canopen.objectdictionary import ObjectDictionary
 
-from dobhil.drives.base import Clock, Drive, DriveEvent, MotionEvent, SafeStopReport, StateEvent
+from dobhil.drives.base import Clock, Confirmation, Drive, DriveEvent, MotionEvent, SafeStopReport, StateEvent
 from dobhil.drives.cia402 import codec
 from dobhil.drives.cia402.codec import CST_MODE, Cob, Controlword, Mapped, NmtState, PowerState
+# in the codec (not here) so that the preflight probe shares them without importing the drive
+from dobhil.drives.cia402.codec import (HOST_HEARTBEATS_PER_CONSUMER_TIME, RATED_TORQUE_TOLERANCE,
+                                        RATED_TORQUE_UNITS)
+from dobhil.drives.cia402.eds import STANDARD_LAYOUTS, EdsNotFound, load_od
 from dobhil.drives.cia402.link import CanopenLink
 from dobhil.drives.cia402.rules import CIA402_RULES
 from dobhil.drives.periodic import native_periodic
 from dobhil.drives.profile import DriveProfile, ProtocolRules
 from dobhil.drives.waits import Cancel
-from dobhil.errors import CodecError, ConfigError, DriveError, DriveFaultError, DriveTimeoutError
+from dobhil.errors import BusError, CodecError, ConfigError, DriveError, DriveFaultError, DriveTimeoutError
 
 if TYPE_CHECKING:
     from canopen.pdo import PdoMap
 
+    from dobhil.drives.preflight import PreflightProbe
+
 __all__ = ["CiA402Drive"]
 
 _NO_EVENTS: tuple[DriveEvent, ...] = ()
-#: rated torque of the node within this fraction of the profile's, else refused
-RATED_TORQUE_TOLERANCE = 0.01
-#: newton-metres per unit of 0x6076
-RATED_TORQUE_UNITS = {"mNm": 1e-3, "uNm": 1e-6}
 #: CiA 301 EMCY code of a heartbeat or life-guarding error: the node's watchdog on the host
 EMCY_HEARTBEAT = 0x8130
-#: objects the drive reads or writes besides the mapped ones (the EDS must have them)
-_REQUIRED = {0x1006: "communication cycle period", 0x1017: "producer heartbeat time",
-             0x1018: "identity", 0x6060: "modes of operation", 0x6076: "motor rated torque",
-             0x6502: "supported drive modes"}
 _OUT_OF_TORQUE = frozenset(PowerState) - {PowerState.OPERATION_ENABLED, PowerState.UNKNOWN}
-
-
-@dataclass(frozen=True, slots=True)
-class Layouts:
-    """The three PDOs' structs, derived from the object dictionary's data types."""
-
-    rpdo: struct.Struct
-    status: struct.Struct
-    motion: struct.Struct
 
 
 class CiA402Drive(Drive):
@@ -102,8 +89,22 @@ class CiA402Drive(Drive):
         self._period = profile.feedback_period
         self._scale = codec.UnitScale.of(position_per_rev=opts["position_per_rev"],
                                          velocity_unit=opts["velocity_unit"], gear_ratio=opts["gear_ratio"])
-        self._od = load_od(profile)
-        self._layouts = layouts_of(self._od, profile)
+        # the EDS is checked now (bad input: one line before anything is sent). A profile
+        # rebuilt from a log (no directory) may come without it and needs none to decode:
+        # the layouts are the standard's; only a start-up would need it
+        try:
+            self._od: ObjectDictionary | None = load_od(profile)
+            self._missing: EdsNotFound | None = None
+        except EdsNotFound as exc:
+            if profile.directory:
+                raise
+            self._od, self._missing = None, exc
+        if self._od is not None and 0x60C2 in self._od:
+            try:
+                codec.interpolation_period(self._period)
+            except CodecError as exc:
+                raise ConfigError(f"drive profile {profile.name!r}: feedback_period: {exc}") from None
+        self._layouts = STANDARD_LAYOUTS
         self._rpdo_n, self._tpdo_n = int(opts["rpdo"]), int(opts["tpdo"])
         self._rpdo_id = Cob.rpdo(self._rpdo_n, node)
         self._status_id = Cob.tpdo(self._tpdo_n, node)
@@ -114,11 +115,22 @@ class CiA402Drive(Drive):
         self._sync_task: Any = None
         self._native_sync = False
         self._sync_msg = can.Message(arbitration_id=Cob.SYNC, data=b"", is_extended_id=False)
+        self._host_id = int(opts["host_node_id"])
+        if self._host_id == node and float(opts["consumer_heartbeat"]) > 0:
+            raise ConfigError(f"drive profile {profile.name!r}: cia402.host_node_id: expected an id other "
+                              f"than the node's ({node}): the host's heartbeat 0x{Cob.HEARTBEAT + node:03X} "
+                              "would be the node's own")
+        self._host_heartbeat = can.Message(arbitration_id=Cob.HEARTBEAT + self._host_id,
+                                           data=bytes((NmtState.OPERATIONAL,)), is_extended_id=False)
+        self._host_heartbeat_task: Any = None
+        self._host_heartbeat_due: float | None = None  # without native periodic send
+        self._host_heartbeat_period = 0.0
         # hot path: one preallocated RPDO refilled per cycle
         self._rpdo_msg = can.Message(arbitration_id=self._rpdo_id, is_extended_id=False,
                                      data=bytearray(self._layouts.rpdo.size))
         self._controlword = int(Controlword.SHUTDOWN)
         self._fault_reset_sent = False
+        self._operational_commanded = False  # NMT start sent by this session's start-up
         # decoded state (TPDO1 and TPDO2 of one SYNC make one feedback sample)
         self._statusword = -1
         self._power = PowerState.UNKNOWN
@@ -134,11 +146,13 @@ class CiA402Drive(Drive):
 
     @property
     def frame_ids(self) -> frozenset[int]:
-        """SYNC, NMT, and this node's EMCY, PDOs, SDO and heartbeat."""
+        """SYNC, NMT, and this node's EMCY, PDOs, SDO and heartbeat (and the host's own
+        heartbeat when the node watches it)."""
         node = self.node_id
         pdos = {Cob.tpdo(n, node) for n in range(1, 5)} | {Cob.rpdo(n, node) for n in range(1, 5)}
+        host = {self._host_heartbeat.arbitration_id} if float(self.profile.options["consumer_heartbeat"]) else set()
         return frozenset({Cob.NMT, Cob.SYNC, Cob.EMCY + node, Cob.SDO_TX + node, Cob.SDO_RX + node,
-                          Cob.HEARTBEAT + node} | pdos)
+                          Cob.HEARTBEAT + node} | pdos | host)
 
     @property
     def feedback_streams(self) -> bool:
@@ -151,34 +165,61 @@ class CiA402Drive(Drive):
         """[Nm] the rated torque the per mille values refer to."""
         return self._rated
 
+    @classmethod
+    def preflight_probe(cls, profile: DriveProfile) -> PreflightProbe | None:
+        """SDO reads of identity, modes, rated torque, heartbeat, statusword and the PDO
+        mapping parameters, then listening (:mod:`dobhil.drives.cia402.preflight`)."""
+        # imported here: the probe imports this module (its rated-torque tolerance)
+        from dobhil.drives.cia402.preflight import CiA402Preflight
+        return CiA402Preflight(profile)
+
     def send_torque(self, tau_nm: float) -> None:
         super().send_torque(tau_nm)
         if not self._native_sync:
             self._send_sync()
+            if self._host_heartbeat_due is not None:
+                self._host_heartbeat_if_due()
 
     def safe_stop(self, *, confirm: bool = True, timeout: float | None = None,
                   cancel: Cancel | None = None) -> SafeStopReport:
         """The base's safe stop, then the periodic SYNC stopped: after the confirmation
         (the node needed SYNCs to apply the RPDOs and to answer), or at once when not
-        confirming (the safe-stop frames carried their own SYNCs)."""
+        confirming (the safe-stop frames carried their own SYNCs). A node watching the
+        host's heartbeat (``consumer_heartbeat``) is told to stop watching first when the
+        stop was confirmed, so the host's heartbeat ending is not a fault on it."""
+        report: SafeStopReport | None = None
         try:
-            return super().safe_stop(confirm=confirm, timeout=timeout, cancel=cancel)
+            # a node this session never put in NMT operational processed none of our PDOs:
+            # whatever its power state, we did not enable it, and there are no TPDOs to
+            # confirm anything with (the frames still go out: harmless, and a node that was
+            # operational after all takes them)
+            confirm = confirm and self._operational_commanded
+            report = super().safe_stop(confirm=confirm, timeout=timeout, cancel=cancel)
+            return report
         finally:
+            if report is not None and report.confirmation is Confirmation.CONFIRMED:
+                self._stop_watching_host(cancel)
             self._stop_sync()
 
     def close(self) -> None:
-        """Stop the periodic SYNC (if any). The bus is borrowed: it stays open."""
+        """Stop the periodic SYNC and host heartbeat (if any). The bus is borrowed: it
+        stays open."""
         self._stop_sync()
+        self._stop_host_heartbeat()
 
     # -- start-up ---------------------------------------------------------------
 
     def _prepare(self, deadline: float, cancel: Cancel | None) -> None:
+        if self._od is None:
+            assert self._missing is not None
+            raise self._missing
         reached: list[str] = []
         link = self._link or CanopenLink(self._bus, self._od, node_id=self.node_id, clock=self._clock,
                                          sdo_timeout=float(self.profile.options["sdo_timeout"]),
                                          on_frame=self._startup_frame)
         self._link = link
         self._fault_reset_sent = False
+        self._operational_commanded = False
         with link.session(cancel), self._one_line(link, reached):
             node = link.node
             steps: Sequence[tuple[str, Callable[[Any], None]]] = (
@@ -193,7 +234,7 @@ class CiA402Drive(Drive):
                  lambda n: self._map(n.tpdo[self._tpdo_n + 1], codec.TPDO_MOTION)),
                 ("timing set", self._write_timing),
                 ("CST mode set", lambda n: setattr(n.sdo[0x6060], "raw", CST_MODE)),
-                ("operational", lambda n: n.nmt.send_command(codec.NmtCommand.START)),
+                ("operational", self._start_node),
             )
             for what, step in steps:
                 if self._clock() > deadline:
@@ -214,11 +255,20 @@ class CiA402Drive(Drive):
             if "(reached: " in str(exc):
                 raise
             raise type(exc)(f"node {self.node_id}: {exc} (reached: {_reached(reached)})") from None
+        except (can.CanError, OSError) as exc:  # the bus refused a request or cannot be read
+            raise BusError(f"node {self.node_id}: {self._sdo_object(link)}: "
+                           f"{' '.join(str(exc).split()) or type(exc).__name__} "
+                           f"(reached: {_reached(reached)})") from exc
+
+    @staticmethod
+    def _sdo_object(link: CanopenLink) -> str:
+        """``SDO 0x6502:00 (Supported drive modes)``: the transfer started last."""
+        index, sub = link.adapter.last_object
+        var = link.node.object_dictionary.get_variable(index, sub)
+        return f"SDO 0x{index:04X}:{sub:02X} ({var.name if var is not None else 'not in the EDS'})"
 
     def _sdo_failure(self, link: CanopenLink, exc: Exception) -> str:
-        index, sub = link.adapter.last_object
-        var = self._od.get_variable(index, sub)
-        obj = f"SDO 0x{index:04X}:{sub:02X} ({var.name if var is not None else 'not in the EDS'})"
+        obj = self._sdo_object(link)
         if isinstance(exc, canopen.SdoAbortedError):
             text = canopen.SdoAbortedError.CODES.get(exc.code, "unknown abort code")
             return f"{obj} aborted by the node: 0x{exc.code:08X} ({text})"
@@ -228,7 +278,8 @@ class CiA402Drive(Drive):
 
     def _read_identity(self, node: Any) -> None:
         record = node.sdo[0x1018]
-        present = [sub for sub in (1, 2, 3, 4) if self._od.get_variable(0x1018, sub) is not None]
+        od = node.object_dictionary
+        present = [sub for sub in (1, 2, 3, 4) if od.get_variable(0x1018, sub) is not None]
         self.identity = tuple(int(record[sub].raw) for sub in present)
 
     def _read_status(self, node: Any) -> None:
@@ -236,7 +287,7 @@ class CiA402Drive(Drive):
         with its error code 0x603F."""
         statusword = int(node.sdo[0x6041].raw)
         self._note_statusword(statusword)
-        if self._power in (PowerState.FAULT, PowerState.FAULT_REACTION_ACTIVE) and 0x603F in self._od:
+        if self._power in (PowerState.FAULT, PowerState.FAULT_REACTION_ACTIVE) and 0x603F in node.object_dictionary:
             self._emcy = int(node.sdo[0x603F].raw)
 
     def _check_modes(self, node: Any) -> None:
@@ -270,9 +321,73 @@ class CiA402Drive(Drive):
         pdo.save()
 
     def _write_timing(self, node: Any) -> None:
-        node.sdo[0x1006].raw = round(self._period * 1e6)
+        """The SYNC period where the node has it: 0x1006 [us] (CiA 301) and 0x60C2, the
+        interpolation time period CSx modes use (value :01 times 10 ** index :02 s; a
+        maxon EPOS4 has only this one); the heartbeats."""
+        od = node.object_dictionary
+        if 0x1006 in od:
+            node.sdo[0x1006].raw = round(self._period * 1e6)
+        if 0x60C2 in od:
+            value, exponent = codec.interpolation_period(self._period)
+            node.sdo[0x60C2][1].raw = value
+            node.sdo[0x60C2][2].raw = exponent
         heartbeat = self.profile.heartbeat_period
         node.sdo[0x1017].raw = round(heartbeat * 1e3) if heartbeat else 0
+        consumer = float(self.profile.options["consumer_heartbeat"])
+        if consumer > 0:
+            # the host's heartbeat first: a consumer watches from the first one it hears
+            # a whole number of SYNC periods: the SYNC's clock is the one a native
+            # periodic send surely keeps (the lockstep bus takes whole steps only)
+            cycles = max(1, int(consumer / HOST_HEARTBEATS_PER_CONSUMER_TIME / self._period))
+            self._start_host_heartbeat(cycles * self._period)
+            node.sdo[0x1016][1].raw = self._host_id << 16 | round(consumer * 1e3)
+
+    # -- the host's heartbeat (for the node's consumer 0x1016) ------------------
+
+    def _start_host_heartbeat(self, period: float) -> None:
+        """Every ``period``: natively where SYNC is native, else with the torque frames."""
+        self._stop_host_heartbeat()
+        self._host_heartbeat_period = period
+        if native_periodic(self._bus):
+            self._host_heartbeat_task = self._bus.send_periodic(self._host_heartbeat, period)
+        else:
+            self._host_heartbeat_due = self._clock()
+            self._host_heartbeat_if_due()
+
+    def _host_heartbeat_if_due(self) -> None:
+        due, now = self._host_heartbeat_due, self._clock()
+        if due is not None and now >= due:
+            self._send_all((self._host_heartbeat,), "host heartbeat")
+            period = self._host_heartbeat_period
+            self._host_heartbeat_due = due + period if now < due + period else now + period  # no bursts
+
+    def _stop_host_heartbeat(self) -> None:
+        task, self._host_heartbeat_task = self._host_heartbeat_task, None
+        self._host_heartbeat_due = None
+        if task is not None:
+            try:
+                task.stop()
+            except Exception:  # a bus already gone stops its tasks with it
+                pass
+
+    def _stop_watching_host(self, cancel: Cancel | None) -> None:
+        """0x1016:01 = 0 by SDO, then the host's heartbeat stopped; never raises (a node
+        that did not hear it faults on the missing heartbeat, disabled already)."""
+        if self._link is None or (self._host_heartbeat_task is None and self._host_heartbeat_due is None):
+            return
+        try:
+            with self._link.session(cancel):
+                self._link.node.sdo[0x1016][1].raw = 0
+        except Exception:  # safety path: the run is over, the drive disabled
+            pass
+        self._stop_host_heartbeat()
+
+    def _start_node(self, node: Any) -> None:
+        self._operational_commanded = True
+        node.nmt.send_command(codec.NmtCommand.START)
+        # commanded, not yet heard: a boot-up or pre-operational heartbeat from before the
+        # command must not count against the node (its next heartbeat tells)
+        self._nmt = -1
 
     def _startup_frame(self, msg: can.Message) -> None:
         """A frame read while waiting for an SDO answer that is not one: the drive's."""
@@ -284,7 +399,11 @@ class CiA402Drive(Drive):
         self._stop_sync()
         self._native_sync = native_periodic(self._bus)
         if self._native_sync:
-            self._sync_task = self._bus.send_periodic(self._sync_msg, self._period)
+            try:
+                self._sync_task = self._bus.send_periodic(self._sync_msg, self._period)
+            except Exception as exc:  # whatever the interface raises (see Drive.send_torque)
+                raise BusError(f"node {self.node_id}: periodic SYNC not started: "
+                               f"{' '.join(str(exc).split()) or type(exc).__name__}") from exc
 
     def _stop_sync(self) -> None:
         task, self._sync_task = self._sync_task, None
@@ -342,6 +461,8 @@ class CiA402Drive(Drive):
     def _keepalive_frames(self) -> Sequence[can.Message]:
         """The RPDO with the controlword the state machine is at and zero torque (and a
         SYNC to apply it and be answered, when no periodic SYNC runs)."""
+        if self._host_heartbeat_due is not None:
+            self._host_heartbeat_if_due()
         return self._command_frames()
 
     def _disable_frames(self) -> Sequence[can.Message]:
@@ -442,94 +563,3 @@ def emcy_text(code: int) -> str:
 
 def _reached(reached: Sequence[str]) -> str:
     return ", ".join(reached) if reached else "nothing"
-
-
-# -- object dictionary and layouts -------------------------------------------
-
-
-def eds_path(profile: DriveProfile) -> Path:
-    """The profile's ``cia402.eds``: a path, or relative to the profile's directory."""
-    name = Path(str(profile.options["eds"]))
-    base = getattr(profile, "directory", None)
-    candidates = [name] if name.is_absolute() else \
-        [*([Path(base) / name] if base else []), name, _shipped(name)]
-    for path in candidates:
-        if path.is_file():
-            return path
-    raise ConfigError(f"drive profile {profile.name!r}: cia402.eds: file {str(name)!r} not found "
-                      f"(relative to the profile's directory, or a path)")
-
-
-def _shipped(name: Path) -> Path:
-    from dobhil.drives.profile import default_drivers_dir
-    return default_drivers_dir() / name
-
-
-def load_od(profile: DriveProfile) -> ObjectDictionary:
-    """The profile's EDS read by canopen, with every object the drive uses; ConfigError
-    (one line) otherwise."""
-    path = eds_path(profile)
-    try:
-        od = canopen.import_od(str(path), profile.node_id)
-    except (ObjectDictionaryError, ValueError, KeyError, OSError) as exc:
-        raise ConfigError(f"{path}: not a readable EDS: {' '.join(str(exc).split())}") from None
-    objects = {**_REQUIRED, **{m.index: m.name for m in (*codec.RPDO_CST, *codec.TPDO_STATUS,
-                                                          *codec.TPDO_MOTION)}}
-    for index, name in objects.items():
-        if index not in od:
-            raise ConfigError(f"{path}: object 0x{index:04X} ({name}) missing: a CiA 402 drive in CST "
-                              "needs it")
-    _check_eds_values(od, path)
-    return od
-
-
-def _check_eds_values(od: ObjectDictionary, path: Path) -> None:
-    modes = _default(od, 0x6502)
-    if modes is not None and not int(modes) >> codec.CST_SUPPORTED_BIT & 1:
-        raise ConfigError(f"{path}: 0x6502 (supported drive modes) = 0x{int(modes):08X} has no cyclic "
-                          f"synchronous torque (bit {codec.CST_SUPPORTED_BIT}); dobhil drives CST only")
-    rated = _default(od, 0x6076)
-    if rated is not None and int(rated) <= 0:
-        raise ConfigError(f"{path}: 0x6076 (motor rated torque) = {rated}: a rated torque of 0 makes "
-                          "every per mille torque 0; give the motor's rated torque")
-
-
-def _default(od: ObjectDictionary, index: int) -> Any:
-    var = od[index]
-    return var.default if isinstance(var, ODVariable) else None
-
-
-def layouts_of(od: ObjectDictionary, profile: DriveProfile) -> Layouts:
-    """The PDOs' structs from the data types canopen gives the mapped objects (a PDO map
-    built offline: canopen's ``PdoMap.add_variable`` on a node that is on no bus). A
-    mapping beyond 64 bits is refused in one line."""
-    node = canopen.RemoteNode(profile.node_id, od)
-    opts = profile.options
-    maps = ((node.rpdo, int(opts["rpdo"]), codec.RPDO_CST), (node.tpdo, int(opts["tpdo"]), codec.TPDO_STATUS),
-            (node.tpdo, int(opts["tpdo"]) + 1, codec.TPDO_MOTION))
-    structs = []
-    for pdos, number, objects in maps:
-        types = pdo_data_types(pdos, number, objects)
-        try:
-            structs.append(codec.layout_struct(types))
-        except CodecError as exc:
-            names = " + ".join(f"{m.label} {len_bits(t)} bits" for m, t in zip(objects, types))
-            raise ConfigError(f"drive profile {profile.name!r}: PDO {number} mapping does not fit: "
-                              f"{names}: {exc}") from None
-    return Layouts(*structs)
-
-
-def len_bits(data_type: int) -> int:
-    return codec.layout_bits([data_type])
-
-
-def pdo_data_types(pdos: Any, number: int, objects: Sequence[Mapped]) -> list[int]:
-    """Data types of ``objects`` as canopen maps them into PDO ``number`` (offline)."""
-    try:
-        pdo = pdos[number]
-    except KeyError:
-        raise ConfigError(f"the EDS has no PDO {number} (its communication and mapping records)") from None
-    pdo.clear()
-    for obj in objects:
-        pdo.add_variable(obj.index, obj.subindex)
-    return [var.od.data_type for var in pdo.map]

@@ -79,15 +79,13 @@ class SdoBusAdapter:
         self.channel_info = f"canopen link over {bus.channel_info}"
 
     def send(self, msg: can.Message, timeout: float | None = None) -> None:
-        self._bus.send(msg, timeout)
-        if msg.arbitration_id != self._request_id or not msg.data:
-            return
-        ccs = msg.data[0] & _CCS_MASK
-        if ccs == _CCS_ABORT:
-            return
+        request = msg.arbitration_id == self._request_id and len(msg.data) > 0
+        ccs = msg.data[0] & _CCS_MASK if request else _CCS_ABORT
         if ccs in _CCS_INITIATE and len(msg.data) >= 4:
             self.last_object = (msg.data[1] | msg.data[2] << 8, msg.data[3])
-        self._await_response()
+        self._bus.send(msg, timeout)
+        if request and ccs != _CCS_ABORT:
+            self._await_response()
 
     def _await_response(self) -> None:
         """Read until the SDO response is in canopen's queue (or give up: canopen then

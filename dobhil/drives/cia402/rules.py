@@ -53,8 +53,11 @@ CIA402_RULES = ProtocolRules(
                      lambda v: 1 <= v <= MAX_TPDO, default=1),
         "sdo_timeout": Rule((int, float), f"a number > 0 and <= {MAX_SDO_TIMEOUT:g} s",
                             _positive(MAX_SDO_TIMEOUT), default=0.3),
-        "consumer_heartbeat": Rule((int, float), "0 (off) or a number from 0.001 to 60 s",
-                                   lambda v: math.isfinite(v) and (v == 0 or 1e-3 <= v <= 60.0), default=0.0),
+        "consumer_heartbeat": Rule((int, float), "0 (off) or a number from 0.004 to 60 s (the node's "
+                                   "heartbeat consumer time 0x1016 on the host)",
+                                   lambda v: math.isfinite(v) and (v == 0 or 4e-3 <= v <= 60.0), default=0.0),
+        "host_node_id": Rule((int,), "an integer from 1 to 127 (the node id of the host's heartbeat "
+                             "0x700 + id, for consumer_heartbeat)", lambda v: 1 <= v <= 127, default=127),
     }),
     common=MappingProxyType({
         "node_id": Rule((int,), "an integer from 1 to 127 (CANopen node id)", lambda v: 1 <= v <= 127),

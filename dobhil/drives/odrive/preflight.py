@@ -14,6 +14,9 @@
   mismatch on which ``dobhil run`` refuses to enable (someone else drives it); errors are
   notes, since enabling clears them, except that the watchdog bit of an idle axis is
   expected (the watchdog runs in every state) and the node's summary says so.
+- Bus budget per loop period: the torque command (Set_Input_Torque), the encoder
+  estimates every ``feedback_period`` and the heartbeat's share, each at the DLC of the
+  codec's table (the DBC's 8 bytes).
 """
 
 from __future__ import annotations
@@ -22,6 +25,7 @@ from collections.abc import Sequence
 
 import can
 
+from dobhil.drives.bus_load import CycleFrame
 from dobhil.drives.odrive import codec
 from dobhil.drives.odrive.codec import AxisState, CmdId, Firmware
 from dobhil.drives.preflight import Finding, NodeReport, Observation, PreflightProbe, Setting, Severity, Stream
@@ -69,6 +73,20 @@ class ODrivePreflight(PreflightProbe):
 
     def motion_name(self) -> str:
         return "encoder estimates"
+
+    def cycle_frames(self, period: float) -> Sequence[CycleFrame]:
+        """Torque command per loop period; encoder estimates and heartbeat at the
+        profile's periods (the drive sends them by itself, whatever the loop does)."""
+        def dlc(cmd: CmdId) -> int:
+            return codec.spec_for(cmd, self.firmware).dlc
+        profile = self.profile
+        frames = [CycleFrame("torque command", dlc(CmdId.SET_INPUT_TORQUE))]
+        if profile.feedback_period:   # ODrive's rules require both periods; None only in code
+            frames.append(CycleFrame("encoder estimates", dlc(CmdId.GET_ENCODER_ESTIMATES),
+                                     every=profile.feedback_period))
+        if profile.heartbeat_period:
+            frames.append(CycleFrame("heartbeat", dlc(CmdId.HEARTBEAT), every=profile.heartbeat_period))
+        return tuple(frames)
 
     def status_name(self) -> str:
         return "heartbeat"

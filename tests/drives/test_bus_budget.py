@@ -1,0 +1,141 @@
+"""The bus budget (issue 17, item 3): the frames a run puts on the bus per loop period,
+times their bits on the wire, against the bit rate.
+
+Every expected number is computed by hand in the comments from the frame formula
+(classic standard frame: 47 bits + 8 per data byte + worst-case stuffing
+floor((34 + 8 DLC - 1) / 4); ``frame_bits``), not by the code under test.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import pytest
+
+from dobhil.drives import load_profile
+from dobhil.drives.bus_load import MAX_BUDGET, BusBudget, CycleFrame, budget, frame_bits, rate_text
+from dobhil.drives.registry import preflight_probe
+
+# hand-computed frame lengths (standard 11-bit id):
+#   DLC 0: 47 + 0  + floor(33 / 4) = 47 + 8  = 55    (SYNC)
+#   DLC 1: 47 + 8  + floor(41 / 4) = 55 + 10 = 65    (CANopen heartbeat)
+#   DLC 4: 47 + 32 + floor(65 / 4) = 79 + 16 = 95    (RPDO1: controlword + target torque)
+#   DLC 5: 47 + 40 + floor(73 / 4) = 87 + 18 = 105   (TPDO2: velocity + mode display)
+#   DLC 8: 47 + 64 + floor(97 / 4) = 111 + 24 = 135  (TPDO1; every ODrive frame)
+REPO = Path(__file__).resolve().parents[2]
+HAND_BITS = {0: 55, 1: 65, 4: 95, 5: 105, 8: 135}
+
+CIA402_FRAMES = (CycleFrame("SYNC", 0), CycleFrame("RPDO1", 4), CycleFrame("TPDO1", 8),
+                 CycleFrame("TPDO2", 5), CycleFrame("heartbeat", 1, every=0.1))
+
+
+@pytest.mark.parametrize(("dlc", "bits"), sorted(HAND_BITS.items()))
+def test_frame_bits_by_hand(dlc: int, bits: int) -> None:
+    assert frame_bits(dlc) == bits
+
+
+def test_cia402_budget_at_1_mbit_1_khz() -> None:
+    # per cycle: 55 + 95 + 135 + 105 = 390 bits, plus the heartbeat's share: 65 bits every
+    # 100 ms = 65 x (1 ms / 100 ms) = 0.65 bits -> 390.65 bits; one 1 ms cycle at 1 Mbit/s
+    # holds 1000 bits -> 39.065 % -> "39.1 %"
+    b = budget(CIA402_FRAMES, 1e-3, 1_000_000)
+    assert b is not None
+    assert b.bits_per_cycle == pytest.approx(390.65)
+    assert b.load == pytest.approx(0.39065)
+    assert b.line() == ("bus budget: 391 bits per cycle (SYNC 55 + RPDO1 95 + TPDO1 135 + TPDO2 105 + "
+                        "heartbeat 65 x 0.01) = 39.1 % of 1 Mbit/s at 1 kHz")
+    assert not b.over and b.advice() == ""
+
+
+def test_cia402_budget_over_70_percent_says_what_to_change() -> None:
+    # at 250 kbit/s one 1 ms cycle holds 250 bits: 390.65 / 250 = 156.26 % -> over 70 %.
+    # higher bit rate: 500 kbit/s -> 390.65 / 500 = 78.1 % (still over); 800 kbit/s ->
+    #   390.65 / 800 = 48.8 % -> "49 %".
+    # slower loop at 250 kbit/s: the heartbeat is 65 bits / 0.1 s = 650 bit/s whatever the
+    #   period; 390 bits per cycle must fit in 0.7 x 250000 - 650 = 174350 bit/s ->
+    #   period >= 390 / 174350 = 2.2369 ms -> rounded up to 10 us: 2.24 ms.
+    b = budget(CIA402_FRAMES, 1e-3, 250_000, fewer="fewer axes or TPDOs on this bus")
+    assert b is not None and b.over and b.load == pytest.approx(1.5626)
+    assert b.advice() == ("bus budget 156 % of 250 kbit/s at 1 kHz is over 70 %: use a higher bit rate "
+                          "(800 kbit/s on the drive and the interface: 49 %), or a slower loop "
+                          "(loop.period >= 2.24 ms), or fewer axes or TPDOs on this bus")
+
+
+def test_two_cia402_axes_fit_three_do_not() -> None:
+    # drive-protocols.md: "only about two CST axes fit on 1 Mbit/s at 1 kHz". One SYNC for
+    # all; per axis RPDO1 + TPDO1 + TPDO2 + heartbeat share = 95 + 135 + 105 + 0.65 = 335.65.
+    # two axes: 55 + 2 x 335.65 = 726.3 bits = 72.6 % (over 70 %); three: 1061.95 = 106 %.
+    axis = CIA402_FRAMES[1:]
+    two = budget((CIA402_FRAMES[0], *axis, *axis), 1e-3, 1_000_000)
+    assert two is not None and two.bits_per_cycle == pytest.approx(726.3) and two.over
+    one = budget(CIA402_FRAMES, 1e-3, 1_000_000)
+    assert one is not None and not one.over and MAX_BUDGET == 0.7
+
+
+def test_odrive_budget_from_its_probe() -> None:
+    # odrive-0.6: torque command 135 bits per cycle, encoder estimates 135 bits every 1 ms
+    # (= the loop period: 1 per cycle), heartbeat 135 bits every 100 ms (0.01 per cycle:
+    # 1.35 bits) -> 271.35 bits per 1000 -> "27.1 %"
+    profile = load_profile("odrive-0.6")
+    probe = preflight_probe(profile)
+    assert probe is not None
+    b = probe.budget(1e-3, 1_000_000)
+    assert b is not None and b.bits_per_cycle == pytest.approx(271.35)
+    assert b.line() == ("bus budget: 271 bits per cycle (torque command 135 + encoder estimates 135 + "
+                        "heartbeat 135 x 0.01) = 27.1 % of 1 Mbit/s at 1 kHz")
+
+
+def test_odrive_factory_bitrate_is_over_budget() -> None:
+    # 250 kbit/s (an ODrive's default) at 1 kHz: 271.35 / 250 = 108.5 % -> "109 %".
+    # 500 kbit/s: 271.35 / 500 = 54.3 % -> "54 %" fits.
+    # slower loop at 250 kbit/s with the drive's streams unchanged: encoder 135 bits / 1 ms
+    #   = 135000 bit/s plus heartbeat 135 / 0.1 s = 1350 bit/s; the torque command's 135 bits
+    #   per cycle must fit in 0.7 x 250000 - 136350 = 38650 bit/s -> period >= 3.4929 ms ->
+    #   3.5 ms (rounded up to 10 us)
+    profile = dataclasses.replace(load_profile("odrive-0.6"), bus={})
+    probe = preflight_probe(profile)
+    assert probe is not None
+    b = probe.budget(1e-3, 250_000)
+    assert b is not None
+    assert b.advice() == ("bus budget 109 % of 250 kbit/s at 1 kHz is over 70 %: use a higher bit rate "
+                          "(500 kbit/s on the drive and the interface: 54 %), or a slower loop "
+                          "(loop.period >= 3.5 ms), or fewer axes on this bus")
+
+
+def test_unknown_bitrate_and_no_frames() -> None:
+    # 55 + 95 = 150 bits per cycle; no bit rate: no percentage, a line that says so
+    b = budget((CycleFrame("SYNC", 0), CycleFrame("RPDO1", 4)), 2e-3, None)
+    assert b is not None and b.load is None and not b.over
+    assert b.line() == ("bus budget: 150 bits per cycle (SYNC 55 + RPDO1 95) at 500 Hz; "
+                        "bit rate unknown (set drive.bitrate)")
+    assert budget((), 1e-3, 1_000_000) is None
+    assert BusBudget((), 1e-3, None).bits_per_cycle == 0
+
+
+def test_rate_text() -> None:
+    assert [rate_text(v, "bit/s") for v in (1_000_000, 250_000, 125_000, 800)] == [
+        "1 Mbit/s", "250 kbit/s", "125 kbit/s", "800 bit/s"]
+    assert [rate_text(v, "Hz") for v in (1000.0, 500.0, 4000.0)] == ["1 kHz", "500 Hz", "4 kHz"]
+
+
+def test_analyze_and_an_emulated_run_say_the_budget(capsys: pytest.CaptureFixture[str]) -> None:
+    """dobhil analyze prints the budget of the config's drive profile at loop.period and
+    drive.bitrate; a run (here emulated, no preflight) says an over-budget bus on stderr,
+    and runs."""
+    import json
+
+    from dobhil.cli.main import main
+    demo = str(REPO / "configs" / "demo.yaml")
+    assert main(["analyze", demo]) == 0
+    assert capsys.readouterr().out.splitlines()[-1] == (
+        "bus budget: 271 bits per cycle (torque command 135 + encoder estimates 135 + heartbeat 135 x 0.01) "
+        "= 27.1 % of 1 Mbit/s at 1 kHz")
+    assert main(["analyze", demo, "--json", "--set", "drive.bitrate=250000"]) == 0
+    info = json.loads(capsys.readouterr().out)["bus_budget"]
+    assert info["over"] and info["load"] == pytest.approx(271.35 / 250) and info["bitrate"] == 250_000
+    assert main(["run", demo, "--emulate", "--lockstep", "--duration", "0.01", "--set", "drive.bitrate=250000"]) == 0
+    err = capsys.readouterr().err
+    assert err.splitlines() == ["dobhil run: note (not refused: the run goes on): bus budget 109 % of 250 kbit/s "
+                                "at 1 kHz is over 70 %: use a higher bit rate (500 kbit/s on the drive and the "
+                                "interface: 54 %), or a slower loop (loop.period >= 3.5 ms), or fewer axes on this bus"]

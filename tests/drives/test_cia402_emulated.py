@@ -1,0 +1,244 @@
+"""CiA402Drive against the emulated CiA 402 node (dobhil.emulator.cia402) in lockstep, and the
+``dobhil run --emulate --lockstep`` path: enable, closed loop, safe stop, faults, bad input."""
+
+from __future__ import annotations
+
+import re
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import can
+import pytest
+import yaml
+
+from dobhil.cli.main import main
+from dobhil.drives.base import Confirmation, DriveState
+from dobhil.drives.cia402.drive import CiA402Drive
+from dobhil.drives.profile import load_profile, profile_from_mapping
+from dobhil.emulator.cia402 import EmulatedCiA402
+from dobhil.emulator.plant import Plant
+from dobhil.emulator.protocol import LockstepBus
+from dobhil.emulator.registry import private_virtual_channel
+from dobhil.errors import ConfigError, DriveError, DriveFaultError
+
+ROOT = Path(__file__).resolve().parents[2]
+PROFILE = ROOT / "drivers" / "cia402-emulated.yaml"
+EDS = ROOT / "drivers" / "cia402-emulated.eds"
+DEMO = ROOT / "configs" / "demo.yaml"
+
+
+class Rig:
+    """The drive and the emulated node on a private virtual channel behind a LockstepBus."""
+
+    def __init__(self, *, inertia: float = 0.01, reset_faults: bool = False) -> None:
+        self.profile = load_profile(PROFILE)
+        channel = private_virtual_channel()
+        self.emu_bus = can.Bus(interface="virtual", channel=channel)
+        self.inner = can.Bus(interface="virtual", channel=channel)
+        self.plant = Plant(inertia=inertia)
+        self.emu = EmulatedCiA402(self.emu_bus, self.profile, self.plant)
+        self.bus = LockstepBus(self.inner, [self.emu], dt=0.001)
+        self.drive = self.new_drive(reset_faults=reset_faults)
+
+    def new_drive(self, *, reset_faults: bool = False) -> CiA402Drive:
+        return CiA402Drive(self.bus, self.profile, clock=self.bus.clock, reset_faults=reset_faults)
+
+    def close(self) -> None:
+        self.bus.shutdown()
+        self.emu.close()
+        self.inner.shutdown()
+
+
+@pytest.fixture
+def rig() -> Iterator[Rig]:
+    made = Rig()
+    try:
+        yield made
+    finally:
+        made.close()
+
+
+def test_enable_reaches_operation_enabled_in_cst(rig: Rig) -> None:
+    rig.drive.enable()
+    assert rig.drive.status.state is DriveState.ENABLED
+    assert rig.emu.nmt_state == "OPERATIONAL"
+    assert rig.emu.statusword & 0x6F == 0x27            # operation enabled
+    assert rig.bus.clock() < 0.01                       # shutdown, switch on, enable at three SYNCs
+
+
+def test_torque_in_per_mille_moves_the_plant_as_tau_over_j(rig: Rig) -> None:
+    rig.drive.enable()
+    first = rig.drive.poll(0.01)
+    assert first is not None
+    for _ in range(500):
+        rig.drive.send_torque(0.2)
+        fb = rig.drive.poll(0.01)
+        assert fb is not None and fb.sampled_at <= rig.bus.clock()
+    assert rig.emu.target_torque == 200                 # per mille of the 1 Nm rated torque
+    # 0.2 Nm / 0.01 kg m^2 for 499 periods: each command acts from the next SYNC on
+    assert fb.velocity == pytest.approx(0.2 / 0.01 * 0.499, rel=0.01)
+
+
+def test_safe_stop_is_confirmed_and_the_node_is_disabled(rig: Rig) -> None:
+    rig.drive.enable()
+    rig.drive.send_torque(0.3)
+    rig.drive.poll(0.01)
+    report = rig.drive.safe_stop()
+    assert report.confirmation is Confirmation.CONFIRMED, report
+    assert rig.emu.statusword & 0x6F != 0x27 and rig.emu.target_torque == 0
+
+
+def test_an_over_torque_emcy_stops_with_its_code(rig: Rig) -> None:
+    rig.drive.enable()
+    with pytest.raises(DriveFaultError) as info:
+        for _ in range(20):
+            rig.drive.send_torque(2.5)   # above the profile's 2 Nm torque limit: EMCY 0x8311
+            rig.drive.poll(0.01)
+    assert "EMCY 0x8311 (Monitoring)" in str(info.value)
+    assert rig.drive.status.error_code == 0x8311
+
+
+def test_a_faulted_node_is_refused_without_reset_faults_and_reset_with_it(rig: Rig) -> None:
+    rig.drive.enable()
+    with pytest.raises(DriveFaultError):
+        for _ in range(20):
+            rig.drive.send_torque(2.5)
+            rig.drive.poll(0.01)
+    rig.drive.safe_stop()
+    again = rig.new_drive()
+    with pytest.raises(DriveFaultError, match=r"node 5 is in fault: EMCY 0x8311 \(Monitoring\); not reset"):
+        again.enable()
+    assert rig.emu.statusword & 0x4F == 0x08             # still in fault: nothing was reset
+    reset = rig.new_drive(reset_faults=True)
+    reset.enable()
+    assert reset.status.state is DriveState.ENABLED
+
+
+def test_lockstep_cycles_per_second(rig: Rig, record_property: Any) -> None:
+    """Measured, not asserted against a number: the bench reports it (tools/bench.py)."""
+    rig.drive.enable()
+    cycles = 2000
+    start = time.perf_counter()
+    for _ in range(cycles):
+        rig.drive.send_torque(0.0)
+        assert rig.drive.poll(0.01) is not None
+    rate = cycles / (time.perf_counter() - start)
+    record_property("lockstep_cycles_per_s_cia402", round(rate))
+    assert rig.bus.clock() == pytest.approx(cycles * 0.001, abs=0.02)   # one SYNC per cycle
+
+
+# -- the command line -------------------------------------------------------
+
+def _run(argv: list[str], capsys: pytest.CaptureFixture[str]) -> tuple[int, str, str]:
+    code = main(argv)
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def _config(tmp_path: Path, profile: str) -> Path:
+    config = tmp_path / "cia402.yaml"
+    config.write_text(DEMO.read_text().replace("profile: odrive-0.6", f"profile: {profile}"))
+    return config
+
+
+def test_run_emulate_lockstep_converges(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    code, out, err = _run(["run", str(_config(tmp_path, "cia402-emulated")), "--emulate", "--lockstep"], capsys)
+    assert code == 0, err
+    final = re.search(r"tau_ref ([-\d.]+) N m, tau_int\^ ([-\d.]+) N m, true tau_int ([-\d.]+) N m", out)
+    assert final is not None, out
+    ref, estimate, true = map(float, final.groups())
+    assert true == pytest.approx(ref, abs=0.01) and estimate == pytest.approx(ref, abs=0.01)
+
+
+def _variant(tmp_path: Path, eds_change: Any = None, **section: Any) -> Path:
+    eds = tmp_path / "node.eds"
+    text = EDS.read_text()
+    eds.write_text(eds_change(text) if eds_change else text)
+    data = yaml.safe_load(PROFILE.read_text())
+    data["cia402"] = {**data["cia402"], "eds": str(eds), **section}
+    profile = tmp_path / "node.yaml"
+    profile.write_text(yaml.safe_dump(data))
+    return profile
+
+
+@pytest.mark.parametrize(("eds_change", "section", "says"), [
+    (lambda t: re.sub(r"\[6071\]\n(?:[^\[\n].*\n|\n)*", "", t), {}, "object 0x6071 (target torque) missing"),
+    (lambda t: re.sub(r"(\[6502\](?:\n.*)*?DefaultValue=)0x00000380", r"\g<1>0x00000180", t), {},
+     "has no cyclic synchronous torque (bit 9)"),
+    (lambda t: re.sub(r"(\[6076\](?:\n.*)*?DefaultValue=)1000", r"\g<1>0", t), {},
+     "0x6076 (motor rated torque) = 0: a rated torque of 0"),
+    (lambda t: re.sub(r"(\[6077\](?:\n.*)*?DataType=)0x0003", r"\g<1>0x0004", t), {},
+     "PDO 1 mapping does not fit"),
+    (None, {"rated_torque": 0}, "cia402.rated_torque: expected a number > 0"),
+    (None, {"gear": 2}, "unknown key 'cia402.gear' (allowed in cia402: eds, "),
+])
+def test_bad_input_is_one_line_and_exit_2(tmp_path: Path, capsys: pytest.CaptureFixture[str],
+                                           eds_change: Any, section: dict[str, Any], says: str) -> None:
+    config = _config(tmp_path, str(_variant(tmp_path, eds_change, **section)))
+    code, out, err = _run(["run", str(config), "--emulate", "--lockstep"], capsys)
+    assert code == 2
+    assert len(err.strip().splitlines()) == 1 and says in err, err
+    assert "cycles" not in out   # no loop ran: nothing was enabled
+
+
+def test_a_node_reporting_no_cst_ends_start_up_in_one_line(rig: Rig) -> None:
+    """The EDS says CST, the node (its 0x6502 changed at run time) does not."""
+    rig.emu.node.sdo[0x6502].raw = 0x00000080
+    with pytest.raises(DriveError) as info:
+        rig.drive.enable()
+    assert str(info.value) == ("node 5: 0x6502 (supported drive modes) = 0x00000080: no cyclic synchronous "
+                               "torque (bit 9), the only mode dobhil drives (reached: pre-operational, "
+                               "identity read, statusword read)")
+    assert rig.emu.statusword & 0x6F != 0x27
+    assert rig.drive.safe_stop().warning() == ""   # never operational: nothing to cut power for
+
+
+def test_profile_built_in_code_needs_the_feedback_period() -> None:
+    data = yaml.safe_load(PROFILE.read_text())
+    del data["feedback_period"]
+    with pytest.raises(ConfigError, match="missing key 'feedback_period'"):
+        profile_from_mapping(data, source="p")
+
+
+def _consumer_rig(consumer: float) -> Rig:
+    import dataclasses
+    made = Rig()
+    made.profile = dataclasses.replace(made.profile, options={**made.profile.options,
+                                                              "consumer_heartbeat": consumer})
+    made.drive = made.new_drive()
+    return made
+
+
+def test_the_node_watches_the_hosts_heartbeat_and_stops_watching_after_a_clean_stop() -> None:
+    made = _consumer_rig(0.05)
+    try:
+        made.drive.enable()
+        for _ in range(300):   # 0.3 s: six consumer times
+            made.drive.send_torque(0.1)
+            assert made.drive.poll(0.01) is not None
+        assert made.emu._last_host_heartbeat is not None          # it heard the host
+        assert made.drive.safe_stop().confirmation is Confirmation.CONFIRMED
+        made.bus.recv(0.5)     # the host's heartbeat has stopped: the node must not care
+        assert made.emu.axis_error == 0 and made.emu.statusword & 0x4F != 0x08
+    finally:
+        made.close()
+
+
+def test_a_host_heartbeat_that_stops_is_a_fault_on_the_node() -> None:
+    made = _consumer_rig(0.05)
+    try:
+        made.drive.enable()
+        for _ in range(30):   # the node watches from the first heartbeat it hears on
+            made.drive.send_torque(0.1)
+            made.drive.poll(0.01)
+        made.drive._stop_host_heartbeat()   # the host as if its process had died
+        with pytest.raises(DriveFaultError) as info:
+            for _ in range(300):
+                made.drive.send_torque(0.1)
+                made.drive.poll(0.01)
+        assert "EMCY 0x8130" in str(info.value)
+        assert made.drive.status.watchdog_tripped
+    finally:
+        made.close()

@@ -1,0 +1,176 @@
+"""The Drive base's enable is a state machine stepped on what the drive reports:
+``_prepare`` (start-up before any torque), the ``_enable_start`` frames, then each state
+the drive reports goes through ``_enable_step`` (which answers with the next frames, or
+raises to end the enable at once) until ``_is_enabled_confirmation``. A protocol without
+a heartbeat period is not watched for heartbeats. Shown with a small made-up protocol on
+a python-can virtual bus: the "drive" is frames queued on the other end of the bus."""
+
+from __future__ import annotations
+
+import dataclasses
+import itertools
+from collections.abc import Iterator, Sequence
+
+import can
+import pytest
+
+from dobhil.drives.base import Confirmation, Drive, DriveEvent, DriveState, MotionEvent, StateEvent
+from dobhil.drives.profile import DriveProfile
+from dobhil.drives.waits import Cancel
+from dobhil.errors import DriveError, DriveFaultError
+
+NODE = 5
+STATE_ID = 0x700 + NODE   # data[0]: the drive's state code; 3 = following torque, 9 = fault
+MOTION_ID = 0x180 + NODE
+START_ID, STEP_ID, TORQUE_ID, OFF_ID = 0x600 + NODE, 0x610 + NODE, 0x200 + NODE, 0x620 + NODE
+_CHANNELS = itertools.count()
+
+
+class SteppedDrive(Drive):
+    """Answers state n with a step frame carrying n; a fault state ends the enable."""
+
+    protocol = "stepped"
+
+    def __init__(self, *args: object, **kwargs: object) -> None:
+        super().__init__(*args, **kwargs)  # type: ignore[arg-type]
+        self.prepared: list[float] = []
+
+    def _prepare(self, deadline: float, cancel: Cancel | None) -> None:
+        self.prepared.append(deadline)
+
+    def _enable_start(self) -> Sequence[can.Message]:
+        return (can.Message(arbitration_id=START_ID, data=b"\x01", is_extended_id=False),)
+
+    def _enable_step(self, event: StateEvent) -> Sequence[can.Message]:
+        if event.state == 9:
+            raise DriveFaultError(f"node {self.node_id} in fault (state 9); not cleared without reset_faults")
+        return (can.Message(arbitration_id=STEP_ID, data=bytes([event.state]), is_extended_id=False),)
+
+    def _disable_frames(self) -> Sequence[can.Message]:
+        return (can.Message(arbitration_id=OFF_ID, data=b"\x00", is_extended_id=False),)
+
+    def _torque_frame(self, tau_nm: float) -> can.Message:
+        return can.Message(arbitration_id=TORQUE_ID, data=b"\x00\x00", is_extended_id=False)
+
+    def _decode(self, msg: can.Message) -> Sequence[DriveEvent]:
+        if msg.arbitration_id == STATE_ID:
+            state = msg.data[0]
+            return (StateEvent(state == 3, 0x1000 if state == 9 else 0, False, f"state {state}",
+                               "none", state=state),)
+        if msg.arbitration_id == MOTION_ID:
+            return (MotionEvent(0.0, 0.0, sampled_at=12.5),)
+        return ()
+
+
+PROFILE = DriveProfile(protocol="stepped", firmware="1", node_id=NODE, torque_limit=1.0, velocity_limit=10.0,
+                       enable_timeout=0.5)
+
+
+class Clock:
+    def __init__(self) -> None:
+        self.now = 100.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
+@pytest.fixture
+def buses() -> Iterator[tuple[can.BusABC, can.BusABC]]:
+    channel = f"dobhil-test-steps-{next(_CHANNELS)}"
+    host = can.Bus(interface="virtual", channel=channel)
+    node = can.Bus(interface="virtual", channel=channel)
+    yield host, node
+    host.shutdown()
+    node.shutdown()
+
+
+def state(node: can.BusABC, code: int) -> None:
+    node.send(can.Message(arbitration_id=STATE_ID, data=bytes([code]), is_extended_id=False))
+
+
+def sent(node: can.BusABC) -> list[tuple[int, bytes]]:
+    out = []
+    while (msg := node.recv(0.0)) is not None:
+        out.append((msg.arbitration_id, bytes(msg.data)))
+    return out
+
+
+def test_enable_prepares_starts_then_steps_on_each_state(buses: tuple[can.BusABC, can.BusABC]) -> None:
+    host, node = buses
+    clock = Clock()
+    drive = SteppedDrive(host, PROFILE, clock=clock)
+    for code in (1, 2, 3):
+        state(node, code)
+    drive.enable()
+    assert drive.status.state is DriveState.ENABLED
+    assert drive.prepared == [100.0 + PROFILE.enable_timeout]   # the deadline covers the start-up
+    frames = sent(node)
+    # start frame first, then a keepalive (zero torque), then one step per reported state
+    assert frames[0] == (START_ID, b"\x01")
+    assert [f for f in frames if f[0] == STEP_ID] == [(STEP_ID, b"\x01"), (STEP_ID, b"\x02"), (STEP_ID, b"\x03")]
+    assert (TORQUE_ID, b"\x00\x00") in frames
+
+
+def test_a_step_that_raises_ends_the_enable_at_once(buses: tuple[can.BusABC, can.BusABC]) -> None:
+    host, node = buses
+    drive = SteppedDrive(host, PROFILE, clock=Clock())   # the clock never moves: only the step can end it
+    state(node, 1)
+    state(node, 9)
+    state(node, 3)   # never read: the fault ended the enable before
+    with pytest.raises(DriveFaultError, match=r"^node 5 in fault \(state 9\)"):
+        drive.enable()
+    assert drive.status.state is DriveState.FAULT
+    assert [f for f in sent(node) if f[0] == STEP_ID] == [(STEP_ID, b"\x01")]
+
+
+def test_a_drive_error_from_prepare_ends_the_enable_before_any_frame(buses: tuple[can.BusABC, can.BusABC]) -> None:
+    host, node = buses
+
+    class Refusing(SteppedDrive):
+        def _prepare(self, deadline: float, cancel: Cancel | None) -> None:
+            raise DriveError("node 5: SDO 0x6502 (supported drive modes) aborted: 0x06020000; state reached: "
+                             "pre-operational")
+
+    with pytest.raises(DriveError, match="0x6502"):
+        Refusing(host, PROFILE, clock=Clock()).enable()
+    assert sent(node) == []
+
+
+def test_without_a_heartbeat_period_no_heartbeat_is_watched(buses: tuple[can.BusABC, can.BusABC]) -> None:
+    host, node = buses
+    clock = Clock()
+    assert PROFILE.heartbeat_period is None
+    drive = SteppedDrive(host, PROFILE, clock=clock)
+    state(node, 3)
+    drive.enable()
+    clock.now += 3600.0   # an hour without a status frame
+    node.send(can.Message(arbitration_id=MOTION_ID, data=b"\x00", is_extended_id=False))
+    feedback = drive.poll(0.1)
+    assert drive.status.state is DriveState.ENABLED and feedback is not None
+    assert feedback.sampled_at == 12.5   # carried from the MotionEvent
+    # the safe stop's confirmation then waits enable_timeout (not three heartbeats)
+    assert drive._confirm_timeout() == PROFILE.enable_timeout
+    assert drive._keepalive_interval() > 0
+    state(node, 2)
+    report = drive.safe_stop()
+    assert report.confirmation is Confirmation.CONFIRMED
+
+
+def test_with_a_heartbeat_period_silence_is_a_fault(buses: tuple[can.BusABC, can.BusABC]) -> None:
+    host, node = buses
+    clock = Clock()
+    drive = SteppedDrive(host, dataclasses.replace(PROFILE, heartbeat_period=0.1), clock=clock)
+    state(node, 3)
+    drive.enable()
+    clock.now += 0.31   # more than three heartbeat periods
+    with pytest.raises(DriveFaultError, match="no heartbeat from node 5"):
+        drive.poll(0.0)
+
+
+def test_defaults_of_the_new_fields_and_hooks(buses: tuple[can.BusABC, can.BusABC]) -> None:
+    host, _node = buses
+    assert StateEvent(True, 0, False, "x", "none").state == -1
+    drive = SteppedDrive(host, PROFILE)
+    assert drive.feedback_streams is True and drive._reset_faults is False
+    assert SteppedDrive(host, PROFILE, reset_faults=True)._reset_faults is True
+    assert Drive._enable_step(drive, StateEvent(True, 0, False, "x", "none")) == ()
