@@ -77,8 +77,8 @@ from canopen.network import PeriodicMessageTask
 from canopen.objectdictionary import ODVariable
 from canopen.sdo import SdoAbortedError, SdoVariable
 
-from dobhil.drives.cia402.codec import CST_MODE, STATUSWORD_TABLE, PowerState, UnitScale, per_mille
-from dobhil.drives.cia402.drive import RATED_TORQUE_UNITS
+from dobhil.drives.cia402.codec import (CST_MODE, RATED_TORQUE_UNITS, STATUSWORD_TABLE, PowerState, UnitScale,
+                                        per_mille)
 from dobhil.drives.cia402.eds import load_od
 from dobhil.drives.cia402.link import quiet_canopen
 from dobhil.drives.cia402.rules import CIA402_RULES

@@ -318,9 +318,18 @@ def test_made_by_the_registry_from_the_profile_protocol() -> None:
         emulator.close()
 
 
+_SDO_LIKE = st.builds(
+    lambda command, index, sub, data: bytes([command]) + index.to_bytes(2, "little") + bytes([sub]) + data,
+    st.integers(0, 255), st.sampled_from([0x1400, 0x1600, 0x1A00, 0x1A01, 0x1800, 0x1005, 0x1016, 0x1017,
+                                         0x6040, 0x6060, 0x6071, 0x6072, 0x6076, 0x605A, 0x1008]),
+    st.integers(0, 9), st.binary(min_size=4, max_size=4))
+
+
 @settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
-@given(st.lists(st.tuples(st.sampled_from([0x000, SYNC, RPDO1, 0x605, 0x77F, 0x123, 0x7FF]),
-                          st.binary(max_size=8), st.booleans()), max_size=30))
+@given(st.lists(st.one_of(
+    st.tuples(st.sampled_from([0x000, SYNC, RPDO1, 0x605, 0x77F, 0x123, 0x7FF]), st.binary(max_size=8),
+              st.booleans()),
+    st.tuples(st.just(0x605), _SDO_LIKE, st.just(False))), max_size=30))
 def test_no_frame_makes_the_node_raise(frames: list[tuple[int, bytes, bool]]) -> None:
     rig = Lockstep()
     try:
@@ -399,3 +408,38 @@ def test_a_stopped_node_answers_nmt_only_and_keeps_its_heartbeat(rig: Lockstep) 
     assert (HEARTBEAT, b"\x04") in rig.run(0.01)
     rig.send(0x000, [0x01, NODE])
     assert set(rig.sync()) == {TPDO1, TPDO2} and rig.value(0x1018, 1) == 0
+
+
+def _reach(rig: Lockstep, name: str) -> None:
+    """Drive the node into canopen's state ``name`` by SDO controlwords (quick stop option 6:
+    quick stop active holds)."""
+    rig.write(0x605A, 0, 6, 2)
+    steps = {"SWITCH ON DISABLED": [], "READY TO SWITCH ON": [0x06], "SWITCHED ON": [0x06, 0x07],
+             "OPERATION ENABLED": [0x06, 0x07, 0x0F], "QUICK STOP ACTIVE": [0x06, 0x07, 0x0F, 0x02],
+             "FAULT": [0x06, 0x07, 0x0F]}[name]
+    for controlword in steps:
+        rig.write(0x6040, 0, controlword, 2)
+    if name == "FAULT":                       # enabled, then NMT operational left: a fault
+        rig.send(0x000, [0x01, NODE])
+        rig.send(0x000, [0x80, NODE])
+        rig.read()
+
+
+def test_every_commanded_transition_of_canopens_state402_table() -> None:
+    from canopen.profiles.p402 import State402
+    automatic = {"START", "NOT READY TO SWITCH ON", "FAULT REACTION ACTIVE"}
+    checked = 0
+    for (source, target), controlword in State402.TRANSITIONTABLE.items():
+        if source in automatic:
+            continue
+        rig = Lockstep()
+        try:
+            _reach(rig, source)
+            assert PowerState(rig.emu.axis_state).name.replace("_", " ") == source
+            rig.write(0x6040, 0, controlword, 2)
+            reached = PowerState(rig.emu.axis_state).name.replace("_", " ")
+            assert reached == target, (source, hex(controlword), reached)
+            checked += 1
+        finally:
+            rig.close()
+    assert checked == 13
