@@ -33,10 +33,12 @@ from typing import Any
 import can
 import numpy as np
 import pytest
+import yaml
 
 from dobhil.config import Config
 from dobhil.drives import DriveState, load_profile, make_drive
 from dobhil.drives.base import Confirmation, Drive
+from dobhil.drives.cia402.codec import PowerState
 from dobhil.drives.periodic import native_periodic
 from dobhil.drives.odrive import codec
 from dobhil.drives.odrive.codec import AxisState, CmdId, Firmware
@@ -48,7 +50,7 @@ from dobhil.runtime.loop import RunResult
 from dobhil.runtime.session import RunSession, summary
 from dobhil.runtime.stop import StopReason
 
-from tests.runtime.helpers import (REALTIME_SLACK, STEP_FROM_ZERO, Sniffer, demo_config,
+from tests.runtime.helpers import (DRIVERS, REALTIME_SLACK, STEP_FROM_ZERO, Sniffer, demo_config,
                                finite_tail, realtime_profile, wait_until)
 
 AT = 100            # a fault strikes around the 100th cycle of a 0.4 s run
@@ -130,7 +132,10 @@ _C_RPDO = 0x200 + _C_NODE
 _C_TPDO1, _C_TPDO2 = 0x180 + _C_NODE, 0x280 + _C_NODE
 _RPDO = struct.Struct("<Hh")          # controlword U16, target torque I16 (per mille)
 _QUICK_STOP, _DISABLE_VOLTAGE = 0x02, 0x00
-OPERATION_ENABLED, SWITCH_ON_DISABLED, FAULT = 0x27, 0x40, 0x08
+#: the emulator's axis_state: the power state's code (dobhil.drives.cia402.codec)
+OPERATION_ENABLED, SWITCH_ON_DISABLED, FAULT = (int(PowerState.OPERATION_ENABLED),
+                                                int(PowerState.SWITCH_ON_DISABLED),
+                                                int(PowerState.FAULT))
 
 
 def _cia402_commands(frames: Sequence[can.Message]) -> Commands:
@@ -145,20 +150,22 @@ def _cia402_commands(frames: Sequence[can.Message]) -> Commands:
 
 
 class OverTorque(Fault):
-    """``count`` of the host's RPDOs ask for more than the drive's max torque (0x6072 =
-    3000 per mille), more SYNCs in a row than the node tolerates (3): the node's own
-    over-torque fault (EMCY 0x8311, fault bit). Later frames (the safe stop) pass as sent."""
+    """The host's torque commands ask for more than the drive's max torque (0x6072 = 3000
+    per mille), SYNC after SYNC: the node's own over-torque fault (EMCY 0x8311, fault bit,
+    after 3 of them). Zero-torque RPDOs (the safe stop's) pass as sent."""
 
     direction = Direction.SEND
 
-    def __init__(self, *, per_mille: int = 3500, count: int = 5) -> None:
+    def __init__(self, *, per_mille: int = 3500) -> None:
         super().__init__((_C_RPDO,))
-        self.per_mille, self.count = per_mille, count
+        self.per_mille = per_mille
 
     def apply(self, msg: can.Message, index: int, now: float) -> Sequence[can.Message]:
-        if index >= self.count or len(msg.data) != _RPDO.size:
+        if len(msg.data) != _RPDO.size:
             return (msg,)
-        word, _torque = _RPDO.unpack(msg.data)
+        word, torque = _RPDO.unpack(msg.data)
+        if torque == 0:
+            return (msg,)
         self.applied += 1
         return (_with_data(msg, _RPDO.pack(word, self.per_mille)),)
 
@@ -326,10 +333,19 @@ def test_enable_again_after_a_disable(rig: Rig, protocol: Protocol) -> None:
 
 def profile_ref(tmp_path: Path, protocol: Protocol, timing: str, **changes: Any) -> str:
     """The shipped profile in lockstep; real time: a copy with the drive's waits relaxed
-    for a loaded machine (rates unchanged)."""
+    for a loaded machine (rates unchanged). A copy elsewhere names its files (CiA 402:
+    the EDS) by absolute path."""
     if timing == "lockstep" and not changes:
         return protocol.name
-    return str(realtime_profile(tmp_path, protocol.name, **changes))
+    return str(realtime_profile(tmp_path, protocol.name, **_located(protocol), **changes))
+
+
+def _located(protocol: Protocol) -> dict[str, Any]:
+    shipped = yaml.safe_load((DRIVERS / f"{protocol.name}.yaml").read_text(encoding="utf-8"))
+    section = shipped.get("cia402")
+    if section is None:
+        return {}
+    return {"cia402": {**section, "eds": str(DRIVERS / section["eds"])}}
 
 
 def suite_config(tmp_path: Path, protocol: Protocol, timing: str, *overrides: str,
