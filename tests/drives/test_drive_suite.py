@@ -24,8 +24,10 @@ from __future__ import annotations
 
 import dataclasses
 import itertools
+import re
 import struct
 from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -40,6 +42,7 @@ from dobhil.drives import DriveState, load_profile, make_drive
 from dobhil.drives.base import Confirmation, Drive
 from dobhil.drives.cia402.codec import PowerState
 from dobhil.drives.periodic import native_periodic
+from dobhil.errors import DriveError
 from dobhil.drives.odrive import codec
 from dobhil.drives.odrive.codec import AxisState, CmdId, Firmware
 from dobhil.emulator.plant import Plant
@@ -84,6 +87,7 @@ class Protocol:
     fault: Callable[[], list[Fault]]   # the protocol's fault, injected around cycle AT
     lose_disable: Callable[[], list[Fault]]   # the drive never sees the disable
     torque_quantum: float              # [Nm] resolution of the torque command on the wire
+    no_answer: str                     # the enable's line when nobody answers (a regex)
     profile_changes: dict[str, Any] = dataclasses.field(default_factory=dict)
 
     def __str__(self) -> str:
@@ -121,6 +125,7 @@ ODRIVE = Protocol(
                                after=0, ids={_OD_TORQUE})],
     lose_disable=lambda: [LoseSent(frames=1, ids={_OD_AXIS_STATE})],
     torque_quantum=2.0 ** -23,                 # float32 at 1 N m
+    no_answer=r"^no heartbeat from node 4 within 0.3 s",
     profile_changes={"watchdog_timeout": 0},   # else its watchdog would disable it anyway
 )
 
@@ -203,6 +208,7 @@ CIA402 = Protocol(
     fault=lambda: [OverTorque()],
     lose_disable=lambda: [LoseControlwords(frozenset({_QUICK_STOP, _DISABLE_VOLTAGE}))],
     torque_quantum=1e-3,                       # 1 per mille of the 1 N m rated torque
+    no_answer=r"^node 6: SDO 0x1018:01 \(.*\) timed out after 0.3 s \(reached: pre-operational\)$",
 )
 
 PROTOCOLS = {p.name: p for p in (ODRIVE, CIA402)}
@@ -279,11 +285,15 @@ class Rig:
         return predicate()
 
 
-@pytest.fixture
-def rig(protocol: Protocol, timing: str) -> Iterator[Rig]:
+@contextmanager
+def drive_rig(protocol: Protocol, timing: str, *, drive_node: int | None = None,
+              **profile_changes: Any) -> Iterator[Rig]:
+    """The protocol's drive against its emulated drive on a private virtual channel
+    (lockstep: behind a LockstepBus, on its simulated clock; real time: the emulator's
+    thread). ``drive_node``: the node id the host addresses (default: the emulator's)."""
     channel = f"drive-suite-{next(_CHANNELS)}"
-    profile = dataclasses.replace(load_profile(protocol.name), bus={}, enable_timeout=2.0)
-    period = profile.feedback_period
+    profile = dataclasses.replace(load_profile(protocol.name),
+                                  **{"bus": {}, "enable_timeout": 2.0, **profile_changes})
     host_bus = can.Bus(interface="virtual", channel=channel)
     config = demo_config(f"drive.profile={protocol.name}")
     emu = make_emulated_drive(can.Bus(interface="virtual", channel=channel), profile,
@@ -291,11 +301,12 @@ def rig(protocol: Protocol, timing: str) -> Iterator[Rig]:
     host: can.BusABC = host_bus
     clock: dict[str, Any] = {}
     if timing == "lockstep":
-        host = LockstepBus(host_bus, [emu], dt=period)
+        host = LockstepBus(host_bus, [emu], dt=profile.feedback_period)
         clock["clock"] = host.clock  # type: ignore[attr-defined]
     else:
         emu.start()
-    drive = make_drive(host, profile, **clock)
+    host_profile = profile if drive_node is None else dataclasses.replace(profile, node_id=drive_node)
+    drive = make_drive(host, host_profile, **clock)
     try:
         yield Rig(drive, emu, host, timing == "lockstep")
     finally:
@@ -305,6 +316,12 @@ def rig(protocol: Protocol, timing: str) -> Iterator[Rig]:
             host.shutdown()
         emu.close()
         host_bus.shutdown()
+
+
+@pytest.fixture
+def rig(protocol: Protocol, timing: str) -> Iterator[Rig]:
+    with drive_rig(protocol, timing) as made:
+        yield made
 
 
 def test_enable_then_disable_handshake(rig: Rig, protocol: Protocol) -> None:
@@ -325,6 +342,20 @@ def test_enable_again_after_a_disable(rig: Rig, protocol: Protocol) -> None:
     assert report.confirmation is Confirmation.CONFIRMED, report.detail
     rig.drive.enable()
     assert rig.emu.axis_state == protocol.active_state  # type: ignore[attr-defined]
+
+
+def test_a_drive_that_never_answers_fails_the_enable_in_one_line(protocol: Protocol,
+                                                                  timing: str) -> None:
+    """The host addresses a node id nobody has: the enable ends in one line naming the
+    node and what was awaited (ODrive: its heartbeat; CiA 402: the first SDO answer, with
+    the object), and the emulated drive at the other id never left its idle state."""
+    with drive_rig(protocol, timing, drive_node=protocol.node + 1, enable_timeout=0.3) as made:
+        with pytest.raises(DriveError) as info:
+            made.drive.enable()
+        line = str(info.value)
+        assert "\n" not in line and re.search(protocol.no_answer, line), line
+        assert made.drive.status.state is not DriveState.ENABLED
+        assert made.emu.axis_state != protocol.active_state  # type: ignore[attr-defined]
 
 
 # ---------------------------------------------------------------------------
