@@ -31,6 +31,7 @@ ROOT = Path(__file__).resolve().parents[1]
 TARGETS: dict[str, float] = {
     "sweep_speedup_vs_python_control": 100.0,
     "lockstep_cycles_per_s": 5000.0,
+    "lockstep_cycles_per_s_cia402": 3000.0,
     "lockstep_vs_bare_bus_ratio": 0.4,
     "logged_vs_unlogged_ratio": 0.6,
     "replay_cycles_per_s": 20000.0,
@@ -512,6 +513,43 @@ def bench_kill(runs: int = 12) -> dict[str, float]:
             "sigkill_loss_over_0.25s_fraction": sum(x > 0.25 for x in losses) / runs}
 
 
+#: the CiA 402 demo (the emulated node of drivers/cia402-emulated.yaml, SYNC every 1 ms)
+CIA402_CONFIG = ROOT / "configs/cia402-demo.yaml"
+
+
+def _cia402_run(duration: float, lockstep: bool) -> tuple[float, object]:
+    """A CiA 402 demo run, lockstep or real time (feedback timing: each cycle on the
+    node's TPDOs, the SYNC sent by the emulator's process as a kernel's broadcast manager
+    would); its cycles per second of wall time and its result."""
+    from dobhil.runtime.session import RunSession
+    overrides = [f"loop.duration={duration}"] + ([] if lockstep else ["loop.timing=feedback",
+                                                                      "loop.feedback_timeout=0.05"])
+    config = load_config(CIA402_CONFIG, overrides)
+    with RunSession(config, emulate=True, lockstep=lockstep, config_dir=CIA402_CONFIG.parent) as session:
+        t0 = time.perf_counter()
+        result = session.run()
+        return result.cycles / (time.perf_counter() - t0), result
+
+
+def bench_cia402(rounds: int = 3, seconds: float = 6.0) -> dict[str, float]:
+    """CiA 402 (issue 17): lockstep cycles per second (median of runs), and real-time
+    1 kHz runs in feedback timing: overruns per 10,000 cycles and the SYNC-to-TPDO
+    latency (``sample_latency``: the SYNC's echo to the TPDO received, both bus stamps),
+    the median of the runs' p99."""
+    lockstep = [_cia402_run(3.0, True)[0] for _ in range(rounds)]
+    overruns, cycles, sync_p99 = 0, 0, []
+    for _ in range(rounds):
+        _, result = _cia402_run(seconds, False)
+        overruns += result.overruns  # type: ignore[attr-defined]
+        cycles += result.cycles + result.skipped  # type: ignore[attr-defined]
+        p99 = result.timing.sample_latency_p99  # type: ignore[attr-defined]
+        if p99 is not None:
+            sync_p99.append(p99)
+    return {"lockstep_cycles_per_s_cia402": float(np.median(lockstep)),
+            "rt_cia402_overruns_per_10k": 1e4 * overruns / max(cycles, 1),
+            "rt_cia402_sync_to_tpdo_p99_us": float(np.median(sync_p99)) * 1e6 if sync_p99 else float("nan")}
+
+
 BENCHES: dict[str, Callable[[], dict[str, float]]] = {
     "sweep": bench_sweep,
     "controller": bench_controller,
@@ -521,6 +559,7 @@ BENCHES: dict[str, Callable[[], dict[str, float]]] = {
     "handover": bench_handover,
     "live": bench_live,
     "kill": bench_kill,
+    "cia402": bench_cia402,
 }
 
 

@@ -322,13 +322,19 @@ def _protocol_rules(protocol: str, source: str) -> ProtocolRules:
     """``profile_rules`` of ``protocol``'s drive class (imported only now: a protocol's
     module is imported when a profile of it is read)."""
     try:
-        return _lookup[0].rules(protocol)
+        return _registry().rules(protocol)
     except ConfigError as exc:
         raise ConfigError(f"{source}: {exc}") from None
 
 
 def _known_protocols() -> tuple[str, ...]:
-    return _lookup[0].protocols()
+    return _registry().protocols()
+
+
+def _registry() -> _Lookup:
+    if not _lookup:  # cannot happen through any import of this module (see above)
+        raise RuntimeError("no drive registry: the dobhil.drives package was not imported")
+    return _lookup[0]
 
 
 def _check_keys(data: Mapping[str, Any], protocol: str, rules: ProtocolRules, source: str) -> None:
@@ -363,7 +369,7 @@ def _section(value: Any, protocol: str, rules: ProtocolRules, source: str) -> Ma
         if key in value:
             options[key] = rule.validate(f"{protocol}.{key}", value[key], source)
         elif rule.required:
-            raise ConfigError(f"{source}: missing key {protocol}.{key} ({rule.allowed})")
+            raise ConfigError(f"{source}: missing key '{protocol}.{key}' ({rule.allowed})")
         else:
             options[key] = rule.default
     return MappingProxyType(options)

@@ -17,7 +17,7 @@ lazily, when a profile of that protocol is read or a drive of it is made.
 from __future__ import annotations
 
 import importlib
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from importlib.metadata import EntryPoint, entry_points
 from types import MappingProxyType
 from typing import TYPE_CHECKING, Any
@@ -71,24 +71,22 @@ def plugin_entry_points() -> dict[str, EntryPoint]:
 
 
 def load_object(name: str, builtin: tuple[str, str] | None, ep: EntryPoint | None) -> Any:
-    """The object a built-in table row or an entry point names; a failure to import it
-    is one line naming the entry (and the error), not a traceback."""
+    """The object a built-in table row (preferred) or an entry point names; a failure to
+    import it is one line naming the entry and the error, not a traceback."""
+    load: Callable[[], Any]
     if builtin is not None:
         module_name, attr = builtin
-        where = f"{module_name}:{attr}"
-        what = f"built-in {name!r}"
+        what, target = f"built-in {name!r}", f"{module_name}:{attr}"
+        load = lambda: getattr(importlib.import_module(module_name), attr)  # noqa: E731
+    elif ep is not None:
+        what, target, load = f"entry point {name!r} (group {ENTRY_POINT_GROUP})", ep.value, ep.load
     else:
-        assert ep is not None
-        where = ep.value
-        what = f"entry point {name!r} (group {ENTRY_POINT_GROUP})"
+        raise ConfigError(f"{name!r}: neither built in nor an entry point")
     try:
-        if builtin is not None:
-            return getattr(importlib.import_module(builtin[0]), builtin[1])
-        assert ep is not None
-        return ep.load()
+        return load()
     except Exception as exc:  # whatever a third-party module raises on import
         text = " ".join(str(exc).split())
-        raise ConfigError(f"{what} = {where} failed to load: {type(exc).__name__}"
+        raise ConfigError(f"{what} = {target} failed to load: {type(exc).__name__}"
                           f"{': ' + text if text else ''}") from None
 
 
@@ -108,8 +106,7 @@ def drive_class(protocol: str) -> type[Drive]:
         raise ConfigError(f"protocol: expected one of {list(protocols())}, got {protocol!r}")
     cls = load_object(protocol, builtin, ep)
     if not (isinstance(cls, type) and issubclass(cls, Drive)):
-        where = f"{builtin[0]}.{builtin[1]}" if builtin is not None else ep.value if ep else "?"
-        raise ConfigError(f"protocol {protocol!r}: {where} is not a dobhil Drive class")
+        raise ConfigError(f"protocol {protocol!r}: {cls!r} is not a dobhil Drive class")
     return cls
 
 

@@ -27,7 +27,8 @@ Timing (:class:`Timing`):
 - **lockstep**: the bus is a :class:`dobhil.emulator.protocol.LockstepBus`; waiting for
   feedback advances the emulator by one period, so the loop is feedback-synchronous in
   simulated time, runs as fast as the machine allows and exactly as the sampled analysis
-  models it (the emulator applies each command ``design.input_delay`` after the sample).
+  models it (the emulator applies each command ``design.input_delay`` after the sample,
+  or, for a protocol that fixes the delay itself, at its own latch: a CiA 402 SYNC).
 
 Garbage collection (feedback and host): everything alive at start-up is collected once
 and frozen (``gc.freeze``) before the drive is enabled, the collector is disabled during

@@ -96,6 +96,16 @@ def resolve_timing(config: Config, profile: DriveProfile, lockstep: bool | None)
     return Timing.FEEDBACK
 
 
+def check_feedback_streams(timing: Timing, drive: Drive) -> None:
+    """A loop timed by feedback needs a drive that streams it on its own; one that only
+    answers the host each cycle (CiA 402 without a native periodic SYNC) cannot start it."""
+    if timing is Timing.FEEDBACK and not drive.feedback_streams:
+        raise ConfigError(
+            f"loop.timing = feedback runs one cycle per feedback frame, but node {drive.node_id} "
+            f"({drive.protocol}) only sends feedback when the host asks for it on this bus; "
+            f"set loop.timing: host")
+
+
 def lockstep_latency(config: Config, profile: DriveProfile) -> float:
     """When the lockstep emulator applies a command after the sample it was computed
     from: the delay the sampled analysis models, ``design.delay_samples`` whole periods
@@ -107,17 +117,6 @@ def lockstep_latency(config: Config, profile: DriveProfile) -> float:
         return 0.0
     d = config.design
     return d.delay_samples * config.loop.period + d.input_delay
-
-
-def check_feedback_timing(timing: Timing, drive: Drive, profile: DriveProfile) -> None:
-    """``loop.timing: feedback`` follows the drive's own feedback stream; a drive that
-    sends feedback only when the host asks for it each cycle (CiA 402 on a bus without
-    native periodic send: the host sends the SYNC after each command) has none to follow."""
-    if timing is Timing.FEEDBACK and not drive.feedback_streams:
-        raise ConfigError(
-            f"loop.timing = feedback follows the drive's feedback stream, but drive profile "
-            f"{profile.name or profile.protocol!r} sends feedback only when the host asks for it "
-            f"each cycle on this bus (no native periodic send); set loop.timing: host")
 
 
 class RunSession:
@@ -175,7 +174,7 @@ class RunSession:
                          else resolve_bus(config, self.profile, bus))
         try:
             self.drive = self._open(emulate)
-            check_feedback_timing(self.timing, self.drive, self.profile)
+            check_feedback_streams(self.timing, self.drive)
         except BaseException:
             self.close()
             raise

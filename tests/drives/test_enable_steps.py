@@ -174,3 +174,22 @@ def test_defaults_of_the_new_fields_and_hooks(buses: tuple[can.BusABC, can.BusAB
     assert drive.feedback_streams is True and drive._reset_faults is False
     assert SteppedDrive(host, PROFILE, reset_faults=True)._reset_faults is True
     assert Drive._enable_step(drive, StateEvent(True, 0, False, "x", "none")) == ()
+
+
+def test_a_drive_that_does_not_stream_refuses_feedback_timing(buses: tuple[can.BusABC, can.BusABC]) -> None:
+    from dobhil.errors import ConfigError
+    from dobhil.runtime.loop import Timing
+    from dobhil.runtime.session import check_feedback_streams
+
+    class Asked(SteppedDrive):
+        @property
+        def feedback_streams(self) -> bool:
+            return False
+
+    host, _node = buses
+    drive = Asked(host, PROFILE)
+    with pytest.raises(ConfigError, match=r"^loop.timing = feedback .* node 5 \(stepped\) .*; set loop.timing: host$"):
+        check_feedback_streams(Timing.FEEDBACK, drive)
+    for timing in (Timing.HOST, Timing.LOCKSTEP):
+        check_feedback_streams(timing, drive)
+    check_feedback_streams(Timing.FEEDBACK, SteppedDrive(host, PROFILE))

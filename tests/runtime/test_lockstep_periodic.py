@@ -188,3 +188,13 @@ def test_the_recording_wrapper_forwards_a_native_periodic_send_and_records_its_e
         assert peer.recv(5.0) is not None
         task.stop()
         assert seen and seen[0] == (Topic.CAN_TX, SYNC)
+
+
+def test_two_tasks_due_at_one_instant_keep_the_wire_order() -> None:
+    """Each periodic frame is on the wire before the answers to it, and the next after them."""
+    with _rig("lockstep-periodic-10") as (lock, emu):
+        lock.send_periodic(can.Message(arbitration_id=SYNC, is_extended_id=False), 2 * DT)
+        lock.send_periodic(can.Message(arbitration_id=0x90, is_extended_id=False), 5 * DT)
+        got = [(step, arb) for step, arb, _ in _read(lock, 10 * DT) if step == 10]
+        assert got == [(10, SYNC), (10, ANSWER), (10, 0x90)]
+        assert [(round(t / DT), arb) for t, arb in emu.seen][-2:] == [(10, SYNC), (10, 0x90)]
