@@ -334,8 +334,8 @@ class _NodeLog:
 @dataclass
 class Capture:
     """What the window gave: frames per node and stream, bus counts, and (a probe that
-    asks its drive) the probe's own findings. Filled by one thread at a time: the
-    listening loop, or a notifier's thread that is stopped before the capture is read."""
+    asks its drive) the probe's own findings. Filled on the caller's thread only: the
+    listening loop, or the probe's own reads (CiA 402 reads SDO answers itself, no thread)."""
 
     nodes: dict[int, _NodeLog] = field(default_factory=dict)
     frames: int = 0

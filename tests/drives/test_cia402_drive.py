@@ -478,3 +478,15 @@ def test_no_frame_makes_the_decoder_raise(frames: list[tuple[int, bytes]]) -> No
     drive = CiA402Drive(SimBus(), profile(), clock=lambda: 0.0)  # type: ignore[arg-type]
     for arb, data in frames:
         drive.apply(can.Message(arbitration_id=arb, data=data, is_extended_id=False))
+
+
+def test_a_sample_whose_position_tpdo_was_lost_is_no_sample() -> None:
+    drive = CiA402Drive(SimBus(), profile(), clock=lambda: 0.0)  # type: ignore[arg-type]
+
+    def frame(arb: int, data: str) -> can.Message:
+        return can.Message(arbitration_id=arb, data=bytes.fromhex(data), is_extended_id=False)
+
+    assert not drive.apply(frame(0x285, "3c 00 00 00 0a"))           # no TPDO1 before it
+    drive.apply(frame(0x185, "37 12 00 04 00 00 00 00"))
+    assert drive.apply(frame(0x285, "3c 00 00 00 0a"))               # both: one sample
+    assert not drive.apply(frame(0x285, "3c 00 00 00 0a"))           # the next SYNC's TPDO1 lost

@@ -145,3 +145,16 @@ def test_against_canopens_own_sdo_server() -> None:
     finally:
         host.shutdown()
         server.disconnect()
+
+
+def test_a_bus_that_cannot_be_read_is_a_bus_error() -> None:
+    from dobhil.errors import BusError
+
+    class Broken(ScriptedBus):
+        def recv(self, timeout: float | None = None) -> can.Message | None:
+            raise ConnectionResetError("hub gone")
+
+    bus = Broken({})
+    link = link_on(bus, [], bus.clock)
+    with link.session(None), pytest.raises(BusError, match="bus read failed: ConnectionResetError: hub gone"):
+        link.node.sdo[0x6502].read()

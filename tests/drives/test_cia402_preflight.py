@@ -217,3 +217,25 @@ def test_a_stop_request_ends_the_sdo_wait_within_a_slice() -> None:
         bus.shutdown()
     assert bus.now <= 0.1 + 2 * WAIT_SLICE
     assert report.nodes == ()
+
+
+def test_the_epos4_profile_against_a_node_serving_its_eds() -> None:
+    """drivers/epos4.yaml with drivers/epos4.eds (maxon's DCF values) served by canopen's
+    LocalNode: the identity is maxon's (vendor 0xFB), CST is supported (0x6502 = 0x3A5:
+    bits 0, 2, 5, 7, 8, 9), and 0x6076 = 512871 read in uNm is the profile's 0.512871 Nm."""
+    from dobhil.drives import load_profile
+    epos4 = load_profile("epos4")
+    channel = f"cia402-preflight-{uuid.uuid4().hex}"
+    network = canopen.Network()
+    network.NOTIFIER_CYCLE = WAIT_SLICE
+    network.connect(interface="virtual", channel=channel)
+    network.create_node(epos4.node_id, canopen.import_od(str(EPOS4_EDS), epos4.node_id))
+    try:
+        report = check(channel, epos4)
+    finally:
+        network.disconnect()
+    assert report.ok, report.lines()
+    (node,) = report.nodes
+    assert ("identity vendor 0x000000FB product 0x65520000 revision 0x01700000 serial 0x00000000; modes "
+            "0x000003A5 (CST supported); rated torque 512871 uNm = 0.512871 Nm") in node.summary, node.summary
+    assert "statusword 0x0040 (switch on disabled)" in node.summary   # the DCF's statusword

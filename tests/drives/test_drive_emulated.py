@@ -351,14 +351,14 @@ def test_load_profile_by_path_and_missing_name(tmp_path: Path) -> None:
     path = tmp_path / "mine.yaml"
     path.write_text("\n".join(f"{k}: {v!r}" for k, v in _mapping().items()), encoding="utf-8")
     assert load_profile(path).name == "mine"
-    known = r"\['odrive-0.5', 'odrive-0.6', 'odrive-0.6-factory'\]"
+    known = r"\['cia402-emulated', 'epos4', 'odrive-0.5', 'odrive-0.6', 'odrive-0.6-factory'\]"
     with pytest.raises(ConfigError, match=rf"drive profile 'nope': expected one of {known}"):
         load_profile("nope")
 
 
 def test_registry_resolves_lazily_and_rejects_unknown() -> None:
     assert drive_class("odrive").__name__ == "ODriveDrive"
-    with pytest.raises(ConfigError, match=r"protocol: expected one of \['odrive'\], got 'cia402x'"):
+    with pytest.raises(ConfigError, match=r"protocol: expected one of \['cia402', 'odrive'\], got 'cia402x'"):
         drive_class("cia402x")
 
 

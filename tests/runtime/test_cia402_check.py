@@ -71,3 +71,44 @@ def test_check_reads_the_emulated_node_in_another_process(tmp_path: Path, hub: i
     finally:
         stop_process(emulate)
     assert "emulator stopped" in out.read_text(errors="replace")
+
+
+def test_the_check_changes_nothing_on_the_emulated_node_in_lockstep() -> None:
+    """Against dobhil's emulated node in lockstep (simulated time, exact): what the check
+    reads, that it listens the whole window on the simulated clock, and that the node is
+    left as it was: NMT pre-operational, switch on disabled, the EDS's heartbeat and
+    cycle period (nothing written, no NMT command)."""
+    import can
+
+    from dobhil.drives import load_profile
+    from dobhil.drives.preflight import run_preflight
+    from dobhil.drives.registry import preflight_probe
+    from dobhil.emulator.cia402 import EmulatedCiA402
+    from dobhil.emulator.plant import Plant
+    from dobhil.emulator.protocol import LockstepBus
+    from dobhil.emulator.registry import private_virtual_channel
+
+    profile = load_profile("cia402-emulated")
+    channel = private_virtual_channel()
+    emu_bus = can.Bus(interface="virtual", channel=channel)
+    inner = can.Bus(interface="virtual", channel=channel)
+    emu = EmulatedCiA402(emu_bus, profile, Plant(inertia=0.25))
+    lock = LockstepBus(inner, [emu], dt=1e-3)
+    try:
+        written = (emu.node.sdo[0x1017].raw, emu.node.sdo[0x1006].raw)   # the EDS's defaults
+        report = run_preflight(lock, profile, period=1e-3, window=0.5, bitrate=1_000_000,
+                               probe=preflight_probe(profile), clock=lock.clock, stamp=lambda _m: lock.clock())
+        # the node booted (its first tick) and stayed there
+        assert (emu.nmt_state, emu.state.name) == ("PRE-OPERATIONAL", "SWITCH_ON_DISABLED")
+        assert (emu.node.sdo[0x1017].raw, emu.node.sdo[0x1006].raw) == written == (0, 0)
+        assert lock.clock() == pytest.approx(0.5, abs=1e-3)
+    finally:
+        lock.shutdown()
+        emu.close()
+        inner.shutdown()
+    assert report.ok, report.lines()
+    (node,) = report.nodes
+    assert node.summary.endswith(
+        "identity vendor 0x00000000 product 0x00000402 revision 0x00010000 serial 0x00000001; modes 0x00000380 "
+        "(CST supported); rated torque 1000 mNm = 1 Nm; heartbeat 0x1017 = 0 ms; statusword 0x0250 (switch on "
+        "disabled); PDOs RPDO1 32 bits, TPDO1 64 bits, TPDO2 40 bits"), node.summary

@@ -20,7 +20,7 @@ controlword bit 7, once).
 
 Cycle: the RPDO (controlword 0x0F, target torque per mille of the rated torque) goes out,
 the node applies it at the next SYNC, samples and answers with both TPDOs; the motion
-event comes with the second one. EMCY (0x80 + node), a statusword out of Operation
+event comes with the second one (none when the first of that SYNC was lost). EMCY (0x80 + node), a statusword out of Operation
 enabled, an NMT state other than operational in the heartbeat (0x700 + node) or a lost
 heartbeat are faults.
 
@@ -136,6 +136,7 @@ class CiA402Drive(Drive):
         self._power = PowerState.UNKNOWN
         self._mode = 0
         self._position = math.nan
+        self._status_fresh = False  # a TPDO1 came since the last TPDO2: they make one sample
         self._torque_actual = math.nan
         self._nmt = -1
         self._emcy = 0
@@ -513,6 +514,7 @@ class CiA402Drive(Drive):
     def _on_status_pdo(self, data: bytearray) -> Sequence[DriveEvent]:
         statusword, position, torque = self._layouts.status.unpack_from(data)
         self._position = position * self._scale.rad_per_increment
+        self._status_fresh = True
         self._torque_actual = codec.torque_from_per_mille(torque, self._rated)
         if statusword == self._statusword:
             return _NO_EVENTS
@@ -521,12 +523,18 @@ class CiA402Drive(Drive):
 
     def _on_motion_pdo(self, data: bytearray) -> Sequence[DriveEvent]:
         velocity, mode = self._layouts.motion.unpack_from(data)
+        state: StateEvent | None = None
+        if mode != self._mode:
+            self._mode = mode
+            state = self._state_event()
+        if not self._status_fresh:
+            # this SYNC's first TPDO (the position) was lost: no sample, rather than a
+            # position one period older than its velocity
+            return _NO_EVENTS if state is None else (state,)
+        self._status_fresh = False
         motion = MotionEvent(self._position, velocity * self._scale.rad_s_per_velocity_count,
                              self._sync_at)
-        if mode == self._mode:
-            return (motion,)
-        self._mode = mode
-        return (self._state_event(), motion)
+        return (motion,) if state is None else (state, motion)
 
     def _note_statusword(self, statusword: int) -> None:
         self._statusword = statusword

@@ -59,10 +59,8 @@ from dobhil.drives.profile import DriveProfile
 from dobhil.drives.waits import Cancel
 from dobhil.errors import WaitCancelled
 
-__all__ = ["TORQUE_UNITS", "CiA402Preflight", "SdoRead"]
+__all__ = ["READS", "CiA402Preflight", "SdoRead"]
 
-#: 0x6076's unit on the wire -> Nm (the drive's table)
-TORQUE_UNITS = RATED_TORQUE_UNITS
 _TPDO_COBS = frozenset({Cob.TPDO1, Cob.TPDO2, Cob.TPDO3, Cob.TPDO4})
 
 
@@ -108,7 +106,7 @@ class CiA402Preflight(PreflightProbe):
         super().__init__(profile)
         self.options: Mapping[str, Any] = profile.options
         self.values: dict[SdoRead, int] = {}     # what the node answered
-        self.mapping_sizes: dict[str, int] = {}  # "RPDO1" -> bits, typed by the EDS
+        self.mapping_sizes: dict[str, int] = {}  # "RPDO1" -> bits (the EDS's types, checked = the standard's)
 
     # -- the framework's hooks ------------------------------------------------
 
@@ -269,7 +267,7 @@ class CiA402Preflight(PreflightProbe):
             words.append(f"modes 0x{v[MODES]:08X} (CST {cst})")
         if RATED_TORQUE in v:
             unit = self._unit()
-            words.append(f"rated torque {v[RATED_TORQUE]} {unit} = {v[RATED_TORQUE] * TORQUE_UNITS[unit]:.6g} Nm")
+            words.append(f"rated torque {v[RATED_TORQUE]} {unit} = {v[RATED_TORQUE] * RATED_TORQUE_UNITS[unit]:.6g} Nm")
         if HEARTBEAT in v:
             words.append(f"heartbeat 0x1017 = {v[HEARTBEAT]} ms")
         if STATUSWORD in v:
@@ -303,24 +301,24 @@ class CiA402Preflight(PreflightProbe):
 
     def _unit(self) -> str:
         unit = str(self.options.get("rated_torque_unit", "mNm"))
-        return unit if unit in TORQUE_UNITS else "mNm"
+        return unit if unit in RATED_TORQUE_UNITS else "mNm"
 
     def _rated_torque_findings(self, node: int, raw: int) -> list[Finding]:
         unit = self._unit()
-        measured = raw * TORQUE_UNITS[unit]
+        measured = raw * RATED_TORQUE_UNITS[unit]
         expected = self.options.get("rated_torque")
         if raw == 0:
             return [Finding(Severity.MISMATCH, f"node {node}'s motor rated torque 0x6076 is 0: every torque "
                                                "command is per mille of it; set it on the drive", refuses_run=True)]
         if expected is None or abs(measured - float(expected)) <= RATED_TORQUE_TOLERANCE * float(expected):
             return []
-        other = next(u for u in TORQUE_UNITS if u != unit)
+        other = next(u for u in RATED_TORQUE_UNITS if u != unit)
         return [Finding(Severity.MISMATCH,
                         f"node {node}'s motor rated torque 0x6076 = {raw} {unit} = {measured:.6g} Nm is not the "
                         f"profile's cia402.rated_torque {float(expected):g} Nm: every torque would be scaled by "
                         f"{measured / float(expected):.4g}; set cia402.rated_torque: {measured:.6g} (or, if 0x6076 "
                         f"is in {other} on this drive, cia402.rated_torque_unit: {other} = "
-                        f"{raw * TORQUE_UNITS[other]:.6g} Nm)", refuses_run=True)]
+                        f"{raw * RATED_TORQUE_UNITS[other]:.6g} Nm)", refuses_run=True)]
 
     def _mappable_findings(self, od: ObjectDictionary) -> list[Finding]:
         """Every object SPEC-17 maps is PDO-mappable in the EDS (else the node aborts the
