@@ -10,8 +10,10 @@ import struct
 import time
 
 import can
+import canopen
 
 from dobhil.config import load_config
+from dobhil.data import drivers_dir
 from dobhil.emulator.cia402 import PowerState
 from dobhil.emulator.process import EmulatorProcess, EmulatorSpec
 
@@ -96,3 +98,40 @@ def test_sync_sent_periodically_by_the_emulator_process_is_answered_each_time() 
         first = order.index(SYNC)
         cycles = order[first:first + 3 * 19]
         assert cycles == [SYNC, TPDO1, TPDO2] * 19             # every SYNC, then its two TPDOs
+
+
+def test_canopens_client_drives_the_node_behind_a_dobhil_bus() -> None:
+    # canopen connects to the bus by name, as to any python-can interface; its SYNC producer
+    # (python-can send_periodic) is sent by the emulator's process itself
+    network = canopen.Network()
+    network.connect(interface="dobhil", channel="cia402-demo")
+    try:
+        node = canopen.BaseNode402(NODE, str(drivers_dir() / "cia402-emulated.eds"))
+        network.add_node(node)
+        node.sdo.RESPONSE_TIMEOUT = 5.0
+        assert node.sdo[0x1018][2].raw == 0x402 and node.sdo[0x6502].raw >> 9 & 1
+        node.tpdo.read()
+        node.rpdo.read()
+        node.rpdo[1].trans_type = 255      # BaseNode402 sends the controlword itself
+        node.rpdo[1].save()
+        node.nmt.state = "OPERATIONAL"
+        node.setup_402_state_machine(read_pdos=False)
+        network.sync.start(0.01)
+        node.op_mode = "CYCLIC SYNCHRONOUS TORQUE"
+        for _ in range(5):   # each transition has 0.4 s of wall time: a loaded machine may need more
+            try:
+                node.state = "OPERATION ENABLED"
+                break
+            except RuntimeError:
+                continue
+        assert node.state == "OPERATION ENABLED"
+        node.rpdo[1][0x6071].raw = 100
+        node.rpdo[1].transmit()
+        end = time.monotonic() + BOUND
+        while node.tpdo[1][0x6077].raw != 100 or network.bus.emulator.applied_torque != 0.1:
+            assert time.monotonic() < end
+            time.sleep(0.01)
+        assert network.bus.emulator.axis_state == PowerState.OPERATION_ENABLED
+    finally:
+        network.sync.stop()
+        network.disconnect()
