@@ -10,7 +10,8 @@ loud line when it cannot be confirmed), and the closed loop reaching the force
 reference with the same summary fields.
 
 What differs per protocol is data, in :class:`Protocol`: the profile, the design delay
-(CiA 402 applies each command at the next SYNC: one whole period), which frames carry
+the run must take from it (CiA 402 applies each command at the next SYNC: one whole
+period, ``command_delay_periods``; checked, never set by the test), which frames carry
 feedback and commands, how to read the host's commands off the bus, and how to inject
 its fault. Faults are :mod:`dobhil.emulator.faults` wrappers chosen by frame id; the two
 that need a CiA 402 payload are small :class:`~dobhil.emulator.faults.Fault` subclasses
@@ -76,7 +77,7 @@ class Commands:
 class Protocol:
     name: str                          # the shipped profile
     node: int
-    overrides: tuple[str, ...]         # config overrides: the design delay of the protocol
+    design_delay: int                  # whole periods the design must assume (the demo: 0)
     feedback_ids: frozenset[int]       # frames whose silence is a feedback timeout
     active_state: int                  # the emulator's axis_state when it follows torque
     idle_states: frozenset[int]        # the emulator's axis_state once disabled
@@ -115,7 +116,7 @@ def _odrive_commands(frames: Sequence[can.Message]) -> Commands:
 
 
 ODRIVE = Protocol(
-    name="odrive-0.6", node=_OD_NODE, overrides=(),
+    name="odrive-0.6", node=_OD_NODE, design_delay=0,
     feedback_ids=frozenset({codec.arbitration_id(_OD_NODE, CmdId.GET_ENCODER_ESTIMATES)}),
     active_state=int(AxisState.CLOSED_LOOP_CONTROL), idle_states=frozenset({int(AxisState.IDLE)}),
     stopped_states=frozenset({int(AxisState.IDLE)}),
@@ -199,7 +200,7 @@ def _with_data(msg: can.Message, data: bytes) -> can.Message:
 
 CIA402 = Protocol(
     name="cia402-emulated", node=_C_NODE,
-    overrides=("design.delay_samples=1", "design.input_delay=0"),
+    design_delay=1,   # the RPDO is applied at the next SYNC: the profile's command_delay_periods
     feedback_ids=frozenset({_C_TPDO2}),   # the motion event; TPDO1 (statusword) keeps coming
     active_state=OPERATION_ENABLED, idle_states=frozenset({SWITCH_ON_DISABLED}),
     stopped_states=frozenset({SWITCH_ON_DISABLED, FAULT}),
@@ -386,7 +387,7 @@ def suite_config(tmp_path: Path, protocol: Protocol, timing: str, *overrides: st
     profile = profile_ref(tmp_path, protocol, timing, **profile_changes)
     slack = REALTIME_SLACK if timing == "realtime" else ()
     return demo_config(f"drive.profile={profile}", *(STEP_FROM_ZERO if step else ()),
-                       "loop.duration=0.4", *protocol.overrides, *slack, *overrides)
+                       "loop.duration=0.4", *slack, *overrides)
 
 
 @dataclass
@@ -406,6 +407,9 @@ def run(config: Config, protocol: Protocol, timing: str, faults: Sequence[Fault]
     with RunSession(config, emulate=True, lockstep=timing == "lockstep", sink=ArmAt(wrapped),
                     bus_wrapper=faulty(*wrapped) if wrapped else None) as session, \
             Sniffer(session.bus_spec.channel) as sniffer:
+        # the design delay comes from the protocol (its profile), not from the test
+        design = session.design_config.design
+        assert (design.delay_samples, design.input_delay) == (protocol.design_delay, 0.0)
         result = session.run()
         emu = session.emulator
         assert emu is not None
