@@ -396,6 +396,7 @@ class Outcome:
     commands: Commands
     settled: bool
     summary: dict[str, Any]
+    final: tuple[int, float]     # the emulator's axis_state and applied torque at the end
 
 
 def run(config: Config, protocol: Protocol, timing: str, faults: Sequence[Fault] = (), *,
@@ -422,7 +423,9 @@ def run(config: Config, protocol: Protocol, timing: str, faults: Sequence[Fault]
             settled = idle()
         else:
             settled = wait_until(idle) if settle else idle()
-        return Outcome(result, protocol.decode(sniffer.drain()), settled, summary(session, result))
+        final = (int(emu.axis_state), float(emu.applied_torque))  # type: ignore[union-attr]
+        return Outcome(result, protocol.decode(sniffer.drain()), settled, summary(session, result),
+                       final)
 
 
 def assert_stopped_safely(out: Outcome, protocol: Protocol, reason: StopReason,
@@ -436,10 +439,11 @@ def assert_stopped_safely(out: Outcome, protocol: Protocol, reason: StopReason,
     for word in words:
         assert word.lower() in line.lower(), (word, line)
     assert out.commands.torques and out.commands.torques[-1] == 0.0, out.commands.torques[-3:]
-    assert tuple(out.commands.states[-len(protocol.last_states):]) == protocol.last_states
+    assert tuple(out.commands.states[-len(protocol.last_states):]) == protocol.last_states, \
+        out.commands.states
     assert report is not None and report.confirmation is Confirmation.CONFIRMED, report
     assert out.result.disabled and report.warning() == "" and out.summary["drive_warning"] == ""
-    assert out.settled, "emulated drive not out of torque control with zero torque"
+    assert out.settled, f"emulated drive not out of torque control with zero torque: {out.final}"
 
 
 def test_run_that_lasts_its_duration_stops_safely(tmp_path: Path, protocol: Protocol,
@@ -450,8 +454,9 @@ def test_run_that_lasts_its_duration_stops_safely(tmp_path: Path, protocol: Prot
     # the frames that came while a cycle was late, and counts each late cycle as an
     # overrun): no count of cycles the run itself did not measure
     result = out.result
-    assert result.cycles > 0 and result.cycles + result.skipped == 400
-    assert (result.skipped == 0) == (result.overruns == 0) and result.skipped >= result.overruns
+    counts = (result.cycles, result.skipped, result.overruns)
+    assert result.cycles > 0 and result.cycles + result.skipped == 400, counts
+    assert (result.skipped == 0) == (result.overruns == 0) and result.skipped >= result.overruns, counts
     if timing == "lockstep":
         assert result.cycles == 400
 
