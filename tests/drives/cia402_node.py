@@ -282,13 +282,13 @@ class TestNode402:
         """Target torque the plant gets now [per mille of rated]: 0 unless enabled in CST."""
         if self.state is not NodeState.OPERATION_ENABLED or self.mode != CST:
             return 0
-        limit = self._raw(0x6072)
-        return max(-limit, min(limit, self._raw(0x6071)))
+        limit = self.raw(0x6072)
+        return max(-limit, min(limit, self.raw(0x6071)))
 
     @property
     def torque(self) -> float:
         """Torque [Nm] applied to the plant now."""
-        return self.per_mille / 1000.0 * self._raw(0x6076) / 1000.0
+        return self.per_mille / 1000.0 * self.raw(0x6076) / 1000.0
 
     @property
     def position_increments(self) -> int:
@@ -298,7 +298,8 @@ class TestNode402:
     def velocity_rpm(self) -> int:
         return round(self.plant.velocity * 60.0 / (2 * math.pi))
 
-    def _raw(self, index: int, sub: int = 0) -> int:
+    def raw(self, index: int, sub: int = 0) -> int:
+        """An object's value as the host would read it (through canopen's SDO server side)."""
         return int(self.node.sdo[index][sub].raw if sub else self.node.sdo[index].raw)
 
     # -- canopen callbacks ----------------------------------------------------------
@@ -360,7 +361,7 @@ class TestNode402:
         if self._pdo_dirty:
             self._load_pdos()
         now = self.time if self.simulated else timestamp
-        dt = self._raw(0x1006) * 1e-6 or (now - self._last_sync if self._last_sync is not None else 0.0)
+        dt = self.raw(0x1006) * 1e-6 or (now - self._last_sync if self._last_sync is not None else 0.0)
         self._last_sync = now
         self.syncs += 1
         if dt > 0:

@@ -111,7 +111,7 @@ def test_enable_reaches_operation_enabled_in_cst(rig: Rig) -> None:
     assert node.nmt_state == "OPERATIONAL"
     assert _dedup(node.controlwords) == [0x06, 0x07, 0x0F]
     # SPEC-17's wire mapping, written by SDO into the node's object dictionary
-    raw = node._raw
+    raw = node.raw
     assert [raw(0x1600, s) for s in (1, 2)] == [0x60400010, 0x60710010]
     assert [raw(0x1A00, s) for s in (1, 2, 3)] == [0x60410010, 0x60640020, 0x60770010]
     assert [raw(0x1A01, s) for s in (1, 2)] == [0x606C0020, 0x60610008]
