@@ -14,6 +14,10 @@ host sees (silence, NaN, lost frames); send faults model what the host puts on t
 bus (an injected Estop). To fault the drive side instead, wrap the emulator's bus
 with ``FaultyBus(bus, faults, owns_inner=True)``.
 
+Periodic frames (``send_periodic``: a CiA 402 host's SYNC) are the inner bus's own, so
+the wrapper is as native as what it wraps (:func:`dobhil.drives.periodic.native_periodic`);
+send faults do not see them, receive faults see their echo.
+
 Time: faults that trigger on time read the wrapper's clock, the inner bus's
 ``clock()`` if it has one (a :class:`~dobhil.emulator.protocol.LockstepBus`: simulated
 seconds) or ``time.monotonic``; the clock starts at 0 when the wrapper is made.
@@ -39,6 +43,9 @@ from enum import Enum
 from typing import Any, ClassVar
 
 import can
+import can.broadcastmanager
+
+from dobhil.drives.periodic import native_periodic
 
 __all__ = [
     "CorruptFeedback",
@@ -346,6 +353,24 @@ class FaultyBus(can.BusABC):
 
     def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
         return self.recv(timeout), False
+
+    @property
+    def native_periodic(self) -> bool:
+        """As the inner bus: periodic frames are the inner bus's (see below), so a drive
+        that wants its SYNC outside this process's threads still gets it behind faults."""
+        return native_periodic(self._inner)
+
+    def _send_periodic_internal(self, msgs: Sequence[can.Message] | can.Message, period: float,
+                                duration: float | None = None, autostart: bool = True,
+                                modifier_callback: Callable[[can.Message], None] | None = None,
+                                ) -> can.broadcastmanager.CyclicSendTaskABC:
+        """The inner bus's own periodic send (the kernel's broadcast manager, the lockstep
+        clock, the emulator process): the send faults do not see these frames -- they model
+        what the host's code sends, and a periodic frame leaves without it; their echo
+        comes back through :meth:`recv` and its faults. The task belongs to this wrapper
+        (``store_task=False`` below): its shutdown stops it."""
+        return self._inner.send_periodic(msgs, period, duration, store_task=False,
+                                         autostart=autostart, modifier_callback=modifier_callback)
 
     def shutdown(self) -> None:
         if self._owns_inner:

@@ -23,7 +23,9 @@ from dobhil.synthesis import params_from_config
 from .helpers import (FIRMWARES, REALTIME_SLACK, STEP_FROM_ZERO, demo_config, finite_tail,
                       realtime_profile, write_profile)
 
-MODES = [(timing, fw) for timing in ("lockstep", "realtime") for fw in FIRMWARES]
+#: odrive-0.6 reaches the reference in tests/drives/test_drive_suite.py (with CiA 402)
+MODES = [(timing, fw) for timing in ("lockstep", "realtime") for fw in FIRMWARES
+         if fw != "odrive-0.6"]
 
 
 def run(config: Config, *, lockstep: bool) -> RunResult:

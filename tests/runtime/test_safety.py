@@ -126,19 +126,8 @@ def run_case(config: Config, timing: str, reason: StopReason, *, words: Iterable
 
 # -- done, limits, non-finite ------------------------------------------------------------
 
-@pytest.mark.parametrize("timing", TIMINGS)
-def test_done(tmp_path: Path, timing: str) -> None:
-    """A run that lasts its duration still ends with zero torque and IDLE. Every one of its
-    400 cycles ran or was skipped (real time on a busy machine skips the frames that came
-    while a cycle was late, and counts each late cycle as an overrun): no count of cycles
-    the run itself did not measure."""
-    out = run_case(safety_config(tmp_path, timing), timing, StopReason.DONE, words=["ran 0.4 s"])
-    result = out.result
-    assert result is not None and result.cycles > 0
-    assert result.cycles + result.skipped == 400
-    assert (result.skipped == 0) == (result.overruns == 0) and result.skipped >= result.overruns
-    if timing == "lockstep":
-        assert result.cycles == 400
+# test_done (a run that lasts its duration stops safely): one test over every protocol in
+# tests/drives/test_drive_suite.py::test_run_that_lasts_its_duration_stops_safely
 
 
 @pytest.mark.parametrize("timing", TIMINGS)

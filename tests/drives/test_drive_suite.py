@@ -1,0 +1,567 @@
+"""One drive test suite over every protocol: ODrive (``odrive-0.6``) and CiA 402
+(``cia402-emulated``), each against its emulated drive, in lockstep and in real time.
+
+What every protocol must do the same way, whatever its frames: the enable and disable
+handshakes, a feedback timeout when the drive goes silent, a fault reported the
+protocol's own way (ODrive: an Estop; CiA 402: the node's over-torque fault, EMCY 0x8311
+with the statusword's fault bit) ending the run as ``drive_fault`` with its code, the
+safe stop (zero torque then the disable, confirmed by the drive's status; and the one
+loud line when it cannot be confirmed), and the closed loop reaching the force
+reference with the same summary fields.
+
+What differs per protocol is data, in :class:`Protocol`: the profile, the design delay
+the run must take from it (CiA 402 applies each command at the next SYNC: one whole
+period, ``command_delay_periods``; checked, never set by the test), which frames carry
+feedback and commands, how to read the host's commands off the bus, and how to inject
+its fault. Faults are :mod:`dobhil.emulator.faults` wrappers chosen by frame id; the two
+that need a CiA 402 payload are small :class:`~dobhil.emulator.faults.Fault` subclasses
+here. ODrive-only behaviour stays in ``test_drive_emulated.py`` and ``tests/runtime/``.
+
+Nothing asserts wall-clock timing: lockstep counts simulated steps; real-time runs are
+checked on what they reached and on counts the run measured itself.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import itertools
+import re
+import struct
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import can
+import numpy as np
+import pytest
+import yaml
+
+from dobhil.config import Config
+from dobhil.drives import DriveState, load_profile, make_drive
+from dobhil.drives.base import Confirmation, Drive
+from dobhil.drives.cia402.codec import PowerState
+from dobhil.drives.periodic import native_periodic
+from dobhil.errors import DriveError
+from dobhil.drives.odrive import codec
+from dobhil.drives.odrive.codec import AxisState, CmdId, Firmware
+from dobhil.emulator.plant import Plant
+from dobhil.emulator.faults import Direction, Fault, InjectFrame, LoseSent, SilenceAfter, faulty
+from dobhil.emulator.protocol import EmulatedDrive, LockstepBus
+from dobhil.emulator.registry import make_emulated_drive
+from dobhil.runtime.loop import RunResult
+from dobhil.runtime.session import RunSession, summary
+from dobhil.runtime.stop import StopReason
+
+from tests.runtime.helpers import (DRIVERS, REALTIME_SLACK, STEP_FROM_ZERO, Sniffer, demo_config,
+                               finite_tail, realtime_profile, wait_until)
+
+AT = 100            # a fault strikes around the 100th cycle of a 0.4 s run
+_CHANNELS = itertools.count()
+
+
+# ---------------------------------------------------------------------------
+# Per-protocol data
+
+
+@dataclass(frozen=True)
+class Commands:
+    """What the host commanded the drive on the bus, in order."""
+
+    torques: list[float]   # [Nm] (CiA 402: per mille / 1000 of the 1 Nm rated torque)
+    states: list[int]      # ODrive: requested axis states; CiA 402: controlwords
+
+
+@dataclass(frozen=True)
+class Protocol:
+    name: str                          # the shipped profile
+    node: int
+    design_delay: int                  # whole periods the design must assume (the demo: 0)
+    feedback_ids: frozenset[int]       # frames whose silence is a feedback timeout
+    active_state: int                  # the emulator's axis_state when it follows torque
+    idle_states: frozenset[int]        # the emulator's axis_state once disabled
+    stopped_states: frozenset[int]     # ... or once stopped by a fault of its own
+    last_states: tuple[int, ...]       # the host's final state commands of a safe stop
+    fault_words: tuple[str, ...]       # what the stop line of its fault says
+    decode: Callable[[Sequence[can.Message]], Commands]
+    fault: Callable[[], list[Fault]]   # the protocol's fault, injected around cycle AT
+    lose_disable: Callable[[], list[Fault]]   # the drive never sees the disable
+    torque_quantum: float              # [Nm] resolution of the torque command on the wire
+    no_answer: str                     # the enable's line when nobody answers (a regex)
+    profile_changes: dict[str, Any] = dataclasses.field(default_factory=dict)
+
+    def __str__(self) -> str:
+        return self.name
+
+
+# -- ODrive (CAN Simple) ---------------------------------------------------------
+
+_OD_NODE = 3
+_OD_TORQUE = codec.arbitration_id(_OD_NODE, CmdId.SET_INPUT_TORQUE)
+_OD_AXIS_STATE = codec.arbitration_id(_OD_NODE, CmdId.SET_AXIS_STATE)
+
+
+def _odrive_commands(frames: Sequence[can.Message]) -> Commands:
+    torques, states = [], []
+    for msg in frames:
+        if msg.is_remote_frame or msg.arbitration_id not in (_OD_TORQUE, _OD_AXIS_STATE):
+            continue
+        decoded = codec.decode_message(msg, Firmware.V0_6)
+        if msg.arbitration_id == _OD_TORQUE:
+            torques.append(decoded.torque_nm)
+        else:
+            states.append(int(decoded.requested_state))
+    return Commands(torques, states)
+
+
+ODRIVE = Protocol(
+    name="odrive-0.6", node=_OD_NODE, design_delay=0,
+    feedback_ids=frozenset({codec.arbitration_id(_OD_NODE, CmdId.GET_ENCODER_ESTIMATES)}),
+    active_state=int(AxisState.CLOSED_LOOP_CONTROL), idle_states=frozenset({int(AxisState.IDLE)}),
+    stopped_states=frozenset({int(AxisState.IDLE)}),
+    last_states=(int(AxisState.IDLE),), fault_words=("ESTOP_REQUESTED",),
+    decode=_odrive_commands,
+    fault=lambda: [InjectFrame(codec.encode(codec.Estop(), node_id=_OD_NODE, firmware=Firmware.V0_6),
+                               after=0, ids={_OD_TORQUE})],
+    lose_disable=lambda: [LoseSent(frames=1, ids={_OD_AXIS_STATE})],
+    torque_quantum=2.0 ** -23,                 # float32 at 1 N m
+    no_answer=r"^no heartbeat from node 4 within 0.3 s",
+    profile_changes={"watchdog_timeout": 0},   # else its watchdog would disable it anyway
+)
+
+
+# -- CiA 402 (CST over CANopen) ---------------------------------------------------
+
+_C_NODE = 5
+_C_RPDO = 0x200 + _C_NODE
+_C_TPDO1, _C_TPDO2 = 0x180 + _C_NODE, 0x280 + _C_NODE
+_RPDO = struct.Struct("<Hh")          # controlword U16, target torque I16 (per mille)
+_QUICK_STOP, _DISABLE_VOLTAGE = 0x02, 0x00
+#: the emulator's axis_state: the power state's code (dobhil.drives.cia402.codec)
+OPERATION_ENABLED, SWITCH_ON_DISABLED, FAULT = (int(PowerState.OPERATION_ENABLED),
+                                                int(PowerState.SWITCH_ON_DISABLED),
+                                                int(PowerState.FAULT))
+
+
+def _cia402_commands(frames: Sequence[can.Message]) -> Commands:
+    torques, words = [], []
+    for msg in frames:
+        if msg.arbitration_id == _C_RPDO and len(msg.data) == _RPDO.size:
+            word, per_mille = _RPDO.unpack(msg.data)
+            torques.append(per_mille / 1000.0)
+            if not words or words[-1] != word:
+                words.append(word)
+    return Commands(torques, words)
+
+
+class OverTorque(Fault):
+    """The host's torque commands ask for more than the drive's max torque (0x6072 = 3000
+    per mille), SYNC after SYNC: the node's own over-torque fault (EMCY 0x8311, fault bit,
+    after 3 of them). Zero-torque RPDOs (the safe stop's) pass as sent."""
+
+    direction = Direction.SEND
+
+    def __init__(self, *, per_mille: int = 3500) -> None:
+        super().__init__((_C_RPDO,))
+        self.per_mille = per_mille
+
+    def apply(self, msg: can.Message, index: int, now: float) -> Sequence[can.Message]:
+        if len(msg.data) != _RPDO.size:
+            return (msg,)
+        word, torque = _RPDO.unpack(msg.data)
+        if torque == 0:
+            return (msg,)
+        self.applied += 1
+        return (_with_data(msg, _RPDO.pack(word, self.per_mille)),)
+
+
+class LoseControlwords(Fault):
+    """RPDOs carrying one of ``words`` are lost on the way: the node never sees the
+    quick stop or the disable voltage (it still gets the zero torque)."""
+
+    direction = Direction.SEND
+
+    def __init__(self, words: frozenset[int]) -> None:
+        super().__init__((_C_RPDO,))
+        self.words = words
+
+    def apply(self, msg: can.Message, index: int, now: float) -> Sequence[can.Message]:
+        if len(msg.data) == _RPDO.size and _RPDO.unpack(msg.data)[0] in self.words:
+            self.applied += 1
+            return ()
+        return (msg,)
+
+
+def _with_data(msg: can.Message, data: bytes) -> can.Message:
+    return can.Message(timestamp=msg.timestamp, arbitration_id=msg.arbitration_id,
+                       is_extended_id=msg.is_extended_id, dlc=len(data), data=bytearray(data))
+
+
+CIA402 = Protocol(
+    name="cia402-emulated", node=_C_NODE,
+    design_delay=1,   # the RPDO is applied at the next SYNC: the profile's command_delay_periods
+    feedback_ids=frozenset({_C_TPDO2}),   # the motion event; TPDO1 (statusword) keeps coming
+    active_state=OPERATION_ENABLED, idle_states=frozenset({SWITCH_ON_DISABLED}),
+    stopped_states=frozenset({SWITCH_ON_DISABLED, FAULT}),
+    last_states=(_QUICK_STOP, _DISABLE_VOLTAGE), fault_words=("0x8311",),
+    decode=_cia402_commands,
+    fault=lambda: [OverTorque()],
+    lose_disable=lambda: [LoseControlwords(frozenset({_QUICK_STOP, _DISABLE_VOLTAGE}))],
+    torque_quantum=1e-3,                       # 1 per mille of the 1 N m rated torque
+    no_answer=r"^node 6: SDO 0x1018:01 \(.*\) timed out after 0.3 s \(reached: pre-operational\)$",
+)
+
+PROTOCOLS = {p.name: p for p in (ODRIVE, CIA402)}
+
+
+class Armed(Fault):
+    """``inner`` acts only once armed, from the run's cycle AT on (:class:`ArmAt`): the run
+    says when a fault strikes, not the number of frames its start-up happened to take."""
+
+    def __init__(self, inner: Fault) -> None:
+        super().__init__(None)
+        self.inner = inner
+        self.direction = inner.direction  # type: ignore[misc]
+        self.armed = False
+
+    def __call__(self, msg: can.Message, now: float) -> Sequence[can.Message]:
+        return self.inner(msg, now) if self.armed else (msg,)
+
+    def apply(self, msg: can.Message, index: int, now: float) -> Sequence[can.Message]:
+        raise AssertionError("Armed delegates in __call__")
+
+
+@dataclass
+class ArmAt:
+    """A cycle sink arming ``faults`` after cycle ``at``."""
+
+    faults: Sequence[Fault]
+    at: int = AT
+
+    def started(self, fb: Any) -> None:
+        pass
+
+    def cycle(self, k: int, *args: Any) -> None:
+        if k >= self.at:
+            for fault in self.faults:
+                if isinstance(fault, Armed):
+                    fault.armed = True
+
+    def stop(self, stop: Any) -> None:
+        pass
+TIMINGS = ("lockstep", "realtime")
+
+
+@pytest.fixture(params=list(PROTOCOLS))
+def protocol(request: pytest.FixtureRequest) -> Protocol:
+    return PROTOCOLS[request.param]
+
+
+@pytest.fixture(params=TIMINGS)
+def timing(request: pytest.FixtureRequest) -> str:
+    return str(request.param)
+
+
+# ---------------------------------------------------------------------------
+# Drive level: the handshakes against the emulated drive
+
+
+@dataclass
+class Rig:
+    drive: Drive
+    emu: EmulatedDrive
+    host: can.BusABC
+    lockstep: bool
+
+    def wait_for(self, predicate: Callable[[], bool]) -> bool:
+        """Let the emulator run until ``predicate`` (lockstep: simulated steps, a bound of
+        2 s of drive time; real time: a bound for a loaded machine)."""
+        if not self.lockstep:
+            return wait_until(predicate)
+        for _ in range(2000):
+            if predicate():
+                return True
+            self.drive.poll(0.001)
+        return predicate()
+
+
+@contextmanager
+def drive_rig(protocol: Protocol, timing: str, *, drive_node: int | None = None,
+              **profile_changes: Any) -> Iterator[Rig]:
+    """The protocol's drive against its emulated drive on a private virtual channel
+    (lockstep: behind a LockstepBus, on its simulated clock; real time: the emulator's
+    thread). ``drive_node``: the node id the host addresses (default: the emulator's)."""
+    channel = f"drive-suite-{next(_CHANNELS)}"
+    profile = dataclasses.replace(load_profile(protocol.name),
+                                  **{"bus": {}, "enable_timeout": 2.0, **profile_changes})
+    host_bus = can.Bus(interface="virtual", channel=channel)
+    config = demo_config(f"drive.profile={protocol.name}")
+    emu = make_emulated_drive(can.Bus(interface="virtual", channel=channel), profile,
+                              Plant.from_config(config))
+    host: can.BusABC = host_bus
+    clock: dict[str, Any] = {}
+    if timing == "lockstep":
+        host = LockstepBus(host_bus, [emu], dt=profile.feedback_period)
+        clock["clock"] = host.clock  # type: ignore[attr-defined]
+    else:
+        emu.start()
+    host_profile = profile if drive_node is None else dataclasses.replace(profile, node_id=drive_node)
+    drive = make_drive(host, host_profile, **clock)
+    try:
+        yield Rig(drive, emu, host, timing == "lockstep")
+    finally:
+        drive.disable()
+        getattr(drive, "close", lambda: None)()
+        if host is not host_bus:
+            host.shutdown()
+        emu.close()
+        host_bus.shutdown()
+
+
+@pytest.fixture
+def rig(protocol: Protocol, timing: str) -> Iterator[Rig]:
+    with drive_rig(protocol, timing) as made:
+        yield made
+
+
+def test_enable_then_disable_handshake(rig: Rig, protocol: Protocol) -> None:
+    rig.drive.enable()
+    assert rig.drive.status.state is DriveState.ENABLED
+    assert rig.emu.axis_state == protocol.active_state  # type: ignore[attr-defined]
+    assert rig.drive.disable() is True
+    assert rig.drive.status.state is DriveState.DISABLED
+    assert rig.wait_for(lambda: rig.emu.axis_state in protocol.idle_states  # type: ignore[attr-defined]
+                        and rig.emu.applied_torque == 0.0)
+
+
+def test_enable_again_after_a_disable(rig: Rig, protocol: Protocol) -> None:
+    rig.drive.enable()
+    rig.drive.send_torque(0.1)
+    rig.drive.poll(0.01)
+    report = rig.drive.safe_stop()
+    assert report.confirmation is Confirmation.CONFIRMED, report.detail
+    rig.drive.enable()
+    assert rig.emu.axis_state == protocol.active_state  # type: ignore[attr-defined]
+
+
+def test_a_drive_that_never_answers_fails_the_enable_in_one_line(protocol: Protocol,
+                                                                  timing: str) -> None:
+    """The host addresses a node id nobody has: the enable ends in one line naming the
+    node and what was awaited (ODrive: its heartbeat; CiA 402: the first SDO answer, with
+    the object), and the emulated drive at the other id never left its idle state."""
+    with drive_rig(protocol, timing, drive_node=protocol.node + 1, enable_timeout=0.3) as made:
+        with pytest.raises(DriveError) as info:
+            made.drive.enable()
+        line = str(info.value)
+        assert "\n" not in line and re.search(protocol.no_answer, line), line
+        assert made.drive.status.state is not DriveState.ENABLED
+        assert made.emu.axis_state != protocol.active_state  # type: ignore[attr-defined]
+
+
+# ---------------------------------------------------------------------------
+# Run level: every stop of a run, in lockstep and in real time
+
+
+def profile_ref(tmp_path: Path, protocol: Protocol, timing: str, **changes: Any) -> str:
+    """The shipped profile in lockstep; real time: a copy with the drive's waits relaxed
+    for a loaded machine (rates unchanged). A copy elsewhere names its files (CiA 402:
+    the EDS) by absolute path."""
+    if timing == "lockstep" and not changes:
+        return protocol.name
+    return str(realtime_profile(tmp_path, protocol.name, **_located(protocol), **changes))
+
+
+def _located(protocol: Protocol) -> dict[str, Any]:
+    shipped = yaml.safe_load((DRIVERS / f"{protocol.name}.yaml").read_text(encoding="utf-8"))
+    section = shipped.get("cia402")
+    if section is None:
+        return {}
+    return {"cia402": {**section, "eds": str(DRIVERS / section["eds"])}}
+
+
+def suite_config(tmp_path: Path, protocol: Protocol, timing: str, *overrides: str,
+                 step: bool = True, **profile_changes: Any) -> Config:
+    """The analysed loop (``step``: contact from the start, 1 N m step; else the demo's
+    own reference), 0.4 s, on the protocol's profile and design delay."""
+    profile = profile_ref(tmp_path, protocol, timing, **profile_changes)
+    slack = REALTIME_SLACK if timing == "realtime" else ()
+    return demo_config(f"drive.profile={profile}", *(STEP_FROM_ZERO if step else ()),
+                       "loop.duration=0.4", *slack, *overrides)
+
+
+@dataclass
+class Outcome:
+    result: RunResult
+    commands: Commands
+    settled: bool
+    summary: dict[str, Any]
+    final: tuple[int, float]     # the emulator's axis_state and applied torque at the end
+
+
+def run(config: Config, protocol: Protocol, timing: str, faults: Sequence[Fault] = (), *,
+        armed: Sequence[Fault] = (), settle: bool = True) -> Outcome:
+    """Run with the emulated drive, ``faults`` from the start and ``armed`` ones from cycle
+    AT on; ``settle``: then wait for it to be out of torque control with zero torque (real
+    time: a bound; False where it must not be)."""
+    wrapped = [*faults, *(Armed(f) for f in armed)]
+    with RunSession(config, emulate=True, lockstep=timing == "lockstep", sink=ArmAt(wrapped),
+                    bus_wrapper=faulty(*wrapped) if wrapped else None) as session, \
+            Sniffer(session.bus_spec.channel) as sniffer:
+        # the design delay comes from the protocol (its profile), not from the test
+        design = session.design_config.design
+        assert (design.delay_samples, design.input_delay) == (protocol.design_delay, 0.0)
+        result = session.run()
+        emu = session.emulator
+        assert emu is not None
+
+        def idle() -> bool:
+            return emu.axis_state in protocol.stopped_states and emu.applied_torque == 0.0  # type: ignore[union-attr]
+
+        if timing == "lockstep":
+            emu.handle_pending()  # type: ignore[union-attr]
+            settled = idle()
+        else:
+            settled = wait_until(idle) if settle else idle()
+        final = (int(emu.axis_state), float(emu.applied_torque))  # type: ignore[union-attr]
+        return Outcome(result, protocol.decode(sniffer.drain()), settled, summary(session, result),
+                       final)
+
+
+def assert_stopped_safely(out: Outcome, protocol: Protocol, reason: StopReason,
+                          words: Sequence[str] = ()) -> None:
+    """Why in one line; zero torque was the last torque; the disable commands last; the
+    drive confirmed it and ended out of torque control with zero torque."""
+    stop, report = out.result.stop, out.result.safe_stop
+    line = stop.line()
+    assert stop.reason is reason, line
+    assert "\n" not in line
+    for word in words:
+        assert word.lower() in line.lower(), (word, line)
+    assert out.commands.torques and out.commands.torques[-1] == 0.0, out.commands.torques[-3:]
+    assert tuple(out.commands.states[-len(protocol.last_states):]) == protocol.last_states, \
+        out.commands.states
+    assert report is not None and report.confirmation is Confirmation.CONFIRMED, report
+    assert out.result.disabled and report.warning() == "" and out.summary["drive_warning"] == ""
+    assert out.settled, f"emulated drive not out of torque control with zero torque: {out.final}"
+
+
+def test_run_that_lasts_its_duration_stops_safely(tmp_path: Path, protocol: Protocol,
+                                                 timing: str) -> None:
+    out = run(suite_config(tmp_path, protocol, timing), protocol, timing)
+    assert_stopped_safely(out, protocol, StopReason.DONE, ["ran 0.4 s"])
+    # every one of its 400 cycles ran or was skipped (real time on a busy machine skips
+    # the frames that came while a cycle was late, and counts each late cycle as an
+    # overrun): no count of cycles the run itself did not measure
+    result = out.result
+    counts = (result.cycles, result.skipped, result.overruns)
+    assert result.cycles > 0 and result.cycles + result.skipped == 400, counts
+    assert (result.skipped == 0) == (result.overruns == 0) and result.skipped >= result.overruns, counts
+    if timing == "lockstep":
+        assert result.cycles == 400
+
+
+def test_feedback_timeout_when_the_drive_goes_silent(tmp_path: Path, protocol: Protocol,
+                                                     timing: str) -> None:
+    silence = SilenceAfter(frames=0, ids=protocol.feedback_ids)
+    out = run(suite_config(tmp_path, protocol, timing), protocol, timing, armed=[silence])
+    assert_stopped_safely(out, protocol, StopReason.FEEDBACK_TIMEOUT, ["no fresh feedback"])
+    assert out.result.stop.cycle > AT and silence.applied > 0
+    if timing == "lockstep":
+        assert out.result.stop.cycle == AT + 1
+
+
+def test_fault_the_protocols_way_is_a_drive_fault(tmp_path: Path, protocol: Protocol,
+                                                  timing: str) -> None:
+    out = run(suite_config(tmp_path, protocol, timing), protocol, timing, armed=protocol.fault())
+    assert_stopped_safely(out, protocol, StopReason.DRIVE_FAULT, protocol.fault_words)
+    assert out.result.stop.cycle > AT and out.result.stop.time < 0.4
+
+
+def test_unconfirmed_safe_stop_says_so_loudly(tmp_path: Path, protocol: Protocol,
+                                              timing: str) -> None:
+    config = suite_config(tmp_path, protocol, timing, **protocol.profile_changes)
+    out = run(config, protocol, timing, protocol.lose_disable(), settle=False)
+    report = out.result.safe_stop
+    assert out.result.stop.reason is StopReason.DONE
+    assert report is not None and report.sent and report.confirmation is Confirmation.NOT_ACKNOWLEDGED
+    assert not out.result.disabled
+    warning = report.warning()
+    assert warning.startswith(f"drive may still be enabled: node {protocol.node} did not acknowledge ")
+    assert warning.endswith("; cut power") and "\n" not in warning
+    assert out.summary["drive_warning"] == warning and out.summary["drive_disabled"] is False
+    assert out.commands.torques[-1] == 0.0 and not out.settled   # still in torque control
+
+
+def test_closed_loop_reaches_the_force_reference(tmp_path: Path, protocol: Protocol,
+                                                 timing: str) -> None:
+    """Demo loop (contact from 5 mrad away at 0.2 N m, then a step to 1 N m at 0.6 s):
+    the TRUE interaction torque settles on the reference, the estimate agrees. The bound
+    comes from the run: the spread of its own last 100 ms plus half the protocol's torque
+    quantum (the loop's steady state does not depend on timing, so real time and
+    lockstep share it; a real-time run on a busy machine skips cycles, never the
+    equilibrium)."""
+    config = suite_config(tmp_path, protocol, timing, "loop.duration=1.0", step=False)
+    out = run(config, protocol, timing)
+    assert_stopped_safely(out, protocol, StopReason.DONE)
+    assert out.result.cycles + out.result.skipped == 1000
+    tr = out.result.trace
+    tail_true = finite_tail(tr["tau_int_true"], tr["t"], 0.1)
+    tail_hat = finite_tail(tr["tau_int_hat"], tr["t"], 0.1)
+    assert tail_true.size >= 10 and tr["tau_ref"][-1] == 1.0
+    for tail in (tail_true, tail_hat):
+        bound = float(np.ptp(tail)) + protocol.torque_quantum / 2 + 1e-9
+        assert abs(float(np.mean(tail)) - 1.0) <= bound, (float(np.mean(tail)), bound)
+
+
+def test_summary_has_the_same_fields_for_every_protocol(tmp_path: Path) -> None:
+    def shape(value: Any) -> Any:
+        if isinstance(value, dict):
+            return {k: shape(v) for k, v in value.items()}
+        if isinstance(value, list):
+            return [shape(v) for v in value[:1]]
+        return type(value).__name__ if value is not None else None
+
+    shapes = {}
+    for protocol in PROTOCOLS.values():
+        out = run(suite_config(tmp_path, protocol, "lockstep", "loop.duration=0.05"), protocol,
+                  "lockstep")
+        assert out.result.stop.reason is StopReason.DONE
+        shapes[protocol.name] = shape(out.summary)
+    odrive, cia402 = shapes["odrive-0.6"], shapes["cia402-emulated"]
+    assert odrive.keys() == cia402.keys()
+    assert odrive == cia402
+
+
+# ---------------------------------------------------------------------------
+# The fault wrapper keeps a protocol's periodic frames where they belong
+
+
+def test_fault_wrapper_forwards_periodic_send_to_the_bus_it_wraps() -> None:
+    """FaultyBus is as native as its inner bus; the periodic SYNC is the inner bus's (send
+    faults do not drop it), its echo passes the receive faults."""
+    from .cia402_node import PumpBus, TestNode402
+
+    channel = f"drive-suite-{next(_CHANNELS)}"
+    node = TestNode402(can.Bus(interface="virtual", channel=channel), _C_NODE)
+    pumped = PumpBus(channel, node)
+    seen: list[float] = []
+    node.network.subscribe(0x80, lambda can_id, data, t: seen.append(t))
+    lose_all_sync = LoseSent(frames=0, ids={0x80})
+    drop_echo = SilenceAfter(frames=0, ids={0x80})
+    wrapper = faulty(lose_all_sync, drop_echo)(pumped)
+    plain = faulty()(can.Bus(interface="virtual", channel=channel + "-plain"))
+    try:
+        assert native_periodic(wrapper) and not native_periodic(plain)
+        task = wrapper.send_periodic(can.Message(arbitration_id=0x80, data=b"", is_extended_id=False),
+                                     0.001)
+        assert wrapper.recv(0.0105) is None          # echoes dropped by the receive fault
+        assert seen == pytest.approx([0.001 * k for k in range(1, 11)])   # yet every SYNC went out
+        assert drop_echo.applied == 10 and lose_all_sync.applied == 0
+        task.stop()
+    finally:
+        plain.shutdown()
+        plain._inner.shutdown()  # type: ignore[attr-defined]
+        wrapper.shutdown()
+        pumped.shutdown()
+        node.close()
