@@ -238,6 +238,13 @@ def test_a_node_without_the_encoder_object_is_a_note_and_runs(tmp_path: Path) ->
         made.close()
 
 
+def test_dobhil_run_prints_the_drives_notes(capsys: pytest.CaptureFixture[str]) -> None:
+    from dobhil.cli.run_cmd import report
+    report({"cycles": 0, "drive_notes": ["node 5: 0x608F not read"]}, "stop: x", as_json=False)
+    assert capsys.readouterr().err.splitlines() == [
+        "dobhil run: note (not refused: the run went on): node 5: 0x608F not read", "dobhil run: stop: x"]
+
+
 def test_the_shipped_demo_matches_the_analysis_within_the_torque_quantum(
         tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     """configs/cia402-demo.yaml in lockstep: the emulated plant is the analysis' exact model,

@@ -147,8 +147,6 @@ class CiA402Drive(Drive):
         self._emcy = 0
         self._sync_at = math.nan
         self.identity: tuple[int, ...] = ()
-        #: what the last start-up could not check (one line each; nothing refused for them)
-        self.notes: list[str] = []
 
     # -- public ---------------------------------------------------------------
 
