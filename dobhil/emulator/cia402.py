@@ -99,7 +99,6 @@ __all__ = ["Command", "EmcyCode", "EmulatedCiA402", "PowerState", "TRANSITIONS",
 DEFAULT_OPTIONS: Mapping[str, Any] = {
     **{key: rule.default for key, rule in CIA402_RULES.section.items() if not rule.required},
     "eds": "cia402-emulated.eds", "rated_torque": 1.0, "position_per_rev": 1 << 20,
-    "velocity_unit": "increments_per_s",
 }
 #: modes of operation by their bit in 0x6502 (CiA 402)
 MODE_BITS: Mapping[int, int] = {1: 0, 2: 1, 3: 2, 4: 3, 6: 5, 7: 6, 8: 7, 9: 8, 10: 9}
