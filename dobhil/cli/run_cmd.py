@@ -173,6 +173,9 @@ def log_hooks(log: Any) -> dict[str, Any]:
 
 def report(info: dict[str, Any], stop_line: str, *, as_json: bool) -> None:
     warning = info.get("drive_warning") or ""
+    if not as_json:   # (in the JSON: drive_notes)
+        for note in info.get("drive_notes", ()):
+            sys.stderr.write(f"dobhil run: note (not refused: the run went on): {note}\n")
     if as_json:
         json.dump(info, sys.stdout)
         sys.stdout.write("\n")

@@ -221,6 +221,9 @@ class Drive(ABC):
         self._last_heartbeat: float | None = None
         self._detail = ""
         self._status_cache: DriveStatus | None = None
+        #: what the last start-up (``_prepare``) could not check on the drive, one line
+        #: each (nothing was refused for them); ``dobhil run`` prints them
+        self.notes: list[str] = []
 
     # -- public API -----------------------------------------------------------
 

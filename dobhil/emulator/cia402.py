@@ -39,6 +39,8 @@ What canopen's LocalNode does not do, this module does (drive-protocols.md, CiA 
   revolution, wrapped to 32 bits as an encoder counter does], 0x606C velocity
   (``velocity_unit``: rpm, increments_per_s or milli_rpm of the motor), 0x6077 torque actual
   [per mille of 0x6076], 0x6061 mode display, 0x603F error code, 0x1001 error register;
+  0x608F position encoder resolution and 0x6091 gear ratio state ``position_per_rev`` and
+  ``gear_ratio`` (the scale this node encodes with; read only here);
 - the CiA 402 power state machine on the controlword (:data:`TRANSITIONS`; fault reset on
   the rising edge of bit 7), the statusword of drive-protocols.md (plus bit 4 voltage
   enabled, bit 9 remote, bit 11 internal limit active while the torque is clamped, bit 12
@@ -80,13 +82,14 @@ from canopen.network import PeriodicMessageTask
 from canopen.objectdictionary import ODVariable
 from canopen.sdo import SdoAbortedError, SdoVariable
 
-from dobhil.drives.cia402.codec import (CST_MODE, RATED_TORQUE_UNITS, STATUSWORD_TABLE, PowerState, UnitScale,
-                                        per_mille)
+from dobhil.drives.cia402.codec import (CST_MODE, RATED_TORQUE_UNITS, STATUSWORD_TABLE, UNIT_OBJECTS, PowerState,
+                                        UnitObject, UnitScale, per_mille)
 from dobhil.drives.cia402.eds import load_od
 from dobhil.drives.cia402.link import quiet_canopen
 from dobhil.drives.cia402.rules import CIA402_RULES
 from dobhil.drives.profile import DriveProfile
 from dobhil.emulator.protocol import EmulatedDrive, PlantLike
+from dobhil.errors import ConfigError
 
 __all__ = ["Command", "EmcyCode", "EmulatedCiA402", "PowerState", "TRANSITIONS", "decode_command",
            "statusword"]
@@ -95,7 +98,7 @@ __all__ = ["Command", "EmcyCode", "EmulatedCiA402", "PowerState", "TRANSITIONS",
 #: defaults (its rules), and the shipped emulated node's values for the keys it requires
 DEFAULT_OPTIONS: Mapping[str, Any] = {
     **{key: rule.default for key, rule in CIA402_RULES.section.items() if not rule.required},
-    "eds": "cia402-emulated.eds", "rated_torque": 1.0, "position_per_rev": 4096,
+    "eds": "cia402-emulated.eds", "rated_torque": 1.0, "position_per_rev": 1 << 20,
 }
 #: modes of operation by their bit in 0x6502 (CiA 402)
 MODE_BITS: Mapping[int, int] = {1: 0, 2: 1, 3: 2, 4: 3, 6: 5, 7: 6, 8: 7, 9: 8, 10: 9}
@@ -104,6 +107,7 @@ _U8, _U16, _U32 = struct.Struct("<B"), struct.Struct("<H"), struct.Struct("<I")
 _I16 = struct.Struct("<h")
 _I8 = struct.Struct("<b")
 _I16_MAX = 32767
+_U32_MAX = 0xFFFF_FFFF
 _PDO_INVALID = 1 << 31
 _NMT, _HEARTBEAT = 0x000, 0x700
 #: SDO abort (ccs 4), no object, code 0x05040001: client/server command specifier not valid
@@ -330,6 +334,7 @@ class EmulatedCiA402(EmulatedDrive):
             0x6077: self._torque_actual, 0x6061: lambda: self.mode, 0x603F: lambda: self.error_code,
             0x1001: lambda: self.error_register,
         }
+        self._stated = self._units_stated(profile)
         self._load_application()
 
     # -- observables ----------------------------------------------------------
@@ -494,7 +499,27 @@ class EmulatedCiA402(EmulatedDrive):
 
     def _on_read(self, index: int, subindex: int, od: ODVariable) -> int | None:
         live = self._live.get(index)
-        return None if live is None else live()
+        return self._stated.get((index, subindex)) if live is None else live()
+
+    def _units_stated(self, profile: DriveProfile) -> dict[tuple[int, int], int]:
+        """0x608F:01/02 and 0x6091:01/02 as this node encodes 0x6064 and 0x606C: the
+        profile's ``position_per_rev`` and ``gear_ratio`` as U32 ratios (a drive states
+        its own encoder and gear; the host checks them at start-up). Fixed: a write is
+        refused (read only), changing the scale by SDO is not emulated."""
+        stated: dict[tuple[int, int], int] = {}
+        for obj in UNIT_OBJECTS:
+            value = float(self.options[obj.key])
+            num, den = UnitObject.ratio_of(value)
+            if num > _U32_MAX:
+                raise ConfigError(f"drive profile {profile.name!r}: cia402.{obj.key}: the emulated node states "
+                                  f"it in 0x{obj.index:04X} as U32 / U32; {value:.10g} does not fit")
+            stated[obj.index, 1], stated[obj.index, 2] = num, den
+            self._writers[obj.index] = self._write_read_only
+        return stated
+
+    @staticmethod
+    def _write_read_only(_sub: int, _data: bytes) -> None:
+        raise SdoAbortedError(0x06010002)   # attempt to write a read only object
 
     def _on_write(self, index: int, subindex: int, od: ODVariable, data: bytes) -> None:
         """Before canopen stores a value (SDO or RPDO): check it, act on it; an

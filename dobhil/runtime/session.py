@@ -318,6 +318,7 @@ def summary(session: RunSession, result: RunResult) -> dict[str, Any]:
         "stop_reason": result.stop.reason.name.lower(), "stop_detail": result.stop.detail,
         "drive_disabled": result.disabled,
         "drive_warning": report.warning() if report is not None else "",
+        "drive_notes": list(session.drive.notes),
         "safe_stop": None if report is None else {
             "frames": [{"what": f.what, "sent": f.sent, "error": f.error} for f in report.frames],
             "confirmation": report.confirmation.name.lower()},

@@ -125,6 +125,8 @@ class FakeNode:
         self.node_id = node_id
         self.network = canopen.Network(_Outbox(bus))  # type: ignore[arg-type]
         self.local = self.network.create_node(node_id, od or canopen.import_od(str(EDS), node_id))
+        if 0x608F in self.local.object_dictionary:   # this node's encoder (not the EDS default): 4096 / rev
+            self.local.sdo[0x608F][1].raw = 4096
         if rated_mnm is not None:
             self.local.sdo[0x6076].raw = rated_mnm
         self.state = "switch on disabled"

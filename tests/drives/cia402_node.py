@@ -45,10 +45,15 @@ import canopen
 from can.broadcastmanager import CyclicSendTaskABC
 from canopen.pdo import PdoMap
 
-__all__ = ["EDS", "HostSyncPumpBus", "NodeState", "PumpBus", "PumpedNetwork", "TestNode402", "next_state"]
+__all__ = ["EDS", "RIG_UNITS", "HostSyncPumpBus", "NodeState", "PumpBus", "PumpedNetwork", "TestNode402",
+           "next_state", "with_rig_units"]
 
 #: the project's EDS of a CiA 402 servo (objects only: the behaviour here is this file's)
 EDS = Path(__file__).resolve().parents[2] / "drivers" / "cia402-emulated.eds"
+
+#: this node's units (not the shipped profile's 20-bit encoder): 0x6064 at 4096 increments per
+#: revolution, 0x606C in rpm; it states them in 0x608F and 0x6091, which the host checks
+RIG_UNITS = {"position_per_rev": 4096, "velocity_unit": "rpm", "gear_ratio": 1.0}
 
 SYNC_ID = 0x80
 CST = 10
@@ -311,6 +316,10 @@ class TestNode402:
             0x6077: lambda: self.per_mille, 0x603F: lambda: self.error_code,
         }
         getter = live.get(index)
+        if getter is None and index == 0x608F and subindex:   # position encoder resolution: N / 1 rev
+            return self.position_per_rev if subindex == 1 else 1
+        if getter is None and index == 0x6091 and subindex:   # gear ratio 1:1
+            return 1
         return getter() if getter is not None else None
 
     def _on_write(self, index: int, subindex: int, od: Any, data: bytes) -> None:
@@ -500,3 +509,9 @@ class PumpedNetwork(canopen.Network):
         assert self.bus is not None
         while (msg := self.bus.recv(0.0)) is not None:
             self.notify(msg.arbitration_id, msg.data, msg.timestamp)
+
+
+def with_rig_units(profile: Any) -> Any:
+    """``profile`` (the shipped emulated one) with this node's units (:data:`RIG_UNITS`)."""
+    import dataclasses
+    return dataclasses.replace(profile, options={**profile.options, **RIG_UNITS})

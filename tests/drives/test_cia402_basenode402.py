@@ -42,7 +42,7 @@ from canopen.profiles.p402 import BaseNode402
 from dobhil.config import load_config
 from dobhil.drives import load_profile
 
-from .cia402_node import EDS, TestNode402
+from .cia402_node import EDS, TestNode402, with_rig_units
 
 _CHANNELS = itertools.count()
 #: SYNC period of this test: BaseNode402 and python-can's SYNC thread are Python threads
@@ -89,7 +89,8 @@ class EmulatorTarget(Target):
         from dobhil.emulator.registry import make_emulated_drive
 
         config = load_config(DEMO, ["plant.viscous_friction=0"])
-        profile = dataclasses.replace(load_profile("cia402-emulated"), feedback_period=PERIOD,
+        # this test decodes 0x6064/0x606C at the test node's units: the emulator takes them too
+        profile = dataclasses.replace(with_rig_units(load_profile("cia402-emulated")), feedback_period=PERIOD,
                                       bus={})
         self.inertia = config.plant.inertia
         self.node_id = profile.node_id

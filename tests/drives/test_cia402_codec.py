@@ -122,6 +122,18 @@ def test_units_from_the_profile_section() -> None:
     assert 60_000 * milli.rad_s_per_velocity_count == pytest.approx(2 * math.pi)
 
 
+def test_unit_objects_are_sub_1_per_sub_2_as_cia402_names_them() -> None:
+    encoder, gear = codec.UNIT_OBJECTS
+    assert (encoder.index, encoder.key, gear.index, gear.key) == (0x608F, "position_per_rev", 0x6091, "gear_ratio")
+    assert encoder.stated(4096, 1) == ("0x608F (position encoder resolution) = 4096 encoder increments / "
+                                       "1 motor revolutions")
+    assert encoder.agrees(1 << 20, 1, 1048576.0) and encoder.agrees(3200, 2, 1600)
+    assert not encoder.agrees(4096, 1, 1048576.0) and not gear.agrees(26, 1, 1.0)
+    assert gear.agrees(0, 0, 1.0) is None                       # no ratio stated
+    assert gear.agrees(37, 10, 3.7) and codec.UnitObject.ratio_of(3.7) == (37, 10)
+    assert codec.UnitObject.ratio_of(1 << 20) == (1 << 20, 1) and codec.UnitObject.ratio_of(1.0) == (1, 1)
+
+
 # -- PDO layouts ------------------------------------------------------------
 
 def test_layouts_bytes() -> None:

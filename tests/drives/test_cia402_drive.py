@@ -29,7 +29,9 @@ PROFILE = Path(__file__).resolve().parents[2] / "drivers" / "cia402-emulated.yam
 def profile(**section: Any) -> Any:
     import yaml
     data = yaml.safe_load(PROFILE.read_text())
-    data["cia402"] = {**data["cia402"], "eds": str(EDS), **section}
+    # the fake node's units: 4096 increments per revolution (it says so in 0x608F), rpm
+    data["cia402"] = {**data["cia402"], "eds": str(EDS), "position_per_rev": 4096, "velocity_unit": "rpm",
+                      **section}
     return profile_from_mapping(data, source="test profile")
 
 

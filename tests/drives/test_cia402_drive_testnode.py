@@ -32,7 +32,7 @@ from dobhil.runtime.references import make_reference
 from dobhil.runtime.session import build_controller, loop_settings
 from dobhil.runtime.stop import StopReason
 
-from .cia402_node import HostSyncPumpBus, NodeState, PumpBus, TestNode402
+from .cia402_node import HostSyncPumpBus, NodeState, PumpBus, TestNode402, with_rig_units
 
 NODE = 5
 PERIOD = 0.001   # the profile's feedback_period (SYNC period)
@@ -81,7 +81,7 @@ def make_rig() -> Iterator[Callable[..., Rig]]:
         node = TestNode402(can.Bus(interface="virtual", channel=channel), NODE, inertia=inertia)
         bus = SYNC_SOURCES[sync](channel, node)
         node.boot()
-        profile = dataclasses.replace(load_profile("cia402-emulated"), node_id=node_id, **changes)
+        profile = dataclasses.replace(with_rig_units(load_profile("cia402-emulated")), node_id=node_id, **changes)
         drive = make_drive(bus, profile, clock=bus.clock, reset_faults=reset_faults)
         made.append((node, bus, drive))
         return Rig(node, bus, drive)
@@ -270,7 +270,7 @@ def test_realtime_against_the_node_on_canopens_notifier() -> None:
     channel = f"cia402-drive-{next(_CHANNELS)}"
     node = TestNode402(can.Bus(interface="virtual", channel=channel), NODE, inertia=0.01)
     host = can.Bus(interface="virtual", channel=channel)
-    profile = dataclasses.replace(load_profile("cia402-emulated"), enable_timeout=5.0)
+    profile = dataclasses.replace(with_rig_units(load_profile("cia402-emulated")), enable_timeout=5.0)
     drive = make_drive(host, profile)
     try:
         node.start()

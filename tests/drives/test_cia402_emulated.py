@@ -16,7 +16,7 @@ import yaml
 from dobhil.cli.main import main
 from dobhil.drives.base import Confirmation, DriveState
 from dobhil.drives.cia402.drive import CiA402Drive
-from dobhil.drives.profile import load_profile, profile_from_mapping
+from dobhil.drives.profile import DriveProfile, load_profile, profile_from_mapping
 from dobhil.emulator.cia402 import EmulatedCiA402
 from dobhil.emulator.plant import Plant
 from dobhil.emulator.protocol import LockstepBus
@@ -32,13 +32,15 @@ DEMO = ROOT / "configs" / "demo.yaml"
 class Rig:
     """The drive and the emulated node on a private virtual channel behind a LockstepBus."""
 
-    def __init__(self, *, inertia: float = 0.01, reset_faults: bool = False) -> None:
+    def __init__(self, *, inertia: float = 0.01, reset_faults: bool = False,
+                 node_profile: DriveProfile | None = None) -> None:
+        """``node_profile``: the node's own (its units, its EDS) when not the host's."""
         self.profile = load_profile(PROFILE)
         channel = private_virtual_channel()
         self.emu_bus = can.Bus(interface="virtual", channel=channel)
         self.inner = can.Bus(interface="virtual", channel=channel)
         self.plant = Plant(inertia=inertia)
-        self.emu = EmulatedCiA402(self.emu_bus, self.profile, self.plant)
+        self.emu = EmulatedCiA402(self.emu_bus, node_profile or self.profile, self.plant)
         self.bus = LockstepBus(self.inner, [self.emu], dt=0.001)
         self.drive = self.new_drive(reset_faults=reset_faults)
 
@@ -193,6 +195,75 @@ def test_a_node_reporting_no_cst_ends_start_up_in_one_line(rig: Rig) -> None:
                                "identity read, statusword read)")
     assert rig.emu.statusword & 0x6F != 0x27
     assert rig.drive.safe_stop().warning() == ""   # never operational: nothing to cut power for
+
+
+def test_a_node_stating_another_encoder_resolution_is_refused_in_one_line() -> None:
+    """The node encodes 0x6064 at 4096 increments per revolution and says so in 0x608F; the
+    host's profile says 2^20. Trusting the config would scale every position and velocity
+    by 1/256: the start-up refuses before anything is enabled."""
+    import dataclasses
+    shipped = load_profile(PROFILE)
+    made = Rig(node_profile=dataclasses.replace(shipped, options={**shipped.options, "position_per_rev": 4096}))
+    try:
+        with pytest.raises(DriveError) as info:
+            made.drive.enable()
+        assert str(info.value) == (
+            "node 5: 0x608F (position encoder resolution) = 4096 encoder increments / 1 motor revolutions = 4096, "
+            "the profile's cia402.position_per_rev is 1048576: every position and velocity would be off by a "
+            "factor 0.00390625; set cia402.position_per_rev: 4096 (or fix the drive) (reached: pre-operational, "
+            "identity read, statusword read, supported modes read, rated torque read)")
+        assert made.emu.nmt_state != "OPERATIONAL" and made.emu.statusword & 0x6F != 0x27   # nothing enabled
+        assert made.drive.safe_stop().warning() == ""
+    finally:
+        made.close()
+
+
+def test_a_node_without_the_encoder_object_is_a_note_and_runs(tmp_path: Path) -> None:
+    """The host's EDS lists 0x608F; this node has none (its EDS lacks it) and aborts the
+    read: noted, not refused (the units cannot be checked on it)."""
+    import dataclasses
+    eds = tmp_path / "no-608f.eds"
+    eds.write_text(re.sub(r"\[608F(?:sub\d)?\]\n(?:[^\[\n].*\n|\n)*", "", EDS.read_text()))
+    shipped = load_profile(PROFILE)
+    made = Rig(node_profile=dataclasses.replace(shipped, options={**shipped.options, "eds": str(eds)}))
+    try:
+        assert 0x608F not in made.emu.node.object_dictionary
+        made.drive.enable()
+        assert made.drive.status.state is DriveState.ENABLED
+        assert made.drive.notes == [
+            "node 5: 0x608F (position encoder resolution) not read, aborted 0x06020000 (Object does not exist): "
+            "cia402.position_per_rev 1048576 not checked"]
+        made.drive.safe_stop()
+    finally:
+        made.close()
+
+
+def test_dobhil_run_prints_the_drives_notes(capsys: pytest.CaptureFixture[str]) -> None:
+    from dobhil.cli.run_cmd import report
+    report({"cycles": 0, "drive_notes": ["node 5: 0x608F not read"]}, "stop: x", as_json=False)
+    assert capsys.readouterr().err.splitlines() == [
+        "dobhil run: note (not refused: the run went on): node 5: 0x608F not read", "dobhil run: stop: x"]
+
+
+def test_the_shipped_demo_matches_the_analysis_within_the_torque_quantum(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """configs/cia402-demo.yaml in lockstep: the emulated plant is the analysis' exact model,
+    so ``dobhil report``'s prediction differs from the measured tau_int^ only by what the
+    drive quantises. With a 20-bit encoder that is the torque command's per mille of the
+    rated torque (1 N m / 1000 = 1e-3 N m): the RMS difference stays below one quantum.
+    (With 4096 increments per revolution and rpm the position and velocity quanta made it
+    0.0216 N m; with the 20-bit encoder it is about 2e-5 N m.)"""
+    import json
+    log = tmp_path / "demo.mcap"
+    code, out, err = _run(["run", str(ROOT / "configs" / "cia402-demo.yaml"), "--emulate", "--lockstep",
+                           "--log", str(log)], capsys)
+    assert code == 0, err
+    code, out, err = _run(["report", str(log), "--out", str(tmp_path / "report"), "--json"], capsys)
+    assert code == 0, err
+    prediction = json.loads(out)["prediction"]
+    assert prediction["available"], prediction
+    quantum = float(load_profile(PROFILE).options["rated_torque"]) / 1000.0   # 0x6071 per mille
+    assert 0 < prediction["rms_difference"] < quantum, prediction
 
 
 def test_profile_built_in_code_needs_the_feedback_period() -> None:

@@ -32,8 +32,8 @@ NODE = 5
 
 def profile(node_id: int = NODE, eds: Path = EMULATED_EDS, **options: Any) -> DriveProfile:
     """A CiA 402 profile as SPEC-17's drivers/cia402-emulated.yaml has it (built in code)."""
-    section = {"eds": str(eds), "rated_torque": 1.0, "rated_torque_unit": "mNm", "position_per_rev": 4096,
-               "velocity_unit": "rpm", "gear_ratio": 1.0, "rpdo": 1, "tpdo": 1, "sdo_timeout": 0.3,
+    section = {"eds": str(eds), "rated_torque": 1.0, "rated_torque_unit": "mNm", "position_per_rev": 1 << 20,
+               "velocity_unit": "increments_per_s", "gear_ratio": 1.0, "rpdo": 1, "tpdo": 1, "sdo_timeout": 0.3,
                "consumer_heartbeat": 0.0, **options}
     return DriveProfile(protocol="cia402", firmware="1.0", node_id=node_id, torque_limit=2.0,
                         velocity_limit=50.0, enable_timeout=2.0, feedback_period=1e-3, heartbeat_period=0.1,
@@ -79,7 +79,9 @@ def test_a_matching_node_passes_with_what_it_answered(node: tuple[str, canopen.L
     (seen,) = report.nodes
     # the EDS's values, as canopen's SDO server gives them (cia402-emulated.eds)
     assert ("identity vendor 0x00000000 product 0x00000402 revision 0x00010000 serial 0x00C0FFEE; "
-            "modes 0x00000380 (CST supported); rated torque 1000 mNm = 1 Nm; heartbeat 0x1017 = 100 ms; "
+            "modes 0x00000380 (CST supported); rated torque 1000 mNm = 1 Nm; 0x608F (position encoder "
+            "resolution) = 1048576 encoder increments / 1 motor revolutions; 0x6091 (gear ratio) = 1 motor "
+            "revolutions / 1 shaft revolutions; heartbeat 0x1017 = 100 ms; "
             "statusword 0x0000 (not ready to switch on); PDOs RPDO1 32 bits, TPDO1 64 bits, TPDO2 40 bits"
             ) in seen.summary, seen.summary
     assert seen.status.count >= 2 and "heartbeat every" in seen.summary   # heard while listening
@@ -106,6 +108,49 @@ def test_rated_torque_in_another_unit_is_a_refusing_mismatch(node: tuple[str, ca
     # the same node with the unit and value it has: no mismatch
     report = check(channel, profile(rated_torque=0.512871, rated_torque_unit="uNm"))
     assert report.ok, report.lines()
+
+
+def test_an_encoder_resolution_other_than_the_profiles_is_a_refusing_mismatch(
+        node: tuple[str, canopen.LocalNode]) -> None:
+    """The drive states 4096 increments per revolution, the profile 2^20: every position
+    and velocity would be 256 times too small."""
+    channel, local = node
+    local.sdo[0x608F][1].raw = 4096
+    report = check(channel, profile())
+    assert "0x608F (position encoder resolution) = 4096 encoder increments / 1 motor revolutions" in \
+        report.nodes[0].summary
+    assert texts(report) == [
+        "node 5's 0x608F (position encoder resolution) = 4096 encoder increments / 1 motor revolutions = 4096 is "
+        "not the profile's cia402.position_per_rev 1048576: every position and velocity would be off by a factor "
+        "0.00390625; set cia402.position_per_rev: 4096 (or fix the drive)"]
+    assert report.refuses
+    # the gear the same way: 0x6091 = 26 / 1 against the profile's 1
+    local.sdo[0x608F][1].raw = 1 << 20
+    local.sdo[0x6091][1].raw = 26
+    assert texts(check(channel, profile())) == [
+        "node 5's 0x6091 (gear ratio) = 26 motor revolutions / 1 shaft revolutions = 26 is not the profile's "
+        "cia402.gear_ratio 1: every position and velocity would be off by a factor 26; set cia402.gear_ratio: 26 "
+        "(or fix the drive)"]
+    assert check(channel, profile(gear_ratio=26)).ok
+
+
+def test_an_encoder_resolution_the_node_lacks_is_a_note(node: tuple[str, canopen.LocalNode]) -> None:
+    """The EDS lists 0x608F, the drive aborts its read (object does not exist): not checked,
+    not refused."""
+    channel, local = node
+
+    def absent(index: int, subindex: int, od: Any) -> None:
+        if index == 0x608F:
+            raise canopen.SdoAbortedError(0x06020000)
+
+    local.add_read_callback(absent)
+    local.sdo[0x1017].raw = 100            # (no heartbeat note: only the encoder's)
+    report = check(channel, profile())
+    assert report.ok, report.lines()
+    assert texts(report, Severity.NOTE) == [
+        "node 5 aborted the SDO upload of 0x608F (position encoder resolution): Code 0x06020000, Object does "
+        "not exist: cia402.position_per_rev not checked against the drive"]
+    assert "0x608F" not in report.nodes[0].summary and "0x6091 (gear ratio) = 1 motor" in report.nodes[0].summary
 
 
 def test_no_cst_and_an_enabled_drive_refuse(node: tuple[str, canopen.LocalNode]) -> None:

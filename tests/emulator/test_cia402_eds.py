@@ -65,7 +65,7 @@ def test_defaults_give_a_cia402_servo_with_one_nm_rated_torque(od: canopen.Objec
     assert od[0x1014].default == 0x80 + NODE    # $NODEID resolved by canopen
     assert od[0x6076].default == 1000           # mNm: 1 Nm
     assert od[0x6072].default > 1000            # peak above rated, per mille
-    assert (od[0x608F][1].default, od[0x608F][2].default) == (4096, 1)
+    assert (od[0x608F][1].default, od[0x608F][2].default) == (1 << 20, 1)   # a 20-bit encoder
     assert (od[0x6091][1].default, od[0x6091][2].default) == (1, 1)
 
 

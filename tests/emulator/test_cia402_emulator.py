@@ -86,6 +86,10 @@ def test_boots_with_a_boot_up_frame_and_answers_sdo_in_pre_operational(rig: Lock
     assert rig.sdo(upload(0x1018, 3)) == bytes.fromhex("4318100300000100")
     assert rig.sdo(upload(0x6502)) == bytes.fromhex("4302650080030000")
     assert rig.sdo(upload(0x6076)) == bytes.fromhex("43766000e8030000")   # 1000 mNm
+    # its own units (the rig's profile: 4096 increments per revolution, gear 1:1), not the EDS's 2^20
+    assert rig.sdo(upload(0x608F, 1)) == bytes.fromhex("438f600100100000")
+    assert rig.sdo(upload(0x608F, 2)) == bytes.fromhex("438f600201000000")
+    assert rig.sdo(upload(0x6091, 1)) == bytes.fromhex("4391600101000000")
     assert rig.sdo(upload(0x6041)) == bytes.fromhex("4b41600050020000")   # switch on disabled
     # segmented upload of 0x1008 (29 bytes: "dobhil emulated CiA 402 drive")
     assert rig.sdo(upload(0x1008)) == bytes.fromhex("410810001d000000")
@@ -107,6 +111,7 @@ def test_boots_with_a_boot_up_frame_and_answers_sdo_in_pre_operational(rig: Lock
     (download(0x1600, 1, 0x60760020, 4), 0x06040041),  # rated torque is not PDO-mappable
     (download(0x1600, 1, 0x60400020, 4), 0x06040041),  # controlword mapped with the wrong size
     (download(0x6076, 0, 0, 4), 0x06090032),          # a rated torque of 0
+    (download(0x608F, 1, 1 << 20, 4), 0x06010002),    # its encoder is its profile's: read only
 ])
 def test_sdo_writes_the_drive_refuses_are_aborted_with_cia301_codes(
         rig: Lockstep, request_: bytes, abort: int) -> None:

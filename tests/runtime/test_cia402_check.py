@@ -54,6 +54,9 @@ def test_check_reads_the_emulated_node_in_another_process(tmp_path: Path, hub: i
         assert ("identity vendor 0x00000000 product 0x00000402 revision 0x00010000" in node
                 and "modes 0x00000380 (CST supported); rated torque 1000 mNm = 1 Nm" in node), node
         assert "PDOs RPDO1 32 bits, TPDO1 64 bits, TPDO2 40 bits" in node
+        # the encoder and gear the node states (its 20-bit encoder), as the profile has them: no mismatch
+        assert ("0x608F (position encoder resolution) = 1048576 encoder increments / 1 motor revolutions; "
+                "0x6091 (gear ratio) = 1 motor revolutions / 1 shaft revolutions") in node, node
         assert ("bus budget: 391 bits per cycle (SYNC 55 + RPDO1 95 + TPDO1 135 + TPDO2 105 + heartbeat 65 x 0.01)"
                 " = 39.1 % of 1 Mbit/s at 1 kHz") in lines
         assert lines[-1] == "preflight: ok"
@@ -110,5 +113,7 @@ def test_the_check_changes_nothing_on_the_emulated_node_in_lockstep() -> None:
     (node,) = report.nodes
     assert node.summary.endswith(
         "identity vendor 0x00000000 product 0x00000402 revision 0x00010000 serial 0x00000001; modes 0x00000380 "
-        "(CST supported); rated torque 1000 mNm = 1 Nm; heartbeat 0x1017 = 0 ms; statusword 0x0250 (switch on "
+        "(CST supported); rated torque 1000 mNm = 1 Nm; 0x608F (position encoder resolution) = 1048576 encoder "
+        "increments / 1 motor revolutions; 0x6091 (gear ratio) = 1 motor revolutions / 1 shaft revolutions; "
+        "heartbeat 0x1017 = 0 ms; statusword 0x0250 (switch on "
         "disabled); PDOs RPDO1 32 bits, TPDO1 64 bits, TPDO2 40 bits"), node.summary

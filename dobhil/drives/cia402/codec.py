@@ -25,6 +25,7 @@ import struct
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from enum import IntEnum
+from fractions import Fraction
 from types import MappingProxyType
 
 from dobhil.errors import CodecError
@@ -54,6 +55,8 @@ __all__ = [
     "NmtCommand",
     "NmtState",
     "PowerState",
+    "UNIT_OBJECTS",
+    "UnitObject",
     "UnitScale",
     "VelocityUnit",
     "decode_emcy",
@@ -279,6 +282,50 @@ class UnitScale:
             VelocityUnit.MILLI_RPM: 2.0 * math.pi / 60.0 / 1000.0 / gear_ratio,
         }[VelocityUnit.parse(velocity_unit)]
         return cls(rad_per_inc, per_count)
+
+
+@dataclass(frozen=True)
+class UnitObject:
+    """A CiA 402 ratio object the position and velocity scale depend on: sub 1 per sub 2
+    (both U32), which the profile's ``cia402.<key>`` states as one number."""
+
+    index: int
+    name: str
+    numerator: str      # what sub 1 counts
+    denominator: str    # what sub 2 counts
+    key: str            # the profile's cia402 key that is sub 1 / sub 2
+
+    def stated(self, numerator: int, denominator: int) -> str:
+        """``0x608F (position encoder resolution) = 4096 encoder increments / 1 motor revolutions``"""
+        return (f"0x{self.index:04X} ({self.name}) = {numerator} {self.numerator} / "
+                f"{denominator} {self.denominator}")
+
+    def agrees(self, numerator: int, denominator: int, profile_value: float) -> bool | None:
+        """Whether sub 1 / sub 2 is the profile's number (None: sub 2 is 0, no ratio stated).
+        Both are ratios of integers: only float rounding may differ."""
+        if denominator == 0:
+            return None
+        return math.isclose(numerator / denominator, profile_value, rel_tol=UNIT_RATIO_TOLERANCE)
+
+    @staticmethod
+    def ratio_of(value: float) -> tuple[int, int]:
+        """The (sub 1, sub 2) a node states for the profile's number: the nearest fraction
+        with a U32 denominator (4096 -> (4096, 1), 3.7 -> (37, 10))."""
+        fraction = Fraction(value).limit_denominator(_U32_MAX)
+        return fraction.numerator, fraction.denominator
+
+
+_U32_MAX = 0xFFFF_FFFF
+#: relative difference allowed between sub 1 / sub 2 and the profile's number (float rounding)
+UNIT_RATIO_TOLERANCE = 1e-9
+#: 0x608F position encoder resolution: encoder increments (of 0x6064) per MOTOR revolution
+#: = ``position_per_rev``; 0x6091 gear ratio: motor revolutions per SHAFT (output)
+#: revolution = ``gear_ratio`` (CiA 402 names the subs so)
+UNIT_OBJECTS = (
+    UnitObject(0x608F, "position encoder resolution", "encoder increments", "motor revolutions",
+               "position_per_rev"),
+    UnitObject(0x6091, "gear ratio", "motor revolutions", "shaft revolutions", "gear_ratio"),
+)
 
 
 # -- PDO layouts ----------------------------------------------------------------

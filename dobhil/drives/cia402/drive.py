@@ -4,7 +4,9 @@ Start-up (:meth:`CiA402Drive._prepare`, before any torque), by SDO through
 :mod:`dobhil.drives.cia402.link` (canopen without its notifier thread): NMT
 pre-operational; identity 0x1018; statusword 0x6041 (and error code 0x603F when in
 fault); supported modes 0x6502 (bit 9: CST); rated torque 0x6076 in the profile's unit,
-checked against the profile's ``rated_torque``; the PDO mapping written with canopen's
+checked against the profile's ``rated_torque``; position encoder resolution 0x608F and
+gear ratio 0x6091 (where the EDS has them) checked against ``position_per_rev`` and
+``gear_ratio`` (an abort of their read: a note in :attr:`CiA402Drive.notes`); the PDO mapping written with canopen's
 ``node.rpdo``/``node.tpdo`` (RPDO n: controlword 0x6040 + target torque 0x6071; TPDO n:
 statusword 0x6041 + position 0x6064 + torque actual 0x6077; TPDO n+1: velocity 0x606C +
 mode display 0x6061; all synchronous, transmission type 1); communication cycle period
@@ -224,6 +226,7 @@ class CiA402Drive(Drive):
         self._link = link
         self._fault_reset_sent = False
         self._operational_commanded = False
+        self.notes = []
         with link.session(cancel), self._one_line(link, reached):
             node = link.node
             steps: Sequence[tuple[str, Callable[[Any], None]]] = (
@@ -232,6 +235,7 @@ class CiA402Drive(Drive):
                 ("statusword read", self._read_status),
                 ("supported modes read", self._check_modes),
                 ("rated torque read", self._check_rated_torque),
+                ("encoder resolution and gear read", self._check_units),
                 (f"RPDO{self._rpdo_n} mapped", lambda n: self._map(n.rpdo[self._rpdo_n], codec.RPDO_CST)),
                 (f"TPDO{self._tpdo_n} mapped", lambda n: self._map(n.tpdo[self._tpdo_n], codec.TPDO_STATUS)),
                 (f"TPDO{self._tpdo_n + 1} mapped",
@@ -314,6 +318,35 @@ class CiA402Drive(Drive):
                              f"cia402.rated_torque is {self._rated:g} Nm (more than 1 % apart: "
                              "wrong rated_torque_unit or a different motor?)")
         self._rated = rated  # the node's own value: per mille refers to it exactly
+
+    def _check_units(self, node: Any) -> None:
+        """0x608F (position encoder resolution) and 0x6091 (gear ratio) as the node states
+        them, against the profile's ``position_per_rev`` and ``gear_ratio``, which scale
+        every position and velocity: the hardware is trusted, not the config, so a node
+        that says otherwise is refused. Only where the EDS lists the object; a node that
+        aborts the read (the EDS lists it, this drive has not got it) or states sub 2 = 0
+        is a note: its units cannot be checked here, and nothing is refused for that."""
+        od = node.object_dictionary
+        for obj in codec.UNIT_OBJECTS:
+            if od.get_variable(obj.index, 1) is None or od.get_variable(obj.index, 2) is None:
+                continue
+            expected = float(self.profile.options[obj.key])
+            try:
+                num, den = int(node.sdo[obj.index][1].raw), int(node.sdo[obj.index][2].raw)
+            except canopen.SdoAbortedError as exc:
+                text = canopen.SdoAbortedError.CODES.get(exc.code, "unknown abort code")
+                self.notes.append(f"node {self.node_id}: 0x{obj.index:04X} ({obj.name}) not read, aborted "
+                                  f"0x{exc.code:08X} ({text}): cia402.{obj.key} {expected:.10g} not checked")
+                continue
+            agrees = obj.agrees(num, den, expected)
+            if agrees is None:
+                self.notes.append(f"node {self.node_id}: {obj.stated(num, den)} is no ratio: "
+                                  f"cia402.{obj.key} {expected:.10g} not checked")
+            elif not agrees:
+                stated = num / den
+                raise DriveError(f"{obj.stated(num, den)} = {stated:.10g}, the profile's cia402.{obj.key} is "
+                                 f"{expected:.10g}: every position and velocity would be off by a factor "
+                                 f"{stated / expected:.6g}; set cia402.{obj.key}: {stated:.10g} (or fix the drive)")
 
     def _map(self, pdo: PdoMap, objects: Sequence[Mapped]) -> None:
         """Write one PDO's mapping with canopen (read its COB-ID, clear, add the objects,

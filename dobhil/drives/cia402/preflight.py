@@ -23,6 +23,11 @@ NMT command sent:
   before anything is sent), every mapped object is PDO-mappable in the EDS, and the
   mapping parameters of the profile's RPDO and TPDOs exist on the node (0x1600 + n - 1,
   0x1A00 + n - 1, sub 0);
+- position encoder resolution 0x608F:01/02 and gear ratio 0x6091:01/02 (where the EDS
+  has them), against the profile's ``position_per_rev`` and ``gear_ratio`` (sub 1 / sub 2,
+  :data:`dobhil.drives.cia402.codec.UNIT_OBJECTS`): they scale every position and
+  velocity, so a difference refuses the run (the drive's start-up would refuse it too);
+  an aborted read is a note (the drive lacks the object: its units are not checked);
 - producer heartbeat time 0x1017 against the profile's ``heartbeat_period`` (the drive's
   start-up writes it: a difference is a note; the period is measured while listening);
 - statusword 0x6041: a drive already in Operation enabled may be driven by another
@@ -50,7 +55,8 @@ from canopen.sdo import SdoAbortedError, SdoCommunicationError
 from dobhil.drives.bus_load import CycleFrame
 from dobhil.drives.cia402.codec import (CST_SUPPORTED_BIT, HOST_HEARTBEATS_PER_CONSUMER_TIME,
                                         RATED_TORQUE_TOLERANCE, RATED_TORQUE_UNITS, RPDO_CST, TPDO_MOTION,
-                                        TPDO_STATUS, Cob, Mapped, NmtState, PowerState, layout_bits, power_state)
+                                        TPDO_STATUS, UNIT_OBJECTS, Cob, Mapped, NmtState, PowerState, UnitObject,
+                                        layout_bits, power_state)
 from dobhil.drives.cia402.eds import STANDARD_LAYOUTS, load_od
 from dobhil.drives.cia402.link import CanopenLink
 from dobhil.drives.preflight import (Capture, Finding, NodeReport, Observation, PreflightProbe, Setting,
@@ -59,7 +65,7 @@ from dobhil.drives.profile import DriveProfile
 from dobhil.drives.waits import Cancel
 from dobhil.errors import WaitCancelled
 
-__all__ = ["READS", "CiA402Preflight", "SdoRead"]
+__all__ = ["READS", "UNIT_READS", "CiA402Preflight", "SdoRead"]
 
 _TPDO_COBS = frozenset({Cob.TPDO1, Cob.TPDO2, Cob.TPDO3, Cob.TPDO4})
 
@@ -90,6 +96,10 @@ STATUSWORD = SdoRead(0x6041, 0, "statusword", 2)
 READS = (VENDOR, PRODUCT, REVISION, SERIAL, MODES, RATED_TORQUE, HEARTBEAT, STATUSWORD)
 #: objects without which dobhil cannot run the drive: an abort of their read refuses the run
 _NEEDED = frozenset({MODES, RATED_TORQUE})
+#: 0x608F and 0x6091, sub 1 and sub 2 each (read where the EDS lists them)
+UNIT_READS: tuple[tuple[UnitObject, SdoRead, SdoRead], ...] = tuple(
+    (obj, SdoRead(obj.index, 1, f"{obj.name}: {obj.numerator}"),
+     SdoRead(obj.index, 2, f"{obj.name}: {obj.denominator}")) for obj in UNIT_OBJECTS)
 
 
 class _Unanswered(Exception):
@@ -187,6 +197,8 @@ class CiA402Preflight(PreflightProbe):
         try:
             with link.session(cancel):
                 unanswered = self._read_all(link.node, cap)
+                if not unanswered:
+                    self._read_units(link.node, od, cap)
         except WaitCancelled:
             return cap   # the caller stops (SIGINT): what was heard so far is all there is
         except Exception as exc:  # the bus refused a request (gone, queue full): nothing more to ask
@@ -224,6 +236,20 @@ class CiA402Preflight(PreflightProbe):
         except _Unanswered as exc:
             return str(exc)
         return ""
+
+    def _read_units(self, node: canopen.RemoteNode, od: ObjectDictionary, cap: Capture) -> None:
+        """0x608F and 0x6091 where the EDS lists them; an abort is a note (not checked)."""
+        for obj, num, den in UNIT_READS:
+            if od.get_variable(num.index, num.subindex) is None or od.get_variable(den.index, den.subindex) is None:
+                continue
+            try:
+                self.values[num] = self._upload(node, num)
+                self.values[den] = self._upload(node, den)
+            except SdoAbortedError as exc:
+                self.values.pop(num, None)
+                cap.findings.append(Finding(
+                    Severity.NOTE, f"node {node.id} aborted the SDO upload of 0x{obj.index:04X} ({obj.name}): "
+                                   f"{exc}: cia402.{obj.key} not checked against the drive"))
 
     def _upload(self, node: canopen.RemoteNode, read: SdoRead) -> int:
         try:
@@ -268,6 +294,9 @@ class CiA402Preflight(PreflightProbe):
         if RATED_TORQUE in v:
             unit = self._unit()
             words.append(f"rated torque {v[RATED_TORQUE]} {unit} = {v[RATED_TORQUE] * RATED_TORQUE_UNITS[unit]:.6g} Nm")
+        for obj, num, den in UNIT_READS:
+            if num in v and den in v:
+                words.append(f"{obj.stated(v[num], v[den])}")
         if HEARTBEAT in v:
             words.append(f"heartbeat 0x1017 = {v[HEARTBEAT]} ms")
         if STATUSWORD in v:
@@ -287,6 +316,7 @@ class CiA402Preflight(PreflightProbe):
                                refuses_run=True))
         if RATED_TORQUE in v:
             out += self._rated_torque_findings(node.node, v[RATED_TORQUE])
+        out += self._unit_findings(node.node)
         expected = self.profile.heartbeat_period
         if HEARTBEAT in v and expected and abs(v[HEARTBEAT] - expected * 1e3) >= 0.5:
             now = "off" if v[HEARTBEAT] == 0 else f"{v[HEARTBEAT]} ms"
@@ -319,6 +349,25 @@ class CiA402Preflight(PreflightProbe):
                         f"{measured / float(expected):.4g}; set cia402.rated_torque: {measured:.6g} (or, if 0x6076 "
                         f"is in {other} on this drive, cia402.rated_torque_unit: {other} = "
                         f"{raw * RATED_TORQUE_UNITS[other]:.6g} Nm)", refuses_run=True)]
+
+    def _unit_findings(self, node: int) -> list[Finding]:
+        """The drive's 0x608F / 0x6091 against the profile's position_per_rev / gear_ratio."""
+        out: list[Finding] = []
+        for obj, num, den in UNIT_READS:
+            if num not in self.values or den not in self.values or obj.key not in self.options:
+                continue
+            n, d, expected = self.values[num], self.values[den], float(self.options[obj.key])
+            agrees = obj.agrees(n, d, expected)
+            if agrees is None:
+                out.append(Finding(Severity.NOTE, f"node {node}'s {obj.stated(n, d)} is no ratio: "
+                                                  f"cia402.{obj.key} not checked against the drive"))
+            elif not agrees:
+                out.append(Finding(Severity.MISMATCH,
+                                   f"node {node}'s {obj.stated(n, d)} = {n / d:.10g} is not the profile's "
+                                   f"cia402.{obj.key} {expected:.10g}: every position and velocity would be off "
+                                   f"by a factor {n / d / expected:.6g}; set cia402.{obj.key}: {n / d:.10g} "
+                                   "(or fix the drive)", refuses_run=True))
+        return out
 
     def _mappable_findings(self, od: ObjectDictionary) -> list[Finding]:
         """Every object SPEC-17 maps is PDO-mappable in the EDS (else the node aborts the
