@@ -475,7 +475,9 @@ def test_fault_the_protocols_way_is_a_drive_fault(tmp_path: Path, protocol: Prot
                                                   timing: str) -> None:
     out = run(suite_config(tmp_path, protocol, timing), protocol, timing, armed=protocol.fault())
     assert_stopped_safely(out, protocol, StopReason.DRIVE_FAULT, protocol.fault_words)
-    assert out.result.stop.cycle > AT and out.result.stop.time < 0.4
+    # before the run's 400 cycles were up, counted on the drive's clock (the host's may
+    # lag behind it on a busy machine)
+    assert AT < out.result.stop.cycle < 400
 
 
 def test_unconfirmed_safe_stop_says_so_loudly(tmp_path: Path, protocol: Protocol,
