@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Callable
 
 import numpy as np
 import pytest
@@ -79,7 +80,7 @@ def _reference(plant: Plant, u: float, t_end: float, *, coulomb: bool) -> object
     j, b, k, d = plant.inertia, plant.viscous_friction, plant.stiffness, plant.damping
     fc, qc = plant.coulomb_friction, plant.contact_position
 
-    def rhs(contact: bool):  # noqa: ANN202
+    def rhs(contact: bool) -> Callable[[float, np.ndarray], list[float]]:
         def f(t: float, x: np.ndarray) -> list[float]:
             tau = u - (math.copysign(fc, x[1]) if coulomb else 0.0) - b * x[1]
             if contact:
@@ -128,7 +129,7 @@ def test_exact_when_linear_free_motion_matches_solve_ivp() -> None:
     plant = Plant.from_config(config)
     ref = solve_ivp(lambda t, x: [x[1], (1.5 - 0.2 * x[1]) / 0.25], (0.0, 0.2), [-1.0, 0.0],
                     rtol=1e-12, atol=1e-14, dense_output=True)
-    for k in range(1, 201):
+    for _ in range(200):
         plant.step(1.5, DT)
     np.testing.assert_allclose([plant.true_position, plant.true_velocity], ref.sol(0.2),
                                rtol=1e-9)

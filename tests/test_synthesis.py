@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from typing import Any
+
 import numpy as np
 import pytest
 import scipy.integrate
@@ -131,14 +134,18 @@ def test_observer_filters_of_every_disturbance_model() -> None:
         cfg = load_config(None, common + [f"design.disturbance_model={model}"])
         lp = loop(params_from_config(cfg), sampled=False, force_gain=0.0)
         a, b, c, d = lp.siso("tau_du", "tau_dis_hat")
-        sys = control.ss(a, b, c, d)
-        q = lambda s: complex(sys(s))  # noqa: E731
+        q = _frequency_response(control.ss(a, b, c, d))
         if model in expect:
             for w in (1.0, 100.0, 1000.0):
                 assert q(1j * w) == pytest.approx(expect[model](1j * w), rel=1e-7)
         else:
             assert q(1j * w0) == pytest.approx(1.0, rel=1e-7)
             assert q(1e-9j) == pytest.approx(1.0, rel=1e-6)
+
+
+def _frequency_response(sys: Any) -> Callable[[complex], complex]:
+    """``s -> sys(s)`` bound to this system (a lambda in the loop would see the last one)."""
+    return lambda s: complex(sys(s))
 
 
 @pytest.mark.parametrize("model", ["constant", "ramp", "sinusoid"])

@@ -278,20 +278,7 @@ class PipeBus(can.BusABC):
         if held is not None:
             self._copy(msg)
             return
-        end = time.monotonic() + (self._send_wait if timeout is None else timeout)
-        while True:
-            try:
-                self._sock.send(record)
-                break
-            except BlockingIOError:
-                # the peer is not reading (stopped, or starved): never wait longer than asked
-                remaining = end - time.monotonic()
-                if remaining <= 0:
-                    raise can.CanOperationError("pipe bus: the receiving end is not reading "
-                                                "(its buffer is full)") from None
-                select.select([], [self._sock], [], remaining)
-            except OSError as exc:
-                raise can.CanOperationError(f"{self._gone()} ({exc.strerror or exc})") from exc
+        self.send_record(record, timeout)
         if self._own is not None:
             own = can.Message(timestamp=time.time(), arbitration_id=msg.arbitration_id,
                               is_extended_id=msg.is_extended_id, is_remote_frame=msg.is_remote_frame,
@@ -362,15 +349,16 @@ class PipeBus(can.BusABC):
                 raise can.CanOperationError(self._gone())
             return record
 
-    def send_record(self, record: bytes) -> None:
-        """A record other than a frame (a periodic task's) to the peer, waiting for room as
-        :meth:`send` does; CanOperationError when it cannot go."""
-        end = time.monotonic() + self._send_wait
+    def send_record(self, record: bytes, timeout: float | None = None) -> None:
+        """A record to the peer (a frame's, or a periodic task's), waiting at most
+        ``timeout`` s for room (None: ``send_wait``); CanOperationError when it cannot go."""
+        end = time.monotonic() + (self._send_wait if timeout is None else timeout)
         while True:
             try:
                 self._sock.send(record)
                 return
             except BlockingIOError:
+                # the peer is not reading (stopped, or starved): never wait longer than asked
                 remaining = end - time.monotonic()
                 if remaining <= 0:
                     raise can.CanOperationError("pipe bus: the receiving end is not reading "

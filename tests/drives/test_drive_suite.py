@@ -475,7 +475,9 @@ def test_fault_the_protocols_way_is_a_drive_fault(tmp_path: Path, protocol: Prot
                                                   timing: str) -> None:
     out = run(suite_config(tmp_path, protocol, timing), protocol, timing, armed=protocol.fault())
     assert_stopped_safely(out, protocol, StopReason.DRIVE_FAULT, protocol.fault_words)
-    assert out.result.stop.cycle > AT and out.result.stop.time < 0.4
+    # before the run's 400 cycles were up, counted on the drive's clock (the host's may
+    # lag behind it on a busy machine)
+    assert AT < out.result.stop.cycle < 400
 
 
 def test_unconfirmed_safe_stop_says_so_loudly(tmp_path: Path, protocol: Protocol,
@@ -497,8 +499,9 @@ def test_closed_loop_reaches_the_force_reference(tmp_path: Path, protocol: Proto
                                                  timing: str) -> None:
     """Demo loop (contact from 5 mrad away at 0.2 N m, then a step to 1 N m at 0.6 s):
     the TRUE interaction torque settles on the reference, the estimate agrees. The bound
-    comes from the run: the spread of its own last 100 ms plus half the protocol's torque
-    quantum (the loop's steady state does not depend on timing, so real time and
+    comes from the run: the spread of its own last 100 ms (or of its last 10 cycles that
+    ran, when a host the machine did not schedule skipped those 100 ms) plus half the
+    protocol's torque quantum (the loop's steady state does not depend on timing, so real time and
     lockstep share it; a real-time run on a busy machine skips cycles, never the
     equilibrium)."""
     config = suite_config(tmp_path, protocol, timing, "loop.duration=1.0", step=False)

@@ -216,4 +216,5 @@ def test_a_client_cannot_publish_call_services_or_change_anything() -> None:
     words = " ".join(t["message"] for t in refusals)
     for capability in ("clientPublish", "parameters", "parametersSubscribe", "services", "assets"):
         assert f"support {capability}" in words, words
-    assert not [t for t in client.texts if t.get("op") in ("parameterValues", "serviceCallResponse", "fetchAssetResponse")]
+    answers = ("parameterValues", "serviceCallResponse", "fetchAssetResponse")
+    assert not [t for t in client.texts if t.get("op") in answers]

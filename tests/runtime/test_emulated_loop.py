@@ -55,7 +55,8 @@ def test_true_interaction_torque_reaches_reference(tmp_path: Path, timing: str,
     tr = result.trace
     tail_true = finite_tail(tr["tau_int_true"], tr["t"], 0.1)
     tail_hat = finite_tail(tr["tau_int_hat"], tr["t"], 0.1)
-    assert tail_true.size >= 10   # cycles run in the last 100 ms (overruns skip some)
+    # the last 100 ms, or the last 10 cycles that ran when the host was starved in them
+    assert tail_true.size >= 10
     assert tr["tau_ref"][-1] == 1.0
     tol = 1e-3 if timing == "lockstep" else 0.03
     assert abs(float(np.mean(tail_true)) - 1.0) < tol

@@ -29,6 +29,19 @@ def test_trace_keeps_every_cycle_of_a_short_run() -> None:
     assert trace.stride == 1 and trace["t"].tolist() == list(range(10))
 
 
+def test_finite_tail_is_made_of_cycles_that_ran() -> None:
+    """The tests' steady-state tail: the last 100 ms of a 1 kHz trace; when the host was
+    not scheduled for those 100 ms (NaN rows, one cycle at the end), its last 10 cycles
+    that ran instead of the one the window holds."""
+    t = np.arange(1000) * 1e-3
+    values = 1.0 + t
+    assert finite_tail(values, t, 0.1).tolist() == values[-101:].tolist()
+    starved = np.where((t > 0.85) & (t < 0.999), np.nan, values)
+    t_run = np.where(np.isnan(starved), np.nan, t)
+    tail = finite_tail(starved, t_run, 0.1)
+    assert tail.tolist() == [*values[842:851].tolist(), values[-1]]
+
+
 def test_trace_decimates_a_long_run_and_keeps_the_newest() -> None:
     """1000 cycles into 16 rows: stride 64, rows spread over the whole run, the newest
     cycle still readable."""

@@ -158,7 +158,7 @@ def test_lost_heartbeat_is_a_drive_fault(tmp_path: Path, timing: str) -> None:
     out = run_case(safety_config(tmp_path, timing), timing, StopReason.DRIVE_FAULT,
                    words=["no heartbeat from node"], faults=[SilenceAfter(frames=1, ids={heartbeat})],
                    confirmed=False)
-    assert out.stop.time < 0.4
+    assert out.stop.cycle < 400   # before the run was up (the drive's count, not the host's clock)
     assert out.result is not None and out.result.safe_stop is not None
     assert out.result.safe_stop.warning() == ("drive may still be enabled: node 3 did not "
                                               "acknowledge IDLE (no status frame within 0.3 s); "
