@@ -218,3 +218,16 @@ def test_an_interpolation_period_without_a_whole_value_is_refused() -> None:
 
 def test_the_fault_bit() -> None:
     assert codec.is_fault(0x0218) and codec.is_fault(0x021F) and not codec.is_fault(0x1237)
+
+
+def test_data_types_and_their_formats_are_canopens() -> None:
+    """The pure codec's data type table agrees with canopen's object dictionary: the same
+    CiA 301 indices, and each one's struct character is the one canopen packs it with."""
+    from canopen.objectdictionary import ODVariable, datatypes
+    for member in codec.DataType:
+        assert member.value == getattr(datatypes, member.name), member.name
+    for data_type, char in codec.DATA_TYPE_FORMATS.items():
+        theirs, ours = ODVariable.STRUCT_TYPES[data_type], struct.Struct("<" + char)
+        assert ours.size == theirs.size, codec.DataType(data_type).name
+        for raw in (bytes(range(0x81, 0x81 + ours.size)), bytes(range(1, 1 + ours.size))):
+            assert ours.unpack(raw) == theirs.unpack(raw), codec.DataType(data_type).name
