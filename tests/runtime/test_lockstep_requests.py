@@ -134,7 +134,7 @@ def test_cycles_run_on_simulated_deadlines_with_one_period_of_delay() -> None:
         if at >= t0 - 1e-12:
             replies.setdefault(round((at - t0) / T), data)
     quantum = model.quanta.torque
-    for k, t, now, fb, u in sink.rows:
+    for k, t, now, fb, _u in sink.rows:
         assert t == pytest.approx(k * T, abs=1e-12) and now - t0 == pytest.approx(k * T, abs=1e-9)
         if k == 0:
             continue
