@@ -1,0 +1,1 @@
+"""MIT-mode actuators (CubeMars/T-Motor AK, Damiao, Mini-Cheetah firmware): codec, model table, drive."""
