@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import struct
 import time
+from pathlib import Path
 from typing import Any
 
 import can
@@ -18,7 +19,7 @@ from dobhil.drives.registry import preflight_probe
 from dobhil.errors import ConfigError, DriveTimeoutError
 
 from tests.drives.mit_fake import ZERO, ZERO_TORQUE, FakeMotor, fake_motor, reply_cubemars, reply_damiao
-from tests.drives.test_mit_drive import NODE, decode, mit_profile
+from tests.drives.test_mit_drive import NODE, decode, mit_profile, saturating_table
 
 WINDOW = 0.15
 
@@ -86,8 +87,9 @@ class DamiaoWithRegisters(FakeMotor):
         return None if value is None else data[:4] + struct.pack("<f", value)
 
 
-def damiao_preflight(registers: dict[int, float | None], state: int = 0, p: int = 0x7FFF) -> PreflightReport:
-    profile = mit_profile("damiao", "DM4310")
+def damiao_preflight(registers: dict[int, float | None], state: int = 0, p: int = 0x7FFF,
+                     **section: Any) -> PreflightReport:
+    profile = mit_profile("damiao", "DM4310", mit=section)
     bus = can.Bus(interface="virtual", channel="mit-damiao-registers")
     motor = DamiaoWithRegisters("mit-damiao-registers", NODE, lambda data: reply_damiao(NODE, state, p=p))
     motor.registers = registers
@@ -117,10 +119,12 @@ def test_a_damiao_that_does_not_answer_register_reads_leaves_them_unchecked() ->
     assert not report.refuses
 
 
-def test_a_damiao_already_in_motor_mode_or_on_its_rail_refuses_the_run() -> None:
+def test_a_damiao_already_in_motor_mode_or_on_its_rail_refuses_the_run(tmp_path: Path) -> None:
     enabled = damiao_preflight({21: 12.5, 22: 30.0, 23: 10.0}, state=1)
     assert any("already in motor mode" in f.text and f.refuses for f in enabled.findings)
-    rail = damiao_preflight({21: 12.5, 22: 30.0, 23: 10.0}, p=0x0000)
+    wraps = damiao_preflight({21: 12.5, 22: 30.0, 23: 10.0}, p=0x0000)
+    assert not wraps.refuses   # a wrapping position has no rail
+    rail = damiao_preflight({21: 12.5, 22: 30.0, 23: 10.0}, p=0x0000, models=saturating_table(tmp_path))
     assert any("end of the encodable range" in f.text and f.refuses for f in rail.findings)
 
 
@@ -128,25 +132,37 @@ def test_a_damiao_already_in_motor_mode_or_on_its_rail_refuses_the_run() -> None
 # Set zero
 
 
-def test_set_zero_sends_zero_waits_its_silence_then_reads_the_new_position() -> None:
-    zeroed: list[float] = []
+class Stamped:
+    """The host's bus, stamping each frame it sends (the host's own clock)."""
 
+    def __init__(self, bus: can.BusABC) -> None:
+        self.bus = bus
+        self.sent: list[tuple[float, bytes]] = []
+
+    def send(self, msg: can.Message, timeout: float | None = None) -> None:
+        self.sent.append((time.monotonic(), bytes(msg.data)))
+        self.bus.send(msg, timeout)
+
+    def recv(self, timeout: float | None = None) -> can.Message | None:
+        return self.bus.recv(timeout)
+
+
+def test_set_zero_sends_zero_waits_its_silence_then_reads_the_new_position() -> None:
     def answer(data: bytes) -> bytes | None:
-        if data == ZERO:
-            zeroed.append(time.monotonic())
-            return None          # silent while it stores the offset
-        return reply_cubemars(NODE, p=0x8001)
+        return None if data == ZERO else reply_cubemars(NODE, p=0x8001)   # silent after zero
 
     profile = mit_profile(mit={"zero_silence": 0.05})
     with fake_motor(NODE, answer) as (bus, motor):
-        result = set_zero(bus, profile, clock=time.monotonic)
-        asked = time.monotonic()
-        frames = motor.frames()
+        host = Stamped(bus)
+        result = set_zero(host, profile, clock=time.monotonic)  # type: ignore[arg-type]
+        frames = motor.wait_for(ZERO_TORQUE)
     assert frames == [ZERO, ZERO_TORQUE]
-    assert result.position == pytest.approx(decode(0x8001, 12.5, 16))
+    assert [data for _, data in host.sent] == [ZERO, ZERO_TORQUE]
+    # the host asked again only after the silence, by its own clock
+    assert host.sent[1][0] - host.sent[0][0] >= 0.05
+    # decoded in single precision, as the firmware does
+    assert result.position == pytest.approx(decode(0x8001, 12.5, 16), abs=2e-6)
     assert "set zero sent; after 0.05 s the position reads" in result.line()
-    # the host waited at least its silence by its own clock before it asked again
-    assert asked - zeroed[0] >= 0.05
 
 
 def test_set_zero_without_a_reply_times_out_in_one_line() -> None:
