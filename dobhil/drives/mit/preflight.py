@@ -113,7 +113,7 @@ class MitPreflight(PreflightProbe):
                 Setting.STATUS_RATE: "nothing (an MIT motor answers each command)"}[which]
 
     def motion_name(self) -> str:
-        return "replies"
+        return "streamed feedback (none in MIT mode)"
 
     def status_name(self) -> str:
         return "replies"
