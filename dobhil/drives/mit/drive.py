@@ -195,7 +195,7 @@ class MitDrive(Drive):
         if reply_node(self._model, data) != self.node_id:
             return _NO_EVENTS   # another motor's reply on the shared master id
         try:
-            reply = unpack_reply(self._model, bytes(data))
+            reply = unpack_reply(self._model, data)
         except CodecError:
             return (self._layout_fault(len(data)),)
         if not self._wraps and reply.raw_position in (0, self._rail):
