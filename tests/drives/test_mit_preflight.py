@@ -176,3 +176,29 @@ def test_check_set_zero_refuses_a_profile_that_is_not_mit(capsys: pytest.Capture
     err = capsys.readouterr().err.strip()
     assert err.count("\n") == 0
     assert "--set-zero: expected a profile of protocol 'mit'" in err and "'odrive'" in err
+
+
+def mit_config(directory: Path, name: str, profile: str) -> Path:
+    """configs/cia402-demo.yaml on an MIT profile (host timing: MIT motors do not stream)."""
+    text = (Path(__file__).resolve().parents[2] / "configs" / "cia402-demo.yaml").read_text(encoding="utf-8")
+    text = text.replace("profile: cia402-emulated", f"profile: {profile}")
+    text = text.replace("loop:\n  period: 0.001\n", "loop:\n  period: 0.001\n  timing: host\n")
+    path = directory / name
+    path.write_text(text, encoding="utf-8")
+    return path
+
+
+@pytest.mark.parametrize("command", ["run", "check"])
+def test_a_motor_whose_ranges_are_not_the_profiles_is_bad_input_before_any_enable(
+        command: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A DM4310 profile on a bus whose (emulated) motor is a DM8009: its registers say
+    VMAX 45, TMAX 54 where the DM4310 row says 30, 10. The preflight reads them before
+    anything is enabled: one line, exit 2."""
+    host = mit_config(tmp_path, "host.yaml", "dm4310")
+    motor = mit_config(tmp_path, "motor.yaml", "dm8009")
+    assert main([command, str(host), "--bus", f"dobhil:{motor}"]) == 2
+    out = capsys.readouterr()
+    err = out.err.strip()
+    assert err.count("\n") == 0, err
+    assert "ranges do not match: node 1's registers say VMAX 45 (table 30), TMAX 54 (table 10)" in err
+    assert "cycles" not in out.out   # no run happened
