@@ -4,6 +4,7 @@ tests/drives/mit_fake.py (literal reply bytes; Damiao register answers as damiao
 
 from __future__ import annotations
 
+import json
 import struct
 import time
 from pathlib import Path
@@ -202,3 +203,14 @@ def test_a_motor_whose_ranges_are_not_the_profiles_is_bad_input_before_any_enabl
     assert err.count("\n") == 0, err
     assert "ranges do not match: node 1's registers say VMAX 45 (table 30), TMAX 54 (table 10)" in err
     assert "cycles" not in out.out   # no run happened
+
+
+def test_check_set_zero_on_an_emulated_ak80_9_prints_the_new_position(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """The emulated motor starts at the plant's -5 mrad; after set zero it reads the code
+    nearest 0 (0x7FFF: -0.19 mrad on an AK80-9, one step below zero)."""
+    config = mit_config(tmp_path, "mit.yaml", "ak80-9")
+    assert main(["check", str(config), "--bus", f"dobhil:{config}", "--set-zero", "--json"]) == 0
+    said = json.loads(capsys.readouterr().out)
+    assert said["node_id"] == 1 and said["zero_silence"] == 1.0
+    assert said["position"] == pytest.approx(decode(0x7FFF, 12.5, 16), abs=2e-6)
