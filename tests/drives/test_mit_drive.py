@@ -284,3 +284,44 @@ def test_bad_profiles_are_one_line(changes: dict[str, Any], words: str) -> None:
 def test_a_damiao_node_id_must_fit_its_nibble() -> None:
     with pytest.raises(ConfigError, match="node_id: expected an integer from 1 to 15"):
         mit_profile("damiao", "DM4310", node=16)
+
+
+# ---------------------------------------------------------------------------
+# Every shipped MIT profile: the drive follows the codec's wrapping replies
+
+
+def shipped_mit_profiles() -> list[str]:
+    drivers = Path(__file__).resolve().parents[2] / "drivers"
+    names = []
+    for path in sorted(drivers.glob("*.yaml")):
+        data = yaml.safe_load(path.read_text(encoding="utf-8"))
+        if isinstance(data, dict) and data.get("protocol") == "mit":
+            names.append(path.stem)
+    return names
+
+
+@pytest.mark.parametrize("name", shipped_mit_profiles())
+def test_the_unwrapped_position_follows_a_motor_turning_many_times(name: str) -> None:
+    """The motor's side packs each reply with the codec (``pack_reply``: the 16-bit
+    position rolls over past +-p_max, as the firmware's does); the drive's continuous
+    position stays within one step of the true angle over several wraps, both ways."""
+    from dobhil.drives.mit.codec import pack_reply
+    from dobhil.drives.profile import load_profile
+    profile = load_profile(name)
+    drive = MitDrive(None, profile)  # type: ignore[arg-type]
+    model = drive.model
+    if model.position_at_limit != "wrap":
+        pytest.skip(f"{name}: its position saturates")
+    node = profile.node_id
+    reply_id = int(profile.options["reply_id"])
+    step = 0.4 * model.p_max        # less than half a wrap between two replies
+    turns = 3 * model.wrap_period   # three wraps out, then back past the start
+    angles = [k * step for k in range(int(turns / step))]
+    angles += [angles[-1] - k * step for k in range(1, 2 * len(angles))]
+    worst = 0.0
+    for q in angles:
+        data = pack_reply(model, node, q, 0.0, 0.0)
+        assert drive.apply(can.Message(arbitration_id=reply_id, data=data, is_extended_id=False))
+        assert drive.feedback is not None
+        worst = max(worst, abs(drive.feedback.position - q))
+    assert worst <= model.quanta.position
