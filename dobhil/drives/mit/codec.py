@@ -604,6 +604,8 @@ def unpack_reply(model: MitModel, data: bytes | bytearray | memoryview) -> Reply
 
 def _byte(value: float, what: str) -> int:
     """A reply's extra byte: rounded, clamped to 0..255 (a temperature below 0 degC reads 0)."""
+    if isinstance(value, int) and not isinstance(value, bool) and 0 <= value <= 0xFF:  # a raw byte
+        return value
     return min(max(round(_finite(float(value), what)), 0), 0xFF)
 
 
@@ -635,15 +637,19 @@ def pack_reply(model: MitModel, motor_id: int, position: float, velocity: float,
         out[0] = (nibble << 4) | motor_id
     else:
         out[0] = motor_id
-    values: dict[str, float] = dict(extra or {})
-    unknown = set(values) - set(layout.extra)
-    if unknown:
-        raise CodecError(f"{model.name}: extra {sorted(unknown)}: not in the {layout.name} layout "
-                         f"(has {sorted(layout.extra) or 'none'})")
+    if not layout.extra:
+        if extra:
+            raise CodecError(f"{model.name}: extra {sorted(extra)}: not in the {layout.name} layout (has none)")
+        return bytes(out)
+    values: dict[str, float] = dict(extra) if extra else {}
     if "error" in layout.extra:
         values.setdefault("error", error)
     if layout.temperature:
         values.setdefault(layout.temperature, temperature)
     for key, value in values.items():
-        out[layout.extra[key]] = _byte(value, key)
+        index = layout.extra.get(key)
+        if index is None:
+            raise CodecError(f"{model.name}: extra {key!r}: not in the {layout.name} layout "
+                             f"(has {', '.join(sorted(layout.extra))})")
+        out[index] = _byte(value, key)
     return bytes(out)
