@@ -317,9 +317,11 @@ class ReplyLayout:
     lengths: tuple[int, ...]
     id_field: str = "byte0"
     state_field: str = ""
-    extra: Mapping[str, int] = field(default_factory=lambda: MappingProxyType({}))
-    errors: Mapping[int, str] = field(default_factory=lambda: MappingProxyType({}))
-    states: Mapping[int, str] = field(default_factory=lambda: MappingProxyType({}))
+    # the mappings are compared but not hashed (a read-only mapping has no hash; the
+    # name and lengths tell layouts apart), so a MitModel can key a dict or a cache
+    extra: Mapping[str, int] = field(default_factory=lambda: MappingProxyType({}), hash=False)
+    errors: Mapping[int, str] = field(default_factory=lambda: MappingProxyType({}), hash=False)
+    states: Mapping[int, str] = field(default_factory=lambda: MappingProxyType({}), hash=False)
     temperature: str = ""
     first_error_state: int = 8
 
@@ -567,7 +569,7 @@ class Reply:
     state: int
     error_text: str  # "" when error is 0 or -1
     temperature: float  # [degC] CubeMars byte 6, Damiao rotor (byte 7); NaN when none
-    extra: Mapping[str, int]  # every extra byte by name (bus_voltage, mos_temperature, ...)
+    extra: Mapping[str, int] = field(hash=False)  # every extra byte by name (bus_voltage, mos_temperature, ...)
 
 
 _NO_EXTRA: Final[Mapping[str, int]] = MappingProxyType({})
