@@ -16,11 +16,14 @@ it is the emulator's own choice:
   the frame (a Damiao confirms its enable with state 1 in the reply to it). The firmware
   replies from its receive interrupt; here the frame is applied ``latency`` after it was
   received (lockstep: 0, the same simulated instant). Other frames are not answered: a
-  wrong length, RTR, extended ids (counted in ``frames_rejected``), other ids (Damiao's
-  position-velocity 0x100+id and velocity 0x200+id modes are not emulated);
+  wrong length (counted in ``frames_rejected``), RTR and extended frames, other ids
+  (Damiao's position-velocity 0x100+id and velocity 0x200+id modes are not emulated);
 - **motor mode** (rest / motor): enter 0xFC, exit 0xFD. A command is decoded and kept
-  only in motor mode (the firmware unpacks commands only in MOTOR_MODE); entering does not
-  reuse an old command (kp = kd = t_ff = 0 until the first command); exit zeroes it;
+  only in motor mode (the firmware unpacks commands only in MOTOR_MODE). A CubeMars motor
+  remembers the last command across exit and enter and applies it again at the next
+  enter (users' "initial kick": canmotorlib's enable/disable comments, the table's AK80-9
+  note) -- why a safe stop sends zero torque before the exit; the other vendors start
+  from kp = kd = t_ff = 0 at each enter (exit zeroes the command);
 - **torque law** ``kp (p - q) + kd (v - dq) + t_ff``, clamped to +-``t_max``, applied
   only in motor mode; ``q``, ``dq`` are the plant's measured position (from the zero
   set last) and velocity at the start of each plant step (the firmware evaluates it at
@@ -168,6 +171,8 @@ class EmulatedMit(EmulatedDrive):
         self._layout = self.model.layout
         self._codes = Fault.codes(self._layout)
         self._specials = frozenset(self.model.special)
+        #: the last command survives exit and enter (CubeMars; see the module docstring)
+        self.remembers_command = self.model.vendor == "cubemars"
         self.motor_mode = False
         self.command = _ZERO_COMMAND
         self.fault = ""            # the latched fault (a Fault name), "" none
@@ -280,13 +285,15 @@ class EmulatedMit(EmulatedDrive):
         if self.fault:
             return            # refused: the reply still carries the fault
         if not self.motor_mode:
-            self.command = _ZERO_COMMAND
+            if not self.remembers_command:
+                self.command = _ZERO_COMMAND
             self.watchdog_tripped = False
         self.motor_mode = True
 
     def _leave(self) -> None:
         self.motor_mode = False
-        self.command = _ZERO_COMMAND
+        if not self.remembers_command:
+            self.command = _ZERO_COMMAND
 
     def _reply(self, torque: float) -> None:
         model = self.model

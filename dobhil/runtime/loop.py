@@ -571,9 +571,11 @@ class ForceLoop:
         while k < n:
             deadline = t0 + k * period
             while clock() < deadline - tolerance:
+                # returns early with the reply (read as soon as the command was applied),
+                # then waits out the period; a wait reads what came at its very end too,
+                # and poll drains what is queued behind a frame: nothing is left unread
                 drive.poll(deadline - clock())
             start = time.perf_counter()
-            drive.poll(0.0)   # anything that came at the deadline itself
             fb = drive.feedback or first
             now = clock()
             if fb.seq != last_seq:

@@ -87,6 +87,31 @@ def test_a_pure_torque_command_is_applied_in_motor_mode_only(ak: Lockstep) -> No
     assert ak.emu.applied_torque == 0.0 and ak.emu.axis_state == 0
 
 
+def test_a_cubemars_motor_applies_its_last_command_again_at_the_next_enter(ak: Lockstep) -> None:
+    """The users' "initial kick" (canmotorlib's enable/disable comments): the command
+    survives exit and enter on a CubeMars; a Damiao starts from zero."""
+    ak.ask(ENTER)
+    ak.ask(AK_ONE_NM)
+    ak.ask(EXIT)
+    assert ak.emu.applied_torque == 0.0
+    ak.read(0.01)
+    ak.ask(ENTER)
+    assert ak.emu.applied_torque == AK_ONE_NM_DECODED
+    ak.ask(AK_ZERO_TORQUE)                  # what a safe stop sends before the exit
+    ak.ask(EXIT)
+    ak.ask(ENTER)
+    assert ak.emu.applied_torque == AK_ZERO_DECODED
+
+
+def test_a_damiao_motor_starts_from_zero_at_each_enter(dm: Lockstep) -> None:
+    dm.ask(ENTER)
+    dm.ask(AK_ONE_NM)
+    assert dm.emu.applied_torque != 0.0
+    dm.ask(EXIT)
+    dm.ask(ENTER)
+    assert dm.emu.applied_torque == 0.0
+
+
 def test_zero_torque_is_the_codes_bias(ak: Lockstep) -> None:
     ak.ask(ENTER)
     ak.ask(AK_ZERO_TORQUE)
