@@ -12,6 +12,8 @@ from collections.abc import Iterator
 
 import numpy as np
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 from dobhil.drives.mit.codec import unpack_reply
 from dobhil.emulator.mit import EmulatedMit, Fault, Thermal
@@ -300,3 +302,38 @@ def test_a_stiff_command_within_range_holds_the_clamped_torque() -> None:
 def test_every_emulated_class_is_found_by_the_registry() -> None:
     from dobhil.emulator.registry import emulator_class
     assert emulator_class("mit") is EmulatedMit
+
+
+# -- any frame -------------------------------------------------------------------------
+
+_FRAMES = st.lists(st.tuples(st.sampled_from([1, 1, 1, 2, 0, 0x7FF, 0x101]), st.binary(min_size=0, max_size=8),
+                             st.booleans()), min_size=1, max_size=30)
+
+
+@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(frames=_FRAMES, row=st.sampled_from([AK80_9, DAMIAO, MINI_CHEETAH]))
+def test_any_frame_is_answered_once_or_not_at_all_and_never_breaks_it(
+        frames: list[tuple[int, bytes, bool]], row: tuple[str, str, str]) -> None:
+    """Whatever arrives (ids, lengths, bytes; a set zero among them makes it silent): no
+    frame raises inside the emulator, an 8-byte data frame to the node gets exactly one
+    reply of the layout's length unless the motor is silent, nothing else gets one (a
+    Damiao's register read on 0x7FF aside), and the torque stays within +-t_max."""
+    rig = Lockstep(row, thermal=FAST)
+    try:
+        model = rig.emu.model
+        for can_id, data, step in frames:
+            silent = rig.emu.time < rig.emu.silent_until - 1e-9
+            rig.send(data, can_id)
+            replies = rig.read()
+            to_node = can_id == rig.node and len(data) == 8 and not silent
+            register = can_id == 0x7FF and bool(model.layout.state_field)
+            if to_node:
+                assert len(replies) == 1 and len(replies[0][2]) == model.layout.length
+            elif not register:
+                assert replies == []
+            assert abs(rig.emu.applied_torque) <= model.t_max
+            if step:
+                rig.read(0.001)
+        assert rig.emu.frame_errors == 0, rig.emu.last_frame_error
+    finally:
+        rig.close()
