@@ -471,7 +471,8 @@ class ForceLoop:
             self._t0 = self.clock()
             if self.settings.timing is Timing.HOST:
                 self._run_host()
-            elif not self.drive.feedback_streams:   # lockstep, a drive that answers requests
+            elif self.settings.timing is Timing.LOCKSTEP and not self.drive.feedback_streams:
+                # lockstep on a drive that only answers requests (an MIT motor)
                 self._run_lockstep_requests(first)
             else:
                 self._run_feedback(first, self.settings.timing is Timing.FEEDBACK)

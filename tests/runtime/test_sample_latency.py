@@ -33,6 +33,7 @@ class _SamplingDrive:
 
     node_id = 1
     notes: tuple[str, ...] = ()   # start-up notes (Drive.notes): none
+    feedback_streams = True       # Drive.feedback_streams: a frame every period (lockstep reads it)
 
     def __init__(self) -> None:
         self.seq = 0
