@@ -317,9 +317,11 @@ class ReplyLayout:
     lengths: tuple[int, ...]
     id_field: str = "byte0"
     state_field: str = ""
-    extra: Mapping[str, int] = field(default_factory=lambda: MappingProxyType({}))
-    errors: Mapping[int, str] = field(default_factory=lambda: MappingProxyType({}))
-    states: Mapping[int, str] = field(default_factory=lambda: MappingProxyType({}))
+    # the mappings are compared but not hashed (a read-only mapping has no hash; the
+    # name and lengths tell layouts apart), so a MitModel can key a dict or a cache
+    extra: Mapping[str, int] = field(default_factory=lambda: MappingProxyType({}), hash=False)
+    errors: Mapping[int, str] = field(default_factory=lambda: MappingProxyType({}), hash=False)
+    states: Mapping[int, str] = field(default_factory=lambda: MappingProxyType({}), hash=False)
     temperature: str = ""
     first_error_state: int = 8
 
@@ -567,7 +569,7 @@ class Reply:
     state: int
     error_text: str  # "" when error is 0 or -1
     temperature: float  # [degC] CubeMars byte 6, Damiao rotor (byte 7); NaN when none
-    extra: Mapping[str, int]  # every extra byte by name (bus_voltage, mos_temperature, ...)
+    extra: Mapping[str, int] = field(hash=False)  # every extra byte by name (bus_voltage, mos_temperature, ...)
 
 
 _NO_EXTRA: Final[Mapping[str, int]] = MappingProxyType({})
@@ -604,6 +606,8 @@ def unpack_reply(model: MitModel, data: bytes | bytearray | memoryview) -> Reply
 
 def _byte(value: float, what: str) -> int:
     """A reply's extra byte: rounded, clamped to 0..255 (a temperature below 0 degC reads 0)."""
+    if isinstance(value, int) and not isinstance(value, bool) and 0 <= value <= 0xFF:  # a raw byte
+        return value
     return min(max(round(_finite(float(value), what)), 0), 0xFF)
 
 
@@ -635,15 +639,19 @@ def pack_reply(model: MitModel, motor_id: int, position: float, velocity: float,
         out[0] = (nibble << 4) | motor_id
     else:
         out[0] = motor_id
-    values: dict[str, float] = dict(extra or {})
-    unknown = set(values) - set(layout.extra)
-    if unknown:
-        raise CodecError(f"{model.name}: extra {sorted(unknown)}: not in the {layout.name} layout "
-                         f"(has {sorted(layout.extra) or 'none'})")
+    if not layout.extra:
+        if extra:
+            raise CodecError(f"{model.name}: extra {sorted(extra)}: not in the {layout.name} layout (has none)")
+        return bytes(out)
+    values: dict[str, float] = dict(extra) if extra else {}
     if "error" in layout.extra:
         values.setdefault("error", error)
     if layout.temperature:
         values.setdefault(layout.temperature, temperature)
     for key, value in values.items():
-        out[layout.extra[key]] = _byte(value, key)
+        index = layout.extra.get(key)
+        if index is None:
+            raise CodecError(f"{model.name}: extra {key!r}: not in the {layout.name} layout "
+                             f"(has {', '.join(sorted(layout.extra))})")
+        out[index] = _byte(value, key)
     return bytes(out)
