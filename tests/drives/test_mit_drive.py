@@ -14,6 +14,8 @@ from typing import Any
 import can
 import pytest
 import yaml
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from dobhil.drives import DriveState
 from dobhil.drives.base import Confirmation
@@ -89,9 +91,10 @@ def test_a_reply_queued_before_the_enter_frame_does_not_confirm_it() -> None:
     with fake_motor(NODE, lambda data: None) as (bus, motor):
         motor.send(reply_cubemars(NODE))         # late, from before
         drive = MitDrive(bus, mit_profile(enable_timeout=0.1))
-        with pytest.raises(DriveTimeoutError):
+        with pytest.raises(DriveTimeoutError, match="a motor not in MIT mode answers nothing"):
             drive.enable()
     assert drive.status.state is DriveState.DISABLED
+    assert drive.feedback is not None and drive.feedback.seq == 1   # read (and decoded) all the same
 
 
 def test_a_cubemars_error_in_the_reply_ends_the_enable_at_once_with_its_code() -> None:
@@ -331,3 +334,27 @@ def test_the_unwrapped_position_follows_a_motor_turning_many_times(name: str) ->
         assert drive.feedback is not None
         worst = max(worst, abs(drive.feedback.position - q))
     assert worst <= model.quanta.position
+
+
+@settings(max_examples=200, deadline=None)
+@given(start=st.floats(-200.0, 200.0),
+       steps=st.lists(st.floats(-0.49, 0.49), min_size=1, max_size=60))
+def test_the_unwrap_tracks_any_motion_slower_than_half_a_wrap_per_reply(start: float, steps: list[float]) -> None:
+    """Any path whose steps between two replies stay under half the wrap period (here in
+    units of it): the continuous position is the true angle less the first reading's
+    whole wraps, within two position steps -- each reading is off by less than one, on
+    either side: inside the range the firmware's cast floors, below it (the C cast
+    truncating toward zero) it rounds up."""
+    from dobhil.drives.mit.codec import pack_reply
+    drive = MitDrive(None, mit_profile())  # type: ignore[arg-type]
+    model = drive.model
+    q = start
+    first: float | None = None
+    for k in range(len(steps) + 1):
+        if k:
+            q += steps[k - 1] * model.wrap_period
+        drive.apply(frame(pack_reply(model, NODE, q, 0.0, 0.0)))
+        assert drive.feedback is not None
+        if first is None:
+            first = q - drive.feedback.position   # whole wraps the first reading cannot show
+        assert abs(drive.feedback.position + first - q) < 2 * model.quanta.position

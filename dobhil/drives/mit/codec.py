@@ -2,9 +2,10 @@
 bytes in, SI values out, no I/O. The numbers of each model (ranges, reply layout, axis
 direction, ...) are data: ``drivers/mit-models.yaml``, read by :mod:`dobhil.drives.mit.models`.
 
-Facts (bgkatz/motorcontrol at 3586419, ``Core/Src/can.c`` and ``math_ops.c``, which the
-CubeMars and Damiao firmware copy; CubeMars AK Series Actuator Driver Manual V1.0.8 §5.3;
-damiao-motor 1.0.6; /work/shared/reference/drive-protocols.md section 2):
+Facts (bgkatz/motorcontrol at 3586419, ``Core/Src/can.c`` and ``math_ops.c``, the firmware
+the CubeMars and Damiao motors derive from: the example code of CubeMars' AK Series Actuator
+Driver Manual V1.0.8 §5.3 repeats its formula and frames; damiao-motor 1.0.6;
+/work/shared/reference/drive-protocols.md section 2):
 
 - Special frames, 8 bytes to the motor's id: ``FF x7`` then ``FC`` enter motor mode,
   ``FD`` exit, ``FE`` set zero, ``FB`` clear error (Damiao only).
@@ -37,6 +38,10 @@ reaches them is outside the model's range anyway).
 Axis direction: ``axis_direction: -1`` (older AK firmware turns the other way) negates
 position, velocity and torque at the wire in every function here, so every value on the
 Python side is on the output axis as the host sees it; kp and kd are not signed.
+
+Speed: each field's :class:`Channel` builds two tables once from the formula (the smallest
+double of each code, and each code's value), so encoding is a binary search and decoding an
+index; :class:`TorqueFrame` (the 1 kHz hot path) rewrites two bytes of one command.
 """
 
 from __future__ import annotations
@@ -56,6 +61,9 @@ from dobhil.errors import CodecError
 
 __all__ = [
     "COMMAND_LENGTH",
+    "FIELD_BITS",
+    "POSITION_BITS",
+    "SPECIAL_NAMES",
     "SPECIAL_PREFIX",
     "Channel",
     "Command",
