@@ -337,3 +337,28 @@ def test_any_frame_is_answered_once_or_not_at_all_and_never_breaks_it(
         assert rig.emu.frame_errors == 0, rig.emu.last_frame_error
     finally:
         rig.close()
+
+
+def test_damiao_faults_are_state_nibbles_cleared_by_clear_error() -> None:
+    """Damiao: over current is state 10 (0xA), rotor over temperature 12 (0xC), the table's
+    codes; enter is refused until clear error (0xFB), which works once the cause is gone."""
+    rig = Lockstep(DAMIAO, thermal=FAST, plant=Plant(inertia=10.0))
+    try:
+        rig.ask(ENTER)
+        [reply] = rig.ask(AK_STIFF_1RAD)              # kp 500 x 1 rad >> 1.5 x 10 N m
+        assert reply[0] == 0xA1 and rig.emu.axis_state == 0
+        assert rig.ask(ENTER)[0][0] == 0xA1           # refused
+        assert rig.ask(CLEAR)[0][0] == 0x01 and rig.ask(ENTER)[0][0] == 0x11
+        full = bytes.fromhex("7FFF7FF000000FFF")      # t_ff = +10 N m (code 4095)
+        for _ in range(200):
+            rig.ask(full)
+            rig.read(0.001)
+            if rig.emu.fault:
+                break
+        [reply] = rig.ask(full)
+        assert reply[0] == 0xC1 and reply[7] >= 100 and rig.emu.applied_torque == 0.0
+        assert rig.ask(CLEAR)[0][0] == 0xC1           # still hot: the cause is not gone
+        rig.read(0.2)
+        assert rig.ask(CLEAR)[0][0] == 0x01 and rig.ask(ENTER)[0][0] == 0x11
+    finally:
+        rig.close()

@@ -31,7 +31,7 @@ from dobhil.runtime.references import make_reference
 from dobhil.runtime.session import build_controller, loop_settings
 from dobhil.runtime.stop import Stop, StopReason
 
-from .helpers import STEP_FROM_ZERO, demo_config
+from .helpers import REPO, STEP_FROM_ZERO, demo_config
 from tests.emulator.mit_rig import DAMIAO, mit_profile
 
 T = 1e-3
@@ -176,3 +176,31 @@ def test_a_silent_motor_stops_the_run_on_the_simulated_timeout(monkeypatch: pyte
     result, emulator, sink, _ = _run(0.2)
     assert result.stop.reason is StopReason.FEEDBACK_TIMEOUT and "simulated" in result.stop.detail
     assert 10 < result.cycles < 40
+
+
+def test_an_overheated_motor_stops_the_run_with_its_code(monkeypatch: pytest.MonkeyPatch) -> None:
+    """configs/mit-demo.yaml in lockstep with the MIT drive, the emulated AK80-9's winding
+    made to overheat at the demo's torques (a steady rise of 250 K at 0.5 N m, time
+    constant 50 ms): the reply's error byte 1 reaches the drive, the run stops as
+    drive_fault naming over temperature, and the safe stop still goes out."""
+    from dobhil.config import load_config
+    from dobhil.emulator.mit import Thermal
+    from dobhil.runtime.session import RunSession
+
+    hot = Thermal(rise_at_t_max=250.0 * (18.0 / 0.5) ** 2, time_constant=0.05)
+    original = EmulatedMit.__init__
+
+    def init(self: EmulatedMit, *args: Any, **kwargs: Any) -> None:
+        original(self, *args, **{**kwargs, "thermal": hot})
+
+    monkeypatch.setattr(EmulatedMit, "__init__", init)
+    config = load_config(REPO / "configs" / "mit-demo.yaml")
+    with RunSession(config, emulate=True, lockstep=True) as session:
+        result = session.run()
+        emulator = session.emulator
+    assert result.stop.reason is StopReason.DRIVE_FAULT, result.stop.line()
+    assert "over temperature" in result.stop.detail
+    assert isinstance(emulator, EmulatedMit) and emulator.axis_error == 1 and emulator.axis_state == 0
+    assert result.safe_stop is not None and result.safe_stop.sent
+    # 0.2 N m heats to 65 degC at most: the fault comes after the step to 1 N m at 0.6 s
+    assert 0.6 < result.stop.time < 1.2
