@@ -184,7 +184,6 @@ class EmulatedMit(EmulatedDrive):
         self.frames_ignored = 0    # received while silent after a set zero
         self.replies = 0
         self._last_frame = 0.0     # emulator time of the last frame to the node
-        self._decoded: tuple[bytes, Command] = (b"", _ZERO_COMMAND)   # the last command's bytes, decoded
         self._thermal_time = 0.0
         self._thermal_dt = math.nan
         self._thermal_keep = 1.0
@@ -256,13 +255,11 @@ class EmulatedMit(EmulatedDrive):
             if self._special(special):
                 return   # set zero: silent
         elif self.motor_mode:
-            if data != self._decoded[0]:   # a host repeats its command often (a steady torque)
-                try:
-                    self._decoded = (data, unpack_command(self.model, data))
-                except CodecError:
-                    self.frames_rejected += 1
-                    return
-            self.command = self._decoded[1]
+            try:
+                self.command = unpack_command(self.model, data)
+            except CodecError:
+                self.frames_rejected += 1
+                return
             self._check_limits()
         self._reply(torque)
 
