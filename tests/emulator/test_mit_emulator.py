@@ -362,3 +362,15 @@ def test_damiao_faults_are_state_nibbles_cleared_by_clear_error() -> None:
         assert rig.ask(CLEAR)[0][0] == 0x01 and rig.ask(ENTER)[0][0] == 0x11
     finally:
         rig.close()
+
+
+def test_a_position_past_p_max_wraps_as_the_firmwares_16_bit_field() -> None:
+    """12.6 rad on an AK80-9 (P 12.5): int(25.1 * 65535 / 25) = 65797, past 2^16: the
+    field holds 65797 - 65536 = 261 = 0x0105 (the firmware's int arithmetic rolls over)."""
+    rig = Lockstep(AK80_9, plant=Plant(inertia=0.01, initial_position=12.6))
+    try:
+        [reply] = rig.ask(AK_ZERO_TORQUE)
+        assert reply[1:3] == bytes([0x01, 0x05])
+        assert unpack_reply(rig.emu.model, reply).position == pytest.approx(12.6 - 2 * 12.5, abs=1e-3)
+    finally:
+        rig.close()
