@@ -310,6 +310,17 @@ def test_the_tmotor_stand_in_has_what_the_methods_use() -> None:
         assert used <= {"debug", "send_MIT_message"}, (method.__name__, used)
 
 
+def test_no_client_touched_a_real_bus() -> None:
+    """After every use above (same process, same modules): tmotorcancontrol's singleton,
+    whose creation runs ``sudo ip link``, was never made, and canmotorlib never opened its
+    AF_CAN socket (the class-level flags both set when they do)."""
+    clients.tmotor_command("AK80-9", 0.0, 0.0, 0.0, 0.0, 0.0)
+    clients.canmotorlib_command("AK80_9_V1p1", 0.0, 0.0, 0.0, 0.0, 0.0)
+    assert clients.CAN_Manager._instance is None
+    assert clients.canmotorlib.CanMotorController.can_socket_declared is False
+    assert clients.canmotorlib.CanMotorController.motor_socket is None
+
+
 # ---------------------------------------------------------------------------
 # The model table against the clients' tables
 
