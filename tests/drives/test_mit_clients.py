@@ -12,24 +12,28 @@ clamp to ``[lo, hi]``, ``floor((x - lo) (2^n - 1) / (hi - lo))``. dobhil compute
 precision as the firmware does; damiao-motor and canmotorlib in double. Where each differs
 from the reference, and so from dobhil -- each shown exactly below:
 
-- all three clients, and dobhil: a different code only within ``(2^n - 1) 2^-21`` of a code
-  boundary (single against double rounding), and then by one: :func:`assert_firmware_code`;
+- damiao-motor, canmotorlib and dobhil: a different code only within ``(2^n - 1) 2^-21``
+  of a code boundary (single against double rounding), and then by one
+  (:func:`assert_firmware_code`); in the middle of every code's interval all three give
+  that code;
 - tmotorcancontrol 1.2.6 does not use the firmware's formula: it scales by ``2^n / span``
-  and clamps to ``x_max - 2 span / 2^n``, so its code is the firmware's or one above
-  (never the top code, which the firmware sends at ``x_max``): 0 N m is 2048 on an AK80-9
-  where the firmware's is 2047, 18 N m is 4094 where the firmware's is 4095
-  (:func:`tmotor_code`, :func:`test_tmotor_commands_differ_exactly_by_its_formula`);
+  and clamps to ``x_max - 2 span / 2^n``. Below that clamp its code is the firmware's or
+  one above -- one above in the middle of every code's interval of the upper half of the
+  range, exactly -- and from there up it stays at ``2^n - 2``, never the firmware's top
+  code. 0 N m is 2048 on an AK80-9 where the firmware's is 2047, 18 N m is 4094 where the
+  firmware's is 4095 (:func:`tmotor_code`, ``test_tmotor_commands_differ_exactly_by_its_formula``,
+  ``test_in_the_middle_of_every_code_the_clients_agree_but_tmotorcancontrol``);
 - canmotorlib's module ``float_to_uint`` does not clamp (its controller clips before it):
   beyond the range its code leaves 0 .. 2^n - 1 (bitstring then refuses to pack it);
 - a NaN: dobhil refuses it (CodecError); damiao-motor and tmotorcancontrol fail with a
-  ValueError from ``int(nan)``; canmotorlib's clipping turns a NaN position or gain into
-  the range's low end and sends it;
+  ValueError from ``int(nan)``; canmotorlib's clipping turns a NaN position, velocity or
+  gain into the range's low end and sends it;
 - the one command that spells a special frame (every field at its top, torque code 0xFFB ..
-  0xFFE): damiao-motor and canmotorlib send it, so the motor would exit or zero; dobhil
-  lowers the position code by one.
+  0xFFE): damiao-motor and canmotorlib send it, so the motor would enter, exit, zero or
+  clear; dobhil lowers the position code by one.
 
 Replies decode to the same raw codes bit for bit; the values differ only by single
-against double rounding (at most one single-precision step at the range's end).
+against double rounding (a few single-precision steps at the range's end).
 """
 
 from __future__ import annotations
@@ -241,6 +245,27 @@ def test_every_code_decodes_as_the_clients_within_single_precision(lo: float, hi
         assert float(np.float32(ours)) == ours and abs(ours - theirs) <= step32, (u, ours, theirs)
 
 
+@pytest.mark.parametrize(("lo", "hi", "bits"), all_channels())
+def test_in_the_middle_of_every_code_the_clients_agree_but_tmotorcancontrol(lo: float, hi: float,
+                                                                             bits: int) -> None:
+    """The exact disagreement set, over every code u: in the middle of its interval
+    (``lo + (u + 1/2) span / (2^n - 1)``, far from rounding) dobhil, damiao-motor and
+    canmotorlib all give u; tmotorcancontrol gives
+    ``floor((u + 1/2) 2^n / (2^n - 1)) = u + 1`` exactly when ``u >= 2^(n-1) - 1``
+    (the upper half of the range), capped at its top code 2^n - 2."""
+    steps, span = (1 << bits) - 1, hi - lo
+    differs = set()
+    for u in range(steps):
+        x = lo + (u + 0.5) * span / steps
+        assert (codec.float_to_uint(x, lo, hi, bits), clients.damiao_float_to_uint(x, lo, hi, bits),
+                clients.canmotorlib.float_to_uint(x, lo, hi, bits)) == (u, u, u), x
+        theirs = clients.tmotor_float_to_uint(x, lo, hi, bits)
+        assert theirs in (u, u + 1), (x, theirs)
+        if theirs != u:
+            differs.add(u)
+    assert differs == set(range((1 << (bits - 1)) - 1, steps - 1))
+
+
 def test_literal_codes_of_an_ak80_9_where_tmotorcancontrol_differs() -> None:
     """By hand, from the two formulas: 0 N m is (0 + 18) 4095 / 36 = 2047.5 -> 2047 for the
     firmware, (0 + 18) 4096 / 36 = 2048 for tmotorcancontrol; 18 N m is 4095, and 4094 for
@@ -283,6 +308,17 @@ def test_the_tmotor_stand_in_has_what_the_methods_use() -> None:
                    clients.CAN_Manager.power_on, clients.CAN_Manager.power_off, clients.CAN_Manager.zero):
         used = set(re.findall(r"self\.(\w+)", inspect.getsource(method)))
         assert used <= {"debug", "send_MIT_message"}, (method.__name__, used)
+
+
+def test_no_client_touched_a_real_bus() -> None:
+    """After every use above (same process, same modules): tmotorcancontrol's singleton,
+    whose creation runs ``sudo ip link``, was never made, and canmotorlib never opened its
+    AF_CAN socket (the class-level flags both set when they do)."""
+    clients.tmotor_command("AK80-9", 0.0, 0.0, 0.0, 0.0, 0.0)
+    clients.canmotorlib_command("AK80_9_V1p1", 0.0, 0.0, 0.0, 0.0, 0.0)
+    assert clients.CAN_Manager._instance is None
+    assert clients.canmotorlib.CanMotorController.can_socket_declared is False
+    assert clients.canmotorlib.CanMotorController.motor_socket is None
 
 
 # ---------------------------------------------------------------------------
