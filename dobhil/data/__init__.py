@@ -18,8 +18,8 @@ from pathlib import Path
 
 from dobhil.errors import DobhilError
 
-__all__ = ["CONFIGS", "DRIVERS", "configs_dir", "copy_shipped", "drivers_dir", "shipped_configs", "shipped_file",
-           "shipped_profiles"]
+__all__ = ["CONFIGS", "DRIVERS", "DRIVER_TABLES", "configs_dir", "copy_shipped", "drivers_dir", "shipped_configs",
+           "shipped_file", "shipped_profiles"]
 
 #: package of the shipped configs (``configs/`` in the repository)
 CONFIGS = "dobhil.data.configs"
@@ -27,6 +27,10 @@ CONFIGS = "dobhil.data.configs"
 DRIVERS = "dobhil.data.drivers"
 _SOURCE_DIRS = {CONFIGS: "configs", DRIVERS: "drivers"}
 _SUFFIXES = (".yaml", ".yml")
+#: YAML files among the drive profiles that are data tables, not profiles (the MIT
+#: model table, ``dobhil.drives.mit.models``): shipped and copied by ``init``, never
+#: listed as a profile
+DRIVER_TABLES = frozenset({"mit-models"})
 
 
 def _package_dir(package: str) -> Path:
@@ -64,8 +68,9 @@ def shipped_configs() -> list[str]:
 
 
 def shipped_profiles() -> list[str]:
-    """Names of the shipped drive profiles, e.g. ``["odrive-0.5", "odrive-0.6"]``."""
-    return _names(drivers_dir())
+    """Names of the shipped drive profiles, e.g. ``["odrive-0.5", "odrive-0.6"]`` (not the
+    data tables beside them, :data:`DRIVER_TABLES`)."""
+    return [name for name in _names(drivers_dir()) if name not in DRIVER_TABLES]
 
 
 def shipped_file(directory: Path, name: str) -> Path | None:

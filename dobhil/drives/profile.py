@@ -419,7 +419,9 @@ def _resolve(name_or_path: str | os.PathLike[str], drivers_dir: Path | None, nea
     path = directory / f"{text}.yaml"
     if _is_file(path):
         return path
-    known = sorted(p.stem for p in directory.glob("*.yaml")) if directory.is_dir() else []
+    from dobhil.data import DRIVER_TABLES  # data tables beside the profiles are not profiles
+    known = sorted(p.stem for p in directory.glob("*.yaml") if p.stem not in DRIVER_TABLES) \
+        if directory.is_dir() else []
     hint = f"in {directory}" if drivers_dir is not None else \
         f"(shipped), or {text}.yaml in a drivers/ directory above the config, or a path to a .yaml file"
     raise ConfigError(f"drive profile {text!r}: expected one of {known} {hint}")
