@@ -7,6 +7,10 @@ when a run would sample stale feedback or the axis is already in closed loop
 (``--no-preflight`` skips it); other mismatches it prints and runs, and the last line
 here says which of the two the found mismatches mean. A bus that cannot be opened
 names the way to try without hardware (``--bus dobhil:demo``).
+
+``--set-zero`` (MIT-mode motors only, refused for any other protocol): send set zero
+(0xFE), wait the profile's ``mit.zero_silence``, ask with a zero-torque command and print
+the position the reply reads. dobhil never zeroes a motor otherwise.
 """
 
 from __future__ import annotations
@@ -33,6 +37,9 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg,
     p.add_argument("--window", type=float, metavar="S", default=None,
                    help="how long to listen (default 0.5 s: five ODrive heartbeats)")
     p.add_argument("--json", action="store_true", help="print the report as one JSON object")
+    p.add_argument("--set-zero", action="store_true",
+                   help="MIT-mode motors only: make the present position the motor's zero (set zero 0xFE), "
+                        "wait mit.zero_silence, print the new position; nothing else (no preflight)")
     p.set_defaults(func=check)
 
 
@@ -61,6 +68,8 @@ def check(args: argparse.Namespace) -> int:
     config = config_from_args(args)
     window = window_of(args.window, "--window")
     profile = load_drive_profile(config, Path(args.config).parent)
+    if args.set_zero:
+        return set_zero(args, config, profile)
     spec = resolve_bus(config, profile, args.bus)
     bus = open_bus(spec)
     try:
@@ -77,6 +86,35 @@ def check(args: argparse.Namespace) -> int:
         for line in report.lines():
             print(line)
     return 0 if report.ok else EXIT_MISMATCH
+
+
+def set_zero(args: argparse.Namespace, config: Any, profile: Any) -> int:
+    """``--set-zero``: the only way dobhil sends set zero (an MIT motor's 0xFE), refused for
+    any other protocol before a bus is opened; Ctrl-C ends the wait within a slice."""
+    import time
+
+    from dobhil.drives.mit.preflight import set_zero as zero
+    from dobhil.runtime.buses import open_bus, resolve_bus
+    from dobhil.runtime.loop import StopRequest
+    from dobhil.runtime.signals import stop_on_signals
+    if profile.protocol != "mit":
+        raise ConfigError(f"--set-zero: expected a profile of protocol 'mit' (MIT-mode motors), profile "
+                          f"{profile.name or profile.protocol!r} is protocol {profile.protocol!r}")
+    spec = resolve_bus(config, profile, args.bus)
+    bus = open_bus(spec)
+    try:
+        with stop_on_signals(StopRequest()) as request:
+            result = zero(bus, profile, clock=time.monotonic, cancel=request.reason)
+    finally:
+        bus.shutdown()
+    if args.json:
+        json.dump({"bus": spec.describe(), "node_id": result.node, "position": result.position,
+                   "zero_silence": result.silence}, sys.stdout)
+        sys.stdout.write("\n")
+    else:
+        print(f"bus {spec.describe()}")
+        print(result.line())
+    return 0
 
 
 def run_budget(profile: Any, period: float, bitrate: int | None) -> Any:

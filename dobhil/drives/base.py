@@ -121,6 +121,9 @@ class Confirmation(IntEnum):
     NOT_SENT = 2          # a safe-stop frame could not be put on the bus
     NEVER_SEEN = 3        # nothing was ever heard from the drive: nothing to confirm
     NOT_ASKED = 4         # sent without waiting for a confirmation (``disable()``)
+    #: the protocol's frames cannot say that the drive left torque control (MIT mode on a
+    #: CubeMars AK: its replies carry no mode): never safe, the loud line says why
+    UNCONFIRMABLE = 5
 
 
 @dataclass(frozen=True, slots=True)
@@ -313,6 +316,9 @@ class Drive(ABC):
             report = SafeStopReport(self.node_id, tuple(results), Confirmation.NOT_ASKED)
         elif self._last_heartbeat is None:
             report = SafeStopReport(self.node_id, tuple(results), Confirmation.NEVER_SEEN)
+        elif not self.confirms_disable:
+            report = SafeStopReport(self.node_id, tuple(results), Confirmation.UNCONFIRMABLE,
+                                    self._unconfirmable_detail())
         else:
             report = self._confirm_disabled(tuple(results), timeout, cancel)
         failure = "" if report.safe else f"disable of node {self.node_id} failed: {report.detail}"
@@ -362,6 +368,14 @@ class Drive(ABC):
             self._set_state(DriveState.FAULT,
                             f"no heartbeat from node {self.node_id} for {silent:.3f} s "
                             f"(expected every {rate:g} s)")
+
+    @property
+    def confirms_disable(self) -> bool:
+        """True when this drive's frames can confirm that it left torque control (ODrive's
+        heartbeat, CiA 402's statusword). False (a CubeMars AK in MIT mode: its replies carry
+        no mode): a safe stop that asks for a confirmation reports
+        :attr:`Confirmation.UNCONFIRMABLE`, not safe, with :meth:`_unconfirmable_detail`."""
+        return True
 
     def __enter__(self) -> Drive:
         return self
@@ -418,6 +432,12 @@ class Drive(ABC):
     def _is_disabled_confirmation(self, event: StateEvent) -> bool:
         """True if ``event`` (received after the disable frames) confirms the disable."""
         return not event.active
+
+    def _unconfirmable_detail(self) -> str:
+        """Why the disable cannot be confirmed, one line (only asked when
+        :attr:`confirms_disable` is False); it completes the loud warning's sentence."""
+        return (f"{self.disabled_state_text} sent, but protocol {self.protocol!r} cannot confirm it: "
+                "its frames carry no drive state")
 
     def _disable_frame(self, index: int) -> can.Message:
         return self._disable_frames()[index]

@@ -131,11 +131,16 @@ class ProtocolRules:
     - ``common``: narrower rules for common keys (checked after the common rule), e.g.
       ODrive's node id 0..63; the message names the protocol's rule.
     - ``requires``: optional common keys this protocol needs (ODrive: ``feedback_period``,
-      ``heartbeat_period``)."""
+      ``heartbeat_period``).
+    - ``check``: a check of the whole profile once every key passed its own rule, for what
+      one key cannot say alone (MIT: ``torque_limit`` within the model's range, which the
+      ``mit.model`` row of the model table gives); raises ConfigError (one line, its
+      ``source`` first). None: nothing more to check."""
 
     section: Mapping[str, Rule] = field(default_factory=lambda: _EMPTY)
     common: Mapping[str, Rule] = field(default_factory=lambda: _EMPTY)
     requires: frozenset[str] = frozenset()
+    check: Callable[[DriveProfile, str], None] | None = None
 
 
 # Physically meaningful bounds (drivers/README.md says why each): a value outside them is
@@ -402,7 +407,10 @@ def profile_from_mapping(data: Mapping[str, Any], *, source: str = "<profile>",
             raise ConfigError(f"{source}: missing key {key!r} ({COMMON_RULES[key].allowed}; "
                               f"protocol {protocol!r} needs it)")
     values["options"] = _section(data.get(protocol), protocol, rules, source)
-    return DriveProfile(**values, directory=directory)
+    profile = DriveProfile(**values, directory=directory)
+    if rules.check is not None:
+        rules.check(profile, source)
+    return profile
 
 
 def _resolve(name_or_path: str | os.PathLike[str], drivers_dir: Path | None, near: Path | None) -> Path:

@@ -57,6 +57,7 @@ EMULATOR_SUFFIX = ".emulator"
 DRIVE_CLASSES: Mapping[str, tuple[str, str]] = MappingProxyType({
     "odrive": ("dobhil.drives.odrive.drive", "ODriveDrive"),
     "cia402": ("dobhil.drives.cia402.drive", "CiA402Drive"),
+    "mit": ("dobhil.drives.mit.drive", "MitDrive"),
 })
 
 

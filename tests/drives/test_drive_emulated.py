@@ -358,7 +358,7 @@ def test_load_profile_by_path_and_missing_name(tmp_path: Path) -> None:
 
 def test_registry_resolves_lazily_and_rejects_unknown() -> None:
     assert drive_class("odrive").__name__ == "ODriveDrive"
-    with pytest.raises(ConfigError, match=r"protocol: expected one of \['cia402', 'odrive'\], got 'cia402x'"):
+    with pytest.raises(ConfigError, match=r"protocol: expected one of \['cia402', 'mit', 'odrive'\], got 'cia402x'"):
         drive_class("cia402x")
 
 

@@ -1,0 +1,267 @@
+"""The MIT drive against a hand-written motor (tests/drives/mit_fake.py) on a python-can
+virtual bus: the frames it sends and the replies it reads are literal bytes, written
+from the layouts in drive-protocols.md section 2 -- not from dobhil's codec.
+
+Decoding is checked with the firmware formula written out here:
+``x = u (hi - lo) / (2^bits - 1) + lo``.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import can
+import pytest
+
+from dobhil.drives import DriveState
+from dobhil.drives.base import Confirmation
+from dobhil.drives.mit.drive import MitDrive
+from dobhil.drives.mit.replies import MitFault
+from dobhil.drives.mit.models import load_models
+from dobhil.drives.profile import DriveProfile, profile_from_mapping
+from dobhil.errors import ConfigError, DriveFaultError, DriveTimeoutError
+
+from tests.drives.mit_fake import (CLEAR, ENTER, EXIT, ZERO_TORQUE, fake_motor, reply_cubemars,
+                                   reply_damiao)
+
+NODE = 1
+
+
+def row(vendor: str, model: str) -> Any:
+    """The table's row of ``vendor model`` (its first firmware)."""
+    rows = [m for (v, mo, _), m in sorted(load_models().items()) if v == vendor and mo == model]
+    assert rows, f"no {vendor} {model} in the model table"
+    return rows[0]
+
+
+def mit_profile(vendor: str = "cubemars", model: str = "AK80-9", *, node: int = NODE, **changes: Any) -> DriveProfile:
+    m = row(vendor, model)
+    data: dict[str, Any] = {"protocol": "mit", "firmware": m.firmware, "node_id": node,
+                            "torque_limit": min(5.0, m.t_max), "velocity_limit": min(20.0, m.v_max),
+                            "enable_timeout": 0.5, "command_delay_periods": 1,
+                            "mit": {"vendor": vendor, "model": model}}
+    section = changes.pop("mit", {})
+    data["mit"].update(section)
+    data.update(changes)
+    return profile_from_mapping(data, source="test profile")
+
+
+def decode(u: int, hi: float, bits: int) -> float:
+    return u * (2 * hi) / ((1 << bits) - 1) - hi
+
+
+def answer_all(reply: bytes) -> Any:
+    return lambda data: reply
+
+
+# ---------------------------------------------------------------------------
+# Enable
+
+
+def test_enable_sends_enter_then_zero_torque_and_a_reply_confirms() -> None:
+    with fake_motor(NODE, answer_all(reply_cubemars(NODE))) as (bus, motor):
+        drive = MitDrive(bus, mit_profile())
+        drive.enable()
+        assert drive.status.state is DriveState.ENABLED
+        got = motor.frames()
+        assert got[0] == ENTER
+        assert all(f == ZERO_TORQUE for f in got[1:])   # nothing that could move the motor
+        drive.disable()
+
+
+def test_a_silent_motor_times_out_saying_mit_mode_bit_rate_id_and_power() -> None:
+    with fake_motor(NODE, lambda data: None) as (bus, motor):
+        drive = MitDrive(bus, mit_profile(enable_timeout=0.1))
+        with pytest.raises(DriveTimeoutError) as info:
+            drive.enable()
+    text = str(info.value)
+    assert "\n" not in text
+    for words in ("not in MIT mode", "CubeMars", "bit rate", "node_id 1", "power"):
+        assert words in text
+    assert motor.frames()[0] == ENTER
+
+
+def test_a_reply_queued_before_the_enter_frame_does_not_confirm_it() -> None:
+    with fake_motor(NODE, lambda data: None) as (bus, motor):
+        motor.send(reply_cubemars(NODE))         # late, from before
+        drive = MitDrive(bus, mit_profile(enable_timeout=0.1))
+        with pytest.raises(DriveTimeoutError):
+            drive.enable()
+    assert drive.status.state is DriveState.DISABLED
+
+
+def test_a_cubemars_error_in_the_reply_ends_the_enable_at_once_with_its_code() -> None:
+    with fake_motor(NODE, answer_all(reply_cubemars(NODE, error=1))) as (bus, _):
+        drive = MitDrive(bus, mit_profile(enable_timeout=5.0))
+        with pytest.raises(DriveFaultError, match=r"error 1: 1 \(over temperature\)"):
+            drive.enable()
+
+
+def damiao_motor(state_after: dict[bytes, int], start: int = 0) -> Any:
+    """A Damiao whose state nibble follows the special frames it got."""
+    state = [start]
+
+    def answer(data: bytes) -> bytes:
+        state[0] = state_after.get(data, state[0])
+        return reply_damiao(NODE, state[0])
+    return answer
+
+
+def test_a_damiao_enable_waits_for_state_1() -> None:
+    with fake_motor(NODE, damiao_motor({ENTER: 1, EXIT: 0})) as (bus, motor):
+        drive = MitDrive(bus, mit_profile("damiao", "DM4310"))
+        drive.enable()
+        assert drive.status.state is DriveState.ENABLED
+        assert drive.feedback is not None
+        report = drive.safe_stop(timeout=0.5)
+        assert motor.wait_for(EXIT)[-1] == EXIT
+    assert report.confirmation is Confirmation.CONFIRMED and report.safe
+
+
+def test_a_damiao_fault_ends_the_enable_naming_reset_faults_and_reset_faults_clears_it_first() -> None:
+    with fake_motor(NODE, damiao_motor({ENTER: 0xB}, start=0xB)) as (bus, _):
+        with pytest.raises(DriveFaultError, match="reset-faults"):
+            MitDrive(bus, mit_profile("damiao", "DM4310")).enable()
+    with fake_motor(NODE, damiao_motor({CLEAR: 0, ENTER: 1}, start=0xB)) as (bus, motor):
+        drive = MitDrive(bus, mit_profile("damiao", "DM4310"), reset_faults=True)
+        drive.enable()
+        drive.disable()
+        assert motor.wait_for(EXIT)[:2] == [CLEAR, ENTER]
+
+
+# ---------------------------------------------------------------------------
+# Torque: the preallocated frame, literal bytes
+
+
+def test_torque_fills_only_the_torque_bits_of_one_preallocated_frame() -> None:
+    with fake_motor(NODE, answer_all(reply_cubemars(NODE))) as (bus, motor):
+        drive = MitDrive(bus, mit_profile())
+        drive.enable()
+        first = drive._torque_frame(9.0)
+        # AK80-9: t = int((9 + 18) * 4095 / 36) = 3071 = 0xBFF
+        assert bytes(first.data) == bytes.fromhex("7FFF7FF000000BFF")
+        assert drive._torque_frame(-18.0) is first
+        assert bytes(first.data) == bytes.fromhex("7FFF7FF000000000")
+        drive.send_torque(18.0)   # t = 4095 = 0xFFF
+        drive.disable()
+        frames = motor.wait_for(EXIT)
+    assert bytes.fromhex("7FFF7FF000000FFF") in frames
+    assert frames[-2:] == [ZERO_TORQUE, EXIT]   # safe stop: zero torque, then exit
+
+
+# ---------------------------------------------------------------------------
+# Decoding: unwrap, errors, the rail, other nodes
+
+
+def frame(data: bytes, reply_id: int = 0) -> can.Message:
+    return can.Message(arbitration_id=reply_id, data=data, is_extended_id=False)
+
+
+def test_position_is_unwrapped_across_the_wrap_both_ways() -> None:
+    drive = MitDrive(None, mit_profile())   # type: ignore[arg-type]  # decoding needs no bus
+    codes = [0xFFF0, 0x0010, 0x8000, 0xFFF0, 0x0010, 0xFFF0, 0x0010, 0x0005]
+    positions = []
+    for p in codes:
+        assert drive.apply(frame(reply_cubemars(NODE, p=p)))
+        assert drive.feedback is not None
+        positions.append(drive.feedback.position)
+    span = 25.0
+    expected = [decode(0xFFF0, 12.5, 16), decode(0x0010, 12.5, 16) + span, decode(0x8000, 12.5, 16) + span,
+                decode(0xFFF0, 12.5, 16) + span, decode(0x0010, 12.5, 16) + 2 * span,
+                decode(0xFFF0, 12.5, 16) + span, decode(0x0010, 12.5, 16) + 2 * span,
+                decode(0x0005, 12.5, 16) + 2 * span]
+    # 0x8000 is 12.5 rad past 0x0010: exactly half a span is no crossing
+    assert positions == pytest.approx(expected, abs=1e-9)
+    # the other way round: from +... down through the wrap
+    down = MitDrive(None, mit_profile())  # type: ignore[arg-type]
+    for p in (0x0010, 0xFFF0):
+        down.apply(frame(reply_cubemars(NODE, p=p)))
+    assert down.feedback is not None
+    assert down.feedback.position == pytest.approx(decode(0xFFF0, 12.5, 16) - span)
+
+
+def test_replaying_the_same_replies_rebuilds_the_same_positions() -> None:
+    frames = [frame(reply_cubemars(NODE, p=p, v=v)) for p, v in
+              ((0xF000, 0x900), (0xFFF0, 0x900), (0x0100, 0x900), (0x1000, 0x900))]
+    seen = []
+    for _ in range(2):
+        drive = MitDrive(None, mit_profile())  # type: ignore[arg-type]
+        seen.append([(drive.apply(f), drive.feedback) for f in frames])
+    assert [(a, b.position, b.velocity, b.seq) for a, b in seen[0]] == \
+        [(a, b.position, b.velocity, b.seq) for a, b in seen[1]]
+    assert seen[0][-1][1].velocity == pytest.approx(decode(0x900, 50.0, 12))
+
+
+def test_replies_of_other_nodes_ids_and_lengths_are_not_ours() -> None:
+    drive = MitDrive(None, mit_profile())  # type: ignore[arg-type]
+    assert drive._decode(frame(reply_cubemars(2))) == ()
+    assert drive._decode(frame(reply_cubemars(NODE), reply_id=5)) == ()
+    assert drive._decode(can.Message(arbitration_id=0, data=reply_cubemars(NODE), is_extended_id=True)) == ()
+    short = drive._decode(frame(reply_cubemars(NODE)[:6]))
+    assert len(short) == 1 and short[0].error_code == MitFault.BAD_LAYOUT   # type: ignore[union-attr]
+    assert "6 bytes" in short[0].error_text   # type: ignore[union-attr]
+
+
+def test_a_non_zero_error_code_faults_a_running_drive_with_its_text() -> None:
+    replies = [reply_cubemars(NODE)]
+
+    with fake_motor(NODE, lambda data: replies[0]) as (bus, _):
+        drive = MitDrive(bus, mit_profile())
+        drive.enable()
+        replies[0] = reply_cubemars(NODE, error=2)
+        drive.send_torque(0.5)
+        with pytest.raises(DriveFaultError, match=r"node 1 fault: error 2 \(over current\)"):
+            for _ in range(100):
+                drive.poll(0.05)
+        assert drive.status.state is DriveState.FAULT
+        drive.disable()
+
+
+def test_a_saturating_reading_on_the_rail_is_a_fault() -> None:
+    drive = MitDrive(None, mit_profile("damiao", "DM4310"))  # type: ignore[arg-type]
+    events = drive._decode(frame(reply_damiao(NODE, 1, p=0xFFFF)))
+    state = events[1]
+    assert state.error_code == MitFault.AT_RAIL   # type: ignore[union-attr]
+    assert "end of the encodable range (+12.5 rad)" in state.error_text   # type: ignore[union-attr]
+    inside = drive._decode(frame(reply_damiao(NODE, 1, p=0xFFFE)))
+    assert inside[1].error_code == 0   # type: ignore[union-attr]
+
+
+# ---------------------------------------------------------------------------
+# Safe stop
+
+
+def test_a_cubemars_safe_stop_sends_zero_torque_then_exit_and_says_it_cannot_be_confirmed() -> None:
+    with fake_motor(NODE, answer_all(reply_cubemars(NODE))) as (bus, motor):
+        drive = MitDrive(bus, mit_profile())
+        drive.enable()
+        report = drive.safe_stop()
+        frames = motor.wait_for(EXIT)
+    assert [f.what for f in report.frames] == ["zero torque", "exit motor mode"]
+    assert frames[-2:] == [ZERO_TORQUE, EXIT]
+    assert report.confirmation is Confirmation.UNCONFIRMABLE and not report.safe
+    warning = report.warning()
+    assert "cannot be confirmed" in warning and "carries no motor mode" in warning and "cut power" in warning
+    assert drive.status.state is DriveState.DISABLED
+
+
+# ---------------------------------------------------------------------------
+# Bad input: one line each
+
+
+@pytest.mark.parametrize(("changes", "words"), [
+    ({"torque_limit": 18.5}, "torque_limit: expected a number > 0 and <= 18 Nm"),
+    ({"mit": {"model": "AK99-1"}}, "no row for cubemars AK99-1"),
+    ({"mit": {"reply_id": 0x800}}, "mit.reply_id: expected an integer from 0 to 2047"),
+    ({"node_id": 0}, "node_id: expected an integer from 1 to 255"),
+    ({"mit": {"colour": "red"}}, "unknown key 'mit.colour'"),
+])
+def test_bad_profiles_are_one_line(changes: dict[str, Any], words: str) -> None:
+    with pytest.raises(ConfigError) as info:
+        mit_profile(**changes)
+    assert words in str(info.value) and "\n" not in str(info.value)
+
+
+def test_a_damiao_node_id_must_fit_its_nibble() -> None:
+    with pytest.raises(ConfigError, match="node_id: expected an integer from 1 to 15"):
+        mit_profile("damiao", "DM4310", node=16)
