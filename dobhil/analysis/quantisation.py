@@ -6,8 +6,9 @@ velocity one step apart, and the motor applies the commanded torque one step apa
 The firmware's ``float_to_uint`` truncates (``int()`` of a non-negative number): a
 decoded value lies between one step below the true one and the true one. For a signal
 that moves across several steps per sample the error is white and uniform on
-``(-step, 0]``: mean ``-step / 2``, variance ``step^2 / 12``. That is the noise model
-here, per channel, the channels independent:
+``(-step, 0]``: mean ``-step / 2``, variance ``step^2 / 12`` (a model with
+``axis_direction: -1`` truncates in the motor's sense of rotation: the host sees the mean
+``+step / 2``). That is the noise model here, per channel, the channels independent:
 
 - ``position`` and ``velocity``: the controller's measurements ``y`` (the velocity only
   when ``design.velocity_source`` is ``measured``: an estimated velocity is computed
@@ -152,8 +153,10 @@ def dc_gain(a: Array, b: Array, c: Array, d: Array) -> float:
 
 
 def _figures(systems: Mapping[str, tuple[Array, Array, Array, Array]],
-             steps: Mapping[str, float]) -> ChannelFigures | None:
-    """Combine one output's per-channel systems; None when any has no H2 norm."""
+             steps: Mapping[str, float], direction: int) -> ChannelFigures | None:
+    """Combine one output's per-channel systems; None when any has no H2 norm. The mean
+    error is ``-step / 2`` in the firmware's sense of rotation (``direction`` -1: the
+    host's value is the negated decode of the negated value, so ``+step / 2``)."""
     rms: dict[str, float] = {}
     bias = 0.0
     for channel, (a, b, c, d) in systems.items():
@@ -161,7 +164,7 @@ def _figures(systems: Mapping[str, tuple[Array, Array, Array, Array]],
         if norm is None:
             return None
         rms[channel] = steps[channel] / math.sqrt(12.0) * norm
-        bias += -0.5 * steps[channel] * dc_gain(a, b, c, d)
+        bias += -0.5 * direction * steps[channel] * dc_gain(a, b, c, d)
     total = math.sqrt(sum(v * v for v in rms.values()))
     return ChannelFigures(rms=MappingProxyType(rms), total=total, bias=bias)
 
@@ -215,8 +218,11 @@ def _read(ctrl: ControllerSS) -> tuple[str, ...]:
     return tuple(ch for ch, u in zip(_measured(ctrl), used) if u)
 
 
-def noise_figures(params: Params, steps: Steps) -> QuantisationFigures:
-    """The noise figures of one design (batch shape ``()``) on a codec with ``steps``."""
+def noise_figures(params: Params, steps: Steps, *, direction: int = 1) -> QuantisationFigures:
+    """The noise figures of one design (batch shape ``()``) on a codec with ``steps``;
+    ``direction``: the model's ``axis_direction`` (the sign of the truncation's mean)."""
+    if direction not in (1, -1):
+        raise ValueError(f"direction: expected 1 or -1, got {direction!r}")
     if params.batch_shape != ():
         raise ValueError("quantisation figures are computed for a single design")
     ctrl = sampled_controller(params)
@@ -224,14 +230,14 @@ def noise_figures(params: Params, steps: Steps) -> QuantisationFigures:
                 "torque": float(steps.torque)}
     observers: dict[str, ChannelFigures] = {}
     for key, row in (("dob", DIS), ("rtob", INT)):
-        figures = _figures(observer_systems(ctrl, row), step_map)
+        figures = _figures(observer_systems(ctrl, row), step_map, direction)
         if figures is None:   # cannot happen: the observers' poles are exp(-g T) and 0
             raise ValueError("the sampled observer is not stable")
         observers[key] = figures
     closed = loop(params, sampled=True)
     looped: dict[str, ChannelFigures] = {}
     for output in LOOP_OUTPUTS:
-        figures = _figures(loop_systems(closed, ctrl, output), step_map)
+        figures = _figures(loop_systems(closed, ctrl, output), step_map, direction)
         if figures is None:
             break
         looped[output] = figures
@@ -289,13 +295,13 @@ def mit_quantisation(params: Params, model: Any) -> QuantisationFigures:
     """The figures of one design on an MIT-mode motor (``model``: a
     :class:`dobhil.drives.mit.codec.MitModel`): its steps, and the torque a zero command
     applies, found by the codec itself -- the drive's preallocated torque frame filled with
-    0 N m, decoded as the firmware decodes it."""
+    0 N m, decoded as the firmware decodes it (in the host's sense of rotation)."""
     from dobhil.drives.mit.codec import TorqueFrame, unpack_command
     frame = TorqueFrame(model)
-    data = bytearray(8)
+    data = bytearray(frame.template)
     frame.fill(data, 0.0)
     zero = float(unpack_command(model, bytes(data)).torque)
-    figures = noise_figures(params, model.quanta)
+    figures = noise_figures(params, model.quanta, direction=model.axis_direction)
     return dataclasses.replace(
         figures, zero_torque_bias=zero,
         model=MappingProxyType({"vendor": model.vendor, "model": model.model,
