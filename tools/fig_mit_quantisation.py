@@ -1,0 +1,207 @@
+#!/usr/bin/env python3
+"""Write docs/img/mit_quantisation.png: what an MIT-mode codec's quantisation does to the
+force loop of the demo design on an AK80-9 (configs/mit-demo.yaml). Run from the
+repository root:
+
+    python tools/fig_mit_quantisation.py [CONFIG] [OUT.png]
+
+Three panels, every number printed as well:
+
+a) the force step response (true interaction torque and its RTOb estimate), the sampled
+   loop with exact measurements and torque (the analysis' response) and with the codec
+   in the loop: the emulator's plant (dobhil.emulator.plant, the analysis' exact model),
+   the runtime's controller (ForceController, the generated kernel), the command delay
+   of the profile, the replies packed and decoded by the codec as the motor and the drive
+   do (pack_reply / unpack_reply), the torque packed by the drive's TorqueFrame and
+   decoded as the firmware does (unpack_command);
+b) the steady force after the step, codec minus exact: the truncated torque command;
+c) the noise on the DOb and RTOb estimates of a moving servo (the observers fed with the
+   codec's decoded position and velocity of sinusoids spanning most of the range, minus
+   the same observers fed the exact signals), against the H2 prediction of
+   dobhil.analysis.quantisation (the lines at +-1 RMS).
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+from collections import deque
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from dobhil.analysis.quantisation import mit_quantisation, quantisation_text  # noqa: E402
+from dobhil.config import load_config, resolve_config  # noqa: E402
+from dobhil.config.schema import Config  # noqa: E402
+from dobhil.drives.mit.codec import (TorqueFrame, pack_reply, unpack_command,  # noqa: E402
+                                     unpack_reply)
+from dobhil.drives.mit.rules import model_of  # noqa: E402
+from dobhil.drives.profile import load_drive_profile  # noqa: E402
+from dobhil.emulator.plant import Plant  # noqa: E402
+from dobhil.plotting.figures import _plt, save  # noqa: E402
+from dobhil.runtime.controller import ForceController  # noqa: E402
+from dobhil.runtime.references import make_reference  # noqa: E402
+from dobhil.synthesis.controller import DIS, INT, sampled_controller  # noqa: E402
+from dobhil.synthesis.params import params_from_config  # noqa: E402
+
+#: columns of a simulated run
+T, REF, FORCE, INT_HAT, DIS_HAT, U = range(6)
+MOVING_SECONDS = 20.0    # length of the moving-servo record of panel c
+SEED = 18
+
+
+def closed_loop(config: Config, model: Any | None) -> np.ndarray:
+    """One run of the sampled loop (columns T..U), with the codec when ``model`` is given."""
+    plant = Plant.from_config(config)
+    ctrl = ForceController.from_config(config)
+    ref = make_reference(config.reference, duration=config.loop.duration)
+    period = config.loop.period
+    n = int(round(config.loop.duration / period))
+    frame = TorqueFrame(model) if model is not None else None
+    data = bytearray(frame.template) if frame is not None else bytearray(8)
+
+    def measured() -> tuple[float, float]:
+        if model is None:
+            return plant.position, plant.velocity
+        reply = unpack_reply(model, pack_reply(model, 1, plant.position, plant.velocity, 0.0))
+        return reply.position, reply.velocity
+
+    q, dq = measured()
+    ctrl.initialize(q, dq)
+    in_transit = deque([0.0] * config.design.delay_samples)
+    out = np.zeros((n, 6))
+    for k in range(n):
+        q, dq = measured()
+        step = ctrl.step(q, dq if ctrl.measures_velocity else None, ref(k * period))
+        out[k] = (k * period, step.tau_ref, plant.truth().tau_int, step.tau_int_hat,
+                  step.tau_dis_hat, step.u)
+        applied = step.u
+        if frame is not None:
+            frame.fill(data, applied)
+            applied = unpack_command(model, bytes(data)).torque
+        in_transit.append(applied)
+        plant.step(in_transit.popleft(), period)
+    return out
+
+
+def steady_error(model: Any, tau: float) -> float:
+    """The torque the motor applies minus ``tau`` commanded (the steady force error of a
+    loop whose estimate has converged to the reference: it holds the command at ``tau``)."""
+    frame = TorqueFrame(model)
+    data = bytearray(frame.template)
+    frame.fill(data, tau)
+    return float(unpack_command(model, bytes(data)).torque) - tau
+
+
+def moving_observer_noise(config: Config, model: Any) -> np.ndarray:
+    """(n, 2) DOb and RTOb estimate errors of a moving servo from the codec's decoded
+    position and velocity (the observers are linear: decoded minus exact input)."""
+    ctrl = sampled_controller(params_from_config(config))
+    period = config.loop.period
+    n = int(MOVING_SECONDS / period)
+    t = np.arange(n) * period
+    ph = np.random.default_rng(SEED).uniform(0.0, 2.0 * math.pi, 2)
+    q = 0.8 * model.p_max * np.sin(2 * math.pi * 0.37 * t + ph[0])
+    dq = 0.8 * model.v_max * np.sin(2 * math.pi * 1.1 * t + ph[1])
+    decoded = [unpack_reply(model, pack_reply(model, 1, float(a), float(b), 0.0))
+               for a, b in zip(q, dq)]
+    err = np.stack([[r.position for r in decoded] - q, [r.velocity for r in decoded] - dq],
+                   axis=1)[:, :ctrl.b_y.shape[1]]
+    out = np.empty((n, 2))
+    xi = np.zeros(ctrl.order)
+    for k in range(n):
+        out[k] = ctrl.c @ xi + ctrl.d_y @ err[k]
+        xi = ctrl.a @ xi + ctrl.b_y @ err[k]
+    return out[500:]
+
+
+def main() -> int:
+    config_path = Path(sys.argv[1]) if len(sys.argv) > 1 else ROOT / "configs/mit-demo.yaml"
+    out = Path(sys.argv[2]) if len(sys.argv) > 2 else ROOT / "docs/img/mit_quantisation.png"
+    config = load_config(config_path)
+    profile = load_drive_profile(config, resolve_config(str(config_path)).parent)
+    model = model_of(profile)
+    figures = mit_quantisation(params_from_config(config), model)
+    print(quantisation_text(figures))
+    exact, coded = closed_loop(config, None), closed_loop(config, model)
+    step_at = config.reference.start
+    t_ms = (exact[:, T] - step_at) * 1e3
+    window = (t_ms > -20) & (t_ms < 120)
+    after = exact[:, T] > step_at + 0.3 * (config.loop.duration - step_at)
+    offset = coded[after, FORCE] - exact[after, FORCE]
+    noise = moving_observer_noise(config, model)
+
+    plt = _plt()
+    fig, axes = plt.subplots(1, 3, figsize=(15, 4.4))
+    ax = axes[0]
+    ax.plot(t_ms[window], exact[window, REF], color="0.5", lw=0.9, ls=":", label="reference")
+    ax.step(t_ms[window], exact[window, FORCE], where="post", color="k", lw=1.6,
+            label="force, exact measurements")
+    ax.step(t_ms[window], coded[window, FORCE], where="post", color="tab:red", lw=1.0,
+            label=f"force, {model.model} codec in the loop")
+    ax.step(t_ms[window], coded[window, INT_HAT], where="post", color="tab:blue", lw=0.7,
+            alpha=0.7, label="RTOb estimate, codec in the loop")
+    ax.set_xlabel("time after the step [ms]")
+    ax.set_ylabel("interaction torque [N m]")
+    ax.set_title("a) force step response")
+    ax.legend(loc="lower right", fontsize=8)
+    ax.grid(True, alpha=0.3)
+
+    ax = axes[1]
+    q_t = figures.steps["torque"]
+    settled = exact[:, T] >= 0.5 * step_at      # the approach to contact left out
+    t_all = (exact[settled, T] - step_at) * 1e3
+    ax.plot(t_all, (coded[settled, FORCE] - exact[settled, FORCE]) * 1e3, color="tab:red",
+            lw=1.0, label="force, codec minus exact")
+    for level, lo, hi in ((float(exact[0, REF]), t_all[0], 0.0),
+                          (float(exact[-1, REF]), 0.0, t_all[-1])):
+        ax.hlines(steady_error(model, level) * 1e3, lo, hi, color="k", lw=1.4, ls="--",
+                  label="decoded minus commanded torque at the reference" if lo < 0 else None)
+    ax.axhline(-q_t * 1e3, color="0.4", lw=0.8, ls=":", label=f"one torque step ({q_t * 1e3:.2f} mN m)")
+    ax.axhline(0.0, color="k", lw=0.6)
+    ax.set_ylim(-1.4 * q_t * 1e3, 0.6 * q_t * 1e3)
+    ax.set_xlabel("time after the step [ms]")
+    ax.set_ylabel("force error [mN m]")
+    ax.set_title("b) the steady force: the truncated torque command")
+    ax.legend(loc="upper right", fontsize=8)
+    ax.grid(True, alpha=0.3)
+
+    ax = axes[2]
+    rows = []
+    for col, key, color, label in ((DIS, "dob", "tab:green", "DOb tau_dis^"),
+                                   (INT, "rtob", "tab:blue", "RTOb tau_int^")):
+        predicted = math.sqrt(sum(figures.observers[key].rms[ch] ** 2 for ch in figures.measured))
+        measured = float(np.std(noise[:, col]))
+        rows.append((label, measured, predicted))
+        ax.hist(noise[:, col] * 1e3, bins=120, density=True, histtype="step", color=color,
+                label=f"{label}: RMS {measured * 1e3:.3g} (H2: {predicted * 1e3:.3g}) mN m")
+        for sign in (-1, 1):
+            ax.axvline(sign * predicted * 1e3, color=color, lw=0.8, ls="--")
+    ax.set_xlabel("estimate error [mN m]")
+    ax.set_ylabel("density")
+    ax.set_title(f"c) estimate noise of a moving servo ({len(noise)} samples)")
+    ax.legend(loc="upper right", fontsize=8)
+    ax.grid(True, alpha=0.3)
+    fig.suptitle(f"{config_path.name} on a {model.vendor} {model.model}: codec quantisation "
+                 f"in the force loop (T = {config.loop.period * 1e3:g} ms)", fontsize=11)
+    fig.tight_layout()
+    save(fig, out)
+
+    print(f"steady force offset after the step: mean {offset.mean() * 1e3:.3f} mN m, "
+          f"std {offset.std() * 1e3:.3g} mN m (decoded minus commanded at the reference "
+          f"{exact[-1, REF]:g} N m: {steady_error(model, float(exact[-1, REF])) * 1e3:.3f} mN m)")
+    peak = np.max(np.abs(coded[window, FORCE] - exact[window, FORCE]))
+    print(f"largest force difference in the step window: {peak * 1e3:.3g} mN m")
+    for label, measured, predicted in rows:
+        print(f"{label} noise of a moving servo: measured RMS {measured * 1e3:.4g} mN m, "
+              f"H2 prediction {predicted * 1e3:.4g} mN m")
+    print(f"wrote {out}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
