@@ -18,11 +18,11 @@ from dataclasses import dataclass
 import numpy as np
 import pytest
 
-from dobhil.analysis.quantisation import (dc_gain, h2_norm, loop_systems, noise_figures,
-                                          observer_systems, quantisation_text)
+from dobhil.analysis.quantisation import (dc_gain, h2_norm, loop_systems, mit_quantisation,
+                                          noise_figures, observer_systems, quantisation_text)
 from dobhil.config import load_config
 from dobhil.config.schema import Config, DesignConfig
-from dobhil.drives.mit.codec import float_to_uint, uint_to_float
+from dobhil.drives.mit.codec import TorqueFrame, float_to_uint, uint_to_float, unpack_command
 from dobhil.drives.mit.models import find_model
 from dobhil.runtime.controller import ForceController
 from dobhil.synthesis.controller import DIS, INT, sampled_controller
@@ -259,7 +259,7 @@ def test_analyze_reports_the_quantisation_of_an_mit_profile_only(
     import json
 
     from dobhil.cli.main import main
-    from dobhil.drives.mit.codec import Command, TorqueFrame, unpack_command
+    from dobhil.drives.mit.codec import Command
     from dobhil.drives.mit.rules import model_of
     from dobhil.drives.profile import load_profile
     from dobhil.drives.timing import effective_config
@@ -290,3 +290,26 @@ def test_analyze_reports_the_quantisation_of_an_mit_profile_only(
     assert "quantisation" not in json.loads(capsys.readouterr().out)
     assert main(["analyze", demo]) == 0
     assert capsys.readouterr().out.splitlines()[-1].startswith("bus budget: ")
+
+
+def test_a_reversed_axis_truncates_the_other_way() -> None:
+    """AK10-9 firmware 1.1 has axis_direction -1: the host's value is the negated decode of
+    the negated value, so a zero command applies +step/2 and every offset changes sign;
+    the noise is the same."""
+    params = params_from_config(load_config("configs/cia402-demo.yaml"))
+    reversed_ = find_model("cubemars", "AK10-9", "1.1")
+    forward = find_model("cubemars", "AK10-9", "manual-1.0.8")
+    assert reversed_.axis_direction == -1 and forward.axis_direction == 1
+    back, ahead = mit_quantisation(params, reversed_), mit_quantisation(params, forward)
+    assert back.zero_torque_bias == pytest.approx(reversed_.quanta.torque / 2, abs=1e-5)
+    assert back.zero_torque_bias == -ahead.zero_torque_bias == reversed_.torque_bias
+    assert back.closed_loop is not None and ahead.closed_loop is not None
+    assert back.closed_loop["tau_int"].bias == pytest.approx(-ahead.closed_loop["tau_int"].bias)
+    assert back.closed_loop["tau_int"].bias == pytest.approx(reversed_.quanta.torque / 2, rel=1e-6)
+    assert back.closed_loop["tau_int"].total == pytest.approx(ahead.closed_loop["tau_int"].total)
+    # the decoded torque of a command on the reversed axis lies at or above it
+    frame = TorqueFrame(reversed_)
+    data = bytearray(frame.template)
+    for tau in np.linspace(-3.0, 3.0, 101):
+        frame.fill(data, float(tau))
+        assert -1e-6 <= unpack_command(reversed_, bytes(data)).torque - tau < reversed_.quanta.torque
