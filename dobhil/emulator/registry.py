@@ -27,6 +27,7 @@ __all__ = ["EMULATOR_CLASSES", "emulated_protocols", "emulator_class", "make_emu
 EMULATOR_CLASSES: Mapping[str, tuple[str, str]] = MappingProxyType({
     "odrive": ("dobhil.emulator.odrive", "EmulatedODrive"),
     "cia402": ("dobhil.emulator.cia402", "EmulatedCiA402"),
+    "mit": ("dobhil.emulator.mit", "EmulatedMit"),
 })
 
 

@@ -29,6 +29,10 @@ Timing (:class:`Timing`):
   simulated time, runs as fast as the machine allows and exactly as the sampled analysis
   models it (the emulator applies each command ``design.input_delay`` after the sample,
   or, for a protocol that fixes the delay itself, at its own latch: a CiA 402 SYNC).
+  A drive whose feedback does not stream (``Drive.feedback_streams`` False: an MIT
+  motor, which answers each command at once) runs the host algorithm on simulated time
+  instead: cycle at ``t0 + k T`` on the newest feedback, then poll until the next
+  deadline (:meth:`ForceLoop._run_lockstep_requests`).
 
 Garbage collection (feedback and host): everything alive at start-up is collected once
 and frozen (``gc.freeze``) before the drive is enabled, the collector is disabled during
@@ -467,6 +471,8 @@ class ForceLoop:
             self._t0 = self.clock()
             if self.settings.timing is Timing.HOST:
                 self._run_host()
+            elif not self.drive.feedback_streams:   # lockstep, a drive that answers requests
+                self._run_lockstep_requests(first)
             else:
                 self._run_feedback(first, self.settings.timing is Timing.FEEDBACK)
         except _Halt as halt:
@@ -537,6 +543,48 @@ class ForceLoop:
             k += 1
             if timed:
                 self._gc.between_cycles(last_wake + period - clock(), period)
+
+    def _run_lockstep_requests(self, first: Feedback) -> None:
+        """Lockstep for a drive whose feedback does not stream (an MIT motor answers each
+        command with one reply): the host algorithm on simulated time.
+
+        Waiting for a fresh frame, as :meth:`_run_feedback` does, cannot work here: the
+        emulated motor answers a command at the very instant it applies it (lockstep
+        latency 0), so the reply is there at once and simulated time would never move.
+        Instead each cycle runs at the deadline ``t0 + k T``: it takes the newest feedback
+        (the reply to the last command: the state at ``t_{k-1}``, so the torque of cycle
+        k acts from ``t_k`` on a sample one period old -- the profile's
+        ``command_delay_periods: 1``), computes, sends, then polls the drive until the
+        clock reaches the next deadline (the LockstepBus advances the emulator while the
+        host waits on it). Fresh means a new ``Feedback.seq``, not what poll returned: the
+        reply is read during the previous wait. No fresh feedback for
+        ``loop.feedback_timeout`` (simulated) stops the run as in host timing."""
+        s = self.settings
+        period, timeout, n = s.period, s.feedback_timeout, s.cycles
+        clock, drive = self.clock, self.drive
+        t0 = self._t0
+        # the clock advances in steps dt = T (summed): a deadline counts as reached within
+        # a tiny fraction of a period, never a whole step later
+        tolerance = 1e-6 * period
+        last_seq, last_fresh = first.seq - 1, t0   # the first feedback counts as fresh
+        k = 0
+        while k < n:
+            deadline = t0 + k * period
+            while clock() < deadline - tolerance:
+                drive.poll(deadline - clock())
+            start = time.perf_counter()
+            drive.poll(0.0)   # anything that came at the deadline itself
+            fb = drive.feedback or first
+            now = clock()
+            if fb.seq != last_seq:
+                self._rate.frame(fb.timestamp, fb.seq - last_seq)
+                last_seq, last_fresh = fb.seq, now
+            elif now - last_fresh > timeout + tolerance:
+                self._check_stop_request()
+                raise self._silent(f"no fresh feedback for {now - last_fresh:.4g} s (simulated)", timeout)
+            self._cycle(k, k * period, fb, 0.0, start, False)
+            self._emit(k, fb, False)
+            k += 1
 
     def _wait_frame(self, expected: float, deadline: float) -> Feedback | None:
         """Feedback timing: the next frame, expected at ``expected`` and given up at
