@@ -284,7 +284,8 @@ def test_analyze_reports_the_quantisation_of_an_mit_profile_only(
     assert quant["observers"] == pytest.approx(expected["observers"])
     assert main(["analyze", demo, *on_ak]) == 0
     lines = capsys.readouterr().out.splitlines()
-    assert lines[-9].startswith("quantisation (cubemars AK80-9 firmware ")
+    assert lines[-8].startswith("quantisation (cubemars AK80-9 firmware ")
+    assert lines[-9].startswith("bus budget: ")
     assert lines[-1].startswith("  closed loop at C_f = 2, command u: RMS")
     assert main(["analyze", demo, "--json"]) == 0
     assert "quantisation" not in json.loads(capsys.readouterr().out)

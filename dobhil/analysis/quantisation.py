@@ -117,8 +117,9 @@ class QuantisationFigures:
         out["steps"] = dict(self.steps)
         out["zero_torque_bias"] = self.zero_torque_bias
         out["measured"] = list(self.measured)
-        out["noise_model"] = ("per channel white, uniform on (-step, 0]: variance step^2/12, "
-                              "mean -step/2 (the firmware truncates)")
+        out["noise_model"] = ("per channel white, uniform over the step below the value (the "
+                              "firmware truncates): variance step^2/12, mean -step/2 "
+                              "(+step/2 on a model with axis_direction -1)")
         out["observers"] = {k: v.as_dict() for k, v in self.observers.items()}
         out["closed_loop"] = (None if self.closed_loop is None else
                               {"force_gain": self.force_gain,
