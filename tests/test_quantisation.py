@@ -314,3 +314,18 @@ def test_a_reversed_axis_truncates_the_other_way() -> None:
     for tau in np.linspace(-3.0, 3.0, 101):
         frame.fill(data, float(tau))
         assert -1e-6 <= unpack_command(reversed_, bytes(data)).torque - tau < reversed_.quanta.torque
+
+
+@pytest.mark.parametrize("name", list(LOOPS))
+def test_h2_norms_are_the_impulse_responses_energy(name: str) -> None:
+    """Parseval in the time domain: the Gramian's norm equals the sum of the squared
+    impulse response (run until it has died out) for every channel and output."""
+    params = params_from_config(load_config("configs/cia402-demo.yaml", LOOPS[name]))
+    closed, ctrl = loop(params, sampled=True), sampled_controller(params)
+    for output in ("tau_int_hat", "tau_dis_hat", "tau_int", "u"):
+        for channel, system in loop_systems(closed, ctrl, output).items():
+            h = _impulse(*system, 6000)
+            norm = h2_norm(*system)
+            assert norm is not None
+            assert abs(h[-200:]).max() <= 1e-12 * max(abs(h).max(), 1e-300)
+            assert norm ** 2 == pytest.approx(float(np.sum(h * h)), rel=1e-7, abs=1e-20), (output, channel)
