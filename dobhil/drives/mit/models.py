@@ -176,10 +176,11 @@ def _number(row: Mapping[str, Any], key: str, what: str, *, low: float, high: fl
 
 
 def _row(row: Any, layouts: Mapping[str, ReplyLayout], what: str) -> MitModel:
+    if isinstance(row, Mapping):
+        names = [row.get(k) for k in ("vendor", "model", "firmware")]
+        if all(isinstance(n, str) and n for n in names):
+            what = f"{what} ({names[0]} {names[1]} firmware {names[2]!r})"
     row = _mapping(row, what, (*_ROW_KEYS, *_OPTIONAL_ROW_KEYS))
-    names = [row.get(k) for k in ("vendor", "model", "firmware")]
-    if all(isinstance(n, str) and n for n in names):
-        what = f"{what} ({names[0]} {names[1]} firmware {names[2]!r})"
     for k in _ROW_KEYS:
         if k not in row:
             raise ConfigError(f"{what}: missing key {k!r}")
