@@ -27,7 +27,10 @@ refuses one frame may take the next), each with its own :class:`FrameResult`; th
 drive's own status frames must confirm that it left torque control. What was sent and
 what was confirmed comes back as a :class:`SafeStopReport`, whose
 :meth:`~SafeStopReport.warning` is the one loud line a user must see when the drive may
-still be enabled.
+still be enabled. A protocol whose frames cannot say that the drive left torque control
+(MIT mode on a CubeMars AK: its replies carry no mode) sets :attr:`Drive.confirms_disable`
+False: its safe stop is :attr:`Confirmation.UNCONFIRMABLE`, never safe, and the loud line
+says why (:meth:`Drive._unconfirmable_detail`).
 """
 
 from __future__ import annotations

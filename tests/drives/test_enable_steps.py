@@ -193,3 +193,30 @@ def test_a_drive_that_does_not_stream_refuses_feedback_timing(buses: tuple[can.B
     for timing in (Timing.HOST, Timing.LOCKSTEP):
         check_feedback_streams(timing, drive)
     check_feedback_streams(Timing.FEEDBACK, SteppedDrive(host, PROFILE))
+
+
+class BlindDrive(SteppedDrive):
+    """The same protocol, but its frames cannot confirm the disable (as MIT on a CubeMars)."""
+
+    @property
+    def confirms_disable(self) -> bool:
+        return False
+
+
+def test_a_drive_that_cannot_confirm_its_disable_is_never_reported_safe(
+        buses: tuple[can.BusABC, can.BusABC]) -> None:
+    host, node = buses
+    assert SteppedDrive(host, PROFILE).confirms_disable is True   # the default: ODrive, CiA 402
+    drive = BlindDrive(host, PROFILE, clock=Clock())
+    state(node, 3)
+    drive.enable()
+    state(node, 2)   # a status frame that would have confirmed it: not asked for
+    report = drive.safe_stop()
+    assert [f.what for f in report.frames] == ["zero torque", "disable"] and report.sent
+    assert report.confirmation is Confirmation.UNCONFIRMABLE and not report.safe
+    assert report.warning() == ("drive may still be enabled: node 5 disable sent, but protocol 'stepped' cannot "
+                                "confirm it: its frames carry no drive state; cut power")
+    assert drive.status.state is DriveState.DISABLED and "disable of node 5 failed" in drive.status.detail
+    # without a confirmation asked (disable()), or a drive never heard from, nothing changes
+    assert BlindDrive(host, PROFILE).safe_stop(confirm=False).confirmation is Confirmation.NOT_ASKED
+    assert BlindDrive(host, PROFILE).safe_stop().confirmation is Confirmation.NEVER_SEEN

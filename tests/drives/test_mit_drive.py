@@ -8,16 +8,18 @@ Decoding is checked with the firmware formula written out here:
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Any
 
 import can
 import pytest
+import yaml
 
 from dobhil.drives import DriveState
 from dobhil.drives.base import Confirmation
 from dobhil.drives.mit.drive import MitDrive
 from dobhil.drives.mit.replies import MitFault
-from dobhil.drives.mit.models import load_models
+from dobhil.drives.mit.models import load_models, shipped_models_path
 from dobhil.drives.profile import DriveProfile, profile_from_mapping
 from dobhil.errors import ConfigError, DriveFaultError, DriveTimeoutError
 
@@ -28,8 +30,10 @@ NODE = 1
 
 
 def row(vendor: str, model: str) -> Any:
-    """The table's row of ``vendor model`` (its first firmware)."""
-    rows = [m for (v, mo, _), m in sorted(load_models().items()) if v == vendor and mo == model]
+    """The table's row of ``vendor model`` whose reply layout is the vendor's own (CubeMars:
+    the 8-byte reply with temperature and error)."""
+    rows = [m for (v, mo, _), m in sorted(load_models().items())
+            if v == vendor and mo == model and m.layout.name == vendor]
     assert rows, f"no {vendor} {model} in the model table"
     return rows[0]
 
@@ -93,7 +97,7 @@ def test_a_reply_queued_before_the_enter_frame_does_not_confirm_it() -> None:
 def test_a_cubemars_error_in_the_reply_ends_the_enable_at_once_with_its_code() -> None:
     with fake_motor(NODE, answer_all(reply_cubemars(NODE, error=1))) as (bus, _):
         drive = MitDrive(bus, mit_profile(enable_timeout=5.0))
-        with pytest.raises(DriveFaultError, match=r"error 1: 1 \(over temperature\)"):
+        with pytest.raises(DriveFaultError, match=r"node 1 reports error 1 \(over temperature\)"):
             drive.enable()
 
 
@@ -165,19 +169,20 @@ def test_position_is_unwrapped_across_the_wrap_both_ways() -> None:
         assert drive.apply(frame(reply_cubemars(NODE, p=p)))
         assert drive.feedback is not None
         positions.append(drive.feedback.position)
-    span = 25.0
+    span = 65536 * 25.0 / 65535   # the 16-bit field rolls over: 2^16 steps
     expected = [decode(0xFFF0, 12.5, 16), decode(0x0010, 12.5, 16) + span, decode(0x8000, 12.5, 16) + span,
                 decode(0xFFF0, 12.5, 16) + span, decode(0x0010, 12.5, 16) + 2 * span,
                 decode(0xFFF0, 12.5, 16) + span, decode(0x0010, 12.5, 16) + 2 * span,
                 decode(0x0005, 12.5, 16) + 2 * span]
-    # 0x8000 is 12.5 rad past 0x0010: exactly half a span is no crossing
-    assert positions == pytest.approx(expected, abs=1e-9)
+    # 0x0010 -> 0x8000 is less than half a span: no crossing
+    # the codec decodes in IEEE single precision, as the firmware does: 1 ulp at 12.5 is 1e-6
+    assert positions == pytest.approx(expected, abs=2e-6)
     # the other way round: from +... down through the wrap
     down = MitDrive(None, mit_profile())  # type: ignore[arg-type]
     for p in (0x0010, 0xFFF0):
         down.apply(frame(reply_cubemars(NODE, p=p)))
     assert down.feedback is not None
-    assert down.feedback.position == pytest.approx(decode(0xFFF0, 12.5, 16) - span)
+    assert down.feedback.position == pytest.approx(decode(0xFFF0, 12.5, 16) - span, abs=2e-6)
 
 
 def test_replaying_the_same_replies_rebuilds_the_same_positions() -> None:
@@ -217,8 +222,22 @@ def test_a_non_zero_error_code_faults_a_running_drive_with_its_text() -> None:
         drive.disable()
 
 
-def test_a_saturating_reading_on_the_rail_is_a_fault() -> None:
-    drive = MitDrive(None, mit_profile("damiao", "DM4310"))  # type: ignore[arg-type]
+def saturating_table(directory: Path) -> str:
+    """A model table of our own (``mit.models``): the shipped one with the DM4310 row's
+    position saturating at its range ends instead of wrapping."""
+    table = yaml.safe_load(shipped_models_path().read_text(encoding="utf-8"))
+    for entry in table["models"]:
+        if entry["vendor"] == "damiao" and entry["model"] == "DM4310":
+            entry["position_at_limit"] = "saturate"
+    path = directory / "saturating.yaml"
+    path.write_text(yaml.safe_dump(table), encoding="utf-8")
+    return str(path)
+
+
+def test_a_saturating_reading_on_the_rail_is_a_fault(tmp_path: Path) -> None:
+    profile = mit_profile("damiao", "DM4310", mit={"models": saturating_table(tmp_path)})
+    assert profile.options["models"]
+    drive = MitDrive(None, profile)  # type: ignore[arg-type]
     events = drive._decode(frame(reply_damiao(NODE, 1, p=0xFFFF)))
     state = events[1]
     assert state.error_code == MitFault.AT_RAIL   # type: ignore[union-attr]
@@ -265,3 +284,44 @@ def test_bad_profiles_are_one_line(changes: dict[str, Any], words: str) -> None:
 def test_a_damiao_node_id_must_fit_its_nibble() -> None:
     with pytest.raises(ConfigError, match="node_id: expected an integer from 1 to 15"):
         mit_profile("damiao", "DM4310", node=16)
+
+
+# ---------------------------------------------------------------------------
+# Every shipped MIT profile: the drive follows the codec's wrapping replies
+
+
+def shipped_mit_profiles() -> list[str]:
+    drivers = Path(__file__).resolve().parents[2] / "drivers"
+    names = []
+    for path in sorted(drivers.glob("*.yaml")):
+        data = yaml.safe_load(path.read_text(encoding="utf-8"))
+        if isinstance(data, dict) and data.get("protocol") == "mit":
+            names.append(path.stem)
+    return names
+
+
+@pytest.mark.parametrize("name", shipped_mit_profiles())
+def test_the_unwrapped_position_follows_a_motor_turning_many_times(name: str) -> None:
+    """The motor's side packs each reply with the codec (``pack_reply``: the 16-bit
+    position rolls over past +-p_max, as the firmware's does); the drive's continuous
+    position stays within one step of the true angle over several wraps, both ways."""
+    from dobhil.drives.mit.codec import pack_reply
+    from dobhil.drives.profile import load_profile
+    profile = load_profile(name)
+    drive = MitDrive(None, profile)  # type: ignore[arg-type]
+    model = drive.model
+    if model.position_at_limit != "wrap":
+        pytest.skip(f"{name}: its position saturates")
+    node = profile.node_id
+    reply_id = int(profile.options["reply_id"])
+    step = 0.4 * model.p_max        # less than half a wrap between two replies
+    turns = 3 * model.wrap_period   # three wraps out, then back past the start
+    angles = [k * step for k in range(int(turns / step))]
+    angles += [angles[-1] - k * step for k in range(1, 2 * len(angles))]
+    worst = 0.0
+    for q in angles:
+        data = pack_reply(model, node, q, 0.0, 0.0)
+        assert drive.apply(can.Message(arbitration_id=reply_id, data=data, is_extended_id=False))
+        assert drive.feedback is not None
+        worst = max(worst, abs(drive.feedback.position - q))
+    assert worst <= model.quanta.position

@@ -4,8 +4,10 @@ tests/drives/mit_fake.py (literal reply bytes; Damiao register answers as damiao
 
 from __future__ import annotations
 
+import json
 import struct
 import time
+from pathlib import Path
 from typing import Any
 
 import can
@@ -18,7 +20,7 @@ from dobhil.drives.registry import preflight_probe
 from dobhil.errors import ConfigError, DriveTimeoutError
 
 from tests.drives.mit_fake import ZERO, ZERO_TORQUE, FakeMotor, fake_motor, reply_cubemars, reply_damiao
-from tests.drives.test_mit_drive import NODE, decode, mit_profile
+from tests.drives.test_mit_drive import NODE, decode, mit_profile, saturating_table
 
 WINDOW = 0.15
 
@@ -86,8 +88,9 @@ class DamiaoWithRegisters(FakeMotor):
         return None if value is None else data[:4] + struct.pack("<f", value)
 
 
-def damiao_preflight(registers: dict[int, float | None], state: int = 0, p: int = 0x7FFF) -> PreflightReport:
-    profile = mit_profile("damiao", "DM4310")
+def damiao_preflight(registers: dict[int, float | None], state: int = 0, p: int = 0x7FFF,
+                     **section: Any) -> PreflightReport:
+    profile = mit_profile("damiao", "DM4310", mit=section)
     bus = can.Bus(interface="virtual", channel="mit-damiao-registers")
     motor = DamiaoWithRegisters("mit-damiao-registers", NODE, lambda data: reply_damiao(NODE, state, p=p))
     motor.registers = registers
@@ -117,10 +120,12 @@ def test_a_damiao_that_does_not_answer_register_reads_leaves_them_unchecked() ->
     assert not report.refuses
 
 
-def test_a_damiao_already_in_motor_mode_or_on_its_rail_refuses_the_run() -> None:
+def test_a_damiao_already_in_motor_mode_or_on_its_rail_refuses_the_run(tmp_path: Path) -> None:
     enabled = damiao_preflight({21: 12.5, 22: 30.0, 23: 10.0}, state=1)
     assert any("already in motor mode" in f.text and f.refuses for f in enabled.findings)
-    rail = damiao_preflight({21: 12.5, 22: 30.0, 23: 10.0}, p=0x0000)
+    wraps = damiao_preflight({21: 12.5, 22: 30.0, 23: 10.0}, p=0x0000)
+    assert not wraps.refuses   # a wrapping position has no rail
+    rail = damiao_preflight({21: 12.5, 22: 30.0, 23: 10.0}, p=0x0000, models=saturating_table(tmp_path))
     assert any("end of the encodable range" in f.text and f.refuses for f in rail.findings)
 
 
@@ -128,25 +133,37 @@ def test_a_damiao_already_in_motor_mode_or_on_its_rail_refuses_the_run() -> None
 # Set zero
 
 
-def test_set_zero_sends_zero_waits_its_silence_then_reads_the_new_position() -> None:
-    zeroed: list[float] = []
+class Stamped:
+    """The host's bus, stamping each frame it sends (the host's own clock)."""
 
+    def __init__(self, bus: can.BusABC) -> None:
+        self.bus = bus
+        self.sent: list[tuple[float, bytes]] = []
+
+    def send(self, msg: can.Message, timeout: float | None = None) -> None:
+        self.sent.append((time.monotonic(), bytes(msg.data)))
+        self.bus.send(msg, timeout)
+
+    def recv(self, timeout: float | None = None) -> can.Message | None:
+        return self.bus.recv(timeout)
+
+
+def test_set_zero_sends_zero_waits_its_silence_then_reads_the_new_position() -> None:
     def answer(data: bytes) -> bytes | None:
-        if data == ZERO:
-            zeroed.append(time.monotonic())
-            return None          # silent while it stores the offset
-        return reply_cubemars(NODE, p=0x8001)
+        return None if data == ZERO else reply_cubemars(NODE, p=0x8001)   # silent after zero
 
     profile = mit_profile(mit={"zero_silence": 0.05})
     with fake_motor(NODE, answer) as (bus, motor):
-        result = set_zero(bus, profile, clock=time.monotonic)
-        asked = time.monotonic()
-        frames = motor.frames()
+        host = Stamped(bus)
+        result = set_zero(host, profile, clock=time.monotonic)  # type: ignore[arg-type]
+        frames = motor.wait_for(ZERO_TORQUE)
     assert frames == [ZERO, ZERO_TORQUE]
-    assert result.position == pytest.approx(decode(0x8001, 12.5, 16))
+    assert [data for _, data in host.sent] == [ZERO, ZERO_TORQUE]
+    # the host asked again only after the silence, by its own clock
+    assert host.sent[1][0] - host.sent[0][0] >= 0.05
+    # decoded in single precision, as the firmware does
+    assert result.position == pytest.approx(decode(0x8001, 12.5, 16), abs=2e-6)
     assert "set zero sent; after 0.05 s the position reads" in result.line()
-    # the host waited at least its silence by its own clock before it asked again
-    assert asked - zeroed[0] >= 0.05
 
 
 def test_set_zero_without_a_reply_times_out_in_one_line() -> None:
@@ -160,3 +177,40 @@ def test_check_set_zero_refuses_a_profile_that_is_not_mit(capsys: pytest.Capture
     err = capsys.readouterr().err.strip()
     assert err.count("\n") == 0
     assert "--set-zero: expected a profile of protocol 'mit'" in err and "'odrive'" in err
+
+
+def mit_config(directory: Path, name: str, profile: str) -> Path:
+    """configs/cia402-demo.yaml on an MIT profile (host timing: MIT motors do not stream)."""
+    text = (Path(__file__).resolve().parents[2] / "configs" / "cia402-demo.yaml").read_text(encoding="utf-8")
+    text = text.replace("profile: cia402-emulated", f"profile: {profile}")
+    text = text.replace("loop:\n  period: 0.001\n", "loop:\n  period: 0.001\n  timing: host\n")
+    path = directory / name
+    path.write_text(text, encoding="utf-8")
+    return path
+
+
+@pytest.mark.parametrize("command", ["run", "check"])
+def test_a_motor_whose_ranges_are_not_the_profiles_is_bad_input_before_any_enable(
+        command: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A DM4310 profile on a bus whose (emulated) motor is a DM8009: its registers say
+    VMAX 45, TMAX 54 where the DM4310 row says 30, 10. The preflight reads them before
+    anything is enabled: one line, exit 2."""
+    host = mit_config(tmp_path, "host.yaml", "dm4310")
+    motor = mit_config(tmp_path, "motor.yaml", "dm8009")
+    assert main([command, str(host), "--bus", f"dobhil:{motor}"]) == 2
+    out = capsys.readouterr()
+    err = out.err.strip()
+    assert err.count("\n") == 0, err
+    assert "ranges do not match: node 1's registers say VMAX 45 (table 30), TMAX 54 (table 10)" in err
+    assert "cycles" not in out.out   # no run happened
+
+
+def test_check_set_zero_on_an_emulated_ak80_9_prints_the_new_position(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """The emulated motor starts at the plant's -5 mrad; after set zero it reads the code
+    nearest 0 (0x7FFF: -0.19 mrad on an AK80-9, one step below zero)."""
+    config = mit_config(tmp_path, "mit.yaml", "ak80-9")
+    assert main(["check", str(config), "--bus", f"dobhil:{config}", "--set-zero", "--json"]) == 0
+    said = json.loads(capsys.readouterr().out)
+    assert said["node_id"] == 1 and said["zero_silence"] == 1.0
+    assert said["position"] == pytest.approx(decode(0x7FFF, 12.5, 16), abs=2e-6)

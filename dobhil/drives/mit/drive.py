@@ -50,7 +50,7 @@ import can
 from dobhil.drives.base import Clock, Drive, DriveEvent, MotionEvent, StateEvent
 from dobhil.drives.mit.codec import MitModel, Reply, Special, TorqueFrame, pack_command, special_frame, unpack_reply
 from dobhil.drives.mit.replies import ZERO_COMMAND, MitFault, reply_node, state_of
-from dobhil.drives.mit.rules import MIT_RULES, check_mit_profile, max_node_id, model_of
+from dobhil.drives.mit.rules import MIT_RULES, check_mit_profile, model_of
 from dobhil.drives.profile import DriveProfile, ProtocolRules
 from dobhil.drives.waits import Cancel
 from dobhil.errors import BusError, CodecError, DriveFaultError
@@ -76,7 +76,9 @@ class MitDrive(Drive):
         check_mit_profile(profile, f"drive profile {profile.name or profile.protocol!r}")
         self._model = model_of(profile)
         self._reply_id = int(profile.options.get("reply_id", 0))
-        self._span = 2.0 * self._model.p_max
+        # the 16-bit position rolls over: the decoded value then jumps by 2^16 steps
+        self._span = self._model.wrap_period
+        self._half = self._span / 2
         self._wraps = self._model.position_at_limit == "wrap"
         self._rail = (1 << 16) - 1   # the position's last code: 16 bits
         # hot path: one preallocated zero command whose torque bits are refilled
@@ -150,7 +152,7 @@ class MitDrive(Drive):
         if event.error_code != 0 and not (self._reset_faults and Special.CLEAR_ERROR in self._model.special):
             hint = (" (dobhil run --reset-faults sends clear error first)"
                     if Special.CLEAR_ERROR in self._model.special else "")
-            raise DriveFaultError(f"node {self.node_id} reports error {event.error_code}: {event.error_text}{hint}")
+            raise DriveFaultError(f"node {self.node_id} reports error {event.error_text}, {event.state_text}{hint}")
         return ()
 
     def _keepalive_frames(self) -> Sequence[can.Message]:
@@ -193,7 +195,7 @@ class MitDrive(Drive):
         if reply_node(self._model, data) != self.node_id:
             return _NO_EVENTS   # another motor's reply on the shared master id
         try:
-            reply = unpack_reply(self._model, bytes(data))
+            reply = unpack_reply(self._model, data)
         except CodecError:
             return (self._layout_fault(len(data)),)
         if not self._wraps and reply.raw_position in (0, self._rail):
@@ -211,15 +213,15 @@ class MitDrive(Drive):
         last = self._last_reading
         if last is not None:
             step = reading - last
-            if step > self._model.p_max:
+            if step > self._half:
                 self._turns -= 1
-            elif step < -self._model.p_max:
+            elif step < -self._half:
                 self._turns += 1
         self._last_reading = reading
         return reading + self._turns * self._span
 
     def _has_state(self) -> bool:
-        return max_node_id(self._model) == 0x0F   # the Damiao layout: state in the high nibble
+        return bool(self._model.layout.state_field)   # Damiao: the state in the high nibble
 
     def _state_event(self, reply: Reply) -> StateEvent:
         active, words = state_of(self._model, reply)

@@ -41,7 +41,7 @@ import can
 from dobhil.drives.bus_load import CycleFrame
 from dobhil.drives.mit.codec import MitModel, Reply, Special, pack_command, special_frame, unpack_reply
 from dobhil.drives.mit.replies import DAMIAO_ENABLED, ZERO_COMMAND, reply_node, state_of
-from dobhil.drives.mit.rules import max_node_id, model_of
+from dobhil.drives.mit.rules import model_of
 from dobhil.drives.preflight import (Capture, Finding, NodeReport, Observation, PreflightProbe, Setting,
                                      Severity, Stream, listen_window)
 from dobhil.drives.profile import DriveProfile
@@ -113,7 +113,7 @@ class MitPreflight(PreflightProbe):
                 Setting.STATUS_RATE: "nothing (an MIT motor answers each command)"}[which]
 
     def motion_name(self) -> str:
-        return "replies"
+        return "streamed feedback (none in MIT mode)"
 
     def status_name(self) -> str:
         return "replies"
@@ -148,7 +148,7 @@ class MitPreflight(PreflightProbe):
             cap.verdict = Finding(Severity.MISMATCH, self._silence(window) + self._others(cap), refuses_run=True)
             return cap
         self.reply = self._decode(data)
-        if max_node_id(self.model) == 0x0F:   # a Damiao: its ranges are registers
+        if self.model.vendor == "damiao":   # its ranges are registers the user may change
             self._read_ranges(bus, clock, end, cancel, cap, stamp)
         if clock() < end:
             listen_window(bus, self, end - clock(), clock, stamp, cancel, cap)

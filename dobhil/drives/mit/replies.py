@@ -15,7 +15,6 @@ from __future__ import annotations
 from enum import IntEnum
 
 from dobhil.drives.mit.codec import Command, MitModel, Reply
-from dobhil.drives.mit.rules import max_node_id
 
 __all__ = ["DAMIAO_ENABLED", "ZERO_COMMAND", "MitFault", "reply_node", "state_of"]
 
@@ -37,7 +36,7 @@ def reply_node(model: MitModel, data: bytes | bytearray) -> int:
     """The node id a reply carries (-1: empty frame): byte 0, or its low nibble (Damiao)."""
     if not data:
         return -1
-    return data[0] & 0x0F if max_node_id(model) == 0x0F else data[0]
+    return data[0] & 0x0F if model.layout.id_field == "low_nibble0" else data[0]
 
 
 def state_of(model: MitModel, reply: Reply) -> tuple[bool, str]:

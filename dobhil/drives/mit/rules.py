@@ -17,7 +17,7 @@ from pathlib import Path
 from types import MappingProxyType
 
 from dobhil.drives.mit.codec import MitModel
-from dobhil.drives.mit.models import find_model, load_models
+from dobhil.drives.mit.models import find_model
 from dobhil.drives.profile import DriveProfile, ProtocolRules, Rule
 from dobhil.errors import ConfigError
 
@@ -32,12 +32,7 @@ MAX_ZERO_SILENCE = 10.0
 def max_node_id(model: MitModel) -> int:
     """The largest node id the reply's id field can carry: 15 in the low nibble of byte 0
     (Damiao: the high nibble is the state), else 255 (all of byte 0)."""
-    return 0x0F if _id_in_nibble(model) else 0xFF
-
-
-def _id_in_nibble(model: MitModel) -> bool:
-    # the table writes where the reply's id sits; Damiao's is the low nibble of byte 0
-    return "nibble" in str(getattr(model.layout, "id", ""))
+    return model.layout.max_motor_id
 
 
 def model_of(profile: DriveProfile) -> MitModel:
@@ -51,16 +46,7 @@ def model_of(profile: DriveProfile) -> MitModel:
         path = Path(str(table))
         if not path.is_absolute() and profile.directory:
             path = Path(profile.directory) / path
-    vendor, model = str(opts["vendor"]), str(opts["model"])
-    if path is None:
-        return find_model(vendor, model, profile.firmware)
-    rows = load_models(path)
-    found = rows.get((vendor, model, profile.firmware))
-    if found is None:
-        known = ", ".join(f"{v} {m} {f!r}" for v, m, f in sorted(rows))
-        raise ConfigError(f"mit.model: no row for {vendor} {model} firmware {profile.firmware!r} in {path}; "
-                          f"known: {known}")
-    return found
+    return find_model(str(opts["vendor"]), str(opts["model"]), profile.firmware, path)
 
 
 def check_mit_profile(profile: DriveProfile, source: str) -> None:
