@@ -170,14 +170,15 @@ def main() -> int:
     ax.step(t_ms[window], coded[window, FORCE], where="post", color="tab:red", lw=1.0,
             label=f"force, {model.model} codec in the loop")
     ax.step(t_ms[window], coded[window, INT_HAT], where="post", color="tab:blue", lw=0.7,
-            alpha=0.7, label="RTOb estimate, codec in the loop")
+            alpha=0.7, label=r"RTOb estimate $\hat\tau_{int}$, codec in the loop")
     run_ms = (np.arange(1, n + 1) * config.loop.period - step_at) * 1e3
     shown = (run_ms > -20) & (run_ms < 120)
     ax.plot(run_ms[shown][::2], run["tau_int_true"][:n][shown][::2], ls="none", marker="o", ms=2.5,
             mfc="none", color="tab:red", label="force, dobhil run --emulate --lockstep")
     ax.set_xlabel("time after the step [ms]")
     ax.set_ylabel("interaction torque [N m]")
-    ax.set_title("a) force step response")
+    peak = float(np.max(np.abs(coded[window, FORCE] - exact[window, FORCE])))
+    ax.set_title(f"a) force step response (codec: at most {peak * 1e3:.2g} mN m off)")
     ax.legend(loc="lower right", fontsize=8)
     ax.grid(True, alpha=0.3)
 
@@ -202,19 +203,21 @@ def main() -> int:
 
     ax = axes[2]
     rows = []
-    for col, key, color, label in ((DIS, "dob", "tab:green", "DOb tau_dis^"),
-                                   (INT, "rtob", "tab:blue", "RTOb tau_int^")):
+    for col, key, color, label in ((DIS, "dob", "tab:green", r"DOb $\hat\tau_{dis}$"),
+                                   (INT, "rtob", "tab:blue", r"RTOb $\hat\tau_{int}$")):
         predicted = math.sqrt(sum(figures.observers[key].rms[ch] ** 2 for ch in figures.measured))
         measured = float(np.std(noise[:, col]))
         rows.append((label, measured, predicted))
         ax.hist(noise[:, col] * 1e3, bins=120, density=True, histtype="step", color=color,
-                label=f"{label}: RMS {measured * 1e3:.3g} (H2: {predicted * 1e3:.3g}) mN m")
+                label=f"{label}: RMS {measured * 1e3:.3g} ({predicted * 1e3:.3g}) mN m")
         for sign in (-1, 1):
             ax.axvline(sign * predicted * 1e3, color=color, lw=0.8, ls="--")
     ax.set_xlabel("estimate error [mN m]")
     ax.set_ylabel("density")
     ax.set_title(f"c) estimate noise of a moving servo ({len(noise)} samples)")
-    ax.legend(loc="upper right", fontsize=8)
+    ax.set_ylim(0.0, ax.get_ylim()[1] * 1.3)
+    ax.legend(loc="upper right", fontsize=8, title="measured (H2 prediction, dashed)",
+              title_fontsize=8)
     ax.grid(True, alpha=0.3)
     fig.suptitle(f"{config_path.name} on a {model.vendor} {model.model}: codec quantisation "
                  f"in the force loop (T = {config.loop.period * 1e3:g} ms)", fontsize=11)
