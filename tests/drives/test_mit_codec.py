@@ -362,6 +362,14 @@ def test_single_precision_changes_codes() -> None:
     assert uint_to_float(2047, -18.0, 18.0, 12) == pytest.approx(2047 * 36 / 4095 - 18, abs=2e-6)
 
 
+def test_models_replies_and_commands_are_hashable_values() -> None:
+    assert len({*MODELS, *MODELS}) == len(MODELS) and {AK80_9: 1}[find_model("cubemars", "AK80-9", "manual-1.0.8")]
+    data = pack_reply(AK80_9, 1, 0.5, 1.0, -2.0)
+    assert hash(unpack_reply(AK80_9, data)) == hash(unpack_reply(AK80_9, bytearray(data)))
+    assert unpack_reply(AK80_9, data) == unpack_reply(AK80_9, bytearray(data))
+    assert hash(Command(1, 2, 3, 4, 5)) == hash(Command(1, 2, 3, 4, 5))
+
+
 def test_quanta_and_the_generic_functions() -> None:
     q = AK80_9.quanta
     assert q.position == pytest.approx(25 / 65535) and q.position == pytest.approx(0.38e-3, abs=0.01e-3)
