@@ -324,7 +324,8 @@ class Drive(ABC):
                                     self._unconfirmable_detail())
         else:
             report = self._confirm_disabled(tuple(results), timeout, cancel)
-        failure = "" if report.safe else f"disable of node {self.node_id} failed: {report.detail}"
+        verdict = "cannot be confirmed" if report.confirmation is Confirmation.UNCONFIRMABLE else "failed"
+        failure = "" if report.safe else f"disable of node {self.node_id} {verdict}: {report.detail}"
         self._set_state(DriveState.DISABLED, failure)
         return report
 

@@ -506,6 +506,11 @@ class LockstepBus(can.BusABC):
         if timeout is None:
             raise ValueError("LockstepBus.recv needs a finite timeout (simulated seconds)")
         end = self.clock() + timeout
+        # A positive wait takes at least one step, however short: the clock is a sum of
+        # steps dt, so a caller's deadline (enable, the safe stop's confirmation) can lie
+        # 1e-13 s past it, and a wait that returned at once without advancing would be
+        # asked for again and again, for ever. ``recv(0)`` still never advances.
+        must_step = timeout > 0
         # The host and the emulators are the only participants of the channel, and the
         # host is inside this call: the bus counts the frames in flight each way, so no
         # read comes back empty (the bare-bus cost is two reads per cycle, so is this).
@@ -520,9 +525,10 @@ class LockstepBus(can.BusABC):
                     self._to_host -= 1
                     return msg
                 self._to_host = 0
-            if self.clock() + _EPS >= end:
+            if self.clock() + _EPS >= end and not must_step:
                 return None
             self._advance_all()
+            must_step = False
 
     def _sent_by_emulators(self) -> int:
         total = 0

@@ -37,6 +37,11 @@ def reply_cubemars(node: int, p: int = 0x7FFF, v: int = 0x7FF, t: int = 0x7FF, t
     return bytes((node, p >> 8, p & 0xFF, v >> 4, (v & 0xF) << 4 | t >> 8, t & 0xFF, temp, error))
 
 
+def reply_cheetah(node: int, p: int = 0x7FFF, v: int = 0x7FF, t: int = 0x7FF, vbus: int = 0x99) -> bytes:
+    """A Mini-Cheetah (motorcontrol) 7-byte reply: id, p16, v12|t12, bus voltage (raw)."""
+    return bytes((node, p >> 8, p & 0xFF, v >> 4, (v & 0xF) << 4 | t >> 8, t & 0xFF, vbus))
+
+
 def reply_damiao(node: int, state: int, p: int = 0x7FFF, v: int = 0x7FF, t: int = 0x7FF,
                  mos: int = 30, rotor: int = 31) -> bytes:
     """A Damiao 8-byte reply: state << 4 | id, p16, v12|t12, MOS and rotor temperatures."""

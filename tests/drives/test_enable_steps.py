@@ -216,7 +216,7 @@ def test_a_drive_that_cannot_confirm_its_disable_is_never_reported_safe(
     assert report.confirmation is Confirmation.UNCONFIRMABLE and not report.safe
     assert report.warning() == ("drive may still be enabled: node 5 disable sent, but protocol 'stepped' cannot "
                                 "confirm it: its frames carry no drive state; cut power")
-    assert drive.status.state is DriveState.DISABLED and "disable of node 5 failed" in drive.status.detail
+    assert drive.status.state is DriveState.DISABLED and "disable of node 5 cannot be confirmed" in drive.status.detail
     # without a confirmation asked (disable()), or a drive never heard from, nothing changes
     assert BlindDrive(host, PROFILE).safe_stop(confirm=False).confirmation is Confirmation.NOT_ASKED
     assert BlindDrive(host, PROFILE).safe_stop().confirmation is Confirmation.NEVER_SEEN

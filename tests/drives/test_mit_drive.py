@@ -23,7 +23,7 @@ from dobhil.drives.mit.models import load_models, shipped_models_path
 from dobhil.drives.profile import DriveProfile, profile_from_mapping
 from dobhil.errors import ConfigError, DriveFaultError, DriveTimeoutError
 
-from tests.drives.mit_fake import (CLEAR, ENTER, EXIT, ZERO_TORQUE, fake_motor, reply_cubemars,
+from tests.drives.mit_fake import (CLEAR, ENTER, EXIT, ZERO_TORQUE, fake_motor, reply_cheetah, reply_cubemars,
                                    reply_damiao)
 
 NODE = 1
@@ -250,9 +250,14 @@ def test_a_saturating_reading_on_the_rail_is_a_fault(tmp_path: Path) -> None:
 # Safe stop
 
 
-def test_a_cubemars_safe_stop_sends_zero_torque_then_exit_and_says_it_cannot_be_confirmed() -> None:
-    with fake_motor(NODE, answer_all(reply_cubemars(NODE))) as (bus, motor):
-        drive = MitDrive(bus, mit_profile())
+@pytest.mark.parametrize(("vendor", "model", "reply"), [
+    ("cubemars", "AK80-9", reply_cubemars(NODE)),
+    ("mini-cheetah", "motorcontrol", reply_cheetah(NODE)),
+])
+def test_a_safe_stop_sends_zero_torque_then_exit_and_says_when_it_cannot_be_confirmed(
+        vendor: str, model: str, reply: bytes) -> None:
+    with fake_motor(NODE, answer_all(reply)) as (bus, motor):
+        drive = MitDrive(bus, mit_profile(vendor, model))
         drive.enable()
         report = drive.safe_stop()
         frames = motor.wait_for(EXIT)
@@ -261,6 +266,7 @@ def test_a_cubemars_safe_stop_sends_zero_torque_then_exit_and_says_it_cannot_be_
     assert report.confirmation is Confirmation.UNCONFIRMABLE and not report.safe
     warning = report.warning()
     assert "cannot be confirmed" in warning and "carries no motor mode" in warning and "cut power" in warning
+    assert f"a {vendor} {model} reply" in warning
     assert drive.status.state is DriveState.DISABLED
 
 

@@ -76,7 +76,8 @@ def test_an_error_in_the_reply_refuses_the_run() -> None:
 
 
 class DamiaoWithRegisters(FakeMotor):
-    """Answers register reads on 0x7FF with the given floats (None: no answer)."""
+    """Answers register reads on 0x7FF with the given values (float32; register 10,
+    CTRL_MODE, a uint32; None: no answer)."""
 
     registers: dict[int, float | None] = {}
 
@@ -85,14 +86,17 @@ class DamiaoWithRegisters(FakeMotor):
         if msg.arbitration_id != 0x7FF or data[2] != 0x33 or data[0] | data[1] << 8 != self.node:
             return None
         value = self.registers.get(data[3])
-        return None if value is None else data[:4] + struct.pack("<f", value)
+        if value is None:
+            return None
+        return data[:4] + (struct.pack("<I", int(value)) if data[3] == 10 else struct.pack("<f", value))
 
 
-def damiao_preflight(registers: dict[int, float | None], state: int = 0, p: int = 0x7FFF,
+def damiao_preflight(registers: dict[int, float | None], state: int = 0, p: int = 0x7FFF, silent: bool = False,
                      **section: Any) -> PreflightReport:
     profile = mit_profile("damiao", "DM4310", mit=section)
     bus = can.Bus(interface="virtual", channel="mit-damiao-registers")
-    motor = DamiaoWithRegisters("mit-damiao-registers", NODE, lambda data: reply_damiao(NODE, state, p=p))
+    motor = DamiaoWithRegisters("mit-damiao-registers", NODE,
+                                lambda data: None if silent else reply_damiao(NODE, state, p=p))
     motor.registers = registers
     try:
         return preflight(bus, profile)
@@ -118,6 +122,16 @@ def test_a_damiao_that_does_not_answer_register_reads_leaves_them_unchecked() ->
     report = damiao_preflight({21: None})
     assert any("did not answer the register read of PMAX" in f.text for f in report.findings)
     assert not report.refuses
+
+
+def test_a_damiao_silent_in_another_control_mode_is_told_so() -> None:
+    """Silent to MIT frames but answering register reads: CTRL_MODE (register 10) says
+    position-velocity (2), so the one line names it instead of guessing."""
+    other = damiao_preflight({10: 2}, silent=True)
+    text = next(f.text for f in other.findings if f.refuses)
+    assert "its control mode (register 10, CTRL_MODE) is 2, not 1 (MIT): set CTRL_MODE = 1" in text
+    mit = damiao_preflight({10: 1}, silent=True)
+    assert "a motor not in MIT mode answers nothing" in next(f.text for f in mit.findings if f.refuses)
 
 
 def test_a_damiao_already_in_motor_mode_or_on_its_rail_refuses_the_run(tmp_path: Path) -> None:

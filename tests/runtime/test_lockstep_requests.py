@@ -68,8 +68,8 @@ class _RequestDrive(Drive):
             return ()
         reply = unpack_reply(self.model, bytes(msg.data))
         return (MotionEvent(reply.position, reply.velocity),
-                StateEvent(reply.state == 1, reply.error if reply.error > 0 else 0, False,
-                           "motor" if reply.state == 1 else "rest", reply.error_text))
+                StateEvent(reply.state != 0, reply.error if reply.error > 0 else 0, False,
+                           "rest" if reply.state == 0 else "motor", reply.error_text))
 
 
 class _Log(EmulatedMit):

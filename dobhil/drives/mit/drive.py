@@ -85,6 +85,7 @@ class MitDrive(Drive):
         self._torque = TorqueFrame(self._model)
         self._torque_msg = self._message(pack_command(self._model, ZERO_COMMAND))
         self._keepalive = self._message(pack_command(self._model, ZERO_COMMAND))
+        self._states: dict[tuple[int, int], StateEvent] = {}
         # unwrap state: the last reading in the motor's range and whole spans crossed
         self._last_reading: float | None = None
         self._turns = 0
@@ -224,11 +225,18 @@ class MitDrive(Drive):
         return bool(self._model.layout.state_field)   # Damiao: the state in the high nibble
 
     def _state_event(self, reply: Reply) -> StateEvent:
-        active, words = state_of(self._model, reply)
-        error = max(reply.error, 0)
-        text = f"{error} ({reply.error_text})" if error else "0 (none)"
-        return StateEvent(active=active, error_code=error, watchdog_tripped=False, state_text=words,
-                          error_text=text, state=reply.state)
+        """The reply's state as an event: one per (error, state) pair, made once (the same
+        few pairs come with every reply: no text is formatted per cycle)."""
+        key = (reply.error, reply.state)
+        event = self._states.get(key)
+        if event is None:
+            active, words = state_of(self._model, reply)
+            error = max(reply.error, 0)
+            text = f"{error} ({reply.error_text})" if error else "0 (none)"
+            event = StateEvent(active=active, error_code=error, watchdog_tripped=False, state_text=words,
+                               error_text=text, state=reply.state)
+            self._states[key] = event
+        return event
 
     def _rail_fault(self, reply: Reply) -> StateEvent:
         side = "+" if reply.raw_position else "-"

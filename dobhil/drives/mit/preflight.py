@@ -7,7 +7,8 @@ ignores it but still answers) -- and reads the reply:
 
 - no reply at all is ONE finding, and the run refuses: a motor that is not in MIT mode
   answers nothing (CubeMars: set MIT mode with the vendor's tool); else the node id, the
-  bit rate or the power is wrong;
+  bit rate or the power is wrong. A silent Damiao is asked its control mode (register 10,
+  CTRL_MODE, 1 = MIT): answering it in another mode names that mode instead;
 - a reply whose length the model row's layout lacks is bad input (ConfigError: one line,
   exit 2, nothing enabled): the profile's vendor/model/firmware do not describe the motor;
 - the reply's error code (CubeMars byte 7; Damiao a state nibble >= 8) and, on a Damiao,
@@ -58,6 +59,9 @@ REGISTER_ID = 0x7FF
 REGISTER_READ = 0x33
 #: Damiao registers of the mapping ranges (damiao-motor's REGISTER_TABLE: PMAX, VMAX, TMAX)
 RANGE_REGISTERS = ((21, "PMAX", "p_max"), (22, "VMAX", "v_max"), (23, "TMAX", "t_max"))
+#: Damiao register CTRL_MODE (uint32) and its value for MIT mode (damiao-motor's REGISTER_TABLE)
+CTRL_MODE = 10
+MIT_CONTROL_MODE = 1
 #: how long a register read may take before it is called unanswered [s]
 REGISTER_TIMEOUT = 0.1
 #: a register is a float32: a range equal to the table's within its rounding agrees
@@ -70,11 +74,12 @@ def register_request(node: int, rid: int) -> can.Message:
                        data=bytes((node & 0xFF, node >> 8 & 0xFF, REGISTER_READ, rid, 0, 0, 0, 0)))
 
 
-def _register_value(node: int, rid: int, data: bytes) -> float | None:
-    """The float a register answer carries (None: not the answer to ``rid`` of ``node``)."""
+def _register_value(node: int, rid: int, data: bytes, fmt: str = "<f") -> float | None:
+    """The value a register answer carries, a float32 or (``fmt`` ``<I``) a uint32 (None: not
+    the answer to ``rid`` of ``node``)."""
     if len(data) != 8 or data[2] != REGISTER_READ or data[3] != rid or data[0] | data[1] << 8 != node:
         return None
-    return float(struct.unpack("<f", bytes(data[4:8]))[0])
+    return float(struct.unpack(fmt, bytes(data[4:8]))[0])
 
 
 class MitPreflight(PreflightProbe):
@@ -145,7 +150,8 @@ class MitPreflight(PreflightProbe):
             cap.read_error = " ".join(f"{type(exc).__name__}: {exc}".split())
             return cap
         if data is None:
-            cap.verdict = Finding(Severity.MISMATCH, self._silence(window) + self._others(cap), refuses_run=True)
+            mode = self._control_mode(bus, clock, end, cancel, cap, stamp) if self.model.vendor == "damiao" else None
+            cap.verdict = Finding(Severity.MISMATCH, self._silence(window, mode) + self._others(cap), refuses_run=True)
             return cap
         self.reply = self._decode(data)
         if self.model.vendor == "damiao":   # its ranges are registers the user may change
@@ -195,12 +201,28 @@ class MitPreflight(PreflightProbe):
             self._registers_pending = False
         self._compare_ranges()
 
-    def _register_answer(self, rid: int) -> Callable[[can.Message], float | None]:
+    def _register_answer(self, rid: int, fmt: str = "<f") -> Callable[[can.Message], float | None]:
         def answer(msg: can.Message) -> float | None:
             if msg.arbitration_id != self.reply_id or msg.is_extended_id:
                 return None
-            return _register_value(self.profile.node_id, rid, bytes(msg.data))
+            return _register_value(self.profile.node_id, rid, bytes(msg.data), fmt)
         return answer
+
+    def _control_mode(self, bus: can.BusABC, clock: Callable[[], float], end: float, cancel: Cancel | None,
+                      cap: Capture, stamp: Callable[[can.Message], float]) -> int | None:
+        """A Damiao silent to MIT frames may be in another control mode (it then listens on
+        0x100 + id or 0x200 + id): register CTRL_MODE (10, uint32; 1 = MIT) says which.
+        None: no answer either (or the read could not be made)."""
+        self._registers_pending = True
+        try:
+            bus.send(register_request(self.profile.node_id, CTRL_MODE), 0.0)
+            value = _await(bus, clock, max(end, clock() + REGISTER_TIMEOUT), cancel,
+                           self._register_answer(CTRL_MODE, "<I"), lambda m: cap.take(m, self, stamp))
+        except Exception:  # the verdict says silence either way; this only adds why
+            return None
+        finally:
+            self._registers_pending = False
+        return None if value is None else int(value)
 
     def _compare_ranges(self) -> None:
         m = self.model
@@ -212,7 +234,12 @@ class MitPreflight(PreflightProbe):
                               f"registers say {said} for the {m.vendor} {m.model} (firmware {m.firmware!r}); set "
                               "mit.model to the motor's model (or its registers to the table's ranges)")
 
-    def _silence(self, window: float) -> str:
+    def _silence(self, window: float, mode: int | None = None) -> str:
+        if mode is not None and mode != MIT_CONTROL_MODE:
+            return (f"no reply from node {self.profile.node_id} on id 0x{self.reply_id:X} to a zero-torque command "
+                    f"within {window * 1e3:.0f} ms, but it answers register reads: its control mode (register "
+                    f"{CTRL_MODE}, CTRL_MODE) is {mode}, not {MIT_CONTROL_MODE} (MIT): set CTRL_MODE = "
+                    f"{MIT_CONTROL_MODE} with Damiao's tool")
         vendor = " (CubeMars: set MIT mode with the vendor's tool)" if self.model.vendor == "cubemars" else ""
         return (f"no reply from node {self.profile.node_id} on id 0x{self.reply_id:X} to a zero-torque command "
                 f"within {window * 1e3:.0f} ms: a motor not in MIT mode answers nothing{vendor}; else the node id, "
