@@ -5,20 +5,23 @@ repository root:
 
     python tools/fig_mit_quantisation.py [CONFIG] [OUT.png]
 
-Three panels, every number printed as well:
+Four panels, every number printed as well:
 
-a) the force step response (true interaction torque and its RTOb estimate), the sampled
-   loop with exact measurements and torque (the analysis' response) and with the codec
-   in the loop: the emulator's plant (dobhil.emulator.plant, the analysis' exact model),
-   the runtime's controller (ForceController, the generated kernel), the command delay
-   of the profile, the replies packed and decoded by the codec as the motor and the drive
-   do (pack_reply / unpack_reply), the torque packed by the drive's TorqueFrame and
-   decoded as the firmware does (unpack_command);
-b) the steady force after the step, codec minus exact: the truncated torque command;
-c) the noise on the DOb and RTOb estimates of a moving servo (the observers fed with the
+a) the force step response (the true interaction torque) of the demo design and of the
+   same design at a higher force gain (VARIANT), the sampled loop with exact measurements
+   and torque and with the codec in the loop: the emulator's plant
+   (dobhil.emulator.plant, the analysis' exact model), the runtime's controller
+   (ForceController, the generated kernel), the profile's command delay, the replies
+   packed and decoded by the codec as the motor and the drive do (pack_reply /
+   unpack_reply), the torque packed by the drive's TorqueFrame and decoded as the
+   firmware does (unpack_command); plus `dobhil run --emulate --lockstep` of the demo
+   (the emulated motor and the real drive), which the simulation reproduces bit for bit;
+b) the force with the codec minus the exact one, both designs, with the closed loop's H2
+   prediction for a moving servo (dobhil.analysis.quantisation) as a band;
+c) the steady force of the demo, codec minus exact: the truncated torque command;
+d) the noise on the DOb and RTOb estimates of a moving servo (the observers fed with the
    codec's decoded position and velocity of sinusoids spanning most of the range, minus
-   the same observers fed the exact signals), against the H2 prediction of
-   dobhil.analysis.quantisation (the lines at +-1 RMS).
+   the same observers fed the exact signals), against the H2 prediction (dashed: +-1 RMS).
 """
 
 from __future__ import annotations
@@ -56,6 +59,10 @@ from dobhil.synthesis.params import params_from_config  # noqa: E402
 T, REF, FORCE, INT_HAT, DIS_HAT, U = range(6)
 MOVING_SECONDS = 20.0    # length of the moving-servo record of panel c
 SEED = 18
+#: the same design with a higher force gain: the demo's C_f = 2 with J_mi = J_mn / 2 and equal
+#: observer bandwidths makes the measured velocity cancel out of the command exactly
+#: (tau_dis^ - C_f tau_int^ has (J_mn - C_f J_mi) s dq = 0); any other gain lets it in
+VARIANT = ["design.force_gain=3"]
 
 
 def closed_loop(config: Config, model: Any | None) -> np.ndarray:
@@ -138,16 +145,24 @@ def moving_observer_noise(config: Config, model: Any) -> np.ndarray:
     return out[500:]
 
 
+def design_on(config_path: Path, overrides: list[str]) -> tuple[Config, Any]:
+    """The config as it runs on its drive profile (the drive's command delay) and the model."""
+    raw = load_config(config_path, overrides)
+    profile = load_drive_profile(raw, resolve_config(str(config_path)).parent)
+    config, _ = effective_config(raw, profile)
+    return config, model_of(profile)
+
+
 def main() -> int:
     config_path = Path(sys.argv[1]) if len(sys.argv) > 1 else ROOT / "configs/mit-demo.yaml"
     out = Path(sys.argv[2]) if len(sys.argv) > 2 else ROOT / "docs/img/mit_quantisation.png"
-    raw = load_config(config_path)
-    profile = load_drive_profile(raw, resolve_config(str(config_path)).parent)
-    config, _ = effective_config(raw, profile)   # the drive's command delay, as a run has it
-    model = model_of(profile)
+    config, model = design_on(config_path, [])
+    variant, _ = design_on(config_path, VARIANT)
     figures = mit_quantisation(params_from_config(config), model)
+    figures_v = mit_quantisation(params_from_config(variant), model)
     print(quantisation_text(figures))
     exact, coded = closed_loop(config, None), closed_loop(config, model)
+    exact_v, coded_v = closed_loop(variant, None), closed_loop(variant, model)
     run = emulated_run(config_path)
     # the run's cycle k uses the reply to command k-1 (host timing): its feedback is this
     # simulation's sample k; its recorded truth is the plant one period later
@@ -159,35 +174,55 @@ def main() -> int:
     window = (t_ms > -20) & (t_ms < 120)
     after = exact[:, T] > step_at + 0.3 * (config.loop.duration - step_at)
     offset = coded[after, FORCE] - exact[after, FORCE]
+    diff, diff_v = coded[:, FORCE] - exact[:, FORCE], coded_v[:, FORCE] - exact_v[:, FORCE]
     noise = moving_observer_noise(config, model)
+    gain, gain_v = config.design.force_gain, variant.design.force_gain
+    force_v = figures_v.closed_loop["tau_int"] if figures_v.closed_loop else None
 
     plt = _plt()
-    fig, axes = plt.subplots(1, 3, figsize=(15, 4.4))
-    ax = axes[0]
+    fig, axes = plt.subplots(2, 2, figsize=(13, 8.6))
+    ax = axes[0, 0]
     ax.plot(t_ms[window], exact[window, REF], color="0.5", lw=0.9, ls=":", label="reference")
     ax.step(t_ms[window], exact[window, FORCE], where="post", color="k", lw=1.6,
-            label="force, exact measurements")
+            label=f"$C_f$ = {gain:g} (the demo), exact signals")
     ax.step(t_ms[window], coded[window, FORCE], where="post", color="tab:red", lw=1.0,
-            label=f"force, {model.model} codec in the loop")
-    ax.step(t_ms[window], coded[window, INT_HAT], where="post", color="tab:blue", lw=0.7,
-            alpha=0.7, label=r"RTOb estimate $\hat\tau_{int}$, codec in the loop")
+            label=f"$C_f$ = {gain:g}, {model.model} codec in the loop")
     run_ms = (np.arange(1, n + 1) * config.loop.period - step_at) * 1e3
     shown = (run_ms > -20) & (run_ms < 120)
     ax.plot(run_ms[shown][::2], run["tau_int_true"][:n][shown][::2], ls="none", marker="o", ms=2.5,
-            mfc="none", color="tab:red", label="force, dobhil run --emulate --lockstep")
+            mfc="none", color="tab:red", label=f"$C_f$ = {gain:g}, dobhil run --emulate --lockstep")
+    ax.step(t_ms[window], exact_v[window, FORCE], where="post", color="0.45", lw=1.4,
+            label=f"$C_f$ = {gain_v:g}, exact signals")
+    ax.step(t_ms[window], coded_v[window, FORCE], where="post", color="tab:orange", lw=1.0,
+            label=f"$C_f$ = {gain_v:g}, codec in the loop")
     ax.set_xlabel("time after the step [ms]")
-    ax.set_ylabel("interaction torque [N m]")
-    peak = float(np.max(np.abs(coded[window, FORCE] - exact[window, FORCE])))
-    ax.set_title(f"a) force step response (codec: at most {peak * 1e3:.2g} mN m off)")
+    ax.set_ylabel(r"interaction torque $\tau_{int}$ [N m]")
+    ax.set_title("a) force step response")
     ax.legend(loc="lower right", fontsize=8)
     ax.grid(True, alpha=0.3)
 
-    ax = axes[1]
+    ax = axes[0, 1]
+    ax.step(t_ms[window], diff_v[window] * 1e3, where="post", color="tab:orange", lw=1.0,
+            label=f"$C_f$ = {gain_v:g}: at most {np.max(np.abs(diff_v[window])) * 1e3:.3g} mN m")
+    ax.step(t_ms[window], diff[window] * 1e3, where="post", color="tab:red", lw=1.2,
+            label=f"$C_f$ = {gain:g}: at most {np.max(np.abs(diff[window])) * 1e3:.2g} mN m")
+    if force_v is not None:
+        ax.axhspan((force_v.bias - force_v.total) * 1e3, (force_v.bias + force_v.total) * 1e3,
+                   color="tab:orange", alpha=0.12,
+                   label=f"$C_f$ = {gain_v:g}: H2 prediction for a moving servo (RMS {force_v.total * 1e3:.3g} mN m)")
+    ax.axhline(0.0, color="k", lw=0.6)
+    ax.set_xlabel("time after the step [ms]")
+    ax.set_ylabel("force, codec minus exact [mN m]")
+    ax.set_title("b) what the codec changes in the force")
+    ax.legend(loc="lower right", fontsize=8)
+    ax.grid(True, alpha=0.3)
+
+    ax = axes[1, 0]
     q_t = figures.steps["torque"]
     settled = exact[:, T] >= 0.5 * step_at      # the approach to contact left out
     t_all = (exact[settled, T] - step_at) * 1e3
-    ax.plot(t_all, (coded[settled, FORCE] - exact[settled, FORCE]) * 1e3, color="tab:red",
-            lw=1.0, label="force, codec minus exact")
+    ax.plot(t_all, diff[settled] * 1e3, color="tab:red", lw=1.0,
+            label=f"$C_f$ = {gain:g}: force, codec minus exact")
     for level, lo, hi in ((float(exact[0, REF]), t_all[0], 0.0),
                           (float(exact[-1, REF]), 0.0, t_all[-1])):
         ax.hlines(steady_error(model, level) * 1e3, lo, hi, color="k", lw=1.4, ls="--",
@@ -197,29 +232,30 @@ def main() -> int:
     ax.set_ylim(-1.4 * q_t * 1e3, 0.6 * q_t * 1e3)
     ax.set_xlabel("time after the step [ms]")
     ax.set_ylabel("force error [mN m]")
-    ax.set_title("b) the steady force: the truncated torque command")
+    ax.set_title("c) the steady force: the truncated torque command")
     ax.legend(loc="upper right", fontsize=8)
     ax.grid(True, alpha=0.3)
 
-    ax = axes[2]
+    ax = axes[1, 1]
     rows = []
-    for col, key, color, label in ((DIS, "dob", "tab:green", r"DOb $\hat\tau_{dis}$"),
-                                   (INT, "rtob", "tab:blue", r"RTOb $\hat\tau_{int}$")):
+    for col, key, color, label, plain in (
+            (DIS, "dob", "tab:green", r"DOb $\hat\tau_{dis}$", "DOb tau_dis^"),
+            (INT, "rtob", "tab:blue", r"RTOb $\hat\tau_{int}$", "RTOb tau_int^")):
         predicted = math.sqrt(sum(figures.observers[key].rms[ch] ** 2 for ch in figures.measured))
         measured = float(np.std(noise[:, col]))
-        rows.append((label, measured, predicted))
+        rows.append((plain, measured, predicted))
         ax.hist(noise[:, col] * 1e3, bins=120, density=True, histtype="step", color=color,
                 label=f"{label}: RMS {measured * 1e3:.3g} ({predicted * 1e3:.3g}) mN m")
         for sign in (-1, 1):
             ax.axvline(sign * predicted * 1e3, color=color, lw=0.8, ls="--")
     ax.set_xlabel("estimate error [mN m]")
     ax.set_ylabel("density")
-    ax.set_title(f"c) estimate noise of a moving servo ({len(noise)} samples)")
+    ax.set_title(f"d) estimate noise of a moving servo ({len(noise)} samples)")
     ax.set_ylim(0.0, ax.get_ylim()[1] * 1.3)
     ax.legend(loc="upper right", fontsize=8, title="measured (H2 prediction, dashed)",
               title_fontsize=8)
     ax.grid(True, alpha=0.3)
-    fig.suptitle(f"{config_path.name} on a {model.vendor} {model.model}: codec quantisation "
+    fig.suptitle(f"{config_path.name} on a {model.vendor} {model.model}: the codec's quantisation "
                  f"in the force loop (T = {config.loop.period * 1e3:g} ms)", fontsize=11)
     fig.tight_layout()
     save(fig, out)
@@ -227,8 +263,13 @@ def main() -> int:
     print(f"steady force offset after the step: mean {offset.mean() * 1e3:.3f} mN m, "
           f"std {offset.std() * 1e3:.3g} mN m (decoded minus commanded at the reference "
           f"{exact[-1, REF]:g} N m: {steady_error(model, float(exact[-1, REF])) * 1e3:.3f} mN m)")
-    peak = np.max(np.abs(coded[window, FORCE] - exact[window, FORCE]))
-    print(f"largest force difference in the step window: {peak * 1e3:.3g} mN m")
+    for g, d in ((gain, diff), (gain_v, diff_v)):
+        print(f"C_f = {g:g}: force, codec minus exact, in the step window: at most "
+              f"{np.max(np.abs(d[window])) * 1e3:.3g} mN m, RMS {np.sqrt(np.mean(d[window] ** 2)) * 1e3:.3g} mN m")
+    for g, f in ((gain, figures), (gain_v, figures_v)):
+        if f.closed_loop is not None:
+            print(f"C_f = {g:g}: H2 prediction (moving servo): force RMS {f.closed_loop['tau_int'].total * 1e3:.3g}"
+                  f" mN m, command RMS {f.closed_loop['u'].total * 1e3:.3g} mN m")
     for label, measured, predicted in rows:
         print(f"{label} noise of a moving servo: measured RMS {measured * 1e3:.4g} mN m, "
               f"H2 prediction {predicted * 1e3:.4g} mN m")
