@@ -252,7 +252,7 @@ def test_text_names_every_figure() -> None:
 
 def test_analyze_reports_the_quantisation_of_an_mit_profile_only(
         capsys: pytest.CaptureFixture[str]) -> None:
-    """``dobhil analyze`` on an AK80-9 profile: the text's last lines and the --json key
+    """``dobhil analyze`` on the AK80-9 demo: the text's last lines and the --json key
     ``quantisation`` carry the figures (the codec's steps, its zero-torque bias, the noise
     of the design as the drive's command delay makes it); on a CiA 402 profile the output
     is what it was (no key, the bus budget line last)."""
@@ -263,9 +263,8 @@ def test_analyze_reports_the_quantisation_of_an_mit_profile_only(
     from dobhil.drives.mit.rules import model_of
     from dobhil.drives.profile import load_profile
     from dobhil.drives.timing import effective_config
-    demo = "configs/cia402-demo.yaml"
-    on_ak = ["--set", "drive.profile=ak80-9"]
-    assert main(["analyze", demo, *on_ak, "--json"]) == 0
+    demo, mit_demo = "configs/cia402-demo.yaml", "configs/mit-demo.yaml"
+    assert main(["analyze", mit_demo, "--json"]) == 0
     data = json.loads(capsys.readouterr().out)
     quant = data["quantisation"]
     model = model_of(load_profile("ak80-9"))
@@ -278,13 +277,13 @@ def test_analyze_reports_the_quantisation_of_an_mit_profile_only(
     torque_frame.fill(frame, 0.0)
     assert quant["zero_torque_bias"] == unpack_command(model, bytes(frame)).torque
     assert isinstance(unpack_command(model, bytes(frame)), Command)
-    config, _ = effective_config(load_config(demo, ["drive.profile=ak80-9"]), load_profile("ak80-9"))
+    config, _ = effective_config(load_config(mit_demo), load_profile("ak80-9"))
     expected = noise_figures(params_from_config(config), model.quanta).as_dict()
     # the same computation on the design as the drive's command delay makes it, bit for bit
     assert quant["closed_loop"] == json.loads(json.dumps(expected["closed_loop"]))
     assert quant["observers"] == json.loads(json.dumps(expected["observers"]))
     assert config.design.delay_samples == 1
-    assert main(["analyze", demo, *on_ak]) == 0
+    assert main(["analyze", mit_demo]) == 0
     lines = capsys.readouterr().out.splitlines()
     assert lines[-8].startswith("quantisation (cubemars AK80-9 firmware ")
     assert lines[-9].startswith("bus budget: ")
@@ -331,3 +330,30 @@ def test_h2_norms_are_the_impulse_responses_energy(name: str) -> None:
             assert norm is not None
             assert abs(h[-200:]).max() <= 1e-12 * max(abs(h).max(), 1e-300)
             assert norm ** 2 == pytest.approx(float(np.sum(h * h)), rel=1e-7, abs=1e-20), (output, channel)
+
+
+def test_the_figures_simulation_is_the_lockstep_emulated_run() -> None:
+    """tools/fig_mit_quantisation.py simulates the loop with the codec (the emulator's plant,
+    the runtime's controller, pack_reply/unpack_reply, TorqueFrame/unpack_command, the
+    command delay) and says it is what ``dobhil run --emulate --lockstep`` does: the
+    estimates bit for bit, the true force one period on (the run records the plant when
+    the command is applied); without the codec it differs."""
+    import importlib.util
+    from pathlib import Path
+    path = Path(__file__).resolve().parents[1] / "tools" / "fig_mit_quantisation.py"
+    spec = importlib.util.spec_from_file_location("fig_mit_quantisation", path)
+    assert spec is not None and spec.loader is not None
+    tool = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(tool)
+    config_path = Path("configs/mit-demo.yaml")
+    config, model = tool.design_on(config_path, [])
+    run = tool.emulated_run(config_path)
+    coded, exact = tool.closed_loop(config, model), tool.closed_loop(config, None)
+    n = min(len(run.t), len(coded) - 1)
+    assert n == round(config.loop.duration / config.loop.period) - 1
+    assert np.array_equal(run["tau_int_hat"][:n], coded[:n, tool.INT_HAT])
+    assert np.array_equal(run["tau_int_true"][:n], coded[1:n + 1, tool.FORCE])
+    assert np.max(np.abs(run["tau_int_hat"][:n] - exact[:n, tool.INT_HAT])) > 1e-3
+    # at rest after the step the force sits where the truncated command puts it
+    rest = run["tau_int_true"][n - 100:n]
+    assert rest == pytest.approx(1.0 + tool.steady_error(model, 1.0), abs=1e-6)
