@@ -10,9 +10,12 @@ that moves across several steps per sample the error is white and uniform on
 ``axis_direction: -1`` truncates in the motor's sense of rotation: the host sees the mean
 ``+step / 2``). That is the noise model here, per channel, the channels independent:
 
-- ``position`` and ``velocity``: the controller's measurements ``y`` (the velocity only
-  when ``design.velocity_source`` is ``measured``: an estimated velocity is computed
-  from the quantised position). The reply's torque is not used by the controller.
+- ``position`` and ``velocity``: the controller's measurements ``y`` (``[q, dq]``, or
+  ``[q]`` when ``design.velocity_source`` is ``estimated``: the velocity filter then
+  differentiates the quantised position). With a measured velocity and no friction or
+  stiffness in the observers' models the position is multiplied by zero everywhere, and
+  only the velocity counts (``measured`` lists what does). The reply's torque is not
+  used by the controller.
 - ``torque``: the torque the motor applies minus the one commanded. The observers are
   fed the commanded torque (what the controller computed), the plant gets the applied
   one. A zero command decodes to ``-step / 2`` (code ``2^11 - 1`` of 12 bits: -4.4 mN m
@@ -32,10 +35,10 @@ built on it):
   motion it causes; against a plant equal to the observer's own model that is exactly
   the observer's torque-to-estimate transfer, which is what is used.
 - ``closed_loop``: the sampled force loop at the design's ``C_f`` with the exact plant
-  and environment, the command delay included: the RMS of the estimates and of the true
-  interaction torque (the force loop's output). Here the noise moves the plant, and the
-  torque channel enters where the applied torque does (after the command delay), not
-  where the observers see the command.
+  and environment, the command delay included: the RMS of the estimates, of the true
+  interaction torque (the force loop's output) and of the command. Here the noise moves
+  the plant, and the torque channel enters where the applied torque does (after the
+  command delay), not where the observers see the command.
 
 What it does not cover: at rest the error is not white (a still position sits on one
 code; a still velocity reads ``-step / 2``), so the figures describe a moving servo;
@@ -49,7 +52,7 @@ import math
 from collections.abc import Mapping
 from dataclasses import dataclass
 from types import MappingProxyType
-from typing import Any, Protocol
+from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 import scipy.linalg
@@ -59,12 +62,12 @@ from dobhil.synthesis.loop import LoopSS, loop
 from dobhil.synthesis.numerics import balance
 from dobhil.synthesis.params import Array, Params
 
-__all__ = ["CHANNELS", "ChannelFigures", "QuantisationFigures", "Steps", "dc_gain",
+if TYPE_CHECKING:
+    from dobhil.drives.mit.codec import MitModel
+
+__all__ = ["ChannelFigures", "QuantisationFigures", "Steps", "dc_gain",
            "h2_norm", "mit_quantisation", "noise_figures", "quantisation_text",
            "torque_error_column"]
-
-#: the quantised channels, in report order
-CHANNELS: tuple[str, ...] = ("position", "velocity", "torque")
 
 #: closed-loop outputs reported (names of :data:`dobhil.synthesis.loop.OUTPUTS`)
 LOOP_OUTPUTS: tuple[str, ...] = ("tau_int_hat", "tau_dis_hat", "tau_int", "u")
@@ -292,9 +295,9 @@ def quantisation_text(q: QuantisationFigures) -> str:
     return "\n".join(lines)
 
 
-def mit_quantisation(params: Params, model: Any) -> QuantisationFigures:
-    """The figures of one design on an MIT-mode motor (``model``: a
-    :class:`dobhil.drives.mit.codec.MitModel`): its steps, and the torque a zero command
+def mit_quantisation(params: Params, model: MitModel) -> QuantisationFigures:
+    """The figures of one design on an MIT-mode motor (its row of the model table): its
+    steps (``MitModel.quanta``), and the torque a zero command
     applies, found by the codec itself -- the drive's preallocated torque frame filled with
     0 N m, decoded as the firmware decodes it (in the host's sense of rotation)."""
     from dobhil.drives.mit.codec import TorqueFrame, unpack_command
