@@ -69,16 +69,16 @@ import math
 import struct
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any
 
 import can
 
-from dobhil.drives.mit.codec import Command, MitModel, Special, is_special, pack_reply, unpack_command
-from dobhil.drives.mit.models import find_model, load_models
+from dobhil.drives.mit.codec import (Command, MitModel, ReplyLayout, Special, float_to_uint, is_special,
+                                     pack_reply, unpack_command)
+from dobhil.drives.mit.rules import model_of
 from dobhil.drives.profile import DriveProfile
 from dobhil.emulator.protocol import EmulatedDrive, PlantLike
-from dobhil.errors import CodecError, ConfigError
+from dobhil.errors import CodecError
 
 __all__ = ["EmulatedMit", "Fault", "Thermal", "model_of"]
 
@@ -119,41 +119,33 @@ class Thermal:
 
 
 class Fault:
-    """Codes of the faults the emulator produces, per reply layout (the table's names)."""
+    """The faults the emulator produces, and their codes in a reply layout: looked up by
+    their text in the model table's ``errors`` (CubeMars byte 7: 1 over temperature, 2 over
+    current) or ``states`` (Damiao nibble: 12 rotor over temperature, 10 over current, 13
+    communication lost), so the codes are the table's, not the emulator's. A layout without
+    an error field (Mini-Cheetah, mbed) has none: the fault still stops the motor."""
 
     OVER_TEMPERATURE = "over_temperature"
     OVER_CURRENT = "over_current"
     LOST_COMMUNICATION = "lost_communication"
 
-    #: layout name -> fault -> the code the reply carries (CubeMars error byte; Damiao
-    #: state nibble, damiao-motor's DM_MOTOR_* codes); a layout without an error field
-    #: (Mini-Cheetah) reports none: the fault is still latched, the motor stops
-    CODES: Mapping[str, Mapping[str, int]] = {
-        "cubemars": {OVER_TEMPERATURE: 1, OVER_CURRENT: 2},
-        "damiao": {OVER_TEMPERATURE: 0xC, OVER_CURRENT: 0xA, LOST_COMMUNICATION: 0xD},
+    #: fault -> the texts it may have in a table (the first found wins)
+    TEXTS: Mapping[str, tuple[str, ...]] = {
+        OVER_TEMPERATURE: ("over temperature", "rotor over temperature"),
+        OVER_CURRENT: ("over current",),
+        LOST_COMMUNICATION: ("communication lost",),
     }
 
-
-def model_of(profile: DriveProfile) -> MitModel:
-    """The model row of ``profile``: ``mit.vendor``, ``mit.model`` and the profile's
-    ``firmware`` in the shipped table, or in ``mit.models`` (a path, relative to the
-    profile's directory). ConfigError (one line) when there is no such row."""
-    options = profile.options
-    vendor, model = options.get("vendor"), options.get("model")
-    if not vendor or not model:
-        raise ConfigError(f"drive profile {profile.name or profile.protocol!r}: mit.vendor and "
-                          f"mit.model are required")
-    table = options.get("models")
-    if not table:
-        return find_model(str(vendor), str(model), profile.firmware)
-    path = Path(str(table))
-    if not path.is_absolute() and profile.directory:
-        path = Path(profile.directory) / path
-    rows = load_models(path)
-    key = (str(vendor), str(model), profile.firmware)
-    if key not in rows:
-        raise ConfigError(f"mit.model: no row for {vendor} {model} firmware {profile.firmware!r} in {path}")
-    return rows[key]
+    @classmethod
+    def codes(cls, layout: ReplyLayout) -> Mapping[str, int]:
+        """fault -> code in ``layout`` (only the faults it can report)."""
+        table = {text: code for code, text in (*layout.errors.items(), *layout.states.items())}
+        out: dict[str, int] = {}
+        for fault, texts in cls.TEXTS.items():
+            code = next((table[t] for t in texts if t in table), None)
+            if code is not None:
+                out[fault] = code
+        return out
 
 
 class EmulatedMit(EmulatedDrive):
@@ -173,8 +165,8 @@ class EmulatedMit(EmulatedDrive):
         self.reply_id = int(profile.options.get("reply_id", DEFAULT_REPLY_ID))
         self.zero_silence = float(profile.options.get("zero_silence", DEFAULT_ZERO_SILENCE))
         self.bus_voltage = bus_voltage
-        self._layout_name = _layout_name(self.model)
-        self._codes = Fault.CODES.get(self._layout_name, {})
+        self._layout = self.model.layout
+        self._codes = Fault.codes(self._layout)
         self._specials = frozenset(self.model.special)
         self.motor_mode = False
         self.command = _ZERO_COMMAND
@@ -239,7 +231,7 @@ class EmulatedMit(EmulatedDrive):
     def _on_frame(self, msg: can.Message) -> None:
         if msg.is_error_frame or msg.is_extended_id or msg.is_remote_frame:
             return
-        if msg.arbitration_id == _REGISTER_ID and self._layout_name == "damiao":
+        if msg.arbitration_id == _REGISTER_ID and self._layout.state_field:   # Damiao
             self._register(msg.data)
             return
         if msg.arbitration_id != self.node_id:
@@ -283,7 +275,7 @@ class EmulatedMit(EmulatedDrive):
         return False
 
     def _enter(self) -> None:
-        if self.fault and self._layout_name != "damiao" and self._cause_gone():
+        if self.fault and Special.CLEAR_ERROR not in self._specials and self._cause_gone():
             self.fault = ""   # CubeMars, Mini-Cheetah: a new enter clears a fault whose cause is gone
         if self.fault:
             return            # refused: the reply still carries the fault
@@ -301,11 +293,12 @@ class EmulatedMit(EmulatedDrive):
         state = 1 if self.motor_mode else 0
         error = self.axis_error
         extra: dict[str, int] = {}
-        if self._layout_name == "damiao":
-            mos = self.thermal.ambient + self.thermal.mos_share * (self.temperature - self.thermal.ambient)
-            extra["mos_temperature"] = _byte(mos)
-        elif self._layout_name == "mini-cheetah":
-            extra["bus_voltage"] = _byte(self.bus_voltage)
+        layout = self._layout
+        if "mos_temperature" in layout.extra:
+            th = self.thermal
+            extra["mos_temperature"] = _byte(th.ambient + th.mos_share * (self.temperature - th.ambient))
+        if "bus_voltage" in layout.extra:   # the firmware's float_to_uint(vbus, 0, 40, 8)
+            extra["bus_voltage"] = float_to_uint(self.bus_voltage, 0.0, 40.0, 8)
         data = pack_reply(model, self.node_id, self.position, self._plant.velocity, torque,
                           error=error, state=state, temperature=self.temperature, extra=extra)
         self._send(can.Message(arbitration_id=self.reply_id, is_extended_id=False, data=data))
@@ -373,11 +366,6 @@ class EmulatedMit(EmulatedDrive):
         ratio = self._plant_torque() / self.model.t_max
         target = th.ambient + th.rise_at_t_max * ratio * ratio
         self.temperature = target + (self.temperature - target) * self._thermal_keep
-
-
-def _layout_name(model: MitModel) -> str:
-    """The reply layout's name in the table (cubemars, damiao, mini-cheetah)."""
-    return str(getattr(model.layout, "name", model.vendor))
 
 
 def _byte(value: float) -> int:

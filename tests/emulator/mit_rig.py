@@ -14,9 +14,9 @@ from dobhil.emulator.protocol import LockstepBus, PlantLike
 from dobhil.emulator.registry import private_virtual_channel
 
 #: (vendor, model, firmware) rows of drivers/mit-models.yaml the tests use
-AK80_9 = ("cubemars", "AK80-9", "2")
-DAMIAO = ("damiao", "DM4310", "1")
-MINI_CHEETAH = ("mini-cheetah", "mini-cheetah", "1")
+AK80_9 = ("cubemars", "AK80-9", "manual-1.0.8")
+DAMIAO = ("damiao", "DM4310", "factory")
+MINI_CHEETAH = ("mini-cheetah", "motorcontrol", "3586419")
 
 
 def mit_profile(row: tuple[str, str, str], *, node_id: int = 1, **options: Any) -> DriveProfile:

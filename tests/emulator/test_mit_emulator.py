@@ -10,13 +10,14 @@ import dataclasses
 import struct
 from collections.abc import Iterator
 
+import numpy as np
 import pytest
 
 from dobhil.drives.mit.codec import unpack_reply
 from dobhil.emulator.mit import EmulatedMit, Fault, Thermal
 from dobhil.emulator.plant import Plant
 
-from .mit_rig import AK80_9, DAMIAO, Lockstep, mit_profile
+from .mit_rig import AK80_9, DAMIAO, MINI_CHEETAH, Lockstep, mit_profile
 
 ENTER = bytes.fromhex("FFFFFFFFFFFFFFFC")
 EXIT = bytes.fromhex("FFFFFFFFFFFFFFFD")
@@ -26,8 +27,17 @@ CLEAR = bytes.fromhex("FFFFFFFFFFFFFFFB")
 # p: int(12.5 * 65535 / 25) = 32767 = 0x7FFF; v: int(50 * 4095 / 100) = 2047 = 0x7FF;
 # t: int(19 * 4095 / 36) = int(2161.25) = 2161 = 0x871 -> bytes 6, 7 = 0x08, 0x71
 AK_ONE_NM = bytes.fromhex("7FFF7FF000000871")
-AK_ONE_NM_DECODED = 2161 * 36 / 4095 - 18          # 0.99780 N m: what the motor applies
+
+
+def f32_decode(code: int, lo: float, hi: float, bits: int) -> float:
+    """The firmware's uint_to_float in single precision, in its order (math_ops.c)."""
+    f = np.float32
+    return float(f(f(code) * f(f(hi) - f(lo)) / f((1 << bits) - 1)) + f(lo))
+
+
+AK_ONE_NM_DECODED = f32_decode(2161, -18, 18, 12)    # 0.99780 N m: what the motor applies
 # t_ff = 0: int(18 * 4095 / 36) = 2047 -> decodes to -0.0044 N m (zero is not a code)
+AK_ZERO_DECODED = f32_decode(2047, -18, 18, 12)
 AK_ZERO_TORQUE = bytes.fromhex("7FFF7FF0000007FF")
 # kp = 500 (code 4095), p_des = 1 rad: int(13.5 * 65535 / 25) = 35388 = 0x8A3C; t_ff 0
 AK_STIFF_1RAD = bytes.fromhex("8A3C7FFFFF0007FF")
@@ -70,9 +80,9 @@ def test_a_pure_torque_command_is_applied_in_motor_mode_only(ak: Lockstep) -> No
     ak.ask(ENTER)
     assert ak.emu.applied_torque == 0.0     # entering does not reuse the command before
     ak.ask(AK_ONE_NM)
-    assert ak.emu.applied_torque == pytest.approx(AK_ONE_NM_DECODED, abs=1e-12)
+    assert ak.emu.applied_torque == AK_ONE_NM_DECODED
     ak.read(0.001)
-    assert ak.plant.motor_torque == pytest.approx(AK_ONE_NM_DECODED, abs=1e-12)
+    assert ak.plant.motor_torque == AK_ONE_NM_DECODED
     ak.ask(EXIT)
     assert ak.emu.applied_torque == 0.0 and ak.emu.axis_state == 0
 
@@ -80,7 +90,7 @@ def test_a_pure_torque_command_is_applied_in_motor_mode_only(ak: Lockstep) -> No
 def test_zero_torque_is_the_codes_bias(ak: Lockstep) -> None:
     ak.ask(ENTER)
     ak.ask(AK_ZERO_TORQUE)
-    assert ak.emu.applied_torque == pytest.approx(2047 * 36 / 4095 - 18) == pytest.approx(-0.0044, abs=1e-4)
+    assert ak.emu.applied_torque == AK_ZERO_DECODED == pytest.approx(-0.0044, abs=1e-4)
 
 
 def test_the_reply_carries_the_state_at_the_instant_the_frame_applies(ak: Lockstep) -> None:
@@ -96,7 +106,7 @@ def test_the_reply_carries_the_state_at_the_instant_the_frame_applies(ak: Lockst
     assert abs(decoded.torque - AK_ONE_NM_DECODED) <= q.torque
     assert abs(decoded.position - position) <= q.position and abs(decoded.velocity - velocity) <= q.velocity
     assert velocity == pytest.approx(AK_ONE_NM_DECODED * 0.010 / 0.01, rel=1e-3)   # J = 0.01
-    assert ak.emu.applied_torque == pytest.approx(2047 * 36 / 4095 - 18)
+    assert ak.emu.applied_torque == AK_ZERO_DECODED
 
 
 def test_frames_not_for_the_node_are_not_answered(ak: Lockstep) -> None:
@@ -124,9 +134,23 @@ def test_damiao_register_reads_give_the_rows_ranges(dm: Lockstep) -> None:
 
 # -- timeout, zero ---------------------------------------------------------------------
 
-def test_the_command_timeout_zeroes_kp_kd_and_torque(ak: Lockstep) -> None:
+@pytest.fixture
+def timed() -> Iterator[Lockstep]:
+    """An AK80-9 with the reference firmware's 25 ms command timeout (the table's AK80-9
+    row has none: CubeMars documents none; the Mini-Cheetah row has this one)."""
+    rig = Lockstep(AK80_9)
+    rig.close()
+    rig = Lockstep(AK80_9, model=dataclasses.replace(rig.emu.model, command_timeout=0.025))
+    try:
+        yield rig
+    finally:
+        rig.close()
+
+
+def test_the_command_timeout_zeroes_kp_kd_and_torque(timed: Lockstep) -> None:
+    ak = timed
     timeout = ak.emu.model.command_timeout
-    assert timeout is not None and timeout > 0
+    assert timeout == 0.025
     ak.ask(ENTER)
     ak.ask(AK_ONE_NM)
     ak.read(timeout - 0.002)
@@ -138,7 +162,8 @@ def test_the_command_timeout_zeroes_kp_kd_and_torque(ak: Lockstep) -> None:
     assert ak.emu.applied_torque == pytest.approx(AK_ONE_NM_DECODED)
 
 
-def test_any_frame_to_the_node_feeds_the_timeout(ak: Lockstep) -> None:
+def test_any_frame_to_the_node_feeds_the_timeout(timed: Lockstep) -> None:
+    ak = timed
     timeout = ak.emu.model.command_timeout
     assert timeout is not None
     ak.ask(ENTER)
@@ -147,6 +172,22 @@ def test_any_frame_to_the_node_feeds_the_timeout(ak: Lockstep) -> None:
         ak.read(timeout * 0.8)
         ak.ask(ENTER)                                 # not a command, but to the node
     assert ak.emu.applied_torque == pytest.approx(AK_ONE_NM_DECODED)
+
+
+def test_the_mini_cheetah_rows_timeout_and_bus_voltage() -> None:
+    """The Mini-Cheetah firmware (motorcontrol): 25 ms timeout; 7-byte reply, byte 6 the bus
+    voltage as float_to_uint(24, 0, 40, 8) = int(24 * 255 / 40) = 153."""
+    rig = Lockstep(MINI_CHEETAH)
+    try:
+        assert rig.emu.model.command_timeout == 0.025
+        [reply] = rig.ask(ENTER)
+        assert len(reply) == 7 and reply[0] == 1 and reply[6] == 153
+        rig.ask(AK_ONE_NM)                            # t code 2161 of +-40 N m: 2.2 N m
+        assert rig.emu.applied_torque == f32_decode(2161, -40, 40, 12)
+        rig.read(0.030)
+        assert rig.emu.applied_torque == 0.0 and rig.emu.watchdog_tripped and rig.emu.axis_state == 1
+    finally:
+        rig.close()
 
 
 def test_damiao_timeout_is_lost_communication(dm: Lockstep) -> None:
@@ -224,9 +265,8 @@ def test_a_stiff_command_within_range_holds_the_clamped_torque() -> None:
     try:
         rig.ask(ENTER)
         rig.ask(frame)
-        kp = 100 * 500 / 4095
-        p = 35388 * 25 / 65535 - 12.5
-        assert rig.emu.applied_torque == pytest.approx(kp * p + (2047 * 36 / 4095 - 18), rel=1e-9)
+        kp, p = f32_decode(100, 0, 500, 12), f32_decode(35388, -12.5, 12.5, 16)
+        assert rig.emu.applied_torque == pytest.approx(kp * p + AK_ZERO_DECODED, rel=1e-12)
         assert rig.emu.fault == ""
     finally:
         rig.close()

@@ -14,8 +14,8 @@ import can
 from dobhil.config import load_config
 from dobhil.emulator.process import EmulatorProcess, EmulatorSpec
 
-from .mit_rig import AK80_9, mit_profile
-from .test_mit_emulator import AK_ONE_NM, AK_ONE_NM_DECODED, AK_REPLY_AT_REST, ENTER, EXIT
+from .mit_rig import MINI_CHEETAH, mit_profile
+from .test_mit_emulator import AK_ONE_NM, ENTER, EXIT, f32_decode
 
 BOUND = 20.0
 
@@ -38,23 +38,26 @@ def _until(condition: object, what: str) -> None:
 
 
 def test_emulator_process_answers_applies_and_times_out() -> None:
-    spec = EmulatorSpec.of(load_config("demo", ["plant.initial_position=-0.05"]), mit_profile(AK80_9))
+    # the Mini-Cheetah firmware's row: its 25 ms command timeout, 7-byte replies
+    spec = EmulatorSpec.of(load_config("demo", ["plant.initial_position=-0.05"]), mit_profile(MINI_CHEETAH))
     with EmulatorProcess(spec) as process:
         bus = process.bus
         bus.send(can.Message(arbitration_id=1, data=ENTER, is_extended_id=False))
-        reply = _reply(bus)   # at -0.05 rad: int(12.45 * 65535 / 25) = 32636 = 0x7F7C
-        assert reply == bytes([1, 0x7F, 0x7C]) + AK_REPLY_AT_REST[3:]
+        # at -0.05 rad: int(12.45 * 65535 / 25) = 32636 = 0x7F7C; v, t 0: 0x7FF each; byte 6
+        # the bus voltage, int(24 * 255 / 40) = 153
+        assert _reply(bus) == bytes([1, 0x7F, 0x7C, 0x7F, 0xF7, 0xFF, 153])
         _until(lambda: process.axis_state == 1, "motor mode")
         bus.send(can.Message(arbitration_id=1, data=AK_ONE_NM, is_extended_id=False))
         _reply(bus)
-        # the host then says nothing: the firmware's 25 ms timeout zeroes the torque
+        # the host then says nothing: the firmware's 25 ms timeout zeroes the torque (2.2 N m:
+        # code 2161 of +-40 N m)
         _until(lambda: process.watchdog_tripped, "command timeout")
         assert process.axis_state == 1 and process.applied_torque == 0.0
         # it was applied before: the plant, free of the environment (5 cm away), moves
         assert process.plant.true_velocity > 0
         bus.send(can.Message(arbitration_id=1, data=AK_ONE_NM, is_extended_id=False))
         _reply(bus)
-        _until(lambda: abs(process.applied_torque - AK_ONE_NM_DECODED) < 1e-12, "torque again")
+        _until(lambda: process.applied_torque == f32_decode(2161, -40, 40, 12), "torque again")
         bus.send(can.Message(arbitration_id=1, data=EXIT, is_extended_id=False))
         _reply(bus)
         _until(lambda: process.axis_state == 0 and process.applied_torque == 0.0, "rest")

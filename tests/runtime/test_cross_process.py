@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
+from dobhil.config import load_config
 from dobhil.runtime.session import RunSession
 from dobhil.runtime.stop import StopReason
 
@@ -59,3 +60,35 @@ def test_force_loop_across_processes(tmp_path: Path, hub: int) -> None:
     text = out.read_text(errors="replace")
     assert emulate.returncode == 0, text
     assert "emulator stopped" in text
+
+
+def test_mit_force_loop_across_processes(tmp_path: Path, hub: int) -> None:
+    """The same with an MIT motor: ``dobhil emulate configs/mit-demo.yaml`` (a DM4310, whose
+    replies say its mode, so the exit is confirmed) in the other process, host timing here
+    (the motor answers each command), the MIT preflight asking it first."""
+    url = f"ws://127.0.0.1:{hub}/"
+    overrides = ["drive.profile=dm4310", "loop.period=5e-3", "loop.feedback_timeout=0.05",
+                 "design.dob_bandwidth=100", "design.rtob_bandwidth=100", "plant.initial_position=0",
+                 "reference.offset=0", "reference.amplitude=1", "reference.start=0", "loop.duration=1.5"]
+    config_path = REPO / "configs" / "mit-demo.yaml"
+    out = tmp_path / "emulate.log"
+    with out.open("wb") as log:
+        emulate = subprocess.Popen(
+            [sys.executable, "-m", "dobhil", "emulate", str(config_path), "--bus", f"remote:{url}",
+             "--duration", "60", *[a for o in overrides for a in ("--set", o)]],
+            stdout=log, stderr=subprocess.STDOUT, env=child_env(), cwd=REPO)
+    try:
+        wait_for_emulator(emulate, out, "mit")
+        config = load_config(config_path, overrides)
+        with RunSession(config, bus=f"remote:{url}") as session:
+            result = session.run()
+            assert session.preflight_report is not None and not session.preflight_report.refuses
+        assert result.stop.reason is StopReason.DONE, result.stop.line()
+        assert result.disabled
+        tail = finite_tail(result.trace["tau_int_hat"], result.trace["t"], 0.2)
+        assert tail.size >= 10
+        assert abs(float(np.mean(tail)) - 1.0) < 0.03
+    finally:
+        stop_process(emulate)
+    text = out.read_text(errors="replace")
+    assert emulate.returncode == 0, text
