@@ -32,6 +32,7 @@ TARGETS: dict[str, float] = {
     "sweep_speedup_vs_python_control": 100.0,
     "lockstep_cycles_per_s": 5000.0,
     "lockstep_cycles_per_s_cia402": 3000.0,
+    "lockstep_cycles_per_s_mit": 3000.0,
     "lockstep_vs_bare_bus_ratio": 0.4,
     "logged_vs_unlogged_ratio": 0.6,
     "replay_cycles_per_s": 20000.0,
@@ -550,6 +551,40 @@ def bench_cia402(rounds: int = 3, seconds: float = 6.0) -> dict[str, float]:
             "rt_cia402_sync_to_tpdo_p99_us": float(np.median(sync_p99)) * 1e6 if sync_p99 else float("nan")}
 
 
+#: the MIT demo (configs/mit-demo.yaml: an emulated AK80-9, host timing, one period of delay)
+MIT_CONFIG = ROOT / "configs/mit-demo.yaml"
+
+
+def _mit_run(duration: float, lockstep: bool) -> tuple[float, object]:
+    """An MIT demo run, lockstep or real time; its cycles per second of wall time and its
+    result. Real time is host timing (the config's own): an MIT motor answers each command
+    with one reply and streams nothing, so there is no feedback to time the loop on."""
+    from dobhil.runtime.session import RunSession
+    overrides = [f"loop.duration={duration}"] + ([] if lockstep else ["loop.timing=host",
+                                                                      "loop.feedback_timeout=0.05"])
+    config = load_config(MIT_CONFIG, overrides)
+    with RunSession(config, emulate=True, lockstep=lockstep, config_dir=MIT_CONFIG.parent) as session:
+        t0 = time.perf_counter()
+        result = session.run()
+        return result.cycles / (time.perf_counter() - t0), result
+
+
+def bench_mit(rounds: int = 3, seconds: float = 6.0) -> dict[str, float]:
+    """MIT mode (issue 18): lockstep cycles per second (median of runs), and real-time
+    1 kHz host-timed runs: overruns per 10,000 deadlines (cycles run and skipped), and the
+    median of the runs' p99 period error."""
+    lockstep = [_mit_run(3.0, True)[0] for _ in range(rounds)]
+    overruns, deadlines, p99 = 0, 0, []
+    for _ in range(rounds):
+        _, result = _mit_run(seconds, False)
+        overruns += result.overruns  # type: ignore[attr-defined]
+        deadlines += result.cycles + result.skipped  # type: ignore[attr-defined]
+        p99.append(result.timing.period_error_p99)  # type: ignore[attr-defined]
+    return {"lockstep_cycles_per_s_mit": float(np.median(lockstep)),
+            "rt_mit_overruns_per_10k": 1e4 * overruns / max(deadlines, 1),
+            "rt_mit_period_error_p99_us": float(np.median(p99)) * 1e6}
+
+
 BENCHES: dict[str, Callable[[], dict[str, float]]] = {
     "sweep": bench_sweep,
     "controller": bench_controller,
@@ -560,6 +595,7 @@ BENCHES: dict[str, Callable[[], dict[str, float]]] = {
     "live": bench_live,
     "kill": bench_kill,
     "cia402": bench_cia402,
+    "mit": bench_mit,
 }
 
 

@@ -1,5 +1,6 @@
-"""One drive test suite over every protocol: ODrive (``odrive-0.6``) and CiA 402
-(``cia402-emulated``), each against its emulated drive, in lockstep and in real time.
+"""One drive test suite over every protocol: ODrive (``odrive-0.6``), CiA 402
+(``cia402-emulated``) and MIT mode (``ak80-9``, a CubeMars AK80-9, and ``dm4310``, a
+Damiao DM4310), each against its emulated drive, in lockstep and in real time.
 
 What every protocol must do the same way, whatever its frames: the enable and disable
 handshakes, a feedback timeout when the drive goes silent, a fault reported the
@@ -9,11 +10,21 @@ safe stop (zero torque then the disable, confirmed by the drive's status; and th
 loud line when it cannot be confirmed), and the closed loop reaching the force
 reference with the same summary fields.
 
+What a protocol cannot do is its drive's declared capability, checked, never a skip: a
+CubeMars AK in MIT mode answers the exit frame with a reply that carries no mode, so its
+drive declares ``confirms_disable`` False. Its safe stop must then be
+``Confirmation.UNCONFIRMABLE`` with the loud line saying so -- and everything else of a
+safe stop still holds and is checked on the emulated motor: zero torque last, the exit
+frame sent, the motor out of motor mode with zero torque. (The Damiao's reply carries its
+state: its exit is confirmed like an ODrive's.)
+
 What differs per protocol is data, in :class:`Protocol`: the profile, the design delay
-the run must take from it (CiA 402 applies each command at the next SYNC: one whole
-period, ``command_delay_periods``; checked, never set by the test), which frames carry
-feedback and commands, how to read the host's commands off the bus, and how to inject
-its fault. Faults are :mod:`dobhil.emulator.faults` wrappers chosen by frame id; the two
+the run must take from it (CiA 402 applies each command at the next SYNC, an MIT motor
+answers each command with the next cycle's feedback: one whole period,
+``command_delay_periods``; checked, never set by the test), which frames carry feedback
+and commands, how to read the host's commands off the bus, and how to inject its fault
+(MIT: the motor's own over-current trip, error 2 / state 0xA, provoked by a command whose
+kp term demands far more than its range). Faults are :mod:`dobhil.emulator.faults` wrappers chosen by frame id; the two
 that need a CiA 402 payload are small :class:`~dobhil.emulator.faults.Fault` subclasses
 here. ODrive-only behaviour stays in ``test_drive_emulated.py`` and ``tests/runtime/``.
 
@@ -42,6 +53,9 @@ from dobhil.config import Config
 from dobhil.drives import DriveState, load_profile, make_drive
 from dobhil.drives.base import Confirmation, Drive
 from dobhil.drives.cia402.codec import PowerState
+from dobhil.drives.mit import codec as mit_codec
+from dobhil.drives.mit.codec import Special
+from dobhil.drives.mit.rules import model_of
 from dobhil.drives.periodic import native_periodic
 from dobhil.errors import DriveError
 from dobhil.drives.odrive import codec
@@ -69,8 +83,9 @@ _CHANNELS = itertools.count()
 class Commands:
     """What the host commanded the drive on the bus, in order."""
 
-    torques: list[float]   # [Nm] (CiA 402: per mille / 1000 of the 1 Nm rated torque)
-    states: list[int]      # ODrive: requested axis states; CiA 402: controlwords
+    torques: list[float]   # [Nm] (CiA 402: per mille / 1000 of the 1 Nm rated torque; MIT: the
+                           # code's value, the zero command's code as 0.0)
+    states: list[int]      # ODrive: requested axis states; CiA 402: controlwords; MIT: special frames
 
 
 @dataclass(frozen=True)
@@ -90,6 +105,10 @@ class Protocol:
     torque_quantum: float              # [Nm] resolution of the torque command on the wire
     no_answer: str                     # the enable's line when nobody answers (a regex)
     profile_changes: dict[str, Any] = dataclasses.field(default_factory=dict)
+    #: what its drive declares it can do: confirm that the drive left torque control
+    confirms_disable: bool = True
+    #: the feedback only answers the host's commands (MIT): the loop runs on host timing
+    requests_feedback: bool = False
 
     def __str__(self) -> str:
         return self.name
@@ -212,7 +231,101 @@ CIA402 = Protocol(
     no_answer=r"^node 6: SDO 0x1018:01 \(.*\) timed out after 0.3 s \(reached: pre-operational\)$",
 )
 
-PROTOCOLS = {p.name: p for p in (ODRIVE, CIA402)}
+
+# -- MIT mode (CubeMars AK80-9, Damiao DM4310) -------------------------------------
+
+_MIT_ZERO = mit_codec.Command(0.0, 0.0, 0.0, 0.0, 0.0)
+
+
+def _mit_profile(name: str) -> tuple[int, int, mit_codec.MitModel]:
+    """The shipped profile's node id, reply id and model row."""
+    profile = load_profile(name)
+    return profile.node_id, int(profile.options.get("reply_id", 0)), model_of(profile)
+
+
+def _mit_commands(name: str) -> Callable[[Sequence[can.Message]], Commands]:
+    node, _, model = _mit_profile(name)
+    zero = mit_codec.pack_command(model, _MIT_ZERO)
+
+    def decode(frames: Sequence[can.Message]) -> Commands:
+        torques, states = [], []
+        for msg in frames:
+            if msg.arbitration_id != node or msg.is_remote_frame or len(msg.data) != 8:
+                continue
+            data = bytes(msg.data)
+            special = mit_codec.is_special(data)
+            if special is not None:
+                states.append(int(special))
+            elif data == zero:   # the wire cannot say 0 N m exactly: the zero command's code
+                torques.append(0.0)
+            else:
+                torques.append(mit_codec.unpack_command(model, data).torque)
+        return Commands(torques, states)
+
+    return decode
+
+
+class OverCurrent(Fault):
+    """The host's torque commands become a stiff position command (kp at its top, the
+    position at the far end of the range): the motor's torque law demands far more than
+    its range, its own over-current trip (CubeMars error 2, Damiao state 0xA). Zero-torque
+    commands (the safe stop's) and special frames pass as sent."""
+
+    direction = Direction.SEND
+
+    def __init__(self, name: str) -> None:
+        node, _, self.model = _mit_profile(name)
+        super().__init__((node,))
+        self.zero = mit_codec.pack_command(self.model, _MIT_ZERO)
+        m = self.model
+        self.stiff = mit_codec.pack_command(m, mit_codec.Command(m.p_max, 0.0, m.kp_max, 0.0, 0.0))
+
+    def apply(self, msg: can.Message, index: int, now: float) -> Sequence[can.Message]:
+        data = bytes(msg.data)
+        if len(data) != 8 or data == self.zero or mit_codec.is_special(data) is not None:
+            return (msg,)
+        self.applied += 1
+        return (_with_data(msg, self.stiff),)
+
+
+class LoseSpecial(Fault):
+    """Special frames of ``kinds`` to the node are lost on the way (the motor never
+    leaves motor mode); its commands pass."""
+
+    direction = Direction.SEND
+
+    def __init__(self, name: str, kinds: frozenset[Special]) -> None:
+        super().__init__((_mit_profile(name)[0],))
+        self.kinds = kinds
+
+    def apply(self, msg: can.Message, index: int, now: float) -> Sequence[can.Message]:
+        if mit_codec.is_special(bytes(msg.data)) in self.kinds:
+            self.applied += 1
+            return ()
+        return (msg,)
+
+
+def _mit(name: str, *, confirms_disable: bool, fault_words: tuple[str, ...]) -> Protocol:
+    node, reply_id, model = _mit_profile(name)
+    return Protocol(
+        name=name, node=node,
+        design_delay=1,   # the reply to cycle k's command is cycle k+1's feedback: command_delay_periods
+        feedback_ids=frozenset({reply_id}),
+        active_state=1, idle_states=frozenset({0}), stopped_states=frozenset({0}),   # motor mode / rest
+        last_states=(int(Special.EXIT),), fault_words=fault_words,
+        decode=_mit_commands(name),
+        fault=lambda: [OverCurrent(name)],
+        lose_disable=lambda: [LoseSpecial(name, frozenset({Special.EXIT}))],
+        torque_quantum=model.quanta.torque,      # 2 t_max / 4095
+        no_answer=rf"^no reply from node {node + 1} .*not in MIT mode",
+        confirms_disable=confirms_disable, requests_feedback=True,
+    )
+
+
+MIT_CUBEMARS = _mit("ak80-9", confirms_disable=False, fault_words=("error 2", "over current"))
+MIT_DAMIAO = _mit("dm4310", confirms_disable=True, fault_words=("over current",))
+
+PROTOCOLS = {p.name: p for p in (ODRIVE, CIA402, MIT_CUBEMARS, MIT_DAMIAO)}
 
 
 class Armed(Fault):
@@ -301,8 +414,8 @@ def drive_rig(protocol: Protocol, timing: str, *, drive_node: int | None = None,
                               Plant.from_config(config))
     host: can.BusABC = host_bus
     clock: dict[str, Any] = {}
-    if timing == "lockstep":
-        host = LockstepBus(host_bus, [emu], dt=profile.feedback_period)
+    if timing == "lockstep":   # an MIT motor streams nothing: the loop's period is the step
+        host = LockstepBus(host_bus, [emu], dt=profile.feedback_period or config.loop.period)
         clock["clock"] = host.clock  # type: ignore[attr-defined]
     else:
         emu.start()
@@ -335,12 +448,20 @@ def test_enable_then_disable_handshake(rig: Rig, protocol: Protocol) -> None:
                         and rig.emu.applied_torque == 0.0)
 
 
+def expected_confirmation(drive: Drive, protocol: Protocol) -> Confirmation:
+    """CONFIRMED, or UNCONFIRMABLE for a drive that declares it cannot confirm -- and the
+    declaration must be the protocol's (a drive cannot opt out of confirming)."""
+    assert drive.confirms_disable is protocol.confirms_disable
+    return Confirmation.CONFIRMED if protocol.confirms_disable else Confirmation.UNCONFIRMABLE
+
+
 def test_enable_again_after_a_disable(rig: Rig, protocol: Protocol) -> None:
     rig.drive.enable()
     rig.drive.send_torque(0.1)
     rig.drive.poll(0.01)
     report = rig.drive.safe_stop()
-    assert report.confirmation is Confirmation.CONFIRMED, report.detail
+    assert report.confirmation is expected_confirmation(rig.drive, protocol), report.detail
+    assert rig.wait_for(lambda: rig.emu.axis_state in protocol.idle_states)  # type: ignore[attr-defined]
     rig.drive.enable()
     assert rig.emu.axis_state == protocol.active_state  # type: ignore[attr-defined]
 
@@ -386,8 +507,9 @@ def suite_config(tmp_path: Path, protocol: Protocol, timing: str, *overrides: st
     own reference), 0.4 s, on the protocol's profile and design delay."""
     profile = profile_ref(tmp_path, protocol, timing, **profile_changes)
     slack = REALTIME_SLACK if timing == "realtime" else ()
+    host = ("loop.timing=host",) if protocol.requests_feedback else ()   # nothing streams to time on
     return demo_config(f"drive.profile={profile}", *(STEP_FROM_ZERO if step else ()),
-                       "loop.duration=0.4", *slack, *overrides)
+                       "loop.duration=0.4", *slack, *host, *overrides)
 
 
 @dataclass
@@ -397,6 +519,7 @@ class Outcome:
     settled: bool
     summary: dict[str, Any]
     final: tuple[int, float]     # the emulator's axis_state and applied torque at the end
+    confirms_disable: bool       # what the run's drive declared
 
 
 def run(config: Config, protocol: Protocol, timing: str, faults: Sequence[Fault] = (), *,
@@ -425,13 +548,16 @@ def run(config: Config, protocol: Protocol, timing: str, faults: Sequence[Fault]
             settled = wait_until(idle) if settle else idle()
         final = (int(emu.axis_state), float(emu.applied_torque))  # type: ignore[union-attr]
         return Outcome(result, protocol.decode(sniffer.drain()), settled, summary(session, result),
-                       final)
+                       final, session.drive.confirms_disable)
 
 
 def assert_stopped_safely(out: Outcome, protocol: Protocol, reason: StopReason,
-                          words: Sequence[str] = ()) -> None:
+                          words: Sequence[str] = (), *, status_silenced: bool = False) -> None:
     """Why in one line; zero torque was the last torque; the disable commands last; the
-    drive confirmed it and ended out of torque control with zero torque."""
+    drive confirmed it -- or, where the protocol declares it cannot, the loud line says so
+    -- and ended out of torque control with zero torque. ``status_silenced``: the frames
+    that would confirm were silenced with the feedback (an MIT reply is both): a drive
+    that confirms must say it did not get the confirmation, loudly."""
     stop, report = out.result.stop, out.result.safe_stop
     line = stop.line()
     assert stop.reason is reason, line
@@ -441,9 +567,29 @@ def assert_stopped_safely(out: Outcome, protocol: Protocol, reason: StopReason,
     assert out.commands.torques and out.commands.torques[-1] == 0.0, out.commands.torques[-3:]
     assert tuple(out.commands.states[-len(protocol.last_states):]) == protocol.last_states, \
         out.commands.states
-    assert report is not None and report.confirmation is Confirmation.CONFIRMED, report
-    assert out.result.disabled and report.warning() == "" and out.summary["drive_warning"] == ""
+    assert out.confirms_disable is protocol.confirms_disable
+    if protocol.confirms_disable and status_silenced:
+        assert report is not None and report.confirmation is Confirmation.NOT_ACKNOWLEDGED, report
+        assert report.sent and not out.result.disabled
+        warning = report.warning()
+        assert warning.startswith(f"drive may still be enabled: node {protocol.node} did not acknowledge ")
+        assert warning.endswith("; cut power") and out.summary["drive_warning"] == warning
+    elif protocol.confirms_disable:
+        assert report is not None and report.confirmation is Confirmation.CONFIRMED, report
+        assert out.result.disabled and report.warning() == "" and out.summary["drive_warning"] == ""
+    else:   # every frame went out; nothing the drive sends can say it worked: never "safe"
+        assert report is not None and report.confirmation is Confirmation.UNCONFIRMABLE, report
+        assert report.sent and not report.safe and not out.result.disabled
+        assert_unconfirmable_line(report.warning(), protocol)
+        assert out.summary["drive_warning"] == report.warning() and out.summary["drive_disabled"] is False
     assert out.settled, f"emulated drive not out of torque control with zero torque: {out.final}"
+
+
+def assert_unconfirmable_line(warning: str, protocol: Protocol) -> None:
+    """The one loud line of a drive that cannot confirm its disable: names the node and
+    says that it cannot be confirmed, and to cut power."""
+    assert warning.startswith(f"drive may still be enabled: node {protocol.node} "), warning
+    assert re.search(r"cannot (be )?confirm", warning) and warning.endswith("; cut power") and "\n" not in warning
 
 
 def test_run_that_lasts_its_duration_stops_safely(tmp_path: Path, protocol: Protocol,
@@ -463,12 +609,18 @@ def test_run_that_lasts_its_duration_stops_safely(tmp_path: Path, protocol: Prot
 
 def test_feedback_timeout_when_the_drive_goes_silent(tmp_path: Path, protocol: Protocol,
                                                      timing: str) -> None:
+    """Feedback timing stops in the cycle that waited in vain; host timing (MIT) runs on
+    with the last feedback until it is older than ``loop.feedback_timeout``. An MIT reply
+    is the motor's status too: silenced, nothing can confirm the exit either."""
     silence = SilenceAfter(frames=0, ids=protocol.feedback_ids)
-    out = run(suite_config(tmp_path, protocol, timing), protocol, timing, armed=[silence])
-    assert_stopped_safely(out, protocol, StopReason.FEEDBACK_TIMEOUT, ["no fresh feedback"])
+    config = suite_config(tmp_path, protocol, timing)
+    out = run(config, protocol, timing, armed=[silence])
+    assert_stopped_safely(out, protocol, StopReason.FEEDBACK_TIMEOUT, ["no fresh feedback"],
+                          status_silenced=protocol.requests_feedback)
     assert out.result.stop.cycle > AT and silence.applied > 0
     if timing == "lockstep":
-        assert out.result.stop.cycle == AT + 1
+        stale = round(config.loop.feedback_timeout / config.loop.period) if protocol.requests_feedback else 0
+        assert out.result.stop.cycle == AT + 1 + stale
 
 
 def test_fault_the_protocols_way_is_a_drive_fault(tmp_path: Path, protocol: Protocol,
@@ -486,11 +638,15 @@ def test_unconfirmed_safe_stop_says_so_loudly(tmp_path: Path, protocol: Protocol
     out = run(config, protocol, timing, protocol.lose_disable(), settle=False)
     report = out.result.safe_stop
     assert out.result.stop.reason is StopReason.DONE
-    assert report is not None and report.sent and report.confirmation is Confirmation.NOT_ACKNOWLEDGED
-    assert not out.result.disabled
+    assert report is not None and report.sent and not out.result.disabled
     warning = report.warning()
-    assert warning.startswith(f"drive may still be enabled: node {protocol.node} did not acknowledge ")
-    assert warning.endswith("; cut power") and "\n" not in warning
+    if protocol.confirms_disable:
+        assert report.confirmation is Confirmation.NOT_ACKNOWLEDGED
+        assert warning.startswith(f"drive may still be enabled: node {protocol.node} did not acknowledge ")
+        assert warning.endswith("; cut power") and "\n" not in warning
+    else:   # the same loud line as when the exit arrived: nothing the motor sends tells them apart
+        assert out.confirms_disable is False and report.confirmation is Confirmation.UNCONFIRMABLE
+        assert_unconfirmable_line(warning, protocol)
     assert out.summary["drive_warning"] == warning and out.summary["drive_disabled"] is False
     assert out.commands.torques[-1] == 0.0 and not out.settled   # still in torque control
 
@@ -531,9 +687,10 @@ def test_summary_has_the_same_fields_for_every_protocol(tmp_path: Path) -> None:
                   "lockstep")
         assert out.result.stop.reason is StopReason.DONE
         shapes[protocol.name] = shape(out.summary)
-    odrive, cia402 = shapes["odrive-0.6"], shapes["cia402-emulated"]
-    assert odrive.keys() == cia402.keys()
-    assert odrive == cia402
+    odrive = shapes["odrive-0.6"]
+    for name, other in shapes.items():
+        assert other.keys() == odrive.keys(), name
+        assert other == odrive, name
 
 
 # ---------------------------------------------------------------------------

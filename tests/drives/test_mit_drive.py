@@ -89,9 +89,10 @@ def test_a_reply_queued_before_the_enter_frame_does_not_confirm_it() -> None:
     with fake_motor(NODE, lambda data: None) as (bus, motor):
         motor.send(reply_cubemars(NODE))         # late, from before
         drive = MitDrive(bus, mit_profile(enable_timeout=0.1))
-        with pytest.raises(DriveTimeoutError):
+        with pytest.raises(DriveTimeoutError, match="a motor not in MIT mode answers nothing"):
             drive.enable()
     assert drive.status.state is DriveState.DISABLED
+    assert drive.feedback is not None and drive.feedback.seq == 1   # read (and decoded) all the same
 
 
 def test_a_cubemars_error_in_the_reply_ends_the_enable_at_once_with_its_code() -> None:

@@ -53,7 +53,7 @@ from dobhil.drives.mit.replies import ZERO_COMMAND, MitFault, reply_node, state_
 from dobhil.drives.mit.rules import MIT_RULES, check_mit_profile, model_of
 from dobhil.drives.profile import DriveProfile, ProtocolRules
 from dobhil.drives.waits import Cancel
-from dobhil.errors import BusError, CodecError, DriveFaultError
+from dobhil.errors import CodecError, DriveFaultError
 
 if TYPE_CHECKING:
     from dobhil.drives.preflight import PreflightProbe
@@ -133,10 +133,12 @@ class MitDrive(Drive):
             try:
                 msg = recv(0.0)
             except Exception as exc:  # any interface's failure is the bus's
-                raise BusError(f"bus read for node {self.node_id} failed: {' '.join(str(exc).split())}") from exc
+                raise self._read_error(exc) from exc
             if msg is None:
-                return
+                break
             self._handle(msg)
+        # what was queued answers no enter frame: the timeout's line must not quote it
+        self._last_state = None
 
     def _enable_start(self) -> Sequence[can.Message]:
         frames = []

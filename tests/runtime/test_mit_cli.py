@@ -1,0 +1,127 @@
+"""Issue 18's "done when" on the command line, in process (``dobhil.cli.main.main``):
+``dobhil run configs/mit-demo.yaml --emulate --lockstep --log x.mcap`` converges with the
+same summary fields as the ODrive demo, ``dobhil replay x.mcap --verify`` reproduces it bit
+for bit, ``dobhil report`` works on it; bad MIT input (a model the table lacks, a firmware
+it lacks, a torque limit above the model's range) is one line, exit 2, and nothing ran.
+
+The demo's motor is a CubeMars AK80-9: its exit frame cannot be confirmed (its replies
+carry no mode), so every run of it ends with the one loud line -- checked here as the
+protocol's declared capability, on stderr and in the summary.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import pytest
+import yaml
+
+from dobhil.cli.main import main
+from dobhil.config import load_config
+from dobhil.drives.mit.rules import model_of
+from dobhil.drives.profile import load_drive_profile
+
+from .helpers import DEMO, DRIVERS, REPO
+
+MIT_DEMO = REPO / "configs" / "mit-demo.yaml"
+EXIT_USAGE = 2
+
+
+def _run(argv: list[str], capsys: pytest.CaptureFixture[str]) -> tuple[int, str, str]:
+    code = main(argv)
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def shape(value: Any) -> Any:
+    """The summary's keys and value types, recursively (lists: their first item's)."""
+    if isinstance(value, dict):
+        return {k: shape(v) for k, v in value.items()}
+    if isinstance(value, list):
+        return [shape(v) for v in value[:1]]
+    return type(value).__name__ if value is not None else None
+
+
+def test_the_mit_demo_converges_replays_bit_for_bit_and_reports(tmp_path: Path,
+                                                                capsys: pytest.CaptureFixture[str]) -> None:
+    log = tmp_path / "x.mcap"
+    code, out, err = _run(["run", str(MIT_DEMO), "--emulate", "--lockstep", "--log", str(log), "--summary-json"],
+                          capsys)
+    assert code == 0, err
+    info = json.loads(out)
+    assert info["stop_reason"] == "done" and info["cycles"] == 1200 and info["overruns"] == 0
+
+    # converged: the force reached the reference within what the motor can apply -- its
+    # torque command is truncated to a 2 t_max / 4095 grid (8.8 mN m on an AK80-9)
+    quantum = model_of(load_drive_profile(load_config(MIT_DEMO))).quanta.torque
+    final = info["final"]
+    assert final["tau_ref"] == 1.0
+    assert abs(final["tau_int_true"] - 1.0) <= quantum and abs(final["tau_int_hat"] - 1.0) <= quantum, final
+
+    # the same summary fields, of the same types, as the ODrive demo's (run the same way)
+    code, odrive_out, odrive_err = _run(["run", str(DEMO), "--emulate", "--lockstep", "--summary-json",
+                                         "--duration", "0.05", "--log", str(tmp_path / "odrive.mcap")], capsys)
+    assert code == 0, odrive_err
+    assert shape(info) == shape(json.loads(odrive_out))
+
+    # the exit frame went out, and the one loud line says it cannot be confirmed
+    assert info["safe_stop"]["confirmation"] == "unconfirmable"
+    assert [f["what"] for f in info["safe_stop"]["frames"]] == ["zero torque", "exit motor mode"]
+    assert all(f["sent"] for f in info["safe_stop"]["frames"]) and info["drive_disabled"] is False
+    warning = info["drive_warning"]
+    assert warning.startswith("drive may still be enabled: node 1 ") and warning.endswith("; cut power")
+    assert "cannot be confirmed" in warning
+    assert err.strip().splitlines() == [f"WARNING: {warning}"]
+
+    # replay: the drive decodes the recorded replies again, unwrap state and all
+    code, out, err = _run(["replay", str(log), "--verify"], capsys)
+    assert code == 0, err
+    assert "replayed 1200 cycles" in out
+    assert "identical: every command and estimate reproduced bit for bit" in out, out
+
+    # report: the analysis' prediction of the same design (one period of delay) against the run
+    report_dir = tmp_path / "report"
+    code, out, err = _run(["report", str(log), "--out", str(report_dir), "--json"], capsys)
+    assert code == 0, err
+    summary = json.loads(out)
+    assert summary["cycles"] == 1200 and summary["stop"] == "done"
+    assert summary["latency"]["protocol_delay_periods"] == 1
+    assert summary["prediction"]["available"] and summary["prediction"]["rms_difference"] > 0
+    assert all((report_dir / name).stat().st_size > 0 for name in ("force.png", "summary.json", "summary.txt"))
+
+
+def _profile(tmp_path: Path, name: str, *, mit: dict[str, Any] | None = None, **changes: Any) -> Path:
+    data = yaml.safe_load((DRIVERS / f"{name}.yaml").read_text(encoding="utf-8"))
+    data.update(changes)
+    if mit:
+        data["mit"] = {**data["mit"], **mit}
+    path = tmp_path / f"{name}-bad.yaml"
+    path.write_text(yaml.safe_dump(data), encoding="utf-8")
+    return path
+
+
+@pytest.mark.parametrize(("profile", "changes", "says"), [
+    ("ak80-9", {"mit": {"model": "AK99-1"}},
+     "mit.model: no row for cubemars AK99-1 firmware 'manual-1.0.8'"),
+    ("ak80-9", {"firmware": "9.9"}, "no row for cubemars AK80-9 firmware '9.9'"),
+    ("ak80-9", {"torque_limit": 19.0}, "torque_limit: expected a number > 0 and <= 18 Nm"),
+    ("dm4310", {"torque_limit": 10.5}, "torque_limit: expected a number > 0 and <= 10 Nm"),
+])
+def test_bad_mit_input_is_one_line_exit_2_and_nothing_ran(tmp_path: Path, capsys: pytest.CaptureFixture[str],
+                                                          monkeypatch: pytest.MonkeyPatch, profile: str,
+                                                          changes: dict[str, Any], says: str) -> None:
+    """Refused while reading the profile: not even a bus was opened (so no motor could
+    have been told to enter motor mode)."""
+    def no_bus(*args: Any, **kwargs: Any) -> None:
+        raise AssertionError("a bus was opened for a refused profile")
+
+    monkeypatch.setattr("dobhil.runtime.session.open_bus", no_bus)
+    path = _profile(tmp_path, profile, **changes)
+    code, out, err = _run(["run", str(MIT_DEMO), "--emulate", "--lockstep", "--set", f"drive.profile={path}"],
+                          capsys)
+    assert code == EXIT_USAGE, (out, err)
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and says in lines[0], err
+    assert "cycles" not in out and "WARNING" not in err   # no loop ran: nothing was enabled
