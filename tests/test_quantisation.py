@@ -357,3 +357,15 @@ def test_the_figures_simulation_is_the_lockstep_emulated_run() -> None:
     # at rest after the step the force sits where the truncated command puts it
     rest = run["tau_int_true"][n - 100:n]
     assert rest == pytest.approx(1.0 + tool.steady_error(model, 1.0), abs=1e-6)
+
+
+def test_an_unstable_loop_has_no_closed_loop_figures() -> None:
+    """Above the largest stable force gain (6.63 for this design) the loop has no finite
+    H2 norm: closed_loop is None (null in --json), the text says UNSTABLE; the observers'
+    figures do not depend on C_f."""
+    stable = noise_figures(params_from_config(load_config("configs/mit-demo.yaml")), STEPS)
+    params = params_from_config(load_config("configs/mit-demo.yaml", ["design.force_gain=8"]))
+    figures = noise_figures(params, STEPS)
+    assert figures.closed_loop is None and figures.as_dict()["closed_loop"] is None
+    assert "closed loop at C_f = 8: UNSTABLE, no noise figure" in quantisation_text(figures)
+    assert figures.observers["rtob"].total == stable.observers["rtob"].total

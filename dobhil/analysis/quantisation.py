@@ -258,9 +258,12 @@ TEXT_ZERO = 1e-9
 
 
 def _mnm(x: float | None) -> str:
+    """A torque in mN m (N m from 1 N m on)."""
     if x is None:
         return "-"
-    return "0 mN m" if abs(x) < TEXT_ZERO else f"{x * 1e3:.3g} mN m"
+    if abs(x) < TEXT_ZERO:
+        return "0 mN m"
+    return f"{x:.3g} N m" if abs(x) >= 1.0 else f"{x * 1e3:.3g} mN m"
 
 
 def _channels(f: ChannelFigures) -> str:
