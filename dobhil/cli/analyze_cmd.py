@@ -33,12 +33,16 @@ def run(args: argparse.Namespace) -> int:
         check_output_dir(args.plot, PLOT_NAMES, inputs=[args.config], what="--plot")
     result = analyze(config)
     budget_line, budget = bus_budget(config, Path(args.config))
+    quant_text, quant = quantisation(config, Path(args.config))
     if args.json:
-        json.dump({**as_json(result), "bus_budget": budget}, sys.stdout)
+        extra = {} if quant is None else {"quantisation": quant}
+        json.dump({**as_json(result), "bus_budget": budget, **extra}, sys.stdout)
         sys.stdout.write("\n")
     else:
         print(as_text(result))
         print(budget_line)
+        if quant_text:
+            print(quant_text)
     if args.plot:
         from dobhil.plotting.figures import analysis_figures
         paths = analysis_figures(result.continuous, result.discrete, args.plot,
@@ -66,3 +70,29 @@ def bus_budget(config: Any, config_path: Path) -> tuple[str, dict[str, Any] | No
         return f"bus budget: not computed (protocol {profile.protocol!r} lists no frames)", None
     line = budget.line() + (f"; {budget.advice()}" if budget.over else "")
     return line, {"line": budget.line(), "advice": budget.advice(), **budget.as_dict()}
+
+
+def quantisation(config: Any, config_path: Path) -> tuple[str, dict[str, Any] | None]:
+    """The codec's quantisation figures (:mod:`dobhil.analysis.quantisation`) when the
+    config's drive profile has a codec model (protocol ``mit``): its text and its dict for
+    --json. ("", None) for any other protocol -- the output is then what it always was --
+    and for a profile that cannot be read (the bus budget line already says why). A model
+    the table lacks is said in the text and left out of --json."""
+    from dobhil.config import resolve_config
+    from dobhil.drives.profile import load_drive_profile
+    from dobhil.errors import ConfigError
+    try:
+        profile = load_drive_profile(config, resolve_config(str(config_path)).parent)
+    except ConfigError:
+        return "", None
+    if profile.protocol != "mit":
+        return "", None
+    from dobhil.analysis.quantisation import mit_quantisation, quantisation_text
+    from dobhil.drives.mit.rules import model_of
+    from dobhil.synthesis.params import params_from_config
+    try:
+        model = model_of(profile)
+    except ConfigError as exc:
+        return f"quantisation: not computed ({exc})", None
+    figures = mit_quantisation(params_from_config(config), model)
+    return quantisation_text(figures), figures.as_dict()
