@@ -579,8 +579,7 @@ class ForceLoop:
             start = time.perf_counter()
             fb = drive.feedback or first
             now = clock()
-            if fb.seq != last_seq:
-                self._rate.frame(fb.timestamp, fb.seq - last_seq)
+            if fb.seq != last_seq:   # (no rate watch: replies come as often as commands go)
                 last_seq, last_fresh = fb.seq, now
             elif now - last_fresh > timeout + tolerance:
                 self._check_stop_request()
@@ -633,13 +632,18 @@ class ForceLoop:
         last_fresh = t0
         last_seq = self.drive.feedback.seq if self.drive.feedback is not None else 0
         n = s.cycles
+        # a drive that only answers (an MIT motor) replies as often as this loop commands:
+        # slow replies then measure the host, whose lateness the overruns count already;
+        # the rate watch would blame the drive for it (the silence check still runs)
+        watch_rate = self.drive.feedback_streams
         while k < n:
             wake = self.clock()
             start = time.perf_counter()
             fb = self.drive.poll(0.0)
             if fb is not None:
                 last_fresh = wake
-                self._rate.frame(fb.rx_time, fb.seq - last_seq)
+                if watch_rate:
+                    self._rate.frame(fb.rx_time, fb.seq - last_seq)
                 last_seq = fb.seq
             elif wake - last_fresh > timeout:
                 raise self._silent(f"no fresh feedback for {wake - last_fresh:.4f} s (limit {timeout:g} s)",

@@ -1,0 +1,73 @@
+"""The feedback-rate watch in host timing: it stops a run on a drive that streams slower
+than ``loop.period`` (an ODrive left at its factory rate), and leaves alone a drive that
+only answers the host (an MIT motor): its replies come as often as the host commands, so
+slow replies there measure the host, whose lateness the overruns already count."""
+
+from __future__ import annotations
+
+import time
+from types import SimpleNamespace
+from typing import Any
+
+from dobhil.drives.base import Confirmation, Feedback, SafeStopReport
+from dobhil.drives.profile import load_profile
+from dobhil.runtime.loop import ForceLoop, Limits, LoopSettings, Timing
+from dobhil.runtime.session import build_controller
+from dobhil.runtime.stop import StopReason
+
+from .helpers import demo_config
+
+#: the bus stamps of the fake's frames are this many loop periods apart
+SPACING = 3
+
+
+class _SlowFrames:
+    """A fresh frame at every poll, stamped SPACING periods after the last one."""
+
+    node_id = 1
+    notes: tuple[str, ...] = ()
+
+    def __init__(self, streams: bool, period: float) -> None:
+        self.feedback_streams = streams
+        self.period = period
+        self.seq = 0
+        self.feedback: Feedback | None = None
+
+    def enable(self, timeout: float | None = None, cancel: Any = None) -> None:
+        pass
+
+    def poll(self, timeout: float) -> Feedback:
+        self.seq += 1
+        stamp = self.seq * SPACING * self.period
+        self.feedback = Feedback(stamp, 0.0, 0.0, self.seq, rx_time=stamp)
+        return self.feedback
+
+    def send_torque(self, u: float) -> None:
+        pass
+
+    def safe_stop(self, cancel: Any = None) -> SafeStopReport:
+        return SafeStopReport(1, (), Confirmation.CONFIRMED)
+
+
+def _run(streams: bool, cycles: int = 30) -> Any:
+    config = demo_config("reference.offset=0", "reference.amplitude=0")
+    period = config.loop.period
+    settings = LoopSettings(period=period, duration=cycles * period, feedback_timeout=1.0,
+                            timing=Timing.HOST, limits=Limits(-1.0, 1.0, 10.0))
+    loop = ForceLoop(drive=_SlowFrames(streams, period),  # type: ignore[arg-type]
+                     controller=build_controller(config, load_profile("odrive-0.6")),
+                     reference=SimpleNamespace(value=lambda t: 0.0), settings=settings,
+                     clock=time.perf_counter)
+    return loop.run()
+
+
+def test_a_streaming_drive_slower_than_the_loop_stops_the_run() -> None:
+    result = _run(streams=True)
+    assert result.stop.reason is StopReason.FEEDBACK_TIMEOUT
+    assert "frames come every 3 ms" in result.stop.detail
+
+
+def test_a_drive_that_only_answers_is_not_blamed_for_the_hosts_pace() -> None:
+    result = _run(streams=False, cycles=30)
+    assert result.stop.reason is StopReason.DONE, result.stop.line()
+    assert result.cycles + result.skipped == 30
