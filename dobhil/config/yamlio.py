@@ -18,8 +18,10 @@ import yaml
 from yaml.constructor import ConstructorError
 from yaml.nodes import MappingNode
 
-__all__ = ["MAX_TEXT_BYTES", "UniqueKeyLoader", "TextFileError", "read_text_file", "safe_load", "show_value",
-           "where"]
+from dobhil.errors import ConfigError
+
+__all__ = ["MAX_TEXT_BYTES", "UniqueKeyLoader", "TextFileError", "load_yaml_file", "read_text_file", "safe_load",
+           "show_value", "where"]
 
 #: the largest YAML file dobhil reads (configs and profiles are a few kB; a larger file is
 #: not one, and PyYAML would take minutes over it)
@@ -96,6 +98,20 @@ def read_text_file(path: str | os.PathLike[str], *, limit: int = MAX_TEXT_BYTES)
         return data.decode("utf-8")
     except UnicodeDecodeError as exc:
         raise TextFileError(f"is not UTF-8 text (byte 0x{data[exc.start]:02x} at offset {exc.start})") from None
+
+
+def load_yaml_file(path: str | os.PathLike[str], what: str) -> Any:
+    """The parsed YAML of a data file (a drive profile, the MIT model table), or a one-line
+    ConfigError naming the file and ``what`` it was read as: unreadable, not text, too
+    large, or a YAML error with its line and column."""
+    try:
+        return safe_load(read_text_file(path))
+    except TextFileError as exc:
+        raise ConfigError(f"{path}: cannot read {what}: it {exc}") from None
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"{path}: YAML error in {what}{where(exc)}") from None
+    except (OSError, ValueError, RecursionError) as exc:
+        raise ConfigError(f"{path}: cannot read {what}: {' '.join(str(exc).split())}") from None
 
 
 def _short_repr() -> reprlib.Repr:

@@ -27,10 +27,9 @@ from pathlib import Path
 from types import MappingProxyType
 from typing import Any, Final
 
-import yaml
 
 from dobhil.config.schema import Config
-from dobhil.config.yamlio import TextFileError, read_text_file, safe_load, show_value, where
+from dobhil.config.yamlio import load_yaml_file, show_value
 from dobhil.errors import ConfigError
 
 __all__ = [
@@ -441,14 +440,7 @@ def load_profile(
     """Load a profile by name (from ``drivers_dir``, else a ``drivers/`` above ``near``, else the
     shipped ones) or an explicit YAML path into a DriveProfile."""
     path = _resolve(name_or_path, drivers_dir, near)
-    try:
-        data = safe_load(read_text_file(path))
-    except TextFileError as exc:
-        raise ConfigError(f"{path}: cannot read drive profile: it {exc}") from None
-    except yaml.YAMLError as exc:
-        raise ConfigError(f"{path}: YAML error in drive profile{where(exc)}") from None
-    except (OSError, ValueError, RecursionError) as exc:
-        raise ConfigError(f"{path}: cannot read drive profile: {' '.join(str(exc).split())}") from None
+    data = load_yaml_file(path, "drive profile")
     data = {"name": path.stem, **(data or {})} if isinstance(data, Mapping) else data
     return profile_from_mapping(data, source=str(path), directory=str(path.resolve().parent))
 

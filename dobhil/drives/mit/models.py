@@ -16,9 +16,8 @@ from pathlib import Path
 from types import MappingProxyType
 from typing import Any, Final
 
-import yaml
 
-from dobhil.config.yamlio import TextFileError, read_text_file, safe_load, show_value, where
+from dobhil.config.yamlio import load_yaml_file, show_value
 from dobhil.drives.mit.codec import SPECIAL_NAMES, MitModel, ReplyLayout
 from dobhil.errors import CodecError, ConfigError
 
@@ -84,14 +83,7 @@ def find_model(vendor: str, model: str, firmware: str,
 
 
 def _read(file: Path) -> Any:
-    try:
-        return safe_load(read_text_file(file))
-    except TextFileError as exc:
-        raise ConfigError(f"{file}: cannot read the MIT model table: it {exc}") from None
-    except yaml.YAMLError as exc:
-        raise ConfigError(f"{file}: YAML error in the MIT model table{where(exc)}") from None
-    except (OSError, ValueError, RecursionError) as exc:
-        raise ConfigError(f"{file}: cannot read the MIT model table: {' '.join(str(exc).split())}") from None
+    return load_yaml_file(file, "the MIT model table")
 
 
 def _mapping(value: Any, what: str, allowed: tuple[str, ...]) -> Mapping[str, Any]:
