@@ -518,18 +518,23 @@ def bench_kill(runs: int = 12) -> dict[str, float]:
 CIA402_CONFIG = ROOT / "configs/cia402-demo.yaml"
 
 
-def _cia402_run(duration: float, lockstep: bool) -> tuple[float, object]:
-    """A CiA 402 demo run, lockstep or real time (feedback timing: each cycle on the
-    node's TPDOs, the SYNC sent by the emulator's process as a kernel's broadcast manager
-    would); its cycles per second of wall time and its result."""
+def _protocol_run(config_file: Path, duration: float, lockstep: bool, timing: str) -> tuple[float, object]:
+    """A demo run of one protocol's config, lockstep or real time in ``timing``; its cycles
+    per second of wall time and its result."""
     from dobhil.runtime.session import RunSession
-    overrides = [f"loop.duration={duration}"] + ([] if lockstep else ["loop.timing=feedback",
+    overrides = [f"loop.duration={duration}"] + ([] if lockstep else [f"loop.timing={timing}",
                                                                       "loop.feedback_timeout=0.05"])
-    config = load_config(CIA402_CONFIG, overrides)
-    with RunSession(config, emulate=True, lockstep=lockstep, config_dir=CIA402_CONFIG.parent) as session:
+    config = load_config(config_file, overrides)
+    with RunSession(config, emulate=True, lockstep=lockstep, config_dir=config_file.parent) as session:
         t0 = time.perf_counter()
         result = session.run()
         return result.cycles / (time.perf_counter() - t0), result
+
+
+def _cia402_run(duration: float, lockstep: bool) -> tuple[float, object]:
+    """A CiA 402 demo run; real time in feedback timing: each cycle on the node's TPDOs,
+    the SYNC sent by the emulator's process as a kernel's broadcast manager would."""
+    return _protocol_run(CIA402_CONFIG, duration, lockstep, "feedback")
 
 
 def bench_cia402(rounds: int = 3, seconds: float = 6.0) -> dict[str, float]:
@@ -556,17 +561,9 @@ MIT_CONFIG = ROOT / "configs/mit-demo.yaml"
 
 
 def _mit_run(duration: float, lockstep: bool) -> tuple[float, object]:
-    """An MIT demo run, lockstep or real time; its cycles per second of wall time and its
-    result. Real time is host timing (the config's own): an MIT motor answers each command
-    with one reply and streams nothing, so there is no feedback to time the loop on."""
-    from dobhil.runtime.session import RunSession
-    overrides = [f"loop.duration={duration}"] + ([] if lockstep else ["loop.timing=host",
-                                                                      "loop.feedback_timeout=0.05"])
-    config = load_config(MIT_CONFIG, overrides)
-    with RunSession(config, emulate=True, lockstep=lockstep, config_dir=MIT_CONFIG.parent) as session:
-        t0 = time.perf_counter()
-        result = session.run()
-        return result.cycles / (time.perf_counter() - t0), result
+    """An MIT demo run; real time is host timing (the config's own): an MIT motor answers
+    each command with one reply and streams nothing, so there is no feedback to time on."""
+    return _protocol_run(MIT_CONFIG, duration, lockstep, "host")
 
 
 def bench_mit(rounds: int = 3, seconds: float = 6.0) -> dict[str, float]:
