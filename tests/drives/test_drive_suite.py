@@ -68,7 +68,7 @@ from dobhil.runtime.loop import RunResult
 from dobhil.runtime.session import RunSession, summary
 from dobhil.runtime.stop import StopReason
 
-from tests.runtime.helpers import (DRIVERS, REALTIME_SLACK, STEP_FROM_ZERO, Sniffer, demo_config,
+from tests.runtime.helpers import (DRIVERS, summary_shape, REALTIME_SLACK, STEP_FROM_ZERO, Sniffer, demo_config,
                                finite_tail, realtime_profile, wait_until)
 
 AT = 100            # a fault strikes around the 100th cycle of a 0.4 s run
@@ -674,19 +674,12 @@ def test_closed_loop_reaches_the_force_reference(tmp_path: Path, protocol: Proto
 
 
 def test_summary_has_the_same_fields_for_every_protocol(tmp_path: Path) -> None:
-    def shape(value: Any) -> Any:
-        if isinstance(value, dict):
-            return {k: shape(v) for k, v in value.items()}
-        if isinstance(value, list):
-            return [shape(v) for v in value[:1]]
-        return type(value).__name__ if value is not None else None
-
     shapes = {}
     for protocol in PROTOCOLS.values():
         out = run(suite_config(tmp_path, protocol, "lockstep", "loop.duration=0.05"), protocol,
                   "lockstep")
         assert out.result.stop.reason is StopReason.DONE
-        shapes[protocol.name] = shape(out.summary)
+        shapes[protocol.name] = summary_shape(out.summary)
     odrive = shapes["odrive-0.6"]
     for name, other in shapes.items():
         assert other.keys() == odrive.keys(), name

@@ -8,6 +8,7 @@ from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
 from types import TracebackType
+from typing import Any
 
 import can
 import numpy as np
@@ -162,3 +163,13 @@ def finite_tail(values: np.ndarray, t: np.ndarray, seconds: float, *,
     recent = np.flatnonzero(np.isfinite(values) & (t >= t[np.isfinite(t)][-1] - seconds))
     keep = recent if recent.size >= at_least else finite[-at_least:]
     return values[keep]
+
+
+def summary_shape(value: Any) -> Any:
+    """A run summary's keys and value types, recursively (lists: their first item's): what
+    must be the same for every protocol, whatever the values."""
+    if isinstance(value, dict):
+        return {k: summary_shape(v) for k, v in value.items()}
+    if isinstance(value, list):
+        return [summary_shape(v) for v in value[:1]]
+    return type(value).__name__ if value is not None else None

@@ -23,7 +23,7 @@ from dobhil.config import load_config
 from dobhil.drives.mit.rules import model_of
 from dobhil.drives.profile import load_drive_profile
 
-from .helpers import DEMO, DRIVERS, REPO
+from .helpers import DEMO, DRIVERS, REPO, summary_shape
 
 MIT_DEMO = REPO / "configs" / "mit-demo.yaml"
 EXIT_USAGE = 2
@@ -33,15 +33,6 @@ def _run(argv: list[str], capsys: pytest.CaptureFixture[str]) -> tuple[int, str,
     code = main(argv)
     out, err = capsys.readouterr()
     return code, out, err
-
-
-def shape(value: Any) -> Any:
-    """The summary's keys and value types, recursively (lists: their first item's)."""
-    if isinstance(value, dict):
-        return {k: shape(v) for k, v in value.items()}
-    if isinstance(value, list):
-        return [shape(v) for v in value[:1]]
-    return type(value).__name__ if value is not None else None
 
 
 def test_the_mit_demo_converges_replays_bit_for_bit_and_reports(tmp_path: Path,
@@ -64,7 +55,7 @@ def test_the_mit_demo_converges_replays_bit_for_bit_and_reports(tmp_path: Path,
     code, odrive_out, odrive_err = _run(["run", str(DEMO), "--emulate", "--lockstep", "--summary-json",
                                          "--duration", "0.05", "--log", str(tmp_path / "odrive.mcap")], capsys)
     assert code == 0, odrive_err
-    assert shape(info) == shape(json.loads(odrive_out))
+    assert summary_shape(info) == summary_shape(json.loads(odrive_out))
 
     # the exit frame went out, and the one loud line says it cannot be confirmed
     assert info["safe_stop"]["confirmation"] == "unconfirmable"
