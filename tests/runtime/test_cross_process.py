@@ -31,17 +31,22 @@ def slow_overrides(tmp_path: Path) -> list[str]:
             "loop.duration=1.5"]
 
 
+def start_emulate(config: Path, url: str, overrides: list[str], out: Path) -> subprocess.Popen[bytes]:
+    """``dobhil emulate CONFIG`` on the hub at ``url`` in a child process, its output to ``out``."""
+    with out.open("wb") as log:
+        return subprocess.Popen(
+            [sys.executable, "-m", "dobhil", "emulate", str(config), "--bus", f"remote:{url}",
+             "--duration", "60", *[a for o in overrides for a in ("--set", o)]],
+            stdout=log, stderr=subprocess.STDOUT, env=child_env(), cwd=REPO)
+
+
 def test_force_loop_across_processes(tmp_path: Path, hub: int) -> None:
     """The loop in this process converges on a drive emulated by another process,
     through the hub: stop reason done, tau_int^ at the 1 N m reference."""
     url = f"ws://127.0.0.1:{hub}/"
     overrides = slow_overrides(tmp_path)
     out = tmp_path / "emulate.log"
-    with out.open("wb") as log:
-        emulate = subprocess.Popen(
-            [sys.executable, "-m", "dobhil", "emulate", str(DEMO), "--bus", f"remote:{url}",
-             "--duration", "60", *[a for o in overrides for a in ("--set", o)]],
-            stdout=log, stderr=subprocess.STDOUT, env=child_env(), cwd=REPO)
+    emulate = start_emulate(DEMO, url, overrides, out)
     try:
         wait_for_emulator(emulate, out)
         config = demo_config(*overrides)
@@ -72,11 +77,7 @@ def test_mit_force_loop_across_processes(tmp_path: Path, hub: int) -> None:
                  "reference.offset=0", "reference.amplitude=1", "reference.start=0", "loop.duration=1.5"]
     config_path = REPO / "configs" / "mit-demo.yaml"
     out = tmp_path / "emulate.log"
-    with out.open("wb") as log:
-        emulate = subprocess.Popen(
-            [sys.executable, "-m", "dobhil", "emulate", str(config_path), "--bus", f"remote:{url}",
-             "--duration", "60", *[a for o in overrides for a in ("--set", o)]],
-            stdout=log, stderr=subprocess.STDOUT, env=child_env(), cwd=REPO)
+    emulate = start_emulate(config_path, url, overrides, out)
     try:
         wait_for_emulator(emulate, out, "mit")
         config = load_config(config_path, overrides)
