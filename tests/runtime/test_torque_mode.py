@@ -192,3 +192,42 @@ def test_bad_excitation_keys_are_one_line_exit_2(override: str, words: list[str]
     assert err.count("\n") == 1 and "Traceback" not in err, err
     for word in words:
         assert word in err, (word, err)
+
+
+# -- the shipped excitation configs -------------------------------------------------
+
+class Contact(Recorder):
+    """Whether the emulated servo was in contact at each cycle, and the largest |q|."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.plant: Any = None
+        self.contact: list[bool] = []
+        self.q_max = 0.0
+
+    def cycle(self, k: int, t: float, fb: Any, out: ControlOutput, period_error: float,
+              exec_time: float, overrun: bool) -> None:
+        super().cycle(k, t, fb, out, period_error, exec_time, overrun)
+        self.contact.append(bool(self.plant.in_contact))
+        self.q_max = max(self.q_max, abs(fb.position))
+
+
+@pytest.mark.parametrize("name", ["identify-free", "identify-contact"])
+def test_the_shipped_excitation_runs_last_their_duration(name: str) -> None:
+    """identify-free never touches anything and stays well inside its position limits;
+    identify-contact never leaves the contact (its torque never drops below 0.5 N m)."""
+    from dobhil.config import load_config
+    config = load_config(name)
+    assert config.loop.mode == "torque"
+    sink = Contact()
+    with RunSession(config, emulate=True, lockstep=True, sink=sink) as session:
+        sink.plant = session.plant
+        result = session.run()
+    assert result.stop.reason is StopReason.DONE, result.stop.line()
+    assert len(sink.contact) == round(config.loop.duration / config.loop.period)
+    if name == "identify-free":
+        assert config.environment.stiffness == 0.0 and not any(sink.contact)
+        assert sink.q_max < 0.5 * config.loop.position_max
+    else:
+        assert all(sink.contact)
+        assert sink.q_max < 0.1 * config.loop.position_max
