@@ -90,6 +90,7 @@ class Reference:
                        if self.kind in (ReferenceKind.PRBS, ReferenceKind.MULTISINE) else math.inf)
         self._lines: tuple[tuple[float, float], ...] = ()   # multisine (2 pi f_i, phi_i)
         self._gain = 0.0
+        self._level: tuple[int, bool] = (-1, False)   # prbs: the last clock index and its bit
         self.crest_factor = math.nan
         if self.kind is ReferenceKind.CHIRP:
             self._sweep = _sweep_time(duration, self.start)
@@ -126,7 +127,10 @@ class Reference:
         if kind is ReferenceKind.CHIRP:
             return a * math.sin(self._chirp_phase(tau))
         if kind is ReferenceKind.PRBS:
-            return a if prbs_bit(self.seed, int(tau // self.clock_period)) else -a
+            k = int(tau // self.clock_period)
+            if k != self._level[0]:   # a new clock period: hash once, hold it (a pure cache)
+                self._level = (k, prbs_bit(self.seed, k))
+            return a if self._level[1] else -a
         if kind is ReferenceKind.MULTISINE:
             return self._gain * sum(math.cos(w * tau + p) for w, p in self._lines)
         return a if (tau * self.frequency) % 1.0 < 0.5 else -a  # SQUARE

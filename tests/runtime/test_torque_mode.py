@@ -23,7 +23,7 @@ from dobhil.runtime.session import RunSession
 from dobhil.runtime.stop import StopReason
 
 from .helpers import DEMO, demo_config
-from .test_safety import ENCODER_ID, NODE, Recorder, run_case, safety_config
+from .test_safety import ENCODER_ID, NODE, Recorder, run_case, safety_config, stall
 
 #: open loop, in contact from the start, a multisine torque well inside the 2 N m limits
 TORQUE = ("loop.mode=torque", "plant.initial_position=0", "reference.kind=multisine",
@@ -143,6 +143,18 @@ def test_non_finite_feedback_stops_a_torque_run(tmp_path: Path) -> None:
                    words=["non-finite feedback"],
                    faults=[CorruptFeedback.odrive(NODE, "position", value=math.nan, at=100)])
     assert all(math.isfinite(x) for x in out.sent.torques)
+
+
+def test_watchdog_trip_stops_a_torque_run(tmp_path: Path) -> None:
+    """The loop stalls for three drive watchdog periods: the drive trips, the run reports it."""
+    sink = Recorder(at=50)
+
+    def arm(session: RunSession) -> None:
+        sink.action = stall(session, "lockstep", 3 * session.profile.watchdog_timeout)
+
+    out = run_case(torque_config(tmp_path, "lockstep"), "lockstep", StopReason.DRIVE_FAULT,
+                   words=["watchdog", "WATCHDOG_TIMER_EXPIRED"], sink=sink, prepare=arm)
+    assert out.watchdog_tripped
 
 
 def test_stop_request_stops_a_torque_run(tmp_path: Path) -> None:
