@@ -168,14 +168,21 @@ def test_stop_request_stops_a_torque_run(tmp_path: Path) -> None:
 
 # -- replay -------------------------------------------------------------------------
 
-def test_replay_verifies_a_torque_run_bit_for_bit(tmp_path: Path,
-                                                  capsys: pytest.CaptureFixture[str]) -> None:
-    path = tmp_path / "torque.mcap"
+@pytest.fixture(scope="module")
+def torque_log(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A recorded lockstep torque run (a prbs pressing into the environment)."""
+    path = tmp_path_factory.mktemp("torque") / "torque.mcap"
     config = demo_config(*TORQUE, "reference.kind=prbs", "reference.amplitude=0.5",
                          "reference.offset=0.3")
     log = RunLog(WriterProcess(path, fsync=False))
     with RunSession(config, emulate=True, lockstep=True, sink=log, bus_wrapper=log.wrap_bus) as session:
         assert record_run(session, log, DEMO).stop.reason is StopReason.DONE
+    return path
+
+
+def test_replay_verifies_a_torque_run_bit_for_bit(torque_log: Path,
+                                                  capsys: pytest.CaptureFixture[str]) -> None:
+    path = torque_log
     result = replay(path)
     assert result.config.loop.mode == "torque"
     assert result.first_mismatch() is None and result.recording.cycles == 300
@@ -183,6 +190,19 @@ def test_replay_verifies_a_torque_run_bit_for_bit(tmp_path: Path,
     assert "bit for bit" in capsys.readouterr().out
     # the same log replayed as a force run is another controller: verification fails
     assert main(["replay", str(path), "--verify", "--set", "loop.mode=force"]) == 1
+
+
+def test_the_report_of_a_torque_run_has_no_force_tracking(torque_log: Path) -> None:
+    """The prbs's many jumps are torque levels, not force steps: no step metrics, no
+    tracking error, no force-loop prediction; the text says why."""
+    from dobhil.run_report import report, summary_text
+    _, summary, predicted = report(torque_log)
+    assert predicted is None and summary["steps"] == []
+    assert summary["prediction"]["available"] is False
+    assert "loop.mode = torque" in summary["prediction"]["why"]
+    assert summary["tracking"]["rms_error_estimated"] is None
+    assert summary["estimation"]["rms_error"] is not None   # the observers still ran
+    assert "mode: torque (open loop" in summary_text(summary)
 
 
 # -- bad keys -------------------------------------------------------------------------
