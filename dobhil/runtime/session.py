@@ -324,7 +324,7 @@ def summary(session: RunSession, result: RunResult) -> dict[str, Any]:
         "safe_stop": None if report is None else {
             "frames": [{"what": f.what, "sent": f.sent, "error": f.error} for f in report.frames],
             "confirmation": report.confirmation.name.lower()},
-        "timing": session.timing.label,
+        "timing": session.timing.label, "mode": session.config.loop.mode,
         "period": session.settings.period, "bus": session.bus_spec.describe(),
         "emulated": session.emulator is not None,
         "watchdog_tripped": bool(getattr(session.emulator, "watchdog_tripped", False)),

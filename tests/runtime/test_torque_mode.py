@@ -4,6 +4,7 @@ safety of a force run stops it the same way, and replay reproduces it bit for bi
 
 from __future__ import annotations
 
+import json
 import math
 from pathlib import Path
 from typing import Any
@@ -203,6 +204,15 @@ def test_the_report_of_a_torque_run_has_no_force_tracking(torque_log: Path) -> N
     assert summary["tracking"]["rms_error_estimated"] is None
     assert summary["estimation"]["rms_error"] is not None   # the observers still ran
     assert "mode: torque (open loop" in summary_text(summary)
+
+
+def test_the_run_says_it_is_a_torque_run(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["run", "identify-contact", "--emulate", "--lockstep", "--duration", "0.2"]) == 0
+    first = capsys.readouterr().out.splitlines()[0]
+    assert first.startswith("200 cycles (lockstep, torque mode (open loop), T = 0.001 s"), first
+    assert main(["run", "identify-contact", "--emulate", "--lockstep", "--duration", "0.05",
+                 "--summary-json"]) == 0
+    assert json.loads(capsys.readouterr().out)["mode"] == "torque"
 
 
 # -- bad keys -------------------------------------------------------------------------
