@@ -1,4 +1,5 @@
-"""The interaction torque reference tau_int^ref(t) of a run (``reference.*`` keys).
+"""The interaction torque reference tau_int^ref(t) of a run (``reference.*`` keys; with
+``loop.mode: torque`` it is the torque command itself).
 
 Every signal is ``offset`` before ``start`` and ``offset + s(t - start)`` after,
 with ``A = amplitude``, ``f = frequency`` [Hz], ``tau = t - start``:
@@ -29,7 +30,9 @@ are ``offset`` after it.
   linearly interpolated, the first value held before the first time and the last
   after the last, plus ``offset``.
 
-``value(t)`` is scalar and cheap (the csv kind bisects a Python list).
+``value(t)`` is scalar and cheap (the csv kind bisects a Python list; a multisine takes one
+``math.cos`` per line: about 6 us for 40 lines, measured on a busy 2-core machine, next to
+the controller's 0.3 us, so keep ``lines`` to tens at 1 kHz).
 """
 
 from __future__ import annotations
