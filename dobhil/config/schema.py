@@ -161,7 +161,8 @@ class LoopConfig:
 
 @dataclass(frozen=True)
 class ReferenceConfig:
-    """The interaction torque reference tau_int^ref of a run."""
+    """The interaction torque reference tau_int^ref of a run (the torque command itself with
+    loop.mode: torque)."""
 
     kind: str = key("step", "reference signal",
                     choices=("step", "ramp", "sine", "chirp", "square", "csv", "prbs",
