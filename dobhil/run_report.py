@@ -14,6 +14,9 @@
   contact is normalised to the step and measured with
   :func:`dobhil.analysis.metrics.step_metrics`;
 - RMS tracking error ``tau_ref - tau_int_hat`` (and against the true torque when emulated);
+- a torque-mode run (``loop.mode: torque``, an open-loop excitation for identification)
+  has no force loop: its reference is a torque, so no steps, tracking or prediction
+  (the keys stay, without values), and the text says so;
 - estimation error ``tau_int_hat - tau_int`` against the emulator's ground truth;
 - loop timing statistics, overruns;
 - CAN frames per second and bus load: bits per frame 47 + 8 DLC plus the worst-case
@@ -422,12 +425,25 @@ def _prediction_start(data: RunData, contact: Contact, steps: list[StepInfo]) ->
     return None
 
 
+def torque_mode(data: RunData) -> bool:
+    """A ``loop.mode: torque`` run: open loop, tau_ref is the torque command (identification)."""
+    return data.config is not None and data.config.loop.mode == "torque"
+
+
 def analyse(data: RunData) -> tuple[dict[str, Any], Array | None]:
-    """The report summary (JSON-ready) and the predicted tau_int_hat."""
+    """The report summary (JSON-ready) and the predicted tau_int_hat. A torque-mode run
+    has no force loop: no force steps, tracking or prediction (same keys, no values)."""
     contact = contact_mask(data)
-    steps = step_infos(data, contact)
-    predicted, pred_info = prediction(data, contact, steps)
     ref, est, true = data["tau_ref"], data["tau_int_hat"], data["tau_int_true"]
+    if torque_mode(data):
+        steps: list[StepInfo] = []
+        predicted: Array | None = None
+        pred_info: dict[str, Any] = {"available": False, "why": "loop.mode = torque: an open-loop "
+                                     "excitation run, no force loop to predict"}
+        ref = np.full_like(ref, np.nan)   # the reference is a torque: nothing tracks it
+    else:
+        steps = step_infos(data, contact)
+        predicted, pred_info = prediction(data, contact, steps)
     summary: dict[str, Any] = {
         "file": data.path, "cycles": int(data.t.size), "duration_s": float(data.t[-1]) if data.t.size else 0.0,
         "run": dict(data.metadata.get("run", {})),
@@ -474,6 +490,8 @@ def summary_text(s: Mapping[str, Any]) -> str:
         return "-" if v is None else f"{v:.4g} N m"
 
     lines = [f"run: {s['file']}", f"cycles: {s['cycles']} ({s['duration_s']:.3f} s), stop: {s['stop'] or '-'}"]
+    if not s["prediction"].get("available") and "loop.mode = torque" in s["prediction"].get("why", ""):
+        lines.append("mode: torque (open loop, the reference is the torque command): no force tracking")
     contact = s.get("contact") or {}
     if s["steps"] and contact:
         first = contact.get("first_s")
@@ -554,4 +572,5 @@ def report(path: str | os.PathLike[str], progress: ProgressFn | None = None) -> 
 
 
 __all__ = ["LATENCY_TOLERANCE", "Contact", "RunData", "StepInfo", "analyse", "bus_stats", "contact_mask",
-           "detect_steps", "latency_stats", "load_run", "prediction", "report", "step_infos", "summary_text"]
+           "detect_steps", "latency_stats", "load_run", "prediction", "report", "step_infos", "summary_text",
+           "torque_mode"]

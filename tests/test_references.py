@@ -6,6 +6,8 @@ import math
 from pathlib import Path
 
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from dobhil.config.schema import ReferenceConfig
 from dobhil.errors import ConfigError
@@ -154,3 +156,119 @@ def test_a_relative_reference_file_is_taken_from_the_config_files_directory(
     assert main([*run, "--set", "reference.file=other.csv"]) == 0
     assert main(["run", "demo", "--emulate", "--lockstep", "--duration", "0.05", "--set", "reference.kind=csv",
                  "--set", "reference.file=other.csv"]) == 0  # a shipped config: still the working directory
+
+
+# -- prbs and multisine (identification excitation) ----------------------------------
+
+def _samples(ref: Reference, period: float, n: int) -> list[float]:
+    return [ref.value(k * period) for k in range(n)]
+
+
+def test_prbs_levels_are_offset_plus_minus_amplitude_held_for_a_clock_period() -> None:
+    ref = _ref(kind="prbs", amplitude=0.5, offset=0.25, clock_period=0.004, seed=7, start=0.1)
+    assert ref.value(0.0) == 0.25 and ref.value(0.0999) == 0.25     # before start: offset
+    t = [0.1 + 1e-3 * k for k in range(1900)]
+    v = [ref.value(x) for x in t]
+    assert set(v) == {0.75, -0.25}
+    clocks = [int((x - 0.1) // 0.004) for x in t]
+    for k in range(1, len(t)):   # a level changes only where a new clock period begins
+        if v[k] != v[k - 1]:
+            assert clocks[k] != clocks[k - 1]
+    assert ref.value(2.0) == 0.25 and ref.value(5.0) == 0.25      # after the run: offset
+
+
+def test_prbs_is_its_seed_and_nothing_else() -> None:
+    a = _samples(_ref(kind="prbs", seed=3, clock_period=1e-3), 1e-3, 1999)
+    assert a == _samples(_ref(kind="prbs", seed=3, clock_period=1e-3), 1e-3, 1999)
+    b = _samples(_ref(kind="prbs", seed=4, clock_period=1e-3), 1e-3, 1999)
+    assert sum(x != y for x, y in zip(a, b)) > 500   # another seed: about half the levels differ
+    # fair bits: the mean of 1999 +-1 levels is within 4 standard deviations of 0
+    assert abs(sum(a)) < 4 * math.sqrt(len(a))
+
+
+def test_prbs_levels_are_independent_of_each_other() -> None:
+    """Level k is the same whether or not the ones before it were computed (counter-based),
+    and consecutive levels are uncorrelated: the lag-1 autocorrelation of 20000 fair
+    independent +-1 levels has standard deviation 1/sqrt(20000)."""
+    from dobhil.runtime.references import prbs_bit
+    bits = [1.0 if prbs_bit(11, k) else -1.0 for k in range(20000)]
+    assert prbs_bit(11, 12345) == (bits[12345] > 0)
+    lag1 = sum(x * y for x, y in zip(bits, bits[1:])) / (len(bits) - 1)
+    assert abs(lag1) < 4 / math.sqrt(len(bits))
+
+
+def test_prbs_lasts_its_duration() -> None:
+    ref = _ref(kind="prbs", amplitude=1.0, offset=0.5, start=0.2, duration=0.5)
+    assert {ref.value(0.2 + 1e-3 * k) for k in range(500)} == {1.5, -0.5}
+    assert ref.value(0.701) == 0.5 and ref.value(1.9) == 0.5
+
+
+@pytest.mark.parametrize("phases", ["schroeder", "random"])
+def test_multisine_spectrum_has_exactly_its_lines(phases: str) -> None:
+    """20 lines from 2 to 40 Hz (2 Hz apart), sampled 1 s at 1 kHz: numpy's FFT has power
+    at those 20 bins and nowhere else (each line on a bin: no leakage)."""
+    np = pytest.importorskip("numpy")
+    ref = _ref(kind="multisine", amplitude=1.5, frequency=2.0, frequency_end=40.0, lines=20,
+               phases=phases, seed=5)
+    x = np.array(_samples(ref, 1e-3, 1000))
+    spectrum = np.abs(np.fft.rfft(x)) / len(x)
+    lines = set(range(2, 41, 2))
+    on = np.array([spectrum[k] for k in sorted(lines)])
+    off = np.array([spectrum[k] for k in range(len(spectrum)) if k not in lines])
+    assert np.all(on > 1e-3) and np.max(off) < 1e-9 * np.max(on)
+    assert np.allclose(on, on[0], rtol=1e-9)                 # equal amplitudes: a flat band
+    assert 1.5 * (1 - 2e-3) < np.max(np.abs(x)) <= 1.5 * (1 + 1e-9)  # amplitude is the peak
+
+
+def test_multisine_schroeder_phases_and_crest_factor() -> None:
+    from dobhil.runtime.references import multisine_phases
+    n = 8
+    assert multisine_phases(n, "schroeder", 0) == [-math.pi * i * (i - 1) / n for i in range(1, 9)]
+    schroeder = _ref(kind="multisine", frequency=1.0, frequency_end=30.0, lines=30)
+    rand = Reference(ReferenceKind.MULTISINE, frequency=1.0, frequency_end=30.0, lines=30,
+                     duration=2.0, phases="random", seed=0)
+    # equal phases would give the worst crest factor sqrt(2 N) ~ 7.7, one sine sqrt(2);
+    # Schroeder's phases come close to the sine, random ones do not
+    assert math.sqrt(2.0) < schroeder.crest_factor < 2.0 < rand.crest_factor < math.sqrt(60.0)
+
+
+def test_random_phases_are_their_seed() -> None:
+    a = _samples(_ref(kind="multisine", phases="random", seed=1), 1e-3, 500)
+    assert a == _samples(_ref(kind="multisine", phases="random", seed=1), 1e-3, 500)
+    assert a != _samples(_ref(kind="multisine", phases="random", seed=2), 1e-3, 500)
+
+
+def test_one_line_multisine_is_a_cosine() -> None:
+    ref = _ref(kind="multisine", amplitude=2.0, offset=1.0, frequency=5.0, lines=1)
+    for t in (0.0, 0.013, 0.1, 0.77):
+        assert ref.value(t) == pytest.approx(1.0 + 2.0 * math.cos(2 * math.pi * 5.0 * t), abs=1e-12)
+
+
+def test_multisine_band_must_be_a_band() -> None:
+    with pytest.raises(ConfigError, match="frequency_end.*band") as info:
+        _ref(kind="multisine", frequency=10.0, frequency_end=10.0, lines=5)
+    assert "\n" not in str(info.value)
+
+
+@settings(max_examples=25, deadline=None)
+@given(lines=st.integers(1, 60), f_lo=st.floats(0.1, 50.0), width=st.floats(0.1, 200.0),
+       phases=st.sampled_from(["schroeder", "random"]), seed=st.integers(0, 2**32),
+       amplitude=st.floats(0.01, 10.0), offset=st.floats(-5.0, 5.0))
+def test_multisine_never_exceeds_its_amplitude(lines: int, f_lo: float, width: float, phases: str,
+                                               seed: int, amplitude: float, offset: float) -> None:
+    """Sampled 20 times per period of its highest line, no value of a multisine is further
+    from the offset than its amplitude (the peak search is refined, not just a grid)."""
+    ref = _ref(kind="multisine", lines=lines, frequency=f_lo, frequency_end=f_lo + width,
+               phases=phases, seed=seed, amplitude=amplitude, offset=offset)
+    step = 1.0 / (20.0 * (f_lo + width))
+    dev = [abs(ref.value(k * step) - offset) for k in range(int(2.0 / step))]
+    assert max(dev) <= amplitude * (1 + 1e-9) + 1e-12
+
+
+@settings(max_examples=50, deadline=None)
+@given(seed=st.integers(0, 2**64 - 1), amplitude=st.floats(-10.0, 10.0), offset=st.floats(-5.0, 5.0),
+       clock=st.floats(1e-4, 0.5), t=st.floats(0.0, 1.999))
+def test_prbs_is_always_one_of_its_two_levels(seed: int, amplitude: float, offset: float,
+                                              clock: float, t: float) -> None:
+    ref = _ref(kind="prbs", seed=seed, amplitude=amplitude, offset=offset, clock_period=clock)
+    assert ref.value(t) in (offset + amplitude, offset - amplitude)

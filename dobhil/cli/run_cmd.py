@@ -189,7 +189,8 @@ def report(info: dict[str, Any], stop_line: str, *, as_json: bool) -> None:
         return
     f, t = info["final"], info["loop_timing"]
     skipped = info.get("skipped", 0)
-    print(f"{info['cycles']} cycles ({info['timing']}, T = {info['period']:g} s, bus {info['bus']}"
+    mode = ", torque mode (open loop)" if info.get("mode") == "torque" else ""
+    print(f"{info['cycles']} cycles ({info['timing']}{mode}, T = {info['period']:g} s, bus {info['bus']}"
           f"{', emulated' if info['emulated'] else ''}); overruns {info['overruns']}"
           + (f", {skipped} {'frames' if info['timing'] == 'feedback' else 'deadlines'} skipped"
              if skipped else ""))

@@ -226,6 +226,10 @@ def check_consistency(config: Config) -> None:
                           f"loop.period = {loop.period!r}")
     if config.reference.kind == "csv" and not config.reference.file:
         raise ConfigError("reference.kind = 'csv' needs reference.file (a CSV with time,tau_ref)")
+    ref = config.reference
+    if ref.kind == "multisine" and ref.lines > 1 and not ref.frequency_end > ref.frequency:
+        raise ConfigError(f"reference.frequency_end = {ref.frequency_end!r}: the multisine band must "
+                          f"end above reference.frequency = {ref.frequency!r} (or reference.lines = 1)")
 
 
 def to_yaml(config: Config) -> str:

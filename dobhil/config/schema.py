@@ -152,24 +152,44 @@ class LoopConfig:
                       "(host timing) or around each expected feedback frame (feedback timing); "
                       "0: sleep only", unit="s", check=Check.NONNEGATIVE)
     cpu_affinity: int = key(-1, "pin the control thread to this CPU (-1: no pinning)")
+    mode: str = key("force", "what the reference commands: force (the DOb/RTOb force loop tracks "
+                    "it as tau_int^ref) or torque (open loop for identification: the reference is "
+                    "the torque command itself, saturated at loop.torque_limit, with every safety "
+                    "of a force run; the observers still run and are recorded)",
+                    choices=("force", "torque"))
 
 
 @dataclass(frozen=True)
 class ReferenceConfig:
-    """The interaction torque reference tau_int^ref of a run."""
+    """The interaction torque reference tau_int^ref of a run (the torque command itself with
+    loop.mode: torque)."""
 
     kind: str = key("step", "reference signal",
-                    choices=("step", "ramp", "sine", "chirp", "square", "csv"))
-    amplitude: float = key(1.0, "amplitude (step height, ramp end value, sine amplitude)",
-                           unit="N m")
+                    choices=("step", "ramp", "sine", "chirp", "square", "csv", "prbs",
+                             "multisine"))
+    amplitude: float = key(1.0, "amplitude (step height, ramp end value, sine amplitude, prbs "
+                           "level, multisine peak)", unit="N m")
     offset: float = key(0.0, "value added to the signal", unit="N m")
     start: float = key(0.0, "time the signal starts", unit="s", check=Check.NONNEGATIVE)
-    frequency: float = key(1.0, "frequency (sine, square; chirp start)", unit="Hz",
-                           check=Check.POSITIVE)
-    frequency_end: float = key(50.0, "chirp end frequency", unit="Hz", check=Check.POSITIVE)
+    frequency: float = key(1.0, "frequency (sine, square; chirp start; multisine lowest line)",
+                           unit="Hz", check=Check.POSITIVE)
+    frequency_end: float = key(50.0, "chirp end frequency; multisine highest line", unit="Hz",
+                               check=Check.POSITIVE)
     ramp_time: float = key(0.1, "ramp duration", unit="s", check=Check.POSITIVE)
     file: str = key("", "CSV file with columns time,tau_ref (kind csv); a relative path is "
                           "taken from the config file's directory (from the working directory in --set)")
+    clock_period: float = key(2.0e-3, "prbs: time each level is held (power flat to about "
+                              "0.44 / clock_period, first zero at 1 / clock_period)", unit="s",
+                              check=Check.POSITIVE, maximum=1e4)
+    lines: int = key(20, "multisine: number of lines, evenly spaced from frequency to "
+                     "frequency_end", check=Check.POSITIVE, maximum=10000)
+    phases: str = key("schroeder", "multisine phases: schroeder (low crest factor) or random "
+                      "(uniform, from reference.seed)", choices=("schroeder", "random"))
+    seed: int = key(0, "seed of the prbs levels and of random multisine phases",
+                    check=Check.NONNEGATIVE)
+    duration: float = key(0.0, "prbs, multisine: how long the excitation lasts after start "
+                          "(0: to the end of the run); offset after it", unit="s",
+                          check=Check.NONNEGATIVE)
 
 
 @dataclass(frozen=True)

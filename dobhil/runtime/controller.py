@@ -10,6 +10,15 @@ It runs the sampled controller of :func:`dobhil.synthesis.controller.sampled_con
     u        = clip(u_unsat, -limit, +limit)      (loop.torque_limit)
     xi      <- A xi + B_y y + B_u u               (the *applied* torque)
 
+In torque mode (``loop.mode: torque``, open loop for identification) the same
+observers run, but the command is the reference itself::
+
+    tau_per  = 0
+    u_unsat  = tau_ref
+    u        = clip(tau_ref, -limit, +limit)
+
+so the recorded estimates stay meaningful and replay rebuilds the run the same way.
+
 The outputs do not depend on ``u`` (no direct feedthrough), so saturation needs
 no algebraic loop, and feeding the saturated torque keeps the observers
 consistent with what the drive applies. The identified-disturbance input
@@ -67,7 +76,7 @@ Kernel = Callable[[list[float], float, float, float], ControlOutput]
 class ForceController:
     """Executes a sampled :class:`ControllerSS` (one design, batch shape ``()``)."""
 
-    def __init__(self, ss: ControllerSS, *, torque_limit: float) -> None:
+    def __init__(self, ss: ControllerSS, *, torque_limit: float, open_loop: bool = False) -> None:
         if ss.dt is None:
             raise ValueError("ForceController needs a sampled controller (sampled_controller)")
         if ss.a.ndim != 2:
@@ -80,17 +89,19 @@ class ForceController:
         self.force_gain = float(ss.force_gain)
         self.order = ss.order
         self.measures_velocity = bool(ss.measures_velocity)
+        #: torque mode: the reference is the torque command (see the module docstring)
+        self.open_loop = bool(open_loop)
         self._init_map = _fixed_point_map(ss)
-        self.source = _kernel_source(ss, self.force_gain, self.torque_limit)
+        self.source = _kernel_source(ss, self.force_gain, self.torque_limit, self.open_loop)
         self._kernel = _compile(self.source)
         self._xi: list[float] = [0.0] * self.order
 
     @classmethod
     def from_config(cls, config: Config) -> ForceController:
         """The controller of ``config.design`` at ``config.loop.period``, saturated at
-        ``config.loop.torque_limit``."""
+        ``config.loop.torque_limit``, open loop when ``config.loop.mode`` is torque."""
         return cls(sampled_controller(params_from_config(config)),
-                   torque_limit=config.loop.torque_limit)
+                   torque_limit=config.loop.torque_limit, open_loop=config.loop.mode == "torque")
 
     def step(self, q: float, dq: float | None, tau_ref: float) -> ControlOutput:
         """One sample: outputs from the current state, then the state update."""
@@ -132,7 +143,8 @@ def _fixed_point_map(ss: ControllerSS) -> NDArray[np.float64]:
         raise SynthesisError("sampled observer has a pole at z = 1: no state at rest") from None
 
 
-def _kernel_source(ss: ControllerSS, force_gain: float, limit: float) -> str:
+def _kernel_source(ss: ControllerSS, force_gain: float, limit: float,
+                   open_loop: bool = False) -> str:
     """Straight-line Python for one sample of ``ss`` (see the module docstring)."""
     n, m = ss.order, ss.b_y.shape[-1]
     for name in ("a", "b_y", "b_u", "c", "d_y"):
@@ -147,8 +159,12 @@ def _kernel_source(ss: ControllerSS, force_gain: float, limit: float) -> str:
         lines.append(f"    {', '.join(xs)}, = s")
     lines.append(f"    dis = {_dot(out[DIS], xs + ys)}")
     lines.append(f"    itn = {_dot(out[INT], xs + ys)}")
-    lines.append(f"    per = {float(force_gain)!r} * (r - itn)")
-    lines.append("    uu = per + dis")
+    if open_loop:  # torque mode: the reference is the command, no force feedback
+        lines.append("    per = 0.0")
+        lines.append("    uu = r")
+    else:
+        lines.append(f"    per = {float(force_gain)!r} * (r - itn)")
+        lines.append("    uu = per + dis")
     lines.append(f"    u = {limit!r} if uu > {limit!r} else ({-limit!r} if uu < {-limit!r} else uu)")
     if n:
         rows = ", ".join(_dot(row, xs + ys + ["u"]) for row in upd)

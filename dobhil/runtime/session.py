@@ -50,10 +50,12 @@ def check_rates(profile: DriveProfile, period: float) -> None:
 def build_controller(config: Config, profile: DriveProfile) -> ForceController:
     """The runtime controller: the sampled synthesis of the design on this drive (its
     protocol's command delay, :func:`~dobhil.drives.timing.effective_config`), saturated
-    at the tighter torque limit. ``dobhil replay`` rebuilds it with this very function."""
+    at the tighter torque limit, open loop in torque mode (``loop.mode``). ``dobhil replay``
+    rebuilds it with this very function."""
     limit = min(config.loop.torque_limit, profile.torque_limit)
     design, _ = effective_config(config, profile)
-    return ForceController(sampled_controller(params_from_config(design)), torque_limit=limit)
+    return ForceController(sampled_controller(params_from_config(design)), torque_limit=limit,
+                           open_loop=config.loop.mode == "torque")
 
 
 def loop_settings(config: Config, timing: Timing, duration: float | None) -> LoopSettings:
@@ -322,7 +324,7 @@ def summary(session: RunSession, result: RunResult) -> dict[str, Any]:
         "safe_stop": None if report is None else {
             "frames": [{"what": f.what, "sent": f.sent, "error": f.error} for f in report.frames],
             "confirmation": report.confirmation.name.lower()},
-        "timing": session.timing.label,
+        "timing": session.timing.label, "mode": session.config.loop.mode,
         "period": session.settings.period, "bus": session.bus_spec.describe(),
         "emulated": session.emulator is not None,
         "watchdog_tripped": bool(getattr(session.emulator, "watchdog_tripped", False)),
