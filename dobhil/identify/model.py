@@ -71,14 +71,16 @@ def simulate_torque(values: ModelValues, torque: np.ndarray, period: float, star
     n = stop - start
     if n < 1:
         raise ValueError(f"segment [{start}, {stop}): empty")
-    # the emulator's plant has no contact position "nowhere": put it far beyond the motion
-    # (relative state, so the precision lost is ~1e-16 of the distance) when there is none
-    qc = values.contact_position
+    # no environment: the emulator's plant has no contact position "nowhere", but with zero
+    # stiffness and damping its contact mode is the free servo itself (plant_matrices with
+    # K = D = 0 is servo_matrices), so the contact goes where the servo starts -- its state is
+    # relative to the contact position, and a far one would cost that state its precision
+    qc, k, d = values.contact_position, values.stiffness, values.damping
     if not math.isfinite(qc):
-        qc = initial_position + 1.0e6
+        qc, k, d = initial_position, 0.0, 0.0
     plant = Plant(inertia=values.inertia, viscous_friction=values.viscous_friction,
-                  coulomb_friction=values.coulomb_friction, stiffness=values.stiffness,
-                  damping=values.damping, contact_position=qc,
+                  coulomb_friction=values.coulomb_friction, stiffness=k,
+                  damping=d, contact_position=qc,
                   initial_position=initial_position, substeps=substeps)
     whole, fraction = split_delay(values.delay, period)
     g = values.torque_gain
