@@ -21,6 +21,7 @@ before the first sample are 0 and every simulation starts at rest at its initial
 from __future__ import annotations
 
 import math
+import threading
 from dataclasses import dataclass
 
 import numpy as np
@@ -61,6 +62,25 @@ class ModelValues:
     delay: float = 0.0
 
 
+_LOCAL = threading.local()
+
+
+def _plant(inertia: float, viscous: float, coulomb: float, stiffness: float, damping: float,
+           substeps: int) -> Plant:
+    """A Plant of these parameters, the last one reused (per thread): the segments of one
+    fit evaluation share it, so its ZOH matrices (matrix exponentials: ~10 ms each on a busy
+    machine with multithreaded BLAS, measured) are computed once per parameter set and
+    delay, not once per segment. Its contact and initial positions are set by the caller."""
+    key = (inertia, viscous, coulomb, stiffness, damping, substeps)
+    cached: tuple[tuple[float, ...], Plant] | None = getattr(_LOCAL, "plant", None)
+    if cached is not None and cached[0] == key:
+        return cached[1]
+    plant = Plant(inertia=inertia, viscous_friction=viscous, coulomb_friction=coulomb,
+                  stiffness=stiffness, damping=damping, substeps=substeps)
+    _LOCAL.plant = (key, plant)
+    return plant
+
+
 def simulate_torque(values: ModelValues, torque: np.ndarray, period: float, start: int,
                     stop: int, initial_position: float, *,
                     substeps: int = 10) -> tuple[np.ndarray, np.ndarray]:
@@ -78,10 +98,11 @@ def simulate_torque(values: ModelValues, torque: np.ndarray, period: float, star
     qc, k, d = values.contact_position, values.stiffness, values.damping
     if not math.isfinite(qc):
         qc, k, d = initial_position, 0.0, 0.0
-    plant = Plant(inertia=values.inertia, viscous_friction=values.viscous_friction,
-                  coulomb_friction=values.coulomb_friction, stiffness=k,
-                  damping=d, contact_position=qc,
-                  initial_position=initial_position, substeps=substeps)
+    plant = _plant(values.inertia, values.viscous_friction, values.coulomb_friction, k, d,
+                   substeps)
+    plant.contact_position = qc
+    plant.initial_position = initial_position
+    plant.reset()
     whole, fraction = split_delay(values.delay, period)
     g = values.torque_gain
     pad = whole + 1
