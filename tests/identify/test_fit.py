@@ -181,3 +181,16 @@ def test_the_95_percent_intervals_cover_the_truth_in_90_percent_of_runs() -> Non
         for name in FITTED:
             covered[name] += e[name].identifiable and e[name].low <= truth[name] <= e[name].high
     assert all(c >= 0.9 * RUNS for c in covered.values()), covered
+
+
+def test_an_interval_that_would_leave_the_bounds_is_the_profile_likelihood() -> None:
+    """No Coulomb friction: the estimate sits at its bound 0, value - z stderr would be
+    negative; the interval is lmfit's profile likelihood instead, inside the bounds, and
+    still covers the truth."""
+    truth = Truth(coulomb_friction=0.0)
+    data, segments = record(truth, seed=8, contact_s=0.0)
+    e = identify(data, segments).estimates["coulomb_friction"]
+    assert e.identifiable, e.why
+    assert 0.0 <= e.low <= e.value <= e.high
+    assert e.low < e.value - 1e-12 or e.value < 1.96 * e.stderr   # asymmetric or at the bound
+    assert e.low <= 0.0 + 1e-9 and e.high < 0.01 * 3.0
