@@ -104,11 +104,13 @@ def test_stribeck_friction_gives_a_visible_misfit() -> None:
 
 @pytest.mark.xfail(
     run=False, strict=False,
-    reason="identify() on this misfitting contact record did not finish within the 300 s "
-           "test timeout (11:00 UTC, after merging wt-ifit da76a25): lmfit's conf_interval "
-           "(fit._profile) re-fits the hybrid plant many times when the model is wrong. "
-           "Next session: cap or skip the profile intervals when the residual misfits, "
-           "then drop this mark")
+    reason="not yet discriminating (measured 11:01 UTC on wt-ifit da76a25): with a massless "
+           "load behind the gear, a pressed record from a backlash plant IS the linear "
+           "model with the contact position beta/2 further in (least-squares fit: p = 0.05 "
+           "vs 0.24 plain, no misfit -- right numbers, not a misfit), and a record that "
+           "leaves the environment misfits even without backlash (p = 0). Besides, the "
+           "profile intervals (fit._profile, lmfit conf_interval) took > 300 s on it. Next "
+           "session: see the report (load inertia behind the gear, or in/out contact records)")
 def test_backlash_gives_a_visible_misfit() -> None:
     """Pressed on the environment with a torque that swings hard enough for the damper to
     want to pull: through the backlash nothing pulls (the gap opens and the load relaxes
@@ -119,3 +121,36 @@ def test_backlash_gives_a_visible_misfit() -> None:
     clean = fitted(torque, "contact", 0.0)
     wrong = fitted(torque, "contact", 0.0, backlash=0.001)
     assert_misfit_is_visible(clean, wrong)
+
+
+@pytest.mark.xfail(
+    strict=False,
+    reason="measured 11:02 UTC on wt-ifit da76a25: a contact-only record (no free segment) of "
+           "the plain plant with D_env = 300 gives viscous_friction 822 [262, 1106] (truth 0.5) "
+           "and contact_position 1.34 mrad (truth 0) as identifiable, with a white residual "
+           "(p = 0.26) and no warning; the same record with 1 mrad backlash gives viscous 34, "
+           "damping 699 [84, 711] (truth 300). For W1 / the next session")
+def test_no_confident_wrong_numbers_from_a_contact_only_record() -> None:
+    """The plant the model represents exactly, pressed from the start (a contact segment
+    only): every value identify reports as identifiable has its 95 % interval around the
+    truth, unless identify warns of a misfit."""
+    from dobhil.identify.data import IdentData, Segment
+    from dobhil.identify.fit import identify
+    truth = dict(TRUTH, damping=300.0)
+    torque = np.concatenate([1.5 + multisine(1500, 2.5, (3.0, 40.0), 30, seed=2), np.zeros(20)])
+    plant = Plant(**truth, initial_position=0.0, encoder_resolution=COUNTS, velocity_noise=0.01,
+                  seed=3)
+    n = len(torque)
+    position, velocity = np.empty(n), np.empty(n)
+    for k in range(n):
+        position[k], velocity[k] = plant.position, plant.velocity
+        plant.step(float(torque[k]), PERIOD)
+    data = IdentData(period=PERIOD, t=np.arange(n) * PERIOD, torque=torque, position=position,
+                     velocity=velocity, source="", protocol="odrive", recorded={})
+    result = identify(data, (Segment(start=0, stop=n, kind="contact"),))
+    if result.residual.misfit:
+        return
+    truth_of = {**truth, "delay": 0.0, "torque_gain": 1.0}
+    wrong = {name: (e.value, e.low, e.high) for name, e in result.estimates.items()
+             if e.identifiable and not e.low <= truth_of[name] <= e.high}
+    assert wrong == {}
