@@ -60,6 +60,16 @@ class PlantConfig:
                                   check=Check.NONNEGATIVE, maximum=1e7)
     coulomb_friction: float = key(0.0, "Coulomb friction (emulator only, unmodelled by the analysis)",
                                   unit="N m", check=Check.NONNEGATIVE)
+    stribeck_friction: float = key(0.0, "static friction above the Coulomb level F_s - F_c: "
+                                   "friction F_c + (F_s - F_c) exp(-(v/v_St)^2) (emulator "
+                                   "only, unmodelled by the analysis)", unit="N m",
+                                   check=Check.NONNEGATIVE)
+    stribeck_velocity: float = key(0.05, "Stribeck velocity v_St: the Stribeck peak decays "
+                                   "over this velocity (emulator only)", unit="rad/s",
+                                   check=Check.POSITIVE)
+    backlash: float = key(0.0, "total dead band of the gear between the motor (and its encoder) "
+                          "and the load touching the environment (emulator only, unmodelled "
+                          "by the analysis)", unit="rad", check=Check.NONNEGATIVE, maximum=1.0)
     torque_limit: float = key(50.0, "motor torque limit of the emulated drive", unit="N m",
                               check=Check.POSITIVE)
     initial_position: float = key(0.0, "emulated initial position", unit="rad")

@@ -36,12 +36,36 @@ Nonlinear parts are sub-stepped (``substeps`` per call, each with the input held
   ``2 F_c h / J`` (twice the velocity Coulomb friction alone removes in a
   sub-step ``h``), so a servo decelerating to rest lands in the band instead of
   chattering across zero;
+- Stribeck friction (``plant.stribeck_friction`` ``F_St = F_s - F_c``,
+  ``plant.stribeck_velocity`` ``v_St``): the sliding friction becomes the standard
+  exponential Stribeck curve ``sign(dq) (F_c + F_St exp(-(dq/v_St)^2))`` (the
+  "Gaussian" exponent of Armstrong-Helouvry), evaluated at the start of each
+  sub-step and held over it like the Coulomb term. The Karnopp band is extended
+  with the same rule at the static level ``F_s = F_c + F_St``: inside the band the
+  servo sticks while the torque is within ``+-F_s`` and breaks away beyond it (the
+  breakaway torque is ``F_s``); ``v_s`` defaults to ``2 F_s h / J``. With
+  ``F_St = 0`` every number is the Coulomb model's, bit for bit;
+- backlash (``plant.backlash``, the total dead band ``beta``): in a geared servo the
+  encoder sits on the motor shaft and the play is in the gear, so the dead band is
+  between the motor (whose position the sensors report and whose inertia ``J`` is
+  the plant's) and a massless load that touches the environment. The load position
+  ``q_l`` obeys the play operator ``|q - q_l| <= beta/2`` and starts centred. While the
+  load is outside the environment it only moves when the motor pushes it; inside,
+  a load pressed against one face of the gap transmits the environment's torque
+  ``K (q_l - q_c) + D dq`` as long as that face can carry it (the pushing face a
+  torque >= 0, the pulling face <= 0), and the motor then moves with the contact
+  matrices in the shifted coordinate ``q_l = q -+ beta/2`` (exact ZOH within the
+  sub-step); otherwise the gap opens, no torque reaches the motor, and the massless
+  load relaxes with the environment's own time constant (``K q_l + D dq_l = 0``:
+  ``q_l - q_c`` decays by ``exp(-K h/D)`` per sub-step, at once when ``D = 0``). The
+  engagement is decided at the start of each sub-step, so crossing the dead band is
+  placed within a sub-step, like a contact transition;
 - the unknown disturbance ``tau_d^u(t)``: none, constant, step (``A`` from
   ``start``) or sine (``A sin(2 pi f (t - start))`` from ``start``, 0 before),
   sampled at the middle of each sub-step (exact for a step that starts on a
   sub-step boundary, second order for the sine).
 
-When nothing nonlinear is active during a call (no Coulomb friction, the
+When nothing nonlinear is active during a call (no friction, no backlash, the
 disturbance constant over the call, and the mode unchanged at the end of the
 call) the call is one exact ZOH step: with the servo in contact from the start it
 is bit for bit the analysis' discretised plant ``x+ = Phi x + Gamma (u - tau_d^u)``.
@@ -128,6 +152,7 @@ class _Step:
     contact_sub: Propagator
     h: float               # sub-step length
     stiction: float        # stiction band v_s [rad/s]
+    relax: float           # backlash: decay of a detached load's penetration per sub-step
 
 
 class Plant:
@@ -144,16 +169,26 @@ class Plant:
                  disturbance_amplitude: float = 0.0, disturbance_frequency: float = 1.0,
                  disturbance_start: float = 0.0, encoder_resolution: int = 0,
                  velocity_noise: float = 0.0, seed: int = 0, substeps: int = 10,
-                 stiction_velocity: float | None = None) -> None:
+                 stiction_velocity: float | None = None, stribeck_friction: float = 0.0,
+                 stribeck_velocity: float = 0.05, backlash: float = 0.0) -> None:
         if inertia <= 0:
             raise ValueError(f"inertia: expected > 0 kg m^2, got {inertia}")
         if substeps < 1:
             raise ValueError(f"substeps: expected >= 1, got {substeps}")
         if torque_limit <= 0:
             raise ValueError(f"torque_limit: expected > 0 N m, got {torque_limit}")
+        if stribeck_velocity <= 0:
+            raise ValueError(f"stribeck_velocity: expected > 0 rad/s, got {stribeck_velocity}")
+        if backlash < 0:
+            raise ValueError(f"backlash: expected >= 0 rad, got {backlash}")
         self.inertia = float(inertia)
         self.viscous_friction = float(viscous_friction)
         self.coulomb_friction = float(coulomb_friction)
+        self.stribeck_friction = float(stribeck_friction)
+        self.stribeck_velocity = float(stribeck_velocity)
+        self.backlash = float(backlash)
+        # any friction sends every call through the sub-steps
+        self._friction = self.coulomb_friction != 0.0 or self.stribeck_friction != 0.0
         self.torque_limit = float(torque_limit)
         self.stiffness = float(stiffness)
         self.damping = float(damping)
@@ -192,7 +227,9 @@ class Plant:
                    disturbance_frequency=p.disturbance_frequency,
                    disturbance_start=p.disturbance_start,
                    encoder_resolution=s.encoder_resolution, velocity_noise=s.velocity_noise,
-                   seed=s.seed, substeps=substeps, stiction_velocity=stiction_velocity)
+                   seed=s.seed, substeps=substeps, stiction_velocity=stiction_velocity,
+                   stribeck_friction=p.stribeck_friction, stribeck_velocity=p.stribeck_velocity,
+                   backlash=p.backlash)
 
     # -- state ----------------------------------------------------------------
 
@@ -200,6 +237,8 @@ class Plant:
         """Back to the initial position, at rest, time 0, the noise sequence restarted."""
         self._e = self.initial_position - self.contact_position
         self._dq = 0.0
+        self._load_e = self._e   # backlash: the load, centred in the dead band
+        self._side = 0           # backlash: +1/-1 load against the motor's pushing/pulling face
         self._t = 0.0
         self._tau_motor = 0.0
         self._tau_coulomb = 0.0
@@ -221,8 +260,14 @@ class Plant:
         return self._dq
 
     @property
+    def load_position(self) -> float:
+        """Position of the load behind the backlash (the motor's without backlash)."""
+        return (self._load_e if self.backlash else self._e) + self.contact_position
+
+    @property
     def in_contact(self) -> bool:
-        return self._e >= 0.0
+        """The load (the motor without backlash) is inside the environment."""
+        return (self._load_e if self.backlash else self._e) >= 0.0
 
     @property
     def motor_torque(self) -> float:
@@ -231,12 +276,15 @@ class Plant:
 
     @property
     def friction_torque(self) -> float:
-        """Coulomb friction torque over the last sub-step (opposing the motion)."""
+        """Coulomb (and Stribeck) friction torque over the last sub-step (opposing the motion)."""
         return self._tau_coulomb
 
     @property
     def interaction_torque(self) -> float:
-        """``K (q - q_c) + D dq`` in contact, 0 in free motion."""
+        """``K (q - q_c) + D dq`` in contact, 0 in free motion; with backlash the torque
+        the load transmits to the motor (0 while the gap is open)."""
+        if self.backlash:
+            return self._transmitted(self._load_e, self._side, self._dq)
         e = self._e
         return self.stiffness * e + self.damping * self._dq if e >= 0.0 else 0.0
 
@@ -277,7 +325,9 @@ class Plant:
         zoh = self._zoh if dt == self._dt and self._zoh is not None else self._load(dt)
         t0 = self._t
         tau_d = self._constant_disturbance(t0, dt)
-        if tau_d is None or self.coulomb_friction or not self._exact_step(u - tau_d, zoh):
+        if self.backlash:
+            self._backlash_substeps(u, tau_d, t0, zoh)
+        elif tau_d is None or self._friction or not self._exact_step(u - tau_d, zoh):
             self._substeps(u, tau_d, t0, zoh)
         self._t = t0 + dt
         self._sense()
@@ -309,30 +359,97 @@ class Plant:
     def _substeps(self, u: float, tau_d: float | None, t0: float, zoh: _Step) -> None:
         """``substeps`` ZOH sub-steps; ``tau_d`` the disturbance if constant over the call."""
         e, dq = self._e, self._dq
-        h, vs, fc = zoh.h, zoh.stiction, self.coulomb_friction
+        h, vs, friction = zoh.h, zoh.stiction, self._friction
         k = self.stiffness
         pc, pf = zoh.contact_sub, zoh.free_sub
         tau_c = 0.0
         for i in range(self.substeps):
             w = u - (tau_d if tau_d is not None else self.disturbance_at(t0 + (i + 0.5) * h))
             contact = e >= 0.0
-            if fc > 0.0:
-                if dq > vs:
-                    tau_c = fc
-                elif dq < -vs:
-                    tau_c = -fc
-                else:
-                    f = w - k * e if contact else w
-                    if -fc <= f <= fc:     # stuck: friction balances f
-                        dq = 0.0
-                        tau_c = f
-                        continue
-                    tau_c = fc if f > 0.0 else -fc
+            if friction:
+                tau_c, stuck = self._friction_at(dq, w - k * e if contact else w, vs)
+                if stuck:                  # friction balances the torque
+                    dq = 0.0
+                    continue
                 w -= tau_c
             p = pc if contact else pf
             e, dq = (p.p00 * e + p.p01 * dq + p.g0 * w,
                      p.p10 * e + p.p11 * dq + p.g1 * w)
         self._e, self._dq, self._tau_coulomb = e, dq, tau_c
+
+    def _friction_at(self, dq: float, f: float, vs: float) -> tuple[float, bool]:
+        """Friction torque over a sub-step starting at velocity ``dq``, ``f`` the rest of the
+        torque acting at zero velocity; True when the servo sticks (friction is then ``f``).
+
+        Sliding: Coulomb plus the Stribeck peak, ``F_c + F_St exp(-(dq/v_St)^2)``; inside
+        the Karnopp band ``|dq| <= vs``: stuck while ``|f| <= F_s = F_c + F_St``, else
+        ``F_s`` against ``f`` (the curve's value at rest). ``F_St = 0``: the Coulomb
+        model's numbers exactly (no exponential is evaluated).
+        """
+        fc, fst = self.coulomb_friction, self.stribeck_friction
+        if dq > vs or dq < -vs:
+            level = fc + fst * math.exp(-(dq / self.stribeck_velocity) ** 2) if fst else fc
+            return (level if dq > 0.0 else -level), False
+        fs = fc + fst
+        if -fs <= f <= fs:
+            return f, True
+        return (fs if f > 0.0 else -fs), False
+
+    def _transmitted(self, load_e: float, side: int, dq: float) -> float:
+        """Backlash: the environment's torque the load passes to the motor (0: gap open).
+
+        The load is massless, so it passes ``K (q_l - q_c) + D dq`` only when it is inside
+        the environment, lies against a face of the gap (``side``) and that face can carry
+        the torque's sign (pushing face >= 0, pulling face <= 0).
+        """
+        if load_e < 0.0 or side == 0:
+            return 0.0
+        tau = self.stiffness * load_e + self.damping * dq
+        return tau if tau * side >= 0.0 else 0.0
+
+    def _backlash_substeps(self, u: float, tau_d: float | None, t0: float, zoh: _Step) -> None:
+        """Sub-steps with the dead band between motor and load (module docstring)."""
+        e, dq, load_e, side = self._e, self._dq, self._load_e, self._side
+        h, vs, friction, relax = zoh.h, zoh.stiction, self._friction, zoh.relax
+        k, d, half = self.stiffness, self.damping, 0.5 * self.backlash
+        pc, pf = zoh.contact_sub, zoh.free_sub
+        tau_c = 0.0
+        for i in range(self.substeps):
+            w = u - (tau_d if tau_d is not None else self.disturbance_at(t0 + (i + 0.5) * h))
+            # engaged (the rule of _transmitted): the face the load lies on carries the torque
+            if side != 0 and load_e >= 0.0 and side * (k * load_e + d * dq) >= 0.0:
+                # the contact plant in the load's coordinate q_l - q_c = q - q_c - side*beta/2
+                x = load_e
+                if friction:
+                    tau_c, stuck = self._friction_at(dq, w - k * x, vs)
+                    if stuck:
+                        dq = 0.0
+                        continue
+                    w -= tau_c
+                x, dq = (pc.p00 * x + pc.p01 * dq + pc.g0 * w,
+                         pc.p10 * x + pc.p11 * dq + pc.g1 * w)
+                e, load_e = x + side * half, x
+                continue
+            stuck = False
+            if friction:
+                tau_c, stuck = self._friction_at(dq, w, vs)
+                w -= tau_c
+            if stuck:
+                dq = 0.0
+            else:
+                e, dq = (pf.p00 * e + pf.p01 * dq + pf.g0 * w,
+                         pf.p10 * e + pf.p11 * dq + pf.g1 * w)
+            if load_e > 0.0:          # detached inside the environment: K q_l + D dq_l = 0
+                load_e *= relax
+            # the play operator: the motor's faces push the load along
+            if load_e <= e - half:
+                load_e, side = e - half, 1
+            elif load_e >= e + half:
+                load_e, side = e + half, -1
+            else:
+                side = 0
+        self._e, self._dq, self._load_e, self._side, self._tau_coulomb = (
+            e, dq, load_e, side, tau_c)
 
     def _load(self, dt: float) -> _Step:
         """The ZOH matrices for ``dt`` (cached)."""
@@ -344,12 +461,14 @@ class Plant:
                 self._cache.clear()
             h = dt / self.substeps
             vs = (self.stiction_velocity if self.stiction_velocity is not None
-                  else 2.0 * self.coulomb_friction * h / self.inertia)
+                  else 2.0 * (self.coulomb_friction + self.stribeck_friction) * h / self.inertia)
+            k, d = self.stiffness, self.damping
+            relax = math.exp(-k * h / d) if d > 0.0 else (0.0 if k > 0.0 else 1.0)
             zoh = _Step(free=Propagator.of(self._a_free, self._b_free, dt),
                         contact=Propagator.of(self._a_contact, self._b_contact, dt),
                         free_sub=Propagator.of(self._a_free, self._b_free, h),
                         contact_sub=Propagator.of(self._a_contact, self._b_contact, h),
-                        h=h, stiction=vs)
+                        h=h, stiction=vs, relax=relax)
             self._cache[dt] = zoh
         self._dt, self._zoh = dt, zoh
         return zoh

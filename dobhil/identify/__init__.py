@@ -1,0 +1,3 @@
+"""``dobhil identify``: the plant's numbers (inertia, friction, environment, delay) fitted to
+a recorded run, on the emulator's own plant model (:mod:`dobhil.identify.model`, fitted by
+:mod:`dobhil.identify.fit` with lmfit)."""
