@@ -50,14 +50,29 @@ def run(args: argparse.Namespace) -> int:
     if args.out:
         _write_overlay(result.overlay(), args.out)
     if args.plot:
-        from dobhil.identify.plot import segment_figures
-        for path in segment_figures(result, data, args.plot):
+        for path in _figures(result, data, args.plot):
             sys.stderr.write(f"wrote {path}\n")
     if args.json:
         print(json.dumps(info))
     else:
         _print(info)
     return 0
+
+
+def _figures(result: Any, data: Any, out: Path) -> list[Path]:
+    """One measured-vs-model PNG per segment, the model simulated with the identifiable values."""
+    from dobhil.identify.fit import simulate
+    from dobhil.plotting.identify_figures import measured_vs_model
+    values = {n: e.value for n, e in result.estimates.items() if e.identifiable}
+    out.mkdir(parents=True, exist_ok=True)
+    written = []
+    for i, seg in enumerate(result.segments):
+        s = slice(seg.start, seg.stop)
+        t = data.t[s]
+        title = f"{data.source}: {seg.kind} segment {t[0]:.3f}-{t[-1]:.3f} s"
+        written.append(measured_vs_model(t, (data.position[s], data.velocity[s]), simulate(values, data, seg),
+                                         title, out / f"identify_segment_{i}.png"))
+    return written
 
 
 def _protocol(drive: str | None) -> str | None:
