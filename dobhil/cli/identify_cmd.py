@@ -1,5 +1,5 @@
-"""``dobhil identify LOG.mcap [--segment T0:T1[:free|contact]]... [--drive PROFILE] [--out F.yaml]
-[--json] [--plot DIR]`` and ``dobhil compare A.mcap B.mcap``.
+"""``dobhil identify LOG.mcap [--segment T0:T1[:free|contact]]... [--drive PROFILE] [--period S]
+[--out F.yaml] [--json] [--plot DIR]`` and ``dobhil compare A.mcap B.mcap``.
 
 identify fits the emulator's exact sampled plant to a recorded run (:mod:`dobhil.identify`):
 the free-motion and contact segments are found from the data unless given; the overlay
@@ -23,7 +23,10 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
                    help="fit only this time span [s from the first cycle] (repeatable); KIND free or "
                    "contact, found from the data when not given")
     p.add_argument("--drive", metavar="PROFILE",
-                   help="the drive profile (name or path) the log must have been recorded with")
+                   help="the drive profile (name or path): decodes a CAN log imported with dobhil log import; "
+                   "a dobhil log must have been recorded with its protocol")
+    p.add_argument("--period", type=float, metavar="SECONDS",
+                   help="a CAN log's control period (default: the median spacing of its motion frames)")
     p.add_argument("--out", type=Path, metavar="F.yaml", help="write the config overlay (for --set-file)")
     p.add_argument("--json", action="store_true", help="print the result as JSON")
     p.add_argument("--plot", type=Path, metavar="DIR", help="measured vs model figures, one per segment")
@@ -36,13 +39,15 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from dobhil.drives.profile import load_profile
     from dobhil.files import check_output, check_output_dir
     from dobhil.identify.data import find_segments, parse_segment, read_log
     if args.out:
         check_output(args.out, inputs=[args.log], suffix=(".yaml", ".yml"), what="--out")
     if args.plot:
         check_output_dir(args.plot, ["identify_segment_0.png"], inputs=[args.log], what="--plot")
-    data = read_log(args.log, protocol=_protocol(args.drive))
+    profile = None if args.drive is None else load_profile(args.drive)
+    data = read_log(args.log, profile=profile, period=args.period)
     segments = tuple(parse_segment(s, data) for s in args.segment) or find_segments(data)
     from dobhil.identify.fit import identify
     result = identify(data, segments)
@@ -73,13 +78,6 @@ def _figures(result: Any, data: Any, out: Path) -> list[Path]:
         written.append(measured_vs_model(t, (data.position[s], data.velocity[s]), simulate(values, data, seg),
                                          title, out / f"identify_segment_{i}.png"))
     return written
-
-
-def _protocol(drive: str | None) -> str | None:
-    if drive is None:
-        return None
-    from dobhil.drives.profile import load_profile
-    return load_profile(drive).protocol
 
 
 def summary(result: Any, data: Any) -> dict[str, Any]:

@@ -27,6 +27,7 @@ import numpy as np
 from numpy.typing import NDArray
 from orjson import loads
 
+from dobhil.drives.profile import DriveProfile
 from dobhil.errors import ConfigError, LogFileError
 
 Array = NDArray[np.float64]
@@ -80,30 +81,101 @@ class Segment:
 
 # -- reading -------------------------------------------------------------------------------
 
-def read_log(path: str | os.PathLike[str], *, protocol: str | None = None) -> IdentData:
-    """The :class:`IdentData` of a dobhil log (its loop records). ``protocol``: the protocol
-    the user expects (their drive profile's); a log of another one is refused. A log
-    without motion is refused (nothing to identify). LogFileError / ConfigError otherwise."""
+def read_log(path: str | os.PathLike[str], *, protocol: str | None = None,
+             profile: DriveProfile | None = None, period: float | None = None) -> IdentData:
+    """The :class:`IdentData` of a log: a dobhil run's loop records, or -- a CAN log imported
+    with ``dobhil log import``, frames only -- its frames decoded with ``profile`` (required
+    then; ``period``: its control period, default the median spacing of its motion frames).
+    ``protocol``: the protocol the user expects (their drive profile's); a log of
+    another one is refused. A log without motion is refused (nothing to identify).
+    LogFileError / ConfigError, one line, otherwise."""
     from dobhil.drives.decode import recorded_profile
     from dobhil.recording.reader import open_log
     name = os.fspath(path)
     with open_log(path) as log:
         if not all(t in log.topics() for t in _TOPICS):
-            raise LogFileError(f"{name}: no loop records ({' and '.join(_TOPICS)}); identify reads a "
-                               "run recorded by dobhil (dobhil run --log)")
-        if log.config is None:
-            raise LogFileError(f"{name}: no 'config' metadata (not a recorded run?)")
-        profile = recorded_profile(log.metadata.get("drive"), name)
-        config = log.config
-        cycles = _loop_records(log, name)
-    if protocol is not None and profile.protocol != protocol:
-        raise ConfigError(f"{name}: recorded with a {profile.protocol!r} drive, but the profile given is "
-                          f"{protocol!r}; identify a log with the profile of its own protocol")
-    recorded = {k: float(v) for k, v in config.flat().items()
-                if k.split(".")[0] in RECORDED_SECTIONS and isinstance(v, (int, float)) and not isinstance(v, bool)}
-    data = _samples(cycles, config.loop.period, name, profile.protocol, recorded)
+            data = _from_frames(log, name, profile, period)
+        else:
+            if log.config is None:
+                raise LogFileError(f"{name}: no 'config' metadata (not a recorded run?)")
+            recorded_drive = recorded_profile(log.metadata.get("drive"), name)
+            config = log.config
+            cycles = _loop_records(log, name)
+            recorded = {k: float(v) for k, v in config.flat().items() if k.split(".")[0] in RECORDED_SECTIONS
+                        and isinstance(v, (int, float)) and not isinstance(v, bool)}
+            data = _samples(cycles, config.loop.period, name, recorded_drive.protocol, recorded)
+    expected = protocol if protocol is not None else (profile.protocol if profile is not None else None)
+    if expected is not None and data.protocol != expected:
+        raise ConfigError(f"{name}: recorded with a {data.protocol!r} drive, but the profile given is "
+                          f"{expected!r}; identify a log with the profile of its own protocol")
     check_motion(data)
     return data
+
+
+# -- a CAN log imported: frames only --------------------------------------------------------
+
+class _Sink:
+    """The bus of the decoding emulator: its replies go nowhere, it reads nothing."""
+
+    channel_info = "identify decoding"
+
+    def send(self, msg: object, timeout: float | None = None) -> None:
+        pass
+
+    def recv(self, timeout: float | None = None) -> None:
+        return None
+
+    def shutdown(self) -> None:
+        pass
+
+
+def _from_frames(log: object, name: str, profile: DriveProfile | None, period: float | None) -> IdentData:
+    """Samples of a frames-only log: the feedback decoded by the profile's drive class (as a
+    replay does), the torque by the profile's emulated drive -- the torque its plant would
+    receive, protocol state included (an RPDO waits for its SYNC, a disabled axis applies 0).
+    Sample k is motion frame k; its torque is what the tx frames before motion frame k+1 left
+    applied. The period is the median spacing of the motion frames."""
+    import can
+
+    from dobhil.drives.decode import decode_motion
+    from dobhil.emulator.plant import Plant
+    from dobhil.emulator.registry import make_emulated_drive
+    from dobhil.recording.schemas import can_frame_message
+    if "/can/rx" not in log.topics():  # type: ignore[attr-defined]
+        raise LogFileError(f"{name}: neither loop records ({' and '.join(_TOPICS)}) nor CAN frames (/can/rx); "
+                           "identify reads a run recorded by dobhil or a CAN log imported with dobhil log import")
+    if profile is None:
+        raise ConfigError(f"{name}: a CAN log without a recorded drive profile; give the drive's profile "
+                          "with --drive NAME (e.g. odrive-0.6)")
+    rx: list[can.Message] = []
+    tx: list[can.Message] = []
+    try:
+        for topic, t, raw in log.iter_payloads(("/can/rx", "/can/tx")):  # type: ignore[attr-defined]
+            (rx if topic == "/can/rx" else tx).append(can_frame_message(loads(raw), t))
+    except (KeyError, TypeError, ValueError) as exc:
+        raise LogFileError(f"{name}: a recorded frame does not match its schema "
+                           f"({type(exc).__name__}: {exc})") from None
+    motion = decode_motion(profile, rx)
+    if len(motion) < 2 * MIN_SEGMENT:
+        raise ConfigError(f"{name}: {len(motion)} frames decode as motion feedback of a {profile.protocol!r} drive "
+                          f"(node {profile.node_id}); is the log of another protocol or node than profile "
+                          f"{profile.name or profile.protocol!r}?")
+    stamps = np.array([m[0] for m in motion])
+    period = float(np.median(np.diff(stamps))) if period is None else period
+    if not (math.isfinite(period) and period > 0.0):
+        raise ConfigError(f"{name}: no control period (the motion frames' timestamps do not increase); "
+                          "give it with --period SECONDS")
+    emulated = make_emulated_drive(_Sink(), profile, Plant(inertia=1.0))  # type: ignore[arg-type]
+    torque, i = [], 0
+    tx.sort(key=lambda m: m.timestamp)
+    for k in range(len(motion)):
+        until = stamps[k + 1] if k + 1 < len(motion) else math.inf
+        while i < len(tx) and tx[i].timestamp < until:
+            emulated.deliver(tx[i])
+            i += 1
+        torque.append(emulated.applied_torque)
+    rows = {k: [p, v, u] for k, ((_, p, v), u) in enumerate(zip(motion, torque))}
+    return _samples(rows, period, name, profile.protocol, {})
 
 
 def _loop_records(log: object, name: str) -> dict[int, list[float]]:

@@ -101,3 +101,41 @@ def test_damaged_and_frames_only_logs_refused(logs: dict[str, Path], tmp_path: P
     with pytest.raises(LogFileError):
         read_log(cut)
     assert MIN_SEGMENT > 0
+
+
+@pytest.fixture(scope="module")
+def imported(logs: dict[str, Path], tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The contact run's frames exported to candump and imported back: frames only."""
+    from dobhil.cli.main import main
+    d = tmp_path_factory.mktemp("imported")
+    assert main(["log", "export", str(logs["contact"]), "--can", "--format", "candump", "-o", str(d / "c.log")]) == 0
+    assert main(["log", "import", str(d / "c.log"), "-o", str(d / "c.mcap")]) == 0
+    return d / "c.mcap"
+
+
+def test_imported_can_log_decodes_like_the_loop_records(logs: dict[str, Path], imported: Path) -> None:
+    from dobhil.drives.profile import load_profile
+    loop = read_log(logs["contact"])
+    frames = read_log(imported, profile=load_profile("odrive-0.6"), period=1e-3)
+    assert frames.protocol == "odrive" and frames.recorded == {} and frames.period == 1e-3
+    # motion frame 0 is the feedback controller.initialize used (cycle -1): cycle k is frame k + 1
+    n = loop.samples
+    np.testing.assert_array_equal(frames.position[1:n + 1], loop.position)
+    np.testing.assert_array_equal(frames.velocity[1:n + 1], loop.velocity)
+    # the torque as the drive decodes its float32 field; the last cycle's interval also holds the
+    # safe stop's zero torque, which is what the plant had when the next motion frame came
+    np.testing.assert_allclose(frames.torque[1:n], loop.torque[:-1], rtol=0, atol=1e-6)
+    assert frames.torque[n] == 0.0 != loop.torque[-1]
+    assert frames.torque[0] == 0.0   # before the first command
+    default = read_log(imported, profile=load_profile("odrive-0.6"))
+    assert default.period == pytest.approx(1e-3, rel=0.05)   # the frames' median spacing
+
+
+def test_imported_can_log_needs_its_profile(imported: Path) -> None:
+    from dobhil.drives.profile import load_profile
+    with pytest.raises(ConfigError, match="--drive"):
+        read_log(imported)
+    with pytest.raises(ConfigError, match="decode as motion feedback of a 'mit' drive"):
+        read_log(imported, profile=load_profile("mini-cheetah"))
+    with pytest.raises(ConfigError, match="decode as motion feedback of a 'cia402' drive"):
+        read_log(imported, profile=load_profile("cia402-emulated"))
