@@ -291,16 +291,23 @@ def contact_mask(data: IdentData) -> NDArray[np.bool_]:
     base = np.column_stack([*(data.torque[rows - j] for j in range(_LAGS)), data.velocity[rows],
                             np.ones(rows.size)])
     target, qk = y[rows], q[rows]
-    rss_free = _rss(base, target)
+    # each candidate adds one column z = max(q - threshold, 0) to the free model: its residual
+    # sum of squares follows from z's part orthogonal to the free model's columns (one QR for all)
+    basis, _ = np.linalg.qr(base)
+    r = target - basis @ (basis.T @ target)
+    rss_free = float(r @ r)
     best: tuple[float, float, float] | None = None    # (rss, threshold, spring coefficient)
-    for threshold in _thresholds(qk):
-        on = qk >= threshold
-        if on.sum() < MIN_SEGMENT:
-            continue
-        design = np.column_stack([base, np.where(on, qk - threshold, 0.0)])
-        coef, rss = _fit(design, target)
-        if best is None or rss < best[0]:
-            best = (rss, float(threshold), float(coef[-1]))
+    candidates = _thresholds(qk)
+    for chunk in np.array_split(candidates, max(1, candidates.size // 25)):
+        z = np.maximum(qk[:, None] - chunk[None, :], 0.0)
+        zp = z - basis @ (basis.T @ z)
+        denom, num = np.einsum("ij,ij->j", zp, zp), zp.T @ r
+        engaged = (qk[:, None] >= chunk[None, :]).sum(axis=0)
+        for j in np.flatnonzero((denom > 0.0) & (engaged >= MIN_SEGMENT)):
+            coef = num[j] / denom[j]
+            rss = rss_free - coef * num[j]
+            if best is None or rss < best[0]:
+                best = (float(rss), float(chunk[j]), float(coef))
     if best is None or best[2] >= 0.0 or not _significant(rss_free, best[0], target.size, base.shape[1] + 2):
         return np.zeros(n, dtype=bool)
     return q >= best[1]
@@ -309,27 +316,17 @@ def contact_mask(data: IdentData) -> NDArray[np.bool_]:
 def _thresholds(q: Array) -> Array:
     """Candidate contact positions: quantiles of the measured positions, plus one below them
     all (a run in contact throughout)."""
-    levels = np.unique(np.quantile(q, np.linspace(0.0, 0.95, 200)))
+    levels = np.unique(np.quantile(q, np.linspace(0.0, 0.95, 100)))
     return np.concatenate([[q.min() - 1.0], levels])
-
-
-def _fit(design: Array, target: Array) -> tuple[Array, float]:
-    coef, *_ = np.linalg.lstsq(design, target, rcond=None)
-    r = target - design @ coef
-    return np.asarray(coef, dtype=float), float(r @ r)
-
-
-def _rss(design: Array, target: Array) -> float:
-    return _fit(design, target)[1]
 
 
 def _significant(rss0: float, rss1: float, n: int, params: int) -> bool:
     """F test of the spring (and threshold) against the free model."""
-    from scipy.stats import f
+    from scipy.special import fdtrc  # the F distribution's survival function (scipy.stats imports seconds)
     if rss1 <= 0.0:
         return rss0 > 0.0
     stat = ((rss0 - rss1) / 2.0) / (rss1 / max(n - params, 1))
-    return bool(f.sf(stat, 2, max(n - params, 1)) < _ALPHA)
+    return bool(fdtrc(2, max(n - params, 1), stat) < _ALPHA)
 
 
 def segment_times(segment: Segment, period: float) -> tuple[float, float]:
