@@ -23,7 +23,8 @@ LAYERS: list[tuple[str, ...]] = [
     ("dobhil.synthesis", "dobhil.drives"),                  # the observers; drive profiles and codecs
     ("dobhil.analysis", "dobhil.emulator", "dobhil.recording"),  # the design analysed; the plant; logs
     ("dobhil.plotting", "dobhil.runtime", "dobhil.canio",   # figures; the loop; python-can plugins;
-     "dobhil.live", "dobhil.run_report", "dobhil.identify"),  # the live view; a recorded run reported, identified
+     "dobhil.live", "dobhil.run_report",                    # the live view; the report of a recorded run;
+     "dobhil.identify"),                                    # the plant identified from a recorded run
     ("dobhil.replay", "dobhil.paper"),                      # a log replayed; the paper reproduced
     ("dobhil.cli",),                                        # the command
     ("dobhil.__main__",),                                   # ``python -m dobhil``

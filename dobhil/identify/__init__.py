@@ -1,3 +1,4 @@
-"""Grey-box identification of the servo, its environment and the loop delay from a recorded run
-(``dobhil identify``): :mod:`dobhil.identify.data` reads the samples and finds the free-motion
-and contact segments; :mod:`dobhil.identify.fit` fits the emulator's exact sampled plant."""
+"""``dobhil identify``: the plant's numbers (inertia, friction, environment, delay) fitted to
+a recorded run, on the emulator's own plant model (:mod:`dobhil.identify.model`, fitted by
+:mod:`dobhil.identify.fit` with lmfit); :mod:`dobhil.identify.data` reads the samples from a
+log and finds its free-motion and contact segments."""
