@@ -77,3 +77,23 @@ def test_set_file_bad_input(tmp_path: Path, capsys: pytest.CaptureFixture[str]) 
     flat = tmp_path / "flat.yaml"
     flat.write_text("inertia: 1\n", encoding="utf-8")
     _fails(capsys, ["analyze", "demo", "--set-file", str(flat)], "not a section.key")
+
+
+def test_identify_free_run_end_to_end(logs: dict[str, Path], tmp_path: Path,
+                                      capsys: pytest.CaptureFixture[str]) -> None:
+    """A free-motion run: its one segment found, no environment numbers (not identifiable, said
+    why), the overlay usable by analyze through --set-file, one figure per segment."""
+    import yaml
+    out, plots = tmp_path / "overlay.yaml", tmp_path / "plots"
+    assert main(["identify", str(logs["free"]), "--json", "--out", str(out), "--plot", str(plots)]) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert [s["kind"] for s in info["segments"]] == ["free"] and info["samples"] > 0
+    for name in ("stiffness", "damping", "contact_position"):
+        e = info["estimates"][name]
+        assert not e["identifiable"] and e["value"] is None and e["why"]
+    overlay = yaml.safe_load(out.read_text(encoding="utf-8"))
+    assert overlay and not any(k.startswith("environment.") for k in overlay)
+    assert all(info["estimates"][k.split(".")[1]]["identifiable"] for k in overlay if k.startswith("plant."))
+    assert main(["analyze", "demo", "--set-file", str(out), "--json"]) == 0
+    capsys.readouterr()
+    assert sorted(p.name for p in plots.iterdir()) == ["identify_segment_0.png"]
