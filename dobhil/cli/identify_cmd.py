@@ -90,8 +90,8 @@ def summary(result: Any, data: Any) -> dict[str, Any]:
             "estimates": {n: {"value": number(e.value), "stderr": number(e.stderr), "low": number(e.low),
                               "high": number(e.high), "identifiable": e.identifiable, "why": e.why}
                           for n, e in result.estimates.items()},
-            "correlations": [{"a": a, "b": b, "r": float(r)} for (a, b), r in result.correlations.items()],
-            "residual": {"rms": result.residual.rms, "whiteness_p": result.residual.whiteness_p,
+            "correlations": [{"a": a, "b": b, "r": number(r)} for (a, b), r in result.correlations.items()],
+            "residual": {"rms": number(result.residual.rms), "whiteness_p": number(result.residual.whiteness_p),
                          "misfit": result.residual.misfit, "warning": result.residual.warning}}
 
 
@@ -105,9 +105,13 @@ def _print(info: dict[str, Any]) -> None:
         else:
             print(f"  {name:<18} not identifiable: {e['why']}")
     r = info["residual"]
-    print(f"residual RMS {r['rms']:.4g}, whiteness p = {r['whiteness_p']:.3g}")
+    print(f"residual RMS {_num(r['rms'], '.4g')}, whiteness p = {_num(r['whiteness_p'], '.3g')}")
     if r["warning"]:
         print(f"warning: {r['warning']}")
+
+
+def _num(value: float | None, spec: str) -> str:
+    return "n/a" if value is None else format(value, spec)
 
 
 def _write_overlay(overlay: dict[str, Any], path: Path) -> None:
