@@ -78,7 +78,10 @@ def test_set_file_is_applied_like_set_and_before_it(tmp_path: Path, capsys: pyte
 
 
 def test_set_file_bad_input(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    _fails(capsys, ["analyze", "demo", "--set-file", str(tmp_path / "missing.yaml")], "--set-file")
+    for command in (["analyze"], ["run"], ["check"], ["sweep", "--vary", "design.force_gain=1:2:2"]):
+        # every command taking a config has it
+        _fails(capsys, [command[0], "demo", *command[1:], "--set-file", str(tmp_path / "missing.yaml")],
+               "--set-file")
     bad = tmp_path / "bad.yaml"
     bad.write_text("plant.mass: 1\n", encoding="utf-8")
     _fails(capsys, ["analyze", "demo", "--set-file", str(bad)], "plant.mass")
