@@ -98,6 +98,9 @@ def read_log(path: str | os.PathLike[str], *, protocol: str | None = None,
         else:
             if log.config is None:
                 raise LogFileError(f"{name}: no 'config' metadata (not a recorded run?)")
+            if period is not None:
+                raise ConfigError(f"--period {period:g}: {name} records its own period "
+                                  f"({log.config.loop.period:g} s); --period is for a CAN log without one")
             recorded_drive = recorded_profile(log.metadata.get("drive"), name)
             config = log.config
             cycles = _loop_records(log, name)

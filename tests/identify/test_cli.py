@@ -33,6 +33,7 @@ def test_identify_bad_input(logs: dict[str, Path], tmp_path: Path, capsys: pytes
     _fails(capsys, ["identify", str(tmp_path / "none.mcap")], "none.mcap")
     _fails(capsys, ["identify", str(logs["contact"]), "--out", str(tmp_path / "o.txt")], "--out")
     _fails(capsys, ["identify", str(logs["contact"]), "--drive", "no-such-drive"], "no-such-drive")
+    _fails(capsys, ["identify", str(logs["contact"]), "--period", "0.001"], "records its own period")
     assert main(["log", "export", str(logs["contact"]), "--can", "--format", "candump",
                  "-o", str(tmp_path / "c.log")]) == 0
     assert main(["log", "import", str(tmp_path / "c.log"), "-o", str(tmp_path / "c.mcap")]) == 0
