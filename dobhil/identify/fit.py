@@ -30,6 +30,7 @@ What is fitted, and why so:
 from __future__ import annotations
 
 import math
+import warnings
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -308,7 +309,11 @@ def _profile(minimizer: lmfit.Minimizer, result: lmfit.minimizer.MinimizerResult
     to the bounds if the profile cannot be traced."""
     p = result.params[name]
     try:
-        ci = lmfit.conf_interval(minimizer, result, p_names=[name], sigmas=[LEVEL])
+        with warnings.catch_warnings():
+            # lmfit warns when the profile reaches a bound before the level: the interval
+            # then ends at that bound (a friction that may be 0), which is what we report
+            warnings.filterwarnings("ignore", message="Bound reached", category=UserWarning)
+            ci = lmfit.conf_interval(minimizer, result, p_names=[name], sigmas=[LEVEL])
     except (lmfit.minimizer.MinimizerException, ValueError, RuntimeError):
         return max(low, p.min), min(high, p.max)
     values = [v for _, v in ci[name]]

@@ -21,6 +21,7 @@ before the first sample are 0 and every simulation starts at rest at its initial
 from __future__ import annotations
 
 import math
+import threading
 from dataclasses import dataclass
 
 import numpy as np
@@ -61,6 +62,25 @@ class ModelValues:
     delay: float = 0.0
 
 
+_LOCAL = threading.local()
+
+
+def _plant(inertia: float, viscous: float, coulomb: float, stiffness: float, damping: float,
+           substeps: int) -> Plant:
+    """A Plant of these parameters, the last one reused (per thread): the segments of one
+    fit evaluation share it, so its ZOH matrices (matrix exponentials: ~10 ms each on a busy
+    machine with multithreaded BLAS, measured) are computed once per parameter set and
+    delay, not once per segment. Its contact and initial positions are set by the caller."""
+    key = (inertia, viscous, coulomb, stiffness, damping, substeps)
+    cached: tuple[tuple[float, ...], Plant] | None = getattr(_LOCAL, "plant", None)
+    if cached is not None and cached[0] == key:
+        return cached[1]
+    plant = Plant(inertia=inertia, viscous_friction=viscous, coulomb_friction=coulomb,
+                  stiffness=stiffness, damping=damping, substeps=substeps)
+    _LOCAL.plant = (key, plant)
+    return plant
+
+
 def simulate_torque(values: ModelValues, torque: np.ndarray, period: float, start: int,
                     stop: int, initial_position: float, *,
                     substeps: int = 10) -> tuple[np.ndarray, np.ndarray]:
@@ -71,15 +91,18 @@ def simulate_torque(values: ModelValues, torque: np.ndarray, period: float, star
     n = stop - start
     if n < 1:
         raise ValueError(f"segment [{start}, {stop}): empty")
-    # the emulator's plant has no contact position "nowhere": put it far beyond the motion
-    # (relative state, so the precision lost is ~1e-16 of the distance) when there is none
-    qc = values.contact_position
+    # no environment: the emulator's plant has no contact position "nowhere", but with zero
+    # stiffness and damping its contact mode is the free servo itself (plant_matrices with
+    # K = D = 0 is servo_matrices), so the contact goes where the servo starts -- its state is
+    # relative to the contact position, and a far one would cost that state its precision
+    qc, k, d = values.contact_position, values.stiffness, values.damping
     if not math.isfinite(qc):
-        qc = initial_position + 1.0e6
-    plant = Plant(inertia=values.inertia, viscous_friction=values.viscous_friction,
-                  coulomb_friction=values.coulomb_friction, stiffness=values.stiffness,
-                  damping=values.damping, contact_position=qc,
-                  initial_position=initial_position, substeps=substeps)
+        qc, k, d = initial_position, 0.0, 0.0
+    plant = _plant(values.inertia, values.viscous_friction, values.coulomb_friction, k, d,
+                   substeps)
+    plant.contact_position = qc
+    plant.initial_position = initial_position
+    plant.reset()
     whole, fraction = split_delay(values.delay, period)
     g = values.torque_gain
     pad = whole + 1

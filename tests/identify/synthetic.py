@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -46,9 +47,11 @@ def prbs(n: int, amplitude: float, clock: int, rng: np.random.Generator) -> np.n
     return amplitude * np.repeat(bits, clock)[:n]
 
 
-def run(truth: Truth, torque: np.ndarray, initial_position: float, seed: int) -> tuple[np.ndarray, np.ndarray]:
-    """Measured position and velocity at each sample of a run sending ``torque``."""
-    plant = Plant(inertia=truth.inertia, viscous_friction=truth.viscous_friction,
+def run(truth: Truth, torque: np.ndarray, initial_position: float, seed: int,
+        **unmodelled: Any) -> tuple[np.ndarray, np.ndarray]:
+    """Measured position and velocity at each sample of a run sending ``torque``
+    (``unmodelled``: more Plant options, a disturbance say)."""
+    plant = Plant(**unmodelled, inertia=truth.inertia, viscous_friction=truth.viscous_friction,
                   coulomb_friction=truth.coulomb_friction, stiffness=truth.stiffness,
                   damping=truth.damping, contact_position=truth.contact_position,
                   initial_position=initial_position, encoder_resolution=COUNTS,
@@ -73,20 +76,21 @@ def run(truth: Truth, torque: np.ndarray, initial_position: float, seed: int) ->
 
 
 def record(truth: Truth, seed: int, *, free_s: float = 2.0, contact_s: float = 1.5,
-           rest: int = 20) -> tuple[IdentData, tuple[Segment, ...]]:
+           rest: int = 20, free_amplitude: float = 3.0,
+           **unmodelled: Any) -> tuple[IdentData, tuple[Segment, ...]]:
     """A free-motion run far from the contact, then (if ``contact_s``) a run pressed into
     the environment; each starts at rest and ends with ``rest`` samples of zero torque,
     so the next one's history is zeros, as the model assumes."""
     rng = np.random.default_rng(seed)
     nf = int(round(free_s / PERIOD))
-    uf = np.concatenate([prbs(nf, 3.0, 15, rng), np.zeros(rest)])
-    qf, vf = run(truth, uf, truth.contact_position - 50.0, seed)
+    uf = np.concatenate([prbs(nf, free_amplitude, 15, rng), np.zeros(rest)])
+    qf, vf = run(truth, uf, truth.contact_position - 50.0, seed, **unmodelled)
     parts = [(uf, qf, vf, "free")]
     if contact_s:
         nc = int(round(contact_s / PERIOD))
         ramp = np.minimum(np.arange(nc) / 200.0, 1.0)
         uc = np.concatenate([ramp * (20.0 + prbs(nc, 8.0, 5, rng)), np.zeros(rest)])
-        qc, vc = run(truth, uc, truth.contact_position, seed + 10_000)
+        qc, vc = run(truth, uc, truth.contact_position, seed + 10_000, **unmodelled)
         parts.append((uc, qc, vc, "contact"))
     segments, k = [], 0
     for u, _, _, kind in parts:
