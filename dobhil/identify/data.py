@@ -71,12 +71,7 @@ class Segment:
     start: int
     stop: int
     kind: str                  # "free" | "contact"
-
-    def __post_init__(self) -> None:
-        if self.kind not in KINDS:
-            raise ValueError(f"segment kind {self.kind!r}; expected one of {', '.join(KINDS)}")
-        if not 0 <= self.start < self.stop:
-            raise ValueError(f"segment [{self.start}, {self.stop}): expected 0 <= start < stop")
+    # checked where it is used (identify refuses a segment outside the data or of another kind)
 
 
 # -- reading -------------------------------------------------------------------------------
