@@ -8,7 +8,6 @@ shows what that tuning would have done.
 
 from __future__ import annotations
 
-import json
 import os
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
@@ -20,8 +19,9 @@ from numpy.typing import NDArray
 from orjson import loads
 
 from dobhil.config.schema import Config
-from dobhil.drives.profile import RENAMED_KEYS, DriveProfile, profile_from_mapping
-from dobhil.errors import ConfigError, LogFileError
+from dobhil.drives.decode import decode_motion, recorded_profile
+from dobhil.drives.profile import DriveProfile
+from dobhil.errors import LogFileError
 from dobhil.recording.reader import LogFile, open_log
 from dobhil.recording.schemas import can_frame_message
 from dobhil.runtime.session import build_controller
@@ -129,21 +129,8 @@ def recorded_config(log: LogFile, overrides: Sequence[str] = ()) -> Config:
                         source=f"{log.path} config")
 
 
-def _renamed(record: dict[str, Any]) -> dict[str, Any]:
-    """A recorded profile under today's key names: a user's YAML with an old name is
-    refused, but a log written before the rename is not the user's to edit."""
-    return {RENAMED_KEYS.get(k, k): v for k, v in record.items()}
-
-
 def _profile(log: LogFile) -> DriveProfile:
-    record = log.metadata.get("drive")
-    if not record:
-        raise LogFileError(f"{log.path}: no 'drive' metadata (not a recorded run?)")
-    try:
-        return profile_from_mapping(_renamed({k: json.loads(v) for k, v in record.items()}),
-                                    source=f"{log.path} drive")
-    except (ValueError, ConfigError) as exc:
-        raise LogFileError(f"{log.path}: invalid recorded drive profile: {exc}") from None
+    return recorded_profile(log.metadata.get("drive"), os.fspath(log.path))
 
 
 def _read(log: LogFile, name: str) -> Recording:
@@ -202,27 +189,11 @@ def replay(path: str | os.PathLike[str], overrides: Sequence[str] = ()) -> Repla
                         np.array(out, dtype=float).reshape(-1, len(OUTPUTS)))
 
 
-class _NoBus:
-    """Stands in for the bus of the decoding drive: replay never sends."""
-
-    def send(self, msg: can.Message, timeout: float | None = None) -> None:
-        raise LogFileError("replay drive cannot send")
-
-    def recv(self, timeout: float | None = None) -> None:
-        return None
-
-
 def _decode_feedback(recording: Recording) -> tuple[list[float], list[float]]:
     """(position, velocity) indexed by feedback seq (index 0 unused), decoded by the run's own
     drive class, so ``seq`` counts motion frames exactly as at run time."""
-    from dobhil.drives.registry import make_drive
-    drive = make_drive(_NoBus(), recording.profile, clock=lambda: 0.0)  # type: ignore[arg-type]
-    pos, vel = [float("nan")], [float("nan")]
-    for msg in recording.frames:
-        if drive.apply(msg) and drive.feedback is not None:
-            pos.append(drive.feedback.position)
-            vel.append(drive.feedback.velocity)
-    return pos, vel
+    motion = decode_motion(recording.profile, recording.frames)
+    return [float("nan"), *(p for _, p, _ in motion)], [float("nan"), *(v for _, _, v in motion)]
 
 
 __all__ = ["COMPARED", "OUTPUTS", "Mismatch", "Recording", "ReplayResult", "recorded_config", "replay"]

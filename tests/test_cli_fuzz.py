@@ -182,7 +182,8 @@ sets = st.builds(lambda key, value: f"{key}={value}",
 #: a valid first positional half of the time, so options are fuzzed past the config check
 VALID_POSITIONAL = {"analyze": "demo", "sweep": "demo", "check": "demo", "replay": "good.mcap",
                     "report": "good.mcap", "info": "good.mcap", "recover": "good.mcap",
-                    "export": "good.mcap", "import": "good.mcap", "init": "fresh"}
+                    "export": "good.mcap", "import": "good.mcap", "init": "fresh", "identify": "good.mcap",
+                    "compare": "good.mcap"}
 #: values of options naming a file the command writes: fresh names inside the scratch
 #: directory (hostile output names are tested by hand below)
 outputs = st.sampled_from(["o1.png", "o2.csv", "o3.mcap", "o4.blf", "o5", "out/o6.png", "o7.txt", "o8.svg",

@@ -14,6 +14,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+import tempfile
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -42,6 +43,8 @@ TARGETS: dict[str, float] = {
 TARGETS_MAX: dict[str, float] = {
     "rt_logged_vs_unlogged_overrun_ratio": 1.2,
     "rt_vs_bare_period_error_p99_ratio": 2.0,
+    # issue 19: a 60 s, 1 kHz log identified in at most 10 s
+    "identify_seconds_per_minute_of_log": 10.0,
     # issue 10: "at or below today's 1.4 us median", taken on a machine whose controller step
     # measured 0.65 us: 1.4 / 0.65 controller steps, so the bound holds on any machine
     "loop_thread_log_cost_vs_controller_step": 2.15,
@@ -582,6 +585,38 @@ def bench_mit(rounds: int = 3, seconds: float = 6.0) -> dict[str, float]:
             "rt_mit_period_error_p99_us": float(np.median(p99)) * 1e6}
 
 
+#: the shipped excitation run in contact (issue 19); until it exists, the demo under a chirp
+IDENTIFY_CONFIG = ROOT / "configs/identify-contact.yaml"
+_IDENTIFY_FALLBACK = ("reference.kind=chirp", "reference.start=0", "reference.offset=0.5", "reference.amplitude=0.4",
+                      "reference.frequency=1", "reference.frequency_end=30")
+
+
+def _identify_log(path: Path, seconds: float) -> Path:
+    """A lockstep emulated excitation run of ``seconds``, recorded to ``path``."""
+    from dobhil.cli.main import main as dobhil
+    config, sets = (str(IDENTIFY_CONFIG), ()) if IDENTIFY_CONFIG.is_file() else ("demo", _IDENTIFY_FALLBACK)
+    args = ["run", config, "--emulate", "--lockstep", "--log", str(path), "--set", f"loop.duration={seconds}"]
+    for item in sets:
+        args += ["--set", item]
+    if dobhil(args) not in (0, 1) or not path.is_file():
+        raise RuntimeError(f"the excitation run for the identify bench failed: {' '.join(args)}")
+    return path
+
+
+def bench_identify(seconds: float = 60.0) -> dict[str, float]:
+    """Issue 19: wall time of reading, segmenting and identifying a ``seconds`` long 1 kHz log
+    (the best of three), per minute of log; the reading and segmenting alone as well."""
+    from dobhil.identify.data import find_segments, read_log
+    from dobhil.identify.fit import identify
+    with tempfile.TemporaryDirectory() as tmp:
+        log = _identify_log(Path(tmp) / "identify.mcap", seconds)
+        minutes = seconds / 60.0
+        data_only = timed(lambda: find_segments(read_log(log)))
+        whole = timed(lambda: identify(data := read_log(log), find_segments(data)))
+    return {"identify_seconds_per_minute_of_log": whole / minutes,
+            "identify_data_seconds_per_minute_of_log": data_only / minutes}
+
+
 BENCHES: dict[str, Callable[[], dict[str, float]]] = {
     "sweep": bench_sweep,
     "controller": bench_controller,
@@ -593,6 +628,7 @@ BENCHES: dict[str, Callable[[], dict[str, float]]] = {
     "kill": bench_kill,
     "cia402": bench_cia402,
     "mit": bench_mit,
+    "identify": bench_identify,
 }
 
 

@@ -15,10 +15,13 @@ def add_config_args(parser: argparse.ArgumentParser, *, required: bool = True) -
                         "see docs/config.md)")
     parser.add_argument("--set", dest="overrides", action="append", default=[],
                         metavar="KEY=VALUE", help="override a config key (repeatable)")
+    parser.add_argument("--set-file", dest="set_files", action="append", default=[], metavar="F.yaml",
+                        help="override config keys from a YAML mapping of section.key: value, e.g. the "
+                        "overlay of dobhil identify --out (repeatable; applied before --set)")
 
 
 def config_from_args(args: argparse.Namespace) -> Config:
-    return load_config(args.config, args.overrides)
+    return load_config(args.config, args.overrides, args.set_files)
 
 
 def design_on_drive(config: Config, args: argparse.Namespace, out: TextIO | None = None) -> Config:

@@ -39,7 +39,7 @@ def run(args: argparse.Namespace) -> int:
     from dobhil.runtime.signals import stop_on_signals
     from dobhil.config import resolve_config
     path = resolve_config(args.config) if args.config else demo_config_path()
-    config = load_config(path, args.overrides)
+    config = load_config(path, args.overrides, args.set_files)
     png = check_output(args.out / "demo_run.png", inputs=[path], what="--out")
     log_path = None if args.no_log else (args.log or default_log_path(args.out))
     log = open_run_log(log_path, live=live_address(args.live, log_path))

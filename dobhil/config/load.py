@@ -26,10 +26,14 @@ from dobhil.errors import ConfigError
 CWD_PATH_KEYS = ("reference.file",)
 
 
-def load_config(path: str | Path | None = None, overrides: Iterable[str] = ()) -> Config:
+def load_config(path: str | Path | None = None, overrides: Iterable[str] = (),
+                set_files: Iterable[str | Path] = ()) -> Config:
     """Read ``path`` (a YAML file or a shipped config name, see :func:`resolve_config`; None
-    for the defaults), apply ``key=value`` overrides, validate."""
+    for the defaults), apply the ``set_files`` (``--set-file``: YAML mappings of keys, e.g. an
+    identified overlay) in order, then the ``key=value`` overrides (``--set`` wins), validate."""
     flat = _flatten(read_yaml(resolve_config(path)), "") if path is not None else {}
+    for extra in set_files:
+        flat.update(read_set_file(extra))
     for item in overrides:
         name, value = parse_override(item)
         if name in CWD_PATH_KEYS and isinstance(value, str) and value:
@@ -82,6 +86,22 @@ def read_yaml(path: str | Path) -> dict[str, Any]:
         raise ConfigError(f"{p}: expected a mapping of sections (plant:, design:, ...), "
                           f"got a {type(data).__name__}")
     return data
+
+
+def read_set_file(path: str | Path) -> dict[str, Any]:
+    """The keys of a ``--set-file``: a YAML mapping of ``section.key: value`` (or of sections,
+    as in a config file); unknown keys fail later, in :func:`build_config`, naming the key."""
+    if not Path(path).is_file():
+        raise ConfigError(f"--set-file {_show(str(path))}: no such file; expected a YAML mapping of "
+                          "section.key: value (e.g. the overlay dobhil identify --out writes)")
+    flat = _flatten(read_yaml(path), "")
+    for name, value in flat.items():
+        if "." not in name or isinstance(value, Mapping):
+            raise ConfigError(f"--set-file {_show(str(path))}: {_show(name)} is not a section.key with a "
+                              "value (e.g. plant.inertia: 0.25)")
+        if name in CWD_PATH_KEYS and isinstance(value, str) and value:
+            flat[name] = os.path.join(os.path.dirname(os.path.abspath(path)), value)  # as in its own file
+    return flat
 
 
 def _flatten(data: Mapping[str, Any], prefix: str) -> dict[str, Any]:

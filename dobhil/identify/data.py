@@ -1,32 +1,335 @@
-"""The data an identification fits: one uniformly sampled record of torque and motion.
+"""What an identification fits: the torque sent and the motion measured, one sample per control
+cycle (:class:`IdentData`), and the stretches of free motion and of contact in it
+(:class:`Segment`).
 
-Minimal seam (SPEC-19); the readers (MCAP loop records, imported CAN logs) and the
-segment finder live here too once written.
+A dobhil log carries each cycle's loop record: ``/drive/feedback`` (the position and velocity the
+controller saw at cycle k) and ``/controller`` (``u_sat``: the torque sent at cycle k, after the
+saturation, held until the next). Cycle k is at ``t = k T`` (``loop.period`` of the recorded
+config): the loop is clocked by the feedback, so the cycle index is the sample index.
+
+Segments are found from the data alone: a contact adds a restoring spring to the free servo, so
+the sampled acceleration ``dq[k+1] - dq[k]`` regressed on the torque (a few samples back, for the
+delay), the velocity and a constant gains a ``-(K T/J) q`` term on the side of a position
+threshold where the environment is engaged. The threshold that explains the data best is taken
+when an F test says the spring term is real and it is restoring; otherwise everything is free.
 """
 
 from __future__ import annotations
 
+import math
+import os
 from collections.abc import Mapping
 from dataclasses import dataclass
+from types import MappingProxyType
+from typing import Final
 
 import numpy as np
+from numpy.typing import NDArray
+from orjson import loads
 
-__all__ = ["IdentData", "Segment"]
+from dobhil.drives.profile import DriveProfile
+from dobhil.errors import ConfigError, LogFileError
+
+Array = NDArray[np.float64]
+
+FREE: Final = "free"
+CONTACT: Final = "contact"
+KINDS: Final = (FREE, CONTACT)
+#: config sections whose numeric keys an IdentData carries as ``recorded``
+RECORDED_SECTIONS: Final = ("plant", "environment", "design")
+#: fewest samples of a segment: shorter runs of one kind merge into their neighbour
+MIN_SEGMENT: Final = 20
+#: torque lags in the segment regression: covers a whole-sample delay of up to this many periods
+_LAGS: Final = 4
+#: significance of the contact spring term (F test)
+_ALPHA: Final = 1e-3
+_TOPICS: Final = ("/drive/feedback", "/controller")
 
 
 @dataclass(frozen=True)
 class IdentData:
+    """Uniformly sampled torque and motion of one run (the seam between data and fit)."""
+
     period: float              # [s]
-    t: np.ndarray              # [s] k * period, uniform
-    torque: np.ndarray         # [Nm] torque sent at t_k (after saturation), held to t_{k+1}
-    position: np.ndarray       # [rad] measured at t_k, as the controller saw it
-    velocity: np.ndarray       # [rad/s] measured at t_k
+    t: Array                   # [s] k * period, uniform
+    torque: Array              # [Nm] torque sent at t_k (after saturation), held to t_{k+1}
+    position: Array            # [rad] measured at t_k, as the controller saw it
+    velocity: Array            # [rad/s] measured at t_k
     source: str                # file name ("" when synthetic)
     protocol: str              # the drive profile's protocol
     recorded: Mapping[str, float]   # config keys recorded in the log (plant.*, environment.*, design.*)
 
+    @property
+    def samples(self) -> int:
+        return int(self.t.size)
+
 
 @dataclass(frozen=True)
 class Segment:
-    start: int; stop: int      # sample indices, half-open  # noqa: E702
+    """Samples ``start`` (inclusive) to ``stop`` (exclusive) of one kind of motion."""
+
+    start: int
+    stop: int
     kind: str                  # "free" | "contact"
+    # checked where it is used (identify refuses a segment outside the data or of another kind)
+
+
+# -- reading -------------------------------------------------------------------------------
+
+def read_log(path: str | os.PathLike[str], *, protocol: str | None = None,
+             profile: DriveProfile | None = None, period: float | None = None) -> IdentData:
+    """The :class:`IdentData` of a log: a dobhil run's loop records, or -- a CAN log imported
+    with ``dobhil log import``, frames only -- its frames decoded with ``profile`` (required
+    then; ``period``: its control period, default the median spacing of its motion frames).
+    ``protocol``: the protocol the user expects (their drive profile's); a log of
+    another one is refused. A log without motion is refused (nothing to identify).
+    LogFileError / ConfigError, one line, otherwise."""
+    from dobhil.drives.decode import recorded_profile
+    from dobhil.recording.reader import open_log
+    name = os.fspath(path)
+    with open_log(path) as log:
+        if not all(t in log.topics() for t in _TOPICS):
+            data = _from_frames(log, name, profile, period)
+        else:
+            if log.config is None:
+                raise LogFileError(f"{name}: no 'config' metadata (not a recorded run?)")
+            if period is not None:
+                raise ConfigError(f"--period {period:g}: {name} records its own period "
+                                  f"({log.config.loop.period:g} s); --period is for a CAN log without one")
+            recorded_drive = recorded_profile(log.metadata.get("drive"), name)
+            config = log.config
+            cycles = _loop_records(log, name)
+            recorded = {k: float(v) for k, v in config.flat().items() if k.split(".")[0] in RECORDED_SECTIONS
+                        and isinstance(v, (int, float)) and not isinstance(v, bool)}
+            data = _samples(cycles, config.loop.period, name, recorded_drive.protocol, recorded)
+    expected = protocol if protocol is not None else (profile.protocol if profile is not None else None)
+    if expected is not None and data.protocol != expected:
+        raise ConfigError(f"{name}: recorded with a {data.protocol!r} drive, but the profile given is "
+                          f"{expected!r}; identify a log with the profile of its own protocol")
+    check_motion(data)
+    return data
+
+
+# -- a CAN log imported: frames only --------------------------------------------------------
+
+class _Sink:
+    """The bus of the decoding emulator: its replies go nowhere, it reads nothing."""
+
+    channel_info = "identify decoding"
+
+    def send(self, msg: object, timeout: float | None = None) -> None:
+        pass
+
+    def recv(self, timeout: float | None = None) -> None:
+        return None
+
+    def shutdown(self) -> None:
+        pass
+
+
+def _from_frames(log: object, name: str, profile: DriveProfile | None, period: float | None) -> IdentData:
+    """Samples of a frames-only log: the feedback decoded by the profile's drive class (as a
+    replay does), the torque by the profile's emulated drive -- the torque its plant would
+    receive, protocol state included (an RPDO waits for its SYNC, a disabled axis applies 0).
+    Sample k is motion frame k; its torque is what the tx frames before motion frame k+1 left
+    applied. The period is the median spacing of the motion frames."""
+    import can
+
+    from dobhil.drives.decode import decode_motion
+    from dobhil.emulator.plant import Plant
+    from dobhil.emulator.registry import make_emulated_drive
+    from dobhil.recording.schemas import can_frame_message
+    if "/can/rx" not in log.topics():  # type: ignore[attr-defined]
+        raise LogFileError(f"{name}: neither loop records ({' and '.join(_TOPICS)}) nor CAN frames (/can/rx); "
+                           "identify reads a run recorded by dobhil or a CAN log imported with dobhil log import")
+    if profile is None:
+        raise ConfigError(f"{name}: a CAN log without a recorded drive profile; give the drive's profile "
+                          "with --drive NAME (e.g. odrive-0.6)")
+    rx: list[can.Message] = []
+    tx: list[can.Message] = []
+    try:
+        for topic, t, raw in log.iter_payloads(("/can/rx", "/can/tx")):  # type: ignore[attr-defined]
+            (rx if topic == "/can/rx" else tx).append(can_frame_message(loads(raw), t))
+    except (KeyError, TypeError, ValueError) as exc:
+        raise LogFileError(f"{name}: a recorded frame does not match its schema "
+                           f"({type(exc).__name__}: {exc})") from None
+    motion = decode_motion(profile, rx)
+    if len(motion) < 2 * MIN_SEGMENT:
+        raise ConfigError(f"{name}: {len(motion)} frames decode as motion feedback of a {profile.protocol!r} drive "
+                          f"(node {profile.node_id}); is the log of another protocol or node than profile "
+                          f"{profile.name or profile.protocol!r}?")
+    stamps = np.array([m[0] for m in motion])
+    period = float(np.median(np.diff(stamps))) if period is None else period
+    if not (math.isfinite(period) and period > 0.0):
+        raise ConfigError(f"{name}: no control period (the motion frames' timestamps do not increase); "
+                          "give it with --period SECONDS")
+    emulated = make_emulated_drive(_Sink(), profile, Plant(inertia=1.0))  # type: ignore[arg-type]
+    torque, i = [], 0
+    tx.sort(key=lambda m: m.timestamp)
+    for k in range(len(motion)):
+        until = stamps[k + 1] if k + 1 < len(motion) else math.inf
+        while i < len(tx) and tx[i].timestamp < until:
+            emulated.deliver(tx[i])
+            i += 1
+        torque.append(emulated.applied_torque)
+    rows = {k: [p, v, u] for k, ((_, p, v), u) in enumerate(zip(motion, torque))}
+    return _samples(rows, period, name, profile.protocol, {})
+
+
+def _loop_records(log: object, name: str) -> dict[int, list[float]]:
+    """cycle -> [position, velocity, u_sat] of every cycle that has both records."""
+    feedback: dict[int, tuple[float, float]] = {}
+    torque: dict[int, float] = {}
+    try:
+        for topic, _, raw in log.iter_payloads(_TOPICS):  # type: ignore[attr-defined]
+            p = loads(raw)
+            cycle = int(p["cycle"])
+            if cycle < 0:
+                continue  # the feedback controller.initialize used, before cycle 0
+            if topic == "/controller":
+                torque[cycle] = _number(p["u_sat"])
+            else:
+                feedback[cycle] = (_number(p["position"]), _number(p["velocity"]))
+    except (KeyError, TypeError, ValueError) as exc:
+        raise LogFileError(f"{name}: a recorded message does not match its schema ({type(exc).__name__}: "
+                           f"{exc})") from None
+    return {c: [*feedback[c], torque[c]] for c in sorted(torque) if c in feedback}
+
+
+def _number(value: object) -> float:
+    return math.nan if value is None else float(value)  # type: ignore[arg-type]
+
+
+def _samples(cycles: Mapping[int, list[float]], period: float, name: str, protocol: str,
+             recorded: Mapping[str, float]) -> IdentData:
+    """The leading run of consecutive, finite cycles from cycle 0 (a safe stop ends a run with
+    a zero command that is not the plant's input any more; a gap breaks the uniform sampling)."""
+    rows: list[list[float]] = []
+    for k, values in cycles.items():
+        if k != len(rows) or not all(math.isfinite(v) for v in values):
+            break
+        rows.append(values)
+    if len(rows) < 2 * MIN_SEGMENT:
+        raise LogFileError(f"{name}: {len(rows)} usable control cycles from cycle 0; identify needs at "
+                           f"least {2 * MIN_SEGMENT}")
+    a = np.asarray(rows, dtype=float)
+    return IdentData(period=period, t=np.arange(a.shape[0], dtype=float) * period, torque=a[:, 2], position=a[:, 0],
+                     velocity=a[:, 1], source=os.path.basename(name), protocol=protocol,
+                     recorded=MappingProxyType(dict(recorded)))
+
+
+def check_motion(data: IdentData) -> None:
+    """ConfigError when the log cannot excite anything: the position never changed, or the
+    torque never did (one line naming the log and what a useful log needs)."""
+    what = data.source or "data"
+    if np.ptp(data.position) == 0.0:
+        raise ConfigError(f"{what}: the position never changes (no motion); identify needs a run that "
+                          "moves the servo (e.g. configs identify-free.yaml)")
+    if np.ptp(data.torque) == 0.0:
+        raise ConfigError(f"{what}: the torque never changes; identify needs an excitation "
+                          "(a chirp, prbs or multisine reference)")
+
+
+# -- segments ------------------------------------------------------------------------------
+
+def parse_segment(text: str, data: IdentData) -> Segment:
+    """``T0:T1`` or ``T0:T1:free|contact`` (seconds from the first cycle) -> a Segment; the
+    kind, when not given, is the kind :func:`find_segments` finds for most of its samples."""
+    parts = text.split(":")
+    if len(parts) not in (2, 3):
+        raise ConfigError(f"--segment {text!r}: expected T0:T1 or T0:T1:free|contact (seconds)")
+    try:
+        t0, t1 = float(parts[0]), float(parts[1])
+    except ValueError:
+        raise ConfigError(f"--segment {text!r}: T0 and T1 must be numbers of seconds") from None
+    end = data.samples * data.period
+    if not (math.isfinite(t0) and math.isfinite(t1) and 0.0 <= t0 < t1 <= end + 0.5 * data.period):
+        raise ConfigError(f"--segment {text!r}: outside the log; expected 0 <= T0 < T1 <= {end:g} s")
+    start, stop = int(round(t0 / data.period)), min(int(round(t1 / data.period)), data.samples)
+    if stop - start < MIN_SEGMENT:
+        raise ConfigError(f"--segment {text!r}: {stop - start} samples; a segment needs at least "
+                          f"{MIN_SEGMENT} ({MIN_SEGMENT * data.period:g} s)")
+    if len(parts) == 3:
+        if parts[2] not in KINDS:
+            raise ConfigError(f"--segment {text!r}: kind {parts[2]!r}; expected one of {', '.join(KINDS)}")
+        return Segment(start, stop, parts[2])
+    contact = contact_mask(data)[start:stop]
+    return Segment(start, stop, CONTACT if 2 * int(contact.sum()) > contact.size else FREE)
+
+
+def find_segments(data: IdentData) -> tuple[Segment, ...]:
+    """The free-motion and contact segments of the whole log, found from the data."""
+    return segments_of(contact_mask(data))
+
+
+def segments_of(contact: NDArray[np.bool_]) -> tuple[Segment, ...]:
+    """Maximal runs of one kind; a run shorter than :data:`MIN_SEGMENT` joins the one before
+    (a contact bouncing open for a few samples is not a free-motion experiment)."""
+    edges = np.flatnonzero(np.diff(contact.astype(np.int8))) + 1
+    bounds = [0, *edges.tolist(), int(contact.size)]
+    runs: list[list[int]] = []
+    for a, b in zip(bounds[:-1], bounds[1:]):
+        kind = int(contact[a])
+        if runs and (b - a < MIN_SEGMENT or runs[-1][2] == kind):
+            runs[-1][1] = b
+        elif runs and runs[-1][1] - runs[-1][0] < MIN_SEGMENT:
+            runs[-1][1], runs[-1][2] = b, kind
+        else:
+            runs.append([a, b, kind])
+    return tuple(Segment(a, b, CONTACT if k else FREE) for a, b, k in runs)
+
+
+def contact_mask(data: IdentData) -> NDArray[np.bool_]:
+    """Per sample, whether the environment is engaged: ``q >= threshold`` for the threshold
+    that best explains the sampled acceleration with a restoring spring (all False when no
+    spring term passes the F test)."""
+    q, n = data.position, data.samples
+    y = np.diff(data.velocity)                        # dq[k+1] - dq[k], k = LAGS .. n-2
+    rows = np.arange(_LAGS, n - 1)
+    base = np.column_stack([*(data.torque[rows - j] for j in range(_LAGS)), data.velocity[rows],
+                            np.ones(rows.size)])
+    target, qk = y[rows], q[rows]
+    # each candidate adds one column z = max(q - threshold, 0) to the free model: its residual
+    # sum of squares follows from z's part orthogonal to the free model's columns (one QR for all)
+    basis, _ = np.linalg.qr(base)
+    r = target - basis @ (basis.T @ target)
+    rss_free = float(r @ r)
+    best: tuple[float, float, float] | None = None    # (rss, threshold, spring coefficient)
+    candidates = _thresholds(qk)
+    for chunk in np.array_split(candidates, max(1, candidates.size // 25)):
+        z = np.maximum(qk[:, None] - chunk[None, :], 0.0)
+        zp = z - basis @ (basis.T @ z)
+        denom, num = np.einsum("ij,ij->j", zp, zp), zp.T @ r
+        engaged = (qk[:, None] >= chunk[None, :]).sum(axis=0)
+        for j in np.flatnonzero((denom > 0.0) & (engaged >= MIN_SEGMENT)):
+            coef = num[j] / denom[j]
+            rss = rss_free - coef * num[j]
+            if best is None or rss < best[0]:
+                best = (float(rss), float(chunk[j]), float(coef))
+    if best is None or best[2] >= 0.0 or not _significant(rss_free, best[0], target.size, base.shape[1] + 2):
+        return np.zeros(n, dtype=bool)
+    return q >= best[1]
+
+
+def _thresholds(q: Array) -> Array:
+    """Candidate contact positions: quantiles of the measured positions, plus one below them
+    all (a run in contact throughout)."""
+    levels = np.unique(np.quantile(q, np.linspace(0.0, 0.95, 100)))
+    return np.concatenate([[q.min() - 1.0], levels])
+
+
+def _significant(rss0: float, rss1: float, n: int, params: int) -> bool:
+    """F test of the spring (and threshold) against the free model."""
+    from scipy.special import fdtrc  # the F distribution's survival function (scipy.stats imports seconds)
+    if rss1 <= 0.0:
+        return rss0 > 0.0
+    stat = ((rss0 - rss1) / 2.0) / (rss1 / max(n - params, 1))
+    return bool(fdtrc(2, max(n - params, 1), stat) < _ALPHA)
+
+
+def segment_times(segment: Segment, period: float) -> tuple[float, float]:
+    return segment.start * period, segment.stop * period
+
+
+__all__ = ["CONTACT", "FREE", "KINDS", "MIN_SEGMENT", "IdentData", "Segment", "check_motion", "contact_mask",
+           "find_segments", "parse_segment", "read_log", "segments_of"]

@@ -1,0 +1,111 @@
+"""``dobhil identify`` refusals (one line, exit 2), ``dobhil compare`` and ``--set-file``."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from dobhil.cli.main import main
+from dobhil.recording.reader import open_log
+
+
+def _fails(capsys: pytest.CaptureFixture[str], args: list[str], match: str) -> None:
+    assert main(args) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "Traceback" not in err, err
+    assert match in err, err
+
+
+def test_identify_bad_input(logs: dict[str, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    _fails(capsys, ["identify", str(logs["still"])], "no motion")
+    _fails(capsys, ["identify", str(logs["contact"]), "--segment", "0.4:2"], "outside the log")
+    _fails(capsys, ["identify", str(logs["contact"]), "--drive", "mini-cheetah"],
+           "'odrive' drive, but the profile given is 'mit'")
+    cut = tmp_path / "cut.mcap"
+    shutil.copy(logs["contact"], cut)
+    with open(cut, "r+b") as f:
+        f.truncate(cut.stat().st_size - 100)
+    _fails(capsys, ["identify", str(cut)], "cut.mcap")
+    _fails(capsys, ["identify", str(tmp_path / "none.mcap")], "none.mcap")
+    _fails(capsys, ["identify", str(logs["contact"]), "--out", str(tmp_path / "o.txt")], "--out")
+    _fails(capsys, ["identify", str(logs["contact"]), "--drive", "no-such-drive"], "no-such-drive")
+    _fails(capsys, ["identify", str(logs["contact"]), "--period", "0.001"], "records its own period")
+    assert main(["log", "export", str(logs["contact"]), "--can", "--format", "candump",
+                 "-o", str(tmp_path / "c.log")]) == 0
+    assert main(["log", "import", str(tmp_path / "c.log"), "-o", str(tmp_path / "c.mcap")]) == 0
+    capsys.readouterr()
+    _fails(capsys, ["identify", str(tmp_path / "c.mcap")], "--drive")
+    _fails(capsys, ["identify", str(tmp_path / "c.mcap"), "--drive", "mini-cheetah"], "another protocol")
+    _fails(capsys, ["identify", str(tmp_path / "c.mcap"), "--drive", "odrive-0.6", "--period", "0"], "--period")
+
+
+def _forces(path: Path) -> dict[int, float]:
+    with open_log(path) as log:
+        return {p["cycle"]: p["tau_int_hat"] for _, _, p in log.iter_messages(["/controller"])}
+
+
+def test_compare(logs: dict[str, Path], capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["compare", str(logs["contact"]), str(logs["contact"]), "--json"]) == 0
+    same = json.loads(capsys.readouterr().out)
+    assert same["rms"] == 0.0 and same["cycles"] == len(_forces(logs["contact"]))
+    assert main(["compare", str(logs["contact"]), str(logs["free"]), "--json"]) == 0
+    info = json.loads(capsys.readouterr().out)
+    a, b = _forces(logs["contact"]), _forces(logs["free"])
+    common = sorted(a.keys() & b.keys())
+    d = np.array([b[c] - a[c] for c in common])
+    assert info["cycles"] == len(common) and info["rms"] == pytest.approx(float(np.sqrt(np.mean(d ** 2))))
+    assert info["rms"] > 0.0
+
+
+def _analyze(capsys: pytest.CaptureFixture[str], *extra: str) -> dict[str, object]:
+    assert main(["analyze", "demo", "--json", *extra]) == 0
+    return json.loads(capsys.readouterr().out)  # type: ignore[no-any-return]
+
+
+def test_set_file_is_applied_like_set_and_before_it(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    overlay = tmp_path / "overlay.yaml"
+    overlay.write_text("plant.inertia: 0.3\nenvironment:\n  stiffness: 5000.0\n", encoding="utf-8")
+    by_set = _analyze(capsys, "--set", "plant.inertia=0.3", "--set", "environment.stiffness=5000")
+    by_file = _analyze(capsys, "--set-file", str(overlay))
+    default = _analyze(capsys)
+    assert by_file == by_set != default
+    later = _analyze(capsys, "--set-file", str(overlay), "--set", "plant.inertia=0.25",
+                     "--set", "environment.stiffness=10000")
+    assert later == default   # --set wins over --set-file
+
+
+def test_set_file_bad_input(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    for command in (["analyze"], ["run"], ["check"], ["sweep", "--vary", "design.force_gain=1:2:2"]):
+        # every command taking a config has it
+        _fails(capsys, [command[0], "demo", *command[1:], "--set-file", str(tmp_path / "missing.yaml")],
+               "--set-file")
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("plant.mass: 1\n", encoding="utf-8")
+    _fails(capsys, ["analyze", "demo", "--set-file", str(bad)], "plant.mass")
+    flat = tmp_path / "flat.yaml"
+    flat.write_text("inertia: 1\n", encoding="utf-8")
+    _fails(capsys, ["analyze", "demo", "--set-file", str(flat)], "not a section.key")
+
+
+def test_identify_free_run_end_to_end(logs: dict[str, Path], tmp_path: Path,
+                                      capsys: pytest.CaptureFixture[str]) -> None:
+    """A free-motion run: its one segment found, no environment numbers (not identifiable, said
+    why), the overlay usable by analyze through --set-file, one figure per segment."""
+    import yaml
+    out, plots = tmp_path / "overlay.yaml", tmp_path / "plots"
+    assert main(["identify", str(logs["free"]), "--json", "--out", str(out), "--plot", str(plots)]) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert [s["kind"] for s in info["segments"]] == ["free"] and info["samples"] > 0
+    for name in ("stiffness", "damping", "contact_position"):
+        e = info["estimates"][name]
+        assert not e["identifiable"] and e["value"] is None and e["why"]
+    overlay = yaml.safe_load(out.read_text(encoding="utf-8"))
+    assert overlay and not any(k.startswith("environment.") for k in overlay)
+    assert all(info["estimates"][k.split(".")[1]]["identifiable"] for k in overlay if k.startswith("plant."))
+    assert main(["analyze", "demo", "--set-file", str(out), "--json"]) == 0
+    capsys.readouterr()
+    assert sorted(p.name for p in plots.iterdir()) == ["identify_segment_0.png"]

@@ -1,0 +1,141 @@
+"""Reading IdentData from a dobhil log, finding its segments, and the one-line refusals."""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from dobhil.errors import ConfigError, LogFileError
+from dobhil.identify.data import (
+    CONTACT, FREE, MIN_SEGMENT, IdentData, Segment, check_motion, contact_mask, find_segments, parse_segment,
+    read_log, segments_of,
+)
+from dobhil.recording.reader import open_log
+
+
+def _truth(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(true position, feedback position, /controller u_sat) by cycle, read independently."""
+    q, pos, u = {}, {}, {}
+    with open_log(path) as log:
+        for topic, _, p in log.iter_messages(["/emulator/truth", "/drive/feedback", "/controller"]):
+            if topic == "/controller":
+                u[p["cycle"]] = p["u_sat"]
+            elif topic == "/drive/feedback" and p["cycle"] >= 0:
+                pos[p["cycle"]] = p["position"]
+    with open_log(path) as log:  # truth has no cycle field: in cycle order
+        q = dict(enumerate(p["q"] for _, _, p in log.iter_messages(["/emulator/truth"])))
+    n = len(u)
+    return (np.array([q[k] for k in range(n)]), np.array([pos[k] for k in range(n)]),
+            np.array([u[k] for k in range(n)]))
+
+
+def test_reads_the_loop_records(logs: dict[str, Path]) -> None:
+    data = read_log(logs["contact"])
+    _, pos, u = _truth(logs["contact"])
+    assert data.period == 1e-3 and data.protocol == "odrive" and data.source == "contact.mcap"
+    assert data.samples == pos.size
+    np.testing.assert_array_equal(data.t, np.arange(data.samples) * 1e-3)
+    np.testing.assert_array_equal(data.position, pos)
+    np.testing.assert_array_equal(data.torque, u)
+    assert data.recorded["plant.inertia"] == 0.25 and data.recorded["environment.stiffness"] == 1e4
+    assert "loop.period" not in data.recorded
+
+
+def test_contact_found_where_the_emulator_was_in_contact(logs: dict[str, Path]) -> None:
+    data = read_log(logs["contact"])
+    truth = _truth(logs["contact"])[0] >= 0.0   # environment.contact_position = 0
+    found = contact_mask(data)
+    assert truth.any() and (~truth).any()
+    assert np.mean(found == truth) > 0.9   # samples at the contact position itself may go either way
+    first = int(np.flatnonzero(truth)[0])
+    segments = find_segments(data)
+    assert [s.kind for s in segments] == [FREE, CONTACT]
+    assert abs(segments[1].start - first) <= 2 and segments[1].stop == data.samples
+
+
+def test_free_motion_has_no_contact(logs: dict[str, Path]) -> None:
+    data = read_log(logs["free"])
+    assert find_segments(data) == (Segment(0, data.samples, FREE),)
+
+
+def test_segments_of_literal_masks() -> None:
+    m = np.zeros(100, dtype=bool)
+    m[40:] = True
+    assert segments_of(m) == (Segment(0, 40, FREE), Segment(40, 100, CONTACT))
+    m[60:63] = False   # a 3-sample bounce joins the contact
+    assert segments_of(m) == (Segment(0, 40, FREE), Segment(40, 100, CONTACT))
+    m[:5] = True       # a short first run joins the next
+    assert segments_of(m)[0] == Segment(0, 40, FREE)
+
+
+def test_parse_segment(logs: dict[str, Path]) -> None:
+    data = read_log(logs["contact"])
+    assert parse_segment("0.2:0.45", data) == Segment(200, 450, CONTACT)
+    assert parse_segment("0.0:0.1:free", data) == Segment(0, 100, FREE)
+    for bad in ("0.2:0.9", "-1:0.2", "0.3:0.2", "a:b", "0.1", "0.1:0.2:wall", "0.1:0.105"):
+        with pytest.raises(ConfigError, match="--segment"):
+            parse_segment(bad, data)
+
+
+def test_no_motion_refused(logs: dict[str, Path]) -> None:
+    with pytest.raises(ConfigError, match="no motion|torque never changes"):
+        read_log(logs["still"])
+    flat = np.zeros(50)
+    with pytest.raises(ConfigError, match="torque never changes"):
+        check_motion(IdentData(1e-3, np.arange(50) * 1e-3, flat, np.linspace(0, 1, 50), flat, "", "odrive", {}))
+
+
+def test_another_protocol_refused(logs: dict[str, Path]) -> None:
+    with pytest.raises(ConfigError, match="'odrive' drive, but the profile given is 'mit'"):
+        read_log(logs["contact"], protocol="mit")
+
+
+def test_damaged_and_frames_only_logs_refused(logs: dict[str, Path], tmp_path: Path) -> None:
+    cut = tmp_path / "cut.mcap"
+    shutil.copy(logs["contact"], cut)
+    with open(cut, "r+b") as f:
+        f.truncate(cut.stat().st_size // 2)
+    with pytest.raises(LogFileError):
+        read_log(cut)
+    assert MIN_SEGMENT > 0
+
+
+@pytest.fixture(scope="module")
+def imported(logs: dict[str, Path], tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The contact run's frames exported to candump and imported back: frames only."""
+    from dobhil.cli.main import main
+    d = tmp_path_factory.mktemp("imported")
+    assert main(["log", "export", str(logs["contact"]), "--can", "--format", "candump", "-o", str(d / "c.log")]) == 0
+    assert main(["log", "import", str(d / "c.log"), "-o", str(d / "c.mcap")]) == 0
+    return d / "c.mcap"
+
+
+def test_imported_can_log_decodes_like_the_loop_records(logs: dict[str, Path], imported: Path) -> None:
+    from dobhil.drives.profile import load_profile
+    loop = read_log(logs["contact"])
+    frames = read_log(imported, profile=load_profile("odrive-0.6"), period=1e-3)
+    assert frames.protocol == "odrive" and frames.recorded == {} and frames.period == 1e-3
+    # motion frame 0 is the feedback controller.initialize used (cycle -1): cycle k is frame k + 1
+    n = loop.samples
+    np.testing.assert_array_equal(frames.position[1:n + 1], loop.position)
+    np.testing.assert_array_equal(frames.velocity[1:n + 1], loop.velocity)
+    # the torque as the drive decodes its float32 field; the last cycle's interval also holds the
+    # safe stop's zero torque, which is what the plant had when the next motion frame came
+    np.testing.assert_allclose(frames.torque[1:n], loop.torque[:-1], rtol=0, atol=1e-6)
+    assert frames.torque[n] == 0.0 != loop.torque[-1]
+    assert frames.torque[0] == 0.0   # before the first command
+    default = read_log(imported, profile=load_profile("odrive-0.6"))
+    assert default.period == pytest.approx(1e-3, rel=0.05)   # the frames' median spacing
+
+
+def test_imported_can_log_needs_its_profile(imported: Path) -> None:
+    from dobhil.drives.profile import load_profile
+    with pytest.raises(ConfigError, match="--drive"):
+        read_log(imported)
+    with pytest.raises(ConfigError, match="decode as motion feedback of a 'mit' drive"):
+        read_log(imported, profile=load_profile("mini-cheetah"))
+    with pytest.raises(ConfigError, match="decode as motion feedback of a 'cia402' drive"):
+        read_log(imported, profile=load_profile("cia402-emulated"))
