@@ -256,6 +256,7 @@ def identify(data: IdentData, segments: Sequence[Segment], *,
     # makes the cost rough on the scale of MINPACK's default step (1.5e-8), which stops the
     # fit short of the optimum; a step above that roughness finds it (tested)
     result = minimizer.minimize(method="leastsq", epsfcn=_EPSFCN)
+    result = _search_delay(minimizer, result, data.period)
     estimates = _estimates(minimizer, result, data, contact)
     fitted = [k for k in PARAMETERS if estimates[k].identifiable]
     correlations: dict[tuple[str, str], float] = {}
@@ -266,6 +267,35 @@ def identify(data: IdentData, segments: Sequence[Segment], *,
     return IdentResult(estimates=estimates, correlations=correlations,
                        residual=_whiteness(np.asarray(result.residual, float)),
                        segments=segments, period=data.period)
+
+
+def _search_delay(minimizer: lmfit.Minimizer, result: lmfit.minimizer.MinimizerResult,
+                  period: float) -> lmfit.minimizer.MinimizerResult:
+    """The whole-sample part of the delay by search: the cost is rough in the delay (each
+    whole sample is its own valley when the record is short), so the fit is tried again
+    from a quarter, a half and a whole period either side whenever the cost there, the
+    other parameters held, is lower; the lowest fit wins."""
+    best = result
+    for _ in range(3):
+        params = best.params.copy()
+        d = params["delay"]
+        cost, start = best.chisqr, None
+        for shift in (-1.0, -0.5, -0.25, 0.25, 0.5, 1.0):
+            trial = d.value + shift * period
+            if not d.min <= trial <= d.max:
+                continue
+            params["delay"].set(value=trial)
+            c = float(np.sum(minimizer.userfcn(params, *minimizer.userargs) ** 2))
+            if c < cost:
+                cost, start = c, trial
+        if start is None:
+            return best
+        params["delay"].set(value=start)
+        again = minimizer.minimize(method="leastsq", params=params, epsfcn=_EPSFCN)
+        if not again.chisqr < best.chisqr:
+            return best
+        best = again
+    return best
 
 
 def _estimates(minimizer: lmfit.Minimizer, result: lmfit.minimizer.MinimizerResult,

@@ -171,7 +171,7 @@ RUNS = 50
 
 
 @pytest.mark.skipif(not os.environ.get("DOBHIL_SLOW"),
-                    reason=f"{RUNS} seeded fits (about 20 s each here): set DOBHIL_SLOW=1")
+                    reason=f"{RUNS} seeded fits (5-50 s each on a busy 2-core machine): set DOBHIL_SLOW=1")
 def test_the_95_percent_intervals_cover_the_truth_in_90_percent_of_runs() -> None:
     truth = truth_values()
     covered = dict.fromkeys(FITTED, 0)
