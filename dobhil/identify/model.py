@@ -14,8 +14,8 @@ Gamma1 u[k-d-1]`` (:func:`dobhil.synthesis.controller.discretize_delayed`) whene
 plant is linear.
 
 The torque reaching the plant is ``torque_gain * u`` (the sent torque scaled). Commands
-before the first sample are 0 and every simulation starts at rest at its initial position
-(the emulator's :meth:`Plant.reset`).
+before the first sample are 0 and every simulation starts at its initial position and
+velocity (:meth:`Plant.set_state`; a segment need not start at rest).
 """
 
 from __future__ import annotations
@@ -82,12 +82,21 @@ def _plant(inertia: float, viscous: float, coulomb: float, stiffness: float, dam
 
 
 def simulate_torque(values: ModelValues, torque: np.ndarray, period: float, start: int,
-                    stop: int, initial_position: float, *,
+                    stop: int, initial_position: float, initial_velocity: float = 0.0, *,
                     substeps: int = 10) -> tuple[np.ndarray, np.ndarray]:
     """True position and velocity at samples ``start .. stop-1`` of the plant ``values``
     driven by the sent torques ``torque`` (the whole record: commands sent before
-    ``start`` still in transit act too), starting at rest at ``initial_position`` at
-    sample ``start``."""
+    ``start`` still in transit act too), starting at ``initial_position`` with
+    ``initial_velocity`` at sample ``start``."""
+    return _simulate_stepping(values, torque, period, start, stop, initial_position,
+                              initial_velocity, substeps=substeps)
+
+
+def _simulate_stepping(values: ModelValues, torque: np.ndarray, period: float, start: int,
+                       stop: int, initial_position: float, initial_velocity: float = 0.0, *,
+                       substeps: int = 10) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`simulate_torque` by stepping the emulator's Plant call by call: the reference
+    the fast path must equal (kept so the equality is tested for ever)."""
     n = stop - start
     if n < 1:
         raise ValueError(f"segment [{start}, {stop}): empty")
@@ -101,8 +110,7 @@ def simulate_torque(values: ModelValues, torque: np.ndarray, period: float, star
     plant = _plant(values.inertia, values.viscous_friction, values.coulomb_friction, k, d,
                    substeps)
     plant.contact_position = qc
-    plant.initial_position = initial_position
-    plant.reset()
+    plant.set_state(initial_position, initial_velocity)
     whole, fraction = split_delay(values.delay, period)
     g = values.torque_gain
     pad = whole + 1
