@@ -5,14 +5,17 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from typing import Any
 
 import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from threadpoolctl import threadpool_info, threadpool_limits
 
 from dobhil.emulator.plant import Plant
-from dobhil.identify.model import ModelValues, _simulate_stepping, simulate_torque
+from dobhil.identify.model import (ModelValues, _simulate_stepping, one_blas_thread,
+                                   simulate_torque)
 
 PERIOD = 1e-3
 
@@ -173,3 +176,39 @@ def test_the_fast_path_does_not_step_the_plant_through_a_sliding_record(
     reversals = int(np.count_nonzero(np.diff(np.sign(vel)) != 0))
     assert reversals > 10
     assert stepped <= 4 * reversals + 10 < n // 20
+
+
+def _blas_threads() -> list[int]:
+    return [lib["num_threads"] for lib in threadpool_info() if lib["user_api"] == "blas"]
+
+
+def test_one_blas_thread_limits_nests_and_restores() -> None:
+    """Inside one_blas_thread (and simulate_torque) every BLAS pool threadpoolctl sees has one
+    thread; nested uses keep it; the outermost exit restores what was there before (two
+    threads, set here so the test means something whatever OPENBLAS_NUM_THREADS says)."""
+    with threadpool_limits(limits=2, user_api="blas"):
+        _check_one_blas_thread()
+
+
+def _check_one_blas_thread() -> None:
+    before = _blas_threads()
+    assert before and set(before) == {2}    # numpy's and scipy's OpenBLAS are loaded
+    seen: list[list[int]] = []
+    original = Plant.matrices
+
+    def spying(self: Plant, dt: float) -> Any:
+        seen.append(_blas_threads())
+        return original(self, dt)
+
+    with one_blas_thread():
+        assert set(_blas_threads()) == {1}
+        with one_blas_thread():
+            assert set(_blas_threads()) == {1}
+        assert set(_blas_threads()) == {1}
+    assert _blas_threads() == before
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(Plant, "matrices", spying)
+        simulate_torque(ModelValues(inertia=0.3, viscous_friction=0.123456), np.ones(10),
+                        PERIOD, 0, 10, 0.0)
+    assert seen and all(set(s) == {1} for s in seen)   # the ZOH ran on one thread
+    assert _blas_threads() == before
