@@ -243,6 +243,7 @@ class _Linear:
     check_w: np.ndarray    # rows x calls
     check_s: np.ndarray    # rows
     band: np.ndarray       # velocity rows' Karnopp bands
+    band_max: float
 
 
 def _linear(plant: Plant, calls: tuple[float, ...], contact: bool, friction: bool,
@@ -279,7 +280,7 @@ def _linear(plant: Plant, calls: tuple[float, ...], contact: bool, friction: boo
     return _Linear(a=affine[:, :2].copy(), b=affine[:, 2:2 + ncalls].copy(),
                    q=affine[:, 2 + ncalls].copy(), check_x=rows[:, :2].copy(),
                    check_w=rows[:, 2:2 + ncalls].copy(), check_s=rows[:, 2 + ncalls].copy(),
-                   band=band)
+                   band=band, band_max=float(band.max(initial=0.0)))
 
 
 def _matrix(p: Propagator) -> np.ndarray:
@@ -468,6 +469,12 @@ class _FastSimulation:
         plant, qc, calls = self.plant, self.qc, self.calls
         plant.set_state(e + qc, dq)
         step = plant.step
+        if count == 1:                  # the common case (one event): no lists
+            for c, dt in enumerate(calls):
+                step(float(self.w[k, c]), dt)
+            e, dq = plant.true_position - qc, plant.true_velocity
+            e_out[k + 1], v_out[k + 1] = e, dq
+            return e, dq
         e_list: list[float] = []
         v_list: list[float] = []
         if len(calls) == 1:
@@ -526,12 +533,12 @@ class _FastSimulation:
         # superposition rounds differently from the Plant's sub-steps (by a few eps of the
         # largest state involved), so such a sample goes to the Plant
         fe, fv = self._scale[(contact, sign)]
-        tie_v = _TIE * (fv + abs(dq) + float(lin.band.max(initial=0.0)))
+        tie_v = _TIE * (fv + abs(dq) + lin.band_max)
         tie_e = _TIE * (fe + abs(e))
         # sliding beyond the band with the span's sign; in contact e >= 0, free e < 0 (the
         # rows are arranged so that both read "> 0", see checks)
-        bad_rows = np.any(z[:, :nv] <= tie_v, axis=1)
+        bad_rows = (z[:, :nv] <= tie_v).any(axis=1)
         if self.modes:
-            bad_rows |= np.any(z[:, nv:] <= tie_e, axis=1)
+            bad_rows |= (z[:, nv:] <= tie_e).any(axis=1)
         first = int(np.argmax(bad_rows))
         return x[1:], first if bad_rows[first] else length
