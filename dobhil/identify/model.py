@@ -18,7 +18,10 @@ sub-steps per call, two calls per sample with a fractional delay); :func:`simula
 runs the spans where the Plant is linear (one contact mode, one friction sign, or stuck)
 as vectorised recursions with the Plant's own matrices and steps the Plant only at the
 samples where it decides something (:class:`_FastSimulation`), with the same numbers
-(:func:`_simulate_stepping`, the reference, is kept and the equality tested).
+(:func:`_simulate_stepping`, the reference, is kept and the equality tested). With Coulomb
+friction and numba installed (extra ``fast``) it runs the Plant's own sub-step function
+(:func:`dobhil.emulator.plant.coulomb_substeps`) compiled over the whole record instead:
+a pressed servo reverses every few samples, too many events for the span method.
 
 The torque reaching the plant is ``torque_gain * u`` (the sent torque scaled). Commands
 before the first sample are 0 and every simulation starts at its initial position and
@@ -154,9 +157,12 @@ def simulate_torque(values: ModelValues, torque: np.ndarray, period: float, star
 
     The numbers are those of stepping the emulator's Plant call by call
     (:func:`_simulate_stepping`, the reference; equal to rounding, tested), computed the
-    fast way (:class:`_FastSimulation`): the Plant is linear between its nonlinear events
-    (friction sign, sticking, contact), so whole spans run as one vectorised linear
-    recursion and only the samples where an event happens step the Plant itself.
+    fast way: with Coulomb friction and numba installed, the Plant's own sub-step function
+    compiled over the whole record (:func:`_compiled_record`, bit for bit); otherwise
+    :class:`_FastSimulation`: the Plant is linear between its nonlinear events (friction
+    sign, sticking, contact), so whole spans run as one vectorised linear recursion and
+    only the samples where an event happens step the Plant itself. Runs with BLAS on one
+    thread (:func:`one_blas_thread`).
     """
     n = stop - start
     if n < 1:
@@ -240,6 +246,7 @@ def _simulate_stepping(values: ModelValues, torque: np.ndarray, period: float, s
 
 _CALL: Any = None    # the compiled coulomb_substeps, for _record_loop (set by _compiled_record)
 _KERNEL: dict[str, Any] = {}
+_KERNEL_LOCK = threading.Lock()
 
 
 def _record_loop(e: float, dq: float, w: np.ndarray, substeps: int, m: np.ndarray,
@@ -268,7 +275,7 @@ def _compiled_record() -> Any:
     bit for bit the Plant's (tested). numba is optional (extra ``fast``): without it the
     span method runs, with the same numbers, slower on such records."""
     global _CALL
-    with _BLAS_LOCK:
+    with _KERNEL_LOCK:
         if "record" not in _KERNEL:
             try:
                 import numba
