@@ -413,7 +413,8 @@ class Plant:
     def _coulomb_substeps(self, w0: float, zoh: StepMatrices) -> None:
         """:meth:`_substeps` when the disturbance is constant over the call and the friction
         is Coulomb's alone (or none): :func:`coulomb_substeps`, the same arithmetic in the
-        same order as the general loop (bit for bit: tested), about twice as fast."""
+        same order as the general loop (bit for bit: tested), ~1.5x faster (measured: 6 vs
+        9 us per call of ten sub-steps)."""
         c, f = zoh.contact_sub, zoh.free_sub
         self._e, self._dq, self._tau_coulomb = coulomb_substeps(
             self._e, self._dq, w0, self.substeps, zoh.stiction, self.coulomb_friction,
