@@ -130,7 +130,10 @@ def one_blas_thread() -> Iterator[None]:
     (``OPENBLAS_NUM_THREADS`` only acts before the library loads, and would be the whole
     process's business); its controller is made once (scanning the loaded libraries costs
     ms; scipy.linalg is imported above so its BLAS is among them) and ``limit`` then costs
-    ~15 us, so this wraps every :func:`simulate_torque` and can wrap a whole fit.
+    ~15 us, so this wraps every :func:`simulate_torque` and can wrap a whole fit. Callers
+    running simulations in several threads hold it around the whole threaded region: the
+    pools are process-wide, and one thread's outermost exit would restore them under the
+    other's feet.
     """
     with _BLAS_LOCK:
         if _BLAS["depth"] == 0:
@@ -274,7 +277,10 @@ def _compiled_record() -> Any:
     such a record costs what stepping it costs (~0.2-0.4 s CPU per 60 s here), and a fit
     simulates it hundreds of times. The same lines compiled: ~3-10 ms per 60 s (measured),
     bit for bit the Plant's (tested). numba is optional (extra ``fast``): without it the
-    span method runs, with the same numbers, slower on such records."""
+    span method runs, with the same numbers, slower on such records. Compiled without the
+    GIL (``nogil``) so simulations may run in threads; such a caller must hold one
+    :func:`one_blas_thread` around the whole threaded region (measured: the limit set and
+    restored per call from two threads made 8 simulations 8x slower)."""
     global _CALL
     with _KERNEL_LOCK:
         if "record" not in _KERNEL:
@@ -283,8 +289,8 @@ def _compiled_record() -> Any:
             except ImportError:
                 _KERNEL["record"] = None
             else:
-                _CALL = numba.njit(cache=True)(coulomb_substeps)
-                _KERNEL["record"] = numba.njit(cache=True)(_record_loop)
+                _CALL = numba.njit(cache=True, nogil=True)(coulomb_substeps)
+                _KERNEL["record"] = numba.njit(cache=True, nogil=True)(_record_loop)
     return _KERNEL["record"]
 
 
