@@ -14,7 +14,7 @@ from hypothesis import strategies as st
 from threadpoolctl import threadpool_info, threadpool_limits
 
 from dobhil.emulator.plant import Plant
-from dobhil.identify.model import (ModelValues, _compiled_record, _simulate,
+from dobhil.identify.model import (ModelValues, _compiled_record, _setup, _simulate,
                                    _simulate_stepping, one_blas_thread, simulate_torque)
 
 PERIOD = 1e-3
@@ -125,31 +125,65 @@ def _cases(draw: st.DrawFn) -> tuple[ModelValues, np.ndarray, int, int, float, f
 
 def _assert_same(fast: tuple[np.ndarray, np.ndarray],
                  ref: tuple[np.ndarray, np.ndarray]) -> None:
-    """Equal to 1e-9 relative: of the largest position (absolute: the Plant's own arithmetic
-    rounds relative to the contact position, and an undamped servo grazing the environment
-    -- a square-root sensitivity at every near-grazing impact -- magnifies rounding-level
-    differences well beyond the eps of a motion that is small against that position) and of
-    the largest velocity."""
+    """Equal to 1e-9 relative: of the largest |position| (the Plant rounds relative to the
+    contact position) and of the largest |velocity|."""
     for got, want in zip(fast, ref):
         scale = float(np.max(np.abs(want)))
         np.testing.assert_allclose(got, want, rtol=0, atol=1e-9 * scale + 1e-15)
+
+
+def _assert_plant_steps(fast: tuple[np.ndarray, np.ndarray], values: ModelValues,
+                        torque: np.ndarray, start: int, stop: int) -> None:
+    """Every sample of ``fast`` is the Plant's step from the sample before (set_state, then
+    Plant.step as the reference calls it), to 1e-9 of the largest |position| / |velocity|:
+    the fast path is the Plant's map sample by sample, whatever the dynamics does with
+    rounding over many samples."""
+    pos, vel = fast
+    plant, _, applied, _, fraction = _setup(values, torque, PERIOD, start, stop,
+                                            float(pos[0]), 10)
+    late = fraction > 1e-12
+    stepped_pos = np.empty(len(pos) - 1)
+    stepped_vel = np.empty(len(pos) - 1)
+    for j in range(len(pos) - 1):
+        plant.set_state(float(pos[j]), float(vel[j]))
+        if late:
+            plant.step(float(applied[j]), fraction)
+        plant.step(float(applied[j + 1]), PERIOD - fraction)
+        stepped_pos[j], stepped_vel[j] = plant.true_position, plant.true_velocity
+    _assert_same((pos[1:], vel[1:]), (stepped_pos, stepped_vel))
+
+
+def _chaotic(values: ModelValues, ref: tuple[np.ndarray, np.ndarray]) -> bool:
+    """The servo hits or leaves the environment: an impact oscillator, whose trajectories
+    separate exponentially (measured: a difference of 1e-12 of rounding grew x10 per ~100
+    samples on a damped servo bouncing under a PRBS) -- the reference's own numbers are
+    then one rounding's trajectory, and only the step-by-step equality means anything."""
+    if not math.isfinite(values.contact_position):
+        return False
+    inside = ref[0] >= values.contact_position
+    return bool(inside.any() and not inside.all())
 
 
 @settings(max_examples=80, deadline=None)
 @given(_cases())
 def test_fast_path_equals_stepping_the_plant(case: tuple[ModelValues, np.ndarray, int, int,
                                                          float, float]) -> None:
-    """simulate_torque (spans run as one linear recursion, the Plant stepped at the
-    events only) gives the numbers of stepping the Plant call by call: free and in contact,
-    with and without Coulomb friction, delays of whole samples, fractions and none, at rest
-    or moving at the start, records that stick, reverse, break away, leave the contact."""
+    """simulate_torque (the compiled loop with friction and numba, else spans run as one
+    linear recursion and the Plant stepped at the events only) gives the numbers of
+    stepping the Plant call by call: free and in contact, with and without Coulomb
+    friction, delays of whole samples, fractions and none, at rest or moving at the start,
+    records that stick, reverse, break away, leave the contact. Sample by sample always;
+    over the whole record unless the servo hits or leaves the environment (chaotic)."""
     values, torque, start, stop, q0, v0 = case
     ref = _simulate_stepping(values, torque, PERIOD, start, stop, q0, v0)
     fast = simulate_torque(values, torque, PERIOD, start, stop, q0, v0)
-    _assert_same(fast, ref)
-    # the span method whatever "auto" chose (the compiled loop with friction and numba)
+    # the span method whatever "auto" chose
     spans = _simulate(values, torque, PERIOD, start, stop, q0, v0, 10, "spans")
-    _assert_same(spans, ref)
+    for got in (fast, spans):
+        assert got[0][0] == pytest.approx(q0, abs=1e-15 + 1e-15 * abs(q0)) and got[1][0] == v0
+        _assert_plant_steps(got, values, torque, start, stop)
+        if not _chaotic(values, ref):
+            _assert_same(got, ref)
 
 
 @pytest.mark.parametrize("substeps", [1, 3, 10])
