@@ -98,7 +98,8 @@ from dobhil.synthesis.controller import discretize
 from dobhil.synthesis.models import plant_matrices, servo_matrices
 from dobhil.synthesis.params import Discretization
 
-__all__ = ["DisturbanceKind", "Plant", "PlantTruth", "Propagator"]
+__all__ = ["DisturbanceKind", "Plant", "PlantTruth", "Propagator", "StepMatrices",
+           "coulomb_substeps"]
 
 _NOISE_BLOCK = 1024    # velocity noise is drawn in blocks of this many samples
 _CACHE_SIZE = 64       # distinct dt values whose ZOH matrices are kept
@@ -143,8 +144,11 @@ class Propagator:
 
 
 @dataclass(frozen=True)
-class _Step:
-    """Everything a call with one ``dt`` needs."""
+class StepMatrices:
+    """Everything a call with one ``dt`` needs (:meth:`Plant.matrices`): the ZOH of each mode
+    over the whole call and over one sub-step, the sub-step length, the Karnopp band and the
+    backlash relaxation. Public so a faster simulator of the same plant
+    (:mod:`dobhil.identify.model`) uses these very numbers instead of discretising again."""
 
     free: Propagator       # whole dt, free motion
     contact: Propagator    # whole dt, in contact
@@ -164,7 +168,7 @@ class Plant:
     def __init__(self, *, inertia: float, viscous_friction: float = 0.0,
                  coulomb_friction: float = 0.0, torque_limit: float = math.inf,
                  stiffness: float = 0.0, damping: float = 0.0, contact_position: float = 0.0,
-                 initial_position: float = 0.0,
+                 initial_position: float = 0.0, initial_velocity: float = 0.0,
                  disturbance: DisturbanceKind = DisturbanceKind.NONE,
                  disturbance_amplitude: float = 0.0, disturbance_frequency: float = 1.0,
                  disturbance_start: float = 0.0, encoder_resolution: int = 0,
@@ -189,11 +193,14 @@ class Plant:
         self.backlash = float(backlash)
         # any friction sends every call through the sub-steps
         self._friction = self.coulomb_friction != 0.0 or self.stribeck_friction != 0.0
+        # no Stribeck peak: the sub-steps take the written-out loop (_coulomb_substeps)
+        self._coulomb_only = self.stribeck_friction == 0.0
         self.torque_limit = float(torque_limit)
         self.stiffness = float(stiffness)
         self.damping = float(damping)
         self.contact_position = float(contact_position)
         self.initial_position = float(initial_position)
+        self.initial_velocity = float(initial_velocity)
         self.disturbance = DisturbanceKind(disturbance)
         self.disturbance_amplitude = float(disturbance_amplitude)
         self.disturbance_frequency = float(disturbance_frequency)
@@ -208,9 +215,9 @@ class Plant:
             self.inertia, self.viscous_friction, self.stiffness, self.damping)
         self._count = (2.0 * math.pi / self.encoder_resolution) if self.encoder_resolution else 0.0
         self._omega = 2.0 * math.pi * self.disturbance_frequency
-        self._cache: dict[float, _Step] = {}
+        self._cache: dict[float, StepMatrices] = {}
         self._dt = math.nan
-        self._zoh: _Step | None = None
+        self._zoh: StepMatrices | None = None
         self.reset()
 
     @classmethod
@@ -234,9 +241,10 @@ class Plant:
     # -- state ----------------------------------------------------------------
 
     def reset(self) -> None:
-        """Back to the initial position, at rest, time 0, the noise sequence restarted."""
+        """Back to the initial position and velocity (at rest unless ``initial_velocity``
+        is set), time 0, the noise sequence restarted."""
         self._e = self.initial_position - self.contact_position
-        self._dq = 0.0
+        self._dq = self.initial_velocity
         self._load_e = self._e   # backlash: the load, centred in the dead band
         self._side = 0           # backlash: +1/-1 load against the motor's pushing/pulling face
         self._t = 0.0
@@ -245,7 +253,24 @@ class Plant:
         self._rng = np.random.default_rng(self.seed)
         self._noise: list[float] = []
         self._noise_index = 0
+        self._noise_value = 0.0
         self._sense()
+
+    def set_state(self, position: float, velocity: float) -> None:
+        """Put the servo at the true ``position`` [rad] with the true ``velocity`` [rad/s],
+        keeping the time and the noise sequence (a simulation that starts a segment in
+        motion, or continues a run computed elsewhere, moves the state only). With backlash
+        the load is put in the middle of the dead band, as at :meth:`reset`. The sensors
+        are refreshed with the current noise sample: no draw, so the sequence a run sees
+        does not depend on how often its state was set."""
+        self._e = float(position) - self.contact_position
+        self._dq = float(velocity)
+        self._load_e = self._e
+        self._side = 0
+        q = self._e + self.contact_position
+        c = self._count
+        self.position = round(q / c) * c if c else q
+        self.velocity = self._dq + self.velocity_noise * self._noise_value
 
     @property
     def time(self) -> float:
@@ -312,6 +337,11 @@ class Plant:
 
     # -- integration ----------------------------------------------------------
 
+    def matrices(self, dt: float) -> StepMatrices:
+        """The ZOH matrices, sub-step and Karnopp band :meth:`step` uses for a call of
+        ``dt`` seconds (computed once per ``dt``, then cached)."""
+        return self._load(dt)
+
     def prepare(self, dt: float) -> None:
         """Compute the ZOH matrices of ``dt`` now (the first :meth:`step` of a new ``dt``
         otherwise does it: four matrix exponentials, tens of ms on a loaded machine)."""
@@ -332,7 +362,7 @@ class Plant:
         self._t = t0 + dt
         self._sense()
 
-    def _exact_step(self, w: float, zoh: _Step) -> bool:
+    def _exact_step(self, w: float, zoh: StepMatrices) -> bool:
         """One ZOH step in the current mode; False (state untouched) if the mode changed."""
         e, dq = self._e, self._dq
         contact = e >= 0.0
@@ -356,8 +386,11 @@ class Plant:
             return self.disturbance_at(t0 + 0.5 * dt)
         return None
 
-    def _substeps(self, u: float, tau_d: float | None, t0: float, zoh: _Step) -> None:
+    def _substeps(self, u: float, tau_d: float | None, t0: float, zoh: StepMatrices) -> None:
         """``substeps`` ZOH sub-steps; ``tau_d`` the disturbance if constant over the call."""
+        if tau_d is not None and self._coulomb_only:
+            self._coulomb_substeps(u - tau_d, zoh)
+            return
         e, dq = self._e, self._dq
         h, vs, friction = zoh.h, zoh.stiction, self._friction
         k = self.stiffness
@@ -376,6 +409,17 @@ class Plant:
             e, dq = (p.p00 * e + p.p01 * dq + p.g0 * w,
                      p.p10 * e + p.p11 * dq + p.g1 * w)
         self._e, self._dq, self._tau_coulomb = e, dq, tau_c
+
+    def _coulomb_substeps(self, w0: float, zoh: StepMatrices) -> None:
+        """:meth:`_substeps` when the disturbance is constant over the call and the friction
+        is Coulomb's alone (or none): :func:`coulomb_substeps`, the same arithmetic in the
+        same order as the general loop (bit for bit: tested), ~1.5x faster (measured: 6 vs
+        9 us per call of ten sub-steps)."""
+        c, f = zoh.contact_sub, zoh.free_sub
+        self._e, self._dq, self._tau_coulomb = coulomb_substeps(
+            self._e, self._dq, w0, self.substeps, zoh.stiction, self.coulomb_friction,
+            self.stiffness, self._friction, c.p00, c.p01, c.p10, c.p11, c.g0, c.g1,
+            f.p00, f.p01, f.p10, f.p11, f.g0, f.g1)
 
     def _friction_at(self, dq: float, f: float, vs: float) -> tuple[float, bool]:
         """Friction torque over a sub-step starting at velocity ``dq``, ``f`` the rest of the
@@ -407,7 +451,7 @@ class Plant:
         tau = self.stiffness * load_e + self.damping * dq
         return tau if tau * side >= 0.0 else 0.0
 
-    def _backlash_substeps(self, u: float, tau_d: float | None, t0: float, zoh: _Step) -> None:
+    def _backlash_substeps(self, u: float, tau_d: float | None, t0: float, zoh: StepMatrices) -> None:
         """Sub-steps with the dead band between motor and load (module docstring)."""
         e, dq, load_e, side = self._e, self._dq, self._load_e, self._side
         h, vs, friction, relax = zoh.h, zoh.stiction, self._friction, zoh.relax
@@ -451,7 +495,7 @@ class Plant:
         self._e, self._dq, self._load_e, self._side, self._tau_coulomb = (
             e, dq, load_e, side, tau_c)
 
-    def _load(self, dt: float) -> _Step:
+    def _load(self, dt: float) -> StepMatrices:
         """The ZOH matrices for ``dt`` (cached)."""
         if not dt > 0.0:
             raise ValueError(f"dt: expected > 0 s, got {dt}")
@@ -464,7 +508,7 @@ class Plant:
                   else 2.0 * (self.coulomb_friction + self.stribeck_friction) * h / self.inertia)
             k, d = self.stiffness, self.damping
             relax = math.exp(-k * h / d) if d > 0.0 else (0.0 if k > 0.0 else 1.0)
-            zoh = _Step(free=Propagator.of(self._a_free, self._b_free, dt),
+            zoh = StepMatrices(free=Propagator.of(self._a_free, self._b_free, dt),
                         contact=Propagator.of(self._a_contact, self._b_contact, dt),
                         free_sub=Propagator.of(self._a_free, self._b_free, h),
                         contact_sub=Propagator.of(self._a_contact, self._b_contact, h),
@@ -480,7 +524,11 @@ class Plant:
         c = self._count
         self.position = round(q / c) * c if c else q
         noise = self.velocity_noise
-        self.velocity = self._dq + noise * self._draw() if noise else self._dq
+        if noise:
+            self._noise_value = self._draw()
+            self.velocity = self._dq + noise * self._noise_value
+        else:
+            self.velocity = self._dq
 
     def _draw(self) -> float:
         i = self._noise_index
@@ -489,3 +537,38 @@ class Plant:
             i = 0
         self._noise_index = i + 1
         return self._noise[i]
+
+
+def coulomb_substeps(e: float, dq: float, w0: float, substeps: int, vs: float, fc: float,
+                     k: float, friction: bool, c00: float, c01: float, c10: float, c11: float,
+                     cg0: float, cg1: float, f00: float, f01: float, f10: float, f11: float,
+                     fg0: float, fg1: float) -> tuple[float, float, float]:
+    """One call of :meth:`Plant.step` with Coulomb friction (or none) and a constant
+    disturbance: ``substeps`` ZOH sub-steps of the contact (``c..``) or free (``f..``)
+    propagator (:class:`Propagator` fields) chosen by the sign of ``e = q - q_c`` at each
+    sub-step's start, ``w0`` the torque less the disturbance, the Karnopp band ``vs``.
+    Returns ``(e, dq, friction torque of the last sub-step)``.
+
+    :meth:`Plant._friction_at`'s decision with no Stribeck peak, written out, and scalars
+    only: plain Python for the Plant, and the one source the identification compiles with
+    numba when it is installed (dobhil.identify.model) -- so both run these very lines."""
+    tau_c = 0.0
+    for _ in range(substeps):
+        w = w0
+        contact = e >= 0.0
+        if friction:
+            if dq > vs or dq < -vs:
+                tau_c = fc if dq > 0.0 else -fc
+            else:
+                rest = w - k * e if contact else w
+                if -fc <= rest <= fc:          # friction balances the torque: stuck
+                    tau_c = rest
+                    dq = 0.0
+                    continue
+                tau_c = fc if rest > 0.0 else -fc
+            w -= tau_c
+        if contact:
+            e, dq = c00 * e + c01 * dq + cg0 * w, c10 * e + c11 * dq + cg1 * w
+        else:
+            e, dq = f00 * e + f01 * dq + fg0 * w, f10 * e + f11 * dq + fg1 * w
+    return e, dq, tau_c
