@@ -113,7 +113,9 @@ def test_stribeck_friction_gives_a_visible_misfit() -> None:
            "flagged misfit -- 0.25 before the equation-error start took the contact from "
            "the data): Levenberg-Marquardt from the equation-error start (or from any "
            "whole-sample delay) does not find the truth through the contact switches' "
-           "roughness. Until it does, backlash cannot be told from a failed fit")
+           "roughness. The CLI-level leave/re-enter record does discriminate (wt-ie2e: "
+           "tests/identify/test_workflow.py::test_backlash_shows_as_a_misfit_when_the_"
+           "contact_opens); this synthetic one does not yet")
 def test_backlash_gives_a_visible_misfit() -> None:
     """Pressed on the environment with a torque that swings hard enough for the damper to
     want to pull: through the backlash nothing pulls (the gap opens and the load relaxes
