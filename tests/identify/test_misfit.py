@@ -106,11 +106,16 @@ def test_stribeck_friction_gives_a_visible_misfit() -> None:
     run=False, strict=False,
     reason="not yet discriminating (measured 11:01 UTC on wt-ifit da76a25): with a massless "
            "load behind the gear, a pressed record from a backlash plant IS the linear "
-           "model with the contact position beta/2 further in (least-squares fit: p = 0.05 "
-           "vs 0.24 plain, no misfit -- right numbers, not a misfit), and a record that "
-           "leaves the environment misfits even without backlash (p = 0). Besides, the "
-           "profile intervals (fit._profile, lmfit conf_interval) took > 300 s on it. Next "
-           "session: see the report (load inertia behind the gear, or in/out contact records)")
+           "model with the contact position beta/2 further in (right numbers, not a "
+           "misfit). A record that leaves and re-enters the environment should tell them "
+           "apart, but (measured 12:05 UTC, wt-iqual) the fit of the PLAIN plant on such a "
+           "record ends in a local minimum (RMS 0.017 vs noise 0.01, K 6700 for 1e4, "
+           "flagged misfit -- 0.25 before the equation-error start took the contact from "
+           "the data): Levenberg-Marquardt from the equation-error start (or from any "
+           "whole-sample delay) does not find the truth through the contact switches' "
+           "roughness. The CLI-level leave/re-enter record does discriminate (wt-ie2e: "
+           "tests/identify/test_workflow.py::test_backlash_shows_as_a_misfit_when_the_"
+           "contact_opens); this synthetic one does not yet")
 def test_backlash_gives_a_visible_misfit() -> None:
     """Pressed on the environment with a torque that swings hard enough for the damper to
     want to pull: through the backlash nothing pulls (the gap opens and the load relaxes
@@ -123,17 +128,13 @@ def test_backlash_gives_a_visible_misfit() -> None:
     assert_misfit_is_visible(clean, wrong)
 
 
-@pytest.mark.xfail(
-    strict=False,
-    reason="measured 11:02 UTC on wt-ifit da76a25: a contact-only record (no free segment) of "
-           "the plain plant with D_env = 300 gives viscous_friction 822 [262, 1106] (truth 0.5) "
-           "and contact_position 1.34 mrad (truth 0) as identifiable, with a white residual "
-           "(p = 0.26) and no warning; the same record with 1 mrad backlash gives viscous 34, "
-           "damping 699 [84, 711] (truth 300). For W1 / the next session")
 def test_no_confident_wrong_numbers_from_a_contact_only_record() -> None:
     """The plant the model represents exactly, pressed from the start (a contact segment
     only): every value identify reports as identifiable has its 95 % interval around the
-    truth, unless identify warns of a misfit."""
+    truth, unless identify warns of a misfit. (Until the G session of issue 19 it said
+    viscous friction 822 [262, 1106] for 0.5 and contact 1.34 mrad for 0: in contact b and
+    D_env act as their sum. Now they are not identifiable, each naming the other; this
+    record barely moves -- 0.002 rad/s RMS under 0.01 of noise -- so little else is.)"""
     from dobhil.identify.data import IdentData, Segment
     from dobhil.identify.fit import identify
     truth = dict(TRUTH, damping=300.0)
@@ -150,6 +151,8 @@ def test_no_confident_wrong_numbers_from_a_contact_only_record() -> None:
     result = identify(data, (Segment(start=0, stop=n, kind="contact"),))
     if result.residual.misfit:
         return
+    for name, other in (("viscous_friction", "damping"), ("damping", "viscous_friction")):
+        assert not result.estimates[name].identifiable and other in result.estimates[name].why
     truth_of = {**truth, "delay": 0.0, "torque_gain": 1.0}
     wrong = {name: (e.value, e.low, e.high) for name, e in result.estimates.items()
              if e.identifiable and not e.low <= truth_of[name] <= e.high}
