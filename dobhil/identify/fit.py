@@ -70,7 +70,10 @@ LEVEL = 0.95
 WIDEST = 0.5
 
 _ENVIRONMENT = ("contact_position", "stiffness", "damping")
+#: MINPACK's forward-difference step is ``sqrt(epsfcn)`` relative: the fine stage ~3e-4,
+#: the coarse one ~1 % (see :func:`_staged`)
 _EPSFCN = 1e-7
+_EPSFCN_COARSE = 1e-4
 #: MINPACK's stopping tolerances: the cost changing by less than this (relative) ends
 #: Levenberg-Marquardt -- its default 1.5e-8 chases the roughness for dozens of
 #: evaluations; :func:`_refine` finishes the optimum on the interval's own scale
@@ -344,10 +347,7 @@ def identify(data: IdentData, segments: Sequence[Segment], *,
                 params.add(_q0(i), value=q, min=q - count, max=q + count)
         fixed["prior_weight"] = _noise_guess(data, segments) / (count / math.sqrt(12.0))
     minimizer = lmfit.Minimizer(_residual, params, fcn_args=(data, segments, fixed))
-    # Levenberg-Marquardt with forward differences of ~3e-4 relative step (epsfcn): stick-slip
-    # makes the cost rough on the scale of MINPACK's default step (1.5e-8), which stops the
-    # fit short of the optimum; a step above that roughness finds it (tested)
-    result = minimizer.minimize(method="leastsq", epsfcn=_EPSFCN, **_TOLERANCES)
+    result, other = _staged(minimizer)
     result = _search_delay(minimizer, result, data.period)
     rows = sum(s.stop - s.start for s in segments)
     if "prior_weight" in fixed:
@@ -361,7 +361,9 @@ def identify(data: IdentData, segments: Sequence[Segment], *,
     result.chisqr = float(refined.residual @ refined.residual)
     velocity_residual = refined.residual[:rows]
     covariance = refined.covariance
-    estimates = _estimates(minimizer, result, covariance, data, segments)
+    rivals = _rivals(minimizer, other, result.chisqr, velocity_residual,
+                     len(covariance[0]) if covariance is not None else 0)
+    estimates = _estimates(minimizer, result, covariance, data, segments, rivals)
     fitted = [k for k in PARAMETERS if estimates[k].identifiable]
     correlations: dict[tuple[str, str], float] = {}
     if covariance is not None:
@@ -376,6 +378,54 @@ def identify(data: IdentData, segments: Sequence[Segment], *,
                        segments=segments, period=data.period,
                        initial=tuple(_initial(result.params.valuesdict(), data, i, s)
                                      for i, s in enumerate(segments)))
+
+
+def _staged(minimizer: lmfit.Minimizer
+            ) -> tuple[lmfit.minimizer.MinimizerResult, lmfit.minimizer.MinimizerResult]:
+    """Levenberg-Marquardt from the start values, coarse to fine: forward differences of
+    ~1 % relative step (:data:`_EPSFCN_COARSE`) first, then of ~3e-4 (:data:`_EPSFCN`);
+    and, as a second start, the fine one alone. Returns (the lower, the other): where the
+    two end in different valleys of about the same cost, the record does not decide
+    between them (:func:`_rivals`).
+
+    Why two scales: stick-slip makes the output-error cost rough -- every velocity zero
+    crossing switches the Coulomb friction on a sub-step, and a parameter moving one by a
+    sub-step makes the residual jump. The roughness is larger, the more crossings the
+    record has: on a 60 s free multisine with Coulomb friction (thousands of crossings,
+    noise-free) a 3e-4 step measures the jumps, not the slope, and points nowhere --
+    Levenberg-Marquardt stopped after 10 evaluations where the equation-error start put
+    it (viscous friction 0.078 for 0.02, Coulomb 0.0436 for 0.05, residual RMS 1.1e-3
+    rad/s, the truth's 1e-8; measured, the cost falls monotonically on the straight line
+    between them, so no other valley, only a blind gradient). A 1 % step is a secant over
+    the roughness and walks to the truth (1e-3 ... 1e-5 all did); the fine stage then
+    settles where MINPACK's scale can. MINPACK's default step (1.5e-8) is worse still:
+    it stops the fit short even on short records (tested)."""
+    # a copy: a fit leaves the minimizer's own parameters at its end
+    start = minimizer.params.copy()
+    coarse = minimizer.minimize(method="leastsq", params=start.copy(), epsfcn=_EPSFCN_COARSE,
+                                **_TOLERANCES)
+    fine = minimizer.minimize(method="leastsq", params=coarse.params, epsfcn=_EPSFCN,
+                              **_TOLERANCES)
+    staged = fine if fine.chisqr <= coarse.chisqr else coarse
+    alone = minimizer.minimize(method="leastsq", params=start, epsfcn=_EPSFCN, **_TOLERANCES)
+    return (staged, alone) if staged.chisqr <= alone.chisqr else (alone, staged)
+
+
+def _rivals(minimizer: lmfit.Minimizer, other: lmfit.minimizer.MinimizerResult,
+            best: float, velocity: np.ndarray, varied: int) -> list[dict[str, float]]:
+    """The other start's end, when its cost (recomputed: the ties' weight may have changed)
+    is within the 95 % profile threshold of the best, ``chi2_1(0.95) s^2`` above it:
+    every parameter's value there then lies inside its profile-likelihood interval (the
+    profile at that value is at most that cost), so the interval must reach it.
+
+    Why: a record that barely moves has valleys the linearised interval knows nothing of
+    (measured: a pressed record, 0.002 rad/s of motion under 0.01 of noise, ended at
+    K = 2950 [1671, 4229] from one start and 1123 from the other, 1.3 noise variances
+    apart in cost, truth 1e4): the second start is a cheap look at the profile's width."""
+    r = np.asarray(minimizer.userfcn(other.params, *minimizer.userargs), float)
+    s2 = float(velocity @ velocity) / max(velocity.size - varied, 1)
+    threshold = best + float(scipy.stats.chi2.ppf(LEVEL, 1)) * s2
+    return [other.params.valuesdict()] if float(r @ r) <= threshold else []
 
 
 def _noise_guess(data: IdentData, segments: Sequence[Segment]) -> float:
@@ -535,7 +585,8 @@ def _inverse_normal(jac: np.ndarray) -> np.ndarray | None:
 
 def _estimates(minimizer: lmfit.Minimizer, result: lmfit.minimizer.MinimizerResult,
                covariance: tuple[list[str], np.ndarray] | None, data: IdentData,
-               segments: Sequence[Segment]) -> dict[str, Estimate]:
+               segments: Sequence[Segment],
+               rivals: Sequence[Mapping[str, float]] = ()) -> dict[str, Estimate]:
     contact = any(s.kind == "contact" for s in segments)
     z = float(scipy.stats.norm.ppf(0.5 + LEVEL / 2))
     u_max = float(np.max(np.abs(data.torque))) or 1.0
@@ -567,7 +618,11 @@ def _estimates(minimizer: lmfit.Minimizer, result: lmfit.minimizer.MinimizerResu
             out[name] = _not(name, "flat profile: the record does not determine it "
                                    "(singular covariance)")
             continue
-        half = z * float(stderr)
+        # another fit within the profile threshold (_rivals): the interval reaches it
+        others = [float(r[name]) for r in rivals]
+        low = min([value - z * float(stderr), *others])
+        high = max([value + z * float(stderr), *others])
+        half = max(value - low, high - value)
         if name == "contact_position" and half > span:
             out[name] = _not(name, f"flat profile: the 95 % interval (+-{half:.3g}) is wider "
                                    f"than the motion in contact ({span:.3g})"
@@ -584,7 +639,7 @@ def _estimates(minimizer: lmfit.Minimizer, result: lmfit.minimizer.MinimizerResu
         # stall in the cost's roughness ("rel_change=0.0" warnings) and took 171 s for the
         # delay of one 2 s record (measured); inside the bounds the linearised interval on
         # the secant Jacobian (_refine) is what the coverage test checks
-        low, high = max(value - half, p.min), min(value + half, p.max)
+        low, high = max(low, p.min), min(high, p.max)
         out[name] = Estimate(name=name, value=value, stderr=float(stderr), low=low, high=high,
                              identifiable=True, why="")
     return out
@@ -617,9 +672,14 @@ def _not(name: str, why: str) -> Estimate:
 
 
 #: a residual RMS below this fraction of the measured velocity's RMS is rounding, not a
-#: model error: no misfit however coloured (a drive reports float32 velocities and takes
-#: float32 torques: ~1e-7 relative; the fit's own tolerance is ~1e-6)
-NOISE_FLOOR = 1e-4
+#: model error: no misfit however coloured. A drive reports float32 velocities and takes
+#: float32 torques (~1e-7 relative), but the larger floor is the stick-slip's: on a
+#: noise-free record every stick the simulation misses by a sub-step leaves a velocity
+#: offset that decays only with J/b (measured: 4e-5 rad/s for a relative 1e-4 change of b,
+#: 12 s long), so the cost is a needle at the truth and the fit ends 1e-5 .. 1.6e-5 rad/s
+#: RMS off it = 1.5e-4 .. 2.5e-4 of the velocity RMS (free multisines with Coulomb
+#: friction, 3-60 s; the values then within 0.5 % of the truth)
+NOISE_FLOOR = 1e-3
 
 
 def _whiteness(r: np.ndarray, velocity_rms: float = 0.0, lags: int = WHITENESS_LAGS) -> Residual:
