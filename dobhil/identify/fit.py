@@ -79,6 +79,8 @@ _ENVIRONMENT = ("contact_position", "stiffness", "damping")
 #: the coarse one ~1 % (see :func:`_staged`)
 _EPSFCN = 1e-7
 _EPSFCN_COARSE = 1e-4
+#: evaluations per varied parameter (+1) the coarse stage may spend
+_COARSE_EVALUATIONS = 100
 #: MINPACK's stopping tolerances: the cost changing by less than this (relative) ends
 #: Levenberg-Marquardt -- its default 1.5e-8 chases the roughness for dozens of
 #: evaluations; :func:`_refine` finishes the optimum on the interval's own scale
@@ -411,8 +413,11 @@ def _staged(minimizer: lmfit.Minimizer
     it stops the fit short even on short records (tested)."""
     # a copy: a fit leaves the minimizer's own parameters at its end
     start = minimizer.params.copy()
+    # bounded: the coarse stage only has to reach the right valley (measured: 33 evaluations
+    # on the 60 s free multisine, 357 on a 60 s pressed PRBS with Coulomb friction, 2.4 s)
+    varied = sum(1 for p in start.values() if p.vary)
     coarse = minimizer.minimize(method="leastsq", params=start.copy(), epsfcn=_EPSFCN_COARSE,
-                                **_TOLERANCES)
+                                max_nfev=_COARSE_EVALUATIONS * (varied + 1), **_TOLERANCES)
     fine = minimizer.minimize(method="leastsq", params=coarse.params, epsfcn=_EPSFCN,
                               **_TOLERANCES)
     staged = fine if fine.chisqr <= coarse.chisqr else coarse
