@@ -119,7 +119,10 @@ def simulate(values: Mapping[str, float], data: IdentData,
     """Position and velocity [rad, rad/s] of the model ``values`` (names of
     :data:`PARAMETERS`; missing ones: no friction, gain 1, no environment, no delay) over
     ``segment`` of ``data``, driven by ``data.torque``, from rest at the measured position
-    of the segment's first sample."""
+    of the segment's first sample. A free segment is simulated without the environment: it
+    is out of reach there (a free run need not be where the contact run was)."""
+    if segment.kind == "free":
+        values = {k: v for k, v in values.items() if k not in _ENVIRONMENT}
     return simulate_torque(_model(values), data.torque, data.period, segment.start,
                            segment.stop, float(data.position[segment.start]))
 
