@@ -34,6 +34,11 @@ def test_identify_bad_input(logs: dict[str, Path], tmp_path: Path, capsys: pytes
     _fails(capsys, ["identify", str(logs["contact"]), "--out", str(tmp_path / "o.txt")], "--out")
     _fails(capsys, ["identify", str(logs["contact"]), "--drive", "no-such-drive"], "no-such-drive")
     _fails(capsys, ["identify", str(logs["contact"]), "--period", "0.001"], "records its own period")
+    _fails(capsys, ["identify", str(logs["free"]), str(logs["contact"]), "--segment", "0:0.4"], "one LOG at a time")
+    _fails(capsys, ["identify", str(logs["free"]), str(logs["still"])], "still.mcap: the position never changes")
+    garbage = tmp_path / "garbage.mcap"
+    garbage.write_bytes(b"not an mcap file at all" * 10)
+    _fails(capsys, ["identify", str(garbage)], "garbage.mcap")
     assert main(["log", "export", str(logs["contact"]), "--can", "--format", "candump",
                  "-o", str(tmp_path / "c.log")]) == 0
     assert main(["log", "import", str(tmp_path / "c.log"), "-o", str(tmp_path / "c.mcap")]) == 0
