@@ -37,8 +37,9 @@ CONTACT: Final = "contact"
 KINDS: Final = (FREE, CONTACT)
 #: config sections whose numeric keys an IdentData carries as ``recorded``
 RECORDED_SECTIONS: Final = ("plant", "environment", "design")
-#: fewest samples of a segment: shorter runs of one kind merge into their neighbour
-MIN_SEGMENT: Final = 20
+#: fewest samples of a segment: shorter runs of one kind merge into their neighbour (more than
+#: the fit's own minimum, twice its start estimate's smoothing and then some)
+MIN_SEGMENT: Final = 25
 #: torque lags in the segment regression: covers a whole-sample delay of up to this many periods
 _LAGS: Final = 4
 #: significance of the contact spring term (F test)
@@ -264,7 +265,10 @@ def find_segments(data: IdentData) -> tuple[Segment, ...]:
 
 def segments_of(contact: NDArray[np.bool_]) -> tuple[Segment, ...]:
     """Maximal runs of one kind; a run shorter than :data:`MIN_SEGMENT` joins the one before
-    (a contact bouncing open for a few samples is not a free-motion experiment)."""
+    (a contact bouncing open for a few samples is not a free-motion experiment), and free runs
+    between two contact runs join them: the servo left the environment and came back, one
+    contact experiment that the model (which switches in and out of contact itself) follows
+    through -- cut into pieces, each would have to start from a state the fit does not know."""
     edges = np.flatnonzero(np.diff(contact.astype(np.int8))) + 1
     bounds = [0, *edges.tolist(), int(contact.size)]
     runs: list[list[int]] = []
@@ -276,6 +280,10 @@ def segments_of(contact: NDArray[np.bool_]) -> tuple[Segment, ...]:
             runs[-1][1], runs[-1][2] = b, kind
         else:
             runs.append([a, b, kind])
+    touching = [i for i, r in enumerate(runs) if r[2]]
+    if touching:
+        first, last = touching[0], touching[-1]
+        runs[first:last + 1] = [[runs[first][0], runs[last][1], 1]]
     return tuple(Segment(a, b, CONTACT if k else FREE) for a, b, k in runs)
 
 

@@ -62,13 +62,23 @@ def test_free_motion_has_no_contact(logs: dict[str, Path]) -> None:
 
 
 def test_segments_of_literal_masks() -> None:
-    m = np.zeros(100, dtype=bool)
+    assert MIN_SEGMENT == 25   # the literal masks below are laid out for it
+    m = np.zeros(200, dtype=bool)
     m[40:] = True
-    assert segments_of(m) == (Segment(0, 40, FREE), Segment(40, 100, CONTACT))
-    m[60:63] = False   # a 3-sample bounce joins the contact
-    assert segments_of(m) == (Segment(0, 40, FREE), Segment(40, 100, CONTACT))
+    assert segments_of(m) == (Segment(0, 40, FREE), Segment(40, 200, CONTACT))
+    m[80:83] = False   # a 3-sample bounce joins the contact
+    assert segments_of(m) == (Segment(0, 40, FREE), Segment(40, 200, CONTACT))
     m[:5] = True       # a short first run joins the next
     assert segments_of(m)[0] == Segment(0, 40, FREE)
+    m[100:150] = False  # left the contact for a while and came back: one contact experiment
+    assert segments_of(m) == (Segment(0, 40, FREE), Segment(40, 200, CONTACT))
+    m[100:] = False     # ... or left it for good
+    assert segments_of(m) == (Segment(0, 40, FREE), Segment(40, 100, CONTACT), Segment(100, 200, FREE))
+
+
+def test_found_segments_are_long_enough_for_the_fit() -> None:
+    from dobhil.identify import fit
+    assert MIN_SEGMENT > 2 * fit._SMOOTH + 2   # identify refuses shorter segments
 
 
 def test_parse_segment(logs: dict[str, Path]) -> None:

@@ -186,3 +186,22 @@ def test_imported_can_logs_identify_like_the_mcap(workflow: dict[str, Any],
     n = loop.samples
     assert (asc.position[1:n + 1] == loop.position).all() and (asc.velocity[1:n + 1] == loop.velocity).all()
     assert abs(asc.torque[1:n] - loop.torque[:-1]).max() <= 1e-6   # the drive's float32 field
+
+
+def test_backlash_shows_as_a_misfit_when_the_contact_opens(workflow: dict[str, Any],
+                                                           capsys: pytest.CaptureFixture[str]) -> None:
+    """Gear backlash is invisible while the servo stays pressed (the record is the linear model
+    with the contact half the dead band further in), but a contact that opens and closes again
+    crosses the dead band each time: identify-contact with the torque dipping below zero
+    (offset 0.3 +- 0.5 N m) gives the misfit warning with 50 urad of backlash, and the same
+    record of the plant without backlash (the control) none. The free runs between the
+    touches belong to one contact segment (the model switches in and out itself)."""
+    leave = (*TRUE_SETS, "sensor.seed=3", "loop.duration=1", "reference.offset=0.3")
+    infos = {}
+    for backlash in (0.0, 5e-5):
+        log = _run("identify-contact", workflow["dir"] / f"backlash-{backlash:g}.mcap",
+                   *_sets(*leave, f"plant.backlash={backlash}"))
+        infos[backlash] = _identify(capsys, str(log))
+        assert [s["kind"] for s in infos[backlash]["segments"]] == ["contact"]
+    assert not infos[0.0]["residual"]["misfit"], infos[0.0]["residual"]
+    assert infos[5e-5]["residual"]["misfit"] and "misfit" in infos[5e-5]["residual"]["warning"]
