@@ -264,3 +264,47 @@ def test_exact_plant_matches_direct_matrices_helper() -> None:
     phi, gamma = discretize(a, b, DT)
     phi2, gamma2 = _analysis_zoh(config, DT)
     assert np.array_equal(phi, phi2) and np.array_equal(gamma, gamma2)
+
+
+def test_initial_velocity_and_set_state_free_decay_closed_form() -> None:
+    """A free servo launched at v0 with no torque: v0 exp(-b t / J), q0 + v0 J/b (1 - exp)
+    (closed form), whether launched by the constructor or by set_state mid-run."""
+    j, b, q0, v0 = 0.2, 0.8, 0.3, -1.7
+    launched = Plant(inertia=j, viscous_friction=b, contact_position=50.0, initial_position=q0,
+                     initial_velocity=v0)
+    moved = Plant(inertia=j, viscous_friction=b, contact_position=50.0, velocity_noise=0.1,
+                  seed=4)
+    moved.step(1.0, DT)
+    noise = moved.velocity - moved.true_velocity
+    t0 = moved.time
+    moved.set_state(q0, v0)
+    # the state is kept relative to the contact position: q0 to its rounding
+    assert moved.true_position == pytest.approx(q0, abs=1e-14)
+    assert (moved.true_velocity, moved.time) == (v0, t0)
+    assert moved.velocity - moved.true_velocity == pytest.approx(noise)   # no draw
+    assert launched.true_position == pytest.approx(q0, abs=1e-14)
+    assert launched.true_velocity == v0
+    for k in range(1, 50):
+        launched.step(0.0, DT)
+        moved.step(0.0, DT)
+        t = k * DT
+        decay = math.exp(-b * t / j)
+        for plant in (launched, moved):
+            assert plant.true_velocity == pytest.approx(v0 * decay, rel=1e-12)
+            assert plant.true_position == pytest.approx(q0 + v0 * j / b * (1 - decay),
+                                                        rel=1e-12, abs=1e-13)
+    launched.reset()
+    assert launched.true_position == pytest.approx(q0, abs=1e-14)
+    assert launched.true_velocity == v0
+
+
+def test_matrices_are_what_step_uses() -> None:
+    """Plant.matrices(dt) is the ZOH of discretize for dt and its sub-step."""
+    plant = Plant.from_config(_config(coulomb_friction=0.1))
+    m = plant.matrices(DT)
+    phi, gamma = discretize(plant._a_contact, plant._b_contact, DT, Discretization.ZOH)
+    assert (m.contact.p01, m.contact.g1) == (float(phi[0, 1]), float(gamma[1, 0]))
+    phi, gamma = discretize(plant._a_free, plant._b_free, DT / 10, Discretization.ZOH)
+    assert (m.free_sub.p11, m.free_sub.g0) == (float(phi[1, 1]), float(gamma[0, 0]))
+    assert m.h == DT / 10
+    assert m.stiction == 2 * 0.1 * (DT / 10) / plant.inertia

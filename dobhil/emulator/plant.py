@@ -98,7 +98,7 @@ from dobhil.synthesis.controller import discretize
 from dobhil.synthesis.models import plant_matrices, servo_matrices
 from dobhil.synthesis.params import Discretization
 
-__all__ = ["DisturbanceKind", "Plant", "PlantTruth", "Propagator"]
+__all__ = ["DisturbanceKind", "Plant", "PlantTruth", "Propagator", "StepMatrices"]
 
 _NOISE_BLOCK = 1024    # velocity noise is drawn in blocks of this many samples
 _CACHE_SIZE = 64       # distinct dt values whose ZOH matrices are kept
@@ -143,8 +143,11 @@ class Propagator:
 
 
 @dataclass(frozen=True)
-class _Step:
-    """Everything a call with one ``dt`` needs."""
+class StepMatrices:
+    """Everything a call with one ``dt`` needs (:meth:`Plant.matrices`): the ZOH of each mode
+    over the whole call and over one sub-step, the sub-step length, the Karnopp band and the
+    backlash relaxation. Public so a faster simulator of the same plant
+    (:mod:`dobhil.identify.model`) uses these very numbers instead of discretising again."""
 
     free: Propagator       # whole dt, free motion
     contact: Propagator    # whole dt, in contact
@@ -164,7 +167,7 @@ class Plant:
     def __init__(self, *, inertia: float, viscous_friction: float = 0.0,
                  coulomb_friction: float = 0.0, torque_limit: float = math.inf,
                  stiffness: float = 0.0, damping: float = 0.0, contact_position: float = 0.0,
-                 initial_position: float = 0.0,
+                 initial_position: float = 0.0, initial_velocity: float = 0.0,
                  disturbance: DisturbanceKind = DisturbanceKind.NONE,
                  disturbance_amplitude: float = 0.0, disturbance_frequency: float = 1.0,
                  disturbance_start: float = 0.0, encoder_resolution: int = 0,
@@ -194,6 +197,7 @@ class Plant:
         self.damping = float(damping)
         self.contact_position = float(contact_position)
         self.initial_position = float(initial_position)
+        self.initial_velocity = float(initial_velocity)
         self.disturbance = DisturbanceKind(disturbance)
         self.disturbance_amplitude = float(disturbance_amplitude)
         self.disturbance_frequency = float(disturbance_frequency)
@@ -208,9 +212,9 @@ class Plant:
             self.inertia, self.viscous_friction, self.stiffness, self.damping)
         self._count = (2.0 * math.pi / self.encoder_resolution) if self.encoder_resolution else 0.0
         self._omega = 2.0 * math.pi * self.disturbance_frequency
-        self._cache: dict[float, _Step] = {}
+        self._cache: dict[float, StepMatrices] = {}
         self._dt = math.nan
-        self._zoh: _Step | None = None
+        self._zoh: StepMatrices | None = None
         self.reset()
 
     @classmethod
@@ -234,9 +238,10 @@ class Plant:
     # -- state ----------------------------------------------------------------
 
     def reset(self) -> None:
-        """Back to the initial position, at rest, time 0, the noise sequence restarted."""
+        """Back to the initial position and velocity (at rest unless ``initial_velocity``
+        is set), time 0, the noise sequence restarted."""
         self._e = self.initial_position - self.contact_position
-        self._dq = 0.0
+        self._dq = self.initial_velocity
         self._load_e = self._e   # backlash: the load, centred in the dead band
         self._side = 0           # backlash: +1/-1 load against the motor's pushing/pulling face
         self._t = 0.0
@@ -245,7 +250,24 @@ class Plant:
         self._rng = np.random.default_rng(self.seed)
         self._noise: list[float] = []
         self._noise_index = 0
+        self._noise_value = 0.0
         self._sense()
+
+    def set_state(self, position: float, velocity: float) -> None:
+        """Put the servo at the true ``position`` [rad] with the true ``velocity`` [rad/s],
+        keeping the time and the noise sequence (a simulation that starts a segment in
+        motion, or continues a run computed elsewhere, moves the state only). With backlash
+        the load is put in the middle of the dead band, as at :meth:`reset`. The sensors
+        are refreshed with the current noise sample: no draw, so the sequence a run sees
+        does not depend on how often its state was set."""
+        self._e = float(position) - self.contact_position
+        self._dq = float(velocity)
+        self._load_e = self._e
+        self._side = 0
+        q = self._e + self.contact_position
+        c = self._count
+        self.position = round(q / c) * c if c else q
+        self.velocity = self._dq + self.velocity_noise * self._noise_value
 
     @property
     def time(self) -> float:
@@ -312,6 +334,11 @@ class Plant:
 
     # -- integration ----------------------------------------------------------
 
+    def matrices(self, dt: float) -> StepMatrices:
+        """The ZOH matrices, sub-step and Karnopp band :meth:`step` uses for a call of
+        ``dt`` seconds (computed once per ``dt``, then cached)."""
+        return self._load(dt)
+
     def prepare(self, dt: float) -> None:
         """Compute the ZOH matrices of ``dt`` now (the first :meth:`step` of a new ``dt``
         otherwise does it: four matrix exponentials, tens of ms on a loaded machine)."""
@@ -332,7 +359,7 @@ class Plant:
         self._t = t0 + dt
         self._sense()
 
-    def _exact_step(self, w: float, zoh: _Step) -> bool:
+    def _exact_step(self, w: float, zoh: StepMatrices) -> bool:
         """One ZOH step in the current mode; False (state untouched) if the mode changed."""
         e, dq = self._e, self._dq
         contact = e >= 0.0
@@ -356,7 +383,7 @@ class Plant:
             return self.disturbance_at(t0 + 0.5 * dt)
         return None
 
-    def _substeps(self, u: float, tau_d: float | None, t0: float, zoh: _Step) -> None:
+    def _substeps(self, u: float, tau_d: float | None, t0: float, zoh: StepMatrices) -> None:
         """``substeps`` ZOH sub-steps; ``tau_d`` the disturbance if constant over the call."""
         e, dq = self._e, self._dq
         h, vs, friction = zoh.h, zoh.stiction, self._friction
@@ -407,7 +434,7 @@ class Plant:
         tau = self.stiffness * load_e + self.damping * dq
         return tau if tau * side >= 0.0 else 0.0
 
-    def _backlash_substeps(self, u: float, tau_d: float | None, t0: float, zoh: _Step) -> None:
+    def _backlash_substeps(self, u: float, tau_d: float | None, t0: float, zoh: StepMatrices) -> None:
         """Sub-steps with the dead band between motor and load (module docstring)."""
         e, dq, load_e, side = self._e, self._dq, self._load_e, self._side
         h, vs, friction, relax = zoh.h, zoh.stiction, self._friction, zoh.relax
@@ -451,7 +478,7 @@ class Plant:
         self._e, self._dq, self._load_e, self._side, self._tau_coulomb = (
             e, dq, load_e, side, tau_c)
 
-    def _load(self, dt: float) -> _Step:
+    def _load(self, dt: float) -> StepMatrices:
         """The ZOH matrices for ``dt`` (cached)."""
         if not dt > 0.0:
             raise ValueError(f"dt: expected > 0 s, got {dt}")
@@ -464,7 +491,7 @@ class Plant:
                   else 2.0 * (self.coulomb_friction + self.stribeck_friction) * h / self.inertia)
             k, d = self.stiffness, self.damping
             relax = math.exp(-k * h / d) if d > 0.0 else (0.0 if k > 0.0 else 1.0)
-            zoh = _Step(free=Propagator.of(self._a_free, self._b_free, dt),
+            zoh = StepMatrices(free=Propagator.of(self._a_free, self._b_free, dt),
                         contact=Propagator.of(self._a_contact, self._b_contact, dt),
                         free_sub=Propagator.of(self._a_free, self._b_free, h),
                         contact_sub=Propagator.of(self._a_contact, self._b_contact, h),
@@ -480,7 +507,11 @@ class Plant:
         c = self._count
         self.position = round(q / c) * c if c else q
         noise = self.velocity_noise
-        self.velocity = self._dq + noise * self._draw() if noise else self._dq
+        if noise:
+            self._noise_value = self._draw()
+            self.velocity = self._dq + noise * self._noise_value
+        else:
+            self.velocity = self._dq
 
     def _draw(self) -> float:
         i = self._noise_index

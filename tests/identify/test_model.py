@@ -1,0 +1,214 @@
+"""The identification's model (dobhil.identify.model): the emulator's Plant, stepped the way
+the lockstep emulator applies delayed commands, and its fast path equal to that reference."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Any
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from threadpoolctl import threadpool_info, threadpool_limits
+
+from dobhil.emulator.plant import Plant
+from dobhil.identify.model import (ModelValues, _simulate_stepping, one_blas_thread,
+                                   simulate_torque)
+
+PERIOD = 1e-3
+
+
+@pytest.mark.parametrize("delay", [0.0, 0.4e-3, 2.0e-3])
+def test_initial_velocity_free_decay_closed_form(delay: float) -> None:
+    """No torque, launched at v0: v0 exp(-b t / J) and q0 + v0 J / b (1 - exp(-b t / J))
+    (closed form, independent of the discretisation), whatever the delay."""
+    j, b, q0, v0 = 0.05, 0.2, -0.4, 2.5
+    n = 300
+    pos, vel = simulate_torque(ModelValues(inertia=j, viscous_friction=b, delay=delay),
+                               np.zeros(n), PERIOD, 0, n, q0, v0)
+    t = np.arange(n) * PERIOD
+    decay = np.exp(-b * t / j)
+    np.testing.assert_allclose(vel, v0 * decay, rtol=1e-12)
+    np.testing.assert_allclose(pos, q0 + v0 * j / b * (1 - decay), rtol=1e-12, atol=1e-14)
+
+
+def test_initial_velocity_against_coulomb_friction_stops_at_the_closed_form_time() -> None:
+    """Coulomb friction alone (b = 0) decelerates v0 at F_c / J: at rest by t = J v0 / F_c,
+    after q0 + J v0^2 / (2 F_c), and stays there (no torque)."""
+    j, fc, q0, v0 = 0.1, 0.5, 0.0, 1.0
+    n = 400
+    pos, vel = simulate_torque(ModelValues(inertia=j, coulomb_friction=fc), np.zeros(n),
+                               PERIOD, 0, n, q0, v0)
+    stop = j * v0 / fc                                # 0.2 s
+    k = int(stop / PERIOD)
+    np.testing.assert_allclose(vel[:k - 2], v0 - fc / j * np.arange(k - 2) * PERIOD, rtol=1e-9)
+    assert np.all(vel[k + 2:] == 0.0)
+    # the Karnopp band stops the servo within one sub-step of the exact time
+    assert pos[-1] == pytest.approx(q0 + j * v0 ** 2 / (2 * fc), abs=v0 * PERIOD / 10)
+    assert math.isfinite(pos[-1])
+
+
+# -- the fast path equals stepping the Plant ----------------------------------------------
+
+def _torque(style: str, n: int, seed: int, amplitude: float, offset: float) -> np.ndarray:
+    """Excitations that exercise every event of the Plant: PRBS levels (frequent velocity
+    reversals), a few sines (slow ones), steps with rests below the Coulomb level and at
+    zero (sticking, breakaway), and an offset that reverses (pressing into the
+    environment, pulling out of it, pressing again)."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(n) * PERIOD
+    if style == "prbs":
+        clock = int(rng.integers(1, 8))
+        levels = np.sign(rng.standard_normal(n // clock + 1)).repeat(clock)[:n]
+        return offset + amplitude * levels
+    if style == "sines":
+        freqs = rng.uniform(0.5, 30.0, 4)
+        phases = rng.uniform(0.0, 2 * np.pi, 4)
+        return offset + amplitude / 2 * np.sin(2 * np.pi * freqs[:, None] * t
+                                                + phases[:, None]).sum(axis=0)
+    if style == "steps":
+        edges = np.sort(rng.integers(0, n, 8))
+        u = np.zeros(n)
+        for lo, hi in zip(edges[:-1], edges[1:]):
+            u[lo:hi] = amplitude * rng.choice([0.0, 0.1, -0.2, 1.0, -1.0, 3.0])
+        return offset + u
+    # "reverse": press, pull out, press again, with a ripple
+    sign = np.where((t > t[-1] / 3) & (t < 2 * t[-1] / 3), -1.0, 1.0)
+    return offset * sign + amplitude * np.sin(2 * np.pi * 7.0 * t)
+
+
+@st.composite
+def _cases(draw: st.DrawFn) -> tuple[ModelValues, np.ndarray, int, int, float, float]:
+    inertia = draw(st.floats(0.01, 1.0))
+    viscous = draw(st.sampled_from([0.0, draw(st.floats(0.001, 2.0))]))
+    coulomb = draw(st.sampled_from([0.0, draw(st.floats(0.005, 0.5))]))
+    period = PERIOD
+    delay = draw(st.sampled_from([0.0, 1.0, 2.0, draw(st.floats(0.05, 0.95)),
+                                  draw(st.floats(1.05, 2.95))])) * period
+    style = draw(st.sampled_from(["prbs", "sines", "steps", "reverse"]))
+    n = draw(st.integers(2, 1500))
+    start = draw(st.integers(0, 20))
+    amplitude = draw(st.floats(0.05, 2.0))
+    seed = draw(st.integers(0, 2 ** 16))
+    q0 = draw(st.floats(-1.0, 1.0))
+    v0 = draw(st.sampled_from([0.0, draw(st.floats(-2.0, 2.0))]))
+    if draw(st.booleans()):       # an environment
+        stiffness = draw(st.floats(1e3, 1e5))
+        damping = draw(st.floats(0.0, 100.0))
+        offset = draw(st.floats(0.0, 3.0))
+        # start pressed (in equilibrium with the offset) or just short of the contact
+        inside = draw(st.booleans())
+        qc = q0 - offset / stiffness if inside else q0 + draw(st.floats(1e-6, 1e-2))
+        values = ModelValues(inertia=inertia, viscous_friction=viscous,
+                             coulomb_friction=coulomb, contact_position=qc,
+                             stiffness=stiffness, damping=damping, delay=delay)
+    else:
+        offset = draw(st.floats(-0.5, 0.5))
+        values = ModelValues(inertia=inertia, viscous_friction=viscous,
+                             coulomb_friction=coulomb, delay=delay)
+    gain = draw(st.sampled_from([1.0, draw(st.floats(0.5, 2.0))]))
+    values = dataclasses.replace(values, torque_gain=gain)
+    torque = _torque(style, start + n, seed, amplitude, offset)
+    return values, torque, start, start + n, q0, v0
+
+
+def _assert_same(fast: tuple[np.ndarray, np.ndarray], ref: tuple[np.ndarray, np.ndarray],
+                 q0: float) -> None:
+    """Equal to 1e-9 of the motion's scale (positions relative to the start)."""
+    for got, want, base in ((fast[0], ref[0], q0), (fast[1], ref[1], 0.0)):
+        scale = float(np.max(np.abs(want - base)))
+        np.testing.assert_allclose(got - base, want - base, rtol=0, atol=1e-9 * scale + 1e-15)
+
+
+@settings(max_examples=80, deadline=None)
+@given(_cases())
+def test_fast_path_equals_stepping_the_plant(case: tuple[ModelValues, np.ndarray, int, int,
+                                                         float, float]) -> None:
+    """simulate_torque (spans run as one linear recursion, the Plant stepped at the
+    events only) gives the numbers of stepping the Plant call by call: free and in contact,
+    with and without Coulomb friction, delays of whole samples, fractions and none, at rest
+    or moving at the start, records that stick, reverse, break away, leave the contact."""
+    values, torque, start, stop, q0, v0 = case
+    ref = _simulate_stepping(values, torque, PERIOD, start, stop, q0, v0)
+    fast = simulate_torque(values, torque, PERIOD, start, stop, q0, v0)
+    _assert_same(fast, ref, q0)
+
+
+@pytest.mark.parametrize("substeps", [1, 3, 10])
+@pytest.mark.parametrize("style", ["prbs", "sines", "steps", "reverse"])
+def test_fast_path_equals_stepping_for_other_substeps_and_long_records(substeps: int,
+                                                                      style: str) -> None:
+    """Long records (20 s: windows of every length, precomputed responses far from their
+    start) with friction, in contact and out, and the sub-step count the caller chose."""
+    n = 20_000
+    for values, offset, q0 in (
+            (ModelValues(inertia=0.25, viscous_friction=0.02, coulomb_friction=0.05,
+                         delay=0.4e-3), 0.0, 0.3),
+            (ModelValues(inertia=0.25, viscous_friction=0.02, coulomb_friction=0.05,
+                         contact_position=0.0, stiffness=1e4, damping=50.0, delay=1.0e-3),
+             1.0, 1.0e-4)):
+        torque = _torque(style, n, 7, 0.5, offset)
+        ref = _simulate_stepping(values, torque, PERIOD, 0, n, q0, 0.1, substeps=substeps)
+        fast = simulate_torque(values, torque, PERIOD, 0, n, q0, 0.1, substeps=substeps)
+        _assert_same(fast, ref, q0)
+
+
+def test_the_fast_path_does_not_step_the_plant_through_a_sliding_record(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """A free multisine with Coulomb friction: the Plant steps only the samples with an
+    event (velocity reversals), a small part of the record -- the point of the fast path
+    (counted, not timed)."""
+    n = 20_000
+    stepped = 0
+    original = Plant.step
+
+    def counting(self: Plant, torque_nm: float, dt: float) -> None:
+        nonlocal stepped
+        stepped += 1
+        original(self, torque_nm, dt)
+
+    monkeypatch.setattr(Plant, "step", counting)
+    values = ModelValues(inertia=0.25, viscous_friction=0.02, coulomb_friction=0.05)
+    torque = _torque("sines", n, 3, 0.5, 0.0)
+    pos, vel = simulate_torque(values, torque, PERIOD, 0, n, 0.0)
+    reversals = int(np.count_nonzero(np.diff(np.sign(vel)) != 0))
+    assert reversals > 10
+    assert stepped <= 4 * reversals + 10 < n // 20
+
+
+def _blas_threads() -> list[int]:
+    return [lib["num_threads"] for lib in threadpool_info() if lib["user_api"] == "blas"]
+
+
+def test_one_blas_thread_limits_nests_and_restores() -> None:
+    """Inside one_blas_thread (and simulate_torque) every BLAS pool threadpoolctl sees has one
+    thread; nested uses keep it; the outermost exit restores what was there before (two
+    threads, set here so the test means something whatever OPENBLAS_NUM_THREADS says)."""
+    with threadpool_limits(limits=2, user_api="blas"):
+        _check_one_blas_thread()
+
+
+def _check_one_blas_thread() -> None:
+    before = _blas_threads()
+    assert before and set(before) == {2}    # numpy's and scipy's OpenBLAS are loaded
+    seen: list[list[int]] = []
+    original = Plant.matrices
+
+    def spying(self: Plant, dt: float) -> Any:
+        seen.append(_blas_threads())
+        return original(self, dt)
+
+    with one_blas_thread():
+        assert set(_blas_threads()) == {1}
+        with one_blas_thread():
+            assert set(_blas_threads()) == {1}
+        assert set(_blas_threads()) == {1}
+    assert _blas_threads() == before
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(Plant, "matrices", spying)
+        simulate_torque(ModelValues(inertia=0.3, viscous_friction=0.123456), np.ones(10),
+                        PERIOD, 0, 10, 0.0)
+    assert seen and all(set(s) == {1} for s in seen)   # the ZOH ran on one thread
+    assert _blas_threads() == before
