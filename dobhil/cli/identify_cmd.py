@@ -88,7 +88,7 @@ def _figures(result: Any, data: Any, parts: Any, out: Path) -> list[Path]:
         t = data.t[s] - part.offset * data.period
         title = f"{part.source}: {seg.kind} segment {t0:.3f}-{t1:.3f} s"
         written.append(measured_vs_model(t, (data.position[s], data.velocity[s]), simulate(values, data, seg),
-                                         title, out / f"identify_segment_{i}.png"))
+                                         title, out / f"identify_segment_{i}.png", torque=data.torque[s]))
     return written
 
 
