@@ -308,3 +308,26 @@ def test_matrices_are_what_step_uses() -> None:
     assert (m.free_sub.p11, m.free_sub.g0) == (float(phi[1, 1]), float(gamma[0, 0]))
     assert m.h == DT / 10
     assert m.stiction == 2 * 0.1 * (DT / 10) / plant.inertia
+
+
+@pytest.mark.parametrize("environment", [False, True])
+def test_coulomb_loop_is_the_general_loop_bit_for_bit(environment: bool) -> None:
+    """The written-out Coulomb sub-step loop gives the general loop's numbers exactly:
+    sliding, sticking, breaking away, in and out of contact."""
+    rng = np.random.default_rng(11)
+    press = 2.5 if environment else 0.0      # into the environment, and out now and then
+    torques = np.concatenate([press + rng.uniform(-3, 3, 300), np.full(50, 0.05), np.zeros(50),
+                              rng.choice([-2.0, 2.0], 300)]).tolist()
+    plants = [Plant(inertia=0.2, viscous_friction=0.1, coulomb_friction=0.3,
+                    stiffness=1e4 if environment else 0.0, damping=30.0 if environment else 0.0,
+                    contact_position=0.0 if environment else 10.0) for _ in range(2)]
+    plants[1]._coulomb_only = False          # the general loop (what Stribeck takes)
+    states = [], []
+    for u in torques:
+        for plant, seen in zip(plants, states):
+            plant.step(u, DT)
+            seen.append((plant.true_position, plant.true_velocity, plant.friction_torque))
+    assert states[0] == states[1]
+    assert any(s[1] == 0.0 for s in states[0][300:])                 # it stuck
+    if environment:
+        assert any(s[0] >= 0.0 for s in states[0]) and any(s[0] < 0.0 for s in states[0])

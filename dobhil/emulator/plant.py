@@ -192,6 +192,8 @@ class Plant:
         self.backlash = float(backlash)
         # any friction sends every call through the sub-steps
         self._friction = self.coulomb_friction != 0.0 or self.stribeck_friction != 0.0
+        # no Stribeck peak: the sub-steps take the written-out loop (_coulomb_substeps)
+        self._coulomb_only = self.stribeck_friction == 0.0
         self.torque_limit = float(torque_limit)
         self.stiffness = float(stiffness)
         self.damping = float(damping)
@@ -385,6 +387,9 @@ class Plant:
 
     def _substeps(self, u: float, tau_d: float | None, t0: float, zoh: StepMatrices) -> None:
         """``substeps`` ZOH sub-steps; ``tau_d`` the disturbance if constant over the call."""
+        if tau_d is not None and self._coulomb_only:
+            self._coulomb_substeps(u - tau_d, zoh)
+            return
         e, dq = self._e, self._dq
         h, vs, friction = zoh.h, zoh.stiction, self._friction
         k = self.stiffness
@@ -402,6 +407,39 @@ class Plant:
             p = pc if contact else pf
             e, dq = (p.p00 * e + p.p01 * dq + p.g0 * w,
                      p.p10 * e + p.p11 * dq + p.g1 * w)
+        self._e, self._dq, self._tau_coulomb = e, dq, tau_c
+
+    def _coulomb_substeps(self, w0: float, zoh: StepMatrices) -> None:
+        """:meth:`_substeps` when the disturbance is constant over the call and the friction
+        is Coulomb's alone (or none): the same arithmetic in the same order, with
+        :meth:`_friction_at`'s decision (``F_St = 0``) written out and the propagators
+        unpacked into locals. The hot loop of the emulator with friction and of the
+        identification's model at its events: about twice as fast as the general loop
+        (measured), bit for bit the same (tested against it)."""
+        e, dq = self._e, self._dq
+        vs, fc, k, friction = zoh.stiction, self.coulomb_friction, self.stiffness, self._friction
+        c, f = zoh.contact_sub, zoh.free_sub
+        c00, c01, c10, c11, cg0, cg1 = c.p00, c.p01, c.p10, c.p11, c.g0, c.g1
+        f00, f01, f10, f11, fg0, fg1 = f.p00, f.p01, f.p10, f.p11, f.g0, f.g1
+        tau_c = 0.0
+        for _ in range(self.substeps):
+            w = w0
+            contact = e >= 0.0
+            if friction:
+                if dq > vs or dq < -vs:
+                    tau_c = fc if dq > 0.0 else -fc
+                else:
+                    rest = w - k * e if contact else w
+                    if -fc <= rest <= fc:      # friction balances the torque: stuck
+                        tau_c = rest
+                        dq = 0.0
+                        continue
+                    tau_c = fc if rest > 0.0 else -fc
+                w -= tau_c
+            if contact:
+                e, dq = c00 * e + c01 * dq + cg0 * w, c10 * e + c11 * dq + cg1 * w
+            else:
+                e, dq = f00 * e + f01 * dq + fg0 * w, f10 * e + f11 * dq + fg1 * w
         self._e, self._dq, self._tau_coulomb = e, dq, tau_c
 
     def _friction_at(self, dq: float, f: float, vs: float) -> tuple[float, bool]:

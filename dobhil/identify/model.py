@@ -77,13 +77,19 @@ class ModelValues:
 
 _LOCAL = threading.local()
 
-#: window lengths (samples) of the fast simulation: the first, the smallest after an event
-#: (4 x what the last window kept) and the largest (doubling while whole windows hold)
+#: span lengths (samples) of the fast simulation: the first and the smallest after an event
+#: (twice what the last span kept), the largest (doubling while whole spans hold)
 _MIN_WINDOW = 64
 _MAX_WINDOW = 16384
 #: a span holding fewer samples than this costs more than stepping them (measured: one
-#: span's array operations ~ 100 us, one sample of Plant.step with friction ~ 20 us)
+#: span's array operations ~ 50-150 us, one sample of Plant.step with friction ~ 10-20 us);
+#: after one the Plant steps 8, 16, .. up to _MAX_BACKOFF samples before the next attempt,
+#: so a record with events every few samples costs about what stepping it costs
 _SHORT_SPAN = 8
+_MAX_BACKOFF = 1024
+#: decisions within this fraction of the states' scale of their threshold are ties (rounding
+#: decides them: the Plant steps that sample)
+_TIE = 1e-11
 
 
 def _plant(inertia: float, viscous: float, coulomb: float, stiffness: float, damping: float,
@@ -237,6 +243,7 @@ class _Linear:
     check_w: np.ndarray    # rows x calls
     check_s: np.ndarray    # rows
     band: np.ndarray       # velocity rows' Karnopp bands
+    band_max: float
 
 
 def _linear(plant: Plant, calls: tuple[float, ...], contact: bool, friction: bool,
@@ -273,7 +280,7 @@ def _linear(plant: Plant, calls: tuple[float, ...], contact: bool, friction: boo
     return _Linear(a=affine[:, :2].copy(), b=affine[:, 2:2 + ncalls].copy(),
                    q=affine[:, 2 + ncalls].copy(), check_x=rows[:, :2].copy(),
                    check_w=rows[:, 2:2 + ncalls].copy(), check_s=rows[:, 2 + ncalls].copy(),
-                   band=band)
+                   band=band, band_max=float(band.max(initial=0.0)))
 
 
 def _matrix(p: Propagator) -> np.ndarray:
@@ -357,7 +364,9 @@ class _FastSimulation:
         self.modes = plant.stiffness != 0.0 or plant.damping != 0.0
         self._linear: dict[bool, _Linear] = {}
         self._forced: dict[tuple[bool, float], np.ndarray] = {}
-        self._powers: dict[bool, np.ndarray] = {}
+        self._powers: dict[bool, tuple[np.ndarray, np.ndarray]] = {}
+        self._scale: dict[tuple[bool, float], tuple[float, float]] = {}
+        self._checks: dict[tuple[bool, float], tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
 
     def linear(self, contact: bool) -> _Linear:
         lin = self._linear.get(contact)
@@ -377,19 +386,36 @@ class _FastSimulation:
             if sign:
                 r += sign * lin.q
             f = self._forced[key] = _propagate(lin.a, (0.0, 0.0), r)
+            self._scale[key] = (float(np.max(np.abs(f[:, 0]))), float(np.max(np.abs(f[:, 1]))))
         return f
 
-    def powers(self, contact: bool) -> np.ndarray:
-        """``a^j`` for ``j = 0 .. steps`` (``[j, :, col]``)."""
+    def powers(self, contact: bool) -> tuple[np.ndarray, np.ndarray]:
+        """The columns of ``a^j`` for ``j = 0 .. steps``: ``a^j [1, 0]`` and ``a^j [0, 1]``
+        (rows)."""
         p = self._powers.get(contact)
         if p is None:
             a = self.linear(contact).a
             zero = np.zeros((len(self.w), 2))
-            p = np.empty((len(self.w) + 1, 2, 2))
-            p[:, :, 0] = _propagate(a, (1.0, 0.0), zero)
-            p[:, :, 1] = _propagate(a, (0.0, 1.0), zero)
-            p = self._powers[contact] = p
+            p = self._powers[contact] = (_propagate(a, (1.0, 0.0), zero),
+                                         _propagate(a, (0.0, 1.0), zero))
         return p
+
+    def checks(self, contact: bool, sign: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The decision rows of :class:`_Linear` arranged so that every test is ``> 0``
+        (sliding: ``sign dq - band``) or ``>= 0`` (the contact mode: ``e``, negated in free
+        motion, where ``e < 0`` must hold): state part, torque part, constant."""
+        key = (contact, sign)
+        c = self._checks.get(key)
+        if c is None:
+            lin = self.linear(contact)
+            nv = len(lin.band)
+            scale = np.concatenate([np.full(nv, sign),
+                                    np.full(len(lin.check_s) - nv, 1.0 if contact else -1.0)])
+            const = scale * sign * lin.check_s
+            const[:nv] -= lin.band
+            c = self._checks[key] = (lin.check_x * scale[:, None], lin.check_w * scale[:, None],
+                                     const)
+        return c
 
     def run(self, e0: float, v0: float) -> tuple[np.ndarray, np.ndarray]:
         """Position and velocity at every sample from ``e0`` (relative to the contact) and
@@ -430,8 +456,9 @@ class _FastSimulation:
             if k < steps:               # an event inside sample k: the Plant steps it
                 e, dq = self._plant_steps(k, 1, e, dq, e_out, v_out)
                 k += 1
-            # back off while spans are short: step 8, 16, .. 128 samples between attempts
-            backoff = 0 if held >= _SHORT_SPAN else min(max(2 * backoff, _SHORT_SPAN), 128)
+            # back off while spans are short: step 8, 16, .. samples between attempts
+            backoff = (0 if held >= _SHORT_SPAN
+                       else min(max(2 * backoff, _SHORT_SPAN), _MAX_BACKOFF))
             plain = backoff
         return e_out + self.qc, v_out
 
@@ -442,6 +469,12 @@ class _FastSimulation:
         plant, qc, calls = self.plant, self.qc, self.calls
         plant.set_state(e + qc, dq)
         step = plant.step
+        if count == 1:                  # the common case (one event): no lists
+            for c, dt in enumerate(calls):
+                step(float(self.w[k, c]), dt)
+            e, dq = plant.true_position - qc, plant.true_velocity
+            e_out[k + 1], v_out[k + 1] = e, dq
+            return e, dq
         e_list: list[float] = []
         v_list: list[float] = []
         if len(calls) == 1:
@@ -487,20 +520,25 @@ class _FastSimulation:
         sign = (1.0 if dq > 0.0 else -1.0) if self.friction else 0.0
         lin = self.linear(contact)
         f = self.forced(contact, sign)
-        p = self.powers(contact)[1:length + 1]
+        p0, p1 = self.powers(contact)
         d0, d1 = e - f[k, 0], dq - f[k, 1]
-        x = f[k + 1:k + length + 1] + p[:, :, 0] * d0 + p[:, :, 1] * d1
-        starts = np.empty((length, 2))
-        starts[0] = (e, dq)
-        starts[1:] = x[:-1]
-        z = starts @ lin.check_x.T + self.w[k:k + length] @ lin.check_w.T
-        if sign:
-            z += sign * lin.check_s
+        # x[k + j] = F[k + j] + a^j (x[k] - F[k]), j = 0 .. length (row 0: x[k] itself)
+        x = f[k:k + length + 1] + p0[:length + 1] * d0 + p1[:length + 1] * d1
+        x[0] = (e, dq)
+        cx, cw, const = self.checks(contact, sign)
+        z = x[:-1] @ cx.T + self.w[k:k + length] @ cw.T
+        z += const
         nv = len(lin.band)
-        ok = np.ones(length, bool)
-        if nv:                           # sliding: beyond the band, the sign held
-            ok &= np.all(sign * z[:, :nv] > lin.band, axis=1)
+        # a decision this close to its threshold is a tie that rounding decides: the
+        # superposition rounds differently from the Plant's sub-steps (by a few eps of the
+        # largest state involved), so such a sample goes to the Plant
+        fe, fv = self._scale[(contact, sign)]
+        tie_v = _TIE * (fv + abs(dq) + lin.band_max)
+        tie_e = _TIE * (fe + abs(e))
+        # sliding beyond the band with the span's sign; in contact e >= 0, free e < 0 (the
+        # rows are arranged so that both read "> 0", see checks)
+        bad_rows = (z[:, :nv] <= tie_v).any(axis=1)
         if self.modes:
-            ok &= np.all((z[:, nv:] >= 0.0) == contact, axis=1)
-        bad = np.flatnonzero(~ok)
-        return x, int(bad[0]) if len(bad) else length
+            bad_rows |= (z[:, nv:] <= tie_e).any(axis=1)
+        first = int(np.argmax(bad_rows))
+        return x[1:], first if bad_rows[first] else length
