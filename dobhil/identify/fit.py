@@ -7,12 +7,17 @@ What is fitted, and why so:
   is simulated from each segment's start, never fed the noisy measurements, so the
   sensor noise does not bias the estimates). The position is not a residual: its
   quantisation error is correlated whenever the servo moves slowly, which would make the
-  intervals too narrow; it still sets each segment's initial position;
-- the free parameters are bounded lmfit Parameters; lmfit's Levenberg-Marquardt gives the
-  standard errors and correlations (covariance scaled by the reduced chi-square: the noise
-  level is estimated from the fit). A 95 % interval is ``value +- z stderr`` unless that
-  leaves the bounds: then lmfit's profile likelihood (:func:`lmfit.conf_interval`) gives
-  the asymmetric interval;
+  intervals too narrow;
+- each segment's initial state is fitted too (nuisance parameters, not reported): its
+  velocity (a segment found in a run starts moving, and a reading is noisy) and, in
+  contact, its position within the encoder's count (half a count is a large spring
+  torque); see "each segment's initial state" below;
+- the free parameters are bounded lmfit Parameters fitted by lmfit's Levenberg-Marquardt,
+  then refined by Gauss-Newton steps on a Jacobian whose steps are the standard errors
+  themselves (:func:`_refine`: the cost is rough on MINPACK's scale); the covariance is
+  ``s^2 (J^T J)^-1`` of that Jacobian, ``s^2`` the velocity residual's variance. A 95 %
+  interval is ``value +- z stderr``, cut at a bound the parameter cannot pass (a friction
+  or delay of 0);
 - the delay is one continuous parameter ``delay = whole T + fraction`` (the model is
   continuous in it: a fraction of a whole period is the next whole sample); a grid search
   over half periods up to ``max_delay_samples`` picks where the local fit starts, so a
@@ -21,16 +26,20 @@ What is fitted, and why so:
   stiffness, damping and gain scaled together give the same motion): it is held at 1 and
   reported not identifiable. Without a contact segment the environment (stiffness,
   damping, contact position) is not fitted and reported not identifiable; a parameter
-  whose 95 % interval is wider than its own value (friction: than 1 % of the torque the
-  record used) has a flat profile and is reported not identifiable too;
+  whose 95 % interval is wider than half its value (friction: plus 1 % of the torque the
+  record used; the delay: than a period; the contact position: than the motion in
+  contact) has a flat profile and is reported not identifiable too, naming the parameter
+  it is confounded with (a contact-only record: viscous friction and environment damping
+  act as their sum);
 - the residual's whiteness is the Ljung-Box test; a p-value below :data:`MISFIT_P` is a
-  misfit: the model cannot represent the record and the numbers are not to be trusted.
+  misfit: the model cannot represent the record and the numbers are not to be trusted --
+  unless the residual is below :data:`NOISE_FLOOR` of the velocity (noise-free data: the
+  residual is rounding, coloured but no model error).
 """
 
 from __future__ import annotations
 
 import math
-import warnings
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -42,8 +51,8 @@ import scipy.stats
 from dobhil.identify.data import IdentData, Segment
 from dobhil.identify.model import ModelValues, simulate_torque, split_delay
 
-__all__ = ["MISFIT_P", "PARAMETERS", "Estimate", "IdentResult", "Residual", "identify",
-           "simulate"]
+__all__ = ["MISFIT_P", "NOISE_FLOOR", "PARAMETERS", "WIDEST", "Estimate", "IdentResult",
+           "Residual", "identify", "simulate"]
 
 PARAMETERS = ("inertia", "viscous_friction", "coulomb_friction", "torque_gain",
               "contact_position", "stiffness", "damping", "delay")   # delay [s] = whole + fraction
@@ -54,6 +63,11 @@ MISFIT_P = 1e-3
 WHITENESS_LAGS = 20
 #: confidence level of the intervals
 LEVEL = 0.95
+#: a 95 % interval wider than this fraction of the value either side is no number: the
+#: linearised interval is not to be trusted that far (measured: a barely moving contact
+#: record fitted to J = 0.0027 for 0.25 gave K = 1125 +- 790 for 1e4, the truth's cost
+#: only 3.2 noise variances above the fit's -- another valley, not the interval's)
+WIDEST = 0.5
 
 _ENVIRONMENT = ("contact_position", "stiffness", "damping")
 _EPSFCN = 1e-7
@@ -91,6 +105,9 @@ class IdentResult:
     residual: Residual
     segments: tuple[Segment, ...]
     period: float = math.nan   # [s] of the record (splits the delay into whole samples and fraction)
+    #: per segment, the fitted true ``(position, velocity)`` at its first sample (the
+    #: measured ones are quantised and noisy): pass to :func:`simulate` as ``initial``
+    initial: tuple[tuple[float, float], ...] = ()
 
     def overlay(self) -> dict[str, Any]:
         """The config overlay of the identifiable values: ``plant.*``, ``environment.*``,
@@ -114,17 +131,20 @@ class IdentResult:
         return out
 
 
-def simulate(values: Mapping[str, float], data: IdentData,
-             segment: Segment) -> tuple[np.ndarray, np.ndarray]:
+def simulate(values: Mapping[str, float], data: IdentData, segment: Segment,
+             initial: tuple[float, float] | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Position and velocity [rad, rad/s] of the model ``values`` (names of
     :data:`PARAMETERS`; missing ones: no friction, gain 1, no environment, no delay) over
-    ``segment`` of ``data``, driven by ``data.torque``, from rest at the measured position
-    of the segment's first sample. A free segment is simulated without the environment: it
-    is out of reach there (a free run need not be where the contact run was)."""
-    if segment.kind == "free":
+    ``segment`` of ``data``, driven by ``data.torque``, from ``initial`` (true position and
+    velocity at the segment's first sample, :attr:`IdentResult.initial`; default: at rest
+    at the measured position). A free segment is simulated without the environment (it is
+    free by definition; records joined from several runs put their free motion anywhere,
+    also where another run's environment was)."""
+    if segment.kind != "contact":
         values = {k: v for k, v in values.items() if k not in _ENVIRONMENT}
+    q0, v0 = initial if initial is not None else (float(data.position[segment.start]), 0.0)
     return simulate_torque(_model(values), data.torque, data.period, segment.start,
-                           segment.stop, float(data.position[segment.start]))
+                           segment.stop, q0, v0)
 
 
 def _model(values: Mapping[str, float]) -> ModelValues:
@@ -139,15 +159,61 @@ def _model(values: Mapping[str, float]) -> ModelValues:
                        delay=float(get("delay", 0.0)))
 
 
+# -- each segment's initial state: nuisance parameters -------------------------------------
+#
+# A segment cut from a run starts moving, at a quantised position and a noisy velocity:
+# simulating it from those readings puts their errors into every parameter (half a count
+# of an encoder at K = 1e4 N m/rad is a 2 N m spring error: measured, the contact position
+# 3-6 standard errors off). So each segment's true initial velocity is fitted, and each
+# contact segment's true initial position, within what the encoder says: the velocity
+# residual sees only the penetration q0 - q_c, so one more row per contact segment,
+# ``(q0 - measured) / (count / sqrt 12)`` in units of the velocity noise, ties q0 to its
+# reading with the quantisation's own spread (uniform over a count) -- the contact
+# position's interval then holds the encoder's resolution too, as it must.
+
+
+def _q0(i: int) -> str:
+    return f"initial_position_{i}"
+
+
+def _v0(i: int) -> str:
+    return f"initial_velocity_{i}"
+
+
+def _quantum(position: np.ndarray) -> float:
+    """The encoder count of a quantised position record (every step a whole multiple of
+    the smallest one), else 0 (a continuous position)."""
+    steps = np.abs(np.diff(np.asarray(position, float)))
+    scale = max(float(np.max(np.abs(position))), 1.0) if len(position) else 1.0
+    steps = steps[steps > 1e-12 * scale]
+    if steps.size == 0:
+        return 0.0
+    count = float(np.min(steps))
+    ratio = steps / count
+    return count if float(np.max(np.abs(ratio - np.round(ratio)))) < 1e-3 else 0.0
+
+
+def _initial(values: Mapping[str, float], data: IdentData, i: int,
+             segment: Segment) -> tuple[float, float]:
+    """The initial (position, velocity) of segment ``i``: fitted when a parameter, else
+    the measured position and rest."""
+    q0 = values.get(_q0(i), float(data.position[segment.start]))
+    return float(q0), float(values.get(_v0(i), 0.0))
+
+
 def _residual(params: lmfit.Parameters, data: IdentData, segments: Sequence[Segment],
               fixed: Mapping[str, float]) -> np.ndarray:
-    """Measured minus simulated velocity over every segment, one after the other."""
+    """Measured minus simulated velocity over every segment, one after the other, then
+    the initial positions' ties to their readings (weight ``fixed["prior_weight"]``)."""
     values = {**fixed, **params.valuesdict()}
     parts = []
-    for s in segments:
-        _, vel = simulate(values, data, s)
+    for i, s in enumerate(segments):
+        _, vel = simulate(values, data, s, _initial(values, data, i, s))
         parts.append(np.asarray(data.velocity[s.start:s.stop], float) - vel)
-    return np.concatenate(parts)
+    weight = fixed.get("prior_weight", 0.0)
+    ties = [weight * (values[_q0(i)] - float(data.position[s.start]))
+            for i, s in enumerate(segments) if _q0(i) in values]
+    return np.concatenate([*parts, np.asarray(ties, float)])
 
 
 # -- the start of the fit: an equation-error least squares on smoothed data -------------
@@ -253,23 +319,65 @@ def identify(data: IdentData, segments: Sequence[Segment], *,
     contact = any(s.kind == "contact" for s in segments)
     start = _start(data, segments, contact, max_delay_samples)
     params = _parameters(start, data, segments, max_delay_samples)
+    count = _quantum(data.position)
+    # the ties' weight turns a position error into velocity-noise units: sigma_v / sigma_q,
+    # sigma_v first from the velocity's sample-to-sample scatter (an upper bound), then from
+    # the fit's residual
     fixed = {"torque_gain": 1.0}
+    for i, s in enumerate(segments):
+        params.add(_v0(i), value=float(data.velocity[s.start]))
+    if count > 0.0:
+        for i, s in enumerate(segments):
+            if s.kind == "contact":
+                q = float(data.position[s.start])
+                params.add(_q0(i), value=q, min=q - count, max=q + count)
+        fixed["prior_weight"] = _noise_guess(data, segments) / (count / math.sqrt(12.0))
     minimizer = lmfit.Minimizer(_residual, params, fcn_args=(data, segments, fixed))
     # Levenberg-Marquardt with forward differences of ~3e-4 relative step (epsfcn): stick-slip
     # makes the cost rough on the scale of MINPACK's default step (1.5e-8), which stops the
     # fit short of the optimum; a step above that roughness finds it (tested)
     result = minimizer.minimize(method="leastsq", epsfcn=_EPSFCN)
     result = _search_delay(minimizer, result, data.period)
-    estimates = _estimates(minimizer, result, data, contact)
+    rows = sum(s.stop - s.start for s in segments)
+    if "prior_weight" in fixed:
+        velocity = np.asarray(result.residual, float)[:rows]
+        fixed["prior_weight"] = (float(np.sqrt(np.mean(velocity ** 2)))
+                                 / (count / math.sqrt(12.0)))
+    refined = _refine(minimizer, result, rows)
+    # the refined optimum is the result
+    result.params = refined.params
+    result.residual = refined.residual
+    result.chisqr = float(refined.residual @ refined.residual)
+    velocity_residual = refined.residual[:rows]
+    covariance = refined.covariance
+    estimates = _estimates(minimizer, result, covariance, data, segments)
     fitted = [k for k in PARAMETERS if estimates[k].identifiable]
     correlations: dict[tuple[str, str], float] = {}
-    for a in fitted:
-        for b, c in (result.params[a].correl or {}).items():
-            if b in fitted and PARAMETERS.index(a) < PARAMETERS.index(b):
-                correlations[(a, b)] = float(c)
+    if covariance is not None:
+        names, cov = covariance
+        sd = np.sqrt(np.diag(cov))
+        for i, a in enumerate(names):
+            for j, b in enumerate(names):
+                if a in fitted and b in fitted and PARAMETERS.index(a) < PARAMETERS.index(b):
+                    correlations[(a, b)] = float(np.clip(cov[i, j] / (sd[i] * sd[j]), -1.0, 1.0))
     return IdentResult(estimates=estimates, correlations=correlations,
-                       residual=_whiteness(np.asarray(result.residual, float)),
-                       segments=segments, period=data.period)
+                       residual=_whiteness(velocity_residual, _velocity_rms(data, segments)),
+                       segments=segments, period=data.period,
+                       initial=tuple(_initial(result.params.valuesdict(), data, i, s)
+                                     for i, s in enumerate(segments)))
+
+
+def _noise_guess(data: IdentData, segments: Sequence[Segment]) -> float:
+    """The velocity noise's standard deviation, from above: the RMS of second differences
+    over sqrt 6 (white noise's; the motion's own curvature adds to it)."""
+    v = np.concatenate([np.diff(np.asarray(data.velocity[s.start:s.stop], float), 2)
+                        for s in segments])
+    return float(np.sqrt(np.mean(v ** 2) / 6.0)) or 1e-12
+
+
+def _velocity_rms(data: IdentData, segments: Sequence[Segment]) -> float:
+    v = np.concatenate([np.asarray(data.velocity[s.start:s.stop], float) for s in segments])
+    return float(np.sqrt(np.mean(v ** 2)))
 
 
 def _search_delay(minimizer: lmfit.Minimizer, result: lmfit.minimizer.MinimizerResult,
@@ -301,12 +409,133 @@ def _search_delay(minimizer: lmfit.Minimizer, result: lmfit.minimizer.MinimizerR
     return best
 
 
+# -- the covariance: a Jacobian on the scale of the uncertainty ---------------------------
+
+#: rounds of :func:`_refine` (each: one Jacobian, one Gauss-Newton step)
+_REFINE_ROUNDS = 6
+
+
+@dataclass(frozen=True)
+class _Refined:
+    params: lmfit.Parameters
+    residual: np.ndarray                                    # velocity rows, then the ties
+    covariance: tuple[list[str], np.ndarray] | None         # (names, matrix) of the varied ones
+
+
+def _refine(minimizer: lmfit.Minimizer, result: lmfit.minimizer.MinimizerResult,
+            rows: int) -> _Refined:
+    """Gauss-Newton steps and the covariance ``s^2 (J^T J)^-1`` from the residual's
+    Jacobian ``J`` by central differences whose step is each parameter's own standard
+    error (iterated, from lmfit's); ``s^2`` from the ``rows`` velocity residuals.
+
+    Why not lmfit's optimum and covariance alone: they come from MINPACK's forward
+    differences at ~3e-4 relative (epsfcn). The output-error cost is rough on that scale --
+    every stick, slip and contact change sits on a sub-step, and a parameter moving one of
+    them by a sub-step makes the residual jump -- so a tiny step measures the jumps, not
+    the curvature the interval is about: the delay's standard error came out 13x too
+    small (measured: the cost rises by one noise variance at +-10 us, lmfit said 0.75 us;
+    its interval missed the truth in 12 of 50 runs), and Levenberg-Marquardt stops in a
+    dent of the roughness (a record cut in motion: the truth's cost 10 sigma^2 below the
+    fit's, viscous friction 3.4 standard errors off). A step the size of the standard
+    error is a secant over the interval itself, through the roughness; its Gauss-Newton
+    step (within 3 standard errors, kept only when the cost falls) leaves the dent. No
+    library offers a per-parameter step for a least-squares Jacobian, hence these lines."""
+    params = result.params.copy()
+    names = [n for n, p in params.items() if p.vary]
+    lo = np.array([params[n].min for n in names])
+    hi = np.array([params[n].max for n in names])
+    r0 = np.asarray(result.residual, float)
+    steps = np.array([_first_step(params[n]) for n in names])
+    cov = None
+    for _ in range(_REFINE_ROUNDS):
+        x0 = np.array([params[n].value for n in names])
+        steps = np.minimum(steps, 0.25 * (hi - lo))
+        jac = np.column_stack([_derivative(minimizer, params, n, x, h, a, b)
+                               for n, x, h, a, b in zip(names, x0, steps, lo, hi)])
+        inverse = _inverse_normal(jac)
+        if inverse is None:
+            return _Refined(params, r0, None)
+        velocity = r0[:rows]
+        s2 = float(velocity @ velocity) / max(velocity.size - len(names), 1)
+        cov = s2 * inverse
+        steps = np.sqrt(np.diag(cov))
+        delta = np.clip(-inverse @ (jac.T @ r0), -3.0 * steps, 3.0 * steps)
+        moved = False
+        for scale in (1.0, 0.5):
+            x = np.clip(x0 + scale * delta, lo, hi)
+            trial = params.copy()
+            for n, v in zip(names, x):
+                trial[n].set(value=float(v))
+            r = np.asarray(minimizer.userfcn(trial, *minimizer.userargs), float)
+            if float(r @ r) < float(r0 @ r0):
+                moved = float(r0 @ r0 - r @ r) > 0.01 * s2
+                params, r0 = trial, r
+                break
+        if not moved and _ > 0:
+            break
+    return _Refined(params, r0, (names, cov) if cov is not None else None)
+
+
+def _first_step(p: lmfit.Parameter) -> float:
+    """lmfit's standard error when it has one, else a thousandth of the value or range."""
+    if p.stderr is not None and math.isfinite(p.stderr) and p.stderr > 0:
+        return float(p.stderr)
+    return 1e-3 * (abs(p.value) or (p.max - p.min if math.isfinite(p.max - p.min) else 1.0))
+
+
+def _derivative(minimizer: lmfit.Minimizer, params: lmfit.Parameters, name: str, x: float,
+                h: float, lo: float, hi: float) -> np.ndarray:
+    """d residual / d ``name`` by central differences of step ``h`` (one-sided at a bound)."""
+    a, b = max(x - h, lo), min(x + h, hi)
+    trial = params.copy()
+    trial[name].set(value=a)
+    ra = np.asarray(minimizer.userfcn(trial, *minimizer.userargs), float)
+    trial[name].set(value=b)
+    rb = np.asarray(minimizer.userfcn(trial, *minimizer.userargs), float)
+    return (rb - ra) / (b - a)
+
+
+#: eigenvalues of the scaled normal matrix below this (relative to the largest) are
+#: directions the record does not determine
+_RANK_TOL = 1e-12
+
+
+def _inverse_normal(jac: np.ndarray) -> np.ndarray | None:
+    """``(J^T J)^-1`` with the columns scaled to unit norm first (parameters of very
+    different units); None when the Jacobian is not finite.
+
+    A direction the record does not determine (two parameters acting as their sum, as
+    viscous friction and environment damping do in a contact-only record) has an
+    eigenvalue ~0: it is floored at :data:`_RANK_TOL` of the largest, so the parameters
+    along it get a huge standard error -- reported not identifiable, with the partner
+    named -- while the others keep theirs (a pseudo-inverse would drop the direction and
+    make them all look determined)."""
+    if not np.all(np.isfinite(jac)):
+        return None
+    norms = np.linalg.norm(jac, axis=0)
+    norms = np.where(norms > 0, norms, 1.0)     # a column without effect: eigenvalue 0 below
+    scaled = jac / norms
+    w, v = np.linalg.eigh(scaled.T @ scaled)
+    w = np.maximum(w, _RANK_TOL * max(float(w[-1]), 1e-300))
+    inv = (v / w) @ v.T
+    return inv / np.outer(norms, norms)
+
+
 def _estimates(minimizer: lmfit.Minimizer, result: lmfit.minimizer.MinimizerResult,
-               data: IdentData, contact: bool) -> dict[str, Estimate]:
+               covariance: tuple[list[str], np.ndarray] | None, data: IdentData,
+               segments: Sequence[Segment]) -> dict[str, Estimate]:
+    contact = any(s.kind == "contact" for s in segments)
     z = float(scipy.stats.norm.ppf(0.5 + LEVEL / 2))
     u_max = float(np.max(np.abs(data.torque))) or 1.0
     v_max = float(np.max(np.abs(data.velocity))) or 1.0
-    floors = {"viscous_friction": 0.01 * u_max / v_max, "coulomb_friction": 0.01 * u_max}
+    # a value near 0 is still determined when its interval is narrow on the scale that
+    # matters: friction against the torque the record used, the delay against a period
+    floors = {"viscous_friction": 0.01 * u_max / v_max, "coulomb_friction": 0.01 * u_max,
+              "delay": data.period}
+    # a position has no natural zero: the contact position is determined when its interval
+    # is narrower than the range the servo moved through in contact
+    span = max((float(np.ptp(data.position[s.start:s.stop])) for s in segments
+                if s.kind == "contact"), default=0.0)
     out: dict[str, Estimate] = {}
     for name in PARAMETERS:
         if name == "torque_gain":
@@ -317,41 +546,57 @@ def _estimates(minimizer: lmfit.Minimizer, result: lmfit.minimizer.MinimizerResu
             out[name] = _not(name, "no contact segment in the record")
             continue
         p = result.params[name]
-        value, stderr = float(p.value), p.stderr
+        value = float(p.value)
+        stderr = None
+        if covariance is not None:
+            names, cov = covariance
+            stderr = float(np.sqrt(cov[names.index(name), names.index(name)]))
         if stderr is None or not math.isfinite(stderr):
             out[name] = _not(name, "flat profile: the record does not determine it "
                                    "(singular covariance)")
             continue
         half = z * float(stderr)
-        if half > abs(value) + floors.get(name, 0.0):
+        if name == "contact_position" and half > span:
             out[name] = _not(name, f"flat profile: the 95 % interval (+-{half:.3g}) is wider "
-                                   f"than the value ({value:.3g})")
+                                   f"than the motion in contact ({span:.3g})"
+                                   + _partner(name, covariance))
             continue
-        low, high = value - half, value + half
-        if low < p.min or high > p.max:
-            low, high = _profile(minimizer, result, name, low, high)
+        if name != "contact_position" and half > WIDEST * abs(value) + floors.get(name, 0.0):
+            out[name] = _not(name, f"flat profile: the 95 % interval (+-{half:.3g}) is wider "
+                                   f"than {WIDEST:g} of the value ({value:.3g})"
+                                   + _partner(name, covariance))
+            continue
+        # at a bound (a friction or a delay that may be 0) the interval ends there: the
+        # truth cannot lie beyond it. Not lmfit's profile likelihood (conf_interval): it
+        # refits every parameter at each of its trial points with MINPACK's tiny steps, which
+        # stall in the cost's roughness ("rel_change=0.0" warnings) and took 171 s for the
+        # delay of one 2 s record (measured); inside the bounds the linearised interval on
+        # the secant Jacobian (_refine) is what the coverage test checks
+        low, high = max(value - half, p.min), min(value + half, p.max)
         out[name] = Estimate(name=name, value=value, stderr=float(stderr), low=low, high=high,
                              identifiable=True, why="")
     return out
 
 
-def _profile(minimizer: lmfit.Minimizer, result: lmfit.minimizer.MinimizerResult, name: str,
-             low: float, high: float) -> tuple[float, float]:
-    """The profile-likelihood interval of ``name`` (lmfit's F-test on the chi-square),
-    for a parameter whose symmetric interval leaves its bounds; the symmetric one clipped
-    to the bounds if the profile cannot be traced."""
-    p = result.params[name]
-    try:
-        with warnings.catch_warnings():
-            # lmfit warns when the profile reaches a bound before the level: the interval
-            # then ends at that bound (a friction that may be 0), which is what we report
-            warnings.filterwarnings("ignore", message="Bound reached", category=UserWarning)
-            ci = lmfit.conf_interval(minimizer, result, p_names=[name], sigmas=[LEVEL])
-    except (lmfit.minimizer.MinimizerException, ValueError, RuntimeError):
-        return max(low, p.min), min(high, p.max)
-    values = [v for _, v in ci[name]]
-    lo, hi = float(values[0]), float(values[-1])
-    return (lo if math.isfinite(lo) else max(low, p.min)), (hi if math.isfinite(hi) else min(high, p.max))
+#: a correlation beyond this names the partner of a parameter that is not identifiable
+_CONFOUNDED = 0.95
+
+
+def _partner(name: str, covariance: tuple[list[str], np.ndarray] | None) -> str:
+    """``; only a combination with X is determined (correlation r)`` for the parameter
+    most correlated with ``name``, when beyond :data:`_CONFOUNDED`; else empty."""
+    if covariance is None:
+        return ""
+    names, cov = covariance
+    i = names.index(name)
+    sd = np.sqrt(np.diag(cov))
+    r = cov[i] / (sd[i] * sd)
+    r[i] = 0.0
+    j = int(np.argmax(np.abs(r)))
+    if not abs(r[j]) > _CONFOUNDED:
+        return ""
+    return (f"; only a combination with {names[j]} is determined (correlation {r[j]:+.3f}): "
+            "the record does not separate them")
 
 
 def _not(name: str, why: str) -> Estimate:
@@ -359,14 +604,21 @@ def _not(name: str, why: str) -> Estimate:
     return Estimate(name=name, value=nan, stderr=nan, low=nan, high=nan, identifiable=False, why=why)
 
 
-def _whiteness(r: np.ndarray, lags: int = WHITENESS_LAGS) -> Residual:
-    """RMS and the Ljung-Box test of the residual ``r``."""
+#: a residual RMS below this fraction of the measured velocity's RMS is rounding, not a
+#: model error: no misfit however coloured (a drive reports float32 velocities and takes
+#: float32 torques: ~1e-7 relative; the fit's own tolerance is ~1e-6)
+NOISE_FLOOR = 1e-4
+
+
+def _whiteness(r: np.ndarray, velocity_rms: float = 0.0, lags: int = WHITENESS_LAGS) -> Residual:
+    """RMS and the Ljung-Box test of the residual ``r``; a residual below
+    :data:`NOISE_FLOOR` of ``velocity_rms`` (noise-free data) is never a misfit."""
     rms = float(np.sqrt(np.mean(r ** 2)))
     x = r - r.mean()
     c0 = float(x @ x)
     n = len(x)
     lags = min(lags, n - 1)
-    if c0 == 0.0 or lags < 1:
+    if c0 == 0.0 or lags < 1 or rms <= NOISE_FLOOR * velocity_rms:
         return Residual(rms=rms, whiteness_p=1.0, misfit=False, warning="")
     k = np.arange(1, lags + 1)
     acf = np.array([float(x[:-j] @ x[j:]) for j in k]) / c0

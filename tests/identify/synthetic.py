@@ -17,6 +17,7 @@ from dobhil.identify.data import IdentData, Segment
 PERIOD = 1e-3
 COUNTS = 2 ** 14                 # encoder counts per revolution
 COUNT = 2 * math.pi / COUNTS     # [rad]
+PRELOAD = 20.0                   # [N m] the contact run's mean torque
 
 
 @dataclass(frozen=True)
@@ -26,7 +27,9 @@ class Truth:
     coulomb_friction: float = 0.3
     stiffness: float = 1.0e4
     damping: float = 50.0
-    contact_position: float = 400 * COUNT   # on a count: the first sample reads it exactly
+    # off a count, as a real one is: the quantised first sample of a pressed segment is
+    # then up to half a count off its true position (K * count / 2 ~ 2 N m of spring)
+    contact_position: float = 400.37 * COUNT
     delay: float = 1.3e-3
     velocity_noise: float = 0.01
 
@@ -79,19 +82,32 @@ def record(truth: Truth, seed: int, *, free_s: float = 2.0, contact_s: float = 1
            rest: int = 20, free_amplitude: float = 3.0,
            **unmodelled: Any) -> tuple[IdentData, tuple[Segment, ...]]:
     """A free-motion run far from the contact, then (if ``contact_s``) a run pressed into
-    the environment; each starts at rest and ends with ``rest`` samples of zero torque,
-    so the next one's history is zeros, as the model assumes."""
+    the environment -- starting at rest about where the spring balances the pre-load
+    :data:`PRELOAD` its torque swings around (an off-count position, as in a real
+    record); each ends with ``rest`` samples of zero torque, so the next one's history
+    is zeros, as the model assumes."""
     rng = np.random.default_rng(seed)
-    nf = int(round(free_s / PERIOD))
-    uf = np.concatenate([prbs(nf, free_amplitude, 15, rng), np.zeros(rest)])
-    qf, vf = run(truth, uf, truth.contact_position - 50.0, seed, **unmodelled)
-    parts = [(uf, qf, vf, "free")]
+    parts = []
+    if free_s:
+        nf = int(round(free_s / PERIOD))
+        uf = np.concatenate([prbs(nf, free_amplitude, 15, rng), np.zeros(rest)])
+        qf, vf = run(truth, uf, truth.contact_position - 50.0, seed, **unmodelled)
+        parts.append((uf, qf, vf, "free"))
     if contact_s:
         nc = int(round(contact_s / PERIOD))
-        ramp = np.minimum(np.arange(nc) / 200.0, 1.0)
-        uc = np.concatenate([ramp * (20.0 + prbs(nc, 8.0, 5, rng)), np.zeros(rest)])
-        qc, vc = run(truth, uc, truth.contact_position, seed + 10_000, **unmodelled)
+        uc = np.concatenate([PRELOAD + prbs(nc, 8.0, 5, rng), np.zeros(rest)])
+        # where the spring balances the pre-load, moved by up to half a count: each seed
+        # has its own quantisation error of the first sample, as real records do
+        pressed = (truth.contact_position + PRELOAD / truth.stiffness
+                   + rng.uniform(-0.5, 0.5) * COUNT)
+        qc, vc = run(truth, uc, pressed, seed + 10_000, **unmodelled)
         parts.append((uc, qc, vc, "contact"))
+    return joined(parts)
+
+
+def joined(parts: list[tuple[np.ndarray, np.ndarray, np.ndarray, str]]
+           ) -> tuple[IdentData, tuple[Segment, ...]]:
+    """One record of runs ``(torque, position, velocity, kind)`` one after the other."""
     segments, k = [], 0
     for u, _, _, kind in parts:
         segments.append(Segment(start=k, stop=k + len(u), kind=kind))

@@ -6,19 +6,19 @@ from __future__ import annotations
 
 import math
 import os
-from dataclasses import asdict
+from dataclasses import asdict, replace
 
 import numpy as np
 import pytest
 
 from dobhil.emulator.plant import DisturbanceKind
 from dobhil.identify.data import IdentData, Segment
-from dobhil.identify.fit import MISFIT_P, PARAMETERS, identify, simulate
+from dobhil.identify.fit import MISFIT_P, PARAMETERS, IdentResult, _quantum, identify, simulate
 from dobhil.identify.model import ModelValues, simulate_torque, split_delay
 from dobhil.synthesis.controller import discretize_delayed
 from dobhil.synthesis.models import plant_matrices, servo_matrices
 
-from .synthetic import PERIOD, Truth, record
+from .synthetic import COUNT, PERIOD, Truth, joined, record, run
 
 TRUTH = Truth()
 FITTED = ("inertia", "viscous_friction", "coulomb_friction", "contact_position", "stiffness",
@@ -167,11 +167,13 @@ def test_bad_segments_are_refused() -> None:
 
 # -- coverage ---------------------------------------------------------------------------
 
-RUNS = 50
+#: DOBHIL_SLOW=1: the issue's 50 seeded runs, each parameter covered in >= 45 (90 %);
+#: by default 8 of them, >= 6 each (a method whose 95 % intervals cover fails that for one
+#: of the 7 parameters with probability ~4 %: a real check, in under a minute)
+SLOW = bool(os.environ.get("DOBHIL_SLOW"))
+RUNS, NEEDED = (50, 45) if SLOW else (8, 6)
 
 
-@pytest.mark.skipif(not os.environ.get("DOBHIL_SLOW"),
-                    reason=f"{RUNS} seeded fits (5-50 s each on a busy 2-core machine): set DOBHIL_SLOW=1")
 def test_the_95_percent_intervals_cover_the_truth_in_90_percent_of_runs() -> None:
     truth = truth_values()
     covered = dict.fromkeys(FITTED, 0)
@@ -180,17 +182,118 @@ def test_the_95_percent_intervals_cover_the_truth_in_90_percent_of_runs() -> Non
         e = identify(data, segments).estimates
         for name in FITTED:
             covered[name] += e[name].identifiable and e[name].low <= truth[name] <= e[name].high
-    assert all(c >= 0.9 * RUNS for c in covered.values()), covered
+    assert all(c >= NEEDED for c in covered.values()), covered
 
 
-def test_an_interval_that_would_leave_the_bounds_is_the_profile_likelihood() -> None:
-    """No Coulomb friction: the estimate sits at its bound 0, value - z stderr would be
-    negative; the interval is lmfit's profile likelihood instead, inside the bounds, and
-    still covers the truth."""
+def test_an_interval_that_would_leave_the_bounds_ends_at_the_bound() -> None:
+    """No Coulomb friction: the estimate sits at (or near) its bound 0, value - z stderr
+    would be negative; the interval ends at the bound instead, and still covers the truth."""
     truth = Truth(coulomb_friction=0.0)
     data, segments = record(truth, seed=8, contact_s=0.0)
     e = identify(data, segments).estimates["coulomb_friction"]
     assert e.identifiable, e.why
     assert 0.0 <= e.low <= e.value <= e.high
-    assert e.low < e.value - 1e-12 or e.value < 1.96 * e.stderr   # asymmetric or at the bound
+    assert e.low == 0.0 and e.value < 1.96 * e.stderr      # cut at the bound
     assert e.low <= 0.0 + 1e-9 and e.high < 0.01 * 3.0
+
+
+# -- numbers only when the record determines them -----------------------------------------
+
+def assert_honest(result: IdentResult, truth: dict[str, float]) -> None:
+    """Every value reported identifiable has its 95 % interval around the truth: a
+    parameter the record cannot determine is not identifiable, never a confident number."""
+    wrong = {name: (e.value, e.low, e.high) for name, e in result.estimates.items()
+             if name in truth and e.identifiable and not e.low <= truth[name] <= e.high}
+    assert wrong == {}
+
+
+def test_a_segment_cut_in_motion_fits_its_initial_state() -> None:
+    """A segment found in a run starts moving: its true initial velocity is fitted (the
+    measured one is noisy), the estimates are as good as from rest."""
+    data, _ = record(TRUTH, seed=2, contact_s=0.0)
+    clean, _ = record(replace(TRUTH, velocity_noise=0.0), seed=2, contact_s=0.0)
+    start = 700
+    assert abs(clean.velocity[start]) > 10 * TRUTH.velocity_noise      # really moving
+    result = identify(data, [Segment(start, len(data.torque), "free")])
+    e = result.estimates
+    for name in ("inertia", "viscous_friction"):
+        assert within(e[name].value, getattr(TRUTH, name), 0.02), e[name]
+    assert abs(e["delay"].value - TRUTH.delay) <= 0.05e-3
+    q0, v0 = result.initial[0]
+    assert abs(v0 - clean.velocity[start]) < TRUTH.velocity_noise       # better than a reading
+    assert q0 == data.position[start]          # a free segment's position is not fitted
+    assert_honest(result, truth_values())
+
+
+def test_a_contact_only_record_does_not_separate_viscous_friction_and_damping() -> None:
+    """Pressed all the time, b and D_env act as their sum: neither is reported as a number
+    unless its interval covers the truth; the stiffness still is, within 2 %."""
+    data, segments = record(TRUTH, seed=9, free_s=0.0)
+    result = identify(data, segments)
+    e = result.estimates
+    assert within(e["stiffness"].value, TRUTH.stiffness, 0.02), e["stiffness"]
+    assert_honest(result, truth_values())
+    for name, other in (("viscous_friction", "damping"), ("damping", "viscous_friction")):
+        assert e[name].identifiable or other in e[name].why, e[name]
+
+
+def test_a_true_delay_of_zero_is_zero_with_an_interval() -> None:
+    """No delay: reported 0 (at its bound) with an interval from 0, not "not identifiable"."""
+    data, segments = record(replace(TRUTH, delay=0.0), seed=3, contact_s=0.0)
+    result = identify(data, segments)
+    e = result.estimates["delay"]
+    assert e.identifiable, e.why
+    assert 0.0 <= e.low <= e.value <= e.high and e.value <= 0.05e-3, e
+    assert e.high - e.low < 0.1e-3
+    overlay = result.overlay()
+    assert overlay["design.delay_samples"] == 0 and overlay["design.input_delay"] <= 0.05e-3
+
+
+def test_noise_free_data_is_no_misfit() -> None:
+    """Without sensor noise the residual is rounding (and the model's own roughness), not
+    a model error: no misfit warning, and the values are the truth."""
+    data, segments = record(replace(TRUTH, velocity_noise=0.0), seed=10, contact_s=0.0)
+    result = identify(data, segments)
+    assert not result.residual.misfit and result.residual.warning == "", result.residual
+    assert within(result.estimates["inertia"].value, TRUTH.inertia, 0.001)
+
+
+def test_a_constant_torque_gives_no_confident_wrong_numbers() -> None:
+    """A constant torque from rest: the acceleration fixes (u - F_c)/J and the slope b/J,
+    not J and F_c apart -- but the few samples after the torque ends do. Whatever the fit
+    says: every number it reports covers the truth."""
+    n = 800
+    u = np.concatenate([np.full(n, 2.0), np.zeros(40)])
+    q, v = run(TRUTH, u, 0.0, seed=11)
+    data, segments = joined([(u, q, v, "free")])
+    result = identify(data, segments)
+    assert_honest(result, truth_values())
+
+
+def test_the_delay_interval_is_the_cost_curvature_on_its_own_scale() -> None:
+    """The cost is rough in the delay (stick and slip land on sub-steps): moving it by one
+    standard error, the others held, raises the residual sum of squares by about one
+    noise variance -- with MINPACK's tiny forward step it rose by 0.05-0.35 (measured:
+    the standard error 13x too small, the interval missing the truth in 12 of 50 runs)."""
+    data, segments = record(TRUTH, seed=109, contact_s=0.0)
+    result = identify(data, segments)
+    e = result.estimates
+    values = {name: e[name].value for name in ("inertia", "viscous_friction", "coulomb_friction")}
+    seg = segments[0]
+
+    def residual(delay: float) -> np.ndarray:
+        _, vel = simulate(values | {"delay": delay}, data, seg, result.initial[0])
+        return np.asarray(data.velocity[seg.start:seg.stop]) - vel
+
+    r0 = residual(e["delay"].value)
+    s2 = float(r0 @ r0) / (r0.size - 5)
+    for sign in (-1.0, 1.0):
+        r = residual(e["delay"].value + sign * e["delay"].stderr)
+        assert float(r @ r - r0 @ r0) / s2 > 0.3
+
+
+def test_the_encoder_count_is_read_from_the_positions() -> None:
+    q = np.array([0.0, 3.0, 2.0, 2.0, 7.0, 6.0]) * COUNT + 400 * COUNT
+    assert _quantum(q) == pytest.approx(COUNT, rel=1e-9)
+    assert _quantum(np.array([0.0, 0.1, 0.23, 0.3])) == 0.0        # not on a grid
+    assert _quantum(np.zeros(5)) == 0.0
