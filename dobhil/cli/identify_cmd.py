@@ -63,7 +63,7 @@ def run(args: argparse.Namespace) -> int:
     result = identify(data, [s for part in parts for s in part.segments])
     info = summary(result, data, parts)
     if args.out:
-        _write_overlay(result.overlay(), args.out)
+        _write_overlay(result.overlay(), info, args.out)
     if args.plot:
         for path in _figures(result, data, parts, args.plot):
             sys.stderr.write(f"wrote {path}\n")
@@ -83,11 +83,13 @@ def _figures(result: Any, data: Any, parts: Any, out: Path) -> list[Path]:
     out.mkdir(parents=True, exist_ok=True)
     written = []
     for i, (part, seg) in enumerate((p, s) for p in parts for s in p.segments):
+        # the segments are result.segments in this order; each from its fitted initial state
+        initial = result.initial[i] if i < len(result.initial) else None
         s = slice(seg.start, seg.stop)
         t0, t1 = part.local(seg, data.period)
         t = data.t[s] - part.offset * data.period
         title = f"{part.source}: {seg.kind} segment {t0:.3f}-{t1:.3f} s"
-        written.append(measured_vs_model(t, (data.position[s], data.velocity[s]), simulate(values, data, seg),
+        written.append(measured_vs_model(t, (data.position[s], data.velocity[s]), simulate(values, data, seg, initial),
                                          title, out / f"identify_segment_{i}.png", torque=data.torque[s]))
     return written
 
@@ -133,15 +135,39 @@ def _num(value: float | None, spec: str) -> str:
     return "n/a" if value is None else format(value, spec)
 
 
-def _write_overlay(overlay: dict[str, Any], path: Path) -> None:
-    import yaml
+#: overlay key -> the estimate whose interval its comment gives
+_OVERLAY_SOURCES = {"plant.inertia": "inertia", "plant.viscous_friction": "viscous_friction",
+                    "plant.coulomb_friction": "coulomb_friction", "environment.contact_position": "contact_position",
+                    "environment.stiffness": "stiffness", "environment.damping": "damping",
+                    "design.identified_inertia": "inertia"}
 
+
+def overlay_text(overlay: dict[str, Any], info: dict[str, Any]) -> str:
+    """The overlay as YAML a person can read: one ``key: value`` a line, each commented with its
+    95 % interval, and what was not identifiable (and why) at the top. ``repr`` of a float is
+    valid YAML and round-trips exactly (tested)."""
+    est = info["estimates"]
+    lines = [f"# written by dobhil identify from {', '.join(info['files'])}; use with --set-file",
+             "# design.identified_inertia is the identified inertia as the design's J_mi: keep your own rule "
+             "with --set design.identified_inertia=... after --set-file"]
+    lines += [f"# not identifiable: {name}: {e['why']}" for name, e in est.items() if not e["identifiable"]]
+    for key in sorted(overlay):
+        value = overlay[key]
+        name = "delay" if key in ("design.delay_samples", "design.input_delay") else _OVERLAY_SOURCES.get(key)
+        e = est.get(name) if name else None
+        note = ""
+        if e and e["identifiable"]:
+            whole = f"delay {e['value']:.6g} s, " if name == "delay" else ""
+            note = f"  # {whole}95 % [{e['low']:.6g}, {e['high']:.6g}]"
+        shown = repr(float(value)) if isinstance(value, float) else repr(int(value))
+        lines.append(f"{key}: {shown}{note}")
+    return "\n".join(lines) + "\n"
+
+
+def _write_overlay(overlay: dict[str, Any], info: dict[str, Any], path: Path) -> None:
     from dobhil.files import atomic_path
-    text = ("# written by dobhil identify; use with --set-file\n"
-            + yaml.safe_dump({k: float(v) if isinstance(v, float) else v for k, v in overlay.items()},
-                             sort_keys=True))
     with atomic_path(path) as tmp:
-        tmp.write_text(text, encoding="utf-8")
+        tmp.write_text(overlay_text(overlay, info), encoding="utf-8")
     sys.stderr.write(f"wrote {path}\n")
 
 

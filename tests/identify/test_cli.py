@@ -108,8 +108,14 @@ def test_identify_free_run_end_to_end(logs: dict[str, Path], tmp_path: Path,
     for name in ("stiffness", "damping", "contact_position"):
         e = info["estimates"][name]
         assert not e["identifiable"] and e["value"] is None and e["why"]
-    overlay = yaml.safe_load(out.read_text(encoding="utf-8"))
+    text = out.read_text(encoding="utf-8")
+    overlay = yaml.safe_load(text)
     assert overlay and not any(k.startswith("environment.") for k in overlay)
+    # each value exactly the estimate, commented with its interval; what is missing says why
+    inertia = info["estimates"]["inertia"]
+    assert overlay["plant.inertia"] == inertia["value"]
+    assert f"plant.inertia: {inertia['value']!r}  # 95 % [{inertia['low']:.6g}, {inertia['high']:.6g}]" in text
+    assert "# not identifiable: stiffness: no contact segment" in text
     assert all(info["estimates"][k.split(".")[1]]["identifiable"] for k in overlay if k.startswith("plant."))
     assert main(["analyze", "demo", "--set-file", str(out), "--json"]) == 0
     capsys.readouterr()
