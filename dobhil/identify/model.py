@@ -13,12 +13,16 @@ over the rest -- the sampled analysis' ``x[k+1] = Phi x[k] + Gamma0 u[k-d] +
 Gamma1 u[k-d-1]`` (:func:`dobhil.synthesis.controller.discretize_delayed`) whenever the
 plant is linear.
 
-Fast: stepping the Plant in Python costs ~20 us per sample with Coulomb friction (ten
-sub-steps per call, two calls per sample with a fractional delay); :func:`simulate_torque`
+Fast: stepping the Plant in Python with Coulomb friction (ten sub-steps per call, two calls
+per sample with a fractional delay) costs 0.2-0.45 s CPU per 60 s record (measured), and a
+fit simulates its records hundreds of times; :func:`simulate_torque`
 runs the spans where the Plant is linear (one contact mode, one friction sign, or stuck)
 as vectorised recursions with the Plant's own matrices and steps the Plant only at the
 samples where it decides something (:class:`_FastSimulation`), with the same numbers
-(:func:`_simulate_stepping`, the reference, is kept and the equality tested).
+(:func:`_simulate_stepping`, the reference, is kept and the equality tested). With Coulomb
+friction and numba installed (extra ``fast``) it runs the Plant's own sub-step function
+(:func:`dobhil.emulator.plant.coulomb_substeps`) compiled over the whole record instead:
+a pressed servo reverses every few samples, too many events for the span method.
 
 The torque reaching the plant is ``torque_gain * u`` (the sent torque scaled). Commands
 before the first sample are 0 and every simulation starts at its initial position and
@@ -39,7 +43,7 @@ import scipy.linalg  # noqa: F401 -- loaded before one_blas_thread's controller 
 from scipy.signal import lfilter
 from threadpoolctl import ThreadpoolController
 
-from dobhil.emulator.plant import Plant, Propagator
+from dobhil.emulator.plant import Plant, Propagator, coulomb_substeps
 
 __all__ = ["ModelValues", "one_blas_thread", "simulate_torque", "split_delay"]
 
@@ -126,7 +130,10 @@ def one_blas_thread() -> Iterator[None]:
     (``OPENBLAS_NUM_THREADS`` only acts before the library loads, and would be the whole
     process's business); its controller is made once (scanning the loaded libraries costs
     ms; scipy.linalg is imported above so its BLAS is among them) and ``limit`` then costs
-    ~15 us, so this wraps every :func:`simulate_torque` and can wrap a whole fit.
+    ~15 us, so this wraps every :func:`simulate_torque` and can wrap a whole fit. Callers
+    running simulations in several threads hold it around the whole threaded region: the
+    pools are process-wide, and one thread's outermost exit would restore them under the
+    other's feet.
     """
     with _BLAS_LOCK:
         if _BLAS["depth"] == 0:
@@ -154,18 +161,38 @@ def simulate_torque(values: ModelValues, torque: np.ndarray, period: float, star
 
     The numbers are those of stepping the emulator's Plant call by call
     (:func:`_simulate_stepping`, the reference; equal to rounding, tested), computed the
-    fast way (:class:`_FastSimulation`): the Plant is linear between its nonlinear events
-    (friction sign, sticking, contact), so whole spans run as one vectorised linear
-    recursion and only the samples where an event happens step the Plant itself.
+    fast way: with Coulomb friction and numba installed, the Plant's own sub-step function
+    compiled over the whole record (:func:`_compiled_record`, bit for bit); otherwise
+    :class:`_FastSimulation`: the Plant is linear between its nonlinear events (friction
+    sign, sticking, contact), so whole spans run as one vectorised linear recursion and
+    only the samples where an event happens step the Plant itself. Runs with BLAS on one
+    thread (:func:`one_blas_thread`).
     """
     n = stop - start
     if n < 1:
         raise ValueError(f"segment [{start}, {stop}): empty")
+    return _simulate(values, torque, period, start, stop, initial_position,
+                     float(initial_velocity), substeps, "auto")
+
+
+def _simulate(values: ModelValues, torque: np.ndarray, period: float, start: int, stop: int,
+              initial_position: float, initial_velocity: float, substeps: int,
+              method: str) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`simulate_torque` by ``method``: "spans" (:class:`_FastSimulation`),
+    "compiled" (:func:`_compiled_record`: Coulomb friction only, numba needed) or "auto"
+    (compiled when it applies and numba is installed)."""
     with one_blas_thread():
         plant, qc, applied, _, fraction = _setup(values, torque, period, start, stop,
                                                  initial_position, substeps)
-        sim = _FastSimulation(plant, qc, applied, n, period, fraction, substeps)
-        return sim.run(initial_position - qc, float(initial_velocity))
+        sim = _FastSimulation(plant, qc, applied, stop - start, period, fraction, substeps)
+        e0 = initial_position - qc
+        if method == "compiled" or (method == "auto" and sim.friction):
+            kernel = _compiled_record()
+            if kernel is not None and sim.friction:
+                return sim.run_compiled(kernel, e0, initial_velocity)
+            if method == "compiled":
+                raise RuntimeError("the compiled path needs numba and Coulomb friction")
+        return sim.run(e0, initial_velocity)
 
 
 def _setup(values: ModelValues, torque: np.ndarray, period: float, start: int, stop: int,
@@ -219,6 +246,52 @@ def _simulate_stepping(values: ModelValues, torque: np.ndarray, period: float, s
         pos[j + 1] = plant.true_position
         vel[j + 1] = plant.true_velocity
     return pos, vel
+
+
+_CALL: Any = None    # the compiled coulomb_substeps, for _record_loop (set by _compiled_record)
+_KERNEL: dict[str, Any] = {}
+_KERNEL_LOCK = threading.Lock()
+
+
+def _record_loop(e: float, dq: float, w: np.ndarray, substeps: int, m: np.ndarray,
+                 bands: np.ndarray, fc: float, k: float, out: np.ndarray) -> None:
+    """Every call of every sample as :meth:`Plant.step` takes it with Coulomb friction (no
+    clamp, no disturbance, no backlash: the model's Plant): ``w[s, c]`` the torque of call
+    ``c`` of sample ``s``, ``m[c]`` its contact and free sub-step propagators, ``bands[c]``
+    its Karnopp band; the state after each sample into ``out``. Compiled with numba
+    (:func:`_compiled_record`), calling the compiled :func:`coulomb_substeps`."""
+    for s in range(w.shape[0]):
+        for c in range(w.shape[1]):
+            e, dq, _ = _CALL(e, dq, w[s, c], substeps, bands[c], fc, k, True,
+                             m[c, 0], m[c, 1], m[c, 2], m[c, 3], m[c, 4], m[c, 5],
+                             m[c, 6], m[c, 7], m[c, 8], m[c, 9], m[c, 10], m[c, 11])
+        out[s, 0] = e
+        out[s, 1] = dq
+
+
+def _compiled_record() -> Any:
+    """:func:`_record_loop` compiled with numba (cached on disk), or None without numba.
+
+    Why: with Coulomb friction a pressed servo under a PRBS reverses every few samples, and
+    each reversal is an event the span method must hand to the Plant's Python sub-steps:
+    such a record costs what stepping it costs (~0.2-0.4 s CPU per 60 s here), and a fit
+    simulates it hundreds of times. The same lines compiled: ~3-10 ms per 60 s (measured),
+    bit for bit the Plant's (tested). numba is optional (extra ``fast``): without it the
+    span method runs, with the same numbers, slower on such records. Compiled without the
+    GIL (``nogil``) so simulations may run in threads; such a caller must hold one
+    :func:`one_blas_thread` around the whole threaded region (measured: the limit set and
+    restored per call from two threads made 8 simulations 8x slower)."""
+    global _CALL
+    with _KERNEL_LOCK:
+        if "record" not in _KERNEL:
+            try:
+                import numba
+            except ImportError:
+                _KERNEL["record"] = None
+            else:
+                _CALL = numba.njit(cache=True, nogil=True)(coulomb_substeps)
+                _KERNEL["record"] = numba.njit(cache=True, nogil=True)(_record_loop)
+    return _KERNEL["record"]
 
 
 @dataclass(frozen=True)
@@ -416,6 +489,26 @@ class _FastSimulation:
             c = self._checks[key] = (lin.check_x * scale[:, None], lin.check_w * scale[:, None],
                                      const)
         return c
+
+    def run_compiled(self, kernel: Any, e0: float,
+                     v0: float) -> tuple[np.ndarray, np.ndarray]:
+        """Every sample by the compiled record loop (:func:`_compiled_record`): the Plant's
+        own sub-step lines (:func:`coulomb_substeps`) compiled, so the numbers are the
+        Plant's (no event search needed)."""
+        plant = self.plant
+        m = np.empty((len(self.calls), 12))
+        bands = np.empty(len(self.calls))
+        for c, dt in enumerate(self.calls):
+            zoh = plant.matrices(dt)
+            cs, fs = zoh.contact_sub, zoh.free_sub
+            m[c] = (cs.p00, cs.p01, cs.p10, cs.p11, cs.g0, cs.g1,
+                    fs.p00, fs.p01, fs.p10, fs.p11, fs.g0, fs.g1)
+            bands[c] = zoh.stiction
+        out = np.empty((len(self.w) + 1, 2))
+        out[0] = (e0, v0)
+        kernel(e0, v0, self.w, self.substeps, m, bands, plant.coulomb_friction,
+               plant.stiffness, out[1:])
+        return out[:, 0] + self.qc, out[:, 1]
 
     def run(self, e0: float, v0: float) -> tuple[np.ndarray, np.ndarray]:
         """Position and velocity at every sample from ``e0`` (relative to the contact) and
