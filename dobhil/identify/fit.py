@@ -48,7 +48,7 @@ import lmfit
 import numpy as np
 import scipy.stats
 
-from dobhil.identify.data import IdentData, Segment
+from dobhil.identify.data import IdentData, Segment, contact_mask
 from dobhil.identify.model import ModelValues, simulate_torque, split_delay
 
 __all__ = ["MISFIT_P", "NOISE_FLOOR", "PARAMETERS", "WIDEST", "Estimate", "IdentResult",
@@ -71,6 +71,10 @@ WIDEST = 0.5
 
 _ENVIRONMENT = ("contact_position", "stiffness", "damping")
 _EPSFCN = 1e-7
+#: MINPACK's stopping tolerances: the cost changing by less than this (relative) ends
+#: Levenberg-Marquardt -- its default 1.5e-8 chases the roughness for dozens of
+#: evaluations; :func:`_refine` finishes the optimum on the interval's own scale
+_TOLERANCES = {"ftol": 1e-6, "xtol": 1e-6}
 _FRICTION = ("viscous_friction", "coulomb_friction")
 
 
@@ -245,8 +249,15 @@ def _start(data: IdentData, segments: Sequence[Segment], contact: bool,
     q = np.asarray(data.position, float)
     acc = np.gradient(v, period)
     rows = np.concatenate([np.arange(s.start + _SMOOTH, s.stop - _SMOOTH) for s in segments])
-    in_contact = np.concatenate([np.full(max(0, s.stop - s.start - 2 * _SMOOTH), s.kind == "contact")
-                                 for s in segments]).astype(float)
+    # a contact segment may leave the environment and come back: its rows count as in
+    # contact where the data say so (the spring that best explains the acceleration), all
+    # of them if the data find no spring
+    engaged = contact_mask(data) if contact else np.zeros(len(q), dtype=bool)
+    in_contact = np.concatenate([
+        (engaged[s.start + _SMOOTH:s.stop - _SMOOTH]
+         if s.kind == "contact" and engaged[s.start:s.stop].any()
+         else np.full(max(0, s.stop - s.start - 2 * _SMOOTH), s.kind == "contact"))
+        for s in segments]).astype(float)
     columns = [acc[rows], v[rows], np.sign(v[rows])]
     if contact:
         columns += [q[rows] * in_contact, in_contact, v[rows] * in_contact]
@@ -336,7 +347,7 @@ def identify(data: IdentData, segments: Sequence[Segment], *,
     # Levenberg-Marquardt with forward differences of ~3e-4 relative step (epsfcn): stick-slip
     # makes the cost rough on the scale of MINPACK's default step (1.5e-8), which stops the
     # fit short of the optimum; a step above that roughness finds it (tested)
-    result = minimizer.minimize(method="leastsq", epsfcn=_EPSFCN)
+    result = minimizer.minimize(method="leastsq", epsfcn=_EPSFCN, **_TOLERANCES)
     result = _search_delay(minimizer, result, data.period)
     rows = sum(s.stop - s.start for s in segments)
     if "prior_weight" in fixed:
@@ -402,7 +413,8 @@ def _search_delay(minimizer: lmfit.Minimizer, result: lmfit.minimizer.MinimizerR
         if start is None:
             return best
         params["delay"].set(value=start)
-        again = minimizer.minimize(method="leastsq", params=params, epsfcn=_EPSFCN)
+        again = minimizer.minimize(method="leastsq", params=params, epsfcn=_EPSFCN,
+                                   **_TOLERANCES)
         if not again.chisqr < best.chisqr:
             return best
         best = again
@@ -412,7 +424,7 @@ def _search_delay(minimizer: lmfit.Minimizer, result: lmfit.minimizer.MinimizerR
 # -- the covariance: a Jacobian on the scale of the uncertainty ---------------------------
 
 #: rounds of :func:`_refine` (each: one Jacobian, one Gauss-Newton step)
-_REFINE_ROUNDS = 6
+_REFINE_ROUNDS = 4
 
 
 @dataclass(frozen=True)
