@@ -297,8 +297,10 @@ def test_any_section_and_delay_is_a_profile_or_one_line(section: Any, delay: Any
 def test_a_log_written_before_the_rename_still_replays_its_profile() -> None:
     """A recording keeps the profile as JSON per key; one from before the rename has the
     old names, and it is not the user's to edit: replay reads it under the new ones."""
-    from dobhil.replay import _renamed
+    import json
+
+    from dobhil.drives.decode import recorded_profile
     old = {k: v for k, v in SHIPPED.items() if k not in ("feedback_period", "heartbeat_period", "bus")}
     old.update(encoder_msg_rate=0.001, heartbeat_msg_rate=0.1)
-    profile = profile_from_mapping(_renamed(old))
+    profile = recorded_profile({k: json.dumps(v) for k, v in old.items()}, "old.mcap")
     assert (profile.feedback_period, profile.heartbeat_period) == (0.001, 0.1)

@@ -38,17 +38,22 @@ FLUSH_SLACK_S = 1.0 + 0.3
 
 class KillWriterAt:
     """The run's sink (the log), with the writer process killed ``after_s`` seconds (wall
-    clock) after the first cycle: after at least one flush, whatever the timing."""
+    clock) after the first cycle, and not before the file at ``path`` has grown past its size
+    at the first cycle: after at least one chunk reached the OS, however long a busy machine
+    left the writer (SCHED_IDLE) without CPU."""
 
-    def __init__(self, log: RunLog, after_s: float) -> None:
-        self.log, self.after_s = log, after_s
+    def __init__(self, log: RunLog, after_s: float, path: Path) -> None:
+        self.log, self.after_s, self.path = log, after_s, path
         self.t0: float | None = None
+        self.size0 = 0
         self.killed_ns: int | None = None
 
     def cycle(self, k: int, *args: Any) -> None:
         now = time.monotonic()
-        self.t0 = self.t0 or now
-        if now - self.t0 >= self.after_s and self.killed_ns is None:
+        if self.t0 is None:
+            self.t0, self.size0 = now, self.path.stat().st_size
+        if (now - self.t0 >= self.after_s and self.killed_ns is None
+                and self.path.stat().st_size > self.size0):
             pid = self.log.writer_pid
             assert pid is not None
             os.kill(pid, signal.SIGKILL)
@@ -92,7 +97,7 @@ def test_recorder_fault(tmp_path: Path, timing: str, fault: str) -> None:
         log = open_run_log(path, fsync=False)
     assert log is not None
     hooks = log_hooks(log)
-    killer = KillWriterAt(log, after_s=1.5) if fault == "writer-killed" else None
+    killer = KillWriterAt(log, after_s=1.5, path=path) if fault == "writer-killed" else None
     if killer is not None:
         hooks["sink"] = killer
     with RunSession(config, emulate=True, lockstep=lockstep, **hooks) as session, \

@@ -96,7 +96,8 @@ def test_a_timed_loop_keeps_each_cycles_sample_latency() -> None:
     assert t.sample_latency_p99 == pytest.approx(np.percentile(finite, 99, method="inverted_cdf"), abs=1.5e-6)
     assert t.sample_latency_max == pytest.approx(finite.max(), abs=1e-9)
     info = summary(SimpleNamespace(timing=Timing.HOST, settings=loop.settings,  # type: ignore[arg-type]
-                                   bus_spec=SimpleNamespace(describe=lambda: "fake"), emulator=None, drive=drive,
+                                   config=demo_config(), bus_spec=SimpleNamespace(describe=lambda: "fake"),
+                                   emulator=None, drive=drive,
                                    preflight_report=None), result)
     assert info["sample_latency_us"]["p99"] == pytest.approx(t.sample_latency_p99 * 1e6)
     assert info["loop_timing"]["sample_latency_p50"] == t.sample_latency_p50
