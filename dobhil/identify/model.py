@@ -20,7 +20,7 @@ runs the spans where the Plant is linear (one contact mode, one friction sign, o
 as vectorised recursions with the Plant's own matrices and steps the Plant only at the
 samples where it decides something (:class:`_FastSimulation`), with the same numbers
 (:func:`_simulate_stepping`, the reference, is kept and the equality tested). With Coulomb
-friction and numba installed (extra ``fast``) it runs the Plant's own sub-step function
+friction it runs the Plant's own sub-step function
 (:func:`dobhil.emulator.plant.coulomb_substeps`) compiled over the whole record instead:
 a pressed servo reverses every few samples, too many events for the span method.
 
@@ -276,7 +276,7 @@ def _compiled_record() -> Any:
     each reversal is an event the span method must hand to the Plant's Python sub-steps:
     such a record costs what stepping it costs (~0.2-0.4 s CPU per 60 s here), and a fit
     simulates it hundreds of times. The same lines compiled: ~3-10 ms per 60 s (measured),
-    bit for bit the Plant's (tested). numba is optional (extra ``fast``): without it the
+    bit for bit the Plant's (tested). numba is a core dependency; should it fail to import the
     span method runs, with the same numbers, slower on such records. Compiled without the
     GIL (``nogil``) so simulations may run in threads; such a caller must hold one
     :func:`one_blas_thread` around the whole threaded region (measured: the limit set and
