@@ -16,8 +16,13 @@ What is fitted, and why so:
   then refined by Gauss-Newton steps on a Jacobian whose steps are the standard errors
   themselves (:func:`_refine`: the cost is rough on MINPACK's scale); the covariance is
   ``s^2 (J^T J)^-1`` of that Jacobian, ``s^2`` the velocity residual's variance. A 95 %
-  interval is ``value +- z stderr``, cut at a bound the parameter cannot pass (a friction
-  or delay of 0);
+  interval is ``value +- z stderr``; where that leaves a bound the parameter cannot pass
+  (a friction or delay near 0) it runs from the bound to the profile likelihood's high
+  end (refits with the parameter held, :func:`_profile_high`: 1-6 refits, 0.1-1.6 s on a
+  60 s record, measured) -- asymmetric, as the issue asks. Levenberg-Marquardt runs
+  coarse to fine from the equation-error start, plus a second start (:func:`_staged`);
+  a second end within the profile threshold of the best widens the interval to it
+  (:func:`_rivals`);
 - the delay is one continuous parameter ``delay = whole T + fraction`` (the model is
   continuous in it: a fraction of a whole period is the next whole sample); a grid search
   over half periods up to ``max_delay_samples`` picks where the local fit starts, so a
@@ -41,7 +46,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import lmfit
@@ -70,7 +75,12 @@ LEVEL = 0.95
 WIDEST = 0.5
 
 _ENVIRONMENT = ("contact_position", "stiffness", "damping")
+#: MINPACK's forward-difference step is ``sqrt(epsfcn)`` relative: the fine stage ~3e-4,
+#: the coarse one ~1 % (see :func:`_staged`)
 _EPSFCN = 1e-7
+_EPSFCN_COARSE = 1e-4
+#: evaluations per varied parameter (+1) the coarse stage may spend
+_COARSE_EVALUATIONS = 100
 #: MINPACK's stopping tolerances: the cost changing by less than this (relative) ends
 #: Levenberg-Marquardt -- its default 1.5e-8 chases the roughness for dozens of
 #: evaluations; :func:`_refine` finishes the optimum on the interval's own scale
@@ -90,6 +100,9 @@ class Estimate:
     high: float
     identifiable: bool
     why: str
+    #: how ``high`` was found: "linearised" (value + z stderr) or "profile" (a parameter
+    #: whose linearised interval leaves its bound: the profile likelihood, see _profile_high)
+    method: str = "linearised"
 
 
 @dataclass(frozen=True)
@@ -344,10 +357,7 @@ def identify(data: IdentData, segments: Sequence[Segment], *,
                 params.add(_q0(i), value=q, min=q - count, max=q + count)
         fixed["prior_weight"] = _noise_guess(data, segments) / (count / math.sqrt(12.0))
     minimizer = lmfit.Minimizer(_residual, params, fcn_args=(data, segments, fixed))
-    # Levenberg-Marquardt with forward differences of ~3e-4 relative step (epsfcn): stick-slip
-    # makes the cost rough on the scale of MINPACK's default step (1.5e-8), which stops the
-    # fit short of the optimum; a step above that roughness finds it (tested)
-    result = minimizer.minimize(method="leastsq", epsfcn=_EPSFCN, **_TOLERANCES)
+    result, other = _staged(minimizer)
     result = _search_delay(minimizer, result, data.period)
     rows = sum(s.stop - s.start for s in segments)
     if "prior_weight" in fixed:
@@ -361,7 +371,10 @@ def identify(data: IdentData, segments: Sequence[Segment], *,
     result.chisqr = float(refined.residual @ refined.residual)
     velocity_residual = refined.residual[:rows]
     covariance = refined.covariance
-    estimates = _estimates(minimizer, result, covariance, data, segments)
+    rivals = _rivals(minimizer, other, result.chisqr, velocity_residual,
+                     len(covariance[0]) if covariance is not None else 0)
+    estimates = _estimates(minimizer, result, covariance, data, segments, rivals)
+    estimates = _profiled(minimizer, result, estimates, velocity_residual, data, segments)
     fitted = [k for k in PARAMETERS if estimates[k].identifiable]
     correlations: dict[tuple[str, str], float] = {}
     if covariance is not None:
@@ -376,6 +389,57 @@ def identify(data: IdentData, segments: Sequence[Segment], *,
                        segments=segments, period=data.period,
                        initial=tuple(_initial(result.params.valuesdict(), data, i, s)
                                      for i, s in enumerate(segments)))
+
+
+def _staged(minimizer: lmfit.Minimizer
+            ) -> tuple[lmfit.minimizer.MinimizerResult, lmfit.minimizer.MinimizerResult]:
+    """Levenberg-Marquardt from the start values, coarse to fine: forward differences of
+    ~1 % relative step (:data:`_EPSFCN_COARSE`) first, then of ~3e-4 (:data:`_EPSFCN`);
+    and, as a second start, the fine one alone. Returns (the lower, the other): where the
+    two end in different valleys of about the same cost, the record does not decide
+    between them (:func:`_rivals`).
+
+    Why two scales: stick-slip makes the output-error cost rough -- every velocity zero
+    crossing switches the Coulomb friction on a sub-step, and a parameter moving one by a
+    sub-step makes the residual jump. The roughness is larger, the more crossings the
+    record has: on a 60 s free multisine with Coulomb friction (thousands of crossings,
+    noise-free) a 3e-4 step measures the jumps, not the slope, and points nowhere --
+    Levenberg-Marquardt stopped after 10 evaluations where the equation-error start put
+    it (viscous friction 0.078 for 0.02, Coulomb 0.0436 for 0.05, residual RMS 1.1e-3
+    rad/s, the truth's 1e-8; measured, the cost falls monotonically on the straight line
+    between them, so no other valley, only a blind gradient). A 1 % step is a secant over
+    the roughness and walks to the truth (1e-3 ... 1e-5 all did); the fine stage then
+    settles where MINPACK's scale can. MINPACK's default step (1.5e-8) is worse still:
+    it stops the fit short even on short records (tested)."""
+    # a copy: a fit leaves the minimizer's own parameters at its end
+    start = minimizer.params.copy()
+    # bounded: the coarse stage only has to reach the right valley (measured: 33 evaluations
+    # on the 60 s free multisine, 357 on a 60 s pressed PRBS with Coulomb friction, 2.4 s)
+    varied = sum(1 for p in start.values() if p.vary)
+    coarse = minimizer.minimize(method="leastsq", params=start.copy(), epsfcn=_EPSFCN_COARSE,
+                                max_nfev=_COARSE_EVALUATIONS * (varied + 1), **_TOLERANCES)
+    fine = minimizer.minimize(method="leastsq", params=coarse.params, epsfcn=_EPSFCN,
+                              **_TOLERANCES)
+    staged = fine if fine.chisqr <= coarse.chisqr else coarse
+    alone = minimizer.minimize(method="leastsq", params=start, epsfcn=_EPSFCN, **_TOLERANCES)
+    return (staged, alone) if staged.chisqr <= alone.chisqr else (alone, staged)
+
+
+def _rivals(minimizer: lmfit.Minimizer, other: lmfit.minimizer.MinimizerResult,
+            best: float, velocity: np.ndarray, varied: int) -> list[dict[str, float]]:
+    """The other start's end, when its cost (recomputed: the ties' weight may have changed)
+    is within the 95 % profile threshold of the best, ``chi2_1(0.95) s^2`` above it:
+    every parameter's value there then lies inside its profile-likelihood interval (the
+    profile at that value is at most that cost), so the interval must reach it.
+
+    Why: a record that barely moves has valleys the linearised interval knows nothing of
+    (measured: a pressed record, 0.002 rad/s of motion under 0.01 of noise, ended at
+    K = 2950 [1671, 4229] from one start and 1123 from the other, 1.3 noise variances
+    apart in cost, truth 1e4): the second start is a cheap look at the profile's width."""
+    r = np.asarray(minimizer.userfcn(other.params, *minimizer.userargs), float)
+    s2 = float(velocity @ velocity) / max(velocity.size - varied, 1)
+    threshold = best + float(scipy.stats.chi2.ppf(LEVEL, 1)) * s2
+    return [other.params.valuesdict()] if float(r @ r) <= threshold else []
 
 
 def _noise_guess(data: IdentData, segments: Sequence[Segment]) -> float:
@@ -535,7 +599,8 @@ def _inverse_normal(jac: np.ndarray) -> np.ndarray | None:
 
 def _estimates(minimizer: lmfit.Minimizer, result: lmfit.minimizer.MinimizerResult,
                covariance: tuple[list[str], np.ndarray] | None, data: IdentData,
-               segments: Sequence[Segment]) -> dict[str, Estimate]:
+               segments: Sequence[Segment],
+               rivals: Sequence[Mapping[str, float]] = ()) -> dict[str, Estimate]:
     contact = any(s.kind == "contact" for s in segments)
     z = float(scipy.stats.norm.ppf(0.5 + LEVEL / 2))
     u_max = float(np.max(np.abs(data.torque))) or 1.0
@@ -567,7 +632,11 @@ def _estimates(minimizer: lmfit.Minimizer, result: lmfit.minimizer.MinimizerResu
             out[name] = _not(name, "flat profile: the record does not determine it "
                                    "(singular covariance)")
             continue
-        half = z * float(stderr)
+        # another fit within the profile threshold (_rivals): the interval reaches it
+        others = [float(r[name]) for r in rivals]
+        low = min([value - z * float(stderr), *others])
+        high = max([value + z * float(stderr), *others])
+        half = max(value - low, high - value)
         if name == "contact_position" and half > span:
             out[name] = _not(name, f"flat profile: the 95 % interval (+-{half:.3g}) is wider "
                                    f"than the motion in contact ({span:.3g})"
@@ -579,15 +648,90 @@ def _estimates(minimizer: lmfit.Minimizer, result: lmfit.minimizer.MinimizerResu
                                    + _partner(name, covariance))
             continue
         # at a bound (a friction or a delay that may be 0) the interval ends there: the
-        # truth cannot lie beyond it. Not lmfit's profile likelihood (conf_interval): it
-        # refits every parameter at each of its trial points with MINPACK's tiny steps, which
-        # stall in the cost's roughness ("rel_change=0.0" warnings) and took 171 s for the
-        # delay of one 2 s record (measured); inside the bounds the linearised interval on
-        # the secant Jacobian (_refine) is what the coverage test checks
-        low, high = max(value - half, p.min), min(value + half, p.max)
+        # truth cannot lie beyond it (its high end then from the profile: _profiled);
+        # inside the bounds the linearised interval on the secant Jacobian (_refine) is
+        # what the coverage test checks
+        low, high = max(low, p.min), min(high, p.max)
         out[name] = Estimate(name=name, value=value, stderr=float(stderr), low=low, high=high,
                              identifiable=True, why="")
     return out
+
+
+def _profiled(minimizer: lmfit.Minimizer, result: lmfit.minimizer.MinimizerResult,
+              estimates: dict[str, Estimate], velocity: np.ndarray, data: IdentData,
+              segments: Sequence[Segment]) -> dict[str, Estimate]:
+    """The estimates, where a linearised interval was cut at its bound (a friction or a
+    delay near 0: ``value - z stderr`` below it) with the high end from the profile
+    likelihood instead (:func:`_profile_high`) -- the issue's asymmetric intervals. The
+    width rule of :func:`_estimates` then judges the profiled interval."""
+    z = float(scipy.stats.norm.ppf(0.5 + LEVEL / 2))
+    varied = sum(1 for p in result.params.values() if p.vary)
+    s2 = float(velocity @ velocity) / max(velocity.size - varied, 1)
+    rise = float(scipy.stats.chi2.ppf(LEVEL, 1)) * s2
+    best = float(result.chisqr)
+    u_max = float(np.max(np.abs(data.torque))) or 1.0
+    v_max = float(np.max(np.abs(data.velocity))) or 1.0
+    floors = {"viscous_friction": 0.01 * u_max / v_max, "coulomb_friction": 0.01 * u_max,
+              "delay": data.period}
+    out = dict(estimates)
+    for name, e in estimates.items():
+        p = result.params.get(name)
+        if p is None or not e.identifiable or not e.value - z * e.stderr < p.min:
+            continue
+        high = _profile_high(minimizer, result.params, name, e.value,
+                             max(e.high, e.value + z * e.stderr),
+                             best, rise)
+        if high - e.value > WIDEST * abs(e.value) + floors.get(name, 0.0):
+            out[name] = _not(name, f"flat profile: the 95 % profile interval reaches {high:.3g}, "
+                                   f"wider than {WIDEST:g} of the value ({e.value:.3g})")
+            continue
+        out[name] = replace(e, high=high, method="profile")
+    return out
+
+
+#: refits of :func:`_profile_high`
+_PROFILE_ROUNDS = 4
+
+
+def _profile_high(minimizer: lmfit.Minimizer, params: lmfit.Parameters, name: str, value: float,
+                  guess: float, best: float, rise: float) -> float:
+    """Where the profile of ``name`` -- the cost with ``name`` held and every other
+    parameter refitted (lmfit, coarse then fine steps as in :func:`_staged`) -- rises
+    ``rise`` (``chi2_1(0.95) s^2``) above ``best``, above ``value``: the high end of the
+    95 % profile-likelihood interval (its low end is the bound).
+
+    Found by the square root of the rise being about linear in the distance (exact for a
+    quadratic profile), from ``guess`` (the linearised high end), a few refits. Not
+    lmfit's conf_interval: it refits at each of its many trial points with MINPACK's
+    tiny steps, which stall in the cost's stick-slip roughness ("rel_change=0.0"
+    warnings; 171 s for one delay of a 2 s record with the slow simulation); here 2-4
+    refits of ~0.1-0.3 s each on a 60 s record (measured, compiled simulation)."""
+    bound = params[name].max
+    x = min(guess, bound)
+    for _ in range(_PROFILE_ROUNDS):
+        d = _profile_cost(minimizer, params, name, x) - best
+        if d <= 0.01 * rise:
+            nxt = value + 4.0 * (x - value)
+        else:
+            nxt = value + (x - value) * min(math.sqrt(rise / d), 4.0)
+        nxt = min(nxt, bound)
+        done = abs(nxt - x) <= 0.05 * (x - value)
+        x = nxt
+        if done or x >= bound:
+            break
+    return float(x)
+
+
+def _profile_cost(minimizer: lmfit.Minimizer, params: lmfit.Parameters, name: str,
+                  x: float) -> float:
+    """The least cost with ``name`` held at ``x``, the others refitted from ``params``."""
+    trial = params.copy()
+    trial[name].set(value=x, vary=False)
+    coarse = minimizer.minimize(method="leastsq", params=trial, epsfcn=_EPSFCN_COARSE,
+                                **_TOLERANCES)
+    fine = minimizer.minimize(method="leastsq", params=coarse.params, epsfcn=_EPSFCN,
+                              **_TOLERANCES)
+    return float(min(coarse.chisqr, fine.chisqr))
 
 
 #: a correlation beyond this names the partner of a parameter that is not identifiable
@@ -617,9 +761,14 @@ def _not(name: str, why: str) -> Estimate:
 
 
 #: a residual RMS below this fraction of the measured velocity's RMS is rounding, not a
-#: model error: no misfit however coloured (a drive reports float32 velocities and takes
-#: float32 torques: ~1e-7 relative; the fit's own tolerance is ~1e-6)
-NOISE_FLOOR = 1e-4
+#: model error: no misfit however coloured. A drive reports float32 velocities and takes
+#: float32 torques (~1e-7 relative), but the larger floor is the stick-slip's: on a
+#: noise-free record every stick the simulation misses by a sub-step leaves a velocity
+#: offset that decays only with J/b (measured: 4e-5 rad/s for a relative 1e-4 change of b,
+#: 12 s long), so the cost is a needle at the truth and the fit ends 1e-5 .. 1.6e-5 rad/s
+#: RMS off it = 1.5e-4 .. 2.5e-4 of the velocity RMS (free multisines with Coulomb
+#: friction, 3-60 s; the values then within 0.5 % of the truth)
+NOISE_FLOOR = 1e-3
 
 
 def _whiteness(r: np.ndarray, velocity_rms: float = 0.0, lags: int = WHITENESS_LAGS) -> Residual:
