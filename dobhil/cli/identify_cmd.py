@@ -1,8 +1,10 @@
-"""``dobhil identify LOG.mcap [--segment T0:T1[:free|contact]]... [--drive PROFILE] [--period S]
+"""``dobhil identify LOG.mcap... [--segment T0:T1[:free|contact]]... [--drive PROFILE] [--period S]
 [--out F.yaml] [--json] [--plot DIR]`` and ``dobhil compare A.mcap B.mcap``.
 
-identify fits the emulator's exact sampled plant to a recorded run (:mod:`dobhil.identify`):
-the free-motion and contact segments are found from the data unless given; the overlay
+identify fits the emulator's exact sampled plant to recorded runs (:mod:`dobhil.identify`):
+several logs of one drive are fitted together (one plant: a free run's friction, a contact
+run's environment); the free-motion and contact segments are found from the data unless
+given (``--segment``: one log only); the overlay
 (``--out``) is what ``dobhil analyze``/``run`` take with ``--set-file``. compare reports the
 RMS of the difference of two runs' force (the estimated interaction torque), cycle by cycle.
 """
@@ -18,10 +20,11 @@ from typing import Any
 
 def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = sub.add_parser("identify", help="fit the servo, environment and delay to a recorded run")
-    p.add_argument("log", metavar="LOG.mcap")
+    p.add_argument("log", metavar="LOG.mcap", nargs="+",
+                   help="one or more logs of the same drive, fitted together (e.g. a free run and a contact run)")
     p.add_argument("--segment", action="append", default=[], metavar="T0:T1[:KIND]",
-                   help="fit only this time span [s from the first cycle] (repeatable); KIND free or "
-                   "contact, found from the data when not given")
+                   help="fit only this time span [s from the first cycle] (repeatable, one LOG only); KIND free "
+                   "or contact, found from the data when not given")
     p.add_argument("--drive", metavar="PROFILE",
                    help="the drive profile (name or path): decodes a CAN log imported with dobhil log import; "
                    "a dobhil log must have been recorded with its protocol")
@@ -40,22 +43,29 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from dobhil.drives.profile import load_profile
+    from dobhil.errors import ConfigError
     from dobhil.files import check_output, check_output_dir
-    from dobhil.identify.data import find_segments, parse_segment, read_log
+    from dobhil.identify.data import find_segments, join, parse_segment, read_log
+    if args.segment and len(args.log) > 1:
+        raise ConfigError(f"--segment with {len(args.log)} logs: give segments for one LOG at a time "
+                          "(without --segment each log's segments are found from its data)")
     if args.out:
-        check_output(args.out, inputs=[args.log], suffix=(".yaml", ".yml"), what="--out")
+        check_output(args.out, inputs=args.log, suffix=(".yaml", ".yml"), what="--out")
     if args.plot:
-        check_output_dir(args.plot, ["identify_segment_0.png"], inputs=[args.log], what="--plot")
+        check_output_dir(args.plot, ["identify_segment_0.png"], inputs=args.log, what="--plot")
     profile = None if args.drive is None else load_profile(args.drive)
-    data = read_log(args.log, profile=profile, period=args.period)
-    segments = tuple(parse_segment(s, data) for s in args.segment) or find_segments(data)
+    logs = []
+    for name in args.log:
+        one = read_log(name, profile=profile, period=args.period)
+        logs.append((one, tuple(parse_segment(s, one) for s in args.segment) or find_segments(one)))
+    data, parts = join(logs)
     from dobhil.identify.fit import identify
-    result = identify(data, segments)
-    info = summary(result, data)
+    result = identify(data, [s for part in parts for s in part.segments])
+    info = summary(result, data, parts)
     if args.out:
-        _write_overlay(result.overlay(), args.out)
+        _write_overlay(result.overlay(), info, args.out)
     if args.plot:
-        for path in _figures(result, data, args.plot):
+        for path in _figures(result, data, parts, args.plot):
             sys.stderr.write(f"wrote {path}\n")
     if args.json:
         print(json.dumps(info))
@@ -64,29 +74,38 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _figures(result: Any, data: Any, out: Path) -> list[Path]:
-    """One measured-vs-model PNG per segment, the model simulated with the identifiable values."""
+def _figures(result: Any, data: Any, parts: Any, out: Path) -> list[Path]:
+    """One measured-vs-model PNG per segment, the model simulated with the identifiable values,
+    against the time in its own log."""
     from dobhil.identify.fit import simulate
     from dobhil.plotting.identify_figures import measured_vs_model
     values = {n: e.value for n, e in result.estimates.items() if e.identifiable}
     out.mkdir(parents=True, exist_ok=True)
     written = []
-    for i, seg in enumerate(result.segments):
+    for i, (part, seg) in enumerate((p, s) for p in parts for s in p.segments):
+        # the segments are result.segments in this order; each from its fitted initial state
+        initial = result.initial[i] if i < len(result.initial) else None
         s = slice(seg.start, seg.stop)
-        t = data.t[s]
-        title = f"{data.source}: {seg.kind} segment {t[0]:.3f}-{t[-1]:.3f} s"
-        written.append(measured_vs_model(t, (data.position[s], data.velocity[s]), simulate(values, data, seg),
-                                         title, out / f"identify_segment_{i}.png"))
+        t0, t1 = part.local(seg, data.period)
+        t = data.t[s] - part.offset * data.period
+        title = f"{part.source}: {seg.kind} segment {t0:.3f}-{t1:.3f} s"
+        written.append(measured_vs_model(t, (data.position[s], data.velocity[s]), simulate(values, data, seg, initial),
+                                         title, out / f"identify_segment_{i}.png", torque=data.torque[s]))
     return written
 
 
-def summary(result: Any, data: Any) -> dict[str, Any]:
-    """The JSON of an identification: estimates, correlations, residual, segments (times)."""
+def summary(result: Any, data: Any, parts: Any) -> dict[str, Any]:
+    """The JSON of an identification: estimates, correlations, residual, segments (the log of
+    each, and its times in that log)."""
     def number(x: float) -> float | None:
         return None if x != x else float(x)  # NaN (not identifiable) -> null
-    return {"file": data.source, "protocol": data.protocol, "period": data.period, "samples": data.samples,
-            "segments": [{"kind": s.kind, "t0": s.start * data.period, "t1": s.stop * data.period}
-                         for s in result.segments],
+    segments = []
+    for part in parts:
+        for s in part.segments:
+            t0, t1 = part.local(s, data.period)
+            segments.append({"file": part.source, "kind": s.kind, "t0": t0, "t1": t1})
+    return {"file": data.source, "files": [p.source for p in parts], "protocol": data.protocol,
+            "period": data.period, "samples": sum(p.samples for p in parts), "segments": segments,
             "estimates": {n: {"value": number(e.value), "stderr": number(e.stderr), "low": number(e.low),
                               "high": number(e.high), "identifiable": e.identifiable, "why": e.why}
                           for n, e in result.estimates.items()},
@@ -96,7 +115,9 @@ def summary(result: Any, data: Any) -> dict[str, Any]:
 
 
 def _print(info: dict[str, Any]) -> None:
-    spans = ", ".join(f"{s['kind']} {s['t0']:.3f}-{s['t1']:.3f} s" for s in info["segments"])
+    many = len(info["files"]) > 1
+    spans = ", ".join((f"{s['file']} " if many else "") + f"{s['kind']} {s['t0']:.3f}-{s['t1']:.3f} s"
+                      for s in info["segments"])
     print(f"identified {info['file']} ({info['protocol']}, {info['samples']} samples at T = "
           f"{info['period']:g} s): {spans}")
     for name, e in info["estimates"].items():
@@ -114,15 +135,39 @@ def _num(value: float | None, spec: str) -> str:
     return "n/a" if value is None else format(value, spec)
 
 
-def _write_overlay(overlay: dict[str, Any], path: Path) -> None:
-    import yaml
+#: overlay key -> the estimate whose interval its comment gives
+_OVERLAY_SOURCES = {"plant.inertia": "inertia", "plant.viscous_friction": "viscous_friction",
+                    "plant.coulomb_friction": "coulomb_friction", "environment.contact_position": "contact_position",
+                    "environment.stiffness": "stiffness", "environment.damping": "damping",
+                    "design.identified_inertia": "inertia"}
 
+
+def overlay_text(overlay: dict[str, Any], info: dict[str, Any]) -> str:
+    """The overlay as YAML a person can read: one ``key: value`` a line, each commented with its
+    95 % interval, and what was not identifiable (and why) at the top. ``repr`` of a float is
+    valid YAML and round-trips exactly (tested)."""
+    est = info["estimates"]
+    lines = [f"# written by dobhil identify from {', '.join(info['files'])}; use with --set-file",
+             "# design.identified_inertia is the identified inertia as the design's J_mi: keep your own rule "
+             "with --set design.identified_inertia=... after --set-file"]
+    lines += [f"# not identifiable: {name}: {e['why']}" for name, e in est.items() if not e["identifiable"]]
+    for key in sorted(overlay):
+        value = overlay[key]
+        name = "delay" if key in ("design.delay_samples", "design.input_delay") else _OVERLAY_SOURCES.get(key)
+        e = est.get(name) if name else None
+        note = ""
+        if e and e["identifiable"]:
+            whole = f"delay {e['value']:.6g} s, " if name == "delay" else ""
+            note = f"  # {whole}95 % [{e['low']:.6g}, {e['high']:.6g}]"
+        shown = repr(float(value)) if isinstance(value, float) else repr(int(value))
+        lines.append(f"{key}: {shown}{note}")
+    return "\n".join(lines) + "\n"
+
+
+def _write_overlay(overlay: dict[str, Any], info: dict[str, Any], path: Path) -> None:
     from dobhil.files import atomic_path
-    text = ("# written by dobhil identify; use with --set-file\n"
-            + yaml.safe_dump({k: float(v) if isinstance(v, float) else v for k, v in overlay.items()},
-                             sort_keys=True))
     with atomic_path(path) as tmp:
-        tmp.write_text(text, encoding="utf-8")
+        tmp.write_text(overlay_text(overlay, info), encoding="utf-8")
     sys.stderr.write(f"wrote {path}\n")
 
 

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import math
 import os
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from types import MappingProxyType
 from typing import Final
@@ -37,8 +37,9 @@ CONTACT: Final = "contact"
 KINDS: Final = (FREE, CONTACT)
 #: config sections whose numeric keys an IdentData carries as ``recorded``
 RECORDED_SECTIONS: Final = ("plant", "environment", "design")
-#: fewest samples of a segment: shorter runs of one kind merge into their neighbour
-MIN_SEGMENT: Final = 20
+#: fewest samples of a segment: shorter runs of one kind merge into their neighbour (more than
+#: the fit's own minimum, twice its start estimate's smoothing and then some)
+MIN_SEGMENT: Final = 25
 #: torque lags in the segment regression: covers a whole-sample delay of up to this many periods
 _LAGS: Final = 4
 #: significance of the contact spring term (F test)
@@ -264,7 +265,10 @@ def find_segments(data: IdentData) -> tuple[Segment, ...]:
 
 def segments_of(contact: NDArray[np.bool_]) -> tuple[Segment, ...]:
     """Maximal runs of one kind; a run shorter than :data:`MIN_SEGMENT` joins the one before
-    (a contact bouncing open for a few samples is not a free-motion experiment)."""
+    (a contact bouncing open for a few samples is not a free-motion experiment), and free runs
+    between two contact runs join them: the servo left the environment and came back, one
+    contact experiment that the model (which switches in and out of contact itself) follows
+    through -- cut into pieces, each would have to start from a state the fit does not know."""
     edges = np.flatnonzero(np.diff(contact.astype(np.int8))) + 1
     bounds = [0, *edges.tolist(), int(contact.size)]
     runs: list[list[int]] = []
@@ -276,6 +280,10 @@ def segments_of(contact: NDArray[np.bool_]) -> tuple[Segment, ...]:
             runs[-1][1], runs[-1][2] = b, kind
         else:
             runs.append([a, b, kind])
+    touching = [i for i, r in enumerate(runs) if r[2]]
+    if touching:
+        first, last = touching[0], touching[-1]
+        runs[first:last + 1] = [[runs[first][0], runs[last][1], 1]]
     return tuple(Segment(a, b, CONTACT if k else FREE) for a, b, k in runs)
 
 
@@ -331,5 +339,72 @@ def segment_times(segment: Segment, period: float) -> tuple[float, float]:
     return segment.start * period, segment.stop * period
 
 
-__all__ = ["CONTACT", "FREE", "KINDS", "MIN_SEGMENT", "IdentData", "Segment", "check_motion", "contact_mask",
-           "find_segments", "parse_segment", "read_log", "segments_of"]
+# -- several logs fitted together ------------------------------------------------------------
+
+#: zero-torque samples between two logs joined for one fit: more than any delay the fit
+#: searches and the start estimate's smoothing reach, so no torque of one log acts in the next
+#: (each log starts at rest, every command before its cycle 0 being 0)
+JOIN_GAP: Final = 32
+
+
+@dataclass(frozen=True)
+class Part:
+    """Where one log's samples are in a joined :class:`IdentData`: ``offset`` .. ``offset +
+    samples``, and the segments found in (or given for) it, in the joined sample numbering."""
+
+    source: str
+    offset: int
+    samples: int
+    segments: tuple[Segment, ...]
+
+    def local(self, segment: Segment, period: float) -> tuple[float, float]:
+        """The segment's times [s] from this log's first cycle."""
+        return (segment.start - self.offset) * period, (segment.stop - self.offset) * period
+
+
+def join(parts: Sequence[tuple[IdentData, Sequence[Segment]]]) -> tuple[IdentData, tuple[Part, ...]]:
+    """Several logs of the same drive as one record, so one fit shares the plant between them
+    (a free run's friction with a contact run's environment: a contact-only record cannot tell
+    the servo's viscous friction from the environment's damping). The logs follow each other
+    with :data:`JOIN_GAP` samples of zero torque between them, which no segment covers; the
+    segments shift with their log. ConfigError (one line) when the logs differ in period or
+    protocol."""
+    if not parts:
+        raise ValueError("join: no log")
+    first = parts[0][0]
+    if len(parts) == 1:
+        return first, (Part(first.source, 0, first.samples, tuple(parts[0][1])),)
+    pieces: dict[str, list[Array]] = {"torque": [], "position": [], "velocity": []}
+    placed: list[Part] = []
+    offset = 0
+    for data, segments in parts:
+        if not math.isclose(data.period, first.period, rel_tol=1e-9):
+            raise ConfigError(f"{data.source}: period {data.period:g} s, but {first.source} has {first.period:g} s; "
+                              "logs identified together need the same period")
+        if data.protocol != first.protocol:
+            raise ConfigError(f"{data.source}: recorded with a {data.protocol!r} drive, but {first.source} with "
+                              f"a {first.protocol!r} one; logs identified together need the same drive")
+        if offset:
+            # the gap holds the next log's first sample: at rest there, no torque
+            pieces["torque"].append(np.zeros(JOIN_GAP))
+            pieces["position"].append(np.full(JOIN_GAP, data.position[0]))
+            pieces["velocity"].append(np.zeros(JOIN_GAP))
+            offset += JOIN_GAP
+        pieces["torque"].append(data.torque)
+        pieces["position"].append(data.position)
+        pieces["velocity"].append(data.velocity)
+        placed.append(Part(data.source, offset, data.samples,
+                           tuple(Segment(s.start + offset, s.stop + offset, s.kind) for s in segments)))
+        offset += data.samples
+    # the recorded config keys the logs agree on (the free run's environment is not the contact run's)
+    recorded = {k: v for k, v in first.recorded.items() if all(d.recorded.get(k) == v for d, _ in parts)}
+    joined = IdentData(period=first.period, t=np.arange(offset, dtype=float) * first.period,
+                       torque=np.concatenate(pieces["torque"]), position=np.concatenate(pieces["position"]),
+                       velocity=np.concatenate(pieces["velocity"]),
+                       source="+".join(data.source for data, _ in parts), protocol=first.protocol,
+                       recorded=MappingProxyType(recorded))
+    return joined, tuple(placed)
+
+
+__all__ = ["CONTACT", "FREE", "JOIN_GAP", "KINDS", "MIN_SEGMENT", "IdentData", "Part", "Segment", "check_motion",
+           "contact_mask", "find_segments", "join", "parse_segment", "read_log", "segments_of"]

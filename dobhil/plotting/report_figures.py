@@ -64,13 +64,35 @@ def _zoom_window(summary: Mapping[str, Any], t: np.ndarray) -> tuple[float, floa
     return main["time"] - 0.1 * max(settle, 0.02), main["time"] + min(3 * max(settle, 0.02), float(t[-1]))
 
 
+def open_loop(data: RecordedRun) -> bool:
+    """A ``loop.mode: torque`` run: the reference is the torque command, nothing tracks a force."""
+    return data.config is not None and data.config.loop.mode == "torque"
+
+
+def labels(data: RecordedRun) -> dict[str, str]:
+    """The names the figures give the reference and the force loop's parts: in an open-loop
+    torque run the reference is the torque sent, and the observers run without commanding."""
+    if open_loop(data):
+        return {"force_title": "Interaction torque of an open-loop torque run (loop.mode: torque)",
+                "tau_ref": "torque command (the reference, open loop)",
+                "tau_per": "$\\tau_{per}$ = 0 (open loop: no force feedback)",
+                "tau_dis_hat": "$\\hat\\tau_{dis}$ (DOb: estimated, not sent)",
+                "u_sat": "$u$ sent = the torque reference (saturated)",
+                "commands_title": "Torque command (open loop: the reference itself)"}
+    return {"force_title": "Force response", "tau_ref": "reference $\\tau^{ref}_{int}$",
+            "tau_per": "$\\tau_{per} = C_f(\\tau^{ref} - \\hat\\tau_{int})$",
+            "tau_dis_hat": "$\\hat\\tau_{dis}$ (DOb)", "u_sat": "$u$ sent (saturated)",
+            "commands_title": "Torque command and its parts"}
+
+
 def force_figure(data: RecordedRun, predicted: np.ndarray | None, summary: Mapping[str, Any], path: Path) -> Path:
     plt = _plt()
     t = data.t
     zoom = _zoom_window(summary, t)
+    names = labels(data)
     fig, axes = plt.subplots(2 if zoom else 1, 1, figsize=(9, 7.5 if zoom else 4.5), squeeze=False)
     for k, ax in enumerate(axes[:, 0]):
-        ax.plot(t, data["tau_ref"], "k--", lw=1.2, label="reference $\\tau^{ref}_{int}$", drawstyle="steps-post")
+        ax.plot(t, data["tau_ref"], "k--", lw=1.2, label=names["tau_ref"], drawstyle="steps-post")
         ax.plot(t, data["tau_int_hat"], lw=1.5, label="estimated $\\hat\\tau_{int}$ (RTOb)")
         if data.has("tau_int_true"):
             ax.plot(t, data["tau_int_true"], lw=1.0, alpha=0.85, label="true $\\tau_{int}$ (emulator)")
@@ -83,7 +105,7 @@ def force_figure(data: RecordedRun, predicted: np.ndarray | None, summary: Mappi
             _fit_y(ax, t, zoom, [data["tau_ref"], data["tau_int_hat"], data["tau_int_true"]])
             ax.set_title("zoom on the largest reference step taken in contact", fontsize=9)
     axes[-1, 0].set_xlabel("time [s]")
-    axes[0, 0].set_title(_title(data, "Force response"))
+    axes[0, 0].set_title(_title(data, names["force_title"]))
     return save(fig, path)
 
 
@@ -116,8 +138,12 @@ def error_figure(data: RecordedRun, path: Path) -> Path:
     if data.has("tau_int_true"):
         ax.plot(t, data["tau_ref"] - data["tau_int_true"], lw=1.0, alpha=0.8,
                 label="$\\tau^{ref} - \\tau_{int}$ (true)")
-    _finish(ax, "tracking error [N m]")
-    ax.set_title(_title(data, "Force tracking error"))
+    if open_loop(data):  # the reference is a torque: no force is tracked, the difference is no error
+        _finish(ax, "torque reference - interaction torque [N m]")
+        ax.set_title(_title(data, "Open-loop torque run: nothing tracks a force (loop.mode: torque)"))
+    else:
+        _finish(ax, "tracking error [N m]")
+        ax.set_title(_title(data, "Force tracking error"))
     if rows == 2:
         ax = axes[1, 0]
         ax.plot(t, data["tau_int_hat"] - data["tau_int_true"], lw=1.0, color="tab:purple",
@@ -152,16 +178,17 @@ def command_figure(data: RecordedRun, path: Path) -> Path:
     t = data.t
     fig, ax = plt.subplots(figsize=(9, 4.5))
     ax.plot(t, data["u_unsat"], lw=1.0, alpha=0.7, label="$u$ before saturation")
-    ax.plot(t, data["u_sat"], lw=1.3, label="$u$ sent (saturated)")
-    ax.plot(t, data["tau_dis_hat"], lw=1.0, label="$\\hat\\tau_{dis}$ (DOb)")
-    ax.plot(t, data["tau_per"], lw=1.0, label="$\\tau_{per} = C_f(\\tau^{ref} - \\hat\\tau_{int})$")
+    names = labels(data)
+    ax.plot(t, data["u_sat"], lw=1.3, label=names["u_sat"])
+    ax.plot(t, data["tau_dis_hat"], lw=1.0, label=names["tau_dis_hat"])
+    ax.plot(t, data["tau_per"], lw=1.0, label=names["tau_per"])
     limit = data.metadata.get("run", {}).get("torque_limit")
     if limit:
         for s in (1, -1):
             ax.axhline(s * float(limit), color="0.4", lw=0.8, ls="--")
     _finish(ax, "torque [N m]")
     ax.set_xlabel("time [s]")
-    ax.set_title(_title(data, "Torque command and its parts"))
+    ax.set_title(_title(data, names["commands_title"]))
     return save(fig, path)
 
 

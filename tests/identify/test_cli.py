@@ -34,6 +34,11 @@ def test_identify_bad_input(logs: dict[str, Path], tmp_path: Path, capsys: pytes
     _fails(capsys, ["identify", str(logs["contact"]), "--out", str(tmp_path / "o.txt")], "--out")
     _fails(capsys, ["identify", str(logs["contact"]), "--drive", "no-such-drive"], "no-such-drive")
     _fails(capsys, ["identify", str(logs["contact"]), "--period", "0.001"], "records its own period")
+    _fails(capsys, ["identify", str(logs["free"]), str(logs["contact"]), "--segment", "0:0.4"], "one LOG at a time")
+    _fails(capsys, ["identify", str(logs["free"]), str(logs["still"])], "still.mcap: the position never changes")
+    garbage = tmp_path / "garbage.mcap"
+    garbage.write_bytes(b"not an mcap file at all" * 10)
+    _fails(capsys, ["identify", str(garbage)], "garbage.mcap")
     assert main(["log", "export", str(logs["contact"]), "--can", "--format", "candump",
                  "-o", str(tmp_path / "c.log")]) == 0
     assert main(["log", "import", str(tmp_path / "c.log"), "-o", str(tmp_path / "c.mcap")]) == 0
@@ -103,8 +108,14 @@ def test_identify_free_run_end_to_end(logs: dict[str, Path], tmp_path: Path,
     for name in ("stiffness", "damping", "contact_position"):
         e = info["estimates"][name]
         assert not e["identifiable"] and e["value"] is None and e["why"]
-    overlay = yaml.safe_load(out.read_text(encoding="utf-8"))
+    text = out.read_text(encoding="utf-8")
+    overlay = yaml.safe_load(text)
     assert overlay and not any(k.startswith("environment.") for k in overlay)
+    # each value exactly the estimate, commented with its interval; what is missing says why
+    inertia = info["estimates"]["inertia"]
+    assert overlay["plant.inertia"] == inertia["value"]
+    assert f"plant.inertia: {inertia['value']!r}  # 95 % [{inertia['low']:.6g}, {inertia['high']:.6g}]" in text
+    assert "# not identifiable: stiffness: no contact segment" in text
     assert all(info["estimates"][k.split(".")[1]]["identifiable"] for k in overlay if k.startswith("plant."))
     assert main(["analyze", "demo", "--set-file", str(out), "--json"]) == 0
     capsys.readouterr()

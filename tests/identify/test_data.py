@@ -62,13 +62,23 @@ def test_free_motion_has_no_contact(logs: dict[str, Path]) -> None:
 
 
 def test_segments_of_literal_masks() -> None:
-    m = np.zeros(100, dtype=bool)
+    assert MIN_SEGMENT == 25   # the literal masks below are laid out for it
+    m = np.zeros(200, dtype=bool)
     m[40:] = True
-    assert segments_of(m) == (Segment(0, 40, FREE), Segment(40, 100, CONTACT))
-    m[60:63] = False   # a 3-sample bounce joins the contact
-    assert segments_of(m) == (Segment(0, 40, FREE), Segment(40, 100, CONTACT))
+    assert segments_of(m) == (Segment(0, 40, FREE), Segment(40, 200, CONTACT))
+    m[80:83] = False   # a 3-sample bounce joins the contact
+    assert segments_of(m) == (Segment(0, 40, FREE), Segment(40, 200, CONTACT))
     m[:5] = True       # a short first run joins the next
     assert segments_of(m)[0] == Segment(0, 40, FREE)
+    m[100:150] = False  # left the contact for a while and came back: one contact experiment
+    assert segments_of(m) == (Segment(0, 40, FREE), Segment(40, 200, CONTACT))
+    m[100:] = False     # ... or left it for good
+    assert segments_of(m) == (Segment(0, 40, FREE), Segment(40, 100, CONTACT), Segment(100, 200, FREE))
+
+
+def test_found_segments_are_long_enough_for_the_fit() -> None:
+    from dobhil.identify import fit
+    assert MIN_SEGMENT > 2 * fit._SMOOTH + 2   # identify refuses shorter segments
 
 
 def test_parse_segment(logs: dict[str, Path]) -> None:
@@ -139,3 +149,40 @@ def test_imported_can_log_needs_its_profile(imported: Path) -> None:
         read_log(imported, profile=load_profile("mini-cheetah"))
     with pytest.raises(ConfigError, match="decode as motion feedback of a 'cia402' drive"):
         read_log(imported, profile=load_profile("cia402-emulated"))
+
+
+def _record(n: int, start: float, *, period: float = 1e-3, protocol: str = "odrive",
+            recorded: dict[str, float] | None = None, source: str = "x.mcap") -> IdentData:
+    k = np.arange(n, dtype=float)
+    return IdentData(period, k * period, 1.0 + k, start + k, 2.0 + k, source, protocol, recorded or {})
+
+
+def test_join_places_logs_one_after_the_other_with_a_rest_gap() -> None:
+    from dobhil.identify.data import JOIN_GAP, Part, join
+    a = _record(50, 0.0, source="a.mcap", recorded={"plant.inertia": 0.25, "environment.stiffness": 0.0})
+    b = _record(40, 7.0, source="b.mcap", recorded={"plant.inertia": 0.25, "environment.stiffness": 1e4})
+    data, parts = join([(a, (Segment(0, 50, FREE),)), (b, (Segment(0, 20, FREE), Segment(20, 40, CONTACT)))])
+    assert parts == (Part("a.mcap", 0, 50, (Segment(0, 50, FREE),)),
+                     Part("b.mcap", 50 + JOIN_GAP, 40, (Segment(50 + JOIN_GAP, 70 + JOIN_GAP, FREE),
+                                                         Segment(70 + JOIN_GAP, 90 + JOIN_GAP, CONTACT))))
+    assert data.samples == 90 + JOIN_GAP and data.source == "a.mcap+b.mcap" and data.protocol == "odrive"
+    np.testing.assert_array_equal(data.t, np.arange(data.samples) * 1e-3)
+    gap = slice(50, 50 + JOIN_GAP)
+    assert (data.torque[gap] == 0.0).all() and (data.velocity[gap] == 0.0).all()
+    assert (data.position[gap] == 7.0).all()          # at rest where the next log starts
+    np.testing.assert_array_equal(data.torque[50 + JOIN_GAP:], b.torque)
+    np.testing.assert_array_equal(data.position[:50], a.position)
+    assert dict(data.recorded) == {"plant.inertia": 0.25}   # only what both logs agree on
+    assert parts[1].local(parts[1].segments[1], 1e-3) == pytest.approx((0.02, 0.04))
+    assert JOIN_GAP > 3 + 1 + 9   # the fit's delay search (3 samples + the one in transit) and smoothing
+
+
+def test_join_of_one_log_is_that_log_and_mixed_logs_are_refused() -> None:
+    from dobhil.identify.data import join
+    a = _record(50, 0.0)
+    data, parts = join([(a, (Segment(0, 50, FREE),))])
+    assert data is a and parts[0].offset == 0
+    with pytest.raises(ConfigError, match="same period"):
+        join([(a, ()), (_record(50, 0.0, period=2e-3, source="b.mcap"), ())])
+    with pytest.raises(ConfigError, match="same drive"):
+        join([(a, ()), (_record(50, 0.0, protocol="mit", source="b.mcap"), ())])

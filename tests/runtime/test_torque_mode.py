@@ -206,6 +206,30 @@ def test_the_report_of_a_torque_run_has_no_force_tracking(torque_log: Path) -> N
     assert "mode: torque (open loop" in summary_text(summary)
 
 
+def test_the_report_figures_of_a_torque_run_say_open_loop(torque_log: Path, tmp_path: Path) -> None:
+    """The figures name the reference a torque command (not a force reference) in a torque
+    run, and the force run's names otherwise; the figures are written either way."""
+    from dobhil.plotting.report_figures import labels, open_loop, report_figures
+    from dobhil.run_report import report
+    data, summary, predicted = report(torque_log)
+    assert open_loop(data)
+    names = labels(data)
+    assert "torque command" in names["tau_ref"] and "open-loop" in names["force_title"]
+    assert "= 0" in names["tau_per"]
+    paths = report_figures(data, predicted, summary, tmp_path)
+    assert all(p.is_file() and p.stat().st_size > 0 for p in paths)
+    assert labels(_ForceRun(data))["tau_ref"] == "reference $\\tau^{ref}_{int}$"
+
+
+class _ForceRun:
+    """``data`` as a force run: its config with loop.mode force."""
+
+    def __init__(self, data: object) -> None:
+        import dataclasses
+        config = data.config  # type: ignore[attr-defined]
+        self.config = dataclasses.replace(config, loop=dataclasses.replace(config.loop, mode="force"))
+
+
 def test_the_run_says_it_is_a_torque_run(capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["run", "identify-contact", "--emulate", "--lockstep", "--duration", "0.2"]) == 0
     first = capsys.readouterr().out.splitlines()[0]
