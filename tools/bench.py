@@ -23,10 +23,10 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from dobhil.analysis.sweep import parse_vary, sweep  # noqa: E402
-from dobhil.config import load_config  # noqa: E402
-from dobhil.synthesis.loop import loop  # noqa: E402
-from dobhil.synthesis.params import params_from_config  # noqa: E402
+from dobhil.analysis.sweep import parse_vary, sweep
+from dobhil.config import load_config
+from dobhil.synthesis.loop import loop
+from dobhil.synthesis.params import params_from_config
 
 ROOT = Path(__file__).resolve().parents[1]
 TARGETS: dict[str, float] = {
