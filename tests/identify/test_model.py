@@ -206,27 +206,32 @@ def test_fast_path_equals_stepping_for_other_substeps_and_long_records(substeps:
             _assert_same(fast, ref)
 
 
+def _count_plant_steps(monkeypatch: pytest.MonkeyPatch) -> list[int]:
+    """``[n]``: how many times Plant.step is called from now on (the test counts work, not time)."""
+    steps = [0]
+    original = Plant.step
+
+    def counting(self: Plant, torque_nm: float, dt: float) -> None:
+        steps[0] += 1
+        original(self, torque_nm, dt)
+
+    monkeypatch.setattr(Plant, "step", counting)
+    return steps
+
+
 def test_the_span_method_does_not_step_the_plant_through_a_sliding_record(
         monkeypatch: pytest.MonkeyPatch) -> None:
     """A free multisine with Coulomb friction: the Plant steps only the samples with an
     event (velocity reversals), a small part of the record -- the point of the fast path
     (counted, not timed)."""
     n = 20_000
-    stepped = 0
-    original = Plant.step
-
-    def counting(self: Plant, torque_nm: float, dt: float) -> None:
-        nonlocal stepped
-        stepped += 1
-        original(self, torque_nm, dt)
-
-    monkeypatch.setattr(Plant, "step", counting)
+    steps = _count_plant_steps(monkeypatch)
     values = ModelValues(inertia=0.25, viscous_friction=0.02, coulomb_friction=0.05)
     torque = _torque("sines", n, 3, 0.5, 0.0)
     pos, vel = _simulate(values, torque, PERIOD, 0, n, 0.0, 0.0, 10, "spans")
     reversals = int(np.count_nonzero(np.diff(np.sign(vel)) != 0))
     assert reversals > 10
-    assert stepped <= 4 * reversals + 10 < n // 20
+    assert steps[0] <= 4 * reversals + 10 < n // 20
 
 
 def _blas_threads() -> list[int]:
@@ -283,16 +288,8 @@ def test_compiled_record_is_the_plant_bit_for_bit(delay: float, contact: bool,
         q0 = 0.2 + 1e-4
     torque = _torque("prbs", n, 5, 0.5, 1.0 if contact else 0.0)
     ref = _simulate_stepping(values, torque, PERIOD, 0, n, q0, 0.0)
-    calls = 0
-    original = Plant.step
-
-    def counting(self: Plant, torque_nm: float, dt: float) -> None:
-        nonlocal calls
-        calls += 1
-        original(self, torque_nm, dt)
-
-    monkeypatch.setattr(Plant, "step", counting)
+    steps = _count_plant_steps(monkeypatch)
     fast = simulate_torque(values, torque, PERIOD, 0, n, q0, 0.0)
-    assert calls == 0
+    assert steps[0] == 0
     np.testing.assert_array_equal(fast[0], ref[0])
     np.testing.assert_array_equal(fast[1], ref[1])
