@@ -14,7 +14,7 @@ import can
 import pytest
 
 from dobhil.cli.main import main
-from dobhil.drives.mit.preflight import MitPreflight, set_zero
+from dobhil.drives.mit.preflight import ASK_AGAIN, MitPreflight, set_zero
 from dobhil.drives.preflight import PreflightReport, run_preflight
 from dobhil.drives.registry import preflight_probe
 from dobhil.errors import ConfigError, DriveTimeoutError
@@ -178,6 +178,29 @@ def test_set_zero_sends_zero_waits_its_silence_then_reads_the_new_position() -> 
     # decoded in single precision, as the firmware does
     assert result.position == pytest.approx(decode(0x8001, 12.5, 16), abs=2e-6)
     assert "set zero sent; after 0.05 s the position reads" in result.line()
+
+
+def test_set_zero_asks_again_when_the_motor_is_silent_longer_than_zero_silence() -> None:
+    """A motor whose flash write outlasts ``zero_silence`` drops the first ask: the host asks
+    again (every ASK_AGAIN s) and reads the position once the motor answers."""
+    silent_asks = [2]
+
+    def answer(data: bytes) -> bytes | None:
+        if data == ZERO:
+            return None
+        if silent_asks[0]:
+            silent_asks[0] -= 1
+            return None
+        return reply_cubemars(NODE, p=0x8001)
+
+    with fake_motor(NODE, answer) as (bus, motor):
+        host = Stamped(bus)
+        result = set_zero(host, mit_profile(mit={"zero_silence": 0.0}), clock=time.monotonic,  # type: ignore[arg-type]
+                          timeout=5.0)
+    assert [data for _, data in host.sent] == [ZERO, ZERO_TORQUE, ZERO_TORQUE, ZERO_TORQUE]
+    asked = [t for t, data in host.sent if data == ZERO_TORQUE]
+    assert all(b - a >= ASK_AGAIN for a, b in zip(asked, asked[1:]))
+    assert result.position == pytest.approx(decode(0x8001, 12.5, 16), abs=2e-6)
 
 
 def test_set_zero_without_a_reply_times_out_in_one_line() -> None:

@@ -338,11 +338,16 @@ class ZeroResult:
                 f"{self.position:+.4f} rad")
 
 
+#: [s] set zero: how often the position is asked again while no reply has come
+ASK_AGAIN = 0.1
+
+
 def set_zero(bus: can.BusABC, profile: DriveProfile, *, clock: Callable[[], float],
              cancel: Cancel | None = None, timeout: float | None = None) -> ZeroResult:
     """Send set zero (0xFE) to the profile's node, wait ``mit.zero_silence`` s (the motor is
     silent while it stores the offset; frames meanwhile are read and dropped), then ask with
-    a zero-torque command and return the position of the reply. ConfigError for a profile
+    a zero-torque command (again every :data:`ASK_AGAIN` s until a reply) and return the
+    position of the reply. ConfigError for a profile
     that is not MIT; DriveTimeoutError when no reply comes within ``timeout`` (default the
     profile's ``enable_timeout``); WaitCancelled within WAIT_SLICE s of ``cancel()``."""
     if profile.protocol != "mit":
@@ -354,7 +359,7 @@ def set_zero(bus: can.BusABC, profile: DriveProfile, *, clock: Callable[[], floa
     silence = float(profile.options.get("zero_silence", 1.0))
     bus.send(can.Message(arbitration_id=node, is_extended_id=False, data=special_frame(Special.ZERO)))
     _await(bus, clock, clock() + silence, cancel, _nothing, _nothing)
-    bus.send(can.Message(arbitration_id=node, is_extended_id=False, data=pack_command(model, ZERO_COMMAND)))
+    ask = can.Message(arbitration_id=node, is_extended_id=False, data=pack_command(model, ZERO_COMMAND))
     wait = profile.enable_timeout if timeout is None else timeout
 
     def ours(msg: can.Message) -> bytes | None:
@@ -362,7 +367,14 @@ def set_zero(bus: can.BusABC, profile: DriveProfile, *, clock: Callable[[], floa
             and reply_node(model, msg.data) == node
         return bytes(msg.data) if ok else None
 
-    data = _await(bus, clock, clock() + wait, cancel, ours, _nothing)
+    # asked again every ASK_AGAIN s: a motor still silent when the first ask arrives (its
+    # flash write a little longer than zero_silence, or a busy host's frame late) drops it,
+    # and one lost ask must not read as "not in MIT mode"; a zero-torque command is harmless
+    deadline = clock() + wait
+    data = None
+    while data is None and clock() < deadline:
+        bus.send(ask)
+        data = _await(bus, clock, min(clock() + ASK_AGAIN, deadline), cancel, ours, _nothing)
     if data is None:
         raise DriveTimeoutError(f"node {node}: no reply within {wait:g} s after set zero and {silence:g} s of "
                                 "silence: a motor not in MIT mode answers nothing; check node_id, the bit rate "
