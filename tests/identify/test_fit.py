@@ -15,7 +15,8 @@ import scipy.stats
 
 from dobhil.emulator.plant import DisturbanceKind
 from dobhil.identify.data import IdentData, Segment
-from dobhil.identify.fit import MISFIT_P, PARAMETERS, IdentResult, _quantum, identify, simulate
+from dobhil.identify.fit import (MISFIT_P, PARAMETERS, IdentResult, _quantum, _relative_steps,
+                                 identify, simulate)
 from dobhil.identify.model import ModelValues, simulate_torque, split_delay
 from dobhil.synthesis.controller import discretize_delayed
 from dobhil.synthesis.models import plant_matrices, servo_matrices
@@ -360,3 +361,19 @@ def test_the_encoder_count_is_read_from_the_positions() -> None:
     assert _quantum(q) == pytest.approx(COUNT, rel=1e-9)
     assert _quantum(np.array([0.0, 0.1, 0.23, 0.3])) == 0.0        # not on a grid
     assert _quantum(np.zeros(5)) == 0.0
+
+
+@pytest.mark.parametrize(("x0", "step"), [([2.0, -0.5, 1e-4], [0.2, 0.05, 1e-3]),
+                                          ([1e4, 3e-3, -7.0], [1e3, 0.01, 0.7])])
+def test_scipys_central_differences_take_the_absolute_steps_asked_for(
+        x0: list[float], step: list[float]) -> None:
+    """_refine hands scipy's least_squares absolute steps (the standard errors) through its
+    relative ``diff_step`` (_relative_steps): on ``f(x) = x^3`` the central difference is
+    ``3 x^2 + h^2``, so the Jacobian scipy returns shows the step it took -- a scipy that
+    computed it otherwise (``max(1, |x|)``, as its docs once said) fails here."""
+    x = np.array(x0)
+    h = np.array(step)
+    fit = scipy.optimize.least_squares(lambda v: v ** 3 - x ** 3 + 1.0, x, jac="3-point",
+                                       diff_step=_relative_steps(h, x), max_nfev=1)
+    taken = np.sqrt(np.diag(fit.jac) - 3.0 * x ** 2)
+    assert np.allclose(taken, h, rtol=1e-3), (taken, h)
