@@ -8,13 +8,12 @@ fits cleanly: the control that lets these tests fail.
 
 The records are made here from the emulator's Plant directly (torque held over each
 period, no delay, quantised encoder, noisy velocity), independent of how the fit
-simulates it, and fitted through the SPEC-19 seam: ``identify(IdentData, segments)
+simulates it, and fitted through ``identify(IdentData, segments)
 -> IdentResult`` with ``residual.misfit`` / ``.warning`` / ``.rms`` / ``.whiteness_p``.
 """
 
 from __future__ import annotations
 
-import importlib.util
 import math
 from typing import Any
 
@@ -23,20 +22,6 @@ import pytest
 
 from dobhil.emulator.plant import Plant
 
-
-def _fit_available() -> bool:
-    try:
-        return importlib.util.find_spec("dobhil.identify.fit") is not None
-    except ModuleNotFoundError:
-        return False
-
-
-# Written in the branch wt-iplant before the fit (W1, branch wt-ifit) landed: until
-# dobhil.identify.fit exists these tests cannot run and are expected to fail on the
-# import only (raises=ImportError); once it is merged they run for real.
-pytestmark = pytest.mark.xfail(
-    not _fit_available(), raises=ImportError, strict=False,
-    reason="dobhil.identify.fit (SPEC-19 W1, branch wt-ifit) not merged into this branch yet")
 
 PERIOD = 1e-3
 COUNTS = 2 ** 14
@@ -93,9 +78,8 @@ def assert_misfit_is_visible(clean: Any, wrong: Any) -> None:
 def test_stribeck_friction_gives_a_visible_misfit() -> None:
     """Free motion (far from the environment), a multisine that reverses the velocity
     often: the Stribeck peak at low speed is what a Coulomb + viscous model cannot bend
-    to. Measured with the in-progress fit (wt-ifit worktree, 10:45 UTC): the control
-    p = 0.15 and no misfit; Stribeck (F_St = 2 F_c, v_St = 0.05 rad/s) p = 0, RMS 3x.
-    With the merged fit (da76a25) it passes in 29 s on the shared 2-core machine."""
+    to. Measured when written: the control p = 0.15 and no misfit; Stribeck (F_St = 2 F_c,
+    v_St = 0.05 rad/s) p = 0, RMS 3x."""
     torque = np.concatenate([multisine(2000, 3.0, (0.3, 30.0), 40, seed=1), np.zeros(20)])
     clean = fitted(torque, "free", -50.0)
     wrong = fitted(torque, "free", -50.0, stribeck_friction=0.6, stribeck_velocity=0.05)
@@ -104,18 +88,13 @@ def test_stribeck_friction_gives_a_visible_misfit() -> None:
 
 @pytest.mark.xfail(
     run=False, strict=False,
-    reason="not yet discriminating (measured 11:01 UTC on wt-ifit da76a25): with a massless "
-           "load behind the gear, a pressed record from a backlash plant IS the linear "
-           "model with the contact position beta/2 further in (right numbers, not a "
-           "misfit). A record that leaves and re-enters the environment should tell them "
-           "apart, but (measured 12:05 UTC, wt-iqual) the fit of the PLAIN plant on such a "
-           "record ends in a local minimum (RMS 0.017 vs noise 0.01, K 6700 for 1e4, "
-           "flagged misfit -- 0.25 before the equation-error start took the contact from "
-           "the data): Levenberg-Marquardt from the equation-error start (or from any "
-           "whole-sample delay) does not find the truth through the contact switches' "
-           "roughness. The CLI-level leave/re-enter record does discriminate (wt-ie2e: "
-           "tests/identify/test_workflow.py::test_backlash_shows_as_a_misfit_when_the_"
-           "contact_opens); this synthetic one does not yet")
+    reason="not discriminating yet: a pressed record from a backlash plant (massless load "
+           "behind the gear) IS the linear model with the contact beta/2 further in (right "
+           "numbers, no misfit); a record that leaves and re-enters the contact should tell "
+           "them apart, but the fit of the PLAIN plant on this synthetic one ends in a local "
+           "minimum (RMS 0.017 for noise 0.01, K 6700 for 1e4). The CLI-level leave/re-enter "
+           "record does discriminate: tests/identify/test_workflow.py::"
+           "test_backlash_shows_as_a_misfit_when_the_contact_opens")
 def test_backlash_gives_a_visible_misfit() -> None:
     """Pressed on the environment with a torque that swings hard enough for the damper to
     want to pull: through the backlash nothing pulls (the gap opens and the load relaxes
