@@ -335,10 +335,6 @@ def _significant(rss0: float, rss1: float, n: int, params: int) -> bool:
     return bool(fdtrc(2, max(n - params, 1), stat) < _ALPHA)
 
 
-def segment_times(segment: Segment, period: float) -> tuple[float, float]:
-    return segment.start * period, segment.stop * period
-
-
 # -- several logs fitted together ------------------------------------------------------------
 
 #: zero-torque samples between two logs joined for one fit: more than any delay the fit
