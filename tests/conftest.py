@@ -1,4 +1,5 @@
-"""Fail any test that leaks a non-daemon thread or a python-can bus it did not shut down."""
+"""Fail any test that leaks a non-daemon thread or a python-can bus it did not shut down; the
+session's in-process Dask cluster (``dask_client``) for the tests that run work on Dask."""
 
 from __future__ import annotations
 
@@ -52,3 +53,13 @@ def no_leaked_threads_or_buses(monkeypatch: pytest.MonkeyPatch) -> Iterator[None
     leaks = threads + [f"open {type(b).__name__} {b.channel_info}" for b in buses] + handler.names
     if leaks:
         pytest.fail(f"test leaked: {', '.join(leaks)}")
+
+
+@pytest.fixture(scope="session")
+def dask_client() -> Iterator[Any]:
+    """A client of an in-process Dask cluster, 2 workers of one thread (the 2-core CI), made
+    once per session (a cluster costs a second to start) and closed at its end. Through
+    :func:`dobhil.cluster.open_client`, so the tests run the code the commands run."""
+    from dobhil.cluster import open_client
+    with open_client(workers=2, processes=False) as client:
+        yield client

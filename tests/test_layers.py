@@ -18,7 +18,8 @@ PACKAGE = Path(__file__).resolve().parents[1] / "dobhil"
 #: belongs to exactly one entry ("dobhil" is the package root: ``__version__``).
 LAYERS: list[tuple[str, ...]] = [
     ("dobhil", "dobhil.errors"),                            # the root: version, error types
-    ("dobhil.files", "dobhil.data", "dobhil.realtime"),     # the OS: files, shipped data, scheduling
+    ("dobhil.files", "dobhil.data", "dobhil.realtime",      # the OS: files, shipped data, scheduling,
+     "dobhil.cluster"),                                     # work on a Dask cluster
     ("dobhil.config",),                                     # keys, loading, validation
     ("dobhil.synthesis", "dobhil.drives"),                  # the observers; drive profiles and codecs
     ("dobhil.analysis", "dobhil.emulator", "dobhil.recording"),  # the design analysed; the plant; logs
