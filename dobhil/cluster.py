@@ -49,6 +49,10 @@ CONNECT_TIMEOUT = 5.0
 #: BLAS on one thread in every worker process (the variables act before numpy loads BLAS)
 ONE_THREAD_ENV = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
 
+#: a local scheduler's HTTP server (health, metrics; no dashboard) on a free port of this host:
+#: without it the scheduler takes 8787 on every interface, and warns when another has it
+NO_DASHBOARD = {"dashboard": False, "dashboard_address": "127.0.0.1:0"}
+
 #: what --scheduler accepts, for the error line
 ALLOWED_ADDRESSES = "tcp://HOST:PORT or HOST:PORT (e.g. tcp://10.0.0.5:8786)"
 
@@ -98,7 +102,7 @@ def open_client(scheduler: str | None = None, *, workers: int | None = None, pro
 def _local_client(workers: int, processes: bool) -> Iterator[distributed.Client]:
     from distributed import Client, LocalCluster
     with LocalCluster(n_workers=workers, threads_per_worker=1, processes=processes,
-                      dashboard_address=None, silence_logs=logging.CRITICAL,
+                      dashboard_address=None, scheduler_kwargs=NO_DASHBOARD, silence_logs=logging.CRITICAL,
                       **({"env": ONE_THREAD_ENV} if processes else {})) as cluster, Client(cluster) as client:
         yield client
 
@@ -179,6 +183,18 @@ def map_ordered(client: distributed.Client, fn: Callable[[T], Any], items: Seque
             progress(1)
     retried = _retried(client, topic)
     return [MapResult(value, error, i in retried) for i, (value, error) in sorted(outcomes.items())]
+
+
+def map_values(client: distributed.Client, fn: Callable[[T], Any], items: Sequence[T], *,
+               progress: Callable[[int], None] | None = None, key_prefix: str = "dobhil") -> list[Any]:
+    """:func:`map_ordered` for work where every item must succeed (the chunks of one result):
+    the values, or :class:`ClusterError` naming how many tasks failed and the first error."""
+    results = map_ordered(client, fn, items, progress=progress, key_prefix=key_prefix)
+    failed = [(i, r.error) for i, r in enumerate(results) if r.error is not None]
+    if failed:
+        raise ClusterError(f"{len(failed)} of {len(items)} tasks failed on the Dask workers; "
+                           f"task {failed[0][0]}: {failed[0][1]}")
+    return [r.value for r in results]
 
 
 def _attempt(fn: Callable[[T], Any], topic: str, index: int, item: T) -> Any:

@@ -10,6 +10,7 @@ from __future__ import annotations
 import itertools
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from functools import partial
 
 import numpy as np
 
@@ -106,9 +107,21 @@ def _check_axis(name: str, values: np.ndarray) -> None:
         raise ConfigError(f"--vary {name}: every value must be >= 0 (got min {values.min():g})")
 
 
+#: a chunk of the grid: each swept key's values at the chunk's points
+Chunk = dict[str, np.ndarray]
+#: a chunk's answer: stable, minimum phase, max stable gain, interval count (one value per point)
+ChunkAnswer = tuple[np.ndarray, ...]
+#: runs ``fn`` on every chunk, the answers in the order of the chunks, ``done(1)`` after each
+#: (e.g. as Dask tasks: the CLI's ``--scheduler``); this module knows no scheduler
+ChunkMap = Callable[[Callable[[Chunk], ChunkAnswer], Sequence[Chunk], Callable[[int], None]], list[ChunkAnswer]]
+
+
 def sweep(config: Config, axes: Sequence[Axis], *, sampled: bool, chunk: int = 4096,
-          progress: Callable[[int], None] | None = None) -> SweepResult:
-    """Stability, minimum phase and the stable C_f range over the grid of ``axes``."""
+          progress: Callable[[int], None] | None = None, map_chunks: ChunkMap | None = None) -> SweepResult:
+    """Stability, minimum phase and the stable C_f range over the grid of ``axes``, in chunks
+    of ``chunk`` points, each answered by :func:`sweep_chunk` -- here, one after the other,
+    or through ``map_chunks`` (the same chunks, the same function: the same numbers).
+    ``progress(n)``: n more points answered."""
     if len({a.key for a in axes}) != len(axes):
         raise ConfigError("--vary: each key may be varied once")
     total = int(np.prod([a.values.size for a in axes]))
@@ -117,17 +130,41 @@ def sweep(config: Config, axes: Sequence[Axis], *, sampled: bool, chunk: int = 4
     grids = np.meshgrid(*(a.values for a in axes), indexing="ij")
     flat = {a.key: g.reshape(-1) for a, g in zip(axes, grids)}
     total = grids[0].size
-    results = [_chunk(config, {k: v[i:i + chunk] for k, v in flat.items()}, sampled, progress)
-               for i in range(0, total, chunk)]
+    chunks = [{k: v[i:i + chunk] for k, v in flat.items()} for i in range(0, total, chunk)]
+    results = (map_chunks or _one_by_one)(partial(sweep_chunk, config, sampled), chunks,
+                                          _points_done(progress, chunk, total))
     shape = grids[0].shape
     stacked = [np.concatenate([r[j] for r in results]).reshape(shape) for j in range(4)]
     return SweepResult(tuple(axes), sampled, *stacked)
 
 
-def _chunk(config: Config, values: dict[str, np.ndarray], sampled: bool,
-           progress: Callable[[int], None] | None) -> tuple[np.ndarray, ...]:
-    """One chunk of the grid. A point whose matrices overflow, or that numpy cannot
-    decompose, is answered as unknown (NaN gain, not stable) without stopping the rest."""
+def _one_by_one(fn: Callable[[Chunk], ChunkAnswer], chunks: Sequence[Chunk],
+                done: Callable[[int], None]) -> list[ChunkAnswer]:
+    answers = []
+    for c in chunks:
+        answers.append(fn(c))
+        done(1)
+    return answers
+
+
+def _points_done(progress: Callable[[int], None] | None, chunk: int, total: int) -> Callable[[int], None]:
+    """``done(n)`` (n more chunks answered) as ``progress`` in points. Chunks may finish in
+    any order and only the last is short, so k chunks count min(k * chunk, total) points:
+    exact one by one, and exact at the end in any order."""
+    finished = [0]
+
+    def done(n: int) -> None:
+        before = min(finished[0] * chunk, total)
+        finished[0] += n
+        if progress:
+            progress(min(finished[0] * chunk, total) - before)
+    return done
+
+
+def sweep_chunk(config: Config, sampled: bool, values: Chunk) -> ChunkAnswer:
+    """One chunk of the grid (pure data in and out: a Dask worker runs it too). A point
+    whose matrices overflow, or that numpy cannot decompose, is answered as unknown (NaN
+    gain, not stable) without stopping the rest."""
     params = params_from_config(config, **{k.replace(".", "__"): v for k, v in values.items()})
     with np.errstate(all="ignore"):
         open_loop = loop(params, sampled=sampled, force_gain=0.0)
@@ -135,10 +172,7 @@ def _chunk(config: Config, values: dict[str, np.ndarray], sampled: bool,
         cf = params.value("force_gain")
         ok = np.all(np.isfinite(a), axis=(-2, -1)) & np.all(np.isfinite(b * c.swapaxes(-1, -2)),
                                                              axis=(-2, -1))
-        result = _answer(a, b, c, cf, ok, sampled)
-    if progress:
-        progress(cf.size)
-    return result
+        return _answer(a, b, c, cf, ok, sampled)
 
 
 def _answer(a: np.ndarray, b: np.ndarray, c: np.ndarray, cf: np.ndarray, ok: np.ndarray,

@@ -1,11 +1,13 @@
-"""``dobhil sweep CONFIG --vary key=start:stop:num [--vary ...] [--sampled] [--out F.csv] [--plot F.png]``."""
+"""``dobhil sweep CONFIG --vary key=start:stop:num [--vary ...] [--sampled] [--out F.csv] [--plot F.png]
+[--scheduler ADDRESS|local [--workers N]]``."""
 
 from __future__ import annotations
 
 import argparse
 import csv
 import sys
-from collections.abc import Callable
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -13,7 +15,7 @@ from dobhil.cli.common import add_config_args, config_from_args, design_on_drive
 from dobhil.errors import ConfigError
 
 if TYPE_CHECKING:
-    from dobhil.analysis.sweep import SweepResult
+    from dobhil.analysis.sweep import ChunkMap, SweepResult
 
 Progress = Callable[[int], None]
 
@@ -32,6 +34,11 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p.add_argument("--sampled", action="store_true", help="the sampled loop (loop.period, delay)")
     p.add_argument("--out", type=Path, metavar="FILE.csv", help="write every grid point")
     p.add_argument("--plot", type=Path, metavar="FILE.png", help="heat-map of max stable C_f")
+    p.add_argument("--scheduler", metavar="ADDRESS|local",
+                   help="run the grid's chunks as Dask tasks: on the scheduler at tcp://HOST:PORT, or on a "
+                   "new local cluster of processes (local); the result is the same as without (see docs/cluster.md)")
+    p.add_argument("--workers", type=int, metavar="N",
+                   help="with --scheduler local: number of worker processes (default: one per core)")
     p.set_defaults(func=run)
 
 
@@ -42,11 +49,13 @@ def run(args: argparse.Namespace) -> int:
     if args.plot and len(axes) > 2:
         raise ConfigError("--plot draws one or two swept keys; got " + str(len(axes)))
     _check_outputs(args)
+    _check_cluster_args(args)
     total = 1
     for a in axes:
         total *= a.values.size
-    result = _run_with_progress(lambda cb: sweep(config, axes, sampled=args.sampled, progress=cb),
-                                total)
+    with _chunk_map(args) as map_chunks:
+        result = _run_with_progress(
+            lambda cb: sweep(config, axes, sampled=args.sampled, progress=cb, map_chunks=map_chunks), total)
     _summary(result)
     if args.out:
         _write_csv(result, args.out)
@@ -66,6 +75,35 @@ def _check_outputs(args: argparse.Namespace) -> None:
         check_output(args.plot, inputs=[args.config], suffix=PLOT_SUFFIXES, what="--plot")
         if args.out and Path(args.out).absolute() == Path(args.plot).absolute():
             raise ConfigError("--out and --plot name the same file; give two names")
+
+
+def _check_cluster_args(args: argparse.Namespace) -> None:
+    """--scheduler and --workers before anything starts (a bad address: one line, exit 2)."""
+    from dobhil.cluster import check_address
+    if args.workers is not None and args.scheduler != "local":
+        raise ConfigError("--workers N goes with --scheduler local (an existing scheduler has its own workers)")
+    if args.workers is not None and args.workers < 1:
+        raise ConfigError(f"--workers {args.workers}: must be at least 1")
+    if args.scheduler not in (None, "local"):
+        args.scheduler = check_address(args.scheduler)
+
+
+@contextmanager
+def _chunk_map(args: argparse.Namespace) -> Iterator[ChunkMap | None]:
+    """None (the chunks one by one, here) or, with --scheduler, each chunk a Dask task on a
+    cluster that is closed (or left, if it is the user's) when the sweep ends."""
+    if args.scheduler is None:
+        yield None
+        return
+    from dobhil.cluster import map_values, open_client
+    from dobhil.analysis.sweep import Chunk, ChunkAnswer
+
+    with open_client(None if args.scheduler == "local" else args.scheduler, workers=args.workers) as client:
+        def on_cluster(fn: Callable[[Chunk], ChunkAnswer], chunks: Sequence[Chunk],
+                       done: Callable[[int], None]) -> list[ChunkAnswer]:
+            # every chunk must come back: one that raised is what the local sweep would raise
+            return map_values(client, fn, chunks, progress=done, key_prefix="dobhil-sweep")
+        yield on_cluster
 
 
 def _run_with_progress(work: Callable[[Progress], SweepResult], total: int) -> SweepResult:
