@@ -59,7 +59,8 @@ def test_bad_input_as_a_process_is_one_line_exit_2() -> None:
 
 def run_cli(tmp_path: Path, fmt: str, *extra: str) -> tuple[int, Path]:
     out = tmp_path / fmt
-    code = main(["montecarlo", "demo", "--runs", "6", "--seed", "3",  # seed 3: two of six inertias drawn <= 0 "--duration", "0.3", "--workers", "1",
+    # seed 3: two of the six inertias are drawn <= 0 (refused runs)
+    code = main(["montecarlo", "demo", "--runs", "6", "--seed", "3", "--duration", "0.3", "--workers", "1",
                  "--vary", "plant.inertia=normal:0.06:0.05", "--out", str(out), "--format", fmt, *extra])
     return code, out
 
