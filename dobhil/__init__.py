@@ -20,7 +20,8 @@ imports only lower layers, and those of one layer never import each other):
   ``dobhil.live``       the Foxglove live view; ``dobhil.run_report`` the report of a recorded run;
   ``dobhil.identify``   the plant's numbers fitted to a recorded run
 - ``dobhil.replay``     a recorded run replayed through the controller;
-  ``dobhil.paper``      the paper's Section IV reproduced and checked
+  ``dobhil.paper``      the paper's Section IV reproduced and checked;
+  ``dobhil.campaign``   Monte-Carlo campaigns of lockstep runs, as Dask tasks
 - ``dobhil.cli``        the ``dobhil`` command (one module per command)
 """
 

@@ -26,7 +26,8 @@ LAYERS: list[tuple[str, ...]] = [
     ("dobhil.plotting", "dobhil.runtime", "dobhil.canio",   # figures; the loop; python-can plugins;
      "dobhil.live", "dobhil.run_report",                    # the live view; the report of a recorded run;
      "dobhil.identify"),                                    # the plant identified from a recorded run
-    ("dobhil.replay", "dobhil.paper"),                      # a log replayed; the paper reproduced
+    ("dobhil.replay", "dobhil.paper",                       # a log replayed; the paper reproduced;
+     "dobhil.campaign"),                                    # Monte-Carlo campaigns (on dobhil.cluster)
     ("dobhil.cli",),                                        # the command
     ("dobhil.__main__",),                                   # ``python -m dobhil``
 ]

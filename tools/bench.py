@@ -38,6 +38,8 @@ TARGETS: dict[str, float] = {
     "logged_vs_unlogged_ratio": 0.6,
     "replay_cycles_per_s": 20000.0,
     "live_logged_vs_unlogged_ratio": 0.5,
+    # issue 20: 1 s Monte-Carlo runs on a local cluster of 2 worker processes vs 1 (2 cores)
+    "montecarlo_scaling_2_workers": 1.6,
 }
 #: targets that are upper bounds (smaller is better)
 TARGETS_MAX: dict[str, float] = {
@@ -625,6 +627,34 @@ def bench_identify(seconds: float = 60.0) -> dict[str, float]:
             "identify_data_seconds_per_minute_of_log": data_only / minutes}
 
 
+
+def _montecarlo_runs_per_s(workers: int, runs_per_worker: int) -> float:
+    """1 s lockstep runs per second on a local cluster of ``workers`` processes, after one
+    warm-up run per worker (the workers' imports: start-up, not throughput)."""
+    from dobhil.campaign.campaign import Campaign, execute
+    from dobhil.campaign.draws import parse_vary
+    from dobhil.cluster import open_client
+    vary = (parse_vary("plant.inertia=normal:0.25:0.02"), parse_vary("environment.stiffness=loguniform:1e3:1e5"))
+    runs = runs_per_worker * workers
+    campaign = Campaign(config="demo", set_files=(), overrides=(), varies=vary, runs=runs + workers,
+                        seed=0, duration=1.0)
+    specs = campaign.plan()
+    with open_client(workers=workers) as client:
+        execute(client, specs[:workers])
+        t0 = time.perf_counter()
+        rows = execute(client, specs[workers:])
+        elapsed = time.perf_counter() - t0
+    assert all(not r["error"] for r in rows), rows
+    return runs / elapsed
+
+
+def bench_montecarlo(runs_per_worker: int = 24) -> dict[str, float]:
+    one = _montecarlo_runs_per_s(1, runs_per_worker)
+    two = _montecarlo_runs_per_s(2, runs_per_worker)
+    return {"montecarlo_runs_per_s_1_worker": one, "montecarlo_runs_per_s_2_workers": two,
+            "montecarlo_scaling_2_workers": two / one}
+
+
 BENCHES: dict[str, Callable[[], dict[str, float]]] = {
     "sweep": bench_sweep,
     "controller": bench_controller,
@@ -637,6 +667,7 @@ BENCHES: dict[str, Callable[[], dict[str, float]]] = {
     "cia402": bench_cia402,
     "mit": bench_mit,
     "identify": bench_identify,
+    "montecarlo": bench_montecarlo,
 }
 
 

@@ -34,6 +34,7 @@ _SUBCOMMANDS: tuple[str, ...] = (
     "dobhil.cli.replay_cmd",
     "dobhil.cli.report_cmd",
     "dobhil.cli.identify_cmd",
+    "dobhil.cli.montecarlo_cmd",
     "dobhil.cli.demo_cmd",
     "dobhil.cli.init_cmd",
 )

@@ -1,0 +1,154 @@
+"""A campaign: its plan (one :class:`~dobhil.campaign.runner.RunSpec` per run), its execution
+as Dask tasks (:func:`dobhil.cluster.map_ordered`: one task per run, rows back in run
+order), and what is said about the table: the success rate with its exact confidence
+interval, the metrics' percentiles, the worst runs and the command reproducing each alone.
+
+A run *succeeded* when it ran to its end: no error and stop reason ``done``.
+"""
+
+from __future__ import annotations
+
+import math
+import shlex
+import uuid
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from dobhil.campaign.draws import Vary, draw
+from dobhil.campaign.runner import METRICS, RunSpec, empty_result, run_one
+
+#: the noise and quantisation a campaign turns on when the config has neither: a 14-bit
+#: absolute encoder (16384 counts per revolution, 0.38 mrad) and 0.01 rad/s of velocity
+#: estimate noise, the order of a drive's PLL estimate from such an encoder at 1 kHz
+NOISE_DEFAULTS: tuple[str, ...] = ("sensor.encoder_resolution=16384", "sensor.velocity_noise=0.01")
+
+#: the percentiles the summary gives of each metric
+PERCENTILES = (5.0, 50.0, 95.0)
+
+#: how many of the worst runs the summary lists
+WORST = 5
+
+#: the table's columns after the drawn keys (the drawn keys come after run, seed)
+RESULT_COLUMNS = ("sensor_seed", "stop_reason", "error", "cycles", *METRICS, "overruns", "retried")
+
+
+@dataclass(frozen=True)
+class Campaign:
+    """What ``dobhil montecarlo`` was asked: ``overrides`` are the ``--set`` items the runs
+    share (the campaign's noise defaults first, then the user's), ``duration`` None for the
+    config's ``loop.duration``."""
+
+    config: str
+    set_files: tuple[str, ...]
+    overrides: tuple[str, ...]
+    varies: tuple[Vary, ...]
+    runs: int
+    seed: int
+    duration: float | None
+
+    def plan(self) -> list[RunSpec]:
+        return [self.spec(i) for i in range(self.runs)]
+
+    def spec(self, index: int) -> RunSpec:
+        values, sensor_seed = draw(self.varies, self.seed, index)
+        return RunSpec(index=index, seed=self.seed, config=self.config, set_files=self.set_files,
+                       overrides=self.overrides, draws=tuple(values.items()), sensor_seed=sensor_seed,
+                       duration=self.duration)
+
+    def columns(self) -> list[str]:
+        return ["run", "seed", *(v.key for v in self.varies), *RESULT_COLUMNS]
+
+
+def execute(client: Any, specs: Sequence[RunSpec], *,
+            progress: Callable[[int], None] | None = None) -> list[dict[str, Any]]:
+    """Every run of ``specs`` as one Dask task on ``client``; the rows in run order. A task
+    that failed outside :func:`run_one` (its worker lost too often) is a row with the error."""
+    from dobhil.cluster import map_ordered
+    # a prefix of its own: two campaigns on one scheduler must not share task keys
+    prefix = f"dobhil-montecarlo-{uuid.uuid4().hex[:12]}"
+    results = map_ordered(client, run_one, specs, progress=progress, key_prefix=prefix)
+    return [_row(spec, r) for spec, r in zip(specs, results)]
+
+
+def _row(spec: RunSpec, result: Any) -> dict[str, Any]:
+    if result.error is not None or not isinstance(result.value, dict):
+        row = {**spec.base_row(), **empty_result(), "error": result.error or "no result"}
+    else:
+        row = dict(result.value)
+    row["retried"] = bool(result.retried)
+    return row
+
+
+def succeeded(row: dict[str, Any]) -> bool:
+    return not row["error"] and row["stop_reason"] == "done"
+
+
+@dataclass(frozen=True)
+class Summary:
+    runs: int
+    succeeded: int
+    rate: float
+    ci_low: float
+    ci_high: float
+    retried: int
+    #: metric -> {"p5": .., "p50": .., "p95": .., "max": .., "n": ..} over the runs that have it
+    percentiles: dict[str, dict[str, float]]
+    #: the worst runs' row indices, worst first
+    worst: tuple[int, ...]
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"runs": self.runs, "succeeded": self.succeeded, "success_rate": self.rate,
+                "success_rate_ci95": [self.ci_low, self.ci_high], "retried": self.retried,
+                "percentiles": self.percentiles}
+
+
+def summarise(rows: Sequence[dict[str, Any]]) -> Summary:
+    """The success rate (95 % Clopper-Pearson interval), retries, metric percentiles, worst runs."""
+    from scipy.stats import binomtest
+    n = len(rows)
+    k = sum(succeeded(r) for r in rows)
+    ci = binomtest(k, n).proportion_ci(0.95, method="exact") if n else None
+    return Summary(runs=n, succeeded=k, rate=k / n if n else math.nan,
+                   ci_low=float(ci.low) if ci else math.nan, ci_high=float(ci.high) if ci else math.nan,
+                   retried=sum(bool(r["retried"]) for r in rows), percentiles=_percentiles(rows),
+                   worst=worst_runs(rows))
+
+
+def _percentiles(rows: Sequence[dict[str, Any]]) -> dict[str, dict[str, float]]:
+    out: dict[str, dict[str, float]] = {}
+    for m in METRICS:
+        values = np.array([r[m] for r in rows if r[m] is not None], float)
+        if values.size:
+            out[m] = {**{f"p{p:g}": float(np.percentile(values, p)) for p in PERCENTILES},
+                      "max": float(values.max()), "n": float(values.size)}
+    return out
+
+
+def worst_runs(rows: Sequence[dict[str, Any]], count: int = WORST) -> tuple[int, ...]:
+    """Indices of the ``count`` worst rows: failed runs first (errors, then early stops), then
+    by force RMS error, largest first; ties by run number."""
+    def badness(i: int) -> tuple[int, float, int]:
+        r = rows[i]
+        rank = 0 if r["error"] else 1 if r["stop_reason"] != "done" else 2
+        rms = r["force_rms_error"]
+        return rank, -(rms if rms is not None else math.inf), i
+    return tuple(sorted(range(len(rows)), key=badness)[:count])
+
+
+def reproduce_command(spec: RunSpec) -> str:
+    """The shell command that runs ``spec`` alone, as the campaign ran it."""
+    words = ["dobhil", "run", spec.config, "--emulate", "--lockstep"]
+    if spec.duration is not None:
+        words += ["--duration", repr(spec.duration)]
+    for f in spec.set_files:
+        words += ["--set-file", f]
+    for item in spec.all_overrides():
+        words += ["--set", item]
+    return shlex.join(words)
+
+
+__all__ = ["Campaign", "NOISE_DEFAULTS", "Summary", "execute", "reproduce_command", "succeeded",
+           "summarise", "worst_runs"]

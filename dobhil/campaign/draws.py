@@ -1,0 +1,142 @@
+"""``--vary KEY=DIST``: which config keys a campaign draws, from which distribution.
+
+Every draw of run ``i`` comes from ``numpy.random.SeedSequence(seed).spawn(runs)[i]``
+alone (rebuilt as ``SeedSequence(seed, spawn_key=(i,))``, the same child without spawning
+the others), so a run's values depend on ``(seed, i)`` only -- never on how many workers
+ran the campaign or in which order the runs finished.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from enum import IntEnum
+
+import numpy as np
+
+from dobhil.config.schema import key_fields
+from dobhil.errors import ConfigError
+
+
+class Kind(IntEnum):
+    NORMAL = 0
+    UNIFORM = 1
+    LOGUNIFORM = 2
+
+
+#: the spelling of each distribution on the command line, and what its two numbers are
+SPELLING: dict[Kind, tuple[str, str]] = {
+    Kind.NORMAL: ("normal", "MEAN:STD"),
+    Kind.UNIFORM: ("uniform", "LO:HI"),
+    Kind.LOGUNIFORM: ("loguniform", "LO:HI"),
+}
+ALLOWED = ", ".join(f"{name}:{args}" for name, args in SPELLING.values())
+
+#: keys a campaign sets itself (each run's emulator seed comes from its SeedSequence child)
+RESERVED = ("sensor.seed",)
+#: numeric keys a lockstep emulated run never reads (real-time scheduling, the real bus, the
+#: analysis' horizon): drawing them would only look like a campaign
+UNUSED = ("loop.realtime_priority", "loop.spin", "loop.cpu_affinity", "drive.bitrate",
+          "drive.latency", "drive.jitter", "analysis.step_duration")
+
+
+@dataclass(frozen=True)
+class Vary:
+    """One ``--vary``: ``key`` drawn from ``kind`` with parameters ``a``, ``b`` (mean and
+    standard deviation, or the bounds); ``integer`` keys are rounded to the nearest whole number."""
+
+    key: str
+    kind: Kind
+    a: float
+    b: float
+    integer: bool = False
+
+    def text(self) -> str:
+        return f"{self.key}={SPELLING[self.kind][0]}:{self.a!r}:{self.b!r}"
+
+
+def numeric_keys() -> list[str]:
+    """Config keys a campaign may draw: numbers, not choices."""
+    return [name for name, f in key_fields().items()
+            if (str(f.type) in ("float", "int") or f.type in (float, int)) and name not in UNUSED]
+
+
+def parse_vary(item: str) -> Vary:
+    """``"plant.inertia=normal:0.25:0.02"`` -> :class:`Vary`; ConfigError (one line naming what
+    is allowed) for anything else."""
+    name, sep, dist = item.partition("=")
+    name = name.strip()
+    if not sep:
+        raise ConfigError(f"--vary {item!r}: expected KEY=DIST with DIST one of {ALLOWED}")
+    integer = _check_key(name, item)
+    kind_text, _, numbers = dist.strip().partition(":")
+    kinds = {spelled: kind for kind, (spelled, _) in SPELLING.items()}
+    if kind_text not in kinds:
+        raise ConfigError(f"--vary {item!r}: unknown distribution {kind_text!r}; allowed: {ALLOWED}")
+    kind = kinds[kind_text]
+    a, b = _two_numbers(item, numbers, SPELLING[kind][1])
+    _check_parameters(item, kind, a, b)
+    return Vary(name, kind, a, b, integer)
+
+
+def _check_key(name: str, item: str) -> bool:
+    """Whether ``name`` is an integer key; ConfigError if it cannot be drawn."""
+    if name in RESERVED:
+        raise ConfigError(f"--vary {item!r}: {name} is set by the campaign (each run's own seed, "
+                          "from --seed); vary another key")
+    field = key_fields().get(name)
+    allowed = numeric_keys()
+    if field is None or name not in allowed:
+        what = "not a numeric config key" if field is not None else "unknown config key"
+        raise ConfigError(f"--vary {item!r}: {what} {name!r}; allowed: "
+                          f"{', '.join(k for k in allowed if k not in RESERVED)}")
+    return field.type in (int, "int")
+
+
+def _two_numbers(item: str, text: str, spelled: str) -> tuple[float, float]:
+    parts = text.split(":")
+    try:
+        if len(parts) != 2:
+            raise ValueError
+        a, b = float(parts[0]), float(parts[1])
+    except ValueError:
+        raise ConfigError(f"--vary {item!r}: expected two numbers {spelled} after the "
+                          f"distribution; allowed: {ALLOWED}") from None
+    if not (math.isfinite(a) and math.isfinite(b)):
+        raise ConfigError(f"--vary {item!r}: {spelled} must be finite numbers")
+    return a, b
+
+
+def _check_parameters(item: str, kind: Kind, a: float, b: float) -> None:
+    if kind is Kind.NORMAL and not b >= 0:
+        raise ConfigError(f"--vary {item!r}: the standard deviation must be >= 0")
+    if kind is not Kind.NORMAL and not b > a:
+        raise ConfigError(f"--vary {item!r}: an empty range; HI must be above LO")
+    if kind is Kind.LOGUNIFORM and not a > 0:
+        raise ConfigError(f"--vary {item!r}: loguniform needs LO > 0")
+
+
+def child(seed: int, index: int) -> np.random.SeedSequence:
+    """``SeedSequence(seed).spawn(n)[index]`` for any ``n > index``, without spawning the rest."""
+    return np.random.SeedSequence(seed, spawn_key=(index,))
+
+
+def draw(varies: tuple[Vary, ...], seed: int, index: int) -> tuple[dict[str, float | int], int]:
+    """Run ``index``'s drawn values (in ``--vary`` order) and its emulator seed
+    (``sensor.seed``), from SeedSequence child ``index`` of ``seed`` only."""
+    sequence = child(seed, index)
+    rng = np.random.default_rng(sequence)
+    values = {v.key: _one(v, rng) for v in varies}
+    # the emulator's seed from the same child, independently of how many keys were drawn
+    sensor_seed = int(sequence.generate_state(1, np.uint32)[0])
+    return values, sensor_seed
+
+
+def _one(v: Vary, rng: np.random.Generator) -> float | int:
+    if v.kind is Kind.NORMAL:
+        x = float(rng.normal(v.a, v.b))
+    elif v.kind is Kind.UNIFORM:
+        x = float(rng.uniform(v.a, v.b))
+    else:
+        x = float(math.exp(rng.uniform(math.log(v.a), math.log(v.b))))
+    return int(round(x)) if v.integer else x

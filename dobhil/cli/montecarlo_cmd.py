@@ -1,0 +1,238 @@
+"""``dobhil montecarlo CONFIG --runs N --vary KEY=DIST [--vary ...] [--seed S] [--duration S]
+[--scheduler ADDRESS] [--workers N] [--out DIR] [--format csv|parquet] [--plot]``."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from dobhil.cli.common import add_config_args
+from dobhil.errors import ConfigError
+
+if TYPE_CHECKING:
+    from dobhil.campaign.campaign import Campaign, Summary
+    from dobhil.campaign.runner import RunSpec
+
+#: exit code when any run did not succeed (the table is still written)
+EXIT_SOME_FAILED = 1
+
+#: --plot files in --out
+PLOTS = ("metrics.png", "vary.png")
+
+
+def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+    p = sub.add_parser("montecarlo", help="N lockstep emulated runs over parameter distributions, on Dask",
+                       description="Runs the whole stack (codec, quantisation, friction, saturation) N times "
+                       "in lockstep against the emulator, each with values drawn for the --vary keys, as "
+                       "Dask tasks. The same --seed gives the same table whatever the number of workers. "
+                       "Without noise in the config, sensor.encoder_resolution=16384 and "
+                       "sensor.velocity_noise=0.01 are set (--set overrides). See docs/montecarlo.md.")
+    add_config_args(p)
+    p.add_argument("--runs", type=int, required=True, metavar="N", help="number of runs")
+    p.add_argument("--vary", action="append", required=True, metavar="KEY=DIST",
+                   help="a drawn numeric key (repeatable); DIST normal:MEAN:STD, uniform:LO:HI or "
+                   "loguniform:LO:HI (LO > 0)")
+    p.add_argument("--seed", type=int, default=0, metavar="S", help="campaign seed (default 0)")
+    p.add_argument("--duration", type=float, metavar="S", help="each run's duration (default loop.duration)")
+    p.add_argument("--scheduler", metavar="ADDRESS",
+                   help="tcp://HOST:PORT of a running Dask scheduler (default: a local cluster of processes)")
+    p.add_argument("--workers", type=int, metavar="N",
+                   help="worker processes of the local cluster (default: one per core)")
+    p.add_argument("--out", type=Path, metavar="DIR", help="write runs.csv (or .parquet) and summary.json here")
+    p.add_argument("--format", choices=("csv", "parquet"), default="csv", help="table format (parquet: pyarrow)")
+    p.add_argument("--plot", action="store_true", help="also write metrics.png and vary.png to --out")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    campaign, noise = build_campaign(args)
+    scheduler = check_execution(args)
+    out_dir = check_outputs(args)
+    print(header(campaign, noise, scheduler, args.workers), flush=True)
+    started = time.perf_counter()
+    rows = execute(campaign, scheduler, args.workers)
+    elapsed = time.perf_counter() - started
+    from dobhil.campaign.campaign import summarise, succeeded
+    summary = summarise(rows)
+    specs = campaign.plan()
+    report(summary, rows, specs, campaign, elapsed)
+    if out_dir is not None:
+        write_outputs(out_dir, args, campaign, rows, summary, specs, elapsed)
+    return 0 if all(succeeded(r) for r in rows) else EXIT_SOME_FAILED
+
+
+# -- input ------------------------------------------------------------------
+
+def build_campaign(args: argparse.Namespace) -> tuple[Campaign, tuple[str, ...]]:
+    """The campaign asked for, every input checked (ConfigError before anything starts); and
+    the noise overrides the campaign added (none when the config has noise)."""
+    from dobhil.campaign.campaign import Campaign
+    from dobhil.campaign.draws import parse_vary
+    from dobhil.runtime.session import check_duration
+    if args.runs is None or args.runs < 1:
+        raise ConfigError(f"--runs {args.runs}: expected a whole number of runs >= 1")
+    if args.seed < 0:
+        raise ConfigError(f"--seed {args.seed}: expected a whole number >= 0")
+    check_duration(args.duration)
+    varies = tuple(parse_vary(v) for v in args.vary)
+    _no_twice([v.key for v in varies])
+    config = _as_path(args.config)
+    set_files = tuple(_as_path(f) for f in args.set_files)
+    noise = _noise(config, set_files)
+    campaign = Campaign(config=config, set_files=set_files, overrides=(*noise, *args.overrides),
+                        varies=varies, runs=args.runs, seed=args.seed, duration=args.duration)
+    _check_config(campaign)
+    return campaign, noise
+
+
+def _no_twice(keys: Sequence[str]) -> None:
+    twice = sorted({k for k in keys if keys.count(k) > 1})
+    if twice:
+        raise ConfigError(f"--vary {twice[0]} given twice; give each key one distribution")
+
+
+def _as_path(name: str) -> str:
+    """An existing file as an absolute path (worker processes may not share the working
+    directory); a shipped config name as it is."""
+    return os.path.abspath(name) if Path(name).is_file() else name
+
+
+def _noise(config: str, set_files: tuple[str, ...]) -> tuple[str, ...]:
+    """The campaign's noise defaults when the config (with its --set-file) has neither noise
+    nor quantisation; --set items come after them, so they override."""
+    from dobhil.campaign.campaign import NOISE_DEFAULTS
+    from dobhil.config import load_config
+    sensor = load_config(config, (), set_files).sensor
+    return NOISE_DEFAULTS if sensor.velocity_noise == 0 and sensor.encoder_resolution == 0 else ()
+
+
+def _check_config(campaign: Campaign) -> None:
+    """The shared config (with --set) and its drive profile load: else every run would fail alike."""
+    from dobhil.config import load_config, resolve_config
+    from dobhil.drives.profile import load_drive_profile
+    config = load_config(campaign.config, campaign.overrides, campaign.set_files)
+    load_drive_profile(config, resolve_config(campaign.config).parent)
+
+
+def check_execution(args: argparse.Namespace) -> str | None:
+    """The scheduler's address (None: a local cluster); --workers only for a local cluster."""
+    if args.workers is not None and args.workers < 1:
+        raise ConfigError(f"--workers {args.workers}: expected a whole number >= 1")
+    if args.scheduler is None or args.scheduler == "local":
+        return None
+    if args.workers is not None:
+        raise ConfigError("--workers sizes the local cluster; a --scheduler has its own workers")
+    from dobhil.cluster import check_address
+    return check_address(args.scheduler)
+
+
+def check_outputs(args: argparse.Namespace) -> Path | None:
+    """--out DIR before the campaign starts: writable, and none of its files there already."""
+    from dobhil.campaign.table import check_format, table_name
+    from dobhil.files import OutputError, check_output_dir
+    check_format(args.format)
+    if args.out is None:
+        if args.plot:
+            raise ConfigError("--plot writes its figures into --out DIR; give --out")
+        return None
+    names = [table_name(args.format), "summary.json", *(PLOTS if args.plot else ())]
+    out = check_output_dir(args.out, names, inputs=[args.config, *args.set_files], what="--out")
+    for name in names:
+        if (out / name).exists():
+            raise OutputError(f"--out {out}: {name} exists; refusing to overwrite a campaign's results "
+                              "(give a new directory)")
+    return out
+
+
+# -- running ----------------------------------------------------------------
+
+def header(campaign: Campaign, noise: tuple[str, ...], scheduler: str | None, workers: int | None) -> str:
+    where = (f"scheduler {scheduler}" if scheduler else
+             f"a local cluster of {workers or os.cpu_count() or 1} worker processes")
+    length = f"{campaign.duration:g} s" if campaign.duration is not None else "loop.duration"
+    said = (f"noise on: {', '.join(noise)} (the config had none; --set overrides)" if noise
+            else "noise: the config's")
+    return (f"montecarlo: {campaign.runs} runs of {campaign.config} ({length} each, lockstep, emulated), "
+            f"seed {campaign.seed}, on {where}; {said}")
+
+
+def execute(campaign: Campaign, scheduler: str | None, workers: int | None) -> list[dict[str, Any]]:
+    from tqdm import tqdm
+    from dobhil.campaign.campaign import execute as run_all
+    from dobhil.cluster import open_client
+    specs = campaign.plan()
+    with open_client(scheduler, workers=workers) as client, \
+            tqdm(total=len(specs), unit="run", disable=not sys.stderr.isatty(), file=sys.stderr) as bar:
+        return run_all(client, specs, progress=bar.update)
+
+
+# -- output -----------------------------------------------------------------
+
+def report(summary: Summary, rows: Sequence[dict[str, Any]], specs: Sequence[RunSpec],
+           campaign: Campaign, elapsed: float) -> None:
+    print(f"{summary.runs} runs in {elapsed:.1f} s: {summary.succeeded} succeeded "
+          f"({100 * summary.rate:.1f} %, 95 % CI {100 * summary.ci_low:.1f}-{100 * summary.ci_high:.1f} %, "
+          f"Clopper-Pearson); {summary.retried} retried")
+    for name, p in summary.percentiles.items():
+        print(f"  {name}: p5 {p['p5']:.4g}, p50 {p['p50']:.4g}, p95 {p['p95']:.4g}, max {p['max']:.4g} "
+              f"({int(p['n'])} runs)")
+    print(f"worst {len(summary.worst)} runs (each alone: the command below it):")
+    for i in summary.worst:
+        print(f"  {describe_row(rows[i], campaign)}")
+        from dobhil.campaign.campaign import reproduce_command
+        print(f"    {reproduce_command(specs[i])}")
+
+
+def describe_row(row: dict[str, Any], campaign: Campaign) -> str:
+    drawn = ", ".join(f"{v.key}={row[v.key]:.6g}" for v in campaign.varies)
+    rms = row["force_rms_error"]
+    how = f"error {row['error']}" if row["error"] else f"stop {row['stop_reason']}"
+    return (f"run {row['run']}: {how}; force_rms_error {'-' if rms is None else f'{rms:.4g}'}; {drawn}"
+            + ("; retried" if row["retried"] else ""))
+
+
+def write_outputs(out: Path, args: argparse.Namespace, campaign: Campaign, rows: Sequence[dict[str, Any]],
+                  summary: Summary, specs: Sequence[RunSpec], elapsed: float) -> None:
+    from dobhil.campaign.table import table_name, write_table
+    integer_keys = [v.key for v in campaign.varies if v.integer]
+    table = write_table(rows, campaign.columns(), out / table_name(args.format), args.format, integer_keys)
+    print(f"wrote {table}")
+    print(f"wrote {_write_summary(out / 'summary.json', campaign, summary, specs, elapsed, rows)}")
+    if args.plot:
+        for path in plot(out, campaign, rows):
+            print(f"wrote {path}")
+
+
+def _write_summary(path: Path, campaign: Campaign, summary: Summary, specs: Sequence[RunSpec],
+                   elapsed: float, rows: Sequence[dict[str, Any]]) -> Path:
+    from dobhil.campaign.campaign import reproduce_command
+    from dobhil.files import atomic_path
+    data = {"config": campaign.config, "seed": campaign.seed, "duration": campaign.duration,
+            "vary": [v.text() for v in campaign.varies], "overrides": list(campaign.overrides),
+            "set_files": list(campaign.set_files), "wall_time_s": elapsed, **summary.as_dict(),
+            "worst": [{"run": i, "error": rows[i]["error"], "stop_reason": rows[i]["stop_reason"],
+                       "force_rms_error": rows[i]["force_rms_error"], "command": reproduce_command(specs[i])}
+                      for i in summary.worst]}
+    with atomic_path(path) as tmp:
+        tmp.write_text(json.dumps(data, indent=2) + "\n")
+    return path
+
+
+def plot(out: Path, campaign: Campaign, rows: Sequence[dict[str, Any]]) -> list[Path]:
+    import numpy as np
+    from dobhil.campaign.campaign import succeeded
+    from dobhil.campaign.runner import METRICS
+    from dobhil.plotting.campaign_figures import metric_histograms, vary_scatter
+
+    def column(name: str) -> np.ndarray:
+        return np.array([np.nan if r[name] is None else r[name] for r in rows], float)
+    ok = np.array([succeeded(r) for r in rows], bool)
+    return [metric_histograms({m: column(m) for m in METRICS}, len(rows), out / PLOTS[0]),
+            vary_scatter({v.key: column(v.key) for v in campaign.varies}, column("force_rms_error"), ok,
+                         out / PLOTS[1])]

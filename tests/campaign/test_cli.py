@@ -1,0 +1,125 @@
+"""``dobhil montecarlo`` end to end: bad input is one line and exit 2 before anything starts;
+a campaign writes its table (CSV or Parquet, read back equal), summary and plots, and exits 1
+when a run failed; killing a worker mid-campaign loses no row and marks the retried ones."""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import signal
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from dobhil.cli.main import main
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+@pytest.mark.parametrize(("extra", "says"), [
+    (["--vary", "plant.nope=normal:1:2"], "unknown config key 'plant.nope'"),
+    (["--vary", "plant.inertia=cauchy:1:2"], "unknown distribution 'cauchy'; allowed: normal:MEAN:STD"),
+    (["--vary", "plant.inertia=uniform:3:1"], "an empty range"),
+    (["--vary", "plant.inertia=uniform:0.1:1", "--vary", "plant.inertia=normal:1:0.1"], "given twice"),
+    (["--vary", "plant.inertia=uniform:0.1:1", "--runs", "0"], "--runs 0"),
+    (["--vary", "plant.inertia=uniform:0.1:1", "--duration", "-1"], "--duration -1.0"),
+    (["--vary", "plant.inertia=uniform:0.1:1", "--set", "plant.inertia=-1"], "plant.inertia = -1"),
+    (["--vary", "plant.inertia=uniform:0.1:1", "--plot"], "--plot writes its figures into --out"),
+    (["--vary", "plant.inertia=uniform:0.1:1", "--workers", "0"], "--workers 0"),
+])
+def test_bad_input_is_one_line_and_exit_2(extra: list[str], says: str, capsys: pytest.CaptureFixture[str]) -> None:
+    args = ["montecarlo", "demo", "--runs", "3", *extra]
+    if "--runs" in extra:
+        args = ["montecarlo", "demo", *extra]
+    assert main(args) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and says in err and err.startswith("dobhil montecarlo: error: ")
+
+
+def test_existing_results_are_not_overwritten(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    (tmp_path / "runs.csv").write_text("mine\n")
+    assert main(["montecarlo", "demo", "--runs", "2", "--vary", "plant.inertia=uniform:0.2:0.3",
+                 "--out", str(tmp_path)]) == 2
+    assert "runs.csv exists; refusing to overwrite" in capsys.readouterr().err
+    assert (tmp_path / "runs.csv").read_text() == "mine\n"
+
+
+def test_bad_input_as_a_process_is_one_line_exit_2() -> None:
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    done = subprocess.run([sys.executable, "-m", "dobhil", "montecarlo", "demo", "--runs", "5",
+                           "--vary", "environment.stiffness=lognormal:1:2"],
+                          capture_output=True, text=True, env=env, timeout=60)
+    assert done.returncode == 2 and done.stdout == ""
+    assert done.stderr.count("\n") == 1 and "unknown distribution 'lognormal'" in done.stderr
+
+
+def run_cli(tmp_path: Path, fmt: str, *extra: str) -> tuple[int, Path]:
+    out = tmp_path / fmt
+    # seed 3: two of the six inertias are drawn <= 0 (refused runs)
+    code = main(["montecarlo", "demo", "--runs", "6", "--seed", "3", "--duration", "0.3", "--workers", "1",
+                 "--vary", "plant.inertia=normal:0.06:0.05", "--out", str(out), "--format", fmt, *extra])
+    return code, out
+
+
+def test_a_campaign_writes_its_table_summary_and_plots(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    pytest.importorskip("pyarrow")
+    from dobhil.campaign.table import read_table
+    code, out = run_cli(tmp_path, "parquet", "--plot")
+    text = capsys.readouterr().out
+    rows = read_table(out / "runs.parquet")
+    refused = [r for r in rows if r["plant.inertia"] <= 0]
+    assert 0 < len(refused) < 6 and code == 1     # some runs failed: exit 1, the table written
+    assert "noise on: sensor.encoder_resolution=16384, sensor.velocity_noise=0.01" in text
+    assert "95 % CI" in text and "dobhil run demo --emulate --lockstep --duration 0.3" in text
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["runs"] == 6 and summary["succeeded"] == 6 - len(refused)
+    assert summary["worst"][0]["run"] == refused[0]["run"]
+    assert (out / "metrics.png").stat().st_size > 10_000 and (out / "vary.png").stat().st_size > 10_000
+    # the CSV of the same campaign holds the same values
+    code_csv, out_csv = run_cli(tmp_path, "csv")
+    with (out_csv / "runs.csv").open() as fh:
+        from_csv = list(csv.DictReader(fh))
+    assert code_csv == 1 and list(from_csv[0]) == list(rows[0])
+    for a, b in zip(rows, from_csv):
+        assert {k: ("" if v is None else str(v)) for k, v in a.items()} == b
+
+
+def test_parquet_round_trip_keeps_types_and_nulls(tmp_path: Path) -> None:
+    pytest.importorskip("pyarrow")
+    from dobhil.campaign.table import read_table, write_table
+    columns = ["run", "seed", "plant.inertia", "sensor.encoder_resolution", "sensor_seed", "stop_reason",
+               "error", "cycles", "force_rms_error", "overshoot_pct", "rise_time", "settling_time",
+               "final_tau_int_true", "overruns", "retried"]
+    rows: list[dict[str, Any]] = [
+        dict(zip(columns, [0, 1, 0.25, 4096, 77, "done", "", 300, 0.1, 2.5, 0.003, 0.02, 1.0, 0, False])),
+        dict(zip(columns, [1, 1, -0.1, 8192, 78, "", "ConfigError: x", 0, None, None, None, None, None, 0,
+                           True]))]
+    path = write_table(rows, columns, tmp_path / "runs.parquet", "parquet", ["sensor.encoder_resolution"])
+    assert read_table(path) == rows
+
+
+def test_killing_a_worker_mid_campaign_loses_no_row(dask_client: Any) -> None:
+    from dobhil.campaign.campaign import Campaign, execute
+    from dobhil.campaign.draws import parse_vary
+    from dobhil.cluster import open_client
+    c = Campaign(config="demo", set_files=(), overrides=(), varies=(parse_vary("plant.inertia=uniform:0.2:0.3"),),
+                 runs=10, seed=5, duration=1.0)
+    undisturbed = execute(dask_client, c.plan())
+    with open_client(workers=2, processes=True) as client:
+        pids = list(client.run(os.getpid).values())
+        done = [0]
+
+        def kill_after_two(n: int) -> None:
+            done[0] += n
+            if done[0] == 2:   # the other worker is mid-run now (runs take ~0.3 s)
+                os.kill(pids[0], signal.SIGKILL)
+        rows = execute(client, c.plan(), progress=kill_after_two)
+    assert [r["run"] for r in rows] == list(range(10))
+    assert all(r["error"] == "" for r in rows)
+    assert [{k: v for k, v in r.items() if k != "retried"} for r in rows] == \
+        [{k: v for k, v in r.items() if k != "retried"} for r in undisturbed]
+    assert any(r["retried"] for r in rows)   # the run the killed worker had is said
