@@ -185,19 +185,42 @@ def _step(a_cl: Array, b_ref: Array, c_out: Array, period: float, horizon: int,
     over = np.full(stable.shape, np.inf)
     if not stable.any():
         return out, over
-    a_s, b_s, c_s = a_cl[stable], b_ref[stable][..., 0], c_out[stable][..., 0, :]
-    n = a_s.shape[-1]
-    final = np.einsum("bi,bi->b", c_s, np.linalg.solve(np.eye(n) - a_s, b_s[..., None])[..., 0])
-    x = np.zeros_like(b_s)
-    ys = np.empty((a_s.shape[0], horizon))
-    for k in range(horizon):   # a loop over time, each step a batch of all designs and points
-        ys[:, k] = np.einsum("bi,bi->b", c_s, x)
-        x = np.einsum("bij,bj->bi", a_s, x) + b_s
+    ys, final = simulate_step(a_cl[stable], b_ref[stable][..., 0], c_out[stable][..., 0, :], horizon)
     out[stable] = (_crossing(ys, 0.9 * final) - _crossing(ys, 0.1 * final)) * period
     with np.errstate(divide="ignore", invalid="ignore"):
         peak = np.where(final >= 0, ys.max(axis=-1), ys.min(axis=-1))
         over[stable] = np.where(final != 0, np.maximum(0.0, (peak - final) / final * 100.0), np.inf)
     return out, over
+
+
+def simulate_step(a: Array, b: Array, c: Array, horizon: int) -> tuple[Array, Array]:
+    """(outputs y_0 .. y_{horizon-1}, final value) of ``x+ = A x + b, y = c x`` from rest,
+    a batch of stable systems (a: batch x n x n; b, c: batch x n): a loop over time, each
+    step one batched product."""
+    n = a.shape[-1]
+    final = np.einsum("bi,bi->b", c, np.linalg.solve(np.eye(n) - a, b[..., None])[..., 0])
+    x = np.zeros_like(b)
+    ys = np.empty((a.shape[0], horizon))
+    for k in range(horizon):
+        ys[:, k] = np.einsum("bi,bi->b", c, x)
+        x = np.einsum("bij,bj->bi", a, x) + b
+    return ys, final
+
+
+def force_step(config: Config, design: Array, point: Mapping[str, float],
+               horizon: int) -> tuple[Array, Array] | None:
+    """(t, force) of the unit reference step for one design at one point (None: unstable),
+    for the report's figure."""
+    arrays = {k.replace(".", "__"): float(v) for k, v in zip(DECISION_KEYS, design)}
+    arrays.update({k.replace(".", "__"): float(v) for k, v in point.items()})
+    params = params_from_config(config, **arrays)
+    with np.errstate(all="ignore"):
+        closed = loop(params, sampled=True)
+    a, b, c, _ = closed.siso("tau_ref", "tau_int")
+    if not is_stable(np.linalg.eigvals(a)[None], True)[0]:
+        return None
+    ys, _ = simulate_step(a[None], b[None, :, 0], c[None, 0, :], horizon)
+    return np.arange(horizon) * float(config.loop.period), ys[0]
 
 
 def _crossing(ys: Array, level: Array) -> Array:

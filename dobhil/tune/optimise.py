@@ -176,10 +176,10 @@ def _broken_points(m: Metrics, margins: Margins) -> np.ndarray:
 def _result(best: np.ndarray, m: Metrics, fine: RobustSet, margins: Margins, objective: Objective,
             rounds: int, set_points: int, generations: int) -> TuneResult:
     worst, where = objective.worst(m)
-    worsts = _worsts(m, fine, margins)
+    held = worsts(m, fine, margins)
     return TuneResult(design=dict(zip(DECISION_KEYS, map(float, best))), objective=objective.name,
                       worst_objective=float(worst[0]), worst_at=fine.point(int(where[0])),
-                      constraints=worsts, feasible=all(w.ok for w in worsts), grid_points=fine.size,
+                      constraints=held, feasible=all(w.ok for w in held), grid_points=fine.size,
                       rounds=rounds, set_points=set_points, generations=generations, metrics=m,
                       grid=fine)
 
@@ -188,7 +188,7 @@ def _result(best: np.ndarray, m: Metrics, fine: RobustSet, margins: Margins, obj
 ACTIVE_FRACTION = 0.02
 
 
-def _worsts(m: Metrics, fine: RobustSet, margins: Margins) -> tuple[Worst, ...]:
+def worsts(m: Metrics, fine: RobustSet, margins: Margins) -> tuple[Worst, ...]:
     table = [("stability", m.radius[0], 1.0, np.argmax, False),
              ("gain_margin", m.gm_db[0], margins.gm_db, np.argmin, True),
              ("phase_margin", m.pm_deg[0], margins.pm_deg, np.argmin, True),
