@@ -171,7 +171,7 @@ def _baseline(config: Config, result: Any, margins: Any, objective: Any, horizon
     with threadpool_limits(limits=1, user_api="blas"):
         m = evaluate(config, np.array([[design[k] for k in DECISION_KEYS]]), result.grid.points,
                      horizon=horizon, quanta=quanta)
-    return baseline(design, m, result.grid, objective, worsts(m, result.grid, margins))
+    return baseline(design, m, result.grid, objective, worsts(m, result.grid, margins, where=m.stable[0]))
 
 
 def _print(args: argparse.Namespace, result: Any, base: Any, margins: Any, ranges: list[Range],

@@ -188,7 +188,10 @@ def _result(best: np.ndarray, m: Metrics, fine: RobustSet, margins: Margins, obj
 ACTIVE_FRACTION = 0.02
 
 
-def worsts(m: Metrics, fine: RobustSet, margins: Margins) -> tuple[Worst, ...]:
+def worsts(m: Metrics, fine: RobustSet, margins: Margins,
+           where: np.ndarray | None = None) -> tuple[Worst, ...]:
+    """Each constraint's worst value over the grid (over the points ``where`` is True, when
+    given: the config's design where it is stable), its point, and whether it holds."""
     table = [("stability", m.radius[0], 1.0, np.argmax, False),
              ("gain_margin", m.gm_db[0], margins.gm_db, np.argmin, True),
              ("phase_margin", m.pm_deg[0], margins.pm_deg, np.argmin, True),
@@ -196,11 +199,14 @@ def worsts(m: Metrics, fine: RobustSet, margins: Margins) -> tuple[Worst, ...]:
              ("overshoot", m.overshoot[0], margins.overshoot_pct, np.argmax, False)]
     if margins.noise is not None and m.noise is not None:
         table.append(("noise", m.noise[0], margins.noise, np.argmax, False))
+    inside = np.nonzero(np.ones(m.radius.shape[-1], bool) if where is None else where)[0]
     out = []
     for name, values, limit, pick, lower in table:
-        i = int(pick(values))
+        if not inside.size:
+            continue
+        i = int(inside[pick(values[inside])])
         v = float(values[i])
-        ok = v >= limit if lower else v < limit
+        ok = v >= limit if lower else (v < limit if name == "stability" else v <= limit)
         active = abs(v - limit) <= ACTIVE_FRACTION * max(abs(limit), 1.0)
         out.append(Worst(name, v, limit, fine.point(i), ok, active and name != "stability"))
     return tuple(out)

@@ -33,6 +33,8 @@ class Baseline:
     design: Mapping[str, float]
     worst_objective: float
     worst_at: Mapping[str, float]
+    stable_worst_objective: float        # over the points where it is stable (NaN: none)
+    stable_worst_at: Mapping[str, float]
     unstable: int
     worst_radius: float
     radius_at: Mapping[str, float]
@@ -45,9 +47,16 @@ def baseline(design: Mapping[str, float], m: Metrics, grid: RobustSet, objective
              worsts: tuple[Worst, ...]) -> Baseline:
     worst, where = objective.worst(m)
     unstable = np.nonzero(~m.stable[0])[0]
+    values = m.rise_time[0] if objective.name == "rise_time" else m.bandwidth[0]
+    pick = np.argmax if objective.name == "rise_time" else np.argmin
+    inside = np.nonzero(m.stable[0])[0]
+    j = int(inside[pick(values[inside])]) if inside.size else -1
     i = int(np.argmax(m.radius[0]))
     return Baseline(design=dict(design), worst_objective=float(worst[0]),
-                    worst_at=grid.point(int(where[0])), unstable=int(unstable.size),
+                    worst_at=grid.point(int(where[0])),
+                    stable_worst_objective=float(values[j]) if inside.size else math.nan,
+                    stable_worst_at=grid.point(j) if inside.size else {},
+                    unstable=int(unstable.size),
                     worst_radius=float(m.radius[0][i]), radius_at=grid.point(i),
                     unstable_points=tuple(grid.point(int(j)) for j in unstable[:3]),
                     constraints=worsts, stable=m.stable[0])
@@ -87,17 +96,23 @@ def as_text(result: TuneResult, base: Baseline, set_description: str) -> str:
     lines += [_constraint_line(w) for w in result.constraints]
     lines.append("the config's design (" + ", ".join(f"{k.split('.')[1]} {v:.4g}" for k, v in base.design.items())
                  + f"): worst-case force {obj} {_objective_text(result.objective, base.worst_objective)} at "
-                 f"{_at(base.worst_at)}; " + _unstable_text(base))
+                 f"{_at(base.worst_at)}; " + _unstable_text(base, result.objective))
     lines.append(f"search: {result.rounds} round(s), {result.generations} generations, "
                  f"{result.set_points} points in the optimiser's set")
     return "\n".join(lines)
 
 
-def _unstable_text(base: Baseline) -> str:
+def _unstable_text(base: Baseline, objective: str) -> str:
+    failed = [w for w in base.constraints if not w.ok and w.name != "stability"]
+    fails = ("; fails " + ", ".join(f"{CONSTRAINT_TEXT[w.name][0]} ({w.value:.4g}{CONSTRAINT_TEXT[w.name][2]} "
+                                    f"at {_at(w.point)})" for w in failed)) if failed else "; meets every margin"
     if not base.unstable:
-        return f"stable at every point (largest |pole| {base.worst_radius:.4g})"
-    return (f"UNSTABLE at {base.unstable} point(s) (largest |pole| {base.worst_radius:.4g} at "
-            f"{_at(base.radius_at)})")
+        return f"stable at every point (largest |pole| {base.worst_radius:.4g}){fails}"
+    inside = ("" if not base.stable_worst_at else
+              f"; where stable, its worst is {_objective_text(objective, base.stable_worst_objective)} at "
+              f"{_at(base.stable_worst_at)}")
+    return (f"UNSTABLE at {base.unstable} of {base.stable.size} point(s) (largest |pole| {base.worst_radius:.4g} at "
+            f"{_at(base.radius_at)}){inside}{fails} (where stable)")
 
 
 def _finite(x: float) -> float | None:
@@ -119,7 +134,9 @@ def as_json(result: TuneResult, base: Baseline, margins: Margins) -> dict[str, A
         "search": {"rounds": result.rounds, "generations": result.generations,
                    "set_points": result.set_points},
         "config_design": {"design": dict(base.design), "worst_objective": _finite(base.worst_objective),
-                          "worst_at": dict(base.worst_at), "unstable_points": base.unstable,
+                          "worst_at": dict(base.worst_at),
+                          "worst_objective_where_stable": _finite(base.stable_worst_objective),
+                          "worst_where_stable_at": dict(base.stable_worst_at), "unstable_points": base.unstable,
                           "largest_pole_radius": base.worst_radius, "largest_at": dict(base.radius_at),
                           "constraints": {w.name: _worst_json(w) for w in base.constraints}},
     }
