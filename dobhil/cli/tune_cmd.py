@@ -16,9 +16,13 @@ from dobhil.cli.common import add_config_args, config_from_args, design_on_drive
 from dobhil.errors import ConfigError
 
 if TYPE_CHECKING:
+    from collections.abc import Callable
+
     from dobhil.config.schema import Config
     from dobhil.tune.evaluate import Quanta
-    from dobhil.tune.problem import Range, Uncertainty
+    from dobhil.tune.optimise import Objective, TuneResult
+    from dobhil.tune.problem import Margins, Range, Uncertainty
+    from dobhil.tune.report import Baseline
 
 #: the files ``--plot DIR`` writes (:func:`dobhil.plotting.tune_figures.tune_figures`)
 PLOT_NAMES = ("stability_map.png", "worst_step.png", "margins.png")
@@ -152,13 +156,14 @@ def quantisation(config: Config, config_path: Path) -> Quanta | None:
     return None if quanta == Quanta(0.0, 0.0, 0.0) else quanta
 
 
-def _with_progress(work: Any) -> Any:
+def _with_progress(work: Callable[[Callable[[int], object]], TuneResult]) -> TuneResult:
     from tqdm import tqdm
     with tqdm(unit="gen", desc="tune", disable=not sys.stderr.isatty(), file=sys.stderr) as bar:
         return work(bar.update)
 
 
-def _baseline(config: Config, result: Any, margins: Any, objective: Any, horizon: int, quanta: Quanta | None) -> Any:
+def _baseline(config: Config, result: TuneResult, margins: Margins, objective: Objective, horizon: int,
+              quanta: Quanta | None) -> Baseline:
     """The config's own design on the same fine grid."""
     import numpy as np
     from threadpoolctl import threadpool_limits
@@ -174,7 +179,7 @@ def _baseline(config: Config, result: Any, margins: Any, objective: Any, horizon
     return baseline(design, m, result.grid, objective, worsts(m, result.grid, margins, where=m.stable[0]))
 
 
-def _print(args: argparse.Namespace, result: Any, base: Any, margins: Any, ranges: list[Range],
+def _print(args: argparse.Namespace, result: TuneResult, base: Baseline, margins: Margins, ranges: list[Range],
            uncertainties: list[Uncertainty]) -> None:
     from dobhil.tune.report import as_json, as_text, set_text
     if args.json:
@@ -184,7 +189,7 @@ def _print(args: argparse.Namespace, result: Any, base: Any, margins: Any, range
         print(as_text(result, base, set_text(ranges, uncertainties, args.grid)))
 
 
-def _write_config(args: argparse.Namespace, result: Any) -> None:
+def _write_config(args: argparse.Namespace, result: TuneResult) -> None:
     from dobhil.config.load import parse_override, read_set_file, read_yaml, resolve_config
     from dobhil.files import atomic_path
     from dobhil.tune.report import tuned_yaml
@@ -203,7 +208,7 @@ def _write_config(args: argparse.Namespace, result: Any) -> None:
         print(f"wrote {args.out}")
 
 
-def _plots(args: argparse.Namespace, config: Config, result: Any, base: Any, horizon: int) -> None:
+def _plots(args: argparse.Namespace, config: Config, result: TuneResult, base: Baseline, horizon: int) -> None:
     from dobhil.plotting.tune_figures import TunePlotData, tune_figures
     from dobhil.tune.evaluate import force_step
     from dobhil.tune.problem import DECISION_KEYS

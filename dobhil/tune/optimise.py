@@ -112,7 +112,7 @@ class _Cache:
 
 def _search(config: Config, points: RobustSet, bounds: Bounds, margins: Margins, objective: Objective,
             *, seed: int, horizon: int, quanta: Quanta | None, maxiter: int,
-            progress: Callable[[int], None] | None) -> tuple[np.ndarray, int]:
+            progress: Callable[[int], object] | None) -> tuple[np.ndarray, int]:
     """One differential evolution over ``points``: (the best design's values, generations)."""
     plant = point_plant(config, points.points)
 
@@ -135,7 +135,7 @@ def _search(config: Config, points: RobustSet, bounds: Bounds, margins: Margins,
 def tune(config: Config, ranges: list[Range], uncertainties: list[Uncertainty], bounds: Bounds,
          margins: Margins, objective: Objective, *, seed: int = 0, grid: int = 50,
          horizon: int = 200, quanta: Quanta | None = None, maxiter: int = 60,
-         progress: Callable[[int], None] | None = None) -> TuneResult:
+         progress: Callable[[int], object] | None = None) -> TuneResult:
     """The design, its fine-grid check, and the rounds it took (see the module docstring).
 
     BLAS on one thread throughout: the work is thousands of tiny matrices (5 x 5 loops,
@@ -148,7 +148,7 @@ def tune(config: Config, ranges: list[Range], uncertainties: list[Uncertainty], 
 
 def _tune(config: Config, ranges: list[Range], uncertainties: list[Uncertainty], bounds: Bounds,
           margins: Margins, objective: Objective, *, seed: int, grid: int, horizon: int,
-          quanta: Quanta | None, maxiter: int, progress: Callable[[int], None] | None) -> TuneResult:
+          quanta: Quanta | None, maxiter: int, progress: Callable[[int], object] | None) -> TuneResult:
     points = robust_set(config, ranges, uncertainties, min(COARSE_POINTS, grid))
     fine = robust_set(config, ranges, uncertainties, grid)
     generations = 0

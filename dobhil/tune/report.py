@@ -162,9 +162,12 @@ def tuned_yaml(source: Mapping[str, Any], result: TuneResult, command: str) -> s
     summary = "; ".join(f"{CONSTRAINT_TEXT[w.name][0]} {w.value:.3g}{CONSTRAINT_TEXT[w.name][2]}"
                         for w in result.constraints)
     out = [f"# tuned by: {command}", f"# worst case over {result.grid_points} points: {summary}"]
+    section = ""
     for line in text.splitlines():
         name = line.strip().split(":")[0]
-        if line.startswith("  ") and f"design.{name}" in DECISION_KEYS:
+        if not line.startswith(" "):
+            section = name
+        elif f"{section}.{name}" in DECISION_KEYS:
             line += "  # tuned"
         out.append(line)
     return "\n".join(out) + "\n"
