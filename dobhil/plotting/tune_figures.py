@@ -69,7 +69,7 @@ def stability_map(data: TunePlotData, path: Path) -> Path:
             axis("log" if values.min() > 0 and values.max() / values.min() >= 10 else "linear")
         ax.set_xlabel(keys[1])
         ax.set_ylabel(keys[0])
-        ax.legend(loc="upper right", title="red: the config's design unstable")
+        ax.legend(loc="best", title="red: the config's design unstable")
     ax.set_title("robust set: tuned design's gain margin")
     return save(fig, path)
 
