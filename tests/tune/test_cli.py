@@ -79,3 +79,11 @@ def test_plots_are_written(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -
             "--grid", "5", "--generations", "2", "--plot", str(tmp_path)]
     assert main(["tune", *args]) in (0, 1)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["margins.png", "stability_map.png", "worst_step.png"]
+
+
+def test_a_quantising_profile_gets_a_noise_constraint(capsys: pytest.CaptureFixture[str]) -> None:
+    """mit-demo's MIT codec quantises: the noise of tau_int^ is a constraint when asked for."""
+    args = ["mit-demo", "--range", "environment.stiffness=1e2:1e4", "--grid", "4", "--generations", "3", "--json"]
+    assert main(["tune", *args, "--margin", "noise=0.05"]) == 0
+    noise = json.loads(capsys.readouterr().out)["constraints"]["noise"]
+    assert noise["ok"] and 0 < noise["value"] <= 0.05
