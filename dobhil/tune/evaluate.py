@@ -113,8 +113,9 @@ def _metrics(a: Array, b: Array, c: Array, c_force: Array, cf: Array, period: fl
     a_cl = a - cfe * (b @ c)
     ok = np.all(np.isfinite(a_cl), axis=(-2, -1))
     a_cl = np.where(ok[..., None, None], a_cl, 0.0)
-    radius = np.where(ok, np.max(np.abs(np.linalg.eigvals(a_cl)), axis=-1), np.inf)
-    stable = ok & is_stable(np.linalg.eigvals(a_cl), True)
+    poles = np.linalg.eigvals(a_cl)
+    radius = np.where(ok, np.max(np.abs(poles), axis=-1), np.inf)
+    stable = ok & is_stable(poles, True)
     gm = _gain_margin_db(a, b, c, cf, stable)
     pm, ms = _loop_shape(a, b, c, cf, period, stable)
     rise, overshoot = _step(a_cl, cfe * b, c_force, period, horizon, stable)
@@ -122,8 +123,7 @@ def _metrics(a: Array, b: Array, c: Array, c_force: Array, cf: Array, period: fl
           else np.full(cf.shape, np.nan))
     noise = None if noise_in is None else _noise(a_cl, *_closed(noise_in, b, cf), c, stable)
     return Metrics(radius=radius, stable=stable, gm_db=gm, pm_deg=pm, ms_db=ms, rise_time=rise,
-                   overshoot=overshoot,
-                   bandwidth=bw, noise=noise)
+                   overshoot=overshoot, bandwidth=bw, noise=noise)
 
 
 def _gain_margin_db(a: Array, b: Array, c: Array, cf: Array, stable: Array) -> Array:
@@ -131,10 +131,25 @@ def _gain_margin_db(a: Array, b: Array, c: Array, cf: Array, stable: Array) -> A
     have no margin: the largest stable gain is below C_f)."""
     out = np.full(cf.shape, WORST["gm_db"])
     if stable.any():
-        kmax = gain_map(a[stable], b[stable], c[stable], sampled=True).max_stable_gain
+        kmax = _max_stable_gain(a[stable], b[stable], c[stable])
         with np.errstate(divide="ignore"):
             out[stable] = np.where(kmax > 0, 20.0 * np.log10(kmax / cf[stable]), WORST["gm_db"])
     return out
+
+
+def _max_stable_gain(a: Array, b: Array, c: Array) -> Array:
+    """The gain map's largest stable gain; a batch numpy cannot decompose is answered point
+    by point, and a point it cannot answer has none (0: no margin), as the sweep does."""
+    try:
+        return np.asarray(gain_map(a, b, c, sampled=True).max_stable_gain)
+    except (np.linalg.LinAlgError, ValueError):
+        out = np.zeros(a.shape[0])
+        for i in range(a.shape[0]):   # only after a failure: find the point(s) at fault
+            try:
+                out[i] = gain_map(a[i:i + 1], b[i:i + 1], c[i:i + 1], sampled=True).max_stable_gain[0]
+            except (np.linalg.LinAlgError, ValueError):
+                continue
+        return out
 
 
 def frequency_grid(period: float) -> Array:
