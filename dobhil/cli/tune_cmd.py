@@ -175,7 +175,7 @@ def _baseline(config: Config, result: TuneResult, margins: Margins, objective: O
     design = {k: float(flat[k]) for k in DECISION_KEYS}
     with threadpool_limits(limits=1, user_api="blas"):
         m = evaluate(config, np.array([[design[k] for k in DECISION_KEYS]]), result.grid.points,
-                     horizon=horizon, quanta=quanta)
+                     horizon=horizon, quanta=quanta, bandwidth=objective.name == "bandwidth")
     return baseline(design, m, result.grid, objective, worsts(m, result.grid, margins, where=m.stable[0]))
 
 
