@@ -92,20 +92,20 @@ def constraint_values(m: Metrics, margins: Margins) -> list[np.ndarray]:
 
 
 class _Cache:
-    """Metrics per candidate: scipy asks for the constraints and the objective of the same
-    population separately; each candidate is evaluated once, in one batch."""
+    """(cost, constraint values) per candidate: scipy asks for the constraints and the
+    objective of the same population separately; each candidate is evaluated once, and the
+    missing ones of a population in one batch."""
 
-    def __init__(self, work: Callable[[np.ndarray], Metrics]) -> None:
+    def __init__(self, work: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]) -> None:
         self.work = work
         self.rows: dict[bytes, tuple[float, np.ndarray]] = {}
-        self.to_row: Callable[[Metrics], tuple[np.ndarray, np.ndarray]] | None = None
 
     def get(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        cols = np.atleast_2d(x.T)          # (S, N)
+        """For ``x`` of shape (N, S) as scipy passes it: costs (S,), constraints (M, S)."""
+        cols = np.atleast_2d(x.T)
         missing = [c for c in cols if c.tobytes() not in self.rows]
         if missing:
-            assert self.to_row is not None
-            cost, cons = self.to_row(self.work(np.array(missing)))
+            cost, cons = self.work(np.array(missing))
             for c, f, g in zip(missing, cost, cons.T):
                 self.rows[c.tobytes()] = (float(f), g)
         got = [self.rows[c.tobytes()] for c in cols]
@@ -118,13 +118,13 @@ def _search(config: Config, points: RobustSet, bounds: Bounds, margins: Margins,
     """One differential evolution over ``points``: (the best design's values, generations)."""
     plant = point_plant(config, points.points)
 
-    def work(logs: np.ndarray) -> Metrics:
-        return evaluate(config, 10.0 ** logs, points.points, horizon=horizon, quanta=quanta,
-                        bandwidth=objective.name == "bandwidth", plant=plant)
+    def work(logs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        m = evaluate(config, 10.0 ** logs, points.points, horizon=horizon, quanta=quanta,
+                     bandwidth=objective.name == "bandwidth", plant=plant)
+        return objective.cost(m), np.array(constraint_values(m, margins))
 
     cache = _Cache(work)
-    cache.to_row = lambda m: (objective.cost(m), np.array(constraint_values(m, margins)))
-    count = len(constraint_values(work(np.array([[np.mean(b) for b in bounds.log10()]])), margins))
+    count = len(CONSTRAINTS) - (0 if margins.noise is not None and quanta is not None else 1)
     constraint = scipy.optimize.NonlinearConstraint(lambda x: cache.get(x)[1], np.zeros(count),
                                                     np.full(count, np.inf))
     res = scipy.optimize.differential_evolution(
