@@ -18,7 +18,8 @@ imports only lower layers, and those of one layer never import each other):
   ``dobhil.runtime``    the force-control loop, references, safety;
   ``dobhil.canio``      python-can plugins (the ``dobhil`` bus, MCAP as a CAN log);
   ``dobhil.live``       the Foxglove live view; ``dobhil.run_report`` the report of a recorded run;
-  ``dobhil.identify``   the plant's numbers fitted to a recorded run
+  ``dobhil.identify``   the plant's numbers fitted to a recorded run;
+  ``dobhil.tune``       robust gains over an environment range (``dobhil tune``)
 - ``dobhil.replay``     a recorded run replayed through the controller;
   ``dobhil.paper``      the paper's Section IV reproduced and checked;
   ``dobhil.campaign``   Monte-Carlo campaigns of lockstep runs, as Dask tasks

@@ -25,7 +25,8 @@ LAYERS: list[tuple[str, ...]] = [
     ("dobhil.analysis", "dobhil.emulator", "dobhil.recording"),  # the design analysed; the plant; logs
     ("dobhil.plotting", "dobhil.runtime", "dobhil.canio",   # figures; the loop; python-can plugins;
      "dobhil.live", "dobhil.run_report",                    # the live view; the report of a recorded run;
-     "dobhil.identify"),                                    # the plant identified from a recorded run
+     "dobhil.identify",                                     # the plant identified from a recorded run;
+     "dobhil.tune"),                                        # robust gains over an environment range
     ("dobhil.replay", "dobhil.paper",                       # a log replayed; the paper reproduced;
      "dobhil.campaign"),                                    # Monte-Carlo campaigns (on dobhil.cluster)
     ("dobhil.cli",),                                        # the command

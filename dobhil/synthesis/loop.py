@@ -56,18 +56,40 @@ def plant_of(params: Params) -> tuple[Array, Array, Array]:
                           params.value("stiffness"), params.value("damping"))
 
 
-def loop(params: Params, *, sampled: bool, force_gain: Array | float | None = None) -> LoopSS:
-    """The loop at ``force_gain`` (default: the design's C_f; 0 gives the open loop)."""
-    ctrl = sampled_controller(params) if sampled else continuous_controller(params)
+def loop(params: Params, *, sampled: bool, force_gain: Array | float | None = None,
+         controller: ControllerSS | None = None,
+         plant: tuple[Array, Array, Array] | None = None) -> LoopSS:
+    """The loop at ``force_gain`` (default: the design's C_f; 0 gives the open loop).
+
+    ``controller`` (and, sampled, ``plant``: :func:`sampled_plant`): the controller and
+    the sampled plant of ``params`` already computed, with batch shapes that broadcast to
+    ``params``'. Over designs x plant points the controller depends on the design only
+    and the plant on the point only, and their matrix exponentials are the costly part:
+    ``dobhil tune`` computes each once per design or per point, not per pair."""
+    if controller is None:
+        controller = sampled_controller(params) if sampled else continuous_controller(params)
+    ctrl = _broadcast(controller, params.batch_shape)
     cf = params.value("force_gain") if force_gain is None else np.asarray(force_gain, float)
     a_p, b_p, c_int = plant_of(params)
     b_late = np.zeros_like(b_p)
     delay = 0
     if sampled:
-        a_p, b_p, b_late = sampled_plant(params)
+        shape = params.batch_shape
+        a_p, b_p, b_late = (np.broadcast_to(m, shape + m.shape[-2:])
+                            for m in (plant if plant is not None else sampled_plant(params)))
         delay = params.structure.delay_samples
     return _assemble(a_p, b_p, b_late, c_int, ctrl, np.broadcast_to(cf, params.batch_shape),
                      delay, late=sampled and params.structure.input_delay > 0)
+
+
+def _broadcast(ctrl: ControllerSS, shape: tuple[int, ...]) -> ControllerSS:
+    """``ctrl``'s matrices as views of the batch ``shape`` (no copies)."""
+    def to(m: Array) -> Array:
+        return np.broadcast_to(m, shape + m.shape[-2:])
+    return ControllerSS(a=to(ctrl.a), b_y=to(ctrl.b_y), b_u=to(ctrl.b_u), b_i=to(ctrl.b_i),
+                        c=to(ctrl.c), d_y=to(ctrl.d_y),
+                        force_gain=np.broadcast_to(ctrl.force_gain, shape), dt=ctrl.dt,
+                        measures_velocity=ctrl.measures_velocity)
 
 
 def sampled_plant(params: Params) -> tuple[Array, Array, Array]:

@@ -1,0 +1,227 @@
+"""``dobhil tune CONFIG --range KEY=LO:HI [--range ...] [--uncertainty KEY=±P%] [--objective
+rise_time|bandwidth] [--bound KEY=LO:HI] [--margin gm=DB,pm=DEG,ms=DB,os=PCT,noise=X] [--grid N]
+[--seed S] [--out tuned.yaml] [--plot DIR] [--json]``."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import shlex
+import sys
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from dobhil.cli.common import add_config_args, config_from_args, design_on_drive
+from dobhil.errors import ConfigError
+
+if TYPE_CHECKING:
+    from collections.abc import Callable
+
+    from dobhil.config.schema import Config
+    from dobhil.tune.evaluate import Quanta
+    from dobhil.tune.optimise import Objective, TuneResult
+    from dobhil.tune.problem import Margins, Range, Uncertainty
+    from dobhil.tune.report import Baseline
+
+#: the files ``--plot DIR`` writes (:func:`dobhil.plotting.tune_figures.tune_figures`)
+PLOT_NAMES = ("stability_map.png", "worst_step.png", "margins.png")
+
+#: limits of --grid (values per range key) and of the whole fine grid
+MAX_GRID = 400
+MAX_GRID_POINTS = 250_000
+
+#: the step is simulated over analysis.step_duration, or this long when it is 0 (automatic) [s]
+DEFAULT_HORIZON = 0.2
+MAX_HORIZON_SAMPLES = 5000
+
+EXIT_INFEASIBLE = 1
+
+
+def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+    p = sub.add_parser("tune", help="robust gains: the fastest force loop that keeps its margins over "
+                       "an environment range", description=(
+                           "Chooses design.dob_bandwidth, rtob_bandwidth, identified_inertia and force_gain "
+                           "(scipy differential evolution, log scale) to minimise the worst-case rise time "
+                           "(or maximise the worst-case bandwidth) of the force step on the sampled, "
+                           "delayed loop, subject to stability and margins at every point of the --range "
+                           "grid times the --uncertainty box; then checks the design on a --grid fine grid."))
+    add_config_args(p)
+    p.add_argument("--range", dest="ranges", action="append", required=True, metavar="KEY=LO:HI",
+                   help="a plant or environment key's range (repeatable); log spaced when HI/LO >= 10")
+    p.add_argument("--uncertainty", action="append", default=[], metavar="KEY=±P%",
+                   help="a plant or environment key known to ±P %% (its ends and centre are checked)")
+    p.add_argument("--objective", choices=("rise_time", "bandwidth"), default="rise_time",
+                   help="minimise the worst 10-90 %% rise time (default) or maximise the worst -3 dB "
+                   "bandwidth of reference -> true force")
+    p.add_argument("--bound", action="append", default=[], metavar="KEY=LO:HI",
+                   help="search bounds of a design key (default: bandwidths 0.01/T..1.5/T, "
+                   "identified_inertia 0.5..2x, force_gain 1/20..20x the config's)")
+    p.add_argument("--margin", action="append", default=[], metavar="gm=DB,pm=DEG,ms=DB,os=PCT,noise=X",
+                   help="constraints at every point (default gm=6 dB, pm=30 deg, ms=6 dB, os=20 %%; "
+                   "noise: RMS of the estimate from the drive's quantisation [N m], no default)")
+    p.add_argument("--grid", type=int, default=50, metavar="N", help="values per range key of the final check")
+    p.add_argument("--seed", type=int, default=0, metavar="S", help="optimiser seed (same seed, same result)")
+    p.add_argument("--generations", type=int, default=100, metavar="N", help="most generations per search")
+    p.add_argument("--out", type=Path, metavar="TUNED.yaml", help="write the config with the tuned design")
+    p.add_argument("--plot", type=Path, metavar="DIR", help="write the stability map, worst step, margins")
+    p.add_argument("--json", action="store_true", help="print one JSON object")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from dobhil.tune.optimise import Objective, tune
+    from dobhil.tune.problem import parse_bounds, parse_margins
+    config = design_on_drive(config_from_args(args), args, sys.stderr if args.json else None)
+    ranges, uncertainties = _robust_keys(args)
+    margins, bounds = parse_margins(args.margin), parse_bounds(config, args.bound)
+    _check_numbers(args, len(ranges), len(uncertainties))
+    _check_outputs(args)
+    quanta = quantisation(config, Path(args.config))
+    if margins.noise is not None and quanta is None:
+        raise ConfigError("--margin noise: nothing quantises here (the drive profile has no codec model "
+                          "and sensor.encoder_resolution is 0)")
+    objective = Objective(args.objective)
+    horizon = _horizon(config)
+    result = _with_progress(lambda cb: tune(config, ranges, uncertainties, bounds, margins, objective,
+                                            seed=args.seed, grid=args.grid, horizon=horizon, quanta=quanta,
+                                            maxiter=args.generations, progress=cb))
+    base = _baseline(config, result, margins, objective, horizon, quanta)
+    _print(args, result, base, margins, ranges, uncertainties)
+    if args.out and result.feasible:
+        _write_config(args, result)
+    if args.plot:
+        _plots(args, config, result, base, horizon)
+    if not result.feasible:
+        from dobhil.tune.report import infeasible_line
+        print(f"dobhil tune: {infeasible_line(result)}", file=sys.stderr)
+        return EXIT_INFEASIBLE
+    return 0
+
+
+def _robust_keys(args: argparse.Namespace) -> tuple[list[Range], list[Uncertainty]]:
+    from dobhil.tune.problem import parse_range, parse_uncertainty
+    ranges = [parse_range(s) for s in args.ranges]
+    uncertainties = [parse_uncertainty(s) for s in args.uncertainty]
+    keys = [r.key for r in ranges] + [u.key for u in uncertainties]
+    for k in keys:
+        if keys.count(k) > 1:
+            raise ConfigError(f"{k}: given more than once in --range / --uncertainty; give each key once")
+    return ranges, uncertainties
+
+
+def _check_numbers(args: argparse.Namespace, n_ranges: int, n_uncertain: int) -> None:
+    if not 2 <= args.grid <= MAX_GRID:
+        raise ConfigError(f"--grid {args.grid}: expected 2 .. {MAX_GRID} values per range key")
+    total = args.grid ** n_ranges * 3 ** n_uncertain
+    if total > MAX_GRID_POINTS:
+        raise ConfigError(f"--grid {args.grid}: the check grid would have {total} points; at most "
+                          f"{MAX_GRID_POINTS} (fewer values per key, or fewer keys)")
+    if not 1 <= args.generations <= 10_000:
+        raise ConfigError(f"--generations {args.generations}: expected 1 .. 10000")
+    if args.seed < 0:
+        raise ConfigError(f"--seed {args.seed}: expected a whole number >= 0")
+
+
+def _check_outputs(args: argparse.Namespace) -> None:
+    """--out and --plot before the search runs (it takes tens of seconds)."""
+    from dobhil.files import check_output, check_output_dir
+    if args.out:
+        check_output(args.out, inputs=[args.config, *args.set_files], suffix=(".yaml", ".yml"), what="--out")
+    if args.plot:
+        check_output_dir(args.plot, PLOT_NAMES, inputs=[args.config], what="--plot")
+
+
+def _horizon(config: Config) -> int:
+    duration = config.analysis.step_duration or DEFAULT_HORIZON
+    return max(20, min(MAX_HORIZON_SAMPLES, int(round(duration / config.loop.period)) + 1))   # t = 0 .. duration
+
+
+def quantisation(config: Config, config_path: Path) -> Quanta | None:
+    """The steps the drive quantises with: an MIT-mode codec's (position, velocity, torque)
+    and/or the emulated encoder's count (``sensor.encoder_resolution``); None when neither."""
+    import dataclasses
+    from dobhil.config import resolve_config
+    from dobhil.drives.profile import load_drive_profile
+    from dobhil.tune.evaluate import Quanta
+    quanta = Quanta(0.0, 0.0, 0.0)
+    profile = load_drive_profile(config, resolve_config(str(config_path)).parent)
+    if profile.protocol == "mit":
+        from dobhil.drives.mit.rules import model_of
+        steps = model_of(profile).quanta
+        quanta = Quanta(float(steps.position), float(steps.velocity), float(steps.torque))
+    counts = config.sensor.encoder_resolution
+    if counts:
+        quanta = dataclasses.replace(quanta, position=max(quanta.position, 2.0 * math.pi / counts))
+    return None if quanta == Quanta(0.0, 0.0, 0.0) else quanta
+
+
+def _with_progress(work: Callable[[Callable[[int], object]], TuneResult]) -> TuneResult:
+    from tqdm import tqdm
+    with tqdm(unit="gen", desc="tune", disable=not sys.stderr.isatty(), file=sys.stderr) as bar:
+        return work(bar.update)
+
+
+def _baseline(config: Config, result: TuneResult, margins: Margins, objective: Objective, horizon: int,
+              quanta: Quanta | None) -> Baseline:
+    """The config's own design on the same fine grid."""
+    import numpy as np
+    from threadpoolctl import threadpool_limits
+    from dobhil.tune.evaluate import evaluate
+    from dobhil.tune.optimise import worsts
+    from dobhil.tune.problem import DECISION_KEYS
+    from dobhil.tune.report import baseline
+    flat = config.flat()
+    design = {k: float(flat[k]) for k in DECISION_KEYS}
+    with threadpool_limits(limits=1, user_api="blas"):
+        m = evaluate(config, np.array([[design[k] for k in DECISION_KEYS]]), result.grid.points,
+                     horizon=horizon, quanta=quanta, bandwidth=objective.name == "bandwidth")
+    return baseline(design, m, result.grid, objective, worsts(m, result.grid, margins, where=m.stable[0]))
+
+
+def _print(args: argparse.Namespace, result: TuneResult, base: Baseline, margins: Margins, ranges: list[Range],
+           uncertainties: list[Uncertainty]) -> None:
+    from dobhil.tune.report import as_json, as_text, set_text
+    if args.json:
+        json.dump(as_json(result, base, margins), sys.stdout)
+        sys.stdout.write("\n")
+    else:
+        print(as_text(result, base, set_text(ranges, uncertainties, args.grid)))
+
+
+def _write_config(args: argparse.Namespace, result: TuneResult) -> None:
+    from dobhil.config.load import parse_override, read_set_file, read_yaml, resolve_config
+    from dobhil.files import atomic_path
+    from dobhil.tune.report import tuned_yaml
+    source: dict[str, Any] = read_yaml(resolve_config(args.config))
+    flat_overrides: dict[str, Any] = {}
+    for extra in args.set_files:
+        flat_overrides.update(read_set_file(extra))
+    flat_overrides.update(dict(parse_override(item) for item in args.overrides))
+    for key, value in flat_overrides.items():
+        section, name = key.split(".", 1)
+        source.setdefault(section, {})[name] = value
+    command = "dobhil tune " + " ".join(shlex.quote(a) for a in sys.argv[2:]) if len(sys.argv) > 2 else "dobhil tune"
+    with atomic_path(args.out) as tmp:
+        tmp.write_text(tuned_yaml(source, result, command))
+    if not args.json:
+        print(f"wrote {args.out}")
+
+
+def _plots(args: argparse.Namespace, config: Config, result: TuneResult, base: Baseline, horizon: int) -> None:
+    from dobhil.plotting.tune_figures import TunePlotData, tune_figures
+    from dobhil.tune.evaluate import force_step
+    from dobhil.tune.problem import DECISION_KEYS
+    import numpy as np
+    tuned = np.array([result.design[k] for k in DECISION_KEYS])
+    config_design = np.array([base.design[k] for k in DECISION_KEYS])
+    data = TunePlotData(
+        keys=result.grid.keys, points={k: np.asarray(v) for k, v in result.grid.points.items()},
+        gm_db=result.metrics.gm_db[0], baseline_stable=base.stable,
+        worst_at=dict(result.worst_at), tuned_step=force_step(config, tuned, result.worst_at, horizon),
+        config_step=force_step(config, config_design, result.worst_at, horizon),
+        constraints=[(w.name, w.value, w.limit) for w in result.constraints])
+    paths = tune_figures(data, args.plot)
+    if not args.json:
+        print("wrote " + ", ".join(str(p) for p in paths))
+

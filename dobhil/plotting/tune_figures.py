@@ -1,0 +1,123 @@
+"""The figures of ``dobhil tune --plot DIR``: the tuned design's gain margin over the robust
+set (with the config's own design's unstable region), the worst-case force step of both
+designs, and each constraint's worst value against its limit.
+
+Plain arrays in (the CLI passes them): this module knows nothing of the search.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from dobhil.plotting.figures import _plt, save
+
+Step = tuple[np.ndarray, np.ndarray] | None
+
+
+@dataclass(frozen=True)
+class TunePlotData:
+    keys: tuple[str, ...]                     # the set's keys, range keys first
+    points: Mapping[str, np.ndarray]          # flat grid, one array per key
+    gm_db: np.ndarray = field(repr=False)     # tuned design's gain margin per point
+    baseline_stable: np.ndarray = field(repr=False)   # the config's design: stable per point
+    worst_at: Mapping[str, float]
+    tuned_step: Step
+    config_step: Step
+    constraints: Sequence[tuple[str, float, float]]   # (name, worst value, limit)
+
+
+def tune_figures(data: TunePlotData, directory: Path) -> list[Path]:
+    directory.mkdir(parents=True, exist_ok=True)
+    return [stability_map(data, directory / "stability_map.png"),
+            worst_step(data, directory / "worst_step.png"),
+            margins_figure(data, directory / "margins.png")]
+
+
+def _axis_values(data: TunePlotData, key: str) -> np.ndarray:
+    return np.unique(data.points[key])
+
+
+def stability_map(data: TunePlotData, path: Path) -> Path:
+    """Gain margin (worst over the other keys) over the first one or two keys."""
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(8, 6))
+    keys = data.keys[:2]
+    gm = np.where(np.isinf(data.gm_db), np.nan, data.gm_db)
+    if len(keys) == 1:
+        x = _axis_values(data, keys[0])
+        worst = [np.nanmin(gm[data.points[keys[0]] == v], initial=np.inf) for v in x]
+        ax.semilogx(x, worst, "-o", ms=3, label="tuned: worst gain margin")
+        ax.set_xlabel(keys[0])
+        ax.set_ylabel("gain margin [dB] (max stable C_f / C_f)")
+        ax.axvline(data.worst_at[keys[0]], color="k", ls="--", label="worst objective")
+        ax.legend()
+    else:
+        x, y = _axis_values(data, keys[0]), _axis_values(data, keys[1])
+        grid, stable = _on_grid(data, keys, x, y, gm)
+        mesh = ax.pcolormesh(y, x, grid, shading="auto", cmap="viridis")
+        fig.colorbar(mesh, ax=ax, label="tuned design: gain margin [dB] (worst over other keys)")
+        if not stable.all():
+            ax.contourf(y, x, (~stable).astype(float), levels=[0.5, 1.5], colors="red", alpha=0.35)
+            ax.contour(y, x, stable.astype(float), levels=[0.5], colors="red", linewidths=1.5)
+        ax.plot([data.worst_at[keys[1]]], [data.worst_at[keys[0]]], "w*", ms=14, mec="k",
+                label="worst-case objective")
+        for axis, values in ((ax.set_xscale, y), (ax.set_yscale, x)):
+            axis("log" if values.min() > 0 and values.max() / values.min() >= 10 else "linear")
+        ax.set_xlabel(keys[1])
+        ax.set_ylabel(keys[0])
+        ax.legend(loc="best", title="red: the config's design unstable")
+    ax.set_title("robust set: tuned design's gain margin")
+    return save(fig, path)
+
+
+def _on_grid(data: TunePlotData, keys: tuple[str, ...], x: np.ndarray, y: np.ndarray,
+             gm: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(worst gain margin, config's design stable everywhere) per (x, y) cell."""
+    ix = np.searchsorted(x, data.points[keys[0]])
+    iy = np.searchsorted(y, data.points[keys[1]])
+    grid = np.full((x.size, y.size), np.inf)
+    stable = np.ones((x.size, y.size), bool)
+    np.minimum.at(grid, (ix, iy), np.nan_to_num(gm, nan=np.inf))
+    np.logical_and.at(stable, (ix, iy), data.baseline_stable)
+    return np.where(np.isinf(grid), np.nan, grid), stable
+
+
+def worst_step(data: TunePlotData, path: Path) -> Path:
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(8, 4.5))
+    for step, label, style in ((data.tuned_step, "tuned", "-"), (data.config_step, "config's design", "--")):
+        if step is None:
+            ax.plot([], [], style, label=f"{label}: unstable here")
+            continue
+        t, y = step
+        ax.step(t * 1e3, y, style, where="post", label=label)
+    where = ", ".join(f"{k}={v:.4g}" for k, v in data.worst_at.items())
+    ax.set_title(f"force step at the tuned design's worst point ({where})", fontsize=9)
+    ax.set_xlabel("time [ms]")
+    ax.set_ylabel("true interaction torque / reference")
+    ax.axhline(1.0, color="grey", lw=0.8)
+    ax.legend()
+    return save(fig, path)
+
+
+def margins_figure(data: TunePlotData, path: Path) -> Path:
+    """Each constraint's worst value as a fraction of its limit (>= 1: met, for lower
+    bounds; <= 1 for upper bounds: drawn as limit / value so that right of 1 is good)."""
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(8, 3.5))
+    lower = {"gain_margin", "phase_margin"}
+    names, ratios = [], []
+    for name, value, limit in data.constraints:
+        ratio = value / limit if name in lower else limit / value if value else np.inf
+        names.append(f"{name}\n{value:.3g} vs {limit:.3g}")
+        ratios.append(min(ratio, 5.0) if np.isfinite(ratio) else 5.0)
+    colors = ["tab:green" if r >= 1 else "tab:red" for r in ratios]
+    ax.barh(names, ratios, color=colors)
+    ax.axvline(1.0, color="k", lw=1)
+    ax.set_xlabel("worst value relative to its limit (right of 1: met; capped at 5)")
+    ax.tick_params(axis="y", labelsize=8)
+    return save(fig, path)

@@ -1,0 +1,89 @@
+"""``dobhil tune`` as a command: bad input is one line and exit 2 before any work; the
+tuned config is a config ``dobhil analyze`` accepts with the chosen values; the same seed
+gives the same design; a constraint no design can meet is one line and exit 1."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from dobhil.cli.main import main
+from dobhil.config import load_config
+
+#: a small, fast problem: one range key on a coarse grid, few generations
+SMALL = ["paper/fig3", "--range", "environment.stiffness=1e3:1e5", "--grid", "6", "--generations", "4"]
+
+
+@pytest.mark.parametrize(("args", "says"), [
+    (["--range", "environment.stiffness=1e5:1e3"], "empty range"),
+    (["--range", "environment.stiffness=5:5"], "empty range"),
+    (["--range", "design.force_gain=1:2"], "not a plant or environment key"),
+    (["--range", "nothing.here=1:2"], "unknown config key"),
+    (["--range", "environment.stiffness=1e3"], "expected KEY=LO:HI"),
+    (["--range", "environment.stiffness=nan:1"], "finite"),
+    (["--range", "environment.stiffness=1:2", "--uncertainty", "plant.inertia=±150%"], "0 < P < 100"),
+    (["--range", "environment.stiffness=1:2", "--uncertainty", "environment.stiffness=±10%"], "more than once"),
+    (["--range", "environment.stiffness=1:2", "--margin", "gain=6"], "expected gm=DB"),
+    (["--range", "environment.stiffness=1:2", "--margin", "pm=200"], "0 <= pm < 180"),
+    (["--range", "environment.stiffness=1:2", "--bound", "design.nominal_inertia=1:2"], "--bound"),
+    (["--range", "environment.stiffness=1:2", "--bound", "design.force_gain=0:2"], "LO must be > 0"),
+    (["--range", "environment.stiffness=1:2", "--margin", "noise=0.1"], "nothing quantises"),
+    (["--range", "environment.stiffness=1:2", "--grid", "1"], "--grid 1"),
+    (["--range", "environment.stiffness=1:2", "--range", "environment.damping=1:2", "--grid", "400",
+      "--range", "plant.inertia=0.1:1"], "at most"),
+])
+def test_bad_input_is_one_line_and_exit_2(args: list[str], says: str, capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["tune", "paper/fig3", *args]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith("dobhil tune: error: ") and says in err
+
+
+def test_an_unwritable_out_is_refused_before_the_search(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["tune", *SMALL, "--out", str(tmp_path / "x.txt")]) == 2
+    assert "expected a .yaml or .yml file name" in capsys.readouterr().err
+
+
+def test_json_out_and_the_tuned_config(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "tuned.yaml"
+    assert main(["tune", *SMALL, "--json", "--out", str(out), "--set", "environment.damping=80"]) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert report["feasible"] and report["grid_points"] == 6
+    tuned = load_config(str(out))
+    for key, value in report["design"].items():
+        assert tuned.flat()[key] == pytest.approx(value, rel=1e-5)
+    assert tuned.environment.damping == 80.0            # the --set is part of what was tuned
+    assert "# tuned" in out.read_text()
+    assert main(["analyze", str(out)]) == 0
+
+
+def test_the_same_seed_gives_the_same_design(capsys: pytest.CaptureFixture[str]) -> None:
+    designs = []
+    for seed in ("3", "3", "4"):
+        assert main(["tune", *SMALL, "--json", "--seed", seed]) == 0
+        designs.append(json.loads(capsys.readouterr().out)["design"])
+    assert designs[0] == designs[1]
+    assert designs[0] != designs[2]
+
+
+def test_a_constraint_no_design_meets_is_one_line_and_exit_1(capsys: pytest.CaptureFixture[str]) -> None:
+    code = main(["tune", *SMALL, "--margin", "gm=80", "--bound", "design.force_gain=20:40"])
+    err = capsys.readouterr().err
+    assert code == 1
+    assert err.count("\n") == 1 and "gain margin >= 80 dB" in err and "the best found has" in err
+
+
+def test_plots_are_written(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    args = ["paper/fig3", "--range", "environment.stiffness=1e3:1e5", "--range", "environment.damping=10:200",
+            "--grid", "5", "--generations", "2", "--plot", str(tmp_path)]
+    assert main(["tune", *args]) in (0, 1)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["margins.png", "stability_map.png", "worst_step.png"]
+
+
+def test_a_quantising_profile_gets_a_noise_constraint(capsys: pytest.CaptureFixture[str]) -> None:
+    """mit-demo's MIT codec quantises: the noise of tau_int^ is a constraint when asked for."""
+    args = ["mit-demo", "--range", "environment.stiffness=1e2:1e4", "--grid", "4", "--generations", "3", "--json"]
+    assert main(["tune", *args, "--margin", "noise=0.05"]) == 0
+    noise = json.loads(capsys.readouterr().out)["constraints"]["noise"]
+    assert noise["ok"] and 0 < noise["value"] <= 0.05
