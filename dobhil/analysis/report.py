@@ -127,11 +127,28 @@ def margins(open_loop: control.StateSpace, force_gain: float) -> dict[str, float
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         gm, pm, sm, wpc, wgc, _ = control.stability_margins(force_gain * open_loop)
+        gm, wpc = _without_zero_crossing(force_gain * open_loop, gm, wpc)
     gm, wpc = _nyquist_crossing(force_gain * open_loop, gm, wpc)
     return {"gain_margin": _finite(gm),
             "gain_margin_db": _finite(20 * math.log10(gm)) if gm and gm > 0 and math.isfinite(gm) else None,
             "phase_margin_deg": _finite(pm), "phase_crossover_freq": _finite(wpc),
             "gain_crossover_freq": _finite(wgc), "stability_margin": _finite(sm)}
+
+
+def _without_zero_crossing(loop: control.StateSpace, gm: float, wpc: float) -> tuple[float, float]:
+    """The gain margin without a phase "crossing" at w = 0.
+
+    The force loop has an integrator (a pole at s = 0 / z = 1): there ``|L|`` is infinite and
+    its phase -90 deg, never -180. python-control's ``stability_margins`` (0.10.2) can still
+    report a crossing at exactly w = 0 from the roots of its crossing polynomial -- with
+    numpy 2.4.6 the demo's sampled loop got ``gm = 1.5e-11`` at ``wpc = 0`` -- which is the
+    pole itself, not a crossing. Only then are all crossings asked for (``returnall``) and
+    those at w = 0 dropped. (A workaround of a library limit, kept in this one place.)"""
+    if gm is None or wpc is None or not (math.isfinite(wpc) and wpc == 0.0):
+        return gm, wpc
+    gms, _, _, wpcs, _, _ = control.stability_margins(loop, returnall=True)
+    kept = [(float(g), float(w)) for g, w in zip(np.atleast_1d(gms), np.atleast_1d(wpcs)) if w > 0]
+    return min(kept) if kept else (math.inf, math.nan)
 
 
 def _nyquist_crossing(loop: control.StateSpace, gm: float, wpc: float) -> tuple[float, float]:
