@@ -172,19 +172,28 @@ def _no_answer(address: str, timeout: float, why: str) -> ClusterError:
     return ClusterError(f"--scheduler {address}: no Dask scheduler answered within {timeout:g} s ({why})")
 
 
+#: the families of loggers Dask writes to (tornado and asyncio: its event loop's)
+DASK_LOGGERS = ("distributed", "tornado", "asyncio")
+
+
 @contextmanager
 def _quiet_dask() -> Iterator[None]:
-    """Dask's loggers above CRITICAL while inside (restored on exit): its reconnect attempts
-    and worker deaths reach the user as dobhil's one line (or as ``retried``), not as pages."""
-    loggers = [logging.getLogger(name) for name in ("distributed", "tornado", "asyncio")]
-    levels = [logger.level for logger in loggers]
-    for logger in loggers:
-        logger.setLevel(logging.CRITICAL)
+    """Dask's loggers at CRITICAL while inside (each restored on exit): its reconnect attempts
+    and worker deaths reach the user as dobhil's one line (or as ``retried``), not as pages.
+    Every existing logger of the families is set, not only the top one: Dask's logging config
+    gives some children levels of their own (``distributed.client: warning``), which a
+    parent's level does not override."""
+    import distributed  # noqa: F401 -- its import configures its loggers; set them after that
+    names = [name for name in [*DASK_LOGGERS, *logging.root.manager.loggerDict]
+             if name.split(".")[0] in DASK_LOGGERS]
+    saved = {name: logging.getLogger(name).level for name in names}
+    for name in saved:
+        logging.getLogger(name).setLevel(logging.CRITICAL)
     try:
         yield
     finally:
-        for logger, level in zip(loggers, levels):
-            logger.setLevel(level)
+        for name, level in saved.items():
+            logging.getLogger(name).setLevel(level)
 
 
 def map_ordered(client: distributed.Client, fn: Callable[[T], Any], items: Sequence[T], *,

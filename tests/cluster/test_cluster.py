@@ -170,3 +170,19 @@ def test_map_values_gives_values_or_one_error_naming_the_first_failure(dask_clie
     with pytest.raises(ClusterError, match=r"^2 of 4 tasks failed on the Dask workers; task 1: ValueError: item 1 "
                        r"is odd, see here$"):
         map_values(dask_client, _fails_on_odd, [0, 1, 2, 3])  # type: ignore[arg-type]
+
+
+def test_dask_loggers_are_quiet_inside_and_restored_after(dask_client: object) -> None:
+    """Children Dask's config gives a level of their own (``distributed.client``) are quiet
+    too; the session fixture's client keeps them quiet, so look at a nested one's exit."""
+    import logging
+    client_log = logging.getLogger("distributed.client")
+    before = client_log.level
+    client_log.setLevel(logging.WARNING)
+    try:
+        with open_client(workers=1, processes=False):
+            assert client_log.getEffectiveLevel() == logging.CRITICAL
+            assert logging.getLogger("distributed").getEffectiveLevel() == logging.CRITICAL
+        assert client_log.level == logging.WARNING
+    finally:
+        client_log.setLevel(before)
