@@ -44,7 +44,9 @@ T = TypeVar("T")
 
 #: seconds to wait for a scheduler to answer (and for a worker to join it); short enough
 #: that a wrong address ends the whole command (imports included) within 10 s
-CONNECT_TIMEOUT = 5.0
+CONNECT_TIMEOUT = 4.0
+#: seconds beyond the timeout for the handshake of a port that did connect (see _probe)
+HANDSHAKE_GRACE = 0.5
 
 #: BLAS on one thread in every worker process (the variables act before numpy loads BLAS)
 ONE_THREAD_ENV = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
@@ -113,8 +115,8 @@ def _remote_client(address: str, timeout: float) -> Iterator[distributed.Client]
     _probe(address, timeout)
     try:
         client = Client(address, timeout=timeout)
-    except (OSError, asyncio.TimeoutError) as exc:
-        raise _no_answer(address, timeout, exc) from None
+    except (OSError, asyncio.TimeoutError) as exc:   # the scheduler went between probe and client
+        raise _no_answer(address, timeout, _reason(exc)) from None
     with client:
         try:
             client.wait_for_workers(1, timeout=timeout)
@@ -125,44 +127,73 @@ def _remote_client(address: str, timeout: float) -> Iterator[distributed.Client]
 
 
 def _probe(address: str, timeout: float) -> None:
-    """Connect to ``address`` and do Dask's handshake, all within ``timeout`` seconds, or
-    raise :class:`ClusterError`.
+    """Connect to ``address`` and do Dask's handshake within about ``timeout`` seconds, or
+    raise :class:`ClusterError` saying which step got no answer.
 
     Why: ``distributed.Client(address, timeout=...)`` bounds the TCP connection but then
     awaits the scheduler's handshake reply with no timeout (``distributed.comm.connect``,
     2026.8.0), so a port that accepts and never speaks hangs it forever. The public
     ``distributed.comm.connect`` under our own ``asyncio.wait_for`` bounds both; the
-    comm is closed and the real client connects next (a second, quick handshake)."""
+    comm is closed and the real client connects next (a second, quick handshake). The
+    outer bound has :data:`HANDSHAKE_GRACE` more, so a port that never connects fails in
+    ``connect`` (with its reason: refused, unknown host) and only a silent one reaches it."""
     from distributed.comm import connect
 
     async def handshake() -> None:
-        comm = await asyncio.wait_for(connect(address, timeout=timeout), timeout)
+        comm = await asyncio.wait_for(connect(address, timeout=timeout), timeout + HANDSHAKE_GRACE)
         await comm.close()
 
     try:
         asyncio.run(handshake())
-    except (OSError, asyncio.TimeoutError) as exc:
-        raise _no_answer(address, timeout, exc) from None
+    except asyncio.TimeoutError:   # (3.11+: builtin TimeoutError, an OSError: caught first)
+        raise _no_answer(address, timeout, "the port accepted a connection but never replied to Dask's "
+                         "handshake") from None
+    except OSError as exc:
+        raise _no_answer(address, timeout, _reason(exc)) from None
+    except Exception as exc:   # whatever a stranger's bytes make of Dask's decoder
+        # (a web server's reply read as a frame length: numpy asked for exabytes) is one answer:
+        # not a scheduler
+        raise ClusterError(f"--scheduler {address}: something answered, but not a Dask scheduler "
+                           f"({type(exc).__name__} decoding its reply)") from None
 
 
-def _no_answer(address: str, timeout: float, exc: BaseException) -> ClusterError:
-    why = " ".join(str(exc).split()) or "no reply to the handshake"
+def _reason(exc: BaseException) -> str:
+    """distributed's "Timed out trying to connect" carries the last attempt's error as its
+    cause, itself wrapping the socket's (connection refused, name not known): the innermost
+    error that says something is the useful part."""
+    said = exc
+    while exc.__cause__ is not None:
+        exc = exc.__cause__
+        said = exc if str(exc) else said
+    return " ".join(str(said).split()) or type(said).__name__
+
+
+def _no_answer(address: str, timeout: float, why: str) -> ClusterError:
     return ClusterError(f"--scheduler {address}: no Dask scheduler answered within {timeout:g} s ({why})")
+
+
+#: the families of loggers Dask writes to (tornado and asyncio: its event loop's)
+DASK_LOGGERS = ("distributed", "tornado", "asyncio")
 
 
 @contextmanager
 def _quiet_dask() -> Iterator[None]:
-    """Dask's loggers above CRITICAL while inside (restored on exit): its reconnect attempts
-    and worker deaths reach the user as dobhil's one line (or as ``retried``), not as pages."""
-    loggers = [logging.getLogger(name) for name in ("distributed", "tornado", "asyncio")]
-    levels = [logger.level for logger in loggers]
-    for logger in loggers:
-        logger.setLevel(logging.CRITICAL)
+    """Dask's loggers at CRITICAL while inside (each restored on exit): its reconnect attempts
+    and worker deaths reach the user as dobhil's one line (or as ``retried``), not as pages.
+    Every existing logger of the families is set, not only the top one: Dask's logging config
+    gives some children levels of their own (``distributed.client: warning``), which a
+    parent's level does not override."""
+    import distributed  # noqa: F401 -- its import configures its loggers; set them after that
+    names = [name for name in [*DASK_LOGGERS, *logging.root.manager.loggerDict]
+             if name.split(".")[0] in DASK_LOGGERS]
+    saved = {name: logging.getLogger(name).level for name in names}
+    for name in saved:
+        logging.getLogger(name).setLevel(logging.CRITICAL)
     try:
         yield
     finally:
-        for logger, level in zip(loggers, levels):
-            logger.setLevel(level)
+        for name, level in saved.items():
+            logging.getLogger(name).setLevel(level)
 
 
 def map_ordered(client: distributed.Client, fn: Callable[[T], Any], items: Sequence[T], *,

@@ -38,8 +38,8 @@ def _dies_once(item: tuple[int, str]) -> int:
     return index * 10
 
 
-def test_a_worker_killed_mid_task_loses_no_row_and_marks_the_retried_one(process_client: object,
-                                                                         tmp_path: Path) -> None:
+def test_a_worker_killed_mid_task_loses_no_row_and_marks_the_retried_one(
+        process_client: object, tmp_path: Path, capfd: pytest.CaptureFixture[str]) -> None:
     pids_before = set(process_client.run(os.getpid).values())  # type: ignore[attr-defined]
     marker = str(tmp_path / "killed")
     results = map_ordered(process_client, _dies_once, [(i, marker) for i in range(6)])  # type: ignore[arg-type]
@@ -49,6 +49,8 @@ def test_a_worker_killed_mid_task_loses_no_row_and_marks_the_retried_one(process
     assert Path(marker).exists()   # the kill did happen: the second attempt is the one that returned
     process_client.wait_for_workers(2, timeout=60)  # type: ignore[attr-defined]
     assert set(process_client.run(os.getpid).values()) != pids_before  # type: ignore[attr-defined]
+    out, err = capfd.readouterr()   # the nanny and the scheduler saw it all: the terminal does not
+    assert (out, err) == ("", "")
 
 
 #: 65 x 65 = 4225 points: two chunks of the command's 4096

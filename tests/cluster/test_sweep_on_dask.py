@@ -97,4 +97,4 @@ def test_a_scheduler_that_does_not_answer_ends_the_process_with_one_line(where: 
     shown = address if address.startswith("tcp://") else "tcp://" + address
     assert (done.returncode, done.stdout) == (2, "")
     assert done.stderr.startswith(f"dobhil sweep: error: --scheduler {shown}: no Dask scheduler answered "
-                                  "within 5 s (") and done.stderr.count("\n") == 1, done.stderr
+                                  "within 4 s (") and done.stderr.count("\n") == 1, done.stderr
