@@ -29,6 +29,10 @@ import ctypes
 import ctypes.util
 import os
 import sys
+import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
+from typing import Any
 
 from dobhil.errors import ConfigError
 
@@ -131,3 +135,44 @@ def _lock_memory() -> str:
         err = ctypes.get_errno()
         return f"mlockall refused ({os.strerror(err)}); memory not locked (needs CAP_IPC_LOCK)"
     return ""
+
+
+_BLAS_LOCK = threading.Lock()
+_BLAS: dict[str, Any] = {"controller": None, "depth": 0, "limiter": None}
+
+
+@contextmanager
+def one_blas_thread() -> Iterator[None]:
+    """BLAS (numpy's and scipy's OpenBLAS) on one thread while inside; nests, and the
+    outermost exit restores what was there.
+
+    Why: the identification's linear algebra is tiny -- 3x3 matrix exponentials (the ZOH
+    of the Plant's 2x2 modes, dobhil.synthesis.controller.discretize), products with 2 or 3
+    columns -- and a multithreaded OpenBLAS wakes its pool for each: ``scipy.linalg.expm``
+    of a 3x3 measured 4-16 ms (min/median) on this busy 2-core machine with the default
+    pool, 0.017 ms on one thread, and every fit evaluation builds the Plant's propagators
+    afresh. threadpoolctl is the maintained public API to resize the pools at run time
+    (``OPENBLAS_NUM_THREADS`` only acts before the library loads, and would be the whole
+    process's business); its controller is made once (scanning the loaded libraries costs
+    ms; scipy.linalg is imported first so its BLAS is among them) and ``limit`` then costs
+    ~15 us, so this wraps every :func:`simulate_torque` and can wrap a whole fit. Callers
+    running simulations in several threads hold it around the whole threaded region: the
+    pools are process-wide, and one thread's outermost exit would restore them under the
+    other's feet.
+    """
+    with _BLAS_LOCK:
+        if _BLAS["depth"] == 0:
+            if _BLAS["controller"] is None:
+                import scipy.linalg  # noqa: F401 -- loaded first, so that its BLAS is among those found
+                from threadpoolctl import ThreadpoolController
+                _BLAS["controller"] = ThreadpoolController()
+            _BLAS["limiter"] = _BLAS["controller"].limit(limits=1, user_api="blas")
+        _BLAS["depth"] += 1
+    try:
+        yield
+    finally:
+        with _BLAS_LOCK:
+            _BLAS["depth"] -= 1
+            if _BLAS["depth"] == 0:
+                _BLAS["limiter"].restore_original_limits()
+                _BLAS["limiter"] = None

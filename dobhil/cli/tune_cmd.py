@@ -166,14 +166,14 @@ def _baseline(config: Config, result: TuneResult, margins: Margins, objective: O
               quanta: Quanta | None) -> Baseline:
     """The config's own design on the same fine grid."""
     import numpy as np
-    from threadpoolctl import threadpool_limits
+    from dobhil.realtime import one_blas_thread
     from dobhil.tune.evaluate import evaluate
     from dobhil.tune.optimise import worsts
     from dobhil.tune.problem import DECISION_KEYS
     from dobhil.tune.report import baseline
     flat = config.flat()
     design = {k: float(flat[k]) for k in DECISION_KEYS}
-    with threadpool_limits(limits=1, user_api="blas"):
+    with one_blas_thread():
         m = evaluate(config, np.array([[design[k] for k in DECISION_KEYS]]), result.grid.points,
                      horizon=horizon, quanta=quanta, bandwidth=objective.name == "bandwidth")
     return baseline(design, m, result.grid, objective, worsts(m, result.grid, margins, where=m.stable[0]))

@@ -33,19 +33,16 @@ from __future__ import annotations
 
 import math
 import threading
-from collections.abc import Iterator
-from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-import scipy.linalg  # noqa: F401 -- loaded before one_blas_thread's controller looks for BLAS
 from scipy.signal import lfilter
-from threadpoolctl import ThreadpoolController
 
 from dobhil.emulator.plant import Plant, Propagator, coulomb_substeps
+from dobhil.realtime import one_blas_thread
 
-__all__ = ["ModelValues", "one_blas_thread", "simulate_torque", "split_delay"]
+__all__ = ["ModelValues", "simulate_torque", "split_delay"]
 
 #: a delay fraction below this is no fraction (the emulator rounds its pieces to 1e-12 s too)
 _TINY = 1e-12
@@ -110,45 +107,6 @@ def _plant(inertia: float, viscous: float, coulomb: float, stiffness: float, dam
                   stiffness=stiffness, damping=damping, substeps=substeps)
     _LOCAL.plant = (key, plant)
     return plant
-
-
-_BLAS_LOCK = threading.Lock()
-_BLAS: dict[str, Any] = {"controller": None, "depth": 0, "limiter": None}
-
-
-@contextmanager
-def one_blas_thread() -> Iterator[None]:
-    """BLAS (numpy's and scipy's OpenBLAS) on one thread while inside; nests, and the
-    outermost exit restores what was there.
-
-    Why: the identification's linear algebra is tiny -- 3x3 matrix exponentials (the ZOH
-    of the Plant's 2x2 modes, dobhil.synthesis.controller.discretize), products with 2 or 3
-    columns -- and a multithreaded OpenBLAS wakes its pool for each: ``scipy.linalg.expm``
-    of a 3x3 measured 4-16 ms (min/median) on this busy 2-core machine with the default
-    pool, 0.017 ms on one thread, and every fit evaluation builds the Plant's propagators
-    afresh. threadpoolctl is the maintained public API to resize the pools at run time
-    (``OPENBLAS_NUM_THREADS`` only acts before the library loads, and would be the whole
-    process's business); its controller is made once (scanning the loaded libraries costs
-    ms; scipy.linalg is imported above so its BLAS is among them) and ``limit`` then costs
-    ~15 us, so this wraps every :func:`simulate_torque` and can wrap a whole fit. Callers
-    running simulations in several threads hold it around the whole threaded region: the
-    pools are process-wide, and one thread's outermost exit would restore them under the
-    other's feet.
-    """
-    with _BLAS_LOCK:
-        if _BLAS["depth"] == 0:
-            if _BLAS["controller"] is None:
-                _BLAS["controller"] = ThreadpoolController()
-            _BLAS["limiter"] = _BLAS["controller"].limit(limits=1, user_api="blas")
-        _BLAS["depth"] += 1
-    try:
-        yield
-    finally:
-        with _BLAS_LOCK:
-            _BLAS["depth"] -= 1
-            if _BLAS["depth"] == 0:
-                _BLAS["limiter"].restore_original_limits()
-                _BLAS["limiter"] = None
 
 
 def simulate_torque(values: ModelValues, torque: np.ndarray, period: float, start: int,

@@ -17,8 +17,8 @@ from dataclasses import dataclass
 
 import numpy as np
 import scipy.optimize
-from threadpoolctl import threadpool_limits
 
+from dobhil.realtime import one_blas_thread
 from dobhil.config.schema import Config
 from dobhil.tune.evaluate import Metrics, Quanta, evaluate, point_plant
 from dobhil.tune.problem import DECISION_KEYS, Bounds, Margins, Range, RobustSet, Uncertainty, robust_set
@@ -143,7 +143,7 @@ def tune(config: Config, ranges: list[Range], uncertainties: list[Uncertainty], 
     BLAS on one thread throughout: the work is thousands of tiny matrices (5 x 5 loops,
     8 x 8 matrix exponentials), for which a multithreaded OpenBLAS wakes its pool each
     time -- measured 3x slower on this busy 2-core machine."""
-    with threadpool_limits(limits=1, user_api="blas"):
+    with one_blas_thread():
         return _tune(config, ranges, uncertainties, bounds, margins, objective, seed=seed, grid=grid,
                      horizon=horizon, quanta=quanta, maxiter=maxiter, progress=progress)
 

@@ -15,7 +15,8 @@ from threadpoolctl import threadpool_info, threadpool_limits
 
 from dobhil.emulator.plant import Plant
 from dobhil.identify.model import (ModelValues, _compiled_record, _setup, _simulate,
-                                   _simulate_stepping, one_blas_thread, simulate_torque)
+                                   _simulate_stepping, simulate_torque)
+from dobhil.realtime import one_blas_thread
 
 PERIOD = 1e-3
 
