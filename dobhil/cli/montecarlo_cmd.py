@@ -54,9 +54,8 @@ def run(args: argparse.Namespace) -> int:
     campaign, noise = build_campaign(args)
     scheduler = check_execution(args)
     out_dir = check_outputs(args)
-    print(header(campaign, noise, scheduler, args.workers), flush=True)
     started = time.perf_counter()
-    rows = execute(campaign, scheduler, args.workers)
+    rows = execute(campaign, scheduler, args.workers, header(campaign, noise, scheduler, args.workers))
     elapsed = time.perf_counter() - started
     from dobhil.campaign.campaign import summarise, succeeded
     summary = summarise(rows)
@@ -162,14 +161,17 @@ def header(campaign: Campaign, noise: tuple[str, ...], scheduler: str | None, wo
             f"seed {campaign.seed}, on {where}; {said}")
 
 
-def execute(campaign: Campaign, scheduler: str | None, workers: int | None) -> list[dict[str, Any]]:
+def execute(campaign: Campaign, scheduler: str | None, workers: int | None, said: str) -> list[dict[str, Any]]:
+    """The runs on the cluster; ``said`` (the header line) is printed once the cluster is
+    there, so that a scheduler that does not answer ends in its one error line alone."""
     from tqdm import tqdm
     from dobhil.campaign.campaign import execute as run_all
     from dobhil.cluster import open_client
     specs = campaign.plan()
-    with open_client(scheduler, workers=workers) as client, \
-            tqdm(total=len(specs), unit="run", disable=not sys.stderr.isatty(), file=sys.stderr) as bar:
-        return run_all(client, specs, progress=bar.update)
+    with open_client(scheduler, workers=workers) as client:
+        print(said, flush=True)
+        with tqdm(total=len(specs), unit="run", disable=not sys.stderr.isatty(), file=sys.stderr) as bar:
+            return run_all(client, specs, progress=bar.update)
 
 
 # -- output -----------------------------------------------------------------

@@ -57,6 +57,19 @@ def test_bad_input_as_a_process_is_one_line_exit_2() -> None:
     assert done.stderr.count("\n") == 1 and "unknown distribution 'lognormal'" in done.stderr
 
 
+def test_a_scheduler_that_does_not_answer_is_its_one_line_alone(capsys: pytest.CaptureFixture[str]) -> None:
+    """The campaign's header waits for the cluster: a closed port ends in the error line only."""
+    import socket
+    with socket.socket() as s:   # a port nothing listens on: bound, never listening
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+        code = main(["montecarlo", "demo", "--runs", "2", "--vary", "plant.inertia=uniform:0.2:0.3",
+                     "--scheduler", f"tcp://127.0.0.1:{port}"])
+    out, err = capsys.readouterr()
+    assert code == 2 and out == ""
+    assert err.count("\n") == 1 and "no Dask scheduler answered" in err
+
+
 def run_cli(tmp_path: Path, fmt: str, *extra: str) -> tuple[int, Path]:
     out = tmp_path / fmt
     # seed 3: two of the six inertias are drawn <= 0 (refused runs)
