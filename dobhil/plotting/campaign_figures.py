@@ -28,7 +28,7 @@ def metric_histograms(metrics: Mapping[str, np.ndarray], runs: int, path: Path) 
     names = list(metrics)
     cols = min(3, max(1, len(names)))
     rows = -(-len(names) // cols) if names else 1
-    fig, axes = _plt().subplots(rows, cols, figsize=(4.2 * cols, 3.0 * rows), squeeze=False)
+    fig, axes = _plt().subplots(rows, cols, figsize=(4.2 * cols, 3.0 * rows), squeeze=False, layout="constrained")
     for ax, name in zip(axes.flat, names):
         values = np.asarray(metrics[name], float)
         values = values[np.isfinite(values)]
@@ -36,6 +36,7 @@ def metric_histograms(metrics: Mapping[str, np.ndarray], runs: int, path: Path) 
             ax.hist(values, bins=min(50, max(5, int(np.sqrt(values.size)))), color="tab:blue", alpha=0.8)
             ax.axvline(float(np.median(values)), color="k", lw=1, ls="--", label="median")
             ax.legend(loc="best", fontsize=8)
+        ax.ticklabel_format(axis="x", useOffset=False)   # 1 N m, not "1e-8 + 1"
         ax.set_xlabel(LABELS.get(name, name))
         ax.set_ylabel("runs")
         ax.set_title(f"{values.size} of {runs} runs", fontsize=9)
@@ -51,7 +52,8 @@ def vary_scatter(draws: Mapping[str, np.ndarray], rms: np.ndarray, ok: np.ndarra
     keys = list(draws)
     rms = np.asarray(rms, float)
     ok = np.asarray(ok, bool)
-    fig, axes = _plt().subplots(1, len(keys), figsize=(4.2 * len(keys), 3.4), squeeze=False)
+    fig, axes = _plt().subplots(1, len(keys), figsize=(4.2 * len(keys), 3.6), squeeze=False, sharey=True,
+                                layout="constrained")
     known = rms[np.isfinite(rms)]
     top = float(known.max()) * 1.5 if known.size else 1.0
     log = known.size > 0 and known.min() > 0 and known.max() / known.min() > 10
@@ -59,11 +61,14 @@ def vary_scatter(draws: Mapping[str, np.ndarray], rms: np.ndarray, ok: np.ndarra
         x = np.asarray(draws[key], float)
         _scatter(ax, x, rms, ok, top)
         ax.set_xlabel(key)
-        ax.set_ylabel(LABELS["force_rms_error"])
+        finite = x[np.isfinite(x)]
+        if finite.size and finite.min() > 0 and finite.max() / finite.min() >= 10:
+            ax.set_xscale("log")   # a loguniform draw over decades: every decade as wide
         if log:
             ax.set_yscale("log")
         ax.grid(True, alpha=0.3)
-    axes.flat[0].legend(loc="best", fontsize=8)
+    axes.flat[0].set_ylabel(LABELS["force_rms_error"])
+    fig.legend(*axes.flat[0].get_legend_handles_labels(), loc="outside lower center", ncols=3, fontsize=8)
     fig.suptitle(f"Monte-Carlo campaign: {int(ok.sum())} of {ok.size} runs succeeded")
     return save(fig, path)
 
