@@ -12,6 +12,7 @@ times): the answer holds on the grid it is reported on.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 
@@ -200,8 +201,9 @@ def worsts(m: Metrics, fine: RobustSet, margins: Margins,
              ("phase_margin", m.pm_deg[0], margins.pm_deg, np.argmin, True),
              ("peak_sensitivity", m.ms_db[0], margins.ms_db, np.argmax, False),
              ("overshoot", m.overshoot[0], margins.overshoot_pct, np.argmax, False)]
-    if margins.noise is not None and m.noise is not None:
-        table.append(("noise", m.noise[0], margins.noise, np.argmax, False))
+    if m.noise is not None:   # said whenever the drive quantises; a limit only when asked for
+        limit = margins.noise if margins.noise is not None else math.inf
+        table.append(("noise", m.noise[0], limit, np.argmax, False))
     inside = np.nonzero(np.ones(m.radius.shape[-1], bool) if where is None else where)[0]
     out = []
     for name, values, limit, pick, lower in table:
@@ -210,6 +212,6 @@ def worsts(m: Metrics, fine: RobustSet, margins: Margins,
         i = int(inside[pick(values[inside])])
         v = float(values[i])
         ok = v >= limit if lower else (v < limit if name == "stability" else v <= limit)
-        active = abs(v - limit) <= ACTIVE_FRACTION * max(abs(limit), 1.0)
+        active = math.isfinite(limit) and abs(v - limit) <= ACTIVE_FRACTION * max(abs(limit), 1.0)
         out.append(Worst(name, v, limit, fine.point(i), ok, active and name != "stability"))
     return tuple(out)

@@ -75,6 +75,8 @@ def _objective_text(name: str, value: float) -> str:
 def _constraint_line(w: Worst) -> str:
     label, what, unit, op = CONSTRAINT_TEXT[w.name]
     value = "unbounded" if math.isinf(w.value) else f"{w.value:.4g}{unit}"
+    if math.isinf(w.limit):   # reported, not a constraint (the noise without --margin noise=X)
+        return f"  {label}: {(what + ' ') if what else ''}{value} at {_at(w.point)} (not bounded: --margin noise=X)"
     flags = ("ok" if w.ok else "NOT MET") + (", active" if w.active else "")
     return f"  {label}: {(what + ' ') if what else ''}{value} (need {op} {w.limit:g}{unit}) at {_at(w.point)}: {flags}"
 
@@ -120,7 +122,7 @@ def _finite(x: float) -> float | None:
 
 
 def _worst_json(w: Worst) -> dict[str, Any]:
-    return {"value": _finite(w.value), "limit": w.limit, "at": dict(w.point), "ok": w.ok, "active": w.active}
+    return {"value": _finite(w.value), "limit": _finite(w.limit), "at": dict(w.point), "ok": w.ok, "active": w.active}
 
 
 def as_json(result: TuneResult, base: Baseline, margins: Margins) -> dict[str, Any]:
@@ -157,7 +159,7 @@ def tuned_yaml(source: Mapping[str, Any], result: TuneResult, command: str) -> s
               for section, values in source.items()}
     design = nested.setdefault("design", {})
     for key in DECISION_KEYS:
-        design[key.split(".")[1]] = float(f"{result.design[key]:.6g}")
+        design[key.split(".")[1]] = float(result.design[key])   # as checked: no rounding
     text = yaml.safe_dump(nested, sort_keys=False)
     summary = "; ".join(f"{CONSTRAINT_TEXT[w.name][0]} {w.value:.3g}{CONSTRAINT_TEXT[w.name][2]}"
                         for w in result.constraints)

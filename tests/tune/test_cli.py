@@ -87,3 +87,14 @@ def test_a_quantising_profile_gets_a_noise_constraint(capsys: pytest.CaptureFixt
     assert main(["tune", *args, "--margin", "noise=0.05"]) == 0
     noise = json.loads(capsys.readouterr().out)["constraints"]["noise"]
     assert noise["ok"] and 0 < noise["value"] <= 0.05
+
+
+def test_a_quantising_profile_says_its_noise_even_unbounded(capsys: pytest.CaptureFixture[str]) -> None:
+    """Without --margin noise the figure is still reported (no limit: JSON null, and the text
+    says how to bound it), and it does not constrain the search."""
+    args = ["mit-demo", "--range", "environment.stiffness=1e2:1e4", "--grid", "4", "--generations", "3"]
+    assert main(["tune", *args, "--json"]) == 0
+    noise = json.loads(capsys.readouterr().out)["constraints"]["noise"]
+    assert noise["ok"] and noise["limit"] is None and noise["value"] > 0 and not noise["active"]
+    assert main(["tune", *args]) == 0
+    assert "(not bounded: --margin noise=X)" in capsys.readouterr().out
