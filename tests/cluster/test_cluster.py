@@ -80,22 +80,6 @@ def test_an_empty_map_is_empty(dask_client: object) -> None:
     assert map_ordered(dask_client, _fails_on_odd, []) == []  # type: ignore[arg-type]
 
 
-@pytest.fixture
-def silent_listener() -> Iterator[str]:
-    """A port that accepts TCP connections (the kernel's backlog) and never says a word."""
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        sock.listen(8)
-        yield f"127.0.0.1:{sock.getsockname()[1]}"
-
-
-@pytest.fixture
-def closed_port() -> str:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return f"tcp://127.0.0.1:{sock.getsockname()[1]}"
-
-
 def test_a_listener_that_never_speaks_dask_is_no_scheduler(silent_listener: str) -> None:
     """The workaround (:func:`dobhil.cluster._probe`): distributed alone waits for this
     handshake forever."""
@@ -140,9 +124,9 @@ def test_a_port_that_answers_but_not_as_dask_is_no_scheduler(chatty_stranger: st
 def test_a_closed_port_is_no_scheduler(closed_port: str) -> None:
     """The reason is the last attempt's: refused, or (on a loaded machine, distributed's
     attempts have a fifth of the timeout each) that attempt timing out."""
-    with pytest.raises(ConfigError, match=rf"--scheduler {closed_port}: no Dask scheduler answered within 0.5 s "
+    with pytest.raises(ConfigError, match=rf"--scheduler tcp://{closed_port}: no Dask scheduler answered within 0.5 s "
                        r"\((\[Errno 111\] Connection refused|Timed out trying to connect to \S+ after 0.5 s)\)$"), \
-            open_client(closed_port, timeout=0.5):
+            open_client(f"tcp://{closed_port}", timeout=0.5):
         pass
 
 
