@@ -44,7 +44,8 @@ def _axis_values(data: TunePlotData, key: str) -> np.ndarray:
 def stability_map(data: TunePlotData, path: Path) -> Path:
     """Gain margin (worst over the other keys) over the first one or two keys."""
     plt = _plt()
-    fig, ax = plt.subplots(figsize=(8, 6))
+    from matplotlib.patches import Patch
+    fig, ax = plt.subplots(figsize=(8, 6.4), layout="constrained")
     keys = data.keys[:2]
     gm = np.where(np.isinf(data.gm_db), np.nan, data.gm_db)
     if len(keys) == 1:
@@ -60,16 +61,19 @@ def stability_map(data: TunePlotData, path: Path) -> Path:
         grid, stable = _on_grid(data, keys, x, y, gm)
         mesh = ax.pcolormesh(y, x, grid, shading="auto", cmap="viridis")
         fig.colorbar(mesh, ax=ax, label="tuned design: gain margin [dB] (worst over other keys)")
-        if not stable.all():
-            ax.contourf(y, x, (~stable).astype(float), levels=[0.5, 1.5], colors="red", alpha=0.35)
+        handles = []
+        if not stable.all():   # hatched, not filled: the gain margin's colours stay readable
+            ax.contourf(y, x, (~stable).astype(float), levels=[0.5, 1.5], colors="none", hatches=["//"])
             ax.contour(y, x, stable.astype(float), levels=[0.5], colors="red", linewidths=1.5)
-        ax.plot([data.worst_at[keys[1]]], [data.worst_at[keys[0]]], "w*", ms=14, mec="k",
-                label="worst-case objective")
+            handles.append(Patch(facecolor="none", edgecolor="black", hatch="//",
+                                 label="the config's design unstable (red: its edge)"))
+        handles += ax.plot([data.worst_at[keys[1]]], [data.worst_at[keys[0]]], "w*", ms=14, mec="k",
+                           label="tuned design's worst-case objective")
         for axis, values in ((ax.set_xscale, y), (ax.set_yscale, x)):
             axis("log" if values.min() > 0 and values.max() / values.min() >= 10 else "linear")
         ax.set_xlabel(keys[1])
         ax.set_ylabel(keys[0])
-        ax.legend(loc="best", title="red: the config's design unstable")
+        fig.legend(handles=handles, loc="outside lower center", ncols=2, fontsize=9)
     ax.set_title("robust set: tuned design's gain margin")
     return save(fig, path)
 
