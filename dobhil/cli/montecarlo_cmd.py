@@ -153,12 +153,23 @@ def check_outputs(args: argparse.Namespace) -> Path | None:
 
 def header(campaign: Campaign, noise: tuple[str, ...], scheduler: str | None, workers: int | None) -> str:
     where = (f"scheduler {scheduler}" if scheduler else
-             f"a local cluster of {workers or os.cpu_count() or 1} worker processes")
-    length = f"{campaign.duration:g} s" if campaign.duration is not None else "loop.duration"
+             f"a local cluster of {_count(workers or os.cpu_count() or 1, 'worker process')}")
+    length = (f"{campaign.duration:g} s each" if campaign.duration is not None
+              else f"{_config_duration(campaign):g} s each, from loop.duration")
     said = (f"noise on: {', '.join(noise)} (the config had none; --set overrides)" if noise
             else "noise: the config's")
-    return (f"montecarlo: {campaign.runs} runs of {campaign.config} ({length} each, lockstep, emulated), "
+    return (f"montecarlo: {campaign.runs} runs of {campaign.config} ({length}, lockstep, emulated), "
             f"seed {campaign.seed}, on {where}; {said}")
+
+
+def _count(n: int, what: str) -> str:
+    return f"{n} {what}" + ("" if n == 1 else "es" if what.endswith("s") else "s")
+
+
+def _config_duration(campaign: Campaign) -> float:
+    """The runs' length without --duration: the config's (with the campaign's overrides)."""
+    from dobhil.config import load_config
+    return float(load_config(campaign.config, campaign.overrides, campaign.set_files).loop.duration)
 
 
 def execute(campaign: Campaign, scheduler: str | None, workers: int | None, said: str) -> list[dict[str, Any]]:
