@@ -116,6 +116,12 @@ def test_parquet_round_trip_keeps_types_and_nulls(tmp_path: Path) -> None:
 
 
 def test_killing_a_worker_mid_campaign_loses_no_row(dask_client: Any) -> None:
+    """A worker process SIGKILLed mid-campaign: every row comes back, equal to an undisturbed
+    campaign's. Which run it had is marked ``retried`` when its start had reached the
+    scheduler; a kill landing in the first milliseconds of a run cannot be told from one
+    between runs, so that mark is not asserted here (on a busy CI machine it was not set
+    once): tests/cluster's kill, made inside a task a second after its start, asserts it
+    exactly, and the next test that the campaign's table passes it on."""
     from dobhil.campaign.campaign import Campaign, execute
     from dobhil.campaign.draws import parse_vary
     from dobhil.cluster import open_client
@@ -128,11 +134,27 @@ def test_killing_a_worker_mid_campaign_loses_no_row(dask_client: Any) -> None:
 
         def kill_after_two(n: int) -> None:
             done[0] += n
-            if done[0] == 2:   # the other worker is mid-run now (runs take ~0.3 s)
+            if done[0] == 2:   # both workers are busy: the one killed is mid-run
                 os.kill(pids[0], signal.SIGKILL)
         rows = execute(client, c.plan(), progress=kill_after_two)
     assert [r["run"] for r in rows] == list(range(10))
     assert all(r["error"] == "" for r in rows)
     assert [{k: v for k, v in r.items() if k != "retried"} for r in rows] == \
         [{k: v for k, v in r.items() if k != "retried"} for r in undisturbed]
-    assert any(r["retried"] for r in rows)   # the run the killed worker had is said
+    assert all(isinstance(r["retried"], bool) for r in rows)
+
+
+def test_the_table_says_which_runs_were_retried(dask_client: Any) -> None:
+    """``retried`` is map_ordered's, run by run (a task's second start: its worker died)."""
+    from dobhil.campaign.campaign import Campaign, _row
+    from dobhil.campaign.draws import parse_vary
+    from dobhil.campaign.runner import run_one
+    from dobhil.cluster import MapResult
+    c = Campaign(config="demo", set_files=(), overrides=(), varies=(parse_vary("plant.inertia=uniform:0.2:0.3"),),
+                 runs=2, seed=5, duration=0.1)
+    spec = c.spec(1)
+    row = run_one(spec)
+    assert _row(spec, MapResult(row, None, True))["retried"] is True
+    assert _row(spec, MapResult(row, None, False))["retried"] is False
+    lost = _row(spec, MapResult(None, "KilledWorker: gone three times", True))
+    assert lost["retried"] is True and lost["error"] == "KilledWorker: gone three times" and lost["run"] == 1
