@@ -1,4 +1,4 @@
-"""dobhil.cluster on an in-process Dask cluster (the session's ``dask_client``): addresses,
+"""dobhil.cluster on an in-process Dask cluster (the module's ``dask_client``): addresses,
 the order of results, errors as rows, a scheduler without workers, one that never answers."""
 
 from __future__ import annotations
@@ -158,7 +158,7 @@ def test_map_values_gives_values_or_one_error_naming_the_first_failure(dask_clie
 
 def test_dask_loggers_are_quiet_inside_and_restored_after(dask_client: object) -> None:
     """Children Dask's config gives a level of their own (``distributed.client``) are quiet
-    too; the session fixture's client keeps them quiet, so look at a nested one's exit."""
+    too; the module fixture's client keeps them quiet, so look at a nested one's exit."""
     import logging
     client_log = logging.getLogger("distributed.client")
     before = client_log.level
