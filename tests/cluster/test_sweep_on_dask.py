@@ -68,17 +68,15 @@ def test_bad_cluster_arguments_are_one_line_and_exit_2(extra: list[str], message
     assert err.startswith(message) and err.count("\n") == 1
 
 
-@pytest.mark.parametrize("where", ["silent_listener", "closed_port"])
-def test_a_scheduler_that_does_not_answer_ends_the_process_with_one_line(where: str,
-                                                                         request: pytest.FixtureRequest) -> None:
-    """As a process (imports, Dask's threads and all): exit 2, one line, no traceback. The
-    limit here only catches a hang (before the probe, the silent listener hung forever); the
-    10 s the issue asks for is measured on an idle machine, not asserted on a shared one."""
-    address = request.getfixturevalue(where)   # HOST:PORT, and tcp://HOST:PORT for the listener
-    address = "tcp://" + address if where == "silent_listener" else address
+def test_a_scheduler_that_does_not_answer_ends_the_process_with_one_line(silent_listener: str) -> None:
+    """As a process (imports, Dask's threads and all): exit 2, one line, no traceback -- on
+    the silent listener, the case Dask alone hangs on (a closed port is the same one line,
+    in-process: tests/cluster/test_cluster.py, tests/campaign/test_cli.py). The limit here
+    only catches a hang; the 10 s the issue asks for is measured on an idle machine, not
+    asserted on a shared one."""
+    address = f"tcp://{silent_listener}"
     done = subprocess.run([sys.executable, "-m", "dobhil", "sweep", FIG2B, "--vary", VARY[0],
                            "--scheduler", address], capture_output=True, text=True, timeout=120, cwd=ROOT)
-    shown = address if address.startswith("tcp://") else "tcp://" + address
     assert (done.returncode, done.stdout) == (2, "")
-    assert done.stderr.startswith(f"dobhil sweep: error: --scheduler {shown}: no Dask scheduler answered "
+    assert done.stderr.startswith(f"dobhil sweep: error: --scheduler {address}: no Dask scheduler answered "
                                   "within 4 s (") and done.stderr.count("\n") == 1, done.stderr
