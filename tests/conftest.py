@@ -1,13 +1,17 @@
 """Fail any test that leaks a non-daemon thread or a python-can bus it did not shut down; a
 module's in-process Dask cluster (``dask_client``) for the tests that run work on Dask; no
-wall-clock deadline on hypothesis' examples."""
+wall-clock deadline on hypothesis' examples; the tests of ``tests/socketcan`` run in the kernel
+guest (tools/canvm/pytest_canvm.py)."""
 
 from __future__ import annotations
 
+import importlib.util
 import logging
+import sys
 import threading
 import weakref
 from collections.abc import Iterator
+from pathlib import Path
 from typing import Any
 
 import can
@@ -19,6 +23,17 @@ from hypothesis import settings
 # 22 ms when repeated). The suite must pass on a busy machine, so no deadline anywhere.
 settings.register_profile("dobhil", deadline=None)
 settings.load_profile("dobhil")
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    """The kernel guest's plugin, loaded by path: tools/ is not a package."""
+    path = Path(__file__).resolve().parents[1] / "tools" / "canvm" / "pytest_canvm.py"
+    spec = importlib.util.spec_from_file_location("dobhil_pytest_canvm", path)
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module
+    spec.loader.exec_module(module)
+    config.pluginmanager.register(module.CanvmPlugin(config), "canvm")
 
 
 class _ShutdownWarnings(logging.Handler):

@@ -231,10 +231,10 @@ def emulate(args: argparse.Namespace) -> int:
     emulator = make_emulated_drive(bus, profile, Plant.from_config(config),
                                    latency=config.drive.latency, jitter=config.drive.jitter,
                                    seed=config.sensor.seed)
-    print(f"emulating {profile.protocol} node {profile.node_id} (firmware {profile.firmware}) "
-          f"on {spec.describe()}; Ctrl-C to stop", flush=True)
     with stop_on_signals(StopRequest()) as request:
-        emulator.start(priority_drop=EMULATOR_PRIORITY_DROP)
+        emulator.start(priority_drop=EMULATOR_PRIORITY_DROP)   # prepared: it answers at once
+        print(f"emulating {profile.protocol} node {profile.node_id} (firmware {profile.firmware}) "
+              f"on {spec.describe()}; Ctrl-C to stop", flush=True)
         try:
             end = time.monotonic() + (args.duration or float("inf"))
             # the thread ends by itself when its bus fails (a hub stopped, an interface gone)

@@ -279,6 +279,12 @@ class PreflightProbe(ABC):
     def motion_name(self) -> str:
         return "motion feedback"
 
+    def rate_advice(self, period: float) -> str:
+        """What to change when the motion feedback comes slower than ``period`` (the loop's),
+        in the protocol's words; default: the drive's own rate setting."""
+        value = self.setting_value(Setting.MOTION_RATE, period)
+        return f"set {self.setting(Setting.MOTION_RATE)} = {value} on the drive"
+
     def status_name(self) -> str:
         return "status"
 
@@ -309,13 +315,16 @@ class PreflightProbe(ABC):
 # Profile-only checks (no bus)
 
 
-def profile_rate_findings(profile: DriveProfile, period: float) -> list[Finding]:
-    """The profile must promise feedback at least once per loop period."""
+def profile_rate_findings(profile: DriveProfile, period: float,
+                          frames: str = "motion feedback") -> list[Finding]:
+    """The profile must promise feedback at least once per loop period; ``frames``: the
+    protocol's name of its feedback (its probe's :meth:`PreflightProbe.motion_name`)."""
     if profile.feedback_period is not None and profile.feedback_period > period * (1 + 1e-9):
         return [Finding(Severity.MISMATCH,
-                        f"drive profile {profile.name or profile.protocol!r} sends encoder estimates every "
-                        f"{profile.feedback_period:g} s, slower than loop.period = {period:g} s; set its "
-                        f"feedback_period (and the drive's) to the loop period", stale_feedback=True)]
+                        f"drive profile {profile.name or profile.protocol!r} has {frames} every "
+                        f"{profile.feedback_period:g} s (feedback_period), slower than loop.period = "
+                        f"{period:g} s; set its feedback_period (and the drive's) to the loop period",
+                        stale_feedback=True)]
     return []
 
 
@@ -461,7 +470,7 @@ def run_preflight(
     bus_report = BusReport(state, cap.frames, cap.error_frames, cap.bits / window, bitrate, command_bits)
     node_found = [cap.verdict] if cap.verdict is not None else _node_findings(
         probe, nodes, period, feedback_timeout, window)
-    findings = [*profile_rate_findings(profile, period), *link_found,
+    findings = [*profile_rate_findings(profile, period, probe.motion_name()), *link_found,
                 *_bus_findings(bus_report, cap.send_errors, cap.read_error),
                 *budget_findings(bus_budget), *node_found, *cap.findings]
     return PreflightReport(profile.name or profile.protocol, profile.node_id, window, nodes,

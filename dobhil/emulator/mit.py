@@ -207,6 +207,9 @@ class EmulatedMit(EmulatedDrive):
 
     # -- hooks ----------------------------------------------------------------
 
+    def _warm_up(self) -> None:
+        self.model.build_tables()   # every reply is packed through them
+
     def _plant_torque(self) -> float:
         if not self.motor_mode:
             return 0.0

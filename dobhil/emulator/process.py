@@ -512,7 +512,7 @@ def _serve(bus: PipeBus, status: Any, spec: EmulatorSpec) -> None:
     plant = Plant.from_config(spec.config)
     emulator = make_emulated_drive(bus, spec.profile, plant, latency=spec.latency,
                                    jitter=spec.jitter, seed=spec.seed)
-    plant.prepare(tick_period(spec.profile))   # set-up cost before READY, not in a tick
+    emulator.prepare()   # set-up costs before READY, not in a tick
     publisher = _Publisher(status, emulator, plant)
     publisher.tick(math.nan, 0.0)
     # everything imported and built so far is never garbage: out of the collector's way, or

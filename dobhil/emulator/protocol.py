@@ -118,6 +118,8 @@ class EmulatedDrive(ABC):
         self.frames_sent = 0
         self.send_errors = 0
         self.overruns = 0
+        self._realtime = False
+        self._least_lag = math.inf
 
     # -- observables ----------------------------------------------------------
 
@@ -199,14 +201,22 @@ class EmulatedDrive(ABC):
         """[s] the real-time tick (:func:`tick_period` of the profile)."""
         return tick_period(self._profile)
 
+    def prepare(self) -> None:
+        """Pay every one-off set-up cost now, before the first frame: the plant's matrices
+        for the real-time tick and the protocol's own (:meth:`_warm_up`). A drive answers its
+        first frame as promptly as its thousandth; an emulator that built a table at the first
+        frame answered it most of a second late in a slow guest (a host refused to enable)."""
+        prepare = getattr(self._plant, "prepare", None)
+        if callable(prepare):
+            prepare(self.tick_period)
+        self._warm_up()
+
     def start(self, *, priority_drop: int = 0) -> None:
         """Run on a thread of its own (period: :attr:`tick_period`), its nice
         value raised by ``priority_drop`` where the OS allows (below the control loop)."""
         if self._thread is not None:
             raise RuntimeError("emulator already started")
-        prepare = getattr(self._plant, "prepare", None)
-        if callable(prepare):  # one-off set-up cost here, not in the first real-time tick
-            prepare(self.tick_period)
+        self.prepare()  # one-off set-up cost here, not in the first real-time tick
         self._stop_event.clear()
         self._priority_drop = priority_drop
         self._thread = threading.Thread(
@@ -276,7 +286,24 @@ class EmulatedDrive(ABC):
     def _cyclic_frames(self) -> Sequence[tuple[float, Callable[[], can.Message]]]:
         """(period [s], frame factory) of each cyclic message."""
 
+    def _warm_up(self) -> None:
+        """The protocol's one-off set-up costs (code tables ...), paid by :meth:`prepare`."""
+        return
+
     # -- helpers for subclasses -------------------------------------------------
+
+    def _lateness(self, stamp: float) -> float:
+        """Real time: how much later than the promptest frame so far a frame stamped
+        ``stamp`` (its bus receive stamp, ``time.time()`` seconds) is being handled [s]; 0 in
+        lockstep or without a stamp. Measured against the smallest lag seen rather than 0,
+        so a bus whose stamps come from another clock (a hub on another machine) has its
+        constant offset taken out."""
+        if not self._realtime or not stamp > 0:
+            return 0.0
+        lag = time.time() - stamp
+        if lag < self._least_lag:
+            self._least_lag = lag
+        return lag - self._least_lag
 
     def _send(self, msg: can.Message) -> None:
         try:
@@ -343,6 +370,7 @@ class EmulatedDrive(ABC):
         ``at_tick_start()`` before each tick reads the bus: a bus that sends periodic
         frames itself delivers them then (:meth:`deliver`)."""
         period = self.tick_period
+        self._realtime = True
         start = time.perf_counter()
         tick = 1
         while not self._stop_event.is_set():

@@ -327,10 +327,13 @@ class _RateWatch:
     SLOW = 1.5
     RUN = 10
 
-    def __init__(self, period: float) -> None:
+    def __init__(self, period: float, frames: str = "feedback frames",
+                 advice: str = "set the drive's feedback rate to the loop period") -> None:
         self.period = period
         self.last = math.nan
         self.slow = 0
+        self.frames = frames    # the protocol's name of its feedback ("encoder estimates")
+        self.advice = advice    # and what to change, in its words
 
     def frame(self, stamp: float, frames: int) -> None:
         last, self.last = self.last, stamp
@@ -341,9 +344,19 @@ class _RateWatch:
         if self.slow >= self.RUN:
             every = (stamp - last) / max(frames, 1)
             raise _Halt(StopReason.FEEDBACK_TIMEOUT,
-                        f"feedback frames come every {every * 1e3:.3g} ms ({self.RUN} in a row), "
-                        f"expected every loop.period = {self.period * 1e3:g} ms: set the drive's "
-                        f"encoder message rate to the loop period")
+                        f"{self.frames} come every {every * 1e3:.3g} ms ({self.RUN} in a row), "
+                        f"expected every loop.period = {self.period * 1e3:g} ms: {self.advice}")
+
+
+def _rate_watch(drive: Drive, period: float) -> _RateWatch:
+    """The rate watch with the drive protocol's words for its feedback and its rate setting
+    (its preflight probe has them; a drive without one gets the generic words)."""
+    probe_of = getattr(type(drive), "preflight_probe", None)
+    profile = getattr(drive, "profile", None)
+    probe = probe_of(profile) if probe_of is not None and profile is not None else None
+    if probe is None:
+        return _RateWatch(period)
+    return _RateWatch(period, probe.motion_name(), probe.rate_advice(period))
 
 
 class _QuietGc:
@@ -412,7 +425,7 @@ class ForceLoop:
         self._at = 0         # index of the next cycle (for the stop record)
         self._t0 = 0.0
         self._last_out: ControlOutput | None = None
-        self._rate = _RateWatch(settings.period)
+        self._rate = _rate_watch(drive, settings.period)
         self._last = (0.0, 0.0, 0.0)   # t, period error, exec time of the newest cycle
         #: how the run ended and the safe stop's report, also when run() raised
         self.ended: tuple[Stop, SafeStopReport] | None = None

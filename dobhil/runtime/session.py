@@ -43,7 +43,8 @@ from dobhil.synthesis.params import params_from_config
 def check_rates(profile: DriveProfile, period: float) -> None:
     """The drive must send feedback at least once per control period (the profile's
     promise; :meth:`RunSession.preflight` measures what the drive really does)."""
-    for finding in profile_rate_findings(profile, period):
+    probe = preflight_probe(profile)
+    for finding in profile_rate_findings(profile, period, probe.motion_name() if probe else "motion feedback"):
         raise ConfigError(finding.text)
 
 
@@ -90,9 +91,11 @@ def resolve_timing(config: Config, profile: DriveProfile, lockstep: bool | None)
             f"{profile.name or profile.protocol!r} has no feedback_period (its feedback does not "
             f"stream); set loop.timing: host")
     if abs(rate - period) > 1e-9 * period:
+        probe = preflight_probe(profile)
+        frames = probe.motion_name() if probe is not None else "motion feedback"
         raise ConfigError(
             f"loop.timing = feedback runs one cycle per feedback frame, but drive profile "
-            f"{profile.name or profile.protocol!r} sends encoder estimates every {rate:g} s and "
+            f"{profile.name or profile.protocol!r} has {frames} every {rate:g} s (feedback_period) and "
             f"loop.period = {period:g} s; make them equal (on the drive too) or set "
             f"loop.timing: host")
     return Timing.FEEDBACK

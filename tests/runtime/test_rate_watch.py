@@ -64,7 +64,7 @@ def _run(streams: bool, cycles: int = 30) -> Any:
 def test_a_streaming_drive_slower_than_the_loop_stops_the_run() -> None:
     result = _run(streams=True)
     assert result.stop.reason is StopReason.FEEDBACK_TIMEOUT
-    assert "frames come every 3 ms" in result.stop.detail
+    assert "come every 3 ms" in result.stop.detail
 
 
 def test_a_drive_that_only_answers_is_not_blamed_for_the_hosts_pace() -> None:

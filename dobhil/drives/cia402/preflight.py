@@ -151,6 +151,13 @@ class CiA402Preflight(PreflightProbe):
     def motion_name(self) -> str:
         return "TPDOs"
 
+    def rate_advice(self, period: float) -> str:
+        # the host writes the cycle period and sends every SYNC itself: TPDOs slower than the
+        # SYNC are a node that skips SYNCs, not a setting to change on it
+        return (f"node {self.profile.node_id} answers fewer SYNCs than the host sends: it cannot keep "
+                f"up with loop.period = {period * 1e3:g} ms (raise it), or its TPDO transmission type "
+                f"(0x1800:02) skips SYNCs")
+
     def status_name(self) -> str:
         return "heartbeat"
 

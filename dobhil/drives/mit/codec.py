@@ -413,6 +413,13 @@ class MitModel:
             _channel(-self.t_max, self.t_max, FIELD_BITS),
         ))
 
+    def build_tables(self) -> None:
+        """Build every field's code tables now. They are otherwise built at the first encode
+        or decode (tens of ms on a host, most of a second in a slow guest): a motor's first
+        reply or a host's first command would come that much late."""
+        for channel in self._channels:
+            channel.thresholds  # noqa: B018 -- the property builds and caches the tables
+
     @property
     def name(self) -> str:
         """``cubemars AK80-9 firmware 'manual-1.0.8'``, for messages."""

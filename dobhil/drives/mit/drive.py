@@ -75,6 +75,7 @@ class MitDrive(Drive):
         # a profile built in code did not pass the rules' whole-profile check: same lines
         check_mit_profile(profile, f"drive profile {profile.name or profile.protocol!r}")
         self._model = model_of(profile)
+        self._model.build_tables()   # before the first command, not in it
         self._reply_id = int(profile.options.get("reply_id", 0))
         # the 16-bit position rolls over: the decoded value then jumps by 2^16 steps
         self._span = self._model.wrap_period

@@ -93,6 +93,7 @@ class MitPreflight(PreflightProbe):
         super().__init__(profile)
         # bad input before anything is sent: no row in the table (one line)
         self.model: MitModel = model_of(profile)
+        self.model.build_tables()   # the probe's reply is decoded at once, not after a build
         self.reply_id = int(profile.options.get("reply_id", 0))
         self.reply: Reply | None = None           # the node's answer to the probe
         self.ranges: dict[str, float] = {}        # what a Damiao's registers said
