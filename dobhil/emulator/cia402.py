@@ -29,9 +29,9 @@ What canopen's LocalNode does not do, this module does (drive-protocols.md, CiA 
   applied, then every enabled synchronous TPDO due (type n: every n-th SYNC; type 0:
   every SYNC) goes out, its bytes the mapped objects' values as the object dictionary
   encodes them (little-endian, their data types). Event-driven (254/255) and RTR-only
-  TPDOs are not sent. In real time a SYNC read more than one SYNC period after the bus
-  stamped it is counted in ``syncs_missed`` and not answered (its latched RPDOs wait for the
-  next SYNC), as a drive whose cycle cannot keep up with the SYNC rate skips cycles;
+  TPDOs are not sent. In real time a SYNC with a newer SYNC queued behind it (both came while
+  the node was busy) is counted in ``syncs_missed`` and not answered (the latched RPDOs wait
+  for the newer one), as a drive whose cycle cannot keep up with the SYNC rate skips cycles;
 - the object dictionary is read and checked by the drive's own
   :func:`dobhil.drives.cia402.eds.load_od` (one line for an EDS without 0x6071 or CST);
   objects an EDS may lack take what a drive does without them (no 0x6072, as on a maxon
@@ -90,7 +90,7 @@ from dobhil.drives.cia402.eds import load_od
 from dobhil.drives.cia402.link import quiet_canopen
 from dobhil.drives.cia402.rules import CIA402_RULES
 from dobhil.drives.profile import DriveProfile
-from dobhil.emulator.protocol import EmulatedDrive, PlantLike, tick_period
+from dobhil.emulator.protocol import EmulatedDrive, PlantLike
 from dobhil.errors import ConfigError
 
 __all__ = ["Command", "EmcyCode", "EmulatedCiA402", "PowerState", "TRANSITIONS", "decode_command",
@@ -318,8 +318,7 @@ class EmulatedCiA402(EmulatedDrive):
         self.frames_rejected = 0
         self.watchdog_tripped = False
         self.sync_count = 0
-        self.syncs_missed = 0   # real time: SYNCs handled too late to answer (see _on_sync)
-        self._sync_period = tick_period(profile)
+        self.syncs_missed = 0   # real time: SYNCs a newer one superseded (see _on_sync)
         self._booted = False
         self._nmt_before = ""
         self._sync_id: int | None = None
@@ -702,11 +701,11 @@ class EmulatedCiA402(EmulatedDrive):
     def _on_sync(self, can_id: int, data: bytearray, timestamp: float) -> None:
         if not self._operational():
             return
-        if self._lateness(timestamp) > self._sync_period:
-            # real time, and read more than a SYNC period after it came: a drive runs its
-            # cycle from the SYNC's interrupt and never answers a stale one; an emulator that
-            # cannot keep up (a slow guest at 1 kHz) would otherwise answer every queued SYNC
-            # in turn, seconds late, and acknowledge a disable long after the host gave up
+        if self._superseded(can_id):
+            # real time, and a newer SYNC came while this one waited: a drive runs its cycle
+            # from the newest SYNC and never answers a stale one; an emulator that cannot keep
+            # up (a slow guest at 1 kHz) would otherwise answer every queued SYNC in turn,
+            # seconds late, and acknowledge a disable long after the host gave up
             self.syncs_missed += 1
             return
         self.sync_count += 1

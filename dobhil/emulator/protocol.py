@@ -50,6 +50,7 @@ __all__ = ["EmulatedDrive", "LockstepBus", "LockstepPeriodicTask", "PlantLike"]
 
 _EPS = 1e-9
 _MAX_LAG_PERIODS = 10  # real time: ticks later than this are skipped, not replayed
+_MAX_BATCH = 64  # real time: frames read together at most (a flood must not stall the ticks)
 #: [s] real-time tick of an emulated drive whose protocol streams no feedback of its own
 DEFAULT_TICK = 1e-3
 
@@ -118,8 +119,9 @@ class EmulatedDrive(ABC):
         self.frames_sent = 0
         self.send_errors = 0
         self.overruns = 0
-        self._realtime = False
-        self._least_lag = math.inf
+        #: real time: the frames already queued behind the one being handled, read with it
+        #: (empty in lockstep): a protocol may skip work a newer frame supersedes
+        self._queued_after: Sequence[can.Message] = ()
 
     # -- observables ----------------------------------------------------------
 
@@ -292,18 +294,10 @@ class EmulatedDrive(ABC):
 
     # -- helpers for subclasses -------------------------------------------------
 
-    def _lateness(self, stamp: float) -> float:
-        """Real time: how much later than the promptest frame so far a frame stamped
-        ``stamp`` (its bus receive stamp, ``time.time()`` seconds) is being handled [s]; 0 in
-        lockstep or without a stamp. Measured against the smallest lag seen rather than 0,
-        so a bus whose stamps come from another clock (a hub on another machine) has its
-        constant offset taken out."""
-        if not self._realtime or not stamp > 0:
-            return 0.0
-        lag = time.time() - stamp
-        if lag < self._least_lag:
-            self._least_lag = lag
-        return lag - self._least_lag
+    def _superseded(self, arbitration_id: int) -> bool:
+        """Real time: a frame with ``arbitration_id`` is already queued behind the one being
+        handled (it came while the drive was busy); always False in lockstep."""
+        return any(m.arbitration_id == arbitration_id for m in self._queued_after)
 
     def _send(self, msg: can.Message) -> None:
         try:
@@ -370,7 +364,6 @@ class EmulatedDrive(ABC):
         ``at_tick_start()`` before each tick reads the bus: a bus that sends periodic
         frames itself delivers them then (:meth:`deliver`)."""
         period = self.tick_period
-        self._realtime = True
         start = time.perf_counter()
         tick = 1
         while not self._stop_event.is_set():
@@ -394,14 +387,34 @@ class EmulatedDrive(ABC):
             remaining = deadline - time.perf_counter()
             if remaining <= 0:
                 return
-            try:
-                msg = self._bus.recv(remaining)
-            except Exception as exc:  # the bus is gone: the thread ends, stop() raises this
-                raise BusError(f"{self._bus.channel_info}: read failed: {type(exc).__name__}: {exc}") from exc
-            if msg is not None:
-                now = self._time + max(0.0, time.perf_counter() - tick_start)
-                self._receive(msg, now)
+            batch = self._read_batch(remaining)
+            now = self._time + max(0.0, time.perf_counter() - tick_start)
+            for i, msg in enumerate(batch):
+                self._queued_after = batch[i + 1:]
+                try:
+                    self._receive(msg, now)
+                finally:
+                    self._queued_after = ()
+            if batch:
                 self._apply_due(now)
+
+    def _read_batch(self, timeout: float) -> list[can.Message]:
+        """The next frame (waiting up to ``timeout`` s) and every frame already queued
+        behind it, at most :data:`_MAX_BATCH`: what came while the drive was busy is handled
+        together, newest last, so a protocol can skip what a newer frame supersedes."""
+        batch: list[can.Message] = []
+        wait = timeout
+        try:
+            while len(batch) < _MAX_BATCH:
+                msg = self._bus.recv(wait)
+                if msg is None:
+                    break
+                batch.append(msg)
+                wait = 0.0
+        except Exception as exc:  # the bus is gone: the thread ends, stop() raises this
+            if not batch:
+                raise BusError(f"{self._bus.channel_info}: read failed: {type(exc).__name__}: {exc}") from exc
+        return batch
 
 
 def _stamped(msg: can.Message, stamp: float) -> can.Message:

@@ -374,3 +374,28 @@ def test_a_position_past_p_max_wraps_as_the_firmwares_16_bit_field() -> None:
         assert unpack_reply(rig.emu.model, reply).position == pytest.approx(12.6 - 2 * 12.5, abs=1e-3)
     finally:
         rig.close()
+
+
+def test_a_prepared_motor_builds_nothing_at_its_first_frame(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The code tables are built by ``prepare()`` (``start()`` calls it), not at the first
+    frame: built there they cost tens of ms on a host and most of a second in a slow guest,
+    where a host gave up waiting for the first reply and refused to enable."""
+    from dobhil.drives.mit import codec
+    codec._channel.cache_clear()   # fresh channels: tables built earlier by other tests are gone
+    builds: list[object] = []
+    real = codec._thresholds
+
+    def counting(channel: codec.Channel) -> tuple[float, ...]:
+        builds.append(channel)
+        return real(channel)
+
+    monkeypatch.setattr(codec, "_thresholds", counting)
+    rig = Lockstep(AK80_9)
+    try:
+        rig.emu.prepare()
+        prepared = len(builds)
+        rig.send(bytes.fromhex("7FFF7FF000000800"))   # a zero-torque command (kp = kd = 0)
+        assert len(rig.read(0.01)) == 1
+        assert prepared == 5 and len(builds) == prepared   # all five fields, nothing more later
+    finally:
+        rig.close()

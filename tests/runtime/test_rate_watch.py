@@ -9,8 +9,11 @@ import time
 from types import SimpleNamespace
 from typing import Any
 
+import pytest
+
 from dobhil.drives.base import Confirmation, Feedback, SafeStopReport
 from dobhil.drives.profile import load_profile
+from dobhil.drives.registry import drive_class
 from dobhil.runtime.loop import ForceLoop, Limits, LoopSettings, Timing
 from dobhil.runtime.session import build_controller
 from dobhil.runtime.stop import StopReason
@@ -50,11 +53,15 @@ class _SlowFrames:
 
 
 def _run(streams: bool, cycles: int = 30) -> Any:
+    return _run_drive(_SlowFrames(streams, demo_config().loop.period), cycles)
+
+
+def _run_drive(drive: _SlowFrames, cycles: int = 30) -> Any:
     config = demo_config("reference.offset=0", "reference.amplitude=0")
     period = config.loop.period
     settings = LoopSettings(period=period, duration=cycles * period, feedback_timeout=1.0,
                             timing=Timing.HOST, limits=Limits(-1.0, 1.0, 10.0))
-    loop = ForceLoop(drive=_SlowFrames(streams, period),  # type: ignore[arg-type]
+    loop = ForceLoop(drive=drive,  # type: ignore[arg-type]
                      controller=build_controller(config, load_profile("odrive-0.6")),
                      reference=SimpleNamespace(value=lambda t: 0.0), settings=settings,
                      clock=time.perf_counter)
@@ -71,3 +78,28 @@ def test_a_drive_that_only_answers_is_not_blamed_for_the_hosts_pace() -> None:
     result = _run(streams=False, cycles=30)
     assert result.stop.reason is StopReason.DONE, result.stop.line()
     assert result.cycles + result.skipped == 30
+
+
+@pytest.mark.parametrize(("name", "words"), [
+    ("odrive-0.6", ("encoder estimates come every 3 ms", "set <axis>.config.can.encoder_msg_rate_ms = 1 on the drive")),
+    ("cia402-emulated", ("TPDOs come every 3 ms", "node 5 answers fewer SYNCs than the host sends")),
+])
+def test_the_stop_is_in_the_protocols_words(name: str, words: tuple[str, ...]) -> None:
+    """What comes late and what to change, as the drive's protocol calls them (the host sends
+    a CiA 402 node its SYNC: slow TPDOs are a node that skips SYNCs, not a rate to set)."""
+    profile = load_profile(name)
+    real = drive_class(profile.protocol)
+
+    class Fake(_SlowFrames):
+        @classmethod
+        def preflight_probe(cls, p: Any) -> Any:
+            return real.preflight_probe(p)
+
+    drive = Fake(True, 1e-3)
+    drive.profile = profile   # type: ignore[attr-defined]
+    result = _run_drive(drive)
+    assert result.stop.reason is StopReason.FEEDBACK_TIMEOUT
+    for text in words:
+        assert text in result.stop.detail, result.stop.detail
+    if profile.protocol != "odrive":
+        assert "encoder" not in result.stop.detail
