@@ -10,8 +10,9 @@ each is reported as a test of the host's run.
    guest's only writable share), as it happens;
 3. on the host each of those tests is a :class:`GuestItem` that waits for its own reports and
    passes, fails with the guest's traceback and output, or skips with the guest's reason. They
-   are put first, so they run while the host is otherwise idle (the guest's timing figures are
-   its own, not shared with the host's suite) and the guest's time is reported apart;
+   are put first, and every other test waits until the guest has finished: the guest under
+   software emulation takes the machine's cores, and the timing tests on either side must not
+   share them (the guest's time is reported apart);
 4. the terminal summary gets one ``canvm:`` line: the counts, the boot time and which
    accelerator ran (KVM, or TCG and why not KVM).
 
@@ -30,6 +31,7 @@ import sys
 import tempfile
 import time
 import uuid
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -141,6 +143,7 @@ class CanvmPlugin:
         self.guest_ids: list[str] = []
         self._results_file: Any = None
         self._keep = False
+        self._guest_done = False
 
     # -- in the guest: stream every report to the host --------------------------------------
 
@@ -209,6 +212,27 @@ class CanvmPlugin:
                  "--cwd", str(self.config.rootpath), "--timeout", timeout],
                 stdin=subprocess.DEVNULL, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
         (self.run_dir / "pid").write_text(str(self.started.pid))
+
+    @pytest.hookimpl(hookwrapper=True, tryfirst=True)
+    def pytest_runtest_protocol(self, item: pytest.Item) -> Iterator[None]:
+        """A host test starts once the guest is done (see the module's docstring). Outside the
+        test's own phases: the wait is neither its duration nor within its pytest-timeout."""
+        self._wait_for_guest(item)
+        yield
+
+    def _wait_for_guest(self, item: pytest.Item) -> None:
+        run_dir = self.run_dir
+        if in_guest() or isinstance(item, GuestItem) or run_dir is None or self._guest_done:
+            return
+        if not (run_dir / "ids.txt").is_file():
+            self._guest_done = True   # no guest in this session
+            return
+        pid_file = run_dir / "pid"
+        while _read_status(run_dir) is None:
+            if pid_file.is_file() and not _alive(int(pid_file.read_text())):
+                break
+            time.sleep(POLL_S)
+        self._guest_done = True
 
     def wait_for(self, nodeid: str) -> list[dict[str, Any]]:
         """This test's reports from the guest, once its teardown is in; fails the test when the
