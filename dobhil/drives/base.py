@@ -255,6 +255,15 @@ class Drive(ABC):
         return True
 
     @property
+    def sample_clock(self) -> str:
+        """What :attr:`Feedback.sampled_at` is stamped with: "" when the protocol does not
+        tell its sample instant (NaN), "bus" when it is the bus's receive stamp of the frame
+        the drive sampled at (the clock of ``rx_time``), "sent" when it is this host's wall
+        clock just after it sent that frame. A run's log records it (``run.sample_clock``),
+        so that its report can say which clock the sample latency is on."""
+        return ""
+
+    @property
     def feedback(self) -> Feedback | None:
         """Newest feedback seen so far (fresh or not)."""
         return self._feedback

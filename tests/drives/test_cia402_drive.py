@@ -66,6 +66,7 @@ def test_start_up_maps_the_node_and_enables_cst() -> None:
     assert node.state == "operation enabled"
     assert [cw for i, cw in enumerate(node.controlwords) if i == 0 or cw != node.controlwords[i - 1]] == [6, 7, 15]
     assert drive.identity and drive.feedback_streams
+    assert drive.sample_clock == "bus"   # the SYNC's echo: the clock of the TPDOs' stamps
     # the periodic SYNC runs in the bus (simulated time), not in a thread of this process
     assert [t.period for t in bus.tasks if not t.stopped and t.msg.arbitration_id == 0x80] == [0.001]
 
@@ -108,7 +109,7 @@ def test_a_node_that_stays_in_fault_after_the_reset_ends_the_enable() -> None:
 def test_without_native_periodic_send_the_drive_sends_sync_itself() -> None:
     bus, node, drive = rig(bus=HostSyncBus())
     drive.enable()
-    assert not drive.feedback_streams
+    assert not drive.feedback_streams and drive.sample_clock == "sent"
     assert not [t for t in bus.tasks if t.msg.arbitration_id == 0x80]
     before = time.time()
     drive.send_torque(0.25)
