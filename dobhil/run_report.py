@@ -28,7 +28,10 @@
   matches when the median and the 99th percentile are both within
   ``LATENCY_TOLERANCE`` periods of it (the analysis models one fixed delay, so a spread
   beyond that is not modelled); in lockstep the log clock is simulated and the latency is
-  not measurable;
+  not measurable. The section says which clock each latency is on (``clock``: always the
+  log's; ``sample_clock``: the drive's sample latency of ``loop_timing``, both stamps the
+  bus's receive stamps, or the feedback's since the host's send of the frame sampled at,
+  as the run recorded it in ``run.sample_clock``);
 - records the recorder dropped (``/events`` ``kind=loss``);
 - the measured force response against the sampled closed loop of the recorded config
   (``LoopSystems.build(params, sampled=True).system("closed_loop")`` driven by the
@@ -64,6 +67,17 @@ STEP_FRACTION: Final = 0.05
 MAX_PREDICTION_DELAY: Final = 1000
 #: The measured latency matches the analysis' within this many loop periods (median and p99).
 LATENCY_TOLERANCE: Final = 0.1
+#: ``latency.clock``: the command latency is taken from log times, the recorder's clock
+LOG_CLOCK: Final = "log"
+#: ``latency.clock_text``: what the log times of the command latency are
+LOG_CLOCK_TEXT: Final = "log times: feedback frame read by the loop -> command frame sent"
+#: ``latency.sample_clock`` (the run's ``run.sample_clock``, :attr:`dobhil.drives.base.Drive.sample_clock`)
+#: -> what the two stamps of the sample latency are (``latency.sample_clock_text``)
+SAMPLE_CLOCKS: Final = {
+    "bus": "bus receive stamps of both frames: the drive's sample instant and its feedback",
+    "sent": "the feedback's bus receive stamp since the host's wall clock just after it sent the "
+            "frame the drive sampled at",
+}
 
 
 @dataclass
@@ -337,7 +351,7 @@ def latency_stats(data: RunData) -> dict[str, Any]:
     against the one the sampled analysis assumed. A drive whose protocol applies commands
     a fixed number of periods after their sample (CiA 402: at the next SYNC) makes the
     assumed delay itself: the command must only be in time for it (within a period)."""
-    out: dict[str, Any] = {"assumed_s": None, "measured": False}
+    out: dict[str, Any] = {"assumed_s": None, "measured": False, **latency_clocks(data)}
     period = None
     config = design_config(data)
     latched = command_delay_periods(data)
@@ -374,6 +388,23 @@ def latency_stats(data: RunData) -> dict[str, Any]:
         out.update(tolerance_s=tolerance, p50_minus_assumed_s=p50 - out["assumed_s"],
                    p99_minus_assumed_s=p99 - out["assumed_s"])
         out["matches"] = bool(abs(p50 - out["assumed_s"]) <= tolerance and abs(p99 - out["assumed_s"]) <= tolerance)
+    return out
+
+
+def latency_clocks(data: RunData) -> dict[str, str]:
+    """Which clock each latency of the report is on: ``clock`` (the command latency: log
+    times) and, where the run measured the drive's sample latency, ``sample_clock`` as the
+    run recorded it (``run.sample_clock``; "not recorded" in a log from before it), with a
+    line each saying what that is (the bus's stamps named by their interface)."""
+    out = {"clock": LOG_CLOCK, "clock_text": LOG_CLOCK_TEXT}
+    if not data.has("sample_latency"):
+        return out
+    sample = str(data.metadata.get("run", {}).get("sample_clock") or "")
+    interface = str(data.metadata.get("bus", {}).get("interface") or "")
+    text = SAMPLE_CLOCKS.get(sample, "not recorded in this log")
+    if sample in SAMPLE_CLOCKS and interface:
+        text += f" (interface {interface})"
+    out.update(sample_clock=sample if sample in SAMPLE_CLOCKS else "not recorded", sample_clock_text=text)
     return out
 
 
@@ -513,13 +544,15 @@ def summary_text(s: Mapping[str, Any]) -> str:
     lines.append(f"loop: exec p50 {us(lt['exec_time_p50'])}, p99 {us(lt['exec_time_p99'])}, "
                  f"max {us(lt['exec_time_max'])}; |period error| p99 {us(lt['period_error_p99'])}; "
                  f"overruns {lt['overruns']}")
-    if lt.get("sample_latency_p99") is not None:
-        lines.append(f"sample latency (drive sample -> feedback received): p50 {us(lt['sample_latency_p50'])}, "
-                     f"p99 {us(lt['sample_latency_p99'])}, max {us(lt['sample_latency_max'])}")
     la = s.get("latency") or {}
+    if lt.get("sample_latency_p99") is not None:
+        clock = f"; {la['sample_clock_text']}" if la.get("sample_clock_text") else ""
+        lines.append(f"sample latency (drive sample -> feedback received{clock}): p50 {us(lt['sample_latency_p50'])}, "
+                     f"p99 {us(lt['sample_latency_p99'])}, max {us(lt['sample_latency_max'])}")
     if la.get("measured"):
         assumed = "-" if la.get("assumed_s") is None else us(la["assumed_s"])
-        lines.append(f"command latency: p50 {us(la['p50_s'])}, p99 {us(la['p99_s'])}, max {us(la['max_s'])}; "
+        clock = f" ({la['clock_text']})" if la.get("clock_text") else ""
+        lines.append(f"command latency{clock}: p50 {us(la['p50_s'])}, p99 {us(la['p99_s'])}, max {us(la['max_s'])}; "
                      f"assumed by the analysis {assumed}{_latency_verdict(la)}")
     elif la:
         lines.append(f"command latency: not measured ({la.get('why', '-')})")
@@ -571,6 +604,6 @@ def report(path: str | os.PathLike[str], progress: ProgressFn | None = None) -> 
     return data, summary, predicted
 
 
-__all__ = ["LATENCY_TOLERANCE", "Contact", "RunData", "StepInfo", "analyse", "bus_stats", "contact_mask",
-           "detect_steps", "latency_stats", "load_run", "prediction", "report", "step_infos", "summary_text",
-           "torque_mode"]
+__all__ = ["LATENCY_TOLERANCE", "LOG_CLOCK", "SAMPLE_CLOCKS", "Contact", "RunData", "StepInfo", "analyse",
+           "bus_stats", "contact_mask", "detect_steps", "latency_clocks", "latency_stats", "load_run", "prediction",
+           "report", "step_infos", "summary_text", "torque_mode"]

@@ -111,6 +111,8 @@ def run_metadata(session: RunSession, config_file: str | os.PathLike[str] | None
         "run": {"start_time": datetime.now(timezone.utc).isoformat(timespec="milliseconds"),
                 "start_time_ns": time.time_ns(), "timing": session.timing.label,
                 "log_clock": "simulated" if lockstep else "wall", "period": repr(session.settings.period),
+                # what the drive's sample instant is stamped with (the report's sample latency)
+                "sample_clock": session.drive.sample_clock,
                 "duration": repr(session.settings.duration),
                 "torque_limit": repr(session.controller.torque_limit),
                 "measures_velocity": session.controller.measures_velocity,

@@ -255,6 +255,15 @@ class Drive(ABC):
         return True
 
     @property
+    def sample_clock(self) -> str:
+        """What :attr:`Feedback.sampled_at` is stamped with: "" when the protocol does not
+        tell its sample instant (NaN), "bus" when it is the bus's receive stamp of the frame
+        the drive sampled at (the clock of ``rx_time``), "sent" when it is this host's wall
+        clock just after it sent that frame. A run's log records it (``run.sample_clock``),
+        so that its report can say which clock the sample latency is on."""
+        return ""
+
+    @property
     def feedback(self) -> Feedback | None:
         """Newest feedback seen so far (fresh or not)."""
         return self._feedback
@@ -348,7 +357,8 @@ class Drive(ABC):
 
         Everything already queued is read first; the call returns as soon as a
         motion frame has been read, with whatever came queued behind it (a burst of late
-        frames gives its newest). Raises DriveFaultError while the drive is faulted.
+        frames gives its newest), and a wait that ends late (the process was stopped)
+        reads all that came meanwhile. Raises DriveFaultError while the drive is faulted.
         """
         fresh = self._drain()
         if not fresh and timeout > 0:
@@ -499,14 +509,17 @@ class Drive(ABC):
         try:
             while True:
                 remaining = deadline - self._clock()
-                if remaining <= 0:
-                    break
-                cancelled = cancel() if cancel is not None else ""
+                late = remaining <= 0
+                cancelled = "" if late or cancel is None else cancel()
                 if cancelled:
                     why = f"confirmation wait cut short: {cancelled}"
                     break
-                msg = self._bus.recv(min(remaining, WAIT_SLICE))
+                # past the deadline only what is already queued is read: a process that
+                # was stopped or not scheduled may find the confirmation waiting there
+                msg = self._bus.recv(0.0 if late else min(remaining, WAIT_SLICE))
                 if msg is None:
+                    if late:
+                        break
                     continue
                 for event in self._decode(msg):
                     if isinstance(event, MotionEvent):
@@ -563,7 +576,11 @@ class Drive(ABC):
         while True:
             remaining = deadline - self._clock()
             if remaining <= 0:
-                return False
+                # the deadline passed while a read blocked (this process stopped or not
+                # scheduled): what the bus queued meanwhile -- sent on time by a kernel
+                # periodic task and the drive -- is read before the caller takes the
+                # silence for a drive gone quiet (the heartbeat watch, a feedback timeout)
+                return self._drain()
             try:  # inline, not _recv: one call less per cycle
                 msg = self._bus.recv(remaining)
             except Exception as exc:

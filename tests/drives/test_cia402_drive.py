@@ -4,6 +4,7 @@ stop, replay; and every start-up failure as one line with nothing enabled."""
 
 from __future__ import annotations
 
+import heapq
 import math
 import re
 import time
@@ -65,6 +66,7 @@ def test_start_up_maps_the_node_and_enables_cst() -> None:
     assert node.state == "operation enabled"
     assert [cw for i, cw in enumerate(node.controlwords) if i == 0 or cw != node.controlwords[i - 1]] == [6, 7, 15]
     assert drive.identity and drive.feedback_streams
+    assert drive.sample_clock == "bus"   # the SYNC's echo: the clock of the TPDOs' stamps
     # the periodic SYNC runs in the bus (simulated time), not in a thread of this process
     assert [t.period for t in bus.tasks if not t.stopped and t.msg.arbitration_id == 0x80] == [0.001]
 
@@ -107,7 +109,7 @@ def test_a_node_that_stays_in_fault_after_the_reset_ends_the_enable() -> None:
 def test_without_native_periodic_send_the_drive_sends_sync_itself() -> None:
     bus, node, drive = rig(bus=HostSyncBus())
     drive.enable()
-    assert not drive.feedback_streams
+    assert not drive.feedback_streams and drive.sample_clock == "sent"
     assert not [t for t in bus.tasks if t.msg.arbitration_id == 0x80]
     before = time.time()
     drive.send_torque(0.25)
@@ -191,6 +193,62 @@ def test_a_lost_heartbeat_is_a_fault() -> None:
             drive.send_torque(0.0)
             drive.poll(0.01)
     assert bus.now < 0.5   # three heartbeat periods of 0.1 s, and the enable's few ms
+
+
+class StalledBus(SimBus):
+    """A bus whose next blocking read stalls the host for :attr:`stall` simulated seconds,
+    as a stopped or descheduled process does inside ``recv``: meanwhile the periodic SYNC
+    goes on (a kernel's broadcast manager) and the node answers, everything queued; the
+    read then returns the oldest frame."""
+
+    stall = 0.0
+
+    def recv(self, timeout: float | None = None) -> can.Message | None:
+        if not (self.stall and timeout):
+            return super().recv(timeout)
+        end, self.stall = self.now + self.stall, 0.0
+        while self.tasks and self.tasks[0].due <= end:
+            task = heapq.heappop(self.tasks)
+            if task.stopped:
+                continue
+            self.now = task.due
+            task.due += task.period
+            heapq.heappush(self.tasks, task)
+            self.to_host(task.msg)
+            if task.to_node and self.node is not None:
+                self.node.receive(self.inbox[-1])
+        self.now = end
+        return self.inbox.popleft() if self.inbox else None
+
+
+def test_a_stalled_read_takes_what_came_meanwhile_not_a_lost_heartbeat() -> None:
+    """The host stopped longer than three heartbeat periods inside a read, the SYNC and
+    the node going on: the heartbeats and TPDOs waiting in the queue came in time. The
+    poll reads them all (not only the first, a SYNC echo) and gives the newest sample;
+    nothing is a lost heartbeat or a feedback timeout."""
+    bus, node, drive = rig(bus=StalledBus())
+    drive.enable()
+    drive.poll(0.01)
+    before = node.syncs
+    bus.stall = 0.5   # five heartbeats of 0.1 s, 500 SYNCs of 1 ms
+    fb = drive.poll(0.01)
+    assert node.syncs - before >= 500 and not bus.inbox          # all of it was read
+    assert drive.status.state is DriveState.ENABLED
+    assert fb is not None and fb.sampled_at == node.last_sync    # the newest sample
+
+
+def test_a_stalled_confirmation_wait_reads_the_confirmation_that_came_meanwhile() -> None:
+    """The host stopped past the whole confirmation wait (three heartbeat periods) inside
+    its first read, which returns another node's frame queued first: the node's statusword
+    out of Operation enabled waits behind it, and confirms."""
+    bus, node, drive = rig(bus=StalledBus())
+    drive.enable()
+    drive.poll(0.01)
+    bus.to_host(can.Message(arbitration_id=0x706, data=b"\x05", is_extended_id=False))
+    bus.stall = 0.5
+    report = drive.safe_stop()
+    assert report.confirmation is Confirmation.CONFIRMED, report.detail
+    assert node.state == "switch on disabled"
 
 
 # -- replay -----------------------------------------------------------------

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -105,6 +106,50 @@ def test_latency_is_measured_against_the_assumed_input_delay() -> None:
     assert "set design.input_delay = 0.000275" in text
     simulated = latency_stats(_latency_run(rx, tx, clock="simulated", input_delay=0.0))
     assert not simulated["measured"] and "lockstep" in simulated["why"]
+
+
+def _summary_with(latency: dict[str, Any], sample_latency_s: float | None) -> dict[str, Any]:
+    """The smallest summary ``summary_text`` takes, with a latency section and a sample latency."""
+    timing = {k: None for k in ("exec_time_p50", "exec_time_p99", "exec_time_max", "period_error_p99")}
+    if sample_latency_s is not None:
+        timing |= {f"sample_latency_{p}": sample_latency_s for p in ("p50", "p99", "max")}
+    return {"file": "x", "cycles": 0, "duration_s": 0.0, "stop": None, "steps": [],
+            "tracking": {"rms_error_estimated": None, "rms_error_true": None}, "estimation": None,
+            "prediction": {}, "latency": latency, "loop_timing": timing | {"overruns": 0},
+            "bus": {"bus_load": None, "bitrate": None}, "dropped": 0}
+
+
+@pytest.mark.parametrize(("recorded", "clock", "words"), [
+    ("bus", "bus", "bus receive stamps of both frames: the drive's sample instant and its feedback "
+                   "(interface socketcan)"),
+    ("sent", "sent", "the feedback's bus receive stamp since the host's wall clock just after it sent"),
+    (None, "not recorded", "not recorded in this log"),
+])
+def test_latency_section_says_which_clock_each_latency_is_on(recorded: str | None, clock: str, words: str) -> None:
+    """The command latency is on log times; the drive's sample latency on what the run
+    recorded its sample instant to be stamped with (a log from before that: not recorded),
+    the bus's stamps named by their interface. Both lines of the text say it."""
+    data = _latency_run([0.0, 1.0], [0.3, 1.3], clock="wall", input_delay=3e-4)
+    data.metadata = {"run": {"log_clock": "wall", **({"sample_clock": recorded} if recorded else {})},
+                     "bus": {"interface": "socketcan"}}
+    data.signals["sample_latency"] = np.array([2e-4])
+    lat = latency_stats(data)
+    assert lat["clock"] == "log" and lat["clock_text"].startswith("log times")
+    assert lat["sample_clock"] == clock and lat["sample_clock_text"].startswith(words)
+    lines = summary_text(_summary_with(lat, 2e-4)).splitlines()
+    assert next(x for x in lines if x.startswith("command latency (log times: feedback frame read"))
+    assert next(x for x in lines if x.startswith(f"sample latency (drive sample -> feedback received; {words}"))
+
+
+def test_no_sample_clock_without_a_sample_latency() -> None:
+    """A drive that does not tell its sample instant (ODrive) has no sample latency: the
+    section names the clock of the command latency only."""
+    data = _latency_run([0.0, 1.0], [0.3, 1.3], clock="wall", input_delay=3e-4)
+    data.metadata = {"run": {"log_clock": "wall", "sample_clock": ""}}
+    data.signals["sample_latency"] = np.array([np.nan])
+    lat = latency_stats(data)
+    assert lat["clock"] == "log" and "sample_clock" not in lat
+    assert not [x for x in summary_text(_summary_with(lat, None)).splitlines() if x.startswith("sample latency")]
 
 
 def _contact_run(q: list[float], *, truth: bool) -> RunData:

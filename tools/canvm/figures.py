@@ -10,18 +10,26 @@ it says what this machine's emulated kernel did, not what a real one does.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import math
 import os
+import signal
 import subprocess
 import sys
 import tempfile
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-ROOT = Path(__file__).resolve().parents[2]
+if TYPE_CHECKING:
+    from tests.socketcan.guest import Dumped
+
+HERE = Path(__file__).resolve().parent
+ROOT = HERE.parents[1]
+
 
 #: name -> a function of no arguments returning a JSON-able mapping
 FIGURES: dict[str, Callable[[], dict[str, Any]]] = {}
@@ -137,6 +145,205 @@ def rt_run(seconds: float = RT_SECONDS) -> dict[str, Any]:
 def rt_guest() -> dict[str, Any]:
     """The bare loop, the run, the bare loop again: the machine's state before and after."""
     return {"bare_before": bare_loop(), "run": rt_run(), "bare_after": bare_loop()}
+# CiA 402 SYNC: the kernel's broadcast manager against the loop
+
+
+def _guest() -> Any:
+    """tests/socketcan/guest.py (the guest tests' configs, processes and candump reader), also
+    when this file runs as a script (its folder, not the checkout, is then on sys.path)."""
+    if str(ROOT) not in sys.path:
+        sys.path.insert(0, str(ROOT))
+    import tests.socketcan.guest as guest
+    return guest
+
+
+@dataclass(frozen=True)
+class Cia402Ids:
+    """The frames of one CiA 402 node the SYNC figures read (CiA 301 pre-defined connection
+    set, :class:`dobhil.drives.cia402.codec.Cob`; the numbers of drivers/cia402-emulated.yaml)."""
+
+    sync: int
+    rpdo: int
+    status: int
+    motion: int
+    heartbeat: int
+    emcy: int
+
+    @classmethod
+    def of(cls, profile: str = "cia402-emulated") -> Cia402Ids:
+        from dobhil.drives.cia402.codec import Cob
+        from dobhil.drives.profile import load_profile
+        loaded = load_profile(profile)
+        node, rpdo, tpdo = loaded.node_id, int(loaded.options["rpdo"]), int(loaded.options["tpdo"])
+        return cls(int(Cob.SYNC), Cob.rpdo(rpdo, node), Cob.tpdo(tpdo, node), Cob.tpdo(tpdo + 1, node),
+                   int(Cob.HEARTBEAT) + node, int(Cob.EMCY) + node)
+
+
+def rpdo_command(data: bytes) -> tuple[int, int]:
+    """(controlword, target torque per mille) of a CST RPDO (dobhil.drives.cia402.codec.RPDO_CST)."""
+    from dobhil.drives.cia402.codec import RPDO_CST_STRUCT
+    controlword, torque = RPDO_CST_STRUCT.unpack_from(data)
+    return int(controlword), int(torque)
+
+
+def loop_window(frames: Sequence[Dumped], iface: str, ids: Cia402Ids,
+                within: tuple[float, float] = (-math.inf, math.inf)) -> tuple[float, float] | None:
+    """(start, end) of the cycles of a run on ``iface`` (candump's stamps, frames ``within``
+    only): from its first RPDO with a torque (the enable's are zero) to its first later RPDO
+    that is no longer Enable operation (the safe stop's quick stop). None: no such run."""
+    from dobhil.drives.cia402.codec import Controlword
+    start = None
+    for f in frames:
+        if f.iface != iface or f.arbitration_id != ids.rpdo or not within[0] <= f.stamp <= within[1]:
+            continue
+        controlword, torque = rpdo_command(f.data)
+        if start is None and torque and controlword == Controlword.ENABLE_OPERATION:
+            start = f.stamp
+        elif start is not None and controlword != Controlword.ENABLE_OPERATION:
+            return start, f.stamp
+    return None
+
+
+def stamps(frames: Sequence[Dumped], iface: str, arbitration_id: int, window: tuple[float, float]) -> list[float]:
+    """candump's stamps of ``arbitration_id`` on ``iface`` within ``window`` (both ends inside)."""
+    return [f.stamp for f in frames if f.iface == iface and f.arbitration_id == arbitration_id
+            and window[0] <= f.stamp <= window[1]]
+
+
+def deviations_us(times: Sequence[float], period: float) -> list[float]:
+    """``|interval - period|`` [us] between consecutive ``times``."""
+    return [abs(b - a - period) * 1e6 for a, b in zip(times, times[1:])]
+
+
+def jitter(deviations: Sequence[float]) -> dict[str, Any]:
+    """p50, p99 and max of ``deviations`` [us] (numpy's linear percentiles), and how many."""
+    import numpy as np
+    dev = np.asarray(deviations, dtype=float)
+    if dev.size == 0:
+        return {"intervals": 0, "p50_us": None, "p99_us": None, "max_us": None}
+    return {"intervals": int(dev.size), "p50_us": float(np.percentile(dev, 50)),
+            "p99_us": float(np.percentile(dev, 99)), "max_us": float(dev.max())}
+
+
+@contextlib.contextmanager
+def vcan_interfaces(names: Sequence[str]) -> Iterator[list[str]]:
+    """Fresh vcan interfaces made by the README's tools/setup_vcan.sh, deleted afterwards."""
+    made: list[str] = []
+    try:
+        for name in names:
+            out = subprocess.run(["bash", str(ROOT / "tools" / "setup_vcan.sh"), name], capture_output=True,
+                                 text=True)
+            if out.returncode != 0:
+                raise RuntimeError(f"tools/setup_vcan.sh {name} failed: {' '.join((out.stderr or out.stdout).split())}")
+            made.append(name)
+        yield made
+    finally:
+        for name in made:
+            subprocess.run(["ip", "link", "del", "dev", name], capture_output=True)
+
+
+@contextlib.contextmanager
+def candump(path: Path, ifaces: Sequence[str]) -> Iterator[subprocess.Popen[bytes]]:
+    """``candump -L IFACE...`` into ``path`` (its log format: the kernel's receive stamps,
+    SO_TIMESTAMP, as ``candump -t a`` prints them) until the block ends."""
+    with path.open("wb") as out:
+        proc = subprocess.Popen(["candump", "-L", *ifaces], stdout=out, stderr=subprocess.DEVNULL)
+    try:
+        yield proc
+    finally:
+        proc.send_signal(signal.SIGINT)   # candump flushes and ends on SIGINT
+        try:
+            proc.wait(10)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+
+
+def _last_json(text: str) -> dict[str, Any]:
+    """The last line of ``text`` that is a JSON object ({} if none)."""
+    for line in reversed(text.splitlines()):
+        line = line.strip()
+        if line.startswith("{"):
+            with contextlib.suppress(ValueError):
+                return dict(json.loads(line))
+    return {}
+
+
+def _run_facts(summary: dict[str, Any]) -> dict[str, Any]:
+    keys = ("stop_reason", "stop_detail", "timing", "cycles", "overruns", "skipped", "sample_clock")
+    return {k: summary[k] for k in keys if k in summary}
+
+
+#: seconds each run of the SYNC figure lasts, and how many runs of each kind alternate
+SYNC_RUN_S, SYNC_ROUNDS = 3.0, 2
+#: the two ways a CiA 402 SYNC is sent, in the order the SYNC figure alternates them
+SYNC_KINDS = ("bcm", "loop_sent")
+
+
+@figure("bcm_sync_jitter")
+def bcm_sync_jitter(work: Path | None = None, seconds: float = SYNC_RUN_S, rounds: int = SYNC_ROUNDS) -> dict[str, Any]:
+    """CiA 402 SYNC interval jitter, ``|interval - loop.period|`` from candump's kernel receive
+    stamps: the SYNC of SocketCAN's broadcast manager (``dobhil run``: its ``send_periodic``,
+    dobhil.drives.periodic.native_periodic) against the SYNC the loop sends after each torque
+    frame (the same session behind a wrapper without native periodic send, tools/canvm/loop_sync.py,
+    loop.timing host). One vcan interface of one kernel, one emulated node (``dobhil emulate``;
+    configs/cia402-demo.yaml at the guest's period of tests/socketcan/guest.py), ``rounds`` runs of
+    each kind alternating, ``seconds`` each; intervals counted while each loop ran. (At once on two
+    interfaces, each with its node, a guest under software emulation cannot keep both nodes
+    answering every SYNC.) The top-level keys are the broadcast manager's; ``loop_sent`` has the
+    loop's; ``runs`` what each run said of itself and when it ran. With ``work``, the files stay
+    there (``candump``: the log)."""
+    guest = _guest()
+    with contextlib.ExitStack() as stack:
+        kept = work is not None
+        if work is None:
+            work = Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="bcm-sync-")))
+        (iface,) = stack.enter_context(vcan_interfaces([f"sync{os.getpid() % 100000}"]))
+        dump = work / "sync.candump"
+        runs = _alternate_runs(guest, work, dump, iface, seconds, rounds)
+        figures = sync_figures(guest.read_candump(dump), iface, runs, guest.PERIOD)
+    figures.update(accel=guest.ACCEL, interface=iface, **({"candump": str(dump)} if kept else {}))
+    return figures
+
+
+def _alternate_runs(guest: Any, work: Path, dump: Path, iface: str, seconds: float,
+                    rounds: int) -> list[dict[str, Any]]:
+    """``rounds`` times a broadcast-manager run then a loop-sent one, one emulated node, under
+    candump: what each said of itself (``kind``, wall-clock ``started`` and ``ended``)."""
+    runner = guest.Dobhil(work)
+    runs: list[dict[str, Any]] = []
+    with candump(dump, [iface]):
+        try:
+            overlay = guest.guest_overlay(work, "cia402")
+            config = str(guest.CONFIGS / guest.DEMOS["cia402"])
+            runner.emulate(config, iface, overlay, protocol="cia402")
+            common = [config, "--bus", f"socketcan:{iface}", "--set-file", str(overlay), "--duration", str(seconds)]
+            commands = {"bcm": (["run", *common, "--summary-json"], None),
+                        "loop_sent": ([str(HERE / "loop_sync.py"), *common], [sys.executable])}
+            for n in range(rounds):
+                for kind in SYNC_KINDS:
+                    args, program = commands[kind]
+                    started = time.time()
+                    proc = runner.run(f"{kind}-{n}", args, guest.START_TIMEOUT + seconds, program)
+                    runs.append({"kind": kind, "started": started, "ended": time.time(),
+                                 **_run_facts(_last_json(proc.text()))})
+        finally:
+            runner.stop_all()
+    return runs
+
+
+def sync_figures(frames: Sequence[Dumped], iface: str, runs: list[dict[str, Any]], period: float) -> dict[str, Any]:
+    """The jitter of each kind of SYNC over the cycles of its runs (each run's ``intervals``
+    and ``window_s`` added to it); see :func:`bcm_sync_jitter`."""
+    ids = Cia402Ids.of()
+    found: dict[str, list[float]] = {kind: [] for kind in SYNC_KINDS}
+    for run in runs:
+        window = loop_window(frames, iface, ids, within=(run["started"], run["ended"]))
+        dev = [] if window is None else deviations_us(stamps(frames, iface, ids.sync, window), period)
+        run.update(intervals=len(dev), window_s=0.0 if window is None else window[1] - window[0])
+        found[run["kind"]].extend(dev)
+    return {"period_us": period * 1e6, "method": "candump -L kernel receive stamps, |SYNC interval - loop.period| "
+            "while each loop ran", **jitter(found["bcm"]), "loop_sent": jitter(found["loop_sent"]), "runs": runs}
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -167,6 +167,13 @@ class CiA402Drive(Drive):
         return self._native_sync or native_periodic(self._bus)
 
     @property
+    def sample_clock(self) -> str:
+        """"bus": the periodic SYNC's echo as the bus stamped it (sent outside this
+        process, read back: :meth:`_decode`); "sent": the SYNC this host sends after each
+        torque frame, stamped just after the send (:meth:`_send_sync`)."""
+        return "bus" if self.feedback_streams else "sent"
+
+    @property
     def rated_torque(self) -> float:
         """[Nm] the rated torque the per mille values refer to."""
         return self._rated
