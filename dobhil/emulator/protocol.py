@@ -113,6 +113,9 @@ class EmulatedDrive(ABC):
         self._thread_error: BaseException | None = None
         self._priority_drop = 0
         self.frames_received = 0
+        #: frames received that were for another node or not of this protocol (a shared bus
+        #: carries every node's traffic; the protocol's own filter decides, nothing is applied)
+        self.frames_not_addressed = 0
         self.frame_errors = 0  # frames whose handling raised (a bug: tests demand 0)
         self.last_frame_error = ""
         self.frames_sent = 0
