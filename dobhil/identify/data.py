@@ -148,9 +148,10 @@ def _from_frames(log: object, name: str, profile: DriveProfile | None, period: f
     from dobhil.emulator.plant import Plant
     from dobhil.emulator.registry import make_emulated_drive
     from dobhil.recording.schemas import can_frame_message
-    if "/can/rx" not in log.topics():  # type: ignore[attr-defined]
-        raise LogFileError(f"{name}: neither loop records ({' and '.join(_TOPICS)}) nor CAN frames (/can/rx); "
-                           "identify reads a run recorded by dobhil or a CAN log imported with dobhil log import")
+    if not {"/can/rx", "/can/tx"} & set(log.topics()):  # type: ignore[attr-defined]
+        raise LogFileError(f"{name}: neither loop records ({' and '.join(_TOPICS)}) nor CAN frames (/can/rx, "
+                           "/can/tx); identify reads a run recorded by dobhil or a CAN log imported with dobhil "
+                           "log import")
     if profile is None:
         raise ConfigError(f"{name}: a CAN log without a recorded drive profile; give the drive's profile "
                           "with --drive NAME (e.g. odrive-0.6)")
