@@ -242,7 +242,8 @@ def emulate(args: argparse.Namespace) -> int:
                 time.sleep(0.05)
         finally:
             lost, problem = stop_emulator(emulator, bus)
-    counts = f"{emulator.frames_received} frames received, {emulator.frames_sent} sent"
+    counts = (f"{emulator.frames_received} frames received ({emulator.frames_not_addressed} not addressed to "
+              f"node {profile.node_id}), {emulator.frames_sent} sent")
     if lost:
         sys.stdout.flush()
         sys.stderr.write(f"dobhil emulate: stopped: bus {spec.describe()} lost ({lost}); {counts}\n")

@@ -39,7 +39,8 @@ class _NoBus:
 
 def decode_motion(profile: DriveProfile, frames: Iterable[can.Message]) -> list[tuple[float, float, float]]:
     """``(frame timestamp, position, velocity)`` of every motion frame among ``frames``
-    (received frames in order), decoded by the profile's own drive class; the i-th entry is
+    (the frames in bus order; any other frame, a command included, is skipped), decoded by the
+    profile's own drive class; the i-th entry is
     the feedback of ``seq`` i + 1."""
     from dobhil.drives.registry import make_drive
     drive = make_drive(_NoBus(), profile, clock=lambda: 0.0)  # type: ignore[arg-type]

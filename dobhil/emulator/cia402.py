@@ -392,13 +392,19 @@ class EmulatedCiA402(EmulatedDrive):
         if not self._booted:
             self._boot()
         if msg.is_extended_id or msg.is_error_frame or msg.is_remote_frame:
+            self.frames_not_addressed += 1
             return   # CANopen (CiA 301) uses 11-bit data frames; RTR of PDOs is not emulated
         can_id, data = msg.arbitration_id, msg.data
         if (can_id == _NMT and len(data) < 2) or (can_id == self.node.sdo.rx_cobid and len(data) != 8):
             self.frames_rejected += 1   # canopen's handlers expect these lengths
             return
         if self._pdo_dirty:
-            self._compile_pdos()
+            self._compile_pdos()        # subscribes the RPDOs' ids: before the check below
+        if can_id != self.node.sdo.rx_cobid and can_id not in self.network.subscribers:
+            # no consumer of this id on the node (canopen's Network.notify would call none):
+            # another node's PDOs, SDOs, heartbeat or EMCY
+            self.frames_not_addressed += 1
+            return
         if can_id == self.node.sdo.rx_cobid:
             if self.nmt_state != "STOPPED":   # CiA 301: a stopped node answers NMT only
                 self._sdo_request(data, msg.timestamp)
@@ -471,6 +477,7 @@ class EmulatedCiA402(EmulatedDrive):
     def _on_nmt(self, can_id: int, data: bytearray, timestamp: float) -> None:
         command, node = data[0], data[1]
         if node not in (0, self.node_id):
+            self.frames_not_addressed += 1   # a command to another node
             return
         before, self._nmt_before = self._nmt_before, self.nmt_state
         if command in (0x81, 0x82):   # reset node / reset communication

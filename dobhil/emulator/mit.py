@@ -238,11 +238,13 @@ class EmulatedMit(EmulatedDrive):
 
     def _on_frame(self, msg: can.Message) -> None:
         if msg.is_error_frame or msg.is_extended_id or msg.is_remote_frame:
+            self.frames_not_addressed += 1
             return
         if msg.arbitration_id == _REGISTER_ID and self._layout.state_field:   # Damiao
             self._register(msg.data)
             return
         if msg.arbitration_id != self.node_id:
+            self.frames_not_addressed += 1   # another motor's command, or any reply
             return
         if self._time < self.silent_until - 1e-9:
             self.frames_ignored += 1   # writing the zero to flash: deaf and mute
@@ -316,8 +318,11 @@ class EmulatedMit(EmulatedDrive):
 
     def _register(self, data: bytearray) -> None:
         """Damiao register read (0x7FF): ``id_l id_h 0x33 rid`` -> ``id_l id_h 0x33 rid value``."""
-        if len(data) != 8 or data[0] | data[1] << 8 != self.node_id or data[2] != _REGISTER_READ:
-            return   # another motor's, or a write/store (not emulated)
+        if len(data) != 8 or data[0] | data[1] << 8 != self.node_id:
+            self.frames_not_addressed += 1   # another motor's (the register id is shared)
+            return
+        if data[2] != _REGISTER_READ:
+            return   # a write/store (not emulated)
         m = self.model
         floats = {21: m.p_max, 22: m.v_max, 23: m.t_max, 2: self.thermal.over_temperature}
         ints = {7: self.reply_id, 8: self.node_id, 10: 1}

@@ -159,9 +159,11 @@ class EmulatedODrive(EmulatedDrive):
 
     def _on_frame(self, msg: can.Message) -> None:
         if msg.is_extended_id or msg.is_error_frame or not 0 <= msg.arbitration_id <= 0x7FF:
+            self.frames_not_addressed += 1
             return  # not CAN Simple on this bus (the firmware filters 11-bit node ids)
         node, cmd = codec.split_id(msg.arbitration_id)
         if node != self.node_id:
+            self.frames_not_addressed += 1   # another node's (the firmware's id filter)
             return
         self._maybe_feed(cmd, msg)
         if cmd == CmdId.SET_INPUT_TORQUE and not msg.is_remote_frame:

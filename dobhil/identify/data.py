@@ -132,17 +132,26 @@ def _from_frames(log: object, name: str, profile: DriveProfile | None, period: f
     """Samples of a frames-only log: the feedback decoded by the profile's drive class (as a
     replay does), the torque by the profile's emulated drive -- the torque its plant would
     receive, protocol state included (an RPDO waits for its SYNC, a disabled axis applies 0).
-    Sample k is motion frame k; its torque is what the tx frames before motion frame k+1 left
-    applied. The period is the median spacing of the motion frames."""
+    Sample k is motion frame k; its torque is what the frames before motion frame k+1 left
+    applied. The period is the median spacing of the motion frames.
+
+    Both decoders get every frame, whichever topic holds it: the recorded direction is the
+    recording program's view, not the drive's. A capture by another program on the bus
+    (``candump -l``: its log format has no direction, python-can reads every line as received,
+    ``can/io/canutils.py``) holds the host's commands on ``/can/rx``; and a command another
+    host sent to the drive reached its plant all the same. Each decoder takes only the frames
+    of its own direction and node (a drive's feedback is nothing to its emulator, a command
+    no motion to the drive class)."""
     import can
 
     from dobhil.drives.decode import decode_motion
     from dobhil.emulator.plant import Plant
     from dobhil.emulator.registry import make_emulated_drive
     from dobhil.recording.schemas import can_frame_message
-    if "/can/rx" not in log.topics():  # type: ignore[attr-defined]
-        raise LogFileError(f"{name}: neither loop records ({' and '.join(_TOPICS)}) nor CAN frames (/can/rx); "
-                           "identify reads a run recorded by dobhil or a CAN log imported with dobhil log import")
+    if not {"/can/rx", "/can/tx"} & set(log.topics()):  # type: ignore[attr-defined]
+        raise LogFileError(f"{name}: neither loop records ({' and '.join(_TOPICS)}) nor CAN frames (/can/rx, "
+                           "/can/tx); identify reads a run recorded by dobhil or a CAN log imported with dobhil "
+                           "log import")
     if profile is None:
         raise ConfigError(f"{name}: a CAN log without a recorded drive profile; give the drive's profile "
                           "with --drive NAME (e.g. odrive-0.6)")
@@ -154,7 +163,9 @@ def _from_frames(log: object, name: str, profile: DriveProfile | None, period: f
     except (KeyError, TypeError, ValueError) as exc:
         raise LogFileError(f"{name}: a recorded frame does not match its schema "
                            f"({type(exc).__name__}: {exc})") from None
-    motion = decode_motion(profile, rx)
+    # stable: at one stamp the received frames stay first, as in the lists' order before
+    frames = sorted(rx + tx, key=lambda m: m.timestamp)
+    motion = decode_motion(profile, frames)
     if len(motion) < 2 * MIN_SEGMENT:
         raise ConfigError(f"{name}: {len(motion)} frames decode as motion feedback of a {profile.protocol!r} drive "
                           f"(node {profile.node_id}); is the log of another protocol or node than profile "
@@ -166,11 +177,10 @@ def _from_frames(log: object, name: str, profile: DriveProfile | None, period: f
                           "give it with --period SECONDS")
     emulated = make_emulated_drive(_Sink(), profile, Plant(inertia=1.0))  # type: ignore[arg-type]
     torque, i = [], 0
-    tx.sort(key=lambda m: m.timestamp)
     for k in range(len(motion)):
         until = stamps[k + 1] if k + 1 < len(motion) else math.inf
-        while i < len(tx) and tx[i].timestamp < until:
-            emulated.deliver(tx[i])
+        while i < len(frames) and frames[i].timestamp < until:
+            emulated.deliver(frames[i])
             i += 1
         torque.append(emulated.applied_torque)
     rows = {k: [p, v, u] for k, ((_, p, v), u) in enumerate(zip(motion, torque))}

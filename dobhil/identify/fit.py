@@ -304,10 +304,16 @@ def _start(data: IdentData, segments: Sequence[Segment], contact: bool,
 def _parameters(start: dict[str, float], data: IdentData, segments: Sequence[Segment],
                 max_delay_samples: int) -> lmfit.Parameters:
     """Bounded lmfit Parameters around the start values (bounds wide enough never to
-    bind on a plant the start estimate saw, narrow enough to keep the simulation sane)."""
+    bind on a plant the start estimate saw, narrow enough to keep the simulation sane).
+    The scales are the segments' own samples: lmfit maps a bounded parameter through its
+    bounds (``lmfit/parameter.py``, MINUIT's transformation), so bounds taken from samples
+    outside the segments -- a capture's idle minutes before and after the run -- would move
+    where the fit ends on the very same segment."""
     period = data.period
-    u_max = float(np.max(np.abs(data.torque))) or 1.0
-    v_max = float(np.max(np.abs(data.velocity))) or 1.0
+    torque = np.concatenate([data.torque[s.start:s.stop] for s in segments])
+    velocity = np.concatenate([data.velocity[s.start:s.stop] for s in segments])
+    u_max = float(np.max(np.abs(torque))) or 1.0
+    v_max = float(np.max(np.abs(velocity))) or 1.0
     j0 = start["inertia"] or u_max * period
     p = lmfit.Parameters()
     p.add("inertia", value=j0, min=j0 / 20.0, max=j0 * 20.0)

@@ -16,6 +16,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from dobhil.drives.mit.codec import unpack_reply
+from dobhil.drives.mit.rules import model_of
 from dobhil.emulator.mit import EmulatedMit, Fault, Thermal
 from dobhil.emulator.plant import Plant
 
@@ -390,7 +391,10 @@ def test_a_prepared_motor_builds_nothing_at_its_first_frame(monkeypatch: pytest.
         return real(channel)
 
     monkeypatch.setattr(codec, "_thresholds", counting)
-    rig = Lockstep(AK80_9)
+    profile = mit_profile(AK80_9)
+    # a model of its own: the table's rows are cached, their channels built by earlier tests
+    model = dataclasses.replace(model_of(profile))
+    rig = Lockstep(AK80_9, profile=profile, model=model)
     try:
         rig.emu.prepare()
         prepared = len(builds)

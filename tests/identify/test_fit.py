@@ -266,6 +266,25 @@ def test_a_segment_cut_in_motion_fits_its_initial_state() -> None:
     assert_honest(result, truth_values())
 
 
+def test_a_segment_fits_alike_whatever_the_record_holds_around_it() -> None:
+    """The samples outside the segments are none of the fit's business: a free run fitted
+    alone and the same run as a segment of a longer record (a CAN capture holds the drive's
+    idle stream before the run and the drive coasting after it: here a burst of torque and
+    speed larger than the run's own) give the same numbers, bit for bit."""
+    data, (segment,) = record(TRUTH, seed=4, free_s=1.0, contact_s=0.0)
+    pad = 300
+    rng = np.random.default_rng(5)
+    around = np.concatenate([np.zeros(pad), data.torque, 5.0 * rng.standard_normal(pad)])
+    wide = replace(data, t=np.arange(around.size) * PERIOD, torque=around,
+                   position=np.concatenate([np.full(pad, data.position[0]), data.position,
+                                            np.full(pad, data.position[-1])]),
+                   velocity=np.concatenate([np.zeros(pad), data.velocity, 40.0 * rng.standard_normal(pad)]))
+    alone = identify(data, [segment]).estimates
+    inside = identify(wide, [Segment(segment.start + pad, segment.stop + pad, "free")]).estimates
+    for name in FITTED:
+        assert repr(inside[name]) == repr(alone[name])   # every float's shortest repr: bit for bit
+
+
 def test_a_contact_only_record_does_not_separate_viscous_friction_and_damping() -> None:
     """Pressed all the time, b and D_env act as their sum: neither is reported as a number
     unless its interval covers the truth; the stiffness still is, within 2 %."""

@@ -153,29 +153,41 @@ def _frames(log: Path) -> list[can.Message]:
     return sorted(frames, key=lambda m: m.timestamp)
 
 
-def _imported(log: Path, suffix: str) -> Path:
-    """``log``'s CAN frames written by python-can's writer for ``suffix`` (.blf, .asc), then
-    ``dobhil log import``-ed: a frames-only MCAP."""
+def _imported(log: Path, suffix: str, direction: str | None = None) -> Path:
+    """``log``'s CAN frames written by python-can's writer for ``suffix`` (.blf, .asc, .log),
+    then ``dobhil log import``-ed: a frames-only MCAP. A .log's direction can be made one for
+    all frames: ``""`` is what ``candump -l`` writes (its log format has none, can-utils
+    ``lib.c``: every frame reads back as received, the host's commands included), ``" T"``
+    what python-can's logger writes for a capture of vcan (SocketCAN's ``is_rx`` is False for
+    every frame made on the machine: every frame is sent, the drive's feedback included)."""
     canlog = log.with_name(log.stem + suffix)
     with can.Logger(str(canlog)) as writer:
         for msg in _frames(log):
             writer.on_message_received(msg)
-    out = log.with_name(f"{log.stem}-{suffix[1:]}.mcap")
+    if direction is not None:
+        lines = canlog.read_text(encoding="ascii").splitlines()
+        canlog.write_text("".join(line.removesuffix(" R").removesuffix(" T") + direction + "\n" for line in lines),
+                          encoding="ascii")
+    tag = "" if direction is None else "-" + (direction.strip() or "none")
+    out = log.with_name(f"{log.stem}-{suffix[1:]}{tag}.mcap")
     assert main(["log", "import", str(canlog), "-o", str(out)]) == 0
     return out
 
 
-def test_imported_can_logs_identify_like_the_mcap(workflow: dict[str, Any],
+@pytest.mark.parametrize(("suffix", "direction"), [(".blf", None), (".log", ""), (".log", " T")],
+                         ids=["blf", "candump", "all-sent"])
+def test_imported_can_logs_identify_like_the_mcap(workflow: dict[str, Any], suffix: str, direction: str | None,
                                                   capsys: pytest.CaptureFixture[str]) -> None:
-    """The contact run's frames alone (.blf): the same numbers as its loop records, once the
-    segment is the same samples (motion frame 0 is the feedback before cycle 0: cycle k is
-    frame k + 1). And the .asc of the free run decodes to the loop records' samples."""
+    """The contact run's frames alone (.blf; .log as candump writes it, no direction, or with
+    every frame sent): the same numbers as its loop records, once the segment is the same
+    samples (motion frame 0 is the feedback before cycle 0: cycle k is frame k + 1). And the
+    .asc of the free run decodes to the loop records' samples."""
     from dobhil.drives.profile import load_profile
     from dobhil.identify.data import read_log
     seconds = CONTACT_SECONDS
     mcap = _identify(capsys, str(workflow["contact"]), "--segment", f"0:{seconds}:contact")
-    blf = _imported(workflow["contact"], ".blf")
-    frames = _identify(capsys, str(blf), "--drive", "odrive-0.6", "--period", "0.001",
+    imported = _imported(workflow["contact"], suffix, direction)
+    frames = _identify(capsys, str(imported), "--drive", "odrive-0.6", "--period", "0.001",
                        "--segment", f"0.001:{seconds + 0.001}:contact")
     for name, e in mcap["estimates"].items():
         f = frames["estimates"][name]
@@ -183,6 +195,8 @@ def test_imported_can_logs_identify_like_the_mcap(workflow: dict[str, Any],
         if e["identifiable"]:
             assert f["value"] == pytest.approx(e["value"], rel=1e-6), name
             assert f["stderr"] == pytest.approx(e["stderr"], rel=1e-3), name
+    if direction is not None:
+        return
     loop = read_log(workflow["free"])
     asc = read_log(_imported(workflow["free"], ".asc"), profile=load_profile("odrive-0.6"), period=1e-3)
     n = loop.samples
