@@ -140,16 +140,18 @@ def pause(stamps: Sequence[float]) -> float:
     return max(gaps)[1]
 
 
-def sample_latencies(syncs: Sequence[Dumped], samples: Sequence[Dumped]) -> list[float]:
-    """Each sample frame's receive stamp minus the newest SYNC's before it, both as the
-    kernel stamped them on one interface: the interval a CiA 402 host measures
-    (``Feedback.sample_latency``, dobhil/drives/cia402/drive.py)."""
-    sync_stamps = [f.stamp for f in syncs]
+def sample_latencies(syncs: Sequence[Dumped], samples: Sequence[Dumped]) -> list[tuple[float, ...]]:
+    """Per sample frame, the latencies a CiA 402 host may measure for it (``Feedback.
+    sample_latency``, dobhil/drives/cia402/drive.py ``_sampled_at``), from the kernel's stamps
+    on one interface: since the newest SYNC stamped before it, or -- when the host's socket
+    got the frame before that SYNC (on two processors frames reach sockets out of their
+    stamps' order) -- since the SYNC before."""
+    stamps = [f.stamp for f in syncs]
     out = []
     for frame in samples:
-        i = bisect.bisect_right(sync_stamps, frame.stamp) - 1
+        i = bisect.bisect_right(stamps, frame.stamp) - 1
         if i >= 0:
-            out.append(frame.stamp - sync_stamps[i])
+            out.append(tuple(frame.stamp - stamps[j] for j in (i, i - 1) if j >= 0))
     return out
 
 
@@ -168,15 +170,19 @@ def transit_delays(sent: Sequence[Dumped], received: Sequence[Dumped], least: fl
     return out
 
 
-def same_values(measured: Sequence[float], truth: Sequence[float], within: float) -> bool:
-    """Every value of ``measured`` is a distinct value of ``truth`` give or take ``within``
-    (both sorted, matched in order)."""
-    truth = sorted(truth)
+def same_values(measured: Sequence[float], truth: Sequence[tuple[float, ...]], within: float) -> bool:
+    """Every value of ``measured`` is one of the values of a distinct entry of ``truth``,
+    give or take ``within`` (matched in increasing order, each entry at most once)."""
+    candidates = sorted((value, i) for i, values in enumerate(truth) for value in values)
+    used: set[int] = set()
     j = 0
     for value in sorted(measured):
-        while j < len(truth) and truth[j] < value - within:
+        while j < len(candidates) and candidates[j][0] < value - within:
             j += 1
-        if j == len(truth) or truth[j] > value + within:
+        k = j
+        while k < len(candidates) and candidates[k][0] <= value + within and candidates[k][1] in used:
+            k += 1
+        if k == len(candidates) or candidates[k][0] > value + within:
             return False
-        j += 1
+        used.add(candidates[k][1])
     return True
