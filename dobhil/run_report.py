@@ -431,6 +431,9 @@ def prediction(data: RunData, contact: Contact | None = None,
     from dobhil.synthesis.params import params_from_config
     sys_ = LoopSystems.build(params_from_config(config), sampled=True).system("closed_loop")
     index, before = start
+    if data.t.size - index < 2:   # python-control's forced_response needs two instants
+        return None, {"available": False, "why": "the run ended within a cycle of its first step in contact "
+                                                  "(nothing to compare)"}
     ref = np.nan_to_num(data["tau_ref"][index:]) - before   # at rest at `before`: a step from 0
     t = np.arange(ref.size) * float(sys_.dt)
     y = np.full(data.t.size, np.nan)

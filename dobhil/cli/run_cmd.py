@@ -242,8 +242,7 @@ def emulate(args: argparse.Namespace) -> int:
                 time.sleep(0.05)
         finally:
             lost, problem = stop_emulator(emulator, bus)
-    counts = (f"{emulator.frames_received} frames received ({emulator.frames_not_addressed} not addressed to "
-              f"node {profile.node_id}), {emulator.frames_sent} sent")
+    counts = emulator_counts(emulator)
     if lost:
         sys.stdout.flush()
         sys.stderr.write(f"dobhil emulate: stopped: bus {spec.describe()} lost ({lost}); {counts}\n")
@@ -252,6 +251,17 @@ def emulate(args: argparse.Namespace) -> int:
     if problem:
         sys.stderr.write(f"dobhil emulate: warning: bus shutdown failed: {problem}\n")
     return 0
+
+
+def emulator_counts(emulator: Any) -> str:
+    """The emulator's frame counts for its last line: received (and of them, those for another
+    node: a shared bus), sent, and the sends its bus
+    refused (ENOBUFS: its transmit queue full; counted, the emulated drive goes on), the
+    frames the host never got (dobhil/emulator/protocol.py, ``EmulatedDrive._send``)."""
+    counts = (f"{emulator.frames_received} frames received ({emulator.frames_not_addressed} not addressed to "
+              f"node {emulator.profile.node_id}), {emulator.frames_sent} sent")
+    refused = int(emulator.send_errors)
+    return counts + (f", {refused} refused by the bus" if refused else "")
 
 
 def stop_emulator(emulator: Any, bus: Any) -> tuple[str, str]:

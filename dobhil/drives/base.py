@@ -131,11 +131,14 @@ class Confirmation(IntEnum):
 
 @dataclass(frozen=True, slots=True)
 class FrameResult:
-    """One safe-stop frame: what it was, whether it went out, and why not."""
+    """One safe-stop frame: what it was, whether it went out, why not, and how many of its
+    attempts the bus refused (retried for :data:`SAFE_STOP_RETRY` s: a full transmit queue
+    that drains meanwhile takes it)."""
 
     what: str   # e.g. "zero torque", "IDLE"
     sent: bool
     error: str = ""
+    refused: int = 0   # attempts the bus refused (all of them when not sent)
 
 
 @dataclass(frozen=True, slots=True)
@@ -483,14 +486,16 @@ class Drive(ABC):
         """One safe-stop frame, retried for up to SAFE_STOP_RETRY s of wall time while
         the bus refuses it. Never raises."""
         give_up = time.monotonic() + SAFE_STOP_RETRY
+        refused = 0
         while True:
             try:
                 self._bus.send(make())
-                return FrameResult(what, True)
+                return FrameResult(what, True, refused=refused)
             except Exception as exc:  # safety path: every frame gets its own attempt
+                refused += 1
                 error = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
                 if time.monotonic() >= give_up:
-                    return FrameResult(what, False, error)
+                    return FrameResult(what, False, error, refused)
                 time.sleep(0.001)
 
     def _confirm_timeout(self) -> float:

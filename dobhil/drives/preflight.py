@@ -47,7 +47,7 @@ from dobhil.drives.bus_load import BusBudget, CycleFrame
 from dobhil.drives.bus_load import budget as make_budget
 from dobhil.drives.bus_load import frame_bits as wire_bits
 from dobhil.drives.profile import DriveProfile
-from dobhil.drives.socketcan_link import link_info, link_problems
+from dobhil.drives.socketcan_link import link_down_text, link_info, link_problems
 from dobhil.drives.waits import WAIT_SLICE, Cancel
 
 __all__ = [
@@ -455,6 +455,8 @@ def run_preflight(
                                tuple([*profile_rate_findings(profile, period), finding]))
     when = stamp or (lambda m: m.timestamp if m.timestamp > 0 else clock())
     link = link_info(bus)  # SocketCAN: the kernel's controller state, bit rate, queue
+    if link is not None and link.up is False:
+        return _link_down_report(profile, window, bitrate, link.name)
     link_found = [Finding(Severity.MISMATCH if bad else Severity.NOTE, text)
                   for bad, text in (link_problems(link, bitrate) if link is not None else [])]
     state = link.state if link is not None and link.state else _bus_state(bus)
@@ -475,6 +477,15 @@ def run_preflight(
                 *budget_findings(bus_budget), *node_found, *cap.findings]
     return PreflightReport(profile.name or profile.protocol, profile.node_id, window, nodes,
                            bus_report, tuple(findings), bus_budget)
+
+
+def _link_down_report(profile: DriveProfile, window: float, bitrate: int | None, name: str) -> PreflightReport:
+    """An interface that is down: nothing to ask (every send fails with ENETDOWN) and
+    nothing to hear, so nothing is listened to; its one finding refuses the run, rather
+    than a request "not sent (bus off or transmit queue full?)" and a drive "not heard"."""
+    finding = Finding(Severity.MISMATCH, link_down_text(name), refuses_run=True)
+    return PreflightReport(profile.name or profile.protocol, profile.node_id, window, (),
+                           BusReport("DOWN", 0, 0, 0.0, bitrate, 0.0), (finding,))
 
 
 def configured_bitrate(drive_bitrate: int, profile: DriveProfile) -> int | None:

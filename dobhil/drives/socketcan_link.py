@@ -6,6 +6,8 @@ ACTIVE there), the bit rate or the transmit queue length; the kernel does, throu
 in the dependency set reads it: this module runs that command once, parses its JSON
 (:func:`parse_link`, pure, tested against literal output) and turns it into findings:
 
+- the interface down (no ``UP`` among its flags): nothing can be sent (``send()`` fails with
+  ENETDOWN) nor heard on it;
 - controller state other than ERROR-ACTIVE (ERROR-WARNING, ERROR-PASSIVE, BUS-OFF);
 - ``txqueuelen`` below 100: a burst fills SocketCAN's default queue of 10 and ``send()``
   fails at once with ENOBUFS;
@@ -25,7 +27,7 @@ from typing import Any
 
 import can
 
-__all__ = ["LinkInfo", "link_info", "link_problems", "parse_link"]
+__all__ = ["LinkInfo", "link_down_text", "link_info", "link_problems", "parse_link"]
 
 #: below this, bursts overflow the queue (ENOBUFS)
 MIN_TXQUEUELEN = 100
@@ -39,6 +41,7 @@ class LinkInfo:
     state: str | None        # "ERROR-ACTIVE", "BUS-OFF", ... (None: no controller)
     bitrate: int | None
     restart_ms: int | None
+    up: bool | None = None   # administratively up ("UP" among the flags); None: not said
 
 
 def parse_link(text: str) -> LinkInfo | None:
@@ -53,9 +56,15 @@ def parse_link(text: str) -> LinkInfo | None:
             name=str(entry.get("ifname", "")), kind=str(info.get("info_kind", "")),
             txqueuelen=_int(entry.get("txqlen")), state=details.get("state"),
             bitrate=_int(bittiming.get("bitrate")), restart_ms=_int(details.get("restart_ms")),
+            up=_flag(entry.get("flags"), "UP"),
         )
     except (ValueError, LookupError, TypeError, AttributeError):
         return None
+
+
+def _flag(flags: Any, name: str) -> bool | None:
+    """Whether ``name`` is among an interface's ``flags`` (None: no list of flags)."""
+    return name in flags if isinstance(flags, list) else None
 
 
 def _int(value: Any) -> int | None:
@@ -80,10 +89,18 @@ def link_info(bus: can.BusABC, timeout: float = 1.0) -> LinkInfo | None:
     return parse_link(done.stdout) if done.returncode == 0 else None
 
 
+def link_down_text(name: str) -> str:
+    """The one line for an interface that is down."""
+    return f"{name} is down: nothing can be sent or heard on it; sudo ip link set {name} up"
+
+
 def link_problems(link: LinkInfo, expected_bitrate: int | None) -> list[tuple[bool, str]]:
-    """(is a mismatch, text) per problem; notes have False."""
+    """(is a mismatch, text) per problem; notes have False. An interface that is down is
+    the only problem said: nothing else about it can be measured or matters first."""
     out: list[tuple[bool, str]] = []
     name = link.name
+    if link.up is False:
+        return [(True, link_down_text(name))]
     if link.state is not None and link.state != "ERROR-ACTIVE":
         out.append((True, f"{name} is {link.state}: check wiring, termination (120 ohm at both ends) "
                           f"and bit rate; then sudo ip link set {name} down && sudo ip link set {name} up"))

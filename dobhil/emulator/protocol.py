@@ -28,6 +28,7 @@ Two timing modes, one state machine:
 
 from __future__ import annotations
 
+import errno
 import heapq
 import math
 import random
@@ -53,6 +54,21 @@ _MAX_LAG_PERIODS = 10  # real time: ticks later than this are skipped, not repla
 _MAX_BATCH = 64  # real time: frames read together at most (a flood must not stall the ticks)
 #: [s] real-time tick of an emulated drive whose protocol streams no feedback of its own
 DEFAULT_TICK = 1e-3
+
+
+#: errnos of a send that no later send can get through: the interface is down (ENETDOWN) or
+#: gone (ENODEV; ENXIO once the socket's interface no longer exists). Linux's net/can/af_can.c
+#: (``can_send``: ENETDOWN when the interface is not up) and net/can/raw.c (``raw_notify`` sets
+#: ENETDOWN / ENODEV as the socket's pending error, which the next ``send`` or ``recv`` returns
+#: -- whichever comes first -- and ``raw_sendmsg``: ENXIO).
+BUS_GONE_ERRNOS = frozenset({errno.ENETDOWN, errno.ENODEV, errno.ENXIO})
+
+
+def bus_gone(exc: can.CanError) -> bool:
+    """True when a python-can error says the interface itself is down or gone (its
+    ``error_code``, the errno python-can's SocketCAN bus passes on), not that it refused one
+    frame (ENOBUFS: a full transmit queue drains)."""
+    return exc.error_code in BUS_GONE_ERRNOS
 
 
 def tick_period(profile: DriveProfile) -> float:
@@ -311,9 +327,11 @@ class EmulatedDrive(ABC):
     def _send(self, msg: can.Message) -> None:
         try:
             self._bus.send(msg)
-        except can.CanError:   # refused (ENOBUFS): counted, the drive goes on
-            self.send_errors += 1
-            return
+        except can.CanError as exc:
+            if not bus_gone(exc):   # refused (ENOBUFS: the queue is full): counted, the drive goes on
+                self.send_errors += 1
+                return
+            raise BusError(f"{self._bus.channel_info}: send failed: {type(exc).__name__}: {exc}") from exc
         except Exception as exc:  # a transport's own error (a hub gone): the bus is gone
             raise BusError(f"{self._bus.channel_info}: send failed: {type(exc).__name__}: {exc}") from exc
         self.frames_sent += 1
@@ -339,9 +357,13 @@ class EmulatedDrive(ABC):
         """Apply one frame. A drive never stops because of what arrives on its bus: a
         frame whose handling raises is counted (``frame_errors``, the text in
         ``last_frame_error``) and dropped; protocols reject malformed frames themselves,
-        so a nonzero count is an emulator bug the property tests look for."""
+        so a nonzero count is an emulator bug the property tests look for. The bus gone
+        while the frame was answered (:meth:`_send`'s BusError) is no fault of the frame:
+        it ends the drive as any other send into a bus that is gone does."""
         try:
             self._on_frame(msg)
+        except BusError:
+            raise
         except Exception as exc:  # last line of defence of a bus participant
             self.frame_errors += 1
             self.last_frame_error = f"{type(exc).__name__}: {exc}"

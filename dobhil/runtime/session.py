@@ -325,7 +325,8 @@ def summary(session: RunSession, result: RunResult) -> dict[str, Any]:
         "drive_warning": report.warning() if report is not None else "",
         "drive_notes": list(session.drive.notes),
         "safe_stop": None if report is None else {
-            "frames": [{"what": f.what, "sent": f.sent, "error": f.error} for f in report.frames],
+            "frames": [{"what": f.what, "sent": f.sent, "error": f.error, "refused": f.refused}
+                       for f in report.frames],
             "confirmation": report.confirmation.name.lower()},
         "timing": session.timing.label, "mode": session.config.loop.mode,
         "period": session.settings.period, "bus": session.bus_spec.describe(),

@@ -576,3 +576,31 @@ def test_consumer_heartbeat_needs_0x1016_in_the_eds(tmp_path: Path) -> None:
     CiA402Drive(SimBus(), profile(eds=str(eds)))  # type: ignore[arg-type]   # not asked for: fine
     with pytest.raises(ConfigError, match=r"cia402.consumer_heartbeat: expected 0, the EDS has no 0x1016"):
         CiA402Drive(SimBus(), profile(eds=str(eds), consumer_heartbeat=0.05))  # type: ignore[arg-type]
+
+
+# -- the sample instant --------------------------------------------------------
+
+def _stamped(arbitration_id: int, data: bytes, stamp: float) -> can.Message:
+    return can.Message(arbitration_id=arbitration_id, data=data, timestamp=stamp, is_extended_id=False)
+
+
+def test_a_sample_is_measured_from_the_sync_stamped_before_it() -> None:
+    """Frames that reached the host out of their stamps' order (on two processors a SYNC's
+    echo and a TPDO enter the kernel apart): a TPDO stamped before the newest SYNC read was
+    sampled by the SYNC before that one -- never a negative latency."""
+    from dobhil.drives.cia402.codec import TPDO_MOTION_STRUCT, TPDO_STATUS_STRUCT, Cob
+    drive = CiA402Drive(SimBus(), profile(), clock=lambda: 0.0)  # type: ignore[arg-type]
+    status = TPDO_STATUS_STRUCT.pack(0x0237, 0, 0)
+    motion = TPDO_MOTION_STRUCT.pack(0, 10)
+
+    def sample(*frames: can.Message) -> float:
+        fresh = [drive.apply(f) for f in frames]
+        assert fresh[-1] and drive.feedback is not None
+        return drive.feedback.sampled_at
+
+    sync, tpdo1, tpdo2 = Cob.SYNC, Cob.tpdo(1, 5), Cob.tpdo(2, 5)
+    assert sample(_stamped(sync, b"", 1.000), _stamped(tpdo1, status, 1.004), _stamped(tpdo2, motion, 1.005)) == 1.000
+    # the next SYNC (1.010) read before this TPDO pair, which the bus stamped at 1.008
+    assert sample(_stamped(sync, b"", 1.010), _stamped(tpdo1, status, 1.007), _stamped(tpdo2, motion, 1.008)) == 1.000
+    assert sample(_stamped(tpdo1, status, 1.013), _stamped(tpdo2, motion, 1.014)) == 1.010
+    assert drive.feedback.sample_latency == pytest.approx(0.004)

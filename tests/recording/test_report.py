@@ -204,3 +204,11 @@ def test_no_prediction_compared_for_a_run_never_in_contact() -> None:
     from dobhil.run_report import prediction
     predicted, info = prediction(_contact_run([-0.005] * 10, truth=True))
     assert predicted is None and not info["available"] and "no reference step taken in contact" in info["why"]
+
+
+def test_no_prediction_for_a_run_that_ended_at_its_step() -> None:
+    """A run stopped (a bus error, say) in the very cycle of its step in contact: nothing to
+    compare, said so -- not python-control's ValueError on a single time step."""
+    from dobhil.run_report import prediction
+    predicted, info = prediction(_contact_run([-0.005, -0.003, -0.001, 0.0, 1e-5, 2e-5], truth=True))
+    assert predicted is None and not info["available"] and "ended within a cycle of its first step" in info["why"]

@@ -235,7 +235,8 @@ def check_row(row: Row, result: RunResult, sink: Sink, session: RunSession,
 
 def test_transient_enobufs_is_retried_in_the_safe_stop() -> None:
     """The bus refuses the torque frame and, once, the safe stop's zero torque: the safe
-    stop retries it, so the drive still sees zero torque then IDLE."""
+    stop retries it, so the drive still sees zero torque then IDLE; the report counts the
+    refused attempt."""
     config = matrix_config(Path(), "lockstep")
     refuse = RefuseSend(at=AT, count=2, ids={TORQUE})
     with RunSession(config, emulate=True, lockstep=True, bus_wrapper=faulty(refuse)) as session, \
@@ -243,6 +244,7 @@ def test_transient_enobufs_is_retried_in_the_safe_stop() -> None:
         result = session.run()
         assert refuse.applied == 2
         assert result.safe_stop is not None and result.safe_stop.sent
+        assert [f.refused for f in result.safe_stop.frames] == [1, 0]
         assert_stopped_safely(session, sniffer, result.stop, StopReason.BUS_ERROR)
 
 

@@ -384,7 +384,7 @@ IP_VCAN0 = """[{"ifindex":5,"ifname":"vcan0","flags":["NOARP","UP","LOWER_UP"],"
 def test_socketcan_link_facts_parse_and_compare() -> None:
     from dobhil.drives.socketcan_link import LinkInfo, link_problems, parse_link
     can0 = parse_link(IP_CAN0)
-    assert can0 == LinkInfo("can0", "can", 10, "BUS-OFF", 250000, 0)
+    assert can0 == LinkInfo("can0", "can", 10, "BUS-OFF", 250000, 0, up=True)
     problems = link_problems(can0, 1_000_000)
     assert [bad for bad, _ in problems] == [True, True, False, True]
     texts_ = [t for _, t in problems]
@@ -392,8 +392,42 @@ def test_socketcan_link_facts_parse_and_compare() -> None:
     assert texts_[1] == "can0 txqueuelen 10: bursts fail with ENOBUFS; sudo ip link set can0 txqueuelen 1000"
     assert "restart-ms 100" in texts_[2] and "runs at 250000 bit/s, drive.bitrate is 1000000" in texts_[3]
     vcan0 = parse_link(IP_VCAN0)
-    assert vcan0 == LinkInfo("vcan0", "vcan", 1000, None, None, None) and link_problems(vcan0, 1_000_000) == []
+    assert vcan0 == LinkInfo("vcan0", "vcan", 1000, None, None, None, up=True) and link_problems(vcan0, 1_000_000) == []
     assert parse_link("") is None and parse_link("[]") is None and parse_link('[{"txqlen": "x"}]') is not None
+    assert parse_link('[{"ifname": "x"}]') == LinkInfo("x", "", None, None, None, None, up=None)
+
+
+#: ``ip -details -json link show vxb`` after ``ip link set vxb down`` (Debian 12's kernel 6.1)
+IP_VXB_DOWN = """[{"ifindex":3,"link":"vxa","ifname":"vxb","flags":["NOARP"],"mtu":72,"qdisc":"noqueue",
+"operstate":"DOWN","linkmode":"DEFAULT","group":"default","txqlen":1000,"link_type":"can","promiscuity":0,
+"allmulti":0,"min_mtu":0,"max_mtu":0,"linkinfo":{"info_kind":"vxcan"},"num_tx_queues":1,"num_rx_queues":1}]"""
+
+
+def test_an_interface_that_is_down_is_its_only_problem() -> None:
+    from dobhil.drives.socketcan_link import link_problems, parse_link
+    down = parse_link(IP_VXB_DOWN)
+    assert down is not None and down.up is False
+    assert link_problems(down, 1_000_000) == [
+        (True, "vxb is down: nothing can be sent or heard on it; sudo ip link set vxb up")]
+
+
+def test_a_run_on_an_interface_that_is_down_is_refused_in_one_line(monkeypatch: pytest.MonkeyPatch,
+                                                                   capsys: pytest.CaptureFixture[str]) -> None:
+    """The kernel says the interface is down: the preflight neither asks nor listens, and
+    the run is refused in one line naming what to do (nothing is sent, nothing enabled)."""
+    from can.interfaces.virtual import VirtualBus
+
+    from dobhil.drives import preflight
+    from dobhil.drives.socketcan_link import parse_link
+    sent: list[can.Message] = []
+    monkeypatch.setattr(preflight, "link_info", lambda bus: parse_link(IP_VXB_DOWN))
+    monkeypatch.setattr(VirtualBus, "send",
+                        lambda self, msg, timeout=None: sent.append(msg))
+    code = main(["run", str(DEMO), "--bus", f"virtual:down-{next(_CHANNELS)}"])
+    err = capsys.readouterr().err
+    assert code == 1 and sent == []
+    assert err == ("dobhil run: refused to enable: vxb is down: nothing can be sent or heard on it; sudo ip link "
+                   "set vxb up (dobhil check CONFIG shows all it measured; --no-preflight skips)\n"), err
 
 
 def test_forced_preflight_in_lockstep_measures_simulated_time() -> None:

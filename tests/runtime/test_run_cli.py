@@ -141,6 +141,8 @@ def test_bus_error_is_a_stop_with_the_loud_line(monkeypatch: pytest.MonkeyPatch,
     assert info["drive_disabled"] is False
     assert [f["what"] for f in info["safe_stop"]["frames"]] == ["zero torque", "IDLE"]
     assert not any(f["sent"] for f in info["safe_stop"]["frames"])
+    # each frame retried while the bus refused it (SAFE_STOP_RETRY), every attempt counted
+    assert all(f["refused"] >= 1 for f in info["safe_stop"]["frames"])
     warning = one_line(captured.err)
     assert warning.startswith("WARNING: drive may still be enabled: node 3 ")
     assert warning.endswith("; cut power")

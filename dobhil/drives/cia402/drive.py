@@ -22,7 +22,8 @@ controlword bit 7, once).
 
 Cycle: the RPDO (controlword 0x0F, target torque per mille of the rated torque) goes out,
 the node applies it at the next SYNC, samples and answers with both TPDOs; the motion
-event comes with the second one (none when the first of that SYNC was lost). EMCY
+event comes with the second one (none when the first of that SYNC was lost), sampled at
+the newest SYNC the bus stamped no later than that TPDO (:meth:`CiA402Drive._sampled_at`). EMCY
 (0x80 + node), a statusword out of Operation enabled, an NMT state other than operational
 in the heartbeat (0x700 + node) or a lost heartbeat are faults.
 
@@ -145,7 +146,7 @@ class CiA402Drive(Drive):
         self._torque_actual = math.nan
         self._nmt = -1
         self._emcy = 0
-        self._sync_at = math.nan
+        self._syncs = (math.nan, math.nan)   # the two newest SYNC stamps read: (before, newest)
         self.identity: tuple[int, ...] = ()
 
     # -- public ---------------------------------------------------------------
@@ -461,7 +462,7 @@ class CiA402Drive(Drive):
 
     def _send_sync(self) -> None:
         self._send_all((self._sync_msg,), "SYNC")
-        self._sync_at = time.time()  # the host's send time: the bus stamps of received frames' clock
+        self._note_sync(time.time())  # the host's send time: the bus stamps of received frames' clock
 
     # -- hooks ----------------------------------------------------------------
 
@@ -540,11 +541,11 @@ class CiA402Drive(Drive):
         data = msg.data
         try:
             if arb == self._motion_id:
-                return self._on_motion_pdo(data)
+                return self._on_motion_pdo(data, msg.timestamp)
             if arb == self._status_id:
                 return self._on_status_pdo(data)
             if arb == Cob.SYNC:
-                self._sync_at = msg.timestamp or math.nan
+                self._note_sync(msg.timestamp or math.nan)
                 return _NO_EVENTS
             if arb == self._heartbeat_id and len(data):
                 self._nmt = data[0] & 0x7F
@@ -566,7 +567,25 @@ class CiA402Drive(Drive):
         self._note_statusword(statusword)
         return (self._state_event(),)
 
-    def _on_motion_pdo(self, data: bytearray) -> Sequence[DriveEvent]:
+    def _note_sync(self, stamp: float) -> None:
+        self._syncs = (self._syncs[1], stamp)
+
+    def _sampled_at(self, stamp: float) -> float:
+        """The bus stamp of the SYNC that sampled the motion TPDO stamped ``stamp``: the
+        newest SYNC read, unless the bus stamped it after this TPDO -- then the one before.
+        On a host with several processors, frames that enter the kernel on different ones
+        (a SYNC's echo, a TPDO from the wire) can reach a socket out of the order of their
+        stamps (each is stamped where it enters: netif_rx in the kernel's net/core/dev.c),
+        and a SYNC read before a TPDO stamped before it would make that sample's latency
+        negative (tests/socketcan/test_kernel_faults.py sees it on two processors). A TPDO
+        read before its own SYNC cannot be told from a late one: it is measured from the
+        SYNC before (a period more)."""
+        before, newest = self._syncs
+        if not stamp > 0 or not newest > stamp:   # no stamp, no SYNC yet, or in order
+            return newest
+        return before if before <= stamp else math.nan
+
+    def _on_motion_pdo(self, data: bytearray, stamp: float) -> Sequence[DriveEvent]:
         velocity, mode = self._layouts.motion.unpack_from(data)
         state: StateEvent | None = None
         if mode != self._mode:
@@ -578,7 +597,7 @@ class CiA402Drive(Drive):
             return _NO_EVENTS if state is None else (state,)
         self._status_fresh = False
         motion = MotionEvent(self._position, velocity * self._scale.rad_s_per_velocity_count,
-                             self._sync_at)
+                             self._sampled_at(stamp))
         return (motion,) if state is None else (state, motion)
 
     def _note_statusword(self, statusword: int) -> None:
