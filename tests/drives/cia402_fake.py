@@ -92,14 +92,18 @@ class SimBus:
             if not self.tasks or self.tasks[0].due > end + 1e-12:
                 self.now = max(self.now, end)
                 return None
-            task = heapq.heappop(self.tasks)
-            self.now = task.due
-            task.due += task.period
-            heapq.heappush(self.tasks, task)
-            self.to_host(task.msg)
-            if task.to_node and self.node is not None:
-                self.node.receive(self.inbox[-1])
+            self.fire(heapq.heappop(self.tasks))
         return self.inbox.popleft()
+
+    def fire(self, task: _Periodic) -> None:
+        """One frame of a periodic task, at its due time: to the host and (if it says so) to
+        the node; the task is due again a period later."""
+        self.now = task.due
+        task.due += task.period
+        heapq.heappush(self.tasks, task)
+        self.to_host(task.msg)
+        if task.to_node and self.node is not None:
+            self.node.receive(self.inbox[-1])
 
 
 class _Outbox:

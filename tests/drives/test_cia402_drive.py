@@ -209,14 +209,8 @@ class StalledBus(SimBus):
         end, self.stall = self.now + self.stall, 0.0
         while self.tasks and self.tasks[0].due <= end:
             task = heapq.heappop(self.tasks)
-            if task.stopped:
-                continue
-            self.now = task.due
-            task.due += task.period
-            heapq.heappush(self.tasks, task)
-            self.to_host(task.msg)
-            if task.to_node and self.node is not None:
-                self.node.receive(self.inbox[-1])
+            if not task.stopped:
+                self.fire(task)
         self.now = end
         return self.inbox.popleft() if self.inbox else None
 
