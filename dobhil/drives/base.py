@@ -216,6 +216,8 @@ class HostTimeout:
     def starving_gap(self) -> float:
         """[s] the shortest gap between the host's commands that can starve the watch."""
         return max(self.timeout - self.fed_every, 0.0)
+
+
 _NO_EVENTS: tuple[DriveEvent, ...] = ()
 
 

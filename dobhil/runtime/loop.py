@@ -40,15 +40,15 @@ the cycles, and the young generations are collected *between* cycles when the ti
 the next deadline (or expected frame) allows, or when they grow past a hard bound. The
 collector's state is restored after the run.
 
-Blame (real time): a drive that watches the host (its watchdog on the commands, a heartbeat
+Blame: a drive that watches the host (its watchdog on the commands, a heartbeat
 consumer, a command timeout: :attr:`Drive.host_watch <dobhil.drives.base.Drive.host_watch>`)
 faults when the host's frames stop, whoever stopped them. The loop keeps its own measure of
 that: the gaps between the commands it sent (a cycle start each, on the wall clock, so a
-process that was not scheduled or was stopped counts them too). When the drive's fault is
-that watch expiring (:meth:`Drive.host_timeout <dobhil.drives.base.Drive.host_timeout>`)
-and a gap long enough to starve it went on, or ended within the time the drive takes to
-report it, the stop is ``host_too_slow`` with the gap measured; otherwise ``drive_fault``,
-saying how long the longest gap was.
+process that was not scheduled or was stopped counts them too; in lockstep on the simulated
+clock). When the drive's fault is that watch expiring (:meth:`Drive.host_timeout
+<dobhil.drives.base.Drive.host_timeout>`) and a gap long enough to starve it went on, or
+ended within the time the drive takes to report it, the stop is ``host_too_slow`` with the
+gap measured; otherwise ``drive_fault``, saying how long the longest gap was.
 
 Safety: every way out of :meth:`ForceLoop.run` -- done, feedback timeout, position or
 velocity limit, non-finite value, drive fault, bus error, stop request (SIGINT/SIGTERM),
@@ -371,10 +371,11 @@ def _rate_watch(drive: Drive, period: float) -> _RateWatch:
 
 class _CommandGaps:
     """The host's lateness as a drive's watch on it sees it: the gaps between consecutive
-    torque commands, each taken at its cycle's start (``time.perf_counter``: the command
-    goes out microseconds later; a process stopped or not scheduled counts in it). Per
-    cycle only a subtraction and two comparisons: the longest gap of the run, and the
-    newest gap of at least ``floor`` s (long enough to starve the drive's watch)."""
+    torque commands, each taken at its cycle's start (real time: ``time.perf_counter``, the
+    command goes out microseconds later, and a process stopped or not scheduled counts in
+    it; lockstep: the simulated clock). Per cycle only a subtraction and two comparisons:
+    the longest gap of the run, and the newest gap of at least ``floor`` s (long enough to
+    starve the drive's watch)."""
 
     def __init__(self) -> None:
         self.floor = math.inf
@@ -547,15 +548,19 @@ class ForceLoop:
         return Stop(StopReason.DONE, f"ran {self.settings.duration:g} s", self._at, self._now())
 
     def _watch_gaps(self) -> None:
-        """Start measuring the gaps between commands (real time only: lockstep has no
-        host to be late), against the drive's watch on the host. A gap one period short
-        of starving it still counts: a drive checks its watch on its own tick, and a
-        frame's way to it varies by up to a period."""
+        """Start measuring the gaps between commands against the drive's watch on the
+        host: on the wall clock in real time, on the simulated clock in lockstep (where
+        only a host that stopped stepping, as a test does, is ever late). A gap one
+        period short of starving the watch still counts: a drive checks it on its own
+        tick, and a frame's way to it varies by up to a period."""
         watch: HostTimeout | None = getattr(self.drive, "host_watch", None)
         floor = math.inf
-        if watch is not None and self.settings.timing is not Timing.LOCKSTEP:
+        if watch is not None:
             floor = max(watch.starving_gap - self.settings.period, self.settings.period)
-        self._gaps.start(time.perf_counter(), floor)
+        self._gaps.start(self._gap_clock(), floor)
+
+    def _gap_clock(self) -> float:
+        return self.clock() if self.settings.timing is Timing.LOCKSTEP else time.perf_counter()
 
     def _blame(self, detail: str) -> tuple[StopReason, str]:
         """A drive fault: ``host_too_slow`` when it is the drive's watch on the host
@@ -563,12 +568,12 @@ class ForceLoop:
         host was late, not the drive), else ``drive_fault``."""
         timeout = getattr(self.drive, "host_timeout", None)
         watch: HostTimeout | None = timeout() if timeout is not None else None
-        if watch is None or self.settings.timing is Timing.LOCKSTEP:
+        if watch is None:
             return StopReason.DRIVE_FAULT, detail
         period = self.settings.period
         allows = f"the drive's {watch.what} allows {watch.timeout * 1e3:g} ms" + (
             f", fed every {watch.fed_every * 1e3:g} ms" if watch.fed_every else "")
-        gap = self._gaps.starving(time.perf_counter(), watch.timeout + watch.reported_within + 2 * period)
+        gap = self._gaps.starving(self._gap_clock(), watch.timeout + watch.reported_within + 2 * period)
         if gap > 0:
             return StopReason.HOST_TOO_SLOW, (f"{detail}: no command from the host for {gap * 1e3:.0f} ms "
                                               f"({allows}): the host was late, not the drive")
@@ -803,6 +808,8 @@ class ForceLoop:
                 sample_latency = fb.sample_latency
                 if sample_latency == sample_latency:
                     self.sample_latency.add(sample_latency)
+        else:
+            self._gaps.sent(self.clock())   # lockstep: simulated time
         self.exec_time.add(exec_time)
         self._store(k, t, q, dq, out, period_error, exec_time, latency, sample_latency)
         self.cycles += 1
