@@ -32,14 +32,14 @@ import yaml
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from dobhil.cli.run_cmd import LOCKSTEP_HINT, stop_hint
+from dobhil.cli.run_cmd import LOCKSTEP_HINT, report, stop_hint
 from dobhil.config import Config, load_config
 from dobhil.drives.cia402.codec import Cob
 from dobhil.drives.odrive import codec
 from dobhil.drives.odrive.codec import CmdId
 from dobhil.emulator.faults import FaultyBus, LoseSent, faulty
 from dobhil.runtime.loop import RunResult, _CommandGaps
-from dobhil.runtime.session import RunSession
+from dobhil.runtime.session import RunSession, summary
 from dobhil.runtime.stop import StopReason
 
 from .helpers import DEMO, DRIVERS, NODE, REALTIME_SLACK, REPO, STEP_FROM_ZERO, demo_config, wait_until, \
@@ -76,9 +76,9 @@ def emulated(session: RunSession) -> Any:
     return emulator
 
 
-def run_stalled(config: Config, *, at: int = 100, wrapper: Any = None) -> tuple[RunResult, Stall]:
+def run_stalled(config: Config, *, at: int = 100, wrapper: Any = None) -> tuple[RunResult, Stall, dict[str, Any]]:
     """A real-time emulated run whose loop stalls after cycle ``at`` until the drive's
-    watch fires."""
+    watch fires: its result, the stall, its ``--summary-json`` object."""
     sink = Recorder(at=at)
     with RunSession(config, emulate=True, lockstep=False, sink=sink, bus_wrapper=wrapper) as session:
         emulator = emulated(session)
@@ -86,9 +86,10 @@ def run_stalled(config: Config, *, at: int = 100, wrapper: Any = None) -> tuple[
         sink.action = stall
         result = session.run()
         tripped = bool(emulator.watchdog_tripped)
+        info = summary(session, result)
     assert stall.expired, "the drive's watch never fired during the stall"
     assert tripped
-    return result, stall
+    return result, stall, info
 
 
 def assert_host_blamed(result: RunResult, stall: Stall, allows: str) -> None:
@@ -115,7 +116,7 @@ def test_odrive_watchdog_after_a_late_host_is_the_host(tmp_path: Path) -> None:
     """The loop stalls after cycle 100 until the emulated ODrive's watchdog (100 ms) has
     expired: WATCHDOG_TIMER_EXPIRED reaches the host, and the stop says the host was late,
     by at least as long as it stalled."""
-    result, stall = run_stalled(odrive_config(tmp_path))
+    result, stall, _ = run_stalled(odrive_config(tmp_path))
     assert "WATCHDOG_TIMER_EXPIRED" in result.stop.detail
     assert_host_blamed(result, stall, "the drive's watchdog allows 100 ms")
 
@@ -170,7 +171,7 @@ def test_cia402_heartbeat_consumer_after_a_late_host_is_the_host(tmp_path: Path)
     """The node watches the host's heartbeat (100 ms), which this process sends with its
     torque frames: the loop stalls until the node's consumer fired (EMCY 0x8130). The
     host was late, not the drive."""
-    result, stall = run_stalled(cia402_config(tmp_path, 0.1), wrapper=ThreadPeriodicBus)
+    result, stall, _ = run_stalled(cia402_config(tmp_path, 0.1), wrapper=ThreadPeriodicBus)
     assert "0x8130" in result.stop.detail
     assert_host_blamed(result, stall, "the drive's heartbeat consumer (0x1016) allows 100 ms, fed every 25 ms")
 
@@ -228,7 +229,7 @@ def mit_config(tmp_path: Path, timeout: float) -> Config:
 def test_mit_command_timeout_after_a_late_host_is_the_host(tmp_path: Path) -> None:
     """The loop stalls until the motor's command timeout (100 ms) took it out of motor
     mode; its reply to the next command says communication lost. The host was late."""
-    result, stall = run_stalled(mit_config(tmp_path, 0.1))
+    result, stall, _ = run_stalled(mit_config(tmp_path, 0.1))
     assert "communication lost" in result.stop.detail
     assert_host_blamed(result, stall, "the drive's command timeout allows 100 ms")
 
@@ -327,9 +328,17 @@ def test_command_gaps_find_the_gap_that_starved_the_watch(gaps: list[float], flo
     assert measure.longest == max(gap for _, gap in ended)
 
 
-def test_the_lockstep_hint_follows_only_an_emulated_real_time_host_too_slow() -> None:
+def test_the_lockstep_hint_follows_only_an_emulated_real_time_host_too_slow(tmp_path: Path,
+                                                                            capsys: Any) -> None:
+    """``dobhil run`` prints the hint on the line after the stop line, for an emulated
+    real-time run stopped host_too_slow only."""
     base = {"stop_reason": "host_too_slow", "emulated": True, "timing": "feedback"}
     assert stop_hint(base) == LOCKSTEP_HINT and "--lockstep" in LOCKSTEP_HINT
     assert stop_hint({**base, "emulated": False}) == ""
     assert stop_hint({**base, "timing": "lockstep"}) == ""
     assert stop_hint({**base, "stop_reason": "drive_fault"}) == ""
+    result, _, info = run_stalled(odrive_config(tmp_path))
+    report(info, result.stop.line(), as_json=False)
+    lines = capsys.readouterr().out.splitlines()
+    at = lines.index(result.stop.line())
+    assert lines[at + 1] == LOCKSTEP_HINT
