@@ -2,14 +2,20 @@
 """Real-time emulated runs on a busy machine: how many complete, and who gets the blame.
 
 ``python tools/starve.py`` runs ``dobhil run demo --emulate --duration 2`` 50 times, one
-after the other, while two other real-time emulated runs (restarted as they end) and
-one CPU-bound process run alongside -- what parallel jobs on a 2-core CI box do (pure
-CPU hogs alone do not starve a run: the scheduler favours processes that sleep). It
-prints how many runs completed their duration, the stop reasons of the others, and how
-many stops blamed the drive (``feedback_timeout``, ``drive_fault``) although the host
-was the one too slow; ``--json`` prints one JSON object. Issue 16's target: at least 48
-of 50 complete, and no stop blames the drive for a starved emulator (``host_too_slow``
-says so instead).
+after the other, while two other real-time emulated runs (restarted as they end; the
+measured config, or ``--background CONFIG``) and one CPU-bound process run alongside --
+what parallel jobs on a 2-core CI box do (pure CPU hogs alone do not starve a run: the
+scheduler favours processes that sleep). It prints how many runs completed their
+duration, the stop reasons of the others, and how many stops blamed the drive
+(``feedback_timeout``, ``drive_fault``) although the host was the one too slow; ``--json``
+prints one JSON object. ``--duration 0`` runs the config's own duration; ``--log``
+records each measured run (to a temporary file), as ``dobhil run identify-free --emulate
+--log free.mcap`` does::
+
+    python tools/starve.py --config identify-free --duration 0 --background demo --log
+
+Issue 16's target: at least 48 of 50 complete, and no stop blames the drive for a starved
+emulator (``host_too_slow`` says so instead).
 
 Everything started here is stopped here, by its own process group.
 """
@@ -22,6 +28,7 @@ import os
 import signal
 import subprocess
 import sys
+import tempfile
 import time
 from collections import Counter
 from pathlib import Path
@@ -35,9 +42,11 @@ DRIVE_BLAMED = ("feedback_timeout", "drive_fault")
 SETTINGS: list[str] = []
 
 
-def run_command(config: str, duration: float, json_out: bool = True) -> list[str]:
-    return [sys.executable, "-m", "dobhil", "run", config, "--emulate", "--duration", str(duration),
+def run_command(config: str, duration: float, json_out: bool = True, log: str = "") -> list[str]:
+    return [sys.executable, "-m", "dobhil", "run", config, "--emulate",
+            *(["--duration", str(duration)] if duration > 0 else []),
             *(x for item in SETTINGS for x in ("--set", item)),
+            *(["--log", log] if log else []),
             *(["--summary-json"] if json_out else [])]
 
 
@@ -68,8 +77,8 @@ def stop_background(started: list[subprocess.Popen[bytes]]) -> None:
             proc.wait()
 
 
-def one_run(config: str, duration: float) -> dict[str, object]:
-    done = subprocess.run(run_command(config, duration), cwd=ROOT, capture_output=True, text=True)
+def one_run(config: str, duration: float, log: str = "") -> dict[str, object]:
+    done = subprocess.run(run_command(config, duration, log=log), cwd=ROOT, capture_output=True, text=True)
     try:
         info = json.loads(done.stdout.strip().splitlines()[-1])
     except (json.JSONDecodeError, IndexError):
@@ -84,19 +93,27 @@ def main() -> int:
     parser.add_argument("--parallel", type=int, default=2, help="real-time runs alongside")
     parser.add_argument("--hogs", type=int, default=1, help="CPU-bound processes alongside")
     parser.add_argument("--config", default="demo")
+    parser.add_argument("--background", default="", metavar="CONFIG",
+                        help="config of the real-time runs alongside (default: --config)")
+    parser.add_argument("--log", action="store_true", help="record each measured run (--log)")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                         help="a config override for every run (repeatable)")
     parser.add_argument("--json", action="store_true")
     args = parser.parse_args()
     SETTINGS.extend(args.set)
     load_before = os.getloadavg()
-    background = start_background(args.config, args.duration, args.parallel, args.hogs)
+    background = start_background(args.background or args.config, 2.0 if args.background else args.duration,
+                                  args.parallel, args.hogs)
+    folder = tempfile.TemporaryDirectory() if args.log else None
+    log = str(Path(folder.name) / "run.mcap") if folder is not None else ""
     reasons: Counter[str] = Counter()
     details: list[str] = []
     try:
         time.sleep(1.0)   # the background is running before the first measured run
         for i in range(args.runs):
-            info = one_run(args.config, args.duration)
+            if log and os.path.exists(log):
+                os.unlink(log)   # a run refuses to overwrite a recording
+            info = one_run(args.config, args.duration, log)
             reason = str(info["stop_reason"])
             reasons[reason] += 1
             if reason != "done":
@@ -105,6 +122,8 @@ def main() -> int:
                 print(f"run {i + 1}/{args.runs}: {reason}", flush=True)
     finally:
         stop_background(background)
+        if folder is not None:
+            folder.cleanup()
     result = {"runs": args.runs, "completed": reasons["done"], "stop_reasons": dict(reasons),
               "drive_blamed": sum(reasons[r] for r in DRIVE_BLAMED),
               "host_too_slow": reasons["host_too_slow"],
@@ -114,7 +133,8 @@ def main() -> int:
     else:
         for line in details:
             print(line)
-        print(f"{result['completed']} of {args.runs} runs completed their {args.duration:g} s; "
+        print(f"{result['completed']} of {args.runs} runs completed their "
+              f"{f'{args.duration:g} s' if args.duration > 0 else 'duration'}; "
               f"stops blaming the drive: {result['drive_blamed']}, host too slow: "
               f"{result['host_too_slow']} (load average before {load_before[0]:.2f}, "
               f"after {result['load_after'][0]:.2f})")  # type: ignore[index]

@@ -171,19 +171,38 @@ def log_hooks(log: Any) -> dict[str, Any]:
     return {} if log is None else {"sink": log, "bus_wrapper": log.wrap_bus}
 
 
+#: after a host_too_slow stop of an emulated real-time run: what to do instead
+LOCKSTEP_HINT = ("dobhil run: hint: this machine was too busy for a real-time emulated run; on a loaded "
+                 "machine run excitation runs (identify-free, identify-contact) with --lockstep: simulated "
+                 "time, the same record, nothing can be late")
+
+
+def stop_hint(info: dict[str, Any]) -> str:
+    """One line of advice after the stop line, or "": an emulated real-time run stopped
+    ``host_too_slow`` would not have with ``--lockstep``."""
+    if info.get("stop_reason") == "host_too_slow" and info.get("emulated") and info.get("timing") != "lockstep":
+        return LOCKSTEP_HINT
+    return ""
+
+
 def report(info: dict[str, Any], stop_line: str, *, as_json: bool) -> None:
     warning = info.get("drive_warning") or ""
+    hint = stop_hint(info)
     if not as_json:   # (in the JSON: drive_notes)
         for note in info.get("drive_notes", ()):
             sys.stderr.write(f"dobhil run: note (not refused: the run went on): {note}\n")
     if as_json:
         json.dump(info, sys.stdout)
         sys.stdout.write("\n")
+        if hint:
+            sys.stderr.write(f"{hint}\n")
         if warning:
             sys.stderr.write(f"WARNING: {warning}\n")
         return
     if info["cycles"] == 0:  # nothing ran (e.g. the drive never answered): the reason only
         sys.stderr.write(f"dobhil run: {stop_line}\n")
+        if hint:
+            sys.stderr.write(f"{hint}\n")
         if warning:
             sys.stderr.write(f"WARNING: {warning}\n")
         return
@@ -195,6 +214,8 @@ def report(info: dict[str, Any], stop_line: str, *, as_json: bool) -> None:
           + (f", {skipped} {'frames' if info['timing'] == 'feedback' else 'deadlines'} skipped"
              if skipped else ""))
     print(stop_line)
+    if hint:
+        print(hint)
     if f["tau_ref"] is not None:
         true = "-" if f["tau_int_true"] is None else f"{f['tau_int_true']:.4f}"
         print(f"final: tau_ref {f['tau_ref']:.4f} N m, tau_int^ {f['tau_int_hat']:.4f} N m, "

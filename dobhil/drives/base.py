@@ -18,6 +18,14 @@ Protocol modules report what they decode as protocol-neutral events:
 :class:`MotionEvent` (position/velocity in rad, rad/s) and :class:`StateEvent`
 (whether the drive follows torque commands, its error code, and text for messages).
 
+Host timeouts: a drive that watches the host (an ODrive's watchdog on its setpoints, a CiA
+402 node's heartbeat consumer, an MIT motor's command timeout) faults when the host's frames
+stop coming, whoever stopped them. :attr:`Drive.host_watch` says what the drive watches and
+how long it waits (:class:`HostTimeout`), :meth:`Drive.host_timeout` whether the fault it
+reports now is that watch expiring; each protocol classifies its own faults
+(:meth:`Drive._host_watch_of`). The loop compares it with what it measured of its own
+lateness: a fault that followed a host too late to feed the watch is the host's.
+
 Hot path (``send_torque``, ``poll``): no logging, no printing, no blocking beyond the
 given timeout; the torque frame may be a preallocated message the hook refills.
 
@@ -61,6 +69,7 @@ __all__ = [
     "DriveStatus",
     "Feedback",
     "FrameResult",
+    "HostTimeout",
     "MotionEvent",
     "SafeStopReport",
     "StateEvent",
@@ -187,6 +196,28 @@ class StateEvent:
 
 
 DriveEvent = MotionEvent | StateEvent
+
+
+@dataclass(frozen=True, slots=True)
+class HostTimeout:
+    """A drive's watch on the host's frames: the drive faults when they stop for
+    ``timeout`` s. ``fed_every``: how often the host's frame that feeds it goes out at
+    least, beside the torque commands (a host heartbeat every 25 ms: a command gap of
+    ``timeout - fed_every`` already starves the watch; 0 when the commands feed it);
+    ``reported_within``: how long after it fires the host hears of it at the latest (an
+    ODrive's heartbeat period: its status rides on the heartbeat)."""
+
+    what: str               # the drive's name for it, in messages ("watchdog")
+    timeout: float          # [s]
+    fed_every: float = 0.0  # [s]
+    reported_within: float = 0.0  # [s]
+
+    @property
+    def starving_gap(self) -> float:
+        """[s] the shortest gap between the host's commands that can starve the watch."""
+        return max(self.timeout - self.fed_every, 0.0)
+
+
 _NO_EVENTS: tuple[DriveEvent, ...] = ()
 
 
@@ -229,6 +260,7 @@ class Drive(ABC):
         self._last_state: StateEvent | None = None
         self._last_heartbeat: float | None = None
         self._detail = ""
+        self._fault_event: StateEvent | None = None   # the state that faulted the drive
         self._status_cache: DriveStatus | None = None
         #: what the last start-up (``_prepare``) could not check on the drive, one line
         #: each (nothing was refused for them); ``dobhil run`` prints them
@@ -283,6 +315,25 @@ class Drive(ABC):
                 detail=self._detail,
             )
         return self._status_cache
+
+    @property
+    def host_watch(self) -> HostTimeout | None:
+        """The drive's watch on the host's commands as this drive was set up (its
+        watchdog, heartbeat consumer or command timeout), or None: none that a late host
+        can trip (none configured, or fed by something the host's process does not send)."""
+        return self._host_watch_of(None)
+
+    def host_timeout(self) -> HostTimeout | None:
+        """While the drive is faulted because its watch on the host's frames expired
+        (:attr:`host_watch`): that watch; None for any other state or fault (the drive's
+        own). Never raises."""
+        event = self._fault_event
+        if self._state is not DriveState.FAULT or event is None:
+            return None
+        try:
+            return self._host_watch_of(event)
+        except Exception:  # a classification that fails blames the drive, as before
+            return None
 
     def enable(self, timeout: float | None = None, *, cancel: Cancel | None = None) -> None:
         """Run the enable handshake and wait for the drive to confirm it.
@@ -449,6 +500,13 @@ class Drive(ABC):
     def _is_disabled_confirmation(self, event: StateEvent) -> bool:
         """True if ``event`` (received after the disable frames) confirms the disable."""
         return not event.active
+
+    def _host_watch_of(self, event: StateEvent | None) -> HostTimeout | None:
+        """The drive's watch on the host's frames (:class:`HostTimeout`): with ``event``
+        None, the one configured; with a fault ``event``, the watch only if that fault is
+        it expiring (an ODrive's WATCHDOG_TIMER_EXPIRED, a CiA 402 heartbeat-consumer
+        EMCY), else None. Default: the drive watches nothing of the host's."""
+        return None
 
     def _unconfirmable_detail(self) -> str:
         """Why the disable cannot be confirmed, one line (only asked when
@@ -647,6 +705,7 @@ class Drive(ABC):
             return
         if event.error_code != 0 or not event.active:
             self._set_state(DriveState.FAULT, self._fault_text(event))
+            self._fault_event = event
 
     def _fault_text(self, event: StateEvent) -> str:
         what = "watchdog expired" if event.watchdog_tripped else "fault"
@@ -658,6 +717,7 @@ class Drive(ABC):
     def _set_state(self, state: DriveState, detail: str) -> None:
         self._state = state
         self._detail = detail
+        self._fault_event = None
         self._status_cache = None
 
     def _raise_not_enabled(self) -> None:

@@ -40,6 +40,16 @@ the cycles, and the young generations are collected *between* cycles when the ti
 the next deadline (or expected frame) allows, or when they grow past a hard bound. The
 collector's state is restored after the run.
 
+Blame: a drive that watches the host (its watchdog on the commands, a heartbeat
+consumer, a command timeout: :attr:`Drive.host_watch <dobhil.drives.base.Drive.host_watch>`)
+faults when the host's frames stop, whoever stopped them. The loop keeps its own measure of
+that: the gaps between the commands it sent (a cycle start each, on the wall clock, so a
+process that was not scheduled or was stopped counts them too; in lockstep on the simulated
+clock). When the drive's fault is that watch expiring (:meth:`Drive.host_timeout
+<dobhil.drives.base.Drive.host_timeout>`) and a gap long enough to starve it went on, or
+ended within the time the drive takes to report it, the stop is ``host_too_slow`` with the
+gap measured; otherwise ``drive_fault``, saying how long the longest gap was.
+
 Safety: every way out of :meth:`ForceLoop.run` -- done, feedback timeout, position or
 velocity limit, non-finite value, drive fault, bus error, stop request (SIGINT/SIGTERM),
 or any exception -- runs the drive's safe stop (zero torque, then the disable frames,
@@ -68,7 +78,7 @@ from typing import Protocol
 import numpy as np
 from numpy.typing import NDArray
 
-from dobhil.drives.base import Drive, Feedback, SafeStopReport
+from dobhil.drives.base import Drive, Feedback, HostTimeout, SafeStopReport
 from dobhil.drives.waits import WAIT_SLICE, Cancel
 from dobhil.errors import BusError, DriveError, DriveFaultError, RecorderError, WaitCancelled
 from dobhil.runtime.controller import ControlOutput, ForceController
@@ -359,6 +369,43 @@ def _rate_watch(drive: Drive, period: float) -> _RateWatch:
     return _RateWatch(period, probe.motion_name(), probe.rate_advice(period))
 
 
+class _CommandGaps:
+    """The host's lateness as a drive's watch on it sees it: the gaps between consecutive
+    torque commands, each taken at its cycle's start (real time: ``time.perf_counter``, the
+    command goes out microseconds later, and a process stopped or not scheduled counts in
+    it; lockstep: the simulated clock). Per cycle only a subtraction and two comparisons:
+    the longest gap of the run, and the newest gap of at least ``floor`` s (long enough to
+    starve the drive's watch)."""
+
+    def __init__(self) -> None:
+        self.floor = math.inf
+        self.last = math.nan     # the newest command (or the enable)
+        self.longest = 0.0
+        self.late = 0.0          # the newest gap >= floor, and when it ended
+        self.late_end = -math.inf
+
+    def start(self, t: float, floor: float) -> None:
+        """Measure from ``t`` (the enable: its keepalives fed the watch up to it)."""
+        self.last, self.floor = t, floor
+
+    def sent(self, t: float) -> None:
+        gap = t - self.last
+        self.last = t
+        if gap > self.longest:
+            self.longest = gap
+        if gap >= self.floor:
+            self.late, self.late_end = gap, t
+
+    def starving(self, now: float, window: float) -> float:
+        """The gap that starved the watch: the one going on at ``now`` (the fault was
+        read before the next command went out), else the newest that ended within
+        ``window`` s before ``now``; 0.0 when neither was long enough."""
+        ongoing = now - self.last
+        if ongoing >= self.floor:
+            return ongoing
+        return self.late if now - self.late_end <= window else 0.0
+
+
 class _QuietGc:
     """Keeps the garbage collector out of the cycles (see the module docstring)."""
 
@@ -430,6 +477,7 @@ class ForceLoop:
         #: how the run ended and the safe stop's report, also when run() raised
         self.ended: tuple[Stop, SafeStopReport] | None = None
         self._gc = _QuietGc()
+        self._gaps = _CommandGaps()
         self.period_error = Histogram()
         self.exec_time = Histogram()
         self.latency = Histogram()
@@ -476,6 +524,7 @@ class ForceLoop:
             return Stop(StopReason.BUS_ERROR, str(exc), -1, 0.0)
         except DriveError as exc:
             return Stop(StopReason.ENABLE_FAILED, str(exc), -1, 0.0)
+        self._watch_gaps()
         try:
             first = self._first_feedback()
             self.controller.initialize(first.position, first.velocity)
@@ -492,10 +541,45 @@ class ForceLoop:
         except _Halt as halt:
             return Stop(halt.reason, halt.detail, self._at, self._now())
         except DriveFaultError as exc:
-            return Stop(StopReason.DRIVE_FAULT, str(exc), self._at, self._now())
+            reason, detail = self._blame(str(exc))
+            return Stop(reason, detail, self._at, self._now())
         except BusError as exc:
             return Stop(StopReason.BUS_ERROR, str(exc), self._at, self._now())
         return Stop(StopReason.DONE, f"ran {self.settings.duration:g} s", self._at, self._now())
+
+    def _watch_gaps(self) -> None:
+        """Start measuring the gaps between commands against the drive's watch on the
+        host: on the wall clock in real time, on the simulated clock in lockstep (where
+        only a host that stopped stepping, as a test does, is ever late). A gap one
+        period short of starving the watch still counts: a drive checks it on its own
+        tick, and a frame's way to it varies by up to a period."""
+        watch: HostTimeout | None = getattr(self.drive, "host_watch", None)
+        floor = math.inf
+        if watch is not None:
+            floor = max(watch.starving_gap - self.settings.period, self.settings.period)
+        self._gaps.start(self._gap_clock(), floor)
+
+    def _gap_clock(self) -> float:
+        return self.clock() if self.settings.timing is Timing.LOCKSTEP else time.perf_counter()
+
+    def _blame(self, detail: str) -> tuple[StopReason, str]:
+        """A drive fault: ``host_too_slow`` when it is the drive's watch on the host
+        expiring after a gap between this loop's commands long enough to starve it (the
+        host was late, not the drive), else ``drive_fault``."""
+        timeout = getattr(self.drive, "host_timeout", None)
+        watch: HostTimeout | None = timeout() if timeout is not None else None
+        if watch is None:
+            return StopReason.DRIVE_FAULT, detail
+        period = self.settings.period
+        allows = f"the drive's {watch.what} allows {watch.timeout * 1e3:g} ms" + (
+            f", fed every {watch.fed_every * 1e3:g} ms" if watch.fed_every else "")
+        gap = self._gaps.starving(self._gap_clock(), watch.timeout + watch.reported_within + 2 * period)
+        if gap > 0:
+            return StopReason.HOST_TOO_SLOW, (f"{detail}: no command from the host for {gap * 1e3:.0f} ms "
+                                              f"({allows}): the host was late, not the drive")
+        return StopReason.DRIVE_FAULT, (f"{detail} (the host was on time: no gap between its commands before "
+                                        f"the fault starved it, {allows}; the longest gap between commands "
+                                        f"of the run was {self._gaps.longest * 1e3:.3g} ms)")
 
     def _first_feedback(self) -> Feedback:
         fb = self._poll_or_stop(self.clock() + self.settings.feedback_timeout)
@@ -712,6 +796,7 @@ class ForceLoop:
         exec_time = time.perf_counter() - start
         latency = sample_latency = math.nan
         if timed:
+            self._gaps.sent(start)
             self.period_error.add(abs(period_error))
             if fb.rx_time == fb.rx_time:   # not NaN: the bus stamped the frame
                 latency = time.time() - fb.rx_time
@@ -723,6 +808,8 @@ class ForceLoop:
                 sample_latency = fb.sample_latency
                 if sample_latency == sample_latency:
                     self.sample_latency.add(sample_latency)
+        else:
+            self._gaps.sent(self.clock())   # lockstep: simulated time
         self.exec_time.add(exec_time)
         self._store(k, t, q, dq, out, period_error, exec_time, latency, sample_latency)
         self.cycles += 1

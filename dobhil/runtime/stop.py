@@ -20,7 +20,10 @@ class StopReason(IntEnum):
     ENABLE_FAILED = 8     # the drive could not be enabled
     BUS_ERROR = 9         # the CAN bus failed (send refused, ENOBUFS, interface gone)
     RECORDER_FAILED = 10  # the run's recorder failed (disk full, ...): the record would be lost
-    HOST_TOO_SLOW = 11    # no fresh feedback because the emulated drive itself was not scheduled
+    #: the host, not the drive: no fresh feedback because the emulated drive itself was not
+    #: scheduled, or the drive's watch on the host (watchdog, heartbeat consumer, command
+    #: timeout) expired after the host's own commands came too late
+    HOST_TOO_SLOW = 11
 
 
 @dataclass(frozen=True)

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import math
 import os
+import re
 import signal
 import threading
 import time
@@ -236,18 +237,30 @@ def stall(session: RunSession, timing: str, seconds: float) -> Callable[[], None
 @pytest.mark.parametrize("firmware", ["odrive-0.6", "odrive-0.5"])
 def test_watchdog_trip_is_reported(tmp_path: Path, timing: str, firmware: str) -> None:
     """A loop that stalls longer than the drive watchdog: the emulated drive trips it,
-    drops to IDLE, and the run REPORTS it -- drive_fault, naming the watchdog."""
+    drops to IDLE, and the run REPORTS it, naming the watchdog -- and blames the host,
+    whose commands stopped (host_too_slow, with the gap it measured: on the simulated
+    clock in lockstep, where the stall is simulated time; tests/runtime/test_blame.py
+    has every protocol, and the same expiry with the host on time)."""
     config = safety_config(tmp_path, timing, firmware=firmware)
     sink = Recorder(at=50)
+    stalled: list[float] = []
 
     def arm(session: RunSession) -> None:
-        sink.action = stall(session, timing, 3 * session.profile.watchdog_timeout)
+        stalled.append(3 * session.profile.watchdog_timeout)
+        sink.action = stall(session, timing, stalled[0])
 
-    out = run_case(config, timing, StopReason.DRIVE_FAULT, words=["watchdog", "WATCHDOG_TIMER_EXPIRED"],
+    out = run_case(config, timing, StopReason.HOST_TOO_SLOW,
+                   words=["watchdog", "WATCHDOG_TIMER_EXPIRED", "the host was late, not the drive"],
                    sink=sink, prepare=arm)
     assert out.watchdog_tripped
     assert out.summary is not None and out.summary["watchdog_tripped"] is True
-    assert out.summary["stop_reason"] == "drive_fault"
+    assert out.summary["stop_reason"] == "host_too_slow"
+    found = re.search(r"no command from the host for (\d+) ms", out.stop.detail)
+    assert found is not None, out.stop.detail
+    gap_ms, stall_ms = int(found.group(1)), stalled[0] * 1e3
+    assert gap_ms >= math.floor(stall_ms), out.stop.detail   # it spans the stall
+    if timing == "lockstep":   # simulated: the stall and the cycle around it, nothing else
+        assert gap_ms <= stall_ms + 2 * config.loop.period * 1e3, out.stop.detail
 
 
 @pytest.mark.parametrize("timing", TIMINGS)

@@ -147,14 +147,16 @@ def test_non_finite_feedback_stops_a_torque_run(tmp_path: Path) -> None:
 
 
 def test_watchdog_trip_stops_a_torque_run(tmp_path: Path) -> None:
-    """The loop stalls for three drive watchdog periods: the drive trips, the run reports it."""
+    """The loop stalls for three drive watchdog periods: the drive trips, the run reports it
+    and blames the host, whose commands stopped (host_too_slow)."""
     sink = Recorder(at=50)
 
     def arm(session: RunSession) -> None:
         sink.action = stall(session, "lockstep", 3 * session.profile.watchdog_timeout)
 
-    out = run_case(torque_config(tmp_path, "lockstep"), "lockstep", StopReason.DRIVE_FAULT,
-                   words=["watchdog", "WATCHDOG_TIMER_EXPIRED"], sink=sink, prepare=arm)
+    out = run_case(torque_config(tmp_path, "lockstep"), "lockstep", StopReason.HOST_TOO_SLOW,
+                   words=["watchdog", "WATCHDOG_TIMER_EXPIRED", "the host was late, not the drive"],
+                   sink=sink, prepare=arm)
     assert out.watchdog_tripped
 
 

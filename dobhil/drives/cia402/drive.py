@@ -49,7 +49,8 @@ import canopen
 from canopen.emcy import EmcyError
 from canopen.objectdictionary import ObjectDictionary
 
-from dobhil.drives.base import Clock, Confirmation, Drive, DriveEvent, MotionEvent, SafeStopReport, StateEvent
+from dobhil.drives.base import (Clock, Confirmation, Drive, DriveEvent, HostTimeout, MotionEvent, SafeStopReport,
+                                StateEvent)
 from dobhil.drives.cia402 import codec
 from dobhil.drives.cia402.codec import CST_MODE, Cob, Controlword, Mapped, NmtState, PowerState
 # in the codec (not here) so that the preflight probe shares them without importing the drive
@@ -383,11 +384,26 @@ class CiA402Drive(Drive):
         consumer = float(self.profile.options["consumer_heartbeat"])
         if consumer > 0:
             # the host's heartbeat first: a consumer watches from the first one it hears
-            # a whole number of SYNC periods: the SYNC's clock is the one a native
-            # periodic send surely keeps (the lockstep bus takes whole steps only)
-            cycles = max(1, int(consumer / HOST_HEARTBEATS_PER_CONSUMER_TIME / self._period))
-            self._start_host_heartbeat(cycles * self._period)
+            self._start_host_heartbeat(self._host_heartbeat_interval(consumer))
             node.sdo[0x1016][1].raw = self._host_id << 16 | round(consumer * 1e3)
+
+    def _host_heartbeat_interval(self, consumer: float) -> float:
+        """[s] the host's heartbeat period for a consumer time: a whole number of SYNC
+        periods (the SYNC's clock is the one a native periodic send surely keeps, and the
+        lockstep bus takes whole steps only)."""
+        return max(1, int(consumer / HOST_HEARTBEATS_PER_CONSUMER_TIME / self._period)) * self._period
+
+    def _host_watch_of(self, event: StateEvent | None) -> HostTimeout | None:
+        """The node's heartbeat consumer (0x1016, ``consumer_heartbeat``) when this process
+        sends the host's heartbeat, with the torque frames: a late host starves it. Sent
+        natively (the kernel's broadcast manager, the emulator's process), no lateness of
+        this process can, and a consumer fault is not the host's. Its expiry is EMCY 0x8130,
+        sent by the node at once."""
+        consumer = float(self.profile.options["consumer_heartbeat"])
+        if consumer <= 0 or native_periodic(self._bus) or (event is not None and event.error_code != EMCY_HEARTBEAT):
+            return None
+        return HostTimeout("heartbeat consumer (0x1016)", consumer,
+                           fed_every=self._host_heartbeat_interval(consumer), reported_within=self._period)
 
     # -- the host's heartbeat (for the node's consumer 0x1016) ------------------
 

@@ -47,9 +47,9 @@ from typing import TYPE_CHECKING, ClassVar
 
 import can
 
-from dobhil.drives.base import Clock, Drive, DriveEvent, MotionEvent, StateEvent
+from dobhil.drives.base import Clock, Drive, DriveEvent, HostTimeout, MotionEvent, StateEvent
 from dobhil.drives.mit.codec import MitModel, Reply, Special, TorqueFrame, pack_command, special_frame, unpack_reply
-from dobhil.drives.mit.replies import ZERO_COMMAND, MitFault, reply_node, state_of
+from dobhil.drives.mit.replies import ZERO_COMMAND, MitFault, lost_communication_codes, reply_node, state_of
 from dobhil.drives.mit.rules import MIT_RULES, check_mit_profile, model_of
 from dobhil.drives.profile import DriveProfile, ProtocolRules
 from dobhil.drives.waits import Cancel
@@ -87,6 +87,7 @@ class MitDrive(Drive):
         self._torque_msg = self._message(pack_command(self._model, ZERO_COMMAND))
         self._keepalive = self._message(pack_command(self._model, ZERO_COMMAND))
         self._states: dict[tuple[int, int], StateEvent] = {}
+        self._lost_communication = lost_communication_codes(self._model)
         # unwrap state: the last reading in the motor's range and whole spans crossed
         self._last_reading: float | None = None
         self._turns = 0
@@ -170,6 +171,17 @@ class MitDrive(Drive):
     def _torque_frame(self, tau_nm: float) -> can.Message:
         self._torque.fill(self._torque_msg.data, tau_nm)
         return self._torque_msg
+
+    def _host_watch_of(self, event: StateEvent | None) -> HostTimeout | None:
+        """The motor's command timeout (the model row's ``command_timeout``) when its
+        replies can say it fired (a Damiao's state 0xD, communication lost), reported in
+        the reply to the next command; a motor that only zeroes its command (Mini-Cheetah)
+        reports nothing to classify."""
+        timeout = self._model.command_timeout
+        if not timeout or not self._lost_communication or \
+                (event is not None and event.error_code not in self._lost_communication):
+            return None
+        return HostTimeout("command timeout", timeout)
 
     def _unconfirmable_detail(self) -> str:
         m = self._model

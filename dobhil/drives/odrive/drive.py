@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING, ClassVar
 
 import can
 
-from dobhil.drives.base import Clock, Drive, DriveEvent, MotionEvent, StateEvent
+from dobhil.drives.base import Clock, Drive, DriveEvent, HostTimeout, MotionEvent, StateEvent
 from dobhil.drives.odrive import codec
 from dobhil.drives.odrive.codec import AxisState, CmdId, ControlMode, Firmware, InputMode
 from dobhil.drives.profile import DriveProfile, ProtocolRules, Rule
@@ -111,6 +111,15 @@ class ODriveDrive(Drive):
     def preflight_probe(cls, profile: DriveProfile) -> PreflightProbe:
         from dobhil.drives.odrive.preflight import ODrivePreflight
         return ODrivePreflight(profile)
+
+    def _host_watch_of(self, event: StateEvent | None) -> HostTimeout | None:
+        """The axis watchdog (``watchdog_timeout``; 0: off), fed by the setpoints; its
+        expiry is the WATCHDOG_TIMER_EXPIRED bit, which reaches the host with the next
+        heartbeat."""
+        timeout = self.profile.watchdog_timeout
+        if timeout <= 0 or (event is not None and not event.watchdog_tripped):
+            return None
+        return HostTimeout("watchdog", timeout, reported_within=self.profile.heartbeat_period or 0.0)
 
     def _torque_frame(self, tau_nm: float) -> can.Message:
         self._torque_spec.pack_into(self._torque_msg.data, tau_nm)
