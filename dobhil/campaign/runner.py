@@ -23,7 +23,7 @@ last :data:`FINAL_SHARE` of the cycles from ``t0``, where noise is averaged out)
   from ``t0``, ``level`` the true torque of the last cycle before ``t0`` (0 if none), with
   ``final`` its mean over the final window: ``overshoot_pct`` above ``final`` (empty when
   ``final`` is 0), ``rise_time`` 10-90 % of ``final`` (empty when the response never
-  crosses 90 %), ``settling_time`` into the band of ``SETTLING_BAND`` (2 %) x ``|final|``
+  crosses 90 %, or ``final`` is 0), ``settling_time`` into the band of ``SETTLING_BAND`` (2 %) x ``|final|``
   around ``final`` (:mod:`dobhil.analysis.metrics`), all relative to ``t0``.
   ``settled`` says whether the response is inside that band from its settling time to the
   run's end *and through the whole final window*: a response still leaving the band while its
@@ -151,7 +151,9 @@ def _step(t: Array, tau_true: Array, after: NDArray[np.bool_], start: float,
     final = float(np.mean(y[-tail:]))
     m = step_metrics(t[after] - start, y, target=amplitude, final=final)
     settled = _settled(y, final, tail) if m.settling_time is not None else None
-    return {"overshoot_pct": m.overshoot_pct, "rise_time": m.rise_time, "settled": settled,
+    # a response that ends where it began has no 10-90 % of anything (step_metrics says 0)
+    rise = m.rise_time if final != 0 else None
+    return {"overshoot_pct": m.overshoot_pct, "rise_time": rise, "settled": settled,
             "settling_time": m.settling_time if settled else None}
 
 

@@ -31,8 +31,8 @@ class Mode(IntEnum):
 
 #: line mode: the longest silence between two lines [s]
 LINE_SECONDS = 30.0
-#: line mode: a line each time this share of a known total more is done
-LINE_SHARE = 0.1
+#: line mode: a line each time another 1/LINE_PARTS of a known total is done (tenths)
+LINE_PARTS = 10
 #: bar mode: tqdm's shortest redraw interval [s] (its default, 0.1 s, redraws too often in a
 #: terminal multiplexer for no information)
 BAR_SECONDS = 0.5
@@ -71,7 +71,6 @@ class Progress:
         self.started = clock()
         self._last_line = -math.inf      # clock of the last line written
         self._said = -1                  # self.done when the last line was written
-        self._next_share = 0.0
         self._bar: Any = None
         if mode is Mode.BAR:
             from tqdm import tqdm
@@ -93,17 +92,18 @@ class Progress:
         now = self.clock()
         first = self._said < 0
         last = self.total is not None and self.done >= self.total
-        share = self.total is not None and self.total > 0 and self.done / self.total >= self._next_share
-        if first or last or share or now - self._last_line >= LINE_SECONDS:
+        part = bool(self.total) and self._part(self.done) > self._part(self._said)
+        if first or last or part or now - self._last_line >= LINE_SECONDS:
             self._line(now)
 
     def _line(self, now: float) -> None:
         self.stream.write(self.text(now) + "\n")
         self.stream.flush()
         self._last_line, self._said = now, self.done
-        if self.total:
-            # the next tenth after the one just reached
-            self._next_share = (math.floor(self.done / self.total / LINE_SHARE + 1e-9) + 1) * LINE_SHARE
+
+    def _part(self, done: int) -> int:
+        """Which tenth of the total ``done`` is in (whole numbers: no rounding at 30 %)."""
+        return LINE_PARTS * max(0, done) // (self.total or 1)
 
     def text(self, now: float) -> str:
         """``desc: 120/1000 runs (12 %), 9.8 runs/s, 1 min 30 s left; note``."""
@@ -142,4 +142,4 @@ def progress(desc: str, *, total: int | None = None, unit: str = "step", quiet: 
         shown.close()
 
 
-__all__ = ["LINE_SECONDS", "LINE_SHARE", "Mode", "Progress", "duration_text", "mode_for", "progress"]
+__all__ = ["LINE_PARTS", "LINE_SECONDS", "Mode", "Progress", "duration_text", "mode_for", "progress"]
