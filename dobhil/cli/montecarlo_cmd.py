@@ -221,10 +221,15 @@ def metric_lines(summary: Summary) -> list[str]:
     """The reference run, each metric's percentiles over the runs that have it (how many,
     and why the others have none), its median against the reference, and the flags."""
     from dobhil.campaign.compare import RELATIVE, RULES, SYMBOL, Unit, Worse
+    from dobhil.campaign.runner import METRICS
     ref = summary.reference or {}
     compared = {c.metric: c for c in summary.comparisons}
     lines = [_reference_line(ref)] if summary.reference is not None else []
-    for name, p in summary.percentiles.items():
+    for name in METRICS:
+        p = summary.percentiles.get(name)
+        if p is None:
+            lines.append(f"  {name}: none of {summary.runs} runs has one{_missing(name, 0, summary)}")
+            continue
         unit = SYMBOL[RULES.get(name, (Worse.LARGER, Unit.TORQUE))[1]]
         text = (f"  {name}: p5 {p['p5']:.4g}, p50 {p['p50']:.4g}, p95 {p['p95']:.4g}, max {p['max']:.4g} {unit} "
                 f"over {int(p['n'])} of {summary.runs} runs{_missing(name, int(p['n']), summary)}")

@@ -29,6 +29,9 @@ LABELS = {"force_rms_error": "force RMS error [N m]", "overshoot_pct": "overshoo
           "final_error": "final error (command - true) [N m]",
           "final_tau_int_true": "final true interaction torque [N m]"}
 
+#: what an empty panel says
+EMPTY = {"settling_time": "no run settled into\nthe 2 % band"}
+
 
 def metric_histograms(metrics: Mapping[str, np.ndarray], runs: int, path: Path) -> Path:
     """:func:`metric_figure` saved to ``path``."""
@@ -48,6 +51,9 @@ def metric_figure(metrics: Mapping[str, np.ndarray], runs: int) -> Figure:
             ax.hist(values, bins=min(50, max(5, int(np.sqrt(values.size)))), color="tab:blue", alpha=0.8)
             ax.axvline(float(np.median(values)), color="k", lw=1, ls="--", label="median")
             ax.legend(loc="best", fontsize=8)
+        else:   # an empty panel says why, not just nothing
+            ax.text(0.5, 0.5, EMPTY.get(name, "no run has a value"), ha="center", va="center",
+                    transform=ax.transAxes, fontsize=9, wrap=True)
         ax.ticklabel_format(axis="x", useOffset=False)   # 1 N m, not "1e-8 + 1"
         ax.set_xlabel(LABELS.get(name, name))
         ax.set_ylabel("runs")

@@ -132,8 +132,8 @@ def test_killing_a_worker_mid_campaign_loses_no_row(dask_client: Any) -> None:
         pids = list(client.run(os.getpid).values())
         done = [0]
 
-        def kill_after_two(n: int) -> None:
-            done[0] += n
+        def kill_after_two(row: dict[str, Any]) -> None:
+            done[0] += 1
             if done[0] == 2:   # both workers are busy: the one killed is mid-run
                 os.kill(pids[0], signal.SIGKILL)
         rows = execute(client, c.plan(), progress=kill_after_two)
