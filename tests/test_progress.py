@@ -167,3 +167,14 @@ def test_a_pty_gets_the_bar(tmp_path: Path) -> None:
     err = b"".join(chunks).decode(errors="replace")
     assert done.returncode == 0 and b"tune: " not in done.stdout
     assert "\r" in err and "generation" in err and "tune: 1 generation, " not in err
+
+
+def test_work_that_fails_leaves_its_error_line_alone() -> None:
+    """Bad input must stay one line: a failure before any step writes no count at all."""
+    out = io.StringIO()
+    with pytest.raises(ValueError), progress("export", total=10, unit="message", stream=out):
+        raise ValueError("no topic")
+    assert out.getvalue() == ""
+    with progress("export", total=None, unit="message", stream=out):
+        pass
+    assert out.getvalue() == ""            # nothing done, nothing to say

@@ -121,25 +121,30 @@ class Progress:
                 parts.append(f"about {duration_text((self.total - self.done) / rate)} left")
         return ", ".join(parts) + (f"; {self.note}" if self.note else "")
 
-    def close(self) -> None:
-        """The last line (lines mode), if the last step did not already write it; the bar closed."""
+    def close(self, *, last: bool = True) -> None:
+        """The last line (lines mode) when ``last``, something was done and the last step did
+        not already say it; the bar closed."""
         if self._bar is not None:
             self._bar.close()
-        elif self.mode is Mode.LINES and self.done != self._said:
+        elif self.mode is Mode.LINES and last and self.done > 0 and self.done != self._said:
             self._line(self.clock())
 
 
 @contextmanager
 def progress(desc: str, *, total: int | None = None, unit: str = "step", quiet: bool = False,
              stream: TextIO | None = None) -> Iterator[Progress]:
-    """A :class:`Progress` on ``stream`` (default: stderr), closed on leaving; ``quiet``
-    (--json, or work too small to be worth a line) shows nothing."""
+    """A :class:`Progress` on ``stream`` (default: stderr), closed on leaving (with its last
+    line when the work ended, without when it raised); ``quiet`` (--json, or work too small
+    to be worth a line) shows nothing."""
     out = sys.stderr if stream is None else stream
     shown = Progress(desc, total=total, unit=unit, stream=out, mode=mode_for(out, quiet=quiet))
     try:
         yield shown
-    finally:
-        shown.close()
+    except BaseException:
+        # the work failed: its one error line is what the user reads, not a last count
+        shown.close(last=False)
+        raise
+    shown.close()
 
 
 __all__ = ["LINE_PARTS", "LINE_SECONDS", "Mode", "Progress", "duration_text", "mode_for", "progress"]
