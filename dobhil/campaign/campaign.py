@@ -1,9 +1,12 @@
 """A campaign: its plan (one :class:`~dobhil.campaign.runner.RunSpec` per run), its execution
 as Dask tasks (:func:`dobhil.cluster.map_ordered`: one task per run, rows back in run
 order), and what is said about the table: the success rate with its exact confidence
-interval, the metrics' percentiles, the worst runs and the command reproducing each alone.
+interval, the metrics' percentiles over the runs that have each, their medians against the
+reference run (the config as given: :mod:`dobhil.campaign.compare`), the worst runs and the
+command reproducing each alone.
 
-A run *succeeded* when it ran to its end: no error and stop reason ``done``.
+A run *succeeded* when it ran to its end: no error and stop reason ``done``. Any other stop
+reason is the runtime's, by name, whatever it is: the campaign keeps no list of them.
 """
 
 from __future__ import annotations
