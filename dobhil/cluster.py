@@ -197,10 +197,12 @@ def _quiet_dask() -> Iterator[None]:
 
 
 def map_ordered(client: distributed.Client, fn: Callable[[T], Any], items: Sequence[T], *,
-                progress: Callable[[int], None] | None = None, key_prefix: str = "dobhil") -> list[MapResult]:
+                progress: Callable[[int], None] | None = None, key_prefix: str = "dobhil",
+                arrived: Callable[[int, Any, str | None], None] | None = None) -> list[MapResult]:
     """``fn(item)`` for each item, one Dask task each, the results in the order of ``items``
-    whatever order they finish in. ``progress(1)`` after each task; a task that raises gives
-    ``MapResult(None, "ExcType: msg", ...)`` and the others go on."""
+    whatever order they finish in. ``progress(1)`` after each task, ``arrived(index, value,
+    error)`` too when given (what came back, for a progress line that counts failures); a
+    task that raises gives ``MapResult(None, "ExcType: msg", ...)`` and the others go on."""
     from distributed import as_completed
     token = uuid.uuid4().hex[:12]   # keys of two maps (two users of one scheduler) never meet
     topic = f"{key_prefix}-attempts-{token}"
@@ -210,6 +212,8 @@ def map_ordered(client: distributed.Client, fn: Callable[[T], Any], items: Seque
     for future in as_completed(futures):
         outcomes[futures[future]] = _outcome(future)
         future.release()   # the value is here now: free it on the worker
+        if arrived:
+            arrived(futures[future], *outcomes[futures[future]])
         if progress:
             progress(1)
     retried = _retried(client, topic)

@@ -32,6 +32,9 @@ class StepMetrics:
 
 UNSTABLE = StepMetrics(None, None, None, None, None, None)
 
+#: the settling band's half width, a share of the final value
+SETTLING_BAND = 0.02
+
 
 #: sampled step responses longer than this many samples are refused (memory, time)
 MAX_STEP_SAMPLES = 1_000_000
@@ -198,7 +201,7 @@ def _rise_time(t: Array, y: Array, final: float) -> float | None:
 
 
 def _settling_time(t: Array, y: Array, final: float) -> float | None:
-    band = 0.02 * abs(final)
+    band = SETTLING_BAND * abs(final)
     outside = np.nonzero(np.abs(y - final) > band)[0]
     if outside.size == 0:
         return float(t[0])

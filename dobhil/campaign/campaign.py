@@ -1,9 +1,12 @@
 """A campaign: its plan (one :class:`~dobhil.campaign.runner.RunSpec` per run), its execution
 as Dask tasks (:func:`dobhil.cluster.map_ordered`: one task per run, rows back in run
 order), and what is said about the table: the success rate with its exact confidence
-interval, the metrics' percentiles, the worst runs and the command reproducing each alone.
+interval, the metrics' percentiles over the runs that have each, their medians against the
+reference run (the config as given: :mod:`dobhil.campaign.compare`), the worst runs and the
+command reproducing each alone.
 
-A run *succeeded* when it ran to its end: no error and stop reason ``done``.
+A run *succeeded* when it ran to its end: no error and stop reason ``done``. Any other stop
+reason is the runtime's, by name, whatever it is: the campaign keeps no list of them.
 """
 
 from __future__ import annotations
@@ -17,8 +20,9 @@ from typing import Any
 
 import numpy as np
 
+from dobhil.campaign.compare import CommandCheck, Comparison, Floors, command_check, compare
 from dobhil.campaign.draws import Vary, draw
-from dobhil.campaign.runner import METRICS, RunSpec, empty_result, run_one
+from dobhil.campaign.runner import MEASURED, METRICS, RunSpec, empty_result, run_one
 
 #: the noise and quantisation a campaign turns on when the config has neither: a 14-bit
 #: absolute encoder (16384 counts per revolution, 0.38 mrad) and 0.01 rad/s of velocity
@@ -32,7 +36,10 @@ PERCENTILES = (5.0, 50.0, 95.0)
 WORST = 5
 
 #: the table's columns after the drawn keys (the drawn keys come after run, seed)
-RESULT_COLUMNS = ("sensor_seed", "stop_reason", "error", "cycles", *METRICS, "overruns", "retried")
+RESULT_COLUMNS = ("sensor_seed", "stop_reason", "error", "cycles", *METRICS, *MEASURED, "overruns", "retried")
+
+#: the reference run's index in its :class:`RunSpec` (no run of the campaign has it)
+REFERENCE = -1
 
 
 @dataclass(frozen=True)
@@ -58,18 +65,31 @@ class Campaign:
                        overrides=self.overrides, draws=tuple(values.items()), sensor_seed=sensor_seed,
                        duration=self.duration)
 
+    def reference_spec(self) -> RunSpec:
+        """The config as given -- nominal values, nothing drawn -- with the campaign's
+        overrides (its noise) and an emulator seed from ``SeedSequence(seed)`` itself, which
+        no run uses (the runs' come from its children)."""
+        sensor_seed = int(np.random.SeedSequence(self.seed).generate_state(1, np.uint32)[0])
+        return RunSpec(index=REFERENCE, seed=self.seed, config=self.config, set_files=self.set_files,
+                       overrides=self.overrides, draws=(), sensor_seed=sensor_seed, duration=self.duration)
+
     def columns(self) -> list[str]:
         return ["run", "seed", *(v.key for v in self.varies), *RESULT_COLUMNS]
 
 
 def execute(client: Any, specs: Sequence[RunSpec], *,
-            progress: Callable[[int], None] | None = None) -> list[dict[str, Any]]:
+            progress: Callable[[dict[str, Any]], None] | None = None) -> list[dict[str, Any]]:
     """Every run of ``specs`` as one Dask task on ``client``; the rows in run order. A task
-    that failed outside :func:`run_one` (its worker lost too often) is a row with the error."""
-    from dobhil.cluster import map_ordered
+    that failed outside :func:`run_one` (its worker lost too often) is a row with the error.
+    ``progress(row)`` as each run comes back (``retried`` not known yet)."""
+    from dobhil.cluster import MapResult, map_ordered
     # a prefix of its own: two campaigns on one scheduler must not share task keys
     prefix = f"dobhil-montecarlo-{uuid.uuid4().hex[:12]}"
-    results = map_ordered(client, run_one, specs, progress=progress, key_prefix=prefix)
+
+    def arrived(index: int, value: Any, error: str | None) -> None:
+        if progress is not None:
+            progress(_row(specs[index], MapResult(value, error, False)))
+    results = map_ordered(client, run_one, specs, key_prefix=prefix, arrived=arrived)
     return [_row(spec, r) for spec, r in zip(specs, results)]
 
 
@@ -94,27 +114,49 @@ class Summary:
     ci_low: float
     ci_high: float
     retried: int
-    #: metric -> {"p5": .., "p50": .., "p95": .., "max": .., "n": ..} over the runs that have it
+    #: metric -> {"p5": .., "p50": .., "p95": .., "max": .., "n": ..} over the ``n`` runs
+    #: where the metric is defined (a metric no run has is absent)
     percentiles: dict[str, dict[str, float]]
     #: the worst runs' row indices, worst first
     worst: tuple[int, ...]
+    #: step responses that never settled into the band (``settled`` False)
+    never_settled: int = 0
+    #: the reference run's row (None: not run)
+    reference: dict[str, Any] | None = None
+    #: each metric's median against the reference's
+    comparisons: tuple[Comparison, ...] = ()
+    #: the final true torque against the command
+    command: CommandCheck | None = None
 
     def as_dict(self) -> dict[str, Any]:
         return {"runs": self.runs, "succeeded": self.succeeded, "success_rate": self.rate,
                 "success_rate_ci95": [self.ci_low, self.ci_high], "retried": self.retried,
-                "percentiles": self.percentiles}
+                "percentiles": self.percentiles, "never_settled": self.never_settled,
+                "reference": self.reference, "comparisons": [c.as_dict() for c in self.comparisons],
+                "worse_than_reference": [c.metric for c in self.comparisons if c.worse],
+                "final_vs_command": self.command.as_dict() if self.command else None}
 
 
-def summarise(rows: Sequence[dict[str, Any]]) -> Summary:
-    """The success rate (95 % Clopper-Pearson interval), retries, metric percentiles, worst runs."""
+def summarise(rows: Sequence[dict[str, Any]], reference: dict[str, Any] | None = None,
+              floors: Floors | None = None) -> Summary:
+    """The success rate (95 % Clopper-Pearson interval), retries, metric percentiles, worst
+    runs; with a ``reference`` row (and the campaign's tolerance ``floors``), each metric's
+    median against it (:mod:`dobhil.campaign.compare`)."""
     from scipy.stats import binomtest
     n = len(rows)
     k = sum(succeeded(r) for r in rows)
     ci = binomtest(k, n).proportion_ci(0.95, method="exact") if n else None
+    percentiles = _percentiles(rows)
+    comparisons: tuple[Comparison, ...] = ()
+    command = None
+    if reference is not None and floors is not None:
+        comparisons = tuple(compare(percentiles, reference, floors))
+        command = command_check(percentiles, reference, floors)
     return Summary(runs=n, succeeded=k, rate=k / n if n else math.nan,
                    ci_low=float(ci.low) if ci else math.nan, ci_high=float(ci.high) if ci else math.nan,
-                   retried=sum(bool(r["retried"]) for r in rows), percentiles=_percentiles(rows),
-                   worst=worst_runs(rows))
+                   retried=sum(bool(r["retried"]) for r in rows), percentiles=percentiles,
+                   worst=worst_runs(rows), never_settled=sum(r.get("settled") is False for r in rows),
+                   reference=reference, comparisons=comparisons, command=command)
 
 
 def _percentiles(rows: Sequence[dict[str, Any]]) -> dict[str, dict[str, float]]:
@@ -123,7 +165,7 @@ def _percentiles(rows: Sequence[dict[str, Any]]) -> dict[str, dict[str, float]]:
         values = np.array([r[m] for r in rows if r[m] is not None], float)
         if values.size:
             out[m] = {**{f"p{p:g}": float(np.percentile(values, p)) for p in PERCENTILES},
-                      "max": float(values.max()), "n": float(values.size)}
+                      "max": float(values.max()), "n": int(values.size)}
     return out
 
 
@@ -150,5 +192,5 @@ def reproduce_command(spec: RunSpec) -> str:
     return shlex.join(words)
 
 
-__all__ = ["Campaign", "NOISE_DEFAULTS", "Summary", "execute", "reproduce_command", "succeeded",
+__all__ = ["Campaign", "NOISE_DEFAULTS", "REFERENCE", "Summary", "execute", "reproduce_command", "succeeded",
            "summarise", "worst_runs"]

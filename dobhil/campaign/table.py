@@ -2,7 +2,7 @@
 (pyarrow, an optional dependency), written atomically (:func:`dobhil.files.atomic_path`).
 
 Parquet columns are typed from the rows: integers (run, seeds, cycles, overruns, integer
-keys), booleans (retried), strings (stop reason, error), float64 for the rest, with
+keys), booleans (retried, settled), strings (stop reason, error), float64 for the rest, with
 null for a metric a run does not have. CSV leaves such a cell empty.
 """
 
@@ -18,8 +18,9 @@ from dobhil.errors import ConfigError
 
 FORMATS = ("csv", "parquet")
 
-#: columns that are always text or always whole numbers (the rest: floats, or bool ``retried``)
+#: columns that are always text, booleans (null: not known) or always whole numbers (the rest: floats)
 TEXT = ("stop_reason", "error")
+BOOLEAN = ("retried", "settled")
 INTEGER = ("run", "seed", "sensor_seed", "cycles", "overruns")
 
 
@@ -55,7 +56,7 @@ def _arrow_type(column: str, integers: Sequence[str]) -> Any:
     import pyarrow as pa
     if column in TEXT:
         return pa.string()
-    if column == "retried":
+    if column in BOOLEAN:
         return pa.bool_()
     return pa.int64() if column in integers else pa.float64()
 

@@ -59,8 +59,11 @@ def run(args: argparse.Namespace) -> int:
         one = read_log(name, profile=profile, period=args.period)
         logs.append((one, tuple(parse_segment(s, one) for s in args.segment) or find_segments(one)))
     data, parts = join(logs)
+    from dobhil.cli.progress import progress
     from dobhil.identify.fit import identify
-    result = identify(data, [s for part in parts for s in part.segments])
+    with progress("identify", unit="simulation", quiet=args.json) as shown:
+        result = identify(data, [s for part in parts for s in part.segments],
+                          progress=lambda stage: shown.update(1, stage))
     info = summary(result, data, parts)
     if args.out:
         _write_overlay(result.overlay(), info, args.out)

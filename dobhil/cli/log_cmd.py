@@ -8,15 +8,14 @@
 - ``dobhil log serve FILE [--live [HOST:]PORT] [--speed X] [--loop]``  (Foxglove live view)
 
 Bad input ends in one :class:`~dobhil.errors.LogFileError` line (exit 2); an output that
-is one of the inputs is refused, and outputs appear only when complete. Progress
-bars go to stderr and only when it is a terminal.
+is one of the inputs is refused, and outputs appear only when complete. Progress goes to
+stderr (:mod:`dobhil.cli.progress`: a bar on a terminal, else lines).
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-import sys
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from datetime import datetime, timezone
@@ -29,11 +28,11 @@ Progress = Callable[[int], None]
 
 @contextmanager
 def _progress(desc: str, total: int | None) -> Iterator[Progress]:
-    """A tqdm update function on stderr, silent when stderr is not a terminal."""
-    from tqdm import tqdm
+    """An update function (messages done) for :mod:`dobhil.cli.progress` on stderr."""
+    from dobhil.cli.progress import progress
 
-    with tqdm(total=total, desc=desc, unit="msg", file=sys.stderr, disable=not sys.stderr.isatty()) as bar:
-        yield bar.update
+    with progress(desc, total=total, unit="message") as shown:
+        yield shown.update
 
 
 def _total(path: str) -> int | None:

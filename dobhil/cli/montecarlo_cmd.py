@@ -6,7 +6,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import sys
 import time
 from collections.abc import Sequence
 from pathlib import Path
@@ -17,6 +16,7 @@ from dobhil.errors import ConfigError
 
 if TYPE_CHECKING:
     from dobhil.campaign.campaign import Campaign, Summary
+    from dobhil.campaign.compare import Floors
     from dobhil.campaign.runner import RunSpec
 
 #: exit code when any run did not succeed (the table is still written)
@@ -55,10 +55,10 @@ def run(args: argparse.Namespace) -> int:
     scheduler = check_execution(args)
     out_dir = check_outputs(args)
     started = time.perf_counter()
-    rows = execute(campaign, scheduler, args.workers, header(campaign, noise, scheduler, args.workers))
+    reference, rows = execute(campaign, scheduler, args.workers, header(campaign, noise, scheduler, args.workers))
     elapsed = time.perf_counter() - started
     from dobhil.campaign.campaign import summarise, succeeded
-    summary = summarise(rows)
+    summary = summarise(rows, reference, floors(campaign, reference))
     specs = campaign.plan()
     report(summary, rows, specs, campaign, elapsed)
     if out_dir is not None:
@@ -172,17 +172,33 @@ def _config_duration(campaign: Campaign) -> float:
     return float(load_config(campaign.config, campaign.overrides, campaign.set_files).loop.duration)
 
 
-def execute(campaign: Campaign, scheduler: str | None, workers: int | None, said: str) -> list[dict[str, Any]]:
-    """The runs on the cluster; ``said`` (the header line) is printed once the cluster is
-    there, so that a scheduler that does not answer ends in its one error line alone."""
-    from tqdm import tqdm
-    from dobhil.campaign.campaign import execute as run_all
+def execute(campaign: Campaign, scheduler: str | None, workers: int | None,
+            said: str) -> tuple[dict[str, Any], list[dict[str, Any]]]:
+    """The reference run and the runs on the cluster; ``said`` (the header line) is printed
+    once the cluster is there, so that a scheduler that does not answer ends in its one
+    error line alone. Progress on stderr: runs done, failed, rate, time left."""
+    from dobhil.campaign.campaign import execute as run_all, succeeded
+    from dobhil.cli.progress import progress
     from dobhil.cluster import open_client
     specs = campaign.plan()
     with open_client(scheduler, workers=workers) as client:
         print(said, flush=True)
-        with tqdm(total=len(specs), unit="run", disable=not sys.stderr.isatty(), file=sys.stderr) as bar:
-            return run_all(client, specs, progress=bar.update)
+        reference = run_all(client, [campaign.reference_spec()])[0]
+        failed = [0]
+        with progress("montecarlo", total=len(specs), unit="run") as shown:
+            def one(row: dict[str, Any]) -> None:
+                failed[0] += not succeeded(row)
+                shown.update(1, f"{failed[0]} failed")
+            return reference, run_all(client, specs, progress=one)
+
+
+def floors(campaign: Campaign, reference: dict[str, Any]) -> Floors:
+    """The tolerance floors of the comparison with the reference: the loop period, and the
+    command at the reference run's end."""
+    from dobhil.campaign.compare import Floors
+    from dobhil.config import load_config
+    period = float(load_config(campaign.config, campaign.overrides, campaign.set_files).loop.period)
+    return Floors.of(period, reference.get("final_tau_ref"))
 
 
 # -- output -----------------------------------------------------------------
@@ -192,14 +208,94 @@ def report(summary: Summary, rows: Sequence[dict[str, Any]], specs: Sequence[Run
     print(f"{summary.runs} runs in {elapsed:.1f} s: {summary.succeeded} succeeded "
           f"({100 * summary.rate:.1f} %, 95 % CI {100 * summary.ci_low:.1f}-{100 * summary.ci_high:.1f} %, "
           f"Clopper-Pearson); {summary.retried} retried")
-    for name, p in summary.percentiles.items():
-        print(f"  {name}: p5 {p['p5']:.4g}, p50 {p['p50']:.4g}, p95 {p['p95']:.4g}, max {p['max']:.4g} "
-              f"({int(p['n'])} runs)")
+    for line in metric_lines(summary):
+        print(line)
     print(f"worst {len(summary.worst)} runs (each alone: the command below it):")
     for i in summary.worst:
         print(f"  {describe_row(rows[i], campaign)}")
         from dobhil.campaign.campaign import reproduce_command
         print(f"    {reproduce_command(specs[i])}")
+
+
+def metric_lines(summary: Summary) -> list[str]:
+    """The reference run, each metric's percentiles over the runs that have it (how many,
+    and why the others have none), its median against the reference, and the flags."""
+    from dobhil.campaign.compare import RELATIVE, RULES, SYMBOL, Unit, Worse
+    from dobhil.campaign.runner import METRICS
+    ref = summary.reference or {}
+    compared = {c.metric: c for c in summary.comparisons}
+    lines = [_reference_line(ref)] if summary.reference is not None else []
+    for name in METRICS:
+        p = summary.percentiles.get(name)
+        if p is None:
+            lines.append(f"  {name}: none of {summary.runs} runs has one{_missing(name, 0, summary)}")
+            continue
+        unit = SYMBOL[RULES.get(name, (Worse.LARGER, Unit.TORQUE))[1]]
+        text = (f"  {name}: p5 {p['p5']:.4g}, p50 {p['p50']:.4g}, p95 {p['p95']:.4g}, max {p['max']:.4g} {unit} "
+                f"over {int(p['n'])} of {summary.runs} runs{_missing(name, int(p['n']), summary)}")
+        c = compared.get(name)
+        if c is not None:
+            how = "off" if RULES.get(name, (Worse.LARGER,))[0] is Worse.OFF else None
+            text += (f"; reference {c.reference:.4g}, p50 {_past_text(c.past, how)} (tolerance {c.tolerance:.3g})"
+                     + (": WORSE than the reference" if c.worse else ""))
+        lines.append(text)
+    lines += _settling_lines(summary, ref) + _command_lines(summary)
+    if summary.reference is not None:
+        lines.append(f"  (tolerance: {100 * RELATIVE:g} % of the reference's value, at least 1 % of the "
+                     "command for torques, 2 loop periods for times, 1 point for overshoot)")
+    return lines
+
+
+def _reference_line(ref: dict[str, Any]) -> str:
+    from dobhil.campaign.runner import METRICS
+    if ref.get("error"):
+        return f"reference run (the config as given, nothing drawn): error {ref['error']}"
+    values = ", ".join(f"{m} {'-' if ref.get(m) is None else format(ref[m], '.4g')}" for m in METRICS)
+    settled = {True: "settled", False: "never settled", None: ""}[ref.get("settled")]
+    return (f"reference run (the config as given, nothing drawn): stop {ref.get('stop_reason')}; {values}"
+            + (f"; {settled}" if settled else ""))
+
+
+def _missing(name: str, n: int, summary: Summary) -> str:
+    left = summary.runs - n
+    if not left:
+        return ""
+    if name == "settling_time" and summary.never_settled:
+        others = left - summary.never_settled
+        return f"; {summary.never_settled} never settled" + (f", {others} without a step response" if others else "")
+    return f"; {left} without one"
+
+
+def _past_text(past: float, how: str | None) -> str:
+    """``worse by 0.01`` / ``better by ..`` (``off by`` for a level, off either way)."""
+    if not past:
+        return "equal"
+    return f"{how or ('worse' if past > 0 else 'better')} by {abs(past):.3g}"
+
+
+def _settling_lines(summary: Summary, ref: dict[str, Any]) -> list[str]:
+    if not summary.never_settled:
+        return []
+    if ref.get("settled") is False:
+        return ["  settling: the reference never settles into the 2 % band within the run either"]
+    if ref.get("settled"):
+        return [f"  settling: WORSE than the reference: {summary.never_settled} of {summary.runs} runs never "
+                "settle into the 2 % band within the run; the reference does"]
+    return []
+
+
+def _command_lines(summary: Summary) -> list[str]:
+    c = summary.command
+    if c is None:
+        return []
+    lines = []
+    if c.runs_off:
+        lines.append(f"  final_tau_int_true: runs end at {c.p5:.4g}..{c.p95:.4g} N m (p5..p95), OFF the command "
+                     f"{c.command:.4g} N m by more than the tolerance {c.tolerance:.3g} N m")
+    if c.reference_off and c.reference is not None:
+        lines.append(f"  final_tau_int_true: the reference itself ends at {c.reference:.4g} N m, OFF the command "
+                     f"{c.command:.4g} N m by more than {c.tolerance:.3g} N m")
+    return lines
 
 
 def describe_row(row: dict[str, Any], campaign: Campaign) -> str:
@@ -229,6 +325,7 @@ def _write_summary(path: Path, campaign: Campaign, summary: Summary, specs: Sequ
     data = {"config": campaign.config, "seed": campaign.seed, "duration": campaign.duration,
             "vary": [v.text() for v in campaign.varies], "overrides": list(campaign.overrides),
             "set_files": list(campaign.set_files), "wall_time_s": elapsed, **summary.as_dict(),
+            "reference_command": reproduce_command(campaign.reference_spec()),
             "worst": [{"run": i, "error": rows[i]["error"], "stop_reason": rows[i]["stop_reason"],
                        "force_rms_error": rows[i]["force_rms_error"], "command": reproduce_command(specs[i])}
                       for i in summary.worst]}

@@ -3,8 +3,8 @@
 The analysis (:mod:`dobhil.run_report`) returns data; this command draws
 force.png, tracking_error.png, position.png, commands.png, loop_timing.png
 (:mod:`dobhil.plotting.report_figures`) and writes summary.json and summary.txt, each
-under a temporary name renamed when complete. A progress bar goes to stderr when it is a
-terminal.
+under a temporary name renamed when complete. Progress goes to stderr
+(:mod:`dobhil.cli.progress`), none with --json.
 """
 
 from __future__ import annotations
@@ -34,8 +34,7 @@ def _check_out_dir(out: Path, source: str) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from tqdm import tqdm
-
+    from dobhil.cli.progress import progress
     from dobhil.run_report import report, summary_text
     from dobhil.files import atomic_path, shown
     from dobhil.plotting.report_figures import report_figures
@@ -43,7 +42,7 @@ def run(args: argparse.Namespace) -> int:
     _check_out_dir(args.out, args.file)
     with open_log(args.file) as log:
         total = sum(c.message_count for c in log.channels())
-    with tqdm(total=total, desc="report", unit="msg", file=sys.stderr, disable=not sys.stderr.isatty()) as bar:
+    with progress("report", total=total, unit="message", quiet=args.json) as bar:
         data, summary, predicted = report(args.file, progress=bar.update)
     args.out.mkdir(parents=True, exist_ok=True)
     files = report_figures(data, predicted, summary, args.out)

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import argparse
 import csv
-import sys
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
@@ -19,7 +18,7 @@ if TYPE_CHECKING:
 
 Progress = Callable[[int], None]
 
-#: grids at least this large show a progress bar (on a terminal)
+#: grids at least this large show their progress (smaller ones take a few seconds)
 PROGRESS_MIN_POINTS = 20_000
 
 #: --plot formats (matplotlib picks the format from the suffix)
@@ -107,10 +106,9 @@ def _chunk_map(args: argparse.Namespace) -> Iterator[ChunkMap | None]:
 
 
 def _run_with_progress(work: Callable[[Progress], SweepResult], total: int) -> SweepResult:
-    from tqdm import tqdm
-    disable = total < PROGRESS_MIN_POINTS or not sys.stderr.isatty()
-    with tqdm(total=total, unit="pt", disable=disable, file=sys.stderr) as bar:
-        return work(bar.update)
+    from dobhil.cli.progress import progress
+    with progress("sweep", total=total, unit="point", quiet=total < PROGRESS_MIN_POINTS) as shown:
+        return work(shown.update)
 
 
 def _summary(result: SweepResult) -> None:

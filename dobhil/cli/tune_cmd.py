@@ -20,7 +20,7 @@ if TYPE_CHECKING:
 
     from dobhil.config.schema import Config
     from dobhil.tune.evaluate import Quanta
-    from dobhil.tune.optimise import Objective, TuneResult
+    from dobhil.tune.optimise import Generation, Objective, TuneResult
     from dobhil.tune.problem import Margins, Range, Uncertainty
     from dobhil.tune.report import Baseline
 
@@ -85,7 +85,7 @@ def run(args: argparse.Namespace) -> int:
     horizon = _horizon(config)
     result = _with_progress(lambda cb: tune(config, ranges, uncertainties, bounds, margins, objective,
                                             seed=args.seed, grid=args.grid, horizon=horizon, quanta=quanta,
-                                            maxiter=args.generations, progress=cb))
+                                            maxiter=args.generations, progress=cb), args.json)
     base = _baseline(config, result, margins, objective, horizon, quanta)
     _print(args, result, base, margins, ranges, uncertainties)
     if args.out and result.feasible:
@@ -156,10 +156,28 @@ def quantisation(config: Config, config_path: Path) -> Quanta | None:
     return None if quanta == Quanta(0.0, 0.0, 0.0) else quanta
 
 
-def _with_progress(work: Callable[[Callable[[int], object]], TuneResult]) -> TuneResult:
-    from tqdm import tqdm
-    with tqdm(unit="gen", desc="tune", disable=not sys.stderr.isatty(), file=sys.stderr) as bar:
-        return work(bar.update)
+def _with_progress(work: Callable[[Callable[[Generation], object]], TuneResult], quiet: bool) -> TuneResult:
+    """The search with a line (or bar) per generation on stderr: its best worst case and its
+    tightest constraint; nothing with --json."""
+    from dobhil.cli.progress import progress
+    with progress("tune", unit="generation", quiet=quiet) as shown:
+        return work(lambda g: shown.update(1, generation_text(g)))
+
+
+def generation_text(g: Generation) -> str:
+    """``round 1 generation 12: best worst-case rise time 35.1 ms; overshoot active``."""
+    from dobhil.tune.report import CONSTRAINT_TEXT, objective_text
+    label, _, unit, _ = CONSTRAINT_TEXT[g.tightest]
+    objective = "rise time" if g.objective == "rise_time" else "bandwidth"
+    if g.active:
+        limit = f"{label} active (at its limit)"
+    elif g.slack < 0:
+        limit = f"{label} broken by {-g.slack:.3g}{unit}"
+    else:
+        limit = f"tightest {label}, {g.slack:.3g}{unit} to spare"
+    worst = math.inf if g.worst >= 1e6 else g.worst   # the optimiser's cap on an unstable candidate
+    return (f"round {g.round} generation {g.generation}: best worst-case {objective} "
+            f"{objective_text(g.objective, worst)}; {limit}")
 
 
 def _baseline(config: Config, result: TuneResult, margins: Margins, objective: Objective, horizon: int,

@@ -46,7 +46,7 @@ What is fitted, and why so:
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, replace
 from typing import Any
 
@@ -334,9 +334,26 @@ def _parameters(start: dict[str, float], data: IdentData, segments: Sequence[Seg
     return p
 
 
-def identify(data: IdentData, segments: Sequence[Segment], *,
-             max_delay_samples: int = 3) -> IdentResult:
-    """Fit the plant to ``data`` over ``segments`` (see the module docstring)."""
+class _Counted:
+    """:func:`_residual`, telling ``progress`` of each evaluation (one simulation of every
+    segment: the unit of the fit's work) and which stage of the fit asked for it."""
+
+    def __init__(self, progress: Callable[[str], object] | None) -> None:
+        self.progress = progress
+        self.stage = "first fit"
+
+    def __call__(self, params: lmfit.Parameters, data: IdentData, segments: Sequence[Segment],
+                 fixed: Mapping[str, float]) -> np.ndarray:
+        out = _residual(params, data, segments, fixed)
+        if self.progress is not None:
+            self.progress(self.stage)
+        return out
+
+
+def identify(data: IdentData, segments: Sequence[Segment], *, max_delay_samples: int = 3,
+             progress: Callable[[str], object] | None = None) -> IdentResult:
+    """Fit the plant to ``data`` over ``segments`` (see the module docstring).
+    ``progress(stage)`` after each simulation of the segments (a long log: seconds each)."""
     segments = tuple(segments)
     if not segments:
         raise ValueError("identify: no segment to fit")
@@ -363,14 +380,17 @@ def identify(data: IdentData, segments: Sequence[Segment], *,
                 q = float(data.position[s.start])
                 params.add(_q0(i), value=q, min=q - count, max=q + count)
         fixed["prior_weight"] = _noise_guess(data, segments) / (count / math.sqrt(12.0))
-    minimizer = lmfit.Minimizer(_residual, params, fcn_args=(data, segments, fixed))
+    counted = _Counted(progress)
+    minimizer = lmfit.Minimizer(counted, params, fcn_args=(data, segments, fixed))
     result, other = _staged(minimizer)
+    counted.stage = "delay search"
     result = _search_delay(minimizer, result, data.period)
     rows = sum(s.stop - s.start for s in segments)
     if "prior_weight" in fixed:
         velocity = np.asarray(result.residual, float)[:rows]
         fixed["prior_weight"] = (float(np.sqrt(np.mean(velocity ** 2)))
                                  / (count / math.sqrt(12.0)))
+    counted.stage = "refinement"
     refined = _refine(minimizer, result, rows)
     # the refined optimum is the result
     result.params = refined.params
@@ -380,6 +400,7 @@ def identify(data: IdentData, segments: Sequence[Segment], *,
     covariance = refined.covariance
     rivals = _rivals(minimizer, other, result.chisqr, velocity_residual,
                      len(covariance[0]) if covariance is not None else 0)
+    counted.stage = "intervals"
     estimates = _estimates(minimizer, result, covariance, data, segments, rivals)
     estimates = _profiled(minimizer, result, estimates, velocity_residual, data, segments)
     fitted = [k for k in PARAMETERS if estimates[k].identifiable]

@@ -81,6 +81,23 @@ class TuneResult:
     grid: RobustSet
 
 
+@dataclass(frozen=True)
+class Generation:
+    """One generation of a search, as its progress: which search (round), the generation in
+    it, the best candidate's worst case over the optimiser's set (the objective, in its unit:
+    s of rise time, rad/s of bandwidth) and its tightest constraint with its slack (< 0:
+    broken; in the constraint's unit)."""
+
+    round: int
+    generation: int
+    objective: str
+    worst: float
+    tightest: str
+    slack: float
+    #: the tightest constraint is at its limit (within :data:`ACTIVE_FRACTION` of it)
+    active: bool
+
+
 def constraint_values(m: Metrics, margins: Margins) -> list[np.ndarray]:
     """Per constraint of :data:`CONSTRAINTS`, each design's slack at its worst point
     (>= 0: holds; in the constraint's own unit)."""
@@ -115,7 +132,7 @@ class _Cache:
 
 def _search(config: Config, points: RobustSet, bounds: Bounds, margins: Margins, objective: Objective,
             *, seed: int, horizon: int, quanta: Quanta | None, maxiter: int,
-            progress: Callable[[int], object] | None) -> tuple[np.ndarray, int]:
+            progress: Callable[[Generation], object] | None, round_: int = 1) -> tuple[np.ndarray, int]:
     """One differential evolution over ``points``: (the best design's values, generations)."""
     plant = point_plant(config, points.points)
 
@@ -128,17 +145,40 @@ def _search(config: Config, points: RobustSet, bounds: Bounds, margins: Margins,
     count = len(CONSTRAINTS) - (0 if margins.noise is not None and quanta is not None else 1)
     constraint = scipy.optimize.NonlinearConstraint(lambda x: cache.get(x)[1], np.zeros(count),
                                                     np.full(count, np.inf))
+    generation = [0]
+
+    def said(intermediate_result: scipy.optimize.OptimizeResult) -> None:
+        generation[0] += 1
+        # the best candidate was judged in this generation: the cache has it
+        cost, slacks = cache.get(np.asarray(intermediate_result.x)[:, None])
+        scales = _scales(margins, count)
+        # stability is tightest only when broken: a slow pole near the unit circle is no margin
+        # at its limit (the report says the same, worsts() below)
+        i = 0 if slacks[0, 0] < 0 else 1 + int(np.argmin(slacks[1:, 0] / scales[1:]))
+        worst = float(cost[0]) if objective.name == "rise_time" else -float(cost[0])
+        slack = float(slacks[i, 0])
+        if progress is not None:
+            progress(Generation(round_, generation[0], objective.name, worst, CONSTRAINTS[i], slack,
+                                abs(slack) <= ACTIVE_FRACTION * scales[i]))
     res = scipy.optimize.differential_evolution(
         lambda x: cache.get(x)[0], bounds.log10(), constraints=constraint, seed=seed,
         popsize=POPSIZE, maxiter=maxiter, polish=False, vectorized=True, updating="deferred",
-        init="sobol", tol=1e-3, callback=(lambda intermediate_result: progress(1)) if progress else None)
+        init="sobol", tol=1e-3, callback=said if progress else None)
     return 10.0 ** np.asarray(res.x), int(res.nit)
+
+
+def _scales(margins: Margins, count: int) -> np.ndarray:
+    """Each constraint's scale, to say which is tightest across units (1 dB of gain margin
+    against 1 % of overshoot): its limit's size, at least 1."""
+    limits = [1.0, margins.gm_db, margins.pm_deg, margins.ms_db, margins.overshoot_pct,
+              margins.noise if margins.noise is not None else 1.0]
+    return np.maximum(np.abs(np.array(limits[:count], float)), 1.0)
 
 
 def tune(config: Config, ranges: list[Range], uncertainties: list[Uncertainty], bounds: Bounds,
          margins: Margins, objective: Objective, *, seed: int = 0, grid: int = 50,
          horizon: int = 200, quanta: Quanta | None = None, maxiter: int = 60,
-         progress: Callable[[int], object] | None = None) -> TuneResult:
+         progress: Callable[[Generation], object] | None = None) -> TuneResult:
     """The design, its fine-grid check, and the rounds it took (see the module docstring).
 
     BLAS on one thread throughout: the work is thousands of tiny matrices (5 x 5 loops,
@@ -151,13 +191,13 @@ def tune(config: Config, ranges: list[Range], uncertainties: list[Uncertainty], 
 
 def _tune(config: Config, ranges: list[Range], uncertainties: list[Uncertainty], bounds: Bounds,
           margins: Margins, objective: Objective, *, seed: int, grid: int, horizon: int,
-          quanta: Quanta | None, maxiter: int, progress: Callable[[int], object] | None) -> TuneResult:
+          quanta: Quanta | None, maxiter: int, progress: Callable[[Generation], object] | None) -> TuneResult:
     points = robust_set(config, ranges, uncertainties, min(COARSE_POINTS, grid))
     fine = robust_set(config, ranges, uncertainties, grid)
     generations = 0
     for round_ in range(1, ROUNDS + 1):
         best, nit = _search(config, points, bounds, margins, objective, seed=seed, horizon=horizon,
-                            quanta=quanta, maxiter=maxiter, progress=progress)
+                            quanta=quanta, maxiter=maxiter, progress=progress, round_=round_)
         generations += nit
         m = evaluate(config, best[None, :], fine.points, horizon=horizon, quanta=quanta,
                      bandwidth=objective.name == "bandwidth")

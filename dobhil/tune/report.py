@@ -66,7 +66,8 @@ def _at(point: Mapping[str, float]) -> str:
     return ", ".join(f"{k}={v:.4g}" for k, v in point.items()) or "the config's values"
 
 
-def _objective_text(name: str, value: float) -> str:
+def objective_text(name: str, value: float) -> str:
+    """A worst-case objective in its unit (ms of rise time, rad/s of bandwidth)."""
     if name == "rise_time":
         return "inf (unstable or not within the horizon)" if not math.isfinite(value) else f"{value * 1e3:.4g} ms"
     return f"{value:.4g} rad/s"
@@ -92,12 +93,12 @@ def as_text(result: TuneResult, base: Baseline, set_description: str) -> str:
     lines = [f"robust set: {set_description} = {result.grid_points} points; sampled loop with its delay",
              "tuned design:"]
     lines += [f"  {k} = {result.design[k]:.6g} {UNITS[k]}".rstrip() for k in DECISION_KEYS]
-    lines.append(f"worst-case force {obj}: {_objective_text(result.objective, result.worst_objective)} "
+    lines.append(f"worst-case force {obj}: {objective_text(result.objective, result.worst_objective)} "
                  f"at {_at(result.worst_at)}")
     lines.append("constraints (worst over the grid):")
     lines += [_constraint_line(w) for w in result.constraints]
     lines.append("the config's design (" + ", ".join(f"{k.split('.')[1]} {v:.4g}" for k, v in base.design.items())
-                 + f"): worst-case force {obj} {_objective_text(result.objective, base.worst_objective)} at "
+                 + f"): worst-case force {obj} {objective_text(result.objective, base.worst_objective)} at "
                  f"{_at(base.worst_at)}; " + _unstable_text(base, result.objective))
     lines.append(f"search: {result.rounds} round(s), {result.generations} generations, "
                  f"{result.set_points} points in the optimiser's set")
@@ -111,7 +112,7 @@ def _unstable_text(base: Baseline, objective: str) -> str:
     if not base.unstable:
         return f"stable at every point (largest |pole| {base.worst_radius:.4g}){fails}"
     inside = ("" if not base.stable_worst_at else
-              f"; where stable, its worst is {_objective_text(objective, base.stable_worst_objective)} at "
+              f"; where stable, its worst is {objective_text(objective, base.stable_worst_objective)} at "
               f"{_at(base.stable_worst_at)}")
     return (f"UNSTABLE at {base.unstable} of {base.stable.size} point(s) (largest |pole| {base.worst_radius:.4g} at "
             f"{_at(base.radius_at)}){inside}{fails} (where stable)")

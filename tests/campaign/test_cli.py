@@ -132,8 +132,8 @@ def test_killing_a_worker_mid_campaign_loses_no_row(dask_client: Any) -> None:
         pids = list(client.run(os.getpid).values())
         done = [0]
 
-        def kill_after_two(n: int) -> None:
-            done[0] += n
+        def kill_after_two(row: dict[str, Any]) -> None:
+            done[0] += 1
             if done[0] == 2:   # both workers are busy: the one killed is mid-run
                 os.kill(pids[0], signal.SIGKILL)
         rows = execute(client, c.plan(), progress=kill_after_two)
@@ -158,3 +158,31 @@ def test_the_table_says_which_runs_were_retried(dask_client: Any) -> None:
     assert _row(spec, MapResult(row, None, False))["retried"] is False
     lost = _row(spec, MapResult(None, "KilledWorker: gone three times", True))
     assert lost["retried"] is True and lost["error"] == "KilledWorker: gone three times" and lost["run"] == 1
+
+
+def test_the_summary_counts_says_the_reference_and_flags(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Past the demo's step (0.6 s): each metric over the runs that have it, the reference run
+    and each median against it, in the printed summary and in summary.json alike."""
+    out = tmp_path / "mc"
+    code = main(["montecarlo", "demo", "--runs", "4", "--seed", "1", "--duration", "0.8", "--workers", "1",
+                 "--vary", "environment.stiffness=loguniform:3e3:3e4", "--out", str(out)])
+    text = capsys.readouterr().out
+    summary = json.loads((out / "summary.json").read_text())
+    with (out / "runs.csv").open() as fh:
+        rows = list(csv.DictReader(fh))
+    assert code == 0 and summary["reference"]["run"] == -1 and summary["reference"]["error"] == ""
+    assert "reference run (the config as given, nothing drawn): stop done" in text
+    assert summary["reference_command"].startswith("dobhil run demo --emulate --lockstep --duration 0.8")
+    settled = sum(r["settled"] == "True" for r in rows)
+    never = sum(r["settled"] == "False" for r in rows)
+    assert settled + never == 4 and summary["never_settled"] == never
+    assert all((r["settling_time"] == "") == (r["settled"] == "False") for r in rows)
+    p = summary["percentiles"]
+    assert p["force_rms_error"]["n"] == 4 and "force_rms_error: p5 " in text and "over 4 of 4 runs" in text
+    if never:
+        assert f"over {settled} of 4 runs; {never} never settled" in text
+    flagged = [c["metric"] for c in summary["comparisons"] if c["worse"]]
+    assert flagged == summary["worse_than_reference"]
+    for c in summary["comparisons"]:
+        line = next(line for line in text.splitlines() if line.startswith(f"  {c['metric']}: p5 "))
+        assert f"reference {c['reference']:.4g}" in line and line.endswith(": WORSE than the reference") == c["worse"]

@@ -1,0 +1,68 @@
+"""Tick labels that do not run into each other.
+
+matplotlib's locators choose ticks from the axis length and a font-size guess, not from the
+labels' drawn widths: long labels (``0.9825``, ``0.9850``, ... on a narrow histogram) touch
+or overlap. :func:`fit_ticks` draws the figure, measures every tick label
+(``Text.get_window_extent`` with the canvas' renderer) and asks an axis with touching labels
+for fewer ticks until none touch; :func:`overlapping_tick_labels` is the measurement alone.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from matplotlib.axis import Axis
+    from matplotlib.figure import Figure
+
+#: fewest ticks an axis is thinned to (two values still give a scale)
+MIN_TICKS = 2
+
+#: blank space required between two labels [pixels at the figure's dpi]
+GAP_PX = 2.0
+
+
+def _shown_labels(axis: Axis) -> list[Any]:
+    """The axis' major tick labels that are drawn: visible, non-empty, inside the view."""
+    lo, hi = sorted(axis.get_view_interval())
+    out = []
+    for tick in axis.get_major_ticks():
+        label = tick.label1
+        if label.get_visible() and label.get_text() and lo <= tick.get_loc() <= hi:
+            out.append(label)
+    return out
+
+
+def _axis_overlaps(axis: Axis, renderer: Any) -> list[tuple[str, str]]:
+    boxes = [(label.get_text(), label.get_window_extent(renderer).padded(GAP_PX / 2))
+             for label in _shown_labels(axis)]
+    return [(a, b) for i, (a, box_a) in enumerate(boxes) for b, box_b in boxes[i + 1:] if box_a.overlaps(box_b)]
+
+
+def overlapping_tick_labels(fig: Figure) -> list[tuple[str, str]]:
+    """Every pair of tick labels of one axis of ``fig`` that touch (closer than
+    :data:`GAP_PX`) once drawn."""
+    fig.canvas.draw()
+    renderer = fig.canvas.get_renderer()  # type: ignore[attr-defined]
+    return [pair for ax in fig.axes if ax.get_visible()
+            for axis in (ax.xaxis, ax.yaxis) for pair in _axis_overlaps(axis, renderer)]
+
+
+def fit_ticks(fig: Figure) -> None:
+    """Fewer ticks on each axis whose labels touch, until none do (or :data:`MIN_TICKS`)."""
+    from matplotlib.ticker import MaxNLocator
+    fig.canvas.draw()
+    renderer = fig.canvas.get_renderer()  # type: ignore[attr-defined]
+    for ax in fig.axes:
+        for axis in (ax.xaxis, ax.yaxis):
+            if axis.get_scale() != "linear":
+                continue   # a log axis' locator places decades; its labels are short
+            count = len(_shown_labels(axis))
+            while _axis_overlaps(axis, renderer) and count > MIN_TICKS:
+                count -= 1
+                axis.set_major_locator(MaxNLocator(nbins=max(1, count - 1), steps=[1, 2, 2.5, 5, 10]))
+                fig.canvas.draw()
+                renderer = fig.canvas.get_renderer()  # type: ignore[attr-defined]
+
+
+__all__ = ["fit_ticks", "overlapping_tick_labels"]
