@@ -372,3 +372,44 @@ def _merge(edges: Array, upper: Array, stable: NDArray[np.bool_]) -> tuple[Array
     rows, cols = np.nonzero(ends)
     hi[rows, rank_s[rows, cols]] = flat_u[rows, cols]
     return lo.reshape(batch + (m,)), hi.reshape(batch + (m,))
+
+
+def phase_margin(a0: Array, b: Array, c: Array, gain: Array | float, *, sampled: bool) -> Array:
+    """Worst phase margin [deg] of ``gain * L`` (``L = C (sI - A0)^-1 B``, sampled: in z)
+    over every gain crossover ``|gain L| = 1``; inf where ``|gain L|`` never crosses 1.
+
+    The crossovers are found the way :func:`gain_map` finds its crossings: on the
+    imaginary axis (the unit circle mapped onto it by the bilinear map, where ``L`` keeps
+    its values), ``|D(jw)|^2 - gain^2 |N(jw)|^2`` is a real polynomial in w whose
+    non-negative real roots are the crossover frequencies -- every one, without a
+    frequency grid and without python-control (a run pays for no import of it). The margin
+    at each is ``180 + arg(gain L(jw))`` wrapped to (-180, 180]."""
+    a0, b, c = balance(a0, b, c)
+    poles = np.asarray(np.linalg.eigvals(a0), dtype=complex)
+    zeros, num, _ = zeros_and_numerator(a0, b, c)
+    poles, _ = _snap_marginal(poles, sampled)
+    den = poly_from_roots(poles)
+    roots = np.concatenate([poles, zeros], axis=-1)
+    if sampled:
+        den, num, roots = _bilinear(den), _bilinear(num), _to_w(roots)
+    d, m, _ = _scaled(den, num, roots)
+    k = np.asarray(gain, float)[..., None]
+    jpow = 1j ** np.arange(d.shape[-1] - 1, -1, -1)
+    cross = _abs_squared(d * jpow) - k ** 2 * _abs_squared(m * jpow)
+    omegas = batched_roots(cross)
+    real = np.abs(omegas.imag) <= 1e-6 * (1.0 + np.abs(omegas.real))
+    w = np.where(real & (omegas.real >= 0), omegas.real, np.nan)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        value = k * eval_poly(m, 1j * w) / eval_poly(d, 1j * w)
+    margin = np.mod(np.degrees(np.angle(value)) + 180.0, 360.0)
+    margin = np.where(margin > 180.0, margin - 360.0, margin)
+    return np.min(np.where(np.isfinite(margin), margin, np.inf), axis=-1)
+
+
+def _abs_squared(p: CArray) -> Array:
+    """Coefficients of ``|p(w)|^2 = p(w) conj(p)(w)`` for real w (highest power first)."""
+    n = p.shape[-1] - 1
+    out = np.zeros(p.shape[:-1] + (2 * n + 1,), dtype=complex)
+    for i in range(n + 1):
+        out[..., i:i + n + 1] += p[..., i:i + 1] * np.conj(p)
+    return out.real
