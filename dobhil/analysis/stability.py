@@ -375,15 +375,17 @@ def _merge(edges: Array, upper: Array, stable: NDArray[np.bool_]) -> tuple[Array
 
 
 def phase_margin(a0: Array, b: Array, c: Array, gain: Array | float, *, sampled: bool) -> Array:
-    """Worst phase margin [deg] of ``gain * L`` (``L = C (sI - A0)^-1 B``, sampled: in z)
-    over every gain crossover ``|gain L| = 1``; inf where ``|gain L|`` never crosses 1.
+    """Phase margin [deg] of ``gain * L`` (``L = C (sI - A0)^-1 B``, sampled: in z): at the
+    gain crossover ``|gain L| = 1`` whose phase comes nearest -180 deg, signed, in
+    [-180, 180) (python-control's ``stability_margins`` convention); inf where ``|gain L|``
+    never crosses 1.
 
     The crossovers are found the way :func:`gain_map` finds its crossings: on the
     imaginary axis (the unit circle mapped onto it by the bilinear map, where ``L`` keeps
     its values), ``|D(jw)|^2 - gain^2 |N(jw)|^2`` is a real polynomial in w whose
     non-negative real roots are the crossover frequencies -- every one, without a
     frequency grid and without python-control (a run pays for no import of it). The margin
-    at each is ``180 + arg(gain L(jw))`` wrapped to (-180, 180]."""
+    at each is ``180 + arg(gain L(jw))`` wrapped to [-180, 180)."""
     a0, b, c = balance(a0, b, c)
     poles = np.asarray(np.linalg.eigvals(a0), dtype=complex)
     zeros, num, _ = zeros_and_numerator(a0, b, c)
@@ -402,8 +404,11 @@ def phase_margin(a0: Array, b: Array, c: Array, gain: Array | float, *, sampled:
     with np.errstate(divide="ignore", invalid="ignore"):
         value = k * eval_poly(m, 1j * w) / eval_poly(d, 1j * w)
     margin = np.mod(np.degrees(np.angle(value)) + 180.0, 360.0)
-    margin = np.where(margin > 180.0, margin - 360.0, margin)
-    return np.min(np.where(np.isfinite(margin), margin, np.inf), axis=-1)
+    margin = np.where(margin >= 180.0, margin - 360.0, margin)
+    # the worst crossover is the one whose phase comes nearest -180 deg, from either side
+    nearest = np.argmin(np.where(np.isfinite(margin), np.abs(margin), np.inf), axis=-1)
+    worst = np.take_along_axis(margin, nearest[..., None], axis=-1)[..., 0]
+    return np.where(np.any(np.isfinite(margin), axis=-1), worst, np.inf)
 
 
 def _abs_squared(p: CArray) -> Array:
