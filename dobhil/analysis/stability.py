@@ -20,7 +20,6 @@ from dataclasses import dataclass
 from math import comb
 
 import numpy as np
-import scipy.optimize
 from numpy.typing import NDArray
 
 from dobhil.analysis.polynomials import (Array, CArray, batched_roots, eval_poly,
@@ -264,6 +263,10 @@ def _verify(a0: Array, bc: Array, crossings: Array, sampled: bool,
             if s0 != s1 or verdict[index][j0] == verdict[index][j1]:
                 continue
             k0, k1 = float(flat_k[index][j0]), float(flat_k[index][j1])
+
+            # imported here, on this rare path only: the stability gate runs this module at
+            # the start of every run, and scipy.optimize costs more than the gate itself
+            import scipy.optimize
 
             def f(k: float, at: tuple[int, ...] = index) -> float:
                 return float(_spectral_margin(a0[at] - k * bc[at], sampled))

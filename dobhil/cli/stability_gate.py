@@ -15,9 +15,10 @@ import argparse
 import json
 import os
 import sys
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-from dobhil.analysis.gate import GateVerdict
+if TYPE_CHECKING:   # imported when a command runs the gate: every command's --help stays light
+    from dobhil.analysis.gate import GateVerdict
 
 #: the ``--allow-unstable`` option's help
 ALLOW_HELP = ("run a design the stability gate finds unstable (for experiments: the torque then "
