@@ -80,7 +80,8 @@ class GateVerdict:
     ``max_stable_gain``: the largest k with every gain of (0, k) stable (inf: unbounded;
     0: not stable for small gains); ``gain_margin_db``: how far C_f may be scaled, up or
     down, before it leaves its stable interval (inf: nowhere; None when unstable or not
-    computed); ``phase_margin_deg``: the worst over the gain crossovers (inf: none)."""
+    computed); ``phase_margin_deg``: at the gain crossover whose phase comes nearest
+    -180 deg (inf: no crossover)."""
 
     status: GateStatus
     force_gain: float

@@ -14,8 +14,8 @@ the position the reply reads. dobhil never zeroes a motor otherwise.
 
 Before the bus is opened, the design ``dobhil run`` would close on this drive passes the
 stability gate (:mod:`dobhil.cli.stability_gate`): an unstable one is refused as ``run``
-refuses it (exit 2; ``--allow-unstable`` measures the drive anyway), and the report ends
-with the gate's line (``stability_gate`` in ``--json``).
+refuses it (exit 2; ``--allow-unstable`` measures the drive anyway), and the report's
+second line is the gate's (``stability_gate`` in ``--json``).
 """
 
 from __future__ import annotations
@@ -93,9 +93,9 @@ def check(args: argparse.Namespace) -> int:
         sys.stdout.write("\n")
     else:
         print(f"bus {spec.describe()}")
+        print(f"stability gate: {gate.summary()}")   # the design's line; the drive's follow
         for line in report.lines():
             print(line)
-        print(f"stability gate: {gate.summary()}")
     return 0 if report.ok else EXIT_MISMATCH
 
 
