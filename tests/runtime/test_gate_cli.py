@@ -116,3 +116,16 @@ def test_no_shipped_config_is_refused(name: str, capsys: pytest.CaptureFixture[s
     assert notes == ([] if "identify" not in name else
                      ["dobhil run: note: stability gate not applied: loop.mode = torque (the reference is the "
                       "torque command: no force loop closes)"])
+
+
+def test_the_refusal_as_a_user_sees_it(tmp_path: Path) -> None:
+    """The command of the report that showed the problem, as its own process: exactly one
+    line on stderr, nothing on stdout, exit 2, no log file."""
+    import subprocess
+    import sys
+    log = tmp_path / "run.mcap"
+    done = subprocess.run([sys.executable, "-m", "dobhil", *RUN, *UNSTABLE, "--log", str(log)],
+                          capture_output=True, text=True, cwd=tmp_path, timeout=120)
+    assert done.returncode == EXIT_USAGE and done.stdout == ""
+    assert len(done.stderr.splitlines()) == 1 and done.stderr.startswith("dobhil run: error: refused: ")
+    assert "Traceback" not in done.stderr and files_in(tmp_path) == []
