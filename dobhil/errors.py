@@ -16,6 +16,11 @@ class ConfigError(DobhilError, ValueError):
     """A configuration key, value or file is not acceptable."""
 
 
+class UnstableDesignError(ConfigError):
+    """The loop a run would close is unstable at its force gain (the stability gate,
+    :mod:`dobhil.analysis.gate`); the message says the verdict and how to proceed."""
+
+
 class SynthesisError(DobhilError, ValueError):
     """The requested observer or loop cannot be synthesised (e.g. unobservable model)."""
 

@@ -494,8 +494,25 @@ def analyse(data: RunData) -> tuple[dict[str, Any], Array | None]:
         "latency": latency_stats(data),
         "dropped": int(sum(int(e.get("count", 0)) for e in data.events if e.get("kind") == "loss")),
         "prediction": pred_info,
+        "stability_gate": stability_gate(data),
     }
     return summary, predicted
+
+
+def stability_gate(data: RunData) -> dict[str, Any] | None:
+    """The stability gate's verdict the run recorded before it started (the
+    ``stability_gate`` metadata of ``dobhil run``/``demo``: status, max stable C_f, margins,
+    whether ``--allow-unstable`` overrode a refusal); None for a log without it."""
+    raw = data.metadata.get("stability_gate")
+    if not raw:
+        return None
+    out: dict[str, Any] = {}
+    for key, value in raw.items():
+        try:
+            out[key] = json.loads(value)
+        except ValueError:
+            out[key] = value
+    return out
 
 
 def _first_contact(t: Array, contact: Contact) -> float | None:
@@ -524,6 +541,10 @@ def summary_text(s: Mapping[str, Any]) -> str:
         return "-" if v is None else f"{v:.4g} N m"
 
     lines = [f"run: {s['file']}", f"cycles: {s['cycles']} ({s['duration_s']:.3f} s), stop: {s['stop'] or '-'}"]
+    gate = s.get("stability_gate")
+    if gate:
+        overridden = "OVERRIDDEN by --allow-unstable: " if gate.get("overridden") else ""
+        lines.append(f"stability gate: {overridden}{gate.get('line') or gate.get('status')}")
     if not s["prediction"].get("available") and "loop.mode = torque" in s["prediction"].get("why", ""):
         lines.append("mode: torque (open loop, the reference is the torque command): no force tracking")
     contact = s.get("contact") or {}

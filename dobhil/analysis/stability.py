@@ -20,7 +20,6 @@ from dataclasses import dataclass
 from math import comb
 
 import numpy as np
-import scipy.optimize
 from numpy.typing import NDArray
 
 from dobhil.analysis.polynomials import (Array, CArray, batched_roots, eval_poly,
@@ -265,6 +264,10 @@ def _verify(a0: Array, bc: Array, crossings: Array, sampled: bool,
                 continue
             k0, k1 = float(flat_k[index][j0]), float(flat_k[index][j1])
 
+            # imported here, on this rare path only: the stability gate runs this module at
+            # the start of every run, and scipy.optimize costs more than the gate itself
+            import scipy.optimize
+
             def f(k: float, at: tuple[int, ...] = index) -> float:
                 return float(_spectral_margin(a0[at] - k * bc[at], sampled))
             try:
@@ -372,3 +375,49 @@ def _merge(edges: Array, upper: Array, stable: NDArray[np.bool_]) -> tuple[Array
     rows, cols = np.nonzero(ends)
     hi[rows, rank_s[rows, cols]] = flat_u[rows, cols]
     return lo.reshape(batch + (m,)), hi.reshape(batch + (m,))
+
+
+def phase_margin(a0: Array, b: Array, c: Array, gain: Array | float, *, sampled: bool) -> Array:
+    """Phase margin [deg] of ``gain * L`` (``L = C (sI - A0)^-1 B``, sampled: in z): at the
+    gain crossover ``|gain L| = 1`` whose phase comes nearest -180 deg, signed, in
+    [-180, 180) (python-control's ``stability_margins`` convention); inf where ``|gain L|``
+    never crosses 1.
+
+    The crossovers are found the way :func:`gain_map` finds its crossings: on the
+    imaginary axis (the unit circle mapped onto it by the bilinear map, where ``L`` keeps
+    its values), ``|D(jw)|^2 - gain^2 |N(jw)|^2`` is a real polynomial in w whose
+    non-negative real roots are the crossover frequencies -- every one, without a
+    frequency grid and without python-control (a run pays for no import of it). The margin
+    at each is ``180 + arg(gain L(jw))`` wrapped to [-180, 180)."""
+    a0, b, c = balance(a0, b, c)
+    poles = np.asarray(np.linalg.eigvals(a0), dtype=complex)
+    zeros, num, _ = zeros_and_numerator(a0, b, c)
+    poles, _ = _snap_marginal(poles, sampled)
+    den = poly_from_roots(poles)
+    roots = np.concatenate([poles, zeros], axis=-1)
+    if sampled:
+        den, num, roots = _bilinear(den), _bilinear(num), _to_w(roots)
+    d, m, _ = _scaled(den, num, roots)
+    k = np.asarray(gain, float)[..., None]
+    jpow = 1j ** np.arange(d.shape[-1] - 1, -1, -1)
+    cross = _abs_squared(d * jpow) - k ** 2 * _abs_squared(m * jpow)
+    omegas = batched_roots(cross)
+    real = np.abs(omegas.imag) <= 1e-6 * (1.0 + np.abs(omegas.real))
+    w = np.where(real & (omegas.real >= 0), omegas.real, np.nan)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        value = k * eval_poly(m, 1j * w) / eval_poly(d, 1j * w)
+    margin = np.mod(np.degrees(np.angle(value)) + 180.0, 360.0)
+    margin = np.where(margin >= 180.0, margin - 360.0, margin)
+    # the worst crossover is the one whose phase comes nearest -180 deg, from either side
+    nearest = np.argmin(np.where(np.isfinite(margin), np.abs(margin), np.inf), axis=-1)
+    worst = np.take_along_axis(margin, nearest[..., None], axis=-1)[..., 0]
+    return np.where(np.any(np.isfinite(margin), axis=-1), worst, np.inf)
+
+
+def _abs_squared(p: CArray) -> Array:
+    """Coefficients of ``|p(w)|^2 = p(w) conj(p)(w)`` for real w (highest power first)."""
+    n = p.shape[-1] - 1
+    out = np.zeros(p.shape[:-1] + (2 * n + 1,), dtype=complex)
+    for i in range(n + 1):
+        out[..., i:i + n + 1] += p[..., i:i + 1] * np.conj(p)
+    return out.real

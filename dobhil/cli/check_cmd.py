@@ -11,6 +11,11 @@ names the way to try without hardware (``--bus dobhil:demo``).
 ``--set-zero`` (MIT-mode motors only, refused for any other protocol): send set zero
 (0xFE), wait the profile's ``mit.zero_silence``, ask with a zero-torque command and print
 the position the reply reads. dobhil never zeroes a motor otherwise.
+
+Before the bus is opened, the design ``dobhil run`` would close on this drive passes the
+stability gate (:mod:`dobhil.cli.stability_gate`): an unstable one is refused as ``run``
+refuses it (exit 2; ``--allow-unstable`` measures the drive anyway), and the report's
+second line is the gate's (``stability_gate`` in ``--json``).
 """
 
 from __future__ import annotations
@@ -23,6 +28,7 @@ from pathlib import Path
 from typing import Any
 
 from dobhil.cli.common import add_config_args, config_from_args
+from dobhil.cli.stability_gate import add_gate_args
 from dobhil.errors import ConfigError
 
 #: exit code when the drive does not match (bad input stays 2)
@@ -40,6 +46,7 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg,
     p.add_argument("--set-zero", action="store_true",
                    help="MIT-mode motors only: make the present position the motor's zero (set zero 0xFE), "
                         "wait mit.zero_silence, print the new position; nothing else (no preflight)")
+    add_gate_args(p)
     p.set_defaults(func=check)
 
 
@@ -70,6 +77,9 @@ def check(args: argparse.Namespace) -> int:
     profile = load_drive_profile(config, Path(args.config).parent)
     if args.set_zero:
         return set_zero(args, config, profile)
+    from dobhil.cli.stability_gate import stability_gate
+    # the design dobhil run would close on this drive, judged before the bus is opened
+    gate = stability_gate(config, args.config, allow_unstable=args.allow_unstable, prog="dobhil check")
     spec = resolve_bus(config, profile, args.bus)
     bus = open_bus(spec)
     try:
@@ -79,10 +89,11 @@ def check(args: argparse.Namespace) -> int:
     finally:
         bus.shutdown()
     if args.json:
-        json.dump({"bus": spec.describe(), **report.as_dict()}, sys.stdout)
+        json.dump({"bus": spec.describe(), **report.as_dict(), "stability_gate": gate.as_dict()}, sys.stdout)
         sys.stdout.write("\n")
     else:
         print(f"bus {spec.describe()}")
+        print(f"stability gate: {gate.summary()}")   # the design's line; the drive's follow
         for line in report.lines():
             print(line)
     return 0 if report.ok else EXIT_MISMATCH

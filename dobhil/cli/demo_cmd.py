@@ -8,6 +8,7 @@ import argparse
 from pathlib import Path
 
 from dobhil.cli.common import add_config_args
+from dobhil.cli.stability_gate import add_gate_args
 
 
 def demo_config_path() -> Path:
@@ -25,12 +26,14 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
                    help="MCAP recording (default: OUT/run-YYYYmmdd-HHMMSS.mcap)")
     p.add_argument("--no-log", action="store_true", help="do not record the run")
     p.add_argument("--live", metavar="[HOST:]PORT", help="serve the run to Foxglove over WebSocket as well")
+    add_gate_args(p)
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
     from dobhil.cli.recording import abort, default_log_path, live_address, open_run_log, record_run
     from dobhil.cli.run_cmd import EXIT_STOPPED, log_hooks, report
+    from dobhil.cli.stability_gate import gate_metadata, stability_gate
     from dobhil.config import load_config
     from dobhil.files import check_output
     from dobhil.plotting.run_plot import run_figure
@@ -41,13 +44,15 @@ def run(args: argparse.Namespace) -> int:
     path = resolve_config(args.config) if args.config else demo_config_path()
     config = load_config(path, args.overrides, args.set_files)
     png = check_output(args.out / "demo_run.png", inputs=[path], what="--out")
+    gate = stability_gate(config, path, allow_unstable=args.allow_unstable, prog="dobhil demo")
     log_path = None if args.no_log else (args.log or default_log_path(args.out))
     log = open_run_log(log_path, live=live_address(args.live, log_path))
     try:
         with stop_on_signals(StopRequest()) as request, \
                 RunSession(config, emulate=True, lockstep=not args.realtime, config_dir=path.parent,
                            stop_request=request, **log_hooks(log)) as session:
-            result = record_run(session, log, path)
+            result = record_run(session, log, path, metadata={
+                "stability_gate": gate_metadata(gate, allow_unstable=args.allow_unstable)})
             info = summary(session, result)
     except BaseException as exc:
         abort(log, exc)

@@ -14,7 +14,7 @@ import os
 import platform
 import sys
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from datetime import datetime, timezone
 from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
@@ -128,14 +128,17 @@ def _attachments(config: Config, config_file: str | os.PathLike[str] | None) -> 
     return out
 
 
-def begin(log: RunLog, session: RunSession, config_file: str | os.PathLike[str] | None) -> None:
-    """Metadata, clock (simulated time in lockstep), truth and drive status to the log."""
+def begin(log: RunLog, session: RunSession, config_file: str | os.PathLike[str] | None,
+          metadata: Mapping[str, Mapping[str, str]] | None = None) -> None:
+    """Metadata (the run's, then ``metadata``: records the command adds, e.g. the stability
+    gate's verdict), clock (simulated time in lockstep), truth and drive status to the log."""
     sim = session.sim_clock
     origin = time.time_ns()
     drive, plant = session.drive, session.plant
     if session.timing is not Timing.LOCKSTEP and log.writer_pid is not None:
         run_in_background(log.writer_pid)  # lossy: it may lag, never delay the loop
-    log.begin(metadata=run_metadata(session, config_file), attachments=_attachments(session.config, config_file),
+    log.begin(metadata={**run_metadata(session, config_file), **(metadata or {})},
+              attachments=_attachments(session.config, config_file),
               lossy=session.timing is not Timing.LOCKSTEP,
               clock_ns=None if sim is None else (lambda: origin + round(sim() * 1e9)),
               truth=None if plant is None else (lambda: (plant.true_position, plant.true_velocity,
@@ -147,13 +150,15 @@ def begin(log: RunLog, session: RunSession, config_file: str | os.PathLike[str] 
 
 
 def record_run(session: RunSession, log: RunLog | None, config_file: str | os.PathLike[str] | None = None, *,
-               on_begin: Callable[[RunLog], object] | None = None) -> RunResult:
+               on_begin: Callable[[RunLog], object] | None = None,
+               metadata: Mapping[str, Mapping[str, str]] | None = None) -> RunResult:
     """``session.run()`` recorded by ``log``; a writer failure is the stop reason ``recorder_failed``.
-    ``on_begin`` runs once the log is open, before the loop (e.g. to connect a live client)."""
+    ``on_begin`` runs once the log is open, before the loop (e.g. to connect a live client);
+    ``metadata``: more metadata records (name -> record) the command adds."""
     if log is None:
         return session.run()
     try:
-        begin(log, session, config_file)
+        begin(log, session, config_file, metadata)
     except BaseException as exc:
         _close_quietly(log, exc)
         _discard_unopened(log)

@@ -10,6 +10,7 @@ from pathlib import Path
 from typing import Any
 
 from dobhil.cli.common import add_config_args, config_from_args
+from dobhil.cli.stability_gate import add_gate_args
 
 #: exit code of a run that ended in a safety stop (not bad input)
 EXIT_STOPPED = 1
@@ -39,6 +40,7 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p.add_argument("--live", metavar="[HOST:]PORT",
                    help="serve the run to Foxglove over WebSocket while it records (127.0.0.1 unless a host "
                         "is given; needs --log and the [live] extra)")
+    add_gate_args(p)
     p.set_defaults(func=run)
     e = sub.add_parser("emulate", help="run the drive emulator alone on a bus (vcan0, a hub)")
     add_config_args(e)
@@ -67,6 +69,7 @@ def run_checked(args: argparse.Namespace) -> int:
     from dobhil.cli.check_cmd import preflight_kwargs
     from dobhil.config import resolve_config
     from dobhil.cli.recording import abort, live_address, open_run_log, record_run
+    from dobhil.cli.stability_gate import gate_metadata, stability_gate
     from dobhil.files import check_output
     from dobhil.runtime.loop import StopRequest
     from dobhil.runtime.session import RunSession, check_duration, summary
@@ -75,6 +78,8 @@ def run_checked(args: argparse.Namespace) -> int:
     config = config_from_args(args)
     if args.plot:
         check_output(args.plot, inputs=[args.config], suffix=".png", what="--plot")
+    # before any bus or log file: an unstable design is refused with nothing opened
+    gate = stability_gate(config, args.config, allow_unstable=args.allow_unstable, prog="dobhil run")
     log = open_run_log(args.log, live=live_address(args.live, args.log))
     lower_writer(log)
     session: Any = None
@@ -91,7 +96,8 @@ def run_checked(args: argparse.Namespace) -> int:
             if session.preflight_report is None:   # the preflight says it otherwise
                 warn_budget(session)
             warn_realtime(session)
-            result = record_run(session, log, args.config)
+            result = record_run(session, log, args.config, metadata={
+                "stability_gate": gate_metadata(gate, allow_unstable=args.allow_unstable)})
             info = summary(session, result)
     except BaseException as exc:
         abort(log, exc)

@@ -230,10 +230,17 @@ class DriveConfig:
 
 @dataclass(frozen=True)
 class AnalysisConfig:
-    """Settings of the analysis only."""
+    """Settings of the analysis, and of the stability gate before a run."""
 
     step_duration: float = key(0.0, "step response horizon (0: automatic, else at least 1e-6 s)",
                                unit="s", check=Check.NONNEGATIVE, maximum=1e4)
+    min_gain_margin: float = key(3.0, "the stability gate of dobhil run, demo and check: one warning line "
+                                 "(the run goes on) when the sampled loop's gain margin (how far C_f may "
+                                 "be scaled in the exact stable-gain map) is below this; 0: never",
+                                 unit="dB", check=Check.NONNEGATIVE, maximum=100.0)
+    min_phase_margin: float = key(20.0, "the stability gate of dobhil run, demo and check: one warning line "
+                                  "(the run goes on) when the sampled loop's phase margin is below this; "
+                                  "0: never", unit="deg", check=Check.NONNEGATIVE, maximum=180.0)
 
 
 @dataclass(frozen=True)
