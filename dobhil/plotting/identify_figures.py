@@ -91,7 +91,7 @@ def _torque_panel(ax: Any, t: np.ndarray, torque: np.ndarray, zoom: slice | None
         edges, lo, hi, mean = envelope(t, torque)
         ax.fill_between(edges, np.append(lo, lo[-1]), np.append(hi, hi[-1]), step="post", color="0.75", lw=0,
                         label=f"min-max per {(edges[-1] - edges[0]) / len(lo) * 1e3:.3g} ms")
-        ax.stairs(mean, edges, color="k", lw=0.8, label="mean per bin")
+        ax.stairs(mean, edges, baseline=None, color="k", lw=0.8, label="mean per bin")
         ax.axvspan(t[zoom.start], t[zoom.stop - 1], color="tab:orange", alpha=0.3, lw=0, label="zoomed below")
         ax.legend(loc="best", fontsize="small")
     ax.set_ylabel("torque sent [N m]")
