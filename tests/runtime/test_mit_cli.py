@@ -68,7 +68,7 @@ def test_the_mit_demo_converges_replays_bit_for_bit_and_reports(tmp_path: Path,
     assert all(f["sent"] for f in info["safe_stop"]["frames"]) and info["drive_disabled"] is False
     note = info["drive_note"]
     assert info["drive_warning"] == "" and note.startswith("node 1 cannot confirm its disable by design: ")
-    assert "the reply to exit motor mode with torque -0.0044 N m (zero)" in note and "carries no motor mode" in note
+    assert "the last (to exit motor mode) with torque -0.0044 N m (zero)" in note and "carries no motor mode" in note
     assert err.strip().splitlines() == [f"NOTE: {note}"]
     with open_log(log) as f:
         events = [loads(raw) for _, _, raw in f.iter_payloads(("/events",))]

@@ -188,12 +188,14 @@ class MitDrive(Drive):
         replies = [r for r in map(self._reply_of, received) if r is not None]
         if not replies:
             return False, ""
-        torque = replies[-1].torque
+        torque, count = replies[-1].torque, len(replies)
         zero = abs(torque - self._model.torque_bias) <= self._model.quanta.torque
         said = f"torque {torque:+.4f} N m ({'zero' if zero else 'not zero'})"
-        if len(replies) < sent:
-            return False, f"{len(replies)} of {sent} safe-stop frames answered, the last reply with {said}"
-        return zero, f"each safe-stop frame answered, the reply to {self.disabled_state_text} with {said}"
+        if count >= sent and zero:
+            return True, f"a reply to each safe-stop frame, the last (to {self.disabled_state_text}) with {said}"
+        # which frame a reply answers is not in it: a reply on its way before the stop may
+        # be among them, so only the count and the last torque are said
+        return False, f"{count} {'reply' if count == 1 else 'replies'} to {sent} safe-stop frames, the last with {said}"
 
     def _reply_of(self, msg: can.Message) -> Reply | None:
         try:
