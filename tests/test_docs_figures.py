@@ -28,10 +28,10 @@ Figures of timing and of this machine (bench keys, CI and wall times) cannot be 
 pages give each with the command that measures it, and carry no check.
 
 Cost, measured (``pytest -n 0 --durations=5 tests/test_docs_figures.py`` on the 2-core VM
-while two other test runs shared it): 203 s in all; docs/identify.md 176 s (six lockstep runs
-of 1 to 10 s, four fits of 5 to 15 s of log), docs/quantisation.md 22 s (two analyses),
-drivers/README.md 5 s (a 1.2 s lockstep MIT run), the parser and its own tests 0.3 s. The
-slow checks (``dobhil tune`` of Fig. 3, about a minute) run only with DOBHIL_SLOW=1.
+while other test runs shared it): docs/identify.md 176 s (eight lockstep runs of 1.2 to 10 s,
+four fits of 5 to 15 s of log), docs/quantisation.md 22 s and README.md 19 s (analyses),
+drivers/README.md 1-5 s (a 1.2 s lockstep MIT run), the parser and its own tests 0.3 s. The
+slow check (``dobhil tune`` of Fig. 3: 160 s there) runs only with DOBHIL_SLOW=1.
 """
 
 from __future__ import annotations
