@@ -124,8 +124,16 @@ def tell_unfinished(session: Any) -> None:
     stop, safe_stop = ended
     sys.stdout.flush()
     sys.stderr.write(f"dobhil run: {stop.line()}\n")
-    if safe_stop.warning():
-        sys.stderr.write(f"WARNING: {safe_stop.warning()}\n")
+    say_safe_stop(safe_stop.warning(), safe_stop.note())
+
+
+def say_safe_stop(warning: str, note: str) -> None:
+    """The safe stop's last word on stderr: the loud line when the drive may still be
+    enabled, else a note from a drive that cannot confirm its disable by design."""
+    if warning:
+        sys.stderr.write(f"WARNING: {warning}\n")
+    elif note:
+        sys.stderr.write(f"NOTE: {note}\n")
 
 
 def report_preflight(report: Any) -> None:
@@ -192,7 +200,7 @@ def stop_hint(info: dict[str, Any]) -> str:
 
 
 def report(info: dict[str, Any], stop_line: str, *, as_json: bool) -> None:
-    warning = info.get("drive_warning") or ""
+    warning, stopped = info.get("drive_warning") or "", info.get("drive_note") or ""
     hint = stop_hint(info)
     if not as_json:   # (in the JSON: drive_notes)
         for note in info.get("drive_notes", ()):
@@ -202,15 +210,13 @@ def report(info: dict[str, Any], stop_line: str, *, as_json: bool) -> None:
         sys.stdout.write("\n")
         if hint:
             sys.stderr.write(f"{hint}\n")
-        if warning:
-            sys.stderr.write(f"WARNING: {warning}\n")
+        say_safe_stop(warning, stopped)
         return
     if info["cycles"] == 0:  # nothing ran (e.g. the drive never answered): the reason only
         sys.stderr.write(f"dobhil run: {stop_line}\n")
         if hint:
             sys.stderr.write(f"{hint}\n")
-        if warning:
-            sys.stderr.write(f"WARNING: {warning}\n")
+        say_safe_stop(warning, stopped)
         return
     f, t = info["final"], info["loop_timing"]
     skipped = info.get("skipped", 0)
@@ -235,9 +241,8 @@ def report(info: dict[str, Any], stop_line: str, *, as_json: bool) -> None:
               f"max {sampled['max']:.0f} us")
     if info.get("log"):
         print(f"log: {info['log']}")
-    if warning:
-        sys.stdout.flush()
-        sys.stderr.write(f"WARNING: {warning}\n")
+    sys.stdout.flush()
+    say_safe_stop(warning, stopped)
 
 
 def emulate(args: argparse.Namespace) -> int:

@@ -37,8 +37,12 @@ what was confirmed comes back as a :class:`SafeStopReport`, whose
 :meth:`~SafeStopReport.warning` is the one loud line a user must see when the drive may
 still be enabled. A protocol whose frames cannot say that the drive left torque control
 (MIT mode on a CubeMars AK: its replies carry no mode) sets :attr:`Drive.confirms_disable`
-False: its safe stop is :attr:`Confirmation.UNCONFIRMABLE`, never safe, and the loud line
-says why (:meth:`Drive._unconfirmable_detail`).
+False: its safe stop then waits for the drive's answer to the safe-stop frames and asks
+the hook :meth:`Drive._disable_answer` what that answer shows (MIT: the reply to the exit
+frame arrived, with zero torque in it). An answer is :attr:`Confirmation.UNCONFIRMABLE`,
+never "safe": at a planned end of a run (``safe_stop(planned=True)``) its account is a
+note (:meth:`SafeStopReport.note`), at any other end (a fault, a timeout, a signal) the
+loud line; no answer at all is :attr:`Confirmation.NOT_ACKNOWLEDGED`, loud always.
 """
 
 from __future__ import annotations
@@ -47,7 +51,7 @@ import math
 import time
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from enum import IntEnum
 from functools import partial
 from typing import TYPE_CHECKING, ClassVar
@@ -86,6 +90,9 @@ SAFE_STOP_RETRY = 0.02
 #: keepalive interval of enable() when neither a watchdog nor a heartbeat period sets
 #: one: often enough to ask a drive for status, seldom enough to load no bus
 DEFAULT_KEEPALIVE = 0.1
+#: frames a safe stop reads off the bus before its frames at most (a drive that cannot
+#: confirm its disable: what was queued answers none of them); a flooded bus cannot hold it
+DRAIN_LIMIT = 1000
 
 
 class DriveState(IntEnum):
@@ -134,7 +141,9 @@ class Confirmation(IntEnum):
     NEVER_SEEN = 3        # nothing was ever heard from the drive: nothing to confirm
     NOT_ASKED = 4         # sent without waiting for a confirmation (``disable()``)
     #: the protocol's frames cannot say that the drive left torque control (MIT mode on a
-    #: CubeMars AK: its replies carry no mode): never safe, the loud line says why
+    #: CubeMars AK: its replies carry no mode), but the drive answered the safe-stop frames
+    #: and the answer showed what the protocol can show (the report's detail): never safe;
+    #: a note at a planned end, the loud line at any other
     UNCONFIRMABLE = 5
 
 
@@ -158,6 +167,10 @@ class SafeStopReport:
     frames: tuple[FrameResult, ...]
     confirmation: Confirmation
     detail: str = ""  # one line: why it is not confirmed (empty when it is)
+    #: the stop was the run's planned end (it lasted its duration), not a fault, a
+    #: timeout or a signal: what a drive that cannot confirm by design did confirm is then
+    #: a note, not the loud line
+    planned: bool = False
 
     @property
     def sent(self) -> bool:
@@ -171,11 +184,25 @@ class SafeStopReport:
                                                    Confirmation.NEVER_SEEN,
                                                    Confirmation.NOT_ASKED)
 
+    @property
+    def noted(self) -> bool:
+        """Not confirmable by design, but every frame went out, the drive answered them
+        and the stop was planned: a note, not a warning."""
+        return self.sent and self.planned and self.confirmation is Confirmation.UNCONFIRMABLE
+
     def warning(self) -> str:
-        """The one loud line when the drive may still be enabled; empty when safe."""
-        if self.safe:
+        """The one loud line when the drive may still be enabled; empty when safe (or
+        :attr:`noted`)."""
+        if self.safe or self.noted:
             return ""
         return f"drive may still be enabled: node {self.node_id} {self.detail}; cut power"
+
+    def note(self) -> str:
+        """The one line that says what a drive which cannot confirm its disable by design
+        did confirm, at a planned end; empty otherwise (then :meth:`warning` speaks)."""
+        if not self.noted:
+            return ""
+        return f"node {self.node_id} cannot confirm its disable by design: {self.detail}"
 
 
 @dataclass(frozen=True, slots=True)
@@ -361,12 +388,17 @@ class Drive(ABC):
         return self.safe_stop(confirm=False).sent
 
     def safe_stop(self, *, confirm: bool = True, timeout: float | None = None,
-                  cancel: Cancel | None = None) -> SafeStopReport:
+                  cancel: Cancel | None = None, planned: bool = False) -> SafeStopReport:
         """Zero torque, then each disable frame -- every one attempted, whatever happened
         to the others -- then (``confirm``) wait up to ``timeout`` s (default: three
-        heartbeat periods) for a status frame saying the drive left torque control; a
-        reason from ``cancel()`` ends that wait within WAIT_SLICE s, unconfirmed.
+        heartbeat periods) for a status frame saying the drive left torque control (a
+        drive that cannot say so: for its answer, :meth:`_disable_answer`); a reason from
+        ``cancel()`` ends that wait within WAIT_SLICE s, unconfirmed. ``planned``: the
+        run lasted its duration (recorded in the report: it decides note or warning).
         Never raises; the host side is marked DISABLED whatever happens."""
+        answer_only = confirm and not self.confirms_disable and self._last_heartbeat is not None
+        if answer_only:
+            self._drain_before_stop()
         results = [self._send_safely("zero torque", partial(self._torque_frame, 0.0))]
         try:
             names = tuple(self._disable_frame_names())
@@ -382,11 +414,12 @@ class Drive(ABC):
             report = SafeStopReport(self.node_id, tuple(results), Confirmation.NOT_ASKED)
         elif self._last_heartbeat is None:
             report = SafeStopReport(self.node_id, tuple(results), Confirmation.NEVER_SEEN)
-        elif not self.confirms_disable:
-            report = SafeStopReport(self.node_id, tuple(results), Confirmation.UNCONFIRMABLE,
-                                    self._unconfirmable_detail())
+        elif answer_only:
+            report = self._await_answer(tuple(results), timeout, cancel)
         else:
             report = self._confirm_disabled(tuple(results), timeout, cancel)
+        if planned:
+            report = replace(report, planned=True)
         verdict = "cannot be confirmed" if report.confirmation is Confirmation.UNCONFIRMABLE else "failed"
         failure = "" if report.safe else f"disable of node {self.node_id} {verdict}: {report.detail}"
         self._set_state(DriveState.DISABLED, failure)
@@ -510,9 +543,19 @@ class Drive(ABC):
 
     def _unconfirmable_detail(self) -> str:
         """Why the disable cannot be confirmed, one line (only asked when
-        :attr:`confirms_disable` is False); it completes the loud warning's sentence."""
-        return (f"{self.disabled_state_text} sent, but protocol {self.protocol!r} cannot confirm it: "
-                "its frames carry no drive state")
+        :attr:`confirms_disable` is False); it follows what the answer showed in the note
+        or the loud line (``"<shown>, but <this>"``)."""
+        return f"protocol {self.protocol!r} cannot confirm it: its frames carry no drive state"
+
+    def _disable_answer(self, received: Sequence[can.Message], sent: int) -> tuple[bool, str]:
+        """What the drive's frames received since the ``sent`` safe-stop frames went out
+        (only frames that decoded to events of this drive, oldest first) confirm, for a
+        drive that cannot confirm its disable (:attr:`confirms_disable` False): ``(done,
+        one line)``, done when the answer is all the protocol can give; the line says what
+        was seen either way ("" for nothing). Default: any frame of the drive answers."""
+        if not received:
+            return False, ""
+        return True, f"{self.disabled_state_text} sent and node {self.node_id} answered"
 
     def _disable_frame(self, index: int) -> can.Message:
         return self._disable_frames()[index]
@@ -556,6 +599,73 @@ class Drive(ABC):
                     return FrameResult(what, False, error, refused)
                 time.sleep(0.001)
 
+    def _drain_before_stop(self) -> None:
+        """Read what is queued before the safe-stop frames (at most a bounded number of
+        frames: a bus that never runs dry cannot hold the stop): an answer that was on its
+        way before them answers none of them. Never raises."""
+        try:
+            for _ in range(DRAIN_LIMIT):
+                msg = self._bus.recv(0.0)
+                if msg is None:
+                    return
+                self._handle(msg)
+        except Exception:  # safety path: an unreadable bus still gets its safe-stop frames
+            return
+
+    def _await_answer(self, frames: tuple[FrameResult, ...], timeout: float | None,
+                      cancel: Cancel | None) -> SafeStopReport:
+        """Read the drive's frames until :meth:`_disable_answer` is done with them
+        (UNCONFIRMABLE: what they showed, and why that is not a confirmation) or the wait
+        ends (NOT_ACKNOWLEDGED)."""
+        wait = self._confirm_timeout() if timeout is None else timeout
+        received: list[can.Message] = []
+        shown = ""
+
+        def answered(msg: can.Message) -> bool:
+            nonlocal shown
+            events = self._decode(msg)
+            for event in events:
+                if isinstance(event, MotionEvent):
+                    self._on_motion(event)
+                else:
+                    self._record_state(event)
+            if not events:
+                return False
+            received.append(msg)
+            done, shown = self._disable_answer(received, len(frames))
+            return done
+
+        why = self._read_until(wait, cancel, answered, silence=f"no answer within {wait:g} s")
+        if not why:
+            return SafeStopReport(self.node_id, frames, Confirmation.UNCONFIRMABLE,
+                                  f"{shown}, but {self._unconfirmable_detail()}")
+        seen = f"{shown}; " if shown else ""
+        return SafeStopReport(self.node_id, frames, Confirmation.NOT_ACKNOWLEDGED,
+                              f"did not answer {self.disabled_state_text} ({seen}{why})")
+
+    def _read_until(self, wait: float, cancel: Cancel | None, done: Callable[[can.Message], bool], *,
+                    silence: str) -> str:
+        """Read frames for up to ``wait`` s until ``done(frame)``: "" then, else why not
+        (``silence`` when the wait ended, the wait cancelled, the bus unreadable).
+        Past the deadline only what is already queued is read. Never raises."""
+        deadline = self._clock() + wait
+        try:
+            while True:
+                remaining = deadline - self._clock()
+                late = remaining <= 0
+                cancelled = "" if late or cancel is None else cancel()
+                if cancelled:
+                    return f"confirmation wait cut short: {cancelled}"
+                msg = self._bus.recv(0.0 if late else min(remaining, WAIT_SLICE))
+                if msg is None:
+                    if late:
+                        return silence
+                    continue
+                if done(msg):
+                    return ""
+        except Exception as exc:  # safety path: a bus that cannot be read confirms nothing
+            return f"status not readable: {exc}"
+
     def _confirm_timeout(self) -> float:
         rate = self._profile.heartbeat_period
         return HEARTBEAT_MISSES * rate if rate else self._profile.enable_timeout
@@ -565,38 +675,26 @@ class Drive(ABC):
         """Read status frames until one says the drive left torque control (or the
         wait is cancelled)."""
         wait = self._confirm_timeout() if timeout is None else timeout
-        deadline = self._clock() + wait
         seen: StateEvent | None = None
-        why = f"no status frame within {wait:g} s"
-        cancelled = ""
-        try:
-            while True:
-                remaining = deadline - self._clock()
-                late = remaining <= 0
-                cancelled = "" if late or cancel is None else cancel()
-                if cancelled:
-                    why = f"confirmation wait cut short: {cancelled}"
-                    break
-                # past the deadline only what is already queued is read: a process that
-                # was stopped or not scheduled may find the confirmation waiting there
-                msg = self._bus.recv(0.0 if late else min(remaining, WAIT_SLICE))
-                if msg is None:
-                    if late:
-                        break
+
+        def confirmed(msg: can.Message) -> bool:
+            nonlocal seen
+            for event in self._decode(msg):
+                if isinstance(event, MotionEvent):
+                    self._on_motion(event)
                     continue
-                for event in self._decode(msg):
-                    if isinstance(event, MotionEvent):
-                        self._on_motion(event)
-                        continue
-                    self._record_state(event)
-                    seen = event
-                    if self._is_disabled_confirmation(event):
-                        return SafeStopReport(self.node_id, frames, Confirmation.CONFIRMED)
-        except Exception as exc:  # safety path: a bus that cannot be read confirms nothing
-            why = f"status not readable: {exc}"
-        else:
-            if seen is not None and not cancelled:
-                why = f"still {seen.state_text} after {wait:g} s"
+                self._record_state(event)
+                seen = event
+                if self._is_disabled_confirmation(event):
+                    return True
+            return False
+
+        silence = f"no status frame within {wait:g} s"
+        why = self._read_until(wait, cancel, confirmed, silence=silence)
+        if not why:
+            return SafeStopReport(self.node_id, frames, Confirmation.CONFIRMED)
+        if seen is not None and why == silence:
+            why = f"still {seen.state_text} after {wait:g} s"
         return SafeStopReport(self.node_id, frames, Confirmation.NOT_ACKNOWLEDGED,
                               f"did not acknowledge {self.disabled_state_text} ({why})")
 

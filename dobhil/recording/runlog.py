@@ -277,12 +277,13 @@ class RunLog:
     def safe_stop(self, report: Any) -> None:
         """The sink's safe-stop hook: one ``disable`` event per safe-stop frame (sent or why
         not), then what the drive confirmed (a ``fault`` event with the loud line when it
-        may still be enabled)."""
+        may still be enabled; a ``disable`` event with the note of a drive that cannot
+        confirm by design, at a planned end)."""
         for frame in report.frames:
             self.event(EventKind.DISABLE, f"{frame.what}: {'sent' if frame.sent else 'not sent'}", frame.error)
         warning = report.warning()
         self.event(EventKind.FAULT if warning else EventKind.DISABLE,
-                   f"safe stop: {report.confirmation.name.lower()}", warning or report.detail)
+                   f"safe stop: {report.confirmation.name.lower()}", warning or report.note() or report.detail)
 
     def event(self, kind: EventKind, reason: str, detail: str = "") -> None:
         """An ``/events`` record after everything appended so far (events are never dropped)."""

@@ -860,7 +860,9 @@ class ForceLoop:
             pass
         # a request made during the confirmation wait ends it (unconfirmed, said loudly);
         # the one that stopped the run does not
-        report = self.drive.safe_stop(cancel=self.stop_request.newer())
+        # a drive that cannot confirm its disable by design says what it did confirm in a
+        # note when the run lasted its duration; any other end keeps the loud line
+        report = self.drive.safe_stop(cancel=self.stop_request.newer(), planned=stop.reason is StopReason.DONE)
         hook = getattr(self.sink, "safe_stop", None)
         if hook is not None:
             try:

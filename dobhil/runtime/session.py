@@ -323,11 +323,13 @@ def summary(session: RunSession, result: RunResult) -> dict[str, Any]:
         "stop_reason": result.stop.reason.name.lower(), "stop_detail": result.stop.detail,
         "drive_disabled": result.disabled,
         "drive_warning": report.warning() if report is not None else "",
+        "drive_note": report.note() if report is not None else "",
         "drive_notes": list(session.drive.notes),
         "safe_stop": None if report is None else {
             "frames": [{"what": f.what, "sent": f.sent, "error": f.error, "refused": f.refused}
                        for f in report.frames],
-            "confirmation": report.confirmation.name.lower()},
+            "confirmation": report.confirmation.name.lower(), "detail": report.detail,
+            "planned": report.planned},
         "timing": session.timing.label, "mode": session.config.loop.mode,
         "period": session.settings.period, "bus": session.bus_spec.describe(),
         "emulated": session.emulator is not None,

@@ -13,10 +13,12 @@ reference with the same summary fields.
 What a protocol cannot do is its drive's declared capability, checked, never a skip: a
 CubeMars AK in MIT mode answers the exit frame with a reply that carries no mode, so its
 drive declares ``confirms_disable`` False. Its safe stop must then be
-``Confirmation.UNCONFIRMABLE`` with the loud line saying so -- and everything else of a
-safe stop still holds and is checked on the emulated motor: zero torque last, the exit
-frame sent, the motor out of motor mode with zero torque. (The Damiao's reply carries its
-state: its exit is confirmed like an ODrive's.)
+``Confirmation.UNCONFIRMABLE`` once the reply to the exit came with zero torque -- a NOTE
+saying so when the run lasted its duration, the loud line at a fault or a signal -- and
+``NOT_ACKNOWLEDGED``, loud, when the exit went unanswered; everything else of a safe stop
+still holds and is checked on the emulated motor: zero torque last, the exit frame sent,
+the motor out of motor mode with zero torque. (The Damiao's reply carries its state: its
+exit is confirmed like an ODrive's.)
 
 What differs per protocol is data, in :class:`Protocol`: the profile, the design delay
 the run must take from it (CiA 402 applies each command at the next SYNC, an MIT motor
@@ -64,7 +66,7 @@ from dobhil.emulator.plant import Plant
 from dobhil.emulator.faults import Direction, Fault, InjectFrame, LoseSent, SilenceAfter, faulty
 from dobhil.emulator.protocol import EmulatedDrive, LockstepBus
 from dobhil.emulator.registry import make_emulated_drive
-from dobhil.runtime.loop import RunResult
+from dobhil.runtime.loop import RunResult, StopRequest
 from dobhil.runtime.session import RunSession, summary
 from dobhil.runtime.stop import StopReason
 
@@ -351,6 +353,8 @@ class ArmAt:
 
     faults: Sequence[Fault]
     at: int = AT
+    #: set at cycle ``at`` too: the run stopped as by SIGINT
+    request: StopRequest | None = None
 
     def started(self, fb: Any) -> None:
         pass
@@ -360,6 +364,8 @@ class ArmAt:
             for fault in self.faults:
                 if isinstance(fault, Armed):
                     fault.armed = True
+            if self.request is not None and not self.request.is_set():
+                self.request.set("SIGINT")
 
     def stop(self, stop: Any) -> None:
         pass
@@ -523,12 +529,15 @@ class Outcome:
 
 
 def run(config: Config, protocol: Protocol, timing: str, faults: Sequence[Fault] = (), *,
-        armed: Sequence[Fault] = (), settle: bool = True) -> Outcome:
+        armed: Sequence[Fault] = (), settle: bool = True, signal: bool = False) -> Outcome:
     """Run with the emulated drive, ``faults`` from the start and ``armed`` ones from cycle
-    AT on; ``settle``: then wait for it to be out of torque control with zero torque (real
-    time: a bound; False where it must not be)."""
+    AT on (``signal``: a stop requested at cycle AT, as SIGINT does); ``settle``: then wait
+    for it to be out of torque control with zero torque (real time: a bound; False where it
+    must not be)."""
     wrapped = [*faults, *(Armed(f) for f in armed)]
-    with RunSession(config, emulate=True, lockstep=timing == "lockstep", sink=ArmAt(wrapped),
+    request = StopRequest()
+    with RunSession(config, emulate=True, lockstep=timing == "lockstep",
+                    sink=ArmAt(wrapped, request=request if signal else None), stop_request=request,
                     bus_wrapper=faulty(*wrapped) if wrapped else None) as session, \
             Sniffer(session.bus_spec.channel) as sniffer:
         # the design delay comes from the protocol (its profile), not from the test
@@ -554,10 +563,10 @@ def run(config: Config, protocol: Protocol, timing: str, faults: Sequence[Fault]
 def assert_stopped_safely(out: Outcome, protocol: Protocol, reason: StopReason,
                           words: Sequence[str] = (), *, status_silenced: bool = False) -> None:
     """Why in one line; zero torque was the last torque; the disable commands last; the
-    drive confirmed it -- or, where the protocol declares it cannot, the loud line says so
-    -- and ended out of torque control with zero torque. ``status_silenced``: the frames
-    that would confirm were silenced with the feedback (an MIT reply is both): a drive
-    that confirms must say it did not get the confirmation, loudly."""
+    drive confirmed it -- or, where the protocol declares it cannot, it answered: a NOTE at
+    the run's planned end, the loud line at any other -- and ended out of torque control
+    with zero torque. ``status_silenced``: the frames that would confirm (or answer) were
+    silenced with the feedback (an MIT reply is both): the loud line, whatever the drive."""
     stop, report = out.result.stop, out.result.safe_stop
     line = stop.line()
     assert stop.reason is reason, line
@@ -577,11 +586,27 @@ def assert_stopped_safely(out: Outcome, protocol: Protocol, reason: StopReason,
     elif protocol.confirms_disable:
         assert report is not None and report.confirmation is Confirmation.CONFIRMED, report
         assert out.result.disabled and report.warning() == "" and out.summary["drive_warning"] == ""
-    else:   # every frame went out; nothing the drive sends can say it worked: never "safe"
+    elif status_silenced:   # no reply to the exit: not acknowledged at all, loud
+        assert report is not None and report.confirmation is Confirmation.NOT_ACKNOWLEDGED, report
+        assert report.sent and not out.result.disabled and report.note() == ""
+        warning = report.warning()
+        assert warning.startswith(f"drive may still be enabled: node {protocol.node} did not answer exit motor mode ")
+        assert out.summary["drive_warning"] == warning and out.summary["drive_note"] == ""
+    else:   # every frame went out and was answered; nothing the drive sends can say it worked: never "safe"
         assert report is not None and report.confirmation is Confirmation.UNCONFIRMABLE, report
         assert report.sent and not report.safe and not out.result.disabled
-        assert_unconfirmable_line(report.warning(), protocol)
-        assert out.summary["drive_warning"] == report.warning() and out.summary["drive_disabled"] is False
+        assert re.match(r"a reply to each safe-stop frame, the last \(to exit motor mode\) with torque [-+]\d\.\d{4} "
+                        r"N m \(zero\), but the exit cannot be confirmed: ", report.detail), report.detail
+        assert report.planned is (reason is StopReason.DONE)
+        if report.planned:   # the run's own end: a note of what was confirmed, no loud line
+            assert report.warning() == "" and out.summary["drive_warning"] == ""
+            assert report.note().startswith(f"node {protocol.node} cannot confirm its disable by design: ")
+            assert out.summary["drive_note"] == report.note()
+        else:   # a fault or a signal: the same account, loudly
+            assert report.note() == "" and out.summary["drive_note"] == ""
+            assert_unconfirmable_line(report.warning(), protocol)
+            assert out.summary["drive_warning"] == report.warning()
+        assert out.summary["drive_disabled"] is False
     assert out.settled, f"emulated drive not out of torque control with zero torque: {out.final}"
 
 
@@ -644,11 +669,26 @@ def test_unconfirmed_safe_stop_says_so_loudly(tmp_path: Path, protocol: Protocol
         assert report.confirmation is Confirmation.NOT_ACKNOWLEDGED
         assert warning.startswith(f"drive may still be enabled: node {protocol.node} did not acknowledge ")
         assert warning.endswith("; cut power") and "\n" not in warning
-    else:   # the same loud line as when the exit arrived: nothing the motor sends tells them apart
-        assert out.confirms_disable is False and report.confirmation is Confirmation.UNCONFIRMABLE
-        assert_unconfirmable_line(warning, protocol)
+    else:   # the zero torque was answered, the exit was not: loud, even at the planned end
+        assert out.confirms_disable is False and report.confirmation is Confirmation.NOT_ACKNOWLEDGED
+        assert report.planned and report.note() == ""
+        # the zero torque's reply carries the run's last torque; a reply on its way before the
+        # stop (real time) may come too: one or two replies, the last not zero
+        assert re.match(rf"drive may still be enabled: node {protocol.node} did not answer exit motor mode "
+                        r"\([12] repl(y|ies) to 2 safe-stop frames, the last with torque [-+]\d\.\d{4} N m "
+                        r"\(not zero\); no answer within [0-9.]+ s\)", warning), warning
+        assert warning.endswith("; cut power") and "\n" not in warning
     assert out.summary["drive_warning"] == warning and out.summary["drive_disabled"] is False
     assert out.commands.torques[-1] == 0.0 and not out.settled   # still in torque control
+
+
+def test_a_signal_stops_safely_and_loudly_where_unconfirmed(tmp_path: Path, protocol: Protocol,
+                                                             timing: str) -> None:
+    """A stop requested mid-run (SIGINT's way): the safe stop as ever; a drive that cannot
+    confirm its disable by design gives the loud line, not the note, although it answered."""
+    out = run(suite_config(tmp_path, protocol, timing), protocol, timing, signal=True)
+    assert_stopped_safely(out, protocol, StopReason.SIGNAL, ["SIGINT"])
+    assert AT <= out.result.stop.cycle < 400
 
 
 def test_closed_loop_reaches_the_force_reference(tmp_path: Path, protocol: Protocol,

@@ -205,18 +205,57 @@ class BlindDrive(SteppedDrive):
 
 def test_a_drive_that_cannot_confirm_its_disable_is_never_reported_safe(
         buses: tuple[can.BusABC, can.BusABC]) -> None:
+    """No answer after the safe-stop frames: NOT_ACKNOWLEDGED, loud -- and a status frame
+    queued before them answers none of them (it is read first, not taken for the answer)."""
     host, node = buses
     assert SteppedDrive(host, PROFILE).confirms_disable is True   # the default: ODrive, CiA 402
     drive = BlindDrive(host, PROFILE, clock=Clock())
     state(node, 3)
     drive.enable()
-    state(node, 2)   # a status frame that would have confirmed it: not asked for
-    report = drive.safe_stop()
+    state(node, 2)   # before the safe stop: no answer to it
+    report = drive.safe_stop(timeout=0.0, planned=True)
     assert [f.what for f in report.frames] == ["zero torque", "disable"] and report.sent
-    assert report.confirmation is Confirmation.UNCONFIRMABLE and not report.safe
-    assert report.warning() == ("drive may still be enabled: node 5 disable sent, but protocol 'stepped' cannot "
-                                "confirm it: its frames carry no drive state; cut power")
-    assert drive.status.state is DriveState.DISABLED and "disable of node 5 cannot be confirmed" in drive.status.detail
+    assert report.confirmation is Confirmation.NOT_ACKNOWLEDGED and not report.safe and report.note() == ""
+    assert report.warning() == ("drive may still be enabled: node 5 did not answer disable (no answer within 0 s); "
+                                "cut power")
+    assert drive.status.state is DriveState.DISABLED and "disable of node 5 failed" in drive.status.detail
     # without a confirmation asked (disable()), or a drive never heard from, nothing changes
     assert BlindDrive(host, PROFILE).safe_stop(confirm=False).confirmation is Confirmation.NOT_ASKED
     assert BlindDrive(host, PROFILE).safe_stop().confirmation is Confirmation.NEVER_SEEN
+
+
+class Answering(can.Listener):
+    """The made-up drive's end of the bus: a status frame in answer to the disable frame."""
+
+    def __init__(self, node: can.BusABC) -> None:
+        self.node = node
+
+    def on_message_received(self, msg: can.Message) -> None:
+        if msg.arbitration_id == OFF_ID:
+            state(self.node, 2)
+
+
+@pytest.mark.parametrize("planned", [True, False], ids=["planned-end", "fault-timeout-or-signal"])
+def test_an_answered_unconfirmable_disable_is_a_note_only_at_a_planned_end(
+        buses: tuple[can.BusABC, can.BusABC], planned: bool) -> None:
+    """The drive answered the disable, but its frames cannot say it left torque control: a
+    note (what was confirmed, and why no more) when the run lasted its duration, the loud
+    line with the same account at any other end."""
+    host, node = buses
+    drive = BlindDrive(host, PROFILE)
+    state(node, 3)
+    drive.enable()
+    notifier = can.Notifier(node, [Answering(node)], timeout=0.01)
+    try:
+        report = drive.safe_stop(timeout=2.0, planned=planned)
+    finally:
+        notifier.stop()
+    assert report.confirmation is Confirmation.UNCONFIRMABLE and not report.safe and report.planned is planned
+    account = ("disable sent and node 5 answered, but protocol 'stepped' cannot confirm it: its frames carry "
+               "no drive state")
+    assert report.detail == account
+    if planned:
+        assert report.warning() == "" and report.note() == f"node 5 cannot confirm its disable by design: {account}"
+    else:
+        assert report.note() == "" and report.warning() == f"drive may still be enabled: node 5 {account}; cut power"
+    assert drive.status.state is DriveState.DISABLED and "disable of node 5 cannot be confirmed" in drive.status.detail

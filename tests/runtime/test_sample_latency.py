@@ -55,7 +55,7 @@ class _SamplingDrive:
     def send_torque(self, u: float) -> None:
         pass
 
-    def safe_stop(self, cancel: Any = None) -> SafeStopReport:
+    def safe_stop(self, cancel: Any = None, planned: bool = False) -> SafeStopReport:
         return SafeStopReport(1, (), Confirmation.CONFIRMED)
 
 

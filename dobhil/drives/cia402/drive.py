@@ -196,7 +196,7 @@ class CiA402Drive(Drive):
                 self._host_heartbeat_if_due()
 
     def safe_stop(self, *, confirm: bool = True, timeout: float | None = None,
-                  cancel: Cancel | None = None) -> SafeStopReport:
+                  cancel: Cancel | None = None, planned: bool = False) -> SafeStopReport:
         """The base's safe stop, then the periodic SYNC stopped: after the confirmation
         (the node needed SYNCs to apply the RPDOs and to answer), or at once when not
         confirming (the safe-stop frames carried their own SYNCs). A node watching the
@@ -209,7 +209,7 @@ class CiA402Drive(Drive):
             # confirm anything with (the frames still go out: harmless, and a node that was
             # operational after all takes them)
             confirm = confirm and self._operational_commanded
-            report = super().safe_stop(confirm=confirm, timeout=timeout, cancel=cancel)
+            report = super().safe_stop(confirm=confirm, timeout=timeout, cancel=cancel, planned=planned)
             return report
         finally:
             if report is not None and report.confirmation is Confirmation.CONFIRMED:

@@ -32,8 +32,12 @@ replies (:meth:`Drive.apply`) rebuilds it.
 
 Safe stop (the base's): zero torque, then exit motor mode (0xFD), each attempted on its
 own. A Damiao's reply to the exit says state 0: confirmed. A CubeMars or Mini-Cheetah reply
-carries no mode, so nothing can confirm the exit: the report is
-:attr:`~dobhil.drives.base.Confirmation.UNCONFIRMABLE` and the loud line says why.
+carries no mode, so nothing can confirm the exit; what it can show is checked instead
+(:meth:`MitDrive._disable_answer`): a reply to each safe-stop frame arrived, and the last
+one -- the reply to the exit, carrying the torque applied since the zero command -- shows
+zero torque. Then the report is :attr:`~dobhil.drives.base.Confirmation.UNCONFIRMABLE`
+(a note at a planned end, the loud line at any other); no reply to the exit is
+NOT_ACKNOWLEDGED, loud always.
 
 Set zero (0xFE) is never sent here: only ``dobhil check --set-zero`` does it
 (:func:`dobhil.drives.mit.preflight.set_zero`).
@@ -185,8 +189,31 @@ class MitDrive(Drive):
 
     def _unconfirmable_detail(self) -> str:
         m = self._model
-        return (f"exit motor mode sent, but the exit cannot be confirmed: a {m.vendor} {m.model} reply "
+        return (f"the exit cannot be confirmed: a {m.vendor} {m.model} reply "
                 f"(firmware {m.firmware!r}) carries no motor mode")
+
+    def _disable_answer(self, received: Sequence[can.Message], sent: int) -> tuple[bool, str]:
+        """Done when a reply came to each of the ``sent`` safe-stop frames (the motor answers
+        every frame, in order) and the last -- the reply to the exit, whose torque is what
+        the motor applied since the zero command -- shows zero torque: the zero command's
+        own value (:attr:`MitModel.torque_bias`) within one step of the reply's torque."""
+        replies = [r for r in map(self._reply_of, received) if r is not None]
+        if not replies:
+            return False, ""
+        torque, count = replies[-1].torque, len(replies)
+        zero = abs(torque - self._model.torque_bias) <= self._model.quanta.torque
+        said = f"torque {torque:+.4f} N m ({'zero' if zero else 'not zero'})"
+        if count >= sent and zero:
+            return True, f"a reply to each safe-stop frame, the last (to {self.disabled_state_text}) with {said}"
+        # which frame a reply answers is not in it: a reply on its way before the stop may
+        # be among them, so only the count and the last torque are said
+        return False, f"{count} {'reply' if count == 1 else 'replies'} to {sent} safe-stop frames, the last with {said}"
+
+    def _reply_of(self, msg: can.Message) -> Reply | None:
+        try:
+            return unpack_reply(self._model, msg.data)
+        except CodecError:
+            return None
 
     def _fault_text(self, event: StateEvent) -> str:
         if event.error_code in (MitFault.AT_RAIL, MitFault.BAD_LAYOUT):
