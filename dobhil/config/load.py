@@ -246,10 +246,21 @@ def check_consistency(config: Config) -> None:
                           f"loop.period = {loop.period!r}")
     if config.reference.kind == "csv" and not config.reference.file:
         raise ConfigError("reference.kind = 'csv' needs reference.file (a CSV with time,tau_ref)")
+    check_instability(config)
     ref = config.reference
     if ref.kind == "multisine" and ref.lines > 1 and not ref.frequency_end > ref.frequency:
         raise ConfigError(f"reference.frequency_end = {ref.frequency_end!r}: the multisine band must "
                           f"end above reference.frequency = {ref.frequency!r} (or reference.lines = 1)")
+
+
+def check_instability(config: Config) -> None:
+    """The watch's window holds at least two periods (or is 0: off); growth means > 1."""
+    watch, period = config.instability, config.loop.period
+    if 0.0 < watch.window < 2.0 * period:
+        raise ConfigError(f"instability.window = {watch.window!r}: must be 0 (no watch) or at least "
+                          f"2 loop periods ({2.0 * period:g} s)")
+    if not watch.growth > 1.0:
+        raise ConfigError(f"instability.growth = {watch.growth!r}: must be > 1 (a factor of growth)")
 
 
 def to_yaml(config: Config) -> str:

@@ -21,6 +21,7 @@ class StopReason(IntEnum):
     BUS_ERROR = 9         # the CAN bus failed (send refused, ENOBUFS, interface gone)
     RECORDER_FAILED = 10  # the run's recorder failed (disk full, ...): the record would be lost
     HOST_TOO_SLOW = 11    # no fresh feedback because the emulated drive itself was not scheduled
+    UNSTABLE = 12         # the command chattered at its limit or the estimate's oscillation grew
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,205 @@
+"""The run-time instability watch: a loop that chatters or grows stops as ``unstable``.
+
+A force loop whose gain is above what the plant, the environment and the delay allow
+(``dobhil analyze``: "max stable C_f") does not blow up on a drive: the torque limit
+bounds it, and what remains is a limit cycle -- the command slammed from one torque
+limit to the other, up to every period -- or, just above the boundary, an oscillation
+that grows by a few per cent per period until it reaches the limit. Both are violent on
+a motor, and neither trips a position or velocity limit in contact with a stiff
+environment. The watch looks at two signals the controller computes every cycle and
+decides with two rules, both over a window of ``W`` cycles (``instability.window``):
+
+- **chatter**: the command was clipped at the torque limit in at least
+  ``instability.saturation`` of the last ``W`` cycles *and* it reversed at least
+  ``instability.reversals * W`` times in them. A reversal is a turn of the command by at
+  least ``instability.hysteresis`` times the torque limit (a peak detector with that
+  hysteresis: noise smaller than it turns nothing, and an oscillation of any frequency
+  whose swing exceeds it counts twice per period). A stable loop held at its limit (a
+  reference beyond the limit, a hard impact) saturates without reversing; one tracking
+  a fast reference reverses without saturating.
+- **growth**: the interaction-torque estimate's swings (the same peak detector on
+  ``tau_int^``) are collected per block of ``W`` cycles; the largest swing of
+  ``instability.growth_windows`` consecutive blocks grew by at least
+  ``instability.growth`` times over the block before each. This catches an unstable
+  oscillation while it still grows below the torque limit.
+
+Bound on the detection delay: a limit cycle that chatters at the thresholds' rate trips
+within ``W`` cycles of the cycle it began in (both counts are over the last ``W``); a
+growing oscillation trips at the end of the ``growth_windows``-th block after the first
+block whose largest swing exceeded the hysteresis, so within ``(growth_windows + 2) W``
+cycles of the swings first exceeding it (the block under way plus the blocks compared).
+
+What it cannot see: a divergence without oscillation (a real pole outside the unit
+circle: the servo drifts or pushes one way; the position and velocity limits are for
+that); swings smaller than the hysteresis (a slowly growing oscillation is caught only
+once it exceeds ``hysteresis * torque_limit``); a growth slower than ``growth`` per
+window (caught once it reaches the limit and chatters); a limit cycle that reverses
+less often than ``reversals`` per cycle (a slow bounce off the environment). The
+thresholds are the config's: ``docs/config.md`` and ``docs/hardware.md`` give the
+defaults and the margins measured on the shipped designs.
+
+Cost: per cycle a few comparisons and two ring-buffer updates in preallocated
+``bytearray`` s; nothing allocates, prints or blocks. :meth:`InstabilityWatch.cycle`
+returns "" or the one-line detail of the stop.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+__all__ = ["InstabilityWatch", "WatchPeaks", "WatchSettings"]
+
+
+@dataclass(frozen=True)
+class WatchSettings:
+    """The thresholds (``instability.*`` config keys) in the loop's units."""
+
+    window: int               # W: cycles the chatter statistics are taken over (>= 2)
+    saturation: float         # fraction of W with the command clipped (chatter rule)
+    limit_reversals: float    # turns back from the limit per cycle of W (chatter rule)
+    hysteresis: float         # a turn smaller than this fraction of the limit is none
+    growth: float             # swing growth factor over a growing streak (growth rule)
+    growth_swings: int        # swings in a row, each above the one before it in its direction
+    period: float             # loop.period [s], for the detail's times
+
+    def __post_init__(self) -> None:
+        if self.window < 2:
+            raise ValueError(f"window: expected >= 2 cycles, got {self.window}")
+        if not 0.0 < self.saturation <= 1.0 or not 0.0 < self.limit_reversals <= 1.0:
+            raise ValueError("saturation and limit_reversals: expected fractions in (0, 1]")
+        if not 0.0 < self.hysteresis <= 2.0 or not self.growth > 1.0 or self.growth_swings < 1:
+            raise ValueError("hysteresis in (0, 2], growth > 1 and growth_swings >= 1 expected")
+
+
+@dataclass
+class WatchPeaks:
+    """The largest value each statistic reached in a run: its margin to the threshold."""
+
+    saturation: float = 0.0       # fraction of a window clipped
+    limit_reversals: float = 0.0  # turns back from the limit per cycle, over a window
+    chatter: float = 0.0          # min of the two above over their thresholds (>= 1 trips)
+    growth_swings: int = 0        # longest streak of growing swings
+    growth: float = 0.0           # largest growth of a streak's swing over its base
+
+
+class _Swings:
+    """A peak detector with hysteresis ``h``: :meth:`add` returns the swing (the distance
+    between the last two turning points) when the signal turns back by more than ``h``
+    from its running extreme, else 0. Noise smaller than ``h`` turns nothing."""
+
+    __slots__ = ("h", "rising", "extreme", "turn")
+
+    def __init__(self, h: float) -> None:
+        self.h = h
+        self.rising = True
+        self.extreme = float("nan")   # the running extreme since the last turn
+        self.turn = float("nan")      # the extreme at the last turn
+
+    def add(self, x: float) -> float:
+        e = self.extreme
+        if e != e:   # first sample: both ends start here
+            self.extreme = self.turn = x
+            return 0.0
+        if self.rising:
+            if x >= e:
+                self.extreme = x
+                return 0.0
+            if x > e - self.h:
+                return 0.0
+        else:
+            if x <= e:
+                self.extreme = x
+                return 0.0
+            if x < e + self.h:
+                return 0.0
+        swing = abs(e - self.turn)
+        self.rising = not self.rising
+        self.turn, self.extreme = e, x
+        return swing
+
+
+class InstabilityWatch:
+    """The two rules of the module docstring, updated once per cycle in O(1)."""
+
+    def __init__(self, settings: WatchSettings, torque_limit: float) -> None:
+        self.s = settings
+        self.limit = torque_limit
+        w = settings.window
+        self._sat = bytearray(w)   # ring: the cycle's command was clipped
+        self._hit = bytearray(w)   # ring: the command turned back from a swing that reached the limit
+        self._i = 0
+        self._seen = 0             # cycles in the window so far (W once it is full)
+        self._n_sat = 0
+        self._n_hit = 0
+        self._need_sat = settings.saturation * w
+        self._need_hit = settings.limit_reversals * w
+        self._touched = 0          # the command's swing under way reached the limit
+        h = settings.hysteresis * torque_limit
+        self._applied = _Swings(h)     # the command sent (clipped)
+        self._unclipped = _Swings(h)   # the command before the clip: how far the loop wants to go
+        self._last = 0.0           # the unclipped command's last swing
+        self._before = 0.0         # and the one before it (the same direction as this one)
+        self._streak = 0           # swings in a row larger than the one before in their direction
+        self._base = 0.0           # the smaller swing before the streak began
+        self.peaks = WatchPeaks()
+
+    def cycle(self, u_unsat: float, u: float) -> str:
+        """One cycle's command before and after the clip; the stop's detail when a rule
+        trips, else ""."""
+        i = self._i
+        clipped = 1 if abs(u_unsat) >= self.limit else 0
+        turned = self._applied.add(u) > 0.0
+        hit = self._touched if turned else 0
+        self._touched = clipped if turned else self._touched | clipped
+        self._n_sat += clipped - self._sat[i]
+        self._n_hit += hit - self._hit[i]
+        self._sat[i], self._hit[i] = clipped, hit
+        i += 1
+        self._i = 0 if i == self.s.window else i
+        if self._seen < self.s.window:
+            self._seen += 1
+        if self._n_sat or self._n_hit:
+            if self._n_sat >= self._need_sat and self._n_hit >= self._need_hit:
+                return self._chatter_detail()
+            self._note_chatter()
+        swing = self._unclipped.add(u_unsat)
+        return self._swing(swing) if swing > 0.0 else ""
+
+    def _note_chatter(self) -> None:
+        p, w, s = self.peaks, self.s.window, self.s
+        sat, hits = self._n_sat / w, self._n_hit / w
+        p.saturation = max(p.saturation, sat)
+        p.limit_reversals = max(p.limit_reversals, hits)
+        p.chatter = max(p.chatter, min(sat / s.saturation, hits / s.limit_reversals))
+
+    def _swing(self, swing: float) -> str:
+        """A new swing of the unclipped command: does it extend a growing streak?"""
+        before, self._before, self._last = self._before, self._last, swing
+        if before <= 0.0 or swing <= before:
+            self._streak = 0
+            return ""
+        if self._streak == 0:
+            self._base = min(before, self._before)
+        self._streak += 1
+        growth = swing / self._base
+        p = self.peaks
+        p.growth_swings = max(p.growth_swings, self._streak)
+        p.growth = max(p.growth, growth)
+        if self._streak >= self.s.growth_swings and growth >= self.s.growth:
+            return self._growth_detail(swing, growth)
+        return ""
+
+    def _chatter_detail(self) -> str:
+        self._note_chatter()
+        n, s = self._seen, self.s
+        return (f"torque at its limit ({self.limit:g} N m) in {self._n_sat} of the last {n} cycles "
+                f"({100.0 * self._n_sat / n:.0f} % of {n * s.period:.4g} s), turned back from it {self._n_hit} "
+                f"times (thresholds: "
+                f"instability.saturation = {s.saturation:g}, instability.limit_reversals = "
+                f"{s.limit_reversals:g} per cycle)")
+
+    def _growth_detail(self, swing: float, growth: float) -> str:
+        s = self.s
+        return (f"the command's oscillation grew {self._streak} swings in a row, x{growth:.3g} to a swing "
+                f"of {swing:.4g} N m (limit {self.limit:g} N m; thresholds: instability.growth_swings = "
+                f"{s.growth_swings}, instability.growth = {s.growth:g})")
