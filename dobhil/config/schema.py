@@ -238,8 +238,7 @@ class AnalysisConfig:
 
 @dataclass(frozen=True)
 class InstabilityConfig:
-    """The run-time instability watch (:mod:`dobhil.runtime.instability`): a force loop that
-    chatters at its torque limit or whose oscillation grows stops as ``unstable``."""
+    """The instability watch: a force run that chatters at its torque limit or grows stops."""
 
     window: float = key(0.5, "the watch's window: each statistic is taken over the last "
                         "window s (rounded to whole loop periods, at least 2); 0: no watch",

@@ -1,42 +1,49 @@
 """The run-time instability watch: a loop that chatters or grows stops as ``unstable``.
 
 A force loop whose gain is above what the plant, the environment and the delay allow
-(``dobhil analyze``: "max stable C_f") does not blow up on a drive: the torque limit
-bounds it, and what remains is a limit cycle -- the command slammed from one torque
-limit to the other, up to every period -- or, just above the boundary, an oscillation
-that grows by a few per cent per period until it reaches the limit. Both are violent on
-a motor, and neither trips a position or velocity limit in contact with a stiff
-environment. The watch looks at two signals the controller computes every cycle and
-decides with two rules, both over a window of ``W`` cycles (``instability.window``):
+(``dobhil analyze``: "max stable C_f" of the sampled loop) does not blow up on a drive: the
+torque limit bounds it, and what remains is a limit cycle -- the command slammed against
+its limit, up to every period -- or, just above the boundary, an oscillation that grows by
+a per cent or so per period until it reaches the limit. Both are violent on a motor, and in
+a stiff contact neither trips a position or velocity limit. The watch looks at the command
+the controller computes each cycle, before and after the clip at the torque limit ``L``,
+and decides with two rules:
 
-- **chatter**: the command was clipped at the torque limit in at least
-  ``instability.saturation`` of the last ``W`` cycles *and* it reversed at least
-  ``instability.reversals * W`` times in them. A reversal is a turn of the command by at
-  least ``instability.hysteresis`` times the torque limit (a peak detector with that
-  hysteresis: noise smaller than it turns nothing, and an oscillation of any frequency
-  whose swing exceeds it counts twice per period). A stable loop held at its limit (a
-  reference beyond the limit, a hard impact) saturates without reversing; one tracking
-  a fast reference reverses without saturating.
-- **growth**: the interaction-torque estimate's swings (the same peak detector on
-  ``tau_int^``) are collected per block of ``W`` cycles; the largest swing of
-  ``instability.growth_windows`` consecutive blocks grew by at least
-  ``instability.growth`` times over the block before each. This catches an unstable
-  oscillation while it still grows below the torque limit.
+- **chatter**, over the last ``W`` cycles (``instability.window``): the command was clipped
+  in at least ``instability.saturation * W`` of them *and* turned back from the limit at
+  least ``instability.limit_reversals * W`` times. A turn is a reversal of the command by
+  more than ``instability.hysteresis * L`` (a peak detector with that hysteresis: noise
+  below it turns nothing, an oscillation of any frequency above it turns twice a period);
+  a turn "from the limit" ends a swing that reached the limit. A stable loop held at its
+  limit (a reference beyond it, an impact) saturates without turning back; one tracking a
+  fast reference turns without saturating; a stable transient clips for a burst, which a
+  long window dilutes, while a limit cycle clips for as long as it lasts.
+- **growth**: the swings of the *unclipped* command (how far the loop wants to go; the
+  torque the estimate's oscillation asks for, ``C_f`` times it plus the disturbance
+  estimate's) grew ``instability.growth_swings`` times in a row, each larger than the
+  swing before it in the same direction (up-swings against up-swings: a drift does not
+  break the streak), and by ``instability.growth`` in all. This stops an unstable
+  oscillation while it is still below the limit.
 
-Bound on the detection delay: a limit cycle that chatters at the thresholds' rate trips
-within ``W`` cycles of the cycle it began in (both counts are over the last ``W``); a
-growing oscillation trips at the end of the ``growth_windows``-th block after the first
-block whose largest swing exceeded the hysteresis, so within ``(growth_windows + 2) W``
-cycles of the swings first exceeding it (the block under way plus the blocks compared).
+Bounds on the detection delay, tested in ``tests/runtime/test_instability.py``: a limit
+cycle that clips at least ``saturation`` of the time and turns back from the limit at least
+``limit_reversals`` per cycle stops within ``W`` cycles of its start (both counts are over
+the last ``W`` cycles; a harsher one sooner: the counts are absolute, so a command clipped
+every cycle trips after ``saturation * W`` cycles). An oscillation growing by ``r`` per
+swing stops within ``max(growth_swings, log(growth) / log(r)) + 2`` swings of its swings
+first exceeding the hysteresis (one swing per cycle at z = -1, where the delayed loops of
+``configs/`` cross).
 
-What it cannot see: a divergence without oscillation (a real pole outside the unit
-circle: the servo drifts or pushes one way; the position and velocity limits are for
-that); swings smaller than the hysteresis (a slowly growing oscillation is caught only
-once it exceeds ``hysteresis * torque_limit``); a growth slower than ``growth`` per
-window (caught once it reaches the limit and chatters); a limit cycle that reverses
-less often than ``reversals`` per cycle (a slow bounce off the environment). The
-thresholds are the config's: ``docs/config.md`` and ``docs/hardware.md`` give the
-defaults and the margins measured on the shipped designs.
+What it cannot see: a divergence without oscillation (a real pole outside the unit circle:
+the servo drifts or pushes one way; the position and velocity limits are for that); an
+oscillation below the hysteresis (a slow growth is caught once it exceeds
+``hysteresis * L``); a growth too slow to reach ``growth`` within a streak that jitter
+breaks (sampled peaks of an oscillation not at z = -1 jitter); a limit cycle that turns back
+from the limit less than ``limit_reversals`` per cycle (a slow bounce off the environment)
+or clips less than ``saturation`` of the time (just above the boundary a sine-like limit
+cycle barely exceeds the limit); and an instability that the drive's quantisation freezes
+(an AK80-9 in stiff contact: nothing moves, so nothing chatters). ``docs/hardware.md``
+gives the defaults and the margins measured on the shipped designs.
 
 Cost: per cycle a few comparisons and two ring-buffer updates in preallocated
 ``bytearray`` s; nothing allocates, prints or blocks. :meth:`InstabilityWatch.cycle`
@@ -84,8 +91,9 @@ class WatchPeaks:
 
 class _Swings:
     """A peak detector with hysteresis ``h``: :meth:`add` returns the swing (the distance
-    between the last two turning points) when the signal turns back by more than ``h``
-    from its running extreme, else 0. Noise smaller than ``h`` turns nothing."""
+    between the last two turning points, 0 for the first turn) when the signal turns back
+    by more than ``h`` from its running extreme, else -1. Noise smaller than ``h`` turns
+    nothing."""
 
     __slots__ = ("h", "rising", "extreme", "turn")
 
@@ -99,19 +107,19 @@ class _Swings:
         e = self.extreme
         if e != e:   # first sample: both ends start here
             self.extreme = self.turn = x
-            return 0.0
+            return -1.0
         if self.rising:
             if x >= e:
                 self.extreme = x
-                return 0.0
+                return -1.0
             if x > e - self.h:
-                return 0.0
+                return -1.0
         else:
             if x <= e:
                 self.extreme = x
-                return 0.0
+                return -1.0
             if x < e + self.h:
-                return 0.0
+                return -1.0
         swing = abs(e - self.turn)
         self.rising = not self.rising
         self.turn, self.extreme = e, x
@@ -148,7 +156,7 @@ class InstabilityWatch:
         trips, else ""."""
         i = self._i
         clipped = 1 if abs(u_unsat) >= self.limit else 0
-        turned = self._applied.add(u) > 0.0
+        turned = self._applied.add(u) >= 0.0
         hit = self._touched if turned else 0
         self._touched = clipped if turned else self._touched | clipped
         self._n_sat += clipped - self._sat[i]

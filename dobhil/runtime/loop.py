@@ -42,8 +42,8 @@ collector's state is restored after the run.
 
 Safety: every way out of :meth:`ForceLoop.run` -- done, feedback timeout, position or
 velocity limit, non-finite value, instability (:mod:`dobhil.runtime.instability`: the
-command chattering at its limit, or the estimate's oscillation growing), drive fault, bus error, stop request (SIGINT/SIGTERM),
-or any exception -- runs the drive's safe stop (zero torque, then the disable frames,
+command chattering at its limit, or its oscillation growing), drive fault, bus error, stop
+request (SIGINT/SIGTERM), or any exception -- runs the drive's safe stop (zero torque, then the disable frames,
 each attempted on its own, then a confirmation from the drive) and is recorded as a
 :class:`~dobhil.runtime.stop.Stop`. Exceptions are re-raised after the safe stop
 (``ForceLoop.ended`` still holds the stop and the safe stop's report). Any failure of the
