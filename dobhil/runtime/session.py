@@ -347,6 +347,9 @@ def summary(session: RunSession, result: RunResult) -> dict[str, Any]:
         "watchdog_tripped": bool(getattr(session.emulator, "watchdog_tripped", False)),
         "preflight": None if session.preflight_report is None else session.preflight_report.as_dict(),
         "final": final,
+        # how close the run came to an ``unstable`` stop (null: no watch)
+        "instability": (None if session.loop is None or session.loop.watch is None
+                        else dataclasses.asdict(session.loop.watch.peaks)),
         # a sample latency only where one was measured (absent, not null, otherwise)
         "loop_timing": {k: v for k, v in dataclasses.asdict(result.timing).items() if v is not None},
         **sample_latency_us(result),

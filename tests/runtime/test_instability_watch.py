@@ -130,6 +130,12 @@ def test_bad_values_are_one_line_exit_2(key: str, value: str, words: str,
     assert code == 2 and len(err) == 1 and key in err[0] and words in err[0]
 
 
+def test_summary_without_a_watch(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["run", str(DEMO), "--emulate", "--lockstep", "--summary-json", "--duration", "0.05",
+                 "--set", "instability.window=0"]) == 0
+    assert json.loads(capsys.readouterr().out)["instability"] is None
+
+
 def test_settings_from_the_config() -> None:
     """The window is whole periods (at least 2); 0 and torque mode: no watch."""
     s = watch_settings(load_config(DEMO, ["instability.window=0.0104"]))
@@ -151,6 +157,7 @@ def test_unstable_run_end_to_end(tmp_path: Path, capsys: pytest.CaptureFixture[s
                  "--summary-json"])
     info = json.loads(capsys.readouterr().out)
     assert code == 1 and info["stop_reason"] == "unstable" and info["drive_disabled"]
+    assert info["instability"]["chatter"] >= 1.0 and info["instability"]["saturation"] >= 0.12
     assert info["safe_stop"]["frames"][0]["sent"]
     from dobhil.recording.reader import LogFile
     assert LogFile(log).stop_reason() == StopReason.UNSTABLE.name.lower()
