@@ -69,7 +69,6 @@ class WatchSettings:
     hysteresis: float         # a turn smaller than this fraction of the limit is none
     growth: float             # swing growth factor over a growing streak (growth rule)
     growth_swings: int        # swings in a row, each above the one before it in its direction
-    period: float             # loop.period [s], for the detail's times
 
     def __post_init__(self) -> None:
         if self.window < 2:
@@ -219,10 +218,9 @@ class InstabilityWatch:
 
     def _chatter_detail(self) -> str:
         self._note_chatter()
-        n, s = (self._w if self._full else self._i), self.s
+        n, s = (self._w if self._full else self._i), self.s   # cycles run (frames may be skipped)
         return (f"torque at its limit ({self.limit:g} N m) in {self._n_sat} of the last {n} cycles "
-                f"({100.0 * self._n_sat / n:.0f} % of {n * s.period:.4g} s), turned back from it {self._n_hit} "
-                f"times (thresholds: "
+                f"({100.0 * self._n_sat / n:.0f} %), turned back from it {self._n_hit} times (thresholds: "
                 f"instability.saturation = {s.saturation:g}, instability.limit_reversals = "
                 f"{s.limit_reversals:g} per cycle)")
 

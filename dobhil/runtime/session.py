@@ -77,7 +77,7 @@ def watch_settings(config: Config) -> WatchSettings | None:
         return None
     return WatchSettings(window=max(2, round(w.window / config.loop.period)), saturation=w.saturation,
                          limit_reversals=w.limit_reversals, hysteresis=w.hysteresis, growth=w.growth,
-                         growth_swings=w.growth_swings, period=config.loop.period)
+                         growth_swings=w.growth_swings)
 
 
 def check_duration(duration: float | None, what: str = "--duration") -> None:

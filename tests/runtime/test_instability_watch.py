@@ -28,7 +28,7 @@ LIMIT = 2.0
 def make(window: int = 100, **kw: float) -> InstabilityWatch:
     values = {"saturation": 0.12, "limit_reversals": 0.03, "hysteresis": 0.25, "growth": 2.0,
               "growth_swings": 8, **kw}
-    return InstabilityWatch(WatchSettings(window=window, period=1e-3, **values), LIMIT)  # type: ignore[arg-type]
+    return InstabilityWatch(WatchSettings(window=window, **values), LIMIT)  # type: ignore[arg-type]
 
 
 def feed(watch: InstabilityWatch, u_unsat: np.ndarray) -> tuple[int, str]:
@@ -139,7 +139,7 @@ def test_summary_without_a_watch(capsys: pytest.CaptureFixture[str]) -> None:
 def test_settings_from_the_config() -> None:
     """The window is whole periods (at least 2); 0 and torque mode: no watch."""
     s = watch_settings(load_config(DEMO, ["instability.window=0.0104"]))
-    assert s is not None and s.window == 10 and s.period == 1e-3
+    assert s is not None and s.window == 10
     assert watch_settings(load_config(DEMO, ["instability.window=0"])) is None
     assert watch_settings(load_config(DEMO, ["loop.mode=torque"])) is None
 
