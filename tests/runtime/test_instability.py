@@ -95,8 +95,9 @@ def check_detection_bound(o: Outcome) -> None:
     s, pole = o.settings, o.largest_pole
     # the unstable pole's oscillation swings every pi / angle cycles (every cycle at z = -1),
     # each swing |z|^(pi / angle) larger: the streak needs growth_swings of them and a growth
-    # of s.growth, plus the swings it is measured from (a first one cut short restarts it); its onset is the first move of
-    # the hysteresis' size (from rest, nothing else moves the command that far)
+    # of s.growth, plus the swings it is measured from (a first one cut short restarts it);
+    # its onset is the first move of the hysteresis' size (from rest, nothing else moves the
+    # command that far)
     per_swing = math.pi / abs(math.atan2(pole.imag, pole.real))
     needed = math.ceil(math.log(s.growth) / (per_swing * math.log(abs(pole))))
     cycles = (max(s.growth_swings, needed) + 3) * per_swing
