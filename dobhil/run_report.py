@@ -416,12 +416,6 @@ def prediction(data: RunData, contact: Contact | None = None,
     config = design_config(data)
     if config is None:
         return None, {"available": False, "why": "no recorded config"}
-    contact = contact or contact_mask(data)
-    steps = step_infos(data, contact) if steps is None else steps
-    start = _prediction_start(data, contact, steps)
-    if start is None:
-        what = "no reference step taken in contact" if steps else "no reference step, and contact not all along"
-        return None, {"available": False, "why": f"{what} (the analysis is of the loop in contact)"}
     if config.design.delay_samples > MAX_PREDICTION_DELAY:
         return None, {"available": False, "why": f"design.delay_samples = {config.design.delay_samples} "
                                                   f"is above {MAX_PREDICTION_DELAY} (the model would be too large)"}
@@ -430,6 +424,17 @@ def prediction(data: RunData, contact: Contact | None = None,
     from dobhil.analysis.transfer import LoopSystems
     from dobhil.synthesis.params import params_from_config
     sys_ = LoopSystems.build(params_from_config(config), sampled=True).system("closed_loop")
+    radius = float(np.max(np.abs(sys_.poles()), initial=0.0))
+    if not radius < 1.0:   # the recorded loop diverges: its response says nothing about the run
+        return None, {"available": False, "unstable": True,
+                      "why": f"the recorded design's sampled closed loop is unstable (largest |pole| "
+                             f"{radius:.6g}; dobhil analyze gives its max stable C_f): no bounded prediction"}
+    contact = contact or contact_mask(data)
+    steps = step_infos(data, contact) if steps is None else steps
+    start = _prediction_start(data, contact, steps)
+    if start is None:
+        what = "no reference step taken in contact" if steps else "no reference step, and contact not all along"
+        return None, {"available": False, "why": f"{what} (the analysis is of the loop in contact)"}
     index, before = start
     if data.t.size - index < 2:   # python-control's forced_response needs two instants
         return None, {"available": False, "why": "the run ended within a cycle of its first step in contact "
@@ -561,6 +566,8 @@ def summary_text(s: Mapping[str, Any]) -> str:
         lines.append(f"estimation: RMS(tau_int^ - tau_int) {nm(s['estimation']['rms_error'])}, "
                      f"max {nm(s['estimation']['max_error'])}")
     p = s["prediction"]
+    if p.get("unstable"):
+        lines.append(f"analysis prediction: none ({p['why']})")
     if p.get("available"):
         lines.append(f"analysis prediction vs measured tau_int^: RMS {nm(p['rms_difference'])}, "
                      f"max {nm(p['max_difference'])}")

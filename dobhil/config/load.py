@@ -246,10 +246,19 @@ def check_consistency(config: Config) -> None:
                           f"loop.period = {loop.period!r}")
     if config.reference.kind == "csv" and not config.reference.file:
         raise ConfigError("reference.kind = 'csv' needs reference.file (a CSV with time,tau_ref)")
+    check_instability(config)
     ref = config.reference
     if ref.kind == "multisine" and ref.lines > 1 and not ref.frequency_end > ref.frequency:
         raise ConfigError(f"reference.frequency_end = {ref.frequency_end!r}: the multisine band must "
                           f"end above reference.frequency = {ref.frequency!r} (or reference.lines = 1)")
+
+
+def check_instability(config: Config) -> None:
+    """Growth means a factor above 1. (A window shorter than two loop periods is not refused:
+    the default would refuse a long ``loop.period``; the runtime takes two periods then.)"""
+    watch = config.instability
+    if not watch.growth > 1.0:
+        raise ConfigError(f"instability.growth = {watch.growth!r}: must be > 1 (a factor of growth)")
 
 
 def to_yaml(config: Config) -> str:

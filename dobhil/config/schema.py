@@ -244,6 +244,29 @@ class AnalysisConfig:
 
 
 @dataclass(frozen=True)
+class InstabilityConfig:
+    """The instability watch: a force run that chatters at its torque limit or grows stops."""
+
+    window: float = key(0.5, "the watch's window: each statistic is taken over the last "
+                        "window s (rounded to whole loop periods, at least 2); 0: no watch",
+                        unit="s", check=Check.NONNEGATIVE, maximum=1e4)
+    saturation: float = key(0.12, "chatter rule: the command clipped at the torque limit in at "
+                            "least this fraction of the window ...", check=Check.POSITIVE,
+                            maximum=1.0)
+    limit_reversals: float = key(0.03, "... and turned back from the limit at least this many "
+                                 "times per cycle of it (0.03: 15 in 500 cycles)",
+                                 check=Check.POSITIVE, maximum=1.0)
+    hysteresis: float = key(0.25, "a turn of the command smaller than this fraction of the torque "
+                            "limit is not counted (the noise floor of both rules)",
+                            check=Check.POSITIVE, maximum=2.0)
+    growth: float = key(2.0, "growth rule: the command's oscillation (before the clip) grew by at "
+                        "least this factor ...; above 1", check=Check.POSITIVE, maximum=1e6)
+    growth_swings: int = key(16, "... over at least this many swings in a row, each larger than the "
+                             "one before it in its direction (and at most twice it)", check=Check.POSITIVE,
+                             maximum=10000)
+
+
+@dataclass(frozen=True)
 class Config:
     """A complete, validated configuration."""
 
@@ -255,6 +278,7 @@ class Config:
     sensor: SensorConfig = field(default_factory=SensorConfig)
     drive: DriveConfig = field(default_factory=DriveConfig)
     analysis: AnalysisConfig = field(default_factory=AnalysisConfig)
+    instability: InstabilityConfig = field(default_factory=InstabilityConfig)
 
     def flat(self) -> dict[str, Any]:
         """Every key as ``section.name -> value``."""
@@ -268,7 +292,7 @@ class Config:
 def _section_types() -> dict[str, type]:
     return {"plant": PlantConfig, "environment": EnvironmentConfig, "design": DesignConfig,
             "loop": LoopConfig, "reference": ReferenceConfig, "sensor": SensorConfig,
-            "drive": DriveConfig, "analysis": AnalysisConfig}
+            "drive": DriveConfig, "analysis": AnalysisConfig, "instability": InstabilityConfig}
 
 
 SECTIONS: dict[str, type] = _section_types()

@@ -51,8 +51,9 @@ ended within the time the drive takes to report it, the stop is ``host_too_slow`
 gap measured; otherwise ``drive_fault``, saying how long the longest gap was.
 
 Safety: every way out of :meth:`ForceLoop.run` -- done, feedback timeout, position or
-velocity limit, non-finite value, drive fault, bus error, stop request (SIGINT/SIGTERM),
-or any exception -- runs the drive's safe stop (zero torque, then the disable frames,
+velocity limit, non-finite value, instability (:mod:`dobhil.runtime.instability`: the
+command chattering at its limit, or its oscillation growing), drive fault, bus error, stop
+request (SIGINT/SIGTERM), or any exception -- runs the drive's safe stop (zero torque, then the disable frames,
 each attempted on its own, then a confirmation from the drive) and is recorded as a
 :class:`~dobhil.runtime.stop.Stop`. Exceptions are re-raised after the safe stop
 (``ForceLoop.ended`` still holds the stop and the safe stop's report). Any failure of the
@@ -82,6 +83,7 @@ from dobhil.drives.base import Drive, Feedback, HostTimeout, SafeStopReport
 from dobhil.drives.waits import WAIT_SLICE, Cancel
 from dobhil.errors import BusError, DriveError, DriveFaultError, RecorderError, WaitCancelled
 from dobhil.runtime.controller import ControlOutput, ForceController
+from dobhil.runtime.instability import InstabilityWatch, WatchSettings
 from dobhil.runtime.stop import Stop, StopReason
 
 
@@ -139,6 +141,8 @@ class LoopSettings:
     timing: Timing
     limits: Limits
     spin: float = SPIN
+    #: the instability watch's thresholds (``instability.*``); None: no watch
+    watch: WatchSettings | None = None
 
     @property
     def cycles(self) -> int:
@@ -483,6 +487,9 @@ class ForceLoop:
         self.latency = Histogram()
         self.sample_latency = Histogram()
         self.trace = Trace(settings.cycles, trace_rows)
+        #: the instability watch (None when off); its ``peaks`` say how close a run came
+        self.watch = (InstabilityWatch(settings.watch, controller.torque_limit)
+                      if settings.watch is not None else None)
 
     # -- public --------------------------------------------------------------
 
@@ -792,6 +799,11 @@ class ForceLoop:
         if not math.isfinite(out.u) or not math.isfinite(out.tau_ref):
             raise _Halt(StopReason.NON_FINITE, f"non-finite command u = {out.u!r} "
                         f"(tau_ref = {out.tau_ref!r}, tau_int^ = {out.tau_int_hat!r})")
+        watch = self.watch
+        if watch is not None:   # before the send: a tripping command never goes out
+            why = watch.cycle(out.u_unsat, out.u)
+            if why:
+                raise _Halt(StopReason.UNSTABLE, why)
         self.drive.send_torque(out.u)
         exec_time = time.perf_counter() - start
         latency = sample_latency = math.nan

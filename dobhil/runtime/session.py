@@ -32,6 +32,7 @@ from dobhil.emulator.registry import make_emulated_drive, private_virtual_channe
 from dobhil.errors import ConfigError, PreflightError
 from dobhil.runtime.buses import BusSpec, open_bus, resolve_bus, shutdown_bus
 from dobhil.runtime.controller import ForceController
+from dobhil.runtime.instability import WatchSettings
 from dobhil.realtime import EMULATOR_PRIORITY_DROP
 from dobhil.runtime.loop import (CycleSink, ForceLoop, Limits, LoopSettings, RunResult, StopRequest,
                                  Timing)
@@ -64,7 +65,19 @@ def loop_settings(config: Config, timing: Timing, duration: float | None) -> Loo
     return LoopSettings(period=lp.period, duration=duration or lp.duration,
                         feedback_timeout=lp.feedback_timeout, timing=timing,
                         limits=Limits(lp.position_min, lp.position_max, lp.velocity_limit),
-                        spin=lp.spin)
+                        spin=lp.spin, watch=watch_settings(config))
+
+
+def watch_settings(config: Config) -> WatchSettings | None:
+    """The instability watch of a force run (``instability.*``); None when
+    ``instability.window`` is 0, and in torque mode: an open loop cannot go unstable, and
+    an excitation there chatters by design."""
+    w = config.instability
+    if w.window == 0 or config.loop.mode == "torque":
+        return None
+    return WatchSettings(window=max(2, round(w.window / config.loop.period)), saturation=w.saturation,
+                         limit_reversals=w.limit_reversals, hysteresis=w.hysteresis, growth=w.growth,
+                         growth_swings=w.growth_swings)
 
 
 def check_duration(duration: float | None, what: str = "--duration") -> None:
@@ -336,10 +349,18 @@ def summary(session: RunSession, result: RunResult) -> dict[str, Any]:
         "watchdog_tripped": bool(getattr(session.emulator, "watchdog_tripped", False)),
         "preflight": None if session.preflight_report is None else session.preflight_report.as_dict(),
         "final": final,
+        # how close the run came to an ``unstable`` stop (null: no watch)
+        "instability": watch_peaks(getattr(session, "loop", None)),
         # a sample latency only where one was measured (absent, not null, otherwise)
         "loop_timing": {k: v for k, v in dataclasses.asdict(result.timing).items() if v is not None},
         **sample_latency_us(result),
     }
+
+
+def watch_peaks(loop: ForceLoop | None) -> dict[str, Any] | None:
+    """The instability watch's peaks of a run (None: no watch, or no loop ran)."""
+    watch = loop.watch if loop is not None else None
+    return None if watch is None else dataclasses.asdict(watch.peaks)
 
 
 def sample_latency_us(result: RunResult) -> dict[str, Any]:

@@ -24,6 +24,7 @@ class StopReason(IntEnum):
     #: scheduled, or the drive's watch on the host (watchdog, heartbeat consumer, command
     #: timeout) expired after the host's own commands came too late
     HOST_TOO_SLOW = 11
+    UNSTABLE = 12         # the command chattered at its limit or the estimate's oscillation grew
 
 
 @dataclass(frozen=True)
