@@ -152,12 +152,12 @@ def test_unstable_run_end_to_end(tmp_path: Path, capsys: pytest.CaptureFixture[s
     """The issue's command: one stop line, exit 1, ``unstable`` in the summary, the MCAP
     stop event and the report (which predicts nothing for an unstable design)."""
     log = tmp_path / "run.mcap"
-    code = main(["run", str(DEMO), "--emulate", "--lockstep", "--set", "design.force_gain=20",
+    code = main(["run", str(DEMO), "--emulate", "--lockstep", "--set", "design.force_gain=20", "--allow-unstable",
                  "--log", str(log)])
     out = capsys.readouterr().out
     stops = [line for line in out.splitlines() if line.startswith("stopped:")]
     assert code == 1 and len(stops) == 1 and stops[0].startswith("stopped: unstable at cycle ")
-    code = main(["run", str(DEMO), "--emulate", "--lockstep", "--set", "design.force_gain=20",
+    code = main(["run", str(DEMO), "--emulate", "--lockstep", "--set", "design.force_gain=20", "--allow-unstable",
                  "--summary-json"])
     info = json.loads(capsys.readouterr().out)
     assert code == 1 and info["stop_reason"] == "unstable" and info["drive_disabled"]
