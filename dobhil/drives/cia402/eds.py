@@ -9,6 +9,8 @@ mapping beyond 64 bits (the data types come from the EDS, through canopen's PDO 
 
 from __future__ import annotations
 
+import configparser
+
 import struct
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -71,7 +73,9 @@ def load_od(profile: DriveProfile) -> ObjectDictionary:
     try:
         with quiet_canopen():
             od = canopen.import_od(str(path), profile.node_id)
-    except (ObjectDictionaryError, ValueError, KeyError, OSError) as exc:
+    # canopen reads an EDS with configparser: a file that is not INI raises its Error
+    # (MissingSectionHeaderError, ParsingError), which is none of the others
+    except (ObjectDictionaryError, ValueError, KeyError, OSError, configparser.Error) as exc:
         raise ConfigError(f"{path}: not a readable EDS: {' '.join(str(exc).split())}") from None
     check_od(od, profile, str(path))
     return od

@@ -41,8 +41,9 @@ CIA402_RULES = ProtocolRules(
                              "0x6076 after rated_torque_unit)", _positive(1e4)),
         "rated_torque_unit": Rule((str,), _one_of(RATED_TORQUE_UNITS), lambda v: v in RATED_TORQUE_UNITS,
                                   default="mNm"),
-        "position_per_rev": Rule((int, float), "a number > 0 (increments of 0x6064 per motor revolution)",
-                                 _positive(1e12)),
+        # 0x608F:01 (encoder increments) is an UNSIGNED32: a fraction could never be set on the node
+        "position_per_rev": Rule((int,), "an integer from 1 to 4294967295 (increments of 0x6064 per motor "
+                                 "revolution, as 0x608F:01 holds them)", lambda v: 1 <= v <= 0xFFFFFFFF),
         "velocity_unit": Rule((str,), _one_of(VELOCITY_UNITS), lambda v: v in VELOCITY_UNITS,
                               default="rpm"),
         "gear_ratio": Rule((int, float), "a number > 0 (motor turns per output turn)", _positive(1e6),

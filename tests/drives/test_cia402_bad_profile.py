@@ -1,0 +1,79 @@
+"""A CiA 402 profile that cannot describe a real node is one line and exit 2 wherever a command
+reads it: an EDS that is not an EDS (not INI, objects missing, a data type that is not one) in
+``run`` and ``check`` (``analyze`` does not read the EDS), and an encoder resolution 0x608F
+cannot hold in all three."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import pytest
+import yaml
+
+from dobhil.cli.main import main
+
+REPO = Path(__file__).resolve().parents[2]
+EXIT_USAGE = 2
+COMMANDS = {
+    "run": ["run", "{config}", "--emulate", "--lockstep", "--duration", "0.01"],
+    "check": ["check", "{config}", "--bus", "virtual:bad-profile", "--window", "0.05"],
+    "analyze": ["analyze", "{config}"],
+}
+EDS_CASES = {
+    "not INI": "this is not an EDS\nat all\n",
+    "objects missing": "[FileInfo]\nFileName=x.eds\n[DeviceInfo]\nVendorName=x\n",
+    # an object whose DataType is no number: canopen's int() of it raises ValueError
+    "wrong type": (REPO / "drivers" / "cia402-emulated.eds").read_text().replace(
+        "DataType=0x0007", "DataType=seven", 1),
+}
+
+
+def write_setup(tmp_path: Path, eds_text: str | None = None, **section: object) -> Path:
+    """A copy of the shipped emulated node's profile (its EDS replaced or its section changed)
+    and a copy of configs/cia402-demo.yaml that names it by path."""
+    profile = yaml.safe_load((REPO / "drivers" / "cia402-emulated.yaml").read_text())
+    eds = REPO / "drivers" / "cia402-emulated.eds"
+    if eds_text is not None:
+        eds = tmp_path / "node.eds"
+        eds.write_text(eds_text)
+    profile["cia402"] = {**profile["cia402"], "eds": str(eds), **section}
+    (tmp_path / "node.yaml").write_text(yaml.safe_dump(profile))
+    config = yaml.safe_load((REPO / "configs" / "cia402-demo.yaml").read_text())
+    config["drive"]["profile"] = str(tmp_path / "node.yaml")
+    path = tmp_path / "config.yaml"
+    path.write_text(yaml.safe_dump(config))
+    return path
+
+
+def one_line_exit_2(command: str, config: Path, capsys: pytest.CaptureFixture[str]) -> str:
+    code = main([part.format(config=config) for part in COMMANDS[command]])
+    out, err = capsys.readouterr()
+    assert code == EXIT_USAGE, (out, err)
+    assert err.count("\n") == 1 and "Traceback" not in err and "internal error" not in err, err
+    return err
+
+
+def test_the_wrong_type_case_really_changes_a_data_type() -> None:
+    assert "DataType=seven" in EDS_CASES["wrong type"]
+
+
+@pytest.mark.parametrize("case", EDS_CASES)
+@pytest.mark.parametrize("command", ["run", "check"])
+def test_a_malformed_eds_is_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str],
+                                     command: str, case: str) -> None:
+    err = one_line_exit_2(command, write_setup(tmp_path, EDS_CASES[case]), capsys)
+    assert "node.eds" in err
+
+
+@pytest.mark.parametrize("value", [1.5, 0, -4096, 2**32, "4096"])
+@pytest.mark.parametrize("command", COMMANDS)
+def test_an_encoder_resolution_0x608f_cannot_hold_is_one_line(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str], command: str, value: object) -> None:
+    err = one_line_exit_2(command, write_setup(tmp_path, position_per_rev=value), capsys)
+    assert "position_per_rev" in err and re.search(r"an integer from 1 to 4294967295", err)
+
+
+def test_a_whole_resolution_still_runs(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["run", str(write_setup(tmp_path, position_per_rev=2**32 - 1)), "--emulate", "--lockstep",
+                 "--duration", "0.01"]) == 0
