@@ -470,8 +470,10 @@ def run_preflight(
     command_bits = (bus_budget.loop_bits() if bus_budget is not None
                     else frame_bits(can.Message(dlc=8, is_extended_id=False))) / period
     bus_report = BusReport(state, cap.frames, cap.error_frames, cap.bits / window, bitrate, command_bits)
-    node_found = [cap.verdict] if cap.verdict is not None else _node_findings(
-        probe, nodes, period, feedback_timeout, window)
+    # a bus that failed while listening ended the window there: rates over a window not
+    # listened would be false ("1 frame in 60000 ms"), and the failure is the one cause
+    node_found = ([] if cap.read_error else [cap.verdict] if cap.verdict is not None
+                  else _node_findings(probe, nodes, period, feedback_timeout, window))
     findings = [*profile_rate_findings(profile, period, probe.motion_name()), *link_found,
                 *_bus_findings(bus_report, cap.send_errors, cap.read_error),
                 *budget_findings(bus_budget), *node_found, *cap.findings]

@@ -360,3 +360,42 @@ def test_bus_gone_during_the_preflight(tmp_path: Path) -> None:
     texts = [f.text for f in report.findings if f.stale_feedback]
     assert texts[0] == ("bus read failed while listening: TransportClosed: Status: 1006, "
                         "reason: Socket closed unexpectedly"), texts
+
+
+class _HeardOnceThenGone(can.BusABC):
+    """One frame heard (a heartbeat), then every read fails as a link taken down does."""
+
+    def __init__(self, first: can.Message) -> None:
+        super().__init__(channel="heard-once")
+        self._first: can.Message | None = first
+
+    def send(self, msg: can.Message, timeout: float | None = None) -> None:
+        pass
+
+    def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
+        if self._first is not None:
+            first, self._first = self._first, None
+            return first, False
+        raise can.CanOperationError("Error receiving: Network is down", error_code=100)
+
+
+def test_a_bus_gone_mid_window_is_the_one_finding_not_a_rate() -> None:
+    """Listening ended at the failure, so the window was not listened: one heartbeat heard is
+    no "1 frame in 60000 ms" rate mismatch (seen in the kernel guest with the link taken down
+    during a 60 s preflight); the read failure alone refuses the run."""
+    from dobhil.drives.preflight import Severity, run_preflight
+    from dobhil.drives.profile import load_profile
+    from dobhil.drives.registry import preflight_probe
+
+    profile = load_profile("odrive-0.6")
+    heartbeat = can.Message(arbitration_id=codec.arbitration_id(profile.node_id, CmdId.HEARTBEAT),
+                            data=bytes(8), is_extended_id=False, timestamp=time.time())
+    bus = _HeardOnceThenGone(heartbeat)
+    try:
+        report = run_preflight(bus, profile, period=1e-3, window=60.0, probe=preflight_probe(profile))
+    finally:
+        bus.shutdown()
+    mismatches = [f.text for f in report.findings if f.severity is Severity.MISMATCH]
+    assert mismatches == ["bus read failed while listening: CanOperationError: Error receiving: Network is down "
+                          "[Error Code 100]"], mismatches
+    assert report.stale_feedback
