@@ -506,8 +506,8 @@ def _serve(bus: PipeBus, status: Any, spec: EmulatorSpec) -> None:
     else:
         # feedback timing: the drive is the loop's clock and has a CPU of its own; where the
         # OS allows it (root, CAP_SYS_NICE), ahead of ordinary processes, so parallel jobs
-        # starve it less (issue 16: 47 of 50 campaign runs completed without, see
-        # docs/hardware.md); where not, at the loop's priority, as before
+        # starve it less (docs/hardware.md gives the campaign runs completed
+        # with and without it); where not, at the loop's priority, as before
         raise_priority()
     plant = Plant.from_config(spec.config)
     emulator = make_emulated_drive(bus, spec.profile, plant, latency=spec.latency,

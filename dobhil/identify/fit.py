@@ -20,7 +20,7 @@ What is fitted, and why so:
   interval is ``value +- z stderr``; where that leaves a bound the parameter cannot pass
   (a friction or delay near 0) it runs from the bound to the profile likelihood's high
   end (refits with the parameter held, :func:`_profile_high`: 1-6 refits, 0.1-1.6 s on a
-  60 s record, measured) -- asymmetric, as the issue asks. Levenberg-Marquardt runs
+  60 s record, measured) -- asymmetric, as a bounded parameter's likelihood is. Levenberg-Marquardt runs
   coarse to fine from the equation-error start, plus a second start (:func:`_staged`);
   a second end within the profile threshold of the best widens the interval to it
   (:func:`_rivals`);

@@ -29,8 +29,8 @@ Timing (:class:`Timing`):
   simulated time, runs as fast as the machine allows and exactly as the sampled analysis
   models it (the emulator applies each command ``design.input_delay`` after the sample,
   or, for a protocol that fixes the delay itself, at its own latch: a CiA 402 SYNC).
-  A drive whose feedback does not stream (``Drive.feedback_streams`` False: an MIT
-  motor, which answers each command at once) runs the host algorithm on simulated time
+  A drive whose feedback does not stream (``Drive.feedback_streams`` False: a drive
+  that answers each command at once) runs the host algorithm on simulated time
   instead: cycle at ``t0 + k T`` on the newest feedback, then poll until the next
   deadline (:meth:`ForceLoop._run_lockstep_requests`).
 
@@ -250,9 +250,10 @@ class TimingStats:
     its deadline (host), or the deviation of the feedback frame interval from the period
     (feedback); ``latency``: feedback frame received (the bus's stamp) -> command sent,
     per cycle also in the trace (0 in lockstep: simulated); ``sample_latency``: the
-    instant the drive sampled the feedback (``Feedback.sampled_at``, a CiA 402 SYNC as
+    instant the drive sampled the feedback (``Feedback.sampled_at``, e.g. a SYNC as
     the bus stamped it) -> the feedback received (the bus's stamp), None when no cycle
-    had both stamps (ODrive; lockstep, where it is not measured)."""
+    had both stamps (a drive that reports no sample instant; lockstep, where it is not
+    measured)."""
 
     period_error_p50: float
     period_error_p99: float
@@ -332,7 +333,7 @@ class _Halt(Exception):
 
 class _RateWatch:
     """Feedback that comes slower than ``loop.period`` (a drive still at its factory
-    rate, 10 ms on an ODrive) would run the controller on held samples or at the wrong
+    rate, e.g. 10 ms) would run the controller on held samples or at the wrong
     sample time without any error: ``RUN`` frame intervals in a row longer than ``SLOW``
     periods each stop the run. Intervals are taken from the frames' bus stamps (real
     time) or the drive clock (lockstep), per frame received (a burst after a late cycle

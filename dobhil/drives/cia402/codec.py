@@ -1,7 +1,7 @@
 """Pure codec of CiA 402 cyclic synchronous torque (CST) over CANopen: bytes and numbers,
 no I/O, no canopen.
 
-Facts (CiA 301 / CiA 402; /work/shared/reference/drive-protocols.md section 3; canopen's
+Facts (CiA 301 / CiA 402; drivers/README.md's CiA 402 section; canopen's
 ``profiles/p402.py`` tables agree, ``tests/drives/test_cia402_codec.py`` checks that):
 
 - COB-IDs: NMT 0x000 ``[command, node]``; SYNC 0x080; EMCY 0x080 + node; TPDO1..4

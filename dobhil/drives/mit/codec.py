@@ -5,7 +5,7 @@ direction, ...) are data: ``drivers/mit-models.yaml``, read by :mod:`dobhil.driv
 Facts (bgkatz/motorcontrol at 3586419, ``Core/Src/can.c`` and ``math_ops.c``, the firmware
 the CubeMars and Damiao motors derive from: the example code of CubeMars' AK Series Actuator
 Driver Manual V1.0.8 §5.3 repeats its formula and frames; damiao-motor 1.0.6;
-/work/shared/reference/drive-protocols.md section 2):
+drivers/mit-models.yaml cites each row's source):
 
 - Special frames, 8 bytes to the motor's id: ``FF x7`` then ``FC`` enter motor mode,
   ``FD`` exit, ``FE`` set zero, ``FB`` clear error (Damiao only).
