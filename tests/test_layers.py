@@ -161,11 +161,11 @@ IN_A_METHOD = "class A:\n    def f(self) -> None:\n        import dobhil.runtime
 
 @pytest.mark.parametrize(("module", "is_package", "source", "expected"), [
     # upward, however it is written
-    ("dobhil.emulator.protocol", False, FUNCTION_LEVEL,
-     ["dobhil.emulator.protocol:2: dobhil.emulator.protocol imports dobhil.runtime.realtime (dobhil.runtime: "
+    ("dobhil.emulator.plant", False, FUNCTION_LEVEL,
+     ["dobhil.emulator.plant:2: dobhil.emulator.plant imports dobhil.runtime.realtime (dobhil.runtime: "
       "a higher layer than dobhil.emulator)"]),
-    ("dobhil.emulator.protocol", False, "from ..runtime import realtime\n",
-     ["dobhil.emulator.protocol:1: dobhil.emulator.protocol imports dobhil.runtime (dobhil.runtime: "
+    ("dobhil.emulator.plant", False, "from ..runtime import realtime\n",
+     ["dobhil.emulator.plant:1: dobhil.emulator.plant imports dobhil.runtime (dobhil.runtime: "
       "a higher layer than dobhil.emulator)"]),
     ("dobhil.emulator", True, "from .. import runtime\n",
      ["dobhil.emulator:1: dobhil.emulator imports dobhil.runtime (dobhil.runtime: a higher layer than "

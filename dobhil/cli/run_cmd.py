@@ -289,7 +289,7 @@ def emulator_counts(emulator: Any) -> str:
     """The emulator's frame counts for its last line: received (and of them, those for another
     node: a shared bus), sent, and the sends its bus
     refused (ENOBUFS: its transmit queue full; counted, the emulated drive goes on), the
-    frames the host never got (dobhil/emulator/protocol.py, ``EmulatedDrive._send``)."""
+    frames the host never got (dobhil/drives/emulated.py, ``EmulatedDrive._send``)."""
     counts = (f"{emulator.frames_received} frames received ({emulator.frames_not_addressed} not addressed to "
               f"node {emulator.profile.node_id}), {emulator.frames_sent} sent")
     refused = int(emulator.send_errors)

@@ -11,7 +11,7 @@ timing is at least known. :func:`native_periodic` says which case a bus is:
 - SocketCAN: the kernel's broadcast manager (BCM) sends it, found by ``isinstance``
   (the interface class is python-can's; it only exists where python-can can import it);
 - our own buses that do it themselves say so with a class attribute
-  ``native_periodic = True``: :class:`~dobhil.emulator.protocol.LockstepBus` (simulated
+  ``native_periodic = True``: :class:`~dobhil.drives.emulated.LockstepBus` (simulated
   time) and the emulator process's :class:`~dobhil.emulator.pipe.PipeBus` (the child
   sends it, like a kernel would);
 - anything else, wrappers included, is False unless the wrapper forwards the attribute

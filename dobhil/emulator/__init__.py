@@ -1,6 +1,6 @@
 """Plant-plus-environment emulator: a real participant on a python-can bus.
 
-:mod:`dobhil.emulator.protocol` holds the emulated-drive base (bus, timing modes,
+:mod:`dobhil.drives.emulated` holds the emulated-drive base (bus, timing modes,
 cyclic frames) and the :class:`PlantLike` interface of the injected dynamics;
 one module per protocol (:mod:`dobhil.emulator.odrive`) keeps the drive's state machine.
 """

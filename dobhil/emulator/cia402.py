@@ -90,7 +90,7 @@ from dobhil.drives.cia402.eds import load_od
 from dobhil.drives.cia402.link import quiet_canopen
 from dobhil.drives.cia402.rules import CIA402_RULES
 from dobhil.drives.profile import DriveProfile
-from dobhil.emulator.protocol import EmulatedDrive, PlantLike
+from dobhil.drives.emulated import EmulatedDrive, PlantLike
 from dobhil.errors import ConfigError
 
 __all__ = ["Command", "EmcyCode", "EmulatedCiA402", "PowerState", "TRANSITIONS", "decode_command",

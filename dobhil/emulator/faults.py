@@ -19,7 +19,7 @@ the wrapper is as native as what it wraps (:func:`dobhil.drives.periodic.native_
 send faults do not see them, receive faults see their echo.
 
 Time: faults that trigger on time read the wrapper's clock, the inner bus's
-``clock()`` if it has one (a :class:`~dobhil.emulator.protocol.LockstepBus`: simulated
+``clock()`` if it has one (a :class:`~dobhil.drives.emulated.LockstepBus`: simulated
 seconds) or ``time.monotonic``; the clock starts at 0 when the wrapper is made.
 Randomness is seeded: a faulted run is reproducible in lockstep.
 

@@ -80,7 +80,7 @@ from dobhil.drives.mit.codec import (Command, MitModel, ReplyLayout, Special, fl
                                      pack_reply, unpack_command)
 from dobhil.drives.mit.rules import model_of
 from dobhil.drives.profile import DriveProfile
-from dobhil.emulator.protocol import EmulatedDrive, PlantLike
+from dobhil.drives.emulated import EmulatedDrive, PlantLike
 from dobhil.errors import CodecError
 
 __all__ = ["EmulatedMit", "Fault", "Thermal", "model_of"]

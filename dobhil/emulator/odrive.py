@@ -66,7 +66,7 @@ from dobhil.drives.odrive import codec
 from dobhil.drives.odrive.codec import (AxisState, CmdId, ControlMode, Firmware, InputMode,
                                         ProcedureResult06)
 from dobhil.drives.profile import DriveProfile
-from dobhil.emulator.protocol import EmulatedDrive, PlantLike
+from dobhil.drives.emulated import EmulatedDrive, PlantLike
 from dobhil.errors import CodecError, ConfigError
 
 __all__ = ["EmulatedODrive"]

@@ -4,7 +4,7 @@ A drive has a CPU of its own; an emulator thread in the host's interpreter does 
 needs the interpreter lock the control loop holds while it spins around each expected
 frame, and a loop thread preempted while holding the lock stops the drive as well (on a
 busy 2-core machine: feedback pauses of 14-88 ms, runs stopped on ``feedback_timeout``).
-:class:`EmulatorProcess` runs the same :class:`~dobhil.emulator.protocol.EmulatedDrive`
+:class:`EmulatorProcess` runs the same :class:`~dobhil.drives.emulated.EmulatedDrive`
 and the same :class:`~dobhil.emulator.plant.Plant` in a child process instead:
 
 - frames cross on a :class:`~dobhil.emulator.pipe.PipeBus` (a local socket pair): the
@@ -65,7 +65,7 @@ import can
 from dobhil.config.schema import Config
 from dobhil.drives.profile import DriveProfile
 from dobhil.emulator.pipe import PipeBus, RecordKind, socket_pair
-from dobhil.emulator.protocol import tick_period
+from dobhil.drives.emulated import tick_period
 from dobhil.errors import BusError
 
 __all__ = ["EmulatorProcess", "EmulatorSpec", "PlantView", "Slot"]

@@ -17,7 +17,7 @@ import can
 
 from dobhil.drives.profile import DriveProfile
 from dobhil.drives.registry import EMULATOR_SUFFIX, load_object, plugin_entry_points
-from dobhil.emulator.protocol import EmulatedDrive, PlantLike
+from dobhil.drives.emulated import EmulatedDrive, PlantLike
 from dobhil.errors import ConfigError
 
 __all__ = ["EMULATOR_CLASSES", "emulated_protocols", "emulator_class", "make_emulated_drive",

@@ -24,7 +24,7 @@ Timing (:class:`Timing`):
   clock (sleep alone wakes up tens to hundreds of microseconds late). A cycle that ends
   after the next deadline is an overrun: counted, the missed deadlines skipped (as
   ros2_control does), never replayed in a burst.
-- **lockstep**: the bus is a :class:`dobhil.emulator.protocol.LockstepBus`; waiting for
+- **lockstep**: the bus is a :class:`dobhil.drives.emulated.LockstepBus`; waiting for
   feedback advances the emulator by one period, so the loop is feedback-synchronous in
   simulated time, runs as fast as the machine allows and exactly as the sampled analysis
   models it (the emulator applies each command ``design.input_delay`` after the sample,

@@ -6,7 +6,7 @@ the plant emulator runs in a process of its own
 (:class:`~dobhil.emulator.process.EmulatorProcess`: the loop cannot starve it), and every
 frame is copied to a private python-can ``virtual`` channel (``bus_spec``) that in-process
 observers may watch; with ``lockstep`` the emulator runs in this process behind a
-:class:`~dobhil.emulator.protocol.LockstepBus` and the whole run is deterministic.
+:class:`~dobhil.drives.emulated.LockstepBus` and the whole run is deterministic.
 """
 
 from __future__ import annotations
@@ -27,7 +27,7 @@ from dobhil.drives.registry import drive_class, make_drive, preflight_probe
 from dobhil.drives.timing import effective_config
 from dobhil.emulator.plant import Plant
 from dobhil.emulator.process import EmulatorProcess, EmulatorSpec, PlantView
-from dobhil.emulator.protocol import EmulatedDrive, LockstepBus
+from dobhil.drives.emulated import EmulatedDrive, LockstepBus
 from dobhil.emulator.registry import make_emulated_drive, private_virtual_channel
 from dobhil.errors import ConfigError, PreflightError
 from dobhil.runtime.buses import BusSpec, open_bus, resolve_bus, shutdown_bus

@@ -19,7 +19,7 @@ from dobhil.drives.cia402.drive import CiA402Drive
 from dobhil.drives.profile import DriveProfile, load_profile, profile_from_mapping
 from dobhil.emulator.cia402 import EmulatedCiA402
 from dobhil.emulator.plant import Plant
-from dobhil.emulator.protocol import LockstepBus
+from dobhil.drives.emulated import LockstepBus
 from dobhil.emulator.registry import private_virtual_channel
 from dobhil.errors import ConfigError, DriveError, DriveFaultError
 

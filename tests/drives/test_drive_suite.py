@@ -64,7 +64,7 @@ from dobhil.drives.odrive import codec
 from dobhil.drives.odrive.codec import AxisState, CmdId, Firmware
 from dobhil.emulator.plant import Plant
 from dobhil.emulator.faults import Direction, Fault, InjectFrame, LoseSent, SilenceAfter, faulty
-from dobhil.emulator.protocol import EmulatedDrive, LockstepBus
+from dobhil.drives.emulated import EmulatedDrive, LockstepBus
 from dobhil.emulator.registry import make_emulated_drive
 from dobhil.runtime.loop import RunResult, StopRequest
 from dobhil.runtime.session import RunSession, summary

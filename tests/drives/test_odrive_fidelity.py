@@ -23,7 +23,7 @@ from dobhil.drives import load_profile, make_drive
 from dobhil.drives.odrive import codec
 from dobhil.drives.odrive.codec import AxisState, CmdId, ControlMode, Firmware, InputMode
 from dobhil.emulator.odrive import EMULATED_VERSION_06, EmulatedODrive
-from dobhil.emulator.protocol import LockstepBus
+from dobhil.drives.emulated import LockstepBus
 from dobhil.errors import DriveTimeoutError
 
 from .test_drive_emulated import FakePlant

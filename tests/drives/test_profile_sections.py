@@ -24,7 +24,7 @@ from dobhil.drives import load_profile, make_drive
 from dobhil.drives.odrive.drive import ODriveDrive
 from dobhil.drives.profile import RENAMED_KEYS, profile_from_mapping
 from dobhil.drives.registry import ENTRY_POINT_GROUP, drive_class, protocols
-from dobhil.emulator.protocol import EmulatedDrive
+from dobhil.drives.emulated import EmulatedDrive
 from dobhil.emulator.registry import emulated_protocols, emulator_class
 from dobhil.errors import ConfigError
 
@@ -37,7 +37,7 @@ PLUGIN_MODULE = '''
 import can
 from dobhil.drives.base import Drive
 from dobhil.drives.profile import ProtocolRules, Rule
-from dobhil.emulator.protocol import EmulatedDrive
+from dobhil.drives.emulated import EmulatedDrive
 
 
 class AcmeDrive(Drive):

@@ -11,7 +11,7 @@ import can
 from dobhil.drives.profile import DriveProfile
 from dobhil.emulator.cia402 import EmulatedCiA402
 from dobhil.emulator.plant import Plant
-from dobhil.emulator.protocol import LockstepBus, PlantLike
+from dobhil.drives.emulated import LockstepBus, PlantLike
 from dobhil.emulator.registry import private_virtual_channel
 
 NODE = 5

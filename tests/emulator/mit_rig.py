@@ -10,7 +10,7 @@ import can
 from dobhil.drives.profile import DriveProfile
 from dobhil.emulator.mit import EmulatedMit
 from dobhil.emulator.plant import Plant
-from dobhil.emulator.protocol import LockstepBus, PlantLike
+from dobhil.drives.emulated import LockstepBus, PlantLike
 from dobhil.emulator.registry import private_virtual_channel
 
 #: (vendor, model, firmware) rows of drivers/mit-models.yaml the tests use

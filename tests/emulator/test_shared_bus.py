@@ -15,7 +15,7 @@ from dobhil.drives.odrive import codec
 from dobhil.drives.odrive.codec import AxisState, ControlMode, InputMode
 from dobhil.emulator.odrive import EmulatedODrive
 from dobhil.emulator.plant import Plant
-from dobhil.emulator.protocol import LockstepBus
+from dobhil.drives.emulated import LockstepBus
 from dobhil.emulator.registry import private_virtual_channel
 
 

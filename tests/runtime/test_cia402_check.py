@@ -88,7 +88,7 @@ def test_the_check_changes_nothing_on_the_emulated_node_in_lockstep() -> None:
     from dobhil.drives.registry import preflight_probe
     from dobhil.emulator.cia402 import EmulatedCiA402
     from dobhil.emulator.plant import Plant
-    from dobhil.emulator.protocol import LockstepBus
+    from dobhil.drives.emulated import LockstepBus
     from dobhil.emulator.registry import private_virtual_channel
 
     profile = load_profile("cia402-emulated")

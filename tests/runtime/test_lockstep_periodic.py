@@ -10,7 +10,7 @@ import pytest
 
 from dobhil.drives.periodic import native_periodic
 from dobhil.drives.profile import load_profile
-from dobhil.emulator.protocol import EmulatedDrive, LockstepBus
+from dobhil.drives.emulated import EmulatedDrive, LockstepBus
 
 DT = 1e-3
 SYNC, ANSWER, CYCLIC = 0x80, 0x185, 0x705

@@ -23,7 +23,7 @@ from dobhil.drives.mit.codec import Command, Special, pack_command, special_fram
 from dobhil.drives.profile import DriveProfile
 from dobhil.emulator.mit import EmulatedMit, model_of
 from dobhil.emulator.plant import Plant
-from dobhil.emulator.protocol import LockstepBus
+from dobhil.drives.emulated import LockstepBus
 from dobhil.emulator.registry import private_virtual_channel
 from dobhil.runtime.controller import ControlOutput
 from dobhil.runtime.loop import ForceLoop, Timing

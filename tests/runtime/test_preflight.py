@@ -28,7 +28,7 @@ from dobhil.drives.registry import preflight_probe
 from dobhil.drives.preflight import PreflightReport, Rate, Severity, run_preflight
 from dobhil.emulator.odrive import EmulatedODrive
 from dobhil.emulator.plant import Plant
-from dobhil.emulator.protocol import LockstepBus
+from dobhil.drives.emulated import LockstepBus
 from dobhil.errors import PreflightError
 from dobhil.runtime.session import RunSession
 

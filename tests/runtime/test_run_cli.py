@@ -121,7 +121,7 @@ def test_bus_error_is_a_stop_with_the_loud_line(monkeypatch: pytest.MonkeyPatch,
 
     import can
 
-    from dobhil.emulator.protocol import LockstepBus
+    from dobhil.drives.emulated import LockstepBus
     sent = [0]
     original = LockstepBus.send
 

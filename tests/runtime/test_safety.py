@@ -32,7 +32,7 @@ from dobhil.emulator.faults import (CorruptFeedback, DropFrames, Fault, InjectFr
                                    SilenceAfter, faulty)
 from dobhil.emulator.odrive import EmulatedODrive
 from dobhil.emulator.plant import Plant
-from dobhil.emulator.protocol import LockstepBus
+from dobhil.drives.emulated import LockstepBus
 from dobhil.runtime.controller import ControlOutput
 from dobhil.runtime.loop import RunResult, StopRequest
 from dobhil.runtime.session import RunSession, summary

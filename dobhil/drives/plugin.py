@@ -1,0 +1,112 @@
+"""A drive protocol as one object: everything dobhil knows of a protocol, behind one base class.
+
+As python-can has one ``BusABC`` subclass per interface, found by one entry point of the
+group ``can.interface``, dobhil has one :class:`DriveProtocol` subclass per protocol, found
+by one entry point of the group ``dobhil.drives`` (name: the protocol, the key of its
+profiles' ``protocol:``; value: ``module:Class``). The built-in protocols register through the
+same entry points (``pyproject.toml``) and are also listed in the registry
+(:mod:`dobhil.drives.registry`) so a source tree that was never installed works.
+
+A protocol lives in one subpackage, ``dobhil/drives/<name>/`` (codec, drive, emulated drive,
+preflight, profile rules, this object in ``plugin.py``); generic code (runtime, analysis,
+recording, the emulator's process, cli, tune, campaign, identify) only ever holds a
+:class:`DriveProtocol` and calls its hooks, so a new protocol is a new subpackage plus its
+entry point, not an edit everywhere.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from types import MappingProxyType
+from typing import TYPE_CHECKING, Any, ClassVar
+
+from dobhil.drives.base import Drive
+from dobhil.drives.profile import DriveProfile, ProtocolRules
+
+if TYPE_CHECKING:
+    from dobhil.drives.emulated import EmulatedDrive
+    from dobhil.drives.preflight import PreflightProbe
+
+__all__ = ["CodecQuantisation", "DriveProtocol", "FeedbackField"]
+
+_EMPTY: Mapping[str, Any] = MappingProxyType({})
+
+
+@dataclass(frozen=True)
+class CodecQuantisation:
+    """What a protocol's codec does to the loop's signals, for the analysis
+    (:mod:`dobhil.analysis.quantisation`): one step per channel in SI units, the sense in
+    which the codec truncates, and the torque a zero command decodes to."""
+
+    position: float            # [rad] one code of the position the host reads
+    velocity: float            # [rad/s] one code of the velocity the host reads
+    torque: float              # [N m] one code of the torque the drive applies
+    direction: int = 1         # +1: the decoded value lies in (true - step, true]; -1: reversed axis
+    truncates: bool = True     # False: the codec rounds to nearest (error in [-step/2, step/2))
+    zero_torque: float = 0.0   # [N m] what a zero command applies (a truncating codec's bias)
+    source: Mapping[str, Any] = field(default=_EMPTY)   # what the steps come from, for the report
+
+
+@dataclass(frozen=True)
+class FeedbackField:
+    """Where a feedback value sits in the protocol's motion frame, for fault injection
+    (:mod:`dobhil.emulator.faults`): the frame's id, the value's byte offset and its
+    ``struct`` format (little-endian float, say ``"<f"``)."""
+
+    arbitration_id: int
+    offset: int
+    fmt: str
+
+
+class DriveProtocol(ABC):
+    """One drive protocol. Subclasses set :attr:`name` and implement the hooks; the defaults
+    are what a protocol without that feature gives (no emulator, no quantisation, ...)."""
+
+    #: the key of ``protocol:`` in a profile and the entry point's name
+    name: ClassVar[str] = ""
+    #: one line for humans: "ODrive CANSimple", "CANopen CiA 402", ...
+    title: ClassVar[str] = ""
+    #: True when the protocol's frames are CAN FD (the bus must be opened with ``fd=True``)
+    fd: ClassVar[bool] = False
+
+    @property
+    @abstractmethod
+    def drive_class(self) -> type[Drive]:
+        """The :class:`~dobhil.drives.base.Drive` subclass that speaks the protocol."""
+
+    @property
+    def emulator_class(self) -> type[EmulatedDrive] | None:
+        """The emulated drive (:class:`~dobhil.drives.emulated.EmulatedDrive`), or None."""
+        return None
+
+    @property
+    def rules(self) -> ProtocolRules:
+        """The profile section rules, given to the one profile validator."""
+        return self.drive_class.profile_rules
+
+    def preflight_probe(self, profile: DriveProfile) -> PreflightProbe | None:
+        """What ``dobhil check`` reads of a drive of this protocol (None: nothing yet)."""
+        return self.drive_class.preflight_probe(profile)
+
+    def state_name(self, code: int) -> str:
+        """The drive's own state code (``DriveStatus.state``, the log's ``protocol_state``)
+        in the protocol's words; ``str(code)`` when the protocol names none."""
+        return str(code)
+
+    def error_text(self, code: int) -> str:
+        """The drive's own error code (the log's ``protocol_error``) in the protocol's words."""
+        return f"0x{code:X}" if code else "none"
+
+    def quantisation(self, profile: DriveProfile) -> CodecQuantisation | None:
+        """What the codec of ``profile``'s drive quantises (None: floats, nothing to model)."""
+        return None
+
+    def feedback_field(self, profile: DriveProfile, name: str) -> FeedbackField | None:
+        """Where ``name`` (``"position"`` or ``"velocity"``) is in the motion frame of
+        ``profile``'s drive (None: the protocol offers no such injection)."""
+        return None
+
+    def __repr__(self) -> str:
+        return f"<{type(self).__name__} {self.name!r}>"
