@@ -42,7 +42,7 @@ def module_name(path: Path) -> str:
 MODULES = {module_name(p): p for p in PACKAGE.rglob("*.py")}
 
 
-#: A module named in a string: ``dobhil.emulator.odrive`` (or an entry point, ``module:name``).
+#: A module named in a string: ``dobhil.drives.odrive.emulator`` (or an entry point, ``module:name``).
 MODULE_NAME = re.compile(r"dobhil(?:\.\w+)+(?::\w+)?")
 
 
@@ -188,7 +188,7 @@ IN_A_METHOD = "class A:\n    def f(self) -> None:\n        import dobhil.runtime
      "from dobhil import __version__\nfrom dobhil.errors import RecorderError\nimport os\n", []),
     ("dobhil.cli.main", False, "def f() -> None:\n    from dobhil.runtime.session import RunSession\n", []),
     ("dobhil.runtime.session", False, "from dobhil.realtime import lower_priority\n", []),
-    ("dobhil.emulator.registry", False, "CLASSES = {'odrive': ('dobhil.emulator.odrive', 'EmulatedODrive')}\n"
+    ("dobhil.emulator.registry", False, "CLASSES = {'odrive': ('dobhil.drives.odrive.emulator', 'EmulatedODrive')}\n"
      "DOC = 'like :mod:`dobhil.runtime.loop`'\n", []),
     # a module of a package no layer names
     ("dobhil.newpackage.thing", False, "", ["dobhil.newpackage.thing: module dobhil.newpackage.thing is in no "

@@ -2,7 +2,7 @@
 
 :class:`EmulatedDrive` owns its bus, answers frames addressed to its node and keeps the
 protocol state; the dynamics are injected as a :class:`PlantLike`. Each protocol
-subclass (``dobhil.emulator.odrive``) fills in the hooks :meth:`EmulatedDrive._on_frame`,
+subclass (``dobhil.drives.odrive.emulator``) fills in the hooks :meth:`EmulatedDrive._on_frame`,
 :meth:`EmulatedDrive._on_time`, :meth:`EmulatedDrive._plant_torque` and
 :meth:`EmulatedDrive._cyclic_frames`.
 

@@ -46,7 +46,7 @@ class CodecQuantisation:
     direction: int = 1         # +1: the decoded value lies in (true - step, true]; -1: reversed axis
     truncates: bool = True     # False: the codec rounds to nearest (error in [-step/2, step/2))
     zero_torque: float = 0.0   # [N m] what a zero command applies (a truncating codec's bias)
-    source: Mapping[str, Any] = field(default=_EMPTY)   # what the steps come from, for the report
+    source: Mapping[str, Any] = field(default_factory=lambda: _EMPTY)   # what the steps come from, for the report
 
 
 @dataclass(frozen=True)
@@ -90,12 +90,12 @@ class DriveProtocol(ABC):
         """What ``dobhil check`` reads of a drive of this protocol (None: nothing yet)."""
         return self.drive_class.preflight_probe(profile)
 
-    def state_name(self, code: int) -> str:
+    def state_name(self, profile: DriveProfile, code: int) -> str:
         """The drive's own state code (``DriveStatus.state``, the log's ``protocol_state``)
-        in the protocol's words; ``str(code)`` when the protocol names none."""
+        in the protocol's words for ``profile``'s drive; ``str(code)`` when it names none."""
         return str(code)
 
-    def error_text(self, code: int) -> str:
+    def error_text(self, profile: DriveProfile, code: int) -> str:
         """The drive's own error code (the log's ``protocol_error``) in the protocol's words."""
         return f"0x{code:X}" if code else "none"
 

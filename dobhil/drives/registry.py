@@ -6,8 +6,8 @@ entry points), a protocol is found in two places:
 - :data:`DRIVE_CLASSES`, the built-in table, so a source tree that was never installed
   (no entry-point metadata) still knows its own protocols;
 - the entry-point group ``dobhil.drives`` (:data:`ENTRY_POINT_GROUP`) of any installed
-  distribution: name ``<protocol>`` -> its :class:`~dobhil.drives.base.Drive` subclass
-  (names ending in ``.emulator`` are emulated drives: :mod:`dobhil.emulator.registry`).
+  distribution: name ``<protocol>`` -> its :class:`~dobhil.drives.plugin.DriveProtocol`
+  subclass, which names the drive class, the emulated drive and the rest.
   A protocol can live in another package without editing dobhil.
 
 A built-in protocol wins over an entry point of the same name. Classes are imported
@@ -25,6 +25,7 @@ from typing import TYPE_CHECKING, Any
 import can
 
 from dobhil.drives.base import Drive
+from dobhil.drives.plugin import DriveProtocol
 from dobhil.drives.profile import DriveProfile, ProtocolRules, use_protocol_lookup
 from dobhil.errors import ConfigError
 
@@ -32,8 +33,7 @@ if TYPE_CHECKING:
     from dobhil.drives.preflight import PreflightProbe
 
 __all__ = [
-    "DRIVE_CLASSES",
-    "EMULATOR_SUFFIX",
+    "PROTOCOL_CLASSES",
     "ENTRY_POINT_GROUP",
     "drive_class",
     "load_object",
@@ -41,6 +41,7 @@ __all__ = [
     "plugin_entry_points",
     "preflight_probe",
     "profile_rules",
+    "protocol",
     "protocols",
 ]
 
@@ -50,14 +51,12 @@ __all__ = [
 #: string that spells a dobhil module as an import of it, and this package's ``__init__``
 #: imports this module (a circle that is not one).
 ENTRY_POINT_GROUP = __name__.rpartition(".")[0]
-#: entry-point names ending in this name an emulated drive, not a drive class
-EMULATOR_SUFFIX = ".emulator"
 
-#: built-in protocols: name -> (module, class name)
-DRIVE_CLASSES: Mapping[str, tuple[str, str]] = MappingProxyType({
-    "odrive": ("dobhil.drives.odrive.drive", "ODriveDrive"),
-    "cia402": ("dobhil.drives.cia402.drive", "CiA402Drive"),
-    "mit": ("dobhil.drives.mit.drive", "MitDrive"),
+#: built-in protocols: name -> (module, DriveProtocol subclass name)
+PROTOCOL_CLASSES: Mapping[str, tuple[str, str]] = MappingProxyType({
+    "odrive": ("dobhil.drives.odrive.plugin", "ODriveProtocol"),
+    "cia402": ("dobhil.drives.cia402.plugin", "CiA402Protocol"),
+    "mit": ("dobhil.drives.mit.plugin", "MitProtocol"),
 })
 
 
@@ -93,29 +92,43 @@ def load_object(name: str, builtin: tuple[str, str] | None, ep: EntryPoint | Non
 
 def protocols() -> tuple[str, ...]:
     """Every protocol a profile may name: built-in and entry points, sorted."""
-    names = set(DRIVE_CLASSES)
-    names.update(n for n in plugin_entry_points() if not n.endswith(EMULATOR_SUFFIX))
+    names = set(PROTOCOL_CLASSES)
+    names.update(plugin_entry_points())
     return tuple(sorted(names))
 
 
-def drive_class(protocol: str) -> type[Drive]:
-    """The Drive subclass of ``protocol``; ConfigError (one line) if unknown or broken."""
-    builtin = DRIVE_CLASSES.get(protocol)
-    ep = None if builtin is not None or protocol.endswith(EMULATOR_SUFFIX) else \
-        plugin_entry_points().get(protocol)
+_INSTANCES: dict[str, DriveProtocol] = {}
+
+
+def protocol(name: str) -> DriveProtocol:
+    """The :class:`DriveProtocol` of ``name`` (one instance per name); ConfigError (one
+    line) if unknown or broken."""
+    if name in _INSTANCES:
+        return _INSTANCES[name]
+    builtin = PROTOCOL_CLASSES.get(name)
+    ep = None if builtin is not None else plugin_entry_points().get(name)
     if builtin is None and ep is None:
-        raise ConfigError(f"protocol: expected one of {list(protocols())}, got {protocol!r}")
-    cls = load_object(protocol, builtin, ep)
-    if not (isinstance(cls, type) and issubclass(cls, Drive)):
-        raise ConfigError(f"protocol {protocol!r}: {cls!r} is not a dobhil Drive class")
-    return cls
+        raise ConfigError(f"protocol: expected one of {list(protocols())}, got {name!r}")
+    cls = load_object(name, builtin, ep)
+    if not (isinstance(cls, type) and issubclass(cls, DriveProtocol)):
+        raise ConfigError(f"protocol {name!r}: {cls!r} is not a dobhil DriveProtocol class")
+    made = cls()
+    drive = made.drive_class
+    if not (isinstance(drive, type) and issubclass(drive, Drive)):
+        raise ConfigError(f"protocol {name!r}: {drive!r} is not a dobhil Drive class")
+    return _INSTANCES.setdefault(name, made)
 
 
-def profile_rules(protocol: str) -> ProtocolRules:
-    """How ``protocol`` validates its profiles (its drive class's ``profile_rules``)."""
-    rules = drive_class(protocol).profile_rules
+def drive_class(name: str) -> type[Drive]:
+    """The Drive subclass of protocol ``name``; ConfigError (one line) if unknown or broken."""
+    return protocol(name).drive_class
+
+
+def profile_rules(name: str) -> ProtocolRules:
+    """How protocol ``name`` validates its profiles (``DriveProtocol.rules``)."""
+    rules = protocol(name).rules
     if not isinstance(rules, ProtocolRules):
-        raise ConfigError(f"protocol {protocol!r}: profile_rules is not a ProtocolRules")
+        raise ConfigError(f"protocol {name!r}: profile_rules is not a ProtocolRules")
     return rules
 
 
@@ -129,7 +142,7 @@ def make_drive(bus: can.BusABC, profile: DriveProfile, *, reset_faults: bool = F
 
 def preflight_probe(profile: DriveProfile) -> PreflightProbe | None:
     """The preflight part of ``profile.protocol`` (None: that protocol has none yet)."""
-    return drive_class(profile.protocol).preflight_probe(profile)
+    return protocol(profile.protocol).preflight_probe(profile)
 
 
 # profile validation asks this registry for a protocol's rules (see use_protocol_lookup)

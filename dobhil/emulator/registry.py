@@ -1,53 +1,41 @@
-"""Emulated drives by protocol name: built-in ones and entry points (like
-:mod:`dobhil.drives.registry`).
-
-An emulated drive is found in :data:`EMULATOR_CLASSES` (built in, so an uninstalled source
-tree works) or as an entry point ``<protocol>.emulator`` of the group ``dobhil.drives``
-of any installed distribution; a built-in one wins over an entry point of the same name.
-"""
+"""Emulated drives by protocol name: each protocol's ``DriveProtocol.emulator_class``
+(:mod:`dobhil.drives.registry`)."""
 
 from __future__ import annotations
 
 import uuid
-from collections.abc import Mapping
-from types import MappingProxyType
 from typing import Any
 
 import can
 
-from dobhil.drives.profile import DriveProfile
-from dobhil.drives.registry import EMULATOR_SUFFIX, load_object, plugin_entry_points
 from dobhil.drives.emulated import EmulatedDrive, PlantLike
+from dobhil.drives.profile import DriveProfile
+from dobhil.drives.registry import protocol, protocols
 from dobhil.errors import ConfigError
 
-__all__ = ["EMULATOR_CLASSES", "emulated_protocols", "emulator_class", "make_emulated_drive",
-           "private_virtual_channel"]
-
-#: built-in emulated drives: protocol name -> (module, class name)
-EMULATOR_CLASSES: Mapping[str, tuple[str, str]] = MappingProxyType({
-    "odrive": ("dobhil.emulator.odrive", "EmulatedODrive"),
-    "cia402": ("dobhil.emulator.cia402", "EmulatedCiA402"),
-    "mit": ("dobhil.emulator.mit", "EmulatedMit"),
-})
+__all__ = ["emulated_protocols", "emulator_class", "make_emulated_drive", "private_virtual_channel"]
 
 
 def emulated_protocols() -> tuple[str, ...]:
-    """Every protocol with an emulated drive: built-in and entry points, sorted."""
-    names = set(EMULATOR_CLASSES)
-    names.update(n.removesuffix(EMULATOR_SUFFIX) for n in plugin_entry_points() if n.endswith(EMULATOR_SUFFIX))
-    return tuple(sorted(names))
+    """Every protocol with an emulated drive (``DriveProtocol.emulator_class``), sorted; a
+    protocol that fails to load is left out here (naming it fails with its own line)."""
+    out = []
+    for name in protocols():
+        try:
+            if protocol(name).emulator_class is not None:
+                out.append(name)
+        except ConfigError:
+            continue
+    return tuple(out)
 
 
-def emulator_class(protocol: str) -> type[EmulatedDrive]:
-    """The EmulatedDrive subclass of ``protocol``; ConfigError (one line) if none or broken."""
-    builtin = EMULATOR_CLASSES.get(protocol)
-    ep = None if builtin is not None else plugin_entry_points().get(protocol + EMULATOR_SUFFIX)
-    if builtin is None and ep is None:
-        raise ConfigError(f"no emulator for protocol {protocol!r}; "
-                          f"emulated: {', '.join(emulated_protocols())}")
-    cls = load_object(protocol + EMULATOR_SUFFIX, builtin, ep)
+def emulator_class(name: str) -> type[EmulatedDrive]:
+    """The EmulatedDrive subclass of protocol ``name``; ConfigError (one line) if none or broken."""
+    cls = protocol(name).emulator_class
+    if cls is None:
+        raise ConfigError(f"no emulator for protocol {name!r}; emulated: {', '.join(emulated_protocols())}")
     if not (isinstance(cls, type) and issubclass(cls, EmulatedDrive)):
-        raise ConfigError(f"emulator of protocol {protocol!r} is not a dobhil EmulatedDrive class")
+        raise ConfigError(f"emulator of protocol {name!r} is not a dobhil EmulatedDrive class")
     return cls
 
 

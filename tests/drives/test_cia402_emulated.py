@@ -1,4 +1,4 @@
-"""CiA402Drive against the emulated CiA 402 node (dobhil.emulator.cia402) in lockstep, and the
+"""CiA402Drive against the emulated CiA 402 node (dobhil.drives.cia402.emulator) in lockstep, and the
 ``dobhil run --emulate --lockstep`` path: enable, closed loop, safe stop, faults, bad input."""
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ from dobhil.cli.main import main
 from dobhil.drives.base import Confirmation, DriveState
 from dobhil.drives.cia402.drive import CiA402Drive
 from dobhil.drives.profile import DriveProfile, load_profile, profile_from_mapping
-from dobhil.emulator.cia402 import EmulatedCiA402
+from dobhil.drives.cia402.emulator import EmulatedCiA402
 from dobhil.emulator.plant import Plant
 from dobhil.drives.emulated import LockstepBus
 from dobhil.emulator.registry import private_virtual_channel

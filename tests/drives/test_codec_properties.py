@@ -22,7 +22,7 @@ from hypothesis import strategies as st
 from dobhil.drives import load_profile, make_drive
 from dobhil.drives.odrive import codec
 from dobhil.drives.odrive.codec import Firmware, Flags, MessageSpec, Scalar
-from dobhil.emulator.odrive import EmulatedODrive
+from dobhil.drives.odrive.emulator import EmulatedODrive
 from dobhil.errors import CodecError
 
 from .test_drive_emulated import FakePlant

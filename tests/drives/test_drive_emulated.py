@@ -24,7 +24,7 @@ from dobhil.drives.odrive import codec
 from dobhil.drives.odrive.codec import AxisState, CmdId, ControlMode, InputMode
 from dobhil.drives.profile import profile_from_mapping
 from dobhil.drives.registry import drive_class
-from dobhil.emulator.odrive import EmulatedODrive
+from dobhil.drives.odrive.emulator import EmulatedODrive
 from dobhil.drives.emulated import LockstepBus, PlantLike
 from dobhil.errors import ConfigError, DriveError, DriveFaultError, DriveTimeoutError
 

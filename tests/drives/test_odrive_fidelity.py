@@ -22,7 +22,7 @@ import pytest
 from dobhil.drives import load_profile, make_drive
 from dobhil.drives.odrive import codec
 from dobhil.drives.odrive.codec import AxisState, CmdId, ControlMode, Firmware, InputMode
-from dobhil.emulator.odrive import EMULATED_VERSION_06, EmulatedODrive
+from dobhil.drives.odrive.emulator import EMULATED_VERSION_06, EmulatedODrive
 from dobhil.drives.emulated import LockstepBus
 from dobhil.errors import DriveTimeoutError
 

@@ -38,6 +38,7 @@ import can
 from dobhil.drives.base import Drive
 from dobhil.drives.profile import ProtocolRules, Rule
 from dobhil.drives.emulated import EmulatedDrive
+from dobhil.drives.plugin import DriveProtocol
 
 
 class AcmeDrive(Drive):
@@ -75,6 +76,19 @@ class AcmeEmulator(EmulatedDrive):
 
     def _cyclic_frames(self):
         return ()
+
+
+class AcmeProtocol(DriveProtocol):
+    name = "acmebus"
+    title = "Acme bus"
+
+    @property
+    def drive_class(self):
+        return AcmeDrive
+
+    @property
+    def emulator_class(self):
+        return AcmeEmulator
 '''
 
 
@@ -91,10 +105,9 @@ def install_plugin(root: Path, entry_points: str, module: str = "acme_dobhil_plu
 
 @pytest.fixture
 def plugin(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Iterator[Path]:
-    install_plugin(tmp_path, "acmebus = acme_dobhil_plugin:AcmeDrive\n"
-                             "acmebus.emulator = acme_dobhil_plugin:AcmeEmulator\n"
+    install_plugin(tmp_path, "acmebus = acme_dobhil_plugin:AcmeProtocol\n"
                              "broken = acme_no_such_module:Nope\n"
-                             "odrive = acme_dobhil_plugin:AcmeDrive\n")
+                             "odrive = acme_dobhil_plugin:AcmeProtocol\n")
     monkeypatch.syspath_prepend(str(tmp_path))
     yield tmp_path
     sys.modules.pop("acme_dobhil_plugin", None)

@@ -9,7 +9,7 @@ from typing import Any
 import can
 
 from dobhil.drives.profile import DriveProfile
-from dobhil.emulator.cia402 import EmulatedCiA402
+from dobhil.drives.cia402.emulator import EmulatedCiA402
 from dobhil.emulator.plant import Plant
 from dobhil.drives.emulated import LockstepBus, PlantLike
 from dobhil.emulator.registry import private_virtual_channel

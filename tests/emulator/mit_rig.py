@@ -8,7 +8,7 @@ from typing import Any
 import can
 
 from dobhil.drives.profile import DriveProfile
-from dobhil.emulator.mit import EmulatedMit
+from dobhil.drives.mit.emulator import EmulatedMit
 from dobhil.emulator.plant import Plant
 from dobhil.drives.emulated import LockstepBus, PlantLike
 from dobhil.emulator.registry import private_virtual_channel

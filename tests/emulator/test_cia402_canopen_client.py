@@ -14,7 +14,7 @@ import canopen
 import pytest
 
 from dobhil.data import drivers_dir
-from dobhil.emulator.cia402 import EmulatedCiA402, PowerState
+from dobhil.drives.cia402.emulator import EmulatedCiA402, PowerState
 from dobhil.emulator.plant import Plant
 from dobhil.emulator.registry import private_virtual_channel
 

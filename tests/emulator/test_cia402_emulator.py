@@ -14,7 +14,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from dobhil.data import drivers_dir
-from dobhil.emulator.cia402 import (TRANSITIONS, Command, EmcyCode, PowerState, decode_command,
+from dobhil.drives.cia402.emulator import (TRANSITIONS, Command, EmcyCode, PowerState, decode_command,
                                     statusword)
 from dobhil.emulator.plant import Plant
 from dobhil.emulator.registry import make_emulated_drive

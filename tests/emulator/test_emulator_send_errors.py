@@ -25,7 +25,7 @@ from dobhil.drives.odrive import codec as odrive
 from dobhil.drives.odrive.codec import CmdId, Firmware
 from dobhil.emulator.bus_faults import RefuseSend
 from dobhil.emulator.faults import FaultyBus
-from dobhil.emulator.odrive import EmulatedODrive
+from dobhil.drives.odrive.emulator import EmulatedODrive
 from dobhil.emulator.plant import Plant
 from dobhil.errors import BusError
 from dobhil.runtime import buses

@@ -17,7 +17,7 @@ from hypothesis import strategies as st
 
 from dobhil.drives.mit.codec import unpack_reply
 from dobhil.drives.mit.rules import model_of
-from dobhil.emulator.mit import EmulatedMit, Fault, Thermal
+from dobhil.drives.mit.emulator import EmulatedMit, Fault, Thermal
 from dobhil.emulator.plant import Plant
 
 from .mit_rig import AK80_9, DAMIAO, MINI_CHEETAH, Lockstep, mit_profile

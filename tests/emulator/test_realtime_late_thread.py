@@ -19,7 +19,7 @@ import can
 from dobhil.drives import load_profile
 from dobhil.drives.odrive import codec
 from dobhil.drives.odrive.codec import AxisState, ControlMode, InputMode
-from dobhil.emulator.odrive import EmulatedODrive
+from dobhil.drives.odrive.emulator import EmulatedODrive
 from dobhil.emulator.registry import private_virtual_channel
 
 PERIOD = 0.05

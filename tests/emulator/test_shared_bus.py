@@ -13,7 +13,7 @@ import can
 from dobhil.drives import load_profile
 from dobhil.drives.odrive import codec
 from dobhil.drives.odrive.codec import AxisState, ControlMode, InputMode
-from dobhil.emulator.odrive import EmulatedODrive
+from dobhil.drives.odrive.emulator import EmulatedODrive
 from dobhil.emulator.plant import Plant
 from dobhil.drives.emulated import LockstepBus
 from dobhil.emulator.registry import private_virtual_channel

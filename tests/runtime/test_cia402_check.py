@@ -86,7 +86,7 @@ def test_the_check_changes_nothing_on_the_emulated_node_in_lockstep() -> None:
     from dobhil.drives import load_profile
     from dobhil.drives.preflight import run_preflight
     from dobhil.drives.registry import preflight_probe
-    from dobhil.emulator.cia402 import EmulatedCiA402
+    from dobhil.drives.cia402.emulator import EmulatedCiA402
     from dobhil.emulator.plant import Plant
     from dobhil.drives.emulated import LockstepBus
     from dobhil.emulator.registry import private_virtual_channel

@@ -21,7 +21,7 @@ import pytest
 from dobhil.drives.base import Drive, DriveEvent, Feedback, MotionEvent, StateEvent
 from dobhil.drives.mit.codec import Command, Special, pack_command, special_frame, unpack_reply
 from dobhil.drives.profile import DriveProfile
-from dobhil.emulator.mit import EmulatedMit, model_of
+from dobhil.drives.mit.emulator import EmulatedMit, model_of
 from dobhil.emulator.plant import Plant
 from dobhil.drives.emulated import LockstepBus
 from dobhil.emulator.registry import private_virtual_channel
@@ -184,7 +184,7 @@ def test_an_overheated_motor_stops_the_run_with_its_code(monkeypatch: pytest.Mon
     constant 50 ms): the reply's error byte 1 reaches the drive, the run stops as
     drive_fault naming over temperature, and the safe stop still goes out."""
     from dobhil.config import load_config
-    from dobhil.emulator.mit import Thermal
+    from dobhil.drives.mit.emulator import Thermal
     from dobhil.runtime.session import RunSession
 
     hot = Thermal(rise_at_t_max=250.0 * (18.0 / 0.5) ** 2, time_constant=0.05)

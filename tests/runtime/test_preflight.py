@@ -26,7 +26,7 @@ from dobhil.drives import DriveProfile, load_profile
 from dobhil.drives.odrive.codec import AxisState, ControlMode
 from dobhil.drives.registry import preflight_probe
 from dobhil.drives.preflight import PreflightReport, Rate, Severity, run_preflight
-from dobhil.emulator.odrive import EmulatedODrive
+from dobhil.drives.odrive.emulator import EmulatedODrive
 from dobhil.emulator.plant import Plant
 from dobhil.drives.emulated import LockstepBus
 from dobhil.errors import PreflightError

@@ -22,7 +22,7 @@ import can
 from dobhil.drives.base import Confirmation
 from dobhil.drives.odrive.codec import AxisState
 from dobhil.drives.profile import load_profile
-from dobhil.emulator.odrive import EmulatedODrive
+from dobhil.drives.odrive.emulator import EmulatedODrive
 from dobhil.emulator.plant import Plant
 from dobhil.runtime.session import RunSession
 from dobhil.runtime.stop import StopReason

@@ -30,7 +30,7 @@ from dobhil.drives.odrive.codec import AxisState, CmdId, Firmware
 from dobhil.drives.profile import load_profile
 from dobhil.emulator.faults import (CorruptFeedback, DropFrames, Fault, InjectFrame,
                                    SilenceAfter, faulty)
-from dobhil.emulator.odrive import EmulatedODrive
+from dobhil.drives.odrive.emulator import EmulatedODrive
 from dobhil.emulator.plant import Plant
 from dobhil.drives.emulated import LockstepBus
 from dobhil.runtime.controller import ControlOutput

@@ -22,7 +22,7 @@ import can
 import pytest
 
 from dobhil.drives.profile import load_profile
-from dobhil.emulator.odrive import EmulatedODrive
+from dobhil.drives.odrive.emulator import EmulatedODrive
 from dobhil.emulator.plant import Plant
 
 from .helpers import NODE, demo_config

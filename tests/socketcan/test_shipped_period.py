@@ -3,7 +3,7 @@
 - The shipped CiA 402 demo at its 1 ms period, on a kernel that cannot hold it (software
   emulation): the emulated node fell behind by a backlog of SYNCs and acknowledged the
   disable 0.7 s after the host had given up (``WARNING: drive may still be enabled``). Now
-  the node answers the newest SYNC (dobhil/emulator/cia402.py), so whatever stops the run,
+  the node answers the newest SYNC (dobhil/drives/cia402/emulator.py), so whatever stops the run,
   its safe stop is confirmed, in the protocol's words.
 - The shipped MIT demo: the emulated motor's first reply came 744 ms after the host's first
   command (a table built at the first frame), so the host refused to enable. Now the first
