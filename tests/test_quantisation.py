@@ -261,7 +261,7 @@ def test_analyze_reports_the_quantisation_of_an_mit_profile_only(
     from dobhil.cli.main import main
     from dobhil.drives.mit.codec import Command
     from dobhil.drives.mit.rules import model_of
-    from dobhil.drives.profile import load_profile
+    from dobhil.drives.load import load_profile
     from dobhil.drives.timing import effective_config
     demo, mit_demo = "configs/cia402-demo.yaml", "configs/mit-demo.yaml"
     assert main(["analyze", mit_demo, "--json"]) == 0

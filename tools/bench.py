@@ -125,7 +125,7 @@ def bench_controller() -> dict[str, float]:
 
 
 def _controller_step_us() -> float:
-    from dobhil.drives.profile import load_drive_profile
+    from dobhil.drives.load import load_drive_profile
     from dobhil.runtime.session import build_controller
     config = load_config(ROOT / "configs/demo.yaml")
     ctrl = build_controller(config, load_drive_profile(config))

@@ -59,7 +59,7 @@ def bus_budget(config: Any, config_path: Path) -> tuple[str, dict[str, Any] | No
     from dobhil.config import resolve_config
     from dobhil.cli.check_cmd import run_budget
     from dobhil.drives.preflight import configured_bitrate
-    from dobhil.drives.profile import load_drive_profile
+    from dobhil.drives.load import load_drive_profile
     from dobhil.errors import ConfigError
     try:
         profile = load_drive_profile(config, resolve_config(str(config_path)).parent)
@@ -79,7 +79,7 @@ def quantisation(config: Any, config_path: Path) -> tuple[str, dict[str, Any] | 
     and for a profile that cannot be read (the bus budget line already says why). A model
     the table lacks is said in the text and left out of --json."""
     from dobhil.config import resolve_config
-    from dobhil.drives.profile import load_drive_profile
+    from dobhil.drives.load import load_drive_profile
     from dobhil.errors import ConfigError
     try:
         profile = load_drive_profile(config, resolve_config(str(config_path)).parent)

@@ -71,7 +71,7 @@ def check(args: argparse.Namespace) -> int:
     from dobhil.drives.preflight import run_preflight
     from dobhil.drives.registry import preflight_probe
     from dobhil.runtime.buses import open_bus, resolve_bus
-    from dobhil.drives.profile import load_drive_profile
+    from dobhil.drives.load import load_drive_profile
     config = config_from_args(args)
     window = window_of(args.window, "--window")
     profile = load_drive_profile(config, Path(args.config).parent)

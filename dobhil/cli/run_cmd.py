@@ -247,7 +247,7 @@ def report(info: dict[str, Any], stop_line: str, *, as_json: bool) -> None:
 
 def emulate(args: argparse.Namespace) -> int:
     from dobhil.config import resolve_config
-    from dobhil.drives.profile import load_drive_profile
+    from dobhil.drives.load import load_drive_profile
     from dobhil.emulator.plant import Plant
     from dobhil.emulator.registry import make_emulated_drive
     from dobhil.realtime import EMULATOR_PRIORITY_DROP

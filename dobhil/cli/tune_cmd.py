@@ -142,7 +142,7 @@ def quantisation(config: Config, config_path: Path) -> Quanta | None:
     and/or the emulated encoder's count (``sensor.encoder_resolution``); None when neither."""
     import dataclasses
     from dobhil.config import resolve_config
-    from dobhil.drives.profile import load_drive_profile
+    from dobhil.drives.load import load_drive_profile
     from dobhil.tune.evaluate import Quanta
     quanta = Quanta(0.0, 0.0, 0.0)
     profile = load_drive_profile(config, resolve_config(str(config_path)).parent)

@@ -26,15 +26,16 @@ import can
 
 from dobhil.drives.base import Drive
 from dobhil.drives.plugin import DriveProtocol
-from dobhil.drives.profile import DriveProfile, ProtocolRules, use_protocol_lookup
+from dobhil.drives.profile import DriveProfile, ProtocolLookup, ProtocolRules
 from dobhil.errors import ConfigError
 
 if TYPE_CHECKING:
     from dobhil.drives.preflight import PreflightProbe
 
 __all__ = [
-    "PROTOCOL_CLASSES",
     "ENTRY_POINT_GROUP",
+    "PROFILE_LOOKUP",
+    "PROTOCOL_CLASSES",
     "drive_class",
     "load_object",
     "make_drive",
@@ -45,12 +46,9 @@ __all__ = [
     "protocols",
 ]
 
-#: the entry-point group of drive classes (``<protocol>``) and emulated drives
-#: (``<protocol>.emulator``): ``dobhil.drives``, named after this package (as python-can's
-#: ``can.interface`` is after its own). Derived, not written out: the layer check reads a
-#: string that spells a dobhil module as an import of it, and this package's ``__init__``
-#: imports this module (a circle that is not one).
-ENTRY_POINT_GROUP = __name__.rpartition(".")[0]
+#: the entry-point group of drive protocols (name ``<protocol>``, value its DriveProtocol
+#: subclass), named after this package as python-can's ``can.interface`` is after its own
+ENTRY_POINT_GROUP = "dobhil.drives"
 
 #: built-in protocols: name -> (module, DriveProtocol subclass name)
 PROTOCOL_CLASSES: Mapping[str, tuple[str, str]] = MappingProxyType({
@@ -145,5 +143,5 @@ def preflight_probe(profile: DriveProfile) -> PreflightProbe | None:
     return protocol(profile.protocol).preflight_probe(profile)
 
 
-# profile validation asks this registry for a protocol's rules (see use_protocol_lookup)
-use_protocol_lookup(profile_rules, protocols)
+#: what the profile validator asks this registry (``dobhil.drives.load`` passes it)
+PROFILE_LOOKUP = ProtocolLookup(rules=profile_rules, names=protocols)

@@ -22,7 +22,8 @@ import can
 from dobhil.config.schema import Config
 from dobhil.drives.base import Drive
 from dobhil.drives.preflight import DEFAULT_WINDOW, PreflightReport, profile_rate_findings, run_preflight
-from dobhil.drives.profile import DriveProfile, load_drive_profile
+from dobhil.drives.load import load_drive_profile
+from dobhil.drives.profile import DriveProfile
 from dobhil.drives.registry import drive_class, make_drive, preflight_probe
 from dobhil.drives.timing import effective_config
 from dobhil.emulator.plant import Plant

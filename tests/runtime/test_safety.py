@@ -27,7 +27,7 @@ from dobhil.config import Config
 from dobhil.drives.base import Feedback
 from dobhil.drives.odrive import codec
 from dobhil.drives.odrive.codec import AxisState, CmdId, Firmware
-from dobhil.drives.profile import load_profile
+from dobhil.drives.load import load_profile
 from dobhil.emulator.faults import (CorruptFeedback, DropFrames, Fault, InjectFrame,
                                    SilenceAfter, faulty)
 from dobhil.drives.odrive.emulator import EmulatedODrive
