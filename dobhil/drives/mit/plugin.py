@@ -3,14 +3,20 @@ registered as the entry point ``mit`` of the group ``dobhil.drives`` (``pyprojec
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from types import MappingProxyType
+
+import can
 
 from dobhil.drives.mit.codec import MitModel, TorqueFrame, unpack_command
 from dobhil.drives.mit.drive import MitDrive
 from dobhil.drives.mit.emulator import EmulatedMit
+from dobhil.drives.mit.preflight import ZeroResult
+from dobhil.drives.mit.preflight import set_zero as send_set_zero
 from dobhil.drives.mit.rules import model_of
 from dobhil.drives.plugin import CodecQuantisation, DriveProtocol
 from dobhil.drives.profile import DriveProfile
+from dobhil.drives.waits import Cancel
 
 __all__ = ["MitProtocol", "model_quantisation", "zero_command_torque"]
 
@@ -18,6 +24,7 @@ __all__ = ["MitProtocol", "model_quantisation", "zero_command_torque"]
 class MitProtocol(DriveProtocol):
     name = "mit"
     title = "MIT mode"
+    sets_zero = True
 
     @property
     def drive_class(self) -> type[MitDrive]:
@@ -26,6 +33,12 @@ class MitProtocol(DriveProtocol):
     @property
     def emulator_class(self) -> type[EmulatedMit]:
         return EmulatedMit
+
+    def set_zero(self, bus: can.BusABC, profile: DriveProfile, *, clock: Callable[[], float],
+                 cancel: Cancel | None = None) -> ZeroResult:
+        """Set zero (0xFE), wait ``mit.zero_silence``, read the position back
+        (:func:`dobhil.drives.mit.preflight.set_zero`)."""
+        return send_set_zero(bus, profile, clock=clock, cancel=cancel)
 
     def quantisation(self, profile: DriveProfile) -> CodecQuantisation:
         """The codec of the profile's model row (``mit.vendor``/``mit.model``, see
