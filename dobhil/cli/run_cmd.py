@@ -35,7 +35,7 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p.add_argument("--preflight-window", type=float, metavar="S", default=None,
                    help="how long the preflight listens (default 0.5 s)")
     p.add_argument("--reset-faults", action="store_true",
-                   help="clear a drive fault (CiA 402 controlword bit 7) before enabling; "
+                   help="let the drive clear a latched fault before enabling (the protocol's fault reset); "
                         "off: a faulted drive refuses to enable")
     p.add_argument("--live", metavar="[HOST:]PORT",
                    help="serve the run to Foxglove over WebSocket while it records (127.0.0.1 unless a host "

@@ -154,7 +154,7 @@ def _from_frames(log: object, name: str, profile: DriveProfile | None, period: f
                            "log import")
     if profile is None:
         raise ConfigError(f"{name}: a CAN log without a recorded drive profile; give the drive's profile "
-                          "with --drive NAME (e.g. odrive-0.6)")
+                          "with --drive NAME (a profile name, as dobhil run takes it, or a .yaml path)")
     rx: list[can.Message] = []
     tx: list[can.Message] = []
     try:

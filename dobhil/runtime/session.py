@@ -117,7 +117,7 @@ def resolve_timing(config: Config, profile: DriveProfile, lockstep: bool | None)
 
 def check_feedback_streams(timing: Timing, drive: Drive) -> None:
     """A loop timed by feedback needs a drive that streams it on its own; one that only
-    answers the host each cycle (CiA 402 without a native periodic SYNC) cannot start it."""
+    answers the host each cycle (a SYNC the bus cannot send periodically) cannot start it."""
     if timing is Timing.FEEDBACK and not drive.feedback_streams:
         raise ConfigError(
             f"loop.timing = feedback runs one cycle per feedback frame, but node {drive.node_id} "
@@ -130,7 +130,7 @@ def lockstep_latency(config: Config, profile: DriveProfile) -> float:
     from: the delay the sampled analysis models, ``design.delay_samples`` whole periods
     plus ``design.input_delay`` (the fractional compute + bus delay) -- or 0 when the
     drive's protocol fixes the delay itself (``command_delay_periods``): the emulated
-    drive's own latch (a CiA 402 RPDO applied at the next SYNC) makes it, and a latency
+    drive's own latch (a command applied at the next SYNC) makes it, and a latency
     on top would count it twice."""
     if profile.command_delay_periods is not None:
         return 0.0
