@@ -180,8 +180,8 @@ IN_A_METHOD = "class A:\n    def f(self) -> None:\n        import dobhil.runtime
     ("dobhil.config.load", False, IN_A_METHOD,
      ["dobhil.config.load:3: dobhil.config.load imports dobhil.runtime.loop (dobhil.runtime: a higher layer "
       "than dobhil.config)"]),
-    ("dobhil.emulator.registry", False, "import importlib\nCLASSES = {'x': ('dobhil.runtime.loop', 'ForceLoop')}\n",
-     ["dobhil.emulator.registry:2: dobhil.emulator.registry imports dobhil.runtime.loop (dobhil.runtime: "
+    ("dobhil.emulator.faults", False, "import importlib\nCLASSES = {'x': ('dobhil.runtime.loop', 'ForceLoop')}\n",
+     ["dobhil.emulator.faults:2: dobhil.emulator.faults imports dobhil.runtime.loop (dobhil.runtime: "
       "a higher layer than dobhil.emulator)"]),
     # a peer of the same layer
     ("dobhil.canio.bus", False, "import dobhil.runtime\n",
@@ -192,7 +192,7 @@ IN_A_METHOD = "class A:\n    def f(self) -> None:\n        import dobhil.runtime
      "from dobhil import __version__\nfrom dobhil.errors import RecorderError\nimport os\n", []),
     ("dobhil.cli.main", False, "def f() -> None:\n    from dobhil.runtime.session import RunSession\n", []),
     ("dobhil.runtime.session", False, "from dobhil.realtime import lower_priority\n", []),
-    ("dobhil.emulator.registry", False, "CLASSES = {'odrive': ('dobhil.drives.odrive.emulator', 'EmulatedODrive')}\n"
+    ("dobhil.emulator.faults", False, "CLASSES = {'odrive': ('dobhil.drives.odrive.emulator', 'EmulatedODrive')}\n"
      "DOC = 'like :mod:`dobhil.runtime.loop`'\n", []),
     # a string naming the module's own package (an entry-point group) is no import of it
     ("dobhil.drives.registry", False, "ENTRY_POINT_GROUP = 'dobhil.drives'\n", []),

@@ -142,7 +142,7 @@ def _controller_step_us() -> float:
 def _bare_bus_cycles_per_s(cycles: int) -> float:
     """The lockstep run's frames (one feedback, one command per cycle) on bare virtual buses."""
     import can
-    from dobhil.emulator.registry import private_virtual_channel
+    from dobhil.drives.emulated import private_virtual_channel
     ch = private_virtual_channel()
     drive_side = can.Bus(interface="virtual", channel=ch)
     host_side = can.Bus(interface="virtual", channel=ch)

@@ -35,7 +35,7 @@ from dobhil.config import Config, load_config, resolve_config
 from dobhil.data import shipped_configs
 from dobhil.drives.load import load_drive_profile
 from dobhil.emulator.process import EmulatorProcess, EmulatorSpec, PlantView
-from dobhil.emulator.registry import emulated_protocols
+from dobhil.drives.registry import emulated_protocols
 from dobhil.errors import BusError, ConfigError, DobhilError
 
 #: The channel when none is given.

@@ -249,7 +249,7 @@ def emulate(args: argparse.Namespace) -> int:
     from dobhil.config import resolve_config
     from dobhil.drives.load import load_drive_profile
     from dobhil.emulator.plant import Plant
-    from dobhil.emulator.registry import make_emulated_drive
+    from dobhil.drives.registry import make_emulated_drive
     from dobhil.realtime import EMULATOR_PRIORITY_DROP
     from dobhil.runtime.buses import BusSpec, open_bus
     from dobhil.runtime.loop import StopRequest

@@ -10,6 +10,9 @@ entry points), a protocol is found in two places:
   subclass, which names the drive class, the emulated drive and the rest.
   A protocol can live in another package without editing dobhil.
 
+Drives (:func:`make_drive`) and emulated drives (:func:`make_emulated_drive`) are both made
+here, from the one protocol object.
+
 A built-in protocol wins over an entry point of the same name. Classes are imported
 lazily, when a profile of that protocol is read or a drive of it is made.
 """
@@ -25,6 +28,7 @@ from typing import TYPE_CHECKING, Any
 import can
 
 from dobhil.drives.base import Drive
+from dobhil.drives.emulated import EmulatedDrive, PlantLike
 from dobhil.drives.plugin import DriveProtocol
 from dobhil.drives.profile import DriveProfile, ProtocolLookup, ProtocolRules
 from dobhil.errors import ConfigError
@@ -37,8 +41,11 @@ __all__ = [
     "PROFILE_LOOKUP",
     "PROTOCOL_CLASSES",
     "drive_class",
+    "emulated_protocols",
+    "emulator_class",
     "load_object",
     "make_drive",
+    "make_emulated_drive",
     "plugin_entry_points",
     "preflight_probe",
     "profile_rules",
@@ -141,6 +148,35 @@ def make_drive(bus: can.BusABC, profile: DriveProfile, *, reset_faults: bool = F
 def preflight_probe(profile: DriveProfile) -> PreflightProbe | None:
     """The preflight part of ``profile.protocol`` (None: that protocol has none yet)."""
     return protocol(profile.protocol).preflight_probe(profile)
+
+
+def emulated_protocols() -> tuple[str, ...]:
+    """Every protocol with an emulated drive (``DriveProtocol.emulator_class``), sorted; a
+    protocol that fails to load is left out here (naming it fails with its own line)."""
+    out = []
+    for name in protocols():
+        try:
+            if protocol(name).emulator_class is not None:
+                out.append(name)
+        except ConfigError:
+            continue
+    return tuple(out)
+
+
+def emulator_class(name: str) -> type[EmulatedDrive]:
+    """The EmulatedDrive subclass of protocol ``name``; ConfigError (one line) if none or broken."""
+    cls = protocol(name).emulator_class
+    if cls is None:
+        raise ConfigError(f"no emulator for protocol {name!r}; emulated: {', '.join(emulated_protocols())}")
+    if not (isinstance(cls, type) and issubclass(cls, EmulatedDrive)):
+        raise ConfigError(f"emulator of protocol {name!r} is not a dobhil EmulatedDrive class")
+    return cls
+
+
+def make_emulated_drive(bus: can.BusABC, profile: DriveProfile, plant: PlantLike,
+                        **kwargs: Any) -> EmulatedDrive:
+    """The emulator of ``profile.protocol`` on ``bus`` driving ``plant``."""
+    return emulator_class(profile.protocol)(bus, profile, plant, **kwargs)
 
 
 #: what the profile validator asks this registry (``dobhil.drives.load`` passes it)

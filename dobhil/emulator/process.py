@@ -498,7 +498,7 @@ def _fail(bus: PipeBus, text: str) -> None:
 
 def _serve(bus: PipeBus, status: Any, spec: EmulatorSpec) -> None:
     from dobhil.emulator.plant import Plant
-    from dobhil.emulator.registry import make_emulated_drive
+    from dobhil.drives.registry import make_emulated_drive
     from dobhil.realtime import lower_priority, raise_priority
 
     if spec.priority_drop:

@@ -29,7 +29,8 @@ from dobhil.drives.timing import effective_config
 from dobhil.emulator.plant import Plant
 from dobhil.emulator.process import EmulatorProcess, EmulatorSpec, PlantView
 from dobhil.drives.emulated import EmulatedDrive, LockstepBus
-from dobhil.emulator.registry import make_emulated_drive, private_virtual_channel
+from dobhil.drives.registry import make_emulated_drive
+from dobhil.drives.emulated import private_virtual_channel
 from dobhil.errors import ConfigError, PreflightError
 from dobhil.runtime.buses import BusSpec, open_bus, resolve_bus, shutdown_bus
 from dobhil.runtime.controller import ForceController

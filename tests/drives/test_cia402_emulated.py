@@ -21,7 +21,7 @@ from dobhil.drives.profile import DriveProfile
 from dobhil.drives.cia402.emulator import EmulatedCiA402
 from dobhil.emulator.plant import Plant
 from dobhil.drives.emulated import LockstepBus
-from dobhil.emulator.registry import private_virtual_channel
+from dobhil.drives.emulated import private_virtual_channel
 from dobhil.errors import ConfigError, DriveError, DriveFaultError
 
 ROOT = Path(__file__).resolve().parents[2]

@@ -26,7 +26,7 @@ from dobhil.drives.load import profile_from_mapping
 from dobhil.drives.profile import RENAMED_KEYS
 from dobhil.drives.registry import ENTRY_POINT_GROUP, drive_class, protocols
 from dobhil.drives.emulated import EmulatedDrive
-from dobhil.emulator.registry import emulated_protocols, emulator_class
+from dobhil.drives.registry import emulated_protocols, emulator_class
 from dobhil.errors import ConfigError
 
 REPO = Path(__file__).resolve().parents[2]

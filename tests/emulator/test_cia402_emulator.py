@@ -17,7 +17,7 @@ from dobhil.data import drivers_dir
 from dobhil.drives.cia402.emulator import (TRANSITIONS, Command, EmcyCode, PowerState, decode_command,
                                     statusword)
 from dobhil.emulator.plant import Plant
-from dobhil.emulator.registry import make_emulated_drive
+from dobhil.drives.registry import make_emulated_drive
 from dobhil.errors import ConfigError
 
 from .cia402_rig import (EMCY, HEARTBEAT, NODE, OPTIONS, RPDO1, SDO_TX, SYNC, TPDO1, TPDO2, Lockstep,
