@@ -349,7 +349,7 @@ def design_config(data: RunData) -> Config | None:
 def latency_stats(data: RunData) -> dict[str, Any]:
     """Measured command latency (feedback frame received -> command frame sent, log clock)
     against the one the sampled analysis assumed. A drive whose protocol applies commands
-    a fixed number of periods after their sample (CiA 402: at the next SYNC) makes the
+    a fixed number of periods after their sample (at the next SYNC, say) makes the
     assumed delay itself: the command must only be in time for it (within a period)."""
     out: dict[str, Any] = {"assumed_s": None, "measured": False, **latency_clocks(data)}
     period = None

@@ -16,7 +16,7 @@ from hypothesis import strategies as st
 from dobhil.cli.main import main
 from dobhil.config import Config, build_config, key_fields, load_config
 from dobhil.config.load import MAX_INT, MAX_MAGNITUDE
-from dobhil.drives.profile import load_profile
+from dobhil.drives.load import load_profile
 from dobhil.errors import ConfigError
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -19,7 +19,8 @@ from dobhil.analysis.stability import is_stable, phase_margin
 from dobhil.analysis.transfer import LoopSystems
 from dobhil.config import Config, load_config, resolve_config
 from dobhil.data import shipped_configs
-from dobhil.drives.profile import DriveProfile, load_drive_profile
+from dobhil.drives.load import load_drive_profile
+from dobhil.drives.profile import DriveProfile
 from dobhil.drives.timing import effective_config
 from dobhil.synthesis.params import params_from_config
 from tests.test_synthesis import closed_form_l

@@ -50,11 +50,15 @@ def imported_names(source: str, module: str, is_package: bool) -> Iterator[tuple
     """``(line, name)`` of every dotted name ``source`` (the text of ``module``) imports, at any
     level (functions and TYPE_CHECKING too), relative imports resolved; ``from a import b``
     gives ``a`` and ``a.b`` (``b`` may be a module or a name in ``a``). A string that is a
-    dobhil module name counts too: registries import by name (``importlib.import_module``)."""
+    dobhil module name counts too: registries import by name (``importlib.import_module``);
+    but not one naming ``module`` itself or a package it is in (an entry-point group named after
+    its package, ``"dobhil.drives"``): Python has imported those before ``module`` runs."""
     package = module if is_package else module.rpartition(".")[0]
     for node in ast.walk(ast.parse(source)):
         if isinstance(node, ast.Constant) and isinstance(node.value, str) and MODULE_NAME.fullmatch(node.value):
-            yield node.lineno, node.value.partition(":")[0]
+            named = node.value.partition(":")[0]
+            if not (module == named or module.startswith(named + ".")):
+                yield node.lineno, named
         elif isinstance(node, ast.Import):
             yield from ((node.lineno, alias.name) for alias in node.names)
         elif isinstance(node, ast.ImportFrom):
@@ -176,8 +180,8 @@ IN_A_METHOD = "class A:\n    def f(self) -> None:\n        import dobhil.runtime
     ("dobhil.config.load", False, IN_A_METHOD,
      ["dobhil.config.load:3: dobhil.config.load imports dobhil.runtime.loop (dobhil.runtime: a higher layer "
       "than dobhil.config)"]),
-    ("dobhil.emulator.registry", False, "import importlib\nCLASSES = {'x': ('dobhil.runtime.loop', 'ForceLoop')}\n",
-     ["dobhil.emulator.registry:2: dobhil.emulator.registry imports dobhil.runtime.loop (dobhil.runtime: "
+    ("dobhil.emulator.faults", False, "import importlib\nCLASSES = {'x': ('dobhil.runtime.loop', 'ForceLoop')}\n",
+     ["dobhil.emulator.faults:2: dobhil.emulator.faults imports dobhil.runtime.loop (dobhil.runtime: "
       "a higher layer than dobhil.emulator)"]),
     # a peer of the same layer
     ("dobhil.canio.bus", False, "import dobhil.runtime\n",
@@ -188,8 +192,10 @@ IN_A_METHOD = "class A:\n    def f(self) -> None:\n        import dobhil.runtime
      "from dobhil import __version__\nfrom dobhil.errors import RecorderError\nimport os\n", []),
     ("dobhil.cli.main", False, "def f() -> None:\n    from dobhil.runtime.session import RunSession\n", []),
     ("dobhil.runtime.session", False, "from dobhil.realtime import lower_priority\n", []),
-    ("dobhil.emulator.registry", False, "CLASSES = {'odrive': ('dobhil.drives.odrive.emulator', 'EmulatedODrive')}\n"
+    ("dobhil.emulator.faults", False, "CLASSES = {'odrive': ('dobhil.drives.odrive.emulator', 'EmulatedODrive')}\n"
      "DOC = 'like :mod:`dobhil.runtime.loop`'\n", []),
+    # a string naming the module's own package (an entry-point group) is no import of it
+    ("dobhil.drives.registry", False, "ENTRY_POINT_GROUP = 'dobhil.drives'\n", []),
     # a module of a package no layer names
     ("dobhil.newpackage.thing", False, "", ["dobhil.newpackage.thing: module dobhil.newpackage.thing is in no "
                                             "layer of LAYERS"]),
@@ -227,3 +233,10 @@ def test_the_private_name_check_finds_what_the_old_writer_did() -> None:
     old = ["from mcap._chunk_builder import ChunkBuilder", "builder = self._Writer__chunk_builder",
            "buf = builder.record_writer._buffer"]
     assert all(PRIVATE.search(line) for line in old)
+
+
+def test_a_string_naming_an_own_package_is_no_import_but_a_sibling_is() -> None:
+    """The registry's entry-point group (``"dobhil.drives"``) names its own package, which
+    Python imports before the registry; a string naming a sibling module is a real import."""
+    found = dict(imported_names("G = 'dobhil.drives'\nM = 'dobhil.drives.base'\n", "dobhil.drives.registry", False))
+    assert found == {2: "dobhil.drives.base"}

@@ -18,12 +18,13 @@ from dataclasses import dataclass
 import numpy as np
 import pytest
 
-from dobhil.analysis.quantisation import (dc_gain, h2_norm, loop_systems, mit_quantisation,
+from dobhil.analysis.quantisation import (codec_figures, dc_gain, h2_norm, loop_systems,
                                           noise_figures, observer_systems, quantisation_text)
 from dobhil.config import load_config
 from dobhil.config.schema import Config, DesignConfig
 from dobhil.drives.mit.codec import TorqueFrame, float_to_uint, uint_to_float, unpack_command
 from dobhil.drives.mit.models import find_model
+from dobhil.drives.mit.plugin import model_quantisation
 from dobhil.runtime.controller import ForceController
 from dobhil.synthesis.controller import DIS, INT, sampled_controller
 from dobhil.synthesis.loop import loop, sampled_plant
@@ -261,7 +262,7 @@ def test_analyze_reports_the_quantisation_of_an_mit_profile_only(
     from dobhil.cli.main import main
     from dobhil.drives.mit.codec import Command
     from dobhil.drives.mit.rules import model_of
-    from dobhil.drives.profile import load_profile
+    from dobhil.drives.load import load_profile
     from dobhil.drives.timing import effective_config
     demo, mit_demo = "configs/cia402-demo.yaml", "configs/mit-demo.yaml"
     assert main(["analyze", mit_demo, "--json"]) == 0
@@ -302,7 +303,7 @@ def test_a_reversed_axis_truncates_the_other_way() -> None:
     reversed_ = find_model("cubemars", "AK10-9", "1.1")
     forward = find_model("cubemars", "AK10-9", "manual-1.0.8")
     assert reversed_.axis_direction == -1 and forward.axis_direction == 1
-    back, ahead = mit_quantisation(params, reversed_), mit_quantisation(params, forward)
+    back, ahead = (codec_figures(params, model_quantisation(m)) for m in (reversed_, forward))
     assert back.zero_torque_bias == pytest.approx(reversed_.quanta.torque / 2, abs=1e-5)
     assert back.zero_torque_bias == -ahead.zero_torque_bias == reversed_.torque_bias
     assert back.closed_loop is not None and ahead.closed_loop is not None
@@ -369,3 +370,29 @@ def test_an_unstable_loop_has_no_closed_loop_figures() -> None:
     assert figures.closed_loop is None and figures.as_dict()["closed_loop"] is None
     assert "closed loop at C_f = 8: UNSTABLE, no noise figure" in quantisation_text(figures)
     assert figures.observers["rtob"].total == stable.observers["rtob"].total
+
+
+def test_the_analysis_takes_any_protocols_codec() -> None:
+    """The figures come from the protocol's ``quantisation`` hook, not from a protocol the
+    analysis knows: the MIT profile's hook gives its model's steps; a rounding codec of
+    another protocol has the same noise and no truncation offset; a protocol without
+    quantisation (ODrive, CiA 402: floats and integers at the drive's own scale) gives None."""
+    from dobhil.drives.load import load_profile
+    from dobhil.drives.plugin import CodecQuantisation
+    from dobhil.drives.registry import protocol
+    profile = load_profile("ak80-9")
+    codec = protocol("mit").quantisation(profile)
+    assert codec is not None
+    model = find_model("cubemars", "AK80-9", profile.firmware)
+    assert (codec.position, codec.velocity, codec.torque) == (model.quanta.position, model.quanta.velocity,
+                                                              model.quanta.torque)
+    assert protocol("odrive").quantisation(load_profile("odrive-0.6")) is None
+    assert protocol("cia402").quantisation(load_profile("cia402-emulated")) is None
+    params = params_from_config(load_config("configs/mit-demo.yaml"))
+    truncating = codec_figures(params, codec)
+    rounding = codec_figures(params, CodecQuantisation(codec.position, codec.velocity, codec.torque,
+                                                       truncates=False, source={"model": "X"}))
+    assert truncating.closed_loop is not None and rounding.closed_loop is not None
+    assert rounding.closed_loop["tau_int"].total == truncating.closed_loop["tau_int"].total
+    assert truncating.closed_loop["tau_int"].bias != 0.0 and rounding.closed_loop["tau_int"].bias == 0.0
+    assert "rounds" in rounding.as_dict()["noise_model"] and rounding.as_dict()["model"] == {"model": "X"}

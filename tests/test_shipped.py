@@ -12,7 +12,7 @@ import pytest
 from dobhil.cli.main import DESCRIPTION, EXIT_BROKEN_PIPE, main
 from dobhil.config import load_config, resolve_config
 from dobhil.data import configs_dir, copy_shipped, drivers_dir, shipped_configs, shipped_profiles
-from dobhil.drives.profile import load_drive_profile, load_profile
+from dobhil.drives.load import load_drive_profile, load_profile
 from dobhil.errors import ConfigError, DobhilError
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -125,7 +125,7 @@ def bench_controller() -> dict[str, float]:
 
 
 def _controller_step_us() -> float:
-    from dobhil.drives.profile import load_drive_profile
+    from dobhil.drives.load import load_drive_profile
     from dobhil.runtime.session import build_controller
     config = load_config(ROOT / "configs/demo.yaml")
     ctrl = build_controller(config, load_drive_profile(config))
@@ -142,7 +142,7 @@ def _controller_step_us() -> float:
 def _bare_bus_cycles_per_s(cycles: int) -> float:
     """The lockstep run's frames (one feedback, one command per cycle) on bare virtual buses."""
     import can
-    from dobhil.emulator.registry import private_virtual_channel
+    from dobhil.drives.emulated import private_virtual_channel
     ch = private_virtual_channel()
     drive_side = can.Bus(interface="virtual", channel=ch)
     host_side = can.Bus(interface="virtual", channel=ch)

@@ -40,13 +40,14 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from dobhil.analysis.quantisation import mit_quantisation, quantisation_text  # noqa: E402
+from dobhil.analysis.quantisation import codec_figures, quantisation_text  # noqa: E402
 from dobhil.config import load_config, resolve_config  # noqa: E402
 from dobhil.config.schema import Config  # noqa: E402
 from dobhil.drives.mit.codec import (TorqueFrame, pack_reply, unpack_command,  # noqa: E402
                                      unpack_reply)
+from dobhil.drives.mit.plugin import model_quantisation  # noqa: E402
 from dobhil.drives.mit.rules import model_of  # noqa: E402
-from dobhil.drives.profile import load_drive_profile  # noqa: E402
+from dobhil.drives.load import load_drive_profile  # noqa: E402
 from dobhil.drives.timing import effective_config  # noqa: E402
 from dobhil.emulator.plant import Plant  # noqa: E402
 from dobhil.plotting.figures import _plt, save  # noqa: E402
@@ -158,8 +159,8 @@ def main() -> int:
     out = Path(sys.argv[2]) if len(sys.argv) > 2 else ROOT / "docs/img/mit_quantisation.png"
     config, model = design_on(config_path, [])
     variant, _ = design_on(config_path, VARIANT)
-    figures = mit_quantisation(params_from_config(config), model)
-    figures_v = mit_quantisation(params_from_config(variant), model)
+    figures = codec_figures(params_from_config(config), model_quantisation(model))
+    figures_v = codec_figures(params_from_config(variant), model_quantisation(model))
     print(quantisation_text(figures))
     exact, coded = closed_loop(config, None), closed_loop(config, model)
     exact_v, coded_v = closed_loop(variant, None), closed_loop(variant, model)

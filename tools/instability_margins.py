@@ -26,7 +26,7 @@ import numpy as np
 from dobhil.analysis.report import analyze
 from dobhil.config import load_config
 from dobhil.config.load import resolve_config
-from dobhil.drives.profile import load_drive_profile
+from dobhil.drives.load import load_drive_profile
 from dobhil.drives.timing import effective_config
 from dobhil.runtime.session import RunSession
 

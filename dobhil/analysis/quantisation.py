@@ -1,14 +1,16 @@
-"""What an MIT-mode actuator's codec quantisation does to the force loop, as noise figures.
+"""What a drive codec's quantisation does to the force loop, as noise figures.
 
-An MIT-mode motor packs every value into a few bits (16-bit position, 12-bit velocity
-and torque over the model's symmetric ranges), so the host measures the position and
-velocity one step apart, and the motor applies the commanded torque one step apart.
-The firmware's ``float_to_uint`` truncates (``int()`` of a non-negative number): a
-decoded value lies between one step below the true one and the true one. For a signal
-that moves across several steps per sample the error is white and uniform on
-``(-step, 0]``: mean ``-step / 2``, variance ``step^2 / 12`` (a model with
-``axis_direction: -1`` truncates in the motor's sense of rotation: the host sees the mean
-``+step / 2``). That is the noise model here, per channel, the channels independent:
+A protocol whose codec packs values into a few bits says so through its
+:meth:`~dobhil.drives.plugin.DriveProtocol.quantisation` hook: a
+:class:`~dobhil.drives.plugin.CodecQuantisation` with one step per channel, the sense in
+which the codec truncates and the torque a zero command applies. The host then measures the
+position and velocity one step apart, and the drive applies the commanded torque one step
+apart. A codec that truncates (``int()`` of a non-negative number, as in C firmware) gives a
+decoded value between one step below the true one and the true one. For a signal that moves
+across several steps per sample the error is white and uniform on ``(-step, 0]``: mean
+``-step / 2``, variance ``step^2 / 12`` (``direction`` -1, a reversed axis, truncates in
+the drive's sense of rotation: the host sees the mean ``+step / 2``; a rounding codec has
+mean 0). That is the noise model here, per channel, the channels independent:
 
 - ``position`` and ``velocity``: the controller's measurements ``y`` (``[q, dq]``, or
   ``[q]`` when ``design.velocity_source`` is ``estimated``: the velocity filter then
@@ -16,10 +18,10 @@ that moves across several steps per sample the error is white and uniform on
   stiffness in the observers' models the position is multiplied by zero everywhere, and
   only the velocity counts (``measured`` lists what does). The reply's torque is not
   used by the controller.
-- ``torque``: the torque the motor applies minus the one commanded. The observers are
+- ``torque``: the torque the drive applies minus the one commanded. The observers are
   fed the commanded torque (what the controller computed), the plant gets the applied
-  one. A zero command decodes to ``-step / 2`` (code ``2^11 - 1`` of 12 bits: -4.4 mN m
-  on an AK80-9), which is the zero-torque bias.
+  one. What a zero command applies (``CodecQuantisation.zero_torque``, the protocol's
+  codec decodes it) is the zero-torque bias.
 
 Each channel's contribution to an output is ``step / sqrt(12)`` times the H2 norm of the
 discrete system from that channel to the output (``sqrt(C P C' + D D')`` with ``P`` the
@@ -42,7 +44,8 @@ built on it):
 
 What it does not cover: at rest the error is not white (a still position sits on one
 code; a still velocity reads ``-step / 2``), so the figures describe a moving servo;
-the step response with the codec in the loop (tools/fig_mit_quantisation.py) shows both.
+the step response with a codec in the loop (the quantisation figure script in ``tools/``)
+shows both.
 """
 
 from __future__ import annotations
@@ -52,22 +55,19 @@ import math
 from collections.abc import Mapping
 from dataclasses import dataclass
 from types import MappingProxyType
-from typing import TYPE_CHECKING, Any, Protocol
+from typing import Any, Protocol
 
 import numpy as np
 import scipy.linalg
 
+from dobhil.drives.plugin import CodecQuantisation
 from dobhil.synthesis.controller import DIS, INT, ControllerSS, sampled_controller
 from dobhil.synthesis.loop import LoopSS, loop
 from dobhil.synthesis.numerics import balance
 from dobhil.synthesis.params import Array, Params
 
-if TYPE_CHECKING:
-    from dobhil.drives.mit.codec import MitModel
-
-__all__ = ["ChannelFigures", "QuantisationFigures", "Steps", "dc_gain",
-           "h2_norm", "mit_quantisation", "noise_figures", "quantisation_text",
-           "torque_error_column"]
+__all__ = ["ChannelFigures", "QuantisationFigures", "Steps", "codec_figures", "dc_gain",
+           "h2_norm", "noise_figures", "quantisation_text", "torque_error_column"]
 
 #: closed-loop outputs reported (names of :data:`dobhil.synthesis.loop.OUTPUTS`)
 LOOP_OUTPUTS: tuple[str, ...] = ("tau_int_hat", "tau_dis_hat", "tau_int", "u")
@@ -77,7 +77,8 @@ STABLE_MARGIN = 1e-9
 
 
 class Steps(Protocol):
-    """The quantisation steps of a codec (``MitModel.quanta`` of dobhil.drives.mit.codec)."""
+    """The quantisation steps of a codec (a :class:`~dobhil.drives.plugin.CodecQuantisation`,
+    or any object with these three steps)."""
 
     @property
     def position(self) -> float: ...   # [rad]
@@ -95,7 +96,7 @@ class ChannelFigures:
 
     rms: Mapping[str, float]    # channel -> RMS contribution (step/sqrt(12) * H2)
     total: float                # root sum of squares of ``rms``
-    bias: float                 # steady offset from the truncation's mean (-step/2 per channel)
+    bias: float                 # steady offset from the truncation's mean (-step/2 per channel; 0 rounding)
 
     def as_dict(self) -> dict[str, Any]:
         return {"rms": dict(self.rms), "total_rms": self.total, "bias": self.bias}
@@ -112,6 +113,7 @@ class QuantisationFigures:
     force_gain: float
     zero_torque_bias: float | None = None   # [N m] what a zero command applies (set by the caller)
     model: Mapping[str, str] | None = None  # vendor, model, firmware (set by the caller)
+    truncates: bool = True                  # False: the codec rounds (error mean 0)
 
     def as_dict(self) -> dict[str, Any]:
         out: dict[str, Any] = {}
@@ -120,9 +122,11 @@ class QuantisationFigures:
         out["steps"] = dict(self.steps)
         out["zero_torque_bias"] = self.zero_torque_bias
         out["measured"] = list(self.measured)
-        out["noise_model"] = ("per channel white, uniform over the step below the value (the "
-                              "firmware truncates): variance step^2/12, mean -step/2 "
-                              "(+step/2 on a model with axis_direction -1)")
+        out["noise_model"] = (("per channel white, uniform over the step below the value (the "
+                               "firmware truncates): variance step^2/12, mean -step/2 "
+                               "(+step/2 on a model with axis_direction -1)") if self.truncates else
+                              "per channel white, uniform over one step about the value (the codec "
+                              "rounds): variance step^2/12, mean 0")
         out["observers"] = {k: v.as_dict() for k, v in self.observers.items()}
         out["closed_loop"] = (None if self.closed_loop is None else
                               {"force_gain": self.force_gain,
@@ -157,10 +161,9 @@ def dc_gain(a: Array, b: Array, c: Array, d: Array) -> float:
 
 
 def _figures(systems: Mapping[str, tuple[Array, Array, Array, Array]],
-             steps: Mapping[str, float], direction: int) -> ChannelFigures | None:
-    """Combine one output's per-channel systems; None when any has no H2 norm. The mean
-    error is ``-step / 2`` in the firmware's sense of rotation (``direction`` -1: the
-    host's value is the negated decode of the negated value, so ``+step / 2``)."""
+             steps: Mapping[str, float], mean: float) -> ChannelFigures | None:
+    """Combine one output's per-channel systems; None when any has no H2 norm. ``mean``:
+    the error's mean in steps (see :func:`_mean`)."""
     rms: dict[str, float] = {}
     bias = 0.0
     for channel, (a, b, c, d) in systems.items():
@@ -168,7 +171,7 @@ def _figures(systems: Mapping[str, tuple[Array, Array, Array, Array]],
         if norm is None:
             return None
         rms[channel] = steps[channel] / math.sqrt(12.0) * norm
-        bias += -0.5 * direction * steps[channel] * dc_gain(a, b, c, d)
+        bias += mean * steps[channel] * dc_gain(a, b, c, d)
     total = math.sqrt(sum(v * v for v in rms.values()))
     return ChannelFigures(rms=MappingProxyType(rms), total=total, bias=bias)
 
@@ -222,11 +225,21 @@ def _read(ctrl: ControllerSS) -> tuple[str, ...]:
     return tuple(ch for ch, u in zip(_measured(ctrl), used) if u)
 
 
-def noise_figures(params: Params, steps: Steps, *, direction: int = 1) -> QuantisationFigures:
-    """The noise figures of one design (batch shape ``()``) on a codec with ``steps``;
-    ``direction``: the model's ``axis_direction`` (the sign of the truncation's mean)."""
+def _mean(direction: int, truncates: bool) -> float:
+    """The error's mean in steps: ``-1/2`` for a truncating codec in the drive's sense of
+    rotation (``direction`` -1: the host's value is the negated decode of the negated value,
+    so ``+1/2``); 0 for a rounding codec."""
     if direction not in (1, -1):
         raise ValueError(f"direction: expected 1 or -1, got {direction!r}")
+    return -0.5 * direction if truncates else 0.0
+
+
+def noise_figures(params: Params, steps: Steps, *, direction: int = 1,
+                  truncates: bool = True) -> QuantisationFigures:
+    """The noise figures of one design (batch shape ``()``) on a codec with ``steps``;
+    ``direction``: the codec's axis direction (the sign of the truncation's mean);
+    ``truncates`` False: the codec rounds to nearest."""
+    mean = _mean(direction, truncates)
     if params.batch_shape != ():
         raise ValueError("quantisation figures are computed for a single design")
     ctrl = sampled_controller(params)
@@ -234,14 +247,14 @@ def noise_figures(params: Params, steps: Steps, *, direction: int = 1) -> Quanti
                 "torque": float(steps.torque)}
     observers: dict[str, ChannelFigures] = {}
     for key, row in (("dob", DIS), ("rtob", INT)):
-        figures = _figures(observer_systems(ctrl, row), step_map, direction)
+        figures = _figures(observer_systems(ctrl, row), step_map, mean)
         if figures is None:   # cannot happen: the observers' poles are exp(-g T) and 0
             raise ValueError("the sampled observer is not stable")
         observers[key] = figures
     closed = loop(params, sampled=True)
     looped: dict[str, ChannelFigures] = {}
     for output in LOOP_OUTPUTS:
-        figures = _figures(loop_systems(closed, ctrl, output), step_map, direction)
+        figures = _figures(loop_systems(closed, ctrl, output), step_map, mean)
         if figures is None:
             break
         looped[output] = figures
@@ -249,7 +262,7 @@ def noise_figures(params: Params, steps: Steps, *, direction: int = 1) -> Quanti
         steps=MappingProxyType(step_map), measured=_read(ctrl),
         observers=MappingProxyType(observers),
         closed_loop=MappingProxyType(looped) if len(looped) == len(LOOP_OUTPUTS) else None,
-        force_gain=float(params.value("force_gain")))
+        force_gain=float(params.value("force_gain")), truncates=truncates)
 
 
 #: in the text, a figure below this [N m] is a rounding of zero (an exact cancellation
@@ -298,18 +311,10 @@ def quantisation_text(q: QuantisationFigures) -> str:
     return "\n".join(lines)
 
 
-def mit_quantisation(params: Params, model: MitModel) -> QuantisationFigures:
-    """The figures of one design on an MIT-mode motor (its row of the model table): its
-    steps (``MitModel.quanta``), and the torque a zero command
-    applies, found by the codec itself -- the drive's preallocated torque frame filled with
-    0 N m, decoded as the firmware decodes it (in the host's sense of rotation)."""
-    from dobhil.drives.mit.codec import TorqueFrame, unpack_command
-    frame = TorqueFrame(model)
-    data = bytearray(frame.template)
-    frame.fill(data, 0.0)
-    zero = float(unpack_command(model, bytes(data)).torque)
-    figures = noise_figures(params, model.quanta, direction=model.axis_direction)
-    return dataclasses.replace(
-        figures, zero_torque_bias=zero,
-        model=MappingProxyType({"vendor": model.vendor, "model": model.model,
-                                "firmware": model.firmware}))
+def codec_figures(params: Params, codec: CodecQuantisation) -> QuantisationFigures:
+    """The figures of one design on a protocol's codec (``DriveProtocol.quantisation`` of
+    the drive's profile): its steps, truncation sense, zero-command torque and the model it
+    describes (``codec.source``, for the report)."""
+    figures = noise_figures(params, codec, direction=codec.direction, truncates=codec.truncates)
+    return dataclasses.replace(figures, zero_torque_bias=codec.zero_torque,
+                               model=MappingProxyType({str(k): str(v) for k, v in codec.source.items()}))

@@ -33,9 +33,9 @@ from can.typechecking import AutoDetectedConfig, CanFilters
 
 from dobhil.config import Config, load_config, resolve_config
 from dobhil.data import shipped_configs
-from dobhil.drives.profile import load_drive_profile
+from dobhil.drives.load import load_drive_profile
 from dobhil.emulator.process import EmulatorProcess, EmulatorSpec, PlantView
-from dobhil.emulator.registry import emulated_protocols
+from dobhil.drives.registry import emulated_protocols
 from dobhil.errors import BusError, ConfigError, DobhilError
 
 #: The channel when none is given.

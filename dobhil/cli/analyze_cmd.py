@@ -59,7 +59,7 @@ def bus_budget(config: Any, config_path: Path) -> tuple[str, dict[str, Any] | No
     from dobhil.config import resolve_config
     from dobhil.cli.check_cmd import run_budget
     from dobhil.drives.preflight import configured_bitrate
-    from dobhil.drives.profile import load_drive_profile
+    from dobhil.drives.load import load_drive_profile
     from dobhil.errors import ConfigError
     try:
         profile = load_drive_profile(config, resolve_config(str(config_path)).parent)
@@ -74,25 +74,25 @@ def bus_budget(config: Any, config_path: Path) -> tuple[str, dict[str, Any] | No
 
 def quantisation(config: Any, config_path: Path) -> tuple[str, dict[str, Any] | None]:
     """The codec's quantisation figures (:mod:`dobhil.analysis.quantisation`) when the
-    config's drive profile has a codec model (protocol ``mit``): its text and its dict for
-    --json. ("", None) for any other protocol -- the output is then what it always was --
-    and for a profile that cannot be read (the bus budget line already says why). A model
-    the table lacks is said in the text and left out of --json."""
+    config's drive protocol models one (``DriveProtocol.quantisation``): its text and its
+    dict for --json. ("", None) for a protocol without quantisation -- the output is then
+    what it always was -- and for a profile that cannot be read (the bus budget line already
+    says why). A model the protocol cannot find is said in the text and left out of --json."""
     from dobhil.config import resolve_config
-    from dobhil.drives.profile import load_drive_profile
+    from dobhil.drives.load import load_drive_profile
+    from dobhil.drives.registry import protocol
     from dobhil.errors import ConfigError
     try:
         profile = load_drive_profile(config, resolve_config(str(config_path)).parent)
     except ConfigError:
         return "", None
-    if profile.protocol != "mit":
-        return "", None
-    from dobhil.analysis.quantisation import mit_quantisation, quantisation_text
-    from dobhil.drives.mit.rules import model_of
-    from dobhil.synthesis.params import params_from_config
     try:
-        model = model_of(profile)
+        codec = protocol(profile.protocol).quantisation(profile)
     except ConfigError as exc:
         return f"quantisation: not computed ({exc})", None
-    figures = mit_quantisation(params_from_config(config), model)
+    if codec is None:
+        return "", None
+    from dobhil.analysis.quantisation import codec_figures, quantisation_text
+    from dobhil.synthesis.params import params_from_config
+    figures = codec_figures(params_from_config(config), codec)
     return quantisation_text(figures), figures.as_dict()

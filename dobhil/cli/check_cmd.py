@@ -8,9 +8,10 @@ when a run would sample stale feedback or the axis is already in closed loop
 here says which of the two the found mismatches mean. A bus that cannot be opened
 names the way to try without hardware (``--bus dobhil:demo``).
 
-``--set-zero`` (MIT-mode motors only, refused for any other protocol): send set zero
-(0xFE), wait the profile's ``mit.zero_silence``, ask with a zero-torque command and print
-the position the reply reads. dobhil never zeroes a motor otherwise.
+``--set-zero`` (only for a protocol whose drives set their zero on command,
+``DriveProtocol.sets_zero``; refused for any other before a bus opens): make the present
+position the drive's zero, wait until it answers and print the position it reads. dobhil
+never zeroes a drive otherwise.
 
 Before the bus is opened, the design ``dobhil run`` would close on this drive passes the
 stability gate (:mod:`dobhil.cli.stability_gate`): an unstable one is refused as ``run``
@@ -41,11 +42,11 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg,
     p.add_argument("--bus", metavar="INTERFACE:CHANNEL",
                    help="any python-can interface, e.g. socketcan:can0 (default: config/profile)")
     p.add_argument("--window", type=float, metavar="S", default=None,
-                   help="how long to listen (default 0.5 s: five ODrive heartbeats)")
+                   help="how long to listen (default 0.5 s: five heartbeats at a 0.1 s period)")
     p.add_argument("--json", action="store_true", help="print the report as one JSON object")
     p.add_argument("--set-zero", action="store_true",
-                   help="MIT-mode motors only: make the present position the motor's zero (set zero 0xFE), "
-                        "wait mit.zero_silence, print the new position; nothing else (no preflight)")
+                   help="drives that set their zero on command only: make the present position the "
+                        "drive's zero, wait for its reply, print the new position; nothing else (no preflight)")
     add_gate_args(p)
     p.set_defaults(func=check)
 
@@ -71,7 +72,7 @@ def check(args: argparse.Namespace) -> int:
     from dobhil.drives.preflight import run_preflight
     from dobhil.drives.registry import preflight_probe
     from dobhil.runtime.buses import open_bus, resolve_bus
-    from dobhil.drives.profile import load_drive_profile
+    from dobhil.drives.load import load_drive_profile
     config = config_from_args(args)
     window = window_of(args.window, "--window")
     profile = load_drive_profile(config, Path(args.config).parent)
@@ -100,22 +101,24 @@ def check(args: argparse.Namespace) -> int:
 
 
 def set_zero(args: argparse.Namespace, config: Any, profile: Any) -> int:
-    """``--set-zero``: the only way dobhil sends set zero (an MIT motor's 0xFE), refused for
-    any other protocol before a bus is opened; Ctrl-C ends the wait within a slice."""
+    """``--set-zero``: the only way dobhil zeroes a drive (``DriveProtocol.set_zero``), refused
+    for a protocol that cannot before a bus is opened; Ctrl-C ends the wait within a slice."""
     import time
 
-    from dobhil.drives.mit.preflight import set_zero as zero
+    from dobhil.drives.registry import protocol
     from dobhil.runtime.buses import open_bus, resolve_bus
     from dobhil.runtime.loop import StopRequest
     from dobhil.runtime.signals import stop_on_signals
-    if profile.protocol != "mit":
-        raise ConfigError(f"--set-zero: expected a profile of protocol 'mit' (MIT-mode motors), profile "
-                          f"{profile.name or profile.protocol!r} is protocol {profile.protocol!r}")
+    drive_protocol = protocol(profile.protocol)
+    if not drive_protocol.sets_zero:
+        able = " or ".join(repr(name) for name in zeroing_protocols())
+        raise ConfigError(f"--set-zero: expected a profile of protocol {able} (drives that set their zero on "
+                          f"command), profile {profile.name or profile.protocol!r} is protocol {profile.protocol!r}")
     spec = resolve_bus(config, profile, args.bus)
     bus = open_bus(spec)
     try:
         with stop_on_signals(StopRequest()) as request:
-            result = zero(bus, profile, clock=time.monotonic, cancel=request.reason)
+            result = drive_protocol.set_zero(bus, profile, clock=time.monotonic, cancel=request.reason)
     finally:
         bus.shutdown()
     if args.json:
@@ -126,6 +129,20 @@ def set_zero(args: argparse.Namespace, config: Any, profile: Any) -> int:
         print(f"bus {spec.describe()}")
         print(result.line())
     return 0
+
+
+def zeroing_protocols() -> list[str]:
+    """The protocols whose drives set their zero on command (one that fails to load is left
+    out: naming it fails with its own line)."""
+    from dobhil.drives.registry import protocol, protocols
+    able = []
+    for name in protocols():
+        try:
+            if protocol(name).sets_zero:
+                able.append(name)
+        except ConfigError:
+            continue
+    return able
 
 
 def run_budget(profile: Any, period: float, bitrate: int | None) -> Any:

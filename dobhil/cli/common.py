@@ -30,7 +30,7 @@ def design_on_drive(config: Config, args: argparse.Namespace, out: TextIO | None
     (:func:`dobhil.drives.timing.effective_config`), its one-line note printed to
     ``out`` (stdout by default) when that changed the design's values."""
     from dobhil.config.load import resolve_config
-    from dobhil.drives.profile import load_drive_profile
+    from dobhil.drives.load import load_drive_profile
     from dobhil.drives.timing import effective_config
     profile = load_drive_profile(config, resolve_config(args.config).parent)
     config, note = effective_config(config, profile)

@@ -1,11 +1,12 @@
 """``dobhil demo``: the main job on a fresh clone -- a force-control run of ``configs/demo.yaml``
-(the paper's Fig. 3 servo touching its environment, then a force step) over an emulated
-ODrive on a CAN bus, in lockstep; prints a summary and writes a PNG."""
+(the paper's Fig. 3 servo touching its environment, then a force step) over the emulated
+drive of its profile on a CAN bus, in lockstep; prints a summary and writes a PNG."""
 
 from __future__ import annotations
 
 import argparse
 from pathlib import Path
+from typing import Any
 
 from dobhil.cli.common import add_config_args
 from dobhil.cli.stability_gate import add_gate_args
@@ -15,6 +16,14 @@ def demo_config_path() -> Path:
     """The shipped ``demo`` config (``configs/demo.yaml`` in the repository)."""
     from dobhil.config import resolve_config
     return resolve_config("demo")
+
+
+def demo_title(profile: Any, period: float) -> str:
+    """The figure's title: the run, and the drive it ran on (the profile's name, else its
+    protocol's title) at the loop's rate."""
+    from dobhil.drives.registry import protocol
+    drive = profile.name or protocol(profile.protocol).title
+    return f"dobhil demo: contact, then a force step (emulated {drive}, {1e-3 / period:g} kHz)"
 
 
 def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -60,7 +69,7 @@ def run(args: argparse.Namespace) -> int:
     if log is not None:
         info["log"] = str(log.path)
     report(info, result.stop.line(), as_json=False)
-    print(f"wrote {run_figure(result.trace, png, 'dobhil demo: contact, then a force step (emulated ODrive, 1 kHz)')}")
+    print(f"wrote {run_figure(result.trace, png, demo_title(session.profile, config.loop.period))}")
     if log is not None:
         print(f"next: dobhil report {log.path} --out {args.out / 'report'}")
     return 0 if result.stop.reason.name == "DONE" else EXIT_STOPPED

@@ -42,7 +42,7 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from dobhil.drives.profile import load_profile
+    from dobhil.drives.load import load_profile
     from dobhil.errors import ConfigError
     from dobhil.files import check_output, check_output_dir
     from dobhil.identify.data import find_segments, join, parse_segment, read_log

@@ -114,7 +114,7 @@ def _noise(config: str, set_files: tuple[str, ...]) -> tuple[str, ...]:
 def _check_config(campaign: Campaign) -> None:
     """The shared config (with --set) and its drive profile load: else every run would fail alike."""
     from dobhil.config import load_config, resolve_config
-    from dobhil.drives.profile import load_drive_profile
+    from dobhil.drives.load import load_drive_profile
     config = load_config(campaign.config, campaign.overrides, campaign.set_files)
     load_drive_profile(config, resolve_config(campaign.config).parent)
 

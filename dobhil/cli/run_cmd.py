@@ -35,7 +35,7 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p.add_argument("--preflight-window", type=float, metavar="S", default=None,
                    help="how long the preflight listens (default 0.5 s)")
     p.add_argument("--reset-faults", action="store_true",
-                   help="clear a drive fault (CiA 402 controlword bit 7) before enabling; "
+                   help="let the drive clear a latched fault before enabling (the protocol's fault reset); "
                         "off: a faulted drive refuses to enable")
     p.add_argument("--live", metavar="[HOST:]PORT",
                    help="serve the run to Foxglove over WebSocket while it records (127.0.0.1 unless a host "
@@ -247,9 +247,9 @@ def report(info: dict[str, Any], stop_line: str, *, as_json: bool) -> None:
 
 def emulate(args: argparse.Namespace) -> int:
     from dobhil.config import resolve_config
-    from dobhil.drives.profile import load_drive_profile
+    from dobhil.drives.load import load_drive_profile
     from dobhil.emulator.plant import Plant
-    from dobhil.emulator.registry import make_emulated_drive
+    from dobhil.drives.registry import make_emulated_drive
     from dobhil.realtime import EMULATOR_PRIORITY_DROP
     from dobhil.runtime.buses import BusSpec, open_bus
     from dobhil.runtime.loop import StopRequest

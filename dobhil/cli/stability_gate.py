@@ -37,7 +37,7 @@ def stability_gate(config: Any, config_path: str | os.PathLike[str], *, allow_un
     (if any) to stderr as ``prog: ...``."""
     from dobhil.analysis.gate import assess
     from dobhil.config import resolve_config
-    from dobhil.drives.profile import load_drive_profile
+    from dobhil.drives.load import load_drive_profile
     from dobhil.errors import UnstableDesignError
     profile = load_drive_profile(config, resolve_config(os.fspath(config_path)).parent)
     verdict = assess(config, profile)

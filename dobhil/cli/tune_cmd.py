@@ -138,18 +138,19 @@ def _horizon(config: Config) -> int:
 
 
 def quantisation(config: Config, config_path: Path) -> Quanta | None:
-    """The steps the drive quantises with: an MIT-mode codec's (position, velocity, torque)
-    and/or the emulated encoder's count (``sensor.encoder_resolution``); None when neither."""
+    """The steps the drive quantises with: its protocol's codec's (position, velocity, torque;
+    ``DriveProtocol.quantisation``) and/or the emulated encoder's count
+    (``sensor.encoder_resolution``); None when neither."""
     import dataclasses
     from dobhil.config import resolve_config
-    from dobhil.drives.profile import load_drive_profile
+    from dobhil.drives.load import load_drive_profile
+    from dobhil.drives.registry import protocol
     from dobhil.tune.evaluate import Quanta
     quanta = Quanta(0.0, 0.0, 0.0)
     profile = load_drive_profile(config, resolve_config(str(config_path)).parent)
-    if profile.protocol == "mit":
-        from dobhil.drives.mit.rules import model_of
-        steps = model_of(profile).quanta
-        quanta = Quanta(float(steps.position), float(steps.velocity), float(steps.torque))
+    steps = protocol(profile.protocol).quantisation(profile)
+    if steps is not None:
+        quanta = Quanta(steps.position, steps.velocity, steps.torque)
     counts = config.sensor.encoder_resolution
     if counts:
         quanta = dataclasses.replace(quanta, position=max(quanta.position, 2.0 * math.pi / counts))

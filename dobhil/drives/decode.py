@@ -10,7 +10,9 @@ from collections.abc import Iterable, Mapping
 
 import can
 
-from dobhil.drives.profile import RENAMED_KEYS, DriveProfile, profile_from_mapping
+from dobhil.drives.load import profile_from_mapping
+
+from dobhil.drives.profile import RENAMED_KEYS, DriveProfile
 from dobhil.errors import ConfigError, LogFileError
 
 

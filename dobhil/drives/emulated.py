@@ -34,6 +34,7 @@ import math
 import random
 import threading
 import time
+import uuid
 from abc import ABC, abstractmethod
 from collections import deque
 from collections.abc import Callable, Sequence
@@ -47,7 +48,7 @@ from dobhil.drives.profile import DriveProfile
 from dobhil.errors import BusError
 from dobhil.realtime import lower_priority
 
-__all__ = ["EmulatedDrive", "LockstepBus", "LockstepPeriodicTask", "PlantLike"]
+__all__ = ["EmulatedDrive", "LockstepBus", "LockstepPeriodicTask", "PlantLike", "private_virtual_channel"]
 
 _EPS = 1e-9
 _MAX_LAG_PERIODS = 10  # real time: ticks later than this are skipped, not replayed
@@ -730,3 +731,12 @@ class LockstepBus(can.BusABC):
 
     def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
         return self.recv(0.0 if timeout is None else timeout), False
+
+
+def private_virtual_channel() -> str:
+    """A virtual-bus channel name no other run in this process uses.
+
+    It ends in a letter: python-can's log writers read trailing digits of a channel name
+    as the channel number (``can.util.channel2int``), and BLF stores it in 16 bits, so a
+    name ending in many digits would make ``can.logconvert run.mcap run.blf`` fail."""
+    return f"dobhil-{uuid.uuid4().hex[:12]}-private"

@@ -17,19 +17,23 @@ entry point, not an edit everywhere.
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from types import MappingProxyType
-from typing import TYPE_CHECKING, Any, ClassVar
+from typing import TYPE_CHECKING, Any, ClassVar, Protocol
+
+import can
 
 from dobhil.drives.base import Drive
 from dobhil.drives.profile import DriveProfile, ProtocolRules
+from dobhil.drives.waits import Cancel
+from dobhil.errors import ConfigError
 
 if TYPE_CHECKING:
     from dobhil.drives.emulated import EmulatedDrive
     from dobhil.drives.preflight import PreflightProbe
 
-__all__ = ["CodecQuantisation", "DriveProtocol", "FeedbackField"]
+__all__ = ["CodecQuantisation", "DriveProtocol", "FeedbackField", "ZeroResult"]
 
 _EMPTY: Mapping[str, Any] = MappingProxyType({})
 
@@ -60,6 +64,22 @@ class FeedbackField:
     fmt: str
 
 
+class ZeroResult(Protocol):
+    """What a drive's set zero left (:meth:`DriveProtocol.set_zero`): its first reply after
+    zeroing, as ``dobhil check --set-zero`` prints it (``line()``) and writes it (--json)."""
+
+    @property
+    def node(self) -> int: ...
+
+    @property
+    def position(self) -> float: ...   # [rad] the reading after zeroing (near 0 when it took)
+
+    @property
+    def silence(self) -> float: ...    # [s] how long the host waited before asking
+
+    def line(self) -> str: ...
+
+
 class DriveProtocol(ABC):
     """One drive protocol. Subclasses set :attr:`name` and implement the hooks; the defaults
     are what a protocol without that feature gives (no emulator, no quantisation, ...)."""
@@ -70,6 +90,9 @@ class DriveProtocol(ABC):
     title: ClassVar[str] = ""
     #: True when the protocol's frames are CAN FD (the bus must be opened with ``fd=True``)
     fd: ClassVar[bool] = False
+    #: True when the drive makes its present position its zero on command
+    #: (:meth:`set_zero`; ``dobhil check --set-zero`` refuses other protocols before a bus opens)
+    sets_zero: ClassVar[bool] = False
 
     @property
     @abstractmethod
@@ -107,6 +130,12 @@ class DriveProtocol(ABC):
         """Where ``name`` (``"position"`` or ``"velocity"``) is in the motion frame of
         ``profile``'s drive (None: the protocol offers no such injection)."""
         return None
+
+    def set_zero(self, bus: can.BusABC, profile: DriveProfile, *, clock: Callable[[], float],
+                 cancel: Cancel | None = None) -> ZeroResult:
+        """Make the present position the drive's zero and read it back (only where
+        :attr:`sets_zero`); ConfigError for a protocol that cannot."""
+        raise ConfigError(f"protocol {self.name!r} cannot set its zero on command")
 
     def __repr__(self) -> str:
         return f"<{type(self).__name__} {self.name!r}>"

@@ -1,35 +1,30 @@
-"""Drive profiles: one frozen :class:`DriveProfile` per YAML file under ``drivers/``.
-
-``load_profile(name_or_path)`` accepts a path to a YAML file, or a profile name looked
-up as ``<name>.yaml`` in the nearest ``drivers/`` directory above ``near`` (the config's
-directory: the layout of the repository and of ``dobhil init``), then among the shipped
-profiles (``drivers/`` of the repository, installed as ``dobhil.data.drivers``; see
-:mod:`dobhil.data`). Every key is documented in ``drivers/README.md``.
+"""Drive profiles: one frozen :class:`DriveProfile` per YAML file under ``drivers/``, and
+the one validator that builds it. Files are read by :mod:`dobhil.drives.load`
+(``load_profile``), which passes the registry's protocols to this validator. Every key is
+documented in ``drivers/README.md``.
 
 A profile has the common keys (:data:`COMMON_RULES`) and, under the key named after its
 protocol (``odrive:``, ``cia402:``), a section of that protocol's own settings. One
 validator checks both, with one error style (``<source>: <key>: expected <allowed>, got
 <value>``): the protocol's :class:`ProtocolRules` -- ``Drive.profile_rules`` of the
-protocol's drive class, found through :mod:`dobhil.drives.registry` when a mapping is
-validated -- say which keys its section has, how it narrows common keys (an ODrive node
-id has 6 bits) and which optional common keys it needs (an ODrive streams feedback and
-heartbeats, so it needs both periods). The validated section is
+protocol's drive class, handed to :func:`profile_from_mapping` in a
+:class:`ProtocolLookup` (the registry's, by :mod:`dobhil.drives.load`) -- say which keys
+its section has, how it narrows common keys (an ODrive node id has 6 bits) and which
+optional common keys it needs (an ODrive streams feedback and heartbeats, so it needs
+both periods). The validated section is
 :attr:`DriveProfile.options`, read-only, its defaults filled in.
 """
 
 from __future__ import annotations
 
 import math
-import os
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, fields
 from pathlib import Path
 from types import MappingProxyType
 from typing import Any, Final
 
-
-from dobhil.config.schema import Config
-from dobhil.config.yamlio import load_yaml_file, show_value
+from dobhil.config.yamlio import show_value
 from dobhil.errors import ConfigError
 
 __all__ = [
@@ -37,11 +32,10 @@ __all__ = [
     "REQUIRED",
     "RENAMED_KEYS",
     "DriveProfile",
+    "ProtocolLookup",
     "ProtocolRules",
     "Rule",
     "default_drivers_dir",
-    "load_drive_profile",
-    "load_profile",
     "profile_from_mapping",
 ]
 
@@ -263,31 +257,6 @@ def default_drivers_dir() -> Path:
     return drivers_dir()
 
 
-def _is_file(path: Path) -> bool:
-    """``path.is_file()``, False for a name the file system cannot even look up (too long)."""
-    try:
-        return path.is_file()
-    except (OSError, ValueError):
-        return False
-
-
-def _exists(path: Path) -> bool:
-    try:
-        return path.exists()
-    except (OSError, ValueError):
-        return False
-
-
-def _near(name: str, near: Path) -> Path | None:
-    """``drivers/<name>.yaml`` in ``near`` or the closest of its parents that has one."""
-    start = near.resolve()
-    for directory in (start, *start.parents):
-        path = directory / "drivers" / f"{name}.yaml"
-        if _is_file(path):
-            return path
-    return None
-
-
 def _as_number(value: Any) -> Any:
     """A number key's value as YAML 1.2 reads it: ``1e-9`` (a string to PyYAML's YAML 1.1)
     becomes a float; an integer too large for a float becomes inf (rejected as not finite)."""
@@ -302,51 +271,32 @@ def _as_number(value: Any) -> Any:
 
 
 @dataclass(frozen=True)
-class _Lookup:
+class ProtocolLookup:
+    """How the validator finds protocols: ``rules(name)`` gives a protocol's
+    :class:`ProtocolRules` (a ConfigError, one line, for an unknown or broken one) and
+    ``names()`` every protocol a profile may name. The registry's
+    (:data:`dobhil.drives.registry.PROFILE_LOOKUP`) is what :mod:`dobhil.drives.load`
+    passes; a test may pass its own. Passed in, not imported: the registry imports the drive
+    classes, which import this module."""
+
     rules: Callable[[str], ProtocolRules]
-    protocols: Callable[[], tuple[str, ...]]
+    names: Callable[[], tuple[str, ...]]
 
 
-# The protocols' rules come from the drive classes, which the registry finds (built in or
-# by entry point). This module cannot import the registry, not even in a function: the
-# registry imports the drive classes and they import this module (an import circle the
-# layer check refuses). So the registry hands its two look-ups in when it is imported --
-# always before a profile is read, since ``dobhil.drives/__init__`` imports it and every
-# import of this module runs that package's ``__init__`` first.
-_lookup: list[_Lookup] = []
-
-
-def use_protocol_lookup(rules: Callable[[str], ProtocolRules], protocols: Callable[[], tuple[str, ...]]) -> None:
-    """Called once by :mod:`dobhil.drives.registry`: how to find a protocol's rules
-    (a ConfigError for an unknown or broken one) and the names of all protocols."""
-    _lookup[:] = [_Lookup(rules, protocols)]
-
-
-def _protocol_rules(protocol: str, source: str) -> ProtocolRules:
-    """``profile_rules`` of ``protocol``'s drive class (imported only now: a protocol's
-    module is imported when a profile of it is read)."""
+def _protocol_rules(protocols: ProtocolLookup, protocol: str, source: str) -> ProtocolRules:
+    """The rules of ``protocol`` (its module is imported only now, when a profile of it is read)."""
     try:
-        return _registry().rules(protocol)
+        return protocols.rules(protocol)
     except ConfigError as exc:
         raise ConfigError(f"{source}: {exc}") from None
 
 
-def _known_protocols() -> tuple[str, ...]:
-    return _registry().protocols()
-
-
-def _registry() -> _Lookup:
-    if not _lookup:  # cannot happen through any import of this module (see above)
-        raise RuntimeError("no drive registry: the dobhil.drives package was not imported")
-    return _lookup[0]
-
-
-def _check_keys(data: Mapping[str, Any], protocol: str, rules: ProtocolRules, source: str) -> None:
+def _check_keys(data: Mapping[str, Any], protocol: str, known: tuple[str, ...], source: str) -> None:
     """Unknown keys (a section of another protocol told apart), then missing ones."""
     for key in data:
         if key in COMMON_RULES or key == protocol:
             continue
-        if isinstance(key, str) and key in _known_protocols():
+        if isinstance(key, str) and key in known:
             raise ConfigError(f"{source}: {key}: a section of protocol {key!r}, but this profile's "
                               f"protocol is {protocol!r} (its section is {protocol}:)")
         allowed = ", ".join((*COMMON_RULES, protocol))
@@ -379,10 +329,12 @@ def _section(value: Any, protocol: str, rules: ProtocolRules, source: str) -> Ma
     return MappingProxyType(options)
 
 
-def profile_from_mapping(data: Mapping[str, Any], *, source: str = "<profile>",
+def profile_from_mapping(data: Mapping[str, Any], *, protocols: ProtocolLookup, source: str = "<profile>",
                          directory: str = "") -> DriveProfile:
     """Validate a mapping and build a DriveProfile; ConfigError names key, value and rule.
-    ``directory``: where the profile's file is (for a section's relative paths)."""
+    ``protocols``: where the protocols' rules come from (the registry's:
+    :func:`dobhil.drives.load.profile_from_mapping`); ``directory``: where the profile's file
+    is (for a section's relative paths)."""
     if not isinstance(data, Mapping):
         raise ConfigError(f"{source}: expected a mapping of profile keys, got {type(data).__name__}")
     for old, new in RENAMED_KEYS.items():
@@ -391,8 +343,8 @@ def profile_from_mapping(data: Mapping[str, Any], *, source: str = "<profile>",
     if "protocol" not in data:
         raise ConfigError(f"{source}: missing key 'protocol' ({COMMON_RULES['protocol'].allowed})")
     protocol = COMMON_RULES["protocol"].validate("protocol", data["protocol"], source)
-    rules = _protocol_rules(protocol, source)
-    _check_keys(data, protocol, rules, source)
+    rules = _protocol_rules(protocols, protocol, source)
+    _check_keys(data, protocol, protocols.names(), source)
     values: dict[str, Any] = {}
     for key, rule in COMMON_RULES.items():
         if key not in data:
@@ -410,45 +362,3 @@ def profile_from_mapping(data: Mapping[str, Any], *, source: str = "<profile>",
     if rules.check is not None:
         rules.check(profile, source)
     return profile
-
-
-def _resolve(name_or_path: str | os.PathLike[str], drivers_dir: Path | None, near: Path | None) -> Path:
-    text = os.fspath(name_or_path)
-    candidate = Path(text)
-    if candidate.suffix in (".yaml", ".yml") or os.sep in text or "/" in text:
-        if _exists(candidate):
-            return candidate  # a directory, FIFO or device is refused, with its reason, when read
-        raise ConfigError(f"profile file {text!r} does not exist")
-    found = _near(text, near) if near is not None and drivers_dir is None else None
-    if found is not None:
-        return found
-    directory = drivers_dir if drivers_dir is not None else default_drivers_dir()
-    path = directory / f"{text}.yaml"
-    if _is_file(path):
-        return path
-    from dobhil.data import DRIVER_TABLES  # data tables beside the profiles are not profiles
-    known = sorted(p.stem for p in directory.glob("*.yaml") if p.stem not in DRIVER_TABLES) \
-        if directory.is_dir() else []
-    hint = f"in {directory}" if drivers_dir is not None else \
-        f"(shipped), or {text}.yaml in a drivers/ directory above the config, or a path to a .yaml file"
-    raise ConfigError(f"drive profile {text!r}: expected one of {known} {hint}")
-
-
-def load_profile(
-    name_or_path: str | os.PathLike[str], *, drivers_dir: Path | None = None, near: Path | None = None
-) -> DriveProfile:
-    """Load a profile by name (from ``drivers_dir``, else a ``drivers/`` above ``near``, else the
-    shipped ones) or an explicit YAML path into a DriveProfile."""
-    path = _resolve(name_or_path, drivers_dir, near)
-    data = load_yaml_file(path, "drive profile")
-    data = {"name": path.stem, **(data or {})} if isinstance(data, Mapping) else data
-    return profile_from_mapping(data, source=str(path), directory=str(path.resolve().parent))
-
-
-def load_drive_profile(config: Config, base_dir: Path | None = None) -> DriveProfile:
-    """The profile ``drive.profile`` of ``config`` names: a YAML file relative to ``base_dir``
-    (the config's directory) if there is one, else a profile name looked up near it."""
-    name = config.drive.profile
-    candidate = (base_dir / name) if base_dir and not Path(name).is_absolute() else Path(name)
-    return load_profile(str(candidate) if candidate.suffix in (".yaml", ".yml") and candidate.exists()
-                        else name, near=base_dir)

@@ -10,6 +10,9 @@ entry points), a protocol is found in two places:
   subclass, which names the drive class, the emulated drive and the rest.
   A protocol can live in another package without editing dobhil.
 
+Drives (:func:`make_drive`) and emulated drives (:func:`make_emulated_drive`) are both made
+here, from the one protocol object.
+
 A built-in protocol wins over an entry point of the same name. Classes are imported
 lazily, when a profile of that protocol is read or a drive of it is made.
 """
@@ -25,19 +28,24 @@ from typing import TYPE_CHECKING, Any
 import can
 
 from dobhil.drives.base import Drive
+from dobhil.drives.emulated import EmulatedDrive, PlantLike
 from dobhil.drives.plugin import DriveProtocol
-from dobhil.drives.profile import DriveProfile, ProtocolRules, use_protocol_lookup
+from dobhil.drives.profile import DriveProfile, ProtocolLookup, ProtocolRules
 from dobhil.errors import ConfigError
 
 if TYPE_CHECKING:
     from dobhil.drives.preflight import PreflightProbe
 
 __all__ = [
-    "PROTOCOL_CLASSES",
     "ENTRY_POINT_GROUP",
+    "PROFILE_LOOKUP",
+    "PROTOCOL_CLASSES",
     "drive_class",
+    "emulated_protocols",
+    "emulator_class",
     "load_object",
     "make_drive",
+    "make_emulated_drive",
     "plugin_entry_points",
     "preflight_probe",
     "profile_rules",
@@ -45,12 +53,9 @@ __all__ = [
     "protocols",
 ]
 
-#: the entry-point group of drive classes (``<protocol>``) and emulated drives
-#: (``<protocol>.emulator``): ``dobhil.drives``, named after this package (as python-can's
-#: ``can.interface`` is after its own). Derived, not written out: the layer check reads a
-#: string that spells a dobhil module as an import of it, and this package's ``__init__``
-#: imports this module (a circle that is not one).
-ENTRY_POINT_GROUP = __name__.rpartition(".")[0]
+#: the entry-point group of drive protocols (name ``<protocol>``, value its DriveProtocol
+#: subclass), named after this package as python-can's ``can.interface`` is after its own
+ENTRY_POINT_GROUP = "dobhil.drives"
 
 #: built-in protocols: name -> (module, DriveProtocol subclass name)
 PROTOCOL_CLASSES: Mapping[str, tuple[str, str]] = MappingProxyType({
@@ -145,5 +150,34 @@ def preflight_probe(profile: DriveProfile) -> PreflightProbe | None:
     return protocol(profile.protocol).preflight_probe(profile)
 
 
-# profile validation asks this registry for a protocol's rules (see use_protocol_lookup)
-use_protocol_lookup(profile_rules, protocols)
+def emulated_protocols() -> tuple[str, ...]:
+    """Every protocol with an emulated drive (``DriveProtocol.emulator_class``), sorted; a
+    protocol that fails to load is left out here (naming it fails with its own line)."""
+    out = []
+    for name in protocols():
+        try:
+            if protocol(name).emulator_class is not None:
+                out.append(name)
+        except ConfigError:
+            continue
+    return tuple(out)
+
+
+def emulator_class(name: str) -> type[EmulatedDrive]:
+    """The EmulatedDrive subclass of protocol ``name``; ConfigError (one line) if none or broken."""
+    cls = protocol(name).emulator_class
+    if cls is None:
+        raise ConfigError(f"no emulator for protocol {name!r}; emulated: {', '.join(emulated_protocols())}")
+    if not (isinstance(cls, type) and issubclass(cls, EmulatedDrive)):
+        raise ConfigError(f"emulator of protocol {name!r} is not a dobhil EmulatedDrive class")
+    return cls
+
+
+def make_emulated_drive(bus: can.BusABC, profile: DriveProfile, plant: PlantLike,
+                        **kwargs: Any) -> EmulatedDrive:
+    """The emulator of ``profile.protocol`` on ``bus`` driving ``plant``."""
+    return emulator_class(profile.protocol)(bus, profile, plant, **kwargs)
+
+
+#: what the profile validator asks this registry (``dobhil.drives.load`` passes it)
+PROFILE_LOOKUP = ProtocolLookup(rules=profile_rules, names=protocols)

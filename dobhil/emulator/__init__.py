@@ -2,5 +2,6 @@
 
 :mod:`dobhil.drives.emulated` holds the emulated-drive base (bus, timing modes,
 cyclic frames) and the :class:`PlantLike` interface of the injected dynamics;
-one module per protocol (:mod:`dobhil.drives.odrive.emulator`) keeps the drive's state machine.
+each protocol's ``emulator`` module (``dobhil/drives/<protocol>/emulator.py``, found through
+its ``DriveProtocol.emulator_class``) keeps the drive's state machine.
 """

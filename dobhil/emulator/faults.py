@@ -6,7 +6,7 @@ frame itself, a changed copy, or the frame plus injected ones. :class:`FaultyBus
 chains faults in front of any ``can.BusABC``; :func:`faulty` makes the
 ``bus_wrapper=`` callable :class:`dobhil.runtime.session.RunSession` takes::
 
-    wrapper = faulty(SilenceAfter(seconds=0.2), CorruptFeedback.odrive(3, at=100))
+    wrapper = faulty(SilenceAfter(seconds=0.2), CorruptFeedback.of_profile(profile, "position", at=100))
     with RunSession(config, emulate=True, bus_wrapper=wrapper) as s: ...
 
 On the host side (``bus_wrapper``) receive faults model what the drive sends and the
@@ -14,7 +14,7 @@ host sees (silence, NaN, lost frames); send faults model what the host puts on t
 bus (an injected Estop). To fault the drive side instead, wrap the emulator's bus
 with ``FaultyBus(bus, faults, owns_inner=True)``.
 
-Periodic frames (``send_periodic``: a CiA 402 host's SYNC) are the inner bus's own, so
+Periodic frames (``send_periodic``: a host's SYNC) are the inner bus's own, so
 the wrapper is as native as what it wraps (:func:`dobhil.drives.periodic.native_periodic`);
 send faults do not see them, receive faults see their echo.
 
@@ -46,6 +46,8 @@ import can
 import can.broadcastmanager
 
 from dobhil.drives.periodic import native_periodic
+from dobhil.drives.profile import DriveProfile
+from dobhil.drives.registry import protocol
 
 __all__ = [
     "CorruptFeedback",
@@ -63,8 +65,8 @@ __all__ = [
     "faulty",
 ]
 
-_ODRIVE_ENCODER_CMD = 0x09   # Get_Encoder_Estimates: pos f32 @0 [turns], vel f32 @4 [turns/s]
-_ODRIVE_FIELDS = {"position": 0, "velocity": 4}
+#: the longest frame payload (CAN FD) a field may sit in
+MAX_PAYLOAD = 64
 
 
 class Direction(Enum):
@@ -76,7 +78,8 @@ def _copy(msg: can.Message, data: bytes | bytearray) -> can.Message:
     return can.Message(timestamp=msg.timestamp, arbitration_id=msg.arbitration_id,
                        is_extended_id=msg.is_extended_id, is_remote_frame=msg.is_remote_frame,
                        is_error_frame=msg.is_error_frame, channel=msg.channel, dlc=len(data),
-                       data=bytearray(data), is_rx=msg.is_rx)
+                       data=bytearray(data), is_rx=msg.is_rx, is_fd=msg.is_fd,
+                       bitrate_switch=msg.bitrate_switch, error_state_indicator=msg.error_state_indicator)
 
 
 class Fault(ABC):
@@ -112,8 +115,8 @@ class Fault(ABC):
 
 class SilenceAfter(Fault):
     """The drive goes silent: every matching frame after the first ``frames`` of them,
-    or after ``seconds`` on the wrapper's clock, is dropped. With ``ids`` the ODrive
-    encoder id, ``frames`` counts control cycles."""
+    or after ``seconds`` on the wrapper's clock, is dropped. With ``ids`` the drive's
+    motion feedback frame, ``frames`` counts control cycles."""
 
     def __init__(self, *, frames: int | None = None, seconds: float | None = None,
                  ids: Collection[int] | None = None) -> None:
@@ -134,32 +137,48 @@ class SilenceAfter(Fault):
 
 
 class CorruptFeedback(Fault):
-    """Replaces the little-endian float32 at byte ``offset`` of matching frames
-    ``at`` .. ``at + count - 1`` (0-based) by ``value`` (NaN by default)."""
+    """Replaces the value of ``struct`` format ``fmt`` (little-endian float32 by default) at
+    byte ``offset`` of matching frames ``at`` .. ``at + count - 1`` (0-based) by ``value``
+    (NaN by default). :meth:`of_profile` finds the frame and the field through the drive's
+    protocol (``DriveProtocol.feedback_field``)."""
 
-    def __init__(self, arbitration_id: int, *, offset: int = 0, value: float = math.nan,
+    def __init__(self, arbitration_id: int, *, offset: int = 0, fmt: str = "<f", value: float = math.nan,
                  at: int = 0, count: int = 1) -> None:
-        if offset < 0 or offset > 4 or at < 0 or count < 1:
-            raise ValueError(f"CorruptFeedback: offset 0..4, at >= 0, count >= 1; "
+        try:
+            size = struct.calcsize(fmt)
+        except struct.error:
+            raise ValueError(f"CorruptFeedback: fmt: expected a struct format such as '<f', got {fmt!r}") from None
+        if offset < 0 or offset + size > MAX_PAYLOAD or at < 0 or count < 1:
+            raise ValueError(f"CorruptFeedback: offset 0..{MAX_PAYLOAD - size}, at >= 0, count >= 1; "
                              f"got {offset}, {at}, {count}")
+        try:
+            struct.pack(fmt, value)
+        except struct.error:
+            raise ValueError(f"CorruptFeedback: value: expected a value {fmt!r} holds, got {value!r}") from None
         super().__init__((arbitration_id,))
         self.offset = offset
-        self.value = float(value)
+        self.fmt = fmt
+        self.size = size
+        self.value = value
         self.at = at
         self.count = count
 
     @classmethod
-    def odrive(cls, node_id: int, field: str = "position", **kwargs: Any) -> CorruptFeedback:
-        """On an ODrive's Get_Encoder_Estimates (both firmwares share the layout)."""
-        if field not in _ODRIVE_FIELDS:
-            raise ValueError(f"field: expected one of {sorted(_ODRIVE_FIELDS)}, got {field!r}")
-        return cls(node_id << 5 | _ODRIVE_ENCODER_CMD, offset=_ODRIVE_FIELDS[field], **kwargs)
+    def of_profile(cls, profile: DriveProfile, field: str = "position", **kwargs: Any) -> CorruptFeedback:
+        """On the frame that carries ``field`` (``position`` or ``velocity``) of the drive
+        ``profile`` describes, as its protocol lays it out; ValueError (one line) when the
+        protocol offers no such field."""
+        where = protocol(profile.protocol).feedback_field(profile, field)
+        if where is None:
+            raise ValueError(f"CorruptFeedback: field: protocol {profile.protocol!r} offers no feedback "
+                             f"field {field!r} to corrupt (position and velocity where it lays them out)")
+        return cls(where.arbitration_id, offset=where.offset, fmt=where.fmt, **kwargs)
 
     def apply(self, msg: can.Message, index: int, now: float) -> Sequence[can.Message]:
-        if not self.at <= index < self.at + self.count or len(msg.data) < self.offset + 4:
+        if not self.at <= index < self.at + self.count or len(msg.data) < self.offset + self.size:
             return (msg,)
         data = bytearray(msg.data)
-        struct.pack_into("<f", data, self.offset, self.value)
+        struct.pack_into(self.fmt, data, self.offset, self.value)
         self.applied += 1
         return (_copy(msg, data),)
 
@@ -205,8 +224,8 @@ class InjectFrame(Fault):
 
 class KeepEvery(Fault):
     """Only every ``n``-th matching frame (from ``at`` on, 0-based) gets through: a drive
-    streaming ``n`` times slower than its profile says (an ODrive at its factory 10 ms
-    encoder rate under a 1 ms profile)."""
+    streaming ``n`` times slower than its profile says (a drive left at a factory 10 ms
+    feedback period under a 1 ms profile)."""
 
     def __init__(self, n: int, *, at: int = 0, ids: Collection[int] | None = None) -> None:
         if n < 2 or at < 0:

@@ -9,7 +9,7 @@ and the same :class:`~dobhil.emulator.plant.Plant` in a child process instead:
 
 - frames cross on a :class:`~dobhil.emulator.pipe.PipeBus` (a local socket pair): the
   host's end is the bus the host talks on (``bus``); no thread on either side;
-- a periodic send on the host's end (python-can ``send_periodic``: a CiA 402 SYNC) is
+- a periodic send on the host's end (python-can ``send_periodic``: a host's SYNC) is
   done by the child, on the emulated drive's tick clock: each frame due goes out at the
   start of a tick, echoed to the host first, then read by the emulated drive -- as the
   kernel's broadcast manager sends it on SocketCAN, outside the host's interpreter;
@@ -215,7 +215,7 @@ class EmulatorProcess:
         host_end, child_end = socket_pair()
         self._shared = _Shared()
         self._last = cast("list[float]", self._shared.values.tolist())
-        # periodic frames (a CiA 402 SYNC) are sent by the child on its own clock
+        # periodic frames (a host's SYNC) are sent by the child on its own clock
         self.bus = PipeBus(host_end, channel, gone=self._gone, mirror=mirror,
                            receive_own_messages=receive_own_messages, periodic_peer=True)
         try:
@@ -498,7 +498,7 @@ def _fail(bus: PipeBus, text: str) -> None:
 
 def _serve(bus: PipeBus, status: Any, spec: EmulatorSpec) -> None:
     from dobhil.emulator.plant import Plant
-    from dobhil.emulator.registry import make_emulated_drive
+    from dobhil.drives.registry import make_emulated_drive
     from dobhil.realtime import lower_priority, raise_priority
 
     if spec.priority_drop:

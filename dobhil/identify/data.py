@@ -146,7 +146,7 @@ def _from_frames(log: object, name: str, profile: DriveProfile | None, period: f
 
     from dobhil.drives.decode import decode_motion
     from dobhil.emulator.plant import Plant
-    from dobhil.emulator.registry import make_emulated_drive
+    from dobhil.drives.registry import make_emulated_drive
     from dobhil.recording.schemas import can_frame_message
     if not {"/can/rx", "/can/tx"} & set(log.topics()):  # type: ignore[attr-defined]
         raise LogFileError(f"{name}: neither loop records ({' and '.join(_TOPICS)}) nor CAN frames (/can/rx, "
@@ -154,7 +154,7 @@ def _from_frames(log: object, name: str, profile: DriveProfile | None, period: f
                            "log import")
     if profile is None:
         raise ConfigError(f"{name}: a CAN log without a recorded drive profile; give the drive's profile "
-                          "with --drive NAME (e.g. odrive-0.6)")
+                          "with --drive NAME (a profile name, as dobhil run takes it, or a .yaml path)")
     rx: list[can.Message] = []
     tx: list[can.Message] = []
     try:

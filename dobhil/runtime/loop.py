@@ -28,7 +28,7 @@ Timing (:class:`Timing`):
   feedback advances the emulator by one period, so the loop is feedback-synchronous in
   simulated time, runs as fast as the machine allows and exactly as the sampled analysis
   models it (the emulator applies each command ``design.input_delay`` after the sample,
-  or, for a protocol that fixes the delay itself, at its own latch: a CiA 402 SYNC).
+  or, for a protocol that fixes the delay itself, at its own latch: a SYNC, say).
   A drive whose feedback does not stream (``Drive.feedback_streams`` False: a drive
   that answers each command at once) runs the host algorithm on simulated time
   instead: cycle at ``t0 + k T`` on the newest feedback, then poll until the next
@@ -542,7 +542,7 @@ class ForceLoop:
             if self.settings.timing is Timing.HOST:
                 self._run_host()
             elif self.settings.timing is Timing.LOCKSTEP and not self.drive.feedback_streams:
-                # lockstep on a drive that only answers requests (an MIT motor)
+                # lockstep on a drive that only answers requests (one reply per command)
                 self._run_lockstep_requests(first)
             else:
                 self._run_feedback(first, self.settings.timing is Timing.FEEDBACK)
@@ -651,8 +651,8 @@ class ForceLoop:
                 self._gc.between_cycles(last_wake + period - clock(), period)
 
     def _run_lockstep_requests(self, first: Feedback) -> None:
-        """Lockstep for a drive whose feedback does not stream (an MIT motor answers each
-        command with one reply): the host algorithm on simulated time.
+        """Lockstep for a drive whose feedback does not stream (it answers each command
+        with one reply): the host algorithm on simulated time.
 
         Waiting for a fresh frame, as :meth:`_run_feedback` does, cannot work here: the
         emulated motor answers a command at the very instant it applies it (lockstep
@@ -737,7 +737,7 @@ class ForceLoop:
         last_fresh = t0
         last_seq = self.drive.feedback.seq if self.drive.feedback is not None else 0
         n = s.cycles
-        # a drive that only answers (an MIT motor) replies as often as this loop commands:
+        # a drive that only answers (one reply per command) replies as often as this loop commands:
         # slow replies then measure the host, whose lateness the overruns count already;
         # the rate watch would blame the drive for it (the silence check still runs)
         watch_rate = self.drive.feedback_streams

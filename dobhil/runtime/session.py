@@ -22,13 +22,15 @@ import can
 from dobhil.config.schema import Config
 from dobhil.drives.base import Drive
 from dobhil.drives.preflight import DEFAULT_WINDOW, PreflightReport, profile_rate_findings, run_preflight
-from dobhil.drives.profile import DriveProfile, load_drive_profile
+from dobhil.drives.load import load_drive_profile
+from dobhil.drives.profile import DriveProfile
 from dobhil.drives.registry import drive_class, make_drive, preflight_probe
 from dobhil.drives.timing import effective_config
 from dobhil.emulator.plant import Plant
 from dobhil.emulator.process import EmulatorProcess, EmulatorSpec, PlantView
 from dobhil.drives.emulated import EmulatedDrive, LockstepBus
-from dobhil.emulator.registry import make_emulated_drive, private_virtual_channel
+from dobhil.drives.registry import make_emulated_drive
+from dobhil.drives.emulated import private_virtual_channel
 from dobhil.errors import ConfigError, PreflightError
 from dobhil.runtime.buses import BusSpec, open_bus, resolve_bus, shutdown_bus
 from dobhil.runtime.controller import ForceController
@@ -116,7 +118,7 @@ def resolve_timing(config: Config, profile: DriveProfile, lockstep: bool | None)
 
 def check_feedback_streams(timing: Timing, drive: Drive) -> None:
     """A loop timed by feedback needs a drive that streams it on its own; one that only
-    answers the host each cycle (CiA 402 without a native periodic SYNC) cannot start it."""
+    answers the host each cycle (a SYNC the bus cannot send periodically) cannot start it."""
     if timing is Timing.FEEDBACK and not drive.feedback_streams:
         raise ConfigError(
             f"loop.timing = feedback runs one cycle per feedback frame, but node {drive.node_id} "
@@ -129,7 +131,7 @@ def lockstep_latency(config: Config, profile: DriveProfile) -> float:
     from: the delay the sampled analysis models, ``design.delay_samples`` whole periods
     plus ``design.input_delay`` (the fractional compute + bus delay) -- or 0 when the
     drive's protocol fixes the delay itself (``command_delay_periods``): the emulated
-    drive's own latch (a CiA 402 RPDO applied at the next SYNC) makes it, and a latency
+    drive's own latch (a command applied at the next SYNC) makes it, and a latency
     on top would count it twice."""
     if profile.command_delay_periods is not None:
         return 0.0

@@ -14,7 +14,7 @@ import pytest
 import yaml
 
 from dobhil.config import load_config, resolve_config
-from dobhil.drives.profile import load_profile
+from dobhil.drives.load import load_profile
 
 REPO = Path(__file__).resolve().parents[2]
 NODE = 3  # drivers/odrive-0.6.yaml and odrive-0.5.yaml

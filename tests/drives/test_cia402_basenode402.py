@@ -86,7 +86,7 @@ class EmulatorTarget(Target):
 
     def __init__(self, channel: str) -> None:
         from dobhil.emulator.plant import Plant
-        from dobhil.emulator.registry import make_emulated_drive
+        from dobhil.drives.registry import make_emulated_drive
 
         config = load_config(DEMO, ["plant.viscous_friction=0"])
         # this test decodes 0x6064/0x606C at the test node's units: the emulator takes them too

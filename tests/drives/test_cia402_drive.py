@@ -19,7 +19,7 @@ from hypothesis import strategies as st
 
 from dobhil.drives.base import Confirmation, DriveState
 from dobhil.drives.cia402.drive import CiA402Drive
-from dobhil.drives.profile import load_profile, profile_from_mapping
+from dobhil.drives.load import load_profile, profile_from_mapping
 from dobhil.errors import ConfigError, DriveError, DriveFaultError, DriveTimeoutError, WaitCancelled
 
 from .cia402_fake import EDS, EXPECTED_MAPS, FakeNode, SimBus

@@ -16,11 +16,12 @@ import yaml
 from dobhil.cli.main import main
 from dobhil.drives.base import Confirmation, DriveState
 from dobhil.drives.cia402.drive import CiA402Drive
-from dobhil.drives.profile import DriveProfile, load_profile, profile_from_mapping
+from dobhil.drives.load import load_profile, profile_from_mapping
+from dobhil.drives.profile import DriveProfile
 from dobhil.drives.cia402.emulator import EmulatedCiA402
 from dobhil.emulator.plant import Plant
 from dobhil.drives.emulated import LockstepBus
-from dobhil.emulator.registry import private_virtual_channel
+from dobhil.drives.emulated import private_virtual_channel
 from dobhil.errors import ConfigError, DriveError, DriveFaultError
 
 ROOT = Path(__file__).resolve().parents[2]

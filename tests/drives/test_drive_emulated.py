@@ -22,7 +22,7 @@ from dobhil.drives import DriveProfile, DriveState, load_profile, make_drive
 from dobhil.drives.base import Drive
 from dobhil.drives.odrive import codec
 from dobhil.drives.odrive.codec import AxisState, CmdId, ControlMode, InputMode
-from dobhil.drives.profile import profile_from_mapping
+from dobhil.drives.load import profile_from_mapping
 from dobhil.drives.registry import drive_class
 from dobhil.drives.odrive.emulator import EmulatedODrive
 from dobhil.drives.emulated import LockstepBus, PlantLike

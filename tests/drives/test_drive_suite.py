@@ -65,7 +65,7 @@ from dobhil.drives.odrive.codec import AxisState, CmdId, Firmware
 from dobhil.emulator.plant import Plant
 from dobhil.emulator.faults import Direction, Fault, InjectFrame, LoseSent, SilenceAfter, faulty
 from dobhil.drives.emulated import EmulatedDrive, LockstepBus
-from dobhil.emulator.registry import make_emulated_drive
+from dobhil.drives.registry import make_emulated_drive
 from dobhil.runtime.loop import RunResult, StopRequest
 from dobhil.runtime.session import RunSession, summary
 from dobhil.runtime.stop import StopReason

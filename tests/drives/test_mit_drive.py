@@ -22,7 +22,8 @@ from dobhil.drives.base import Confirmation
 from dobhil.drives.mit.drive import MitDrive
 from dobhil.drives.mit.replies import MitFault
 from dobhil.drives.mit.models import load_models, shipped_models_path
-from dobhil.drives.profile import DriveProfile, profile_from_mapping
+from dobhil.drives.load import profile_from_mapping
+from dobhil.drives.profile import DriveProfile
 from dobhil.errors import ConfigError, DriveFaultError, DriveTimeoutError
 
 from tests.drives.mit_fake import (CLEAR, ENTER, EXIT, ZERO_TORQUE, fake_motor, reply_cheetah, reply_cubemars,
@@ -315,7 +316,7 @@ def test_the_unwrapped_position_follows_a_motor_turning_many_times(name: str) ->
     position rolls over past +-p_max, as the firmware's does); the drive's continuous
     position stays within one step of the true angle over several wraps, both ways."""
     from dobhil.drives.mit.codec import pack_reply
-    from dobhil.drives.profile import load_profile
+    from dobhil.drives.load import load_profile
     profile = load_profile(name)
     drive = MitDrive(None, profile)  # type: ignore[arg-type]
     model = drive.model

@@ -19,7 +19,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from dobhil.drives import profile as profile_module
-from dobhil.drives.profile import load_profile, profile_from_mapping
+from dobhil.drives.load import load_profile, profile_from_mapping
 from dobhil.errors import ConfigError
 
 REPO = Path(__file__).resolve().parents[2]

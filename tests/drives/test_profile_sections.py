@@ -22,10 +22,11 @@ from hypothesis import strategies as st
 
 from dobhil.drives import load_profile, make_drive
 from dobhil.drives.odrive.drive import ODriveDrive
-from dobhil.drives.profile import RENAMED_KEYS, profile_from_mapping
+from dobhil.drives.load import profile_from_mapping
+from dobhil.drives.profile import RENAMED_KEYS
 from dobhil.drives.registry import ENTRY_POINT_GROUP, drive_class, protocols
 from dobhil.drives.emulated import EmulatedDrive
-from dobhil.emulator.registry import emulated_protocols, emulator_class
+from dobhil.drives.registry import emulated_protocols, emulator_class
 from dobhil.errors import ConfigError
 
 REPO = Path(__file__).resolve().parents[2]
@@ -317,3 +318,42 @@ def test_a_log_written_before_the_rename_still_replays_its_profile() -> None:
     old.update(encoder_msg_rate=0.001, heartbeat_msg_rate=0.1)
     profile = recorded_profile({k: json.dumps(v) for k, v in old.items()}, "old.mcap")
     assert (profile.feedback_period, profile.heartbeat_period) == (0.001, 0.1)
+
+
+# -- the one validator takes its protocols as an argument -------------------------
+
+
+def test_the_validator_asks_only_the_protocols_it_is_given() -> None:
+    """``dobhil.drives.profile`` holds no registry: the rules come from the look-up passed in,
+    so a caller (a test, another tool) can validate against protocols the registry lacks, and
+    a protocol the look-up lacks is refused although the registry knows it."""
+    from dobhil.drives import profile as validator
+    from dobhil.drives.profile import ProtocolLookup, ProtocolRules, Rule
+
+    def rules(name: str) -> ProtocolRules:
+        if name != "benchbus":
+            raise ConfigError(f"protocol: expected one of ['benchbus'], got {name!r}")
+        return ProtocolRules(section={"gain": Rule.number(0.0, 2.0, "", default=1.0)})
+
+    lookup = ProtocolLookup(rules=rules, names=lambda: ("benchbus",))
+    data = {k: v for k, v in SHIPPED.items() if k != "odrive"}
+    made = validator.profile_from_mapping({**data, "protocol": "benchbus", "benchbus": {"gain": 0.5}},
+                                          protocols=lookup)
+    assert made.protocol == "benchbus" and made.options == {"gain": 0.5}
+    with pytest.raises(ConfigError) as exc:
+        validator.profile_from_mapping({**data, "protocol": "odrive"}, protocols=lookup, source="p.yaml")
+    assert one_line(exc) == "p.yaml: protocol: expected one of ['benchbus'], got 'odrive'"
+    assert not hasattr(validator, "use_protocol_lookup") and not hasattr(validator, "_lookup")
+
+
+def test_the_built_in_table_is_what_pyproject_registers() -> None:
+    """The built-in protocols register through the same entry points (``pyproject.toml``);
+    the table beside them (for a tree never installed) must name the same classes."""
+    import tomllib
+
+    from dobhil.drives.registry import PROTOCOL_CLASSES
+    project = tomllib.loads((REPO / "pyproject.toml").read_text(encoding="utf-8"))["project"]
+    declared = project["entry-points"][ENTRY_POINT_GROUP]
+    assert {name: ":".join(row) for name, row in PROTOCOL_CLASSES.items()} == \
+        {name: value for name, value in declared.items() if name in PROTOCOL_CLASSES}
+    assert ENTRY_POINT_GROUP == "dobhil.drives"

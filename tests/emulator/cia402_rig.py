@@ -12,7 +12,7 @@ from dobhil.drives.profile import DriveProfile
 from dobhil.drives.cia402.emulator import EmulatedCiA402
 from dobhil.emulator.plant import Plant
 from dobhil.drives.emulated import LockstepBus, PlantLike
-from dobhil.emulator.registry import private_virtual_channel
+from dobhil.drives.emulated import private_virtual_channel
 
 NODE = 5
 DT = 0.001

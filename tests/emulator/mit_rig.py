@@ -11,7 +11,7 @@ from dobhil.drives.profile import DriveProfile
 from dobhil.drives.mit.emulator import EmulatedMit
 from dobhil.emulator.plant import Plant
 from dobhil.drives.emulated import LockstepBus, PlantLike
-from dobhil.emulator.registry import private_virtual_channel
+from dobhil.drives.emulated import private_virtual_channel
 
 #: (vendor, model, firmware) rows of drivers/mit-models.yaml the tests use
 AK80_9 = ("cubemars", "AK80-9", "manual-1.0.8")

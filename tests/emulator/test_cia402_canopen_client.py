@@ -16,7 +16,7 @@ import pytest
 from dobhil.data import drivers_dir
 from dobhil.drives.cia402.emulator import EmulatedCiA402, PowerState
 from dobhil.emulator.plant import Plant
-from dobhil.emulator.registry import private_virtual_channel
+from dobhil.drives.emulated import private_virtual_channel
 
 from .cia402_rig import NODE, cia402_profile
 

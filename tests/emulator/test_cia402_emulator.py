@@ -17,7 +17,7 @@ from dobhil.data import drivers_dir
 from dobhil.drives.cia402.emulator import (TRANSITIONS, Command, EmcyCode, PowerState, decode_command,
                                     statusword)
 from dobhil.emulator.plant import Plant
-from dobhil.emulator.registry import make_emulated_drive
+from dobhil.drives.registry import make_emulated_drive
 from dobhil.errors import ConfigError
 
 from .cia402_rig import (EMCY, HEARTBEAT, NODE, OPTIONS, RPDO1, SDO_TX, SYNC, TPDO1, TPDO2, Lockstep,
@@ -469,7 +469,7 @@ def test_every_commanded_transition_of_canopens_state402_table() -> None:
 def test_an_eds_without_max_torque_is_clamped_by_the_profile_alone() -> None:
     # maxon's EPOS4 object dictionary (drivers/epos4.eds) has no 0x6072: the node runs,
     # its torque bounded by the profile's torque_limit (1 Nm), 0x6076 in uNm
-    from dobhil.drives.profile import load_profile
+    from dobhil.drives.load import load_profile
     rig = Lockstep(profile=load_profile("epos4"))
     try:
         assert rig.node == 1

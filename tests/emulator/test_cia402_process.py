@@ -19,7 +19,7 @@ from dobhil.config import load_config
 from dobhil.data import drivers_dir
 from dobhil.drives.cia402.emulator import PowerState
 from dobhil.emulator.process import EmulatorProcess, EmulatorSpec
-from dobhil.emulator.registry import private_virtual_channel
+from dobhil.drives.emulated import private_virtual_channel
 
 from .cia402_rig import HEARTBEAT, NODE, RPDO1, SDO_RX, SDO_TX, SYNC, TPDO1, TPDO2, cia402_profile, download, upload
 

@@ -301,7 +301,7 @@ def test_a_stiff_command_within_range_holds_the_clamped_torque() -> None:
 
 
 def test_every_emulated_class_is_found_by_the_registry() -> None:
-    from dobhil.emulator.registry import emulator_class
+    from dobhil.drives.registry import emulator_class
     assert emulator_class("mit") is EmulatedMit
 
 

@@ -20,7 +20,7 @@ from dobhil.drives import load_profile
 from dobhil.drives.odrive import codec
 from dobhil.drives.odrive.codec import AxisState, ControlMode, InputMode
 from dobhil.drives.odrive.emulator import EmulatedODrive
-from dobhil.emulator.registry import private_virtual_channel
+from dobhil.drives.emulated import private_virtual_channel
 
 PERIOD = 0.05
 SLOW_STEP = 3       # the step that sends the command and overruns

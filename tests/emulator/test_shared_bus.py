@@ -16,7 +16,7 @@ from dobhil.drives.odrive.codec import AxisState, ControlMode, InputMode
 from dobhil.drives.odrive.emulator import EmulatedODrive
 from dobhil.emulator.plant import Plant
 from dobhil.drives.emulated import LockstepBus
-from dobhil.emulator.registry import private_virtual_channel
+from dobhil.drives.emulated import private_virtual_channel
 
 
 from . import cia402_rig, mit_rig

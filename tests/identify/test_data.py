@@ -124,7 +124,7 @@ def imported(logs: dict[str, Path], tmp_path_factory: pytest.TempPathFactory) ->
 
 
 def test_imported_can_log_decodes_like_the_loop_records(logs: dict[str, Path], imported: Path) -> None:
-    from dobhil.drives.profile import load_profile
+    from dobhil.drives.load import load_profile
     loop = read_log(logs["contact"])
     frames = read_log(imported, profile=load_profile("odrive-0.6"), period=1e-3)
     assert frames.protocol == "odrive" and frames.recorded == {} and frames.period == 1e-3
@@ -142,7 +142,7 @@ def test_imported_can_log_decodes_like_the_loop_records(logs: dict[str, Path], i
 
 
 def test_imported_can_log_needs_its_profile(imported: Path) -> None:
-    from dobhil.drives.profile import load_profile
+    from dobhil.drives.load import load_profile
     with pytest.raises(ConfigError, match="--drive"):
         read_log(imported)
     with pytest.raises(ConfigError, match="decode as motion feedback of a 'mit' drive"):

@@ -182,7 +182,7 @@ def test_imported_can_logs_identify_like_the_mcap(workflow: dict[str, Any], suff
     every frame sent): the same numbers as its loop records, once the segment is the same
     samples (motion frame 0 is the feedback before cycle 0: cycle k is frame k + 1). And the
     .asc of the free run decodes to the loop records' samples."""
-    from dobhil.drives.profile import load_profile
+    from dobhil.drives.load import load_profile
     from dobhil.identify.data import read_log
     seconds = CONTACT_SECONDS
     mcap = _identify(capsys, str(workflow["contact"]), "--segment", f"0:{seconds}:contact")

@@ -343,7 +343,7 @@ def test_bus_gone_during_the_preflight(tmp_path: Path) -> None:
     preflight ends there and refuses the run in one line (``dobhil run``: exit 1),
     instead of the transport's exception escaping as an internal error."""
     from dobhil.drives.preflight import run_preflight
-    from dobhil.drives.profile import load_profile
+    from dobhil.drives.load import load_profile
     from dobhil.drives.registry import preflight_probe
 
     profile = load_profile("odrive-0.6")
@@ -384,7 +384,7 @@ def test_a_bus_gone_mid_window_is_the_one_finding_not_a_rate() -> None:
     no "1 frame in 60000 ms" rate mismatch (seen in the kernel guest with the link taken down
     during a 60 s preflight); the read failure alone refuses the run."""
     from dobhil.drives.preflight import Severity, run_preflight
-    from dobhil.drives.profile import load_profile
+    from dobhil.drives.load import load_profile
     from dobhil.drives.registry import preflight_probe
 
     profile = load_profile("odrive-0.6")

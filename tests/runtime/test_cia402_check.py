@@ -89,7 +89,7 @@ def test_the_check_changes_nothing_on_the_emulated_node_in_lockstep() -> None:
     from dobhil.drives.cia402.emulator import EmulatedCiA402
     from dobhil.emulator.plant import Plant
     from dobhil.drives.emulated import LockstepBus
-    from dobhil.emulator.registry import private_virtual_channel
+    from dobhil.drives.emulated import private_virtual_channel
 
     profile = load_profile("cia402-emulated")
     channel = private_virtual_channel()

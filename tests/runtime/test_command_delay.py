@@ -16,7 +16,7 @@ from dobhil.analysis import report as analysis_report
 from dobhil.analysis.transfer import LoopSystems
 from dobhil.cli.main import main
 from dobhil.config import load_config
-from dobhil.drives.profile import load_profile
+from dobhil.drives.load import load_profile
 from dobhil.drives.timing import effective_config, with_command_delay
 from dobhil.runtime.session import RunSession, build_controller, lockstep_latency
 from dobhil.synthesis.controller import sampled_controller

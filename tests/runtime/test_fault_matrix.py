@@ -17,6 +17,7 @@ processes). The recorder's rows (writer killed, disk full, ``dobhil log recover`
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import signal
 from collections.abc import Callable
@@ -30,6 +31,7 @@ from dobhil.drives.base import Confirmation, Feedback, SafeStopReport
 from dobhil.drives.odrive import codec
 from dobhil.drives.odrive.codec import AxisState, CmdId, Firmware
 from dobhil.emulator.bus_faults import InterfaceGone, RefuseSend
+from dobhil.drives.load import load_profile
 from dobhil.emulator.faults import (CorruptFeedback, Fault, Flood, HoldFrames, InjectFrame,
                                     InjectReceived, KeepEvery, LoseSent, SilenceAfter, faulty)
 from dobhil.runtime.controller import ControlOutput
@@ -45,6 +47,8 @@ TIMINGS = ("lockstep", "feedback", "host")
 TIMING = {"lockstep": Timing.LOCKSTEP, "feedback": Timing.FEEDBACK, "host": Timing.HOST}
 FW = Firmware.V0_6
 ENCODER = codec.arbitration_id(NODE, CmdId.GET_ENCODER_ESTIMATES)
+#: the drive these tests run, for faults laid out by its protocol
+ODRIVE_PROFILE = dataclasses.replace(load_profile("odrive-0.6"), node_id=NODE)
 TORQUE = codec.arbitration_id(NODE, CmdId.SET_INPUT_TORQUE)
 AXIS_STATE = codec.arbitration_id(NODE, CmdId.SET_AXIS_STATE)
 NODE_IDS = frozenset(codec.arbitration_id(NODE, c) for c in CmdId)
@@ -102,7 +106,7 @@ def _estop() -> list[Fault]:
 def _bad_feedback(timing: str, value: float, field_name: str = "position") -> list[Fault]:
     # real time uses the newest of the frames queued in a cycle: the sensor stays bad
     count = 1 if timing == "lockstep" else 1_000_000
-    return [CorruptFeedback.odrive(NODE, field_name, value=value, at=AT, count=count)]
+    return [CorruptFeedback.of_profile(ODRIVE_PROFILE, field_name, value=value, at=AT, count=count)]
 
 
 ROWS: dict[str, Row] = {

@@ -20,7 +20,7 @@ import pytest
 from dobhil.analysis.report import analyze
 from dobhil.config import load_config
 from dobhil.config.load import resolve_config
-from dobhil.drives.profile import load_drive_profile
+from dobhil.drives.load import load_drive_profile
 from dobhil.drives.timing import effective_config
 from dobhil.runtime.instability import WatchPeaks, WatchSettings
 from dobhil.runtime.session import RunSession

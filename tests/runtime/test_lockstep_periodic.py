@@ -9,7 +9,7 @@ import can
 import pytest
 
 from dobhil.drives.periodic import native_periodic
-from dobhil.drives.profile import load_profile
+from dobhil.drives.load import load_profile
 from dobhil.drives.emulated import EmulatedDrive, LockstepBus
 
 DT = 1e-3

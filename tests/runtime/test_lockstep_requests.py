@@ -24,7 +24,7 @@ from dobhil.drives.profile import DriveProfile
 from dobhil.drives.mit.emulator import EmulatedMit, model_of
 from dobhil.emulator.plant import Plant
 from dobhil.drives.emulated import LockstepBus
-from dobhil.emulator.registry import private_virtual_channel
+from dobhil.drives.emulated import private_virtual_channel
 from dobhil.runtime.controller import ControlOutput
 from dobhil.runtime.loop import ForceLoop, Timing
 from dobhil.runtime.references import make_reference

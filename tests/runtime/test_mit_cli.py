@@ -24,7 +24,7 @@ from orjson import loads
 from dobhil.cli.main import main
 from dobhil.config import load_config
 from dobhil.drives.mit.rules import model_of
-from dobhil.drives.profile import load_drive_profile
+from dobhil.drives.load import load_drive_profile
 from dobhil.recording.reader import open_log
 
 from .helpers import DEMO, DRIVERS, REPO, summary_shape

@@ -12,7 +12,7 @@ import pytest
 
 from dobhil.drives.odrive.codec import CmdId
 from dobhil.drives.periodic import native_periodic
-from dobhil.drives.profile import load_drive_profile
+from dobhil.drives.load import load_drive_profile
 from dobhil.emulator.pipe import PeriodicTable, PipeBus, RecordKind, periodic_record, socket_pair
 from dobhil.emulator.process import EmulatorProcess, EmulatorSpec
 

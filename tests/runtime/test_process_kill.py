@@ -21,7 +21,7 @@ import can
 
 from dobhil.drives.base import Confirmation
 from dobhil.drives.odrive.codec import AxisState
-from dobhil.drives.profile import load_profile
+from dobhil.drives.load import load_profile
 from dobhil.drives.odrive.emulator import EmulatedODrive
 from dobhil.emulator.plant import Plant
 from dobhil.runtime.session import RunSession

@@ -12,7 +12,7 @@ from typing import Any
 import pytest
 
 from dobhil.drives.base import Confirmation, Feedback, SafeStopReport
-from dobhil.drives.profile import load_profile
+from dobhil.drives.load import load_profile
 from dobhil.drives.registry import drive_class
 from dobhil.runtime.loop import ForceLoop, Limits, LoopSettings, Timing
 from dobhil.runtime.session import build_controller

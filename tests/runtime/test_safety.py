@@ -9,6 +9,7 @@ sniffed by an extra ``virtual`` bus on the session's private channel.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 import re
@@ -27,7 +28,7 @@ from dobhil.config import Config
 from dobhil.drives.base import Feedback
 from dobhil.drives.odrive import codec
 from dobhil.drives.odrive.codec import AxisState, CmdId, Firmware
-from dobhil.drives.profile import load_profile
+from dobhil.drives.load import load_profile
 from dobhil.emulator.faults import (CorruptFeedback, DropFrames, Fault, InjectFrame,
                                    SilenceAfter, faulty)
 from dobhil.drives.odrive.emulator import EmulatedODrive
@@ -44,6 +45,8 @@ from .helpers import (NODE, REALTIME_SLACK, STEP_FROM_ZERO, HostCommands, Sniffe
 
 TIMINGS = ("lockstep", "realtime")
 ENCODER_ID = codec.arbitration_id(NODE, CmdId.GET_ENCODER_ESTIMATES)
+#: the drive these tests run, for faults laid out by its protocol
+ODRIVE_PROFILE = dataclasses.replace(load_profile("odrive-0.6"), node_id=NODE)
 TORQUE_ID = codec.arbitration_id(NODE, CmdId.SET_INPUT_TORQUE)
 
 
@@ -190,7 +193,7 @@ def test_non_finite_feedback(tmp_path: Path, timing: str, field_name: str, value
     count = 1 if timing == "lockstep" else 1_000_000
     out = run_case(safety_config(tmp_path, timing), timing, StopReason.NON_FINITE,
                    words=["non-finite feedback"],
-                   faults=[CorruptFeedback.odrive(NODE, field_name, value=value, at=100,
+                   faults=[CorruptFeedback.of_profile(ODRIVE_PROFILE, field_name, value=value, at=100,
                                                   count=count)])
     assert math.isfinite(max(abs(x) for x in out.sent.torques))
 

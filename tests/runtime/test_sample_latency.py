@@ -16,7 +16,7 @@ from dobhil.cli.main import main
 from dobhil.cli.run_cmd import report
 from dobhil.drives.base import Confirmation, Feedback, SafeStopReport
 from dobhil.drives.odrive.drive import ODriveDrive
-from dobhil.drives.profile import load_profile
+from dobhil.drives.load import load_profile
 from dobhil.errors import ConfigError
 from dobhil.runtime.loop import ForceLoop, Limits, LoopSettings, Timing
 from dobhil.runtime.session import RunSession, build_controller, summary

@@ -21,7 +21,7 @@ from typing import Any
 import can
 import pytest
 
-from dobhil.drives.profile import load_profile
+from dobhil.drives.load import load_profile
 from dobhil.drives.odrive.emulator import EmulatedODrive
 from dobhil.emulator.plant import Plant
 

@@ -24,7 +24,7 @@ from dobhil.runtime.session import RunSession
 from dobhil.runtime.stop import StopReason
 
 from .helpers import DEMO, demo_config
-from .test_safety import ENCODER_ID, NODE, Recorder, run_case, safety_config, stall
+from .test_safety import ENCODER_ID, ODRIVE_PROFILE, Recorder, run_case, safety_config, stall
 
 #: open loop, in contact from the start, a multisine torque well inside the 2 N m limits
 TORQUE = ("loop.mode=torque", "plant.initial_position=0", "reference.kind=multisine",
@@ -142,7 +142,7 @@ def test_feedback_timeout_stops_a_torque_run(tmp_path: Path) -> None:
 def test_non_finite_feedback_stops_a_torque_run(tmp_path: Path) -> None:
     out = run_case(torque_config(tmp_path, "lockstep"), "lockstep", StopReason.NON_FINITE,
                    words=["non-finite feedback"],
-                   faults=[CorruptFeedback.odrive(NODE, "position", value=math.nan, at=100)])
+                   faults=[CorruptFeedback.of_profile(ODRIVE_PROFILE, "position", value=math.nan, at=100)])
     assert all(math.isfinite(x) for x in out.sent.torques)
 
 

@@ -18,7 +18,7 @@ import yaml
 
 from dobhil.drives.odrive import codec
 from dobhil.drives.odrive.codec import AxisState, CmdId, Firmware
-from dobhil.drives.profile import load_profile
+from dobhil.drives.load import load_profile
 from dobhil.identify.data import IdentData, Segment, read_log
 from dobhil.identify.fit import LEVEL, simulate
 

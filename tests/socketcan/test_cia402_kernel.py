@@ -340,7 +340,7 @@ def test_bcm_sync_and_host_heartbeat_end_with_the_killed_process(vcan: str, dobh
 
 def profile_option(key: str) -> Any:
     """A setting of the shipped drivers/cia402-emulated.yaml (its default where it has none)."""
-    from dobhil.drives.profile import load_profile
+    from dobhil.drives.load import load_profile
     return load_profile("cia402-emulated").options[key]
 
 

@@ -12,7 +12,7 @@ from pathlib import Path
 
 from dobhil.drives.decode import decode_motion
 from dobhil.drives.odrive import codec
-from dobhil.drives.profile import load_profile
+from dobhil.drives.load import load_profile
 
 from .guest import CONFIGS, START_TIMEOUT, Dobhil, Dumped, Proc, guest_overlay, summary_json
 from .peers import crashes_say_where  # noqa: F401 (an autouse fixture: applies here)

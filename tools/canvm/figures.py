@@ -172,7 +172,7 @@ class Cia402Ids:
     @classmethod
     def of(cls, profile: str = "cia402-emulated") -> Cia402Ids:
         from dobhil.drives.cia402.codec import Cob
-        from dobhil.drives.profile import load_profile
+        from dobhil.drives.load import load_profile
         loaded = load_profile(profile)
         node, rpdo, tpdo = loaded.node_id, int(loaded.options["rpdo"]), int(loaded.options["tpdo"])
         return cls(int(Cob.SYNC), Cob.rpdo(rpdo, node), Cob.tpdo(tpdo, node), Cob.tpdo(tpdo + 1, node),

@@ -3,9 +3,17 @@ registered as the entry point ``cia402`` of the group ``dobhil.drives`` (``pypro
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
+from dobhil.drives.cia402 import codec
+from dobhil.drives.cia402.codec import Cob, Mapped
 from dobhil.drives.cia402.drive import CiA402Drive
 from dobhil.drives.cia402.emulator import EmulatedCiA402
-from dobhil.drives.plugin import DriveProtocol
+from dobhil.drives.plugin import DriveProtocol, FeedbackField
+from dobhil.drives.profile import DriveProfile
+
+#: the feedback values a fault may corrupt -> (object index, which of the two TPDOs)
+_FEEDBACK_OBJECTS = {"position": (0x6064, 0), "velocity": (0x606C, 1)}
 
 __all__ = ["CiA402Protocol"]
 
@@ -21,3 +29,23 @@ class CiA402Protocol(DriveProtocol):
     @property
     def emulator_class(self) -> type[EmulatedCiA402]:
         return EmulatedCiA402
+
+    def feedback_field(self, profile: DriveProfile, name: str) -> FeedbackField | None:
+        """``position`` (0x6064) in the status TPDO, ``velocity`` (0x606C) in the motion
+        TPDO after it (``cia402.tpdo``, the codec's standard mappings): integers in the
+        drive's units."""
+        found = _FEEDBACK_OBJECTS.get(name)
+        if found is None:
+            return None
+        index, which = found
+        layout = (codec.TPDO_STATUS, codec.TPDO_MOTION)[which]
+        cob = Cob.tpdo(int(profile.options["tpdo"]) + which, profile.node_id)
+        return _field(cob, layout, index)
+
+
+def _field(cob: int, layout: Sequence[Mapped], index: int) -> FeedbackField:
+    """Where object ``index`` sits in a PDO mapping ``layout`` (byte-aligned, in order)."""
+    types = [m.data_type for m in layout]
+    at = [m.index for m in layout].index(index)
+    fmt = codec.layout_struct(types[at:at + 1]).format
+    return FeedbackField(arbitration_id=cob, offset=codec.layout_struct(types[:at]).size, fmt=fmt)

@@ -3,16 +3,28 @@ registered as the entry point ``mit`` of the group ``dobhil.drives`` (``pyprojec
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from types import MappingProxyType
+
+import can
+
+from dobhil.drives.mit.codec import MitModel, TorqueFrame, unpack_command
 from dobhil.drives.mit.drive import MitDrive
 from dobhil.drives.mit.emulator import EmulatedMit
-from dobhil.drives.plugin import DriveProtocol
+from dobhil.drives.mit.preflight import ZeroResult
+from dobhil.drives.mit.preflight import set_zero as send_set_zero
+from dobhil.drives.mit.rules import model_of
+from dobhil.drives.plugin import CodecQuantisation, DriveProtocol
+from dobhil.drives.profile import DriveProfile
+from dobhil.drives.waits import Cancel
 
-__all__ = ["MitProtocol"]
+__all__ = ["MitProtocol", "model_quantisation", "zero_command_torque"]
 
 
 class MitProtocol(DriveProtocol):
     name = "mit"
     title = "MIT mode"
+    sets_zero = True
 
     @property
     def drive_class(self) -> type[MitDrive]:
@@ -21,3 +33,37 @@ class MitProtocol(DriveProtocol):
     @property
     def emulator_class(self) -> type[EmulatedMit]:
         return EmulatedMit
+
+    def set_zero(self, bus: can.BusABC, profile: DriveProfile, *, clock: Callable[[], float],
+                 cancel: Cancel | None = None) -> ZeroResult:
+        """Set zero (0xFE), wait ``mit.zero_silence``, read the position back
+        (:func:`dobhil.drives.mit.preflight.set_zero`)."""
+        return send_set_zero(bus, profile, clock=clock, cancel=cancel)
+
+    def quantisation(self, profile: DriveProfile) -> CodecQuantisation:
+        """The codec of the profile's model row (``mit.vendor``/``mit.model``, see
+        :mod:`dobhil.drives.mit.rules`): 16-bit position, 12-bit velocity and torque over the
+        model's ranges (``MitModel.quanta``), truncated as the firmware's ``float_to_uint``
+        does, in the firmware's sense of rotation (``axis_direction``). ConfigError (one
+        line) when the model table has no such row."""
+        return model_quantisation(model_of(profile))
+
+
+def model_quantisation(model: MitModel) -> CodecQuantisation:
+    """What the codec of one row of the model table quantises (see
+    :meth:`MitProtocol.quantisation`); the report names the row (``source``)."""
+    steps = model.quanta
+    return CodecQuantisation(
+        position=float(steps.position), velocity=float(steps.velocity), torque=float(steps.torque),
+        direction=model.axis_direction, truncates=True, zero_torque=zero_command_torque(model),
+        source=MappingProxyType({"vendor": model.vendor, "model": model.model, "firmware": model.firmware}))
+
+
+def zero_command_torque(model: MitModel) -> float:
+    """The torque a zero command applies, found by the codec itself: the drive's
+    preallocated torque frame filled with 0 N m, decoded as the firmware decodes it (in the
+    host's sense of rotation). Code ``2^11 - 1`` of 12 bits: -step/2, -4.4 mN m on an AK80-9."""
+    frame = TorqueFrame(model)
+    data = bytearray(frame.template)
+    frame.fill(data, 0.0)
+    return float(unpack_command(model, bytes(data)).torque)

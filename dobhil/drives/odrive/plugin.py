@@ -3,9 +3,17 @@ registered as the entry point ``odrive`` of the group ``dobhil.drives`` (``pypro
 
 from __future__ import annotations
 
+import struct
+
+from dobhil.drives.odrive import codec
+from dobhil.drives.odrive.codec import CmdId
 from dobhil.drives.odrive.drive import ODriveDrive
 from dobhil.drives.odrive.emulator import EmulatedODrive
-from dobhil.drives.plugin import DriveProtocol
+from dobhil.drives.plugin import DriveProtocol, FeedbackField
+from dobhil.drives.profile import DriveProfile
+
+#: the feedback values a fault may corrupt -> their slot in Get_Encoder_Estimates
+_ESTIMATE_SLOTS = {"position": "position_rad", "velocity": "velocity_rad_s"}
 
 __all__ = ["ODriveProtocol"]
 
@@ -21,3 +29,15 @@ class ODriveProtocol(DriveProtocol):
     @property
     def emulator_class(self) -> type[EmulatedODrive]:
         return EmulatedODrive
+
+    def feedback_field(self, profile: DriveProfile, name: str) -> FeedbackField | None:
+        """``position``/``velocity`` in Get_Encoder_Estimates (the codec's table for the
+        profile's firmware: both share the layout, two little-endian floats)."""
+        slot = _ESTIMATE_SLOTS.get(name)
+        if slot is None:
+            return None
+        spec = codec.spec_for(CmdId.GET_ENCODER_ESTIMATES, codec.Firmware.parse(profile.firmware))
+        formats = spec.struct.format.lstrip("<")
+        index = [getattr(s, "name", None) for s in spec.slots].index(slot)
+        return FeedbackField(arbitration_id=codec.arbitration_id(profile.node_id, CmdId.GET_ENCODER_ESTIMATES),
+                             offset=struct.calcsize("<" + formats[:index]), fmt="<" + formats[index])
