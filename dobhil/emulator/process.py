@@ -197,7 +197,7 @@ class _Shared:
 
 def _renamed(old: str, new: str) -> None:
     """Warn once per call site that ``old`` is ``new`` now: one name, one meaning (the drive's
-    own code, where ``axis_*`` read as ODrive's word for every protocol)."""
+    own code, where ``axis_*`` read as one protocol's word for every protocol)."""
     warnings.warn(f"EmulatorProcess.{old} is renamed {new}; {old} is removed in dobhil 0.2",
                   DeprecationWarning, stacklevel=3)
 
@@ -354,7 +354,7 @@ class EmulatorProcess:
 
     @property
     def protocol_state(self) -> int:
-        """The emulated drive's own state code (ODrive: Axis_State; CiA 402: power state)."""
+        """The emulated drive's own state code, as its protocol reports it."""
         return self._count(Slot.PROTOCOL_STATE)
 
     @property

@@ -241,8 +241,8 @@ def _frame_encoder(topic: Topic) -> Encoder:
 
 
 #: ``/drive/feedback.drive_state`` by dobhil's ``DriveState`` code (``dobhil.drives.base``; a
-#: test checks they match). Names, not the codes: a drive's own state codes differ (ODrive's
-#: 1 is IDLE, dobhil's 1 is enabled), and a number in Foxglove reads as the drive's.
+#: test checks they match). Names, not the codes: a drive's own state codes differ (a drive's
+#: 1 may be its idle state, dobhil's 1 is enabled), and a number in Foxglove reads as the drive's.
 DRIVE_STATE_NAMES: Final = ("disabled", "enabled", "fault")
 
 
@@ -313,7 +313,8 @@ _SPECS: Final = (
                         "exec_time", "time spent computing the cycle [s]")
               + _fields(_B, "overrun", "the cycle missed its deadline")
               + _fields(_N, "sample_latency", "the drive's sample instant (its SYNC) to its feedback received, "
-                        "bus stamps [s]; null when unknown (ODrive, lockstep; absent in logs before it)")),
+                        "bus stamps [s]; null when unknown (a protocol that does not tell it, lockstep; absent "
+                        "in logs before it)")),
     TopicSpec(Topic.EMULATOR_TRUTH, "/emulator/truth", "dobhil.EmulatorTruth", "ground truth of the plant emulator",
               _fields(_N, "q", "position [rad]", "dq", "velocity [rad/s]", "tau_motor", "motor torque applied [N m]",
                       "tau_int", "interaction torque applied [N m]")),

@@ -72,6 +72,8 @@ def test_foxglove_layout_names_recorded_fields() -> None:
              for p in c["paths"]]
     assert "/controller.tau_int_hat" in paths and "/loop.exec_time" in paths
     assert "/drive/feedback.drive_state" in paths  # by name: dobhil's codes read as the drive's
+    # and the drive's own codes in its protocol's words, beside dobhil's
+    assert {"/drive/feedback.protocol_state_name", "/drive/feedback.protocol_error_text"} <= set(paths)
     for path in paths:
         topic, field = path.rsplit(".", 1)
         assert field in SPECS_BY_NAME[topic].keys, path
