@@ -34,12 +34,18 @@ class ProtocolCodes:
         self.profile = profile
         self._states: dict[int, str] = {}
         self._errors: dict[int, str] = {}
+        self._found: tuple[DriveProtocol | None] | None = None   # the protocol, once looked up
 
     def __getstate__(self) -> DriveProfile | None:
         return self.profile   # the names are made again where they are used
 
     def __setstate__(self, profile: DriveProfile | None) -> None:
         self.__init__(profile)  # type: ignore[misc]
+
+    def prepare(self) -> None:
+        """Look the protocol up now (its modules imported): the writer process does it
+        while it opens the log, before the run starts, not at the first message."""
+        self._protocol()
 
     def state_name(self, code: int) -> str:
         name = self._states.get(code)
@@ -65,6 +71,11 @@ class ProtocolCodes:
         return "not reported" if state and code == NO_STATE and name == str(code) else name
 
     def _protocol(self) -> DriveProtocol | None:
+        if self._found is None:
+            self._found = (self._lookup(),)
+        return self._found[0]
+
+    def _lookup(self) -> DriveProtocol | None:
         if self.profile is None:
             return None
         from dobhil.drives.registry import protocol

@@ -305,6 +305,8 @@ def _read_status(conn: Connection, timeout: float = 0.0) -> Reply | None:
 
 
 def _open(path: str, status: Connection, o: Open) -> LogWriter:
+    if o.codes is not None:
+        o.codes.prepare()
     log = LogWriter(open(path, "wb"), metadata=o.metadata, attachments=o.attachments, mode=RecordMode(o.mode),
                     fsync=o.fsync, codes=o.codes)
     live = o.live
