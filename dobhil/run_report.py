@@ -54,8 +54,11 @@ from numpy.typing import NDArray
 from dobhil.config.schema import Config
 from dobhil.drives.bus_load import frame_bits
 from dobhil.drives.timing import with_command_delay
+from dobhil.drives.decode import recorded_profile
 from dobhil.errors import LogFileError
+from dobhil.recording.codes import ProtocolCodes
 from dobhil.recording.reader import open_log
+from dobhil.recording.schemas import feedback_state
 
 Array = NDArray[np.float64]
 ProgressFn = Callable[[int], None]
@@ -94,6 +97,8 @@ class RunData:
     span_s: float = 0.0                                          # first to last CAN frame
     frame_times: dict[str, list[int]] = field(default_factory=dict)  # topic -> log times [ns]
     events: list[dict[str, Any]] = field(default_factory=list)
+    #: each change of the drive's state (dobhil's and its own codes, with their names)
+    states: list[dict[str, Any]] = field(default_factory=list)
 
     def has(self, name: str) -> bool:
         return name in self.signals and bool(np.any(np.isfinite(self.signals[name])))
@@ -106,7 +111,7 @@ def load_run(path: str | os.PathLike[str], progress: ProgressFn | None = None) -
     """Read a dobhil run log (checked by :class:`~dobhil.recording.reader.LogFile`)."""
     from orjson import loads
     name = os.fspath(path)
-    per: dict[str, list[Any]] = {k: [] for k in ("controller", "feedback", "truth", "loop")}
+    per: dict[str, list[Any]] = {k: [] for k in ("controller", "feedback", "truth", "loop", "states")}
     frames: dict[str, list[int]] = {"/can/rx": [], "/can/tx": []}
     frame_times: dict[str, list[int]] = {"/can/rx": [], "/can/tx": []}
     ext = {"/can/rx": 0, "/can/tx": 0}
@@ -127,8 +132,31 @@ def load_run(path: str | os.PathLike[str], progress: ProgressFn | None = None) -
             raise LogFileError(f"{name}: a recorded message does not match its schema ({type(exc).__name__}: "
                                f"{exc})") from None
         run = _assemble(name, log.config, log.metadata, per, frames, ext, times, events, bounds)
+        run.states = drive_states(per["states"], _codes(log))
     run.frame_times = frame_times
     return run
+
+
+def _codes(log: Any) -> ProtocolCodes:
+    """The names of the run's drive codes, from its recorded profile (numbers without one)."""
+    try:
+        return ProtocolCodes(recorded_profile(log.metadata.get("drive"), os.fspath(log.path)))
+    except LogFileError:
+        return ProtocolCodes()
+
+
+def drive_states(changes: list[tuple[Any, ...]], codes: ProtocolCodes) -> list[dict[str, Any]]:
+    """The drive's state changes, ``(log time, cycle, payload)`` each, as the report gives
+    them: the names the log recorded, else (logs before them) ``codes``' names."""
+    out = []
+    t0 = changes[0][0] if changes else 0
+    for t, cycle, p in changes:
+        drive_state, state, error = feedback_state(p)
+        out.append({"time_s": (t - t0) / 1e9, "cycle": cycle, "drive_state": drive_state, "protocol_state": state,
+                    "protocol_state_name": p.get("protocol_state_name") or codes.state_name(state),
+                    "protocol_error": error,
+                    "protocol_error_text": p.get("protocol_error_text") or codes.error_text(error)})
+    return out
 
 
 def _take(topic: str, t: int, p: dict[str, Any], per: dict[str, list[Any]], frames: dict[str, list[int]],
@@ -136,6 +164,9 @@ def _take(topic: str, t: int, p: dict[str, Any], per: dict[str, list[Any]], fram
     if topic == "/controller":
         per["controller"].append((p["cycle"], t, *(_f(p[k]) for k in _CONTROLLER)))
     elif topic == "/drive/feedback":
+        states = per["states"]
+        if not states or feedback_state(states[-1][2]) != feedback_state(p):
+            states.append((t, p.get("cycle", -1), p))
         if p.get("cycle", 0) >= 0:
             per["feedback"].append((p.get("cycle", len(per["feedback"])), _f(p["position"]), _f(p["velocity"])))
     elif topic == "/emulator/truth":
@@ -500,6 +531,7 @@ def analyse(data: RunData) -> tuple[dict[str, Any], Array | None]:
         "dropped": int(sum(int(e.get("count", 0)) for e in data.events if e.get("kind") == "loss")),
         "prediction": pred_info,
         "stability_gate": stability_gate(data),
+        "drive_states": data.states,
     }
     return summary, predicted
 
@@ -592,7 +624,23 @@ def summary_text(s: Mapping[str, Any]) -> str:
     fps = "-" if b.get("rx_frames_per_s") is None else f"{b['rx_frames_per_s']:.0f} rx + {b['tx_frames_per_s']:.0f} tx"
     rate = "?" if not b["bitrate"] else f"{b['bitrate']:.0f}"
     lines.append(f"bus: {fps} frames/s, load {load} at {rate} bit/s; dropped records {s['dropped']}")
+    lines += _state_lines(s.get("drive_states") or [])
     return "\n".join(lines) + "\n"
+
+
+#: state changes the text summary lists (the JSON summary has them all)
+STATE_LINES: Final = 10
+
+
+def _state_lines(states: list[Mapping[str, Any]]) -> list[str]:
+    """One line per change of the drive's state: dobhil's state, the drive's own state and
+    error code with the protocol's names for them."""
+    lines = [f"drive state at {st['time_s']:.3f} s (cycle {st['cycle']}): {st['drive_state']}; "
+             f"the drive's state {st['protocol_state']} ({st['protocol_state_name']}), "
+             f"error {st['protocol_error_text']}" for st in states[:STATE_LINES]]
+    if len(states) > STATE_LINES:
+        lines.append(f"... {len(states) - STATE_LINES} more drive state changes (report --json lists them)")
+    return lines
 
 
 def _step_line(st: Mapping[str, Any]) -> str:

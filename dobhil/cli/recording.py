@@ -25,6 +25,7 @@ from dobhil.config import Config, to_yaml
 from dobhil.drives.profile import DriveProfile
 from dobhil.errors import RecorderError
 from dobhil.files import check_new_output
+from dobhil.recording.codes import ProtocolCodes
 from dobhil.recording.process import WriterProcess
 from dobhil.recording.runlog import RunLog
 from dobhil.recording.schemas import EventKind
@@ -143,7 +144,7 @@ def begin(log: RunLog, session: RunSession, config_file: str | os.PathLike[str] 
               clock_ns=None if sim is None else (lambda: origin + round(sim() * 1e9)),
               truth=None if plant is None else (lambda: (plant.true_position, plant.true_velocity,
                                                          plant.motor_torque, plant.interaction_torque)),
-              drive=drive, own_ids=drive.frame_ids)
+              drive=drive, own_ids=drive.frame_ids, codes=ProtocolCodes(session.profile))
     if log.live_port is not None and log.live is not None:
         sys.stderr.write(f"live view: ws://{log.live.host}:{log.live_port}\n")
         sys.stderr.flush()

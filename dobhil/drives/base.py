@@ -125,11 +125,17 @@ class Feedback:
 
 @dataclass(frozen=True, slots=True)
 class DriveStatus:
+    """What the host knows of the drive: dobhil's :class:`DriveState`, and the drive's own
+    codes as its protocol reports them (``protocol_state``: -1 before any state frame or
+    for a protocol without one; ``error_code``: 0 none); the protocol object names both
+    (:meth:`dobhil.drives.plugin.DriveProtocol.state_name`, ``error_text``)."""
+
     state: DriveState
     error_code: int = 0
     watchdog_tripped: bool = False
     last_heartbeat: float | None = None  # drive clock [s]
     detail: str = ""  # last fault / enable / disable-failure text, one line
+    protocol_state: int = -1  # the drive's own state code (StateEvent.state)
 
 
 class Confirmation(IntEnum):
@@ -340,6 +346,7 @@ class Drive(ABC):
                 watchdog_tripped=last.watchdog_tripped if last else False,
                 last_heartbeat=self._last_heartbeat,
                 detail=self._detail,
+                protocol_state=last.state if last else -1,
             )
         return self._status_cache
 

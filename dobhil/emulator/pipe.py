@@ -233,7 +233,7 @@ class PipeBus(can.BusABC):
     drive's end): a frame that finds the buffer full is not lost but held, the newest
     per arbitration id (as a CAN controller's transmit mailbox holds one frame per
     message), and goes out first once the reader has made room -- a host that stalled
-    then reads the drive's newest heartbeat and estimates, not only the oldest frames of
+    then reads the drive's newest status and feedback frames, not only the oldest frames of
     its stall; ``replaced`` counts the frames a newer one of the same id superseded.
     ``periodic_peer`` (the host's end of an emulator process): the peer sends periodic
     frames itself (:attr:`native_periodic`); otherwise python-can's thread does, here.

@@ -17,7 +17,7 @@ and the same :class:`~dobhil.emulator.plant.Plant` in a child process instead:
   temporary file both processes map; a sequence counter around each write, so a reader
   retries instead of mixing two ticks, and never waits for the child): the ground truth
   (:attr:`EmulatorProcess.plant`, a :class:`PlantView`), the protocol state the host may
-  look at (``axis_state``, ``watchdog_tripped`` ...), frame counters, and how late its
+  look at (``protocol_state``, ``watchdog_tripped`` ...), frame counters, and how late its
   own ticks ran (:meth:`EmulatorProcess.starved`: the host, not the drive, is to blame
   when the emulated drive itself was not scheduled);
 - the child dies with its parent: it blocks on its end of the socket pair, and reads the
@@ -53,6 +53,7 @@ import subprocess
 import sys
 import tempfile
 import time
+import warnings
 from array import array
 from collections.abc import Callable
 from pathlib import Path
@@ -103,14 +104,14 @@ class Slot(IntEnum):
     MAX_LATENESS = 16
     STALL_START = 17      # perf_counter deadline of the newest stalled tick
     STALL_LENGTH = 18     # how late it ran [s]
-    AXIS_STATE = 19       # protocol state (NaN when the protocol has none)
-    AXIS_ERROR = 20
+    PROTOCOL_STATE = 19   # the drive's own state code (NaN when the protocol has none)
+    PROTOCOL_ERROR = 20   # the drive's own error code
     WATCHDOG_TRIPPED = 21
     FRAMES_REJECTED = 22
 
 
 #: protocol state published when the emulator has it (an attribute of that name)
-OBSERVED: dict[str, Slot] = {"axis_state": Slot.AXIS_STATE, "axis_error": Slot.AXIS_ERROR,
+OBSERVED: dict[str, Slot] = {"protocol_state": Slot.PROTOCOL_STATE, "protocol_error": Slot.PROTOCOL_ERROR,
                              "watchdog_tripped": Slot.WATCHDOG_TRIPPED,
                              "frames_rejected": Slot.FRAMES_REJECTED}
 
@@ -192,6 +193,13 @@ class _Shared:
         if self._file is not None:
             self.values[:] = array("d", [math.nan] * len(Slot))
             self.values[Slot.SEQ] = 0.0
+
+
+def _renamed(old: str, new: str) -> None:
+    """Warn once per call site that ``old`` is ``new`` now: one name, one meaning (the drive's
+    own code, where ``axis_*`` read as one protocol's word for every protocol)."""
+    warnings.warn(f"EmulatorProcess.{old} is renamed {new}; {old} is removed in dobhil 0.2",
+                  DeprecationWarning, stacklevel=3)
 
 
 def _child_env() -> dict[str, str]:
@@ -345,12 +353,26 @@ class EmulatorProcess:
         return self.snapshot()[Slot.APPLIED_TORQUE]
 
     @property
+    def protocol_state(self) -> int:
+        """The emulated drive's own state code, as its protocol reports it."""
+        return self._count(Slot.PROTOCOL_STATE)
+
+    @property
+    def protocol_error(self) -> int:
+        """The emulated drive's own error code (0: none)."""
+        return self._count(Slot.PROTOCOL_ERROR)
+
+    @property
     def axis_state(self) -> int:
-        return self._count(Slot.AXIS_STATE)
+        """Deprecated name of :attr:`protocol_state` (removed in dobhil 0.2)."""
+        _renamed("axis_state", "protocol_state")
+        return self.protocol_state
 
     @property
     def axis_error(self) -> int:
-        return self._count(Slot.AXIS_ERROR)
+        """Deprecated name of :attr:`protocol_error` (removed in dobhil 0.2)."""
+        _renamed("axis_error", "protocol_error")
+        return self.protocol_error
 
     @property
     def watchdog_tripped(self) -> bool:

@@ -23,6 +23,7 @@ from typing import Any, Final, NamedTuple, cast
 
 import dobhil
 from dobhil.errors import RecorderError
+from dobhil.recording.codes import ProtocolCodes
 from dobhil.recording.writer import LiveView, LogWriter, RecordMode
 
 #: Seconds ``close`` waits for the writer process to finish the file.
@@ -66,6 +67,7 @@ class Open(NamedTuple):
     metadata: dict[str, dict[str, str]]
     attachments: list[tuple[str, str, bytes]]
     live: LiveView | None
+    codes: ProtocolCodes | None = None  # names the drive's codes on /drive/feedback
 
 
 class Stop(NamedTuple):
@@ -124,14 +126,17 @@ class WriterProcess:
         self.pid = self._proc.pid
 
     def open(self, metadata: Mapping[str, Mapping[str, Any]], attachments: Sequence[tuple[str, str, bytes]],
-             mode: RecordMode, live: LiveView | None = None, early: Sequence[tuple[Any, ...]] = ()) -> None:
+             mode: RecordMode, live: LiveView | None = None, early: Sequence[tuple[Any, ...]] = (),
+             codes: ProtocolCodes | None = None) -> None:
         """Header, metadata, attachments, the mode, the live view (if any); waits
         until the writer is ready (its start-up never competes with the loop); then the
-        ``early`` records (taken before the log was open)."""
+        ``early`` records (taken before the log was open). ``codes`` names the drive's own
+        state and error codes in the messages (None: numbers only)."""
         self.mode = RecordMode(mode)
         meta = {str(n): {str(k): str(v) for k, v in r.items()} for n, r in metadata.items()}
         files = [(str(n), str(m), bytes(d)) for n, m, d in attachments]
-        self._send(encode([Open(Control.OPEN, int(self.mode), *self._interval, self._fsync, meta, files, live)]))
+        self._send(encode([Open(Control.OPEN, int(self.mode), *self._interval, self._fsync, meta, files, live,
+                                codes)]))
         message: Reply | None = _read_status(self._status, JOIN_TIMEOUT)
         if message is None or message.status != Status.READY:
             self._closed = True
@@ -299,9 +304,12 @@ def _read_status(conn: Connection, timeout: float = 0.0) -> Reply | None:
 # -- the child ---------------------------------------------------------------------------
 
 
-def _open(path: str, status: Connection, mode: int, fsync: bool, metadata: Any, attachments: Any,
-          live: LiveView | None) -> LogWriter:
-    log = LogWriter(open(path, "wb"), metadata=metadata, attachments=attachments, mode=RecordMode(mode), fsync=fsync)
+def _open(path: str, status: Connection, o: Open) -> LogWriter:
+    if o.codes is not None:
+        o.codes.prepare()
+    log = LogWriter(open(path, "wb"), metadata=o.metadata, attachments=o.attachments, mode=RecordMode(o.mode),
+                    fsync=o.fsync, codes=o.codes)
+    live = o.live
     port = None
     if live is not None:
         server = live.serve(host=live.host, port=live.port)
@@ -337,7 +345,7 @@ def _serve(fd: int, status: Connection, path: str) -> Reply:
                     log.write(batch)
                 elif kind == Control.OPEN:
                     o = cast(Open, batch[0])
-                    log = _open(path, status, o.mode, o.fsync, o.metadata, o.attachments, o.live)
+                    log = _open(path, status, o)
                     sync_every, write_every = o.sync_interval, o.write_interval
                     next_write, next_sync = time.monotonic() + write_every, time.monotonic() + sync_every
                 elif kind == Control.STOP:

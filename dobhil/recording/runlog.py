@@ -24,6 +24,7 @@ import can
 
 from dobhil.drives.periodic import native_periodic
 from dobhil.errors import RecorderError
+from dobhil.recording.codes import ProtocolCodes
 from dobhil.recording.process import PIPE_SIZE, WriterProcess
 from dobhil.recording.schemas import RECORD_TYPES, EventKind, Topic, event_record, message_count, named
 from dobhil.recording.writer import LiveView, RecordMode
@@ -96,7 +97,7 @@ class RunLog:
         self.writer, self.live = writer, live
         self.clock_ns: Callable[[], int] = time.time_ns
         self.truth: Callable[[], tuple[float, float, float, float]] | None = None
-        self.drive: Any = SimpleNamespace(status=SimpleNamespace(state=0, error_code=0))
+        self.drive: Any = SimpleNamespace(status=SimpleNamespace(state=0, protocol_state=-1, error_code=0))
         self.records: list[tuple[Any, ...]] = []
         #: foreign frames (real time, the drive's ids known), else the same list as ``records``
         self.foreign: list[tuple[Any, ...]] = self.records
@@ -129,14 +130,15 @@ class RunLog:
     def begin(self, *, metadata: Mapping[str, Mapping[str, Any]], attachments: Sequence[tuple[str, str, bytes]],
               lossy: bool, clock_ns: Callable[[], int] | None = None,
               truth: Callable[[], tuple[float, float, float, float]] | None = None, drive: Any = None,
-              own_ids: Collection[int] | None = None) -> None:
+              own_ids: Collection[int] | None = None, codes: ProtocolCodes | None = None) -> None:
         """Header and metadata; the log clock, the emulator truth ``(q, dq, tau_motor, tau_int)``
-        and the drive (its ``status.state`` and ``status.error_code`` go to ``/drive/feedback``);
+        and the drive (its ``status.state``, ``status.protocol_state`` and ``status.error_code``
+        go to ``/drive/feedback``, the last two named by ``codes``);
         ``own_ids``: the arbitration ids of the drive's frames (``lossy`` only: other frames
         received are foreign, shed first; None: every frame is the loop's own)."""
         assert not self._closed, "the log is closed"
         mode = RecordMode.LOSSY if lossy else RecordMode.BACKPRESSURE
-        self.writer.open(metadata, attachments, mode, self.live, early=self.take())
+        self.writer.open(metadata, attachments, mode, self.live, early=self.take(), codes=codes)
         if lossy and own_ids is not None:
             self._own, self.foreign = frozenset(own_ids), []
         self.clock_ns = clock_ns or time.time_ns
@@ -155,7 +157,8 @@ class RunLog:
         # log clock, where the stamps are of two clocks
         sampled = _NAN if self._simulated else getattr(fb, "sample_latency", _NAN)
         records.append((0, self.clock_ns(), k, fb.position, fb.velocity, fb.seq, *out, period_error, exec_time,
-                        overrun, sampled, status.state, status.error_code, *(truth() if truth is not None else ())))
+                        overrun, sampled, status.state, status.protocol_state, status.error_code,
+                        *(truth() if truth is not None else ())))
         if len(records) >= BATCH_RECORDS or self._failure is not None:
             self.flush()
 
@@ -267,8 +270,8 @@ class RunLog:
         status = self.drive.status
         t = self.clock_ns()
         self.record(RECORD_TYPES[_FEEDBACK](kind=_FEEDBACK, log_time_ns=t, position=fb.position, velocity=fb.velocity,
-                                            drive_state=int(status.state), axis_error=status.error_code, seq=fb.seq,
-                                            cycle=-1))
+                                            drive_state=int(status.state), protocol_state=status.protocol_state,
+                                            protocol_error=status.error_code, seq=fb.seq, cycle=-1))
         self.record(event_record(EventKind.ENABLE, t, "drive enabled", f"seq {fb.seq}"))
 
     def stop(self, stop: Any) -> None:

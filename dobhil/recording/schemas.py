@@ -22,6 +22,7 @@ from typing import Any, Final, NamedTuple
 import orjson
 
 from dobhil.errors import LogFileError
+from dobhil.recording.codes import ProtocolCodes
 
 SCHEMA_ENCODING: Final = "jsonschema"
 MESSAGE_ENCODING: Final = "json"
@@ -88,7 +89,8 @@ Encoder = Callable[[Sequence[Any]], bytes]
 @dataclass(frozen=True)
 class TopicSpec:
     """One channel: topic, names, fields in canonical order, encoder (values -> JSON bytes;
-    None: the values are the fields, in order; NaN and infinity become ``null``)."""
+    None: the values are the fields, in order; NaN and infinity become ``null``) and the
+    record values it takes (``sources``; empty: the fields)."""
 
     topic: Topic
     name: str
@@ -96,10 +98,16 @@ class TopicSpec:
     description: str
     fields: tuple[Field, ...]
     encoder: Encoder | None = None
+    sources: tuple[str, ...] = ()
 
     @cached_property
     def keys(self) -> tuple[str, ...]:
         return tuple(f.name for f in self.fields)
+
+    @cached_property
+    def inputs(self) -> tuple[str, ...]:
+        """The names of the values the encoder takes, in order."""
+        return self.sources or self.keys
 
     def json_schema(self) -> dict[str, Any]:
         return {"$schema": "https://json-schema.org/draft/2020-12/schema", "title": self.schema_name,
@@ -167,7 +175,9 @@ class EventRecord(NamedTuple):
 class CycleRecord(NamedTuple):
     """One control cycle, the loop thread's record: ``/drive/feedback``, ``/controller``,
     ``/drive/command``, ``/loop`` and ``/emulator/truth``. A run without an emulator ends the
-    record at ``axis_error`` (no truth fields: its length says so, see :func:`message_count`)."""
+    record at ``protocol_error`` (no truth fields: its length says so, see :func:`message_count`).
+    ``drive_state`` is dobhil's :class:`~dobhil.drives.base.DriveState`; ``protocol_state`` and
+    ``protocol_error`` are the drive's own codes (``DriveStatus.protocol_state``, ``error_code``)."""
 
     kind: int  # CYCLE
     log_time_ns: int
@@ -185,8 +195,9 @@ class CycleRecord(NamedTuple):
     exec_time: float
     overrun: bool
     sample_latency: float  # the drive's sample (SYNC) -> its feedback received [s]; NaN: unknown
-    axis_state: int
-    axis_error: int
+    drive_state: int
+    protocol_state: int
+    protocol_error: int
     q: float
     dq: float
     tau_motor: float
@@ -231,7 +242,7 @@ def _frame_encoder(topic: Topic) -> Encoder:
 
 #: ``/drive/feedback.drive_state`` by dobhil's ``DriveState`` code (``dobhil.drives.base``; a
 #: test checks they match). Names, not the codes: a drive's own state codes differ (a drive's
-#: 1 may mean idle where dobhil's 1 is enabled), and a number in Foxglove reads as the drive's.
+#: 1 may be its idle state, dobhil's 1 is enabled), and a number in Foxglove reads as the drive's.
 DRIVE_STATE_NAMES: Final = ("disabled", "enabled", "fault")
 
 
@@ -240,10 +251,27 @@ def drive_state_name(code: int) -> str:
     return DRIVE_STATE_NAMES[code] if 0 <= code < len(DRIVE_STATE_NAMES) else f"code {code}"
 
 
-def _feedback_encoder(values: Sequence[Any]) -> bytes:
-    position, velocity, state, error, seq, cycle = values
-    return orjson.dumps({"position": position, "velocity": velocity, "drive_state": drive_state_name(int(state)),
-                         "axis_error": error, "seq": seq, "cycle": cycle}, option=orjson.OPT_SERIALIZE_NUMPY)
+def _feedback_encoder(codes: ProtocolCodes) -> Encoder:
+    """``/drive/feedback`` with the drive's codes named by ``codes`` (the run's protocol)."""
+    def encode(values: Sequence[Any]) -> bytes:
+        position, velocity, state, protocol_state, error, seq, cycle = values
+        return orjson.dumps({"position": position, "velocity": velocity, "drive_state": drive_state_name(int(state)),
+                             "protocol_state": protocol_state,
+                             "protocol_state_name": codes.state_name(int(protocol_state)),
+                             "protocol_error": error, "protocol_error_text": codes.error_text(int(error)),
+                             "seq": seq, "cycle": cycle}, option=orjson.OPT_SERIALIZE_NUMPY)
+    return encode
+
+
+def feedback_state(payload: Mapping[str, Any]) -> tuple[str, int, int]:
+    """(drive state name, protocol state, protocol error) of a ``/drive/feedback`` payload of
+    any dobhil version: ``drive_state`` by name or (older logs) ``axis_state`` as dobhil's
+    code, ``axis_error`` for ``protocol_error``, the protocol state not recorded (-1) before
+    ``protocol_state`` was."""
+    state = payload.get("drive_state")
+    name = state if isinstance(state, str) else drive_state_name(int(payload.get("axis_state", -1)))
+    error = payload.get("protocol_error", payload.get("axis_error", 0))
+    return name, int(payload.get("protocol_state", -1)), int(error or 0)
 
 
 def _event_encoder(values: Sequence[Any]) -> bytes:
@@ -262,10 +290,15 @@ _SPECS: Final = (
               _fields(_N, "position", "motor-side position [rad]", "velocity", "motor-side velocity [rad/s]")
               + (Field("drive_state", FieldKind.STRING, "dobhil's drive state (not the drive's own state code): "
                        + ", ".join(DRIVE_STATE_NAMES)),)
-              + _fields(_I, "axis_error", "the drive's own error code (its protocol's error bits; 0: none)",
-                        "seq", "motion frames received from the drive so far (Feedback.seq)",
+              + _fields(_I, "protocol_state", "the drive's own state code as its protocol reports it "
+                        "(-1: not reported)")
+              + _fields(FieldKind.STRING, "protocol_state_name", "protocol_state in the protocol's words")
+              + _fields(_I, "protocol_error", "the drive's own error code as its protocol reports it (0: none)")
+              + _fields(FieldKind.STRING, "protocol_error_text", "protocol_error in the protocol's words")
+              + _fields(_I, "seq", "motion frames received from the drive so far (Feedback.seq)",
                         "cycle", "control cycle that used this feedback (-1: controller.initialize)"),
-              _feedback_encoder),
+              _feedback_encoder(ProtocolCodes()),
+              ("position", "velocity", "drive_state", "protocol_state", "protocol_error", "seq", "cycle")),
     TopicSpec(Topic.DRIVE_COMMAND, "/drive/command", "dobhil.DriveCommand", "torque command sent to the drive",
               _fields(_N, "torque", "commanded motor torque [N m]")),
     TopicSpec(Topic.CONTROLLER, "/controller", "dobhil.Controller", "controller internals of one cycle",
@@ -280,7 +313,8 @@ _SPECS: Final = (
                         "exec_time", "time spent computing the cycle [s]")
               + _fields(_B, "overrun", "the cycle missed its deadline")
               + _fields(_N, "sample_latency", "the drive's sample instant (its SYNC) to its feedback received, "
-                        "bus stamps [s]; null when unknown (no SYNC, lockstep; absent in logs before it)")),
+                        "bus stamps [s]; null when unknown (a protocol that does not tell it, lockstep; absent "
+                        "in logs before it)")),
     TopicSpec(Topic.EMULATOR_TRUTH, "/emulator/truth", "dobhil.EmulatorTruth", "ground truth of the plant emulator",
               _fields(_N, "q", "position [rad]", "dq", "velocity [rad/s]", "tau_motor", "motor torque applied [N m]",
                       "tau_int", "interaction torque applied [N m]")),
@@ -306,34 +340,42 @@ def spec_for(topic: str | int) -> TopicSpec:
 
 #: Values of a cycle record after (CYCLE, log_time_ns); the truth values are optional.
 CYCLE_FIELDS: Final = CycleRecord._fields[2:]
-#: /drive/command.torque is the saturated output; drive_state is named from the cycle's state code
-_ALIASES: Final = {"torque": "u_sat", "drive_state": "axis_state"}
+#: /drive/command.torque is the saturated output
+_ALIASES: Final = {"torque": "u_sat"}
+View = tuple[Topic, Encoder, int]
 
 
-def _view(spec: TopicSpec, in_cycle: bool) -> tuple[Topic, Encoder, int]:
+def _view(spec: TopicSpec, in_cycle: bool, encode: Encoder) -> View:
     """(topic, record -> JSON, shortest record holding its values) of a message in a cycle
     record or in a record of its own."""
-    encode = spec.encode
     if not in_cycle:
         return spec.topic, lambda r: encode(r[2:]), 0
-    idx = [2 + CYCLE_FIELDS.index(_ALIASES.get(k, k)) for k in spec.keys]
+    idx = [2 + CYCLE_FIELDS.index(_ALIASES.get(k, k)) for k in spec.inputs]
     if len(idx) == 1:
         return spec.topic, lambda r, i=idx[0]: encode((r[i],)), idx[0] + 1
     get = itemgetter(*idx)
     return spec.topic, lambda r: encode(get(r)), max(idx) + 1
 
 
-#: Record kind (CYCLE or a Topic) -> the views of each message the record becomes.
-VIEWS: Final[Mapping[int, tuple[tuple[Topic, Encoder, int], ...]]] = MappingProxyType({
-    CYCLE: tuple(_view(TOPIC_SPECS[t], True) for t in (Topic.DRIVE_FEEDBACK, Topic.CONTROLLER, Topic.DRIVE_COMMAND,
-                                                        Topic.LOOP, Topic.EMULATOR_TRUTH)),
-    **{int(t): (_view(s, False),) for t, s in TOPIC_SPECS.items()}})
+def views(codes: ProtocolCodes | None = None) -> Mapping[int, tuple[View, ...]]:
+    """Record kind (CYCLE or a Topic) -> the views of each message the record becomes, the
+    drive's codes on ``/drive/feedback`` named by ``codes`` (None: as numbers)."""
+    encoders = {t: s.encode for t, s in TOPIC_SPECS.items()}
+    if codes is not None:
+        encoders[Topic.DRIVE_FEEDBACK] = _feedback_encoder(codes)
+    in_cycle = (Topic.DRIVE_FEEDBACK, Topic.CONTROLLER, Topic.DRIVE_COMMAND, Topic.LOOP, Topic.EMULATOR_TRUTH)
+    return MappingProxyType({CYCLE: tuple(_view(TOPIC_SPECS[t], True, encoders[t]) for t in in_cycle),
+                             **{int(t): (_view(s, False, encoders[t]),) for t, s in TOPIC_SPECS.items()}})
+
+
+#: :func:`views` without protocol names (what a record becomes and its shortest length).
+VIEWS: Final = views()
 
 
 def _topic_record(spec: TopicSpec) -> type[tuple[Any, ...]]:
     """The record type of a topic's own record: ``kind, log_time_ns`` and its fields."""
     name = spec.schema_name.rpartition(".")[2] + "Record"
-    return namedtuple(name, ("kind", "log_time_ns", *spec.keys), module=__name__)
+    return namedtuple(name, ("kind", "log_time_ns", *spec.inputs), module=__name__)
 
 
 #: Record kind (CYCLE or a Topic) -> its named type.
@@ -367,4 +409,5 @@ def decode(data: bytes) -> dict[str, Any]:
 __all__ = ["CYCLE", "CYCLE_FIELDS", "DRIVE_STATE_NAMES", "FRAME_ATTRIBUTES", "MESSAGE_ENCODING", "RECORD_TYPES",
            "SCHEMA_ENCODING", "SPECS_BY_NAME", "TOPIC_SPECS", "VIEWS", "CycleRecord", "EventKind", "EventRecord",
            "Field", "FieldKind", "FrameRecord", "Topic", "TopicSpec", "can_frame_message", "can_frame_payload",
-           "can_frame_record", "decode", "drive_state_name", "event_record", "message_count", "named", "spec_for"]
+           "can_frame_record", "decode", "drive_state_name", "event_record", "feedback_state", "message_count", "named",
+           "spec_for", "views"]

@@ -17,8 +17,9 @@ from typing import Any, BinaryIO, Final, Protocol
 from mcap.writer import CompressionType, Writer
 
 from dobhil import __version__
-from dobhil.recording.schemas import (MESSAGE_ENCODING, SCHEMA_ENCODING, TOPIC_SPECS, VIEWS, EventKind, Topic,
-                                      event_record, named)
+from dobhil.recording.codes import ProtocolCodes
+from dobhil.recording.schemas import (MESSAGE_ENCODING, SCHEMA_ENCODING, TOPIC_SPECS, EventKind, Topic, event_record,
+                                      named, views)
 
 #: Chunks end at this size or at every flush, whichever comes first.
 CHUNK_SIZE: Final = 256 * 1024
@@ -78,8 +79,9 @@ class LogWriter:
     def __init__(self, file: BinaryIO, *, metadata: Mapping[str, Mapping[str, Any]],
                  attachments: Iterable[Sequence[Any]] = (), mode: RecordMode = RecordMode.BACKPRESSURE,
                  fsync: bool = True, library: str = LIBRARY, compression: CompressionType = COMPRESSION,
-                 chunk_size: int = CHUNK_SIZE) -> None:
+                 chunk_size: int = CHUNK_SIZE, codes: ProtocolCodes | None = None) -> None:
         self.file = file
+        self._views = views(codes)  # codes: the drive's state and error codes by name
         self.mode = RecordMode(mode)
         self.fsync = fsync
         self.written = self.dropped = self.last_log_ns = 0
@@ -110,11 +112,12 @@ class LogWriter:
         """Encode and write records (flat tuples of the topic table, named here), in order."""
         add, channels, outputs = self._mcap.add_message, self._channels, self._outputs
         written, last = self.written, self.last_log_ns
+        views_of = self._views
         for record in map(named, records):
             t, n = record.log_time_ns, len(record)
             if record.kind == _EVENTS and record.event == _LOSS:  # the sender's count of messages it dropped
                 self.dropped += record.lost
-            for topic, encode, needs in VIEWS[record.kind]:
+            for topic, encode, needs in views_of[record.kind]:
                 if n >= needs:
                     data = encode(record)
                     add(channels.get(topic) or self._register(topic), t, data, t)

@@ -343,11 +343,12 @@ class _RateWatch:
     RUN = 10
 
     def __init__(self, period: float, frames: str = "feedback frames",
-                 advice: str = "set the drive's feedback rate to the loop period") -> None:
+                 advice: str = "make the drive's feedback period (the profile's feedback_period) "
+                               "the loop period") -> None:
         self.period = period
         self.last = math.nan
         self.slow = 0
-        self.frames = frames    # the protocol's name of its feedback ("encoder estimates")
+        self.frames = frames    # the protocol's name of its feedback (its probe's motion_name)
         self.advice = advice    # and what to change, in its words
 
     def frame(self, stamp: float, frames: int) -> None:

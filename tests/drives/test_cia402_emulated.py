@@ -293,7 +293,7 @@ def test_the_node_watches_the_hosts_heartbeat_and_stops_watching_after_a_clean_s
         assert made.emu._last_host_heartbeat is not None          # it heard the host
         assert made.drive.safe_stop().confirmation is Confirmation.CONFIRMED
         made.bus.recv(0.5)     # the host's heartbeat has stopped: the node must not care
-        assert made.emu.axis_error == 0 and made.emu.statusword & 0x4F != 0x08
+        assert made.emu.protocol_error == 0 and made.emu.statusword & 0x4F != 0x08
     finally:
         made.close()
 

@@ -447,10 +447,10 @@ def rig(protocol: Protocol, timing: str) -> Iterator[Rig]:
 def test_enable_then_disable_handshake(rig: Rig, protocol: Protocol) -> None:
     rig.drive.enable()
     assert rig.drive.status.state is DriveState.ENABLED
-    assert rig.emu.axis_state == protocol.active_state  # type: ignore[attr-defined]
+    assert rig.emu.protocol_state == protocol.active_state  # type: ignore[attr-defined]
     assert rig.drive.disable() is True
     assert rig.drive.status.state is DriveState.DISABLED
-    assert rig.wait_for(lambda: rig.emu.axis_state in protocol.idle_states  # type: ignore[attr-defined]
+    assert rig.wait_for(lambda: rig.emu.protocol_state in protocol.idle_states  # type: ignore[attr-defined]
                         and rig.emu.applied_torque == 0.0)
 
 
@@ -467,9 +467,9 @@ def test_enable_again_after_a_disable(rig: Rig, protocol: Protocol) -> None:
     rig.drive.poll(0.01)
     report = rig.drive.safe_stop()
     assert report.confirmation is expected_confirmation(rig.drive, protocol), report.detail
-    assert rig.wait_for(lambda: rig.emu.axis_state in protocol.idle_states)  # type: ignore[attr-defined]
+    assert rig.wait_for(lambda: rig.emu.protocol_state in protocol.idle_states)  # type: ignore[attr-defined]
     rig.drive.enable()
-    assert rig.emu.axis_state == protocol.active_state  # type: ignore[attr-defined]
+    assert rig.emu.protocol_state == protocol.active_state  # type: ignore[attr-defined]
 
 
 def test_a_drive_that_never_answers_fails_the_enable_in_one_line(protocol: Protocol,
@@ -483,7 +483,7 @@ def test_a_drive_that_never_answers_fails_the_enable_in_one_line(protocol: Proto
         line = str(info.value)
         assert "\n" not in line and re.search(protocol.no_answer, line), line
         assert made.drive.status.state is not DriveState.ENABLED
-        assert made.emu.axis_state != protocol.active_state  # type: ignore[attr-defined]
+        assert made.emu.protocol_state != protocol.active_state  # type: ignore[attr-defined]
 
 
 # ---------------------------------------------------------------------------
@@ -548,14 +548,14 @@ def run(config: Config, protocol: Protocol, timing: str, faults: Sequence[Fault]
         assert emu is not None
 
         def idle() -> bool:
-            return emu.axis_state in protocol.stopped_states and emu.applied_torque == 0.0  # type: ignore[union-attr]
+            return emu.protocol_state in protocol.stopped_states and emu.applied_torque == 0.0  # type: ignore[union-attr]
 
         if timing == "lockstep":
             emu.handle_pending()  # type: ignore[union-attr]
             settled = idle()
         else:
             settled = wait_until(idle) if settle else idle()
-        final = (int(emu.axis_state), float(emu.applied_torque))  # type: ignore[union-attr]
+        final = (int(emu.protocol_state), float(emu.applied_torque))  # type: ignore[union-attr]
         return Outcome(result, protocol.decode(sniffer.drain()), settled, summary(session, result),
                        final, session.drive.confirms_disable)
 

@@ -176,7 +176,7 @@ def test_controlword_by_rpdo_reaches_operation_enabled_in_cst_at_the_syncs(rig: 
         assert rig.read(0.01) == []       # no SYNC: nothing applied, nothing sent
         seen.append(tpdo1(rig.sync())[0])
     assert seen == [SW_READY, SW_SWITCHED_ON, SW_ENABLED_CST]
-    assert rig.emu.axis_state == PowerState.OPERATION_ENABLED   # the drive's code, published as an int
+    assert rig.emu.protocol_state == PowerState.OPERATION_ENABLED   # the drive's code, published as an int
 
 
 class HeldPlant:
@@ -257,14 +257,14 @@ def test_over_torque_faults_with_an_emcy_and_a_fault_reset_clears_it(rig: Lockst
     frames = rig.sync()                      # the third SYNC in a row
     assert frames[EMCY] == bytes.fromhex("1183" "21" "0000000000")   # 0x8311, register 0x21
     assert tpdo1(frames)[0] == SW_FAULT and tpdo1(frames)[2] == 0
-    assert rig.emu.applied_torque == 0.0 and rig.emu.axis_error == EmcyCode.EXCESS_TORQUE
+    assert rig.emu.applied_torque == 0.0 and rig.emu.protocol_error == EmcyCode.EXCESS_TORQUE
     assert rig.value(0x603F, fmt="<H") == 0x8311 and rig.value(0x1001, fmt="<B") == 0x21
     rig.rpdo(0x0F, 0)
     assert tpdo1(rig.sync())[0] == SW_FAULT  # no way out but a fault reset
     rig.rpdo(0x80)
     frames = rig.sync()
     assert frames[EMCY] == bytes(8) and tpdo1(frames)[0] == SW_SWITCH_ON_DISABLED
-    assert rig.emu.axis_error == 0 and rig.value(0x603F, fmt="<H") == 0
+    assert rig.emu.protocol_error == 0 and rig.value(0x603F, fmt="<H") == 0
 
 
 def test_disable_voltage_takes_the_torque_away_at_once(rig: Lockstep) -> None:
@@ -456,9 +456,9 @@ def test_every_commanded_transition_of_canopens_state402_table() -> None:
         rig = Lockstep()
         try:
             _reach(rig, source)
-            assert PowerState(rig.emu.axis_state).name.replace("_", " ") == source
+            assert PowerState(rig.emu.protocol_state).name.replace("_", " ") == source
             rig.write(0x6040, 0, controlword, 2)
-            reached = PowerState(rig.emu.axis_state).name.replace("_", " ")
+            reached = PowerState(rig.emu.protocol_state).name.replace("_", " ")
             assert reached == target, (source, hex(controlword), reached)
             checked += 1
         finally:

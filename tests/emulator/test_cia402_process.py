@@ -60,10 +60,10 @@ def test_emulator_process_answers_sdo_nmt_and_sync() -> None:
         assert struct.unpack_from("<H", frames[TPDO1])[0] == 0x1237       # operation enabled, CST
         assert frames[TPDO2][4] == 10
         end = time.monotonic() + BOUND
-        while process.axis_state != PowerState.OPERATION_ENABLED or process.applied_torque != 0.2:
-            assert time.monotonic() < end, (process.axis_state, process.applied_torque)
+        while process.protocol_state != PowerState.OPERATION_ENABLED or process.applied_torque != 0.2:
+            assert time.monotonic() < end, (process.protocol_state, process.applied_torque)
             time.sleep(0.01)
-        assert process.axis_error == 0 and process.frame_errors == 0 and not process.watchdog_tripped
+        assert process.protocol_error == 0 and process.frame_errors == 0 and not process.watchdog_tripped
 
 
 def test_can_bus_interface_dobhil_with_a_cia402_config() -> None:
@@ -135,7 +135,7 @@ def test_canopens_client_drives_the_node_behind_a_dobhil_bus() -> None:
         while node.tpdo[1][0x6077].raw != 100 or network.bus.emulator.applied_torque != 0.1:
             assert time.monotonic() < end
             time.sleep(0.01)
-        assert network.bus.emulator.axis_state == PowerState.OPERATION_ENABLED
+        assert network.bus.emulator.protocol_state == PowerState.OPERATION_ENABLED
     finally:
         network.sync.stop()
         network.disconnect()

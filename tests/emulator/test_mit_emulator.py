@@ -73,7 +73,7 @@ def test_every_frame_to_the_node_is_answered_with_the_literal_reply(ak: Lockstep
     # carries the applied torque re-encoded, whose code the codec's tests own)
     for frame in (AK_ZERO_TORQUE, ENTER, EXIT, ZERO[:7] + b"\xfd", ENTER):
         assert ak.ask(frame) == [AK_REPLY_AT_REST]
-    assert ak.emu.replies == 5 and ak.emu.frame_errors == 0 and ak.emu.axis_state == 1
+    assert ak.emu.replies == 5 and ak.emu.frame_errors == 0 and ak.emu.protocol_state == 1
 
 
 def test_a_pure_torque_command_is_applied_in_motor_mode_only(ak: Lockstep) -> None:
@@ -87,7 +87,7 @@ def test_a_pure_torque_command_is_applied_in_motor_mode_only(ak: Lockstep) -> No
     ak.read(0.001)
     assert ak.plant.motor_torque == AK_ONE_NM_DECODED
     ak.ask(EXIT)
-    assert ak.emu.applied_torque == 0.0 and ak.emu.axis_state == 0
+    assert ak.emu.applied_torque == 0.0 and ak.emu.protocol_state == 0
 
 
 def test_a_cubemars_motor_applies_its_last_command_again_at_the_next_enter(ak: Lockstep) -> None:
@@ -141,7 +141,7 @@ def test_frames_not_for_the_node_are_not_answered(ak: Lockstep) -> None:
     assert ak.ask(ENTER, can_id=2) == []
     assert ak.ask(ENTER[:7]) == [] and ak.emu.frames_rejected == 1   # wrong length
     ak.send(ENTER, is_remote_frame=False, dlc=8)
-    assert len(ak.read()) == 1 and ak.emu.axis_state == 1
+    assert len(ak.read()) == 1 and ak.emu.protocol_state == 1
 
 
 def test_damiao_state_nibble_and_temperatures(dm: Lockstep) -> None:
@@ -185,7 +185,7 @@ def test_the_command_timeout_zeroes_kp_kd_and_torque(timed: Lockstep) -> None:
     assert ak.emu.applied_torque == pytest.approx(AK_ONE_NM_DECODED) and not ak.emu.watchdog_tripped
     ak.read(0.003)
     assert ak.emu.applied_torque == 0.0 and ak.emu.watchdog_tripped
-    assert ak.emu.axis_state == 1                     # still in motor mode: a command resumes
+    assert ak.emu.protocol_state == 1                     # still in motor mode: a command resumes
     ak.ask(AK_ONE_NM)
     assert ak.emu.applied_torque == pytest.approx(AK_ONE_NM_DECODED)
 
@@ -213,7 +213,7 @@ def test_the_mini_cheetah_rows_timeout_and_bus_voltage() -> None:
         rig.ask(AK_ONE_NM)                            # t code 2161 of +-40 N m: 2.2 N m
         assert rig.emu.applied_torque == f32_decode(2161, -40, 40, 12)
         rig.read(0.030)
-        assert rig.emu.applied_torque == 0.0 and rig.emu.watchdog_tripped and rig.emu.axis_state == 1
+        assert rig.emu.applied_torque == 0.0 and rig.emu.watchdog_tripped and rig.emu.protocol_state == 1
     finally:
         rig.close()
 
@@ -223,9 +223,9 @@ def test_damiao_timeout_is_lost_communication(dm: Lockstep) -> None:
     try:
         rig.ask(ENTER)
         rig.read(0.02)
-        assert rig.emu.axis_state == 0 and rig.emu.watchdog_tripped
+        assert rig.emu.protocol_state == 0 and rig.emu.watchdog_tripped
         [reply] = rig.ask(AK_ZERO_TORQUE)
-        assert reply[0] == 0xD1 and rig.emu.axis_error == 0xD
+        assert reply[0] == 0xD1 and rig.emu.protocol_error == 0xD
         assert rig.ask(ENTER)[0][0] == 0xD1           # refused until cleared
         assert rig.ask(CLEAR)[0][0] == 0x01 and rig.ask(ENTER)[0][0] == 0x11
     finally:
@@ -240,7 +240,7 @@ def test_set_zero_makes_the_motor_silent_then_reads_zero() -> None:
         assert unpack_reply(rig.emu.model, before).position == pytest.approx(0.3, abs=4e-4)
         assert rig.ask(ZERO) == []
         rig.read(0.045)
-        assert rig.ask(ENTER) == [] and rig.emu.axis_state == 0 and rig.emu.frames_ignored == 1
+        assert rig.ask(ENTER) == [] and rig.emu.protocol_state == 0 and rig.emu.frames_ignored == 1
         rig.read(0.006)
         [after] = rig.ask(AK_ZERO_TORQUE)
         assert after == AK_REPLY_AT_REST              # position 0 (code 0x7FFF), at rest
@@ -269,13 +269,13 @@ def test_over_temperature_stops_the_motor_with_its_code() -> None:
             rig.ask(full)                             # keep commanding (no timeout)
             if rig.emu.fault:
                 break
-        assert rig.emu.fault == Fault.OVER_TEMPERATURE and rig.emu.axis_state == 0
+        assert rig.emu.fault == Fault.OVER_TEMPERATURE and rig.emu.protocol_state == 0
         assert rig.emu.applied_torque == 0.0
         [reply] = rig.ask(full)
         assert reply[7] == 1 and reply[6] >= 100      # error 1, temperature byte
-        assert rig.ask(ENTER)[0][7] == 1 and rig.emu.axis_state == 0   # refused while hot
+        assert rig.ask(ENTER)[0][7] == 1 and rig.emu.protocol_state == 0   # refused while hot
         rig.read(0.2)                                 # cools towards 25 degC
-        assert rig.ask(ENTER)[0][7] == 0 and rig.emu.axis_state == 1
+        assert rig.ask(ENTER)[0][7] == 0 and rig.emu.protocol_state == 1
     finally:
         rig.close()
 
@@ -283,7 +283,7 @@ def test_over_temperature_stops_the_motor_with_its_code() -> None:
 def test_over_current_when_the_torque_law_demands_far_beyond_t_max(ak: Lockstep) -> None:
     ak.ask(ENTER)
     [reply] = ak.ask(AK_STIFF_1RAD)                   # 500 N m/rad * 1 rad >> 1.5 * 18 N m
-    assert reply[7] == 2 and ak.emu.fault == Fault.OVER_CURRENT and ak.emu.axis_state == 0
+    assert reply[7] == 2 and ak.emu.fault == Fault.OVER_CURRENT and ak.emu.protocol_state == 0
 
 
 def test_a_stiff_command_within_range_holds_the_clamped_torque() -> None:
@@ -347,7 +347,7 @@ def test_damiao_faults_are_state_nibbles_cleared_by_clear_error() -> None:
     try:
         rig.ask(ENTER)
         [reply] = rig.ask(AK_STIFF_1RAD)              # kp 500 x 1 rad >> 1.5 x 10 N m
-        assert reply[0] == 0xA1 and rig.emu.axis_state == 0
+        assert reply[0] == 0xA1 and rig.emu.protocol_state == 0
         assert rig.ask(ENTER)[0][0] == 0xA1           # refused
         assert rig.ask(CLEAR)[0][0] == 0x01 and rig.ask(ENTER)[0][0] == 0x11
         full = bytes.fromhex("7FFF7FF000000FFF")      # t_ff = +10 N m (code 4095)

@@ -10,6 +10,7 @@ from __future__ import annotations
 import time
 
 import can
+import pytest
 
 from dobhil.config import load_config
 from dobhil.emulator.process import EmulatorProcess, EmulatorSpec
@@ -46,13 +47,13 @@ def test_emulator_process_answers_applies_and_times_out() -> None:
         # at -0.05 rad: int(12.45 * 65535 / 25) = 32636 = 0x7F7C; v, t 0: 0x7FF each; byte 6
         # the bus voltage, int(24 * 255 / 40) = 153
         assert _reply(bus) == bytes([1, 0x7F, 0x7C, 0x7F, 0xF7, 0xFF, 153])
-        _until(lambda: process.axis_state == 1, "motor mode")
+        _until(lambda: process.protocol_state == 1, "motor mode")
         bus.send(can.Message(arbitration_id=1, data=AK_ONE_NM, is_extended_id=False))
         _reply(bus)
         # the host then says nothing: the firmware's 25 ms timeout zeroes the torque (2.2 N m:
         # code 2161 of +-40 N m)
         _until(lambda: process.watchdog_tripped, "command timeout")
-        assert process.axis_state == 1 and process.applied_torque == 0.0
+        assert process.protocol_state == 1 and process.applied_torque == 0.0
         # it was applied before: the plant, free of the environment (5 cm away), moves
         assert process.plant.true_velocity > 0
         bus.send(can.Message(arbitration_id=1, data=AK_ONE_NM, is_extended_id=False))
@@ -60,5 +61,10 @@ def test_emulator_process_answers_applies_and_times_out() -> None:
         _until(lambda: process.applied_torque == f32_decode(2161, -40, 40, 12), "torque again")
         bus.send(can.Message(arbitration_id=1, data=EXIT, is_extended_id=False))
         _reply(bus)
-        _until(lambda: process.axis_state == 0 and process.applied_torque == 0.0, "rest")
+        _until(lambda: process.protocol_state == 0 and process.applied_torque == 0.0, "rest")
         assert process.frame_errors == 0 and process.frames_rejected == 0
+        # the old names, which read as ODrive's for every protocol, still answer, with a warning
+        with pytest.warns(DeprecationWarning, match="axis_state is renamed protocol_state; .* dobhil 0.2"):
+            assert process.axis_state == process.protocol_state
+        with pytest.warns(DeprecationWarning, match="axis_error is renamed protocol_error"):
+            assert process.axis_error == process.protocol_error == 0

@@ -30,7 +30,7 @@ def command(t: int, torque: float) -> tuple[Any, ...]:
 
 
 def feedback(t: int, position: float, velocity: float = 1.0, seq: int = 0, cycle: int = 0) -> tuple[Any, ...]:
-    return (int(Topic.DRIVE_FEEDBACK), t, position, velocity, 8, 0, seq, cycle)
+    return (int(Topic.DRIVE_FEEDBACK), t, position, velocity, 8, -1, 0, seq, cycle)
 
 
 def event(kind: EventKind, t: int, reason: str, detail: str = "") -> tuple[Any, ...]:

@@ -94,8 +94,10 @@ def test_export_csv_columns_from_schema(tmp_path: Path, run_file: Path, capsys: 
     out = tmp_path / "fb.csv"
     assert main(["log", "export", str(run_file), "--topic", "/drive/feedback", "--format", "csv", "-o", str(out)]) == 0
     rows = list(csv.reader(out.open()))
-    assert rows[0] == ["log_time_ns", "position", "velocity", "drive_state", "axis_error", "seq", "cycle"]
-    assert len(rows) == 101 and rows[1] == ["1000000000", "0.0", "1.0", "code 8", "0", "0", "0"]
+    assert rows[0] == ["log_time_ns", "position", "velocity", "drive_state", "protocol_state", "protocol_state_name",
+                       "protocol_error", "protocol_error_text", "seq", "cycle"]
+    assert len(rows) == 101 and rows[1] == ["1000000000", "0.0", "1.0", "code 8", "-1", "not reported", "0", "none",
+                                            "0", "0"]
     assert main(["log", "export", str(run_file), "--topic", "/can/rx", "--format", "csv"]) == 0
     can_rows = list(csv.DictReader((tmp_path / "run.can_rx.csv").open()))
     assert can_rows[5]["data"] == "5" and can_rows[5]["is_fd"] == "false"

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 from typing import Any
 
@@ -72,6 +73,8 @@ def test_foxglove_layout_names_recorded_fields() -> None:
              for p in c["paths"]]
     assert "/controller.tau_int_hat" in paths and "/loop.exec_time" in paths
     assert "/drive/feedback.drive_state" in paths  # by name: dobhil's codes read as the drive's
+    # and the drive's own codes in its protocol's words, beside dobhil's
+    assert {"/drive/feedback.protocol_state_name", "/drive/feedback.protocol_error_text"} <= set(paths)
     for path in paths:
         topic, field = path.rsplit(".", 1)
         assert field in SPECS_BY_NAME[topic].keys, path
@@ -212,3 +215,31 @@ def test_no_prediction_for_a_run_that_ended_at_its_step() -> None:
     from dobhil.run_report import prediction
     predicted, info = prediction(_contact_run([-0.005, -0.003, -0.001, 0.0, 1e-5, 2e-5], truth=True))
     assert predicted is None and not info["available"] and "ended within a cycle of its first step" in info["why"]
+
+
+def test_the_report_lists_each_change_of_the_drives_state_in_its_protocols_words(tmp_path: Path) -> None:
+    """A run whose ODrive faults at cycle 3 (watchdog, back to IDLE): two state changes, each
+    with dobhil's state and the drive's codes named as the writer recorded them."""
+    from dobhil.cli.recording import drive_metadata
+    from dobhil.drives.profile import load_profile
+    from dobhil.recording.codes import ProtocolCodes
+    from dobhil.recording.schemas import CYCLE
+    from dobhil.recording.writer import LogWriter
+    from dobhil.run_report import analyse, load_run
+    profile = load_profile("odrive-0.6")
+    path = tmp_path / "fault.mcap"
+    log = LogWriter(open(path, "wb"), metadata={"drive": drive_metadata(profile)}, fsync=False,
+                    codes=ProtocolCodes(profile))
+    states = [(1, 8, 0)] * 3 + [(2, 1, 0x01000000)] * 3   # DriveState, Axis_State, Axis_Error
+    log.write([(CYCLE, 1_000_000 * (k + 1), k, 0.0, 0.0, k, *(0.0,) * 6, 0.0, 1e-5, False, math.nan, *state)
+               for k, state in enumerate(states)])
+    log.finish("drive_fault")
+    data = load_run(path)
+    named = [(s["cycle"], s["drive_state"], s["protocol_state_name"], s["protocol_error_text"]) for s in data.states]
+    assert named == [
+        (0, "enabled", "CLOSED_LOOP_CONTROL", "0x00000000 (none)"),
+        (3, "fault", "IDLE", "0x01000000 (WATCHDOG_TIMER_EXPIRED)")]
+    assert data.states[1]["time_s"] == pytest.approx(0.003)
+    text = summary_text(analyse(data)[0])
+    assert ("drive state at 0.003 s (cycle 3): fault; the drive's state 1 (IDLE), "
+            "error 0x01000000 (WATCHDOG_TIMER_EXPIRED)") in text

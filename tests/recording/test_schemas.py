@@ -86,11 +86,12 @@ def test_a_cycle_record_becomes_one_message_per_cycle_topic(tmp_path: Path) -> N
         log.finish(None)
         return {topic: payload for topic, _, payload in open_log(path).iter_messages()}
 
-    record = (CYCLE, 7, 3, 0.1, 0.2, 4, 1.0, 0.9, 0.01, 0.5, 0.6, 0.55, 1e-6, 2e-5, False, 3e-4, 1, 0)
+    record = (CYCLE, 7, 3, 0.1, 0.2, 4, 1.0, 0.9, 0.01, 0.5, 0.6, 0.55, 1e-6, 2e-5, False, 3e-4, 1, 8, 0)
     out = written(record)
     assert set(out) == {"/drive/feedback", "/controller", "/drive/command", "/loop"}
-    assert out["/drive/feedback"] == {"position": 0.1, "velocity": 0.2, "drive_state": "enabled", "axis_error": 0,
-                                      "seq": 4, "cycle": 3}
+    assert out["/drive/feedback"] == {"position": 0.1, "velocity": 0.2, "drive_state": "enabled",
+                                      "protocol_state": 8, "protocol_state_name": "8", "protocol_error": 0,
+                                      "protocol_error_text": "none", "seq": 4, "cycle": 3}
     assert out["/drive/command"] == {"torque": 0.55} and out["/controller"]["u_unsat"] == 0.6
     assert out["/loop"] == {"cycle": 3, "period_error": 1e-6, "exec_time": 2e-5, "overrun": False,
                             "sample_latency": 3e-4}
@@ -160,6 +161,7 @@ def test_drive_state_is_recorded_by_name_not_as_a_code_a_drive_uses_otherwise() 
     spec = spec_for("/drive/feedback")
     assert "axis_state" not in spec.keys and spec.json_schema()["properties"]["drive_state"]["type"] == "string"
     import numpy as np  # the loop hands numpy values over as they are (the default encoder takes them too)
-    payload = spec.encode((np.float64(0.5), np.float64(-1.25), np.int64(2), np.int64(0), np.int64(7), -1))
-    assert json.loads(payload) == {"position": 0.5, "velocity": -1.25, "drive_state": "fault", "axis_error": 0,
-                                   "seq": 7, "cycle": -1}
+    payload = spec.encode((np.float64(0.5), np.float64(-1.25), np.int64(2), np.int64(-1), np.int64(0), np.int64(7), -1))
+    assert json.loads(payload) == {"position": 0.5, "velocity": -1.25, "drive_state": "fault", "protocol_state": -1,
+                                   "protocol_state_name": "not reported", "protocol_error": 0,
+                                   "protocol_error_text": "none", "seq": 7, "cycle": -1}

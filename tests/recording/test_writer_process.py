@@ -27,7 +27,7 @@ from tests.recording.conftest import child_processes
 from tests.recording.live_double import FileOutput
 
 META = {"run": {"who": "test"}}
-DRIVE = SimpleNamespace(status=SimpleNamespace(state=8, error_code=0))
+DRIVE = SimpleNamespace(status=SimpleNamespace(state=8, protocol_state=4, error_code=0))
 OUT = ControlOutput(0.2, 0.19, 0.01, 0.02, 0.03, 0.03)
 
 
@@ -43,7 +43,7 @@ def cycle(batch: RunLog, k: int) -> None:
 
 
 #: Pipe bytes of one cycle record with truth.
-CYCLE_BYTES = len(encode([(CYCLE, k, k, *(0.5 + k,) * 3, *OUT, 0.0, 3e-5, False, 8, 0, *(k + 0.25,) * 4)
+CYCLE_BYTES = len(encode([(CYCLE, k, k, *(0.5 + k,) * 3, *OUT, 0.0, 3e-5, False, 8, 4, 0, *(k + 0.25,) * 4)
                            for k in range(BATCH_RECORDS)])) // BATCH_RECORDS
 
 
@@ -93,9 +93,9 @@ def test_batched_records_unpack_to_the_flat_records_of_the_topic_table() -> None
     batches, used = unpack(data)
     records = [r for batch in batches for r in batch]
     assert used == len(data) and len(records) == 6 * 40
-    assert records[0] == (CYCLE, 11, 3, 0.5, -1.25, 7, *OUT, 1e-6, 2e-5, True, 2.5e-4, 8, 0)
+    assert records[0] == (CYCLE, 11, 3, 0.5, -1.25, 7, *OUT, 1e-6, 2e-5, True, 2.5e-4, 8, 4, 0)
     assert type(records[0][4]) is np.float64 and type(records[0][5]) is np.int64  # exact, not bytes
-    assert records[1] == (CYCLE, 11, 4, 0.5, -1.25, 7, *OUT, 0.0, 0.0, False, 2.5e-4, 8, 0, 1.0, 2.0, 3.0, 4.0)
+    assert records[1] == (CYCLE, 11, 4, 0.5, -1.25, 7, *OUT, 0.0, 0.0, False, 2.5e-4, 8, 4, 0, 1.0, 2.0, 3.0, 4.0)
     no, yes = False, True
     assert records[2] == (RX, 11, 0x1ABCDEF, yes, no, no, yes, yes, no, 64, bytes(range(64)), 5.5, "can0")
     assert records[3] == (TX, 11, 0x07B, no, yes, no, no, no, no, 8, b"", 11 / 1e9, 1)  # sent: stamped at send
@@ -424,5 +424,6 @@ def test_records_cross_the_hand_over_with_names() -> None:
                                                                                                           -1.25, 7)
     assert (cycle3.tau_ref, cycle3.u_sat, cycle3.period_error, cycle3.exec_time, cycle3.overrun) == (
         OUT.tau_ref, OUT.u, 1e-6, 2e-5, True)
-    assert (cycle3.axis_state, cycle3.axis_error, cycle3.q, cycle3.tau_int) == (8, 0, 1.0, 4.0)
+    assert (cycle3.drive_state, cycle3.protocol_state, cycle3.protocol_error, cycle3.q, cycle3.tau_int) == (
+            8, 4, 0, 1.0, 4.0)
     assert cycle4.cycle == 4 and len(cycle4) == len(CycleRecord._fields) - 4  # no truth: the fields are absent

@@ -126,7 +126,7 @@ def settle_emulator(session: RunSession) -> bool:
     assert emu is not None
 
     def idle() -> bool:
-        return emu.axis_state == AxisState.IDLE and emu.applied_torque == 0.0  # type: ignore[attr-defined]
+        return emu.protocol_state == AxisState.IDLE and emu.applied_torque == 0.0  # type: ignore[attr-defined]
 
     if session.timing is Timing.LOCKSTEP:
         emu.handle_pending()

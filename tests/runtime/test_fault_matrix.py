@@ -165,7 +165,7 @@ def watchdog_stops_it(session: RunSession) -> bool:
     assert emu is not None
 
     def idle() -> bool:
-        return (emu.axis_state == AxisState.IDLE  # type: ignore[attr-defined]
+        return (emu.protocol_state == AxisState.IDLE  # type: ignore[attr-defined]
                 and emu.applied_torque == 0.0 and bool(emu.watchdog_tripped))  # type: ignore[attr-defined]
 
     if session.timing is Timing.LOCKSTEP:
@@ -211,7 +211,7 @@ def check_row(row: Row, result: RunResult, sink: Sink, session: RunSession,
         sent = sniffer.host_commands(FW)
         assert sent.torques[-1] == 0.0 and AxisState.IDLE not in sent.axis_states
         emu = session.emulator
-        assert emu is not None and emu.axis_state == AxisState.CLOSED_LOOP_CONTROL  # type: ignore[attr-defined]
+        assert emu is not None and emu.protocol_state == AxisState.CLOSED_LOOP_CONTROL  # type: ignore[attr-defined]
         assert emu.applied_torque == 0.0   # the zero torque did arrive
         return
     if row.bus_dead:
@@ -264,5 +264,5 @@ def test_lockstep_bus_is_really_stepped_past_the_watchdog() -> None:
         emu = session.emulator
         assert emu is not None
         emu.handle_pending()
-        assert emu.axis_state == AxisState.CLOSED_LOOP_CONTROL  # type: ignore[attr-defined]
+        assert emu.protocol_state == AxisState.CLOSED_LOOP_CONTROL  # type: ignore[attr-defined]
         assert emu.applied_torque != 0.0

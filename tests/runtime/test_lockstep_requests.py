@@ -200,7 +200,7 @@ def test_an_overheated_motor_stops_the_run_with_its_code(monkeypatch: pytest.Mon
         emulator = session.emulator
     assert result.stop.reason is StopReason.DRIVE_FAULT, result.stop.line()
     assert "over temperature" in result.stop.detail
-    assert isinstance(emulator, EmulatedMit) and emulator.axis_error == 1 and emulator.axis_state == 0
+    assert isinstance(emulator, EmulatedMit) and emulator.protocol_error == 1 and emulator.protocol_state == 0
     assert result.safe_stop is not None and result.safe_stop.sent
     # 0.2 N m heats to 65 degC at most: the fault comes after the step to 1 N m at 0.6 s
     assert 0.6 < result.stop.time < 1.2

@@ -97,7 +97,7 @@ def test_loop_killed(tmp_path: Path, hub: int) -> None:
                            *sets([*overrides, "loop.duration=60"])], out)
         try:
             def commanding() -> bool:
-                return (emulator.axis_state == AxisState.CLOSED_LOOP_CONTROL
+                return (emulator.protocol_state == AxisState.CLOSED_LOOP_CONTROL
                         and emulator.applied_torque != 0.0)
 
             assert wait_until(commanding, STARTUP_TIMEOUT), out.read_text(errors="replace")
@@ -107,7 +107,7 @@ def test_loop_killed(tmp_path: Path, hub: int) -> None:
             stop_process(run)
 
         def stopped_by_watchdog() -> bool:
-            return (emulator.axis_state == AxisState.IDLE and emulator.applied_torque == 0.0
+            return (emulator.protocol_state == AxisState.IDLE and emulator.applied_torque == 0.0
                     and emulator.watchdog_tripped)
 
         assert run.returncode == -signal.SIGKILL

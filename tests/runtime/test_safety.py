@@ -385,7 +385,7 @@ def test_enable_failed_realtime_wrong_node_id(tmp_path: Path) -> None:
                         Plant.from_config(config)) as emulator:
         emulator.start()
         enable_failed_realtime(config, channel)
-        assert emulator.axis_state == AxisState.IDLE and emulator.applied_torque == 0.0
+        assert emulator.protocol_state == AxisState.IDLE and emulator.applied_torque == 0.0
         assert emulator.frames_received > 0
 
 

@@ -62,9 +62,9 @@ What canopen's LocalNode does not do, this module does (drive-protocols.md, CiA 
   reset clears them and sends the EMCY error reset (code 0).
 
 Observables for :class:`~dobhil.emulator.process.EmulatorProcess` (``OBSERVED``):
-``axis_state`` (the drive's :class:`~dobhil.drives.cia402.codec.PowerState` code, the
+``protocol_state`` (the drive's :class:`~dobhil.drives.cia402.codec.PowerState` code, the
 same the host's CiA 402 drive reports),
-``axis_error`` (the EMCY code, 0 none), ``watchdog_tripped`` (a heartbeat-consumer or NMT
+``protocol_error`` (the EMCY code, 0 none), ``watchdog_tripped`` (a heartbeat-consumer or NMT
 fault took the torque away) and ``frames_rejected``.
 """
 
@@ -343,11 +343,11 @@ class EmulatedCiA402(EmulatedDrive):
     # -- observables ----------------------------------------------------------
 
     @property
-    def axis_state(self) -> int:
+    def protocol_state(self) -> int:
         return int(self.state)
 
     @property
-    def axis_error(self) -> int:
+    def protocol_error(self) -> int:
         return self.error_code
 
     @property

@@ -6,8 +6,8 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 from dobhil.drives.cia402 import codec
-from dobhil.drives.cia402.codec import Cob, Mapped
-from dobhil.drives.cia402.drive import CiA402Drive
+from dobhil.drives.cia402.codec import Cob, Mapped, PowerState
+from dobhil.drives.cia402.drive import CiA402Drive, emcy_text
 from dobhil.drives.cia402.emulator import EmulatedCiA402
 from dobhil.drives.plugin import DriveProtocol, FeedbackField
 from dobhil.drives.profile import DriveProfile
@@ -29,6 +29,14 @@ class CiA402Protocol(DriveProtocol):
     @property
     def emulator_class(self) -> type[EmulatedCiA402]:
         return EmulatedCiA402
+
+    def state_name(self, profile: DriveProfile, code: int) -> str:
+        """The power state the statusword reports (``operation enabled``)."""
+        return PowerState(code).text if code in {m.value for m in PowerState} else super().state_name(profile, code)
+
+    def error_text(self, profile: DriveProfile, code: int) -> str:
+        """The last EMCY's error code with canopen's description of its CiA 301 class."""
+        return f"EMCY 0x{code:04X} ({emcy_text(code)})" if code else "none"
 
     def feedback_field(self, profile: DriveProfile, name: str) -> FeedbackField | None:
         """``position`` (0x6064) in the status TPDO, ``velocity`` (0x606C) in the motion

@@ -62,7 +62,7 @@ it is the emulator's own choice:
   (1: MIT) and OT_Value 2, answered on ``reply_id`` as ``id_l id_h 0x33 rid value``.
 
 Observables for :class:`~dobhil.emulator.process.EmulatorProcess` (``OBSERVED``):
-``axis_state`` (1 motor mode, 0 rest), ``axis_error`` (the vendor's code, 0 none),
+``protocol_state`` (1 motor mode, 0 rest), ``protocol_error`` (the vendor's code, 0 none),
 ``watchdog_tripped`` (the command timeout fired) and ``frames_rejected``.
 """
 
@@ -191,12 +191,12 @@ class EmulatedMit(EmulatedDrive):
     # -- observables ----------------------------------------------------------
 
     @property
-    def axis_state(self) -> int:
+    def protocol_state(self) -> int:
         """1 in motor mode, 0 at rest."""
         return int(self.motor_mode)
 
     @property
-    def axis_error(self) -> int:
+    def protocol_error(self) -> int:
         """The vendor's code of the latched fault (0 none, or none on this layout)."""
         return self._codes.get(self.fault, 0) if self.fault else 0
 
@@ -303,7 +303,7 @@ class EmulatedMit(EmulatedDrive):
     def _reply(self, torque: float) -> None:
         model = self.model
         state = 1 if self.motor_mode else 0
-        error = self.axis_error
+        error = self.protocol_error
         extra: dict[str, int] = {}
         layout = self._layout
         if "mos_temperature" in layout.extra:

@@ -127,6 +127,16 @@ class EmulatedODrive(EmulatedDrive):
     # -- observables ----------------------------------------------------------
 
     @property
+    def protocol_state(self) -> int:
+        """The heartbeat's Axis_State (the emulator process publishes it by this name)."""
+        return int(self.axis_state)
+
+    @property
+    def protocol_error(self) -> int:
+        """The heartbeat's Axis_Error."""
+        return self.axis_error
+
+    @property
     def watchdog_error(self) -> bool:
         """The watchdog's Axis_Error bit is set (also on an idle axis nobody feeds)."""
         return bool(self.axis_error & self._watchdog_bit)

@@ -6,11 +6,12 @@ from __future__ import annotations
 import struct
 
 from dobhil.drives.odrive import codec
-from dobhil.drives.odrive.codec import CmdId
+from dobhil.drives.odrive.codec import AxisState, CmdId, Firmware
 from dobhil.drives.odrive.drive import ODriveDrive
 from dobhil.drives.odrive.emulator import EmulatedODrive
 from dobhil.drives.plugin import DriveProtocol, FeedbackField
 from dobhil.drives.profile import DriveProfile
+from dobhil.errors import CodecError
 
 #: the feedback values a fault may corrupt -> their slot in Get_Encoder_Estimates
 _ESTIMATE_SLOTS = {"position": "position_rad", "velocity": "velocity_rad_s"}
@@ -29,6 +30,17 @@ class ODriveProtocol(DriveProtocol):
     @property
     def emulator_class(self) -> type[EmulatedODrive]:
         return EmulatedODrive
+
+    def state_name(self, profile: DriveProfile, code: int) -> str:
+        """The heartbeat's Axis_State by its name (``CLOSED_LOOP_CONTROL``)."""
+        return AxisState(code).name if code in {m.value for m in AxisState} else super().state_name(profile, code)
+
+    def error_text(self, profile: DriveProfile, code: int) -> str:
+        """The heartbeat's Axis_Error with the bit names of the profile's firmware."""
+        try:
+            return codec.describe_errors(code, Firmware.parse(profile.firmware))
+        except CodecError:   # a firmware the codec does not know: the bits unnamed
+            return super().error_text(profile, code)
 
     def feedback_field(self, profile: DriveProfile, name: str) -> FeedbackField | None:
         """``position``/``velocity`` in Get_Encoder_Estimates (the codec's table for the
