@@ -54,7 +54,7 @@ from numpy.typing import NDArray
 from dobhil.config.schema import Config
 from dobhil.drives.bus_load import frame_bits
 from dobhil.drives.timing import with_command_delay
-from dobhil.errors import LogFileError
+from dobhil.errors import LogFileError, exception_line
 from dobhil.recording.reader import open_log
 
 Array = NDArray[np.float64]
@@ -124,8 +124,8 @@ def load_run(path: str | os.PathLike[str], progress: ProgressFn | None = None) -
                 if progress is not None and i % 1000 == 999:
                     progress(1000)
         except (KeyError, TypeError, ValueError) as exc:
-            raise LogFileError(f"{name}: a recorded message does not match its schema ({type(exc).__name__}: "
-                               f"{exc})") from None
+            raise LogFileError(f"{name}: a recorded message does not match its schema "
+                               f"({exception_line(exc)})") from None
         run = _assemble(name, log.config, log.metadata, per, frames, ext, times, events, bounds)
     run.frame_times = frame_times
     return run

@@ -61,6 +61,7 @@ import can
 from dobhil.drives.profile import DriveProfile, ProtocolRules
 from dobhil.drives.waits import WAIT_SLICE, Cancel
 from dobhil.errors import BusError, ConfigError, DriveError, DriveFaultError, DriveTimeoutError, WaitCancelled
+from dobhil.errors import exception_line
 
 if TYPE_CHECKING:
     from dobhil.drives.preflight import PreflightProbe
@@ -437,7 +438,7 @@ class Drive(ABC):
             self._bus.send(frame, 0.0)
         except Exception as exc:  # whatever the interface raises: python-can-remote, say,
             # raises its own transport errors when the hub is gone
-            raise BusError(f"torque frame to node {self.node_id} not sent: {_one_line(exc)}") from exc
+            raise BusError(f"torque frame to node {self.node_id} not sent: {_bus_failure(exc)}") from exc
 
     def poll(self, timeout: float) -> Feedback | None:
         """Read frames for up to ``timeout`` s; return the newest fresh feedback or None.
@@ -574,7 +575,7 @@ class Drive(ABC):
             try:
                 self._bus.send(frame)
             except Exception as exc:  # any interface's failure (see send_torque)
-                raise BusError(f"{what} frames to node {self.node_id} not sent: {_one_line(exc)}") from exc
+                raise BusError(f"{what} frames to node {self.node_id} not sent: {_bus_failure(exc)}") from exc
 
     def _recv(self, timeout: float) -> can.Message | None:
         """``bus.recv`` outside the cycle; any failure of the bus is a BusError."""
@@ -594,7 +595,7 @@ class Drive(ABC):
                 return FrameResult(what, True, refused=refused)
             except Exception as exc:  # safety path: every frame gets its own attempt
                 refused += 1
-                error = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+                error = exception_line(exc, named=False)
                 if time.monotonic() >= give_up:
                     return FrameResult(what, False, error, refused)
                 time.sleep(0.001)
@@ -752,7 +753,7 @@ class Drive(ABC):
                 return True
 
     def _read_error(self, exc: BaseException) -> BusError:
-        return BusError(f"bus read for node {self.node_id} failed: {_one_line(exc)}")
+        return BusError(f"bus read for node {self.node_id} failed: {_bus_failure(exc)}")
 
     def apply(self, msg: can.Message) -> bool:
         """Apply one frame received elsewhere (a recorded one: replay); True if it carried
@@ -837,10 +838,8 @@ class Drive(ABC):
         )
 
 
-def _one_line(exc: BaseException) -> str:
-    """An exception as one line, its type named when its text alone says little (a
-    transport's ``Status: 1006, reason: Socket closed unexpectedly``)."""
-    text = " ".join(str(exc).split())
-    if isinstance(exc, (can.CanError, OSError)) and text:
-        return text
-    return f"{type(exc).__name__}: {text}" if text else type(exc).__name__
+def _bus_failure(exc: BaseException) -> str:
+    """A bus failure as one line: python-can's and the OS's errors say enough alone, a
+    transport's own needs its type named (``Status: 1006, reason: Socket closed
+    unexpectedly`` says little)."""
+    return exception_line(exc, named=not isinstance(exc, (can.CanError, OSError)))

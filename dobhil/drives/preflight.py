@@ -49,6 +49,7 @@ from dobhil.drives.bus_load import frame_bits as wire_bits
 from dobhil.drives.profile import DriveProfile
 from dobhil.drives.socketcan_link import link_down_text, link_info, link_problems
 from dobhil.drives.waits import WAIT_SLICE, Cancel
+from dobhil.errors import exception_line
 
 __all__ = [
     "DEFAULT_WINDOW",
@@ -398,7 +399,7 @@ def listen_window(bus: can.BusABC, probe: PreflightProbe, window: float, clock: 
             try:
                 bus.send(request, 0.0)
             except Exception as exc:  # any interface's refusal (a transport's own, too)
-                cap.send_errors.append(str(exc).splitlines()[0] if str(exc) else type(exc).__name__)
+                cap.send_errors.append(exception_line(exc, named=False))
 
     ask(probe.profile.node_id)
     end = clock() + window
@@ -408,7 +409,7 @@ def listen_window(bus: can.BusABC, probe: PreflightProbe, window: float, clock: 
         try:  # in slices: a stop request is seen within WAIT_SLICE s
             msg = bus.recv(min(end - now, WAIT_SLICE))
         except Exception as exc:  # any interface's failure: the bus is gone
-            cap.read_error = " ".join(f"{type(exc).__name__}: {exc}".split())
+            cap.read_error = exception_line(exc)
             break
         if msg is None:
             continue

@@ -63,6 +63,7 @@ from dobhil.drives.periodic import native_periodic
 from dobhil.drives.profile import DriveProfile, ProtocolRules
 from dobhil.drives.waits import Cancel
 from dobhil.errors import BusError, CodecError, ConfigError, DriveError, DriveFaultError, DriveTimeoutError
+from dobhil.errors import exception_line
 
 if TYPE_CHECKING:
     from canopen.pdo import PdoMap
@@ -276,7 +277,7 @@ class CiA402Drive(Drive):
             raise type(exc)(f"node {self.node_id}: {exc} (reached: {_reached(reached)})") from None
         except (can.CanError, OSError) as exc:  # the bus refused a request or cannot be read
             raise BusError(f"node {self.node_id}: {self._sdo_object(link)}: "
-                           f"{' '.join(str(exc).split()) or type(exc).__name__} "
+                           f"{exception_line(exc, named=False)} "
                            f"(reached: {_reached(reached)})") from exc
 
     @staticmethod
@@ -293,7 +294,7 @@ class CiA402Drive(Drive):
             return f"{obj} aborted by the node: 0x{exc.code:08X} ({text})"
         if "No SDO response" in str(exc):
             return f"{obj} timed out after {link.adapter.timeout:g} s"
-        return f"{obj} failed: {' '.join(str(exc).split())}"
+        return f"{obj} failed: {exception_line(exc, named=False)}"
 
     def _read_identity(self, node: Any) -> None:
         record = node.sdo[0x1018]
@@ -466,7 +467,7 @@ class CiA402Drive(Drive):
                 self._sync_task = self._bus.send_periodic(self._sync_msg, self._period)
             except Exception as exc:  # whatever the interface raises (see Drive.send_torque)
                 raise BusError(f"node {self.node_id}: periodic SYNC not started: "
-                               f"{' '.join(str(exc).split()) or type(exc).__name__}") from exc
+                               f"{exception_line(exc, named=False)}") from exc
 
     def _stop_sync(self) -> None:
         task, self._sync_task = self._sync_task, None

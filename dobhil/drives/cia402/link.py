@@ -36,7 +36,7 @@ import canopen
 
 from dobhil.drives.cia402.codec import Cob
 from dobhil.drives.waits import WAIT_SLICE, Cancel
-from dobhil.errors import BusError, WaitCancelled
+from dobhil.errors import BusError, WaitCancelled, exception_line
 
 if TYPE_CHECKING:
     from canopen.objectdictionary import ObjectDictionary
@@ -56,11 +56,6 @@ _CCS_INITIATE = frozenset({0x20, 0x40, 0xA0, 0xC0})
 
 def _never_cancelled() -> str:
     return ""
-
-
-def _one_line(exc: BaseException) -> str:
-    text = " ".join(str(exc).split())
-    return f"{type(exc).__name__}: {text}" if text else type(exc).__name__
 
 
 class SdoBusAdapter:
@@ -93,7 +88,7 @@ class SdoBusAdapter:
         except can.CanError:
             raise  # python-can's own: canopen's SDO client knows it (and gives up at once)
         except Exception as exc:  # a transport's own error (python-can-remote's, say)
-            raise BusError(_one_line(exc)) from exc
+            raise BusError(exception_line(exc)) from exc
         if request and ccs != _CCS_ABORT:
             self._await_response()
 
@@ -111,7 +106,7 @@ class SdoBusAdapter:
             try:
                 msg = self._bus.recv(min(remaining, WAIT_SLICE))
             except Exception as exc:  # any interface's read failure is the bus's
-                raise BusError(f"bus read failed: {_one_line(exc)}") from exc
+                raise BusError(f"bus read failed: {exception_line(exc)}") from exc
             if msg is not None and self._dispatch(msg):
                 return
 

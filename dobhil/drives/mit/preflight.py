@@ -47,7 +47,7 @@ from dobhil.drives.preflight import (Capture, Finding, NodeReport, Observation, 
                                      Severity, Stream, listen_window)
 from dobhil.drives.profile import DriveProfile
 from dobhil.drives.waits import WAIT_SLICE, Cancel
-from dobhil.errors import CodecError, ConfigError, DriveTimeoutError, WaitCancelled
+from dobhil.errors import CodecError, ConfigError, DriveTimeoutError, WaitCancelled, exception_line
 
 __all__ = ["RANGE_REGISTERS", "REGISTER_ID", "REGISTER_READ", "MitPreflight", "ZeroResult", "register_request",
            "set_zero"]
@@ -140,7 +140,7 @@ class MitPreflight(PreflightProbe):
         try:
             bus.send(command, 0.0)
         except Exception as exc:  # any interface's refusal
-            cap.send_errors.append(" ".join(str(exc).split()) or type(exc).__name__)
+            cap.send_errors.append(exception_line(exc, named=False))
             return cap
         try:
             data = _await(bus, clock, end, cancel, lambda m: self._is_reply(m),
@@ -148,7 +148,7 @@ class MitPreflight(PreflightProbe):
         except WaitCancelled:
             return cap
         except Exception as exc:  # the bus is gone
-            cap.read_error = " ".join(f"{type(exc).__name__}: {exc}".split())
+            cap.read_error = exception_line(exc)
             return cap
         if data is None:
             mode = self._control_mode(bus, clock, end, cancel, cap, stamp) if self.model.vendor == "damiao" else None
@@ -196,7 +196,7 @@ class MitPreflight(PreflightProbe):
         except WaitCancelled:
             return
         except Exception as exc:  # the bus refused the request or is gone: the window's findings say it
-            cap.send_errors.append(" ".join(str(exc).split()) or type(exc).__name__)
+            cap.send_errors.append(exception_line(exc, named=False))
             return
         finally:
             self._registers_pending = False
