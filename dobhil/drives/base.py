@@ -59,7 +59,7 @@ from typing import TYPE_CHECKING, ClassVar
 import can
 
 from dobhil.drives.profile import DriveProfile, ProtocolRules
-from dobhil.drives.waits import WAIT_SLICE, Cancel
+from dobhil.drives.waits import Cancel, sliced_frames
 from dobhil.errors import BusError, ConfigError, DriveError, DriveFaultError, DriveTimeoutError, WaitCancelled
 from dobhil.errors import exception_line
 
@@ -649,21 +649,11 @@ class Drive(ABC):
         """Read frames for up to ``wait`` s until ``done(frame)``: "" then, else why not
         (``silence`` when the wait ended, the wait cancelled, the bus unreadable).
         Past the deadline only what is already queued is read. Never raises."""
-        deadline = self._clock() + wait
+        frames = sliced_frames(self._bus.recv, self._clock, self._clock() + wait, cancel=cancel, drain=True)
         try:
-            while True:
-                remaining = deadline - self._clock()
-                late = remaining <= 0
-                cancelled = "" if late or cancel is None else cancel()
-                if cancelled:
-                    return f"confirmation wait cut short: {cancelled}"
-                msg = self._bus.recv(0.0 if late else min(remaining, WAIT_SLICE))
-                if msg is None:
-                    if late:
-                        return silence
-                    continue
-                if done(msg):
-                    return ""
+            return "" if any(done(msg) for msg in frames) else silence
+        except WaitCancelled as exc:
+            return f"confirmation wait cut short: {exc}"
         except Exception as exc:  # safety path: a bus that cannot be read confirms nothing
             return f"status not readable: {exc}"
 
@@ -706,21 +696,11 @@ class Drive(ABC):
         return self._profile.heartbeat_period or DEFAULT_KEEPALIVE
 
     def _await_enabled(self, deadline: float, cancel: Cancel | None) -> bool:
-        interval = self._keepalive_interval()
-        next_keepalive = self._clock()
-        while True:
-            now = self._clock()
-            if now >= deadline:
-                return False
-            why = cancel() if cancel is not None else ""
-            if why:
-                raise WaitCancelled(f"{why} while waiting for node {self.node_id} to enable")
-            if now >= next_keepalive:
-                self._send_all(self._keepalive_frames(), "keepalive")
-                next_keepalive = now + interval
-            msg = self._recv(min(deadline - now, next_keepalive - now, WAIT_SLICE))
-            if msg is not None and self._handle_for_enable(msg):
-                return True
+        frames = sliced_frames(self._recv, self._clock, deadline, cancel=cancel,
+                               what=f"waiting for node {self.node_id} to enable",
+                               between=lambda: self._send_all(self._keepalive_frames(), "keepalive"),
+                               every=self._keepalive_interval())
+        return any(self._handle_for_enable(msg) for msg in frames)
 
     def _drain(self) -> bool:
         fresh = False

@@ -46,7 +46,7 @@ from dobhil.drives.mit.rules import model_of
 from dobhil.drives.preflight import (Capture, Finding, NodeReport, Observation, PreflightProbe, Setting,
                                      Severity, Stream, listen_window)
 from dobhil.drives.profile import DriveProfile
-from dobhil.drives.waits import WAIT_SLICE, Cancel
+from dobhil.drives.waits import Cancel, sliced_frames
 from dobhil.errors import CodecError, ConfigError, DriveTimeoutError, WaitCancelled, exception_line
 
 __all__ = ["RANGE_REGISTERS", "REGISTER_ID", "REGISTER_READ", "MitPreflight", "ZeroResult", "register_request",
@@ -303,13 +303,7 @@ def _await(bus: can.BusABC, clock: Callable[[], float], until: float, cancel: Ca
            match: Callable[[can.Message], T | None], take: Callable[[can.Message], object]) -> T | None:
     """Read ``bus`` in slices until ``match`` gives a value (returned) or ``until``
     (None); every frame goes to ``take`` first. WaitCancelled within a slice of ``cancel``."""
-    while (now := clock()) < until:
-        why = cancel() if cancel is not None else ""
-        if why:
-            raise WaitCancelled(why)
-        msg = bus.recv(min(until - now, WAIT_SLICE))
-        if msg is None:
-            continue
+    for msg in sliced_frames(bus.recv, clock, until, cancel=cancel):
         take(msg)
         found = match(msg)
         if found is not None:
