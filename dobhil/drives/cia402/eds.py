@@ -76,7 +76,8 @@ def load_od(profile: DriveProfile) -> ObjectDictionary:
     # canopen reads an EDS with configparser: a file that is not INI raises its Error
     # (MissingSectionHeaderError, ParsingError), which is none of the others
     except (ObjectDictionaryError, ValueError, KeyError, OSError, configparser.Error) as exc:
-        raise ConfigError(f"{path}: not a readable EDS: {exception_line(exc, named=False)}") from None
+        raise ConfigError(f"{path}: not a readable EDS (expected CiA 306's INI format, sections such as [1000] "
+                          f"and [6040]): {exception_line(exc, named=False)}") from None
     check_od(od, profile, str(path))
     return od
 

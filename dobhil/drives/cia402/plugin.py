@@ -4,8 +4,10 @@ registered as the entry point ``cia402`` of the group ``dobhil.drives`` (``pypro
 from __future__ import annotations
 
 from dobhil.drives.cia402.drive import CiA402Drive
+from dobhil.drives.cia402.eds import load_od
 from dobhil.drives.cia402.emulator import EmulatedCiA402
 from dobhil.drives.plugin import DriveProtocol
+from dobhil.drives.profile import DriveProfile
 
 __all__ = ["CiA402Protocol"]
 
@@ -21,3 +23,6 @@ class CiA402Protocol(DriveProtocol):
     @property
     def emulator_class(self) -> type[EmulatedCiA402]:
         return EmulatedCiA402
+
+    def check_files(self, profile: DriveProfile) -> None:
+        load_od(profile)   # the drive's own reading and check of the EDS
