@@ -73,8 +73,6 @@ if TYPE_CHECKING:
 __all__ = ["CiA402Drive"]
 
 _NO_EVENTS: tuple[DriveEvent, ...] = ()
-#: CiA 301 EMCY code of a heartbeat or life-guarding error: the node's watchdog on the host
-EMCY_HEARTBEAT = 0x8130
 _OUT_OF_TORQUE = frozenset(PowerState) - {PowerState.OPERATION_ENABLED, PowerState.UNKNOWN}
 
 
@@ -401,7 +399,8 @@ class CiA402Drive(Drive):
         this process can, and a consumer fault is not the host's. Its expiry is EMCY 0x8130,
         sent by the node at once."""
         consumer = float(self.profile.options["consumer_heartbeat"])
-        if consumer <= 0 or native_periodic(self._bus) or (event is not None and event.error_code != EMCY_HEARTBEAT):
+        not_heartbeat = event is not None and event.error_code != codec.EmcyCode.HEARTBEAT
+        if consumer <= 0 or native_periodic(self._bus) or not_heartbeat:
             return None
         return HostTimeout("heartbeat consumer (0x1016)", consumer,
                            fed_every=self._host_heartbeat_interval(consumer), reported_within=self._period)
@@ -629,7 +628,7 @@ class CiA402Drive(Drive):
         active = (power is PowerState.OPERATION_ENABLED and self._mode == CST_MODE and nmt_ok
                   and not codec.is_fault(self._statusword))
         code = self._emcy
-        return StateEvent(active=active, error_code=code, watchdog_tripped=code == EMCY_HEARTBEAT,
+        return StateEvent(active=active, error_code=code, watchdog_tripped=code == codec.EmcyCode.HEARTBEAT,
                           state_text=self._state_text(nmt_ok), error_text=self._emcy_text(),
                           state=int(power))
 

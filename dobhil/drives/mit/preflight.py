@@ -40,7 +40,8 @@ from typing import TypeVar
 import can
 
 from dobhil.drives.bus_load import CycleFrame
-from dobhil.drives.mit.codec import MitModel, Reply, Special, pack_command, special_frame, unpack_reply
+from dobhil.drives.mit.codec import (REGISTER_ID, REGISTER_READ, MitModel, Reply, Special, pack_command, special_frame,
+                                     unpack_reply)
 from dobhil.drives.mit.replies import DAMIAO_ENABLED, ZERO_COMMAND, reply_node, state_of
 from dobhil.drives.mit.rules import model_of
 from dobhil.drives.preflight import (Capture, Finding, NodeReport, Observation, PreflightProbe, Setting,
@@ -54,9 +55,6 @@ __all__ = ["RANGE_REGISTERS", "REGISTER_ID", "REGISTER_READ", "MitPreflight", "Z
 
 T = TypeVar("T")
 
-#: Damiao register access: the arbitration id, the read command byte
-REGISTER_ID = 0x7FF
-REGISTER_READ = 0x33
 #: Damiao registers of the mapping ranges (damiao-motor's REGISTER_TABLE: PMAX, VMAX, TMAX)
 RANGE_REGISTERS = ((21, "PMAX", "p_max"), (22, "VMAX", "v_max"), (23, "TMAX", "t_max"))
 #: Damiao register CTRL_MODE (uint32) and its value for MIT mode (damiao-motor's REGISTER_TABLE)
