@@ -7,6 +7,8 @@ cannot hold, in ``run``, ``check`` and ``analyze`` (which reads the EDS through 
 from __future__ import annotations
 
 import re
+import subprocess
+import sys
 from pathlib import Path
 
 import can
@@ -114,3 +116,15 @@ def test_an_encoder_resolution_0x608f_cannot_hold_is_one_line(
 def test_a_whole_resolution_still_runs(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["run", str(write_setup(tmp_path, position_per_rev=2**32 - 1)), "--emulate", "--lockstep",
                  "--duration", "0.01"]) == 0
+
+
+@pytest.mark.parametrize("command", COMMANDS)
+def test_a_file_that_is_not_an_eds_is_one_line_as_a_process(tmp_path: Path, command: str) -> None:
+    """As a user meets it: a process, its stderr one line, exit 2, no traceback."""
+    config = write_setup(tmp_path, EDS_CASES["not INI"])
+    argv = [part.format(config=config) for part in COMMANDS[command]]
+    done = subprocess.run([sys.executable, "-m", "dobhil", *argv], capture_output=True, text=True, timeout=120,
+                          check=False)
+    assert done.returncode == EXIT_USAGE, done.stderr
+    assert done.stderr.count("\n") == 1 and "Traceback" not in done.stderr
+    assert re.search(EDS_SAYS["not INI"], done.stderr), done.stderr
