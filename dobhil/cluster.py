@@ -35,7 +35,7 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, TypeVar
 
-from dobhil.errors import ConfigError
+from dobhil.errors import ConfigError, exception_line
 
 if TYPE_CHECKING:
     import distributed
@@ -165,7 +165,7 @@ def _reason(exc: BaseException) -> str:
     while exc.__cause__ is not None:
         exc = exc.__cause__
         said = exc if str(exc) else said
-    return " ".join(str(said).split()) or type(said).__name__
+    return exception_line(said, named=False)
 
 
 def _no_answer(address: str, timeout: float, why: str) -> ClusterError:
@@ -247,7 +247,7 @@ def _outcome(future: distributed.Future) -> tuple[Any, str | None]:
         raise ClusterError("the Dask scheduler went away during the run (its tasks were cancelled)")
     if future.status == "error":
         exc = future.exception()
-        return None, f"{type(exc).__name__}: {' '.join(str(exc).split())}"
+        return None, exception_line(exc)
     return future.result(), None
 
 

@@ -78,3 +78,19 @@ class RecorderError(DobhilError, OSError):
 
 class ReplayMismatchError(DobhilError, AssertionError):
     """Replay did not reproduce the recorded commands."""
+
+
+def exception_line(exc: BaseException, *, named: bool = True) -> str:
+    """``exc`` as one line for a message: its text with every run of white space (line
+    breaks included: a transport's multi-line error, a parser's caret diagram) folded to
+    one space, after its type's name when ``named`` (an ``OSError``'s or a ``KeyError``'s
+    text alone says little). An exception with no text, or whose ``str`` itself fails,
+    is its type's name. Never raises: it runs on error and safe-stop paths."""
+    name = type(exc).__name__
+    try:
+        text = " ".join(str(exc).split())
+    except Exception:  # a third party's __str__ that fails must not hide the first error
+        text = ""
+    if not text:
+        return name
+    return f"{name}: {text}" if named else text

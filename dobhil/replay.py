@@ -21,7 +21,7 @@ from orjson import loads
 from dobhil.config.schema import Config
 from dobhil.drives.decode import decode_motion, recorded_profile
 from dobhil.drives.profile import DriveProfile
-from dobhil.errors import LogFileError
+from dobhil.errors import LogFileError, exception_line
 from dobhil.recording.reader import LogFile, open_log
 from dobhil.recording.schemas import can_frame_message
 from dobhil.runtime.session import build_controller
@@ -151,8 +151,8 @@ def _read(log: LogFile, name: str) -> Recording:
             else:
                 seqs[int(p["cycle"])] = int(p["seq"])
     except (KeyError, TypeError, ValueError) as exc:
-        raise LogFileError(f"{name}: a recorded message does not match its schema ({type(exc).__name__}: "
-                           f"{exc})") from None
+        raise LogFileError(f"{name}: a recorded message does not match its schema "
+                           f"({exception_line(exc)})") from None
     if initial is None:
         raise LogFileError(f"{name}: no initial feedback record (cycle -1) on /drive/feedback")
     controller.sort(key=lambda c: c[0])

@@ -55,7 +55,7 @@ from dobhil.config.schema import Config
 from dobhil.drives.bus_load import frame_bits
 from dobhil.drives.timing import with_command_delay
 from dobhil.drives.decode import recorded_profile
-from dobhil.errors import LogFileError
+from dobhil.errors import LogFileError, exception_line
 from dobhil.recording.codes import ProtocolCodes
 from dobhil.recording.reader import open_log
 from dobhil.recording.schemas import feedback_state
@@ -129,8 +129,8 @@ def load_run(path: str | os.PathLike[str], progress: ProgressFn | None = None) -
                 if progress is not None and i % 1000 == 999:
                     progress(1000)
         except (KeyError, TypeError, ValueError) as exc:
-            raise LogFileError(f"{name}: a recorded message does not match its schema ({type(exc).__name__}: "
-                               f"{exc})") from None
+            raise LogFileError(f"{name}: a recorded message does not match its schema "
+                               f"({exception_line(exc)})") from None
         run = _assemble(name, log.config, log.metadata, per, frames, ext, times, events, bounds)
         run.states = drive_states(per["states"], _codes(log))
     run.frame_times = frame_times

@@ -31,7 +31,7 @@ from dobhil.analysis.stability import gain_map, is_stable, phase_margin
 from dobhil.config.schema import Config
 from dobhil.drives.profile import DriveProfile
 from dobhil.drives.timing import effective_config
-from dobhil.errors import AnalysisError, DobhilError
+from dobhil.errors import AnalysisError, DobhilError, exception_line
 from dobhil.synthesis.loop import loop
 from dobhil.synthesis.params import params_from_config
 
@@ -210,7 +210,7 @@ def assess(config: Config, profile: DriveProfile | None = None, *, sampled: bool
         raise
     except (np.linalg.LinAlgError, ValueError, ZeroDivisionError, OverflowError) as exc:
         return _with(base, status=GateStatus.NOT_COMPUTED,
-                     reason=f"the analysis cannot answer this design ({str(exc).splitlines()[0][:120]})")
+                     reason=f"the analysis cannot answer this design ({exception_line(exc, named=False)[:120]})")
 
 
 def not_applicable(config: Config) -> str:

@@ -19,7 +19,7 @@ from dobhil.analysis.metrics import StepMetrics, step_metrics, step_responses
 from dobhil.analysis.stability import GainMap, gain_map, is_stable
 from dobhil.analysis.transfer import LoopSystems
 from dobhil.config.schema import Config
-from dobhil.errors import AnalysisError, ConfigError, DobhilError
+from dobhil.errors import AnalysisError, ConfigError, DobhilError, exception_line
 from dobhil.synthesis.controller import continuous_controller, sampled_controller
 from dobhil.synthesis.params import Params, params_from_config
 
@@ -79,13 +79,9 @@ def _answered(params: Params, *, sampled: bool, duration: float) -> DomainAnalys
     except DobhilError:
         raise
     except (np.linalg.LinAlgError, ValueError, ZeroDivisionError, OverflowError) as exc:
+        why = exception_line(exc, named=False)[:120]
         raise AnalysisError(f"the {name} analysis cannot answer this design "
-                            f"({_why(exc)}); check that it is within the keys' ranges") from None
-
-
-def _why(exc: Exception) -> str:
-    text = str(exc).splitlines()[0] if str(exc) else exc.__class__.__name__
-    return text[:120]
+                            f"({why}); check that it is within the keys' ranges") from None
 
 
 def analyze_domain(params: Params, *, sampled: bool, duration: float = 0.0) -> DomainAnalysis:

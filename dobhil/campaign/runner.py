@@ -40,6 +40,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from dobhil.errors import exception_line
+
 #: share of a step response's last cycles averaged as its final value
 FINAL_SHARE = 0.1
 
@@ -82,7 +84,7 @@ def run_one(spec: RunSpec) -> dict[str, Any]:
     try:
         row.update(_run(spec))
     except Exception as exc:   # any failure is this run's row, not the campaign's end
-        row["error"] = describe(exc)
+        row["error"] = exception_line(exc)
     return row
 
 
@@ -90,12 +92,6 @@ def empty_result() -> dict[str, Any]:
     """The result columns of a run that did not run (an error)."""
     return {"stop_reason": "", "error": "", "cycles": 0, **{m: None for m in (*METRICS, *MEASURED)},
             "overruns": 0}
-
-
-def describe(exc: BaseException) -> str:
-    """``ExcType: message`` on one line."""
-    text = " ".join(str(exc).split())
-    return f"{type(exc).__name__}: {text}" if text else type(exc).__name__
 
 
 def _run(spec: RunSpec) -> dict[str, Any]:

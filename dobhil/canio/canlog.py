@@ -17,7 +17,7 @@ from typing import Any, Final
 import can
 
 from dobhil.canio.frames import FRAME_TOPIC_NAMES, topic_of
-from dobhil.errors import LogFileError
+from dobhil.errors import LogFileError, exception_line
 from dobhil.files import atomic_path, check_output, input_problem
 from dobhil.recording.reader import open_log
 from dobhil.recording.schemas import can_frame_message, can_frame_record
@@ -110,7 +110,7 @@ def _can_reader(path: Path) -> Any:
     try:
         return can.LogReader(path, **absolute)
     except Exception as exc:  # python-can readers raise what their parsers raise
-        raise LogFileError(f"{path}: not a CAN log python-can reads ({type(exc).__name__}: {exc})") from exc
+        raise LogFileError(f"{path}: not a CAN log python-can reads ({exception_line(exc)})") from exc
 
 
 def import_can(canlog: str | os.PathLike[str], out: str | os.PathLike[str], *,
@@ -130,7 +130,7 @@ def import_can(canlog: str | os.PathLike[str], out: str | os.PathLike[str], *,
                     progress(1)
         except Exception as exc:  # whatever a damaged log makes the reader raise
             log.close()
-            raise LogFileError(f"{source}: unreadable after {count} frames ({type(exc).__name__}: {exc})") from exc
+            raise LogFileError(f"{source}: unreadable after {count} frames ({exception_line(exc)})") from exc
         if count == 0:
             log.close()
             raise LogFileError(f"{source}: no CAN frames found (is it a {source.suffix or 'CAN'} log?)")

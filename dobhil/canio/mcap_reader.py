@@ -35,6 +35,7 @@ from can.io.generic import BinaryIOMessageReader
 from mcap.reader import NonSeekingReader, make_reader
 
 from dobhil.canio.frames import FRAME_TOPIC_NAMES, frame_message
+from dobhil.errors import exception_line
 from dobhil.recording.reader import MAGIC
 
 #: (device, inode) of the files McapReaders of this process have open: the writer refuses
@@ -157,8 +158,8 @@ class McapReader(BinaryIOMessageReader):
             for _, _, message in reader.iter_messages(topics=FRAME_TOPIC_NAMES, log_time_order=True):
                 yield message.log_time, message.data
         except Exception as exc:  # a CRC, zstd or lz4 error: the bytes are wrong
-            raise ValueError(f"{self.name}: damaged after {self.frames_read} frames ({type(exc).__name__}: "
-                             f"{exc}); {self._recover} saves the intact chunks") from exc
+            raise ValueError(f"{self.name}: damaged after {self.frames_read} frames ({exception_line(exc)}); "
+                             f"{self._recover} saves the intact chunks") from exc
 
     def _scan(self) -> Iterator[tuple[int, bytes]]:
         """Front to back, for a file without chunk index; file order is the writer's order."""

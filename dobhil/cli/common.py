@@ -26,13 +26,16 @@ def config_from_args(args: argparse.Namespace) -> Config:
 
 def design_on_drive(config: Config, args: argparse.Namespace, out: TextIO | None = None) -> Config:
     """The config as the design runs on its drive profile (``drive.profile``, looked up
-    near the config): the protocol's command delay when the profile fixes one
-    (:func:`dobhil.drives.timing.effective_config`), its one-line note printed to
-    ``out`` (stdout by default) when that changed the design's values."""
+    near the config; the files it names checked as its drive reads them, so a design
+    command refuses what ``dobhil run`` would): the protocol's command delay when the
+    profile fixes one (:func:`dobhil.drives.timing.effective_config`), its one-line note
+    printed to ``out`` (stdout by default) when that changed the design's values."""
     from dobhil.config.load import resolve_config
     from dobhil.drives.load import load_drive_profile
+    from dobhil.drives.registry import protocol
     from dobhil.drives.timing import effective_config
     profile = load_drive_profile(config, resolve_config(args.config).parent)
+    protocol(profile.protocol).check_files(profile)   # bad input the run would refuse
     config, note = effective_config(config, profile)
     if note:
         print(note, file=out or sys.stdout)

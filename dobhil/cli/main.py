@@ -21,7 +21,7 @@ import traceback
 from collections.abc import Sequence
 
 from dobhil import __version__
-from dobhil.errors import DobhilError
+from dobhil.errors import DobhilError, exception_line
 
 #: Subcommand modules, in the order ``dobhil --help`` lists them.
 _SUBCOMMANDS: tuple[str, ...] = (
@@ -119,7 +119,7 @@ def _main(argv: Sequence[str] | None) -> int:
     try:
         return int(args.func(args) or 0)
     except DobhilError as exc:
-        return _fail(f"dobhil {args.command}: error: {_one_line(exc)}", EXIT_USAGE)
+        return _fail(f"dobhil {args.command}: error: {exception_line(exc, named=False)}", EXIT_USAGE)
     except KeyboardInterrupt:
         _say(f"dobhil {args.command}: interrupted")
         return 130
@@ -131,18 +131,14 @@ def _main(argv: Sequence[str] | None) -> int:
         # the system refused a file the command was given or derived from its arguments
         # (a read-only place, /proc, a name too long, a disk full): one line naming it
         where = _path(exc.filename) + (f" -> {_path(exc.filename2)}" if exc.filename2 is not None else "")
-        return _fail(f"dobhil {args.command}: error: {where}: {exc.strerror or _one_line(exc)}", EXIT_USAGE)
+        said = exc.strerror or exception_line(exc, named=False)
+        return _fail(f"dobhil {args.command}: error: {where}: {said}", EXIT_USAGE)
     except Exception as exc:
         return _internal(args.command, exc)
 
 
 def _path(name: object) -> str:
     return os.fsdecode(name) if isinstance(name, (str, bytes, os.PathLike)) else str(name)
-
-
-def _one_line(exc: BaseException) -> str:
-    text = " ".join(str(exc).split())
-    return text if text else type(exc).__name__
 
 
 def _debug() -> bool:
@@ -172,5 +168,5 @@ def _internal(command: str, exc: Exception) -> int:
     """An exception no check anticipated: a bug, said as one, with the way to its traceback."""
     hint = "the traceback is above" if _debug() else f"{DEBUG_ENV}=1 shows the traceback"
     prog = f"dobhil {command}" if command else "dobhil"
-    return _fail(f"{prog}: internal error: {type(exc).__name__}: {_one_line(exc)[:300]} "
+    return _fail(f"{prog}: internal error: {exception_line(exc)[:300]} "
                  f"(a bug in dobhil; {hint}; please report it)", EXIT_INTERNAL)

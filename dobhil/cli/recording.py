@@ -23,7 +23,7 @@ from typing import Any, Final
 from dobhil import __version__
 from dobhil.config import Config, to_yaml
 from dobhil.drives.profile import DriveProfile
-from dobhil.errors import RecorderError
+from dobhil.errors import RecorderError, exception_line
 from dobhil.files import check_new_output
 from dobhil.recording.codes import ProtocolCodes
 from dobhil.recording.process import WriterProcess
@@ -200,7 +200,7 @@ def _discard_unopened(log: RunLog) -> None:
 
 def _close_quietly(log: RunLog, exc: BaseException) -> None:
     try:
-        log.end("exception", f"{type(exc).__name__}: {exc}")
+        log.end("exception", exception_line(exc))
     except RecorderError:
         pass
 

@@ -18,7 +18,7 @@ import yaml
 from dobhil.config.schema import SECTIONS, Check, Config, check_maximum, key_fields
 from dobhil.config.yamlio import TextFileError, read_text_file, safe_load, show_value, where
 from dobhil.data import configs_dir, shipped_configs, shipped_file
-from dobhil.errors import ConfigError
+from dobhil.errors import ConfigError, exception_line
 
 
 #: keys naming a file: relative in a config file, from that file's directory (the run
@@ -79,7 +79,7 @@ def read_yaml(path: str | Path) -> dict[str, Any]:
     except yaml.YAMLError as exc:
         raise ConfigError(f"{p}: YAML syntax error{where(exc)}") from None
     except (ValueError, RecursionError) as exc:  # e.g. an integer of more than 4300 digits
-        raise ConfigError(f"{p}: unreadable value: {str(exc).splitlines()[0]}") from None
+        raise ConfigError(f"{p}: unreadable value: {exception_line(exc, named=False)}") from None
     if data is None:
         return {}
     if not isinstance(data, dict):

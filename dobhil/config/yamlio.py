@@ -18,7 +18,7 @@ import yaml
 from yaml.constructor import ConstructorError
 from yaml.nodes import MappingNode
 
-from dobhil.errors import ConfigError
+from dobhil.errors import ConfigError, exception_line
 
 __all__ = ["MAX_TEXT_BYTES", "UniqueKeyLoader", "TextFileError", "load_yaml_file", "read_text_file", "safe_load",
            "show_value", "where"]
@@ -111,7 +111,7 @@ def load_yaml_file(path: str | os.PathLike[str], what: str) -> Any:
     except yaml.YAMLError as exc:
         raise ConfigError(f"{path}: YAML error in {what}{where(exc)}") from None
     except (OSError, ValueError, RecursionError) as exc:
-        raise ConfigError(f"{path}: cannot read {what}: {' '.join(str(exc).split())}") from None
+        raise ConfigError(f"{path}: cannot read {what}: {exception_line(exc, named=False)}") from None
 
 
 def _short_repr() -> reprlib.Repr:

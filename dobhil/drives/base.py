@@ -59,8 +59,9 @@ from typing import TYPE_CHECKING, ClassVar
 import can
 
 from dobhil.drives.profile import DriveProfile, ProtocolRules
-from dobhil.drives.waits import WAIT_SLICE, Cancel
+from dobhil.drives.waits import Cancel, sliced_frames
 from dobhil.errors import BusError, ConfigError, DriveError, DriveFaultError, DriveTimeoutError, WaitCancelled
+from dobhil.errors import exception_line
 
 if TYPE_CHECKING:
     from dobhil.drives.preflight import PreflightProbe
@@ -444,7 +445,7 @@ class Drive(ABC):
             self._bus.send(frame, 0.0)
         except Exception as exc:  # whatever the interface raises: python-can-remote, say,
             # raises its own transport errors when the hub is gone
-            raise BusError(f"torque frame to node {self.node_id} not sent: {_one_line(exc)}") from exc
+            raise BusError(f"torque frame to node {self.node_id} not sent: {_bus_failure(exc)}") from exc
 
     def poll(self, timeout: float) -> Feedback | None:
         """Read frames for up to ``timeout`` s; return the newest fresh feedback or None.
@@ -581,7 +582,7 @@ class Drive(ABC):
             try:
                 self._bus.send(frame)
             except Exception as exc:  # any interface's failure (see send_torque)
-                raise BusError(f"{what} frames to node {self.node_id} not sent: {_one_line(exc)}") from exc
+                raise BusError(f"{what} frames to node {self.node_id} not sent: {_bus_failure(exc)}") from exc
 
     def _recv(self, timeout: float) -> can.Message | None:
         """``bus.recv`` outside the cycle; any failure of the bus is a BusError."""
@@ -601,7 +602,7 @@ class Drive(ABC):
                 return FrameResult(what, True, refused=refused)
             except Exception as exc:  # safety path: every frame gets its own attempt
                 refused += 1
-                error = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+                error = exception_line(exc, named=False)
                 if time.monotonic() >= give_up:
                     return FrameResult(what, False, error, refused)
                 time.sleep(0.001)
@@ -655,21 +656,11 @@ class Drive(ABC):
         """Read frames for up to ``wait`` s until ``done(frame)``: "" then, else why not
         (``silence`` when the wait ended, the wait cancelled, the bus unreadable).
         Past the deadline only what is already queued is read. Never raises."""
-        deadline = self._clock() + wait
+        frames = sliced_frames(self._bus.recv, self._clock, self._clock() + wait, cancel=cancel, drain=True)
         try:
-            while True:
-                remaining = deadline - self._clock()
-                late = remaining <= 0
-                cancelled = "" if late or cancel is None else cancel()
-                if cancelled:
-                    return f"confirmation wait cut short: {cancelled}"
-                msg = self._bus.recv(0.0 if late else min(remaining, WAIT_SLICE))
-                if msg is None:
-                    if late:
-                        return silence
-                    continue
-                if done(msg):
-                    return ""
+            return "" if any(done(msg) for msg in frames) else silence
+        except WaitCancelled as exc:
+            return f"confirmation wait cut short: {exc}"
         except Exception as exc:  # safety path: a bus that cannot be read confirms nothing
             return f"status not readable: {exc}"
 
@@ -712,21 +703,11 @@ class Drive(ABC):
         return self._profile.heartbeat_period or DEFAULT_KEEPALIVE
 
     def _await_enabled(self, deadline: float, cancel: Cancel | None) -> bool:
-        interval = self._keepalive_interval()
-        next_keepalive = self._clock()
-        while True:
-            now = self._clock()
-            if now >= deadline:
-                return False
-            why = cancel() if cancel is not None else ""
-            if why:
-                raise WaitCancelled(f"{why} while waiting for node {self.node_id} to enable")
-            if now >= next_keepalive:
-                self._send_all(self._keepalive_frames(), "keepalive")
-                next_keepalive = now + interval
-            msg = self._recv(min(deadline - now, next_keepalive - now, WAIT_SLICE))
-            if msg is not None and self._handle_for_enable(msg):
-                return True
+        frames = sliced_frames(self._recv, self._clock, deadline, cancel=cancel,
+                               what=f"waiting for node {self.node_id} to enable",
+                               between=lambda: self._send_all(self._keepalive_frames(), "keepalive"),
+                               every=self._keepalive_interval())
+        return any(self._handle_for_enable(msg) for msg in frames)
 
     def _drain(self) -> bool:
         fresh = False
@@ -759,7 +740,7 @@ class Drive(ABC):
                 return True
 
     def _read_error(self, exc: BaseException) -> BusError:
-        return BusError(f"bus read for node {self.node_id} failed: {_one_line(exc)}")
+        return BusError(f"bus read for node {self.node_id} failed: {_bus_failure(exc)}")
 
     def apply(self, msg: can.Message) -> bool:
         """Apply one frame received elsewhere (a recorded one: replay); True if it carried
@@ -844,10 +825,8 @@ class Drive(ABC):
         )
 
 
-def _one_line(exc: BaseException) -> str:
-    """An exception as one line, its type named when its text alone says little (a
-    transport's ``Status: 1006, reason: Socket closed unexpectedly``)."""
-    text = " ".join(str(exc).split())
-    if isinstance(exc, (can.CanError, OSError)) and text:
-        return text
-    return f"{type(exc).__name__}: {text}" if text else type(exc).__name__
+def _bus_failure(exc: BaseException) -> str:
+    """A bus failure as one line: python-can's and the OS's errors say enough alone, a
+    transport's own needs its type named (``Status: 1006, reason: Socket closed
+    unexpectedly`` says little)."""
+    return exception_line(exc, named=not isinstance(exc, (can.CanError, OSError)))

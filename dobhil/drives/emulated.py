@@ -45,7 +45,7 @@ from can.broadcastmanager import (LimitedDurationCyclicSendTaskABC, ModifiableCy
                                   RestartableCyclicTaskABC)
 
 from dobhil.drives.profile import DriveProfile
-from dobhil.errors import BusError
+from dobhil.errors import BusError, exception_line
 from dobhil.realtime import lower_priority
 
 __all__ = ["EmulatedDrive", "LockstepBus", "LockstepPeriodicTask", "PlantLike", "private_virtual_channel"]
@@ -332,9 +332,9 @@ class EmulatedDrive(ABC):
             if not bus_gone(exc):   # refused (ENOBUFS: the queue is full): counted, the drive goes on
                 self.send_errors += 1
                 return
-            raise BusError(f"{self._bus.channel_info}: send failed: {type(exc).__name__}: {exc}") from exc
+            raise BusError(f"{self._bus.channel_info}: send failed: {exception_line(exc)}") from exc
         except Exception as exc:  # a transport's own error (a hub gone): the bus is gone
-            raise BusError(f"{self._bus.channel_info}: send failed: {type(exc).__name__}: {exc}") from exc
+            raise BusError(f"{self._bus.channel_info}: send failed: {exception_line(exc)}") from exc
         self.frames_sent += 1
 
     # -- internals ------------------------------------------------------------
@@ -367,7 +367,7 @@ class EmulatedDrive(ABC):
             raise
         except Exception as exc:  # last line of defence of a bus participant
             self.frame_errors += 1
-            self.last_frame_error = f"{type(exc).__name__}: {exc}"
+            self.last_frame_error = exception_line(exc)
 
     def _emit_cyclic(self, now: float) -> None:
         if not self._cyclic:
@@ -475,7 +475,7 @@ class EmulatedDrive(ABC):
         try:
             return self._bus.recv(timeout)
         except Exception as exc:  # the bus is gone: the thread ends, stop() raises this
-            raise BusError(f"{self._bus.channel_info}: read failed: {type(exc).__name__}: {exc}") from exc
+            raise BusError(f"{self._bus.channel_info}: read failed: {exception_line(exc)}") from exc
 
     def _take(self, batch: list[can.Message], tick_start: float, deadline: float) -> None:
         """Receive ``batch`` at the emulator time of now, within this tick, each frame knowing

@@ -113,6 +113,12 @@ class DriveProtocol(ABC):
         """What ``dobhil check`` reads of a drive of this protocol (None: nothing yet)."""
         return self.drive_class.preflight_probe(profile)
 
+    def check_files(self, profile: DriveProfile) -> None:
+        """Read and check the files ``profile`` names (CiA 402: its EDS) as its drive will,
+        so that a command that opens no bus (``dobhil analyze``) refuses what ``dobhil run``
+        would: ConfigError, one line. Default: the profile names no file."""
+        return None
+
     def state_name(self, profile: DriveProfile, code: int) -> str:
         """The drive's own state code (``DriveStatus.state``, the log's ``protocol_state``)
         in the protocol's words for ``profile``'s drive; ``str(code)`` when it names none."""

@@ -48,7 +48,8 @@ from dobhil.drives.bus_load import budget as make_budget
 from dobhil.drives.bus_load import frame_bits as wire_bits
 from dobhil.drives.profile import DriveProfile
 from dobhil.drives.socketcan_link import link_down_text, link_info, link_problems
-from dobhil.drives.waits import WAIT_SLICE, Cancel
+from dobhil.drives.waits import Cancel, sliced_frames
+from dobhil.errors import WaitCancelled, exception_line
 
 __all__ = [
     "DEFAULT_WINDOW",
@@ -398,23 +399,26 @@ def listen_window(bus: can.BusABC, probe: PreflightProbe, window: float, clock: 
             try:
                 bus.send(request, 0.0)
             except Exception as exc:  # any interface's refusal (a transport's own, too)
-                cap.send_errors.append(str(exc).splitlines()[0] if str(exc) else type(exc).__name__)
+                cap.send_errors.append(exception_line(exc, named=False))
 
     ask(probe.profile.node_id)
-    end = clock() + window
-    while (now := clock()) < end:
-        if cancel is not None and cancel():
-            break   # the caller stops (SIGINT): what was heard so far is all there is
-        try:  # in slices: a stop request is seen within WAIT_SLICE s
-            msg = bus.recv(min(end - now, WAIT_SLICE))
+    def read(timeout: float) -> can.Message | None:
+        try:
+            return bus.recv(timeout)
         except Exception as exc:  # any interface's failure: the bus is gone
-            cap.read_error = " ".join(f"{type(exc).__name__}: {exc}".split())
-            break
-        if msg is None:
-            continue
-        node = cap.take(msg, probe, stamp)
-        if node is not None and node not in asked:
-            ask(node)
+            cap.read_error = exception_line(exc)
+            raise
+
+    try:
+        for msg in sliced_frames(read, clock, clock() + window, cancel=cancel):
+            node = cap.take(msg, probe, stamp)
+            if node is not None and node not in asked:
+                ask(node)
+    except WaitCancelled:
+        pass   # the caller stops (SIGINT): what was heard so far is all there is
+    except Exception:
+        if not cap.read_error:
+            raise   # not the bus's failure: a bug of the probe, not to be taken for a bus gone
     return cap
 
 

@@ -67,7 +67,7 @@ from dobhil.config.schema import Config
 from dobhil.drives.profile import DriveProfile
 from dobhil.emulator.pipe import PipeBus, RecordKind, socket_pair
 from dobhil.drives.emulated import tick_period
-from dobhil.errors import BusError
+from dobhil.errors import BusError, exception_line
 
 __all__ = ["EmulatorProcess", "EmulatorSpec", "PlantView", "Slot"]
 
@@ -507,7 +507,7 @@ def child_main(sock_fd: int, status_fd: int) -> None:
         if not closed:
             _fail(bus, f"emulated drive stopped: {exc}")
     except BaseException as exc:  # one line to the host, never a traceback
-        _fail(bus, f"emulated drive failed: {type(exc).__name__}: {exc}")
+        _fail(bus, f"emulated drive failed: {exception_line(exc)}")
     finally:
         bus.shutdown()
 

@@ -28,7 +28,7 @@ from numpy.typing import NDArray
 from orjson import loads
 
 from dobhil.drives.profile import DriveProfile
-from dobhil.errors import ConfigError, LogFileError
+from dobhil.errors import ConfigError, LogFileError, exception_line
 
 Array = NDArray[np.float64]
 
@@ -162,7 +162,7 @@ def _from_frames(log: object, name: str, profile: DriveProfile | None, period: f
             (rx if topic == "/can/rx" else tx).append(can_frame_message(loads(raw), t))
     except (KeyError, TypeError, ValueError) as exc:
         raise LogFileError(f"{name}: a recorded frame does not match its schema "
-                           f"({type(exc).__name__}: {exc})") from None
+                           f"({exception_line(exc)})") from None
     # stable: at one stamp the received frames stay first, as in the lists' order before
     frames = sorted(rx + tx, key=lambda m: m.timestamp)
     motion = decode_motion(profile, frames)
@@ -202,8 +202,8 @@ def _loop_records(log: object, name: str) -> dict[int, list[float]]:
             else:
                 feedback[cycle] = (_number(p["position"]), _number(p["velocity"]))
     except (KeyError, TypeError, ValueError) as exc:
-        raise LogFileError(f"{name}: a recorded message does not match its schema ({type(exc).__name__}: "
-                           f"{exc})") from None
+        raise LogFileError(f"{name}: a recorded message does not match its schema "
+                           f"({exception_line(exc)})") from None
     return {c: [*feedback[c], torque[c]] for c in sorted(torque) if c in feedback}
 
 

@@ -22,7 +22,7 @@ from pathlib import Path
 from typing import Any, Final, NamedTuple, cast
 
 import dobhil
-from dobhil.errors import RecorderError
+from dobhil.errors import RecorderError, exception_line
 from dobhil.recording.codes import ProtocolCodes
 from dobhil.recording.writer import LiveView, LogWriter, RecordMode
 
@@ -178,7 +178,7 @@ class WriterProcess:
         try:
             return encode(records)
         except (pickle.PicklingError, TypeError, ValueError, AttributeError) as exc:
-            raise self.refuse(f"cannot encode a record: {type(exc).__name__}: {exc}") from None
+            raise self.refuse(f"cannot encode a record: {exception_line(exc)}") from None
 
     def close(self, stop_reason: str | None = None, detail: str = "", rest: Sequence[tuple[Any, ...]] = ()) -> None:
         """The ``rest`` of the records, none dropped; stop event (if a reason is given),
@@ -360,7 +360,7 @@ def _serve(fd: int, status: Connection, path: str) -> Reply:
     except BaseException as exc:  # a record the encoder refuses: the file finished, if the disk lets it
         if log is not None:
             try:
-                log.finish("recorder_failed", f"{type(exc).__name__}: {exc}")
+                log.finish("recorder_failed", exception_line(exc))
             except BaseException:
                 log.close()
         raise
@@ -377,7 +377,7 @@ def main(argv: Sequence[str] | None = None) -> None:
     try:
         status = _serve(int(data_fd), status_conn, path)
     except BaseException as exc:  # one line for the parent, whatever it was
-        status, code = Reply(int(Status.FAILED), reason=f"{type(exc).__name__}: {' '.join(str(exc).split())}"), 1
+        status, code = Reply(int(Status.FAILED), reason=exception_line(exc)), 1
     try:
         status_conn.send_bytes(pickle.dumps(status))
     except OSError:

@@ -20,7 +20,7 @@ from typing import Any, BinaryIO, Final
 from mcap.records import Attachment, Channel, Chunk, Footer, Header, Metadata, Schema, Statistics
 from mcap.stream_reader import StreamReader, get_chunk_data_stream
 
-from dobhil.errors import LogFileError
+from dobhil.errors import LogFileError, exception_line
 from dobhil.files import input_problem
 from dobhil.recording.schemas import EventKind, decode
 from dobhil.recording.writer import RECORDING_METADATA
@@ -97,7 +97,7 @@ def _records(f: BinaryIO, path: str | os.PathLike[str]) -> Iterator[tuple[int, A
         except StopIteration:
             return
         except Exception as exc:  # mcap, zstd, lz4 and struct errors alike: the bytes are wrong
-            raise _fail(path, f"damaged at byte {pos} ({type(exc).__name__}: {exc}); "
+            raise _fail(path, f"damaged at byte {pos} ({exception_line(exc)}); "
                               "`dobhil log recover` saves the intact chunks") from exc
         yield pos, record
         if isinstance(record, Footer):
@@ -126,7 +126,7 @@ def _validate_metadata(path: str | os.PathLike[str], metadata: Mapping[str, Mapp
     try:
         return build_config({k: json.loads(v) for k, v in record.items()}, source=f"{os.fspath(path)} config")
     except (ValueError, TypeError) as exc:
-        raise _fail(path, f"invalid recorded config: {' '.join(str(exc).split())}") from None
+        raise _fail(path, f"invalid recorded config: {exception_line(exc, named=False)}") from None
 
 
 class LogFile:
@@ -213,7 +213,7 @@ class LogFile:
                         raise ValueError(f"expected a chunk, found {type(chunk).__name__}")
                     data = get_chunk_data_stream(chunk, validate_crc=True)[0].read(size)
                 except Exception as exc:
-                    raise _fail(self.path, f"damaged at byte {offset} ({type(exc).__name__}: {exc})") from exc
+                    raise _fail(self.path, f"damaged at byte {offset} ({exception_line(exc)})") from exc
                 yield from _chunk_messages(data, wanted)
 
     def iter_messages(self, topics: Iterable[str] | None = None) -> Iterator[tuple[str, int, dict[str, Any]]]:

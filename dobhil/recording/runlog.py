@@ -23,7 +23,7 @@ from typing import Any, Final
 import can
 
 from dobhil.drives.periodic import native_periodic
-from dobhil.errors import RecorderError
+from dobhil.errors import RecorderError, exception_line
 from dobhil.recording.codes import ProtocolCodes
 from dobhil.recording.process import PIPE_SIZE, WriterProcess
 from dobhil.recording.schemas import RECORD_TYPES, EventKind, Topic, event_record, message_count, named
@@ -188,7 +188,7 @@ class RunLog:
         except RecorderError as exc:
             self._failure = exc  # the next cycle raises it
         except Exception as exc:  # not a python-can message
-            self._failure = self.writer.refuse(f"cannot encode a CAN frame: {type(exc).__name__}: {exc}")
+            self._failure = self.writer.refuse(f"cannot encode a CAN frame: {exception_line(exc)}")
 
     def _foreign_frame(self, msg: Any) -> None:
         """A received frame of another participant: kept up to ``FOREIGN_CAP``, else shed."""

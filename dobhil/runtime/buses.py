@@ -11,7 +11,7 @@ import can
 
 from dobhil.config.schema import Config
 from dobhil.drives.profile import DriveProfile
-from dobhil.errors import BusError, ConfigError
+from dobhil.errors import BusError, ConfigError, exception_line
 
 
 @dataclass(frozen=True)
@@ -64,7 +64,7 @@ def open_bus(spec: BusSpec) -> can.BusABC:
         try:
             bus = can.Bus(interface=spec.interface, channel=spec.channel, **kwargs)
         except Exception as exc:
-            text = " ".join(str(exc).split()) or type(exc).__name__
+            text = exception_line(exc, named=False)
             error = exc
     if error is None:  # opened after all: what python-can warned of still matters (timestamps ...)
         for line in caught.lines:
@@ -147,7 +147,7 @@ def shutdown_bus(bus: can.BusABC, timeout: float = SHUTDOWN_TIMEOUT) -> str:
             bus.shutdown()
             outcome.append("")
         except Exception as exc:
-            outcome.append(" ".join(f"{type(exc).__name__}: {exc}".split()))
+            outcome.append(exception_line(exc))
 
     thread = threading.Thread(target=shut, name="dobhil-bus-shutdown", daemon=True)
     thread.start()

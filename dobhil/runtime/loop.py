@@ -81,7 +81,7 @@ from numpy.typing import NDArray
 
 from dobhil.drives.base import Drive, Feedback, HostTimeout, SafeStopReport
 from dobhil.drives.waits import WAIT_SLICE, Cancel
-from dobhil.errors import BusError, DriveError, DriveFaultError, RecorderError, WaitCancelled
+from dobhil.errors import BusError, DriveError, DriveFaultError, RecorderError, WaitCancelled, exception_line
 from dobhil.runtime.controller import ControlOutput, ForceController
 from dobhil.runtime.instability import InstabilityWatch, WatchSettings
 from dobhil.runtime.stop import Stop, StopReason
@@ -502,7 +502,7 @@ class ForceLoop:
             stop = self._enable_and_run()
         except BaseException as exc:
             self._gc.stop()
-            stop = Stop(StopReason.EXCEPTION, f"{type(exc).__name__}: {exc}", self._at,
+            stop = Stop(StopReason.EXCEPTION, exception_line(exc), self._at,
                         self._now())
             self.ended = (stop, self._safe_stop(stop))
             raise

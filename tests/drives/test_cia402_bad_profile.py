@@ -1,13 +1,17 @@
 """A CiA 402 profile that cannot describe a real node is one line and exit 2 wherever a command
-reads it: an EDS that is not an EDS (not INI, objects missing, a data type that is not one) in
-``run`` and ``check`` (``analyze`` does not read the EDS), and an encoder resolution 0x608F
-cannot hold in all three."""
+reads it: an EDS that is not an EDS (not INI, objects missing, a data type that is not one, a
+mapped object missing or of another type than CiA 402's) and an encoder resolution 0x608F
+cannot hold, in ``run``, ``check`` and ``analyze`` (which reads the EDS through the protocol's
+``check_files``); nothing is sent on the bus, no log is written."""
 
 from __future__ import annotations
 
 import re
+import subprocess
+import sys
 from pathlib import Path
 
+import can
 import pytest
 import yaml
 
@@ -20,12 +24,26 @@ COMMANDS = {
     "check": ["check", "{config}", "--bus", "virtual:bad-profile", "--window", "0.05"],
     "analyze": ["analyze", "{config}"],
 }
+SHIPPED_EDS = (REPO / "drivers" / "cia402-emulated.eds").read_text()
+TARGET_TORQUE = SHIPPED_EDS[SHIPPED_EDS.index("[6071]"):SHIPPED_EDS.index("[6072]")]
 EDS_CASES = {
     "not INI": "this is not an EDS\nat all\n",
     "objects missing": "[FileInfo]\nFileName=x.eds\n[DeviceInfo]\nVendorName=x\n",
     # an object whose DataType is no number: canopen's int() of it raises ValueError
     "wrong type": (REPO / "drivers" / "cia402-emulated.eds").read_text().replace(
         "DataType=0x0007", "DataType=seven", 1),
+    # RPDO1 maps 0x6071 (target torque, INTEGER16 per CiA 402)
+    "mapped object missing": SHIPPED_EDS.replace(TARGET_TORQUE, ""),
+    "mapped object of another type": SHIPPED_EDS.replace(
+        TARGET_TORQUE, TARGET_TORQUE.replace("DataType=0x0003", "DataType=0x0007")),
+}
+#: what each case's line says (what was wrong, what is allowed)
+EDS_SAYS = {
+    "not INI": r"not a readable EDS \(expected CiA 306's INI format",
+    "objects missing": r"object 0x[0-9A-F]{4} \(.*\) missing: a CiA 402 drive in CST needs it",
+    "wrong type": r"not a readable EDS",
+    "mapped object missing": r"object 0x6071 \(target torque\) missing",
+    "mapped object of another type": r"0x6071:00 \(target torque\) is UNSIGNED32 in the EDS, CiA 402 has INTEGER16",
 }
 
 
@@ -58,12 +76,33 @@ def test_the_wrong_type_case_really_changes_a_data_type() -> None:
     assert "DataType=seven" in EDS_CASES["wrong type"]
 
 
+def test_the_mapped_cases_really_change_the_target_torque() -> None:
+    assert "ParameterName=Target torque" in TARGET_TORQUE and "DataType=0x0003" in TARGET_TORQUE
+    assert "[6071]" not in EDS_CASES["mapped object missing"]
+    assert EDS_CASES["mapped object of another type"].count("DataType=0x0007") == \
+        SHIPPED_EDS.count("DataType=0x0007") + 1
+
+
 @pytest.mark.parametrize("case", EDS_CASES)
-@pytest.mark.parametrize("command", ["run", "check"])
+@pytest.mark.parametrize("command", COMMANDS)
 def test_a_malformed_eds_is_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str],
                                      command: str, case: str) -> None:
     err = one_line_exit_2(command, write_setup(tmp_path, EDS_CASES[case]), capsys)
-    assert "node.eds" in err
+    assert "node.eds" in err and re.search(EDS_SAYS[case], err), err
+
+
+@pytest.mark.parametrize("case", EDS_CASES)
+@pytest.mark.parametrize("command", ["run", "check"])
+def test_a_malformed_eds_sends_nothing_and_writes_no_log(tmp_path: Path, capsys: pytest.CaptureFixture[str],
+                                                         command: str, case: str) -> None:
+    config, log = write_setup(tmp_path, EDS_CASES[case]), tmp_path / "run.mcap"
+    argv = [command, str(config), "--bus", f"virtual:bad-eds-{command}"]
+    argv += ["--log", str(log), "--duration", "0.01"] if command == "run" else ["--window", "0.05"]
+    with can.Bus(interface="virtual", channel=f"bad-eds-{command}") as listener:
+        assert main(argv) == EXIT_USAGE
+        assert listener.recv(0.0) is None   # not a frame: no NMT, no SDO, no enable
+    assert not log.exists()
+    assert capsys.readouterr().err.count("\n") == 1
 
 
 @pytest.mark.parametrize("value", [1.5, 0, -4096, 2**32, "4096"])
@@ -77,3 +116,15 @@ def test_an_encoder_resolution_0x608f_cannot_hold_is_one_line(
 def test_a_whole_resolution_still_runs(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["run", str(write_setup(tmp_path, position_per_rev=2**32 - 1)), "--emulate", "--lockstep",
                  "--duration", "0.01"]) == 0
+
+
+@pytest.mark.parametrize("command", COMMANDS)
+def test_a_file_that_is_not_an_eds_is_one_line_as_a_process(tmp_path: Path, command: str) -> None:
+    """As a user meets it: a process, its stderr one line, exit 2, no traceback."""
+    config = write_setup(tmp_path, EDS_CASES["not INI"])
+    argv = [part.format(config=config) for part in COMMANDS[command]]
+    done = subprocess.run([sys.executable, "-m", "dobhil", *argv], capture_output=True, text=True, timeout=120,
+                          check=False)
+    assert done.returncode == EXIT_USAGE, done.stderr
+    assert done.stderr.count("\n") == 1 and "Traceback" not in done.stderr
+    assert re.search(EDS_SAYS["not INI"], done.stderr), done.stderr

@@ -14,7 +14,8 @@ import canopen
 import pytest
 
 from dobhil.data import drivers_dir
-from dobhil.drives.cia402.emulator import EmulatedCiA402, PowerState
+from dobhil.drives.cia402.codec import PowerState
+from dobhil.drives.cia402.emulator import EmulatedCiA402
 from dobhil.emulator.plant import Plant
 from dobhil.drives.emulated import private_virtual_channel
 

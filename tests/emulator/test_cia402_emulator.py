@@ -14,8 +14,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from dobhil.data import drivers_dir
-from dobhil.drives.cia402.emulator import (TRANSITIONS, Command, EmcyCode, PowerState, decode_command,
-                                    statusword)
+from dobhil.drives.cia402.codec import Controlword, EmcyCode, PowerState
+from dobhil.drives.cia402.emulator import TRANSITIONS, decode_command, statusword
 from dobhil.emulator.plant import Plant
 from dobhil.drives.registry import make_emulated_drive
 from dobhil.errors import ConfigError
@@ -49,10 +49,10 @@ def tpdo1(frames: dict[int, bytes]) -> tuple[int, int, int]:
 # -- pure tables ---------------------------------------------------------------------
 
 @pytest.mark.parametrize("controlword, command", [
-    (0x06, Command.SHUTDOWN), (0x0E, Command.SHUTDOWN), (0x07, Command.SWITCH_ON),
-    (0x0F, Command.ENABLE_OPERATION), (0x00, Command.DISABLE_VOLTAGE), (0x0D, Command.DISABLE_VOLTAGE),
-    (0x02, Command.QUICK_STOP), (0x0B, Command.QUICK_STOP), (0x8F, Command.ENABLE_OPERATION)])
-def test_controlword_commands_follow_the_cia402_table(controlword: int, command: Command) -> None:
+    (0x06, Controlword.SHUTDOWN), (0x0E, Controlword.SHUTDOWN), (0x07, Controlword.SWITCH_ON),
+    (0x0F, Controlword.ENABLE_OPERATION), (0x00, Controlword.DISABLE_VOLTAGE), (0x0D, Controlword.DISABLE_VOLTAGE),
+    (0x02, Controlword.QUICK_STOP), (0x0B, Controlword.QUICK_STOP), (0x8F, Controlword.ENABLE_OPERATION)])
+def test_controlword_commands_follow_the_cia402_table(controlword: int, command: Controlword) -> None:
     assert decode_command(controlword) is command
 
 

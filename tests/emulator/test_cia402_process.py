@@ -17,7 +17,7 @@ import pytest
 from dobhil.cli.main import main
 from dobhil.config import load_config
 from dobhil.data import drivers_dir
-from dobhil.drives.cia402.emulator import PowerState
+from dobhil.drives.cia402.codec import PowerState
 from dobhil.emulator.process import EmulatorProcess, EmulatorSpec
 from dobhil.drives.emulated import private_virtual_channel
 

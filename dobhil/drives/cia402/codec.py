@@ -35,6 +35,8 @@ __all__ = [
     "CST_SUPPORTED_BIT",
     "DATA_TYPE_FORMATS",
     "EMCY_LAYOUT",
+    "EmcyCode",
+    "ErrorRegister",
     "FAULT_RESET_BIT",
     "HOST_HEARTBEATS_PER_CONSUMER_TIME",
     "MAX_PDO_BITS",
@@ -419,6 +421,25 @@ def layout_struct(data_types: Sequence[int]) -> struct.Struct:
 
 #: EMCY payload (CiA 301): error code U16, error register U8, 5 manufacturer bytes
 EMCY_LAYOUT = struct.Struct("<HB5s")
+
+
+class EmcyCode(IntEnum):
+    """CiA 301 / CiA 402 emergency error codes dobhil names (the drive's watch of the
+    host's heartbeat, the emulated node's faults)."""
+
+    NO_ERROR = 0x0000
+    COMMUNICATION = 0x8100      # NMT operational left while enabled (0x6007 "fault")
+    HEARTBEAT = 0x8130          # life guard / heartbeat consumer error
+    PDO_LENGTH = 0x8210         # PDO not processed due to length error
+    EXCESS_TORQUE = 0x8311
+
+
+class ErrorRegister(IntEnum):
+    """0x1001 bits (CiA 301)."""
+
+    GENERIC = 0x01
+    COMMUNICATION = 0x10
+    PROFILE = 0x20
 
 
 @dataclass(frozen=True, slots=True)

@@ -63,6 +63,7 @@ from dobhil.drives.periodic import native_periodic
 from dobhil.drives.profile import DriveProfile, ProtocolRules
 from dobhil.drives.waits import Cancel
 from dobhil.errors import BusError, CodecError, ConfigError, DriveError, DriveFaultError, DriveTimeoutError
+from dobhil.errors import exception_line
 
 if TYPE_CHECKING:
     from canopen.pdo import PdoMap
@@ -72,8 +73,6 @@ if TYPE_CHECKING:
 __all__ = ["CiA402Drive"]
 
 _NO_EVENTS: tuple[DriveEvent, ...] = ()
-#: CiA 301 EMCY code of a heartbeat or life-guarding error: the node's watchdog on the host
-EMCY_HEARTBEAT = 0x8130
 _OUT_OF_TORQUE = frozenset(PowerState) - {PowerState.OPERATION_ENABLED, PowerState.UNKNOWN}
 
 
@@ -276,7 +275,7 @@ class CiA402Drive(Drive):
             raise type(exc)(f"node {self.node_id}: {exc} (reached: {_reached(reached)})") from None
         except (can.CanError, OSError) as exc:  # the bus refused a request or cannot be read
             raise BusError(f"node {self.node_id}: {self._sdo_object(link)}: "
-                           f"{' '.join(str(exc).split()) or type(exc).__name__} "
+                           f"{exception_line(exc, named=False)} "
                            f"(reached: {_reached(reached)})") from exc
 
     @staticmethod
@@ -293,7 +292,7 @@ class CiA402Drive(Drive):
             return f"{obj} aborted by the node: 0x{exc.code:08X} ({text})"
         if "No SDO response" in str(exc):
             return f"{obj} timed out after {link.adapter.timeout:g} s"
-        return f"{obj} failed: {' '.join(str(exc).split())}"
+        return f"{obj} failed: {exception_line(exc, named=False)}"
 
     def _read_identity(self, node: Any) -> None:
         record = node.sdo[0x1018]
@@ -400,7 +399,8 @@ class CiA402Drive(Drive):
         this process can, and a consumer fault is not the host's. Its expiry is EMCY 0x8130,
         sent by the node at once."""
         consumer = float(self.profile.options["consumer_heartbeat"])
-        if consumer <= 0 or native_periodic(self._bus) or (event is not None and event.error_code != EMCY_HEARTBEAT):
+        not_heartbeat = event is not None and event.error_code != codec.EmcyCode.HEARTBEAT
+        if consumer <= 0 or native_periodic(self._bus) or not_heartbeat:
             return None
         return HostTimeout("heartbeat consumer (0x1016)", consumer,
                            fed_every=self._host_heartbeat_interval(consumer), reported_within=self._period)
@@ -466,7 +466,7 @@ class CiA402Drive(Drive):
                 self._sync_task = self._bus.send_periodic(self._sync_msg, self._period)
             except Exception as exc:  # whatever the interface raises (see Drive.send_torque)
                 raise BusError(f"node {self.node_id}: periodic SYNC not started: "
-                               f"{' '.join(str(exc).split()) or type(exc).__name__}") from exc
+                               f"{exception_line(exc, named=False)}") from exc
 
     def _stop_sync(self) -> None:
         task, self._sync_task = self._sync_task, None
@@ -628,7 +628,7 @@ class CiA402Drive(Drive):
         active = (power is PowerState.OPERATION_ENABLED and self._mode == CST_MODE and nmt_ok
                   and not codec.is_fault(self._statusword))
         code = self._emcy
-        return StateEvent(active=active, error_code=code, watchdog_tripped=code == EMCY_HEARTBEAT,
+        return StateEvent(active=active, error_code=code, watchdog_tripped=code == codec.EmcyCode.HEARTBEAT,
                           state_text=self._state_text(nmt_ok), error_text=self._emcy_text(),
                           state=int(power))
 

@@ -24,7 +24,7 @@ from dobhil.drives.cia402 import codec
 from dobhil.drives.cia402.codec import Mapped
 from dobhil.drives.cia402.link import quiet_canopen
 from dobhil.drives.profile import DriveProfile, default_drivers_dir
-from dobhil.errors import CodecError, ConfigError
+from dobhil.errors import CodecError, ConfigError, exception_line
 
 __all__ = ["REQUIRED_OBJECTS", "STANDARD_LAYOUTS", "EdsNotFound", "Layouts", "check_od", "eds_path", "load_od",
            "pdo_data_types"]
@@ -76,7 +76,8 @@ def load_od(profile: DriveProfile) -> ObjectDictionary:
     # canopen reads an EDS with configparser: a file that is not INI raises its Error
     # (MissingSectionHeaderError, ParsingError), which is none of the others
     except (ObjectDictionaryError, ValueError, KeyError, OSError, configparser.Error) as exc:
-        raise ConfigError(f"{path}: not a readable EDS: {' '.join(str(exc).split())}") from None
+        raise ConfigError(f"{path}: not a readable EDS (expected CiA 306's INI format, sections such as [1000] "
+                          f"and [6040]): {exception_line(exc, named=False)}") from None
     check_od(od, profile, str(path))
     return od
 

@@ -75,7 +75,6 @@ import math
 import struct
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
-from enum import IntEnum
 from typing import Any
 
 import can
@@ -84,7 +83,8 @@ from canopen.network import PeriodicMessageTask
 from canopen.objectdictionary import ODVariable
 from canopen.sdo import SdoAbortedError, SdoVariable
 
-from dobhil.drives.cia402.codec import (CST_MODE, RATED_TORQUE_UNITS, STATUSWORD_TABLE, UNIT_OBJECTS, PowerState,
+from dobhil.drives.cia402.codec import (CST_MODE, FAULT_RESET_BIT, RATED_TORQUE_UNITS, STATUSWORD_TABLE, UNIT_OBJECTS,
+                                        Cob, Controlword, EmcyCode, ErrorRegister, NmtCommand, PowerState,
                                         UnitObject, UnitScale, per_mille)
 from dobhil.drives.cia402.eds import load_od
 from dobhil.drives.cia402.link import quiet_canopen
@@ -93,8 +93,7 @@ from dobhil.drives.profile import DriveProfile
 from dobhil.drives.emulated import EmulatedDrive, PlantLike
 from dobhil.errors import ConfigError
 
-__all__ = ["Command", "EmcyCode", "EmulatedCiA402", "PowerState", "TRANSITIONS", "decode_command",
-           "statusword"]
+__all__ = ["EmulatedCiA402", "TRANSITIONS", "decode_command", "statusword"]
 
 #: the ``cia402:`` section of a profile built in code without one: the section's own
 #: defaults (its rules), and the shipped emulated node's values for the keys it requires
@@ -111,43 +110,14 @@ _I8 = struct.Struct("<b")
 _I16_MAX = 32767
 _U32_MAX = 0xFFFF_FFFF
 _PDO_INVALID = 1 << 31
-_NMT, _HEARTBEAT = 0x000, 0x700
 #: SDO abort (ccs 4), no object, code 0x05040001: client/server command specifier not valid
 _SDO_ABORT_UNKNOWN_COMMAND = bytes([0x80, 0, 0, 0]) + (0x05040001).to_bytes(4, "little")
 
 
-class Command(IntEnum):
-    """Controlword commands (bits 0-3; fault reset, bit 7, is an edge and apart)."""
-
-    SHUTDOWN = 0x06
-    SWITCH_ON = 0x07            # also "disable operation" (same bits)
-    ENABLE_OPERATION = 0x0F
-    DISABLE_VOLTAGE = 0x00
-    QUICK_STOP = 0x02
-
-
-class EmcyCode(IntEnum):
-    """CiA 301 / CiA 402 emergency error codes this drive produces."""
-
-    NO_ERROR = 0x0000
-    COMMUNICATION = 0x8100      # NMT operational left while enabled (0x6007 "fault")
-    HEARTBEAT = 0x8130          # life guard / heartbeat consumer error
-    PDO_LENGTH = 0x8210         # PDO not processed due to length error
-    EXCESS_TORQUE = 0x8311
-
-
-class ErrorRegister(IntEnum):
-    """0x1001 bits (CiA 301)."""
-
-    GENERIC = 0x01
-    COMMUNICATION = 0x10
-    PROFILE = 0x20
-
-
 _S = PowerState
-_C = Command
+_C = Controlword
 #: (state, command) -> next state, CiA 402 transitions 2-12 (16 in code: it depends on 0x605A)
-TRANSITIONS: Mapping[tuple[PowerState, Command], PowerState] = {
+TRANSITIONS: Mapping[tuple[PowerState, Controlword], PowerState] = {
     (_S.SWITCH_ON_DISABLED, _C.SHUTDOWN): _S.READY_TO_SWITCH_ON,                  # 2
     (_S.READY_TO_SWITCH_ON, _C.SWITCH_ON): _S.SWITCHED_ON,                        # 3
     (_S.READY_TO_SWITCH_ON, _C.ENABLE_OPERATION): _S.OPERATION_ENABLED,           # 3 + 4
@@ -172,15 +142,15 @@ SW_INTERNAL_LIMIT = 1 << 11
 SW_FOLLOWS_TARGET = 1 << 12     # CST: the target torque is used
 
 
-def decode_command(controlword: int) -> Command:
+def decode_command(controlword: int) -> Controlword:
     """The command of bits 0-3 (CiA 402 table; bit 7, fault reset, is not looked at)."""
     if not controlword & 0x02:
-        return Command.DISABLE_VOLTAGE
+        return Controlword.DISABLE_VOLTAGE
     if not controlword & 0x04:
-        return Command.QUICK_STOP
+        return Controlword.QUICK_STOP
     if not controlword & 0x01:
-        return Command.SHUTDOWN
-    return Command.ENABLE_OPERATION if controlword & 0x08 else Command.SWITCH_ON
+        return Controlword.SHUTDOWN
+    return Controlword.ENABLE_OPERATION if controlword & 0x08 else Controlword.SWITCH_ON
 
 
 def statusword(state: PowerState, *, follows_target: bool = False, limited: bool = False) -> int:
@@ -313,7 +283,7 @@ class EmulatedCiA402(EmulatedDrive):
         self.network.add_node(self.node)
         self.node.add_write_callback(self._on_write)
         self.node.add_read_callback(self._on_read)
-        self.network.subscribe(_NMT, self._on_nmt)   # after the NMT slave's: sees its new state
+        self.network.subscribe(Cob.NMT, self._on_nmt)   # after the NMT slave's: sees its new state
         self.state = PowerState.NOT_READY_TO_SWITCH_ON
         self.frames_rejected = 0
         self.watchdog_tripped = False
@@ -395,7 +365,7 @@ class EmulatedCiA402(EmulatedDrive):
             self.frames_not_addressed += 1
             return   # CANopen (CiA 301) uses 11-bit data frames; RTR of PDOs is not emulated
         can_id, data = msg.arbitration_id, msg.data
-        if (can_id == _NMT and len(data) < 2) or (can_id == self.node.sdo.rx_cobid and len(data) != 8):
+        if (can_id == Cob.NMT and len(data) < 2) or (can_id == self.node.sdo.rx_cobid and len(data) != 8):
             self.frames_rejected += 1   # canopen's handlers expect these lengths
             return
         if self._pdo_dirty:
@@ -447,7 +417,7 @@ class EmulatedCiA402(EmulatedDrive):
 
     def _load_communication(self) -> None:
         """The communication objects' effects (power-on, reset communication)."""
-        self._write_sync_id(0, _U32.pack(self._raw(0x1005, default=0x80)))
+        self._write_sync_id(0, _U32.pack(self._raw(0x1005, default=Cob.SYNC)))
         self._write_consumer_heartbeat(1, _U32.pack(self._raw(0x1016, 1, default=0)))
         self._rpdos: dict[int, _Pdo] = {}
         self._tpdos: tuple[_Pdo, ...] = ()
@@ -480,10 +450,10 @@ class EmulatedCiA402(EmulatedDrive):
             self.frames_not_addressed += 1   # a command to another node
             return
         before, self._nmt_before = self._nmt_before, self.nmt_state
-        if command in (0x81, 0x82):   # reset node / reset communication
+        if command in (NmtCommand.RESET_NODE, NmtCommand.RESET_COMMUNICATION):
             for task in tuple(self._clock_tasks):
                 task.stop()
-            self._reset(application=command == 0x81)
+            self._reset(application=command == NmtCommand.RESET_NODE)
         elif before == "OPERATIONAL" and self._nmt_before != "OPERATIONAL":
             self._pending.clear()
             if self.state is PowerState.OPERATION_ENABLED:   # 0x6007 default: fault
@@ -545,12 +515,12 @@ class EmulatedCiA402(EmulatedDrive):
         (value,) = _U16.unpack(data)
         previous, self._controlword = self._controlword, value
         if self.state in _FAULTED:
-            if value & 0x80 and not previous & 0x80:
+            if value & FAULT_RESET_BIT and not previous & FAULT_RESET_BIT:
                 self._fault_reset()
             return
         command = decode_command(value)
         target = TRANSITIONS.get((self.state, command))
-        if (self.state is PowerState.QUICK_STOP_ACTIVE and command is Command.ENABLE_OPERATION
+        if (self.state is PowerState.QUICK_STOP_ACTIVE and command is Controlword.ENABLE_OPERATION
                 and 5 <= self._quick_stop_option <= 8):
             target = PowerState.OPERATION_ENABLED     # transition 16
         if target is PowerState.QUICK_STOP_ACTIVE and self._quick_stop_option == 0:
@@ -600,7 +570,7 @@ class EmulatedCiA402(EmulatedDrive):
         if self._consumer_id is not None:
             self.network.unsubscribe(self._consumer_id, self._on_host_heartbeat)
         producer, millis = (value >> 16) & 0x7F, value & 0xFFFF
-        self._consumer_id = _HEARTBEAT + producer if producer and millis else None
+        self._consumer_id = Cob.HEARTBEAT + producer if producer and millis else None
         self._consumer_timeout = millis / 1000.0 if self._consumer_id is not None else 0.0
         self._last_host_heartbeat = None
         if self._consumer_id is not None:

@@ -35,8 +35,8 @@ import can
 import canopen
 
 from dobhil.drives.cia402.codec import Cob
-from dobhil.drives.waits import WAIT_SLICE, Cancel
-from dobhil.errors import BusError, WaitCancelled
+from dobhil.drives.waits import Cancel, sliced_frames
+from dobhil.errors import BusError, exception_line
 
 if TYPE_CHECKING:
     from canopen.objectdictionary import ObjectDictionary
@@ -56,11 +56,6 @@ _CCS_INITIATE = frozenset({0x20, 0x40, 0xA0, 0xC0})
 
 def _never_cancelled() -> str:
     return ""
-
-
-def _one_line(exc: BaseException) -> str:
-    text = " ".join(str(exc).split())
-    return f"{type(exc).__name__}: {text}" if text else type(exc).__name__
 
 
 class SdoBusAdapter:
@@ -93,27 +88,22 @@ class SdoBusAdapter:
         except can.CanError:
             raise  # python-can's own: canopen's SDO client knows it (and gives up at once)
         except Exception as exc:  # a transport's own error (python-can-remote's, say)
-            raise BusError(_one_line(exc)) from exc
+            raise BusError(exception_line(exc)) from exc
         if request and ccs != _CCS_ABORT:
             self._await_response()
 
     def _await_response(self) -> None:
         """Read until the SDO response is in canopen's queue (or give up: canopen then
         reports its own timeout)."""
-        deadline = self._clock() + self.timeout
-        while True:
-            why = self.cancel()
-            if why:
-                raise WaitCancelled(f"{why} while waiting for an SDO answer")
-            remaining = deadline - self._clock()
-            if remaining <= 0:
-                return
-            try:
-                msg = self._bus.recv(min(remaining, WAIT_SLICE))
-            except Exception as exc:  # any interface's read failure is the bus's
-                raise BusError(f"bus read failed: {_one_line(exc)}") from exc
-            if msg is not None and self._dispatch(msg):
-                return
+        frames = sliced_frames(self._read, self._clock, self._clock() + self.timeout,
+                               cancel=self.cancel, what="waiting for an SDO answer")
+        any(self._dispatch(msg) for msg in frames)
+
+    def _read(self, timeout: float) -> can.Message | None:
+        try:
+            return self._bus.recv(timeout)
+        except Exception as exc:  # any interface's read failure is the bus's
+            raise BusError(f"bus read failed: {exception_line(exc)}") from exc
 
     def _dispatch(self, msg: can.Message) -> bool:
         """Feed one frame to canopen and (not SDO) to the drive; True if it was the answer."""

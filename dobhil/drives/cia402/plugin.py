@@ -8,6 +8,7 @@ from collections.abc import Sequence
 from dobhil.drives.cia402 import codec
 from dobhil.drives.cia402.codec import Cob, Mapped, PowerState
 from dobhil.drives.cia402.drive import CiA402Drive, emcy_text
+from dobhil.drives.cia402.eds import load_od
 from dobhil.drives.cia402.emulator import EmulatedCiA402
 from dobhil.drives.plugin import DriveProtocol, FeedbackField
 from dobhil.drives.profile import DriveProfile
@@ -49,6 +50,9 @@ class CiA402Protocol(DriveProtocol):
         layout = (codec.TPDO_STATUS, codec.TPDO_MOTION)[which]
         cob = Cob.tpdo(int(profile.options["tpdo"]) + which, profile.node_id)
         return _field(cob, layout, index)
+
+    def check_files(self, profile: DriveProfile) -> None:
+        load_od(profile)   # the drive's own reading and check of the EDS
 
 
 def _field(cob: int, layout: Sequence[Mapped], index: int) -> FeedbackField:

@@ -63,7 +63,7 @@ from dobhil.drives.preflight import (Capture, Finding, NodeReport, Observation, 
                                      Severity, Stream, listen_window)
 from dobhil.drives.profile import DriveProfile
 from dobhil.drives.waits import Cancel
-from dobhil.errors import WaitCancelled
+from dobhil.errors import WaitCancelled, exception_line
 
 __all__ = ["READS", "UNIT_READS", "CiA402Preflight", "SdoRead"]
 
@@ -209,7 +209,7 @@ class CiA402Preflight(PreflightProbe):
         except WaitCancelled:
             return cap   # the caller stops (SIGINT): what was heard so far is all there is
         except Exception as exc:  # the bus refused a request (gone, queue full): nothing more to ask
-            cap.send_errors.append(" ".join(str(exc).split()) or type(exc).__name__)
+            cap.send_errors.append(exception_line(exc, named=False))
         if clock() < end:
             listen_window(bus, self, end - clock(), clock, stamp, cancel, cap)
         if unanswered:

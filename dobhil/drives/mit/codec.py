@@ -63,6 +63,8 @@ __all__ = [
     "COMMAND_LENGTH",
     "FIELD_BITS",
     "POSITION_BITS",
+    "REGISTER_ID",
+    "REGISTER_READ",
     "SPECIAL_NAMES",
     "SPECIAL_PREFIX",
     "Channel",
@@ -90,6 +92,10 @@ SPECIAL_PREFIX: Final = b"\xff" * 7
 #: bits of each field: position 16, the rest 12
 POSITION_BITS: Final = 16
 FIELD_BITS: Final = 12
+#: Damiao register access (damiao-motor's ``_send_register_cmd``): the arbitration id,
+#: and byte 2 of a read (``[id_lo, id_hi, 0x33, rid, ...]``, answered in the same layout)
+REGISTER_ID: Final = 0x7FF
+REGISTER_READ: Final = 0x33
 _INF = math.inf
 _F32 = np.float32
 

@@ -76,22 +76,19 @@ from typing import Any
 
 import can
 
-from dobhil.drives.mit.codec import (Command, MitModel, ReplyLayout, Special, float_to_uint, is_special,
-                                     pack_reply, unpack_command)
-from dobhil.drives.mit.rules import model_of
+from dobhil.drives.mit.codec import (REGISTER_ID, REGISTER_READ, Command, MitModel, ReplyLayout, Special,
+                                     float_to_uint, is_special, pack_reply, unpack_command)
+from dobhil.drives.mit.replies import ZERO_COMMAND
+from dobhil.drives.mit.rules import MIT_RULES, model_of
 from dobhil.drives.profile import DriveProfile
 from dobhil.drives.emulated import EmulatedDrive, PlantLike
 from dobhil.errors import CodecError
 
 __all__ = ["EmulatedMit", "Fault", "Thermal", "model_of"]
 
-#: the profile section's defaults (B's rules hold the same): master id 0, 1 s of silence
-DEFAULT_REPLY_ID = 0
-DEFAULT_ZERO_SILENCE = 1.0
-_ZERO_COMMAND = Command(0.0, 0.0, 0.0, 0.0, 0.0)
-#: Damiao register access (damiao-motor ``_send_register_cmd``): id, read command byte
-_REGISTER_ID = 0x7FF
-_REGISTER_READ = 0x33
+#: the profile section's defaults (its rules'): master id 0, 1 s of silence
+DEFAULT_REPLY_ID = int(MIT_RULES.section["reply_id"].default)
+DEFAULT_ZERO_SILENCE = float(MIT_RULES.section["zero_silence"].default)
 _F32 = struct.Struct("<f")
 _U32 = struct.Struct("<I")
 
@@ -174,7 +171,7 @@ class EmulatedMit(EmulatedDrive):
         #: the last command survives exit and enter (CubeMars; see the module docstring)
         self.remembers_command = self.model.vendor == "cubemars"
         self.motor_mode = False
-        self.command = _ZERO_COMMAND
+        self.command = ZERO_COMMAND
         self.fault = ""            # the latched fault (a Fault name), "" none
         self.temperature = self.thermal.ambient   # [degC] winding
         self.offset = 0.0          # [rad] plant position of the last set zero
@@ -240,7 +237,7 @@ class EmulatedMit(EmulatedDrive):
         if msg.is_error_frame or msg.is_extended_id or msg.is_remote_frame:
             self.frames_not_addressed += 1
             return
-        if msg.arbitration_id == _REGISTER_ID and self._layout.state_field:   # Damiao
+        if msg.arbitration_id == REGISTER_ID and self._layout.state_field:   # Damiao
             self._register(msg.data)
             return
         if msg.arbitration_id != self.node_id:
@@ -291,14 +288,14 @@ class EmulatedMit(EmulatedDrive):
             return            # refused: the reply still carries the fault
         if not self.motor_mode:
             if not self.remembers_command:
-                self.command = _ZERO_COMMAND
+                self.command = ZERO_COMMAND
             self.watchdog_tripped = False
         self.motor_mode = True
 
     def _leave(self) -> None:
         self.motor_mode = False
         if not self.remembers_command:
-            self.command = _ZERO_COMMAND
+            self.command = ZERO_COMMAND
 
     def _reply(self, torque: float) -> None:
         model = self.model
@@ -321,7 +318,7 @@ class EmulatedMit(EmulatedDrive):
         if len(data) != 8 or data[0] | data[1] << 8 != self.node_id:
             self.frames_not_addressed += 1   # another motor's (the register id is shared)
             return
-        if data[2] != _REGISTER_READ:
+        if data[2] != REGISTER_READ:
             return   # a write/store (not emulated)
         m = self.model
         floats = {21: m.p_max, 22: m.v_max, 23: m.t_max, 2: self.thermal.over_temperature}

@@ -40,23 +40,21 @@ from typing import TypeVar
 import can
 
 from dobhil.drives.bus_load import CycleFrame
-from dobhil.drives.mit.codec import MitModel, Reply, Special, pack_command, special_frame, unpack_reply
+from dobhil.drives.mit.codec import (REGISTER_ID, REGISTER_READ, MitModel, Reply, Special, pack_command, special_frame,
+                                     unpack_reply)
 from dobhil.drives.mit.replies import DAMIAO_ENABLED, ZERO_COMMAND, reply_node, state_of
 from dobhil.drives.mit.rules import model_of
 from dobhil.drives.preflight import (Capture, Finding, NodeReport, Observation, PreflightProbe, Setting,
                                      Severity, Stream, listen_window)
 from dobhil.drives.profile import DriveProfile
-from dobhil.drives.waits import WAIT_SLICE, Cancel
-from dobhil.errors import CodecError, ConfigError, DriveTimeoutError, WaitCancelled
+from dobhil.drives.waits import Cancel, sliced_frames
+from dobhil.errors import CodecError, ConfigError, DriveTimeoutError, WaitCancelled, exception_line
 
 __all__ = ["RANGE_REGISTERS", "REGISTER_ID", "REGISTER_READ", "MitPreflight", "ZeroResult", "register_request",
            "set_zero"]
 
 T = TypeVar("T")
 
-#: Damiao register access: the arbitration id, the read command byte
-REGISTER_ID = 0x7FF
-REGISTER_READ = 0x33
 #: Damiao registers of the mapping ranges (damiao-motor's REGISTER_TABLE: PMAX, VMAX, TMAX)
 RANGE_REGISTERS = ((21, "PMAX", "p_max"), (22, "VMAX", "v_max"), (23, "TMAX", "t_max"))
 #: Damiao register CTRL_MODE (uint32) and its value for MIT mode (damiao-motor's REGISTER_TABLE)
@@ -140,7 +138,7 @@ class MitPreflight(PreflightProbe):
         try:
             bus.send(command, 0.0)
         except Exception as exc:  # any interface's refusal
-            cap.send_errors.append(" ".join(str(exc).split()) or type(exc).__name__)
+            cap.send_errors.append(exception_line(exc, named=False))
             return cap
         try:
             data = _await(bus, clock, end, cancel, lambda m: self._is_reply(m),
@@ -148,7 +146,7 @@ class MitPreflight(PreflightProbe):
         except WaitCancelled:
             return cap
         except Exception as exc:  # the bus is gone
-            cap.read_error = " ".join(f"{type(exc).__name__}: {exc}".split())
+            cap.read_error = exception_line(exc)
             return cap
         if data is None:
             mode = self._control_mode(bus, clock, end, cancel, cap, stamp) if self.model.vendor == "damiao" else None
@@ -196,7 +194,7 @@ class MitPreflight(PreflightProbe):
         except WaitCancelled:
             return
         except Exception as exc:  # the bus refused the request or is gone: the window's findings say it
-            cap.send_errors.append(" ".join(str(exc).split()) or type(exc).__name__)
+            cap.send_errors.append(exception_line(exc, named=False))
             return
         finally:
             self._registers_pending = False
@@ -303,13 +301,7 @@ def _await(bus: can.BusABC, clock: Callable[[], float], until: float, cancel: Ca
            match: Callable[[can.Message], T | None], take: Callable[[can.Message], object]) -> T | None:
     """Read ``bus`` in slices until ``match`` gives a value (returned) or ``until``
     (None); every frame goes to ``take`` first. WaitCancelled within a slice of ``cancel``."""
-    while (now := clock()) < until:
-        why = cancel() if cancel is not None else ""
-        if why:
-            raise WaitCancelled(why)
-        msg = bus.recv(min(until - now, WAIT_SLICE))
-        if msg is None:
-            continue
+    for msg in sliced_frames(bus.recv, clock, until, cancel=cancel):
         take(msg)
         found = match(msg)
         if found is not None:
