@@ -10,8 +10,8 @@ for the wall-clock seconds still left, each call advancing the simulation furthe
 
 So on a :class:`ClockedBus` the hook does the whole wait: ``_recv_internal(timeout)``
 waits ``timeout`` seconds of :meth:`ClockedBus.clock`, drops the frames the filters
-reject (python-can's software filter, :meth:`can.BusABC._matches_filters`, the one
-``recv`` itself applies) and says so (``already_filtered`` True); ``recv`` returns what the
+reject (python-can's software filter, the very one ``BusABC.recv`` applies, which
+python-can's subclasses call too) and says so (``already_filtered`` True); ``recv`` returns what the
 hook returns, without python-can's wall-clock retry loop (and without its debug log of
 every frame, which on the control path costs as much as the frame). Everything else of
 the python-can contract holds: ``set_filters`` (and ``can_filters=``), ``send_periodic``,
