@@ -229,7 +229,8 @@ def runtime_dependencies() -> list[str]:
 _DEPENDENCIES = "|".join(runtime_dependencies())
 #: Private names of dependencies a module must not touch: ``dep.x._y`` (any case), ``from dep.x
 #: import _y``, ``from dep._x import y``, and the old writer's mangled and buffer names.
-PRIVATE = re.compile(rf"\b(?:{_DEPENDENCIES})(?:\.\w+)*\._(?!_)|\bfrom (?:{_DEPENDENCIES})(?:\.\w+)* import .*\b_(?!_)\w"
+PRIVATE = re.compile(rf"\b(?:{_DEPENDENCIES})(?:\.\w+)*\._(?!_)"
+                     rf"|\bfrom (?:{_DEPENDENCIES})(?:\.\w+)* import .*\b_(?!_)\w"
                      r"|_Writer__|\._buffer\b|multiprocessing\.connection\._|connection\._(?:send|recv)")
 
 

@@ -203,7 +203,8 @@ def test_05_component_error_messages() -> None:
 
 
 def test_complete_05_axis_error_table() -> None:
-    """The four bits missing before (issue 9) name themselves; nothing is 'unknown'."""
+    """The 0.5 axis error bits of the motor, estimator, encoder and controller name
+    themselves; nothing is 'unknown'."""
     for bit, name in ((0x40, "MOTOR_FAILED"), (0x80, "SENSORLESS_ESTIMATOR_FAILED"),
                       (0x100, "ENCODER_FAILED"), (0x200, "CONTROLLER_FAILED")):
         assert codec.describe_errors(bit, Firmware.V0_5) == f"0x{bit:08X} ({name})"

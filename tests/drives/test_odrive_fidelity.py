@@ -1,4 +1,4 @@
-"""The emulated ODrive follows the firmware per version (issue 9, item 4).
+"""The emulated ODrive follows the firmware per version.
 
 Facts from the 0.5.6 firmware source (tag fw-v0.5.6 of odriverobotics/ODrive): heartbeat
 RTRs are ignored and there is no Get_Version; the watchdog is checked in every axis state;
@@ -275,8 +275,8 @@ def test_clear_errors_feeds_the_watchdog_of_an_idle_axis(bench: Bench, form: str
     """An axis left idle past the watchdog timeout shows the bit. Clear_Errors, in any
     form, clears it and feeds the watchdog, so a Set_Axis_State sent later (here one
     tick short of the timeout) is granted: odrive-can's documented sequence works
-    whatever emulator ticks fall between its frames (issue 16; 0.6 without the feed
-    flagged the bit again at the next tick and refused closed loop)."""
+    whatever emulator ticks fall between its frames (0.6 without the feed would flag the
+    bit again at the next tick and refuse closed loop)."""
     timeout_ticks = round(bench.emu.profile.watchdog_timeout / DT)
     bench.tick(timeout_ticks + 5)
     assert bench.emu.watchdog_error and not bench.emu.watchdog_tripped

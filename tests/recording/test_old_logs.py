@@ -1,4 +1,4 @@
-"""Logs written before issue 16 (7) stay readable: ``/drive/feedback`` with a numeric
+"""Logs of dobhil's earlier schema stay readable: ``/drive/feedback`` with a numeric
 ``axis_state`` (its old schema) and ``/can/tx`` frames with bus timestamp 0.0."""
 
 from __future__ import annotations

@@ -9,7 +9,7 @@ canopen's documented entry for a custom interface, and everything canopen sends 
 through the emulator's counted send (``Network.send_message``, the hook canopen names for
 a custom backend), so lockstep stays deterministic and real time has one thread.
 
-What canopen's LocalNode does not do, this module does (drive-protocols.md, CiA 402):
+What canopen's LocalNode does not do, this module does (CiA 301, CiA 402 / IEC 61800-7-201):
 
 - heartbeat producer in emulator time: canopen's NMT slave starts a python-can periodic
   task (a thread) for 0x1017; the network's ``send_periodic`` builds canopen's own task on
@@ -44,9 +44,9 @@ What canopen's LocalNode does not do, this module does (drive-protocols.md, CiA 
   0x608F position encoder resolution and 0x6091 gear ratio state ``position_per_rev`` and
   ``gear_ratio`` (the scale this node encodes with; read only here);
 - the CiA 402 power state machine on the controlword (:data:`TRANSITIONS`; fault reset on
-  the rising edge of bit 7), the statusword of drive-protocols.md (plus bit 4 voltage
-  enabled, bit 9 remote, bit 11 internal limit active while the torque is clamped, bit 12
-  in CST when the drive follows 0x6071). Quick stop option 0x605A: 0 disables at once,
+  the rising edge of bit 7), the statusword of CiA 402 (the codec's ``STATUSWORD_TABLE``;
+  plus bit 4 voltage enabled, bit 9 remote, bit 11 internal limit active while the torque
+  is clamped, bit 12 in CST when the drive follows 0x6071). Quick stop option 0x605A: 0 disables at once,
   1-4 go to switch on disabled at the next tick (torque is zero from the quick stop on: the
   emulator has no torque ramp), 5-8 stay in quick stop active (enable operation resumes);
 - modes 0x6060 -> 0x6061: 0 or a mode of 0x6502 (CSP 8, CSV 9, CST 10), anything else is
