@@ -178,11 +178,23 @@ def test_realtime_is_the_old_name_of_host_and_warns() -> None:
     assert "REALTIME" not in Timing.__members__ and str(Timing.HOST) == "1" and Timing.HOST.name == "HOST"
 
 
+def test_the_command_line_shows_the_old_name_warning_as_one_line(capsys: pytest.CaptureFixture[str]) -> None:
+    from dobhil.cli.main import main
+    main(["run", str(REPO / "configs/demo.yaml"), "--emulate", "--set", "loop.timing=realtime",
+          "--set", "loop.duration=0.02"])
+    err = capsys.readouterr().err.splitlines()
+    assert err[0] == ("dobhil: warning: loop.timing: realtime is deprecated, use loop.timing: host "
+                      f"(removed in dobhil {REMOVED_IN})")
+    assert not any("FutureWarning" in line or "session.py" in line for line in err)
+
+
 def test_old_names_are_removed_in_the_next_minor_release() -> None:
     version = re.search(r'^version = "([^"]+)"', (REPO / "pyproject.toml").read_text(), re.M)
     assert version is not None
     major, minor, *_ = version[1].split(".")
     assert REMOVED_IN == f"{major}.{int(minor) + 1}"
+    # the key table (dobhil/config/schema.py, below the runtime) says the same release
+    assert f"deprecated, removed in dobhil {REMOVED_IN}" in (REPO / "docs/config.md").read_text()
 
 
 def test_feedback_timing_needs_one_frame_per_period(tmp_path: Path) -> None:
