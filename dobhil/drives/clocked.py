@@ -25,6 +25,7 @@ from collections.abc import Callable
 from typing import Any
 
 import can
+from can.typechecking import CanFilters
 
 __all__ = ["ClockedBus", "bus_clock"]
 
@@ -42,13 +43,20 @@ class ClockedBus(can.BusABC):
     A subclass implements :meth:`clock` and ``_recv_internal`` as said there: the whole
     ``timeout`` on :meth:`clock`, filters applied with :meth:`passes`."""
 
+    #: whether :meth:`~can.BusABC.set_filters` set any filter (the hot path skips the check)
+    filtering = False
+
     def clock(self) -> float:
         """Now, in the seconds this bus's ``recv`` timeouts are counted in."""
         raise NotImplementedError
 
+    def _apply_filters(self, filters: CanFilters | None) -> None:
+        # python-can's hook for a bus that filters itself (set_filters calls it)
+        self.filtering = bool(filters)
+
     def passes(self, msg: can.Message) -> bool:
         """Whether ``msg`` passes the filters of :meth:`~can.BusABC.set_filters`."""
-        return self._matches_filters(msg)
+        return not self.filtering or self._matches_filters(msg)
 
     def recv(self, timeout: float | None = None) -> can.Message | None:
         """The next frame that passes the filters within ``timeout`` seconds of

@@ -640,27 +640,19 @@ class LockstepBus(ClockedBus):
         if self._to_emulators:
             self._deliver_host_frames()
         while True:
-            msg = self._next_host_frame()
-            if msg is not None:
-                if self.passes(msg):
-                    return msg, True
-                continue
-            if self.clock() + _EPS >= end and not must_step:
-                return None, True
-            self._advance_all()
-            must_step = False
-
-    def _next_host_frame(self) -> can.Message | None:
-        """The next frame for the host at this simulated instant, or None."""
-        if self._host_queue:
-            return self._host_queue.popleft()
-        if self._to_host > 0:
-            msg = self._inner.recv(0.0)
-            if msg is not None:
-                self._to_host -= 1
-                return msg
-            self._to_host = 0
-        return None
+            msg: can.Message | None = None
+            if self._host_queue:
+                msg = self._host_queue.popleft()
+            elif self._to_host > 0:
+                msg = self._inner.recv(0.0)
+                self._to_host = self._to_host - 1 if msg is not None else 0
+            if msg is None:
+                if self.clock() + _EPS >= end and not must_step:
+                    return None, True
+                self._advance_all()
+                must_step = False
+            elif not self.filtering or self._matches_filters(msg):
+                return msg, True
 
     def _sent_by_emulators(self) -> int:
         total = 0
