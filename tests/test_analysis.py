@@ -169,7 +169,7 @@ def test_sweep_rejects_structural_keys(capsys: pytest.CaptureFixture[str]) -> No
     assert "cannot be swept" in capsys.readouterr().err
 
 
-# --- issue 8's failing designs, and issue 9's bad analysis inputs
+# --- designs that fail the analysis, and bad analysis inputs
 
 FIG2A = "configs/paper/fig2a.yaml"
 CRASHED = [

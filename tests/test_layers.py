@@ -218,9 +218,45 @@ def test_recording_and_runtime_do_not_import_each_other(low: str, high: str) -> 
     assert {m: d for m, d in offenders.items() if d} == {}
 
 
-#: Private names of dependencies a module must not touch.
-PRIVATE = re.compile(r"mcap\._|_Writer__|\._buffer\b|multiprocessing\.connection\._|connection\._(?:send|recv)"
-                     r"|can\.[a-z_.]*\._|foxglove\._|\bnumpy\._|scipy\.[a-z_.]*\._(?!_)|\bcontrol\.[a-z_.]*\._")
+#: Import name of each runtime dependency whose distribution name differs from it.
+IMPORT_NAMES = {"python-can": "can", "pyyaml": "yaml", "foxglove-sdk": "foxglove"}
+
+
+def runtime_dependencies() -> list[str]:
+    """The import names of ``pyproject.toml``'s dependencies, and of its ``live`` extra."""
+    text = (PACKAGE.parent / "pyproject.toml").read_text()
+    block = re.search(r"^dependencies = \[(.*?)^\]", text, re.M | re.S)
+    live = re.search(r"^live = \[(.*?)\]", text, re.M)
+    assert block is not None and live is not None
+    names = re.findall(r'^\s*"([A-Za-z0-9_.-]+)', block[1], re.M) + re.findall(r'"([A-Za-z0-9_.-]+)', live[1])
+    return sorted({IMPORT_NAMES.get(n.lower(), n.lower().replace("-", "_")) for n in names})
+
+
+_DEPENDENCIES = "|".join(runtime_dependencies())
+#: Private names of dependencies a module must not touch: ``dep.x._y`` (any case), ``from dep.x
+#: import _y``, ``from dep._x import y``, and the old writer's mangled and buffer names.
+PRIVATE = re.compile(rf"\b(?:{_DEPENDENCIES})(?:\.\w+)*\._(?!_)"
+                     rf"|\bfrom (?:{_DEPENDENCIES})(?:\.\w+)* import .*\b_(?!_)\w"
+                     r"|_Writer__|\._buffer\b|multiprocessing\.connection\._|connection\._(?:send|recv)")
+
+
+def test_the_private_name_check_covers_every_runtime_dependency() -> None:
+    assert {"can", "canopen", "control", "dask", "distributed", "foxglove", "mcap", "numpy", "scipy",
+            "yaml"} <= set(runtime_dependencies())
+
+
+@pytest.mark.parametrize("line", [
+    "from canopen.sdo.client import _Private", "canopen.sdo.client.SdoClient._read_response",
+    "distributed.comm._probe(x)", "from dask._task_spec import Task", "can.BusABC._matches_filters(m)",
+])
+def test_the_private_name_check_finds(line: str) -> None:
+    assert PRIVATE.search(line)
+
+
+@pytest.mark.parametrize("line", ["canopen.sdo.SdoClient.upload(i, s)", "self._inner.recv(0.0)",
+                                  "scipy.linalg.__version__", "from dobhil.cluster import _probe"])
+def test_the_private_name_check_passes(line: str) -> None:
+    assert not PRIVATE.search(line)
 
 
 def test_no_private_name_of_a_dependency() -> None:

@@ -40,17 +40,17 @@ TARGETS: dict[str, float] = {
     "logged_vs_unlogged_ratio": 0.6,
     "replay_cycles_per_s": 20000.0,
     "live_logged_vs_unlogged_ratio": 0.5,
-    # issue 20: 1 s Monte-Carlo runs on a local cluster of 2 worker processes vs 1 (2 cores)
+    # 1 s Monte-Carlo runs on a local cluster of 2 worker processes vs 1 (2 cores)
     "montecarlo_scaling_2_workers": 1.6,
 }
 #: targets that are upper bounds (smaller is better)
 TARGETS_MAX: dict[str, float] = {
     "rt_logged_vs_unlogged_overrun_ratio": 1.2,
     "rt_vs_bare_period_error_p99_ratio": 2.0,
-    # issue 19: a 60 s, 1 kHz log identified in at most 10 s
+    # a 60 s, 1 kHz log identified in at most 10 s
     "identify_seconds_per_minute_of_log": 10.0,
-    # issue 10: "at or below today's 1.4 us median", taken on a machine whose controller step
-    # measured 0.65 us: 1.4 / 0.65 controller steps, so the bound holds on any machine
+    # a 1.4 us median measured on a machine whose controller step measured 0.65 us:
+    # 1.4 / 0.65 controller steps, so the bound holds on any machine
     "loop_thread_log_cost_vs_controller_step": 2.15,
 }
 
@@ -545,7 +545,7 @@ def _cia402_run(duration: float, lockstep: bool) -> tuple[float, object]:
 
 
 def bench_cia402(rounds: int = 3, seconds: float = 6.0) -> dict[str, float]:
-    """CiA 402 (issue 17): lockstep cycles per second (median of runs), and real-time
+    """CiA 402: lockstep cycles per second (median of runs), and real-time
     1 kHz runs in feedback timing: overruns per 10,000 cycles and the SYNC-to-TPDO
     latency (``sample_latency``: the SYNC's echo to the TPDO received, both bus stamps),
     the median of the runs' p99."""
@@ -574,7 +574,7 @@ def _mit_run(duration: float, lockstep: bool) -> tuple[float, object]:
 
 
 def bench_mit(rounds: int = 3, seconds: float = 6.0) -> dict[str, float]:
-    """MIT mode (issue 18): lockstep cycles per second (median of runs), and real-time
+    """MIT mode: lockstep cycles per second (median of runs), and real-time
     1 kHz host-timed runs: overruns per 10,000 deadlines (cycles run and skipped), and the
     median of the runs' p99 period error."""
     lockstep = [_mit_run(3.0, True)[0] for _ in range(rounds)]
@@ -589,9 +589,9 @@ def bench_mit(rounds: int = 3, seconds: float = 6.0) -> dict[str, float]:
             "rt_mit_period_error_p99_us": float(np.median(p99)) * 1e6}
 
 
-#: the shipped excitation run in contact (issue 19); until it exists, the demo under a chirp
+#: the shipped excitation run in contact
 IDENTIFY_CONFIG = ROOT / "configs/identify-contact.yaml"
-#: what a real rig's log has (issue 19: "sensor quantisation, noise and Coulomb friction on"), as
+#: what a real rig's log has (sensor quantisation, noise and Coulomb friction on), as
 #: tests/identify/test_workflow.py runs it: a 20-bit encoder, 1 mrad/s velocity noise, Coulomb
 #: friction, a 0.4 ms input delay
 IDENTIFY_SETS = ("plant.coulomb_friction=0.05", "sensor.encoder_resolution=1048576", "sensor.velocity_noise=0.001",
@@ -615,7 +615,7 @@ def _identify_log(path: Path, seconds: float) -> Path:
 
 
 def bench_identify(seconds: float = 60.0) -> dict[str, float]:
-    """Issue 19: wall time of reading, segmenting and identifying a ``seconds`` long 1 kHz log
+    """Wall time of reading, segmenting and identifying a ``seconds`` long 1 kHz log
     (the best of two: a minute of log is long enough to be steady), per minute of log; the
     reading and segmenting alone as well."""
     from dobhil.identify.data import find_segments, read_log

@@ -14,7 +14,7 @@ records each measured run (to a temporary file), as ``dobhil run identify-free -
 
     python tools/starve.py --config identify-free --duration 0 --background demo --log
 
-Issue 16's target: at least 48 of 50 complete, and no stop blames the drive for a starved
+The target: at least 48 of 50 complete, and no stop blames the drive for a starved
 emulator (``host_too_slow`` says so instead).
 
 Everything started here is stopped here, by its own process group.

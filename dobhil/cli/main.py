@@ -18,7 +18,9 @@ import os
 import select
 import sys
 import traceback
+import warnings
 from collections.abc import Sequence
+from typing import Any
 
 from dobhil import __version__
 from dobhil.errors import DobhilError, exception_line
@@ -84,7 +86,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     try:
-        code = _main(argv)
+        with warnings.catch_warnings():   # restores Python's own display on return
+            warnings.showwarning = _one_line_warning
+            code = _main(argv)
         if sys.stdout is not None:  # None when started with stdout closed (``dobhil ... >&-``)
             sys.stdout.flush()  # a closed pipe shows here, not as a traceback at exit
     except BrokenPipeError:
@@ -96,6 +100,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         os.dup2(devnull, sys.stdout.fileno())
         return EXIT_BROKEN_PIPE
     return code
+
+
+def _one_line_warning(message: Warning | str, category: type[Warning], filename: str, lineno: int,
+                      file: Any = None, line: str | None = None) -> None:
+    """A warning on the command line is one line, as an error is (a deprecated config value:
+    not Python's file, line number and source line, which mean nothing to the user)."""
+    _say(f"dobhil: warning: {message}")
 
 
 def _stdout_gone() -> bool:

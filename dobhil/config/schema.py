@@ -153,8 +153,9 @@ class LoopConfig:
     velocity_limit: float = key(100.0, "largest allowed |velocity|", unit="rad/s",
                                 check=Check.POSITIVE)
     timing: str = key("feedback", "how the loop is clocked: feedback (each cycle triggered by "
-                      "the drive's feedback frame), host (host-clock deadlines; realtime is an "
-                      "older name of it) or lockstep (simulated; needs the emulator)",
+                      "the drive's feedback frame), host (host-clock deadlines; realtime: its old "
+                      "name, deprecated, removed in dobhil 0.2) or lockstep (simulated; needs the "
+                      "emulator)",
                       choices=("feedback", "host", "lockstep", "realtime"))
     realtime_priority: int = key(0, "SCHED_FIFO priority on Linux (0: none)",
                                  check=Check.NONNEGATIVE)

@@ -44,6 +44,7 @@ import can
 from can.broadcastmanager import (LimitedDurationCyclicSendTaskABC, ModifiableCyclicTaskABC,
                                   RestartableCyclicTaskABC)
 
+from dobhil.drives.clocked import ClockedBus
 from dobhil.drives.profile import DriveProfile
 from dobhil.errors import BusError, exception_line
 from dobhil.realtime import lower_priority
@@ -512,7 +513,7 @@ class LockstepPeriodicTask(LimitedDurationCyclicSendTaskABC, ModifiableCyclicTas
     does without TX_ANNOUNCE -- each message of ``messages`` in turn. ``duration``:
     simulated seconds after which it stops by itself (None: until :meth:`stop`).
     ``modify_data`` (python-can's) changes the frames from the next one on. The bus
-    sends them (:meth:`LockstepBus._fire_periodic`); the task only counts steps.
+    sends them at their steps (:meth:`take_frame`); the task only counts steps.
     """
 
     def __init__(self, bus: LockstepBus, messages: Sequence[can.Message] | can.Message, period: float,
@@ -539,16 +540,17 @@ class LockstepPeriodicTask(LimitedDurationCyclicSendTaskABC, ModifiableCyclicTas
         self._last_step = -1 if self.duration is None else \
             now + self.steps * math.floor(self.duration / self.period + _EPS)
         self._index = 0
-        self._bus._schedule(self)
+        self._bus.add_task(self)
         if self._last_step >= 0 and self.next_step > self._last_step:
             self.stop()   # shorter than one period: nothing to send
 
     def stop(self) -> None:
         self.next_step = -1
-        self._bus._unschedule(self)
+        self._bus.remove_task(self)
 
-    def _frame(self) -> can.Message:
-        """The frame due now; advances to the next message and the next period."""
+    def take_frame(self) -> can.Message:
+        """The frame due now (the bus calls this at :attr:`next_step`); advances to the next
+        message and the next period."""
         msg = self.messages[self._index % len(self.messages)]
         self._index += 1
         if self._modifier is not None:
@@ -559,12 +561,13 @@ class LockstepPeriodicTask(LimitedDurationCyclicSendTaskABC, ModifiableCyclicTas
         return msg
 
 
-class LockstepBus(can.BusABC):
+class LockstepBus(ClockedBus):
     """Host-side view of a bus shared with lockstep emulators.
 
     ``recv(timeout)`` first lets every emulator apply what it received; if no frame is
     waiting for the host it advances every emulator by ``dt`` and tries again, until
-    ``timeout`` simulated seconds have passed. ``recv(0)`` never advances time. The
+    ``timeout`` simulated seconds have passed; a frame ``set_filters`` rejects does not end
+    the wait (:mod:`dobhil.drives.clocked`). ``recv(0)`` never advances time. The
     wrapped bus is borrowed: :meth:`shutdown` leaves it open.
 
     The host and these emulators must be the only participants of the channel (a
@@ -621,7 +624,9 @@ class LockstepBus(can.BusABC):
         self._inner.send(msg, timeout)
         self._to_emulators += 1
 
-    def recv(self, timeout: float | None = None) -> can.Message | None:
+    def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
+        """The whole wait, in simulated seconds (:mod:`dobhil.drives.clocked`): a frame the
+        filters reject is dropped and the wait goes on to the same simulated deadline."""
         if timeout is None:
             raise ValueError("LockstepBus.recv needs a finite timeout (simulated seconds)")
         end = self.clock() + timeout
@@ -636,18 +641,19 @@ class LockstepBus(can.BusABC):
         if self._to_emulators:
             self._deliver_host_frames()
         while True:
+            msg: can.Message | None = None
             if self._host_queue:
-                return self._host_queue.popleft()
-            if self._to_host > 0:
+                msg = self._host_queue.popleft()
+            elif self._to_host > 0:
                 msg = self._inner.recv(0.0)
-                if msg is not None:
-                    self._to_host -= 1
-                    return msg
-                self._to_host = 0
-            if self.clock() + _EPS >= end and not must_step:
-                return None
-            self._advance_all()
-            must_step = False
+                self._to_host = self._to_host - 1 if msg is not None else 0
+            if msg is None:
+                if self.clock() + _EPS >= end and not must_step:
+                    return None, True
+                self._advance_all()
+                must_step = False
+            elif not self.filtering or self._matches_filters(msg):
+                return msg, True
 
     def _sent_by_emulators(self) -> int:
         total = 0
@@ -684,11 +690,13 @@ class LockstepBus(can.BusABC):
         return LockstepPeriodicTask(self, msgs, period, steps, duration, autostart=autostart,
                                     modifier_callback=modifier_callback)
 
-    def _schedule(self, task: LockstepPeriodicTask) -> None:
+    def add_task(self, task: LockstepPeriodicTask) -> None:
+        """Fire ``task`` at its steps (its :meth:`~LockstepPeriodicTask.start` calls this)."""
         if task not in self._tasks:
             self._tasks.append(task)
 
-    def _unschedule(self, task: LockstepPeriodicTask) -> None:
+    def remove_task(self, task: LockstepPeriodicTask) -> None:
+        """Fire ``task`` no more (its :meth:`~LockstepPeriodicTask.stop` calls this)."""
         if task in self._tasks:
             self._tasks.remove(task)
 
@@ -710,7 +718,7 @@ class LockstepBus(can.BusABC):
         for task in due:
             # the echo after what the emulators sent before it, their answers after it
             self._take_host_frames()
-            msg = task._frame()
+            msg = task.take_frame()
             self._host_queue.append(_stamped(msg, now))
             before = self._sent_by_emulators()
             for emulator in self._emulators:
@@ -728,9 +736,6 @@ class LockstepBus(can.BusABC):
                 break
             self._to_host -= 1
             queue.append(msg)
-
-    def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
-        return self.recv(0.0 if timeout is None else timeout), False
 
 
 def private_virtual_channel() -> str:

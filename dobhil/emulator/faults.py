@@ -35,7 +35,6 @@ from __future__ import annotations
 import math
 import random
 import struct
-import time
 from abc import ABC, abstractmethod
 from collections import deque
 from collections.abc import Callable, Collection, Sequence
@@ -45,6 +44,7 @@ from typing import Any, ClassVar
 import can
 import can.broadcastmanager
 
+from dobhil.drives.clocked import ClockedBus, bus_clock
 from dobhil.drives.periodic import native_periodic
 from dobhil.drives.profile import DriveProfile
 from dobhil.drives.registry import protocol
@@ -312,7 +312,7 @@ class Flood(Fault):
         return (msg, *(self._foreign() for _ in range(self.per_frame)))
 
 
-class FaultyBus(can.BusABC):
+class FaultyBus(ClockedBus):
     """``inner`` with ``faults`` applied in order to what it receives and sends.
 
     The inner bus is borrowed (a session shuts it down) unless ``owns_inner``.
@@ -327,8 +327,7 @@ class FaultyBus(can.BusABC):
         self._recv_faults = [f for f in faults if f.direction is Direction.RECV]
         self._send_faults = [f for f in faults if f.direction is Direction.SEND]
         self.faults = tuple(faults)
-        inner_clock = getattr(inner, "clock", None)
-        self._clock = clock or (inner_clock if callable(inner_clock) else time.monotonic)
+        self._clock = clock or bus_clock(inner)
         self._t0 = self._clock()
         self._owns_inner = owns_inner
         self._pending: deque[can.Message] = deque()
@@ -353,25 +352,27 @@ class FaultyBus(can.BusABC):
         for frame in self._chain(self._send_faults, msg, now):
             self._inner.send(frame, timeout)
 
-    def recv(self, timeout: float | None = None) -> can.Message | None:
+    def clock(self) -> float:
+        """The inner bus's clock (simulated seconds over a LockstepBus), or ``time.monotonic``."""
+        return self._clock()
+
+    def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
+        """The whole wait on :meth:`clock` (:mod:`dobhil.drives.clocked`): dropped frames and
+        frames the filters reject do not end it early; filters see the faulted frames."""
         now = self.now()
         for fault in self.faults:
             fault.check(Direction.RECV, now)
-        if self._pending:
-            return self._pending.popleft()
         deadline = None if timeout is None else self._clock() + timeout
         while True:
+            while self._pending:
+                frame = self._pending.popleft()
+                if self.passes(frame):
+                    return frame, True
             remaining = None if deadline is None else max(0.0, deadline - self._clock())
             msg = self._inner.recv(remaining)
             if msg is None:
-                return None
-            frames = self._chain(self._recv_faults, msg, self.now())
-            if frames:
-                self._pending.extend(frames[1:])
-                return frames[0]
-
-    def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
-        return self.recv(timeout), False
+                return None, True
+            self._pending.extend(self._chain(self._recv_faults, msg, self.now()))
 
     @property
     def native_periodic(self) -> bool:

@@ -22,6 +22,7 @@ from typing import Any, Final
 
 import can
 
+from dobhil.drives.clocked import ClockedBus, bus_clock
 from dobhil.drives.periodic import native_periodic
 from dobhil.errors import RecorderError, exception_line
 from dobhil.recording.codes import ProtocolCodes
@@ -43,26 +44,35 @@ _LOSS: Final = int(EventKind.LOSS)
 _NAN: Final = float("nan")
 
 
-class RecordingBus(can.BusABC):
+class RecordingBus(ClockedBus):
     """Records every frame sent or received on the bus it wraps (borrowed, not owned).
-    ``recv`` itself is overridden: :meth:`can.BusABC.recv`'s timing and debug logging cost
-    as much as the record; the wrapped bus applies its own filters."""
+    Its waits run on the wrapped bus's clock (:mod:`dobhil.drives.clocked`: simulated
+    seconds over a lockstep bus); a frame this bus's ``set_filters`` rejects is not
+    received, so not recorded."""
 
     def __init__(self, inner: can.BusABC, log: RunLog, **kwargs: Any) -> None:
         self._inner = inner
         self._frame = log.frame
+        self._clock = bus_clock(inner)
         self.channel_info = f"recording {inner.channel_info}"
         super().__init__(channel=getattr(inner, "channel", None) or "", **kwargs)
+
+    def clock(self) -> float:
+        """The wrapped bus's clock."""
+        return self._clock()
 
     def send(self, msg: can.Message, timeout: float | None = None) -> None:
         self._inner.send(msg, timeout)
         self._frame(_TX, msg)
 
-    def recv(self, timeout: float | None = None) -> can.Message | None:
+    def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
+        deadline = None if timeout is None else self._clock() + timeout
         msg = self._inner.recv(timeout)
+        while msg is not None and not self.passes(msg):
+            msg = self._inner.recv(None if deadline is None else max(0.0, deadline - self._clock()))
         if msg is not None:
             self._frame(_RX, msg)
-        return msg
+        return msg, True
 
     @property
     def native_periodic(self) -> bool:

@@ -70,15 +70,18 @@ import gc
 import math
 import threading
 import time
+import warnings
 from array import array
 from collections.abc import Callable
 from dataclasses import dataclass
-from enum import IntEnum
-from typing import Protocol
+from enum import EnumMeta, IntEnum
+from types import MappingProxyType
+from typing import Any, Final, Protocol
 
 import numpy as np
 from numpy.typing import NDArray
 
+from dobhil import __version__
 from dobhil.drives.base import Drive, Feedback, HostTimeout, SafeStopReport
 from dobhil.drives.waits import WAIT_SLICE, Cancel
 from dobhil.errors import BusError, DriveError, DriveFaultError, RecorderError, WaitCancelled, exception_line
@@ -87,13 +90,41 @@ from dobhil.runtime.instability import InstabilityWatch, WatchSettings
 from dobhil.runtime.stop import Stop, StopReason
 
 
-class Timing(IntEnum):
+def _next_minor(version: str) -> str:
+    major, minor = version.split(".")[:2]
+    return f"{major}.{int(minor) + 1}"
+
+
+#: The release that drops the old names this one still accepts with a warning.
+REMOVED_IN: Final = _next_minor(__version__)
+#: Old name -> the name that replaced it (``Timing.REALTIME``, ``loop.timing: realtime``).
+OLD_TIMING_NAMES: Final = MappingProxyType({"REALTIME": "HOST"})
+
+
+def old_name_warning(old: str, new: str) -> str:
+    """The text of the warning an old name gets."""
+    return f"{old} is deprecated, use {new} (removed in dobhil {REMOVED_IN})"
+
+
+class _TimingType(EnumMeta):
+    """``Timing.REALTIME`` still works, with a DeprecationWarning (the warning for code: it
+    shows in the caller's tests and ``__main__``), but is no member: a member of HOST's value
+    would be an alias, and print as HOST."""
+
+    def __getattr__(cls, name: str) -> Any:
+        new = OLD_TIMING_NAMES.get(name)
+        if new is None:
+            raise AttributeError(name)
+        warnings.warn(old_name_warning(f"Timing.{name}", f"Timing.{new}"), DeprecationWarning, stacklevel=2)
+        return cls[new]
+
+
+class Timing(IntEnum, metaclass=_TimingType):
     """How cycles are clocked."""
 
     LOCKSTEP = 0   # simulated time, one cycle per emulated feedback frame
     HOST = 1       # host-clock deadlines (``loop.timing: host``)
     FEEDBACK = 2   # each cycle triggered by the drive's feedback frame
-    REALTIME = 1   # older name of HOST (``loop.timing: realtime``)
 
     @property
     def label(self) -> str:

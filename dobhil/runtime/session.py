@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import warnings
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -37,7 +38,7 @@ from dobhil.runtime.controller import ForceController
 from dobhil.runtime.instability import WatchSettings
 from dobhil.realtime import EMULATOR_PRIORITY_DROP
 from dobhil.runtime.loop import (CycleSink, ForceLoop, Limits, LoopSettings, RunResult, StopRequest,
-                                 Timing)
+                                 Timing, old_name_warning)
 from dobhil.runtime.references import make_reference
 from dobhil.synthesis.controller import sampled_controller
 from dobhil.synthesis.params import params_from_config
@@ -89,7 +90,9 @@ def check_duration(duration: float | None, what: str = "--duration") -> None:
 
 
 def resolve_timing(config: Config, profile: DriveProfile, lockstep: bool | None) -> Timing:
-    """``loop.timing`` (``realtime``: the older name of ``host``), or lockstep when asked;
+    """``loop.timing`` (``realtime``: the old name of ``host``, with a FutureWarning: the
+    warning for a config's user, shown by default, which a DeprecationWarning is not), or
+    lockstep when asked;
     a real-time run of a lockstep config (``demo --realtime``) is feedback-synchronous.
     Feedback timing needs the drive to stream feedback once per ``loop.period``."""
     name = config.loop.timing
@@ -97,6 +100,8 @@ def resolve_timing(config: Config, profile: DriveProfile, lockstep: bool | None)
         lockstep = name == "lockstep"
     if lockstep:
         return Timing.LOCKSTEP
+    if name == "realtime":
+        warnings.warn(old_name_warning("loop.timing: realtime", "loop.timing: host"), FutureWarning, stacklevel=2)
     if name in ("host", "realtime"):
         return Timing.HOST
     period, rate = config.loop.period, profile.feedback_period

@@ -1,6 +1,6 @@
 """The emulated ODrive behind ``can.Bus(interface="dobhil", channel="demo")`` answers
 requests as the firmware does, and odrive-can's client enables it every time with the
-shipped profile, as the README says (issue 16)."""
+shipped profile, as the README says."""
 
 from __future__ import annotations
 
@@ -101,10 +101,10 @@ async def _readme_sequence_once() -> tuple[str | None, float]:
 
 
 def test_readme_odrive_can_sentence_20_times_in_a_row() -> None:
-    """The README's odrive-can sentence, exactly as written, 20 times in a row (issue 16:
-    on the 0.6 profile Clear_Errors did not feed the emulated watchdog, and about 2 of 5
-    tries timed out: the axis that sat idle flagged WATCHDOG_TIMER_EXPIRED again before
-    Set_Axis_State arrived).
+    """The README's odrive-can sentence, exactly as written, 20 times in a row (on the 0.6
+    profile Clear_Errors feeds the emulated watchdog: without it about 2 of 5 tries time
+    out, the axis that sat idle flagging WATCHDOG_TIMER_EXPIRED again before
+    Set_Axis_State arrives).
 
     A try may fail only if the host itself paused: its longest gap between feeding frames
     (Clear_Errors, the torque commands) reached half the watchdog timeout (the other half

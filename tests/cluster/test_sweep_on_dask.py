@@ -72,7 +72,7 @@ def test_a_scheduler_that_does_not_answer_ends_the_process_with_one_line(silent_
     """As a process (imports, Dask's threads and all): exit 2, one line, no traceback -- on
     the silent listener, the case Dask alone hangs on (a closed port is the same one line,
     in-process: tests/cluster/test_cluster.py, tests/campaign/test_cli.py). The limit here
-    only catches a hang; the 10 s the issue asks for is measured on an idle machine, not
+    only catches a hang; the 10 s bound is measured on an idle machine, not
     asserted on a shared one."""
     address = f"tcp://{silent_listener}"
     done = subprocess.run([sys.executable, "-m", "dobhil", "sweep", FIG2B, "--vary", VARY[0],

@@ -4,8 +4,8 @@ function gives (None: silence), and records every frame it got. Nothing here imp
 dobhil's codec or emulator: the tests say the bytes.
 
 ``answer(data) -> bytes | None`` sees each frame's payload; :func:`reply_cubemars` and
-:func:`reply_damiao` build the replies from codes (the layouts of drive-protocols.md
-section 2, written out here by hand).
+:func:`reply_damiao` build the replies from codes (the layouts of the CubeMars AK manual
+and Damiao's DM-J documentation, written out here by hand).
 """
 
 from __future__ import annotations

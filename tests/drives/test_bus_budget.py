@@ -1,4 +1,4 @@
-"""The bus budget (issue 17, item 3): the frames a run puts on the bus per loop period,
+"""The bus budget: the frames a run puts on the bus per loop period,
 times their bits on the wire, against the bit rate.
 
 Every expected number is computed by hand in the comments from the frame formula
@@ -63,7 +63,7 @@ def test_cia402_budget_over_70_percent_says_what_to_change() -> None:
 
 
 def test_two_cia402_axes_fit_three_do_not() -> None:
-    # drive-protocols.md: "only about two CST axes fit on 1 Mbit/s at 1 kHz". One SYNC for
+    # Only about two CST axes fit on 1 Mbit/s at 1 kHz. One SYNC for
     # all; per axis RPDO1 + TPDO1 + TPDO2 + heartbeat share = 95 + 135 + 105 + 0.65 = 335.65.
     # two axes: 55 + 2 x 335.65 = 726.3 bits = 72.6 % (over 70 %); three: 1061.95 = 106 %.
     axis = CIA402_FRAMES[1:]

@@ -1,4 +1,4 @@
-"""The CiA 402 preflight probe (issue 17, item 3): SDO reads of identity, CST support,
+"""The CiA 402 preflight probe: SDO reads of identity, CST support,
 rated torque and its unit, the PDO mapping and the heartbeat, and the bus budget.
 
 The node is canopen's own ``LocalNode`` (its SDO server, on its own notifier, serving

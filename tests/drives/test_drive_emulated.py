@@ -21,7 +21,7 @@ import pytest
 from dobhil.drives import DriveProfile, DriveState, load_profile, make_drive
 from dobhil.drives.base import Drive
 from dobhil.drives.odrive import codec
-from dobhil.drives.odrive.codec import AxisState, CmdId, ControlMode, InputMode
+from dobhil.drives.odrive.codec import AxisState, CmdId, CmdId06, ControlMode, InputMode
 from dobhil.drives.load import profile_from_mapping
 from dobhil.drives.registry import drive_class
 from dobhil.drives.odrive.emulator import EmulatedODrive
@@ -299,8 +299,8 @@ def test_lockstep_answers_rtr_requests(make_rig: Callable[..., Rig]) -> None:
     rig.drive.poll(0.0)  # drain what the drive has not read yet
     inner = rig.host._inner  # type: ignore[attr-defined]
     expected = {
-        CmdId.GET_TORQUES: codec.Torques(0.5, 0.5),
-        CmdId.GET_ERROR: codec.GetError(0, 0),
+        CmdId06.GET_TORQUES: codec.Torques(0.5, 0.5),
+        CmdId06.GET_ERROR: codec.GetError(0, 0),
         CmdId.GET_BUS_VOLTAGE_CURRENT: codec.BusVoltageCurrent(24.0, 0.0),
         CmdId.HEARTBEAT: codec.Heartbeat(0, AxisState.CLOSED_LOOP_CONTROL, trajectory_done=True),
     }

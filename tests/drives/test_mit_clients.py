@@ -89,7 +89,7 @@ CANMOTORLIB_ROWS: dict[tuple[str, str, str], str] = {
 
 #: where a row's ranges are not its client's: (client, client's row, key) -> (dobhil's, client's).
 #: AK60-6: the CubeMars manual V1.0.8 (p. 50) says V +-45 rad/s, tmotorcancontrol 50; the
-#: table follows the vendor (drive-protocols.md: "sources disagree").
+#: table follows the vendor.
 RANGE_DIFFERENCES: dict[tuple[str, str, str], tuple[float, float]] = {
     ("tmotorcancontrol", "AK60-6", "v_max"): (45.0, 50.0),
 }
@@ -166,7 +166,7 @@ def commands(r: Ranges) -> st.SearchStrategy[Command]:
 
 
 def fields(data: bytes) -> tuple[int, int, int, int, int]:
-    """The codes of an 8-byte command (drive-protocols.md section 2's layout), p v kp kd t."""
+    """The codes of an 8-byte command (the reference firmware's layout), p v kp kd t."""
     return ((data[0] << 8) | data[1], (data[2] << 4) | (data[3] >> 4), ((data[3] & 0xF) << 8) | data[4],
             (data[5] << 4) | (data[6] >> 4), ((data[6] & 0xF) << 8) | data[7])
 
@@ -578,7 +578,7 @@ def test_nan_and_infinities_are_refused_where_clients_fail_or_send_something(
 
 
 def reply_codes(data: bytes) -> tuple[int, int, int]:
-    """Position, velocity, torque codes of a reply (drive-protocols.md section 2's layout)."""
+    """Position, velocity, torque codes of a reply (the reference firmware's layout)."""
     return (data[1] << 8) | data[2], (data[3] << 4) | (data[4] >> 4), ((data[4] & 0xF) << 8) | data[5]
 
 

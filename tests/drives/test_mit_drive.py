@@ -1,6 +1,7 @@
 """The MIT drive against a hand-written motor (tests/drives/mit_fake.py) on a python-can
 virtual bus: the frames it sends and the replies it reads are literal bytes, written
-from the layouts in drive-protocols.md section 2 -- not from dobhil's codec.
+from the layouts of the reference firmware (github.com/bgkatz/motorcontrol,
+``CAN/CAN_com.cpp``) -- not from dobhil's codec.
 
 Decoding is checked with the firmware formula written out here:
 ``x = u (hi - lo) / (2^bits - 1) + lo``.

@@ -1,6 +1,6 @@
 """dobhil enables against odrive-can's own mock (``odrive_can.mock.ODriveCANMock``), an
 independent ODrive peer that decodes every frame with cantools and the official 0.6.10
-DBC: a Set_Axis_State sent with DLC 4 (as dobhil did before issue 9) raises inside its
+DBC: a Set_Axis_State sent with DLC 4 (not the DBC's 8) raises inside its
 cantools decode and is dropped, so the axis never reached CLOSED_LOOP_CONTROL.
 
 The mock runs its asyncio tasks on a thread of its own (heartbeat every 0.2 s, 0.5 s

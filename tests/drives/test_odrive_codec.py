@@ -8,7 +8,7 @@ import struct
 import pytest
 
 from dobhil.drives.odrive import codec
-from dobhil.drives.odrive.codec import AxisState, CmdId, ControlMode, Firmware, InputMode
+from dobhil.drives.odrive.codec import AxisState, CmdId, CmdId06, ControlMode, Firmware, InputMode
 from dobhil.errors import CodecError
 
 BOTH = (Firmware.V0_5, Firmware.V0_6)
@@ -181,7 +181,7 @@ def test_every_data_message_is_sent_with_dlc_8_zero_padded(firmware: Firmware) -
 def test_requests_carry_the_data_frames_dlc() -> None:
     rtr = codec.encode(codec.Request(CmdId.HEARTBEAT), node_id=3)
     assert rtr.is_remote_frame and rtr.dlc == 8 and rtr.arbitration_id == 0x061
-    version = codec.encode(codec.Request(CmdId.GET_VERSION), node_id=3)
+    version = codec.encode(codec.Request(CmdId06.GET_VERSION), node_id=3)
     assert version.arbitration_id == 0x060 and version.is_remote_frame
 
 
@@ -203,7 +203,8 @@ def test_05_component_error_messages() -> None:
 
 
 def test_complete_05_axis_error_table() -> None:
-    """The four bits missing before (issue 9) name themselves; nothing is 'unknown'."""
+    """The 0.5 axis error bits of the motor, estimator, encoder and controller name
+    themselves; nothing is 'unknown'."""
     for bit, name in ((0x40, "MOTOR_FAILED"), (0x80, "SENSORLESS_ESTIMATOR_FAILED"),
                       (0x100, "ENCODER_FAILED"), (0x200, "CONTROLLER_FAILED")):
         assert codec.describe_errors(bit, Firmware.V0_5) == f"0x{bit:08X} ({name})"

@@ -1,4 +1,4 @@
-"""The emulated ODrive follows the firmware per version (issue 9, item 4).
+"""The emulated ODrive follows the firmware per version.
 
 Facts from the 0.5.6 firmware source (tag fw-v0.5.6 of odriverobotics/ODrive): heartbeat
 RTRs are ignored and there is no Get_Version; the watchdog is checked in every axis state;
@@ -21,7 +21,7 @@ import pytest
 
 from dobhil.drives import load_profile, make_drive
 from dobhil.drives.odrive import codec
-from dobhil.drives.odrive.codec import AxisState, CmdId, ControlMode, Firmware, InputMode
+from dobhil.drives.odrive.codec import AxisState, CmdId, CmdId05, CmdId06, ControlMode, Firmware, InputMode
 from dobhil.drives.odrive.emulator import EMULATED_VERSION_06, EmulatedODrive
 from dobhil.drives.emulated import LockstepBus
 from dobhil.errors import DriveTimeoutError
@@ -90,7 +90,7 @@ def test_heartbeat_rtr_answered_on_06_only(bench: Bench) -> None:
 
 
 def test_get_version_answered_on_06_only(bench: Bench) -> None:
-    bench.host.send(codec.encode(codec.Request(CmdId.GET_VERSION), node_id=3))  # id 0x060
+    bench.host.send(codec.encode(codec.Request(CmdId06.GET_VERSION), node_id=3))  # id 0x060
     replies = bench.replies()
     assert replies == ([] if bench.emu.firmware is Firmware.V0_5 else [EMULATED_VERSION_06])
 
@@ -125,7 +125,7 @@ def test_nan_torque_never_reaches_the_plant_and_faults_the_axis(bench: Bench) ->
     bench.replies()
     if bench.emu.firmware is Firmware.V0_5:
         assert bench.emu.axis_error == codec.AxisError05.MOTOR_FAILED
-        bench.send(codec.Request(CmdId.GET_MOTOR_ERROR))
+        bench.send(codec.Request(CmdId05.GET_MOTOR_ERROR))
         assert bench.replies() == [codec.MotorErrorMsg(codec.MotorError05.MODULATION_IS_NAN)]
         bench.tick(100)
         beat = [r for r in bench.replies() if isinstance(r, codec.Heartbeat)][-1]
@@ -224,11 +224,11 @@ def test_enable_failure_line_names_the_procedure_result() -> None:
 #: msg.len == 0``; heartbeat requests ignored, no Get_Version) and the emulator's 0.6
 #: assumption; ids not listed (e.g. 0.5 Get_Encoder_Count, 0.6 Get_Powers) are not emulated.
 ANSWERED = {
-    Firmware.V0_5: {CmdId.GET_MOTOR_ERROR, CmdId.GET_ENCODER_ERROR, CmdId.GET_SENSORLESS_ERROR,
+    Firmware.V0_5: {CmdId05.GET_MOTOR_ERROR, CmdId05.GET_ENCODER_ERROR, CmdId05.GET_SENSORLESS_ERROR,
                     CmdId.GET_ENCODER_ESTIMATES, CmdId.GET_IQ, CmdId.GET_BUS_VOLTAGE_CURRENT,
-                    CmdId.GET_CONTROLLER_ERROR},
-    Firmware.V0_6: {CmdId.HEARTBEAT, CmdId.GET_VERSION, CmdId.GET_ERROR, CmdId.GET_ENCODER_ESTIMATES,
-                    CmdId.GET_IQ, CmdId.GET_BUS_VOLTAGE_CURRENT, CmdId.GET_TORQUES},
+                    CmdId05.GET_CONTROLLER_ERROR},
+    Firmware.V0_6: {CmdId.HEARTBEAT, CmdId06.GET_VERSION, CmdId06.GET_ERROR, CmdId.GET_ENCODER_ESTIMATES,
+                    CmdId.GET_IQ, CmdId.GET_BUS_VOLTAGE_CURRENT, CmdId06.GET_TORQUES},
 }
 DBC_FILES = {Firmware.V0_5: "odrive-cansimple-0.5.6.dbc", Firmware.V0_6: "odrive-cansimple-0.6.10.dbc"}
 
@@ -275,8 +275,8 @@ def test_clear_errors_feeds_the_watchdog_of_an_idle_axis(bench: Bench, form: str
     """An axis left idle past the watchdog timeout shows the bit. Clear_Errors, in any
     form, clears it and feeds the watchdog, so a Set_Axis_State sent later (here one
     tick short of the timeout) is granted: odrive-can's documented sequence works
-    whatever emulator ticks fall between its frames (issue 16; 0.6 without the feed
-    flagged the bit again at the next tick and refused closed loop)."""
+    whatever emulator ticks fall between its frames (0.6 without the feed would flag the
+    bit again at the next tick and refuse closed loop)."""
     timeout_ticks = round(bench.emu.profile.watchdog_timeout / DT)
     bench.tick(timeout_ticks + 5)
     assert bench.emu.watchdog_error and not bench.emu.watchdog_tripped

@@ -1,5 +1,5 @@
 """The emulated CiA 402 node in lockstep, frame by frame: literal bytes of CiA 301 / CiA 402
-(drive-protocols.md section 3), the TPDOs also decoded by canopen's own PDO map."""
+(their COB-IDs, objects and state bits), the TPDOs also decoded by canopen's own PDO map."""
 
 from __future__ import annotations
 
@@ -23,7 +23,7 @@ from dobhil.errors import ConfigError
 from .cia402_rig import (EMCY, HEARTBEAT, NODE, OPTIONS, RPDO1, SDO_TX, SYNC, TPDO1, TPDO2, Lockstep,
                          cia402_profile, configure_wire_mapping, download, enable_cst, upload)
 
-# statuswords as drive-protocols.md gives the state bits, plus voltage enabled (0x10) and
+# statuswords with CiA 402's state bits, plus voltage enabled (0x10) and
 # remote (0x200); operation enabled in CST also bit 12 (the target torque is followed)
 SW_SWITCH_ON_DISABLED = 0x0250
 SW_READY = 0x0231

@@ -22,7 +22,7 @@ from dobhil.cli.main import main
 from dobhil.config import load_config
 from dobhil.drives import load_profile
 from dobhil.drives.odrive import codec as odrive
-from dobhil.drives.odrive.codec import CmdId, Firmware
+from dobhil.drives.odrive.codec import CmdId06, Firmware
 from dobhil.emulator.bus_faults import RefuseSend
 from dobhil.emulator.faults import FaultyBus
 from dobhil.drives.odrive.emulator import EmulatedODrive
@@ -121,13 +121,13 @@ def test_an_answer_into_an_interface_that_is_down_ends_the_emulator() -> None:
     ENETDOWN to that send, so no receive will ever report it): the answer's BusError ends
     the drive, rather than being counted as a frame the drive could not handle."""
     channel = f"send-errors-{next(_CHANNELS)}"
-    reply = odrive.arbitration_id(3, CmdId.GET_VERSION)
+    reply = odrive.arbitration_id(3, CmdId06.GET_VERSION)
     bus = FaultyBus(can.Bus(interface="virtual", channel=channel), [RefuseSend(at=0, code=errno.ENETDOWN,
                                                                               ids={reply})], owns_inner=True)
     host = can.Bus(interface="virtual", channel=channel)
     emu = EmulatedODrive(bus, load_profile("odrive-0.6"), Plant.from_config(load_config(DEMO)))
     try:
-        host.send(odrive.encode(odrive.Request(CmdId.GET_VERSION), node_id=3, firmware=Firmware.V0_6))
+        host.send(odrive.encode(odrive.Request(CmdId06.GET_VERSION), node_id=3, firmware=Firmware.V0_6))
         with pytest.raises(BusError, match="send failed: .*Network is down"):
             emu.handle_pending()
         assert emu.frame_errors == 0

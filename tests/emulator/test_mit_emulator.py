@@ -1,5 +1,5 @@
 """The emulated MIT motor in lockstep, frame by frame: literal bytes of the MIT protocol
-(drive-protocols.md section 2: the special frames, the 16/12-bit packing, the firmware's
+(the reference firmware, github.com/bgkatz/motorcontrol: the special frames, the 16/12-bit packing, its
 ``int((x - min) * (2^bits - 1) / (max - min))``, reply layouts), worked out by hand here,
 not by the codec under test; the timing of replies and torque in simulated time; the
 firmware's command timeout; set zero and its silence; the thermal and over-current faults."""

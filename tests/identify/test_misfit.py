@@ -1,4 +1,4 @@
-"""What identify says when the model is wrong (issue 19, item 4).
+"""What identify says when the model is wrong.
 
 Logs of emulated plants the fitted model cannot represent -- Stribeck friction, gear
 backlash (dobhil.emulator.plant options, unmodelled by the analysis) -- must come out
@@ -110,9 +110,9 @@ def test_backlash_gives_a_visible_misfit() -> None:
 def test_no_confident_wrong_numbers_from_a_contact_only_record() -> None:
     """The plant the model represents exactly, pressed from the start (a contact segment
     only): every value identify reports as identifiable has its 95 % interval around the
-    truth, unless identify warns of a misfit. (Until the G session of issue 19 it said
-    viscous friction 822 [262, 1106] for 0.5 and contact 1.34 mrad for 0: in contact b and
-    D_env act as their sum. Now they are not identifiable, each naming the other; this
+    truth, unless identify warns of a misfit. (In contact b and D_env act as their sum: a
+    fit that reported both gave confident wrong values, viscous friction 822 [262, 1106] for
+    0.5 and contact 1.34 mrad for 0; they are not identifiable, each naming the other. This
     record barely moves -- 0.002 rad/s RMS under 0.01 of noise -- so little else is.)"""
     from dobhil.identify.data import IdentData, Segment
     from dobhil.identify.fit import identify

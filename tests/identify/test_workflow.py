@@ -1,4 +1,4 @@
-"""The whole identify workflow, end to end, through the CLI (issue 19's "done when"):
+"""The whole identify workflow, end to end, through the CLI:
 
 1. excite: ``dobhil run identify-free`` and ``identify-contact`` on the emulator (lockstep:
    reproducible) with what a real rig has switched on -- Coulomb friction, a quantising

@@ -1,4 +1,4 @@
-"""Issue 16 (7): the bus timestamps of recorded frames share one time base.
+"""The bus timestamps of recorded frames share one time base.
 
 A sent frame is stamped with its send time on the log clock (its python-can message carries
 0.0); a received frame keeps the interface's stamp in real time (the same wall clock on

@@ -86,7 +86,7 @@ def test_live_on_loopback_prints_no_exposure_warning(tmp_path: Path, capsys: pyt
 
 def test_live_beyond_loopback_prints_one_warning_line(tmp_path: Path, capsys: pytest.CaptureFixture[str],
                                                       monkeypatch: pytest.MonkeyPatch) -> None:
-    """Issue 16 (13): the warning, without binding a public interface (the bind check is
+    """The warning, without binding a public interface (the bind check is
     stubbed; the address is only classified)."""
     import dobhil.live.address as address
     monkeypatch.setattr(address, "check_bindable", lambda _address: None)

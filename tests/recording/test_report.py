@@ -38,8 +38,8 @@ def test_demo_then_report(tmp_path: Path, capsys: pytest.CaptureFixture[str]) ->
     for name in ("force", "tracking_error", "position", "commands", "loop_timing"):
         assert (out / f"{name}.png").stat().st_size > 10000
     summary = json.loads((out / "summary.json").read_text())
-    # issue 16 (7): the first "step" (0 -> 0.2 N m) crosses the gap and hits the environment:
-    # no step metrics (they were an 825 % "overshoot"); the step at 0.6 s is taken in contact
+    # the first "step" (0 -> 0.2 N m) crosses the gap and hits the environment: no step
+    # metrics (they would be an 825 % "overshoot"); the step at 0.6 s is taken in contact
     approach, step = summary["steps"]
     assert approach["time"] == 0.0 and approach["in_contact"] is False and approach["metrics"] is None
     assert "touched the environment at 0.1" in approach["why"]
@@ -183,8 +183,8 @@ def test_step_metrics_only_for_steps_taken_in_contact(truth: bool) -> None:
 
 
 def test_latency_verdict_covers_the_spread_with_a_stated_tolerance() -> None:
-    """Issue 16 (7): 'p99 278 us, assumed 0 us: matches the analysis' contradicted itself.
-    The verdict now needs p50 and p99 within 0.1 T of the assumed delay and says so."""
+    """'p99 278 us, assumed 0 us: matches the analysis' would contradict itself: the
+    verdict needs p50 and p99 within 0.1 T of the assumed delay and says so."""
     rx = [float(k) for k in range(100)]
     tx = [k + (0.278 if k >= 95 else 0.02) for k in range(100)]   # median 20 us, 5 % slow commands
     lat = latency_stats(_latency_run(rx, tx, clock="wall", input_delay=0.0))

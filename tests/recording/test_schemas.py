@@ -151,8 +151,8 @@ def test_the_loops_frame_record_is_the_tables() -> None:
 
 
 def test_drive_state_is_recorded_by_name_not_as_a_code_a_drive_uses_otherwise() -> None:
-    """Issue 16 (7): ``/drive/feedback`` held dobhil's DriveState code (1 = enabled), which
-    reads as ODrive's (1 = IDLE) in Foxglove: the record names the state."""
+    """``/drive/feedback`` names dobhil's DriveState: its code (1 = enabled) would read as
+    ODrive's (1 = IDLE) in Foxglove."""
     from dobhil.drives.base import DriveState
     from dobhil.recording.schemas import DRIVE_STATE_NAMES, drive_state_name
     assert DRIVE_STATE_NAMES == tuple(s.name.lower() for s in sorted(DriveState))

@@ -1,4 +1,4 @@
-"""``dobhil check`` on a CiA 402 config (issue 17, item 3), across processes: ``dobhil
+"""``dobhil check`` on a CiA 402 config, across processes: ``dobhil
 emulate configs/cia402-demo.yaml`` in a second process on the project's hub (loopback
 python-can-remote), ``dobhil check`` in this one -- as on can0 with a real node. The
 check reads the node by SDO and reports identity, modes and the bus budget, without

@@ -29,7 +29,7 @@ import pytest
 from dobhil.config import Config
 from dobhil.drives.base import Confirmation, Feedback, SafeStopReport
 from dobhil.drives.odrive import codec
-from dobhil.drives.odrive.codec import AxisState, CmdId, Firmware
+from dobhil.drives.odrive.codec import AxisState, CmdId, CmdId05, CmdId06, Firmware
 from dobhil.emulator.bus_faults import InterfaceGone, RefuseSend
 from dobhil.drives.load import load_profile
 from dobhil.emulator.faults import (CorruptFeedback, Fault, Flood, HoldFrames, InjectFrame,
@@ -51,7 +51,7 @@ ENCODER = codec.arbitration_id(NODE, CmdId.GET_ENCODER_ESTIMATES)
 ODRIVE_PROFILE = dataclasses.replace(load_profile("odrive-0.6"), node_id=NODE)
 TORQUE = codec.arbitration_id(NODE, CmdId.SET_INPUT_TORQUE)
 AXIS_STATE = codec.arbitration_id(NODE, CmdId.SET_AXIS_STATE)
-NODE_IDS = frozenset(codec.arbitration_id(NODE, c) for c in CmdId)
+NODE_IDS = frozenset(codec.arbitration_id(NODE, c) for ids in (CmdId, CmdId05, CmdId06) for c in ids)
 AT = 100   # the fault strikes around the 100th frame (0.1 s into a 0.4 s run)
 
 

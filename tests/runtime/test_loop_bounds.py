@@ -7,18 +7,19 @@ from __future__ import annotations
 
 import gc
 import math
+import re
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from dobhil.drives.odrive.codec import Firmware
-from dobhil.runtime.loop import (TRACE_ROWS, ForceLoop, Histogram, StopRequest, Timing, Trace,
+from dobhil.runtime.loop import (REMOVED_IN, TRACE_ROWS, ForceLoop, Histogram, StopRequest, Timing, Trace,
                                  _QuietGc)
 from dobhil.runtime.session import RunSession
 from dobhil.runtime.stop import StopReason
 
-from .helpers import (REALTIME_SLACK, STEP_FROM_ZERO, Sniffer, demo_config, finite_tail,
+from .helpers import (REALTIME_SLACK, REPO, STEP_FROM_ZERO, Sniffer, demo_config, finite_tail,
                       realtime_profile)
 
 
@@ -164,10 +165,36 @@ def test_host_timing_reaches_the_reference(tmp_path: Path, spin: str) -> None:
     assert math.isfinite(result.timing.period_error_p99)
 
 
-def test_realtime_is_an_alias_of_host() -> None:
+def test_realtime_is_the_old_name_of_host_and_warns() -> None:
     config = demo_config("loop.timing=realtime")
-    with RunSession(config, emulate=True) as session:
-        assert session.timing is Timing.HOST is Timing.REALTIME
+    with pytest.warns(FutureWarning) as caught, RunSession(config, emulate=True) as session:
+        assert session.timing is Timing.HOST
+    assert [str(w.message) for w in caught] == [
+        f"loop.timing: realtime is deprecated, use loop.timing: host (removed in dobhil {REMOVED_IN})"]
+    with pytest.warns(DeprecationWarning) as caught:
+        assert Timing.REALTIME is Timing.HOST
+    assert [str(w.message) for w in caught] == [
+        f"Timing.REALTIME is deprecated, use Timing.HOST (removed in dobhil {REMOVED_IN})"]
+    assert "REALTIME" not in Timing.__members__ and str(Timing.HOST) == "1" and Timing.HOST.name == "HOST"
+
+
+def test_the_command_line_shows_the_old_name_warning_as_one_line(capsys: pytest.CaptureFixture[str]) -> None:
+    from dobhil.cli.main import main
+    main(["run", str(REPO / "configs/demo.yaml"), "--emulate", "--set", "loop.timing=realtime",
+          "--set", "loop.duration=0.02"])
+    err = capsys.readouterr().err.splitlines()
+    assert err[0] == ("dobhil: warning: loop.timing: realtime is deprecated, use loop.timing: host "
+                      f"(removed in dobhil {REMOVED_IN})")
+    assert not any("FutureWarning" in line or "session.py" in line for line in err)
+
+
+def test_old_names_are_removed_in_the_next_minor_release() -> None:
+    version = re.search(r'^version = "([^"]+)"', (REPO / "pyproject.toml").read_text(), re.M)
+    assert version is not None
+    major, minor, *_ = version[1].split(".")
+    assert REMOVED_IN == f"{major}.{int(minor) + 1}"
+    # the key table (dobhil/config/schema.py, below the runtime) says the same release
+    assert f"deprecated, removed in dobhil {REMOVED_IN}" in (REPO / "docs/config.md").read_text()
 
 
 def test_feedback_timing_needs_one_frame_per_period(tmp_path: Path) -> None:

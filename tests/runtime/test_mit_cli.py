@@ -1,4 +1,4 @@
-"""Issue 18's "done when" on the command line, in process (``dobhil.cli.main.main``):
+"""The MIT demo on the command line, in process (``dobhil.cli.main.main``):
 ``dobhil run configs/mit-demo.yaml --emulate --lockstep --log x.mcap`` converges with the
 same summary fields as the ODrive demo, ``dobhil replay x.mcap --verify`` reproduces it bit
 for bit, ``dobhil report`` works on it; bad MIT input (a model the table lacks, a firmware

@@ -1,4 +1,4 @@
-"""Preflight (issue 9, item 1): measure the drive on the bus without enabling it.
+"""Preflight: measure the drive on the bus without enabling it.
 
 Deterministic measurements run in lockstep on the simulated clock (exact periods); the
 CLI checks run in real time against an emulator thread on a private ``virtual`` channel,
@@ -138,7 +138,7 @@ def test_feedback_gap_above_the_timeout_is_a_mismatch() -> None:
 
 def test_a_mismatch_the_run_does_not_refuse_does_not_claim_the_run_would_stop(
         capsys: pytest.CaptureFixture[str]) -> None:
-    """Issue 16 (6): a feedback pause in the window is a mismatch the run goes on with;
+    """A feedback pause in the window is a mismatch the run goes on with;
     neither the finding, nor check's verdict, nor the run's preflight line may say the
     run would stop."""
     from dobhil.cli.run_cmd import report_preflight
@@ -173,7 +173,7 @@ def test_an_axis_already_in_closed_loop_refuses_the_run() -> None:
 
 
 def test_a_bus_that_cannot_be_opened_names_the_emulated_bus(capsys: pytest.CaptureFixture[str]) -> None:
-    """Issue 16 (6): without CAN hardware, check says how to try it anyway."""
+    """Without CAN hardware, check says how to try it anyway."""
     code = main(["check", str(DEMO), "--bus", "socketcan:dobhil-no-such-can"])
     err = capsys.readouterr().err
     assert code == EXIT_USAGE and err.count("\n") == 1

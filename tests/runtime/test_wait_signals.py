@@ -25,7 +25,7 @@ import pytest
 
 from dobhil.drives.base import Confirmation, Feedback, SafeStopReport
 from dobhil.drives.odrive import codec
-from dobhil.drives.odrive.codec import CmdId
+from dobhil.drives.odrive.codec import CmdId, CmdId06
 from dobhil.config import Config
 from dobhil.emulator.faults import Fault, LoseSent, SilenceAfter, faulty
 from dobhil.runtime.controller import ControlOutput
@@ -40,7 +40,7 @@ from .hub import STARTUP_TIMEOUT, child_env, stop_process
 #: the issue's bound: from the signal to its answer
 ANSWER = 0.2
 AXIS_STATE = codec.arbitration_id(NODE, CmdId.SET_AXIS_STATE)
-GET_VERSION = codec.arbitration_id(NODE, CmdId.GET_VERSION)
+GET_VERSION = codec.arbitration_id(NODE, CmdId06.GET_VERSION)
 
 
 class Lines:

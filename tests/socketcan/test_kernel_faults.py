@@ -25,7 +25,7 @@ from scipy.stats import binom
 
 from dobhil.drives.cia402.codec import Cob
 from dobhil.drives.odrive import codec as odrive
-from dobhil.drives.odrive.codec import AxisState, CmdId, Firmware
+from dobhil.drives.odrive.codec import AxisState, CmdId, CmdId06, Firmware
 from dobhil.run_report import load_run, report
 
 from .guest import CONFIGS, DEMOS, PERIOD, START_TIMEOUT, Dobhil, Dumped, Proc, guest_overlay, summary_json
@@ -132,7 +132,7 @@ def test_link_down_during_preflight(vcan: str, dobhil: Dobhil, tmp_path: Path) -
     dobhil.emulate(config, vcan, overlay)
     run = start_run(dobhil, config, vcan, overlay, "--preflight-window", "60")
     # the preflight's first act is its Get_Version request; then it listens for 60 s
-    wait_frames(vcan, odrive.arbitration_id(ODRIVE_NODE, CmdId.GET_VERSION), 1)
+    wait_frames(vcan, odrive.arbitration_id(ODRIVE_NODE, CmdId06.GET_VERSION), 1)
     sh("ip", "link", "set", vcan, "down")
     assert run.wait() == 1, run.text()
     lines = run.text().splitlines()

@@ -1,4 +1,4 @@
-"""Done-when of ``dobhil tune`` (issue 20): on the paper's Fig. 3 plant with stiffness
+"""What ``dobhil tune`` guarantees: on the paper's Fig. 3 plant with stiffness
 1e3..1e5 and damping 10..200 the tuned design is stable at every point of a 50 x 50 grid by
 an independent eigenvalue check (:mod:`tests.tune.independent`), its worst-case rise time
 beats the paper's gains (g 500/500, C_f 2, J_mi = J_m), and the same check says where the

@@ -176,7 +176,7 @@ class Cia402Ids:
         loaded = load_profile(profile)
         node, rpdo, tpdo = loaded.node_id, int(loaded.options["rpdo"]), int(loaded.options["tpdo"])
         return cls(int(Cob.SYNC), Cob.rpdo(rpdo, node), Cob.tpdo(tpdo, node), Cob.tpdo(tpdo + 1, node),
-                   int(Cob.HEARTBEAT) + node, int(Cob.EMCY) + node)
+                   int(Cob.HEARTBEAT) + node, Cob.emcy(node))
 
 
 def rpdo_command(data: bytes) -> tuple[int, int]:

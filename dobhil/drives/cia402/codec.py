@@ -89,11 +89,14 @@ _I16 = (-(1 << 15), (1 << 15) - 1)
 
 
 class Cob(IntEnum):
-    """Function codes of the pre-defined connection set (add the node id where it has one)."""
+    """Function codes of the pre-defined connection set (add the node id where it has one).
+
+    SYNC and EMCY share function code 0001b (CiA 301, pre-defined connection set): SYNC is
+    COB-ID 0x080 itself, a node's EMCY 0x080 + node id (1..127). EMCY is :meth:`emcy`, not a
+    member: a member of the same value would be an alias of SYNC and print as SYNC."""
 
     NMT = 0x000
     SYNC = 0x080
-    EMCY = 0x080
     TPDO1 = 0x180
     RPDO1 = 0x200
     TPDO2 = 0x280
@@ -105,6 +108,11 @@ class Cob(IntEnum):
     SDO_TX = 0x580  # server -> client: the node's answers
     SDO_RX = 0x600  # client -> server: our requests
     HEARTBEAT = 0x700
+
+    @staticmethod
+    def emcy(node_id: int) -> int:
+        """COB-ID of the EMCY of ``node_id`` (1..127) in the pre-defined set."""
+        return 0x080 + node_id
 
     @staticmethod
     def tpdo(number: int, node_id: int) -> int:

@@ -115,7 +115,7 @@ class CiA402Drive(Drive):
         self._rpdo_id = Cob.rpdo(self._rpdo_n, node)
         self._status_id = Cob.tpdo(self._tpdo_n, node)
         self._motion_id = Cob.tpdo(self._tpdo_n + 1, node)
-        self._emcy_id = Cob.EMCY + node
+        self._emcy_id = Cob.emcy(node)
         self._heartbeat_id = Cob.HEARTBEAT + node
         self._link: CanopenLink | None = None  # made at start-up: replay never needs it
         self._sync_task: Any = None
@@ -158,7 +158,7 @@ class CiA402Drive(Drive):
         node = self.node_id
         pdos = {Cob.tpdo(n, node) for n in range(1, 5)} | {Cob.rpdo(n, node) for n in range(1, 5)}
         host = {self._host_heartbeat.arbitration_id} if float(self.profile.options["consumer_heartbeat"]) else set()
-        return frozenset({Cob.NMT, Cob.SYNC, Cob.EMCY + node, Cob.SDO_TX + node, Cob.SDO_RX + node,
+        return frozenset({Cob.NMT, Cob.SYNC, Cob.emcy(node), Cob.SDO_TX + node, Cob.SDO_RX + node,
                           Cob.HEARTBEAT + node} | pdos | host)
 
     @property

@@ -9,11 +9,11 @@ canopen's documented entry for a custom interface, and everything canopen sends 
 through the emulator's counted send (``Network.send_message``, the hook canopen names for
 a custom backend), so lockstep stays deterministic and real time has one thread.
 
-What canopen's LocalNode does not do, this module does (drive-protocols.md, CiA 402):
+What canopen's LocalNode does not do, this module does (CiA 301, CiA 402 / IEC 61800-7-201):
 
 - heartbeat producer in emulator time: canopen's NMT slave starts a python-can periodic
-  task (a thread) for 0x1017; ``send_periodic`` of the network is answered with a task of
-  this emulator's clock instead (:class:`_ClockTask`), so the period written by SDO, the
+  task (a thread) for 0x1017; the network's ``send_periodic`` builds canopen's own task on
+  this emulator's clock instead (:class:`_ClockSchedule`), so the period written by SDO, the
   state byte canopen keeps up to date and the boot-up frame are canopen's, the timing ours.
   The node boots (boot-up frame, NMT pre-operational) at its first tick or frame, and again
   after an NMT reset (node: the whole object dictionary back to the EDS; communication:
@@ -44,9 +44,9 @@ What canopen's LocalNode does not do, this module does (drive-protocols.md, CiA 
   0x608F position encoder resolution and 0x6091 gear ratio state ``position_per_rev`` and
   ``gear_ratio`` (the scale this node encodes with; read only here);
 - the CiA 402 power state machine on the controlword (:data:`TRANSITIONS`; fault reset on
-  the rising edge of bit 7), the statusword of drive-protocols.md (plus bit 4 voltage
-  enabled, bit 9 remote, bit 11 internal limit active while the torque is clamped, bit 12
-  in CST when the drive follows 0x6071). Quick stop option 0x605A: 0 disables at once,
+  the rising edge of bit 7), the statusword of CiA 402 (the codec's ``STATUSWORD_TABLE``;
+  plus bit 4 voltage enabled, bit 9 remote, bit 11 internal limit active while the torque
+  is clamped, bit 12 in CST when the drive follows 0x6071). Quick stop option 0x605A: 0 disables at once,
   1-4 go to switch on disabled at the next tick (torque is zero from the quick stop on: the
   emulator has no torque ramp), 5-8 stay in quick stop active (enable operation resumes);
 - modes 0x6060 -> 0x6061: 0 or a mode of 0x6502 (CSP 8, CSV 9, CST 10), anything else is
@@ -79,6 +79,7 @@ from typing import Any
 
 import can
 import canopen
+from can.broadcastmanager import ModifiableCyclicTaskABC
 from canopen.network import PeriodicMessageTask
 from canopen.objectdictionary import ODVariable
 from canopen.sdo import SdoAbortedError, SdoVariable
@@ -199,22 +200,16 @@ class _Pdo:
         return self.trans_type <= 240
 
 
-class _ClockTask(PeriodicMessageTask):
-    """A periodic frame of canopen's (the heartbeat) sent on the emulator's clock.
+class _ClockTask(ModifiableCyclicTaskABC):
+    """A periodic frame sent on the emulator's clock: the python-can task that canopen's
+    :class:`~canopen.network.PeriodicMessageTask` (the heartbeat) drives through python-can's
+    task API, ``stop()`` and ``modify_data()`` (canopen's ``update`` calls the latter)."""
 
-    canopen's NMT slave asks its network for ``send_periodic`` and gets a python-can task
-    (a thread); the emulator's network answers with this instead: the frame goes out at
-    ``start + k * period`` of emulator time, ``update`` changes its data as canopen's
-    task does. It deliberately does not run ``PeriodicMessageTask.__init__`` (that starts
-    the bus's periodic send)."""
-
-    def __init__(self, owner: EmulatedCiA402, can_id: int, data: bytes, period: float) -> None:
-        self.period = period
-        self.msg = can.Message(arbitration_id=can_id, is_extended_id=can_id > 0x7FF, data=bytes(data))
-        self._owner = owner
-        self._start_time = owner.time
+    def __init__(self, schedule: _ClockSchedule, msg: can.Message, period: float, start: float) -> None:
+        super().__init__(msg, period)
+        self._schedule = schedule
+        self._start_time = start
         self._count = 1
-        owner._clock_tasks.append(self)
 
     def due(self, now: float) -> bool:
         """True once per period reached (a long stall skips the missed ones)."""
@@ -225,32 +220,57 @@ class _ClockTask(PeriodicMessageTask):
         return True
 
     def stop(self) -> None:
-        if self in self._owner._clock_tasks:
-            self._owner._clock_tasks.remove(self)
+        self._schedule.remove(self)
 
-    def update(self, data: bytes) -> None:
-        self.msg = can.Message(arbitration_id=self.msg.arbitration_id, is_extended_id=self.msg.is_extended_id,
-                               data=bytes(data))
+
+class _ClockSchedule:
+    """The emulator's periodic frames, on its clock. To canopen's ``PeriodicMessageTask``
+    this is the bus it is built with (its documented ``bus`` parameter): it only calls the
+    bus's ``send_periodic(msg, period)``, answered here with a :class:`_ClockTask` instead
+    of a python-can thread, so canopen's own task (its ``__init__``, ``update``, ``stop``)
+    runs unchanged and the frames go out in emulator time, deterministic in lockstep."""
+
+    def __init__(self, clock: Callable[[], float]) -> None:
+        self._clock = clock
+        self.tasks: list[_ClockTask] = []
+
+    def send_periodic(self, msg: can.Message, period: float) -> _ClockTask:
+        task = _ClockTask(self, msg, period, self._clock())
+        self.tasks.append(task)
+        return task
+
+    def remove(self, task: _ClockTask) -> None:
+        if task in self.tasks:
+            self.tasks.remove(task)
+
+    def due(self, now: float) -> list[can.Message]:
+        """The frames due at ``now``, in the tasks' start order."""
+        return [task.messages[0] for task in tuple(self.tasks) if task.due(now)]
+
+    def stop_all(self) -> None:
+        self.tasks.clear()
 
 
 class _EmulatorNetwork(canopen.Network):
     """canopen's network on the emulator's bus, never connected: frames come in through
     :meth:`notify` (called by the emulator), go out through the emulator's counted send."""
 
-    def __init__(self, owner: EmulatedCiA402, bus: can.BusABC) -> None:
+    def __init__(self, bus: can.BusABC, *, send: Callable[[can.Message], None],
+                 schedule: _ClockSchedule) -> None:
         super().__init__(bus)
-        self._owner = owner
+        self._send_frame = send
+        self._schedule = schedule
 
     def send_message(self, can_id: int, data: bytes, remote: bool = False) -> None:
         # canopen's documented hook for a custom backend: the emulator counts what it sends
         # (LockstepBus reads exactly that many frames) and survives a refused send
-        self._owner._send(can.Message(arbitration_id=can_id, is_extended_id=can_id > 0x7FF,
-                                      data=bytes(data), is_remote_frame=remote))
+        self._send_frame(can.Message(arbitration_id=can_id, is_extended_id=can_id > 0x7FF,
+                                     data=bytes(data), is_remote_frame=remote))
 
     def send_periodic(self, can_id: int, data: bytes, period: float,
                       remote: bool = False) -> PeriodicMessageTask:
-        # the heartbeat runs on the emulator's clock, not on a python-can thread
-        return _ClockTask(self._owner, can_id, data, period)
+        # canopen's own task, built on the emulator's clock instead of a python-can thread
+        return PeriodicMessageTask(can_id, data, period, self._schedule, remote)
 
 
 class EmulatedCiA402(EmulatedDrive):
@@ -278,8 +298,8 @@ class EmulatedCiA402(EmulatedDrive):
         self.over_torque_cycles = over_torque_cycles
         self.node_id = profile.node_id
         self.node = canopen.LocalNode(self.node_id, od)
-        self.network = _EmulatorNetwork(self, bus)
-        self._clock_tasks: list[_ClockTask] = []
+        self._periodic = _ClockSchedule(lambda: self.time)
+        self.network = _EmulatorNetwork(bus, send=self._send, schedule=self._periodic)
         self.network.add_node(self.node)
         self.node.add_write_callback(self._on_write)
         self.node.add_read_callback(self._on_read)
@@ -342,14 +362,13 @@ class EmulatedCiA402(EmulatedDrive):
         return 0.0
 
     def _cyclic_frames(self) -> Sequence[tuple[float, Callable[[], can.Message]]]:
-        return ()   # TPDOs answer SYNC; the heartbeat runs on _ClockTask
+        return ()   # TPDOs answer SYNC; the heartbeat runs on _ClockSchedule
 
     def _on_time(self, now: float) -> None:
         if not self._booted:
             self._boot()
-        for task in tuple(self._clock_tasks):
-            if task.due(now):
-                self._send(task.msg)
+        for msg in self._periodic.due(now):
+            self._send(msg)
         if self.state is PowerState.QUICK_STOP_ACTIVE and 1 <= self._quick_stop_option <= 4:
             self._enter(PowerState.SWITCH_ON_DISABLED)   # the stop is done: no ramp here
         timeout, last = self._consumer_timeout, self._last_host_heartbeat
@@ -451,8 +470,7 @@ class EmulatedCiA402(EmulatedDrive):
             return
         before, self._nmt_before = self._nmt_before, self.nmt_state
         if command in (NmtCommand.RESET_NODE, NmtCommand.RESET_COMMUNICATION):
-            for task in tuple(self._clock_tasks):
-                task.stop()
+            self._periodic.stop_all()
             self._reset(application=command == NmtCommand.RESET_NODE)
         elif before == "OPERATIONAL" and self._nmt_before != "OPERATIONAL":
             self._pending.clear()

@@ -5,7 +5,7 @@ The frames are the codec's (:mod:`dobhil.drives.mit.codec`): the command is deco
 model's axis direction) -- and every reply is packed by ``pack_reply``, so the host sees
 the quantised, wrapped or saturated values a motor of that model row sends. Behaviour
 follows the reference firmware (bgkatz/motorcontrol, which the CubeMars and Damiao
-firmware copy; facts in drive-protocols.md section 2) where it is known, and says so where
+firmware copy: its ``CAN/CAN_com.cpp`` packing and ``main.cpp`` special frames) where it is known, and says so where
 it is the emulator's own choice:
 
 - **one reply to every frame to its node** (arbitration id = ``node_id``, an 8-byte data
@@ -37,7 +37,7 @@ it is the emulator's own choice:
   :attr:`EmulatedMit.watchdog_tripped` says it happened;
 - **set zero** 0xFE: the current position becomes 0 (the offset stays until the next set
   zero, as the encoder offset written to flash does), and the motor is silent for
-  ``mit.zero_silence`` s (drive-protocols.md: about 1 s while it writes flash): no reply to
+  ``mit.zero_silence`` s (about 1 s in the reference firmware while it writes flash): no reply to
   the zero frame nor to anything received meanwhile, and nothing received meanwhile is
   applied (``frames_ignored``);
 - **clear error** 0xFB, only on models whose row lists it (Damiao): clears a latched

@@ -70,7 +70,10 @@ __all__ = [
     "AxisState",
     "BusVoltageCurrent",
     "ClearErrors",
+    "AnyCmdId",
     "CmdId",
+    "CmdId05",
+    "CmdId06",
     "ControlMode",
     "EncoderEstimates",
     "Estop",
@@ -126,18 +129,17 @@ class Firmware(IntEnum):
 
 
 class CmdId(IntEnum):
-    """Command ids (5 bit) of the messages this codec implements.
+    """Command ids (5 bit) with the same message in firmware 0.5 and 0.6.
 
-    0.5 and 0.6 use some ids for different messages: the 0.5 names are aliases.
+    Some ids name different messages in the two families (0x03: 0.5's Get_Motor_Error,
+    0.6's Get_Error), so the ids of one family only are enums of their own,
+    :class:`CmdId05` and :class:`CmdId06`: one name per value in each, so every id prints
+    its own message's name. Sources: ODrive's CAN protocol pages, docs.odriverobotics.com
+    ``v/0.5.6/can-protocol.html`` and ``v/latest/manual/can-protocol.html``.
     """
 
-    GET_VERSION = 0x00  # 0.6 only
     HEARTBEAT = 0x01
     ESTOP = 0x02
-    GET_ERROR = 0x03  # 0.6 only
-    GET_MOTOR_ERROR = 0x03  # 0.5 only
-    GET_ENCODER_ERROR = 0x04  # 0.5 only
-    GET_SENSORLESS_ERROR = 0x05  # 0.5 only
     SET_AXIS_STATE = 0x07
     GET_ENCODER_ESTIMATES = 0x09
     SET_CONTROLLER_MODE = 0x0B
@@ -148,8 +150,27 @@ class CmdId(IntEnum):
     REBOOT = 0x16
     GET_BUS_VOLTAGE_CURRENT = 0x17
     CLEAR_ERRORS = 0x18
-    GET_TORQUES = 0x1C  # 0.6 only
-    GET_CONTROLLER_ERROR = 0x1D  # 0.5 only
+
+
+class CmdId05(IntEnum):
+    """Command ids of firmware 0.5 only (see :class:`CmdId`)."""
+
+    GET_MOTOR_ERROR = 0x03
+    GET_ENCODER_ERROR = 0x04
+    GET_SENSORLESS_ERROR = 0x05
+    GET_CONTROLLER_ERROR = 0x1D
+
+
+class CmdId06(IntEnum):
+    """Command ids of firmware 0.6 only (see :class:`CmdId`)."""
+
+    GET_VERSION = 0x00
+    GET_ERROR = 0x03
+    GET_TORQUES = 0x1C
+
+
+#: a command id of either family
+AnyCmdId = CmdId | CmdId05 | CmdId06
 
 
 class AxisState(IntEnum):
@@ -531,7 +552,7 @@ class Torques:
 class Request:
     """A ``Get_*`` request: RTR frame (or zero-length data frame) on the message's id."""
 
-    cmd: CmdId
+    cmd: AnyCmdId
 
 
 ODriveMessage = (
@@ -572,7 +593,7 @@ Slot = Scalar | Flags
 class MessageSpec:
     """Layout of one message for one firmware: the single source of encode and decode."""
 
-    cmd: CmdId
+    cmd: AnyCmdId
     name: str
     cls: type
     struct: struct.Struct
@@ -656,7 +677,7 @@ def _from_wire(slot: Slot, value: int | float, out: dict[str, Any]) -> None:
         out[slot.name] = slot.convert(int(value))
 
 
-def _spec(cmd: CmdId, cls: type, fmt: str, *slots: Slot, dlc: int | None = None,
+def _spec(cmd: AnyCmdId, cls: type, fmt: str, *slots: Slot, dlc: int | None = None,
           name: str | None = None) -> MessageSpec:
     """One table entry; ``dlc`` defaults to the DBC's 8 (0 for an empty payload)."""
     packed = struct.Struct("<" + fmt)
@@ -705,10 +726,10 @@ _ONLY_05: tuple[MessageSpec, ...] = (
     ),
     _spec(CmdId.REBOOT, Reboot, ""),
     _spec(CmdId.CLEAR_ERRORS, ClearErrors, ""),
-    _spec(CmdId.GET_MOTOR_ERROR, MotorErrorMsg, "Q", Scalar("motor_error"), name="Get_Motor_Error"),
-    _spec(CmdId.GET_ENCODER_ERROR, EncoderErrorMsg, "I", Scalar("encoder_error")),
-    _spec(CmdId.GET_SENSORLESS_ERROR, SensorlessErrorMsg, "I", Scalar("sensorless_error")),
-    _spec(CmdId.GET_CONTROLLER_ERROR, ControllerErrorMsg, "I", Scalar("controller_error")),
+    _spec(CmdId05.GET_MOTOR_ERROR, MotorErrorMsg, "Q", Scalar("motor_error")),
+    _spec(CmdId05.GET_ENCODER_ERROR, EncoderErrorMsg, "I", Scalar("encoder_error")),
+    _spec(CmdId05.GET_SENSORLESS_ERROR, SensorlessErrorMsg, "I", Scalar("sensorless_error")),
+    _spec(CmdId05.GET_CONTROLLER_ERROR, ControllerErrorMsg, "I", Scalar("controller_error")),
 )
 
 _ONLY_06: tuple[MessageSpec, ...] = (
@@ -718,14 +739,14 @@ _ONLY_06: tuple[MessageSpec, ...] = (
         Scalar("procedure_result"), Flags((("trajectory_done", 0x01),)),
     ),
     _spec(
-        CmdId.GET_VERSION, Version, "BBBBBBBB",
+        CmdId06.GET_VERSION, Version, "BBBBBBBB",
         *(Scalar(name) for name in ("protocol_version", "hw_major", "hw_minor", "hw_variant",
                                     "fw_major", "fw_minor", "fw_revision", "fw_unreleased")),
     ),
-    _spec(CmdId.GET_ERROR, GetError, "II", Scalar("active_errors"), Scalar("disarm_reason")),
+    _spec(CmdId06.GET_ERROR, GetError, "II", Scalar("active_errors"), Scalar("disarm_reason")),
     _spec(CmdId.REBOOT, Reboot, "B", Scalar("action"), dlc=1),
     _spec(CmdId.CLEAR_ERRORS, ClearErrors, "B", Scalar("identify"), dlc=1),
-    _spec(CmdId.GET_TORQUES, Torques, "ff", Scalar("target_nm", 1.0), Scalar("estimate_nm", 1.0)),
+    _spec(CmdId06.GET_TORQUES, Torques, "ff", Scalar("target_nm", 1.0), Scalar("estimate_nm", 1.0)),
 )
 
 

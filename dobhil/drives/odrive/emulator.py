@@ -63,7 +63,7 @@ from typing import Any
 import can
 
 from dobhil.drives.odrive import codec
-from dobhil.drives.odrive.codec import (AxisState, CmdId, ControlMode, Firmware, InputMode,
+from dobhil.drives.odrive.codec import (AxisState, CmdId, CmdId05, CmdId06, ControlMode, Firmware, InputMode,
                                         ProcedureResult06)
 from dobhil.drives.profile import DriveProfile
 from dobhil.drives.emulated import EmulatedDrive, PlantLike
@@ -222,23 +222,23 @@ class EmulatedODrive(EmulatedDrive):
                            _float32_or_inf(velocity, spec.scales[1]))
         return msg
 
-    def _reply_for(self, cmd: CmdId) -> Any:
+    def _reply_for(self, cmd: int) -> Any:
         applied = self._plant_torque()
-        common: dict[CmdId, Callable[[], Any]] = {
+        common: dict[int, Callable[[], Any]] = {
             CmdId.GET_IQ: lambda: codec.Iq(
                 self.input_torque / self.torque_constant, applied / self.torque_constant),
             CmdId.GET_BUS_VOLTAGE_CURRENT: lambda: codec.BusVoltageCurrent(self.bus_voltage, 0.0),
         }
-        per_firmware: dict[CmdId, Callable[[], Any]] = {
+        per_firmware: dict[int, Callable[[], Any]] = {
             CmdId.HEARTBEAT: self._heartbeat,
-            CmdId.GET_VERSION: lambda: EMULATED_VERSION_06,
-            CmdId.GET_TORQUES: lambda: codec.Torques(self.input_torque, applied),
-            CmdId.GET_ERROR: lambda: codec.GetError(self.axis_error, self.axis_error),
+            CmdId06.GET_VERSION: lambda: EMULATED_VERSION_06,
+            CmdId06.GET_TORQUES: lambda: codec.Torques(self.input_torque, applied),
+            CmdId06.GET_ERROR: lambda: codec.GetError(self.axis_error, self.axis_error),
         } if self.firmware is Firmware.V0_6 else {
-            CmdId.GET_MOTOR_ERROR: lambda: codec.MotorErrorMsg(self.motor_error),
-            CmdId.GET_ENCODER_ERROR: lambda: codec.EncoderErrorMsg(0),
-            CmdId.GET_SENSORLESS_ERROR: lambda: codec.SensorlessErrorMsg(0),
-            CmdId.GET_CONTROLLER_ERROR: lambda: codec.ControllerErrorMsg(0),
+            CmdId05.GET_MOTOR_ERROR: lambda: codec.MotorErrorMsg(self.motor_error),
+            CmdId05.GET_ENCODER_ERROR: lambda: codec.EncoderErrorMsg(0),
+            CmdId05.GET_SENSORLESS_ERROR: lambda: codec.SensorlessErrorMsg(0),
+            CmdId05.GET_CONTROLLER_ERROR: lambda: codec.ControllerErrorMsg(0),
         }
         make = common.get(cmd) or per_firmware.get(cmd)
         return make() if make is not None else None

@@ -27,7 +27,7 @@ import can
 
 from dobhil.drives.bus_load import CycleFrame
 from dobhil.drives.odrive import codec
-from dobhil.drives.odrive.codec import AxisState, CmdId, Firmware
+from dobhil.drives.odrive.codec import AxisState, CmdId, CmdId06, Firmware
 from dobhil.drives.preflight import Finding, NodeReport, Observation, PreflightProbe, Setting, Severity, Stream
 from dobhil.drives.profile import DriveProfile
 from dobhil.errors import CodecError
@@ -41,7 +41,7 @@ _SETTINGS = {
                     Setting.STATUS_RATE: "heartbeat_rate_ms"},
 }
 _STREAMS = {CmdId.HEARTBEAT: Stream.STATUS, CmdId.GET_ENCODER_ESTIMATES: Stream.MOTION,
-            CmdId.GET_VERSION: Stream.VERSION}
+            CmdId06.GET_VERSION: Stream.VERSION}
 
 
 def heartbeat_family(data: bytes) -> Firmware | None:
@@ -57,7 +57,7 @@ class ODrivePreflight(PreflightProbe):
     def requests(self, node: int) -> Sequence[can.Message]:
         if not 0 <= node <= codec.MAX_NODE_ID:
             return ()
-        return (codec.encode(codec.Request(CmdId.GET_VERSION), node_id=node, firmware=Firmware.V0_6),)
+        return (codec.encode(codec.Request(CmdId06.GET_VERSION), node_id=node, firmware=Firmware.V0_6),)
 
     def observe(self, msg: can.Message) -> Observation | None:
         if msg.is_extended_id or msg.is_remote_frame or not 0 <= msg.arbitration_id <= 0x7FF:
@@ -97,7 +97,7 @@ class ODrivePreflight(PreflightProbe):
         if node.version_data is None:
             return None
         try:
-            version = codec.decode(codec.arbitration_id(node.node, CmdId.GET_VERSION), node.version_data)
+            version = codec.decode(codec.arbitration_id(node.node, CmdId06.GET_VERSION), node.version_data)
         except CodecError:
             return None
         return version if isinstance(version, codec.Version) else None
