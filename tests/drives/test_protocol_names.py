@@ -14,7 +14,8 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from dobhil.drives.cia402 import codec as cia402_codec
-from dobhil.drives.profile import DriveProfile, load_profile
+from dobhil.drives.load import load_profile
+from dobhil.drives.profile import DriveProfile
 from dobhil.drives.registry import protocol
 from dobhil.recording.codes import ProtocolCodes
 

@@ -221,7 +221,7 @@ def test_the_report_lists_each_change_of_the_drives_state_in_its_protocols_words
     """A run whose ODrive faults at cycle 3 (watchdog, back to IDLE): two state changes, each
     with dobhil's state and the drive's codes named as the writer recorded them."""
     from dobhil.cli.recording import drive_metadata
-    from dobhil.drives.profile import load_profile
+    from dobhil.drives.load import load_profile
     from dobhil.recording.codes import ProtocolCodes
     from dobhil.recording.schemas import CYCLE
     from dobhil.recording.writer import LogWriter
