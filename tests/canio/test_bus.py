@@ -173,7 +173,7 @@ def test_odrive_can_client_through_the_dobhil_interface(tmp_path: Path) -> None:
         assert isinstance(feedback, list) and len(feedback) > 10   # cyclic estimates every 10 ms
         assert feedback[0]["Pos_Estimate"] * TURN == pytest.approx(-1.0, abs=1e-6)
         emulator: Any = bus.emulator   # an EmulatedODrive
-        assert wait_until(lambda: emulator.axis_state == 1)   # IDLE after drv.stop()
+        assert wait_until(lambda: emulator.protocol_state == 1)   # IDLE after drv.stop()
         assert not emulator.watchdog_tripped
     finally:
         bus.shutdown()
