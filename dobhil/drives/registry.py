@@ -31,7 +31,7 @@ from dobhil.drives.base import Drive
 from dobhil.drives.emulated import EmulatedDrive, PlantLike
 from dobhil.drives.plugin import DriveProtocol
 from dobhil.drives.profile import DriveProfile, ProtocolLookup, ProtocolRules
-from dobhil.errors import ConfigError
+from dobhil.errors import ConfigError, exception_line
 
 if TYPE_CHECKING:
     from dobhil.drives.preflight import PreflightProbe
@@ -90,9 +90,7 @@ def load_object(name: str, builtin: tuple[str, str] | None, ep: EntryPoint | Non
     try:
         return load()
     except Exception as exc:  # whatever a third-party module raises on import
-        text = " ".join(str(exc).split())
-        raise ConfigError(f"{what} = {target} failed to load: {type(exc).__name__}"
-                          f"{': ' + text if text else ''}") from None
+        raise ConfigError(f"{what} = {target} failed to load: {exception_line(exc)}") from None
 
 
 def protocols() -> tuple[str, ...]:
