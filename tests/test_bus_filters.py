@@ -25,7 +25,7 @@ from dobhil.drives.emulated import LockstepBus
 from dobhil.drives.odrive.emulator import EmulatedODrive
 from dobhil.emulator.faults import FaultyBus
 from dobhil.emulator.pipe import PipeBus, socket_pair
-from dobhil.emulator.registry import private_virtual_channel
+from dobhil.drives.emulated import private_virtual_channel
 from dobhil.recording.runlog import RecordingBus
 
 DT = 1e-3
