@@ -197,7 +197,7 @@ class TestNode402:
         self.emcy_sent: list[int] = []
         self.error_code = 0
         self._tasks: list[SimTask] = []
-        self._last_sync: float | None = None
+        self.last_sync: float | None = None  # the newest SYNC's time (simulated or its stamp)
         self._pdo_dirty = True
         self.network = _NodeNetwork(bus, self)
         self.node = canopen.LocalNode(node_id, str(eds))
@@ -303,9 +303,11 @@ class TestNode402:
     def velocity_rpm(self) -> int:
         return round(self.plant.velocity * 60.0 / (2 * math.pi))
 
-    def raw(self, index: int, sub: int = 0) -> int:
-        """An object's value as the host would read it (through canopen's SDO server side)."""
-        return int(self.node.sdo[index][sub].raw if sub else self.node.sdo[index].raw)
+    def raw(self, index: int, sub: int | None = None) -> int:
+        """An object's value as the host would read it (through canopen's SDO server side);
+        ``sub`` for a record's or array's entry (0: its number of entries)."""
+        obj: Any = self.node.sdo[index]
+        return int(obj.raw if sub is None else obj[sub].raw)
 
     # -- canopen callbacks ----------------------------------------------------------
 
@@ -359,6 +361,13 @@ class TestNode402:
             pdo.read()
         self._pdo_dirty = False
 
+    def _sync_period(self) -> float:
+        """0x1006 [us] as seconds; 0 if unset or absent (a node with 0x60C2 instead, as the
+        maxon EPOS4): then the time between the SYNCs themselves."""
+        if 0x1006 not in self.node.object_dictionary:
+            return 0.0
+        return self.raw(0x1006) * 1e-6
+
     def _synchronous(self, pdos: Iterable[PdoMap]) -> list[PdoMap]:
         return [p for p in pdos if p.enabled and p.trans_type is not None and 1 <= p.trans_type <= 240]
 
@@ -370,8 +379,8 @@ class TestNode402:
         if self._pdo_dirty:
             self._load_pdos()
         now = self.time if self.simulated else timestamp
-        dt = self.raw(0x1006) * 1e-6 or (now - self._last_sync if self._last_sync is not None else 0.0)
-        self._last_sync = now
+        dt = self._sync_period() or (now - self.last_sync if self.last_sync is not None else 0.0)
+        self.last_sync = now
         self.syncs += 1
         if dt > 0:
             self.plant.step(self.torque, dt)
@@ -423,8 +432,19 @@ class PumpBus(can.BusABC):
 
     def send(self, msg: can.Message, timeout: float | None = None) -> None:
         self._inner.send(msg, timeout)
-        self.sent.append(msg)
+        self.sent.append(_stamped(msg, self.time, is_rx=False))
         self._node.pump(self.time)
+
+    @property
+    def tasks(self) -> list[SimTask]:
+        """The periodic frames started on this bus (stopped ones included)."""
+        return list(self._tasks)
+
+    @property
+    def pending(self) -> int:
+        """Frames waiting for the host's ``recv``."""
+        self._collect()
+        return len(self._queue)
 
     def recv(self, timeout: float | None = None) -> can.Message | None:
         if timeout is None:
@@ -485,10 +505,10 @@ class HostSyncPumpBus(PumpBus):
     native_periodic = False
 
 
-def _stamped(msg: can.Message, t: float) -> can.Message:
-    return can.Message(timestamp=t, arbitration_id=msg.arbitration_id, data=msg.data,
+def _stamped(msg: can.Message, t: float, *, is_rx: bool = True) -> can.Message:
+    return can.Message(timestamp=t, arbitration_id=msg.arbitration_id, data=bytes(msg.data),
                        is_extended_id=msg.is_extended_id, is_remote_frame=msg.is_remote_frame,
-                       dlc=msg.dlc, is_rx=True)
+                       dlc=msg.dlc, is_rx=is_rx)
 
 
 class PumpedNetwork(canopen.Network):
