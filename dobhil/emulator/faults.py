@@ -315,6 +315,7 @@ class FaultyBus(can.BusABC):
         self._pending: deque[can.Message] = deque()
         self.channel_info = f"faulty {inner.channel_info}"
         super().__init__(channel=self.channel_info, **kwargs)
+        self._can_protocol = inner.protocol   # a wrapper carries what the wrapped bus carries (CAN FD)
 
     def now(self) -> float:
         """Seconds since the wrapper was made, on its clock."""
