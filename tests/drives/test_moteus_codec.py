@@ -14,7 +14,7 @@ from hypothesis import strategies as st
 from moteus import multiplex as mp
 from moteus import protocol as mprot
 
-from dobhil.drives.moteus.codec import (Mode, Opcode, Register, Resolution, arbitration_id, decode_value,
+from dobhil.drives.moteus.codec import (Mode, Opcode, Parser, Register, Resolution, arbitration_id, decode_value,
                                         encode_value, pad, parse, read_subframe, reply_subframe, split_id,
                                         varuint, read_varuint, write_subframe)
 from dobhil.drives.moteus.frames import CommandFrame, Query, reply_values, stop_payload
@@ -149,3 +149,22 @@ def test_ids_and_padding() -> None:
     with pytest.raises(CodecError, match="opcode 0x40"):
         list(parse(bytes((0x40, 0, 0))))
     assert list(parse(b"\x50\x50")) == [] and Opcode.NOP == mp.NOP
+
+
+@settings(max_examples=200, deadline=None)
+@given(torques=st.lists(st.floats(-100, 100, allow_nan=False), min_size=2, max_size=5),
+       res=RESOLUTIONS, other=st.booleans())
+def test_the_shape_keeping_parser_reads_as_parse_does(torques: list[float], res: Resolution, other: bool) -> None:
+    """Frames of one shape (the torque alone changes), and a frame of another shape between
+    them: the kept shape gives what the byte-by-byte parse gives, every time."""
+    parser = Parser()
+    frame = CommandFrame(resolution=res, timeout=0.1, query=Query.motion(res, Resolution.F32, res))
+    for i, tau in enumerate(torques):
+        data = bytearray(frame.payload)
+        frame.fill(data, tau)
+        if other and i == 1:
+            data = bytearray(stop_payload(Query.motion(res, res, res)))
+        ours, plain = parser.parse(bytes(data)), tuple(parse(bytes(data)))
+        assert [(s.opcode, s.register, s.resolution) for s in ours] == \
+            [(s.opcode, s.register, s.resolution) for s in plain]
+        assert [s.value for s in ours] == pytest.approx([s.value for s in plain], nan_ok=True)

@@ -47,6 +47,7 @@ __all__ = [
     "Fault",
     "Mode",
     "Opcode",
+    "Parser",
     "Quantity",
     "Register",
     "Resolution",
@@ -399,6 +400,79 @@ def parse(data: bytes) -> Iterator[Subframe]:
             raw = unpack(data, offset)[0]
             offset += size
             yield Subframe(kind, start + i, resolution, decode_value(start + i, resolution, raw))
+
+
+_FORMAT_CHARS = "bhif"
+
+
+class Parser:
+    """:func:`parse` for a stream of frames of one shape (the commands of a run, whose
+    torque alone changes; the replies to one query): the shape of the last frame -- its
+    opcodes, registers and where its values lie -- is kept, and a frame of the same shape
+    is read with one ``struct`` unpack instead of byte by byte. Any other frame goes
+    through :func:`parse` and becomes the new shape. Same result either way."""
+
+    def __init__(self) -> None:
+        self._length = -1
+        self._heads: tuple[tuple[int, bytes], ...] = ()
+        self._format: struct.Struct | None = None
+        self._entries: tuple[tuple[Opcode, int, Resolution | None, float, int | None], ...] = ()
+
+    def parse(self, data: bytes) -> tuple[Subframe, ...]:
+        if len(data) == self._length and self._format is not None and \
+                all(data[at:at + len(head)] == head for at, head in self._heads):
+            raws = iter(self._format.unpack_from(data))
+            out = []
+            for opcode, register, res, step, nan in self._entries:
+                if res is None or opcode is Opcode.READ:
+                    out.append(Subframe(opcode, register, res, None if opcode is Opcode.READ else step))
+                    continue
+                raw = next(raws)
+                value = float(raw) if nan is None else (math.nan if raw == nan else raw * step)
+                out.append(Subframe(opcode, register, res, value))
+            return tuple(out)
+        subframes = tuple(parse(data))
+        self._learn(data)
+        return subframes
+
+    def _learn(self, data: bytes) -> None:
+        """The shape of ``data`` (already parsed without error)."""
+        heads: list[tuple[int, bytes]] = []
+        fmt = ["<"]
+        entries: list[tuple[Opcode, int, Resolution | None, float, int | None]] = []
+        offset, end = 0, len(data)
+        while offset < end:
+            begin = offset
+            opcode = data[offset]
+            offset += 1
+            if opcode == Opcode.NOP:
+                heads.append((begin, data[begin:offset]))
+                fmt.append("x")
+                continue
+            if opcode in (Opcode.WRITE_ERROR, Opcode.READ_ERROR):
+                register, offset = read_varuint(data, offset)
+                code, offset = read_varuint(data, offset)
+                heads.append((begin, data[begin:offset]))
+                fmt.append(f"{offset - begin}x")
+                entries.append((Opcode(opcode), register, None, float(code), None))
+                continue
+            resolution = Resolution((opcode >> 2) & 3)
+            count = opcode & 3
+            if not count:
+                count, offset = read_varuint(data, offset)
+            start, offset = read_varuint(data, offset)
+            heads.append((begin, data[begin:offset]))
+            fmt.append(f"{offset - begin}x")
+            kind = Opcode(opcode & 0xF0)
+            for i in range(count):
+                step = _scaling(start + i).step(resolution)
+                nan = None if resolution is Resolution.F32 else NAN_CODES[resolution]
+                entries.append((kind, start + i, resolution, step, nan))
+            if kind is not Opcode.READ:
+                fmt.append(_FORMAT_CHARS[resolution] * count)
+                offset += _TYPES[resolution].size * count
+        self._length, self._heads, self._entries = len(data), tuple(heads), tuple(entries)
+        self._format = struct.Struct("".join(fmt))
 
 
 def pad(data: bytes) -> bytes:

@@ -41,9 +41,10 @@ from typing import TYPE_CHECKING, ClassVar
 import can
 
 from dobhil.drives.base import Clock, Drive, DriveEvent, HostTimeout, MotionEvent, StateEvent
-from dobhil.drives.moteus.codec import SCALINGS, Fault, Mode, Quantity, Register, Resolution, arbitration_id
+from dobhil.drives.moteus.codec import SCALINGS, Mode, Parser, Quantity, Register, Resolution, arbitration_id
 from dobhil.drives.moteus.frames import CommandFrame, Query, reply_values, stop_payload
 from dobhil.drives.moteus.rules import MOTEUS_RULES, resolution
+from dobhil.drives.moteus.states import bus_is_classic, fault_text, mode_text
 from dobhil.drives.profile import DriveProfile, ProtocolRules
 from dobhil.drives.waits import Cancel
 from dobhil.errors import CodecError, ConfigError, DriveFaultError
@@ -51,7 +52,7 @@ from dobhil.errors import CodecError, ConfigError, DriveFaultError
 if TYPE_CHECKING:
     from dobhil.drives.preflight import PreflightProbe
 
-__all__ = ["MoteusDrive", "bus_is_classic", "fault_text", "mode_text"]
+__all__ = ["MoteusDrive"]
 
 _NO_EVENTS: tuple[DriveEvent, ...] = ()
 _TAU = 2.0 * math.pi
@@ -59,30 +60,6 @@ _TAU = 2.0 * math.pi
 POSITION_LOST = 0x100
 BAD_REPLY = 0x101
 _MAX_CODE = (0x7F, 0x7FFF, 0x7FFFFFFF)
-
-
-def mode_text(code: int) -> str:
-    """``"POSITION"`` for 10; the number for a code the enum does not name."""
-    try:
-        return Mode(code).name
-    except ValueError:
-        return f"mode {code}"
-
-
-def fault_text(code: int) -> str:
-    """``"39 (START_OUTSIDE_LIMIT)"``; ``"0 (none)"``."""
-    if code == 0:
-        return "0 (none)"
-    try:
-        return f"{code} ({Fault(code).name})"
-    except ValueError:
-        return f"{code}"
-
-
-def bus_is_classic(bus: can.BusABC) -> bool:
-    """True when the bus says it runs classic CAN (python-can's ``BusABC.protocol``)."""
-    proto = getattr(bus, "protocol", None)
-    return proto is can.CanProtocol.CAN_20
 
 
 class MoteusDrive(Drive):
@@ -116,6 +93,7 @@ class MoteusDrive(Drive):
         self._keepalive = self._message(self._command.payload)
         self._stop = self._message(stop_payload(self._query))
         self._states: dict[tuple[int, int], StateEvent] = {}
+        self._parser = Parser()   # the replies to one query: one shape
 
     # -- public ---------------------------------------------------------------
 
@@ -221,7 +199,7 @@ class MoteusDrive(Drive):
         if msg.arbitration_id != self._reply_id or msg.is_remote_frame or msg.is_error_frame:
             return _NO_EVENTS
         try:
-            values = reply_values(bytes(msg.data))
+            values = reply_values(bytes(msg.data), self._parser)
         except CodecError as exc:
             return (self._own_fault(BAD_REPLY, f"a reply that does not parse ({exc})"),)
         mode = values.get(Register.MODE)

@@ -37,14 +37,15 @@ mode), ``axis_error`` (the fault code), ``watchdog_tripped``, ``frames_rejected`
 from __future__ import annotations
 
 import math
+import struct
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import Any
 
 import can
 
 from dobhil.drives.emulated import EmulatedDrive, PlantLike
-from dobhil.drives.moteus.codec import (BROADCAST, Mode, Opcode, Register, Resolution, pad, parse,
+from dobhil.drives.moteus.codec import (BROADCAST, Mode, Opcode, Parser, Register, Resolution, encode_value, pad,
                                         reply_subframe, split_id, varuint)
 from dobhil.drives.profile import DriveProfile
 from dobhil.errors import CodecError
@@ -56,6 +57,13 @@ _TAU = 2.0 * math.pi
 DEFAULT_TIMEOUT = 0.1
 TIMEOUT_MAX_TORQUE = 5.0
 _UNKNOWN_REGISTER = 1
+#: what a frame asks back (read groups, and write errors where they occurred), and the reply's
+#: constant bytes and value slots for it
+_Answer = tuple[tuple[int, Resolution, int] | bytes, ...]
+_Plan = tuple[bytes | tuple[int, Resolution], ...]
+_SIZES = {Resolution.INT8: 1, Resolution.INT16: 2, Resolution.INT32: 4, Resolution.F32: 4}
+_PACK = {res: struct.Struct(fmt).pack for res, fmt in
+         ((Resolution.INT8, "<b"), (Resolution.INT16, "<h"), (Resolution.INT32, "<i"), (Resolution.F32, "<f"))}
 
 
 @dataclass(frozen=True, slots=True)
@@ -102,6 +110,8 @@ class EmulatedMoteus(EmulatedDrive):
         self.frames_rejected = 0
         self.replies = 0
         self._last_command = 0.0
+        self._parser = Parser()   # the host's commands: one shape
+        self._plans: dict[_Answer, _Plan] = {}
 
     # -- observables ----------------------------------------------------------
 
@@ -173,15 +183,16 @@ class EmulatedMoteus(EmulatedDrive):
 
     def _apply(self, data: bytes) -> list[tuple[int, Resolution, int] | bytes]:
         """Apply the writes in order; the reads (and write errors where they occurred)."""
-        command: Command | None = None
+        fields: dict[str, float] | None = None
         answer: list[tuple[int, Resolution, int] | bytes] = []
-        for sub in parse(data):
+        for sub in self._parser.parse(data):
             if sub.opcode is Opcode.WRITE:
+                name = _FIELDS.get(sub.register)   # type: ignore[call-overload]
                 if sub.register == Register.MODE:
-                    command = Command(mode=int(sub.value or 0))
-                elif sub.register in _FIELDS and command is not None:
-                    command = replace(command, **{_FIELDS[Register(sub.register)]: sub.value})
-                elif sub.register not in _FIELDS:
+                    fields = {"mode": int(sub.value or 0)}
+                elif name is not None and fields is not None:
+                    fields[name] = float(sub.value if sub.value is not None else math.nan)
+                elif name is None:
                     answer.append(bytes((Opcode.WRITE_ERROR,)) + varuint(sub.register) + varuint(_UNKNOWN_REGISTER))
             elif sub.opcode is Opcode.READ and sub.resolution is not None:
                 last = answer[-1] if answer else None
@@ -189,8 +200,8 @@ class EmulatedMoteus(EmulatedDrive):
                     answer[-1] = (last[0], last[1], last[2] + 1)
                 else:
                     answer.append((sub.register, sub.resolution, 1))
-        if command is not None:
-            self._command(command)
+        if fields is not None:
+            self._command(Command(**fields))   # type: ignore[arg-type]
         return answer
 
     def _command(self, command: Command) -> None:
@@ -225,22 +236,42 @@ class EmulatedMoteus(EmulatedDrive):
             return float(self.fault)
         return None
 
-    def _reply(self, source: int, brs: bool, answer: list[tuple[int, Resolution, int] | bytes],
-               torque: float) -> None:
-        parts: list[bytes] = []
+    def _plan(self, answer: _Answer) -> _Plan:
+        """The reply to ``answer`` as constant bytes (subframe heads, errors) and value slots
+        (register, resolution), made once per query (a run asks the same every frame)."""
+        plan: list[bytes | tuple[int, Resolution]] = []
         for item in answer:
             if isinstance(item, bytes):
-                parts.append(item)
+                plan.append(item)
                 continue
             start, res, count = item
-            values = [self._value(start + i, torque) for i in range(count)]
-            if all(v is not None for v in values):
-                parts.append(reply_subframe(start, res, [v for v in values if v is not None]))
+            modelled = [self._value(start + i, 0.0) is not None for i in range(count)]
+            if all(modelled):
+                plan.append(reply_subframe(start, res, [0.0] * count)[:-_SIZES[res] * count])
+                plan.extend((start + i, res) for i in range(count))
                 continue
-            for i, v in enumerate(values):   # the modelled ones one by one, the rest as read errors
+            for i, known in enumerate(modelled):   # the modelled ones one by one, the rest as read errors
                 reg = start + i
-                parts.append(reply_subframe(reg, res, (v,)) if v is not None
-                             else bytes((Opcode.READ_ERROR,)) + varuint(reg) + varuint(_UNKNOWN_REGISTER))
+                if known:
+                    plan.append(reply_subframe(reg, res, (0.0,))[:-_SIZES[res]])
+                    plan.append((reg, res))
+                else:
+                    plan.append(bytes((Opcode.READ_ERROR,)) + varuint(reg) + varuint(_UNKNOWN_REGISTER))
+        return tuple(plan)
+
+    def _reply(self, source: int, brs: bool, answer: list[tuple[int, Resolution, int] | bytes],
+               torque: float) -> None:
+        key = tuple(answer)
+        plan = self._plans.get(key)
+        if plan is None:
+            plan = self._plans[key] = self._plan(key)
+        parts: list[bytes] = []
+        for item in plan:
+            if isinstance(item, bytes):
+                parts.append(item)
+            else:
+                reg, res = item
+                parts.append(_PACK[res](encode_value(reg, res, self._value(reg, torque) or 0.0)))
         try:
             data = pad(b"".join(parts))
         except CodecError:

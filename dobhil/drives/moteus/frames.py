@@ -20,7 +20,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from types import MappingProxyType
 
-from dobhil.drives.moteus.codec import (Mode, Opcode, Register, Resolution, encode_value, group_registers, pad,
+from dobhil.drives.moteus.codec import (Mode, Opcode, Parser, Register, Resolution, encode_value, group_registers, pad,
                                         parse, read_subframe, write_subframe)
 
 __all__ = ["CommandFrame", "Query", "RESOLUTION_NAMES", "reply_values", "stop_payload"]
@@ -80,11 +80,12 @@ class CommandFrame:
         self._pack(data, self.offset, encode_value(Register.COMMAND_FEEDFORWARD_TORQUE, self.resolution, tau_nm))
 
 
-def reply_values(data: bytes) -> dict[int, float]:
+def reply_values(data: bytes, parser: Parser | None = None) -> dict[int, float]:
     """register -> value (SI) of every reply subframe in ``data`` (errors and writes
-    skipped); CodecError when the frame does not parse."""
+    skipped); CodecError when the frame does not parse. ``parser``: one that keeps the
+    replies' shape (:class:`~dobhil.drives.moteus.codec.Parser`), for a stream of them."""
     out: dict[int, float] = {}
-    for sub in parse(data):
+    for sub in (parse(data) if parser is None else parser.parse(data)):
         if sub.opcode is Opcode.REPLY and sub.value is not None:
             out[sub.register] = sub.value
     return out

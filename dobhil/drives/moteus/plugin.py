@@ -6,7 +6,8 @@ from __future__ import annotations
 import math
 
 from dobhil.drives.moteus.codec import SCALINGS, Quantity, Resolution
-from dobhil.drives.moteus.drive import MoteusDrive, fault_text, mode_text
+from dobhil.drives.moteus.drive import MoteusDrive
+from dobhil.drives.moteus.states import fault_text, mode_text
 from dobhil.drives.moteus.emulator import EmulatedMoteus
 from dobhil.drives.moteus.rules import resolution
 from dobhil.drives.plugin import CodecQuantisation, DriveProtocol

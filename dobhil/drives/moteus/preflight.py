@@ -26,7 +26,7 @@ import can
 from dobhil.drives.bus_load import CycleFrame
 from dobhil.drives.moteus.codec import Mode, Register, Resolution, arbitration_id, group_registers, pad, \
     read_subframe, split_id
-from dobhil.drives.moteus.drive import fault_text, mode_text
+from dobhil.drives.moteus.states import fault_text, mode_text
 from dobhil.drives.moteus.frames import CommandFrame, Query, reply_values
 from dobhil.drives.moteus.rules import resolution
 from dobhil.drives.preflight import Finding, NodeReport, Observation, PreflightProbe, Setting, Severity, Stream
