@@ -602,7 +602,8 @@ class LockstepBus(can.BusABC):
         #: echoes between them (the host reads this first)
         self._host_queue: deque[can.Message] = deque()
         super().__init__(channel=self.channel_info, **kwargs)
-        self._can_protocol = inner.protocol   # the host's view carries what the channel carries (CAN FD)
+        # the host's view carries what the channel carries (CAN FD)
+        self._can_protocol = getattr(inner, "protocol", can.CanProtocol.CAN_20)
 
     @property
     def dt(self) -> float:

@@ -52,7 +52,8 @@ class RecordingBus(can.BusABC):
         self._frame = log.frame
         self.channel_info = f"recording {inner.channel_info}"
         super().__init__(channel=getattr(inner, "channel", None) or "", **kwargs)
-        self._can_protocol = inner.protocol   # a wrapper carries what the wrapped bus carries (CAN FD)
+        # a wrapper carries what the wrapped bus carries (CAN FD)
+        self._can_protocol = getattr(inner, "protocol", can.CanProtocol.CAN_20)
 
     def send(self, msg: can.Message, timeout: float | None = None) -> None:
         self._inner.send(msg, timeout)
