@@ -155,8 +155,8 @@ class MoteusDrive(Drive):
         return (self._keepalive,)
 
     def _keepalive_interval(self) -> float:
-        """A zero-torque command every period the profile's enable allows, well inside the
-        watchdog (a quarter of it) or every 10 ms without one."""
+        """While the enable waits: a zero-torque command every quarter of the watchdog (every
+        10 ms without one), so the watchdog never expires during the handshake."""
         watchdog = self._profile.watchdog_timeout
         return watchdog / 4 if watchdog > 0 else 0.01
 
