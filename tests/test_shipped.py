@@ -66,8 +66,8 @@ def test_a_profile_name_works_from_any_directory(tmp_path: Path, monkeypatch: py
     profile = load_profile("odrive-0.6")
     assert profile.name == "odrive-0.6" and profile.protocol == "odrive"
     with pytest.raises(ConfigError,
-                       match=r"drive profile 'nope': expected one of \[.*'epos4', 'mini-cheetah', 'odrive-0.5', "
-                             r"'odrive-0.6'"):
+                       match=r"drive profile 'nope': expected one of \[.*'epos4', 'mini-cheetah', 'moteus-r4.11', "
+                             r"'odrive-0.5', 'odrive-0.6'"):
         load_profile("nope")
 
 

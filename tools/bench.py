@@ -36,6 +36,7 @@ TARGETS: dict[str, float] = {
     "lockstep_cycles_per_s": 5000.0,
     "lockstep_cycles_per_s_cia402": 3000.0,
     "lockstep_cycles_per_s_mit": 3000.0,
+    "lockstep_cycles_per_s_moteus": 3000.0,
     "lockstep_vs_bare_bus_ratio": 0.4,
     "logged_vs_unlogged_ratio": 0.6,
     "replay_cycles_per_s": 20000.0,
@@ -589,6 +590,26 @@ def bench_mit(rounds: int = 3, seconds: float = 6.0) -> dict[str, float]:
             "rt_mit_period_error_p99_us": float(np.median(p99)) * 1e6}
 
 
+#: the moteus demo (configs/moteus-demo.yaml: an emulated r4.11 over CAN FD, host timing)
+MOTEUS_CONFIG = ROOT / "configs/moteus-demo.yaml"
+
+
+def bench_moteus(rounds: int = 3, seconds: float = 6.0) -> dict[str, float]:
+    """moteus over CAN FD: lockstep cycles per second (median of runs), and real-time 1 kHz
+    host-timed runs (a controller answers each command, nothing streams): overruns per
+    10,000 deadlines (cycles run and skipped), and the median of the runs' p99 period error."""
+    lockstep = [_protocol_run(MOTEUS_CONFIG, 3.0, True, "host")[0] for _ in range(rounds)]
+    overruns, deadlines, p99 = 0, 0, []
+    for _ in range(rounds):
+        _, result = _protocol_run(MOTEUS_CONFIG, seconds, False, "host")
+        overruns += result.overruns  # type: ignore[attr-defined]
+        deadlines += result.cycles + result.skipped  # type: ignore[attr-defined]
+        p99.append(result.timing.period_error_p99)  # type: ignore[attr-defined]
+    return {"lockstep_cycles_per_s_moteus": float(np.median(lockstep)),
+            "rt_moteus_overruns_per_10k": 1e4 * overruns / max(deadlines, 1),
+            "rt_moteus_period_error_p99_us": float(np.median(p99)) * 1e6}
+
+
 #: the shipped excitation run in contact
 IDENTIFY_CONFIG = ROOT / "configs/identify-contact.yaml"
 #: what a real rig's log has (sensor quantisation, noise and Coulomb friction on), as
@@ -718,6 +739,7 @@ BENCHES: dict[str, Callable[[], dict[str, float]]] = {
     "kill": bench_kill,
     "cia402": bench_cia402,
     "mit": bench_mit,
+    "moteus": bench_moteus,
     "identify": bench_identify,
     "montecarlo": bench_montecarlo,
     "socketcan": bench_socketcan,

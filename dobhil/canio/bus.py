@@ -87,6 +87,7 @@ class DobhilBus(can.BusABC):
         except DobhilError as exc:
             raise EmulatedBusError(f"dobhil bus {name!r}: {exc}") from None
         self._host = self.emulator.bus
+        self._can_protocol = self._host.protocol   # CAN FD: the pipe carries FD frames
         self._closed = False
         try:
             super().__init__(channel=name, can_filters=can_filters, **kwargs)

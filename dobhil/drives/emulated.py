@@ -606,6 +606,8 @@ class LockstepBus(ClockedBus):
         #: echoes between them (the host reads this first)
         self._host_queue: deque[can.Message] = deque()
         super().__init__(channel=self.channel_info, **kwargs)
+        # the host's view carries what the channel carries (CAN FD)
+        self._can_protocol = getattr(inner, "protocol", can.CanProtocol.CAN_20)
 
     @property
     def dt(self) -> float:

@@ -62,6 +62,7 @@ PROTOCOL_CLASSES: Mapping[str, tuple[str, str]] = MappingProxyType({
     "odrive": ("dobhil.drives.odrive.plugin", "ODriveProtocol"),
     "cia402": ("dobhil.drives.cia402.plugin", "CiA402Protocol"),
     "mit": ("dobhil.drives.mit.plugin", "MitProtocol"),
+    "moteus": ("dobhil.drives.moteus.plugin", "MoteusProtocol"),
 })
 
 

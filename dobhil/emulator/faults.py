@@ -333,6 +333,8 @@ class FaultyBus(ClockedBus):
         self._pending: deque[can.Message] = deque()
         self.channel_info = f"faulty {inner.channel_info}"
         super().__init__(channel=self.channel_info, **kwargs)
+        # a wrapper carries what the wrapped bus carries (CAN FD)
+        self._can_protocol = getattr(inner, "protocol", can.CanProtocol.CAN_20)
 
     def now(self) -> float:
         """Seconds since the wrapper was made, on its clock."""

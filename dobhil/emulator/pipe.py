@@ -264,6 +264,8 @@ class PipeBus(can.BusABC):
         self._channel = channel
         self.peer_text = ""   # the peer's READY text
         super().__init__(channel=channel, **kwargs)
+        # the records carry the FD and BRS flags and up to 64 data bytes: a CAN FD link
+        self._can_protocol = can.CanProtocol.CAN_FD
 
     def send(self, msg: can.Message, timeout: float | None = None) -> None:
         """Send, waiting at most ``timeout`` s for room (None: at most ``send_wait``: a

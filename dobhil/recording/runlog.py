@@ -56,6 +56,8 @@ class RecordingBus(ClockedBus):
         self._clock = bus_clock(inner)
         self.channel_info = f"recording {inner.channel_info}"
         super().__init__(channel=getattr(inner, "channel", None) or "", **kwargs)
+        # a wrapper carries what the wrapped bus carries (CAN FD)
+        self._can_protocol = getattr(inner, "protocol", can.CanProtocol.CAN_20)
 
     def clock(self) -> float:
         """The wrapped bus's clock."""

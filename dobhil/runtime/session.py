@@ -25,7 +25,7 @@ from dobhil.drives.base import Drive
 from dobhil.drives.preflight import DEFAULT_WINDOW, PreflightReport, profile_rate_findings, run_preflight
 from dobhil.drives.load import load_drive_profile
 from dobhil.drives.profile import DriveProfile
-from dobhil.drives.registry import drive_class, make_drive, preflight_probe
+from dobhil.drives.registry import drive_class, make_drive, preflight_probe, protocol
 from dobhil.drives.timing import effective_config
 from dobhil.emulator.plant import Plant
 from dobhil.emulator.process import EmulatorProcess, EmulatorSpec, PlantView
@@ -195,7 +195,9 @@ class RunSession:
         #: the drive may clear a fault before enabling (``dobhil run --reset-faults``)
         self.reset_faults = reset_faults
         self.loop: ForceLoop | None = None   # the run's loop, once run() started it
-        self.bus_spec = (BusSpec("virtual", private_virtual_channel()) if emulate
+        # an FD protocol's private channel is opened as CAN FD (its drive refuses a classic bus)
+        fd = {"protocol": can.CanProtocol.CAN_FD} if protocol(self.profile.protocol).fd else {}
+        self.bus_spec = (BusSpec("virtual", private_virtual_channel(), fd) if emulate
                          else resolve_bus(config, self.profile, bus))
         try:
             self.drive = self._open(emulate)

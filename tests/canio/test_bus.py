@@ -115,7 +115,7 @@ def test_overrides_config_path_and_bad_channels(tmp_path: Path) -> None:
         assert bus.plant.true_position == pytest.approx(-0.02)
     assert resolve_config("paper/fig2c").resolve() == (REPO / "configs" / "paper" / "fig2c.yaml").resolve()
     with pytest.raises(EmulatedBusError, match=r"config 'nope'.*shipped: cia402-demo, demo, "
-                                               r"identify-contact, identify-free, mit-demo, paper/fig2a"):
+                                               r"identify-contact, identify-free, mit-demo, moteus-demo, paper/fig2a"):
         can.Bus(interface="dobhil", channel="nope")
     with pytest.raises(can.CanInitializationError, match="missing.yaml"):
         can.Bus(interface="dobhil", channel=str(tmp_path / "missing.yaml"))

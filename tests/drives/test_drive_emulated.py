@@ -352,15 +352,16 @@ def test_load_profile_by_path_and_missing_name(tmp_path: Path) -> None:
     path.write_text("\n".join(f"{k}: {v!r}" for k, v in _mapping().items()), encoding="utf-8")
     assert load_profile(path).name == "mine"
     known = (r"\['ak10-9', 'ak10-9-1.1', 'ak70-10', 'ak70-10-1.1', 'ak80-9', 'ak80-9-1.1', 'ak80-9-2.0', "
-             r"'cia402-emulated', 'dm4310', 'dm8009', 'epos4', 'mini-cheetah', 'odrive-0.5', 'odrive-0.6', "
-             r"'odrive-0.6-factory'\]")  # not the MIT model table beside them (dobhil.data.DRIVER_TABLES)
+             r"'cia402-emulated', 'dm4310', 'dm8009', 'epos4', 'mini-cheetah', 'moteus-r4.11', 'odrive-0.5', "
+             r"'odrive-0.6', 'odrive-0.6-factory'\]")  # not the MIT model table beside them (dobhil.data.DRIVER_TABLES)
     with pytest.raises(ConfigError, match=rf"drive profile 'nope': expected one of {known}"):
         load_profile("nope")
 
 
 def test_registry_resolves_lazily_and_rejects_unknown() -> None:
     assert drive_class("odrive").__name__ == "ODriveDrive"
-    with pytest.raises(ConfigError, match=r"protocol: expected one of \['cia402', 'mit', 'odrive'\], got 'cia402x'"):
+    with pytest.raises(ConfigError, match=r"protocol: expected one of \['cia402', 'mit', 'moteus', 'odrive'\], "
+                       r"got 'cia402x'"):
         drive_class("cia402x")
 
 

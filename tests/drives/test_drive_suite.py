@@ -1,6 +1,7 @@
 """One drive test suite over every protocol: ODrive (``odrive-0.6``), CiA 402
-(``cia402-emulated``) and MIT mode (``ak80-9``, a CubeMars AK80-9, and ``dm4310``, a
-Damiao DM4310), each against its emulated drive, in lockstep and in real time.
+(``cia402-emulated``), MIT mode (``ak80-9``, a CubeMars AK80-9, and ``dm4310``, a
+Damiao DM4310) and moteus over CAN FD (``moteus-r4.11``), each against its emulated drive,
+in lockstep and in real time.
 
 What every protocol must do the same way, whatever its frames: the enable and disable
 handshakes, a feedback timeout when the drive goes silent, a fault reported the
@@ -26,7 +27,8 @@ answers each command with the next cycle's feedback: one whole period,
 ``command_delay_periods``; checked, never set by the test), which frames carry feedback
 and commands, how to read the host's commands off the bus, and how to inject its fault
 (MIT: the motor's own over-current trip, error 2 / state 0xA, provoked by a command whose
-kp term demands far more than its range). Faults are :mod:`dobhil.emulator.faults` wrappers chosen by frame id; the two
+kp term demands far more than its range; moteus: replies saying mode 1 with fault 38, over
+temperature, as a controller reports it). Faults are :mod:`dobhil.emulator.faults` wrappers chosen by frame id; the two
 that need a CiA 402 payload are small :class:`~dobhil.emulator.faults.Fault` subclasses
 here. ODrive-only behaviour stays in ``test_drive_emulated.py`` and ``tests/runtime/``.
 
@@ -58,6 +60,9 @@ from dobhil.drives.cia402.codec import PowerState
 from dobhil.drives.mit import codec as mit_codec
 from dobhil.drives.mit.codec import Special
 from dobhil.drives.mit.rules import model_of
+from dobhil.drives.moteus import codec as moteus_codec
+from dobhil.drives.moteus.frames import reply_values
+from dobhil.drives.registry import protocol as drive_protocol
 from dobhil.drives.periodic import native_periodic
 from dobhil.errors import DriveError
 from dobhil.drives.odrive import codec
@@ -327,7 +332,90 @@ def _mit(name: str, *, confirms_disable: bool, fault_words: tuple[str, ...]) -> 
 MIT_CUBEMARS = _mit("ak80-9", confirms_disable=False, fault_words=("error 2", "over current"))
 MIT_DAMIAO = _mit("dm4310", confirms_disable=True, fault_words=("over current",))
 
-PROTOCOLS = {p.name: p for p in (ODRIVE, CIA402, MIT_CUBEMARS, MIT_DAMIAO)}
+
+# -- moteus (mjbots r4.11, CAN FD) ---------------------------------------------------
+
+_M_NODE = 1
+_M_COMMAND = moteus_codec.arbitration_id(0, _M_NODE, reply=True)
+_M_REPLY = moteus_codec.arbitration_id(_M_NODE, 0, reply=False)
+_M_STOP = bytes.fromhex("010000")   # write mode 0, the stop
+
+
+def _moteus_commands(frames: Sequence[can.Message]) -> Commands:
+    """Feedforward torques of the mode-10 commands, and each change of the mode written."""
+    torques: list[float] = []
+    modes: list[int] = []
+    for msg in frames:
+        if msg.arbitration_id != _M_COMMAND:
+            continue
+        writes = {s.register: s.value for s in moteus_codec.parse(bytes(msg.data))
+                  if s.opcode is moteus_codec.Opcode.WRITE}
+        mode = writes.get(moteus_codec.Register.MODE)
+        if mode is None:
+            continue
+        if int(mode) == moteus_codec.Mode.POSITION:
+            torques.append(float(writes[moteus_codec.Register.COMMAND_FEEDFORWARD_TORQUE] or 0.0))
+        if not modes or modes[-1] != int(mode):
+            modes.append(int(mode))
+    return Commands(torques, modes)
+
+
+class OverTemperature(Fault):
+    """The controller's replies say mode 1 (fault) with fault code 38, over temperature, as
+    the firmware reports it (the reply's mode and fault registers rewritten) until a stop,
+    which clears a fault (``registers.md`` 0x000)."""
+
+    direction = Direction.RECV
+
+    def __init__(self) -> None:
+        super().__init__((_M_REPLY,))
+
+    def apply(self, msg: can.Message, index: int, now: float) -> Sequence[can.Message]:
+        data = bytearray(msg.data)
+        values = reply_values(bytes(data))
+        if values.get(moteus_codec.Register.MODE) != moteus_codec.Mode.POSITION or \
+                moteus_codec.Register.FAULT not in values:
+            return (msg,)   # a stop clears a fault: the replies to it say mode 0 as sent
+        self.applied += 1
+        data[2] = moteus_codec.Mode.FAULT                                # "21 00 <mode>" leads the reply
+        fault_at = bytes(data).index(bytes((0x21, moteus_codec.Register.FAULT)))
+        data[fault_at + 2] = moteus_codec.Fault.OVER_TEMPERATURE
+        return (can.Message(timestamp=msg.timestamp, arbitration_id=msg.arbitration_id,
+                            is_extended_id=msg.is_extended_id, is_fd=True, bitrate_switch=msg.bitrate_switch,
+                            data=data),)
+
+
+class LoseStops(Fault):
+    """The stop frames (mode 0) are lost on the way; the torque commands pass."""
+
+    direction = Direction.SEND
+
+    def __init__(self) -> None:
+        super().__init__((_M_COMMAND,))
+
+    def apply(self, msg: can.Message, index: int, now: float) -> Sequence[can.Message]:
+        if bytes(msg.data[:3]) == _M_STOP:
+            self.applied += 1
+            return ()
+        return (msg,)
+
+
+MOTEUS = Protocol(
+    name="moteus-r4.11", node=_M_NODE,
+    design_delay=1,   # the reply to cycle k's command is cycle k+1's feedback: command_delay_periods
+    feedback_ids=frozenset({_M_REPLY}),
+    active_state=int(moteus_codec.Mode.POSITION), idle_states=frozenset({int(moteus_codec.Mode.STOPPED)}),
+    stopped_states=frozenset({int(moteus_codec.Mode.STOPPED)}),
+    last_states=(int(moteus_codec.Mode.STOPPED),), fault_words=("38", "OVER_TEMPERATURE"),
+    decode=_moteus_commands,
+    fault=lambda: [OverTemperature()],
+    lose_disable=lambda: [LoseStops()],
+    torque_quantum=2.0 ** -23,                 # float32 at 1 N m (command_resolution f32)
+    no_answer=rf"^no reply from node {_M_NODE + 1} on id 0x{(_M_NODE + 1) << 8:X} ",
+    requests_feedback=True,
+)
+
+PROTOCOLS = {p.name: p for p in (ODRIVE, CIA402, MIT_CUBEMARS, MIT_DAMIAO, MOTEUS)}
 
 
 class Armed(Fault):
@@ -414,9 +502,11 @@ def drive_rig(protocol: Protocol, timing: str, *, drive_node: int | None = None,
     channel = f"drive-suite-{next(_CHANNELS)}"
     profile = dataclasses.replace(load_profile(protocol.name),
                                   **{"bus": {}, "enable_timeout": 2.0, **profile_changes})
-    host_bus = can.Bus(interface="virtual", channel=channel)
+    # a CAN FD protocol's channel is opened as CAN FD (its drive refuses a classic bus)
+    fd = {"protocol": can.CanProtocol.CAN_FD} if drive_protocol(profile.protocol).fd else {}
+    host_bus = can.Bus(interface="virtual", channel=channel, **fd)
     config = demo_config(f"drive.profile={protocol.name}")
-    emu = make_emulated_drive(can.Bus(interface="virtual", channel=channel), profile,
+    emu = make_emulated_drive(can.Bus(interface="virtual", channel=channel, **fd), profile,
                               Plant.from_config(config))
     host: can.BusABC = host_bus
     clock: dict[str, Any] = {}

@@ -193,8 +193,8 @@ def test_the_section_rules_of_a_plugin_protocol(plugin: Path) -> None:
 def test_an_unknown_protocol_lists_the_known_ones(plugin: Path) -> None:
     with pytest.raises(ConfigError) as exc:
         profile_from_mapping({**SHIPPED, "protocol": "canopenx"}, source="p.yaml")
-    assert one_line(exc) == ("p.yaml: protocol: expected one of ['acmebus', 'broken', 'cia402', 'mit', 'odrive'], "
-                             "got 'canopenx'")
+    assert one_line(exc) == ("p.yaml: protocol: expected one of ['acmebus', 'broken', 'cia402', 'mit', 'moteus', "
+                             "'odrive'], got 'canopenx'")
 
 
 # -- ODrive's rules ---------------------------------------------------------------

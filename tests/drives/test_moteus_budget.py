@@ -1,0 +1,28 @@
+"""The bus budget of a moteus run counts CAN FD frames: the arbitration phase at the nominal
+rate, the data phase at the data rate (ISO 11898-1:2015 frame format, worst-case stuffing)."""
+
+from __future__ import annotations
+
+from dobhil.drives import load_profile
+from dobhil.drives.bus_load import frame_bits
+from dobhil.drives.moteus.preflight import MoteusPreflight, fd_frame_bits
+
+
+def test_fd_frame_bits_by_hand() -> None:
+    # 48 bytes, 29-bit id, 1/5 Mbit/s. Nominal rate: SOF 1, base id 11, SRR 1, IDE 1, id
+    # extension 18, RRS 1, FDF 1, res 1, BRS 1 = 37 bits, 9 stuff bits, CRC delimiter 1, ACK 2,
+    # EOF 7, IFS 3 = 59. Data rate: ESI 1 + DLC 4 + 384 = 389, 97 stuff bits, stuff count 4,
+    # CRC 21 with 7 fixed stuff bits = 518 bits = 103.6 nominal bit times.
+    assert fd_frame_bits(48, extended=True, data_ratio=0.2) == 163
+    # without the bit rate switch the data phase runs at the nominal rate too
+    assert fd_frame_bits(48, extended=True, data_ratio=1.0) == 59 + 518
+    # an FD frame of 8 bytes at one rate is longer than a classic one (stuff count, longer CRC)
+    assert fd_frame_bits(8, extended=False, data_ratio=1.0) > frame_bits(8, extended=False)
+
+
+def test_the_run_budget_of_the_shipped_profile() -> None:
+    budget = MoteusPreflight(load_profile("moteus-r4.11")).budget(0.001, 1_000_000)
+    assert budget is not None
+    assert [f.name for f in budget.frames] == ["moteus command", "reply"]
+    assert [f.dlc for f in budget.frames] == [48, 20]   # 38 bytes padded to 48; a 20-byte reply
+    assert budget.bits_per_cycle == 163 + 82 and not budget.over
