@@ -30,8 +30,8 @@ it brakes as the firmware's default ``servo.timeout_mode`` 12 (zero velocity) do
 damping torque ``-pid_kd_timeout * v``, limited to ``timeout_max_torque`` (5 N m, the
 firmware default). Only a stop leaves 11.
 
-Observables for :class:`~dobhil.emulator.process.EmulatorProcess`: ``axis_state`` (the
-mode), ``axis_error`` (the fault code), ``watchdog_tripped``, ``frames_rejected``.
+Observables for :class:`~dobhil.emulator.process.EmulatorProcess`: ``protocol_state`` (the
+mode), ``protocol_error`` (the fault code), ``watchdog_tripped``, ``frames_rejected``.
 """
 
 from __future__ import annotations
@@ -116,11 +116,11 @@ class EmulatedMoteus(EmulatedDrive):
     # -- observables ----------------------------------------------------------
 
     @property
-    def axis_state(self) -> int:
+    def protocol_state(self) -> int:
         return self.mode
 
     @property
-    def axis_error(self) -> int:
+    def protocol_error(self) -> int:
         return self.fault
 
     @property
