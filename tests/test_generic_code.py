@@ -135,3 +135,39 @@ def _short(problem: str) -> str:
     """``m.py:1: protocol name 'mit' in '...'`` -> ``1: protocol name 'mit'``."""
     line, _, rest = problem.removeprefix("m.py:").partition(": ")
     return f"{line}: {rest.split(' in ')[0].split(': ')[0]}"
+
+
+#: one protocol's words for the drive's state, which generic code once used for dobhil's own
+#: state: allowed only where a log of that time is read (the record names of an old log)
+#: and in the deprecated properties that warn and name the new ones
+OLD_STATE_WORDS = re.compile(r"\baxis_(?:state|error)\b", re.IGNORECASE)
+OLD_LOG_READERS = {("recording/schemas.py", "feedback_state"), ("emulator/process.py", "axis_state"),
+                   ("emulator/process.py", "axis_error")}
+
+
+def old_state_words(source: str, where: str) -> list[str]:
+    """``where:line`` of each ``axis_state``/``axis_error`` outside :data:`OLD_LOG_READERS`."""
+    tree = ast.parse(source)
+    spans = [(node.lineno, node.end_lineno or node.lineno, node.name) for node in ast.walk(tree)
+             if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef))]
+    found = []
+    for number, line in enumerate(source.splitlines(), 1):
+        if not OLD_STATE_WORDS.search(line):
+            continue
+        inside = {name for start, end, name in spans if start <= number <= end}
+        if not any((where, name) in OLD_LOG_READERS for name in inside):
+            found.append(f"{where}:{number}: {line.strip()}")
+    return found
+
+
+def test_generic_code_says_drive_state_and_protocol_state_not_axis_state() -> None:
+    found = [hit for path in generic_modules()
+             for hit in old_state_words(path.read_text(encoding="utf-8"), str(path.relative_to(PACKAGE)))]
+    assert not found, "\n".join(found)
+
+
+def test_the_old_state_words_check_finds_a_planted_one() -> None:
+    planted = "def write(record):\n    return record.axis_state\n"
+    assert old_state_words(planted, "recording/schemas.py") == ["recording/schemas.py:2: return record.axis_state"]
+    reader = "def feedback_state(payload):\n    return payload.get('axis_error', 0)\n"
+    assert old_state_words(reader, "recording/schemas.py") == []
