@@ -501,6 +501,22 @@ class Drive(ABC):
         WaitCancelled. Default: nothing to prepare."""
         return None  # (a hook, not abstract: ODrive has nothing to prepare)
 
+    def _read_queued(self, deadline: float) -> None:
+        """Read what is queued, decoded as usual, and forget the state it reported: for a
+        drive that only answers commands, a reply sent before the enable must not be taken
+        for the enable's answer (nor quoted by its timeout's line). Bounded by ``deadline``:
+        a bus that never runs dry (another host's traffic) is read until then."""
+        recv = self._bus.recv
+        while self._clock() < deadline:
+            try:
+                msg = recv(0.0)
+            except Exception as exc:  # any interface's failure is the bus's
+                raise self._read_error(exc) from exc
+            if msg is None:
+                break
+            self._handle(msg)
+        self._last_state = None
+
     @abstractmethod
     def _enable_start(self) -> Sequence[can.Message]:
         """Frames that start the enable handshake, in order."""

@@ -131,20 +131,7 @@ class MitDrive(Drive):
         return self._message(special_frame(kind))
 
     def _prepare(self, deadline: float, cancel: Cancel | None) -> None:
-        """Read what is queued (decoded as usual): a reply sent before the enter frame
-        must not be taken for its answer. Bounded by ``deadline``: a bus that never runs
-        dry (another host's traffic) is read until then, and the enable goes on."""
-        recv = self._bus.recv
-        while self._clock() < deadline:
-            try:
-                msg = recv(0.0)
-            except Exception as exc:  # any interface's failure is the bus's
-                raise self._read_error(exc) from exc
-            if msg is None:
-                break
-            self._handle(msg)
-        # what was queued answers no enter frame: the timeout's line must not quote it
-        self._last_state = None
+        self._read_queued(deadline)
 
     def _enable_start(self) -> Sequence[can.Message]:
         frames = []

@@ -122,17 +122,7 @@ class MoteusDrive(Drive):
                            is_extended_id=self._command_id > 0x7FF, is_fd=True, bitrate_switch=self._brs)
 
     def _prepare(self, deadline: float, cancel: Cancel | None) -> None:
-        """Read what is queued: a reply sent before the enable must not confirm it."""
-        recv = self._bus.recv
-        while self._clock() < deadline:
-            try:
-                msg = recv(0.0)
-            except Exception as exc:  # any interface's failure is the bus's
-                raise self._read_error(exc) from exc
-            if msg is None:
-                break
-            self._handle(msg)
-        self._last_state = None
+        self._read_queued(deadline)
 
     def _enable_start(self) -> Sequence[can.Message]:
         return (self._stop, self._keepalive) if self._reset_faults else (self._keepalive,)
