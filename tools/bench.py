@@ -568,26 +568,26 @@ def bench_cia402(rounds: int = 3, seconds: float = 6.0) -> dict[str, float]:
 MIT_CONFIG = ROOT / "configs/mit-demo.yaml"
 
 
-def _mit_run(duration: float, lockstep: bool) -> tuple[float, object]:
-    """An MIT demo run; real time is host timing (the config's own): an MIT motor answers
-    each command with one reply and streams nothing, so there is no feedback to time on."""
-    return _protocol_run(MIT_CONFIG, duration, lockstep, "host")
-
-
-def bench_mit(rounds: int = 3, seconds: float = 6.0) -> dict[str, float]:
-    """MIT mode: lockstep cycles per second (median of runs), and real-time
-    1 kHz host-timed runs: overruns per 10,000 deadlines (cycles run and skipped), and the
-    median of the runs' p99 period error."""
-    lockstep = [_mit_run(3.0, True)[0] for _ in range(rounds)]
+def _host_timed_bench(config: Path, name: str, rounds: int, seconds: float) -> dict[str, float]:
+    """A protocol whose drive answers each command with one reply and streams nothing (so
+    real time is host timing, the config's own): lockstep cycles per second (median of
+    runs), and real-time 1 kHz runs: overruns per 10,000 deadlines (cycles run and
+    skipped), and the median of the runs' p99 period error."""
+    lockstep = [_protocol_run(config, 3.0, True, "host")[0] for _ in range(rounds)]
     overruns, deadlines, p99 = 0, 0, []
     for _ in range(rounds):
-        _, result = _mit_run(seconds, False)
+        _, result = _protocol_run(config, seconds, False, "host")
         overruns += result.overruns  # type: ignore[attr-defined]
         deadlines += result.cycles + result.skipped  # type: ignore[attr-defined]
         p99.append(result.timing.period_error_p99)  # type: ignore[attr-defined]
-    return {"lockstep_cycles_per_s_mit": float(np.median(lockstep)),
-            "rt_mit_overruns_per_10k": 1e4 * overruns / max(deadlines, 1),
-            "rt_mit_period_error_p99_us": float(np.median(p99)) * 1e6}
+    return {f"lockstep_cycles_per_s_{name}": float(np.median(lockstep)),
+            f"rt_{name}_overruns_per_10k": 1e4 * overruns / max(deadlines, 1),
+            f"rt_{name}_period_error_p99_us": float(np.median(p99)) * 1e6}
+
+
+def bench_mit(rounds: int = 3, seconds: float = 6.0) -> dict[str, float]:
+    """MIT mode (configs/mit-demo.yaml), host-timed."""
+    return _host_timed_bench(MIT_CONFIG, "mit", rounds, seconds)
 
 
 #: the moteus demo (configs/moteus-demo.yaml: an emulated r4.11 over CAN FD, host timing)
@@ -595,19 +595,8 @@ MOTEUS_CONFIG = ROOT / "configs/moteus-demo.yaml"
 
 
 def bench_moteus(rounds: int = 3, seconds: float = 6.0) -> dict[str, float]:
-    """moteus over CAN FD: lockstep cycles per second (median of runs), and real-time 1 kHz
-    host-timed runs (a controller answers each command, nothing streams): overruns per
-    10,000 deadlines (cycles run and skipped), and the median of the runs' p99 period error."""
-    lockstep = [_protocol_run(MOTEUS_CONFIG, 3.0, True, "host")[0] for _ in range(rounds)]
-    overruns, deadlines, p99 = 0, 0, []
-    for _ in range(rounds):
-        _, result = _protocol_run(MOTEUS_CONFIG, seconds, False, "host")
-        overruns += result.overruns  # type: ignore[attr-defined]
-        deadlines += result.cycles + result.skipped  # type: ignore[attr-defined]
-        p99.append(result.timing.period_error_p99)  # type: ignore[attr-defined]
-    return {"lockstep_cycles_per_s_moteus": float(np.median(lockstep)),
-            "rt_moteus_overruns_per_10k": 1e4 * overruns / max(deadlines, 1),
-            "rt_moteus_period_error_p99_us": float(np.median(p99)) * 1e6}
+    """moteus over CAN FD (configs/moteus-demo.yaml), host-timed."""
+    return _host_timed_bench(MOTEUS_CONFIG, "moteus", rounds, seconds)
 
 
 #: the shipped excitation run in contact
