@@ -221,6 +221,8 @@ class DriveConfig:
     profile: str = key("odrive-0.6", "drive profile under drivers/ (name or path)")
     interface: str = key("", "python-can interface name (empty: the profile's bus; --bus wins)")
     channel: str = key("", "python-can channel (with drive.interface)")
+    node_id: int = key(-1, "CAN node id of the drive (-1: the drive profile's node_id); checked "
+                       "against the profile's protocol like the profile's own")
     bitrate: int = key(1_000_000, "CAN bitrate (0: leave to the interface)", unit="bit/s",
                        check=Check.NONNEGATIVE)
     latency: float = key(0.0, "emulated bus latency (real-time emulation)", unit="s",
