@@ -244,6 +244,9 @@ def check_consistency(config: Config) -> None:
     if loop.feedback_timeout < loop.period:
         raise ConfigError(f"loop.feedback_timeout = {loop.feedback_timeout!r}: must be at least "
                           f"loop.period = {loop.period!r}")
+    if config.drive.node_id < -1:
+        raise ConfigError(f"drive.node_id = {config.drive.node_id!r}: expected -1 (the drive profile's) "
+                          "or a node id >= 0")
     if config.reference.kind == "csv" and not config.reference.file:
         raise ConfigError("reference.kind = 'csv' needs reference.file (a CSV with time,tau_ref)")
     check_instability(config)

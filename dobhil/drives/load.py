@@ -85,20 +85,29 @@ def _resolve(name_or_path: str | os.PathLike[str], drivers_dir: Path | None, nea
 
 
 def load_profile(
-    name_or_path: str | os.PathLike[str], *, drivers_dir: Path | None = None, near: Path | None = None
+    name_or_path: str | os.PathLike[str], *, drivers_dir: Path | None = None, near: Path | None = None,
+    node_id: int | None = None,
 ) -> DriveProfile:
     """Load a profile by name (from ``drivers_dir``, else a ``drivers/`` above ``near``, else the
-    shipped ones) or an explicit YAML path into a DriveProfile."""
+    shipped ones) or an explicit YAML path into a DriveProfile. ``node_id`` (a config's
+    ``drive.node_id``) replaces the file's before validation, so the protocol's own rule for
+    node ids checks it (an ODrive's 6 bits, a CANopen node's 1-127)."""
     path = _resolve(name_or_path, drivers_dir, near)
     data = load_yaml_file(path, "drive profile")
     data = {"name": path.stem, **(data or {})} if isinstance(data, Mapping) else data
-    return profile_from_mapping(data, source=str(path), directory=str(path.resolve().parent))
+    source = str(path)
+    if node_id is not None and isinstance(data, Mapping):
+        data = {**data, "node_id": node_id}
+        source = f"{path} with drive.node_id = {node_id}"
+    return profile_from_mapping(data, source=source, directory=str(path.resolve().parent))
 
 
 def load_drive_profile(config: Config, base_dir: Path | None = None) -> DriveProfile:
     """The profile ``drive.profile`` of ``config`` names: a YAML file relative to ``base_dir``
-    (the config's directory) if there is one, else a profile name looked up near it."""
+    (the config's directory) if there is one, else a profile name looked up near it; its node
+    id replaced by ``drive.node_id`` unless that is -1."""
     name = config.drive.profile
     candidate = (base_dir / name) if base_dir and not Path(name).is_absolute() else Path(name)
+    node_id = config.drive.node_id if config.drive.node_id >= 0 else None
     return load_profile(str(candidate) if candidate.suffix in (".yaml", ".yml") and candidate.exists()
-                        else name, near=base_dir)
+                        else name, near=base_dir, node_id=node_id)
