@@ -132,23 +132,36 @@ def load_axes(path: str | Path | None = None, overrides: Iterable[str] = (),
         raw_couplings = environment.pop("coupling")
         data["environment"] = environment
     base = _flatten(data, "")
-    for extra in set_files:
-        base.update(read_set_file(extra))
     listed = raw_axes is not None
     entries = _axis_entries(raw_axes, source) if listed else [(SINGLE_AXIS, {})]
     own: dict[str, dict[str, Any]] = {name: flat for name, flat in entries}
+    for extra in set_files:   # an axis' key in a --set-file goes to that axis, as with --set
+        for name, value in read_set_file(extra).items():
+            _assign(name, value, base, own, listed, f"--set-file {extra}: {name}")
     for item in overrides:
         name, value = parse_override(item)
         if name in CWD_PATH_KEYS or name.endswith("." + CWD_PATH_KEYS[0]):
             value = os.path.abspath(value) if isinstance(value, str) and value else value
-        if name.startswith("axes."):
-            axis, key = _axis_override(name, own, item)
-            own[axis][key] = value
-        else:
-            base[name] = value
+        _assign(name, value, base, own, listed, f"--set {show_value(item)}")
     axes = tuple(_axis(name, base, own[name], source) for name, _ in entries)
+    if raw_couplings is not None and not listed:
+        raise ConfigError(f"{source}: environment.coupling joins two named axes; the config lists no "
+                          "axes: (give an axes: list with a name: for each)")
     couplings = _couplings(raw_couplings, {a.name for a in axes}, source)
     return Axes(axes, couplings, listed)
+
+
+def _assign(name: str, value: Any, base: dict[str, Any], own: Mapping[str, dict[str, Any]], listed: bool,
+            item: str) -> None:
+    """One overridden key: ``axes.NAME.section.key`` to that axis, any other to every axis."""
+    if not name.startswith("axes."):
+        base[name] = value
+        return
+    if not listed:
+        raise ConfigError(f"{item}: the config lists no axes: (a single-axis config); set section.key "
+                          "without axes.NAME.")
+    axis, key = _axis_override(name, own, item)
+    own[axis][key] = value
 
 
 def _axis_entries(raw: Any, source: str) -> list[tuple[str, dict[str, Any]]]:
@@ -181,11 +194,10 @@ def _axis_override(name: str, own: Mapping[str, Any], item: str) -> tuple[str, s
     """``axes.NAME.section.key`` -> (NAME, section.key)."""
     parts = name.split(".")
     if len(parts) != 4:
-        raise ConfigError(f"--set {show_value(item)}: expected axes.NAME.section.key=value, "
-                          "e.g. axes.left.plant.inertia=0.3")
+        raise ConfigError(f"{item}: expected axes.NAME.section.key=value, e.g. axes.left.plant.inertia=0.3")
     axis, key = parts[1], ".".join(parts[2:])
     if axis not in own:
-        raise ConfigError(f"--set {show_value(item)}: no axis {show_value(axis)}; axes: {', '.join(own)}")
+        raise ConfigError(f"{item}: no axis {show_value(axis)}; axes: {', '.join(own)}")
     return axis, key
 
 
