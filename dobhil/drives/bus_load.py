@@ -33,12 +33,15 @@ def frame_bits(dlc: int, extended: bool = False) -> int:
 @dataclass(frozen=True)
 class CycleFrame:
     """One frame a run puts on the bus: once per loop period (``every`` None), or every
-    ``every`` seconds whatever the loop does (a heartbeat, a drive's own stream)."""
+    ``every`` seconds whatever the loop does (a heartbeat, a drive's own stream). ``shared``:
+    one such frame serves every drive of its protocol on the bus (a CANopen SYNC), so a bus
+    of several axes carries it once, not once per axis."""
 
     name: str
     dlc: int
     every: float | None = None
     extended: bool = False
+    shared: bool = False
 
     @property
     def bits(self) -> int:
@@ -92,6 +95,15 @@ class BusBudget:
         """What to change when the budget is over :data:`MAX_BUDGET` (empty when it is not)."""
         if not self.over or not self.bitrate:
             return ""
+        return (f"bus budget {(self.load or 0.0) * 100:.0f} % of {rate_text(self.bitrate, 'bit/s')} at "
+                f"{rate_text(1.0 / self.period, 'Hz')} is over {MAX_BUDGET * 100:.0f} %: use "
+                + ", or ".join(self.ways()))
+
+    def ways(self) -> list[str]:
+        """The changes that bring the budget within :data:`MAX_BUDGET`: a standard bit rate
+        that is enough, the shortest loop period that is, and :attr:`fewer`."""
+        if not self.bitrate:
+            return [self.fewer]
         ways = []
         faster = [b for b in STANDARD_BITRATES if b > self.bitrate and self._load_at(b, self.period) <= MAX_BUDGET]
         if faster:
@@ -101,9 +113,7 @@ class BusBudget:
         if slowest is not None:
             ways.append(f"a slower loop (loop.period >= {slowest * 1e3:.3g} ms)")
         ways.append(self.fewer)
-        return (f"bus budget {(self.load or 0.0) * 100:.0f} % of {rate_text(self.bitrate, 'bit/s')} at "
-                f"{rate_text(1.0 / self.period, 'Hz')} is over {MAX_BUDGET * 100:.0f} %: use "
-                + ", or ".join(ways))
+        return ways
 
     def loop_bits(self) -> int:
         """Bits of the frames sent once per loop period (the ones a run adds to a bus on

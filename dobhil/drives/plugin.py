@@ -33,7 +33,7 @@ if TYPE_CHECKING:
     from dobhil.drives.emulated import EmulatedDrive
     from dobhil.drives.preflight import PreflightProbe
 
-__all__ = ["CodecQuantisation", "DriveProtocol", "FeedbackField", "ZeroResult"]
+__all__ = ["CodecQuantisation", "DriveProtocol", "FeedbackField", "FrameIds", "ZeroResult"]
 
 _EMPTY: Mapping[str, Any] = MappingProxyType({})
 
@@ -62,6 +62,18 @@ class FeedbackField:
     arbitration_id: int
     offset: int
     fmt: str
+
+
+@dataclass(frozen=True)
+class FrameIds:
+    """The CAN arbitration ids a drive uses on its bus (an id above 0x7FF is a 29-bit
+    extended one, as python-can's ``is_extended_id`` is set by the drives): ``own``, the
+    ids of this one drive; ``shared``, ids every drive of the same protocol on the bus uses
+    together (a CANopen SYNC and NMT, an MIT master id all replies come on), which two such
+    drives share without clashing, but which no drive of another protocol may use."""
+
+    own: frozenset[int]
+    shared: frozenset[int] = frozenset()
 
 
 class ZeroResult(Protocol):
@@ -135,6 +147,13 @@ class DriveProtocol(ABC):
     def feedback_field(self, profile: DriveProfile, name: str) -> FeedbackField | None:
         """Where ``name`` (``"position"`` or ``"velocity"``) is in the motion frame of
         ``profile``'s drive (None: the protocol offers no such injection)."""
+        return None
+
+    def frame_ids(self, profile: DriveProfile) -> FrameIds | None:
+        """The arbitration ids ``profile``'s drive uses (the ones its drive's
+        :attr:`~dobhil.drives.base.Drive.frame_ids` lists), split into its own and the ones
+        it shares with drives of its protocol; None: not known (two axes are then compared
+        by node id)."""
         return None
 
     def set_zero(self, bus: can.BusABC, profile: DriveProfile, *, clock: Callable[[], float],

@@ -10,7 +10,7 @@ from dobhil.drives.cia402.codec import Cob, Mapped, PowerState
 from dobhil.drives.cia402.drive import CiA402Drive, emcy_text
 from dobhil.drives.cia402.eds import load_od
 from dobhil.drives.cia402.emulator import EmulatedCiA402
-from dobhil.drives.plugin import DriveProtocol, FeedbackField
+from dobhil.drives.plugin import DriveProtocol, FeedbackField, FrameIds
 from dobhil.drives.profile import DriveProfile
 
 #: the feedback values a fault may corrupt -> (object index, which of the two TPDOs)
@@ -50,6 +50,19 @@ class CiA402Protocol(DriveProtocol):
         layout = (codec.TPDO_STATUS, codec.TPDO_MOTION)[which]
         cob = Cob.tpdo(int(profile.options["tpdo"]) + which, profile.node_id)
         return _field(cob, layout, index)
+
+    def frame_ids(self, profile: DriveProfile) -> FrameIds:
+        """The node's COB-IDs of the pre-defined connection set (CiA 301: EMCY 0x080,
+        TPDO/RPDO 1-4 0x180-0x500, SDO 0x580/0x600, heartbeat 0x700, each + node id); NMT,
+        SYNC and the host's heartbeat (when the node watches it) every CANopen node on the
+        bus shares."""
+        node = profile.node_id
+        own: set[int] = {Cob.emcy(node), Cob.SDO_TX + node, Cob.SDO_RX + node, Cob.HEARTBEAT + node}
+        own |= {Cob.tpdo(n, node) for n in range(1, 5)} | {Cob.rpdo(n, node) for n in range(1, 5)}
+        shared: set[int] = {Cob.NMT, Cob.SYNC}
+        if float(profile.options.get("consumer_heartbeat", 0.0)) > 0:
+            shared.add(Cob.HEARTBEAT + int(profile.options.get("host_node_id", 127)))
+        return FrameIds(frozenset(own), frozenset(shared))
 
     def check_files(self, profile: DriveProfile) -> None:
         load_od(profile)   # the drive's own reading and check of the EDS

@@ -165,7 +165,7 @@ class CiA402Preflight(PreflightProbe):
         """Per SYNC: the SYNC itself (no data), the RPDO, both TPDOs (SPEC-17's mapping
         at the standard data types); the heartbeat (1 byte) at its own period."""
         rpdo, tpdo = self._pdo_numbers()
-        frames = [CycleFrame("SYNC", 0)]
+        frames = [CycleFrame("SYNC", 0, shared=True)]   # one SYNC per bus drives every node's PDOs
         for name, mapping in self._mappings(rpdo, tpdo):
             frames.append(CycleFrame(name, layout_bits([m.data_type for m in mapping]) // 8))
         heartbeat = self.profile.heartbeat_period

@@ -15,7 +15,7 @@ from dobhil.drives.mit.preflight import ZeroResult
 from dobhil.drives.mit.preflight import set_zero as send_set_zero
 from dobhil.drives.mit.replies import DAMIAO_ENABLED, MitFault
 from dobhil.drives.mit.rules import model_of
-from dobhil.drives.plugin import CodecQuantisation, DriveProtocol
+from dobhil.drives.plugin import CodecQuantisation, DriveProtocol, FrameIds
 from dobhil.drives.profile import DriveProfile
 from dobhil.drives.waits import Cancel
 
@@ -51,6 +51,11 @@ class MitProtocol(DriveProtocol):
         layout = model_of(profile).layout
         text = layout.errors.get(code) if "error" in layout.extra else layout.states.get(code)
         return text if code and text else super().error_text(profile, code)
+
+    def frame_ids(self, profile: DriveProfile) -> FrameIds:
+        """Commands go to the node id; replies come on ``mit.reply_id`` (the firmware's
+        master id) with the node in byte 0, so every MIT motor on the bus may share it."""
+        return FrameIds(frozenset({profile.node_id}), frozenset({int(profile.options.get("reply_id", 0))}))
 
     def set_zero(self, bus: can.BusABC, profile: DriveProfile, *, clock: Callable[[], float],
                  cancel: Cancel | None = None) -> ZeroResult:

@@ -5,12 +5,12 @@ from __future__ import annotations
 
 import math
 
-from dobhil.drives.moteus.codec import SCALINGS, Quantity, Resolution
+from dobhil.drives.moteus.codec import SCALINGS, Quantity, Resolution, arbitration_id
 from dobhil.drives.moteus.drive import MoteusDrive
 from dobhil.drives.moteus.states import fault_text, mode_text
 from dobhil.drives.moteus.emulator import EmulatedMoteus
 from dobhil.drives.moteus.rules import resolution
-from dobhil.drives.plugin import CodecQuantisation, DriveProtocol
+from dobhil.drives.plugin import CodecQuantisation, DriveProtocol, FrameIds
 from dobhil.drives.profile import DriveProfile
 
 __all__ = ["MoteusProtocol"]
@@ -36,6 +36,15 @@ class MoteusProtocol(DriveProtocol):
 
     def error_text(self, profile: DriveProfile, code: int) -> str:
         return fault_text(code)
+
+    def frame_ids(self, profile: DriveProfile) -> FrameIds:
+        """The command to the node and its reply to the host (``destination | source << 8 |
+        reply-requested << 15 | prefix << 16``, mjbots' reference manual, "CAN-FD
+        communication"): both the node's own."""
+        source, prefix = int(profile.options.get("source_id", 0)), int(profile.options.get("can_prefix", 0))
+        node = profile.node_id
+        return FrameIds(frozenset({arbitration_id(source, node, reply=True, prefix=prefix),
+                                   arbitration_id(node, source, reply=False, prefix=prefix)}))
 
     def quantisation(self, profile: DriveProfile) -> CodecQuantisation | None:
         """One code of each chosen integer resolution in SI units (float: 0, no step); the

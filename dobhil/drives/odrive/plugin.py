@@ -9,7 +9,7 @@ from dobhil.drives.odrive import codec
 from dobhil.drives.odrive.codec import AxisState, CmdId, Firmware
 from dobhil.drives.odrive.drive import ODriveDrive
 from dobhil.drives.odrive.emulator import EmulatedODrive
-from dobhil.drives.plugin import DriveProtocol, FeedbackField
+from dobhil.drives.plugin import DriveProtocol, FeedbackField, FrameIds
 from dobhil.drives.profile import DriveProfile
 from dobhil.errors import CodecError
 
@@ -41,6 +41,11 @@ class ODriveProtocol(DriveProtocol):
             return codec.describe_errors(code, Firmware.parse(profile.firmware))
         except CodecError:   # a firmware the codec does not know: the bits unnamed
             return super().error_text(profile, code)
+
+    def frame_ids(self, profile: DriveProfile) -> FrameIds:
+        """The node's 32 command ids, ``node_id << 5 | cmd`` (ODrive docs, CAN Protocol:
+        "Messages"): every one is the node's own."""
+        return FrameIds(frozenset(codec.arbitration_id(profile.node_id, cmd) for cmd in range(32)))
 
     def feedback_field(self, profile: DriveProfile, name: str) -> FeedbackField | None:
         """``position``/``velocity`` in Get_Encoder_Estimates (the codec's table for the
