@@ -22,7 +22,8 @@ import numpy as np
 
 from dobhil.campaign.compare import CommandCheck, Comparison, Floors, command_check, compare
 from dobhil.campaign.draws import Vary, draw
-from dobhil.campaign.runner import MEASURED, METRICS, RunSpec, empty_result, run_one
+from dobhil.campaign.runner import MEASURED, METRICS, RunSpec, empty_result, load_run_config, run_one
+from dobhil.config import Config
 
 #: the noise and quantisation a campaign turns on when the config has neither: a 14-bit
 #: absolute encoder (16384 counts per revolution, 0.38 mrad) and 0.01 rad/s of velocity
@@ -55,6 +56,12 @@ class Campaign:
     runs: int
     seed: int
     duration: float | None
+    #: the axis of a config that lists ``axes:`` (:attr:`RunSpec.axis`), "" for a single-axis one
+    axis: str = ""
+
+    def load(self) -> Config:
+        """The shared config (the campaign's overrides, nothing drawn): the axis' for an axis."""
+        return load_run_config(self.config, self.overrides, self.set_files, self.axis)
 
     def plan(self) -> list[RunSpec]:
         return [self.spec(i) for i in range(self.runs)]
@@ -63,7 +70,7 @@ class Campaign:
         values, sensor_seed = draw(self.varies, self.seed, index)
         return RunSpec(index=index, seed=self.seed, config=self.config, set_files=self.set_files,
                        overrides=self.overrides, draws=tuple(values.items()), sensor_seed=sensor_seed,
-                       duration=self.duration)
+                       duration=self.duration, axis=self.axis)
 
     def reference_spec(self) -> RunSpec:
         """The config as given -- nominal values, nothing drawn -- with the campaign's
@@ -71,7 +78,8 @@ class Campaign:
         no run uses (the runs' come from its children)."""
         sensor_seed = int(np.random.SeedSequence(self.seed).generate_state(1, np.uint32)[0])
         return RunSpec(index=REFERENCE, seed=self.seed, config=self.config, set_files=self.set_files,
-                       overrides=self.overrides, draws=(), sensor_seed=sensor_seed, duration=self.duration)
+                       overrides=self.overrides, draws=(), sensor_seed=sensor_seed, duration=self.duration,
+                       axis=self.axis)
 
     def columns(self) -> list[str]:
         return ["run", "seed", *(v.key for v in self.varies), *RESULT_COLUMNS]
@@ -182,7 +190,7 @@ def worst_runs(rows: Sequence[dict[str, Any]], count: int = WORST) -> tuple[int,
 
 def reproduce_command(spec: RunSpec) -> str:
     """The shell command that runs ``spec`` alone, as the campaign ran it."""
-    words = ["dobhil", "run", spec.config, "--emulate", "--lockstep"]
+    words = ["dobhil", "run", spec.config, "--emulate", "--lockstep", *(["--axis", spec.axis] if spec.axis else [])]
     if spec.duration is not None:
         words += ["--duration", repr(spec.duration)]
     for f in spec.set_files:

@@ -34,12 +34,15 @@ last :data:`FINAL_SHARE` of the cycles from ``t0``, where noise is averaged out)
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
+from dobhil.config import Config, load_config
+from dobhil.config.axes import load_axes
 from dobhil.errors import exception_line
 
 #: share of a step response's last cycles averaged as its final value
@@ -67,15 +70,31 @@ class RunSpec:
     draws: tuple[tuple[str, float | int], ...]
     sensor_seed: int
     duration: float | None
+    #: the axis of a config that lists ``axes:`` the runs are of ("" for a single-axis config):
+    #: its drawn keys are that axis' own (``axes.NAME.key``), so they win over its own values
+    axis: str = ""
 
     def all_overrides(self) -> tuple[str, ...]:
         """The ``--set`` items of this run, in order (later ones win)."""
-        drawn = tuple(f"{k}={v!r}" for k, v in self.draws)
-        return (*self.overrides, *drawn, f"sensor.seed={self.sensor_seed}")
+        own = f"axes.{self.axis}." if self.axis else ""
+        drawn = tuple(f"{own}{k}={v!r}" for k, v in self.draws)
+        return (*self.overrides, *drawn, f"{own}sensor.seed={self.sensor_seed}")
+
+    def load(self) -> Config:
+        """The run's config, as ``dobhil run`` builds it from the same strings."""
+        return load_run_config(self.config, self.all_overrides(), self.set_files, self.axis)
 
     def base_row(self) -> dict[str, Any]:
         """The row's columns known before the run: which run, its seed, its draws."""
         return {"run": self.index, "seed": self.seed, **dict(self.draws), "sensor_seed": self.sensor_seed}
+
+
+def load_run_config(config: str, overrides: Sequence[str], set_files: Sequence[str], axis: str = "") -> Config:
+    """``load_config`` of a config, or for ``axis`` that axis' of a config that lists ``axes:``
+    (:func:`dobhil.config.axes.load_axes`)."""
+    if axis:
+        return load_axes(config, overrides, set_files).axis(axis).config
+    return load_config(config, overrides, set_files)
 
 
 def run_one(spec: RunSpec) -> dict[str, Any]:
@@ -95,9 +114,9 @@ def empty_result() -> dict[str, Any]:
 
 
 def _run(spec: RunSpec) -> dict[str, Any]:
-    from dobhil.config import load_config, resolve_config
+    from dobhil.config import resolve_config
     from dobhil.runtime.session import RunSession
-    config = load_config(spec.config, spec.all_overrides(), spec.set_files)
+    config = spec.load()
     with RunSession(config, emulate=True, lockstep=True, duration=spec.duration,
                     config_dir=resolve_config(spec.config).parent) as session:
         result = session.run()

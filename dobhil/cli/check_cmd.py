@@ -5,7 +5,9 @@ Exit codes: 0 the drive matches the profile and ``loop.period``; 1 mismatches fo
 ``dobhil run`` runs the same preflight before it enables a drive and refuses to start
 when a run would sample stale feedback or the axis is already in closed loop
 (``--no-preflight`` skips it); other mismatches it prints and runs, and the last line
-here says which of the two the found mismatches mean. A bus that cannot be opened
+here says which of the two the found mismatches mean. A config that lists ``axes:`` is
+checked axis by axis, with the bus budget of each bus and CAN-id clashes between axes
+(:mod:`dobhil.cli.axes_check`); ``--axis NAME`` checks one of them alone. A bus that cannot be opened
 names the way to try without hardware (``--bus dobhil:demo``).
 
 ``--set-zero`` (only for a protocol whose drives set their zero on command,
@@ -28,7 +30,9 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from dobhil.cli.axis_option import add_axis_arg, select_axis
 from dobhil.cli.common import add_config_args, config_from_args
+from dobhil.config.axes import has_axes
 from dobhil.cli.stability_gate import add_gate_args
 from dobhil.errors import ConfigError
 
@@ -39,6 +43,7 @@ EXIT_MISMATCH = 1
 def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg,unused-ignore]
     p = sub.add_parser("check", help="measure the drive on the bus (no enable) and compare with the profile")
     add_config_args(p)
+    add_axis_arg(p)
     p.add_argument("--bus", metavar="INTERFACE:CHANNEL",
                    help="any python-can interface, e.g. socketcan:can0 (default: config/profile)")
     p.add_argument("--window", type=float, metavar="S", default=None,
@@ -73,6 +78,10 @@ def check(args: argparse.Namespace) -> int:
     from dobhil.drives.registry import preflight_probe
     from dobhil.runtime.buses import open_bus, resolve_bus
     from dobhil.drives.load import load_drive_profile
+    if args.axis is None and has_axes(args.config):   # every axis, its bus budget and clashes
+        from dobhil.cli.axes_check import check_axes
+        return check_axes(args)
+    select_axis(args)
     config = config_from_args(args)
     window = window_of(args.window, "--window")
     profile = load_drive_profile(config, Path(args.config).parent)

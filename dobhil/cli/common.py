@@ -21,6 +21,11 @@ def add_config_args(parser: argparse.ArgumentParser, *, required: bool = True) -
 
 
 def config_from_args(args: argparse.Namespace) -> Config:
+    """The config a command works on; for a command that takes ``--axis``, the axis'
+    (:func:`dobhil.cli.axis_option.axis_config`)."""
+    if hasattr(args, "axis"):
+        from dobhil.cli.axis_option import axis_config
+        return axis_config(args)
     return load_config(args.config, args.overrides, args.set_files)
 
 

@@ -11,6 +11,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from dobhil.cli.axis_option import add_axis_arg, axis_keys
 from dobhil.cli.common import add_config_args
 from dobhil.errors import ConfigError
 
@@ -34,6 +35,7 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
                        "Without noise in the config, sensor.encoder_resolution=16384 and "
                        "sensor.velocity_noise=0.01 are set (--set overrides). See docs/montecarlo.md.")
     add_config_args(p)
+    add_axis_arg(p)
     p.add_argument("--runs", type=int, required=True, metavar="N", help="number of runs")
     p.add_argument("--vary", action="append", required=True, metavar="KEY=DIST",
                    help="a drawn numeric key (repeatable); DIST normal:MEAN:STD, uniform:LO:HI or "
@@ -79,13 +81,14 @@ def build_campaign(args: argparse.Namespace) -> tuple[Campaign, tuple[str, ...]]
     if args.seed < 0:
         raise ConfigError(f"--seed {args.seed}: expected a whole number >= 0")
     check_duration(args.duration)
+    axis = axis_keys(args, {"vary": "--vary"}) or ""
     varies = tuple(parse_vary(v) for v in args.vary)
     _no_twice([v.key for v in varies])
     config = _as_path(args.config)
     set_files = tuple(_as_path(f) for f in args.set_files)
-    noise = _noise(config, set_files)
+    noise = _noise(config, set_files, axis)
     campaign = Campaign(config=config, set_files=set_files, overrides=(*noise, *args.overrides),
-                        varies=varies, runs=args.runs, seed=args.seed, duration=args.duration)
+                        varies=varies, runs=args.runs, seed=args.seed, duration=args.duration, axis=axis)
     _check_config(campaign)
     return campaign, noise
 
@@ -102,21 +105,22 @@ def _as_path(name: str) -> str:
     return os.path.abspath(name) if Path(name).is_file() else name
 
 
-def _noise(config: str, set_files: tuple[str, ...]) -> tuple[str, ...]:
+def _noise(config: str, set_files: tuple[str, ...], axis: str) -> tuple[str, ...]:
     """The campaign's noise defaults when the config (with its --set-file) has neither noise
-    nor quantisation; --set items come after them, so they override."""
+    nor quantisation; --set items come after them, so they override (an axis' keys: as its own)."""
     from dobhil.campaign.campaign import NOISE_DEFAULTS
-    from dobhil.config import load_config
-    sensor = load_config(config, (), set_files).sensor
-    return NOISE_DEFAULTS if sensor.velocity_noise == 0 and sensor.encoder_resolution == 0 else ()
+    from dobhil.campaign.runner import load_run_config
+    sensor = load_run_config(config, (), set_files, axis).sensor
+    if sensor.velocity_noise or sensor.encoder_resolution:
+        return ()
+    return tuple(f"axes.{axis}.{item}" for item in NOISE_DEFAULTS) if axis else NOISE_DEFAULTS
 
 
 def _check_config(campaign: Campaign) -> None:
     """The shared config (with --set) and its drive profile load: else every run would fail alike."""
-    from dobhil.config import load_config, resolve_config
+    from dobhil.config import resolve_config
     from dobhil.drives.load import load_drive_profile
-    config = load_config(campaign.config, campaign.overrides, campaign.set_files)
-    load_drive_profile(config, resolve_config(campaign.config).parent)
+    load_drive_profile(campaign.load(), resolve_config(campaign.config).parent)
 
 
 def check_execution(args: argparse.Namespace) -> str | None:
@@ -158,7 +162,8 @@ def header(campaign: Campaign, noise: tuple[str, ...], scheduler: str | None, wo
               else f"{_config_duration(campaign):g} s each, from loop.duration")
     said = (f"noise on: {', '.join(noise)} (the config had none; --set overrides)" if noise
             else "noise: the config's")
-    return (f"montecarlo: {campaign.runs} runs of {campaign.config} ({length}, lockstep, emulated), "
+    of = f"{campaign.config} axis {campaign.axis}" if campaign.axis else campaign.config
+    return (f"montecarlo: {campaign.runs} runs of {of} ({length}, lockstep, emulated), "
             f"seed {campaign.seed}, on {where}; {said}")
 
 
@@ -168,8 +173,7 @@ def _count(n: int, what: str) -> str:
 
 def _config_duration(campaign: Campaign) -> float:
     """The runs' length without --duration: the config's (with the campaign's overrides)."""
-    from dobhil.config import load_config
-    return float(load_config(campaign.config, campaign.overrides, campaign.set_files).loop.duration)
+    return float(campaign.load().loop.duration)
 
 
 def execute(campaign: Campaign, scheduler: str | None, workers: int | None,
@@ -196,8 +200,7 @@ def floors(campaign: Campaign, reference: dict[str, Any]) -> Floors:
     """The tolerance floors of the comparison with the reference: the loop period, and the
     command at the reference run's end."""
     from dobhil.campaign.compare import Floors
-    from dobhil.config import load_config
-    period = float(load_config(campaign.config, campaign.overrides, campaign.set_files).loop.period)
+    period = float(campaign.load().loop.period)
     return Floors.of(period, reference.get("final_tau_ref"))
 
 
@@ -322,7 +325,8 @@ def _write_summary(path: Path, campaign: Campaign, summary: Summary, specs: Sequ
                    elapsed: float, rows: Sequence[dict[str, Any]]) -> Path:
     from dobhil.campaign.campaign import reproduce_command
     from dobhil.files import atomic_path
-    data = {"config": campaign.config, "seed": campaign.seed, "duration": campaign.duration,
+    data = {"config": campaign.config, "axis": campaign.axis or None, "seed": campaign.seed,
+            "duration": campaign.duration,
             "vary": [v.text() for v in campaign.varies], "overrides": list(campaign.overrides),
             "set_files": list(campaign.set_files), "wall_time_s": elapsed, **summary.as_dict(),
             "reference_command": reproduce_command(campaign.reference_spec()),

@@ -9,6 +9,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from dobhil.cli.axis_option import add_axis_arg, select_axis
 from dobhil.cli.common import add_config_args, config_from_args
 from dobhil.cli.stability_gate import add_gate_args
 
@@ -19,6 +20,7 @@ EXIT_STOPPED = 1
 def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = sub.add_parser("run", help="run the force-control loop on a drive (or the emulator)")
     add_config_args(p)
+    add_axis_arg(p)
     p.add_argument("--bus", metavar="INTERFACE:CHANNEL",
                    help="any python-can interface, e.g. socketcan:can0 (default: config/profile)")
     p.add_argument("--emulate", action="store_true", help="run against the in-process emulator")
@@ -75,6 +77,8 @@ def run_checked(args: argparse.Namespace) -> int:
     from dobhil.runtime.session import RunSession, check_duration, summary
     from dobhil.runtime.signals import stop_on_signals
     check_duration(args.duration)
+    if args.axis is not None:   # one axis of an axes config, run alone
+        select_axis(args)
     config = config_from_args(args)
     if args.plot:
         check_output(args.plot, inputs=[args.config], suffix=".png", what="--plot")

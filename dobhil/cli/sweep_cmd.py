@@ -10,6 +10,7 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from dobhil.cli.axis_option import add_axis_arg, axis_keys
 from dobhil.cli.common import add_config_args, config_from_args, design_on_drive
 from dobhil.errors import ConfigError
 
@@ -28,6 +29,7 @@ PLOT_SUFFIXES = (".png", ".svg", ".pdf")
 def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = sub.add_parser("sweep", help="stability, minimum phase and max stable C_f over a grid")
     add_config_args(p)
+    add_axis_arg(p)
     p.add_argument("--vary", action="append", required=True, metavar="KEY=START:STOP:NUM",
                    help="a swept key (repeatable); prefix the range with log: for log spacing")
     p.add_argument("--sampled", action="store_true", help="the sampled loop (loop.period, delay)")
@@ -43,6 +45,7 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from dobhil.analysis.sweep import parse_vary, sweep
+    axis_keys(args, {"vary": "--vary"})
     config = design_on_drive(config_from_args(args), args)   # the protocol's command delay
     axes = [parse_vary(v) for v in args.vary]
     if args.plot and len(axes) > 2:

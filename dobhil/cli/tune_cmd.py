@@ -12,6 +12,7 @@ import sys
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from dobhil.cli.axis_option import add_axis_arg, axis_keys
 from dobhil.cli.common import add_config_args, config_from_args, design_on_drive
 from dobhil.errors import ConfigError
 
@@ -47,6 +48,7 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
                            "delayed loop, subject to stability and margins at every point of the --range "
                            "grid times the --uncertainty box; then checks the design on a --grid fine grid."))
     add_config_args(p)
+    add_axis_arg(p)
     p.add_argument("--range", dest="ranges", action="append", required=True, metavar="KEY=LO:HI",
                    help="a plant or environment key's range (repeatable); log spaced when HI/LO >= 10")
     p.add_argument("--uncertainty", action="append", default=[], metavar="KEY=±P%",
@@ -72,6 +74,7 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
 def run(args: argparse.Namespace) -> int:
     from dobhil.tune.optimise import Objective, tune
     from dobhil.tune.problem import parse_bounds, parse_margins
+    axis_keys(args, {"ranges": "--range", "uncertainty": "--uncertainty", "bound": "--bound"})
     config = design_on_drive(config_from_args(args), args, sys.stderr if args.json else None)
     ranges, uncertainties = _robust_keys(args)
     margins, bounds = parse_margins(args.margin), parse_bounds(config, args.bound)
@@ -210,8 +213,9 @@ def _print(args: argparse.Namespace, result: TuneResult, base: Baseline, margins
 
 def _write_config(args: argparse.Namespace, result: TuneResult) -> None:
     from dobhil.config.load import parse_override, read_set_file, read_yaml, resolve_config
-    from dobhil.files import atomic_path
-    from dobhil.tune.report import tuned_yaml
+    if args.axis:   # the axis alone: a single-axis config of every key it runs with
+        _write_tuned(args, _sections(config_from_args(args).flat()), result)
+        return
     source: dict[str, Any] = read_yaml(resolve_config(args.config))
     flat_overrides: dict[str, Any] = {}
     for extra in args.set_files:
@@ -220,11 +224,26 @@ def _write_config(args: argparse.Namespace, result: TuneResult) -> None:
     for key, value in flat_overrides.items():
         section, name = key.split(".", 1)
         source.setdefault(section, {})[name] = value
+    _write_tuned(args, source, result)
+
+
+def _write_tuned(args: argparse.Namespace, source: dict[str, Any], result: TuneResult) -> None:
+    from dobhil.files import atomic_path
+    from dobhil.tune.report import tuned_yaml
     command = "dobhil tune " + " ".join(shlex.quote(a) for a in sys.argv[2:]) if len(sys.argv) > 2 else "dobhil tune"
     with atomic_path(args.out) as tmp:
         tmp.write_text(tuned_yaml(source, result, command))
     if not args.json:
         print(f"wrote {args.out}")
+
+
+def _sections(flat: dict[str, Any]) -> dict[str, Any]:
+    """``{"plant.inertia": 0.3}`` -> ``{"plant": {"inertia": 0.3}}``."""
+    out: dict[str, dict[str, Any]] = {}
+    for key, value in flat.items():
+        section, name = key.split(".", 1)
+        out.setdefault(section, {})[name] = value
+    return out
 
 
 def _plots(args: argparse.Namespace, config: Config, result: TuneResult, base: Baseline, horizon: int) -> None:

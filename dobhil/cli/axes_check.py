@@ -1,0 +1,110 @@
+"""``dobhil check AXES.yaml``: the preflight of every axis of a config that lists ``axes:``.
+
+Before any bus is opened: each axis' profile with its ``drive.node_id``, CAN-id clashes of
+axes on one bus and the bus budget of all the axes of each bus
+(:mod:`dobhil.drives.axes`), then each axis' design through the stability gate. A clash, a
+bus over 100 % or an unstable design is refused there (one line, exit 2): nothing is sent.
+Then each bus is opened once and each of its axes measured as ``dobhil check`` measures one
+drive (:func:`dobhil.drives.preflight.run_preflight`, nothing enabled), its lines prefixed
+with the axis' name. Exit 0 when every axis matches its profile and no bus is over 70 %,
+1 otherwise (each mismatch one line saying what to set), 2 for bad input.
+
+``--bus`` is the bus of every axis whose config names none (``drive.interface``); ``--axis
+NAME`` checks one axis as a single-axis config (``--set-zero`` needs it).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from collections.abc import Sequence
+from typing import Any
+
+from dobhil.errors import ConfigError, UnstableDesignError
+
+__all__ = ["check_axes"]
+
+#: exit code when a drive does not match or a bus is over its budget (as dobhil check)
+EXIT_MISMATCH = 1
+
+
+def check_axes(args: argparse.Namespace) -> int:
+    """``dobhil check`` of an axes config (see the module docstring)."""
+    from dobhil.cli.check_cmd import window_of
+    from dobhil.config import resolve_config
+    from dobhil.config.axes import load_axes
+    from dobhil.drives.axes import axes_budget, axis_drives
+    if args.set_zero:
+        raise ConfigError("--set-zero zeroes one drive; with a config that lists axes give the axis: --axis NAME")
+    window = window_of(args.window, "--window")
+    axes = load_axes(args.config, args.overrides, args.set_files)
+    drives = axis_drives(axes, resolve_config(args.config).parent, args.bus)
+    budgets = axes_budget(drives, axes.period)   # over 100 %: refused here, before a bus opens
+    gates = [_gate(axis, args) for axis in axes.axes]
+    reports = _measure(axes, drives, window, args.bus)
+    ok = all(r.ok for _, _, r in reports) and not any(b.over for b in budgets)
+    if args.json:
+        json.dump(_as_json(budgets, gates, reports, ok), sys.stdout)
+        sys.stdout.write("\n")
+    else:
+        for line in _lines(budgets, gates, reports, ok):
+            print(line)
+    return 0 if ok else EXIT_MISMATCH
+
+
+def _gate(axis: Any, args: argparse.Namespace) -> tuple[str, Any]:
+    """The axis' design through the stability gate ``dobhil run`` applies (refusal: one line
+    naming the axis)."""
+    from dobhil.cli.stability_gate import stability_gate
+    try:
+        return axis.name, stability_gate(axis.config, args.config, allow_unstable=args.allow_unstable,
+                                         prog=f"dobhil check: axis {axis.name}")
+    except UnstableDesignError as exc:
+        raise UnstableDesignError(f"axis {axis.name}: {exc}") from None
+
+
+def _measure(axes: Any, drives: Sequence[Any], window: float, default_bus: str | None) -> list[tuple[str, str, Any]]:
+    """(axis, bus, preflight report) of every axis, each bus opened once for its axes."""
+    from dobhil.drives.preflight import run_preflight
+    from dobhil.drives.registry import preflight_probe
+    from dobhil.runtime.buses import open_bus, resolve_bus, shutdown_bus
+    out: list[tuple[str, str, Any]] = []
+    for bus_name in dict.fromkeys(d.bus for d in drives):
+        on_bus = [(axes.axis(d.name).config, d) for d in drives if d.bus == bus_name]
+        first_config, first = on_bus[0]
+        spec = resolve_bus(first_config, first.profile, None if first_config.drive.interface else default_bus)
+        bus = open_bus(spec)
+        try:
+            for config, drive in on_bus:
+                report = run_preflight(bus, drive.profile, period=config.loop.period,
+                                       feedback_timeout=config.loop.feedback_timeout, window=window,
+                                       bitrate=drive.bitrate, probe=preflight_probe(drive.profile))
+                out.append((drive.name, spec.describe(), report))
+        finally:
+            shutdown_bus(bus)
+    return out
+
+
+def _lines(budgets: Sequence[Any], gates: Sequence[tuple[str, Any]], reports: Sequence[tuple[str, str, Any]],
+           ok: bool) -> list[str]:
+    lines = [b.line() for b in budgets]
+    lines += [f"mismatch: {b.advice()}" for b in budgets if b.over]
+    lines += [f"axis {name}: stability gate: {gate.summary()}" for name, gate in gates]
+    for name, bus, report in reports:
+        lines.append(f"axis {name}: bus {bus}")
+        lines += [f"axis {name}: {line}" for line in report.lines()]
+    bad = [name for name, _, r in reports if not r.ok]
+    over = [b.bus for b in budgets if b.over]
+    lines.append("preflight: ok, every axis" if ok else "preflight: "
+                 + "; ".join(([f"mismatches on axis {', '.join(bad)}"] if bad else [])
+                             + ([f"bus {', '.join(over)} over its budget"] if over else [])))
+    return lines
+
+
+def _as_json(budgets: Sequence[Any], gates: Sequence[tuple[str, Any]], reports: Sequence[tuple[str, str, Any]],
+             ok: bool) -> dict[str, Any]:
+    gate_of = dict(gates)
+    return {"ok": ok, "buses": [{"line": b.line(), "advice": b.advice(), **b.as_dict()} for b in budgets],
+            "axes": [{"axis": name, "bus_name": bus, **report.as_dict(), "stability_gate": gate_of[name].as_dict()}
+                     for name, bus, report in reports]}
