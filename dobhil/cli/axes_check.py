@@ -29,15 +29,14 @@ __all__ = ["check_axes"]
 EXIT_MISMATCH = 1
 
 
-def check_axes(args: argparse.Namespace) -> int:
-    """``dobhil check`` of an axes config (see the module docstring)."""
-    from dobhil.cli.check_cmd import window_of
+def check_axes(args: argparse.Namespace, window: float) -> int:
+    """``dobhil check`` of an axes config (see the module docstring), each drive listened to
+    for ``window`` s."""
     from dobhil.config import resolve_config
     from dobhil.config.axes import load_axes
     from dobhil.drives.axes import axes_budget, axis_drives
     if args.set_zero:
         raise ConfigError("--set-zero zeroes one drive; with a config that lists axes give the axis: --axis NAME")
-    window = window_of(args.window, "--window")
     axes = load_axes(args.config, args.overrides, args.set_files)
     drives = axis_drives(axes, resolve_config(args.config).parent, args.bus)
     budgets = axes_budget(drives, axes.period)   # over 100 %: refused here, before a bus opens

@@ -78,12 +78,12 @@ def check(args: argparse.Namespace) -> int:
     from dobhil.drives.registry import preflight_probe
     from dobhil.runtime.buses import open_bus, resolve_bus
     from dobhil.drives.load import load_drive_profile
+    window = window_of(args.window, "--window")
     if args.axis is None and has_axes(args.config):   # every axis, its bus budget and clashes
         from dobhil.cli.axes_check import check_axes
-        return check_axes(args)
+        return check_axes(args, window)
     select_axis(args)
     config = config_from_args(args)
-    window = window_of(args.window, "--window")
     profile = load_drive_profile(config, Path(args.config).parent)
     if args.set_zero:
         return set_zero(args, config, profile)
