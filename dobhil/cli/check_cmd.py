@@ -5,10 +5,10 @@ Exit codes: 0 the drive matches the profile and ``loop.period``; 1 mismatches fo
 ``dobhil run`` runs the same preflight before it enables a drive and refuses to start
 when a run would sample stale feedback or the axis is already in closed loop
 (``--no-preflight`` skips it); other mismatches it prints and runs, and the last line
-here says which of the two the found mismatches mean. A config that lists ``axes:`` is
-checked axis by axis, with the bus budget of each bus and CAN-id clashes between axes
-(:mod:`dobhil.cli.axes_check`); ``--axis NAME`` checks one of them alone. A bus that cannot be opened
-names the way to try without hardware (``--bus dobhil:demo``).
+here says which of the two the found mismatches mean. A bus that cannot be opened
+names the way to try without hardware (``--bus dobhil:demo``). A config that lists
+``axes:`` is checked axis by axis, with the bus budget of each bus and CAN-id clashes
+between axes (:mod:`dobhil.cli.axes_check`); ``--axis NAME`` checks one of them alone.
 
 ``--set-zero`` (only for a protocol whose drives set their zero on command,
 ``DriveProtocol.sets_zero``; refused for any other before a bus opens): make the present
@@ -32,8 +32,8 @@ from typing import Any
 
 from dobhil.cli.axis_option import add_axis_arg, select_axis
 from dobhil.cli.common import add_config_args, config_from_args
-from dobhil.config.axes import has_axes
 from dobhil.cli.stability_gate import add_gate_args
+from dobhil.config.axes import has_axes
 from dobhil.errors import ConfigError
 
 #: exit code when the drive does not match (bad input stays 2)
