@@ -109,7 +109,8 @@ class ReplayResult:
             d = d[np.isfinite(d)]
             d = d if d.size else np.zeros(1)
             diffs[name] = {"max_abs": float(np.abs(d).max()), "rms": float(np.sqrt(np.mean(d ** 2)))}
-        return {"file": self.recording.path, "axis": self.recording.axis, "cycles": self.recording.cycles, "overrides": list(self.overrides),
+        return {"file": self.recording.path, "axis": self.recording.axis, "cycles": self.recording.cycles,
+                "overrides": list(self.overrides),
                 "identical": mismatch is None, "first_mismatch": None if mismatch is None else mismatch.line(),
                 "difference": diffs}
 
@@ -129,7 +130,7 @@ def recorded_config(log: LogFile | AxisLog, overrides: Sequence[str] = ()) -> Co
     """The run's config (checked when the log was opened), with ``--set`` overrides on top;
     an axis' config with the overrides of every axis (``section.key``) and its own
     (``axes.NAME.section.key``: NAME one of the log's axes)."""
-    from dobhil.config import build_config, parse_override
+    from dobhil.config import build_config
     if log.config is None:
         raise LogFileError(f"{log.path}: no 'config' metadata (not a recorded run?)")
     mine = axis_overrides(log, overrides)

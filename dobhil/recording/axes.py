@@ -120,6 +120,18 @@ class AxisLog:
             raise LogFileError(f"{self.path}: invalid recorded config of axis {self.name}: "
                                f"{exception_line(exc, named=False)}") from None
 
+    @property
+    def frame_ids(self) -> frozenset[int] | None:
+        """The arbitration ids of this axis' drive's frames on its bus as the run recorded
+        them (``axis/<name>/run.frame_ids``); None when not known (a single-axis log: every
+        frame of its bus is the drive's)."""
+        raw = self.metadata.get("run", {}).get("frame_ids") if self.listed else None
+        try:
+            ids = json.loads(raw) if raw else None
+        except ValueError:
+            return None
+        return frozenset(ids) if isinstance(ids, list) and all(isinstance(i, int) for i in ids) else None
+
     def __enter__(self) -> AxisLog:
         return self
 
