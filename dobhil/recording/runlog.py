@@ -130,7 +130,7 @@ class LaneSink:
         records.append((self._cycle, log.clock_ns(), k, fb.position, fb.velocity, fb.seq, *out, period_error,
                         exec_time, overrun, sampled, status.state, status.protocol_state, status.error_code,
                         *(truth() if truth is not None else ())))
-        if len(records) >= BATCH_RECORDS or log.failed:
+        if len(records) >= BATCH_RECORDS or log._failure is not None:  # the attribute: no property call per cycle
             log.flush()
 
     def started(self, fb: Any) -> None:
@@ -181,11 +181,6 @@ class RunLog(LaneSink):
         self.simulated = False  # lockstep: frames stamped on the simulated log clock
         self._failure: RecorderError | None = None
         self._closed = False
-
-    @property
-    def failed(self) -> bool:
-        """A frame could not be recorded: the next cycle raises it."""
-        return self._failure is not None
 
     @property
     def path(self) -> Path:

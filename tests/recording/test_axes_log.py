@@ -355,3 +355,37 @@ def test_any_interleaving_of_lanes_reads_back_per_axis(tmp_path_factory: pytest.
                 else p["timestamp"]) for topic, _, p in axis.iter_messages(["/controller", "/events", "/can/rx"])]
         assert got == expected[axis.name]
         assert isinstance(axis, AxisLog)
+
+
+def test_a_run_that_fails_leaves_a_complete_log_or_none(tmp_path: Path) -> None:
+    """Before the log began: no file; after: a complete file ending ``exception`` (never half
+    written); a begin without every axis' drive, or on a bus never wrapped, is refused."""
+    from dobhil.cli.recording import abort_axes
+    early = AxesLog.open(tmp_path / "early.mcap", ("p", "q"), fsync=False)
+    with pytest.raises(RecorderError, match="no drive for axis 'q'"):
+        early.begin(metadata={}, attachments=(), lossy=False, drives={"p": AxisDrive(_STATUS, "one")})
+    abort_axes(early, RuntimeError("the session could not start"))
+    assert not (tmp_path / "early.mcap").exists()
+    late = AxesLog.open(tmp_path / "late.mcap", ("p",), fsync=False)
+    inner = can.Bus(interface="virtual", channel="late-one")
+    tap = late.wrap_bus(inner, "one")
+    try:
+        with pytest.raises(RecorderError, match="bus 'two' of an axis was never wrapped"):
+            late.begin(metadata={}, attachments=(), lossy=False, drives={"p": AxisDrive(_STATUS, "two")})
+        late.begin(metadata={}, attachments=(), lossy=False, drives={"p": AxisDrive(_STATUS, "one")})
+        late.sink("p").cycle(0, 0.0, _fb(1, 0.0), (0.0,) * 6, 0.0, 1e-5, False)
+        abort_axes(late, RuntimeError("the loop failed"))
+    finally:
+        tap.shutdown()
+        inner.shutdown()
+    file = open_log(tmp_path / "late.mcap")
+    assert file.stop_reason() == "exception" and axis_names(file) == ("p",)
+    assert [p["cycle"] for _, _, p in axis_log(file).iter_messages(["/controller"])] == [0]
+
+
+def test_a_single_axis_tool_names_the_axes(recorded: tuple[Path, Path, Any],
+                                           capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["compare", str(recorded[0]), str(recorded[0])]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "a log of several axes (left, right, wrist)" in err[0]
+    assert "/axis/left/controller" in err[0]
