@@ -12,7 +12,7 @@ from pathlib import Path
 from dobhil.cli.recording import AxisRun, abort_axes, begin_axes, end_axes
 from dobhil.config.axes import load_axes
 from dobhil.recording.axeslog import AxesLog
-from dobhil.runtime.loop import RunResult, Timing
+from dobhil.runtime.loop import RunResult
 from dobhil.runtime.session import RunSession
 
 #: three axes: two ODrives on one bus (node ids 1 and 2), a CiA 402 drive on another
@@ -41,9 +41,10 @@ def write_config(directory: Path, text: str = CONFIG) -> Path:
 
 
 def record_axes(path: Path, config: Path, buses: Mapping[str, str] = BUSES,
-                overrides: tuple[str, ...] = ()) -> dict[str, RunResult]:
-    """Each axis of ``config`` run in lockstep on its own, all recorded into ``path``; the
-    log clock goes on from one axis' run to the next (one time line)."""
+                overrides: tuple[str, ...] = (), lockstep: bool = True) -> dict[str, RunResult]:
+    """Each axis of ``config`` run on its own (in lockstep, or in real time against the
+    emulator process), all recorded into ``path``; in lockstep the log clock goes on from one
+    axis' run to the next (one time line), in real time it is the wall clock."""
     axes = load_axes(config, overrides)
     log = AxesLog.open(path, axes.names, fsync=False)
     offset, clock = [0.0], [lambda: 0.0]
@@ -51,17 +52,18 @@ def record_axes(path: Path, config: Path, buses: Mapping[str, str] = BUSES,
     try:
         with ExitStack() as stack:
             sessions = {a.name: stack.enter_context(RunSession(
-                a.config, emulate=True, lockstep=True, sink=log.sink(a.name),
+                a.config, emulate=True, lockstep=lockstep, sink=log.sink(a.name),
                 bus_wrapper=lambda bus, name=buses[a.name]: log.wrap_bus(bus, name))) for a in axes.axes}
             runs = [AxisRun.of(name, s, buses[name]) for name, s in sessions.items()]
-            begin_axes(log, runs, timing=Timing.LOCKSTEP, period=axes.period,
+            timing = next(iter(sessions.values())).timing
+            begin_axes(log, runs, timing=timing, period=axes.period,
                        duration=axes.axes[0].config.loop.duration, emulated=True,
-                       sim_clock=lambda: offset[0] + clock[0](), couplings=axes.couplings, config_file=config)
+                       sim_clock=(lambda: offset[0] + clock[0]()) if lockstep else None,
+                       couplings=axes.couplings, config_file=config)
             for name, session in sessions.items():
-                assert session.sim_clock is not None
-                clock[0] = session.sim_clock
+                clock[0] = session.sim_clock or clock[0]
                 results[name] = session.run()
-                offset[0] += session.sim_clock() + axes.period
+                offset[0] += clock[0]() + axes.period
                 clock[0] = lambda: 0.0
         stop = next((r.stop for r in results.values() if r.stop.reason.name != "DONE"),
                     results[axes.names[-1]].stop)
