@@ -35,7 +35,7 @@ from dobhil.errors import RecorderError
 from dobhil.recording.codes import ProtocolCodes
 from dobhil.recording.process import WriterProcess
 from dobhil.recording.runlog import LaneSink, RunLog
-from dobhil.recording.schemas import EventKind
+from dobhil.recording.schemas import EventKind, Topic
 from dobhil.recording.writer import Lane, LiveView
 
 #: The metadata record that makes a log a several-axis log: ``names`` (JSON list, in the
@@ -48,6 +48,11 @@ AXES_FORMAT: Final = "1"
 AXIS_PREFIX: Final = "/axis/"
 #: The prefix of a bus' frame topics.
 BUS_PREFIX: Final = "/bus/"
+#: The topics of each kind of lane: the run's, an axis', a bus'.
+RUN_LANE: Final = (Topic.EVENTS,)
+AXIS_LANE: Final = (Topic.DRIVE_FEEDBACK, Topic.DRIVE_COMMAND, Topic.CONTROLLER, Topic.LOOP, Topic.EMULATOR_TRUTH,
+                    Topic.EVENTS)
+BUS_LANE: Final = (Topic.CAN_RX, Topic.CAN_TX)
 #: What a bus name keeps in its topic (any other character becomes ``_``).
 _TOPIC_SAFE: Final = re.compile(r"[^A-Za-z0-9_.-]")
 
@@ -154,9 +159,10 @@ class AxesLog:
         return self.log.wrap_bus(bus, self._buses[bus_name][0])
 
     def lanes(self, drives: Mapping[str, AxisDrive]) -> tuple[Lane, ...]:
-        """The writer's lanes: the run's (no prefix), each axis', each bus'."""
-        return (("", None), *((axis_prefix(n), drives[n].codes) for n in self.names),
-                *((prefix, None) for _, prefix in self._buses.values()))
+        """The writer's lanes: the run's (no prefix: its events), each axis' (its own topics),
+        each bus' (its frames)."""
+        return (Lane("", None, RUN_LANE), *(Lane(axis_prefix(n), drives[n].codes, AXIS_LANE) for n in self.names),
+                *(Lane(prefix, None, BUS_LANE) for _, prefix in self._buses.values()))
 
     def begin(self, *, metadata: Mapping[str, Mapping[str, Any]], attachments: Sequence[tuple[str, str, bytes]],
               lossy: bool, drives: Mapping[str, AxisDrive], clock_ns: Callable[[], int] | None = None,

@@ -309,7 +309,7 @@ def _read_status(conn: Connection, timeout: float = 0.0) -> Reply | None:
 
 
 def _open(path: str, status: Connection, o: Open) -> LogWriter:
-    for codes in (o.codes, *(c for _, c in o.lanes)):
+    for codes in (o.codes, *(lane.codes for lane in o.lanes)):
         if codes is not None:
             codes.prepare()
     log = LogWriter(open(path, "wb"), metadata=o.metadata, attachments=o.attachments, mode=RecordMode(o.mode),

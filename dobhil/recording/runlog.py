@@ -130,7 +130,7 @@ class LaneSink:
         records.append((self._cycle, log.clock_ns(), k, fb.position, fb.velocity, fb.seq, *out, period_error,
                         exec_time, overrun, sampled, status.state, status.protocol_state, status.error_code,
                         *(truth() if truth is not None else ())))
-        if len(records) >= BATCH_RECORDS or log._failure is not None:  # the attribute: no property call per cycle
+        if len(records) >= BATCH_RECORDS or log._failure is not None:
             log.flush()
 
     def started(self, fb: Any) -> None:

@@ -12,7 +12,7 @@ import time
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from enum import IntEnum
-from typing import Any, BinaryIO, Final, Protocol
+from typing import Any, BinaryIO, Final, NamedTuple, Protocol
 
 from mcap.writer import CompressionType, Writer
 
@@ -69,21 +69,35 @@ class LiveView:
 
 
 _EVENTS, _LOSS = int(Topic.EVENTS), int(EventKind.LOSS)
-#: One lane of a log: the prefix of its topics ("" for the single-axis topics, "/axis/left"
-#: for an axis') and the codes naming its drive's states (None: numbers). A record's lane is
-#: in its kind (:data:`~dobhil.recording.schemas.LANE_STRIDE`).
-Lane = tuple[str, ProtocolCodes | None]
+class Lane(NamedTuple):
+    """One lane of a log (a record's lane is in its kind:
+    :data:`~dobhil.recording.schemas.LANE_STRIDE`): the prefix of its topics ("" for the
+    single-axis topics, "/axis/left" for an axis'), the codes naming its drive's states
+    (None: numbers) and the topics it has (empty: every topic of the table)."""
+
+    prefix: str
+    codes: ProtocolCodes | None = None
+    topics: tuple[Topic, ...] = ()
+
+    def names(self) -> tuple[tuple[str, Topic], ...]:
+        """(topic name, topic) of each of its topics."""
+        return tuple((self.prefix + TOPIC_SPECS[t].name, t) for t in (self.topics or tuple(TOPIC_SPECS)))
+
+
 #: (topic name, topic, encoder, shortest record holding its values) of a message of a record
 _LaneView = tuple[str, Topic, Callable[[Any], bytes], int]
 
 
 def lane_views(lanes: Sequence[Lane]) -> dict[int, tuple[_LaneView, ...]]:
-    """Record kind (base and lane) -> the messages it becomes, under the lane's prefix."""
+    """Record kind (base and lane) -> the messages it becomes, under the lane's prefix (a
+    record a lane has no topic for has no kind here: the writer refuses it)."""
     out: dict[int, tuple[_LaneView, ...]] = {}
-    for lane, (prefix, codes) in enumerate(lanes):
+    for lane, (prefix, codes, topics) in enumerate(lanes):
         for base, views_of in views(codes).items():
-            out[lane_kind(base, lane)] = tuple((prefix + TOPIC_SPECS[topic].name, topic, encode, needs)
-                                               for topic, encode, needs in views_of)
+            mine = tuple((prefix + TOPIC_SPECS[topic].name, topic, encode, needs)
+                         for topic, encode, needs in views_of if not topics or topic in topics)
+            if mine:
+                out[lane_kind(base, lane)] = mine
     return out
 
 
@@ -99,7 +113,7 @@ class LogWriter:
         self.file = file
         #: the topic prefix and codes of each lane (:data:`Lane`); one lane without prefix,
         #: its drive's codes named by ``codes``, unless given
-        self.lanes: tuple[Lane, ...] = tuple(lanes) or (("", codes),)
+        self.lanes: tuple[Lane, ...] = tuple(Lane(*lane) for lane in lanes) or (Lane("", codes),)
         self._views = lane_views(self.lanes)
         self.mode = RecordMode(mode)
         self.fsync = fsync
@@ -126,9 +140,10 @@ class LogWriter:
     def add_output(self, output: Output) -> None:
         """Send every message to ``output`` as well, every topic of the table announced now
         (under each lane's prefix)."""
-        for prefix, _ in self.lanes:
-            for spec in TOPIC_SPECS.values():
-                output.add_channel(prefix + spec.name, schema_name=spec.schema_name, json_schema=spec.json_schema())
+        for lane in self.lanes:
+            for name, topic in lane.names():
+                spec = TOPIC_SPECS[topic]
+                output.add_channel(name, schema_name=spec.schema_name, json_schema=spec.json_schema())
         self._outputs.append(output)
 
     def write(self, records: Iterable[Sequence[Any]]) -> None:

@@ -419,3 +419,46 @@ axes:
     drive: {profile: odrive-0.6, node_id: 2}
     plant: {inertia: 0.3}
 """
+
+
+class _Output:
+    """A second output (the live view's place) that keeps what it is told."""
+
+    def __init__(self) -> None:
+        self.channels: list[str] = []
+        self.published: list[str] = []
+        self.dropped = 0
+
+    def add_channel(self, topic: str, *, schema_name: str, json_schema: dict[str, Any]) -> None:
+        self.channels.append(topic)
+
+    def publish(self, topic: str, payload: bytes, log_time_ns: int) -> None:
+        self.published.append(topic)
+
+    def close(self) -> None:
+        pass
+
+
+def test_the_live_view_is_told_each_lanes_own_topics(tmp_path: Path) -> None:
+    """An axis' lane has its loop topics, a bus' its frames, the run's its events: the
+    live view is told those and no empty others; a record a lane has no topic for is refused."""
+    log = AxesLog.open(tmp_path / "x.mcap", ("p",), fsync=False)
+    inner = can.Bus(interface="virtual", channel="lanes-one")
+    tap = log.wrap_bus(inner, "one")
+    try:
+        lanes = log.lanes({"p": AxisDrive(_STATUS, "one")})
+    finally:
+        for bus in (tap, inner):
+            bus.shutdown()
+        log.writer.close()
+    writer = LogWriter(open(tmp_path / "l.mcap", "wb"), metadata={}, fsync=False, lanes=lanes)
+    out = _Output()
+    writer.add_output(out)
+    assert out.channels == ["/events", *(f"/axis/p{t}" for t in ("/drive/feedback", "/drive/command", "/controller",
+                                                                 "/loop", "/emulator/truth", "/events")),
+                            "/bus/one/can/rx", "/bus/one/can/tx"]
+    writer.write([(lane_kind(Topic.CAN_TX, 2), 1, 5, False, False, False, False, False, False, 0, b"", 0.0, "")])
+    assert out.published == ["/bus/one/can/tx"]
+    with pytest.raises(KeyError):
+        writer.write([(lane_kind(Topic.CAN_TX, 1), 2, 5, False, False, False, False, False, False, 0, b"", 0.0, "")])
+    writer.finish(None)
