@@ -140,7 +140,7 @@ class WriterProcess:
         meta = {str(n): {str(k): str(v) for k, v in r.items()} for n, r in metadata.items()}
         files = [(str(n), str(m), bytes(d)) for n, m, d in attachments]
         self._send(encode([Open(Control.OPEN, int(self.mode), *self._interval, self._fsync, meta, files, live,
-                                codes, tuple(lanes))]))
+                                codes, tuple(Lane(*lane) for lane in lanes))]))
         message: Reply | None = _read_status(self._status, JOIN_TIMEOUT)
         if message is None or message.status != Status.READY:
             self._closed = True
