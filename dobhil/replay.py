@@ -4,6 +4,11 @@ code -- re-run on the feedback each cycle used (``/drive/feedback``; ``cycle = -
 ``controller.initialize`` used) and the recorded reference. With the recorded config every
 output is identical bit for bit (``dobhil replay --verify``); with ``--set`` overrides it
 shows what that tuning would have done.
+
+A several-axis log (:mod:`dobhil.recording.axeslog`) replays axis by axis
+(:func:`replay_axes`): each axis' controller rebuilt from that axis' recorded config and
+profile by the same :func:`~dobhil.runtime.session.build_controller`, fed that axis' feedback
+decoded from its bus' frames (its drive class keeps its own node's frames only).
 """
 
 from __future__ import annotations
@@ -22,6 +27,7 @@ from dobhil.config.schema import Config
 from dobhil.drives.decode import decode_motion, recorded_profile
 from dobhil.drives.profile import DriveProfile
 from dobhil.errors import LogFileError, exception_line
+from dobhil.recording.axes import AxisLog, axis_log, axis_logs
 from dobhil.recording.reader import LogFile, open_log
 from dobhil.recording.schemas import can_frame_message
 from dobhil.runtime.session import build_controller
@@ -41,6 +47,7 @@ class Recording:
 
     path: str
     profile: DriveProfile
+    axis: str                                # the axis' name ("axis" in a single-axis log)
     frames: tuple[can.Message, ...]          # /can/rx in receive order
     initial_seq: int                         # feedback seq controller.initialize used
     cycle: NDArray[np.int64]                 # cycle index per recorded cycle
@@ -102,7 +109,8 @@ class ReplayResult:
             d = d[np.isfinite(d)]
             d = d if d.size else np.zeros(1)
             diffs[name] = {"max_abs": float(np.abs(d).max()), "rms": float(np.sqrt(np.mean(d ** 2)))}
-        return {"file": self.recording.path, "cycles": self.recording.cycles, "overrides": list(self.overrides),
+        return {"file": self.recording.path, "axis": self.recording.axis, "cycles": self.recording.cycles,
+                "overrides": list(self.overrides),
                 "identical": mismatch is None, "first_mismatch": None if mismatch is None else mismatch.line(),
                 "difference": diffs}
 
@@ -118,22 +126,45 @@ class ReplayResult:
         return ["cycle", "t", "q", "dq", *(f"recorded_{n}" for n in OUTPUTS), *(f"replayed_{n}" for n in COMPARED)]
 
 
-def recorded_config(log: LogFile, overrides: Sequence[str] = ()) -> Config:
-    """The run's config (checked when the log was opened), with ``--set`` overrides on top."""
-    from dobhil.config import build_config, parse_override
+def recorded_config(log: LogFile | AxisLog, overrides: Sequence[str] = ()) -> Config:
+    """The run's config (checked when the log was opened), with ``--set`` overrides on top;
+    an axis' config with the overrides of every axis (``section.key``) and its own
+    (``axes.NAME.section.key``: NAME one of the log's axes)."""
+    from dobhil.config import build_config
     if log.config is None:
         raise LogFileError(f"{log.path}: no 'config' metadata (not a recorded run?)")
-    if not overrides:
+    mine = axis_overrides(log, overrides)
+    if not mine:
         return log.config
-    return build_config({**log.config.flat(), **dict(parse_override(item) for item in overrides)},
-                        source=f"{log.path} config")
+    return build_config({**log.config.flat(), **mine}, source=f"{log.path} config")
 
 
-def _profile(log: LogFile) -> DriveProfile:
+def axis_overrides(log: LogFile | AxisLog, overrides: Sequence[str]) -> dict[str, Any]:
+    """The ``--set`` overrides of ``log``'s axis: ``axes.NAME.key`` of this axis as ``key``,
+    of another axis of the log left out, of no axis of the log refused."""
+    from dobhil.config import parse_override
+    from dobhil.errors import ConfigError
+    name, axes = (log.name, log.axes) if isinstance(log, AxisLog) else (None, ())
+    out: dict[str, Any] = {}
+    for item in overrides:
+        key, value = parse_override(item)
+        if not key.startswith("axes."):
+            out[key] = value
+            continue
+        parts = key.split(".")
+        if len(parts) != 4 or parts[1] not in axes:
+            raise ConfigError(f"--set {item}: expected axes.NAME.section.key=value with NAME one of the log's "
+                              f"axes ({', '.join(axes) or 'none: a single-axis log takes section.key=value'})")
+        if parts[1] == name:
+            out[".".join(parts[2:])] = value
+    return out
+
+
+def _profile(log: LogFile | AxisLog) -> DriveProfile:
     return recorded_profile(log.metadata.get("drive"), os.fspath(log.path))
 
 
-def _read(log: LogFile, name: str) -> Recording:
+def _read(log: LogFile | AxisLog, name: str) -> Recording:
     frames: list[can.Message] = []
     seqs: dict[int, int] = {}
     initial: int | None = None
@@ -161,19 +192,29 @@ def _read(log: LogFile, name: str) -> Recording:
         raise LogFileError(f"{name}: cycle {missing[0]} has /controller but no /drive/feedback record")
     cycle = np.array([c for c, _, _ in controller], dtype=np.int64)
     times = np.array([t for _, t, _ in controller], dtype=np.int64)
-    return Recording(name, _profile(log), tuple(frames), initial, cycle,
+    return Recording(name, _profile(log), getattr(log, "name", "axis"), tuple(frames), initial, cycle,
                      np.array([seqs[int(c)] for c in cycle], dtype=np.int64),
                      (times - (times[0] if times.size else 0)) / 1e9,
                      np.array([v for _, _, v in controller], dtype=float).reshape(-1, len(OUTPUTS)))
 
 
-def replay(path: str | os.PathLike[str], overrides: Sequence[str] = ()) -> ReplayResult:
-    """Re-run the controller of ``path`` (with ``overrides``) on its recorded feedback frames."""
-    with open_log(path) as log:
-        for topic in _TOPICS:
-            log.require_topic(topic)
-        config = recorded_config(log, overrides)
-        recording = _read(log, os.fspath(path))
+def replay(path: str | os.PathLike[str], overrides: Sequence[str] = (), axis: str | None = None) -> ReplayResult:
+    """Re-run the controller of ``path`` (with ``overrides``) on its recorded feedback frames:
+    of ``axis`` (None: the log's one axis; a several-axis log needs the name)."""
+    return replay_axis(axis_log(open_log(path), axis), overrides)
+
+
+def replay_axes(path: str | os.PathLike[str], overrides: Sequence[str] = ()) -> tuple[ReplayResult, ...]:
+    """Every axis of ``path`` replayed (:func:`replay_axis`), in the loop's order."""
+    return tuple(replay_axis(axis, overrides) for axis in axis_logs(path))
+
+
+def replay_axis(log: AxisLog, overrides: Sequence[str] = ()) -> ReplayResult:
+    """Re-run the controller of one axis of a log on its recorded feedback frames."""
+    for topic in _TOPICS:
+        log.require_topic(topic)
+    config = recorded_config(log, overrides)
+    recording = _read(log, os.fspath(log.path))
     pos, vel = _decode_feedback(recording)
     n_fb, seq = len(pos) - 1, recording.seq
     if recording.initial_seq > n_fb or (seq.size and int(seq.max()) > n_fb) or recording.initial_seq < 1:
@@ -196,4 +237,5 @@ def _decode_feedback(recording: Recording) -> tuple[list[float], list[float]]:
     return [float("nan"), *(p for _, p, _ in motion)], [float("nan"), *(v for _, _, v in motion)]
 
 
-__all__ = ["COMPARED", "OUTPUTS", "Mismatch", "Recording", "ReplayResult", "recorded_config", "replay"]
+__all__ = ["COMPARED", "OUTPUTS", "Mismatch", "Recording", "ReplayResult", "axis_overrides", "recorded_config",
+           "replay", "replay_axes", "replay_axis"]

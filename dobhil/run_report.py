@@ -38,6 +38,11 @@
   recorded reference with ``control.forced_response``): RMS and max difference, from the
   first step taken in contact on (the loop at rest at the reference before it), over the
   samples in contact: the analysed loop is the loop in contact.
+
+A several-axis log (:mod:`dobhil.recording.axeslog`) is reported axis by axis
+(:func:`report_axes`): each axis' summary as above (its bus' load; its command latency from
+its own drive's frames), then the loop's shared timing (per cycle the slowest axis'
+execution time and period error, an overrun when any axis overran) and each bus' load.
 """
 
 from __future__ import annotations
@@ -56,6 +61,7 @@ from dobhil.drives.bus_load import frame_bits
 from dobhil.drives.timing import with_command_delay
 from dobhil.drives.decode import recorded_profile
 from dobhil.errors import LogFileError, exception_line
+from dobhil.recording.axes import AxisLog, axis_log, axis_logs
 from dobhil.recording.codes import ProtocolCodes
 from dobhil.recording.reader import open_log
 from dobhil.recording.schemas import feedback_state
@@ -99,6 +105,8 @@ class RunData:
     events: list[dict[str, Any]] = field(default_factory=list)
     #: each change of the drive's state (dobhil's and its own codes, with their names)
     states: list[dict[str, Any]] = field(default_factory=list)
+    axis: str = "axis"   # the axis' name ("axis" in a single-axis log)
+    bus: str = ""        # the name of the axis' bus
 
     def has(self, name: str) -> bool:
         return name in self.signals and bool(np.any(np.isfinite(self.signals[name])))
@@ -107,10 +115,19 @@ class RunData:
         return self.signals[name]
 
 
-def load_run(path: str | os.PathLike[str], progress: ProgressFn | None = None) -> RunData:
-    """Read a dobhil run log (checked by :class:`~dobhil.recording.reader.LogFile`)."""
+def load_run(path: str | os.PathLike[str], progress: ProgressFn | None = None, axis: str | None = None) -> RunData:
+    """Read a dobhil run log (checked by :class:`~dobhil.recording.reader.LogFile`): its
+    one axis, or ``axis`` of a several-axis log."""
+    return load_axis(axis_log(open_log(path), axis), progress)
+
+
+def load_axis(log: AxisLog, progress: ProgressFn | None = None) -> RunData:
+    """Read one axis of a checked log. The command latency's frames are the axis' drive's
+    own (its ``frame_ids`` as recorded, where another axis shares its bus); the bus load
+    counts every frame of the bus."""
     from orjson import loads
-    name = os.fspath(path)
+    name = os.fspath(log.path)
+    own = log.frame_ids
     per: dict[str, list[Any]] = {k: [] for k in ("controller", "feedback", "truth", "loop", "states")}
     frames: dict[str, list[int]] = {"/can/rx": [], "/can/tx": []}
     frame_times: dict[str, list[int]] = {"/can/rx": [], "/can/tx": []}
@@ -119,12 +136,13 @@ def load_run(path: str | os.PathLike[str], progress: ProgressFn | None = None) -
     events: list[dict[str, Any]] = []
     bounds = [None, None]
     topics = ("/controller", "/drive/feedback", "/emulator/truth", "/loop", "/can/rx", "/can/tx", "/events")
-    with open_log(path) as log:
+    with log:
         log.require_topic("/controller")
         try:
             for i, (topic, t, data) in enumerate(log.iter_payloads(topics)):
-                _take(topic, t, loads(data), per, frames, ext, times, events, bounds)
-                if topic in frame_times:
+                p = loads(data)
+                _take(topic, t, p, per, frames, ext, times, events, bounds)
+                if topic in frame_times and (own is None or p["arbitration_id"] in own):
                     frame_times[topic].append(t)
                 if progress is not None and i % 1000 == 999:
                     progress(1000)
@@ -134,6 +152,7 @@ def load_run(path: str | os.PathLike[str], progress: ProgressFn | None = None) -
         run = _assemble(name, log.config, log.metadata, per, frames, ext, times, events, bounds)
         run.states = drive_states(per["states"], _codes(log))
     run.frame_times = frame_times
+    run.axis, run.bus = log.name, log.bus
     return run
 
 
@@ -683,6 +702,76 @@ def report(path: str | os.PathLike[str], progress: ProgressFn | None = None) -> 
     return data, summary, predicted
 
 
-__all__ = ["LATENCY_TOLERANCE", "LOG_CLOCK", "SAMPLE_CLOCKS", "Contact", "RunData", "StepInfo", "analyse",
-           "bus_stats", "contact_mask", "detect_steps", "latency_clocks", "latency_stats", "load_run", "prediction",
-           "report", "step_infos", "summary_text", "torque_mode"]
+AxisReport = tuple[RunData, dict[str, Any], "Array | None"]
+
+
+def report_axes(path: str | os.PathLike[str], progress: ProgressFn | None = None
+                ) -> tuple[dict[str, AxisReport], dict[str, Any]]:
+    """Each axis' data, summary and prediction (by name, in the loop's order), and the
+    summary of the run: ``axes`` (each axis' summary, its ``bus`` the load of its bus),
+    ``loop_timing`` shared by the axes, ``buses`` (each bus' load and the axes on it)."""
+    log = open_log(path)
+    per: dict[str, AxisReport] = {}
+    for axis in axis_logs(log):
+        data = load_axis(axis, progress)
+        summary, predicted = analyse(data)
+        summary["bus"] = {"name": data.bus, **summary["bus"]}
+        per[axis.name] = (data, summary, predicted)
+    datas = [d for d, _, _ in per.values()]
+    buses: dict[str, dict[str, Any]] = {}
+    for data, summary, _ in per.values():
+        entry = buses.setdefault(data.bus, {**summary["bus"], "axes": []})
+        entry["axes"].append(data.axis)
+    first = datas[0]
+    return per, {"file": os.fspath(path), "axes": {n: s for n, (_, s, _) in per.items()},
+                 "run": dict(first.metadata.get("run", {})),
+                 "stop": next((e["reason"] for e in reversed(first.events) if e.get("kind") == "stop"), None),
+                 "dropped": int(sum(int(e.get("count", 0)) for e in first.events if e.get("kind") == "loss")),
+                 "loop_timing": shared_timing(datas), "buses": buses}
+
+
+def shared_timing(datas: list[RunData]) -> dict[str, Any]:
+    """The loop's timing over its axes: per cycle the largest execution time and |period
+    error| any axis recorded, an overrun when any axis' cycle overran."""
+    worst: dict[int, list[float]] = {}
+    for data in datas:
+        rows = zip(data["cycle"], data["exec_time"], np.abs(data["period_error"]), data["overrun"])
+        for cycle, ex, pe, over in rows:
+            w = worst.setdefault(int(cycle), [np.nan, np.nan, 0.0])
+            w[0], w[1] = np.fmax(w[0], ex), np.fmax(w[1], pe)
+            w[2] = max(w[2], 0.0 if np.isnan(over) else float(over))
+    table = np.array(list(worst.values()), dtype=float).reshape(-1, 3)
+    ex, pe = table[:, 0], table[:, 1]
+    return {"cycles": len(worst), "exec_time_p50": _pct(ex, 50), "exec_time_p99": _pct(ex, 99),
+            "exec_time_max": _amax(ex), "period_error_p50": _pct(pe, 50), "period_error_p99": _pct(pe, 99),
+            "period_error_max": _amax(pe), "overruns": int(table[:, 2].sum())}
+
+
+def axes_summary_text(s: Mapping[str, Any]) -> str:
+    """The text of a several-axis summary: each axis' (as :func:`summary_text`, indented),
+    the shared timing, each bus' load."""
+    def us(v: float | None) -> str:
+        return "-" if v is None else f"{v * 1e6:.0f} us"
+
+    lines = [f"run: {s['file']}", f"axes: {', '.join(s['axes'])}; stop: {s['stop'] or '-'}; "
+             f"dropped records {s['dropped']}"]
+    for name, summary in s["axes"].items():
+        lines.append(f"axis {name}:")
+        lines += ["  " + line for line in summary_text(summary).splitlines()[1:]]
+    lt = s["loop_timing"]
+    lines.append(f"loop (all axes, {lt['cycles']} cycles): exec p50 {us(lt['exec_time_p50'])}, "
+                 f"p99 {us(lt['exec_time_p99'])}, max {us(lt['exec_time_max'])}; |period error| p99 "
+                 f"{us(lt['period_error_p99'])}; overruns {lt['overruns']}")
+    for name, b in s["buses"].items():
+        load = "-" if b["bus_load"] is None else f"{b['bus_load'] * 100:.1f} %"
+        rate = "?" if not b["bitrate"] else f"{b['bitrate']:.0f}"
+        fps = ("-" if b.get("rx_frames_per_s") is None
+               else f"{b['rx_frames_per_s']:.0f} rx + {b['tx_frames_per_s']:.0f} tx")
+        lines.append(f"bus {name} (axes {', '.join(b['axes'])}): {fps} frames/s, load {load} at {rate} bit/s")
+    return "\n".join(lines) + "\n"
+
+
+__all__ = ["LATENCY_TOLERANCE", "LOG_CLOCK", "SAMPLE_CLOCKS", "AxisReport", "Contact", "RunData", "StepInfo",
+           "analyse", "axes_summary_text", "bus_stats", "contact_mask", "detect_steps", "latency_clocks",
+           "latency_stats", "load_axis", "load_run", "prediction", "report", "report_axes", "shared_timing",
+           "step_infos", "summary_text", "torque_mode"]

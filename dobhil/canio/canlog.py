@@ -16,7 +16,7 @@ from typing import Any, Final
 
 import can
 
-from dobhil.canio.frames import FRAME_TOPIC_NAMES, topic_of
+from dobhil.canio.frames import is_frame_topic, topic_of
 from dobhil.errors import LogFileError, exception_line
 from dobhil.files import atomic_path, check_output, input_problem
 from dobhil.recording.reader import open_log
@@ -53,10 +53,11 @@ def default_can_output(mcap_path: str | os.PathLike[str], fmt: CanLogFormat) -> 
 
 def export_can(mcap_path: str | os.PathLike[str], out: str | os.PathLike[str], fmt: CanLogFormat, *,
                progress: ProgressFn | None = None) -> int:
-    """The recording's CAN frames to ``out`` in ``fmt``; the frame count."""
+    """The recording's CAN frames to ``out`` in ``fmt`` (every bus' of a several-axis log, in
+    the order recorded, each frame with the channel its bus gave it); the frame count."""
     check_output(out, inputs=[mcap_path], what="output", suffix=FORMATS[fmt][0])
     with open_log(mcap_path) as log:
-        topics = [t for t in FRAME_TOPIC_NAMES if t in log.topics()]
+        topics = [t for t in log.topics() if is_frame_topic(t)]
         if not topics:
             raise LogFileError(f"{os.fspath(mcap_path)}: no CAN frames (no /can/rx or /can/tx topic)")
         with atomic_path(out) as tmp, FORMATS[fmt][1](tmp) as writer:

@@ -11,12 +11,19 @@ from typing import Final
 
 import can
 
+from dobhil.recording.axeslog import BUS_PREFIX
 from dobhil.recording.schemas import TOPIC_SPECS, Topic, can_frame_message, decode
 
 #: The two frame topics, received first.
 FRAME_TOPICS: Final = (Topic.CAN_RX, Topic.CAN_TX)
 #: Their names (``/can/rx``, ``/can/tx``).
 FRAME_TOPIC_NAMES: Final = tuple(TOPIC_SPECS[t].name for t in FRAME_TOPICS)
+
+
+def is_frame_topic(topic: str) -> bool:
+    """A topic of CAN frames: ``/can/rx``, ``/can/tx``, or a bus' of a several-axis log
+    (``/bus/<bus>/can/rx``, ``/bus/<bus>/can/tx``)."""
+    return topic in FRAME_TOPIC_NAMES or (topic.startswith(BUS_PREFIX) and topic.endswith(FRAME_TOPIC_NAMES))
 
 
 def topic_of(msg: can.Message) -> Topic:
@@ -29,4 +36,4 @@ def frame_message(data: bytes, log_time_ns: int) -> can.Message:
     return can_frame_message(decode(data), log_time_ns)
 
 
-__all__ = ["FRAME_TOPICS", "FRAME_TOPIC_NAMES", "Topic", "frame_message", "topic_of"]
+__all__ = ["FRAME_TOPICS", "FRAME_TOPIC_NAMES", "Topic", "frame_message", "is_frame_topic", "topic_of"]

@@ -34,7 +34,7 @@ import can
 from can.io.generic import BinaryIOMessageReader
 from mcap.reader import NonSeekingReader, make_reader
 
-from dobhil.canio.frames import FRAME_TOPIC_NAMES, frame_message
+from dobhil.canio.frames import frame_message, is_frame_topic
 from dobhil.errors import exception_line
 from dobhil.recording.reader import MAGIC
 
@@ -151,11 +151,12 @@ class McapReader(BinaryIOMessageReader):
             yield from self._scan()
             return
         topics = {c.topic for c in summary.channels.values()}
-        if not topics & set(FRAME_TOPIC_NAMES):
+        frames = [t for t in topics if is_frame_topic(t)]
+        if not frames:
             listed = ", ".join(sorted(topics)) or "none"
             raise ValueError(f"{self.name}: no CAN frames (no /can/rx or /can/tx topic; topics: {listed})")
         try:
-            for _, _, message in reader.iter_messages(topics=FRAME_TOPIC_NAMES, log_time_order=True):
+            for _, _, message in reader.iter_messages(topics=frames, log_time_order=True):
                 yield message.log_time, message.data
         except Exception as exc:  # a CRC, zstd or lz4 error: the bytes are wrong
             raise ValueError(f"{self.name}: damaged after {self.frames_read} frames ({exception_line(exc)}); "
@@ -165,10 +166,11 @@ class McapReader(BinaryIOMessageReader):
         """Front to back, for a file without chunk index; file order is the writer's order."""
         self.file.seek(0)
         reader = NonSeekingReader(cast(IO[bytes], self.file), validate_crcs=True)
-        stream = reader.iter_messages(topics=FRAME_TOPIC_NAMES, log_time_order=False)
+        stream = reader.iter_messages(log_time_order=False)
         try:
-            for _, _, message in stream:
-                yield message.log_time, message.data
+            for _, channel, message in stream:
+                if is_frame_topic(channel.topic):
+                    yield message.log_time, message.data
         except Exception as exc:
             raise ValueError(f"{self.name}: truncated or damaged after {self.frames_read} frames ({exc}); "
                              f"{self._recover} writes a complete copy") from exc

@@ -14,7 +14,8 @@ import os
 import platform
 import sys
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
 from datetime import datetime, timezone
 from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
@@ -25,6 +26,7 @@ from dobhil.config import Config, to_yaml
 from dobhil.drives.profile import DriveProfile
 from dobhil.errors import RecorderError, exception_line
 from dobhil.files import check_new_output
+from dobhil.recording.axeslog import AxesLog, AxisDrive, axis_record, bus_record
 from dobhil.recording.codes import ProtocolCodes
 from dobhil.recording.process import WriterProcess
 from dobhil.recording.runlog import RunLog
@@ -32,6 +34,7 @@ from dobhil.recording.schemas import EventKind
 from dobhil.recording.writer import LiveView
 from dobhil.runtime.loop import RunResult, Timing
 from dobhil.realtime import run_in_background
+from dobhil.runtime.buses import BusSpec
 from dobhil.runtime.session import RunSession
 from dobhil.runtime.stop import Stop, StopReason
 
@@ -211,5 +214,138 @@ def abort(log: RunLog | None, exc: BaseException) -> None:
         _close_quietly(log, exc)
 
 
-__all__ = ["abort", "begin", "default_log_path", "live_address", "open_run_log", "record_run", "run_metadata",
-           "versions"]
+# -- several axes ---------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class AxisRun:
+    """One axis of a several-axis run as its log records it: the axis' resolved config and
+    profile, its drive (``status``, ``frame_ids``, ``sample_clock``), its bus (the name its
+    session gave ``AxesLog.wrap_bus``, and the spec it was opened with), its controller's
+    limit and whether it measures velocity, and its emulated plant (None: a real drive)."""
+
+    name: str
+    config: Config
+    profile: DriveProfile
+    drive: Any
+    bus: str
+    bus_spec: BusSpec
+    torque_limit: float
+    measures_velocity: bool
+    plant: Any = None
+
+    @classmethod
+    def of(cls, name: str, session: Any, bus: str) -> AxisRun:
+        """The axis of a session-like object (``config``, ``profile``, ``drive``, ``bus_spec``,
+        ``controller``, ``plant``: a :class:`~dobhil.runtime.session.RunSession`'s names)."""
+        return cls(name, session.config, session.profile, session.drive, bus, session.bus_spec,
+                   session.controller.torque_limit, session.controller.measures_velocity,
+                   getattr(session, "plant", None))
+
+    def truth(self) -> Callable[[], tuple[float, float, float, float]] | None:
+        plant = self.plant
+        if plant is None:
+            return None
+        return lambda: (plant.true_position, plant.true_velocity, plant.motor_torque, plant.interaction_torque)
+
+
+def open_axes_log(path: Path | None, names: Sequence[str], *, live: LiveView | None = None,
+                  fsync: bool = True) -> AxesLog | None:
+    """An :class:`~dobhil.recording.axeslog.AxesLog` of the axes ``names`` for ``path``
+    (checked first: one line if it cannot be written)."""
+    if path is None:
+        return None
+    check_new_output(path, suffix=".mcap", what="--log")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    return AxesLog.open(path, names, live=live, fsync=fsync)
+
+
+def axes_metadata(runs: Sequence[AxisRun], *, timing: Timing, period: float, duration: float,
+                  emulated: bool, config_file: str | os.PathLike[str] | None) -> dict[str, dict[str, Any]]:
+    """The ``versions`` and ``run`` records of the whole run, and per axis ``axis/<name>/config``,
+    ``axis/<name>/drive``, ``axis/<name>/run``, per bus ``bus/<bus>`` (the axes on it)."""
+    lockstep = timing is Timing.LOCKSTEP
+    out: dict[str, dict[str, Any]] = {
+        "versions": versions(),
+        "run": {"start_time": datetime.now(timezone.utc).isoformat(timespec="milliseconds"),
+                "start_time_ns": time.time_ns(), "timing": timing.label,
+                "log_clock": "simulated" if lockstep else "wall", "period": repr(period),
+                "duration": repr(duration), "axes": len(runs),
+                "config_file": "" if config_file is None else os.fspath(config_file),
+                "command": " ".join(sys.argv), "host": platform.node()}}
+    for run in runs:
+        out[axis_record(run.name, "config")] = {k: json.dumps(v) for k, v in run.config.flat().items()}
+        out[axis_record(run.name, "drive")] = drive_metadata(run.profile)
+        ids = getattr(run.drive, "frame_ids", None)
+        out[axis_record(run.name, "run")] = {
+            "torque_limit": repr(run.torque_limit), "measures_velocity": run.measures_velocity,
+            "sample_clock": run.drive.sample_clock, "drive_firmware": run.profile.firmware,
+            "frame_ids": json.dumps(None if ids is None else sorted(ids))}
+        spec = run.bus_spec
+        bus = out.setdefault(bus_record(run.bus), {
+            "interface": spec.interface, "channel": spec.channel,
+            "bitrate": spec.kwargs.get("bitrate", run.config.drive.bitrate), "emulated": emulated,
+            "lockstep": lockstep, "axes": "[]"})
+        bus["axes"] = json.dumps([*json.loads(bus["axes"]), run.name])
+    return out
+
+
+def axes_attachments(runs: Sequence[AxisRun], config_file: str | os.PathLike[str] | None
+                     ) -> list[tuple[str, str, bytes]]:
+    """The config file as given, and each axis' resolved config."""
+    out = [(f"axis-{r.name}.resolved.yaml", "application/yaml", to_yaml(r.config).encode()) for r in runs]
+    if config_file is not None and Path(config_file).is_file():
+        out.insert(0, (Path(config_file).name, "application/yaml", Path(config_file).read_bytes()))
+    return out
+
+
+def begin_axes(log: AxesLog, runs: Sequence[AxisRun], *, timing: Timing, period: float, duration: float,
+               emulated: bool, sim_clock: Callable[[], float] | None = None,
+               couplings: Sequence[Any] = (), config_file: str | os.PathLike[str] | None = None,
+               metadata: Mapping[str, Mapping[str, str]] | None = None) -> None:
+    """Open ``log`` for a several-axis run (each axis' bus wrapped by ``log.wrap_bus`` already):
+    its metadata (then ``metadata``: records the command adds), the log clock (``sim_clock``,
+    simulated seconds, in lockstep), each axis' drive, truth and codes; lossy in real time.
+    ``couplings``: :class:`~dobhil.config.axes.Coupling` s (``a``, ``b``, ``stiffness``, ``damping``)."""
+    origin = time.time_ns()
+    if timing is not Timing.LOCKSTEP and log.writer_pid is not None:
+        run_in_background(log.writer_pid)  # lossy: it may lag, never delay the loop
+    log.begin(metadata={**axes_metadata(runs, timing=timing, period=period, duration=duration, emulated=emulated,
+                                        config_file=config_file), **(metadata or {})},
+              attachments=axes_attachments(runs, config_file), lossy=timing is not Timing.LOCKSTEP,
+              clock_ns=None if sim_clock is None else (lambda: origin + round(sim_clock() * 1e9)),
+              drives={r.name: AxisDrive(r.drive, r.bus, r.truth(), getattr(r.drive, "frame_ids", None),
+                                        ProtocolCodes(r.profile)) for r in runs},
+              couplings=[{"a": c.a, "b": c.b, "stiffness": c.stiffness, "damping": c.damping} for c in couplings])
+    if log.live_port is not None and log.live is not None:
+        sys.stderr.write(f"live view: ws://{log.live.host}:{log.live_port}\n")
+        sys.stderr.flush()
+
+
+def end_axes(log: AxesLog, stop: Stop, disabled: Mapping[str, bool]) -> Stop:
+    """The run's end to ``log``: per axis a ``disable`` event (its disable frames sent or not),
+    the stop event; the stop, or ``recorder_failed`` if the writer failed."""
+    for name, ok in disabled.items():
+        log.sink(name).event(EventKind.DISABLE, "drive disabled" if ok else "disable frames not sent")
+    try:
+        log.end(stop.reason.name.lower(), stop.line())
+    except RecorderError as exc:
+        if stop.reason is not StopReason.RECORDER_FAILED:
+            return Stop(StopReason.RECORDER_FAILED, str(exc), stop.cycle, stop.time)
+    return stop
+
+
+def abort_axes(log: AxesLog | None, exc: BaseException) -> None:
+    """Close the log of a several-axis run that failed or could not start."""
+    if log is not None:
+        try:
+            log.end("exception", exception_line(exc))
+        except RecorderError:
+            pass
+        if not log.writer.opened:
+            log.path.unlink(missing_ok=True)
+
+
+__all__ = ["AxisRun", "abort", "abort_axes", "axes_attachments", "axes_metadata", "begin", "begin_axes",
+           "default_log_path", "end_axes", "live_address", "open_axes_log", "open_run_log", "record_run",
+           "run_metadata", "versions"]

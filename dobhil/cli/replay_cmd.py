@@ -1,8 +1,10 @@
-"""``dobhil replay FILE.mcap [--verify] [--set k=v]... [--plot F.png] [--out F.csv] [--json]``.
+"""``dobhil replay FILE.mcap [--verify] [--axis NAME] [--set k=v]... [--plot F.png] [--out F.csv] [--json]``.
 
 Re-runs the recorded run's controller on its recorded feedback frames
 (:mod:`dobhil.replay`). ``--verify`` demands bit-identical outputs and exits 1
-with one line naming the first differing cycle otherwise.
+with one line naming the first differing cycle otherwise. A several-axis log replays
+every axis (or the one ``--axis`` names), one line each; ``--verify`` then names the axes
+that differ; ``--out``/``--plot`` write one file per axis (``F.<axis>.csv``).
 """
 
 from __future__ import annotations
@@ -23,6 +25,7 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p.add_argument("file", metavar="FILE.mcap")
     p.add_argument("--verify", action="store_true",
                    help="require bit-identical commands and estimates (exit 1 if not)")
+    p.add_argument("--axis", metavar="NAME", help="replay only this axis of a several-axis log")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                    help="replay with this config key changed (repeatable)")
     p.add_argument("--plot", type=Path, metavar="FILE.png", help="recorded vs replayed commands/estimates")
@@ -32,13 +35,23 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from dobhil.recording.axes import axis_log, axis_logs
+    from dobhil.recording.reader import open_log
+    log = open_log(args.file)
+    axes = axis_logs(log) if args.axis is None else (axis_log(log, args.axis),)
+    if len(axes) > 1 or axes[0].listed:
+        return _run_axes(args, axes)
+    return _run_one(args, axes[0])
+
+
+def _run_one(args: argparse.Namespace, axis: Any) -> int:
     from dobhil.files import check_output
-    from dobhil.replay import replay
+    from dobhil.replay import replay_axis
     if args.out:
         check_output(args.out, inputs=[args.file], suffix=".csv", what="--out")
     if args.plot:
         check_output(args.plot, inputs=[args.file], suffix=".png", what="--plot")
-    result = replay(args.file, args.overrides)
+    result = replay_axis(axis, args.overrides)
     info = result.summary()
     if args.out:
         _write_csv(result, args.out)
@@ -51,6 +64,47 @@ def run(args: argparse.Namespace) -> int:
         _print(info)
     if args.verify and not info["identical"]:
         sys.stderr.write(f"dobhil replay: verification failed: {info['first_mismatch']}\n")
+        return EXIT_MISMATCH
+    return 0
+
+
+def _per_axis(path: Path, axis: str) -> Path:
+    """``F.csv`` -> ``F.<axis>.csv``."""
+    return path.with_name(f"{path.stem}.{axis}{path.suffix}")
+
+
+def _run_axes(args: argparse.Namespace, axes: Any) -> int:
+    """Every axis of a several-axis log (or the one ``--axis`` names): one line each."""
+    from dobhil.files import check_output
+    from dobhil.replay import replay_axis
+    for axis in axes:
+        if args.out:
+            check_output(_per_axis(args.out, axis.name), inputs=[args.file], suffix=".csv", what="--out")
+        if args.plot:
+            check_output(_per_axis(args.plot, axis.name), inputs=[args.file], suffix=".png", what="--plot")
+    results = [replay_axis(axis, args.overrides) for axis in axes]
+    infos = {r.recording.axis: r.summary() for r in results}
+    for result in results:
+        if args.out:
+            _write_csv(result, _per_axis(args.out, result.recording.axis))
+        if args.plot:
+            from dobhil.plotting.report_figures import replay_figure
+            sys.stderr.write(f"wrote {replay_figure(result, _per_axis(args.plot, result.recording.axis))}\n")
+    differ = [name for name, info in infos.items() if not info["identical"]]
+    if args.json:
+        print(json.dumps({"file": args.file, "overrides": list(args.overrides), "identical": not differ,
+                          "axes": infos}))
+    else:
+        over = ", ".join(args.overrides) or "recorded config"
+        print(f"replayed {len(infos)} axes of {args.file} with {over}")
+        for name, info in infos.items():
+            what = ("identical: every command and estimate reproduced bit for bit" if info["identical"]
+                    else info["first_mismatch"])
+            print(f"  axis {name}: {info['cycles']} cycles, {what}")
+    if args.verify and differ:
+        first = infos[differ[0]]["first_mismatch"]
+        which = f"axis {differ[0]}" if len(differ) == 1 else f"axes {', '.join(differ)} (first: {differ[0]})"
+        sys.stderr.write(f"dobhil replay: verification failed on {which}: {first}\n")
         return EXIT_MISMATCH
     return 0
 

@@ -3,7 +3,8 @@
 The analysis (:mod:`dobhil.run_report`) returns data; this command draws
 force.png, tracking_error.png, position.png, commands.png, loop_timing.png
 (:mod:`dobhil.plotting.report_figures`) and writes summary.json and summary.txt, each
-under a temporary name renamed when complete. Progress goes to stderr
+under a temporary name renamed when complete. A several-axis log gets each axis' figures in
+``DIR/<axis>/`` and one summary of all axes, their shared timing and each bus' load. Progress goes to stderr
 (:mod:`dobhil.cli.progress`), none with --json.
 """
 
@@ -25,11 +26,15 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p.set_defaults(func=run)
 
 
-def _check_out_dir(out: Path, source: str) -> None:
+def _check_out_dir(out: Path, source: str, axes: tuple[str, ...] = ()) -> None:
     from dobhil.files import OutputError, check_output
     if out.exists() and not out.is_dir():
         raise OutputError(f"--out {out}: not a directory")
-    for name in (*(f"{n}.png" for n in _FIGURES), "summary.json", "summary.txt"):
+    for axis in axes:
+        if (out / axis).exists() and not (out / axis).is_dir():
+            raise OutputError(f"--out {out / axis}: not a directory")
+    figures = [f"{n}.png" for n in _FIGURES]
+    for name in ([f"{a}/{f}" for a in axes for f in figures] if axes else figures) + ["summary.json", "summary.txt"]:
         check_output(out / name, inputs=[source], what="--out")
 
 
@@ -38,15 +43,44 @@ def run(args: argparse.Namespace) -> int:
     from dobhil.run_report import report, summary_text
     from dobhil.files import atomic_path, shown
     from dobhil.plotting.report_figures import report_figures
+    from dobhil.recording.axes import is_axes_log, layout
     from dobhil.recording.reader import open_log
-    _check_out_dir(args.out, args.file)
     with open_log(args.file) as log:
         total = sum(c.message_count for c in log.channels())
+        axes = layout(log).names if is_axes_log(log) else ()
+    _check_out_dir(args.out, args.file, axes)
+    if axes:
+        return _run_axes(args, total)
     with progress("report", total=total, unit="message", quiet=args.json) as bar:
         data, summary, predicted = report(args.file, progress=bar.update)
     args.out.mkdir(parents=True, exist_ok=True)
     files = report_figures(data, predicted, summary, args.out)
     text = shown(summary_text(summary))  # a file name that is not UTF-8 is shown escaped (\xff)
+    for name, body in (("summary.json", json.dumps(summary, indent=2) + "\n"), ("summary.txt", text)):
+        with atomic_path(args.out / name) as tmp:
+            tmp.write_text(body, encoding="utf-8")
+        files.append(args.out / name)
+    if args.json:
+        print(json.dumps(summary))
+    else:
+        sys.stdout.write(text)
+        print(shown(f"wrote {len(files)} files to {args.out}"))
+    return 0
+
+
+def _run_axes(args: argparse.Namespace, total: int) -> int:
+    """A several-axis log: each axis' figures in ``DIR/<axis>/``, one summary of all."""
+    from dobhil.cli.progress import progress
+    from dobhil.files import atomic_path, shown
+    from dobhil.plotting.report_figures import report_figures
+    from dobhil.run_report import axes_summary_text, report_axes
+    with progress("report", total=total, unit="message", quiet=args.json) as bar:
+        per, summary = report_axes(args.file, progress=bar.update)
+    files: list[Path] = []
+    for name, (data, axis_summary, predicted) in per.items():
+        (args.out / name).mkdir(parents=True, exist_ok=True)
+        files += report_figures(data, predicted, axis_summary, args.out / name)
+    text = shown(axes_summary_text(summary))
     for name, body in (("summary.json", json.dumps(summary, indent=2) + "\n"), ("summary.txt", text)):
         with atomic_path(args.out / name) as tmp:
             tmp.write_text(body, encoding="utf-8")

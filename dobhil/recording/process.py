@@ -24,7 +24,7 @@ from typing import Any, Final, NamedTuple, cast
 import dobhil
 from dobhil.errors import RecorderError, exception_line
 from dobhil.recording.codes import ProtocolCodes
-from dobhil.recording.writer import LiveView, LogWriter, RecordMode
+from dobhil.recording.writer import Lane, LiveView, LogWriter, RecordMode
 
 #: Seconds ``close`` waits for the writer process to finish the file.
 JOIN_TIMEOUT: Final = 60.0
@@ -44,7 +44,9 @@ _BOOT: Final = "import sys; sys.path.insert(0, sys.argv[1]); from dobhil.recordi
 
 
 class Control(IntEnum):
-    """First element (``kind``) of a control message, sent among the records."""
+    """First element (``kind``) of a control message (an :class:`Open` or a :class:`Stop`),
+    sent alone in its batch among the records; told from a record by its type, as a record's
+    kind grows with its lane."""
 
     OPEN = 100  # an Open
     STOP = 102  # a Stop
@@ -68,6 +70,7 @@ class Open(NamedTuple):
     attachments: list[tuple[str, str, bytes]]
     live: LiveView | None
     codes: ProtocolCodes | None = None  # names the drive's codes on /drive/feedback
+    lanes: tuple[Lane, ...] = ()  # the topic prefix and codes per lane (LogWriter); () one lane
 
 
 class Stop(NamedTuple):
@@ -127,16 +130,17 @@ class WriterProcess:
 
     def open(self, metadata: Mapping[str, Mapping[str, Any]], attachments: Sequence[tuple[str, str, bytes]],
              mode: RecordMode, live: LiveView | None = None, early: Sequence[tuple[Any, ...]] = (),
-             codes: ProtocolCodes | None = None) -> None:
+             codes: ProtocolCodes | None = None, lanes: Sequence[Lane] = ()) -> None:
         """Header, metadata, attachments, the mode, the live view (if any); waits
         until the writer is ready (its start-up never competes with the loop); then the
         ``early`` records (taken before the log was open). ``codes`` names the drive's own
-        state and error codes in the messages (None: numbers only)."""
+        state and error codes in the messages (None: numbers only); ``lanes`` the topic
+        prefix and codes of each lane of a several-axis log (:class:`LogWriter`)."""
         self.mode = RecordMode(mode)
         meta = {str(n): {str(k): str(v) for k, v in r.items()} for n, r in metadata.items()}
         files = [(str(n), str(m), bytes(d)) for n, m, d in attachments]
         self._send(encode([Open(Control.OPEN, int(self.mode), *self._interval, self._fsync, meta, files, live,
-                                codes)]))
+                                codes, tuple(Lane(*lane) for lane in lanes))]))
         message: Reply | None = _read_status(self._status, JOIN_TIMEOUT)
         if message is None or message.status != Status.READY:
             self._closed = True
@@ -305,10 +309,11 @@ def _read_status(conn: Connection, timeout: float = 0.0) -> Reply | None:
 
 
 def _open(path: str, status: Connection, o: Open) -> LogWriter:
-    if o.codes is not None:
-        o.codes.prepare()
+    for codes in (o.codes, *(lane.codes for lane in o.lanes)):
+        if codes is not None:
+            codes.prepare()
     log = LogWriter(open(path, "wb"), metadata=o.metadata, attachments=o.attachments, mode=RecordMode(o.mode),
-                    fsync=o.fsync, codes=o.codes)
+                    fsync=o.fsync, codes=o.codes, lanes=o.lanes)
     live = o.live
     port = None
     if live is not None:
@@ -340,8 +345,10 @@ def _serve(fd: int, status: Connection, path: str) -> Reply:
             batches, used = unpack(pending + chunk) if chunk else ([], 0)
             pending = (pending + chunk)[used:] if chunk else pending
             for batch in batches:
-                kind = batch[0][0] if len(batch) == 1 else 0  # a control message travels alone
-                if kind < Control.OPEN:
+                # a control message travels alone, and is no record (whose kind may be any number)
+                control = len(batch) == 1 and isinstance(batch[0], (Open, Stop))
+                kind = batch[0][0] if control else 0
+                if not control:
                     log.write(batch)
                 elif kind == Control.OPEN:
                     o = cast(Open, batch[0])

@@ -188,6 +188,10 @@ class LogFile:
 
     def require_topic(self, topic: str) -> None:
         if topic not in self.topics():
+            axes = _axis_names(self.metadata)
+            if axes:   # a several-axis log (dobhil.recording.axeslog): say so, not 40 topics
+                raise _fail(self.path, f"no topic {topic!r}: a log of several axes ({', '.join(axes)}), each "
+                                       f"axis' topics under /axis/<name> (e.g. /axis/{axes[0]}{topic})")
             raise _fail(self.path, f"no topic {topic!r}; available: {', '.join(self.topics()) or 'none'}")
 
     def schema_properties(self, topic: str) -> tuple[str, ...]:
@@ -237,6 +241,15 @@ class LogFile:
                        stats.message_start_time if stats else 0, stats.message_end_time if stats else 0,
                        MappingProxyType(self.metadata), tuple(a for a, _, _ in self.attachments), self.stop_reason(),
                        None if dropped is None else int(dropped))
+
+
+def _axis_names(metadata: Mapping[str, Mapping[str, str]]) -> list[str]:
+    """The axes a several-axis log's ``axes`` metadata names ([]: none, or not readable)."""
+    try:
+        names = json.loads(metadata.get("axes", {}).get("names", "[]"))
+    except ValueError:
+        return []
+    return [str(n) for n in names] if isinstance(names, list) else []
 
 
 def _chunk_messages(records: bytes, wanted: Mapping[int, str]) -> Iterator[tuple[str, int, bytes]]:

@@ -27,8 +27,9 @@ from dobhil.drives.periodic import native_periodic
 from dobhil.errors import RecorderError, exception_line
 from dobhil.recording.codes import ProtocolCodes
 from dobhil.recording.process import PIPE_SIZE, WriterProcess
-from dobhil.recording.schemas import RECORD_TYPES, EventKind, Topic, event_record, message_count, named
-from dobhil.recording.writer import LiveView, RecordMode
+from dobhil.recording.schemas import (CYCLE, LANE_MASK, RECORD_TYPES, EventKind, EventRecord, Topic, event_record,
+                                      lane_kind, message_count, named)
+from dobhil.recording.writer import Lane, LiveView, RecordMode
 
 #: Records handed over at once (~40 cycles with their frames, ~10 KiB pickled).
 BATCH_RECORDS: Final = 128
@@ -45,14 +46,16 @@ _NAN: Final = float("nan")
 
 
 class RecordingBus(ClockedBus):
-    """Records every frame sent or received on the bus it wraps (borrowed, not owned).
-    Its waits run on the wrapped bus's clock (:mod:`dobhil.drives.clocked`: simulated
-    seconds over a lockstep bus); a frame this bus's ``set_filters`` rejects is not
+    """Records every frame sent or received on the bus it wraps (borrowed, not owned), in
+    ``lane`` of ``log`` (0: ``/can/rx`` and ``/can/tx``; a bus of a several-axis log has a
+    lane of its own). Its waits run on the wrapped bus's clock (:mod:`dobhil.drives.clocked`:
+    simulated seconds over a lockstep bus); a frame this bus's ``set_filters`` rejects is not
     received, so not recorded."""
 
-    def __init__(self, inner: can.BusABC, log: RunLog, **kwargs: Any) -> None:
+    def __init__(self, inner: can.BusABC, log: RunLog, lane: int = 0, **kwargs: Any) -> None:
         self._inner = inner
         self._frame = log.frame
+        self._rx, self._tx = lane_kind(_RX, lane), lane_kind(_TX, lane)
         self._clock = bus_clock(inner)
         self.channel_info = f"recording {inner.channel_info}"
         super().__init__(channel=getattr(inner, "channel", None) or "", **kwargs)
@@ -65,7 +68,7 @@ class RecordingBus(ClockedBus):
 
     def send(self, msg: can.Message, timeout: float | None = None) -> None:
         self._inner.send(msg, timeout)
-        self._frame(_TX, msg)
+        self._frame(self._tx, msg)
 
     def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
         deadline = None if timeout is None else self._clock() + timeout
@@ -73,7 +76,7 @@ class RecordingBus(ClockedBus):
         while msg is not None and not self.passes(msg):
             msg = self._inner.recv(None if deadline is None else max(0.0, deadline - self._clock()))
         if msg is not None:
-            self._frame(_RX, msg)
+            self._frame(self._rx, msg)
         return msg, True
 
     @property
@@ -101,22 +104,81 @@ class RecordingBus(ClockedBus):
         return getattr(self._inner, name)
 
 
-class RunLog:
-    """Records one run through ``writer`` (started, not yet open: records wait until
-    :meth:`begin`, as a preflight talks on the tapped bus)."""
+class LaneSink:
+    """The runtime's ``CycleSink`` for one drive: its cycles, its feedback and its events as
+    records of ``lane`` in ``log``'s batches (the :class:`RunLog` itself for a single-axis
+    run, lane 0; one per axis of a several-axis log). ``drive`` (its ``status``) and
+    ``truth`` (the emulator's ``(q, dq, tau_motor, tau_int)``) are this lane's drive and plant."""
 
-    def __init__(self, writer: WriterProcess, *, live: LiveView | None = None) -> None:
-        self.writer, self.live = writer, live
-        self.clock_ns: Callable[[], int] = time.time_ns
+    def __init__(self, log: RunLog, lane: int = 0) -> None:
+        self._log = log
+        self.lane = lane
+        self._cycle, self._feedback, self._events = (lane_kind(k, lane) for k in (CYCLE, _FEEDBACK, _EVENTS))
         self.truth: Callable[[], tuple[float, float, float, float]] | None = None
         self.drive: Any = SimpleNamespace(status=SimpleNamespace(state=0, protocol_state=-1, error_code=0))
+
+    def cycle(self, k: int, t: float, fb: Any, out: Sequence[float], period_error: float, exec_time: float,
+              overrun: bool) -> None:
+        """The ``CycleSink`` hook: a cycle record (a ``schemas.CycleRecord``, built as a plain
+        tuple in its field order: see ``schemas``); the one place a writer failure is raised
+        on the loop thread, after the cycle's command went out."""
+        log = self._log
+        records, status, truth = log.records, self.drive.status, self.truth
+        # the loop's measure (dobhil.drives.base.Feedback.sample_latency): NaN on a simulated
+        # log clock, where the stamps are of two clocks
+        sampled = _NAN if log.simulated else getattr(fb, "sample_latency", _NAN)
+        records.append((self._cycle, log.clock_ns(), k, fb.position, fb.velocity, fb.seq, *out, period_error,
+                        exec_time, overrun, sampled, status.state, status.protocol_state, status.error_code,
+                        *(truth() if truth is not None else ())))
+        if len(records) >= BATCH_RECORDS or log._failure is not None:
+            log.flush()
+
+    def started(self, fb: Any) -> None:
+        """The feedback ``controller.initialize`` used (``cycle = -1``) and the enable event."""
+        status = self.drive.status
+        t = self._log.clock_ns()
+        self._log.record(RECORD_TYPES[_FEEDBACK](
+            kind=self._feedback, log_time_ns=t, position=fb.position, velocity=fb.velocity,
+            drive_state=int(status.state), protocol_state=status.protocol_state, protocol_error=status.error_code,
+            seq=fb.seq, cycle=-1))
+        self.event(EventKind.ENABLE, "drive enabled", f"seq {fb.seq}")
+
+    def stop(self, stop: Any) -> None:
+        """The loop has stopped; :meth:`RunLog.end` hands the rest over, none dropped."""
+
+    def safe_stop(self, report: Any) -> None:
+        """The sink's safe-stop hook: one ``disable`` event per safe-stop frame (sent or why
+        not), then what the drive confirmed (a ``fault`` event with the loud line when it
+        may still be enabled; a ``disable`` event with the note of a drive that cannot
+        confirm by design, at a planned end)."""
+        for frame in report.frames:
+            self.event(EventKind.DISABLE, f"{frame.what}: {'sent' if frame.sent else 'not sent'}", frame.error)
+        warning = report.warning()
+        self.event(EventKind.FAULT if warning else EventKind.DISABLE,
+                   f"safe stop: {report.confirmation.name.lower()}", warning or report.note() or report.detail)
+
+    def event(self, kind: EventKind, reason: str, detail: str = "") -> None:
+        """An event of this lane (``/events`` in lane 0) after everything appended so far
+        (events are never dropped)."""
+        self._log.record(EventRecord(self._events, self._log.clock_ns(), int(kind), reason, detail, 0))
+
+
+class RunLog(LaneSink):
+    """Records one run through ``writer`` (started, not yet open: records wait until
+    :meth:`begin`, as a preflight talks on the tapped bus): the batches, the loss accounting
+    and the bus taps of every lane, and itself the sink of lane 0 (a single-axis run)."""
+
+    def __init__(self, writer: WriterProcess, *, live: LiveView | None = None) -> None:
+        super().__init__(self, 0)
+        self.writer, self.live = writer, live
+        self.clock_ns: Callable[[], int] = time.time_ns
         self.records: list[tuple[Any, ...]] = []
         #: foreign frames (real time, the drive's ids known), else the same list as ``records``
         self.foreign: list[tuple[Any, ...]] = self.records
         self.shed = 0  # foreign frames dropped since the last loss event
-        self._own: frozenset[int] = frozenset()
+        self._own: dict[int, frozenset[int]] = {}  # received frames' kind -> the ids not foreign there
         self.tap: RecordingBus | None = None
-        self._simulated = False  # lockstep: frames stamped on the simulated log clock
+        self.simulated = False  # lockstep: frames stamped on the simulated log clock
         self._failure: RecorderError | None = None
         self._closed = False
 
@@ -134,49 +196,39 @@ class RunLog:
         """The live view's port (after :meth:`begin`), None without one."""
         return None if self._closed else self.writer.live_port
 
-    def wrap_bus(self, bus: can.BusABC) -> can.BusABC:
-        """The session's ``bus_wrapper``: every frame on ``/can/rx`` and ``/can/tx``."""
-        self.tap = RecordingBus(bus, self)
+    def wrap_bus(self, bus: can.BusABC, lane: int = 0) -> can.BusABC:
+        """The session's ``bus_wrapper``: every frame on ``/can/rx`` and ``/can/tx`` (of ``lane``)."""
+        self.tap = RecordingBus(bus, self, lane)
         return self.tap
 
     def begin(self, *, metadata: Mapping[str, Mapping[str, Any]], attachments: Sequence[tuple[str, str, bytes]],
               lossy: bool, clock_ns: Callable[[], int] | None = None,
               truth: Callable[[], tuple[float, float, float, float]] | None = None, drive: Any = None,
-              own_ids: Collection[int] | None = None, codes: ProtocolCodes | None = None) -> None:
+              own_ids: Collection[int] | None = None, codes: ProtocolCodes | None = None,
+              lanes: Sequence[Lane] = (), own: Mapping[int, Collection[int]] | None = None) -> None:
         """Header and metadata; the log clock, the emulator truth ``(q, dq, tau_motor, tau_int)``
         and the drive (its ``status.state``, ``status.protocol_state`` and ``status.error_code``
         go to ``/drive/feedback``, the last two named by ``codes``);
         ``own_ids``: the arbitration ids of the drive's frames (``lossy`` only: other frames
-        received are foreign, shed first; None: every frame is the loop's own)."""
+        received are foreign, shed first; None: every frame is the loop's own).
+        A several-axis log gives ``lanes`` (:class:`~dobhil.recording.writer.LogWriter`) and
+        ``own``: per lane of a bus, the ids of its drives' frames (a lane not in it: none foreign)."""
         assert not self._closed, "the log is closed"
         mode = RecordMode.LOSSY if lossy else RecordMode.BACKPRESSURE
-        self.writer.open(metadata, attachments, mode, self.live, early=self.take(), codes=codes)
-        if lossy and own_ids is not None:
-            self._own, self.foreign = frozenset(own_ids), []
+        self.writer.open(metadata, attachments, mode, self.live, early=self.take(), codes=codes, lanes=lanes)
+        owned = dict(own or {}) if own_ids is None else {0: own_ids}
+        if lossy and owned:
+            self._own, self.foreign = {lane_kind(_RX, lane): frozenset(ids) for lane, ids in owned.items()}, []
         self.clock_ns = clock_ns or time.time_ns
-        self._simulated = clock_ns is not None
+        self.simulated = clock_ns is not None
         self.truth = truth
         if drive is not None:
             self.drive = drive
 
-    def cycle(self, k: int, t: float, fb: Any, out: Sequence[float], period_error: float, exec_time: float,
-              overrun: bool) -> None:
-        """The ``CycleSink`` hook: a cycle record (a ``schemas.CycleRecord``, built as a plain
-        tuple in its field order: see ``schemas``); the one place a writer failure is raised
-        on the loop thread, after the cycle's command went out."""
-        records, status, truth = self.records, self.drive.status, self.truth
-        # the loop's measure (dobhil.drives.base.Feedback.sample_latency): NaN on a simulated
-        # log clock, where the stamps are of two clocks
-        sampled = _NAN if self._simulated else getattr(fb, "sample_latency", _NAN)
-        records.append((0, self.clock_ns(), k, fb.position, fb.velocity, fb.seq, *out, period_error, exec_time,
-                        overrun, sampled, status.state, status.protocol_state, status.error_code,
-                        *(truth() if truth is not None else ())))
-        if len(records) >= BATCH_RECORDS or self._failure is not None:
-            self.flush()
-
     def frame(self, topic: int, msg: Any) -> None:
-        """A frame as it is now (the drive refills its torque message; python-can hands out
-        a new message per receive): ``schemas.can_frame_record`` spelled out for speed (a
+        """A frame (``topic``: ``/can/rx`` or ``/can/tx``'s kind in its bus's lane) as it is
+        now (the drive refills its torque message; python-can hands out a new message per
+        receive): ``schemas.can_frame_record`` spelled out for speed (a
         ``FrameRecord`` as a plain tuple in its field order).
         A foreign frame beyond ``FOREIGN_CAP`` is shed here (counted): a flood costs the
         loop a count, not a record. Never raises into the bus call that recorded it.
@@ -187,14 +239,15 @@ class RunLog:
         In lockstep (a simulated log clock) both directions get the simulated time, so a
         CAN export of the run has one time base."""
         try:
-            if topic == _RX and (own := self._own) and msg.arbitration_id not in own:
-                self._foreign_frame(msg)
+            rx = topic & LANE_MASK == _RX
+            if rx and (own := self._own.get(topic)) and msg.arbitration_id not in own:
+                self._foreign_frame(topic, msg)
                 return
             records, t = self.records, self.clock_ns()
-            stamp = t / 1e9 if topic == _TX or self._simulated else msg.timestamp
+            stamp = msg.timestamp if rx and not self.simulated else t / 1e9
             records.append((topic, t, msg.arbitration_id, msg.is_extended_id, msg.is_remote_frame,
                             msg.is_error_frame, msg.is_fd, msg.bitrate_switch, msg.error_state_indicator, msg.dlc,
-                            msg.data if topic == _RX else bytes(msg.data), stamp, msg.channel))
+                            msg.data if rx else bytes(msg.data), stamp, msg.channel))
             if len(records) >= 4 * BATCH_RECORDS:  # no cycle for a while: enable, preflight
                 self.flush()
         except RecorderError as exc:
@@ -202,13 +255,13 @@ class RunLog:
         except Exception as exc:  # not a python-can message
             self._failure = self.writer.refuse(f"cannot encode a CAN frame: {exception_line(exc)}")
 
-    def _foreign_frame(self, msg: Any) -> None:
+    def _foreign_frame(self, topic: int, msg: Any) -> None:
         """A received frame of another participant: kept up to ``FOREIGN_CAP``, else shed."""
         foreign = self.foreign
         if len(foreign) >= FOREIGN_CAP:
             self.shed += 1
             return
-        foreign.append((_RX, self.clock_ns(), msg.arbitration_id, msg.is_extended_id, msg.is_remote_frame,
+        foreign.append((topic, self.clock_ns(), msg.arbitration_id, msg.is_extended_id, msg.is_remote_frame,
                         msg.is_error_frame, msg.is_fd, msg.bitrate_switch, msg.error_state_indicator, msg.dlc,
                         msg.data, msg.timestamp, msg.channel))
 
@@ -235,7 +288,7 @@ class RunLog:
     def _drop(self, records: list[tuple[Any, ...]]) -> None:
         """A batch the writer had no room for: its events kept for the next, a ``loss`` event
         counting the rest (read by name: this path is rare)."""
-        kept = [r for r in map(named, records) if r.kind == _EVENTS]
+        kept = [r for r in map(named, records) if r.kind & LANE_MASK == _EVENTS]
         lost, carried = sum(message_count(r) for r in records) - len(kept), 0
         if len(kept) > BATCH_RECORDS:  # a writer stuck for good: memory stays bounded
             carried = sum(r.lost for r in kept if r.event == _LOSS)  # earlier losses fold into this one
@@ -277,33 +330,6 @@ class RunLog:
             self.foreign = self.records
         return records
 
-    def started(self, fb: Any) -> None:
-        """The feedback ``controller.initialize`` used (``cycle = -1``) and the enable event."""
-        status = self.drive.status
-        t = self.clock_ns()
-        self.record(RECORD_TYPES[_FEEDBACK](kind=_FEEDBACK, log_time_ns=t, position=fb.position, velocity=fb.velocity,
-                                            drive_state=int(status.state), protocol_state=status.protocol_state,
-                                            protocol_error=status.error_code, seq=fb.seq, cycle=-1))
-        self.record(event_record(EventKind.ENABLE, t, "drive enabled", f"seq {fb.seq}"))
-
-    def stop(self, stop: Any) -> None:
-        """The loop has stopped; :meth:`end` hands the rest over, none dropped."""
-
-    def safe_stop(self, report: Any) -> None:
-        """The sink's safe-stop hook: one ``disable`` event per safe-stop frame (sent or why
-        not), then what the drive confirmed (a ``fault`` event with the loud line when it
-        may still be enabled; a ``disable`` event with the note of a drive that cannot
-        confirm by design, at a planned end)."""
-        for frame in report.frames:
-            self.event(EventKind.DISABLE, f"{frame.what}: {'sent' if frame.sent else 'not sent'}", frame.error)
-        warning = report.warning()
-        self.event(EventKind.FAULT if warning else EventKind.DISABLE,
-                   f"safe stop: {report.confirmation.name.lower()}", warning or report.note() or report.detail)
-
-    def event(self, kind: EventKind, reason: str, detail: str = "") -> None:
-        """An ``/events`` record after everything appended so far (events are never dropped)."""
-        self.record(event_record(kind, self.clock_ns(), reason, detail))
-
     def end(self, stop_reason: str | None, detail: str = "") -> None:
         """The last records, the stop event, summary and footer; waits for the writer.
         Raises :class:`~dobhil.errors.RecorderError` if the writer failed (once)."""
@@ -313,4 +339,4 @@ class RunLog:
         self.writer.close(stop_reason, detail, rest=self.take())
 
 
-__all__ = ["BATCH_RECORDS", "FOREIGN_CAP", "FOREIGN_ROOM", "RecordingBus", "RunLog"]
+__all__ = ["BATCH_RECORDS", "FOREIGN_CAP", "FOREIGN_ROOM", "LaneSink", "RecordingBus", "RunLog"]

@@ -28,6 +28,12 @@ SCHEMA_ENCODING: Final = "jsonschema"
 MESSAGE_ENCODING: Final = "json"
 #: First element of a cycle record (topic records start with their Topic).
 CYCLE: Final = 0
+#: A record's kind is ``base + LANE_STRIDE * lane``: ``base`` is CYCLE or a Topic, ``lane``
+#: the topic prefix its messages go under (0: none, the single-axis topics; a several-axis
+#: log gives each axis and each bus a lane, :mod:`dobhil.recording.axeslog`). Topics and
+#: CYCLE are below it, so ``kind & LANE_MASK`` is the base.
+LANE_STRIDE: Final = 16
+LANE_MASK: Final = LANE_STRIDE - 1
 
 
 class Topic(IntEnum):
@@ -388,13 +394,19 @@ _new = tuple.__new__
 
 
 def named(record: Sequence[Any]) -> Any:
-    """``record`` as its named type (a copy; no check of its values): its fields by name."""
-    return _new(RECORD_TYPES[record[0]], record)
+    """``record`` as its named type (a copy; no check of its values): its fields by name
+    (``kind`` keeps its lane)."""
+    return _new(RECORD_TYPES[record[0] & LANE_MASK], record)
 
 
 def message_count(record: Sequence[Any]) -> int:
     """How many messages a record becomes (loss accounting)."""
-    return sum(len(record) >= needs for _, _, needs in VIEWS[record[0]])
+    return sum(len(record) >= needs for _, _, needs in VIEWS[record[0] & LANE_MASK])
+
+
+def lane_kind(base: int, lane: int) -> int:
+    """The record kind of ``base`` (CYCLE or a Topic) in ``lane``."""
+    return int(base) + LANE_STRIDE * lane
 
 
 def event_record(kind: EventKind, log_time_ns: int, reason: str, detail: str = "", count: int = 0) -> EventRecord:
@@ -406,8 +418,10 @@ def decode(data: bytes) -> dict[str, Any]:
     return orjson.loads(data)
 
 
-__all__ = ["CYCLE", "CYCLE_FIELDS", "DRIVE_STATE_NAMES", "FRAME_ATTRIBUTES", "MESSAGE_ENCODING", "RECORD_TYPES",
+__all__ = ["CYCLE", "CYCLE_FIELDS", "DRIVE_STATE_NAMES", "FRAME_ATTRIBUTES", "LANE_MASK", "LANE_STRIDE",
+           "MESSAGE_ENCODING", "RECORD_TYPES",
            "SCHEMA_ENCODING", "SPECS_BY_NAME", "TOPIC_SPECS", "VIEWS", "CycleRecord", "EventKind", "EventRecord",
            "Field", "FieldKind", "FrameRecord", "Topic", "TopicSpec", "can_frame_message", "can_frame_payload",
-           "can_frame_record", "decode", "drive_state_name", "event_record", "feedback_state", "message_count", "named",
+           "can_frame_record", "decode", "drive_state_name", "event_record", "feedback_state", "lane_kind",
+           "message_count", "named",
            "spec_for", "views"]

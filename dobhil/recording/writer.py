@@ -12,14 +12,14 @@ import time
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from enum import IntEnum
-from typing import Any, BinaryIO, Final, Protocol
+from typing import Any, BinaryIO, Final, NamedTuple, Protocol
 
 from mcap.writer import CompressionType, Writer
 
 from dobhil import __version__
 from dobhil.recording.codes import ProtocolCodes
-from dobhil.recording.schemas import (MESSAGE_ENCODING, SCHEMA_ENCODING, TOPIC_SPECS, EventKind, Topic, event_record,
-                                      named, views)
+from dobhil.recording.schemas import (LANE_MASK, MESSAGE_ENCODING, SCHEMA_ENCODING, TOPIC_SPECS, EventKind, Topic,
+                                      event_record, lane_kind, named, views)
 
 #: Chunks end at this size or at every flush, whichever comes first.
 CHUNK_SIZE: Final = 256 * 1024
@@ -68,8 +68,37 @@ class LiveView:
     port: int
 
 
-_NAMES: Final = {t: s.name for t, s in TOPIC_SPECS.items()}
 _EVENTS, _LOSS = int(Topic.EVENTS), int(EventKind.LOSS)
+class Lane(NamedTuple):
+    """One lane of a log (a record's lane is in its kind:
+    :data:`~dobhil.recording.schemas.LANE_STRIDE`): the prefix of its topics ("" for the
+    single-axis topics, "/axis/left" for an axis'), the codes naming its drive's states
+    (None: numbers) and the topics it has (empty: every topic of the table)."""
+
+    prefix: str
+    codes: ProtocolCodes | None = None
+    topics: tuple[Topic, ...] = ()
+
+    def names(self) -> tuple[tuple[str, Topic], ...]:
+        """(topic name, topic) of each of its topics."""
+        return tuple((self.prefix + TOPIC_SPECS[t].name, t) for t in (self.topics or tuple(TOPIC_SPECS)))
+
+
+#: (topic name, topic, encoder, shortest record holding its values) of a message of a record
+_LaneView = tuple[str, Topic, Callable[[Any], bytes], int]
+
+
+def lane_views(lanes: Sequence[Lane]) -> dict[int, tuple[_LaneView, ...]]:
+    """Record kind (base and lane) -> the messages it becomes, under the lane's prefix (a
+    record a lane has no topic for has no kind here: the writer refuses it)."""
+    out: dict[int, tuple[_LaneView, ...]] = {}
+    for lane, (prefix, codes, topics) in enumerate(lanes):
+        for base, views_of in views(codes).items():
+            mine = tuple((prefix + TOPIC_SPECS[topic].name, topic, encode, needs)
+                         for topic, encode, needs in views_of if not topics or topic in topics)
+            if mine:
+                out[lane_kind(base, lane)] = mine
+    return out
 
 
 class LogWriter:
@@ -79,14 +108,18 @@ class LogWriter:
     def __init__(self, file: BinaryIO, *, metadata: Mapping[str, Mapping[str, Any]],
                  attachments: Iterable[Sequence[Any]] = (), mode: RecordMode = RecordMode.BACKPRESSURE,
                  fsync: bool = True, library: str = LIBRARY, compression: CompressionType = COMPRESSION,
-                 chunk_size: int = CHUNK_SIZE, codes: ProtocolCodes | None = None) -> None:
+                 chunk_size: int = CHUNK_SIZE, codes: ProtocolCodes | None = None,
+                 lanes: Sequence[Lane] = ()) -> None:
         self.file = file
-        self._views = views(codes)  # codes: the drive's state and error codes by name
+        #: the topic prefix and codes of each lane (:data:`Lane`); one lane without prefix,
+        #: its drive's codes named by ``codes``, unless given
+        self.lanes: tuple[Lane, ...] = tuple(Lane(*lane) for lane in lanes) or (Lane("", codes),)
+        self._views = lane_views(self.lanes)
         self.mode = RecordMode(mode)
         self.fsync = fsync
         self.written = self.dropped = self.last_log_ns = 0
         self._outputs: list[Output] = []
-        self._channels: dict[Topic, int] = {}  # registered on a topic's first message
+        self._channels: dict[str, int] = {}  # topic name -> channel, registered on its first message
         self._schemas: dict[str, int] = {}
         self._mcap = Writer(file, chunk_size=chunk_size, compression=compression, enable_data_crcs=True)
         self._mcap.start(profile="", library=library)
@@ -98,14 +131,19 @@ class LogWriter:
         file.flush()
 
     def register(self, *topics: Topic) -> None:
-        """Channels for ``topics`` now (they are registered on first use otherwise)."""
-        for topic in (t for t in topics if t not in self._channels):
-            self._register(topic)
+        """Channels for ``topics`` (of the first lane) now (they are registered on first use otherwise)."""
+        prefix = self.lanes[0][0]
+        for topic in topics:
+            if prefix + TOPIC_SPECS[topic].name not in self._channels:
+                self._register(prefix + TOPIC_SPECS[topic].name, topic)
 
     def add_output(self, output: Output) -> None:
-        """Send every message to ``output`` as well, every topic of the table announced now."""
-        for spec in TOPIC_SPECS.values():
-            output.add_channel(spec.name, schema_name=spec.schema_name, json_schema=spec.json_schema())
+        """Send every message to ``output`` as well, every topic of the table announced now
+        (under each lane's prefix)."""
+        for lane in self.lanes:
+            for name, topic in lane.names():
+                spec = TOPIC_SPECS[topic]
+                output.add_channel(name, schema_name=spec.schema_name, json_schema=spec.json_schema())
         self._outputs.append(output)
 
     def write(self, records: Iterable[Sequence[Any]]) -> None:
@@ -115,15 +153,15 @@ class LogWriter:
         views_of = self._views
         for record in map(named, records):
             t, n = record.log_time_ns, len(record)
-            if record.kind == _EVENTS and record.event == _LOSS:  # the sender's count of messages it dropped
+            if record.kind & LANE_MASK == _EVENTS and record.event == _LOSS:  # the sender's count of its drops
                 self.dropped += record.lost
-            for topic, encode, needs in views_of[record.kind]:
+            for name, topic, encode, needs in views_of[record.kind]:
                 if n >= needs:
                     data = encode(record)
-                    add(channels.get(topic) or self._register(topic), t, data, t)
+                    add(channels.get(name) or self._register(name, topic), t, data, t)
                     written += 1
                     for out in outputs:
-                        out.publish(_NAMES[topic], data, t)
+                        out.publish(name, data, t)
             last = max(last, t)
         self.written, self.last_log_ns = written, last
 
@@ -160,15 +198,17 @@ class LogWriter:
         except OSError:
             pass
 
-    def _register(self, topic: Topic) -> int:
+    def _register(self, name: str, topic: Topic) -> int:
+        """The channel ``name`` of ``topic``'s schema (one schema per topic of the table,
+        shared by every lane's channel of it)."""
         spec = TOPIC_SPECS[topic]
         schema = self._schemas.get(spec.schema_name)
         if schema is None:
             schema = self._schemas[spec.schema_name] = self._mcap.register_schema(
                 spec.schema_name, SCHEMA_ENCODING, spec.schema_bytes())
-        channel = self._channels[topic] = self._mcap.register_channel(spec.name, MESSAGE_ENCODING, schema)
+        channel = self._channels[name] = self._mcap.register_channel(name, MESSAGE_ENCODING, schema)
         return channel  # > 0: the writer numbers channels from 1
 
 
-__all__ = ["CHUNK_SIZE", "COMPRESSION", "LIBRARY", "RECORDING_METADATA", "LiveOutput", "LiveView", "LogWriter",
-           "Output", "RecordMode"]
+__all__ = ["CHUNK_SIZE", "COMPRESSION", "LIBRARY", "RECORDING_METADATA", "Lane", "LiveOutput", "LiveView",
+           "LogWriter", "Output", "RecordMode", "lane_views"]
