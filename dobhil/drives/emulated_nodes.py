@@ -25,6 +25,7 @@ the bus itself (the runner reads for all). The shared bus is borrowed: the calle
 from __future__ import annotations
 
 import math
+import threading
 import time
 from collections.abc import Callable, Sequence
 from typing import Any
@@ -33,6 +34,7 @@ import can
 
 from dobhil.drives.emulated import _MAX_BATCH, _MAX_LAG_PERIODS, EmulatedDrive, tick_period
 from dobhil.errors import BusError, exception_line
+from dobhil.realtime import lower_priority
 
 __all__ = ["EmulatedNodes", "NodeTap"]
 
@@ -71,6 +73,8 @@ class EmulatedNodes:
         self._next_tick: can.Message | None = None
         self._least_lag = math.inf
         self._stopped = False
+        self._thread: threading.Thread | None = None
+        self._error: BaseException | None = None
         self.overruns = 0
 
     def tap(self) -> NodeTap:
@@ -109,9 +113,44 @@ class EmulatedNodes:
             drive.deliver(msg)
         self._flush_crosstalk()
 
-    def stop(self) -> None:
-        """End :meth:`run_realtime` after the tick under way (from another thread)."""
+    def start(self, *, priority_drop: int = 0) -> None:
+        """Run on a thread of its own, its nice value raised by ``priority_drop`` where the
+        OS allows (below the control loop), as :meth:`EmulatedDrive.start` runs one node."""
+        if self._thread is not None:
+            raise RuntimeError("emulated nodes already started")
+        self.prepare()
+        self._stopped = False
+        self._thread = threading.Thread(target=self._run_guarded, args=(priority_drop,),
+                                        name=f"EmulatedNodes-{len(self.drives)}")
+        self._thread.start()
+
+    def stop(self, timeout: float = 2.0) -> None:
+        """End :meth:`run_realtime` after the tick under way; with a thread of :meth:`start`,
+        join it and re-raise what it raised (a BusError: the bus was lost)."""
         self._stopped = True
+        thread, self._thread = self._thread, None
+        if thread is None:
+            return
+        thread.join(timeout)
+        if thread.is_alive():
+            raise RuntimeError(f"{thread.name} did not stop within {timeout} s")
+        error, self._error = self._error, None
+        if error is not None:
+            raise error
+
+    @property
+    def alive(self) -> bool:
+        """The thread of :meth:`start` runs (False once it ended by itself: its bus failed)."""
+        thread = self._thread
+        return thread is not None and thread.is_alive()
+
+    def _run_guarded(self, priority_drop: int) -> None:
+        try:
+            if priority_drop:
+                lower_priority(priority_drop)   # this thread only (Linux)
+            self.run_realtime()
+        except BaseException as exc:   # surfaced by stop()
+            self._error = exc
 
     # -- real time ------------------------------------------------------------------
 
