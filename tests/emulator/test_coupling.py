@@ -247,3 +247,25 @@ def test_three_axes_in_a_chain_match_the_stacked_system() -> None:
 
     coarse, fine = (float(np.abs(emulated(h) - reference(h)).max()) for h in (1e-3, 5e-4))
     assert fine <= coarse * 0.25 * 1.5, (coarse, fine)
+
+
+def test_friction_holds_a_coupled_axis_until_the_spring_exceeds_it() -> None:
+    """Axis a (Coulomb friction 1 N m) is dragged by b through a 100 N m/rad spring; b moves at
+    a constant 0.5 rad/s (a heavy servo on a steady torque). a sticks, exactly, while the
+    spring's pull is below 1 N m and slides once it is above: the Karnopp decision sees the
+    coupling's own spring (Plant.couple), not only the environment's."""
+    # both start at 0.3 rad: the spring's own part of the torque there, -K q_a, is large
+    pa = Plant(inertia=0.05, coulomb_friction=1.0, initial_position=0.3)
+    pb = Plant(inertia=1e6, initial_velocity=0.5, initial_position=0.3)
+    plants = couple_plants({"a": pa, "b": pb}, [Coupling("a", "b", 100.0, 0.0)])
+    slid_at = None
+    for i in range(400):
+        plants["a"].step(0.0, 1e-3)
+        plants["b"].step(0.0, 1e-3)
+        pull = 100.0 * (pb.true_position - pa.true_position)
+        if slid_at is None and pa.true_position != 0.3:
+            slid_at = pull
+        if slid_at is None:
+            assert pa.true_velocity == 0.0
+    # it broke away in the step the pull crossed 1 N m (b moves 0.05 N m of pull per step)
+    assert slid_at is not None and 1.0 <= slid_at <= 1.0 + 0.05 + 1e-9, slid_at
