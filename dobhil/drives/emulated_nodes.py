@@ -126,17 +126,23 @@ class EmulatedNodes:
 
     def stop(self, timeout: float = 2.0) -> None:
         """End :meth:`run_realtime` after the tick under way; with a thread of :meth:`start`,
-        join it and re-raise what it raised (a BusError: the bus was lost)."""
+        join it and re-raise what it raised (a BusError: the bus was lost). The nodes' taps
+        are closed (the shared bus is the caller's)."""
         self._stopped = True
         thread, self._thread = self._thread, None
-        if thread is None:
-            return
-        thread.join(timeout)
-        if thread.is_alive():
-            raise RuntimeError(f"{thread.name} did not stop within {timeout} s")
-        error, self._error = self._error, None
-        if error is not None:
-            raise error
+        try:
+            if thread is None:
+                return
+            thread.join(timeout)
+            if thread.is_alive():
+                raise RuntimeError(f"{thread.name} did not stop within {timeout} s")
+            error, self._error = self._error, None
+            if error is not None:
+                raise error
+        finally:
+            if thread is None or not thread.is_alive():
+                for tap in self._taps:
+                    tap.shutdown()
 
     @property
     def alive(self) -> bool:

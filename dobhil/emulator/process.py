@@ -709,9 +709,12 @@ def _serve_nodes(bus: PipeBus, status: list[Any], specs: Sequence[EmulatorSpec],
     gc.freeze()
     bus.send_text(RecordKind.READY, ", ".join(f"{s.name}: {s.profile.protocol} node {s.profile.node_id}"
                                               for s in specs))
-    if any(s.on_first_frame for s in specs):
-        bus.wait_readable()
-    nodes.run_realtime(publish, _periodic_sender(bus, nodes))
+    try:
+        if any(s.on_first_frame for s in specs):
+            bus.wait_readable()
+        nodes.run_realtime(publish, _periodic_sender(bus, nodes))
+    finally:
+        nodes.stop()   # the nodes' taps closed, as the one drive's bus is
 
 
 def _periodic_sender(bus: PipeBus, emulator: Any) -> Callable[[], None]:

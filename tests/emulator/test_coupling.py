@@ -20,7 +20,7 @@ from hypothesis import strategies as st
 from scipy.linalg import expm
 
 from dobhil.config.axes import Coupling
-from dobhil.emulator.coupling import CoupledPlant, couple_plants
+from dobhil.emulator.coupling import CoupledPlant, couple_plants, step_limit
 from dobhil.emulator.plant import Plant
 
 Torque = Callable[[str, float], float]
@@ -33,7 +33,7 @@ SPLIT = 0.3                   # axis a's command latches 0.3 of the way into eac
 T_END = 0.2
 
 
-def _pair(k: float, d: float) -> tuple[CoupledPlant, CoupledPlant]:
+def pair(k: float, d: float) -> tuple[CoupledPlant, CoupledPlant]:
     pa = Plant(inertia=JA, viscous_friction=BA, stiffness=KE, damping=DE, contact_position=QC,
                initial_position=Q0)
     pb = Plant(inertia=JB, viscous_friction=BB, initial_position=Q0)
@@ -43,8 +43,8 @@ def _pair(k: float, d: float) -> tuple[CoupledPlant, CoupledPlant]:
     return a, b
 
 
-def _emulated(dt: float, k: float, d: float, torque: Torque) -> np.ndarray:
-    a, b = _pair(k, d)
+def emulated(dt: float, k: float, d: float, torque: Torque) -> np.ndarray:
+    a, b = pair(k, d)
     out = []
     for i in range(round(T_END / dt)):
         t = i * dt
@@ -55,7 +55,7 @@ def _emulated(dt: float, k: float, d: float, torque: Torque) -> np.ndarray:
     return np.array(out)
 
 
-def _reference(dt: float, k: float, d: float, torque: Torque) -> np.ndarray:
+def reference(dt: float, k: float, d: float, torque: Torque) -> np.ndarray:
     """x = [q_a, dq_a, q_b, dq_b]; inputs [u_a, u_b, 1] (the 1 carries K_e q_c)."""
     a = np.array([[0.0, 1.0, 0.0, 0.0],
                   [-(KE + k) / JA, -(BA + DE + d) / JA, k / JA, d / JA],
@@ -80,28 +80,28 @@ def _reference(dt: float, k: float, d: float, torque: Torque) -> np.ndarray:
     return np.array(out)
 
 
-def _smooth(axis: str, t: float) -> float:
+def smooth(axis: str, t: float) -> float:
     return 60.0 + 5.0 * math.sin(20.0 * t) if axis == "a" else math.cos(13.0 * t)
 
 
-def _jumps(seed: int) -> Torque:
+def jumps(seed: int) -> Torque:
     """Random torque steps every 2 ms (a slower loop's commands), on both axes."""
     steps = np.random.default_rng(seed).uniform(-3.0, 3.0, (2, 1 + round(T_END / 0.002)))
     return lambda axis, t: (60.0 if axis == "a" else 0.0) + float(steps[int(axis == "b"), int(t / 0.002 + 1e-9)])
 
 
-@pytest.mark.parametrize(("k", "d", "torque"), [(2e4, 0.0, _smooth), (2e4, 20.0, _smooth),
-                                                (2e3, 20.0, _smooth), (2e4, 20.0, _jumps(3))])
+@pytest.mark.parametrize(("k", "d", "torque"), [(2e4, 0.0, smooth), (2e4, 20.0, smooth),
+                                                (2e3, 20.0, smooth), (2e4, 20.0, jumps(3))])
 def test_second_order_against_the_stacked_system(k: float, d: float, torque: Torque) -> None:
     """The scheme is second order (coupling.py): halving the step divides the largest error
     over the run by 4 in the limit. The bound for each step is the error measured at twice
     the step times (1/2)^2, with 1.5 for the approach to the limit; the first step is also
     bounded by a plain physical check (the errors are small against the motion)."""
     steps = (2e-3, 1e-3, 5e-4, 2.5e-4)
-    errors = [float(np.abs(_emulated(h, k, d, torque) - _reference(h, k, d, torque)).max()) for h in steps]
+    errors = [float(np.abs(emulated(h, k, d, torque) - reference(h, k, d, torque)).max()) for h in steps]
     for coarse, fine in zip(errors, errors[1:]):
         assert fine <= coarse * 0.25 * 1.5, errors
-    motion = float(np.abs(np.diff(_reference(steps[-1], k, d, torque), axis=0)).sum(axis=0).max())
+    motion = float(np.abs(np.diff(reference(steps[-1], k, d, torque), axis=0)).sum(axis=0).max())
     assert errors[1] < 1e-2 * motion, (errors, motion)
 
 
@@ -259,7 +259,7 @@ def test_friction_holds_a_coupled_axis_until_the_spring_exceeds_it() -> None:
     pb = Plant(inertia=1e6, initial_velocity=0.5, initial_position=0.3)
     plants = couple_plants({"a": pa, "b": pb}, [Coupling("a", "b", 100.0, 0.0)])
     slid_at = None
-    for i in range(400):
+    for _ in range(400):
         plants["a"].step(0.0, 1e-3)
         plants["b"].step(0.0, 1e-3)
         pull = 100.0 * (pb.true_position - pa.true_position)
@@ -269,3 +269,24 @@ def test_friction_holds_a_coupled_axis_until_the_spring_exceeds_it() -> None:
             assert pa.true_velocity == 0.0
     # it broke away in the step the pull crossed 1 N m (b moves 0.05 N m of pull per step)
     assert slid_at is not None and 1.0 <= slid_at <= 1.0 + 0.05 + 1e-9, slid_at
+
+
+@pytest.mark.parametrize(("ja", "jb"), [(0.25, 0.25), (0.01, 1.0), (1.0, 0.01)])
+def test_the_step_limit_is_a_stable_step(ja: float, jb: float) -> None:
+    """At the step :func:`step_limit` gives, the undamped pair loses energy over 20 s."""
+    k = 2e4
+    dt = step_limit({"a": ja, "b": jb}, [Coupling("a", "b", k, 0.0), Coupling("a", "b", 0.0, 5.0)])
+    assert dt == pytest.approx(2.0 / math.sqrt(k * (1 / ja + 1 / jb)), rel=1e-15)
+    pa, pb = Plant(inertia=ja, initial_position=0.01), Plant(inertia=jb)
+    plants = couple_plants({"a": pa, "b": pb}, [Coupling("a", "b", k, 0.0)])
+
+    def energy() -> float:
+        return 0.5 * (ja * pa.true_velocity ** 2 + jb * pb.true_velocity ** 2) + \
+            0.5 * k * (pa.true_position - pb.true_position) ** 2
+
+    start = energy()
+    for _ in range(round(20.0 / dt)):
+        plants["a"].step(0.0, dt)
+        plants["b"].step(0.0, dt)
+    assert energy() < start
+    assert step_limit({"a": ja, "b": jb}, [Coupling("a", "b", 0.0, 5.0)]) == math.inf
