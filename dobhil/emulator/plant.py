@@ -271,10 +271,6 @@ class Plant:
         self._cache.clear()
         self._dt, self._zoh = math.nan, None
 
-    @property
-    def coupled(self) -> bool:
-        return self.coupling_stiffness != 0.0 or self.coupling_damping != 0.0
-
     # -- state ----------------------------------------------------------------
 
     def reset(self) -> None:

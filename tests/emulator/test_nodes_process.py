@@ -129,3 +129,39 @@ def test_refuses_nodes_one_bus_cannot_carry(tmp_path: Path) -> None:
         EmulatorProcess([specs[0], dataclasses.replace(specs[1], name="left")])
     with pytest.raises(ValueError, match="no node of axis 'up'"):
         EmulatorProcess(specs, couplings=[Coupling("left", "up", 1.0, 0.0)])
+
+
+def test_an_odrive_and_an_mit_motor_share_the_bus(tmp_path: Path) -> None:
+    """Two protocols in one process: the MIT motor (id 5) answers its own frames on the
+    master id, the ODrive (node 1) goes on streaming and applies none of them."""
+    from dobhil.config import load_config
+
+    from .mit_rig import MINI_CHEETAH, mit_profile
+    from .test_mit_emulator import AK_ONE_NM, ENTER
+
+    odrive = _specs(_axes(tmp_path), tmp_path)[0]
+    mit = EmulatorSpec.of(load_config("demo", ["environment.contact_position=1.0"]),
+                          mit_profile(MINI_CHEETAH, node_id=5), name="wrist")
+    with EmulatorProcess([odrive, mit]) as process:
+        bus = process.bus
+        motor, left = process.node("wrist"), process.node("left")
+        bus.send(can.Message(arbitration_id=5, data=ENTER, is_extended_id=False))
+        replies: list[bytes] = []
+        estimates = 0
+        end = time.monotonic() + BOUND
+        while not (replies and estimates):
+            assert time.monotonic() < end, f"replies {replies}, encoder estimates {estimates}"
+            msg = bus.recv(0.1)
+            if msg is None:
+                continue
+            if msg.arbitration_id == 0:
+                replies.append(bytes(msg.data))
+            elif msg.arbitration_id == (1 << 5) | codec.CmdId.GET_ENCODER_ESTIMATES:
+                estimates += 1
+        assert replies[0][0] == 5   # the reply names its motor
+        _until(lambda: motor.protocol_state == 1, "motor mode", bus)
+        bus.send(can.Message(arbitration_id=5, data=AK_ONE_NM, is_extended_id=False))
+        _until(lambda: motor.plant.true_velocity > 0.0, "the motor moves", bus)
+        assert left.protocol_state == AxisState.IDLE and left.applied_torque == 0.0
+        assert left.plant.true_position == 0.0
+        assert motor.frame_errors == left.frame_errors == 0
