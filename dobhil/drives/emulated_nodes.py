@@ -15,11 +15,12 @@ of one bus on the calling thread, as :meth:`EmulatedDrive.run_realtime` runs one
   addressed to it (its protocol's filter; the rest is counted in ``frames_not_addressed``),
   as every node on a CAN bus receives every frame;
 - the nodes hear each other: a frame one node sends goes to the bus and, as on a real bus,
-  to the other nodes (:meth:`EmulatedDrive.deliver`, after the node's handling), so their
-  counters read as on the wire.
+  to the other nodes' taps, which they read (:meth:`EmulatedDrive.handle_pending`) once the
+  node that sent it is done, so their counters read as on the wire.
 
-Each node talks through a :class:`NodeTap`: its sends go to the shared bus, it never reads
-the bus itself (the runner reads for all). The shared bus is borrowed: the caller shuts it.
+Each node talks through a :class:`NodeTap`: its sends go to the shared bus and to the other
+taps; what it reads are the other nodes' frames (the runner reads the shared bus for all).
+The shared bus is borrowed: the caller shuts it.
 """
 
 from __future__ import annotations
@@ -27,6 +28,7 @@ from __future__ import annotations
 import math
 import threading
 import time
+from collections import deque
 from collections.abc import Callable, Sequence
 from typing import Any
 
@@ -38,14 +40,19 @@ from dobhil.realtime import lower_priority
 
 __all__ = ["EmulatedNodes", "NodeTap"]
 
+#: [s] the longest a tap's ``recv`` sleeps at a time while nothing is queued
+_IDLE_WAIT = 1e-3
+
 
 class NodeTap(can.BusABC):
     """One node's view of a bus shared with other emulated nodes of :class:`EmulatedNodes`:
-    sends go to the shared bus (and to the other nodes); receiving is the runner's."""
+    sends go to the shared bus and to the other nodes' taps; ``recv`` returns what the other
+    nodes sent (the host's frames the runner reads from the shared bus and hands over)."""
 
     def __init__(self, shared: can.BusABC, on_sent: Callable[[NodeTap, can.Message], None]) -> None:
         self._shared = shared
         self._on_sent = on_sent
+        self.inbox: deque[can.Message] = deque()
         self.channel_info = shared.channel_info
         super().__init__(channel=str(shared.channel_info))
         self._can_protocol = getattr(shared, "protocol", can.CanProtocol.CAN_20)
@@ -55,7 +62,11 @@ class NodeTap(can.BusABC):
         self._on_sent(self, msg)
 
     def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
-        return None, False   # the runner reads the shared bus and hands frames to the node
+        if self.inbox:
+            return self.inbox.popleft(), False
+        if timeout:   # nothing queued: the frames come from this thread; python-can waits on
+            time.sleep(min(timeout, _IDLE_WAIT))
+        return None, False
 
     def shutdown(self) -> None:
         super().shutdown()   # the shared bus is the runner's caller's
@@ -69,7 +80,7 @@ class EmulatedNodes:
         self._bus = bus
         self._taps: list[NodeTap] = []
         self.drives: tuple[EmulatedDrive, ...] = ()
-        self._crosstalk: list[tuple[int, can.Message]] = []
+        self._crosstalk = False   # a node sent a frame the others have not read yet
         self._next_tick: can.Message | None = None
         self._least_lag = math.inf
         self._stopped = False
@@ -188,16 +199,17 @@ class EmulatedNodes:
                     drive.overruns += skipped
 
     def _sent(self, tap: NodeTap, msg: can.Message) -> None:
-        self._crosstalk.append((self._taps.index(tap), msg))
+        for other in self._taps:
+            if other is not tap:
+                other.inbox.append(msg)
+        self._crosstalk = True
 
     def _flush_crosstalk(self) -> None:
-        """The frames the nodes sent, to the other nodes (and what they answer, in turn)."""
+        """The other nodes read what the nodes sent (and what they answer, in turn)."""
         while self._crosstalk:
-            pending, self._crosstalk = self._crosstalk, []
-            for sender, msg in pending:
-                for i, drive in enumerate(self.drives):
-                    if i != sender:
-                        drive.deliver(msg)
+            self._crosstalk = False
+            for drive in self.drives:
+                drive.handle_pending()
 
     def _take(self, batch: list[can.Message], tick_start: float, deadline: float) -> None:
         if not batch:
