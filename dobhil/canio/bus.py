@@ -158,7 +158,7 @@ class DobhilBus(can.BusABC):
 
 
 def _described(specs: Sequence[EmulatorSpec]) -> str:
-    """``odrive (firmware 0.6, node 1)``, or each axis' ``left: odrive ...`` for several."""
+    """``PROTOCOL (firmware F, node N)``, or each axis' ``NAME: PROTOCOL ...`` for several."""
     def one(spec: EmulatorSpec) -> str:
         p = spec.profile
         return f"{p.protocol} (firmware {p.firmware}, node {p.node_id})"

@@ -1,7 +1,7 @@
 """Several emulated drives on one bus, on one real-time tick clock.
 
-A bus of a multi-axis device carries several nodes (two ODrives, a CiA 402 node beside an
-MIT motor ...). :class:`EmulatedNodes` runs every :class:`~dobhil.drives.emulated.EmulatedDrive`
+A bus of a multi-axis device carries several nodes (two drives of one protocol, or drives
+of several protocols side by side). :class:`EmulatedNodes` runs every :class:`~dobhil.drives.emulated.EmulatedDrive`
 of one bus on the calling thread, as :meth:`EmulatedDrive.run_realtime` runs one:
 
 - one tick clock: the shortest real-time tick of the nodes (:func:`tick_period` of each
