@@ -22,6 +22,7 @@ import dobhil
 from dobhil.drives import load_profile
 from dobhil.drives.clocked import ClockedBus
 from dobhil.drives.emulated import LockstepBus
+from dobhil.drives.emulated_nodes import EmulatedNodes
 from dobhil.drives.odrive.emulator import EmulatedODrive
 from dobhil.emulator.faults import FaultyBus
 from dobhil.emulator.pipe import PipeBus, socket_pair
@@ -133,6 +134,18 @@ def pipe_rig() -> Rig:
     return Rig(bus, time.monotonic, feed, False, [bus.shutdown, peer.shutdown])
 
 
+def node_tap_rig() -> Rig:
+    """A node's tap of EmulatedNodes: it reads what another node of the bus sends."""
+    sink = can.Bus(interface="virtual", channel=private_virtual_channel())
+    nodes = EmulatedNodes(sink)
+    bus, peer = nodes.tap(), nodes.tap()
+
+    def feed() -> None:
+        for arb in (REJECT, REJECT, REJECT, ACCEPT):
+            peer.send(can.Message(arbitration_id=arb, is_extended_id=False, data=b"\x01"))
+    return Rig(bus, time.monotonic, feed, False, [bus.shutdown, peer.shutdown, sink.shutdown])
+
+
 def dobhil_rig() -> Rig:
     bus = can.Bus(interface="dobhil")
     return Rig(bus, time.monotonic, None, False, [bus.shutdown])
@@ -146,6 +159,7 @@ RIGS: dict[str, tuple[str, Callable[[], Rig]]] = {
     "recording-lockstep": ("RecordingBus", recording_lockstep_rig),
     "recording-virtual": ("RecordingBus", recording_virtual_rig),
     "pipe": ("PipeBus", pipe_rig),
+    "node-tap": ("NodeTap", node_tap_rig),
     "dobhil": ("DobhilBus", dobhil_rig),
 }
 

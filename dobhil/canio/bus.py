@@ -19,7 +19,14 @@ without hardware or a kernel module:
 ``key=value`` items: a mapping, a list of strings, or one string with items separated by
 commas (the form ``--bus-kwargs`` can pass).
 
-Each bus has its own emulated drive (and time) in its own process; :meth:`DobhilBus.shutdown`
+A config that lists ``axes:`` puts every axis' emulated drive on the one bus, in one
+process on one tick clock, their plants coupled as ``environment.coupling`` says
+(:class:`~dobhil.emulator.process.EmulatorProcess` with several nodes); ``axes`` (a list or
+one comma-separated string, ``--bus-kwargs axes=left,right``) picks the axes of one bus when
+they sit on several (:mod:`dobhil.emulator.axes_nodes`). :attr:`DobhilBus.emulator`'s
+``node(name)`` has each node's truth and counters.
+
+Each bus has its own emulated drives (and time) in its own process; :meth:`DobhilBus.shutdown`
 closes this end, and the emulator's process ends.
 """
 
@@ -32,8 +39,10 @@ import can
 from can.typechecking import AutoDetectedConfig, CanFilters
 
 from dobhil.config import Config, load_config, resolve_config
+from dobhil.config.axes import SINGLE_AXIS, Axes, Coupling, has_axes, load_axes
 from dobhil.data import shipped_configs
 from dobhil.drives.load import load_drive_profile
+from dobhil.emulator.axes_nodes import hosted_axes, node_specs
 from dobhil.emulator.process import EmulatorProcess, EmulatorSpec, PlantView
 from dobhil.drives.registry import emulated_protocols
 from dobhil.errors import BusError, ConfigError, DobhilError
@@ -65,25 +74,20 @@ class DobhilBus(can.BusABC):
     """A bus with the emulated drive and plant of a config behind it, in real time."""
 
     def __init__(self, channel: Any = None, can_filters: CanFilters | None = None, *,
-                 overrides: Overrides = None, receive_own_messages: bool = False, **kwargs: Any) -> None:
+                 overrides: Overrides = None, receive_own_messages: bool = False,
+                 axes: Iterable[str] | str | None = None, **kwargs: Any) -> None:
         name = DEFAULT_CONFIG if channel is None else str(channel)
         try:
             path = resolve_config(name)
-            self.config: Config = load_config(path, override_items(overrides))
-            profile = load_drive_profile(self.config, path.parent)
-            if profile.protocol not in emulated_protocols():
-                raise ConfigError(f"no emulator for protocol {profile.protocol!r}; "
-                                  f"emulated: {', '.join(emulated_protocols())}")
+            specs, couplings = self._nodes(path, override_items(overrides), axes)
         except DobhilError as exc:
             raise EmulatedBusError(f"dobhil bus {name!r}: {exc}") from None
         self._name = name
         self._closed = True   # until the emulator runs: shutdown() has nothing to stop
-        self.channel_info = (f"dobhil emulated {profile.protocol} (firmware {profile.firmware}, "
-                             f"node {profile.node_id}) of {path}")
+        self.channel_info = f"dobhil emulated {_described(specs)} of {path}"
         try:
             self.emulator: EmulatorProcess = EmulatorProcess(
-                EmulatorSpec.of(self.config, profile), channel=name,
-                receive_own_messages=receive_own_messages)
+                specs, channel=name, receive_own_messages=receive_own_messages, couplings=couplings)
         except DobhilError as exc:
             raise EmulatedBusError(f"dobhil bus {name!r}: {exc}") from None
         self._host = self.emulator.bus
@@ -94,6 +98,25 @@ class DobhilBus(can.BusABC):
         except BaseException:
             self.shutdown()
             raise
+
+    def _nodes(self, path: Any, overrides: tuple[str, ...], axes: Iterable[str] | str | None
+               ) -> tuple[list[EmulatorSpec], tuple[Coupling, ...]]:
+        """The nodes of the config at ``path``: its one drive, or the axes of one bus."""
+        if not has_axes(path):
+            if axes is not None:
+                raise ConfigError(f"axes={axes!r}: {path} lists no axes (a single-axis config); drop axes")
+            self.config: Config = load_config(path, overrides)
+            self.axes: Axes | None = None
+            profile = load_drive_profile(self.config, path.parent)
+            if profile.protocol not in emulated_protocols():
+                raise ConfigError(f"no emulator for protocol {profile.protocol!r}; "
+                                  f"emulated: {', '.join(emulated_protocols())}")
+            return [EmulatorSpec.of(self.config, profile)], ()
+        self.axes = load_axes(path, overrides)
+        names = override_items(axes) if axes is not None else ()
+        hosted = hosted_axes(self.axes, names, how="axes=NAME,NAME (--bus-kwargs axes=...)")
+        self.config = hosted[0].config
+        return node_specs(self.axes, hosted, path.parent)
 
     @property
     def plant(self) -> PlantView:
@@ -132,6 +155,16 @@ class DobhilBus(can.BusABC):
     @staticmethod
     def _detect_available_configs() -> Sequence[AutoDetectedConfig]:
         return [{"interface": INTERFACE, "channel": name} for name in shipped_configs()]
+
+
+def _described(specs: Sequence[EmulatorSpec]) -> str:
+    """``PROTOCOL (firmware F, node N)``, or each axis' ``NAME: PROTOCOL ...`` for several."""
+    def one(spec: EmulatorSpec) -> str:
+        p = spec.profile
+        return f"{p.protocol} (firmware {p.firmware}, node {p.node_id})"
+    if len(specs) == 1 and specs[0].name == SINGLE_AXIS:
+        return one(specs[0])
+    return ", ".join(f"{s.name}: {one(s)}" for s in specs)
 
 
 __all__ = ["DEFAULT_CONFIG", "DobhilBus", "EmulatedBusError", "override_items"]

@@ -48,6 +48,10 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     add_config_args(e)
     e.add_argument("--bus", required=True, metavar="INTERFACE:CHANNEL")
     e.add_argument("--duration", type=float, metavar="S", help="stop after S seconds (default: until Ctrl-C)")
+    # dest of its own: a list of axes hosted together, not the single-axis commands' --axis
+    e.add_argument("--axis", dest="emulate_axes", action="append", default=[], metavar="NAME",
+                   help="with a config that lists axes: emulate this axis' drive (repeatable; default: "
+                        "every axis, when they sit on one bus)")
     e.set_defaults(func=emulate)
 
 
@@ -260,6 +264,13 @@ def emulate(args: argparse.Namespace) -> int:
     from dobhil.runtime.session import check_duration
     from dobhil.runtime.signals import stop_on_signals
     check_duration(args.duration)
+    from dobhil.config.axes import has_axes
+    if has_axes(args.config):
+        return emulate_axes(args)
+    if args.emulate_axes:
+        from dobhil.errors import ConfigError
+        raise ConfigError(f"--axis {args.emulate_axes[0]}: {args.config} lists no axes (a single-axis "
+                          "config); drop --axis")
     config = config_from_args(args)
     profile = load_drive_profile(config, resolve_config(args.config).parent)
     spec = BusSpec.parse(args.bus)
@@ -279,6 +290,51 @@ def emulate(args: argparse.Namespace) -> int:
         finally:
             lost, problem = stop_emulator(emulator, bus)
     counts = emulator_counts(emulator)
+    if lost:
+        sys.stdout.flush()
+        sys.stderr.write(f"dobhil emulate: stopped: bus {spec.describe()} lost ({lost}); {counts}\n")
+        return EXIT_STOPPED
+    print(f"emulator stopped: {counts}", flush=True)
+    if problem:
+        sys.stderr.write(f"dobhil emulate: warning: bus shutdown failed: {problem}\n")
+    return 0
+
+
+def emulate_axes(args: argparse.Namespace) -> int:
+    """``dobhil emulate`` of a config that lists axes: the hosted axes' drives on the one bus,
+    on one tick clock, their plants coupled (dobhil.drives.emulated_nodes)."""
+    from dobhil.config import resolve_config
+    from dobhil.config.axes import load_axes
+    from dobhil.drives.emulated_nodes import EmulatedNodes
+    from dobhil.drives.registry import make_emulated_drive
+    from dobhil.emulator.axes_nodes import hosted_axes, node_specs
+    from dobhil.emulator.coupling import couple_plants
+    from dobhil.emulator.plant import Plant
+    from dobhil.realtime import EMULATOR_PRIORITY_DROP
+    from dobhil.runtime.buses import BusSpec, open_bus
+    from dobhil.runtime.loop import StopRequest
+    from dobhil.runtime.signals import stop_on_signals
+    axes = load_axes(args.config, args.overrides, args.set_files)
+    hosted = hosted_axes(axes, args.emulate_axes, how="--axis NAME (one dobhil emulate per bus)")
+    specs, couplings = node_specs(axes, hosted, resolve_config(args.config).parent)
+    spec = BusSpec.parse(args.bus)
+    plants = couple_plants({s.name: Plant.from_config(s.config) for s in specs}, couplings)
+    bus = open_bus(spec)
+    nodes = EmulatedNodes(bus)
+    nodes.attach([make_emulated_drive(nodes.tap(), s.profile, plants[s.name], latency=s.latency,
+                                      jitter=s.jitter, seed=s.seed) for s in specs])
+    with stop_on_signals(StopRequest()) as request:
+        nodes.start(priority_drop=EMULATOR_PRIORITY_DROP)   # prepared: they answer at once
+        hosted_text = ", ".join(f"{s.profile.protocol} node {s.profile.node_id} ({s.name})" for s in specs)
+        coupled = "".join(f"; coupled {c.a}-{c.b}" for c in couplings)
+        print(f"emulating {hosted_text} on {spec.describe()}{coupled}; Ctrl-C to stop", flush=True)
+        try:
+            end = time.monotonic() + (args.duration or float("inf"))
+            while not request.is_set() and time.monotonic() < end and nodes.alive:
+                time.sleep(0.05)
+        finally:
+            lost, problem = stop_emulator(nodes, bus)
+    counts = "; ".join(f"{s.name}: {emulator_counts(d)}" for s, d in zip(specs, nodes.drives))
     if lost:
         sys.stdout.flush()
         sys.stderr.write(f"dobhil emulate: stopped: bus {spec.describe()} lost ({lost}); {counts}\n")

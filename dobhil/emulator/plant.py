@@ -71,6 +71,14 @@ call) the call is one exact ZOH step: with the servo in contact from the start i
 is bit for bit the analysis' discretised plant ``x+ = Phi x + Gamma (u - tau_d^u)``.
 A mode change inside such a call makes the call redo itself sub-stepped.
 
+A coupling to other axes (:meth:`Plant.couple`, used by :mod:`dobhil.emulator.coupling`)
+adds a spring ``K_k`` and damper ``D_k`` from the servo to a moving anchor, in both modes:
+the plant's own part ``-K_k q - D_k dq`` is in the ZOH matrices (``servo_matrices`` and
+``plant_matrices`` with the extra stiffness and damping, exact like the rest), the anchor's
+part :attr:`Plant.coupling_input` ``= sum_j K_j q_j + D_j dq_j`` is an input torque held over
+the call like the motor's (the coupling decides what to hold). An uncoupled plant runs the
+very lines it ran before (bit for bit: tested).
+
 The motor torque is clamped to ``plant.torque_limit`` and held over the call.
 Sensor side: :attr:`Plant.position` is the true position rounded to the nearest
 encoder count (``sensor.encoder_resolution`` counts per revolution, 0: exact);
@@ -218,6 +226,11 @@ class Plant:
         self._cache: dict[float, StepMatrices] = {}
         self._dt = math.nan
         self._zoh: StepMatrices | None = None
+        #: coupling to other axes (:meth:`couple`): the spring and damper to the anchor
+        self.coupling_stiffness = 0.0
+        self.coupling_damping = 0.0
+        #: [N m] the anchor's part of the coupling torque, held over the next step
+        self.coupling_input = 0.0
         self.reset()
 
     @classmethod
@@ -237,6 +250,26 @@ class Plant:
                    seed=s.seed, substeps=substeps, stiction_velocity=stiction_velocity,
                    stribeck_friction=p.stribeck_friction, stribeck_velocity=p.stribeck_velocity,
                    backlash=p.backlash)
+
+    def couple(self, stiffness: float, damping: float) -> None:
+        """Join the servo to a moving anchor by a spring ``stiffness`` [N m/rad] and a damper
+        ``damping`` [N m s/rad] (the sum over the axes it is coupled to); each step then adds
+        ``coupling_input - stiffness q - damping dq`` to the torques (module docstring)."""
+        if not (stiffness >= 0.0 and damping >= 0.0 and math.isfinite(stiffness + damping)):
+            raise ValueError(f"coupling: expected finite stiffness and damping >= 0, got {stiffness}, {damping}")
+        if self.backlash and (stiffness or damping):
+            raise ValueError("coupling: a plant with backlash cannot be coupled (its load is massless)")
+        self.coupling_stiffness, self.coupling_damping = float(stiffness), float(damping)
+        j, b = self.inertia, self.viscous_friction
+        if stiffness or damping:
+            self._a_free, self._b_free, _ = plant_matrices(j, b + damping, stiffness, 0.0)
+        else:
+            self._a_free, self._b_free = servo_matrices(j, b)
+        self._a_contact, self._b_contact, _ = plant_matrices(
+            j, b + damping, self.stiffness + stiffness, self.damping)
+        self._coulomb_only = self.stribeck_friction == 0.0 and not (stiffness or damping)
+        self._cache.clear()
+        self._dt, self._zoh = math.nan, None
 
     # -- state ----------------------------------------------------------------
 
@@ -355,6 +388,9 @@ class Plant:
         zoh = self._zoh if dt == self._dt and self._zoh is not None else self._load(dt)
         t0 = self._t
         tau_d = self._constant_disturbance(t0, dt)
+        if self.coupling_stiffness or self.coupling_damping:
+            # the anchor's part, in the state's coordinate e = q - q_c: held like u
+            u += self.coupling_input - self.coupling_stiffness * self.contact_position
         if self.backlash:
             self._backlash_substeps(u, tau_d, t0, zoh)
         elif tau_d is None or self._friction or not self._exact_step(u - tau_d, zoh):
@@ -393,14 +429,16 @@ class Plant:
             return
         e, dq = self._e, self._dq
         h, vs, friction = zoh.h, zoh.stiction, self._friction
-        k = self.stiffness
+        kf = self.coupling_stiffness       # the spring acting in both modes (0: uncoupled)
+        k = self.stiffness + kf
         pc, pf = zoh.contact_sub, zoh.free_sub
         tau_c = 0.0
         for i in range(self.substeps):
             w = u - (tau_d if tau_d is not None else self.disturbance_at(t0 + (i + 0.5) * h))
             contact = e >= 0.0
             if friction:
-                tau_c, stuck = self._friction_at(dq, w - k * e if contact else w, vs)
+                rest = w - k * e if contact else (w - kf * e if kf else w)
+                tau_c, stuck = self._friction_at(dq, rest, vs)
                 if stuck:                  # friction balances the torque
                     dq = 0.0
                     continue

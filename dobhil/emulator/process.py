@@ -34,6 +34,14 @@ and the same :class:`~dobhil.emulator.plant.Plant` in a child process instead:
   bare ``fork`` of a process that may have threads. Start-up costs an interpreter and
   the imports (about a second on a loaded 2-core machine), once per bus.
 
+Several nodes on one bus (a multi-axis device): ``EmulatorProcess([spec1, spec2],
+couplings=...)`` runs every node's emulated drive in the one child, on one tick clock
+(:class:`~dobhil.drives.emulated_nodes.EmulatedNodes`: any mix of protocols, each node
+answering its own frames), their plants coupled by
+:func:`~dobhil.emulator.coupling.couple_plants`; each node has its own block of the status
+(:meth:`EmulatorProcess.node`, :meth:`EmulatorProcess.truth` by index or axis name). One
+spec runs exactly as before.
+
 The lockstep path (deterministic, simulated time) stays in-process: it has no clock to
 fall behind.
 """
@@ -55,7 +63,7 @@ import tempfile
 import time
 import warnings
 from array import array
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from dataclasses import dataclass
 from enum import IntEnum
@@ -63,13 +71,14 @@ from typing import Any, cast
 
 import can
 
+from dobhil.config.axes import SINGLE_AXIS, Coupling
 from dobhil.config.schema import Config
 from dobhil.drives.profile import DriveProfile
 from dobhil.emulator.pipe import PipeBus, RecordKind, socket_pair
 from dobhil.drives.emulated import tick_period
 from dobhil.errors import BusError, exception_line
 
-__all__ = ["EmulatorProcess", "EmulatorSpec", "PlantView", "Slot"]
+__all__ = ["EmulatorProcess", "EmulatorSpec", "NodeStatus", "PlantView", "Slot"]
 
 #: how long a child may take to start (a loaded 2-core machine importing numpy): a bound
 START_TIMEOUT = 60.0
@@ -129,24 +138,28 @@ class EmulatorSpec:
     #: the drive's clock starts with the host's first frame (power on when the host is
     #: ready): a run's host starts up without frames piling up for it; False: at once
     on_first_frame: bool = False
+    #: the axis this node drives (what couplings and :meth:`EmulatorProcess.node` name)
+    name: str = SINGLE_AXIS
 
     @classmethod
     def of(cls, config: Config, profile: DriveProfile, *, priority_drop: int = 0,
-           on_first_frame: bool = False) -> EmulatorSpec:
+           on_first_frame: bool = False, name: str = SINGLE_AXIS) -> EmulatorSpec:
         d = config.drive
         # the profile's bus settings are the host's business (and a read-only mapping)
         return cls(config, dataclasses.replace(profile, bus={}), d.latency, d.jitter,
-                   config.sensor.seed, priority_drop, on_first_frame)
+                   config.sensor.seed, priority_drop, on_first_frame, name)
 
 
 class PlantView:
-    """The child's plant as the host sees it: the ground truth of the newest tick."""
+    """The child's plant of node ``index`` as the host sees it: the ground truth of the
+    newest tick."""
 
-    def __init__(self, owner: EmulatorProcess) -> None:
+    def __init__(self, owner: EmulatorProcess, index: int = 0) -> None:
         self._owner = owner
+        self._index = index
 
     def _get(self, slot: Slot) -> float:
-        return self._owner.snapshot()[slot]
+        return self._owner.snapshot(self._index)[slot]
 
     @property
     def true_position(self) -> float:
@@ -178,21 +191,25 @@ class PlantView:
 
 
 class _Shared:
-    """The status block: float64 slots in an unlinked temporary file both processes map."""
+    """The status blocks, one per node: float64 slots in an unlinked temporary file both
+    processes map (the child finds how many from its size)."""
 
-    def __init__(self, fd: int | None = None) -> None:
-        size = len(Slot) * 8
+    def __init__(self, fd: int | None = None, nodes: int = 1) -> None:
         self._file = None
         if fd is None:
             self._file = tempfile.TemporaryFile()
             fd = self._file.fileno()
-            os.ftruncate(fd, size)
+            os.ftruncate(fd, nodes * len(Slot) * 8)
         self.fd = fd
+        size = os.fstat(fd).st_size
         self._map = mmap.mmap(fd, size)
-        self.values = memoryview(self._map).cast("d")
+        values = memoryview(self._map).cast("d")
+        self.blocks = [values[i * len(Slot):(i + 1) * len(Slot)] for i in range(size // (8 * len(Slot)))]
+        self.values = self.blocks[0]
         if self._file is not None:
-            self.values[:] = array("d", [math.nan] * len(Slot))
-            self.values[Slot.SEQ] = 0.0
+            for block in self.blocks:
+                block[:] = array("d", [math.nan] * len(Slot))
+                block[Slot.SEQ] = 0.0
 
 
 def _renamed(old: str, new: str) -> None:
@@ -212,17 +229,31 @@ def _child_env() -> dict[str, str]:
 
 
 class EmulatorProcess:
-    """An emulated drive in a child process; ``bus`` is the host's end of its bus."""
+    """The emulated drives of one bus in a child process; ``bus`` is the host's end of it.
 
-    def __init__(self, spec: EmulatorSpec, *, channel: Any = None, mirror: can.BusABC | None = None,
-                 receive_own_messages: bool = False, start_timeout: float = START_TIMEOUT) -> None:
-        self.spec = spec
-        self.profile = spec.profile
+    ``spec``: one node's :class:`EmulatorSpec`, or a sequence of them (distinct names and
+    node ids; any mix of protocols), whose plants ``couplings`` join
+    (:func:`~dobhil.emulator.coupling.couple_plants`). The observables without an index
+    (``plant``, ``protocol_state``, ``frames_received`` ...) are the first node's;
+    :meth:`node` gives any node's."""
+
+    def __init__(self, spec: EmulatorSpec | Sequence[EmulatorSpec], *, channel: Any = None,
+                 mirror: can.BusABC | None = None, receive_own_messages: bool = False,
+                 start_timeout: float = START_TIMEOUT, couplings: Sequence[Coupling] = ()) -> None:
+        self.specs = (spec,) if isinstance(spec, EmulatorSpec) else tuple(spec)
+        self.couplings = tuple(couplings)
+        _check_nodes(self.specs, self.couplings)
+        self.spec = self.specs[0]
+        self.profile = self.spec.profile
+        self.names = tuple(s.name for s in self.specs)
+        #: [s] the child's tick: the shortest of the nodes' (dobhil.drives.emulated_nodes)
+        self.tick = min(tick_period(s.profile) for s in self.specs)
         self._closed = False
         self._process: subprocess.Popen[bytes] | None = None
         host_end, child_end = socket_pair()
-        self._shared = _Shared()
-        self._last = cast("list[float]", self._shared.values.tolist())
+        self._shared = _Shared(nodes=len(self.specs))
+        self._last = [cast("list[float]", block.tolist()) for block in self._shared.blocks]
+        self._nodes = tuple(NodeStatus(self, i) for i in range(len(self.specs)))
         # periodic frames (a host's SYNC) are sent by the child on its own clock
         self.bus = PipeBus(host_end, channel, gone=self._gone, mirror=mirror,
                            receive_own_messages=receive_own_messages, periodic_peer=True)
@@ -249,7 +280,7 @@ class EmulatorProcess:
                                    stdout=subprocess.DEVNULL, env=_child_env(), close_fds=True)
         assert process.stdin is not None
         try:
-            process.stdin.write(pickle.dumps(self.spec))
+            process.stdin.write(pickle.dumps((self.specs, self.couplings)))
             process.stdin.close()
         except OSError:
             pass   # it is gone already: the wait for READY says how
@@ -316,33 +347,40 @@ class EmulatorProcess:
 
     # -- observables -----------------------------------------------------------
 
-    def snapshot(self) -> list[float]:
-        """The newest consistent status block (the last one read if the child is writing
-        every time it is looked at: the reader never waits for the child)."""
-        status = self._shared.values
-        if status[Slot.SEQ] == self._last[Slot.SEQ]:
-            return self._last   # no tick since: several reads in one cycle cost one look
+    def snapshot(self, index: int = 0) -> list[float]:
+        """The newest consistent status block of node ``index`` (the last one read if the
+        child is writing every time it is looked at: the reader never waits for the child)."""
+        status, last = self._shared.blocks[index], self._last[index]
+        if status[Slot.SEQ] == last[Slot.SEQ]:
+            return last   # no tick since: several reads in one cycle cost one look
         for _ in range(_READ_TRIES):
             seq = status[Slot.SEQ]
             if seq % 2 == 0:
                 values = cast("list[float]", status.tolist())   # a 'd' view: floats
                 if values[Slot.SEQ] == seq:
-                    self._last = values
+                    self._last[index] = values
                     break
-        return self._last
+        return self._last[index]
+
+    def node(self, which: int | str = 0) -> NodeStatus:
+        """One node's observables, by index (the order of the specs) or axis name."""
+        if isinstance(which, str):
+            if which not in self.names:
+                raise KeyError(f"no node of axis {which!r}; axes: {', '.join(self.names)}")
+            return self._nodes[self.names.index(which)]
+        return self._nodes[which]
+
+    @property
+    def nodes(self) -> tuple[NodeStatus, ...]:
+        return self._nodes
 
     @property
     def plant(self) -> PlantView:
         return PlantView(self)
 
-    def truth(self) -> tuple[float, float]:
-        """Interaction torque [N m] and true position [rad] of one tick."""
-        s = self.snapshot()
-        return s[Slot.INTERACTION_TORQUE], s[Slot.TRUE_POSITION]
-
-    def _count(self, slot: Slot) -> int:
-        value = self.snapshot()[slot]
-        return int(value) if value == value else 0
+    def truth(self, which: int | str = 0) -> tuple[float, float]:
+        """Interaction torque [N m] and true position [rad] of one tick, of one node."""
+        return self.node(which).truth()
 
     @property
     def time(self) -> float:
@@ -350,17 +388,17 @@ class EmulatorProcess:
 
     @property
     def applied_torque(self) -> float:
-        return self.snapshot()[Slot.APPLIED_TORQUE]
+        return self._nodes[0].applied_torque
 
     @property
     def protocol_state(self) -> int:
-        """The emulated drive's own state code, as its protocol reports it."""
-        return self._count(Slot.PROTOCOL_STATE)
+        """The (first) emulated drive's own state code, as its protocol reports it."""
+        return self._nodes[0].protocol_state
 
     @property
     def protocol_error(self) -> int:
-        """The emulated drive's own error code (0: none)."""
-        return self._count(Slot.PROTOCOL_ERROR)
+        """The (first) emulated drive's own error code (0: none)."""
+        return self._nodes[0].protocol_error
 
     @property
     def axis_state(self) -> int:
@@ -376,47 +414,47 @@ class EmulatorProcess:
 
     @property
     def watchdog_tripped(self) -> bool:
-        return self.snapshot()[Slot.WATCHDOG_TRIPPED] == 1.0
+        return self._nodes[0].watchdog_tripped
 
     @property
     def frames_received(self) -> int:
-        return self._count(Slot.FRAMES_RECEIVED)
+        return self._nodes[0].frames_received
 
     @property
     def frames_sent(self) -> int:
-        return self._count(Slot.FRAMES_SENT)
+        return self._nodes[0].frames_sent
 
     @property
     def frames_rejected(self) -> int:
-        return self._count(Slot.FRAMES_REJECTED)
+        return self._nodes[0].frames_rejected
 
     @property
     def send_errors(self) -> int:
-        return self._count(Slot.SEND_ERRORS)
+        return self._nodes[0].send_errors
 
     @property
     def frame_errors(self) -> int:
-        return self._count(Slot.FRAME_ERRORS)
+        return self._nodes[0].frame_errors
 
     @property
     def overruns(self) -> int:
-        return self._count(Slot.OVERRUNS)
+        return self._nodes[0].overruns
 
     @property
     def late_ticks(self) -> int:
-        """Ticks the emulated drive ran at least a period late (it was not scheduled)."""
-        return self._count(Slot.LATE_TICKS)
+        """Ticks the emulated drives ran at least a period late (they were not scheduled)."""
+        return self._nodes[0].count(Slot.LATE_TICKS)
 
     @property
     def max_lateness(self) -> float:
         return self.snapshot()[Slot.MAX_LATENESS]
 
     def stalled(self, window: float, now: float | None = None) -> float:
-        """How long the emulated drive was stalled (not scheduled) during the last
-        ``window`` s: its newest stalled tick, or the tick it owes now."""
+        """How long the emulated drives were stalled (not scheduled) during the last
+        ``window`` s: the newest stalled tick, or the tick owed now (one clock for all)."""
         now = time.perf_counter() if now is None else now
         s = self.snapshot()
-        begin, period = now - window, tick_period(self.profile)
+        begin, period = now - window, self.tick
         past = _overlap(s[Slot.STALL_START], s[Slot.STALL_START] + s[Slot.STALL_LENGTH], begin, now)
         due = s[Slot.DEADLINE] + period   # the next tick's deadline
         ongoing = _overlap(due, now, begin, now) if now - due >= STALL_PERIODS * period else 0.0
@@ -432,6 +470,94 @@ class EmulatorProcess:
                 "(the host is too slow, not the drive)")
 
 
+class NodeStatus:
+    """One node of an :class:`EmulatorProcess`, as its child published it after its newest
+    tick: the plant's truth and the drive's counters and protocol state."""
+
+    def __init__(self, owner: EmulatorProcess, index: int) -> None:
+        self._owner = owner
+        self.index = index
+        self.name = owner.specs[index].name
+        self.profile = owner.specs[index].profile
+
+    def count(self, slot: Slot) -> int:
+        value = self._owner.snapshot(self.index)[slot]
+        return int(value) if value == value else 0
+
+    @property
+    def plant(self) -> PlantView:
+        return PlantView(self._owner, self.index)
+
+    def truth(self) -> tuple[float, float]:
+        """Interaction torque [N m] and true position [rad] of one tick."""
+        s = self._owner.snapshot(self.index)
+        return s[Slot.INTERACTION_TORQUE], s[Slot.TRUE_POSITION]
+
+    @property
+    def time(self) -> float:
+        return self._owner.snapshot(self.index)[Slot.TIME]
+
+    @property
+    def applied_torque(self) -> float:
+        return self._owner.snapshot(self.index)[Slot.APPLIED_TORQUE]
+
+    @property
+    def protocol_state(self) -> int:
+        return self.count(Slot.PROTOCOL_STATE)
+
+    @property
+    def protocol_error(self) -> int:
+        return self.count(Slot.PROTOCOL_ERROR)
+
+    @property
+    def watchdog_tripped(self) -> bool:
+        return self._owner.snapshot(self.index)[Slot.WATCHDOG_TRIPPED] == 1.0
+
+    @property
+    def frames_received(self) -> int:
+        return self.count(Slot.FRAMES_RECEIVED)
+
+    @property
+    def frames_sent(self) -> int:
+        return self.count(Slot.FRAMES_SENT)
+
+    @property
+    def frames_rejected(self) -> int:
+        return self.count(Slot.FRAMES_REJECTED)
+
+    @property
+    def send_errors(self) -> int:
+        return self.count(Slot.SEND_ERRORS)
+
+    @property
+    def frame_errors(self) -> int:
+        return self.count(Slot.FRAME_ERRORS)
+
+    @property
+    def overruns(self) -> int:
+        return self.count(Slot.OVERRUNS)
+
+
+def _check_nodes(specs: Sequence[EmulatorSpec], couplings: Sequence[Coupling]) -> None:
+    """ValueError for nodes one bus cannot carry: none, two of one name or node id, a
+    coupling to an axis that is not among them."""
+    if not specs:
+        raise ValueError("EmulatorProcess: expected at least one EmulatorSpec")
+    names = [s.name for s in specs]
+    for i, spec in enumerate(specs):
+        if spec.name in names[:i]:
+            raise ValueError(f"EmulatorProcess: two nodes are axis {spec.name!r}; each needs its own name")
+        for other in specs[:i]:
+            if other.profile.node_id == spec.profile.node_id:
+                raise ValueError(f"EmulatorProcess: axes {other.name} and {spec.name} are both node "
+                                 f"{spec.profile.node_id}; nodes on one bus need distinct ids")
+    for c in couplings:
+        for name in (c.a, c.b):
+            if name not in names:
+                raise ValueError(f"EmulatorProcess: coupling {c.a}-{c.b}: no node of axis {name!r}; "
+                                 f"axes: {', '.join(names)}")
+
+
 def _overlap(a0: float, a1: float, b0: float, b1: float) -> float:
     length = min(a1, b1) - max(a0, b0)
     return length if length > 0 else 0.0
@@ -440,13 +566,14 @@ def _overlap(a0: float, a1: float, b0: float, b1: float) -> float:
 # -- the child ---------------------------------------------------------------------
 
 class _Publisher:
-    """Writes the status block after every tick (the child's side of :meth:`snapshot`)."""
+    """Writes the status block of one node after every tick (the child's side of
+    :meth:`snapshot`); ``period``: the child's tick."""
 
-    def __init__(self, status: Any, emulator: Any, plant: Any) -> None:
+    def __init__(self, status: Any, emulator: Any, plant: Any, period: float | None = None) -> None:
         self._status = status
         self._emulator = emulator
         self._plant = plant
-        self._period = emulator.tick_period
+        self._period = emulator.tick_period if period is None else period
         self._observed = [(slot, name) for name, slot in OBSERVED.items() if hasattr(emulator, name)]
         status[Slot.SEQ] = 0.0
         for slot in (Slot.LATE_TICKS, Slot.MAX_LATENESS, Slot.STALL_LENGTH):
@@ -490,7 +617,7 @@ def child_main(sock_fd: int, status_fd: int) -> None:
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
     sock = socket.socket(fileno=sock_fd)
     sock.setblocking(False)
-    status = _Shared(status_fd).values
+    status = _Shared(status_fd).blocks
     closed: list[bool] = []
 
     def gone() -> str:
@@ -501,8 +628,11 @@ def child_main(sock_fd: int, status_fd: int) -> None:
     # are held, the newest per id, and go out once the host reads again
     bus = PipeBus(sock, "emulator", gone=gone, send_wait=0.0, coalesce=True, serve_periodic=True)
     try:
-        spec = pickle.load(sys.stdin.buffer)
-        _serve(bus, status, spec)
+        specs, couplings = pickle.load(sys.stdin.buffer)
+        if len(specs) == 1 and not couplings:
+            _serve(bus, status[0], specs[0])
+        else:
+            _serve_nodes(bus, status, specs, couplings)
     except can.CanOperationError as exc:
         if not closed:
             _fail(bus, f"emulated drive stopped: {exc}")
@@ -545,6 +675,46 @@ def _serve(bus: PipeBus, status: Any, spec: EmulatorSpec) -> None:
     if spec.on_first_frame:
         bus.wait_readable()
     emulator.run_realtime(publisher.tick, _periodic_sender(bus, emulator))
+
+
+def _serve_nodes(bus: PipeBus, status: list[Any], specs: Sequence[EmulatorSpec],
+                 couplings: Sequence[Coupling]) -> None:
+    """:func:`_serve` for several nodes on the one bus: one tick clock, coupled plants."""
+    from dobhil.drives.emulated_nodes import EmulatedNodes
+    from dobhil.drives.registry import make_emulated_drive
+    from dobhil.emulator.coupling import couple_plants
+    from dobhil.emulator.plant import Plant
+    from dobhil.realtime import lower_priority, raise_priority
+
+    drop = max(s.priority_drop for s in specs)
+    if drop:
+        lower_priority(drop)
+    else:
+        raise_priority()   # as _serve: the drives' own CPU
+    plants = couple_plants({s.name: Plant.from_config(s.config) for s in specs}, couplings)
+    nodes = EmulatedNodes(bus)
+    drives = [make_emulated_drive(nodes.tap(), s.profile, plants[s.name], latency=s.latency,
+                                  jitter=s.jitter, seed=s.seed) for s in specs]
+    nodes.attach(drives)
+    nodes.prepare()
+    publishers = [_Publisher(block, drive, plants[s.name], nodes.tick_period)
+                  for block, drive, s in zip(status, drives, specs)]
+
+    def publish(deadline: float, lateness: float) -> None:
+        for publisher in publishers:
+            publisher.tick(deadline, lateness)
+
+    publish(math.nan, 0.0)
+    gc.collect()
+    gc.freeze()
+    bus.send_text(RecordKind.READY, ", ".join(f"{s.name}: {s.profile.protocol} node {s.profile.node_id}"
+                                              for s in specs))
+    try:
+        if any(s.on_first_frame for s in specs):
+            bus.wait_readable()
+        nodes.run_realtime(publish, _periodic_sender(bus, nodes))
+    finally:
+        nodes.stop()   # the nodes' taps closed, as the one drive's bus is
 
 
 def _periodic_sender(bus: PipeBus, emulator: Any) -> Callable[[], None]:
