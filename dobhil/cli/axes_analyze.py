@@ -22,7 +22,9 @@ from dobhil.config.axes import Axes, load_axes
 COUPLED_PLOT = "coupled_step_{group}.png"
 
 
-def run(args: argparse.Namespace) -> int:
+def run(args: argparse.Namespace, plot_names: tuple[str, ...]) -> int:
+    """The command on an axes config; ``plot_names``: the single-axis figures ``--plot``
+    writes (per independent axis, in ``DIR/NAME/``)."""
     from dobhil.analysis.coupled import axis_designs, coupled_groups
     axes = load_axes(args.config, args.overrides, args.set_files)
     out = sys.stderr if args.json else sys.stdout
@@ -32,7 +34,7 @@ def run(args: argparse.Namespace) -> int:
             print(f"axis {d.name}: {d.note}", file=out)
     groups = coupled_groups(axes)
     if args.plot:   # before the analysis: a bad directory fails at once, not after it
-        _check_plot_dir(args, groups)
+        _check_plot_dir(args, groups, plot_names)
     result: dict[str, Any] = {"axes": {}, "coupled": []}
     texts: list[str] = []
     for group in groups:
@@ -75,12 +77,12 @@ def _group_name(group: tuple[str, ...]) -> str:
     return "_".join(group)
 
 
-def _check_plot_dir(args: argparse.Namespace, groups: tuple[tuple[str, ...], ...]) -> None:
-    from dobhil.cli.analyze_cmd import PLOT_NAMES
+def _check_plot_dir(args: argparse.Namespace, groups: tuple[tuple[str, ...], ...],
+                    plot_names: tuple[str, ...]) -> None:
     from dobhil.files import check_output_dir
     for group in groups:
         if len(group) == 1:
-            check_output_dir(args.plot / group[0], PLOT_NAMES, inputs=[args.config], what="--plot")
+            check_output_dir(args.plot / group[0], plot_names, inputs=[args.config], what="--plot")
         else:
             check_output_dir(args.plot, [COUPLED_PLOT.format(group=_group_name(group))],
                              inputs=[args.config], what="--plot")
