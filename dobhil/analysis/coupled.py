@@ -315,10 +315,15 @@ def _candidates(a0: Array, m: Array, sampled: bool) -> np.ndarray:
         right = np.kron(m, eye) + np.kron(eye, m)
     with np.errstate(all="ignore"):
         s = scipy.linalg.eigvals(left, right, overwrite_a=True)
-    ok = np.isfinite(s) & (np.abs(s.imag) <= 1e-6 * np.abs(s)) & (s.real > 0)
+    ok = np.isfinite(s) & (np.abs(s.imag) <= 1e-6 * np.abs(s)) & (s.real > MIN_SCALE)
     return np.unique(s.real[ok])
 
 
+#: candidate crossings below this scale are the loop's pole at the boundary for zero gains
+#: (the force loop's integrator: z = 1, s = 0) returned off by rounding, not crossings
+MIN_SCALE = 1e-9
+#: scales tested whatever the candidates (the design is 1)
+_AROUND = (1e-6, 1e-3, 0.1, 1.0, 10.0, 1e3, 1e6)
 #: where each interval between two candidate crossings is tested (fractions of the way)
 _FRACTIONS = (1e-6, 1e-3, 0.02, 0.5, 0.98, 0.999, 1 - 1e-6)
 #: multiples of the last candidate (or of the design's scale 1) tested beyond it
@@ -333,8 +338,8 @@ def stable_scales(lp: CoupledLoop) -> GainScales:
     candidates = _candidates(a0, m, lp.sampled)
     edges = np.concatenate([[0.0], candidates])
     inner = [lo + (hi - lo) * f for lo, hi in zip(edges[:-1], edges[1:]) for f in _FRACTIONS]
-    # beyond the last candidate (or, with none, around the design's scale 1)
-    tail = [edges[-1] * f for f in _TAIL] if edges.size > 1 else [1e-9, 1e-6, 1e-3, *_TAIL]
+    # beyond the last candidate, and scales around the design's (1) whatever the candidates
+    tail = [float(edges[-1]) * f for f in _TAIL] + list(_AROUND)
     tests = np.unique(np.asarray(inner + tail, float))
     tests = tests[tests > 0]
     margins = np.array([spectral_margin(a0 - s * m, lp.sampled) for s in tests])

@@ -78,6 +78,8 @@ def _domain_text(title: str, d: dict[str, Any]) -> list[str]:
     scale = d["max_stable_gain_scale"]
     if scale is None:
         limit = "max stable gain scale: unbounded"
+    elif scale == 0:
+        limit = "not stable for small gains (max stable gain scale 0)"
     else:
         at = ", ".join(f"{n} {_fmt(g, '', 6)}" for n, g in d["max_stable_force_gains"].items())
         limit = f"max stable gain scale: {scale:.6g} (C_f: {at})"
