@@ -52,6 +52,7 @@ from dobhil.errors import AnalysisError, DobhilError, exception_line
 from dobhil.synthesis.controller import discretize
 from dobhil.synthesis.loop import INPUTS, OUTPUTS, LoopSS, loop
 from dobhil.synthesis.models import plant_matrices
+from dobhil.synthesis.numerics import balance_scaling
 from dobhil.synthesis.params import Array, Discretization, Params, params_from_config
 
 __all__ = ["AXIS_INPUTS", "AXIS_OUTPUTS", "AxisDesign", "AxisStep", "CoupledAnalysis", "CoupledDomain",
@@ -279,15 +280,16 @@ class GainScales:
 
     ``intervals``: the stable ranges of s (``hi = inf``: unbounded); ``max_scale``: the
     largest s with every scale in (0, s) stable (inf: unbounded, 0: unstable for small
-    gains); ``crossings``: every s where a pole crosses the stability boundary."""
+    gains); ``crossings``: every s where a pole crosses the stability boundary. Scales up to
+    :data:`MAX_SCALE` are judged; stable up to there counts as unbounded."""
 
     direction: tuple[float, ...]
     crossings: tuple[float, ...]
     intervals: tuple[tuple[float, float], ...]
     max_scale: float
-    method: str = ("crossing gains from the generalised eigenvalues of the Kronecker pencil "
-                   "A(s) (x) A(s) - I (sampled) / A(s) (+) A(s) (continuous), refined by "
-                   "Brent's method on the spectral radius")
+    method: str = ("crossing scales from the generalised eigenvalues of the Kronecker pencil "
+                   "A(s) (x) A(s) - I (sampled) / A(s) (+) A(s) (continuous) on symmetric matrices, "
+                   "refined by Brent's method on the spectral radius; verdicts from eigenvalues")
 
     def stable_at(self, scale: float) -> bool:
         return any(lo < scale < hi for lo, hi in self.intervals)
@@ -297,31 +299,61 @@ class GainScales:
         return tuple(self.max_scale * g for g in self.direction)
 
 
-def _candidates(a0: Array, m: Array, sampled: bool) -> np.ndarray:
-    """Real positive s where ``A0 - s M`` may have a pole on the stability boundary: the
-    finite real generalised eigenvalues of the Kronecker pencil (a superset: pole pairs
-    with ``z1 z2 = 1`` or ``s1 + s2 = 0`` off the boundary come too)."""
+def _symmetric_part(n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Rows ``r1, r2`` (positions of ``e_i (x) e_j`` and ``e_j (x) e_i``) and weights of the
+    orthonormal basis of symmetric vectors ``(e_i (x) e_j + e_j (x) e_i) / norm``, i <= j."""
+    i, j = np.triu_indices(n)
+    return i * n + j, j * n + i, np.where(i == j, 0.5, np.sqrt(0.5))
+
+
+def _restricted(k: Array, basis: tuple[np.ndarray, np.ndarray, np.ndarray]) -> Array:
+    """``Q^T K Q`` for the symmetric basis Q (:func:`_symmetric_part`), by indexing."""
+    r1, r2, w = basis
+    rows = k[r1] + k[r2]
+    return np.asarray(w[:, None] * (rows[:, r1] + rows[:, r2]) * w[None, :])
+
+
+def _candidates(a0: Array, u: Array, v: Array, sampled: bool) -> np.ndarray:
+    """Real s > :data:`MIN_SCALE` where ``A0 - s M`` (``M = u v^T``) may have a pole on the
+    stability boundary: the finite real generalised eigenvalues of the Kronecker pencil (a
+    superset: pole pairs with ``z1 z2 = 1`` or ``s1 + s2 = 0`` off the boundary come too).
+
+    Both products map symmetric ``n x n`` matrices (vectorised) to symmetric ones, and a
+    pole pair on the boundary -- ``z, conj(z)`` or a real pole with itself -- has a symmetric
+    eigenvector, so the pencil is restricted to that subspace (``n (n + 1) / 2``). The
+    sampled pencil is quadratic, ``Q0 + s Q1 + s^2 (u (x) u)(v (x) v)^T``; its quadratic term
+    has rank (axes)^2, so ``w = s (v (x) v)^T x`` linearises it with that many extra rows."""
+    scale = balance_scaling(a0, u, v.T)     # same poles, entries of like size: sharper roots
+    a0, u, v = a0 * scale[None, :] / scale[:, None], u / scale[:, None], v * scale[:, None]
     n = a0.shape[-1]
-    eye = np.eye(n)
-    if sampled:   # (A0 - s M) (x) (A0 - s M) - I = Q0 + s Q1 + s^2 Q2, linearised
-        q0 = np.kron(a0, a0) - np.eye(n * n)
-        q1 = -(np.kron(a0, m) + np.kron(m, a0))
-        q2 = np.kron(m, m)
-        size = n * n
-        left = np.block([[np.zeros((size, size)), np.eye(size)], [-q0, -q1]])
-        right = np.block([[np.eye(size), np.zeros((size, size))], [np.zeros((size, size)), q2]])
+    basis = _symmetric_part(n)
+    m = u @ v.T
+    if sampled:   # (A0 - s M) (x) (A0 - s M) - I
+        q0 = _restricted(np.asarray(np.kron(a0, a0), float), basis) - np.eye(basis[0].size)
+        q1 = -_restricted(np.kron(a0, m) + np.kron(m, a0), basis)
+        r1, r2, w = basis
+        uu, vv = np.kron(u, u), np.kron(v, v)
+        big_u = w[:, None] * (uu[r1] + uu[r2])      # Q^T (u (x) u)
+        big_v = w[:, None] * (vv[r1] + vv[r2])      # Q^T (v (x) v)
+        p, r = q0.shape[0], big_u.shape[1]
+        left = np.block([[q0, np.zeros((p, r))], [np.zeros((r, p)), np.eye(r)]])
+        right = -np.block([[q1, big_u], [-big_v.T, np.zeros((r, r))]])
     else:         # (A0 - s M) (+) (A0 - s M) = P0 - s P1
-        left = np.kron(a0, eye) + np.kron(eye, a0)
-        right = np.kron(m, eye) + np.kron(eye, m)
+        eye = np.eye(n)
+        left = _restricted(np.kron(a0, eye) + np.kron(eye, a0), basis)
+        right = _restricted(np.kron(m, eye) + np.kron(eye, m), basis)
     with np.errstate(all="ignore"):
         s = scipy.linalg.eigvals(left, right, overwrite_a=True)
-    ok = np.isfinite(s) & (np.abs(s.imag) <= 1e-6 * np.abs(s)) & (s.real > MIN_SCALE)
+    ok = np.isfinite(s) & (np.abs(s.imag) <= 1e-6 * np.abs(s)) & (s.real > MIN_SCALE) & (s.real < MAX_SCALE)
     return np.unique(s.real[ok])
 
 
 #: candidate crossings below this scale are the loop's pole at the boundary for zero gains
 #: (the force loop's integrator: z = 1, s = 0) returned off by rounding, not crossings
 MIN_SCALE = 1e-9
+#: the largest scale judged: a loop stable up to a million times its design's gains is
+#: reported unbounded (beyond, the eigenvalues of ``A0 - s M`` are rounding, not poles)
+MAX_SCALE = 1e6
 #: scales tested whatever the candidates (the design is 1)
 _AROUND = (1e-6, 1e-3, 0.1, 1.0, 10.0, 1e3, 1e6)
 #: where each interval between two candidate crossings is tested (fractions of the way)
@@ -330,24 +362,29 @@ _FRACTIONS = (1e-6, 1e-3, 0.02, 0.5, 0.98, 0.999, 1 - 1e-6)
 _TAIL = (1.0 + 1e-6, 1.001, 1.5, 10.0, 1e3, 1e6)
 
 
-def stable_scales(lp: CoupledLoop) -> GainScales:
-    """The stable scales s of every force gain (``C_f,i = s C_f,i^design``), exactly up to
-    the refinement's tolerance (module docstring). Verdicts are eigenvalues of ``A(s)``."""
-    m = lp.m
-    a0 = lp.a + m                     # the loop with every force gain at 0
-    candidates = _candidates(a0, m, lp.sampled)
+def stable_scales(lp: CoupledLoop, direction: Sequence[float] | None = None) -> GainScales:
+    """The stable scales s along ``direction`` in the space of the axes' force gains
+    (``C_f,i = s direction_i``; default: the designs' gains, so s = 1 is the design),
+    exactly up to the refinement's tolerance (module docstring). Verdicts are eigenvalues
+    of ``A(s)``."""
+    gains = lp.gains if direction is None else np.asarray(direction, float)
+    if gains.shape != lp.gains.shape or not np.all(np.isfinite(gains)) or not np.any(gains):
+        raise ValueError(f"direction: expected {lp.gains.size} finite gains, not all 0; got {gains!r}")
+    a0 = lp.a + lp.m                  # the loop with every force gain at 0
+    m = lp.b_per @ (gains[:, None] * lp.c_hat)
+    candidates = _candidates(a0, lp.b_per * gains[None, :], lp.c_hat.T, lp.sampled)
     edges = np.concatenate([[0.0], candidates])
     inner = [lo + (hi - lo) * f for lo, hi in zip(edges[:-1], edges[1:]) for f in _FRACTIONS]
     # beyond the last candidate, and scales around the design's (1) whatever the candidates
     tail = [float(edges[-1]) * f for f in _TAIL] + list(_AROUND)
     tests = np.unique(np.asarray(inner + tail, float))
-    tests = tests[tests > 0]
+    tests = tests[(tests > 0) & (tests <= MAX_SCALE)]
     margins = np.array([spectral_margin(a0 - s * m, lp.sampled) for s in tests])
     verdict = np.where(margins < -STABILITY_TOL, 1, np.where(margins > STABILITY_TOL, -1, 0))
     crossings = _crossings(a0, m, lp.sampled, tests, verdict)
     intervals = _stable_intervals(crossings, tests, verdict)
     max_scale = intervals[0][1] if intervals and intervals[0][0] == 0.0 else 0.0
-    return GainScales(direction=tuple(float(g) for g in lp.gains), crossings=tuple(crossings),
+    return GainScales(direction=tuple(float(g) for g in gains), crossings=tuple(crossings),
                       intervals=tuple(intervals), max_scale=max_scale)
 
 

@@ -214,6 +214,37 @@ def test_stable_scales_match_eigenvalues_on_a_grid(tmp_path: Path, overrides: li
     assert spectral_margin(lp.a_at(s * (1 - 1e-7)), True) < 0 < spectral_margin(lp.a_at(s * (1 + 1e-7)), True)
 
 
+@pytest.mark.parametrize("overrides", [[], ["axes.right.design.delay_samples=2", "design.force_gain=7"],
+                                       ["design.velocity_source=estimated", "design.interaction_model=sinusoid",
+                                        "axes.left.design.delay_samples=1"]])
+@pytest.mark.parametrize("sampled", [True, False], ids=["sampled", "continuous"])
+def test_pencil_finds_every_crossing(tmp_path: Path, overrides: list[str], sampled: bool) -> None:
+    """The Kronecker pencil's own eigenvalues hold each crossing (to 1e-9): the refinement
+    polishes them, it does not find them; and at each crossing a pole is on the boundary."""
+    from dobhil.analysis.coupled import _candidates
+    designs, couplings = designs_of(tmp_path, overrides + ["axes.left.environment.stiffness=60000"])
+    lp = coupled_loop(designs, couplings, sampled=sampled)
+    candidates = _candidates(lp.a + lp.m, lp.b_per * lp.gains, lp.c_hat.T, sampled)
+    scales = stable_scales(lp)
+    assert scales.crossings or not sampled
+    for x in scales.crossings:
+        assert np.min(np.abs(candidates - x)) <= 1e-9 * x
+        assert abs(spectral_margin(lp.a_at(x), sampled)) <= 1e-9
+
+
+def test_a_direction_of_gains_is_each_axis_own_limit_over_its_component(tmp_path: Path) -> None:
+    """Along (1, 0.25), with no coupling: s_max = min(k_left / 1, k_right / 0.25), each k the
+    axis' own largest stable C_f (the single-axis gate)."""
+    designs, _ = designs_of(tmp_path, ["axes.right.design.delay_samples=1"])
+    lp = coupled_loop(designs, (), sampled=True)
+    scales = stable_scales(lp, (1.0, 0.25))
+    own = [assess(d.config).max_stable_gain for d in designs]
+    assert scales.max_scale == pytest.approx(min(own[0] / 1.0, own[1] / 0.25), rel=1e-9)
+    assert scales.max_gains() == (scales.max_scale, 0.25 * scales.max_scale)
+    with pytest.raises(ValueError, match="direction"):
+        stable_scales(lp, (0.0, 0.0))
+
+
 def test_coupling_sign_is_a_spring(tmp_path: Path) -> None:
     """Axis a pushed by K (q_b - q_a): with the force loops open, a stiff coupling raises the
     differential mode's frequency and a negative one would not be stable (a check of the
