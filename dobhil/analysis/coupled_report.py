@@ -88,6 +88,10 @@ def _domain_text(title: str, d: dict[str, Any]) -> list[str]:
     lines = [f"{title}:",
              f"  closed loop at C_f = {gains}: {'stable' if cl['stable'] else 'UNSTABLE'}, {radius}",
              f"  every C_f scaled by s: {limit}; stable s: {intervals}"]
+    zero = [n for n, g in d["force_gains"].items() if g == 0]
+    if zero:
+        lines.append(f"  note: design.force_gain = 0 on {', '.join(zero)}: no force loop closes there (the "
+                     "DOb cancels every external torque, the servo drifts: a pole on the stability boundary)")
     for axis, st in d["steps"].items():
         m = st["step"]
         cross = "; ".join(f"{n} tau_int^ final {_final(o['final_estimate'])}, peak {_fmt(o['peak_estimate'])}"
