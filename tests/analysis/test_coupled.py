@@ -266,6 +266,39 @@ def test_one_input_sampled_plant_is_discretize_delayed(tau: float) -> None:
         assert np.array_equal(x, y)
 
 
+@settings(max_examples=20, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(tau_a=st.floats(0.0, 1e-3), tau_b=st.floats(0.0, 1e-3), stiffness=st.floats(0.0, 1e4))
+def test_sampled_plant_with_two_delays_is_the_ode(tmp_path: Path, tau_a: float, tau_b: float,
+                                                   stiffness: float) -> None:
+    """Each axis' command switching at its own time within the period: the sampled coupled
+    plant against the ODE integrated through the period (scipy's DOP853, tight tolerances)
+    for each unit input, old and new, and each initial state."""
+    from scipy.integrate import solve_ivp
+
+    from dobhil.analysis.coupled import coupled_plant
+    designs, _ = designs_of(tmp_path, [])
+    a, b, _ = coupled_plant(designs, (Coupling("left", "right", stiffness, 20.0),))
+    period, delays = 1e-3, (tau_a, tau_b)
+    phi, g_new, g_old = sampled_coupled_plant(a, b, period, delays)
+
+    def through(x0: np.ndarray, old: np.ndarray, new: np.ndarray) -> np.ndarray:
+        cuts = sorted({0.0, period, *delays})
+        x = x0
+        for t0, t1 in zip(cuts[:-1], cuts[1:]):
+            u = np.where(np.asarray(delays) <= t0, new, old)
+            x = solve_ivp(lambda _, y, u=u: a @ y + b @ u, (t0, t1), x, method="DOP853", rtol=1e-13,
+                          atol=1e-16).y[:, -1] if t1 > t0 else x
+        return np.asarray(x)
+    eye2 = np.eye(2)
+    for j in range(2):
+        zero = np.zeros(2)
+        np.testing.assert_allclose(through(np.zeros(4), zero, eye2[j]), g_new[:, j], rtol=1e-9, atol=1e-15)
+        np.testing.assert_allclose(through(np.zeros(4), eye2[j], zero), g_old[:, j], rtol=1e-9, atol=1e-15)
+    for i in range(4):
+        np.testing.assert_allclose(through(np.eye(4)[i], np.zeros(2), np.zeros(2)), phi[:, i], rtol=1e-9,
+                                   atol=1e-12)
+
+
 def test_groups_follow_the_couplings(tmp_path: Path) -> None:
     text = THREE_AXES % {"k1": 1.0, "d1": 0.0, "k2": 1.0, "d2": 0.0}
     assert coupled_groups(load_axes(write(tmp_path, text))) == (("hip", "knee", "ankle"),)
