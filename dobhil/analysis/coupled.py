@@ -29,6 +29,10 @@ unidirectional perturbation bounds for stability of polynomials and matrices", S
 Control Letters 11, 1988). Each candidate is refined by Brent's method on the spectral
 margin; between consecutive crossings the verdict is constant and is read from
 eigenvalues (:func:`stable_scales`). No grid of gains.
+
+This module imports no python-control (a stability gate before a run can use it at the
+cost of the eigenvalue problems); the step responses and the whole analysis are in
+:mod:`dobhil.analysis.coupled_analysis`.
 """
 
 from __future__ import annotations
@@ -37,28 +41,23 @@ import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 
-import control
 import numpy as np
 import scipy.linalg
-import scipy.optimize
 
-from dobhil.analysis.metrics import StepMetrics, step_metrics, step_responses
-from dobhil.analysis.stability import STABILITY_TOL, is_stable
+from dobhil.analysis.stability import STABILITY_TOL
 from dobhil.config.axes import Axes, Coupling
 from dobhil.config.schema import Config
 from dobhil.drives.profile import DriveProfile
 from dobhil.drives.timing import effective_config
-from dobhil.errors import AnalysisError, DobhilError, exception_line
 from dobhil.synthesis.controller import discretize
 from dobhil.synthesis.loop import INPUTS, OUTPUTS, LoopSS, loop
 from dobhil.synthesis.models import plant_matrices
 from dobhil.synthesis.numerics import balance_scaling
 from dobhil.synthesis.params import Array, Discretization, Params, params_from_config
 
-__all__ = ["AXIS_INPUTS", "AXIS_OUTPUTS", "AxisDesign", "AxisStep", "CoupledAnalysis", "CoupledDomain",
-           "CoupledLoop", "GainScales", "analyze_coupled", "analyze_domain", "axis_designs", "axis_steps",
-           "coupled_groups", "coupled_loop", "coupled_plant", "sampled_coupled_plant", "spectral_margin",
-           "stable_scales"]
+__all__ = ["AXIS_INPUTS", "AXIS_OUTPUTS", "MAX_SCALE", "AxisDesign", "CoupledLoop", "GainScales",
+           "axis_designs", "coupled_groups", "coupled_loop", "coupled_plant", "sampled_coupled_plant",
+           "spectral_margin", "stable_scales"]
 
 #: per-axis inputs and outputs of the coupled loop (names of :mod:`dobhil.synthesis.loop`;
 #: ``tau_int`` is the torque the axis feels from its environment and every coupling)
@@ -397,6 +396,8 @@ def _crossings(a0: Array, m: Array, sampled: bool, tests: np.ndarray,
         if verdict[i0] == verdict[i1]:
             continue
         lo, hi = float(tests[i0]), float(tests[i1])
+        # imported here: without crossings to refine (a gate's usual case) it is not needed
+        import scipy.optimize
 
         def f(s: float) -> float:
             return spectral_margin(a0 - s * m, sampled)
@@ -434,110 +435,3 @@ def coupled_groups(axes: Axes) -> tuple[tuple[str, ...], ...]:
         if members not in seen:
             seen.append(members)
     return tuple(seen)
-
-
-@dataclass(frozen=True)
-class AxisStep:
-    """The coupled loop's answer to a unit step of one axis' force reference: every axis'
-    estimate ``tau_int^`` and interaction torque ``tau_int`` (the stepped one's and the
-    others', which the couplings move), their exact final values, and the stepped axis'
-    metrics."""
-
-    axis: str
-    t: Array = field(repr=False)
-    estimate: dict[str, Array] = field(repr=False)      # axis -> tau_int^
-    force: dict[str, Array] = field(repr=False)         # axis -> tau_int
-    final_estimate: dict[str, float]
-    final_force: dict[str, float]
-    metrics: StepMetrics
-    metrics_force: StepMetrics
-
-
-def _system(lp: CoupledLoop, axis: str, out_axis: str, output: str) -> control.StateSpace:
-    i, o = lp.input_index(axis, "tau_ref"), lp.output_index(out_axis, output)
-    return control.ss(lp.a, lp.b[:, i:i + 1], lp.c[o:o + 1], lp.d[o:o + 1, i:i + 1], lp.dt or 0)
-
-
-def _dc(lp: CoupledLoop, axis: str, out_axis: str, output: str) -> float:
-    i, o = lp.input_index(axis, "tau_ref"), lp.output_index(out_axis, output)
-    eye = np.eye(lp.order)
-    x = np.linalg.solve(eye - lp.a if lp.sampled else -lp.a, lp.b[:, i])
-    return float(lp.c[o] @ x + lp.d[o, i])
-
-
-def axis_steps(lp: CoupledLoop, duration: float = 0.0) -> tuple[AxisStep, ...]:
-    """A unit step of each axis' ``tau_ref`` in turn (the loop must be stable), on the time
-    grid of :func:`dobhil.analysis.metrics.step_grid` of the coupled loop."""
-    out = []
-    for axis in lp.names:
-        others = [n for n in lp.names if n != axis]
-        order = [(axis, "tau_int_hat"), (axis, "tau_int"),
-                 *((n, k) for n in others for k in ("tau_int_hat", "tau_int"))]
-        t, ys = step_responses([_system(lp, axis, n, k) for n, k in order], duration)
-        values = dict(zip(order, ys))
-        finals = {key: _dc(lp, axis, *key) for key in order}
-        out.append(AxisStep(
-            axis=axis, t=t,
-            estimate={n: values[(n, "tau_int_hat")] for n in lp.names},
-            force={n: values[(n, "tau_int")] for n in lp.names},
-            final_estimate={n: finals[(n, "tau_int_hat")] for n in lp.names},
-            final_force={n: finals[(n, "tau_int")] for n in lp.names},
-            metrics=step_metrics(t, values[(axis, "tau_int_hat")], final=finals[(axis, "tau_int_hat")]),
-            metrics_force=step_metrics(t, values[(axis, "tau_int")], final=finals[(axis, "tau_int")])))
-    return tuple(out)
-
-
-@dataclass(frozen=True)
-class CoupledDomain:
-    """The coupled loop in one domain (continuous: the paper's, no delay; sampled: what
-    runs): its poles, verdict, stable gain scales and step responses (none when unstable)."""
-
-    loop: CoupledLoop
-    poles: np.ndarray
-    stable: bool
-    scales: GainScales
-    steps: tuple[AxisStep, ...]
-
-    @property
-    def spectral_radius(self) -> float:
-        """``max |z|`` sampled; continuous: the spectral abscissa ``max Re(s)``."""
-        return float(np.max(np.abs(self.poles)) if self.loop.sampled else np.max(self.poles.real))
-
-
-@dataclass(frozen=True)
-class CoupledAnalysis:
-    designs: tuple[AxisDesign, ...]
-    couplings: tuple[Coupling, ...]
-    continuous: CoupledDomain
-    discrete: CoupledDomain
-
-
-def analyze_domain(designs: Sequence[AxisDesign], couplings: Sequence[Coupling], *, sampled: bool,
-                   duration: float = 0.0) -> CoupledDomain:
-    lp = coupled_loop(designs, couplings, sampled=sampled)
-    if not np.all(np.isfinite(lp.a)):
-        raise AnalysisError(f"the {'sampled' if sampled else 'continuous'} coupled loop's matrices "
-                            "overflow for this design (a value too large or too small)")
-    poles = lp.poles()
-    stable = bool(is_stable(poles[None], sampled)[0])
-    return CoupledDomain(loop=lp, poles=poles, stable=stable, scales=stable_scales(lp),
-                         steps=axis_steps(lp, duration) if stable else ())
-
-
-def analyze_coupled(designs: Sequence[AxisDesign], couplings: Sequence[Coupling]) -> CoupledAnalysis:
-    """Both domains of coupled axes; a design the analysis cannot answer raises
-    :class:`~dobhil.errors.AnalysisError` (one line), never a numpy error."""
-    duration = max(d.config.analysis.step_duration for d in designs)
-    out = {}
-    for sampled in (False, True):
-        name = "sampled" if sampled else "continuous"
-        try:
-            with np.errstate(all="ignore"):
-                out[name] = analyze_domain(designs, couplings, sampled=sampled, duration=duration)
-        except DobhilError:
-            raise
-        except (np.linalg.LinAlgError, ValueError, ZeroDivisionError, OverflowError) as exc:
-            raise AnalysisError(f"the {name} analysis of the coupled axes cannot answer this design "
-                                f"({exception_line(exc, named=False)[:120]})") from None
-    return CoupledAnalysis(designs=tuple(designs), couplings=tuple(couplings),
-                           continuous=out["continuous"], discrete=out["sampled"])

@@ -6,7 +6,7 @@ from __future__ import annotations
 import math
 from typing import Any
 
-from dobhil.analysis.coupled import AxisStep, CoupledAnalysis, CoupledDomain
+from dobhil.analysis.coupled_analysis import AxisStep, CoupledAnalysis, CoupledDomain
 from dobhil.analysis.coupled_check import LoopCheck
 
 __all__ = ["coupled_json", "coupled_text"]

@@ -106,7 +106,7 @@ def _single(config: Any, args: argparse.Namespace, name: str) -> tuple[dict[str,
 
 
 def _coupled(axes: Axes, designs: list[Any], args: argparse.Namespace) -> tuple[dict[str, Any], str]:
-    from dobhil.analysis.coupled import analyze_coupled
+    from dobhil.analysis.coupled_analysis import analyze_coupled
     from dobhil.analysis.coupled_check import CheckUnavailable, LoopCheck, check_loop
     from dobhil.analysis.coupled_report import coupled_json, coupled_text
     names = {d.name for d in designs}

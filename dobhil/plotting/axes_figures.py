@@ -14,7 +14,7 @@ from dobhil.plotting.figures import _plt, save
 if TYPE_CHECKING:
     from matplotlib.axes import Axes
 
-    from dobhil.analysis.coupled import CoupledAnalysis, CoupledDomain
+    from dobhil.analysis.coupled_analysis import CoupledAnalysis, CoupledDomain
 
 
 def _panel(ax: Axes, domain: CoupledDomain, axis: str, label: str) -> None:

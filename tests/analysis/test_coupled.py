@@ -15,8 +15,9 @@ import scipy.linalg
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from dobhil.analysis.coupled import (AxisDesign, analyze_coupled, axis_designs, coupled_groups, coupled_loop,
-                                     sampled_coupled_plant, spectral_margin, stable_scales)
+from dobhil.analysis.coupled import (AxisDesign, axis_designs, coupled_groups, coupled_loop, sampled_coupled_plant,
+                                     spectral_margin, stable_scales)
+from dobhil.analysis.coupled_analysis import analyze_coupled
 from dobhil.analysis.coupled_check import CheckUnavailable, check_loop
 from dobhil.analysis.gate import assess
 from dobhil.analysis.report import analyze_domain
@@ -297,6 +298,16 @@ def test_sampled_plant_with_two_delays_is_the_ode(tmp_path: Path, tau_a: float, 
     for i in range(4):
         np.testing.assert_allclose(through(np.eye(4)[i], np.zeros(2), np.zeros(2)), phi[:, i], rtol=1e-9,
                                    atol=1e-12)
+
+
+def test_the_loop_and_its_gain_scales_import_no_python_control() -> None:
+    """A stability gate before a run may use them: python-control costs more than the verdict."""
+    import subprocess
+    import sys
+    code = ("import sys, dobhil.analysis.coupled as c; "
+            "print('control' in sys.modules, 'scipy.optimize' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.split() == ["False", "False"]
 
 
 def test_groups_follow_the_couplings(tmp_path: Path) -> None:
