@@ -275,7 +275,7 @@ def spectral_margin(a: Array, sampled: bool) -> float:
 
 @dataclass(frozen=True)
 class GainScales:
-    """Stability along the design's direction of force gains: every ``C_f,i`` times s.
+    """Stability along a direction of force gains (by default the designs'): ``C_f,i = s direction_i``.
 
     ``intervals``: the stable ranges of s (``hi = inf``: unbounded); ``max_scale``: the
     largest s with every scale in (0, s) stable (inf: unbounded, 0: unstable for small

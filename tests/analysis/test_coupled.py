@@ -351,6 +351,10 @@ def test_cli_independent_axes_are_each_single_axis(tmp_path: Path, capsys: pytes
         alone.write_text(f"plant: {{inertia: {cfg.plant.inertia}}}\ndrive: {{profile: odrive-0.6}}\n")
         single = run_json(capsys, "analyze", str(alone), "--json")
         assert out["axes"][name] == {k: single[k] for k in ("continuous", "discrete")}
+    assert main(["analyze", str(path), "--plot", str(tmp_path / "fig")]) == 0
+    assert "axis right (no coupling):" in capsys.readouterr().out
+    for name in ("left", "right"):
+        assert {p.name for p in (tmp_path / "fig" / name).iterdir()} == {"root_locus.png", "step.png", "bode.png"}
 
 
 @pytest.mark.parametrize("extra, says", [
