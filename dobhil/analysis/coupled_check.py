@@ -23,6 +23,7 @@ from dataclasses import dataclass
 
 import control
 import numpy as np
+import scipy.linalg
 
 from dobhil.analysis.coupled import AxisDesign, CoupledLoop
 from dobhil.config.axes import Coupling
@@ -138,7 +139,6 @@ def _responses(a: np.ndarray, b: np.ndarray, c: np.ndarray, d: np.ndarray, sampl
         n, m = a.shape[0], b.shape[1]
         block = np.zeros((n + m, n + m))
         block[:n, :n], block[:n, n:] = a * step, b * step
-        import scipy.linalg
         e = scipy.linalg.expm(block)
         phi, gam = e[:n, :n], e[:n, n:]
     x = np.zeros((a.shape[0], b.shape[1]))
@@ -149,6 +149,13 @@ def _responses(a: np.ndarray, b: np.ndarray, c: np.ndarray, d: np.ndarray, sampl
     return out
 
 
+def _continuous_step(poles: np.ndarray, samples: int) -> float:
+    """A time step whose ``samples`` span 10 time constants of the slowest nonzero pole."""
+    moving = np.abs(poles[np.abs(poles) > 1e-9])
+    slowest = float(moving.min()) if moving.size else 1.0
+    return 10.0 / max(1e-3, slowest) / samples
+
+
 def check_loop(lp: CoupledLoop, designs: Sequence[AxisDesign], couplings: Sequence[Coupling],
                samples: int = 400) -> LoopCheck:
     """Compare ``lp`` (:func:`~dobhil.analysis.coupled.coupled_loop`) with
@@ -157,7 +164,7 @@ def check_loop(lp: CoupledLoop, designs: Sequence[AxisDesign], couplings: Sequen
     ref = interconnected_loop(designs, couplings, sampled=lp.sampled)
     a, b, c, d = (np.asarray(m, float) for m in (ref.A, ref.B, ref.C, ref.D))
     poles = np.linalg.eigvals(a)
-    step = lp.dt or 10.0 / max(1e-3, float(np.min(np.abs(lp.poles()[np.abs(lp.poles()) > 1e-9])))) / samples
+    step = lp.dt or _continuous_step(lp.poles(), samples)
     mine = _responses(lp.a, lp.b, lp.c, lp.d, lp.sampled, step, samples)
     theirs = _responses(a, b, c, d, lp.sampled, step, samples)
     scale = max(1e-300, float(np.max(np.abs(mine))))
