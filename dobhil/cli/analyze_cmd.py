@@ -24,6 +24,10 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from dobhil.config.axes import has_axes
+    if has_axes(args.config):   # several axes: each alone, or coupled as one loop
+        from dobhil.cli.axes_analyze import run as run_axes
+        return run_axes(args, PLOT_NAMES)
     from dobhil.analysis.report import analyze, as_json, as_text
     # the design on its drive: a protocol that fixes the command delay sets it (the note
     # goes to stderr with --json, whose stdout is one JSON object)
