@@ -253,7 +253,8 @@ class AxesSession:
         if ids is None:
             return frozenset()
         other = profile.node_id - 1 if profile.node_id > 1 else profile.node_id + 1
-        probe_bus = can.Bus(interface="virtual", channel=private_virtual_channel())
+        fd = {"protocol": can.CanProtocol.CAN_FD} if protocol(profile.protocol).fd else {}
+        probe_bus = can.Bus(interface="virtual", channel=private_virtual_channel(), **fd)
         try:
             shared = make_drive(probe_bus, dataclasses.replace(profile, node_id=other)).frame_ids or frozenset()
         finally:
