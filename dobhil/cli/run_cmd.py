@@ -50,7 +50,15 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from dobhil.config.axes import has_axes
     from dobhil.errors import PreflightError
+    if has_axes(args.config):   # several axes in one loop
+        from dobhil.cli.axes_run import run_axes
+        if args.live:
+            from dobhil.errors import ConfigError
+            raise ConfigError("--live: serving a run of several axes is not available in this build")
+        return run_axes(args, prog="dobhil run", emulate=args.emulate, lockstep=True if args.lockstep else None,
+                        plot=args.plot, log=args.log)
     try:
         return run_checked(args)
     except PreflightError as exc:  # the drive is not set up for this run: nothing was enabled
