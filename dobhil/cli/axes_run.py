@@ -12,7 +12,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from dobhil.cli.run_cmd import EXIT_STOPPED
+from dobhil.cli.common import EXIT_STOPPED
 
 
 def run_axes(args: argparse.Namespace, *, prog: str, emulate: bool, lockstep: bool | None,
@@ -95,7 +95,7 @@ def tell_unfinished(session: Any, prog: str) -> None:
     for every axis not confirmed disabled, before the error line main() prints."""
     loop = getattr(session, "loop", None)
     ended = getattr(loop, "ended", None)
-    if ended is None:
+    if loop is None or ended is None:
         return
     stop, _ = ended
     sys.stdout.flush()

@@ -9,11 +9,8 @@ import time
 from pathlib import Path
 from typing import Any
 
-from dobhil.cli.common import add_config_args, config_from_args
+from dobhil.cli.common import EXIT_STOPPED, add_config_args, config_from_args
 from dobhil.cli.stability_gate import add_gate_args
-
-#: exit code of a run that ended in a safety stop (not bad input)
-EXIT_STOPPED = 1
 
 
 def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:

@@ -233,8 +233,9 @@ class AxesLoop:
         except _Halt as halt:
             return Stop(halt.reason, _named(self._current, halt.detail), self._at, self._now()), self._current
         except DriveFaultError as exc:
-            axis = self._by_name(self._current)
-            reason, detail = axis.loop._blame(str(exc)) if axis is not None else (StopReason.DRIVE_FAULT, str(exc))
+            faulted = self._by_name(self._current)
+            reason, detail = (faulted.loop._blame(str(exc)) if faulted is not None
+                              else (StopReason.DRIVE_FAULT, str(exc)))
             return Stop(reason, _named(self._current, detail), self._at, self._now()), self._current
         except BusError as exc:
             return Stop(StopReason.BUS_ERROR, _named(self._current, str(exc)), self._at, self._now()), self._current

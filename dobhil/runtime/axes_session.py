@@ -35,7 +35,6 @@ from dobhil.config.axes import Axes, Axis
 from dobhil.drives.base import Drive
 from dobhil.drives.emulated import EmulatedDrive, LockstepBus, PlantLike, private_virtual_channel
 from dobhil.drives.load import load_drive_profile
-from dobhil.drives.profile import DriveProfile
 from dobhil.drives.registry import drive_class, make_drive, make_emulated_drive, protocol
 from dobhil.emulator.plant import Plant
 from dobhil.emulator.process import EmulatorProcess, EmulatorSpec
@@ -165,7 +164,8 @@ class AxesSession:
         self._shared.append(shared)
         clock: dict[str, Any] = {"clock": group.lockstep.clock} if group.lockstep is not None else {}
         for name in group.axes:
-            view = self._add(shared.view(name))
+            view = shared.view(name)
+            self._add(view)
             drive = make_drive(view, self.profiles[name], reset_faults=self.reset_faults, **clock)
             view.accept(drive.frame_ids)
             self.drives[name] = drive
@@ -253,7 +253,7 @@ class AxesSession:
         if ids is None:
             return frozenset()
         other = profile.node_id - 1 if profile.node_id > 1 else profile.node_id + 1
-        fd = {"protocol": can.CanProtocol.CAN_FD} if protocol(profile.protocol).fd else {}
+        fd: dict[str, Any] = {"protocol": can.CanProtocol.CAN_FD} if protocol(profile.protocol).fd else {}
         probe_bus = can.Bus(interface="virtual", channel=private_virtual_channel(), **fd)
         try:
             shared = make_drive(probe_bus, dataclasses.replace(profile, node_id=other)).frame_ids or frozenset()

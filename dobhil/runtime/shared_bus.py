@@ -15,11 +15,11 @@ the one bus (its ``inner``): each drive gets a :class:`BusView`, a full ``can.Bu
   bounded (:data:`QUEUE_FRAMES`): a view that is not read loses its oldest frames,
   counted in :attr:`BusView.lost`, and the bus never grows without end.
 - **Send**: straight through to the inner bus, in the caller's order (one cycle's
-  commands go out as one burst, as moteus' ``Transport.cycle`` sends them).
-- **Periodic send**: the same frame at the same period asked by several views (CiA 402's
-  SYNC, a host heartbeat: the bus's frames, not a node's) is one task on the inner bus,
+  commands go out as one burst, one batch per tick as a transport's ``cycle`` sends it).
+- **Periodic send**: the same frame at the same period asked by several views (a SYNC,
+  a host heartbeat: frames of the bus, not of one node) is one task on the inner bus,
   shared by reference count and stopped when the last view stops it: nodes on one bus
-  share one SYNC, as a CANopen network has one SYNC producer (CiA 301). Other periodic
+  share one SYNC, as a network has one SYNC producer (CiA 301). Other periodic
   sends are the inner bus's own tasks, one per call.
 
 Waits run on the inner bus's clock (:func:`~dobhil.drives.clocked.bus_clock`: simulated
@@ -44,6 +44,9 @@ __all__ = ["QUEUE_FRAMES", "BusView", "SharedBus"]
 QUEUE_FRAMES: Final = 4096
 #: frames one receive pass reads at most: a bus that never runs dry cannot hold the loop
 PASS_FRAMES: Final = 1024
+
+#: a view's recv(None) waits on the inner bus for ever
+WAIT_FOREVER: Final = None
 
 _Key = tuple[int, bool, bool, bytes, float]
 
@@ -89,7 +92,7 @@ class SharedBus:
         self.views.append(view)
         return view
 
-    def receive_pass(self, timeout: float = 0.0) -> int:
+    def receive_pass(self, timeout: float | None = 0.0) -> int:
         """Read what the inner bus has -- waiting up to ``timeout`` s of its clock for the
         first frame -- and hand each frame to the views that take it; the frames read."""
         recv, views = self.inner.recv, self.views
@@ -214,7 +217,8 @@ class BusView(ClockedBus):
             remaining = None if deadline is None else deadline - clock()
             if remaining is not None and remaining <= 0 and not first:
                 return None, True
-            shared.receive_pass(None if remaining is None else max(remaining, 0.0))
+            # (None: wait for ever, a pass at a time: the bus's own blocking read)
+            shared.receive_pass(WAIT_FOREVER if remaining is None else max(remaining, 0.0))
             first = False
 
     @property

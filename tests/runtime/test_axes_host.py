@@ -1,0 +1,98 @@
+"""Several axes in real time, host-timed, against emulated drives running on threads of
+their own on a python-can virtual channel (the drive classes see a real bus). Bounds come
+from what the run measured, never from the wall clock."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from contextlib import ExitStack
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from dobhil.config.axes import Axes
+from dobhil.drives.emulated import EmulatedDrive, private_virtual_channel
+from dobhil.drives.load import load_drive_profile
+from dobhil.drives.registry import make_emulated_drive
+from dobhil.emulator.faults import SilenceAfter, faulty
+from dobhil.emulator.plant import Plant
+from dobhil.runtime.axes_session import AxesSession
+from dobhil.runtime.stop import StopReason
+
+from .axes_helpers import CONFIGS, load_two
+from .helpers import realtime_profile
+
+import can
+
+CYCLES = 300
+
+
+def _axes(tmp_path: Path, channel: str, *extra: str) -> Axes:
+    profile = realtime_profile(tmp_path, "odrive-0.6")
+    return load_two(tmp_path, ("odrive", "odrive"), "loop.timing=host", "loop.feedback_timeout=0.05",
+                    "drive.interface=virtual", f"drive.channel={channel}", f"drive.profile={profile}",
+                    f"loop.duration={CYCLES / 1000}", *extra)
+
+
+@pytest.fixture
+def emulators() -> Iterator[ExitStack]:
+    with ExitStack() as stack:
+        yield stack
+
+
+def _start(stack: ExitStack, axes: Axes, channel: str) -> list[EmulatedDrive]:
+    """One threaded emulated drive per axis, each on its own end of ``channel``."""
+    drives = []
+    for axis in axes.axes:
+        profile = load_drive_profile(axis.config, CONFIGS)
+        emulator = make_emulated_drive(can.Bus(interface="virtual", channel=channel), profile,
+                                       Plant.from_config(axis.config))
+        stack.callback(emulator.close)
+        emulator.start()
+        drives.append(emulator)
+    return drives
+
+
+def test_two_axes_host_timed(tmp_path: Path, emulators: ExitStack) -> None:
+    channel = private_virtual_channel()
+    axes = _axes(tmp_path, channel)
+    drives = _start(emulators, axes, channel)
+    with AxesSession(axes, config_dir=CONFIGS) as session:
+        result = session.run()
+    line = result.stop.line()
+    assert result.stop.reason is StopReason.DONE, line
+    # every deadline was either run or skipped after an overrun, and counted once
+    assert result.cycles + result.skipped == CYCLES
+    assert result.overruns <= result.cycles and (result.skipped == 0) == (result.overruns == 0)
+    for name, part in result.axes.items():
+        assert part.cycles == result.cycles, name
+        assert part.disabled, (name, part.safe_stop)
+        t = part.trace["t"]
+        assert np.all(np.diff(t[np.isfinite(t)]) > 0), name
+        # each controller took its own drive's feedback: its estimate follows its reference
+        final_ref, final_hat = part.trace["tau_ref"][-1], part.trace["tau_int_hat"][-1]
+        assert abs(final_hat - final_ref) < 0.05 * abs(final_ref) + 0.01, (name, final_ref, final_hat)
+    # the burst's time runs to its last send: never shorter than one axis' own
+    assert result.timing.exec_time_max >= max(p.timing.exec_time_p50 for p in result.axes.values())
+    for drive in drives:
+        assert drive.frames_received > CYCLES // 2   # every node got its commands
+    assert all(abs(d.applied_torque) == 0.0 for d in drives)   # both held no torque after the stop
+
+
+def test_feedback_loss_of_one_axis_stops_both_in_real_time(tmp_path: Path, emulators: ExitStack) -> None:
+    channel = private_virtual_channel()
+    axes = _axes(tmp_path, channel)
+    _start(emulators, axes, channel)
+    from dobhil.drives.odrive import codec
+    encoder_left = codec.arbitration_id(1, codec.CmdId.GET_ENCODER_ESTIMATES)
+    silence = faulty(SilenceAfter(frames=100, ids={encoder_left}))
+    with AxesSession(axes, config_dir=CONFIGS, bus_wrapper=lambda bus, name: silence(bus)) as session:
+        result = session.run()
+    line = result.stop.line()
+    assert result.stop.reason is StopReason.FEEDBACK_TIMEOUT, line
+    assert result.axis == "left" and "axis left" in line
+    assert result.cycles < CYCLES
+    for name, part in result.axes.items():
+        assert part.safe_stop is not None and part.safe_stop.sent, name
+        assert part.disabled, (name, part.safe_stop)   # the heartbeats still come: confirmed
