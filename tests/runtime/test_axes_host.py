@@ -70,7 +70,11 @@ def test_two_axes_host_timed(tmp_path: Path, emulators: ExitStack) -> None:
         assert part.disabled, (name, part.safe_stop)
         t = part.trace["t"]
         assert np.all(np.diff(t[np.isfinite(t)]) > 0), name
-        # each controller took its own drive's feedback: its estimate follows its reference
+        # each controller ran on its own drive's fresh feedback: the servo, 5 mrad away at
+        # the start, came into contact (q >= 0 within the spring's give) ...
+        q = part.trace["q"][np.isfinite(part.trace["q"])]
+        assert q[0] < -0.004 and q.max() > -0.001, (name, q[0], q.max())
+        # ... and its estimate follows its reference
         final_ref, final_hat = part.trace["tau_ref"][-1], part.trace["tau_int_hat"][-1]
         assert abs(final_hat - final_ref) < 0.05 * abs(final_ref) + 0.01, (name, final_ref, final_hat)
     # the burst's time runs to its last send: never shorter than one axis' own
