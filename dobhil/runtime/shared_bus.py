@@ -206,7 +206,12 @@ class BusView(ClockedBus):
     def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
         """The next frame for this view that passes its filters, running receive passes
         until one came or ``timeout`` s (the bus's clock) passed; at least one pass."""
-        queue, shared, clock = self._queue, self._shared, self._shared.clock
+        queue, shared = self._queue, self._shared
+        if timeout == 0.0 and not self.filtering:   # the cycle's read: no clock, one pass at most
+            if not queue:
+                shared.receive_pass(0.0)
+            return (queue.popleft() if queue else None), True
+        clock = shared.clock
         deadline = None if timeout is None else clock() + timeout
         first = True
         while True:
