@@ -50,17 +50,16 @@ def test_node_id_clash_is_one_line_exit_2(tmp_path: Path, capsys: pytest.Capture
 
 
 class Sent(can.BusABC):
-    """A tap that counts what the host sends on the bus it wraps."""
+    """A tap that keeps what the host sends on the bus it wraps in ``sent``."""
 
-    sent: list[can.Message] = []
-
-    def __init__(self, inner: can.BusABC) -> None:
+    def __init__(self, inner: can.BusABC, sent: list[can.Message]) -> None:
         self._inner = inner
+        self.sent = sent
         self.channel_info = f"tap {inner.channel_info}"
         super().__init__(channel=self.channel_info)
 
     def send(self, msg: can.Message, timeout: float | None = None) -> None:
-        Sent.sent.append(msg)
+        self.sent.append(msg)
         self._inner.send(msg, timeout)
 
     def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
@@ -72,12 +71,13 @@ class Sent(can.BusABC):
                                                (("odrive", "cia402"), (12, 5))])
 def test_clash_refused_before_any_frame(tmp_path: Path, protos: tuple[str, str], nodes: tuple[int, int]) -> None:
     axes = load_two(tmp_path, protos, f"axes.left.drive.node_id={nodes[0]}", f"axes.right.drive.node_id={nodes[1]}")
-    Sent.sent = []
+    sent: list[can.Message] = []
     with pytest.raises(ConfigError) as caught:
-        AxesSession(axes, emulate=True, lockstep=True, config_dir=CONFIGS, bus_wrapper=lambda bus, name: Sent(bus))
+        AxesSession(axes, emulate=True, lockstep=True, config_dir=CONFIGS,
+                    bus_wrapper=lambda bus, name: Sent(bus, sent))
     line = str(caught.value)
     assert "\n" not in line and "'left'" in line and "'right'" in line, line
-    assert Sent.sent == []   # nothing was sent: nothing enabled
+    assert sent == []   # nothing was sent: nothing enabled
 
 
 def test_distinct_nodes_of_two_protocols_are_no_clash(tmp_path: Path) -> None:

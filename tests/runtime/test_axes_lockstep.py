@@ -41,3 +41,20 @@ def test_each_axis_runs_as_alone(tmp_path: Path, protos: tuple[str, str]) -> Non
             assert a.shape == b.shape and np.array_equal(a, b, equal_nan=True), (axis.name, name)
     # the axes differ (not one axis' values twice): the right one's reference is another
     assert not np.array_equal(both.axes["left"].trace["tau_ref"], both.axes["right"].trace["tau_ref"])
+
+
+def test_axes_on_two_buses_run_as_alone(tmp_path: Path) -> None:
+    """Each axis on a bus of its own (one lockstep bus each, stepped together)."""
+    axes = load_two(tmp_path, ("cia402", "odrive"), "axes.left.drive.interface=socketcan",
+                    "axes.left.drive.channel=can0", "axes.right.drive.interface=socketcan",
+                    "axes.right.drive.channel=can1", "axes.right.drive.node_id=5")
+    with AxesSession(axes, emulate=True, lockstep=True, config_dir=CONFIGS) as session:
+        assert [(g.name, g.axes) for g in session.groups] == [("socketcan:can0", ["left"]),
+                                                              ("socketcan:can1", ["right"])]
+        both = session.run()
+    assert both.stop.reason is StopReason.DONE and both.disabled, both.stop.line()
+    for axis in axes.axes:
+        with RunSession(axis.config, emulate=True, lockstep=True, config_dir=CONFIGS) as alone:
+            single = alone.run()
+        for name in FIELDS:
+            assert np.array_equal(both.axes[axis.name].trace[name], single.trace[name], equal_nan=True), name

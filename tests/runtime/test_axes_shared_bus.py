@@ -13,32 +13,34 @@ from dobhil.drives.periodic import native_periodic
 from dobhil.runtime.shared_bus import BusView, SharedBus
 
 
+class Channel:
+    """The inner bus and a peer on one private virtual channel, and the shared buses a
+    test opens on the inner bus (their views are shut down after it)."""
+
+    def __init__(self) -> None:
+        name = private_virtual_channel()
+        self.inner = can.Bus(interface="virtual", channel=name)
+        self.peer = can.Bus(interface="virtual", channel=name)
+        self.opened: list[SharedBus] = []
+
+    def share(self, **kwargs: int) -> SharedBus:
+        shared = SharedBus(self.inner, **kwargs)
+        self.opened.append(shared)
+        return shared
+
+    def close(self) -> None:
+        for shared in self.opened:
+            for view in shared.views:
+                view.shutdown()
+        self.inner.shutdown()
+        self.peer.shutdown()
+
+
 @pytest.fixture
-def channel() -> Iterator[tuple[can.BusABC, can.BusABC]]:
-    """The inner bus and a peer on one private virtual channel; the views a test opens
-    on the inner bus (``SHARED``) are shut down after it."""
-    name = private_virtual_channel()
-    inner = can.Bus(interface="virtual", channel=name)
-    peer = can.Bus(interface="virtual", channel=name)
-    opened: list[SharedBus] = []
-    SHARED.append(opened)
-    yield inner, peer
-    SHARED.remove(opened)
-    for shared in opened:
-        for view in shared.views:
-            view.shutdown()
-    inner.shutdown()
-    peer.shutdown()
-
-
-#: the shared buses of the running test (the fixture shuts their views down)
-SHARED: list[list[SharedBus]] = []
-
-
-def share(inner: can.BusABC, **kwargs: int) -> SharedBus:
-    shared = SharedBus(inner, **kwargs)
-    SHARED[-1].append(shared)
-    return shared
+def channel() -> Iterator[Channel]:
+    bus = Channel()
+    yield bus
+    bus.close()
 
 
 def frame(arbitration_id: int, *data: int) -> can.Message:
@@ -52,9 +54,9 @@ def ids_data(view: BusView) -> list[tuple[int, bytes]]:
     return out
 
 
-def test_one_pass_dispatches_each_frame_to_its_views(channel: tuple[can.BusABC, can.BusABC]) -> None:
-    inner, peer = channel
-    shared = share(inner)
+def test_one_pass_dispatches_each_frame_to_its_views(channel: Channel) -> None:
+    peer = channel.peer
+    shared = channel.share()
     a = shared.view("a", {0x021, 0x029})     # an ODrive node 1's encoder and heartbeat, say
     b = shared.view("b", {0x041, 0x049})
     every = shared.view("every")             # no ids: takes every frame
@@ -71,9 +73,9 @@ def test_one_pass_dispatches_each_frame_to_its_views(channel: tuple[can.BusABC, 
     assert shared.unclaimed == 1 and ids_data(every) == []
 
 
-def test_a_view_reads_through_passes_and_keeps_the_others_frames(channel: tuple[can.BusABC, can.BusABC]) -> None:
-    inner, peer = channel
-    shared = share(inner)
+def test_a_view_reads_through_passes_and_keeps_the_others_frames(channel: Channel) -> None:
+    peer = channel.peer
+    shared = channel.share()
     a, b = shared.view("a", {0x1}), shared.view("b", {0x2})
     peer.send(frame(0x2, 9))
     peer.send(frame(0x1, 8))
@@ -83,9 +85,9 @@ def test_a_view_reads_through_passes_and_keeps_the_others_frames(channel: tuple[
     assert a.recv(0.0) is None and b.recv(0.01) is None   # nothing left: a timeout, not a hang
 
 
-def test_queues_are_bounded_and_count_their_loss(channel: tuple[can.BusABC, can.BusABC]) -> None:
-    inner, peer = channel
-    shared = share(inner, queue_frames=3)
+def test_queues_are_bounded_and_count_their_loss(channel: Channel) -> None:
+    peer = channel.peer
+    shared = channel.share(queue_frames=3)
     a, b = shared.view("a", {0x10}), shared.view("b", {0x20})
     for i in range(5):
         peer.send(frame(0x10, i))
@@ -95,9 +97,9 @@ def test_queues_are_bounded_and_count_their_loss(channel: tuple[can.BusABC, can.
     assert b.lost == 0 and ids_data(b) == [(0x20, b"\x07")]
 
 
-def test_sends_go_straight_through_in_order(channel: tuple[can.BusABC, can.BusABC]) -> None:
-    inner, peer = channel
-    shared = share(inner)
+def test_sends_go_straight_through_in_order(channel: Channel) -> None:
+    peer = channel.peer
+    shared = channel.share()
     a, b = shared.view("a", {0x1}), shared.view("b", {0x2})
     a.send(frame(0x201, 1))
     b.send(frame(0x202, 2))
@@ -107,9 +109,9 @@ def test_sends_go_straight_through_in_order(channel: tuple[can.BusABC, can.BusAB
         (0x201, b"\x01"), (0x202, b"\x02"), (0x203, b"\x03")]
 
 
-def test_filters_of_a_view_apply_to_its_frames(channel: tuple[can.BusABC, can.BusABC]) -> None:
-    inner, peer = channel
-    shared = share(inner)
+def test_filters_of_a_view_apply_to_its_frames(channel: Channel) -> None:
+    peer = channel.peer
+    shared = channel.share()
     a = shared.view("a")
     a.set_filters([{"can_id": 0x5, "can_mask": 0x7FF}])
     peer.send(frame(0x6, 1))
