@@ -231,7 +231,9 @@ class AxesLoop:
             else:
                 self._run_host()
         except _Halt as halt:
-            return Stop(halt.reason, _named(self._current, halt.detail), self._at, self._now()), self._current
+            # a signal is the run's, not the axis' whose cycle it interrupted
+            culprit = "" if halt.reason is StopReason.SIGNAL else self._current
+            return Stop(halt.reason, _named(culprit, halt.detail), self._at, self._now()), culprit
         except DriveFaultError as exc:
             faulted = self._by_name(self._current)
             reason, detail = (faulted.loop._blame(str(exc)) if faulted is not None

@@ -18,6 +18,7 @@ from dobhil.drives.base import Feedback
 from dobhil.emulator.faults import Fault, faulty
 from dobhil.runtime.controller import ControlOutput
 from dobhil.runtime.axes_session import AxesSession
+from dobhil.runtime.loop import StopRequest
 from dobhil.runtime.stop import Stop, StopReason
 
 from .axes_helpers import CONFIGS, assert_all_stopped, load_two
@@ -148,4 +149,48 @@ def test_enable_failure_of_the_second_axis_stops_the_first(tmp_path: Path, proto
     # drive never heard of); the emulated drives both hold no torque
     assert right.safe_stop is not None and right.safe_stop.sent
     assert "axis left" not in result.warning() or not _node(axes, CONFIGS, "left")[2]
+    assert applied == [0.0, 0.0]
+
+
+class RequestStopAt:
+    """A sink that asks the run to stop (as SIGINT does) at cycle ``at``."""
+
+    def __init__(self, request: StopRequest, at: int) -> None:
+        self.request, self.at = request, at
+
+    def started(self, fb: Feedback) -> None:
+        pass
+
+    def cycle(self, k: int, t: float, fb: Feedback, out: ControlOutput, period_error: float,
+              exec_time: float, overrun: bool) -> None:
+        if k == self.at:
+            self.request.set("SIGINT")
+
+    def stop(self, stop: Stop) -> None:
+        pass
+
+
+def test_a_stop_request_stops_every_axis(tmp_path: Path) -> None:
+    axes = load_two(tmp_path, ("odrive", "odrive"))
+    request = StopRequest()
+    with AxesSession(axes, emulate=True, lockstep=True, config_dir=CONFIGS, stop_request=request,
+                     sinks={"right": RequestStopAt(request, AT)}) as session:
+        result = session.run()
+    assert result.stop.reason is StopReason.SIGNAL and result.axis == "", result.stop.line()
+    assert "SIGINT" in result.stop.line() and "axis" not in result.stop.line()
+    assert result.cycles == AT + 1   # the cycle that asked ran to its end; the next did not
+    assert_all_stopped(result, confirmable={"left": True, "right": True})
+
+
+def test_one_axis_limit_stops_both(tmp_path: Path) -> None:
+    # the right axis starts 5 mrad before contact and moves towards it: its own limit trips
+    axes = load_two(tmp_path, ("odrive", "odrive"), "axes.right.loop.position_max=-0.004")
+    with AxesSession(axes, emulate=True, lockstep=True, config_dir=CONFIGS) as session:
+        result = session.run()
+        applied = [e.applied_torque for e in session.emulators]  # type: ignore[union-attr]
+    line = result.stop.line()
+    assert result.stop.reason is StopReason.POSITION_LIMIT and result.axis == "right", line
+    assert "axis right: q = " in line and "-0.004" in line
+    assert 0 < result.cycles < 300
+    assert_all_stopped(result, confirmable={"left": True, "right": True})
     assert applied == [0.0, 0.0]
