@@ -104,6 +104,8 @@ class AxesSession:
         self.plants: dict[str, PlantLike] = {}
         self.emulators: list[EmulatedDrive | EmulatorProcess] = []
         self.drives: dict[str, Drive] = {}
+        #: the emulator process of each axis emulated in real time
+        self._processes: dict[str, EmulatorProcess] = {}
         self.groups: list[BusGroup] = []
         self.loop: AxesLoop | None = None
         #: buses whose shutdown failed (one line each; close() does not raise for them)
@@ -219,12 +221,16 @@ class AxesSession:
         for name in group.axes:
             profile = self.profiles[name]
             drive_class(profile.protocol)   # imported now: the drive streams from its start
+            named: dict[str, Any] = {"name": name}   # the axis the node drives (its truth, its couplings)
             specs.append(EmulatorSpec.of(self.axes.axis(name).config, profile, priority_drop=drop,
-                                         on_first_frame=True))
+                                         on_first_frame=True, **named))
         couplings = [c for c in self.axes.couplings if c.a in group.axes and c.b in group.axes]
-        emulator = EmulatorProcess(specs, channel=group.spec.channel, mirror=mirror,  # type: ignore[arg-type]
-                                   couplings=couplings)  # type: ignore[call-arg]
+        # (Any: the process that hosts several specs is typed in its own module)
+        hosting: Any = EmulatorProcess
+        emulator: EmulatorProcess = hosting(specs, channel=group.spec.channel, mirror=mirror, couplings=couplings)
         self.emulators.append(emulator)
+        for name in group.axes:
+            self._processes[name] = emulator
         return emulator.bus
 
     def _add(self, bus: can.BusABC) -> can.BusABC:
@@ -275,6 +281,14 @@ class AxesSession:
 
     def truth(self, name: str) -> Callable[[], tuple[float, float]] | None:
         """The emulated plant's interaction torque and true position of axis ``name``."""
+        process = self._processes.get(name)
+        if process is not None:   # the child's plant of this node: one tick's values
+
+            of_node: Any = process.truth
+
+            def child() -> tuple[float, float]:
+                return of_node(name)
+            return child
         plant = self.plants.get(name)
         if plant is None:
             return None
@@ -287,8 +301,14 @@ class AxesSession:
         clocks = {name: g.lockstep.clock for g in self.groups if g.lockstep is not None for name in g.axes}
         return [AxisParts(name=a.name, drive=self.drives[a.name], controller=self.controllers[a.name],
                           reference=self.references[a.name], settings=self._settings(a),
-                          sink=self.sinks.get(a.name), truth=self.truth(a.name), clock=clocks.get(a.name))
+                          sink=self.sinks.get(a.name), truth=self.truth(a.name), clock=clocks.get(a.name),
+                          starved=self._starved(a.name))
                 for a in self.axes.axes]
+
+    def _starved(self, name: str) -> Callable[[float], str] | None:
+        """An emulator process says whether it was starved (the host to blame for a silence)."""
+        process = self._processes.get(name)
+        return None if process is None else process.starved
 
     def _settings(self, axis: Axis) -> LoopSettings:
         return self.settings[axis.name]
