@@ -44,8 +44,8 @@ from dobhil.runtime.axes_loop import AxesLoop, AxesResult, AxisParts
 from dobhil.runtime.buses import BusSpec, open_bus, resolve_bus, shutdown_bus
 from dobhil.runtime.loop import CycleSink, LoopSettings, StopRequest, Timing
 from dobhil.runtime.references import make_reference
-from dobhil.runtime.session import (build_controller, check_duration, check_rates, lockstep_latency, loop_settings,
-                                    resolve_timing)
+from dobhil.runtime.session import (build_controller, check_duration, check_feedback_streams, check_rates,
+                                    lockstep_latency, loop_settings, resolve_timing)
 from dobhil.runtime.shared_bus import SharedBus
 
 __all__ = ["AxesSession", "BusGroup", "BusWrapper", "axes_summary"]
@@ -124,16 +124,10 @@ class AxesSession:
     # -- building ------------------------------------------------------------
 
     def _timing(self, lockstep: bool) -> Timing:
-        """One timing for every axis: lockstep, or host. Feedback timing runs one cycle
-        per frame of one drive; a real-time run of a lockstep config runs host-timed."""
+        """One timing for every axis (each axis' as a single-axis run resolves it; host
+        when they differ)."""
         timings = {resolve_timing(a.config, self.profiles[a.name], lockstep) for a in self.axes.axes}
-        timing = timings.pop() if len(timings) == 1 else Timing.HOST
-        if timing is Timing.FEEDBACK:
-            if self.axes.axes[0].config.loop.timing != "lockstep":
-                raise ConfigError("loop.timing = feedback runs one cycle per feedback frame of one drive; "
-                                  "with several axes set loop.timing: host (or lockstep with --emulate)")
-            timing = Timing.HOST
-        return timing
+        return timings.pop() if len(timings) == 1 else Timing.HOST
 
     def _group(self, cli_bus: str | None) -> list[BusGroup]:
         groups: dict[str, BusGroup] = {}
@@ -170,6 +164,7 @@ class AxesSession:
             self._add(view)
             drive = make_drive(view, self.profiles[name], reset_faults=self.reset_faults, **clock)
             view.accept(drive.frame_ids)
+            check_feedback_streams(self.timing, drive)
             self.drives[name] = drive
 
     def _lockstep_emulators(self, group: BusGroup) -> list[EmulatedDrive]:
@@ -299,10 +294,11 @@ class AxesSession:
 
     def parts(self) -> list[AxisParts]:
         clocks = {name: g.lockstep.clock for g in self.groups if g.lockstep is not None for name in g.axes}
+        buses = {name: g.shared for g in self.groups for name in g.axes}
         return [AxisParts(name=a.name, drive=self.drives[a.name], controller=self.controllers[a.name],
                           reference=self.references[a.name], settings=self._settings(a),
                           sink=self.sinks.get(a.name), truth=self.truth(a.name), clock=clocks.get(a.name),
-                          starved=self._starved(a.name))
+                          starved=self._starved(a.name), bus=buses[a.name])
                 for a in self.axes.axes]
 
     def _starved(self, name: str) -> Callable[[float], str] | None:

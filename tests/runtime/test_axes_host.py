@@ -1,4 +1,4 @@
-"""Several axes in real time, host-timed, against emulated drives running on threads of
+"""Several axes in real time, host-timed and feedback-timed, against emulated drives running on threads of
 their own on a python-can virtual channel (the drive classes see a real bus). Bounds come
 from what the run measured, never from the wall clock."""
 
@@ -28,9 +28,14 @@ import can
 CYCLES = 300
 
 
-def _axes(tmp_path: Path, channel: str, *extra: str) -> Axes:
+#: a loaded 2-core machine can leave an emulator thread unscheduled for tens of ms: the
+#: feedback timeout is 0.2 s (below the relaxed drive watchdog, 0.25 s)
+TIMINGS = ("host", "feedback")
+
+
+def _axes(tmp_path: Path, channel: str, timing: str, *extra: str) -> Axes:
     profile = realtime_profile(tmp_path, "odrive-0.6")
-    return load_two(tmp_path, ("odrive", "odrive"), "loop.timing=host", "loop.feedback_timeout=0.05",
+    return load_two(tmp_path, ("odrive", "odrive"), f"loop.timing={timing}", "loop.feedback_timeout=0.2",
                     "drive.interface=virtual", f"drive.channel={channel}", f"drive.profile={profile}",
                     f"loop.duration={CYCLES / 1000}", *extra)
 
@@ -54,14 +59,16 @@ def _start(stack: ExitStack, axes: Axes, channel: str) -> list[EmulatedDrive]:
     return drives
 
 
-def test_two_axes_host_timed(tmp_path: Path, emulators: ExitStack) -> None:
+@pytest.mark.parametrize("timing", TIMINGS)
+def test_two_axes_in_real_time(tmp_path: Path, emulators: ExitStack, timing: str) -> None:
     channel = private_virtual_channel()
-    axes = _axes(tmp_path, channel)
+    axes = _axes(tmp_path, channel, timing)
     drives = _start(emulators, axes, channel)
     with AxesSession(axes, config_dir=CONFIGS) as session:
         result = session.run()
     line = result.stop.line()
     assert result.stop.reason is StopReason.DONE, line
+    assert session.timing.label == timing
     # every deadline was either run or skipped after an overrun, and counted once
     assert result.cycles + result.skipped == CYCLES
     assert result.overruns <= result.cycles and (result.skipped == 0) == (result.overruns == 0)
@@ -84,19 +91,21 @@ def test_two_axes_host_timed(tmp_path: Path, emulators: ExitStack) -> None:
     assert all(abs(d.applied_torque) == 0.0 for d in drives)   # both held no torque after the stop
 
 
-def test_feedback_loss_of_one_axis_stops_both_in_real_time(tmp_path: Path, emulators: ExitStack) -> None:
+@pytest.mark.parametrize("timing", TIMINGS)
+def test_feedback_loss_of_one_axis_stops_both_in_real_time(tmp_path: Path, emulators: ExitStack,
+                                                            timing: str) -> None:
     channel = private_virtual_channel()
-    axes = _axes(tmp_path, channel)
+    axes = _axes(tmp_path, channel, timing, "loop.duration=0.6")   # room for the 0.2 s timeout
     _start(emulators, axes, channel)
     from dobhil.drives.odrive import codec
     encoder_left = codec.arbitration_id(1, codec.CmdId.GET_ENCODER_ESTIMATES)
-    silence = faulty(SilenceAfter(frames=100, ids={encoder_left}))
+    silence = faulty(SilenceAfter(frames=50, ids={encoder_left}))
     with AxesSession(axes, config_dir=CONFIGS, bus_wrapper=lambda bus, name: silence(bus)) as session:
         result = session.run()
     line = result.stop.line()
     assert result.stop.reason is StopReason.FEEDBACK_TIMEOUT, line
     assert result.axis == "left" and "axis left" in line
-    assert result.cycles < CYCLES
+    assert result.cycles + result.skipped < 600
     for name, part in result.axes.items():
         assert part.safe_stop is not None and part.safe_stop.sent, name
         assert part.disabled, (name, part.safe_stop)   # the heartbeats still come: confirmed
