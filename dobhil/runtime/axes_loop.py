@@ -32,8 +32,13 @@ Timing (:class:`~dobhil.runtime.loop.Timing`):
 - **host**: absolute deadlines ``t0 + k T``, sleep then spin, an overrun counted and the
   missed deadlines skipped, as :class:`~dobhil.runtime.loop.ForceLoop` does; each cycle
   starts with one non-blocking receive pass per bus.
-- **feedback** is not run with several axes (the session refuses it): which axis' frame
-  would trigger the cycle is a choice this loop does not make for the user.
+- **feedback**: each cycle waits for every axis' sample of the cycle -- a fresh frame of
+  each drive -- and runs at once when the last one came, or at the period's deadline
+  (one period after the cycle was expected) with what came: a drive whose frame is late
+  is then run on its newest sample, and its silence beyond its feedback timeout stops the
+  run. Frames that came while a cycle was late are skipped (the newest is used) and their
+  cycle indices with them, as :class:`~dobhil.runtime.loop.ForceLoop` does; ``skipped``
+  and ``overruns`` count them. Every drive must stream its feedback.
 
 Safety. The axes are enabled in order; an enable that fails ends the run before any
 cycle. However the run ends -- done, an axis' fault, feedback timeout, limit, non-finite
@@ -50,6 +55,7 @@ Sinks: each axis' ``sink`` is called exactly as a single-axis loop calls its own
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -84,6 +90,8 @@ class AxisParts:
     truth: Callable[[], tuple[float, float]] | None = None
     starved: Callable[[float], str] | None = None
     clock: Callable[[], float] | None = None
+    #: the shared bus the drive is on (feedback timing waits on it; None: the loop's first)
+    bus: SharedBus | None = None
 
 
 @dataclass(frozen=True)
@@ -132,6 +140,7 @@ class _Axis:
     streams: bool
     clock: Callable[[], float]
     timeout: float
+    bus: SharedBus | None = None
     last_seq: int = 0
     last_fresh: float = 0.0
     enabled: bool = False
@@ -154,8 +163,6 @@ class AxesLoop:
         if len(set(names)) != len(names):
             raise ValueError(f"axis names must be distinct, got {names}")
         self.settings = axes[0].settings
-        if self.settings.timing is Timing.FEEDBACK:
-            raise ValueError("AxesLoop runs lockstep or host timing, not feedback timing")
         if (self.settings.timing is Timing.LOCKSTEP) != bool(lockstep):
             raise ValueError("lockstep timing needs the lockstep buses, and only lockstep timing takes them")
         self.stop_request = stop_request or StopRequest()
@@ -183,7 +190,7 @@ class AxesLoop:
         loop = ForceLoop(drive=a.drive, controller=a.controller, reference=a.reference,  # type: ignore[arg-type]
                          settings=settings, clock=clock, truth=a.truth, sink=a.sink,
                          stop_request=self.stop_request, trace_rows=trace_rows, starved=a.starved)
-        return _Axis(a.name, loop, loop.drive.feedback_streams, clock, settings.feedback_timeout)
+        return _Axis(a.name, loop, loop.drive.feedback_streams, clock, settings.feedback_timeout, a.bus)
 
     @property
     def loops(self) -> Mapping[str, ForceLoop]:
@@ -228,6 +235,8 @@ class AxesLoop:
             self._start()
             if self.settings.timing is Timing.LOCKSTEP:
                 self._run_lockstep()
+            elif self.settings.timing is Timing.FEEDBACK:
+                self._run_feedback()
             else:
                 self._run_host()
         except _Halt as halt:
@@ -342,6 +351,82 @@ class AxesLoop:
             elif axis.streams:
                 waiting = True
         return waiting
+
+    # -- feedback timing ---------------------------------------------------------
+
+    def _run_feedback(self) -> None:
+        s = self.settings
+        period, n = s.period, s.cycles
+        last_wake = math.nan
+        k = 0
+        while k < n:
+            self._wait_samples(last_wake + period if last_wake == last_wake else math.nan)
+            wake = self.clock()
+            start = time.perf_counter()
+            late = 0
+            for axis in self._axes:
+                late = max(late, self._fresh_feedback(axis, wake))
+            if late:   # frames came while a cycle was late: their cycles are skipped
+                self.overruns += 1
+                self.skipped += min(late, n - k)
+                k += late
+                if k >= n:
+                    break
+            error = (wake - last_wake) - (late + 1) * period if last_wake == last_wake else 0.0
+            last_wake = wake
+            self._burst(k, wake - self._t0, error, start, True)
+            for axis in self._axes:
+                self._current = axis.name
+                trace = axis.loop.trace
+                if late:
+                    trace.data["overrun"][trace.last] = 1.0
+                assert axis.fb is not None
+                axis.loop._emit(k, axis.fb, bool(late))
+            self._current = ""
+            k += 1
+            self._gc.between_cycles(last_wake + period - self.clock(), period)
+
+    def _wait_samples(self, expected: float) -> None:
+        """Feedback timing: read until every axis has a fresh sample, or until the period's
+        deadline (one period after ``expected``; NaN: the first cycle, bounded by the
+        shortest feedback timeout). Blocks on the bus of an axis still waited for (slices
+        of WAIT_SLICE: a stop request ends the wait; with several buses, slices of
+        ``loop.spin``, so a frame on another bus waits no longer than that)."""
+        clock, axes = self.clock, self._axes
+        now = clock()
+        deadline = (now + min(a.timeout for a in axes)) if expected != expected else expected + self.settings.period
+        slice_ = WAIT_SLICE if len(self.buses) == 1 else max(self.settings.spin, 1e-5)
+        while True:
+            waiting = None
+            for axis in axes:
+                self._current = axis.name
+                fb = axis.loop.drive.poll(0.0) or axis.loop.drive.feedback
+                if fb is None or fb.seq == axis.last_seq:
+                    waiting = waiting or axis
+            self._current = ""
+            remaining = deadline - clock()
+            if waiting is None or remaining <= 0 or self.stop_request.is_set():
+                return
+            self._bus_of(waiting).receive_pass(min(remaining, slice_))
+
+    def _bus_of(self, axis: _Axis) -> SharedBus:
+        return axis.bus if axis.bus is not None else self.buses[0]
+
+    def _fresh_feedback(self, axis: _Axis, wake: float) -> int:
+        """Feedback timing: take the axis' newest sample; the frames it skipped (0: none).
+        Its silence beyond its feedback timeout stops the run."""
+        self._current = axis.name
+        fb = axis.loop.drive.feedback
+        if fb is not None and fb.seq != axis.last_seq:
+            frames = fb.seq - axis.last_seq
+            axis.loop._rate.frame(fb.rx_time, frames)
+            axis.last_seq, axis.last_fresh, axis.fb = fb.seq, wake, fb
+            return frames - 1
+        if wake - axis.last_fresh > axis.timeout:
+            axis.loop._check_stop_request()
+            raise axis.loop._silent(f"no fresh feedback for {wake - axis.last_fresh:.4f} s "
+                                    f"(limit {axis.timeout:g} s)", wake - axis.last_fresh)
+        return 0
 
     # -- host timing -------------------------------------------------------------
 
