@@ -58,10 +58,10 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from types import MappingProxyType
 
-from dobhil.drives.base import Confirmation, Feedback, SafeStopReport
+from dobhil.drives.base import Confirmation, Drive, Feedback, SafeStopReport
 from dobhil.drives.emulated import LockstepBus
 from dobhil.drives.waits import WAIT_SLICE
 from dobhil.errors import BusError, DriveError, DriveFaultError, WaitCancelled, exception_line
@@ -82,7 +82,7 @@ class AxisParts:
     simulated seconds; None: the loop's)."""
 
     name: str
-    drive: object   # a dobhil.drives.base.Drive (object: the loop only calls its public API)
+    drive: Drive
     controller: ForceController
     reference: Reference
     settings: LoopSettings
@@ -146,7 +146,7 @@ class _Axis:
     enabled: bool = False
     fb: Feedback | None = None
     out: ControlOutput | None = None
-    report: SafeStopReport | None = field(default=None)
+    report: SafeStopReport | None = None
 
 
 class AxesLoop:
@@ -187,7 +187,7 @@ class AxesLoop:
         settings = LoopSettings(period=s.period, duration=s.duration, feedback_timeout=a.settings.feedback_timeout,
                                 timing=s.timing, limits=a.settings.limits, spin=s.spin, watch=a.settings.watch)
         clock = a.clock or self.clock
-        loop = ForceLoop(drive=a.drive, controller=a.controller, reference=a.reference,  # type: ignore[arg-type]
+        loop = ForceLoop(drive=a.drive, controller=a.controller, reference=a.reference,
                          settings=settings, clock=clock, truth=a.truth, sink=a.sink,
                          stop_request=self.stop_request, trace_rows=trace_rows, starved=a.starved)
         return _Axis(a.name, loop, loop.drive.feedback_streams, clock, settings.feedback_timeout, a.bus)
