@@ -17,6 +17,8 @@ from dobhil.drives.load import load_drive_profile
 from dobhil.drives.registry import make_emulated_drive
 from dobhil.emulator.faults import SilenceAfter, faulty
 from dobhil.emulator.plant import Plant
+from dobhil.drives.odrive import codec
+from dobhil.runtime.axes_loop import AxesResult
 from dobhil.runtime.axes_session import AxesSession
 from dobhil.runtime.stop import StopReason
 
@@ -91,17 +93,27 @@ def test_two_axes_in_real_time(tmp_path: Path, emulators: ExitStack, timing: str
     assert all(abs(d.applied_torque) == 0.0 for d in drives)   # both held no torque after the stop
 
 
-@pytest.mark.parametrize("timing", TIMINGS)
-def test_feedback_loss_of_one_axis_stops_both_in_real_time(tmp_path: Path, emulators: ExitStack,
-                                                            timing: str) -> None:
+def _lose_left(tmp_path: Path, emulators: ExitStack, timing: str) -> AxesResult:
+    """A run whose left axis' encoder frames are lost from the 50th on."""
+    tmp_path.mkdir()
     channel = private_virtual_channel()
     axes = _axes(tmp_path, channel, timing, "loop.duration=0.6")   # room for the 0.2 s timeout
     _start(emulators, axes, channel)
-    from dobhil.drives.odrive import codec
     encoder_left = codec.arbitration_id(1, codec.CmdId.GET_ENCODER_ESTIMATES)
     silence = faulty(SilenceAfter(frames=50, ids={encoder_left}))
     with AxesSession(axes, config_dir=CONFIGS, bus_wrapper=lambda bus, name: silence(bus)) as session:
-        result = session.run()
+        return session.run()
+
+
+@pytest.mark.parametrize("timing", TIMINGS)
+def test_feedback_loss_of_one_axis_stops_both_in_real_time(tmp_path: Path, emulators: ExitStack,
+                                                            timing: str) -> None:
+    for attempt in range(2):
+        result = _lose_left(tmp_path / str(attempt), emulators, timing)
+        # a machine so loaded that an emulator thread went unscheduled for longer than its
+        # heartbeat watch before the loss began (cycle 50) has not tried the loss: once more
+        if not (result.stop.reason is StopReason.DRIVE_FAULT and result.stop.cycle < 50):
+            break
     line = result.stop.line()
     assert result.stop.reason is StopReason.FEEDBACK_TIMEOUT, line
     assert result.axis == "left" and "axis left" in line
