@@ -505,10 +505,16 @@ class AxesLoop:
             self._current = axis.name
             assert axis.fb is not None
             axis.out = axis.loop._compute(t, axis.fb)
-        for axis in axes:
-            self._current = axis.name
-            assert axis.fb is not None and axis.out is not None
-            axis.loop._send(k, t, axis.fb, axis.out, period_error, start, timed)
+        for shared in self.buses:
+            shared.burst_begin()
+        try:
+            for axis in axes:
+                self._current = axis.name
+                assert axis.fb is not None and axis.out is not None
+                axis.loop._send(k, t, axis.fb, axis.out, period_error, start, timed)
+        finally:
+            self._current = ""
+            self._burst_end()
         end = time.perf_counter()
         self._current = ""
         self.exec_time.add(end - start)
@@ -516,6 +522,15 @@ class AxesLoop:
             self.period_error.add(abs(period_error))
         self.cycles += 1
         self._at = k + 1
+
+    def _burst_end(self) -> None:
+        """The bus's own frames held during the burst (one SYNC) go out after it."""
+        for shared in self.buses:
+            try:
+                shared.burst_end()
+            except Exception as exc:   # any interface's failure is the bus's
+                raise BusError(f"{shared.inner.channel_info}: frame after the commands not sent: "
+                               f"{exception_line(exc)}") from exc
 
     # -- the end -----------------------------------------------------------------
 

@@ -16,6 +16,11 @@ the one bus (its ``inner``): each drive gets a :class:`BusView`, a full ``can.Bu
   counted in :attr:`BusView.lost`, and the bus never grows without end.
 - **Send**: straight through to the inner bus, in the caller's order (one cycle's
   commands go out as one burst, one batch per tick as a transport's ``cycle`` sends it).
+  Inside a burst (:meth:`SharedBus.burst_begin` .. :meth:`SharedBus.burst_end`) a frame of
+  the bus rather than of one node -- its id taken by more than one view, a SYNC a drive
+  sends itself after its command where the bus has no periodic send of its own -- is
+  held and sent once, after every node's command: each node's command is in before the
+  one SYNC that latches them all.
 - **Periodic send**: the same frame at the same period asked by several views (a SYNC,
   a host heartbeat: frames of the bus, not of one node) is one task on the inner bus,
   shared by reference count and stopped when the last view stops it: nodes on one bus
@@ -82,6 +87,9 @@ class SharedBus:
         self.queue_frames = queue_frames
         self.views: list[BusView] = []
         self._tasks: dict[_Key, tuple[CyclicSendTaskABC, int]] = {}
+        #: ids more than one view takes (the bus's own frames, not one node's)
+        self.bus_wide: frozenset[int] = frozenset()
+        self._held: dict[tuple[int, bool, bytes], can.Message] | None = None   # in a burst
         #: frames read that no view took (another node's, foreign traffic)
         self.unclaimed = 0
 
@@ -90,7 +98,20 @@ class SharedBus:
         frame; set later with :meth:`BusView.accept`, once its drive says its ids)."""
         view = BusView(self, name, ids)
         self.views.append(view)
+        self.recount()
         return view
+
+    def recount(self) -> None:
+        """Which ids are the bus's own (taken by more than one view); views call this when
+        their ids change."""
+        seen: set[int] = set()
+        wide: set[int] = set()
+        for view in self.views:
+            ids = view.ids
+            if ids is not None:
+                wide |= seen & ids
+                seen |= ids
+        self.bus_wide = frozenset(wide)
 
     def receive_pass(self, timeout: float | None = 0.0) -> int:
         """Read what the inner bus has -- waiting up to ``timeout`` s of its clock for the
@@ -113,7 +134,21 @@ class SharedBus:
         return count
 
     def send(self, msg: can.Message, timeout: float | None = None) -> None:
+        held = self._held
+        if held is not None and msg.arbitration_id in self.bus_wide:
+            held.setdefault((msg.arbitration_id, msg.is_extended_id, bytes(msg.data)), msg)
+            return
         self.inner.send(msg, timeout)
+
+    def burst_begin(self) -> None:
+        """From now on, hold the bus's own frames (see the module's text)."""
+        self._held = {}
+
+    def burst_end(self) -> None:
+        """Send the held frames, each once, in the order they were first asked for."""
+        held, self._held = self._held, None
+        for msg in (held or {}).values():
+            self.inner.send(msg)
 
     def send_periodic(self, msgs: Sequence[can.Message] | can.Message, period: float,
                       duration: float | None, autostart: bool,
@@ -178,6 +213,12 @@ class BusView(ClockedBus):
     def accept(self, ids: Collection[int] | None) -> None:
         """Take the frames with these arbitration ids (None: every frame)."""
         self._ids = None if ids is None else frozenset(ids)
+        self._shared.recount()
+
+    @property
+    def ids(self) -> frozenset[int] | None:
+        """The arbitration ids this view takes (None: every frame)."""
+        return self._ids
 
     def takes(self, msg: can.Message) -> bool:
         ids = self._ids

@@ -180,3 +180,21 @@ def test_a_view_is_as_native_as_its_bus() -> None:
     assert native_periodic(view)
     view.shutdown()
     inner.shutdown()
+
+
+def test_a_burst_sends_the_bus_frames_once_after_every_command(channel: Channel) -> None:
+    """Two nodes that each send a SYNC (0x080) after their command, on a bus without a
+    periodic send of its own: one SYNC, after both commands."""
+    shared = channel.share()
+    a, b = shared.view("a", {0x080, 0x181, 0x201}), shared.view("b", {0x080, 0x182, 0x202})
+    assert shared.bus_wide == {0x080}
+    shared.burst_begin()
+    for view, command in ((a, frame(0x201, 1, 0)), (b, frame(0x202, 2, 0))):
+        view.send(command)
+        view.send(frame(0x080))
+    shared.burst_end()
+    a.send(frame(0x080))   # outside a burst: straight through
+    got = []
+    while (msg := channel.peer.recv(0.2)) is not None:
+        got.append((msg.arbitration_id, bytes(msg.data)))
+    assert got == [(0x201, b"\x01\x00"), (0x202, b"\x02\x00"), (0x080, b""), (0x080, b"")]
