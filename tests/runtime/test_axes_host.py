@@ -121,3 +121,24 @@ def test_feedback_loss_of_one_axis_stops_both_in_real_time(tmp_path: Path, emula
     for name, part in result.axes.items():
         assert part.safe_stop is not None and part.safe_stop.sent, name
         assert part.disabled, (name, part.safe_stop)   # the heartbeats still come: confirmed
+
+
+def test_two_cia402_axes_share_one_sync_per_cycle(tmp_path: Path, emulators: ExitStack) -> None:
+    """On a bus with no periodic send of its own each CiA 402 drive sends a SYNC after its
+    command: in one cycle's burst the two make one SYNC, after both commands."""
+    channel = private_virtual_channel()
+    axes = load_two(tmp_path, ("cia402", "cia402"), "loop.timing=host", "loop.feedback_timeout=0.2",
+                    "drive.interface=virtual", f"drive.channel={channel}", f"loop.duration={CYCLES / 1000}")
+    sniffer = can.Bus(interface="virtual", channel=channel)
+    emulators.callback(sniffer.shutdown)
+    _start(emulators, axes, channel)
+    with AxesSession(axes, config_dir=CONFIGS) as session:
+        result = session.run()
+    assert result.stop.reason is StopReason.DONE and result.disabled, result.stop.line()
+    ids = []
+    while (msg := sniffer.recv(0.0)) is not None:
+        ids.append(msg.arbitration_id)
+    syncs = ids.count(0x080)
+    # one per cycle, plus the few the drives send outside the cycles (start-up, safe stop);
+    # a SYNC per drive and cycle would be twice the cycles
+    assert result.cycles <= syncs < 1.5 * result.cycles, (syncs, result.cycles)
