@@ -28,6 +28,7 @@ from dobhil.emulator.faults import FaultyBus
 from dobhil.emulator.pipe import PipeBus, socket_pair
 from dobhil.drives.emulated import private_virtual_channel
 from dobhil.recording.runlog import RecordingBus
+from dobhil.runtime.shared_bus import SharedBus
 
 DT = 1e-3
 ACCEPT, REJECT = 0x123, 0x124
@@ -124,6 +125,22 @@ def recording_virtual_rig() -> Rig:
     return Rig(bus, time.monotonic, feed, False, [bus.shutdown, *closers])
 
 
+def shared_lockstep_rig() -> Rig:
+    """A drive's view of a lockstep bus shared by several drives (it takes every frame)."""
+    closers: list[Callable[[], None]] = []
+    shared = SharedBus(_lockstep(closers))
+    view = shared.view("drive")
+    return Rig(view, view.clock, None, True, [view.shutdown, shared.shutdown, *closers])
+
+
+def shared_virtual_rig() -> Rig:
+    closers: list[Callable[[], None]] = []
+    inner, feed = _virtual(closers)
+    shared = SharedBus(inner)
+    view = shared.view("drive")
+    return Rig(view, time.monotonic, feed, False, [view.shutdown, shared.shutdown, *closers])
+
+
 def pipe_rig() -> Rig:
     a, b = socket_pair()
     bus, peer = PipeBus(a, "host"), PipeBus(b, "drive")
@@ -158,6 +175,8 @@ RIGS: dict[str, tuple[str, Callable[[], Rig]]] = {
     "faulty-virtual": ("FaultyBus", faulty_virtual_rig),
     "recording-lockstep": ("RecordingBus", recording_lockstep_rig),
     "recording-virtual": ("RecordingBus", recording_virtual_rig),
+    "shared-lockstep": ("BusView", shared_lockstep_rig),
+    "shared-virtual": ("BusView", shared_virtual_rig),
     "pipe": ("PipeBus", pipe_rig),
     "node-tap": ("NodeTap", node_tap_rig),
     "dobhil": ("DobhilBus", dobhil_rig),

@@ -38,6 +38,8 @@ TARGETS: dict[str, float] = {
     "lockstep_cycles_per_s_mit": 3000.0,
     "lockstep_cycles_per_s_moteus": 3000.0,
     "lockstep_vs_bare_bus_ratio": 0.4,
+    # two axes in one lockstep loop: at least 0.45x the single axis' cycles per second
+    "lockstep_2axes_vs_1axis_ratio": 0.45,
     "logged_vs_unlogged_ratio": 0.6,
     "replay_cycles_per_s": 20000.0,
     "live_logged_vs_unlogged_ratio": 0.5,
@@ -181,6 +183,39 @@ def bench_lockstep() -> dict[str, float]:
     return {"lockstep_cycles_per_s": float(np.median(ours)),
             "bare_bus_cycles_per_s": float(np.median(bare)),
             "lockstep_vs_bare_bus_ratio": float(np.median(ratios))}
+
+
+def _axes_lockstep_cycles_per_s(duration: float, axes: int) -> float:
+    """The demo's ODrive axis ``axes`` times on one emulated bus (nodes 1..N), one loop."""
+    import tempfile
+
+    import yaml
+
+    from dobhil.config.axes import load_axes
+    from dobhil.runtime.axes_session import AxesSession
+    data = yaml.safe_load((ROOT / "configs/demo.yaml").read_text(encoding="utf-8"))
+    data["axes"] = [{"name": f"a{i + 1}", "drive": {"node_id": i + 1}} for i in range(axes)]
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / f"demo-{axes}-axes.yaml"
+        path.write_text(yaml.safe_dump(data), encoding="utf-8")
+        config = load_axes(path, [f"loop.duration={duration}"])
+    with AxesSession(config, emulate=True, lockstep=True, config_dir=ROOT / "configs") as session:
+        t0 = time.perf_counter()
+        result = session.run()
+        return result.cycles / (time.perf_counter() - t0)
+
+
+def bench_axes() -> dict[str, float]:
+    """Several axes in one lockstep loop against the single axis, interleaved in triples
+    (a load change hits every member of a triple)."""
+    one, two, four = [], [], []
+    for _ in range(3):
+        one.append(_lockstep_cycles_per_s(2.0))
+        two.append(_axes_lockstep_cycles_per_s(2.0, 2))
+        four.append(_axes_lockstep_cycles_per_s(2.0, 4))
+    return {"lockstep_cycles_per_s_2axes": float(np.median(two)),
+            "lockstep_cycles_per_s_4axes": float(np.median(four)),
+            "lockstep_2axes_vs_1axis_ratio": float(np.median([t / o for t, o in zip(two, one)]))}
 
 
 def _logged_run(duration: float, path: Path | None) -> float:
@@ -721,6 +756,7 @@ BENCHES: dict[str, Callable[[], dict[str, float]]] = {
     "sweep": bench_sweep,
     "controller": bench_controller,
     "lockstep": bench_lockstep,
+    "axes": bench_axes,
     "logging": bench_logging,
     "realtime": bench_realtime,
     "handover": bench_handover,

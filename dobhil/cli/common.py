@@ -8,6 +8,9 @@ from typing import TextIO
 
 from dobhil.config import Config, load_config
 
+#: exit code of a run that ended in a safety stop (not bad input)
+EXIT_STOPPED = 1
+
 
 def add_config_args(parser: argparse.ArgumentParser, *, required: bool = True) -> None:
     parser.add_argument("config", metavar="CONFIG", nargs=None if required else "?",

@@ -10,11 +10,8 @@ from pathlib import Path
 from typing import Any
 
 from dobhil.cli.axis_option import add_axis_arg, select_axis
-from dobhil.cli.common import add_config_args, config_from_args
+from dobhil.cli.common import EXIT_STOPPED, add_config_args, config_from_args
 from dobhil.cli.stability_gate import add_gate_args
-
-#: exit code of a run that ended in a safety stop (not bad input)
-EXIT_STOPPED = 1
 
 
 def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -56,7 +53,15 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from dobhil.config.axes import has_axes
     from dobhil.errors import PreflightError
+    if has_axes(args.config) and args.axis is None:   # several axes in one loop
+        from dobhil.cli.axes_run import run_axes
+        if args.live:
+            from dobhil.errors import ConfigError
+            raise ConfigError("--live: serving a run of several axes is not available in this build")
+        return run_axes(args, prog="dobhil run", emulate=args.emulate, lockstep=True if args.lockstep else None,
+                        plot=args.plot, log=args.log)
     try:
         return run_checked(args)
     except PreflightError as exc:  # the drive is not set up for this run: nothing was enabled

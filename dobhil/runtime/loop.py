@@ -823,6 +823,11 @@ class ForceLoop:
 
     def _cycle(self, k: int, t: float, fb: Feedback, period_error: float, start: float,
                timed: bool) -> None:
+        self._send(k, t, fb, self._compute(t, fb), period_error, start, timed)
+
+    def _compute(self, t: float, fb: Feedback) -> ControlOutput:
+        """The command of the cycle at ``t`` on ``fb``, checked (feedback, finiteness, the
+        instability watch); nothing is sent. Raises _Halt when the run must stop."""
         if self.stop_request.is_set():   # inline: the cycle's cost
             raise _Halt(StopReason.SIGNAL, self.stop_request.why or "stop requested")
         q, dq = fb.position, fb.velocity
@@ -837,6 +842,13 @@ class ForceLoop:
             why = watch.cycle(out.u_unsat, out.u)
             if why:
                 raise _Halt(StopReason.UNSTABLE, why)
+        return out
+
+    def _send(self, k: int, t: float, fb: Feedback, out: ControlOutput, period_error: float,
+              start: float, timed: bool) -> None:
+        """Send the command ``out`` of cycle ``k`` and account for the cycle (timing
+        histograms, the trace row); ``start``: the cycle's start (``time.perf_counter``)."""
+        q, dq = fb.position, fb.velocity
         self.drive.send_torque(out.u)
         exec_time = time.perf_counter() - start
         latency = sample_latency = math.nan

@@ -1,0 +1,149 @@
+"""``dobhil run`` and ``dobhil demo`` of a config that lists ``axes:`` (several axes in one
+loop, :class:`~dobhil.runtime.axes_session.AxesSession`): the same options as a
+single-axis run where they mean the same, one stop line naming the axis that stopped the
+run, one loud line naming every axis not confirmed disabled, the exit codes of a
+single-axis run (0 done, 1 a safety stop, 2 bad input)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+from dobhil.cli.common import EXIT_STOPPED
+
+
+def run_axes(args: argparse.Namespace, *, prog: str, emulate: bool, lockstep: bool | None,
+             plot: Path | None = None, log: Path | None = None) -> int:
+    """Run the axes of ``args.config``; ``plot``: one PNG per axis (``NAME-<axis>.png``)."""
+    from dobhil.cli.stability_gate import stability_gate
+    from dobhil.config import resolve_config
+    from dobhil.config.axes import load_axes
+    from dobhil.files import check_output
+    from dobhil.runtime.axes_session import AxesSession, axes_summary
+    from dobhil.runtime.loop import StopRequest
+    from dobhil.runtime.session import check_duration
+    from dobhil.runtime.signals import stop_on_signals
+    duration = getattr(args, "duration", None)
+    check_duration(duration)
+    path = resolve_config(args.config)
+    axes = load_axes(path, args.overrides, args.set_files)
+    if plot is not None:
+        for axis in axes.axes:
+            check_output(_axis_png(plot, axis.name), inputs=[path], suffix=".png", what="--plot")
+    hooks = log_hooks(log)
+    # before any bus: an unstable design is refused with nothing opened (each axis that no
+    # coupling joins to another; a coupled pair's closed loop is dobhil analyze's)
+    for axis in axes.axes:
+        if not axes.coupled(axis.name):
+            stability_gate(axis.config, path, allow_unstable=args.allow_unstable, prog=f"{prog}: axis {axis.name}")
+    if not emulate:
+        sys.stderr.write(f"{prog}: note: the preflight is not run for several axes (dobhil check CONFIG "
+                         "measures each drive)\n")
+    session: Any = None
+    try:
+        with stop_on_signals(StopRequest()) as request, \
+                AxesSession(axes, bus=getattr(args, "bus", None), emulate=emulate, lockstep=lockstep,
+                            duration=duration, config_dir=path.parent, stop_request=request,
+                            reset_faults=getattr(args, "reset_faults", False), **hooks) as session:
+            _realtime(session, prog)
+            result = session.run()
+            info = axes_summary(session, result)
+    except BaseException:
+        tell_unfinished(session, prog)
+        raise
+    report(info, result.stop.line(), prog=prog, as_json=getattr(args, "summary_json", False))
+    for problem in session.shutdown_problems:
+        if result.stop.reason.name != "BUS_ERROR":
+            sys.stderr.write(f"{prog}: warning: bus shutdown failed: {problem}\n")
+    if plot is not None:
+        from dobhil.plotting.run_plot import run_figure
+        for name, part in result.axes.items():
+            sys.stdout.write(f"wrote {run_figure(part.trace, _axis_png(plot, name), f'axis {name}')}\n")
+    return 0 if result.stop.reason.name == "DONE" else EXIT_STOPPED
+
+
+def log_hooks(log: Path | None) -> dict[str, Any]:
+    """AxesSession keyword arguments that record the run: ``sinks`` (one per axis) and
+    ``bus_wrapper`` (one tap per bus). Nothing records a run of several axes yet: a
+    ``--log`` is refused before anything is opened."""
+    if log is None:
+        return {}
+    from dobhil.errors import ConfigError
+    raise ConfigError(f"--log {log}: recording a run of several axes is not available in this build; "
+                      "run without --log")
+
+
+def _axis_png(plot: Path, axis: str) -> Path:
+    return plot.with_name(f"{plot.stem}-{axis}{plot.suffix or '.png'}")
+
+
+def _realtime(session: Any, prog: str) -> None:
+    """Ask for SCHED_FIFO / locked memory for a real-time run; warn (before the loop) if refused."""
+    from dobhil.realtime import apply_realtime
+    from dobhil.runtime.loop import Timing
+    if session.timing is not Timing.LOCKSTEP:
+        loop = session.axes.axes[0].config.loop
+        for line in apply_realtime(loop.realtime_priority, loop.cpu_affinity):
+            sys.stderr.write(f"{prog}: warning: {line}\n")
+
+
+def tell_unfinished(session: Any, prog: str) -> None:
+    """An exception ended the run after the loop started: its stop line and the loud line
+    for every axis not confirmed disabled, before the error line main() prints."""
+    loop = getattr(session, "loop", None)
+    ended = getattr(loop, "ended", None)
+    if loop is None or ended is None:
+        return
+    stop, _ = ended
+    sys.stdout.flush()
+    sys.stderr.write(f"{prog}: {stop.line()}\n")
+    warnings = []
+    for name, axis_loop in loop.loops.items():
+        report = axis_loop.ended[1] if axis_loop.ended is not None else None
+        if report is None or report.warning():
+            warnings.append(f"axis {name}: " + (report.warning() if report is not None else "no safe stop"))
+    if warnings:
+        sys.stderr.write(f"WARNING: {'; '.join(warnings)}\n")
+
+
+def report(info: dict[str, Any], stop_line: str, *, prog: str, as_json: bool) -> None:
+    """The run's account: the summary (or its JSON), the stop line, the loud line last."""
+    warning = info.get("drive_warning") or ""
+    notes = "; ".join(f"axis {n}: {a['drive_note']}" for n, a in info["axes"].items() if a.get("drive_note"))
+    if as_json:
+        json.dump(info, sys.stdout)
+        sys.stdout.write("\n")
+    else:
+        _print_summary(info, stop_line, prog)
+    sys.stdout.flush()
+    if warning:
+        sys.stderr.write(f"WARNING: {warning}\n")
+    elif notes:
+        sys.stderr.write(f"NOTE: {notes}\n")
+
+
+def _print_summary(info: dict[str, Any], stop_line: str, prog: str) -> None:
+    if info["cycles"] == 0:   # nothing ran (an axis never enabled): the reason only
+        sys.stderr.write(f"{prog}: {stop_line}\n")
+        return
+    buses = info["buses"]
+    skipped = info.get("skipped", 0)
+    print(f"{info['cycles']} cycles ({info['timing']}, T = {info['period']:g} s, {len(info['axes'])} axes on "
+          f"{len(buses)} bus{'es' if len(buses) > 1 else ''}{', emulated' if info['emulated'] else ''}); "
+          f"overruns {info['overruns']}" + (f", {skipped} deadlines skipped" if skipped else ""))
+    print(stop_line)
+    for name, axis in info["axes"].items():
+        f = axis["final"]
+        head = f"axis {name} ({axis['protocol']} node {axis['node_id']}, bus {axis['bus']})"
+        if f["tau_ref"] is None:
+            print(f"{head}: no cycle")
+            continue
+        true = "-" if f["tau_int_true"] is None else f"{f['tau_int_true']:.4f}"
+        print(f"{head}: final tau_ref {f['tau_ref']:.4f} N m, tau_int^ {f['tau_int_hat']:.4f} N m, "
+              f"true tau_int {true} N m, q {f['q']:.6f} rad")
+    t = info["loop_timing"]
+    print(f"loop: exec time (all axes) p50 {t['exec_time_p50'] * 1e6:.0f} us, p99 {t['exec_time_p99'] * 1e6:.0f} us; "
+          f"period error p99 {t['period_error_p99'] * 1e6:.0f} us, max {t['period_error_max'] * 1e6:.0f} us")

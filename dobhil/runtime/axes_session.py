@@ -1,0 +1,392 @@
+"""A run of several axes put together from an :class:`~dobhil.config.axes.Axes` config.
+
+:class:`AxesSession` is :class:`~dobhil.runtime.session.RunSession` for N axes: each
+axis' profile (with its ``drive.node_id``), controller, reference and limits, built by
+the very functions a single-axis run uses; the axes grouped by bus (an axis'
+``drive.interface``/``drive.channel``, else the default bus); per bus one python-can bus
+shared by its axes' drives (:class:`~dobhil.runtime.shared_bus.SharedBus`); one
+:class:`~dobhil.runtime.axes_loop.AxesLoop`. It owns everything it opens and closes all
+of it (context manager).
+
+Two drives on one bus must not use one arbitration id: the session refuses a clash
+before anything is sent, in one line naming both axes and the ids, whatever the
+protocols (a node's ids are its drive's :attr:`~dobhil.drives.base.Drive.frame_ids`,
+less the bus's own frames every node of its kind shares -- a SYNC, NMT).
+
+Emulation: ``lockstep`` puts per bus one private ``virtual`` channel, one emulated drive
+per axis (its plant from its config; coupled plants when the config couples axes) and one
+:class:`~dobhil.drives.emulated.LockstepBus` over them. In real time the emulator process
+hosts every node of a bus (:class:`~dobhil.emulator.process.EmulatorProcess` given a list
+of specs).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import inspect
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import can
+
+from dobhil.config.axes import Axes, Axis
+from dobhil.drives.base import Drive
+from dobhil.drives.emulated import EmulatedDrive, LockstepBus, PlantLike, private_virtual_channel
+from dobhil.drives.load import load_drive_profile
+from dobhil.drives.registry import drive_class, make_drive, make_emulated_drive, protocol
+from dobhil.emulator.plant import Plant
+from dobhil.emulator.process import EmulatorProcess, EmulatorSpec
+from dobhil.errors import ConfigError
+from dobhil.realtime import EMULATOR_PRIORITY_DROP
+from dobhil.runtime.axes_loop import AxesLoop, AxesResult, AxisParts
+from dobhil.runtime.buses import BusSpec, open_bus, resolve_bus, shutdown_bus
+from dobhil.runtime.loop import CycleSink, LoopSettings, StopRequest, Timing
+from dobhil.runtime.references import make_reference
+from dobhil.runtime.session import (build_controller, check_duration, check_feedback_streams, check_rates,
+                                    lockstep_latency, loop_settings, resolve_timing)
+from dobhil.runtime.shared_bus import SharedBus
+
+__all__ = ["AxesSession", "BusGroup", "BusWrapper", "axes_summary"]
+
+#: wraps the host's side of one bus (bus name given): a recorder's tap, a fault injector
+BusWrapper = Callable[[can.BusABC, str], can.BusABC]
+
+
+@dataclass
+class BusGroup:
+    """One bus and the axes on it."""
+
+    name: str                   # the configured bus (``INTERFACE:CHANNEL``), the key of a wrapper
+    spec: BusSpec               # what is opened (a private channel when emulated)
+    axes: list[str] = field(default_factory=list)
+    shared: SharedBus | None = None
+    lockstep: LockstepBus | None = None
+
+
+class AxesSession:
+    """Everything a run of several axes needs; ``with AxesSession(...) as s: result = s.run()``."""
+
+    def __init__(self, axes: Axes, *, bus: str | None = None, emulate: bool = False,
+                 lockstep: bool | None = None, duration: float | None = None,
+                 config_dir: Path | None = None, sinks: Mapping[str, CycleSink] | None = None,
+                 stop_request: StopRequest | None = None, bus_wrapper: BusWrapper | None = None,
+                 reset_faults: bool = False) -> None:
+        first = axes.axes[0].config
+        lockstep = (first.loop.timing == "lockstep") if lockstep is None else lockstep
+        if lockstep and not emulate:
+            raise ConfigError("lockstep timing needs the in-process emulator (--emulate); "
+                              "a real drive runs in real time")
+        if emulate and bus:
+            raise ConfigError(f"--bus {bus} with --emulate: the emulator runs on its own private virtual "
+                              "bus; drop --bus")
+        check_duration(duration)
+        unknown = sorted(set(sinks or {}) - {a.name for a in axes.axes})
+        if unknown:
+            raise ConfigError(f"sinks for unknown axes {unknown}; axes: {[a.name for a in axes.axes]}")
+        self.axes = axes
+        self.emulate = emulate
+        self.config_dir = config_dir
+        self.sinks = dict(sinks or {})
+        self.stop_request = stop_request or StopRequest()
+        self.reset_faults = reset_faults
+        self._wrapper = bus_wrapper
+        self.profiles = {a.name: load_drive_profile(a.config, config_dir) for a in axes.axes}
+        for a in axes.axes:
+            check_rates(self.profiles[a.name], a.config.loop.period)
+        self.timing = self._timing(lockstep)
+        self.settings = {a.name: loop_settings(a.config, self.timing, duration) for a in axes.axes}
+        self.controllers = {a.name: build_controller(a.config, self.profiles[a.name]) for a in axes.axes}
+        self.references = {a.name: make_reference(a.config.reference, config_dir,
+                                                  duration=self.settings[a.name].duration)
+                           for a in axes.axes}
+        self.plants: dict[str, PlantLike] = {}
+        self.emulators: list[EmulatedDrive | EmulatorProcess] = []
+        self.drives: dict[str, Drive] = {}
+        #: the emulator process of each axis emulated in real time
+        self._processes: dict[str, EmulatorProcess] = {}
+        self.groups: list[BusGroup] = []
+        self.loop: AxesLoop | None = None
+        #: buses whose shutdown failed (one line each; close() does not raise for them)
+        self.shutdown_problems: list[str] = []
+        self._buses: list[can.BusABC] = []
+        self._shared: list[SharedBus] = []
+        try:
+            self.groups = self._group(bus)
+            for group in self.groups:
+                self._open(group)
+            self._check_clashes()
+        except BaseException:
+            self.close()
+            raise
+
+    # -- building ------------------------------------------------------------
+
+    def _timing(self, lockstep: bool) -> Timing:
+        """One timing for every axis (each axis' as a single-axis run resolves it; host
+        when they differ)."""
+        timings = {resolve_timing(a.config, self.profiles[a.name], lockstep) for a in self.axes.axes}
+        return timings.pop() if len(timings) == 1 else Timing.HOST
+
+    def _group(self, cli_bus: str | None) -> list[BusGroup]:
+        groups: dict[str, BusGroup] = {}
+        for a in self.axes.axes:
+            profile = self.profiles[a.name]
+            spec = resolve_bus(a.config, profile, None if a.config.drive.interface else cli_bus)
+            name = spec.describe()
+            group = groups.get(name)
+            if group is None:
+                if self.emulate:
+                    fd = {"protocol": can.CanProtocol.CAN_FD} if protocol(profile.protocol).fd else {}
+                    spec = BusSpec("virtual", private_virtual_channel(), fd)
+                group = groups[name] = BusGroup(name, spec)
+            group.axes.append(a.name)
+        return list(groups.values())
+
+    def _open(self, group: BusGroup) -> None:
+        host = self._add(open_bus(group.spec))
+        if self.emulate and self.timing is Timing.LOCKSTEP:
+            emulators = self._lockstep_emulators(group)
+            lock = LockstepBus(host, emulators, dt=self.axes.period)
+            self._add(lock)
+            group.lockstep = lock
+            host = lock
+        elif self.emulate:
+            host = self._add(self._realtime_emulator(group, host))
+        if self._wrapper is not None:
+            host = self._add(self._wrapper(host, group.name))
+        shared = group.shared = SharedBus(host)
+        self._shared.append(shared)
+        clock: dict[str, Any] = {"clock": group.lockstep.clock} if group.lockstep is not None else {}
+        for name in group.axes:
+            view = shared.view(name)
+            self._add(view)
+            drive = make_drive(view, self.profiles[name], reset_faults=self.reset_faults, **clock)
+            view.accept(drive.frame_ids)
+            check_feedback_streams(self.timing, drive)
+            self.drives[name] = drive
+
+    def _lockstep_emulators(self, group: BusGroup) -> list[EmulatedDrive]:
+        plants = self._plants(group.axes)
+        # the emulators share one end of the channel: each reads every frame the host sends
+        # (a lockstep emulator reads exactly as many as were sent), none reads another
+        # emulator's (two ends on a virtual channel would copy each one's frames to the other)
+        nodes = SharedBus(self._add(open_bus(group.spec)))
+        self._shared.append(nodes)
+        emulators = []
+        for name in group.axes:
+            axis, profile = self.axes.axis(name), self.profiles[name]
+            emu_bus = self._add(nodes.view(f"{name} emulator"))
+            emulator = make_emulated_drive(emu_bus, profile, plants[name],
+                                           latency=lockstep_latency(axis.config, profile), jitter=0.0,
+                                           seed=axis.config.sensor.seed)
+            emulators.append(emulator)
+            self.emulators.append(emulator)
+        return emulators
+
+    def _plants(self, names: list[str]) -> dict[str, PlantLike]:
+        """Each axis' plant; the coupled ones through the coupling module."""
+        plants: dict[str, Plant] = {name: Plant.from_config(self.axes.axis(name).config) for name in names}
+        couplings = [c for c in self.axes.couplings if c.a in plants or c.b in plants]
+        if not couplings:
+            self.plants.update(plants)
+            return dict(plants)
+        crossing = [c for c in couplings if not (c.a in plants and c.b in plants)]
+        if crossing:
+            c = crossing[0]
+            raise ConfigError(f"coupling between axes {c.a!r} and {c.b!r}: they are on different buses; "
+                              "an emulated coupling joins axes of one bus")
+        try:
+            from dobhil.emulator.coupling import couple_plants
+        except ImportError as exc:
+            raise ConfigError("environment.coupling: coupled axes are not available in this build "
+                              "(dobhil.emulator.coupling is missing); remove the coupling") from exc
+        coupled = couple_plants(plants, couplings)
+        self.plants.update(coupled)
+        return coupled
+
+    def _realtime_emulator(self, group: BusGroup, mirror: can.BusABC) -> can.BusABC:
+        """The emulator process hosting every node of the bus, in real time."""
+        if "couplings" not in inspect.signature(EmulatorProcess).parameters:
+            raise ConfigError("real-time emulation of several axes needs the emulator process that hosts "
+                              "several nodes (not in this build); run with --lockstep")
+        drop = EMULATOR_PRIORITY_DROP if self.timing is Timing.HOST else 0
+        specs = []
+        for name in group.axes:
+            profile = self.profiles[name]
+            drive_class(profile.protocol)   # imported now: the drive streams from its start
+            named: dict[str, Any] = {"name": name}   # the axis the node drives (its truth, its couplings)
+            specs.append(EmulatorSpec.of(self.axes.axis(name).config, profile, priority_drop=drop,
+                                         on_first_frame=True, **named))
+        couplings = [c for c in self.axes.couplings if c.a in group.axes and c.b in group.axes]
+        # (Any: the process that hosts several specs is typed in its own module)
+        hosting: Any = EmulatorProcess
+        emulator: EmulatorProcess = hosting(specs, channel=group.spec.channel, mirror=mirror, couplings=couplings)
+        self.emulators.append(emulator)
+        for name in group.axes:
+            self._processes[name] = emulator
+        return emulator.bus
+
+    def _add(self, bus: can.BusABC) -> can.BusABC:
+        self._buses.append(bus)
+        return bus
+
+    def _check_clashes(self) -> None:
+        """Two drives on one bus with an arbitration id in common: refused, naming both."""
+        for group in self.groups:
+            for i, a in enumerate(group.axes):
+                for b in group.axes[i + 1:]:
+                    common = sorted(self._own_ids(a) & self._own_ids(b))
+                    if common:
+                        pa, pb = self.profiles[a], self.profiles[b]
+                        ids = ", ".join(f"0x{x:03X}" for x in common[:4]) + (" ..." if len(common) > 4 else "")
+                        raise ConfigError(
+                            f"axes {a!r} ({pa.protocol} node {pa.node_id}) and {b!r} ({pb.protocol} node "
+                            f"{pb.node_id}) on bus {group.name} both use arbitration ids {ids}; give one of "
+                            f"them another drive.node_id")
+
+    def _own_ids(self, name: str) -> frozenset[int]:
+        """The ids a drive uses as its node's own: its frame ids, less those the same drive at
+        another node id uses too (the bus's shared frames: a SYNC, NMT)."""
+        drive, profile = self.drives[name], self.profiles[name]
+        ids = drive.frame_ids
+        if ids is None:
+            return frozenset()
+        other = profile.node_id - 1 if profile.node_id > 1 else profile.node_id + 1
+        fd: dict[str, Any] = {"protocol": can.CanProtocol.CAN_FD} if protocol(profile.protocol).fd else {}
+        probe_bus = can.Bus(interface="virtual", channel=private_virtual_channel(), **fd)
+        try:
+            shared = make_drive(probe_bus, dataclasses.replace(profile, node_id=other)).frame_ids or frozenset()
+        finally:
+            probe_bus.shutdown()
+        return ids - shared
+
+    # -- running -------------------------------------------------------------
+
+    @property
+    def period(self) -> float:
+        return self.axes.period
+
+    @property
+    def sim_clock(self) -> Callable[[], float] | None:
+        """Simulated time [s] of a lockstep run (the first bus's); None in real time."""
+        lock = next((g.lockstep for g in self.groups if g.lockstep is not None), None)
+        return None if lock is None else lock.clock
+
+    def truth(self, name: str) -> Callable[[], tuple[float, float]] | None:
+        """The emulated plant's interaction torque and true position of axis ``name``."""
+        process = self._processes.get(name)
+        if process is not None:   # the child's plant of this node: one tick's values
+
+            of_node: Any = process.truth
+
+            def child() -> tuple[float, float]:
+                return of_node(name)
+            return child
+        plant = self.plants.get(name)
+        if plant is None:
+            return None
+
+        def read() -> tuple[float, float]:
+            return plant.interaction_torque, plant.true_position  # type: ignore[attr-defined]
+        return read
+
+    def parts(self) -> list[AxisParts]:
+        clocks = {name: g.lockstep.clock for g in self.groups if g.lockstep is not None for name in g.axes}
+        buses = {name: g.shared for g in self.groups for name in g.axes}
+        return [AxisParts(name=a.name, drive=self.drives[a.name], controller=self.controllers[a.name],
+                          reference=self.references[a.name], settings=self._settings(a),
+                          sink=self.sinks.get(a.name), truth=self.truth(a.name), clock=clocks.get(a.name),
+                          starved=self._starved(a.name), bus=buses[a.name])
+                for a in self.axes.axes]
+
+    def _starved(self, name: str) -> Callable[[float], str] | None:
+        """An emulator process says whether it was starved (the host to blame for a silence)."""
+        process = self._processes.get(name)
+        return None if process is None else process.starved
+
+    def _settings(self, axis: Axis) -> LoopSettings:
+        return self.settings[axis.name]
+
+    def run(self) -> AxesResult:
+        loop = AxesLoop(self.parts(), buses=self._shared,
+                        lockstep=[g.lockstep for g in self.groups if g.lockstep is not None],
+                        stop_request=self.stop_request)
+        self.loop = loop
+        try:
+            return loop.run()
+        finally:
+            self._settle()
+
+    def _settle(self) -> None:
+        """Lockstep: the emulators read the final frames (zero torque, disable) now."""
+        for emulator in self.emulators:
+            if isinstance(emulator, EmulatedDrive) and self.timing is Timing.LOCKSTEP:
+                try:
+                    emulator.handle_pending()
+                except Exception:
+                    pass
+
+    def close(self) -> None:
+        """Stop the emulators, the shared periodic tasks, and shut every bus down."""
+        errors: list[BaseException] = []
+        for shared in self._shared:
+            shared.shutdown()
+        self._shared.clear()
+        for emulator in self.emulators:
+            try:
+                emulator.stop()
+            except BaseException as exc:
+                errors.append(exc)
+        for bus in reversed(self._buses):
+            problem = shutdown_bus(bus)
+            if problem:
+                self.shutdown_problems.append(f"{bus.channel_info}: {problem}")
+        self._buses.clear()
+        if errors:
+            raise errors[0]
+
+    def __enter__(self) -> AxesSession:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def axes_summary(session: AxesSession, result: AxesResult) -> dict[str, Any]:
+    """The ``--summary-json`` object of a run of several axes: the run's stop and shared
+    timing, and per axis what a single-axis summary says of its drive and its final values."""
+    per_axis: dict[str, Any] = {}
+    for name, part in result.axes.items():
+        tr, report = part.trace, part.safe_stop
+        final: dict[str, float | None] = {"tau_ref": None, "tau_int_hat": None, "tau_int_true": None, "q": None}
+        if tr.last >= 0:
+            true = tr.latest("tau_int_true")
+            final = {"tau_ref": tr.latest("tau_ref"), "tau_int_hat": tr.latest("tau_int_hat"),
+                     "tau_int_true": None if true != true else true, "q": tr.latest("q")}
+        profile = session.profiles[name]
+        per_axis[name] = {
+            "protocol": profile.protocol, "node_id": profile.node_id,
+            "bus": next(g.name for g in session.groups if name in g.axes),
+            "cycles": part.cycles, "drive_disabled": part.disabled,
+            "drive_warning": report.warning() if report is not None else "",
+            "drive_note": report.note() if report is not None else "",
+            "drive_notes": list(session.drives[name].notes),
+            "safe_stop": None if report is None else {
+                "frames": [{"what": f.what, "sent": f.sent, "error": f.error, "refused": f.refused}
+                           for f in report.frames],
+                "confirmation": report.confirmation.name.lower(), "detail": report.detail,
+                "planned": report.planned},
+            "final": final,
+            "loop_timing": {k: v for k, v in dataclasses.asdict(part.timing).items() if v is not None},
+        }
+    return {
+        "axes": per_axis, "cycles": result.cycles, "skipped": result.skipped, "overruns": result.overruns,
+        "stop_reason": result.stop.reason.name.lower(), "stop_detail": result.stop.detail,
+        "stop_axis": result.axis, "drives_disabled": result.disabled,
+        "not_disabled": list(result.not_disabled), "drive_warning": result.warning(),
+        "timing": session.timing.label, "period": session.period,
+        "buses": {g.name: list(g.axes) for g in session.groups}, "emulated": session.emulate,
+        "loop_timing": {k: v for k, v in dataclasses.asdict(result.timing).items() if v is not None},
+    }
