@@ -23,7 +23,6 @@ of specs).
 from __future__ import annotations
 
 import dataclasses
-import inspect
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -36,6 +35,7 @@ from dobhil.drives.base import Drive
 from dobhil.drives.emulated import EmulatedDrive, LockstepBus, PlantLike, private_virtual_channel
 from dobhil.drives.load import load_drive_profile
 from dobhil.drives.registry import drive_class, make_drive, make_emulated_drive, protocol
+from dobhil.emulator.coupling import couple_plants
 from dobhil.emulator.plant import Plant
 from dobhil.emulator.process import EmulatorProcess, EmulatorSpec
 from dobhil.errors import ConfigError
@@ -197,32 +197,22 @@ class AxesSession:
             c = crossing[0]
             raise ConfigError(f"coupling between axes {c.a!r} and {c.b!r}: they are on different buses; "
                               "an emulated coupling joins axes of one bus")
-        try:
-            from dobhil.emulator.coupling import couple_plants
-        except ImportError as exc:
-            raise ConfigError("environment.coupling: coupled axes are not available in this build "
-                              "(dobhil.emulator.coupling is missing); remove the coupling") from exc
         coupled = couple_plants(plants, couplings)
         self.plants.update(coupled)
         return coupled
 
     def _realtime_emulator(self, group: BusGroup, mirror: can.BusABC) -> can.BusABC:
         """The emulator process hosting every node of the bus, in real time."""
-        if "couplings" not in inspect.signature(EmulatorProcess).parameters:
-            raise ConfigError("real-time emulation of several axes needs the emulator process that hosts "
-                              "several nodes (not in this build); run with --lockstep")
         drop = EMULATOR_PRIORITY_DROP if self.timing is Timing.HOST else 0
         specs = []
         for name in group.axes:
             profile = self.profiles[name]
             drive_class(profile.protocol)   # imported now: the drive streams from its start
-            named: dict[str, Any] = {"name": name}   # the axis the node drives (its truth, its couplings)
+            # named: the axis the node drives (its truth, its couplings)
             specs.append(EmulatorSpec.of(self.axes.axis(name).config, profile, priority_drop=drop,
-                                         on_first_frame=True, **named))
+                                         on_first_frame=True, name=name))
         couplings = [c for c in self.axes.couplings if c.a in group.axes and c.b in group.axes]
-        # (Any: the process that hosts several specs is typed in its own module)
-        hosting: Any = EmulatorProcess
-        emulator: EmulatorProcess = hosting(specs, channel=group.spec.channel, mirror=mirror, couplings=couplings)
+        emulator = EmulatorProcess(specs, channel=group.spec.channel, mirror=mirror, couplings=couplings)
         self.emulators.append(emulator)
         for name in group.axes:
             self._processes[name] = emulator
