@@ -65,14 +65,20 @@ def run(args: argparse.Namespace) -> int:
     try:
         return run_checked(args)
     except PreflightError as exc:  # the drive is not set up for this run: nothing was enabled
-        from dobhil.drives.preflight import Severity
-        found = [f for f in exc.report.findings if f.severity is Severity.MISMATCH]  # type: ignore[attr-defined]
-        refusing = [f for f in found if f.stale_feedback] + [f for f in found if f.refuses_run]
-        for finding in [f for f in found if not f.refuses] + refusing[1:]:
-            sys.stderr.write(f"dobhil run: mismatch: {finding.text}\n")
-        sys.stderr.write(f"dobhil run: refused to enable: {refusing[0].text if refusing else 'preflight'} "
-                         "(dobhil check CONFIG shows all it measured; --no-preflight skips)\n")
+        tell_refusal(exc.report, "dobhil run")
         return EXIT_STOPPED
+
+
+def tell_refusal(report: Any, prog: str) -> None:
+    """A refusing preflight's lines: its other mismatches, then the one it refuses on
+    (``prog``: ``dobhil run`` or ``dobhil run: axis NAME``)."""
+    from dobhil.drives.preflight import Severity
+    found = [f for f in report.findings if f.severity is Severity.MISMATCH]
+    refusing = [f for f in found if f.stale_feedback] + [f for f in found if f.refuses_run]
+    for finding in [f for f in found if not f.refuses] + refusing[1:]:
+        sys.stderr.write(f"{prog}: mismatch: {finding.text}\n")
+    sys.stderr.write(f"{prog}: refused to enable: {refusing[0].text if refusing else 'preflight'} "
+                     "(dobhil check CONFIG shows all it measured; --no-preflight skips)\n")
 
 
 def run_checked(args: argparse.Namespace) -> int:
@@ -149,7 +155,7 @@ def say_safe_stop(warning: str, note: str) -> None:
         sys.stderr.write(f"NOTE: {note}\n")
 
 
-def report_preflight(report: Any) -> None:
+def report_preflight(report: Any, prog: str = "dobhil run") -> None:
     """A passed preflight on stderr: its mismatches and notes, and one line per node
     measured (nothing when it was skipped). A mismatch here is one the run does not refuse
     on: its line says the run goes on, whatever the finding's own words."""
@@ -157,10 +163,10 @@ def report_preflight(report: Any) -> None:
         return
     for finding in report.findings:
         kind = "mismatch (not refused: the run goes on)" if finding.severity.name == "MISMATCH" else "note"
-        sys.stderr.write(f"dobhil run: preflight: {kind}: {finding.text}\n")
+        sys.stderr.write(f"{prog}: preflight: {kind}: {finding.text}\n")
     for node in report.nodes:
         if node.node == report.node_id:
-            sys.stderr.write(f"dobhil run: preflight: node {node.node}: {node.summary}\n")
+            sys.stderr.write(f"{prog}: preflight: node {node.node}: {node.summary}\n")
 
 
 def warn_budget(session: Any) -> None:
