@@ -117,9 +117,10 @@ def odrives() -> Iterator[tuple[str, list[EmulatedODrive]]]:
 
 
 def test_a_refusing_preflight_of_one_axis_enables_nothing(tmp_path: Path, odrives: tuple[str, list[EmulatedODrive]],
-                                                          capsys: pytest.CaptureFixture[str]) -> None:
+                                                          no_session: None, capsys: pytest.CaptureFixture[str]) -> None:
     """Axis j4 has no drive on the bus: its preflight refuses the run as a single-axis run's
-    does (exit 1, the refusal line names the axis) and no axis is enabled."""
+    does (exit 1, the refusal line names the axis) and no axis is enabled: the loop's
+    session is never opened."""
     channel, emus = odrives
     path = axes_config(tmp_path, "odrive-0.6", (1, 4))
     code = main(["run", str(path), "--bus", f"virtual:{channel}", "--set", SLACK, "--set", HOST, "--preflight-window", "0.2"])
