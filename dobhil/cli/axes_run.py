@@ -74,7 +74,7 @@ def preflight_axes(args: argparse.Namespace, axes: Any, path: Path, *, prog: str
     from dobhil.cli.axes_check import measure_axes
     from dobhil.cli.axes_gate import axes_gate
     from dobhil.cli.check_cmd import window_of
-    from dobhil.cli.run_cmd import report_preflight, tell_refusal
+    from dobhil.cli.preflight_lines import report_preflight, tell_refusal
     from dobhil.drives.axes import axes_budget, axis_drives
     bus = None if emulate else getattr(args, "bus", None)
     drives = axis_drives(axes, path.parent, bus)
