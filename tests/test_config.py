@@ -4,7 +4,8 @@ from pathlib import Path
 
 import pytest
 
-from dobhil.config import load_config, to_yaml
+from dobhil.config import Config, load_config, to_yaml
+from dobhil.config.axes import load_axes
 from dobhil.errors import ConfigError
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -19,8 +20,18 @@ def test_config_doc_is_generated_from_the_key_table() -> None:
 
 
 def test_every_shipped_config_loads() -> None:
+    """Each file, and each axis of a file that lists axes (a complete single-axis Config);
+    a file without axes is its one axis."""
+    listed = 0
     for path in sorted((ROOT / "configs").rglob("*.yaml")):
-        load_config(path)
+        axes = load_axes(path)
+        assert all(isinstance(axis.config, Config) for axis in axes.axes)
+        if axes.listed:
+            listed += 1
+            assert len(axes.axes) >= 2 and all(axes.axis(c.a) and axes.axis(c.b) for c in axes.couplings)
+        else:
+            assert axes.axes[0].config == load_config(path)
+    assert listed >= 1   # configs/two-axis-demo.yaml
 
 
 def test_resolved_yaml_round_trips(tmp_path: Path) -> None:

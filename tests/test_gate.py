@@ -13,11 +13,14 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from dobhil.analysis.coupled import axis_designs, coupled_groups
+from dobhil.analysis.coupled_gate import assess_coupled
 from dobhil.analysis.gate import GateStatus, assess, gain_margin_db
 from dobhil.analysis.report import analyze_domain
 from dobhil.analysis.stability import is_stable, phase_margin
 from dobhil.analysis.transfer import LoopSystems
 from dobhil.config import Config, load_config, resolve_config
+from dobhil.config.axes import load_axes
 from dobhil.data import shipped_configs
 from dobhil.drives.load import load_drive_profile
 from dobhil.drives.profile import DriveProfile
@@ -138,10 +141,20 @@ def test_a_design_without_a_force_loop_to_judge_is_a_note_never_a_refusal(sets: 
 
 @pytest.mark.parametrize("name", shipped_configs())
 def test_no_shipped_config_is_refused_or_warned(name: str) -> None:
-    config = load_config(name)
-    verdict = assess(config, load_drive_profile(config, resolve_config(name).parent))
-    assert not verdict.refuses and verdict.warning() is None
-    assert verdict.stable or (verdict.note() is not None and config.loop.mode == "torque")
+    """Each axis no coupling joins through the single-axis gate, each coupled group through
+    the coupled gate (a config without axes: its one axis)."""
+    axes = load_axes(name)
+    profiles = {a.name: load_drive_profile(a.config, resolve_config(name).parent) for a in axes.axes}
+    designs = {d.name: d for d in axis_designs(axes, profiles)}
+    for group in coupled_groups(axes):
+        if len(group) > 1:
+            coupled = assess_coupled([designs[n] for n in group], axes.couplings)
+            assert coupled.stable and coupled.warning() is None, coupled.summary()
+            continue
+        config = axes.axis(group[0]).config
+        verdict = assess(config, profiles[group[0]])
+        assert not verdict.refuses and verdict.warning() is None
+        assert verdict.stable or (verdict.note() is not None and config.loop.mode == "torque")
 
 
 def test_gain_margin_of_a_conditionally_stable_gain_is_the_nearer_edge() -> None:

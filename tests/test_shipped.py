@@ -11,6 +11,7 @@ import pytest
 
 from dobhil.cli.main import DESCRIPTION, EXIT_BROKEN_PIPE, main
 from dobhil.config import load_config, resolve_config
+from dobhil.config.axes import load_axes
 from dobhil.data import configs_dir, copy_shipped, drivers_dir, shipped_configs, shipped_profiles
 from dobhil.drives.load import load_drive_profile, load_profile
 from dobhil.errors import ConfigError, DobhilError
@@ -140,8 +141,9 @@ def test_every_shipped_config_and_profile_loads() -> None:
     assert {"demo", "cia402-demo"} <= set(shipped_configs())
     assert {"cia402-emulated", "epos4"} <= set(shipped_profiles())
     for name in shipped_configs():
-        config = load_config(name)
-        assert load_drive_profile(config, configs_dir()).name == config.drive.profile   # names, all of them
+        for axis in load_axes(name).axes:   # each axis of a config that lists axes
+            config = axis.config
+            assert load_drive_profile(config, configs_dir()).name == config.drive.profile   # names, all of them
     for name in shipped_profiles():
         assert load_profile(name).name == name
 

@@ -5,7 +5,8 @@ report of :mod:`dobhil.analysis.report`, one section per axis). Axes joined by c
 (``environment.coupling``) are one closed loop (:mod:`dobhil.analysis.coupled`): its
 stability, the largest scale of all their force gains that keeps it stable, the step of
 each axis' force reference, and the python-control check of the loop
-(:mod:`dobhil.analysis.coupled_check`).
+(:mod:`dobhil.analysis.coupled_check`). First, each bus' budget: the frames all its axes put
+on it per period against its bit rate (:func:`dobhil.drives.axes.bus_budgets`).
 """
 
 from __future__ import annotations
@@ -35,8 +36,11 @@ def run(args: argparse.Namespace, plot_names: tuple[str, ...]) -> int:
     groups = coupled_groups(axes)
     if args.plot:   # before the analysis: a bad directory fails at once, not after it
         _check_plot_dir(args, groups, plot_names)
-    result: dict[str, Any] = {"axes": {}, "coupled": []}
-    texts: list[str] = []
+    budgets = _budgets(axes, Path(args.config))
+    result: dict[str, Any] = {"axes": {}, "coupled": [], "buses": [
+        {"line": b.line(), "advice": b.advice(), **b.as_dict()} for b in budgets]}
+    texts: list[str] = [b.line() for b in budgets]
+    texts += [f"  {b.refusal() or b.advice()}" for b in budgets if b.over]
     for group in groups:
         if len(group) == 1:
             single, text = _single(designs[group[0]].config, args, group[0])
@@ -71,6 +75,14 @@ def _profiles(axes: Axes, config_path: Path) -> dict[str, Any]:
             raise ConfigError(f"axis {axis.name}: {exc}") from None
         profiles[axis.name] = profile
     return profiles
+
+
+def _budgets(axes: Axes, config_path: Path) -> tuple[Any, ...]:
+    """Each bus' budget with the frames of all its axes (:func:`dobhil.drives.axes.bus_budgets`,
+    what ``dobhil check`` and ``dobhil run`` refuse over 100 %); said here, not refused."""
+    from dobhil.config.load import resolve_config
+    from dobhil.drives.axes import axis_drives, bus_budgets
+    return bus_budgets(axis_drives(axes, resolve_config(str(config_path)).parent), axes.period)
 
 
 def _group_name(group: tuple[str, ...]) -> str:

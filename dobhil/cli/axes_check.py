@@ -2,7 +2,8 @@
 
 Before any bus is opened: each axis' profile with its ``drive.node_id``, CAN-id clashes of
 axes on one bus and the bus budget of all the axes of each bus
-(:mod:`dobhil.drives.axes`), then each axis' design through the stability gate. A clash, a
+(:mod:`dobhil.drives.axes`), then each design through the stability gate (an axis alone,
+or the coupled loop of axes joined by couplings: :mod:`dobhil.cli.axes_gate`). A clash, a
 bus over 100 % or an unstable design is refused there (one line, exit 2): nothing is sent.
 Then each bus is opened once and each of its axes measured as ``dobhil check`` measures one
 drive (:func:`dobhil.drives.preflight.run_preflight`, nothing enabled), its lines prefixed
@@ -21,9 +22,9 @@ import sys
 from collections.abc import Sequence
 from typing import Any
 
-from dobhil.errors import ConfigError, UnstableDesignError
+from dobhil.errors import ConfigError
 
-__all__ = ["check_axes"]
+__all__ = ["check_axes", "measure_axes"]
 
 #: exit code when a drive does not match or a bus is over its budget (as dobhil check)
 EXIT_MISMATCH = 1
@@ -40,8 +41,10 @@ def check_axes(args: argparse.Namespace, window: float) -> int:
     axes = load_axes(args.config, args.overrides, args.set_files)
     drives = axis_drives(axes, resolve_config(args.config).parent, args.bus)
     budgets = axes_budget(drives, axes.period)   # over 100 %: refused here, before a bus opens
-    gates = [_gate(axis, args) for axis in axes.axes]
-    reports = _measure(axes, drives, window, args.bus)
+    from dobhil.cli.axes_gate import axes_gate
+    gates = list(axes_gate(axes, args.config, {d.name: d.profile for d in drives},
+                           allow_unstable=args.allow_unstable, prog="dobhil check").items())
+    reports = measure_axes(axes, drives, window, args.bus)
     ok = all(r.ok for _, _, r in reports) and not any(b.over for b in budgets)
     if args.json:
         json.dump(_as_json(budgets, gates, reports, ok), sys.stdout)
@@ -52,19 +55,10 @@ def check_axes(args: argparse.Namespace, window: float) -> int:
     return 0 if ok else EXIT_MISMATCH
 
 
-def _gate(axis: Any, args: argparse.Namespace) -> tuple[str, Any]:
-    """The axis' design through the stability gate ``dobhil run`` applies (refusal: one line
-    naming the axis)."""
-    from dobhil.cli.stability_gate import stability_gate
-    try:
-        return axis.name, stability_gate(axis.config, args.config, allow_unstable=args.allow_unstable,
-                                         prog=f"dobhil check: axis {axis.name}")
-    except UnstableDesignError as exc:
-        raise UnstableDesignError(f"axis {axis.name}: {exc}") from None
-
-
-def _measure(axes: Any, drives: Sequence[Any], window: float, default_bus: str | None) -> list[tuple[str, str, Any]]:
-    """(axis, bus, preflight report) of every axis, each bus opened once for its axes."""
+def measure_axes(axes: Any, drives: Sequence[Any], window: float,
+                 default_bus: str | None) -> list[tuple[str, str, Any]]:
+    """(axis, bus, preflight report) of every axis, each bus opened once for its axes and
+    closed before the next (nothing enabled; ``dobhil run`` of a real bus calls it too)."""
     from dobhil.drives.preflight import run_preflight
     from dobhil.drives.registry import preflight_probe
     from dobhil.runtime.buses import open_bus, resolve_bus, shutdown_bus
@@ -89,7 +83,7 @@ def _lines(budgets: Sequence[Any], gates: Sequence[tuple[str, Any]], reports: Se
            ok: bool) -> list[str]:
     lines = [b.line() for b in budgets]
     lines += [f"mismatch: {b.advice()}" for b in budgets if b.over]
-    lines += [f"axis {name}: stability gate: {gate.summary()}" for name, gate in gates]
+    lines += [f"{_who(key)}: stability gate: {gate.summary()}" for key, gate in gates]
     for name, bus, report in reports:
         lines.append(f"axis {name}: bus {bus}")
         lines += [f"axis {name}: {line}" for line in report.lines()]
@@ -101,9 +95,14 @@ def _lines(budgets: Sequence[Any], gates: Sequence[tuple[str, Any]], reports: Se
     return lines
 
 
+def _who(key: str) -> str:
+    """``axis left`` or, for a coupled group's key, ``axes left+right``."""
+    return f"axes {key}" if "+" in key else f"axis {key}"
+
+
 def _as_json(budgets: Sequence[Any], gates: Sequence[tuple[str, Any]], reports: Sequence[tuple[str, str, Any]],
              ok: bool) -> dict[str, Any]:
-    gate_of = dict(gates)
+    gate_of = {name: gate for key, gate in gates for name in key.split("+")}
     return {"ok": ok, "buses": [{"line": b.line(), "advice": b.advice(), **b.as_dict()} for b in budgets],
             "axes": [{"axis": name, "bus_name": bus, **report.as_dict(), "stability_gate": gate_of[name].as_dict()}
                      for name, bus, report in reports]}

@@ -18,7 +18,7 @@ from dobhil.cli.common import EXIT_STOPPED
 def run_axes(args: argparse.Namespace, *, prog: str, emulate: bool, lockstep: bool | None,
              plot: Path | None = None, log: Path | None = None) -> int:
     """Run the axes of ``args.config``; ``plot``: one PNG per axis (``NAME-<axis>.png``)."""
-    from dobhil.cli.stability_gate import stability_gate
+    from dobhil.cli.axes_gate import axes_gate_metadata
     from dobhil.config import resolve_config
     from dobhil.config.axes import load_axes
     from dobhil.files import check_output
@@ -34,14 +34,11 @@ def run_axes(args: argparse.Namespace, *, prog: str, emulate: bool, lockstep: bo
         for axis in axes.axes:
             check_output(_axis_png(plot, axis.name), inputs=[path], suffix=".png", what="--plot")
     hooks = log_hooks(log)
-    # before any bus: an unstable design is refused with nothing opened (each axis that no
-    # coupling joins to another; a coupled pair's closed loop is dobhil analyze's)
-    for axis in axes.axes:
-        if not axes.coupled(axis.name):
-            stability_gate(axis.config, path, allow_unstable=args.allow_unstable, prog=f"{prog}: axis {axis.name}")
-    if not emulate:
-        sys.stderr.write(f"{prog}: note: the preflight is not run for several axes (dobhil check CONFIG "
-                         "measures each drive)\n")
+    # before any bus: clashes, a bus over 100 % and an unstable design (each axis alone, each
+    # coupled group as one loop) are refused with nothing opened
+    gates = preflight_axes(args, axes, path, prog=prog, emulate=emulate)
+    if gates is None:
+        return EXIT_STOPPED
     session: Any = None
     try:
         with stop_on_signals(StopRequest()) as request, \
@@ -51,6 +48,7 @@ def run_axes(args: argparse.Namespace, *, prog: str, emulate: bool, lockstep: bo
             _realtime(session, prog)
             result = session.run()
             info = axes_summary(session, result)
+            info["stability_gate"] = axes_gate_metadata(gates, allow_unstable=args.allow_unstable)
     except BaseException:
         tell_unfinished(session, prog)
         raise
@@ -63,6 +61,39 @@ def run_axes(args: argparse.Namespace, *, prog: str, emulate: bool, lockstep: bo
         for name, part in result.axes.items():
             sys.stdout.write(f"wrote {run_figure(part.trace, _axis_png(plot, name), f'axis {name}')}\n")
     return 0 if result.stop.reason.name == "DONE" else EXIT_STOPPED
+
+
+def preflight_axes(args: argparse.Namespace, axes: Any, path: Path, *, prog: str,
+                   emulate: bool) -> dict[str, Any] | None:
+    """What a run checks before it opens a bus for the loop: every axis' drive and the
+    clashes between them, each bus' budget (over 100 %: refused; over 70 %: one line of
+    advice), the stability gate of every axis and coupled group
+    (:func:`~dobhil.cli.axes_gate.axes_gate`), and on a real bus each axis' preflight as
+    ``dobhil check`` measures it (:func:`~dobhil.cli.axes_check.measure_axes`). Returns the
+    gate's verdicts, or None when a preflight refused the run (its lines printed)."""
+    from dobhil.cli.axes_check import measure_axes
+    from dobhil.cli.axes_gate import axes_gate
+    from dobhil.cli.check_cmd import window_of
+    from dobhil.cli.preflight_lines import report_preflight, tell_refusal
+    from dobhil.drives.axes import axes_budget, axis_drives
+    bus = None if emulate else getattr(args, "bus", None)
+    drives = axis_drives(axes, path.parent, bus)
+    for budget in axes_budget(drives, axes.period):
+        if budget.over:
+            sys.stderr.write(f"{prog}: warning: {budget.advice()}\n")
+    gates = axes_gate(axes, path, {d.name: d.profile for d in drives},
+                      allow_unstable=args.allow_unstable, prog=prog)
+    if emulate or getattr(args, "no_preflight", False):
+        return gates
+    window = window_of(getattr(args, "preflight_window", None), "--preflight-window")
+    refused = False
+    for name, _, report in measure_axes(axes, drives, window, bus):
+        if report.refuses:
+            tell_refusal(report, f"{prog}: axis {name}")
+            refused = True
+        else:
+            report_preflight(report, prog=f"{prog}: axis {name}")
+    return None if refused else gates
 
 
 def log_hooks(log: Path | None) -> dict[str, Any]:

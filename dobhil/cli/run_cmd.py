@@ -11,6 +11,7 @@ from typing import Any
 
 from dobhil.cli.axis_option import add_axis_arg, select_axis
 from dobhil.cli.common import EXIT_STOPPED, add_config_args, config_from_args
+from dobhil.cli.preflight_lines import report_preflight, tell_refusal
 from dobhil.cli.stability_gate import add_gate_args
 
 
@@ -65,13 +66,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         return run_checked(args)
     except PreflightError as exc:  # the drive is not set up for this run: nothing was enabled
-        from dobhil.drives.preflight import Severity
-        found = [f for f in exc.report.findings if f.severity is Severity.MISMATCH]  # type: ignore[attr-defined]
-        refusing = [f for f in found if f.stale_feedback] + [f for f in found if f.refuses_run]
-        for finding in [f for f in found if not f.refuses] + refusing[1:]:
-            sys.stderr.write(f"dobhil run: mismatch: {finding.text}\n")
-        sys.stderr.write(f"dobhil run: refused to enable: {refusing[0].text if refusing else 'preflight'} "
-                         "(dobhil check CONFIG shows all it measured; --no-preflight skips)\n")
+        tell_refusal(exc.report, "dobhil run")
         return EXIT_STOPPED
 
 
@@ -147,20 +142,6 @@ def say_safe_stop(warning: str, note: str) -> None:
         sys.stderr.write(f"WARNING: {warning}\n")
     elif note:
         sys.stderr.write(f"NOTE: {note}\n")
-
-
-def report_preflight(report: Any) -> None:
-    """A passed preflight on stderr: its mismatches and notes, and one line per node
-    measured (nothing when it was skipped). A mismatch here is one the run does not refuse
-    on: its line says the run goes on, whatever the finding's own words."""
-    if report is None:
-        return
-    for finding in report.findings:
-        kind = "mismatch (not refused: the run goes on)" if finding.severity.name == "MISMATCH" else "note"
-        sys.stderr.write(f"dobhil run: preflight: {kind}: {finding.text}\n")
-    for node in report.nodes:
-        if node.node == report.node_id:
-            sys.stderr.write(f"dobhil run: preflight: node {node.node}: {node.summary}\n")
 
 
 def warn_budget(session: Any) -> None:

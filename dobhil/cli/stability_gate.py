@@ -18,6 +18,7 @@ import sys
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:   # imported when a command runs the gate: every command's --help stays light
+    from dobhil.analysis.coupled_gate import CoupledVerdict
     from dobhil.analysis.gate import GateVerdict
 
 #: the ``--allow-unstable`` option's help
@@ -49,7 +50,7 @@ def stability_gate(config: Any, config_path: str | os.PathLike[str], *, allow_un
     return verdict
 
 
-def gate_line(verdict: GateVerdict) -> str:
+def gate_line(verdict: GateVerdict | CoupledVerdict) -> str:
     """The one line a run prints about the gate ("" when the design passed with its margins)."""
     if verdict.refuses:
         return f"warning: {verdict.override_text()}"
@@ -60,7 +61,7 @@ def gate_line(verdict: GateVerdict) -> str:
     return f"note: {note}" if note else ""
 
 
-def gate_metadata(verdict: GateVerdict, *, allow_unstable: bool) -> dict[str, str]:
+def gate_metadata(verdict: GateVerdict | CoupledVerdict, *, allow_unstable: bool) -> dict[str, str]:
     """The ``stability_gate`` metadata record of a run's log (JSON per key): the verdict,
     whether ``--allow-unstable`` was given and whether it overrode a refusal."""
     out = {k: json.dumps(v) for k, v in verdict.as_dict().items()}

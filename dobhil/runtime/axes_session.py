@@ -9,9 +9,8 @@ shared by its axes' drives (:class:`~dobhil.runtime.shared_bus.SharedBus`); one
 of it (context manager).
 
 Two drives on one bus must not use one arbitration id: the session refuses a clash
-before anything is sent, in one line naming both axes and the ids, whatever the
-protocols (a node's ids are its drive's :attr:`~dobhil.drives.base.Drive.frame_ids`,
-less the bus's own frames every node of its kind shares -- a SYNC, NMT).
+before anything is opened, in the one line of :func:`dobhil.drives.axes.check_clashes`
+(the check ``dobhil check`` makes), naming both axes and the id.
 
 Emulation: ``lockstep`` puts per bus one private ``virtual`` channel, one emulated drive
 per axis (its plant from its config; coupled plants when the config couples axes) and one
@@ -31,6 +30,7 @@ from typing import Any
 import can
 
 from dobhil.config.axes import Axes, Axis
+from dobhil.drives.axes import axis_drives
 from dobhil.drives.base import Drive
 from dobhil.drives.emulated import EmulatedDrive, LockstepBus, PlantLike, private_virtual_channel
 from dobhil.drives.load import load_drive_profile
@@ -93,6 +93,8 @@ class AxesSession:
         self.reset_faults = reset_faults
         self._wrapper = bus_wrapper
         self.profiles = {a.name: load_drive_profile(a.config, config_dir) for a in axes.axes}
+        # a clash refused before anything is opened, in the line dobhil check gives
+        axis_drives(axes, config_dir, bus)
         for a in axes.axes:
             check_rates(self.profiles[a.name], a.config.loop.period)
         self.timing = self._timing(lockstep)
@@ -116,7 +118,6 @@ class AxesSession:
             self.groups = self._group(bus)
             for group in self.groups:
                 self._open(group)
-            self._check_clashes()
         except BaseException:
             self.close()
             raise
@@ -221,36 +222,6 @@ class AxesSession:
     def _add(self, bus: can.BusABC) -> can.BusABC:
         self._buses.append(bus)
         return bus
-
-    def _check_clashes(self) -> None:
-        """Two drives on one bus with an arbitration id in common: refused, naming both."""
-        for group in self.groups:
-            for i, a in enumerate(group.axes):
-                for b in group.axes[i + 1:]:
-                    common = sorted(self._own_ids(a) & self._own_ids(b))
-                    if common:
-                        pa, pb = self.profiles[a], self.profiles[b]
-                        ids = ", ".join(f"0x{x:03X}" for x in common[:4]) + (" ..." if len(common) > 4 else "")
-                        raise ConfigError(
-                            f"axes {a!r} ({pa.protocol} node {pa.node_id}) and {b!r} ({pb.protocol} node "
-                            f"{pb.node_id}) on bus {group.name} both use arbitration ids {ids}; give one of "
-                            f"them another drive.node_id")
-
-    def _own_ids(self, name: str) -> frozenset[int]:
-        """The ids a drive uses as its node's own: its frame ids, less those the same drive at
-        another node id uses too (the bus's shared frames: a SYNC, NMT)."""
-        drive, profile = self.drives[name], self.profiles[name]
-        ids = drive.frame_ids
-        if ids is None:
-            return frozenset()
-        other = profile.node_id - 1 if profile.node_id > 1 else profile.node_id + 1
-        fd: dict[str, Any] = {"protocol": can.CanProtocol.CAN_FD} if protocol(profile.protocol).fd else {}
-        probe_bus = can.Bus(interface="virtual", channel=private_virtual_channel(), **fd)
-        try:
-            shared = make_drive(probe_bus, dataclasses.replace(profile, node_id=other)).frame_ids or frozenset()
-        finally:
-            probe_bus.shutdown()
-        return ids - shared
 
     # -- running -------------------------------------------------------------
 

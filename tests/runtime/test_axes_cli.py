@@ -46,7 +46,9 @@ def test_node_id_clash_is_one_line_exit_2(tmp_path: Path, capsys: pytest.Capture
     out, err = capsys.readouterr()
     assert code == 2
     assert out == "" and err.count("\n") == 1
-    assert "'left'" in err and "'right'" in err and "node_id" in err and "Traceback" not in err
+    # the line dobhil check gives (dobhil.drives.axes.check_clashes): both axes, the id
+    assert "axes left (odrive node 1) and right (odrive node 1)" in err and "CAN id" in err
+    assert "node_id" in err and "Traceback" not in err
 
 
 class Sent(can.BusABC):
@@ -72,12 +74,17 @@ class Sent(can.BusABC):
 def test_clash_refused_before_any_frame(tmp_path: Path, protos: tuple[str, str], nodes: tuple[int, int]) -> None:
     axes = load_two(tmp_path, protos, f"axes.left.drive.node_id={nodes[0]}", f"axes.right.drive.node_id={nodes[1]}")
     sent: list[can.Message] = []
+    opened: list[str] = []
+
+    def tap(bus: can.BusABC, name: str) -> can.BusABC:
+        opened.append(name)
+        return Sent(bus, sent)
     with pytest.raises(ConfigError) as caught:
-        AxesSession(axes, emulate=True, lockstep=True, config_dir=CONFIGS,
-                    bus_wrapper=lambda bus, name: Sent(bus, sent))
+        AxesSession(axes, emulate=True, lockstep=True, config_dir=CONFIGS, bus_wrapper=tap)
     line = str(caught.value)
-    assert "\n" not in line and "'left'" in line and "'right'" in line, line
-    assert sent == []   # nothing was sent: nothing enabled
+    assert "\n" not in line and line.startswith(f"axes left ({protos[0]} node {nodes[0]}) and right "
+                                                f"({protos[1]} node {nodes[1]})"), line
+    assert opened == [] and sent == []   # refused before a bus was opened: nothing sent, nothing enabled
 
 
 def test_distinct_nodes_of_two_protocols_are_no_clash(tmp_path: Path) -> None:

@@ -16,6 +16,7 @@ from dobhil.analysis import report as analysis_report
 from dobhil.analysis.transfer import LoopSystems
 from dobhil.cli.main import main
 from dobhil.config import load_config
+from dobhil.config.axes import load_axes
 from dobhil.drives.load import load_profile
 from dobhil.drives.timing import effective_config, with_command_delay
 from dobhil.runtime.session import RunSession, build_controller, lockstep_latency
@@ -58,8 +59,8 @@ def test_profiles_without_it_leave_every_shipped_config_as_it_is() -> None:
         profile = load_profile(name)
         assert profile.command_delay_periods is None
         for path in configs:
-            config = load_config(path)
-            assert effective_config(config, profile) == (config, "")
+            for axis in load_axes(path).axes:   # each axis of a config that lists axes
+                assert effective_config(axis.config, profile) == (axis.config, "")
     assert with_command_delay(load_config("demo"), None) == (load_config("demo"), "")
 
 

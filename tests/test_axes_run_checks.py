@@ -1,0 +1,158 @@
+"""What ``dobhil run`` of a config that lists axes checks before its loop: each bus' budget
+(refused over 100 % with nothing opened, one line of advice over 70 %), the same budget in
+``dobhil analyze``, and on a real bus each axis' preflight as ``dobhil check`` measures it
+(a refusing preflight: nothing enabled). Real-bus runs go against emulated ODrive threads
+on a private ``virtual`` channel; they assert only what a loaded machine cannot change."""
+
+from __future__ import annotations
+
+import dataclasses
+import itertools
+import json
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import can
+import pytest
+import yaml
+
+from dobhil.cli.main import main
+from dobhil.config import load_config
+from dobhil.config.axes import load_axes
+from dobhil.drives import load_profile
+from dobhil.drives.axes import axis_drives, bus_budgets
+from dobhil.drives.odrive.codec import AxisState
+from dobhil.drives.odrive.emulator import EmulatedODrive
+from dobhil.emulator.plant import Plant
+
+_CHANNELS = itertools.count()
+SLACK = "loop.feedback_timeout=0.05"   # the emulator threads' pauses on a loaded machine
+HOST = "loop.timing=host"              # a real bus runs in real time
+
+
+def axes_config(tmp_path: Path, profile: str, nodes: tuple[int, ...]) -> Path:
+    """Uncoupled axes ``j<node>`` of one profile, each pressing on its own wall."""
+    data: dict[str, Any] = {"loop": {"period": 0.001, "duration": 0.02, "timing": "lockstep"},
+                            "axes": [{"name": f"j{n}", "drive": {"profile": profile, "node_id": n}} for n in nodes]}
+    path = tmp_path / "axes.yaml"
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    return path
+
+
+def budget_of(path: Path) -> Any:
+    axes = load_axes(path)
+    (budget,) = bus_budgets(axis_drives(axes, path.parent), axes.period)
+    return budget
+
+
+@pytest.fixture
+def no_session(monkeypatch: pytest.MonkeyPatch) -> None:
+    import dobhil.runtime.axes_session as axes_session
+
+    def refuse(*_: Any, **__: Any) -> None:
+        raise AssertionError("a session was opened")
+    monkeypatch.setattr(axes_session, "AxesSession", refuse)
+
+
+def test_run_refuses_a_bus_over_100_percent_before_anything_opens(tmp_path: Path, no_session: None,
+                                                                  capsys: pytest.CaptureFixture[str]) -> None:
+    path = axes_config(tmp_path, "cia402-emulated", (1, 2, 3))
+    budget = budget_of(path)
+    assert budget.refused   # 3 CiA 402 axes at 1 kHz on 1 Mbit/s
+    code = main(["run", str(path), "--emulate", "--lockstep"])
+    out, err = capsys.readouterr()
+    assert code == 2 and out == "" and err.count("\n") == 1 and "Traceback" not in err
+    assert err.strip().endswith(budget.refusal())
+    assert "axes j1, j2, j3 need" in err and "loop.period >=" in err
+
+
+def test_run_over_70_percent_says_what_to_change_and_runs(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    path = axes_config(tmp_path, "odrive-0.6", (1, 2, 3))
+    budget = budget_of(path)
+    assert budget.over and not budget.refused   # 3 ODrive axes: 81 %
+    code = main(["run", str(path), "--emulate", "--lockstep"])
+    err = capsys.readouterr().err.splitlines()
+    assert code == 0
+    assert [line for line in err if "bus " in line and "%" in line] == [f"dobhil run: warning: {budget.advice()}"]
+
+
+def test_run_within_70_percent_says_nothing_of_the_budget(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    code = main(["run", str(axes_config(tmp_path, "odrive-0.6", (1, 2))), "--emulate", "--lockstep"])
+    assert code == 0 and "%" not in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(("nodes", "over"), [((1, 2), False), ((1, 2, 3), True)])
+def test_analyze_says_each_bus_budget(tmp_path: Path, nodes: tuple[int, ...], over: bool,
+                                      capsys: pytest.CaptureFixture[str]) -> None:
+    path = axes_config(tmp_path, "odrive-0.6", nodes)
+    budget = budget_of(path)
+    assert main(["analyze", str(path)]) == 0
+    text = capsys.readouterr().out.splitlines()
+    assert text[0] == budget.line()
+    assert (f"  {budget.advice()}" in text) is over
+    assert main(["analyze", str(path), "--json"]) == 0
+    (bus,) = json.loads(capsys.readouterr().out)["buses"]
+    assert bus["line"] == budget.line() and bus["over"] is over and bus["axes"] == dict(budget.per_axis)
+
+
+# -- the preflight of each axis on a real bus -----------------------------------------------------
+
+
+@pytest.fixture
+def odrives() -> Iterator[tuple[str, list[EmulatedODrive]]]:
+    """Emulated ODrives at nodes 1 and 2 on one fresh virtual channel."""
+    channel = f"axes-run-{next(_CHANNELS)}"
+    emus = []
+    for node in (1, 2):
+        profile = dataclasses.replace(load_profile("odrive-0.6"), bus={}, node_id=node)
+        emus.append(EmulatedODrive(can.Bus(interface="virtual", channel=channel), profile,
+                                   Plant.from_config(load_config("demo"))))
+        emus[-1].start()
+    try:
+        yield channel, emus
+    finally:
+        for emu in emus:
+            emu.close()
+
+
+def test_a_refusing_preflight_of_one_axis_enables_nothing(tmp_path: Path, odrives: tuple[str, list[EmulatedODrive]],
+                                                          no_session: None, capsys: pytest.CaptureFixture[str]) -> None:
+    """Axis j4 has no drive on the bus: its preflight refuses the run as a single-axis run's
+    does (exit 1, the refusal line names the axis) and no axis is enabled: the loop's
+    session is never opened."""
+    channel, emus = odrives
+    path = axes_config(tmp_path, "odrive-0.6", (1, 4))
+    code = main(["run", str(path), "--bus", f"virtual:{channel}", "--set", SLACK, "--set", HOST, "--preflight-window", "0.2"])
+    out, err = capsys.readouterr()
+    assert code == 1 and out == ""
+    assert "dobhil run: axis j4: refused to enable: node 4 is not on the bus, node(s) 1, 2 are" in err
+    assert "preflight is not run" not in err
+    assert all(e.axis_state is AxisState.IDLE for e in emus)   # nothing enabled
+
+
+def test_each_axis_is_measured_before_the_run(tmp_path: Path, odrives: tuple[str, list[EmulatedODrive]],
+                                              capsys: pytest.CaptureFixture[str]) -> None:
+    channel, _ = odrives
+    path = axes_config(tmp_path, "odrive-0.6", (1, 2))
+    code = main(["run", str(path), "--bus", f"virtual:{channel}", "--set", SLACK, "--set", HOST, "--preflight-window", "0.3",
+                 "--duration", "0.02"])
+    err = capsys.readouterr().err
+    for name, node in (("j1", 1), ("j2", 2)):
+        # measured and passed, or (a loaded machine pausing the emulator threads) refused: said per axis
+        assert (f"dobhil run: axis {name}: preflight: node {node}: " in err
+                or f"dobhil run: axis {name}: refused to enable: " in err), err
+    assert code in (0, 1)
+
+
+def test_no_preflight_skips_it(tmp_path: Path, odrives: tuple[str, list[EmulatedODrive]],
+                               capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch) -> None:
+    import dobhil.cli.axes_check as axes_check
+
+    def measured(*_: Any, **__: Any) -> None:
+        raise AssertionError("the preflight ran")
+    monkeypatch.setattr(axes_check, "measure_axes", measured)
+    channel, _ = odrives
+    code = main(["run", str(axes_config(tmp_path, "odrive-0.6", (1, 2))), "--bus", f"virtual:{channel}",
+                 "--set", SLACK, "--set", HOST, "--no-preflight", "--duration", "0.02"])
+    assert code in (0, 1) and "preflight" not in capsys.readouterr().err
