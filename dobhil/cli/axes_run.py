@@ -12,13 +12,28 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from collections.abc import Mapping
+import dataclasses
+from typing import TYPE_CHECKING
+
 from dobhil.cli.common import EXIT_STOPPED
+from dobhil.cli.recording import AxisRun, begin_axes, end_axes
+from dobhil.recording.axeslog import axis_record
+
+if TYPE_CHECKING:   # the session is built when a run starts: --help stays light
+    from dobhil.recording.axeslog import AxesLog
+    from dobhil.runtime.axes_loop import AxesResult
+    from dobhil.runtime.axes_session import AxesSession
 
 
 def run_axes(args: argparse.Namespace, *, prog: str, emulate: bool, lockstep: bool | None,
-             plot: Path | None = None, log: Path | None = None) -> int:
-    """Run the axes of ``args.config``; ``plot``: one PNG per axis (``NAME-<axis>.png``)."""
-    from dobhil.cli.stability_gate import stability_gate
+             plot: Path | None = None, log: Path | None = None, live: str | None = None) -> int:
+    """Run the axes of ``args.config``; ``plot``: one PNG per axis (``NAME-<axis>.png``);
+    ``log``: record the run (:class:`~dobhil.recording.axeslog.AxesLog`, topics per axis and
+    per bus), ``live``: serve it to Foxglove as well."""
+    from dobhil.cli.recording import abort_axes, live_address, open_axes_log
+    from dobhil.cli.run_cmd import lower_writer
+    from dobhil.cli.stability_gate import gate_metadata, stability_gate
     from dobhil.config import resolve_config
     from dobhil.config.axes import load_axes
     from dobhil.files import check_output
@@ -33,27 +48,35 @@ def run_axes(args: argparse.Namespace, *, prog: str, emulate: bool, lockstep: bo
     if plot is not None:
         for axis in axes.axes:
             check_output(_axis_png(plot, axis.name), inputs=[path], suffix=".png", what="--plot")
-    hooks = log_hooks(log)
-    # before any bus: an unstable design is refused with nothing opened (each axis that no
-    # coupling joins to another; a coupled pair's closed loop is dobhil analyze's)
+    # before any bus or log file: an unstable design is refused with nothing opened (each
+    # axis that no coupling joins to another; a coupled pair's closed loop is dobhil analyze's)
+    gates: dict[str, dict[str, str]] = {}
     for axis in axes.axes:
         if not axes.coupled(axis.name):
-            stability_gate(axis.config, path, allow_unstable=args.allow_unstable, prog=f"{prog}: axis {axis.name}")
+            verdict = stability_gate(axis.config, path, allow_unstable=args.allow_unstable,
+                                     prog=f"{prog}: axis {axis.name}")
+            gates[axis_record(axis.name, "stability_gate")] = gate_metadata(verdict,
+                                                                            allow_unstable=args.allow_unstable)
     if not emulate:
         sys.stderr.write(f"{prog}: note: the preflight is not run for several axes (dobhil check CONFIG "
                          "measures each drive)\n")
+    recorder = open_axes_log(log, axes.names, live=live_address(live, log))
+    lower_writer(recorder)
     session: Any = None
     try:
         with stop_on_signals(StopRequest()) as request, \
                 AxesSession(axes, bus=getattr(args, "bus", None), emulate=emulate, lockstep=lockstep,
                             duration=duration, config_dir=path.parent, stop_request=request,
-                            reset_faults=getattr(args, "reset_faults", False), **hooks) as session:
+                            reset_faults=getattr(args, "reset_faults", False), **log_hooks(recorder)) as session:
             _realtime(session, prog)
-            result = session.run()
+            result = record_axes(session, recorder, path, gates)
             info = axes_summary(session, result)
-    except BaseException:
+    except BaseException as exc:
+        abort_axes(recorder, exc)
         tell_unfinished(session, prog)
         raise
+    if recorder is not None:
+        info["log"] = str(recorder.path)
     report(info, result.stop.line(), prog=prog, as_json=getattr(args, "summary_json", False))
     for problem in session.shutdown_problems:
         if result.stop.reason.name != "BUS_ERROR":
@@ -65,15 +88,42 @@ def run_axes(args: argparse.Namespace, *, prog: str, emulate: bool, lockstep: bo
     return 0 if result.stop.reason.name == "DONE" else EXIT_STOPPED
 
 
-def log_hooks(log: Path | None) -> dict[str, Any]:
+def log_hooks(log: AxesLog | None) -> dict[str, Any]:
     """AxesSession keyword arguments that record the run: ``sinks`` (one per axis) and
-    ``bus_wrapper`` (one tap per bus). Nothing records a run of several axes yet: a
-    ``--log`` is refused before anything is opened."""
+    ``bus_wrapper`` (one tap per bus, its frames on ``/bus/<bus>/can/...``); none without a log."""
     if log is None:
         return {}
-    from dobhil.errors import ConfigError
-    raise ConfigError(f"--log {log}: recording a run of several axes is not available in this build; "
-                      "run without --log")
+    return {"sinks": {name: log.sink(name) for name in log.names}, "bus_wrapper": log.wrap_bus}
+
+
+def axis_runs(session: AxesSession) -> list[AxisRun]:
+    """Each axis of ``session`` as its log records it (its bus under the configured name)."""
+    runs = []
+    for group in session.groups:
+        for name in group.axes:
+            controller = session.controllers[name]
+            runs.append(AxisRun(name, session.axes.axis(name).config, session.profiles[name], session.drives[name],
+                                group.name, group.spec, controller.torque_limit, controller.measures_velocity,
+                                session.plant(name)))
+    order = {name: i for i, name in enumerate(session.axes.names)}
+    return sorted(runs, key=lambda r: order[r.name])
+
+
+def record_axes(session: AxesSession, log: AxesLog | None, config_file: Path,
+                metadata: Mapping[str, Mapping[str, str]]) -> AxesResult:
+    """``session.run()`` recorded by ``log`` (each axis' drive, profile, bus and truth before
+    the loop; each axis' disable and the stop after it); a writer failure is the stop reason
+    ``recorder_failed``. The caller aborts the log if this raises."""
+    if log is None:
+        return session.run()
+    begin_axes(log, axis_runs(session), timing=session.timing, period=session.period,
+               duration=session.settings[session.axes.names[0]].duration, emulated=session.emulate,
+               sim_clock=session.sim_clock, couplings=session.axes.couplings, config_file=config_file,
+               metadata=metadata)
+    result = session.run()
+    stop = end_axes(log, result.stop, {name: part.disabled for name, part in result.axes.items()},
+                    axis=result.axis)
+    return result if stop is result.stop else dataclasses.replace(result, stop=stop)
 
 
 def _axis_png(plot: Path, axis: str) -> Path:
