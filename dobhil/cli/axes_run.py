@@ -32,7 +32,6 @@ def run_axes(args: argparse.Namespace, *, prog: str, emulate: bool, lockstep: bo
     ``log``: record the run (:class:`~dobhil.recording.axeslog.AxesLog`, topics per axis and
     per bus), ``live``: serve it to Foxglove as well."""
     from dobhil.cli.recording import abort_axes, live_address, open_axes_log
-    from dobhil.cli.run_cmd import lower_writer
     from dobhil.cli.stability_gate import gate_metadata, stability_gate
     from dobhil.config import resolve_config
     from dobhil.config.axes import load_axes
@@ -61,7 +60,10 @@ def run_axes(args: argparse.Namespace, *, prog: str, emulate: bool, lockstep: bo
         sys.stderr.write(f"{prog}: note: the preflight is not run for several axes (dobhil check CONFIG "
                          "measures each drive)\n")
     recorder = open_axes_log(log, axes.names, live=live_address(live, log))
-    lower_writer(recorder)
+    if recorder is not None and recorder.writer_pid is not None:
+        # the writer below the loop (nice +10): it is lossy in real time and may lag
+        from dobhil.realtime import WRITER_PRIORITY_DROP, lower_priority
+        lower_priority(WRITER_PRIORITY_DROP, pid=recorder.writer_pid)
     session: Any = None
     try:
         with stop_on_signals(StopRequest()) as request, \
