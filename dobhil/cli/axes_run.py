@@ -196,6 +196,8 @@ def _print_summary(info: dict[str, Any], stop_line: str, prog: str) -> None:
         true = "-" if f["tau_int_true"] is None else f"{f['tau_int_true']:.4f}"
         print(f"{head}: final tau_ref {f['tau_ref']:.4f} N m, tau_int^ {f['tau_int_hat']:.4f} N m, "
               f"true tau_int {true} N m, q {f['q']:.6f} rad")
+    if info.get("log"):
+        print(f"log: {info['log']}")
     t = info["loop_timing"]
     print(f"loop: exec time (all axes) p50 {t['exec_time_p50'] * 1e6:.0f} us, p99 {t['exec_time_p99'] * 1e6:.0f} us; "
           f"period error p99 {t['period_error_p99'] * 1e6:.0f} us, max {t['period_error_max'] * 1e6:.0f} us")

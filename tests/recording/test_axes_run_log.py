@@ -12,10 +12,13 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 from dobhil.cli.main import main
 from dobhil.recording.axes import axis_log, layout
 from dobhil.recording.reader import open_log
+from dobhil.replay import replay_axes
 from tests.recording.test_axes_log import _rewrite
 
 DEMO = Path(__file__).resolve().parents[2] / "configs" / "two-axis-demo.yaml"
@@ -228,3 +231,28 @@ def test_demo_of_an_axes_config_records_by_default(tmp_path: Path, capsys: pytes
     logs = sorted(out_dir.glob("run-*.mcap"))
     assert len(logs) == 1 and layout(open_log(logs[0])).names == AXES
     assert f"next: dobhil report {logs[0]}" in capsys.readouterr().out
+
+
+@pytest.fixture(scope="module")
+def short_log(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    path = tmp_path_factory.mktemp("axes-short") / "short.mcap"
+    assert _run(DEMO, path, "--set", "loop.duration=0.3", "--set", "reference.start=0.1") == 0
+    return path
+
+
+@settings(max_examples=6, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(axis=st.sampled_from(AXES), cycle=st.integers(0, 299),
+       field=st.sampled_from(["u_sat", "u_unsat", "tau_int_hat", "tau_dis_hat"]))
+def test_any_changed_controller_value_is_found_on_its_axis_and_cycle(short_log: Path, tmp_path: Path, axis: str,
+                                                                     cycle: int, field: str) -> None:
+    bad = tmp_path / f"{axis}-{cycle}-{field}.mcap"
+
+    def change(topic: str, p: dict[str, Any]) -> dict[str, Any]:
+        if topic == f"/axis/{axis}/controller" and p["cycle"] == cycle:
+            p[field] = math.nextafter(p[field], math.inf)
+        return p
+    _rewrite(short_log, bad, change)
+    found = {r.recording.axis: r.first_mismatch() for r in replay_axes(bad)}
+    mismatch = found.pop(axis)
+    assert mismatch is not None and mismatch.cycle == cycle
+    assert all(m is None for m in found.values())
