@@ -7,18 +7,30 @@ single-axis run (0 done, 1 a safety stop, 2 bad input)."""
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import sys
+from collections.abc import Mapping
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from dobhil.cli.common import EXIT_STOPPED
+from dobhil.cli.recording import AxisRun, begin_axes, end_axes
+from dobhil.recording.axeslog import axis_record
+
+if TYPE_CHECKING:   # the session is built when a run starts: --help stays light
+    from dobhil.recording.axeslog import AxesLog
+    from dobhil.runtime.axes_loop import AxesResult
+    from dobhil.runtime.axes_session import AxesSession
 
 
 def run_axes(args: argparse.Namespace, *, prog: str, emulate: bool, lockstep: bool | None,
-             plot: Path | None = None, log: Path | None = None) -> int:
-    """Run the axes of ``args.config``; ``plot``: one PNG per axis (``NAME-<axis>.png``)."""
+             plot: Path | None = None, log: Path | None = None, live: str | None = None) -> int:
+    """Run the axes of ``args.config``; ``plot``: one PNG per axis (``NAME-<axis>.png``);
+    ``log``: record the run (:class:`~dobhil.recording.axeslog.AxesLog`, topics per axis and
+    per bus), ``live``: serve it to Foxglove as well."""
     from dobhil.cli.axes_gate import axes_gate_metadata
+    from dobhil.cli.recording import abort_axes, live_address, open_axes_log
     from dobhil.config import resolve_config
     from dobhil.config.axes import load_axes
     from dobhil.files import check_output
@@ -33,25 +45,33 @@ def run_axes(args: argparse.Namespace, *, prog: str, emulate: bool, lockstep: bo
     if plot is not None:
         for axis in axes.axes:
             check_output(_axis_png(plot, axis.name), inputs=[path], suffix=".png", what="--plot")
-    hooks = log_hooks(log)
-    # before any bus: clashes, a bus over 100 % and an unstable design (each axis alone, each
-    # coupled group as one loop) are refused with nothing opened
+    # before any bus or log file: clashes, a bus over 100 % and an unstable design (each axis
+    # alone, each coupled group as one loop) are refused with nothing opened
     gates = preflight_axes(args, axes, path, prog=prog, emulate=emulate)
     if gates is None:
         return EXIT_STOPPED
+    gate_records = axes_gate_metadata(gates, allow_unstable=args.allow_unstable)
+    recorder = open_axes_log(log, axes.names, live=live_address(live, log))
+    if recorder is not None and recorder.writer_pid is not None:
+        # the writer below the loop (nice +10): it is lossy in real time and may lag
+        from dobhil.realtime import WRITER_PRIORITY_DROP, lower_priority
+        lower_priority(WRITER_PRIORITY_DROP, pid=recorder.writer_pid)
     session: Any = None
     try:
         with stop_on_signals(StopRequest()) as request, \
                 AxesSession(axes, bus=getattr(args, "bus", None), emulate=emulate, lockstep=lockstep,
                             duration=duration, config_dir=path.parent, stop_request=request,
-                            reset_faults=getattr(args, "reset_faults", False), **hooks) as session:
+                            reset_faults=getattr(args, "reset_faults", False), **log_hooks(recorder)) as session:
             _realtime(session, prog)
-            result = session.run()
+            result = record_axes(session, recorder, path, _gate_records(gate_records))
             info = axes_summary(session, result)
-            info["stability_gate"] = axes_gate_metadata(gates, allow_unstable=args.allow_unstable)
-    except BaseException:
+            info["stability_gate"] = gate_records
+    except BaseException as exc:
+        abort_axes(recorder, exc)
         tell_unfinished(session, prog)
         raise
+    if recorder is not None:
+        info["log"] = str(recorder.path)
     report(info, result.stop.line(), prog=prog, as_json=getattr(args, "summary_json", False))
     for problem in session.shutdown_problems:
         if result.stop.reason.name != "BUS_ERROR":
@@ -96,15 +116,49 @@ def preflight_axes(args: argparse.Namespace, axes: Any, path: Path, *, prog: str
     return None if refused else gates
 
 
-def log_hooks(log: Path | None) -> dict[str, Any]:
+def _gate_records(records: Mapping[str, Mapping[str, str]]) -> dict[str, dict[str, str]]:
+    """The gate's records as the log's metadata: one axis' under ``axis/<name>/stability_gate``,
+    a coupled group's (``left+right``) under ``stability_gate/<group>``."""
+    return {(f"stability_gate/{key}" if "+" in key else axis_record(key, "stability_gate")): dict(record)
+            for key, record in records.items()}
+
+
+def log_hooks(log: AxesLog | None) -> dict[str, Any]:
     """AxesSession keyword arguments that record the run: ``sinks`` (one per axis) and
-    ``bus_wrapper`` (one tap per bus). Nothing records a run of several axes yet: a
-    ``--log`` is refused before anything is opened."""
+    ``bus_wrapper`` (one tap per bus, its frames on ``/bus/<bus>/can/...``); none without a log."""
     if log is None:
         return {}
-    from dobhil.errors import ConfigError
-    raise ConfigError(f"--log {log}: recording a run of several axes is not available in this build; "
-                      "run without --log")
+    return {"sinks": {name: log.sink(name) for name in log.names}, "bus_wrapper": log.wrap_bus}
+
+
+def axis_runs(session: AxesSession) -> list[AxisRun]:
+    """Each axis of ``session`` as its log records it (its bus under the configured name)."""
+    runs = []
+    for group in session.groups:
+        for name in group.axes:
+            controller = session.controllers[name]
+            runs.append(AxisRun(name, session.axes.axis(name).config, session.profiles[name], session.drives[name],
+                                group.name, group.spec, controller.torque_limit, controller.measures_velocity,
+                                session.plant(name)))
+    order = {name: i for i, name in enumerate(session.axes.names)}
+    return sorted(runs, key=lambda r: order[r.name])
+
+
+def record_axes(session: AxesSession, log: AxesLog | None, config_file: Path,
+                metadata: Mapping[str, Mapping[str, str]]) -> AxesResult:
+    """``session.run()`` recorded by ``log`` (each axis' drive, profile, bus and truth before
+    the loop; each axis' disable and the stop after it); a writer failure is the stop reason
+    ``recorder_failed``. The caller aborts the log if this raises."""
+    if log is None:
+        return session.run()
+    begin_axes(log, axis_runs(session), timing=session.timing, period=session.period,
+               duration=session.settings[session.axes.names[0]].duration, emulated=session.emulate,
+               sim_clock=session.sim_clock, couplings=session.axes.couplings, config_file=config_file,
+               metadata=metadata)
+    result = session.run()
+    stop = end_axes(log, result.stop, {name: part.disabled for name, part in result.axes.items()},
+                    axis=result.axis)
+    return result if stop is result.stop else dataclasses.replace(result, stop=stop)
 
 
 def _axis_png(plot: Path, axis: str) -> Path:
@@ -175,6 +229,8 @@ def _print_summary(info: dict[str, Any], stop_line: str, prog: str) -> None:
         true = "-" if f["tau_int_true"] is None else f"{f['tau_int_true']:.4f}"
         print(f"{head}: final tau_ref {f['tau_ref']:.4f} N m, tau_int^ {f['tau_int_hat']:.4f} N m, "
               f"true tau_int {true} N m, q {f['q']:.6f} rad")
+    if info.get("log"):
+        print(f"log: {info['log']}")
     t = info["loop_timing"]
     print(f"loop: exec time (all axes) p50 {t['exec_time_p50'] * 1e6:.0f} us, p99 {t['exec_time_p99'] * 1e6:.0f} us; "
           f"period error p99 {t['period_error_p99'] * 1e6:.0f} us, max {t['period_error_max'] * 1e6:.0f} us")

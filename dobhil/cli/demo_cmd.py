@@ -52,13 +52,15 @@ def run(args: argparse.Namespace) -> int:
     from dobhil.config import resolve_config
     path = resolve_config(args.config) if args.config else demo_config_path()
     from dobhil.config.axes import has_axes
-    if has_axes(path):   # several axes in one loop: a PNG per axis, no recording yet
+    if has_axes(path):   # several axes in one loop: a PNG per axis, one log of every axis
         from dobhil.cli.axes_run import run_axes
         args.config = str(path)
-        if not args.no_log:
-            print("dobhil demo: note: a run of several axes is not recorded in this build (--no-log)")
-        return run_axes(args, prog="dobhil demo", emulate=True, lockstep=not args.realtime,
-                        plot=args.out / "demo_run.png", log=args.log)
+        axes_log = None if args.no_log else (args.log or default_log_path(args.out))
+        code = run_axes(args, prog="dobhil demo", emulate=True, lockstep=not args.realtime,
+                        plot=args.out / "demo_run.png", log=axes_log, live=args.live)
+        if axes_log is not None:
+            print(f"next: dobhil report {axes_log} --out {args.out / 'report'}")
+        return code
     config = load_config(path, args.overrides, args.set_files)
     png = check_output(args.out / "demo_run.png", inputs=[path], what="--out")
     gate = stability_gate(config, path, allow_unstable=args.allow_unstable, prog="dobhil demo")

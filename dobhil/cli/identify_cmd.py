@@ -1,5 +1,5 @@
-"""``dobhil identify LOG.mcap... [--segment T0:T1[:free|contact]]... [--drive PROFILE] [--period S]
-[--out F.yaml] [--json] [--plot DIR]`` and ``dobhil compare A.mcap B.mcap``.
+"""``dobhil identify LOG.mcap... [--axis NAME] [--segment T0:T1[:free|contact]]... [--drive PROFILE]
+[--period S] [--out F.yaml] [--json] [--plot DIR]`` and ``dobhil compare A.mcap B.mcap``.
 
 identify fits the emulator's exact sampled plant to recorded runs (:mod:`dobhil.identify`):
 several logs of one drive are fitted together (one plant: a free run's friction, a contact
@@ -30,6 +30,9 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
                    "a dobhil log must have been recorded with its protocol")
     p.add_argument("--period", type=float, metavar="SECONDS",
                    help="a CAN log's control period (default: the median spacing of its motion frames)")
+    p.add_argument("--axis", metavar="NAME",
+                   help="the axis of a log of several axes to identify (its records and its bus' frames; "
+                   "a coupled axis' environment is its coupling plus its own)")
     p.add_argument("--out", type=Path, metavar="F.yaml", help="write the config overlay (for --set-file)")
     p.add_argument("--json", action="store_true", help="print the result as JSON")
     p.add_argument("--plot", type=Path, metavar="DIR", help="measured vs model figures, one per segment")
@@ -56,7 +59,7 @@ def run(args: argparse.Namespace) -> int:
     profile = None if args.drive is None else load_profile(args.drive)
     logs = []
     for name in args.log:
-        one = read_log(name, profile=profile, period=args.period)
+        one = read_log(name, profile=profile, period=args.period, axis=args.axis)
         logs.append((one, tuple(parse_segment(s, one) for s in args.segment) or find_segments(one)))
     data, parts = join(logs)
     from dobhil.cli.progress import progress
@@ -65,6 +68,11 @@ def run(args: argparse.Namespace) -> int:
         result = identify(data, [s for part in parts for s in part.segments],
                           progress=lambda stage: shown.update(1, stage))
     info = summary(result, data, parts)
+    if args.axis is not None:
+        info["axis"] = args.axis
+        note = coupling_note(args.log, args.axis)
+        if note:
+            info["note"] = note
     if args.out:
         _write_overlay(result.overlay(), info, args.out)
     if args.plot:
@@ -75,6 +83,28 @@ def run(args: argparse.Namespace) -> int:
     else:
         _print(info)
     return 0
+
+
+def coupling_note(logs: list[str], axis: str) -> str:
+    """What the identified environment of a coupled axis is ("" for an axis no recorded
+    coupling joins): the fit sees the axis' own servo driven by its motor torque, and as
+    its environment everything else that pushes on it -- the coupling's spring and damper
+    toward the other axis (whose motion the fit does not know) and the axis' own contact."""
+    from dobhil.recording.axes import layout
+    from dobhil.recording.reader import open_log
+    partners: list[str] = []
+    for name in logs:
+        with open_log(name) as log:
+            for c in layout(log).couplings:
+                if axis in (c.get("a"), c.get("b")):
+                    other = c.get("b") if c.get("a") == axis else c.get("a")
+                    partners.append(f"{other} (K {float(c.get('stiffness', 0.0)):g} N m/rad, "
+                                    f"D {float(c.get('damping', 0.0)):g} N m s/rad)")
+    if not partners:
+        return ""
+    return (f"axis {axis} is coupled to {', '.join(dict.fromkeys(partners))}: the servo estimates (inertia, "
+            "friction) are the axis' own; the environment estimates are the coupling plus the axis' own "
+            "environment, seen from this axis with the other axis' motion as a disturbance")
 
 
 def _figures(result: Any, data: Any, parts: Any, out: Path) -> list[Path]:
@@ -121,8 +151,11 @@ def _print(info: dict[str, Any]) -> None:
     many = len(info["files"]) > 1
     spans = ", ".join((f"{s['file']} " if many else "") + f"{s['kind']} {s['t0']:.3f}-{s['t1']:.3f} s"
                       for s in info["segments"])
-    print(f"identified {info['file']} ({info['protocol']}, {info['samples']} samples at T = "
+    axis = f" axis {info['axis']}" if info.get("axis") else ""
+    print(f"identified {info['file']}{axis} ({info['protocol']}, {info['samples']} samples at T = "
           f"{info['period']:g} s): {spans}")
+    if info.get("note"):
+        print(f"note: {info['note']}")
     for name, e in info["estimates"].items():
         if e["identifiable"]:
             print(f"  {name:<18} {e['value']:.6g}  95 % [{e['low']:.6g}, {e['high']:.6g}]  stderr {e['stderr']:.3g}")

@@ -322,9 +322,12 @@ def begin_axes(log: AxesLog, runs: Sequence[AxisRun], *, timing: Timing, period:
         sys.stderr.flush()
 
 
-def end_axes(log: AxesLog, stop: Stop, disabled: Mapping[str, bool]) -> Stop:
-    """The run's end to ``log``: per axis a ``disable`` event (its disable frames sent or not),
-    the stop event; the stop, or ``recorder_failed`` if the writer failed."""
+def end_axes(log: AxesLog, stop: Stop, disabled: Mapping[str, bool], axis: str = "") -> Stop:
+    """The run's end to ``log``: a ``fault`` event on the axis whose drive fault stopped the
+    run (``axis``), per axis a ``disable`` event (its disable frames sent or not), the stop
+    event; the stop, or ``recorder_failed`` if the writer failed."""
+    if stop.reason is StopReason.DRIVE_FAULT and axis in disabled:
+        log.sink(axis).event(EventKind.FAULT, stop.detail or "drive fault")
     for name, ok in disabled.items():
         log.sink(name).event(EventKind.DISABLE, "drive disabled" if ok else "disable frames not sent")
     try:

@@ -58,11 +58,8 @@ def run(args: argparse.Namespace) -> int:
     from dobhil.errors import PreflightError
     if has_axes(args.config) and args.axis is None:   # several axes in one loop
         from dobhil.cli.axes_run import run_axes
-        if args.live:
-            from dobhil.errors import ConfigError
-            raise ConfigError("--live: serving a run of several axes is not available in this build")
         return run_axes(args, prog="dobhil run", emulate=args.emulate, lockstep=True if args.lockstep else None,
-                        plot=args.plot, log=args.log)
+                        plot=args.plot, log=args.log, live=args.live)
     try:
         return run_checked(args)
     except PreflightError as exc:  # the drive is not set up for this run: nothing was enabled

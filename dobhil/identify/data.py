@@ -21,7 +21,7 @@ import os
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from types import MappingProxyType
-from typing import Final
+from typing import Any, Final
 
 import numpy as np
 from numpy.typing import NDArray
@@ -78,17 +78,22 @@ class Segment:
 # -- reading -------------------------------------------------------------------------------
 
 def read_log(path: str | os.PathLike[str], *, protocol: str | None = None,
-             profile: DriveProfile | None = None, period: float | None = None) -> IdentData:
+             profile: DriveProfile | None = None, period: float | None = None,
+             axis: str | None = None) -> IdentData:
     """The :class:`IdentData` of a log: a dobhil run's loop records, or -- a CAN log imported
     with ``dobhil log import``, frames only -- its frames decoded with ``profile`` (required
     then; ``period``: its control period, default the median spacing of its motion frames).
     ``protocol``: the protocol the user expects (their drive profile's); a log of
     another one is refused. A log without motion is refused (nothing to identify).
-    LogFileError / ConfigError, one line, otherwise."""
+    LogFileError / ConfigError, one line, otherwise. ``axis``: the axis of a several-axis log
+    (its own records and its bus' frames, :func:`~dobhil.recording.axes.axis_log`; a
+    several-axis log without it is refused naming its axes)."""
     from dobhil.drives.decode import recorded_profile
+    from dobhil.recording.axes import axis_log, is_axes_log
     from dobhil.recording.reader import open_log
     name = os.fspath(path)
-    with open_log(path) as log:
+    with open_log(path) as whole:
+        log: Any = axis_log(whole, axis) if axis is not None or is_axes_log(whole) else whole
         if not all(t in log.topics() for t in _TOPICS):
             data = _from_frames(log, name, profile, period)
         else:

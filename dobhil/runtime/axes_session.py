@@ -253,6 +253,17 @@ class AxesSession:
             return plant.interaction_torque, plant.true_position  # type: ignore[attr-defined]
         return read
 
+    def plant(self, name: str) -> Any:
+        """The emulated plant of axis ``name`` as its truth is read (``true_position``,
+        ``true_velocity``, ``motor_torque``, ``interaction_torque``): the plant stepped in
+        lockstep (a coupled axis' own plant, its coupling in place), the child's plant of
+        its node in real time; None for a real drive."""
+        process = self._processes.get(name)
+        if process is not None:
+            return process.node(name).plant
+        plant = self.plants.get(name)
+        return getattr(plant, "plant", plant)
+
     def parts(self) -> list[AxisParts]:
         clocks = {name: g.lockstep.clock for g in self.groups if g.lockstep is not None for name in g.axes}
         buses = {name: g.shared for g in self.groups for name in g.axes}

@@ -118,3 +118,29 @@ def test_a_port_taken_after_the_check_still_leaves_no_log(tmp_path: Path, capsys
     assert err.count("\n") == 1 and "cannot listen" in err, err
     assert not list(tmp_path.iterdir())
     assert main(base) == 0 and path.is_file()
+
+
+def test_a_client_receives_every_axis_and_the_shared_bus_of_a_several_axis_run(tmp_path: Path) -> None:
+    """``dobhil run AXES.yaml --log --live``: the live view serves each axis' topics and its
+    bus' frames while the loop runs; SIGINT stops both axes and the log is complete."""
+    path = tmp_path / "axes-live.mcap"
+    proc = subprocess.Popen([sys.executable, "-m", "dobhil", "run", str(ROOT / "configs" / "two-axis-demo.yaml"),
+                             "--emulate", "--duration", "600", "--log", str(path), "--live", "127.0.0.1:0"],
+                            env={**os.environ, "PYTHONPATH": str(ROOT)}, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    wanted = {"/axis/left/controller": 50, "/axis/right/controller": 50, "/bus/socketcan_can0/can/rx": 50}
+    try:
+        assert proc.stderr is not None
+        line = proc.stderr.readline()
+        assert line.startswith("live view: ws://127.0.0.1:"), line + proc.stderr.read()
+        with LiveClient(line.split()[-1]) as client:
+            client.subscribe(list(wanted))
+            received = client.collect(counts_at_least(wanted), timeout=60)
+        assert proc.poll() is None  # received during the run
+    finally:
+        proc.send_signal(signal.SIGINT)
+        out, err = proc.communicate(timeout=60)
+    assert proc.returncode == 1 and "stopped: signal" in out, err
+    assert {r.topic for r in received} >= set(wanted)
+    recorded = open_log(path).info()
+    assert recorded.stop_reason == "signal" and recorded.metadata["recording"]["live_dropped"] == "0"
