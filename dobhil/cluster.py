@@ -30,7 +30,7 @@ import os
 import re
 import uuid
 from collections import Counter
-from collections.abc import Callable, Iterable, Iterator, Sequence
+from collections.abc import Callable, Generator, Iterable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, TypeVar
@@ -306,7 +306,8 @@ def map_ordered(client: distributed.Client, fn: Callable[[T], Any], items: Seque
 
 def map_streaming(client: distributed.Client, fn: Callable[[T], Any], items: Iterable[T], *,
                   index: Callable[[T], int], key_prefix: str = "dobhil", window: int | None = None,
-                  arrived: Callable[[int, Any, str | None], None] | None = None) -> Iterator[tuple[int, MapResult]]:
+                  arrived: Callable[[int, Any, str | None], None] | None = None
+                  ) -> Generator[tuple[int, MapResult], None, None]:
     """:func:`map_ordered` for any number of items: ``items`` is consumed only as far as
     ``window`` tasks are in flight (submitted, their results not yet given back; by default
     :data:`WINDOW_PER_THREAD` per worker thread), and ``(index(item), result)`` pairs are

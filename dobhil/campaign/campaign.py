@@ -116,19 +116,19 @@ def stream(client: Any, specs: Iterable[RunSpec], *, progress: Callable[[dict[st
     the runs before it are done. Memory holds a bounded window of runs, not the campaign."""
     from dobhil.cluster import MapResult, map_streaming
     prefix = f"dobhil-montecarlo-{uuid.uuid4().hex[:12]}"
-    window: dict[int, RunSpec] = {}
+    in_flight: dict[int, RunSpec] = {}
 
     def specs_seen() -> Iterator[RunSpec]:
         for spec in specs:
-            window[spec.index] = spec
+            in_flight[spec.index] = spec
             yield spec
 
     def arrived(index: int, value: Any, error: str | None) -> None:
         if progress is not None:
-            progress(_row(window[index], MapResult(value, error, False)))
+            progress(_row(in_flight[index], MapResult(value, error, False)))
     for index, result in map_streaming(client, run_one, specs_seen(), key_prefix=prefix, arrived=arrived,
                                        index=lambda spec: spec.index, window=window):
-        yield _row(window.pop(index), result)
+        yield _row(in_flight.pop(index), result)
 
 
 def _row(spec: RunSpec, result: Any) -> dict[str, Any]:
