@@ -6,7 +6,7 @@ the first :data:`SAMPLE` rows are kept, and past that a uniform sample of :data:
 rows (Vitter's algorithm R, "Random sampling with a reservoir", ACM TOMS 11(1), 1985), so a
 campaign of up to :data:`SAMPLE` runs has exact percentiles and a longer one percentiles of a
 sample of that size (a percentile's rank error is then about ``sqrt(p (1 - p) / SAMPLE)``:
-0.07 % of the runs at the median). The sample's generator is seeded from the campaign's seed
+0.16 % of the runs at the median). The sample's generator is seeded from the campaign's seed
 and rows arrive in run order, so the same seed gives the same summary on any number of
 workers. The worst runs are a list of the :data:`~dobhil.campaign.campaign.WORST` rows.
 """
