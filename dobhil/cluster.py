@@ -62,9 +62,10 @@ START_TIMEOUT_PER_WORKER = 10.0
 #: others, few enough that a campaign's memory stays flat; far below Dask's 100,000 kept
 #: events of a topic, so every start of a window's tasks is still there to count (_retried)
 WINDOW_PER_THREAD = 16
+WINDOW_MIN, WINDOW_MAX = 64, 20_000
+
 #: the name of the thread that starts a local cluster (see _start_local)
 START_THREAD = "dobhil-local-cluster"
-WINDOW_MIN, WINDOW_MAX = 64, 20_000
 
 #: a local scheduler's HTTP server (health, metrics; no dashboard) on a free port of this host:
 #: without it the scheduler takes 8787 on every interface, and warns when another has it
@@ -131,12 +132,13 @@ def start_timeout(workers: int) -> float:
 def open_client(scheduler: str | None = None, *, workers: int | None = None, processes: bool = True,
                 timeout: float = CONNECT_TIMEOUT, start_within: float | None = None) -> Iterator[distributed.Client]:
     """A client of a new local cluster (``scheduler`` None: ``workers`` processes, one per
-    core by default and at most that (:func:`local_workers`), one thread each; started within
-    ``start_within`` seconds, :func:`start_timeout` by default) or of the scheduler at
-    ``scheduler``; everything it started is closed on exit, however the block ends."""
+    usable core by default, one thread each -- the commands cap a user's ``--workers`` with
+    :func:`local_workers` first; started within ``start_within`` seconds,
+    :func:`start_timeout` by default) or of the scheduler at ``scheduler``; everything it
+    started is closed on exit, however the block ends."""
     with _quiet_dask():
         if scheduler is None:
-            n = local_workers(workers)[0]
+            n = workers or usable_cores()
             with _local_client(n, processes, start_within or start_timeout(n)) as client:
                 yield client
         else:
@@ -172,7 +174,8 @@ def _start_local(workers: int, processes: bool, within: float) -> Any:
                                    dashboard_address=None, scheduler_kwargs=NO_DASHBOARD,
                                    silence_logs=logging.CRITICAL, **({"env": ONE_THREAD_ENV} if processes else {}))
         except BaseException as exc:   # said on the caller's thread, as one line
-            failed.append(exc)
+            with lock:
+                failed.append(exc)
             return
         with lock:
             made.append(cluster)

@@ -101,11 +101,12 @@ def _chunk_map(args: argparse.Namespace) -> Iterator[ChunkMap | None]:
     from dobhil.cluster import local_workers, map_values, open_client
     from dobhil.analysis.sweep import Chunk, ChunkAnswer
 
+    workers = args.workers
     if args.scheduler == "local":   # the same cap as montecarlo's, said in one line
-        note = local_workers(args.workers)[1]
+        workers, note = local_workers(args.workers)
         if note:
             print(f"sweep: {note}", file=sys.stderr, flush=True)
-    with open_client(None if args.scheduler == "local" else args.scheduler, workers=args.workers) as client:
+    with open_client(None if args.scheduler == "local" else args.scheduler, workers=workers) as client:
         def on_cluster(fn: Callable[[Chunk], ChunkAnswer], chunks: Sequence[Chunk],
                        done: Callable[[int], None]) -> list[ChunkAnswer]:
             # every chunk must come back: one that raised is what the local sweep would raise
