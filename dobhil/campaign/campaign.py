@@ -14,7 +14,7 @@ from __future__ import annotations
 import math
 import shlex
 import uuid
-from collections.abc import Callable, Iterable, Iterator, Sequence
+from collections.abc import Callable, Generator, Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -110,7 +110,7 @@ def execute(client: Any, specs: Sequence[RunSpec], *,
 
 
 def stream(client: Any, specs: Iterable[RunSpec], *, progress: Callable[[dict[str, Any]], None] | None = None,
-           window: int | None = None) -> Iterator[dict[str, Any]]:
+           window: int | None = None) -> Generator[dict[str, Any], None, None]:
     """:func:`execute` for a campaign of any length: ``specs`` consumed as the cluster has room
     (:func:`dobhil.cluster.map_streaming`), each row given back in run order as soon as it and
     the runs before it are done. Memory holds a bounded window of runs, not the campaign."""

@@ -60,6 +60,19 @@ def test_the_first_result_arrives_before_the_items_are_all_drawn(dask_client: An
     results.close()   # the rest is cancelled, never drawn
 
 
+def test_a_billion_run_campaigns_first_row_comes_back_with_only_a_window_drawn(dask_client: Any) -> None:
+    drawn = [0]
+
+    def specs() -> Iterator[Any]:
+        for spec in _campaign(10**9).specs():
+            drawn[0] += 1
+            yield spec
+    rows = stream(dask_client, specs(), window=4)
+    first = next(rows)
+    assert first["run"] == 0 and first["error"] == "" and drawn[0] <= 4
+    rows.close()   # the window's other runs are cancelled
+
+
 def test_streamed_rows_equal_the_eager_tables_in_run_order(dask_client: Any) -> None:
     c = _campaign(7)
     eager = execute(dask_client, c.plan())
