@@ -64,13 +64,14 @@ def test_a_billion_run_campaigns_first_row_comes_back_with_only_a_window_drawn(d
     drawn = [0]
 
     def specs() -> Iterator[Any]:
-        for spec in _campaign(10**9).specs():
+        # the billion-run plan's first 8 (the test ends them all: no run left running after it)
+        for spec in itertools.islice(_campaign(10**9).specs(), 8):
             drawn[0] += 1
             yield spec
     rows = stream(dask_client, specs(), window=4)
     first = next(rows)
     assert first["run"] == 0 and first["error"] == "" and drawn[0] <= 4
-    rows.close()   # the window's other runs are cancelled
+    assert [first["run"], *(row["run"] for row in rows)] == list(range(8))
 
 
 def test_streamed_rows_equal_the_eager_tables_in_run_order(dask_client: Any) -> None:
