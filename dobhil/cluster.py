@@ -58,11 +58,12 @@ START_TIMEOUT_BASE = 30.0
 START_TIMEOUT_PER_WORKER = 10.0
 
 #: tasks in flight (submitted, their rows not yet given back) per worker thread of a
-#: streamed map, and the bounds of that window: enough that a slow task does not idle the
-#: others, few enough that a campaign's memory stays flat; far below Dask's 100,000 kept
-#: events of a topic, so every start of a window's tasks is still there to count (_retried)
+#: streamed map, and the least window: enough that a slow task does not idle the others,
+#: few enough that a campaign's memory stays flat. The window is at most half the events
+#: the scheduler keeps of a topic (``distributed.admin.low-level-log-length``, 1000 by
+#: default in 2026.8.0), so every start of a window's tasks is still there to count (_retried)
 WINDOW_PER_THREAD = 16
-WINDOW_MIN, WINDOW_MAX = 64, 20_000
+WINDOW_MIN = 64
 
 #: the name of the thread that starts a local cluster (see _start_local)
 START_THREAD = "dobhil-local-cluster"
@@ -359,8 +360,10 @@ def map_streaming(client: distributed.Client, fn: Callable[[T], Any], items: Ite
 
 
 def stream_window(client: distributed.Client) -> int:
+    import dask
+    kept = int(dask.config.get("distributed.admin.low-level-log-length"))
     threads = sum(client.nthreads().values()) or 1
-    return max(WINDOW_MIN, min(WINDOW_MAX, WINDOW_PER_THREAD * threads))
+    return max(min(WINDOW_MIN, kept // 2), min(kept // 2, WINDOW_PER_THREAD * threads))
 
 
 def _flagged(client: distributed.Client, topic: str,
@@ -411,7 +414,8 @@ def _retried(client: distributed.Client, topic: str) -> set[int]:
     start events (``Worker.log_event``, read with ``Client.get_events``) are. A worker
     sends an event on the same stream as its task's result, so by the time a result is
     here the start of that attempt is at the scheduler. Stolen tasks had not started, so
-    they are not counted. (Dask keeps the last 100,000 events of a topic
-    (``distributed.scheduler.events-log-length``): a map of more items may miss a retry.)"""
+    they are not counted. (Dask keeps the last 1,000 events of a topic by default
+    (``distributed.admin.low-level-log-length``): :func:`map_ordered` of more items may miss
+    a retry; :func:`map_streaming` reads them a window at a time, within that.)"""
     starts = Counter(msg for _, msg in client.get_events(topic))
     return {index for index, count in starts.items() if count > 1}
