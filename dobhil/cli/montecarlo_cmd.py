@@ -58,8 +58,10 @@ def run(args: argparse.Namespace) -> int:
     """The runs stream: each spec drawn when the cluster has room for it, each row into the
     table and the tally as it comes (in run order), so memory does not grow with --runs."""
     campaign, noise = build_campaign(args)
-    scheduler, workers = check_execution(args)
+    scheduler, workers, note = check_execution(args)
     out_dir = check_outputs(args)
+    if note:   # once every input is checked: bad input stays its one line
+        print(f"montecarlo: {note}", file=sys.stderr, flush=True)
     started = time.perf_counter()
     with table(out_dir, args, campaign) as write:
         reference, tally = execute(campaign, scheduler, workers, header(campaign, noise, scheduler, workers), write)
@@ -127,21 +129,18 @@ def _check_config(campaign: Campaign) -> None:
     load_drive_profile(campaign.load(), resolve_config(campaign.config).parent)
 
 
-def check_execution(args: argparse.Namespace) -> tuple[str | None, int | None]:
-    """The scheduler's address (None: a local cluster) and the local cluster's workers;
-    --workers only for a local cluster, capped at the usable cores with a one-line note
-    (:func:`dobhil.cluster.local_workers`)."""
+def check_execution(args: argparse.Namespace) -> tuple[str | None, int | None, str | None]:
+    """The scheduler's address (None: a local cluster), the local cluster's workers and the
+    note when --workers was capped at the usable cores (:func:`dobhil.cluster.local_workers`);
+    --workers only for a local cluster."""
     from dobhil.cluster import check_address, local_workers
     if args.workers is not None and args.workers < 1:
         raise ConfigError(f"--workers {args.workers}: expected a whole number >= 1")
     if args.scheduler is None or args.scheduler == "local":
-        workers, note = local_workers(args.workers)
-        if note:
-            print(f"montecarlo: {note}", file=sys.stderr, flush=True)
-        return None, workers
+        return None, *local_workers(args.workers)
     if args.workers is not None:
         raise ConfigError("--workers sizes the local cluster; a --scheduler has its own workers")
-    return check_address(args.scheduler), None
+    return check_address(args.scheduler), None, None
 
 
 def check_outputs(args: argparse.Namespace) -> Path | None:
