@@ -30,7 +30,7 @@ import os
 import re
 import uuid
 from collections import Counter
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Generator, Iterable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, TypeVar
@@ -50,6 +50,23 @@ HANDSHAKE_GRACE = 0.5
 
 #: BLAS on one thread in every worker process (the variables act before numpy loads BLAS)
 ONE_THREAD_ENV = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+
+#: seconds a local cluster may take to start: a base for the scheduler and the imports, and
+#: more per worker process (each imports numpy, scipy and dobhil: about 2 s on a busy 2-core
+#: machine); past it the command ends in one line instead of waiting
+START_TIMEOUT_BASE = 30.0
+START_TIMEOUT_PER_WORKER = 10.0
+
+#: tasks in flight (submitted, their rows not yet given back) per worker thread of a
+#: streamed map, and the least window: enough that a slow task does not idle the others,
+#: few enough that a campaign's memory stays flat. The window is at most half the events
+#: the scheduler keeps of a topic (``distributed.admin.low-level-log-length``, 1000 by
+#: default in 2026.8.0), so every start of a window's tasks is still there to count (_retried)
+WINDOW_PER_THREAD = 16
+WINDOW_MIN = 64
+
+#: the name of the thread that starts a local cluster (see _start_local)
+START_THREAD = "dobhil-local-cluster"
 
 #: a local scheduler's HTTP server (health, metrics; no dashboard) on a free port of this host:
 #: without it the scheduler takes 8787 on every interface, and warns when another has it
@@ -85,15 +102,45 @@ def check_address(address: str) -> str:
     return f"tcp://{match['host']}:{int(match['port'])}"
 
 
+def usable_cores() -> int:
+    """The cores this process may run on (its CPU affinity where the OS has one)."""
+    affinity = getattr(os, "sched_getaffinity", None)
+    return len(affinity(0)) if affinity is not None else os.cpu_count() or 1
+
+
+def local_workers(requested: int | None) -> tuple[int, str | None]:
+    """The worker processes of a local cluster for ``--workers requested`` (None: one per
+    core), and a one-line note when the request was capped. Capped at :func:`usable_cores`:
+    each task is one CPU-bound run, so more processes than cores only time-share the cores
+    (no run ends sooner) while each costs its own interpreter's memory and start-up -- a
+    thousand of them is a machine that stops answering. The results do not depend on the
+    number of workers, so capping changes nothing but the wall time. A remote scheduler's
+    workers are the user's and are never capped."""
+    cores = usable_cores()
+    if requested is None:
+        return cores, None
+    if requested > cores:
+        return cores, (f"--workers {requested}: capped at {cores}, the cores this machine gives this process "
+                       "(more local processes than cores run no faster); a --scheduler's workers are not capped")
+    return requested, None
+
+
+def start_timeout(workers: int) -> float:
+    return START_TIMEOUT_BASE + START_TIMEOUT_PER_WORKER * workers
+
+
 @contextmanager
 def open_client(scheduler: str | None = None, *, workers: int | None = None, processes: bool = True,
-                timeout: float = CONNECT_TIMEOUT) -> Iterator[distributed.Client]:
+                timeout: float = CONNECT_TIMEOUT, start_within: float | None = None) -> Iterator[distributed.Client]:
     """A client of a new local cluster (``scheduler`` None: ``workers`` processes, one per
-    core by default, one thread each) or of the scheduler at ``scheduler``; everything it
+    usable core by default, one thread each -- the commands cap a user's ``--workers`` with
+    :func:`local_workers` first; started within ``start_within`` seconds,
+    :func:`start_timeout` by default) or of the scheduler at ``scheduler``; everything it
     started is closed on exit, however the block ends."""
     with _quiet_dask():
         if scheduler is None:
-            with _local_client(workers or os.cpu_count() or 1, processes) as client:
+            n = workers or usable_cores()
+            with _local_client(n, processes, start_within or start_timeout(n)) as client:
                 yield client
         else:
             with _remote_client(check_address(scheduler), timeout) as client:
@@ -101,12 +148,53 @@ def open_client(scheduler: str | None = None, *, workers: int | None = None, pro
 
 
 @contextmanager
-def _local_client(workers: int, processes: bool) -> Iterator[distributed.Client]:
-    from distributed import Client, LocalCluster
-    with LocalCluster(n_workers=workers, threads_per_worker=1, processes=processes,
-                      dashboard_address=None, scheduler_kwargs=NO_DASHBOARD, silence_logs=logging.CRITICAL,
-                      **({"env": ONE_THREAD_ENV} if processes else {})) as cluster, Client(cluster) as client:
+def _local_client(workers: int, processes: bool, within: float) -> Iterator[distributed.Client]:
+    from distributed import Client
+    cluster = _start_local(workers, processes, within)
+    with cluster, Client(cluster) as client:
         yield client
+
+
+def _start_local(workers: int, processes: bool, within: float) -> Any:
+    """A started ``LocalCluster``, or :class:`ClusterError` after ``within`` seconds.
+
+    Why a thread: ``LocalCluster`` (2026.8.0) has no start-up timeout; it waits for every
+    worker process however long they take. Started in a daemon thread, it is given up on
+    after ``within`` seconds: the error line is said, and the half-started cluster's
+    processes (daemonic) end with this one."""
+    import threading
+    from distributed import LocalCluster
+    made: list[Any] = []
+    failed: list[BaseException] = []
+    lock = threading.Lock()
+    abandoned = [False]
+
+    def start() -> None:
+        try:
+            cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=processes,
+                                   dashboard_address=None, scheduler_kwargs=NO_DASHBOARD,
+                                   silence_logs=logging.CRITICAL, **({"env": ONE_THREAD_ENV} if processes else {}))
+        except BaseException as exc:   # said on the caller's thread, as one line
+            with lock:
+                failed.append(exc)
+            return
+        with lock:
+            made.append(cluster)
+            late = abandoned[0]
+        if late:   # given up on: nobody else will close it
+            cluster.close()
+    thread = threading.Thread(target=start, name=START_THREAD, daemon=True)
+    thread.start()
+    thread.join(within)
+    with lock:
+        abandoned[0] = not made and not failed
+    if abandoned[0]:
+        raise ClusterError(f"the local cluster of {workers} worker process{'es' if workers != 1 else ''} did not "
+                           f"start within {within:g} s; give fewer --workers, or run a scheduler and its "
+                           "workers yourself (--scheduler)")
+    if failed:
+        raise ClusterError(f"the local cluster of {workers} workers did not start: {exception_line(failed[0])}")
+    return made[0]
 
 
 @contextmanager
@@ -220,6 +308,74 @@ def map_ordered(client: distributed.Client, fn: Callable[[T], Any], items: Seque
     return [MapResult(value, error, i in retried) for i, (value, error) in sorted(outcomes.items())]
 
 
+def map_streaming(client: distributed.Client, fn: Callable[[T], Any], items: Iterable[T], *,
+                  index: Callable[[T], int], key_prefix: str = "dobhil", window: int | None = None,
+                  arrived: Callable[[int, Any, str | None], None] | None = None
+                  ) -> Generator[tuple[int, MapResult], None, None]:
+    """:func:`map_ordered` for any number of items: ``items`` is consumed only as far as
+    ``window`` tasks are in flight (submitted, their results not yet given back; by default
+    :data:`WINDOW_PER_THREAD` per worker thread), and ``(index(item), result)`` pairs are
+    yielded in the items' order as soon as an item and all before it are done. Memory holds
+    the window, never the whole map. ``arrived`` as in :func:`map_ordered`, as each task comes
+    back. Items must come with consecutive indices from 0 (``index``)."""
+    from distributed import as_completed
+    window = window or stream_window(client)
+    token = uuid.uuid4().hex[:12]
+    topic = f"{key_prefix}-attempts-{token}"
+    source = iter(items)
+    pending: dict[Any, int] = {}                      # future -> index
+    done: dict[int, tuple[Any, str | None]] = {}      # back, waiting for an earlier index
+    ready: list[tuple[int, tuple[Any, str | None]]] = []   # in order, waiting for their retry count
+    running = as_completed()
+    following = 0
+
+    def submit() -> None:
+        while len(pending) + len(done) + len(ready) < window:
+            item = next(source, None)
+            if item is None:
+                return
+            i = index(item)
+            future = client.submit(_attempt, fn, topic, i, item, pure=False, key=f"{key_prefix}-{token}-{i}")
+            pending[future] = i
+            running.add(future)
+    try:
+        submit()
+        for future in running:
+            i = pending.pop(future)
+            done[i] = _outcome(future)
+            future.release()
+            if arrived:
+                arrived(i, *done[i])
+            while following in done:
+                ready.append((following, done.pop(following)))
+                following += 1
+            if len(ready) >= window // 2 or not pending:
+                yield from _flagged(client, topic, ready)
+                ready = []
+            submit()
+        yield from _flagged(client, topic, ready)
+    finally:   # a consumer that stops early: the rest is not run
+        if pending:
+            client.cancel(list(pending))
+
+
+def stream_window(client: distributed.Client) -> int:
+    import dask
+    kept = int(dask.config.get("distributed.admin.low-level-log-length"))
+    threads = sum(client.nthreads().values()) or 1
+    return max(min(WINDOW_MIN, kept // 2), min(kept // 2, WINDOW_PER_THREAD * threads))
+
+
+def _flagged(client: distributed.Client, topic: str,
+             ready: Sequence[tuple[int, tuple[Any, str | None]]]) -> Iterator[tuple[int, MapResult]]:
+    """The ready results with ``retried`` from the topic's start events (one read per batch)."""
+    if not ready:
+        return
+    retried = _retried(client, topic)
+    for i, (value, error) in ready:
+        yield i, MapResult(value, error, i in retried)
+
+
 def map_values(client: distributed.Client, fn: Callable[[T], Any], items: Sequence[T], *,
                progress: Callable[[int], None] | None = None, key_prefix: str = "dobhil") -> list[Any]:
     """:func:`map_ordered` for work where every item must succeed (the chunks of one result):
@@ -258,7 +414,8 @@ def _retried(client: distributed.Client, topic: str) -> set[int]:
     start events (``Worker.log_event``, read with ``Client.get_events``) are. A worker
     sends an event on the same stream as its task's result, so by the time a result is
     here the start of that attempt is at the scheduler. Stolen tasks had not started, so
-    they are not counted. (Dask keeps the last 100,000 events of a topic
-    (``distributed.scheduler.events-log-length``): a map of more items may miss a retry.)"""
+    they are not counted. (Dask keeps the last 1,000 events of a topic by default
+    (``distributed.admin.low-level-log-length``): :func:`map_ordered` of more items may miss
+    a retry; :func:`map_streaming` reads them a window at a time, within that.)"""
     starts = Counter(msg for _, msg in client.get_events(topic))
     return {index for index, count in starts.items() if count > 1}

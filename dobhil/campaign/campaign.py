@@ -14,7 +14,7 @@ from __future__ import annotations
 import math
 import shlex
 import uuid
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Generator, Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -22,6 +22,7 @@ import numpy as np
 
 from dobhil.campaign.compare import CommandCheck, Comparison, Floors, command_check, compare
 from dobhil.campaign.draws import Vary, draw
+from dobhil.campaign.tally import Tally, badness, succeeded
 from dobhil.campaign.runner import MEASURED, METRICS, RunSpec, empty_result, load_run_config, run_one
 from dobhil.config import Config
 
@@ -64,7 +65,14 @@ class Campaign:
         return load_run_config(self.config, self.overrides, self.set_files, self.axis)
 
     def plan(self) -> list[RunSpec]:
-        return [self.spec(i) for i in range(self.runs)]
+        """Every run's spec in a list: for a few runs; a campaign streams :meth:`specs`."""
+        return list(self.specs())
+
+    def specs(self) -> Iterator[RunSpec]:
+        """Each run's spec, drawn when asked for: run ``i``'s draws depend on ``(seed, i)``
+        alone (:func:`~dobhil.campaign.draws.draw`), so drawing them lazily gives the same
+        values as drawing them all first, and memory does not grow with ``runs``."""
+        return (self.spec(i) for i in range(self.runs))
 
     def spec(self, index: int) -> RunSpec:
         values, sensor_seed = draw(self.varies, self.seed, index)
@@ -101,6 +109,28 @@ def execute(client: Any, specs: Sequence[RunSpec], *,
     return [_row(spec, r) for spec, r in zip(specs, results)]
 
 
+def stream(client: Any, specs: Iterable[RunSpec], *, progress: Callable[[dict[str, Any]], None] | None = None,
+           window: int | None = None) -> Generator[dict[str, Any], None, None]:
+    """:func:`execute` for a campaign of any length: ``specs`` consumed as the cluster has room
+    (:func:`dobhil.cluster.map_streaming`), each row given back in run order as soon as it and
+    the runs before it are done. Memory holds a bounded window of runs, not the campaign."""
+    from dobhil.cluster import MapResult, map_streaming
+    prefix = f"dobhil-montecarlo-{uuid.uuid4().hex[:12]}"
+    in_flight: dict[int, RunSpec] = {}
+
+    def specs_seen() -> Iterator[RunSpec]:
+        for spec in specs:
+            in_flight[spec.index] = spec
+            yield spec
+
+    def arrived(index: int, value: Any, error: str | None) -> None:
+        if progress is not None:
+            progress(_row(in_flight[index], MapResult(value, error, False)))
+    for index, result in map_streaming(client, run_one, specs_seen(), key_prefix=prefix, arrived=arrived,
+                                       index=lambda spec: spec.index, window=window):
+        yield _row(in_flight.pop(index), result)
+
+
 def _row(spec: RunSpec, result: Any) -> dict[str, Any]:
     if result.error is not None or not isinstance(result.value, dict):
         row = {**spec.base_row(), **empty_result(), "error": result.error or "no result"}
@@ -108,10 +138,6 @@ def _row(spec: RunSpec, result: Any) -> dict[str, Any]:
         row = dict(result.value)
     row["retried"] = bool(result.retried)
     return row
-
-
-def succeeded(row: dict[str, Any]) -> bool:
-    return not row["error"] and row["stop_reason"] == "done"
 
 
 @dataclass(frozen=True)
@@ -125,7 +151,7 @@ class Summary:
     #: metric -> {"p5": .., "p50": .., "p95": .., "max": .., "n": ..} over the ``n`` runs
     #: where the metric is defined (a metric no run has is absent)
     percentiles: dict[str, dict[str, float]]
-    #: the worst runs' row indices, worst first
+    #: the worst runs' numbers, worst first
     worst: tuple[int, ...]
     #: step responses that never settled into the band (``settled`` False)
     never_settled: int = 0
@@ -135,57 +161,56 @@ class Summary:
     comparisons: tuple[Comparison, ...] = ()
     #: the final true torque against the command
     command: CommandCheck | None = None
+    #: the worst runs' rows, worst first
+    worst_rows: tuple[dict[str, Any], ...] = ()
+    #: 0: the percentiles are over every run; else over a uniform sample of this many runs
+    sampled: int = 0
 
     def as_dict(self) -> dict[str, Any]:
         return {"runs": self.runs, "succeeded": self.succeeded, "success_rate": self.rate,
                 "success_rate_ci95": [self.ci_low, self.ci_high], "retried": self.retried,
-                "percentiles": self.percentiles, "never_settled": self.never_settled,
+                "percentiles": self.percentiles,
+                "percentiles_sampled_runs": self.sampled or None, "never_settled": self.never_settled,
                 "reference": self.reference, "comparisons": [c.as_dict() for c in self.comparisons],
                 "worse_than_reference": [c.metric for c in self.comparisons if c.worse],
                 "final_vs_command": self.command.as_dict() if self.command else None}
 
 
-def summarise(rows: Sequence[dict[str, Any]], reference: dict[str, Any] | None = None,
-              floors: Floors | None = None) -> Summary:
-    """The success rate (95 % Clopper-Pearson interval), retries, metric percentiles, worst
-    runs; with a ``reference`` row (and the campaign's tolerance ``floors``), each metric's
-    median against it (:mod:`dobhil.campaign.compare`)."""
+def summarise(rows: Iterable[dict[str, Any]], reference: dict[str, Any] | None = None,
+              floors: Floors | None = None, *, seed: int = 0, drawn: Sequence[str] = ()) -> Summary:
+    """:meth:`Tally.add` of each row, then :func:`summary_of`."""
+    tally = Tally(drawn, seed, worst=WORST)
+    for row in rows:
+        tally.add(row)
+    return summary_of(tally, reference, floors)
+
+
+def summary_of(tally: Tally, reference: dict[str, Any] | None = None, floors: Floors | None = None) -> Summary:
+    """The success rate (95 % Clopper-Pearson interval), retries, metric percentiles (of the
+    tally's sample past :data:`~dobhil.campaign.tally.SAMPLE` runs), worst runs; with a
+    ``reference`` row (and the campaign's tolerance ``floors``), each metric's median
+    against it (:mod:`dobhil.campaign.compare`)."""
     from scipy.stats import binomtest
-    n = len(rows)
-    k = sum(succeeded(r) for r in rows)
+    n, k = tally.runs, tally.succeeded
     ci = binomtest(k, n).proportion_ci(0.95, method="exact") if n else None
-    percentiles = _percentiles(rows)
+    percentiles = tally.percentiles(PERCENTILES)
     comparisons: tuple[Comparison, ...] = ()
     command = None
     if reference is not None and floors is not None:
         comparisons = tuple(compare(percentiles, reference, floors))
         command = command_check(percentiles, reference, floors)
+    worst = tally.worst()
     return Summary(runs=n, succeeded=k, rate=k / n if n else math.nan,
                    ci_low=float(ci.low) if ci else math.nan, ci_high=float(ci.high) if ci else math.nan,
-                   retried=sum(bool(r["retried"]) for r in rows), percentiles=percentiles,
-                   worst=worst_runs(rows), never_settled=sum(r.get("settled") is False for r in rows),
-                   reference=reference, comparisons=comparisons, command=command)
-
-
-def _percentiles(rows: Sequence[dict[str, Any]]) -> dict[str, dict[str, float]]:
-    out: dict[str, dict[str, float]] = {}
-    for m in METRICS:
-        values = np.array([r[m] for r in rows if r[m] is not None], float)
-        if values.size:
-            out[m] = {**{f"p{p:g}": float(np.percentile(values, p)) for p in PERCENTILES},
-                      "max": float(values.max()), "n": int(values.size)}
-    return out
+                   retried=tally.retried, percentiles=percentiles,
+                   worst=tuple(int(r["run"]) for r in worst), never_settled=tally.never_settled,
+                   reference=reference, comparisons=comparisons, command=command,
+                   worst_rows=tuple(worst), sampled=tally.kept if tally.sampled else 0)
 
 
 def worst_runs(rows: Sequence[dict[str, Any]], count: int = WORST) -> tuple[int, ...]:
-    """Indices of the ``count`` worst rows: failed runs first (errors, then early stops), then
-    by force RMS error, largest first; ties by run number."""
-    def badness(i: int) -> tuple[int, float, int]:
-        r = rows[i]
-        rank = 0 if r["error"] else 1 if r["stop_reason"] != "done" else 2
-        rms = r["force_rms_error"]
-        return rank, -(rms if rms is not None else math.inf), i
-    return tuple(sorted(range(len(rows)), key=badness)[:count])
+    """Indices of the ``count`` worst rows (:func:`~dobhil.campaign.tally.badness`)."""
+    return tuple(sorted(range(len(rows)), key=lambda i: (*badness(rows[i])[:2], i))[:count])
 
 
 def reproduce_command(spec: RunSpec) -> str:
@@ -200,5 +225,5 @@ def reproduce_command(spec: RunSpec) -> str:
     return shlex.join(words)
 
 
-__all__ = ["Campaign", "NOISE_DEFAULTS", "REFERENCE", "Summary", "execute", "reproduce_command", "succeeded",
-           "summarise", "worst_runs"]
+__all__ = ["Campaign", "NOISE_DEFAULTS", "REFERENCE", "Summary", "execute", "reproduce_command", "stream", "succeeded",
+           "summarise", "summary_of", "worst_runs"]

@@ -10,7 +10,8 @@ from __future__ import annotations
 
 import csv
 import importlib.util
-from collections.abc import Sequence
+from collections.abc import Iterable, Iterator, Sequence
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -35,21 +36,34 @@ def table_name(fmt: str) -> str:
     return f"runs.{fmt}"
 
 
-def write_table(rows: Sequence[dict[str, Any]], columns: Sequence[str], path: Path, fmt: str,
+#: rows a parquet table takes at a time (one row group each): bounded memory for any length
+ROW_GROUP = 10_000
+
+
+def write_table(rows: Iterable[dict[str, Any]], columns: Sequence[str], path: Path, fmt: str,
                 integer_keys: Sequence[str] = ()) -> Path:
-    if fmt == "parquet":
-        return _write_parquet(rows, columns, path, (*INTEGER, *integer_keys))
-    return _write_csv(rows, columns, path)
-
-
-def _write_csv(rows: Sequence[dict[str, Any]], columns: Sequence[str], path: Path) -> Path:
-    from dobhil.files import atomic_path
-    with atomic_path(path) as tmp, tmp.open("w", newline="") as fh:
-        writer = csv.DictWriter(fh, fieldnames=list(columns))
-        writer.writeheader()
+    with table_writer(columns, path, fmt, integer_keys) as write:
         for row in rows:
-            writer.writerow({c: ("" if row[c] is None else row[c]) for c in columns})
+            write(row)
     return path
+
+
+@contextmanager
+def table_writer(columns: Sequence[str], path: Path, fmt: str,
+                 integer_keys: Sequence[str] = ()) -> Iterator[Any]:
+    """``write(row)`` for each row as it comes: CSV a line each, parquet a row group per
+    :data:`ROW_GROUP` rows, so no table of a campaign is ever held whole. The file appears
+    at ``path`` when the block ends normally (:func:`dobhil.files.atomic_path`)."""
+    from dobhil.files import atomic_path
+    with atomic_path(path) as tmp:
+        if fmt == "parquet":
+            with _parquet_writer(columns, tmp, (*INTEGER, *integer_keys)) as write:
+                yield write
+        else:
+            with tmp.open("w", newline="") as fh:
+                writer = csv.DictWriter(fh, fieldnames=list(columns))
+                writer.writeheader()
+                yield lambda row: writer.writerow({c: ("" if row[c] is None else row[c]) for c in columns})
 
 
 def _arrow_type(column: str, integers: Sequence[str]) -> Any:
@@ -61,16 +75,25 @@ def _arrow_type(column: str, integers: Sequence[str]) -> Any:
     return pa.int64() if column in integers else pa.float64()
 
 
-def _write_parquet(rows: Sequence[dict[str, Any]], columns: Sequence[str], path: Path,
-                   integers: Sequence[str]) -> Path:
+@contextmanager
+def _parquet_writer(columns: Sequence[str], path: Path, integers: Sequence[str]) -> Iterator[Any]:
     import pyarrow as pa
     import pyarrow.parquet as pq
-    from dobhil.files import atomic_path
     schema = pa.schema([(c, _arrow_type(c, integers)) for c in columns])
-    table = pa.Table.from_pylist([{c: row[c] for c in columns} for row in rows], schema=schema)
-    with atomic_path(path) as tmp:
-        pq.write_table(table, tmp)
-    return path
+    batch: list[dict[str, Any]] = []
+
+    def flush() -> None:
+        writer.write_table(pa.Table.from_pylist(batch, schema=schema))
+        batch.clear()
+
+    def write(row: dict[str, Any]) -> None:
+        batch.append({c: row[c] for c in columns})
+        if len(batch) >= ROW_GROUP:
+            flush()
+    with pq.ParquetWriter(path, schema) as writer:
+        yield write
+        if batch:
+            flush()
 
 
 def read_table(path: Path) -> list[dict[str, Any]]:
@@ -79,4 +102,4 @@ def read_table(path: Path) -> list[dict[str, Any]]:
     return list(pq.read_table(path).to_pylist())
 
 
-__all__ = ["FORMATS", "check_format", "read_table", "table_name", "write_table"]
+__all__ = ["FORMATS", "check_format", "read_table", "table_name", "table_writer", "write_table"]

@@ -6,8 +6,10 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -18,7 +20,7 @@ from dobhil.errors import ConfigError
 if TYPE_CHECKING:
     from dobhil.campaign.campaign import Campaign, Summary
     from dobhil.campaign.compare import Floors
-    from dobhil.campaign.runner import RunSpec
+    from dobhil.campaign.tally import Tally
 
 #: exit code when any run did not succeed (the table is still written)
 EXIT_SOME_FAILED = 1
@@ -53,19 +55,23 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    """The runs stream: each spec drawn when the cluster has room for it, each row into the
+    table and the tally as it comes (in run order), so memory does not grow with --runs."""
     campaign, noise = build_campaign(args)
-    scheduler = check_execution(args)
+    scheduler, workers, note = check_execution(args)
     out_dir = check_outputs(args)
+    if note:   # once every input is checked: bad input stays its one line
+        print(f"montecarlo: {note}", file=sys.stderr, flush=True)
     started = time.perf_counter()
-    reference, rows = execute(campaign, scheduler, args.workers, header(campaign, noise, scheduler, args.workers))
+    with table(out_dir, args, campaign) as write:
+        reference, tally = execute(campaign, scheduler, workers, header(campaign, noise, scheduler, workers), write)
     elapsed = time.perf_counter() - started
-    from dobhil.campaign.campaign import summarise, succeeded
-    summary = summarise(rows, reference, floors(campaign, reference))
-    specs = campaign.plan()
-    report(summary, rows, specs, campaign, elapsed)
+    from dobhil.campaign.campaign import summary_of
+    summary = summary_of(tally, reference, floors(campaign, reference))
+    report(summary, campaign, elapsed)
     if out_dir is not None:
-        write_outputs(out_dir, args, campaign, rows, summary, specs, elapsed)
-    return 0 if all(succeeded(r) for r in rows) else EXIT_SOME_FAILED
+        write_outputs(out_dir, args, campaign, tally, summary, elapsed)
+    return 0 if summary.succeeded == summary.runs else EXIT_SOME_FAILED
 
 
 # -- input ------------------------------------------------------------------
@@ -123,16 +129,18 @@ def _check_config(campaign: Campaign) -> None:
     load_drive_profile(campaign.load(), resolve_config(campaign.config).parent)
 
 
-def check_execution(args: argparse.Namespace) -> str | None:
-    """The scheduler's address (None: a local cluster); --workers only for a local cluster."""
+def check_execution(args: argparse.Namespace) -> tuple[str | None, int | None, str | None]:
+    """The scheduler's address (None: a local cluster), the local cluster's workers and the
+    note when --workers was capped at the usable cores (:func:`dobhil.cluster.local_workers`);
+    --workers only for a local cluster."""
+    from dobhil.cluster import check_address, local_workers
     if args.workers is not None and args.workers < 1:
         raise ConfigError(f"--workers {args.workers}: expected a whole number >= 1")
     if args.scheduler is None or args.scheduler == "local":
-        return None
+        return None, *local_workers(args.workers)
     if args.workers is not None:
         raise ConfigError("--workers sizes the local cluster; a --scheduler has its own workers")
-    from dobhil.cluster import check_address
-    return check_address(args.scheduler)
+    return check_address(args.scheduler), None, None
 
 
 def check_outputs(args: argparse.Namespace) -> Path | None:
@@ -176,24 +184,44 @@ def _config_duration(campaign: Campaign) -> float:
     return float(campaign.load().loop.duration)
 
 
-def execute(campaign: Campaign, scheduler: str | None, workers: int | None,
-            said: str) -> tuple[dict[str, Any], list[dict[str, Any]]]:
-    """The reference run and the runs on the cluster; ``said`` (the header line) is printed
-    once the cluster is there, so that a scheduler that does not answer ends in its one
-    error line alone. Progress on stderr: runs done, failed, rate, time left."""
-    from dobhil.campaign.campaign import execute as run_all, succeeded
+def execute(campaign: Campaign, scheduler: str | None, workers: int | None, said: str,
+            write: Callable[[dict[str, Any]], None] | None = None) -> tuple[dict[str, Any], Tally]:
+    """The reference run and the runs on the cluster, streamed (:func:`dobhil.campaign.campaign.stream`):
+    each row to ``write`` (the table) and the tally in run order. ``said`` (the header line)
+    is printed once the cluster is there, so that a scheduler that does not answer ends in
+    its one error line alone. Progress on stderr from the first run back: runs done,
+    failed, rate, time left."""
+    from dobhil.campaign.campaign import WORST, execute as run_all, stream
+    from dobhil.campaign.tally import Tally, succeeded
     from dobhil.cli.progress import progress
     from dobhil.cluster import open_client
-    specs = campaign.plan()
+    tally = Tally([v.key for v in campaign.varies], campaign.seed, worst=WORST)
     with open_client(scheduler, workers=workers) as client:
         print(said, flush=True)
         reference = run_all(client, [campaign.reference_spec()])[0]
         failed = [0]
-        with progress("montecarlo", total=len(specs), unit="run") as shown:
+        with progress("montecarlo", total=campaign.runs, unit="run") as shown:
             def one(row: dict[str, Any]) -> None:
                 failed[0] += not succeeded(row)
                 shown.update(1, f"{failed[0]} failed")
-            return reference, run_all(client, specs, progress=one)
+            for row in stream(client, campaign.specs(), progress=one):
+                tally.add(row)
+                if write is not None:
+                    write(row)
+    return reference, tally
+
+
+@contextmanager
+def table(out: Path | None, args: argparse.Namespace,
+          campaign: Campaign) -> Iterator[Callable[[dict[str, Any]], None] | None]:
+    """The table's writer (None without --out): rows go to disk as they come."""
+    if out is None:
+        yield None
+        return
+    from dobhil.campaign.table import table_name, table_writer
+    integer_keys = [v.key for v in campaign.varies if v.integer]
+    with table_writer(campaign.columns(), out / table_name(args.format), args.format, integer_keys) as write:
+        yield write
 
 
 def floors(campaign: Campaign, reference: dict[str, Any]) -> Floors:
@@ -206,18 +234,17 @@ def floors(campaign: Campaign, reference: dict[str, Any]) -> Floors:
 
 # -- output -----------------------------------------------------------------
 
-def report(summary: Summary, rows: Sequence[dict[str, Any]], specs: Sequence[RunSpec],
-           campaign: Campaign, elapsed: float) -> None:
+def report(summary: Summary, campaign: Campaign, elapsed: float) -> None:
     print(f"{summary.runs} runs in {elapsed:.1f} s: {summary.succeeded} succeeded "
           f"({100 * summary.rate:.1f} %, 95 % CI {100 * summary.ci_low:.1f}-{100 * summary.ci_high:.1f} %, "
           f"Clopper-Pearson); {summary.retried} retried")
     for line in metric_lines(summary):
         print(line)
     print(f"worst {len(summary.worst)} runs (each alone: the command below it):")
-    for i in summary.worst:
-        print(f"  {describe_row(rows[i], campaign)}")
-        from dobhil.campaign.campaign import reproduce_command
-        print(f"    {reproduce_command(specs[i])}")
+    from dobhil.campaign.campaign import reproduce_command
+    for row in summary.worst_rows:
+        print(f"  {describe_row(row, campaign)}")
+        print(f"    {reproduce_command(campaign.spec(int(row['run'])))}")
 
 
 def metric_lines(summary: Summary) -> list[str]:
@@ -228,6 +255,9 @@ def metric_lines(summary: Summary) -> list[str]:
     ref = summary.reference or {}
     compared = {c.metric: c for c in summary.comparisons}
     lines = [_reference_line(ref)] if summary.reference is not None else []
+    if summary.sampled:
+        lines.append(f"  (percentiles of a uniform sample of {summary.sampled} of the {summary.runs} runs; "
+                     "counts and max over all of them)")
     for name in METRICS:
         p = summary.percentiles.get(name)
         if p is None:
@@ -309,20 +339,18 @@ def describe_row(row: dict[str, Any], campaign: Campaign) -> str:
             + ("; retried" if row["retried"] else ""))
 
 
-def write_outputs(out: Path, args: argparse.Namespace, campaign: Campaign, rows: Sequence[dict[str, Any]],
-                  summary: Summary, specs: Sequence[RunSpec], elapsed: float) -> None:
-    from dobhil.campaign.table import table_name, write_table
-    integer_keys = [v.key for v in campaign.varies if v.integer]
-    table = write_table(rows, campaign.columns(), out / table_name(args.format), args.format, integer_keys)
-    print(f"wrote {table}")
-    print(f"wrote {_write_summary(out / 'summary.json', campaign, summary, specs, elapsed, rows)}")
+def write_outputs(out: Path, args: argparse.Namespace, campaign: Campaign, tally: Tally,
+                  summary: Summary, elapsed: float) -> None:
+    """The table is already written (it streamed); the summary, and the plots of the tally's sample."""
+    from dobhil.campaign.table import table_name
+    print(f"wrote {out / table_name(args.format)}")
+    print(f"wrote {_write_summary(out / 'summary.json', campaign, summary, elapsed)}")
     if args.plot:
-        for path in plot(out, campaign, rows):
+        for path in plot(out, campaign, tally):
             print(f"wrote {path}")
 
 
-def _write_summary(path: Path, campaign: Campaign, summary: Summary, specs: Sequence[RunSpec],
-                   elapsed: float, rows: Sequence[dict[str, Any]]) -> Path:
+def _write_summary(path: Path, campaign: Campaign, summary: Summary, elapsed: float) -> Path:
     from dobhil.campaign.campaign import reproduce_command
     from dobhil.files import atomic_path
     data = {"config": campaign.config, "axis": campaign.axis or None, "seed": campaign.seed,
@@ -330,23 +358,19 @@ def _write_summary(path: Path, campaign: Campaign, summary: Summary, specs: Sequ
             "vary": [v.text() for v in campaign.varies], "overrides": list(campaign.overrides),
             "set_files": list(campaign.set_files), "wall_time_s": elapsed, **summary.as_dict(),
             "reference_command": reproduce_command(campaign.reference_spec()),
-            "worst": [{"run": i, "error": rows[i]["error"], "stop_reason": rows[i]["stop_reason"],
-                       "force_rms_error": rows[i]["force_rms_error"], "command": reproduce_command(specs[i])}
-                      for i in summary.worst]}
+            "worst": [{"run": r["run"], "error": r["error"], "stop_reason": r["stop_reason"],
+                       "force_rms_error": r["force_rms_error"],
+                       "command": reproduce_command(campaign.spec(int(r["run"])))}
+                      for r in summary.worst_rows]}
     with atomic_path(path) as tmp:
         tmp.write_text(json.dumps(data, indent=2) + "\n")
     return path
 
 
-def plot(out: Path, campaign: Campaign, rows: Sequence[dict[str, Any]]) -> list[Path]:
-    import numpy as np
-    from dobhil.campaign.campaign import succeeded
+def plot(out: Path, campaign: Campaign, tally: Tally) -> list[Path]:
+    """The figures of the tally's rows: every run up to its sample size, a uniform sample past it."""
     from dobhil.campaign.runner import METRICS
     from dobhil.plotting.campaign_figures import metric_histograms, vary_scatter
-
-    def column(name: str) -> np.ndarray:
-        return np.array([np.nan if r[name] is None else r[name] for r in rows], float)
-    ok = np.array([succeeded(r) for r in rows], bool)
-    return [metric_histograms({m: column(m) for m in METRICS}, len(rows), out / PLOTS[0]),
-            vary_scatter({v.key: column(v.key) for v in campaign.varies}, column("force_rms_error"), ok,
-                         out / PLOTS[1])]
+    return [metric_histograms({m: tally.column(m) for m in METRICS}, tally.kept, out / PLOTS[0]),
+            vary_scatter({v.key: tally.column(v.key) for v in campaign.varies}, tally.column("force_rms_error"),
+                         tally.ok(), out / PLOTS[1])]

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import sys
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
@@ -97,10 +98,15 @@ def _chunk_map(args: argparse.Namespace) -> Iterator[ChunkMap | None]:
     if args.scheduler is None:
         yield None
         return
-    from dobhil.cluster import map_values, open_client
+    from dobhil.cluster import local_workers, map_values, open_client
     from dobhil.analysis.sweep import Chunk, ChunkAnswer
 
-    with open_client(None if args.scheduler == "local" else args.scheduler, workers=args.workers) as client:
+    workers = args.workers
+    if args.scheduler == "local":   # the same cap as montecarlo's, said in one line
+        workers, note = local_workers(args.workers)
+        if note:
+            print(f"sweep: {note}", file=sys.stderr, flush=True)
+    with open_client(None if args.scheduler == "local" else args.scheduler, workers=workers) as client:
         def on_cluster(fn: Callable[[Chunk], ChunkAnswer], chunks: Sequence[Chunk],
                        done: Callable[[int], None]) -> list[ChunkAnswer]:
             # every chunk must come back: one that raised is what the local sweep would raise

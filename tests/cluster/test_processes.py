@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 
 from dobhil.cli.main import main
-from dobhil.cluster import map_ordered, open_client
+from dobhil.cluster import map_ordered, map_streaming, open_client
 
 ROOT = Path(__file__).resolve().parents[2]
 FIG2B = str(ROOT / "configs/paper/fig2b.yaml")
@@ -51,6 +51,17 @@ def test_a_worker_killed_mid_task_loses_no_row_and_marks_the_retried_one(
     assert set(process_client.run(os.getpid).values()) != pids_before  # type: ignore[attr-defined]
     out, err = capfd.readouterr()   # the nanny and the scheduler saw it all: the terminal does not
     assert (out, err) == ("", "")
+
+
+def test_the_streamed_map_marks_the_retried_one_too(process_client: object, tmp_path: Path) -> None:
+    """The campaign's path: a window of 3, so the retry counts are read in several batches."""
+    marker = str(tmp_path / "killed")
+    items = ((i, marker) for i in range(8))
+    results = list(map_streaming(process_client, _dies_once, items, index=lambda item: item[0],  # type: ignore[arg-type]
+                                 window=3))
+    assert [i for i, _ in results] == list(range(8)) and [r.value for _, r in results] == [10 * i for i in range(8)]
+    assert [i for i, r in results if r.retried] == [2] and Path(marker).exists()
+    process_client.wait_for_workers(2, timeout=60)  # type: ignore[attr-defined]
 
 
 #: 65 x 65 = 4225 points: two chunks of the command's 4096

@@ -80,3 +80,13 @@ def test_a_scheduler_that_does_not_answer_ends_the_process_with_one_line(silent_
     assert (done.returncode, done.stdout) == (2, "")
     assert done.stderr.startswith(f"dobhil sweep: error: --scheduler {address}: no Dask scheduler answered "
                                   "within 4 s (") and done.stderr.count("\n") == 1, done.stderr
+
+
+def test_workers_past_the_cores_are_capped_in_one_line(capsys: pytest.CaptureFixture[str]) -> None:
+    from dobhil.cluster import usable_cores
+    code, out, err = run(["sweep", FIG2B, "--vary", VARY[0], "--scheduler", "local", "--workers", "1000"], capsys)
+    assert code == 0 and "Traceback" not in err
+    capped = [line for line in err.splitlines() if "capped" in line]
+    assert capped == [f"sweep: --workers 1000: capped at {usable_cores()}, the cores this machine gives this "
+                      "process (more local processes than cores run no faster); a --scheduler's workers are "
+                      "not capped"]
