@@ -70,7 +70,8 @@ def test_the_pair_is_unstable_only_through_its_coupling(tmp_path: Path) -> None:
     assert verdicts(pair(tmp_path, damping=30.0))[0].status is GateStatus.STABLE
 
 
-@pytest.mark.parametrize("command", [["run", "--emulate", "--lockstep"], ["demo", "--no-log"], ["check", "--bus", NO_BUS]])
+@pytest.mark.parametrize("command", [["run", "--emulate", "--lockstep"], ["demo", "--no-log"],
+                                     ["check", "--bus", NO_BUS]])
 def test_run_demo_and_check_refuse_it_before_anything_opens(tmp_path: Path, command: list[str],
                                                             capsys: pytest.CaptureFixture[str],
                                                             monkeypatch: pytest.MonkeyPatch) -> None:

@@ -123,7 +123,8 @@ def test_a_refusing_preflight_of_one_axis_enables_nothing(tmp_path: Path, odrive
     session is never opened."""
     channel, emus = odrives
     path = axes_config(tmp_path, "odrive-0.6", (1, 4))
-    code = main(["run", str(path), "--bus", f"virtual:{channel}", "--set", SLACK, "--set", HOST, "--preflight-window", "0.2"])
+    code = main(["run", str(path), "--bus", f"virtual:{channel}", "--set", SLACK, "--set", HOST,
+                 "--preflight-window", "0.2"])
     out, err = capsys.readouterr()
     assert code == 1 and out == ""
     assert "dobhil run: axis j4: refused to enable: node 4 is not on the bus, node(s) 1, 2 are" in err
@@ -135,7 +136,8 @@ def test_each_axis_is_measured_before_the_run(tmp_path: Path, odrives: tuple[str
                                               capsys: pytest.CaptureFixture[str]) -> None:
     channel, _ = odrives
     path = axes_config(tmp_path, "odrive-0.6", (1, 2))
-    code = main(["run", str(path), "--bus", f"virtual:{channel}", "--set", SLACK, "--set", HOST, "--preflight-window", "0.3",
+    code = main(["run", str(path), "--bus", f"virtual:{channel}", "--set", SLACK, "--set", HOST,
+                 "--preflight-window", "0.3",
                  "--duration", "0.02"])
     err = capsys.readouterr().err
     for name, node in (("j1", 1), ("j2", 2)):

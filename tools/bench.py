@@ -5,10 +5,11 @@
 dobhil with a baseline doing the same work in the same run, so the numbers
 mean the same on a loaded or an idle machine; absolute rates are printed for
 context. Targets (2-core machine) are in TARGETS (lower bounds) and TARGETS_MAX
-(upper bounds); ``--check`` exits 1 if one
-is missed. A key whose runs must last their duration (``axes``, ``rt_axes``) is NaN, with a
-line on stderr, when one did not: a missed target. The ``socketcan_*`` and ``bcm_sync_jitter_p99_us`` keys are absolute figures measured
-inside the kernel guest of tools/canvm (``--only socketcan``; under software emulation on a
+(upper bounds); ``--check`` exits 1 if one is missed. A key whose runs must last
+their duration (``axes``, ``rt_axes``) is NaN, with a line on stderr, when one did
+not: a missed target. The ``socketcan_*`` and ``bcm_sync_jitter_p99_us`` keys are
+absolute figures measured inside the kernel guest of tools/canvm (``--only
+socketcan``; under software emulation on a
 machine where KVM does not boot): no targets, stated as guest figures.
 """
 
