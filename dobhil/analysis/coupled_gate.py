@@ -28,7 +28,7 @@ from typing import Any
 import numpy as np
 
 from dobhil.analysis.coupled import AxisDesign, GainScales, coupled_loop, stable_scales
-from dobhil.analysis.gate import NOT_MODELLED, GateStatus, gain_margin_db
+from dobhil.analysis.gate import NOT_MODELLED, GateStatus, VerdictLines, gain_margin_db
 from dobhil.analysis.stability import is_stable
 from dobhil.config.axes import Coupling
 from dobhil.errors import AnalysisError, DobhilError, exception_line
@@ -36,8 +36,8 @@ from dobhil.errors import AnalysisError, DobhilError, exception_line
 __all__ = ["CoupledVerdict", "assess_coupled"]
 
 
-@dataclass(frozen=True)
-class CoupledVerdict:
+@dataclass(frozen=True, slots=True)
+class CoupledVerdict(VerdictLines):
     """The gate's answer for a group of coupled axes at their designs' force gains.
 
     ``max_scale``: the largest s with every scale of (0, s) stable (inf: unbounded);
@@ -98,31 +98,12 @@ class CoupledVerdict:
                  "bandwidths or the coupling")
         return f"{lower} (dobhil analyze CONFIG shows the coupled loop), or --allow-unstable for an experiment"
 
-    def refusal(self) -> str:
-        return f"refused: {self.loop_text()}; {self.advice()}"
-
-    def override_text(self) -> str:
-        return f"stability gate overridden (--allow-unstable): {self.loop_text()}; the run goes on"
-
     def low_margins(self) -> list[str]:
         gm = self.gain_margin_db
         if not self.stable or gm is None or gm >= self.min_gain_margin_db:
             return []
         return [f"gain margin {gm:.3g} dB (every C_f scaled together) < analysis.min_gain_margin = "
                 f"{self.min_gain_margin_db:g} dB"]
-
-    def warning(self) -> str | None:
-        low = self.low_margins()
-        if not low:
-            return None
-        return f"low stability margin: {', '.join(low)}; {self.loop_text()}; the run goes on"
-
-    def note(self) -> str | None:
-        if self.status is GateStatus.NOT_APPLICABLE:
-            return f"stability gate not applied: {self.reason}"
-        if self.status is GateStatus.NOT_COMPUTED:
-            return f"stability gate not computed: {self.reason}"
-        return None
 
     def as_dict(self) -> dict[str, Any]:
         def num(x: float | None) -> float | None:

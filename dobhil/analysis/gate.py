@@ -73,8 +73,48 @@ class Assumptions:
                 f"{self.delay_source}; {env})")
 
 
+class VerdictLines:
+    """The lines every gate verdict speaks, from its ``status``, ``reason``, ``loop_text()``,
+    ``advice()`` and ``low_margins()``: one axis' (:class:`GateVerdict`) and a coupled
+    group's (:class:`dobhil.analysis.coupled_gate.CoupledVerdict`) alike."""
+
+    __slots__ = ()
+    status: GateStatus
+    reason: str
+
+    def loop_text(self) -> str:
+        raise NotImplementedError
+
+    def advice(self) -> str:
+        raise NotImplementedError
+
+    def low_margins(self) -> list[str]:
+        raise NotImplementedError
+
+    def refusal(self) -> str:
+        return f"refused: {self.loop_text()}; {self.advice()}"
+
+    def override_text(self) -> str:
+        return f"stability gate overridden (--allow-unstable): {self.loop_text()}; the run goes on"
+
+    def warning(self) -> str | None:
+        """One line when a margin is below its threshold (None: margins fine, or not stable)."""
+        low = self.low_margins()
+        if not low:
+            return None
+        return f"low stability margin: {', '.join(low)}; {self.loop_text()}; the run goes on"
+
+    def note(self) -> str | None:
+        """One line when the gate could not judge the design (None: it did)."""
+        if self.status is GateStatus.NOT_APPLICABLE:
+            return f"stability gate not applied: {self.reason}"
+        if self.status is GateStatus.NOT_COMPUTED:
+            return f"stability gate not computed: {self.reason}"
+        return None
+
+
 @dataclass(frozen=True, slots=True)
-class GateVerdict:
+class GateVerdict(VerdictLines):
     """The gate's answer for one design at its force gain C_f.
 
     ``max_stable_gain``: the largest k with every gain of (0, k) stable (inf: unbounded;
@@ -151,27 +191,6 @@ class GateVerdict:
                  "choose design.force_gain inside a stable interval" if self.stable_intervals else
                  "no force gain is stable: change the observers' bandwidths or the delay")
         return f"{lower} (dobhil analyze CONFIG shows the stable gains), or --allow-unstable for an experiment"
-
-    def refusal(self) -> str:
-        return f"refused: {self.loop_text()}; {self.advice()}"
-
-    def override_text(self) -> str:
-        return f"stability gate overridden (--allow-unstable): {self.loop_text()}; the run goes on"
-
-    def warning(self) -> str | None:
-        """One line when a margin is below its threshold (None: margins fine, or not stable)."""
-        low = self.low_margins()
-        if not low:
-            return None
-        return f"low stability margin: {', '.join(low)}; {self.loop_text()}; the run goes on"
-
-    def note(self) -> str | None:
-        """One line when the gate could not judge the design (None: it did)."""
-        if self.status is GateStatus.NOT_APPLICABLE:
-            return f"stability gate not applied: {self.reason}"
-        if self.status is GateStatus.NOT_COMPUTED:
-            return f"stability gate not computed: {self.reason}"
-        return None
 
     def as_dict(self) -> dict[str, Any]:
         """Plain values (JSON-ready: inf as None where unbounded) for a log or a report."""
