@@ -161,14 +161,20 @@ def test_a_real_time_coupled_run_is_logged_verified_and_reported_per_axis(
 
 
 def test_a_run_that_fails_before_its_loop_leaves_no_log(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    """Both axes on node 1: the session refuses the clash after the log was opened; the log
-    is aborted and removed (nothing half-written), one line, exit 2."""
+    """A clash is refused before the log is opened; a session that fails after it was opened
+    (a drive that cannot run feedback-timed, found when the session is built) leaves no file
+    either (the writer creates it only when the run begins); one line, exit 2 each, and the
+    same --log is free for the rerun."""
     path = tmp_path / "clash.mcap"
     assert _run(DEMO, path, "--set", "axes.right.drive.node_id=1") == 2
     err = capsys.readouterr().err
-    assert "axes 'left'" in err and "'right'" in err and len(err.strip().splitlines()) == 1
+    assert "axes left" in err and "right" in err and "both use CAN id" in err, err
+    assert len(err.strip().splitlines()) == 1 and not path.exists()
+    assert _run(DEMO, path, "--set", "loop.timing=feedback", "--set", "axes.right.drive.profile=ak80-9") == 2
+    err = capsys.readouterr().err
+    assert "has no feedback_period" in err and len(err.strip().splitlines()) == 1, err
     assert not path.exists()
-    assert _run(DEMO, path) == 0   # the same --log is free for the rerun
+    assert _run(DEMO, path) == 0
 
 
 @pytest.fixture(scope="module")
