@@ -41,8 +41,8 @@ from typing import Any
 import numpy as np
 import pytest
 
-from .guest import (CONFIGS, DEMOS, REPO, START_TIMEOUT, Dobhil, Dumped, Proc, guest_overlay, read_candump,
-                    summary_json)
+from .guest import (CONFIGS, DEMOS, REPO, REPORT_TIMEOUT, START_TIMEOUT, Dobhil, Dumped, Proc, guest_overlay,
+                    read_candump, summary_json)
 
 
 def _figures() -> ModuleType:
@@ -161,7 +161,7 @@ def stopped_run(module_vcan: str, tmp_path_factory: pytest.TempPathFactory) -> I
             exited = time.time()
             wait_until("node heartbeats after the run", lambda: node_heartbeats_after(dump, exited) >= LIVE_HEARTBEATS)
             emulator.stop()
-        out = runner.run("report", ["report", str(log), "--out", str(work / "report")])
+        out = runner.run("report", ["report", str(log), "--out", str(work / "report")], timeout=REPORT_TIMEOUT)
         assert out.returncode == 0, out.text()
         yield StoppedRun(module_vcan, read_candump(dump), stopped, state, exited, summary_json(run), run.text(), log,
                          json.loads((work / "report" / "summary.json").read_text()))
