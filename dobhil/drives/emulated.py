@@ -46,14 +46,13 @@ from can.broadcastmanager import (LimitedDurationCyclicSendTaskABC, ModifiableCy
 
 from dobhil.drives.clocked import ClockedBus
 from dobhil.drives.profile import DriveProfile
+from dobhil.drives.ticks import TickReader, run_ticks
 from dobhil.errors import BusError, exception_line
 from dobhil.realtime import lower_priority
 
 __all__ = ["EmulatedDrive", "LockstepBus", "LockstepPeriodicTask", "PlantLike", "private_virtual_channel"]
 
 _EPS = 1e-9
-_MAX_LAG_PERIODS = 10  # real time: ticks later than this are skipped, not replayed
-_MAX_BATCH = 64  # real time: frames read together at most (a flood must not stall the ticks)
 #: [s] real-time tick of an emulated drive whose protocol streams no feedback of its own
 DEFAULT_TICK = 1e-3
 
@@ -140,15 +139,11 @@ class EmulatedDrive(ABC):
         self.frames_sent = 0
         self.send_errors = 0
         self.overruns = 0
-        #: real time: the smallest (wall clock - bus stamp) seen, the offset of a bus whose
-        #: stamps run on another clock (a hub on another machine); see _arrived_by
-        self._least_lag = math.inf
         #: real time: the frames already queued behind the one being handled, read with it
         #: (empty in lockstep): a protocol may skip work a newer frame supersedes
         self._queued_after: Sequence[can.Message] = ()
-        #: real time: a frame read after a deadline the thread reached late, that arrived after
-        #: that deadline too: the next tick's (a read frame cannot go back to the socket)
-        self._next_tick: can.Message | None = None
+        #: real time: the bus read into ticks (dobhil.drives.ticks)
+        self._ticks = TickReader(bus, self._stop_event.is_set)
 
     # -- observables ----------------------------------------------------------
 
@@ -397,86 +392,19 @@ class EmulatedDrive(ABC):
         ``at_tick_start()`` before each tick reads the bus: a bus that sends periodic
         frames itself delivers them then (:meth:`deliver`)."""
         period = self.tick_period
-        start = time.perf_counter()
-        tick = 1
-        while not self._stop_event.is_set():
-            tick_start = start + (tick - 1) * period
-            deadline = start + tick * period
+
+        def tick(tick_start: float, deadline: float) -> None:
             if at_tick_start is not None:
                 at_tick_start()
-            self._receive_until(deadline, tick_start)
+            self._ticks.receive_until(deadline, tick_start, self._take)
             self._advance_held(period)
             if on_tick is not None:
                 on_tick(deadline, time.perf_counter() - deadline)
-            tick += 1
-            lag = time.perf_counter() - (start + tick * period)
-            if lag > _MAX_LAG_PERIODS * period:
-                skipped = int(lag / period)
-                tick += skipped
-                self.overruns += skipped
 
-    def _receive_until(self, deadline: float, tick_start: float) -> None:
-        """Apply the frames that arrive before ``deadline`` (``time.perf_counter``), each as
-        it is read; at the deadline, those that arrived before it but were not read yet
-        (:meth:`_arrived_by`)."""
-        held, self._next_tick = self._next_tick, None
-        if held is not None:
-            self._take([held], tick_start, deadline)
-        while not self._stop_event.is_set():
-            remaining = deadline - time.perf_counter()
-            if remaining <= 0:
-                self._take(self._arrived_by(deadline), tick_start, deadline)
-                return
-            self._take(self._read_batch(remaining), tick_start, deadline)
+        def skipped(count: int) -> None:
+            self.overruns += count
 
-    def _arrived_by(self, deadline: float) -> list[can.Message]:
-        """The frames already queued at ``deadline`` that the bus stamped before it: a drive
-        applies whatever reached it before its control tick. Why: a thread that wakes late (a
-        loaded machine; software emulation) finds the deadline passed, and would otherwise
-        leave a command that came in time to a later tick -- a sample of delay the sampled
-        model does not have (measured in the kernel guest: 5 in 500 ticks of a 10 ms run).
-        The first frame stamped after the deadline, or with no stamp, waits for the next tick.
-        Stamps are the bus's receive times on the wall clock (SocketCAN's kernel stamps,
-        python-can's ``virtual``), shifted by the smallest lag seen (``_least_lag``) when
-        a bus stamps on another clock."""
-        cutoff = time.time() - (time.perf_counter() - deadline)
-        if math.isfinite(self._least_lag):
-            cutoff -= self._least_lag
-        batch: list[can.Message] = []
-        while len(batch) < _MAX_BATCH and not self._stop_event.is_set():
-            msg = self._read(0.0)
-            if msg is None:
-                break
-            if not (msg.timestamp and msg.timestamp <= cutoff):
-                self._next_tick = msg
-                break
-            batch.append(msg)
-        return batch
-
-    def _read_batch(self, timeout: float) -> list[can.Message]:
-        """The next frame (waiting up to ``timeout`` s) and every frame already queued
-        behind it, at most :data:`_MAX_BATCH`: what came while the drive was busy is handled
-        together, newest last, so a protocol can skip what a newer frame supersedes."""
-        batch: list[can.Message] = []
-        wait = timeout
-        while len(batch) < _MAX_BATCH:
-            try:
-                msg = self._read(wait)
-            except BusError:
-                if not batch:
-                    raise
-                break   # the frames read so far first; the next read raises again
-            if msg is None:
-                break
-            batch.append(msg)
-            wait = 0.0
-        return batch
-
-    def _read(self, timeout: float) -> can.Message | None:
-        try:
-            return self._bus.recv(timeout)
-        except Exception as exc:  # the bus is gone: the thread ends, stop() raises this
-            raise BusError(f"{self._bus.channel_info}: read failed: {exception_line(exc)}") from exc
+        run_ticks(period, self._stop_event.is_set, tick, skipped)
 
     def _take(self, batch: list[can.Message], tick_start: float, deadline: float) -> None:
         """Receive ``batch`` at the emulator time of now, within this tick, each frame knowing
@@ -484,10 +412,7 @@ class EmulatedDrive(ABC):
         if not batch:
             return
         now = self._time + min(max(0.0, time.perf_counter() - tick_start), deadline - tick_start)
-        wall = time.time()
         for i, msg in enumerate(batch):
-            if msg.timestamp:
-                self._least_lag = min(self._least_lag, wall - msg.timestamp)
             self._queued_after = batch[i + 1:]
             try:
                 self._receive(msg, now)

@@ -25,7 +25,6 @@ The shared bus is borrowed: the caller shuts it.
 
 from __future__ import annotations
 
-import math
 import threading
 import time
 from collections import deque
@@ -34,8 +33,8 @@ from typing import Any
 
 import can
 
-from dobhil.drives.emulated import _MAX_BATCH, _MAX_LAG_PERIODS, EmulatedDrive, tick_period
-from dobhil.errors import BusError, exception_line
+from dobhil.drives.emulated import EmulatedDrive, tick_period
+from dobhil.drives.ticks import TickReader, run_ticks
 from dobhil.realtime import lower_priority
 
 __all__ = ["EmulatedNodes", "NodeTap"]
@@ -81,9 +80,8 @@ class EmulatedNodes:
         self._taps: list[NodeTap] = []
         self.drives: tuple[EmulatedDrive, ...] = ()
         self._crosstalk = False   # a node sent a frame the others have not read yet
-        self._next_tick: can.Message | None = None
-        self._least_lag = math.inf
         self._stopped = False
+        self._ticks = TickReader(bus, lambda: self._stopped)   # one reader for every node
         self._thread: threading.Thread | None = None
         self._error: BaseException | None = None
         self.overruns = 0
@@ -176,27 +174,23 @@ class EmulatedNodes:
         """The ticks, until :meth:`stop` or the bus raises (BusError); ``on_tick`` and
         ``at_tick_start`` as for :meth:`EmulatedDrive.run_realtime`."""
         period = self.tick_period
-        start = time.perf_counter()
-        tick = 1
-        while not self._stopped:
-            tick_start = start + (tick - 1) * period
-            deadline = start + tick * period
+
+        def tick(tick_start: float, deadline: float) -> None:
             if at_tick_start is not None:
                 at_tick_start()
-            self._receive_until(deadline, tick_start)
+            self._ticks.receive_until(deadline, tick_start, self._take)
             for drive in self.drives:
                 drive._advance_held(period)
             self._flush_crosstalk()
             if on_tick is not None:
                 on_tick(deadline, time.perf_counter() - deadline)
-            tick += 1
-            lag = time.perf_counter() - (start + tick * period)
-            if lag > _MAX_LAG_PERIODS * period:
-                skipped = int(lag / period)
-                tick += skipped
-                self.overruns += skipped
-                for drive in self.drives:
-                    drive.overruns += skipped
+
+        def skipped(count: int) -> None:
+            self.overruns += count
+            for drive in self.drives:
+                drive.overruns += count
+
+        run_ticks(period, lambda: self._stopped, tick, skipped)
 
     def _sent(self, tap: NodeTap, msg: can.Message) -> None:
         for other in self._taps:
@@ -212,66 +206,11 @@ class EmulatedNodes:
                 drive.handle_pending()
 
     def _take(self, batch: list[can.Message], tick_start: float, deadline: float) -> None:
-        if not batch:
-            return
-        wall = time.time()
-        for msg in batch:
-            if msg.timestamp:
-                self._least_lag = min(self._least_lag, wall - msg.timestamp)
+        """Every node takes the batch (its protocol's filter keeps what is addressed to it),
+        then reads what the others answered."""
         for drive in self.drives:
             drive._take(batch, tick_start, deadline)
         self._flush_crosstalk()
-
-    def _receive_until(self, deadline: float, tick_start: float) -> None:
-        """:meth:`EmulatedDrive._receive_until` for every node, one reader."""
-        held, self._next_tick = self._next_tick, None
-        if held is not None:
-            self._take([held], tick_start, deadline)
-        while not self._stopped:
-            remaining = deadline - time.perf_counter()
-            if remaining <= 0:
-                self._take(self._arrived_by(deadline), tick_start, deadline)
-                return
-            self._take(self._read_batch(remaining), tick_start, deadline)
-
-    def _arrived_by(self, deadline: float) -> list[can.Message]:
-        """:meth:`EmulatedDrive._arrived_by`: the frames queued at ``deadline`` that the bus
-        stamped before it (the first one after it waits for the next tick)."""
-        cutoff = time.time() - (time.perf_counter() - deadline)
-        if math.isfinite(self._least_lag):
-            cutoff -= self._least_lag
-        batch: list[can.Message] = []
-        while len(batch) < _MAX_BATCH:
-            msg = self._read(0.0)
-            if msg is None:
-                break
-            if not (msg.timestamp and msg.timestamp <= cutoff):
-                self._next_tick = msg
-                break
-            batch.append(msg)
-        return batch
-
-    def _read_batch(self, timeout: float) -> list[can.Message]:
-        batch: list[can.Message] = []
-        wait = timeout
-        while len(batch) < _MAX_BATCH:
-            try:
-                msg = self._read(wait)
-            except BusError:
-                if not batch:
-                    raise
-                break
-            if msg is None:
-                break
-            batch.append(msg)
-            wait = 0.0
-        return batch
-
-    def _read(self, timeout: float) -> can.Message | None:
-        try:
-            return self._bus.recv(timeout)
-        except Exception as exc:  # the bus is gone: the run ends with this
-            raise BusError(f"{self._bus.channel_info}: read failed: {exception_line(exc)}") from exc
 
     def counters(self) -> dict[str, Any]:
         """Frame counters summed over the nodes (``dobhil emulate``'s last line)."""
