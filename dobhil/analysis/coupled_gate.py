@@ -28,10 +28,10 @@ from typing import Any
 import numpy as np
 
 from dobhil.analysis.coupled import AxisDesign, GainScales, coupled_loop, stable_scales
-from dobhil.analysis.gate import NOT_MODELLED, GateStatus, VerdictLines, gain_margin_db
+from dobhil.analysis.gate import NOT_MODELLED, GateStatus, VerdictLines, gain_margin_db, judged_or_not_computed
 from dobhil.analysis.stability import is_stable
 from dobhil.config.axes import Coupling
-from dobhil.errors import AnalysisError, DobhilError, exception_line
+from dobhil.errors import AnalysisError
 
 __all__ = ["CoupledVerdict", "assess_coupled"]
 
@@ -129,16 +129,7 @@ def assess_coupled(designs: Sequence[AxisDesign], couplings: Sequence[Coupling])
         return replace(base, reason=f"axis {', '.join(torque)}: loop.mode = torque (no force loop closes)")
     if not any(base.force_gains):
         return replace(base, reason="design.force_gain = 0 on every coupled axis (no force feedback closes a loop)")
-    try:
-        with np.errstate(all="ignore"):
-            return _judged(base, designs, couplings)
-    except AnalysisError as exc:
-        return replace(base, status=GateStatus.NOT_COMPUTED, reason=str(exc))
-    except DobhilError:
-        raise
-    except (np.linalg.LinAlgError, ValueError, ZeroDivisionError, OverflowError) as exc:
-        return replace(base, status=GateStatus.NOT_COMPUTED,
-                       reason=f"the analysis cannot answer this design ({exception_line(exc, named=False)[:120]})")
+    return judged_or_not_computed(base, lambda: _judged(base, designs, couplings))
 
 
 def _delay(design: AxisDesign) -> str:

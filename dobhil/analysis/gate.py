@@ -23,7 +23,8 @@ from __future__ import annotations
 import math
 from dataclasses import asdict, dataclass, replace
 from enum import IntEnum
-from typing import Any
+from collections.abc import Callable
+from typing import Any, TypeVar
 
 import numpy as np
 
@@ -34,6 +35,9 @@ from dobhil.drives.timing import effective_config
 from dobhil.errors import AnalysisError, DobhilError, exception_line
 from dobhil.synthesis.loop import loop
 from dobhil.synthesis.params import params_from_config
+
+#: a verdict dataclass (GateVerdict, or another gate's)
+V = TypeVar("V")
 
 #: what the linear loop of the analysis does not contain (said with every verdict)
 NOT_MODELLED = "quantisation, torque saturation, Coulomb friction, loss of contact"
@@ -220,16 +224,24 @@ def assess(config: Config, profile: DriveProfile | None = None, *, sampled: bool
     reason = not_applicable(design)
     if reason:
         return _with(base, reason=reason)
+    return judged_or_not_computed(base, lambda: _judged(base, design, sampled))
+
+
+def judged_or_not_computed(base: V, judge: Callable[[], V]) -> V:
+    """``judge()``'s verdict, or ``base`` (a frozen verdict dataclass with ``status`` and
+    ``reason``) NOT_COMPUTED with the reason the analysis could not answer; numpy's
+    warnings silenced (a design at the edge of stability gives infinities on the way);
+    a DobhilError (bad input) is raised."""
     try:
         with np.errstate(all="ignore"):
-            return _judged(base, design, sampled)
+            return judge()
     except AnalysisError as exc:
-        return _with(base, status=GateStatus.NOT_COMPUTED, reason=str(exc))
+        return replace(base, status=GateStatus.NOT_COMPUTED, reason=str(exc))  # type: ignore[type-var]
     except DobhilError:
         raise
     except (np.linalg.LinAlgError, ValueError, ZeroDivisionError, OverflowError) as exc:
-        return _with(base, status=GateStatus.NOT_COMPUTED,
-                     reason=f"the analysis cannot answer this design ({exception_line(exc, named=False)[:120]})")
+        return replace(base, status=GateStatus.NOT_COMPUTED,  # type: ignore[type-var]
+                       reason=f"the analysis cannot answer this design ({exception_line(exc, named=False)[:120]})")
 
 
 def not_applicable(config: Config) -> str:
@@ -285,4 +297,5 @@ def gain_margin_db(force_gain: float, intervals: tuple[tuple[float, float], ...]
     return None
 
 
-__all__ = ["Assumptions", "GateStatus", "GateVerdict", "assess", "gain_margin_db", "not_applicable"]
+__all__ = ["Assumptions", "GateStatus", "GateVerdict", "assess", "gain_margin_db", "judged_or_not_computed",
+           "not_applicable"]

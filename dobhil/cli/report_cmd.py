@@ -14,6 +14,7 @@ import argparse
 import json
 import sys
 from pathlib import Path
+from typing import Any
 
 _FIGURES = ("force", "tracking_error", "position", "commands", "loop_timing")
 
@@ -41,7 +42,6 @@ def _check_out_dir(out: Path, source: str, axes: tuple[str, ...] = ()) -> None:
 def run(args: argparse.Namespace) -> int:
     from dobhil.cli.progress import progress
     from dobhil.run_report import report, summary_text
-    from dobhil.files import atomic_path, shown
     from dobhil.plotting.report_figures import report_figures
     from dobhil.recording.axes import is_axes_log, layout
     from dobhil.recording.reader import open_log
@@ -55,23 +55,12 @@ def run(args: argparse.Namespace) -> int:
         data, summary, predicted = report(args.file, progress=bar.update)
     args.out.mkdir(parents=True, exist_ok=True)
     files = report_figures(data, predicted, summary, args.out)
-    text = shown(summary_text(summary))  # a file name that is not UTF-8 is shown escaped (\xff)
-    for name, body in (("summary.json", json.dumps(summary, indent=2) + "\n"), ("summary.txt", text)):
-        with atomic_path(args.out / name) as tmp:
-            tmp.write_text(body, encoding="utf-8")
-        files.append(args.out / name)
-    if args.json:
-        print(json.dumps(summary))
-    else:
-        sys.stdout.write(text)
-        print(shown(f"wrote {len(files)} files to {args.out}"))
-    return 0
+    return _write_summary(args, summary, summary_text(summary), files)
 
 
 def _run_axes(args: argparse.Namespace, total: int) -> int:
     """A several-axis log: each axis' figures in ``DIR/<axis>/``, one summary of all."""
     from dobhil.cli.progress import progress
-    from dobhil.files import atomic_path, shown
     from dobhil.plotting.report_figures import report_figures
     from dobhil.run_report import axes_summary_text, report_axes
     with progress("report", total=total, unit="message", quiet=args.json) as bar:
@@ -80,7 +69,14 @@ def _run_axes(args: argparse.Namespace, total: int) -> int:
     for name, (data, axis_summary, predicted) in per.items():
         (args.out / name).mkdir(parents=True, exist_ok=True)
         files += report_figures(data, predicted, axis_summary, args.out / name)
-    text = shown(axes_summary_text(summary))
+    return _write_summary(args, summary, axes_summary_text(summary), files)
+
+
+def _write_summary(args: argparse.Namespace, summary: dict[str, Any], text: str, files: list[Path]) -> int:
+    """summary.json and summary.txt in ``--out`` (each renamed when complete), then the
+    summary on stdout (its JSON with --json) and the count of ``files`` written."""
+    from dobhil.files import atomic_path, shown
+    text = shown(text)  # a file name that is not UTF-8 is shown escaped (\xff)
     for name, body in (("summary.json", json.dumps(summary, indent=2) + "\n"), ("summary.txt", text)):
         with atomic_path(args.out / name) as tmp:
             tmp.write_text(body, encoding="utf-8")

@@ -6,6 +6,7 @@ import argparse
 import json
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -241,11 +242,8 @@ def emulate(args: argparse.Namespace) -> int:
     from dobhil.drives.load import load_drive_profile
     from dobhil.emulator.plant import Plant
     from dobhil.drives.registry import make_emulated_drive
-    from dobhil.realtime import EMULATOR_PRIORITY_DROP
     from dobhil.runtime.buses import BusSpec, open_bus
-    from dobhil.runtime.loop import StopRequest
     from dobhil.runtime.session import check_duration
-    from dobhil.runtime.signals import stop_on_signals
     check_duration(args.duration)
     from dobhil.config.axes import has_axes
     if has_axes(args.config):
@@ -261,23 +259,34 @@ def emulate(args: argparse.Namespace) -> int:
     emulator = make_emulated_drive(bus, profile, Plant.from_config(config),
                                    latency=config.drive.latency, jitter=config.drive.jitter,
                                    seed=config.sensor.seed)
+    hello = (f"emulating {profile.protocol} node {profile.node_id} (firmware {profile.firmware}) "
+             f"on {spec.describe()}")
+    return _serve(emulator, bus, spec.describe(), hello, args.duration, lambda: emulator_counts(emulator))
+
+
+def _serve(emulator: Any, bus: Any, where: str, hello: str, duration: float | None,
+           counts: Callable[[], str]) -> int:
+    """Run ``emulator`` (a drive, or the nodes of one bus) on its thread until Ctrl-C,
+    ``duration`` s or its bus fails; then stop it, shut ``bus`` down and print its counts
+    (exit EXIT_STOPPED, on stderr, when the bus was lost)."""
+    from dobhil.realtime import EMULATOR_PRIORITY_DROP
+    from dobhil.runtime.loop import StopRequest
+    from dobhil.runtime.signals import stop_on_signals
     with stop_on_signals(StopRequest()) as request:
         emulator.start(priority_drop=EMULATOR_PRIORITY_DROP)   # prepared: it answers at once
-        print(f"emulating {profile.protocol} node {profile.node_id} (firmware {profile.firmware}) "
-              f"on {spec.describe()}; Ctrl-C to stop", flush=True)
+        print(f"{hello}; Ctrl-C to stop", flush=True)
         try:
-            end = time.monotonic() + (args.duration or float("inf"))
+            end = time.monotonic() + (duration or float("inf"))
             # the thread ends by itself when its bus fails (a hub stopped, an interface gone)
             while not request.is_set() and time.monotonic() < end and emulator.alive:
                 time.sleep(0.05)
         finally:
             lost, problem = stop_emulator(emulator, bus)
-    counts = emulator_counts(emulator)
     if lost:
         sys.stdout.flush()
-        sys.stderr.write(f"dobhil emulate: stopped: bus {spec.describe()} lost ({lost}); {counts}\n")
+        sys.stderr.write(f"dobhil emulate: stopped: bus {where} lost ({lost}); {counts()}\n")
         return EXIT_STOPPED
-    print(f"emulator stopped: {counts}", flush=True)
+    print(f"emulator stopped: {counts()}", flush=True)
     if problem:
         sys.stderr.write(f"dobhil emulate: warning: bus shutdown failed: {problem}\n")
     return 0
@@ -293,10 +302,7 @@ def emulate_axes(args: argparse.Namespace) -> int:
     from dobhil.emulator.axes_nodes import hosted_axes, node_specs
     from dobhil.emulator.coupling import couple_plants
     from dobhil.emulator.plant import Plant
-    from dobhil.realtime import EMULATOR_PRIORITY_DROP
     from dobhil.runtime.buses import BusSpec, open_bus
-    from dobhil.runtime.loop import StopRequest
-    from dobhil.runtime.signals import stop_on_signals
     axes = load_axes(args.config, args.overrides, args.set_files)
     hosted = hosted_axes(axes, args.emulate_axes, how="--axis NAME (one dobhil emulate per bus)")
     specs, couplings = node_specs(axes, hosted, resolve_config(args.config).parent)
@@ -306,26 +312,11 @@ def emulate_axes(args: argparse.Namespace) -> int:
     nodes = EmulatedNodes(bus)
     nodes.attach([make_emulated_drive(nodes.tap(), s.profile, plants[s.name], latency=s.latency,
                                       jitter=s.jitter, seed=s.seed) for s in specs])
-    with stop_on_signals(StopRequest()) as request:
-        nodes.start(priority_drop=EMULATOR_PRIORITY_DROP)   # prepared: they answer at once
-        hosted_text = ", ".join(f"{s.profile.protocol} node {s.profile.node_id} ({s.name})" for s in specs)
-        coupled = "".join(f"; coupled {c.a}-{c.b}" for c in couplings)
-        print(f"emulating {hosted_text} on {spec.describe()}{coupled}; Ctrl-C to stop", flush=True)
-        try:
-            end = time.monotonic() + (args.duration or float("inf"))
-            while not request.is_set() and time.monotonic() < end and nodes.alive:
-                time.sleep(0.05)
-        finally:
-            lost, problem = stop_emulator(nodes, bus)
-    counts = "; ".join(f"{s.name}: {emulator_counts(d)}" for s, d in zip(specs, nodes.drives))
-    if lost:
-        sys.stdout.flush()
-        sys.stderr.write(f"dobhil emulate: stopped: bus {spec.describe()} lost ({lost}); {counts}\n")
-        return EXIT_STOPPED
-    print(f"emulator stopped: {counts}", flush=True)
-    if problem:
-        sys.stderr.write(f"dobhil emulate: warning: bus shutdown failed: {problem}\n")
-    return 0
+    hosted_text = ", ".join(f"{s.profile.protocol} node {s.profile.node_id} ({s.name})" for s in specs)
+    coupled = "".join(f"; coupled {c.a}-{c.b}" for c in couplings)
+    return _serve(nodes, bus, spec.describe(), f"emulating {hosted_text} on {spec.describe()}{coupled}",
+                  args.duration,
+                  lambda: "; ".join(f"{s.name}: {emulator_counts(d)}" for s, d in zip(specs, nodes.drives)))
 
 
 def emulator_counts(emulator: Any) -> str:

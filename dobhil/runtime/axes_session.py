@@ -41,11 +41,11 @@ from dobhil.emulator.process import EmulatorProcess, EmulatorSpec
 from dobhil.errors import ConfigError
 from dobhil.realtime import EMULATOR_PRIORITY_DROP
 from dobhil.runtime.axes_loop import AxesLoop, AxesResult, AxisParts
-from dobhil.runtime.buses import BusSpec, open_bus, resolve_bus, shutdown_bus
+from dobhil.runtime.buses import BusSpec, open_bus, resolve_bus
 from dobhil.runtime.loop import CycleSink, LoopSettings, StopRequest, Timing
 from dobhil.runtime.references import make_reference
-from dobhil.runtime.session import (build_controller, check_duration, check_feedback_streams, check_rates,
-                                    lockstep_latency, loop_settings, resolve_timing)
+from dobhil.runtime.session import (build_controller, check_duration, check_feedback_streams, check_rates, final_values,
+                                    lockstep_latency, loop_settings, resolve_timing, stop_and_shut)
 from dobhil.runtime.shared_bus import SharedBus
 
 __all__ = ["AxesSession", "BusGroup", "BusWrapper", "axes_summary"]
@@ -302,22 +302,10 @@ class AxesSession:
 
     def close(self) -> None:
         """Stop the emulators, the shared periodic tasks, and shut every bus down."""
-        errors: list[BaseException] = []
         for shared in self._shared:
             shared.shutdown()
         self._shared.clear()
-        for emulator in self.emulators:
-            try:
-                emulator.stop()
-            except BaseException as exc:
-                errors.append(exc)
-        for bus in reversed(self._buses):
-            problem = shutdown_bus(bus)
-            if problem:
-                self.shutdown_problems.append(f"{bus.channel_info}: {problem}")
-        self._buses.clear()
-        if errors:
-            raise errors[0]
+        stop_and_shut(list(self.emulators), self._buses, self.shutdown_problems)
 
     def __enter__(self) -> AxesSession:
         return self
@@ -331,12 +319,7 @@ def axes_summary(session: AxesSession, result: AxesResult) -> dict[str, Any]:
     timing, and per axis what a single-axis summary says of its drive and its final values."""
     per_axis: dict[str, Any] = {}
     for name, part in result.axes.items():
-        tr, report = part.trace, part.safe_stop
-        final: dict[str, float | None] = {"tau_ref": None, "tau_int_hat": None, "tau_int_true": None, "q": None}
-        if tr.last >= 0:
-            true = tr.latest("tau_int_true")
-            final = {"tau_ref": tr.latest("tau_ref"), "tau_int_hat": tr.latest("tau_int_hat"),
-                     "tau_int_true": None if true != true else true, "q": tr.latest("q")}
+        report, final = part.safe_stop, final_values(part.trace)
         profile = session.profiles[name]
         per_axis[name] = {
             "protocol": profile.protocol, "node_id": profile.node_id,

@@ -309,19 +309,7 @@ class RunSession:
         """Stop the emulator (its thread or process) and shut every bus down (never raises
         twice). A bus that fails to shut down (its link already gone) is noted in
         ``shutdown_problems``, not raised: how the run ended must still be told."""
-        errors: list[BaseException] = []
-        if self.emulator is not None:
-            try:
-                self.emulator.stop()
-            except BaseException as exc:
-                errors.append(exc)
-        for bus in reversed(self._buses):
-            problem = shutdown_bus(bus)
-            if problem:
-                self.shutdown_problems.append(f"{bus.channel_info}: {problem}")
-        self._buses.clear()
-        if errors:
-            raise errors[0]
+        stop_and_shut([self.emulator] if self.emulator is not None else [], self._buses, self.shutdown_problems)
 
     def __enter__(self) -> RunSession:
         return self
@@ -330,15 +318,39 @@ class RunSession:
         self.close()
 
 
+def stop_and_shut(emulators: list[Any], buses: list[can.BusABC], problems: list[str]) -> None:
+    """A session's end: stop ``emulators`` (their threads or processes), then shut ``buses``
+    down, the last opened first (the list emptied). A bus that fails to shut down (its link
+    already gone) is noted in ``problems``, not raised: how the run ended must still be told;
+    the first emulator's error is raised once every bus is shut."""
+    errors: list[BaseException] = []
+    for emulator in emulators:
+        try:
+            emulator.stop()
+        except BaseException as exc:
+            errors.append(exc)
+    for bus in reversed(buses):
+        problem = shutdown_bus(bus)
+        if problem:
+            problems.append(f"{bus.channel_info}: {problem}")
+    buses.clear()
+    if errors:
+        raise errors[0]
+
+
+def final_values(tr: Any) -> dict[str, float | None]:
+    """The last cycle's ``tau_ref``, ``tau_int_hat``, true ``tau_int`` and ``q`` of a run's
+    trace (None before the first cycle; the true value None where no emulator knows it)."""
+    if tr.last < 0:
+        return {"tau_ref": None, "tau_int_hat": None, "tau_int_true": None, "q": None}
+    true = tr.latest("tau_int_true")
+    return {"tau_ref": tr.latest("tau_ref"), "tau_int_hat": tr.latest("tau_int_hat"),
+            "tau_int_true": None if true != true else true, "q": tr.latest("q")}
+
+
 def summary(session: RunSession, result: RunResult) -> dict[str, Any]:
     """The ``--summary-json`` object."""
-    tr = result.trace
-    final: dict[str, float | None] = {"tau_ref": None, "tau_int_hat": None, "tau_int_true": None,
-                                      "q": None}
-    if tr.last >= 0:
-        true = tr.latest("tau_int_true")
-        final = {"tau_ref": tr.latest("tau_ref"), "tau_int_hat": tr.latest("tau_int_hat"),
-                 "tau_int_true": None if true != true else true, "q": tr.latest("q")}
+    final = final_values(result.trace)
     report = result.safe_stop
     return {
         "cycles": result.cycles, "skipped": result.skipped, "overruns": result.overruns,
