@@ -9,15 +9,12 @@ depend on timing)."""
 
 from __future__ import annotations
 
-import dataclasses
-import itertools
 import json
 import shlex
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-import can
 import pytest
 import yaml
 
@@ -27,12 +24,10 @@ from dobhil.campaign.runner import run_one
 from dobhil.cli.main import main
 from dobhil.config import load_config
 from dobhil.config.axes import load_axes
-from dobhil.drives import load_profile
 from dobhil.drives.odrive.codec import AxisState
 from dobhil.drives.odrive.emulator import EmulatedODrive
-from dobhil.emulator.plant import Plant
+from odrive_nodes import odrive_nodes
 
-_CHANNELS = itertools.count()
 #: a bus that cannot be opened: a refusal that names something else was made before opening it
 NO_BUS = "socketcan:dobhil-no-such-interface"
 SLACK = "loop.feedback_timeout=0.05"   # the emulator threads' pauses on a loaded machine
@@ -118,18 +113,8 @@ def test_check_set_zero_on_axes_needs_an_axis(tmp_path: Path, capsys: pytest.Cap
 @pytest.fixture
 def odrives() -> Iterator[tuple[str, list[EmulatedODrive]]]:
     """Emulated ODrives at nodes 1, 2 and 3 on one fresh virtual channel."""
-    channel = f"axes-check-{next(_CHANNELS)}"
-    emus = []
-    for node in (1, 2, 3):
-        profile = dataclasses.replace(load_profile("odrive-0.6"), bus={}, node_id=node)
-        emus.append(EmulatedODrive(can.Bus(interface="virtual", channel=channel), profile,
-                                   Plant.from_config(load_config("demo"))))
-        emus[-1].start()
-    try:
-        yield channel, emus
-    finally:
-        for emu in emus:
-            emu.close()
+    with odrive_nodes("axes-check", (1, 2, 3)) as nodes:
+        yield nodes
 
 
 def test_check_measures_every_axis_and_says_the_bus_budget(tmp_path: Path, odrives: tuple[str, list[EmulatedODrive]],

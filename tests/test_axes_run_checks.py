@@ -6,27 +6,21 @@ on a private ``virtual`` channel; they assert only what a loaded machine cannot 
 
 from __future__ import annotations
 
-import dataclasses
-import itertools
 import json
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-import can
 import pytest
 import yaml
 
 from dobhil.cli.main import main
-from dobhil.config import load_config
 from dobhil.config.axes import load_axes
-from dobhil.drives import load_profile
 from dobhil.drives.axes import axis_drives, bus_budgets
 from dobhil.drives.odrive.codec import AxisState
 from dobhil.drives.odrive.emulator import EmulatedODrive
-from dobhil.emulator.plant import Plant
+from odrive_nodes import odrive_nodes
 
-_CHANNELS = itertools.count()
 SLACK = "loop.feedback_timeout=0.05"   # the emulator threads' pauses on a loaded machine
 HOST = "loop.timing=host"              # a real bus runs in real time
 
@@ -102,18 +96,8 @@ def test_analyze_says_each_bus_budget(tmp_path: Path, nodes: tuple[int, ...], ov
 @pytest.fixture
 def odrives() -> Iterator[tuple[str, list[EmulatedODrive]]]:
     """Emulated ODrives at nodes 1 and 2 on one fresh virtual channel."""
-    channel = f"axes-run-{next(_CHANNELS)}"
-    emus = []
-    for node in (1, 2):
-        profile = dataclasses.replace(load_profile("odrive-0.6"), bus={}, node_id=node)
-        emus.append(EmulatedODrive(can.Bus(interface="virtual", channel=channel), profile,
-                                   Plant.from_config(load_config("demo"))))
-        emus[-1].start()
-    try:
-        yield channel, emus
-    finally:
-        for emu in emus:
-            emu.close()
+    with odrive_nodes("axes-run", (1, 2)) as nodes:
+        yield nodes
 
 
 def test_a_refusing_preflight_of_one_axis_enables_nothing(tmp_path: Path, odrives: tuple[str, list[EmulatedODrive]],

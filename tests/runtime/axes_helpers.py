@@ -21,6 +21,21 @@ DEMOS: dict[str, tuple[str, tuple[int, int]]] = {
     "mit": ("mit-demo.yaml", (1, 2)),
     "moteus": ("moteus-demo.yaml", (1, 2)),
 }
+BOUND = 20.0   # s: how long a loaded machine may take, not a measurement
+#: two coupled ODrive axes on one bus (``%s``: more keys of the right axis' drive section,
+#: e.g. ``", channel: other"``), for the emulators that host several nodes
+TWO_AXES = """\
+loop: {period: 0.001, duration: 0.5}
+axes:
+  - name: left
+    drive: {profile: odrive-0.6, node_id: 1}
+  - name: right
+    drive: {profile: odrive-0.6, node_id: 2%s}
+    plant: {inertia: 0.3}
+environment:
+  coupling:
+    - {axes: [left, right], stiffness: 2000.0, damping: 20.0}
+"""
 #: the per-cycle values compared bit for bit
 FIELDS = ("t", "q", "dq", "tau_ref", "tau_int_hat", "tau_dis_hat", "tau_per", "u_unsat", "u", "tau_int_true",
           "q_true")

@@ -16,24 +16,11 @@ from dobhil.cli.main import main
 from dobhil.drives.odrive import codec
 from dobhil.drives.odrive.codec import CmdId
 
+from .axes_helpers import BOUND, TWO_AXES
 from .helpers import DEMO, REPO
 from .hub import child_env, stop_process, wait_for_emulator
 
 EXIT_USAGE = 2
-BOUND = 20.0   # s: how long a loaded machine may take, not a measurement
-
-TWO_AXES = """\
-loop: {period: 0.001, duration: 0.5}
-axes:
-  - name: left
-    drive: {profile: odrive-0.6, node_id: 1}
-  - name: right
-    drive: {profile: odrive-0.6, node_id: 2%s}
-    plant: {inertia: 0.3}
-environment:
-  coupling:
-    - {axes: [left, right], stiffness: 2000.0, damping: 20.0}
-"""
 
 
 def _config(tmp_path: Path, right_bus: str = "") -> Path:
