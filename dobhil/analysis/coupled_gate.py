@@ -55,14 +55,6 @@ class CoupledVerdict(VerdictLines):
     min_gain_margin_db: float = 0.0
     reason: str = ""
 
-    @property
-    def stable(self) -> bool:
-        return self.status is GateStatus.STABLE
-
-    @property
-    def refuses(self) -> bool:
-        return self.status is GateStatus.UNSTABLE
-
     def _what(self) -> str:
         gains = ", ".join(f"{n} {g:g}" for n, g in zip(self.axes, self.force_gains))
         return (f"coupled sampled loop of axes {', '.join(self.axes)} (T = {self.period:g} s, delay "

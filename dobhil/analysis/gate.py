@@ -86,6 +86,15 @@ class VerdictLines:
     status: GateStatus
     reason: str
 
+    @property
+    def stable(self) -> bool:
+        return self.status is GateStatus.STABLE
+
+    @property
+    def refuses(self) -> bool:
+        """Whether a run of this design is refused (unless the gate is overridden)."""
+        return self.status is GateStatus.UNSTABLE
+
     def loop_text(self) -> str:
         raise NotImplementedError
 
@@ -137,15 +146,6 @@ class GateVerdict(VerdictLines):
     min_phase_margin_deg: float = 0.0
     assumed: Assumptions | None = None
     reason: str = ""
-
-    @property
-    def stable(self) -> bool:
-        return self.status is GateStatus.STABLE
-
-    @property
-    def refuses(self) -> bool:
-        """Whether a run of this design is refused (unless the gate is overridden)."""
-        return self.status is GateStatus.UNSTABLE
 
     def low_margins(self) -> list[str]:
         """The margins below their thresholds, as text (empty: none, or not stable)."""
