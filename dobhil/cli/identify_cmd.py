@@ -68,11 +68,12 @@ def run(args: argparse.Namespace) -> int:
         result = identify(data, [s for part in parts for s in part.segments],
                           progress=lambda stage: shown.update(1, stage))
     info = summary(result, data, parts)
+    notes = [gaps_note(one) for one, _ in logs if gaps_note(one)]
     if args.axis is not None:
         info["axis"] = args.axis
-        note = coupling_note(args.log, args.axis)
-        if note:
-            info["note"] = note
+        notes.append(coupling_note(args.log, args.axis))
+    if any(notes):
+        info["note"] = "; ".join(n for n in notes if n)
     if args.out:
         _write_overlay(result.overlay(), info, args.out)
     if args.plot:
@@ -105,6 +106,16 @@ def coupling_note(logs: list[str], axis: str) -> str:
     return (f"axis {axis} is coupled to {', '.join(dict.fromkeys(partners))}: the servo estimates (inertia, "
             "friction) are the axis' own; the environment estimates are the coupling plus the axis' own "
             "environment, seen from this axis with the other axis' motion as a disturbance")
+
+
+def gaps_note(data: Any) -> str:
+    """Which cycles of a run's log were fitted, when not all ("": all of them)."""
+    if not data.cycles or (data.first_cycle == 0 and data.samples == data.cycles):
+        return ""
+    last = data.first_cycle + data.samples - 1
+    return (f"{data.source}: cycles {data.first_cycle}-{last} of the {data.cycles} recorded, the longest run "
+            f"without a skipped cycle (a late real-time cycle skips frames; --lockstep runs skip none); "
+            f"times are from cycle {data.first_cycle}")
 
 
 def _figures(result: Any, data: Any, parts: Any, out: Path) -> list[Path]:

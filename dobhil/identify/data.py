@@ -59,6 +59,10 @@ class IdentData:
     source: str                # file name ("" when synthetic)
     protocol: str              # the drive profile's protocol
     recorded: Mapping[str, float]   # config keys recorded in the log (plant.*, environment.*, design.*)
+    #: a run's log: the cycle of the first sample (its longest run of cycles without a gap)
+    first_cycle: int = 0
+    #: a run's log: the cycles it recorded (0: not a run's log, or not known)
+    cycles: int = 0
 
     @property
     def samples(self) -> int:
@@ -218,20 +222,34 @@ def _number(value: object) -> float:
 
 def _samples(cycles: Mapping[int, list[float]], period: float, name: str, protocol: str,
              recorded: Mapping[str, float]) -> IdentData:
-    """The leading run of consecutive, finite cycles from cycle 0 (a safe stop ends a run with
-    a zero command that is not the plant's input any more; a gap breaks the uniform sampling)."""
-    rows: list[list[float]] = []
-    for k, values in cycles.items():
-        if k != len(rows) or not all(math.isfinite(v) for v in values):
-            break
-        rows.append(values)
-    if len(rows) < 2 * MIN_SEGMENT:
-        raise LogFileError(f"{name}: {len(rows)} usable control cycles from cycle 0; identify needs at "
-                           f"least {2 * MIN_SEGMENT}")
-    a = np.asarray(rows, dtype=float)
+    """The longest run of consecutive, finite cycles (the first of equally long ones). A
+    late real-time cycle skips the frames that came meanwhile, and their cycle numbers with
+    them (dobhil/runtime/loop.py), so a gap breaks the uniform sampling the fit needs; the
+    safe stop's zero command is no cycle."""
+    first, length = _longest_run(cycles)
+    if length < 2 * MIN_SEGMENT:
+        raise LogFileError(f"{name}: {length} consecutive usable control cycles at most (of {len(cycles)}: the "
+                           f"loop skipped cycles); identify needs at least {2 * MIN_SEGMENT}")
+    a = np.asarray([cycles[k] for k in range(first, first + length)], dtype=float)
     return IdentData(period=period, t=np.arange(a.shape[0], dtype=float) * period, torque=a[:, 2], position=a[:, 0],
                      velocity=a[:, 1], source=os.path.basename(name), protocol=protocol,
-                     recorded=MappingProxyType(dict(recorded)))
+                     recorded=MappingProxyType(dict(recorded)), first_cycle=first, cycles=len(cycles))
+
+
+def _longest_run(cycles: Mapping[int, list[float]]) -> tuple[int, int]:
+    """(first cycle, length) of the longest run of consecutive cycles with finite values."""
+    best = (0, 0)
+    start, last = 0, -2
+    for k in sorted(cycles):
+        if not all(math.isfinite(v) for v in cycles[k]):
+            last = -2
+            continue
+        if k != last + 1:
+            start = k
+        last = k
+        if last - start + 1 > best[1]:
+            best = (start, last - start + 1)
+    return best
 
 
 def check_motion(data: IdentData) -> None:

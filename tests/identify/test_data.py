@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
+import math
 import shutil
 from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 
 from dobhil.errors import ConfigError, LogFileError
 from dobhil.identify.data import (
@@ -186,3 +189,39 @@ def test_join_of_one_log_is_that_log_and_mixed_logs_are_refused() -> None:
         join([(a, ()), (_record(50, 0.0, period=2e-3, source="b.mcap"), ())])
     with pytest.raises(ConfigError, match="same drive"):
         join([(a, ()), (_record(50, 0.0, protocol="mit", source="b.mcap"), ())])
+
+
+# -- a run's log with skipped cycles ------------------------------------------------------------
+
+def _run_from(cycles: dict[int, list[float]], k: int) -> int:
+    """How many consecutive cycles with finite values start at ``k``."""
+    n = 0
+    while k + n in cycles and all(np.isfinite(cycles[k + n])):
+        n += 1
+    return n
+
+
+@given(st.lists(st.integers(0, 300), max_size=120, unique=True), st.sets(st.integers(0, 300), max_size=10))
+def test_the_longest_gap_free_run_of_cycles_is_found(present: list[int], nan_at: set[int]) -> None:
+    from dobhil.identify.data import _longest_run
+    cycles = {k: [float(k), math.nan if k in nan_at else 0.0, 1.0] for k in present}
+    first, length = _longest_run(cycles)
+    assert length == max((_run_from(cycles, k) for k in cycles), default=0)
+    if length:
+        assert _run_from(cycles, first) == length
+        assert all(_run_from(cycles, k) < length for k in cycles if k < first)   # the first of the longest
+
+
+def test_a_log_with_a_skipped_cycle_fits_its_longest_run_and_says_so() -> None:
+    from dobhil.cli.identify_cmd import gaps_note
+    from dobhil.identify.data import _samples
+    cycles = {k: [0.01 * k, 1.0, 0.5] for k in range(400) if k not in (4, 120)}
+    data = _samples(cycles, 1e-3, "/tmp/run.mcap", "odrive", {})
+    assert (data.first_cycle, data.samples, data.cycles) == (121, 279, 398)
+    assert data.position[0] == 0.01 * 121 and data.t[0] == 0.0
+    note = gaps_note(data)
+    assert "cycles 121-399 of the 398 recorded" in note and "times are from cycle 121" in note
+    whole = _samples({k: [0.01 * k, 1.0, 0.5] for k in range(400)}, 1e-3, "run.mcap", "odrive", {})
+    assert gaps_note(whole) == "" and whole.first_cycle == 0 and whole.samples == 400
+    with pytest.raises(LogFileError, match="30 consecutive usable control cycles at most \\(of 59"):
+        _samples({k: [0.0, 0.0, 0.0] for k in range(60) if k != 29}, 1e-3, "short.mcap", "odrive", {})
