@@ -541,14 +541,6 @@ def _replay_cycles_per_s(recorded: Path) -> float:
     return best
 
 
-class _NeverStop:
-    """The bare loop's stop flag: nothing stops it before its last deadline."""
-
-    @staticmethod
-    def is_set() -> bool:
-        return False
-
-
 def _bare_loop_period_errors(duration: float, period: float = 1e-3, spin: float | None = None) -> list[float]:
     """A Python loop doing nothing but wait for 1 kHz deadlines exactly as host timing waits:
     the runtime's own :func:`~dobhil.runtime.deadlines.next_deadline` (missed deadlines
@@ -558,7 +550,8 @@ def _bare_loop_period_errors(duration: float, period: float = 1e-3, spin: float 
     the yardstick for the loop's own figure."""
     if spin is None:
         spin = float(load_config(ROOT / "configs/demo.yaml").loop.spin)
-    clock, stop = time.perf_counter, _NeverStop()
+    import threading
+    clock, stop = time.perf_counter, threading.Event()   # nothing stops it before its last deadline
     errors = []
     t0 = clock()
     k, n = 0, int(round(duration / period))
