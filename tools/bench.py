@@ -31,6 +31,7 @@ import argparse
 import json
 import sys
 import tempfile
+import threading
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -550,7 +551,6 @@ def _bare_loop_period_errors(duration: float, period: float = 1e-3, spin: float 
     the yardstick for the loop's own figure."""
     if spin is None:
         spin = float(load_config(ROOT / "configs/demo.yaml").loop.spin)
-    import threading
     clock, stop = time.perf_counter, threading.Event()   # nothing stops it before its last deadline
     errors = []
     t0 = clock()
