@@ -65,6 +65,7 @@ from dobhil.drives.base import Confirmation, Drive, Feedback, SafeStopReport
 from dobhil.drives.emulated import LockstepBus
 from dobhil.drives.waits import WAIT_SLICE
 from dobhil.errors import BusError, DriveError, DriveFaultError, WaitCancelled, exception_line
+from dobhil.runtime.deadlines import next_deadline, sleep_until
 from dobhil.runtime.controller import ControlOutput, ForceController
 from dobhil.runtime.loop import (TRACE_ROWS, CycleSink, ForceLoop, Histogram, LoopSettings, Reference, RunResult,
                                  StopRequest, Timing, TimingStats, _Halt, _QuietGc)
@@ -462,12 +463,10 @@ class AxesLoop:
 
     def _next_deadline(self, k: int, t0: float, period: float) -> int:
         """Count an overrun and skip the missed deadlines; sleep (then spin) to the next."""
-        nxt = k + 1
-        now = self.clock()
-        overrun = now > t0 + nxt * period
+        nxt = next_deadline(k, self.clock(), t0, period)
+        overrun = nxt > k + 1
         if overrun:
             self.overruns += 1
-            nxt = int((now - t0) / period) + 1
             self.skipped += min(nxt, self.settings.cycles) - k - 1
         for axis in self._axes:
             self._current = axis.name
@@ -484,17 +483,7 @@ class AxesLoop:
 
     def _sleep_until(self, deadline: float) -> None:
         """``time.sleep`` to ``loop.spin`` s before ``deadline``, then spin on the clock."""
-        clock, stop, spin = self.clock, self.stop_request, self.settings.spin
-        remaining = deadline - clock() - spin
-        while remaining > WAIT_SLICE:   # slices: a long loop.period still answers a SIGINT
-            time.sleep(WAIT_SLICE)
-            if stop.is_set():
-                return
-            remaining = deadline - clock() - spin
-        if remaining > 0:
-            time.sleep(remaining)
-        while clock() < deadline:
-            pass
+        sleep_until(deadline, spin=self.settings.spin, clock=self.clock, stop=self.stop_request)
 
     # -- the cycle ---------------------------------------------------------------
 

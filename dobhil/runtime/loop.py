@@ -85,6 +85,7 @@ from dobhil import __version__
 from dobhil.drives.base import Drive, Feedback, HostTimeout, SafeStopReport
 from dobhil.drives.waits import WAIT_SLICE, Cancel
 from dobhil.errors import BusError, DriveError, DriveFaultError, RecorderError, WaitCancelled, exception_line
+from dobhil.runtime.deadlines import next_deadline, sleep_until
 from dobhil.runtime.controller import ControlOutput, ForceController
 from dobhil.runtime.instability import InstabilityWatch, WatchSettings
 from dobhil.runtime.stop import Stop, StopReason
@@ -793,13 +794,11 @@ class ForceLoop:
 
     def _next_deadline(self, k: int, fb: Feedback, t0: float, period: float) -> int:
         """Count an overrun and skip the missed deadlines; sleep (then spin) to the next."""
-        nxt = k + 1
-        now = self.clock()
-        overrun = now > t0 + nxt * period
+        nxt = next_deadline(k, self.clock(), t0, period)
+        overrun = nxt > k + 1
         if overrun:
             self.overruns += 1
             self.trace.data["overrun"][self.trace.last] = 1.0
-            nxt = int((now - t0) / period) + 1
             self.skipped += min(nxt, self.settings.cycles) - k - 1
         self._emit(k, fb, overrun)
         deadline = t0 + nxt * period
@@ -809,17 +808,7 @@ class ForceLoop:
 
     def _sleep_until(self, deadline: float) -> None:
         """``time.sleep`` to ``loop.spin`` s before ``deadline``, then spin on the clock."""
-        clock, stop = self.clock, self.stop_request
-        remaining = deadline - clock() - self.settings.spin
-        while remaining > WAIT_SLICE:   # slices: a long loop.period still answers a SIGINT
-            time.sleep(WAIT_SLICE)
-            if stop.is_set():
-                return   # the next cycle stops
-            remaining = deadline - clock() - self.settings.spin
-        if remaining > 0:
-            time.sleep(remaining)
-        while clock() < deadline:
-            pass
+        sleep_until(deadline, spin=self.settings.spin, clock=self.clock, stop=self.stop_request)
 
     def _cycle(self, k: int, t: float, fb: Feedback, period_error: float, start: float,
                timed: bool) -> None:

@@ -61,30 +61,26 @@ def _percentile(values: list[float], q: float) -> float:
 
 def bare_loop(seconds: float = RT_SECONDS, period: float = RT_PERIOD, spin: float = 2e-4) -> dict[str, Any]:
     """A loop that does nothing but wait, exactly as the runtime's host timing waits
-    (dobhil/runtime/loop.py ``_next_deadline``/``_sleep_until``): ``time.sleep`` to ``spin`` s
+    (its own code: dobhil/runtime/deadlines.py ``next_deadline``/``sleep_until``): ``time.sleep`` to ``spin`` s
     before each deadline, spin on the clock to it, and after an overrun skip to the next
     deadline not yet passed. Period error = wake-up minus deadline; overruns per 10,000
     deadlines, as the run counts them."""
+    import threading
+
     from dobhil.realtime import apply_realtime
+    from dobhil.runtime.deadlines import next_deadline, sleep_until
     warnings = apply_realtime(RT_PRIORITY)
-    clock = time.perf_counter
+    clock, never = time.perf_counter, threading.Event()
     t0 = clock()
     n = int(round(seconds / period))
     errors: list[float] = []
     k = overruns = 0
     while k < n:
         deadline = t0 + k * period
-        remaining = deadline - clock() - spin
-        if remaining > 0:
-            time.sleep(remaining)
-        while clock() < deadline:
-            pass
+        sleep_until(deadline, spin=spin, clock=clock, stop=never)
         errors.append(clock() - deadline)
-        nxt = k + 1
-        now = clock()
-        if now > t0 + nxt * period:
-            overruns += 1
-            nxt = int((now - t0) / period) + 1
+        nxt = next_deadline(k, clock(), t0, period)
+        overruns += nxt > k + 1
         k = nxt
     return {"deadlines": n, "wakes": len(errors), "overruns": overruns,
             "overruns_per_10k": overruns / n * 1e4, "period_error_p99_us": _percentile(errors, 99) * 1e6,
