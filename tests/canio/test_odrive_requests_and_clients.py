@@ -14,6 +14,7 @@ import can
 import pytest
 import yaml
 
+from dobhil.canio.bus import DobhilBus
 from dobhil.config import load_config, resolve_config
 from dobhil.drives.load import load_profile
 from dobhil.drives.odrive.codec import Firmware, watchdog_bit
@@ -89,6 +90,7 @@ async def _readme_sequence_once() -> Try:
     from odrive_can.odrive import ODriveCAN
 
     bus = can.Bus(interface="dobhil", channel="demo")
+    assert isinstance(bus, DobhilBus)
     emulator = bus.emulator
     drv = ODriveCAN(axis_id=3, can_bus=bus)
     sent: list[float] = []
@@ -139,7 +141,7 @@ def test_readme_odrive_can_sentence_20_times_in_a_row() -> None:
     pytest.importorskip("odrive_can")
     watchdog = shipped_watchdog()
     before = set(threading.enumerate())
-    passed, excused = 0, []
+    passed, excused = 0, list[Try]()
     while passed < 20:
         done = asyncio.run(_readme_sequence_once())
         if done.failure is None:
