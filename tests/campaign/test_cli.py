@@ -10,6 +10,8 @@ import os
 import signal
 import subprocess
 import sys
+import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -115,33 +117,103 @@ def test_parquet_round_trip_keeps_types_and_nulls(tmp_path: Path) -> None:
     assert read_table(path) == rows
 
 
+@dataclass(frozen=True)
+class Running:
+    """A campaign task the worker running it says it is executing, whose start (the event
+    the task logs before it calls run_one) has reached the scheduler."""
+
+    key: str
+    index: int
+    worker: str
+    pid: int
+    started: float   # the start event's time at the scheduler
+
+
+def _running(client: Any) -> list[Running]:
+    """Every campaign task that has signalled its start and is executing now, newest first."""
+    def executing(dask_worker: Any) -> list[str]:
+        return [str(k) for k, ts in dask_worker.state.tasks.items() if ts.state == "executing"]
+    pids = client.run(os.getpid)
+    starts: dict[str, float] = {}
+    for topic, events in client.get_events().items():
+        if str(topic).startswith("dobhil-montecarlo-") and "-attempts-" in str(topic):
+            prefix, token = str(topic).split("-attempts-")
+            starts.update({f"{prefix}-{token}-{i}": t for t, i in events})
+    found = [Running(key, int(key.rsplit("-", 1)[1]), worker, pids[worker], starts[key])
+             for worker, keys in client.run(executing).items() for key in keys if key in starts]
+    return sorted(found, key=lambda r: -r.started)
+
+
+def _task_state(client: Any, key: str) -> tuple[str, str | None]:
+    """The scheduler's state of a task and the worker it is processing on."""
+    def state(dask_scheduler: Any) -> tuple[str, str | None]:
+        ts = dask_scheduler.tasks.get(key)
+        if ts is None:
+            return "forgotten", None
+        return ts.state, ts.processing_on.address if ts.processing_on is not None else None
+    found, worker = client.run_on_scheduler(state)
+    return str(found), worker
+
+
+def _campaign_busy(client: Any) -> bool:
+    """A campaign task is still waiting or processing at the scheduler."""
+    def busy(dask_scheduler: Any) -> bool:
+        return any(str(k).startswith("dobhil-montecarlo-") and ts.state in ("processing", "queued",
+                                                                              "no-worker", "waiting")
+                   for k, ts in dask_scheduler.tasks.items())
+    return bool(client.run_on_scheduler(busy))
+
+
+def _kill_a_running_task(client: Any) -> Running:
+    """SIGKILL the worker of a task that is running run_one: the newest started one is frozen
+    (SIGSTOP: from then on it can send nothing), and killed only if the scheduler still has
+    its task processing there -- no result of it came back -- else it is let go and another
+    is looked for. Polls until one is found; fails if the campaign ran out of tasks first."""
+    while _campaign_busy(client):
+        for task in _running(client):
+            os.kill(task.pid, signal.SIGSTOP)
+            if _task_state(client, task.key) == ("processing", task.worker):
+                os.kill(task.pid, signal.SIGKILL)
+                return task
+            os.kill(task.pid, signal.SIGCONT)
+        time.sleep(0.005)
+    raise AssertionError("no campaign task was running to be killed: the campaign ended first")
+
+
 def test_killing_a_worker_mid_campaign_loses_no_row(dask_client: Any) -> None:
-    """A worker process SIGKILLed mid-campaign: every row comes back, equal to an undisturbed
-    campaign's. Which run it had is marked ``retried`` when its start had reached the
-    scheduler; a kill landing in the first milliseconds of a run cannot be told from one
-    between runs, so that mark is not asserted here (on a busy CI machine it was not set
-    once): tests/cluster's kill, made inside a task a second after its start, asserts it
-    exactly, and the next test that the campaign's table passes it on."""
+    """A worker process SIGKILLed while it runs a campaign task: every row comes back, equal to
+    an undisturbed campaign's, and the run it was running is the one marked ``retried``.
+
+    That the kill hit a running task is shown, not assumed: the worker said it was executing
+    the task, the task's own start event had reached the scheduler (so run_one was called),
+    and with the worker frozen the scheduler still had no result of it. That the kill stopped
+    it: Dask started the task a second time (its ``retried`` mark, from the start events), as
+    it only does for a task whose worker died before its result was fetched. Other runs that
+    worker had finished but this process had not yet fetched (it waits in the kill) may be
+    run again and marked too; a run that had come back before the kill never is."""
     from dobhil.campaign.campaign import Campaign, execute
     from dobhil.campaign.draws import parse_vary
     from dobhil.cluster import open_client
     c = Campaign(config="demo", set_files=(), overrides=(), varies=(parse_vary("plant.inertia=uniform:0.2:0.3"),),
                  runs=8, seed=5, duration=0.6)
     undisturbed = execute(dask_client, c.plan())
+    killed: list[Running] = []
+    back: list[int] = []   # runs whose rows had come back before the kill
     with open_client(workers=2, processes=True) as client:
-        pids = list(client.run(os.getpid).values())
-        done = [0]
-
-        def kill_after_two(row: dict[str, Any]) -> None:
-            done[0] += 1
-            if done[0] == 2:   # both workers are busy: the one killed is mid-run
-                os.kill(pids[0], signal.SIGKILL)
-        rows = execute(client, c.plan(), progress=kill_after_two)
+        def kill_after_three(row: dict[str, Any]) -> None:
+            if not killed:
+                back.append(row["run"])
+            if len(back) == 3 and not killed:   # 5 runs to go: one of them has started
+                killed.append(_kill_a_running_task(client))
+        rows = execute(client, c.plan(), progress=kill_after_three)
+        pids = set(client.run(os.getpid).values())
+    assert len(killed) == 1 and killed[0].pid not in pids and killed[0].index not in back
     assert [r["run"] for r in rows] == list(range(8))
     assert all(r["error"] == "" for r in rows)
     assert [{k: v for k, v in r.items() if k != "retried"} for r in rows] == \
         [{k: v for k, v in r.items() if k != "retried"} for r in undisturbed]
-    assert all(isinstance(r["retried"], bool) for r in rows)
+    retried = {r["run"] for r in rows if r["retried"]}
+    assert killed[0].index in retried and not retried & set(back), (killed[0], retried, back)
 
 
 def test_the_table_says_which_runs_were_retried(dask_client: Any) -> None:
