@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import importlib.util
 import logging
+import signal
 import sys
 import threading
 import weakref
@@ -23,6 +24,14 @@ from hypothesis import settings
 # 22 ms when repeated). The suite must pass on a busy machine, so no deadline anywhere.
 settings.register_profile("dobhil", deadline=None)
 settings.load_profile("dobhil")
+
+# A shell without job control starts a background command with SIGINT ignored, and an ignored
+# signal stays ignored across exec: every process the tests start would then ignore the Ctrl-C
+# (SIGINT) that many tests send to stop it (`python -m can.logger`, `dobhil log serve`, ...),
+# and hang. Seen: `.ci/run &` from a script, four such tests timed out. A handler here is
+# reset to the default on exec, so the children get Python's own KeyboardInterrupt again.
+if signal.getsignal(signal.SIGINT) == signal.SIG_IGN:
+    signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
 def pytest_configure(config: pytest.Config) -> None:
