@@ -8,15 +8,14 @@ runs, so they take no wall-clock bound."""
 
 from __future__ import annotations
 
-import importlib.util
 import math
-import sys
 from collections.abc import Callable
 from pathlib import Path
 from types import ModuleType, SimpleNamespace
 from typing import Any
 
 import pytest
+from tool_module import load_tool
 
 from dobhil.runtime.stop import Stop, StopReason
 
@@ -24,12 +23,7 @@ BENCH = Path(__file__).resolve().parents[1] / "tools" / "bench.py"
 
 
 def _load() -> ModuleType:
-    spec = importlib.util.spec_from_file_location("bench_under_test", BENCH)
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module
-    spec.loader.exec_module(module)
-    return module
+    return load_tool(BENCH, "bench_under_test")
 
 
 bench = _load()

@@ -3,7 +3,6 @@ refuses. Booting is tested by every test of tests/socketcan, which runs in the g
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import os
 import shutil
@@ -14,18 +13,14 @@ from pathlib import Path
 from types import ModuleType
 
 import pytest
+from tool_module import load_tool
 
 ROOT = Path(__file__).resolve().parents[1]
 CANVM = ROOT / "tools" / "canvm" / "canvm.py"
 
 
 def _load() -> ModuleType:
-    spec = importlib.util.spec_from_file_location("canvm_under_test", CANVM)
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module
-    spec.loader.exec_module(module)
-    return module
+    return load_tool(CANVM, "canvm_under_test")
 
 
 canvm = _load()
