@@ -411,9 +411,12 @@ def views(codes: ProtocolCodes | None = None, encoding: Any = None) -> Mapping[i
     """Record kind (CYCLE or a Topic) -> the views of each message the record becomes, in
     ``encoding`` (a :class:`~dobhil.recording.encodings.Encoding`; None: JSON), the drive's
     codes on ``/drive/feedback`` named by ``codes`` (None: as numbers)."""
-    if encoding is None:
-        from dobhil.recording.encodings.json_messages import ENCODING as encoding
-    encoders = {t: encoding.encoder(s, codes) for t, s in TOPIC_SPECS.items()}
+    if encoding is not None:
+        encoders = {t: encoding.encoder(s, codes) for t, s in TOPIC_SPECS.items()}
+    else:   # the table's own JSON encoders (what encodings.json_messages hands out)
+        encoders = {t: s.encode for t, s in TOPIC_SPECS.items()}
+        if codes is not None:
+            encoders[Topic.DRIVE_FEEDBACK] = feedback_encoder(codes)
     in_cycle = (Topic.DRIVE_FEEDBACK, Topic.CONTROLLER, Topic.DRIVE_COMMAND, Topic.LOOP, Topic.EMULATOR_TRUTH)
     return MappingProxyType({CYCLE: tuple(_view(TOPIC_SPECS[t], True, encoders[t]) for t in in_cycle),
                              **{int(t): (_view(s, False, encoders[t]),) for t, s in TOPIC_SPECS.items()}})

@@ -10,16 +10,13 @@ field list into its schema.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Mapping
 from importlib import import_module
 from types import MappingProxyType
-from typing import TYPE_CHECKING, Any, Final, Protocol
+from typing import Final
 
 from dobhil.errors import LogFileError
-
-if TYPE_CHECKING:
-    from dobhil.recording.codes import ProtocolCodes
-    from dobhil.recording.schemas import TopicSpec
+from dobhil.recording.encodings.base import Decoder, Encoder, Encoding
 
 #: MCAP message encoding -> the module holding it
 ENCODINGS: Final[Mapping[str, str]] = MappingProxyType({
@@ -29,38 +26,6 @@ ENCODINGS: Final[Mapping[str, str]] = MappingProxyType({
 #: What dobhil writes (protobuf: a third of JSON's payload bytes and less writer CPU,
 #: ``docs/recording.md``); JSON logs of earlier versions are read alike.
 DEFAULT_ENCODING: Final = "protobuf"
-
-Encoder = Callable[[Sequence[Any]], bytes]
-Decoder = Callable[[bytes], dict[str, Any]]
-
-
-class Encoding(Protocol):
-    """One message encoding: its MCAP names, a topic's schema, encoder and decoder."""
-
-    @property
-    def name(self) -> str: ...             # MCAP message_encoding
-    @property
-    def schema_encoding(self) -> str: ...  # MCAP schema encoding
-
-    def schema(self, spec: TopicSpec) -> bytes:
-        """The schema record's data of ``spec``'s topic."""
-        ...
-
-    def encoder(self, spec: TopicSpec, codes: ProtocolCodes | None) -> Encoder:
-        """Values (``spec.inputs``, in order) -> message bytes; the drive's codes named by
-        ``codes`` (None: numbers only)."""
-        ...
-
-    def decoder(self, spec: TopicSpec | None) -> Decoder:
-        """Message bytes -> the payload dict, the same for every encoding (non-finite
-        numbers as None, bytes as a list of integers); ``spec`` None: a topic the table
-        does not have (ValueError for an encoding that needs the table's fields)."""
-        ...
-
-    def schema_fields(self, data: bytes, schema_name: str) -> tuple[str, ...]:
-        """The field names of a schema record's ``data`` (as stored in the file)."""
-        ...
-
 
 def encoding(name: str) -> Encoding:
     """The encoding called ``name``; LogFileError naming the ones there are."""

@@ -12,7 +12,7 @@ from typing import Any, Final
 import orjson
 
 from dobhil.recording.codes import ProtocolCodes
-from dobhil.recording.encodings import Decoder, Encoder
+from dobhil.recording.encodings.base import Decoder, Encoder
 from dobhil.recording.schemas import Topic, TopicSpec, feedback_encoder
 
 

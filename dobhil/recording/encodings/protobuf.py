@@ -29,7 +29,7 @@ from operator import itemgetter
 from typing import Any, Final, NamedTuple
 
 from dobhil.recording.codes import ProtocolCodes
-from dobhil.recording.encodings import Decoder, Encoder
+from dobhil.recording.encodings.base import Decoder, Encoder
 from dobhil.recording.schemas import FieldKind, TopicSpec, field_values
 
 
@@ -229,8 +229,13 @@ def _generic(spec: TopicSpec) -> Callable[[bytes, int, dict[str, Any]], dict[str
 def _getter(indexes: list[int]) -> Callable[[tuple[Any, ...]], tuple[Any, ...]]:
     """itemgetter that returns a tuple for one index too."""
     if len(indexes) == 1:
-        return lambda r, i=indexes[0]: (r[i],)
-    return itemgetter(*indexes)
+        only = indexes[0]
+
+        def one(r: tuple[Any, ...]) -> tuple[Any, ...]:
+            return (r[only],)
+        return one
+    many: Callable[[tuple[Any, ...]], tuple[Any, ...]] = itemgetter(*indexes)
+    return many
 
 
 def unpacker(spec: TopicSpec) -> Decoder:
