@@ -201,3 +201,25 @@ def test_the_registry_names_each_encoding_once() -> None:
     from dobhil.errors import LogFileError
     with pytest.raises(LogFileError, match="unknown message encoding 'cbor'; expected one of protobuf, json"):
         encoding("cbor")
+
+
+def test_the_field_values_are_what_the_json_encoders_hold() -> None:
+    """The protobuf encoder's fields come from schemas.field_values, the JSON encoder's from
+    its own dict: for records of every derived topic they agree, name for name."""
+    import orjson
+
+    from dobhil.recording.codes import ProtocolCodes
+    from dobhil.recording.encodings.json_messages import ENCODING as JSON
+    from dobhil.recording.schemas import field_values
+    samples = {Topic.CAN_RX: (0x69, True, False, True, False, True, False, 3, bytearray(b"\x01\x02\xff"), 2.5,
+                              "can0"),
+               Topic.CAN_TX: (0x1FFFFFFF, False, True, False, True, False, True, 0, b"", None, None),
+               Topic.DRIVE_FEEDBACK: (0.25, -1.5, 2, 8, 0x8130, 41, 40),
+               Topic.EVENTS: (6, "pipe full", "3 batches", 17)}
+    for codes in (None, ProtocolCodes()):
+        for topic, values in samples.items():
+            spec = TOPIC_SPECS[topic]
+            make = field_values(spec, codes)
+            assert make is not None
+            fields = {k: list(v) if isinstance(v, bytes) else v for k, v in zip(spec.keys, make(values))}
+            assert fields == orjson.loads(JSON.encoder(spec, codes)(values)), topic
