@@ -24,14 +24,12 @@ after N refinements" (the budget ran out). See docs/certify.md.
 
 from __future__ import annotations
 
-import heapq
-import itertools
-import math
 from collections.abc import Mapping
+from typing import Any
 from dataclasses import dataclass
 
 import numpy as np
-import scipy.linalg
+from numpy.typing import NDArray
 
 from dobhil.analysis import interval_expm as iv
 from dobhil.analysis.certify import RECIPROCAL_KEYS, Box, Verdict, params_at
@@ -44,10 +42,13 @@ from dobhil.synthesis.params import PARAM_KEYS, Array
 from dobhil.realtime import one_blas_thread
 
 #: the default number of bisections before the answer is "undecided"
-DEFAULT_REFINEMENTS = 2000
+DEFAULT_REFINEMENTS = 20000
 
 #: a sub-box is split at its geometric mean along a positive key at least this wide (HI / LO)
 LOG_SPLIT_RATIO = 4.0
+
+#: sub-boxes decided together (numpy's batched linear algebra; bounds the memory)
+CHUNK = 512
 
 
 @dataclass(frozen=True)
@@ -82,35 +83,48 @@ class _AffineLoop:
             raise AnalysisError("the sampled loop matrix is not affine in the sampled plant; the "
                                 "sampled certificate does not apply to this design")
 
-    def at_point(self, point: Mapping[str, float]) -> Array:
-        """The runtime's loop matrix at ``point``: :func:`sampled_plant` there, assembled by
-        the loop (through the affine map read off it, equal to it to rounding)."""
-        values = {PARAM_KEYS[k]: v for k, v in point.items()}
-        plant = sampled_plant(self.params.replace(**values))
-        return self.offset + self.basis @ np.concatenate([m.reshape(-1) for m in plant])
+    def _apply(self, theta: Array) -> Array:
+        return self.offset + np.einsum("ijk,...k->...ij", self.basis, theta)
+
+    def at_points(self, points: Mapping[str, Array]) -> Array:
+        """The runtime's loop matrices at ``points`` (batched): :func:`sampled_plant` there,
+        assembled by the loop (through the affine map read off it, equal to it to rounding)."""
+        plant = sampled_plant(self.params.replace(**{PARAM_KEYS[k]: v for k, v in points.items()}))
+        return self._apply(_flat(plant, lambda m: m))
 
     def enclose(self, phi: iv.IMat, g0: iv.IMat, g1: iv.IMat) -> iv.IMat:
-        mid = np.concatenate([m.mid.reshape(-1) for m in (phi, g0, g1)])
-        rad = np.concatenate([m.rad.reshape(-1) for m in (phi, g0, g1)])
-        centre = self.offset + self.basis @ mid
-        radius = np.abs(self.basis) @ rad
+        centre = self._apply(_flat((phi, g0, g1), lambda m: m.mid))
+        radius = np.einsum("ijk,...k->...ij", np.abs(self.basis), _flat((phi, g0, g1), lambda m: m.rad))
         return iv.IMat(centre, radius * (1.0 + 1e-12) + 16 * iv.EPS * np.abs(centre))
 
 
-def plant_enclosure(config: Config, lo: Mapping[str, float], hi: Mapping[str, float]) -> tuple[iv.IMat, ...]:
-    """``(Phi, Gamma0, Gamma1)`` enclosed for every plant in the sub-box [lo, hi]."""
+def _flat(parts: Any, get: Any) -> Array:
+    """The 8 entries of (Phi, Gamma0, Gamma1) in a row (batched)."""
+    arrays = [get(m) for m in parts]
+    batch = np.broadcast_shapes(*(a.shape[:-2] for a in arrays))
+    return np.concatenate([np.broadcast_to(a, batch + a.shape[-2:]).reshape(batch + (-1,))
+                           for a in arrays], axis=-1)
+
+
+def plant_enclosure(config: Config, lo: Mapping[str, Any], hi: Mapping[str, Any]) -> tuple[iv.IMat, ...]:
+    """``(Phi, Gamma0, Gamma1)`` enclosed for every plant in the sub-box [lo, hi] (values or
+    arrays of sub-boxes; the keys not given at their config values)."""
     flat = config.flat()
 
-    def bounds(key: str) -> tuple[float, float]:
-        return (lo[key], hi[key]) if key in lo else (float(flat[key]), float(flat[key]))
-    j = bounds("plant.inertia")
-    k = bounds("environment.stiffness")
-    d = bounds("environment.damping")
-    b = bounds("plant.viscous_friction")
-    a_lo = np.array([[0.0, 1.0], [-k[1] / j[0], -(b[1] + d[1]) / j[0]]])
-    a_hi = np.array([[0.0, 1.0], [-k[0] / j[1], -(b[0] + d[0]) / j[1]]])
-    a = iv.from_bounds(a_lo, a_hi)
-    g = iv.from_bounds(np.array([[0.0], [1.0 / j[1]]]), np.array([[0.0], [1.0 / j[0]]]))
+    def bounds(key: str) -> tuple[Array, Array]:
+        if key in lo:
+            return np.asarray(lo[key], float), np.asarray(hi[key], float)
+        return np.asarray(float(flat[key])), np.asarray(float(flat[key]))
+    (j0, j1), (k0, k1) = bounds("plant.inertia"), bounds("environment.stiffness")
+    (d0, d1), (b0, b1) = bounds("environment.damping"), bounds("plant.viscous_friction")
+    shape = np.broadcast_shapes(j0.shape, k0.shape, d0.shape, b0.shape)
+    a_lo, a_hi = np.zeros(shape + (2, 2)), np.zeros(shape + (2, 2))
+    a_lo[..., 0, 1] = a_hi[..., 0, 1] = 1.0
+    a_lo[..., 1, 0], a_hi[..., 1, 0] = -k1 / j0, -k0 / j1
+    a_lo[..., 1, 1], a_hi[..., 1, 1] = -(b1 + d1) / j0, -(b0 + d0) / j1
+    g_lo, g_hi = np.zeros(shape + (2, 1)), np.zeros(shape + (2, 1))
+    g_lo[..., 1, 0], g_hi[..., 1, 0] = 1.0 / j1, 1.0 / j0
+    a, g = iv.from_bounds(a_lo, a_hi), iv.from_bounds(g_lo, g_hi)
     s = balance_scaling(a.mid)
     a_s, g_s = iv.scaled(a, g, s)
     period, delay = float(config.loop.period), float(config.design.input_delay)
@@ -118,33 +132,38 @@ def plant_enclosure(config: Config, lo: Mapping[str, float], hi: Mapping[str, fl
         phi, g0, g1 = iv.hold_delayed(a_s, g_s, period, delay)
     else:
         phi, g0 = iv.hold(a_s, g_s, period)
-        g1 = iv.IMat(np.zeros((2, 1)), np.zeros((2, 1)))
+        g1 = iv.IMat(np.zeros(shape + (2, 1)), np.zeros(shape + (2, 1)))
     return iv.unscaled(phi, s, True), iv.unscaled(g0, s, False), iv.unscaled(g1, s, False)
 
 
-def lyapunov_closes(enclosure: iv.IMat) -> bool:
-    """Step 2 of the module's argument on one enclosure ``A_m +- R``: with ``P = L L^T``
-    from the Lyapunov equation of ``A_m / r`` (r between the spectral radius and 1), the
-    induced norm ``||A||_P = ||L^T A L^-T||_2`` bounds the spectral radius of every member:
-    ``||A_m + E||_P <= ||A_m||_P + || |L^T| R |L^-T| ||_2 < 1`` closes the sub-box."""
+def lyapunov_closes(enclosure: iv.IMat) -> NDArray[np.bool_]:
+    """Step 2 of the module's argument on each enclosure ``A_m +- R`` (batched): with
+    ``P = L L^T`` from the Lyapunov equation of ``A_m / r`` (r halfway between the spectral
+    radius and 1), ``||A_m||_P + || |L^T| R |L^-T| ||_2 < 1`` closes the sub-box."""
     s = balance_scaling(enclosure.mid)
-    f = s[None, :] / s[:, None]
+    f = s[..., None, :] / s[..., :, None]
     a, r = enclosure.mid * f, enclosure.rad * f
-    rho = float(np.max(np.abs(np.linalg.eigvals(a))))
-    if rho >= 1.0:
-        return False
-    target = 0.5 * (1.0 + rho)
-    p = scipy.linalg.solve_discrete_lyapunov(a.T / target, np.eye(a.shape[0]))
-    try:
-        chol = np.linalg.cholesky(0.5 * (p + p.T))
-    except np.linalg.LinAlgError:
-        return False
-    left, right = chol.T, np.linalg.inv(chol.T)
-    norm_a = float(np.linalg.norm(left @ a @ right, 2))
-    norm_e = float(np.linalg.norm(np.abs(left) @ r @ np.abs(right), 2))
+    n = a.shape[-1]
+    rho = np.max(np.abs(np.linalg.eigvals(a)), axis=-1)
+    ok = rho < 1.0
+    m = a.swapaxes(-1, -2) / np.where(ok, 0.5 * (1.0 + rho), 1.0)[..., None, None]
+    # X - M X M^T = I, row-major vec: (I - kron(M, M)) vec X = vec I
+    kron = np.einsum("...ij,...kl->...ikjl", m, m).reshape(m.shape[:-2] + (n * n, n * n))
+    rhs = np.broadcast_to(np.eye(n).reshape(-1), m.shape[:-2] + (n * n,))[..., None]
+    x = np.linalg.solve(np.eye(n * n) - kron, rhs)
+    p = x[..., 0].reshape(m.shape)
+    p = 0.5 * (p + p.swapaxes(-1, -2))
+    ok &= np.all(np.isfinite(p), axis=(-2, -1))
+    ok &= np.linalg.eigvalsh(np.where(ok[..., None, None], p, np.eye(n)))[..., 0] > 0.0
+    chol = np.linalg.cholesky(np.where(ok[..., None, None], p, np.eye(n)))
+    left = chol.swapaxes(-1, -2)
+    right = np.linalg.inv(left)
+    norm_a = np.linalg.norm(left @ a @ right, 2, axis=(-2, -1))
+    norm_e = np.linalg.norm(np.abs(left) @ r @ np.abs(right), 2, axis=(-2, -1))
     # the floating-point error of the products and of the inverse, a few ulps each
-    slack = 64 * a.shape[0] * iv.EPS * float(np.linalg.cond(chol)) * (1.0 + float(np.linalg.norm(a, 2)))
-    return norm_a + norm_e < 1.0 - slack
+    cond = np.linalg.norm(left, 2, axis=(-2, -1)) * np.linalg.norm(right, 2, axis=(-2, -1))
+    slack = 64 * n * iv.EPS * cond * (1.0 + np.linalg.norm(a, 2, axis=(-2, -1)))
+    return np.asarray(ok & (norm_a + norm_e < 1.0 - slack))
 
 
 def spectral_radius(config: Config, point: Mapping[str, float]) -> float:
@@ -155,69 +174,73 @@ def spectral_radius(config: Config, point: Mapping[str, float]) -> float:
 
 
 def certify_sampled(config: Config, box: Box, *, refinements: int = DEFAULT_REFINEMENTS) -> SampledCertificate:
-    """Bisect the box until every sub-box closes (certified), a centre or vertex is unstable
-    (refuted) or ``refinements`` bisections are spent (undecided)."""
+    """Bisect the box until every sub-box closes (certified), a vertex or a sub-box's centre
+    is unstable (refuted) or ``refinements`` bisections are spent (undecided)."""
     with one_blas_thread(), np.errstate(all="ignore"):
-        witness = _unstable_vertex(config, box)
-        if witness is not None:
-            return SampledCertificate(Verdict.REFUTED, box, 0, 0, witness[0], witness[1])
-        return _refine(config, box, _AffineLoop(config, box.centre()), refinements)
+        affine = _AffineLoop(config, box.centre())
+        vertices = np.array([[v[k] for k in box.keys] for v in box.vertices()])
+        rho = _radii(affine, box.keys, vertices)
+        if np.max(rho) >= 1.0:
+            point = dict(zip(box.keys, vertices[int(np.argmax(rho))].tolist()))
+            return SampledCertificate(Verdict.REFUTED, box, 0, 0, point, spectral_radius(config, point))
+        return _refine(config, box, affine, refinements, float(np.max(rho)))
 
 
-def _refine(config: Config, box: Box, affine: _AffineLoop, refinements: int) -> SampledCertificate:
-    """Sub-boxes in order of their centre's spectral radius, largest first: the ones nearest
-    instability are split first, so an unstable pocket is found early."""
-    count = itertools.count()   # ties broken by age: the heap never compares dicts
-    heap: list[tuple[float, int, dict[str, float], dict[str, float]]] = []
+def _radii(affine: _AffineLoop, keys: tuple[str, ...], points: Array) -> Array:
+    a = affine.at_points({k: points[:, i] for i, k in enumerate(keys)})
+    return np.max(np.abs(np.linalg.eigvals(a)), axis=-1)
 
-    def push(lo: dict[str, float], hi: dict[str, float]) -> float:
-        rho = float(np.max(np.abs(np.linalg.eigvals(affine.at_point(_split_point(lo, hi))))))
-        heapq.heappush(heap, (-rho, next(count), lo, hi))
-        return rho
-    worst = push(dict(zip(box.keys, box.lo)), dict(zip(box.keys, box.hi)))
+
+def _refine(config: Config, box: Box, affine: _AffineLoop, refinements: int, worst: float) -> SampledCertificate:
+    """Level by level: every open sub-box's centre evaluated and its bound tried at once;
+    those that do not close are halved for the next level."""
+    lo, hi = np.array([box.lo]), np.array([box.hi])
     done = closed = 0
-    while heap:
-        neg_rho, _, lo, hi = heapq.heappop(heap)
-        if -neg_rho >= 1.0:
-            centre = _split_point(lo, hi)
-            return SampledCertificate(Verdict.REFUTED, box, done, closed, centre,
-                                      spectral_radius(config, centre))
-        if lyapunov_closes(affine.enclose(*plant_enclosure(config, lo, hi))):
-            closed += 1
-            continue
-        if done >= refinements:
+    while lo.shape[0]:
+        keep = np.zeros(lo.shape[0], bool)
+        for i in range(0, lo.shape[0], CHUNK):
+            part = slice(i, i + CHUNK)
+            centres = _middle(box.keys, lo[part], hi[part])
+            rho = _radii(affine, box.keys, centres)
+            worst = max(worst, float(rho.max()))
+            if rho.max() >= 1.0:
+                point = dict(zip(box.keys, centres[int(np.argmax(rho))].tolist()))
+                return SampledCertificate(Verdict.REFUTED, box, done, closed, point,
+                                          spectral_radius(config, point))
+            enclosure = affine.enclose(*plant_enclosure(
+                config, {k: lo[part, j] for j, k in enumerate(box.keys)},
+                {k: hi[part, j] for j, k in enumerate(box.keys)}))
+            keep[part] = ~lyapunov_closes(enclosure)
+        closed += int(np.sum(~keep))
+        if not keep.any():
+            return SampledCertificate(Verdict.CERTIFIED, box, done, closed, None, worst)
+        if done + int(keep.sum()) > refinements:
             return SampledCertificate(Verdict.UNDECIDED, box, done, closed, None, worst)
-        done += 1
-        for half in _bisect(lo, hi):
-            worst = max(worst, push(*half))
+        done += int(keep.sum())
+        lo, hi = _bisect(box.keys, lo[keep], hi[keep])
     return SampledCertificate(Verdict.CERTIFIED, box, done, closed, None, worst)
 
 
-def _unstable_vertex(config: Config, box: Box) -> tuple[dict[str, float], float] | None:
-    for vertex in box.vertices():
-        rho = spectral_radius(config, vertex)
-        if rho >= 1.0:
-            return vertex, rho
-    return None
+def _middle(keys: tuple[str, ...], lo: Array, hi: Array) -> Array:
+    """Where each sub-box is split along each key: the geometric mean along a positive key
+    that is wide (or the reciprocal key), the arithmetic mean otherwise."""
+    reciprocal = np.array([k in RECIPROCAL_KEYS for k in keys])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        geometric = (lo > 0.0) & ((hi / lo >= LOG_SPLIT_RATIO) | reciprocal)
+        return np.where(geometric, np.sqrt(np.abs(lo * hi)), 0.5 * (lo + hi))
 
 
-def _split_point(lo: Mapping[str, float], hi: Mapping[str, float]) -> dict[str, float]:
-    return {k: _middle(k, lo[k], hi[k]) for k in lo}
-
-
-def _middle(key: str, lo: float, hi: float) -> float:
-    if lo > 0.0 and (hi / lo >= LOG_SPLIT_RATIO or key in RECIPROCAL_KEYS):
-        return math.sqrt(lo * hi)
-    return 0.5 * (lo + hi)
-
-
-def _bisect(lo: Mapping[str, float], hi: Mapping[str, float]) -> list[tuple[dict[str, float], dict[str, float]]]:
-    """Two halves along the key widest relative to its size."""
-    def width(k: str) -> float:
-        return math.log(hi[k] / lo[k]) if lo[k] > 0.0 else math.inf if hi[k] > lo[k] else 0.0
-    key = max(lo, key=width)
-    m = _middle(key, lo[key], hi[key])
-    return [(dict(lo), {**hi, key: m}), ({**lo, key: m}, dict(hi))]
+def _bisect(keys: tuple[str, ...], lo: Array, hi: Array) -> tuple[Array, Array]:
+    """Two halves of each sub-box along the key widest relative to its size."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        width = np.where(lo > 0.0, np.log(hi / lo), np.where(hi > lo, np.inf, 0.0))
+    axis = np.argmax(width, axis=-1)
+    rows = np.arange(lo.shape[0])
+    mid = _middle(keys, lo, hi)[rows, axis]
+    lo2, hi1 = lo.copy(), hi.copy()
+    lo2[rows, axis] = mid
+    hi1[rows, axis] = mid
+    return np.concatenate([lo, lo2]), np.concatenate([hi1, hi])
 
 
 __all__ = ["DEFAULT_REFINEMENTS", "SampledCertificate", "certify_sampled", "lyapunov_closes",

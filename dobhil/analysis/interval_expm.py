@@ -64,20 +64,21 @@ def from_bounds(lo: Array, hi: Array) -> IMat:
 
 
 def expm(x: IMat) -> IMat:
-    """An enclosure of ``e^X`` for every X in the interval matrix (square, unbatched)."""
+    """An enclosure of ``e^X`` for every X in the interval matrix (batched over leading axes:
+    every matrix of the batch is scaled by the same power of two)."""
     n = x.mid.shape[-1]
-    norm = float(np.abs(x.magnitude()).sum(axis=1).max())           # infinity norm bound
+    norm = float(x.magnitude().sum(axis=-1).max())            # infinity norm bound, all of the batch
     squarings = max(0, math.ceil(math.log2(norm / 0.5))) if norm > 0.5 else 0
     y = x.scale(2.0 ** -squarings)
-    theta = float(y.magnitude().sum(axis=1).max())
-    eye = IMat(np.eye(n), np.zeros((n, n)))
+    theta = y.magnitude().sum(axis=-1).max(axis=-1)            # per matrix, <= 1/2
+    eye = IMat(np.broadcast_to(np.eye(n), x.mid.shape), np.zeros(x.mid.shape))
     term, total = eye, eye
     for k in range(1, TAYLOR_TERMS + 1):
         term = (term @ y).scale(1.0 / k)
         total = total + term
     # remainder: sum over k > N of theta^k / k! <= theta^(N+1) / (N+1)! / (1 - theta / (N+2))
     rest = theta ** (TAYLOR_TERMS + 1) / math.factorial(TAYLOR_TERMS + 1) / (1.0 - theta / (TAYLOR_TERMS + 2))
-    out = IMat(total.mid, total.rad + rest)
+    out = IMat(total.mid, total.rad + np.asarray(rest)[..., None, None])
     for _ in range(squarings):
         out = out @ out
     return out
@@ -86,14 +87,15 @@ def expm(x: IMat) -> IMat:
 def hold(a: IMat, b: IMat, period: float) -> tuple[IMat, IMat]:
     """Enclosures of ``(Phi, Gamma)`` of ``x' = A x + B w``, w held over ``period`` -- the
     block exponential :func:`dobhil.synthesis.controller.discretize` takes, for every
-    member of the interval matrices A and B."""
+    member of the interval matrices A and B (batched)."""
     n, p = a.mid.shape[-1], b.mid.shape[-1]
-    mid = np.zeros((n + p, n + p))
-    rad = np.zeros((n + p, n + p))
-    mid[:n, :n], rad[:n, :n] = a.mid, a.rad
-    mid[:n, n:], rad[:n, n:] = b.mid, b.rad
+    shape = a.mid.shape[:-2] + (n + p, n + p)
+    mid, rad = np.zeros(shape), np.zeros(shape)
+    mid[..., :n, :n], rad[..., :n, :n] = a.mid, a.rad
+    mid[..., :n, n:], rad[..., :n, n:] = b.mid, b.rad
     e = expm(IMat(mid, rad).scale(period))
-    return IMat(e.mid[:n, :n], e.rad[:n, :n]), IMat(e.mid[:n, n:], e.rad[:n, n:])
+    return (IMat(e.mid[..., :n, :n], e.rad[..., :n, :n]),
+            IMat(e.mid[..., :n, n:], e.rad[..., :n, n:]))
 
 
 def hold_delayed(a: IMat, b: IMat, period: float, input_delay: float) -> tuple[IMat, IMat, IMat]:
@@ -106,16 +108,16 @@ def hold_delayed(a: IMat, b: IMat, period: float, input_delay: float) -> tuple[I
 
 def scaled(a: IMat, b: IMat, s: Array) -> tuple[IMat, IMat]:
     """``(S^-1 A S, S^-1 B)`` for a diagonal S of powers of two (exact in floating point)."""
-    f = s[None, :] / s[:, None]
-    return IMat(a.mid * f, a.rad * f), IMat(b.mid / s[:, None], b.rad / s[:, None])
+    f = s[..., None, :] / s[..., :, None]
+    return IMat(a.mid * f, a.rad * f), IMat(b.mid / s[..., :, None], b.rad / s[..., :, None])
 
 
 def unscaled(m: IMat, s: Array, square: bool) -> IMat:
     """``S M S^-1`` (square) or ``S M`` (a column block), exact for powers of two."""
     if square:
-        f = s[:, None] / s[None, :]
+        f = s[..., :, None] / s[..., None, :]
         return IMat(m.mid * f, m.rad * f)
-    return IMat(m.mid * s[:, None], m.rad * s[:, None])
+    return IMat(m.mid * s[..., :, None], m.rad * s[..., :, None])
 
 
 __all__ = ["IMat", "expm", "from_bounds", "hold", "hold_delayed", "scaled", "unscaled"]

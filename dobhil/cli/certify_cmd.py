@@ -42,7 +42,7 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
                    help="which loop to certify (default both)")
     p.add_argument("--refinements", type=int, default=None, metavar="N",
                    help="most bisections of the sampled certificate before it answers undecided "
-                   "(default 2000)")
+                   "(default 20000)")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.set_defaults(func=run)
 
@@ -64,7 +64,7 @@ def run(args: argparse.Namespace) -> int:
     return 0 if answer["certified"] else EXIT_NOT_CERTIFIED
 
 
-def certify(config: Config, box: Box, *, loops: str = "both", refinements: int = 2000) -> dict[str, Any]:
+def certify(config: Config, box: Box, *, loops: str = "both", refinements: int = 20000) -> dict[str, Any]:
     """The certificates asked for, as one JSON-able mapping (also what ``dobhil tune`` prints)."""
     from dobhil.analysis.certify import certify_continuous
     from dobhil.analysis.certify_sampled import certify_sampled

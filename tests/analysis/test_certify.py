@@ -12,7 +12,7 @@ import pytest
 from dobhil.analysis import interval_expm as iv
 from dobhil.analysis.certify import (Box, Verdict, box_from_specs, certify_continuous, closed_loop,
                                      params_at, parse_range)
-from dobhil.analysis.certify_sampled import certify_sampled, plant_enclosure
+from dobhil.analysis.certify_sampled import certify_sampled, lyapunov_closes, plant_enclosure
 from dobhil.analysis.disk_margin import disk_margin
 from dobhil.config import load_config
 from dobhil.errors import ConfigError
@@ -157,8 +157,8 @@ def test_a_dense_scan_never_contradicts_the_sampled_certificate() -> None:
         width = rng.choice([0.02, 0.2, 1.0])
         box = Box(box.keys, tuple(c[k] - width * (c[k] - lo) for k, lo in zip(box.keys, box.lo)),
                   tuple(c[k] + width * (hi - c[k]) for k, hi in zip(box.keys, box.hi)))
-        answer = certify_sampled(config, box, refinements=60)
-        scan_unstable = bool(np.any(_rho(config, _scan_points(box, 15 if len(box.keys) < 3 else 6)) >= 1.0))
+        answer = certify_sampled(config, box, refinements=3000)
+        scan_unstable = bool(np.any(_rho(config, _scan_points(box, 12 if len(box.keys) < 3 else 6)) >= 1.0))
         seen[answer.verdict] += 1
         if answer.verdict is Verdict.CERTIFIED:
             assert not scan_unstable, box
@@ -238,3 +238,27 @@ def test_bad_ranges_are_one_line(spec: str, words: str) -> None:
     with pytest.raises(ConfigError, match=words.replace(".", r"\.")) as err:
         parse_range(spec)
     assert "\n" not in str(err.value)
+
+
+def test_the_lyapunov_bound_never_closes_on_an_interval_with_an_unstable_member() -> None:
+    """Seeded interval matrices A_m +- R: where the bound closes, no member tried (random ones and
+    sign corners A_m +- R) has spectral radius >= 1; where a member is unstable, it does not close.
+    Both outcomes occur, and one case is built to hold an unstable member (A_m + R itself)."""
+    rng = np.random.default_rng(9)
+    outcomes = {True: 0, False: 0}
+    for _ in range(200):
+        n = int(rng.integers(2, 7))
+        a = rng.normal(size=(n, n))
+        a *= rng.uniform(0.3, 0.97) / np.max(np.abs(np.linalg.eigvals(a)))
+        r = np.abs(rng.normal(size=(n, n))) * 10.0 ** rng.uniform(-4, -0.5)
+        closes = bool(lyapunov_closes(iv.IMat(a, r)))
+        members = [a + r * rng.choice([-1.0, 1.0], size=(n, n)) for _ in range(100)]
+        members += [a + r * rng.uniform(-1, 1, size=(n, n)) for _ in range(100)]
+        unstable = any(np.max(np.abs(np.linalg.eigvals(m))) >= 1.0 for m in members)
+        outcomes[closes] += 1
+        assert not (closes and unstable)
+    assert outcomes[True] >= 20 and outcomes[False] >= 20, outcomes
+    built = np.diag([0.9, 0.5, -0.3])
+    assert np.max(np.abs(np.linalg.eigvals(built + 0.15 * np.eye(3)))) >= 1.0
+    assert not lyapunov_closes(iv.IMat(built, 0.15 * np.eye(3)))
+    assert lyapunov_closes(iv.IMat(built, 0.01 * np.eye(3)))
