@@ -171,3 +171,25 @@ def _sampled_text(s: Mapping[str, Any]) -> str:
 
 def _point_text(point: Mapping[str, float]) -> str:
     return ", ".join(f"{k}={v:.6g}" for k, v in point.items())
+
+
+def tuned_certificate(config: Config, design: Mapping[str, float], ranges: list[Any],
+                      uncertainties: list[Any]) -> tuple[dict[str, Any] | None, list[str]]:
+    """``dobhil tune``'s design certified over its set taken as a box (each --range key's LO..HI,
+    each --uncertainty key's ends): the JSON answer (None when a key is one the certificate
+    cannot treat) and its text lines."""
+    import dataclasses
+    from dobhil.analysis.certify import CERTIFY_KEYS, Box
+    flat = config.flat()
+    keys = [r.key for r in ranges] + [u.key for u in uncertainties]
+    others = [k for k in keys if k not in CERTIFY_KEYS]
+    if others or not keys:
+        why = f"{', '.join(others)} is not a key it treats" if others else "no range"
+        return None, [f"certificate over the box: not computed ({why}; it treats {', '.join(CERTIFY_KEYS)})"]
+    lo = [r.lo for r in ranges] + [float(flat[u.key]) * (1.0 - u.fraction) for u in uncertainties]
+    hi = [r.hi for r in ranges] + [float(flat[u.key]) * (1.0 + u.fraction) for u in uncertainties]
+    values: dict[str, Any] = {k.split(".", 1)[1]: float(v) for k, v in design.items()}
+    tuned = config.replace(design=dataclasses.replace(config.design, **values))
+    answer = certify(tuned, Box(tuple(keys), tuple(lo), tuple(hi)))
+    return answer, ["certificate over the whole box (dobhil certify, docs/certify.md):",
+                    *("  " + line for line in text_lines(answer)[1:])]

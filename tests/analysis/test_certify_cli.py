@@ -48,3 +48,36 @@ def test_bad_input_is_one_line_and_exit_2(args: list[str], says: str, capsys: py
     assert main(["certify", "paper/fig3", *args]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and err.startswith("dobhil certify: error: ") and says in err
+
+
+def test_tune_reports_the_certificate_of_its_design_over_its_box(capsys: pytest.CaptureFixture[str]) -> None:
+    """The design tune prints, certified again here by dobhil certify over the same box, gives
+    the same answer tune printed (the --uncertainty key's ends are the box's)."""
+    args = ["paper/fig3", "--range", "environment.stiffness=1e3:1e5", "--uncertainty", "plant.inertia=±10%",
+            "--grid", "6", "--generations", "4"]
+    assert main(["tune", *args, "--json"]) == 0
+    report = json.loads(capsys.readouterr().out)
+    cert = report["certificate"]
+    assert cert["box"] == {"environment.stiffness": [1e3, 1e5], "plant.inertia": [0.225, 0.275]}
+    sets = [x for k, v in report["design"].items() for x in ("--set", f"{k}={v!r}")]
+    assert main(["certify", "paper/fig3", "--range", "environment.stiffness=1e3:1e5",
+                 "--range", "plant.inertia=0.225:0.275", *sets, "--json"]) in (0, 1)
+    again = json.loads(capsys.readouterr().out)
+    assert again["continuous"] == cert["continuous"] and again["sampled"]["verdict"] == cert["sampled"]["verdict"]
+
+
+def test_tune_names_a_key_the_certificate_cannot_treat(capsys: pytest.CaptureFixture[str]) -> None:
+    from dobhil.cli.certify_cmd import tuned_certificate
+    from dobhil.config import load_config
+    from dobhil.tune.problem import parse_range
+    config = load_config("paper/fig3")
+    answer, lines = tuned_certificate(config, {"design.force_gain": 1.0},
+                                      [parse_range("environment.stiffness=1e3:1e4"),
+                                       parse_range("plant.coulomb_friction=0:0.1")], [])
+    assert answer is None and lines == [
+        "certificate over the box: not computed (plant.coulomb_friction is not a key it treats; it treats "
+        "environment.stiffness, environment.damping, plant.inertia, plant.viscous_friction)"]
+    answer, lines = tuned_certificate(config, {"design.force_gain": 1.0},
+                                      [parse_range("environment.stiffness=1e3:1e4")], [])
+    assert answer is not None and answer["continuous"]["verdict"] == "certified"
+    assert lines[0].startswith("certificate over the whole box")
