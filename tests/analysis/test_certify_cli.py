@@ -69,11 +69,11 @@ def test_tune_reports_the_certificate_of_its_design_over_its_box(capsys: pytest.
 def test_tune_names_a_key_the_certificate_cannot_treat(capsys: pytest.CaptureFixture[str]) -> None:
     from dobhil.cli.certify_cmd import tuned_certificate
     from dobhil.config import load_config
-    from dobhil.tune.problem import parse_range
+    from dobhil.tune.problem import Range, parse_range
     config = load_config("paper/fig3")
     answer, lines = tuned_certificate(config, {"design.force_gain": 1.0},
                                       [parse_range("environment.stiffness=1e3:1e4"),
-                                       parse_range("plant.coulomb_friction=0:0.1")], [])
+                                       Range("plant.coulomb_friction", 0.0, 0.1)], [])
     assert answer is None and lines == [
         "certificate over the box: not computed (plant.coulomb_friction is not a key it treats; it treats "
         "environment.stiffness, environment.damping, plant.inertia, plant.viscous_friction)"]
