@@ -135,6 +135,7 @@ class Edge:
     lo: float
     hi: float
     fixed: Mapping[str, float]
+    order: tuple[str, ...] = ()    # the box's keys, the order points are given in
 
     def value(self, t: float | Array) -> Array:
         """The key's value at the affine coordinate t in [0, 1]."""
@@ -144,7 +145,8 @@ class Edge:
         return np.asarray(self.lo + t * (self.hi - self.lo))
 
     def point(self, t: float) -> dict[str, float]:
-        return {**self.fixed, self.key: float(self.value(t))}
+        values = {**self.fixed, self.key: float(self.value(t))}
+        return {k: values[k] for k in self.order or values}
 
 
 def edges(box: Box) -> list[Edge]:
@@ -153,7 +155,7 @@ def edges(box: Box) -> list[Edge]:
         others = [j for j in range(len(box.keys)) if j != i]
         for corner in itertools.product(*((box.lo[j], box.hi[j]) for j in others)):
             out.append(Edge(key, box.lo[i], box.hi[i],
-                            {box.keys[j]: v for j, v in zip(others, corner)}))
+                            {box.keys[j]: v for j, v in zip(others, corner)}, box.keys))
     return out
 
 
@@ -161,7 +163,7 @@ def edges(box: Box) -> list[Edge]:
 class EdgeAnswer:
     edge: Edge
     stable: bool
-    crossing: float | None   # t where the first root reaches the axis (None: none in [0, 1])
+    crossing: float | None   # t where the edge leaves stability (None: stable, or no stable end)
     witness: float | None    # t of an unstable point (None when stable)
 
 
@@ -172,6 +174,7 @@ class ContinuousCertificate:
     edges: tuple[EdgeAnswer, ...]
     point: Mapping[str, float] | None = None          # the refuting point
     spectral_abscissa: float | None = None            # max Re(s) there [1/s]
+    boundaries: tuple[Mapping[str, float], ...] = ()  # where the unstable edges leave stability
     gain_margin: GainMarginOverBox | None = None
 
 
@@ -210,19 +213,28 @@ def check_edge_structure(a0: Array, a1: Array, a_mid: Array, edge: Edge) -> tupl
 
 
 def answer_edge(config: Config, edge: Edge) -> EdgeAnswer:
-    """Stable for every t in [0, 1], or the first crossing and an unstable t beyond it."""
+    """Stable for every t in [0, 1]; or the t where it leaves stability (from a stable end;
+    None when both ends are unstable) and an unstable t."""
     a0, a_mid, a1 = closed_loop(config, _edge_points(edge, np.array([0.0, 0.5, 1.0])), sampled=False)
-    if not _hurwitz(a0):
-        return EdgeAnswer(edge, False, 0.0, 0.0)
     u, v = check_edge_structure(a0, a1, a_mid, edge)
-    # A0 + t u v^T = A0 - t B C with B = -u, C = v: the gain map in t, exactly
-    gm = gain_map(a0[None], -u[None], v[None], sampled=False)
-    t_cross = float(gm.max_stable_gain[0])
+    if not _hurwitz(a0):
+        # the boundary seen from the other end: A1 - t' u v^T, t = 1 - t'
+        back = _first_crossing(a1, u, v, -1.0) if _hurwitz(a1) else None
+        return EdgeAnswer(edge, False, None if back is None else 1.0 - back[0], 0.0)
+    t_cross, t_end = _first_crossing(a0, u, v, 1.0)
     if t_cross > 1.0:
         return EdgeAnswer(edge, True, None, None)
-    later = [c for c in gm.crossings[0] if np.isfinite(c) and c > t_cross]
-    t_end = min([1.0] + later)
-    return EdgeAnswer(edge, False, t_cross, _unstable_t(a0, u @ v, t_cross, t_end))
+    return EdgeAnswer(edge, False, t_cross, _unstable_t(a0, u @ v, t_cross, min(t_end, 1.0)))
+
+
+def _first_crossing(a: Array, u: Array, v: Array, sign: float) -> tuple[float, float]:
+    """The first t > 0 where ``A + sign t u v^T`` (A stable) reaches the axis, exactly (the
+    gain map of ``A - t B C`` with ``B = -sign u``, ``C = v``), and the next crossing (inf:
+    none)."""
+    gm = gain_map(a[None], -sign * u[None], v[None], sampled=False)
+    t_cross = float(gm.max_stable_gain[0])
+    later = [float(c) for c in gm.crossings[0] if np.isfinite(c) and c > t_cross]
+    return t_cross, min(later, default=math.inf)
 
 
 def _edge_points(edge: Edge, t: Array) -> dict[str, Array]:
@@ -250,17 +262,23 @@ def certify_continuous(config: Config, box: Box, *, gain_margin: bool = True) ->
     answers = tuple(answer_edge(config, e) for e in edges(box))
     failed = [a for a in answers if not a.stable]
     if failed:
-        point, abscissa = _worst_witness(config, failed)
-        return ContinuousCertificate(Verdict.REFUTED, box, answers, point, abscissa)
+        worst, abscissa = _worst_witness(config, failed)
+        bounds = tuple(a.edge.point(a.crossing) for a in failed if a.crossing is not None)
+        return ContinuousCertificate(Verdict.REFUTED, box, answers, worst.edge.point(_t(worst.witness)),
+                                     abscissa, bounds)
     margin = gain_margin_over_box(config, box) if gain_margin else None
     return ContinuousCertificate(Verdict.CERTIFIED, box, answers, gain_margin=margin)
 
 
-def _worst_witness(config: Config, failed: Sequence[EdgeAnswer]) -> tuple[dict[str, float], float]:
-    points = [a.edge.point(a.witness if a.witness is not None else 0.0) for a in failed]
-    abscissae = [spectral_abscissa(config, p) for p in points]
+def _t(t: float | None) -> float:
+    return 0.0 if t is None else t
+
+
+def _worst_witness(config: Config, failed: Sequence[EdgeAnswer]) -> tuple[EdgeAnswer, float]:
+    """The failed edge whose unstable point is the most unstable (largest max Re)."""
+    abscissae = [spectral_abscissa(config, a.edge.point(_t(a.witness))) for a in failed]
     i = int(np.argmax(abscissae))
-    return points[i], abscissae[i]
+    return failed[i], abscissae[i]
 
 
 def spectral_abscissa(config: Config, point: Mapping[str, float]) -> float:

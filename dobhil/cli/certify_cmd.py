@@ -96,7 +96,8 @@ def certify(config: Config, box: Box, *, loops: str = "both", refinements: int =
 def _continuous(c: ContinuousCertificate) -> dict[str, Any]:
     gm = c.gain_margin
     return {"verdict": c.verdict.word, "point": dict(c.point) if c.point else None,
-            "spectral_abscissa": c.spectral_abscissa, "edges": len(c.edges),
+            "spectral_abscissa": c.spectral_abscissa,
+            "boundaries": [dict(b) for b in c.boundaries], "edges": len(c.edges),
             "edges_unstable": sum(not e.stable for e in c.edges),
             "gain_margin": None if gm is None else {
                 "up": _num(gm.up), "down": _num(gm.down), "db": _num(gm.db),
@@ -152,12 +153,14 @@ def text_lines(answer: Mapping[str, Any]) -> list[str]:
 def _continuous_text(c: Mapping[str, Any]) -> str:
     if c["verdict"] == "refuted":
         return (f"refuted at {_point_text(c['point'])} (max Re(s) = {c['spectral_abscissa']:+.4g} 1/s; "
-                f"{c['edges_unstable']} of {c['edges']} edges unstable)")
+                f"{c['edges_unstable']} of {c['edges']} edges unstable" + "".join(
+                    f"; an edge leaves stability at {_point_text(b)}" for b in c["boundaries"]) + ")")
     gm = c["gain_margin"]
     up = "unbounded" if gm["up"] is None else f"x{gm['up']:.4g} (at {_point_text(gm['up_at'])})"
     down = "unbounded" if gm["down"] is None else f"/{gm['down']:.4g} (at {_point_text(gm['down_at'])})"
     db = "inf" if gm["db"] is None else f"{gm['db']:.3g}"
-    return f"certified ({c['edges']} edges stable); gain margin over the box {db} dB: C_f {up}, {down}"
+    return (f"certified ({c['edges']} edges stable); gain margin over the box {db} dB: C_f up {up}, "
+            f"down {down}")
 
 
 def _sampled_text(s: Mapping[str, Any]) -> str:

@@ -75,6 +75,7 @@ def test_a_one_key_box_ends_where_the_loop_loses_stability() -> None:
     assert beyond.verdict is Verdict.REFUTED and beyond.point is not None
     assert beyond.point["environment.stiffness"] > k_star
     assert beyond.spectral_abscissa is not None and beyond.spectral_abscissa > 0
+    assert beyond.boundaries[0]["environment.stiffness"] == pytest.approx(k_star, rel=1e-7)
 
 
 def test_fig3_paper_gains_are_refuted_and_the_tuned_design_certified() -> None:
