@@ -316,7 +316,7 @@ def _edge_minimum(config: Config, edge: Edge, cf: float, side: int) -> tuple[flo
             options={"xatol": 1e-9})
         if res.success and float(res.fun) < best:
             best_t, best = float(res.x), float(res.fun)
-    return best, edge.point(best_t)
+    return best, edge.point(best_t) if math.isfinite(best) else {}
 
 
 def _factors(config: Config, edge: Edge, t: Array, cf: float) -> tuple[Array, Array]:
