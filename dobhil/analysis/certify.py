@@ -97,9 +97,11 @@ def parse_range(spec: str) -> tuple[str, float, float]:
         raise ConfigError(f"--range {spec!r}: expected {key}=LO:HI with two finite numbers")
     if not lo < hi:
         raise ConfigError(f"--range {spec!r}: expected LO < HI")
-    if lo < LOWER_LIMITS[key] or (key in RECIPROCAL_KEYS and lo <= 0.0):
-        bound = "> 0" if key in RECIPROCAL_KEYS else ">= 0"
-        raise ConfigError(f"--range {spec!r}: {key} must be {bound}")
+    if key in RECIPROCAL_KEYS and lo <= 0.0:
+        raise ConfigError(f"--range {spec!r}: {key} must be > 0 (it is the polynomial's leading "
+                          "coefficient: the edge theorem needs one degree over the box)")
+    if lo < LOWER_LIMITS[key]:
+        raise ConfigError(f"--range {spec!r}: {key} must be >= 0")
     return key, lo, hi
 
 
