@@ -6,8 +6,8 @@ enclose every product of members, with the floating-point rounding of the midpoi
 added to the radius. The exponential ``e^X`` of an interval matrix is enclosed by scaling,
 a Taylor polynomial with a bound on its remainder, and squaring (every step an enclosure).
 
-Written here because no maintained Python package offers interval matrix exponentials on
-numpy arrays (mpmath's ``iv`` works on scalars, one at a time). Used by
+Written here because the certificate needs thousands of small enclosures at once, batched in
+numpy; mpmath's interval context (``mpmath.iv``) computes in software, one matrix at a time. Used by
 :mod:`dobhil.analysis.certify_sampled` to bound how far the runtime's sampled matrices
 (:func:`dobhil.synthesis.loop.sampled_plant`) can move over a sub-box.
 """

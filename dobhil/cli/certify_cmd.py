@@ -64,10 +64,12 @@ def run(args: argparse.Namespace) -> int:
     return 0 if answer["certified"] else EXIT_NOT_CERTIFIED
 
 
-def certify(config: Config, box: Box, *, loops: str = "both", refinements: int = 20000) -> dict[str, Any]:
-    """The certificates asked for, as one JSON-able mapping (also what ``dobhil tune`` prints)."""
+def certify(config: Config, box: Box, *, loops: str = "both", refinements: int | None = None) -> dict[str, Any]:
+    """The certificates asked for, as one JSON-able mapping (also what ``dobhil tune`` prints);
+    ``refinements`` None: the sampled certificate's default budget."""
     from dobhil.analysis.certify import certify_continuous
-    from dobhil.analysis.certify_sampled import certify_sampled
+    from dobhil.analysis.certify_sampled import DEFAULT_REFINEMENTS, certify_sampled
+    refinements = DEFAULT_REFINEMENTS if refinements is None else refinements
     out: dict[str, Any] = {"box": {k: [lo, hi] for k, lo, hi in zip(box.keys, box.lo, box.hi)},
                            "force_gain": float(config.design.force_gain)}
     # the disk margins are given where the continuous gain margin is smallest (or at the
