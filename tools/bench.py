@@ -990,6 +990,31 @@ def bench_identify(seconds: float = 60.0) -> dict[str, float]:
 
 
 
+#: the design ``dobhil tune paper/fig3 --range environment.stiffness=1e3:1e5 --range
+#: environment.damping=10:200`` chose (docs/tune.md), and the box it was tuned over
+CERTIFY_SETS = ["design.dob_bandwidth=40.6673", "design.rtob_bandwidth=29.2889",
+                "design.identified_inertia=0.125154", "design.force_gain=0.623056"]
+CERTIFY_RANGES = ["environment.stiffness=1e3:1e5", "environment.damping=10:200"]
+
+
+def bench_certify(repeat: int = 3, grid: int = 50) -> dict[str, float]:
+    """Wall time of the exact continuous certificate of a 2-key box (the tuned Fig. 3 design
+    over its box: 4 edges, each an exact gain map, and the gain margin over the box), and of
+    the eigenvalues of the same loop on a ``grid`` x ``grid`` grid of that box (what a grid
+    check pays, and it decides only its points), interleaved, each warmed untimed first."""
+    from dobhil.analysis.certify import box_from_specs, certify_continuous, closed_loop
+    config = load_config(ROOT / "configs/paper/fig3.yaml", CERTIFY_SETS)
+    box = box_from_specs(CERTIFY_RANGES)
+    k, d = np.meshgrid(np.geomspace(1e3, 1e5, grid), np.geomspace(10.0, 200.0, grid))
+    points = {"environment.stiffness": k.ravel(), "environment.damping": d.ravel()}
+    sides = [Side("certify", lambda: certify_continuous(config, box), lambda: certify_continuous(config, box)),
+             Side("grid", lambda: np.linalg.eigvals(closed_loop(config, points, sampled=False)),
+                  lambda: np.linalg.eigvals(closed_loop(config, points, sampled=False)))]
+    runs = interleaved(sides, repeat)
+    return {"certify_seconds_continuous_2d": runs.best("certify"),
+            f"certify_grid_{grid}x{grid}_eigenvalue_seconds": runs.best("grid")}
+
+
 def _montecarlo_campaign(runs: int) -> Any:
     """The bench's campaign: 1 s lockstep runs of the demo, inertia and stiffness drawn."""
     from dobhil.campaign.campaign import Campaign
@@ -1110,6 +1135,7 @@ BENCHES: dict[str, Callable[[], dict[str, float]]] = {
     "mit": bench_mit,
     "moteus": bench_moteus,
     "identify": bench_identify,
+    "certify": bench_certify,
     "montecarlo": bench_montecarlo,
     "socketcan": bench_socketcan,
 }

@@ -90,7 +90,8 @@ def run(args: argparse.Namespace) -> int:
                                             seed=args.seed, grid=args.grid, horizon=horizon, quanta=quanta,
                                             maxiter=args.generations, progress=cb), args.json)
     base = _baseline(config, result, margins, objective, horizon, quanta)
-    _print(args, result, base, margins, ranges, uncertainties)
+    certificate = _certificate(config, result, ranges, uncertainties)
+    _print(args, result, base, margins, ranges, uncertainties, certificate)
     if args.out and result.feasible:
         _write_config(args, result)
     if args.plot:
@@ -201,14 +202,25 @@ def _baseline(config: Config, result: TuneResult, margins: Margins, objective: O
     return baseline(design, m, result.grid, objective, worsts(m, result.grid, margins, where=m.stable[0]))
 
 
+def _certificate(config: Config, result: TuneResult, ranges: list[Range],
+                 uncertainties: list[Uncertainty]) -> tuple[dict[str, Any] | None, list[str]]:
+    """The chosen design certified over the whole box, not only the grid (dobhil certify)."""
+    if not result.feasible:
+        return None, []
+    from dobhil.cli.certify_cmd import tuned_certificate
+    return tuned_certificate(config, result.design, ranges, uncertainties)
+
+
 def _print(args: argparse.Namespace, result: TuneResult, base: Baseline, margins: Margins, ranges: list[Range],
-           uncertainties: list[Uncertainty]) -> None:
+           uncertainties: list[Uncertainty], certificate: tuple[dict[str, Any] | None, list[str]]) -> None:
     from dobhil.tune.report import as_json, as_text, set_text
     if args.json:
-        json.dump(as_json(result, base, margins), sys.stdout)
+        json.dump({**as_json(result, base, margins), "certificate": certificate[0]}, sys.stdout)
         sys.stdout.write("\n")
     else:
         print(as_text(result, base, set_text(ranges, uncertainties, args.grid)))
+        for line in certificate[1]:
+            print(line)
 
 
 def _write_config(args: argparse.Namespace, result: TuneResult) -> None:
