@@ -264,6 +264,9 @@ def segment_response(data: IdentData, segment: Segment, values: Mapping[str, flo
                                      excitation.frequencies, excitation.period, output=output)
     if measured is None:
         measured = welch_frf(u, y, data.period, output=output)
+    if not math.isfinite(values.get("inertia", math.nan)):   # no model to draw or to take the phase from
+        return SegmentResponse(kind=segment.kind, measured=measured,
+                               model=np.full(len(measured.frequency), complex(math.nan)), delay=None)
     model = model_response(values, measured.frequency, data.period, contact=contact, output=output)
     undelayed = model_response(values, measured.frequency, data.period, contact=contact, output=output,
                                delay=False)
