@@ -78,7 +78,7 @@ def run(args: argparse.Namespace) -> int:
         notes.append(coupling_note(args.log, args.axis))
     if any(notes):
         info["note"] = "; ".join(n for n in notes if n)
-    frf = evidence.frf_info(result, logs, parts) if args.frf else []
+    frf = evidence.frf_info(result, logs, parts, args.log) if args.frf else []
     if frf:
         info["frf"] = [{k: v for k, v in e.items() if not k.startswith("_")} for e in frf]
     if held_out is not None:

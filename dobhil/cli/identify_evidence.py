@@ -130,8 +130,9 @@ def excitation(path: str) -> Any:
     from dobhil.recording.reader import open_log
     from dobhil.runtime.references import multisine_frequencies
     with open_log(path) as log:
-        config = log.config
-    if config is None or config.reference.kind != "multisine":
+        config = log.config   # None: an imported CAN log
+    reference = getattr(config, "reference", None)   # a several-axis config has its axes' instead
+    if config is None or reference is None or reference.kind != "multisine":
         return None
     r = config.reference
     length = r.duration if r.duration > 0 else config.loop.duration - r.start
@@ -139,15 +140,16 @@ def excitation(path: str) -> Any:
                       r.start + length)
 
 
-def frf_info(result: Any, logs: Any, parts: Any) -> list[dict[str, Any]]:
-    """Each fitted segment's response, in its own log (a multisine is timed by its log's cycles)."""
+def frf_info(result: Any, logs: Any, parts: Any, paths: list[str]) -> list[dict[str, Any]]:
+    """Each fitted segment's response, in its own log (``paths``: the files, in the order of
+    ``logs``; a multisine is timed by its log's cycles)."""
     from dobhil.identify.data import Segment
     from dobhil.identify.frf import segment_response
     values = _values(result)
     delay = result.estimates["delay"]
     out = []
-    for (one, _), part in zip(logs, parts):
-        exc = excitation(one.source) if one.source and os.path.isfile(one.source) else None
+    for (one, _), part, path in zip(logs, parts, paths):
+        exc = excitation(path)
         for seg in part.segments:
             local = Segment(seg.start - part.offset, seg.stop - part.offset, seg.kind)
             r = segment_response(one, local, values, exc)

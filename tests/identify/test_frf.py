@@ -4,12 +4,15 @@ independent calculation), the delay from the phase slope, Welch where there is n
 
 from __future__ import annotations
 
+import json
 import math
+from pathlib import Path
 
 import control
 import numpy as np
 import pytest
 
+from dobhil.cli.main import main
 from dobhil.identify.data import IdentData, Segment
 from dobhil.identify.frf import Excitation, model_response, multisine_frf, segment_response, welch_frf
 from tests.identify.synthetic import PERIOD, Truth, joined, run
@@ -105,3 +108,34 @@ def test_delay_from_phase_slope(delay: float) -> None:
     assert resp.measured.method == "multisine" and resp.delay is not None
     assert resp.delay.low <= delay <= resp.delay.high, resp.delay
     assert abs(resp.delay.value - delay) < 0.05e-3, resp.delay
+
+
+def test_frf_cli_multisine(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """``identify --frf --plot`` on an emulated multisine run (lines every 2 Hz, 2-40 Hz: a period
+    of 0.5 s, five of them) with velocity noise and a 0.4 ms delay: the lines from the run's
+    config, the model inside the band at most lines, and the phase-slope delay next to the fit's."""
+    log = tmp_path / "ms.mcap"
+    assert main(["run", "identify-free", "--emulate", "--lockstep", "--log", str(log), "--set", "loop.duration=2.5",
+                 "--set", "reference.frequency=2", "--set", "reference.frequency_end=40", "--set", "reference.lines=20",
+                 "--set", "sensor.velocity_noise=0.001", "--set", "design.input_delay=0.0004"]) == 0
+    capsys.readouterr()
+    assert main(["identify", str(log), "--frf", "--json", "--plot", str(tmp_path / "plots")]) == 0
+    info = json.loads(capsys.readouterr().out)
+    (e,) = info["frf"]
+    assert e["method"] == "multisine" and e["output"] == "velocity" and e["averages"] == 4
+    assert e["frequency"] == pytest.approx([2.0 * k for k in range(1, 21)])
+    assert e["model_inside"] >= 0.85 * e["lines"]
+    d, fitted = e["delay_phase_slope"], e["delay_fitted"]
+    assert d["low"] <= 0.0004 <= d["high"] and d["low"] <= fitted["value"] <= d["high"]
+    assert (tmp_path / "plots" / "frf_segment_0.png").stat().st_size > 10_000
+    assert main(["identify", str(log), "--frf"]) == 0
+    out = capsys.readouterr().out
+    assert "at the multisine's 20 lines, 4 periods averaged" in out and "delay from the phase slope" in out
+
+
+def test_frf_cli_welch(logs: dict[str, Path], capsys: pytest.CaptureFixture[str]) -> None:
+    """A chirp run is no multisine: Welch, and every bin's band and coherence in the JSON."""
+    assert main(["identify", str(logs["free"]), "--frf", "--json"]) == 0
+    (e,) = json.loads(capsys.readouterr().out)["frf"]
+    assert e["method"] == "welch" and len(e["coherence"]) == e["lines"] == len(e["gain_low"])
+    assert all(0.0 <= c <= 1.0 for c in e["coherence"])
