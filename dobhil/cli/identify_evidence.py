@@ -144,15 +144,22 @@ def frf_info(result: Any, logs: Any, parts: Any, paths: list[str]) -> list[dict[
     """Each fitted segment's response, in its own log (``paths``: the files, in the order of
     ``logs``; a multisine is timed by its log's cycles)."""
     from dobhil.identify.data import Segment
+    from dobhil.identify.fit import simulate
     from dobhil.identify.frf import segment_response
     values = _values(result)
     delay = result.estimates["delay"]
     out = []
+    index = 0
     for (one, _), part, path in zip(logs, parts, paths):
         exc = excitation(path)
         for seg in part.segments:
             local = Segment(seg.start - part.offset, seg.stop - part.offset, seg.kind)
-            r = segment_response(one, local, values, exc)
+            # the model from the segment's fitted initial state, on the log's own torque history
+            initial = result.initial[index] if index < len(result.initial) else None
+            index += 1
+            r = segment_response(one, local, values, exc,
+                                 simulate=lambda v, one=one, local=local, initial=initial:
+                                 simulate(v, one, local, initial))
             m = r.measured
             inside = m.within(r.model)
             entry: dict[str, Any] = {
@@ -162,6 +169,7 @@ def frf_info(result: Any, logs: Any, parts: Any, paths: list[str]) -> list[dict[
                 "phase": np.angle(m.response).tolist(), "gain_low": m.low.tolist(), "gain_high": m.high.tolist(),
                 "phase_band": m.phase_band.tolist(), "coherence": m.coherence.tolist(),
                 "model_gain": np.abs(r.model).tolist(), "model_phase": np.angle(r.model).tolist(),
+                "linear_gain": np.abs(r.linear).tolist(), "linear_phase": np.angle(r.linear).tolist(),
                 "model_inside": int(np.count_nonzero(inside)), "lines": len(m.frequency),
                 "delay_phase_slope": None if r.delay is None else
                 {"value": r.delay.value, "low": r.delay.low, "high": r.delay.high, "lines": r.delay.lines},
@@ -180,8 +188,8 @@ def frf_lines(entries: list[dict[str, Any]]) -> list[str]:
                else f"Welch H1, {e['lines']} bins, {e['averages']} disjoint blocks")
         coh = np.asarray(e["coherence"])
         lines.append(f"frequency response {e['file']} {e['kind']} {e['t0']:.3f}-{e['t1']:.3f} s: torque -> {what}, "
-                     f"{how}; coherence median {np.median(coh):.3f}; model inside the 95 % band at "
-                     f"{e['model_inside']} of {e['lines']}")
+                     f"{how}; coherence median {np.median(coh):.3f}; the fitted model (simulated, same "
+                     f"estimator) inside the 95 % band at {e['model_inside']} of {e['lines']}")
         d, f = e["delay_phase_slope"], e["delay_fitted"]
         slope = ("too few coherent lines (coherence >= 0.9) for a phase slope" if d is None else
                  f"{d['value']:.6g} s, 95 % [{d['low']:.6g}, {d['high']:.6g}] ({d['lines']} lines)")
@@ -200,5 +208,5 @@ def frf_figures(entries: list[dict[str, Any]], out: Path) -> list[Path]:
         unit = "rad/s / N m" if m.output == "velocity" else "N m / N m"
         title = (f"{e['file']}: {e['kind']} {e['t0']:.3f}-{e['t1']:.3f} s, torque -> {m.output}")
         written.append(frf_figure(FrfCurves(m.frequency, m.response, m.low, m.high, m.phase_band, m.coherence,
-                                            r.model, unit, m.method, title), out / f"frf_segment_{i}.png"))
+                                            r.model, unit, m.method, title, r.linear), out / f"frf_segment_{i}.png"))
     return written

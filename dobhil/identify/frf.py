@@ -34,7 +34,7 @@ dominated by it shows as low coherence at the low lines, where the servo sticks)
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Final
 
@@ -48,7 +48,7 @@ from dobhil.synthesis.controller import discretize_delayed
 from dobhil.synthesis.models import plant_matrices
 
 __all__ = ["DelayEstimate", "Excitation", "FrequencyResponse", "model_response", "multisine_frf",
-           "SegmentResponse", "phase_delay", "segment_response", "welch_frf"]
+           "SegmentResponse", "Simulator", "phase_delay", "segment_response", "welch_frf"]
 
 LEVEL: Final = 0.95
 #: lines with at least this coherence enter the phase-slope delay
@@ -229,46 +229,79 @@ def _t(frf: FrequencyResponse) -> float:
     return float(scipy.stats.t.ppf(0.5 + LEVEL / 2, max(frf.averages - 1, 1)))
 
 
+#: ``simulate(values)``: the true position and velocity over a segment of the model ``values``
+#: driven by the record's torque (:func:`dobhil.identify.fit.simulate` with the segment's fitted
+#: initial state)
+Simulator = Callable[[Mapping[str, float]], tuple[np.ndarray, np.ndarray]]
+
+
 @dataclass(frozen=True)
 class SegmentResponse:
-    """A segment's measured response, the fitted model's at the same frequencies, and the
-    delay its phase slope gives (None: too few coherent lines)."""
+    """A segment's measured response; the fitted model's at the same frequencies -- ``model``
+    estimated from its simulation by the same estimator (with Coulomb friction: its best linear
+    approximation, as the measured one is), ``linear`` the sampled linear plant's exact response;
+    and the delay its phase slope gives (None: too few coherent lines)."""
 
     kind: str
     measured: FrequencyResponse
     model: np.ndarray
+    linear: np.ndarray
     delay: DelayEstimate | None
 
 
 def segment_response(data: IdentData, segment: Segment, values: Mapping[str, float],
-                     excitation: Excitation | None = None) -> SegmentResponse:
+                     excitation: Excitation | None = None, *,
+                     simulate: Simulator | None = None) -> SegmentResponse:
     """The response of ``segment`` of ``data``: torque to velocity in free motion, torque to
     the contact force in contact (torque to velocity when the fit gave no K and D), at the
     multisine's lines when ``excitation`` is one and covers two whole periods after the first
-    in the segment, by Welch otherwise; with the model of ``values`` (the fitted estimates)."""
+    in the segment, by Welch otherwise; with the model of ``values`` (the fitted estimates).
+
+    ``simulate`` given: the model's response is estimated from its simulation, by the same
+    estimator over the same samples, and the phase-slope delay is read against the simulation
+    without delay -- what a nonlinearity (Coulomb friction) does to the measured response it
+    does to the simulated one alike, and only the delay is left in the phase. Without it: the
+    linear sampled model's exact response (no Coulomb friction)."""
     contact = segment.kind == "contact"
     force = contact and all(math.isfinite(values.get(k, math.nan)) for k in ("stiffness", "damping"))
     output = "force" if force else "velocity"
     start, stop = segment.start, segment.stop
-    velocity = data.velocity[start:stop]
-    y = (values["stiffness"] * (data.position[start:stop] - data.position[start:stop].mean())
-         + values["damping"] * velocity) if force else velocity
+
+    def signal(position: np.ndarray, velocity: np.ndarray) -> np.ndarray:
+        if not force:
+            return np.asarray(velocity, float)
+        return values["stiffness"] * (position - position.mean()) + values["damping"] * velocity
+
+    y = signal(data.position[start:stop], data.velocity[start:stop])
     u = data.torque[start:stop]
-    measured = None
+    window = slice(0, stop - start)
+    lines: tuple[float, ...] = ()
+    per = math.nan
     if excitation is not None and math.isfinite(excitation.period):
         # samples of the segment inside the excitation: sample i is run time (first_cycle + i) T
         lo = max(math.ceil(excitation.start / data.period - 1e-9) - data.first_cycle, start)
         hi = min(math.floor(excitation.stop / data.period + 1e-9) - data.first_cycle, stop)
         if hi > lo:
-            measured = multisine_frf(u[lo - start:hi - start], y[lo - start:hi - start], data.period,
-                                     excitation.frequencies, excitation.period, output=output)
-    if measured is None:
-        measured = welch_frf(u, y, data.period, output=output)
+            window, lines, per = slice(lo - start, hi - start), excitation.frequencies, excitation.period
+
+    def estimate(out: np.ndarray) -> FrequencyResponse:
+        if lines:
+            r = multisine_frf(u[window], out[window], data.period, lines, per, output=output)
+            if r is not None:
+                return r
+        return welch_frf(u, out, data.period, output=output)
+
+    measured = estimate(y)
+    nan = np.full(len(measured.frequency), complex(math.nan))
     if not math.isfinite(values.get("inertia", math.nan)):   # no model to draw or to take the phase from
-        return SegmentResponse(kind=segment.kind, measured=measured,
-                               model=np.full(len(measured.frequency), complex(math.nan)), delay=None)
-    model = model_response(values, measured.frequency, data.period, contact=contact, output=output)
-    undelayed = model_response(values, measured.frequency, data.period, contact=contact, output=output,
-                               delay=False)
-    return SegmentResponse(kind=segment.kind, measured=measured, model=model,
+        return SegmentResponse(kind=segment.kind, measured=measured, model=nan, linear=nan, delay=None)
+    linear = model_response(values, measured.frequency, data.period, contact=contact, output=output)
+    if simulate is None:
+        undelayed = model_response(values, measured.frequency, data.period, contact=contact, output=output,
+                                   delay=False)
+        return SegmentResponse(kind=segment.kind, measured=measured, model=linear, linear=linear,
+                               delay=phase_delay(measured, undelayed))
+    model = estimate(signal(*simulate(values))).response
+    undelayed = estimate(signal(*simulate({**values, "delay": 0.0}))).response
+    return SegmentResponse(kind=segment.kind, measured=measured, model=model, linear=linear,
                            delay=phase_delay(measured, undelayed))

@@ -29,6 +29,8 @@ class FrfCurves:
     unit: str           # the gain's unit, e.g. "rad/s / N m"
     method: str         # how it was measured, for the legend
     title: str
+    #: the linear part of the model (no Coulomb friction), drawn dashed; None: not drawn
+    linear: np.ndarray | None = None
 
 
 def _db(x: np.ndarray) -> np.ndarray:
@@ -57,7 +59,10 @@ def frf_figure(c: FrfCurves, path: Path) -> Path:
     else:
         gain.errorbar(f, mag_db, yerr=[mag_db - lo_db, hi_db - mag_db], fmt="o", ms=3, color="tab:blue",
                       elinewidth=0.8, capsize=2, label=f"{label}, 95 % band")
-    gain.plot(f, _db(np.abs(model)), color="tab:orange", lw=1.4, label="fitted model")
+    gain.plot(f, _db(np.abs(model)), color="tab:orange", lw=1.4, label="fitted model (simulated, same estimator)")
+    linear = None if c.linear is None else np.asarray(c.linear)[order]
+    if linear is not None:
+        gain.plot(f, _db(np.abs(linear)), color="0.3", lw=1.0, ls="--", label="its linear part (no Coulomb friction)")
     gain.set_ylabel(f"gain [dB re 1 {c.unit}]")
     # the phase relative to the model's unwrapped, then the model's added back: no 360 deg jumps
     # between neighbouring points where the two agree
@@ -72,6 +77,8 @@ def frf_figure(c: FrfCurves, path: Path) -> Path:
         phase.errorbar(f, np.degrees(measured_phase), yerr=band, fmt="o", ms=3, color="tab:blue",
                        elinewidth=0.8, capsize=2)
     phase.plot(f, np.degrees(model_phase), color="tab:orange", lw=1.4)
+    if linear is not None:
+        phase.plot(f, np.degrees(model_phase + np.angle(linear / model)), color="0.3", lw=1.0, ls="--")
     phase.set_ylabel("phase [deg]")
     coh.plot(f, np.asarray(c.coherence)[order], "o" if not many else "-", ms=3, lw=0.8, color="tab:green")
     coh.set_ylim(0.0, 1.05)

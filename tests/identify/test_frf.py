@@ -139,3 +139,25 @@ def test_frf_cli_welch(logs: dict[str, Path], capsys: pytest.CaptureFixture[str]
     (e,) = json.loads(capsys.readouterr().out)["frf"]
     assert e["method"] == "welch" and len(e["coherence"]) == e["lines"] == len(e["gain_low"])
     assert all(0.0 <= c <= 1.0 for c in e["coherence"])
+
+
+def test_coulomb_friction_read_against_the_simulation() -> None:
+    """With Coulomb friction the measured response is a best linear approximation: against the
+    model simulated on the same torque and put through the same estimator the model lies in the
+    band and the phase-slope delay is the truth's; against the linear plant it is neither."""
+    from dobhil.identify.fit import simulate
+    truth = Truth(coulomb_friction=0.3, delay=1.3e-3, velocity_noise=0.005)
+    u = _multisine(12, 3.0, 6)
+    q, v = run(truth, u, 0.0, 6)
+    data, (seg,) = joined([(u, q, v, "free")])
+    values = {"inertia": truth.inertia, "viscous_friction": truth.viscous_friction,
+              "coulomb_friction": truth.coulomb_friction, "delay": truth.delay}
+    excitation = Excitation(LINES, 0.0, 12 * P)
+    sim = segment_response(data, seg, values, excitation,
+                           simulate=lambda x: simulate(x, data, seg, (float(q[0]), 0.0)))
+    linear = segment_response(data, seg, values, excitation)
+    assert sim.delay is not None and abs(sim.delay.value - truth.delay) < 0.05e-3
+    # read against the linear plant the friction's phase swamps the delay's
+    assert linear.delay is None or linear.delay.high - linear.delay.low > 10 * (sim.delay.high - sim.delay.low)
+    assert np.count_nonzero(sim.measured.within(sim.model)) >= 0.85 * len(LINES)
+    assert np.count_nonzero(linear.measured.within(linear.model)) < 0.5 * len(LINES)
