@@ -40,7 +40,7 @@ def read_validation(args: argparse.Namespace, fitted: Any) -> Any:
     if not math.isclose(data.period, fitted.period, rel_tol=1e-9):
         raise ConfigError(f"--validate {name}: period {data.period:g} s, but the fitted logs have {fitted.period:g} s; "
                           "validate on a log of the same drive and loop period")
-    mine, theirs = _firmware(name), _firmware(fitted.source.split("+")[0])
+    mine, theirs = _firmware(name), _firmware(args.log[0])
     if mine is not None and theirs is not None and mine != theirs:
         raise ConfigError(f"--validate {name}: drive firmware {mine!r}, but the fitted logs' is {theirs!r}; "
                           "validate on a log of the same drive")

@@ -105,8 +105,12 @@ def test_validation_log_of_another_drive(logs: dict[str, Path], tmp_path: Path,
     mit = emulated_log(tmp_path / "mit.mcap", "drive.profile=mini-cheetah", "reference.kind=chirp",
                        "reference.start=0", "reference.frequency=2", "reference.frequency_end=25",
                        "reference.amplitude=0.2", "environment.contact_position=50")
+    old = emulated_log(tmp_path / "old.mcap", "drive.profile=odrive-0.5", "reference.kind=chirp",
+                       "reference.start=0", "reference.frequency=2", "reference.frequency_end=25",
+                       "reference.amplitude=0.2", "environment.contact_position=50")
     capsys.readouterr()
     _fails(capsys, ["identify", str(logs["free"]), "--validate", str(mit)], "validate on a log of the same drive")
+    _fails(capsys, ["identify", str(logs["free"]), "--validate", str(old)], "drive firmware '0.5'")
     # a log at another period (the check itself: an emulated odrive run at another period skips cycles)
     fitted = read_log(logs["free"])
     args = argparse.Namespace(validate=str(logs["free"]), period=None, axis=None, drive=None)
