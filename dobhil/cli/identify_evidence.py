@@ -7,6 +7,8 @@ from __future__ import annotations
 import argparse
 import math
 import os
+from collections.abc import Mapping
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -144,7 +146,6 @@ def frf_info(result: Any, logs: Any, parts: Any, paths: list[str]) -> list[dict[
     """Each fitted segment's response, in its own log (``paths``: the files, in the order of
     ``logs``; a multisine is timed by its log's cycles)."""
     from dobhil.identify.data import Segment
-    from dobhil.identify.fit import simulate
     from dobhil.identify.frf import segment_response
     values = _values(result)
     delay = result.estimates["delay"]
@@ -157,9 +158,7 @@ def frf_info(result: Any, logs: Any, parts: Any, paths: list[str]) -> list[dict[
             # the model from the segment's fitted initial state, on the log's own torque history
             initial = result.initial[index] if index < len(result.initial) else None
             index += 1
-            r = segment_response(one, local, values, exc,
-                                 simulate=lambda v, one=one, local=local, initial=initial:
-                                 simulate(v, one, local, initial))
+            r = segment_response(one, local, values, exc, simulate=partial(_simulated, one, local, initial))
             m = r.measured
             inside = m.within(r.model)
             entry: dict[str, Any] = {
@@ -178,6 +177,12 @@ def frf_info(result: Any, logs: Any, parts: Any, paths: list[str]) -> list[dict[
             entry["_response"] = r
             out.append(entry)
     return out
+
+
+def _simulated(data: Any, segment: Any, initial: tuple[float, float] | None,
+               values: Mapping[str, float]) -> tuple[np.ndarray, np.ndarray]:
+    from dobhil.identify.fit import simulate
+    return simulate(values, data, segment, initial)
 
 
 def frf_lines(entries: list[dict[str, Any]]) -> list[str]:
