@@ -36,6 +36,8 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p.add_argument("--out", type=Path, metavar="F.yaml", help="write the config overlay (for --set-file)")
     p.add_argument("--json", action="store_true", help="print the result as JSON")
     p.add_argument("--plot", type=Path, metavar="DIR", help="measured vs model figures, one per segment")
+    from dobhil.cli.identify_evidence import add_arguments
+    add_arguments(p)
     p.set_defaults(func=run)
     c = sub.add_parser("compare", help="RMS of the force difference of two recorded runs")
     c.add_argument("first", metavar="A.mcap")
@@ -62,6 +64,8 @@ def run(args: argparse.Namespace) -> int:
         one = read_log(name, profile=profile, period=args.period, axis=args.axis)
         logs.append((one, tuple(parse_segment(s, one) for s in args.segment) or find_segments(one)))
     data, parts = join(logs)
+    from dobhil.cli import identify_evidence as evidence
+    held_out = evidence.read_validation(args, data) if args.validate else None
     from dobhil.cli.progress import progress
     from dobhil.identify.fit import identify
     with progress("identify", unit="simulation", quiet=args.json) as shown:
@@ -74,15 +78,23 @@ def run(args: argparse.Namespace) -> int:
         notes.append(coupling_note(args.log, args.axis))
     if any(notes):
         info["note"] = "; ".join(n for n in notes if n)
+    frf = evidence.frf_info(result, logs, parts, args.log) if args.frf else []
+    if frf:
+        info["frf"] = [{k: v for k, v in e.items() if not k.startswith("_")} for e in frf]
+    if held_out is not None:
+        info["validation"] = evidence.validation_info(result, *held_out)
     if args.out:
         _write_overlay(result.overlay(), info, args.out)
     if args.plot:
-        for path in _figures(result, data, parts, args.plot):
+        for path in _figures(result, data, parts, args.plot) + evidence.frf_figures(frf, args.plot):
             sys.stderr.write(f"wrote {path}\n")
     if args.json:
         print(json.dumps(info))
     else:
         _print(info)
+        extra = evidence.frf_lines(frf) + (evidence.validation_lines(info["validation"]) if held_out else [])
+        if extra:
+            print("\n".join(extra))
     return 0
 
 
@@ -208,7 +220,8 @@ def overlay_text(overlay: dict[str, Any], info: dict[str, Any]) -> str:
             note = f"  # {whole}95 % [{e['low']:.6g}, {e['high']:.6g}]"
         shown = repr(float(value)) if isinstance(value, float) else repr(int(value))
         lines.append(f"{key}: {shown}{note}")
-    return "\n".join(lines) + "\n"
+    from dobhil.identify.intervals import section_text
+    return "\n".join(lines) + "\n" + section_text(info)
 
 
 def _write_overlay(overlay: dict[str, Any], info: dict[str, Any], path: Path) -> None:

@@ -49,10 +49,13 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
                            "grid times the --uncertainty box; then checks the design on a --grid fine grid."))
     add_config_args(p)
     add_axis_arg(p)
-    p.add_argument("--range", dest="ranges", action="append", required=True, metavar="KEY=LO:HI",
+    p.add_argument("--range", dest="ranges", action="append", default=[], metavar="KEY=LO:HI",
                    help="a plant or environment key's range (repeatable); log spaced when HI/LO >= 10")
     p.add_argument("--uncertainty", action="append", default=[], metavar="KEY=±P%",
                    help="a plant or environment key known to ±P %% (its ends and centre are checked)")
+    p.add_argument("--uncertainty-from", metavar="OVERLAY.yaml",
+                   help="the identified 95 %% intervals of an overlay of dobhil identify --out as the box (each "
+                        "interval's ends and estimate are checked; keys outside the linear loop left out)")
     p.add_argument("--objective", choices=("rise_time", "bandwidth"), default="rise_time",
                    help="minimise the worst 10-90 %% rise time (default) or maximise the worst -3 dB "
                    "bandwidth of reference -> true force")
@@ -107,6 +110,12 @@ def _robust_keys(args: argparse.Namespace) -> tuple[list[Range], list[Uncertaint
     from dobhil.tune.problem import parse_range, parse_uncertainty
     ranges = [parse_range(s) for s in args.ranges]
     uncertainties = [parse_uncertainty(s) for s in args.uncertainty]
+    if args.uncertainty_from:
+        from dobhil.cli.identified_box import identified_box
+        uncertainties += identified_box(args.uncertainty_from)
+    if not ranges and not uncertainties:
+        raise ConfigError("no robust set: give --range KEY=LO:HI, --uncertainty KEY=±P% or --uncertainty-from "
+                          "OVERLAY.yaml")
     keys = [r.key for r in ranges] + [u.key for u in uncertainties]
     for k in keys:
         if keys.count(k) > 1:
