@@ -33,6 +33,9 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p.add_argument("--axis", metavar="NAME",
                    help="the axis of a log of several axes to identify (its records and its bus' frames; "
                    "a coupled axis' environment is its coupling plus its own)")
+    p.add_argument("--method", choices=("auto", "closed-loop", "open-loop"), default="auto",
+                   help="auto (default): a force run of one dobhil log in closed loop (its recorded controller "
+                   "simulated from the reference), anything else open loop (output error on the torque sent)")
     p.add_argument("--out", type=Path, metavar="F.yaml", help="write the config overlay (for --set-file)")
     p.add_argument("--json", action="store_true", help="print the result as JSON")
     p.add_argument("--plot", type=Path, metavar="DIR", help="measured vs model figures, one per segment")
@@ -57,6 +60,9 @@ def run(args: argparse.Namespace) -> int:
     if args.plot:
         check_output_dir(args.plot, ["identify_segment_0.png"], inputs=args.log, what="--plot")
     profile = None if args.drive is None else load_profile(args.drive)
+    from dobhil.identify.choose import closed_loop_wanted
+    if closed_loop_wanted(args):
+        return _closed_loop(args)
     logs = []
     for name in args.log:
         one = read_log(name, profile=profile, period=args.period, axis=args.axis)
@@ -68,6 +74,8 @@ def run(args: argparse.Namespace) -> int:
         result = identify(data, [s for part in parts for s in part.segments],
                           progress=lambda stage: shown.update(1, stage))
     info = summary(result, data, parts)
+    from dobhil.identify.closedloop import OPEN_LOOP
+    info["method"] = OPEN_LOOP
     notes = [gaps_note(one) for one, _ in logs if gaps_note(one)]
     if args.axis is not None:
         info["axis"] = args.axis
@@ -84,6 +92,37 @@ def run(args: argparse.Namespace) -> int:
     else:
         _print(info)
     return 0
+
+
+def _closed_loop(args: argparse.Namespace) -> int:
+    """identify by simulating the recorded controller in closed loop (:mod:`dobhil.identify.closedloop`)."""
+    from dobhil.cli.progress import progress
+    from dobhil.identify.closedloop import CLOSED_LOOP, closed_loop_record, identify_closed_loop
+    from dobhil.identify.data import Part
+    record = closed_loop_record(args.log[0], axis=args.axis)
+    with progress("identify", unit="simulation", quiet=args.json) as shown:
+        result = identify_closed_loop(record, progress=lambda stage: shown.update(1, stage))
+    data = argparse.Namespace(source=record.source, protocol="",
+                              period=record.model.period)
+    info = summary(result, data, (Part(record.source, 0, record.samples, result.segments),))
+    info["protocol"] = _protocol_of(args.log[0])
+    info["method"] = CLOSED_LOOP
+    if args.axis is not None:
+        info["axis"] = args.axis
+    if args.out:
+        _write_overlay(result.overlay(), info, args.out)
+    if args.json:
+        print(json.dumps(info))
+    else:
+        _print(info)
+    return 0
+
+
+def _protocol_of(log: str) -> str:
+    from dobhil.drives.decode import recorded_profile
+    from dobhil.recording.reader import open_log
+    with open_log(log) as opened:
+        return recorded_profile(opened.metadata.get("drive"), log).protocol
 
 
 def coupling_note(logs: list[str], axis: str) -> str:
@@ -165,6 +204,8 @@ def _print(info: dict[str, Any]) -> None:
     axis = f" axis {info['axis']}" if info.get("axis") else ""
     print(f"identified {info['file']}{axis} ({info['protocol']}, {info['samples']} samples at T = "
           f"{info['period']:g} s): {spans}")
+    if info.get("method"):
+        print(f"method: {info['method']}")
     if info.get("note"):
         print(f"note: {info['note']}")
     for name, e in info["estimates"].items():
