@@ -63,7 +63,10 @@ def run(args: argparse.Namespace) -> int:
     profile = None if args.drive is None else load_profile(args.drive)
     from dobhil.identify.choose import closed_loop_wanted
     if closed_loop_wanted(args):
-        return _closed_loop(args)
+        # the checks of any log first (its protocol against --drive's, some motion), and
+        # whether the run reached its environment
+        one = read_log(args.log[0], profile=profile, axis=args.axis)
+        return _closed_loop(args, any(s.kind == "contact" for s in find_segments(one)))
     logs = []
     for name in args.log:
         one = read_log(name, profile=profile, period=args.period, axis=args.axis)
@@ -95,14 +98,14 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _closed_loop(args: argparse.Namespace) -> int:
+def _closed_loop(args: argparse.Namespace, contact: bool) -> int:
     """identify by simulating the recorded controller in closed loop (:mod:`dobhil.identify.closedloop`)."""
     from dobhil.cli.progress import progress
     from dobhil.identify.closedloop import CLOSED_LOOP, closed_loop_record, identify_closed_loop
     from dobhil.identify.data import Part
     record = closed_loop_record(args.log[0], axis=args.axis)
     with progress("identify", unit="simulation", quiet=args.json) as shown:
-        result = identify_closed_loop(record, progress=lambda stage: shown.update(1, stage))
+        result = identify_closed_loop(record, contact=contact, progress=lambda stage: shown.update(1, stage))
     data = argparse.Namespace(source=record.source, protocol="",
                               period=record.model.period)
     info = summary(result, data, (Part(record.source, 0, record.samples, result.segments),))
@@ -112,11 +115,28 @@ def _closed_loop(args: argparse.Namespace) -> int:
         info["axis"] = args.axis
     if args.out:
         _write_overlay(result.overlay(), info, args.out)
+    if args.plot:
+        sys.stderr.write(f"wrote {_closed_loop_figure(result, record, args.plot)}\n")
     if args.json:
         print(json.dumps(info))
     else:
         _print(info)
     return 0
+
+
+def _closed_loop_figure(result: Any, record: Any, out: Path) -> Path:
+    """The measured motion against the closed loop simulated with the identifiable values."""
+    import numpy as np
+
+    from dobhil.identify.closedloop import simulate_loop
+    from dobhil.plotting.identify_figures import measured_vs_model
+    values = {n: e.value for n, e in result.estimates.items() if e.identifiable}
+    sim = simulate_loop(values, record)
+    out.mkdir(parents=True, exist_ok=True)
+    t = record.model.period * np.arange(record.samples)
+    return Path(measured_vs_model(t, (record.position, record.velocity), (sim[:, 0], sim[:, 1]),
+                                  f"{record.source}: closed loop simulated from the reference",
+                                  out / "identify_segment_0.png", torque=record.torque))
 
 
 def _protocol_of(log: str) -> str:

@@ -329,14 +329,19 @@ class _Problem:
     """The residual of :func:`identify_closed_loop` over the parameters of :data:`FITTED`,
     in units scaled by ``scale`` (the optimiser sees numbers near 1)."""
 
-    def __init__(self, record: LoopRecord, scale: Array,
+    def __init__(self, record: LoopRecord, scale: Array, vary: Array,
                  progress: Callable[[str], object] | None) -> None:
-        self.record, self.scale, self.progress = record, scale, progress
+        self.record, self.scale, self.vary, self.progress = record, scale, vary, progress
         self.weights = (1.0, 1.0)
         self.stage = "closed-loop fit"
 
     def values(self, x: Array) -> dict[str, float]:
-        return dict(zip(_VARIED, (x * self.scale).tolist()))
+        """The plant of the varied ``x`` (scaled); the held environment of a free run: none."""
+        full = dict(zip(_VARIED, self.scale.tolist()))
+        full.update(zip((_VARIED[i] for i in self.vary), (x * self.scale[self.vary]).tolist()))
+        if "stiffness" not in (_VARIED[i] for i in self.vary):
+            full.update(stiffness=0.0, damping=0.0, contact_position=math.inf)
+        return full
 
     def parts(self, x: Array) -> tuple[Array, Array]:
         out = simulate_loop(self.values(x), self.record)
@@ -366,15 +371,17 @@ def _grid_starts(problem: _Problem, x: Array) -> list[Array]:
     value of the environment is to be trusted (an emulated run records the truth, a real
     one a guess). 144 simulations, ~1 ms each on 4000 samples."""
     scored: list[tuple[float, Array]] = []
+    contact = len(problem.vary) == len(_VARIED)
     for f in _GRID_INERTIA:
         j = x[0] * f * problem.scale[0]
-        for k in _GRID_STIFFNESS:
+        for k in _GRID_STIFFNESS if contact else _GRID_STIFFNESS[:1]:
             trial = x.copy()
             trial[0] = x[0] * f
             trial[2] = k / problem.scale[2]
             trial[3] = 0.4 * math.sqrt(k * j) / problem.scale[3]
-            rv, _ = problem.parts(trial)
-            scored.append((float(rv @ rv), trial))
+            sub = trial[problem.vary]
+            rv, _ = problem.parts(sub)
+            scored.append((float(rv @ rv), sub))
     scored.sort(key=lambda item: item[0])
     return [trial for _, trial in scored[:_STARTS]]
 
@@ -415,30 +422,37 @@ def _sandwich(jac: Array, r: Array, samples: int) -> Array | None:
     return cov / np.outer(norms, norms)
 
 
-def identify_closed_loop(record: LoopRecord, *,
+def identify_closed_loop(record: LoopRecord, *, contact: bool = True,
                          progress: Callable[[str], object] | None = None) -> IdentResult:
     """Fit the plant and environment to a force run by simulating its controller in closed
     loop (see the module docstring). The estimates are those of :func:`dobhil.identify.fit.identify`
-    (Coulomb friction and the torque gain reported not identifiable: held at 0 and 1)."""
+    (Coulomb friction and the torque gain reported not identifiable: held at 0 and 1).
+    ``contact`` False: a run that never reached its environment (no contact segment found,
+    :func:`dobhil.identify.data.find_segments`): the servo alone is fitted, the environment
+    reported not identifiable."""
     start = _x0(record)
     scale = np.array([abs(start[n]) or 1.0 for n in _VARIED])
     scale[4] = max(abs(start["contact_position"]), 1e-3)
     scale[5] = record.model.period
     scale[2], scale[3] = 1e4, 1e2
     scale[6] = max(record.model.count, 1e-6)
-    problem = _Problem(record, scale, progress)
-    lo, hi = _bounds(record, start)
-    x = np.clip(np.array([start[n] for n in _VARIED]) / scale, lo / scale, hi / scale)
+    vary = np.array([i for i, n in enumerate(_VARIED)
+                     if contact or n not in ("stiffness", "damping", "contact_position")])
+    problem = _Problem(record, scale, vary, progress)
+    full_lo, full_hi = _bounds(record, start)
+    lo, hi = full_lo[vary], full_hi[vary]
+    scale_v = scale[vary]
+    x = np.clip(np.array([start[n] for n in _VARIED]) / scale, full_lo / scale, full_hi / scale)
     starts = _grid_starts(problem, x)
     rv, ru = problem.parts(starts[0])
     problem.weights = _weights(rv, ru, record)
-    fits = [_local(problem, start_x, lo / scale, hi / scale) for start_x in starts]
+    fits = [_local(problem, start_x, lo / scale_v, hi / scale_v) for start_x in starts]
     fit = min(fits, key=lambda f: float(f.cost))
     x = fit.x
     for _ in range(_ROUNDS):
         rv, ru = problem.parts(x)
         problem.weights = _weights(rv, ru, record)
-        fit = _local(problem, x, lo / scale, hi / scale)
+        fit = _local(problem, x, lo / scale_v, hi / scale_v)
         x = fit.x
     rv, ru = problem.parts(x)
     problem.weights = _weights(rv, ru, record)
@@ -446,11 +460,17 @@ def identify_closed_loop(record: LoopRecord, *,
     jac = np.asarray(fit.jac, float)
     cov = _sandwich(jac, r, record.samples)
     values = problem.values(x)
-    with np.errstate(invalid="ignore"):   # a rounding-negative variance: NaN, not identifiable
-        sd = (np.sqrt(np.diag(cov)) * scale if cov is not None else np.full(len(_VARIED), math.nan))
-    return IdentResult(estimates=_estimates(values, sd, record, lo, hi),
-                       correlations=_correlations(cov), residual=_whiteness(rv, _rms(record.velocity)),
-                       segments=(Segment(0, record.samples, "contact"),), period=record.model.period,
+    sd = np.full(len(_VARIED), math.nan)
+    full_cov = np.full((len(_VARIED), len(_VARIED)), math.nan)
+    if cov is not None:
+        with np.errstate(invalid="ignore"):   # a rounding-negative variance: NaN, not identifiable
+            sd[vary] = np.sqrt(np.diag(cov)) * scale_v
+        full_cov[np.ix_(vary, vary)] = cov
+    return IdentResult(estimates=_estimates(values, sd, record, full_lo, full_hi, contact),
+                       correlations=_correlations(full_cov if cov is not None else None),
+                       residual=_whiteness(rv, _rms(record.velocity)),
+                       segments=(Segment(0, record.samples, "contact" if contact else "free"),),
+                       period=record.model.period,
                        initial=((record.initial[0], 0.0),))
 
 
@@ -472,7 +492,7 @@ def _rms(x: Array) -> float:
 
 
 def _estimates(values: Mapping[str, float], sd: Array, record: LoopRecord, lo: Array,
-               hi: Array) -> dict[str, Estimate]:
+               hi: Array, contact: bool) -> dict[str, Estimate]:
     from dobhil.identify.fit import PARAMETERS
     z = float(scipy.stats.norm.ppf(0.5 + LEVEL / 2))
     floors = {"viscous_friction": 0.01 * (float(np.max(np.abs(record.torque))) or 1.0)
@@ -484,6 +504,9 @@ def _estimates(values: Mapping[str, float], sd: Array, record: LoopRecord, lo: A
             why = ("held at 1: torque and motion alone cannot tell it" if name == "torque_gain"
                    else "held at 0: the closed-loop model has no Coulomb friction")
             out[name] = Estimate(name, nan, nan, nan, nan, False, why)
+            continue
+        if not contact and name in ("stiffness", "damping", "contact_position"):
+            out[name] = Estimate(name, nan, nan, nan, nan, False, "no contact segment in the record")
             continue
         i = FITTED.index(name)
         value, s = values[name], float(sd[i])
@@ -505,5 +528,7 @@ def _correlations(cov: Array | None) -> dict[tuple[str, str], float]:
         return {}
     with np.errstate(invalid="ignore"):
         sd = np.sqrt(np.diag(cov))
+    # the nuisance (the initial position) and held parameters (NaN) left out
     return {(a, b): float(np.clip(cov[i, j] / (sd[i] * sd[j]), -1.0, 1.0))
-            for i, a in enumerate(FITTED) for j, b in enumerate(FITTED) if i < j}  # the nuisance left out
+            for i, a in enumerate(FITTED) for j, b in enumerate(FITTED)
+            if i < j and np.isfinite(sd[i] * sd[j]) and sd[i] * sd[j] > 0}
