@@ -992,10 +992,11 @@ def bench_identify(seconds: float = 60.0) -> dict[str, float]:
             "identify_data_seconds_per_minute_of_log": data_only / minutes}
 
 
-#: the closed-loop bench's force run: the demo in contact under a 1-60 Hz chirp around 1 N m,
-#: the hidden plant and sensor of tests/identify/test_closedloop.py
-CLOSED_LOOP_SETS = ("reference.kind=chirp", "reference.start=0", "reference.offset=1.0", "reference.amplitude=0.9",
-                    "reference.frequency=1", "reference.frequency_end=60", "plant.inertia=0.37",
+#: the closed-loop bench's force run: the demo in contact under a 1-30 Hz chirp around 0.8 N m,
+#: the hidden plant and sensor of docs/identify.md's closed-loop example (within the 2 N m limit:
+#: around 1 N m the noise drove it to the instability watch's saturation stop at 53 s)
+CLOSED_LOOP_SETS = ("reference.kind=chirp", "reference.start=0", "reference.offset=0.8", "reference.amplitude=0.5",
+                    "reference.frequency=1", "reference.frequency_end=30", "plant.inertia=0.37",
                     "plant.viscous_friction=0.05", "environment.stiffness=15000", "environment.damping=60",
                     "sensor.encoder_resolution=16384", "sensor.velocity_noise=0.05", "sensor.seed=1",
                     "design.input_delay=0.0003")
@@ -1007,8 +1008,8 @@ def _closed_loop_log(path: Path, seconds: float) -> Path:
     args = ["run", "demo", "--emulate", "--lockstep", "--log", str(path), "--set", f"loop.duration={seconds}"]
     for item in CLOSED_LOOP_SETS:
         args += ["--set", item]
-    if dobhil(args) not in (0, 1) or not path.is_file():
-        raise RuntimeError(f"the force run for the closed-loop identify bench failed: {' '.join(args)}")
+    if dobhil(args) != 0 or not path.is_file():
+        raise RuntimeError(f"the force run for the closed-loop identify bench did not last: {' '.join(args)}")
     return path
 
 
