@@ -1018,11 +1018,12 @@ def bench_identify_closed_loop(seconds: float = 60.0) -> dict[str, float]:
     loop (its controller simulated from the reference), per minute of log: the best of two,
     the first warmed untimed (numba's compilation, cached on disk, is no minute of log)."""
     from dobhil.identify.closedloop import closed_loop_record, identify_closed_loop
+    from dobhil.runtime.session import build_controller
     with tempfile.TemporaryDirectory() as tmp:
         log = _closed_loop_log(Path(tmp) / "force.mcap", seconds)
         short = _closed_loop_log(Path(tmp) / "warm.mcap", 0.2)
-        identify_closed_loop(closed_loop_record(str(short)))
-        whole = timed(lambda: identify_closed_loop(closed_loop_record(str(log))), repeat=2)
+        identify_closed_loop(closed_loop_record(str(short), build_controller))
+        whole = timed(lambda: identify_closed_loop(closed_loop_record(str(log), build_controller)), repeat=2)
     return {"identify_closed_loop_seconds_per_minute_of_log": whole / (seconds / 60.0)}
 
 

@@ -103,7 +103,8 @@ def _closed_loop(args: argparse.Namespace, contact: bool) -> int:
     from dobhil.cli.progress import progress
     from dobhil.identify.closedloop import CLOSED_LOOP, closed_loop_record, identify_closed_loop
     from dobhil.identify.data import Part
-    record = closed_loop_record(args.log[0], axis=args.axis)
+    from dobhil.runtime.session import build_controller
+    record = closed_loop_record(args.log[0], build_controller, axis=args.axis)
     with progress("identify", unit="simulation", quiet=args.json) as shown:
         result = identify_closed_loop(record, contact=contact, progress=lambda stage: shown.update(1, stage))
     data = argparse.Namespace(source=record.source, protocol="",

@@ -88,11 +88,11 @@ class LoopModel:
     period: float
 
     @classmethod
-    def of(cls, config: Any, profile: Any) -> LoopModel:
-        """The runtime's controller of ``config`` on ``profile``: built by
-        :func:`~dobhil.runtime.session.build_controller`, the runtime's and replay's own."""
-        from dobhil.runtime.session import build_controller
-        ctrl = build_controller(config, profile)
+    def of(cls, ctrl: Any, config: Any) -> LoopModel:
+        """The model of the runtime's controller ``ctrl`` (a
+        :class:`dobhil.runtime.controller.ForceController` built by
+        :func:`dobhil.runtime.session.build_controller`, the runtime's and replay's own: the
+        caller builds it, this layer does not import the runtime) on the run of ``config``."""
         ss = ctrl.ss
         res = int(config.sensor.encoder_resolution)
         limit = float(config.plant.torque_limit)
@@ -130,12 +130,15 @@ class LoopRecord:
         return int(self.reference.size)
 
 
-def closed_loop_record(path: str, *, axis: str | None = None) -> LoopRecord:
+def closed_loop_record(path: str, build: Callable[[Any, Any], Any], *,
+                       axis: str | None = None) -> LoopRecord:
     """The :class:`LoopRecord` of a dobhil run's log (``/drive/feedback`` and ``/controller``
     of every cycle from 0 without a gap, the recorded config and drive profile).
     LogFileError (one line) for a log that is not a run's, or whose cycles have a gap
     before the end (a late real-time cycle: the loop it recorded is not one the simulation
-    can follow from the start -- the cycles up to the gap are used)."""
+    can follow from the start -- the cycles up to the gap are used). ``build(config, profile)``:
+    the runtime's controller of the recorded config and profile
+    (:func:`dobhil.runtime.session.build_controller`)."""
     import os
 
     from orjson import loads
@@ -174,7 +177,7 @@ def closed_loop_record(path: str, *, axis: str | None = None) -> LoopRecord:
     recorded = {k: float(v) for k, v in config.flat().items()
                 if k.split(".")[0] in ("plant", "environment", "design")
                 and isinstance(v, (int, float)) and not isinstance(v, bool)}
-    return LoopRecord(model=LoopModel.of(config, profile), reference=rows[:, 2],
+    return LoopRecord(model=LoopModel.of(build(config, profile), config), reference=rows[:, 2],
                       position=rows[:, 0], velocity=rows[:, 1], torque=rows[:, 3],
                       initial=fb[-1], source=os.path.basename(name), mode=str(config.loop.mode),
                       recorded=MappingProxyType(recorded))

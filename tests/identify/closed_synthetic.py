@@ -88,7 +88,7 @@ def record(hidden: Hidden, seed: int, reference: np.ndarray, *extra: str) -> Loo
         now = end
     recorded = {k: float(v) for k, v in cfg.flat().items()  # type: ignore[attr-defined]
                 if k.split(".")[0] == "design" and isinstance(v, (int, float)) and not isinstance(v, bool)}
-    return LoopRecord(model=LoopModel.of(cfg, profile), reference=np.asarray(reference, float),
+    return LoopRecord(model=LoopModel.of(ctrl, cfg), reference=np.asarray(reference, float),
                       position=rows[:, 0], velocity=rows[:, 1], torque=rows[:, 2], initial=initial,
                       source="", mode="force", recorded=MappingProxyType(recorded))
 
