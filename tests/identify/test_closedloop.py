@@ -48,7 +48,7 @@ def test_closed_loop_covers_a_noisy_force_run_the_open_loop_fit_misses() -> None
     misses the friction or the delay.
 
     One record, not a coverage: over ten seeds of this record the closed-loop intervals held
-    J in 5, K in 3 (docs/identify.md, "Closed-loop identification")."""
+    J in 6, K in 3 (docs/identify.md, "Closed-loop identification")."""
     run = record(Hidden(), 1, chirp(4000, 1, 60, 1.0, 0.9), "design.identified_inertia=0.125")
     closed = identify_closed_loop(run).estimates
     for name in ("inertia", "stiffness", "damping"):
