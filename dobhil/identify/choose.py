@@ -30,7 +30,8 @@ def recorded_mode(path: str | os.PathLike[str], axis: str | None = None) -> str 
 
 def closed_loop_wanted(args: Any) -> bool:
     """True for ``--method closed-loop``, and for ``auto`` on one force run's log without
-    ``--segment``, ``--frf`` or ``--validate``; ConfigError (one line) when closed loop is asked for what it cannot fit."""
+    ``--segment``, ``--frf`` or ``--validate``; ConfigError (one line) when closed loop is
+    asked for what it cannot fit."""
     if args.method == "open-loop":
         return False
     # The measured frequency responses and the validation simulate the open-loop model on the
