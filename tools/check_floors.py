@@ -163,7 +163,7 @@ def main(argv: list[str] | None = None) -> int:
             ok = False
             break
     code, frozen = _run([str(py), "-m", "pip", "freeze", "--all"], log)
-    result["freeze"] = frozen.split() if code == 0 else []
+    result["freeze"] = frozen.splitlines() if code == 0 else []  # one requirement a line
     result["ok"] = ok
     result["seconds"] = round(time.monotonic() - t0, 1)
     if args.json:
