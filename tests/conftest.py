@@ -1,14 +1,17 @@
 """Fail any test that leaks a non-daemon thread or a python-can bus it did not shut down; a
 module's in-process Dask cluster (``dask_client``) for the tests that run work on Dask; no
 wall-clock deadline on hypothesis' examples; the tests of ``tests/socketcan`` run in the kernel
-guest (tools/canvm/pytest_canvm.py)."""
+guest (tools/canvm/pytest_canvm.py); the tests listed in ``tests/slow-tests.txt`` marked ``slow``
+(``pytest -m "not slow"``: the edit loop's run)."""
 
 from __future__ import annotations
 
 import importlib.util
 import logging
+import os
 import signal
 import sys
+import tempfile
 import threading
 import weakref
 from collections.abc import Iterator
@@ -18,12 +21,26 @@ from typing import Any
 import can
 import pytest
 from hypothesis import settings
+from slow_list import SLOW_LIST, is_listed, slow_entries
 
 # Hypothesis fails an example that takes over 200 ms by default: a wall-clock assertion, which a
 # busy CI machine breaks (seen: the first example of a CiA 402 codec test took 465 ms under load,
 # 22 ms when repeated). The suite must pass on a busy machine, so no deadline anywhere.
 settings.register_profile("dobhil", deadline=None)
 settings.load_profile("dobhil")
+
+# PYTHONDONTWRITEBYTECODE (set on this machine and by .ci/run, to keep __pycache__ out of the
+# tree) makes every process compile from source: each xdist worker rewrote and compiled all
+# test modules (collection 19-23 s of CPU per worker, 7 s with their bytecode cached), and every
+# `python -m dobhil` the tests start compiled dobhil again. The tests keep the tree as clean:
+# bytecode goes to a cache of this user's in the temporary directory (sys.pycache_prefix,
+# which pytest's assertion rewriting honours too), for this process and the ones it starts.
+if sys.dont_write_bytecode and not sys.pycache_prefix:
+    _BYTECODE = str(Path(tempfile.gettempdir()) / f"dobhil-test-bytecode-{os.getuid()}")
+    sys.dont_write_bytecode = False
+    sys.pycache_prefix = _BYTECODE
+    os.environ.pop("PYTHONDONTWRITEBYTECODE", None)
+    os.environ["PYTHONPYCACHEPREFIX"] = _BYTECODE
 
 # A shell without job control starts a background command with SIGINT ignored, and an ignored
 # signal stays ignored across exec: every process the tests start would then ignore the Ctrl-C
@@ -43,6 +60,13 @@ def pytest_configure(config: pytest.Config) -> None:
     sys.modules[spec.name] = module
     spec.loader.exec_module(module)
     config.pluginmanager.register(module.CanvmPlugin(config), "canvm")
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    entries = slow_entries(SLOW_LIST.read_text(encoding="utf-8"))
+    for item in items:
+        if is_listed(item.nodeid, entries):
+            item.add_marker(pytest.mark.slow)
 
 
 class _ShutdownWarnings(logging.Handler):

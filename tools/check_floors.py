@@ -1,9 +1,11 @@
 #!/usr/bin/env python3
 """Run the test suite against the declared minimum of every dependency.
 
-Each ``name>=X`` in ``pyproject.toml`` (the runtime dependencies and the ``test``
-extra) becomes ``name==X`` in a fresh virtual environment without system
-site-packages; dobhil itself is installed from this checkout without dependencies,
+Each ``name>=X`` in ``pyproject.toml`` (the runtime dependencies and the ``live``
+and ``test`` extras) becomes ``name==X`` in a fresh virtual environment without
+system site-packages; a requirement pinned ``name==X`` is installed as pinned (it
+has no range to be at the bottom of); dobhil itself is installed from this
+checkout without dependencies,
 ``pip check`` must find the set consistent, and then the whole test suite runs
 there. A floor that cannot be installed (no wheel for this Python, no such
 release, a conflict) is reported as such: a lower bound is only true when the code
@@ -29,45 +31,73 @@ import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 ROOT = Path(__file__).resolve().parents[1]
-#: extras whose floors are checked with the runtime dependencies
-EXTRAS = ("test",)
+#: extras whose floors are checked with the runtime dependencies (``lint`` is CI's
+#: pinned tool set, not something the suite imports)
+EXTRAS = ("live", "test")
 _REQ = re.compile(r"^\s*([A-Za-z0-9][A-Za-z0-9._-]*)\s*(\[[^\]]*\])?\s*(.*?)\s*(;.*)?$")
-_FLOOR = re.compile(r">=\s*([0-9][^,\s]*)")
+_FLOOR = re.compile(r"(?:>=|~=)\s*([0-9][^,\s]*)")  # ~=X is >=X too
+_EXACT = re.compile(r"^==\s*([0-9][^,\s]*)$")
 
 
 @dataclass(frozen=True)
 class Floor:
     name: str
     spec: str  # as declared, e.g. ">=1.5"
-    pin: str | None  # "name==X", None when there is no lower bound
+    pin: str | None  # "name==X" (the floor, or the declared exact pin), None when there is no lower bound
+    exact: bool = False  # declared "==X": installed as pinned, not a floor
 
 
-def _load_pyproject() -> dict:  # type: ignore[type-arg]
+def _key(name: str) -> str:
+    """The name as pip compares it (PEP 503: case, "-", "_" and "." alike)."""
+    return re.sub(r"[-_.]+", "-", name).lower()
+
+
+def _load_pyproject() -> dict[str, Any]:
     try:
         import tomllib
     except ModuleNotFoundError:  # Python 3.10
-        import tomli as tomllib  # type: ignore[no-redef]
+        import tomli as tomllib
     with (ROOT / "pyproject.toml").open("rb") as fh:
         return tomllib.load(fh)
 
 
+def floor_of(req: str) -> Floor | None:
+    """One requirement string (PEP 508, as pyproject declares it) and its pin, None when it
+    is not a requirement (a blank or a comment)."""
+    m = _REQ.match(req)
+    if m is None:
+        return None
+    name, spec, marker = m.group(1), m.group(3), m.group(4) or ""
+    low, exact = _FLOOR.search(spec), _EXACT.match(spec)
+    version = low or exact
+    pin = f"{name}=={version.group(1)}{marker}" if version else None
+    return Floor(name, spec, pin, exact is not None)
+
+
 def floors(extras: tuple[str, ...] = EXTRAS) -> list[Floor]:
-    """The declared requirements (runtime + extras) with their ``==floor`` pins."""
+    """The declared requirements (runtime + extras) with their ``==floor`` pins, each name once."""
     project = _load_pyproject()["project"]
     reqs = list(project["dependencies"])
     for extra in extras:
         reqs += project.get("optional-dependencies", {}).get(extra, [])
     out: list[Floor] = []
+    seen = {_key(project["name"])}
     for req in reqs:
-        m = _REQ.match(req)
-        if m is None or m.group(1).lower() == project["name"]:
+        floor = floor_of(req)
+        if floor is None or _key(floor.name) in seen:  # e.g. foxglove-sdk in both `live` and `test`
             continue
-        name, spec, marker = m.group(1), m.group(3), m.group(4) or ""
-        low = _FLOOR.search(spec)
-        out.append(Floor(name, spec, f"{name}=={low.group(1)}{marker}" if low else None))
+        seen.add(_key(floor.name))
+        out.append(floor)
     return out
+
+
+def pins(declared: list[Floor], candidates: list[str]) -> list[str]:
+    """What pip installs: each declared pin, or the ``--pin NAME==VERSION`` given for that name."""
+    override = {_key(p.split("==")[0].strip()): p for p in candidates}
+    return [override.get(_key(f.name), f.pin) for f in declared if f.pin is not None]
 
 
 def _run(cmd: list[str], log: Path, cwd: Path = ROOT) -> tuple[int, str]:
@@ -75,10 +105,16 @@ def _run(cmd: list[str], log: Path, cwd: Path = ROOT) -> tuple[int, str]:
     with log.open("a") as fh:
         fh.write(f"\n$ {' '.join(cmd)}\n")
         fh.flush()
-        proc = subprocess.run(cmd, cwd=cwd, env=env, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
-                              stderr=subprocess.STDOUT, text=True)
-        fh.write(proc.stdout)
-    return proc.returncode, proc.stdout
+        # line by line into the log as it comes: a suite of minutes can be followed (tail -f)
+        with subprocess.Popen(cmd, cwd=cwd, env=env, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
+                              stderr=subprocess.STDOUT, text=True) as proc:
+            assert proc.stdout is not None
+            lines = []
+            for line in proc.stdout:
+                fh.write(line)
+                fh.flush()
+                lines.append(line)
+    return proc.returncode, "".join(lines)
 
 
 def _last_line(text: str) -> str:
@@ -99,8 +135,7 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
 
     declared = floors()
-    override = {p.split("==")[0].strip().lower(): p for p in args.pin}
-    pins = [override.get(f.name.lower(), f.pin) for f in declared if f.pin]
+    installed = pins(declared, args.pin)
     unfloored = [f.name for f in declared if f.pin is None]
     work = args.keep or Path(tempfile.mkdtemp(prefix="dobhil-floors-"))
     work.mkdir(parents=True, exist_ok=True)
@@ -108,11 +143,11 @@ def main(argv: list[str] | None = None) -> int:
     py = venv / "bin" / "python"
     version = subprocess.run([args.python, "-c", "import sys; print(sys.version.split()[0])"],
                              capture_output=True, text=True, check=True).stdout.strip()
-    result: dict[str, object] = {"python": version, "pins": pins, "unfloored": unfloored, "log": str(log)}
+    result: dict[str, object] = {"python": version, "pins": installed, "unfloored": unfloored, "log": str(log)}
     t0 = time.monotonic()
     steps = [
         ("venv", [args.python, "-m", "venv", "--clear", str(venv)]),
-        ("install floors", [str(py), "-m", "pip", "install", "--quiet", *pins]),
+        ("install floors", [str(py), "-m", "pip", "install", "--quiet", *installed]),
         ("install dobhil", [str(py), "-m", "pip", "install", "--quiet", "--no-deps", str(ROOT)]),
         ("pip check", [str(py), "-m", "pip", "check"]),
         ("pytest", [str(py), "-m", "pytest", "-q", "-p", "no:cacheprovider", "--maxfail=20",
@@ -128,13 +163,13 @@ def main(argv: list[str] | None = None) -> int:
             ok = False
             break
     code, frozen = _run([str(py), "-m", "pip", "freeze", "--all"], log)
-    result["freeze"] = frozen.split() if code == 0 else []
+    result["freeze"] = frozen.splitlines() if code == 0 else []  # one requirement a line
     result["ok"] = ok
     result["seconds"] = round(time.monotonic() - t0, 1)
     if args.json:
         print(json.dumps(result, indent=2))
     else:
-        print(f"python {result['python']}; floors: {', '.join(pins)}")
+        print(f"python {result['python']}; floors: {', '.join(installed)}")
         if unfloored:
             print(f"no lower bound declared: {', '.join(unfloored)}")
         for step, _ in steps:

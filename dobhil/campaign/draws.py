@@ -22,6 +22,8 @@ class Kind(IntEnum):
     NORMAL = 0
     UNIFORM = 1
     LOGUNIFORM = 2
+    #: one key of a joint normal (:class:`JointNormal`, ``--draw-from``)
+    JOINT_NORMAL = 3
 
 
 #: the spelling of each distribution on the command line, and what its two numbers are
@@ -29,8 +31,9 @@ SPELLING: dict[Kind, tuple[str, str]] = {
     Kind.NORMAL: ("normal", "MEAN:STD"),
     Kind.UNIFORM: ("uniform", "LO:HI"),
     Kind.LOGUNIFORM: ("loguniform", "LO:HI"),
+    Kind.JOINT_NORMAL: ("joint-normal", "MEAN:STD"),
 }
-ALLOWED = ", ".join(f"{name}:{args}" for name, args in SPELLING.values())
+ALLOWED = ", ".join(f"{name}:{args}" for kind, (name, args) in SPELLING.items() if kind is not Kind.JOINT_NORMAL)
 
 #: keys a campaign sets itself (each run's emulator seed comes from its SeedSequence child)
 RESERVED = ("sensor.seed",)
@@ -50,9 +53,52 @@ class Vary:
     a: float
     b: float
     integer: bool = False
+    #: the joint distribution this key is drawn from with others (kind JOINT_NORMAL)
+    joint: JointNormal | None = None
 
     def text(self) -> str:
+        if self.joint is not None:
+            others = ", ".join(self.joint.keys)
+            return f"{self.key}=joint-normal:{self.a!r}:{self.b!r} (with {others} from {self.joint.source})"
         return f"{self.key}={SPELLING[self.kind][0]}:{self.a!r}:{self.b!r}"
+
+
+#: a joint draw may be rejected (outside its physical bounds) this many times per run; a
+#: distribution that rejects so often is refused up front (:meth:`JointNormal.acceptance`)
+MAX_REJECTIONS = 1000
+
+
+@dataclass(frozen=True)
+class JointNormal:
+    """A multivariate normal over ``keys`` (``mean``, ``covariance``: an identification's
+    estimates and their covariance), truncated to the physical bounds: a key with ``lower[i]``
+    finite is drawn again (the whole vector) while below it. Rejection keeps the truncated
+    distribution exact: the normal conditioned on every key within its bound. The square root
+    of the covariance is its symmetric eigen-root (a covariance rounded to slightly indefinite
+    still draws; its negative eigenvalues count as 0)."""
+
+    keys: tuple[str, ...]
+    mean: tuple[float, ...]
+    covariance: tuple[tuple[float, ...], ...]
+    lower: tuple[float, ...]
+    source: str
+
+    def root(self) -> np.ndarray:
+        w, v = np.linalg.eigh(np.array(self.covariance, float))
+        return np.asarray(v * np.sqrt(np.clip(w, 0.0, None)), float)
+
+    def sample(self, rng: np.random.Generator) -> dict[str, float]:
+        root, mean, lower = self.root(), np.array(self.mean), np.array(self.lower)
+        for _ in range(MAX_REJECTIONS):
+            x = mean + root @ rng.standard_normal(len(self.keys))
+            if np.all(x >= lower):
+                return dict(zip(self.keys, (float(v) for v in x)))
+        raise ValueError(f"{self.source}: {MAX_REJECTIONS} joint draws in a row below the physical bounds")
+
+    def acceptance(self, draws: int = 20_000, seed: int = 0) -> float:
+        """The fraction of untruncated draws within the bounds (estimated from ``draws``)."""
+        x = np.array(self.mean) + np.random.default_rng(seed).standard_normal((draws, len(self.keys))) @ self.root().T
+        return float(np.mean(np.all(x >= np.array(self.lower), axis=1)))
 
 
 def numeric_keys() -> list[str]:
@@ -126,7 +172,15 @@ def draw(varies: tuple[Vary, ...], seed: int, index: int) -> tuple[dict[str, flo
     (``sensor.seed``), from SeedSequence child ``index`` of ``seed`` only."""
     sequence = child(seed, index)
     rng = np.random.default_rng(sequence)
-    values = {v.key: _one(v, rng) for v in varies}
+    joint: dict[JointNormal, dict[str, float]] = {}
+    values: dict[str, float | int] = {}
+    for v in varies:
+        if v.joint is None:
+            values[v.key] = _one(v, rng)
+        else:   # the first key of a joint distribution draws all of its keys, in --vary order
+            if v.joint not in joint:
+                joint[v.joint] = v.joint.sample(rng)
+            values[v.key] = joint[v.joint][v.key]
     # the emulator's seed from the same child, independently of how many keys were drawn
     sensor_seed = int(sequence.generate_state(1, np.uint32)[0])
     return values, sensor_seed

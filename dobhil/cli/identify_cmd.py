@@ -29,13 +29,19 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
                    help="the drive profile (name or path): decodes a CAN log imported with dobhil log import; "
                    "a dobhil log must have been recorded with its protocol")
     p.add_argument("--period", type=float, metavar="SECONDS",
-                   help="a CAN log's control period (default: the median spacing of its motion frames)")
+                   help="a CAN log's control period (default: the round period the spacing of its motion frames "
+                   "scatters around: the median spacing snapped to a whole microsecond or hertz within 0.1 %%)")
     p.add_argument("--axis", metavar="NAME",
                    help="the axis of a log of several axes to identify (its records and its bus' frames; "
                    "a coupled axis' environment is its coupling plus its own)")
+    p.add_argument("--method", choices=("auto", "closed-loop", "open-loop"), default="auto",
+                   help="auto (default): a force run of one dobhil log in closed loop (its recorded controller "
+                   "simulated from the reference), anything else open loop (output error on the torque sent)")
     p.add_argument("--out", type=Path, metavar="F.yaml", help="write the config overlay (for --set-file)")
     p.add_argument("--json", action="store_true", help="print the result as JSON")
     p.add_argument("--plot", type=Path, metavar="DIR", help="measured vs model figures, one per segment")
+    from dobhil.cli.identify_evidence import add_arguments
+    add_arguments(p)
     p.set_defaults(func=run)
     c = sub.add_parser("compare", help="RMS of the force difference of two recorded runs")
     c.add_argument("first", metavar="A.mcap")
@@ -57,33 +63,100 @@ def run(args: argparse.Namespace) -> int:
     if args.plot:
         check_output_dir(args.plot, ["identify_segment_0.png"], inputs=args.log, what="--plot")
     profile = None if args.drive is None else load_profile(args.drive)
+    from dobhil.identify.choose import closed_loop_wanted
+    if closed_loop_wanted(args):
+        # the checks of any log first (its protocol against --drive's, some motion), and
+        # whether the run reached its environment
+        one = read_log(args.log[0], profile=profile, axis=args.axis)
+        return _closed_loop(args, any(s.kind == "contact" for s in find_segments(one)))
     logs = []
     for name in args.log:
         one = read_log(name, profile=profile, period=args.period, axis=args.axis)
         logs.append((one, tuple(parse_segment(s, one) for s in args.segment) or find_segments(one)))
     data, parts = join(logs)
+    from dobhil.cli import identify_evidence as evidence
+    held_out = evidence.read_validation(args, data) if args.validate else None
     from dobhil.cli.progress import progress
     from dobhil.identify.fit import identify
     with progress("identify", unit="simulation", quiet=args.json) as shown:
         result = identify(data, [s for part in parts for s in part.segments],
                           progress=lambda stage: shown.update(1, stage))
     info = summary(result, data, parts)
+    from dobhil.identify.closedloop import OPEN_LOOP
+    info["method"] = OPEN_LOOP
     notes = [gaps_note(one) for one, _ in logs if gaps_note(one)]
     if args.axis is not None:
         info["axis"] = args.axis
         notes.append(coupling_note(args.log, args.axis))
     if any(notes):
         info["note"] = "; ".join(n for n in notes if n)
+    frf = evidence.frf_info(result, logs, parts, args.log) if args.frf else []
+    if frf:
+        info["frf"] = [{k: v for k, v in e.items() if not k.startswith("_")} for e in frf]
+    if held_out is not None:
+        info["validation"] = evidence.validation_info(result, *held_out)
     if args.out:
         _write_overlay(result.overlay(), info, args.out)
     if args.plot:
-        for path in _figures(result, data, parts, args.plot):
+        for path in _figures(result, data, parts, args.plot) + evidence.frf_figures(frf, args.plot):
             sys.stderr.write(f"wrote {path}\n")
     if args.json:
         print(json.dumps(info))
     else:
         _print(info)
+        extra = evidence.frf_lines(frf) + (evidence.validation_lines(info["validation"]) if held_out else [])
+        if extra:
+            print("\n".join(extra))
     return 0
+
+
+def _closed_loop(args: argparse.Namespace, contact: bool) -> int:
+    """identify by simulating the recorded controller in closed loop (:mod:`dobhil.identify.closedloop`)."""
+    from dobhil.cli.progress import progress
+    from dobhil.identify.closedloop import CLOSED_LOOP, closed_loop_record, identify_closed_loop
+    from dobhil.identify.data import Part
+    from dobhil.runtime.session import build_controller
+    record = closed_loop_record(args.log[0], build_controller, axis=args.axis)
+    with progress("identify", unit="simulation", quiet=args.json) as shown:
+        result = identify_closed_loop(record, contact=contact, progress=lambda stage: shown.update(1, stage))
+    data = argparse.Namespace(source=record.source, protocol="",
+                              period=record.model.period)
+    info = summary(result, data, (Part(record.source, 0, record.samples, result.segments),))
+    info["protocol"] = _protocol_of(args.log[0])
+    info["method"] = CLOSED_LOOP
+    if args.axis is not None:
+        info["axis"] = args.axis
+    if args.out:
+        _write_overlay(result.overlay(), info, args.out)
+    if args.plot:
+        sys.stderr.write(f"wrote {_closed_loop_figure(result, record, args.plot)}\n")
+    if args.json:
+        print(json.dumps(info))
+    else:
+        _print(info)
+    return 0
+
+
+def _closed_loop_figure(result: Any, record: Any, out: Path) -> Path:
+    """The measured motion against the closed loop simulated with the identifiable values."""
+    import numpy as np
+
+    from dobhil.identify.closedloop import simulate_loop
+    from dobhil.plotting.identify_figures import measured_vs_model
+    values = {n: e.value for n, e in result.estimates.items() if e.identifiable}
+    sim = simulate_loop(values, record)
+    out.mkdir(parents=True, exist_ok=True)
+    t = record.model.period * np.arange(record.samples)
+    return Path(measured_vs_model(t, (record.position, record.velocity), (sim[:, 0], sim[:, 1]),
+                                  f"{record.source}: closed loop simulated from the reference",
+                                  out / "identify_segment_0.png", torque=record.torque))
+
+
+def _protocol_of(log: str) -> str:
+    from dobhil.drives.decode import recorded_profile
+    from dobhil.recording.reader import open_log
+    with open_log(log) as opened:
+        return recorded_profile(opened.metadata.get("drive"), log).protocol
 
 
 def coupling_note(logs: list[str], axis: str) -> str:
@@ -165,6 +238,8 @@ def _print(info: dict[str, Any]) -> None:
     axis = f" axis {info['axis']}" if info.get("axis") else ""
     print(f"identified {info['file']}{axis} ({info['protocol']}, {info['samples']} samples at T = "
           f"{info['period']:g} s): {spans}")
+    if info.get("method"):
+        print(f"method: {info['method']}")
     if info.get("note"):
         print(f"note: {info['note']}")
     for name, e in info["estimates"].items():
@@ -208,7 +283,8 @@ def overlay_text(overlay: dict[str, Any], info: dict[str, Any]) -> str:
             note = f"  # {whole}95 % [{e['low']:.6g}, {e['high']:.6g}]"
         shown = repr(float(value)) if isinstance(value, float) else repr(int(value))
         lines.append(f"{key}: {shown}{note}")
-    return "\n".join(lines) + "\n"
+    from dobhil.identify.intervals import section_text
+    return "\n".join(lines) + "\n" + section_text(info)
 
 
 def _write_overlay(overlay: dict[str, Any], info: dict[str, Any], path: Path) -> None:

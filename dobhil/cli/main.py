@@ -30,6 +30,7 @@ _SUBCOMMANDS: tuple[str, ...] = (
     "dobhil.cli.analyze_cmd",
     "dobhil.cli.sweep_cmd",
     "dobhil.cli.tune_cmd",
+    "dobhil.cli.certify_cmd",
     "dobhil.cli.paper_cmd",
     "dobhil.cli.run_cmd",
     "dobhil.cli.check_cmd",

@@ -39,7 +39,10 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     add_config_args(p)
     add_axis_arg(p)
     p.add_argument("--runs", type=int, required=True, metavar="N", help="number of runs")
-    p.add_argument("--vary", action="append", required=True, metavar="KEY=DIST",
+    p.add_argument("--draw-from", metavar="OVERLAY.yaml",
+                   help="draw the identified keys of an overlay of dobhil identify --out jointly: normal with its "
+                        "estimates and covariance, truncated to physical (>= 0) values")
+    p.add_argument("--vary", action="append", default=[], metavar="KEY=DIST",
                    help="a drawn numeric key (repeatable); DIST normal:MEAN:STD, uniform:LO:HI or "
                    "loguniform:LO:HI (LO > 0)")
     p.add_argument("--seed", type=int, default=0, metavar="S", help="campaign seed (default 0)")
@@ -89,6 +92,11 @@ def build_campaign(args: argparse.Namespace) -> tuple[Campaign, tuple[str, ...]]
     check_duration(args.duration)
     axis = axis_keys(args, {"vary": "--vary"}) or ""
     varies = tuple(parse_vary(v) for v in args.vary)
+    if args.draw_from:
+        from dobhil.cli.identified_box import joint_varies
+        varies += joint_varies(args.draw_from)
+    if not varies:
+        raise ConfigError("nothing to draw: give --vary KEY=DIST or --draw-from OVERLAY.yaml")
     _no_twice([v.key for v in varies])
     config = _as_path(args.config)
     set_files = tuple(_as_path(f) for f in args.set_files)

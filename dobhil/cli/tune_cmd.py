@@ -49,10 +49,13 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
                            "grid times the --uncertainty box; then checks the design on a --grid fine grid."))
     add_config_args(p)
     add_axis_arg(p)
-    p.add_argument("--range", dest="ranges", action="append", required=True, metavar="KEY=LO:HI",
+    p.add_argument("--range", dest="ranges", action="append", default=[], metavar="KEY=LO:HI",
                    help="a plant or environment key's range (repeatable); log spaced when HI/LO >= 10")
     p.add_argument("--uncertainty", action="append", default=[], metavar="KEY=±P%",
                    help="a plant or environment key known to ±P %% (its ends and centre are checked)")
+    p.add_argument("--uncertainty-from", metavar="OVERLAY.yaml",
+                   help="the identified 95 %% intervals of an overlay of dobhil identify --out as the box (each "
+                        "interval's ends and estimate are checked; keys outside the linear loop left out)")
     p.add_argument("--objective", choices=("rise_time", "bandwidth"), default="rise_time",
                    help="minimise the worst 10-90 %% rise time (default) or maximise the worst -3 dB "
                    "bandwidth of reference -> true force")
@@ -90,7 +93,8 @@ def run(args: argparse.Namespace) -> int:
                                             seed=args.seed, grid=args.grid, horizon=horizon, quanta=quanta,
                                             maxiter=args.generations, progress=cb), args.json)
     base = _baseline(config, result, margins, objective, horizon, quanta)
-    _print(args, result, base, margins, ranges, uncertainties)
+    certificate = _certificate(config, result, ranges, uncertainties)
+    _print(args, result, base, margins, ranges, uncertainties, certificate)
     if args.out and result.feasible:
         _write_config(args, result)
     if args.plot:
@@ -106,6 +110,12 @@ def _robust_keys(args: argparse.Namespace) -> tuple[list[Range], list[Uncertaint
     from dobhil.tune.problem import parse_range, parse_uncertainty
     ranges = [parse_range(s) for s in args.ranges]
     uncertainties = [parse_uncertainty(s) for s in args.uncertainty]
+    if args.uncertainty_from:
+        from dobhil.cli.identified_box import identified_box
+        uncertainties += identified_box(args.uncertainty_from)
+    if not ranges and not uncertainties:
+        raise ConfigError("no robust set: give --range KEY=LO:HI, --uncertainty KEY=±P% or --uncertainty-from "
+                          "OVERLAY.yaml")
     keys = [r.key for r in ranges] + [u.key for u in uncertainties]
     for k in keys:
         if keys.count(k) > 1:
@@ -201,14 +211,25 @@ def _baseline(config: Config, result: TuneResult, margins: Margins, objective: O
     return baseline(design, m, result.grid, objective, worsts(m, result.grid, margins, where=m.stable[0]))
 
 
+def _certificate(config: Config, result: TuneResult, ranges: list[Range],
+                 uncertainties: list[Uncertainty]) -> tuple[dict[str, Any] | None, list[str]]:
+    """The chosen design certified over the whole box, not only the grid (dobhil certify)."""
+    if not result.feasible:
+        return None, []
+    from dobhil.cli.certify_cmd import tuned_certificate
+    return tuned_certificate(config, result.design, ranges, uncertainties)
+
+
 def _print(args: argparse.Namespace, result: TuneResult, base: Baseline, margins: Margins, ranges: list[Range],
-           uncertainties: list[Uncertainty]) -> None:
+           uncertainties: list[Uncertainty], certificate: tuple[dict[str, Any] | None, list[str]]) -> None:
     from dobhil.tune.report import as_json, as_text, set_text
     if args.json:
-        json.dump(as_json(result, base, margins), sys.stdout)
+        json.dump({**as_json(result, base, margins), "certificate": certificate[0]}, sys.stdout)
         sys.stdout.write("\n")
     else:
         print(as_text(result, base, set_text(ranges, uncertainties, args.grid)))
+        for line in certificate[1]:
+            print(line)
 
 
 def _write_config(args: argparse.Namespace, result: TuneResult) -> None:

@@ -88,13 +88,20 @@ def read_yaml(path: str | Path) -> dict[str, Any]:
     return data
 
 
+#: the top-level key of an identify overlay that --set-file skips (the fit's intervals and covariance)
+IDENTIFIED_SECTION = "identified"
+
+
 def read_set_file(path: str | Path) -> dict[str, Any]:
     """The keys of a ``--set-file``: a YAML mapping of ``section.key: value`` (or of sections,
     as in a config file); unknown keys fail later, in :func:`build_config`, naming the key."""
     if not Path(path).is_file():
         raise ConfigError(f"--set-file {_show(str(path))}: no such file; expected a YAML mapping of "
                           "section.key: value (e.g. the overlay dobhil identify --out writes)")
-    flat = _flatten(read_yaml(path), "")
+    data = dict(read_yaml(path))
+    # an identify overlay's fit record (intervals, covariance: dobhil/identify/intervals.py) is no config key
+    data.pop(IDENTIFIED_SECTION, None)
+    flat = _flatten(data, "")
     for name, value in flat.items():
         if "." not in name or isinstance(value, Mapping):
             raise ConfigError(f"--set-file {_show(str(path))}: {_show(name)} is not a section.key with a "

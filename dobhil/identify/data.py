@@ -85,7 +85,8 @@ def read_log(path: str | os.PathLike[str], *, protocol: str | None = None,
              axis: str | None = None) -> IdentData:
     """The :class:`IdentData` of a log: a dobhil run's loop records, or -- a CAN log imported
     with ``dobhil log import``, frames only -- its frames decoded with ``profile`` (required
-    then; ``period``: its control period, default the median spacing of its motion frames).
+    then; ``period``: its control period, default the round period the spacing of its motion
+    frames scatters around, :func:`dobhil.identify.period.nominal_period`).
     ``protocol``: the protocol the user expects (their drive profile's); a log of
     another one is refused. A log without motion is refused (nothing to identify).
     LogFileError / ConfigError, one line, otherwise. ``axis``: the axis of a several-axis log
@@ -141,7 +142,8 @@ def _from_frames(log: object, name: str, profile: DriveProfile | None, period: f
     replay does), the torque by the profile's emulated drive -- the torque its plant would
     receive, protocol state included (an RPDO waits for its SYNC, a disabled axis applies 0).
     Sample k is motion frame k; its torque is what the frames before motion frame k+1 left
-    applied. The period is the median spacing of the motion frames.
+    applied. The period is the round period the motion frames' spacing scatters around
+    (:func:`~dobhil.identify.period.nominal_period`).
 
     Both decoders get every frame, whichever topic holds it: the recorded direction is the
     recording program's view, not the drive's. A capture by another program on the bus
@@ -179,7 +181,9 @@ def _from_frames(log: object, name: str, profile: DriveProfile | None, period: f
                           f"(node {profile.node_id}); is the log of another protocol or node than profile "
                           f"{profile.name or profile.protocol!r}?")
     stamps = np.array([m[0] for m in motion])
-    period = float(np.median(np.diff(stamps))) if period is None else period
+    if period is None:
+        from dobhil.identify.period import nominal_period
+        period, _ = nominal_period(stamps)   # the round period the stamps scatter around
     if not (math.isfinite(period) and period > 0.0):
         raise ConfigError(f"{name}: no control period (the motion frames' timestamps do not increase); "
                           "give it with --period SECONDS")

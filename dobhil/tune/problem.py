@@ -64,6 +64,26 @@ class Uncertainty:
         """Its ends and centre: the box's corners and middle are where margins are checked."""
         return np.array([centre * (1.0 - self.fraction), centre, centre * (1.0 + self.fraction)])
 
+    def describe(self) -> str:
+        return f"{self.key} ±{self.fraction * 100:g} % (ends and centre)"
+
+
+@dataclass(frozen=True)
+class IntervalUncertainty(Uncertainty):
+    """A key known to lie in ``[lo, hi]`` around ``estimate`` (an identified 95 % interval,
+    ``dobhil tune --uncertainty-from``): its ends and the estimate, whatever the config says.
+    ``fraction`` is the larger relative half-width (for what reads it as ±)."""
+
+    lo: float = 0.0
+    hi: float = 0.0
+    estimate: float = 0.0
+
+    def values(self, centre: float) -> np.ndarray:
+        return np.array([self.lo, self.estimate, self.hi])
+
+    def describe(self) -> str:
+        return f"{self.key} {self.lo:.6g}..{self.hi:.6g} (identified 95 %, ends and estimate {self.estimate:.6g})"
+
 
 @dataclass(frozen=True)
 class Margins:

@@ -84,7 +84,7 @@ def _constraint_line(w: Worst) -> str:
 
 def set_text(ranges: Sequence[Range], uncertainties: Sequence[Uncertainty], grid: int) -> str:
     parts = [f"{r.key} {r.lo:g}..{r.hi:g} ({'log' if r.log else 'linear'}, {grid} values)" for r in ranges]
-    parts += [f"{u.key} ±{u.fraction * 100:g} % (ends and centre)" for u in uncertainties]
+    parts += [u.describe() for u in uncertainties]
     return "; ".join(parts)
 
 

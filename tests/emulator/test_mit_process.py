@@ -38,6 +38,21 @@ def _until(condition: object, what: str) -> None:
         time.sleep(0.005)
 
 
+def _command_until_applied(process: EmulatorProcess, bus: can.BusABC, torque: float) -> None:
+    """Command ``torque`` until the motor is seen applying it. The 25 ms command timeout
+    zeroes it again 25 ms after each command: a test thread that a loaded machine parks for
+    longer between the reply and its look would find zero and wait forever for a torque no
+    longer applied. Each command reopens that window; a motor that never applies the torque
+    still fails at BOUND."""
+    end = time.monotonic() + BOUND
+    while True:
+        bus.send(can.Message(arbitration_id=1, data=AK_ONE_NM, is_extended_id=False))
+        _reply(bus)
+        if process.applied_torque == torque:
+            return
+        assert time.monotonic() < end, f"torque again: {process.applied_torque} applied, not {torque}"
+
+
 def test_emulator_process_answers_applies_and_times_out() -> None:
     # the Mini-Cheetah firmware's row: its 25 ms command timeout, 7-byte replies
     spec = EmulatorSpec.of(load_config("demo", ["plant.initial_position=-0.05"]), mit_profile(MINI_CHEETAH))
@@ -56,9 +71,7 @@ def test_emulator_process_answers_applies_and_times_out() -> None:
         assert process.protocol_state == 1 and process.applied_torque == 0.0
         # it was applied before: the plant, free of the environment (5 cm away), moves
         assert process.plant.true_velocity > 0
-        bus.send(can.Message(arbitration_id=1, data=AK_ONE_NM, is_extended_id=False))
-        _reply(bus)
-        _until(lambda: process.applied_torque == f32_decode(2161, -40, 40, 12), "torque again")
+        _command_until_applied(process, bus, f32_decode(2161, -40, 40, 12))
         bus.send(can.Message(arbitration_id=1, data=EXIT, is_extended_id=False))
         _reply(bus)
         _until(lambda: process.protocol_state == 0 and process.applied_torque == 0.0, "rest")

@@ -115,11 +115,23 @@ def test_can_export_of_a_run_reads_back(run_log: Run, tmp_path: Path,
 
 def _start_realtime_run(path: Path, duration: float) -> subprocess.Popen[bytes]:
     """``dobhil run --log`` in its own process group (the group a terminal's Ctrl-C hits)."""
+    return _start_run(path, "--duration", str(duration),
+                      # a recording test, not a timing one: tolerate a loaded machine
+                      "--set", "loop.feedback_timeout=0.2")
+
+
+def _start_lockstep_run(path: Path) -> subprocess.Popen[bytes]:
+    """``dobhil run --lockstep --log`` of an hour, in its own process group: a run the test
+    kills long before its end, whatever the machine's load. The kill tests are about the
+    writer process and the file, not real time: a real-time run on a loaded machine could
+    stop on its own (a feedback timeout) before the kill, and the kill would test nothing."""
+    return _start_run(path, "--lockstep", "--duration", "3600")
+
+
+def _start_run(path: Path, *args: str) -> subprocess.Popen[bytes]:
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
-    return subprocess.Popen([sys.executable, "-m", "dobhil", "run", str(DEMO), "--emulate",
-                             "--duration", str(duration), "--log", str(path),
-                             # a recording test, not a timing one: tolerate a loaded machine
-                             "--set", "loop.feedback_timeout=0.2"],
+    return subprocess.Popen([sys.executable, "-m", "dobhil", "run", str(DEMO), "--emulate", "--log", str(path),
+                             *args],
                             env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True)
 
 
@@ -189,7 +201,7 @@ def test_ctrl_c_to_the_process_group_leaves_a_complete_file_with_stop_signal(tmp
 
 def test_sigkill_of_the_run_the_writer_finishes_the_file(tmp_path: Path) -> None:
     path = tmp_path / "killed.mcap"
-    proc = _start_realtime_run(path, 30.0)
+    proc = _start_lockstep_run(path)
     scratch = tmp_path / "scratch"
     scratch.mkdir()
     on_disk = _wait_for_recorded(path, proc, scratch, 2000)
@@ -207,7 +219,7 @@ def test_sigkill_of_the_run_the_writer_finishes_the_file(tmp_path: Path) -> None
 
 def test_sigkill_of_run_and_writer_leaves_a_recoverable_file(tmp_path: Path) -> None:
     path = tmp_path / "killed.mcap"
-    proc = _start_realtime_run(path, 30.0)
+    proc = _start_lockstep_run(path)
     scratch = tmp_path / "scratch"
     scratch.mkdir()
     on_disk = _wait_for_recorded(path, proc, scratch, 1000)

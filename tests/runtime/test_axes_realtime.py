@@ -9,9 +9,11 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 from typing import Any
 
@@ -144,31 +146,45 @@ def _children(pid: int) -> list[int]:
     return [int(x) for x in text.split()]
 
 
+#: a run's text summary starts "N cycles (": absent when nothing ran (the stop line only)
+CYCLES_LINE = re.compile(r"^\d+ cycles \(", re.MULTILINE)
+
+
+def _nothing_ran(out: str, err: str, summary_json: bool) -> bool:
+    """The signal came before the loop's first cycle (the start-up path, tested elsewhere):
+    ``"cycles": 0`` in the JSON summary, no cycles line in the text one."""
+    return '"cycles": 0,' in out if summary_json else CYCLES_LINE.search(out) is None
+
+
 def _interrupted_run(config: Path, timing: str, *extra: str) -> tuple[int, str, str]:
     """``dobhil run CONFIG --emulate`` in real time, SIGINT once its emulator process runs
     and it had time to enable (a long duration: the signal, not the end, stops it). Once
     more, waiting longer, when a loaded machine was too slow: the host too late for the
-    drive before the signal, or the signal still during the enable (the start-up path,
-    tested elsewhere)."""
-    for wait in (2.0, 6.0, 15.0):
-        code, out, err = _interrupted_once(config, timing, wait, *extra)
+    drive before the signal, or the signal still during the enable. The wait after the
+    emulator appeared is as long as the run took to start it, times 2, 6, 15: on a loaded
+    machine the enable is slow in the same proportion as the start."""
+    for factor in (2.0, 6.0, 15.0):
+        code, out, err = _interrupted_once(config, timing, factor, *extra)
         text = out + err
-        if not ("host_too_slow" in text or "waiting for node" in text or '"cycles": 0,' in text):
+        if not ("host_too_slow" in text or "waiting for node" in text
+                or _nothing_ran(out, err, "--summary-json" in extra)):
             break
     return code, out, err
 
 
-def _interrupted_once(config: Path, timing: str, wait: float, *extra: str) -> tuple[int, str, str]:
+def _interrupted_once(config: Path, timing: str, factor: float, *extra: str) -> tuple[int, str, str]:
     cmd = [sys.executable, "-m", "dobhil", "run", str(config), "--emulate", "--set", f"loop.timing={timing}",
            "--set", f"loop.feedback_timeout={TIMEOUT}", "--duration", "60", *extra]
+    begin = time.monotonic()
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, cwd=REPO,
                             env={**os.environ, "PYTHONUNBUFFERED": "1"})
     try:
         assert wait_until(lambda: bool(_children(proc.pid)) or proc.poll() is not None, timeout=60)
         assert proc.poll() is None, proc.communicate()
-        # the loop enables and starts within this on any machine; the checks below say
-        # whether cycles ran (a signal before them is the start-up path, tested elsewhere)
-        wait_until(lambda: proc.poll() is not None, timeout=wait)
+        started = time.monotonic() - begin   # interpreter, imports, emulator: this machine now
+        # the loop enables and starts within a few start-ups; the checks below say whether
+        # cycles ran (a signal before them is the start-up path, tested elsewhere)
+        wait_until(lambda: proc.poll() is not None, timeout=max(1.0, factor * started))
         proc.send_signal(signal.SIGINT)
         out, err = proc.communicate(timeout=60)
     finally:

@@ -1,0 +1,200 @@
+"""``dobhil certify CONFIG --range KEY=LO:HI [--range ...] [--loop both|continuous|sampled]
+[--refinements N] [--json]``: stability over the whole box, not only at grid points."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from collections.abc import Mapping
+from typing import TYPE_CHECKING, Any
+
+from dobhil.cli.common import add_config_args, config_from_args, design_on_drive
+from dobhil.errors import ConfigError
+
+if TYPE_CHECKING:
+    from dobhil.analysis.certify import Box, ContinuousCertificate
+    from dobhil.analysis.certify_sampled import SampledCertificate
+    from dobhil.analysis.disk_margin import DiskMargin
+    from dobhil.config.schema import Config
+
+#: exit code when a loop asked for is not certified (refuted, or undecided)
+EXIT_NOT_CERTIFIED = 1
+
+MAX_REFINEMENTS = 1_000_000
+
+
+def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+    p = sub.add_parser("certify", help="decide stability over a whole box of plant and environment values",
+                       description=(
+                           "Continuous loop: exact, by the edge theorem (every edge of the box an exact "
+                           "one-parameter stability interval); with the gain margin in C_f over the box and "
+                           "the disk margin at its worst point. Sampled loop: interval enclosures of the "
+                           "sampled plant and a Lyapunov bound, refined by bisection. Each answer is "
+                           "certified, refuted at a point, or (sampled) undecided after N refinements. "
+                           "See docs/certify.md."))
+    add_config_args(p)
+    p.add_argument("--range", dest="ranges", action="append", required=True, metavar="KEY=LO:HI",
+                   help="environment.stiffness, environment.damping, plant.inertia or "
+                   "plant.viscous_friction over [LO, HI] (repeatable)")
+    p.add_argument("--loop", choices=("both", "continuous", "sampled"), default="both",
+                   help="which loop to certify (default both)")
+    p.add_argument("--refinements", type=int, default=None, metavar="N",
+                   help="most bisections of the sampled certificate before it answers undecided "
+                   "(default 20000)")
+    p.add_argument("--json", action="store_true", help="print one JSON object")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from dobhil.analysis.certify import box_from_specs
+    from dobhil.analysis.certify_sampled import DEFAULT_REFINEMENTS
+    box = box_from_specs(args.ranges)
+    refinements = DEFAULT_REFINEMENTS if args.refinements is None else args.refinements
+    if not 0 <= refinements <= MAX_REFINEMENTS:
+        raise ConfigError(f"--refinements {refinements}: expected 0 .. {MAX_REFINEMENTS}")
+    config = design_on_drive(config_from_args(args), args, sys.stderr if args.json else None)
+    answer = certify(config, box, loops=args.loop, refinements=refinements)
+    if args.json:
+        json.dump(answer, sys.stdout)
+        sys.stdout.write("\n")
+    else:
+        print("\n".join(text_lines(answer)))
+    return 0 if answer["certified"] else EXIT_NOT_CERTIFIED
+
+
+def certify(config: Config, box: Box, *, loops: str = "both", refinements: int | None = None) -> dict[str, Any]:
+    """The certificates asked for, as one JSON-able mapping (also what ``dobhil tune`` prints);
+    ``refinements`` None: the sampled certificate's default budget."""
+    from dobhil.analysis.certify import certify_continuous
+    from dobhil.analysis.certify_sampled import DEFAULT_REFINEMENTS, certify_sampled
+    refinements = DEFAULT_REFINEMENTS if refinements is None else refinements
+    out: dict[str, Any] = {"box": {k: [lo, hi] for k, lo, hi in zip(box.keys, box.lo, box.hi)},
+                           "force_gain": float(config.design.force_gain)}
+    # the disk margins are given where the continuous gain margin is smallest (or at the
+    # refuting point, where they say "unstable"); the box's centre when nothing else is known
+    worst: Mapping[str, float] = box.centre()
+    if loops in ("both", "continuous"):
+        cont = certify_continuous(config, box)
+        out["continuous"] = _continuous(cont)
+        if cont.gain_margin is not None:
+            worst = cont.gain_margin.worst_at
+        elif cont.point is not None:
+            worst = cont.point
+    if loops in ("both", "sampled"):
+        samp = certify_sampled(config, box, refinements=refinements)
+        out["sampled"] = _sampled(samp)
+        if loops == "sampled" and samp.point is not None:
+            worst = samp.point
+    out["disk_margin_at"] = dict(worst)
+    out["disk_margin"] = {name: _disk(config, worst, name == "sampled")
+                          for name in ("continuous", "sampled") if name in out}
+    out["certified"] = all(out[name]["verdict"] == "certified" for name in ("continuous", "sampled")
+                           if name in out)
+    return out
+
+
+def _continuous(c: ContinuousCertificate) -> dict[str, Any]:
+    gm = c.gain_margin
+    return {"verdict": c.verdict.word, "point": dict(c.point) if c.point else None,
+            "spectral_abscissa": c.spectral_abscissa,
+            "boundaries": [dict(b) for b in c.boundaries], "edges": len(c.edges),
+            "edges_unstable": sum(not e.stable for e in c.edges),
+            "gain_margin": None if gm is None else {
+                "up": _num(gm.up), "down": _num(gm.down), "db": _num(gm.db),
+                "up_at": dict(gm.up_at), "down_at": dict(gm.down_at)}}
+
+
+def _sampled(s: SampledCertificate) -> dict[str, Any]:
+    return {"verdict": s.verdict.word, "point": dict(s.point) if s.point else None,
+            "spectral_radius": s.spectral_radius, "refinements": s.refinements,
+            "sub_boxes_closed": s.closed}
+
+
+def _disk(config: Config, point: Mapping[str, float], sampled: bool) -> dict[str, Any] | None:
+    """The balanced disk margin at ``point``, None where that loop is unstable."""
+    import numpy as np
+    from dobhil.analysis.certify import params_at
+    from dobhil.analysis.disk_margin import disk_margin
+    from dobhil.analysis.stability import is_stable
+    from dobhil.synthesis.loop import loop
+    params = params_at(config, point)
+    poles = np.linalg.eigvals(loop(params, sampled=sampled).a).astype(complex)
+    if not bool(is_stable(poles[None], sampled)[0]):
+        return None
+    a, b, c, _ = loop(params, sampled=sampled, force_gain=0.0).siso("tau_per", "tau_int_hat")
+    dm: DiskMargin = disk_margin(a, b, c, float(config.design.force_gain),
+                                 period=float(config.loop.period) if sampled else None)
+    return {"alpha": _num(dm.alpha), "gain_db": _num(dm.gain_db), "phase_deg": dm.phase_deg,
+            "frequency": dm.frequency}
+
+
+def _num(x: float) -> float | None:
+    """JSON has no infinity: None stands for an unbounded margin."""
+    return x if math.isfinite(x) else None
+
+
+def text_lines(answer: Mapping[str, Any]) -> list[str]:
+    lines = ["box: " + ", ".join(f"{k} {lo:g}..{hi:g}" for k, (lo, hi) in answer["box"].items())]
+    if "continuous" in answer:
+        lines.append("continuous loop (edge theorem): " + _continuous_text(answer["continuous"]))
+    if "sampled" in answer:
+        lines.append("sampled loop (interval enclosure + Lyapunov bound): " + _sampled_text(answer["sampled"]))
+    at = _point_text(answer["disk_margin_at"])
+    for name, dm in answer["disk_margin"].items():
+        if dm is None:
+            lines.append(f"disk margin ({name}) at {at}: the loop is unstable there")
+        else:
+            gain = "inf" if dm["gain_db"] is None else f"{dm['gain_db']:.3g}"
+            lines.append(f"disk margin ({name}) at {at}: ±{gain} dB, ±{dm['phase_deg']:.3g} deg "
+                         f"(alpha {dm['alpha']:.3g} at {dm['frequency']:.3g} rad/s; Seiler et al. 2020)")
+    return lines
+
+
+def _continuous_text(c: Mapping[str, Any]) -> str:
+    if c["verdict"] == "refuted":
+        return (f"refuted at {_point_text(c['point'])} (max Re(s) = {c['spectral_abscissa']:+.4g} 1/s; "
+                f"{c['edges_unstable']} of {c['edges']} edges unstable" + "".join(
+                    f"; an edge leaves stability at {_point_text(b)}" for b in c["boundaries"]) + ")")
+    gm = c["gain_margin"]
+    up = "unbounded" if gm["up"] is None else f"x{gm['up']:.4g} (at {_point_text(gm['up_at'])})"
+    down = "unbounded" if gm["down"] is None else f"/{gm['down']:.4g} (at {_point_text(gm['down_at'])})"
+    db = "inf" if gm["db"] is None else f"{gm['db']:.3g}"
+    return (f"certified ({c['edges']} edges stable); gain margin over the box {db} dB: C_f up {up}, "
+            f"down {down}")
+
+
+def _sampled_text(s: Mapping[str, Any]) -> str:
+    if s["verdict"] == "refuted":
+        return f"refuted at {_point_text(s['point'])} (spectral radius {s['spectral_radius']:.6g})"
+    seen = f"largest spectral radius met {s['spectral_radius']:.6g}"
+    if s["verdict"] == "certified":
+        return f"certified ({s['sub_boxes_closed']} sub-boxes closed, {s['refinements']} refinements; {seen})"
+    return f"undecided after {s['refinements']} refinements ({s['sub_boxes_closed']} sub-boxes closed; {seen})"
+
+
+def _point_text(point: Mapping[str, float]) -> str:
+    return ", ".join(f"{k}={v:.6g}" for k, v in point.items())
+
+
+def tuned_certificate(config: Config, design: Mapping[str, float], ranges: list[Any],
+                      uncertainties: list[Any]) -> tuple[dict[str, Any] | None, list[str]]:
+    """``dobhil tune``'s design certified over its set taken as a box (each --range key's LO..HI,
+    each --uncertainty key's ends): the JSON answer (None when a key is one the certificate
+    cannot treat) and its text lines."""
+    import dataclasses
+    from dobhil.analysis.certify import CERTIFY_KEYS, Box
+    flat = config.flat()
+    keys = [r.key for r in ranges] + [u.key for u in uncertainties]
+    others = [k for k in keys if k not in CERTIFY_KEYS]
+    if others or not keys:
+        why = f"{', '.join(others)} is not a key it treats" if others else "no range"
+        return None, [f"certificate over the box: not computed ({why}; it treats {', '.join(CERTIFY_KEYS)})"]
+    lo = [r.lo for r in ranges] + [float(flat[u.key]) * (1.0 - u.fraction) for u in uncertainties]
+    hi = [r.hi for r in ranges] + [float(flat[u.key]) * (1.0 + u.fraction) for u in uncertainties]
+    values: dict[str, Any] = {k.split(".", 1)[1]: float(v) for k, v in design.items()}
+    tuned = config.replace(design=dataclasses.replace(config.design, **values))
+    answer = certify(tuned, Box(tuple(keys), tuple(lo), tuple(hi)))
+    return answer, ["certificate over the whole box (dobhil certify, docs/certify.md):",
+                    *("  " + line for line in text_lines(answer)[1:])]

@@ -1,0 +1,70 @@
+"""The identified uncertainty as what ``dobhil tune`` and ``dobhil montecarlo`` take: an
+overlay's 95 % intervals as tune's box (``--uncertainty-from``), its estimates and covariance as
+a campaign's joint draw (``--draw-from``). The overlay is read by
+:func:`dobhil.identify.intervals.read_identified`."""
+
+from __future__ import annotations
+
+import sys
+from typing import Any
+
+from dobhil.tune.problem import IntervalUncertainty, Uncertainty
+
+
+def identified_box(path: str) -> list[Uncertainty]:
+    """Each identified key the tuned loop depends on as an :class:`IntervalUncertainty`; the
+    keys and bounds taken, and the keys left out (the linear loop has no Coulomb friction or
+    contact position), in one line on stderr."""
+    from dobhil.identify.intervals import read_identified
+    from dobhil.synthesis.params import PARAM_KEYS
+    from dobhil.tune.problem import UNCERTAIN_PREFIXES
+    identified = read_identified(path, "--uncertainty-from")
+    used = [i for i in identified.intervals if i.key in PARAM_KEYS and i.key.startswith(UNCERTAIN_PREFIXES)]
+    left = [i.key for i in identified.intervals if i not in used]
+    if not used:
+        from dobhil.errors import ConfigError
+        raise ConfigError(f"--uncertainty-from {path}: none of its identified keys ({', '.join(identified.keys)}) is "
+                          "one the tuned loop depends on; allowed: plant.inertia, plant.viscous_friction, "
+                          "environment.stiffness, environment.damping")
+    box: list[Uncertainty] = [IntervalUncertainty(i.key, max(i.hi - i.estimate, i.estimate - i.lo) / abs(i.estimate),
+                               lo=i.lo, hi=i.hi, estimate=i.estimate) for i in used]
+    shown = ", ".join(f"{i.key} [{i.lo:.6g}, {i.hi:.6g}]" for i in used)
+    note = f"; left out (not in the linear loop): {', '.join(left)}" if left else ""
+    print(f"tune: uncertainty box from {path} ({identified.level * 100:g} % intervals): {shown}{note}",
+          file=sys.stderr)
+    return box
+
+
+#: keys a physical quantity keeps at or above 0 (a draw below is drawn again); the contact
+#: position is a place, any sign
+_NONNEGATIVE = ("plant.inertia", "plant.viscous_friction", "plant.coulomb_friction", "environment.stiffness",
+                "environment.damping")
+#: a joint distribution accepting fewer of its draws than this is refused (the truncation would
+#: be most of the distribution, no longer what the fit found)
+MIN_ACCEPTANCE = 0.01
+
+
+def joint_varies(path: str) -> tuple[Any, ...]:
+    """The overlay's identified keys as one joint normal (estimates and covariance) truncated to
+    physical values, a :class:`~dobhil.campaign.draws.Vary` per key; how, in one line on stderr."""
+    import math
+
+    from dobhil.campaign.draws import JointNormal, Kind, Vary
+    from dobhil.errors import ConfigError
+    from dobhil.identify.intervals import read_identified
+    identified = read_identified(path, "--draw-from")
+    lower = tuple(0.0 if k in _NONNEGATIVE else -math.inf for k in identified.keys)
+    joint = JointNormal(keys=identified.keys, mean=tuple(i.estimate for i in identified.intervals),
+                        covariance=tuple(tuple(float(x) for x in row) for row in identified.covariance),
+                        lower=lower, source=path)
+    accepted = joint.acceptance()
+    if accepted < MIN_ACCEPTANCE:
+        raise ConfigError(f"--draw-from {path}: only {accepted:.2%} of its normal draws are physical (>= 0); the "
+                          "truncation would be the distribution -- vary these keys with --vary instead")
+    bounded = [k for k, lo in zip(identified.keys, lower) if lo == 0.0]
+    print(f"montecarlo: drawing {', '.join(identified.keys)} jointly from {path}: normal with the fitted estimates "
+          f"and covariance, truncated to >= 0 for {', '.join(bounded) or 'none'} by redrawing the whole vector "
+          f"(exact truncation; {accepted:.2%} of draws accepted)", file=sys.stderr)
+    sd = [i.stderr for i in identified.intervals]
+    return tuple(Vary(k, Kind.JOINT_NORMAL, m, s, False, joint)
+                 for k, m, s in zip(identified.keys, joint.mean, sd))

@@ -1,0 +1,89 @@
+"""Closed-loop identification (dobhil/identify/closedloop.py): the runtime's controller
+simulated in closed loop with the candidate plant, driven by the recorded reference."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from dobhil.cli.main import main
+from dobhil.identify.closedloop import CLOSED_LOOP, OPEN_LOOP, identify_closed_loop, simulate_loop
+from dobhil.identify.data import IdentData, find_segments
+from dobhil.identify.fit import identify
+
+from .closed_synthetic import Hidden, chirp, record
+
+TRUTH = {"inertia": 0.37, "viscous_friction": 0.05, "stiffness": 15000.0, "damping": 60.0,
+         "contact_position": 0.0, "delay": 0.3e-3, "initial_position": -0.005}
+
+
+def test_the_simulated_loop_is_the_runtime_controller_bit_for_bit() -> None:
+    """A noise-free run whose torque feeds the measurement back (J_mi = J_mn), stepped by the
+    runtime's ForceController: the kernel, given the hidden plant, sends the same torques (to
+    rounding) and moves the same way; a 3 % different inertia does not."""
+    run = record(Hidden(velocity_noise=0.0), 0, chirp(1500, 1, 60, 1.0, 0.9))
+    out = simulate_loop(TRUTH, run)
+    assert np.max(np.abs(out[:, 2] - run.torque)) < 1e-12 * np.max(np.abs(run.torque)) * 100
+    assert np.max(np.abs(out[:, 1] - run.velocity)) < 1e-12
+    other = simulate_loop({**TRUTH, "inertia": 0.38}, run)
+    assert np.max(np.abs(other[:, 2] - run.torque)) > 0.1
+
+
+def _open_loop(run: object) -> dict[str, tuple[bool, float, float, float]]:
+    data = IdentData(period=1e-3, t=np.arange(run.samples) * 1e-3, torque=run.torque,  # type: ignore[attr-defined]
+                     position=run.position, velocity=run.velocity, source="",  # type: ignore[attr-defined]
+                     protocol="odrive", recorded={})
+    result = identify(data, find_segments(data))
+    return {n: (e.identifiable, e.value, e.low, e.high) for n, e in result.estimates.items()}
+
+
+def test_closed_loop_covers_a_noisy_force_run_the_open_loop_fit_misses() -> None:
+    """The demo's force run (its design: C_f J_mi = J_mn) in contact with a 1-60 Hz chirp
+    around 1 N m, 4 s, the hidden plant of TRUTH, a 14-bit encoder and 0.05 rad/s of
+    velocity noise (seed 1): the closed-loop intervals of J, K and D hold the truth; the
+    open-loop fit of the same record finds no inertia, or one whose interval misses it, or
+    misses the friction or the delay.
+
+    One record, not a coverage: over ten seeds of this record the closed-loop intervals held
+    J in 6, K in 3 (docs/identify.md, "Closed-loop identification")."""
+    run = record(Hidden(), 1, chirp(4000, 1, 60, 1.0, 0.9), "design.identified_inertia=0.125")
+    closed = identify_closed_loop(run).estimates
+    for name in ("inertia", "stiffness", "damping"):
+        e = closed[name]
+        assert e.identifiable and e.low <= TRUTH[name] <= e.high, (name, e)
+    opened = _open_loop(run)
+    missed = [n for n in ("inertia", "viscous_friction", "stiffness", "damping", "delay")
+              if not opened[n][0] or not opened[n][2] <= TRUTH[n] <= opened[n][3]]
+    assert missed, opened
+
+
+def test_identify_picks_the_method_and_reports_it(logs: dict[str, Path], tmp_path: Path,
+                                                  capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["identify", str(logs["contact"]), "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["method"] == CLOSED_LOOP
+    assert main(["identify", str(logs["contact"]), "--json", "--method", "open-loop"]) == 0
+    assert json.loads(capsys.readouterr().out)["method"] == OPEN_LOOP
+    assert main(["identify", str(logs["contact"]), "--segment", "0:0.4", "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["method"] == OPEN_LOOP
+    # the measured responses go with the open-loop fit: auto picks it for them
+    assert main(["identify", str(logs["contact"]), "--frf", "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["method"] == OPEN_LOOP
+
+
+def test_closed_loop_refuses_what_it_cannot_fit(logs: dict[str, Path], tmp_path: Path,
+                                                capsys: pytest.CaptureFixture[str]) -> None:
+    for args in ([str(logs["contact"]), str(logs["free"])], [str(logs["contact"]), "--segment", "0:0.4"],
+                 [str(logs["contact"]), "--frf"], [str(logs["contact"]), "--validate", str(logs["free"])]):
+        assert main(["identify", *args, "--method", "closed-loop"]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and "--method closed-loop" in err[0] and "open-loop" in err[0]
+    can_log, imported = tmp_path / "c.log", tmp_path / "c.mcap"
+    assert main(["log", "export", str(logs["contact"]), "--can", "--format", "candump", "-o", str(can_log)]) == 0
+    assert main(["log", "import", str(can_log), "-o", str(imported)]) == 0
+    capsys.readouterr()
+    assert main(["identify", str(imported), "--drive", "odrive-0.6", "--method", "closed-loop"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "no recorded controller" in err[0]

@@ -1,0 +1,134 @@
+"""The identified uncertainty carried on: the overlay's ``identified:`` section (written by
+``identify --out``, skipped by ``--set-file``), ``tune --uncertainty-from`` (its intervals as
+the box) and ``montecarlo --draw-from`` (a joint normal of its estimates and covariance,
+truncated to physical values)."""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from dobhil.campaign.draws import JointNormal, Kind, Vary, draw
+from dobhil.cli.identified_box import identified_box, joint_varies
+from dobhil.cli.main import main
+from dobhil.config.load import load_config
+from dobhil.errors import ConfigError
+from dobhil.identify.intervals import read_identified
+from dobhil.tune.problem import IntervalUncertainty, robust_set
+
+
+@pytest.fixture(scope="module")
+def identified(logs: dict[str, Path], tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, dict]:
+    """An overlay of the free and contact logs, and the JSON identify printed with it (once)."""
+    out = tmp_path_factory.mktemp("overlay") / "overlay.yaml"
+    printed = io.StringIO()
+    with contextlib.redirect_stdout(printed), contextlib.redirect_stderr(io.StringIO()):
+        assert main(["identify", str(logs["free"]), str(logs["contact"]), "--out", str(out), "--json"]) == 0
+    return out, json.loads(printed.getvalue())
+
+
+def test_overlay_round_trip(identified: tuple[Path, dict]) -> None:
+    out, info = identified
+    ident = read_identified(out, "--uncertainty-from")
+    names = {"plant.inertia": "inertia", "plant.viscous_friction": "viscous_friction",
+             "plant.coulomb_friction": "coulomb_friction", "environment.contact_position": "contact_position",
+             "environment.stiffness": "stiffness", "environment.damping": "damping"}
+    expected = [k for k, n in names.items() if info["estimates"][n]["identifiable"]]
+    assert list(ident.keys) == expected and "plant.inertia" in expected
+    for i in ident.intervals:
+        e = info["estimates"][names[i.key]]
+        # repr of a float round-trips exactly through YAML
+        assert (i.estimate, i.lo, i.hi, i.stderr) == (e["value"], e["low"], e["high"], e["stderr"])
+    # the covariance: the standard errors on its diagonal, the reported correlations off it
+    sd = np.sqrt(np.diag(ident.covariance))
+    assert np.allclose(sd, [i.stderr for i in ident.intervals], rtol=1e-12)
+    for c in info["correlations"]:
+        a, b = names_index(ident.keys, names, c["a"]), names_index(ident.keys, names, c["b"])
+        if a is not None and b is not None:
+            assert ident.covariance[a, b] / (sd[a] * sd[b]) == pytest.approx(c["r"], rel=1e-12)
+    # --set-file takes the overlay's keys and skips its identified: section
+    config = load_config("demo", (), [out])
+    assert config.plant.inertia == info["estimates"]["inertia"]["value"]
+
+
+def names_index(keys: tuple[str, ...], names: dict[str, str], estimate: str) -> int | None:
+    key = next((k for k, n in names.items() if n == estimate), None)
+    return keys.index(key) if key in keys else None
+
+
+def test_box_is_the_intervals(identified: tuple[Path, dict], capsys: pytest.CaptureFixture[str]) -> None:
+    out, _ = identified
+    ident = {i.key: i for i in read_identified(out, "--uncertainty-from").intervals}
+    box = identified_box(str(out))
+    err = capsys.readouterr().err
+    assert all(isinstance(u, IntervalUncertainty) for u in box)
+    # the loop's keys only (no Coulomb friction or contact position in the linear loop), printed with bounds
+    assert {u.key for u in box} <= {"plant.inertia", "plant.viscous_friction", "environment.stiffness",
+                                    "environment.damping"}
+    for u in box:
+        assert f"{u.key} [{ident[u.key].lo:.6g}, {ident[u.key].hi:.6g}]" in err
+    grid = robust_set(load_config("demo"), [], box, 5)
+    for u in box:
+        assert sorted(set(grid.points[u.key])) == sorted({ident[u.key].lo, ident[u.key].estimate, ident[u.key].hi})
+
+
+def test_joint_draws(identified: tuple[Path, dict], capsys: pytest.CaptureFixture[str]) -> None:
+    out, _ = identified
+    ident = read_identified(out, "--draw-from")
+    varies = joint_varies(str(out))
+    assert "truncated to >= 0" in capsys.readouterr().err
+    assert [v.key for v in varies] == list(ident.keys) and all(v.kind is Kind.JOINT_NORMAL for v in varies)
+    x = np.array([[draw(varies, 3, i)[0][k] for k in ident.keys] for i in range(4000)])
+    # the same run index, the same values (a run's draws depend on (seed, index) only)
+    assert draw(varies, 3, 17)[0] == draw(varies, 3, 17)[0]
+    mean = np.array([i.estimate for i in ident.intervals])
+    sd = np.sqrt(np.diag(ident.covariance))
+    assert np.all(np.abs(x.mean(axis=0) - mean) < 4 * sd / math.sqrt(len(x)))
+    corr = np.corrcoef(x.T)
+    assert np.allclose(corr, ident.covariance / np.outer(sd, sd), atol=0.06)
+
+
+def test_truncation_is_exact_rejection() -> None:
+    """A normal straddling 0: every draw >= 0, distributed as the normal conditioned on it (its
+    mean the truncated normal's, an independent calculation by scipy)."""
+    import scipy.stats
+    joint = JointNormal(keys=("plant.viscous_friction", "plant.inertia"), mean=(0.01, 0.25),
+                        covariance=((1e-4, 0.0), (0.0, 1e-6)), lower=(0.0, 0.0), source="t")
+    varies = tuple(Vary(k, Kind.JOINT_NORMAL, m, 0.0, False, joint) for k, m in zip(joint.keys, joint.mean))
+    x = np.array([draw(varies, 1, i)[0]["plant.viscous_friction"] for i in range(6000)])
+    assert x.min() >= 0.0
+    truth = scipy.stats.truncnorm(-1.0, np.inf, loc=0.01, scale=0.01)
+    assert abs(x.mean() - truth.mean()) < 4 * truth.std() / math.sqrt(len(x))
+    assert joint.acceptance() == pytest.approx(scipy.stats.norm.sf(-1.0), abs=0.01)
+
+
+def _fails(capsys: pytest.CaptureFixture[str], args: list[str], match: str) -> None:
+    assert main(args) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "Traceback" not in err, err
+    assert match in err, err
+
+
+def test_overlay_without_intervals(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    plain = tmp_path / "plain.yaml"
+    plain.write_text("plant.inertia: 0.25\n")
+    _fails(capsys, ["tune", "demo", "--uncertainty-from", str(plain)], "no identified intervals")
+    _fails(capsys, ["montecarlo", "demo", "--runs", "2", "--draw-from", str(plain)], "no identified intervals")
+    _fails(capsys, ["tune", "demo", "--uncertainty-from", str(tmp_path / "none.yaml")], "no such file")
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("identified:\n  intervals:\n    plant.inertia: {estimate: 0.25, lo: 0.3, hi: 0.2, stderr: 1}\n"
+                   "  covariance: {keys: [plant.inertia], matrix: [[1.0]]}\n")
+    _fails(capsys, ["montecarlo", "demo", "--runs", "2", "--draw-from", str(bad)], "malformed")
+    _fails(capsys, ["tune", "demo"], "no robust set")
+    _fails(capsys, ["montecarlo", "demo", "--runs", "2"], "nothing to draw")
+    with pytest.raises(ConfigError, match="covariance does not match"):
+        skew = tmp_path / "skew.yaml"
+        skew.write_text("identified:\n  intervals:\n    plant.inertia: {estimate: 0.25, lo: 0.2, hi: 0.3, stderr: 1}\n"
+                        "  covariance: {keys: [plant.inertia], matrix: [[1.0, 0.0]]}\n")
+        read_identified(skew, "--draw-from")
