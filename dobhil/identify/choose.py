@@ -1,5 +1,5 @@
 """Which identification a log gets: closed loop (:mod:`dobhil.identify.closedloop`) for a
-force run recorded by dobhil, open-loop output error (:mod:`dobhil.identify.fit`) for an
+force run of one axis recorded by dobhil, open-loop output error (:mod:`dobhil.identify.fit`) for an
 excitation run in torque mode, a CAN log imported, several logs or chosen segments.
 
 Why automatic: a force run's torque depends on the measurement noise through the controller,
@@ -13,7 +13,7 @@ from typing import Any
 
 from dobhil.errors import ConfigError
 
-__all__ = ["closed_loop_wanted", "recorded_mode"]
+__all__ = ["closed_loop_wanted", "recorded_mode", "several_axes"]
 
 
 def recorded_mode(path: str | os.PathLike[str], axis: str | None = None) -> str | None:
@@ -46,8 +46,22 @@ def closed_loop_wanted(args: Any) -> bool:
         if not single:
             raise ConfigError("--method closed-loop: fits one dobhil run's log as recorded (one LOG, no "
                               "--segment, no --period); use --method open-loop for several logs or segments")
+        if several_axes(args.log[0]):
+            raise ConfigError(f"--method closed-loop: {args.log[0]} records several axes; the closed-loop fit "
+                              "simulates one axis' loop alone, so it takes a one-axis run (use --method open-loop)")
         if recorded_mode(args.log[0], args.axis) is None:
             raise ConfigError(f"--method closed-loop: {args.log[0]} has no recorded controller (a CAN log "
                               "imported?); closed loop needs a run recorded by dobhil, open loop fits this one")
         return True
-    return single and recorded_mode(args.log[0], args.axis) not in (None, "torque")
+    return (single and not several_axes(args.log[0])
+            and recorded_mode(args.log[0], args.axis) not in (None, "torque"))
+
+
+def several_axes(path: str | os.PathLike[str]) -> bool:
+    """Whether a log records several axes: one axis' closed loop simulated alone would miss
+    what the others and their couplings push on it, which the open-loop fit takes in as the
+    axis' environment (``dobhil identify --axis``)."""
+    from dobhil.recording.axes import is_axes_log
+    from dobhil.recording.reader import open_log
+    with open_log(path) as log:
+        return bool(is_axes_log(log))

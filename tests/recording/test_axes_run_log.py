@@ -227,6 +227,10 @@ def test_identify_of_a_coupled_axis_says_what_its_environment_is(lockstep_log: P
     assert "identified demo.mcap axis right" in out
     note = next(line for line in out.splitlines() if line.startswith("note: "))
     assert "coupled to left (K 5000 N m/rad, D 30 N m s/rad)" in note and "coupling plus" in note
+    assert "method: open-loop" in out  # one axis' loop simulated alone would miss the coupling
+    assert main(["identify", str(lockstep_log), "--axis", "right", "--method", "closed-loop"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "records several axes" in err[0]
 
 
 def test_demo_of_an_axes_config_records_by_default(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
