@@ -186,9 +186,10 @@ def test_a_json_log_is_still_read_replayed_and_reported(json_log: Path, tmp_path
 
 def test_the_same_run_reads_the_same_in_both_encodings(json_log: Path, protobuf_log: Path) -> None:
     """Lockstep runs are deterministic: the two logs' messages are equal dicts (what the wall
-    clock stamps aside: log times, the frames' bus stamps, /loop's timing, /events)."""
+    clock stamps aside: log times, the frames' bus stamps, /loop's timing, /events; and the
+    frames' channel, the name of each run's own in-process bus)."""
     def messages(path: Path) -> list[tuple[str, dict[str, Any]]]:
-        return [(topic, {k: v for k, v in p.items() if k != "timestamp"})
+        return [(topic, {k: v for k, v in p.items() if k not in ("timestamp", "channel")})
                 for topic, _, p in open_log(path).iter_messages() if topic not in ("/events", "/loop")]
     old, new = messages(json_log), messages(protobuf_log)
     assert len(old) == len(new) > 0
