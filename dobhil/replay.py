@@ -21,7 +21,6 @@ from typing import Any, Final
 import can
 import numpy as np
 from numpy.typing import NDArray
-from orjson import loads
 
 from dobhil.config.schema import Config
 from dobhil.drives.decode import decode_motion, recorded_profile
@@ -170,8 +169,7 @@ def _read(log: LogFile | AxisLog, name: str) -> Recording:
     initial: int | None = None
     controller: list[tuple[int, int, list[float]]] = []
     try:
-        for topic, t, data in log.iter_payloads(_TOPICS):
-            p = loads(data)
+        for topic, t, p in log.iter_messages(_TOPICS):
             if topic == "/controller":
                 controller.append((int(p["cycle"]), t, [float("nan") if p[k] is None else float(p[k])
                                                         for k in OUTPUTS]))

@@ -125,7 +125,6 @@ def load_axis(log: AxisLog, progress: ProgressFn | None = None) -> RunData:
     """Read one axis of a checked log. The command latency's frames are the axis' drive's
     own (its ``frame_ids`` as recorded, where another axis shares its bus); the bus load
     counts every frame of the bus."""
-    from orjson import loads
     name = os.fspath(log.path)
     own = log.frame_ids
     per: dict[str, list[Any]] = {k: [] for k in ("controller", "feedback", "truth", "loop", "states")}
@@ -139,8 +138,7 @@ def load_axis(log: AxisLog, progress: ProgressFn | None = None) -> RunData:
     with log:
         log.require_topic("/controller")
         try:
-            for i, (topic, t, data) in enumerate(log.iter_payloads(topics)):
-                p = loads(data)
+            for i, (topic, t, p) in enumerate(log.iter_messages(topics)):
                 _take(topic, t, p, per, frames, ext, times, events, bounds)
                 if topic in frame_times and (own is None or p["arbitration_id"] in own):
                     frame_times[topic].append(t)

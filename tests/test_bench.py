@@ -200,3 +200,31 @@ def test_targets_say_their_kind() -> None:
     assert line.endswith("(ratio target >= 100: MISSED)")
     assert bench._line("lockstep_cycles_per_s", 6000.0, met["lockstep_cycles_per_s"]).endswith(
         "(absolute target >= 5000)")
+
+
+def test_log_encodings_are_interleaved_warmed_and_a_short_run_fails_the_size_keys(
+        monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]) -> None:
+    """Each encoding warmed once, then alternating pairs; the size keys are the medians'
+    ratio; one recording that did not last (NaN) fails every size key, never a figure."""
+    made: list[tuple[str, float]] = []
+    bytes_of = {"protobuf": (60.0, 20.0), "json": (180.0, 100.0)}
+
+    def run(duration: float, path: Path, encoding: str) -> tuple[float, float]:
+        made.append((encoding, duration))
+        return bytes_of[encoding]
+
+    monkeypatch.setattr(bench, "_encoded_run", run)
+    monkeypatch.setattr(bench, "_writer_cpu_us", lambda records, encoding, path: 1000.0 * len(records)
+                        * (0.5 if encoding == "protobuf" else 1.0))
+    out = bench.bench_log_encoding(pairs=2, seconds=4.0, cycles=10)
+    assert made == [("protobuf", 0.5), ("json", 0.5), ("protobuf", 4.0), ("json", 4.0), ("json", 4.0),
+                    ("protobuf", 4.0)]
+    assert out["log_bytes_per_cycle_vs_json"] == pytest.approx(1 / 3)
+    assert out["log_payload_bytes_per_cycle_vs_json"] == pytest.approx(0.2)
+    # 3 records a cycle (frame, cycle, frame) at a fake 500 us each
+    assert (out["writer_cpu_us_per_cycle"], out["writer_cpu_vs_json"]) == (1500.0, 0.5)
+    assert bench.targets_met(out)["log_bytes_per_cycle_vs_json"] == {"kind": "ratio", "max": 0.33, "met": False}
+    bytes_of["json"] = (math.nan, math.nan)   # a JSON recording stopped early
+    out = bench.bench_log_encoding(pairs=2, seconds=4.0, cycles=10)
+    assert math.isnan(out["log_bytes_per_cycle_vs_json"]) and math.isnan(out["log_bytes_per_cycle_json"])
+    assert bench.targets_met(out)["log_bytes_per_cycle_vs_json"]["met"] is False

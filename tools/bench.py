@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 import tempfile
 import threading
@@ -87,6 +88,10 @@ TARGETS: dict[str, float] = {
 }
 #: targets that are upper bounds (smaller is better)
 TARGETS_MAX: dict[str, float] = {
+    # the log in protobuf: at most a third of the bytes per cycle of the same run in JSON, and
+    # less writer CPU per cycle
+    "log_bytes_per_cycle_vs_json": 0.33,
+    "writer_cpu_vs_json": 1.0,
     "rt_logged_vs_unlogged_overrun_ratio": 1.2,
     "rt_vs_bare_period_error_p99_ratio": 2.0,
     # 3 ODrive axes at 1 kHz in real time in one loop: at most 1.5x the single axis' overruns
@@ -511,18 +516,25 @@ def _logged_pairs(duration: float, path: Path, pairs: int) -> tuple[list[float],
     return logged, plain
 
 
+def _bench_records(cycles: int) -> list[tuple[Any, ...]]:
+    """Records like a recorded run's: per cycle a received frame, the cycle (truth
+    included) and a sent frame, values moving as a run's do."""
+    from dobhil.recording.schemas import CYCLE
+    records: list[tuple[Any, ...]] = []
+    for k in range(cycles):
+        t, x = 1_000_000_000 + k * 1_000_000, math.sin(k * 1e-3)
+        records.append((1, t, 0x069, *(False,) * 6, 8, bytes(range(8)), 1.5 + k * 1e-3, "bench"))
+        records.append((CYCLE, t, k, 1e-4 * x, 0.1 * x, k, 0.2, 0.19 + x / 7, 0.01 * x, 0.02, 0.03 + x / 3,
+                        0.03 + x / 3, 1e-6 * x, 3e-5, False, math.nan, 1, 8, 0, 1e-4 * x, 0.1 * x, 0.03, 0.19))
+        records.append((2, t, 0x06E, *(False,) * 6, 4, bytes(4), 1.5 + k * 1e-3, "bench"))
+    return records
+
+
 def _recorder_msgs_per_s(recorded: Path) -> float:
     """Messages/s the one writer (LogWriter) encodes and writes on its own: records like a
     recorded run's cycles and frames, without the loop."""
-    from dobhil.recording.schemas import CYCLE
     from dobhil.recording.writer import LogWriter
-    records = []
-    for k in range(20000):
-        t = 1_000_000_000 + k * 1_000_000
-        records.append((1, t, 0x069, *(False,) * 6, 8, bytes(range(8)), 1.5, "bench"))
-        records.append((CYCLE, t, k, 1e-4 * k, 0.1, k, 0.2, 0.19, 0.01, 0.02, 0.03, 0.03,
-                        0.0, 3e-5, False, 8, 0, 1e-4 * k, 0.1, 0.03, 0.19))
-        records.append((2, t, 0x06E, *(False,) * 6, 4, bytes(4), 0.0, "bench"))
+    records = _bench_records(20000)
     best = 0.0
     for _ in range(3):
         t0 = time.perf_counter()
@@ -531,6 +543,78 @@ def _recorder_msgs_per_s(recorded: Path) -> float:
         log.finish(None)
         best = max(best, log.written / (time.perf_counter() - t0))
     return best
+
+
+#: the log encodings compared: dobhil's and the JSON it wrote before
+LOG_ENCODINGS = ("protobuf", "json")
+
+
+def _encoded_run(duration: float, path: Path, encoding: str) -> tuple[float, float]:
+    """(file bytes, message bytes before compression) per cycle of a lockstep demo run
+    recorded in ``encoding``; NaN (and a line) when it did not last its duration."""
+    from dobhil.cli.recording import open_run_log, record_run
+    from dobhil.recording.reader import open_log
+    from dobhil.runtime.session import RunSession
+    config = load_config(ROOT / "configs/demo.yaml", [f"loop.duration={duration}"])
+    path.unlink(missing_ok=True)
+    log = open_run_log(path, fsync=False, encoding=encoding)
+    assert log is not None
+    with RunSession(config, emulate=True, lockstep=True, sink=log, bus_wrapper=log.wrap_bus) as session:
+        result = record_run(session, log)
+    if not _ran_whole(result, duration, f"lockstep run logged in {encoding}"):
+        return math.nan, math.nan
+    payload = sum(len(data) for _, _, data in open_log(path).iter_payloads())
+    return path.stat().st_size / result.cycles, payload / result.cycles
+
+
+def _writer_cpu_us(records: list[tuple[Any, ...]], encoding: str, path: Path) -> float:
+    """CPU seconds (this process) LogWriter spends encoding and writing ``records``, in us."""
+    from dobhil.recording.writer import LogWriter
+    t0 = time.process_time()
+    log = LogWriter(open(path, "wb"), metadata={}, fsync=False, encoding=encoding)
+    log.write(records)
+    log.finish(None)
+    return (time.process_time() - t0) * 1e6
+
+
+def bench_log_encoding(pairs: int = 3, seconds: float = 4.0, cycles: int = 20000) -> dict[str, float]:
+    """The log's size and its writer's CPU per control cycle, protobuf (what dobhil writes)
+    against JSON (what it wrote before), interleaved, each side warmed up first.
+
+    ``log_bytes_per_cycle`` (file bytes, zstd chunks and MCAP's indexes included) is the
+    median of ``pairs`` recordings of one lockstep demo run (deterministic: the same records
+    both ways), each checked to have lasted; ``log_payload_bytes_per_cycle_vs_json`` the
+    messages' own bytes before compression. ``writer_cpu_us_per_cycle``: the writer's CPU
+    (LogWriter in this process: encoding, chunking, zstd) per cycle of ``cycles`` run-like
+    cycles (a frame received, the cycle's five messages, a frame sent), median of ``pairs``."""
+    sizes: dict[str, list[tuple[float, float]]] = {e: [] for e in LOG_ENCODINGS}
+    cpu: dict[str, list[float]] = {e: [] for e in LOG_ENCODINGS}
+    records = _bench_records(cycles)
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "encoded.mcap"
+        for encoding in LOG_ENCODINGS:   # warm-up, not counted: imports, the writer's first start
+            _encoded_run(0.5, path, encoding)
+            _writer_cpu_us(records[:3000], encoding, path)
+        for i in range(pairs):
+            for encoding in LOG_ENCODINGS if i % 2 == 0 else LOG_ENCODINGS[::-1]:
+                sizes[encoding].append(_encoded_run(seconds, path, encoding))
+                cpu[encoding].append(_writer_cpu_us(records, encoding, path) / cycles)
+    return log_encoding_figures(sizes, cpu)
+
+
+def log_encoding_figures(sizes: dict[str, list[tuple[float, float]]], cpu: dict[str, list[float]]) -> dict[str, float]:
+    """The keys of :func:`bench_log_encoding` from its measured (file, payload) bytes per
+    cycle and CPU per cycle of each encoding; a run that did not last (NaN) fails them."""
+    def median(values: list[float]) -> float:
+        return float("nan") if any(math.isnan(v) for v in values) else _median_or_nan(values)
+    file = {e: median([f for f, _ in sizes[e]]) for e in LOG_ENCODINGS}
+    payload = {e: median([p for _, p in sizes[e]]) for e in LOG_ENCODINGS}
+    used = {e: median(cpu[e]) for e in LOG_ENCODINGS}
+    return {"log_bytes_per_cycle": file["protobuf"], "log_bytes_per_cycle_json": file["json"],
+            "log_bytes_per_cycle_vs_json": file["protobuf"] / file["json"],
+            "log_payload_bytes_per_cycle_vs_json": payload["protobuf"] / payload["json"],
+            "writer_cpu_us_per_cycle": used["protobuf"], "writer_cpu_us_per_cycle_json": used["json"],
+            "writer_cpu_vs_json": used["protobuf"] / used["json"]}
 
 
 def _replay_cycles_per_s(recorded: Path) -> float:
@@ -1164,6 +1248,7 @@ BENCHES: dict[str, Callable[[], dict[str, float]]] = {
     "axes": bench_axes,
     "rt_axes": bench_rt_axes,
     "logging": bench_logging,
+    "log_encoding": bench_log_encoding,
     "realtime": bench_realtime,
     "handover": bench_handover,
     "live": bench_live,

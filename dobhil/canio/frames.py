@@ -12,6 +12,7 @@ from typing import Final
 import can
 
 from dobhil.recording.axeslog import BUS_PREFIX
+from dobhil.recording.encodings import Decoder
 from dobhil.recording.schemas import TOPIC_SPECS, Topic, can_frame_message, decode
 
 #: The two frame topics, received first.
@@ -31,9 +32,10 @@ def topic_of(msg: can.Message) -> Topic:
     return Topic.CAN_RX if msg.is_rx else Topic.CAN_TX
 
 
-def frame_message(data: bytes, log_time_ns: int) -> can.Message:
-    """The python-can message of a recorded frame (bus time, else log time)."""
-    return can_frame_message(decode(data), log_time_ns)
+def frame_message(data: bytes, log_time_ns: int, decoder: Decoder = decode) -> can.Message:
+    """The python-can message of a recorded frame (bus time, else log time), its bytes read
+    by ``decoder`` (its channel's encoding; JSON unless given)."""
+    return can_frame_message(decoder(data), log_time_ns)
 
 
 __all__ = ["FRAME_TOPICS", "FRAME_TOPIC_NAMES", "Topic", "frame_message", "is_frame_topic", "topic_of"]

@@ -36,7 +36,9 @@ from mcap.reader import NonSeekingReader, make_reader
 
 from dobhil.canio.frames import frame_message, is_frame_topic
 from dobhil.errors import exception_line
-from dobhil.recording.reader import MAGIC
+from dobhil.recording.encodings import Decoder
+from dobhil.recording.reader import MAGIC, decoder_for
+from dobhil.recording.schemas import SPECS_BY_SCHEMA
 
 #: (device, inode) of the files McapReaders of this process have open: the writer refuses
 #: them (``can.logconvert run.mcap run.mcap`` would otherwise destroy its input).
@@ -97,6 +99,7 @@ class McapReader(BinaryIOMessageReader):
         if kwargs:
             raise ValueError(f"MCAP reader: unknown option(s) {', '.join(sorted(kwargs))}; it takes none")
         self.name = os.fspath(file) if isinstance(file, (str, os.PathLike)) else str(getattr(file, "name", "MCAP"))
+        self._decoders: dict[int, Decoder] = {}
         super().__init__(file, mode="rb")
         try:
             head = self.file.read(len(MAGIC))
@@ -129,8 +132,8 @@ class McapReader(BinaryIOMessageReader):
 
     def __iter__(self) -> Iterator[can.Message]:
         try:
-            for log_time, data in self._records():
-                msg = frame_message(data, log_time)
+            for log_time, data, decoder in self._records():
+                msg = frame_message(data, log_time, decoder)
                 self.frames_read += 1
                 yield msg
         except (KeyError, TypeError) as exc:
@@ -139,7 +142,15 @@ class McapReader(BinaryIOMessageReader):
         finally:
             self.stop()
 
-    def _records(self) -> Iterator[tuple[int, bytes]]:
+    def _decoder(self, schema: Any, channel: Any) -> Decoder:
+        """The decoder of a frame channel (its encoding, its schema), made once."""
+        found = self._decoders.get(channel.id)
+        if found is None:
+            spec = SPECS_BY_SCHEMA.get(schema.name) if schema is not None else None
+            found = self._decoders[channel.id] = decoder_for(channel.message_encoding, spec, self.name, channel.topic)
+        return found
+
+    def _records(self) -> Iterator[tuple[int, bytes, Decoder]]:
         """(log time, data) of each frame message, chunk and data CRCs checked; indexed when
         there is a summary."""
         reader = make_reader(cast(IO[bytes], self.file), validate_crcs=True)
@@ -156,21 +167,21 @@ class McapReader(BinaryIOMessageReader):
             listed = ", ".join(sorted(topics)) or "none"
             raise ValueError(f"{self.name}: no CAN frames (no /can/rx or /can/tx topic; topics: {listed})")
         try:
-            for _, _, message in reader.iter_messages(topics=frames, log_time_order=True):
-                yield message.log_time, message.data
+            for schema, channel, message in reader.iter_messages(topics=frames, log_time_order=True):
+                yield message.log_time, message.data, self._decoder(schema, channel)
         except Exception as exc:  # a CRC, zstd or lz4 error: the bytes are wrong
             raise ValueError(f"{self.name}: damaged after {self.frames_read} frames ({exception_line(exc)}); "
                              f"{self._recover} saves the intact chunks") from exc
 
-    def _scan(self) -> Iterator[tuple[int, bytes]]:
+    def _scan(self) -> Iterator[tuple[int, bytes, Decoder]]:
         """Front to back, for a file without chunk index; file order is the writer's order."""
         self.file.seek(0)
         reader = NonSeekingReader(cast(IO[bytes], self.file), validate_crcs=True)
         stream = reader.iter_messages(log_time_order=False)
         try:
-            for _, channel, message in stream:
+            for schema, channel, message in stream:
                 if is_frame_topic(channel.topic):
-                    yield message.log_time, message.data
+                    yield message.log_time, message.data, self._decoder(schema, channel)
         except Exception as exc:
             raise ValueError(f"{self.name}: truncated or damaged after {self.frames_read} frames ({exc}); "
                              f"{self._recover} writes a complete copy") from exc

@@ -51,6 +51,7 @@ def _info_lines(info: Any) -> Iterator[str]:
     yield f"messages:   {info.message_count}"
     yield f"time:       {_stamp(info.start_ns)} .. {_stamp(info.end_ns)} ({info.duration_s:.3f} s)"
     yield f"stop:       {info.stop_reason or '-'}"
+    yield f"encoding:   {info.encoding or '-'}"
     axes = info.metadata.get("axes")
     if axes:  # a several-axis log: each axis with its bus (its topics under /axis/<name>)
         bus_of = json.loads(axes.get("bus_of", "{}"))

@@ -28,6 +28,7 @@ from dobhil.errors import RecorderError, exception_line
 from dobhil.files import check_new_output
 from dobhil.recording.axeslog import AxesLog, AxisDrive, axis_record, bus_record
 from dobhil.recording.codes import ProtocolCodes
+from dobhil.recording.encodings import DEFAULT_ENCODING
 from dobhil.recording.process import WriterProcess
 from dobhil.recording.runlog import RunLog
 from dobhil.recording.schemas import EventKind
@@ -73,13 +74,15 @@ def live_address(text: str | None, log: Path | None) -> LiveView | None:
     return LiveView(LiveServer, address.host, address.port)
 
 
-def open_run_log(path: Path | None, *, live: LiveView | None = None, fsync: bool = True) -> RunLog | None:
-    """A :class:`RunLog` for ``path`` (checked first: one line if it cannot be written)."""
+def open_run_log(path: Path | None, *, live: LiveView | None = None, fsync: bool = True,
+                 encoding: str = DEFAULT_ENCODING) -> RunLog | None:
+    """A :class:`RunLog` for ``path`` (checked first: one line if it cannot be written), its
+    messages in ``encoding`` (``dobhil.recording.encodings``)."""
     if path is None:
         return None
     check_new_output(path, suffix=".mcap", what="--log")
     path.parent.mkdir(parents=True, exist_ok=True)
-    return RunLog(WriterProcess(path, fsync=fsync), live=live)
+    return RunLog(WriterProcess(path, fsync=fsync, encoding=encoding), live=live)
 
 
 def versions() -> dict[str, str]:

@@ -141,8 +141,6 @@ def closed_loop_record(path: str, build: Callable[[Any, Any], Any], *,
     (:func:`dobhil.runtime.session.build_controller`)."""
     import os
 
-    from orjson import loads
-
     from dobhil.drives.decode import recorded_profile
     from dobhil.errors import LogFileError, exception_line
     from dobhil.recording.axes import axis_log, is_axes_log
@@ -158,12 +156,12 @@ def closed_loop_record(path: str, build: Callable[[Any, Any], Any], *,
         profile = recorded_profile(log.metadata.get("drive"), name)
         config = log.config
         try:
-            for topic, _, raw in log.iter_payloads(("/drive/feedback", "/controller")):
-                p = loads(raw)
+            # whatever the log's encoding; a number that was not finite reads as None
+            for topic, _, p in log.iter_messages(("/drive/feedback", "/controller")):
                 if topic == "/controller":
-                    ctl[int(p["cycle"])] = (float(p["tau_ref"]), float(p["u_sat"]))
+                    ctl[int(p["cycle"])] = (_number(p["tau_ref"]), _number(p["u_sat"]))
                 else:
-                    fb[int(p["cycle"])] = (float(p["position"]), float(p["velocity"]))
+                    fb[int(p["cycle"])] = (_number(p["position"]), _number(p["velocity"]))
         except (KeyError, TypeError, ValueError) as exc:
             raise LogFileError(f"{name}: a recorded message does not match its schema "
                                f"({exception_line(exc)})") from None
@@ -181,6 +179,11 @@ def closed_loop_record(path: str, build: Callable[[Any, Any], Any], *,
                       position=rows[:, 0], velocity=rows[:, 1], torque=rows[:, 3],
                       initial=fb[-1], source=os.path.basename(name), mode=str(config.loop.mode),
                       recorded=MappingProxyType(recorded))
+
+
+def _number(value: Any) -> float:
+    """A recorded number; NaN for one that was not finite (read as None)."""
+    return math.nan if value is None else float(value)
 
 
 # -- the simulation ----------------------------------------------------------------------

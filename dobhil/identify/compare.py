@@ -10,7 +10,6 @@ import os
 from typing import Any
 
 import numpy as np
-from orjson import loads
 
 from dobhil.errors import ConfigError, LogFileError
 
@@ -25,8 +24,7 @@ def force_of(path: str | os.PathLike[str]) -> tuple[float, dict[int, float]]:
             raise LogFileError(f"{name}: no 'config' metadata (not a recorded run?)")
         force: dict[int, float] = {}
         try:
-            for _, _, raw in log.iter_payloads(["/controller"]):
-                p = loads(raw)
+            for _, _, p in log.iter_messages(["/controller"]):
                 value = p["tau_int_hat"]
                 force[int(p["cycle"])] = math.nan if value is None else float(value)
         except (KeyError, TypeError, ValueError) as exc:

@@ -25,7 +25,6 @@ from typing import Any, Final
 
 import numpy as np
 from numpy.typing import NDArray
-from orjson import loads
 
 from dobhil.drives.profile import DriveProfile
 from dobhil.errors import ConfigError, LogFileError, exception_line
@@ -169,8 +168,8 @@ def _from_frames(log: object, name: str, profile: DriveProfile | None, period: f
     rx: list[can.Message] = []
     tx: list[can.Message] = []
     try:
-        for topic, t, raw in log.iter_payloads(("/can/rx", "/can/tx")):  # type: ignore[attr-defined]
-            (rx if topic == "/can/rx" else tx).append(can_frame_message(loads(raw), t))
+        for topic, t, p in log.iter_messages(("/can/rx", "/can/tx")):  # type: ignore[attr-defined]
+            (rx if topic == "/can/rx" else tx).append(can_frame_message(p, t))
     except (KeyError, TypeError, ValueError) as exc:
         raise LogFileError(f"{name}: a recorded frame does not match its schema "
                            f"({exception_line(exc)})") from None
@@ -205,8 +204,7 @@ def _loop_records(log: object, name: str) -> dict[int, list[float]]:
     feedback: dict[int, tuple[float, float]] = {}
     torque: dict[int, float] = {}
     try:
-        for topic, _, raw in log.iter_payloads(_TOPICS):  # type: ignore[attr-defined]
-            p = loads(raw)
+        for topic, _, p in log.iter_messages(_TOPICS):  # type: ignore[attr-defined]
             cycle = int(p["cycle"])
             if cycle < 0:
                 continue  # the feedback controller.initialize used, before cycle 0

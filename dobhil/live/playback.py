@@ -35,6 +35,12 @@ class RecordedChannel:
     topic: str
     schema_name: str
     schema_data: bytes
+    message_encoding: str = "json"
+    schema_encoding: str = "jsonschema"
+
+
+#: (message encoding, schema encoding) the live view serves, as dobhil writes them
+_SERVED: Final = {("json", "jsonschema"), ("json", ""), ("protobuf", "protobuf")}
 
 
 @dataclass(frozen=True)
@@ -83,19 +89,21 @@ def _raw_channels(path: str | os.PathLike[str], reader: McapReader) -> list[tupl
 
 
 def recorded_channels(path: str | os.PathLike[str], f: IO[bytes]) -> tuple[RecordedChannel, ...]:
-    """Channels of an open recording; LogFileError if one is not JSON with a JSON schema."""
+    """Channels of an open recording; LogFileError if one is neither JSON with a JSON schema
+    nor protobuf with a protobuf schema."""
     out: dict[str, RecordedChannel] = {}
     for schema, channel in _raw_channels(path, make_reader(f)):
         encoding = schema.encoding if schema is not None else ""
-        if channel.message_encoding != "json" or encoding not in ("jsonschema", ""):
+        if (channel.message_encoding, encoding) not in _SERVED:
             raise _fail(
                 path,
                 f"channel {channel.topic!r} is {channel.message_encoding!r}/{encoding!r}; "
-                "the live view serves json messages with jsonschema schemas",
+                "the live view serves json messages with jsonschema schemas and protobuf with protobuf",
             )
         name = schema.name if schema is not None else ""
         data = bytes(schema.data) if schema is not None else b""
-        out.setdefault(channel.topic, RecordedChannel(channel.topic, name, data))
+        out.setdefault(channel.topic, RecordedChannel(channel.topic, name, data, channel.message_encoding,
+                                                      encoding or "jsonschema"))
     if not out:
         raise _fail(path, "no channels to serve")
     return tuple(out.values())
@@ -159,7 +167,8 @@ def serve_recording(
     with open(path, "rb") as f:
         channels = recorded_channels(path, f)
         for c in channels:
-            server.add_channel(c.topic, schema_name=c.schema_name, json_schema=c.schema_data)
+            server.add_channel(c.topic, schema_name=c.schema_name, json_schema=c.schema_data,
+                               message_encoding=c.message_encoding, schema_encoding=c.schema_encoding)
         if on_ready is not None:
             on_ready(channels)
         if wait_for_client:

@@ -165,8 +165,10 @@ class LiveServer:
         """Block until some client subscribes to some channel; False on timeout."""
         return self._subscriptions.wait(timeout)
 
-    def add_channel(self, topic: str, *, schema_name: str, json_schema: Mapping[str, Any] | bytes) -> None:
-        """Advertise ``topic`` (message encoding json, schema encoding jsonschema).
+    def add_channel(self, topic: str, *, schema_name: str, json_schema: Mapping[str, Any] | bytes,
+                    message_encoding: str = "json", schema_encoding: str = "jsonschema") -> None:
+        """Advertise ``topic`` (message encoding json, schema encoding jsonschema, unless given:
+        a recording's protobuf channels are served as they are stored).
 
         ``json_schema`` is the schema as a dict, or as bytes passed on unchanged
         (e.g. exactly as stored in an MCAP schema record).
@@ -176,8 +178,9 @@ class LiveServer:
         if topic in self._channels:
             raise LiveChannelError(f"live channel {topic!r} was already added")
         data = json_schema if isinstance(json_schema, bytes) else json.dumps(json_schema).encode()
-        schema = self._sdk.Schema(name=schema_name, encoding="jsonschema", data=data)
-        self._channels[topic] = self._sdk.Channel(topic, schema=schema, message_encoding="json", context=self._context)
+        schema = self._sdk.Schema(name=schema_name, encoding=schema_encoding, data=data)
+        self._channels[topic] = self._sdk.Channel(topic, schema=schema, message_encoding=message_encoding,
+                                                  context=self._context)
 
     def publish(self, topic: str, payload: bytes, log_time_ns: int) -> None:
         """Queue one JSON message for every subscribed client; never blocks.

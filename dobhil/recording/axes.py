@@ -24,7 +24,6 @@ from dobhil.config.axes import SINGLE_AXIS
 from dobhil.errors import LogFileError, exception_line
 from dobhil.recording.axeslog import AXES_METADATA, AXIS_PREFIX, BUS_PREFIX, axis_prefix, axis_record, bus_record
 from dobhil.recording.reader import LogFile, open_log
-from dobhil.recording.schemas import decode
 
 #: The topics of an axis' bus (the rest are the axis' own).
 BUS_TOPICS: Final = ("/can/rx", "/can/tx")
@@ -148,18 +147,18 @@ class AxisLog:
                                f"{', '.join(self.topics()) or 'none'}")
 
     def iter_payloads(self, topics: Iterable[str] | None = None) -> Iterator[tuple[str, int, bytes]]:
-        """(topic as this axis names it, log_time_ns, JSON bytes) in file order."""
+        """(topic as this axis names it, log_time_ns, message bytes) in file order."""
         wanted = None if topics is None else set(topics)
         names = {t: n for t, n in self._names.items() if wanted is None or n in wanted}
         for topic, t, data in self.file.iter_payloads(names):
             yield names[topic], t, data
 
     def iter_messages(self, topics: Iterable[str] | None = None) -> Iterator[tuple[str, int, dict[str, Any]]]:
-        for topic, t, data in self.iter_payloads(topics):
-            try:
-                yield topic, t, decode(data)
-            except ValueError:
-                raise LogFileError(f"{self.path}: a {topic} message at log time {t} is not JSON") from None
+        """(topic as this axis names it, log_time_ns, payload dict) in file order."""
+        wanted = None if topics is None else set(topics)
+        names = {t: n for t, n in self._names.items() if wanted is None or n in wanted}
+        for topic, t, payload in self.file.iter_messages(names):
+            yield names[topic], t, payload
 
 
 def axis_logs(path: str | os.PathLike[str] | LogFile) -> tuple[AxisLog, ...]:

@@ -22,7 +22,8 @@ from mcap.stream_reader import StreamReader, get_chunk_data_stream
 
 from dobhil.errors import LogFileError, exception_line
 from dobhil.files import input_problem
-from dobhil.recording.schemas import EventKind, decode
+from dobhil.recording.encodings import Decoder, encoding
+from dobhil.recording.schemas import SPECS_BY_SCHEMA, EventKind
 from dobhil.recording.writer import RECORDING_METADATA
 
 MAGIC: Final = b"\x89MCAP0\r\n"
@@ -55,6 +56,7 @@ class LogInfo:
     attachments: tuple[str, ...]
     stop_reason: str | None
     dropped: int | None
+    encoding: str = ""  # the channels' message encodings, e.g. "protobuf" ("json": before 0.2)
 
     @property
     def duration_s(self) -> float:
@@ -142,6 +144,7 @@ class LogFile:
         self.attachments: list[tuple[str, str, bytes]] = []
         self.chunks: list[tuple[int, int]] = []  # (offset, uncompressed size)
         self.statistics: Statistics | None = None
+        self._decoders: dict[int, Decoder] = {}
         with open(path, "rb") as f:
             f.seek(max(0, size - len(MAGIC)))
             if f.read() != MAGIC or size < 2 * len(MAGIC) + 9:
@@ -194,19 +197,40 @@ class LogFile:
                                        f"axis' topics under /axis/<name> (e.g. /axis/{axes[0]}{topic})")
             raise _fail(self.path, f"no topic {topic!r}; available: {', '.join(self.topics()) or 'none'}")
 
+    def encodings(self) -> tuple[str, ...]:
+        """The message encodings of its channels, each once."""
+        return tuple(dict.fromkeys(c.message_encoding for c in self.channel_records.values()))
+
     def schema_properties(self, topic: str) -> tuple[str, ...]:
-        """Property names of a topic's JSON schema as stored in the file."""
+        """Field names of a topic's schema as stored in the file (a JSON schema's properties,
+        a protobuf message's fields)."""
         self.require_topic(topic)
         channel = next(c for c in self.channel_records.values() if c.topic == topic)
         schema = self.schemas.get(channel.schema_id)
         try:
-            return tuple(json.loads(schema.data)["properties"]) if schema else ()
+            return encoding(channel.message_encoding).schema_fields(schema.data, schema.name) if schema else ()
         except (ValueError, KeyError, TypeError) as exc:
-            raise _fail(self.path, f"the schema of {topic} is not a JSON schema ({exc})") from None
+            raise _fail(self.path, f"the schema of {topic} is not a {channel.message_encoding} schema "
+                                   f"({exception_line(exc)})") from None
+
+    def decoder(self, channel_id: int) -> Decoder:
+        """Message bytes -> payload dict for a channel, by its message encoding and schema."""
+        found = self._decoders.get(channel_id)
+        if found is None:
+            channel = self.channel_records[channel_id]
+            schema = self.schemas.get(channel.schema_id)
+            spec = SPECS_BY_SCHEMA.get(schema.name) if schema is not None else None
+            found = self._decoders[channel_id] = decoder_for(channel.message_encoding, spec, self.path, channel.topic)
+        return found
 
     def iter_payloads(self, topics: Iterable[str] | None = None) -> Iterator[tuple[str, int, bytes]]:
-        """(topic, log_time_ns, JSON bytes) in file order (the order written); each chunk read
+        """(topic, log_time_ns, message bytes) in file order (the order written); each chunk read
         by its offset and CRC-checked again (the file may have changed)."""
+        for _, topic, t, data in self._iter_raw(topics):
+            yield topic, t, data
+
+    def _iter_raw(self, topics: Iterable[str] | None = None) -> Iterator[tuple[int, str, int, bytes]]:
+        """(channel id, topic, log_time_ns, message bytes) in file order."""
         wanted = {cid: c.topic for cid, c in self.channel_records.items() if topics is None or c.topic in set(topics)}
         with open(self.path, "rb") as f:
             for offset, size in self.chunks:
@@ -221,12 +245,17 @@ class LogFile:
                 yield from _chunk_messages(data, wanted)
 
     def iter_messages(self, topics: Iterable[str] | None = None) -> Iterator[tuple[str, int, dict[str, Any]]]:
-        """(topic, log_time_ns, payload dict) in file order."""
-        for topic, t, data in self.iter_payloads(topics):
+        """(topic, log_time_ns, payload dict) in file order, whatever the encoding (the same
+        dict: numbers that are not finite as None, bytes as a list of integers)."""
+        decoders: dict[int, Decoder] = {}
+        for cid, topic, t, data in self._iter_raw(topics):
+            decode = decoders.get(cid) or decoders.setdefault(cid, self.decoder(cid))
             try:
-                yield topic, t, decode(data)
-            except ValueError:
-                raise _fail(self.path, f"a {topic} message at log time {t} is not JSON") from None
+                payload = decode(data)
+            except (ValueError, TypeError, struct.error) as exc:
+                raise _fail(self.path, f"a {topic} message at log time {t} is not valid "
+                                       f"{self.channel_records[cid].message_encoding} ({exc})") from None
+            yield topic, t, payload
 
     def stop_reason(self) -> str | None:
         if "/events" not in self.topics():
@@ -240,7 +269,7 @@ class LogFile:
         return LogInfo(os.fspath(self.path), channels, sum(c.message_count for c in channels),
                        stats.message_start_time if stats else 0, stats.message_end_time if stats else 0,
                        MappingProxyType(self.metadata), tuple(a for a, _, _ in self.attachments), self.stop_reason(),
-                       None if dropped is None else int(dropped))
+                       None if dropped is None else int(dropped), ", ".join(self.encodings()))
 
 
 def _axis_names(metadata: Mapping[str, Mapping[str, str]]) -> list[str]:
@@ -252,7 +281,19 @@ def _axis_names(metadata: Mapping[str, Mapping[str, str]]) -> list[str]:
     return [str(n) for n in names] if isinstance(names, list) else []
 
 
-def _chunk_messages(records: bytes, wanted: Mapping[int, str]) -> Iterator[tuple[str, int, bytes]]:
+def decoder_for(message_encoding: str, spec: Any, path: str | os.PathLike[str], topic: str) -> Decoder:
+    """The decoder of a channel (``spec``: its topic's, None when the schema is not dobhil's);
+    LogFileError naming what is not readable."""
+    try:
+        found = encoding(message_encoding)
+    except LogFileError as exc:
+        raise _fail(path, f"channel {topic}: {exc}") from None
+    if spec is None and found.name != "json":   # JSON reads without a schema; others need dobhil's
+        raise _fail(path, f"channel {topic}: a {message_encoding} schema dobhil does not know")
+    return found.decoder(spec)
+
+
+def _chunk_messages(records: bytes, wanted: Mapping[int, str]) -> Iterator[tuple[int, str, int, bytes]]:
     head, msg_head = _RECORD.unpack_from, _MESSAGE.unpack_from
     pos, end = 0, len(records)
     while pos < end:
@@ -262,11 +303,11 @@ def _chunk_messages(records: bytes, wanted: Mapping[int, str]) -> Iterator[tuple
             channel, _, log_time, _ = msg_head(records, body)
             topic = wanted.get(channel)
             if topic is not None:
-                yield topic, log_time, records[body + 22:body + length]
+                yield channel, topic, log_time, records[body + 22:body + length]
         pos = body + length
 
 
 open_log = LogFile
 
 
-__all__ = ["MAGIC", "ChannelInfo", "LogFile", "LogInfo", "check_mcap_head", "open_log"]
+__all__ = ["MAGIC", "ChannelInfo", "LogFile", "LogInfo", "check_mcap_head", "decoder_for", "open_log"]

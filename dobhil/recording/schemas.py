@@ -246,6 +246,22 @@ def _frame_encoder(topic: Topic) -> Encoder:
     return lambda values: orjson.dumps(can_frame_payload(values, topic))
 
 
+Fields = Callable[[Sequence[Any]], tuple[Any, ...]]
+
+
+def can_frame_fields(topic: Topic) -> Fields:
+    """A frame record's values -> the ``/can/*`` fields in the table's order (what
+    :func:`can_frame_payload` holds: a test checks they agree)."""
+    direction = "rx" if topic == Topic.CAN_RX else "tx"
+
+    def fields(values: Sequence[Any]) -> tuple[Any, ...]:
+        arb, ext, rtr, err, fd, brs, esi, dlc, data, stamp, channel = values
+        data = bytes(data)
+        return (float(stamp or 0.0), arb, bool(ext), bool(rtr), bool(err), bool(fd), bool(brs), bool(esi), dlc,
+                data, data.hex(), direction, "" if channel is None else str(channel))
+    return fields
+
+
 #: ``/drive/feedback.drive_state`` by dobhil's ``DriveState`` code (``dobhil.drives.base``; a
 #: test checks they match). Names, not the codes: a drive's own state codes differ (a drive's
 #: 1 may be its idle state, dobhil's 1 is enabled), and a number in Foxglove reads as the drive's.
@@ -257,7 +273,17 @@ def drive_state_name(code: int) -> str:
     return DRIVE_STATE_NAMES[code] if 0 <= code < len(DRIVE_STATE_NAMES) else f"code {code}"
 
 
-def _feedback_encoder(codes: ProtocolCodes) -> Encoder:
+def feedback_fields(codes: ProtocolCodes) -> Fields:
+    """``/drive/feedback``'s record values -> its fields in the table's order, the drive's
+    codes named by ``codes`` (what :func:`feedback_encoder` holds: a test checks they agree)."""
+    def fields(values: Sequence[Any]) -> tuple[Any, ...]:
+        position, velocity, state, protocol_state, error, seq, cycle = values
+        return (position, velocity, drive_state_name(int(state)), protocol_state,
+                codes.state_name(int(protocol_state)), error, codes.error_text(int(error)), seq, cycle)
+    return fields
+
+
+def feedback_encoder(codes: ProtocolCodes) -> Encoder:
     """``/drive/feedback`` with the drive's codes named by ``codes`` (the run's protocol)."""
     def encode(values: Sequence[Any]) -> bytes:
         position, velocity, state, protocol_state, error, seq, cycle = values
@@ -278,6 +304,12 @@ def feedback_state(payload: Mapping[str, Any]) -> tuple[str, int, int]:
     name = state if isinstance(state, str) else drive_state_name(int(payload.get("axis_state", -1)))
     error = payload.get("protocol_error", payload.get("axis_error", 0))
     return name, int(payload.get("protocol_state", -1)), int(error or 0)
+
+
+def event_fields(values: Sequence[Any]) -> tuple[Any, ...]:
+    """An event record's values -> the ``/events`` fields (the kind by its lower-case name)."""
+    kind, reason, detail, count = values
+    return EventKind(kind).name.lower(), reason, detail, count
 
 
 def _event_encoder(values: Sequence[Any]) -> bytes:
@@ -303,7 +335,7 @@ _SPECS: Final = (
               + _fields(FieldKind.STRING, "protocol_error_text", "protocol_error in the protocol's words")
               + _fields(_I, "seq", "motion frames received from the drive so far (Feedback.seq)",
                         "cycle", "control cycle that used this feedback (-1: controller.initialize)"),
-              _feedback_encoder(ProtocolCodes()),
+              feedback_encoder(ProtocolCodes()),
               ("position", "velocity", "drive_state", "protocol_state", "protocol_error", "seq", "cycle")),
     TopicSpec(Topic.DRIVE_COMMAND, "/drive/command", "dobhil.DriveCommand", "torque command sent to the drive",
               _fields(_N, "torque", "commanded motor torque [N m]")),
@@ -332,6 +364,8 @@ _SPECS: Final = (
 
 #: Topic -> spec: the one table of channels.
 TOPIC_SPECS: Final[Mapping[Topic, TopicSpec]] = MappingProxyType({s.topic: s for s in _SPECS})
+#: Schema name ("dobhil.CanFrame") -> spec (the two frame topics share theirs).
+SPECS_BY_SCHEMA: Final[Mapping[str, TopicSpec]] = MappingProxyType({s.schema_name: s for s in _SPECS})
 #: Topic name ("/can/rx") -> spec.
 SPECS_BY_NAME: Final[Mapping[str, TopicSpec]] = MappingProxyType({s.name: s for s in _SPECS})
 
@@ -363,12 +397,26 @@ def _view(spec: TopicSpec, in_cycle: bool, encode: Encoder) -> View:
     return spec.topic, lambda r: encode(get(r)), max(idx) + 1
 
 
-def views(codes: ProtocolCodes | None = None) -> Mapping[int, tuple[View, ...]]:
-    """Record kind (CYCLE or a Topic) -> the views of each message the record becomes, the
-    drive's codes on ``/drive/feedback`` named by ``codes`` (None: as numbers)."""
-    encoders = {t: s.encode for t, s in TOPIC_SPECS.items()}
-    if codes is not None:
-        encoders[Topic.DRIVE_FEEDBACK] = _feedback_encoder(codes)
+def field_values(spec: TopicSpec, codes: ProtocolCodes | None = None) -> Fields | None:
+    """A topic's record values -> its fields in the table's order (None: the values are the
+    fields); the drive's codes on ``/drive/feedback`` named by ``codes`` (None: numbers)."""
+    if spec.topic in (Topic.CAN_RX, Topic.CAN_TX):
+        return can_frame_fields(spec.topic)
+    if spec.topic == Topic.DRIVE_FEEDBACK:
+        return feedback_fields(codes or ProtocolCodes())
+    return event_fields if spec.topic == Topic.EVENTS else None
+
+
+def views(codes: ProtocolCodes | None = None, encoding: Any = None) -> Mapping[int, tuple[View, ...]]:
+    """Record kind (CYCLE or a Topic) -> the views of each message the record becomes, in
+    ``encoding`` (a :class:`~dobhil.recording.encodings.Encoding`; None: JSON), the drive's
+    codes on ``/drive/feedback`` named by ``codes`` (None: as numbers)."""
+    if encoding is not None:
+        encoders = {t: encoding.encoder(s, codes) for t, s in TOPIC_SPECS.items()}
+    else:   # the table's own JSON encoders (what encodings.json_messages hands out)
+        encoders = {t: s.encode for t, s in TOPIC_SPECS.items()}
+        if codes is not None:
+            encoders[Topic.DRIVE_FEEDBACK] = feedback_encoder(codes)
     in_cycle = (Topic.DRIVE_FEEDBACK, Topic.CONTROLLER, Topic.DRIVE_COMMAND, Topic.LOOP, Topic.EMULATOR_TRUTH)
     return MappingProxyType({CYCLE: tuple(_view(TOPIC_SPECS[t], True, encoders[t]) for t in in_cycle),
                              **{int(t): (_view(s, False, encoders[t]),) for t, s in TOPIC_SPECS.items()}})
@@ -420,8 +468,10 @@ def decode(data: bytes) -> dict[str, Any]:
 
 __all__ = ["CYCLE", "CYCLE_FIELDS", "DRIVE_STATE_NAMES", "FRAME_ATTRIBUTES", "LANE_MASK", "LANE_STRIDE",
            "MESSAGE_ENCODING", "RECORD_TYPES",
-           "SCHEMA_ENCODING", "SPECS_BY_NAME", "TOPIC_SPECS", "VIEWS", "CycleRecord", "EventKind", "EventRecord",
+           "SCHEMA_ENCODING", "SPECS_BY_NAME", "SPECS_BY_SCHEMA", "TOPIC_SPECS", "VIEWS", "CycleRecord", "EventKind",
+           "EventRecord",
            "Field", "FieldKind", "FrameRecord", "Topic", "TopicSpec", "can_frame_message", "can_frame_payload",
-           "can_frame_record", "decode", "drive_state_name", "event_record", "feedback_state", "lane_kind",
+           "can_frame_fields", "can_frame_record", "decode", "event_fields", "feedback_encoder", "feedback_fields",
+           "field_values", "drive_state_name", "event_record", "feedback_state", "lane_kind",
            "message_count", "named",
            "spec_for", "views"]

@@ -18,8 +18,8 @@ from mcap.writer import CompressionType, Writer
 
 from dobhil import __version__
 from dobhil.recording.codes import ProtocolCodes
-from dobhil.recording.schemas import (LANE_MASK, MESSAGE_ENCODING, SCHEMA_ENCODING, TOPIC_SPECS, EventKind, Topic,
-                                      event_record, lane_kind, named, views)
+from dobhil.recording.encodings import DEFAULT_ENCODING, Encoding, encoding
+from dobhil.recording.schemas import LANE_MASK, TOPIC_SPECS, EventKind, Topic, event_record, lane_kind, named, views
 
 #: Chunks end at this size or at every flush, whichever comes first.
 CHUNK_SIZE: Final = 256 * 1024
@@ -69,6 +69,7 @@ class LiveView:
 
 
 _EVENTS, _LOSS = int(Topic.EVENTS), int(EventKind.LOSS)
+_encoding = encoding
 class Lane(NamedTuple):
     """One lane of a log (a record's lane is in its kind:
     :data:`~dobhil.recording.schemas.LANE_STRIDE`): the prefix of its topics ("" for the
@@ -88,12 +89,13 @@ class Lane(NamedTuple):
 _LaneView = tuple[str, Topic, Callable[[Any], bytes], int]
 
 
-def lane_views(lanes: Sequence[Lane]) -> dict[int, tuple[_LaneView, ...]]:
-    """Record kind (base and lane) -> the messages it becomes, under the lane's prefix (a
-    record a lane has no topic for has no kind here: the writer refuses it)."""
+def lane_views(lanes: Sequence[Lane], encoding: Encoding | None = None) -> dict[int, tuple[_LaneView, ...]]:
+    """Record kind (base and lane) -> the messages it becomes in ``encoding`` (None: JSON),
+    under the lane's prefix (a record a lane has no topic for has no kind here: the writer
+    refuses it)."""
     out: dict[int, tuple[_LaneView, ...]] = {}
     for lane, (prefix, codes, topics) in enumerate(lanes):
-        for base, views_of in views(codes).items():
+        for base, views_of in views(codes, encoding).items():
             mine = tuple((prefix + TOPIC_SPECS[topic].name, topic, encode, needs)
                          for topic, encode, needs in views_of if not topics or topic in topics)
             if mine:
@@ -102,19 +104,22 @@ def lane_views(lanes: Sequence[Lane]) -> dict[int, tuple[_LaneView, ...]]:
 
 
 class LogWriter:
-    """Writes records to ``file`` (owned: closed by :meth:`finish` or :meth:`close`).
-    Not thread-safe: one thread (or process) writes."""
+    """Writes records to ``file`` (owned: closed by :meth:`finish` or :meth:`close`), each
+    message in ``encoding`` (a name of :data:`~dobhil.recording.encodings.ENCODINGS`); the
+    other outputs (the live view) get JSON. Not thread-safe: one thread (or process) writes."""
 
     def __init__(self, file: BinaryIO, *, metadata: Mapping[str, Mapping[str, Any]],
                  attachments: Iterable[Sequence[Any]] = (), mode: RecordMode = RecordMode.BACKPRESSURE,
                  fsync: bool = True, library: str = LIBRARY, compression: CompressionType = COMPRESSION,
                  chunk_size: int = CHUNK_SIZE, codes: ProtocolCodes | None = None,
-                 lanes: Sequence[Lane] = ()) -> None:
+                 lanes: Sequence[Lane] = (), encoding: str = DEFAULT_ENCODING) -> None:
         self.file = file
         #: the topic prefix and codes of each lane (:data:`Lane`); one lane without prefix,
         #: its drive's codes named by ``codes``, unless given
         self.lanes: tuple[Lane, ...] = tuple(Lane(*lane) for lane in lanes) or (Lane("", codes),)
-        self._views = lane_views(self.lanes)
+        self.encoding: Encoding = _encoding(encoding)
+        self._views = lane_views(self.lanes, self.encoding)
+        self._live_views: dict[int, tuple[_LaneView, ...]] = {}  # JSON, once an output is added
         self.mode = RecordMode(mode)
         self.fsync = fsync
         self.written = self.dropped = self.last_log_ns = 0
@@ -145,6 +150,7 @@ class LogWriter:
                 spec = TOPIC_SPECS[topic]
                 output.add_channel(name, schema_name=spec.schema_name, json_schema=spec.json_schema())
         self._outputs.append(output)
+        self._live_views = self._live_views or lane_views(self.lanes)
 
     def write(self, records: Iterable[Sequence[Any]]) -> None:
         """Encode and write records (flat tuples of the topic table, named here), in order."""
@@ -157,13 +163,20 @@ class LogWriter:
                 self.dropped += record.lost
             for name, topic, encode, needs in views_of[record.kind]:
                 if n >= needs:
-                    data = encode(record)
-                    add(channels.get(name) or self._register(name, topic), t, data, t)
+                    add(channels.get(name) or self._register(name, topic), t, encode(record), t)
                     written += 1
-                    for out in outputs:
-                        out.publish(name, data, t)
+            if outputs:
+                self._publish(record, n)
             last = max(last, t)
         self.written, self.last_log_ns = written, last
+
+    def _publish(self, record: Any, n: int) -> None:
+        """``record``'s messages, in JSON, to every other output."""
+        for name, _, encode, needs in self._live_views[record.kind]:
+            if n >= needs:
+                data = encode(record)
+                for out in self._outputs:
+                    out.publish(name, data, record.log_time_ns)
 
     def flush(self, sync: bool = True) -> None:
         """End the chunk and hand it to the OS (a killed process then loses nothing older);
@@ -205,8 +218,8 @@ class LogWriter:
         schema = self._schemas.get(spec.schema_name)
         if schema is None:
             schema = self._schemas[spec.schema_name] = self._mcap.register_schema(
-                spec.schema_name, SCHEMA_ENCODING, spec.schema_bytes())
-        channel = self._channels[name] = self._mcap.register_channel(name, MESSAGE_ENCODING, schema)
+                spec.schema_name, self.encoding.schema_encoding, self.encoding.schema(spec))
+        channel = self._channels[name] = self._mcap.register_channel(name, self.encoding.name, schema)
         return channel  # > 0: the writer numbers channels from 1
 
 

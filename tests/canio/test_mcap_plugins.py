@@ -83,7 +83,7 @@ def test_file_is_a_dobhil_recording(tmp_path: Path) -> None:
     counts = {c.topic: c.message_count for c in info.channels}
     assert counts == {"/can/rx": sum(m.is_rx for m in FRAMES), "/can/tx": sum(not m.is_rx for m in FRAMES)}
     assert {c.schema_name for c in info.channels} == {"dobhil.CanFrame"}
-    assert {c.message_encoding for c in info.channels} == {"json"}
+    assert {c.message_encoding for c in info.channels} == {"protobuf"}
     for topic in counts:
         assert log.schema_properties(topic) == SPECS_BY_NAME[topic].keys
     started, stopped = info.metadata[METADATA], info.metadata[f"{METADATA}.stop"]
@@ -282,7 +282,7 @@ def test_truncated_gz_yields_what_is_complete_then_says_how_to_recover(tmp_path:
     """A .mcap.gz cut short (a logger killed under gzip): the frames of the complete chunks,
     then a ValueError naming the way to recover it (recover reads MCAP, not gzip)."""
     frames = tuple(can.Message(timestamp=T0 + k * 1e-3, arbitration_id=k & 0x7FF, is_extended_id=False,
-                               data=os.urandom(8)) for k in range(3000))
+                               data=os.urandom(8)) for k in range(12000))  # several chunks
     whole = write(tmp_path / "whole.mcap.gz", frames)
     cut = tmp_path / "cut.mcap.gz"
     cut.write_bytes(whole.read_bytes()[: whole.stat().st_size // 2])
@@ -331,7 +331,7 @@ def test_logconvert_gz_onto_itself_keeps_the_frames(tmp_path: Path, monkeypatch:
     reader works from a decompressed copy, so every frame is written back. The input is
     larger than gzip's read buffer (8 KiB), or the first read would have held all of it."""
     frames = tuple(can.Message(timestamp=T0 + k * 1e-3, arbitration_id=k & 0x7FF, is_extended_id=False,
-                               data=os.urandom(8)) for k in range(3000))
+                               data=os.urandom(8)) for k in range(12000))  # several chunks
     path = write(tmp_path / "frames.mcap.gz", frames)
     assert path.stat().st_size > 4 * 8192
     monkeypatch.setattr(sys, "argv", ["can.logconvert", str(path), str(path)])

@@ -26,7 +26,6 @@ from typing import Any
 import can
 import pytest
 import yaml
-from orjson import loads
 
 from dobhil.cli.main import main
 from dobhil.config import load_config
@@ -149,7 +148,7 @@ def test_rerun_with_the_identified_plant_matches_within_the_noise(workflow: dict
 
 def _frames(log: Path) -> list[can.Message]:
     with open_log(log) as f:
-        frames = [can_frame_message(loads(raw), t) for _, t, raw in f.iter_payloads(("/can/rx", "/can/tx"))]
+        frames = [can_frame_message(p, t) for _, t, p in f.iter_messages(("/can/rx", "/can/tx"))]
     return sorted(frames, key=lambda m: m.timestamp)
 
 

@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-import json
+import base64
+
 import signal
 import subprocess
 import sys
@@ -13,6 +14,9 @@ import jsonschema
 import pytest
 from live_client import LiveClient, counts_at_least
 from mcap.reader import make_reader
+
+from dobhil.recording.encodings import encoding
+from dobhil.recording.schemas import SPECS_BY_NAME
 
 REPO = Path(__file__).resolve().parents[2]
 TOPICS = ("/controller", "/can/rx")
@@ -74,14 +78,16 @@ def test_serve_delivers_recorded_topics_byte_for_byte(recorded: Path, serving: s
     assert serving.returncode == 0, err
     assert set(advertised) == set(schemas)  # every recorded topic, no other
     for topic, channel in advertised.items():
-        assert (channel["schemaName"], channel["schema"].encode()) == schemas[topic]
-        assert (channel["encoding"], channel["schemaEncoding"]) == ("json", "jsonschema")
+        # the WebSocket protocol carries a binary (protobuf) schema in base64
+        assert (channel["schemaName"], base64.b64decode(channel["schema"])) == schemas[topic]
+        assert (channel["encoding"], channel["schemaEncoding"]) == ("protobuf", "protobuf")
     for topic in TOPICS:
         got = [(r.log_time_ns, r.payload) for r in received if r.topic == topic]
         assert got == expected[topic]
-        schema = json.loads(advertised[topic]["schema"])
+        spec = SPECS_BY_NAME[topic]   # each payload the protobuf message of the documented fields
+        decode = encoding("protobuf").decoder(spec)
         for _, payload in got[:50]:
-            jsonschema.validate(json.loads(payload), schema)
+            jsonschema.validate(decode(payload), spec.json_schema())
     assert "dropped 0" in out.strip().splitlines()[-1], out
 
 

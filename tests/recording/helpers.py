@@ -35,3 +35,26 @@ def feedback(t: int, position: float, velocity: float = 1.0, seq: int = 0, cycle
 
 def event(kind: EventKind, t: int, reason: str, detail: str = "") -> tuple[Any, ...]:
     return event_record(kind, t, reason, detail)
+
+
+def decode_message(schema: Any, channel: Any, data: bytes) -> dict[str, Any]:
+    """A recorded message's payload dict, read by its channel's encoding (mcap records)."""
+    from dobhil.recording.reader import decoder_for
+    from dobhil.recording.schemas import SPECS_BY_SCHEMA
+    return decoder_for(channel.message_encoding, SPECS_BY_SCHEMA.get(schema.name), "test", channel.topic)(data)
+
+
+def encode_message(schema: Any, channel: Any, payload: dict[str, Any]) -> bytes:
+    """``payload`` encoded as its channel's messages are (a test's edit of a recorded one):
+    JSON as is, protobuf in the table's field order (None: NaN, as the writer records it;
+    a list of integers: bytes)."""
+    import json
+    import math
+
+    from dobhil.recording.encodings.protobuf import packer
+    from dobhil.recording.schemas import SPECS_BY_SCHEMA
+    if channel.message_encoding == "json":
+        return json.dumps(payload).encode()
+    spec = SPECS_BY_SCHEMA[schema.name]
+    values = (payload[k] for k in spec.keys)
+    return packer(spec)(tuple(math.nan if v is None else bytes(v) if isinstance(v, list) else v for v in values))

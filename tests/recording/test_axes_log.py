@@ -34,6 +34,7 @@ from dobhil.replay import replay, replay_axes
 from dobhil.runtime.session import RunSession
 from tests.recording.axes_harness import BUSES, record_axes, write_config
 from tests.recording.test_old_logs import as_old_log
+from tests.recording.helpers import decode_message, encode_message
 from tests.recording.test_run_logging import logged_lockstep_run
 
 AXES = ("left", "right", "wrist")
@@ -118,9 +119,10 @@ def _rewrite(src: Path, dst: Path, change: Any) -> None:
                     for cid, c in summary.channels.items()}
         for record in reader.iter_metadata():
             writer.add_metadata(record.name, record.metadata)
-        for _, channel, message in reader.iter_messages(log_time_order=False):
-            p = change(channel.topic, json.loads(message.data))
-            writer.add_message(channels[channel.id], message.log_time, json.dumps(p).encode(), message.publish_time)
+        for schema, channel, message in reader.iter_messages(log_time_order=False):
+            p = change(channel.topic, decode_message(schema, channel, message.data))
+            writer.add_message(channels[channel.id], message.log_time, encode_message(schema, channel, p),
+                               message.publish_time)
         writer.finish()
 
 

@@ -20,6 +20,8 @@ from mcap.writer import Writer
 from dobhil.cli.main import main
 from dobhil.recording.reader import open_log
 from dobhil.recording.recover import recover
+from dobhil.recording.schemas import SPECS_BY_SCHEMA
+from tests.recording.helpers import decode_message
 from tests.recording.test_run_logging import logged_lockstep_run
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -208,6 +210,8 @@ def test_unwritable_outputs_are_refused_before_the_run(tmp_path: Path, capsys: p
 
 
 def test_every_payload_of_a_demo_run_matches_its_json_schema(tmp_path: Path) -> None:
+    """Each message, read as protobuf by its schema, is the payload its topic's JSON schema
+    documents (the table's types, the choices of its text fields)."""
     assert main(["demo", "--out", str(tmp_path), "--set", "loop.duration=0.5"]) == 0
     (path,) = tmp_path.glob("run-*.mcap")
     with open(path, "rb") as f:
@@ -215,10 +219,11 @@ def test_every_payload_of_a_demo_run_matches_its_json_schema(tmp_path: Path) -> 
         validators = {}
         count = 0
         for schema, channel, message in reader.iter_messages():
-            assert schema is not None and schema.encoding == "jsonschema" and channel.message_encoding == "json"
+            assert schema is not None and schema.encoding == "protobuf" and channel.message_encoding == "protobuf"
             if channel.topic not in validators:
-                validators[channel.topic] = jsonschema.Draft202012Validator(json.loads(schema.data))
-            validators[channel.topic].validate(json.loads(message.data))
+                validators[channel.topic] = jsonschema.Draft202012Validator(
+                    SPECS_BY_SCHEMA[schema.name].json_schema())
+            validators[channel.topic].validate(decode_message(schema, channel, message.data))
             count += 1
     assert set(validators) == {"/can/rx", "/can/tx", "/drive/feedback", "/drive/command", "/controller", "/loop",
                                "/emulator/truth", "/events"} and count > 3000

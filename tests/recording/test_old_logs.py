@@ -15,6 +15,8 @@ from mcap.writer import Writer
 from dobhil.canio.canlog import CanLogFormat, export_can
 from dobhil.cli.main import main
 from dobhil.recording.reader import open_log
+from dobhil.recording.schemas import SPECS_BY_SCHEMA
+from tests.recording.helpers import decode_message
 from tests.recording.test_run_logging import logged_lockstep_run
 
 #: /drive/feedback's properties (JSON types) in each earlier version
@@ -50,18 +52,20 @@ def as_old_log(src: Path, dst: Path, version: str = "numeric_state") -> None:
         assert summary is not None
         writer = Writer(f_out)
         writer.start(profile=header.profile, library=header.library)
-        schemas = {sid: writer.register_schema(s.name, s.encoding, json.dumps(_old_schema(version)).encode()
-                                               if s.name == "dobhil.DriveFeedback" else s.data)
+        # every channel JSON with a JSON schema, as those versions wrote them
+        schemas = {sid: writer.register_schema(s.name, "jsonschema", json.dumps(_old_schema(version)).encode()
+                                               if s.name == "dobhil.DriveFeedback"
+                                               else SPECS_BY_SCHEMA[s.name].schema_bytes())
                    for sid, s in summary.schemas.items()}
-        channels = {cid: writer.register_channel(c.topic, c.message_encoding, schemas[c.schema_id])
+        channels = {cid: writer.register_channel(c.topic, "json", schemas[c.schema_id])
                     for cid, c in summary.channels.items()}
         for record in reader.iter_metadata():
             writer.add_metadata(record.name, record.metadata)
         for attachment in reader.iter_attachments():
             writer.add_attachment(attachment.create_time, attachment.log_time, attachment.name,
                                   attachment.media_type, attachment.data)
-        for _, channel, message in reader.iter_messages(log_time_order=False):
-            p = json.loads(message.data)
+        for schema, channel, message in reader.iter_messages(log_time_order=False):
+            p = decode_message(schema, channel, message.data)
             if channel.topic == "/drive/feedback":
                 p = _old_feedback(p, version)
             elif channel.topic == "/can/tx":

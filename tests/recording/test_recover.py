@@ -27,7 +27,7 @@ log = LogWriter(open(sys.argv[1], "wb"), metadata={"run": {"who": "child"}},
 print("ready", flush=True)
 i, next_flush = 0, time.monotonic() + 1.0
 while True:
-    log.write([(6, time.time_ns(), i, 0.0, 1e-5, False)])
+    log.write([(6, time.time_ns(), i, 0.0, 1e-5, False, float("nan"))])
     i += 1
     if time.monotonic() > next_flush:
         log.flush()

@@ -13,6 +13,7 @@ from mcap.writer import Writer
 from dobhil.cli.main import main
 from dobhil.drives.odrive import codec
 from dobhil.replay import replay
+from tests.recording.helpers import decode_message, encode_message
 from tests.recording.test_run_logging import logged_lockstep_run
 
 
@@ -39,16 +40,16 @@ def rewrite_with_altered_frame(src: Path, dst: Path, motion_index: int) -> None:
                     for cid, c in summary.channels.items()}
         for record in reader.iter_metadata():
             writer.add_metadata(record.name, record.metadata)
-        for _, channel, message in reader.iter_messages(log_time_order=False):
+        for schema, channel, message in reader.iter_messages(log_time_order=False):
             data = message.data
             if channel.topic == "/can/rx":
-                p = json.loads(data)
+                p = decode_message(schema, channel, data)
                 if p["arbitration_id"] & 0x1F == encoder_cmd:
                     seen += 1
                     if seen == motion_index:
                         pos, vel = struct.unpack("<ff", bytes(p["data"]))
                         p["data"] = list(struct.pack("<ff", pos, vel + 1e-3))
-                        data = json.dumps(p).encode()
+                        data = encode_message(schema, channel, p)
             writer.add_message(channels[channel.id], message.log_time, data, message.publish_time)
         writer.finish()
 

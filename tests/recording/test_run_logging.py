@@ -24,6 +24,7 @@ from dobhil.recording.reader import open_log
 from dobhil.recording.recover import recover
 from dobhil.recording.runlog import RunLog
 from dobhil.runtime.session import RunSession
+from tests.recording.helpers import decode_message
 
 ROOT = Path(__file__).resolve().parents[2]
 DEMO = ROOT / "configs" / "demo.yaml"
@@ -31,11 +32,12 @@ TOPICS = {"/can/rx", "/can/tx", "/drive/feedback", "/drive/command", "/controlle
           "/emulator/truth", "/events"}
 
 
-def logged_lockstep_run(path: Path, duration: float = 0.3) -> tuple[list[can.Message], int, int]:
-    """A lockstep demo run recorded to ``path``; every frame a sniffer saw, the cycles and
-    the frames the emulated drive sent."""
+def logged_lockstep_run(path: Path, duration: float = 0.3,
+                        encoding: str = "protobuf") -> tuple[list[can.Message], int, int]:
+    """A lockstep demo run recorded to ``path`` (messages in ``encoding``); every frame a
+    sniffer saw, the cycles and the frames the emulated drive sent."""
     config = load_config(DEMO, [f"loop.duration={duration}"])
-    log = RunLog(WriterProcess(path, fsync=False))
+    log = RunLog(WriterProcess(path, fsync=False, encoding=encoding))
     with RunSession(config, emulate=True, lockstep=True, sink=log, bus_wrapper=log.wrap_bus) as session:
         sniffer = can.Bus(interface="virtual", channel=session.bus_spec.channel)
         try:
@@ -69,14 +71,13 @@ def test_every_frame_and_channel_with_plain_mcap_reader(run_log: Run) -> None:
         assert summary is not None
         schemas = {c.topic: summary.schemas[c.schema_id] for c in summary.channels.values()}
         assert set(schemas) == TOPICS
-        assert all(s.encoding == "jsonschema" and s.data for s in schemas.values())
+        assert all(s.encoding == "protobuf" and s.data for s in schemas.values())
         counts: Counter[str] = Counter()
         frames: list[tuple[str, int, bytes]] = []
-        import json
-        for _, channel, message in reader.iter_messages(log_time_order=False):
+        for schema, channel, message in reader.iter_messages(log_time_order=False):
             counts[channel.topic] += 1
             if channel.topic.startswith("/can/"):
-                p = json.loads(message.data)
+                p = decode_message(schema, channel, message.data)
                 frames.append((p["direction"], p["arbitration_id"], bytes(p["data"])))
     assert counts["/can/rx"] + counts["/can/tx"] == len(seen)
     assert sorted((f[1], f[2]) for f in frames) == sorted((m.arbitration_id, bytes(m.data)) for m in seen)

@@ -19,7 +19,6 @@ from typing import Any
 import pytest
 import yaml
 
-from orjson import loads
 
 from dobhil.cli.main import main
 from dobhil.config import load_config
@@ -71,7 +70,7 @@ def test_the_mit_demo_converges_replays_bit_for_bit_and_reports(tmp_path: Path,
     assert "the last (to exit motor mode) with torque -0.0044 N m (zero)" in note and "carries no motor mode" in note
     assert err.strip().splitlines() == [f"NOTE: {note}"]
     with open_log(log) as f:
-        events = [loads(raw) for _, _, raw in f.iter_payloads(("/events",))]
+        events = [p for _, _, p in f.iter_messages(("/events",))]
     last = [e for e in events if e["reason"].startswith("safe stop:")]
     assert [(e["reason"], e["detail"]) for e in last] == [("safe stop: unconfirmable", note)], last
 
