@@ -31,7 +31,8 @@ DEMO = ROOT / "configs" / "demo.yaml"
 @pytest.fixture(scope="module")
 def recorded(tmp_path_factory: pytest.TempPathFactory) -> Path:
     path = tmp_path_factory.mktemp("lie") / "run.mcap"
-    logged_lockstep_run(path, duration=0.6)
+    # long enough for more than two chunks (protobuf messages fill a chunk more slowly than JSON)
+    logged_lockstep_run(path, duration=1.5)
     return path
 
 

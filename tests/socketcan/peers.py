@@ -20,7 +20,6 @@ from typing import Any
 
 import can
 import pytest
-from orjson import loads
 
 from .guest import START_TIMEOUT, Dobhil, Proc, read_candump
 
@@ -126,7 +125,8 @@ class Recorded:
 def read_run(path: Path, topics: tuple[str, ...]) -> Recorded:
     from dobhil.recording.reader import open_log
     with open_log(path) as log:
-        records = [(t, ns, dict(loads(raw))) for t, ns, raw in log.iter_payloads(topics)]
+        # the reader's decoding: the same dicts for protobuf and JSON logs
+        records = [(t, ns, dict(p)) for t, ns, p in log.iter_messages(topics)]
         return Recorded(records, {k: dict(v) for k, v in log.metadata.items()})
 
 
