@@ -610,29 +610,39 @@ def bench_log_encoding(pairs: int = 3, seconds: float = 4.0, cycles: int = 20000
 REPLAY_REPEAT = 15
 
 
-def replay_by_encoding(seconds: float, folder: Path, repeat: int = REPLAY_REPEAT) -> dict[str, float]:
+def replay_by_encoding(seconds: float, folder: Path, repeat: int = REPLAY_REPEAT, *,
+                       clock: Callable[[], float] = time.process_time) -> dict[str, float]:
     """``replay()`` (the file read, decoded and the controller re-run, as ``dobhil replay``)
     of one lockstep demo run recorded in protobuf and in JSON (deterministic: the same
     records), each side warmed, then ``repeat`` interleaved rounds, best of each. Timed in
     CPU time of this process (``time.process_time``): replay is one thread, and a shared
     machine's other jobs are not counted against either side. Each replay checked bit for
-    bit against its recording. ``replay_protobuf_vs_json``: JSON's time over protobuf's
-    (above 1: protobuf replays faster); NaN when a run did not last its duration."""
-    from dobhil.replay import replay
+    bit against its recording (:func:`_replayed`). ``replay_protobuf_vs_json``: JSON's time
+    over protobuf's (above 1: protobuf replays faster); NaN when a run did not last its
+    duration."""
     paths = {e: folder / f"replay-{e}.mcap" for e in LOG_ENCODINGS}
     recorded = [_encoded_run(seconds, paths[e], e)[0] for e in LOG_ENCODINGS]   # NaN: did not last
     if any(math.isnan(v) for v in recorded):
         return {"replay_protobuf_vs_json": math.nan}
+    cycles: dict[str, int] = {}
 
     def run(encoding: str) -> None:
-        result = replay(paths[encoding])
-        assert result.first_mismatch() is None, result.first_mismatch()
+        cycles[encoding] = _replayed(paths[encoding])
     sides = [Side(e, lambda e=e: run(e), lambda e=e: run(e)) for e in LOG_ENCODINGS]
-    times = interleaved(sides, repeat, clock=time.process_time)
-    n = replay(paths["protobuf"]).recording.cycles
-    return {"replay_cycles_per_cpu_s": n / times.best("protobuf"),
-            "replay_cycles_per_cpu_s_json": n / times.best("json"),
+    times = interleaved(sides, repeat, clock=clock)
+    return {"replay_cycles_per_cpu_s": cycles["protobuf"] / times.best("protobuf"),
+            "replay_cycles_per_cpu_s_json": cycles["json"] / times.best("json"),
             "replay_protobuf_vs_json": times.best("json") / times.best("protobuf")}
+
+
+def _replayed(path: Path) -> int:
+    """Cycles of ``replay()`` of ``path``, checked to reproduce the recording bit for bit."""
+    from dobhil.replay import replay
+    result = replay(path)
+    mismatch = result.first_mismatch()
+    if mismatch is not None:
+        raise AssertionError(f"replay of {path} differs from its recording: {mismatch.line()}")
+    return result.recording.cycles
 
 
 def log_encoding_figures(sizes: dict[str, list[tuple[float, float]]], cpu: dict[str, list[float]]) -> dict[str, float]:

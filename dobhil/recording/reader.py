@@ -260,9 +260,9 @@ class LogFile:
     def iter_rows(self, fields: Mapping[str, Sequence[str]], defaults: Mapping[str, Any] | None = None
                   ) -> Iterator[tuple[str, int, tuple[Any, ...]]]:
         """(topic, log_time_ns, the values of the fields ``fields[topic]``, in that order) of
-        the topics in ``fields``, in file order: the values :meth:`iter_messages`' dicts hold,
-        without the dicts (an encoding that reads the fields straight from the bytes builds
-        none). A field a message lacks takes its value in ``defaults`` (an older log's
+        the topics in ``fields``, in file order: the values :meth:`iter_messages`' dicts hold
+        (but bytes as bytes), without the dicts (an encoding that reads the fields straight
+        from the bytes builds none). A field a message lacks takes its value in ``defaults`` (an older log's
         message), else KeyError (an encoding with defaults of its own, protobuf, gives those)."""
         rows: dict[int, RowDecoder] = {}
         for cid, topic, t, data in self._iter_raw(fields):
