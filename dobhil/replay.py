@@ -28,7 +28,7 @@ from dobhil.drives.profile import DriveProfile
 from dobhil.errors import LogFileError, exception_line
 from dobhil.recording.axes import AxisLog, axis_log, axis_logs
 from dobhil.recording.reader import LogFile, open_log
-from dobhil.recording.schemas import can_frame_message
+from dobhil.recording.schemas import CAN_MESSAGE_DEFAULTS, CAN_MESSAGE_FIELDS, can_frame_message_of
 from dobhil.runtime.session import build_controller
 
 Array = NDArray[np.float64]
@@ -38,6 +38,9 @@ OUTPUTS: Final = ("tau_ref", "tau_int_hat", "tau_dis_hat", "tau_per", "u_unsat",
 #: Outputs compared by the verification (tau_ref is an input).
 COMPARED: Final = OUTPUTS[1:]
 _TOPICS: Final = ("/can/rx", "/drive/feedback", "/controller")
+#: The fields replay reads of each topic (read as rows: no payload dict per message).
+_FIELDS: Final = {"/controller": ("cycle", *OUTPUTS), "/can/rx": CAN_MESSAGE_FIELDS,
+                  "/drive/feedback": ("cycle", "seq")}
 
 
 @dataclass(frozen=True)
@@ -169,16 +172,15 @@ def _read(log: LogFile | AxisLog, name: str) -> Recording:
     initial: int | None = None
     controller: list[tuple[int, int, list[float]]] = []
     try:
-        for topic, t, p in log.iter_messages(_TOPICS):
+        for topic, t, row in log.iter_rows(_FIELDS, CAN_MESSAGE_DEFAULTS):
             if topic == "/controller":
-                controller.append((int(p["cycle"]), t, [float("nan") if p[k] is None else float(p[k])
-                                                        for k in OUTPUTS]))
+                controller.append((int(row[0]), t, [float("nan") if v is None else float(v) for v in row[1:]]))
             elif topic == "/can/rx":
-                frames.append(can_frame_message(p, t))
-            elif p["cycle"] < 0:
-                initial = int(p["seq"])
+                frames.append(can_frame_message_of(row, t))
+            elif row[0] < 0:
+                initial = int(row[1])
             else:
-                seqs[int(p["cycle"])] = int(p["seq"])
+                seqs[int(row[0])] = int(row[1])
     except (KeyError, TypeError, ValueError) as exc:
         raise LogFileError(f"{name}: a recorded message does not match its schema "
                            f"({exception_line(exc)})") from None

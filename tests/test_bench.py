@@ -216,6 +216,7 @@ def test_log_encodings_are_interleaved_warmed_and_a_short_run_fails_the_size_key
     monkeypatch.setattr(bench, "_encoded_run", run)
     monkeypatch.setattr(bench, "_writer_cpu_us", lambda records, encoding, path: 1000.0 * len(records)
                         * (0.5 if encoding == "protobuf" else 1.0))
+    monkeypatch.setattr(bench, "replay_by_encoding", lambda seconds, folder: {"replay_protobuf_vs_json": 1.5})
     out = bench.bench_log_encoding(pairs=2, seconds=4.0, cycles=10)
     assert made == [("protobuf", 0.5), ("json", 0.5), ("protobuf", 4.0), ("json", 4.0), ("json", 4.0),
                     ("protobuf", 4.0)]
@@ -224,7 +225,35 @@ def test_log_encodings_are_interleaved_warmed_and_a_short_run_fails_the_size_key
     # 3 records a cycle (frame, cycle, frame) at a fake 500 us each
     assert (out["writer_cpu_us_per_cycle"], out["writer_cpu_vs_json"]) == (1500.0, 0.5)
     assert bench.targets_met(out)["log_bytes_per_cycle_vs_json"] == {"kind": "ratio", "max": 0.33, "met": False}
+    assert out["replay_protobuf_vs_json"] == 1.5
     bytes_of["json"] = (math.nan, math.nan)   # a JSON recording stopped early
     out = bench.bench_log_encoding(pairs=2, seconds=4.0, cycles=10)
     assert math.isnan(out["log_bytes_per_cycle_vs_json"]) and math.isnan(out["log_bytes_per_cycle_json"])
     assert bench.targets_met(out)["log_bytes_per_cycle_vs_json"]["met"] is False
+
+
+def test_replay_by_encoding_is_interleaved_warmed_and_a_short_run_fails_its_key(
+        monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    """Each encoding's log replayed once untimed, then alternating; the ratio is JSON's best
+    time over protobuf's; a recording that did not last fails the key (NaN), never a figure."""
+    clock, calls = CountingClock(), []
+    cost = {"replay-protobuf.mcap": 2.0, "replay-json.mcap": 3.0}
+    lasted = {"protobuf": 190.0, "json": 210.0}
+    monkeypatch.setattr(bench, "_encoded_run", lambda seconds, path, encoding: (lasted[encoding], 0.0))
+
+    def replayed(path: Path) -> int:
+        calls.append(path.name)
+        clock.spend(cost[path.name])
+        cost[path.name] -= 0.5   # the first (warm-up) run is the slowest
+        return 4000
+    monkeypatch.setattr(bench, "_replayed", replayed)
+    out = bench.replay_by_encoding(4.0, tmp_path, repeat=2, clock=clock)
+    assert calls == ["replay-protobuf.mcap", "replay-json.mcap"] * 3
+    # best of the timed runs (1.0 and 2.0 s), not the warm-ups' 2.0 and 3.0
+    assert out == {"replay_cycles_per_cpu_s": 4000 / 1.0, "replay_cycles_per_cpu_s_json": 4000 / 2.0,
+                   "replay_protobuf_vs_json": 2.0}
+    assert bench.targets_met(out)["replay_protobuf_vs_json"] == {"kind": "ratio", "min": 1.0, "met": True}
+    lasted["json"] = math.nan
+    out = bench.replay_by_encoding(4.0, tmp_path, repeat=2, clock=clock)
+    assert math.isnan(out["replay_protobuf_vs_json"])
+    assert bench.targets_met(out)["replay_protobuf_vs_json"]["met"] is False

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import json
 import os
-from collections.abc import Iterable, Iterator, Mapping
+from collections.abc import Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from types import MappingProxyType
@@ -159,6 +159,13 @@ class AxisLog:
         names = {t: n for t, n in self._names.items() if wanted is None or n in wanted}
         for topic, t, payload in self.file.iter_messages(names):
             yield names[topic], t, payload
+
+    def iter_rows(self, fields: Mapping[str, Sequence[str]], defaults: Mapping[str, Any] | None = None
+                  ) -> Iterator[tuple[str, int, tuple[Any, ...]]]:
+        """:meth:`LogFile.iter_rows` with ``fields`` and the topics as this axis names them."""
+        names = {t: n for t, n in self._names.items() if n in fields}
+        for topic, t, row in self.file.iter_rows({t: fields[n] for t, n in names.items()}, defaults):
+            yield names[topic], t, row
 
 
 def axis_logs(path: str | os.PathLike[str] | LogFile) -> tuple[AxisLog, ...]:

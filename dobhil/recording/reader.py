@@ -11,7 +11,7 @@ from __future__ import annotations
 import json
 import os
 import struct
-from collections.abc import Iterable, Iterator, Mapping
+from collections.abc import Iterable, Iterator, Mapping, Sequence
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 from types import MappingProxyType
@@ -22,7 +22,7 @@ from mcap.stream_reader import StreamReader, get_chunk_data_stream
 
 from dobhil.errors import LogFileError, exception_line
 from dobhil.files import input_problem
-from dobhil.recording.encodings import Decoder, encoding
+from dobhil.recording.encodings import Decoder, Encoding, RowDecoder, encoding
 from dobhil.recording.schemas import SPECS_BY_SCHEMA, EventKind
 from dobhil.recording.writer import RECORDING_METADATA
 
@@ -257,6 +257,35 @@ class LogFile:
                                        f"{self.channel_records[cid].message_encoding} ({exc})") from None
             yield topic, t, payload
 
+    def iter_rows(self, fields: Mapping[str, Sequence[str]], defaults: Mapping[str, Any] | None = None
+                  ) -> Iterator[tuple[str, int, tuple[Any, ...]]]:
+        """(topic, log_time_ns, the values of the fields ``fields[topic]``, in that order) of
+        the topics in ``fields``, in file order: the values :meth:`iter_messages`' dicts hold
+        (but bytes as bytes), without the dicts (an encoding that reads the fields straight
+        from the bytes builds none). A field a message lacks takes its value in ``defaults`` (an older log's
+        message), else KeyError (an encoding with defaults of its own, protobuf, gives those)."""
+        rows: dict[int, RowDecoder] = {}
+        for cid, topic, t, data in self._iter_raw(fields):
+            decode = rows.get(cid) or rows.setdefault(cid, self.row_decoder(cid, fields[topic], defaults or {}))
+            try:
+                values = decode(data)
+            except (ValueError, TypeError, struct.error) as exc:
+                raise _fail(self.path, f"a {topic} message at log time {t} is not valid "
+                                       f"{self.channel_records[cid].message_encoding} ({exc})") from None
+            yield topic, t, values
+
+    def row_decoder(self, channel_id: int, names: Sequence[str], defaults: Mapping[str, Any]) -> RowDecoder:
+        """Message bytes -> the values of the fields ``names`` for a channel (:meth:`iter_rows`)."""
+        channel = self.channel_records[channel_id]
+        found, spec = self._encoding(channel)
+        return found.row_decoder(spec, names, defaults)
+
+    def _encoding(self, channel: Channel) -> tuple[Encoding, Any]:
+        """A channel's encoding and its topic's spec (None: a schema dobhil does not know)."""
+        schema = self.schemas.get(channel.schema_id)
+        spec = SPECS_BY_SCHEMA.get(schema.name) if schema is not None else None
+        return encoding_for(channel.message_encoding, spec, self.path, channel.topic), spec
+
     def stop_reason(self) -> str | None:
         if "/events" not in self.topics():
             return None
@@ -281,16 +310,22 @@ def _axis_names(metadata: Mapping[str, Mapping[str, str]]) -> list[str]:
     return [str(n) for n in names] if isinstance(names, list) else []
 
 
-def decoder_for(message_encoding: str, spec: Any, path: str | os.PathLike[str], topic: str) -> Decoder:
-    """The decoder of a channel (``spec``: its topic's, None when the schema is not dobhil's);
-    LogFileError naming what is not readable."""
+def encoding_for(message_encoding: str, spec: Any, path: str | os.PathLike[str], topic: str) -> Encoding:
+    """The encoding of a channel (``spec``: its topic's, None when the schema is not
+    dobhil's); LogFileError naming what is not readable."""
     try:
         found = encoding(message_encoding)
     except LogFileError as exc:
         raise _fail(path, f"channel {topic}: {exc}") from None
     if spec is None and found.name != "json":   # JSON reads without a schema; others need dobhil's
         raise _fail(path, f"channel {topic}: a {message_encoding} schema dobhil does not know")
-    return found.decoder(spec)
+    return found
+
+
+def decoder_for(message_encoding: str, spec: Any, path: str | os.PathLike[str], topic: str) -> Decoder:
+    """The decoder of a channel (``spec``: its topic's, None when the schema is not dobhil's);
+    LogFileError naming what is not readable."""
+    return encoding_for(message_encoding, spec, path, topic).decoder(spec)
 
 
 def _chunk_messages(records: bytes, wanted: Mapping[int, str]) -> Iterator[tuple[int, str, int, bytes]]:
@@ -310,4 +345,4 @@ def _chunk_messages(records: bytes, wanted: Mapping[int, str]) -> Iterator[tuple
 open_log = LogFile
 
 
-__all__ = ["MAGIC", "ChannelInfo", "LogFile", "LogInfo", "check_mcap_head", "decoder_for", "open_log"]
+__all__ = ["MAGIC", "ChannelInfo", "LogFile", "LogInfo", "check_mcap_head", "decoder_for", "encoding_for", "open_log"]

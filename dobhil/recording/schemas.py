@@ -230,16 +230,33 @@ def can_frame_payload(values: Sequence[Any], topic: Topic) -> dict[str, Any]:
             "direction": "rx" if topic == Topic.CAN_RX else "tx", "channel": "" if channel is None else str(channel)}
 
 
+#: The ``/can/*`` fields a python-can message is made of (:func:`can_frame_message_of`), in
+#: the order it takes them.
+CAN_MESSAGE_FIELDS: Final = ("timestamp", "arbitration_id", "is_extended_id", "is_remote_frame", "is_error_frame",
+                             "is_fd", "bitrate_switch", "error_state_indicator", "dlc", "data", "direction", "channel")
+#: Their values in a message of a log written before they were recorded.
+CAN_MESSAGE_DEFAULTS: Final[Mapping[str, Any]] = MappingProxyType(
+    {"timestamp": None, "bitrate_switch": False, "error_state_indicator": False, "channel": None})
+_can_fields = itemgetter(*CAN_MESSAGE_FIELDS)
+
+
 def can_frame_message(payload: Mapping[str, Any], log_time_ns: int) -> Any:
     """The python-can message of a ``/can/*`` payload (bus timestamp, else the log time)."""
+    try:
+        values = _can_fields(payload)
+    except KeyError:   # an older log's frame
+        values = tuple(payload[k] if k in payload else CAN_MESSAGE_DEFAULTS[k] for k in CAN_MESSAGE_FIELDS)
+    return can_frame_message_of(values, log_time_ns)
+
+
+def can_frame_message_of(values: Sequence[Any], log_time_ns: int) -> Any:
+    """The python-can message of a ``/can/*`` message's :data:`CAN_MESSAGE_FIELDS` values."""
     import can
-    return can.Message(timestamp=payload.get("timestamp") or log_time_ns / 1e9,
-                       arbitration_id=payload["arbitration_id"], is_extended_id=payload["is_extended_id"],
-                       is_remote_frame=payload["is_remote_frame"], is_error_frame=payload["is_error_frame"],
-                       is_fd=payload["is_fd"], bitrate_switch=payload.get("bitrate_switch", False),
-                       error_state_indicator=payload.get("error_state_indicator", False), dlc=payload["dlc"],
-                       data=bytes(payload["data"]), is_rx=payload["direction"] != "tx",
-                       channel=payload.get("channel") or None, check=False)
+    stamp, arb, ext, rtr, err, fd, brs, esi, dlc, data, direction, channel = values
+    return can.Message(timestamp=stamp or log_time_ns / 1e9, arbitration_id=arb, is_extended_id=ext,
+                       is_remote_frame=rtr, is_error_frame=err, is_fd=fd, bitrate_switch=brs,
+                       error_state_indicator=esi, dlc=dlc, data=bytes(data), is_rx=direction != "tx",
+                       channel=channel or None, check=False)
 
 
 def _frame_encoder(topic: Topic) -> Encoder:
@@ -466,11 +483,13 @@ def decode(data: bytes) -> dict[str, Any]:
     return orjson.loads(data)
 
 
-__all__ = ["CYCLE", "CYCLE_FIELDS", "DRIVE_STATE_NAMES", "FRAME_ATTRIBUTES", "LANE_MASK", "LANE_STRIDE",
+__all__ = ["CAN_MESSAGE_DEFAULTS", "CAN_MESSAGE_FIELDS",
+           "CYCLE", "CYCLE_FIELDS", "DRIVE_STATE_NAMES", "FRAME_ATTRIBUTES", "LANE_MASK", "LANE_STRIDE",
            "MESSAGE_ENCODING", "RECORD_TYPES",
            "SCHEMA_ENCODING", "SPECS_BY_NAME", "SPECS_BY_SCHEMA", "TOPIC_SPECS", "VIEWS", "CycleRecord", "EventKind",
            "EventRecord",
-           "Field", "FieldKind", "FrameRecord", "Topic", "TopicSpec", "can_frame_message", "can_frame_payload",
+           "Field", "FieldKind", "FrameRecord", "Topic", "TopicSpec", "can_frame_message",
+           "can_frame_message_of", "can_frame_payload",
            "can_frame_fields", "can_frame_record", "decode", "event_fields", "feedback_encoder", "feedback_fields",
            "field_values", "drive_state_name", "event_record", "feedback_state", "lane_kind",
            "message_count", "named",

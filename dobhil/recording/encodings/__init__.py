@@ -16,7 +16,7 @@ from types import MappingProxyType
 from typing import Final
 
 from dobhil.errors import LogFileError
-from dobhil.recording.encodings.base import Decoder, Encoder, Encoding
+from dobhil.recording.encodings.base import Decoder, Encoder, Encoding, RowDecoder
 
 #: MCAP message encoding -> the module holding it
 ENCODINGS: Final[Mapping[str, str]] = MappingProxyType({
@@ -36,4 +36,4 @@ def encoding(name: str) -> Encoding:
     return found
 
 
-__all__ = ["DEFAULT_ENCODING", "ENCODINGS", "Decoder", "Encoder", "Encoding", "encoding"]
+__all__ = ["DEFAULT_ENCODING", "ENCODINGS", "Decoder", "Encoder", "Encoding", "RowDecoder", "encoding"]

@@ -6,13 +6,14 @@ protobuf, kept to read those logs and to measure against (``tools/bench.py``
 from __future__ import annotations
 
 import json
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, Final
 
 import orjson
 
 from dobhil.recording.codes import ProtocolCodes
-from dobhil.recording.encodings.base import Decoder, Encoder
+from dobhil.recording.encodings.base import Decoder, Encoder, RowDecoder, as_bytes, bytes_at, row_getter
 from dobhil.recording.schemas import Topic, TopicSpec, feedback_encoder
 
 
@@ -32,6 +33,17 @@ class JsonEncoding:
     def decoder(self, spec: TopicSpec | None) -> Decoder:
         loads: Decoder = orjson.loads
         return loads
+
+    def row_decoder(self, spec: TopicSpec | None, names: Sequence[str], defaults: Mapping[str, Any]) -> RowDecoder:
+        loads, get, at = orjson.loads, row_getter(names), bytes_at(spec, names)
+
+        def row(data: bytes) -> tuple[Any, ...]:
+            payload = loads(data)
+            try:
+                return as_bytes(get(payload), at)
+            except KeyError:   # an older log's message, without a field added since
+                return as_bytes(tuple(payload[k] if k in payload else defaults[k] for k in names), at)
+        return row
 
     def schema_fields(self, data: bytes, schema_name: str) -> tuple[str, ...]:
         properties: dict[str, Any] = json.loads(data)["properties"]

@@ -16,20 +16,28 @@ measured (``tools/bench.py``, this machine, 2026-12-03) at about 0.7 us for a 7-
 building the pack's arguments at run time; so the pack's call is generated once per topic
 from the field list (source built from field numbers only, as :mod:`dataclasses` builds its
 methods). The reader takes any valid encoding of the schema (another writer's, with varints
-and fields left at their defaults) and reads the writer's own layout with one unpack.
+and fields left at their defaults, field by field) and reads the writer's own layout with
+one unpack and a tail read without a loop, by a decoder generated per topic the same way
+(:func:`_fast`): a message in any other layout -- another order, a field repeated, a length
+or a flag of more than one byte, a message cut short -- is left to the field-by-field path.
+:func:`row_unpacker` reads only the fields a reader asks for, with no dict (``dobhil
+replay``); a replay of a protobuf log takes as much CPU as of the same run in JSON or less,
+where the field-by-field path took twice as much (``replay_protobuf_vs_json`` in
+``tools/bench.py``, ``docs/recording.md``).
 """
 
 from __future__ import annotations
 
 import struct
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from enum import IntEnum
-from operator import itemgetter
+from functools import lru_cache
+from types import CodeType
 from typing import Any, Final, NamedTuple
 
 from dobhil.recording.codes import ProtocolCodes
-from dobhil.recording.encodings.base import Decoder, Encoder
+from dobhil.recording.encodings.base import Decoder, Encoder, RowDecoder, as_bytes, bytes_at, row_getter
 from dobhil.recording.schemas import FieldKind, TopicSpec, field_values
 
 
@@ -226,46 +234,167 @@ def _generic(spec: TopicSpec) -> Callable[[bytes, int, dict[str, Any]], dict[str
     return read
 
 
-def _getter(indexes: list[int]) -> Callable[[tuple[Any, ...]], tuple[Any, ...]]:
-    """itemgetter that returns a tuple for one index too."""
-    if len(indexes) == 1:
-        only = indexes[0]
+#: Distinct tails a decoder keeps decoded (a tail of text repeats every cycle: a state's name,
+#: an error's text); past it the memo starts again, so a log of ever new text cannot grow it.
+_TAILS: Final = 4096
+Values = Callable[[bytes], "tuple[Any, ...] | None"]
 
-        def one(r: tuple[Any, ...]) -> tuple[Any, ...]:
-            return (r[only],)
-        return one
-    many: Callable[[tuple[Any, ...]], tuple[Any, ...]] = itemgetter(*indexes)
-    return many
+
+@lru_cache(maxsize=256)
+def _code(source: str) -> CodeType:
+    """``source`` compiled, once: a log's decoders are made each time it is read (a replay
+    reads three topics: compiling their decoders cost 2.5 ms of its ~150)."""
+    return compile(source, "<dobhil.recording.encodings.protobuf>", "exec")
+
+
+def _compiled(name: str, lines: list[str], namespace: dict[str, Any]) -> Any:
+    """The function ``name(data)`` of ``lines`` (its body). The decoders are generated as
+    :func:`packer` is: unrolled, a message's fields cost no loop and no call each; the source
+    holds field indexes, names, tag bytes and sizes only."""
+    exec(_code(f"def {name}(data):\n" + "".join(f"    {line}\n" for line in lines)), namespace)
+    return namespace[name]
+
+
+def _tail(spec: TopicSpec, delimited: list[int], wanted: set[int], lists: bool = True) -> Values:
+    """The writer's tail (:func:`packer`): each length-delimited field in field order, a
+    one-byte tag and a one-byte length (below 128), up to the message's end -> the values of
+    the fields in ``wanted`` (the others checked and skipped; bytes as a new list of integers,
+    or with ``lists`` False as bytes); None for any other layout. A
+    tail whose wanted fields are text only (``/drive/feedback``'s names, ``/events``) is the
+    same bytes cycle after cycle, so it is looked up whole by its bytes before it is read
+    field by field (a short string decodes about as fast as a dict finds it: text is not
+    looked up field by field)."""
+    if any(len(tag(i + 1, Wire.LEN)) != 1 for i in delimited):
+        return lambda data: None   # a field number above 15: the generic path reads it
+    lines = [f"p = {_fixed_struct(spec).size}", "try:"]
+    for i in delimited:
+        raw = "data[p + 2:p + 2 + n]"
+        value = f"{raw}.decode()" if spec.fields[i].kind == FieldKind.STRING else f"list({raw})" if lists else raw
+        lines += ["    n = data[p + 1]", f"    if data[p] != {tag(i + 1, Wire.LEN)[0]} or n > 127: return None",
+                  *([f"    v{i} = {value}"] if i in wanted else []), "    p += 2 + n"]
+    lines += ["except IndexError:", "    return None",   # a field cut short: the generic path says so
+              f"return ({''.join(f'v{i}, ' for i in delimited if i in wanted)}) if p == len(data) else None"]
+    by_field: Values = _compiled("tail", lines, {})
+    if any(spec.fields[i].kind != FieldKind.STRING for i in wanted):
+        return by_field   # bytes vary with every frame
+    return _whole(by_field, _fixed_struct(spec).size)
+
+
+def _whole(by_field: Values, start: int, limit: int = _TAILS) -> Values:
+    """``by_field`` looked up by the bytes from ``start`` on first (``limit`` kept)."""
+    seen: dict[bytes, tuple[Any, ...]] = {}
+
+    def whole(data: bytes) -> tuple[Any, ...] | None:
+        key = data[start:]
+        found = seen.get(key)
+        if found is None:
+            found = by_field(data)
+            if found is not None:
+                if len(seen) >= limit:
+                    seen.clear()
+                seen[key] = found
+        return found
+    return whole
+
+
+def _finite_all(payload: dict[str, Any], numbers: tuple[str, ...]) -> dict[str, Any]:
+    """``payload`` with each number named in ``numbers`` that is NaN or infinite as None."""
+    for name in numbers:
+        payload[name] = _finite(payload[name])
+    return payload
+
+
+def _finite_row(row: tuple[Any, ...], numbers: tuple[int, ...]) -> tuple[Any, ...]:
+    """``row`` with each number at ``numbers`` that is NaN or infinite as None."""
+    out = list(row)
+    for k in numbers:
+        out[k] = _finite(out[k])
+    return tuple(out)
+
+
+def _fast(spec: TopicSpec, names: Sequence[str] | None = None) -> Callable[[bytes], Any]:
+    """The writer's own layout (:func:`packer`) -> the payload dict (``names`` None: the
+    table's order) or the tuple of the fields ``names``, as the dict holds them but bytes as
+    bytes (:meth:`~dobhil.recording.encodings.base.Encoding.row_decoder`); non-finite numbers
+    as None; None for any other layout. One unpack reads the fixed-width fields
+    with their tags (checked; a flag's byte too: one of 128 or more begins a longer varint,
+    another layout), :func:`_tail` the rest; a dict display with the table's names builds
+    the payload; the sum of the numbers tells whether all are finite (a NaN or an infinity
+    makes it not finite), so a message of finite numbers takes no call per number."""
+    fixed, delimited = _layout(spec)
+    if not all(f.name.isidentifier() for f in spec.fields):
+        raise ValueError(f"{spec.schema_name}: a field name that is not an identifier")
+    picked = list(range(len(spec.fields))) if names is None else [spec.keys.index(n) for n in names]
+    size = _fixed_struct(spec).size
+    head = struct.Struct(_fixed_struct(spec).format.replace("?", "B")).unpack_from   # a flag as its byte
+    unpacked: list[str] = []
+    tags: list[str] = []
+    for i in fixed:
+        key = tag(i + 1, _KINDS[spec.fields[i].kind].wire)
+        tags += [f"t{i}_{j}" for j in range(len(key))]
+        unpacked += [f"t{i}_{j}" for j in range(len(key))] + [f"v{i}"]
+    expected = tuple(b for i in fixed for b in tag(i + 1, _KINDS[spec.fields[i].kind].wire))
+    flags = [i for i in fixed if spec.fields[i].kind == FieldKind.BOOLEAN]
+    numbers = [k for k in picked if spec.fields[k].kind == FieldKind.NUMBER]
+    lines = [f"if len(data) {'<' if delimited else '!='} {size}: return None"]
+    if fixed:
+        lines += [f"{', '.join(unpacked)}, = head(data)", f"if ({', '.join(tags)},) != {expected!r}: return None"]
+    if flags:
+        lines.append(f"if {' | '.join(f'v{i}' for i in flags)} > 127: return None")
+    if delimited:
+        wanted = [i for i in delimited if i in picked]
+        lines += ["rest = tail(data)", "if rest is None: return None",
+                  *([f"{''.join(f'v{i}, ' for i in wanted)}= rest"] if wanted else [])]
+    value = {k: f"v{k} != 0" if k in flags else f"v{k}" for k in picked}
+    if names is None:
+        lines.append(f"out = {{{', '.join(f'{spec.fields[k].name!r}: {value[k]}' for k in picked)}}}")
+        finite = f"finite_all(out, {tuple(spec.fields[k].name for k in numbers)!r})"
+    else:
+        lines.append(f"out = ({''.join(f'{value[k]}, ' for k in picked)})")
+        finite = f"finite_row(out, {tuple(picked.index(k) for k in numbers)!r})"
+    if numbers:
+        lines += [f"total = {' + '.join(f'v{k}' for k in numbers)}", f"if total - total != 0.0: return {finite}"]
+    lines.append("return out")
+    namespace = {"head": head, "tail": _tail(spec, delimited, set(picked), names is None) if delimited else None,
+                 "finite_all": _finite_all, "finite_row": _finite_row}
+    return _compiled("payload", lines, namespace)
 
 
 def unpacker(spec: TopicSpec) -> Decoder:
-    """Message -> payload dict: the writer's layout with one unpack (its tags checked), any
-    other encoding field by field; fields absent take protobuf's defaults."""
-    fixed, _ = _layout(spec)
-    s, read = _fixed_struct(spec), _generic(spec)
-    head, codes = s.unpack_from, s.format[1:]
-    tags_of = _getter([k for k, c in enumerate(codes) if c == "B"])
-    values_of = _getter([k for k, c in enumerate(codes) if c != "B"])
-    expected = tuple(b for i in fixed for b in tag(i + 1, _KINDS[spec.fields[i].kind].wire))
-    names = [spec.fields[i].name for i in fixed]
+    """Message -> payload dict: the writer's layout straight to the dict (:func:`_fast`),
+    any other encoding field by field; fields absent take protobuf's defaults."""
+    fast, read, keys = _fast(spec), _generic(spec), spec.keys
     numbers = [f.name for f in spec.fields if f.kind == FieldKind.NUMBER]
     defaults = {f.name: _DEFAULTS.get(f.kind) for f in spec.fields}
-    keys = spec.keys
-    in_order = tuple(names) + tuple(spec.fields[i].name for i in _layout(spec)[1]) == keys
 
     def decode(data: bytes) -> dict[str, Any]:
-        if fixed and len(data) >= s.size and tags_of(r := head(data)) == expected:
-            out = read(data, s.size, dict(zip(names, values_of(r))))
-        else:
-            out = read(data, 0, {})
-        if len(out) < len(keys):   # fields left at their defaults (bytes: a new empty list)
-            out = {k: out[k] if k in out else [] if defaults[k] is None else defaults[k] for k in keys}
-        elif not in_order:
-            out = {k: out[k] for k in keys}   # the table's order, as JSON has it
+        found: dict[str, Any] | None = fast(data)
+        if found is not None:
+            return found
+        out = read(data, 0, {})
+        # the table's order, as JSON has it; fields left at their defaults (bytes: a new empty list)
+        out = {k: out[k] if k in out else [] if defaults[k] is None else defaults[k] for k in keys}
         for name in numbers:
             out[name] = _finite(out[name])
         return out
     return decode
+
+
+def row_unpacker(spec: TopicSpec, names: Sequence[str]) -> RowDecoder:
+    """Message -> the values of the fields ``names``, in that order, as :func:`unpacker`'s
+    dict holds them but bytes as bytes: the writer's layout straight to them (:func:`_fast`:
+    no dict, the other fields only checked), any other encoding through the dict."""
+    fast, get, at = _fast(spec, names), row_getter(names), bytes_at(spec, names)
+    slow: list[Decoder] = []   # made when a message first needs it
+
+    def row(data: bytes) -> tuple[Any, ...]:
+        found: tuple[Any, ...] | None = fast(data)
+        if found is not None:
+            return found
+        if not slow:
+            slow.append(unpacker(spec))
+        return as_bytes(get(slow[0](data)), at)
+    return row
 
 
 def descriptor_fields(data: bytes, message: str) -> tuple[str, ...]:
@@ -313,6 +442,11 @@ class ProtobufEncoding:
             raise ValueError("a protobuf message needs its topic's fields")
         return unpacker(spec)
 
+    def row_decoder(self, spec: TopicSpec | None, names: Sequence[str], defaults: Mapping[str, Any]) -> RowDecoder:
+        if spec is None:
+            raise ValueError("a protobuf message needs its topic's fields")
+        return row_unpacker(spec, names)   # a field absent takes protobuf's default
+
     def schema_fields(self, data: bytes, schema_name: str) -> tuple[str, ...]:
         return descriptor_fields(data, schema_name)
 
@@ -320,4 +454,4 @@ class ProtobufEncoding:
 ENCODING: Final = ProtobufEncoding()
 
 __all__ = ["ENCODING", "ProtoType", "ProtobufEncoding", "Wire", "descriptor_fields", "fields_on_wire",
-           "file_descriptor_set", "packer", "tag", "unpacker", "varint"]
+           "file_descriptor_set", "packer", "row_unpacker", "tag", "unpacker", "varint"]
