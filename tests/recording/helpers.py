@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Mapping, Sequence
+import functools
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -37,11 +38,26 @@ def event(kind: EventKind, t: int, reason: str, detail: str = "") -> tuple[Any, 
     return event_record(kind, t, reason, detail)
 
 
-def decode_message(schema: Any, channel: Any, data: bytes) -> dict[str, Any]:
-    """A recorded message's payload dict, read by its channel's encoding (mcap records)."""
+@functools.cache
+def _decoder(message_encoding: str, schema_name: str, topic: str) -> Callable[[bytes], dict[str, Any]]:
+    """One channel's decoder, built once: building it compiles the topic's unpacker, which
+    costs far more than a message's decode (a rewritten log has tens of thousands)."""
     from dobhil.recording.reader import decoder_for
     from dobhil.recording.schemas import SPECS_BY_SCHEMA
-    return decoder_for(channel.message_encoding, SPECS_BY_SCHEMA.get(schema.name), "test", channel.topic)(data)
+    return decoder_for(message_encoding, SPECS_BY_SCHEMA.get(schema_name), "test", topic)
+
+
+@functools.cache
+def _packer(schema_name: str) -> Callable[[tuple[Any, ...]], bytes]:
+    """A protobuf topic's packer, built once (as :func:`_decoder`)."""
+    from dobhil.recording.encodings.protobuf import packer
+    from dobhil.recording.schemas import SPECS_BY_SCHEMA
+    return packer(SPECS_BY_SCHEMA[schema_name])
+
+
+def decode_message(schema: Any, channel: Any, data: bytes) -> dict[str, Any]:
+    """A recorded message's payload dict, read by its channel's encoding (mcap records)."""
+    return _decoder(channel.message_encoding, schema.name, channel.topic)(data)
 
 
 def encode_message(schema: Any, channel: Any, payload: dict[str, Any]) -> bytes:
@@ -51,10 +67,9 @@ def encode_message(schema: Any, channel: Any, payload: dict[str, Any]) -> bytes:
     import json
     import math
 
-    from dobhil.recording.encodings.protobuf import packer
     from dobhil.recording.schemas import SPECS_BY_SCHEMA
     if channel.message_encoding == "json":
         return json.dumps(payload).encode()
-    spec = SPECS_BY_SCHEMA[schema.name]
-    values = (payload[k] for k in spec.keys)
-    return packer(spec)(tuple(math.nan if v is None else bytes(v) if isinstance(v, list) else v for v in values))
+    values = (payload[k] for k in SPECS_BY_SCHEMA[schema.name].keys)
+    return _packer(schema.name)(tuple(math.nan if v is None else bytes(v) if isinstance(v, list) else v
+                                      for v in values))
