@@ -47,8 +47,7 @@ def test_closed_loop_covers_a_noisy_force_run_the_open_loop_fit_misses() -> None
     open-loop fit of the same record finds no inertia, or one whose interval misses it, or
     misses the friction or the delay.
 
-    One record, not a coverage: over ten seeds of this record the closed-loop intervals held
-    J in 6, K in 3 (docs/identify.md, "Closed-loop identification")."""
+    One record, not a coverage: that is :func:`test_closed_loop_intervals_cover_the_truth_over_seeds`."""
     run = record(Hidden(), 1, chirp(4000, 1, 60, 1.0, 0.9), "design.identified_inertia=0.125")
     closed = identify_closed_loop(run).estimates
     for name in ("inertia", "stiffness", "damping"):
@@ -87,3 +86,37 @@ def test_closed_loop_refuses_what_it_cannot_fit(logs: dict[str, Path], tmp_path:
     assert main(["identify", str(imported), "--drive", "odrive-0.6", "--method", "closed-loop"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "no recorded controller" in err[0]
+
+
+#: seeds of the coverage test (~2.5 s of CPU each, idle machine); the 50-seed figure is in
+#: docs/identify.md with its command
+COVERAGE_SEEDS = 20
+
+
+def test_closed_loop_intervals_cover_the_truth_over_seeds() -> None:
+    """The record of the test above on seeds 0-19: the 95 % intervals of J, K and D hold the
+    truth in at least 17 of 20 (binomial(20, 0.95) falls below 17 with probability 1.6 %),
+    and the standard errors are near the spread, neither far narrower nor wider: the RMS of
+    (estimate - truth) / standard error lies in [0.8, 1.6] (1 for calibrated errors; measured
+    1.19-1.23 here and 1.37-1.41 over seeds 0-49, docs/identify.md; it was 34 for J and 377
+    for K with the fits stopped on the cost's kinks, dobhil/identify/closedloop.py,
+    _DIFF_STEP). The open-loop fit of the first four of the same records misses J each time
+    (not identifiable, or an interval without the truth)."""
+    z: dict[str, list[float]] = {n: [] for n in ("inertia", "stiffness", "damping")}
+    covered = dict.fromkeys(z, 0)
+    opened = []
+    for seed in range(COVERAGE_SEEDS):
+        run = record(Hidden(), seed, chirp(4000, 1, 60, 1.0, 0.9), "design.identified_inertia=0.125")
+        closed = identify_closed_loop(run).estimates
+        for name in z:
+            e = closed[name]
+            assert e.identifiable, (seed, e)
+            z[name].append((e.value - TRUTH[name]) / e.stderr)
+            covered[name] += e.low <= TRUTH[name] <= e.high
+        if seed < 4:
+            ok, _, low, high = _open_loop(run)["inertia"]
+            opened.append(ok and low <= TRUTH["inertia"] <= high)
+    assert all(c >= 17 for c in covered.values()), (covered, z)
+    rms = {n: float(np.sqrt(np.mean(np.square(v)))) for n, v in z.items()}
+    assert all(0.8 <= r <= 1.6 for r in rms.values()), rms
+    assert not any(opened), opened
