@@ -24,7 +24,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "response and the delay from the phase slope (figures with --plot)")
     p.add_argument("--validate", metavar="B.mcap",
                    help="check the fitted model on another log of the same drive: fit %% per signal, residual "
-                        "whiteness and residual-input cross-correlation")
+                        "whiteness and residual-input cross-correlation (a closed-loop fit: B's loop simulated "
+                        "from its reference, the residual against the reference)")
 
 
 # -- --validate ------------------------------------------------------------------------------
