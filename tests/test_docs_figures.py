@@ -31,7 +31,15 @@ Cost, measured (``pytest -n 0 --durations=5 tests/test_docs_figures.py`` on the 
 while other test runs shared it): docs/identify.md 176 s (eight lockstep runs of 1.2 to 10 s,
 four fits of 5 to 15 s of log), docs/quantisation.md 22 s and README.md 19 s (analyses),
 drivers/README.md 1-5 s (a 1.2 s lockstep MIT run), the parser and its own tests 0.3 s. The
-slow check (``dobhil tune`` of Fig. 3: 160 s there) runs only with DOBHIL_SLOW=1.
+slow check (``dobhil tune`` of Fig. 3: 160 s there) runs only with DOBHIL_SLOW=1. The
+closed-loop walk-through of docs/identify.md (section 5) adds three lockstep runs of 3 s and
+three fits of them: 23 s of wall time, 15 s of CPU, measured under load (load avg 1-2; the
+commands timed one by one). The page took 110 s (``pytest -n 0 --durations=5
+tests/test_docs_figures.py -k identify``, load avg falling from 5 to 1) and 292 s at load 6.5.
+The walk-through's slow part runs only with DOBHIL_SLOW=1: a ``dobhil tune`` on the identified
+box (61 s of wall time, 47 s of CPU), a ``dobhil certify`` of up to 200000 refinements (13 s),
+five 1.2 s runs, two reports and three compares (13 s), 88 s together at load avg 2-3. With
+DOBHIL_SLOW=1 the page took 315 s at load 6.5.
 """
 
 from __future__ import annotations

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 from pathlib import Path
 from typing import Any
@@ -117,6 +118,7 @@ def _closed_loop(args: argparse.Namespace, contact: bool) -> int:
     from dobhil.identify.data import Part
     from dobhil.runtime.session import build_controller
     record = closed_loop_record(args.log[0], build_controller, axis=args.axis)
+    held_out = _loop_validation_record(args, record) if args.validate else None
     with progress("identify", unit="simulation", quiet=args.json) as shown:
         result = identify_closed_loop(record, contact=contact, progress=lambda stage: shown.update(1, stage))
     data = argparse.Namespace(source=record.source, protocol="",
@@ -126,6 +128,9 @@ def _closed_loop(args: argparse.Namespace, contact: bool) -> int:
     info["method"] = CLOSED_LOOP
     if args.axis is not None:
         info["axis"] = args.axis
+    if held_out is not None:
+        from dobhil.cli.identify_evidence import loop_validation_info
+        info["validation"] = loop_validation_info(result, held_out)
     if args.out:
         _write_overlay(result.overlay(), info, args.out)
     if args.plot:
@@ -134,17 +139,44 @@ def _closed_loop(args: argparse.Namespace, contact: bool) -> int:
         print(json.dumps(info))
     else:
         _print(info)
+        if held_out is not None:
+            from dobhil.cli.identify_evidence import validation_lines
+            print("\n".join(validation_lines(info["validation"])))
     return 0
 
 
+def _loop_validation_record(args: argparse.Namespace, fitted: Any) -> Any:
+    """The validation run of a closed-loop fit, read before the fit (a refusal is then
+    immediate): a dobhil force run's log of the same drive protocol and loop period."""
+    from dobhil.errors import ConfigError
+    from dobhil.identify.closedloop import closed_loop_record
+    from dobhil.runtime.session import build_controller
+    name = args.validate
+    record = closed_loop_record(name, build_controller, axis=args.axis)
+    mine, theirs = _protocol_of(name), _protocol_of(args.log[0])
+    if mine != theirs:
+        raise ConfigError(f"--validate {name}: recorded with a {mine!r} drive, but the fitted log with a "
+                          f"{theirs!r} one; validate on a log of the same drive")
+    from dobhil.cli.identify_evidence import firmware_of
+    firmware, fitted_firmware = firmware_of(name), firmware_of(args.log[0])
+    if firmware is not None and fitted_firmware is not None and firmware != fitted_firmware:
+        raise ConfigError(f"--validate {name}: drive firmware {firmware!r}, but the fitted log's is "
+                          f"{fitted_firmware!r}; "
+                          "validate on a log of the same drive")
+    if not math.isclose(record.model.period, fitted.model.period, rel_tol=1e-9):
+        raise ConfigError(f"--validate {name}: period {record.model.period:g} s, but the fitted log has "
+                          f"{fitted.model.period:g} s; validate on a log of the same drive and loop period")
+    return record
+
+
 def _closed_loop_figure(result: Any, record: Any, out: Path) -> Path:
-    """The measured motion against the closed loop simulated with the identifiable values."""
+    """The measured motion against the closed loop simulated with the fitted values (every
+    parameter as fitted: one too uncertain to report still shapes the simulation)."""
     import numpy as np
 
     from dobhil.identify.closedloop import simulate_loop
     from dobhil.plotting.identify_figures import measured_vs_model
-    values = {n: e.value for n, e in result.estimates.items() if e.identifiable}
-    sim = simulate_loop(values, record)
+    sim = simulate_loop(result.fitted, record)
     out.mkdir(parents=True, exist_ok=True)
     t = record.model.period * np.arange(record.samples)
     return Path(measured_vs_model(t, (record.position, record.velocity), (sim[:, 0], sim[:, 1]),

@@ -24,7 +24,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "response and the delay from the phase slope (figures with --plot)")
     p.add_argument("--validate", metavar="B.mcap",
                    help="check the fitted model on another log of the same drive: fit %% per signal, residual "
-                        "whiteness and residual-input cross-correlation")
+                        "whiteness and residual-input cross-correlation (a closed-loop fit: B's loop simulated "
+                        "from its reference, the residual against the reference)")
 
 
 # -- --validate ------------------------------------------------------------------------------
@@ -47,6 +48,11 @@ def read_validation(args: argparse.Namespace, fitted: Any) -> Any:
         raise ConfigError(f"--validate {name}: drive firmware {mine!r}, but the fitted logs' is {theirs!r}; "
                           "validate on a log of the same drive")
     return data, find_segments(data)
+
+
+def firmware_of(path: str) -> str | None:
+    """The recorded drive's firmware (None: a log without a recorded drive, an imported one)."""
+    return _firmware(path)
 
 
 def _profile(name: str) -> Any:
@@ -72,16 +78,28 @@ def validation_info(result: Any, data: Any, segments: Any) -> dict[str, Any]:
     values = _values(result)
     if "inertia" not in values:
         raise ConfigError("--validate: the fit gave no inertia, so there is no model to validate")
-    v = validate(values, data, segments)
+    return _info(validate(values, data, segments), data.source, "input")
+
+
+def loop_validation_info(result: Any, record: Any) -> dict[str, Any]:
+    """``--validate`` of a closed-loop fit: the fitted plant in the validation run's own closed
+    loop (:func:`dobhil.identify.closedloop.validate_loop`)."""
+    from dobhil.identify.closedloop import validate_loop
+    # the model the fit simulated, every parameter as fitted: a value whose interval is too
+    # wide to report (a contact position within the encoder's count) still places the contact
+    return _info(validate_loop(result.fitted, record), record.source, "reference")
+
+
+def _info(v: Any, source: str, against: str) -> dict[str, Any]:
     tests = {t.name: {"worst": t.worst, "worst_lag": t.worst_lag, "threshold": t.threshold,
                       "per_lag_99": t.per_lag_99, "outside_99": t.outside_99, "lags": len(t.lags), "passed": t.passed}
              for t in (v.whiteness, v.cross)}
-    return {"file": data.source, "samples": v.samples,
+    return {"file": source, "samples": v.samples, "against": against,
             "fits": [{"signal": f.signal, "kind": f.kind, "percent": _num(f.percent), "samples": f.samples}
                      for f in v.fits],
             "whiteness": tests[v.whiteness.name], "cross_correlation": tests[v.cross.name],
             "ljung_box_p": v.ljung_box_p, "residual_rms": v.residual_rms, "rounding": v.rounding,
-            "misfit": v.misfit, "misfit_line": _misfit_line(v, data.source) if v.misfit else ""}
+            "misfit": v.misfit, "misfit_line": _misfit_line(v, source) if v.misfit else ""}
 
 
 def _misfit_line(v: Any, source: str) -> str:
@@ -92,11 +110,13 @@ def _misfit_line(v: Any, source: str) -> str:
 
 
 def validation_lines(info: dict[str, Any]) -> list[str]:
-    lines = [f"validated on {info['file']} ({info['samples']} samples, initial states fitted): fit % "
+    how = ("its closed loop simulated from its reference" if info["against"] == "reference"
+           else "initial states fitted")
+    lines = [f"validated on {info['file']} ({info['samples']} samples, {how}): fit % "
              "100 (1 - |y - model| / |y - mean y|)"]
     lines += [f"  {f['signal']:<9} {f['kind']:<8} {_pct(f['percent'])}" for f in info["fits"]]
     for key, label in (("whiteness", "residual autocorrelation, lags 1.."),
-                       ("cross_correlation", "residual-input cross-correlation, lags -+")):
+                       ("cross_correlation", f"residual-{info['against']} cross-correlation, lags -+")):
         t = info[key]
         n = t["lags"] if key == "whiteness" else (t["lags"] - 1) // 2
         lines.append(f"  {label}{n}: worst {t['worst']:+.3f} at lag {t['worst_lag']}, threshold +-{t['threshold']:.3g}"

@@ -30,17 +30,17 @@ def recorded_mode(path: str | os.PathLike[str], axis: str | None = None) -> str 
 
 def closed_loop_wanted(args: Any) -> bool:
     """True for ``--method closed-loop``, and for ``auto`` on one force run's log without
-    ``--segment``, ``--frf`` or ``--validate``; ConfigError (one line) when closed loop is
-    asked for what it cannot fit."""
+    ``--segment`` or ``--frf``; ConfigError (one line) when closed loop is asked for what it
+    cannot fit. ``--validate`` goes with either: a closed-loop fit is validated by simulating
+    the validation run's own loop (:func:`dobhil.identify.closedloop.validate_loop`)."""
     if args.method == "open-loop":
         return False
-    # The measured frequency responses and the validation simulate the open-loop model on the
-    # recorded torque (dobhil/identify/frf.py, validate.py): they go with the open-loop fit.
-    evidence = [name for name, given in (("--frf", getattr(args, "frf", False)),
-                                         ("--validate", getattr(args, "validate", None))) if given]
+    # The measured frequency responses are of the torque sent to the motion, the open-loop
+    # model's (dobhil/identify/frf.py): they go with the open-loop fit.
+    evidence = ["--frf"] if getattr(args, "frf", False) else []
     if evidence and args.method == "closed-loop":
-        raise ConfigError(f"--method closed-loop with {' and '.join(evidence)}: the frequency responses and "
-                          "the validation are computed for the open-loop fit; use --method open-loop or auto")
+        raise ConfigError("--method closed-loop with --frf: the frequency responses are computed for the "
+                          "open-loop fit; use --method open-loop or auto")
     single = len(args.log) == 1 and not args.segment and args.period is None and not evidence
     if args.method == "closed-loop":
         if not single:

@@ -47,7 +47,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import lmfit
@@ -126,6 +126,9 @@ class IdentResult:
     #: per segment, the fitted true ``(position, velocity)`` at its first sample (the
     #: measured ones are quantised and noisy): pass to :func:`simulate` as ``initial``
     initial: tuple[tuple[float, float], ...] = ()
+    #: every fitted parameter's value, identifiable or not (the closed-loop fit's: the model
+    #: it simulated, which its validation and figure simulate again; empty: not recorded)
+    fitted: Mapping[str, float] = field(default_factory=dict)
 
     def overlay(self) -> dict[str, Any]:
         """The config overlay of the identifiable values: ``plant.*``, ``environment.*``,

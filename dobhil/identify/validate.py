@@ -37,7 +37,7 @@ from dobhil.identify.data import IdentData, Segment
 from dobhil.identify.fit import MISFIT_P, NOISE_FLOOR, simulate
 
 __all__ = ["CorrelationTest", "SignalFit", "Validation", "autocorrelation", "cross_correlation", "nrmse_fit",
-           "validate"]
+           "residual_tests", "validate"]
 
 #: lags of the correlation tests
 LAGS: Final = 25
@@ -102,6 +102,8 @@ def autocorrelation(x: np.ndarray, lags: int) -> np.ndarray:
     """``r(k) = sum x[t] x[t+k] / sum x^2``, ``k = 1 .. lags``, of ``x`` less its mean."""
     x = np.asarray(x, float) - np.mean(x)
     c0 = float(x @ x)
+    if c0 == 0.0:   # a residual of exactly nothing (an exact model of a noise-free run): no colour
+        return np.zeros(lags)
     return np.array([float(x[:-k] @ x[k:]) / c0 for k in range(1, lags + 1)])
 
 
@@ -112,6 +114,8 @@ def cross_correlation(e: np.ndarray, u: np.ndarray, lags: int) -> np.ndarray:
     u = np.asarray(u, float) - np.mean(u)
     scale = math.sqrt(float(e @ e) * float(u @ u))
     n = len(e)
+    if scale == 0.0:
+        return np.zeros(2 * lags + 1)
     out = []
     for k in range(-lags, lags + 1):
         out.append(float(e[k:] @ u[:n - k]) if k >= 0 else float(e[:n + k] @ u[-k:]))
@@ -158,7 +162,16 @@ def validate(values: Mapping[str, float], data: IdentData, segments: Sequence[Se
         velocity.append(data.velocity[s])
     fits = tuple(SignalFit(signal=name, kind=kind, percent=nrmse_fit(np.concatenate(ys), np.concatenate(yh)),
                            samples=sum(len(y) for y in ys)) for (name, kind), (ys, yh) in per.items())
-    e, u = np.concatenate(residuals), np.concatenate(inputs)
+    return residual_tests(fits, np.concatenate(residuals), np.concatenate(inputs), np.concatenate(velocity),
+                          lags=lags)
+
+
+def residual_tests(fits: tuple[SignalFit, ...], e: np.ndarray, u: np.ndarray, velocity: np.ndarray, *,
+                   lags: int = LAGS, input_name: str = "input") -> Validation:
+    """The :class:`Validation` of the velocity residual ``e``: its whiteness and its
+    cross-correlation with ``u`` (the torque of an open-loop record; of a closed loop, the
+    reference -- the torque there depends on the noise the residual holds, so only the
+    reference is independent of it, Ljung 1999 sec. 16.6), ``velocity`` the measured one."""
     n = len(e)
     lags = min(lags, n // 4)
     r_e, r_u = autocorrelation(e, lags), autocorrelation(u, lags)
@@ -169,12 +182,12 @@ def validate(values: Mapping[str, float], data: IdentData, segments: Sequence[Se
     # the cross-correlation's variance with a coloured input and residual: P / N
     p = 1.0 + 2.0 * float(r_e @ r_u)
     p = max(p, 1.0 / n)
-    cross = _test("residual-input cross-correlation", np.arange(-lags, lags + 1), cross_correlation(e, u, lags),
+    cross = _test(f"residual-{input_name} cross-correlation", np.arange(-lags, lags + 1), cross_correlation(e, u, lags),
                   z_cross * math.sqrt(p / n), PER_LAG_Z * math.sqrt(p / n))
     k = np.arange(1, lags + 1)
     ljung_box = n * (n + 2) * float(np.sum(r_e ** 2 / (n - k)))
     rms = float(np.sqrt(np.mean(e ** 2)))
-    v_rms = float(np.sqrt(np.mean(np.concatenate(velocity) ** 2)))
+    v_rms = float(np.sqrt(np.mean(velocity ** 2)))
     return Validation(fits=fits, whiteness=white, cross=cross, ljung_box_p=float(scipy.stats.chi2.sf(ljung_box, lags)),
                       residual_rms=rms, rounding=rms <= NOISE_FLOOR * v_rms, samples=n)
 

@@ -10,11 +10,12 @@ import numpy as np
 import pytest
 
 from dobhil.cli.main import main
-from dobhil.identify.closedloop import CLOSED_LOOP, OPEN_LOOP, identify_closed_loop, simulate_loop
+from dobhil.identify.closedloop import CLOSED_LOOP, OPEN_LOOP, identify_closed_loop, simulate_loop, validate_loop
 from dobhil.identify.data import IdentData, find_segments
 from dobhil.identify.fit import identify
 
 from .closed_synthetic import Hidden, chirp, record
+from tests.identify.conftest import emulated_log
 
 TRUTH = {"inertia": 0.37, "viscous_friction": 0.05, "stiffness": 15000.0, "damping": 60.0,
          "contact_position": 0.0, "delay": 0.3e-3, "initial_position": -0.005}
@@ -75,7 +76,7 @@ def test_identify_picks_the_method_and_reports_it(logs: dict[str, Path], tmp_pat
 def test_closed_loop_refuses_what_it_cannot_fit(logs: dict[str, Path], tmp_path: Path,
                                                 capsys: pytest.CaptureFixture[str]) -> None:
     for args in ([str(logs["contact"]), str(logs["free"])], [str(logs["contact"]), "--segment", "0:0.4"],
-                 [str(logs["contact"]), "--frf"], [str(logs["contact"]), "--validate", str(logs["free"])]):
+                 [str(logs["contact"]), "--frf"]):
         assert main(["identify", *args, "--method", "closed-loop"]) == 2
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and "--method closed-loop" in err[0] and "open-loop" in err[0]
@@ -120,3 +121,62 @@ def test_closed_loop_intervals_cover_the_truth_over_seeds() -> None:
     rms = {n: float(np.sqrt(np.mean(np.square(v)))) for n, v in z.items()}
     assert all(0.8 <= r <= 1.6 for r in rms.values()), rms
     assert not any(opened), opened
+
+
+#: the docs' walk-through rig (docs/identify.md, "The closed-loop workflow"): the demo's own
+#: design, pressed from the start, a 20-bit encoder and 1 mrad/s of velocity noise
+PRESSED = Hidden(inertia=0.3, counts=2 ** 20, velocity_noise=0.001)
+
+
+def test_a_validation_run_passes_the_true_plant_and_fails_a_stiffer_one() -> None:
+    """validate_loop simulates the validation run's own loop from its reference: the hidden
+    plant leaves a white residual at the noise (fit % well above 0, the tests pass); the
+    same plant with K 20 % off is a misfit on the same record."""
+    truth = {**TRUTH, "inertia": PRESSED.inertia, "initial_position": 0.0}
+    run = record(PRESSED, 2, chirp(2000, 1, 60, 0.8, 0.4), "design.identified_inertia=0.125",
+                 "plant.initial_position=0")
+    good = validate_loop(truth, run)
+    assert not good.misfit and good.whiteness.passed and good.cross.passed
+    assert abs(good.residual_rms - PRESSED.velocity_noise) < 0.1 * PRESSED.velocity_noise
+    assert all(f.percent > 50 for f in good.fits), good.fits
+    bad = validate_loop({**truth, "stiffness": 1.2 * TRUTH["stiffness"]}, run)
+    assert bad.misfit and bad.residual_rms > 1.1 * good.residual_rms
+
+
+def test_an_estimate_on_its_search_bound_is_not_identifiable() -> None:
+    """Pressed all along, the servo's viscous friction and the environment's damping act as
+    their sum: the fit runs the friction to its bound 0, where the sandwich interval is
+    meaningless (it was +-3e-11 for a true 0.05); it is reported not identifiable, and the
+    damping, which carries the sum, holds the truth."""
+    run = record(PRESSED, 1, chirp(3000, 1, 60, 0.8, 0.4), "design.identified_inertia=0.125",
+                 "plant.initial_position=0")
+    result = identify_closed_loop(run)
+    friction = result.estimates["viscous_friction"]
+    assert result.fitted["viscous_friction"] < 1e-6
+    assert not friction.identifiable and "bound of its search" in friction.why
+    damping = result.estimates["damping"]
+    total = TRUTH["damping"] + TRUTH["viscous_friction"]
+    assert damping.identifiable and damping.low <= total <= damping.high, damping
+
+
+def test_validate_goes_with_the_closed_loop_fit(logs: dict[str, Path], tmp_path: Path,
+                                                capsys: pytest.CaptureFixture[str]) -> None:
+    """--validate on a force run keeps the closed-loop fit and validates it in the validation
+    run's loop: the residual is tested against the reference, not the fed-back torque."""
+    for method in ("auto", "closed-loop"):
+        assert main(["identify", str(logs["contact"]), "--validate", str(logs["contact"]), "--json",
+                     "--method", method]) == 0
+        info = json.loads(capsys.readouterr().out)
+        assert info["method"] == CLOSED_LOOP
+        assert info["validation"]["against"] == "reference"
+        assert [f["signal"] for f in info["validation"]["fits"]] == ["velocity", "position"]
+    assert main(["identify", str(logs["contact"]), "--validate", str(logs["free"]), "--json",
+                 "--method", "open-loop"]) == 0
+    assert json.loads(capsys.readouterr().out)["validation"]["against"] == "input"
+    # a validation run of another drive, or firmware: refused in one line before the fit
+    for profile, match in (("mini-cheetah", "validate on a log of the same drive"), ("odrive-0.5", "firmware '0.5'")):
+        other = emulated_log(tmp_path / f"{profile}.mcap", f"drive.profile={profile}")
+        capsys.readouterr()
+        assert main(["identify", str(logs["contact"]), "--validate", str(other)]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and match in err[0], err
