@@ -143,17 +143,17 @@ def test_a_validation_run_passes_the_true_plant_and_fails_a_stiffer_one() -> Non
     assert bad.misfit and bad.residual_rms > 1.1 * good.residual_rms
 
 
-def test_an_estimate_on_its_search_bound_is_not_identifiable() -> None:
+def test_friction_and_damping_pressed_all_along_are_reported_as_their_sum() -> None:
     """Pressed all along, the servo's viscous friction and the environment's damping act as
-    their sum: the fit runs the friction to its bound 0, where the sandwich interval is
-    meaningless (it was +-3e-11 for a true 0.05); it is reported not identifiable, and the
-    damping, which carries the sum, holds the truth."""
+    their sum: the fit trades one against the other (their correlation near -1), so the
+    friction is reported not identifiable and held at 0, and the damping carries the sum and
+    holds the true sum."""
     run = record(PRESSED, 1, chirp(3000, 1, 60, 0.8, 0.4), "design.identified_inertia=0.125",
                  "plant.initial_position=0")
     result = identify_closed_loop(run)
     friction = result.estimates["viscous_friction"]
     assert result.fitted["viscous_friction"] < 1e-6
-    assert not friction.identifiable and "bound of its search" in friction.why
+    assert not friction.identifiable and "sum" in friction.why
     damping = result.estimates["damping"]
     total = TRUTH["damping"] + TRUTH["viscous_friction"]
     assert damping.identifiable and damping.low <= total <= damping.high, damping
@@ -180,3 +180,24 @@ def test_validate_goes_with_the_closed_loop_fit(logs: dict[str, Path], tmp_path:
         assert main(["identify", str(logs["contact"]), "--validate", str(other)]) == 2
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and match in err[0], err
+
+
+def test_an_estimate_on_its_search_bound_is_not_identifiable() -> None:
+    """A fit that ends on a bound of its search has no interior minimum there: the sandwich
+    interval is meaningless (it was +-3e-11 for a true friction of 0.05), so the estimate is
+    reported not identifiable, with the value it ran to; one just inside is kept."""
+    from types import SimpleNamespace
+
+    from dobhil.identify.closedloop import FITTED, _estimates
+    rng = np.random.default_rng(0)
+    rec = SimpleNamespace(torque=rng.normal(size=100), velocity=rng.normal(size=100),
+                          position=rng.normal(size=100), model=SimpleNamespace(period=1e-3))
+    lo, hi = np.zeros(len(FITTED) + 1), np.full(len(FITTED) + 1, 100.0)
+    sd = np.full(len(FITTED) + 1, 1e-3)
+    values = {"inertia": 0.3, "viscous_friction": 0.0, "stiffness": 50.0, "damping": 60.0,
+              "contact_position": 0.5, "delay": 3e-4}
+    out = _estimates(values, sd, rec, lo, hi, True)  # type: ignore[arg-type]
+    assert not out["viscous_friction"].identifiable and "bound of its search" in out["viscous_friction"].why
+    assert out["damping"].identifiable and out["damping"].value == 60.0
+    inside = _estimates({**values, "viscous_friction": 1e-6}, sd, rec, lo, hi, True)  # type: ignore[arg-type]
+    assert inside["viscous_friction"].identifiable
