@@ -180,16 +180,30 @@ def test_near_the_boundary_the_gate_is_analyzes_closed_loop(u: float, above: boo
     assert verdict.stable is bool(is_stable(np.linalg.eigvals(closed.a)[None], True)[0]) is (not above)
 
 
+def resolvent_response(loop: control.StateSpace, w: np.ndarray) -> np.ndarray:
+    """The SISO ``loop``'s C (xI - A)^-1 B + D at x = jw (or e^{jwT} sampled), all frequencies
+    in one stacked solve: the response python-control's ``frequency_response`` gives without
+    slycot, one ``np.linalg.solve`` per frequency in a Python loop (80 % of this test's CPU
+    on the 20,001-point grid)."""
+    x = np.exp(1j * w * loop.dt) if loop.dt else 1j * w
+    shifted = x[:, None, None] * np.eye(loop.nstates) - loop.A
+    solved = np.linalg.solve(shifted, np.broadcast_to(loop.B, (w.size, *loop.B.shape)))
+    return np.asarray((loop.C @ solved)[:, 0, 0] + loop.D[0, 0])
+
+
 def crossover_margins(loop: control.StateSpace, gain: float) -> list[float]:
-    """Phase margins at every crossing of ``|gain L| = 1`` found on a dense log grid of
-    python-control's frequency response, each refined by bisection: independent of the
-    polynomial the gate solves."""
+    """Phase margins at every crossing of ``|gain L| = 1`` found on a dense log grid of L's
+    response (:func:`resolvent_response`), each refined by bisection on python-control's
+    frequency response: independent of the polynomial the gate solves."""
     top = math.pi / loop.dt if loop.dt else 1e6
     w = np.geomspace(1e-3, top * (1 - 1e-9), 20001)
 
     def response(x: np.ndarray) -> np.ndarray:
         return gain * np.asarray(loop.frequency_response(x).complex).reshape(-1)
-    above = np.abs(response(w)) > 1
+    dense = gain * resolvent_response(loop, w)
+    # the stacked solve is python-control's response: checked on every 100th frequency
+    np.testing.assert_allclose(dense[::100], response(w[::100]), rtol=1e-9)
+    above = np.abs(dense) > 1
     out = []
     for i in np.nonzero(above[1:] != above[:-1])[0]:
         lo, hi = w[i], w[i + 1]

@@ -16,6 +16,7 @@ from dobhil.canio.canlog import CanLogFormat, export_can
 from dobhil.cli.main import main
 from dobhil.recording.reader import open_log
 from dobhil.recording.schemas import SPECS_BY_SCHEMA
+from dobhil.run_report import report, summary_text
 from tests.recording.helpers import decode_message
 from tests.recording.test_run_logging import logged_lockstep_run
 
@@ -110,16 +111,16 @@ def test_replay_report_and_export_read_an_old_log(old_log: Path, tmp_path: Path,
     assert export_can(old_log, tmp_path / "old.asc", CanLogFormat.ASC) > 0  # tx 0.0: the log time is used
 
 
-def test_the_new_log_names_the_drives_codes_and_the_report_lists_them(
-        new_log: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+def test_the_new_log_names_the_drives_codes_and_the_report_lists_them(new_log: Path) -> None:
     """Today's ``/drive/feedback``: dobhil's state, the drive's own codes and their names
-    from the protocol (an ODrive in closed loop, no error), and the report's state lines."""
+    from the protocol (an ODrive in closed loop, no error), and the report's state lines
+    (the summary text ``dobhil report`` prints; its figures, the command's costliest part,
+    drawn from old logs above and from new ones in tests/recording/test_report.py)."""
     with open_log(new_log) as log:
         feedback = [p for _, _, p in log.iter_messages(["/drive/feedback"])]
     assert {(p["drive_state"], p["protocol_state"], p["protocol_state_name"], p["protocol_error"],
              p["protocol_error_text"]) for p in feedback} == {
         ("enabled", 8, "CLOSED_LOOP_CONTROL", 0, "0x00000000 (none)")}
-    assert main(["report", str(new_log), "--out", str(tmp_path / "report")]) == 0
-    out = capsys.readouterr().out
+    out = summary_text(report(new_log)[1])
     assert ("drive state at 0.000 s (cycle -1): enabled; the drive's state 8 (CLOSED_LOOP_CONTROL), "
             "error 0x00000000 (none)") in out

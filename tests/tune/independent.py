@@ -2,7 +2,9 @@
 python-control from its parts -- the sampled controller's matrices, the plant with its
 environment sampled by ``control.c2d`` (zero-order hold; not dobhil's discretisation),
 a unit delay per ``design.delay_samples``, and the force law as a summing junction
-(``control.interconnect``) -- and its eigenvalues tested against the unit circle.
+(``control.interconnect``, once per design: the measurements q, q' to the plant's input) --
+the loop closed around each point's plant by ``control.feedback``, and its eigenvalues
+tested against the unit circle.
 
 Nothing here goes through :func:`dobhil.synthesis.loop.loop`, the gain map or tune's own
 metrics. Only ``design.input_delay = 0`` is covered (c2d has no fractional input delay)."""
@@ -10,6 +12,7 @@ metrics. Only ``design.input_delay = 0`` is covered (c2d has no fractional input
 from __future__ import annotations
 
 from collections.abc import Mapping
+from functools import cache
 
 import control
 import numpy as np
@@ -29,18 +32,23 @@ class IndependentLoop:
         self.design = dict(design)
         self.dt = float(config.loop.period)
         params = params_from_config(config, **_arrays(design))
-        self.fixed = [_controller(params, self.dt), _force_law(float(params.value("force_gain")), self.dt)]
+        controller = _controller(params, self.dt)
+        parts = [controller, _force_law(float(params.value("force_gain")), self.dt)]
         delay = config.design.delay_samples
         if delay:
-            self.fixed.append(_delay(delay, self.dt))
+            parts.append(_delay(delay, self.dt))
         self.plant_input = "u_late" if delay else "u"
+        self.measured = controller.input_labels[:-1]
+        # the poles do not depend on tau_ref: the feedback path alone, measurements -> input
+        self.feedback = control.interconnect(parts, inplist=self.measured, outlist=[self.plant_input],
+                                             check_unused=False)
 
     def poles(self, point: Mapping[str, float]) -> np.ndarray:
         params = params_from_config(self.config, **_arrays({**self.design, **point}))
         plant = _plant(*(float(params.value(k)) for k in ("inertia", "viscous_friction", "stiffness", "damping")),
                        self.dt, self.plant_input)
-        system = control.interconnect([plant, *self.fixed], inplist=["tau_ref"], outlist=["tau_int"],
-                                      check_unused=False)
+        # u = feedback(q, q'): a positive feedback of the plant's measured outputs
+        system = control.feedback(plant[self.measured, :], self.feedback, sign=1)
         return np.asarray(system.poles())
 
 
@@ -52,6 +60,7 @@ def closed_loop_poles(config: Config, design: Mapping[str, float], point: Mappin
     return IndependentLoop(config, design).poles(point)
 
 
+@cache   # a pure result: the designs checked on one grid share its points' plants
 def _plant(inertia: float, friction: float, stiffness: float, damping: float, dt: float,
            inp: str) -> control.StateSpace:
     """J q'' = u - (b + D) q' - K q, outputs q, q' and the true interaction K q + D q'."""
