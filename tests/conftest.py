@@ -22,6 +22,7 @@ import can
 import pytest
 from hypothesis import settings
 from slow_list import SLOW_LIST, is_listed, slow_entries
+from threadpoolctl import threadpool_limits
 
 # Hypothesis fails an example that takes over 200 ms by default: a wall-clock assertion, which a
 # busy CI machine breaks (seen: the first example of a CiA 402 codec test took 465 ms under load,
@@ -41,6 +42,16 @@ if sys.dont_write_bytecode and not sys.pycache_prefix:
     sys.pycache_prefix = _BYTECODE
     os.environ.pop("PYTHONDONTWRITEBYTECODE", None)
     os.environ["PYTHONPYCACHEPREFIX"] = _BYTECODE
+
+# BLAS on one thread, in this process and the ones it starts: the suite runs on two xdist
+# workers on two cores, and each numpy call on a small matrix woke a second OpenBLAS thread that
+# spun on the other worker's core (measured: tests/analysis, tests/test_quantisation.py and
+# tests/campaign/test_figures.py with -n 2 took 49.6 s of CPU and 33.0 s wall, 36.6 s and
+# 26.3 s with OPENBLAS_NUM_THREADS=1; the same results). A test about BLAS threads sets its own
+# limit (tests/identify/test_model.py).
+for _name in ("OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "OMP_NUM_THREADS"):
+    os.environ.setdefault(_name, "1")
+threadpool_limits(limits=1, user_api="blas")
 
 # A shell without job control starts a background command with SIGINT ignored, and an ignored
 # signal stays ignored across exec: every process the tests start would then ignore the Ctrl-C
