@@ -713,7 +713,7 @@ def _profiled(minimizer: lmfit.Minimizer, result: lmfit.minimizer.MinimizerResul
               segments: Sequence[Segment]) -> dict[str, Estimate]:
     """The estimates, where a linearised interval was cut at its bound (a friction or a
     delay near 0: ``value - z stderr`` below it) with the high end from the profile
-    likelihood instead (:func:`_profile_high`) -- the issue's asymmetric intervals. The
+    likelihood instead (:func:`_profile_high`) -- an asymmetric interval. The
     width rule of :func:`_estimates` then judges the profiled interval."""
     z = float(scipy.stats.norm.ppf(0.5 + LEVEL / 2))
     varied = sum(1 for p in result.params.values() if p.vary)
