@@ -257,3 +257,19 @@ def test_replay_by_encoding_is_interleaved_warmed_and_a_short_run_fails_its_key(
     out = bench.replay_by_encoding(4.0, tmp_path, repeat=2, clock=clock)
     assert math.isnan(out["replay_protobuf_vs_json"])
     assert bench.targets_met(out)["replay_protobuf_vs_json"]["met"] is False
+
+
+def test_json_output_is_one_object_whatever_the_runs_print(monkeypatch: pytest.MonkeyPatch,
+                                                          capsys: pytest.CaptureFixture[str]) -> None:
+    """A measured run prints its stop line (the in-process ``dobhil run`` of the identify
+    benches): with --json it goes to stderr and stdout stays one JSON object."""
+    import json
+
+    def noisy() -> dict[str, float]:
+        print("stopped: done at cycle 10 (t = 0.0100 s): ran 0.01 s")
+        return {"replay_cycles_per_s": 1.0}
+    monkeypatch.setitem(bench.BENCHES, "logging", noisy)
+    assert bench.main(["--only", "logging", "--json"]) == 0
+    out, err = capsys.readouterr()
+    assert json.loads(out)["replay_cycles_per_s"] == 1.0
+    assert "stopped: done" in err

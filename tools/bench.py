@@ -28,6 +28,7 @@ boot): no targets, stated as guest figures.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import math
 import sys
@@ -1343,9 +1344,13 @@ def main(argv: list[str] | None = None) -> int:
     if args.repeat is not None and args.repeat < 1:
         ap.error(f"--repeat: expected a whole number >= 1, got {args.repeat}")
     results: dict[str, float] = {}
-    for name in args.only or BENCHES:
-        bench = BENCHES[name]
-        results.update(bench(rounds=args.repeat) if args.repeat and name in REPEATABLE else bench())  # type: ignore[call-arg]
+    # what the measured runs print (a run's stop line, its log) goes to stderr: with --json,
+    # stdout is the one JSON object a script parses
+    with contextlib.redirect_stdout(sys.stderr):
+        for name in args.only or BENCHES:
+            bench = BENCHES[name]
+            results.update(bench(rounds=args.repeat) if args.repeat and name in REPEATABLE  # type: ignore[call-arg]
+                           else bench())
     rounded = {k: round(v, 3) for k, v in results.items()}
     targets = targets_met(results)
     if args.json:
