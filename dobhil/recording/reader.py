@@ -11,7 +11,7 @@ from __future__ import annotations
 import json
 import os
 import struct
-from collections.abc import Iterable, Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 from types import MappingProxyType
@@ -247,15 +247,7 @@ class LogFile:
     def iter_messages(self, topics: Iterable[str] | None = None) -> Iterator[tuple[str, int, dict[str, Any]]]:
         """(topic, log_time_ns, payload dict) in file order, whatever the encoding (the same
         dict: numbers that are not finite as None, bytes as a list of integers)."""
-        decoders: dict[int, Decoder] = {}
-        for cid, topic, t, data in self._iter_raw(topics):
-            decode = decoders.get(cid) or decoders.setdefault(cid, self.decoder(cid))
-            try:
-                payload = decode(data)
-            except (ValueError, TypeError, struct.error) as exc:
-                raise _fail(self.path, f"a {topic} message at log time {t} is not valid "
-                                       f"{self.channel_records[cid].message_encoding} ({exc})") from None
-            yield topic, t, payload
+        return self._decoded(topics, lambda cid, _topic: self.decoder(cid))
 
     def iter_rows(self, fields: Mapping[str, Sequence[str]], defaults: Mapping[str, Any] | None = None
                   ) -> Iterator[tuple[str, int, tuple[Any, ...]]]:
@@ -264,15 +256,22 @@ class LogFile:
         (but bytes as bytes), without the dicts (an encoding that reads the fields straight
         from the bytes builds none). A field a message lacks takes its value in ``defaults`` (an older log's
         message), else KeyError (an encoding with defaults of its own, protobuf, gives those)."""
-        rows: dict[int, RowDecoder] = {}
-        for cid, topic, t, data in self._iter_raw(fields):
-            decode = rows.get(cid) or rows.setdefault(cid, self.row_decoder(cid, fields[topic], defaults or {}))
+        return self._decoded(fields, lambda cid, topic: self.row_decoder(cid, fields[topic], defaults or {}))
+
+    def _decoded(self, topics: Iterable[str] | None, make: Callable[[int, str], Callable[[bytes], Any]]
+                 ) -> Iterator[tuple[str, int, Any]]:
+        """(topic, log_time_ns, what ``make(channel id, topic)``'s decoder gives) of each message
+        of ``topics`` in file order, one decoder per channel; a message it cannot read fails the
+        log in one line naming the topic, the time and the encoding."""
+        decoders: dict[int, Callable[[bytes], Any]] = {}
+        for cid, topic, t, data in self._iter_raw(topics):
+            decode = decoders.get(cid) or decoders.setdefault(cid, make(cid, topic))
             try:
-                values = decode(data)
+                value = decode(data)
             except (ValueError, TypeError, struct.error) as exc:
                 raise _fail(self.path, f"a {topic} message at log time {t} is not valid "
                                        f"{self.channel_records[cid].message_encoding} ({exc})") from None
-            yield topic, t, values
+            yield topic, t, value
 
     def row_decoder(self, channel_id: int, names: Sequence[str], defaults: Mapping[str, Any]) -> RowDecoder:
         """Message bytes -> the values of the fields ``names`` for a channel (:meth:`iter_rows`)."""
