@@ -111,6 +111,8 @@ class Protocol:
     lose_disable: Callable[[], list[Fault]]   # the drive never sees the disable
     torque_quantum: float              # [Nm] resolution of the torque command on the wire
     no_answer: str                     # the enable's line when nobody answers (a regex)
+    #: [s] the enable's own deadline in that case
+    no_answer_enable_timeout: float = 0.3
     profile_changes: dict[str, Any] = dataclasses.field(default_factory=dict)
     #: what its drive declares it can do: confirm that the drive left torque control
     confirms_disable: bool = True
@@ -236,6 +238,9 @@ CIA402 = Protocol(
     lose_disable=lambda: [LoseControlwords(frozenset({_QUICK_STOP, _DISABLE_VOLTAGE}))],
     torque_quantum=1e-3,                       # 1 per mille of the 1 N m rated torque
     no_answer=r"^node 6: SDO 0x1018:01 \(.*\) timed out after 0.3 s \(reached: pre-operational\)$",
+    # well above the profile's sdo_timeout (0.3 s): the unanswered SDO, not the enable's
+    # deadline, ends it, even when opening the CANopen session is slow on a loaded machine
+    no_answer_enable_timeout=2.0,
 )
 
 
@@ -567,7 +572,8 @@ def test_a_drive_that_never_answers_fails_the_enable_in_one_line(protocol: Proto
     """The host addresses a node id nobody has: the enable ends in one line naming the
     node and what was awaited (ODrive: its heartbeat; CiA 402: the first SDO answer, with
     the object), and the emulated drive at the other id never left its idle state."""
-    with drive_rig(protocol, timing, drive_node=protocol.node + 1, enable_timeout=0.3) as made:
+    with drive_rig(protocol, timing, drive_node=protocol.node + 1,
+                   enable_timeout=protocol.no_answer_enable_timeout) as made:
         with pytest.raises(DriveError) as info:
             made.drive.enable()
         line = str(info.value)
