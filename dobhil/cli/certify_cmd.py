@@ -74,20 +74,23 @@ def certify(config: Config, box: Box, *, loops: str = "both", refinements: int |
                            "force_gain": float(config.design.force_gain)}
     # the disk margins are given where the continuous gain margin is smallest (or at the
     # refuting point, where they say "unstable"); the box's centre when nothing else is known
+    # (a margin unbounded both ways has no smallest point: the centre then)
     worst: Mapping[str, float] = box.centre()
+    where = "the box's centre"
     if loops in ("both", "continuous"):
         cont = certify_continuous(config, box)
         out["continuous"] = _continuous(cont)
-        if cont.gain_margin is not None:
-            worst = cont.gain_margin.worst_at
+        if cont.gain_margin is not None and cont.gain_margin.worst_at:
+            worst, where = cont.gain_margin.worst_at, "smallest continuous gain margin"
         elif cont.point is not None:
-            worst = cont.point
+            worst, where = cont.point, "refuting point"
     if loops in ("both", "sampled"):
         samp = certify_sampled(config, box, refinements=refinements)
         out["sampled"] = _sampled(samp)
         if loops == "sampled" and samp.point is not None:
-            worst = samp.point
+            worst, where = samp.point, "refuting point"
     out["disk_margin_at"] = dict(worst)
+    out["disk_margin_where"] = where
     out["disk_margin"] = {name: _disk(config, worst, name == "sampled")
                           for name in ("continuous", "sampled") if name in out}
     out["certified"] = all(out[name]["verdict"] == "certified" for name in ("continuous", "sampled")
@@ -141,7 +144,7 @@ def text_lines(answer: Mapping[str, Any]) -> list[str]:
         lines.append("continuous loop (edge theorem): " + _continuous_text(answer["continuous"]))
     if "sampled" in answer:
         lines.append("sampled loop (interval enclosure + Lyapunov bound): " + _sampled_text(answer["sampled"]))
-    at = _point_text(answer["disk_margin_at"])
+    at = f"{_point_text(answer['disk_margin_at'])} ({answer['disk_margin_where']})"
     for name, dm in answer["disk_margin"].items():
         if dm is None:
             lines.append(f"disk margin ({name}) at {at}: the loop is unstable there")

@@ -19,8 +19,8 @@ def test_the_paper_gains_are_refuted_at_a_point(capsys: pytest.CaptureFixture[st
     out = capsys.readouterr().out
     assert "continuous loop (edge theorem): refuted at environment.stiffness=100000, environment.damping=10" in out
     assert "sampled loop (interval enclosure + Lyapunov bound): refuted at" in out
-    assert "disk margin (continuous) at environment.stiffness=100000, environment.damping=10: the loop is " \
-           "unstable there" in out
+    assert "disk margin (continuous) at environment.stiffness=100000, environment.damping=10 (refuting " \
+           "point): the loop is unstable there" in out
 
 
 def test_the_tuned_design_is_certified_in_the_continuous_loop(capsys: pytest.CaptureFixture[str]) -> None:
@@ -32,7 +32,23 @@ def test_the_tuned_design_is_certified_in_the_continuous_loop(capsys: pytest.Cap
     # (the margin itself is checked against eigenvalues in test_certify.py)
     assert cont["gain_margin"]["db"] > 6.0 and cont["gain_margin"]["down"] is None   # unbounded below
     assert answer["disk_margin_at"] == cont["gain_margin"]["up_at"]
+    assert answer["disk_margin_where"] == "smallest continuous gain margin"
     assert answer["disk_margin"]["continuous"]["gain_db"] <= cont["gain_margin"]["db"] + 1e-9
+
+
+def test_a_margin_unbounded_both_ways_gives_the_disk_margin_at_the_box_centre(
+        capsys: pytest.CaptureFixture[str]) -> None:
+    """A soft box and a small C_f: stable for every scaling of C_f, so no point has the
+    smallest gain margin; the disk margin is the one at the box's centre (inside the box,
+    not the config's own stiffness outside it), and the line says where."""
+    box = ["--range", "environment.stiffness=100:1000", "--set", "design.force_gain=0.1"]
+    assert main(["certify", "paper/fig3", *box, "--loop", "continuous", "--json"]) == 0
+    answer = json.loads(capsys.readouterr().out)
+    assert answer["continuous"]["gain_margin"]["up"] is None and answer["continuous"]["gain_margin"]["down"] is None
+    assert answer["disk_margin_at"] == {"environment.stiffness": 550.0}
+    assert answer["disk_margin_where"] == "the box's centre"
+    assert main(["certify", "paper/fig3", *box, "--loop", "continuous"]) == 0
+    assert "disk margin (continuous) at environment.stiffness=550 (the box's centre): ±" in capsys.readouterr().out
 
 
 @pytest.mark.parametrize(("args", "says"), [
