@@ -789,7 +789,8 @@ def _profile_cost(minimizer: lmfit.Minimizer, params: lmfit.Parameters, name: st
 #: (measured: a pressed record that barely moves, 0.002 rad/s under 0.01 of noise, b and
 #: D_env flat, correlates them -0.92 on the Jacobian of :func:`_refine` -- its steps are
 #: the huge standard errors, a secant far into the nonlinearity -- the sum still all the
-#: record determines; tests/identify/test_misfit.py)
+#: record determines; tests/identify/test_misfit.py, and the rule itself in
+#: tests/identify/test_fit.py)
 _CONFOUNDED = 0.9
 
 

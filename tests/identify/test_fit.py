@@ -15,8 +15,8 @@ import scipy.stats
 
 from dobhil.emulator.plant import DisturbanceKind
 from dobhil.identify.data import IdentData, Segment
-from dobhil.identify.fit import (MISFIT_P, PARAMETERS, IdentResult, _quantum, _relative_steps,
-                                 identify, simulate)
+from dobhil.identify.fit import (MISFIT_P, PARAMETERS, IdentResult, _partner, _quantum,
+                                 _relative_steps, identify, simulate)
 from dobhil.identify.model import ModelValues, simulate_torque, split_delay
 from dobhil.synthesis.controller import discretize_delayed
 from dobhil.synthesis.models import plant_matrices, servo_matrices
@@ -396,3 +396,19 @@ def test_scipys_central_differences_take_the_absolute_steps_asked_for(
                                        diff_step=_relative_steps(h, x), max_nfev=1)
     taken = np.sqrt(np.diag(fit.jac) - 3.0 * x ** 2)
     assert np.allclose(taken, h, rtol=1e-3), (taken, h)
+
+
+@pytest.mark.parametrize(("r", "named"), [(-0.92, True), (0.95, True), (-0.89, False), (0.0, False)])
+def test_a_parameter_not_identifiable_names_its_partner_beyond_0_9(r: float, named: bool) -> None:
+    """The line of a parameter that is not identifiable names the one it is most correlated
+    with when |r| > 0.9 (b and D_env in a pressed record: -0.92), with the correlation; a
+    weaker one is no explanation and is not named. A third, uncorrelated parameter is never
+    the partner."""
+    sd = np.array([2.0, 50.0, 1.0])
+    corr = np.array([[1.0, r, 0.0], [r, 1.0, 0.1], [0.0, 0.1, 1.0]])
+    line = _partner("viscous_friction", (["viscous_friction", "damping", "inertia"], corr * np.outer(sd, sd)))
+    if named:
+        assert line == f"; only a combination with damping is determined (correlation {r:+.3f}): " \
+                       "the record does not separate them"
+    else:
+        assert line == ""

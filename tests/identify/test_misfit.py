@@ -110,9 +110,9 @@ def test_backlash_gives_a_visible_misfit() -> None:
 def test_no_confident_wrong_numbers_from_a_contact_only_record() -> None:
     """The plant the model represents exactly, pressed from the start (a contact segment
     only): every value identify reports as identifiable has its 95 % interval around the
-    truth, unless identify warns of a misfit. (In contact b and D_env act as their sum: a
-    fit that reported both gave confident wrong values, viscous friction 822 [262, 1106] for
-    0.5 and contact 1.34 mrad for 0; they are not identifiable, each naming the other. This
+    truth, unless identify warns of a misfit. (In contact b and D_env act as their sum:
+    reported both, they come out as confident wrong values -- viscous friction 822
+    [262, 1106] for 0.5, contact 1.34 mrad for 0 -- so neither may be reported. This
     record barely moves -- 0.002 rad/s RMS under 0.01 of noise -- so little else is.)"""
     from dobhil.identify.data import IdentData, Segment
     from dobhil.identify.fit import identify
@@ -130,8 +130,11 @@ def test_no_confident_wrong_numbers_from_a_contact_only_record() -> None:
     result = identify(data, (Segment(start=0, stop=n, kind="contact"),))
     if result.residual.misfit:
         return
-    for name, other in (("viscous_friction", "damping"), ("damping", "viscous_friction")):
-        assert not result.estimates[name].identifiable and other in result.estimates[name].why
+    # neither is reported; why each is not depends on where in the flat valley the fit ends
+    # (newest numpy/scipy/lmfit: correlation -0.92 with the other, named; at the floors of
+    # pyproject.toml: only the flat profile), so the line is not asserted
+    for name in ("viscous_friction", "damping"):
+        assert not result.estimates[name].identifiable, result.estimates[name]
     truth_of = {**truth, "delay": 0.0, "torque_gain": 1.0}
     wrong = {name: (e.value, e.low, e.high) for name, e in result.estimates.items()
              if e.identifiable and not e.low <= truth_of[name] <= e.high}
