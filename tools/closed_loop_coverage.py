@@ -8,7 +8,9 @@ of velocity noise), one per seed, each fitted by :func:`dobhil.identify.closedlo
 
 Prints, per seed, each parameter's error, standard error and z = (estimate - truth) /
 standard error, then per parameter: how many intervals held the truth, the RMS and mean of z
-(1 and 0 for calibrated, unbiased errors), the median error and standard error.
+(1 and 0 for calibrated, unbiased errors), the median error and standard error. The delay's
+interval is the profile likelihood's, asymmetric: its standard error is the interval's width
+over 2 z, and "held" (the interval holds the truth) is the figure to read for it.
 """
 
 from __future__ import annotations

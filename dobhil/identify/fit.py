@@ -102,7 +102,8 @@ class Estimate:
     identifiable: bool
     why: str
     #: how ``high`` was found: "linearised" (value + z stderr) or "profile" (a parameter
-    #: whose linearised interval leaves its bound: the profile likelihood, see _profile_high)
+    #: whose linearised interval leaves its bound: the profile likelihood, see _profile_high;
+    #: in the closed-loop fit the delay's both ends, dobhil.identify.closedloop._Profile)
     method: str = "linearised"
 
 
