@@ -21,8 +21,9 @@ Every command must also be shown on the page (in a code block or in backticks), 
 words but for ``--json`` / ``--summary-json``: the figure is reproducible by a reader, not only
 by this test. The commands of one page run in order in one temporary directory, from the
 package's shipped files (``dobhil`` is ``python -m dobhil`` of the installed package), each
-command once. A key the JSON does not have fails the check, as does a figure outside its
-tolerance.
+command once, each in a process forked from one that imported dobhil once per page
+(tests/dobhil_forks.py; a test below checks a forked command answers as a new process does).
+A key the JSON does not have fails the check, as does a figure outside its tolerance.
 
 Figures of timing and of this machine (bench keys, CI and wall times) cannot be asserted: the
 pages give each with the command that measures it, and carry no check.
@@ -40,6 +41,14 @@ The walk-through's slow part runs only with DOBHIL_SLOW=1: a ``dobhil tune`` on 
 box (61 s of wall time, 47 s of CPU), a ``dobhil certify`` of up to 200000 refinements (13 s),
 five 1.2 s runs, two reports and three compares (13 s), 88 s together at load avg 2-3. With
 DOBHIL_SLOW=1 the page took 315 s at load 6.5.
+
+Each command was a new ``python -m dobhil`` process, and importing dobhil, scipy,
+python-control and matplotlib was most of a command's CPU: forked from one process that has
+imported them (tests/dobhil_forks.py), the file took 51.8 s of CPU instead of 116.0 s
+(user + system, ``/usr/bin/time -v pytest -n 0 -p no:cacheprovider
+tests/test_docs_figures.py``, measured under load, load avg 3.5-4.1; the 51.8 s include the
+6 s of the test that runs a command both ways), README.md's eight analyses 5.6 s instead of
+45 s of wall time, docs/identify.md 48 s instead of 118 s.
 """
 
 from __future__ import annotations
@@ -57,6 +66,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from dobhil_forks import DobhilForks
 
 REPO = Path(__file__).resolve().parents[1]
 PAGES = sorted([REPO / "README.md", REPO / "drivers" / "README.md", *(REPO / "docs").glob("*.md")])
@@ -108,11 +118,15 @@ class Check:
     expects: tuple[Expect, ...]
     slow: bool
 
-    def argv(self) -> list[str]:
+    def args(self) -> list[str]:
+        """The command's arguments after ``dobhil``."""
         words = shlex.split(self.command)
         if words[:1] != ["dobhil"]:
             raise CheckError(f"{self.where}: a check runs dobhil only, got {self.command!r}")
-        return [sys.executable, "-m", "dobhil", *words[1:]]
+        return words[1:]
+
+    def argv(self) -> list[str]:
+        return [sys.executable, "-m", "dobhil", *self.args()]
 
     @property
     def where(self) -> str:
@@ -225,10 +239,21 @@ def verify(check: Check, ran: Ran) -> None:
         raise CheckError(f"{check.where}: {check.command}:\n  " + "\n  ".join(failed))
 
 
-def run(check: Check, cwd: Path) -> Ran:
-    env = {**os.environ, "COLUMNS": "200"}
+#: the environment of every command: a wide terminal, so that no text is wrapped
+ENV = {**os.environ, "COLUMNS": "200"}
+
+
+def run(check: Check, cwd: Path, forks: DobhilForks) -> Ran:
+    """``check``'s command as ``python -m dobhil`` in ``cwd``, forked from ``forks``' server."""
     start = time.perf_counter()
-    proc = subprocess.run(check.argv(), cwd=cwd, capture_output=True, text=True, env=env,
+    done = forks.run(check.args(), cwd, timeout=COMMAND_TIMEOUT)
+    return Ran(done.returncode, done.stdout, done.stderr, time.perf_counter() - start)
+
+
+def run_process(check: Check, cwd: Path) -> Ran:
+    """``check``'s command in a new ``python -m dobhil`` process."""
+    start = time.perf_counter()
+    proc = subprocess.run(check.argv(), cwd=cwd, capture_output=True, text=True, env=ENV,
                           timeout=COMMAND_TIMEOUT, check=False)
     return Ran(proc.returncode, proc.stdout, proc.stderr, time.perf_counter() - start)
 
@@ -254,18 +279,31 @@ def test_the_figures_of_a_page_are_what_its_commands_give(page: Path, tmp_path: 
         pytest.skip("only slow checks on this page: set DOBHIL_SLOW=1")
     done: dict[str, Ran] = {}
     failures = []
-    for check in checks:
-        if check.command not in done:
-            done[check.command] = run(check, tmp_path)
-        try:
-            verify(check, done[check.command])
-        except CheckError as exc:
-            failures.append(str(exc))
+    with DobhilForks(ENV) as forks:
+        for check in checks:
+            if check.command not in done:
+                done[check.command] = run(check, tmp_path, forks)
+            try:
+                verify(check, done[check.command])
+            except CheckError as exc:
+                failures.append(str(exc))
     times = ", ".join(f"{c.split()[1]} {r.seconds:.1f} s" for c, r in done.items())
     assert not failures, "\n".join(failures) + f"\n(commands: {times})"
 
 
 # -- the mechanism itself ---------------------------------------------------------
+
+
+@pytest.mark.parametrize("command", ["dobhil analyze demo --json", "dobhil analyze no-such-config --json"])
+def test_a_forked_command_answers_as_a_new_process(command: str, tmp_path: Path) -> None:
+    """The pages' commands run forked from one server (tests/dobhil_forks.py): the same exit
+    code, output and error text as a new ``python -m dobhil`` process gives."""
+    check = Check("x.md", 1, command, (), False)
+    with DobhilForks(ENV) as forks:
+        forked = run(check, tmp_path, forks)
+    alone = run_process(check, tmp_path)
+    assert (forked.code, forked.stdout, forked.stderr) == (alone.code, alone.stdout, alone.stderr)
+    assert forked.stdout or forked.stderr
 
 
 def _check(body: str) -> Check:
