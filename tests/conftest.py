@@ -2,7 +2,8 @@
 module's in-process Dask cluster (``dask_client``) for the tests that run work on Dask; no
 wall-clock deadline on hypothesis' examples; the tests of ``tests/socketcan`` run in the kernel
 guest (tools/canvm/pytest_canvm.py); the tests listed in ``tests/slow-tests.txt`` marked ``slow``
-(``pytest -m "not slow"``: the edit loop's run)."""
+(``pytest -m "not slow"``: the edit loop's run); ``python -m dobhil`` forked from one server
+(``dobhil_forks``)."""
 
 from __future__ import annotations
 
@@ -20,6 +21,7 @@ from typing import Any
 
 import can
 import pytest
+from dobhil_forks import DobhilForks
 from hypothesis import settings
 from slow_list import SLOW_LIST, is_listed, slow_entries
 from threadpoolctl import threadpool_limits
@@ -133,3 +135,13 @@ def dask_client() -> Iterator[Any]:
     from dobhil.cluster import open_client
     with open_client(workers=2, processes=False) as client:
         yield client
+
+
+@pytest.fixture(scope="session")
+def dobhil_forks() -> Iterator[DobhilForks]:
+    """``python -m dobhil`` as a process of its own, forked from a server that imported dobhil
+    once per test process (tests/dobhil_forks.py: a new process' imports are most of a bad
+    input's CPU). For the tests of what a command prints and exits with; a test of start-up
+    itself (a first import's warnings, a signal during start-up) starts a new interpreter."""
+    with DobhilForks() as forks:
+        yield forks

@@ -28,9 +28,11 @@ import json
 import os
 import runpy
 import selectors
+import shutil
 import signal
 import subprocess
 import sys
+import tempfile
 import threading
 import traceback
 from collections.abc import Callable
@@ -54,9 +56,11 @@ class Done:
 
 
 class DobhilForks:
-    """The server process, started with ``env``; :meth:`run` one command at a time."""
+    """The server process, started with ``env`` (this process' when None); :meth:`run` one
+    command at a time."""
 
-    def __init__(self, env: dict[str, str]) -> None:
+    def __init__(self, env: dict[str, str] | None = None) -> None:
+        self._files = Path(tempfile.mkdtemp(prefix="dobhil-forks-"))
         self._proc = subprocess.Popen([sys.executable, __file__], stdin=subprocess.PIPE,
                                       stdout=subprocess.PIPE, env=env, text=True,
                                       start_new_session=True)
@@ -64,7 +68,7 @@ class DobhilForks:
     def run(self, args: list[str], cwd: Path, timeout: float) -> Done:
         """``python -m dobhil *args`` in ``cwd``; TimeoutError (the server and its child
         killed) when it takes over ``timeout`` seconds."""
-        out, err = cwd / ".dobhil-fork-stdout", cwd / ".dobhil-fork-stderr"
+        out, err = self._files / "stdout", self._files / "stderr"
         assert self._proc.stdin is not None and self._proc.stdout is not None
         request = {"args": args, "cwd": str(cwd), "stdout": str(out), "stderr": str(err)}
         self._proc.stdin.write(json.dumps(request) + "\n")
@@ -90,6 +94,7 @@ class DobhilForks:
         for pipe in (self._proc.stdin, self._proc.stdout):
             if pipe is not None:
                 pipe.close()
+        shutil.rmtree(self._files, ignore_errors=True)
 
     def __enter__(self) -> DobhilForks:
         return self
@@ -143,6 +148,9 @@ def _child(request: dict[str, object]) -> None:
     except BaseException:
         traceback.print_exc()
     finally:
+        # an interpreter's exit: wait for non-daemon threads, then the exit handlers (as
+        # multiprocessing's forked child does, multiprocessing/process.py _bootstrap)
+        threading._shutdown()  # type: ignore[attr-defined]
         atexit._run_exitfuncs()
         for stream in (sys.stdout, sys.stderr):
             try:

@@ -7,12 +7,11 @@ cannot hold, in ``run``, ``check`` and ``analyze`` (which reads the EDS through 
 from __future__ import annotations
 
 import re
-import subprocess
-import sys
 from pathlib import Path
 
 import can
 import pytest
+from dobhil_forks import DobhilForks
 import yaml
 
 from dobhil.cli.main import main
@@ -119,12 +118,12 @@ def test_a_whole_resolution_still_runs(tmp_path: Path, capsys: pytest.CaptureFix
 
 
 @pytest.mark.parametrize("command", COMMANDS)
-def test_a_file_that_is_not_an_eds_is_one_line_as_a_process(tmp_path: Path, command: str) -> None:
+def test_a_file_that_is_not_an_eds_is_one_line_as_a_process(tmp_path: Path, command: str,
+                                                            dobhil_forks: DobhilForks) -> None:
     """As a user meets it: a process, its stderr one line, exit 2, no traceback."""
     config = write_setup(tmp_path, EDS_CASES["not INI"])
     argv = [part.format(config=config) for part in COMMANDS[command]]
-    done = subprocess.run([sys.executable, "-m", "dobhil", *argv], capture_output=True, text=True, timeout=120,
-                          check=False)
+    done = dobhil_forks.run(argv, tmp_path, timeout=120)
     assert done.returncode == EXIT_USAGE, done.stderr
     assert done.stderr.count("\n") == 1 and "Traceback" not in done.stderr
     assert re.search(EDS_SAYS["not INI"], done.stderr), done.stderr

@@ -8,12 +8,11 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import subprocess
-import sys
 from pathlib import Path
 from typing import Any
 
 import pytest
+from dobhil_forks import DobhilForks
 import yaml
 from hypothesis import given, settings
 from hypothesis import strategies as st
@@ -100,15 +99,13 @@ HOSTILE: list[tuple[str, Any, list[str]]] = [
 
 
 @pytest.mark.parametrize(("key", "value", "args"), HOSTILE, ids=[h[0] for h in HOSTILE])
-def test_hostile_profile_values_are_one_line_and_exit_2(tmp_path: Path, key: str, value: Any,
-                                                        args: list[str]) -> None:
+def test_hostile_profile_values_are_one_line_and_exit_2(tmp_path: Path, key: str, value: Any, args: list[str],
+                                                        dobhil_forks: DobhilForks) -> None:
     path = tmp_path / "hostile.yaml"
     path.write_text(yaml.safe_dump({**SHIPPED, "bus": {}, key: value}), encoding="utf-8")
     command, *rest = args
-    proc = subprocess.run(
-        [sys.executable, "-m", "dobhil", command, str(REPO / "configs" / "demo.yaml"),
-         "--set", f"drive.profile={path}", *rest],
-        capture_output=True, text=True, timeout=120, cwd=REPO)
+    proc = dobhil_forks.run([command, str(REPO / "configs" / "demo.yaml"), "--set", f"drive.profile={path}", *rest],
+                            REPO, timeout=120)
     assert proc.returncode == 2, (proc.stdout, proc.stderr)
     lines = proc.stderr.splitlines()
     assert len(lines) == 1 and proc.stdout == "", proc.stderr

@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import dataclasses
 import pickle
-import subprocess
 import sys
 from collections.abc import Iterator
 from pathlib import Path
@@ -16,6 +15,7 @@ from typing import Any
 
 import can
 import pytest
+from dobhil_forks import DobhilForks
 import yaml
 from hypothesis import given, settings
 from hypothesis import strategies as st
@@ -259,15 +259,14 @@ def test_an_old_key_name_is_refused_naming_the_new_one(old: str, new: str, tmp_p
 
 
 @pytest.mark.parametrize("command", ["run", "check"])
-def test_the_cli_refuses_an_old_name_profile_in_one_line(command: str, tmp_path: Path) -> None:
+def test_the_cli_refuses_an_old_name_profile_in_one_line(command: str, tmp_path: Path,
+                                                         dobhil_forks: DobhilForks) -> None:
     data = {**{k: v for k, v in SHIPPED.items() if k != "feedback_period"}, "encoder_msg_rate": 0.001, "bus": {}}
     path = tmp_path / "old.yaml"
     path.write_text(yaml.safe_dump(data), encoding="utf-8")
     rest = ["--emulate", "--lockstep"] if command == "run" else ["--bus", "virtual:dobhil-old-name"]
-    proc = subprocess.run(
-        [sys.executable, "-m", "dobhil", command, str(REPO / "configs" / "demo.yaml"),
-         "--set", f"drive.profile={path}", *rest],
-        capture_output=True, text=True, timeout=120, cwd=REPO)
+    proc = dobhil_forks.run([command, str(REPO / "configs" / "demo.yaml"), "--set", f"drive.profile={path}", *rest],
+                            REPO, timeout=120)
     assert proc.returncode == 2, (proc.stdout, proc.stderr)
     assert proc.stdout == ""
     assert proc.stderr.splitlines() == [

@@ -12,6 +12,7 @@ from pathlib import Path
 
 import jsonschema
 import pytest
+from dobhil_forks import DobhilForks, Done
 from live_client import LiveClient, counts_at_least
 from mcap.reader import make_reader
 
@@ -22,15 +23,16 @@ REPO = Path(__file__).resolve().parents[2]
 TOPICS = ("/controller", "/can/rx")
 
 
-def _dobhil(*args: str, timeout: float = 180) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-m", "dobhil", *args], capture_output=True, text=True, timeout=timeout)
+def _dobhil(forks: DobhilForks, *args: str, timeout: float = 180) -> Done:
+    """``dobhil ARGS`` run to its end as a process (forked: tests/dobhil_forks.py)."""
+    return forks.run(list(args), Path.cwd(), timeout=timeout)
 
 
 @pytest.fixture(scope="module")
-def recorded(tmp_path_factory: pytest.TempPathFactory) -> Path:
+def recorded(tmp_path_factory: pytest.TempPathFactory, dobhil_forks: DobhilForks) -> Path:
     path = tmp_path_factory.mktemp("serve") / "run.mcap"
-    proc = _dobhil("run", str(REPO / "configs" / "demo.yaml"), "--emulate", "--lockstep", "--duration", "0.5",
-                   "--log", str(path))
+    proc = _dobhil(dobhil_forks, "run", str(REPO / "configs" / "demo.yaml"), "--emulate", "--lockstep",
+                   "--duration", "0.5", "--log", str(path))
     assert proc.returncode == 0, proc.stderr
     return path
 
@@ -104,21 +106,22 @@ def test_serve_delivers_recorded_topics_byte_for_byte(recorded: Path, serving: s
         (["RUN", "--live", "70000"], "out of range"),
     ],
 )
-def test_bad_input_is_one_line_exit_2(tmp_path: Path, recorded: Path, args: list[str], what: str) -> None:
+def test_bad_input_is_one_line_exit_2(tmp_path: Path, recorded: Path, args: list[str], what: str,
+                                      dobhil_forks: DobhilForks) -> None:
     (tmp_path / "not.mcap").write_text("hello")
     args = [str(recorded) if a == "RUN" else str(tmp_path / a) if a.endswith(".mcap") else a for a in args]
-    proc = _dobhil("log", "serve", *args, "--live", "127.0.0.1:0") if "--live" not in args else _dobhil(
-        "log", "serve", *args)
+    live = [] if "--live" in args else ["--live", "127.0.0.1:0"]
+    proc = _dobhil(dobhil_forks, "log", "serve", *args, *live)
     assert proc.returncode == 2, (proc.stdout, proc.stderr)
     assert proc.stderr.count("\n") == 1 and what in proc.stderr and "Traceback" not in proc.stderr
     assert proc.stdout == ""
 
 
-def test_truncated_file_is_one_line_exit_2(tmp_path: Path, recorded: Path) -> None:
+def test_truncated_file_is_one_line_exit_2(tmp_path: Path, recorded: Path, dobhil_forks: DobhilForks) -> None:
     cut = tmp_path / "cut.mcap"
     data = recorded.read_bytes()
     cut.write_bytes(data[: len(data) // 2])
-    proc = _dobhil("log", "serve", str(cut), "--live", "127.0.0.1:0")
+    proc = _dobhil(dobhil_forks, "log", "serve", str(cut), "--live", "127.0.0.1:0")
     assert proc.returncode == 2 and proc.stderr.count("\n") == 1 and "truncated" in proc.stderr, proc.stderr
 
 
