@@ -35,7 +35,7 @@ import sys
 import tempfile
 import threading
 import traceback
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from types import TracebackType
@@ -65,12 +65,14 @@ class DobhilForks:
                                       stdout=subprocess.PIPE, env=env, text=True,
                                       start_new_session=True)
 
-    def run(self, args: list[str], cwd: Path, timeout: float) -> Done:
-        """``python -m dobhil *args`` in ``cwd``; TimeoutError (the server and its child
-        killed) when it takes over ``timeout`` seconds."""
+    def run(self, args: list[str], cwd: Path, timeout: float, env: Mapping[str, str] | None = None) -> Done:
+        """``python -m dobhil *args`` in ``cwd``, with the environment ``env`` (the server's
+        when None; read by the command, not by the imports the server made); TimeoutError
+        (the server and its child killed) when it takes over ``timeout`` seconds."""
         out, err = self._files / "stdout", self._files / "stderr"
         assert self._proc.stdin is not None and self._proc.stdout is not None
-        request = {"args": args, "cwd": str(cwd), "stdout": str(out), "stderr": str(err)}
+        request = {"args": args, "cwd": str(cwd), "stdout": str(out), "stderr": str(err),
+                   "env": None if env is None else dict(env)}
         self._proc.stdin.write(json.dumps(request) + "\n")
         self._proc.stdin.flush()
         with selectors.DefaultSelector() as sel:
@@ -132,6 +134,9 @@ def _child(request: dict[str, object]) -> None:
     code = 1
     try:
         os.chdir(str(request["cwd"]))
+        if isinstance(request["env"], dict):
+            os.environ.clear()
+            os.environ.update(request["env"])
         for fd, path, flags in ((0, os.devnull, os.O_RDONLY), (1, request["stdout"], os.O_WRONLY | os.O_CREAT),
                                 (2, request["stderr"], os.O_WRONLY | os.O_CREAT)):
             target = os.open(str(path), flags | (os.O_TRUNC if fd else 0), 0o644)

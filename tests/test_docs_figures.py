@@ -21,9 +21,10 @@ Every command must also be shown on the page (in a code block or in backticks), 
 words but for ``--json`` / ``--summary-json``: the figure is reproducible by a reader, not only
 by this test. The commands of one page run in order in one temporary directory, from the
 package's shipped files (``dobhil`` is ``python -m dobhil`` of the installed package), each
-command once, each in a process forked from one that imported dobhil once per page
-(tests/dobhil_forks.py; a test below checks a forked command answers as a new process does).
-A key the JSON does not have fails the check, as does a figure outside its tolerance.
+command once, each in a process forked from one that imported dobhil once per test process
+(tests/dobhil_forks.py, the ``dobhil_forks`` fixture; a test below checks a forked command
+answers as a new process does). A key the JSON does not have fails the check, as does a
+figure outside its tolerance.
 
 Figures of timing and of this machine (bench keys, CI and wall times) cannot be asserted: the
 pages give each with the command that measures it, and carry no check.
@@ -246,7 +247,7 @@ ENV = {**os.environ, "COLUMNS": "200"}
 def run(check: Check, cwd: Path, forks: DobhilForks) -> Ran:
     """``check``'s command as ``python -m dobhil`` in ``cwd``, forked from ``forks``' server."""
     start = time.perf_counter()
-    done = forks.run(check.args(), cwd, timeout=COMMAND_TIMEOUT)
+    done = forks.run(check.args(), cwd, timeout=COMMAND_TIMEOUT, env=ENV)
     return Ran(done.returncode, done.stdout, done.stderr, time.perf_counter() - start)
 
 
@@ -273,20 +274,20 @@ def test_every_check_parses_and_its_command_is_on_the_page() -> None:
 
 @pytest.mark.timeout(3 * COMMAND_TIMEOUT)
 @pytest.mark.parametrize("page", CHECKED, ids=lambda p: p.relative_to(REPO).as_posix())
-def test_the_figures_of_a_page_are_what_its_commands_give(page: Path, tmp_path: Path) -> None:
+def test_the_figures_of_a_page_are_what_its_commands_give(page: Path, tmp_path: Path,
+                                                          dobhil_forks: DobhilForks) -> None:
     checks = [c for c in parse_page(page) if SLOW or not c.slow]
     if not checks:
         pytest.skip("only slow checks on this page: set DOBHIL_SLOW=1")
     done: dict[str, Ran] = {}
     failures = []
-    with DobhilForks(ENV) as forks:
-        for check in checks:
-            if check.command not in done:
-                done[check.command] = run(check, tmp_path, forks)
-            try:
-                verify(check, done[check.command])
-            except CheckError as exc:
-                failures.append(str(exc))
+    for check in checks:
+        if check.command not in done:
+            done[check.command] = run(check, tmp_path, dobhil_forks)
+        try:
+            verify(check, done[check.command])
+        except CheckError as exc:
+            failures.append(str(exc))
     times = ", ".join(f"{c.split()[1]} {r.seconds:.1f} s" for c, r in done.items())
     assert not failures, "\n".join(failures) + f"\n(commands: {times})"
 
@@ -295,12 +296,12 @@ def test_the_figures_of_a_page_are_what_its_commands_give(page: Path, tmp_path: 
 
 
 @pytest.mark.parametrize("command", ["dobhil analyze demo --json", "dobhil analyze no-such-config --json"])
-def test_a_forked_command_answers_as_a_new_process(command: str, tmp_path: Path) -> None:
+def test_a_forked_command_answers_as_a_new_process(command: str, tmp_path: Path,
+                                                   dobhil_forks: DobhilForks) -> None:
     """The pages' commands run forked from one server (tests/dobhil_forks.py): the same exit
     code, output and error text as a new ``python -m dobhil`` process gives."""
     check = Check("x.md", 1, command, (), False)
-    with DobhilForks(ENV) as forks:
-        forked = run(check, tmp_path, forks)
+    forked = run(check, tmp_path, dobhil_forks)
     alone = run_process(check, tmp_path)
     assert (forked.code, forked.stdout, forked.stderr) == (alone.code, alone.stdout, alone.stderr)
     assert forked.stdout or forked.stderr
