@@ -57,18 +57,24 @@ class Done:
 
 class DobhilForks:
     """The server process, started with ``env`` (this process' when None); :meth:`run` one
-    command at a time."""
+    command at a time. A server killed by a command's time-out is started again by the next
+    command (one fixture serves a whole session)."""
 
     def __init__(self, env: dict[str, str] | None = None) -> None:
+        self._env = env
         self._files = Path(tempfile.mkdtemp(prefix="dobhil-forks-"))
-        self._proc = subprocess.Popen([sys.executable, __file__], stdin=subprocess.PIPE,
-                                      stdout=subprocess.PIPE, env=env, text=True,
-                                      start_new_session=True)
+        self._proc = self._start()
+
+    def _start(self) -> subprocess.Popen[str]:
+        return subprocess.Popen([sys.executable, __file__], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                                env=self._env, text=True, start_new_session=True)
 
     def run(self, args: list[str], cwd: Path, timeout: float, env: Mapping[str, str] | None = None) -> Done:
         """``python -m dobhil *args`` in ``cwd``, with the environment ``env`` (the server's
         when None; read by the command, not by the imports the server made); TimeoutError
         (the server and its child killed) when it takes over ``timeout`` seconds."""
+        if self._proc.poll() is not None:
+            self._proc = self._start()
         out, err = self._files / "stdout", self._files / "stderr"
         assert self._proc.stdin is not None and self._proc.stdout is not None
         request = {"args": args, "cwd": str(cwd), "stdout": str(out), "stderr": str(err),
@@ -78,7 +84,7 @@ class DobhilForks:
         with selectors.DefaultSelector() as sel:
             sel.register(self._proc.stdout, selectors.EVENT_READ)
             if not sel.select(timeout):
-                self.close()
+                self._stop()
                 raise TimeoutError(f"dobhil {' '.join(args)}: no exit in {timeout} s")
         line = self._proc.stdout.readline()
         if not line:
@@ -89,13 +95,17 @@ class DobhilForks:
             out.unlink()
             err.unlink()
 
-    def close(self) -> None:
+    def _stop(self) -> None:
+        """The server and the command it runs killed (its process group)."""
         if self._proc.poll() is None:
             os.killpg(self._proc.pid, signal.SIGKILL)
         self._proc.wait()
         for pipe in (self._proc.stdin, self._proc.stdout):
             if pipe is not None:
                 pipe.close()
+
+    def close(self) -> None:
+        self._stop()
         shutil.rmtree(self._files, ignore_errors=True)
 
     def __enter__(self) -> DobhilForks:

@@ -307,6 +307,17 @@ def test_a_forked_command_answers_as_a_new_process(command: str, tmp_path: Path,
     assert forked.stdout or forked.stderr
 
 
+def test_a_command_past_its_time_out_is_killed_and_the_next_one_runs(tmp_path: Path) -> None:
+    """A time-out kills the server and the command it forked; the next command starts a new
+    server (the session's fixture outlives a page that hung). A time-out of 0 s: no command
+    answers before the reply is first looked for."""
+    with DobhilForks() as forks:
+        with pytest.raises(TimeoutError, match="no exit in 0 s"):
+            forks.run(["run", "demo", "--emulate", "--lockstep", "--duration", "600"], tmp_path, timeout=0)
+        done = forks.run(["--version"], tmp_path, timeout=COMMAND_TIMEOUT)
+    assert done.returncode == 0 and done.stdout.startswith("dobhil "), done
+
+
 def _check(body: str) -> Check:
     found = parse_text(f"<!-- check: {body} -->", "x.md")
     assert len(found) == 1
