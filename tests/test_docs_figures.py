@@ -45,11 +45,11 @@ DOBHIL_SLOW=1 the page took 315 s at load 6.5.
 
 Each command was a new ``python -m dobhil`` process, and importing dobhil, scipy,
 python-control and matplotlib was most of a command's CPU: forked from one process that has
-imported them (tests/dobhil_forks.py), the file took 51.8 s of CPU instead of 116.0 s
-(user + system, ``/usr/bin/time -v pytest -n 0 -p no:cacheprovider
-tests/test_docs_figures.py``, measured under load, load avg 3.5-4.1; the 51.8 s include the
-6 s of the test that runs a command both ways), README.md's eight analyses 5.6 s instead of
-45 s of wall time, docs/identify.md 48 s instead of 118 s.
+imported them (tests/dobhil_forks.py), the file took 42.9 s of CPU instead of 73.9 s (user +
+system, ``/usr/bin/time pytest -n 0 -p no:cacheprovider tests/test_docs_figures.py``, the
+two versions one after the other, measured under load, load avg 1.4-2.2; the 42.9 s include
+the tests of the forking), docs/identify.md 35 s of wall time instead of 53 s, README.md's
+eight analyses 3.9 s instead of 12.4 s.
 """
 
 from __future__ import annotations
