@@ -89,7 +89,7 @@ def _lockstep(closers: list[Callable[[], None]]) -> LockstepBus:
 
 
 def _recording(inner: can.BusABC) -> RecordingBus:
-    log: Any = SimpleNamespace(frame=lambda topic, msg: None)
+    log: Any = SimpleNamespace(received=lambda topic, msg: None, sent=lambda topic, msg: None)
     return RecordingBus(inner, log)
 
 

@@ -54,7 +54,7 @@ class RecordingBus(ClockedBus):
 
     def __init__(self, inner: can.BusABC, log: RunLog, lane: int = 0, **kwargs: Any) -> None:
         self._inner = inner
-        self._frame = log.frame
+        self._received, self._sent = log.received, log.sent
         self._rx, self._tx = lane_kind(_RX, lane), lane_kind(_TX, lane)
         self._clock = bus_clock(inner)
         self.channel_info = f"recording {inner.channel_info}"
@@ -68,7 +68,18 @@ class RecordingBus(ClockedBus):
 
     def send(self, msg: can.Message, timeout: float | None = None) -> None:
         self._inner.send(msg, timeout)
-        self._frame(self._tx, msg)
+        self._sent(self._tx, msg)
+
+    def recv(self, timeout: float | None = None) -> can.Message | None:
+        """The next frame that passes the filters within ``timeout`` (:class:`ClockedBus`),
+        recorded. Without filters (the control path) the wrapped bus's ``recv`` is all the
+        wait: the loop thread pays one call and the record, no deadline arithmetic."""
+        if self.filtering:
+            return self._recv_internal(timeout)[0]
+        msg = self._inner.recv(timeout)
+        if msg is not None:
+            self._received(self._rx, msg)
+        return msg
 
     def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
         deadline = None if timeout is None else self._clock() + timeout
@@ -76,7 +87,7 @@ class RecordingBus(ClockedBus):
         while msg is not None and not self.passes(msg):
             msg = self._inner.recv(None if deadline is None else max(0.0, deadline - self._clock()))
         if msg is not None:
-            self._frame(self._rx, msg)
+            self._received(self._rx, msg)
         return msg, True
 
     @property
@@ -227,32 +238,55 @@ class RunLog(LaneSink):
 
     def frame(self, topic: int, msg: Any) -> None:
         """A frame (``topic``: ``/can/rx`` or ``/can/tx``'s kind in its bus's lane) as it is
-        now (the drive refills its torque message; python-can hands out a new message per
-        receive): ``schemas.can_frame_record`` spelled out for speed (a
-        ``FrameRecord`` as a plain tuple in its field order).
-        A foreign frame beyond ``FOREIGN_CAP`` is shed here (counted): a flood costs the
-        loop a count, not a record. Never raises into the bus call that recorded it.
+        now: :meth:`received` or :meth:`sent` by the topic."""
+        if topic & LANE_MASK == _RX:
+            self.received(topic, msg)
+        else:
+            self.sent(topic, msg)
 
-        Its bus timestamp: a sent frame's is the log clock now, just after the send (its
-        message carries none, 0.0), which in real time is the wall clock that received
-        frames are stamped on (SocketCAN, virtual); a received frame keeps the interface's.
-        In lockstep (a simulated log clock) both directions get the simulated time, so a
-        CAN export of the run has one time base."""
+    def received(self, topic: int, msg: Any) -> None:
+        """A received frame (``topic``: ``/can/rx``'s kind in its bus's lane): python-can
+        hands out a new message per receive, so its data is kept as it is (not copied).
+        ``schemas.can_frame_record`` spelled out for speed (a ``FrameRecord`` as a plain
+        tuple in its field order). A foreign frame beyond ``FOREIGN_CAP`` is shed here
+        (counted): a flood costs the loop a count, not a record. Never raises into the bus
+        call that recorded it.
+
+        Its bus timestamp: a received frame keeps the interface's, which in real time is the
+        wall clock the log clock runs on (SocketCAN, virtual); in lockstep (a simulated log
+        clock) it gets the simulated time, as a sent frame does (:meth:`sent`), so a CAN
+        export of the run has one time base."""
         try:
-            rx = topic & LANE_MASK == _RX
-            if rx and (own := self._own.get(topic)) and msg.arbitration_id not in own:
+            own = self._own.get(topic) if self._own else None
+            if own and msg.arbitration_id not in own:
                 self._foreign_frame(topic, msg)
                 return
             records, t = self.records, self.clock_ns()
-            stamp = msg.timestamp if rx and not self.simulated else t / 1e9
             records.append((topic, t, msg.arbitration_id, msg.is_extended_id, msg.is_remote_frame,
                             msg.is_error_frame, msg.is_fd, msg.bitrate_switch, msg.error_state_indicator, msg.dlc,
-                            msg.data if rx else bytes(msg.data), stamp, msg.channel))
+                            msg.data, t / 1e9 if self.simulated else msg.timestamp, msg.channel))
             if len(records) >= 4 * BATCH_RECORDS:  # no cycle for a while: enable, preflight
                 self.flush()
         except RecorderError as exc:
             self._failure = exc  # the next cycle raises it
         except Exception as exc:  # not a python-can message
+            self._failure = self.writer.refuse(f"cannot encode a CAN frame: {exception_line(exc)}")
+
+    def sent(self, topic: int, msg: Any) -> None:
+        """A sent frame (``topic``: ``/can/tx``'s kind in its bus's lane), its data copied (the
+        drive refills its torque message), stamped with the log clock now, just after the
+        send (its message carries none, 0.0): in real time the wall clock received frames
+        are stamped on, in lockstep the simulated time. As :meth:`received` otherwise."""
+        try:
+            records, t = self.records, self.clock_ns()
+            records.append((topic, t, msg.arbitration_id, msg.is_extended_id, msg.is_remote_frame,
+                            msg.is_error_frame, msg.is_fd, msg.bitrate_switch, msg.error_state_indicator, msg.dlc,
+                            bytes(msg.data), t / 1e9, msg.channel))
+            if len(records) >= 4 * BATCH_RECORDS:
+                self.flush()
+        except RecorderError as exc:
+            self._failure = exc
+        except Exception as exc:
             self._failure = self.writer.refuse(f"cannot encode a CAN frame: {exception_line(exc)}")
 
     def _foreign_frame(self, topic: int, msg: Any) -> None:

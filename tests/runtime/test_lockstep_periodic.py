@@ -165,7 +165,9 @@ def test_the_recording_wrapper_forwards_a_native_periodic_send_and_records_its_e
     from dobhil.recording.runlog import RecordingBus
     from dobhil.recording.schemas import Topic
     seen: list[tuple[int, int]] = []
-    log = SimpleNamespace(frame=lambda topic, msg: seen.append((topic, msg.arbitration_id)))
+    def frame(topic: int, msg: can.Message) -> None:
+        seen.append((topic, msg.arbitration_id))
+    log = SimpleNamespace(received=frame, sent=frame)   # RunLog's two frame hooks
     with _rig("lockstep-periodic-8") as (lock, emu):
         with RecordingBus(lock, log) as tap:  # type: ignore[arg-type]
             assert native_periodic(tap)
