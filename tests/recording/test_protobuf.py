@@ -57,6 +57,31 @@ def test_can_frame_message_is_these_bytes() -> None:
                           "62" "02" "7478" "6a" "00")
 
 
+_FLAG = st.one_of(st.booleans(), st.integers(-2, 2), st.none(), st.sampled_from(["", "x", b"", (0,)]))
+_DATA = st.one_of(st.binary(max_size=200), st.binary(max_size=64).map(bytearray))
+_CHANNEL = st.one_of(st.none(), st.integers(-3, 3), st.sampled_from([True, False, 1.0, "", "vcan0", "can1", b"x"]),
+                     st.text(max_size=20), st.just([1, 2]))
+
+
+@pytest.mark.parametrize("topic", [Topic.CAN_RX, Topic.CAN_TX], ids=lambda t: t.name.lower())
+@settings(max_examples=200, deadline=None)
+@given(records=st.lists(st.tuples(st.integers(0, 2 ** 29 - 1), _FLAG, _FLAG, _FLAG, _FLAG, _FLAG, _FLAG,
+                                  st.integers(0, 64), _DATA,
+                                  st.one_of(st.none(), st.floats(allow_nan=True), st.just(0.0)), _CHANNEL),
+                        min_size=1, max_size=8))
+def test_the_frame_encoder_writes_what_the_generic_path_writes(topic: Topic, records: list[tuple[Any, ...]]) -> None:
+    """frame_packer's one step is byte for byte the table's fields packed field by field,
+    whatever the flags' types (truthiness), the data's type and the channel (one encoder over
+    several frames: its per-channel fields must follow the channel, 1 and True and 1.0 apart)."""
+    from dobhil.recording.encodings.protobuf import frame_packer, packer
+    from dobhil.recording.schemas import can_frame_fields
+    spec = TOPIC_SPECS[topic]
+    fast, slow, fields = frame_packer(spec), packer(spec), can_frame_fields(topic)
+    assert fast is not None and PB.encoder(spec, None) is not None
+    for values in records:
+        assert fast(values) == slow(fields(values)), values
+
+
 def test_the_schema_is_a_file_descriptor_set_foxglove_takes() -> None:
     """Foxglove and mcap-protobuf-support look the schema's name up as a message's full
     name in the FileDescriptorSet; the fields are the table's, numbered from 1, and the
