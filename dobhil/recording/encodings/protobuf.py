@@ -188,20 +188,19 @@ def frame_packer(spec: TopicSpec) -> Encoder | None:
     tails: dict[tuple[type, Any], bytes] = {}
 
     def tail(channel: Any) -> bytes:
-        text = _lds(direction_tag, direction) + _lds(channel_tag, "" if channel is None else str(channel))
-        if len(tails) < _CHANNELS:
-            try:
-                tails[(type(channel), channel)] = text
-            except TypeError:   # an unhashable channel: encoded each time
-                pass
-        return text
+        return _lds(direction_tag, direction) + _lds(channel_tag, "" if channel is None else str(channel))
 
     def encode(values: Sequence[Any]) -> bytes:
         arb, ext, rtr, err, fd, brs, esi, dlc, data, stamp, channel = values
         data = bytes(data)
+        key = (type(channel), channel)
         try:
-            end = tails.get((type(channel), channel)) or tail(channel)
-        except TypeError:
+            end = tails[key]
+        except KeyError:
+            end = tail(channel)
+            if len(tails) < _CHANNELS:
+                tails[key] = end
+        except TypeError:   # an unhashable channel: encoded each time
             end = tail(channel)
         return (pack(t0, float(stamp or 0.0), t1, arb, t2, ext, t3, rtr, t4, err, t5, fd, t6, brs, t7, esi, t8, dlc)
                 + _ld(data_tag, data) + _lds(hex_tag, data.hex()) + end)
