@@ -23,7 +23,7 @@ import can
 import pytest
 from dobhil_forks import DobhilForks
 from hypothesis import settings
-from slow_list import SLOW_LIST, is_listed, slow_entries
+from slow_list import SLOW_LIST, heaviest_first, is_listed, slow_entries, slow_seconds
 from threadpoolctl import threadpool_limits
 
 # Hypothesis fails an example that takes over 200 ms by default: a wall-clock assertion, which a
@@ -64,6 +64,10 @@ if signal.getsignal(signal.SIGINT) == signal.SIG_IGN:
     signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
+#: the kernel guest's tests (tools/canvm/pytest_canvm.py puts them first: they wait for the guest)
+GUEST_TESTS = "tests/socketcan/"
+
+
 def pytest_configure(config: pytest.Config) -> None:
     """The kernel guest's plugin, loaded by path: tools/ is not a package."""
     path = Path(__file__).resolve().parents[1] / "tools" / "canvm" / "pytest_canvm.py"
@@ -75,11 +79,19 @@ def pytest_configure(config: pytest.Config) -> None:
     config.pluginmanager.register(module.CanvmPlugin(config), "canvm")
 
 
+@pytest.hookimpl(trylast=True)   # after the guest's plugin has put its tests first
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
-    entries = slow_entries(SLOW_LIST.read_text(encoding="utf-8"))
+    """Mark the listed tests ``slow``; run the files with the most listed seconds first
+    (:func:`slow_list.heaviest_first`), the kernel guest's tests still ahead of all."""
+    text = SLOW_LIST.read_text(encoding="utf-8")
+    entries = slow_entries(text)
     for item in items:
         if is_listed(item.nodeid, entries):
             item.add_marker(pytest.mark.slow)
+    guest = [item for item in items if item.nodeid.startswith(GUEST_TESTS)]
+    host = [item for item in items if not item.nodeid.startswith(GUEST_TESTS)]
+    order = heaviest_first([item.nodeid for item in host], slow_seconds(text))
+    items[:] = guest + [host[i] for i in order]
 
 
 class _ShutdownWarnings(logging.Handler):

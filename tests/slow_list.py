@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import re
+from collections.abc import Mapping
 from pathlib import Path
 
 #: node ids (or a file, or a test without its parameters) of the tests ``-m "not slow"`` leaves
@@ -22,3 +24,39 @@ def is_listed(nodeid: str, entries: frozenset[str]) -> bool:
     base = nodeid.split("[", 1)[0]
     parts = base.split("::")
     return any("::".join(parts[:n]) in entries for n in range(1, len(parts) + 1))
+
+
+#: the seconds an entry's comment gives: the first number followed by "s" (``# 4 s``,
+#: ``# ~60 s (...)``, ``# a module set-up of 2 s, ...``)
+_SECONDS = re.compile(r"#\D*?~?(\d+(?:\.\d+)?) s\b")
+
+
+def slow_seconds(text: str) -> dict[str, float]:
+    """Each entry of ``tests/slow-tests.txt`` with the seconds its comment gives (entries
+    without a figure are left out)."""
+    out: dict[str, float] = {}
+    for line in text.splitlines():
+        entry = line.split("#", 1)[0].strip()
+        found = _SECONDS.search(line)
+        if entry and found:
+            out[entry] = float(found.group(1))
+    return out
+
+
+def heaviest_first(nodeids: list[str], seconds: Mapping[str, float]) -> list[int]:
+    """The order (indices into ``nodeids``) that runs the files with the most listed seconds
+    first, each file's tests together and in their own order (module-scoped set-ups stay
+    paid once per worker), files of equal weight in their given order.
+
+    Why: pytest-xdist's ``load`` scheduler hands tests out in collection order, a chunk to
+    each worker and then one or a few at a time; a file of 40 s collected last starts when the
+    other worker has nothing left and ends the run alone. Longest first is Graham's rule
+    (R. L. Graham, "Bounds on multiprocessing timing anomalies", SIAM J. Appl. Math. 17,
+    1969): the run ends within a third of the optimum, the longest job at worst at the
+    start, not the end."""
+    weight: dict[str, float] = {}
+    for entry, value in seconds.items():
+        path = entry.split("::", 1)[0]
+        weight[path] = weight.get(path, 0.0) + value
+    files = [nodeid.split("::", 1)[0] for nodeid in nodeids]
+    return sorted(range(len(nodeids)), key=lambda i: -weight.get(files[i], 0.0))

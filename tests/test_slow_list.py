@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from slow_list import SLOW_LIST, is_listed, slow_entries
+from slow_list import SLOW_LIST, heaviest_first, is_listed, slow_entries, slow_seconds
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -45,3 +45,40 @@ def test_entries_match_their_tests_only(nodeid: str, listed: bool) -> None:
     entries = slow_entries("# a comment\ntests/a.py::test_x  # 3 s\ntests/a.py::test_y[p]\n\ntests/b.py\n"
                            "tests/c.py::TestK\n")
     assert is_listed(nodeid, entries) is listed
+
+
+def test_every_listed_figure_is_read() -> None:
+    """Each entry's seconds reach the ordering: a figure the pattern misses would run a slow
+    file late (only the entries whose comment gives no number are left out)."""
+    text = SLOW_LIST.read_text(encoding="utf-8")
+    seconds = slow_seconds(text)
+    with_figure = [line.split("#", 1)[0].strip() for line in text.splitlines()
+                   if not line.startswith("#") and re.search(r"#.*\d s\b", line)]
+    assert sorted(seconds) == sorted(with_figure)
+    assert seconds["tests/identify/test_cli.py"] == 31.0            # "a module set-up of 31 s"
+    assert all(value > 0 for value in seconds.values())
+
+
+def test_heaviest_files_first_each_file_together_and_in_order() -> None:
+    ids = ["tests/a.py::t1", "tests/a.py::t2", "tests/b.py::t1", "tests/c.py::t1", "tests/c.py::t2",
+           "tests/d.py::t1"]
+    seconds = {"tests/a.py::t2": 1.0, "tests/c.py::t1": 2.0, "tests/c.py::t2[x]": 3.0,
+               "tests/d.py": 4.0}
+    order = [ids[i] for i in heaviest_first(ids, seconds)]
+    # c (5 s) before d (4 s) before a (1 s) before b (none); within a file, collection order
+    assert order == ["tests/c.py::t1", "tests/c.py::t2", "tests/d.py::t1", "tests/a.py::t1",
+                     "tests/a.py::t2", "tests/b.py::t1"]
+
+
+def test_this_run_is_in_that_order(request: pytest.FixtureRequest) -> None:
+    """The items of this very run (tests/conftest.py's hook): the guest's first, then the
+    host's files by listed weight, never heavier after lighter, each file in one piece."""
+    ids = [item.nodeid for item in request.session.items]
+    host = [nodeid for nodeid in ids if not nodeid.startswith("tests/socketcan/")]
+    assert ids[:len(ids) - len(host)] == [n for n in ids if n.startswith("tests/socketcan/")]
+    seconds = slow_seconds(SLOW_LIST.read_text(encoding="utf-8"))
+    files = [nodeid.split("::", 1)[0] for nodeid in host]
+    runs = [f for k, f in enumerate(files) if k == 0 or f != files[k - 1]]
+    assert len(runs) == len(set(runs)), "a file split in two"
+    weights = [sum(v for e, v in seconds.items() if e.split("::", 1)[0] == f) for f in runs]
+    assert weights == sorted(weights, reverse=True)
