@@ -18,10 +18,13 @@ import time
 from collections.abc import Callable, Iterable, Sequence
 from typing import Any, NamedTuple
 
+from websockets.exceptions import ConnectionClosed
 from websockets.sync.client import ClientConnection, connect
 
 SUBPROTOCOLS = ("foxglove.sdk.v1", "foxglove.websocket.v1")
 OP_MESSAGE_DATA = 0x01
+#: a closing client reads until the server has been quiet this long (seconds)
+_QUIET_S = 0.05
 _HEADER = struct.Struct("<BIQ")
 
 
@@ -65,6 +68,18 @@ class LiveClient:
         self.close()
 
     def close(self) -> None:
+        """Unsubscribe, read what is still on its way, then close. websockets stops reading
+        the socket while ``max_queue`` messages wait unread (its backpressure), and the
+        server's answer to the close frame queues behind them: a client that stopped reading
+        a busy stream waited out ``close_timeout`` (10 s) in ``close()`` (measured: 10.2-10.3 s
+        in three of four lockstep runs of tests/recording/test_live_run.py)."""
+        try:
+            if self._topics_by_subscription:
+                self.ws.send(json.dumps({"op": "unsubscribe", "subscriptionIds": list(self._topics_by_subscription)}))
+            while True:
+                self.ws.recv(timeout=_QUIET_S)
+        except (TimeoutError, ConnectionClosed):
+            pass
         self.ws.close()
 
     def _handle_text(self, text: str) -> None:
