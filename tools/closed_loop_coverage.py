@@ -10,7 +10,9 @@ Prints, per seed, each parameter's error, standard error and z = (estimate - tru
 standard error, then per parameter: how many intervals held the truth, the RMS and mean of z
 (1 and 0 for calibrated, unbiased errors), the median error and standard error. The delay's
 interval is the profile likelihood's, asymmetric: its standard error is the interval's width
-over 2 z, and "held" (the interval holds the truth) is the figure to read for it.
+over 2 z, and "held" (the interval holds the truth) is the figure to read for it. Those of J,
+K and D are taken on the log scale (dobhil/identify/closedloop.py, _interval), also
+asymmetric: "held" counts them, z is still (estimate - truth) / standard error.
 """
 
 from __future__ import annotations

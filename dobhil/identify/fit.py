@@ -102,9 +102,11 @@ class Estimate:
     high: float
     identifiable: bool
     why: str
-    #: how ``high`` was found: "linearised" (value + z stderr) or "profile" (a parameter
-    #: whose linearised interval leaves its bound: the profile likelihood, see _profile_high;
-    #: in the closed-loop fit the delay's both ends, dobhil.identify.closedloop._Profile)
+    #: how ``high`` was found: "linearised" (value + z stderr), "log-linearised" (value
+    #: exp(z stderr / value), the closed-loop fit's inertia, stiffness and damping,
+    #: dobhil.identify.closedloop._interval) or "profile" (a parameter whose linearised
+    #: interval leaves its bound: the profile likelihood, see _profile_high; in the
+    #: closed-loop fit the delay's both ends, dobhil.identify.closedloop._Profile)
     method: str = "linearised"
 
 

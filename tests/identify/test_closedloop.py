@@ -213,6 +213,41 @@ def test_an_estimate_on_its_search_bound_is_not_identifiable() -> None:
     assert inside["viscous_friction"].identifiable
 
 
+def test_scale_parameters_get_their_interval_on_the_log_scale() -> None:
+    """The inertia, stiffness and damping, whose standard error grows with the estimate
+    (dobhil/identify/closedloop.py, _interval), get ``value exp(+-z s / value)``: the same
+    standard error, an interval longer above the estimate than below, both ends positive
+    however wide; the friction and the contact position keep ``value +- z s``. A bound of
+    the search still caps an end."""
+    import math
+    from types import SimpleNamespace
+
+    import scipy.stats
+
+    from dobhil.identify.closedloop import FITTED, _estimates
+    z = float(scipy.stats.norm.ppf(0.975))
+    rng = np.random.default_rng(0)
+    rec = SimpleNamespace(torque=rng.normal(size=100), velocity=rng.normal(size=100),
+                          position=rng.normal(size=100), model=SimpleNamespace(period=1e-3))
+    lo, hi = np.full(len(FITTED) + 1, -1e9), np.full(len(FITTED) + 1, 1e9)
+    values = {"inertia": 0.3, "viscous_friction": 0.5, "stiffness": 15000.0, "damping": 60.0,
+              "contact_position": 0.5, "delay": 3e-4}
+    sd = np.array([0.03, 0.05, 2000.0, 6.0, 0.01, 1e-4, 0.0])
+    out = _estimates(values, sd, rec, lo, hi, True)  # type: ignore[arg-type]
+    for name in ("inertia", "stiffness", "damping"):
+        e, s = out[name], sd[FITTED.index(name)]
+        assert e.method == "log-linearised" and e.stderr == s and e.value == values[name]
+        assert e.low == pytest.approx(values[name] * math.exp(-z * s / values[name]), rel=1e-12)
+        assert e.high == pytest.approx(values[name] * math.exp(z * s / values[name]), rel=1e-12)
+        assert e.high - e.value > e.value - e.low > 0
+    for name in ("viscous_friction", "contact_position"):
+        e, s = out[name], sd[FITTED.index(name)]
+        assert e.method == "linearised"
+        assert (e.low, e.high) == pytest.approx((values[name] - z * s, values[name] + z * s), rel=1e-12)
+    capped = _estimates(values, sd, rec, lo, np.where(np.arange(len(lo)) == 2, 16000.0, hi), True)  # type: ignore[arg-type]
+    assert capped["stiffness"].high == 16000.0
+
+
 def test_the_profile_interval_of_a_linear_model_is_its_exact_interval(monkeypatch: pytest.MonkeyPatch) -> None:
     """The profile likelihood's end (dobhil/identify/closedloop.py, _Profile) on a model linear
     in its parameters, ``velocity = A theta + noise``, where the profile is exactly quadratic:
