@@ -177,7 +177,8 @@ class EmulatedODrive(EmulatedDrive):
             self.frames_not_addressed += 1   # another node's (the firmware's id filter)
             return
         cmd = arb & 0x1F
-        self._maybe_feed(cmd, msg)
+        if self.firmware is Firmware.V0_5 or (cmd in _FEEDS_06 and not msg.is_remote_frame):
+            self._last_feed = self._time   # the watchdog's feed (module docstring), inline
         if cmd == self._torque_cmd and not msg.is_remote_frame:
             try:  # hot path (every period): the table's scale, no dataclass
                 (torque,) = self._torque_spec.unpack_si(msg.data)
@@ -247,10 +248,6 @@ class EmulatedODrive(EmulatedDrive):
 
     # -- commands -------------------------------------------------------------
 
-    def _maybe_feed(self, cmd: int, msg: can.Message) -> None:
-        if self.firmware is Firmware.V0_5 or (cmd in _FEEDS_06 and not msg.is_remote_frame):
-            self._last_feed = self._time
-
     def _set_axis_state(self, msg: codec.SetAxisState) -> None:
         if msg.requested_state == AxisState.IDLE:
             self.axis_state = AxisState.IDLE
@@ -282,8 +279,8 @@ class EmulatedODrive(EmulatedDrive):
             if self.axis_state == AxisState.CLOSED_LOOP_CONTROL:
                 self._disarm()
             return
-        limit = self._profile.torque_limit
-        self.input_torque = min(max(torque, -limit), limit)
+        limit = self._profile.torque_limit   # min(max(...)) as comparisons: every frame
+        self.input_torque = -limit if torque < -limit else (limit if torque > limit else torque)
 
     def _disarm(self) -> None:
         """An error ends closed-loop control (0.6: Procedure_Result DISARMED, assumption)."""
