@@ -529,6 +529,7 @@ class LockstepBus(ClockedBus):
             raise ValueError(f"LockstepBus needs dt > 0 and an emulator, got dt={dt}, {len(emulators)}")
         self._inner = inner
         self._emulators = tuple(emulators)
+        self._lead = self._emulators[0]   # whose time is the clock
         self._dt = dt
         self.channel_info = f"lockstep over {inner.channel_info}"
         self._to_emulators = 0  # host frames the emulators have not read yet
@@ -547,8 +548,10 @@ class LockstepBus(ClockedBus):
         return self._dt
 
     def clock(self) -> float:
-        """Simulated time [s] (pass as ``clock=`` to the host's Drive)."""
-        return self._emulators[0].time
+        """Simulated time [s] (pass as ``clock=`` to the host's Drive): the first
+        emulator's :attr:`EmulatedDrive.time`, read without the property's call (this
+        module's own class; the host reads it about seven times a cycle)."""
+        return self._lead._time
 
     def step(self) -> None:
         """One lockstep tick: every emulator applies pending frames, then advances ``dt``."""
