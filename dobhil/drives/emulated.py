@@ -181,7 +181,9 @@ class EmulatedDrive(ABC):
                 break
             count += 1
             self._receive(msg, self._time)
-        self._apply_due(self._time)
+        delayed = self._delayed
+        if delayed and delayed[0][0] <= self._time + _EPS:   # inline: a frame is due at most
+            self._apply_due(self._time)                      # once a period, not every call
         return count
 
     def advance(self, dt: float) -> None:
@@ -205,8 +207,9 @@ class EmulatedDrive(ABC):
             self._apply_due(at)
         self._plant.step(self._plant_torque(), rest)
         self._time = end
-        self._apply_due(self._time)
-        self._on_time(self._time)
+        if delayed and delayed[0][0] <= end + _EPS:   # inline: rarely any left due
+            self._apply_due(end)
+        self._on_time(end)
         self._emit_cyclic(self._time)
 
     def _advance_held(self, dt: float) -> None:
@@ -366,11 +369,16 @@ class EmulatedDrive(ABC):
             self.last_frame_error = exception_line(exc)
 
     def _emit_cyclic(self, now: float) -> None:
-        if not self._cyclic:
-            self._cyclic = [_Cyclic(p, make) for p, make in self._cyclic_frames()]
-        for stream in self._cyclic:
-            for _ in range(stream.due(now)):
-                self._send(stream.make())
+        cyclic = self._cyclic
+        if not cyclic:
+            cyclic = self._cyclic = [_Cyclic(p, make) for p, make in self._cyclic_frames()]
+        limit = now + _EPS
+        for stream in cyclic:
+            # inline, :meth:`_Cyclic.due`'s first test: a slow stream (a heartbeat) is not
+            # due in most steps, and then costs no call
+            if stream.index * stream.period <= limit:
+                for _ in range(stream.due(now)):
+                    self._send(stream.make())
 
     def _run_guarded(self) -> None:
         try:
@@ -521,6 +529,7 @@ class LockstepBus(ClockedBus):
             raise ValueError(f"LockstepBus needs dt > 0 and an emulator, got dt={dt}, {len(emulators)}")
         self._inner = inner
         self._emulators = tuple(emulators)
+        self._lead = self._emulators[0]   # whose time is the clock
         self._dt = dt
         self.channel_info = f"lockstep over {inner.channel_info}"
         self._to_emulators = 0  # host frames the emulators have not read yet
@@ -539,8 +548,10 @@ class LockstepBus(ClockedBus):
         return self._dt
 
     def clock(self) -> float:
-        """Simulated time [s] (pass as ``clock=`` to the host's Drive)."""
-        return self._emulators[0].time
+        """Simulated time [s] (pass as ``clock=`` to the host's Drive): the first
+        emulator's :attr:`EmulatedDrive.time`, read without the property's call (this
+        module's own class; the host reads it about seven times a cycle)."""
+        return self._lead._time
 
     def step(self) -> None:
         """One lockstep tick: every emulator applies pending frames, then advances ``dt``."""
@@ -556,26 +567,29 @@ class LockstepBus(ClockedBus):
         filters reject is dropped and the wait goes on to the same simulated deadline."""
         if timeout is None:
             raise ValueError("LockstepBus.recv needs a finite timeout (simulated seconds)")
-        end = self.clock() + timeout
         # A positive wait takes at least one step, however short: the clock is a sum of
         # steps dt, so a caller's deadline (enable, the safe stop's confirmation) can lie
         # 1e-13 s past it, and a wait that returned at once without advancing would be
-        # asked for again and again, for ever. ``recv(0)`` still never advances.
+        # asked for again and again, for ever. ``recv(0)`` never advances, so it never
+        # reads the clock either (a cycle's drains are such reads: two a cycle).
         must_step = timeout > 0
+        end = self.clock() + timeout if must_step else 0.0
         # The host and the emulators are the only participants of the channel, and the
         # host is inside this call: the bus counts the frames in flight each way, so no
         # read comes back empty (the bare-bus cost is two reads per cycle, so is this).
         if self._to_emulators:
             self._deliver_host_frames()
+        host_queue = self._host_queue
         while True:
             msg: can.Message | None = None
-            if self._host_queue:
-                msg = self._host_queue.popleft()
+            if host_queue:
+                msg = host_queue.popleft()
             elif self._to_host > 0:
                 msg = self._inner.recv(0.0)
                 self._to_host = self._to_host - 1 if msg is not None else 0
             if msg is None:
-                if self.clock() + _EPS >= end and not must_step:
+                # the first step of a positive wait is taken without looking at the clock
+                if not must_step and (timeout <= 0 or self.clock() + _EPS >= end):
                     return None, True
                 self._advance_all()
                 must_step = False
@@ -589,17 +603,27 @@ class LockstepBus(ClockedBus):
         return total
 
     def _deliver_host_frames(self) -> None:
-        before = self._sent_by_emulators()
+        emulators = self._emulators
+        before = 0
+        for emulator in emulators:   # inline, not _sent_by_emulators: once a cycle
+            before -= emulator.frames_sent
         count, self._to_emulators = self._to_emulators, 0
-        for emulator in self._emulators:
+        for emulator in emulators:
             emulator.handle_pending(count)
-        self._to_host += self._sent_by_emulators() - before
+        for emulator in emulators:
+            before += emulator.frames_sent
+        self._to_host += before
 
     def _advance_all(self) -> None:
-        before = self._sent_by_emulators()
-        for emulator in self._emulators:
-            emulator.advance(self._dt)
-        self._to_host += self._sent_by_emulators() - before
+        emulators, dt = self._emulators, self._dt
+        before = 0
+        for emulator in emulators:   # inline, not _sent_by_emulators: once a cycle
+            before -= emulator.frames_sent
+        for emulator in emulators:
+            emulator.advance(dt)
+        for emulator in emulators:
+            before += emulator.frames_sent
+        self._to_host += before
         self.steps += 1
         if self._tasks:
             self._fire_periodic()

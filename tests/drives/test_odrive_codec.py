@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import math
 import struct
 
@@ -165,6 +166,29 @@ def test_hot_path_pack_into_matches_encode() -> None:
     spec.pack_into(buf, 1.5)
     assert bytes(buf) == codec.encode_data(codec.SetInputTorque(1.5))
     assert len(buf) == 8
+
+
+@pytest.mark.parametrize("firmware", BOTH)
+def test_hot_paths_are_the_dataclass_codec_bit_for_bit(firmware: Firmware) -> None:
+    """pack_into and unpack_si (what every lockstep cycle runs: the emulated drive's encoder
+    estimates, the host's torque) give the bytes and SI values of encode and decode, on a
+    message scaled to SI (turns -> rad) and an unscaled one."""
+    estimates = codec.spec_for(CmdId.GET_ENCODER_ESTIMATES, firmware)
+    torque = codec.spec_for(CmdId.SET_INPUT_TORQUE, firmware)
+    values = (0.0, -0.0, 1e-3, -0.7391, math.pi, 12.5, -1e4)
+    for position, velocity in itertools.product(values, values[::-1]):
+        buf = estimates.new_frame_data()
+        estimates.pack_into(buf, position, velocity)
+        whole = codec.encode(codec.EncoderEstimates(position, velocity), node_id=3, firmware=firmware)
+        assert bytes(buf) == bytes(whole.data)
+        decoded = codec.decode_message(whole, firmware)
+        assert estimates.unpack_si(buf) == (decoded.position_rad, decoded.velocity_rad_s)
+    for tau in values:
+        buf = torque.new_frame_data()
+        torque.pack_into(buf, tau)
+        whole = codec.encode(codec.SetInputTorque(tau), node_id=3, firmware=firmware)
+        assert bytes(buf) == bytes(whole.data)
+        assert torque.unpack_si(buf) == (codec.decode_message(whole, firmware).torque_nm,)
 
 
 @pytest.mark.parametrize("firmware", BOTH)

@@ -144,6 +144,20 @@ def test_infinite_torque_clamps_to_the_limit(bench: Bench) -> None:
     assert bench.emu.axis_error == 0
 
 
+def test_torque_inside_the_limit_is_applied_as_sent_and_beyond_it_clamps(bench: Bench) -> None:
+    """The firmware's clamp on finite setpoints (0.5.6 ``controller.cpp``): a setpoint
+    within +-limit (2 N m here) reaches the plant unchanged, its sign and the limit itself
+    included; one beyond it is the limit."""
+    bench.enable()
+    for value, expected in ((1.0, 1.0), (-1.75, -1.75), (2.0, 2.0), (-2.0, -2.0), (-0.0, -0.0),
+                            (2.5, 2.0), (-7.0, -2.0)):
+        bench.send(codec.SetInputTorque(value))
+        bench.tick()
+        applied = bench.emu.applied_torque
+        assert applied == expected and math.copysign(1.0, applied) == math.copysign(1.0, expected), value
+    assert bench.emu.axis_error == 0
+
+
 def test_closed_loop_refused_with_an_error_says_why_on_06(bench: Bench) -> None:
     bench.emu.axis_error = codec.estop_bit(bench.emu.firmware)
     bench.send(codec.SetAxisState(AxisState.CLOSED_LOOP_CONTROL))

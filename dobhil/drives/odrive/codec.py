@@ -46,6 +46,7 @@ import struct
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, fields
 from enum import IntEnum, IntFlag
+from operator import mul, truediv
 from types import MappingProxyType
 from typing import Any
 
@@ -632,7 +633,8 @@ class MessageSpec:
         CodecError if a value does not fit the wire type (e.g. beyond float32 range).
         """
         try:
-            self.struct.pack_into(buffer, 0, *[v / s.scale for v, s in zip(values, self.slots)])  # type: ignore[union-attr,operator]
+            # map over the derived scales: no Python-level loop (the same divisions)
+            self.struct.pack_into(buffer, 0, *map(truediv, values, self.scales))
         except (struct.error, OverflowError) as exc:
             raise CodecError(f"{self.name}: cannot encode {values!r}: {exc}") from None
 
@@ -646,7 +648,7 @@ class MessageSpec:
             raise CodecError(
                 f"{self.name} (0x{self.cmd:02X}) needs {self.size} data bytes, got {len(data)}"
             )
-        return tuple(v * s for v, s in zip(self.struct.unpack_from(data, 0), self.scales))
+        return tuple(map(mul, self.struct.unpack_from(data, 0), self.scales))   # no generator frame
 
     def decode_data(self, data: bytes | bytearray) -> Any:
         if len(data) < self.size:

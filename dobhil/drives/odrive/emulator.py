@@ -115,6 +115,7 @@ class EmulatedODrive(EmulatedDrive):
         self._encoder_spec = codec.spec_for(CmdId.GET_ENCODER_ESTIMATES, self.firmware)
         self._encoder_id = codec.arbitration_id(self.node_id, CmdId.GET_ENCODER_ESTIMATES)
         self._torque_spec = codec.spec_for(CmdId.SET_INPUT_TORQUE, self.firmware)
+        self._torque_cmd = int(CmdId.SET_INPUT_TORQUE)   # a plain int: the hot path's compare
         self._handlers: dict[type, Callable[[Any], None]] = {
             codec.SetAxisState: self._set_axis_state,
             codec.SetControllerMode: self._set_controller_mode,
@@ -171,12 +172,14 @@ class EmulatedODrive(EmulatedDrive):
         if msg.is_extended_id or msg.is_error_frame or not 0 <= msg.arbitration_id <= 0x7FF:
             self.frames_not_addressed += 1
             return  # not CAN Simple on this bus (the firmware filters 11-bit node ids)
-        node, cmd = codec.split_id(msg.arbitration_id)
-        if node != self.node_id:
+        arb = msg.arbitration_id   # an 11-bit id (checked above): codec.split_id inline
+        if arb >> 5 != self.node_id:
             self.frames_not_addressed += 1   # another node's (the firmware's id filter)
             return
-        self._maybe_feed(cmd, msg)
-        if cmd == CmdId.SET_INPUT_TORQUE and not msg.is_remote_frame:
+        cmd = arb & 0x1F
+        if self.firmware is Firmware.V0_5 or (cmd in _FEEDS_06 and not msg.is_remote_frame):
+            self._last_feed = self._time   # the watchdog's feed (module docstring), inline
+        if cmd == self._torque_cmd and not msg.is_remote_frame:
             try:  # hot path (every period): the table's scale, no dataclass
                 (torque,) = self._torque_spec.unpack_si(msg.data)
             except CodecError:
@@ -245,10 +248,6 @@ class EmulatedODrive(EmulatedDrive):
 
     # -- commands -------------------------------------------------------------
 
-    def _maybe_feed(self, cmd: int, msg: can.Message) -> None:
-        if self.firmware is Firmware.V0_5 or (cmd in _FEEDS_06 and not msg.is_remote_frame):
-            self._last_feed = self._time
-
     def _set_axis_state(self, msg: codec.SetAxisState) -> None:
         if msg.requested_state == AxisState.IDLE:
             self.axis_state = AxisState.IDLE
@@ -280,8 +279,8 @@ class EmulatedODrive(EmulatedDrive):
             if self.axis_state == AxisState.CLOSED_LOOP_CONTROL:
                 self._disarm()
             return
-        limit = self._profile.torque_limit
-        self.input_torque = min(max(torque, -limit), limit)
+        limit = self._profile.torque_limit   # min(max(...)) as comparisons: every frame
+        self.input_torque = -limit if torque < -limit else (limit if torque > limit else torque)
 
     def _disarm(self) -> None:
         """An error ends closed-loop control (0.6: Procedure_Result DISARMED, assumption)."""
