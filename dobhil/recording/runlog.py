@@ -1,7 +1,9 @@
 """Recording one run, the loop side: :class:`RunLog`, the runtime's ``CycleSink`` and bus tap,
 knowing nothing of the runtime (``dobhil.cli.recording`` wires it with plain values). Records
-are flat tuples of the topic table; every ``BATCH_RECORDS``, after a cycle's command, they are
-pickled into the writer process's pipe with one ``os.write`` (no thread: a sender thread held
+are flat tuples of the topic table (a cycle or a CAN frame packed into one ``bytes`` by
+:mod:`dobhil.recording.packed`: one object for the batch's pickle to copy, not 13 or 23); every
+``BATCH_RECORDS``, after a cycle's command, they are pickled into the writer process's pipe with
+one ``os.write`` (no thread: a sender thread held
 the GIL the loop then waited for). A writer failure is a :class:`~dobhil.errors.RecorderError`
 from ``cycle``: the loop stops ``recorder_failed``.
 
@@ -26,23 +28,28 @@ from dobhil.drives.clocked import ClockedBus, bus_clock
 from dobhil.drives.periodic import native_periodic
 from dobhil.errors import RecorderError, exception_line
 from dobhil.recording.codes import ProtocolCodes
+from dobhil.recording.packed import CYCLE_PLAIN, CYCLE_TRUTH, FRAME_HEAD, UNFIT, channel_bytes, unpacked
 from dobhil.recording.process import PIPE_SIZE, WriterProcess
 from dobhil.recording.schemas import (CYCLE, LANE_MASK, RECORD_TYPES, EventKind, EventRecord, Topic, event_record,
                                       lane_kind, message_count, named)
 from dobhil.recording.writer import Lane, LiveView, RecordMode
 
-#: Records handed over at once (~40 cycles with their frames, ~10 KiB pickled).
+#: Records handed over at once (~40 cycles with their frames, ~12 KiB pickled).
 BATCH_RECORDS: Final = 128
+#: Records after which a frame hands them over (no cycle for a while: enable, preflight).
+FRAME_FLUSH: Final = 4 * BATCH_RECORDS
 #: Foreign frames kept per hand-over (~70 KiB pickled); more are shed at once, counted.
 FOREIGN_CAP: Final = 8 * BATCH_RECORDS
 #: Foreign frames ride along only while the pipe holds less than this: the rest of it is
-#: kept for the loop's own records (half of 1 MiB: ~2 s of a 1 kHz run).
+#: kept for the loop's own records (half of 1 MiB: ~1.8 s of a 1 kHz run).
 FOREIGN_ROOM: Final = PIPE_SIZE // 2
 #: Pipe bytes of a foreign frame, about (pickled: 50 to 70).
 FOREIGN_BYTES: Final = 64
 _RX, _TX, _FEEDBACK, _EVENTS = (int(t) for t in (Topic.CAN_RX, Topic.CAN_TX, Topic.DRIVE_FEEDBACK, Topic.EVENTS))
 _LOSS: Final = int(EventKind.LOSS)
 _NAN: Final = float("nan")
+_pack_cycle, _pack_cycle_truth, _pack_frame = CYCLE_PLAIN.pack, CYCLE_TRUTH.pack, FRAME_HEAD.pack
+_join = b"".join
 
 
 class RecordingBus(ClockedBus):
@@ -56,6 +63,10 @@ class RecordingBus(ClockedBus):
         self._inner = inner
         self._received, self._sent = log.received, log.sent
         self._rx, self._tx = lane_kind(_RX, lane), lane_kind(_TX, lane)
+        # what recv and send call, each read as one attribute: a class with __getattr__ pays
+        # a slower lookup (CPython's slot_tp_getattr_hook) for every attribute of self
+        self._recv_path = (inner.recv, log.received, self._rx)
+        self._send_path = (inner.send, log.sent, self._tx)
         self._clock = bus_clock(inner)
         self.channel_info = f"recording {inner.channel_info}"
         super().__init__(channel=getattr(inner, "channel", None) or "", **kwargs)
@@ -67,8 +78,9 @@ class RecordingBus(ClockedBus):
         return self._clock()
 
     def send(self, msg: can.Message, timeout: float | None = None) -> None:
-        self._inner.send(msg, timeout)
-        self._sent(self._tx, msg)
+        send, sent, topic = self._send_path
+        send(msg, timeout)
+        sent(topic, msg)
 
     def recv(self, timeout: float | None = None) -> can.Message | None:
         """The next frame that passes the filters within ``timeout`` (:class:`ClockedBus`),
@@ -76,9 +88,10 @@ class RecordingBus(ClockedBus):
         wait: the loop thread pays one call and the record, no deadline arithmetic."""
         if self.filtering:
             return self._recv_internal(timeout)[0]
-        msg = self._inner.recv(timeout)
+        recv, received, topic = self._recv_path
+        msg = recv(timeout)
         if msg is not None:
-            self._received(self._rx, msg)
+            received(topic, msg)
         return msg
 
     def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
@@ -138,9 +151,25 @@ class LaneSink:
         # the loop's measure (dobhil.drives.base.Feedback.sample_latency): NaN on a simulated
         # log clock, where the stamps are of two clocks
         sampled = _NAN if log.simulated else getattr(fb, "sample_latency", _NAN)
-        records.append((self._cycle, log.clock_ns(), k, fb.position, fb.velocity, fb.seq, *out, period_error,
-                        exec_time, overrun, sampled, status.state, status.protocol_state, status.error_code,
-                        *(truth() if truth is not None else ())))
+        kind, clock = self._cycle, log.clock_ns
+        t = clock()
+        extra: tuple[float, ...] = truth() if truth is not None else ()
+        try:  # packed (dobhil.recording.packed); a value or a length that does not fit: the tuple
+            # named, not starred: a call with ``*out`` builds a list and a tuple of its arguments
+            tau_ref, tau_int_hat, tau_dis_hat, tau_per, u_unsat, u_sat = out
+            if truth is None:
+                records.append(_pack_cycle(kind, t, k, fb.position, fb.velocity, fb.seq, tau_ref, tau_int_hat,
+                                           tau_dis_hat, tau_per, u_unsat, u_sat, period_error, exec_time, overrun,
+                                           sampled, status.state, status.protocol_state, status.error_code))
+            else:
+                q, dq, tau_motor, tau_int = extra
+                records.append(_pack_cycle_truth(kind, t, k, fb.position, fb.velocity, fb.seq, tau_ref, tau_int_hat,
+                                                 tau_dis_hat, tau_per, u_unsat, u_sat, period_error, exec_time,
+                                                 overrun, sampled, status.state, status.protocol_state,
+                                                 status.error_code, q, dq, tau_motor, tau_int))
+        except (*UNFIT, ValueError):
+            records.append((kind, t, k, fb.position, fb.velocity, fb.seq, *out, period_error, exec_time, overrun,
+                            sampled, status.state, status.protocol_state, status.error_code, *extra))
         if len(records) >= BATCH_RECORDS or log._failure is not None:
             log.flush()
 
@@ -183,11 +212,12 @@ class RunLog(LaneSink):
         super().__init__(self, 0)
         self.writer, self.live = writer, live
         self.clock_ns: Callable[[], int] = time.time_ns
-        self.records: list[tuple[Any, ...]] = []
+        self.records: list[Any] = []  # tuples and packed records (bytes)
         #: foreign frames (real time, the drive's ids known), else the same list as ``records``
         self.foreign: list[tuple[Any, ...]] = self.records
         self.shed = 0  # foreign frames dropped since the last loss event
         self._own: dict[int, frozenset[int]] = {}  # received frames' kind -> the ids not foreign there
+        self._channels: dict[Any, bytes] = {}  # a frame's channel -> packed (packed.channel_bytes)
         self.tap: RecordingBus | None = None
         self.simulated = False  # lockstep: frames stamped on the simulated log clock
         self._failure: RecorderError | None = None
@@ -261,11 +291,19 @@ class RunLog(LaneSink):
             if own and msg.arbitration_id not in own:
                 self._foreign_frame(topic, msg)
                 return
-            records, t = self.records, self.clock_ns()
-            records.append((topic, t, msg.arbitration_id, msg.is_extended_id, msg.is_remote_frame,
-                            msg.is_error_frame, msg.is_fd, msg.bitrate_switch, msg.error_state_indicator, msg.dlc,
-                            msg.data, t / 1e9 if self.simulated else msg.timestamp, msg.channel))
-            if len(records) >= 4 * BATCH_RECORDS:  # no cycle for a while: enable, preflight
+            records, clock = self.records, self.clock_ns  # an attribute, then called: a
+            t = clock()  # method-style call of an instance attribute is not specialised (CPython 3.11)
+            stamp, data = t / 1e9 if self.simulated else msg.timestamp, msg.data
+            try:  # packed (dobhil.recording.packed); a value that does not fit: the tuple
+                records.append(_join((_pack_frame(
+                    topic, t, msg.arbitration_id, msg.is_extended_id, msg.is_remote_frame, msg.is_error_frame,
+                    msg.is_fd, msg.bitrate_switch, msg.error_state_indicator, msg.dlc, stamp, len(data)), data,
+                    self._channels.get(msg.channel) or channel_bytes(msg.channel, self._channels))))
+            except UNFIT:
+                records.append((topic, t, msg.arbitration_id, msg.is_extended_id, msg.is_remote_frame,
+                                msg.is_error_frame, msg.is_fd, msg.bitrate_switch, msg.error_state_indicator,
+                                msg.dlc, data, stamp, msg.channel))
+            if len(records) >= FRAME_FLUSH:
                 self.flush()
         except RecorderError as exc:
             self._failure = exc  # the next cycle raises it
@@ -278,11 +316,19 @@ class RunLog(LaneSink):
         send (its message carries none, 0.0): in real time the wall clock received frames
         are stamped on, in lockstep the simulated time. As :meth:`received` otherwise."""
         try:
-            records, t = self.records, self.clock_ns()
-            records.append((topic, t, msg.arbitration_id, msg.is_extended_id, msg.is_remote_frame,
-                            msg.is_error_frame, msg.is_fd, msg.bitrate_switch, msg.error_state_indicator, msg.dlc,
-                            bytes(msg.data), t / 1e9, msg.channel))
-            if len(records) >= 4 * BATCH_RECORDS:
+            records, clock = self.records, self.clock_ns
+            t = clock()
+            data = msg.data
+            try:  # packed: the data copied into it
+                records.append(_join((_pack_frame(
+                    topic, t, msg.arbitration_id, msg.is_extended_id, msg.is_remote_frame, msg.is_error_frame,
+                    msg.is_fd, msg.bitrate_switch, msg.error_state_indicator, msg.dlc, t / 1e9, len(data)), data,
+                    self._channels.get(msg.channel) or channel_bytes(msg.channel, self._channels))))
+            except UNFIT:
+                records.append((topic, t, msg.arbitration_id, msg.is_extended_id, msg.is_remote_frame,
+                                msg.is_error_frame, msg.is_fd, msg.bitrate_switch, msg.error_state_indicator,
+                                msg.dlc, bytes(data), t / 1e9, msg.channel))
+            if len(records) >= FRAME_FLUSH:
                 self.flush()
         except RecorderError as exc:
             self._failure = exc
@@ -321,7 +367,8 @@ class RunLog(LaneSink):
 
     def _drop(self, records: list[tuple[Any, ...]]) -> None:
         """A batch the writer had no room for: its events kept for the next, a ``loss`` event
-        counting the rest (read by name: this path is rare)."""
+        counting the rest (read by name, unpacked: this path is rare)."""
+        records = [unpacked(r) for r in records]
         kept = [r for r in map(named, records) if r.kind & LANE_MASK == _EVENTS]
         lost, carried = sum(message_count(r) for r in records) - len(kept), 0
         if len(kept) > BATCH_RECORDS:  # a writer stuck for good: memory stays bounded

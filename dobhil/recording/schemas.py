@@ -2,9 +2,10 @@
 encoder; ``docs/recording.md`` lists them (a test checks it). Records are flat tuples laid out
 by named types: :class:`CycleRecord`, :class:`FrameRecord`, :class:`EventRecord` and one per
 other topic (``(Topic, log_time_ns, *the topic's fields)``), all starting ``kind, log_time_ns``;
-:data:`VIEWS` gives the messages of each. The loop thread builds them as plain tuples in their
-type's field order (a NamedTuple instance costs it 0.17 us more per record and pickles 5-11x
-slower); whoever reads one names it first (:func:`named`) and reads fields by name.
+:data:`VIEWS` gives the messages of each. The loop thread builds them in their type's field
+order, cycles and frames packed into bytes (:mod:`dobhil.recording.packed`), the others as plain
+tuples (a NamedTuple instance costs it 0.17 us more per record and pickles 5-11x slower); whoever
+reads one (unpacked) names it first (:func:`named`) and reads fields by name.
 """
 
 from __future__ import annotations

@@ -25,6 +25,7 @@ from dobhil.drives.odrive import codec
 from dobhil.errors import RecorderError
 from dobhil.recording.axes import AxisLog, axis_log, axis_logs, axis_names, layout
 from dobhil.recording.axeslog import AxesLog, AxisDrive
+from dobhil.recording.packed import unpacked
 from dobhil.recording.process import WriterProcess
 from dobhil.recording.reader import open_log
 from dobhil.recording.runlog import RunLog
@@ -309,7 +310,7 @@ def test_foreign_frames_are_told_per_bus(tmp_path: Path) -> None:
         for bus in ("one", "two"):
             for arb in (1, 2):
                 log.log.frame(rx[bus], can.Message(arbitration_id=arb, data=[arb]))
-        assert [(r[0], r[2]) for r in log.log.records] == [(rx["one"], 1), (rx["two"], 2)]
+        assert [(r[0], r[2]) for r in map(unpacked, log.log.records)] == [(rx["one"], 1), (rx["two"], 2)]
         assert [(r[0], r[2]) for r in log.log.foreign] == [(rx["one"], 2), (rx["two"], 1)]
         log.end("done")
     finally:

@@ -247,6 +247,7 @@ def test_a_sent_frame_is_recorded_with_the_data_it_had_when_sent() -> None:
     as it is when sent."""
     from types import SimpleNamespace
 
+    from dobhil.recording.packed import unpacked
     from dobhil.recording.runlog import RecordingBus, RunLog
     from dobhil.recording.schemas import FRAME_ATTRIBUTES, Topic
     data = 2 + FRAME_ATTRIBUTES.index("data")
@@ -260,7 +261,7 @@ def test_a_sent_frame_is_recorded_with_the_data_it_had_when_sent() -> None:
             tap.send(msg)
         assert tap.recv(1.0) is not None
         msg.data[0] = 9  # refilled after the last send
-        flat = batch.take()
+        flat = [unpacked(r) for r in batch.take()]  # cycles and frames are taken packed
     finally:
         tap.shutdown()
         inner.shutdown()

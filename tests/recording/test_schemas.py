@@ -132,6 +132,7 @@ def test_the_loops_frame_record_is_the_tables() -> None:
     record for every flag alone and all together, received (data kept) and sent (copied)."""
     import can
 
+    from dobhil.recording.packed import unpacked
     from dobhil.recording.runlog import RunLog
     from dobhil.recording.schemas import FRAME_ATTRIBUTES
     flags = [a for a in FRAME_ATTRIBUTES if a.startswith(("is_", "bitrate", "error"))]
@@ -147,7 +148,7 @@ def test_the_loops_frame_record_is_the_tables() -> None:
             want = can_frame_record(msg, topic, 7)
             if topic == Topic.CAN_TX:  # a sent frame is stamped with its send time on the log clock
                 want = (*want[:-2], 7 / 1e9, want[-1])
-            assert batch.take() == [want]
+            assert [unpacked(r) for r in batch.take()] == [want]  # packed on the loop thread
 
 
 def test_drive_state_is_recorded_by_name_not_as_a_code_a_drive_uses_otherwise() -> None:
