@@ -121,3 +121,22 @@ def test_what_does_not_fit_is_recorded_as_the_tuple_it_was() -> None:
     expected = unpacked_batch(records)
     assert len(batch) == len(expected) and all(same(a, b) for a, b in zip(batch, expected))
     assert all(type(r) is tuple for r in batch)
+
+
+def _codes(fmt: str) -> list[str]:
+    """A struct format's field codes, counts expanded (``6d`` -> six ``d``)."""
+    import re
+    return [code for count, code in re.findall(r"(\d*)([a-zA-Z?])", fmt.lstrip("<"))
+            for _ in range(int(count or 1))]
+
+
+def test_the_cycle_layout_is_cycle_records_fields_by_type() -> None:
+    """The packed cycle follows ``CycleRecord``'s annotations field by field (``d`` a float,
+    ``q`` an int, ``?`` a flag; the kind ``H``): a field added to the named record without its
+    place in the layout fails here, not as shifted numbers in a log."""
+    import typing
+    hints = typing.get_type_hints(CycleRecord)
+    wanted = ["H"] + [{float: "d", int: "q", bool: "?"}[hints[name]] for name in CycleRecord._fields[1:]]
+    assert _codes(CYCLE_TRUTH.format) == wanted
+    assert _codes(CYCLE_PLAIN.format) == wanted[:wanted.index("?") + 5]   # up to protocol_error
+    assert CycleRecord._fields[wanted.index("?") + 4] == "protocol_error"
