@@ -61,7 +61,7 @@ class RecordingBus(ClockedBus):
 
     def __init__(self, inner: can.BusABC, log: RunLog, lane: int = 0, **kwargs: Any) -> None:
         self._inner = inner
-        self._received, self._sent = log.received, log.sent
+        self._received = log.received   # the filtered path (_recv_internal) records through it
         self._rx, self._tx = lane_kind(_RX, lane), lane_kind(_TX, lane)
         # what recv and send call, each read as one attribute: a class with __getattr__ pays
         # a slower lookup (CPython's slot_tp_getattr_hook) for every attribute of self
