@@ -5,8 +5,9 @@ Subpackages and modules, one concept each, one item per layer, lowest first (``L
 imports only lower layers, and those of one layer never import each other):
 
 - ``dobhil.errors``     the error types (exit codes)
-- ``dobhil.files``, ``dobhil.data``, ``dobhil.realtime``, ``dobhil.cluster``: safe output
-  files, the shipped configs and drive profiles, thread and process scheduling, work on a
+- ``dobhil.files``, ``dobhil.data``, ``dobhil.realtime``, ``dobhil.forkserver``,
+  ``dobhil.cluster``: safe output files, the shipped configs and drive profiles, thread and
+  process scheduling, child processes forked from one that imported their code, work on a
   Dask cluster
 - ``dobhil.config``     run/design configuration (YAML, ``--set key=value``, validation)
 - ``dobhil.synthesis``  the paper's observers in state space, continuous and sampled;

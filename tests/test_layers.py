@@ -19,6 +19,7 @@ PACKAGE = Path(__file__).resolve().parents[1] / "dobhil"
 LAYERS: list[tuple[str, ...]] = [
     ("dobhil", "dobhil.errors"),                            # the root: version, error types
     ("dobhil.files", "dobhil.data", "dobhil.realtime",      # the OS: files, shipped data, scheduling,
+     "dobhil.forkserver",                                   # children forked from one process,
      "dobhil.cluster"),                                     # work on a Dask cluster
     ("dobhil.config",),                                     # keys, loading, validation
     ("dobhil.synthesis", "dobhil.drives"),                  # the observers; drive profiles and codecs

@@ -27,12 +27,16 @@ and the same :class:`~dobhil.emulator.plant.Plant` in a child process instead:
 - every failure of the child reaches the host as one line: a FAILED record before it
   exits, or the end of the stream with its exit code (:class:`~can.CanOperationError` on
   the host's bus, a ``bus_error`` stop of the run), never a traceback;
-- the child is a fresh interpreter (``subprocess``, the two file descriptors passed to
-  it, its spec pickled on its stdin), not a ``multiprocessing`` process: those re-run the
-  parent's main module, and a python-can program opening ``can.Bus(interface="dobhil")``
-  at the top of a script without a ``__main__`` guard would start itself again; never a
-  bare ``fork`` of a process that may have threads. Start-up costs an interpreter and
-  the imports (about a second on a loaded 2-core machine), once per bus.
+- the child is forked from dobhil's fork server (:mod:`dobhil.forkserver`: one process per
+  host that imported the drive code once; the two file descriptors and the pickled spec
+  handed to it), not a ``multiprocessing`` process: those re-run the parent's main
+  module, and a python-can program opening ``can.Bus(interface="dobhil")`` at the top of a
+  script without a ``__main__`` guard would start itself again; never a bare ``fork`` of
+  a process that may have threads. The first child of a host costs the server's start
+  (an interpreter and the imports, 0.3-0.4 s of CPU here), each further one a fork (a few
+  ms). Where the platform cannot fork a server's child (no ``os.fork`` or
+  ``socket.send_fds``), the child is a fresh interpreter (``subprocess``, its spec pickled
+  on its stdin).
 
 Several nodes on one bus (a multi-axis device): ``EmulatorProcess([spec1, spec2],
 couplings=...)`` runs every node's emulated drive in the one child, on one tick clock
@@ -76,6 +80,7 @@ from dobhil.config.schema import Config
 from dobhil.drives.profile import DriveProfile
 from dobhil.emulator.pipe import PipeBus, RecordKind, socket_pair
 from dobhil.drives.emulated import tick_period
+from dobhil import forkserver
 from dobhil.errors import BusError, exception_line
 
 __all__ = ["EmulatorProcess", "EmulatorSpec", "NodeStatus", "PlantView", "Slot"]
@@ -219,6 +224,20 @@ def _renamed(old: str, new: str) -> None:
                   DeprecationWarning, stacklevel=3)
 
 
+def warm_child() -> None:
+    """What a child imports before it serves, done once in the fork server: every
+    protocol's emulated drive (dobhil.drives.registry) and the plant's modules."""
+    from dobhil.drives.registry import emulated_protocols
+    import dobhil.drives.emulated_nodes
+    import dobhil.emulator.coupling
+    import dobhil.emulator.plant  # noqa: F401
+    emulated_protocols()
+
+
+#: the fork server's preload for the emulator's children
+_PRELOAD = (f"{__name__}:warm_child",)
+
+
 def _child_env() -> dict[str, str]:
     """The parent's environment, with the directory of this very dobhil first on the path
     (the parent may have put a source tree on ``sys.path`` by hand)."""
@@ -249,7 +268,7 @@ class EmulatorProcess:
         #: [s] the child's tick: the shortest of the nodes' (dobhil.drives.emulated_nodes)
         self.tick = min(tick_period(s.profile) for s in self.specs)
         self._closed = False
-        self._process: subprocess.Popen[bytes] | None = None
+        self._process: subprocess.Popen[bytes] | forkserver.Child | None = None
         host_end, child_end = socket_pair()
         self._shared = _Shared(nodes=len(self.specs))
         self._last = [cast("list[float]", block.tolist()) for block in self._shared.blocks]
@@ -273,8 +292,13 @@ class EmulatorProcess:
 
     # -- life -----------------------------------------------------------------
 
-    def _start(self, child_end: socket.socket) -> subprocess.Popen[bytes]:
+    def _start(self, child_end: socket.socket) -> subprocess.Popen[bytes] | forkserver.Child:
         fds = (child_end.fileno(), self._shared.fd)
+        if forkserver.available():
+            # forked from a process that imported the drive code once (dobhil/forkserver.py:
+            # the imports are most of a start's CPU)
+            return forkserver.server(_PRELOAD).start(f"{__name__}:child_main", (
+                pickle.dumps((self.specs, self.couplings)),), fds)
         code = f"from {__name__} import child_main; child_main({fds[0]}, {fds[1]})"
         process = subprocess.Popen([sys.executable, "-c", code], pass_fds=fds, stdin=subprocess.PIPE,
                                    stdout=subprocess.DEVNULL, env=_child_env(), close_fds=True)
@@ -609,9 +633,9 @@ class _Publisher:
         s[Slot.SEQ] = seq + 1.0
 
 
-def child_main(sock_fd: int, status_fd: int) -> None:
-    """The child: read its spec, build the emulated drive, say READY, tick until the
-    host's end closes."""
+def child_main(sock_fd: int, status_fd: int, specs_pickled: bytes | None = None) -> None:
+    """The child: read its spec (``specs_pickled``, or pickled on its standard input),
+    build the emulated drive, say READY, tick until the host's end closes."""
     # the drive outlives the host's signals: it must confirm the host's safe stop
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
@@ -628,7 +652,8 @@ def child_main(sock_fd: int, status_fd: int) -> None:
     # are held, the newest per id, and go out once the host reads again
     bus = PipeBus(sock, "emulator", gone=gone, send_wait=0.0, coalesce=True, serve_periodic=True)
     try:
-        specs, couplings = pickle.load(sys.stdin.buffer)
+        specs, couplings = (pickle.loads(specs_pickled) if specs_pickled is not None
+                            else pickle.load(sys.stdin.buffer))
         if len(specs) == 1 and not couplings:
             _serve(bus, status[0], specs[0])
         else:

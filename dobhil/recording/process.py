@@ -23,6 +23,7 @@ from pathlib import Path
 from typing import Any, Final, NamedTuple, cast
 
 import dobhil
+from dobhil import forkserver
 from dobhil.errors import RecorderError, exception_line
 from dobhil.recording.codes import ProtocolCodes
 from dobhil.recording.encodings import DEFAULT_ENCODING, encoding as find_encoding
@@ -275,7 +276,7 @@ class WriterProcess:
             return False
 
 
-def _spawn(path: Path) -> tuple[subprocess.Popen[bytes], int, Connection]:
+def _spawn(path: Path) -> tuple[subprocess.Popen[bytes] | forkserver.Child, int, Connection]:
     data_r, data_w = os.pipe()
     status_r, status_w = os.pipe()
     try:
@@ -288,9 +289,16 @@ def _spawn(path: Path) -> tuple[subprocess.Popen[bytes], int, Connection]:
     # SIGINT/SIGTERM blocked while the child starts (it inherits the mask and ignores both
     # before unblocking): a terminal's Ctrl-C never kills the writer before it can finish
     old = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT, signal.SIGTERM})
+    proc: subprocess.Popen[bytes] | forkserver.Child
     try:
-        proc = subprocess.Popen(argv, pass_fds=(data_r, status_w), stdin=subprocess.DEVNULL,
-                                stdout=subprocess.DEVNULL)
+        if forkserver.available():
+            # forked from a process that imported the writer's code once (dobhil/forkserver.py:
+            # the imports are most of a short run's writer CPU); the mask goes with the call
+            proc = forkserver.server(_PRELOAD).start(f"{__name__}:forked_main", (os.fspath(path),),
+                                                     (data_r, status_w))
+        else:
+            proc = subprocess.Popen(argv, pass_fds=(data_r, status_w), stdin=subprocess.DEVNULL,
+                                    stdout=subprocess.DEVNULL)
     except OSError as exc:
         os.close(data_w)
         os.close(status_r)
@@ -386,6 +394,21 @@ def _serve(fd: int, status: Connection, path: str) -> Reply:
             except BaseException:
                 log.close()
         raise
+
+
+def warm_child() -> None:
+    """What a writer imports before it writes, done once in the fork server: the default
+    encoding's module (imported by name when a log opens)."""
+    find_encoding(DEFAULT_ENCODING)
+
+
+#: the fork server's preload for writer processes
+_PRELOAD: Final = (f"{__name__}:warm_child",)
+
+
+def forked_main(data_fd: int, status_fd: int, path: str) -> None:
+    """:func:`main` in a child of the fork server (its descriptors handed to it)."""
+    main([str(data_fd), str(status_fd), path])
 
 
 def main(argv: Sequence[str] | None = None) -> None:

@@ -200,6 +200,9 @@ import sys, can
 bus = can.Bus(interface="dobhil", channel="demo")
 assert bus.recv(5.0) is not None
 print(getattr(bus.emulator, "pid", 0), flush=True)
+if sys.argv[1] == "sleep":   # the killed program's fork server must end with it too
+    from dobhil import forkserver
+    print(" ".join(str(p) for p in forkserver.server_pids()), flush=True)
 if sys.argv[1] == "raise":
     raise RuntimeError("the program failed")
 if sys.argv[1] == "sleep":
@@ -277,10 +280,14 @@ def test_the_emulator_dies_with_a_killed_program(tmp_path: Path) -> None:
         ready, _, _ = select.select([proc.stdout], [], [], 60)
         assert ready, "the program did not open the bus"
         child = int(proc.stdout.readline())
-        assert _alive(child)
+        servers = [int(p) for p in proc.stdout.readline().split()]
+        assert servers, "no fork server started the emulated drive"
+        assert _alive(child) and all(_alive(p) for p in servers)
         proc.send_signal(signal.SIGKILL)
         proc.wait(timeout=10)
         assert wait_until(lambda: not _alive(child)), "the emulator's process outlived its program"
+        # the fork server that forked it reads the end of its control socket and exits
+        assert wait_until(lambda: not any(_alive(p) for p in servers)), "a fork server outlived it"
     finally:
         if proc.poll() is None:
             proc.kill()

@@ -7,11 +7,14 @@ Waits poll with a generous bound; nothing asserts wall-clock timing."""
 
 from __future__ import annotations
 
+import os
 import time
+from pathlib import Path
 
 import can
 import pytest
 
+from dobhil import forkserver
 from dobhil.config import load_config
 from dobhil.emulator.process import EmulatorProcess, EmulatorSpec
 
@@ -53,10 +56,21 @@ def _command_until_applied(process: EmulatorProcess, bus: can.BusABC, torque: fl
         assert time.monotonic() < end, f"torque again: {process.applied_torque} applied, not {torque}"
 
 
-def test_emulator_process_answers_applies_and_times_out() -> None:
+@pytest.mark.parametrize("start", ["forked", "interpreter"])
+def test_emulator_process_answers_applies_and_times_out(start: str,
+                                                        monkeypatch: pytest.MonkeyPatch) -> None:
+    """Both ways a child starts: forked from dobhil's fork server (where the platform can)
+    and a fresh interpreter (where it cannot)."""
+    if start == "interpreter":
+        monkeypatch.setattr(forkserver, "available", lambda: False)
+    elif not forkserver.available():
+        pytest.skip("no fork server on this platform")
     # the Mini-Cheetah firmware's row: its 25 ms command timeout, 7-byte replies
     spec = EmulatorSpec.of(load_config("demo", ["plant.initial_position=-0.05"]), mit_profile(MINI_CHEETAH))
     with EmulatorProcess(spec) as process:
+        assert process.pid is not None
+        parent = int(Path(f"/proc/{process.pid}/stat").read_text().rsplit(")", 1)[1].split()[1])
+        assert (parent == os.getpid()) is (start == "interpreter"), (start, parent)
         bus = process.bus
         bus.send(can.Message(arbitration_id=1, data=ENTER, is_extended_id=False))
         # at -0.05 rad: int(12.45 * 65535 / 25) = 32636 = 0x7F7C; v, t 0: 0x7FF each; byte 6

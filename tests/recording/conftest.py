@@ -9,10 +9,16 @@ from pathlib import Path
 
 import pytest
 
+from dobhil import forkserver
+
 
 def child_processes() -> set[int]:
-    """Pids whose parent is this process (zombies included: a child not waited for)."""
-    me = os.getpid()
+    """Pids of the processes this one started (zombies included: a child not waited for):
+    its own children and the children of its fork servers (dobhil.forkserver forks the
+    writer and the emulated drives for it), the servers themselves left out -- they stay
+    on purpose, for the next child."""
+    servers = forkserver.server_pids()
+    parents = {os.getpid(), *servers}
     out = set()
     for entry in Path("/proc").iterdir():
         if not entry.name.isdigit():
@@ -22,9 +28,9 @@ def child_processes() -> set[int]:
         except OSError:
             continue
         fields = stat[stat.rindex(")") + 2:].split()
-        if int(fields[1]) == me:
+        if int(fields[1]) in parents:
             out.add(int(entry.name))
-    return out
+    return out - servers
 
 
 @pytest.fixture(autouse=True)

@@ -15,6 +15,7 @@ from types import SimpleNamespace
 import can
 import pytest
 
+from dobhil import forkserver
 from dobhil.errors import RecorderError
 from dobhil.recording.process import PIPE_SIZE, WriterProcess, encode, unpack
 from dobhil.recording.runlog import BATCH_RECORDS, RunLog
@@ -137,10 +138,18 @@ def test_a_batch_cut_by_a_read_waits_for_the_rest() -> None:
     assert unpack(data[used:]) == ([[event_record(EventKind.INFO, 2, "b")]], len(data) - used)
 
 
-def test_backpressure_round_trip_and_the_process_is_joined(tmp_path: Path) -> None:
+@pytest.mark.parametrize("start", ["forked", "interpreter"])
+def test_backpressure_round_trip_and_the_process_is_joined(tmp_path: Path, start: str,
+                                                           monkeypatch: pytest.MonkeyPatch) -> None:
+    """Both ways the writer starts: forked from dobhil's fork server (where the platform
+    can) and a fresh interpreter (where it cannot)."""
+    if start == "interpreter":
+        monkeypatch.setattr(forkserver, "available", lambda: False)
     path = tmp_path / "run.mcap"
     writer, batch = opened(path, RecordMode.BACKPRESSURE)
     assert writer.pid in child_processes()
+    parent = int(Path(f"/proc/{writer.pid}/stat").read_text().rsplit(")", 1)[1].split()[1])
+    assert (parent == os.getpid()) is (start == "interpreter"), (start, parent)
     for k in range(5120):
         cycle(batch, k)
     batch.record(event_record(EventKind.INFO, 7, "note", "x"))

@@ -1,0 +1,223 @@
+"""dobhil.forkserver: a child forked from the server is what a child the caller started
+itself would be -- its function run with the descriptors and arguments handed to it, the
+caller's environment, directory, standard error and thread state of the call, its exit
+code reported the ``subprocess`` way -- and the server comes and goes with its caller."""
+
+from __future__ import annotations
+
+import os
+import resource
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+from dobhil import forkserver
+from dobhil.forkserver import LOST, ForkServer
+
+pytestmark = pytest.mark.skipif(not forkserver.available(), reason="POSIX fork server")
+
+
+@pytest.fixture
+def server() -> Iterator[ForkServer]:
+    srv = ForkServer(["tests.test_forkserver"])
+    yield srv
+    srv.close()
+
+
+# -- what the children run (this module, imported by the server) -----------------------------
+
+
+def report(fd: int, *words: str) -> None:
+    """Write what the test asks about this child to ``fd``."""
+    answers = {
+        "env": os.environ.get("DOBHIL_TEST_FORKSERVER", "-"),
+        "cwd": os.getcwd(),
+        "sockets": str(sum(os.readlink(f"/proc/self/fd/{fd}").startswith("socket:")
+                           for fd in os.listdir("/proc/self/fd")
+                           if os.path.exists(f"/proc/self/fd/{fd}"))),
+        "pipes": str(sum(os.readlink(f"/proc/self/fd/{fd}").startswith("pipe:")
+                         for fd in os.listdir("/proc/self/fd")
+                         if int(fd) > 2 and os.path.exists(f"/proc/self/fd/{fd}"))),
+        "affinity": ",".join(str(c) for c in sorted(os.sched_getaffinity(0))),
+        "nice": str(os.getpriority(os.PRIO_PROCESS, 0)),
+        "mask": ",".join(str(int(s)) for s in sorted(signal.pthread_sigmask(signal.SIG_BLOCK, []))),
+        "sigint": str(signal.getsignal(signal.SIGINT)),
+        "parent": str(os.getppid()),
+        "fsize": str(resource.getrlimit(resource.RLIMIT_FSIZE)[0]),
+    }
+    os.write(fd, "\n".join(answers[w] for w in words).encode())
+
+
+def fail() -> None:
+    raise RuntimeError("this child fails")
+
+
+def exit_with(code: int) -> None:
+    sys.exit(code)
+
+
+def _ask(server: ForkServer, *words: str) -> list[str]:
+    mine, theirs = socket.socketpair()
+    with mine, theirs:
+        child = server.start("tests.test_forkserver:report", words, [theirs.fileno()])
+        assert child.wait(30) == 0
+        theirs.close()
+        return mine.recv(1 << 16).decode().split("\n")
+
+
+# -- tests ------------------------------------------------------------------------------------
+
+
+def test_exit_codes_as_subprocess_gives_them(server: ForkServer, tmp_path: Path) -> None:
+    assert server.start("tests.test_forkserver:exit_with", (0,)).wait(30) == 0
+    assert server.start("tests.test_forkserver:exit_with", (7,)).wait(30) == 7
+    # the traceback goes to the caller's standard error of the call (not the server's,
+    # which it had when the server started), as python -c prints it
+    saved = os.dup(2)
+    with open(tmp_path / "err", "wb") as err:
+        os.dup2(err.fileno(), 2)
+        try:
+            child = server.start("tests.test_forkserver:fail")
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+    assert child.wait(30) == 1
+    text = (tmp_path / "err").read_text()
+    assert "Traceback" in text and "RuntimeError: this child fails" in text
+    sleeper = server.start("time:sleep", (30,))
+    assert sleeper.poll() is None and sleeper.returncode is None
+    with pytest.raises(subprocess.TimeoutExpired):
+        sleeper.wait(0.05)
+    sleeper.kill()
+    assert sleeper.wait(30) == -signal.SIGKILL and sleeper.poll() == -signal.SIGKILL
+    sleeper.kill()   # gone already: nothing to do, no error
+
+
+def test_the_call_s_environment_directory_and_descriptors(server: ForkServer, tmp_path: Path,
+                                                          monkeypatch: pytest.MonkeyPatch) -> None:
+    _ask(server, "env")          # the server runs from here on
+    monkeypatch.setenv("DOBHIL_TEST_FORKSERVER", "set after the server started")
+    monkeypatch.chdir(tmp_path)
+    server.start("time:sleep", (0.5,))   # another child running: its status pipe is open
+    env, cwd, sockets, pipes, parent = _ask(server, "env", "cwd", "sockets", "pipes", "parent")
+    assert env == "set after the server started"
+    assert Path(cwd) == tmp_path
+    # the one socket handed over, not the server's control socket nor any of the caller's
+    assert sockets == "1"
+    assert pipes == "0"     # nor the server's wake-up pipe or another child's status pipe
+    assert int(parent) != os.getpid()   # the server's child, not ours
+
+
+def test_the_calling_thread_s_affinity_nice_value_and_signal_mask() -> None:
+    """Started from a thread pinned to one CPU, at nice +4, SIGUSR1 blocked: the child is so
+    too; from the main thread the same server's child is not (a server made by the first
+    caller keeps that caller's state itself)."""
+    if len(os.sched_getaffinity(0)) < 2:
+        pytest.skip("one CPU: no affinity to tell apart")
+    srv = ForkServer(["tests.test_forkserver"])
+    answers: list[list[str]] = []
+    cpu = min(os.sched_getaffinity(0))
+
+    def pinned() -> None:
+        os.sched_setaffinity(0, {cpu})
+        os.setpriority(os.PRIO_PROCESS, 0, os.getpriority(os.PRIO_PROCESS, 0) + 4)
+        signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGUSR1})
+        answers.append(_ask(srv, "affinity", "nice", "mask"))
+
+    try:
+        thread = threading.Thread(target=pinned)
+        thread.start()
+        thread.join()
+        main = _ask(srv, "affinity", "nice", "mask", "sigint")
+    finally:
+        srv.close()
+    nice = os.getpriority(os.PRIO_PROCESS, 0)
+    assert answers[0] == [str(cpu), str(nice + 4), str(int(signal.SIGUSR1))]
+    assert main[:3] == [",".join(str(c) for c in sorted(os.sched_getaffinity(0))), str(nice), ""]
+    assert main[3] == str(signal.default_int_handler)   # Python's default, as python -c
+
+
+def test_the_call_s_resource_limits(server: ForkServer) -> None:
+    """A file-size limit set after the server started (what a full disk looks like to a
+    writer) is the child's, and only while it is the caller's."""
+    assert _ask(server, "fsize") == [str(resource.getrlimit(resource.RLIMIT_FSIZE)[0])]
+    soft, hard = resource.getrlimit(resource.RLIMIT_FSIZE)
+    resource.setrlimit(resource.RLIMIT_FSIZE, (150_000, hard))
+    try:
+        assert _ask(server, "fsize") == ["150000"]
+    finally:
+        resource.setrlimit(resource.RLIMIT_FSIZE, (soft, hard))
+    assert _ask(server, "fsize") == [str(soft)]
+
+
+def test_a_killed_server_loses_the_status_and_the_next_start_makes_a_new_one(
+        server: ForkServer) -> None:
+    sleeper = server.start("time:sleep", (0.5,))
+    proc = server._proc
+    assert proc is not None
+    proc.kill()
+    proc.wait()
+    assert sleeper.wait(30) == LOST      # it ended; how, only the dead server knew
+    assert server.start("tests.test_forkserver:exit_with", (3,)).wait(30) == 3
+    assert server._proc is not None and server._proc.pid != proc.pid
+
+
+def test_the_server_ends_with_its_caller(server: ForkServer) -> None:
+    server.start("tests.test_forkserver:exit_with", (0,)).wait(30)
+    proc = server._proc
+    assert proc is not None and proc.poll() is None
+    running = server.start("time:sleep", (0.3,))
+    server.close()          # our end closed: the server exits; its running child goes on
+    assert proc.poll() is not None
+    deadline = time.monotonic() + 30
+    while running.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert running.returncode == LOST
+
+
+def test_the_fork_server_s_children_cost_a_fork_not_an_interpreter(server: ForkServer) -> None:
+    """Counted in CPU, not timed: 20 children after the first cost less CPU than the server's
+    own start (the interpreter and this module's imports) -- the point of the server."""
+    server.start("tests.test_forkserver:exit_with", (0,)).wait(30)
+    before = os.times()
+    for _ in range(20):
+        assert server.start("tests.test_forkserver:exit_with", (0,)).wait(30) == 0
+    proc = server._proc
+    assert proc is not None
+    server.close()
+    after = os.times()
+    children = (after.children_user + after.children_system
+                - before.children_user - before.children_system)
+    # the server (reaped at close) and everything it forked: its start is in there too
+    fresh = subprocess.run([sys.executable, "-c", "import tests.test_forkserver"],
+                           cwd=Path(__file__).resolve().parents[1], check=True)
+    assert fresh.returncode == 0
+    end = os.times()
+    one_interpreter = end.children_user + end.children_system - after.children_user - after.children_system
+    assert children < 2 * one_interpreter, (children, one_interpreter)
+
+
+def test_a_server_started_with_sigchld_blocked_still_reports_its_children() -> None:
+    """The first caller's mask is the server's at its start (a writer starts with SIGINT
+    and SIGTERM blocked); one with SIGCHLD blocked would leave every exit unreported."""
+    srv = ForkServer([])
+    codes: list[int] = []
+
+    def blocked() -> None:
+        signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGCHLD, signal.SIGINT})
+        codes.append(srv.start("sys:exit", (5,)).wait(30))
+
+    try:
+        thread = threading.Thread(target=blocked)
+        thread.start()
+        thread.join()
+    finally:
+        srv.close()
+    assert codes == [5]
