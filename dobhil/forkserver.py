@@ -142,14 +142,14 @@ def _alive(pid: int) -> bool:
     except FileNotFoundError:
         return False
     except OSError:
-        pass   # no /proc: ask the kernel
+        pass   # no /proc: ask the kernel (a zombie then counts as there)
     try:
         os.kill(pid, 0)
+        return True
+    except PermissionError:   # another user's process: it is there
+        return True
     except ProcessLookupError:
         return False
-    except PermissionError:
-        return True
-    return True
 
 
 class ForkServer:
