@@ -66,6 +66,18 @@ LOST = -255
 _BOOT = "import sys; sys.path.insert(0, sys.argv[1]); from dobhil.forkserver import serve; serve()"
 
 
+#: the directory holding this very dobhil (a child of ``python -c`` must import it from there)
+ROOT = str(Path(__file__).resolve().parents[1])
+
+
+def child_env() -> dict[str, str]:
+    """This process' environment with :data:`ROOT` first on the path: a new interpreter
+    imports the same dobhil (the parent may have put a source tree on ``sys.path`` by hand)."""
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join([ROOT, *filter(None, [env.get("PYTHONPATH")])])
+    return env
+
+
 def available() -> bool:
     """``os.fork`` and ``socket.send_fds`` are there (POSIX, Python 3.9+)."""
     return hasattr(os, "fork") and hasattr(socket, "send_fds") and hasattr(socket, "AF_UNIX")
@@ -171,14 +183,11 @@ class ForkServer:
             return self._sock
         self._close()
         host, server = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
-        root = str(Path(__file__).resolve().parents[1])
-        env = dict(os.environ)
-        env["PYTHONPATH"] = os.pathsep.join([root, *filter(None, [env.get("PYTHONPATH")])])
         try:
             self._proc = subprocess.Popen(
-                [sys.executable, "-c", _BOOT, root, str(server.fileno()), *self.preload],
+                [sys.executable, "-c", _BOOT, ROOT, str(server.fileno()), *self.preload],
                 pass_fds=(server.fileno(),), stdin=subprocess.DEVNULL,
-                stdout=subprocess.DEVNULL, env=env)
+                stdout=subprocess.DEVNULL, env=child_env())
         except BaseException:
             host.close()
             raise

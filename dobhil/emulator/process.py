@@ -68,7 +68,6 @@ import time
 import warnings
 from array import array
 from collections.abc import Callable, Sequence
-from pathlib import Path
 from dataclasses import dataclass
 from enum import IntEnum
 from typing import Any, cast
@@ -238,15 +237,6 @@ def warm_child() -> None:
 _PRELOAD = (f"{__name__}:warm_child",)
 
 
-def _child_env() -> dict[str, str]:
-    """The parent's environment, with the directory of this very dobhil first on the path
-    (the parent may have put a source tree on ``sys.path`` by hand)."""
-    env = dict(os.environ)
-    root = str(Path(__file__).resolve().parents[2])
-    env["PYTHONPATH"] = os.pathsep.join([root, *filter(None, [env.get("PYTHONPATH")])])
-    return env
-
-
 class EmulatorProcess:
     """The emulated drives of one bus in a child process; ``bus`` is the host's end of it.
 
@@ -301,7 +291,7 @@ class EmulatorProcess:
                 pickle.dumps((self.specs, self.couplings)),), fds)
         code = f"from {__name__} import child_main; child_main({fds[0]}, {fds[1]})"
         process = subprocess.Popen([sys.executable, "-c", code], pass_fds=fds, stdin=subprocess.PIPE,
-                                   stdout=subprocess.DEVNULL, env=_child_env(), close_fds=True)
+                                   stdout=subprocess.DEVNULL, env=forkserver.child_env(), close_fds=True)
         assert process.stdin is not None
         try:
             process.stdin.write(pickle.dumps((self.specs, self.couplings)))

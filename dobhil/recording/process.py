@@ -22,7 +22,6 @@ from multiprocessing.connection import Connection
 from pathlib import Path
 from typing import Any, Final, NamedTuple, cast
 
-import dobhil
 from dobhil import forkserver
 from dobhil.errors import RecorderError, exception_line
 from dobhil.recording.codes import ProtocolCodes
@@ -284,8 +283,6 @@ def _spawn(path: Path) -> tuple[subprocess.Popen[bytes] | forkserver.Child, int,
         fcntl.fcntl(data_w, fcntl.F_SETPIPE_SZ, PIPE_SIZE)
     except (ImportError, AttributeError, OSError):
         pass  # not Linux, or above /proc/sys/fs/pipe-max-size: the default 64 KiB
-    root = str(Path(dobhil.__file__).resolve().parent.parent)
-    argv = [sys.executable, "-c", _BOOT, root, str(data_r), str(status_w), os.fspath(path)]
     # SIGINT/SIGTERM blocked while the child starts (it inherits the mask and ignores both
     # before unblocking): a terminal's Ctrl-C never kills the writer before it can finish
     old = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT, signal.SIGTERM})
@@ -297,6 +294,8 @@ def _spawn(path: Path) -> tuple[subprocess.Popen[bytes] | forkserver.Child, int,
             proc = forkserver.server(_PRELOAD).start(f"{__name__}:forked_main", (os.fspath(path),),
                                                      (data_r, status_w))
         else:
+            argv = [sys.executable, "-c", _BOOT, forkserver.ROOT, str(data_r), str(status_w),
+                    os.fspath(path)]
             proc = subprocess.Popen(argv, pass_fds=(data_r, status_w), stdin=subprocess.DEVNULL,
                                     stdout=subprocess.DEVNULL)
     except OSError as exc:
