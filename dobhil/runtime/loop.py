@@ -72,6 +72,7 @@ import threading
 import time
 import warnings
 from array import array
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
 from enum import EnumMeta, IntEnum
@@ -412,15 +413,17 @@ class _CommandGaps:
     torque commands, each taken at its cycle's start (real time: ``time.perf_counter``, the
     command goes out microseconds later, and a process stopped or not scheduled counts in
     it; lockstep: the simulated clock). Per cycle only a subtraction and two comparisons:
-    the longest gap of the run, and the newest gap of at least ``floor`` s (long enough to
-    starve the drive's watch)."""
+    the longest gap of the run, and the newest gaps of at least ``floor`` s (long enough to
+    starve the drive's watch; rare, a few kept)."""
+
+    #: gaps >= floor kept (each one starved the watch or nearly: a run has few)
+    KEPT = 8
 
     def __init__(self) -> None:
         self.floor = math.inf
         self.last = math.nan     # the newest command (or the enable)
         self.longest = 0.0
-        self.late = 0.0          # the newest gap >= floor, and when it ended
-        self.late_end = -math.inf
+        self.late: deque[tuple[float, float]] = deque(maxlen=self.KEPT)   # (gap, when it ended)
 
     def start(self, t: float, floor: float) -> None:
         """Measure from ``t`` (the enable: its keepalives fed the watch up to it)."""
@@ -432,16 +435,22 @@ class _CommandGaps:
         if gap > self.longest:
             self.longest = gap
         if gap >= self.floor:
-            self.late, self.late_end = gap, t
+            self.late.append((gap, t))
 
     def starving(self, now: float, window: float) -> float:
-        """The gap that starved the watch: the one going on at ``now`` (the fault was
-        read before the next command went out), else the newest that ended within
-        ``window`` s before ``now``; 0.0 when neither was long enough."""
+        """The gap that starved the watch: the longest of the one going on at ``now`` (a
+        drive that reports on its own, an ODrive's heartbeat, can say so before the next
+        command goes out) and those that ended within ``window`` s before ``now`` (a drive
+        that answers commands, an MIT motor, says so in its reply to the first command
+        after the gap), each counted only when long enough; 0.0 when none was. The longest,
+        not the newest: a host starved once can be late again, by less, before the reply
+        that names the first gap is read."""
         ongoing = now - self.last
-        if ongoing >= self.floor:
-            return ongoing
-        return self.late if now - self.late_end <= window else 0.0
+        gap = ongoing if ongoing >= self.floor else 0.0
+        for late, end in self.late:
+            if now - end <= window and late > gap:
+                gap = late
+        return gap
 
 
 class _QuietGc:
