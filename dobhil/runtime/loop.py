@@ -439,12 +439,12 @@ class _CommandGaps:
 
     def starving(self, now: float, window: float) -> float:
         """The gap that starved the watch: the longest of the one going on at ``now`` (a
-        drive that reports on its own, an ODrive's heartbeat, can say so before the next
-        command goes out) and those that ended within ``window`` s before ``now`` (a drive
-        that answers commands, an MIT motor, says so in its reply to the first command
-        after the gap), each counted only when long enough; 0.0 when none was. The longest,
-        not the newest: a host starved once can be late again, by less, before the reply
-        that names the first gap is read."""
+        drive that sends its status on its own can say so before the next command goes
+        out) and those that ended within ``window`` s before ``now`` (a drive that only
+        answers commands says so in its reply to the first command after the gap), each
+        counted only when long enough; 0.0 when none was. The longest, not the newest: a
+        host starved once can be late again, by less, before the reply that names the
+        first gap is read."""
         ongoing = now - self.last
         gap = ongoing if ongoing >= self.floor else 0.0
         for late, end in self.late:
