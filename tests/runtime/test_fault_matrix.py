@@ -143,15 +143,17 @@ ROWS: dict[str, Row] = {
 }
 
 
-def matrix_config(tmp_path: Path, timing: str, **profile_changes: object) -> Config:
+def matrix_config(tmp_path: Path, timing: str, *overrides: str, **profile_changes: object) -> Config:
+    """The rows' run: 0.4 s of the demo on an ODrive 0.6 (real time: the relaxed profile and
+    feedback timeout of tests/runtime/helpers.py), ``overrides`` last."""
     base = (*STEP_FROM_ZERO, "loop.duration=0.4")
     if timing == "lockstep" and not profile_changes:
-        return demo_config("drive.profile=odrive-0.6", *base)
+        return demo_config("drive.profile=odrive-0.6", *base, *overrides)
     if timing == "lockstep":
         profile = write_profile(tmp_path, "odrive-0.6", **profile_changes)
-        return demo_config(f"drive.profile={profile}", *base)
+        return demo_config(f"drive.profile={profile}", *base, *overrides)
     profile = realtime_profile(tmp_path, "odrive-0.6", **profile_changes)
-    return demo_config(f"drive.profile={profile}", f"loop.timing={timing}", *base, *REALTIME_SLACK)
+    return demo_config(f"drive.profile={profile}", f"loop.timing={timing}", *base, *REALTIME_SLACK, *overrides)
 
 
 def kill_self(signum: int) -> Callable[[], None]:
