@@ -30,8 +30,8 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
                    help="the drive profile (name or path): decodes a CAN log imported with dobhil log import; "
                    "a dobhil log must have been recorded with its protocol")
     p.add_argument("--period", type=float, metavar="SECONDS",
-                   help="a CAN log's control period (default: the round period the spacing of its motion frames "
-                   "scatters around: the median spacing snapped to a whole microsecond or hertz within 0.1 %%)")
+                   help="a CAN log's control period (default: the period its motion frames' stamps scatter around, "
+                   "late ones left out: their least-squares slope, snapped to a whole microsecond when near)")
     p.add_argument("--axis", metavar="NAME",
                    help="the axis of a log of several axes to identify (its records and its bus' frames; "
                    "a coupled axis' environment is its coupling plus its own)")

@@ -85,8 +85,8 @@ def read_log(path: str | os.PathLike[str], *, protocol: str | None = None,
              axis: str | None = None) -> IdentData:
     """The :class:`IdentData` of a log: a dobhil run's loop records, or -- a CAN log imported
     with ``dobhil log import``, frames only -- its frames decoded with ``profile`` (required
-    then; ``period``: its control period, default the round period the spacing of its motion
-    frames scatters around, :func:`dobhil.identify.period.nominal_period`).
+    then; ``period``: its control period, default the round period the stamps of its motion
+    frames scatter around, :func:`dobhil.identify.period.frame_lattice`).
     ``protocol``: the protocol the user expects (their drive profile's); a log of
     another one is refused. A log without motion is refused (nothing to identify).
     LogFileError / ConfigError, one line, otherwise. ``axis``: the axis of a several-axis log
@@ -141,9 +141,10 @@ def _from_frames(log: object, name: str, profile: DriveProfile | None, period: f
     """Samples of a frames-only log: the feedback decoded by the profile's drive class (as a
     replay does), the torque by the profile's emulated drive -- the torque its plant would
     receive, protocol state included (an RPDO waits for its SYNC, a disabled axis applies 0).
-    Sample k is motion frame k; its torque is what the frames before motion frame k+1 left
-    applied. The period is the round period the motion frames' spacing scatters around
-    (:func:`~dobhil.identify.period.nominal_period`).
+    A motion frame's sample is the deadline its stamp belongs to; its torque is what the
+    frames before the next motion frame left applied. The period is the round period the
+    motion frames' stamps scatter around, unless given, and a deadline no motion frame came
+    for breaks the samples as a skipped cycle does (:func:`~dobhil.identify.period.frame_lattice`).
 
     Both decoders get every frame, whichever topic holds it: the recorded direction is the
     recording program's view, not the drive's. A capture by another program on the bus
@@ -180,22 +181,23 @@ def _from_frames(log: object, name: str, profile: DriveProfile | None, period: f
         raise ConfigError(f"{name}: {len(motion)} frames decode as motion feedback of a {profile.protocol!r} drive "
                           f"(node {profile.node_id}); is the log of another protocol or node than profile "
                           f"{profile.name or profile.protocol!r}?")
-    stamps = np.array([m[0] for m in motion])
+    from dobhil.identify.period import frame_lattice
+    lattice = frame_lattice(np.array([m[0] for m in motion]))
     if period is None:
-        from dobhil.identify.period import nominal_period
-        period, _ = nominal_period(stamps)   # the round period the stamps scatter around
+        period = lattice.period   # the round period the stamps scatter around
     if not (math.isfinite(period) and period > 0.0):
         raise ConfigError(f"{name}: no control period (the motion frames' timestamps do not increase); "
                           "give it with --period SECONDS")
     emulated = make_emulated_drive(_Sink(), profile, Plant(inertia=1.0))  # type: ignore[arg-type]
     torque, i = [], 0
     for k in range(len(motion)):
-        until = stamps[k + 1] if k + 1 < len(motion) else math.inf
+        until = motion[k + 1][0] if k + 1 < len(motion) else math.inf
         while i < len(frames) and frames[i].timestamp < until:
             emulated.deliver(frames[i])
             i += 1
         torque.append(emulated.applied_torque)
-    rows = {k: [p, v, u] for k, ((_, p, v), u) in enumerate(zip(motion, torque))}
+    # a deadline no motion frame came for (lost, or never sent) is a gap, as a skipped cycle
+    rows = {int(k): [p, v, u] for k, (_, p, v), u in zip(lattice.number, motion, torque)}
     return _samples(rows, period, name, profile.protocol, {})
 
 

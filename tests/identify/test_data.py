@@ -141,7 +141,7 @@ def test_imported_can_log_decodes_like_the_loop_records(logs: dict[str, Path], i
     assert frames.torque[n] == 0.0 != loop.torque[-1]
     assert frames.torque[0] == 0.0   # before the first command
     default = read_log(imported, profile=load_profile("odrive-0.6"))
-    assert default.period == pytest.approx(1e-3, rel=0.05)   # the frames' median spacing
+    assert default.period == pytest.approx(1e-3, rel=0.05)   # the period the frames' stamps show
 
 
 def test_imported_can_log_needs_its_profile(imported: Path) -> None:
@@ -225,3 +225,29 @@ def test_a_log_with_a_skipped_cycle_fits_its_longest_run_and_says_so() -> None:
     assert gaps_note(whole) == "" and whole.first_cycle == 0 and whole.samples == 400
     with pytest.raises(LogFileError, match="30 consecutive usable control cycles at most \\(of 59"):
         _samples({k: [0.0, 0.0, 0.0] for k in range(60) if k != 29}, 1e-3, "short.mcap", "odrive", {})
+
+
+def test_a_motion_frame_lost_breaks_the_samples(logs: dict[str, Path], tmp_path: Path) -> None:
+    """One encoder frame taken out of the candump log, 40 % in: the samples break at its
+    deadline (dobhil/identify/period.py numbers the frames by deadline), so the longest
+    unbroken run is the 60 % after it, not the whole log shifted by one sample."""
+    from dobhil.cli.main import main
+    from dobhil.drives.load import load_profile
+    from dobhil.drives.odrive import codec
+    from dobhil.drives.odrive.codec import CmdId
+    dumped = tmp_path / "c.log"
+    assert main(["log", "export", str(logs["contact"]), "--can", "--format", "candump", "-o", str(dumped)]) == 0
+    encoder = f" {codec.arbitration_id(3, CmdId.GET_ENCODER_ESTIMATES):03X}#"
+    lines = dumped.read_text(encoding="utf-8").splitlines(keepends=True)
+    motion = [i for i, line in enumerate(lines) if encoder in line]
+    lost = motion[int(0.4 * len(motion))]
+    (tmp_path / "lost.log").write_text("".join(lines[:lost] + lines[lost + 1:]), encoding="utf-8")
+    for name in ("c", "lost"):
+        assert main(["log", "import", str(tmp_path / f"{name}.log"), "-o", str(tmp_path / f"{name}.mcap")]) == 0
+    profile = load_profile("odrive-0.6")
+    whole, broken = (read_log(tmp_path / f"{name}.mcap", profile=profile) for name in ("c", "lost"))
+    assert whole.period == broken.period == 1e-3
+    assert whole.samples == len(motion) and whole.first_cycle == 0
+    after = len(motion) - int(0.4 * len(motion)) - 1
+    assert (broken.samples, broken.first_cycle) == (after, int(0.4 * len(motion)) + 1)
+    np.testing.assert_array_equal(broken.position, whole.position[-after:])

@@ -132,7 +132,7 @@ def _agree(mcap: dict[str, Any], capture: dict[str, Any], tolerance: dict[str, f
 
 def test_candump_log_identifies_like_the_runs_own_mcap(vcan: str, dobhil: Dobhil, tmp_path: Path) -> None:
     """The candump log of a real-time excitation run, imported and identified with ``--drive``
-    (its period the median spacing of its microsecond stamps), against the run's MCAP (its
+    (its period the one its microsecond stamps scatter around), against the run's MCAP (its
     loop records, ``loop.period``) over the same samples. A free segment's fit is the same
     under a change of the time unit with the inertia and the delay scaled alike (``J dv/dt =
     u - b v - F_c sgn v`` keeps its form), so those two are compared per period; every value
