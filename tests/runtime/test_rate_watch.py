@@ -5,16 +5,20 @@ slow replies there measure the host, whose lateness the overruns already count."
 
 from __future__ import annotations
 
+import re
 import time
 from types import SimpleNamespace
 from typing import Any
 
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from dobhil.drives.base import Confirmation, Feedback, SafeStopReport
 from dobhil.drives.load import load_profile
 from dobhil.drives.registry import drive_class
-from dobhil.runtime.loop import ForceLoop, Limits, LoopSettings, Timing
+from dobhil.drives.ticks import MAX_LAG_PERIODS
+from dobhil.runtime.loop import ForceLoop, Limits, LoopSettings, Timing, _Halt, _RateWatch
 from dobhil.runtime.session import build_controller
 from dobhil.runtime.stop import StopReason
 
@@ -103,3 +107,72 @@ def test_the_stop_is_in_the_protocols_words(name: str, words: tuple[str, ...]) -
         assert text in result.stop.detail, result.stop.detail
     if profile.protocol != "odrive":
         assert "encoder" not in result.stop.detail
+
+
+def _sent(ticks: int, keep: int, stalls: list[tuple[float, float]]) -> list[float]:
+    """[periods] when a sender scheduled as ``run_ticks`` schedules the emulated drive
+    (dobhil/drives/ticks.py: every deadline's frame, late ones as soon as it runs, 5e-3
+    periods each) sends every ``keep``-th tick's frame, not scheduled in ``stalls``
+    (start, length); its skipping ticks more than MAX_LAG_PERIODS behind is left out."""
+    now, out = 0.0, []
+    for n in range(1, ticks + 1):
+        now = max(now, float(n))
+        for start, length in stalls:
+            if start <= now < start + length:
+                now = start + length
+        if n % keep == 0:
+            out.append(now)
+        now += 5e-3
+    return out
+
+
+def _watched(stamps: list[float]) -> str | None:
+    """The rate watch's stop detail over ``stamps`` [periods] (1 ms), one frame per cycle;
+    None when it let them all pass."""
+    watch = _RateWatch(1e-3)
+    try:
+        for stamp in stamps:
+            watch.frame(stamp * 1e-3, 1)
+    except _Halt as halt:
+        assert halt.reason is StopReason.FEEDBACK_TIMEOUT
+        return halt.detail
+    return None
+
+
+STALLS = st.lists(st.tuples(st.floats(1.0, 390.0), st.floats(0.5, MAX_LAG_PERIODS - 0.5)), max_size=6)
+
+
+@settings(max_examples=300, deadline=None)
+@given(stalls=STALLS)
+def test_bursts_of_a_sender_at_the_loop_period_are_not_slow(stalls: list[tuple[float, float]]) -> None:
+    """A sender at the loop period that was not scheduled for up to 9.5 periods, up to six
+    times, sends what it missed in a burst: one long interval and short ones, never seven
+    slow of ten (each slow interval takes a stall of its own)."""
+    assert _watched(_sent(400, 1, stalls)) is None
+
+
+@settings(max_examples=300, deadline=None)
+@given(keep=st.integers(2, 4), stalls=STALLS)
+def test_a_slower_sender_is_found_through_its_bursts(keep: int, stalls: list[tuple[float, float]]) -> None:
+    """The same sender keeping every 2nd to 4th frame (a drive streaming slower than the
+    loop: row "drive-slower-than-profile" of tests/runtime/test_fault_matrix.py), up to six
+    stalls: it is stopped, naming a slow interval's figure."""
+    _assert_stopped(_watched(_sent(400, keep, stalls)))
+
+
+@pytest.mark.parametrize(("every", "length"), [(12, 5.0), (20, 5.0), (40, 9.0)])
+def test_a_slower_sender_stalled_again_and_again_is_found(every: int, length: float) -> None:
+    """A sender keeping every 4th frame, not scheduled for ``length`` periods every
+    ``every``: each stall's burst puts a short interval among the slow ones (1.49 periods,
+    or 0.02 and 1.47), so no ten slow intervals come in a row, and a rule that waits for
+    them lets the run end; 7 of 10 are slow all the same. The sender keeping every frame,
+    stalled alike, is not stopped."""
+    stalls = [(every * j + 1.5, length) for j in range(400 // every)]
+    _assert_stopped(_watched(_sent(400, 4, stalls)))
+    assert _watched(_sent(400, 1, stalls)) is None
+
+
+def _assert_stopped(detail: str | None) -> None:
+    assert detail is not None and re.search(r"\(7 of the last (8|9|10) intervals\)", detail), detail
+    every = float(detail.split("come every ")[1].split(" ms")[0])
+    assert every > 1.5

@@ -234,8 +234,8 @@ def test_drive_queue_full_mid_run(dobhil: Dobhil, tmp_path: Path) -> None:
         drops = qdisc_stats(drive_end)["drops"]
     summary = summary_json(run)
     assert summary["stop_reason"] == "feedback_timeout", summary
-    found = re.search(r"^encoder estimates come every ([0-9.]+) ms \(10 in a row\), expected every "
-                      r"loop\.period = ", summary["stop_detail"])
+    found = re.search(r"^encoder estimates come every ([0-9.]+) ms \(7 of the last (?:8|9|10) intervals\), "
+                      r"expected every loop\.period = ", summary["stop_detail"])
     assert found, summary["stop_detail"]
     assert summary["drive_disabled"] is True and summary["drive_warning"] == "", summary
     candidates = intervals_before_stop(capture, host_end)
