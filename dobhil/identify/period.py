@@ -21,7 +21,8 @@ deadlines it missed; a frame lost on the bus leaves its number out). The period 
 least-squares slope of the stamps against those numbers (the jitter and the rounding average
 out, ~jitter / n^1.5), frames further than :data:`CLIP` standard deviations off the line left
 out (the late ones of a burst), the lattice refined on a window that doubles until it spans
-the log (a first guess off by a percent drifts half a period only after 50 frames). A
+the log (a first guess off by a percent drifts half a period only after 50 frames), the
+first window the log's most regular stretch and its phase an on-time frame's. A
 control loop runs at a whole number of microseconds: the slope is snapped to it when within
 :data:`SNAP` plus three of the slope's standard errors (a host clock's skew, tens of ppm, is
 below SNAP; a loop period that is not whole -- 333.33 us -- keeps the slope itself).
@@ -83,20 +84,33 @@ def frame_lattice(stamps: NDArray[np.float64]) -> Lattice:
         return Lattice(float("nan"), "mean", in_turn)
     if t.size < 3:
         return Lattice(median, "mean", in_turn)
-    slope, offset, stderr = median, 0.0, 0.0
-    window = min(t.size, _FIRST_WINDOW)
+    lo = _quietest(spacing, median, min(t.size, _FIRST_WINDOW))
+    hi = lo + min(t.size, _FIRST_WINDOW)
+    slope, offset, stderr = median, float(t[lo]), 0.0   # the lattice through an on-time frame
     while True:
-        number = _numbers(t[:window], slope, offset)
-        slope, offset, stderr = _clipped_fit(number, t[:window], slope)
-        if window == t.size:
+        number = _numbers(t[lo:hi], slope, offset)
+        slope, offset, stderr = _clipped_fit(number, t[lo:hi], slope)
+        if lo == 0 and hi == t.size:
             break
-        window = min(t.size, 2 * window)
+        grow = hi - lo
+        lo, hi = max(0, lo - grow // 2), min(t.size, hi + grow - grow // 2)
     number = _numbers(t, slope, offset)
     number -= number[0]
     whole = round(slope * 1e6) * 1e-6
     if whole > 0.0 and abs(whole - slope) <= SNAP * slope + 3.0 * stderr:
         return Lattice(whole, "nominal", number)
     return Lattice(slope, "mean", number)
+
+
+def _quietest(spacing: NDArray[np.float64], median: float, frames: int) -> int:
+    """The first frame of the ``frames`` consecutive ones whose spacing strays least from
+    ``median`` (the most regular stretch: frames on time, no burst in it -- a lattice
+    started on a burst's late frames would put the on-time ones half a period off)."""
+    if frames < 2 or spacing.size < frames - 1:
+        return 0
+    from numpy.lib.stride_tricks import sliding_window_view
+    stray = np.abs(spacing - median)
+    return int(np.argmin(sliding_window_view(stray, frames - 1).max(axis=1)))
 
 
 def _numbers(t: NDArray[np.float64], period: float, offset: float) -> NDArray[np.int64]:
