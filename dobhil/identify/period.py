@@ -19,8 +19,8 @@ stamp rounded to the nearest deadline, then, as stamps only ever come late, a fr
 rounds onto or past the next frame's deadline takes the one before (a burst fills the
 deadlines it missed; a frame lost on the bus leaves its number out). The period ``T`` is the
 least-squares slope of the stamps against those numbers (the jitter and the rounding average
-out, ~jitter / n^1.5), frames further than :data:`CLIP` standard deviations off the line left
-out (the late ones of a burst), the lattice refined on a window that doubles until it spans
+out, ~jitter / n^1.5), frames further than :data:`CLIP` robust standard deviations off the
+line left out (the late ones of a burst), the lattice refined on a window that doubles until it spans
 the log (a first guess off by a percent drifts half a period only after 50 frames), the
 first window the log's most regular stretch and its phase an on-time frame's. A
 control loop runs at a whole number of microseconds: the slope is snapped to it when within
@@ -127,8 +127,9 @@ def _clipped_fit(number: NDArray[np.int64], t: NDArray[np.float64], guess: float
     """(slope, offset, the slope's standard error) of ``t`` against ``number`` by least
     squares over the stamps within :data:`CLIP` robust standard deviations (1.4826 times the
     median absolute deviation) of the line; the first line ``guess``'s slope through the
-    lower quarter of the stamps. Why robust: a burst's late stamps at a window's end pull a least-squares
-    line towards them far enough to hide inside three of its own standard deviations."""
+    lower quarter of the stamps. Why robust: a burst's late stamps at a window's end pull a
+    least-squares line towards them far enough to hide inside three of its own standard
+    deviations."""
     k = number.astype(float)
     slope, offset = guess, float(np.median(t - guess * k))
     keep = np.ones(t.size, dtype=bool)

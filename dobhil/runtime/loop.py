@@ -374,8 +374,9 @@ class _RateWatch:
 
     Why not ``RUN`` in a row: a sender that was not scheduled for a while sends what it
     missed in a burst (the emulated drive does, ``dobhil/drives/ticks.py``), and a burst
-    breaks a row of slow intervals with short ones -- on a loaded host a drive streaming 4
-    times slower than the loop ran a 0.4 s run to its end. A stream at the loop period
+    breaks a row of slow intervals with short ones: on a loaded host a drive streaming 4
+    times slower than the loop can run a 0.4 s run to its end with no ten in a row (stalls
+    that do so: tests/runtime/test_rate_watch.py). A stream at the loop period
     cannot have 7 slow intervals of 10: each one long is paid back by short ones, and 7
     above 1.5 periods add up to more than the 10 periods the ten span, unless the sender
     fell more than half a period further behind within them -- that is, it was slower."""
