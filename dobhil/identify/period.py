@@ -33,6 +33,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from numpy.lib.stride_tricks import sliding_window_view
 from numpy.typing import NDArray
 
 __all__ = ["CLIP", "SNAP", "Lattice", "frame_lattice", "nominal_period"]
@@ -108,7 +109,6 @@ def _quietest(spacing: NDArray[np.float64], median: float, frames: int) -> int:
     started on a burst's late frames would put the on-time ones half a period off)."""
     if frames < 2 or spacing.size < frames - 1:
         return 0
-    from numpy.lib.stride_tricks import sliding_window_view
     stray = np.abs(spacing - median)
     return int(np.argmin(sliding_window_view(stray, frames - 1).max(axis=1)))
 

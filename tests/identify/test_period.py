@@ -14,6 +14,7 @@ from hypothesis import strategies as st
 from dobhil.cli.main import main
 from dobhil.drives.ticks import MAX_LAG_PERIODS
 from dobhil.identify.period import SNAP, frame_lattice, nominal_period
+from tests.late_sender import catch_up_sends
 
 
 @settings(max_examples=200, deadline=None)
@@ -48,28 +49,18 @@ def test_jittered_stamps_give_their_round_period(micro: int, jitter: float, skew
 
 def _ticks(period: float, frames: int, stalls: list[tuple[float, float]], jitter: float, skew: float,
            seed: int) -> tuple[np.ndarray, np.ndarray]:
-    """(receive stamps, tick numbers) of a sender scheduled as dobhil/drives/ticks.py
-    ``run_ticks`` schedules the emulated drive: tick n's frame goes out at its deadline or,
-    late, as soon as the sender runs (5 us per frame: a burst after a stall); ``stalls``
-    (start, length) in periods, the sender not scheduled; every frame received ``[0, jitter)``
-    periods later, in the order sent; the clock skewed by ``skew``."""
+    """(receive stamps, tick numbers) of the catching-up sender of tests/late_sender.py, 5 us
+    per frame, on a clock skewed by ``skew``; every frame received ``[0, jitter)`` periods
+    later, in the order sent."""
     rng = np.random.default_rng(seed)
     step = period * (1 + skew)
-    now, n, sent, numbers = 0.0, 1, [], []
-    while len(sent) < frames:
-        now = max(now, n * step)
-        for start, length in stalls:
-            if start * step <= now < (start + length) * step:
-                now = (start + length) * step
-        sent.append(now)
-        numbers.append(n)
-        now += 5e-6
-        n += 1
-        # more than MAX_LAG_PERIODS behind, run_ticks skips ticks: their frames are never
-        # sent, and one sent that late cannot be told from the one after it
-        assume(now - n * step <= MAX_LAG_PERIODS * step)
-    received = np.maximum.accumulate(np.array(sent) + rng.uniform(0.0, jitter * period, frames))
-    return received, np.array(numbers)
+    sent = catch_up_sends(frames, stalls, 5e-6 / step)
+    numbers = np.arange(1, frames + 1)
+    # more than MAX_LAG_PERIODS behind, run_ticks skips ticks: their frames are never sent,
+    # and one sent that late cannot be told from the one after it
+    assume(bool(np.all(sent + 5e-6 / step - (numbers + 1) <= MAX_LAG_PERIODS)))
+    received = np.maximum.accumulate(sent * step + rng.uniform(0.0, jitter * period, frames))
+    return received, numbers
 
 
 @settings(max_examples=200, deadline=None)

@@ -21,6 +21,7 @@ from dobhil.drives.ticks import MAX_LAG_PERIODS
 from dobhil.runtime.loop import ForceLoop, Limits, LoopSettings, Timing, _Halt, _RateWatch
 from dobhil.runtime.session import build_controller
 from dobhil.runtime.stop import StopReason
+from tests.late_sender import catch_up_sends
 
 from .helpers import demo_config
 
@@ -110,20 +111,9 @@ def test_the_stop_is_in_the_protocols_words(name: str, words: tuple[str, ...]) -
 
 
 def _sent(ticks: int, keep: int, stalls: list[tuple[float, float]]) -> list[float]:
-    """[periods] when a sender scheduled as ``run_ticks`` schedules the emulated drive
-    (dobhil/drives/ticks.py: every deadline's frame, late ones as soon as it runs, 5e-3
-    periods each) sends every ``keep``-th tick's frame, not scheduled in ``stalls``
-    (start, length); its skipping ticks more than MAX_LAG_PERIODS behind is left out."""
-    now, out = 0.0, []
-    for n in range(1, ticks + 1):
-        now = max(now, float(n))
-        for start, length in stalls:
-            if start <= now < start + length:
-                now = start + length
-        if n % keep == 0:
-            out.append(now)
-        now += 5e-3
-    return out
+    """[periods] when the catching-up sender of tests/late_sender.py (5e-3 periods per frame)
+    sends every ``keep``-th tick's frame."""
+    return [float(t) for t in catch_up_sends(ticks, stalls, 5e-3)[keep - 1::keep]]
 
 
 def _watched(stamps: list[float]) -> str | None:
