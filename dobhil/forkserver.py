@@ -60,6 +60,8 @@ MAX_FDS = 16
 MAX_REQUEST = 1 << 20
 #: the exit status a pipe carries: the ``subprocess`` convention (negative: the signal)
 _STATUS = struct.Struct("<i")
+#: the signals whose handling a child sets for itself (:func:`_child`)
+_CHANGED = frozenset({signal.SIGINT, signal.SIGTERM, signal.SIGCHLD})
 #: returncode of a child whose status was lost with its server (the server was killed)
 LOST = -255
 
@@ -336,7 +338,18 @@ def _fork(ctl: socket.socket, msg: bytes, fds: list[int], pipes: dict[int, int],
     status_r, status_w = os.pipe()
     sys.stdout.flush()
     sys.stderr.flush()
-    pid = os.fork()
+    # the signals whose handlers the child changes are blocked from the fork until it has
+    # its caller's mask: one sent to the new pid early stays pending (on Linux a blocked
+    # signal is kept even where the server ignores it), then goes where a child the caller
+    # started itself would take it -- held on by a caller that blocked it (a run's writer),
+    # delivered to the child's own handler otherwise -- never raised while the request is
+    # still being read
+    held = signal.pthread_sigmask(signal.SIG_BLOCK, _CHANGED)
+    try:
+        pid = os.fork()
+    except BaseException:
+        signal.pthread_sigmask(signal.SIG_SETMASK, held)
+        raise
     if pid == 0:
         signal.set_wakeup_fd(-1)   # before its pipe closes
         os.close(status_r)
@@ -347,6 +360,7 @@ def _fork(ctl: socket.socket, msg: bytes, fds: list[int], pipes: dict[int, int],
         for fd in own:
             os.close(fd)
         _child(msg, fds)   # never returns
+    signal.pthread_sigmask(signal.SIG_SETMASK, held)
     for fd in fds:
         os.close(fd)
     pipes[pid] = status_w

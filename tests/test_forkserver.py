@@ -63,6 +63,22 @@ def exit_with(code: int) -> None:
     sys.exit(code)
 
 
+def ignore_sigint(fd: int, *_: object) -> None:
+    """What a run's writer does first (dobhil/recording/process.py, ``main``): ignore SIGINT,
+    then unblock it; then say so on ``fd``."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
+    os.write(fd, b"alive")
+
+
+class SigintOnArrival:
+    """An argument whose unpickling, in the child, raises SIGINT there: a Ctrl-C (or a
+    ``kill``) that reaches the new pid while it still reads its request, every time."""
+
+    def __reduce__(self) -> tuple[object, tuple[int]]:
+        return signal.raise_signal, (int(signal.SIGINT),)
+
+
 def _ask(server: ForkServer, *words: str) -> list[str]:
     mine, theirs = socket.socketpair()
     with mine, theirs:
@@ -142,6 +158,38 @@ def test_the_calling_thread_s_affinity_nice_value_and_signal_mask() -> None:
     assert answers[0] == [str(cpu), str(nice + 4), str(int(signal.SIGUSR1))]
     assert main[:3] == [",".join(str(c) for c in sorted(os.sched_getaffinity(0))), str(nice), ""]
     assert main[3] == str(signal.default_int_handler)   # Python's default, as python -c
+
+
+def test_a_sigint_before_the_child_has_its_caller_s_mask_waits_for_it() -> None:
+    """A SIGINT that reaches the child while it reads its request (before it has its caller's
+    mask): from a caller with SIGINT blocked, it stays pending and the child that then
+    ignores it runs on, as a run's writer must; from a caller without, the child gets it as
+    its own KeyboardInterrupt, as a child the caller started itself would (exit 1)."""
+    srv = ForkServer(["tests.test_forkserver"])
+    outcomes: dict[str, tuple[int | None, bytes]] = {}
+
+    def start(name: str) -> None:
+        mine, theirs = socket.socketpair()
+        with mine, theirs:
+            child = srv.start("tests.test_forkserver:ignore_sigint", (SigintOnArrival(),), [theirs.fileno()])
+            code = child.wait(30)
+            theirs.close()
+            mine.settimeout(5)
+            outcomes[name] = (code, mine.recv(64))
+
+    def blocked() -> None:
+        signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+        start("blocked")
+
+    try:
+        thread = threading.Thread(target=blocked)
+        thread.start()
+        thread.join()
+        start("unblocked")
+    finally:
+        srv.close()
+    assert outcomes["blocked"] == (0, b"alive")
+    assert outcomes["unblocked"] == (1, b"")
 
 
 def test_the_call_s_resource_limits(server: ForkServer) -> None:
