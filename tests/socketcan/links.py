@@ -32,6 +32,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+from scipy.sparse import csr_matrix
+from scipy.sparse.csgraph import maximum_bipartite_matching
+
 from .guest import START_TIMEOUT, Dumped, read_candump
 
 _names = itertools.count()
@@ -170,19 +174,25 @@ def transit_delays(sent: Sequence[Dumped], received: Sequence[Dumped], least: fl
     return out
 
 
-def same_values(measured: Sequence[float], truth: Sequence[tuple[float, ...]], within: float) -> bool:
-    """Every value of ``measured`` is one of the values of a distinct entry of ``truth``,
-    give or take ``within`` (matched in increasing order, each entry at most once)."""
-    candidates = sorted((value, i) for i, values in enumerate(truth) for value in values)
-    used: set[int] = set()
-    j = 0
-    for value in sorted(measured):
-        while j < len(candidates) and candidates[j][0] < value - within:
-            j += 1
-        k = j
-        while k < len(candidates) and candidates[k][0] <= value + within and candidates[k][1] in used:
-            k += 1
-        if k == len(candidates) or candidates[k][0] > value + within:
-            return False
-        used.add(candidates[k][1])
-    return True
+def unmatched(measured: Sequence[float], truth: Sequence[tuple[float, ...]], within: float) -> list[float]:
+    """The values of ``measured`` left over when each is paired with a distinct entry of
+    ``truth`` one of whose values it equals, give or take ``within``, as many as can be (a
+    maximum bipartite matching: scipy's ``maximum_bipartite_matching``). Empty: every
+    measured value is one of the truth's, each entry used once.
+
+    Why a matching and not the first free entry in increasing order: an entry has two
+    values (a sample from its SYNC, or from the one before), and at microsecond tolerance
+    a short latency can take the entry whose longer value another measurement needs while
+    a twin entry with the same short value stays free; a matching finds the pairing
+    whenever one exists."""
+    flat = sorted((value, i) for i, values in enumerate(truth) for value in values)
+    values = [value for value, _ in flat]
+    rows: list[int] = []
+    cols: list[int] = []
+    for row, value in enumerate(measured):
+        for _, entry in flat[bisect.bisect_left(values, value - within):bisect.bisect_right(values, value + within)]:
+            rows.append(row)
+            cols.append(entry)
+    graph = csr_matrix((np.ones(len(rows)), (rows, cols)), shape=(len(measured), len(truth)))
+    pair = maximum_bipartite_matching(graph, perm_type="column")
+    return [value for value, entry in zip(measured, pair) if entry < 0]
