@@ -23,7 +23,8 @@ and the same :class:`~dobhil.emulator.plant.Plant` in a child process instead:
 - the child dies with its parent: it blocks on its end of the socket pair, and reads the
   end of the stream when the parent's end closes -- also when the parent is killed. It
   ignores SIGINT and SIGTERM (a Ctrl-C reaches the whole process group, and the drive must
-  outlive the host's safe stop to confirm the disable, as a real drive would);
+  outlive the host's safe stop to confirm the disable, as a real drive would), and is
+  started with both blocked, so that one sent before it ignores them waits and is dropped;
 - every failure of the child reaches the host as one line: a FAILED record before it
   exits, or the end of the stream with its exit code (:class:`~can.CanOperationError` on
   the host's bus, a ``bus_error`` stop of the run), never a traceback;
@@ -283,6 +284,16 @@ class EmulatorProcess:
     # -- life -----------------------------------------------------------------
 
     def _start(self, child_end: socket.socket) -> subprocess.Popen[bytes] | forkserver.Child:
+        # SIGINT/SIGTERM blocked while the child starts (it inherits the mask, ignores both,
+        # then unblocks them, :func:`child_main`): a Ctrl-C in its first milliseconds ends
+        # the drive no sooner than one later would -- after the host's safe stop
+        old = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT, signal.SIGTERM})
+        try:
+            return self._spawn(child_end)
+        finally:
+            signal.pthread_sigmask(signal.SIG_SETMASK, old)
+
+    def _spawn(self, child_end: socket.socket) -> subprocess.Popen[bytes] | forkserver.Child:
         fds = (child_end.fileno(), self._shared.fd)
         if forkserver.available():
             # forked from a process that imported the drive code once (dobhil/forkserver.py:
@@ -629,6 +640,7 @@ def child_main(sock_fd: int, status_fd: int, specs_pickled: bytes | None = None)
     # the drive outlives the host's signals: it must confirm the host's safe stop
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT, signal.SIGTERM})   # blocked by _start
     sock = socket.socket(fileno=sock_fd)
     sock.setblocking(False)
     status = _Shared(status_fd).blocks

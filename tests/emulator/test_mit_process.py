@@ -8,6 +8,7 @@ Waits poll with a generous bound; nothing asserts wall-clock timing."""
 from __future__ import annotations
 
 import os
+import signal
 import time
 from pathlib import Path
 
@@ -95,3 +96,44 @@ def test_emulator_process_answers_applies_and_times_out(start: str,
             assert process.axis_state == process.protocol_state
         with pytest.warns(DeprecationWarning, match="axis_error is renamed protocol_error"):
             assert process.axis_error == process.protocol_error == 0
+
+
+def _mask(pid: int, field: str) -> set[int]:
+    """The signals of ``SigBlk``/``SigIgn`` in /proc/PID/status (proc(5): a hex bit mask,
+    bit n-1 for signal n)."""
+    line = next(x for x in Path(f"/proc/{pid}/status").read_text().splitlines() if x.startswith(f"{field}:"))
+    bits = int(line.split()[1], 16)
+    return {n for n in range(1, 65) if bits >> (n - 1) & 1}
+
+
+@pytest.mark.parametrize("start", ["forked", "interpreter"])
+def test_the_emulated_drive_outlives_sigint_and_sigterm_from_its_start(start: str,
+                                                                      monkeypatch: pytest.MonkeyPatch) -> None:
+    """A Ctrl-C reaches the whole process group, and the drive must outlive the host's safe
+    stop: the child is started with SIGINT and SIGTERM blocked (a signal in its first
+    milliseconds waits: tests/test_forkserver.py shows a blocked one stays pending), then
+    ignores both and blocks neither; sent both, it still answers."""
+    if start == "interpreter":
+        monkeypatch.setattr(forkserver, "available", lambda: False)
+    elif not forkserver.available():
+        pytest.skip("no fork server on this platform")
+    masks: list[set[int]] = []
+    spawn = EmulatorProcess._spawn
+
+    def spy(self: EmulatorProcess, child_end: object) -> object:
+        masks.append(set(signal.pthread_sigmask(signal.SIG_BLOCK, [])))
+        return spawn(self, child_end)   # type: ignore[arg-type]
+
+    monkeypatch.setattr(EmulatorProcess, "_spawn", spy)
+    before = signal.pthread_sigmask(signal.SIG_BLOCK, [])
+    spec = EmulatorSpec.of(load_config("demo", ["plant.initial_position=-0.05"]), mit_profile(MINI_CHEETAH))
+    with EmulatorProcess(spec) as process:
+        assert signal.pthread_sigmask(signal.SIG_BLOCK, []) == before   # the caller's mask again
+        assert masks and {signal.SIGINT, signal.SIGTERM} <= masks[0]
+        assert process.pid is not None
+        assert {signal.SIGINT, signal.SIGTERM} <= _mask(process.pid, "SigIgn")
+        assert not {signal.SIGINT, signal.SIGTERM} & _mask(process.pid, "SigBlk")
+        os.kill(process.pid, signal.SIGINT)
+        os.kill(process.pid, signal.SIGTERM)
+        process.bus.send(can.Message(arbitration_id=1, data=ENTER, is_extended_id=False))
+        assert len(_reply(process.bus)) == 7 and process.running
