@@ -20,7 +20,7 @@ from dobhil.drives.odrive import codec
 from dobhil.drives.odrive.codec import AxisState, CmdId, Firmware
 from dobhil.drives.load import load_profile
 from dobhil.identify.data import IdentData, Segment, read_log
-from dobhil.identify.fit import LEVEL, simulate
+from dobhil.identify.fit import _SETTLED, LEVEL, simulate
 
 from .guest import CONFIGS, START_TIMEOUT, Dobhil, guest_overlay, read_candump, summary_json
 from .peers import crashes_say_where  # noqa: F401 (an autouse fixture: applies here)
@@ -83,7 +83,14 @@ def _tolerances(mcap: dict[str, Any], loop: IdentData, frames: IdentData, start:
     next feedback frame, the one before it). With ``dr`` that difference's effect on the
     velocity residual at the MCAP's estimates and ``s`` the residual's RMS, a least-squares
     estimate moves by at most ``stderr * |dr| / s`` (first order; Cauchy-Schwarz on
-    ``(J^T J)^-1 J^T dr``): the fit's own standard error sets the scale."""
+    ``(J^T J)^-1 J^T dr``): the fit's own standard error sets the scale.
+
+    Plus where each fit stops: its last round lowered the cost by less than ``_SETTLED``
+    noise variances (dobhil/identify/fit.py, ``_refine``), and a parameter ``x`` standard
+    errors off costs ``x^2`` of them, so each may end ``sqrt(_SETTLED)`` standard errors
+    short of the other's point. Without it, two fits that took different paths could not
+    agree: a capture with one command late (the previous torque in its sample) gave the
+    viscous friction 5e-4 standard errors from the MCAP's, 11 times the first-order part."""
     values = {k: e["value"] for k, e in mcap["estimates"].items() if e["identifiable"]}
     n = loop.samples
     initial = (float(loop.position[0]), float(loop.velocity[0]))
@@ -91,7 +98,8 @@ def _tolerances(mcap: dict[str, Any], loop: IdentData, frames: IdentData, start:
     at_t = dataclasses.replace(frames, period=loop.period)
     _, captured = simulate(values, at_t, Segment(start, start + n, "free"), initial)
     ratio = float(np.linalg.norm(captured - own)) / mcap["residual"]["rms"]
-    return {k: e["stderr"] * ratio for k, e in mcap["estimates"].items() if e["identifiable"]}
+    settled = 2.0 * math.sqrt(_SETTLED)
+    return {k: e["stderr"] * (ratio + settled) for k, e in mcap["estimates"].items() if e["identifiable"]}
 
 
 def _excitation(vcan: str, dobhil: Dobhil, tmp_path: Path) -> tuple[Path, Path, str]:
