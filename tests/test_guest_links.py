@@ -3,6 +3,8 @@ host: a pass or a failure there must be the run's, never the helper's."""
 
 from __future__ import annotations
 
+import random
+
 from hypothesis import given
 from hypothesis import strategies as st
 
@@ -22,9 +24,9 @@ def test_a_short_latency_does_not_take_the_entry_a_long_one_needs() -> None:
 
 
 def test_what_has_no_entry_is_named() -> None:
-    truth = [(3000 * US,), (4000 * US, 24000 * US)]
     """Two measurements of one entry, and one of none: two are left over, one of the pair
     and the one of none."""
+    truth = [(3000 * US,), (4000 * US, 24000 * US)]
     left = unmatched([3000.5 * US, 3000.7 * US, 9000 * US], truth, within=2 * US)
     assert len(left) == 2 and left[-1] == 9000 * US and left[0] in (3000.5 * US, 3000.7 * US)
 
@@ -33,13 +35,13 @@ def test_what_has_no_entry_is_named() -> None:
                 min_size=1, max_size=60),
        st.randoms(use_true_random=False))
 def test_every_measurement_of_a_distinct_entry_is_matched(samples: list[tuple[int, int, int, bool]],
-                                                          rnd: object) -> None:
+                                                          rnd: random.Random) -> None:
     """Entries (short, short + a jittered period) on a 1 us grid, dense enough to collide; each
     measured value one of a distinct entry's two, give or take less than the tolerance, in
     any order: nothing is left over. One more measurement than entries always is."""
     truth = [(short * US, (short + period) * US) for short, period, _, _ in samples]
     measured = [value[which] + (0.9 * US if nudge else -0.9 * US)
                 for value, (_, _, which, nudge) in zip(truth, samples)]
-    rnd.shuffle(measured)  # type: ignore[attr-defined]
+    rnd.shuffle(measured)
     assert unmatched(measured, truth, within=2 * US) == []
     assert len(unmatched([*measured, measured[0]], truth, within=2 * US)) == 1

@@ -87,10 +87,10 @@ def _tolerances(mcap: dict[str, Any], loop: IdentData, frames: IdentData, start:
 
     Plus where each fit stops: its last round lowered the cost by less than ``_SETTLED``
     noise variances (dobhil/identify/fit.py, ``_refine``), and a parameter ``x`` standard
-    errors off costs ``x^2`` of them, so each may end ``sqrt(_SETTLED)`` standard errors
-    short of the other's point. Without it, two fits that took different paths could not
-    agree: a capture with one command late (the previous torque in its sample) gave the
-    viscous friction 5e-4 standard errors from the MCAP's, 11 times the first-order part."""
+    errors off costs ``x^2`` of them, so each may end up to ``sqrt(_SETTLED)`` standard
+    errors from the optimum. Measured in the guest: a capture with one command late (the
+    previous torque in its sample) and the MCAP fitted 5e-4 standard errors apart in the
+    viscous friction, 11 times the first-order part alone."""
     values = {k: e["value"] for k, e in mcap["estimates"].items() if e["identifiable"]}
     n = loop.samples
     initial = (float(loop.position[0]), float(loop.velocity[0]))
