@@ -79,18 +79,23 @@ def pytest_configure(config: pytest.Config) -> None:
     config.pluginmanager.register(module.CanvmPlugin(config), "canvm")
 
 
+_SLOW_ENTRIES = slow_entries(SLOW_LIST.read_text(encoding="utf-8"))
+
+
+def pytest_itemcollected(item: pytest.Item) -> None:
+    """Mark a listed test ``slow`` as it is collected: ``-m`` deselects in pytest's own
+    ``pytest_collection_modifyitems``, which sees only the marks already there."""
+    if is_listed(item.nodeid, _SLOW_ENTRIES):
+        item.add_marker(pytest.mark.slow)
+
+
 @pytest.hookimpl(trylast=True)   # after the guest's plugin has put its tests first
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
-    """Mark the listed tests ``slow``; run the files with the most listed seconds first
-    (:func:`slow_list.heaviest_first`), the kernel guest's tests still ahead of all."""
-    text = SLOW_LIST.read_text(encoding="utf-8")
-    entries = slow_entries(text)
-    for item in items:
-        if is_listed(item.nodeid, entries):
-            item.add_marker(pytest.mark.slow)
+    """Run the files with the most listed seconds first (:func:`slow_list.heaviest_first`),
+    the kernel guest's tests still ahead of all."""
     guest = [item for item in items if item.nodeid.startswith(GUEST_TESTS)]
     host = [item for item in items if not item.nodeid.startswith(GUEST_TESTS)]
-    order = heaviest_first([item.nodeid for item in host], slow_seconds(text))
+    order = heaviest_first([item.nodeid for item in host], slow_seconds(SLOW_LIST.read_text(encoding="utf-8")))
     items[:] = guest + [host[i] for i in order]
 
 

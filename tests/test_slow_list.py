@@ -5,6 +5,8 @@ marks what it lists and nothing else."""
 from __future__ import annotations
 
 import re
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -82,3 +84,23 @@ def test_this_run_is_in_that_order(request: pytest.FixtureRequest) -> None:
     assert len(runs) == len(set(runs)), "a file split in two"
     weights = [sum(v for e, v in seconds.items() if e.split("::", 1)[0] == f) for f in runs]
     assert weights == sorted(weights, reverse=True)
+
+
+def test_not_slow_leaves_out_what_the_list_names() -> None:
+    """pytest's own ``-m "not slow"`` run, on a file with listed and unlisted tests: it
+    collects exactly the unlisted ones (a mark added after pytest's deselection would leave
+    the whole suite in the edit loop's run)."""
+    path = "tests/analysis/test_coupled.py"
+    entries = slow_entries(SLOW_LIST.read_text(encoding="utf-8"))
+
+    def collected(*extra: str) -> list[str]:
+        done = subprocess.run([sys.executable, "-m", "pytest", "-p", "no:cacheprovider", "-p", "no:xdist",
+                               "--collect-only", "-q", *extra, path], capture_output=True, text=True,
+                              cwd=ROOT, timeout=300)
+        assert done.returncode == 0, done.stdout + done.stderr
+        return [line for line in done.stdout.splitlines() if line.startswith(f"{path}::")]
+
+    every = collected()
+    listed = [nodeid for nodeid in every if is_listed(nodeid, entries)]
+    assert listed and len(listed) < len(every)
+    assert collected("-m", "not slow") == [nodeid for nodeid in every if nodeid not in listed]
