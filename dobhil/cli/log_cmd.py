@@ -35,11 +35,13 @@ def _progress(desc: str, total: int | None) -> Iterator[Progress]:
         yield shown.update
 
 
-def _total(path: str) -> int | None:
+def _total(path: str, exported: Callable[[str], bool]) -> int:
+    """The messages of the topics ``exported`` picks: what the export will count, so its
+    last progress line reads 100 %."""
     from dobhil.recording.reader import open_log
 
     with open_log(path) as log:
-        return sum(c.message_count for c in log.channels())
+        return sum(c.message_count for c in log.channels() if exported(c.topic))
 
 
 def _stamp(ns: int) -> str:
@@ -107,7 +109,7 @@ def _export_topic(args: argparse.Namespace) -> int:
     if args.format != "csv":
         raise LogFileError(f"--topic exports only --format csv, got {args.format!r}")
     out = args.output or default_csv_output(args.file, args.topic)
-    with _progress("export", _total(args.file)) as update:
+    with _progress("export", _total(args.file, lambda topic: topic == args.topic)) as update:
         count = export_csv(args.file, args.topic, out, progress=update)
     print(f"wrote {count} rows of {args.topic} to {out}")
     return 0
@@ -115,10 +117,11 @@ def _export_topic(args: argparse.Namespace) -> int:
 
 def _export_can(args: argparse.Namespace) -> int:
     from dobhil.canio.canlog import default_can_output, export_can, parse_format
+    from dobhil.canio.frames import is_frame_topic
 
     fmt = parse_format(args.format)
     out = args.output or default_can_output(args.file, fmt)
-    with _progress("export", _total(args.file)) as update:
+    with _progress("export", _total(args.file, is_frame_topic)) as update:
         count = export_can(args.file, out, fmt, progress=update)
     print(f"wrote {count} CAN frames to {out}")
     return 0

@@ -98,6 +98,8 @@ def test_export_csv_columns_from_schema(tmp_path: Path, run_file: Path, capsys: 
                        "protocol_error", "protocol_error_text", "seq", "cycle"]
     assert len(rows) == 101 and rows[1] == ["1000000000", "0.0", "1.0", "code 8", "-1", "not reported", "0", "none",
                                             "0", "0"]
+    # the progress counts the exported topic's messages only: its last line is at 100 %
+    assert capsys.readouterr().err.splitlines()[-1].startswith("export: 100/100 messages (100 %)")
     assert main(["log", "export", str(run_file), "--topic", "/can/rx", "--format", "csv"]) == 0
     can_rows = list(csv.DictReader((tmp_path / "run.can_rx.csv").open()))
     assert can_rows[5]["data"] == "5" and can_rows[5]["is_fd"] == "false"
@@ -125,6 +127,8 @@ def test_export_flag_mismatch(run_file: Path, capsys: pytest.CaptureFixture[str]
 
 def test_export_can_and_import_by_cli(tmp_path: Path, run_file: Path, capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["log", "export", str(run_file), "--can", "--format", "asc"]) == 0
+    # the progress counts the CAN frames only, not the log's other messages
+    assert capsys.readouterr().err.splitlines()[-1].startswith("export: 100/100 messages (100 %)")
     asc = tmp_path / "run.asc"
     assert len(list(can.LogReader(asc))) == 100
     assert main(["log", "import", str(asc), "-o", str(tmp_path / "back.mcap")]) == 0
