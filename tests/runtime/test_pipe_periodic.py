@@ -143,6 +143,7 @@ def test_shutdown_stops_the_childs_tasks() -> None:
         while sum(m.arbitration_id == SYNC for m in stream) < 3 and time.monotonic() < end:
             if (msg := proc.bus.recv(0.5)) is not None:
                 stream.append(msg)
+        assert sum(m.arbitration_id == SYNC for m in stream) >= 3   # the task ran before it is stopped
         proc.bus.stop_all_periodic_tasks()   # what the bus's shutdown does first
         _stop_read(proc, proc.bus, stream)
 

@@ -324,7 +324,7 @@ def test_run_passes_preflight_and_runs(tmp_path: Path, capsys: pytest.CaptureFix
     captured = capsys.readouterr()
     assert "dobhil run: preflight: node 3: encoder estimates every" in captured.err, captured.err
     assert code == 0, captured.err + captured.out
-    assert "stop: done" in captured.out or "done" in captured.out
+    assert "stopped: done" in captured.out, captured.out
 
 
 def test_session_preflight_refuses_before_enable(tmp_path: Path) -> None:
