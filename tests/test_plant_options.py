@@ -224,6 +224,26 @@ def test_backlash_never_creates_energy() -> None:
     assert energy < 0.9 * released            # the environment's damper and b took their share
 
 
+def test_a_face_never_pulls_the_load_out_of_the_environment() -> None:
+    """Pressed, then backed away faster than the environment relaxes: a face can only push,
+    so it lets go, and the massless load's depth decays as a spring and damper alone make it,
+    by exp(-K T / D) per period (0.82 here), while the motor's face runs ahead of it."""
+    plant = Plant.from_config(Config(plant=PlantConfig(backlash=BETA, initial_position=-0.001),
+                                     environment=EnvironmentConfig(damping=50.0)))
+    for _ in range(40):
+        plant.step(4.0, DT)
+    assert plant.interaction_torque > 0.0
+    plant.step(-8.0, DT)
+    plant.step(-8.0, DT)       # the face has let go during these
+    depth = plant.load_position - plant.contact_position
+    for _ in range(6):
+        plant.step(-8.0, DT)
+        gap = plant.true_position - plant.load_position
+        assert abs(gap) < 0.5 * BETA - 1e-6 and plant.interaction_torque == 0.0
+    decay = math.exp(-plant.stiffness * 6 * DT / plant.damping)
+    assert plant.load_position - plant.contact_position == pytest.approx(depth * decay, rel=1e-9)
+
+
 @settings(max_examples=40, deadline=None)
 @given(st.lists(st.floats(-8.0, 8.0), min_size=1, max_size=200),
        st.floats(0.0, 0.6), st.floats(0.0, 50.0))
