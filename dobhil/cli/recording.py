@@ -22,7 +22,7 @@ from pathlib import Path
 from typing import Any, Final
 
 from dobhil import __version__
-from dobhil.config import Config, to_yaml
+from dobhil.config import Config, resolve_config, to_yaml
 from dobhil.drives.profile import DriveProfile
 from dobhil.errors import RecorderError, exception_line
 from dobhil.files import check_new_output
@@ -129,9 +129,13 @@ def run_metadata(session: RunSession, config_file: str | os.PathLike[str] | None
 
 
 def _attachments(config: Config, config_file: str | os.PathLike[str] | None) -> list[tuple[str, str, bytes]]:
+    """The resolved config, and the config file as given -- a path or a shipped name
+    (``demo``), read from the file that name resolves to, as the run loaded it."""
     out = [("config.resolved.yaml", "application/yaml", to_yaml(config).encode())]
-    if config_file is not None and Path(config_file).is_file():
-        out.insert(0, (Path(config_file).name, "application/yaml", Path(config_file).read_bytes()))
+    if config_file is not None:
+        path = resolve_config(os.fspath(config_file))
+        if path.is_file():
+            out.insert(0, (path.name, "application/yaml", path.read_bytes()))
     return out
 
 

@@ -94,6 +94,18 @@ def test_every_frame_and_channel_with_plain_mcap_reader(run_log: Run) -> None:
     assert {"demo.yaml", "config.resolved.yaml"} <= {a for a, _, _ in open_log(path).attachments}
 
 
+def test_a_shipped_config_name_attaches_its_file(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """``dobhil run demo`` (a shipped name, not a path) attaches the file the name loaded, as
+    a path does."""
+    from dobhil.cli.main import main
+    path = tmp_path / "named.mcap"
+    assert main(["run", "demo", "--emulate", "--lockstep", "--set", "loop.duration=0.05", "--log", str(path)]) == 0
+    capsys.readouterr()
+    attached = {name: data for name, _, data in open_log(path).attachments}
+    assert set(attached) == {"demo.yaml", "config.resolved.yaml"}
+    assert attached["demo.yaml"] == DEMO.read_bytes()
+
+
 def test_events_enable_disable_stop(run_log: Run) -> None:
     events = [p for _, _, p in open_log(run_log[0]).iter_messages(["/events"])]
     kinds = [e["kind"] for e in events]
