@@ -30,7 +30,8 @@ from enum import IntEnum
 import numpy as np
 
 from dobhil.analysis.stability import gain_map, is_stable
-from dobhil.config.schema import Config
+from dobhil.config import key_fields
+from dobhil.config.schema import Config, check_maximum
 from dobhil.errors import AnalysisError, ConfigError
 from dobhil.synthesis.loop import loop
 from dobhil.synthesis.params import Array, Params, params_from_config
@@ -102,6 +103,11 @@ def parse_range(spec: str) -> tuple[str, float, float]:
                           "coefficient: the edge theorem needs one degree over the box)")
     if lo < LOWER_LIMITS[key]:
         raise ConfigError(f"--range {spec!r}: {key} must be >= 0")
+    # the config's own ceiling on the key, as --set has it: past it the polynomial's
+    # coefficients overflow and no answer could be trusted
+    problem = check_maximum(f"--range {key}", hi, key_fields()[key].metadata)
+    if problem is not None:
+        raise ConfigError(problem)
     return key, lo, hi
 
 

@@ -11,7 +11,7 @@ from collections.abc import Mapping
 from typing import TYPE_CHECKING, Any
 
 from dobhil.cli.common import add_config_args, config_from_args, design_on_drive
-from dobhil.errors import ConfigError
+from dobhil.errors import AnalysisError, ConfigError, DobhilError, exception_line
 
 if TYPE_CHECKING:
     from dobhil.analysis.certify import Box, ContinuousCertificate
@@ -55,13 +55,29 @@ def run(args: argparse.Namespace) -> int:
     if not 0 <= refinements <= MAX_REFINEMENTS:
         raise ConfigError(f"--refinements {refinements}: expected 0 .. {MAX_REFINEMENTS}")
     config = design_on_drive(config_from_args(args), args, sys.stderr if args.json else None)
-    answer = certify(config, box, loops=args.loop, refinements=refinements)
+    answer = _answered(config, box, args.loop, refinements)
     if args.json:
         json.dump(answer, sys.stdout)
         sys.stdout.write("\n")
     else:
         print("\n".join(text_lines(answer)))
     return 0 if answer["certified"] else EXIT_NOT_CERTIFIED
+
+
+def _answered(config: Config, box: Box, loops: str, refinements: int) -> dict[str, Any]:
+    """:func:`certify`, or one line when the numbers of a box within the keys' ranges still
+    overflow (an inertia of 1e-300: the polynomial's coefficients are not finite), as
+    ``dobhil analyze`` says of such a design."""
+    import numpy as np
+    try:
+        with np.errstate(all="ignore"):
+            return certify(config, box, loops=loops, refinements=refinements)
+    except DobhilError:
+        raise
+    except (np.linalg.LinAlgError, ValueError, ZeroDivisionError, OverflowError) as exc:
+        why = exception_line(exc, named=False)[:120]
+        raise AnalysisError(f"the certificate cannot answer this box ({why}); check that it is within "
+                            "the keys' ranges") from None
 
 
 def certify(config: Config, box: Box, *, loops: str = "both", refinements: int | None = None) -> dict[str, Any]:

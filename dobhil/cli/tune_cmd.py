@@ -31,6 +31,8 @@ PLOT_NAMES = ("stability_map.png", "worst_step.png", "margins.png")
 #: limits of --grid (values per range key) and of the whole fine grid
 MAX_GRID = 400
 MAX_GRID_POINTS = 250_000
+#: the largest --seed: scipy's differential evolution seeds numpy's 32-bit RandomState
+MAX_SEED = 2**32 - 1
 
 #: the step is simulated over analysis.step_duration, or this long when it is 0 (automatic) [s]
 DEFAULT_HORIZON = 0.2
@@ -132,8 +134,8 @@ def _check_numbers(args: argparse.Namespace, n_ranges: int, n_uncertain: int) ->
                           f"{MAX_GRID_POINTS} (fewer values per key, or fewer keys)")
     if not 1 <= args.generations <= 10_000:
         raise ConfigError(f"--generations {args.generations}: expected 1 .. 10000")
-    if args.seed < 0:
-        raise ConfigError(f"--seed {args.seed}: expected a whole number >= 0")
+    if not 0 <= args.seed <= MAX_SEED:
+        raise ConfigError(f"--seed {args.seed}: expected a whole number from 0 to {MAX_SEED}")
 
 
 def _check_outputs(args: argparse.Namespace) -> None:

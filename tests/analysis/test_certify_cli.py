@@ -59,6 +59,11 @@ def test_a_margin_unbounded_both_ways_gives_the_disk_margin_at_the_box_centre(
     (["--range", "environment.stiffness=1:2", "--range", "environment.stiffness=3:4"], "more than once"),
     (["--range", "environment.stiffness=1:2", "--refinements", "-1"], "--refinements -1"),
     (["--range", "environment.stiffness=1:2", "--set", "nothing.here=1"], "nothing.here"),
+    # past the key's ceiling (the config's, as --set has it): the coefficients would overflow
+    (["--range", "environment.stiffness=1e3:1e20"], "allowed: >= 0 and <= 1e+10"),
+    (["--range", "plant.inertia=0.2:1e20"], "allowed: > 0 and <= 1e+06"),
+    # within the ranges and still not finite: one line, as analyze says of such a design
+    (["--range", "plant.inertia=1e-300:1e-299", "--refinements", "10"], "the certificate cannot answer this box"),
 ])
 def test_bad_input_is_one_line_and_exit_2(args: list[str], says: str, capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["certify", "paper/fig3", *args]) == 2

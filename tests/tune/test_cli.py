@@ -31,6 +31,9 @@ SMALL = ["paper/fig3", "--range", "environment.stiffness=1e3:1e5", "--grid", "6"
     (["--range", "environment.stiffness=1:2", "--bound", "design.force_gain=0:2"], "LO must be > 0"),
     (["--range", "environment.stiffness=1:2", "--margin", "noise=0.1"], "nothing quantises"),
     (["--range", "environment.stiffness=1:2", "--grid", "1"], "--grid 1"),
+    (["--range", "environment.stiffness=1:2", "--seed", "4294967296"], "from 0 to 4294967295"),
+    (["--range", "environment.stiffness=1:2", "--seed", "-1"], "from 0 to 4294967295"),
+    (["--range", "environment.stiffness=1e3:1e300"], "environment.stiffness"),
     (["--range", "environment.stiffness=1:2", "--range", "environment.damping=1:2", "--grid", "400",
       "--range", "plant.inertia=0.1:1"], "at most"),
 ])
