@@ -18,6 +18,9 @@ import sys
 from pathlib import Path
 from typing import Any
 
+#: the longest --period: loop.period's own ceiling (dobhil/config/schema.py)
+MAX_PERIOD = 10.0
+
 
 def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = sub.add_parser("identify", help="fit the servo, environment and delay to a recorded run")
@@ -56,11 +59,14 @@ def run(args: argparse.Namespace) -> int:
     from dobhil.errors import ConfigError
     from dobhil.files import check_output, check_output_dir
     from dobhil.identify.data import find_segments, join, parse_segment, read_log
+    if args.period is not None and not (math.isfinite(args.period) and 0.0 < args.period <= MAX_PERIOD):
+        raise ConfigError(f"--period {args.period:g}: expected a control period in seconds, > 0 and <= {MAX_PERIOD:g}")
     if args.segment and len(args.log) > 1:
         raise ConfigError(f"--segment with {len(args.log)} logs: give segments for one LOG at a time "
                           "(without --segment each log's segments are found from its data)")
     if args.out:
-        check_output(args.out, inputs=args.log, suffix=(".yaml", ".yml"), what="--out")
+        check_output(args.out, inputs=[*args.log, *([args.drive] if args.drive else [])],
+                     suffix=(".yaml", ".yml"), what="--out")
     if args.plot:
         check_output_dir(args.plot, ["identify_segment_0.png"], inputs=args.log, what="--plot")
     profile = None if args.drive is None else load_profile(args.drive)

@@ -185,6 +185,11 @@ def _from_frames(log: object, name: str, profile: DriveProfile | None, period: f
     lattice = frame_lattice(np.array([m[0] for m in motion]))
     if period is None:
         period = lattice.period   # the round period the stamps scatter around
+    elif math.isfinite(lattice.period) and lattice.period > 0.0 and not (
+            0.5 * lattice.period <= period <= 2.0 * lattice.period):
+        # a period the frames contradict would put every sample at the wrong time
+        raise ConfigError(f"--period {period:g}: {name}'s motion frames come every {lattice.period:g} s; "
+                          "give the period they scatter around (within a factor of 2), or leave it out")
     if not (math.isfinite(period) and period > 0.0):
         raise ConfigError(f"{name}: no control period (the motion frames' timestamps do not increase); "
                           "give it with --period SECONDS")

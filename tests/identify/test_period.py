@@ -120,3 +120,19 @@ def test_imported_candump_log_identifies_the_true_inertia(logs: dict[str, Path],
     assert info["period"] == 0.001
     j = info["estimates"]["inertia"]
     assert j["identifiable"] and j["low"] <= 0.25 <= j["high"]
+    # a --period that is none, or one the frames' stamps contradict: one line, exit 2
+    for period, says in (("0", "expected a control period in seconds, > 0 and <= 10"),
+                         ("1e300", "expected a control period in seconds, > 0 and <= 10"),
+                         ("nan", "expected a control period in seconds, > 0 and <= 10"),
+                         ("1e-300", "motion frames come every 0.001 s"),
+                         ("0.003", "motion frames come every 0.001 s")):
+        assert main(["identify", str(mcap), "--drive", "odrive-0.6", "--period", period]) == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and says in err, (period, err)
+    # the drive profile is an input: --out never overwrites it
+    from dobhil.data import drivers_dir
+    profile = tmp_path / "my-odrive.yaml"
+    profile.write_bytes((drivers_dir() / "odrive-0.6.yaml").read_bytes())
+    assert main(["identify", str(mcap), "--drive", str(profile), "--out", str(profile)]) == 2
+    assert "input" in capsys.readouterr().err
+    assert profile.read_bytes() == (drivers_dir() / "odrive-0.6.yaml").read_bytes()
