@@ -106,6 +106,8 @@ def test_csv_absolute_path_and_single_row(tmp_path: Path) -> None:
     ("time,tau_ref\n0,1\n0.1,2,3\n", "line 3: expected 2 columns"),
     ("time,tau_ref\n0,1\n0.2,2\n0.2,3\n", "line 4: time 0.2 does not increase"),
     ("time,tau_ref\n0,1\n0.1,nan\n", "line 3: tau_ref 'nan' is not finite"),
+    ("time,tau_ref\n0,1e308\n1,0.2\n", "line 2: tau_ref '1e308' is outside the physical range"),
+    ("time,tau_ref\n0,1\n2e15,0.2\n", "line 3: time '2e15' is outside the physical range"),
 ])
 def test_csv_errors(tmp_path: Path, text: str, message: str) -> None:
     _write(tmp_path, text)

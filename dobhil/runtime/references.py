@@ -42,6 +42,7 @@ import math
 from enum import IntEnum
 from pathlib import Path
 
+from dobhil.config.load import MAX_MAGNITUDE
 from dobhil.config.schema import ReferenceConfig
 from dobhil.config.yamlio import TextFileError, read_text_file
 from dobhil.errors import ConfigError
@@ -245,6 +246,9 @@ def _parse_row(path: Path, number: int, line: str) -> tuple[float, float]:
             raise ConfigError(f"{path}: line {number}: {name} {cell!r} is not a number") from None
         if not math.isfinite(x):
             raise ConfigError(f"{path}: line {number}: {name} {cell!r} is not finite")
+        if abs(x) > MAX_MAGNITUDE:   # the bound every config number has: larger is a typo
+            raise ConfigError(f"{path}: line {number}: {name} {cell!r} is outside the physical range; "
+                              f"allowed: |value| <= {MAX_MAGNITUDE:g} (SI units)")
         out.append(x)
     return out[0], out[1]
 
