@@ -4,9 +4,10 @@ from __future__ import annotations
 
 import argparse
 import sys
+from pathlib import Path
 from typing import TextIO
 
-from dobhil.config import Config, load_config
+from dobhil.config import Config, load_config, resolve_config
 
 #: exit code of a run that ended in a safety stop (not bad input)
 EXIT_STOPPED = 1
@@ -48,3 +49,22 @@ def design_on_drive(config: Config, args: argparse.Namespace, out: TextIO | None
     if note:
         print(note, file=out or sys.stdout)
     return config
+
+
+def files_read(config: Config, args: argparse.Namespace) -> list[Path]:
+    """The files a command reads for ``config`` -- the inputs its outputs may never
+    overwrite: the config, its ``--set-file`` overlays, an overlay of ``--uncertainty-from``
+    or ``--draw-from``, and the files the config names (a csv reference and a drive profile
+    YAML, each where the run looks for it: beside the config, or as given)."""
+    config_dir = resolve_config(args.config).parent if getattr(args, "config", None) else None
+    files = [Path(f) for f in (getattr(args, "config", None), *getattr(args, "set_files", ()),
+                               getattr(args, "uncertainty_from", None), getattr(args, "draw_from", None))
+             if f]
+    named = [config.drive.profile] if Path(config.drive.profile).suffix in (".yaml", ".yml") else []
+    if config.reference.kind == "csv" and config.reference.file:
+        named.append(config.reference.file)
+    for name in named:
+        files.append(Path(name))
+        if config_dir is not None and not Path(name).is_absolute():
+            files.append(config_dir / name)
+    return files

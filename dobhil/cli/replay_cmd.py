@@ -44,13 +44,26 @@ def run(args: argparse.Namespace) -> int:
     return _run_one(args, axes[0])
 
 
+#: keys whose value is a file the replay then reads
+_FILE_KEYS = ("reference.file", "drive.profile")
+
+
+def _files_set(overrides: list[str]) -> list[str]:
+    """The files ``--set`` names for the replay to read (a csv reference, a drive profile):
+    inputs its outputs may not overwrite."""
+    pairs = [o.partition("=") for o in overrides]   # an axis' key too: axes.NAME.reference.file
+    return [value.strip() for key, sep, value in pairs
+            if sep and value.strip() and key.strip().endswith(_FILE_KEYS)]
+
+
 def _run_one(args: argparse.Namespace, axis: Any) -> int:
     from dobhil.files import check_output
     from dobhil.replay import replay_axis
+    inputs = [args.file, *_files_set(args.overrides)]
     if args.out:
-        check_output(args.out, inputs=[args.file], suffix=".csv", what="--out")
+        check_output(args.out, inputs=inputs, suffix=".csv", what="--out")
     if args.plot:
-        check_output(args.plot, inputs=[args.file], suffix=".png", what="--plot")
+        check_output(args.plot, inputs=inputs, suffix=".png", what="--plot")
     result = replay_axis(axis, args.overrides)
     info = result.summary()
     if args.out:
@@ -79,7 +92,8 @@ def _run_axes(args: argparse.Namespace, axes: Any) -> int:
     from dobhil.replay import replay_axis
     for axis in axes:
         if args.out:
-            check_output(_per_axis(args.out, axis.name), inputs=[args.file], suffix=".csv", what="--out")
+            check_output(_per_axis(args.out, axis.name), inputs=[args.file, *_files_set(args.overrides)],
+                         suffix=".csv", what="--out")
         if args.plot:
             check_output(_per_axis(args.plot, axis.name), inputs=[args.file], suffix=".png", what="--plot")
     results = [replay_axis(axis, args.overrides) for axis in axes]

@@ -12,7 +12,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from dobhil.cli.axis_option import add_axis_arg, axis_keys
-from dobhil.cli.common import add_config_args, config_from_args, design_on_drive
+from dobhil.cli.common import add_config_args, config_from_args, design_on_drive, files_read
 from dobhil.errors import ConfigError
 
 if TYPE_CHECKING:
@@ -51,7 +51,7 @@ def run(args: argparse.Namespace) -> int:
     axes = [parse_vary(v) for v in args.vary]
     if args.plot and len(axes) > 2:
         raise ConfigError("--plot draws one or two swept keys; got " + str(len(axes)))
-    _check_outputs(args)
+    _check_outputs(args, files_read(config, args))
     _check_cluster_args(args)
     total = 1
     for a in axes:
@@ -69,13 +69,14 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _check_outputs(args: argparse.Namespace) -> None:
-    """--out and --plot before the sweep runs (it can take minutes)."""
+def _check_outputs(args: argparse.Namespace, inputs: list[Path]) -> None:
+    """--out and --plot before the sweep runs (it can take minutes); ``inputs``: the files
+    the command reads (:func:`dobhil.cli.common.files_read`)."""
     from dobhil.files import check_output
     if args.out:
-        check_output(args.out, inputs=[args.config], suffix=".csv", what="--out")
+        check_output(args.out, inputs=inputs, suffix=".csv", what="--out")
     if args.plot:
-        check_output(args.plot, inputs=[args.config], suffix=PLOT_SUFFIXES, what="--plot")
+        check_output(args.plot, inputs=inputs, suffix=PLOT_SUFFIXES, what="--plot")
         if args.out and Path(args.out).absolute() == Path(args.plot).absolute():
             raise ConfigError("--out and --plot name the same file; give two names")
 

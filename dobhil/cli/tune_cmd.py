@@ -13,7 +13,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from dobhil.cli.axis_option import add_axis_arg, axis_keys
-from dobhil.cli.common import add_config_args, config_from_args, design_on_drive
+from dobhil.cli.common import add_config_args, config_from_args, design_on_drive, files_read
 from dobhil.errors import ConfigError
 
 if TYPE_CHECKING:
@@ -81,10 +81,10 @@ def run(args: argparse.Namespace) -> int:
     from dobhil.tune.problem import parse_bounds, parse_margins
     axis_keys(args, {"ranges": "--range", "uncertainty": "--uncertainty", "bound": "--bound"})
     config = design_on_drive(config_from_args(args), args, sys.stderr if args.json else None)
+    _check_outputs(args, files_read(config, args))
     ranges, uncertainties = _robust_keys(args)
     margins, bounds = parse_margins(args.margin), parse_bounds(config, args.bound)
     _check_numbers(args, len(ranges), len(uncertainties))
-    _check_outputs(args)
     quanta = quantisation(config, Path(args.config))
     if margins.noise is not None and quanta is None:
         raise ConfigError("--margin noise: nothing quantises here (the drive profile has no codec model "
@@ -138,13 +138,14 @@ def _check_numbers(args: argparse.Namespace, n_ranges: int, n_uncertain: int) ->
         raise ConfigError(f"--seed {args.seed}: expected a whole number from 0 to {MAX_SEED}")
 
 
-def _check_outputs(args: argparse.Namespace) -> None:
-    """--out and --plot before the search runs (it takes tens of seconds)."""
+def _check_outputs(args: argparse.Namespace, inputs: list[Path]) -> None:
+    """--out and --plot before the search runs (it takes tens of seconds); ``inputs``: the
+    files the command reads (:func:`dobhil.cli.common.files_read`)."""
     from dobhil.files import check_output, check_output_dir
     if args.out:
-        check_output(args.out, inputs=[args.config, *args.set_files], suffix=(".yaml", ".yml"), what="--out")
+        check_output(args.out, inputs=inputs, suffix=(".yaml", ".yml"), what="--out")
     if args.plot:
-        check_output_dir(args.plot, PLOT_NAMES, inputs=[args.config], what="--plot")
+        check_output_dir(args.plot, PLOT_NAMES, inputs=inputs, what="--plot")
 
 
 def _horizon(config: Config) -> int:
