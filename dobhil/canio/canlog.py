@@ -118,7 +118,7 @@ def import_can(canlog: str | os.PathLike[str], out: str | os.PathLike[str], *,
                progress: ProgressFn | None = None) -> int:
     """Every frame of a python-can readable log into a new MCAP; the frame count."""
     source = Path(canlog)
-    check_output(out, inputs=[source], suffix=".mcap", what="output")
+    check_output(out, inputs=[source], suffix=".mcap", what="output", new=True)
     count, meta = 0, {"import": {"source": source.name, "format": source.suffix.lstrip(".").lower()}}
     with _can_reader(source) as reader, atomic_path(out) as tmp:
         log = LogWriter(open(tmp, "wb"), metadata=meta, fsync=False)

@@ -102,7 +102,8 @@ def recover(path: str | os.PathLike[str], out: str | os.PathLike[str] | None = N
             progress: ProgressFn | None = None) -> RecoveryReport:
     """Every complete record of ``path`` to ``out`` (default ``*.recovered.mcap``)."""
     check_mcap_head(path)
-    target = check_output(default_output(path) if out is None else out, inputs=[path], suffix=".mcap", what="output")
+    target = check_output(default_output(path) if out is None else out, inputs=[path], suffix=".mcap", what="output",
+                          new=True)
     with atomic_path(target) as tmp, open(tmp, "wb") as sink, open(path, "rb") as source:
         writer = Writer(sink, chunk_size=CHUNK_SIZE, compression=COMPRESSION, enable_data_crcs=True)
         writer.start(profile="", library=f"{LIBRARY} recover")

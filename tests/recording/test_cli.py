@@ -88,6 +88,13 @@ def test_recover_truncated_file_by_cli(tmp_path: Path, run_file: Path, capsys: p
     out = capsys.readouterr().out
     assert "recovered 202 messages" in out and (tmp_path / "cut.recovered.mcap").is_file()
     assert main(["log", "info", str(tmp_path / "cut.recovered.mcap")]) == 0
+    # a recording is never overwritten, as `run --log` refuses: the second recover is one line
+    recovered = (tmp_path / "cut.recovered.mcap").read_bytes()
+    capsys.readouterr()
+    assert main(["log", "recover", str(cut)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "exists; refusing to overwrite a recording" in err
+    assert (tmp_path / "cut.recovered.mcap").read_bytes() == recovered
 
 
 def test_export_csv_columns_from_schema(tmp_path: Path, run_file: Path, capsys: pytest.CaptureFixture[str]) -> None:
@@ -133,5 +140,7 @@ def test_export_can_and_import_by_cli(tmp_path: Path, run_file: Path, capsys: py
     assert len(list(can.LogReader(asc))) == 100
     assert main(["log", "import", str(asc), "-o", str(tmp_path / "back.mcap")]) == 0
     assert "imported 100 CAN frames" in capsys.readouterr().out
+    assert main(["log", "import", str(asc), "-o", str(tmp_path / "back.mcap")]) == 2   # exists: kept
+    assert "exists; refusing to overwrite a recording" in capsys.readouterr().err
     assert main(["log", "import", str(tmp_path / "none.asc"), "-o", str(tmp_path / "x.mcap")]) == 2
     assert capsys.readouterr().err.count("\n") == 1
