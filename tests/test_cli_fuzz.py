@@ -365,10 +365,19 @@ def test_the_installed_command_reads_no_fifo(scratch: Path) -> None:
 
 
 @pytest.mark.skipif(shutil.which("sh") is None, reason="needs a POSIX shell")
-@pytest.mark.parametrize(("redirect", "code"), [(">&-", 0), ("2>&-", 2)])
-def test_a_closed_stdout_or_stderr_is_no_traceback(scratch: Path, redirect: str, code: int) -> None:
-    """Started with stdout (or stderr) closed, Python's sys.stdout (sys.stderr) is None."""
-    config = "demo" if redirect == ">&-" else "nonexistent.yaml"
-    done = subprocess.run(["sh", "-c", f'"$0" -m dobhil analyze {config} {redirect}', sys.executable],
+@pytest.mark.parametrize(("command", "redirect", "code"), [
+    ("analyze demo", ">&-", 0),
+    ("analyze demo --json", ">&-", 0),     # json.dump writes to sys.stdout itself
+    ("analyze nonexistent.yaml", "2>&-", 2),
+    ("log export run.mcap --can --format candump -o run.log", "2>&-", 0),   # its progress on stderr
+])
+def test_a_closed_stdout_or_stderr_is_no_traceback(scratch: Path, command: str, redirect: str, code: int) -> None:
+    """Started with stdout (or stderr) closed, Python's sys.stdout (sys.stderr) is None: what
+    would go there is discarded, and the command answers as it would otherwise."""
+    if "run.mcap" in command:
+        assert main(["run", "demo", "--emulate", "--lockstep", "--set", "loop.duration=0.05",
+                     "--log", str(scratch / "run.mcap")]) == 0
+    done = subprocess.run(["sh", "-c", f'"$0" -m dobhil {command} {redirect}', sys.executable],
                           cwd=scratch, capture_output=True, text=True, timeout=120)
     assert done.returncode == code and "Traceback" not in done.stderr, done.stderr
+    assert "internal error" not in done.stderr, done.stderr

@@ -86,6 +86,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    _closed_streams_to_devnull()
     try:
         with warnings.catch_warnings():   # restores Python's own display on return
             warnings.showwarning = _one_line_warning
@@ -101,6 +102,16 @@ def main(argv: Sequence[str] | None = None) -> int:
         os.dup2(devnull, sys.stdout.fileno())
         return EXIT_BROKEN_PIPE
     return code
+
+
+def _closed_streams_to_devnull() -> None:
+    """Started with stdout or stderr closed (``dobhil ... >&-``), Python's ``sys.stdout``
+    (``sys.stderr``) is None: ``print`` then writes nothing, but a ``write`` (``--json``, a
+    progress line) would raise. What the command writes there is discarded instead, as the
+    user who closed it asked."""
+    for name in ("stdout", "stderr"):
+        if getattr(sys, name) is None:
+            setattr(sys, name, open(os.devnull, "w", encoding="utf-8"))
 
 
 def _one_line_warning(message: Warning | str, category: type[Warning], filename: str, lineno: int,
