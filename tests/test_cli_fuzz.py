@@ -381,3 +381,23 @@ def test_a_closed_stdout_or_stderr_is_no_traceback(scratch: Path, command: str, 
                           cwd=scratch, capture_output=True, text=True, timeout=120)
     assert done.returncode == code and "Traceback" not in done.stderr, done.stderr
     assert "internal error" not in done.stderr, done.stderr
+
+
+@pytest.mark.parametrize("argv", [
+    ["analyze", "demo", "--plot", ""],
+    ["paper", "--out", ""],
+    ["demo", "--no-log", "--out", ""],
+    ["run", "demo", "--emulate", "--lockstep", "--log", ""],
+    ["sweep", "demo", "--vary", "design.force_gain=1:2:2", "--out", " "],
+    ["log", "export", "x.mcap", "--can", "--format", "candump", "-o", ""],
+    ["log", "recover", "x.mcap", "-o", ""],
+    ["report", "x.mcap", "--out", ""],
+])
+def test_an_empty_output_name_is_refused(argv: list[str], capsys: pytest.CaptureFixture[str]) -> None:
+    """An empty name is not the working directory (Path("") is "."), nor the default file:
+    argparse refuses it, in one line, exit 2 (its usage error, raised as SystemExit)."""
+    with pytest.raises(SystemExit) as info:
+        main(argv)
+    assert info.value.code == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "an empty name; give a file or directory name" in err, err

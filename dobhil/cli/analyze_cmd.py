@@ -8,7 +8,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from dobhil.cli.common import add_config_args, config_from_args, design_on_drive
+from dobhil.cli.common import add_config_args, config_from_args, design_on_drive, output_path
 
 
 #: the files ``--plot DIR`` writes (:func:`dobhil.plotting.figures.analysis_figures`)
@@ -19,7 +19,7 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = sub.add_parser("analyze", help="analyse a design: poles, zeros, stable gains, margins, step")
     add_config_args(p)
     p.add_argument("--json", action="store_true", help="print one JSON object")
-    p.add_argument("--plot", metavar="DIR", type=Path, help="write root locus, step and Bode PNGs")
+    p.add_argument("--plot", metavar="DIR", type=output_path, help="write root locus, step and Bode PNGs")
     p.set_defaults(func=run)
 
 

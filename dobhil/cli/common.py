@@ -24,6 +24,15 @@ def add_config_args(parser: argparse.ArgumentParser, *, required: bool = True) -
                         "overlay of dobhil identify --out (repeatable; applied before --set)")
 
 
+def output_path(text: str) -> Path:
+    """argparse type of an output file or directory. An empty name is refused: as a Path it
+    would be the working directory, and where a default exists it would stand for "not
+    given" and pick the default file."""
+    if not text.strip():
+        raise argparse.ArgumentTypeError("an empty name; give a file or directory name")
+    return Path(text)
+
+
 def config_from_args(args: argparse.Namespace) -> Config:
     """The config a command works on; for a command that takes ``--axis``, the axis'
     (:func:`dobhil.cli.axis_option.axis_config`)."""

@@ -8,7 +8,7 @@ import argparse
 from pathlib import Path
 from typing import Any
 
-from dobhil.cli.common import add_config_args
+from dobhil.cli.common import add_config_args, output_path
 from dobhil.cli.stability_gate import add_gate_args
 
 
@@ -29,9 +29,9 @@ def demo_title(profile: Any, period: float) -> str:
 def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = sub.add_parser("demo", help="emulated force-control run of configs/demo.yaml, with a plot")
     add_config_args(p, required=False)
-    p.add_argument("--out", type=Path, default=Path("out/demo"), help="output directory")
+    p.add_argument("--out", type=output_path, default=Path("out/demo"), help="output directory")
     p.add_argument("--realtime", action="store_true", help="real time instead of lockstep")
-    p.add_argument("--log", type=Path, metavar="FILE.mcap",
+    p.add_argument("--log", type=output_path, metavar="FILE.mcap",
                    help="MCAP recording (default: OUT/run-YYYYmmdd-HHMMSS.mcap)")
     p.add_argument("--no-log", action="store_true", help="do not record the run")
     p.add_argument("--live", metavar="[HOST:]PORT", help="serve the run to Foxglove over WebSocket as well")

@@ -17,6 +17,7 @@ import math
 import sys
 from pathlib import Path
 from typing import Any
+from dobhil.cli.common import output_path
 
 #: the longest --period: loop.period's own ceiling (dobhil/config/schema.py)
 MAX_PERIOD = 10.0
@@ -41,9 +42,9 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p.add_argument("--method", choices=("auto", "closed-loop", "open-loop"), default="auto",
                    help="auto (default): a force run of one dobhil log in closed loop (its recorded controller "
                    "simulated from the reference), anything else open loop (output error on the torque sent)")
-    p.add_argument("--out", type=Path, metavar="F.yaml", help="write the config overlay (for --set-file)")
+    p.add_argument("--out", type=output_path, metavar="F.yaml", help="write the config overlay (for --set-file)")
     p.add_argument("--json", action="store_true", help="print the result as JSON")
-    p.add_argument("--plot", type=Path, metavar="DIR", help="measured vs model figures, one per segment")
+    p.add_argument("--plot", type=output_path, metavar="DIR", help="measured vs model figures, one per segment")
     from dobhil.cli.identify_evidence import add_arguments
     add_arguments(p)
     p.set_defaults(func=run)

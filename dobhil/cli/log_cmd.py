@@ -22,6 +22,7 @@ from datetime import datetime, timezone
 from typing import Any
 
 from dobhil.errors import LogFileError
+from dobhil.cli.common import output_path
 
 Progress = Callable[[int], None]
 
@@ -153,18 +154,18 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     info.set_defaults(func=_cmd_info)
     rec = sub.add_parser("recover", help="salvage a recording cut short into a new file")
     rec.add_argument("file")
-    rec.add_argument("-o", "--output", help="output (default FILE.recovered.mcap)")
+    rec.add_argument("-o", "--output", type=output_path, help="output (default FILE.recovered.mcap)")
     rec.set_defaults(func=_cmd_recover)
     exp = sub.add_parser("export", help="one topic to CSV, or CAN frames to candump/asc/blf")
     exp.add_argument("file")
     exp.add_argument("--topic", help="topic to export as CSV")
     exp.add_argument("--can", action="store_true", help="export /can/rx and /can/tx frames")
     exp.add_argument("--format", required=True, choices=("csv", "candump", "asc", "blf"))
-    exp.add_argument("-o", "--output", help="output file (default next to FILE)")
+    exp.add_argument("-o", "--output", type=output_path, help="output file (default next to FILE)")
     exp.set_defaults(func=_cmd_export)
     imp = sub.add_parser("import", help="record a python-can readable CAN log as MCAP")
     imp.add_argument("canlog")
-    imp.add_argument("-o", "--output", required=True, help="MCAP file to write")
+    imp.add_argument("-o", "--output", type=output_path, required=True, help="MCAP file to write")
     imp.set_defaults(func=_cmd_import)
     srv = sub.add_parser("serve", help="play a recording to Foxglove over WebSocket at its recorded pace")
     srv.add_argument("file")

@@ -14,7 +14,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from dobhil.cli.axis_option import add_axis_arg, axis_keys
-from dobhil.cli.common import add_config_args
+from dobhil.cli.common import add_config_args, output_path
 from dobhil.errors import ConfigError
 
 if TYPE_CHECKING:
@@ -51,7 +51,7 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
                    help="tcp://HOST:PORT of a running Dask scheduler (default: a local cluster of processes)")
     p.add_argument("--workers", type=int, metavar="N",
                    help="worker processes of the local cluster (default: one per core)")
-    p.add_argument("--out", type=Path, metavar="DIR", help="write runs.csv (or .parquet) and summary.json here")
+    p.add_argument("--out", type=output_path, metavar="DIR", help="write runs.csv (or .parquet) and summary.json here")
     p.add_argument("--format", choices=("csv", "parquet"), default="csv", help="table format (parquet: pyarrow)")
     p.add_argument("--plot", action="store_true", help="also write metrics.png and vary.png to --out")
     p.set_defaults(func=run)

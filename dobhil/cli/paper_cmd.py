@@ -5,11 +5,12 @@ from __future__ import annotations
 import argparse
 import sys
 from pathlib import Path
+from dobhil.cli.common import output_path
 
 
 def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = sub.add_parser("paper", help="reproduce the paper's Fig. 2 and Fig. 3 and check its claims")
-    p.add_argument("--out", type=Path, default=Path("out/paper"), help="output directory")
+    p.add_argument("--out", type=output_path, default=Path("out/paper"), help="output directory")
     p.set_defaults(func=run)
 
 

@@ -15,6 +15,7 @@ import json
 import sys
 from pathlib import Path
 from typing import Any
+from dobhil.cli.common import output_path
 
 #: exit code of a verification that found a difference
 EXIT_MISMATCH = 1
@@ -28,8 +29,8 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p.add_argument("--axis", metavar="NAME", help="replay only this axis of a several-axis log")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                    help="replay with this config key changed (repeatable)")
-    p.add_argument("--plot", type=Path, metavar="FILE.png", help="recorded vs replayed commands/estimates")
-    p.add_argument("--out", type=Path, metavar="FILE.csv", help="per-cycle recorded and replayed values")
+    p.add_argument("--plot", type=output_path, metavar="FILE.png", help="recorded vs replayed commands/estimates")
+    p.add_argument("--out", type=output_path, metavar="FILE.csv", help="per-cycle recorded and replayed values")
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
     p.set_defaults(func=run)
 

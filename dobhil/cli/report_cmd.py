@@ -15,6 +15,7 @@ import json
 import sys
 from pathlib import Path
 from typing import Any
+from dobhil.cli.common import output_path
 
 _FIGURES = ("force", "tracking_error", "position", "commands", "loop_timing")
 
@@ -22,7 +23,7 @@ _FIGURES = ("force", "tracking_error", "position", "commands", "loop_timing")
 def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = sub.add_parser("report", help="plots and a summary (step metrics, errors, timing, bus) of a recorded run")
     p.add_argument("file", metavar="FILE.mcap")
-    p.add_argument("--out", type=Path, required=True, metavar="DIR", help="output directory")
+    p.add_argument("--out", type=output_path, required=True, metavar="DIR", help="output directory")
     p.add_argument("--json", action="store_true", help="print the summary as JSON instead of text")
     p.set_defaults(func=run)
 

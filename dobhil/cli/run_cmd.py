@@ -7,11 +7,10 @@ import json
 import sys
 import time
 from collections.abc import Callable
-from pathlib import Path
 from typing import Any
 
 from dobhil.cli.axis_option import add_axis_arg, select_axis
-from dobhil.cli.common import EXIT_STOPPED, add_config_args, config_from_args
+from dobhil.cli.common import EXIT_STOPPED, add_config_args, config_from_args, output_path
 from dobhil.cli.preflight_lines import report_preflight, tell_refusal
 from dobhil.cli.stability_gate import add_gate_args
 
@@ -27,8 +26,8 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
                    help="deterministic, as fast as possible (needs --emulate)")
     p.add_argument("--duration", type=float, metavar="S", help="override loop.duration")
     p.add_argument("--summary-json", action="store_true", help="print the summary as one JSON object")
-    p.add_argument("--plot", type=Path, metavar="FILE.png", help="plot reference and interaction torque")
-    p.add_argument("--log", type=Path, metavar="FILE.mcap",
+    p.add_argument("--plot", type=output_path, metavar="FILE.png", help="plot reference and interaction torque")
+    p.add_argument("--log", type=output_path, metavar="FILE.mcap",
                    help="record the run to MCAP (see docs/recording.md)")
     p.add_argument("--no-preflight", action="store_true",
                    help="do not measure the drive before enabling it (see dobhil check; "

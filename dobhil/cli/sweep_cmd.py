@@ -12,7 +12,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from dobhil.cli.axis_option import add_axis_arg, axis_keys
-from dobhil.cli.common import add_config_args, config_from_args, design_on_drive, files_read
+from dobhil.cli.common import add_config_args, config_from_args, design_on_drive, files_read, output_path
 from dobhil.errors import ConfigError
 
 if TYPE_CHECKING:
@@ -34,8 +34,8 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p.add_argument("--vary", action="append", required=True, metavar="KEY=START:STOP:NUM",
                    help="a swept key (repeatable); prefix the range with log: for log spacing")
     p.add_argument("--sampled", action="store_true", help="the sampled loop (loop.period, delay)")
-    p.add_argument("--out", type=Path, metavar="FILE.csv", help="write every grid point")
-    p.add_argument("--plot", type=Path, metavar="FILE.png", help="heat-map of max stable C_f")
+    p.add_argument("--out", type=output_path, metavar="FILE.csv", help="write every grid point")
+    p.add_argument("--plot", type=output_path, metavar="FILE.png", help="heat-map of max stable C_f")
     p.add_argument("--scheduler", metavar="ADDRESS|local",
                    help="run the grid's chunks as Dask tasks: on the scheduler at tcp://HOST:PORT, or on a "
                    "new local cluster of processes (local); the result is the same as without (see docs/cluster.md)")

@@ -13,7 +13,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from dobhil.cli.axis_option import add_axis_arg, axis_keys
-from dobhil.cli.common import add_config_args, config_from_args, design_on_drive, files_read
+from dobhil.cli.common import add_config_args, config_from_args, design_on_drive, files_read, output_path
 from dobhil.errors import ConfigError
 
 if TYPE_CHECKING:
@@ -70,8 +70,8 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p.add_argument("--grid", type=int, default=50, metavar="N", help="values per range key of the final check")
     p.add_argument("--seed", type=int, default=0, metavar="S", help="optimiser seed (same seed, same result)")
     p.add_argument("--generations", type=int, default=100, metavar="N", help="most generations per search")
-    p.add_argument("--out", type=Path, metavar="TUNED.yaml", help="write the config with the tuned design")
-    p.add_argument("--plot", type=Path, metavar="DIR", help="write the stability map, worst step, margins")
+    p.add_argument("--out", type=output_path, metavar="TUNED.yaml", help="write the config with the tuned design")
+    p.add_argument("--plot", type=output_path, metavar="DIR", help="write the stability map, worst step, margins")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.set_defaults(func=run)
 
