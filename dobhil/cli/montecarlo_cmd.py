@@ -131,10 +131,17 @@ def _noise(config: str, set_files: tuple[str, ...], axis: str) -> tuple[str, ...
 
 
 def _check_config(campaign: Campaign) -> None:
-    """The shared config (with --set) and its drive profile load: else every run would fail alike."""
+    """The reference run's session builds as each run's will (the shared config with --set,
+    nothing drawn: its drive profile, its reference and that reference's file, the run's
+    length in cycles): else every run would fail alike, and the campaign would be a table of
+    errors with exit 1 for what is bad input. Nothing runs: an in-process emulator on a
+    private bus is set up and closed (milliseconds)."""
     from dobhil.config import resolve_config
-    from dobhil.drives.load import load_drive_profile
-    load_drive_profile(campaign.load(), resolve_config(campaign.config).parent)
+    from dobhil.runtime.session import RunSession
+    spec = campaign.reference_spec()
+    with RunSession(spec.load(), emulate=True, lockstep=True, duration=spec.duration,
+                    config_dir=resolve_config(spec.config).parent):
+        pass
 
 
 def check_execution(args: argparse.Namespace) -> tuple[str | None, int | None, str | None]:
