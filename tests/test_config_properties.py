@@ -142,6 +142,18 @@ def test_duplicate_yaml_keys_are_rejected_with_their_lines(text: str, line: int,
         load_config(path)
 
 
+@pytest.mark.parametrize("text", [
+    "loop:\n  duration: 1.2\nloop.duration: 0.25\n",
+    "loop.duration: 0.25\nloop: {duration: 1.2, period: 0.001}\n",
+])
+def test_a_key_given_as_a_section_key_and_dotted_is_a_duplicate(text: str, tmp_path: Path) -> None:
+    """YAML sees two keys (``loop`` and ``loop.duration``); the config one, given twice."""
+    path = tmp_path / "dup.yaml"
+    path.write_text(text)
+    with pytest.raises(ConfigError, match=r"^loop.duration: given twice in one mapping .*; give it once$"):
+        load_config(path)
+
+
 def test_yaml_merge_keys_are_not_duplicates(tmp_path: Path) -> None:
     path = tmp_path / "merge.yaml"
     path.write_text("plant: &p {inertia: 0.3}\nenvironment: {stiffness: 5.0}\n"

@@ -112,13 +112,17 @@ def read_set_file(path: str | Path) -> dict[str, Any]:
 
 
 def _flatten(data: Mapping[str, Any], prefix: str) -> dict[str, Any]:
+    """``{section: {key: v}}`` (or ``{"section.key": v}``) as ``{"section.key": v}``; a key
+    given both ways in one mapping is refused, as a key given twice in YAML is."""
     out: dict[str, Any] = {}
     for k, v in data.items():
         name = f"{prefix}{k}"
-        if isinstance(v, Mapping) and prefix == "":
-            out.update(_flatten(v, name + "."))
-        else:
-            out[name] = v
+        inner = _flatten(v, name + ".") if isinstance(v, Mapping) and prefix == "" else {name: v}
+        for key, value in inner.items():
+            if key in out:
+                raise ConfigError(f"{key}: given twice in one mapping (as a section's key and as "
+                                  f"{key!r}); give it once")
+            out[key] = value
     return out
 
 
