@@ -122,6 +122,13 @@ def test_huge_and_nan_numbers_on_the_command_line(item: str, message: str,
     assert len(err) < 300
 
 
+def test_a_realtime_priority_past_linuxs_range_is_refused() -> None:
+    """SCHED_FIFO priorities are 1-99 on Linux: 1000 was clamped to 99 without a word."""
+    assert load_config(None, ["loop.realtime_priority=99"]).loop.realtime_priority == 99
+    with pytest.raises(ConfigError, match=r"^loop.realtime_priority = 1000: out of range; allowed: >= 0 and <= 99$"):
+        load_config(None, ["loop.realtime_priority=1000"])
+
+
 def test_numbers_in_range_still_load() -> None:
     config = load_config(None, ["sensor.seed=1e3", "plant.initial_position=-1e-3", "environment.stiffness=1e9",
                                 "sensor.seed=" + str(2**63 - 1)])

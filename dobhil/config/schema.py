@@ -158,7 +158,7 @@ class LoopConfig:
                       "emulator)",
                       choices=("feedback", "host", "lockstep", "realtime"))
     realtime_priority: int = key(0, "SCHED_FIFO priority on Linux (0: none)",
-                                 check=Check.NONNEGATIVE)
+                                 check=Check.NONNEGATIVE, maximum=99)
     spin: float = key(2.0e-4, "spin (instead of sleeping) for this long before each deadline "
                       "(host timing) or around each expected feedback frame (feedback timing); "
                       "0: sleep only", unit="s", check=Check.NONNEGATIVE)
