@@ -34,7 +34,7 @@ def cell(value: Any) -> str:
 def export_csv(mcap_path: str | os.PathLike[str], topic: str, out: str | os.PathLike[str], *,
                progress: ProgressFn | None = None) -> int:
     """``topic`` of the recording to ``out`` as CSV; the row count."""
-    check_output(out, inputs=[mcap_path], what="output")
+    check_output(out, inputs=[mcap_path], what="output", suffix=".csv")
     count = 0
     with open_log(mcap_path) as log, atomic_path(out) as tmp, open(tmp, "w", newline="", encoding="utf-8") as sink:
         columns, writer = log.schema_properties(topic), csv.writer(sink)

@@ -112,6 +112,15 @@ def test_export_csv_columns_from_schema(tmp_path: Path, run_file: Path, capsys: 
     assert can_rows[5]["data"] == "5" and can_rows[5]["is_fd"] == "false"
 
 
+def test_export_csv_writes_only_a_csv_name(tmp_path: Path, run_file: Path,
+                                          capsys: pytest.CaptureFixture[str]) -> None:
+    """As the CAN exports check their suffix: a figure given as the output stays untouched."""
+    png = tmp_path / "figure.png"
+    png.write_bytes(b"\x89PNG")
+    assert main(["log", "export", str(run_file), "--topic", "/drive/feedback", "--format", "csv", "-o", str(png)]) == 2
+    assert capsys.readouterr().err.endswith("expected a .csv file name\n") and png.read_bytes() == b"\x89PNG"
+
+
 def test_export_unknown_topic_lists_available(run_file: Path, capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["log", "export", str(run_file), "--topic", "/nope", "--format", "csv"]) == 2
     err = capsys.readouterr().err
