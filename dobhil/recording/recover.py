@@ -15,6 +15,7 @@ from mcap.records import Attachment, Channel, Chunk, Footer, McapRecord, Message
 from mcap.stream_reader import StreamReader, breakup_chunk
 from mcap.writer import Writer
 
+from dobhil.errors import LogFileError
 from dobhil.files import atomic_path, check_output
 from dobhil.recording.reader import check_mcap_head
 from dobhil.recording.writer import CHUNK_SIZE, COMPRESSION, LIBRARY
@@ -115,6 +116,9 @@ def recover(path: str | os.PathLike[str], out: str | os.PathLike[str] | None = N
                 pos = source.tell()
         except Exception as exc:  # the data ends or is damaged here
             why = f"cut short or damaged at byte {pos} ({type(exc).__name__})"
+        if not copier.counts:   # an empty recording would only look like a recovered one
+            raise LogFileError(f"{os.fspath(path)}: no complete message to recover "
+                               f"({why or 'end of data'}); nothing written")
         writer.finish()
     first, last = copier.times or (0, 0)
     return RecoveryReport(source=os.fspath(path), output=os.fspath(target), counts=tuple(sorted(copier.counts.items())),

@@ -87,3 +87,15 @@ def test_recover_refuses_to_overwrite_its_input(tmp_path: Path) -> None:
     path = write_log(tmp_path / "run.mcap", [])
     with pytest.raises(OutputError, match="is an input"):
         recover(path, path)
+
+
+@pytest.mark.parametrize("keep", [9, 200])   # the magic and a bit: no complete message
+def test_nothing_to_recover_writes_nothing(tmp_path: Path, keep: int) -> None:
+    """A file cut before its first complete message is refused in one line: an empty
+    recording would only look like a recovered one."""
+    path = write_log(tmp_path / "run.mcap", [command(i, float(i)) for i in range(1000)])
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(path.read_bytes()[:keep])
+    with pytest.raises(LogFileError, match=r"cut.mcap: no complete message to recover \(.*\); nothing written$"):
+        recover(cut)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["cut.mcap", "run.mcap"]
