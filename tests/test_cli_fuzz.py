@@ -401,3 +401,12 @@ def test_an_empty_output_name_is_refused(argv: list[str], capsys: pytest.Capture
     assert info.value.code == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "an empty name; give a file or directory name" in err, err
+
+
+def test_no_log_with_a_log_is_refused(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Two options that contradict each other: one line, nothing run, nothing written."""
+    log = tmp_path / "a.mcap"
+    assert main(["demo", "--no-log", "--log", str(log), "--out", str(tmp_path / "out")]) == 2
+    assert capsys.readouterr().err == ("dobhil demo: error: --no-log with --log: give one (record the run to "
+                                       "--log, or not at all)\n")
+    assert not log.exists() and not (tmp_path / "out").exists()

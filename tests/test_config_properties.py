@@ -122,6 +122,14 @@ def test_huge_and_nan_numbers_on_the_command_line(item: str, message: str,
     assert len(err) < 300
 
 
+@pytest.mark.parametrize("override", ["loop=1", "plant=0.3"])
+def test_a_section_given_a_value_says_it_is_a_section(override: str) -> None:
+    """Not "unknown config key 'loop'": the name is known, as a section that needs keys."""
+    section = override.split("=")[0]
+    with pytest.raises(ConfigError, match=rf"^'{section}' is a config section, not a key: give {section}.KEY "):
+        load_config(None, [override])
+
+
 def test_a_realtime_priority_past_linuxs_range_is_refused() -> None:
     """SCHED_FIFO priorities are 1-99 on Linux: 1000 was clamped to 99 without a word."""
     assert load_config(None, ["loop.realtime_priority=99"]).loop.realtime_priority == 99

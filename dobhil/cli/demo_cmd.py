@@ -50,6 +50,9 @@ def run(args: argparse.Namespace) -> int:
     from dobhil.runtime.session import RunSession, summary
     from dobhil.runtime.signals import stop_on_signals
     from dobhil.config import resolve_config
+    from dobhil.errors import ConfigError
+    if args.no_log and args.log is not None:
+        raise ConfigError("--no-log with --log: give one (record the run to --log, or not at all)")
     path = resolve_config(args.config) if args.config else demo_config_path()
     from dobhil.config.axes import has_axes
     if has_axes(path):   # several axes in one loop: a PNG per axis, one log of every axis

@@ -159,6 +159,9 @@ def _unknown_key(name: str, fields: Mapping[str, Any]) -> str:
         return (f"unknown config section {_show(section)} in key {_show(name)}; "
                 f"allowed sections: {', '.join(SECTIONS)}")
     allowed = ", ".join(k.split(".")[1] for k in fields if k.startswith(section + "."))
+    if name == section:   # `--set loop=1`, or `loop: 5` in a file: a section, not a key
+        return (f"{_show(name)} is a config section, not a key: give {section}.KEY (a mapping in "
+                f"YAML); {section} allows: {allowed}")
     return f"unknown config key {_show(name)}; {section} allows: {allowed}"
 
 
