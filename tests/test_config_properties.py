@@ -130,6 +130,14 @@ def test_a_section_given_a_value_says_it_is_a_section(override: str) -> None:
         load_config(None, [override])
 
 
+def test_a_huge_profile_name_is_shortened_in_its_one_line() -> None:
+    """A 100,000-character drive.profile was quoted whole, twice: a 200 KB "line"."""
+    from dobhil.drives.load import load_drive_profile
+    with pytest.raises(ConfigError) as info:
+        load_drive_profile(load_config(None, ["drive.profile=" + "x" * 100_000]))
+    assert len(str(info.value)) < 1000 and "\n" not in str(info.value)
+
+
 def test_a_realtime_priority_past_linuxs_range_is_refused() -> None:
     """SCHED_FIFO priorities are 1-99 on Linux: 1000 was clamped to 99 without a word."""
     assert load_config(None, ["loop.realtime_priority=99"]).loop.realtime_priority == 99

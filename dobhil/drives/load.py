@@ -21,7 +21,7 @@ from pathlib import Path
 from typing import Any
 
 from dobhil.config.schema import Config
-from dobhil.config.yamlio import load_yaml_file
+from dobhil.config.yamlio import load_yaml_file, show_value
 from dobhil.drives.profile import DriveProfile, default_drivers_dir
 from dobhil.drives.profile import profile_from_mapping as validate_profile
 from dobhil.drives.registry import PROFILE_LOOKUP
@@ -68,7 +68,7 @@ def _resolve(name_or_path: str | os.PathLike[str], drivers_dir: Path | None, nea
     if candidate.suffix in (".yaml", ".yml") or os.sep in text or "/" in text:
         if _exists(candidate):
             return candidate  # a directory, FIFO or device is refused, with its reason, when read
-        raise ConfigError(f"profile file {text!r} does not exist")
+        raise ConfigError(f"profile file {show_value(text)} does not exist")
     found = _near(text, near) if near is not None and drivers_dir is None else None
     if found is not None:
         return found
@@ -80,8 +80,9 @@ def _resolve(name_or_path: str | os.PathLike[str], drivers_dir: Path | None, nea
     known = sorted(p.stem for p in directory.glob("*.yaml") if p.stem not in DRIVER_TABLES) \
         if directory.is_dir() else []
     hint = f"in {directory}" if drivers_dir is not None else \
-        f"(shipped), or {text}.yaml in a drivers/ directory above the config, or a path to a .yaml file"
-    raise ConfigError(f"drive profile {text!r}: expected one of {known} {hint}")
+        f"(shipped), or {text if len(text) <= 60 else 'NAME'}.yaml in a drivers/ directory above the config, " \
+        "or a path to a .yaml file"
+    raise ConfigError(f"drive profile {show_value(text)}: expected one of {known} {hint}")
 
 
 def load_profile(
