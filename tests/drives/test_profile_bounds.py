@@ -110,3 +110,14 @@ def test_hostile_profile_values_are_one_line_and_exit_2(tmp_path: Path, key: str
     lines = proc.stderr.splitlines()
     assert len(lines) == 1 and proc.stdout == "", proc.stderr
     assert lines[0].startswith(f"dobhil {command}: error: {path}: {key}: expected "), lines[0]
+
+
+@pytest.mark.parametrize("rate", ["abc", -5, 0, 1.5, 1e300, True, 10**9])
+@pytest.mark.parametrize("key", ["bitrate", "data_bitrate"])
+def test_a_bus_bit_rate_is_a_whole_number_of_bit_per_s(key: str, rate: Any) -> None:
+    """The profile's ``bus`` goes to can.Bus as it is; its rates are checked here first."""
+    with pytest.raises(ConfigError, match=r"bus: expected a mapping of can.Bus keyword arguments \(its bitrate, "
+                                          r"data_bitrate: whole numbers from 1 to 2.5e\+07 bit/s\), got "):
+        profile_from_mapping({**SHIPPED, "bus": {**SHIPPED["bus"], key: rate}}, source="p.yaml")
+    good = profile_from_mapping({**SHIPPED, "bus": {**SHIPPED["bus"], key: 5_000_000}}, source="p.yaml")
+    assert good.bus[key] == 5_000_000
