@@ -112,10 +112,18 @@ def read_identified(path: str | os.PathLike[str], option: str) -> Identified:
         raise ConfigError(f"{option} {name}: a malformed '{SECTION}:' section ({exc}); expected intervals of "
                           "key: {estimate, lo, hi, stderr} and a covariance of keys and matrix") from None
     keys = [i.key for i in intervals]
+    if not 0.0 < level < 1.0:
+        raise ConfigError(f"{option} {name}: the '{SECTION}:' level {level:g} is no confidence level; "
+                          "expected a fraction between 0 and 1 (dobhil identify writes 0.95)")
     if order != keys or matrix.shape != (len(keys), len(keys)) or not np.all(np.isfinite(matrix)) \
             or not np.allclose(matrix, matrix.T, rtol=1e-9, atol=0.0):
         raise ConfigError(f"{option} {name}: the '{SECTION}:' covariance does not match its intervals (expected a "
                           f"symmetric {len(keys)} x {len(keys)} matrix over keys {', '.join(keys)})")
+    # a covariance is positive semi-definite: a draw from one that is not is no normal at all
+    # (the tolerance: rounding of the 6-7 digits the overlay is written with)
+    if np.linalg.eigvalsh(matrix).min() < -1e-6 * max(float(np.abs(matrix).max()), np.finfo(float).tiny):
+        raise ConfigError(f"{option} {name}: the '{SECTION}:' covariance is not positive semi-definite "
+                          "(a negative variance along some direction); expected dobhil identify's covariance")
     return Identified(source=name, level=level, intervals=intervals, covariance=matrix)
 
 
@@ -124,4 +132,6 @@ def _interval(key: Any, v: Mapping[str, Any]) -> Interval:
                  stderr=float(v["stderr"]))
     if not all(math.isfinite(x) for x in (i.estimate, i.lo, i.hi, i.stderr)) or not i.lo <= i.estimate <= i.hi:
         raise ValueError(f"{key}: expected finite lo <= estimate <= hi")
+    if not i.stderr >= 0.0:
+        raise ValueError(f"{key}: stderr {i.stderr:g}: expected a standard error >= 0")
     return i

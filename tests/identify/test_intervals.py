@@ -132,3 +132,29 @@ def test_overlay_without_intervals(tmp_path: Path, capsys: pytest.CaptureFixture
         skew.write_text("identified:\n  intervals:\n    plant.inertia: {estimate: 0.25, lo: 0.2, hi: 0.3, stderr: 1}\n"
                         "  covariance: {keys: [plant.inertia], matrix: [[1.0, 0.0]]}\n")
         read_identified(skew, "--draw-from")
+
+
+@pytest.mark.parametrize(("section", "says"), [
+    ("  level: 5\n", "level 5 is no confidence level"),
+    ("  level: 0\n", "level 0 is no confidence level"),
+    ("", "not positive semi-definite"),      # the covariance below, with no level
+])
+def test_an_overlay_that_is_no_distribution_is_refused(tmp_path: Path, section: str, says: str) -> None:
+    """A level printed as "500 % intervals", a covariance with a negative eigenvalue: drawn
+    from before, exit 0. Refused in the overlay's one line."""
+    path = tmp_path / "o.yaml"
+    matrix = "[[1.0, 0.0], [0.0, 1.0]]" if section else "[[1.0, 2.0], [2.0, 1.0]]"   # eigenvalues -1, 3
+    path.write_text("identified:\n" + section +
+                    "  intervals:\n    plant.inertia: {estimate: 0.25, lo: 0.2, hi: 0.3, stderr: 0.02}\n"
+                    "    environment.stiffness: {estimate: 1.0e4, lo: 9.0e3, hi: 1.1e4, stderr: 500}\n"
+                    "  covariance: {keys: [plant.inertia, environment.stiffness], matrix: " + matrix + "}\n")
+    with pytest.raises(ConfigError, match=says):
+        read_identified(path, "--draw-from")
+
+
+def test_a_negative_standard_error_is_malformed(tmp_path: Path) -> None:
+    path = tmp_path / "o.yaml"
+    path.write_text("identified:\n  intervals:\n    plant.inertia: {estimate: 0.25, lo: 0.2, hi: 0.3, stderr: -0.02}\n"
+                    "  covariance: {keys: [plant.inertia], matrix: [[0.0004]]}\n")
+    with pytest.raises(ConfigError, match=r"malformed .*stderr -0.02: expected a standard error >= 0"):
+        read_identified(path, "--draw-from")
