@@ -24,7 +24,7 @@ from typing import Any, Final
 from dobhil import __version__
 from dobhil.config import Config, resolve_config, to_yaml
 from dobhil.drives.profile import DriveProfile
-from dobhil.errors import RecorderError, exception_line
+from dobhil.errors import ConfigError, RecorderError, exception_line
 from dobhil.files import check_new_output
 from dobhil.recording.axeslog import AxesLog, AxisDrive, axis_record, bus_record
 from dobhil.recording.codes import ProtocolCodes
@@ -133,7 +133,10 @@ def _attachments(config: Config, config_file: str | os.PathLike[str] | None) -> 
     (``demo``), read from the file that name resolves to, as the run loaded it."""
     out = [("config.resolved.yaml", "application/yaml", to_yaml(config).encode())]
     if config_file is not None:
-        path = resolve_config(os.fspath(config_file))
+        try:
+            path = resolve_config(os.fspath(config_file))
+        except ConfigError:   # gone since the run loaded it: the resolved config is attached anyway
+            return out
         if path.is_file():
             out.insert(0, (path.name, "application/yaml", path.read_bytes()))
     return out
