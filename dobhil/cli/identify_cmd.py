@@ -18,9 +18,10 @@ import sys
 from pathlib import Path
 from typing import Any
 from dobhil.cli.common import output_path
+from dobhil.config import key_fields
 
-#: the longest --period: loop.period's own ceiling (dobhil/config/schema.py)
-MAX_PERIOD = 10.0
+#: the longest --period: loop.period's own ceiling, read from its key (dobhil/config/schema.py)
+MAX_PERIOD: float = key_fields()["loop.period"].metadata["maximum"]
 
 
 def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
