@@ -16,10 +16,10 @@ import numpy as np
 
 from dobhil.analysis.effective import EffectiveObserver, effective_observers
 from dobhil.analysis.metrics import StepMetrics, step_metrics, step_responses
-from dobhil.analysis.stability import GainMap, gain_map, is_stable
+from dobhil.analysis.stability import GainMap, answered, gain_map, is_stable
 from dobhil.analysis.transfer import LoopSystems
 from dobhil.config.schema import Config
-from dobhil.errors import AnalysisError, ConfigError, DobhilError, exception_line
+from dobhil.errors import AnalysisError, ConfigError
 from dobhil.synthesis.controller import continuous_controller, sampled_controller
 from dobhil.synthesis.params import Params, params_from_config
 
@@ -72,16 +72,8 @@ def analyze(config: Config) -> Analysis:
 
 
 def _answered(params: Params, *, sampled: bool, duration: float) -> DomainAnalysis:
-    name = "sampled" if sampled else "continuous"
-    try:
-        with np.errstate(all="ignore"):
-            return analyze_domain(params, sampled=sampled, duration=duration)
-    except DobhilError:
-        raise
-    except (np.linalg.LinAlgError, ValueError, ZeroDivisionError, OverflowError) as exc:
-        why = exception_line(exc, named=False)[:120]
-        raise AnalysisError(f"the {name} analysis cannot answer this design "
-                            f"({why}); check that it is within the keys' ranges") from None
+    return answered(lambda: analyze_domain(params, sampled=sampled, duration=duration),
+                    what=f"the {'sampled' if sampled else 'continuous'} analysis", of="this design")
 
 
 def analyze_domain(params: Params, *, sampled: bool, duration: float = 0.0) -> DomainAnalysis:

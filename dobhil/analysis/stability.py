@@ -16,15 +16,35 @@ consecutive crossing gains the verdict is constant, so one eigenvalue test of
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from math import comb
+from typing import TypeVar
 
 import numpy as np
 from numpy.typing import NDArray
 
 from dobhil.analysis.polynomials import (Array, CArray, batched_roots, eval_poly,
                                          poly_from_roots, zeros_and_numerator)
+from dobhil.errors import AnalysisError, DobhilError, exception_line
 from dobhil.synthesis.numerics import balance
+
+_T = TypeVar("_T")
+
+
+def answered(compute: Callable[[], _T], *, what: str, of: str) -> _T:
+    """``compute()``, numpy's warnings silenced; a design whose numbers still overflow
+    within the keys' ranges (an inertia of 1e-300: matrices or coefficients not finite) is
+    one line, an :class:`AnalysisError` "``what`` cannot answer ``of`` (why)", not a
+    traceback: ``dobhil analyze`` and ``dobhil certify`` say it alike."""
+    try:
+        with np.errstate(all="ignore"):
+            return compute()
+    except DobhilError:
+        raise
+    except (np.linalg.LinAlgError, ValueError, ZeroDivisionError, OverflowError) as exc:
+        why = exception_line(exc, named=False)[:120]
+        raise AnalysisError(f"{what} cannot answer {of} ({why}); check that it is within the keys' ranges") from None
 
 #: a pole counts as stable when Re(s) < -STABILITY_TOL * scale (continuous) or
 #: |z| < 1 - STABILITY_TOL (sampled)

@@ -11,7 +11,7 @@ from collections.abc import Mapping
 from typing import TYPE_CHECKING, Any
 
 from dobhil.cli.common import add_config_args, config_from_args, design_on_drive
-from dobhil.errors import AnalysisError, ConfigError, DobhilError, exception_line
+from dobhil.errors import ConfigError
 
 if TYPE_CHECKING:
     from dobhil.analysis.certify import Box, ContinuousCertificate
@@ -66,18 +66,10 @@ def run(args: argparse.Namespace) -> int:
 
 def _answered(config: Config, box: Box, loops: str, refinements: int) -> dict[str, Any]:
     """:func:`certify`, or one line when the numbers of a box within the keys' ranges still
-    overflow (an inertia of 1e-300: the polynomial's coefficients are not finite), as
-    ``dobhil analyze`` says of such a design."""
-    import numpy as np
-    try:
-        with np.errstate(all="ignore"):
-            return certify(config, box, loops=loops, refinements=refinements)
-    except DobhilError:
-        raise
-    except (np.linalg.LinAlgError, ValueError, ZeroDivisionError, OverflowError) as exc:
-        why = exception_line(exc, named=False)[:120]
-        raise AnalysisError(f"the certificate cannot answer this box ({why}); check that it is within "
-                            "the keys' ranges") from None
+    overflow (an inertia of 1e-300: the polynomial's coefficients are not finite)."""
+    from dobhil.analysis.stability import answered
+    return answered(lambda: certify(config, box, loops=loops, refinements=refinements),
+                    what="the certificate", of="this box")
 
 
 def certify(config: Config, box: Box, *, loops: str = "both", refinements: int | None = None) -> dict[str, Any]:
