@@ -2,12 +2,20 @@
 --can`` (a checked recording's ``/can/rx`` and ``/can/tx`` through python-can's writers) and
 ``dobhil log import`` (any log python-can reads, through :class:`LogWriter`, the same frame
 records as ``can.Logger("x.mcap")``); outputs checked first and written under a temporary name.
+
+A log cut short (a logger killed mid-write, a copy interrupted) is imported up to its last
+complete record, with one warning saying what was dropped at the end: such a log is what a
+killed run leaves, and refusing it would leave no way in (``dobhil log recover`` salvages
+MCAP only); a cut record is never imported as a shorter frame. Damage before the end (a
+malformed line in the middle of a candump file) is refused.
 """
 
 from __future__ import annotations
 
+import locale
 import math
 import os
+import re
 from collections.abc import Callable, Mapping
 from enum import IntEnum
 from pathlib import Path
@@ -99,7 +107,75 @@ def asc_start(earliest: float) -> float:
     return ms / 1000
 
 
-def _can_reader(path: Path) -> Any:
+#: python-can's readers of line-oriented text logs, by suffix (as ``can.LogReader`` picks them,
+#: python-can's can/io/player.py); each reads any text file object it is given.
+TEXT_READERS: Final[Mapping[str, Callable[..., can.io.generic.MessageReader]]] = MappingProxyType({
+    ".log": can.CanutilsLogReader, ".asc": can.ASCReader, ".trc": can.TRCReader, ".csv": can.CSVReader})
+
+#: A ``candump -L`` line as can-utils writes it (lib.c: ``(TIME) IFACE ID#DATA``, the ID 3 hex
+#: digits (standard) or 8 (extended), DATA hex pairs, ``R`` (+ a DLC digit) for a remote frame,
+#: ``#F`` + pairs for CAN FD), with python-can's optional `` R``/`` T`` direction.
+_CANDUMP_LINE = re.compile(r"\(\d+(?:\.\d*)?\)\s+\S+\s+(?:[0-9A-Fa-f]{3}|[0-9A-Fa-f]{8})#(?P<data>\S*)(?:\s+[RrTt])?")
+_CANDUMP_DATA = re.compile(r"[Rr]\d?|(?P<fd>#[0-9A-Fa-f])?(?P<hex>[0-9A-Fa-f]*)")
+#: The data lengths of a CAN FD frame (ISO 11898-1: DLC 0..15).
+_FD_LENGTHS: Final = frozenset((*range(9), 12, 16, 20, 24, 32, 48, 64))
+_CANDUMP_FORM = "(TIME) IFACE ID#DATA, DATA 0 to 8 bytes as hex pairs (ID##F + 0 to 64 bytes for CAN FD)"
+
+
+def candump_problem(line: str) -> str | None:
+    """What is wrong with a candump line (None: nothing). python-can's CanutilsLogReader does
+    not check the data: it yields a frame for a line with an odd number of hex digits (the
+    last digit read as a byte) or more than 8 bytes without ``##``, so such a line is checked
+    here before python-can parses it."""
+    text = line.strip()
+    if not text:
+        return None   # python-can skips empty lines
+    match = _CANDUMP_LINE.fullmatch(text)
+    data = _CANDUMP_DATA.fullmatch(match["data"]) if match else None
+    if match is None or data is None:
+        return f"not a candump -L frame line {text[:60]!r}; expected {_CANDUMP_FORM}"
+    digits = data["hex"] or ""
+    if len(digits) % 2:
+        return f"data {match['data']!r} has an odd number of hex digits; expected {_CANDUMP_FORM}"
+    if len(digits) // 2 > 8 and not data["fd"] or data["fd"] and len(digits) // 2 not in _FD_LENGTHS:
+        kind = "CAN FD frame" if data["fd"] else "CAN frame"
+        return f"{len(digits) // 2} data bytes is no {kind} length; expected {_CANDUMP_FORM}"
+    return None
+
+
+class _Lines:
+    """A text log's lines, for a python-can reader to iterate as its file: stops before a
+    last line without an end of line (every writer ends each record with one, so that line
+    is a record cut short, ``cut`` says which), raises a :class:`LogFileError` naming the
+    line ``check`` finds wrong; ``number`` is the line last read."""
+
+    def __init__(self, path: Path, check: Callable[[str], str | None] | None) -> None:
+        self.path, self.check = path, check
+        self.number = 0
+        self.cut: str | None = None
+        # the encoding python-can's TextIOMessageReader opens a path with
+        self._file = open(path, encoding=locale.getpreferredencoding(False))
+
+    def __iter__(self) -> _Lines:
+        return self
+
+    def __next__(self) -> str:
+        line = next(self._file)
+        self.number += 1
+        if not line.endswith("\n"):
+            self.cut = f"line {self.number}, a record cut short ({len(line)} characters and no end of line)"
+            raise StopIteration
+        problem = self.check(line) if self.check is not None else None
+        if problem is not None:
+            raise LogFileError(f"{self.path}: line {self.number}: {problem}")
+        return line
+
+    def close(self) -> None:
+        self._file.close()
+
+
+def _can_reader(path: Path) -> tuple[Any, _Lines | None]:
+    """python-can's reader of ``path`` and, for a text log, the lines it reads."""
     problem = input_problem(path)
     if problem is not None:
         raise LogFileError(f"{path}: {problem}; expected a CAN log file python-can reads (.asc, .blf, .log, .trc, ...)")
@@ -108,19 +184,29 @@ def _can_reader(path: Path) -> Any:
     # ASC: absolute times (its Begin Triggerblock date plus each line's offset), as every
     # other format gives; python-can's default for ASC is times from 0, i.e. 1970
     absolute = {"relative_timestamp": False} if path.suffix.lower() == ".asc" else {}
+    lines = None
     try:
-        return can.LogReader(path, **absolute)
+        text_reader = TEXT_READERS.get(path.suffix.lower())
+        if text_reader is None:
+            return can.LogReader(path, **absolute), None
+        lines = _Lines(path, candump_problem if text_reader is can.CanutilsLogReader else None)
+        return text_reader(lines, **absolute), lines
     except Exception as exc:  # python-can readers raise what their parsers raise
+        if lines is not None:
+            lines.close()
         raise LogFileError(f"{path}: not a CAN log python-can reads ({exception_line(exc)})") from exc
 
 
 def import_can(canlog: str | os.PathLike[str], out: str | os.PathLike[str], *,
-               progress: ProgressFn | None = None) -> int:
-    """Every frame of a python-can readable log into a new MCAP; the frame count."""
+               progress: ProgressFn | None = None, warn: Callable[[str], None] | None = None) -> int:
+    """Every complete frame of a python-can readable log into a new MCAP; the frame count.
+    A log cut short is imported up to its last complete record and ``warn`` gets one line
+    saying what was dropped at the end (module docstring); damage before the end raises."""
     source = Path(canlog)
     check_output(out, inputs=[source], suffix=".mcap", what="output", new=True)
     count, meta = 0, {"import": {"source": source.name, "format": source.suffix.lstrip(".").lower()}}
-    with _can_reader(source) as reader, atomic_path(out) as tmp:
+    reader, lines = _can_reader(source)
+    with reader, atomic_path(out) as tmp:
         log = LogWriter(open(tmp, "wb"), metadata=meta, fsync=False)
         try:
             for msg in reader:
@@ -129,14 +215,24 @@ def import_can(canlog: str | os.PathLike[str], out: str | os.PathLike[str], *,
                 count += 1
                 if progress is not None:
                     progress(1)
+        except LogFileError:
+            log.close()
+            raise
         except Exception as exc:  # whatever a damaged log makes the reader raise
             log.close()
-            raise LogFileError(f"{source}: unreadable after {count} frames ({exception_line(exc)})") from exc
+            where = f"line {lines.number}: " if lines is not None else ""
+            raise LogFileError(f"{source}: {where}unreadable after {count} frames ({exception_line(exc)})") from exc
+        cut = lines.cut if lines is not None else None
         if count == 0:
             log.close()
+            if cut is not None:
+                raise LogFileError(f"{source}: no complete CAN frame before the end was cut short ({cut})")
             raise LogFileError(f"{source}: no CAN frames found (is it a {source.suffix or 'CAN'} log?)")
         log.finish(None)
+    if cut is not None and warn is not None:
+        warn(f"{source}: cut short: imported the {count} complete frames; dropped {cut}")
     return count
 
 
-__all__ = ["FORMATS", "CanLogFormat", "default_can_output", "export_can", "import_can", "parse_format"]
+__all__ = ["FORMATS", "TEXT_READERS", "CanLogFormat", "candump_problem", "default_can_output", "export_can",
+           "import_can", "parse_format"]

@@ -8,7 +8,8 @@
 - ``dobhil log serve FILE [--live [HOST:]PORT] [--speed X] [--loop]``  (Foxglove live view)
 
 Bad input ends in one :class:`~dobhil.errors.LogFileError` line (exit 2); an output that
-is one of the inputs is refused, and outputs appear only when complete. Progress goes to
+is one of the inputs is refused, and outputs appear only when complete. A CAN log cut short
+is imported up to its last complete record, with one warning line saying what was dropped. Progress goes to
 stderr (:mod:`dobhil.cli.progress`: a bar on a terminal, else lines).
 """
 
@@ -16,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from datetime import datetime, timezone
@@ -131,8 +133,11 @@ def _export_can(args: argparse.Namespace) -> int:
 def _cmd_import(args: argparse.Namespace) -> int:
     from dobhil.canio.canlog import import_can
 
+    def warn(line: str) -> None:
+        sys.stderr.write(f"dobhil log: warning: {line}\n")
+
     with _progress("import", None) as update:
-        count = import_can(args.canlog, args.output, progress=update)
+        count = import_can(args.canlog, args.output, progress=update, warn=warn)
     print(f"imported {count} CAN frames to {args.output}")
     return 0
 

@@ -114,3 +114,82 @@ def test_asc_starts_at_the_earliest_frame_even_when_a_later_line_is_older(tmp_pa
         back = {m.arbitration_id: m.timestamp for m in reader}
     assert back[0x009] == pytest.approx(T0, abs=1e-3) and back[0x00C] == pytest.approx(T0 + 0.5, abs=1e-3)
     assert back[0x00C] - back[0x009] == pytest.approx(0.5, abs=RESOLUTION[CanLogFormat.ASC])
+
+
+#: A candump -L log as python-can's CanutilsLogWriter writes it (`` R``/`` T``: direction).
+CANDUMP = ("(1700000000.000000) can0 123#0011223344556677 R\n"
+           "(1700000000.001000) can0 1ABCDEF0#010203 T\n"
+           "(1700000000.002000) can0 456#R R\n")
+
+
+def imported_frames(path: Path) -> list[tuple[int, bytes]]:
+    return [(p["arbitration_id"], bytes(p["data"])) for _, _, p in open_log(path).iter_messages()]
+
+
+def test_candump_cut_mid_line_imports_the_complete_frames_and_warns(tmp_path: Path) -> None:
+    """The last line of a logger killed mid-write: ``7FF#DEADBE`` reads as a 3-byte frame,
+    but the line has no end of line: it is dropped, with one warning, never imported short."""
+    cut = tmp_path / "cut.log"
+    cut.write_text(CANDUMP + "(1700000000.003000) can0 7FF#DEADBE")
+    warned: list[str] = []
+    assert import_can(cut, tmp_path / "out.mcap", warn=warned.append) == 3
+    assert imported_frames(tmp_path / "out.mcap") == [(0x123, bytes.fromhex("0011223344556677")),
+                                                      (0x1ABCDEF0, b"\x01\x02\x03"), (0x456, b"")]
+    assert len(warned) == 1 and "cut.log" in warned[0] and "imported the 3 complete frames" in warned[0]
+    assert "dropped line 4" in warned[0]
+
+
+def test_candump_complete_imports_without_warning(tmp_path: Path) -> None:
+    good = tmp_path / "good.log"
+    good.write_text(CANDUMP)
+    warned: list[str] = []
+    assert import_can(good, tmp_path / "out.mcap", warn=warned.append) == 3 and warned == []
+
+
+def test_candump_only_a_cut_line_is_refused(tmp_path: Path) -> None:
+    cut = tmp_path / "cut.log"
+    cut.write_text("(1700000000.000000) can0 123#00112")
+    with pytest.raises(LogFileError, match=r"cut.log: no complete CAN frame .*line 1, a record cut short"):
+        import_can(cut, tmp_path / "out.mcap")
+    assert not list(tmp_path.glob("*.mcap"))
+
+
+@pytest.mark.parametrize(("line", "said"), [
+    ("(1700000000.001000) can0 1ABCDEF0#0102030 T", "data '0102030' has an odd number of hex digits"),
+    ("(1700000000.001000) can0 1ABCDEF0#010203040506070809 T", "9 data bytes is no CAN frame length"),
+    ("(1700000000.001000) can0 123##1000102030405060708 T", "9 data bytes is no CAN FD frame length"),
+    ("(1700000000.001000) can0 123#01zz T", "not a candump -L frame line"),
+    ("(1700000000.001000) can0 12#01 T", "not a candump -L frame line"),
+], ids=["odd-digits", "9-bytes", "fd-9-bytes", "not-hex", "short-id"])
+def test_candump_bad_line_in_the_middle_is_refused(tmp_path: Path, line: str, said: str) -> None:
+    """python-can's reader yields a frame for the first three (a byte of the odd digit, 9
+    bytes of classic CAN): the line is checked before it parses it."""
+    first, _, third = CANDUMP.splitlines(keepends=True)
+    bad = tmp_path / "bad.log"
+    bad.write_text(first + line + "\n" + third)
+    with pytest.raises(LogFileError, match=rf"bad.log: line 2: {said}"):
+        import_can(bad, tmp_path / "out.mcap")
+    assert not list(tmp_path.glob("*.mcap"))
+
+
+def test_candump_fd_and_remote_lines_pass_the_check(tmp_path: Path) -> None:
+    fd = tmp_path / "fd.log"
+    fd.write_text("(1700000000.000000) can0 123##1" + "AB" * 12 + " R\n(1700000000.001000) can0 456#R8 T\n\n")
+    assert import_can(fd, tmp_path / "out.mcap") == 2
+    assert imported_frames(tmp_path / "out.mcap") == [(0x123, b"\xab" * 12), (0x456, b"")]
+
+
+#: An ASC log as python-can's ASCWriter writes it.
+ASC = ("date Sat Dec 05 05:41:02.760 2026\nbase hex  timestamps absolute\ninternal events logged\n"
+       "Begin Triggerblock Sat Dec 05 05:41:00.999 2026\n 0.000000 Start of measurement\n"
+       " 0.016913 1  6E              Tx   d 8 00 11 22 33 44 55 66 77\n"
+       " 0.017913 1  78              Rx   d 1 05\n")
+
+
+def test_asc_cut_mid_line_drops_that_line(tmp_path: Path) -> None:
+    cut = tmp_path / "cut.asc"
+    cut.write_text(ASC + " 0.018913 1  6E              Tx   d 8 00 11 22")
+    warned: list[str] = []
+    assert import_can(cut, tmp_path / "out.mcap", warn=warned.append) == 2
+    assert imported_frames(tmp_path / "out.mcap") == [(0x6E, bytes.fromhex("0011223344556677")), (0x78, b"\x05")]
+    assert len(warned) == 1 and "dropped line 8," in warned[0]

@@ -153,3 +153,23 @@ def test_export_can_and_import_by_cli(tmp_path: Path, run_file: Path, capsys: py
     assert "exists; refusing to overwrite a recording" in capsys.readouterr().err
     assert main(["log", "import", str(tmp_path / "none.asc"), "-o", str(tmp_path / "x.mcap")]) == 2
     assert capsys.readouterr().err.count("\n") == 1
+
+
+def test_import_of_a_cut_candump_warns_in_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    cut = tmp_path / "cut.log"
+    cut.write_text("(1700000000.000000) can0 123#0011223344556677 R\n(1700000000.001000) can0 124#00112233")
+    assert main(["log", "import", str(cut), "-o", str(tmp_path / "back.mcap")]) == 0
+    captured = capsys.readouterr()
+    assert "imported 1 CAN frames" in captured.out
+    said = [line for line in captured.err.splitlines() if line.startswith("dobhil log:")]
+    assert said == [f"dobhil log: warning: {cut}: cut short: imported the 1 complete frames; "
+                    "dropped line 2, a record cut short (37 characters and no end of line)"]
+
+
+def test_import_of_a_bad_candump_line_is_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    bad = tmp_path / "bad.log"
+    bad.write_text("(1700000000.000000) can0 123#0011223 R\n(1700000000.001000) can0 124#00 R\n")
+    assert main(["log", "import", str(bad), "-o", str(tmp_path / "back.mcap")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and f"{bad}: line 1: data '0011223' has an odd number of hex digits" in err
+    assert not list(tmp_path.glob("*.mcap"))
