@@ -16,11 +16,12 @@ import locale
 import math
 import os
 import re
+import struct
 from collections.abc import Callable, Mapping
 from enum import IntEnum
 from pathlib import Path
 from types import MappingProxyType
-from typing import Any, Final
+from typing import Any, BinaryIO, Final, cast
 
 import can
 
@@ -174,8 +175,73 @@ class _Lines:
         self._file.close()
 
 
-def _can_reader(path: Path) -> tuple[Any, _Lines | None]:
-    """python-can's reader of ``path`` and, for a text log, the lines it reads."""
+#: BLF's file header start (signature ``LOGG``, header size) and object header (signature
+#: ``LOBJ``, header size, header version, object size, object type), as python-can's
+#: can/io/blf.py reads them (FILE_HEADER_STRUCT, OBJ_HEADER_BASE_STRUCT).
+_BLF_FILE_HEAD = struct.Struct("<4sL")
+_BLF_OBJECT_HEAD = struct.Struct("<4sHHLL")
+#: An object header and a log container's (compression method, size: LOG_CONTAINER_STRUCT).
+_BLF_WHOLE = _BLF_OBJECT_HEAD.size + 16
+
+
+class _BlfBytes:
+    """A BLF file's bytes, for python-can's BLFReader to read as its file (it calls ``read``
+    only). ``cut`` says what the file lost at its end (None: nothing seen), found by walking
+    its top-level objects (each a header, its size, padding to 4 bytes: python-can's reader)
+    and by the header's file size. Of an object the file ends within, the reader yields the
+    whole frames its part holds (never a partial one: its own test, can/io/blf.py
+    ``_parse_data``); one whose headers are not all there (its own and its log container's,
+    :data:`_BLF_WHOLE`) it fails to unpack, after every frame before it: so the bytes end
+    before such an object."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        self.cut: str | None = None
+        size = path.stat().st_size
+        self._file = open(path, "rb")
+        self._left = size
+        head = self._file.read(_BLF_FILE_HEAD.size)
+        pos = _BLF_FILE_HEAD.unpack(head)[1] if len(head) == _BLF_FILE_HEAD.size and head[:4] == b"LOGG" else size
+        while pos + _BLF_OBJECT_HEAD.size <= size:
+            self._file.seek(pos)
+            signature, _, _, obj_size, _ = _BLF_OBJECT_HEAD.unpack(self._file.read(_BLF_OBJECT_HEAD.size))
+            if signature != b"LOBJ" or obj_size < _BLF_OBJECT_HEAD.size:
+                break   # damage, not a cut: python-can's reader says what
+            if pos + obj_size > size:
+                self.cut = f"the part past byte {size} of the {obj_size}-byte object at byte {pos}"
+                if size - pos < _BLF_WHOLE:
+                    self._left = pos
+                break
+            pos += obj_size + obj_size % 4
+        else:
+            if pos < size:
+                self._left = pos
+                self.cut = f"the object at byte {pos}, cut {size - pos} bytes into its header"
+        self._file.seek(0)
+
+    def read(self, n: int = -1) -> bytes:
+        data = self._file.read(self._left if n < 0 else min(n, self._left))
+        self._left -= len(data)
+        return data
+
+    def close(self) -> None:
+        self._file.close()
+
+    def check_header(self, reader: Any) -> None:
+        """The header's file size and object count (set when the writer closed the file;
+        python-can's BLFReader sets them as ``file_size`` and ``object_count``, attributes
+        its API documentation does not list, hence looked up with a default): a file shorter
+        than that was cut, maybe between two objects, which the walk cannot see."""
+        promised, objects = getattr(reader, "file_size", None), getattr(reader, "object_count", None)
+        size = self.path.stat().st_size
+        if isinstance(promised, int) and promised > size:
+            gives = f"its header gives {promised} bytes" + (f", {objects} objects" if isinstance(objects, int) else "")
+            self.cut = f"{self.cut or f'the {promised - size} bytes past byte {size}'}; {gives}"
+
+
+def _can_reader(path: Path) -> tuple[Any, _Lines | _BlfBytes | None]:
+    """python-can's reader of ``path`` and, for a text log, the lines it reads, for a BLF
+    log, the bytes."""
     problem = input_problem(path)
     if problem is not None:
         raise LogFileError(f"{path}: {problem}; expected a CAN log file python-can reads (.asc, .blf, .log, .trc, ...)")
@@ -186,6 +252,15 @@ def _can_reader(path: Path) -> tuple[Any, _Lines | None]:
     absolute = {"relative_timestamp": False} if path.suffix.lower() == ".asc" else {}
     lines = None
     try:
+        if path.suffix.lower() == ".blf":
+            blf = _BlfBytes(path)
+            try:
+                reader = can.BLFReader(cast(BinaryIO, blf))   # it calls read() and close() only
+            except Exception:
+                blf.close()
+                raise
+            blf.check_header(reader)
+            return reader, blf
         text_reader = TEXT_READERS.get(path.suffix.lower())
         if text_reader is None:
             return can.LogReader(path, **absolute), None
@@ -220,7 +295,7 @@ def import_can(canlog: str | os.PathLike[str], out: str | os.PathLike[str], *,
             raise
         except Exception as exc:  # whatever a damaged log makes the reader raise
             log.close()
-            where = f"line {lines.number}: " if lines is not None else ""
+            where = f"line {lines.number}: " if isinstance(lines, _Lines) else ""
             raise LogFileError(f"{source}: {where}unreadable after {count} frames ({exception_line(exc)})") from exc
         cut = lines.cut if lines is not None else None
         if count == 0:

@@ -193,3 +193,71 @@ def test_asc_cut_mid_line_drops_that_line(tmp_path: Path) -> None:
     assert import_can(cut, tmp_path / "out.mcap", warn=warned.append) == 2
     assert imported_frames(tmp_path / "out.mcap") == [(0x6E, bytes.fromhex("0011223344556677")), (0x78, b"\x05")]
     assert len(warned) == 1 and "dropped line 8," in warned[0]
+
+
+def blf(path: Path, frames: int, container: int = 128 * 1024) -> Path:
+    """A BLF of ``frames`` 8-byte frames by python-can's BLFWriter (``container``: the
+    uncompressed bytes of a log container, python-can's ``max_container_size``)."""
+    with can.BLFWriter(path, max_container_size=container) as writer:
+        for i in range(frames):
+            writer.on_message_received(can.Message(timestamp=T0 + i * 1e-3, arbitration_id=0x100 + i,
+                                                   data=bytes([i] * 8), channel=0))
+    return path
+
+
+def blf_objects(path: Path) -> list[tuple[int, int]]:
+    """(offset, size) of each top-level object (python-can's can/io/blf.py layout)."""
+    data, out = path.read_bytes(), []
+    pos = int.from_bytes(data[4:8], "little")
+    while pos < len(data):
+        size = int.from_bytes(data[pos + 8:pos + 12], "little")
+        out.append((pos, size))
+        pos += size + size % 4
+    return out
+
+
+def test_blf_cut_mid_object_imports_its_whole_frames_and_warns(tmp_path: Path) -> None:
+    good = blf(tmp_path / "good.blf", 40)
+    (start, size), = blf_objects(good)
+    cut = tmp_path / "cut.blf"
+    cut.write_bytes(good.read_bytes()[:start + size // 2])
+    warned: list[str] = []
+    count = import_can(cut, tmp_path / "out.mcap", warn=warned.append)
+    assert 0 < count < 40
+    assert imported_frames(tmp_path / "out.mcap") == [(0x100 + i, bytes([i] * 8)) for i in range(count)]
+    assert len(warned) == 1 and f"imported the {count} complete frames" in warned[0]
+    assert f"dropped the part past byte {start + size // 2} of the {size}-byte object at byte {start}" in warned[0]
+    assert f"its header gives {good.stat().st_size} bytes, 40 objects" in warned[0]
+
+
+def test_blf_cut_between_objects_is_seen_by_its_header(tmp_path: Path) -> None:
+    good = blf(tmp_path / "good.blf", 40, container=256)
+    objects = blf_objects(good)
+    assert len(objects) > 2
+    start, _ = objects[-1]
+    cut = tmp_path / "cut.blf"
+    cut.write_bytes(good.read_bytes()[:start])
+    warned: list[str] = []
+    count = import_can(cut, tmp_path / "out.mcap", warn=warned.append)
+    assert 0 < count < 40 and imported_frames(tmp_path / "out.mcap") == [(0x100 + i, bytes([i] * 8))
+                                                                          for i in range(count)]
+    assert warned == [f"{cut}: cut short: imported the {count} complete frames; dropped the "
+                      f"{good.stat().st_size - start} bytes past byte {start}; its header gives "
+                      f"{good.stat().st_size} bytes, 40 objects"]
+
+
+@pytest.mark.parametrize("into", [6, 20], ids=["object-header", "container-header"])
+def test_blf_cut_in_the_first_headers_is_refused(tmp_path: Path, into: int) -> None:
+    good = blf(tmp_path / "good.blf", 5)
+    (start, _), = blf_objects(good)
+    cut = tmp_path / "cut.blf"
+    cut.write_bytes(good.read_bytes()[:start + into])
+    with pytest.raises(LogFileError, match=rf"cut.blf: no complete CAN frame .*object at byte {start}"):
+        import_can(cut, tmp_path / "out.mcap")
+    assert not list(tmp_path.glob("*.mcap")) and not list(tmp_path.glob(".*partial*"))
+
+
+def test_blf_complete_imports_without_warning(tmp_path: Path) -> None:
+    warned: list[str] = []
+    assert import_can(blf(tmp_path / "good.blf", 40, container=256), tmp_path / "out.mcap", warn=warned.append) == 40
+    assert warned == []
