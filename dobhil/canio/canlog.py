@@ -272,6 +272,20 @@ def _can_reader(path: Path) -> tuple[Any, _Lines | _BlfBytes | None]:
         raise LogFileError(f"{path}: not a CAN log python-can reads ({exception_line(exc)})") from exc
 
 
+def short_frame(msg: can.Message) -> str | None:
+    """What is wrong with a data frame whose data is shorter than its DLC says (None:
+    nothing). python-can's readers build a frame from what a record holds without checking
+    it against the DLC: ASCReader's from ``d 8 00 11`` has DLC 8 and 2 bytes. A longer one
+    is left alone: python-can's CSV format keeps no FD flag, so its CAN FD frames read back as
+    classic frames of their length."""
+    if msg.is_remote_frame or msg.is_error_frame:
+        return None
+    want = msg.dlc if msg.is_fd else min(msg.dlc, 8)   # a classic DLC 9..15 means 8 bytes
+    if len(msg.data) < want:
+        return f"a frame with {len(msg.data)} data bytes where its DLC says {msg.dlc}; its record is damaged"
+    return None
+
+
 def import_can(canlog: str | os.PathLike[str], out: str | os.PathLike[str], *,
                progress: ProgressFn | None = None, warn: Callable[[str], None] | None = None) -> int:
     """Every complete frame of a python-can readable log into a new MCAP; the frame count.
@@ -285,6 +299,10 @@ def import_can(canlog: str | os.PathLike[str], out: str | os.PathLike[str], *,
         log = LogWriter(open(tmp, "wb"), metadata=meta, fsync=False)
         try:
             for msg in reader:
+                problem = short_frame(msg)
+                if problem is not None:
+                    where = f"line {lines.number}" if isinstance(lines, _Lines) else f"frame {count + 1}"
+                    raise LogFileError(f"{source}: {where}: {problem}")
                 log.write([can_frame_record(msg, topic_of(msg),
                                             round((msg.timestamp or 0.0) * 1e9))])
                 count += 1
@@ -310,4 +328,4 @@ def import_can(canlog: str | os.PathLike[str], out: str | os.PathLike[str], *,
 
 
 __all__ = ["FORMATS", "TEXT_READERS", "CanLogFormat", "candump_problem", "default_can_output", "export_can",
-           "import_can", "parse_format"]
+           "import_can", "parse_format", "short_frame"]

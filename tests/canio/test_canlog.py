@@ -261,3 +261,26 @@ def test_blf_complete_imports_without_warning(tmp_path: Path) -> None:
     warned: list[str] = []
     assert import_can(blf(tmp_path / "good.blf", 40, container=256), tmp_path / "out.mcap", warn=warned.append) == 40
     assert warned == []
+
+
+def test_asc_frame_shorter_than_its_dlc_is_refused(tmp_path: Path) -> None:
+    """python-can's ASCReader yields a frame of DLC 8 and 2 bytes for ``d 8 00 11``: refused,
+    naming the line, not imported short."""
+    bad = tmp_path / "bad.asc"
+    bad.write_text(ASC.replace("d 1 05", "d 8 00 11") + " 0.018913 1  6E              Tx   d 1 01\n")
+    with pytest.raises(LogFileError, match="bad.asc: line 7: a frame with 2 data bytes where its DLC says 8"):
+        import_can(bad, tmp_path / "out.mcap")
+    assert not list(tmp_path.glob("*.mcap")) and not list(tmp_path.glob(".*partial*"))
+
+
+def test_classic_dlc_above_8_and_every_writers_round_trip_pass(tmp_path: Path) -> None:
+    """A classic DLC 9..15 means 8 bytes (ISO 11898-1); the frames of every format python-can
+    writes (CSV keeps no FD flag: its FD frame reads back longer than 8 bytes) import whole."""
+    asc = tmp_path / "dlc15.asc"
+    asc.write_text(ASC.replace("d 8 00 11 22 33 44 55 66 77", "d F 00 11 22 33 44 55 66 77"))
+    assert import_can(asc, tmp_path / "asc.mcap") == 2
+    for suffix in (".csv", ".log", ".asc", ".blf"):
+        with can.Logger(tmp_path / f"all{suffix}") as writer:
+            for _, msg in FRAMES:
+                writer.on_message_received(msg)
+        assert import_can(tmp_path / f"all{suffix}", tmp_path / f"{suffix[1:]}-all.mcap") == len(FRAMES)
