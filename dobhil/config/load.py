@@ -65,9 +65,15 @@ def resolve_config(path: str | Path) -> Path:
                       f"{', '.join(shipped_configs())} (dobhil init DIR copies them for editing)")
 
 
-def read_yaml(path: str | Path) -> dict[str, Any]:
-    """The mapping in a YAML file, or ConfigError naming the file (and line) at fault."""
+def read_yaml(path: str | Path, *, name: str | None = None, expected: str | None = None) -> dict[str, Any]:
+    """The mapping in a YAML file, or ConfigError naming the file (and line) at fault.
+
+    ``name`` is how the file is named in a message (``--set-file 'x.yaml'``: what the user
+    typed, not a config file) and ``expected`` what it should hold; with them, every refusal
+    is ``NAME: what is wrong; expected EXPECTED``."""
     p = Path(path)
+    if name is not None:
+        return _read_named_yaml(p, name, expected or "a YAML mapping")
     try:
         text = read_text_file(p)
     except FileNotFoundError:
@@ -88,6 +94,41 @@ def read_yaml(path: str | Path) -> dict[str, Any]:
     return data
 
 
+def _read_named_yaml(p: Path, name: str, expected: str) -> dict[str, Any]:
+    def refuse(problem: str) -> NoReturn:
+        raise ConfigError(f"{name}: {problem}; expected {expected}")
+    try:
+        text = read_text_file(p)
+    except FileNotFoundError:
+        refuse("no such file")
+    except TextFileError as exc:
+        refuse(str(exc))  # a directory, a device, not UTF-8 text (an image), too large
+    try:
+        data = safe_load(text)
+    except yaml.YAMLError as exc:
+        refuse(f"YAML syntax error{where(exc)}")
+    except (ValueError, RecursionError) as exc:  # e.g. an integer of more than 4300 digits
+        refuse(f"unreadable value: {exception_line(exc, named=False)}")
+    if data is None:
+        return {}
+    if not isinstance(data, dict):
+        refuse(f"holds a YAML {_yaml_kind(data)}, not a mapping")
+    return data
+
+
+def _yaml_kind(data: Any) -> str:
+    """What a YAML document that is no mapping holds, in YAML's words (a list, not a Python ``list``)."""
+    if isinstance(data, list):
+        return "list"
+    if isinstance(data, str):
+        return "string (plain text)"
+    return "scalar" if isinstance(data, (bool, int, float)) else type(data).__name__
+
+
+#: what a ``--set-file`` holds, as its refusals say
+SET_FILE_EXPECTED = ("a YAML file of section.key: value (e.g. plant.inertia: 0.25, or the overlay "
+                     "dobhil identify --out writes)")
+
 #: the top-level key of an identify overlay that --set-file skips (the fit's intervals and covariance)
 IDENTIFIED_SECTION = "identified"
 
@@ -95,10 +136,7 @@ IDENTIFIED_SECTION = "identified"
 def read_set_file(path: str | Path) -> dict[str, Any]:
     """The keys of a ``--set-file``: a YAML mapping of ``section.key: value`` (or of sections,
     as in a config file); unknown keys fail later, in :func:`build_config`, naming the key."""
-    if not Path(path).is_file():
-        raise ConfigError(f"--set-file {_show(str(path))}: no such file; expected a YAML mapping of "
-                          "section.key: value (e.g. the overlay dobhil identify --out writes)")
-    data = dict(read_yaml(path))
+    data = dict(read_yaml(path, name=f"--set-file {_show(str(path))}", expected=SET_FILE_EXPECTED))
     # an identify overlay's fit record (intervals, covariance: dobhil/identify/intervals.py) is no config key
     data.pop(IDENTIFIED_SECTION, None)
     flat = _flatten(data, "")

@@ -94,9 +94,7 @@ def read_identified(path: str | os.PathLike[str], option: str) -> Identified:
     when the file is no overlay with one, or the section is malformed."""
     from dobhil.config.load import read_yaml
     name = os.fspath(path)
-    if not os.path.isfile(name):
-        raise ConfigError(f"{option} {name}: no such file; expected an overlay written by dobhil identify --out")
-    data = read_yaml(name)
+    data = read_yaml(name, name=f"{option} {name}", expected="an overlay written by dobhil identify --out")
     section = data.get(SECTION) if isinstance(data, Mapping) else None
     if not isinstance(section, Mapping) or not section.get("intervals"):
         raise ConfigError(f"{option} {name}: no identified intervals (an '{SECTION}:' section with intervals, "

@@ -96,6 +96,34 @@ def test_set_file_bad_input(tmp_path: Path, capsys: pytest.CaptureFixture[str]) 
     _fails(capsys, ["analyze", "demo", "--set-file", str(flat)], "not a section.key")
 
 
+SET_FILE_EXPECTED = "expected a YAML file of section.key: value"
+
+
+@pytest.mark.parametrize(("content", "says"), [
+    (None, "is a directory"),
+    (b"\x89PNG\r\n\x1a\n\x00\x00", "is not UTF-8 text"),
+    (b"- plant.inertia: 0.3\n", "holds a YAML list, not a mapping"),
+    (b"just some text\n", "holds a YAML string (plain text), not a mapping"),
+    (b"plant: [\n", "YAML syntax error at line 2"),
+])
+def test_set_file_that_is_no_overlay(content: bytes | None, says: str, tmp_path: Path,
+                                     monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]) -> None:
+    """A --set-file that is a directory, an image or YAML that is no mapping is named as the
+    --set-file (not a config file, not a missing one), with what it should hold."""
+    monkeypatch.chdir(tmp_path)  # a short name: a long one is shortened in the message
+    given = Path("given.png")
+    if content is None:
+        given.mkdir()
+    else:
+        given.write_bytes(content)
+    for command in (["analyze"], ["tune"], ["sweep", "--vary", "design.force_gain=1:2:2"]):
+        _fails(capsys, [command[0], "demo", *command[1:], "--set-file", str(given)],
+               f"--set-file '{given}': {says}")
+    assert main(["analyze", "demo", "--set-file", str(given)]) == 2
+    err = capsys.readouterr().err
+    assert SET_FILE_EXPECTED in err and "config file" not in err and "no such file" not in err, err
+
+
 def test_identify_free_run_end_to_end(logs: dict[str, Path], tmp_path: Path,
                                       capsys: pytest.CaptureFixture[str]) -> None:
     """A free-motion run: its one segment found, no environment numbers (not identifiable, said

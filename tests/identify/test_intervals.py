@@ -121,6 +121,13 @@ def test_overlay_without_intervals(tmp_path: Path, capsys: pytest.CaptureFixture
     _fails(capsys, ["tune", "demo", "--uncertainty-from", str(plain)], "no identified intervals")
     _fails(capsys, ["montecarlo", "demo", "--runs", "2", "--draw-from", str(plain)], "no identified intervals")
     _fails(capsys, ["tune", "demo", "--uncertainty-from", str(tmp_path / "none.yaml")], "no such file")
+    # a directory is said to be one, and an image is no config file: both named by their option
+    _fails(capsys, ["tune", "demo", "--uncertainty-from", str(tmp_path)],
+           f"--uncertainty-from {tmp_path}: is a directory")
+    image = tmp_path / "plot.png"
+    image.write_bytes(b"\x89PNG\r\n\x1a\n\x00\x00")
+    _fails(capsys, ["montecarlo", "demo", "--runs", "2", "--draw-from", str(image)],
+           f"--draw-from {image}: is not UTF-8 text (byte 0x89 at offset 0); expected an overlay written by dobhil")
     bad = tmp_path / "bad.yaml"
     bad.write_text("identified:\n  intervals:\n    plant.inertia: {estimate: 0.25, lo: 0.3, hi: 0.2, stderr: 1}\n"
                    "  covariance: {keys: [plant.inertia], matrix: [[1.0]]}\n")
