@@ -286,7 +286,13 @@ def parse_segment(text: str, data: IdentData) -> Segment:
     except ValueError:
         raise ConfigError(f"--segment {text!r}: T0 and T1 must be numbers of seconds") from None
     end = data.samples * data.period
-    if not (math.isfinite(t0) and math.isfinite(t1) and 0.0 <= t0 < t1 <= end + 0.5 * data.period):
+    if not (math.isfinite(t0) and math.isfinite(t1)):
+        raise ConfigError(f"--segment {text!r}: T0 and T1 must be finite numbers of seconds "
+                          f"(0 <= T0 < T1 <= {end:g} s)")
+    if not t0 < t1:  # said apart from a range outside the log: the order is the mistake, not the times
+        raise ConfigError(f"--segment {text!r}: T0 must be below T1 (the segment runs from T0 to T1 seconds; "
+                          f"0 <= T0 < T1 <= {end:g} s)")
+    if not (0.0 <= t0 and t1 <= end + 0.5 * data.period):
         raise ConfigError(f"--segment {text!r}: outside the log; expected 0 <= T0 < T1 <= {end:g} s")
     start, stop = int(round(t0 / data.period)), min(int(round(t1 / data.period)), data.samples)
     if stop - start < MIN_SEGMENT:

@@ -23,6 +23,10 @@ def _fails(capsys: pytest.CaptureFixture[str], args: list[str], match: str) -> N
 def test_identify_bad_input(logs: dict[str, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     _fails(capsys, ["identify", str(logs["still"])], "no motion")
     _fails(capsys, ["identify", str(logs["contact"]), "--segment", "0.4:2"], "outside the log")
+    _fails(capsys, ["identify", str(logs["contact"]), "--segment=-0.1:0.2"], "outside the log")
+    for reversed_ in ("0.2:0.1", "0.2:0.2"):   # inside the log, in the wrong order
+        _fails(capsys, ["identify", str(logs["contact"]), "--segment", reversed_], "T0 must be below T1")
+    _fails(capsys, ["identify", str(logs["contact"]), "--segment", "0.1:nan"], "must be finite numbers")
     _fails(capsys, ["identify", str(logs["contact"]), "--drive", "mini-cheetah"],
            "'odrive' drive, but the profile given is 'mit'")
     cut = tmp_path / "cut.mcap"
