@@ -250,6 +250,35 @@ def test_bad_analysis_input_is_one_line_and_exit_2(argv: list[str], message: str
     assert message in err and err.count("\n") == 1 and "Traceback" not in err
 
 
+VARY_FORMS = "allowed: KEY=START:STOP:NUM or KEY=log:START:STOP:NUM"
+
+
+@pytest.mark.parametrize("vary,problem", [
+    ("design.force_gain=1:10:3:4", "the range has 4 parts, not 3"),
+    ("design.force_gain=log:1:10:3:4", "the range has 4 parts, not 3"),
+    ("design.force_gain=1", "the range has 1 part, not 3"),
+    ("design.force_gain=1:10", "the range has 2 parts, not 3"),
+    ("design.force_gain=", "no range after ="),
+    ("design.force_gain=log:", "no range after log:"),
+    ("design.force_gain=::3", "START is empty"),
+    ("design.force_gain=1::3", "STOP is empty"),
+    ("design.force_gain=1:10:", "NUM is empty"),
+    ("design.force_gain=a:10:3", "START 'a' is not a number"),
+    ("design.force_gain=1:b:3", "STOP 'b' is not a number"),
+    ("design.force_gain=1:10:2.5", "NUM '2.5' is not a whole number"),
+    ("design.force_gain=1:10:0", "NUM must be at least 1 (got 0)"),
+    ("design.force_gain=1:10:100001", "NUM must be at most 100000 values per axis (got 100001)"),
+    ("design.force_gain", "no ="),
+    ("=1:10:3", "no KEY before ="),
+])
+def test_sweep_vary_names_the_part_at_fault(vary: str, problem: str, capsys: pytest.CaptureFixture[str]) -> None:
+    """Each malformed --vary says what is wrong with it and the forms --vary takes."""
+    assert main(["sweep", FIG2A, "--vary", vary]) == 2
+    err = capsys.readouterr().err
+    assert f"--vary {vary!r}: {problem}; {VARY_FORMS}" in err, err
+    assert err.count("\n") == 1 and "Traceback" not in err
+
+
 @pytest.mark.parametrize("name, sets", [("demo", []), ("demo", ["design.delay_samples=1"]),
                                         ("paper/fig3", ["loop.period=0.002"])])
 def test_sampled_gain_margin_is_the_factor_to_the_largest_stable_gain(name, sets):

@@ -63,31 +63,60 @@ def parse_vary(spec: str) -> Axis:
     """``key=start:stop:num`` (``log:`` prefix on the range for a log-spaced axis)."""
     name, sep, rng = spec.partition("=")
     name = name.strip()
-    if not sep:
-        raise ConfigError(f"--vary {spec!r}: expected key=start:stop:num")
+    if not sep or not name:
+        raise ConfigError(f"--vary {spec!r}: {'no KEY before =' if sep else 'no ='}; {vary_forms()}")
     if name not in key_fields():
         raise ConfigError(f"--vary {name!r}: unknown config key")
     if name not in PARAM_KEYS or name == "loop.period":
         allowed = ", ".join(k for k in PARAM_KEYS if k != "loop.period")
         raise ConfigError(f"--vary {name!r}: cannot be swept; allowed: {allowed}")
-    log = rng.startswith("log:")
-    parts = (rng[4:] if log else rng).split(":")
-    try:
-        start, stop, num = float(parts[0]), float(parts[1]), int(parts[2])
-    except (ValueError, IndexError, OverflowError):
-        raise ConfigError(f"--vary {spec!r}: range must be start:stop:num (num a whole number), "
-                          "optionally log:start:stop:num") from None
-    if not (np.isfinite(start) and np.isfinite(stop)):
-        raise ConfigError(f"--vary {spec!r}: start and stop must be finite numbers")
-    if num < 1 or len(parts) != 3:
-        raise ConfigError(f"--vary {spec!r}: num must be >= 1")
-    if num > MAX_AXIS_POINTS:
-        raise ConfigError(f"--vary {spec!r}: at most {MAX_AXIS_POINTS} values per axis")
+    log, start, stop, num = _vary_range(spec, rng)
     if log and (start <= 0 or stop <= 0):
         raise ConfigError(f"--vary {spec!r}: a log axis needs positive start and stop")
     values = np.geomspace(start, stop, num) if log else np.linspace(start, stop, num)
     _check_axis(name, values)
     return Axis(name, values)
+
+
+def vary_forms() -> str:
+    """The forms ``--vary`` takes, for a refusal (the metavar and help of ``dobhil sweep --vary``)."""
+    return (f"allowed: KEY=START:STOP:NUM or KEY=log:START:STOP:NUM (START and STOP finite numbers, "
+            f"NUM a whole number of values from 1 to {MAX_AXIS_POINTS})")
+
+
+def _vary_range(spec: str, rng: str) -> tuple[bool, float, float, int]:
+    """``(log, start, stop, num)`` of the range after ``=``; each refusal names the part at
+    fault (their count, an empty one, one that is no number) and the forms allowed."""
+    def refuse(problem: str) -> ConfigError:
+        return ConfigError(f"--vary {spec!r}: {problem}; {vary_forms()}")
+    log = rng.startswith("log:")
+    body = rng[4:] if log else rng
+    if not body.strip():
+        raise refuse("no range after " + ("log:" if log else "="))
+    parts = body.split(":")
+    if len(parts) != 3:
+        raise refuse(f"the range has {len(parts)} part{'s' if len(parts) != 1 else ''}, not 3")
+    for label, text in zip(("START", "STOP", "NUM"), parts):
+        if not text.strip():
+            raise refuse(f"{label} is empty")
+    numbers: list[float] = []
+    for label, text in zip(("START", "STOP"), parts):
+        try:
+            numbers.append(float(text))
+        except ValueError:
+            raise refuse(f"{label} {text.strip()!r} is not a number") from None
+    start, stop = numbers
+    if not (np.isfinite(start) and np.isfinite(stop)):
+        raise refuse("START and STOP must be finite numbers")
+    try:
+        num = int(parts[2])
+    except ValueError:
+        raise refuse(f"NUM {parts[2].strip()!r} is not a whole number") from None
+    if num < 1:
+        raise refuse(f"NUM must be at least 1 (got {num})")
+    if num > MAX_AXIS_POINTS:
+        raise refuse(f"NUM must be at most {MAX_AXIS_POINTS} values per axis (got {num})")
+    return log, start, stop, num
 
 
 #: largest number of values on one axis, and of points in a grid

@@ -32,7 +32,8 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     add_config_args(p)
     add_axis_arg(p)
     p.add_argument("--vary", action="append", required=True, metavar="KEY=START:STOP:NUM",
-                   help="a swept key (repeatable); prefix the range with log: for log spacing")
+                   help="a swept key: NUM values (a whole number, 1 or more) from START to STOP (repeatable); "
+                   "KEY=log:START:STOP:NUM for log spacing")
     p.add_argument("--sampled", action="store_true", help="the sampled loop (loop.period, delay)")
     p.add_argument("--out", type=output_path, metavar="FILE.csv", help="write every grid point")
     p.add_argument("--plot", type=output_path, metavar="FILE.png", help="heat-map of max stable C_f")
