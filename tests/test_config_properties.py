@@ -5,6 +5,7 @@ read numbers as YAML 1.2 does."""
 from __future__ import annotations
 
 import math
+import os
 from pathlib import Path
 from typing import Any
 
@@ -143,6 +144,24 @@ def test_a_realtime_priority_past_linuxs_range_is_refused() -> None:
     assert load_config(None, ["loop.realtime_priority=99"]).loop.realtime_priority == 99
     with pytest.raises(ConfigError, match=r"^loop.realtime_priority = 1000: out of range; allowed: >= 0 and <= 99$"):
         load_config(None, ["loop.realtime_priority=1000"])
+
+
+@pytest.mark.parametrize("name", ["loop.cpu_affinity", "drive.node_id"])
+def test_below_the_none_value_of_minus_one_is_refused(name: str) -> None:
+    """-1 stands for "none" (no pinning, the profile's node id); -5 was taken as -1 without a word."""
+    assert load_config(None, [f"{name}=-1"]).flat()[name] == -1
+    with pytest.raises(ConfigError, match=rf"^{name} = -5: out of range; allowed: >= -1; .*\(-1: "):
+        load_config(None, [f"{name}=-5"])
+
+
+def test_a_cpu_past_the_machines_is_refused_by_the_run(capsys: pytest.CaptureFixture[str]) -> None:
+    """The config cannot know the machine's CPUs: the run refuses one it may not use, before it starts."""
+    cpu = max(os.sched_getaffinity(0)) + 1 if hasattr(os, "sched_getaffinity") else None
+    if cpu is None:
+        pytest.skip("no CPU affinity here")
+    assert main(["run", "demo", "--emulate", "--duration", "0.05", "--set", f"loop.cpu_affinity={cpu}"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and f"loop.cpu_affinity = {cpu}: not a CPU this process may use" in err, err
 
 
 def test_numbers_in_range_still_load() -> None:

@@ -29,8 +29,9 @@ def render() -> str:
             if not name.startswith(section + "."):
                 continue
             m = f.metadata
-            allowed = (", ".join(m["choices"]) if m["choices"] else
-                       {Check.POSITIVE: "> 0", Check.NONNEGATIVE: ">= 0", Check.ANY: "any"}[m["check"]])
+            low = (f">= {m['minimum']:g}" if m["minimum"] is not None else
+                   {Check.POSITIVE: "> 0", Check.NONNEGATIVE: ">= 0", Check.ANY: "any"}[m["check"]])
+            allowed = ", ".join(m["choices"]) if m["choices"] else low
             lines.append(f"| `{name}` | `{f.default!r}` | {m['unit']} | {allowed} | {m['doc']} |")
         lines.append("")
     return "\n".join(lines)

@@ -15,7 +15,7 @@ from typing import Any, NoReturn
 
 import yaml
 
-from dobhil.config.schema import SECTIONS, Check, Config, check_maximum, key_fields
+from dobhil.config.schema import SECTIONS, Check, Config, check_maximum, check_minimum, key_fields
 from dobhil.config.yamlio import TextFileError, read_text_file, safe_load, show_value, where
 from dobhil.data import configs_dir, shipped_configs, shipped_file
 from dobhil.errors import ConfigError, exception_line
@@ -212,7 +212,7 @@ def coerce(name: str, raw: Any, f: dataclasses.Field[Any]) -> Any:
         return _coerce_str(name, raw, meta["choices"])
     value = _coerce_number(name, raw, kind)
     _check_range(name, value, meta["check"])
-    if (problem := check_maximum(name, value, meta)) is not None:
+    if (problem := check_maximum(name, value, meta) or check_minimum(name, value, meta)) is not None:
         raise ConfigError(problem)
     return value
 
@@ -296,9 +296,6 @@ def check_consistency(config: Config) -> None:
     if loop.feedback_timeout < loop.period:
         raise ConfigError(f"loop.feedback_timeout = {loop.feedback_timeout!r}: must be at least "
                           f"loop.period = {loop.period!r}")
-    if config.drive.node_id < -1:
-        raise ConfigError(f"drive.node_id = {config.drive.node_id!r}: expected -1 (the drive profile's) "
-                          "or a node id >= 0")
     if config.reference.kind == "csv" and not config.reference.file:
         raise ConfigError("reference.kind = 'csv' needs reference.file (a CSV with time,tau_ref)")
     check_instability(config)

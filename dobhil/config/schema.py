@@ -25,18 +25,32 @@ class Check(IntEnum):
 
 def key(default: Any, doc: str, *, unit: str = "", check: Check = Check.ANY,
         choices: tuple[str, ...] = (), structural: bool = False,
-        maximum: float | None = None) -> Any:
+        maximum: float | None = None, minimum: float | None = None) -> Any:
     """A config key: a dataclass field carrying its documentation and constraint.
 
     ``structural`` keys change the shape of the synthesised matrices (model
     kinds, delay length) and cannot be swept. ``maximum``: the largest physically
-    meaningful value (checked by :func:`check_maximum`).
+    meaningful value (checked by :func:`check_maximum`). ``minimum``: the smallest value
+    of a key whose ``check`` is :attr:`Check.ANY` (a count from 0 with -1 for "none", e.g.
+    ``loop.cpu_affinity``; checked by :func:`check_minimum`).
     """
     if maximum is not None:
         doc = f"{doc}; at most {maximum:g}"
     meta = {"doc": doc, "unit": unit, "check": check, "choices": choices,
-            "structural": structural or bool(choices), "maximum": maximum}
+            "structural": structural or bool(choices), "maximum": maximum, "minimum": minimum}
     return field(default=default, metadata=meta)
+
+
+def allowed_range(meta: Any) -> str:
+    """The values a numeric key allows, as the refusals and docs/config.md say them
+    (``> 0``, ``>= -1``, ``>= 0 and <= 99``, ``any``)."""
+    low = {Check.POSITIVE: "> 0", Check.NONNEGATIVE: ">= 0"}.get(meta["check"], "")
+    if meta.get("minimum") is not None:
+        low = f">= {meta['minimum']:g}"
+    top = meta.get("maximum")
+    if top is None:
+        return low or "any"
+    return f"{low} and <= {top:g}" if low else f"<= {top:g}"
 
 
 def check_maximum(name: str, value: float, meta: Any) -> str | None:
@@ -44,10 +58,18 @@ def check_maximum(name: str, value: float, meta: Any) -> str | None:
     top = meta.get("maximum")
     if top is None or value <= top:
         return None
-    low = {Check.POSITIVE: "> 0", Check.NONNEGATIVE: ">= 0"}.get(meta["check"], "")
-    allowed = f"{low} and <= {top:g}" if low else f"<= {top:g}"
     unit = f" {meta['unit']}" if meta.get("unit") else ""
-    return f"{name} = {value!r}: out of range; allowed: {allowed}{unit}"
+    return f"{name} = {value!r}: out of range; allowed: {allowed_range(meta)}{unit}"
+
+
+def check_minimum(name: str, value: float, meta: Any) -> str | None:
+    """The one-line complaint when ``value`` is below the key's ``minimum`` (else None); it
+    ends with the key's documentation, which says what the smallest value stands for."""
+    low = meta.get("minimum")
+    if low is None or value >= low:
+        return None
+    unit = f" {meta['unit']}" if meta.get("unit") else ""
+    return f"{name} = {value!r}: out of range; allowed: {allowed_range(meta)}{unit}; {meta['doc']}"
 
 
 @dataclass(frozen=True)
@@ -162,7 +184,7 @@ class LoopConfig:
     spin: float = key(2.0e-4, "spin (instead of sleeping) for this long before each deadline "
                       "(host timing) or around each expected feedback frame (feedback timing); "
                       "0: sleep only", unit="s", check=Check.NONNEGATIVE)
-    cpu_affinity: int = key(-1, "pin the control thread to this CPU (-1: no pinning)")
+    cpu_affinity: int = key(-1, "pin the control thread to this CPU (-1: no pinning)", minimum=-1)
     mode: str = key("force", "what the reference commands: force (the DOb/RTOb force loop tracks "
                     "it as tau_int^ref) or torque (open loop for identification: the reference is "
                     "the torque command itself, saturated at loop.torque_limit, with every safety "
@@ -222,7 +244,7 @@ class DriveConfig:
     interface: str = key("", "python-can interface name (empty: the profile's bus; --bus wins)")
     channel: str = key("", "python-can channel (with drive.interface)")
     node_id: int = key(-1, "CAN node id of the drive (-1: the drive profile's node_id); checked "
-                       "against the profile's protocol like the profile's own")
+                       "against the profile's protocol like the profile's own", minimum=-1)
     bitrate: int = key(1_000_000, "CAN bitrate (0: leave to the interface)", unit="bit/s",
                        check=Check.NONNEGATIVE)
     latency: float = key(0.0, "emulated bus latency (real-time emulation)", unit="s",
