@@ -83,10 +83,26 @@ def watch_settings(config: Config) -> WatchSettings | None:
                          growth_swings=w.growth_swings)
 
 
+def max_duration() -> float:
+    """The longest run: ``loop.duration``'s own ceiling, read from its key
+    (dobhil/config/schema.py): its maximum when it has one, else the bound every config
+    number has (:data:`dobhil.config.load.MAX_MAGNITUDE`)."""
+    from dobhil.config.load import MAX_MAGNITUDE
+    from dobhil.config.schema import key_fields
+    top = key_fields()["loop.duration"].metadata["maximum"]
+    return float(top) if top is not None else MAX_MAGNITUDE
+
+
 def check_duration(duration: float | None, what: str = "--duration") -> None:
-    """A run lasts a finite, positive number of seconds (None: the config's)."""
-    if duration is not None and not (math.isfinite(duration) and duration > 0):
-        raise ConfigError(f"{what} {duration!r}: expected a finite number of seconds > 0")
+    """A run lasts a finite, positive number of seconds, no more than ``loop.duration``
+    allows (None: the config's): a command-line duration is that key given another way,
+    and a value the config would refuse must not run (emulate: until stopped)."""
+    if duration is None:
+        return
+    top = max_duration()
+    if not (math.isfinite(duration) and 0 < duration <= top):
+        raise ConfigError(f"{what} {duration!r}: expected a finite number of seconds > 0 and <= {top:g} "
+                          "(loop.duration's range)")
 
 
 def resolve_timing(config: Config, profile: DriveProfile, lockstep: bool | None) -> Timing:

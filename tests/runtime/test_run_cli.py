@@ -10,6 +10,8 @@ from pathlib import Path
 import pytest
 
 from dobhil.cli.main import main
+from dobhil.config import load_config
+from dobhil.errors import ConfigError
 
 from .helpers import DEMO, realtime_profile
 
@@ -157,9 +159,27 @@ def test_summary_counts_cycles_run_and_skipped(capsys: pytest.CaptureFixture[str
 
 
 def test_a_duration_too_long_to_count_is_one_line(capsys: pytest.CaptureFixture[str]) -> None:
-    code = main(["run", str(DEMO), "--emulate", "--lockstep", "--duration", "1e308"])
+    code = main(["run", str(DEMO), "--emulate", "--lockstep", "--duration", "1e15"])   # within loop.duration's range
     err = one_line(capsys.readouterr().err)
     assert code == EXIT_USAGE and "too many cycles" in err
+
+
+@pytest.mark.parametrize("argv", [
+    ["emulate", str(DEMO), "--bus", "virtual:never-opened"],
+    ["run", str(DEMO), "--emulate", "--lockstep"],
+    ["run", "two-axis-demo", "--emulate", "--lockstep"],
+    ["montecarlo", str(DEMO), "--runs", "2", "--vary", "plant.inertia=uniform:0.2:0.3"],
+])
+def test_a_duration_past_loop_durations_ceiling_is_one_line(argv: list[str],
+                                                            capsys: pytest.CaptureFixture[str]) -> None:
+    """--duration is loop.duration given another way: held to the key's ceiling (emulate ran
+    until stopped with 1e300), the ceiling read from the key as the message says it."""
+    from dobhil.runtime.session import max_duration
+    assert main([*argv, "--duration", "1e300"]) == EXIT_USAGE
+    err = one_line(capsys.readouterr().err)
+    assert f"--duration 1e+300: expected a finite number of seconds > 0 and <= {max_duration():g}" in err, err
+    with pytest.raises(ConfigError, match="loop.duration"):   # the same ceiling as the key's
+        load_config(DEMO, [f"loop.duration={max_duration() * 10}"])
 
 
 @pytest.mark.skipif(not hasattr(os, "getpriority"), reason="POSIX nice values")
