@@ -3,6 +3,9 @@ and the command line's plain help and quiet broken pipe."""
 
 from __future__ import annotations
 
+import errno
+import io
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -122,6 +125,59 @@ def test_a_closed_stdout_is_no_traceback(tmp_path: Path) -> None:
     proc.stderr.close()
     assert proc.wait(timeout=120) == EXIT_BROKEN_PIPE
     assert "Traceback" not in err and "BrokenPipe" not in err, err
+
+
+FULL = Path("/dev/full")
+
+
+@pytest.mark.skipif(not FULL.exists(), reason="needs Linux's /dev/full")
+@pytest.mark.parametrize("command", [
+    ["analyze", "demo"],
+    ["analyze", "demo", "--json"],   # json.dump writes to sys.stdout itself
+    ["run", "demo", "--emulate", "--lockstep", "--set", "loop.duration=0.05", "--summary-json"],
+    ["sweep", "demo", "--vary", "design.force_gain=1:2:3"],
+    ["--help"],   # argparse ignores a failed write of its own
+])
+def test_a_full_stdout_is_one_line_exit_2(tmp_path: Path, command: list[str]) -> None:
+    """Standard output on a full device: one line saying so, exit 2 (as a full disk under
+    --out), not an internal error (exit 3) nor a help that claims success."""
+    with open(FULL, "w") as full:
+        done = subprocess.run([sys.executable, "-m", "dobhil", *command], cwd=tmp_path, stdin=subprocess.DEVNULL,
+                              stdout=full, stderr=subprocess.PIPE, text=True, timeout=120)
+    prog = "dobhil" if command[0].startswith("-") else f"dobhil {command[0]}"
+    assert done.returncode == 2, done.stderr
+    assert done.stderr == f"{prog}: error: cannot write standard output: No space left on device\n", done.stderr
+
+
+class _FullStream(io.StringIO):
+    """A stdout whose every write fails as a full device's does."""
+
+    def write(self, text: str) -> int:
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+
+@pytest.mark.parametrize("where", ["stdout", "elsewhere"])
+def test_a_full_stdout_is_told_from_another_oserror(where: str, monkeypatch: pytest.MonkeyPatch,
+                                                    capsys: pytest.CaptureFixture[str]) -> None:
+    """In process: a failed write to stdout is the environment (exit 2); the same OSError from
+    anything else a command does stays what it is, a bug (exit 3)."""
+    import dobhil.cli.init_cmd as init_cmd
+
+    def command(args: object) -> int:
+        if where == "stdout":
+            print("wrote everything")
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+    monkeypatch.setattr(init_cmd, "run", command)
+    err_stream = sys.stderr
+    monkeypatch.setattr(sys, "stdout", _FullStream())
+    code = main(["init", "anywhere"])
+    assert sys.stderr is err_stream
+    err = capsys.readouterr().err
+    if where == "stdout":
+        assert code == 2 and err == "dobhil init: error: cannot write standard output: No space left on device\n"
+    else:
+        assert code == 3 and "internal error" in err
 
 
 def test_a_broken_pipe_that_is_not_stdout_is_not_hidden(monkeypatch: pytest.MonkeyPatch) -> None:

@@ -7,7 +7,9 @@ sets ``func=callable(args) -> int``. Any :class:`dobhil.errors.DobhilError`
 traceback; so does an operating-system refusal on a named file (``--out /proc/x``:
 the error names the path). Any other exception is a bug in dobhil: one
 ``internal error`` line and exit code 3; ``DOBHIL_DEBUG=1`` in the environment prints
-the traceback as well (for every error, bad input included).
+the traceback as well (for every error, bad input included). Standard output that cannot be
+written (a full disk or device: ``dobhil analyze demo > /dev/full``) is one line and exit code
+2, as a full disk under ``--out`` is: the environment refused, dobhil did not fail.
 """
 
 from __future__ import annotations
@@ -85,23 +87,107 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+class StdoutWriteError(OSError):
+    """A write to standard output failed for a reason other than a closed pipe (a full disk
+    or device, an I/O error); raised by :class:`_GuardedStdout` so that it is told apart
+    from an ``OSError`` of anything else a command does (a socket, a worker, a file)."""
+
+
+class _GuardedStdout:
+    """``sys.stdout`` while :func:`main` runs: every attribute is the real stream's, but a
+    failed ``write`` or ``flush`` raises :class:`StdoutWriteError` (a closed pipe stays a
+    ``BrokenPipeError``: :func:`main` tells a reader gone from a pipe of a worker)."""
+
+    def __init__(self, stream: Any) -> None:
+        self._stream = stream
+        #: the first failure, kept: argparse's --help swallows an OSError of its write
+        self.failed: StdoutWriteError | None = None
+
+    def _failure(self, exc: OSError) -> StdoutWriteError:
+        failure = StdoutWriteError(exc.errno, exc.strerror or exception_line(exc, named=False))
+        self.failed = self.failed or failure
+        return failure
+
+    def write(self, text: str) -> int:
+        try:
+            return int(self._stream.write(text))
+        except BrokenPipeError:
+            raise
+        except OSError as exc:
+            raise self._failure(exc) from exc
+
+    def writelines(self, lines: Any) -> None:
+        for line in lines:
+            self.write(line)
+
+    def flush(self) -> None:
+        try:
+            self._stream.flush()
+        except BrokenPipeError:
+            raise
+        except OSError as exc:
+            raise self._failure(exc) from exc
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._stream, name)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     _closed_streams_to_devnull()
+    real = sys.stdout
+    guard = _GuardedStdout(real)
+    sys.stdout = guard
+    try:
+        return _main_flushed(argv, guard)
+    finally:
+        if sys.stdout is guard:  # unless a command replaced it for good
+            sys.stdout = real
+
+
+def _main_flushed(argv: Sequence[str] | None, guard: _GuardedStdout) -> int:
     try:
         with warnings.catch_warnings():   # restores Python's own display on return
             warnings.showwarning = _one_line_warning
-            code = _main(argv)
-        if sys.stdout is not None:  # None when started with stdout closed (``dobhil ... >&-``)
-            sys.stdout.flush()  # a closed pipe shows here, not as a traceback at exit
+            try:
+                code = _main(argv)
+            except SystemExit:   # --help, --version: argparse printed (its write errors ignored), then exits
+                guard.flush()  # a full stdout shows here, not as an ignored error at exit
+                if guard.failed is not None:
+                    return _stdout_failed("", guard.failed)
+                raise
+        guard.flush()  # a closed pipe shows here, not as a traceback at exit
+        if guard.failed is not None and code == 0:  # a failed write something caught and went on from
+            return _stdout_failed("", guard.failed)
+    except StdoutWriteError as exc:
+        return _stdout_failed("", exc)
     except BrokenPipeError:
         if not _stdout_gone():
             raise  # another pipe (a worker process, a socket): a real failure, not ours to hide
         # the reader (e.g. ``head``) has gone: stop quietly; point stdout at devnull so the
         # interpreter's final flush does not complain either
-        devnull = os.open(os.devnull, os.O_WRONLY)
-        os.dup2(devnull, sys.stdout.fileno())
+        _stdout_to_devnull()
         return EXIT_BROKEN_PIPE
     return code
+
+
+def _stdout_to_devnull() -> None:
+    """Point stdout's file descriptor at devnull: what is still buffered for it (and the
+    interpreter's final flush) then goes nowhere instead of failing again at exit."""
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        os.close(devnull)
+    except (AttributeError, OSError, ValueError):  # no real file descriptor (a test's capture)
+        pass
+
+
+def _stdout_failed(command: str, exc: StdoutWriteError) -> int:
+    """Standard output could not be written (a full disk or device): one line, exit code 2
+    like a full disk under ``--out`` (the environment refused, not dobhil: no internal error)."""
+    _stdout_to_devnull()
+    prog = f"dobhil {command}" if command else "dobhil"
+    return _fail(f"{prog}: error: cannot write standard output: {exc.strerror or exception_line(exc)}",
+                 EXIT_USAGE)
 
 
 def _closed_streams_to_devnull() -> None:
@@ -140,7 +226,11 @@ def _main(argv: Sequence[str] | None) -> int:
     except Exception as exc:  # a subcommand that cannot be imported: a broken install
         return _internal("", exc)
     try:
-        return int(args.func(args) or 0)
+        code = int(args.func(args) or 0)
+        sys.stdout.flush()  # a full stdout is said under the command's name
+        return code
+    except StdoutWriteError as exc:
+        return _stdout_failed(args.command, exc)
     except DobhilError as exc:
         return _fail(f"dobhil {args.command}: error: {exception_line(exc, named=False)}", EXIT_USAGE)
     except KeyboardInterrupt:
