@@ -296,6 +296,14 @@ def check_consistency(config: Config) -> None:
     if loop.feedback_timeout < loop.period:
         raise ConfigError(f"loop.feedback_timeout = {loop.feedback_timeout!r}: must be at least "
                           f"loop.period = {loop.period!r}")
+    drive = config.drive
+    if drive.channel and not drive.interface:
+        # resolve_bus (dobhil/runtime/buses.py) reads an empty interface as the profile's whole bus:
+        # the channel given would be dropped and the error would name the profile's bus, not this one
+        raise ConfigError(f"drive.channel = {_show(drive.channel)} with drive.interface = {_show(drive.interface)}: "
+                          "a channel needs its interface (an empty drive.interface is the drive profile's own "
+                          "bus); give drive.interface too (a python-can interface, e.g. socketcan or virtual) "
+                          "or leave drive.channel empty")
     if config.reference.kind == "csv" and not config.reference.file:
         raise ConfigError("reference.kind = 'csv' needs reference.file (a CSV with time,tau_ref)")
     check_instability(config)

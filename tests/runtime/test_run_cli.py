@@ -60,6 +60,18 @@ def test_unknown_interface_is_one_line_exit_2(capsys: pytest.CaptureFixture[str]
     assert code == EXIT_USAGE and "'nosuchif'" in err
 
 
+@pytest.mark.parametrize("command", ["run", "check", "analyze"])
+def test_a_channel_without_its_interface_is_one_line_exit_2(command: str,
+                                                           capsys: pytest.CaptureFixture[str]) -> None:
+    """An empty drive.interface with a channel names what was given, not the profile's bus
+    (socketcan:can0) that an empty interface stands for."""
+    code = main([command, str(DEMO), "--set", "drive.interface=", "--set", "drive.channel=x"])
+    err = one_line(capsys.readouterr().err)
+    assert code == EXIT_USAGE, err
+    assert "drive.channel = 'x' with drive.interface = ''" in err and "socketcan:can0" not in err, err
+    assert "give drive.interface too" in err
+
+
 def test_lockstep_needs_emulate(capsys: pytest.CaptureFixture[str]) -> None:
     code = main(["run", str(DEMO), "--lockstep"])
     err = one_line(capsys.readouterr().err)
