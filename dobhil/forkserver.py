@@ -21,8 +21,8 @@ What a child gets, as a fresh ``subprocess`` child would: the caller's environme
 error (the caller's fd 2 at the call), standard input and output /dev/null, default signal
 handlers. What it shares with every other child is the server's import-time state. The
 server is single-threaded when it forks (checked: a thread would not be in the child) and
-ignores SIGINT and SIGTERM (a Ctrl-C reaches the whole process group, and the server only
-relays; each child decides for itself). It ends when the process that started it closes
+ignores the stop signals (:data:`STOP_SIGNALS`: a Ctrl-C reaches the whole process group,
+and the server only relays; each child decides for itself). It ends when the process that started it closes
 its end of the control socket -- at exit, however it exits.
 
 A child is not the caller's child but the server's, so its exit status travels: the server
@@ -60,8 +60,14 @@ MAX_FDS = 16
 MAX_REQUEST = 1 << 20
 #: the exit status a pipe carries: the ``subprocess`` convention (negative: the signal)
 _STATUS = struct.Struct("<i")
+#: the signals that stop a run safely (dobhil/runtime/signals.py routes them to the loop's
+#: stop request). A terminal sends them to the whole process group (Ctrl-C, Ctrl-\\, its
+#: closing), so the run's helper processes -- this server, the log's writer, the emulated
+#: drive -- ignore them and outlive the run's safe stop. SIGHUP and SIGQUIT: POSIX only.
+STOP_SIGNALS: tuple[signal.Signals, ...] = tuple(
+    getattr(signal, name) for name in ("SIGINT", "SIGTERM", "SIGHUP", "SIGQUIT") if hasattr(signal, name))
 #: the signals whose handling a child sets for itself (:func:`_child`)
-_CHANGED = frozenset({signal.SIGINT, signal.SIGTERM, signal.SIGCHLD})
+_CHANGED = frozenset({*STOP_SIGNALS, signal.SIGCHLD})
 #: returncode of a child whose status was lost with its server (the server was killed)
 LOST = -255
 
@@ -271,8 +277,8 @@ def server_pids() -> set[int]:
 
 def serve() -> None:
     """The server's main (``python -c _BOOT root fd module...``)."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    for sig in STOP_SIGNALS:
+        signal.signal(sig, signal.SIG_IGN)
     # the mask of the thread that started it (a writer starts with SIGINT blocked): none
     # here, or a blocked SIGCHLD would leave every child unreported (each child sets its
     # caller's own)
@@ -421,7 +427,7 @@ def _child(msg: bytes, fds: list[int]) -> None:
     its traceback on standard error and exit code 1, as ``python -c`` does)."""
     code = 1
     try:
-        for sig in (signal.SIGCHLD, signal.SIGTERM):
+        for sig in _CHANGED:   # as a fresh interpreter has them
             signal.signal(sig, signal.SIG_DFL)
         signal.signal(signal.SIGINT, signal.default_int_handler)
         target, args, env, cwd, state = pickle.loads(msg)

@@ -183,7 +183,8 @@ def tell_unfinished(session: Any, prog: str) -> None:
     if loop is None or ended is None:
         return
     stop, _ = ended
-    sys.stdout.flush()
+    from dobhil.cli.stop_lines import flush_stdout
+    flush_stdout()
     sys.stderr.write(f"{prog}: {stop.line()}\n")
     warnings = []
     for name, axis_loop in loop.loops.items():
@@ -195,19 +196,24 @@ def tell_unfinished(session: Any, prog: str) -> None:
 
 
 def report(info: dict[str, Any], stop_line: str, *, prog: str, as_json: bool) -> None:
-    """The run's account: the summary (or its JSON), the stop line, the loud line last."""
+    """The run's account: the summary (or its JSON), the stop line, the loud line last,
+    whatever stdout does (:func:`dobhil.cli.stop_lines.stop_said`)."""
+    from dobhil.cli.stop_lines import stop_said
     warning = info.get("drive_warning") or ""
     notes = "; ".join(f"axis {n}: {a['drive_note']}" for n, a in info["axes"].items() if a.get("drive_note"))
-    if as_json:
-        json.dump(info, sys.stdout)
-        sys.stdout.write("\n")
-    else:
-        _print_summary(info, stop_line, prog)
-    sys.stdout.flush()
-    if warning:
-        sys.stderr.write(f"WARNING: {warning}\n")
-    elif notes:
-        sys.stderr.write(f"NOTE: {notes}\n")
+
+    def last_word() -> None:
+        if warning:
+            sys.stderr.write(f"WARNING: {warning}\n")
+        elif notes:
+            sys.stderr.write(f"NOTE: {notes}\n")
+    with stop_said(prog, stop_line, last_word):
+        if as_json:
+            json.dump(info, sys.stdout)
+            sys.stdout.write("\n")
+        else:
+            _print_summary(info, stop_line, prog)
+        sys.stdout.flush()
 
 
 def _print_summary(info: dict[str, Any], stop_line: str, prog: str) -> None:

@@ -12,6 +12,7 @@ from typing import Any
 from dobhil.cli.axis_option import add_axis_arg, select_axis
 from dobhil.cli.common import EXIT_STOPPED, add_config_args, config_from_args, output_path
 from dobhil.cli.preflight_lines import report_preflight, tell_refusal
+from dobhil.cli.stop_lines import flush_stdout, say_safe_stop, stop_said
 from dobhil.cli.stability_gate import add_gate_args
 
 
@@ -127,18 +128,9 @@ def tell_unfinished(session: Any) -> None:
     if ended is None:
         return
     stop, safe_stop = ended
-    sys.stdout.flush()
+    flush_stdout()
     sys.stderr.write(f"dobhil run: {stop.line()}\n")
     say_safe_stop(safe_stop.warning(), safe_stop.note())
-
-
-def say_safe_stop(warning: str, note: str) -> None:
-    """The safe stop's last word on stderr: the loud line when the drive may still be
-    enabled, else a note from a drive that cannot confirm its disable by design."""
-    if warning:
-        sys.stderr.write(f"WARNING: {warning}\n")
-    elif note:
-        sys.stderr.write(f"NOTE: {note}\n")
 
 
 def warn_budget(session: Any) -> None:
@@ -191,7 +183,14 @@ def stop_hint(info: dict[str, Any]) -> str:
 
 
 def report(info: dict[str, Any], stop_line: str, *, as_json: bool) -> None:
+    """The run's account: the summary (or its JSON) and the stop line, the loud line last
+    (:func:`stop_said`)."""
     warning, stopped = info.get("drive_warning") or "", info.get("drive_note") or ""
+    with stop_said("dobhil run", stop_line, lambda: say_safe_stop(warning, stopped)):
+        _account(info, stop_line, as_json=as_json)
+
+
+def _account(info: dict[str, Any], stop_line: str, *, as_json: bool) -> None:
     hint = stop_hint(info)
     if not as_json:   # (in the JSON: drive_notes)
         for note in info.get("drive_notes", ()):
@@ -199,15 +198,14 @@ def report(info: dict[str, Any], stop_line: str, *, as_json: bool) -> None:
     if as_json:
         json.dump(info, sys.stdout)
         sys.stdout.write("\n")
+        sys.stdout.flush()
         if hint:
             sys.stderr.write(f"{hint}\n")
-        say_safe_stop(warning, stopped)
         return
     if info["cycles"] == 0:  # nothing ran (e.g. the drive never answered): the reason only
         sys.stderr.write(f"dobhil run: {stop_line}\n")
         if hint:
             sys.stderr.write(f"{hint}\n")
-        say_safe_stop(warning, stopped)
         return
     f, t = info["final"], info["loop_timing"]
     skipped = info.get("skipped", 0)
@@ -233,7 +231,6 @@ def report(info: dict[str, Any], stop_line: str, *, as_json: bool) -> None:
     if info.get("log"):
         print(f"log: {info['log']}")
     sys.stdout.flush()
-    say_safe_stop(warning, stopped)
 
 
 def emulate(args: argparse.Namespace) -> int:

@@ -22,9 +22,9 @@ and the same :class:`~dobhil.emulator.plant.Plant` in a child process instead:
   when the emulated drive itself was not scheduled);
 - the child dies with its parent: it blocks on its end of the socket pair, and reads the
   end of the stream when the parent's end closes -- also when the parent is killed. It
-  ignores SIGINT and SIGTERM (a Ctrl-C reaches the whole process group, and the drive must
-  outlive the host's safe stop to confirm the disable, as a real drive would), and is
-  started with both blocked, so that one sent before it ignores them waits and is dropped;
+  ignores the stop signals (``forkserver.STOP_SIGNALS``: a Ctrl-C reaches the whole process
+  group, and the drive must outlive the host's safe stop to confirm the disable, as a real
+  drive would), and is started with them blocked, so that one sent before it ignores them waits and is dropped;
 - every failure of the child reaches the host as one line: a FAILED record before it
   exits, or the end of the stream with its exit code (:class:`~can.CanOperationError` on
   the host's bus, a ``bus_error`` stop of the run), never a traceback;
@@ -284,10 +284,10 @@ class EmulatorProcess:
     # -- life -----------------------------------------------------------------
 
     def _start(self, child_end: socket.socket) -> subprocess.Popen[bytes] | forkserver.Child:
-        # SIGINT/SIGTERM blocked while the child starts (it inherits the mask, ignores both,
+        # the stop signals blocked while the child starts (it inherits the mask, ignores them,
         # then unblocks them, :func:`child_main`): a Ctrl-C in its first milliseconds ends
         # the drive no sooner than one later would -- after the host's safe stop
-        old = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT, signal.SIGTERM})
+        old = signal.pthread_sigmask(signal.SIG_BLOCK, forkserver.STOP_SIGNALS)
         try:
             return self._spawn(child_end)
         finally:
@@ -638,9 +638,9 @@ def child_main(sock_fd: int, status_fd: int, specs_pickled: bytes | None = None)
     """The child: read its spec (``specs_pickled``, or pickled on its standard input),
     build the emulated drive, say READY, tick until the host's end closes."""
     # the drive outlives the host's signals: it must confirm the host's safe stop
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    signal.signal(signal.SIGTERM, signal.SIG_IGN)
-    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT, signal.SIGTERM})   # blocked by _start
+    for sig in forkserver.STOP_SIGNALS:
+        signal.signal(sig, signal.SIG_IGN)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, forkserver.STOP_SIGNALS)   # blocked by _start
     sock = socket.socket(fileno=sock_fd)
     sock.setblocking(False)
     status = _Shared(status_fd).blocks

@@ -1,7 +1,7 @@
 """The writer process of a recorded run and the pipe to it (``docs/recording.md``: diagram,
 guarantees). Batches arrive pickled, one ``os.write`` each: ``LOSSY`` never blocks (no room:
 refused; taken in part: finished first), ``BACKPRESSURE`` waits. The process ignores
-SIGINT/SIGTERM, writes through :class:`LogWriter`, hands each chunk to the OS every
+the stop signals (SIGINT, SIGTERM, SIGHUP, SIGQUIT), writes through :class:`LogWriter`, hands each chunk to the OS every
 ``write_interval`` and fsyncs every ``flush_interval``, finishes the file on ``STOP`` or
 when the parent dies, and sends one status.
 """
@@ -283,9 +283,9 @@ def _spawn(path: Path) -> tuple[subprocess.Popen[bytes] | forkserver.Child, int,
         fcntl.fcntl(data_w, fcntl.F_SETPIPE_SZ, PIPE_SIZE)
     except (ImportError, AttributeError, OSError):
         pass  # not Linux, or above /proc/sys/fs/pipe-max-size: the default 64 KiB
-    # SIGINT/SIGTERM blocked while the child starts (it inherits the mask and ignores both
-    # before unblocking): a terminal's Ctrl-C never kills the writer before it can finish
-    old = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT, signal.SIGTERM})
+    # the stop signals blocked while the child starts (it inherits the mask and ignores
+    # them before unblocking): a terminal's Ctrl-C never kills the writer before it can finish
+    old = signal.pthread_sigmask(signal.SIG_BLOCK, forkserver.STOP_SIGNALS)
     proc: subprocess.Popen[bytes] | forkserver.Child
     try:
         if forkserver.available():
@@ -412,9 +412,9 @@ def forked_main(data_fd: int, status_fd: int, path: str) -> None:
 
 def main(argv: Sequence[str] | None = None) -> None:
     """``DATA_FD STATUS_FD PATH``: serve, send one status, exit."""
-    for sig in (signal.SIGINT, signal.SIGTERM):
+    for sig in forkserver.STOP_SIGNALS:
         signal.signal(sig, signal.SIG_IGN)
-    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT, signal.SIGTERM})
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, forkserver.STOP_SIGNALS)
     data_fd, status_fd, path = (argv or sys.argv[2:])[:3]
     status_conn = Connection(int(status_fd), readable=False)
     code = 0

@@ -194,13 +194,22 @@ def _wait_for_group_exit(pgid: int) -> None:
     assert not _group_alive(pgid), "the writer process outlived its parent"
 
 
-def test_ctrl_c_to_the_process_group_leaves_a_complete_file_with_stop_signal(tmp_path: Path) -> None:
+@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGHUP, signal.SIGQUIT], ids=lambda s: s.name)
+def test_ctrl_c_to_the_process_group_leaves_a_complete_file_with_stop_signal(tmp_path: Path,
+                                                                             signum: signal.Signals) -> None:
+    """What a terminal sends the whole process group -- Ctrl-C, its closing (SIGHUP), Ctrl-\\
+    (SIGQUIT) -- is a safe stop: the run's helpers (the writer, the emulated drive, the fork
+    server) ignore it, so the drive confirms its disable and the file is finished."""
     path = tmp_path / "rt.mcap"
     proc = _start_realtime_run(path, 30.0)
     _wait_for_cycles(path, proc, 0.5)
-    os.killpg(proc.pid, signal.SIGINT)  # the writer process gets it too, and ignores it
+    os.killpg(proc.pid, signum)  # the writer process gets it too, and ignores it
     out, err = proc.communicate(timeout=20)
     assert proc.returncode == 1, err
+    stop = [line for line in out.decode().splitlines() if line.startswith("stopped: ")]
+    assert len(stop) == 1 and stop[0].startswith("stopped: signal "), out
+    assert stop[0].endswith(f"received {signum.name}"), out
+    assert b"WARNING" not in err and b"Traceback" not in err, err
     _wait_for_group_exit(proc.pid)
     info = open_log(path).info()
     assert info.stop_reason == "signal"

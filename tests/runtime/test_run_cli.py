@@ -3,8 +3,11 @@ the JSON summary, the demo PNG, and one-line errors with the right exit codes.""
 
 from __future__ import annotations
 
+import errno
+import io
 import json
 import os
+import sys
 from pathlib import Path
 
 import pytest
@@ -226,3 +229,35 @@ def test_a_real_time_writer_only_gets_idle_cpu(tmp_path: Path, lockstep: bool) -
     with RunSession(config, emulate=True, lockstep=lockstep, sink=log, bus_wrapper=log.wrap_bus) as session:
         record_run(session, log, on_begin=lambda _: seen.append(os.sched_getscheduler(pid)))
     assert seen == [os.SCHED_OTHER if lockstep else os.SCHED_IDLE]
+
+
+class _GoneStdout(io.StringIO):
+    """A stdout that fails as ``failure`` (a reader gone from the pipe, a full device)."""
+
+    def __init__(self, failure: OSError) -> None:
+        super().__init__()
+        self.failure = failure
+
+    def write(self, text: str) -> int:
+        raise self.failure
+
+
+@pytest.mark.parametrize("failure", [BrokenPipeError(errno.EPIPE, "Broken pipe"),
+                                     OSError(errno.ENOSPC, "No space left on device")], ids=["pipe", "full"])
+@pytest.mark.parametrize("as_json", [False, True], ids=["text", "json"])
+def test_the_stop_line_and_the_warning_get_out_whatever_stdout_does(
+        failure: OSError, as_json: bool, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]) -> None:
+    """``dobhil run ... | head`` or ``> /dev/full``: the run's account cannot be written, yet
+    its stop line and the loud line reach stderr, before stdout's error goes on to main()
+    (which ends as documented: exit 141 or 2)."""
+    from dobhil.cli.run_cmd import report
+    from dobhil.runtime.session import RunSession, summary
+    with RunSession(load_config(DEMO, ["loop.duration=0.05"]), emulate=True, lockstep=True) as session:
+        result = session.run()
+        info = summary(session, result)
+    info["drive_warning"] = "drive may still be enabled: node 3 did not acknowledge IDLE; cut power"
+    monkeypatch.setattr(sys, "stdout", _GoneStdout(failure))
+    with pytest.raises(type(failure)):
+        report(info, result.stop.line(), as_json=as_json)
+    err = capsys.readouterr().err.splitlines()
+    assert err == [f"dobhil run: {result.stop.line()}", f"WARNING: {info['drive_warning']}"]
