@@ -6,6 +6,8 @@ Waits poll with a generous bound; nothing asserts wall-clock timing."""
 
 from __future__ import annotations
 
+import os
+import signal
 import struct
 import threading
 import time
@@ -143,7 +145,8 @@ def test_canopens_client_drives_the_node_behind_a_dobhil_bus() -> None:
 
 def test_dobhil_emulate_serves_a_cia402_config(capsys: pytest.CaptureFixture[str]) -> None:
     # `dobhil emulate` on a virtual channel of this process, the test's client on another
-    # thread: boot-up, SDO, NMT start and a SYNC answered with the TPDOs
+    # thread: boot-up, SDO, NMT start and a SYNC answered with the TPDOs; then Ctrl-C's
+    # way, SIGINT, ends it (--duration: a bound past the client's own, not reached)
     channel = private_virtual_channel()
     got: dict[int, bytes] = {}
     client_bus = can.Bus(interface="virtual", channel=channel)
@@ -157,11 +160,13 @@ def test_dobhil_emulate_serves_a_cia402_config(capsys: pytest.CaptureFixture[str
             got.update(_frames(client_bus, {SDO_TX, TPDO1, TPDO2}))
         finally:
             client_bus.shutdown()
+            if HEARTBEAT in got:   # the node booted: emulate runs, its handler takes the signal
+                os.kill(os.getpid(), signal.SIGINT)
 
     thread = threading.Thread(target=client)
     thread.start()
     code = main(["emulate", "demo", "--set", "drive.profile=cia402-emulated", "--bus", f"virtual:{channel}",
-                 "--duration", "3"])
+                 "--duration", f"{3 * BOUND:g}"])
     thread.join()
     assert code == 0 and "emulating cia402 node 5" in capsys.readouterr().out
     assert got[HEARTBEAT] == b"\x00" and got[SDO_TX] == bytes.fromhex("4302650080030000")
