@@ -7,7 +7,7 @@ import os
 import signal
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from types import SimpleNamespace
@@ -62,6 +62,26 @@ def stopped(proc: WriterProcess) -> Iterator[None]:
         yield
     finally:
         os.kill(proc.pid, signal.SIGCONT)
+
+
+#: [s] a count that did not move for this long stopped: the producer is blocked (a thread
+#: that runs moves it within milliseconds)
+QUIET = 0.3
+
+
+def still_for(count: Callable[[], int], quiet: float, bound: float = 30.0) -> int:
+    """``count()`` once it moved from 0 and then stayed for ``quiet`` s (``bound``: for a
+    loaded machine, not a measurement; on it the count as it is)."""
+    end = time.monotonic() + bound
+    value, since = count(), time.monotonic()
+    while time.monotonic() < end:
+        time.sleep(0.02)
+        now = count()
+        if now != value or now == 0:
+            value, since = now, time.monotonic()
+        elif time.monotonic() - since >= quiet:
+            break
+    return value
 
 
 def counts(path: Path) -> dict[str, int]:
@@ -192,9 +212,7 @@ def test_backpressure_blocks_while_the_writer_lags_and_loses_nothing(tmp_path: P
     with stopped(writer):
         thread = threading.Thread(target=produce)
         thread.start()
-        time.sleep(1.0)
-        in_flight = sent[0]
-        time.sleep(0.3)
+        in_flight = still_for(lambda: sent[0], QUIET)
         assert sent[0] == in_flight < total  # blocked: at most a pipe full in flight
         assert in_flight * CYCLE_BYTES <= PIPE_SIZE + 2 * BATCH_RECORDS * CYCLE_BYTES
     thread.join(30)
