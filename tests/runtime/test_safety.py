@@ -41,7 +41,7 @@ from dobhil.runtime.signals import stop_on_signals
 from dobhil.runtime.stop import Stop, StopReason
 
 from .helpers import (NODE, REALTIME_SLACK, STEP_FROM_ZERO, HostCommands, Sniffer,
-                      assert_stopped_safely, demo_config, realtime_profile)
+                      assert_stopped_safely, demo_config, realtime_profile, wait_until)
 
 TIMINGS = ("lockstep", "realtime")
 ENCODER_ID = codec.arbitration_id(NODE, CmdId.GET_ENCODER_ESTIMATES)
@@ -224,16 +224,29 @@ def test_non_finite_reference(tmp_path: Path, timing: str, value: float) -> None
 
 # -- drive faults -------------------------------------------------------------------
 
-def stall(session: RunSession, timing: str, seconds: float) -> Callable[[], None]:
-    """The host loop stops commanding for ``seconds``: simulated (the lockstep bus steps
-    the emulator without commands) or real (the loop thread blocks)."""
+#: [s] how long a real-time stall may wait for the drive's watchdog: a bound for a loaded
+#: machine, not a measurement
+WATCH_BOUND = 30.0
+
+
+def stall(session: RunSession, timing: str, seconds: float, took: list[float]) -> Callable[[], None]:
+    """The host loop stops commanding: for ``seconds`` of simulated time (the lockstep bus
+    steps the emulator without commands), or in real time until the emulated drive's
+    watchdog tripped (the loop thread blocks); ``took`` gets how long it stalled."""
     def lockstep_stall() -> None:
         bus = session.host_bus
         assert isinstance(bus, LockstepBus)
         for _ in range(round(seconds / session.settings.period)):
             bus.step()
+        took.append(seconds)
 
-    return lockstep_stall if timing == "lockstep" else (lambda: time.sleep(seconds))
+    def realtime_stall() -> None:
+        emulator = session.emulator
+        begin = time.perf_counter()
+        wait_until(lambda: bool(getattr(emulator, "watchdog_tripped", False)), WATCH_BOUND)
+        took.append(time.perf_counter() - begin)
+
+    return lockstep_stall if timing == "lockstep" else realtime_stall
 
 
 @pytest.mark.parametrize("timing", TIMINGS)
@@ -249,8 +262,7 @@ def test_watchdog_trip_is_reported(tmp_path: Path, timing: str, firmware: str) -
     stalled: list[float] = []
 
     def arm(session: RunSession) -> None:
-        stalled.append(3 * session.profile.watchdog_timeout)
-        sink.action = stall(session, timing, stalled[0])
+        sink.action = stall(session, timing, 3 * session.profile.watchdog_timeout, stalled)
 
     out = run_case(config, timing, StopReason.HOST_TOO_SLOW,
                    words=["watchdog", "WATCHDOG_TIMER_EXPIRED", "the host was late, not the drive"],
