@@ -250,12 +250,26 @@ def test_a_motor_that_reports_no_timeout_watches_nothing(tmp_path: Path) -> None
 
 # -- across processes: dobhil emulate on the hub, dobhil run stopped --------------------------
 
+def watchdog_fired(bus: can.BusABC, bound: float) -> bool:
+    """Until a heartbeat of the node on ``bus`` has the watchdog's Axis_Error bit (False
+    after ``bound`` s: a bound for a loaded machine, not a measurement)."""
+    beat, bit = codec.arbitration_id(NODE, CmdId.HEARTBEAT), codec.watchdog_bit(codec.Firmware.V0_6)
+    end = time.monotonic() + bound
+    while time.monotonic() < end:
+        msg = bus.recv(0.1)
+        if msg is not None and msg.arbitration_id == beat:
+            decoded = codec.decode_message(msg, codec.Firmware.V0_6)
+            if isinstance(decoded, codec.Heartbeat) and decoded.axis_error & bit:
+                return True
+    return False
+
+
 def test_a_stopped_run_process_is_the_host_across_processes(tmp_path: Path, hub: int) -> None:
     """``dobhil emulate`` (an ODrive, watchdog 250 ms) in one process, ``dobhil run`` in
     another, on a python-can-remote hub. Once the run commands torque, its process is
-    stopped (SIGSTOP) until the emulator's watchdog has surely had time to fire (three
-    timeouts, measured by this test), then continued. The run stops host_too_slow with a
-    gap of at least the time it was stopped."""
+    stopped (SIGSTOP) until the emulator's heartbeat says its watchdog fired, then
+    continued. The run stops host_too_slow with a gap of at least the time it was stopped
+    (measured by this test)."""
     url = f"ws://127.0.0.1:{hub}/"
     watchdog = 0.25
     profile = write_profile(tmp_path, "odrive-0.6", feedback_period=5e-3, heartbeat_period=0.05,
@@ -281,8 +295,9 @@ def test_a_stopped_run_process_is_the_host_across_processes(tmp_path: Path, hub:
             seen += msg is not None and msg.arbitration_id == TORQUE_ID
         os.kill(run.pid, signal.SIGSTOP)
         begin = time.monotonic()
-        time.sleep(3 * watchdog)
+        fired = watchdog_fired(sniffer, WATCH_BOUND)
         stopped = time.monotonic() - begin
+        assert fired, "the emulator's heartbeat never said its watchdog fired"
         os.kill(run.pid, signal.SIGCONT)
         stdout, stderr = run.communicate(timeout=60)
     finally:
