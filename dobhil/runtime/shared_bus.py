@@ -42,6 +42,7 @@ from can.broadcastmanager import CyclicSendTaskABC
 
 from dobhil.drives.clocked import ClockedBus, bus_clock
 from dobhil.drives.periodic import native_periodic
+from dobhil.errors import BusError, exception_line
 
 __all__ = ["QUEUE_FRAMES", "BusView", "SharedBus"]
 
@@ -117,20 +118,28 @@ class SharedBus:
         """Read what the inner bus has -- waiting up to ``timeout`` s of its clock for the
         first frame -- and hand each frame to the views that take it; the frames read."""
         recv, views = self.inner.recv, self.views
-        msg = recv(timeout)
-        count = 0
-        while msg is not None:
-            count += 1
-            taken = False
-            for view in views:
-                if view.takes(msg):
-                    view.put(msg)
-                    taken = True
-            if not taken:
-                self.unclaimed += 1
-            if count >= PASS_FRAMES:
-                break
-            msg = recv(0.0)
+        try:
+            msg = recv(timeout)
+            count = 0
+            while msg is not None:
+                count += 1
+                taken = False
+                for view in views:
+                    if view.takes(msg):
+                        view.put(msg)
+                        taken = True
+                if not taken:
+                    self.unclaimed += 1
+                if count >= PASS_FRAMES:
+                    break
+                msg = recv(0.0)
+        except BusError:
+            raise
+        except Exception as exc:   # python-can's, the OS's or a transport's own: the bus is gone
+            # the loop calls a pass itself, not through a drive (which names such a failure a
+            # BusError, dobhil/drives/base.py): the same stop, bus_error, either way
+            raise BusError(f"bus read on {self.inner.channel_info} failed: "
+                           f"{exception_line(exc, named=not isinstance(exc, (can.CanError, OSError)))}") from exc
         return count
 
     def send(self, msg: can.Message, timeout: float | None = None) -> None:

@@ -15,7 +15,7 @@ from dobhil.drives.emulated import private_virtual_channel
 from dobhil.drives.load import load_drive_profile
 from dobhil.drives.registry import make_drive, protocol
 from dobhil.drives.base import Feedback
-from dobhil.emulator.faults import Fault, faulty
+from dobhil.emulator.faults import Direction, Fault, faulty
 from dobhil.runtime.controller import ControlOutput
 from dobhil.runtime.axes_session import AxesSession
 from dobhil.runtime.loop import StopRequest
@@ -194,3 +194,39 @@ def test_one_axis_limit_stops_both(tmp_path: Path) -> None:
     assert 0 < result.cycles < 300
     assert_all_stopped(result, confirmable={"left": True, "right": True})
     assert applied == [0.0, 0.0]
+
+
+class ReadsFail(Fault):
+    """After ``after`` frames received, every read of the bus fails as a python-can-remote
+    hub killed mid-run makes it fail (its websocket reset); sending still works, so the
+    failure is met where the loop reads, not where it sends."""
+
+    def __init__(self, *, after: int) -> None:
+        super().__init__()
+        self.after = after
+
+    def apply(self, msg: can.Message, index: int, now: float) -> Sequence[can.Message]:
+        return (msg,)
+
+    def check(self, direction: Direction, now: float) -> None:
+        if direction is Direction.RECV and self.matched >= self.after:
+            self.applied += 1
+            raise ConnectionResetError(104, "Connection reset by peer")
+
+
+@pytest.mark.parametrize("proto", PROTOCOLS)
+def test_a_bus_whose_reads_fail_mid_run_is_a_bus_error(tmp_path: Path, proto: str) -> None:
+    """The bus' reads fail: the run's stop is bus_error, as for one axis, not an exception
+    (the several-axis loop reads the shared bus itself, not through a drive), and every
+    axis' safe stop is attempted, loudly unconfirmed (nothing can be read back)."""
+    axes = load_two(tmp_path, (proto, proto))
+    fails = ReadsFail(after=2 * AT)   # both nodes' frames count: about cycle AT
+    with AxesSession(axes, emulate=True, lockstep=True, config_dir=CONFIGS,
+                     bus_wrapper=lambda bus, name: faulty(fails)(bus)) as session:
+        result = session.run()
+    line = result.stop.line()
+    assert result.stop.reason is StopReason.BUS_ERROR, line
+    assert "Connection reset by peer" in line and "\n" not in line
+    assert fails.applied > 0 and 0 < result.stop.cycle < 300
+    warned = result.warning()
+    assert all(f"axis {n}" in warned for n in ("left", "right")), warned
