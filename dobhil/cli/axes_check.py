@@ -19,7 +19,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Any
 
 from dobhil.errors import ConfigError
@@ -56,9 +56,10 @@ def check_axes(args: argparse.Namespace, window: float) -> int:
 
 
 def measure_axes(axes: Any, drives: Sequence[Any], window: float,
-                 default_bus: str | None) -> list[tuple[str, str, Any]]:
+                 default_bus: str | None, cancel: Callable[[], str] | None = None) -> list[tuple[str, str, Any]]:
     """(axis, bus, preflight report) of every axis, each bus opened once for its axes and
-    closed before the next (nothing enabled; ``dobhil run`` of a real bus calls it too)."""
+    closed before the next (nothing enabled; ``dobhil run`` of a real bus calls it too);
+    ``cancel`` (a stop request's ``reason``) cuts each measurement short."""
     from dobhil.drives.preflight import run_preflight
     from dobhil.drives.registry import preflight_probe
     from dobhil.runtime.buses import open_bus, resolve_bus, shutdown_bus
@@ -72,7 +73,10 @@ def measure_axes(axes: Any, drives: Sequence[Any], window: float,
             for config, drive in on_bus:
                 report = run_preflight(bus, drive.profile, period=config.loop.period,
                                        feedback_timeout=config.loop.feedback_timeout, window=window,
-                                       bitrate=drive.bitrate, probe=preflight_probe(drive.profile))
+                                       bitrate=drive.bitrate, probe=preflight_probe(drive.profile),
+                                       cancel=cancel)
+                if cancel is not None and cancel():
+                    return out
                 out.append((drive.name, spec.describe(), report))
         finally:
             shutdown_bus(bus)

@@ -106,8 +106,18 @@ def preflight_axes(args: argparse.Namespace, axes: Any, path: Path, *, prog: str
     if emulate or getattr(args, "no_preflight", False):
         return gates
     window = window_of(getattr(args, "preflight_window", None), "--preflight-window")
+    from dobhil.runtime.loop import StopRequest
+    from dobhil.runtime.signals import stop_on_signals
+    from dobhil.runtime.stop import Stop, StopReason
+    # a signal while the drives are measured stops as in the loop, nothing ever enabled
+    # (dobhil run of one axis: RunSession.preflight)
+    with stop_on_signals(StopRequest()) as request:
+        measured = measure_axes(axes, drives, window, bus, cancel=request.reason)
+    if request.is_set():
+        sys.stderr.write(f"{prog}: {Stop(StopReason.SIGNAL, request.reason(), -1, 0.0).line()}\n")
+        return None
     refused = False
-    for name, _, report in measure_axes(axes, drives, window, bus):
+    for name, _, report in measured:
         if report.refuses:
             tell_refusal(report, f"{prog}: axis {name}")
             refused = True

@@ -270,3 +270,30 @@ def test_sigint_during_a_long_host_period(tmp_path: Path) -> None:
     stop = run_until_signal(config, sink, [])
     assert stop.reason is StopReason.SIGNAL and stop.cycle == 1, stop.line()
     assert sink.sent > 0 and sink.stopped - sink.sent < ANSWER, sink.stopped - sink.sent
+
+
+@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM], ids=lambda s: s.name)
+def test_a_signal_during_the_several_axis_preflight(hub: int, signum: signal.Signals) -> None:
+    """Two axes, no drive on the bus, a 30 s preflight window: the signal, sent once the
+    first axis' request is on the bus, ends the run within 0.2 s with the single axis'
+    stop line and exit code; nothing is enabled."""
+    sniffer = can.Bus(interface="remote", channel=f"ws://127.0.0.1:{hub}/")
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "dobhil", "run", "two-axis-demo", "--bus", f"remote:ws://127.0.0.1:{hub}/",
+         "--set", "loop.timing=feedback", "--preflight-window", "30"],
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, env=child_env(), cwd=REPO)
+    lines = Lines(proc)
+    try:
+        wait_for_frame(sniffer, codec.arbitration_id(1, CmdId06.GET_VERSION))
+        delay, line = answer_delay(proc, lines, signum, "dobhil run: stopped:")
+        stray = sniffer.recv(0.0)
+        while stray is not None:   # nothing but the preflight's requests went out
+            assert (stray.arbitration_id & 0x1F) != CmdId.SET_AXIS_STATE, stray
+            stray = sniffer.recv(0.0)
+    finally:
+        stop_process(proc)
+        lines.join()
+        sniffer.shutdown()
+    assert line == f"dobhil run: stopped: signal: received {signum.name}", lines.text()
+    assert proc.returncode == 1, lines.text()
+    assert delay < ANSWER, (delay, lines.text())
