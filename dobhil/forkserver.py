@@ -245,8 +245,17 @@ class ForkServer:
         return proc.pid if proc is not None and proc.poll() is None else None
 
     def close(self) -> None:
+        """End the server (at exit: registered with atexit). A Ctrl-C while it waits for the
+        server to go -- a second one just after a run's end lands here -- kills it at once:
+        no server left behind, no traceback after the run's last line."""
         with self._lock:
-            self._close()
+            proc = self._proc
+            try:
+                self._close()
+            except KeyboardInterrupt:
+                if proc is not None:
+                    proc.kill()
+                    proc.wait()
 
 
 _SERVERS: dict[tuple[str, ...], ForkServer] = {}

@@ -269,3 +269,22 @@ def test_a_server_started_with_sigchld_blocked_still_reports_its_children() -> N
     finally:
         srv.close()
     assert codes == [5]
+
+
+def test_a_ctrl_c_while_closing_kills_the_server_without_a_traceback(server: ForkServer,
+                                                                     monkeypatch: pytest.MonkeyPatch) -> None:
+    """close() runs at exit; a second Ctrl-C after a run's end lands in its wait for the
+    server: the server is killed, and the interrupt is not raised into atexit (whose
+    traceback would follow the run's last line)."""
+    server.start("tests.test_forkserver:exit_with", (0,)).wait(30)
+    proc = server._proc
+    assert proc is not None and proc.poll() is None
+
+    def interrupted(timeout: float | None = None) -> int:
+        monkeypatch.undo()   # the kill's own wait is the real one
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(proc, "wait", interrupted)
+    server.close()
+    assert proc.wait(30) is not None and proc.returncode is not None
+    assert server.pid is None
