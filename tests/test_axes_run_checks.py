@@ -142,3 +142,20 @@ def test_no_preflight_skips_it(tmp_path: Path, odrives: tuple[str, list[Emulated
     code = main(["run", str(axes_config(tmp_path, "odrive-0.6", (1, 2))), "--bus", f"virtual:{channel}",
                  "--set", SLACK, "--set", HOST, "--no-preflight", "--duration", "0.02"])
     assert code in (0, 1) and "preflight" not in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("command", ["run", "check"])
+def test_a_period_an_axis_watchdog_cannot_tolerate_is_refused_before_anything_opens(
+        command: str, tmp_path: Path, no_session: None, capsys: pytest.CaptureFixture[str]) -> None:
+    """odrive-0.6's watchdog allows 50 ms: a command every 30 ms may reach it 60 ms apart.
+    One line naming the axis, exit 2, from run and check alike, no session opened."""
+    path = axes_config(tmp_path, "odrive-0.6", (1, 2))
+    code = main([command, str(path), "--set", "loop.period=0.03", "--set", "loop.feedback_timeout=0.5",
+                 *(["--emulate"] if command == "run" else ["--bus", "virtual:nobody"])])
+    captured = capsys.readouterr()
+    assert code == 2 and captured.out == ""
+    assert captured.err.splitlines() == [
+        f"dobhil {command}: error: axis j1: loop.period = 0.03 s is too long for the command watchdog of drive "
+        "profile 'odrive-0.6' (watchdog_timeout = 0.05 s; a command every period may reach the drive up to two "
+        "periods apart); allowed: loop.period < 0.025 s (half of watchdog_timeout), or a longer watchdog_timeout "
+        "(on the drive too)"]

@@ -96,7 +96,7 @@ class AxesSession:
         # a clash refused before anything is opened, in the line dobhil check gives
         axis_drives(axes, config_dir, bus)
         for a in axes.axes:
-            check_rates(self.profiles[a.name], a.config.loop.period)
+            check_rates(self.profiles[a.name], a.config.loop.period, f"axis {a.name}: ")
         self.timing = self._timing(lockstep)
         self.settings = {a.name: loop_settings(a.config, self.timing, duration) for a in axes.axes}
         self.controllers = {a.name: build_controller(a.config, self.profiles[a.name]) for a in axes.axes}

@@ -44,12 +44,37 @@ from dobhil.synthesis.controller import sampled_controller
 from dobhil.synthesis.params import params_from_config
 
 
-def check_rates(profile: DriveProfile, period: float) -> None:
+def check_rates(profile: DriveProfile, period: float, prefix: str = "") -> None:
     """The drive must send feedback at least once per control period (the profile's
-    promise; :meth:`RunSession.preflight` measures what the drive really does)."""
+    promise; :meth:`RunSession.preflight` measures what the drive really does), and its
+    command watchdog must tolerate a command every period (:func:`check_watchdog`).
+    ``prefix``: before the error line (``axis NAME: `` in a several-axis run)."""
     probe = preflight_probe(profile)
     for finding in profile_rate_findings(profile, period, probe.motion_name() if probe else "motion feedback"):
-        raise ConfigError(finding.text)
+        raise ConfigError(f"{prefix}{finding.text}")
+    check_watchdog(profile, period, prefix)
+
+
+def check_watchdog(profile: DriveProfile, period: float, prefix: str = "") -> None:
+    """ConfigError (one line) when ``period`` is too long for the profile's command watchdog
+    (``watchdog_timeout``; 0: off, no limit): allowed is ``period < watchdog_timeout / 2``.
+
+    The watchdog must see a command at least every ``watchdog_timeout``, and the loop sends
+    one every period; but the drive checks it on its own tick and a command's way to the
+    drive varies by up to a period, so two commands sent on time may reach it up to two
+    periods apart. That is the margin :meth:`ForceLoop._watch_gaps
+    <dobhil.runtime.loop.ForceLoop._watch_gaps>` gives when it blames the host
+    (``host_too_slow``): a gap of ``watchdog_timeout - period`` or more between commands
+    counts as starving the watch. A period of half the watchdog or more makes every
+    on-time gap such a gap: the drive may trip with no one late, and the host would be
+    blamed for it (at a period over the watchdog, at the very first cycle, even in lockstep)."""
+    watchdog = profile.watchdog_timeout
+    if watchdog > 0 and 2 * period >= watchdog:
+        raise ConfigError(
+            f"{prefix}loop.period = {period:g} s is too long for the command watchdog of drive profile "
+            f"{profile.name or profile.protocol!r} (watchdog_timeout = {watchdog:g} s; a command every period "
+            f"may reach the drive up to two periods apart); allowed: loop.period < {watchdog / 2:g} s "
+            f"(half of watchdog_timeout), or a longer watchdog_timeout (on the drive too)")
 
 
 def build_controller(config: Config, profile: DriveProfile) -> ForceController:

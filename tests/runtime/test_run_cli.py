@@ -261,3 +261,40 @@ def test_the_stop_line_and_the_warning_get_out_whatever_stdout_does(
         report(info, result.stop.line(), as_json=as_json)
     err = capsys.readouterr().err.splitlines()
     assert err == [f"dobhil run: {result.stop.line()}", f"WARNING: {info['drive_warning']}"]
+
+
+#: the demo's design slowed to a loop period of 60 ms (stable there), every cycle in time
+SLOW = ["--set", "loop.timing=host", "--set", "loop.feedback_timeout=0.5", "--set", "design.dob_bandwidth=10",
+        "--set", "design.rtob_bandwidth=10", "--set", "design.force_gain=0.5"]
+
+
+@pytest.mark.parametrize("period", ["0.06", "0.025"])
+@pytest.mark.parametrize("argv", [["run", "--emulate", "--lockstep"], ["run", "--emulate"], ["check"]])
+def test_a_period_the_drives_watchdog_cannot_tolerate_is_one_line_exit_2(
+        argv: list[str], period: str, capsys: pytest.CaptureFixture[str]) -> None:
+    """odrive-0.6's watchdog allows 50 ms; a command every 60 ms trips it at once (a lockstep
+    run stopped host_too_slow at cycle 0: a false blame), and one every 25 ms may reach the
+    drive 50 ms apart: refused, naming loop.period, watchdog_timeout and what is allowed."""
+    code = main([argv[0], str(DEMO), *argv[1:], *(["--bus", "dobhil:demo"] if argv[0] == "check" else []),
+                 "--set", f"loop.period={period}", *SLOW])
+    captured = capsys.readouterr()
+    err = one_line(captured.err)
+    assert code == EXIT_USAGE and captured.out == "", err
+    assert err == (f"dobhil {argv[0]}: error: loop.period = {float(period):g} s is too long for the command "
+                   "watchdog of drive profile 'odrive-0.6' (watchdog_timeout = 0.05 s; a command every period "
+                   "may reach the drive up to two periods apart); allowed: loop.period < 0.025 s (half of "
+                   "watchdog_timeout), or a longer watchdog_timeout (on the drive too)")
+
+
+def test_a_period_within_half_the_watchdog_runs(capsys: pytest.CaptureFixture[str]) -> None:
+    code = main(["run", str(DEMO), "--emulate", "--lockstep", "--duration", "0.5", "--set", "loop.period=0.024",
+                 *SLOW])
+    assert code == 0, capsys.readouterr().err
+
+
+def test_a_profile_with_its_watchdog_off_has_no_such_limit(tmp_path: Path,
+                                                           capsys: pytest.CaptureFixture[str]) -> None:
+    profile = realtime_profile(tmp_path, "odrive-0.6", watchdog_timeout=0)
+    code = main(["run", str(DEMO), "--emulate", "--lockstep", "--duration", "0.5", "--set", "loop.period=0.06",
+                 "--set", f"drive.profile={profile}", *SLOW])
+    assert code == 0, capsys.readouterr().err
