@@ -24,6 +24,7 @@ second line is the gate's (``stability_gate`` in ``--json``).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 import sys
@@ -89,6 +90,7 @@ def check(args: argparse.Namespace) -> int:
         return set_zero(args, config, profile)
     from dobhil.runtime.session import check_watchdog
     check_watchdog(profile, config.loop.period)   # as dobhil run refuses it, before the bus opens
+    refuse_budget(args, config, args.bus)
     from dobhil.cli.stability_gate import stability_gate
     # the design dobhil run would close on this drive, judged before the bus is opened
     gate = stability_gate(config, args.config, allow_unstable=args.allow_unstable, prog="dobhil check")
@@ -154,6 +156,19 @@ def zeroing_protocols() -> list[str]:
         except ConfigError:
             continue
     return able
+
+
+def refuse_budget(args: argparse.Namespace, config: Any, bus: str | None) -> None:
+    """Before any bus opens, a single-axis run's or check's bus budget over 100 % is refused
+    (ConfigError, one line, exit 2) by the rule and in the words of a several-axis one
+    (:func:`dobhil.drives.axes.drive_budget`): the frames of one period do not fit in it, and
+    the run would end in a bus error. ``bus``: ``--bus`` (None with ``--emulate``)."""
+    from dobhil.config import resolve_config
+    from dobhil.config.axes import SINGLE_AXIS, Axis
+    from dobhil.drives.axes import drive_budget
+    if bus:   # --bus comes before drive.interface in a single-axis run (resolve_bus)
+        config = dataclasses.replace(config, drive=dataclasses.replace(config.drive, interface="", channel=""))
+    drive_budget(Axis(args.axis or SINGLE_AXIS, config), resolve_config(args.config).parent, bus)
 
 
 def run_budget(profile: Any, period: float, bitrate: int | None) -> Any:

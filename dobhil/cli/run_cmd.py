@@ -70,7 +70,7 @@ def run(args: argparse.Namespace) -> int:
 
 def run_checked(args: argparse.Namespace) -> int:
     """``dobhil run`` after the preflight (raises PreflightError when it refuses)."""
-    from dobhil.cli.check_cmd import preflight_kwargs
+    from dobhil.cli.check_cmd import preflight_kwargs, refuse_budget
     from dobhil.config import resolve_config
     from dobhil.cli.recording import abort, live_address, open_run_log, record_run
     from dobhil.cli.stability_gate import gate_metadata, stability_gate
@@ -84,6 +84,7 @@ def run_checked(args: argparse.Namespace) -> int:
     config = config_from_args(args)
     if args.plot:
         check_output(args.plot, inputs=[args.config], suffix=".png", what="--plot")
+    refuse_budget(args, config, None if args.emulate else args.bus)   # over 100 %: before a bus opens
     # before any bus or log file: an unstable design is refused with nothing opened
     gate = stability_gate(config, args.config, allow_unstable=args.allow_unstable, prog="dobhil run")
     log = open_run_log(args.log, live=live_address(args.live, args.log))
@@ -134,8 +135,9 @@ def tell_unfinished(session: Any) -> None:
 
 
 def warn_budget(session: Any) -> None:
-    """A bus budget over 70 % is said, not refused (the frames may still fit; late
-    feedback then shows in the run's timing)."""
+    """A bus budget over 70 % (and at most 100 %: over it :func:`run_checked` refused the
+    run) is said, not refused (the frames still fit; late feedback then shows in the run's
+    timing)."""
     from dobhil.cli.check_cmd import run_budget
     from dobhil.drives.preflight import configured_bitrate
     # an emulated bus has no bit rate: the budget is the one the configured bus would carry

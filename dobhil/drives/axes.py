@@ -20,13 +20,15 @@ axes are compared by node id alone.
 :meth:`~dobhil.drives.preflight.PreflightProbe.cycle_frames`), a frame marked ``shared``
 (one SYNC for every CANopen node) counted once per bus, against the bus's bit rate
 (:class:`~dobhil.drives.bus_load.BusBudget`). Over 100 % the axes cannot run on that bus:
-:func:`axes_budget` refuses (ConfigError, one line); over
+:func:`axes_budget` refuses (ConfigError, one line), and a single-axis run by the same rule and
+line (:func:`drive_budget`: its one axis' budget); over
 :data:`~dobhil.drives.bus_load.MAX_BUDGET` (70 %) :meth:`AxesBusBudget.advice` is one line
 saying what to change.
 """
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -45,7 +47,7 @@ if TYPE_CHECKING:
     from dobhil.drives.preflight import PreflightProbe
 
 __all__ = ["DEFAULT_BUS", "AxesBusBudget", "AxisDrive", "axes_budget", "axis_drives", "bus_budgets",
-           "check_clashes"]
+           "check_clashes", "drive_budget"]
 
 #: the bus of axes that name none (their run's ``--bus``), as the budget and clash lines say it
 DEFAULT_BUS = "the default bus"
@@ -164,6 +166,9 @@ class AxesBusBudget:
     shared: float = 0.0
     unknown: tuple[str, ...] = ()
     fd_protocols: tuple[str, ...] = ()
+    #: who needs the bits, in :meth:`refusal` (empty: ``axes a, b`` / ``axis a``; a single-axis
+    #: run names its drive, :func:`drive_budget`)
+    subject: str = ""
 
     @property
     def axes(self) -> tuple[str, ...]:
@@ -207,7 +212,9 @@ class AxesBusBudget:
         """Over 100 %: the one line :func:`axes_budget` refuses with (empty when within it)."""
         if not self.refused:
             return ""
-        return (f"bus {self.bus}: axes {', '.join(self.axes)} need {self.budget.bits_per_cycle:.0f} bits per "
+        who = self.subject or (f"axis {self.axes[0]}" if len(self.axes) == 1 else f"axes {', '.join(self.axes)}")
+        need = "need" if not self.subject and len(self.axes) > 1 else "needs"
+        return (f"bus {self.bus}: {who} {need} {self.budget.bits_per_cycle:.0f} bits per "
                 f"cycle, {self._load_text()}: more than the bus carries in one period; use "
                 + ", or ".join(self._ways()))
 
@@ -243,8 +250,24 @@ def axes_budget(drives: Sequence[AxisDrive], period: float,
     return budgets
 
 
+def drive_budget(axis: Axis, config_dir: Path | None, default_bus: str | None = None,
+                 probe: Callable[[DriveProfile], PreflightProbe | None] = preflight_probe) -> AxesBusBudget:
+    """The bus budget of a single-axis run (``dobhil run``/``check`` of one drive): the
+    budget of :func:`axes_budget` for its one axis -- its bus and bit rate found as an axis'
+    are, the same frames, refused (ConfigError, the same line) over 100 % -- naming the drive
+    and, as a way out, what "fewer frames" means for its protocol (there are no other axes)."""
+    (drive,) = axis_drives(Axes((axis,), listed=False), config_dir, default_bus)
+    found = probe(drive.profile)
+    fewer = found.budget_fewer if found is not None else None
+    subject = f"drive profile {drive.profile.name or drive.profile.protocol!r} (node {drive.profile.node_id})"
+    b = dataclasses.replace(_bus_budget(drive.bus, [drive], axis.config.loop.period, probe, fewer), subject=subject)
+    if b.refused:
+        raise ConfigError(b.refusal())
+    return b
+
+
 def _bus_budget(bus: str, drives: Sequence[AxisDrive], period: float,
-                probe: Callable[[DriveProfile], PreflightProbe | None]) -> AxesBusBudget:
+                probe: Callable[[DriveProfile], PreflightProbe | None], fewer: str | None = None) -> AxesBusBudget:
     frames: list[CycleFrame] = []
     shared: dict[tuple[object, ...], CycleFrame] = {}
     per_axis: list[tuple[str, float]] = []
@@ -263,7 +286,7 @@ def _bus_budget(bus: str, drives: Sequence[AxisDrive], period: float,
         per_axis.append((d.name, sum(f.bits * f.per_cycle(period) for f in mine)))
     frames += shared.values()
     bitrates = [d.bitrate for d in drives if d.bitrate]
-    fewer = "fewer axes on this bus (another bus for one: its drive.interface/drive.channel)"
+    fewer = fewer or "fewer axes on this bus (another bus for one: its drive.interface/drive.channel)"
     budget = BusBudget(tuple(frames), period, bitrates[0] if bitrates else None, fewer)
     shared_bits = sum(f.bits * f.per_cycle(period) for f in shared.values())
     return AxesBusBudget(bus, budget, tuple(per_axis), shared_bits, tuple(unknown), _fd_instead(drives))

@@ -505,7 +505,9 @@ def configured_bitrate(drive_bitrate: int, profile: DriveProfile) -> int | None:
 
 def budget_findings(bus_budget: BusBudget | None) -> list[Finding]:
     """Over :data:`~dobhil.drives.bus_load.MAX_BUDGET`: what to change. A run does not
-    refuse on it (the frames may still fit; late ones show in the run's timing), it says it."""
+    refuse on it (the frames may still fit; late ones show in the run's timing), it says it;
+    over 100 % ``dobhil run`` and ``dobhil check`` refused the config before a bus opened
+    (:func:`dobhil.drives.axes.drive_budget`)."""
     if bus_budget is None or not bus_budget.over:
         return []
     return [Finding(Severity.MISMATCH, bus_budget.advice())]

@@ -14,6 +14,7 @@ from pathlib import Path
 import pytest
 
 from dobhil.drives import load_profile
+from dobhil.drives.profile import DriveProfile
 from dobhil.drives.bus_load import MAX_BUDGET, BusBudget, CycleFrame, budget, frame_bits, rate_text
 from dobhil.drives.registry import preflight_probe
 
@@ -134,11 +135,60 @@ def test_analyze_and_an_emulated_run_say_the_budget(capsys: pytest.CaptureFixtur
     assert main(["analyze", demo, "--json", "--set", "drive.bitrate=250000"]) == 0
     info = json.loads(capsys.readouterr().out)["bus_budget"]
     assert info["over"] and info["load"] == pytest.approx(271.35 / 250) and info["bitrate"] == 250_000
-    assert main(["run", demo, "--emulate", "--lockstep", "--duration", "0.01", "--set", "drive.bitrate=250000"]) == 0
+    # 271.35 bits per 1 ms cycle at 300 kbit/s (300 bits per cycle): 90 %, over 70 %, within 100 %
+    assert main(["run", demo, "--emulate", "--lockstep", "--duration", "0.01", "--set", "drive.bitrate=300000"]) == 0
     err = capsys.readouterr().err
-    assert err.splitlines() == ["dobhil run: note (not refused: the run goes on): bus budget 109 % of 250 kbit/s "
+    assert err.splitlines() == ["dobhil run: note (not refused: the run goes on): bus budget 90 % of 300 kbit/s "
                                 "at 1 kHz is over 70 %: use a higher bit rate (500 kbit/s on the drive and the "
-                                "interface: 54 %), or a slower loop (loop.period >= 3.5 ms), or fewer axes on this bus"]
+                                "interface: 54 %), or a slower loop (loop.period >= 1.84 ms), or fewer axes on "
+                                "this bus"]
+
+
+# 270 bits per cycle (MIT command 135 + reply 135) at 100 kHz on 1 Mbit/s (10 bits per cycle): 2700 %
+MIT_OVER = ["--set", "loop.period=1e-5"]
+MIT_REFUSAL = ("error: bus socketcan:can0: drive profile 'ak80-9' (node 1) needs 270 bits per cycle, 2700 % of "
+               "1 Mbit/s at 100 kHz: more than the bus carries in one period; use a slower loop "
+               "(loop.period >= 0.39 ms), or fewer motors on this bus, or drives on CAN FD (protocol moteus)")
+
+
+@pytest.mark.parametrize("argv", [["run", "--emulate"], ["run", "--emulate", "--lockstep"], ["check"]])
+def test_a_single_axis_run_over_100_percent_is_refused_as_several_axes_are(
+        argv: list[str], capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch) -> None:
+    """Over 100 % the frames of one period do not fit in it (the run would end in a bus
+    error): one line, exit 2, in the words of the several-axis refusal, before any bus
+    opens -- ``dobhil check`` (its bus the profile's socketcan:can0, absent here) as ``run``."""
+    from dobhil.cli.main import main
+    from dobhil.runtime import buses, session
+
+    def no_bus(*_: object, **__: object) -> None:
+        raise AssertionError("a bus was opened")
+    monkeypatch.setattr(buses, "open_bus", no_bus)
+    monkeypatch.setattr(session, "open_bus", no_bus)
+    code = main([argv[0], str(REPO / "configs" / "mit-demo.yaml"), *argv[1:], "--duration", "1", *MIT_OVER]
+                if argv[0] == "run" else [*argv, str(REPO / "configs" / "mit-demo.yaml"), *MIT_OVER])
+    captured = capsys.readouterr()
+    assert code == 2 and captured.out == ""
+    assert captured.err.splitlines() == [f"dobhil {argv[0]}: {MIT_REFUSAL}"]
+
+
+def test_the_single_axis_refusal_is_the_several_axis_rule(tmp_path: Path) -> None:
+    """One drive's budget is the several-axis budget of a bus with that one axis: the same
+    bits, the same 100 % rule; only who needs them and the protocol's "fewer" differ."""
+    from dobhil.config import load_config
+    from dobhil.config.axes import SINGLE_AXIS, Axis
+    from dobhil.drives.axes import AxisDrive, axes_budget, drive_budget
+    from dobhil.errors import ConfigError
+    config = load_config(REPO / "configs" / "mit-demo.yaml", ["loop.period=4e-4"])   # 270 / 400: 67.5 %
+    one = drive_budget(Axis(SINGLE_AXIS, config), REPO / "configs")
+    (several,) = axes_budget([AxisDrive("a", one_profile("ak80-9"), "socketcan:can0", 1_000_000)], 4e-4)
+    assert one.load == several.load == pytest.approx(270 / 400) and not one.refused
+    over = load_config(REPO / "configs" / "mit-demo.yaml", ["loop.period=2.6e-4"])   # 270 / 260: 104 %
+    with pytest.raises(ConfigError, match="104 % of 1 Mbit/s at 3.846 kHz: more than the bus carries"):
+        drive_budget(Axis(SINGLE_AXIS, over), REPO / "configs")
+
+
+def one_profile(name: str) -> DriveProfile:
+    return dataclasses.replace(load_profile(name), node_id=1)
 
 
 def test_cia402_budget_counts_the_hosts_heartbeat() -> None:
