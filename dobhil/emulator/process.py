@@ -487,7 +487,11 @@ class EmulatorProcess:
 
     def starved(self, window: float) -> str:
         """Why the feedback stopped if the host, not the drive, is to blame: the emulated
-        drive was itself not scheduled for at least half of the silent ``window``; "" if not."""
+        drive was itself not scheduled for at least half of the silent ``window``; "" if not,
+        and "" when its process is gone (killed: a silent drive, whose last tick only looks
+        like a stall that never ends)."""
+        if not self.running:
+            return ""
         stall = self.stalled(window)
         if not stall >= STARVED_SHARE * window:   # NaN: nothing published
             return ""

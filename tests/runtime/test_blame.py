@@ -238,6 +238,25 @@ def test_mit_command_timeout_after_a_late_host_is_the_host(tmp_path: Path) -> No
     assert_host_blamed(result, stall, "the drive's command timeout allows 100 ms")
 
 
+def test_a_killed_emulated_drive_is_silent_not_starved() -> None:
+    """The emulated drive's process killed (SIGKILL): its last published tick then looks
+    like a stall that never ends, and a run whose feedback timed out would blame the host
+    (host_too_slow, with its --lockstep hint) for a drive that is gone. A dead drive is not
+    starved: ``starved`` says nothing once the process has ended."""
+    from dobhil.drives.load import load_drive_profile
+    from dobhil.emulator.process import STARVED_SHARE, EmulatorProcess, EmulatorSpec
+    config = demo_config()
+    with EmulatorProcess(EmulatorSpec.of(config, load_drive_profile(config, DEMO.parent))) as emulator:
+        assert emulator.pid is not None
+        assert emulator.bus.recv(30.0) is not None   # it ticks: its heartbeat came
+        os.kill(emulator.pid, signal.SIGKILL)
+        assert wait_until(lambda: not emulator.running)
+        window = 0.05
+        # the stall the dead drive shows: what would blame the host if it still ran
+        assert wait_until(lambda: emulator.stalled(window) >= STARVED_SHARE * window)
+        assert emulator.starved(window) == ""
+
+
 def test_a_motor_that_reports_no_timeout_watches_nothing(tmp_path: Path) -> None:
     """A Mini-Cheetah's command timeout only zeroes its command, silently: nothing for the
     host to classify; the shipped Damiao rows have no timeout at all."""
