@@ -44,8 +44,9 @@ from dobhil.runtime.axes_loop import AxesLoop, AxesResult, AxisParts
 from dobhil.runtime.buses import BusSpec, open_bus, resolve_bus
 from dobhil.runtime.loop import CycleSink, LoopSettings, StopRequest, Timing
 from dobhil.runtime.references import make_reference
-from dobhil.runtime.session import (build_controller, check_duration, check_feedback_streams, check_rates, final_values,
-                                    lockstep_latency, loop_settings, resolve_timing, stop_and_shut)
+from dobhil.runtime.session import (build_controller, check_cycles, check_duration, check_feedback_streams,
+                                    check_rates, final_values, lockstep_latency, loop_settings, resolve_timing,
+                                    stop_and_shut)
 from dobhil.runtime.shared_bus import SharedBus
 
 __all__ = ["AxesSession", "BusGroup", "BusWrapper", "axes_summary"]
@@ -99,6 +100,8 @@ class AxesSession:
             check_rates(self.profiles[a.name], a.config.loop.period, f"axis {a.name}: ")
         self.timing = self._timing(lockstep)
         self.settings = {a.name: loop_settings(a.config, self.timing, duration) for a in axes.axes}
+        for name, settings in self.settings.items():
+            check_cycles(settings, f"axis {name}: ")
         self.controllers = {a.name: build_controller(a.config, self.profiles[a.name]) for a in axes.axes}
         self.references = {a.name: make_reference(a.config.reference, config_dir,
                                                   duration=self.settings[a.name].duration)

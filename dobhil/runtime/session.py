@@ -130,6 +130,18 @@ def check_duration(duration: float | None, what: str = "--duration") -> None:
                           "(loop.duration's range)")
 
 
+def check_cycles(settings: LoopSettings, prefix: str = "") -> None:
+    """A run lasts at least one period (a shorter one would enable the drive and disable it
+    without a command: a run of nothing) and fewer cycles than a float counts exactly."""
+    duration, period = settings.duration, settings.period
+    if duration < period:
+        raise ConfigError(f"{prefix}a run of {duration!r} s is shorter than one period (loop.period = "
+                          f"{period!r} s); allowed: a duration of at least loop.period")
+    if not duration / period < 2.0 ** 53:
+        raise ConfigError(f"{prefix}a run of {duration!r} s at loop.period = {period!r} s has too many "
+                          "cycles to count; allowed: fewer than 2**53")
+
+
 def resolve_timing(config: Config, profile: DriveProfile, lockstep: bool | None) -> Timing:
     """``loop.timing`` (``realtime``: the old name of ``host``, with a FutureWarning: the
     warning for a config's user, shown by default, which a DeprecationWarning is not), or
@@ -212,10 +224,7 @@ class RunSession:
         check_rates(self.profile, config.loop.period)
         self.timing = resolve_timing(config, self.profile, lockstep)
         self.settings = loop_settings(config, self.timing, duration)
-        if not self.settings.duration / self.settings.period < 2.0 ** 53:
-            raise ConfigError(f"a run of {self.settings.duration!r} s at loop.period = "
-                              f"{self.settings.period!r} s has too many cycles to count; "
-                              f"allowed: fewer than 2**53")
+        check_cycles(self.settings)
         self.controller = build_controller(config, self.profile)
         self.reference = make_reference(config.reference, config_dir,
                                         duration=self.settings.duration)

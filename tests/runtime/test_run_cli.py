@@ -197,6 +197,21 @@ def test_a_duration_past_loop_durations_ceiling_is_one_line(argv: list[str],
         load_config(DEMO, [f"loop.duration={max_duration() * 10}"])
 
 
+@pytest.mark.parametrize("argv", [
+    ["run", str(DEMO), "--emulate", "--lockstep", "--duration", "1e-300"],
+    ["run", str(DEMO), "--emulate", "--duration", "0.0005"],
+    ["run", str(DEMO), "--emulate", "--lockstep", "--set", "loop.duration=0.0005"],
+    ["run", "two-axis-demo", "--emulate", "--lockstep", "--duration", "1e-300"],
+    ["montecarlo", str(DEMO), "--runs", "2", "--vary", "plant.inertia=uniform:0.2:0.3", "--duration", "1e-300"],
+])
+def test_a_run_shorter_than_one_period_is_one_line(argv: list[str], capsys: pytest.CaptureFixture[str]) -> None:
+    """A run shorter than loop.period would enable the drive and disable it without a
+    command: refused in one line before anything opens."""
+    assert main(argv) == EXIT_USAGE
+    err = one_line(capsys.readouterr().err)
+    assert "is shorter than one period (loop.period = 0.001 s); allowed: a duration of at least loop.period" in err, err
+
+
 @pytest.mark.skipif(not hasattr(os, "getpriority"), reason="POSIX nice values")
 def test_run_log_writer_runs_below_the_loop(tmp_path: Path) -> None:
     """``dobhil run --log``: the writer process gets nice +10 (it may lag; the loop not)."""
