@@ -532,9 +532,12 @@ class AxesLoop:
                 axis.loop.drive.disable()   # never raises (its own contract); guarded anyway
             except BaseException as exc:
                 pending = pending or exc
+        # one cancel for every axis' confirmation wait: a stop requested once the safe stop
+        # began (a second Ctrl-C) ends the wait of the axis it finds and of each after it
+        cancel = self.stop_request.newer()
         for axis in self._axes:
             try:
-                axis.report = axis.loop._safe_stop(stop)
+                axis.report = axis.loop._safe_stop(stop, cancel)
             except BaseException as exc:   # every axis gets its turn
                 pending = pending or exc
                 axis.report = SafeStopReport(axis.loop.drive.node_id, (), Confirmation.NOT_SENT,

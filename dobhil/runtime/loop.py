@@ -920,8 +920,10 @@ class ForceLoop:
             except RecorderError as exc:
                 raise _Halt(StopReason.RECORDER_FAILED, str(exc)) from exc
 
-    def _safe_stop(self, stop: Stop) -> SafeStopReport:
-        """Zero torque, disable, confirm; never raises. The sink hears of each step."""
+    def _safe_stop(self, stop: Stop, cancel: Cancel | None = None) -> SafeStopReport:
+        """Zero torque, disable, confirm; never raises. The sink hears of each step.
+        ``cancel`` ends the confirmation wait (default: a stop requested from now on; the
+        several-axis loop gives every axis the one it made before the first axis' stop)."""
         try:
             if self.sink is not None:
                 self.sink.stop(stop)
@@ -931,7 +933,8 @@ class ForceLoop:
         # the one that stopped the run does not
         # a drive that cannot confirm its disable by design says what it did confirm in a
         # note when the run lasted its duration; any other end keeps the loud line
-        report = self.drive.safe_stop(cancel=self.stop_request.newer(), planned=stop.reason is StopReason.DONE)
+        cancel = self.stop_request.newer() if cancel is None else cancel
+        report = self.drive.safe_stop(cancel=cancel, planned=stop.reason is StopReason.DONE)
         hook = getattr(self.sink, "safe_stop", None)
         if hook is not None:
             try:

@@ -22,6 +22,7 @@ from pathlib import Path
 
 import can
 import pytest
+import yaml
 
 from dobhil.drives.base import Confirmation, Feedback, SafeStopReport
 from dobhil.drives.odrive import codec
@@ -297,3 +298,42 @@ def test_a_signal_during_the_several_axis_preflight(hub: int, signum: signal.Sig
     assert line == f"dobhil run: stopped: signal: received {signum.name}", lines.text()
     assert proc.returncode == 1, lines.text()
     assert delay < ANSWER, (delay, lines.text())
+
+
+def test_a_second_sigint_cuts_every_axis_confirmation_wait(tmp_path: Path) -> None:
+    """Two axes whose IDLE frames are lost, so neither drive confirms and each safe stop
+    would wait three heartbeats (3 s). A SIGINT during the first axis' wait ends it and
+    the second axis' too, within 0.2 s of the signal: the user asked to stop waiting."""
+    from dobhil.config.axes import load_axes
+    from dobhil.runtime.axes_session import AxesSession
+
+    from .axes_helpers import two_axis_config
+    # the shipped profile, its bus section kept (the axes' emulated bus is named after it)
+    shipped = yaml.safe_load((REPO / "drivers" / "odrive-0.6.yaml").read_text(encoding="utf-8"))
+    profile = tmp_path / "odrive-slow-heartbeat.yaml"
+    profile.write_text(yaml.safe_dump({**shipped, "heartbeat_period": 1.0, "watchdog_timeout": 2.0,
+                                       "enable_timeout": 5.0}), encoding="utf-8")
+    path = two_axis_config(tmp_path, ("odrive", "odrive"), duration=0.2)
+    data = yaml.safe_load(path.read_text(encoding="utf-8"))
+    for section in (data["drive"], *(a["drive"] for a in data["axes"])):
+        section["profile"] = str(profile)
+    path.write_text(yaml.safe_dump(data), encoding="utf-8")
+    axes = load_axes(path, ["loop.timing=feedback", *REALTIME_SLACK], [])
+    states = {codec.arbitration_id(node, CmdId.SET_AXIS_STATE) for node in (1, 2)}
+    sink = SignalDuringSafeStop(after=0.2)
+    lost = LoseSent(frames=2, ids=states)   # both enable requests pass, both IDLEs are lost
+    with stop_on_signals(StopRequest()) as request:
+        try:
+            with AxesSession(axes, emulate=True, lockstep=False, config_dir=path.parent, stop_request=request,
+                             sinks={"left": sink}, bus_wrapper=lambda bus, name: faulty(lost)(bus)) as session:
+                result = session.run()
+                ended = time.monotonic()
+        finally:
+            if sink.timer is not None:
+                sink.timer.join()   # the signal lands while the handler is installed
+    assert result.stop.reason is StopReason.DONE, result.stop.line()
+    for name, part in result.axes.items():
+        report = part.safe_stop
+        assert report is not None and report.confirmation is Confirmation.NOT_ACKNOWLEDGED, (name, report)
+        assert "confirmation wait cut short: received SIGINT" in report.detail, (name, report.detail)
+    assert sink.sent > 0 and ended - sink.sent < ANSWER, ended - sink.sent
