@@ -166,9 +166,13 @@ def refuse_budget(args: argparse.Namespace, config: Any, bus: str | None) -> Non
     from dobhil.config import resolve_config
     from dobhil.config.axes import SINGLE_AXIS, Axis
     from dobhil.drives.axes import drive_budget
+    from dobhil.drives.load import load_drive_profile
+    config_dir = resolve_config(args.config).parent
+    # the profile read as the run reads it first: a bad one is the run's own line, not an axis'
+    load_drive_profile(config, config_dir)
     if bus:   # --bus comes before drive.interface in a single-axis run (resolve_bus)
         config = dataclasses.replace(config, drive=dataclasses.replace(config.drive, interface="", channel=""))
-    drive_budget(Axis(args.axis or SINGLE_AXIS, config), resolve_config(args.config).parent, bus)
+    drive_budget(Axis(args.axis or SINGLE_AXIS, config), config_dir, bus)
 
 
 def run_budget(profile: Any, period: float, bitrate: int | None) -> Any:
