@@ -64,7 +64,7 @@ def measure_axes(axes: Any, drives: Sequence[Any], window: float,
     closed before the next (nothing enabled; ``dobhil run`` of a real bus calls it too);
     ``cancel`` (a stop request's ``reason``) cuts each measurement short."""
     from dobhil.drives.preflight import run_preflight
-    from dobhil.drives.registry import preflight_probe
+    from dobhil.drives.registry import preflight_probe, protocol
     from dobhil.runtime.buses import open_bus, resolve_bus, shutdown_bus
     out: list[tuple[str, str, Any]] = []
     for bus_name in dict.fromkeys(d.bus for d in drives):
@@ -74,6 +74,7 @@ def measure_axes(axes: Any, drives: Sequence[Any], window: float,
         bus = open_bus(spec)
         try:
             for config, drive in on_bus:
+                protocol(drive.profile.protocol).check_bus(bus, drive.profile)
                 report = run_preflight(bus, drive.profile, period=config.loop.period,
                                        feedback_timeout=config.loop.feedback_timeout, window=window,
                                        bitrate=drive.bitrate, probe=preflight_probe(drive.profile),

@@ -76,7 +76,7 @@ def preflight_kwargs(args: argparse.Namespace) -> dict[str, Any]:
 
 def check(args: argparse.Namespace) -> int:
     from dobhil.drives.preflight import run_preflight
-    from dobhil.drives.registry import preflight_probe
+    from dobhil.drives.registry import preflight_probe, protocol
     from dobhil.runtime.buses import open_bus, resolve_bus
     from dobhil.drives.load import load_drive_profile
     window = window_of(args.window, "--window")
@@ -97,6 +97,7 @@ def check(args: argparse.Namespace) -> int:
     spec = resolve_bus(config, profile, args.bus)
     bus = open_bus(spec)
     try:
+        protocol(profile.protocol).check_bus(bus, profile)
         report = run_preflight(bus, profile, period=config.loop.period,
                                feedback_timeout=config.loop.feedback_timeout, window=window,
                                bitrate=spec.kwargs.get("bitrate") or None, probe=preflight_probe(profile))

@@ -254,12 +254,25 @@ def emulate(args: argparse.Namespace) -> int:
     profile = load_drive_profile(config, resolve_config(args.config).parent)
     spec = BusSpec.parse(args.bus)
     bus = open_bus(spec)
+    _bus_carries(bus, [profile])
     emulator = make_emulated_drive(bus, profile, Plant.from_config(config),
                                    latency=config.drive.latency, jitter=config.drive.jitter,
                                    seed=config.sensor.seed)
     hello = (f"emulating {profile.protocol} node {profile.node_id} (firmware {profile.firmware}) "
              f"on {spec.describe()}")
     return _serve(emulator, bus, spec.describe(), hello, args.duration, lambda: emulator_counts(emulator))
+
+
+def _bus_carries(bus: Any, profiles: list[Any]) -> None:
+    """The emulated drives' frames can travel on ``bus`` (a CAN FD protocol on a classic bus
+    would answer nothing, and say nothing of why), else one line, the bus shut down."""
+    from dobhil.drives.registry import protocol
+    try:
+        for profile in profiles:
+            protocol(profile.protocol).check_bus(bus, profile)
+    except BaseException:
+        bus.shutdown()
+        raise
 
 
 def _serve(emulator: Any, bus: Any, where: str, hello: str, duration: float | None,
@@ -307,6 +320,7 @@ def emulate_axes(args: argparse.Namespace) -> int:
     spec = BusSpec.parse(args.bus)
     plants = couple_plants({s.name: Plant.from_config(s.config) for s in specs}, couplings)
     bus = open_bus(spec)
+    _bus_carries(bus, [s.profile for s in specs])
     nodes = EmulatedNodes(bus)
     nodes.attach([make_emulated_drive(nodes.tap(), s.profile, plants[s.name], latency=s.latency,
                                       jitter=s.jitter, seed=s.seed) for s in specs])

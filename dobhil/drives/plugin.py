@@ -33,9 +33,25 @@ if TYPE_CHECKING:
     from dobhil.drives.emulated import EmulatedDrive
     from dobhil.drives.preflight import PreflightProbe
 
-__all__ = ["CodecQuantisation", "DriveProtocol", "FeedbackField", "FrameIds", "ZeroResult"]
+__all__ = ["CodecQuantisation", "DriveProtocol", "FeedbackField", "FrameIds", "ZeroResult", "classic_bus",
+           "require_fd_bus"]
 
 _EMPTY: Mapping[str, Any] = MappingProxyType({})
+
+
+def classic_bus(bus: can.BusABC) -> bool:
+    """True when the bus says it runs classic CAN (python-can's ``BusABC.protocol``)."""
+    return getattr(bus, "protocol", None) is can.CanProtocol.CAN_20
+
+
+def require_fd_bus(bus: can.BusABC, profile: DriveProfile) -> None:
+    """The one-line refusal of a bus opened as classic CAN for a protocol whose frames are
+    CAN FD: its frames could not be sent, and a drive never answering would say nothing
+    of why (``dobhil run``, ``check``, ``emulate`` alike)."""
+    if classic_bus(bus):
+        raise ConfigError(f"drive profile {profile.name or profile.protocol!r}: protocol {profile.protocol} needs a "
+                          f"CAN FD bus, but {bus.channel_info} was opened as classic CAN (open it with fd=True; "
+                          "SocketCAN: ip link set ... fd on)")
 
 
 @dataclass(frozen=True)
@@ -105,6 +121,12 @@ class DriveProtocol(ABC):
     #: True when the drive makes its present position its zero on command
     #: (:meth:`set_zero`; ``dobhil check --set-zero`` refuses other protocols before a bus opens)
     sets_zero: ClassVar[bool] = False
+
+    def check_bus(self, bus: can.BusABC, profile: DriveProfile) -> None:
+        """Refuse, in one line, a bus this protocol's frames cannot travel on, before
+        anything is sent: a CAN FD protocol (:attr:`fd`) on a bus opened as classic CAN."""
+        if self.fd:
+            require_fd_bus(bus, profile)
 
     @property
     @abstractmethod

@@ -313,3 +313,18 @@ def test_a_profile_with_its_watchdog_off_has_no_such_limit(tmp_path: Path,
     code = main(["run", str(DEMO), "--emulate", "--lockstep", "--duration", "0.5", "--set", "loop.period=0.06",
                  "--set", f"drive.profile={profile}", *SLOW])
     assert code == 0, capsys.readouterr().err
+
+
+@pytest.mark.parametrize("argv", [
+    ["run", "moteus-demo", "--bus", "virtual:classic-run"],
+    ["check", "moteus-demo", "--bus", "virtual:classic-check"],
+    ["emulate", "moteus-demo", "--bus", "virtual:classic-emulate", "--duration", "5"],
+], ids=["run", "check", "emulate"])
+def test_a_can_fd_protocol_on_a_classic_bus_is_one_line_everywhere(argv: list[str],
+                                                                   capsys: pytest.CaptureFixture[str]) -> None:
+    """A CAN FD protocol's frames cannot travel on a bus opened as classic CAN: run, check
+    and emulate refuse it alike, in one line saying why (not 'no replies: check power',
+    nor an emulator that answers nothing for its whole duration)."""
+    assert main(argv) == EXIT_USAGE
+    err = one_line(capsys.readouterr().err)
+    assert "protocol moteus needs a CAN FD bus, but Virtual bus channel classic-" in err, err

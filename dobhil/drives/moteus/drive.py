@@ -44,10 +44,11 @@ from dobhil.drives.base import Clock, Drive, DriveEvent, HostTimeout, MotionEven
 from dobhil.drives.moteus.codec import SCALINGS, Mode, Parser, Quantity, Register, Resolution, arbitration_id
 from dobhil.drives.moteus.frames import CommandFrame, Query, reply_values, stop_payload
 from dobhil.drives.moteus.rules import MOTEUS_RULES, resolution
-from dobhil.drives.moteus.states import bus_is_classic, fault_text, mode_text
+from dobhil.drives.moteus.states import fault_text, mode_text
+from dobhil.drives.plugin import require_fd_bus
 from dobhil.drives.profile import DriveProfile, ProtocolRules
 from dobhil.drives.waits import Cancel
-from dobhil.errors import CodecError, ConfigError, DriveFaultError
+from dobhil.errors import CodecError, DriveFaultError
 
 if TYPE_CHECKING:
     from dobhil.drives.preflight import PreflightProbe
@@ -71,10 +72,7 @@ class MoteusDrive(Drive):
     def __init__(self, bus: can.BusABC, profile: DriveProfile, *, clock: Clock = time.monotonic,
                  reset_faults: bool = False) -> None:
         super().__init__(bus, profile, clock=clock, reset_faults=reset_faults)
-        if bus_is_classic(bus):
-            raise ConfigError(f"drive profile {profile.name or profile.protocol!r}: protocol moteus needs a CAN FD "
-                              f"bus, but {bus.channel_info} was opened as classic CAN (open it with fd=True; "
-                              "SocketCAN: ip link set ... fd on)")
+        require_fd_bus(bus, profile)
         opts = profile.options
         self._source = int(opts.get("source_id", 0))
         self._prefix = int(opts.get("can_prefix", 0))

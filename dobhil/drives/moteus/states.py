@@ -1,13 +1,11 @@
 """A moteus controller's mode and fault codes in words (``docs/protocol/registers.md``
-0x000 and 0x00f), and whether a bus carries CAN FD."""
+0x000 and 0x00f)."""
 
 from __future__ import annotations
 
-import can
-
 from dobhil.drives.moteus.codec import Fault, Mode
 
-__all__ = ["bus_is_classic", "fault_text", "mode_text"]
+__all__ = ["fault_text", "mode_text"]
 
 
 def mode_text(code: int) -> str:
@@ -27,8 +25,3 @@ def fault_text(code: int) -> str:
     except ValueError:
         return f"{code}"
 
-
-def bus_is_classic(bus: can.BusABC) -> bool:
-    """True when the bus says it runs classic CAN (python-can's ``BusABC.protocol``)."""
-    proto = getattr(bus, "protocol", None)
-    return proto is can.CanProtocol.CAN_20
