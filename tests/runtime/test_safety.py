@@ -229,10 +229,12 @@ def test_non_finite_reference(tmp_path: Path, timing: str, value: float) -> None
 WATCH_BOUND = 30.0
 
 
-def stall(session: RunSession, timing: str, seconds: float, took: list[float]) -> Callable[[], None]:
+def stall(session: RunSession, timing: str, seconds: float, took: list[float] | None = None) -> Callable[[], None]:
     """The host loop stops commanding: for ``seconds`` of simulated time (the lockstep bus
     steps the emulator without commands), or in real time until the emulated drive's
-    watchdog tripped (the loop thread blocks); ``took`` gets how long it stalled."""
+    watchdog tripped (the loop thread blocks); ``took`` (if given) gets how long it stalled."""
+    took = [] if took is None else took
+
     def lockstep_stall() -> None:
         bus = session.host_bus
         assert isinstance(bus, LockstepBus)
