@@ -244,16 +244,17 @@ def test_a_killed_emulated_drive_is_silent_not_starved() -> None:
     (host_too_slow, with its --lockstep hint) for a drive that is gone. A dead drive is not
     starved: ``starved`` says nothing once the process has ended."""
     from dobhil.drives.load import load_drive_profile
-    from dobhil.emulator.process import STARVED_SHARE, EmulatorProcess, EmulatorSpec
+    from dobhil.emulator.process import STARVED_SHARE, EmulatorProcess, EmulatorSpec, Slot
     config = demo_config()
     with EmulatorProcess(EmulatorSpec.of(config, load_drive_profile(config, DEMO.parent))) as emulator:
         assert emulator.pid is not None
-        assert emulator.bus.recv(30.0) is not None   # it ticks: its heartbeat came
+        # a tick published and read (what a running loop always has): then the kill
+        assert wait_until(lambda: math.isfinite(emulator.snapshot()[Slot.DEADLINE]), 30.0)
         os.kill(emulator.pid, signal.SIGKILL)
         assert wait_until(lambda: not emulator.running)
         window = 0.05
         # the stall the dead drive shows: what would blame the host if it still ran
-        assert wait_until(lambda: emulator.stalled(window) >= STARVED_SHARE * window)
+        assert wait_until(lambda: emulator.stalled(window) >= STARVED_SHARE * window, 30.0)
         assert emulator.starved(window) == ""
 
 
