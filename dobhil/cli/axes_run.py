@@ -248,6 +248,8 @@ def _print_summary(info: dict[str, Any], stop_line: str, prog: str) -> None:
         true = "-" if f["tau_int_true"] is None else f"{f['tau_int_true']:.4f}"
         print(f"{head}: final tau_ref {f['tau_ref']:.4f} N m, tau_int^ {f['tau_int_hat']:.4f} N m, "
               f"true tau_int {true} N m, q {f['q']:.6f} rad")
+        if axis.get("frames_lost"):   # its bus queue overflowed: frames for it never read
+            print(f"axis {name}: {axis['frames_lost']} frames lost (its queue on the shared bus was full)")
     if info.get("log"):
         print(f"log: {info['log']}")
     t = info["loop_timing"]

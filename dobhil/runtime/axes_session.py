@@ -317,6 +317,15 @@ class AxesSession:
         self.close()
 
 
+def _frames_lost(session: AxesSession, name: str) -> int:
+    """Frames the axis' view of its bus dropped, its queue full (:class:`SharedBus`: bounded,
+    the loss counted): its drive read too little of what came for it."""
+    for group in session.groups:
+        if group.shared is not None and name in group.axes:
+            return sum(view.lost for view in group.shared.views if view.name == name)
+    return 0
+
+
 def axes_summary(session: AxesSession, result: AxesResult) -> dict[str, Any]:
     """The ``--summary-json`` object of a run of several axes: the run's stop and shared
     timing, and per axis what a single-axis summary says of its drive and its final values."""
@@ -338,6 +347,7 @@ def axes_summary(session: AxesSession, result: AxesResult) -> dict[str, Any]:
                 "planned": report.planned},
             "final": final,
             "loop_timing": {k: v for k, v in dataclasses.asdict(part.timing).items() if v is not None},
+            "frames_lost": _frames_lost(session, name),
         }
     return {
         "axes": per_axis, "cycles": result.cycles, "skipped": result.skipped, "overruns": result.overruns,
@@ -346,5 +356,7 @@ def axes_summary(session: AxesSession, result: AxesResult) -> dict[str, Any]:
         "not_disabled": list(result.not_disabled), "drive_warning": result.warning(),
         "timing": session.timing.label, "period": session.period,
         "buses": {g.name: list(g.axes) for g in session.groups}, "emulated": session.emulate,
+        # frames a receive pass read that no axis' drive takes (another node's, foreign traffic)
+        "frames_unclaimed": {g.name: g.shared.unclaimed if g.shared is not None else 0 for g in session.groups},
         "loop_timing": {k: v for k, v in dataclasses.asdict(result.timing).items() if v is not None},
     }

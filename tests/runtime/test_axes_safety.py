@@ -230,3 +230,22 @@ def test_a_bus_whose_reads_fail_mid_run_is_a_bus_error(tmp_path: Path, proto: st
     assert fails.applied > 0 and 0 < result.stop.cycle < 300
     warned = result.warning()
     assert all(f"axis {n}" in warned for n in ("left", "right")), warned
+
+
+def test_foreign_frames_are_counted_unclaimed_in_the_summary(tmp_path: Path) -> None:
+    """Foreign traffic on the axes' bus (other nodes' frames): no drive takes it, the run
+    goes on, and the summary counts every such frame the loop read (``frames_unclaimed``);
+    no axis lost a frame of its own (``frames_lost``)."""
+    from dobhil.emulator.faults import Flood
+    from dobhil.runtime.axes_session import axes_summary
+    axes = load_two(tmp_path, ("odrive", "odrive"))
+    own = {node << 5 | cmd for node in (1, 2) for cmd in range(32)}   # ODrive: node id << 5 | command
+    flood = Flood(2, avoid=own, seed=3)
+    with AxesSession(axes, emulate=True, lockstep=True, config_dir=CONFIGS,
+                     bus_wrapper=lambda bus, name: faulty(flood)(bus)) as session:
+        result = session.run()
+        info = axes_summary(session, result)
+    assert result.stop.reason is StopReason.DONE, result.stop.line()
+    (unclaimed,) = info["frames_unclaimed"].values()
+    assert unclaimed == flood.applied > 0
+    assert [a["frames_lost"] for a in info["axes"].values()] == [0, 0]
