@@ -40,7 +40,7 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from dobhil.cli.recording import abort, default_log_path, live_address, open_run_log, record_run
+    from dobhil.cli.recording import abort, default_log_path, live_address, log_summary, open_run_log, record_run
     from dobhil.cli.run_cmd import EXIT_STOPPED, log_hooks, report
     from dobhil.cli.stability_gate import gate_metadata, stability_gate
     from dobhil.config import load_config
@@ -80,7 +80,7 @@ def run(args: argparse.Namespace) -> int:
         abort(log, exc)
         raise
     if log is not None:
-        info["log"] = str(log.path)
+        info.update(log_summary(log, result.stop))
     report(info, result.stop.line(), as_json=False)
     print(f"wrote {run_figure(result.trace, png, demo_title(session.profile, config.loop.period))}")
     if log is not None:

@@ -157,7 +157,8 @@ def begin(log: RunLog, session: RunSession, config_file: str | os.PathLike[str] 
               clock_ns=None if sim is None else (lambda: origin + round(sim() * 1e9)),
               truth=None if plant is None else (lambda: (plant.true_position, plant.true_velocity,
                                                          plant.motor_torque, plant.interaction_torque)),
-              drive=drive, own_ids=drive.frame_ids, codes=ProtocolCodes(session.profile))
+              drive=drive, own_ids=drive.frame_ids, codes=ProtocolCodes(session.profile),
+              cancel=session.stop_request.reason)
     if log.live_port is not None and log.live is not None:
         sys.stderr.write(f"live view: ws://{log.live.host}:{log.live_port}\n")
         sys.stderr.flush()
@@ -188,6 +189,12 @@ def record_run(session: RunSession, log: RunLog | None, config_file: str | os.Pa
 
 
 def _end(log: RunLog, session: RunSession, result: RunResult) -> RunResult:
+    """The run's end events, then the log finished -- for a bounded time (a writer that is
+    stopped or stuck on a dead disk is killed, and a SIGINT while it is waited for cuts the
+    wait short: ``WriterProcess.close``). A run that lasted its duration but whose log failed
+    ends ``recorder_failed``; any other keeps its own stop (why it stopped), and
+    :func:`log_summary` says the log failed."""
+    cancel = session.stop_request.newer()   # not the request that stopped the run: a new one
     stop = result.stop
     status = session.drive.status
     if stop.reason is StopReason.DRIVE_FAULT:
@@ -196,11 +203,21 @@ def _end(log: RunLog, session: RunSession, result: RunResult) -> RunResult:
         log.event(EventKind.WATCHDOG, "drive watchdog expired")
     log.event(EventKind.DISABLE, "drive disabled" if result.disabled else "disable frames not sent", status.detail)
     try:
-        log.end(stop.reason.name.lower(), stop.line())
+        log.end(stop.reason.name.lower(), stop.line(), cancel=cancel)
     except RecorderError as exc:
-        if stop.reason is not StopReason.RECORDER_FAILED:
+        if stop.reason is StopReason.DONE:
             return dataclasses.replace(result, stop=Stop(StopReason.RECORDER_FAILED, str(exc), stop.cycle, stop.time))
     return result
+
+
+def log_summary(log: RunLog, stop: Stop) -> dict[str, str]:
+    """The summary's keys of a run's log: ``log``, its path, and ``log_error`` when the log's
+    end failed after the run stopped for another reason (its stop line names that reason,
+    so the log's failure is a line of its own)."""
+    out = {"log": str(log.path)}
+    if log.end_failure and stop.reason is not StopReason.RECORDER_FAILED:
+        out["log_error"] = log.end_failure
+    return out
 
 
 def _discard_unopened(log: RunLog) -> None:
@@ -360,5 +377,5 @@ def abort_axes(log: AxesLog | None, exc: BaseException) -> None:
 
 
 __all__ = ["AxisRun", "abort", "abort_axes", "axes_attachments", "axes_metadata", "begin", "begin_axes",
-           "default_log_path", "end_axes", "live_address", "open_axes_log", "open_run_log", "record_run",
+           "default_log_path", "end_axes", "live_address", "log_summary", "open_axes_log", "open_run_log", "record_run",
            "run_metadata", "versions"]

@@ -72,7 +72,7 @@ def run_checked(args: argparse.Namespace) -> int:
     """``dobhil run`` after the preflight (raises PreflightError when it refuses)."""
     from dobhil.cli.check_cmd import preflight_kwargs, refuse_budget
     from dobhil.config import resolve_config
-    from dobhil.cli.recording import abort, live_address, open_run_log, record_run
+    from dobhil.cli.recording import abort, live_address, log_summary, open_run_log, record_run
     from dobhil.cli.stability_gate import gate_metadata, stability_gate
     from dobhil.files import check_output
     from dobhil.runtime.loop import StopRequest
@@ -111,7 +111,7 @@ def run_checked(args: argparse.Namespace) -> int:
         tell_unfinished(session)
         raise
     if log is not None:
-        info["log"] = str(log.path)
+        info.update(log_summary(log, result.stop))
     report(info, result.stop.line(), as_json=args.summary_json)
     for problem in session.shutdown_problems:  # after the run's account, never instead of it
         if result.stop.reason.name != "BUS_ERROR":   # there the bus is already known gone
@@ -132,6 +132,14 @@ def tell_unfinished(session: Any) -> None:
     flush_stdout()
     sys.stderr.write(f"dobhil run: {stop.line()}\n")
     say_safe_stop(safe_stop.warning(), safe_stop.note())
+
+
+def last_words(info: dict[str, Any], warning: str, note: str) -> None:
+    """A run's account ends so: its log's failure if the log could not be finished after the
+    run stopped for another reason (``log_error``: one line), then :func:`say_safe_stop`."""
+    if info.get("log_error"):
+        sys.stderr.write(f"dobhil run: {info['log_error']}\n")
+    say_safe_stop(warning, note)
 
 
 def warn_budget(session: Any) -> None:
@@ -188,7 +196,7 @@ def report(info: dict[str, Any], stop_line: str, *, as_json: bool) -> None:
     """The run's account: the summary (or its JSON) and the stop line, the loud line last
     (:func:`stop_said`)."""
     warning, stopped = info.get("drive_warning") or "", info.get("drive_note") or ""
-    with stop_said("dobhil run", stop_line, lambda: say_safe_stop(warning, stopped)):
+    with stop_said("dobhil run", stop_line, lambda: last_words(info, warning, stopped)):
         _account(info, stop_line, as_json=as_json)
 
 

@@ -1,7 +1,9 @@
 """The writer process of a recorded run and the pipe to it (``docs/recording.md``: diagram,
 guarantees). Batches arrive pickled, one ``os.write`` each: ``LOSSY`` never blocks (no room:
-refused; taken in part: finished first), ``BACKPRESSURE`` waits. The process ignores
-the stop signals (SIGINT, SIGTERM, SIGHUP, SIGQUIT), writes through :class:`LogWriter`, hands each chunk to the OS every
+refused; taken in part: finished first), ``BACKPRESSURE`` waits -- in slices, so a stop
+request ends the wait, and never for a writer still for ``STALL_TIMEOUT`` s (killed: a
+recorder failure), as the log's end never does either. The process ignores the stop
+signals (SIGINT, SIGTERM, SIGHUP, SIGQUIT), writes through :class:`LogWriter`, hands each chunk to the OS every
 ``write_interval`` and fsyncs every ``flush_interval``, finishes the file on ``STOP`` or
 when the parent dies, and sends one status.
 """
@@ -11,12 +13,13 @@ from __future__ import annotations
 import io
 import os
 import pickle
+import select
 import signal
 import struct
 import subprocess
 import sys
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from enum import IntEnum
 from multiprocessing.connection import Connection
 from pathlib import Path
@@ -29,8 +32,24 @@ from dobhil.recording.encodings import DEFAULT_ENCODING, encoding as find_encodi
 from dobhil.recording.packed import unpacked_batch
 from dobhil.recording.writer import Lane, LiveView, LogWriter, RecordMode
 
-#: Seconds ``close`` waits for the writer process to finish the file.
+#: Seconds ``close`` waits for the writer process to finish the file, at most, however busy it is.
 JOIN_TIMEOUT: Final = 60.0
+#: Seconds the writer may show no sign of life -- nothing taken from its pipe, and (Linux,
+#: ``/proc/PID/schedstat``) neither run nor waited for a CPU -- while a hand-over or the log's
+#: end waits for it: then it is given up and killed (a stopped process, or one blocked on a
+#: disk that no longer answers: an NFS mount gone, a dying USB stick). A healthy writer is
+#: never that still: it reads the pipe every ``POLL`` between chunks; between two reads it
+#: encodes at most the pipe's 1 MiB (~3,600 cycles at ~51 us each: ~0.2 s of CPU, during which
+#: it runs), hands a chunk to the OS and fsyncs once a second (a second of records, ~0.2 MB:
+#: milliseconds on a local disk, up to about a second on a slow SD card or USB stick: the
+#: only time it is still). A writer starved by a busy machine is waiting for a CPU, which
+#: counts as life. Five seconds is several times that slowest fsync, and short enough that
+#: the end of a run (its stop line, the warning of a drive that may still be enabled) is not
+#: held longer than someone waits before reaching for ``kill -9``.
+STALL_TIMEOUT: Final = 5.0
+#: Seconds between looks at a waiting hand-over (its progress, its ``cancel``): a stop request
+#: (SIGINT) ends the wait within this (``dobhil.drives.waits.WAIT_SLICE``, the loop's waits').
+WAIT_SLICE: Final = 0.02
 #: ``stop_reason`` of a file finished because the parent went away without closing it.
 PARENT_EXITED: Final = "parent exited"
 #: Bytes of pipe asked for (Linux, F_SETPIPE_SZ): ~3.5 s of a 1 kHz run (~290 bytes a cycle with
@@ -138,6 +157,9 @@ class WriterProcess:
         self._interval, self._fsync = (flush_interval, write_interval), fsync
         self._tail = b""  # the part of a batch the pipe has not taken yet: goes first
         self._failure: str | None = None
+        #: asked while a hand-over waits for the writer (returns why to stop waiting, or ""):
+        #: the run's stop request, so a SIGINT is not held up by a writer that takes nothing
+        self.cancel: Callable[[], str] | None = None
         with open(self.path, "xb"):  # the caller checked the path: this only fails on a race
             pass
         self._proc, self._fd, self._status = _spawn(self.path)
@@ -155,7 +177,7 @@ class WriterProcess:
         meta = {str(n): {str(k): str(v) for k, v in r.items()} for n, r in metadata.items()}
         files = [(str(n), str(m), bytes(d)) for n, m, d in attachments]
         self._send(encode([Open(Control.OPEN, int(self.mode), *self._interval, self._fsync, meta, files, live,
-                                codes, tuple(Lane(*lane) for lane in lanes), self.encoding)]))
+                                codes, tuple(Lane(*lane) for lane in lanes), self.encoding)]), None)
         message: Reply | None = _read_status(self._status, JOIN_TIMEOUT)
         if message is None or message.status != Status.READY:
             self._closed = True
@@ -163,8 +185,7 @@ class WriterProcess:
             self._failure = message.reason if message is not None else "the writer process did not start"
             raise RecorderError(f"{self.path}: {self._failure}")
         self.live_port = message.port
-        self._send(self.encode(early))
-        os.set_blocking(self._fd, self.mode is not RecordMode.LOSSY)
+        self._send(self.encode(early), None)
         self.opened = True
 
     def write(self, data: bytes) -> bool:
@@ -173,7 +194,7 @@ class WriterProcess:
         if self._failure is not None:
             raise self._fail(self._failure)
         if self.mode is not RecordMode.LOSSY:
-            self._send(data)
+            self._send(data, self.cancel)   # a stop request ends the wait: the rest goes first next time
             return True
         try:
             if self._tail:
@@ -199,18 +220,22 @@ class WriterProcess:
         except (pickle.PicklingError, TypeError, ValueError, AttributeError) as exc:
             raise self.refuse(f"cannot encode a record: {exception_line(exc)}") from None
 
-    def close(self, stop_reason: str | None = None, detail: str = "", rest: Sequence[tuple[Any, ...]] = ()) -> None:
+    def close(self, stop_reason: str | None = None, detail: str = "", rest: Sequence[tuple[Any, ...]] = (),
+              cancel: Callable[[], str] | None = None) -> None:
         """The ``rest`` of the records, none dropped; stop event (if a reason is given),
         summary, footer; waits for the process (never opened: the empty file is removed).
-        Raises :class:`RecorderError` if the writer failed. Idempotent."""
+        The wait is bounded: a writer still for ``STALL_TIMEOUT`` s, or not done within
+        ``JOIN_TIMEOUT`` s, or ``cancel`` saying why (a second SIGINT), is killed and the file
+        left unfinished (:meth:`unfinished`). Raises :class:`RecorderError` if the writer
+        failed. Idempotent."""
         if not self._closed:
             try:
                 if self.opened and self._failure is None:
-                    self._stop(self.encode(rest), stop_reason, detail)
+                    self._stop(self.encode(rest), stop_reason, detail, cancel)
             except RecorderError:
                 pass  # refused (the file finished recorder_failed): raised below
             self._closed = True
-            self._join()
+            self._join(cancel)
             if not self.opened and self.path.exists() and self.path.stat().st_size == 0:
                 self.path.unlink()
         if self._failure is not None:
@@ -220,29 +245,67 @@ class WriterProcess:
         """A record that cannot be encoded (a bug, not the disk): the file is finished with
         stop reason ``recorder_failed``; this and every later hand-over raise."""
         if self._failure is None and self.opened:
-            self._stop(b"", "recorder_failed", why)
+            self._stop(b"", "recorder_failed", why, self.cancel)
         return self._fail(why)
 
     def _fail(self, why: str) -> RecorderError:
         self._failure = self._failure or why
         return RecorderError(f"{self.path}: recorder failed: {self._failure}")
 
-    def _stop(self, data: bytes, stop_reason: str | None, detail: str) -> None:
+    def unfinished(self, why: str) -> str:
+        """The failure of a writer given up while it had the file to finish: killed, so
+        the file has no footer (``docs/recording.md``: recover)."""
+        return (f"{why}: killed, the log is not finished (`dobhil log recover {self.path}` salvages "
+                "what reached the disk)")
+
+    def _stop(self, data: bytes, stop_reason: str | None, detail: str,
+              cancel: Callable[[], str] | None = None) -> None:
         try:
-            os.set_blocking(self._fd, True)
-            self._send(data + encode([Stop(Control.STOP, stop_reason, detail)]))
+            why = self._send(data + encode([Stop(Control.STOP, stop_reason, detail)]), cancel)
+            if why:
+                self._kill(self.unfinished(f"stopped waiting for the writer process ({why})"))
         except (RecorderError, OSError):
             pass  # the failure is noted; close raises it
 
-    def _send(self, data: bytes) -> None:
-        """Blocking, the rest of a batch begun first."""
+    def _send(self, data: bytes, cancel: Callable[[], str] | None) -> str:
+        """The rest of a batch begun first, then ``data``, waiting while the pipe is full.
+        Returns "" once all is in the pipe, or why ``cancel`` ended the wait (the rest kept to
+        go first). A writer still for ``STALL_TIMEOUT`` s is killed: raises
+        :class:`RecorderError`."""
         view = memoryview(self._tail + data if self._tail else data)
+        watch: _Watch | None = None
         try:
             while view:
-                view = view[os.write(self._fd, view):]
+                try:
+                    view = view[os.write(self._fd, view):]
+                    continue
+                except BlockingIOError:
+                    pass
+                # the pipe is full: wait for room a slice at a time, asking cancel and
+                # watching the writer between slices
+                why = cancel() if cancel is not None else ""
+                if why:
+                    self._tail = bytes(view)
+                    return why
+                watch = watch or _Watch(self.pid, self._fd)
+                select.select([], [self._fd], [], WAIT_SLICE)
+                if watch.still(len(view)):
+                    raise self._kill(self.unfinished(f"the writer process took nothing for {STALL_TIMEOUT:g} s "
+                                                     "(stopped, or stuck on a disk that does not answer)"))
         except OSError:
             raise self._fail(self._ended_early()) from None
         self._tail = b""
+        return ""
+
+    def _kill(self, why: str) -> RecorderError:
+        """Give the writer up: killed at once (SIGKILL ends a stopped process too), ``why``
+        the failure."""
+        self._proc.kill()
+        try:
+            self._proc.wait(JOIN_TIMEOUT)
+        except subprocess.TimeoutExpired:
+            pass   # the kernel has not reaped it yet; nothing more to do here
+        return self._fail(why)
 
     def _ended_early(self) -> str:
         self._wait()
@@ -251,18 +314,43 @@ class WriterProcess:
             return status.reason
         return f"writer process ended early (exit code {self._proc.poll()})"
 
-    def _join(self) -> None:
+    def _join(self, cancel: Callable[[], str] | None = None) -> None:
         if self._fd >= 0:
             os.close(self._fd)
             self._fd = -1
-        if not self._wait():
-            self._failure = self._failure or f"writer process did not finish within {JOIN_TIMEOUT:g} s"
+        why = self._finish_wait(cancel)
+        if why:
+            self._failure = self._failure or self.unfinished(why)
         status = _read_status(self._status)
         self._status.close()
         if status is not None and status.status == Status.DONE:
             self.written = status.written
         elif self._failure is None:
             self._failure = status.reason if status is not None else f"writer exit code {self._proc.returncode}"
+
+    def _finish_wait(self, cancel: Callable[[], str] | None) -> str:
+        """Wait for the process to finish the file and exit: "" when it did, else why it was
+        given up and killed (still for ``STALL_TIMEOUT`` s, not done in ``JOIN_TIMEOUT`` s,
+        or ``cancel``)."""
+        watch, end = _Watch(self.pid, -1), time.monotonic() + JOIN_TIMEOUT
+        while True:
+            try:
+                self._proc.wait(WAIT_SLICE)
+                return ""
+            except subprocess.TimeoutExpired:
+                pass
+            why = cancel() if cancel is not None else ""
+            if why:
+                why = f"stopped waiting for the writer process ({why})"
+            elif watch.still(0):
+                why = f"the writer process did nothing for {STALL_TIMEOUT:g} s (stopped, or stuck on a disk " \
+                      "that does not answer)"
+            elif time.monotonic() >= end:
+                why = f"writer process did not finish within {JOIN_TIMEOUT:g} s"
+            if why:
+                self._proc.kill()
+                self._wait()
+                return why
 
     def _wait(self) -> bool:
         """Wait for the process (killed after ``JOIN_TIMEOUT``); False if it had to be."""
@@ -275,6 +363,36 @@ class WriterProcess:
             return False
 
 
+class _Watch:
+    """Whether a writer has been still for ``STALL_TIMEOUT`` s: it took nothing from the pipe
+    ``fd`` (-1: not watched) -- the bytes to send did not shrink, nor the bytes waiting in the
+    pipe -- and its scheduler statistics (Linux ``/proc/PID/schedstat``: time on a CPU and time
+    waiting for one) did not move. Where the OS tells neither, a writer is never still by this
+    (only ``JOIN_TIMEOUT`` bounds the wait)."""
+
+    def __init__(self, pid: int, fd: int) -> None:
+        self.pid, self.fd = pid, fd
+        self.mark: tuple[int, int, str] | None = None
+        self.since = time.monotonic()
+
+    def still(self, unsent: int) -> bool:
+        now = (unsent, _waiting(self.fd) if self.fd >= 0 else 0, _schedstat(self.pid))
+        if now != self.mark:
+            self.mark, self.since = now, time.monotonic()
+            return False
+        return now[1:] != (0, "") and time.monotonic() - self.since >= STALL_TIMEOUT
+
+
+def _schedstat(pid: int) -> str:
+    """Process ``pid``'s time on a CPU and waiting for one (Linux ``/proc/PID/schedstat``,
+    its first two fields), "" where the kernel does not say."""
+    try:
+        with open(f"/proc/{pid}/schedstat") as f:
+            return " ".join(f.read().split()[:2])
+    except OSError:
+        return ""
+
+
 def _spawn(path: Path) -> tuple[subprocess.Popen[bytes] | forkserver.Child, int, Connection]:
     data_r, data_w = os.pipe()
     status_r, status_w = os.pipe()
@@ -283,6 +401,8 @@ def _spawn(path: Path) -> tuple[subprocess.Popen[bytes] | forkserver.Child, int,
         fcntl.fcntl(data_w, fcntl.F_SETPIPE_SZ, PIPE_SIZE)
     except (ImportError, AttributeError, OSError):
         pass  # not Linux, or above /proc/sys/fs/pipe-max-size: the default 64 KiB
+    # never blocks: LOSSY drops what has no room, BACKPRESSURE waits in slices (_send)
+    os.set_blocking(data_w, False)
     # the stop signals blocked while the child starts (it inherits the mask and ignores
     # them before unblocking): a terminal's Ctrl-C never kills the writer before it can finish
     old = signal.pthread_sigmask(signal.SIG_BLOCK, forkserver.STOP_SIGNALS)

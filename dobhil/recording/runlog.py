@@ -222,6 +222,8 @@ class RunLog(LaneSink):
         self.simulated = False  # lockstep: frames stamped on the simulated log clock
         self._failure: RecorderError | None = None
         self._closed = False
+        #: why the log's end failed (:meth:`end` raised it), "" while it did not
+        self.end_failure = ""
 
     @property
     def path(self) -> Path:
@@ -246,15 +248,19 @@ class RunLog(LaneSink):
               lossy: bool, clock_ns: Callable[[], int] | None = None,
               truth: Callable[[], tuple[float, float, float, float]] | None = None, drive: Any = None,
               own_ids: Collection[int] | None = None, codes: ProtocolCodes | None = None,
-              lanes: Sequence[Lane] = (), own: Mapping[int, Collection[int]] | None = None) -> None:
+              lanes: Sequence[Lane] = (), own: Mapping[int, Collection[int]] | None = None,
+              cancel: Callable[[], str] | None = None) -> None:
         """Header and metadata; the log clock, the emulator truth ``(q, dq, tau_motor, tau_int)``
         and the drive (its ``status.state``, ``status.protocol_state`` and ``status.error_code``
         go to ``/drive/feedback``, the last two named by ``codes``);
         ``own_ids``: the arbitration ids of the drive's frames (``lossy`` only: other frames
         received are foreign, shed first; None: every frame is the loop's own).
         A several-axis log gives ``lanes`` (:class:`~dobhil.recording.writer.LogWriter`) and
-        ``own``: per lane of a bus, the ids of its drives' frames (a lane not in it: none foreign)."""
+        ``own``: per lane of a bus, the ids of its drives' frames (a lane not in it: none foreign).
+        ``cancel`` (the run's stop request: why, or "") ends a lockstep hand-over's wait for
+        the writer, the rest kept for the next (:class:`WriterProcess`)."""
         assert not self._closed, "the log is closed"
+        self.writer.cancel = cancel
         mode = RecordMode.LOSSY if lossy else RecordMode.BACKPRESSURE
         self.writer.open(metadata, attachments, mode, self.live, early=self.take(), codes=codes, lanes=lanes)
         owned = dict(own or {}) if own_ids is None else {0: own_ids}
@@ -411,13 +417,18 @@ class RunLog(LaneSink):
             self.foreign = self.records
         return records
 
-    def end(self, stop_reason: str | None, detail: str = "") -> None:
-        """The last records, the stop event, summary and footer; waits for the writer.
+    def end(self, stop_reason: str | None, detail: str = "", cancel: Callable[[], str] | None = None) -> None:
+        """The last records, the stop event, summary and footer; waits for the writer, for a
+        bounded time (:meth:`WriterProcess.close`; ``cancel``: why to stop waiting, or "").
         Raises :class:`~dobhil.errors.RecorderError` if the writer failed (once)."""
         if self._closed:
             return
         self._closed = True
-        self.writer.close(stop_reason, detail, rest=self.take())
+        try:
+            self.writer.close(stop_reason, detail, rest=self.take(), cancel=cancel)
+        except RecorderError as exc:
+            self.end_failure = str(exc)
+            raise
 
 
 __all__ = ["BATCH_RECORDS", "FOREIGN_CAP", "FOREIGN_ROOM", "LaneSink", "RecordingBus", "RunLog"]

@@ -17,7 +17,7 @@ import pytest
 
 from dobhil import forkserver
 from dobhil.errors import LogFileError, RecorderError
-from dobhil.recording.process import PIPE_SIZE, WriterProcess, encode, unpack
+from dobhil.recording.process import PIPE_SIZE, STALL_TIMEOUT, WriterProcess, encode, unpack
 from dobhil.recording.runlog import BATCH_RECORDS, RunLog
 from dobhil.recording.reader import open_log
 from dobhil.recording.schemas import CYCLE, EventKind, Topic, event_record
@@ -61,7 +61,10 @@ def stopped(proc: WriterProcess) -> Iterator[None]:
     try:
         yield
     finally:
-        os.kill(proc.pid, signal.SIGCONT)
+        try:
+            os.kill(proc.pid, signal.SIGCONT)
+        except ProcessLookupError:
+            pass   # given up and killed while stopped
 
 
 #: [s] a count that did not move for this long stopped: the producer is blocked (a thread
@@ -219,6 +222,28 @@ def test_backpressure_blocks_while_the_writer_lags_and_loses_nothing(tmp_path: P
     assert not thread.is_alive()
     writer.close("done", rest=batch.take())
     assert counts(tmp_path / "run.mcap")["/loop"] == total
+
+
+@pytest.mark.timeout(int(6 * STALL_TIMEOUT) + 60)
+@pytest.mark.parametrize("mode", [RecordMode.BACKPRESSURE, RecordMode.LOSSY])
+def test_a_writer_stopped_for_good_is_given_up_after_its_stall_bound(tmp_path: Path, mode: RecordMode) -> None:
+    """Backpressure waits for a stopped writer (nothing lost while it is slow), but not for
+    ever: after STALL_TIMEOUT s of nothing taken the hand-over raises, the writer killed, the
+    file said unfinished; lossy never waits, and its close gives the writer up the same way."""
+    path = tmp_path / "run.mcap"
+    writer, batch = opened(path, mode)
+    t0 = time.monotonic()
+    with stopped(writer), pytest.raises(RecorderError) as raised:
+        for k in range(3 * PIPE_SIZE // CYCLE_BYTES):
+            cycle(batch, k)
+        writer.close("done", rest=batch.take())
+    waited = time.monotonic() - t0
+    assert "killed, the log is not finished" in str(raised.value) and "dobhil log recover" in str(raised.value)
+    assert f"for {STALL_TIMEOUT:g} s" in str(raised.value)
+    assert waited >= STALL_TIMEOUT, f"given up after {waited:.2f} s, before its bound"
+    assert writer.pid not in child_processes()
+    with pytest.raises(RecorderError):
+        writer.close("again")   # bounded and idempotent: the same failure
 
 
 def test_lossy_never_blocks_drops_are_counted_and_events_kept(tmp_path: Path) -> None:

@@ -11,25 +11,31 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import re
 import resource
 import signal
+import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
 import pytest
 
+from dobhil.cli.main import main
 from dobhil.cli.recording import open_run_log, record_run
 from dobhil.cli.run_cmd import log_hooks
+from dobhil.recording.process import STALL_TIMEOUT
 from dobhil.recording.reader import open_log
 from dobhil.recording.recover import recover
 from dobhil.recording.runlog import RunLog
+from dobhil.runtime.loop import StopRequest
 from dobhil.runtime.session import RunSession
+from dobhil.runtime.signals import stop_on_signals
 from dobhil.runtime.stop import StopReason
 
-from .helpers import Sniffer, assert_stopped_safely
+from .helpers import REALTIME_SLACK, Sniffer, assert_stopped_safely, wait_until
 from .test_fault_matrix import matrix_config
 
 #: the writer flushes every second: what a crash may lose, plus a batch's hand-over
@@ -136,3 +142,214 @@ def test_recorder_fault(tmp_path: Path, timing: str, fault: str) -> None:
     if fault == "disk-full":
         assert path.stat().st_size <= 150_000
 
+
+
+# -- a writer that takes nothing: stopped (SIGSTOP), as one stuck on a disk that does not answer --
+
+#: the tests' own bound: the writer's stall bound a few times over (a hand-over, the log's
+#: end), with a minute for a loaded machine's start-up; on code that waits for ever the test
+#: fails here instead of hanging
+FROZEN_TEST_TIMEOUT = int(6 * STALL_TIMEOUT) + 60
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    return True
+
+
+def _release(pids: list[int]) -> None:
+    for pid in pids:
+        for sig in (signal.SIGCONT, signal.SIGKILL):
+            try:
+                os.kill(pid, sig)
+            except ProcessLookupError:
+                pass
+
+
+@contextmanager
+def never_left_stopped(pids: list[int]) -> Iterator[None]:
+    """Whatever the test does, each process in ``pids`` (filled in as they are stopped) is
+    continued and killed at the end: a stopped writer is never left behind -- also by code
+    that waits for it for ever even after the test's timeout (its cleanup waiting again):
+    released then, the test having failed already."""
+    rescue = threading.Timer(FROZEN_TEST_TIMEOUT + STALL_TIMEOUT, _release, (pids,))
+    rescue.daemon = True
+    rescue.start()
+    try:
+        yield
+    finally:
+        rescue.cancel()
+        _release(pids)
+
+
+class StopWriterAt:
+    """The run's sink (the log), with the writer process stopped (SIGSTOP) at cycle ``at``;
+    ``last`` is the monotonic time of the newest cycle (the loop waiting shows as none)."""
+
+    def __init__(self, log: RunLog, at: int, stopped: list[int]) -> None:
+        self.log, self.at, self.stopped = log, at, stopped
+        self.stopped_at: float | None = None
+        self.last = time.monotonic()
+
+    def cycle(self, k: int, *args: Any) -> None:
+        self.last = time.monotonic()
+        if k >= self.at and self.stopped_at is None:
+            pid = self.log.writer_pid
+            assert pid is not None
+            self.stopped.append(pid)
+            os.kill(pid, signal.SIGSTOP)
+            self.stopped_at = time.monotonic()
+        self.log.cycle(k, *args)
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self.log, name)
+
+
+def _lockstep_run(tmp_path: Path) -> tuple[Any, RunLog, Path]:
+    base = matrix_config(tmp_path, "lockstep")
+    config = dataclasses.replace(base, loop=dataclasses.replace(base.loop, duration=200.0))
+    path = tmp_path / "run.mcap"
+    log = open_run_log(path, fsync=False)
+    assert log is not None
+    return config, log, path
+
+
+@pytest.mark.timeout(FROZEN_TEST_TIMEOUT)
+def test_lockstep_writer_stopped_stops_the_run(tmp_path: Path) -> None:
+    """Lockstep waits for the writer (nothing lost), but not for ever: a writer that takes
+    nothing for STALL_TIMEOUT s is killed and the run stops ``recorder_failed`` with the safe
+    stop, the drive confirmed disabled; not before that bound (a writer slow for a moment
+    loses nothing)."""
+    config, log, path = _lockstep_run(tmp_path)
+    stopped: list[int] = []
+    hooks = log_hooks(log)
+    sink = StopWriterAt(log, 50, stopped)
+    hooks["sink"] = sink
+    with never_left_stopped(stopped):
+        with RunSession(config, emulate=True, lockstep=True, **hooks) as session, \
+                Sniffer(session.bus_spec.channel) as sniffer:
+            result = record_run(session, log)
+            waited = time.monotonic() - (sink.stopped_at or 0.0)
+            assert_stopped_safely(session, sniffer, result.stop, StopReason.RECORDER_FAILED,
+                                  words=(f"took nothing for {STALL_TIMEOUT:g} s", "dobhil log recover"))
+            assert result.cycles < session.settings.cycles
+            assert result.disabled and result.safe_stop is not None and result.safe_stop.warning() == ""
+        assert waited >= STALL_TIMEOUT, f"given up after {waited:.2f} s, before its bound"
+        assert stopped and wait_until(lambda: not _alive(stopped[0]), 30.0), "the stopped writer was left running"
+
+
+@pytest.mark.timeout(FROZEN_TEST_TIMEOUT)
+def test_lockstep_sigint_while_waiting_for_a_stopped_writer(tmp_path: Path) -> None:
+    """A SIGINT while the lockstep loop waits on a stopped writer stops the run at once
+    (``signal``, the safe stop), not at the writer's stall bound; the log's end then gives the
+    writer up (killed, said once) and the run keeps its own stop."""
+    config, log, path = _lockstep_run(tmp_path)
+    stopped: list[int] = []
+    hooks = log_hooks(log)
+    sink = StopWriterAt(log, 50, stopped)
+    hooks["sink"] = sink
+
+    def interrupt_when_blocked() -> None:
+        # the loop is waiting on the writer: stopped, and no cycle for a while since
+        if wait_until(lambda: sink.stopped_at is not None and time.monotonic() - sink.last > 0.5,
+                      FROZEN_TEST_TIMEOUT / 2):
+            os.kill(os.getpid(), signal.SIGINT)
+
+    with never_left_stopped(stopped), stop_on_signals(StopRequest()) as request:
+        with RunSession(config, emulate=True, lockstep=True, stop_request=request, **hooks) as session, \
+                Sniffer(session.bus_spec.channel) as sniffer:
+            thread = threading.Thread(target=interrupt_when_blocked, daemon=True)
+            thread.start()
+            result = record_run(session, log)
+            thread.join()
+            assert_stopped_safely(session, sniffer, result.stop, StopReason.SIGNAL, words=("SIGINT",))
+            assert result.disabled and result.safe_stop is not None and result.safe_stop.warning() == ""
+        assert "not finished" in log.end_failure and "dobhil log recover" in log.end_failure, log.end_failure
+        assert stopped and wait_until(lambda: not _alive(stopped[0]), 30.0), "the stopped writer was left running"
+
+
+def _cli_run(tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str],
+             act: Callable[[Any, RunLog, list[int]], None]) -> tuple[int, str, str, list[int]]:
+    """``dobhil run demo --emulate --log`` in real time, in this process; ``act(session, log,
+    stopped)`` runs in a thread beside the run (it stops the writer, appending its pid).
+    Returns the exit code, stdout, stderr and the pids of the writer and the emulator."""
+    import dobhil.cli.recording as recording
+    real = recording.record_run
+    pids: list[int] = []
+    stopped: list[int] = []
+
+    def record_run_beside(session: Any, log: RunLog | None, *args: Any, **kwargs: Any) -> Any:
+        assert log is not None and log.writer_pid is not None
+        pids.extend([log.writer_pid, session.emulator.pid])
+        threading.Thread(target=act, args=(session, log, stopped), daemon=True).start()
+        return real(session, log, *args, **kwargs)
+
+    monkeypatch.setattr(recording, "record_run", record_run_beside)
+    with never_left_stopped(stopped):
+        code = main(["run", "demo", "--emulate", "--duration", "30", "--log", str(tmp_path / "run.mcap"),
+                     *[a for o in REALTIME_SLACK for a in ("--set", o)]])
+        out, err = capsys.readouterr()
+        assert pids and wait_until(lambda: not any(map(_alive, pids)), 30.0), "a process was left running"
+    return code, out, err, pids
+
+
+def _running(session: Any) -> bool:
+    """The loop has run cycles (or has already ended)."""
+    loop = getattr(session, "loop", None)
+    return loop is not None and (loop.ended is not None or loop.trace.last > 100)
+
+
+@pytest.mark.timeout(FROZEN_TEST_TIMEOUT)
+def test_realtime_writer_stopped_then_emulator_killed(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                                      capsys: pytest.CaptureFixture[str]) -> None:
+    """The audit's run: the writer stopped, then the emulated drive killed. The run stops
+    and safe-stops as ever; its log's end gives the stopped writer up after STALL_TIMEOUT s
+    (killed): one stop line (the run's own reason), the loud warning, one line saying the log
+    is not finished and how to recover it, exit 1."""
+    def act(session: Any, log: RunLog, stopped: list[int]) -> None:
+        if wait_until(lambda: _running(session), FROZEN_TEST_TIMEOUT / 2):
+            assert log.writer_pid is not None
+            stopped.append(log.writer_pid)
+            os.kill(log.writer_pid, signal.SIGSTOP)
+            os.kill(session.emulator.pid, signal.SIGKILL)
+
+    code, out, err, _ = _cli_run(tmp_path, monkeypatch, capsys, act)
+    text = out + err
+    assert code == 1, text
+    assert len(re.findall(r"^(dobhil run: )?stopped: ", text, re.M)) == 1, text
+    assert "stopped: recorder_failed" not in text, text   # the run's own reason: the drive was lost
+    assert "WARNING: drive may still be enabled" in err, text
+    lines = [line for line in err.splitlines() if "not finished" in line]
+    assert len(lines) == 1 and f"did nothing for {STALL_TIMEOUT:g} s" in lines[0], text
+    assert "dobhil log recover" in lines[0], text
+
+
+@pytest.mark.timeout(FROZEN_TEST_TIMEOUT)
+def test_realtime_sigint_cuts_the_wait_for_a_stopped_writer_short(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]) -> None:
+    """A real-time run whose writer is stopped, ended by SIGINT, then a second SIGINT while
+    its log's end waits for the writer: the wait ends there (not at STALL_TIMEOUT), the
+    writer is killed, the log is said not finished, the drive confirmed disabled, exit 1."""
+    def act(session: Any, log: RunLog, stopped: list[int]) -> None:
+        if not wait_until(lambda: _running(session), FROZEN_TEST_TIMEOUT / 2):
+            return
+        assert log.writer_pid is not None
+        stopped.append(log.writer_pid)
+        os.kill(log.writer_pid, signal.SIGSTOP)
+        os.kill(os.getpid(), signal.SIGINT)   # the run stops
+        # the log's end has begun (the log closed: no writer pid to give) and waits for the writer
+        if wait_until(lambda: log.writer_pid is None, FROZEN_TEST_TIMEOUT / 2):
+            time.sleep(STALL_TIMEOUT / 10)
+            os.kill(os.getpid(), signal.SIGINT)
+
+    code, out, err, _ = _cli_run(tmp_path, monkeypatch, capsys, act)
+    text = out + err
+    assert code == 1, text
+    assert len(re.findall(r"^(dobhil run: )?stopped: ", text, re.M)) == 1, text
+    assert "stopped: signal" in text, text
+    assert "WARNING" not in err, text
+    lines = [line for line in err.splitlines() if "not finished" in line]
+    assert len(lines) == 1 and "stopped waiting for the writer process (received SIGINT)" in lines[0], text
