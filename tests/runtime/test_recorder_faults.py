@@ -5,6 +5,11 @@ Each row asserts the stop reason ``recorder_failed`` in one line, that the drive
 torque then IDLE and ended IDLE, and that ``dobhil log recover`` salvages the file (the
 writer is gone, so the stop itself cannot be in it); where the log clock is the wall clock (real
 time), that what recover loses before the writer died is at most the flush interval (1 s).
+
+Then a writer that takes nothing (stopped by SIGSTOP, as one stuck on a disk that no longer
+answers), lockstep and real time: the run still ends -- its safe stop, one stop line, the
+warning or the confirmation, the log said unfinished, the writer killed -- within the stall
+bound (``STALL_TIMEOUT``), or at once on SIGINT.
 """
 
 from __future__ import annotations
@@ -302,6 +307,19 @@ def _running(session: Any) -> bool:
     return loop is not None and (loop.ended is not None or loop.trace.last > 100)
 
 
+def _stop_writer_until_full(session: Any, log: RunLog, stopped: list[int]) -> bool:
+    """Once the loop runs, the writer stopped until its pipe is full (the run drops a batch:
+    the log's end then has more to hand over than the pipe takes). False if the run ended
+    before either."""
+    if not wait_until(lambda: _running(session), FROZEN_TEST_TIMEOUT / 2) or session.loop.ended is not None:
+        return False
+    assert log.writer_pid is not None
+    stopped.append(log.writer_pid)
+    os.kill(log.writer_pid, signal.SIGSTOP)
+    return wait_until(lambda: log.writer.dropped > 0 or session.loop.ended is not None,
+                      FROZEN_TEST_TIMEOUT / 2) and session.loop.ended is None
+
+
 @pytest.mark.timeout(FROZEN_TEST_TIMEOUT)
 def test_realtime_writer_stopped_then_emulator_killed(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
                                                       capsys: pytest.CaptureFixture[str]) -> None:
@@ -310,10 +328,7 @@ def test_realtime_writer_stopped_then_emulator_killed(tmp_path: Path, monkeypatc
     (killed): one stop line (the run's own reason), the loud warning, one line saying the log
     is not finished and how to recover it, exit 1."""
     def act(session: Any, log: RunLog, stopped: list[int]) -> None:
-        if wait_until(lambda: _running(session), FROZEN_TEST_TIMEOUT / 2):
-            assert log.writer_pid is not None
-            stopped.append(log.writer_pid)
-            os.kill(log.writer_pid, signal.SIGSTOP)
+        if _stop_writer_until_full(session, log, stopped):
             os.kill(session.emulator.pid, signal.SIGKILL)
 
     code, out, err, _ = _cli_run(tmp_path, monkeypatch, capsys, act)
@@ -323,7 +338,7 @@ def test_realtime_writer_stopped_then_emulator_killed(tmp_path: Path, monkeypatc
     assert "stopped: recorder_failed" not in text, text   # the run's own reason: the drive was lost
     assert "WARNING: drive may still be enabled" in err, text
     lines = [line for line in err.splitlines() if "not finished" in line]
-    assert len(lines) == 1 and f"did nothing for {STALL_TIMEOUT:g} s" in lines[0], text
+    assert len(lines) == 1 and f"nothing for {STALL_TIMEOUT:g} s (stopped" in lines[0], text
     assert "dobhil log recover" in lines[0], text
 
 
@@ -334,11 +349,8 @@ def test_realtime_sigint_cuts_the_wait_for_a_stopped_writer_short(
     its log's end waits for the writer: the wait ends there (not at STALL_TIMEOUT), the
     writer is killed, the log is said not finished, the drive confirmed disabled, exit 1."""
     def act(session: Any, log: RunLog, stopped: list[int]) -> None:
-        if not wait_until(lambda: _running(session), FROZEN_TEST_TIMEOUT / 2):
+        if not _stop_writer_until_full(session, log, stopped):
             return
-        assert log.writer_pid is not None
-        stopped.append(log.writer_pid)
-        os.kill(log.writer_pid, signal.SIGSTOP)
         os.kill(os.getpid(), signal.SIGINT)   # the run stops
         # the log's end has begun (the log closed: no writer pid to give) and waits for the writer
         if wait_until(lambda: log.writer_pid is None, FROZEN_TEST_TIMEOUT / 2):
