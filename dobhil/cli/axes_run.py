@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from dobhil.cli.common import EXIT_STOPPED
-from dobhil.cli.recording import AxisRun, begin_axes, end_axes
+from dobhil.cli.recording import AxisRun, begin_axes, end_axes, log_summary
 from dobhil.recording.axeslog import axis_record
 
 if TYPE_CHECKING:   # the session is built when a run starts: --help stays light
@@ -71,7 +71,7 @@ def run_axes(args: argparse.Namespace, *, prog: str, emulate: bool, lockstep: bo
         tell_unfinished(session, prog)
         raise
     if recorder is not None:
-        info["log"] = str(recorder.path)
+        info.update(log_summary(recorder, result.stop))
     report(info, result.stop.line(), prog=prog, as_json=getattr(args, "summary_json", False))
     for problem in session.shutdown_problems:
         if result.stop.reason.name != "BUS_ERROR":
@@ -167,10 +167,10 @@ def record_axes(session: AxesSession, log: AxesLog | None, config_file: Path,
     begin_axes(log, axis_runs(session), timing=session.timing, period=session.period,
                duration=session.settings[session.axes.names[0]].duration, emulated=session.emulate,
                sim_clock=session.sim_clock, couplings=session.axes.couplings, config_file=config_file,
-               metadata=metadata)
+               metadata=metadata, cancel=session.stop_request.reason)
     result = session.run()
     stop = end_axes(log, result.stop, {name: part.disabled for name, part in result.axes.items()},
-                    axis=result.axis)
+                    axis=result.axis, cancel=session.stop_request.newer())
     return result if stop is result.stop else dataclasses.replace(result, stop=stop)
 
 
@@ -216,6 +216,8 @@ def report(info: dict[str, Any], stop_line: str, *, prog: str, as_json: bool) ->
     notes = "; ".join(f"axis {n}: {a['drive_note']}" for n, a in info["axes"].items() if a.get("drive_note"))
 
     def last_word() -> None:
+        if info.get("log_error"):   # the log's end failed after the run stopped for another reason
+            sys.stderr.write(f"{prog}: {info['log_error']}\n")
         if warning:
             sys.stderr.write(f"WARNING: {warning}\n")
         elif notes:

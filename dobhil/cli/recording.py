@@ -210,7 +210,7 @@ def _end(log: RunLog, session: RunSession, result: RunResult) -> RunResult:
     return result
 
 
-def log_summary(log: RunLog, stop: Stop) -> dict[str, str]:
+def log_summary(log: RunLog | AxesLog, stop: Stop) -> dict[str, str]:
     """The summary's keys of a run's log: ``log``, its path, and ``log_error`` when the log's
     end failed after the run stopped for another reason (its stop line names that reason,
     so the log's failure is a line of its own)."""
@@ -329,11 +329,13 @@ def axes_attachments(runs: Sequence[AxisRun], config_file: str | os.PathLike[str
 def begin_axes(log: AxesLog, runs: Sequence[AxisRun], *, timing: Timing, period: float, duration: float,
                emulated: bool, sim_clock: Callable[[], float] | None = None,
                couplings: Sequence[Any] = (), config_file: str | os.PathLike[str] | None = None,
-               metadata: Mapping[str, Mapping[str, str]] | None = None) -> None:
+               metadata: Mapping[str, Mapping[str, str]] | None = None,
+               cancel: Callable[[], str] | None = None) -> None:
     """Open ``log`` for a several-axis run (each axis' bus wrapped by ``log.wrap_bus`` already):
     its metadata (then ``metadata``: records the command adds), the log clock (``sim_clock``,
     simulated seconds, in lockstep), each axis' drive, truth and codes; lossy in real time.
-    ``couplings``: :class:`~dobhil.config.axes.Coupling` s (``a``, ``b``, ``stiffness``, ``damping``)."""
+    ``couplings``: :class:`~dobhil.config.axes.Coupling` s (``a``, ``b``, ``stiffness``, ``damping``);
+    ``cancel``: the run's stop request (a SIGINT ends a lockstep hand-over's wait for the writer)."""
     origin = time.time_ns()
     if timing is not Timing.LOCKSTEP and log.writer_pid is not None:
         run_in_background(log.writer_pid)  # lossy: it may lag, never delay the loop
@@ -343,24 +345,28 @@ def begin_axes(log: AxesLog, runs: Sequence[AxisRun], *, timing: Timing, period:
               clock_ns=None if sim_clock is None else (lambda: origin + round(sim_clock() * 1e9)),
               drives={r.name: AxisDrive(r.drive, r.bus, r.truth(), getattr(r.drive, "frame_ids", None),
                                         ProtocolCodes(r.profile)) for r in runs},
-              couplings=[{"a": c.a, "b": c.b, "stiffness": c.stiffness, "damping": c.damping} for c in couplings])
+              couplings=[{"a": c.a, "b": c.b, "stiffness": c.stiffness, "damping": c.damping} for c in couplings],
+              cancel=cancel)
     if log.live_port is not None and log.live is not None:
         sys.stderr.write(f"live view: ws://{log.live.host}:{log.live_port}\n")
         sys.stderr.flush()
 
 
-def end_axes(log: AxesLog, stop: Stop, disabled: Mapping[str, bool], axis: str = "") -> Stop:
+def end_axes(log: AxesLog, stop: Stop, disabled: Mapping[str, bool], axis: str = "",
+             cancel: Callable[[], str] | None = None) -> Stop:
     """The run's end to ``log``: a ``fault`` event on the axis whose drive fault stopped the
     run (``axis``), per axis a ``disable`` event (its disable frames sent or not), the stop
-    event; the stop, or ``recorder_failed`` if the writer failed."""
+    event; the stop, or ``recorder_failed`` if the writer failed in a run that lasted its
+    duration (any other keeps its own, :func:`log_summary` saying the log failed). The log is
+    finished for a bounded time, ``cancel`` (a new stop request) cutting the wait short (``_end``)."""
     if stop.reason is StopReason.DRIVE_FAULT and axis in disabled:
         log.sink(axis).event(EventKind.FAULT, stop.detail or "drive fault")
     for name, ok in disabled.items():
         log.sink(name).event(EventKind.DISABLE, "drive disabled" if ok else "disable frames not sent")
     try:
-        log.end(stop.reason.name.lower(), stop.line())
+        log.end(stop.reason.name.lower(), stop.line(), cancel)
     except RecorderError as exc:
-        if stop.reason is not StopReason.RECORDER_FAILED:
+        if stop.reason is StopReason.DONE:
             return Stop(StopReason.RECORDER_FAILED, str(exc), stop.cycle, stop.time)
     return stop
 

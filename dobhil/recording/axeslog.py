@@ -166,10 +166,11 @@ class AxesLog:
 
     def begin(self, *, metadata: Mapping[str, Mapping[str, Any]], attachments: Sequence[tuple[str, str, bytes]],
               lossy: bool, drives: Mapping[str, AxisDrive], clock_ns: Callable[[], int] | None = None,
-              couplings: Sequence[Mapping[str, Any]] = ()) -> None:
+              couplings: Sequence[Mapping[str, Any]] = (), cancel: Callable[[], str] | None = None) -> None:
         """Header, ``metadata`` (the run's, each axis' and bus' records) with the ``axes``
         record, attachments; each axis' drive, truth and codes (``drives``, one per axis);
-        the log clock (simulated time in lockstep), lossy in real time."""
+        the log clock (simulated time in lockstep), lossy in real time; ``cancel``: the run's
+        stop request, which ends a lockstep hand-over's wait (:meth:`RunLog.begin`)."""
         missing = [n for n in self.names if n not in drives]
         unknown = sorted({d.bus for d in drives.values()} - set(self._buses))
         if missing or unknown:
@@ -186,7 +187,7 @@ class AxesLog:
                 known = False   # a drive of unknown ids: nothing on the buses is foreign
             own.setdefault(self._buses[drives[n].bus][0], set()).update(ids or ())
         self.log.begin(metadata={**metadata, AXES_METADATA: layout}, attachments=attachments, lossy=lossy,
-                       clock_ns=clock_ns, lanes=self.lanes(drives), own=own if known else None)
+                       clock_ns=clock_ns, lanes=self.lanes(drives), own=own if known else None, cancel=cancel)
         for n in self.names:
             sink = self._sinks[n]
             sink.drive, sink.truth = drives[n].drive, drives[n].truth
@@ -195,10 +196,16 @@ class AxesLog:
         """An event of the whole run on ``/events``."""
         self.log.event(kind, reason, detail)
 
-    def end(self, stop_reason: str | None, detail: str = "") -> None:
-        """The last records, the stop event, summary and footer; waits for the writer.
-        Raises :class:`~dobhil.errors.RecorderError` if the writer failed (once)."""
-        self.log.end(stop_reason, detail)
+    @property
+    def end_failure(self) -> str:
+        """Why the log's end failed (:meth:`end` raised it), "" while it did not."""
+        return self.log.end_failure
+
+    def end(self, stop_reason: str | None, detail: str = "", cancel: Callable[[], str] | None = None) -> None:
+        """The last records, the stop event, summary and footer; waits for the writer, for a
+        bounded time (:meth:`RunLog.end`). Raises :class:`~dobhil.errors.RecorderError` if
+        the writer failed (once)."""
+        self.log.end(stop_reason, detail, cancel)
 
 
 __all__ = ["AXES_FORMAT", "AXES_METADATA", "AXIS_PREFIX", "BUS_PREFIX", "AxesLog", "AxisDrive", "axis_prefix",

@@ -365,3 +365,54 @@ def test_realtime_sigint_cuts_the_wait_for_a_stopped_writer_short(
     assert "WARNING" not in err, text
     lines = [line for line in err.splitlines() if "not finished" in line]
     assert len(lines) == 1 and "stopped waiting for the writer process (received SIGINT)" in lines[0], text
+
+
+def _pipe_still(log: Any) -> Callable[[], bool]:
+    """A condition: the bytes waiting in the log writer's pipe have not moved for half a
+    second (the writer stopped, the loop waiting for room)."""
+    last = [-1.0, time.monotonic()]
+
+    def still() -> bool:
+        n = log.writer.queued()
+        if n != last[0]:
+            last[:] = [n, time.monotonic()]
+            return False
+        return n > 0 and time.monotonic() - last[1] > 0.5
+    return still
+
+
+@pytest.mark.timeout(FROZEN_TEST_TIMEOUT)
+def test_axes_lockstep_sigint_while_waiting_for_a_stopped_writer(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]) -> None:
+    """A several-axis lockstep run (one writer for every axis) waiting on its stopped writer
+    answers SIGINT: the ``signal`` stop line, once, the log said unfinished in one line, the
+    writer killed, exit 1."""
+    import dobhil.cli.axes_run as axes_run
+    real = axes_run.record_axes
+    stopped: list[int] = []
+
+    def record_axes_beside(session: Any, log: Any, *args: Any, **kwargs: Any) -> Any:
+        def act() -> None:
+            if not wait_until(lambda: log.writer.opened, FROZEN_TEST_TIMEOUT / 2):
+                return
+            stopped.append(log.writer_pid)
+            os.kill(log.writer_pid, signal.SIGSTOP)
+            if wait_until(_pipe_still(log), FROZEN_TEST_TIMEOUT / 2):
+                os.kill(os.getpid(), signal.SIGINT)
+        threading.Thread(target=act, daemon=True).start()
+        return real(session, log, *args, **kwargs)
+
+    monkeypatch.setattr(axes_run, "record_axes", record_axes_beside)
+    config = Path(__file__).resolve().parents[2] / "configs" / "two-axis-demo.yaml"
+    with never_left_stopped(stopped):
+        code = main(["run", str(config), "--emulate", "--lockstep", "--duration", "300",
+                     "--log", str(tmp_path / "run.mcap")])
+        out, err = capsys.readouterr()
+        assert stopped and wait_until(lambda: not _alive(stopped[0]), 30.0), "the stopped writer was left running"
+    text = out + err
+    assert code == 1, text
+    assert len(re.findall(r"^(dobhil run: )?stopped: ", text, re.M)) == 1, text
+    assert "stopped: signal" in text and "received SIGINT" in text, text
+    assert "WARNING" not in err, text
+    lines = [line for line in err.splitlines() if "not finished" in line]
+    assert len(lines) == 1 and f"nothing for {STALL_TIMEOUT:g} s (stopped" in lines[0], text
