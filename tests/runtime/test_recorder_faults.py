@@ -31,6 +31,7 @@ import pytest
 from dobhil.cli.main import main
 from dobhil.cli.recording import open_run_log, record_run
 from dobhil.cli.run_cmd import log_hooks
+from dobhil.recording import process
 from dobhil.recording.process import STALL_TIMEOUT
 from dobhil.recording.reader import open_log
 from dobhil.recording.recover import recover
@@ -157,6 +158,18 @@ def test_recorder_fault(tmp_path: Path, timing: str, fault: str) -> None:
 FROZEN_TEST_TIMEOUT = int(6 * STALL_TIMEOUT) + 60
 
 
+#: the writer's stall bound in these tests (``short_stall``): a writer stopped with SIGSTOP
+#: shows no life at any load -- it takes nothing from its pipe, and neither runs nor waits for
+#: a CPU -- so half a second proves what the shipped STALL_TIMEOUT would, without its seconds
+STALL = 0.5
+
+
+@pytest.fixture
+def short_stall(monkeypatch: pytest.MonkeyPatch) -> float:
+    monkeypatch.setattr(process, "STALL_TIMEOUT", STALL)
+    return STALL
+
+
 def _alive(pid: int) -> bool:
     try:
         os.kill(pid, 0)
@@ -223,9 +236,9 @@ def _lockstep_run(tmp_path: Path) -> tuple[Any, RunLog, Path]:
 
 
 @pytest.mark.timeout(FROZEN_TEST_TIMEOUT)
-def test_lockstep_writer_stopped_stops_the_run(tmp_path: Path) -> None:
+def test_lockstep_writer_stopped_stops_the_run(tmp_path: Path, short_stall: float) -> None:
     """Lockstep waits for the writer (nothing lost), but not for ever: a writer that takes
-    nothing for STALL_TIMEOUT s is killed and the run stops ``recorder_failed`` with the safe
+    nothing for STALL s is killed and the run stops ``recorder_failed`` with the safe
     stop, the drive confirmed disabled; not before that bound (a writer slow for a moment
     loses nothing)."""
     config, log, path = _lockstep_run(tmp_path)
@@ -239,10 +252,10 @@ def test_lockstep_writer_stopped_stops_the_run(tmp_path: Path) -> None:
             result = record_run(session, log)
             waited = time.monotonic() - (sink.stopped_at or 0.0)
             assert_stopped_safely(session, sniffer, result.stop, StopReason.RECORDER_FAILED,
-                                  words=(f"took nothing for {STALL_TIMEOUT:g} s", "dobhil log recover"))
+                                  words=(f"took nothing for {STALL:g} s", "dobhil log recover"))
             assert result.cycles < session.settings.cycles
             assert result.disabled and result.safe_stop is not None and result.safe_stop.warning() == ""
-        assert waited >= STALL_TIMEOUT, f"given up after {waited:.2f} s, before its bound"
+        assert waited >= STALL, f"given up after {waited:.2f} s, before its bound"
         assert stopped and wait_until(lambda: not _alive(stopped[0]), 30.0), "the stopped writer was left running"
 
 
@@ -322,9 +335,9 @@ def _stop_writer_until_full(session: Any, log: RunLog, stopped: list[int]) -> bo
 
 @pytest.mark.timeout(FROZEN_TEST_TIMEOUT)
 def test_realtime_writer_stopped_then_emulator_killed(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
-                                                      capsys: pytest.CaptureFixture[str]) -> None:
+                                                      capsys: pytest.CaptureFixture[str], short_stall: float) -> None:
     """The audit's run: the writer stopped, then the emulated drive killed. The run stops
-    and safe-stops as ever; its log's end gives the stopped writer up after STALL_TIMEOUT s
+    and safe-stops as ever; its log's end gives the stopped writer up after STALL s
     (killed): one stop line (the run's own reason), the loud warning, one line saying the log
     is not finished and how to recover it, exit 1."""
     def act(session: Any, log: RunLog, stopped: list[int]) -> None:
@@ -338,7 +351,7 @@ def test_realtime_writer_stopped_then_emulator_killed(tmp_path: Path, monkeypatc
     assert "stopped: recorder_failed" not in text, text   # the run's own reason: the drive was lost
     assert "WARNING: drive may still be enabled" in err, text
     lines = [line for line in err.splitlines() if "not finished" in line]
-    assert len(lines) == 1 and f"nothing for {STALL_TIMEOUT:g} s (stopped" in lines[0], text
+    assert len(lines) == 1 and f"nothing for {STALL:g} s (stopped" in lines[0], text
     assert "dobhil log recover" in lines[0], text
 
 
