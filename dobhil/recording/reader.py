@@ -11,6 +11,7 @@ from __future__ import annotations
 import json
 import os
 import struct
+import zlib
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
@@ -106,6 +107,27 @@ def _records(f: BinaryIO, path: str | os.PathLike[str]) -> Iterator[tuple[int, A
             return
 
 
+#: bytes of a Footer record the summary's CRC covers: opcode, length, summary_start, summary_offset_start
+_FOOTER_COVERED: Final = 1 + 8 + 8 + 8
+
+
+def _check_summary(f: BinaryIO, path: str | os.PathLike[str], footer_at: int, footer: Footer) -> None:
+    """The summary section's CRC (the MCAP spec's footer ``summary_crc``: every byte from the
+    summary's start through the footer's ``summary_offset_start``; 0: not computed). The
+    mcap reader does not check it, and the summary is what ``dobhil log info`` counts
+    messages with and where the channels' names come from: a flipped bit there would print
+    false figures. Damage is named at the summary's first byte."""
+    if footer.summary_start == 0 or footer.summary_crc == 0:
+        return
+    here = f.tell()
+    f.seek(footer.summary_start)
+    covered = f.read(footer_at + _FOOTER_COVERED - footer.summary_start)
+    f.seek(here)
+    if zlib.crc32(covered) != footer.summary_crc:
+        raise _fail(path, f"damaged at byte {footer.summary_start} (the summary section's CRC does not match); "
+                          "`dobhil log recover` saves the intact chunks")
+
+
 def _check_library(path: str | os.PathLike[str], header: Any) -> None:
     if not isinstance(header, Header) or not header.library.startswith("dobhil/"):
         library = getattr(header, "library", "") or "an unnamed writer"
@@ -173,6 +195,8 @@ class LogFile:
                     self.chunks.append((pos, record.uncompressed_size))
                 elif isinstance(record, Statistics):
                     self.statistics = record
+                elif isinstance(record, Footer):
+                    _check_summary(f, path, pos, record)
         self.config: Any = _validate_metadata(path, self.metadata)
 
     def __enter__(self) -> LogFile:  # nothing is held open between reads: ``with`` only reads well

@@ -89,6 +89,35 @@ def test_recover_keeps_every_chunk_but_the_damaged_one(recorded: Path, tmp_path:
     assert open_log(tmp_path / "saved.mcap").info().message_count == report.message_count
 
 
+def damage_the_summary(src: Path, dst: Path) -> int:
+    """A copy of ``src`` with one bit flipped in its Statistics record's message count (what
+    ``dobhil log info`` prints), found by walking the summary section's records (opcode,
+    length, body; the MCAP spec); the summary section's start."""
+    data = bytearray(src.read_bytes())
+    footer_at = len(data) - 8 - (1 + 8 + 8 + 8 + 4)   # the Footer, then the closing magic
+    assert data[footer_at] == 0x02
+    start = pos = int.from_bytes(data[footer_at + 9:footer_at + 17], "little")
+    while data[pos] != 0x0B:   # Statistics
+        pos += 1 + 8 + int.from_bytes(data[pos + 1:pos + 9], "little")
+        assert pos < footer_at, "no Statistics record"
+    data[pos + 1 + 8] ^= 0x01   # the low byte of message_count, the record's first field
+    dst.write_bytes(bytes(data))
+    return start
+
+
+@pytest.mark.parametrize("command", ["info", "export-csv", "replay", "report"])
+def test_a_damaged_summary_is_one_line_not_false_figures(recorded: Path, tmp_path: Path, command: str,
+                                                         capsys: pytest.CaptureFixture[str]) -> None:
+    """The summary section (the message counts, the channels' names that ``log info`` and
+    the readers use) is checked by its CRC: a flipped bit there is one line naming the byte,
+    not figures that lie with exit 0; ``log recover`` rebuilds it from the intact chunks."""
+    bad = tmp_path / "damaged-summary.mcap"
+    start = damage_the_summary(recorded, bad)
+    one_line(capsys, readers(bad, tmp_path)[command], "damaged at byte", str(start), "summary section's CRC")
+    report = recover(bad, tmp_path / "saved.mcap")
+    assert report.message_count == open_log(recorded).info().message_count
+
+
 def write_foreign(path: Path) -> None:
     """Another tool's MCAP: several channels, protobuf and JSON."""
     with open(path, "wb") as f:
