@@ -128,7 +128,9 @@ def _check_summary(f: BinaryIO, path: str | os.PathLike[str], footer_at: int, fo
                           "`dobhil log recover` saves the intact chunks")
 
 
-def _check_library(path: str | os.PathLike[str], header: Any) -> None:
+def check_library(path: str | os.PathLike[str], header: Any) -> None:
+    """LogFileError unless ``header`` is a dobhil log's (its library ``dobhil/...``): another
+    tool's MCAP has none of the topics, schemas and metadata the commands read."""
     if not isinstance(header, Header) or not header.library.startswith("dobhil/"):
         library = getattr(header, "library", "") or "an unnamed writer"
         raise _fail(path, f"not a dobhil log (written by {library!r})")
@@ -172,7 +174,7 @@ class LogFile:
             if f.read() != MAGIC or size < 2 * len(MAGIC) + 9:
                 f.seek(len(MAGIC))
                 try:
-                    _check_library(path, next(StreamReader(f, skip_magic=True).records))
+                    check_library(path, next(StreamReader(f, skip_magic=True).records))
                 except LogFileError:
                     raise
                 except Exception:
@@ -182,7 +184,7 @@ class LogFile:
             for pos, record in _records(f, path):
                 if isinstance(record, Header):
                     self.library = record.library
-                    _check_library(path, record)
+                    check_library(path, record)
                 elif isinstance(record, Schema):
                     self.schemas[record.id] = record
                 elif isinstance(record, Channel):
@@ -368,4 +370,5 @@ def _chunk_messages(records: bytes, wanted: Mapping[int, str]) -> Iterator[tuple
 open_log = LogFile
 
 
-__all__ = ["MAGIC", "ChannelInfo", "LogFile", "LogInfo", "check_mcap_head", "decoder_for", "encoding_for", "open_log"]
+__all__ = ["MAGIC", "ChannelInfo", "LogFile", "LogInfo", "check_library", "check_mcap_head", "decoder_for",
+           "encoding_for", "open_log"]

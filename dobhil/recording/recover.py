@@ -17,7 +17,7 @@ from mcap.writer import Writer
 
 from dobhil.errors import LogFileError
 from dobhil.files import atomic_path, check_output
-from dobhil.recording.reader import check_mcap_head
+from dobhil.recording.reader import check_library, check_mcap_head
 from dobhil.recording.writer import CHUNK_SIZE, COMPRESSION, LIBRARY
 
 ProgressFn = Callable[[int], None]
@@ -112,8 +112,12 @@ def recover(path: str | os.PathLike[str], out: str | os.PathLike[str] | None = N
         try:  # until the footer or the first unreadable record
             for record in StreamReader(source, emit_chunks=True, record_size_limit=os.fstat(source.fileno()).st_size
                                        ).records:
+                if pos == 0:   # the header: another tool's MCAP is not made a dobhil log here
+                    check_library(path, record)
                 copier.copy(record)
                 pos = source.tell()
+        except LogFileError:
+            raise
         except Exception as exc:  # the data ends or is damaged here
             why = f"cut short or damaged at byte {pos} ({type(exc).__name__})"
         if not copier.counts:   # an empty recording would only look like a recovered one

@@ -141,6 +141,16 @@ def test_a_foreign_mcap_is_one_line(tmp_path: Path, command: str, capsys: pytest
     one_line(capsys, readers(path, tmp_path)[command], "not a dobhil log", "other-tool/2.0")
 
 
+def test_recover_does_not_make_a_foreign_mcap_a_dobhil_log(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """``log recover`` writes its copy as dobhil's: of another tool's MCAP it would make a
+    file every command then takes for a dobhil log (and ``log export --can`` failed on its
+    frames). Refused as every other reader refuses it; nothing written."""
+    path = tmp_path / "foreign.mcap"
+    write_foreign(path)
+    one_line(capsys, ["log", "recover", str(path)], "not a dobhil log", "other-tool/2.0")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["foreign.mcap"]
+
+
 @pytest.mark.parametrize(("key", "value", "words"), [
     ("design.delay_samples", "-3", ("invalid recorded config", "delay_samples")),
     ("loop.period", '"fast"', ("invalid recorded config", "loop.period")),
