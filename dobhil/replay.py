@@ -25,7 +25,7 @@ from numpy.typing import NDArray
 from dobhil.config.schema import Config
 from dobhil.drives.decode import decode_motion, recorded_profile
 from dobhil.drives.profile import DriveProfile
-from dobhil.errors import LogFileError, exception_line
+from dobhil.errors import ConfigError, LogFileError, exception_line
 from dobhil.recording.axes import AxisLog, axis_log, axis_logs
 from dobhil.recording.reader import LogFile, open_log
 from dobhil.recording.schemas import CAN_MESSAGE_DEFAULTS, CAN_MESSAGE_FIELDS, can_frame_message_of
@@ -141,22 +141,40 @@ def recorded_config(log: LogFile | AxisLog, overrides: Sequence[str] = ()) -> Co
     return build_config({**log.config.flat(), **mine}, source=f"{log.path} config")
 
 
+#: what a replay re-runs is the recorded controller (dobhil.runtime.session.build_controller) on
+#: the recorded feedback: its design, its torque limit and its mode are all ``--set`` can change.
+#: The plant, the environment, the sensor, the reference, the drive and the loop's timing are
+#: the recording's (its frames, its references, its profile from the log's metadata).
+REPLAYED: Final = ("design.", "loop.torque_limit", "loop.mode")
+
+
+def _replayed(item: str, key: str) -> None:
+    """ConfigError unless ``key`` is one a replay applies (:data:`REPLAYED`): another would be
+    reported as applied and change nothing."""
+    if not key.startswith(REPLAYED):
+        raise ConfigError(f"--set {item}: a replay re-runs the recorded controller on the recorded feedback; "
+                          "it takes design.* keys, loop.torque_limit and loop.mode (the plant, environment, "
+                          "sensor, reference, drive and the loop's timing are the recording's)")
+
+
 def axis_overrides(log: LogFile | AxisLog, overrides: Sequence[str]) -> dict[str, Any]:
     """The ``--set`` overrides of ``log``'s axis: ``axes.NAME.key`` of this axis as ``key``,
-    of another axis of the log left out, of no axis of the log refused."""
+    of another axis of the log left out, of no axis of the log refused; a key the replay does
+    not apply (:data:`REPLAYED`) refused for every axis."""
     from dobhil.config import parse_override
-    from dobhil.errors import ConfigError
     name, axes = (log.name, log.axes) if isinstance(log, AxisLog) else (None, ())
     out: dict[str, Any] = {}
     for item in overrides:
         key, value = parse_override(item)
         if not key.startswith("axes."):
+            _replayed(item, key)
             out[key] = value
             continue
         parts = key.split(".")
         if len(parts) != 4 or parts[1] not in axes:
             raise ConfigError(f"--set {item}: expected axes.NAME.section.key=value with NAME one of the log's "
                               f"axes ({', '.join(axes) or 'none: a single-axis log takes section.key=value'})")
+        _replayed(item, ".".join(parts[2:]))
         if parts[1] == name:
             out[".".join(parts[2:])] = value
     return out

@@ -26,7 +26,10 @@ def _refused(args: list[str], kept: Path, capsys: pytest.CaptureFixture[str]) ->
     assert kept.read_bytes() == before
 
 
-def test_sweep_and_replay_spare_the_reference_they_read(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+def test_sweep_spares_the_reference_it_reads_and_replay_takes_none(tmp_path: Path,
+                                                                   capsys: pytest.CaptureFixture[str]) -> None:
+    """A replay reads no reference file (its references are the recording's): a --set of one
+    is refused as a key the replay does not apply, and the file is left as it was."""
     csv = tmp_path / "ref.csv"
     csv.write_text(CSV)
     uses = ["--set", "reference.kind=csv", "--set", f"reference.file={csv}"]
@@ -34,7 +37,10 @@ def test_sweep_and_replay_spare_the_reference_they_read(tmp_path: Path, capsys: 
     log = tmp_path / "run.mcap"
     assert main(["run", "demo", "--emulate", "--lockstep", "--set", "loop.duration=0.05", "--log", str(log)]) == 0
     capsys.readouterr()
-    _refused(["replay", str(log), *uses, "--out", str(csv)], csv, capsys)
+    assert main(["replay", str(log), *uses, "--out", str(csv)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "--set reference.kind=csv: a replay re-runs the recorded controller" in err, err
+    assert csv.read_text() == CSV
 
 
 def test_tune_spares_the_drive_profile_it_reads(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

@@ -45,22 +45,10 @@ def run(args: argparse.Namespace) -> int:
     return _run_one(args, axes[0])
 
 
-#: keys whose value is a file the replay then reads
-_FILE_KEYS = ("reference.file", "drive.profile")
-
-
-def _files_set(overrides: list[str]) -> list[str]:
-    """The files ``--set`` names for the replay to read (a csv reference, a drive profile):
-    inputs its outputs may not overwrite."""
-    pairs = [o.partition("=") for o in overrides]   # an axis' key too: axes.NAME.reference.file
-    return [value.strip() for key, sep, value in pairs
-            if sep and value.strip() and key.strip().endswith(_FILE_KEYS)]
-
-
 def _run_one(args: argparse.Namespace, axis: Any) -> int:
     from dobhil.files import check_output
     from dobhil.replay import replay_axis
-    inputs = [args.file, *_files_set(args.overrides)]
+    inputs = [args.file]
     if args.out:
         check_output(args.out, inputs=inputs, suffix=".csv", what="--out")
     if args.plot:
@@ -93,7 +81,7 @@ def _run_axes(args: argparse.Namespace, axes: Any) -> int:
     from dobhil.replay import replay_axis
     for axis in axes:
         if args.out:
-            check_output(_per_axis(args.out, axis.name), inputs=[args.file, *_files_set(args.overrides)],
+            check_output(_per_axis(args.out, axis.name), inputs=[args.file],
                          suffix=".csv", what="--out")
         if args.plot:
             check_output(_per_axis(args.plot, axis.name), inputs=[args.file], suffix=".png", what="--plot")

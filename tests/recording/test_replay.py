@@ -84,6 +84,21 @@ def test_override_shows_another_tuning(recorded: Path, tmp_path: Path, capsys: p
     assert csv_path.read_text().count("\n") == 401 and png.stat().st_size > 10000
 
 
+@pytest.mark.parametrize("key", ["plant.inertia=0.3", "environment.stiffness=1", "drive.profile=/nonexist.yaml",
+                                 "drive.node_id=99", "reference.amplitude=2", "sensor.velocity_noise=0.1",
+                                 "loop.period=0.002"])
+def test_a_key_the_replay_does_not_apply_is_refused(recorded: Path, key: str,
+                                                    capsys: pytest.CaptureFixture[str]) -> None:
+    """A replay re-runs the recorded controller on the recorded feedback: a --set it would
+    not apply (the plant, the environment, the drive, the reference, the sensor, the loop's
+    timing are the recording's) is one line, exit 2 -- not 'replayed with KEY' and
+    'identical' as if it had been tried."""
+    assert main(["replay", str(recorded), "--verify", "--set", key]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and f"--set {key}: a replay re-runs the recorded controller" in err, err
+    assert "design.* keys, loop.torque_limit and loop.mode" in err
+
+
 @pytest.mark.parametrize("command", ["replay", "report"])
 @pytest.mark.parametrize("case", ["empty", "not-mcap", "truncated", "missing"])
 def test_bad_files_one_line_exit_2(recorded: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str],
