@@ -37,6 +37,8 @@ def _names(profile_name: str) -> tuple[DriveProfile, ProtocolCodes]:
     ("dm4310", {0: "disabled", 1: "enabled", 13: "communication lost", 5: "state 0x5"},
      {0: "none", 13: "communication lost", 0x100: "at rail", 0x101: "bad layout"}),
     ("ak80-9", {-1: "none (the reply carries no mode)"}, {2: "over current", 77: "0x4D"}),
+    # a log with no mode recorded (before protocol_state: an old log) says so, not "mode -1"
+    ("moteus-r4.11", {-1: "not reported", 10: "POSITION", 0: "STOPPED"}, {0: "0 (none)"}),
 ])
 def test_each_protocol_names_its_codes_in_its_own_words(profile_name: str, states: dict[int, str],
                                                        errors: dict[int, str]) -> None:

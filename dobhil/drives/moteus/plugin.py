@@ -32,7 +32,9 @@ class MoteusProtocol(DriveProtocol):
         return EmulatedMoteus
 
     def state_name(self, profile: DriveProfile, code: int) -> str:
-        return mode_text(code)
+        # a mode is 0 or more; below it the code is none of the controller's (a log with no
+        # state recorded yet): the number, which the log's reader names "not reported"
+        return mode_text(code) if code >= 0 else str(code)
 
     def error_text(self, profile: DriveProfile, code: int) -> str:
         return fault_text(code)
