@@ -219,8 +219,10 @@ class LogFile:
         if topic not in self.topics():
             axes = _axis_names(self.metadata)
             if axes:   # a several-axis log (dobhil.recording.axeslog): say so, not 40 topics
+                # the example a topic of the axis (/axis/NAME alone names no topic: one of its own)
+                under = topic if not topic.startswith("/axis/") and topic != "/" else "/controller"
                 raise _fail(self.path, f"no topic {topic!r}: a log of several axes ({', '.join(axes)}), each "
-                                       f"axis' topics under /axis/<name> (e.g. /axis/{axes[0]}{topic})")
+                                       f"axis' topics under /axis/<name> (e.g. /axis/{axes[0]}{under})")
             raise _fail(self.path, f"no topic {topic!r}; available: {', '.join(self.topics()) or 'none'}")
 
     def encodings(self) -> tuple[str, ...]:

@@ -392,6 +392,11 @@ def test_a_single_axis_tool_names_the_axes(recorded: tuple[Path, Path, Any],
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "a log of several axes (left, right, wrist)" in err[0]
     assert "/axis/left/controller" in err[0]
+    # an axis' prefix alone names no topic: the example is one of its topics, not the prefix twice
+    assert main(["log", "export", str(recorded[0]), "--topic", "/axis/left", "--format", "csv",
+                 "-o", str(recorded[0].with_suffix(".csv"))]) == 2
+    err = capsys.readouterr().err
+    assert "(e.g. /axis/left/controller)" in err and "/axis/left/axis/left" not in err, err
 
 
 def test_a_real_time_several_axis_log_replays_bit_for_bit(tmp_path: Path) -> None:
