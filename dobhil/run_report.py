@@ -386,6 +386,17 @@ def command_delay_periods(data: RunData) -> int | None:
     return value if isinstance(value, int) and not isinstance(value, bool) else None
 
 
+def coupled_to(data: RunData) -> list[str]:
+    """The axes ``data``'s axis is coupled to in its log (the ``axes`` record's couplings,
+    ``dobhil.recording.axeslog``); none in a single-axis log."""
+    try:
+        couplings = json.loads(data.metadata.get("axes", {}).get("couplings", "[]"))
+        return sorted({str(c["b"] if c["a"] == data.axis else c["a"]) for c in couplings
+                       if data.axis in (c["a"], c["b"])})
+    except (ValueError, TypeError, KeyError):   # a record this version cannot read: no coupling known
+        return []
+
+
 def design_config(data: RunData) -> Config | None:
     """The recorded config as the run used it: with the drive protocol's command delay
     (:func:`dobhil.drives.timing.with_command_delay`, as the run's controller had it)."""
@@ -464,6 +475,11 @@ def prediction(data: RunData, contact: Contact | None = None,
     config = design_config(data)
     if config is None:
         return None, {"available": False, "why": "no recorded config"}
+    partners = coupled_to(data)
+    if partners:   # its loop is the coupled one: one axis' model alone would predict another run
+        return None, {"available": False, "coupled": partners,
+                      "why": f"axis {data.axis} is coupled to {', '.join(partners)} (environment.coupling): "
+                             "its loop is the coupled loop, which `dobhil analyze` of the axes config analyses"}
     if config.design.delay_samples > MAX_PREDICTION_DELAY:
         return None, {"available": False, "why": f"design.delay_samples = {config.design.delay_samples} "
                                                   f"is above {MAX_PREDICTION_DELAY} (the model would be too large)"}
@@ -615,7 +631,7 @@ def summary_text(s: Mapping[str, Any]) -> str:
         lines.append(f"estimation: RMS(tau_int^ - tau_int) {nm(s['estimation']['rms_error'])}, "
                      f"max {nm(s['estimation']['max_error'])}")
     p = s["prediction"]
-    if p.get("unstable"):
+    if p.get("unstable") or p.get("coupled"):
         lines.append(f"analysis prediction: none ({p['why']})")
     if p.get("available"):
         lines.append(f"analysis prediction vs measured tau_int^: RMS {nm(p['rms_difference'])}, "

@@ -157,6 +157,9 @@ def test_a_real_time_coupled_run_is_logged_verified_and_reported_per_axis(
     out = capsys.readouterr().out
     for name in AXES:
         assert f"axis {name}:" in out
+        # a coupled axis' loop is the coupled one: no single-axis prediction, and not "unstable"
+        assert f"analysis prediction: none (axis {name} is coupled to " in out, out
+    assert "unstable" not in out, out
     assert "bus socketcan:can0 (axes left, right)" in out
 
 
