@@ -107,6 +107,7 @@ class RunData:
     states: list[dict[str, Any]] = field(default_factory=list)
     axis: str = "axis"   # the axis' name ("axis" in a single-axis log)
     bus: str = ""        # the name of the axis' bus
+    coupled_to: tuple[str, ...] = ()   # the axes it is coupled to (AxisLog.coupled_to)
 
     def has(self, name: str) -> bool:
         return name in self.signals and bool(np.any(np.isfinite(self.signals[name])))
@@ -150,7 +151,7 @@ def load_axis(log: AxisLog, progress: ProgressFn | None = None) -> RunData:
         run = _assemble(name, log.config, log.metadata, per, frames, ext, times, events, bounds)
         run.states = drive_states(per["states"], _codes(log))
     run.frame_times = frame_times
-    run.axis, run.bus = log.name, log.bus
+    run.axis, run.bus, run.coupled_to = log.name, log.bus, log.coupled_to
     return run
 
 
@@ -386,17 +387,6 @@ def command_delay_periods(data: RunData) -> int | None:
     return value if isinstance(value, int) and not isinstance(value, bool) else None
 
 
-def coupled_to(data: RunData) -> list[str]:
-    """The axes ``data``'s axis is coupled to in its log (the ``axes`` record's couplings,
-    ``dobhil.recording.axeslog``); none in a single-axis log."""
-    try:
-        couplings = json.loads(data.metadata.get("axes", {}).get("couplings", "[]"))
-        return sorted({str(c["b"] if c["a"] == data.axis else c["a"]) for c in couplings
-                       if data.axis in (c["a"], c["b"])})
-    except (ValueError, TypeError, KeyError):   # a record this version cannot read: no coupling known
-        return []
-
-
 def design_config(data: RunData) -> Config | None:
     """The recorded config as the run used it: with the drive protocol's command delay
     (:func:`dobhil.drives.timing.with_command_delay`, as the run's controller had it)."""
@@ -475,9 +465,9 @@ def prediction(data: RunData, contact: Contact | None = None,
     config = design_config(data)
     if config is None:
         return None, {"available": False, "why": "no recorded config"}
-    partners = coupled_to(data)
+    partners = data.coupled_to
     if partners:   # its loop is the coupled one: one axis' model alone would predict another run
-        return None, {"available": False, "coupled": partners,
+        return None, {"available": False, "coupled": list(partners),
                       "why": f"axis {data.axis} is coupled to {', '.join(partners)} (environment.coupling): "
                              "its loop is the coupled loop, which `dobhil analyze` of the axes config analyses"}
     if config.design.delay_samples > MAX_PREDICTION_DELAY:

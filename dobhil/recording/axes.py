@@ -44,6 +44,11 @@ class Layout:
     couplings: tuple[Mapping[str, Any], ...] = ()
     listed: bool = True
 
+    def partners(self, name: str) -> tuple[str, ...]:
+        """The axes ``name`` is coupled to (``environment.coupling``), sorted."""
+        return tuple(sorted({str(c.get("b") if c.get("a") == name else c.get("a"))
+                             for c in self.couplings if name in (c.get("a"), c.get("b"))}))
+
 
 def layout(log: LogFile) -> Layout:
     """The axes of ``log`` (a single-axis log: one axis named ``axis`` on its one bus)."""
@@ -82,6 +87,8 @@ class AxisLog:
         self.file, self.name, self.path, self.listed = log, name, log.path, lay.listed
         self.bus = lay.bus_of[name]
         self.axes = lay.names
+        #: the axes this one is coupled to (none in a single-axis log)
+        self.coupled_to = lay.partners(name)
         own, bus = (axis_prefix(name), lay.buses[self.bus]) if lay.listed else ("", "")
         #: topic in the file -> the name this axis reads it by
         self._names: dict[str, str] = {}
