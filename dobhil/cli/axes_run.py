@@ -211,18 +211,10 @@ def tell_unfinished(session: Any, prog: str) -> None:
 def report(info: dict[str, Any], stop_line: str, *, prog: str, as_json: bool) -> None:
     """The run's account: the summary (or its JSON), the stop line, the loud line last,
     whatever stdout does (:func:`dobhil.cli.stop_lines.stop_said`)."""
-    from dobhil.cli.stop_lines import stop_said
+    from dobhil.cli.stop_lines import say_last, stop_said
     warning = info.get("drive_warning") or ""
     notes = "; ".join(f"axis {n}: {a['drive_note']}" for n, a in info["axes"].items() if a.get("drive_note"))
-
-    def last_word() -> None:
-        if info.get("log_error"):   # the log's end failed after the run stopped for another reason
-            sys.stderr.write(f"{prog}: {info['log_error']}\n")
-        if warning:
-            sys.stderr.write(f"WARNING: {warning}\n")
-        elif notes:
-            sys.stderr.write(f"NOTE: {notes}\n")
-    with stop_said(prog, stop_line, last_word):
+    with stop_said(prog, stop_line, lambda: say_last(prog, info.get("log_error") or "", warning, notes)):
         if as_json:
             json.dump(info, sys.stdout)
             sys.stdout.write("\n")

@@ -12,7 +12,7 @@ from typing import Any
 from dobhil.cli.axis_option import add_axis_arg, select_axis
 from dobhil.cli.common import EXIT_STOPPED, add_config_args, config_from_args, output_path
 from dobhil.cli.preflight_lines import report_preflight, tell_refusal
-from dobhil.cli.stop_lines import flush_stdout, say_safe_stop, stop_said
+from dobhil.cli.stop_lines import flush_stdout, say_last, say_safe_stop, stop_said
 from dobhil.cli.stability_gate import add_gate_args
 
 
@@ -134,14 +134,6 @@ def tell_unfinished(session: Any) -> None:
     say_safe_stop(safe_stop.warning(), safe_stop.note())
 
 
-def last_words(info: dict[str, Any], warning: str, note: str) -> None:
-    """A run's account ends so: its log's failure if the log could not be finished after the
-    run stopped for another reason (``log_error``: one line), then :func:`say_safe_stop`."""
-    if info.get("log_error"):
-        sys.stderr.write(f"dobhil run: {info['log_error']}\n")
-    say_safe_stop(warning, note)
-
-
 def warn_budget(session: Any) -> None:
     """A bus budget over 70 % (and at most 100 %: over it :func:`run_checked` refused the
     run) is said, not refused (the frames still fit; late feedback then shows in the run's
@@ -196,7 +188,8 @@ def report(info: dict[str, Any], stop_line: str, *, as_json: bool) -> None:
     """The run's account: the summary (or its JSON) and the stop line, the loud line last
     (:func:`stop_said`)."""
     warning, stopped = info.get("drive_warning") or "", info.get("drive_note") or ""
-    with stop_said("dobhil run", stop_line, lambda: last_words(info, warning, stopped)):
+    log_error = info.get("log_error") or ""
+    with stop_said("dobhil run", stop_line, lambda: say_last("dobhil run", log_error, warning, stopped)):
         _account(info, stop_line, as_json=as_json)
 
 

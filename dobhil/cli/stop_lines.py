@@ -18,6 +18,15 @@ def say_safe_stop(warning: str, note: str) -> None:
         sys.stderr.write(f"NOTE: {note}\n")
 
 
+def say_last(prog: str, log_error: str, warning: str, note: str) -> None:
+    """A run's last lines on stderr: its log's failure when the log could not be finished
+    after the run stopped for another reason (``log_error``, one line), then
+    :func:`say_safe_stop`."""
+    if log_error:
+        sys.stderr.write(f"{prog}: {log_error}\n")
+    say_safe_stop(warning, note)
+
+
 def flush_stdout() -> None:
     """What the run printed, flushed if stdout can take it: before an error's stop line on
     stderr, a stdout that cannot be written (its own error follows from main()) must not
@@ -44,4 +53,4 @@ def stop_said(prog: str, stop_line: str, last_word: Callable[[], None]) -> Itera
         last_word()
 
 
-__all__ = ["flush_stdout", "say_safe_stop", "stop_said"]
+__all__ = ["flush_stdout", "say_last", "say_safe_stop", "stop_said"]
