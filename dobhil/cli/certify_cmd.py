@@ -16,7 +16,6 @@ from dobhil.errors import ConfigError
 if TYPE_CHECKING:
     from dobhil.analysis.certify import Box, ContinuousCertificate
     from dobhil.analysis.certify_sampled import SampledCertificate
-    from dobhil.analysis.disk_margin import DiskMargin
     from dobhil.config.schema import Config
 
 #: exit code when a loop asked for is not certified (refuted, or undecided)
@@ -30,8 +29,8 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
                        description=(
                            "Continuous loop: exact, by the edge theorem (every edge of the box an exact "
                            "one-parameter stability interval); with the gain margin in C_f over the box and "
-                           "the disk margin at its worst point. Sampled loop: interval enclosures of the "
-                           "sampled plant and a Lyapunov bound, refined by bisection. Each answer is "
+                           "the smallest disk margin a search of the box meets. Sampled loop: interval "
+                           "enclosures of the sampled plant and a Lyapunov bound, refined by bisection. Each answer is "
                            "certified, refuted at a point, or (sampled) undecided after N refinements. "
                            "See docs/certify.md."))
     add_config_args(p)
@@ -80,26 +79,23 @@ def certify(config: Config, box: Box, *, loops: str = "both", refinements: int |
     refinements = DEFAULT_REFINEMENTS if refinements is None else refinements
     out: dict[str, Any] = {"box": {k: [lo, hi] for k, lo, hi in zip(box.keys, box.lo, box.hi)},
                            "force_gain": float(config.design.force_gain)}
-    # the disk margins are given where the continuous gain margin is smallest (or at the
-    # refuting point, where they say "unstable"); the box's centre when nothing else is known
-    # (a margin unbounded both ways has no smallest point: the centre then)
-    worst: Mapping[str, float] = box.centre()
-    where = "the box's centre"
+    # each loop's disk margin where it is unstable when refuted (at the refuting point), else
+    # the smallest a search of the box meets, started also where the gain margin is worst
+    refuting: dict[str, Mapping[str, float]] = {}
+    starts: list[Mapping[str, float]] = []
     if loops in ("both", "continuous"):
         cont = certify_continuous(config, box)
         out["continuous"] = _continuous(cont)
-        if cont.gain_margin is not None and cont.gain_margin.worst_at:
-            worst, where = cont.gain_margin.worst_at, "smallest continuous gain margin"
-        elif cont.point is not None:
-            worst, where = cont.point, "refuting point"
+        if cont.point is not None:
+            refuting["continuous"] = cont.point
+        elif cont.gain_margin is not None and cont.gain_margin.worst_at:
+            starts.append(cont.gain_margin.worst_at)
     if loops in ("both", "sampled"):
         samp = certify_sampled(config, box, refinements=refinements)
         out["sampled"] = _sampled(samp)
-        if loops == "sampled" and samp.point is not None:
-            worst, where = samp.point, "refuting point"
-    out["disk_margin_at"] = dict(worst)
-    out["disk_margin_where"] = where
-    out["disk_margin"] = {name: _disk(config, worst, name == "sampled")
+        if samp.point is not None:
+            refuting["sampled"] = samp.point
+    out["disk_margin"] = {name: _disk(config, box, name == "sampled", refuting.get(name), starts)
                           for name in ("continuous", "sampled") if name in out}
     out["certified"] = all(out[name]["verdict"] == "certified" for name in ("continuous", "sampled")
                            if name in out)
@@ -123,22 +119,22 @@ def _sampled(s: SampledCertificate) -> dict[str, Any]:
             "sub_boxes_closed": s.closed}
 
 
-def _disk(config: Config, point: Mapping[str, float], sampled: bool) -> dict[str, Any] | None:
-    """The balanced disk margin at ``point``, None where that loop is unstable."""
-    import numpy as np
-    from dobhil.analysis.certify import params_at
-    from dobhil.analysis.disk_margin import disk_margin
-    from dobhil.analysis.stability import is_stable
-    from dobhil.synthesis.loop import loop
-    params = params_at(config, point)
-    poles = np.linalg.eigvals(loop(params, sampled=sampled).a).astype(complex)
-    if not bool(is_stable(poles[None], sampled)[0]):
-        return None
-    a, b, c, _ = loop(params, sampled=sampled, force_gain=0.0).siso("tau_per", "tau_int_hat")
-    dm: DiskMargin = disk_margin(a, b, c, float(config.design.force_gain),
-                                 period=float(config.loop.period) if sampled else None)
-    return {"alpha": _num(dm.alpha), "gain_db": _num(dm.gain_db), "phase_deg": dm.phase_deg,
-            "frequency": dm.frequency}
+def _disk(config: Config, box: Box, sampled: bool, refuting: Mapping[str, float] | None,
+          starts: list[Mapping[str, float]]) -> dict[str, Any]:
+    """The balanced disk margin at the refuting point (there: unstable), or the smallest
+    :func:`dobhil.analysis.worst_disk.smallest_disk_margin` meets over the box."""
+    from dobhil.analysis.worst_disk import disk_margin_at, smallest_disk_margin
+    if refuting is not None:
+        point, margin, where, points = dict(refuting), disk_margin_at(config, refuting, sampled), "refuting point", 1
+    else:
+        worst = smallest_disk_margin(config, box, sampled=sampled, starts=starts)
+        point, margin, points = worst.point, worst.margin, worst.points
+        where = f"the smallest of {points} points searched; not a bound"
+    out: dict[str, Any] = {"at": point, "where": where, "points": points, "stable": margin is not None}
+    if margin is not None:
+        out.update(alpha=_num(margin.alpha), gain_db=_num(margin.gain_db), phase_deg=margin.phase_deg,
+                   frequency=margin.frequency)
+    return out
 
 
 def _num(x: float) -> float | None:
@@ -152,9 +148,9 @@ def text_lines(answer: Mapping[str, Any]) -> list[str]:
         lines.append("continuous loop (edge theorem): " + _continuous_text(answer["continuous"]))
     if "sampled" in answer:
         lines.append("sampled loop (interval enclosure + Lyapunov bound): " + _sampled_text(answer["sampled"]))
-    at = f"{_point_text(answer['disk_margin_at'])} ({answer['disk_margin_where']})"
     for name, dm in answer["disk_margin"].items():
-        if dm is None:
+        at = f"{_point_text(dm['at'])} ({dm['where']})"
+        if not dm["stable"]:
             lines.append(f"disk margin ({name}) at {at}: the loop is unstable there")
         else:
             gain = "inf" if dm["gain_db"] is None else f"{dm['gain_db']:.3g}"

@@ -31,24 +31,57 @@ def test_the_tuned_design_is_certified_in_the_continuous_loop(capsys: pytest.Cap
     assert cont["verdict"] == "certified" and cont["edges"] == 4 and cont["edges_unstable"] == 0
     # (the margin itself is checked against eigenvalues in test_certify.py)
     assert cont["gain_margin"]["db"] > 6.0 and cont["gain_margin"]["down"] is None   # unbounded below
-    assert answer["disk_margin_at"] == cont["gain_margin"]["up_at"]
-    assert answer["disk_margin_where"] == "smallest continuous gain margin"
-    assert answer["disk_margin"]["continuous"]["gain_db"] <= cont["gain_margin"]["db"] + 1e-9
+    disk = answer["disk_margin"]["continuous"]
+    assert disk["stable"] and "points searched; not a bound" in disk["where"]
+    assert disk["gain_db"] <= cont["gain_margin"]["db"] + 1e-9
 
 
-def test_a_margin_unbounded_both_ways_gives_the_disk_margin_at_the_box_centre(
-        capsys: pytest.CaptureFixture[str]) -> None:
-    """A soft box and a small C_f: stable for every scaling of C_f, so no point has the
-    smallest gain margin; the disk margin is the one at the box's centre (inside the box,
-    not the config's own stiffness outside it), and the line says where."""
-    box = ["--range", "environment.stiffness=100:1000", "--set", "design.force_gain=0.1"]
-    assert main(["certify", "paper/fig3", *box, "--loop", "continuous", "--json"]) == 0
+def _scan_alpha(config_args: list[str], ranges: dict[str, tuple[float, float]], sampled: bool,
+                per_key: int) -> float:
+    """The smallest disk margin (alpha) on a dense grid of the box, each point on its own."""
+    import itertools
+
+    import numpy as np
+
+    from dobhil.analysis.worst_disk import disk_margin_at
+    from dobhil.config.load import load_config
+    config = load_config("paper/fig3", overrides=[a for a in config_args if a != "--set"])
+    grids = [np.geomspace(lo, hi, per_key) if lo > 0 and hi >= 10 * lo else np.linspace(lo, hi, per_key)
+             for lo, hi in ranges.values()]
+    alphas = []
+    for values in itertools.product(*grids):
+        margin = disk_margin_at(config, dict(zip(ranges, map(float, values))), sampled)
+        assert margin is not None
+        alphas.append(margin.alpha)
+    return min(alphas)
+
+
+@pytest.mark.parametrize(("sets", "ranges"), [
+    # the tuned design over the Fig. 3 box
+    (TUNED, {"environment.stiffness": (1e3, 1e5), "environment.damping": (10.0, 200.0)}),
+    # a small C_f: stable for every scaling of C_f, no smallest gain margin; the smallest
+    # disk margin inside the range (near K 3000), not at an end
+    (["--set", "design.force_gain=0.1"], {"environment.stiffness": (100.0, 1e5)}),
+    # the tuned design's smallest one inside the range too (near K 1200)
+    (TUNED, {"environment.stiffness": (100.0, 1e5)}),
+    (TUNED, {"plant.inertia": (0.05, 0.8), "environment.stiffness": (2e4, 5e4)}),
+])
+def test_the_disk_margin_is_the_smallest_a_dense_scan_finds(
+        capsys: pytest.CaptureFixture[str], sets: list[str], ranges: dict[str, tuple[float, float]]) -> None:
+    """The disk margin reported over a certified box is met at a point inside the box, and a
+    scan (60 points of one key, 12 per key of two; a key of a decade or more log-spaced)
+    finds none smaller by more than 1e-3 of it, both loops."""
+    box = [a for key, (lo, hi) in ranges.items() for a in ("--range", f"{key}={lo}:{hi}")]
+    assert main(["certify", "paper/fig3", *box, *sets, "--json"]) == 0
     answer = json.loads(capsys.readouterr().out)
-    assert answer["continuous"]["gain_margin"]["up"] is None and answer["continuous"]["gain_margin"]["down"] is None
-    assert answer["disk_margin_at"] == {"environment.stiffness": 550.0}
-    assert answer["disk_margin_where"] == "the box's centre"
-    assert main(["certify", "paper/fig3", *box, "--loop", "continuous"]) == 0
-    assert "disk margin (continuous) at environment.stiffness=550 (the box's centre): ±" in capsys.readouterr().out
+    for name in ("continuous", "sampled"):
+        disk = answer["disk_margin"][name]
+        assert disk["stable"], disk
+        assert all(lo <= disk["at"][k] <= hi for k, (lo, hi) in ranges.items()), disk
+        scanned = _scan_alpha(sets, ranges, name == "sampled", 60 if len(ranges) == 1 else 12)
+        assert disk["alpha"] <= scanned * (1 + 1e-3), (name, disk, scanned)
+    assert main(["certify", "paper/fig3", *box, *sets, "--loop", "continuous"]) == 0
+    assert "points searched; not a bound): ±" in capsys.readouterr().out
 
 
 @pytest.mark.parametrize(("args", "says"), [
