@@ -43,6 +43,9 @@ frame arrived, with zero torque in it). An answer is :attr:`Confirmation.UNCONFI
 never "safe": at a planned end of a run (``safe_stop(planned=True)``) its account is a
 note (:meth:`SafeStopReport.note`), at any other end (a fault, a timeout, a signal) the
 loud line; no answer at all is :attr:`Confirmation.NOT_ACKNOWLEDGED`, loud always.
+Whatever the protocol, a drive never heard from is safe only if it was never sent its enable
+frames (:attr:`Confirmation.NEVER_SEEN`); once they went out it may have taken them
+silently, and the stop is :attr:`Confirmation.NEVER_ANSWERED`, loud always.
 """
 
 from __future__ import annotations
@@ -145,13 +148,19 @@ class Confirmation(IntEnum):
     CONFIRMED = 0         # a status frame after the disable frames: out of torque control
     NOT_ACKNOWLEDGED = 1  # frames sent, but no status frame confirmed it in time
     NOT_SENT = 2          # a safe-stop frame could not be put on the bus
-    NEVER_SEEN = 3        # nothing was ever heard from the drive: nothing to confirm
+    #: nothing was ever heard from the drive and it was never sent its enable frames:
+    #: this host never enabled it, nothing to confirm
+    NEVER_SEEN = 3
     NOT_ASKED = 4         # sent without waiting for a confirmation (``disable()``)
     #: the protocol's frames cannot say that the drive left torque control (MIT mode on a
     #: CubeMars AK: its replies carry no mode), but the drive answered the safe-stop frames
     #: and the answer showed what the protocol can show (the report's detail): never safe;
     #: a note at a planned end, the loud line at any other
     UNCONFIRMABLE = 5
+    #: the drive was sent its enable frames but nothing was ever heard from it: a drive
+    #: that took them silently (its replies lost, a wrong reply id, a heartbeat switched
+    #: off) may be enabled, and nothing it sends can confirm the disable: loud always
+    NEVER_ANSWERED = 6
 
 
 @dataclass(frozen=True, slots=True)
@@ -186,7 +195,8 @@ class SafeStopReport:
 
     @property
     def safe(self) -> bool:
-        """Known to be out of torque control (or never heard of: never enabled by us)."""
+        """Known to be out of torque control (or never heard of and never sent its enable
+        frames: never enabled by us)."""
         return self.sent and self.confirmation in (Confirmation.CONFIRMED,
                                                    Confirmation.NEVER_SEEN,
                                                    Confirmation.NOT_ASKED)
@@ -296,6 +306,9 @@ class Drive(ABC):
         self._detail = ""
         self._fault_event: StateEvent | None = None   # the state that faulted the drive
         self._status_cache: DriveStatus | None = None
+        #: the enable frames were handed to the bus at least once: from then on a drive
+        #: never heard from may have enabled (its safe stop cannot call it NEVER_SEEN)
+        self._enable_sent = False
         #: what the last start-up (``_prepare``) could not check on the drive, one line
         #: each (nothing was refused for them); ``dobhil run`` prints them
         self.notes: list[str] = []
@@ -383,6 +396,8 @@ class Drive(ABC):
         self._set_state(DriveState.DISABLED, "")
         self._last_state = None
         self._prepare(deadline, cancel)
+        # set before the send: a send that fails part-way may have put a frame on the bus
+        self._enable_sent = True
         self._send_all(self._enable_start(), "enable")
         if self._await_enabled(deadline, cancel):
             self._set_state(DriveState.ENABLED, "")
@@ -420,6 +435,9 @@ class Drive(ABC):
             report = SafeStopReport(self.node_id, tuple(results), Confirmation.NOT_SENT, detail)
         elif not confirm:
             report = SafeStopReport(self.node_id, tuple(results), Confirmation.NOT_ASKED)
+        elif self._last_heartbeat is None and self._enable_sent:
+            report = SafeStopReport(self.node_id, tuple(results), Confirmation.NEVER_ANSWERED,
+                                    self._never_answered_detail())
         elif self._last_heartbeat is None:
             report = SafeStopReport(self.node_id, tuple(results), Confirmation.NEVER_SEEN)
         elif answer_only:
@@ -679,6 +697,11 @@ class Drive(ABC):
             return f"confirmation wait cut short: {exc}"
         except Exception as exc:  # safety path: a bus that cannot be read confirms nothing
             return f"status not readable: {exc}"
+
+    def _never_answered_detail(self) -> str:
+        """Why a drive sent its enable frames but never heard from is not safe, one line."""
+        return (f"never answered: its enable frames (for {self.active_state_text}) went out and nothing was "
+                f"heard from it since, so {self.disabled_state_text} cannot be confirmed")
 
     def _confirm_timeout(self) -> float:
         rate = self._profile.heartbeat_period

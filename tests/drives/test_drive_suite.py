@@ -118,6 +118,9 @@ class Protocol:
     confirms_disable: bool = True
     #: the feedback only answers the host's commands (MIT): the loop runs on host timing
     requests_feedback: bool = False
+    #: the drive's frames its start-up must hear before the enable frames go out (CiA 402:
+    #: the SDO answers of its set-up); none of them says what state the drive is in
+    startup_ids: frozenset[int] = frozenset()
 
     def __str__(self) -> str:
         return self.name
@@ -241,6 +244,7 @@ CIA402 = Protocol(
     # well above the profile's sdo_timeout (0.3 s): the unanswered SDO, not the enable's
     # deadline, ends it, even when opening the CANopen session is slow on a loaded machine
     no_answer_enable_timeout=2.0,
+    startup_ids=frozenset({0x580 + _C_NODE}),   # SDO server -> client
 )
 
 
@@ -421,6 +425,22 @@ MOTEUS = Protocol(
 )
 
 PROTOCOLS = {p.name: p for p in (ODRIVE, CIA402, MIT_CUBEMARS, MIT_DAMIAO, MOTEUS)}
+
+
+class HearOnly(Fault):
+    """Every frame the host receives is lost except ``keep``: a drive whose status and
+    motion frames never reach the host (a wrong reply id, a receive path that is broken),
+    while the host's frames still reach the drive."""
+
+    def __init__(self, keep: frozenset[int]) -> None:
+        super().__init__(None)
+        self.keep = keep
+
+    def apply(self, msg: can.Message, index: int, now: float) -> Sequence[can.Message]:
+        if msg.arbitration_id in self.keep:
+            return (msg,)
+        self.applied += 1
+        return ()
 
 
 class Armed(Fault):
@@ -776,6 +796,31 @@ def test_unconfirmed_safe_stop_says_so_loudly(tmp_path: Path, protocol: Protocol
         assert warning.endswith("; cut power") and "\n" not in warning
     assert out.summary["drive_warning"] == warning and out.summary["drive_disabled"] is False
     assert out.commands.torques[-1] == 0.0 and not out.settled   # still in torque control
+
+
+def test_a_drive_sent_its_enable_but_never_heard_is_loud(tmp_path: Path, protocol: Protocol,
+                                                        timing: str) -> None:
+    """The enable frames went out and reached the drive, but nothing it sent ever reached
+    the host: the enable fails, and the safe stop cannot call the drive "never seen, never
+    enabled" -- it may have taken the enable -- so every protocol ends with the loud line,
+    ``drive_disabled`` false, although the disable frames went out and did their work."""
+    config = suite_config(tmp_path, protocol, timing, enable_timeout=protocol.no_answer_enable_timeout)
+    deaf = HearOnly(protocol.startup_ids)
+    out = run(config, protocol, timing, [deaf])
+    stop, safe_stop = out.result.stop, out.result.safe_stop
+    assert stop.reason is StopReason.ENABLE_FAILED, stop.line()
+    assert safe_stop is not None and safe_stop.sent and deaf.applied > 0
+    assert safe_stop.confirmation is Confirmation.NEVER_ANSWERED and not safe_stop.safe, safe_stop
+    assert not out.result.disabled and out.summary["drive_disabled"] is False
+    assert out.summary["safe_stop"]["confirmation"] == "never_answered"
+    warning = safe_stop.warning()
+    assert warning.startswith(f"drive may still be enabled: node {protocol.node} never answered: its enable "
+                              "frames (for "), warning
+    assert warning.endswith("cannot be confirmed; cut power") and "\n" not in warning, warning
+    assert out.summary["drive_warning"] == warning and out.summary["drive_note"] == ""
+    # the disable frames went out last, and the drive that got them is out of torque control
+    assert tuple(out.commands.states[-len(protocol.last_states):]) == protocol.last_states, out.commands.states
+    assert out.settled, out.final
 
 
 def test_a_signal_stops_safely_and_loudly_where_unconfirmed(tmp_path: Path, protocol: Protocol,

@@ -224,6 +224,30 @@ def test_a_drive_that_cannot_confirm_its_disable_is_never_reported_safe(
     assert BlindDrive(host, PROFILE).safe_stop().confirmation is Confirmation.NEVER_SEEN
 
 
+@pytest.mark.parametrize("blind", [False, True], ids=["confirms", "cannot-confirm"])
+def test_a_drive_sent_its_enable_frames_but_never_heard_is_not_safe(
+        buses: tuple[can.BusABC, can.BusABC], blind: bool) -> None:
+    """Nothing is ever heard from the drive: before its enable frames went out, it was never
+    enabled by us (NEVER_SEEN, safe); once they went out, it may have taken them silently,
+    and nothing can confirm its disable (NEVER_ANSWERED, the loud line, at a planned end
+    too), whatever the protocol can confirm."""
+    host, node = buses
+    kind = BlindDrive if blind else SteppedDrive
+    assert kind(host, PROFILE).safe_stop().confirmation is Confirmation.NEVER_SEEN
+    drive = kind(host, PROFILE)
+    with pytest.raises(DriveError, match="no heartbeat from node 5 within 0.01 s"):
+        drive.enable(timeout=0.01)
+    sent = iter(lambda: node.recv(0.1), None)
+    assert START_ID in {msg.arbitration_id for msg in sent}   # the enable frame went out
+    report = drive.safe_stop(timeout=0.0, planned=True)
+    assert report.sent and report.confirmation is Confirmation.NEVER_ANSWERED
+    assert not report.safe and report.note() == ""
+    assert report.warning() == ("drive may still be enabled: node 5 never answered: its enable frames (for enabled) "
+                                "went out and nothing was heard from it since, so disable cannot be confirmed; "
+                                "cut power")
+    assert drive.status.state is DriveState.DISABLED and "disable of node 5 failed" in drive.status.detail
+
+
 class Answering(can.Listener):
     """The made-up drive's end of the bus: a status frame in answer to the disable frame."""
 

@@ -91,6 +91,26 @@ def test_the_mit_demo_converges_replays_bit_for_bit_and_reports(tmp_path: Path,
     assert all((report_dir / name).stat().st_size > 0 for name in ("force.png", "summary.json", "summary.txt"))
 
 
+def test_a_motor_that_never_replies_to_enter_motor_mode_is_the_loud_line(tmp_path: Path,
+                                                                        capsys: pytest.CaptureFixture[str]) -> None:
+    """Real time on a channel where no motor replies, without the preflight: enter motor mode
+    went out, so a motor whose replies never reach the host (a wrong mit.reply_id, a broken
+    receive path) may be in motor mode. The run says enable_failed, then the loud line; the
+    summary never calls the motor disabled."""
+    path = _profile(tmp_path, "ak80-9", enable_timeout=0.2)
+    code, out, err = _run(["run", str(MIT_DEMO), "--bus", f"virtual:mit-nobody-{id(path)}", "--no-preflight",
+                           "--set", f"drive.profile={path}", "--summary-json"], capsys)
+    assert code == 1, err
+    info = json.loads(out)
+    assert info["stop_reason"] == "enable_failed" and "after enter motor mode" in info["stop_detail"]
+    assert info["safe_stop"]["confirmation"] == "never_answered" and info["drive_disabled"] is False
+    assert [f["what"] for f in info["safe_stop"]["frames"]] == ["zero torque", "exit motor mode"]
+    warning = info["drive_warning"]
+    assert warning == ("drive may still be enabled: node 1 never answered: its enable frames (for motor mode) went "
+                       "out and nothing was heard from it since, so exit motor mode cannot be confirmed; cut power")
+    assert f"WARNING: {warning}" in err.splitlines() and info["drive_note"] == "", err
+
+
 def _profile(tmp_path: Path, name: str, *, mit: dict[str, Any] | None = None, **changes: Any) -> Path:
     data = yaml.safe_load((DRIVERS / f"{name}.yaml").read_text(encoding="utf-8"))
     data.update(changes)

@@ -25,7 +25,7 @@ import numpy as np
 import pytest
 
 from dobhil.config import Config
-from dobhil.drives.base import Feedback
+from dobhil.drives.base import Confirmation, Feedback
 from dobhil.drives.odrive import codec
 from dobhil.drives.odrive.codec import AxisState, CmdId, Firmware
 from dobhil.drives.load import load_profile
@@ -363,11 +363,14 @@ def test_exception_in_the_reference(tmp_path: Path, timing: str) -> None:
 
 def test_enable_failed_lockstep_drive_never_answers() -> None:
     """Lockstep: every frame from the drive is lost, so the enable handshake is never
-    confirmed (the profile's 1 s, simulated): enable_failed, and the disable is still sent."""
+    confirmed (the profile's 1 s, simulated): enable_failed, and the disable is still sent.
+    The drive got CLOSED_LOOP_CONTROL and may have taken it: not confirmed disabled, loud."""
     config = safety_config(Path(), "lockstep")
-    out = run_case(config, "lockstep", StopReason.ENABLE_FAILED,
+    out = run_case(config, "lockstep", StopReason.ENABLE_FAILED, confirmed=False,
                    words=["no heartbeat from node 3"], faults=[SilenceAfter(frames=0)])
     assert out.result is not None and out.result.cycles == 0
+    assert out.summary is not None and out.summary["safe_stop"]["confirmation"] == "never_answered"
+    assert str(out.summary["drive_warning"]).startswith("drive may still be enabled: node 3 never answered: ")
 
 
 def enable_failed_realtime(config: Config, channel: str) -> tuple[Stop, HostCommands, RunSession]:
@@ -377,7 +380,12 @@ def enable_failed_realtime(config: Config, channel: str) -> tuple[Stop, HostComm
         result = session.run()
         sent = assert_stopped_safely(session, sniffer, result.stop, StopReason.ENABLE_FAILED,
                                      words=["no heartbeat from node 3"], emulated=False)
-    assert result.cycles == 0 and result.disabled
+    # CLOSED_LOOP_CONTROL went out: a node 3 whose heartbeat never reached the host may have
+    # taken it, so its disable is not confirmed (the loud line), however likely no one is there
+    report = result.safe_stop
+    assert result.cycles == 0 and not result.disabled
+    assert report is not None and report.sent and report.confirmation is Confirmation.NEVER_ANSWERED
+    assert report.warning().startswith("drive may still be enabled: node 3 never answered: ")
     return result.stop, sent, session
 
 
