@@ -20,6 +20,7 @@ from dobhil.drives.axes import axis_drives, bus_budgets
 from dobhil.drives.odrive.codec import AxisState
 from dobhil.drives.odrive.emulator import EmulatedODrive
 from odrive_nodes import odrive_nodes
+from tests.runtime.helpers import HOST_WATCHES, host_watch_cases
 
 SLACK = "loop.feedback_timeout=0.05"   # the emulator threads' pauses on a loaded machine
 HOST = "loop.timing=host"              # a real bus runs in real time
@@ -142,6 +143,28 @@ def test_no_preflight_skips_it(tmp_path: Path, odrives: tuple[str, list[Emulated
     code = main(["run", str(axes_config(tmp_path, "odrive-0.6", (1, 2))), "--bus", f"virtual:{channel}",
                  "--set", SLACK, "--set", HOST, "--no-preflight", "--duration", "0.02"])
     assert code in (0, 1) and "preflight" not in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("command", ["run", "check"])
+@pytest.mark.parametrize("case", HOST_WATCHES)
+def test_a_period_an_axis_timeout_on_the_host_cannot_tolerate_is_refused(
+        command: str, case: str, tmp_path: Path, no_session: None, monkeypatch: pytest.MonkeyPatch,
+        capsys: pytest.CaptureFixture[str]) -> None:
+    """The one rule of a single axis (a command watchdog, a CiA 402 heartbeat consumer, an
+    MIT command timeout: a period of half of it refused) per axis: one line naming the
+    axis, exit 2, from run and check alike, no session and no bus opened."""
+    def no_bus(*args: object, **kwargs: object) -> None:
+        raise AssertionError("a bus was opened for a refused period")
+
+    monkeypatch.setattr("dobhil.runtime.buses.open_bus", no_bus)
+    watch = host_watch_cases(tmp_path)[case]
+    path = axes_config(tmp_path, watch.profile, (1, 2))
+    code = main([command, str(path), "--set", f"loop.period={watch.period}", "--set", "loop.feedback_timeout=0.5",
+                 *(["--emulate"] if command == "run" else ["--bus", "virtual:nobody"])])
+    captured = capsys.readouterr()
+    assert code == 2 and captured.out == "", captured.err
+    (line,) = captured.err.splitlines()
+    assert line.startswith(watch.refusal(f"dobhil {command}: error: axis j1: ")) and watch.allowed() in line, line
 
 
 @pytest.mark.parametrize("command", ["run", "check"])

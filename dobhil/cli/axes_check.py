@@ -36,13 +36,13 @@ def check_axes(args: argparse.Namespace, window: float) -> int:
     from dobhil.config import resolve_config
     from dobhil.config.axes import load_axes
     from dobhil.drives.axes import axes_budget, axis_drives
-    from dobhil.runtime.session import check_watchdog
+    from dobhil.runtime.session import check_host_watch
     if args.set_zero:
         raise ConfigError("--set-zero zeroes one drive; with a config that lists axes give the axis: --axis NAME")
     axes = load_axes(args.config, args.overrides, args.set_files)
     drives = axis_drives(axes, resolve_config(args.config).parent, args.bus)
     for d in drives:   # as dobhil run refuses it (AxesSession: check_rates), before a bus opens
-        check_watchdog(d.profile, axes.period, f"axis {d.name}: ")
+        check_host_watch(d.profile, axes.period, f"axis {d.name}: ")
     budgets = axes_budget(drives, axes.period)   # over 100 %: refused here, before a bus opens
     from dobhil.cli.axes_gate import axes_gate
     gates = list(axes_gate(axes, args.config, {d.name: d.profile for d in drives},

@@ -96,14 +96,14 @@ def preflight_axes(args: argparse.Namespace, axes: Any, path: Path, *, prog: str
     from dobhil.cli.check_cmd import window_of
     from dobhil.cli.preflight_lines import report_preflight, tell_refusal
     from dobhil.drives.axes import axes_budget, axis_drives
-    from dobhil.runtime.session import check_watchdog
+    from dobhil.runtime.session import check_host_watch
     bus = None if emulate else getattr(args, "bus", None)
     drives = axis_drives(axes, path.parent, bus)
     for budget in axes_budget(drives, axes.period):
         if budget.over:
             sys.stderr.write(f"{prog}: warning: {budget.advice()}\n")
     for d in drives:   # the session refuses it too (check_rates); here before a bus opens, as check does
-        check_watchdog(d.profile, axes.period, f"axis {d.name}: ")
+        check_host_watch(d.profile, axes.period, f"axis {d.name}: ")
     gates = axes_gate(axes, path, {d.name: d.profile for d in drives},
                       allow_unstable=args.allow_unstable, prog=prog)
     if emulate or getattr(args, "no_preflight", False):

@@ -88,8 +88,8 @@ def check(args: argparse.Namespace) -> int:
     profile = load_drive_profile(config, Path(args.config).parent)
     if args.set_zero:
         return set_zero(args, config, profile)
-    from dobhil.runtime.session import check_watchdog
-    check_watchdog(profile, config.loop.period)   # as dobhil run refuses it, before the bus opens
+    from dobhil.runtime.session import check_host_watch
+    check_host_watch(profile, config.loop.period)   # as dobhil run refuses it, before the bus opens
     refuse_budget(args, config, args.bus)
     from dobhil.cli.stability_gate import stability_gate
     # the design dobhil run would close on this drive, judged before the bus is opened

@@ -33,8 +33,8 @@ if TYPE_CHECKING:
     from dobhil.drives.emulated import EmulatedDrive
     from dobhil.drives.preflight import PreflightProbe
 
-__all__ = ["CodecQuantisation", "DriveProtocol", "FeedbackField", "FrameIds", "ZeroResult", "classic_bus",
-           "require_fd_bus"]
+__all__ = ["CodecQuantisation", "DriveProtocol", "FeedbackField", "FrameIds", "HostWatchSetting", "ZeroResult",
+           "classic_bus", "require_fd_bus"]
 
 _EMPTY: Mapping[str, Any] = MappingProxyType({})
 
@@ -90,6 +90,24 @@ class FrameIds:
 
     own: frozenset[int]
     shared: frozenset[int] = frozenset()
+
+
+@dataclass(frozen=True)
+class HostWatchSetting:
+    """A drive's timeout on the host's frames as a profile sets it, before any bus opens
+    (the drive's live watch, with how the host feeds it, is
+    :attr:`~dobhil.drives.base.Drive.host_watch`): the drive stops following torque when
+    the frame that feeds it (``fed_by``, sent every loop period) stops for ``timeout`` s.
+    One rule holds every protocol's to the loop period
+    (:func:`dobhil.runtime.session.check_host_watch`); the fields word its refusal."""
+
+    what: str         # the drive's name for it: "command watchdog", "heartbeat consumer (0x1016)"
+    key: str          # the setting that holds it: "watchdog_timeout", "cia402.consumer_heartbeat"
+    timeout: float    # [s] > 0
+    fed_by: str = "command"   # what the host sends every period that feeds it
+    where: str = ""   # where ``key`` is set when not in the profile itself ("" : the profile)
+    #: what else allows a longer period ("" : a longer ``key``, on the drive too)
+    remedy: str = ""
 
 
 class ZeroResult(Protocol):
@@ -177,6 +195,13 @@ class DriveProtocol(ABC):
         it shares with drives of its protocol; None: not known (two axes are then compared
         by node id)."""
         return None
+
+    def host_watch(self, profile: DriveProfile) -> HostWatchSetting | None:
+        """The timeout ``profile``'s drive keeps on the host's frames, which a run relies on
+        to stop the drive when the host stops (None: none set). Default: the profile's
+        ``watchdog_timeout``, the drive-side command watchdog (0: off)."""
+        timeout = profile.watchdog_timeout
+        return HostWatchSetting("command watchdog", "watchdog_timeout", timeout) if timeout > 0 else None
 
     def set_zero(self, bus: can.BusABC, profile: DriveProfile, *, clock: Callable[[], float],
                  cancel: Cancel | None = None) -> ZeroResult:

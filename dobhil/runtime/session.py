@@ -47,34 +47,39 @@ from dobhil.synthesis.params import params_from_config
 def check_rates(profile: DriveProfile, period: float, prefix: str = "") -> None:
     """The drive must send feedback at least once per control period (the profile's
     promise; :meth:`RunSession.preflight` measures what the drive really does), and its
-    command watchdog must tolerate a command every period (:func:`check_watchdog`).
+    timeout on the host's frames must tolerate one every period (:func:`check_host_watch`).
     ``prefix``: before the error line (``axis NAME: `` in a several-axis run)."""
     probe = preflight_probe(profile)
     for finding in profile_rate_findings(profile, period, probe.motion_name() if probe else "motion feedback"):
         raise ConfigError(f"{prefix}{finding.text}")
-    check_watchdog(profile, period, prefix)
+    check_host_watch(profile, period, prefix)
 
 
-def check_watchdog(profile: DriveProfile, period: float, prefix: str = "") -> None:
-    """ConfigError (one line) when ``period`` is too long for the profile's command watchdog
-    (``watchdog_timeout``; 0: off, no limit): allowed is ``period < watchdog_timeout / 2``.
+def check_host_watch(profile: DriveProfile, period: float, prefix: str = "") -> None:
+    """ConfigError (one line) when ``period`` is too long for the drive's timeout on the
+    host's frames, as its protocol reads it from the profile
+    (:meth:`~dobhil.drives.plugin.DriveProtocol.host_watch`: a command watchdog, a heartbeat
+    consumer, a command timeout; None: no limit): allowed is ``period < timeout / 2``.
 
-    The watchdog must see a command at least every ``watchdog_timeout``, and the loop sends
-    one every period; but the drive checks it on its own tick and a command's way to the
-    drive varies by up to a period, so two commands sent on time may reach it up to two
+    The drive must see the frame that feeds it at least every ``timeout``, and the loop sends
+    one every period; but the drive checks it on its own tick and a frame's way to the
+    drive varies by up to a period, so two frames sent on time may reach it up to two
     periods apart. That is the margin :meth:`ForceLoop._watch_gaps
     <dobhil.runtime.loop.ForceLoop._watch_gaps>` gives when it blames the host
-    (``host_too_slow``): a gap of ``watchdog_timeout - period`` or more between commands
-    counts as starving the watch. A period of half the watchdog or more makes every
-    on-time gap such a gap: the drive may trip with no one late, and the host would be
-    blamed for it (at a period over the watchdog, at the very first cycle, even in lockstep)."""
-    watchdog = profile.watchdog_timeout
-    if watchdog > 0 and 2 * period >= watchdog:
-        raise ConfigError(
-            f"{prefix}loop.period = {period:g} s is too long for the command watchdog of drive profile "
-            f"{profile.name or profile.protocol!r} (watchdog_timeout = {watchdog:g} s; a command every period "
-            f"may reach the drive up to two periods apart); allowed: loop.period < {watchdog / 2:g} s "
-            f"(half of watchdog_timeout), or a longer watchdog_timeout (on the drive too)")
+    (``host_too_slow``): a gap of ``timeout - period`` or more between commands counts as
+    starving the watch. A period of half the timeout or more makes every on-time gap such
+    a gap: the drive may trip with no one late, and the host would be blamed for it (at a
+    period over the timeout, at the very first cycle, even in lockstep)."""
+    watch = protocol(profile.protocol).host_watch(profile)
+    if watch is None or 2 * period < watch.timeout:
+        return
+    where = f" in {watch.where}" if watch.where else ""
+    remedy = watch.remedy or f"a longer {watch.key} (on the drive too)"
+    raise ConfigError(
+        f"{prefix}loop.period = {period:g} s is too long for the {watch.what} of drive profile "
+        f"{profile.name or profile.protocol!r} ({watch.key} = {watch.timeout:g} s{where}; a {watch.fed_by} every "
+        f"period may reach the drive up to two periods apart); allowed: loop.period < {watch.timeout / 2:g} s "
+        f"(half of {watch.key}), or {remedy}")
 
 
 def build_controller(config: Config, profile: DriveProfile) -> ForceController:

@@ -173,3 +173,60 @@ def summary_shape(value: Any) -> Any:
     if isinstance(value, list):
         return [summary_shape(v) for v in value[:1]]
     return type(value).__name__ if value is not None else None
+
+
+@dataclass(frozen=True)
+class HostWatchCase:
+    """A profile whose drive times the host's frames out (``DriveProtocol.host_watch``), a
+    ``loop.period`` of half that timeout (the shortest one refused) and the refusal's words."""
+
+    profile: str        # a shipped profile's name or a written profile's path
+    name: str           # the profile's name in the refusal
+    period: float       # [s] timeout / 2
+    what: str
+    key: str
+    timeout: float
+
+    def refusal(self, prefix: str = "") -> str:
+        """The refusal's line up to its remedy (which the protocol words)."""
+        return (f"{prefix}loop.period = {self.period:g} s is too long for the {self.what} of drive profile "
+                f"{self.name!r} ({self.key} = {self.timeout:g} s")
+
+    def allowed(self) -> str:
+        return f"allowed: loop.period < {self.timeout / 2:g} s (half of {self.key}), or "
+
+
+def host_watch_cases(tmp_path: Path) -> dict[str, HostWatchCase]:
+    """One case per protocol that has such a timeout: an ODrive's and a moteus' command
+    watchdog (``watchdog_timeout``), a CiA 402 node's heartbeat consumer
+    (``cia402.consumer_heartbeat``), an MIT motor's command timeout (its model row's
+    ``command_timeout``: the shipped Mini-Cheetah row's, and a Damiao row of the user's own
+    with its TIMEOUT register set)."""
+    consumer = yaml.safe_load((DRIVERS / "cia402-emulated.yaml").read_text(encoding="utf-8"))
+    consumer["cia402"].update(consumer_heartbeat=0.05, eds=str(DRIVERS / "cia402-emulated.eds"))
+    consumer["bus"] = {}
+    cia402 = tmp_path / "cia402-consumer.yaml"
+    cia402.write_text(yaml.safe_dump(consumer), encoding="utf-8")
+    table = yaml.safe_load((DRIVERS / "mit-models.yaml").read_text(encoding="utf-8"))
+    (row,) = [r for r in table["models"] if (r["vendor"], r["model"]) == ("damiao", "DM4310")]
+    row["command_timeout"] = 0.02
+    models = tmp_path / "mit-models.yaml"
+    models.write_text(yaml.safe_dump(table), encoding="utf-8")
+    damiao = yaml.safe_load((DRIVERS / "dm4310.yaml").read_text(encoding="utf-8"))
+    damiao["mit"]["models"] = str(models)
+    damiao["bus"] = {}
+    dm = tmp_path / "dm4310-timeout.yaml"
+    dm.write_text(yaml.safe_dump(damiao), encoding="utf-8")
+    return {
+        "odrive": HostWatchCase("odrive-0.6", "odrive-0.6", 0.025, "command watchdog", "watchdog_timeout", 0.05),
+        "moteus": HostWatchCase("moteus-r4.11", "moteus-r4.11", 0.05, "command watchdog", "watchdog_timeout", 0.1),
+        "cia402": HostWatchCase(str(cia402), "cia402-consumer", 0.025, "heartbeat consumer (0x1016)",
+                                "cia402.consumer_heartbeat", 0.05),
+        "mit-mini-cheetah": HostWatchCase("mini-cheetah", "mini-cheetah", 0.0125, "command timeout",
+                                          "command_timeout", 0.025),
+        "mit-damiao": HostWatchCase(str(dm), "dm4310-timeout", 0.01, "command timeout", "command_timeout", 0.02),
+    }
+
+
+#: the protocols of :func:`host_watch_cases`
+HOST_WATCHES = ("odrive", "moteus", "cia402", "mit-mini-cheetah", "mit-damiao")

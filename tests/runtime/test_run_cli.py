@@ -16,7 +16,7 @@ from dobhil.cli.main import main
 from dobhil.config import load_config
 from dobhil.errors import ConfigError
 
-from .helpers import DEMO, realtime_profile
+from .helpers import DEMO, HOST_WATCHES, host_watch_cases, realtime_profile
 
 EXIT_USAGE = 2
 
@@ -303,6 +303,31 @@ def test_a_period_the_drives_watchdog_cannot_tolerate_is_one_line_exit_2(
                    "watchdog of drive profile 'odrive-0.6' (watchdog_timeout = 0.05 s; a command every period "
                    "may reach the drive up to two periods apart); allowed: loop.period < 0.025 s (half of "
                    "watchdog_timeout), or a longer watchdog_timeout (on the drive too)")
+
+
+@pytest.mark.parametrize("argv", [["run", "--emulate", "--lockstep"], ["run", "--emulate"], ["check"]])
+@pytest.mark.parametrize("case", HOST_WATCHES)
+def test_a_period_a_drives_timeout_on_the_host_cannot_tolerate_is_one_line_exit_2(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str], case: str,
+        argv: list[str]) -> None:
+    """One rule for every protocol whose drive times the host out (a command watchdog, a
+    CiA 402 heartbeat consumer, an MIT command timeout): a period of half the timeout is
+    refused in one line naming the timeout, its setting and what is allowed, exit 2, in run
+    and check alike, before any bus opens."""
+    def no_bus(*args: object, **kwargs: object) -> None:
+        raise AssertionError("a bus was opened for a refused period")
+
+    monkeypatch.setattr("dobhil.runtime.buses.open_bus", no_bus)
+    monkeypatch.setattr("dobhil.runtime.session.open_bus", no_bus)
+    watch = host_watch_cases(tmp_path)[case]
+    code = main([argv[0], str(DEMO), *argv[1:], *(["--bus", "virtual:nobody"] if argv[0] == "check" else []),
+                 "--set", f"drive.profile={watch.profile}", "--set", f"loop.period={watch.period}", *SLOW])
+    captured = capsys.readouterr()
+    err = one_line(captured.err)
+    assert code == EXIT_USAGE and captured.out == "", err
+    assert err.startswith(watch.refusal(f"dobhil {argv[0]}: error: ")), err
+    assert "; a " in err and " every period may reach the drive up to two periods apart); " in err, err
+    assert watch.allowed() in err, err
 
 
 def test_a_period_within_half_the_watchdog_runs(capsys: pytest.CaptureFixture[str]) -> None:

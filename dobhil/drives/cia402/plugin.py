@@ -10,7 +10,7 @@ from dobhil.drives.cia402.codec import Cob, Mapped, PowerState
 from dobhil.drives.cia402.drive import CiA402Drive, emcy_text
 from dobhil.drives.cia402.eds import load_od
 from dobhil.drives.cia402.emulator import EmulatedCiA402
-from dobhil.drives.plugin import DriveProtocol, FeedbackField, FrameIds
+from dobhil.drives.plugin import DriveProtocol, FeedbackField, FrameIds, HostWatchSetting
 from dobhil.drives.profile import DriveProfile
 
 #: the feedback values a fault may corrupt -> (object index, which of the two TPDOs)
@@ -63,6 +63,18 @@ class CiA402Protocol(DriveProtocol):
         if float(profile.options.get("consumer_heartbeat", 0.0)) > 0:
             shared.add(Cob.HEARTBEAT + int(profile.options.get("host_node_id", 127)))
         return FrameIds(frozenset(own), frozenset(shared))
+
+    def host_watch(self, profile: DriveProfile) -> HostWatchSetting | None:
+        """The node's heartbeat consumer time (0x1016, ``cia402.consumer_heartbeat``; 0:
+        off): the node faults when the host's heartbeat, sent every loop period at the
+        shortest (a whole number of SYNC periods, :meth:`CiA402Drive._host_heartbeat_interval
+        <dobhil.drives.cia402.drive.CiA402Drive._host_heartbeat_interval>`), stops for it.
+        Off: the profile's ``watchdog_timeout``, as for any protocol."""
+        consumer = float(profile.options.get("consumer_heartbeat", 0.0))
+        if consumer <= 0:
+            return super().host_watch(profile)
+        return HostWatchSetting("heartbeat consumer (0x1016)", "cia402.consumer_heartbeat", consumer,
+                                fed_by="host heartbeat")
 
     def check_files(self, profile: DriveProfile) -> None:
         load_od(profile)   # the drive's own reading and check of the EDS

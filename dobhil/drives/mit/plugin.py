@@ -15,7 +15,7 @@ from dobhil.drives.mit.preflight import ZeroResult
 from dobhil.drives.mit.preflight import set_zero as send_set_zero
 from dobhil.drives.mit.replies import DAMIAO_ENABLED, MitFault
 from dobhil.drives.mit.rules import model_of
-from dobhil.drives.plugin import CodecQuantisation, DriveProtocol, FrameIds
+from dobhil.drives.plugin import CodecQuantisation, DriveProtocol, FrameIds, HostWatchSetting
 from dobhil.drives.profile import DriveProfile
 from dobhil.drives.waits import Cancel
 
@@ -56,6 +56,20 @@ class MitProtocol(DriveProtocol):
         """Commands go to the node id; replies come on ``mit.reply_id`` (the firmware's
         master id) with the node in byte 0, so every MIT motor on the bus may share it."""
         return FrameIds(frozenset({profile.node_id}), frozenset({int(profile.options.get("reply_id", 0))}))
+
+    def host_watch(self, profile: DriveProfile) -> HostWatchSetting | None:
+        """The motor's command timeout, the ``command_timeout`` of the profile's model row:
+        without a command for it, a Mini-Cheetah zeroes its command (``CAN_TIMEOUT``, 25 ms)
+        and a Damiao with its TIMEOUT register set leaves motor mode. None where the row has
+        none (a CubeMars AK documents none; a Damiao's register is 0 from the factory, so its
+        shipped rows say null): then the profile's ``watchdog_timeout``, as for any protocol."""
+        model = model_of(profile)
+        if not model.command_timeout:
+            return super().host_watch(profile)
+        row = f"{model.vendor} {model.model} (firmware {model.firmware!r})"
+        return HostWatchSetting("command timeout", "command_timeout", model.command_timeout,
+                                where=f"the model table's row {row}",
+                                remedy="a motor set to a longer one, with a row of its own (mit.models)")
 
     def set_zero(self, bus: can.BusABC, profile: DriveProfile, *, clock: Callable[[], float],
                  cancel: Cancel | None = None) -> ZeroResult:
