@@ -1,12 +1,13 @@
 """``dobhil identify LOG.mcap... [--axis NAME] [--segment T0:T1[:free|contact]]... [--drive PROFILE]
-[--period S] [--out F.yaml] [--json] [--plot DIR]`` and ``dobhil compare A.mcap B.mcap``.
+[--period S] [--out F.yaml] [--json] [--plot DIR]`` and ``dobhil compare A.mcap B.mcap [--axis NAME]``.
 
 identify fits the emulator's exact sampled plant to recorded runs (:mod:`dobhil.identify`):
 several logs of one drive are fitted together (one plant: a free run's friction, a contact
 run's environment); the free-motion and contact segments are found from the data unless
 given (``--segment``: one log only); the overlay
 (``--out``) is what ``dobhil analyze``/``run`` take with ``--set-file``. compare reports the
-RMS of the difference of two runs' force (the estimated interaction torque), cycle by cycle.
+RMS of the difference of two runs' force (the estimated interaction torque), cycle by cycle; of
+a log of several axes, the one ``--axis`` names (:mod:`dobhil.identify.compare`).
 """
 
 from __future__ import annotations
@@ -52,6 +53,8 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     c = sub.add_parser("compare", help="RMS of the force difference of two recorded runs")
     c.add_argument("first", metavar="A.mcap")
     c.add_argument("second", metavar="B.mcap")
+    c.add_argument("--axis", metavar="NAME",
+                   help="the axis of a log of several axes to compare (a single-axis log given with it: its one axis)")
     c.add_argument("--json", action="store_true", help="print the result as JSON")
     c.set_defaults(func=compare)
 
@@ -336,10 +339,11 @@ def _write_overlay(overlay: dict[str, Any], info: dict[str, Any], path: Path) ->
 
 def compare(args: argparse.Namespace) -> int:
     from dobhil.identify.compare import compare_logs
-    info = compare_logs(args.first, args.second)
+    info = compare_logs(args.first, args.second, args.axis)
     if args.json:
         print(json.dumps(info))
     else:
-        print(f"compared {info['cycles']} cycles: force (tau_int_hat) RMS difference {info['rms']:.6g} N m, "
+        which = f"axis {args.axis}: " if args.axis is not None else ""
+        print(f"{which}compared {info['cycles']} cycles: force (tau_int_hat) RMS difference {info['rms']:.6g} N m, "
               f"max |difference| {info['max_abs']:.6g} N m")
     return 0

@@ -388,15 +388,43 @@ def test_a_run_that_fails_leaves_a_complete_log_or_none(tmp_path: Path) -> None:
 
 def test_a_single_axis_tool_names_the_axes(recorded: tuple[Path, Path, Any],
                                            capsys: pytest.CaptureFixture[str]) -> None:
-    assert main(["compare", str(recorded[0]), str(recorded[0])]) == 2
-    err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "a log of several axes (left, right, wrist)" in err[0]
-    assert "/axis/left/controller" in err[0]
     # an axis' prefix alone names no topic: the example is one of its topics, not the prefix twice
     assert main(["log", "export", str(recorded[0]), "--topic", "/axis/left", "--format", "csv",
                  "-o", str(recorded[0].with_suffix(".csv"))]) == 2
     err = capsys.readouterr().err
     assert "(e.g. /axis/left/controller)" in err and "/axis/left/axis/left" not in err, err
+
+
+def _refused(capsys: pytest.CaptureFixture[str], argv: list[str], *words: str) -> None:
+    capsys.readouterr()
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "Traceback" not in err, err
+    assert all(w in err for w in words), err
+
+
+def test_compare_takes_an_axis_of_a_several_axis_log(recorded: tuple[Path, Path, Any], single: Path,
+                                                     capsys: pytest.CaptureFixture[str]) -> None:
+    """``compare`` reads one axis of a several-axis log, named by ``--axis``, and refuses
+    without one or with an unknown one in the words ``identify`` and ``replay`` use; a
+    single-axis log given with it is its one axis (an axis of a run against a run alone)."""
+    path = str(recorded[0])
+    _refused(capsys, ["compare", path, path], "a log of 3 axes (left, right, wrist); name one with --axis NAME")
+    for command in (["identify", path], ["compare", path, path]):
+        _refused(capsys, [*command, "--axis", "elbow"], "no axis 'elbow'; axes: left, right, wrist")
+    _refused(capsys, ["compare", str(single), str(single), "--axis", "left"], "no axis 'left'; axes: axis")
+    assert main(["compare", path, path, "--axis", "right", "--json"]) == 0
+    same = json.loads(capsys.readouterr().out)
+    assert same["axis"] == "right" and same["cycles"] == 300 and same["rms"] == same["max_abs"] == 0.0
+    assert main(["compare", path, str(single), "--axis", "left", "--json"]) == 0
+    mixed = json.loads(capsys.readouterr().out)
+    left = {p["cycle"]: p["tau_int_hat"] for _, _, p in axis_log(open_log(path), "left").iter_messages(["/controller"])}
+    alone = {p["cycle"]: p["tau_int_hat"] for _, _, p in open_log(single).iter_messages(["/controller"])}
+    diff = [alone[c] - left[c] for c in sorted(left.keys() & alone.keys())]
+    assert mixed["cycles"] == len(diff) > 0
+    assert mixed["rms"] == pytest.approx(math.sqrt(sum(d * d for d in diff) / len(diff)), rel=1e-12)
+    assert main(["compare", path, path, "--axis", "wrist"]) == 0
+    assert capsys.readouterr().out.startswith("axis wrist: compared 300 cycles")
 
 
 def test_a_real_time_several_axis_log_replays_bit_for_bit(tmp_path: Path) -> None:
