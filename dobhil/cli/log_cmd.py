@@ -18,7 +18,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
 from datetime import datetime, timezone
 from typing import Any
@@ -51,6 +51,12 @@ def _stamp(ns: int) -> str:
     return datetime.fromtimestamp(ns / 1e9, tz=timezone.utc).isoformat(timespec="milliseconds")
 
 
+def _topic_width(topics: Iterable[str]) -> int:
+    """The topic column's width: the longest topic's (a several-axis log's prefixed topics,
+    ``/axis/left/emulator/truth``, run past 20), at least 20, so the counts stay in a column."""
+    return max([20, *(len(t) for t in topics)])
+
+
 def _info_lines(info: Any) -> Iterator[str]:
     yield f"file:       {info.path}"
     yield f"messages:   {info.message_count}"
@@ -64,8 +70,9 @@ def _info_lines(info: Any) -> Iterator[str]:
     if info.dropped is not None:
         yield f"dropped:    {info.dropped}"
     yield "channels:"
+    width = _topic_width(c.topic for c in info.channels)
     for c in info.channels:
-        yield f"  {c.topic:<20} {c.message_count:>10}  {c.schema_name} ({c.message_encoding})"
+        yield f"  {c.topic:<{width}} {c.message_count:>10}  {c.schema_name} ({c.message_encoding})"
     for name, record in info.metadata.items():
         yield f"metadata {name}:"
         yield from (f"  {k} = {v}" for k, v in record.items())
@@ -93,8 +100,9 @@ def _cmd_recover(args: argparse.Namespace) -> int:
     print(f"recovered {report.message_count} messages to {report.output} ({report.stopped_because})")
     if report.message_count:
         print(f"time: {_stamp(report.start_ns)} .. {_stamp(report.end_ns)} ({report.duration_s:.3f} s)")
+    width = _topic_width(topic for topic, _ in report.counts)
     for topic, count in report.counts:
-        print(f"  {topic:<20} {count:>10}")
+        print(f"  {topic:<{width}} {count:>10}")
     if report.skipped_chunks:
         print(f"skipped {report.skipped_chunks} damaged chunks")
     return 0

@@ -206,6 +206,35 @@ def test_export_and_info_read_every_bus(recorded: tuple[Path, Path, Any], tmp_pa
     assert "axes:       left (bus can0), right (bus can0), wrist (bus can1)" in capsys.readouterr().out
 
 
+def _count_ends(lines: list[str]) -> set[int]:
+    """Where the count of each ``  TOPIC  COUNT ...`` line ends."""
+    ends = set()
+    for line in lines:
+        topic, count = line.split()[:2]
+        ends.add(line.index(count, line.index(topic) + len(topic)) + len(count))
+    return ends
+
+
+def test_info_and_recover_keep_the_counts_in_a_column(recorded: tuple[Path, Path, Any], tmp_path: Path,
+                                                      capsys: pytest.CaptureFixture[str]) -> None:
+    """The topic column is as wide as the longest topic: a several-axis log's prefixed topics
+    (``/axis/right/emulator/truth``, 26 characters) do not push their counts out of line."""
+    path = recorded[0]
+    capsys.readouterr()
+    assert main(["log", "info", str(path)]) == 0
+    out = capsys.readouterr().out.splitlines()
+    start = out.index("channels:") + 1
+    rows = out[start:start + len(open_log(path).channels())]
+    assert len(rows) == 23 and any(len(r.split()[0]) > 20 for r in rows)
+    assert len(_count_ends(rows)) == 1, "\n".join(rows)
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(path.read_bytes()[:-1000])
+    assert main(["log", "recover", str(cut), "-o", str(tmp_path / "saved.mcap")]) == 0
+    rows = [line for line in capsys.readouterr().out.splitlines() if line.startswith("  /")]
+    assert len(rows) > 20 and any(len(r.split()[0]) > 20 for r in rows)
+    assert len(_count_ends(rows)) == 1, "\n".join(rows)
+
+
 def test_overrides_per_axis_and_unknown_axes(recorded: tuple[Path, Path, Any],
                                              capsys: pytest.CaptureFixture[str]) -> None:
     path = recorded[0]
