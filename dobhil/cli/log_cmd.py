@@ -18,7 +18,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator, Mapping
 from contextlib import contextmanager
 from datetime import datetime, timezone
 from typing import Any
@@ -69,6 +69,8 @@ def _info_lines(info: Any) -> Iterator[str]:
         yield "axes:       " + ", ".join(f"{n} (bus {bus_of.get(n, '?')})" for n in json.loads(axes.get("names", "[]")))
     if info.dropped is not None:
         yield f"dropped:    {info.dropped}"
+    if info.unknown_config_keys:
+        yield f"note:       {_unknown_keys_note(info.unknown_config_keys)}"
     yield "channels:"
     width = _topic_width(c.topic for c in info.channels)
     for c in info.channels:
@@ -80,10 +82,23 @@ def _info_lines(info: Any) -> Iterator[str]:
         yield f"attachments: {', '.join(info.attachments)}"
 
 
+def _unknown_keys_note(unknown: Mapping[str, tuple[str, ...]]) -> str:
+    """One line: the recorded config's keys this version does not know, by config record
+    (``config``; ``axis/<name>/config`` of a several-axis log), and that the commands that
+    need the config refuse the log."""
+    from dobhil import __version__
+
+    where = "; ".join(("" if name == "config" else f"axis {name.split('/')[1]}: ") + ", ".join(keys)
+                      for name, keys in unknown.items())
+    return (f"the recorded config has keys dobhil {__version__} does not know ({where}); commands that need "
+            "the config (replay, report, identify, compare) refuse this log")
+
+
 def _cmd_info(args: argparse.Namespace) -> int:
     from dobhil.recording.reader import open_log
 
-    with open_log(args.file) as log:
+    # describe: info only describes the file, so a config of a newer dobhil is a note, not a refusal
+    with open_log(args.file, describe=True) as log:
         info = log.info()
     if args.json:
         print(json.dumps(info.to_dict(), indent=2))

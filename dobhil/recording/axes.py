@@ -23,7 +23,7 @@ from typing import Any, Final
 from dobhil.config.axes import SINGLE_AXIS
 from dobhil.errors import LogFileError, exception_line
 from dobhil.recording.axeslog import AXES_METADATA, AXIS_PREFIX, BUS_PREFIX, axis_prefix, axis_record, bus_record
-from dobhil.recording.reader import LogFile, open_log
+from dobhil.recording.reader import LogFile, open_log, unknown_config_keys, unknown_keys_problem
 
 #: The topics of an axis' bus (the rest are the axis' own).
 BUS_TOPICS: Final = ("/can/rx", "/can/tx")
@@ -118,6 +118,10 @@ class AxisLog:
         record = self.metadata.get("config")
         if not record:
             return None
+        unknown = unknown_config_keys(record)
+        if unknown:
+            raise LogFileError(f"{self.path}: " + unknown_keys_problem(f"axis {self.name}'s recorded config", unknown,
+                                                                     self.file.library))
         from dobhil.config import build_config
         try:
             return build_config({k: json.loads(v) for k, v in record.items()},

@@ -13,7 +13,7 @@ import os
 import struct
 import zlib
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 from types import MappingProxyType
 from typing import Any, BinaryIO, Final
@@ -21,6 +21,7 @@ from typing import Any, BinaryIO, Final
 from mcap.records import Attachment, Channel, Chunk, Footer, Header, Metadata, Schema, Statistics
 from mcap.stream_reader import StreamReader, get_chunk_data_stream
 
+from dobhil import __version__
 from dobhil.errors import LogFileError, exception_line
 from dobhil.files import input_problem
 from dobhil.recording.encodings import Decoder, Encoding, RowDecoder, encoding
@@ -58,6 +59,8 @@ class LogInfo:
     stop_reason: str | None
     dropped: int | None
     encoding: str = ""  # the channels' message encodings, e.g. "protobuf" ("json": before 0.2)
+    #: config record -> its keys this version does not know (:attr:`LogFile.unknown_config`)
+    unknown_config_keys: Mapping[str, tuple[str, ...]] = field(default_factory=dict)
 
     @property
     def duration_s(self) -> float:
@@ -65,7 +68,8 @@ class LogInfo:
 
     def to_dict(self) -> dict[str, Any]:
         return {**{f.name: getattr(self, f.name) for f in fields(self)}, "channels": [asdict(c) for c in self.channels],
-                "metadata": {k: dict(v) for k, v in self.metadata.items()}, "duration_s": self.duration_s}
+                "metadata": {k: dict(v) for k, v in self.metadata.items()}, "duration_s": self.duration_s,
+                "unknown_config_keys": {k: list(v) for k, v in self.unknown_config_keys.items()}}
 
 
 def _fail(path: str | os.PathLike[str], what: str) -> LogFileError:
@@ -136,8 +140,29 @@ def check_library(path: str | os.PathLike[str], header: Any) -> None:
         raise _fail(path, f"not a dobhil log (written by {library!r})")
 
 
-def _validate_metadata(path: str | os.PathLike[str], metadata: Mapping[str, Mapping[str, str]]) -> Any:
-    """The recorded :class:`~dobhil.config.Config` (None without one); LogFileError naming a bad value."""
+def unknown_config_keys(record: Mapping[str, str] | None) -> tuple[str, ...]:
+    """The keys of a recorded config (a ``config`` or ``axis/<name>/config`` record) that this
+    version's config schema (:func:`dobhil.config.key_fields`) does not know: a log of a newer
+    dobhil, whose run used keys this one cannot apply."""
+    if not record:
+        return ()
+    from dobhil.config import key_fields
+    known = key_fields()
+    return tuple(k for k in record if k not in known)
+
+
+def unknown_keys_problem(what: str, keys: Sequence[str], library: str) -> str:
+    """The line a command that needs the config refuses a log with: ``what`` (``its recorded
+    config``) has ``keys`` this version does not know; ``library``: the log's writer."""
+    return (f"{what} has keys dobhil {__version__} does not know: {', '.join(keys)} (the log was written by "
+            f"{library or 'an unnamed writer'}); `dobhil log info` still describes it")
+
+
+def _validate_metadata(path: str | os.PathLike[str], metadata: Mapping[str, Mapping[str, str]],
+                       library: str = "", *, describe: bool = False) -> Any:
+    """The recorded :class:`~dobhil.config.Config` (None without one); LogFileError naming a bad
+    value or the keys this version does not know (``describe``: None for those, the file
+    described without its config)."""
     for (name, key), kind in _NUMERIC.items():
         value = metadata.get(name, {}).get(key)
         if value is not None:
@@ -148,6 +173,11 @@ def _validate_metadata(path: str | os.PathLike[str], metadata: Mapping[str, Mapp
     record = metadata.get("config")
     if not record:
         return None
+    unknown = unknown_config_keys(record)
+    if unknown:
+        if describe:
+            return None
+        raise _fail(path, unknown_keys_problem("its recorded config", unknown, library))
     from dobhil.config import build_config
     try:
         return build_config({k: json.loads(v) for k, v in record.items()}, source=f"{os.fspath(path)} config")
@@ -157,9 +187,12 @@ def _validate_metadata(path: str | os.PathLike[str], metadata: Mapping[str, Mapp
 
 class LogFile:
     """A complete, checked dobhil log, opened and checked at once; nothing is held open
-    between reads."""
+    between reads. ``describe``: a recorded config with keys this version does not know
+    (:attr:`unknown_config`) is no refusal, ``config`` is then None: what ``dobhil log info``
+    needs to describe a newer dobhil's log; every command that needs the config opens without
+    it and so refuses such a log in one line."""
 
-    def __init__(self, path: str | os.PathLike[str]) -> None:
+    def __init__(self, path: str | os.PathLike[str], *, describe: bool = False) -> None:
         size = check_mcap_head(path)
         self.path, self.library = Path(path), ""
         self.schemas: dict[int, Schema] = {}
@@ -199,7 +232,12 @@ class LogFile:
                     self.statistics = record
                 elif isinstance(record, Footer):
                     _check_summary(f, path, pos, record)
-        self.config: Any = _validate_metadata(path, self.metadata)
+        #: record name (``config``, ``axis/<name>/config``) -> its keys this version does not know
+        self.unknown_config: dict[str, tuple[str, ...]] = {
+            name: keys for name, record in self.metadata.items()
+            if (name == "config" or name.startswith("axis/") and name.endswith("/config"))
+            and (keys := unknown_config_keys(record))}
+        self.config: Any = _validate_metadata(path, self.metadata, self.library, describe=describe)
 
     def __enter__(self) -> LogFile:  # nothing is held open between reads: ``with`` only reads well
         return self
@@ -325,7 +363,8 @@ class LogFile:
         return LogInfo(os.fspath(self.path), channels, sum(c.message_count for c in channels),
                        stats.message_start_time if stats else 0, stats.message_end_time if stats else 0,
                        MappingProxyType(self.metadata), tuple(a for a, _, _ in self.attachments), self.stop_reason(),
-                       None if dropped is None else int(dropped), ", ".join(self.encodings()))
+                       None if dropped is None else int(dropped), ", ".join(self.encodings()),
+                       dict(self.unknown_config))
 
 
 def _axis_names(metadata: Mapping[str, Mapping[str, str]]) -> list[str]:
@@ -373,4 +412,4 @@ open_log = LogFile
 
 
 __all__ = ["MAGIC", "ChannelInfo", "LogFile", "LogInfo", "check_library", "check_mcap_head", "decoder_for",
-           "encoding_for", "open_log"]
+           "encoding_for", "open_log", "unknown_config_keys", "unknown_keys_problem"]
