@@ -7,21 +7,27 @@ A log cut short (a logger killed mid-write, a copy interrupted) is imported up t
 complete record, with one warning saying what was dropped at the end: such a log is what a
 killed run leaves, and refusing it would leave no way in (``dobhil log recover`` salvages
 MCAP only); a cut record is never imported as a shorter frame. Damage before the end (a
-malformed line in the middle of a candump file) is refused.
+malformed line in the middle of a candump file) is refused. A gzip-compressed log
+(``run.log.gz``, python-can's ``LogReader`` reads the format of the suffix before ``.gz``) gets
+the same checks on its uncompressed bytes; its compressed stream stopping before its end
+marker (a logger killed mid-write) is a cut too, damaged compressed data is refused.
 """
 
 from __future__ import annotations
 
+import gzip
+import io
 import locale
 import math
 import os
 import re
 import struct
+import zlib
 from collections.abc import Callable, Mapping
 from enum import IntEnum
 from pathlib import Path
 from types import MappingProxyType
-from typing import Any, BinaryIO, Final, cast
+from typing import IO, Any, BinaryIO, Final, cast
 
 import can
 
@@ -144,27 +150,104 @@ def candump_problem(line: str) -> str | None:
     return None
 
 
+class _Gunzipped(io.RawIOBase):
+    """The uncompressed bytes of a gzip file (RFC 1952), read through :class:`gzip.GzipFile`.
+    A compressed stream that stops before its end marker (what a logger killed mid-write
+    leaves) ends where its data does, ``cut`` set: GzipFile raises ``EOFError`` there, after
+    every byte it could decompress (``read1``: one read of its reader, so none is held back).
+    Damaged compressed data (a bad deflate block, a CRC or length that does not match) raises
+    a :class:`LogFileError` naming how far it read."""
+
+    def __init__(self, path: Path) -> None:
+        super().__init__()
+        self.path = path
+        self.cut = False
+        self._gz = gzip.GzipFile(path, "rb")
+
+    def readable(self) -> bool:
+        return True
+
+    def seekable(self) -> bool:
+        return True
+
+    def readinto(self, buffer: Any) -> int:
+        view = memoryview(buffer).cast("B")
+        try:
+            data = self._gz.read1(len(view))
+        except EOFError:
+            self.cut = True
+            return 0
+        except (OSError, zlib.error) as exc:   # gzip.BadGzipFile is an OSError
+            at = self._gz.tell()
+            what = "not gzip data" if at == 0 else f"damaged gzip data after {at} uncompressed bytes"
+            raise LogFileError(f"{self.path}: {what} ({exception_line(exc)})") from None
+        view[:len(data)] = data
+        return len(data)
+
+    def seek(self, offset: int, whence: int = io.SEEK_SET) -> int:
+        return self._gz.seek(offset, whence)
+
+    def tell(self) -> int:
+        return self._gz.tell()
+
+    def size(self) -> int:
+        """The uncompressed size (one pass through the stream; ``cut`` set when it stops
+        before its end marker), the position back at the start."""
+        chunk = bytearray(1 << 16)
+        total = 0
+        self.seek(0)
+        while n := self.readinto(chunk):
+            total += n
+        self.seek(0)
+        return total
+
+    def close(self) -> None:
+        self._gz.close()
+        super().close()
+
+
+#: What a ``.gz`` log's warning adds when its compressed stream stops before its end marker.
+_GZIP_CUT: Final = "the gzip stream stops before its end marker"
+
+
+def _format_suffix(path: Path) -> str:
+    """The suffix that says a log's format: ``.log`` of ``run.log`` and of ``run.log.gz``
+    (python-can's ``LogReader`` reads a ``.gz`` as the format of the suffix before it)."""
+    suffixes = [s.lower() for s in path.suffixes]
+    return suffixes[-2] if len(suffixes) >= 2 and suffixes[-1] == ".gz" else path.suffix.lower()
+
+
 class _Lines:
     """A text log's lines, for a python-can reader to iterate as its file: stops before a
     last line without an end of line (every writer ends each record with one, so that line
     is a record cut short, ``cut`` says which), raises a :class:`LogFileError` naming the
-    line ``check`` finds wrong; ``number`` is the line last read."""
+    line ``check`` finds wrong; ``number`` is the line last read. ``gz``: the lines of a
+    gzip file's uncompressed bytes, its stream stopping early a cut as well."""
 
-    def __init__(self, path: Path, check: Callable[[str], str | None] | None) -> None:
-        self.path, self.check = path, check
+    def __init__(self, path: Path, check: Callable[[str], str | None] | None, gz: _Gunzipped | None = None) -> None:
+        self.path, self.check, self.gz = path, check, gz
         self.number = 0
         self.cut: str | None = None
         # the encoding python-can's TextIOMessageReader opens a path with
-        self._file = open(path, encoding=locale.getpreferredencoding(False))
+        encoding = locale.getpreferredencoding(False)
+        self._file: IO[str] = (open(path, encoding=encoding) if gz is None
+                               else io.TextIOWrapper(io.BufferedReader(gz), encoding=encoding))
 
     def __iter__(self) -> _Lines:
         return self
 
     def __next__(self) -> str:
-        line = next(self._file)
+        try:
+            line = next(self._file)
+        except StopIteration:
+            if self.gz is not None and self.gz.cut:
+                self.cut = f"what followed line {self.number}: {_GZIP_CUT}"
+            raise
         self.number += 1
         if not line.endswith("\n"):
             self.cut = f"line {self.number}, a record cut short ({len(line)} characters and no end of line)"
+            if self.gz is not None and self.gz.cut:   # a line without one ends only at the stream's end
+                self.cut += f"; {_GZIP_CUT}"
             raise StopIteration
         problem = self.check(line) if self.check is not None else None
         if problem is not None:
@@ -194,11 +277,12 @@ class _BlfBytes:
     :data:`_BLF_WHOLE`) it fails to unpack, after every frame before it: so the bytes end
     before such an object."""
 
-    def __init__(self, path: Path) -> None:
+    def __init__(self, path: Path, gz: _Gunzipped | None = None) -> None:
         self.path = path
         self.cut: str | None = None
-        size = path.stat().st_size
-        self._file = open(path, "rb")
+        # a gzip file: its uncompressed bytes, walked as a plain file's (forward seeks decompress)
+        size = self.size = path.stat().st_size if gz is None else gz.size()
+        self._file: IO[bytes] = open(path, "rb") if gz is None else io.BufferedReader(gz)
         self._left = size
         head = self._file.read(_BLF_FILE_HEAD.size)
         pos = _BLF_FILE_HEAD.unpack(head)[1] if len(head) == _BLF_FILE_HEAD.size and head[:4] == b"LOGG" else size
@@ -217,6 +301,8 @@ class _BlfBytes:
             if pos < size:
                 self._left = pos
                 self.cut = f"the object at byte {pos}, cut {size - pos} bytes into its header"
+        if gz is not None and gz.cut:
+            self.cut = f"{self.cut}; {_GZIP_CUT}" if self.cut else f"what followed byte {size}: {_GZIP_CUT}"
         self._file.seek(0)
 
     def read(self, n: int = -1) -> bytes:
@@ -233,7 +319,7 @@ class _BlfBytes:
         its API documentation does not list, hence looked up with a default): a file shorter
         than that was cut, maybe between two objects, which the walk cannot see."""
         promised, objects = getattr(reader, "file_size", None), getattr(reader, "object_count", None)
-        size = self.path.stat().st_size
+        size = self.size
         if isinstance(promised, int) and promised > size:
             gives = f"its header gives {promised} bytes" + (f", {objects} objects" if isinstance(objects, int) else "")
             self.cut = f"{self.cut or f'the {promised - size} bytes past byte {size}'}; {gives}"
@@ -247,28 +333,33 @@ def _can_reader(path: Path) -> tuple[Any, _Lines | _BlfBytes | None]:
         raise LogFileError(f"{path}: {problem}; expected a CAN log file python-can reads (.asc, .blf, .log, .trc, ...)")
     if path.stat().st_size == 0:
         raise LogFileError(f"{path}: empty file")
+    suffix = _format_suffix(path)
     # ASC: absolute times (its Begin Triggerblock date plus each line's offset), as every
     # other format gives; python-can's default for ASC is times from 0, i.e. 1970
-    absolute = {"relative_timestamp": False} if path.suffix.lower() == ".asc" else {}
-    lines = None
-    try:
-        if path.suffix.lower() == ".blf":
-            blf = _BlfBytes(path)
-            try:
-                reader = can.BLFReader(cast(BinaryIO, blf))   # it calls read() and close() only
-            except Exception:
-                blf.close()
-                raise
-            blf.check_header(reader)
-            return reader, blf
-        text_reader = TEXT_READERS.get(path.suffix.lower())
-        if text_reader is None:
+    absolute = {"relative_timestamp": False} if suffix == ".asc" else {}
+    text_reader = TEXT_READERS.get(suffix)
+    if suffix != ".blf" and text_reader is None:   # a format without checks of its own: python-can's
+        try:
             return can.LogReader(path, **absolute), None
-        lines = _Lines(path, candump_problem if text_reader is can.CanutilsLogReader else None)
-        return text_reader(lines, **absolute), lines
+        except Exception as exc:  # python-can readers raise what their parsers raise
+            raise LogFileError(f"{path}: not a CAN log python-can reads ({exception_line(exc)})") from exc
+    gz = _Gunzipped(path) if path.suffix.lower() == ".gz" else None
+    source: _Lines | _BlfBytes | None = None
+    try:
+        if suffix == ".blf":
+            source = _BlfBytes(path, gz)
+            reader = can.BLFReader(cast(BinaryIO, source))   # it calls read() and close() only
+            source.check_header(reader)
+            return reader, source
+        source = _Lines(path, candump_problem if text_reader is can.CanutilsLogReader else None, gz)
+        return cast(Callable[..., Any], text_reader)(source, **absolute), source
     except Exception as exc:  # python-can readers raise what their parsers raise
-        if lines is not None:
-            lines.close()
+        if source is not None:
+            source.close()
+        elif gz is not None:
+            gz.close()
+        if isinstance(exc, LogFileError):
+            raise
         raise LogFileError(f"{path}: not a CAN log python-can reads ({exception_line(exc)})") from exc
 
 

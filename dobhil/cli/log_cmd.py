@@ -9,7 +9,8 @@
 
 Bad input ends in one :class:`~dobhil.errors.LogFileError` line (exit 2); an output that
 is one of the inputs is refused, and outputs appear only when complete. A CAN log cut short
-is imported up to its last complete record, with one warning line saying what was dropped. Progress goes to
+is imported up to its last complete record, with one warning line saying what was dropped (a gzip-compressed
+one, ``run.log.gz``, the same: :mod:`dobhil.canio.canlog`). Progress goes to
 stderr (:mod:`dobhil.cli.progress`: a bar on a terminal, else lines).
 """
 

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import gzip
+from collections.abc import Callable
 from pathlib import Path
 
 import can
@@ -284,3 +286,111 @@ def test_classic_dlc_above_8_and_every_writers_round_trip_pass(tmp_path: Path) -
             for _, msg in FRAMES:
                 writer.on_message_received(msg)
         assert import_can(tmp_path / f"all{suffix}", tmp_path / f"{suffix[1:]}-all.mcap") == len(FRAMES)
+
+
+# -- gzip-compressed logs: the checks of the plain ones -------------------------------------
+
+
+def gzipped(path: Path, keep: int | None = None) -> Path:
+    """``path`` compressed to ``path.gz`` (its first ``keep`` compressed bytes only: a stream
+    cut short), the plain file removed."""
+    data = gzip.compress(path.read_bytes(), mtime=0)
+    out = path.with_name(path.name + ".gz")
+    out.write_bytes(data if keep is None else data[:keep])
+    path.unlink()
+    return out
+
+
+def _import(path: Path, out: Path) -> tuple[int, list[tuple[int, int, bytes]], list[str]] | str:
+    """(frames, (log time, id, data) of each, warnings) of importing ``path``, or the refusal,
+    with the file's name left out (the plain and the gzipped file differ only by it)."""
+    warned: list[str] = []
+    try:
+        count = import_can(path, out, warn=warned.append)
+    except LogFileError as exc:
+        assert not out.exists()
+        return str(exc).replace(str(path), "LOG")
+    frames = [(t, p["arbitration_id"], bytes(p["data"])) for _, t, p in open_log(out).iter_messages()]
+    return count, frames, [w.replace(str(path), "LOG") for w in warned]
+
+
+def _cut_blf(path: Path, frames: int, container: int, at: Callable[[list[tuple[int, int]]], int]) -> None:
+    good = blf(path.with_name("whole.blf"), frames, container)
+    path.write_bytes(good.read_bytes()[:at(blf_objects(good))])
+
+
+#: name -> a writer of a plain CAN log (cut, damaged or whole) at the path it is given
+GZ_CASES: dict[str, Callable[[Path], None]] = {
+    "candump-cut-mid-line": lambda p: p.write_text(CANDUMP + "(1700000000.003000) can0 7FF#DEADBE"),
+    "candump-whole": lambda p: p.write_text(CANDUMP),
+    "candump-only-a-cut-line": lambda p: p.write_text("(1700000000.000000) can0 123#00112"),
+    "candump-bad-line-in-the-middle": lambda p: p.write_text(
+        CANDUMP.replace("#010203 T", "#0102030 T")),
+    "asc-cut-mid-line": lambda p: p.write_text(ASC + " 0.018913 1  6E              Tx   d 8 00 11 22"),
+    "asc-short-frame": lambda p: p.write_text(ASC.replace("d 1 05", "d 8 00 11") + " 0.0189 1  6E  Tx   d 1 01\n"),
+    "blf-cut-mid-object": lambda p: _cut_blf(p, 40, 128 * 1024, lambda o: o[0][0] + o[0][1] // 2),
+    "blf-cut-between-objects": lambda p: _cut_blf(p, 40, 256, lambda o: o[-1][0]),
+    "blf-cut-in-the-first-headers": lambda p: _cut_blf(p, 5, 128 * 1024, lambda o: o[0][0] + 6),
+    "blf-whole": lambda p: _cut_blf(p, 40, 256, lambda o: 1 << 40),
+}
+
+
+@pytest.mark.parametrize("case", list(GZ_CASES))
+def test_a_gzipped_log_gets_the_checks_of_a_plain_one(tmp_path: Path, case: str) -> None:
+    """``run.log.gz`` is read as ``run.log`` is: a cut last record warned of and dropped,
+    damage before the end refused, nothing written then; the same frames, times and words."""
+    suffix = ".blf" if case.startswith("blf") else ".asc" if case.startswith("asc") else ".log"
+    plain = tmp_path / f"run{suffix}"
+    GZ_CASES[case](plain)
+    expected = _import(plain, tmp_path / "plain.mcap")
+    got = _import(gzipped(plain), tmp_path / "gz.mcap")
+    assert got == expected
+    if case.endswith("whole"):
+        assert isinstance(got, tuple) and got[0] > 0 and got[2] == []
+    elif "cut" in case and "only" not in case and "first" not in case:
+        assert isinstance(got, tuple) and len(got[2]) == 1 and "cut short" in got[2][0]
+    else:
+        assert isinstance(got, str)
+
+
+@pytest.mark.parametrize("suffix", [".log", ".blf"])
+def test_a_gzip_stream_cut_short_imports_its_whole_records_and_says_so(tmp_path: Path, suffix: str) -> None:
+    """A ``.gz`` whose compressed stream stops before its end marker (a logger killed while
+    compressing): the whole records of what it holds are imported, the warning names the cut."""
+    plain = tmp_path / f"run{suffix}"
+    if suffix == ".blf":
+        blf(plain, 250, container=256)
+    else:
+        plain.write_text("".join(f"(1700000000.{i:06d}) can0 {i % 0x7FF:03X}#{i % 256:02X}0102 R\n"
+                                 for i in range(400)))
+    whole = _import(plain, tmp_path / "whole.mcap")
+    assert isinstance(whole, tuple)
+    size = len(gzip.compress(plain.read_bytes(), mtime=0))
+    got = _import(gzipped(plain, keep=size * 2 // 3), tmp_path / "gz.mcap")
+    assert isinstance(got, tuple), got
+    count, frames, warned = got
+    assert 0 < count < whole[0] and frames == whole[1][:count]
+    assert len(warned) == 1 and warned[0].startswith(f"LOG: cut short: imported the {count} complete frames; dropped ")
+    assert "; the gzip stream stops before its end marker" in warned[0], warned
+
+
+def test_damaged_gzip_data_is_refused(tmp_path: Path) -> None:
+    """Damage is refused wherever gzip or the format's check finds it: a byte flipped in the
+    middle of the compressed data makes lines no candump writer writes, one in the trailer's
+    CRC (RFC 1952) data gzip finds wrong at the end; a plain file named .gz is no gzip data."""
+    plain = tmp_path / "run.log"
+    plain.write_text("".join(f"(1700000000.{i:06d}) can0 123#{i % 256:02X}{i // 256:02X} R\n" for i in range(2000)))
+    data = gzip.compress(plain.read_bytes(), mtime=0)
+    size = plain.stat().st_size
+    for at, said in ((len(data) // 2, r"run.log.gz: line \d+: not a candump -L frame line"),
+                     (len(data) - 8, rf"run.log.gz: damaged gzip data after {size} uncompressed bytes "
+                                     r"\(BadGzipFile: CRC check failed")):
+        damaged = tmp_path / "run.log.gz"
+        damaged.write_bytes(data[:at] + bytes([data[at] ^ 0xFF]) + data[at + 1:])
+        with pytest.raises(LogFileError, match=said):
+            import_can(damaged, tmp_path / "out.mcap")
+    not_gzip = tmp_path / "text.log.gz"
+    not_gzip.write_text(CANDUMP)
+    with pytest.raises(LogFileError, match=r"text.log.gz: not gzip data \(BadGzipFile"):
+        import_can(not_gzip, tmp_path / "out.mcap")
+    assert not list(tmp_path.glob("*.mcap")) and not list(tmp_path.glob(".*partial*"))

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import gzip
 import json
 from pathlib import Path
 
@@ -155,9 +156,12 @@ def test_export_can_and_import_by_cli(tmp_path: Path, run_file: Path, capsys: py
     assert capsys.readouterr().err.count("\n") == 1
 
 
-def test_import_of_a_cut_candump_warns_in_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    cut = tmp_path / "cut.log"
-    cut.write_text("(1700000000.000000) can0 123#0011223344556677 R\n(1700000000.001000) can0 124#00112233")
+@pytest.mark.parametrize("compressed", [False, True], ids=["plain", "gz"])
+def test_import_of_a_cut_candump_warns_in_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str],
+                                                   compressed: bool) -> None:
+    text = "(1700000000.000000) can0 123#0011223344556677 R\n(1700000000.001000) can0 124#00112233"
+    cut = tmp_path / ("cut.log.gz" if compressed else "cut.log")
+    cut.write_bytes(gzip.compress(text.encode()) if compressed else text.encode())
     assert main(["log", "import", str(cut), "-o", str(tmp_path / "back.mcap")]) == 0
     captured = capsys.readouterr()
     assert "imported 1 CAN frames" in captured.out
@@ -166,9 +170,12 @@ def test_import_of_a_cut_candump_warns_in_one_line(tmp_path: Path, capsys: pytes
                     "dropped line 2, a record cut short (37 characters and no end of line)"]
 
 
-def test_import_of_a_bad_candump_line_is_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    bad = tmp_path / "bad.log"
-    bad.write_text("(1700000000.000000) can0 123#0011223 R\n(1700000000.001000) can0 124#00 R\n")
+@pytest.mark.parametrize("compressed", [False, True], ids=["plain", "gz"])
+def test_import_of_a_bad_candump_line_is_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str],
+                                                  compressed: bool) -> None:
+    text = "(1700000000.000000) can0 123#0011223 R\n(1700000000.001000) can0 124#00 R\n"
+    bad = tmp_path / ("bad.log.gz" if compressed else "bad.log")
+    bad.write_bytes(gzip.compress(text.encode()) if compressed else text.encode())
     assert main(["log", "import", str(bad), "-o", str(tmp_path / "back.mcap")]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and f"{bad}: line 1: data '0011223' has an odd number of hex digits" in err
