@@ -119,8 +119,8 @@ def _cmd_recover(args: argparse.Namespace) -> int:
     width = _topic_width(topic for topic, _ in report.counts)
     for topic, count in report.counts:
         print(f"  {topic:<{width}} {count:>10}")
-    if report.skipped_chunks:
-        print(f"skipped {report.skipped_chunks} damaged chunks")
+    for line in report.problems(_stamp):   # one line per stretch skipped, per channel lost
+        print(line)
     return 0
 
 

@@ -115,19 +115,24 @@ def _records(f: BinaryIO, path: str | os.PathLike[str]) -> Iterator[tuple[int, A
 _FOOTER_COVERED: Final = 1 + 8 + 8 + 8
 
 
-def _check_summary(f: BinaryIO, path: str | os.PathLike[str], footer_at: int, footer: Footer) -> None:
-    """The summary section's CRC (the MCAP spec's footer ``summary_crc``: every byte from the
-    summary's start through the footer's ``summary_offset_start``; 0: not computed). The
-    mcap reader does not check it, and the summary is what ``dobhil log info`` counts
-    messages with and where the channels' names come from: a flipped bit there would print
-    false figures. Damage is named at the summary's first byte."""
+def summary_intact(f: BinaryIO, footer_at: int, footer: Footer) -> bool:
+    """False when the summary section's CRC (the MCAP spec's footer ``summary_crc``: every byte
+    from the summary's start through the footer's ``summary_offset_start``; 0: not computed)
+    does not match. The mcap reader does not check it."""
     if footer.summary_start == 0 or footer.summary_crc == 0:
-        return
+        return True
     here = f.tell()
     f.seek(footer.summary_start)
     covered = f.read(footer_at + _FOOTER_COVERED - footer.summary_start)
     f.seek(here)
-    if zlib.crc32(covered) != footer.summary_crc:
+    return zlib.crc32(covered) == footer.summary_crc
+
+
+def _check_summary(f: BinaryIO, path: str | os.PathLike[str], footer_at: int, footer: Footer) -> None:
+    """The summary section checked by its CRC (:func:`summary_intact`): the summary is what
+    ``dobhil log info`` counts messages with and where the channels' names come from: a
+    flipped bit there would print false figures. Damage is named at the summary's first byte."""
+    if not summary_intact(f, footer_at, footer):
         raise _fail(path, f"damaged at byte {footer.summary_start} (the summary section's CRC does not match); "
                           "`dobhil log recover` saves the intact chunks")
 
@@ -412,4 +417,4 @@ open_log = LogFile
 
 
 __all__ = ["MAGIC", "ChannelInfo", "LogFile", "LogInfo", "check_library", "check_mcap_head", "decoder_for",
-           "encoding_for", "open_log", "unknown_config_keys", "unknown_keys_problem"]
+           "encoding_for", "open_log", "summary_intact", "unknown_config_keys", "unknown_keys_problem"]

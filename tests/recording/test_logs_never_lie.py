@@ -341,3 +341,124 @@ def test_a_1h_run_holds_no_more_memory_than_a_1min_run(tmp_path: Path) -> None:
     long = _peak_rss_kib(3600.0, tmp_path / "long.mcap")
     for who in ("self", "writer"):
         assert long[who] - short[who] < 50 * 1024, (who, short, long)
+
+
+def flipped(src: Path, dst: Path, at: int, count: int = 1) -> Path:
+    """A copy of ``src`` with the ``count`` bytes from ``at`` inverted."""
+    data = bytearray(src.read_bytes())
+    for i in range(at, at + count):
+        data[i] ^= 0xFF
+    dst.write_bytes(bytes(data))
+    return dst
+
+
+def recovered_lines(capsys: pytest.CaptureFixture[str], bad: Path, out: Path) -> list[str]:
+    capsys.readouterr()
+    assert main(["log", "recover", str(bad), "-o", str(out)]) == 0
+    return capsys.readouterr().out.splitlines()
+
+
+def test_recover_skips_a_damaged_metadata_record_near_the_start(recorded: Path, tmp_path: Path,
+                                                                 capsys: pytest.CaptureFixture[str]) -> None:
+    """A metadata record's length damaged (its framing lost, before any data): every chunk
+    after it is still saved; one line names the skipped record's byte."""
+    offset = next(pos for pos, kind in record_offsets(recorded) if kind == "Metadata")
+    bad = flipped(recorded, tmp_path / "meta.mcap", offset + 1 + 5)   # a high byte of its length
+    lines = recovered_lines(capsys, bad, tmp_path / "saved.mcap")
+    total = open_log(recorded).info().message_count
+    assert lines[0].startswith(f"recovered {total} messages"), lines
+    skipped = [line for line in lines if line.startswith("skipped")]
+    assert len(skipped) == 1 and f"at byte {offset} " in skipped[0], lines
+    saved = open_log(tmp_path / "saved.mcap")
+    assert saved.info().message_count == total and "config" not in saved.metadata
+
+
+def test_recover_skips_a_damaged_first_chunk_of_a_finished_file(recorded: Path, tmp_path: Path,
+                                                                 capsys: pytest.CaptureFixture[str]) -> None:
+    """The first chunk holds every schema and channel record: damaged, the channels are read
+    from the summary section, and every later chunk is saved; the line gives the chunk's byte,
+    its messages (by its message indexes) and the log time lost."""
+    offsets = record_offsets(recorded)
+    chunk = next(pos for pos, kind in offsets if kind == "Chunk")
+    bad = flipped(recorded, tmp_path / "first.mcap", chunk + 200, 16)
+    lines = recovered_lines(capsys, bad, tmp_path / "saved.mcap")
+    total = open_log(recorded).info().message_count
+    saved = open_log(tmp_path / "saved.mcap").info().message_count
+    skipped = [line for line in lines if line.startswith("skipped")]
+    assert len(skipped) == 1 and f"skipped a damaged chunk at byte {chunk} (" in skipped[0], lines
+    assert f"{total - saved} messages" in skipped[0] and "log time" in skipped[0] and "lost" in skipped[0]
+    assert 0 < saved < total
+
+
+def test_recover_of_a_cut_file_names_channels_lost_with_their_first_chunk(tmp_path: Path,
+                                                                          capsys: pytest.CaptureFixture[str]) -> None:
+    """Without the summary (a file cut short) a channel defined only in a damaged chunk cannot
+    be read: its messages are counted on one line, not copied; a channel defined in a later
+    chunk still is."""
+    from dobhil.recording.writer import LogWriter
+    from tests.recording.helpers import command, feedback
+    path = tmp_path / "run.mcap"
+    log = LogWriter(open(path, "wb"), metadata={}, fsync=False)
+    log.write([command(i, 1.0) for i in range(100)])
+    log.flush()                        # the first chunk: /drive/command's channel and 100 messages
+    log.write([feedback(100 + i, 1.0) for i in range(50)])
+    log.flush()                        # the second: /drive/feedback's channel and 50 messages
+    log.write([command(200 + i, 1.0) for i in range(30)])
+    log.flush()                        # the third: 30 more of /drive/command, its channel not repeated
+    log.close()                        # not finished: no summary repeats the channels
+    chunk = next(pos for pos, kind in record_offsets(path) if kind == "Chunk")
+    bad = flipped(path, tmp_path / "bad.mcap", chunk + 40, 8)
+    lines = recovered_lines(capsys, bad, tmp_path / "saved.mcap")
+    assert lines[0].startswith("recovered 50 messages"), lines
+    assert any(line.startswith(f"skipped a damaged chunk at byte {chunk} ") for line in lines), lines
+    lost = [line for line in lines if line.startswith("lost ")]
+    assert lost == ["lost 30 messages of channel 1: its channel record was in damaged bytes and is repeated "
+                    "nowhere readable"], lines
+    assert open_log(tmp_path / "saved.mcap").topics() == ("/drive/feedback",)
+
+
+def test_recover_names_lost_channels_when_nothing_else_is_left(recorded: Path, tmp_path: Path,
+                                                               capsys: pytest.CaptureFixture[str]) -> None:
+    """A cut file whose first chunk (every channel record) is damaged: nothing is readable,
+    said in one line with the messages of channels lost; nothing written."""
+    offsets = record_offsets(recorded)
+    chunk = next(pos for pos, kind in offsets if kind == "Chunk")
+    data_end = next(pos for pos, kind in offsets if kind == "DataEnd")
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(recorded.read_bytes()[:data_end])
+    bad = flipped(cut, tmp_path / "cut-first.mcap", chunk + 200, 16)
+    one_line(capsys, ["log", "recover", str(bad), "-o", str(tmp_path / "saved.mcap")],
+             "no complete message to recover", "channels whose channel records were in damaged bytes")
+    assert not (tmp_path / "saved.mcap").exists()
+
+
+def record_offsets(path: Path) -> list[tuple[int, str]]:
+    """(byte offset, record type) of each record of ``path`` in file order, up to its footer
+    or to where it stops reading (a file cut short)."""
+    from mcap.stream_reader import StreamReader
+    out = []
+    with open(path, "rb") as f:
+        f.seek(8)
+        reader = StreamReader(f, skip_magic=True, emit_chunks=True).records
+        while True:
+            pos = f.tell()
+            try:
+                record = next(reader)
+            except Exception:
+                return out
+            out.append((pos, type(record).__name__))
+
+
+def test_recover_resynchronises_after_a_chunk_whose_length_is_damaged(recorded: Path, tmp_path: Path,
+                                                                       capsys: pytest.CaptureFixture[str]) -> None:
+    """A chunk's length damaged: its record cannot be framed, so reading goes on at the next
+    record that reads and checks; the bytes skipped are one line, with the chunk the summary's
+    index placed there and its log time."""
+    chunks = [pos for pos, kind in record_offsets(recorded) if kind == "Chunk"]
+    bad = flipped(recorded, tmp_path / "length.mcap", chunks[1] + 1 + 6)
+    lines = recovered_lines(capsys, bad, tmp_path / "saved.mcap")
+    skipped = [line for line in lines if line.startswith("skipped")]
+    assert len(skipped) == 1 and skipped[0].startswith(f"skipped unreadable bytes at byte {chunks[1]} ("), lines
+    assert "1 chunks" in skipped[0] and "log time" in skipped[0], lines
+    total = open_log(recorded).info().message_count
+    assert 0 < open_log(tmp_path / "saved.mcap").info().message_count < total
