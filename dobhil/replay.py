@@ -13,6 +13,7 @@ decoded from its bus' frames (its drive class keeps its own node's frames only).
 
 from __future__ import annotations
 
+import json
 import os
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
@@ -56,10 +57,24 @@ class Recording:
     seq: NDArray[np.int64]                   # feedback seq each cycle used
     time: Array                              # log time [s] since the first cycle
     recorded: Array                          # (n, 6) recorded OUTPUTS
+    #: a recovered log's first gap (:func:`_gap`): the first and last cycle it lost (first >
+    #: last: it lost frames, no cycle) and the cycles present after it, not re-run; None: no gap
+    missing: tuple[int, int, int] | None = None
 
     @property
     def cycles(self) -> int:
         return int(self.cycle.size)
+
+    def gap_line(self) -> str | None:
+        """One line on a recovered log's missing stretch: which cycles, what was verified."""
+        if self.missing is None:
+            return None
+        first, last, after = self.missing
+        lost = (f"cycles {first}..{last} missing" if first <= last
+                else f"messages between cycles {first - 1} and {first} missing")
+        verified = f"cycles {int(self.cycle[0])}..{first - 1} re-run" if self.cycles else "no cycle re-run"
+        return (f"{lost} (recovered log): {verified}, the {after} after the gap not (the controller's state there "
+                "is lost with it)")
 
 
 @dataclass(frozen=True)
@@ -114,7 +129,7 @@ class ReplayResult:
         return {"file": self.recording.path, "axis": self.recording.axis, "cycles": self.recording.cycles,
                 "overrides": list(self.overrides),
                 "identical": mismatch is None, "first_mismatch": None if mismatch is None else mismatch.line(),
-                "difference": diffs}
+                "missing": self.recording.gap_line(), "difference": diffs}
 
     def rows(self) -> Iterator[list[float]]:
         """CSV rows: cycle, t, q, dq, then recorded and replayed outputs."""
@@ -184,13 +199,35 @@ def _profile(log: LogFile | AxisLog) -> DriveProfile:
     return recorded_profile(log.metadata.get("drive"), os.fspath(log.path))
 
 
+def _gap(log: LogFile | AxisLog, name: str) -> int | None:
+    """The log time a recovered log's first gap starts after (the ``recover`` metadata's
+    ``gaps``: :mod:`dobhil.recording.recover`; -1: before any message); None without one (an
+    integer: a log time in ns is beyond a float's 53 bits). The controller cannot be
+    re-run past it: its state there depends on the cycles lost, and the frames after it are
+    counted from a start that lost some (a feedback seq no longer names its frame)."""
+    from dobhil.recording.recover import RECOVER_METADATA
+    raw = log.metadata.get(RECOVER_METADATA, {}).get("gaps")
+    if not raw:
+        return None
+    try:
+        starts = [-1 if g[0] is None else int(g[0]) for g in json.loads(raw)]
+    except (ValueError, TypeError, IndexError, KeyError):
+        raise LogFileError(f"{name}: invalid metadata {RECOVER_METADATA}.gaps: {raw!r}") from None
+    return starts[0] if starts else None
+
+
 def _read(log: LogFile | AxisLog, name: str) -> Recording:
     frames: list[can.Message] = []
     seqs: dict[int, int] = {}
     initial: int | None = None
     controller: list[tuple[int, int, list[float]]] = []
+    gap, after = _gap(log, name), set()
     try:
         for topic, t, row in log.iter_rows(_FIELDS, CAN_MESSAGE_DEFAULTS):
+            if gap is not None and t > gap:   # past a recovered log's gap: not re-run, its cycles counted
+                if topic == "/controller":
+                    after.add(int(row[0]))
+                continue
             if topic == "/controller":
                 controller.append((int(row[0]), t, [float("nan") if v is None else float(v) for v in row[1:]]))
             elif topic == "/can/rx":
@@ -203,17 +240,22 @@ def _read(log: LogFile | AxisLog, name: str) -> Recording:
         raise LogFileError(f"{name}: a recorded message does not match its schema "
                            f"({exception_line(exc)})") from None
     if initial is None:
-        raise LogFileError(f"{name}: no initial feedback record (cycle -1) on /drive/feedback")
+        lost = " (lost with the start of this recovered log)" if gap is not None else ""
+        raise LogFileError(f"{name}: no initial feedback record (cycle -1) on /drive/feedback{lost}")
     controller.sort(key=lambda c: c[0])
-    missing = [c for c, _, _ in controller if c not in seqs]
-    if missing:
-        raise LogFileError(f"{name}: cycle {missing[0]} has /controller but no /drive/feedback record")
+    missing = None
+    if after:
+        first = controller[-1][0] + 1 if controller else 0
+        missing = (first, min(after) - 1, len(after))
+    unfed = [c for c, _, _ in controller if c not in seqs]
+    if unfed:
+        raise LogFileError(f"{name}: cycle {unfed[0]} has /controller but no /drive/feedback record")
     cycle = np.array([c for c, _, _ in controller], dtype=np.int64)
     times = np.array([t for _, t, _ in controller], dtype=np.int64)
     return Recording(name, _profile(log), getattr(log, "name", "axis"), tuple(frames), initial, cycle,
                      np.array([seqs[int(c)] for c in cycle], dtype=np.int64),
                      (times - (times[0] if times.size else 0)) / 1e9,
-                     np.array([v for _, _, v in controller], dtype=float).reshape(-1, len(OUTPUTS)))
+                     np.array([v for _, _, v in controller], dtype=float).reshape(-1, len(OUTPUTS)), missing)
 
 
 def replay(path: str | os.PathLike[str], overrides: Sequence[str] = (), axis: str | None = None) -> ReplayResult:

@@ -67,6 +67,9 @@ def _run_one(args: argparse.Namespace, axis: Any) -> int:
     if args.verify and not info["identical"]:
         sys.stderr.write(f"dobhil replay: verification failed: {info['first_mismatch']}\n")
         return EXIT_MISMATCH
+    if args.verify and info["missing"]:   # what is there matched; what is not was not verified
+        sys.stderr.write(f"dobhil replay: verification incomplete: {info['missing']}\n")
+        return EXIT_MISMATCH
     return 0
 
 
@@ -103,11 +106,16 @@ def _run_axes(args: argparse.Namespace, axes: Any) -> int:
         for name, info in infos.items():
             what = ("identical: every command and estimate reproduced bit for bit" if info["identical"]
                     else info["first_mismatch"])
-            print(f"  axis {name}: {info['cycles']} cycles, {what}")
+            print(f"  axis {name}: {info['cycles']} cycles, {what}" + (f"; {info['missing']}" if info["missing"]
+                                                                      else ""))
     if args.verify and differ:
         first = infos[differ[0]]["first_mismatch"]
         which = f"axis {differ[0]}" if len(differ) == 1 else f"axes {', '.join(differ)} (first: {differ[0]})"
         sys.stderr.write(f"dobhil replay: verification failed on {which}: {first}\n")
+        return EXIT_MISMATCH
+    gaps = [name for name, info in infos.items() if info["missing"]]
+    if args.verify and gaps:   # what is there matched; what is not was not verified
+        sys.stderr.write(f"dobhil replay: verification incomplete on axis {gaps[0]}: {infos[gaps[0]]['missing']}\n")
         return EXIT_MISMATCH
     return 0
 
@@ -116,9 +124,12 @@ def _print(info: dict[str, Any]) -> None:
     over = ", ".join(info["overrides"]) or "recorded config"
     print(f"replayed {info['cycles']} cycles of {info['file']} with {over}")
     if info["identical"]:
-        print("identical: every command and estimate reproduced bit for bit")
+        print("identical: every command and estimate " + ("of the cycles re-run " if info["missing"] else "")
+              + "reproduced bit for bit")
     else:
         print(info["first_mismatch"])
+    if info["missing"]:
+        print(info["missing"])
     for name, d in info["difference"].items():
         print(f"  {name:<12} replayed - recorded: max |.| {d['max_abs']:.6g} N m, RMS {d['rms']:.6g} N m")
 
