@@ -18,7 +18,8 @@ from pathlib import Path
 from types import MappingProxyType
 from typing import Any, BinaryIO, Final
 
-from mcap.records import Attachment, Channel, Chunk, Footer, Header, Metadata, Schema, Statistics
+from mcap.records import (Attachment, Channel, Chunk, DataEnd, Footer, Header, MessageIndex, Metadata, Schema,
+                          Statistics)
 from mcap.stream_reader import StreamReader, get_chunk_data_stream
 
 from dobhil import __version__
@@ -104,11 +105,60 @@ def _records(f: BinaryIO, path: str | os.PathLike[str]) -> Iterator[tuple[int, A
         except StopIteration:
             return
         except Exception as exc:  # mcap, zstd, lz4 and struct errors alike: the bytes are wrong
-            raise _fail(path, f"damaged at byte {pos} ({exception_line(exc)}); "
+            found = _uncovered_damage(f) if isinstance(getattr(exc, "record", None), DataEnd) else None
+            at, why = found or (pos, exception_line(exc))
+            raise _fail(path, f"damaged at byte {at} ({why}); "
                               "`dobhil log recover` saves the intact chunks") from exc
         yield pos, record
         if isinstance(record, Footer):
             return
+
+
+def _uncovered_damage(f: BinaryIO) -> tuple[int, str] | None:
+    """(byte, what) of the first record the data section's CRC caught that no CRC of its own
+    covers: a message index whose entries are not its chunk's messages, or a chunk whose
+    header's times are not its messages'; None when none disagrees (the damage is in a record
+    nothing repeats: metadata, or the DataEnd record itself). The DataEnd record's CRC covers
+    the whole data section, so where it fails names only the end of the damage's section."""
+    here = f.tell()
+    f.seek(0)
+    try:
+        expected: dict[int, list[tuple[int, int]]] = {}
+        records = StreamReader(f, emit_chunks=True).records
+        while True:
+            pos = f.tell()
+            record = next(records)
+            if isinstance(record, Chunk):
+                data = get_chunk_data_stream(record, validate_crc=True)[0].read(record.uncompressed_size)
+                expected = _message_index(data)
+                times = [t for entries in expected.values() for t, _ in entries]
+                if times and (min(times), max(times)) != (record.message_start_time, record.message_end_time):
+                    return pos, "the chunk's message times are not its messages'; the data section's CRC does not match"
+            elif isinstance(record, MessageIndex) and sorted(record.records) != expected.get(record.channel_id, []):
+                return pos, (f"the message index of channel {record.channel_id} does not match its chunk; "
+                             "the data section's CRC does not match")
+            elif isinstance(record, DataEnd):
+                return None
+    except Exception:   # the damage elsewhere (a record that no longer reads): the caller's byte stands
+        return None
+    finally:
+        f.seek(here)
+
+
+def _message_index(records: bytes) -> dict[int, list[tuple[int, int]]]:
+    """Channel -> sorted (log time, offset) of its messages in a chunk's records: its message
+    index as the MCAP spec defines it (offset: of the Message record in the uncompressed records)."""
+    out: dict[int, list[tuple[int, int]]] = {}
+    pos, end = 0, len(records)
+    while pos < end:
+        opcode, length = _RECORD.unpack_from(records, pos)
+        if opcode == _OP_MESSAGE:
+            channel, _, log_time, _ = _MESSAGE.unpack_from(records, pos + 9)
+            out.setdefault(channel, []).append((log_time, pos))
+        pos += 9 + length
+    for entries in out.values():
+        entries.sort()
+    return out
 
 
 #: bytes of a Footer record the summary's CRC covers: opcode, length, summary_start, summary_offset_start

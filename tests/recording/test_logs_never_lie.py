@@ -462,3 +462,17 @@ def test_recover_resynchronises_after_a_chunk_whose_length_is_damaged(recorded: 
     assert "1 chunks" in skipped[0] and "log time" in skipped[0], lines
     total = open_log(recorded).info().message_count
     assert 0 < open_log(tmp_path / "saved.mcap").info().message_count < total
+
+
+@pytest.mark.parametrize("command", ["info", "export-csv", "replay"])
+def test_a_damaged_message_index_is_named_at_its_own_byte(recorded: Path, tmp_path: Path, command: str,
+                                                          capsys: pytest.CaptureFixture[str]) -> None:
+    """A message index has no CRC of its own: the data section's, checked at the DataEnd
+    record, catches its damage. The line names the message index's byte, not the DataEnd's."""
+    offsets = record_offsets(recorded)
+    index = [pos for pos, kind in offsets if kind == "MessageIndex"][9]   # one of the second chunk's
+    data_end = next(pos for pos, kind in offsets if kind == "DataEnd")
+    # a log time of its first entry: opcode, length, channel id (2), the entries' length (4)
+    bad = flipped(recorded, tmp_path / "index.mcap", index + 1 + 8 + 2 + 4 + 3, 2)
+    err = one_line(capsys, readers(bad, tmp_path)[command], f"damaged at byte {index} ", "message index")
+    assert str(data_end) not in err
