@@ -203,6 +203,7 @@ class _Copier:
     open_gaps: list[int] = field(default_factory=list)   # skipped entries waiting for the next log time
     counting: int | None = None           # the skipped chunk the message indexes that follow count for
     complete: bool = False
+    earlier: list[list[int | None]] = field(default_factory=list)   # gaps of a source recovered before
 
     def skip(self, entry: Skipped) -> None:
         self.skipped.append(replace(entry, after_ns=self.last_ns))
@@ -231,6 +232,11 @@ class _Copier:
             self._define(record)
         elif isinstance(record, Message):
             self._message(record)
+        elif isinstance(record, Metadata) and record.name == RECOVER_METADATA:   # the source's own gaps: kept
+            try:
+                self.earlier += json.loads(record.metadata.get("gaps", "[]"))
+            except ValueError:
+                pass
         elif isinstance(record, Metadata):
             self.writer.add_metadata(record.name, record.metadata)
         elif isinstance(record, Attachment):
@@ -267,8 +273,10 @@ class _Copier:
             self.progress(1)
 
     def gaps(self) -> list[list[int | None]]:
-        """[after, before] log times of each skipped stretch that held messages (or may have)."""
-        return [[s.after_ns, s.before_ns] for s in self.skipped if s.messages != 0]
+        """[after, before] log times of each skipped stretch that held messages (or may have),
+        with the gaps of a source recovered before, in log time order (None first: before any message)."""
+        gaps = self.earlier + [[s.after_ns, s.before_ns] for s in self.skipped if s.messages != 0]
+        return sorted(gaps, key=lambda g: -1 if g[0] is None else g[0])
 
 
 @dataclass(frozen=True)

@@ -150,3 +150,7 @@ def test_a_recovered_log_with_a_gap_names_the_missing_cycles(recorded_long: Path
     result, whole = replay(saved), replay(recorded_long)
     assert result.first_mismatch() is None and result.recording.cycles == first
     assert np.array_equal(result.replayed.view(np.int64), whole.replayed[:first].view(np.int64))
+    # a recovered log recovered again keeps its gaps: the same cycles are named missing
+    again = tmp_path / "again.mcap"
+    recover(saved, again)
+    assert replay(again).recording.missing == result.recording.missing
