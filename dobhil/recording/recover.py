@@ -97,6 +97,11 @@ def _parse(data: Any, pos: int, crcs: bool = True) -> tuple[McapRecord, int] | N
     return record, pos + _HEAD + length
 
 
+def _closing(data: Any, pos: int) -> bool:
+    """True when the file's closing magic, and nothing else, is at ``pos``."""
+    return pos == len(data) - len(MAGIC) and bytes(data[pos:]) == MAGIC
+
+
 def _checks(data: Any, pos: int) -> bool:
     """True when a record that reads and checks starts at ``pos``: a chunk or attachment
     whose CRC matches, or another record followed by one that could be a record (or by the
@@ -108,7 +113,7 @@ def _checks(data: Any, pos: int) -> bool:
     if (isinstance(record, Chunk) and record.uncompressed_crc) or (
             isinstance(record, Attachment) and _attachment_crc(bytes(data[end - 4:end]))):
         return True   # its CRC matched
-    return bytes(data[end:]) == MAGIC or _frame(data, end) is not None
+    return _closing(data, end) or _frame(data, end) is not None
 
 
 def _resync(data: Any, start: int) -> int | None:
@@ -371,7 +376,7 @@ def _copy(data: Any, copier: _Copier, summary: _Summary) -> str:
     while pos < end:
         parsed = _parse(data, pos, crcs=False)   # a chunk's CRC is the copier's: it skips that chunk alone
         if parsed is None:
-            if bytes(data[pos:]) == MAGIC:   # a file's closing magic without the footer before it
+            if _closing(data, pos):   # a file's closing magic without the footer before it
                 return ""
             framed = _frame(data, pos)
             # the record's own end first (only its body is damaged), else the next record that checks
