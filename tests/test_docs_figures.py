@@ -13,9 +13,10 @@ The first line is the command; each further line a key of the JSON it prints (do
 names, ``\.`` a dot inside a name, integers index lists) with the value and its tolerance: ``± X %`` relative, ``± X``
 absolute, none: exact (a number, ``true``/``false``/``null`` or a JSON string). ``stdout ~ "RE"``
 / ``stderr ~ "RE"`` search the command's text instead, ``exit = N`` its exit code (0 when not
-said). ``<!-- run: COMMAND -->`` runs a command whose files later checks read (a log, an
-overlay). ``check slow:`` / ``run slow:`` mark a command of minutes: run with DOBHIL_SLOW=1,
-parsed always.
+said; ``exit ~ "RE"``: the code's digits match RE, for a command whose deterministic figure
+comes with an exit a machine's timing decides, such as ``dobhil check`` of emulated drives).
+``<!-- run: COMMAND -->`` runs a command whose files later checks read (a log, an overlay).
+``check slow:`` / ``run slow:`` mark a command of minutes: run with DOBHIL_SLOW=1, parsed always.
 
 Every command must also be shown on the page (in a code block or in backticks), with the same
 words but for ``--json`` / ``--summary-json``: the figure is reproducible by a reader, not only
@@ -143,8 +144,8 @@ def parse_expect(text: str, where: str) -> Expect:
         value = json.loads(raw)
     except json.JSONDecodeError:
         raise CheckError(f"{where}: {raw!r} is not a number, true, false, null or a \"string\"") from None
-    if op == "~" and (key not in ("stdout", "stderr") or not isinstance(value, str) or tol):
-        raise CheckError(f"{where}: ~ takes stdout or stderr and a \"regex\", got {text.strip()!r}")
+    if op == "~" and (key not in ("stdout", "stderr", "exit") or not isinstance(value, str) or tol):
+        raise CheckError(f"{where}: ~ takes stdout, stderr or exit and a \"regex\", got {text.strip()!r}")
     if tol is not None and not isinstance(value, (int, float)):
         raise CheckError(f"{where}: a tolerance needs a number, got {raw!r}")
     return Expect(key, op, value, float(tol or 0.0) / (100.0 if m["pct"] else 1.0), bool(m["pct"]))
@@ -212,9 +213,9 @@ def verify(check: Check, ran: Ran) -> None:
     """Every expectation of ``check`` against what its command gave; one CheckError listing
     all that failed."""
     failed = []
-    exit_code = next((e.value for e in check.expects if e.key == "exit"), 0)
-    if ran.code != exit_code:
-        failed.append(f"exit {ran.code}, expected {exit_code}: {ran.stderr.strip()[-500:]}")
+    exit_code = next((e for e in check.expects if e.key == "exit"), Expect("exit", "=", 0))
+    if not (re.fullmatch(exit_code.value, str(ran.code)) if exit_code.op == "~" else ran.code == exit_code.value):
+        failed.append(f"exit {ran.code}, expected {exit_code.value}: {ran.stderr.strip()[-500:]}")
     data: Any = None
     for e in check.expects:
         if e.key == "exit":
@@ -360,6 +361,15 @@ def test_exact_values_exit_codes_and_text() -> None:
         verify(check, Ran(1, json.dumps({"a": ["done", None], "b": 3.5}), "NOTE: node 1", 0.0))
     with pytest.raises(CheckError, match=r"stderr ~"):
         verify(check, Ran(1, json.dumps({"a": ["done", None], "b": 3}), "WARNING: x", 0.0))
+
+
+def test_an_exit_code_by_pattern() -> None:
+    check = _check('dobhil check x\n exit ~ "[01]"\n stdout ~ "gate"')
+    for code in (0, 1):
+        verify(check, Ran(code, "a gate line", "", 0.0))
+    for code in (2, 10):
+        with pytest.raises(CheckError, match=f"exit {code}, expected"):
+            verify(check, Ran(code, "a gate line", "", 0.0))
 
 
 @pytest.mark.parametrize("body", ["dobhil analyze demo --json\n a.b 8.72", "dobhil analyze demo\n a = x",
