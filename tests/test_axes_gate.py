@@ -94,7 +94,7 @@ def test_allow_unstable_runs_it_and_the_run_shows_the_instability(tmp_path: Path
     out, err = capsys.readouterr()
     assert "dobhil run: warning: stability gate overridden (--allow-unstable): the coupled sampled loop" in err
     info = json.loads(out)
-    gate = {k: json.loads(v) for k, v in info["stability_gate"]["left+right"].items()}
+    gate = info["stability_gate"]["left+right"]
     assert gate["status"] == "unstable" and gate["overridden"] is True and gate["allow_unstable"] is True
     assert code == 1 and info["stop_reason"] != "done"
 
@@ -103,7 +103,7 @@ def test_stable_pair_runs_and_records_the_gate(tmp_path: Path, capsys: pytest.Ca
     code = main(["run", str(pair(tmp_path, damping=30.0)), "--emulate", "--lockstep", "--summary-json"])
     out, err = capsys.readouterr()
     info = json.loads(out)
-    gate = {k: json.loads(v) for k, v in info["stability_gate"]["left+right"].items()}
+    gate = info["stability_gate"]["left+right"]
     assert code == 0 and gate["status"] == "stable" and gate["overridden"] is False
     # the margin is the distance in dB from the design (scale 1) to the largest stable scale
     assert gate["gain_margin_db"] == pytest.approx(20 * math.log10(gate["max_stable_scale"]), rel=1e-12)

@@ -31,6 +31,7 @@ def run_axes(args: argparse.Namespace, *, prog: str, emulate: bool, lockstep: bo
     per bus), ``live``: serve it to Foxglove as well."""
     from dobhil.cli.axes_gate import axes_gate_metadata
     from dobhil.cli.recording import abort_axes, live_address, open_axes_log
+    from dobhil.cli.stability_gate import summary_of_records
     from dobhil.config import resolve_config
     from dobhil.config.axes import load_axes
     from dobhil.files import check_output
@@ -65,7 +66,7 @@ def run_axes(args: argparse.Namespace, *, prog: str, emulate: bool, lockstep: bo
             _realtime(session, prog)
             result = record_axes(session, recorder, path, _gate_records(gate_records))
             info = axes_summary(session, result)
-            info["stability_gate"] = gate_records
+            info["stability_gate"] = summary_of_records(gate_records)
     except BaseException as exc:
         abort_axes(recorder, exc)
         tell_unfinished(session, prog)

@@ -73,7 +73,7 @@ def run_checked(args: argparse.Namespace) -> int:
     from dobhil.cli.check_cmd import preflight_kwargs, refuse_budget
     from dobhil.config import resolve_config
     from dobhil.cli.recording import abort, live_address, log_summary, open_run_log, record_run
-    from dobhil.cli.stability_gate import gate_metadata, stability_gate
+    from dobhil.cli.stability_gate import gate_metadata, gate_record, stability_gate
     from dobhil.files import check_output
     from dobhil.runtime.loop import StopRequest
     from dobhil.runtime.session import RunSession, check_duration, summary
@@ -106,6 +106,7 @@ def run_checked(args: argparse.Namespace) -> int:
             result = record_run(session, log, args.config, metadata={
                 "stability_gate": gate_metadata(gate, allow_unstable=args.allow_unstable)})
             info = summary(session, result)
+            info["stability_gate"] = gate_record(gate, allow_unstable=args.allow_unstable)
     except BaseException as exc:
         abort(log, exc)
         tell_unfinished(session)

@@ -61,14 +61,26 @@ def gate_line(verdict: GateVerdict | CoupledVerdict) -> str:
     return f"note: {note}" if note else ""
 
 
-def gate_metadata(verdict: GateVerdict | CoupledVerdict, *, allow_unstable: bool) -> dict[str, str]:
-    """The ``stability_gate`` metadata record of a run's log (JSON per key): the verdict,
-    whether ``--allow-unstable`` was given and whether it overrode a refusal."""
-    out = {k: json.dumps(v) for k, v in verdict.as_dict().items()}
-    out["allow_unstable"] = json.dumps(allow_unstable)
-    out["overridden"] = json.dumps(verdict.refuses and allow_unstable)
-    out["line"] = json.dumps(verdict.loop_text() if verdict.note() is None else verdict.note())
+def gate_record(verdict: GateVerdict | CoupledVerdict, *, allow_unstable: bool) -> dict[str, Any]:
+    """The gate's verdict as ``--summary-json`` gives it (``stability_gate``): the verdict,
+    whether ``--allow-unstable`` was given and whether it overrode a refusal, the line."""
+    out = dict(verdict.as_dict())
+    out["allow_unstable"] = allow_unstable
+    out["overridden"] = verdict.refuses and allow_unstable
+    out["line"] = verdict.loop_text() if verdict.note() is None else verdict.note()
     return out
 
 
-__all__ = ["add_gate_args", "gate_line", "gate_metadata", "stability_gate"]
+def gate_metadata(verdict: GateVerdict | CoupledVerdict, *, allow_unstable: bool) -> dict[str, str]:
+    """The ``stability_gate`` metadata record of a run's log: :func:`gate_record`, JSON per key
+    (an MCAP metadata record maps strings to strings)."""
+    return {k: json.dumps(v) for k, v in gate_record(verdict, allow_unstable=allow_unstable).items()}
+
+
+def summary_of_records(records: dict[str, dict[str, str]]) -> dict[str, dict[str, Any]]:
+    """Metadata records of :func:`gate_metadata` (by axis or coupled group) as ``--summary-json``
+    gives them: each value decoded."""
+    return {name: {k: json.loads(v) for k, v in record.items()} for name, record in records.items()}
+
+
+__all__ = ["add_gate_args", "gate_line", "gate_metadata", "gate_record", "stability_gate", "summary_of_records"]

@@ -78,11 +78,14 @@ def test_allow_unstable_runs_says_so_once_and_the_log_records_it(tmp_path: Path,
 def test_a_stable_run_records_the_verdict_without_an_override(tmp_path: Path,
                                                                capsys: pytest.CaptureFixture[str]) -> None:
     log = tmp_path / "run.mcap"
-    assert main([*RUN, "--duration", "0.05", "--log", str(log)]) == 0
-    assert "stability gate" not in capsys.readouterr().err
+    assert main([*RUN, "--duration", "0.05", "--log", str(log), "--summary-json"]) == 0
+    out, err = capsys.readouterr()
+    assert "stability gate" not in err
     meta = {k: json.loads(v) for k, v in open_log(log).metadata["stability_gate"].items()}
     assert meta["status"] == "stable" and meta["overridden"] is False
     assert meta["gain_margin_db"] == pytest.approx(12.7936, abs=1e-3)
+    # the summary gives the same verdict, its values as values (not the log's JSON strings)
+    assert json.loads(out)["stability_gate"] == meta
 
 
 def test_a_low_margin_is_one_warning_line_and_the_run_goes_on(capsys: pytest.CaptureFixture[str]) -> None:
