@@ -108,6 +108,29 @@ def test_a_noise_free_emulated_run_is_fitted_to_its_truth(logs: dict[str, Path],
         assert abs(e["value"] - value) <= 1e-6 * value, (name, e)
 
 
+def test_a_noise_free_emulated_run_is_fitted_to_its_truth_open_loop(logs: dict[str, Path],
+                                                                   capsys: pytest.CaptureFixture[str]) -> None:
+    """The same run by the open-loop output-error fit: the servo leaves the environment and
+    enters it again within the contact segment, and the Plant switches modes at sub-step
+    starts, so the cost is a washboard the refinement stopped in beside the truth's (delay
+    0.09 ms, K 9987.9 [9983.7, 9992.2], residual 6.8e-6 rad/s where the truth's is 1e-9:
+    dobhil/identify/fit.py, _whole_delay). Every 95 % interval holds the config's value,
+    the true delay (the lockstep emulator's: design.delay_samples and input_delay, 0 here)
+    included."""
+    assert main(["identify", str(logs["contact"]), "--method", "open-loop", "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["method"] == OPEN_LOOP
+    demo = load_config("demo")
+    truth = {"inertia": demo.plant.inertia, "viscous_friction": demo.plant.viscous_friction,
+             "stiffness": demo.environment.stiffness, "damping": demo.environment.damping,
+             "contact_position": demo.environment.contact_position,
+             "delay": demo.design.delay_samples * demo.loop.period + demo.design.input_delay}
+    for name, value in truth.items():
+        e = out["estimates"][name]
+        assert e["identifiable"] and e["low"] <= value <= e["high"], (name, e)
+    assert out["residual"]["rms"] < 1e-8
+
+
 #: seeds of the coverage test (~2.5 s of CPU each, idle machine); the 50-seed figure is in
 #: docs/identify.md with its command
 COVERAGE_SEEDS = 20
