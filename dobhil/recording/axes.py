@@ -23,7 +23,7 @@ from typing import Any, Final
 from dobhil.config.axes import SINGLE_AXIS
 from dobhil.errors import LogFileError, exception_line
 from dobhil.recording.axeslog import AXES_METADATA, AXIS_PREFIX, BUS_PREFIX, axis_prefix, axis_record, bus_record
-from dobhil.recording.reader import LogFile, open_log, unknown_config_keys, unknown_keys_problem
+from dobhil.recording.reader import LogFile, open_log, recorded_config, unknown_config_keys, unknown_keys_problem
 
 #: The topics of an axis' bus (the rest are the axis' own).
 BUS_TOPICS: Final = ("/can/rx", "/can/tx")
@@ -122,13 +122,7 @@ class AxisLog:
         if unknown:
             raise LogFileError(f"{self.path}: " + unknown_keys_problem(f"axis {self.name}'s recorded config", unknown,
                                                                      self.file.library))
-        from dobhil.config import build_config
-        try:
-            return build_config({k: json.loads(v) for k, v in record.items()},
-                                source=f"{os.fspath(self.path)} axis {self.name} config")
-        except (ValueError, TypeError) as exc:
-            raise LogFileError(f"{self.path}: invalid recorded config of axis {self.name}: "
-                               f"{exception_line(exc, named=False)}") from None
+        return recorded_config(self.path, record, self.name)
 
     @property
     def frame_ids(self) -> frozenset[int] | None:

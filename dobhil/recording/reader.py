@@ -213,11 +213,35 @@ def unknown_keys_problem(what: str, keys: Sequence[str], library: str) -> str:
             f"{library or 'an unnamed writer'}); `dobhil log info` still describes it")
 
 
+def recorded_config(path: str | os.PathLike[str], record: Mapping[str, str], axis: str | None = None) -> Any:
+    """The :class:`~dobhil.config.Config` a recorded config record holds (``axis``: that axis'
+    of a several-axis log); LogFileError naming a value the config schema refuses (a crafted
+    or damaged log: a value out of range would make replay and report compute nonsense)."""
+    from dobhil.config import build_config
+    of = "" if axis is None else f" of axis {axis}"
+    try:
+        return build_config({k: json.loads(v) for k, v in record.items()},
+                            source=f"{os.fspath(path)}{'' if axis is None else f' axis {axis}'} config")
+    except (ValueError, TypeError) as exc:
+        raise _fail(path, f"invalid recorded config{of}: {exception_line(exc, named=False)}") from None
+
+
+def axis_config_records(metadata: Mapping[str, Mapping[str, str]]) -> dict[str, Mapping[str, str]]:
+    """Axis name -> its recorded config of a several-axis log (``axis/<name>/config`` over the
+    run's ``config``, as :class:`dobhil.recording.axes.AxisLog` reads it); {}: a single-axis log."""
+    run = metadata.get("config", {})
+    return {name.split("/")[1]: {**run, **record} for name, record in metadata.items()
+            if name.startswith("axis/") and name.endswith("/config") and name.count("/") == 2}
+
+
 def _validate_metadata(path: str | os.PathLike[str], metadata: Mapping[str, Mapping[str, str]],
                        library: str = "", *, describe: bool = False) -> Any:
     """The recorded :class:`~dobhil.config.Config` (None without one); LogFileError naming a bad
     value or the keys this version does not know (``describe``: None for those, the file
-    described without its config)."""
+    described without its config). Each axis' config of a several-axis log is checked the
+    same way, but an axis whose config has keys this version does not know is left to
+    :class:`dobhil.recording.axes.AxisLog`, which refuses that axis alone (the other axes
+    stay readable)."""
     for (name, key), kind in _NUMERIC.items():
         value = metadata.get(name, {}).get(key)
         if value is not None:
@@ -225,6 +249,9 @@ def _validate_metadata(path: str | os.PathLike[str], metadata: Mapping[str, Mapp
                 kind(value)
             except ValueError:
                 raise _fail(path, f"metadata {name}.{key} = {value!r} is not a number") from None
+    for axis, axis_record in axis_config_records(metadata).items():
+        if not unknown_config_keys(axis_record):
+            recorded_config(path, axis_record, axis)
     record = metadata.get("config")
     if not record:
         return None
@@ -233,11 +260,7 @@ def _validate_metadata(path: str | os.PathLike[str], metadata: Mapping[str, Mapp
         if describe:
             return None
         raise _fail(path, unknown_keys_problem("its recorded config", unknown, library))
-    from dobhil.config import build_config
-    try:
-        return build_config({k: json.loads(v) for k, v in record.items()}, source=f"{os.fspath(path)} config")
-    except (ValueError, TypeError) as exc:
-        raise _fail(path, f"invalid recorded config: {exception_line(exc, named=False)}") from None
+    return recorded_config(path, record)
 
 
 class LogFile:
@@ -466,5 +489,6 @@ def _chunk_messages(records: bytes, wanted: Mapping[int, str]) -> Iterator[tuple
 open_log = LogFile
 
 
-__all__ = ["MAGIC", "ChannelInfo", "LogFile", "LogInfo", "check_library", "check_mcap_head", "decoder_for",
-           "encoding_for", "open_log", "summary_intact", "unknown_config_keys", "unknown_keys_problem"]
+__all__ = ["MAGIC", "ChannelInfo", "LogFile", "LogInfo", "axis_config_records", "check_library", "check_mcap_head",
+           "decoder_for", "encoding_for", "open_log", "recorded_config", "summary_intact", "unknown_config_keys",
+           "unknown_keys_problem"]

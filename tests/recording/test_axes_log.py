@@ -250,6 +250,29 @@ def test_an_axis_config_key_this_version_does_not_know(recorded: tuple[Path, Pat
     _refused(capsys, ["replay", str(path)], "axis right's recorded config has keys dobhil", "design.new_gain")
 
 
+@pytest.mark.parametrize(("key", "value", "words"), [
+    ("design.delay_samples", "-3", ("delay_samples",)),
+    ("loop.period", '"fast"', ("loop.period",)),
+])
+def test_an_axis_config_value_out_of_range_is_one_line(recorded: tuple[Path, Path, Any], tmp_path: Path,
+                                                      capsys: pytest.CaptureFixture[str], key: str, value: str,
+                                                      words: tuple[str, ...]) -> None:
+    """An axis' recorded config value its schema refuses is checked as a single-axis log's
+    config is: ``log info``, the exports and replay (of any axis) refuse the file in one line
+    naming the axis and the key, nothing written."""
+    from tests.recording.test_logs_never_lie import rewrite_metadata
+    path = rewrite_metadata(recorded[0], tmp_path / "crafted.mcap", key, value, "axis/right/config")
+    out = tmp_path / "out"
+    out.mkdir()
+    for argv in (["log", "info", str(path)], ["log", "info", str(path), "--json"],
+                 ["log", "export", str(path), "--topic", "/axis/left/controller", "--format", "csv",
+                  "-o", str(out / "c.csv")],
+                 ["log", "export", str(path), "--can", "--format", "candump", "-o", str(out / "c.log")],
+                 ["replay", str(path), "--axis", "left"]):
+        _refused(capsys, argv, f"{path}: invalid recorded config of axis right", *words)
+    assert list(out.iterdir()) == []
+
+
 def test_overrides_per_axis_and_unknown_axes(recorded: tuple[Path, Path, Any],
                                              capsys: pytest.CaptureFixture[str]) -> None:
     path = recorded[0]
