@@ -377,6 +377,17 @@ def short_frame(msg: can.Message) -> str | None:
     return None
 
 
+def import_metadata(source: Path) -> dict[str, str]:
+    """The ``import`` metadata record of an imported log: its file name and its format, by
+    the suffix python-can's ``LogReader`` reads it by (``log``: candump, ``asc``, ``blf``, ...;
+    of ``run.log.gz`` the ``log`` before ``.gz``, the format of what the gzip stream holds), and
+    ``compression: gzip`` for a gzip-compressed one."""
+    meta = {"source": source.name, "format": _format_suffix(source).lstrip(".")}
+    if source.suffix.lower() == ".gz":
+        meta["compression"] = "gzip"
+    return meta
+
+
 def import_can(canlog: str | os.PathLike[str], out: str | os.PathLike[str], *,
                progress: ProgressFn | None = None, warn: Callable[[str], None] | None = None) -> int:
     """Every complete frame of a python-can readable log into a new MCAP; the frame count.
@@ -384,7 +395,7 @@ def import_can(canlog: str | os.PathLike[str], out: str | os.PathLike[str], *,
     saying what was dropped at the end (module docstring); damage before the end raises."""
     source = Path(canlog)
     check_output(out, inputs=[source], suffix=".mcap", what="output", new=True)
-    count, meta = 0, {"import": {"source": source.name, "format": source.suffix.lstrip(".").lower()}}
+    count, meta = 0, {"import": import_metadata(source)}
     reader, lines = _can_reader(source)
     with reader, atomic_path(out) as tmp:
         log = LogWriter(open(tmp, "wb"), metadata=meta, fsync=False)
@@ -411,7 +422,7 @@ def import_can(canlog: str | os.PathLike[str], out: str | os.PathLike[str], *,
             log.close()
             if cut is not None:
                 raise LogFileError(f"{source}: no complete CAN frame before the end was cut short ({cut})")
-            raise LogFileError(f"{source}: no CAN frames found (is it a {source.suffix or 'CAN'} log?)")
+            raise LogFileError(f"{source}: no CAN frames found (is it a {_format_suffix(source) or 'CAN'} log?)")
         log.finish(None)
     if cut is not None and warn is not None:
         warn(f"{source}: cut short: imported the {count} complete frames; dropped {cut}")
@@ -419,4 +430,4 @@ def import_can(canlog: str | os.PathLike[str], out: str | os.PathLike[str], *,
 
 
 __all__ = ["FORMATS", "TEXT_READERS", "CanLogFormat", "candump_problem", "default_can_output", "export_can",
-           "import_can", "parse_format", "short_frame"]
+           "import_can", "import_metadata", "parse_format", "short_frame"]

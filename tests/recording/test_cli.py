@@ -157,6 +157,31 @@ def test_export_can_and_import_by_cli(tmp_path: Path, run_file: Path, capsys: py
 
 
 @pytest.mark.parametrize("compressed", [False, True], ids=["plain", "gz"])
+@pytest.mark.parametrize(("fmt", "suffix"), [("candump", "log"), ("asc", "asc"), ("blf", "blf")])
+def test_import_records_the_format_inside_a_gz(tmp_path: Path, run_file: Path, capsys: pytest.CaptureFixture[str],
+                                               fmt: str, suffix: str, compressed: bool) -> None:
+    """The ``import`` metadata names the log's own format (the suffix python-can reads it
+    by), for a gzip-compressed log the one before ``.gz``, with ``compression = gzip``; ``log
+    info`` shows both."""
+    exported = tmp_path / f"frames.{suffix}"
+    assert main(["log", "export", str(run_file), "--can", "--format", fmt, "-o", str(exported)]) == 0
+    source = exported
+    if compressed:
+        source = tmp_path / f"frames.{suffix}.gz"
+        source.write_bytes(gzip.compress(exported.read_bytes()))
+    out = tmp_path / "back.mcap"
+    assert main(["log", "import", str(source), "-o", str(out)]) == 0
+    capsys.readouterr()
+    assert main(["log", "info", str(out), "--json"]) == 0
+    expected = {"source": source.name, "format": suffix, **({"compression": "gzip"} if compressed else {})}
+    assert json.loads(capsys.readouterr().out)["metadata"]["import"] == expected
+    assert main(["log", "info", str(out)]) == 0
+    text = capsys.readouterr().out
+    record = text[text.index("metadata import:\n"):].splitlines()[1:1 + len(expected)]
+    assert record == [f"  {k} = {v}" for k, v in expected.items()], text
+
+
+@pytest.mark.parametrize("compressed", [False, True], ids=["plain", "gz"])
 def test_import_of_a_cut_candump_warns_in_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str],
                                                    compressed: bool) -> None:
     text = "(1700000000.000000) can0 123#0011223344556677 R\n(1700000000.001000) can0 124#00112233"
