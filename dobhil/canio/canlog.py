@@ -71,7 +71,8 @@ def export_can(mcap_path: str | os.PathLike[str], out: str | os.PathLike[str], f
     """The recording's CAN frames to ``out`` in ``fmt`` (every bus' of a several-axis log, in
     the order recorded, each frame with the channel its bus gave it); the frame count."""
     check_output(out, inputs=[mcap_path], what="output", suffix=FORMATS[fmt][0])
-    with open_log(mcap_path) as log:
+    # describe: a copy of what was recorded never applies the config, so a newer dobhil's log is exported too
+    with open_log(mcap_path, describe=True) as log:
         topics = [t for t in log.topics() if is_frame_topic(t)]
         if not topics:
             raise LogFileError(f"{os.fspath(mcap_path)}: no CAN frames (no /can/rx or /can/tx topic)")

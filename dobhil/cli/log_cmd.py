@@ -8,7 +8,10 @@
 - ``dobhil log serve FILE [--live [HOST:]PORT] [--speed X] [--loop]``  (Foxglove live view)
 
 Bad input ends in one :class:`~dobhil.errors.LogFileError` line (exit 2); an output that
-is one of the inputs is refused, and outputs appear only when complete. A CAN log cut short
+is one of the inputs is refused, and outputs appear only when complete. ``info``, ``export``
+and ``serve`` read what was recorded without applying its config, so a newer dobhil's log
+(a recorded config key this version does not know) is read, with one note line
+(:func:`dobhil.recording.reader.unknown_keys_note`). A CAN log cut short
 is imported up to its last complete record, with one warning line saying what was dropped (a gzip-compressed
 one, ``run.log.gz``, the same: :mod:`dobhil.canio.canlog`). Progress goes to
 stderr (:mod:`dobhil.cli.progress`: a bar on a terminal, else lines).
@@ -19,7 +22,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-from collections.abc import Callable, Iterable, Iterator, Mapping
+from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
 from datetime import datetime, timezone
 from typing import Any
@@ -39,13 +42,22 @@ def _progress(desc: str, total: int | None) -> Iterator[Progress]:
         yield shown.update
 
 
-def _total(path: str, exported: Callable[[str], bool]) -> int:
+def _total(path: str, exported: Callable[[str], bool]) -> tuple[int, str]:
     """The messages of the topics ``exported`` picks: what the export will count, so its
-    last progress line reads 100 %."""
-    from dobhil.recording.reader import open_log
+    last progress line reads 100 %; and the note on a recorded config this version cannot
+    read ("": none). An export copies what was recorded and never applies the config, so a
+    newer dobhil's log is exported (``describe``), with the note ``log info`` gives."""
+    from dobhil.recording.reader import open_log, unknown_keys_note
 
-    with open_log(path) as log:
-        return sum(c.message_count for c in log.channels() if exported(c.topic))
+    with open_log(path, describe=True) as log:
+        note = unknown_keys_note(log.unknown_config) if log.unknown_config else ""
+        return sum(c.message_count for c in log.channels() if exported(c.topic)), note
+
+
+def _say_note(note: str) -> None:
+    """The note of :func:`_total` on stderr (after the command's checks: bad input stays its one line)."""
+    if note:
+        sys.stderr.write(f"dobhil log: note: {note}\n")
 
 
 def _stamp(ns: int) -> str:
@@ -71,7 +83,8 @@ def _info_lines(info: Any) -> Iterator[str]:
     if info.dropped is not None:
         yield f"dropped:    {info.dropped}"
     if info.unknown_config_keys:
-        yield f"note:       {_unknown_keys_note(info.unknown_config_keys)}"
+        from dobhil.recording.reader import unknown_keys_note
+        yield f"note:       {unknown_keys_note(info.unknown_config_keys)}"
     yield "channels:"
     width = _topic_width(c.topic for c in info.channels)
     for c in info.channels:
@@ -81,18 +94,6 @@ def _info_lines(info: Any) -> Iterator[str]:
         yield from (f"  {k} = {v}" for k, v in record.items())
     if info.attachments:
         yield f"attachments: {', '.join(info.attachments)}"
-
-
-def _unknown_keys_note(unknown: Mapping[str, tuple[str, ...]]) -> str:
-    """One line: the recorded config's keys this version does not know, by config record
-    (``config``; ``axis/<name>/config`` of a several-axis log), and that the commands that
-    need the config refuse the log."""
-    from dobhil import __version__
-
-    where = "; ".join(("" if name == "config" else f"axis {name.split('/')[1]}: ") + ", ".join(keys)
-                      for name, keys in unknown.items())
-    return (f"the recorded config has keys dobhil {__version__} does not know ({where}); commands that need "
-            "the config (replay, report, identify, compare) refuse this log")
 
 
 def _cmd_info(args: argparse.Namespace) -> int:
@@ -136,9 +137,11 @@ def _export_topic(args: argparse.Namespace) -> int:
     if args.format != "csv":
         raise LogFileError(f"--topic exports only --format csv, got {args.format!r}")
     out = args.output or default_csv_output(args.file, args.topic)
-    with _progress("export", _total(args.file, lambda topic: topic == args.topic)) as update:
+    total, note = _total(args.file, lambda topic: topic == args.topic)
+    with _progress("export", total) as update:
         count = export_csv(args.file, args.topic, out, progress=update)
     print(f"wrote {count} rows of {args.topic} to {out}")
+    _say_note(note)
     return 0
 
 
@@ -148,9 +151,11 @@ def _export_can(args: argparse.Namespace) -> int:
 
     fmt = parse_format(args.format)
     out = args.output or default_can_output(args.file, fmt)
-    with _progress("export", _total(args.file, is_frame_topic)) as update:
+    total, note = _total(args.file, is_frame_topic)
+    with _progress("export", total) as update:
         count = export_can(args.file, out, fmt, progress=update)
     print(f"wrote {count} CAN frames to {out}")
+    _say_note(note)
     return 0
 
 

@@ -21,10 +21,13 @@ def serve_command(path: str | os.PathLike[str], *, live: str, speed: float, loop
     host, port = address
     check_speed(speed)
     import_sdk()
-    load_channels(path)
+    notes: list[str] = []
+    load_channels(path, on_note=notes.append)
     warning = exposure_warning(address)
     if warning is not None:
         print(f"warning: {warning}", file=sys.stderr, flush=True)
+    for note in notes:   # once every input is checked: bad input stays its one line
+        print(f"dobhil log: note: {note}", file=sys.stderr, flush=True)
     with LiveServer(host=host, port=port) as server:
 
         def ready(channels: tuple[RecordedChannel, ...]) -> None:

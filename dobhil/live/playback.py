@@ -109,11 +109,17 @@ def recorded_channels(path: str | os.PathLike[str], f: IO[bytes]) -> tuple[Recor
     return tuple(out.values())
 
 
-def load_channels(path: str | os.PathLike[str]) -> tuple[RecordedChannel, ...]:
-    """Validate a recording and return its channels; one LogFileError line if unusable."""
-    from dobhil.recording.reader import open_log
+def load_channels(path: str | os.PathLike[str], on_note: Callable[[str], None] | None = None
+                  ) -> tuple[RecordedChannel, ...]:
+    """Validate a recording and return its channels; one LogFileError line if unusable.
+    Serving plays what was recorded and never applies the config, so a newer dobhil's log
+    (a recorded config with keys this version does not know) is served, ``on_note`` given
+    the note ``dobhil log info`` prints of it."""
+    from dobhil.recording.reader import open_log, unknown_keys_note
 
-    open_log(path)
+    log = open_log(path, describe=True)
+    if log.unknown_config and on_note is not None:
+        on_note(unknown_keys_note(log.unknown_config))
     with open(path, "rb") as f:
         return recorded_channels(path, f)
 

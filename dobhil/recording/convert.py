@@ -36,7 +36,9 @@ def export_csv(mcap_path: str | os.PathLike[str], topic: str, out: str | os.Path
     """``topic`` of the recording to ``out`` as CSV; the row count."""
     check_output(out, inputs=[mcap_path], what="output", suffix=".csv")
     count = 0
-    with open_log(mcap_path) as log, atomic_path(out) as tmp, open(tmp, "w", newline="", encoding="utf-8") as sink:
+    # describe: a copy of what was recorded never applies the config, so a newer dobhil's log is exported too
+    log = open_log(mcap_path, describe=True)
+    with atomic_path(out) as tmp, open(tmp, "w", newline="", encoding="utf-8") as sink:
         columns, writer = log.schema_properties(topic), csv.writer(sink)
         writer.writerow(["log_time_ns", *columns])
         for _, t, payload in log.iter_messages([topic]):

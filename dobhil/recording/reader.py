@@ -210,7 +210,18 @@ def unknown_keys_problem(what: str, keys: Sequence[str], library: str) -> str:
     """The line a command that needs the config refuses a log with: ``what`` (``its recorded
     config``) has ``keys`` this version does not know; ``library``: the log's writer."""
     return (f"{what} has keys dobhil {__version__} does not know: {', '.join(keys)} (the log was written by "
-            f"{library or 'an unnamed writer'}); `dobhil log info` still describes it")
+            f"{library or 'an unnamed writer'}); `dobhil log info`, `log export` and `log serve` still read it")
+
+
+def unknown_keys_note(unknown: Mapping[str, Sequence[str]]) -> str:
+    """One line for the commands that read such a log without its config (``log info``,
+    ``log export``, ``log serve``): the recorded config's keys this version does not know, by
+    config record (``config``; ``axis/<name>/config`` of a several-axis log), and that the
+    commands that need the config refuse the log."""
+    where = "; ".join(("" if name == "config" else f"axis {name.split('/')[1]}: ") + ", ".join(keys)
+                      for name, keys in unknown.items())
+    return (f"the recorded config has keys dobhil {__version__} does not know ({where}); commands that need "
+            "the config (replay, report, identify, compare) refuse this log")
 
 
 def recorded_config(path: str | os.PathLike[str], record: Mapping[str, str], axis: str | None = None) -> Any:
@@ -266,9 +277,10 @@ def _validate_metadata(path: str | os.PathLike[str], metadata: Mapping[str, Mapp
 class LogFile:
     """A complete, checked dobhil log, opened and checked at once; nothing is held open
     between reads. ``describe``: a recorded config with keys this version does not know
-    (:attr:`unknown_config`) is no refusal, ``config`` is then None: what ``dobhil log info``
-    needs to describe a newer dobhil's log; every command that needs the config opens without
-    it and so refuses such a log in one line."""
+    (:attr:`unknown_config`) is no refusal, ``config`` is then None: the commands that read
+    what was recorded without applying the config (``dobhil log info``, ``log export``, ``log
+    serve``) open a newer dobhil's log so and say :func:`unknown_keys_note`; every command
+    that needs the config opens without it and so refuses such a log in one line."""
 
     def __init__(self, path: str | os.PathLike[str], *, describe: bool = False) -> None:
         size = check_mcap_head(path)
@@ -491,4 +503,4 @@ open_log = LogFile
 
 __all__ = ["MAGIC", "ChannelInfo", "LogFile", "LogInfo", "axis_config_records", "check_library", "check_mcap_head",
            "decoder_for", "encoding_for", "open_log", "recorded_config", "summary_intact", "unknown_config_keys",
-           "unknown_keys_problem"]
+           "unknown_keys_note", "unknown_keys_problem"]

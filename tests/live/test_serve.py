@@ -167,3 +167,38 @@ def test_loop_starts_over_with_a_new_session(recorded: Path) -> None:
     got = [(r.log_time_ns, r.payload) for r in received]
     assert got[: 2 * len(expected)] == expected + expected  # each pass as recorded
     assert new_session != first_session
+
+
+def test_a_log_of_a_newer_dobhil_is_served_with_the_note_of_log_info(recorded: Path, tmp_path: Path,
+                                                                      dobhil_forks: DobhilForks) -> None:
+    """A recorded config with a key this version does not know (a newer dobhil's log) is no
+    reason not to serve what was recorded: the messages go out as recorded and stderr has the
+    note ``log info`` prints, once; bad input stays its one line, the note left out."""
+    from tests.recording.test_logs_never_lie import rewrite_metadata
+    newer = rewrite_metadata(recorded, tmp_path / "newer.mcap", "plant.magnet_force", "1")
+    info = _dobhil(dobhil_forks, "log", "info", str(newer))
+    assert info.returncode == 0, info.stderr
+    note = next(line for line in info.stdout.splitlines() if line.startswith("note:")).removeprefix("note:").strip()
+    assert "plant.magnet_force" in note
+    bad = _dobhil(dobhil_forks, "log", "serve", str(newer), "--speed", "0", "--live", "127.0.0.1:0")
+    assert bad.returncode == 2 and bad.stderr.count("\n") == 1 and "--speed" in bad.stderr, bad.stderr
+    expected = _recorded_messages(recorded, "/controller")
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "dobhil", "log", "serve", str(newer), "--live", "127.0.0.1:0", "--speed", "4"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )
+    try:
+        assert proc.stdout is not None
+        first = proc.stdout.readline()
+        assert first.startswith(f"serving {newer} on ws://127.0.0.1:"), first
+        with LiveClient(first.split(" on ", 1)[1].split()[0]) as client:
+            client.subscribe(["/controller"])
+            received = client.collect(counts_at_least({"/controller": len(expected)}), timeout=120)
+        out, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+    assert proc.returncode == 0, err
+    assert [(r.log_time_ns, r.payload) for r in received] == expected
+    assert [line for line in err.splitlines() if "note" in line] == [f"dobhil log: note: {note}"], err

@@ -238,13 +238,20 @@ def test_info_and_recover_keep_the_counts_in_a_column(recorded: tuple[Path, Path
 def test_an_axis_config_key_this_version_does_not_know(recorded: tuple[Path, Path, Any], tmp_path: Path,
                                                       capsys: pytest.CaptureFixture[str]) -> None:
     """An axis' recorded config with a key this version does not know: ``log info`` names it
-    and the axis in one note line; replay refuses the log in one line naming both."""
+    and the axis in one note line, an export says it on stderr; replay of that axis refuses
+    the log in one line naming both, the other axis replays."""
     from tests.recording.test_logs_never_lie import rewrite_metadata
     path = rewrite_metadata(recorded[0], tmp_path / "newer.mcap", "design.new_gain", "2", "axis/right/config")
     capsys.readouterr()
     assert main(["log", "info", str(path)]) == 0
     notes = [line for line in capsys.readouterr().out.splitlines() if line.startswith("note:")]
     assert len(notes) == 1 and "does not know (axis right: design.new_gain)" in notes[0], notes
+    # an export copies what was recorded, that axis' topics too, with the same note on stderr
+    assert main(["log", "export", str(path), "--topic", "/axis/right/controller", "--format", "csv",
+                 "-o", str(tmp_path / "right.csv")]) == 0
+    err = capsys.readouterr().err
+    assert [line for line in err.splitlines() if "note" in line] == [f"dobhil log: {notes[0]}".replace(
+        "note:       ", "note: ")], err
     assert main(["replay", str(path), "--axis", "left"]) == 0
     capsys.readouterr()
     _refused(capsys, ["replay", str(path)], "axis right's recorded config has keys dobhil", "design.new_gain")

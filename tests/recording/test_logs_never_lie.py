@@ -163,28 +163,44 @@ def test_crafted_metadata_is_one_line(recorded: Path, tmp_path: Path, capsys: py
 
 
 @pytest.mark.parametrize("key", ["plant.magnet_force", "nonsense.key"])
-def test_a_config_key_this_version_does_not_know_is_described_by_info_only(
+def test_a_config_key_this_version_does_not_know_refuses_only_what_needs_the_config(
         recorded: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str], key: str) -> None:
     """A log whose recorded config has a key this version does not know (a newer dobhil's):
-    ``log info`` describes the file with one note line naming the key; every command that
-    reads the file further refuses it in one line naming the key, nothing written."""
+    ``log info`` describes the file with one note line naming the key; the exports copy what
+    was recorded (the files the original log gives) and say the same note on stderr; every
+    command that applies the config refuses it in one line naming the key, nothing written."""
     path = rewrite_metadata(recorded, tmp_path / "newer.mcap", key, "1")
     capsys.readouterr()
     assert main(["log", "info", str(path)]) == 0
     out = capsys.readouterr().out
     notes = [line for line in out.splitlines() if line.startswith("note:")]
     assert len(notes) == 1 and f"does not know ({key})" in notes[0], out
+    note = notes[0].removeprefix("note:").strip()
     assert "channels:" in out and "/controller" in out and f"  {key} = 1" in out
     assert main(["log", "info", str(path), "--json"]) == 0
     assert json.loads(capsys.readouterr().out)["unknown_config_keys"] == {"config": [key]}
-    out_dir = tmp_path / "out"
+    out_dir, original = tmp_path / "out", tmp_path / "original"
     out_dir.mkdir()
-    for name, argv in readers(path, out_dir).items():
-        if name != "info":
-            one_line(capsys, argv, "its recorded config has keys dobhil", f"does not know: {key} (the log was "
-                     "written by dobhil/")
+    original.mkdir()
+    for name in ("export-csv", "export-can"):
+        assert main(readers(recorded, original)[name]) == 0
+        capsys.readouterr()
+        assert main(readers(path, out_dir)[name]) == 0
+        err = capsys.readouterr().err
+        said = [line for line in err.splitlines() if line.startswith("dobhil log:")]
+        assert said == [f"dobhil log: note: {note}"], err
+    for made in original.iterdir():
+        assert (out_dir / made.name).read_bytes() == made.read_bytes(), made.name
+    # bad input to an export stays its one line, the note left out
+    one_line(capsys, ["log", "export", str(path), "--topic", "/nope", "--format", "csv", "-o", str(tmp_path / "n.csv")],
+             "no topic '/nope'")
+    one_line(capsys, ["log", "export", str(path), "--can", "--format", "candump", "-o", str(tmp_path / "c.png")],
+             ".log")
+    for name in ("replay", "report"):
+        one_line(capsys, readers(path, out_dir)[name], "its recorded config has keys dobhil",
+                 f"does not know: {key} (the log was written by dobhil/")
     one_line(capsys, ["compare", str(path), str(recorded)], f"does not know: {key}")
-    assert list(out_dir.iterdir()) == []
+    assert sorted(p.name for p in out_dir.iterdir()) == sorted(p.name for p in original.iterdir())
     capsys.readouterr()
     assert main(["log", "info", str(recorded), "--json"]) == 0
     assert json.loads(capsys.readouterr().out)["unknown_config_keys"] == {}
