@@ -64,12 +64,11 @@ def _scan_alpha(config_args: list[str], ranges: dict[str, tuple[float, float]], 
     (["--set", "design.force_gain=0.1"], {"environment.stiffness": (100.0, 1e5)}),
     # the tuned design's smallest one inside the range too (near K 1200)
     (TUNED, {"environment.stiffness": (100.0, 1e5)}),
-    (TUNED, {"plant.inertia": (0.05, 0.8), "environment.stiffness": (2e4, 5e4)}),
 ])
 def test_the_disk_margin_is_the_smallest_a_dense_scan_finds(
         capsys: pytest.CaptureFixture[str], sets: list[str], ranges: dict[str, tuple[float, float]]) -> None:
     """The disk margin reported over a certified box is met at a point inside the box, and a
-    scan (60 points of one key, 12 per key of two; a key of a decade or more log-spaced)
+    scan (40 points of one key, 8 per key of two; a key of a decade or more log-spaced)
     finds none smaller by more than 1e-3 of it, both loops."""
     box = [a for key, (lo, hi) in ranges.items() for a in ("--range", f"{key}={lo}:{hi}")]
     assert main(["certify", "paper/fig3", *box, *sets, "--json"]) == 0
@@ -78,7 +77,7 @@ def test_the_disk_margin_is_the_smallest_a_dense_scan_finds(
         disk = answer["disk_margin"][name]
         assert disk["stable"], disk
         assert all(lo <= disk["at"][k] <= hi for k, (lo, hi) in ranges.items()), disk
-        scanned = _scan_alpha(sets, ranges, name == "sampled", 60 if len(ranges) == 1 else 12)
+        scanned = _scan_alpha(sets, ranges, name == "sampled", 40 if len(ranges) == 1 else 8)
         assert disk["alpha"] <= scanned * (1 + 1e-3), (name, disk, scanned)
     assert main(["certify", "paper/fig3", *box, *sets, "--loop", "continuous"]) == 0
     assert "points searched; not a bound): ±" in capsys.readouterr().out
