@@ -196,6 +196,22 @@ class HostWatchCase:
         return f"allowed: loop.period < {self.timeout / 2:g} s (half of {self.key}), or "
 
 
+def damiao_with_timeout(tmp_path: Path, timeout: float) -> Path:
+    """A DM4310 profile whose model row has a command timeout of ``timeout`` s (the TIMEOUT
+    register set; the shipped rows say null, the factory's 0), on the config's own bus."""
+    table = yaml.safe_load((DRIVERS / "mit-models.yaml").read_text(encoding="utf-8"))
+    (row,) = [r for r in table["models"] if (r["vendor"], r["model"]) == ("damiao", "DM4310")]
+    row["command_timeout"] = timeout
+    models = tmp_path / "mit-models.yaml"
+    models.write_text(yaml.safe_dump(table), encoding="utf-8")
+    damiao = yaml.safe_load((DRIVERS / "dm4310.yaml").read_text(encoding="utf-8"))
+    damiao["mit"]["models"] = str(models)
+    damiao["bus"] = {}
+    profile = tmp_path / "dm4310-timeout.yaml"
+    profile.write_text(yaml.safe_dump(damiao), encoding="utf-8")
+    return profile
+
+
 def host_watch_cases(tmp_path: Path) -> dict[str, HostWatchCase]:
     """One case per protocol that has such a timeout: an ODrive's and a moteus' command
     watchdog (``watchdog_timeout``), a CiA 402 node's heartbeat consumer
@@ -207,16 +223,7 @@ def host_watch_cases(tmp_path: Path) -> dict[str, HostWatchCase]:
     consumer["bus"] = {}
     cia402 = tmp_path / "cia402-consumer.yaml"
     cia402.write_text(yaml.safe_dump(consumer), encoding="utf-8")
-    table = yaml.safe_load((DRIVERS / "mit-models.yaml").read_text(encoding="utf-8"))
-    (row,) = [r for r in table["models"] if (r["vendor"], r["model"]) == ("damiao", "DM4310")]
-    row["command_timeout"] = 0.02
-    models = tmp_path / "mit-models.yaml"
-    models.write_text(yaml.safe_dump(table), encoding="utf-8")
-    damiao = yaml.safe_load((DRIVERS / "dm4310.yaml").read_text(encoding="utf-8"))
-    damiao["mit"]["models"] = str(models)
-    damiao["bus"] = {}
-    dm = tmp_path / "dm4310-timeout.yaml"
-    dm.write_text(yaml.safe_dump(damiao), encoding="utf-8")
+    dm = damiao_with_timeout(tmp_path, 0.02)
     return {
         "odrive": HostWatchCase("odrive-0.6", "odrive-0.6", 0.025, "command watchdog", "watchdog_timeout", 0.05),
         "moteus": HostWatchCase("moteus-r4.11", "moteus-r4.11", 0.05, "command watchdog", "watchdog_timeout", 0.1),

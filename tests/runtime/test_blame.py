@@ -42,7 +42,7 @@ from dobhil.runtime.loop import RunResult, _CommandGaps
 from dobhil.runtime.session import RunSession, summary
 from dobhil.runtime.stop import StopReason
 
-from .helpers import DEMO, DRIVERS, NODE, REPO, STEP_FROM_ZERO, demo_config, wait_until, \
+from .helpers import DEMO, DRIVERS, NODE, REPO, STEP_FROM_ZERO, damiao_with_timeout, demo_config, wait_until, \
     write_profile
 from .hub import child_env, stop_process, wait_for_emulator
 from .test_cross_process import start_emulate
@@ -214,17 +214,7 @@ def test_cia402_native_host_heartbeat_is_never_the_loops_lateness(tmp_path: Path
 def mit_config(tmp_path: Path, timeout: float) -> Config:
     """configs/mit-demo.yaml on a DM4310 whose model row has a command timeout (a Damiao
     says it fired with state 0xD, communication lost)."""
-    table = yaml.safe_load((DRIVERS / "mit-models.yaml").read_text(encoding="utf-8"))
-    rows = [row for row in table["models"] if (row["vendor"], row["model"]) == ("damiao", "DM4310")]
-    assert len(rows) == 1
-    rows[0]["command_timeout"] = timeout
-    models = tmp_path / "mit-models.yaml"
-    models.write_text(yaml.safe_dump(table), encoding="utf-8")
-    data = yaml.safe_load((DRIVERS / "dm4310.yaml").read_text(encoding="utf-8"))
-    data["mit"]["models"] = str(models)
-    data["bus"] = {}
-    profile = tmp_path / "dm4310-timeout.yaml"
-    profile.write_text(yaml.safe_dump(data), encoding="utf-8")
+    profile = damiao_with_timeout(tmp_path, timeout)
     return load_config(REPO / "configs" / "mit-demo.yaml",
                        [f"drive.profile={profile}", "loop.duration=3", *SLACK,
                         "plant.initial_position=0", "reference.offset=0", "reference.start=0"])
