@@ -436,8 +436,7 @@ class Drive(ABC):
         elif not confirm:
             report = SafeStopReport(self.node_id, tuple(results), Confirmation.NOT_ASKED)
         elif self._last_heartbeat is None and self._enable_sent:
-            report = SafeStopReport(self.node_id, tuple(results), Confirmation.NEVER_ANSWERED,
-                                    self._never_answered_detail())
+            report = self._await_first_answer(tuple(results), timeout, cancel)
         elif self._last_heartbeat is None:
             report = SafeStopReport(self.node_id, tuple(results), Confirmation.NEVER_SEEN)
         elif answer_only:
@@ -697,6 +696,20 @@ class Drive(ABC):
             return f"confirmation wait cut short: {exc}"
         except Exception as exc:  # safety path: a bus that cannot be read confirms nothing
             return f"status not readable: {exc}"
+
+    def _await_first_answer(self, frames: tuple[FrameResult, ...], timeout: float | None,
+                            cancel: Cancel | None) -> SafeStopReport:
+        """The safe stop of a drive sent its enable frames but never heard from: waited for
+        as any drive's (one slow to speak -- just powered, its emulator still starting --
+        may answer now and confirm its disable, or show what its protocol can show); heard
+        from nothing to the end: NEVER_ANSWERED, never safe."""
+        if self.confirms_disable:
+            report = self._confirm_disabled(frames, timeout, cancel)
+        else:
+            report = self._await_answer(frames, timeout, cancel)
+        if self._last_heartbeat is not None:
+            return report
+        return SafeStopReport(self.node_id, frames, Confirmation.NEVER_ANSWERED, self._never_answered_detail())
 
     def _never_answered_detail(self) -> str:
         """Why a drive sent its enable frames but never heard from is not safe, one line."""

@@ -259,6 +259,24 @@ class Answering(can.Listener):
             state(self.node, 2)
 
 
+def test_a_drive_first_heard_during_the_safe_stop_confirms_it(buses: tuple[can.BusABC, can.BusABC]) -> None:
+    """A drive silent until after its enable timed out (just powered, its emulator still
+    starting) that answers the disable frame within the wait: its answer confirms the
+    disable, as any drive's does -- NEVER_ANSWERED is for one silent to the end."""
+    host, node = buses
+    drive = SteppedDrive(host, PROFILE)
+    with pytest.raises(DriveError, match="no heartbeat from node 5"):
+        drive.enable(timeout=0.01)
+    while node.recv(0.0) is not None:   # the enable frames, unanswered
+        pass
+    notifier = can.Notifier(node, [Answering(node)])
+    try:
+        report = drive.safe_stop(timeout=2.0)
+    finally:
+        notifier.stop()
+    assert report.sent and report.confirmation is Confirmation.CONFIRMED and report.safe, report
+
+
 @pytest.mark.parametrize("planned", [True, False], ids=["planned-end", "fault-timeout-or-signal"])
 def test_an_answered_unconfirmable_disable_is_a_note_only_at_a_planned_end(
         buses: tuple[can.BusABC, can.BusABC], planned: bool) -> None:
