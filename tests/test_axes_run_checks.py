@@ -182,3 +182,53 @@ def test_a_period_an_axis_watchdog_cannot_tolerate_is_refused_before_anything_op
         "profile 'odrive-0.6' (watchdog_timeout = 0.05 s; a command every period may reach the drive up to two "
         "periods apart); allowed: loop.period < 0.025 s (half of watchdog_timeout), or a longer watchdog_timeout "
         "(on the drive too)"]
+
+
+@pytest.mark.parametrize("command", [["run", "--emulate", "--lockstep"], ["demo"]], ids=["run", "demo"])
+@pytest.mark.parametrize(("profiles", "refused"), [
+    (("cia402-emulated", "cia402-emulated"), "j1"),
+    (("odrive-0.6", "cia402-emulated"), "j2"),    # the odrive axis has no periodic frame: the CiA 402 one says
+], ids=["cia402", "odrive-cia402"])
+@pytest.mark.parametrize("period", ["0.002", "0.02"])   # odrive-0.6 watchdog: < 0.025 s
+def test_a_lockstep_period_an_axis_sync_cannot_follow_is_refused_before_anything_opens(
+        command: list[str], profiles: tuple[str, str], refused: str, period: str, tmp_path: Path,
+        monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]) -> None:
+    """The single-axis rule per axis: the lockstep bus steps once per loop period and sends
+    a periodic frame (a CiA 402 SYNC, every feedback_period = 1 ms) only every whole number
+    of steps. One line naming the axis, exit 2, from run and demo alike, no bus opened."""
+    def no_bus(*args: object, **kwargs: object) -> None:
+        raise AssertionError("a bus was opened for a refused lockstep period")
+
+    monkeypatch.setattr("dobhil.runtime.axes_session.open_bus", no_bus)
+    data: dict[str, Any] = {"loop": {"period": 0.001, "duration": 0.1, "timing": "lockstep"},
+                            "axes": [{"name": f"j{n}", "drive": {"profile": p, "node_id": n}}
+                                     for n, p in enumerate(profiles, start=1)]}
+    path = tmp_path / "axes.yaml"
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    out = tmp_path / "out"
+    code = main([command[0], str(path), *command[1:], *(["--out", str(out)] if command[0] == "demo" else []),
+                 "--set", f"loop.period={period}", "--set", "loop.feedback_timeout=0.5", "--allow-unstable"])
+    captured = capsys.readouterr()
+    assert code == 2 and captured.out == "", captured.err
+    assert captured.err.splitlines() == [
+        f"dobhil {command[0]}: error: axis {refused}: lockstep timing steps the emulated bus once per loop.period = "
+        f"{float(period):g} s and sends a periodic frame only every whole number of steps, but drive profile "
+        "'cia402-emulated' sends SYNC every 0.001 s (feedback_period); allowed in lockstep: loop.period = 0.001 s "
+        "(feedback_period), or a run in real time"]
+    assert not out.exists() or not any(out.iterdir())
+
+
+def test_the_session_itself_refuses_such_a_lockstep_period_before_a_bus_opens(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A caller of the library (no command's checks before it) gets the same refusal."""
+    from dobhil.errors import ConfigError
+    from dobhil.runtime.axes_session import AxesSession
+
+    def no_bus(*args: object, **kwargs: object) -> None:
+        raise AssertionError("a bus was opened for a refused lockstep period")
+
+    monkeypatch.setattr("dobhil.runtime.axes_session.open_bus", no_bus)
+    axes = load_axes(axes_config(tmp_path, "cia402-emulated", (1, 2)), ["loop.period=0.002"])
+    with pytest.raises(ConfigError, match=r"^axis j1: lockstep timing steps the emulated bus once per loop.period "
+                                          r"= 0.002 s .* sends SYNC every 0.001 s \(feedback_period\)"):
+        AxesSession(axes, emulate=True, lockstep=True, config_dir=tmp_path)

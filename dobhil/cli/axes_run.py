@@ -48,7 +48,7 @@ def run_axes(args: argparse.Namespace, *, prog: str, emulate: bool, lockstep: bo
             check_output(_axis_png(plot, axis.name), inputs=[path], suffix=".png", what="--plot")
     # before any bus or log file: clashes, a bus over 100 % and an unstable design (each axis
     # alone, each coupled group as one loop) are refused with nothing opened
-    gates = preflight_axes(args, axes, path, prog=prog, emulate=emulate)
+    gates = preflight_axes(args, axes, path, prog=prog, emulate=emulate, lockstep=lockstep)
     if gates is None:
         return EXIT_STOPPED
     gate_records = axes_gate_metadata(gates, allow_unstable=args.allow_unstable)
@@ -85,7 +85,7 @@ def run_axes(args: argparse.Namespace, *, prog: str, emulate: bool, lockstep: bo
 
 
 def preflight_axes(args: argparse.Namespace, axes: Any, path: Path, *, prog: str,
-                   emulate: bool) -> dict[str, Any] | None:
+                   emulate: bool, lockstep: bool | None = None) -> dict[str, Any] | None:
     """What a run checks before it opens a bus for the loop: every axis' drive and the
     clashes between them, each bus' budget (over 100 %: refused; over 70 %: one line of
     advice), the stability gate of every axis and coupled group
@@ -97,14 +97,17 @@ def preflight_axes(args: argparse.Namespace, axes: Any, path: Path, *, prog: str
     from dobhil.cli.check_cmd import window_of
     from dobhil.cli.preflight_lines import report_preflight, tell_refusal
     from dobhil.drives.axes import axes_budget, axis_drives
-    from dobhil.runtime.session import check_host_watch
+    from dobhil.runtime.session import check_host_watch, check_lockstep, is_lockstep
     bus = None if emulate else getattr(args, "bus", None)
     drives = axis_drives(axes, path.parent, bus)
     for budget in axes_budget(drives, axes.period):
         if budget.over:
             sys.stderr.write(f"{prog}: warning: {budget.advice()}\n")
-    for d in drives:   # the session refuses it too (check_rates); here before a bus opens, as check does
-        check_host_watch(d.profile, axes.period, f"axis {d.name}: ")
+    in_lockstep = emulate and is_lockstep(axes.axes[0].config, lockstep)
+    for d in drives:   # the session refuses these too; here before a bus opens and the gate's lines
+        check_host_watch(d.profile, axes.period, f"axis {d.name}: ")   # as check does
+        if in_lockstep:   # each bus' lockstep bus steps at the axes' period
+            check_lockstep(d.profile, axes.period, f"axis {d.name}: ")
     gates = axes_gate(axes, path, {d.name: d.profile for d in drives},
                       allow_unstable=args.allow_unstable, prog=prog)
     if emulate or getattr(args, "no_preflight", False):

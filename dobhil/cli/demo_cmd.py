@@ -47,7 +47,8 @@ def run(args: argparse.Namespace) -> int:
     from dobhil.files import check_output
     from dobhil.plotting.run_plot import run_figure
     from dobhil.runtime.loop import StopRequest
-    from dobhil.runtime.session import RunSession, summary
+    from dobhil.drives.load import load_drive_profile
+    from dobhil.runtime.session import RunSession, check_lockstep_run, summary
     from dobhil.runtime.signals import stop_on_signals
     from dobhil.config import resolve_config
     from dobhil.errors import ConfigError
@@ -66,6 +67,8 @@ def run(args: argparse.Namespace) -> int:
         return code
     config = load_config(path, args.overrides, args.set_files)
     png = check_output(args.out / "demo_run.png", inputs=[path], what="--out")
+    if not args.realtime:
+        check_lockstep_run(load_drive_profile(config, path.parent), config.loop.period)
     gate = stability_gate(config, path, allow_unstable=args.allow_unstable, prog="dobhil demo")
     log_path = None if args.no_log else (args.log or default_log_path(args.out))
     log = open_run_log(log_path, live=live_address(args.live, log_path))

@@ -76,7 +76,8 @@ def run_checked(args: argparse.Namespace) -> int:
     from dobhil.cli.stability_gate import gate_metadata, gate_record, stability_gate
     from dobhil.files import check_output
     from dobhil.runtime.loop import StopRequest
-    from dobhil.runtime.session import RunSession, check_duration, summary
+    from dobhil.drives.load import load_drive_profile
+    from dobhil.runtime.session import RunSession, check_duration, check_lockstep_run, is_lockstep, summary
     from dobhil.runtime.signals import stop_on_signals
     check_duration(args.duration)
     if args.axis is not None:   # one axis of an axes config, run alone
@@ -85,6 +86,8 @@ def run_checked(args: argparse.Namespace) -> int:
     if args.plot:
         check_output(args.plot, inputs=[args.config], suffix=".png", what="--plot")
     refuse_budget(args, config, None if args.emulate else args.bus)   # over 100 %: before a bus opens
+    if args.emulate and is_lockstep(config, True if args.lockstep else None):
+        check_lockstep_run(load_drive_profile(config, resolve_config(args.config).parent), config.loop.period)
     # before any bus or log file: an unstable design is refused with nothing opened
     gate = stability_gate(config, args.config, allow_unstable=args.allow_unstable, prog="dobhil run")
     log = open_run_log(args.log, live=live_address(args.live, args.log))

@@ -50,7 +50,8 @@ from dobhil.drives.ticks import TickReader, run_ticks
 from dobhil.errors import BusError, exception_line
 from dobhil.realtime import lower_priority
 
-__all__ = ["EmulatedDrive", "LockstepBus", "LockstepPeriodicTask", "PlantLike", "private_virtual_channel"]
+__all__ = ["EmulatedDrive", "LockstepBus", "LockstepPeriodicTask", "PlantLike", "lockstep_steps",
+           "private_virtual_channel"]
 
 _EPS = 1e-9
 #: [s] real-time tick of an emulated drive whose protocol streams no feedback of its own
@@ -429,6 +430,15 @@ class EmulatedDrive(ABC):
         self._apply_due(now)
 
 
+def lockstep_steps(period: float, dt: float) -> int:
+    """How many lockstep steps ``dt`` a periodic send of ``period`` s takes: a whole number
+    >= 1 (to a relative 1e-9, float sums), or 0 when ``period`` is none such -- the
+    :class:`LockstepBus` fires periodic frames only at its steps, and refuses such a task
+    (:func:`dobhil.runtime.session.check_lockstep` refuses the run before a bus opens)."""
+    steps = round(period / dt) if math.isfinite(period) and period > 0 and dt > 0 else 0
+    return steps if steps >= 1 and abs(steps * dt - period) <= 1e-9 * period else 0
+
+
 def _stamped(msg: can.Message, stamp: float) -> can.Message:
     """A received copy of ``msg`` stamped ``stamp`` (each reader gets its own)."""
     return can.Message(timestamp=stamp, arbitration_id=msg.arbitration_id, is_extended_id=msg.is_extended_id,
@@ -634,8 +644,8 @@ class LockstepBus(ClockedBus):
         self, msgs: Sequence[can.Message] | can.Message, period: float, duration: float | None = None,
         autostart: bool = True, modifier_callback: Callable[[can.Message], None] | None = None,
     ) -> LockstepPeriodicTask:
-        steps = round(period / self._dt) if math.isfinite(period) and period > 0 else 0
-        if steps < 1 or abs(steps * self._dt - period) > 1e-9 * period:
+        steps = lockstep_steps(period, self._dt)
+        if not steps:
             raise ValueError(f"send_periodic period {period!r} s: expected a whole multiple (>= 1) of "
                              f"the lockstep step dt = {self._dt!r} s")
         return LockstepPeriodicTask(self, msgs, period, steps, duration, autostart=autostart,

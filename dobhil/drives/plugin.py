@@ -33,8 +33,8 @@ if TYPE_CHECKING:
     from dobhil.drives.emulated import EmulatedDrive
     from dobhil.drives.preflight import PreflightProbe
 
-__all__ = ["CodecQuantisation", "DriveProtocol", "FeedbackField", "FrameIds", "HostWatchSetting", "ZeroResult",
-           "classic_bus", "require_fd_bus"]
+__all__ = ["CodecQuantisation", "DriveProtocol", "FeedbackField", "FrameIds", "HostWatchSetting", "PeriodicSend",
+           "ZeroResult", "classic_bus", "require_fd_bus"]
 
 _EMPTY: Mapping[str, Any] = MappingProxyType({})
 
@@ -108,6 +108,20 @@ class HostWatchSetting:
     where: str = ""   # where ``key`` is set when not in the profile itself ("" : the profile)
     #: what else allows a longer period ("" : a longer ``key``, on the drive too)
     remedy: str = ""
+
+
+@dataclass(frozen=True)
+class PeriodicSend:
+    """A frame the host's drive sends by itself at a fixed period, with python-can's
+    ``send_periodic``, on a bus that sends periodic frames natively
+    (:func:`~dobhil.drives.periodic.native_periodic`: SocketCAN's broadcast manager, the
+    lockstep bus, the emulator's process), as a profile sets it, before any bus opens.
+    The lockstep bus sends one only every whole number of its steps (one step per loop
+    period): :func:`dobhil.runtime.session.check_lockstep` holds every one to that."""
+
+    what: str        # the protocol's name of the frame: "SYNC", "host heartbeat"
+    period: float    # [s] > 0
+    key: str         # the setting it follows: "feedback_period", "cia402.consumer_heartbeat"
 
 
 class ZeroResult(Protocol):
@@ -202,6 +216,11 @@ class DriveProtocol(ABC):
         ``watchdog_timeout``, the drive-side command watchdog (0: off)."""
         timeout = profile.watchdog_timeout
         return HostWatchSetting("command watchdog", "watchdog_timeout", timeout) if timeout > 0 else None
+
+    def periodic_sends(self, profile: DriveProfile) -> tuple[PeriodicSend, ...]:
+        """The frames ``profile``'s drive sends with ``send_periodic`` where the bus sends
+        them natively (a CANopen SYNC); default: none (the drive sends each frame itself)."""
+        return ()
 
     def set_zero(self, bus: can.BusABC, profile: DriveProfile, *, clock: Callable[[], float],
                  cancel: Cancel | None = None) -> ZeroResult:

@@ -45,8 +45,8 @@ from dobhil.runtime.buses import BusSpec, open_bus, resolve_bus
 from dobhil.runtime.loop import CycleSink, LoopSettings, StopRequest, Timing
 from dobhil.runtime.references import make_reference
 from dobhil.runtime.session import (build_controller, check_cycles, check_duration, check_feedback_streams,
-                                    check_rates, final_values, lockstep_latency, loop_settings, resolve_timing,
-                                    stop_and_shut)
+                                    check_lockstep, check_rates, final_values, is_lockstep, lockstep_latency,
+                                    loop_settings, resolve_timing, stop_and_shut)
 from dobhil.runtime.shared_bus import SharedBus
 
 __all__ = ["AxesSession", "BusGroup", "BusWrapper", "axes_summary"]
@@ -75,7 +75,7 @@ class AxesSession:
                  stop_request: StopRequest | None = None, bus_wrapper: BusWrapper | None = None,
                  reset_faults: bool = False) -> None:
         first = axes.axes[0].config
-        lockstep = (first.loop.timing == "lockstep") if lockstep is None else lockstep
+        lockstep = is_lockstep(first, lockstep)
         if lockstep and not emulate:
             raise ConfigError("lockstep timing needs the in-process emulator (--emulate); "
                               "a real drive runs in real time")
@@ -99,6 +99,9 @@ class AxesSession:
         for a in axes.axes:
             check_rates(self.profiles[a.name], a.config.loop.period, f"axis {a.name}: ")
         self.timing = self._timing(lockstep)
+        if self.timing is Timing.LOCKSTEP:   # one lockstep bus per bus group, stepped at the axes' period
+            for a in axes.axes:
+                check_lockstep(self.profiles[a.name], axes.period, f"axis {a.name}: ")
         self.settings = {a.name: loop_settings(a.config, self.timing, duration) for a in axes.axes}
         for name, settings in self.settings.items():
             check_cycles(settings, f"axis {name}: ")

@@ -24,12 +24,13 @@ from dobhil.config.schema import Config
 from dobhil.drives.base import Drive
 from dobhil.drives.preflight import DEFAULT_WINDOW, PreflightReport, profile_rate_findings, run_preflight
 from dobhil.drives.load import load_drive_profile
+from dobhil.drives.plugin import PeriodicSend
 from dobhil.drives.profile import DriveProfile
 from dobhil.drives.registry import drive_class, make_drive, preflight_probe, protocol
 from dobhil.drives.timing import effective_config
 from dobhil.emulator.plant import Plant
 from dobhil.emulator.process import EmulatorProcess, EmulatorSpec, PlantView
-from dobhil.drives.emulated import EmulatedDrive, LockstepBus
+from dobhil.drives.emulated import EmulatedDrive, LockstepBus, lockstep_steps
 from dobhil.drives.registry import make_emulated_drive
 from dobhil.drives.emulated import private_virtual_channel
 from dobhil.errors import ConfigError, PreflightError
@@ -80,6 +81,63 @@ def check_host_watch(profile: DriveProfile, period: float, prefix: str = "") -> 
         f"{profile.name or profile.protocol!r} ({watch.key} = {watch.timeout:g} s{where}; a {watch.fed_by} every "
         f"period may reach the drive up to two periods apart); allowed: loop.period < {watch.timeout / 2:g} s "
         f"(half of {watch.key}), or {remedy}")
+
+
+def is_lockstep(config: Config, lockstep: bool | None) -> bool:
+    """Whether a run of ``config`` is a lockstep one: ``lockstep`` when the command says
+    (``--lockstep``, ``dobhil demo`` unless ``--realtime``), else ``loop.timing``."""
+    return (config.loop.timing == "lockstep") if lockstep is None else lockstep
+
+
+def check_lockstep(profile: DriveProfile, period: float, prefix: str = "") -> None:
+    """ConfigError (one line) when a lockstep run at ``period`` could not send a frame the
+    drive sends by itself at a fixed period (its protocol's
+    :meth:`~dobhil.drives.plugin.DriveProtocol.periodic_sends`: a SYNC).
+
+    The lockstep bus (:class:`~dobhil.drives.emulated.LockstepBus`) advances simulated
+    time one step per loop period and sends a periodic frame only at its steps: each
+    period must be a whole number (>= 1) of loop periods (:func:`~dobhil.drives.emulated.lockstep_steps`),
+    or the drive's start would fail with the run's bus and emulator open. Refused before
+    any bus opens, naming the loop periods that work (those dividing the frame's period
+    that the drive's feedback keeps up with, :func:`check_rates`)."""
+    sends = protocol(profile.protocol).periodic_sends(profile)
+    for send in sends:
+        if not lockstep_steps(send.period, period):
+            raise ConfigError(
+                f"{prefix}lockstep timing steps the emulated bus once per loop.period = {period:g} s and sends a "
+                f"periodic frame only every whole number of steps, but drive profile "
+                f"{profile.name or profile.protocol!r} sends {send.what} every {send.period:g} s ({send.key}); "
+                f"allowed in lockstep: {_lockstep_periods(profile, sends, send)}, or a run in real time")
+
+
+def check_lockstep_run(profile: DriveProfile, period: float) -> None:
+    """What :class:`RunSession` refuses of a lockstep run at ``period`` before it opens a bus
+    (:func:`check_rates`, then :func:`check_lockstep`), for a command to say before its own
+    lines (the stability gate's): the refusal is then the only line."""
+    check_rates(profile, period)
+    check_lockstep(profile, period)
+
+
+def _lockstep_periods(profile: DriveProfile, sends: tuple[PeriodicSend, ...], send: PeriodicSend) -> str:
+    """The loop periods a lockstep run of ``profile`` allows, in words: ``send``'s period
+    over a whole number k, each of ``sends`` a whole number of them, no shorter than the
+    feedback period (:func:`check_rates`; without one, every k)."""
+    floor = profile.feedback_period
+    if floor is None:
+        return f"loop.period = {send.period:g} s / k for a whole k >= 1"
+    allowed: list[float] = []
+    k = 1
+    while send.period / k * (1 + 1e-9) >= floor and k <= 10_000:   # bounded: a few values are said
+        dt = send.period / k
+        if all(lockstep_steps(s.period, dt) for s in sends):
+            if len(allowed) == 3:
+                return f"loop.period = {', '.join(f'{a:g} s' for a in allowed)}, ... (down to {floor:g} s)"
+            allowed.append(dt)
+        k += 1
+    if not allowed:
+        return "no loop.period"
+    own = f" ({send.key})" if allowed == [send.period] else ""
+    return f"loop.period = {' or '.join(f'{a:g} s' for a in allowed)}{own}"
 
 
 def build_controller(config: Config, profile: DriveProfile) -> ForceController:
@@ -212,7 +270,7 @@ class RunSession:
                  bus_wrapper: Callable[[can.BusABC], can.BusABC] | None = None,
                  preflight: bool | None = None, preflight_window: float = DEFAULT_WINDOW,
                  reset_faults: bool = False) -> None:
-        lockstep = (config.loop.timing == "lockstep") if lockstep is None else lockstep
+        lockstep = is_lockstep(config, lockstep)
         if lockstep and not emulate:
             raise ConfigError("lockstep timing needs the in-process emulator (--emulate); "
                               "a real drive runs in real time")
@@ -228,6 +286,8 @@ class RunSession:
         self.design_config, self.design_note = effective_config(config, self.profile)
         check_rates(self.profile, config.loop.period)
         self.timing = resolve_timing(config, self.profile, lockstep)
+        if self.timing is Timing.LOCKSTEP:
+            check_lockstep(self.profile, config.loop.period)
         self.settings = loop_settings(config, self.timing, duration)
         check_cycles(self.settings)
         self.controller = build_controller(config, self.profile)

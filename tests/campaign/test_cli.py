@@ -38,6 +38,9 @@ ROOT = Path(__file__).resolve().parents[2]
       "reference.file=/nonexistent.csv"], "reference file /nonexistent.csv does not exist"),
     (["--vary", "plant.inertia=uniform:0.1:1", "--set", "reference.kind=chirp", "--duration", "0.2"],
      "the chirp starts at 0.6 s, not before the end of the run"),
+    # a CiA 402 SYNC every 1 ms, a lockstep bus stepped every 2 ms: every run would stop at its cycle 0
+    (["--vary", "plant.inertia=uniform:0.1:1", "--set", "drive.profile=epos4", "--set", "loop.period=0.002"],
+     "sends SYNC every 0.001 s (feedback_period); allowed in lockstep: loop.period = 0.001 s (feedback_period)"),
 ])
 def test_bad_input_is_one_line_and_exit_2(extra: list[str], says: str, capsys: pytest.CaptureFixture[str]) -> None:
     args = ["montecarlo", "demo", "--runs", "3", *extra]

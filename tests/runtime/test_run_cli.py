@@ -357,3 +357,35 @@ def test_a_can_fd_protocol_on_a_classic_bus_is_one_line_everywhere(argv: list[st
     assert main(argv) == EXIT_USAGE
     err = one_line(capsys.readouterr().err)
     assert "protocol moteus needs a CAN FD bus, but Virtual bus channel classic-" in err, err
+
+
+@pytest.mark.parametrize("period", ["0.03", "0.002", "0.0025"])
+@pytest.mark.parametrize("profile", ["epos4", "cia402-emulated"])
+@pytest.mark.parametrize("argv", [["run", "--emulate", "--lockstep"],
+                                  ["run", "--emulate", "--set", "loop.timing=lockstep"], ["demo"]],
+                         ids=["run", "run-timing-lockstep", "demo"])
+def test_a_lockstep_period_the_drives_sync_cannot_follow_is_one_line_exit_2(
+        argv: list[str], profile: str, period: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+        capsys: pytest.CaptureFixture[str]) -> None:
+    """A CiA 402 drive sends SYNC every feedback_period (1 ms in both profiles; epos4 also its
+    heartbeat every 25 ms, for the node's consumer 0x1016), and the lockstep bus sends a
+    periodic frame only every whole number of its steps, one per loop period: any other
+    period would stop at cycle 0 with the bus and the emulator open. Refused in one line
+    naming the rule and the one period allowed, exit 2, no bus opened, nothing written, and
+    before the stability gate's lines (the demo's design is unstable at most of these periods)."""
+    def no_bus(*args: object, **kwargs: object) -> None:
+        raise AssertionError("a bus was opened for a refused lockstep period")
+
+    monkeypatch.setattr("dobhil.runtime.session.open_bus", no_bus)
+    out = tmp_path / "out"
+    code = main([argv[0], str(DEMO), *argv[1:], *(["--out", str(out)] if argv[0] == "demo" else []),
+                 "--set", f"drive.profile={profile}", "--set", f"loop.period={period}",
+                 "--set", "loop.feedback_timeout=0.5", "--allow-unstable"])
+    captured = capsys.readouterr()
+    err = one_line(captured.err)
+    assert code == EXIT_USAGE and captured.out == "", err
+    assert err == (f"dobhil {argv[0]}: error: lockstep timing steps the emulated bus once per loop.period = "
+                   f"{float(period):g} s and sends a periodic frame only every whole number of steps, but drive "
+                   f"profile '{profile}' sends SYNC every 0.001 s (feedback_period); allowed in lockstep: "
+                   "loop.period = 0.001 s (feedback_period), or a run in real time")
+    assert not out.exists() or not any(out.iterdir())

@@ -39,6 +39,7 @@ __all__ = [
     "ErrorRegister",
     "FAULT_RESET_BIT",
     "HOST_HEARTBEATS_PER_CONSUMER_TIME",
+    "host_heartbeat_interval",
     "MAX_PDO_BITS",
     "RATED_TORQUE_TOLERANCE",
     "RATED_TORQUE_UNITS",
@@ -259,6 +260,14 @@ RATED_TORQUE_UNITS: Mapping[str, float] = MappingProxyType({"mNm": 1e-3, "uNm": 
 RATED_TORQUE_TOLERANCE = 0.01
 #: the host sends its heartbeat this many times per consumer time of the node (0x1016)
 HOST_HEARTBEATS_PER_CONSUMER_TIME = 4
+
+
+def host_heartbeat_interval(consumer: float, sync_period: float) -> float:
+    """[s] the host's heartbeat period for a node's consumer time ``consumer`` (0x1016):
+    :data:`HOST_HEARTBEATS_PER_CONSUMER_TIME` per consumer time at the least, as a whole
+    number (>= 1) of SYNC periods ``sync_period`` (the SYNC's clock is the one a native
+    periodic send surely keeps, and the lockstep bus takes whole steps only)."""
+    return max(1, int(consumer / HOST_HEARTBEATS_PER_CONSUMER_TIME / sync_period)) * sync_period
 
 
 class VelocityUnit(IntEnum):

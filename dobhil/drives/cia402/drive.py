@@ -54,8 +54,7 @@ from dobhil.drives.base import (Clock, Confirmation, Drive, DriveEvent, HostTime
 from dobhil.drives.cia402 import codec
 from dobhil.drives.cia402.codec import CST_MODE, Cob, Controlword, Mapped, NmtState, PowerState
 # in the codec (not here) so that the preflight probe shares them without importing the drive
-from dobhil.drives.cia402.codec import (HOST_HEARTBEATS_PER_CONSUMER_TIME, RATED_TORQUE_TOLERANCE,
-                                        RATED_TORQUE_UNITS)
+from dobhil.drives.cia402.codec import RATED_TORQUE_TOLERANCE, RATED_TORQUE_UNITS
 from dobhil.drives.cia402.eds import STANDARD_LAYOUTS, EdsNotFound, load_od
 from dobhil.drives.cia402.link import CanopenLink
 from dobhil.drives.cia402.rules import CIA402_RULES
@@ -387,10 +386,9 @@ class CiA402Drive(Drive):
             node.sdo[0x1016][1].raw = self._host_id << 16 | round(consumer * 1e3)
 
     def _host_heartbeat_interval(self, consumer: float) -> float:
-        """[s] the host's heartbeat period for a consumer time: a whole number of SYNC
-        periods (the SYNC's clock is the one a native periodic send surely keeps, and the
-        lockstep bus takes whole steps only)."""
-        return max(1, int(consumer / HOST_HEARTBEATS_PER_CONSUMER_TIME / self._period)) * self._period
+        """[s] the host's heartbeat period for a consumer time (:func:`codec.host_heartbeat_interval
+        <dobhil.drives.cia402.codec.host_heartbeat_interval>`, with this drive's SYNC period)."""
+        return codec.host_heartbeat_interval(consumer, self._period)
 
     def _host_watch_of(self, event: StateEvent | None) -> HostTimeout | None:
         """The node's heartbeat consumer (0x1016, ``consumer_heartbeat``) when this process

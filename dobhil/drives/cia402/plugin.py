@@ -10,7 +10,7 @@ from dobhil.drives.cia402.codec import Cob, Mapped, PowerState
 from dobhil.drives.cia402.drive import CiA402Drive, emcy_text
 from dobhil.drives.cia402.eds import load_od
 from dobhil.drives.cia402.emulator import EmulatedCiA402
-from dobhil.drives.plugin import DriveProtocol, FeedbackField, FrameIds, HostWatchSetting
+from dobhil.drives.plugin import DriveProtocol, FeedbackField, FrameIds, HostWatchSetting, PeriodicSend
 from dobhil.drives.profile import DriveProfile
 
 #: the feedback values a fault may corrupt -> (object index, which of the two TPDOs)
@@ -67,14 +67,29 @@ class CiA402Protocol(DriveProtocol):
     def host_watch(self, profile: DriveProfile) -> HostWatchSetting | None:
         """The node's heartbeat consumer time (0x1016, ``cia402.consumer_heartbeat``; 0:
         off): the node faults when the host's heartbeat, sent every loop period at the
-        shortest (a whole number of SYNC periods, :meth:`CiA402Drive._host_heartbeat_interval
-        <dobhil.drives.cia402.drive.CiA402Drive._host_heartbeat_interval>`), stops for it.
+        shortest (a whole number of SYNC periods, :func:`codec.host_heartbeat_interval
+        <dobhil.drives.cia402.codec.host_heartbeat_interval>`), stops for it.
         Off: the profile's ``watchdog_timeout``, as for any protocol."""
         consumer = float(profile.options.get("consumer_heartbeat", 0.0))
         if consumer <= 0:
             return super().host_watch(profile)
         return HostWatchSetting("heartbeat consumer (0x1016)", "cia402.consumer_heartbeat", consumer,
                                 fed_by="host heartbeat")
+
+    def periodic_sends(self, profile: DriveProfile) -> tuple[PeriodicSend, ...]:
+        """SYNC every ``feedback_period`` (the node's 0x1006 / 0x60C2, :meth:`CiA402Drive._start_sync
+        <dobhil.drives.cia402.drive.CiA402Drive._start_sync>`), and the host's heartbeat when the
+        node watches it (``cia402.consumer_heartbeat`` > 0), every whole number of SYNC periods
+        (:func:`~dobhil.drives.cia402.codec.host_heartbeat_interval`)."""
+        sync = profile.feedback_period
+        if sync is None or not sync > 0:   # the rules require it; nothing to say without it
+            return ()
+        sends = [PeriodicSend("SYNC", sync, "feedback_period")]
+        consumer = float(profile.options.get("consumer_heartbeat", 0.0))
+        if consumer > 0:
+            sends.append(PeriodicSend("host heartbeat", codec.host_heartbeat_interval(consumer, sync),
+                                      "cia402.consumer_heartbeat"))
+        return tuple(sends)
 
     def check_files(self, profile: DriveProfile) -> None:
         load_od(profile)   # the drive's own reading and check of the EDS
