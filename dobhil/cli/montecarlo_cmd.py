@@ -142,6 +142,30 @@ def _check_config(campaign: Campaign) -> None:
     with RunSession(spec.load(), emulate=True, lockstep=True, duration=spec.duration,
                     config_dir=resolve_config(spec.config).parent):
         pass
+    _check_drawn_period(campaign)
+
+
+def _check_drawn_period(campaign: Campaign) -> None:
+    """A drawn ``loop.period`` where the drive sends a frame periodically (a SYNC): every run
+    is lockstep, whose bus sends such a frame only every whole number of loop periods
+    (:func:`~dobhil.runtime.session.check_lockstep`), and a period drawn from a spread
+    distribution is almost surely no divisor of the frame's: every run would be refused
+    alike (a point, normal with a standard deviation of 0, is the reference's period)."""
+    from dobhil.campaign.draws import Kind
+    from dobhil.config import resolve_config
+    from dobhil.drives.load import load_drive_profile
+    from dobhil.drives.registry import protocol
+    drawn = [v for v in campaign.varies if v.key == "loop.period" and not (v.kind is Kind.NORMAL and v.b == 0)]
+    if not drawn:
+        return
+    config = campaign.reference_spec().load()
+    profile = load_drive_profile(config, resolve_config(campaign.config).parent)
+    for send in protocol(profile.protocol).periodic_sends(profile):
+        raise ConfigError(
+            f"--vary {drawn[0].text()}: each run is lockstep, whose bus sends a periodic frame only every whole "
+            f"number of loop periods, and drive profile {profile.name or profile.protocol!r} sends {send.what} "
+            f"every {send.period:g} s ({send.key}), which a drawn loop.period almost never divides; "
+            f"keep loop.period fixed (the config's {config.loop.period:g} s runs)")
 
 
 def check_execution(args: argparse.Namespace) -> tuple[str | None, int | None, str | None]:

@@ -41,6 +41,11 @@ ROOT = Path(__file__).resolve().parents[2]
     # a CiA 402 SYNC every 1 ms, a lockstep bus stepped every 2 ms: every run would stop at its cycle 0
     (["--vary", "plant.inertia=uniform:0.1:1", "--set", "drive.profile=epos4", "--set", "loop.period=0.002"],
      "sends SYNC every 0.001 s (feedback_period); allowed in lockstep: loop.period = 0.001 s (feedback_period)"),
+    # a drawn period almost never divides that SYNC period: every run, not the reference, would be refused
+    (["--vary", "loop.period=uniform:0.001:0.002", "--set", "drive.profile=epos4"],
+     "--vary loop.period=uniform:0.001:0.002: each run is lockstep, whose bus sends a periodic frame only every "
+     "whole number of loop periods, and drive profile 'epos4' sends SYNC every 0.001 s (feedback_period), which a "
+     "drawn loop.period almost never divides; keep loop.period fixed (the config's 0.001 s runs)"),
 ])
 def test_bad_input_is_one_line_and_exit_2(extra: list[str], says: str, capsys: pytest.CaptureFixture[str]) -> None:
     args = ["montecarlo", "demo", "--runs", "3", *extra]
