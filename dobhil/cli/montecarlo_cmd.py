@@ -146,11 +146,13 @@ def _check_config(campaign: Campaign) -> None:
 
 
 def _check_drawn_period(campaign: Campaign) -> None:
-    """A drawn ``loop.period`` where the drive sends a frame periodically (a SYNC): every run
-    is lockstep, whose bus sends such a frame only every whole number of loop periods
-    (:func:`~dobhil.runtime.session.check_lockstep`), and a period drawn from a spread
-    distribution is almost surely no divisor of the frame's: every run would be refused
-    alike (a point, normal with a standard deviation of 0, is the reference's period)."""
+    """A drawn ``loop.period`` that almost surely refuses every run: every run is a
+    single-axis lockstep one, whose bus sends a frame the drive sends periodically (a SYNC)
+    only every whole number of loop periods (:func:`~dobhil.runtime.session.check_lockstep`),
+    and whose loop takes one cycle per frame of a drive whose feedback streams
+    (:func:`~dobhil.runtime.session.check_lockstep_feedback`); a period drawn from a spread
+    distribution is almost surely neither a divisor of the one nor equal to the other
+    (a point, normal with a standard deviation of 0, is the reference's period)."""
     from dobhil.campaign.draws import Kind
     from dobhil.config import resolve_config
     from dobhil.drives.load import load_drive_profile
@@ -160,12 +162,18 @@ def _check_drawn_period(campaign: Campaign) -> None:
         return
     config = campaign.reference_spec().load()
     profile = load_drive_profile(config, resolve_config(campaign.config).parent)
-    for send in protocol(profile.protocol).periodic_sends(profile):
+    name, drive = profile.name or profile.protocol, protocol(profile.protocol)
+    head = f"--vary {drawn[0].text()}: each run is lockstep"
+    keep = f"keep loop.period fixed (the config's {config.loop.period:g} s runs)"
+    for send in drive.periodic_sends(profile):
         raise ConfigError(
-            f"--vary {drawn[0].text()}: each run is lockstep, whose bus sends a periodic frame only every whole "
-            f"number of loop periods, and drive profile {profile.name or profile.protocol!r} sends {send.what} "
-            f"every {send.period:g} s ({send.key}), which a drawn loop.period almost never divides; "
-            f"keep loop.period fixed (the config's {config.loop.period:g} s runs)")
+            f"{head}, whose bus sends a periodic frame only every whole number of loop periods, and drive profile "
+            f"{name!r} sends {send.what} every {send.period:g} s ({send.key}), which a drawn loop.period almost "
+            f"never divides; {keep}")
+    if drive.feedback_streams and profile.feedback_period is not None:
+        raise ConfigError(
+            f"{head}, one cycle per feedback frame, and drive profile {name!r} sends its feedback every "
+            f"{profile.feedback_period:g} s (feedback_period), which a drawn loop.period almost never equals; {keep}")
 
 
 def check_execution(args: argparse.Namespace) -> tuple[str | None, int | None, str | None]:

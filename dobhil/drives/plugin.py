@@ -153,6 +153,11 @@ class DriveProtocol(ABC):
     #: True when the drive makes its present position its zero on command
     #: (:meth:`set_zero`; ``dobhil check --set-zero`` refuses other protocols before a bus opens)
     sets_zero: ClassVar[bool] = False
+    #: True when the drive sends its motion feedback on its own, every ``feedback_period``,
+    #: where the bus sends periodic frames natively (the lockstep bus: a CiA 402 SYNC);
+    #: False when it answers each command with one reply (the drive's
+    #: :attr:`~dobhil.drives.base.Drive.feedback_streams`, known before a bus opens)
+    feedback_streams: ClassVar[bool] = True
 
     def check_bus(self, bus: can.BusABC, profile: DriveProfile) -> None:
         """Refuse, in one line, a bus this protocol's frames cannot travel on, before

@@ -110,12 +110,32 @@ def check_lockstep(profile: DriveProfile, period: float, prefix: str = "") -> No
                 f"allowed in lockstep: {_lockstep_periods(profile, sends, send)}, or a run in real time")
 
 
+def check_lockstep_feedback(profile: DriveProfile, period: float) -> None:
+    """ConfigError (one line) when a single-axis lockstep run at ``period`` would skip
+    cycles: its loop runs one cycle per feedback frame of a drive whose feedback streams
+    (:meth:`ForceLoop._run_feedback <dobhil.runtime.loop.ForceLoop>`, ``Timing.LOCKSTEP``),
+    so feedback every ``feedback_period`` < ``period`` counts each step's extra frames as
+    skipped cycles (feedback every 1 ms under a 24 ms loop ran no cycle at all, and said done).
+    The rule of feedback timing (:func:`resolve_timing`); a several-axis lockstep run steps
+    once per period and takes the newest sample (:mod:`dobhil.runtime.axes_loop`): no limit."""
+    rate = profile.feedback_period
+    if rate is None or not protocol(profile.protocol).feedback_streams or abs(rate - period) <= 1e-9 * period:
+        return
+    probe = preflight_probe(profile)
+    frames = probe.motion_name() if probe is not None else "motion feedback"
+    raise ConfigError(
+        f"lockstep timing runs one cycle per feedback frame, but drive profile {profile.name or profile.protocol!r} "
+        f"has {frames} every {rate:g} s (feedback_period) and loop.period = {period:g} s; make them equal "
+        "(a profile of its own with feedback_period = loop.period), or a run in real time")
+
+
 def check_lockstep_run(profile: DriveProfile, period: float) -> None:
     """What :class:`RunSession` refuses of a lockstep run at ``period`` before it opens a bus
-    (:func:`check_rates`, then :func:`check_lockstep`), for a command to say before its own
-    lines (the stability gate's): the refusal is then the only line."""
+    (:func:`check_rates`, :func:`check_lockstep`, :func:`check_lockstep_feedback`), for a
+    command to say before its own lines (the stability gate's): the refusal is then the only line."""
     check_rates(profile, period)
     check_lockstep(profile, period)
+    check_lockstep_feedback(profile, period)
 
 
 def _lockstep_periods(profile: DriveProfile, sends: tuple[PeriodicSend, ...], send: PeriodicSend) -> str:
@@ -288,6 +308,7 @@ class RunSession:
         self.timing = resolve_timing(config, self.profile, lockstep)
         if self.timing is Timing.LOCKSTEP:
             check_lockstep(self.profile, config.loop.period)
+            check_lockstep_feedback(self.profile, config.loop.period)
         self.settings = loop_settings(config, self.timing, duration)
         check_cycles(self.settings)
         self.controller = build_controller(config, self.profile)

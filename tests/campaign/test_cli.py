@@ -41,6 +41,13 @@ ROOT = Path(__file__).resolve().parents[2]
     # a CiA 402 SYNC every 1 ms, a lockstep bus stepped every 2 ms: every run would stop at its cycle 0
     (["--vary", "plant.inertia=uniform:0.1:1", "--set", "drive.profile=epos4", "--set", "loop.period=0.002"],
      "sends SYNC every 0.001 s (feedback_period); allowed in lockstep: loop.period = 0.001 s (feedback_period)"),
+    # an ODrive's encoder estimates every 1 ms, a lockstep loop of 2 ms: each run would skip every other cycle
+    (["--vary", "plant.inertia=uniform:0.1:1", "--set", "loop.period=0.002"],
+     "lockstep timing runs one cycle per feedback frame, but drive profile 'odrive-0.6' has encoder estimates"),
+    (["--vary", "loop.period=loguniform:0.001:0.01"],
+     "--vary loop.period=loguniform:0.001:0.01: each run is lockstep, one cycle per feedback frame, and drive profile "
+     "'odrive-0.6' sends its feedback every 0.001 s (feedback_period), which a drawn loop.period almost never "
+     "equals; keep loop.period fixed (the config's 0.001 s runs)"),
     # a drawn period almost never divides that SYNC period: every run, not the reference, would be refused
     (["--vary", "loop.period=uniform:0.001:0.002", "--set", "drive.profile=epos4"],
      "--vary loop.period=uniform:0.001:0.002: each run is lockstep, whose bus sends a periodic frame only every "

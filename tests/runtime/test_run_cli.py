@@ -16,7 +16,7 @@ from dobhil.cli.main import main
 from dobhil.config import load_config
 from dobhil.errors import ConfigError
 
-from .helpers import DEMO, HOST_WATCHES, host_watch_cases, realtime_profile
+from .helpers import DEMO, HOST_WATCHES, host_watch_cases, realtime_profile, write_profile
 
 EXIT_USAGE = 2
 
@@ -330,15 +330,20 @@ def test_a_period_a_drives_timeout_on_the_host_cannot_tolerate_is_one_line_exit_
     assert watch.allowed() in err, err
 
 
-def test_a_period_within_half_the_watchdog_runs(capsys: pytest.CaptureFixture[str]) -> None:
+def test_a_period_within_half_the_watchdog_runs(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    # a lockstep run takes one cycle per feedback frame: the encoder estimates at the loop's period
+    profile = write_profile(tmp_path, "odrive-0.6", feedback_period=0.024)
     code = main(["run", str(DEMO), "--emulate", "--lockstep", "--duration", "0.5", "--set", "loop.period=0.024",
-                 *SLOW])
-    assert code == 0, capsys.readouterr().err
+                 "--set", f"drive.profile={profile}", *SLOW, "--summary-json"])
+    captured = capsys.readouterr()
+    assert code == 0, captured.err
+    summary = json.loads(captured.out)
+    assert (summary["cycles"], summary["skipped"]) == (21, 0)   # every cycle of 0.5 s run, none skipped
 
 
 def test_a_profile_with_its_watchdog_off_has_no_such_limit(tmp_path: Path,
                                                            capsys: pytest.CaptureFixture[str]) -> None:
-    profile = realtime_profile(tmp_path, "odrive-0.6", watchdog_timeout=0)
+    profile = realtime_profile(tmp_path, "odrive-0.6", watchdog_timeout=0, feedback_period=0.06)
     code = main(["run", str(DEMO), "--emulate", "--lockstep", "--duration", "0.5", "--set", "loop.period=0.06",
                  "--set", f"drive.profile={profile}", *SLOW])
     assert code == 0, capsys.readouterr().err
@@ -389,3 +394,42 @@ def test_a_lockstep_period_the_drives_sync_cannot_follow_is_one_line_exit_2(
                    f"profile '{profile}' sends SYNC every 0.001 s (feedback_period); allowed in lockstep: "
                    "loop.period = 0.001 s (feedback_period), or a run in real time")
     assert not out.exists() or not any(out.iterdir())
+
+
+@pytest.mark.parametrize("period", ["0.002", "0.024"])
+@pytest.mark.parametrize("argv", [["run", "--emulate", "--lockstep"], ["demo"]], ids=["run", "demo"])
+def test_a_lockstep_period_slower_than_streamed_feedback_is_one_line_exit_2(
+        argv: list[str], period: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+        capsys: pytest.CaptureFixture[str]) -> None:
+    """A single-axis lockstep run takes one cycle per feedback frame: an ODrive's encoder
+    estimates every 1 ms under a longer loop period counted each step's extra frames as
+    skipped cycles (at 24 ms: no cycle run at all, and the run said done). Refused like
+    feedback timing, in one line, exit 2, no bus opened."""
+    def no_bus(*args: object, **kwargs: object) -> None:
+        raise AssertionError("a bus was opened for a refused lockstep period")
+
+    monkeypatch.setattr("dobhil.runtime.session.open_bus", no_bus)
+    out = tmp_path / "out"
+    code = main([argv[0], str(DEMO), *argv[1:], *(["--out", str(out)] if argv[0] == "demo" else []),
+                 "--set", f"loop.period={period}", "--set", "loop.feedback_timeout=0.5", "--allow-unstable"])
+    captured = capsys.readouterr()
+    err = one_line(captured.err)
+    assert code == EXIT_USAGE and captured.out == "", err
+    assert err == (f"dobhil {argv[0]}: error: lockstep timing runs one cycle per feedback frame, but drive profile "
+                   f"'odrive-0.6' has encoder estimates every 0.001 s (feedback_period) and loop.period = "
+                   f"{float(period):g} s; make them equal (a profile of its own with feedback_period = loop.period), "
+                   "or a run in real time")
+    assert not out.exists() or not any(out.iterdir())
+
+
+@pytest.mark.parametrize("profile", ["mini-cheetah", "moteus-r4.11"])
+def test_a_drive_that_answers_each_command_runs_lockstep_at_any_period(
+        profile: str, capsys: pytest.CaptureFixture[str]) -> None:
+    """No feedback frame to keep pace with: one reply per command, every cycle run."""
+    code = main(["run", str(DEMO), "--emulate", "--lockstep", "--duration", "0.1", "--set", f"drive.profile={profile}",
+                 "--set", "loop.period=0.005", "--set", "loop.feedback_timeout=0.5", "--allow-unstable",
+                 "--summary-json"])
+    captured = capsys.readouterr()
+    assert code == 0, captured.err
+    summary = json.loads(captured.out)
+    assert (summary["cycles"], summary["skipped"]) == (20, 0)

@@ -26,6 +26,7 @@ class MitProtocol(DriveProtocol):
     name = "mit"
     title = "MIT mode"
     sets_zero = True
+    feedback_streams = False   # one reply per command
 
     @property
     def drive_class(self) -> type[MitDrive]:

@@ -22,6 +22,7 @@ class MoteusProtocol(DriveProtocol):
     name = "moteus"
     title = "moteus (mjbots) over CAN FD"
     fd = True
+    feedback_streams = False   # one reply per command
 
     @property
     def drive_class(self) -> type[MoteusDrive]:
