@@ -53,7 +53,7 @@ from canopen.objectdictionary import ObjectDictionary
 from canopen.sdo import SdoAbortedError, SdoCommunicationError
 
 from dobhil.drives.bus_load import CycleFrame
-from dobhil.drives.cia402.codec import (CST_SUPPORTED_BIT, HOST_HEARTBEATS_PER_CONSUMER_TIME,
+from dobhil.drives.cia402.codec import (CST_SUPPORTED_BIT, host_heartbeat_interval,
                                         RATED_TORQUE_TOLERANCE, RATED_TORQUE_UNITS, RPDO_CST, TPDO_MOTION,
                                         TPDO_STATUS, UNIT_OBJECTS, Cob, Mapped, NmtState, PowerState, UnitObject,
                                         layout_bits, power_state)
@@ -173,8 +173,7 @@ class CiA402Preflight(PreflightProbe):
             frames.append(CycleFrame("heartbeat", 1, every=heartbeat))
         consumer = float(self.options.get("consumer_heartbeat", 0.0))
         if consumer > 0:   # the host's own heartbeat for the node's consumer 0x1016 (the drive's period)
-            cycles = max(1, int(consumer / HOST_HEARTBEATS_PER_CONSUMER_TIME / period))
-            frames.append(CycleFrame("host heartbeat", 1, every=cycles * period))
+            frames.append(CycleFrame("host heartbeat", 1, every=host_heartbeat_interval(consumer, period)))
         return tuple(frames)
 
     # -- the window: SDO reads, then listening ----------------------------------
