@@ -3,7 +3,13 @@ rate, the data phase at the data rate (ISO 11898-1:2015 frame format, worst-case
 
 from __future__ import annotations
 
+from pathlib import Path
+
+import yaml
+
+from dobhil.config.axes import load_axes
 from dobhil.drives import load_profile
+from dobhil.drives.axes import axes_budget, axis_drives
 from dobhil.drives.bus_load import frame_bits
 from dobhil.drives.moteus.preflight import MoteusPreflight, fd_frame_bits
 
@@ -26,3 +32,16 @@ def test_the_run_budget_of_the_shipped_profile() -> None:
     assert [f.name for f in budget.frames] == ["moteus command", "reply"]
     assert [f.dlc for f in budget.frames] == [48, 20]   # 38 bytes padded to 48; a 20-byte reply
     assert budget.bits_per_cycle == 163 + 82 and not budget.over
+
+
+def test_two_moteus_axes_on_one_bus_count_their_fd_frames(tmp_path: Path) -> None:
+    # each axis 163 + 82 = 245 bits as above: 490 of 1000 at 1 kHz. A several-axis budget
+    # that rebuilt each frame as a classic one counted 1630 bits (a 48-byte "classic" frame)
+    # and refused the run at 163 %.
+    (tmp_path / "axes.yaml").write_text(yaml.safe_dump(
+        {"loop": {"period": 0.001},
+         "axes": [{"name": f"a{n}", "drive": {"profile": "moteus-r4.11", "node_id": n}} for n in (1, 2)]}))
+    drives = axis_drives(load_axes(tmp_path / "axes.yaml"), tmp_path, "virtual:x")
+    (bus,) = axes_budget(drives, 0.001)
+    assert bus.budget.bits_per_cycle == 2 * (163 + 82) and bus.per_axis == (("a1", 245.0), ("a2", 245.0))
+    assert not bus.over and not bus.refused
