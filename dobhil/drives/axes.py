@@ -281,7 +281,7 @@ def _bus_budget(bus: str, drives: Sequence[AxisDrive], period: float,
         mine = [f for f in own if not f.shared]
         for f in own:
             if f.shared:   # one per bus: the first axis' stands for all
-                shared.setdefault((f.name, f.dlc, f.every, f.extended), f)
+                shared.setdefault((f.name, f.dlc, f.every, f.extended, f.or_every), f)
         # replace(), not a new CycleFrame: a protocol's subclass (CAN FD's bits) stays itself
         frames += [dataclasses.replace(f, name=f"{d.name}: {f.name}") for f in mine]
         per_axis.append((d.name, sum(f.bits * f.per_cycle(period) for f in mine)))

@@ -35,13 +35,19 @@ class CycleFrame:
     """One frame a run puts on the bus: once per loop period (``every`` None), or every
     ``every`` seconds whatever the loop does (a heartbeat, a drive's own stream). ``shared``:
     one such frame serves every drive of its protocol on the bus (a CANopen SYNC), so a bus
-    of several axes carries it once, not once per axis."""
+    of several axes carries it once, not once per axis. ``or_every``: a frame sent once per
+    loop period by one way of running and every ``or_every`` seconds by another, counted at
+    the faster of the two (a CANopen SYNC: sent by the loop after each command, or by the
+    kernel every SYNC period -- which one runs is known only once the bus is open)."""
 
     name: str
     dlc: int
     every: float | None = None
     extended: bool = False
     shared: bool = False
+    or_every: float | None = None
+    #: the setting ``or_every`` comes from, as the advice names it ("the profile's feedback_period")
+    or_every_key: str = ""
 
     @property
     def bits(self) -> int:
@@ -50,7 +56,9 @@ class CycleFrame:
 
     def per_cycle(self, period: float) -> float:
         """How many of this frame one loop period carries (a heartbeat's share: < 1)."""
-        return 1.0 if self.every is None else period / self.every
+        if self.every is not None:
+            return period / self.every
+        return 1.0 if self.or_every is None else max(1.0, period / self.or_every)
 
     def describe(self, period: float) -> str:
         share = self.per_cycle(period)
@@ -110,34 +118,45 @@ class BusBudget:
             ways.append(f"a higher bit rate ({rate_text(faster[0], 'bit/s')} on the drive and the interface: "
                         f"{self._load_at(faster[0], self.period) * 100:.0f} %)")
         slowest = self._shortest_period(self.bitrate)
+        keys = sorted({f.or_every_key for f in self.frames if f.every is None and f.or_every is not None})
         if slowest is not None:
             ways.append(f"a slower loop (loop.period >= {slowest * 1e3:.3g} ms)")
+        elif keys and (together := self._shortest_period(self.bitrate, following=True)) is not None:
+            # the frames that run at their own period whatever the loop hold the bus: slow both
+            ways.append(f"a slower loop (loop.period and {' and '.join(keys)} >= {together * 1e3:.3g} ms)")
         ways.append(self.fewer)
         return ways
 
-    def loop_bits(self) -> int:
-        """Bits of the frames sent once per loop period (the ones a run adds to a bus on
-        which the drive's own periodic frames already stream)."""
-        return sum(f.bits for f in self.frames if f.every is None)
-
-    def _split(self) -> tuple[float, float]:
-        """(bits sent once per loop period, bits per second whatever the period)."""
-        per_cycle = self.loop_bits()
-        per_second = sum(f.bits / f.every for f in self.frames if f.every is not None)
-        return per_cycle, per_second
+    def loop_bits(self) -> float:
+        """Bits per loop period of the frames the run sends or triggers (the ones it adds to
+        a bus on which the drive's own periodic frames already stream)."""
+        return sum(f.bits * f.per_cycle(self.period) for f in self.frames if f.every is None)
 
     def _load_at(self, bitrate: float, period: float) -> float:
-        per_cycle, per_second = self._split()
-        return (per_cycle / period + per_second) / bitrate
+        return sum(f.bits * f.per_cycle(period) for f in self.frames) / (bitrate * period)
 
-    def _shortest_period(self, bitrate: float) -> float | None:
+    def _shortest_period(self, bitrate: float, *, following: bool = False) -> float | None:
         """The shortest loop period whose budget is within MAX_BUDGET at ``bitrate``
-        (rounded up to 10 us); None when the loop-independent frames alone exceed it."""
-        per_cycle, per_second = self._split()
-        room = MAX_BUDGET * bitrate - per_second
-        if room <= 0 or per_cycle <= 0:
-            return None
-        return math.ceil(per_cycle / room * 1e5 - 1e-9) / 1e5
+        (rounded up to 10 us); None when no period brings it there (the frames that do not
+        slow down with the loop exceed it alone). ``following``: the ``or_every`` frames'
+        own period set to the loop's too (their :attr:`CycleFrame.or_every_key`).
+
+        The load is ``per_loop / period + per_second``, where an ``or_every`` frame counts per
+        loop below its ``or_every`` and per second above it: solved in each stretch between
+        those edges, shortest first."""
+        def slows(f: CycleFrame, low: float) -> bool:   # sent once per loop period from ``low`` on
+            return f.every is None and (following or f.or_every is None or f.or_every > low)
+        edges = [] if following else sorted({f.or_every for f in self.frames if f.every is None and f.or_every})
+        for low, high in zip([0.0, *edges], [*edges, math.inf]):
+            per_loop = sum(f.bits for f in self.frames if slows(f, low))
+            per_second = sum(f.bits / (f.every or f.or_every or math.inf) for f in self.frames if not slows(f, low))
+            room = MAX_BUDGET * bitrate - per_second
+            if room <= 0 or (per_loop <= 0 and low == 0.0):   # no period helps (or none is needed)
+                return None   # the later stretches only move frames from per loop to per second
+            period = max(low, per_loop / room)
+            if period <= high:
+                return math.ceil(period * 1e5 - 1e-9) / 1e5
+        return None
 
     def as_dict(self) -> dict[str, object]:
         return {"bits_per_cycle": self.bits_per_cycle, "load": self.load, "bitrate": self.bitrate,

@@ -94,7 +94,11 @@ def test_three_cia402_axes_at_1_khz_are_refused_sync_counted_once(tmp_path: Path
         axes_budget(drives, 0.001)
     text = one_line(exc)
     assert text.startswith("bus virtual:x: axes a0, a1, a2 need 1062 bits per cycle, 106 % of 1 Mbit/s at 1 kHz")
-    assert "loop.period >=" in text and "fewer axes on this bus" in text
+    # the SYNC and TPDOs come every feedback_period (1 ms) whatever the loop where the bus
+    # sends the SYNC natively: only both slower help. 1060 bits per period + the heartbeats'
+    # 3 x 65 / 0.1 s = 1950 bit/s within 0.7 Mbit/s: P >= 1060 / 698050 = 1.5185 ms -> 1.52 ms
+    assert "a slower loop (loop.period and the profile's feedback_period >= 1.52 ms)" in text
+    assert "fewer axes on this bus" in text
 
 
 def test_two_cia402_axes_at_1_khz_are_over_70_percent(tmp_path: Path) -> None:
@@ -103,11 +107,34 @@ def test_two_cia402_axes_at_1_khz_are_over_70_percent(tmp_path: Path) -> None:
     assert bus.over and not bus.refused and "over 70 %" in bus.advice()
 
 
-def test_a_slower_loop_brings_three_cia402_axes_within_budget(tmp_path: Path) -> None:
-    (bus,) = axes_budget(drives_of(tmp_path, cia402(1), cia402(2), cia402(3), period=0.002), 0.002)
+def cia402_profile(tmp_path: Path, feedback_period: float) -> Path:
+    """cia402-emulated with another SYNC period (its EDS where the shipped one is)."""
+    shipped = load_profile("cia402-emulated")
+    data = yaml.safe_load(Path(shipped.directory, "cia402-emulated.yaml").read_text())
+    data["feedback_period"] = feedback_period
+    data["cia402"]["eds"] = str(Path(shipped.directory, data["cia402"]["eds"]))
+    path = tmp_path / f"sync-{feedback_period}.yaml"
+    path.write_text(yaml.safe_dump(data))
+    return path
+
+
+def test_a_slower_loop_and_sync_bring_three_cia402_axes_within_budget(tmp_path: Path) -> None:
+    slow = {"profile": str(cia402_profile(tmp_path, 0.002))}
+    drives = drives_of(tmp_path, *({**slow, "node_id": n} for n in (1, 2, 3)), period=0.002)
+    (bus,) = axes_budget(drives, 0.002)
     # per cycle 55 + 3 x 335 (heartbeat share doubles: 65 x 2/100) at 2000 bits per period
     assert bus.load == pytest.approx((SYNC + 3 * (335 + 65 * 2 / 100)) / 2000)
     assert not bus.over
+
+
+def test_a_slower_loop_alone_leaves_the_sync_and_its_tpdos_at_their_period(tmp_path: Path) -> None:
+    # loop 2 ms, SYNC still every 1 ms (cia402-emulated): per 2 ms the RPDOs once (3 x 95),
+    # the SYNC (55) and the TPDOs (3 x 240) twice, the heartbeats 3 x 65 x 2/100
+    # = 285 + 2 x 775 + 3.9 = 1838.9 bits of 2000: 91.9 %, over 70 % -- counted per loop as
+    # before, it was 53.2 % and called within budget, while the bus carried the SYNC every 1 ms
+    (bus,) = axes_budget(drives_of(tmp_path, cia402(1), cia402(2), cia402(3), period=0.002), 0.002)
+    assert bus.budget.bits_per_cycle == pytest.approx(3 * 95 + 2 * (SYNC + 3 * 240) + 3 * 65 * 2 / 100)
+    assert bus.over and not bus.refused and "loop.period and the profile's feedback_period >= 1.52 ms" in bus.advice()
 
 
 def test_each_bus_has_its_own_budget(tmp_path: Path) -> None:

@@ -201,3 +201,56 @@ def test_cia402_budget_counts_the_hosts_heartbeat() -> None:
     assert b is not None and b.bits_per_cycle == pytest.approx(393.25)
     assert b.line() == ("bus budget: 393 bits per cycle (SYNC 55 + RPDO1 95 + TPDO1 135 + TPDO2 105 + "
                         "heartbeat 65 x 0.01 + host heartbeat 65 x 0.04) = 39.3 % of 1 Mbit/s at 1 kHz")
+
+
+#: CiA 402 per SYNC as the probe lists it: the RPDO once per loop period, the SYNC and both
+#: TPDOs once per loop period or every 1 ms (the SYNC period), whichever is more often
+SYNC_1MS = "the profile's feedback_period"
+CIA402_BY_SYNC = (CycleFrame("SYNC", 0, or_every=1e-3, or_every_key=SYNC_1MS), CycleFrame("RPDO1", 4),
+                  CycleFrame("TPDO1", 8, or_every=1e-3, or_every_key=SYNC_1MS),
+                  CycleFrame("TPDO2", 5, or_every=1e-3, or_every_key=SYNC_1MS))
+
+
+def test_frames_with_their_own_period_count_at_the_faster_one() -> None:
+    # loop 2 ms: RPDO 95 once, SYNC 55 + TPDOs 135 + 105 = 295 twice: 685 bits of 2000 at 1 Mbit/s
+    b = budget(CIA402_BY_SYNC, 2e-3, 1_000_000)
+    assert b is not None and b.bits_per_cycle == pytest.approx(95 + 2 * 295) and b.load == pytest.approx(0.3425)
+    assert b.line() == ("bus budget: 685 bits per cycle (SYNC 55 x 2 + RPDO1 95 + TPDO1 135 x 2 + TPDO2 105 x 2) "
+                        "= 34.2 % of 1 Mbit/s at 500 Hz")
+    assert b.loop_bits() == pytest.approx(685)   # all of them come from the run (sent or answering)
+    # loop 0.5 ms: once per loop period each (the SYNC sent after each command): 390 bits
+    fast = budget(CIA402_BY_SYNC, 0.5e-3, 1_000_000)
+    assert fast is not None and fast.bits_per_cycle == pytest.approx(390)
+
+
+def test_the_slowest_loop_is_solved_where_the_sync_stops_following_it() -> None:
+    # 500 kbit/s, loop 1 ms: 390 / 500 = 78 %. Below 1 ms all 390 bits come per loop period:
+    # 390 / (0.7 x 500000) = 1.114 ms, not below 1 ms. From 1 ms on, the SYNC and TPDOs are
+    # 295 bits every 1 ms = 295000 bit/s whatever the loop, the RPDO's 95 bits per period must
+    # fit in 350000 - 295000 = 55000 bit/s: P >= 95 / 55000 = 1.7273 ms -> 1.73 ms
+    b = budget(CIA402_BY_SYNC, 1e-3, 500_000)
+    assert b is not None and b.over
+    assert "a slower loop (loop.period >= 1.73 ms)" in b.advice()
+    at = budget(CIA402_BY_SYNC, 1.73e-3, 500_000)
+    assert at is not None and not at.over and at.load == pytest.approx((95 / 1.73e-3 + 295000) / 500000)
+
+
+def test_when_the_sync_alone_fills_the_bus_the_advice_slows_both() -> None:
+    # 250 kbit/s: the SYNC and TPDOs every 1 ms are 295000 bit/s, over 0.7 x 250000 = 175000
+    # whatever the loop; with the SYNC period following the loop, all 390 bits per period:
+    # P >= 390 / 175000 = 2.2286 ms -> 2.23 ms
+    b = budget(CIA402_BY_SYNC, 1e-3, 250_000)
+    assert b is not None and b.over
+    advice = b.advice()
+    assert "a slower loop (loop.period and the profile's feedback_period >= 2.23 ms)" in advice
+    assert "loop.period >= " not in advice.replace("feedback_period >= ", "")
+
+
+def test_the_cia402_probe_counts_its_sync_and_tpdos_at_the_sync_period() -> None:
+    # drivers/epos4.yaml: SYNC every 1 ms; at loop 2 ms the bus carries two SYNCs and their TPDOs
+    # per period, one RPDO, the node's heartbeat (65 x 2/100) and the host's (65 x 2/25: the
+    # drive sends it every 25 SYNC periods, whatever the loop's)
+    probe = preflight_probe(load_profile("epos4"))
+    assert probe is not None
+    b = probe.budget(2e-3, 1_000_000)
+    assert b is not None and b.bits_per_cycle == pytest.approx(95 + 2 * 295 + 65 * 2 / 100 + 65 * 2 / 25)

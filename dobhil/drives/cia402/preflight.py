@@ -162,18 +162,28 @@ class CiA402Preflight(PreflightProbe):
         return "heartbeat"
 
     def cycle_frames(self, period: float) -> Sequence[CycleFrame]:
-        """Per SYNC: the SYNC itself (no data), the RPDO, both TPDOs (SPEC-17's mapping
-        at the standard data types); the heartbeat (1 byte) at its own period."""
+        """The RPDO once per loop period; per SYNC, the SYNC itself (no data) and both TPDOs
+        (SPEC-17's mapping at the standard data types); the heartbeat (1 byte) at its own period.
+
+        The SYNC goes after each command where the bus sends no periodic frame natively, and
+        every ``feedback_period`` where it does (:meth:`CiA402Drive._start_sync
+        <dobhil.drives.cia402.drive.CiA402Drive._start_sync>`): which one is known only once the
+        bus is open, so the SYNC and the TPDOs answering it count at the faster of the two."""
         rpdo, tpdo = self._pdo_numbers()
-        frames = [CycleFrame("SYNC", 0, shared=True)]   # one SYNC per bus drives every node's PDOs
-        for name, mapping in self._mappings(rpdo, tpdo):
-            frames.append(CycleFrame(name, layout_bits([m.data_type for m in mapping]) // 8))
+        sync = self.profile.feedback_period
+        # one SYNC per bus drives every node's PDOs
+        key = "the profile's feedback_period"
+        frames = [CycleFrame("SYNC", 0, shared=True, or_every=sync, or_every_key=key)]
+        (command, command_map), *answers = self._mappings(rpdo, tpdo)
+        frames.append(CycleFrame(command, layout_bits([m.data_type for m in command_map]) // 8))
+        frames += [CycleFrame(name, layout_bits([m.data_type for m in mapping]) // 8, or_every=sync,
+                              or_every_key=key) for name, mapping in answers]
         heartbeat = self.profile.heartbeat_period
         if heartbeat:
             frames.append(CycleFrame("heartbeat", 1, every=heartbeat))
         consumer = float(self.options.get("consumer_heartbeat", 0.0))
         if consumer > 0:   # the host's own heartbeat for the node's consumer 0x1016 (the drive's period)
-            frames.append(CycleFrame("host heartbeat", 1, every=host_heartbeat_interval(consumer, period)))
+            frames.append(CycleFrame("host heartbeat", 1, every=host_heartbeat_interval(consumer, sync or period)))
         return tuple(frames)
 
     # -- the window: SDO reads, then listening ----------------------------------
