@@ -9,7 +9,7 @@ import pytest
 from tool_module import load_tool
 
 from dobhil.recording.reader import open_log
-from tests.recording.test_run_logging import logged_lockstep_run
+from tests.recording.test_run_logging import lockstep_log_in
 
 layouts = load_tool(Path(__file__).resolve().parents[1] / "tools" / "log_layouts.py", "log_layouts_under_test")
 
@@ -19,9 +19,7 @@ INDEX_ENTRY = 16
 
 @pytest.fixture(scope="module")
 def run_log(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    path = tmp_path_factory.mktemp("layouts") / "run.mcap"
-    logged_lockstep_run(path, duration=0.2)
-    return path
+    return lockstep_log_in(tmp_path_factory, "layouts", 0.2)
 
 
 def test_fewer_messages_per_cycle_save_their_index_entries(run_log: Path) -> None:

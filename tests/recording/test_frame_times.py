@@ -20,7 +20,7 @@ from dobhil.recording.process import WriterProcess
 from dobhil.recording.reader import open_log
 from dobhil.recording.runlog import RunLog
 from dobhil.runtime.session import RunSession
-from tests.recording.test_run_logging import DEMO, logged_lockstep_run
+from tests.recording.test_run_logging import DEMO, lockstep_log_in
 
 #: ASC's Begin Triggerblock date has milliseconds; each line is relative to the exact start
 ASC_START_RESOLUTION = 1e-3
@@ -34,9 +34,7 @@ def frames(path: Path) -> list[tuple[str, int, float]]:
 
 @pytest.fixture(scope="module")
 def lockstep_log(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    path = tmp_path_factory.mktemp("frame-times") / "lockstep.mcap"
-    logged_lockstep_run(path, duration=0.1)
-    return path
+    return lockstep_log_in(tmp_path_factory, "frame-times", 0.1)
 
 
 def test_lockstep_frames_in_both_directions_carry_the_simulated_log_time(lockstep_log: Path) -> None:

@@ -22,7 +22,7 @@ from dobhil.recording.encodings import ENCODINGS, encoding
 from dobhil.recording.encodings.protobuf import fields_on_wire, varint
 from dobhil.recording.reader import open_log
 from dobhil.recording.schemas import TOPIC_SPECS, FieldKind, Topic, TopicSpec
-from tests.recording.test_run_logging import logged_lockstep_run
+from tests.recording.test_run_logging import lockstep_log_in, logged_lockstep_run
 
 PB = encoding("protobuf")
 _TYPES = {FieldKind.NUMBER: descriptor_pb2.FieldDescriptorProto.TYPE_DOUBLE,
@@ -159,9 +159,7 @@ def test_a_message_cut_inside_a_field_is_refused_not_misread() -> None:
 
 @pytest.fixture(scope="module")
 def protobuf_log(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    path = tmp_path_factory.mktemp("pb") / "run.mcap"
-    logged_lockstep_run(path, duration=0.3)
-    return path
+    return lockstep_log_in(tmp_path_factory, "pb", 0.3)
 
 
 def test_mcap_and_its_protobuf_decoder_read_every_topic(protobuf_log: Path) -> None:

@@ -54,6 +54,13 @@ def logged_lockstep_run(path: Path, duration: float = 0.3,
     return seen, result.cycles, sent_by_drive
 
 
+def lockstep_log_in(tmp_path_factory: pytest.TempPathFactory, folder: str, duration: float) -> Path:
+    """A module's recorded lockstep demo run (:func:`logged_lockstep_run`) in a folder of its own."""
+    path = tmp_path_factory.mktemp(folder) / "run.mcap"
+    logged_lockstep_run(path, duration=duration)
+    return path
+
+
 Run = tuple[Path, list[can.Message], int, int]
 
 
