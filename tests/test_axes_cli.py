@@ -92,7 +92,7 @@ def test_check_refuses_a_bus_over_100_percent(tmp_path: Path, capsys: pytest.Cap
             "axes": [{"name": f"j{i}", "drive": {"profile": "cia402-emulated", "node_id": i}} for i in (1, 2, 3)]}
     line = refused(["check", str(write(tmp_path, data)), "--bus", NO_BUS], capsys)
     assert "bus socketcan:dobhil-no-such-interface: axes j1, j2, j3 need 1062 bits per cycle, 106 % of " \
-           "1 Mbit/s at 1 kHz" in line and "loop.period >=" in line
+           "1 Mbit/s at 1 kHz" in line and "loop.period and the profile's feedback_period >= 1.52 ms" in line
 
 
 def test_check_refuses_a_node_id_out_of_range(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

@@ -59,7 +59,7 @@ def test_run_refuses_a_bus_over_100_percent_before_anything_opens(tmp_path: Path
     out, err = capsys.readouterr()
     assert code == 2 and out == "" and err.count("\n") == 1 and "Traceback" not in err
     assert err.strip().endswith(budget.refusal())
-    assert "axes j1, j2, j3 need" in err and "loop.period >=" in err
+    assert "axes j1, j2, j3 need" in err and "loop.period and the profile's feedback_period >= 1.52 ms" in err
 
 
 def test_run_over_70_percent_says_what_to_change_and_runs(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
