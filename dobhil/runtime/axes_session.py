@@ -122,6 +122,8 @@ class AxesSession:
         self._shared: list[SharedBus] = []
         try:
             self.groups = self._group(bus)
+            if emulate:
+                self._check_couplings()
             for group in self.groups:
                 self._open(group)
         except BaseException:
@@ -150,6 +152,16 @@ class AxesSession:
                 group = groups[name] = BusGroup(name, spec)
             group.axes.append(a.name)
         return list(groups.values())
+
+    def _check_couplings(self) -> None:
+        """Refuse a coupling between axes emulated on different buses, before any bus or
+        emulator is opened: each bus' emulator (the lockstep one and the real-time process
+        alike) hosts the plants of its own bus' axes only, so it could not join them."""
+        bus_of = {name: g.name for g in self.groups for name in g.axes}
+        for c in self.axes.couplings:
+            if bus_of[c.a] != bus_of[c.b]:
+                raise ConfigError(f"coupling between axes {c.a!r} and {c.b!r}: they are on different buses "
+                                  f"({bus_of[c.a]}, {bus_of[c.b]}); an emulated coupling joins axes of one bus")
 
     def _open(self, group: BusGroup) -> None:
         host = self._add(open_bus(group.spec))
@@ -195,15 +207,11 @@ class AxesSession:
     def _plants(self, names: list[str]) -> dict[str, PlantLike]:
         """Each axis' plant; the coupled ones through the coupling module."""
         plants: dict[str, Plant] = {name: Plant.from_config(self.axes.axis(name).config) for name in names}
-        couplings = [c for c in self.axes.couplings if c.a in plants or c.b in plants]
+        # a coupling to another bus' axis was refused before anything opened (_check_couplings)
+        couplings = [c for c in self.axes.couplings if c.a in plants and c.b in plants]
         if not couplings:
             self.plants.update(plants)
             return dict(plants)
-        crossing = [c for c in couplings if not (c.a in plants and c.b in plants)]
-        if crossing:
-            c = crossing[0]
-            raise ConfigError(f"coupling between axes {c.a!r} and {c.b!r}: they are on different buses; "
-                              "an emulated coupling joins axes of one bus")
         coupled = couple_plants(plants, couplings)
         self.plants.update(coupled)
         return coupled

@@ -91,3 +91,17 @@ def test_distinct_nodes_of_two_protocols_are_no_clash(tmp_path: Path) -> None:
     axes = load_two(tmp_path, ("odrive", "cia402"), "axes.left.drive.node_id=1", "axes.right.drive.node_id=5")
     with AxesSession(axes, emulate=True, lockstep=True, config_dir=CONFIGS) as session:
         assert [g.axes for g in session.groups] == [["left", "right"]]
+
+
+@pytest.mark.parametrize("timing", [["--lockstep"], ["--set", "loop.timing=host"]])
+def test_coupling_across_buses_refused_in_either_timing(tmp_path: Path, capsys: pytest.CaptureFixture[str],
+                                                       timing: list[str]) -> None:
+    # each bus' emulator hosts its own axes' plants: a real-time emulator process, given
+    # only its bus' couplings, ran the pair uncoupled without a word
+    config = two_axis_config(tmp_path, ("odrive", "odrive"), duration=0.05, coupled=True)
+    code = main(["run", str(config), "--emulate", *timing, "--set", "axes.right.drive.interface=virtual",
+                 "--set", "axes.right.drive.channel=other"])
+    out, err = capsys.readouterr()
+    assert code == 2 and out == "" and err.count("\n") == 1, err
+    assert "coupling between axes 'left' and 'right': they are on different buses" in err
+    assert "virtual:other" in err and "Traceback" not in err
