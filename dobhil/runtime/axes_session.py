@@ -147,10 +147,13 @@ class AxesSession:
             group = groups.get(name)
             if group is None:
                 if self.emulate:
-                    fd = {"protocol": can.CanProtocol.CAN_FD} if protocol(profile.protocol).fd else {}
-                    spec = BusSpec("virtual", private_virtual_channel(), fd)
+                    spec = BusSpec("virtual", private_virtual_channel(), {})
                 group = groups[name] = BusGroup(name, spec)
             group.axes.append(a.name)
+            if self.emulate and protocol(profile.protocol).fd:
+                # CAN FD when any axis of the bus needs it, whichever axis the config lists first
+                # (a classic frame travels on a CAN FD bus; an FD frame not on a classic one)
+                group.spec = BusSpec("virtual", group.spec.channel, {"protocol": can.CanProtocol.CAN_FD})
         return list(groups.values())
 
     def _check_couplings(self) -> None:

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import can
 import numpy as np
 import pytest
 
@@ -58,3 +59,16 @@ def test_axes_on_two_buses_run_as_alone(tmp_path: Path) -> None:
             single = alone.run()
         for name in FIELDS:
             assert np.array_equal(both.axes[axis.name].trace[name], single.trace[name], equal_nan=True), name
+
+
+@pytest.mark.parametrize("protos", [("odrive", "moteus"), ("moteus", "odrive")])
+def test_a_can_fd_axis_makes_its_emulated_bus_can_fd_in_any_order(tmp_path: Path, protos: tuple[str, str]) -> None:
+    """The emulated bus of a classic drive and a CAN FD one is opened as CAN FD whichever
+    the config lists first (it was the first axis' kind: listed second, the moteus drive
+    was refused a classic bus)."""
+    axes = load_two(tmp_path, protos, duration=0.02)
+    with AxesSession(axes, emulate=True, lockstep=True, config_dir=CONFIGS) as session:
+        (group,) = session.groups
+        assert group.spec.kwargs == {"protocol": can.CanProtocol.CAN_FD}
+        both = session.run()
+    assert both.stop.reason is StopReason.DONE and both.cycles == 20, both.stop.line()
