@@ -15,6 +15,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
+import can
 import pytest
 import yaml
 
@@ -26,6 +27,9 @@ from dobhil.config import load_config
 from dobhil.config.axes import load_axes
 from dobhil.drives.odrive.codec import AxisState
 from dobhil.drives.odrive.emulator import EmulatedODrive
+from dobhil.errors import BusError
+from dobhil.runtime import axes_session, buses
+from dobhil.runtime.buses import BusSpec
 from odrive_nodes import odrive_nodes
 
 #: a bus that cannot be opened: a refusal that names something else was made before opening it
@@ -93,6 +97,28 @@ def test_check_refuses_a_bus_over_100_percent(tmp_path: Path, capsys: pytest.Cap
     line = refused(["check", str(write(tmp_path, data)), "--bus", NO_BUS], capsys)
     assert "bus socketcan:dobhil-no-such-interface: axes j1, j2, j3 need 1062 bits per cycle, 106 % of " \
            "1 Mbit/s at 1 kHz" in line and "loop.period and the profile's feedback_period >= 1.52 ms" in line
+
+
+@pytest.mark.parametrize("command", [["check"], ["run", "--no-preflight"]])
+def test_a_bus_is_opened_can_fd_for_a_can_fd_axis_listed_second(tmp_path: Path, command: list[str],
+                                                                  monkeypatch: pytest.MonkeyPatch,
+                                                                  capsys: pytest.CaptureFixture[str]) -> None:
+    """One bus of an ODrive and a moteus controller is opened with the moteus profile's
+    ``fd`` whichever axis is listed first (with the ODrive first it was opened classic, and
+    the moteus drive refused it). The bus is not opened here: its spec is what is checked."""
+    data = {"loop": {"period": 0.001, "duration": 0.05, "timing": "host"},
+            "axes": [{"name": "od", "drive": {"profile": "odrive-0.6", "node_id": 1}},
+                     {"name": "mo", "drive": {"profile": "moteus-r4.11", "node_id": 5}}]}
+    opened: list[BusSpec] = []
+
+    def not_opened(spec: BusSpec) -> can.BusABC:
+        opened.append(spec)
+        raise BusError(f"bus {spec.describe()}: not opened in this test")
+    monkeypatch.setattr(buses, "open_bus", not_opened)
+    monkeypatch.setattr(axes_session, "open_bus", not_opened)
+    main([command[0], str(write(tmp_path, data)), "--bus", NO_BUS, *command[1:]])
+    assert "not opened in this test" in capsys.readouterr().err
+    assert [(s.describe(), s.kwargs.get("fd")) for s in opened] == [(NO_BUS, True)]
 
 
 def test_check_refuses_a_node_id_out_of_range(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

@@ -65,12 +65,13 @@ def measure_axes(axes: Any, drives: Sequence[Any], window: float,
     ``cancel`` (a stop request's ``reason``) cuts each measurement short."""
     from dobhil.drives.preflight import run_preflight
     from dobhil.drives.registry import preflight_probe, protocol
-    from dobhil.runtime.buses import open_bus, resolve_bus, shutdown_bus
+    from dobhil.runtime.buses import open_bus, resolve_bus, shared_spec, shutdown_bus
     out: list[tuple[str, str, Any]] = []
     for bus_name in dict.fromkeys(d.bus for d in drives):
         on_bus = [(axes.axis(d.name).config, d) for d in drives if d.bus == bus_name]
-        first_config, first = on_bus[0]
-        spec = resolve_bus(first_config, first.profile, None if first_config.drive.interface else default_bus)
+        # one bus opened for every drive on it (a CAN FD drive's fd whichever axis is first)
+        spec = shared_spec([resolve_bus(config, d.profile, None if config.drive.interface else default_bus)
+                            for config, d in on_bus])
         bus = open_bus(spec)
         try:
             for config, drive in on_bus:

@@ -41,7 +41,7 @@ from dobhil.emulator.process import EmulatorProcess, EmulatorSpec
 from dobhil.errors import ConfigError
 from dobhil.realtime import EMULATOR_PRIORITY_DROP
 from dobhil.runtime.axes_loop import AxesLoop, AxesResult, AxisParts
-from dobhil.runtime.buses import BusSpec, open_bus, resolve_bus
+from dobhil.runtime.buses import BusSpec, open_bus, resolve_bus, shared_spec
 from dobhil.runtime.loop import CycleSink, LoopSettings, StopRequest, Timing
 from dobhil.runtime.references import make_reference
 from dobhil.runtime.session import (build_controller, check_cycles, check_duration, check_feedback_streams,
@@ -149,6 +149,8 @@ class AxesSession:
                 if self.emulate:
                     spec = BusSpec("virtual", private_virtual_channel(), {})
                 group = groups[name] = BusGroup(name, spec)
+            elif not self.emulate:   # one bus opened for every drive on it (a CAN FD one's fd too)
+                group.spec = shared_spec([group.spec, spec])
             group.axes.append(a.name)
             if self.emulate and protocol(profile.protocol).fd:
                 # CAN FD when any axis of the bus needs it, whichever axis the config lists first

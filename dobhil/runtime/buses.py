@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import logging
 import threading
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any, Final
 
@@ -49,6 +50,20 @@ def resolve_bus(config: Config, profile: DriveProfile, cli: str | None) -> BusSp
         raise ConfigError(f"no bus given: use --bus INTERFACE:CHANNEL, drive.interface, or a bus: "
                           f"section in the drive profile {profile.name!r}")
     return BusSpec(str(bus["interface"]), str(bus.get("channel", "")), extra)
+
+
+def shared_spec(specs: Sequence[BusSpec]) -> BusSpec:
+    """The one bus several drives share (``specs``: each drive's :func:`resolve_bus`, all
+    naming that bus): the first's interface and channel, with the ``can.Bus`` arguments of
+    every drive on it -- a CAN FD drive's profile asks for ``fd`` whichever axis is listed
+    first, and a classic drive's frames travel on a CAN FD bus too (where two drives give
+    one argument two values, the first's; two bit rates on one bus are refused before,
+    :func:`dobhil.drives.axes.axis_drives`)."""
+    kwargs: dict[str, Any] = {}
+    for spec in specs:
+        for key, value in spec.kwargs.items():
+            kwargs.setdefault(key, value)
+    return BusSpec(specs[0].interface, specs[0].channel, kwargs)
 
 
 def open_bus(spec: BusSpec) -> can.BusABC:
