@@ -137,6 +137,9 @@ def load_axes(path: str | Path | None = None, overrides: Iterable[str] = (),
     own: dict[str, dict[str, Any]] = {name: flat for name, flat in entries}
     for extra in set_files:   # an axis' key in a --set-file goes to that axis, as with --set
         for name, value in read_set_file(extra).items():
+            if name.endswith("." + CWD_PATH_KEYS[0]) and isinstance(value, str) and value:
+                # an axis' path as read_set_file takes the top level's: from the file's own directory
+                value = os.path.join(os.path.dirname(os.path.abspath(extra)), value)
             _assign(name, value, base, own, listed, f"--set-file {extra}: {name}")
     for item in overrides:
         name, value = parse_override(item)

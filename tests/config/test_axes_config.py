@@ -80,6 +80,12 @@ def test_a_set_file_may_name_an_axis_key(tmp_path: Path) -> None:
     axes = load_axes(write(tmp_path, TWO_AXES), (), (overlay,))
     assert axes.axis("right").config.plant.inertia == 0.5
     assert axes.axis("left").config.design.force_gain == 4.0
+    # a relative reference.file is taken from the set file's directory, an axis' as the top level's
+    (tmp_path / "sets").mkdir()
+    (tmp_path / "sets" / "paths.yaml").write_text("axes.right.reference.file: r.csv\nreference.file: t.csv\n")
+    axes = load_axes(write(tmp_path, TWO_AXES), (), (tmp_path / "sets" / "paths.yaml",))
+    assert [axes.axis(n).config.reference.file for n in ("left", "right")] == [
+        str(tmp_path / "sets" / "t.csv"), str(tmp_path / "sets" / "r.csv")]
 
 
 def test_a_config_without_axes_is_the_one_axis_load_config_reads(tmp_path: Path) -> None:
