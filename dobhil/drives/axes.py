@@ -242,12 +242,45 @@ def bus_budgets(drives: Sequence[AxisDrive], period: float,
 
 def axes_budget(drives: Sequence[AxisDrive], period: float,
                 probe: Callable[[DriveProfile], PreflightProbe | None] = preflight_probe) -> tuple[AxesBusBudget, ...]:
-    """:func:`bus_budgets`, refused (ConfigError, one line) when a bus is over 100 %."""
+    """:func:`bus_budgets`, refused (ConfigError, one line) when a bus is over 100 % or when
+    its axes ask for a frame of the bus (:attr:`CycleFrame.shared`) at two periods."""
+    _check_shared_periods(drives, period, probe)
     budgets = bus_budgets(drives, period, probe)
     for b in budgets:
         if b.refused:
             raise ConfigError(b.refusal())
     return budgets
+
+
+def _check_shared_periods(drives: Sequence[AxisDrive], period: float,
+                          probe: Callable[[DriveProfile], PreflightProbe | None]) -> None:
+    """A frame one bus carries once for every drive of a protocol (a CANopen SYNC: a network
+    has one SYNC producer, CiA 301) is one frame at one period: two axes of a bus whose
+    profiles ask for it at two periods would put two producers on the bus, and each node
+    answers every one of them. Refused in one line naming both axes and the setting."""
+    seen: dict[tuple[str, str, object, object], tuple[str, CycleFrame]] = {}
+    for d in drives:
+        found = probe(d.profile)
+        for f in (found.cycle_frames(period) if found is not None else ()):
+            if not f.shared:
+                continue
+            first = seen.setdefault((d.bus, f.name, f.dlc, f.extended), (d.name, f))
+            other_name, other = first
+            if (other.every, other.or_every) != (f.every, f.or_every):
+                key = f.or_every_key or other.or_every_key or "the drive profile's period of it"
+                raise ConfigError(
+                    f"axes {other_name} and {d.name} on {d.bus} ask for one {f.name} of the bus every "
+                    f"{_every_text(other, period)} and every {_every_text(f, period)} ({key}): a bus carries "
+                    f"one {f.name}, at one period; give both drives the same (or put one on another bus: "
+                    "its drive.interface/drive.channel)")
+
+
+def _every_text(frame: CycleFrame, period: float) -> str:
+    """The period a frame of the bus is asked for at: its own, else its ``or_every`` (the
+    period a bus that sends it by itself keeps, e.g. SocketCAN's broadcast manager), else
+    the loop's."""
+    every = frame.every if frame.every is not None else (frame.or_every or period)
+    return f"{every * 1e3:g} ms"
 
 
 def drive_budget(axis: Axis, config_dir: Path | None, default_bus: str | None = None,

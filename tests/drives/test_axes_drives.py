@@ -137,6 +137,18 @@ def test_a_slower_loop_alone_leaves_the_sync_and_its_tpdos_at_their_period(tmp_p
     assert bus.over and not bus.refused and "loop.period and the profile's feedback_period >= 1.52 ms" in bus.advice()
 
 
+def test_two_sync_periods_on_one_bus_are_refused_naming_both_axes(tmp_path: Path) -> None:
+    # one SYNC per bus: at 1 ms and at 2 ms it would be two SYNC producers, each node
+    # answering both (the budget counted the two and the run went on); on two buses, fine
+    slow = {"profile": str(cia402_profile(tmp_path, 0.002)), "node_id": 2}
+    with pytest.raises(ConfigError) as exc:
+        axes_budget(drives_of(tmp_path, cia402(1), slow, period=0.002), 0.002)
+    assert one_line(exc).startswith("axes a0 and a1 on virtual:x ask for one SYNC of the bus every 1 ms and every "
+                                    "2 ms (the profile's feedback_period)")
+    apart = drives_of(tmp_path, cia402(1), {**slow, "interface": "virtual", "channel": "y"}, period=0.002)
+    assert len(axes_budget(apart, 0.002)) == 2
+
+
 def test_each_bus_has_its_own_budget(tmp_path: Path) -> None:
     drives = drives_of(tmp_path, odrive(1, interface="virtual", channel="a"),
                        odrive(1, interface="virtual", channel="b"), odrive(2, interface="virtual", channel="a"))
