@@ -47,9 +47,28 @@ class CanLogFormat(IntEnum):
     BLF = 3
 
 
+class CandumpWriter(can.CanutilsLogWriter):
+    """python-can's candump writer, a remote frame's DLC kept: it writes ``ID#R`` for every
+    remote frame, which reads back as DLC 0, where can-utils' candump writes ``ID#R8`` for a
+    remote frame of DLC 8 (lib.c ``snprintf_canframe``: the DLC after the ``R`` when it is 1
+    to 8), and python-can's own reader takes that digit back as the DLC."""
+
+    def on_message_received(self, msg: can.Message) -> None:
+        if not msg.is_remote_frame or msg.is_error_frame or not 0 < msg.dlc <= 8:
+            super().on_message_received(msg)
+            return
+        file, self.file = self.file, io.StringIO()
+        try:
+            super().on_message_received(msg)
+            head, _, tail = cast(io.StringIO, self.file).getvalue().rpartition("#R")
+        finally:
+            self.file = file
+        file.write(f"{head}#R{msg.dlc}{tail}")
+
+
 #: Format -> (file suffix, python-can writer class).
 FORMATS: Final[Mapping[CanLogFormat, tuple[str, type[can.io.generic.MessageWriter]]]] = MappingProxyType({
-    CanLogFormat.CANDUMP: (".log", can.CanutilsLogWriter), CanLogFormat.ASC: (".asc", can.ASCWriter),
+    CanLogFormat.CANDUMP: (".log", CandumpWriter), CanLogFormat.ASC: (".asc", can.ASCWriter),
     CanLogFormat.BLF: (".blf", can.BLFWriter)})
 
 
@@ -78,8 +97,7 @@ def export_can(mcap_path: str | os.PathLike[str], out: str | os.PathLike[str], f
             raise LogFileError(f"{os.fspath(mcap_path)}: no CAN frames (no /can/rx or /can/tx topic)")
         with atomic_path(out) as tmp, FORMATS[fmt][1](tmp) as writer:
             count = 0
-            if isinstance(writer, can.ASCWriter):
-                _start_at_earliest(writer, log, topics)
+            _start_at_earliest(writer, log, topics)
             for _, t, payload in log.iter_messages(topics):
                 msg = can_frame_message(payload, t)
                 if fmt is CanLogFormat.BLF:  # BLF stores channels as small integers
@@ -92,14 +110,23 @@ def export_can(mcap_path: str | os.PathLike[str], out: str | os.PathLike[str], f
             return count
 
 
-def _start_at_earliest(writer: can.ASCWriter, log: Any, topics: list[str]) -> None:
-    """ASC times are relative to the first line written, and python-can writes a frame
-    older than that as an absolute time (which reads back as another date). Frames are
-    exported in log-time order, where a received frame may be older than a command sent
-    before it was read: so the file starts at the earliest frame (one event line)."""
+def _start_at_earliest(writer: can.io.generic.MessageWriter, log: Any, topics: list[str]) -> None:
+    """Every python-can writer times its frames from the first one it is given, and writes
+    a frame older than that wrongly: ASC as an absolute time (another date when read back),
+    BLF and candump at the first frame's time (BLFWriter clamps its offset at 0,
+    CanutilsLogWriter any older time to the first). Frames are exported in log-time order,
+    where a received frame may be older than a command sent before it was read: so the file
+    starts at the earliest frame (ASC and BLF: one event line there; candump has no events,
+    its writer is told the earliest time as its first)."""
     earliest = min((p.get("timestamp") or t / 1e9 for _, t, p in log.iter_messages(topics)), default=None)
-    if earliest is not None:
+    if earliest is None:
+        return
+    if isinstance(writer, can.ASCWriter):
         writer.log_event("dobhil log export", asc_start(earliest))
+    elif isinstance(writer, can.BLFWriter):
+        writer.log_event("dobhil log export", earliest)
+    elif isinstance(writer, can.CanutilsLogWriter):
+        writer.last_timestamp = earliest
 
 
 def asc_start(earliest: float) -> float:
@@ -430,5 +457,5 @@ def import_can(canlog: str | os.PathLike[str], out: str | os.PathLike[str], *,
     return count
 
 
-__all__ = ["FORMATS", "TEXT_READERS", "CanLogFormat", "candump_problem", "default_can_output", "export_can",
-           "import_can", "import_metadata", "parse_format", "short_frame"]
+__all__ = ["FORMATS", "TEXT_READERS", "CanLogFormat", "CandumpWriter", "candump_problem", "default_can_output",
+           "export_can", "import_can", "import_metadata", "parse_format", "short_frame"]

@@ -24,6 +24,8 @@ FRAMES = (
                                data=b"\x01\x02\x03", channel="can0")),
     (Topic.CAN_RX, can.Message(timestamp=T0 + 0.0015, arbitration_id=0x456, is_remote_frame=True, dlc=0,
                                channel="can0")),
+    (Topic.CAN_TX, can.Message(timestamp=T0 + 0.0017, arbitration_id=0x061, is_extended_id=False,
+                               is_remote_frame=True, dlc=8, channel="can0")),   # an ODrive request: its DLC kept
     (Topic.CAN_TX, can.Message(timestamp=T0 + 0.002, arbitration_id=0x001, data=b"", channel="can0")),
     (Topic.CAN_RX, can.Message(timestamp=T0 + 0.003, arbitration_id=0x7FF, is_fd=True, bitrate_switch=True,
                                data=bytes(range(12)), channel="can0")),
@@ -40,7 +42,7 @@ def record(path: Path) -> Path:
 
 def key(msg: can.Message) -> tuple[object, ...]:
     return (msg.arbitration_id, msg.is_extended_id, msg.is_remote_frame, msg.is_fd, msg.bitrate_switch,
-            bytes(msg.data), msg.is_rx)
+            msg.dlc, bytes(msg.data), msg.is_rx)
 
 
 @pytest.mark.parametrize("fmt", list(CanLogFormat), ids=lambda f: f.name.lower())
@@ -69,9 +71,9 @@ def test_import_round_trip(tmp_path: Path, fmt: CanLogFormat) -> None:
     assert import_can(canlog, tmp_path / "back.mcap") == len(FRAMES)
     log = open_log(tmp_path / "back.mcap")
     assert set(log.topics()) == {"/can/rx", "/can/tx"}
-    original = [(t, p["arbitration_id"], p["data"], p["is_remote_frame"], p["is_fd"])
+    original = [(t, p["arbitration_id"], p["data"], p["is_remote_frame"], p["is_fd"], p["dlc"])
                 for t, _, p in open_log(src).iter_messages(["/can/rx", "/can/tx"])]
-    imported = [(t, p["arbitration_id"], p["data"], p["is_remote_frame"], p["is_fd"])
+    imported = [(t, p["arbitration_id"], p["data"], p["is_remote_frame"], p["is_fd"], p["dlc"])
                 for t, _, p in log.iter_messages()]
     assert imported == original
     assert log.metadata["import"]["source"] == canlog.name
@@ -103,19 +105,22 @@ def test_import_of_a_garbage_blf_is_one_line(tmp_path: Path, head: bytes) -> Non
     assert not (tmp_path / "out.mcap").exists() and not list(tmp_path.glob(".*partial*"))
 
 
-def test_asc_starts_at_the_earliest_frame_even_when_a_later_line_is_older(tmp_path: Path) -> None:
-    """In log order a received frame may be older than a command logged before it; ASC times
-    are relative to the file's start, and python-can writes an older frame as an absolute
-    time (another date when read back): the export starts at the earliest frame."""
+@pytest.mark.parametrize("fmt", list(CanLogFormat), ids=lambda f: f.name.lower())
+def test_export_starts_at_the_earliest_frame_even_when_a_later_line_is_older(tmp_path: Path,
+                                                                             fmt: CanLogFormat) -> None:
+    """In log order a received frame may be older than a command logged before it; every
+    python-can writer times its frames from the first it is given (an older one: ASC writes
+    an absolute time, another date when read back; BLF and candump write the first one's
+    time): the export starts at the earliest frame, and each frame reads back at its time."""
     late = can.Message(timestamp=T0 + 0.5, arbitration_id=0x00C, data=b"\x01", channel="can0")
-    early = can.Message(timestamp=T0, arbitration_id=0x009, data=b"\x02", channel="can0")
+    early = can.Message(timestamp=T0 + 0.0004, arbitration_id=0x009, data=b"\x02", channel="can0")
     src = write_log(tmp_path / "run.mcap", [frame(late, Topic.CAN_TX, 1_000), frame(early, Topic.CAN_RX, 2_000)])
-    out = tmp_path / "run.asc"
-    export_can(src, out, CanLogFormat.ASC)
-    with can.ASCReader(out, relative_timestamp=False) as reader:
-        back = {m.arbitration_id: m.timestamp for m in reader}
-    assert back[0x009] == pytest.approx(T0, abs=1e-3) and back[0x00C] == pytest.approx(T0 + 0.5, abs=1e-3)
-    assert back[0x00C] - back[0x009] == pytest.approx(0.5, abs=RESOLUTION[CanLogFormat.ASC])
+    out = default_output(src, fmt)
+    export_can(src, out, fmt)
+    import_can(out, tmp_path / "back.mcap")   # ASC read with absolute times: its date kept
+    back = {p["arbitration_id"]: p["timestamp"] for _, _, p in open_log(tmp_path / "back.mcap").iter_messages()}
+    assert back[0x009] == pytest.approx(T0 + 0.0004, abs=RESOLUTION[fmt])
+    assert back[0x00C] == pytest.approx(T0 + 0.5, abs=RESOLUTION[fmt])
 
 
 #: A candump -L log as python-can's CanutilsLogWriter writes it (`` R``/`` T``: direction).
