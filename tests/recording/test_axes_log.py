@@ -172,8 +172,14 @@ def test_a_changed_frame_on_a_shared_bus_is_found_on_its_axis_only(recorded: tup
 def test_report_per_axis_with_shared_timing_and_bus_load(recorded: tuple[Path, Path, Any], tmp_path: Path,
                                                          capsys: pytest.CaptureFixture[str]) -> None:
     path = recorded[0]
-    assert main(["report", str(path), "--out", str(tmp_path / "r"), "--json"]) == 0
-    summary = json.loads(capsys.readouterr().out.splitlines()[-1])
+    earlier = tmp_path / "r"   # a one-axis report there before: its figures would read as this log's
+    earlier.mkdir()
+    for name in ("force.png", "position.png", "summary.json"):
+        (earlier / name).write_text("{}")
+    assert main(["report", str(path), "--out", str(tmp_path / "r")]) == 0
+    assert "(removed 2 figures of the report it held before)" in capsys.readouterr().out
+    assert sorted(p.name for p in earlier.iterdir()) == sorted([*AXES, "summary.json", "summary.txt"])
+    summary = json.loads((earlier / "summary.json").read_text())
     assert list(summary["axes"]) == list(AXES)
     assert all(s["cycles"] == 300 and s["stop"] == "done" for s in summary["axes"].values())
     assert summary["loop_timing"]["cycles"] == 300 and summary["loop_timing"]["overruns"] == 0

@@ -56,12 +56,26 @@ def test_demo_then_report(tmp_path: Path, capsys: pytest.CaptureFixture[str]) ->
     assert summary["bus"]["rx_frames_per_s"] == pytest.approx(1010, rel=0.05)
 
 
+FIGURES = ("commands.png", "force.png", "loop_timing.png", "position.png", "tracking_error.png")
+
+
 def test_report_without_truth_or_steps(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Also: into the directory of an earlier report of two axes, whose axes' figures would
+    read as this log's: they go, and a file of the user's in an axis' directory stays."""
     path = tmp_path / "run.mcap"
     logged_lockstep_run(path, duration=0.2)
-    assert main(["report", str(path), "--out", str(tmp_path / "r"), "--json"]) == 0
+    out = tmp_path / "r"
+    for axis in ("left", "right"):
+        (out / axis).mkdir(parents=True)
+        for name in FIGURES:
+            (out / axis / name).write_bytes(b"png")
+    (out / "left" / "notes.txt").write_text("mine")
+    (out / "summary.json").write_text(json.dumps({"axes": {"left": {}, "right": {}}}))
+    assert main(["report", str(path), "--out", str(out), "--json"]) == 0
     summary = json.loads(capsys.readouterr().out)
     assert summary["cycles"] == 200 and summary["stop"] == "done"
+    assert sorted(p.name for p in out.iterdir()) == sorted([*FIGURES, "left", "summary.json", "summary.txt"])
+    assert [p.name for p in (out / "left").iterdir()] == ["notes.txt"]
 
 
 def test_foxglove_layout_names_recorded_fields() -> None:
