@@ -129,7 +129,8 @@ def test_a_recovered_log_with_a_gap_names_the_missing_cycles(recorded_long: Path
                                                              capsys: pytest.CaptureFixture[str]) -> None:
     """A log recovered with a damaged chunk in its middle: --verify says which cycles are
     missing in one line (exit 1: not all was verified), not a controller mismatch; the cycles
-    before the gap are re-run and match bit for bit (the recording's and the intact log's)."""
+    before the gap are re-run and match bit for bit (the recording's and the intact log's).
+    Its report's bus load is over the time it kept, the gap's left out as its frames are."""
     import re
 
     import numpy as np
@@ -154,3 +155,8 @@ def test_a_recovered_log_with_a_gap_names_the_missing_cycles(recorded_long: Path
     again = tmp_path / "again.mcap"
     recover(saved, again)
     assert replay(again).recording.missing == result.recording.missing
+    from dobhil.run_report import bus_stats, load_run
+    kept, intact = bus_stats(load_run(saved)), bus_stats(load_run(recorded_long))
+    assert kept["rx_frames"] < intact["rx_frames"] and kept["duration_s"] < intact["duration_s"] - 0.1
+    assert kept["bus_load"] == pytest.approx(intact["bus_load"], rel=0.02)
+    assert kept["rx_frames_per_s"] == pytest.approx(intact["rx_frames_per_s"], rel=0.02)
