@@ -205,6 +205,11 @@ def test_export_and_info_read_every_bus(recorded: tuple[Path, Path, Any], tmp_pa
     assert main(["log", "export", str(path), "--can", "--format", "candump", "-o", str(tmp_path / "f.log")]) == 0
     assert f"wrote {frames} CAN frames" in capsys.readouterr().out
     assert sum(1 for _ in can.LogReader(path)) == frames
+    # a sent frame (recorded with no channel) goes on its bus' channel, not the writer's vcan0
+    log = open_log(path)
+    sent = Counter(m.channel for m in can.LogReader(tmp_path / "f.log") if not m.is_rx)
+    assert sent == {log.metadata[f"bus/{b}"]["channel"]: c.message_count for b in ("can0", "can1")
+                    for c in log.channels() if c.topic == f"/bus/{b}/can/tx"}
     assert main(["log", "export", str(path), "--topic", "/axis/wrist/controller", "--format", "csv",
                  "-o", str(tmp_path / "w.csv")]) == 0
     assert len((tmp_path / "w.csv").read_text().splitlines()) == 301
