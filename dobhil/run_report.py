@@ -240,7 +240,11 @@ def _assemble(name: str, config: Config | None, meta: Mapping[str, Mapping[str, 
     index = {row[0]: i for i, row in enumerate(ctrl)}
     n = len(ctrl)
     stamps = np.array([row[1] for row in ctrl], dtype=np.int64)
-    data = RunData(path=name, config=config, metadata=meta, t=(stamps - stamps[0]) / 1e9,
+    # time from cycle 0: a log recovered without its start (its first chunk damaged) begins
+    # at a later cycle, which is that many periods into the run, not at 0 s
+    origin = stamps[0] - (round(ctrl[0][0] * config.loop.period * 1e9) if config is not None and ctrl[0][0] > 0
+                          else 0)
+    data = RunData(path=name, config=config, metadata=meta, t=(stamps - origin) / 1e9,
                    frames=frames, frame_ext=ext, events=events,
                    span_s=0.0 if bounds[0] is None else
                    (bounds[1] - bounds[0] - gaps_within(name, meta, bounds[0], bounds[1])) / 1e9)
@@ -307,14 +311,16 @@ def contact_mask(data: RunData) -> Contact:
     return Contact(None, "not known (no position recorded)")
 
 
-def detect_steps(t: Array, ref: Array) -> list[tuple[int, float, float]]:
-    """(index, value before, value after) of every reference step."""
+def detect_steps(t: Array, ref: Array, from_start: bool = True) -> list[tuple[int, float, float]]:
+    """(index, value before, value after) of every reference step; ``from_start``: the first
+    sample is the run's first cycle, so a reference away from 0 there is a step from 0 (not
+    so in a log recovered without its start: the reference had its value before)."""
     finite = ref[np.isfinite(ref)]
     if finite.size == 0:
         return []
     span = max(float(np.ptp(np.concatenate([finite, [0.0]]))), 1e-12)
     steps: list[tuple[int, float, float]] = []
-    if abs(ref[0]) > STEP_FRACTION * span:
+    if from_start and abs(ref[0]) > STEP_FRACTION * span:
         steps.append((0, 0.0, float(ref[0])))
     jumps = np.nonzero(np.abs(np.diff(ref)) > STEP_FRACTION * span)[0] + 1
     steps.extend((int(i), float(ref[i - 1]), float(ref[i])) for i in jumps)
@@ -326,7 +332,8 @@ def step_infos(data: RunData, contact: Contact | None = None) -> list[StepInfo]:
     from dobhil.analysis.metrics import step_metrics
     t, ref, y = data.t, data["tau_ref"], data["tau_int_hat"]
     contact = contact or contact_mask(data)
-    steps = detect_steps(t, ref)
+    cycles = data.signals.get("cycle")
+    steps = detect_steps(t, ref, from_start=cycles is None or cycles.size == 0 or cycles[0] <= 0)
     out = []
     for j, (i, a, b) in enumerate(steps):
         end = steps[j + 1][0] if j + 1 < len(steps) else t.size

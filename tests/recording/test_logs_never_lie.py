@@ -404,6 +404,13 @@ def test_recover_skips_a_damaged_first_chunk_of_a_finished_file(recorded: Path, 
     assert len(skipped) == 1 and f"skipped a damaged chunk at byte {chunk} (" in skipped[0], lines
     assert f"{total - saved} messages" in skipped[0] and "log time" in skipped[0] and "lost" in skipped[0]
     assert 0 < saved < total
+    # its report: the first cycle kept at its time in the run, not at 0 s, and no step from 0 there
+    from dobhil.run_report import load_run, step_infos
+    whole, kept = load_run(recorded), load_run(tmp_path / "saved.mcap")
+    first = int(kept["cycle"][0])
+    assert first > 0 and kept.t[0] == pytest.approx(whole.t[first], abs=1e-9)
+    later = [s.time for s in step_infos(whole) if s.time > kept.t[0]]
+    assert later and [s.time for s in step_infos(kept)] == pytest.approx(later, abs=1e-9)
 
 
 def test_recover_of_a_cut_file_names_channels_lost_with_their_first_chunk(tmp_path: Path,
