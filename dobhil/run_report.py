@@ -338,6 +338,13 @@ def step_infos(data: RunData, contact: Contact | None = None) -> list[StepInfo]:
     for j, (i, a, b) in enumerate(steps):
         end = steps[j + 1][0] if j + 1 < len(steps) else t.size
         touching = contact.throughout(i, end)
+        if i > 0 and cycles is not None and cycles[i] - cycles[i - 1] > 1:
+            # a recovered log's gap: the reference stepped somewhere in the cycles lost, and
+            # the response to it is lost with them (its first sample kept is no step's start)
+            out.append(StepInfo(float(t[i]), a, b, None, touching,
+                                f"it fell in cycles {int(cycles[i - 1]) + 1}..{int(cycles[i]) - 1}, lost from "
+                                "this recovered log, with its response"))
+            continue
         if touching is False:
             out.append(StepInfo(float(t[i]), a, b, None, False, _not_in_contact(contact, t, i, end)))
             continue
@@ -512,16 +519,23 @@ def prediction(data: RunData, contact: Contact | None = None,
     steps = step_infos(data, contact) if steps is None else steps
     start = _prediction_start(data, contact, steps)
     if start is None:
-        what = "no reference step taken in contact" if steps else "no reference step, and contact not all along"
+        lost = any(s.metrics is None and s.in_contact is not False for s in steps)
+        what = ("each reference step in contact fell in cycles lost from this recovered log" if lost
+                else "no reference step taken in contact" if steps else "no reference step, and contact not all along")
         return None, {"available": False, "why": f"{what} (the analysis is of the loop in contact)"}
     index, before = start
-    if data.t.size - index < 2:   # python-control's forced_response needs two instants
+    # up to a recovered log's next gap: the model runs cycle by cycle, and the reference of
+    # the cycles lost is not known
+    cycles = data.signals.get("cycle")
+    jumps = np.nonzero(np.diff(cycles[index:]) != 1)[0] if cycles is not None else np.array([], dtype=int)
+    stop = index + int(jumps[0]) + 1 if jumps.size else data.t.size
+    if stop - index < 2:   # python-control's forced_response needs two instants
         return None, {"available": False, "why": "the run ended within a cycle of its first step in contact "
                                                   "(nothing to compare)"}
-    ref = np.nan_to_num(data["tau_ref"][index:]) - before   # at rest at `before`: a step from 0
+    ref = np.nan_to_num(data["tau_ref"][index:stop]) - before   # at rest at `before`: a step from 0
     t = np.arange(ref.size) * float(sys_.dt)
     y = np.full(data.t.size, np.nan)
-    y[index:] = before * float(np.real(control.dcgain(sys_))) + np.asarray(
+    y[index:stop] = before * float(np.real(control.dcgain(sys_))) + np.asarray(
         control.forced_response(sys_, T=t, U=ref).outputs).reshape(-1)
     diff = data["tau_int_hat"] - y
     if contact.mask is not None:
@@ -536,7 +550,7 @@ def _prediction_start(data: RunData, contact: Contact, steps: list[StepInfo]) ->
     the start of the run when there is no step and the servo is in contact all along (or
     contact is not known)."""
     for s in steps:
-        if s.in_contact is not False:
+        if s.in_contact is not False and s.metrics is not None:   # None: a step lost in a recovered log's gap
             return int(np.searchsorted(data.t, s.time)), s.start
     if not steps and (contact.mask is None or bool(contact.mask.all())):
         return 0, 0.0
@@ -694,6 +708,8 @@ def _state_lines(states: list[Mapping[str, Any]]) -> list[str]:
 def _step_line(st: Mapping[str, Any]) -> str:
     head = f"step at {st['time']:.3f} s ({st['start']:.3g} -> {st['end']:.3g} N m): "
     m = st["metrics"]
+    if m is None and st.get("in_contact") is not False:   # not taken where the log kept it
+        return head + f"{st.get('why') or '-'}: no step metrics"
     if m is None:
         return head + f"not taken in contact ({st.get('why') or '-'}): no step metrics"
 

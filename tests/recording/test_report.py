@@ -22,6 +22,26 @@ def test_detect_steps() -> None:
     assert detect_steps(t, ref) == [(0, 0.0, 0.2), (5, 0.2, 1.0)]
 
 
+def test_a_step_in_a_recovered_logs_gap_has_no_metrics_and_the_prediction_stops_at_it() -> None:
+    """A log recovered with cycles 100..149 lost, the reference stepping among them: the first
+    sample kept after them is no step's start (no metrics, the cycles named, the text says
+    so), and the prediction, a model run cycle by cycle, stops at the gap."""
+    from dobhil.config import load_config
+    from dobhil.run_report import _step_line, prediction, step_infos
+    cycles = np.r_[np.arange(0, 100), np.arange(150, 300)]
+    ref = np.where(cycles < 120, 0.2, 1.0)
+    data = RunData(path="x", config=load_config("demo"), metadata={}, t=cycles * 1e-3,
+                   signals={"cycle": cycles.astype(float), "tau_ref": ref, "tau_int_hat": ref.copy(),
+                            "q_true": np.ones(cycles.size)})
+    first, lost = step_infos(data)
+    assert first.time == 0.0 and first.metrics is not None
+    assert lost.time == pytest.approx(0.15) and lost.metrics is None and "cycles 100..149" in lost.why
+    assert "not taken in contact" not in _step_line(lost.__dict__)
+    y, info = prediction(data)
+    assert info["available"] and y is not None
+    assert np.isfinite(y[:100]).all() and np.isnan(y[100:]).all()
+
+
 def test_frame_bits() -> None:
     assert frame_bits(8) == 47 + 64 + 24 and frame_bits(0) == 47 + 8
 
