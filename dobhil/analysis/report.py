@@ -115,7 +115,7 @@ def margins(open_loop: control.StateSpace, force_gain: float) -> dict[str, float
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         gm, pm, sm, wpc, wgc, _ = control.stability_margins(force_gain * open_loop)
-        gm, wpc = _without_zero_crossing(force_gain * open_loop, gm, wpc)
+        gm, wpc = _real_crossings_only(force_gain * open_loop, gm, wpc)
     gm, wpc = _nyquist_crossing(force_gain * open_loop, gm, wpc)
     return {"gain_margin": _finite(gm),
             "gain_margin_db": _finite(20 * math.log10(gm)) if gm and gm > 0 and math.isfinite(gm) else None,
@@ -123,20 +123,34 @@ def margins(open_loop: control.StateSpace, force_gain: float) -> dict[str, float
             "gain_crossover_freq": _finite(wgc), "stability_margin": _finite(sm)}
 
 
-def _without_zero_crossing(loop: control.StateSpace, gm: float, wpc: float) -> tuple[float, float]:
-    """The gain margin without a phase "crossing" at w = 0.
+def _real_crossings_only(loop: control.StateSpace, gm: float, wpc: float) -> tuple[float, float]:
+    """The gain margin from the phase crossings where ``L`` really is real and negative.
 
-    The force loop has an integrator (a pole at s = 0 / z = 1): there ``|L|`` is infinite and
-    its phase -90 deg, never -180. python-control's ``stability_margins`` (0.10.2) can still
-    report a crossing at exactly w = 0 from the roots of its crossing polynomial -- with
-    numpy 2.4.6 the demo's sampled loop got ``gm = 1.5e-11`` at ``wpc = 0`` -- which is the
-    pole itself, not a crossing. Only then are all crossings asked for (``returnall``) and
-    those at w = 0 dropped. (A workaround of a library limit, kept in this one place.)"""
-    if gm is None or wpc is None or not (math.isfinite(wpc) and wpc == 0.0):
+    python-control's ``stability_margins`` (0.10.2) takes its phase crossings from the roots
+    of a crossing polynomial and keeps each whose response has a negative real part, without
+    checking that the imaginary part vanishes there. Two kinds of false crossing follow:
+    w = 0, the loop's integrator (a pole at s = 0 / z = 1, where ``|L|`` is infinite and the
+    phase -90 deg, never -180) -- with numpy 2.4.6 the demo's sampled loop got
+    ``gm = 1.5e-11`` at ``wpc = 0`` -- and a phase that comes near -180 deg without reaching
+    it (a near-double root pushed off the boundary): a sampled loop with K_env = 124,
+    D_env = 1.13, J_mi = 0.0988, g_DOb = 622, g_RTOb = 61.4 and C_f = 7.99 got a crossing at
+    14.8 rad/s where its phase is -179.3 deg, a gain margin of 0.079 (-22 dB), while every
+    gain in (0, 52.5) is stable (``tests/test_analysis.py``). All crossings are asked for
+    (``returnall``), ``L`` is evaluated at each on the boundary, those at w = 0 or not real
+    there are dropped, and of the rest the one python-control would pick (nearest 1 in
+    log) is kept. (A workaround of a library limit, kept in this one place.)"""
+    if gm is None or wpc is None or not math.isfinite(wpc):
         return gm, wpc
     gms, _, _, wpcs, _, _ = control.stability_margins(loop, returnall=True)
-    kept = [(float(g), float(w)) for g, w in zip(np.atleast_1d(gms), np.atleast_1d(wpcs)) if w > 0]
-    return min(kept) if kept else (math.inf, math.nan)
+    kept = []
+    for g, w in zip(np.atleast_1d(gms), np.atleast_1d(wpcs)):
+        if not (w > 0 and g > 0):
+            continue
+        at = np.exp(1j * w * float(loop.dt)) if loop.isdtime(strict=True) else 1j * w
+        value = complex(np.asarray(loop(at)).ravel()[0])
+        if value.real < 0 and abs(value.imag) <= 1e-6 * abs(value):
+            kept.append((float(g), float(w)))
+    return min(kept, key=lambda gw: abs(math.log(gw[0]))) if kept else (math.inf, math.nan)
 
 
 def _nyquist_crossing(loop: control.StateSpace, gm: float, wpc: float) -> tuple[float, float]:
