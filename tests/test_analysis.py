@@ -279,22 +279,31 @@ def test_sweep_vary_names_the_part_at_fault(vary: str, problem: str, capsys: pyt
     assert err.count("\n") == 1 and "Traceback" not in err
 
 
-@pytest.mark.parametrize("name, sets", [("demo", []), ("demo", ["design.delay_samples=1"]),
-                                        ("paper/fig3", ["loop.period=0.002"]),
-                                        ("demo", ["environment.stiffness=124.074", "environment.damping=1.13134",
-                                                  "design.identified_inertia=0.098837",
-                                                  "design.rtob_bandwidth=61.4341", "design.dob_bandwidth=622.163",
-                                                  "design.force_gain=7.98795"])])
-def test_sampled_gain_margin_is_the_factor_to_the_largest_stable_gain(name, sets):
+@pytest.mark.parametrize("name, sets, sampled", [
+    ("demo", [], True), ("demo", ["design.delay_samples=1"], True), ("paper/fig3", ["loop.period=0.002"], True),
+    ("demo", ["environment.stiffness=124.074", "environment.damping=1.13134", "design.identified_inertia=0.098837",
+              "design.rtob_bandwidth=61.4341", "design.dob_bandwidth=622.163", "design.force_gain=7.98795"], True),
+    ("paper/fig2b", [], False)])
+def test_gain_margin_is_the_factor_to_the_largest_stable_gain(name, sets, sampled):
     """A sampled loop whose phase reaches -180 deg only at the Nyquist frequency has a gain
     margin there (python-control's stability_margins alone reported none for the demo):
-    checked against the exact stable-gain map, which finds the crossing on the eigenvalues.
-    The last design's phase comes within 0.72 deg of -180 near 15 rad/s without reaching it:
-    python-control 0.10.2 took that for a crossing, a gain margin of 0.079 (-22 dB)."""
+    checked against the exact stable-gain map, which finds the crossing on the eigenvalues,
+    and L itself (python-control's evaluation) is -1 / (largest stable gain) at the phase
+    crossover reported. The fourth design's phase comes within 0.72 deg of -180 near 15 rad/s
+    without reaching it: python-control 0.10.2 took that for a crossing, 0.079 (-22 dB). Fig.
+    2b's continuous loop is stable at every C_f (Section IV): no gain margin, where
+    python-control found 297 dB at 1.7e10 rad/s from a round-off leading coefficient."""
     from dobhil.analysis.report import analyze_domain
     params = params_from_config(load_config(name, sets))
-    domain = analyze_domain(params, sampled=True)
+    domain = analyze_domain(params, sampled=sampled)
     c_f = float(params.value("force_gain"))
     top = float(domain.gains.max_stable_gain)
+    if not sampled:
+        assert top == np.inf and domain.margins["gain_margin"] is None
+        assert domain.margins["gain_margin_db"] is None and domain.margins["phase_crossover_freq"] is None
+        return
     assert c_f < top < np.inf
     assert domain.margins["gain_margin"] == pytest.approx(top / c_f, rel=1e-6)
+    open_loop = domain.systems.system("open_loop")
+    at = np.exp(1j * domain.margins["phase_crossover_freq"] * open_loop.dt)
+    assert complex(np.asarray(open_loop(at)).ravel()[0]) == pytest.approx(-1.0 / top, rel=1e-6)

@@ -94,7 +94,7 @@ def analyze_domain(params: Params, *, sampled: bool, duration: float = 0.0) -> D
     return DomainAnalysis(
         sampled=sampled, params=params, systems=systems, gains=gains,
         closed_loop_poles=cl_poles, stable=stable,
-        margins=margins(systems.system("open_loop"), float(params.value("force_gain"))),
+        margins=margins(systems.system("open_loop"), float(params.value("force_gain")), gains),
         step=step_metrics(t, y_hat, stable=stable, final=_dc(closed) if stable else None),
         step_force=step_metrics(t, y_true, stable=stable, final=_dc(force) if stable else None),
         step_time=t, step_estimate=y_hat, step_true=y_true,
@@ -106,71 +106,51 @@ def _dc(sys: control.StateSpace) -> float:
     return float(np.real(control.dcgain(sys)))
 
 
-def margins(open_loop: control.StateSpace, force_gain: float) -> dict[str, float | None]:
-    """Gain and phase margins of the loop ``C_f L`` (python-control)."""
+def margins(open_loop: control.StateSpace, force_gain: float, gains: GainMap) -> dict[str, float | None]:
+    """Gain and phase margins of the loop ``C_f L``: the phase and stability margins from
+    python-control, the gain margin from the exact gain map (:func:`_gain_margin`)."""
     if force_gain <= 0:
         return {k: None for k in ("gain_margin", "gain_margin_db", "phase_margin_deg",
                                   "phase_crossover_freq", "gain_crossover_freq",
                                   "stability_margin")}
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        gm, pm, sm, wpc, wgc, _ = control.stability_margins(force_gain * open_loop)
-        gm, wpc = _real_crossings_only(force_gain * open_loop, gm, wpc)
-    gm, wpc = _nyquist_crossing(force_gain * open_loop, gm, wpc)
+        _, pm, sm, _, wgc, _ = control.stability_margins(force_gain * open_loop)
+    gm, wpc = _gain_margin(open_loop, force_gain, gains)
     return {"gain_margin": _finite(gm),
             "gain_margin_db": _finite(20 * math.log10(gm)) if gm and gm > 0 and math.isfinite(gm) else None,
             "phase_margin_deg": _finite(pm), "phase_crossover_freq": _finite(wpc),
             "gain_crossover_freq": _finite(wgc), "stability_margin": _finite(sm)}
 
 
-def _real_crossings_only(loop: control.StateSpace, gm: float, wpc: float) -> tuple[float, float]:
-    """The gain margin from the phase crossings where ``L`` really is real and negative.
+def _gain_margin(open_loop: control.StateSpace, force_gain: float, gains: GainMap) -> tuple[float, float]:
+    """(gain margin, phase crossover frequency) of ``C_f L`` from the exact crossing gains.
 
-    python-control's ``stability_margins`` (0.10.2) takes its phase crossings from the roots
-    of a crossing polynomial and keeps each whose response has a negative real part, without
-    checking that the imaginary part vanishes there. Two kinds of false crossing follow:
-    w = 0, the loop's integrator (a pole at s = 0 / z = 1, where ``|L|`` is infinite and the
-    phase -90 deg, never -180) -- with numpy 2.4.6 the demo's sampled loop got
-    ``gm = 1.5e-11`` at ``wpc = 0`` -- and a phase that comes near -180 deg without reaching
-    it (a near-double root pushed off the boundary): a sampled loop with K_env = 124,
-    D_env = 1.13, J_mi = 0.0988, g_DOb = 622, g_RTOb = 61.4 and C_f = 7.99 got a crossing at
-    14.8 rad/s where its phase is -179.3 deg, a gain margin of 0.079 (-22 dB), while every
-    gain in (0, 52.5) is stable (``tests/test_analysis.py``). All crossings are asked for
-    (``returnall``), ``L`` is evaluated at each on the boundary, those at w = 0 or not real
-    there are dropped, and of the rest the one python-control would pick (nearest 1 in
-    log) is kept. (A workaround of a library limit, kept in this one place.)"""
-    if gm is None or wpc is None or not math.isfinite(wpc):
-        return gm, wpc
-    gms, _, _, wpcs, _, _ = control.stability_margins(loop, returnall=True)
-    kept = []
-    for g, w in zip(np.atleast_1d(gms), np.atleast_1d(wpcs)):
-        if not (w > 0 and g > 0):
-            continue
-        at = np.exp(1j * w * float(loop.dt)) if loop.isdtime(strict=True) else 1j * w
-        value = complex(np.asarray(loop(at)).ravel()[0])
-        if value.real < 0 and abs(value.imag) <= 1e-6 * abs(value):
-            kept.append((float(g), float(w)))
-    return min(kept, key=lambda gw: abs(math.log(gw[0]))) if kept else (math.inf, math.nan)
-
-
-def _nyquist_crossing(loop: control.StateSpace, gm: float, wpc: float) -> tuple[float, float]:
-    """The gain margin where a sampled loop's phase reaches -180 deg at the Nyquist frequency.
-
-    python-control's ``stability_margins`` looks for phase crossings strictly inside its
-    frequency grid, so a sampled loop whose phase only reaches -180 deg at ``w = pi / T``
-    (z = -1: there the response is real) gets no gain margin -- the demo's sampled loop did,
-    with its exact largest stable force gain at 4.36 times C_f. ``L(-1)`` is evaluated
-    directly: real and negative, ``1 / |L(-1)|`` is a gain margin, kept when it is the
-    smaller one. (A workaround of a library limit, kept in this one place.)"""
-    if not loop.isdtime(strict=True):
-        return gm, wpc
-    value = complex(np.asarray(loop(-1.0)).ravel()[0])
-    if not (value.real < 0 and abs(value.imag) <= 1e-9 * abs(value)):
-        return gm, wpc
-    nyquist_gm = 1.0 / abs(value)
-    if gm is None or not math.isfinite(gm) or nyquist_gm < gm:
-        return nyquist_gm, math.pi / float(loop.dt)
-    return gm, wpc
+    ``L`` is real and negative at w exactly where ``1 + k L = 0`` has a root on the
+    stability boundary at ``k = -1 / L``: the gain margins are the gain map's crossing gains
+    over C_f (:func:`dobhil.analysis.stability.gain_map`, found on the polynomials, no
+    frequency grid), and of them the one nearest 1 in log is taken, as python-control's
+    ``stability_margins`` picks. Its crossing frequency is that of the closed-loop pole on
+    the boundary at that gain. python-control's own phase crossings (0.10.2) are not used:
+    they come from the roots of a crossing polynomial, and it reported crossings where L is
+    not real -- w = 0 at the integrator (``gm = 1.5e-11`` on the demo's sampled loop with
+    numpy 2.4.6), a phase that comes within 0.72 deg of -180 without reaching it (-22 dB on a
+    loop stable for every gain in (0, 52.5)), ``L ~ 1e-15`` at 1.7e10 rad/s from a
+    round-off leading coefficient (297 dB on paper/fig2b, stable for every gain) -- and
+    missed the sampled loop's crossing at the Nyquist frequency (the demo's). inf: no
+    crossing (``tests/test_analysis.py``)."""
+    k = np.asarray(gains.crossings, float).ravel()
+    k = k[np.isfinite(k) & (k > 0)]
+    if not k.size:
+        return math.inf, math.nan
+    ratios = k / force_gain
+    gm = float(ratios[int(np.argmin(np.abs(np.log(ratios))))])
+    a, b, c = (np.asarray(m, float) for m in (open_loop.A, open_loop.B, open_loop.C))
+    poles = np.linalg.eigvals(a - gm * force_gain * (b @ c))
+    if open_loop.isdtime(strict=True):
+        pole = poles[int(np.argmin(np.abs(np.abs(poles) - 1.0)))]
+        return gm, abs(float(np.angle(pole))) / float(open_loop.dt)
+    return gm, abs(float(poles[int(np.argmin(np.abs(poles.real)))].imag))
 
 
 #: closed-loop transfer functions summarised in the report (all exist as python-control
