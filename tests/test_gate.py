@@ -236,3 +236,28 @@ def test_the_phase_margin_is_the_one_at_the_crossover_nearest_180_deg(
         assert ours == math.inf
     else:
         assert ours == pytest.approx(min(found, key=abs), abs=1e-6)
+
+
+@pytest.mark.parametrize("sets", [
+    # |C_f L| >= 5.67 at every frequency: no crossover (python-control: 110 deg at 313 rad/s)
+    ["environment.stiffness=17658.4", "environment.damping=10.3618", "design.identified_inertia=0.0718946",
+     "design.dob_bandwidth=97.7593", "design.rtob_bandwidth=808.415", "design.force_gain=21.9758"],
+    # one crossover, 97.55 deg at 17.2 rad/s (python-control: 76.7 deg at 230 rad/s, |C_f L| = 0.107)
+    ["environment.stiffness=13247.5", "environment.damping=4.7723", "design.identified_inertia=0.0554472",
+     "design.dob_bandwidth=54.9982", "design.rtob_bandwidth=117.823", "design.force_gain=0.309156"]])
+def test_analyze_prints_the_phase_margin_of_the_true_crossovers(sets: list[str]) -> None:
+    """analyze's phase margin and gain crossover are those of the crossings of |C_f L| = 1
+    on a dense grid (:func:`crossover_margins`), where python-control's ``stability_margins``
+    took roots of its polynomial off the unit circle for crossovers."""
+    params = params_from_config(load_config("demo", sets))
+    domain = analyze_domain(params, sampled=True)
+    cf = float(params.value("force_gain"))
+    open_loop = domain.systems.system("open_loop")
+    found = crossover_margins(open_loop, cf)
+    m = domain.margins
+    if not found:
+        assert m["phase_margin_deg"] is None and m["gain_crossover_freq"] is None
+        return
+    assert m["phase_margin_deg"] == pytest.approx(min(found, key=abs), abs=1e-6)
+    at = cf * resolvent_response(open_loop, np.array([m["gain_crossover_freq"]]))[0]
+    assert abs(at) == pytest.approx(1.0, rel=1e-9)

@@ -16,7 +16,7 @@ import numpy as np
 
 from dobhil.analysis.effective import EffectiveObserver, effective_observers
 from dobhil.analysis.metrics import StepMetrics, step_metrics, step_responses
-from dobhil.analysis.stability import GainMap, answered, gain_map, is_stable
+from dobhil.analysis.stability import GainMap, answered, gain_map, is_stable, phase_crossover
 from dobhil.analysis.transfer import LoopSystems
 from dobhil.config.schema import Config
 from dobhil.errors import AnalysisError, ConfigError
@@ -107,20 +107,38 @@ def _dc(sys: control.StateSpace) -> float:
 
 
 def margins(open_loop: control.StateSpace, force_gain: float, gains: GainMap) -> dict[str, float | None]:
-    """Gain and phase margins of the loop ``C_f L``: the phase and stability margins from
-    python-control, the gain margin from the exact gain map (:func:`_gain_margin`)."""
+    """Gain and phase margins of the loop ``C_f L``: the stability margin from
+    python-control, the phase margin from the exact crossovers (:func:`_phase_margin`), the
+    gain margin from the exact gain map (:func:`_gain_margin`)."""
     if force_gain <= 0:
         return {k: None for k in ("gain_margin", "gain_margin_db", "phase_margin_deg",
                                   "phase_crossover_freq", "gain_crossover_freq",
                                   "stability_margin")}
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        _, pm, sm, _, wgc, _ = control.stability_margins(force_gain * open_loop)
+        _, _, sm, _, _, _ = control.stability_margins(force_gain * open_loop)
     gm, wpc = _gain_margin(open_loop, force_gain, gains)
+    pm, wgc = _phase_margin(open_loop, force_gain)
     return {"gain_margin": _finite(gm),
             "gain_margin_db": _finite(20 * math.log10(gm)) if gm and gm > 0 and math.isfinite(gm) else None,
             "phase_margin_deg": _finite(pm), "phase_crossover_freq": _finite(wpc),
             "gain_crossover_freq": _finite(wgc), "stability_margin": _finite(sm)}
+
+
+def _phase_margin(open_loop: control.StateSpace, force_gain: float) -> tuple[float, float]:
+    """(phase margin [deg], gain crossover [rad/s]) of ``C_f L`` from every exact crossover
+    of ``|C_f L| = 1`` (:func:`dobhil.analysis.stability.phase_crossover`: the roots of a
+    polynomial in w, the margin nearest -180 deg, python-control's choice), the figure the
+    stability gate uses. python-control 0.10.2's crossovers are not used: it evaluates ``L``
+    at the roots of its polynomial, not on the unit circle, and reported 110 deg at 313
+    rad/s for a sampled loop whose ``|L|`` is at least 5.67 everywhere (5.84 there), and
+    76.7 deg where ``|L| = 0.107`` instead of the one true crossover's 97.6 deg
+    (``tests/test_analysis.py``); it misses others (``tests/test_gate.py``). inf, nan: no
+    crossover."""
+    a, b, c = (np.asarray(m, float) for m in (open_loop.A, open_loop.B, open_loop.C))
+    sampled = open_loop.isdtime(strict=True)
+    pm, crossover = phase_crossover(a, b, c, force_gain, sampled=sampled)
+    return float(pm), float(crossover) / float(open_loop.dt) if sampled else float(crossover)
 
 
 def _gain_margin(open_loop: control.StateSpace, force_gain: float, gains: GainMap) -> tuple[float, float]:

@@ -398,7 +398,15 @@ def _merge(edges: Array, upper: Array, stable: NDArray[np.bool_]) -> tuple[Array
 
 
 def phase_margin(a0: Array, b: Array, c: Array, gain: Array | float, *, sampled: bool) -> Array:
-    """Phase margin [deg] of ``gain * L`` (``L = C (sI - A0)^-1 B``, sampled: in z): at the
+    """Phase margin [deg] of ``gain * L`` (:func:`phase_crossover`'s margin)."""
+    return phase_crossover(a0, b, c, gain, sampled=sampled)[0]
+
+
+def phase_crossover(a0: Array, b: Array, c: Array, gain: Array | float, *,
+                    sampled: bool) -> tuple[Array, Array]:
+    """(phase margin [deg], its crossover) of ``gain * L``: the crossover as w [rad/s]
+    (continuous) or as the angle of z on the unit circle [rad] (sampled; w T), NaN where
+    there is none. The phase margin of ``gain * L`` (``L = C (sI - A0)^-1 B``, sampled: in z): at the
     gain crossover ``|gain L| = 1`` whose phase comes nearest -180 deg, signed, in
     [-180, 180) (python-control's ``stability_margins`` convention); inf where ``|gain L|``
     never crosses 1.
@@ -417,7 +425,7 @@ def phase_margin(a0: Array, b: Array, c: Array, gain: Array | float, *, sampled:
     roots = np.concatenate([poles, zeros], axis=-1)
     if sampled:
         den, num, roots = _bilinear(den), _bilinear(num), _to_w(roots)
-    d, m, _ = _scaled(den, num, roots)
+    d, m, w0 = _scaled(den, num, roots)
     k = np.asarray(gain, float)[..., None]
     jpow = 1j ** np.arange(d.shape[-1] - 1, -1, -1)
     cross = _abs_squared(d * jpow) - k ** 2 * _abs_squared(m * jpow)
@@ -431,7 +439,11 @@ def phase_margin(a0: Array, b: Array, c: Array, gain: Array | float, *, sampled:
     # the worst crossover is the one whose phase comes nearest -180 deg, from either side
     nearest = np.argmin(np.where(np.isfinite(margin), np.abs(margin), np.inf), axis=-1)
     worst = np.take_along_axis(margin, nearest[..., None], axis=-1)[..., 0]
-    return np.where(np.any(np.isfinite(margin), axis=-1), worst, np.inf)
+    crossover = np.take_along_axis(w, nearest[..., None], axis=-1)[..., 0] * w0
+    if sampled:   # z = (1 + jv) / (1 - jv) has the angle 2 atan(v)
+        crossover = 2.0 * np.arctan(crossover)
+    found = np.any(np.isfinite(margin), axis=-1)
+    return np.where(found, worst, np.inf), np.where(found, crossover, np.nan)
 
 
 def _abs_squared(p: CArray) -> Array:
