@@ -17,7 +17,7 @@ from dobhil.cli.common import add_config_args, config_from_args, design_on_drive
 from dobhil.errors import ConfigError
 
 if TYPE_CHECKING:
-    from collections.abc import Callable
+    from collections.abc import Callable, Sequence
 
     from dobhil.config.schema import Config
     from dobhil.tune.evaluate import Quanta
@@ -83,6 +83,7 @@ def run(args: argparse.Namespace) -> int:
     config = design_on_drive(config_from_args(args), args, sys.stderr if args.json else None)
     _check_outputs(args, files_read(config, args))
     ranges, uncertainties = _robust_keys(args)
+    _check_uncertain_values(config, uncertainties)
     margins, bounds = parse_margins(args.margin), parse_bounds(config, args.bound)
     _check_numbers(args, len(ranges), len(uncertainties))
     quanta = quantisation(config, Path(args.config))
@@ -123,6 +124,18 @@ def _robust_keys(args: argparse.Namespace) -> tuple[list[Range], list[Uncertaint
         if keys.count(k) > 1:
             raise ConfigError(f"{k}: given more than once in --range / --uncertainty; give each key once")
     return ranges, uncertainties
+
+
+def _check_uncertain_values(config: Config, uncertainties: Sequence[Uncertainty]) -> None:
+    """±P % of a key whose config value is 0 is the one value 0: the box would add no
+    point and the robust-set line would still claim the key's ends (paper/fig3 has no
+    viscous friction). An identified interval (--uncertainty-from) has its own ends."""
+    from dobhil.tune.problem import IntervalUncertainty
+    flat = config.flat()
+    for u in uncertainties:
+        if not isinstance(u, IntervalUncertainty) and float(flat[u.key]) == 0.0:
+            raise ConfigError(f"--uncertainty {u.key}=±{u.fraction * 100:g}%: the config's {u.key} is 0, so "
+                              f"±P % of it is no range; give --range {u.key}=LO:HI instead")
 
 
 def _check_numbers(args: argparse.Namespace, n_ranges: int, n_uncertain: int) -> None:

@@ -25,6 +25,7 @@ SMALL = ["paper/fig3", "--range", "environment.stiffness=1e3:1e5", "--grid", "6"
     (["--range", "environment.stiffness=nan:1"], "finite"),
     (["--range", "environment.stiffness=1:2", "--uncertainty", "plant.inertia=±150%"], "0 < P < 100"),
     (["--range", "environment.stiffness=1:2", "--uncertainty", "environment.stiffness=±10%"], "more than once"),
+    (["--range", "environment.stiffness=1:2", "--uncertainty", "plant.viscous_friction=±50%"], "is 0, so"),
     (["--range", "environment.stiffness=1:2", "--margin", "gain=6"], "expected gm=DB"),
     (["--range", "environment.stiffness=1:2", "--margin", "pm=200"], "0 <= pm < 180"),
     (["--range", "environment.stiffness=1:2", "--bound", "design.nominal_inertia=1:2"], "--bound"),
