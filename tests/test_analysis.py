@@ -131,6 +131,16 @@ def test_sweep_cli_writes_csv_and_heatmap(tmp_path, capsys: pytest.CaptureFixtur
     assert png.read_bytes()[:4] == b"\x89PNG"
 
 
+@pytest.mark.parametrize("first, second", [("environment.damping=10:10:1", "environment.stiffness=log:1e3:1e5:3"),
+                                           ("environment.damping=10:20:3", "environment.stiffness=1e4:1e4:1")])
+def test_sweep_heatmap_of_two_keys_one_held_at_one_value(first: str, second: str, tmp_path) -> None:  # type: ignore[no-untyped-def]
+    """Two swept keys of which one has a single value draw the line over the other (the
+    heat map's contours need two values of each: matplotlib raised a TypeError)."""
+    from dobhil.plotting.sweep_plot import heatmap
+    result = sweep(load_config(FIG2A), [parse_vary(first), parse_vary(second)], sampled=False)
+    assert heatmap(result, tmp_path / "h.svg").read_text().startswith("<?xml")
+
+
 def test_paper_command_checks_every_claim(tmp_path, capsys: pytest.CaptureFixture[str]) -> None:  # type: ignore[no-untyped-def]
     assert main(["paper", "--out", str(tmp_path)]) == 0
     out = capsys.readouterr().out

@@ -17,9 +17,14 @@ def heatmap(result: SweepResult, path: Path) -> Path:
     finite = k[np.isfinite(k) & (k > 0)]
     fig, ax = plt.subplots(figsize=(8, 6))
     kind = "sampled" if result.sampled else "continuous"
-    if len(result.axes) == 1:
-        ax.semilogy(result.axes[0].values, np.where(np.isinf(k), np.nan, k), "-o", ms=3)
-        ax.set_xlabel(result.axes[0].key)
+    # a key held at one value (NUM 1) is no axis of the picture: the contours need two values
+    # of each key, so two keys of which one is held draw the line over the other one
+    varied = [a for a in result.axes if a.values.size > 1]
+    if len(result.axes) == 1 or len(varied) < 2:
+        line = varied[0] if varied else result.axes[0]
+        ax.semilogy(line.values, np.where(np.isinf(k), np.nan, k).reshape(-1), "-o", ms=3)
+        held = [f"{a.key} = {a.values[0]:g}" for a in result.axes if a is not line]
+        ax.set_xlabel(line.key + (f" ({', '.join(held)})" if held else ""))
         ax.set_ylabel("max stable C_f (gaps: unbounded)")
     else:
         x, y = result.axes[0], result.axes[1]
