@@ -232,10 +232,16 @@ def _result(best: np.ndarray, m: Metrics, fine: RobustSet, margins: Margins, obj
 ACTIVE_FRACTION = 0.02
 
 
+#: constraints with a value only where the loop is stable: at an unstable point the
+#: evaluation stands in WORST (-100 dB, -180 deg, 100 dB) to steer the search, no measurement
+_STABLE_ONLY = frozenset({"gain_margin", "phase_margin", "peak_sensitivity"})
+
+
 def worsts(m: Metrics, fine: RobustSet, margins: Margins,
            where: np.ndarray | None = None) -> tuple[Worst, ...]:
     """Each constraint's worst value over the grid (over the points ``where`` is True, when
-    given: the config's design where it is stable), its point, and whether it holds."""
+    given: the config's design where it is stable), its point, and whether it holds. A
+    margin whose worst point is unstable has no value there (NaN: not met)."""
     table = [("stability", m.radius[0], 1.0, np.argmax, False),
              ("gain_margin", m.gm_db[0], margins.gm_db, np.argmin, True),
              ("phase_margin", m.pm_deg[0], margins.pm_deg, np.argmin, True),
@@ -251,6 +257,8 @@ def worsts(m: Metrics, fine: RobustSet, margins: Margins,
             continue
         i = int(inside[pick(values[inside])])
         v = float(values[i])
+        if name in _STABLE_ONLY and not m.stable[0][i]:
+            v = math.nan   # not the evaluation's stand-in (WORST): the loop has no margin there
         ok = v >= limit if lower else (v < limit if name == "stability" else v <= limit)
         active = math.isfinite(limit) and abs(v - limit) <= ACTIVE_FRACTION * max(abs(limit), 1.0)
         out.append(Worst(name, v, limit, fine.point(i), ok, active and name != "stability"))

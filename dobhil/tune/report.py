@@ -75,7 +75,8 @@ def objective_text(name: str, value: float) -> str:
 
 def _constraint_line(w: Worst) -> str:
     label, what, unit, op = CONSTRAINT_TEXT[w.name]
-    value = "unbounded" if math.isinf(w.value) else f"{w.value:.4g}{unit}"
+    value = ("unbounded" if math.isinf(w.value) else "none (unstable there)" if math.isnan(w.value)
+             else f"{w.value:.4g}{unit}")
     if math.isinf(w.limit):   # reported, not a constraint (the noise without --margin noise=X)
         return f"  {label}: {(what + ' ') if what else ''}{value} at {_at(w.point)} (not bounded: --margin noise=X)"
     flags = ("ok" if w.ok else "NOT MET") + (", active" if w.active else "")

@@ -81,6 +81,18 @@ def test_a_constraint_no_design_meets_is_one_line_and_exit_1(capsys: pytest.Capt
     assert "gain margin >= 80 dB" in said[0] and "the best found has" in said[0]
 
 
+def test_a_margin_at_an_unstable_point_has_no_value(capsys: pytest.CaptureFixture[str]) -> None:
+    """K_env = 0 leaves the loop's position unobserved (a pole at z = 1): no design is stable
+    there, and the margins there are none, not the search's stand-ins (-100 dB, -180 deg,
+    100 dB) printed as if measured."""
+    code = main(["tune", "paper/fig3", "--range", "environment.stiffness=0:1e4", "--grid", "3",
+                 "--generations", "1", "--json"])
+    constraints = json.loads(capsys.readouterr().out)["constraints"]
+    assert code == 1 and not constraints["stability"]["ok"]
+    for name in ("gain_margin", "phase_margin", "peak_sensitivity"):
+        assert constraints[name]["value"] is None and not constraints[name]["ok"], constraints[name]
+
+
 def test_plots_are_written(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     args = ["paper/fig3", "--range", "environment.stiffness=1e3:1e5", "--range", "environment.damping=10:200",
             "--grid", "5", "--generations", "2", "--plot", str(tmp_path)]
