@@ -198,8 +198,11 @@ def tuned_certificate(config: Config, design: Mapping[str, float], ranges: list[
     if others or not keys:
         why = f"{', '.join(others)} is not a key it treats" if others else "no range"
         return None, [f"certificate over the box: not computed ({why}; it treats {', '.join(CERTIFY_KEYS)})"]
-    lo = [r.lo for r in ranges] + [float(flat[u.key]) * (1.0 - u.fraction) for u in uncertainties]
-    hi = [r.hi for r in ranges] + [float(flat[u.key]) * (1.0 + u.fraction) for u in uncertainties]
+    # each uncertainty's own ends: an identified interval (--uncertainty-from) is where it was
+    # identified, asymmetric or cut at 0, not the config's value +- its wider half
+    ends = [u.values(float(flat[u.key])) for u in uncertainties]
+    lo = [r.lo for r in ranges] + [float(min(e)) for e in ends]
+    hi = [r.hi for r in ranges] + [float(max(e)) for e in ends]
     values: dict[str, Any] = {k.split(".", 1)[1]: float(v) for k, v in design.items()}
     tuned = config.replace(design=dataclasses.replace(config.design, **values))
     answer = certify(tuned, Box(tuple(keys), tuple(lo), tuple(hi)))

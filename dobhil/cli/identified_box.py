@@ -5,6 +5,7 @@ a campaign's joint draw (``--draw-from``). The overlay is read by
 
 from __future__ import annotations
 
+import math
 import sys
 from typing import Any
 
@@ -26,8 +27,10 @@ def identified_box(path: str) -> list[Uncertainty]:
         raise ConfigError(f"--uncertainty-from {path}: none of its identified keys ({', '.join(identified.keys)}) is "
                           "one the tuned loop depends on; allowed: plant.inertia, plant.viscous_friction, "
                           "environment.stiffness, environment.damping")
-    box: list[Uncertainty] = [IntervalUncertainty(i.key, max(i.hi - i.estimate, i.estimate - i.lo) / abs(i.estimate),
-                               lo=i.lo, hi=i.hi, estimate=i.estimate) for i in used]
+    # a friction fitted at its bound 0 has no relative half-width: its interval alone is the box
+    box: list[Uncertainty] = [IntervalUncertainty(i.key, max(i.hi - i.estimate, i.estimate - i.lo) / abs(i.estimate)
+                                                  if i.estimate else math.inf, lo=i.lo, hi=i.hi, estimate=i.estimate)
+                              for i in used]
     shown = ", ".join(f"{i.key} [{i.lo:.6g}, {i.hi:.6g}]" for i in used)
     note = f"; left out (not in the linear loop): {', '.join(left)}" if left else ""
     print(f"tune: uncertainty box from {path} ({identified.level * 100:g} % intervals): {shown}{note}",
@@ -47,8 +50,6 @@ MIN_ACCEPTANCE = 0.01
 def joint_varies(path: str) -> tuple[Any, ...]:
     """The overlay's identified keys as one joint normal (estimates and covariance) truncated to
     physical values, a :class:`~dobhil.campaign.draws.Vary` per key; how, in one line on stderr."""
-    import math
-
     from dobhil.campaign.draws import JointNormal, Kind, Vary
     from dobhil.errors import ConfigError
     from dobhil.identify.intervals import read_identified

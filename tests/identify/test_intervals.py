@@ -170,3 +170,22 @@ def test_a_negative_standard_error_is_malformed(tmp_path: Path) -> None:
                     "  covariance: {keys: [plant.inertia], matrix: [[0.0004]]}\n")
     with pytest.raises(ConfigError, match=r"malformed .*stderr -0.02: expected a standard error >= 0"):
         read_identified(path, "--draw-from")
+
+
+def test_the_certificate_of_tune_is_over_the_identified_box(tmp_path: Path,
+                                                            capsys: pytest.CaptureFixture[str]) -> None:
+    """tune certifies its design over the box it tuned on: each interval's own ends (asymmetric,
+    a friction fitted at its bound 0), not the config's value +- the wider half -- which, without
+    --set-file, centred the box on the config and, for an estimate at 0, divided by it."""
+    from dobhil.cli.certify_cmd import tuned_certificate
+    path = tmp_path / "o.yaml"
+    path.write_text("identified:\n  intervals:\n"
+                    "    plant.inertia: {estimate: 0.3, lo: 0.28, hi: 0.34, stderr: 0.015}\n"
+                    "    plant.viscous_friction: {estimate: 0.0, lo: 0.0, hi: 0.004, stderr: 0.002}\n"
+                    "  covariance: {keys: [plant.inertia, plant.viscous_friction], "
+                    "matrix: [[2.25e-4, 0.0], [0.0, 4.0e-6]]}\n")
+    box = identified_box(str(path))
+    assert "plant.viscous_friction [0, 0.004]" in capsys.readouterr().err
+    answer, _ = tuned_certificate(load_config("demo"), {}, [], box)
+    assert answer is not None and answer["box"] == {"plant.inertia": [0.28, 0.34],
+                                                    "plant.viscous_friction": [0.0, 0.004]}
