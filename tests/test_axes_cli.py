@@ -1,6 +1,6 @@
 """The command line with a config that lists ``axes:``: ``dobhil check`` of every axis (the
 bus budget of each bus, CAN-id clashes, each axis' preflight) and ``--axis NAME`` on the
-commands that handle one axis (check, run, sweep, tune, montecarlo). Bad input is one line on
+commands that handle one axis (check, run, sweep, tune, certify, montecarlo). Bad input is one line on
 stderr, exit 2, no traceback, nothing opened or enabled.
 
 Real-time checks run against emulator threads on a private ``virtual`` channel and assert
@@ -195,6 +195,7 @@ def test_check_one_axis_with_axis(tmp_path: Path, odrives: tuple[str, list[Emula
 @pytest.mark.parametrize("command", [
     ["sweep", "--vary", "plant.inertia=0.2:0.3:2"],
     ["tune", "--range", "environment.stiffness=1000:5000"],
+    ["certify", "--range", "environment.stiffness=1000:5000"],
     ["montecarlo", "--runs", "2", "--vary", "plant.inertia=uniform:0.2:0.3"],
 ])
 def test_an_axes_config_without_an_axis_names_the_axes(tmp_path: Path, command: list[str],
@@ -302,3 +303,15 @@ def test_tune_of_an_axis_is_the_tune_of_that_axis_alone(tmp_path: Path, capsys: 
     tuned = load_config(tmp_path / "tuned.yaml")   # the axis alone, its design tuned
     assert tuned.plant.inertia == 0.3 and tuned.drive.node_id == 2
     assert tuned.design.force_gain == results[0]["design"]["design.force_gain"]
+
+
+def test_certify_of_an_axis_is_the_certify_of_that_axis_alone(tmp_path: Path,
+                                                             capsys: pytest.CaptureFixture[str]) -> None:
+    """The box tune certifies on an axis can be certified again by dobhil certify."""
+    path = write(tmp_path, TWO)
+    answers = []
+    for args in (["certify", str(path), "--range", "axes.right.environment.stiffness=1000:5000"],
+                 ["certify", str(right_alone(tmp_path, path)), "--range", "environment.stiffness=1000:5000"]):
+        assert main([*args, "--loop", "continuous", "--json"]) == 0
+        answers.append(json.loads(capsys.readouterr().out))
+    assert answers[0] == answers[1] and answers[0]["force_gain"] == 1.5

@@ -1,5 +1,5 @@
 """``--axis NAME``: one axis of a config that lists ``axes:``, for the commands that handle
-one axis (tune, sweep, montecarlo, check, run).
+one axis (tune, certify, sweep, montecarlo, check, run).
 
 On an axes config the command works on that axis' whole config (the top level's keys with the
 axis' own over them, :func:`dobhil.config.axes.load_axes`), exactly as on a single-axis config.

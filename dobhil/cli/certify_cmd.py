@@ -1,4 +1,4 @@
-"""``dobhil certify CONFIG --range KEY=LO:HI [--range ...] [--loop both|continuous|sampled]
+"""``dobhil certify CONFIG [--axis NAME] --range KEY=LO:HI [--range ...] [--loop both|continuous|sampled]
 [--refinements N] [--json]``: stability over the whole box, not only at grid points."""
 
 from __future__ import annotations
@@ -10,6 +10,7 @@ import sys
 from collections.abc import Mapping
 from typing import TYPE_CHECKING, Any
 
+from dobhil.cli.axis_option import add_axis_arg, axis_keys
 from dobhil.cli.common import add_config_args, config_from_args, design_on_drive
 from dobhil.errors import ConfigError
 
@@ -34,6 +35,7 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
                            "certified, refuted at a point, or (sampled) undecided after N refinements. "
                            "See docs/certify.md."))
     add_config_args(p)
+    add_axis_arg(p)
     p.add_argument("--range", dest="ranges", action="append", required=True, metavar="KEY=LO:HI",
                    help="environment.stiffness, environment.damping, plant.inertia or "
                    "plant.viscous_friction over [LO, HI] (repeatable)")
@@ -49,6 +51,9 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
 def run(args: argparse.Namespace) -> int:
     from dobhil.analysis.certify import box_from_specs
     from dobhil.analysis.certify_sampled import DEFAULT_REFINEMENTS
+    # an axes config: one axis' whole config, as tune certifies it (--axis, or the axis a
+    # --range key names)
+    axis_keys(args, {"ranges": "--range"})
     box = box_from_specs(args.ranges)
     refinements = DEFAULT_REFINEMENTS if args.refinements is None else args.refinements
     if not 0 <= refinements <= MAX_REFINEMENTS:
