@@ -235,11 +235,12 @@ def gaps_note(data: Any) -> str:
 
 
 def _figures(result: Any, data: Any, parts: Any, out: Path) -> list[Path]:
-    """One measured-vs-model PNG per segment, the model simulated with the identifiable values,
-    against the time in its own log."""
+    """One measured-vs-model PNG per segment, the model simulated as fitted (every fitted
+    parameter: :func:`~dobhil.cli.identify_evidence.model_values`), against the time in its own log."""
+    from dobhil.cli.identify_evidence import model_values
     from dobhil.identify.fit import simulate
     from dobhil.plotting.identify_figures import measured_vs_model
-    values = {n: e.value for n, e in result.estimates.items() if e.identifiable}
+    values = model_values(result)
     out.mkdir(parents=True, exist_ok=True)
     written = []
     for i, (part, seg) in enumerate((p, s) for p in parts for s in p.segments):

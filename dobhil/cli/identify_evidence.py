@@ -75,10 +75,9 @@ def _firmware(path: str) -> str | None:
 
 def validation_info(result: Any, data: Any, segments: Any) -> dict[str, Any]:
     from dobhil.identify.validate import validate
-    values = _values(result)
-    if "inertia" not in values:
+    if not result.estimates["inertia"].identifiable:
         raise ConfigError("--validate: the fit gave no inertia, so there is no model to validate")
-    return _info(validate(values, data, segments), data.source, "input")
+    return _info(validate(model_values(result), data, segments), data.source, "input")
 
 
 def loop_validation_info(result: Any, record: Any) -> dict[str, Any]:
@@ -144,6 +143,15 @@ def _values(result: Any) -> dict[str, float]:
     return values
 
 
+def model_values(result: Any) -> dict[str, float]:
+    """The model the fit ended at, to simulate: every fitted parameter, identifiable or not
+    (:attr:`~dobhil.identify.fit.IdentResult.fitted`). A pair the record confounds (a pressed
+    servo's viscous friction and D_env act as their sum) is reported as neither, yet its sum is
+    what the record determined: the identifiable values alone would simulate without it."""
+    return dict(result.fitted) if result.fitted else _values(result)
+
+
+
 # -- --frf -----------------------------------------------------------------------------------
 
 def excitation(path: str) -> Any:
@@ -178,7 +186,8 @@ def frf_info(result: Any, logs: Any, parts: Any, paths: list[str]) -> list[dict[
             # the model from the segment's fitted initial state, on the log's own torque history
             initial = result.initial[index] if index < len(result.initial) else None
             index += 1
-            r = segment_response(one, local, values, exc, simulate=partial(_simulated, one, local, initial))
+            r = segment_response(one, local, values, exc, simulate=partial(_simulated, one, local, initial),
+                                 fitted=result.fitted)
             m = r.measured
             inside = m.within(r.model)
             entry: dict[str, Any] = {

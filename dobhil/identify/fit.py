@@ -49,6 +49,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
+from types import MappingProxyType
 from typing import Any
 
 import lmfit
@@ -439,7 +440,12 @@ def _identify(data: IdentData, segments: tuple[Segment, ...], max_delay_samples:
                        residual=_whiteness(velocity_residual, _velocity_rms(data, segments)),
                        segments=segments, period=data.period,
                        initial=tuple(_initial(result.params.valuesdict(), data, i, s)
-                                     for i, s in enumerate(segments)))
+                                     for i, s in enumerate(segments)),
+                       # the model the fit ended at, every fitted parameter: what the segments'
+                       # initial states were fitted with, and what determines the motion where the
+                       # record confounds two (a pressed servo's b and D_env act as their sum)
+                       fitted=MappingProxyType({k: float(result.params[k].value) for k in PARAMETERS
+                                                if k in result.params}))
 
 
 def _staged(minimizer: lmfit.Minimizer

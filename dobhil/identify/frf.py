@@ -251,7 +251,8 @@ class SegmentResponse:
 
 def segment_response(data: IdentData, segment: Segment, values: Mapping[str, float],
                      excitation: Excitation | None = None, *,
-                     simulate: Simulator | None = None) -> SegmentResponse:
+                     simulate: Simulator | None = None,
+                     fitted: Mapping[str, float] | None = None) -> SegmentResponse:
     """The response of ``segment`` of ``data``: torque to velocity in free motion, torque to
     the contact force in contact (torque to velocity when the fit gave no K and D), at the
     multisine's lines when ``excitation`` is one and covers two whole periods after the first
@@ -261,7 +262,12 @@ def segment_response(data: IdentData, segment: Segment, values: Mapping[str, flo
     estimator over the same samples, and the phase-slope delay is read against the simulation
     without delay -- what a nonlinearity (Coulomb friction) does to the measured response it
     does to the simulated one alike, and only the delay is left in the phase. Without it: the
-    linear sampled model's exact response (no Coulomb friction)."""
+    linear sampled model's exact response (no Coulomb friction).
+
+    ``fitted``: every parameter the fit ended at, under ``values`` in the model's responses --
+    a pressed servo's viscous friction and D_env are not identifiable apart, yet their sum is
+    what the record determined and what the torque-to-velocity response needs; ``values``
+    alone choose the output (the force only with K and D identified)."""
     contact = segment.kind == "contact"
     force = contact and all(math.isfinite(values.get(k, math.nan)) for k in ("stiffness", "damping"))
     output = "force" if force else "velocity"
@@ -295,13 +301,14 @@ def segment_response(data: IdentData, segment: Segment, values: Mapping[str, flo
     nan = np.full(len(measured.frequency), complex(math.nan))
     if not math.isfinite(values.get("inertia", math.nan)):   # no model to draw or to take the phase from
         return SegmentResponse(kind=segment.kind, measured=measured, model=nan, linear=nan, delay=None)
-    linear = model_response(values, measured.frequency, data.period, contact=contact, output=output)
+    plant = {**(fitted or {}), **values}
+    linear = model_response(plant, measured.frequency, data.period, contact=contact, output=output)
     if simulate is None:
-        undelayed = model_response(values, measured.frequency, data.period, contact=contact, output=output,
+        undelayed = model_response(plant, measured.frequency, data.period, contact=contact, output=output,
                                    delay=False)
         return SegmentResponse(kind=segment.kind, measured=measured, model=linear, linear=linear,
                                delay=phase_delay(measured, undelayed))
-    model = estimate(signal(*simulate(values))).response
-    undelayed = estimate(signal(*simulate({**values, "delay": 0.0}))).response
+    model = estimate(signal(*simulate(plant))).response
+    undelayed = estimate(signal(*simulate({**plant, "delay": 0.0}))).response
     return SegmentResponse(kind=segment.kind, measured=measured, model=model, linear=linear,
                            delay=phase_delay(measured, undelayed))
