@@ -87,7 +87,8 @@ def run(args: argparse.Namespace) -> int:
         logs.append((one, tuple(parse_segment(s, one) for s in args.segment) or find_segments(one)))
     data, parts = join(logs)
     from dobhil.cli import identify_evidence as evidence
-    held_out = evidence.read_validation(args, data) if args.validate else None
+    contact = any(s.kind == "contact" for part in parts for s in part.segments)
+    held_out = evidence.read_validation(args, data, contact) if args.validate else None
     from dobhil.cli.progress import progress
     from dobhil.identify.fit import identify
     with progress("identify", unit="simulation", quiet=args.json) as shown:

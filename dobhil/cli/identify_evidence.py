@@ -30,9 +30,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 # -- --validate ------------------------------------------------------------------------------
 
-def read_validation(args: argparse.Namespace, fitted: Any) -> Any:
+def read_validation(args: argparse.Namespace, fitted: Any, contact: bool = True) -> Any:
     """The validation log's data and segments, read before the fit (a refusal is then
-    immediate): it must be of the drive, protocol and period the fitted logs are."""
+    immediate): it must be of the drive, protocol and period the fitted logs are. ``contact``:
+    whether the fitted logs have a contact segment; without one the fit has no environment, so
+    the validation log's contact segments are left out (the model would press into nothing and
+    call the record a misfit), said in the validation's lines; a log with no free segment then
+    is refused."""
     from dobhil.identify.data import find_segments, read_log
     name = args.validate
     data = read_log(name, period=args.period, axis=args.axis,
@@ -47,7 +51,14 @@ def read_validation(args: argparse.Namespace, fitted: Any) -> Any:
     if mine is not None and theirs is not None and mine != theirs:
         raise ConfigError(f"--validate {name}: drive firmware {mine!r}, but the fitted logs' is {theirs!r}; "
                           "validate on a log of the same drive")
-    return data, find_segments(data)
+    segments = find_segments(data)
+    if contact:
+        return data, segments, 0
+    free = tuple(s for s in segments if s.kind == "free")
+    if not free:
+        raise ConfigError(f"--validate {name}: in contact only, but the fitted logs have no contact segment, so the "
+                          "fit has no environment to validate; validate on a free run, or fit a contact run too")
+    return data, free, len(segments) - len(free)
 
 
 def firmware_of(path: str) -> str | None:
@@ -73,11 +84,14 @@ def _firmware(path: str) -> str | None:
     return None if raw is None else str(json.loads(raw))
 
 
-def validation_info(result: Any, data: Any, segments: Any) -> dict[str, Any]:
+def validation_info(result: Any, data: Any, segments: Any, skipped: int = 0) -> dict[str, Any]:
+    """``skipped``: the validation log's contact segments left out (a fit without environment)."""
     from dobhil.identify.validate import validate
     if not result.estimates["inertia"].identifiable:
         raise ConfigError("--validate: the fit gave no inertia, so there is no model to validate")
-    return _info(validate(model_values(result), data, segments), data.source, "input")
+    info = _info(validate(model_values(result), data, segments), data.source, "input")
+    info["contact_segments_left_out"] = skipped
+    return info
 
 
 def loop_validation_info(result: Any, record: Any) -> dict[str, Any]:
@@ -113,6 +127,9 @@ def validation_lines(info: dict[str, Any]) -> list[str]:
            else "initial states fitted")
     lines = [f"validated on {info['file']} ({info['samples']} samples, {how}): fit % "
              "100 (1 - |y - model| / |y - mean y|)"]
+    if info.get("contact_segments_left_out"):
+        lines.append(f"  note: {info['contact_segments_left_out']} contact segment(s) of {info['file']} left out: "
+                     "the fitted logs have no contact segment, so the fit has no environment")
     lines += [f"  {f['signal']:<9} {f['kind']:<8} {_pct(f['percent'])}" for f in info["fits"]]
     for key, label in (("whiteness", "residual autocorrelation, lags 1.."),
                        ("cross_correlation", f"residual-{info['against']} cross-correlation, lags -+")):

@@ -91,6 +91,18 @@ def test_validate_cli(logs: dict[str, Path], tmp_path: Path, capsys: pytest.Capt
     assert main(["identify", str(logs["free"]), "--validate", str(other)]) == 0
     out = capsys.readouterr().out
     assert f"validated on {other.name}" in out and "threshold" in out
+    # an open-loop fit without environment (free motion only) validates a log's free segments
+    # only: its contact ones it would simulate pressing into nothing and call a misfit
+    free, pressed = tmp_path / "free.mcap", tmp_path / "pressed.mcap"
+    for config, path in (("identify-free", free), ("identify-contact", pressed)):
+        assert main(["run", config, "--emulate", "--lockstep", "--log", str(path), "--set", "loop.duration=0.2",
+                     "--set", "sensor.velocity_noise=0.001"]) == 0
+    capsys.readouterr()
+    assert main(["identify", str(free), "--validate", str(logs["contact"]), "--json"]) == 0
+    info = json.loads(capsys.readouterr().out)["validation"]
+    assert info["contact_segments_left_out"] == 1 and {f["kind"] for f in info["fits"]} == {"free"}
+    _fails(capsys, ["identify", str(free), "--validate", str(pressed)],
+           "in contact only, but the fitted logs have no contact segment")
 
 
 def _fails(capsys: pytest.CaptureFixture[str], args: list[str], match: str) -> None:
