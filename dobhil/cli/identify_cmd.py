@@ -130,7 +130,7 @@ def _closed_loop(args: argparse.Namespace, contact: bool) -> int:
     from dobhil.identify.data import Part
     from dobhil.runtime.session import build_controller
     record = closed_loop_record(args.log[0], build_controller, axis=args.axis)
-    held_out = _loop_validation_record(args, record) if args.validate else None
+    held_out = _loop_validation_record(args, record, contact) if args.validate else None
     with progress("identify", unit="simulation", quiet=args.json) as shown:
         result = identify_closed_loop(record, contact=contact, progress=lambda stage: shown.update(1, stage))
     data = argparse.Namespace(source=record.source, protocol="",
@@ -157,14 +157,22 @@ def _closed_loop(args: argparse.Namespace, contact: bool) -> int:
     return 0
 
 
-def _loop_validation_record(args: argparse.Namespace, fitted: Any) -> Any:
+def _loop_validation_record(args: argparse.Namespace, fitted: Any, contact: bool = True) -> Any:
     """The validation run of a closed-loop fit, read before the fit (a refusal is then
-    immediate): a dobhil force run's log of the same drive protocol and loop period."""
+    immediate): a dobhil force run's log of the same drive protocol and loop period; when the
+    fitted run never reached its environment (``contact`` False: the fit has none), one that
+    does not reach it either -- its loop simulated without an environment would be called a
+    misfit of a right servo model."""
     from dobhil.errors import ConfigError
     from dobhil.identify.closedloop import closed_loop_record
+    from dobhil.identify.data import find_segments, read_log
     from dobhil.runtime.session import build_controller
     name = args.validate
     record = closed_loop_record(name, build_controller, axis=args.axis)
+    if not contact and any(s.kind == "contact" for s in find_segments(read_log(name, axis=args.axis))):
+        raise ConfigError(f"--validate {name}: reaches its environment, but the fitted run never did, so the fit "
+                          "has no environment to simulate it with; validate on a run that stays free, or fit a "
+                          "run in contact")
     mine, theirs = _protocol_of(name), _protocol_of(args.log[0])
     if mine != theirs:
         raise ConfigError(f"--validate {name}: recorded with a {mine!r} drive, but the fitted log with a "

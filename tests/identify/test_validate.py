@@ -103,6 +103,9 @@ def test_validate_cli(logs: dict[str, Path], tmp_path: Path, capsys: pytest.Capt
     assert info["contact_segments_left_out"] == 1 and {f["kind"] for f in info["fits"]} == {"free"}
     _fails(capsys, ["identify", str(free), "--validate", str(pressed)],
            "in contact only, but the fitted logs have no contact segment")
+    # a closed-loop fit of a force run that never reached its environment: no loop with one
+    _fails(capsys, ["identify", str(logs["free"]), "--validate", str(logs["contact"])],
+           "reaches its environment, but the fitted run never did")
 
 
 def _fails(capsys: pytest.CaptureFixture[str], args: list[str], match: str) -> None:
