@@ -157,6 +157,10 @@ def test_a_recovered_log_with_a_gap_names_the_missing_cycles(recorded_long: Path
     assert replay(again).recording.missing == result.recording.missing
     from dobhil.run_report import bus_stats, load_run
     kept, intact = bus_stats(load_run(saved)), bus_stats(load_run(recorded_long))
-    assert kept["rx_frames"] < intact["rx_frames"] and kept["duration_s"] < intact["duration_s"] - 0.1
-    assert kept["bus_load"] == pytest.approx(intact["bus_load"], rel=0.02)
-    assert kept["rx_frames_per_s"] == pytest.approx(intact["rx_frames_per_s"], rel=0.02)
+    # how much the damaged chunk held depends on where the writer cut its chunks (0.05 s of
+    # its own time: 21 to 200 of 1617 frames seen): the rates over the time kept are the intact
+    # run's, where over the whole span they would read low by the fraction lost
+    lost = 1 - kept["rx_frames"] / intact["rx_frames"]
+    assert lost > 0 and kept["duration_s"] < intact["duration_s"]
+    for key in ("bus_load", "rx_frames_per_s"):
+        assert abs(kept[key] / intact[key] - 1) < lost / 2, (key, kept[key], intact[key], lost)
