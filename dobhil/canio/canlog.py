@@ -98,11 +98,11 @@ def export_can(mcap_path: str | os.PathLike[str], out: str | os.PathLike[str], f
         with atomic_path(out) as tmp, FORMATS[fmt][1](tmp) as writer:
             count = 0
             _start_at_earliest(writer, log, topics)
-            bus_channel = {topic: _bus_channel(log.metadata, topic) for topic in topics}
+            bus_channel = _bus_channels(log)
             for topic, t, payload in log.iter_messages(topics):
                 msg = can_frame_message(payload, t)
                 if msg.channel is None:
-                    msg.channel = bus_channel[topic]
+                    msg.channel = bus_channel.get(topic)
                 if fmt is CanLogFormat.BLF:  # BLF stores channels as small integers
                     number = can.util.channel2int(msg.channel)
                     msg.channel = number if number is not None and 0 <= number <= 0xFFFF else None
@@ -113,16 +113,22 @@ def export_can(mcap_path: str | os.PathLike[str], out: str | os.PathLike[str], f
             return count
 
 
-def _bus_channel(metadata: Mapping[str, Mapping[str, str]], topic: str) -> str | None:
-    """The channel of the bus ``topic``'s frames were recorded on (its ``bus`` metadata;
-    ``bus/<name>`` for ``/bus/<name>/can/...`` of a several-axis log), None when not recorded.
+def _bus_channels(log: Any) -> dict[str, str]:
+    """Frame topic -> the channel its bus was opened on (the ``bus`` metadata; a several-axis
+    log's ``bus/<bus>``, its topics from :func:`dobhil.recording.axes.bus_topics`: the topic's
+    prefix is the bus name made a topic, ``/bus/socketcan_can0`` for ``socketcan:can0``).
     A sent frame is recorded with no channel (python-can sets none on a message it sends),
     and each writer would put it on a channel of its own choosing -- candump ``vcan0``, ASC
     and BLF channel 1 -- the sent frames of every bus of a several-bus run on one channel,
     apart from the frames received on the same bus."""
-    parts = topic.split("/")
-    record = metadata.get(f"bus/{parts[2]}" if topic.startswith("/bus/") and len(parts) > 2 else "bus", {})
-    return str(record.get("channel") or "") or None
+    from dobhil.recording.axes import bus_topics
+    out: dict[str, str] = {}
+    for bus, pair in bus_topics(log).items():
+        record = log.metadata.get(f"bus/{bus}") or log.metadata.get("bus", {})
+        channel = str(record.get("channel") or "")
+        if channel:
+            out.update(dict.fromkeys(pair, channel))
+    return out
 
 
 def _start_at_earliest(writer: can.io.generic.MessageWriter, log: Any, topics: list[str]) -> None:

@@ -168,7 +168,6 @@ def model_values(result: Any) -> dict[str, float]:
     return dict(result.fitted) if result.fitted else _values(result)
 
 
-
 # -- --frf -----------------------------------------------------------------------------------
 
 def excitation(path: str) -> Any:

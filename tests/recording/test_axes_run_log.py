@@ -11,6 +11,7 @@ import shutil
 from pathlib import Path
 from typing import Any
 
+import can
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
@@ -56,6 +57,18 @@ def lockstep_log(tmp_path_factory: pytest.TempPathFactory) -> Path:
     path = tmp_path_factory.mktemp("axes-run") / "demo.mcap"
     assert _run(DEMO, path) == 0
     return path
+
+
+def test_a_can_export_puts_each_sent_frame_on_its_bus_channel(lockstep_log: Path, tmp_path: Path) -> None:
+    """The CLI names a bus ``socketcan:can0`` and its topics ``/bus/socketcan_can0/...``: a
+    sent frame (recorded with no channel) is exported on that bus' channel, not candump's
+    ``vcan0`` (a topic parsed by hand looked for ``bus/socketcan_can0`` and found none)."""
+    log = open_log(lockstep_log)
+    (channel,) = {log.metadata[f"bus/{bus}"]["channel"] for bus in layout(log).buses}
+    out = tmp_path / "frames.log"
+    assert main(["log", "export", str(lockstep_log), "--can", "--format", "candump", "-o", str(out)]) == 0
+    sent = [m for m in can.LogReader(out) if not m.is_rx]
+    assert sent and {m.channel for m in sent} == {channel}
 
 
 def _messages(path: Path, topic: str) -> list[tuple[int, dict[str, Any]]]:
