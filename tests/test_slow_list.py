@@ -4,6 +4,7 @@ marks what it lists and nothing else."""
 
 from __future__ import annotations
 
+import os
 import re
 import subprocess
 import sys
@@ -86,21 +87,27 @@ def test_this_run_is_in_that_order(request: pytest.FixtureRequest) -> None:
     assert weights == sorted(weights, reverse=True)
 
 
-def test_not_slow_leaves_out_what_the_list_names() -> None:
+def test_not_slow_leaves_out_what_the_list_names(tmp_path: Path) -> None:
     """pytest's own ``-m "not slow"`` run, on a file with listed and unlisted tests: it
     collects exactly the unlisted ones (a mark added after pytest's deselection would leave
-    the whole suite in the edit loop's run)."""
+    the whole suite in the edit loop's run). One collection: the ones kept are pytest's own
+    ``--collect-only`` lines, the ones left out what its ``pytest_deselected`` hook is given
+    (a plugin of this test's, printing them)."""
     path = "tests/analysis/test_coupled.py"
     entries = slow_entries(SLOW_LIST.read_text(encoding="utf-8"))
-
-    def collected(*extra: str) -> list[str]:
-        done = subprocess.run([sys.executable, "-m", "pytest", "-p", "no:cacheprovider", "-p", "no:xdist",
-                               "--collect-only", "-q", *extra, path], capture_output=True, text=True,
-                              cwd=ROOT, timeout=300)
-        assert done.returncode == 0, done.stdout + done.stderr
-        return [line for line in done.stdout.splitlines() if line.startswith(f"{path}::")]
-
-    every = collected()
-    listed = [nodeid for nodeid in every if is_listed(nodeid, entries)]
-    assert listed and len(listed) < len(every)
-    assert collected("-m", "not slow") == [nodeid for nodeid in every if nodeid not in listed]
+    (tmp_path / "print_deselected.py").write_text(
+        "def pytest_deselected(items):\n"
+        "    for item in items:\n"
+        "        print('deselected', item.nodeid)\n", encoding="utf-8")
+    done = subprocess.run([sys.executable, "-m", "pytest", "-p", "no:cacheprovider", "-p", "no:xdist",
+                           "-p", "print_deselected", "--collect-only", "-q", "-m", "not slow", path],
+                          capture_output=True, text=True, cwd=ROOT, timeout=300,
+                          env={**os.environ, "PYTHONPATH": os.pathsep.join(
+                              filter(None, [str(tmp_path), os.environ.get("PYTHONPATH")]))})
+    assert done.returncode == 0, done.stdout + done.stderr
+    lines = done.stdout.splitlines()
+    kept = [line for line in lines if line.startswith(f"{path}::")]
+    left_out = [line.removeprefix("deselected ") for line in lines if line.startswith(f"deselected {path}::")]
+    assert left_out and kept, done.stdout
+    assert left_out == [nodeid for nodeid in left_out if is_listed(nodeid, entries)]
+    assert kept == [nodeid for nodeid in kept if not is_listed(nodeid, entries)]
