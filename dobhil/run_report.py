@@ -21,7 +21,9 @@
 - loop timing statistics, overruns;
 - CAN frames per second and bus load: bits per frame 47 + 8 DLC plus the worst-case
   stuff bits ``floor((34 + 8 DLC - 1) / 4)`` (11-bit identifiers; 29-bit: 67 + 8 DLC and
-  ``floor((54 + 8 DLC - 1) / 4)``) at ``drive.bitrate``;
+  ``floor((54 + 8 DLC - 1) / 4)``) at ``drive.bitrate``; a CAN FD frame by ISO 11898-1's
+  FD framing, its data phase at the recorded data bit rate when it switched bit rate
+  (:func:`dobhil.drives.bus_load.message_bits`);
 - command latency: per command frame on ``/can/tx``, the log time since the last frame
   received on ``/can/rx`` (the feedback that triggered the cycle), against the latency the
   sampled analysis assumed (``design.input_delay`` + ``design.delay_samples`` periods): it
@@ -49,6 +51,7 @@ from __future__ import annotations
 
 import json
 import os
+from collections import Counter
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any, Final
@@ -57,7 +60,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from dobhil.config.schema import Config
-from dobhil.drives.bus_load import frame_bits
+from dobhil.drives.bus_load import message_bits
 from dobhil.drives.timing import with_command_delay
 from dobhil.drives.decode import recorded_profile
 from dobhil.errors import LogFileError, exception_line
@@ -99,7 +102,8 @@ class RunData:
     t: Array
     signals: dict[str, Array] = field(default_factory=dict)
     frames: dict[str, list[int]] = field(default_factory=dict)   # topic -> DLCs
-    frame_ext: dict[str, int] = field(default_factory=dict)      # topic -> extended-id frames
+    #: topic -> how many frames of each (DLC, extended id, CAN FD, bit rate switch)
+    frame_kinds: dict[str, Counter[tuple[int, bool, bool, bool]]] = field(default_factory=dict)
     span_s: float = 0.0   # first to last CAN frame, less a recovered log's gaps (:func:`gaps_within`)
     frame_times: dict[str, list[int]] = field(default_factory=dict)  # topic -> log times [ns]
     events: list[dict[str, Any]] = field(default_factory=list)
@@ -131,7 +135,7 @@ def load_axis(log: AxisLog, progress: ProgressFn | None = None) -> RunData:
     per: dict[str, list[Any]] = {k: [] for k in ("controller", "feedback", "truth", "loop", "states")}
     frames: dict[str, list[int]] = {"/can/rx": [], "/can/tx": []}
     frame_times: dict[str, list[int]] = {"/can/rx": [], "/can/tx": []}
-    ext = {"/can/rx": 0, "/can/tx": 0}
+    ext: dict[str, Counter[tuple[int, bool, bool, bool]]] = {"/can/rx": Counter(), "/can/tx": Counter()}
     times: list[int] = []
     events: list[dict[str, Any]] = []
     bounds = [None, None]
@@ -178,7 +182,8 @@ def drive_states(changes: list[tuple[Any, ...]], codes: ProtocolCodes) -> list[d
 
 
 def _take(topic: str, t: int, p: dict[str, Any], per: dict[str, list[Any]], frames: dict[str, list[int]],
-          ext: dict[str, int], times: list[int], events: list[dict[str, Any]], bounds: list[Any]) -> None:
+          ext: dict[str, Counter[tuple[int, bool, bool, bool]]], times: list[int], events: list[dict[str, Any]],
+          bounds: list[Any]) -> None:
     if topic == "/controller":
         per["controller"].append((p["cycle"], t, *(_f(p[k]) for k in _CONTROLLER)))
     elif topic == "/drive/feedback":
@@ -196,7 +201,7 @@ def _take(topic: str, t: int, p: dict[str, Any], per: dict[str, list[Any]], fram
         events.append({**p, "log_time_ns": t})
     else:
         frames[topic].append(int(p["dlc"]))
-        ext[topic] += bool(p["is_extended_id"])
+        ext[topic][int(p["dlc"]), bool(p["is_extended_id"]), bool(p["is_fd"]), bool(p["bitrate_switch"])] += 1
         bounds[0] = t if bounds[0] is None else min(bounds[0], t)
         bounds[1] = t if bounds[1] is None else max(bounds[1], t)
 
@@ -232,7 +237,8 @@ def gaps_within(name: str, meta: Mapping[str, Mapping[str, str]], start: int, en
 
 
 def _assemble(name: str, config: Config | None, meta: Mapping[str, Mapping[str, str]],
-              per: dict[str, list[Any]], frames: dict[str, list[int]], ext: dict[str, int], times: list[int],
+              per: dict[str, list[Any]], frames: dict[str, list[int]],
+              ext: dict[str, Counter[tuple[int, bool, bool, bool]]], times: list[int],
               events: list[dict[str, Any]], bounds: list[Any]) -> RunData:
     ctrl = sorted(per["controller"])
     if not ctrl:
@@ -245,7 +251,7 @@ def _assemble(name: str, config: Config | None, meta: Mapping[str, Mapping[str, 
     origin = stamps[0] - (round(ctrl[0][0] * config.loop.period * 1e9) if config is not None and ctrl[0][0] > 0
                           else 0)
     data = RunData(path=name, config=config, metadata=meta, t=(stamps - origin) / 1e9,
-                   frames=frames, frame_ext=ext, events=events,
+                   frames=frames, frame_kinds=ext, events=events,
                    span_s=0.0 if bounds[0] is None else
                    (bounds[1] - bounds[0] - gaps_within(name, meta, bounds[0], bounds[1])) / 1e9)
     values = np.array([row[2:] for row in ctrl], dtype=float)
@@ -391,20 +397,32 @@ def _pct(x: Array, q: float) -> float | None:
 
 
 def bus_stats(data: RunData) -> dict[str, Any]:
-    bitrate = float(data.metadata.get("bus", {}).get("bitrate", 0) or 0)
+    """Frames per second and the bus load: each frame's bit times at the nominal rate
+    (:func:`dobhil.drives.bus_load.message_bits`: a CAN FD frame's data phase at the
+    recorded ``bus.data_bitrate`` when it switched bit rate) over the log's span. A log with
+    frames that switched bit rate and no data bit rate has no load (``bus_load_why``)."""
+    bus = data.metadata.get("bus", {})
+    bitrate = float(bus.get("bitrate", 0) or 0)
     if not bitrate and data.config is not None:
         bitrate = float(data.config.drive.bitrate)
+    data_rate = float(bus.get("data_bitrate", 0) or 0)
+    ratio = bitrate / data_rate if bitrate and data_rate else None
     span = data.span_s or (float(data.t[-1]) if data.t.size else 0.0)
     out: dict[str, Any] = {"bitrate": bitrate or None, "duration_s": span}
-    bits = 0
+    if data_rate:
+        out["data_bitrate"] = data_rate
+    bits: int | None = 0
     for topic, dlcs in data.frames.items():
         key = topic.rsplit("/", 1)[-1]
         out[f"{key}_frames"] = len(dlcs)
         out[f"{key}_frames_per_s"] = len(dlcs) / span if span > 0 else None
-        ext = data.frame_ext.get(topic, 0)
-        bits += sum(frame_bits(d) for d in dlcs) + ext * (frame_bits(0, True) - frame_bits(0))
-    out["bits_per_s"] = bits / span if span > 0 else None
-    out["bus_load"] = (bits / span / bitrate) if span > 0 and bitrate else None
+        for (dlc, extended, fd, brs), count in data.frame_kinds.get(topic, Counter()).items():
+            each = message_bits(dlc, extended=extended, fd=fd, brs=brs, data_ratio=ratio)
+            bits = None if bits is None or each is None else bits + each * count
+    out["bits_per_s"] = bits / span if span > 0 and bits is not None else None
+    out["bus_load"] = (bits / span / bitrate) if span > 0 and bitrate and bits is not None else None
+    if bits is None:
+        out["bus_load_why"] = "CAN FD frames switched bit rate and the log does not record the data bit rate"
     return out
 
 
@@ -682,7 +700,8 @@ def summary_text(s: Mapping[str, Any]) -> str:
     elif la:
         lines.append(f"command latency: not measured ({la.get('why', '-')})")
     b = s["bus"]
-    load = "-" if b["bus_load"] is None else f"{b['bus_load'] * 100:.1f} %"
+    load = (f"- ({b['bus_load_why']})" if b.get("bus_load_why") else "-") if b["bus_load"] is None \
+        else f"{b['bus_load'] * 100:.1f} %"
     fps = "-" if b.get("rx_frames_per_s") is None else f"{b['rx_frames_per_s']:.0f} rx + {b['tx_frames_per_s']:.0f} tx"
     rate = "?" if not b["bitrate"] else f"{b['bitrate']:.0f}"
     lines.append(f"bus: {fps} frames/s, load {load} at {rate} bit/s; dropped records {s['dropped']}")
@@ -808,7 +827,8 @@ def axes_summary_text(s: Mapping[str, Any]) -> str:
                  f"p99 {us(lt['exec_time_p99'])}, max {us(lt['exec_time_max'])}; |period error| p99 "
                  f"{us(lt['period_error_p99'])}; overruns {lt['overruns']}")
     for name, b in s["buses"].items():
-        load = "-" if b["bus_load"] is None else f"{b['bus_load'] * 100:.1f} %"
+        load = (f"- ({b['bus_load_why']})" if b.get("bus_load_why") else "-") if b["bus_load"] is None \
+            else f"{b['bus_load'] * 100:.1f} %"
         rate = "?" if not b["bitrate"] else f"{b['bitrate']:.0f}"
         fps = ("-" if b.get("rx_frames_per_s") is None
                else f"{b['rx_frames_per_s']:.0f} rx + {b['tx_frames_per_s']:.0f} tx")

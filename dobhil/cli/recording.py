@@ -104,6 +104,25 @@ def drive_metadata(profile: DriveProfile) -> dict[str, str]:
     return out
 
 
+def data_bitrate(spec: BusSpec, profile: DriveProfile) -> int | None:
+    """The data-phase bit rate of the drive's CAN FD frames with the bit rate switch: what
+    the bus is opened with, else what the drive's protocol counts its budget at (None:
+    neither says). The log records it: its frames say which are FD with the switch, not
+    how fast their data phase ran, and the report times them on the bus with it."""
+    from dobhil.drives.registry import preflight_probe
+    given = spec.kwargs.get("data_bitrate")
+    if given:
+        return int(given)
+    probe = preflight_probe(profile)
+    return None if probe is None else probe.data_bitrate()
+
+
+def _with_data_bitrate(record: dict[str, Any], rate: int | None) -> dict[str, Any]:
+    if rate is not None:
+        record.setdefault("data_bitrate", rate)
+    return record
+
+
 def run_metadata(session: RunSession, config_file: str | os.PathLike[str] | None) -> dict[str, dict[str, Any]]:
     """The ``config``, ``versions``, ``bus``, ``drive`` and ``run`` metadata records."""
     spec, profile, config = session.bus_spec, session.profile, session.config
@@ -111,9 +130,10 @@ def run_metadata(session: RunSession, config_file: str | os.PathLike[str] | None
     return {
         "config": {k: json.dumps(v) for k, v in config.flat().items()},
         "versions": {**versions(), "drive_firmware": profile.firmware},
-        "bus": {"interface": spec.interface, "channel": spec.channel,
-                "bitrate": spec.kwargs.get("bitrate", config.drive.bitrate),
-                "emulated": session.emulator is not None, "lockstep": lockstep},
+        "bus": _with_data_bitrate({"interface": spec.interface, "channel": spec.channel,
+                                   "bitrate": spec.kwargs.get("bitrate", config.drive.bitrate),
+                                   "emulated": session.emulator is not None, "lockstep": lockstep},
+                                  data_bitrate(spec, profile)),
         "drive": drive_metadata(profile),
         "run": {"start_time": datetime.now(timezone.utc).isoformat(timespec="milliseconds"),
                 "start_time_ns": time.time_ns(), "timing": session.timing.label,
@@ -313,6 +333,7 @@ def axes_metadata(runs: Sequence[AxisRun], *, timing: Timing, period: float, dur
             "interface": spec.interface, "channel": spec.channel,
             "bitrate": spec.kwargs.get("bitrate", run.config.drive.bitrate), "emulated": emulated,
             "lockstep": lockstep, "axes": "[]"})
+        _with_data_bitrate(bus, data_bitrate(spec, run.profile))
         bus["axes"] = json.dumps([*json.loads(bus["axes"]), run.name])
     return out
 

@@ -15,7 +15,8 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
-__all__ = ["MAX_BUDGET", "STANDARD_BITRATES", "BusBudget", "CycleFrame", "budget", "frame_bits", "rate_text"]
+__all__ = ["MAX_BUDGET", "STANDARD_BITRATES", "BusBudget", "CycleFrame", "budget", "fd_frame_bits", "frame_bits",
+           "message_bits", "rate_text"]
 
 #: a budget above this fraction of the bit rate is a finding (room for retransmissions,
 #: SDO transfers and other nodes' frames: above it one retransmission delays the next cycle)
@@ -28,6 +29,36 @@ def frame_bits(dlc: int, extended: bool = False) -> int:
     """Bits on the wire of a classic data frame incl. worst-case stuffing (EOF, IFS included)."""
     base, stuffable = (67, 54) if extended else (47, 34)
     return base + 8 * dlc + (stuffable + 8 * dlc - 1) // 4
+
+
+def fd_frame_bits(length: int, *, extended: bool, data_ratio: float) -> int:
+    """Bit times (nominal) of a CAN FD data frame of ``length`` payload bytes with worst-case
+    stuffing (ISO 11898-1:2015): the arbitration phase (SOF, id, RRS/SRR, IDE, FDF, res,
+    BRS), its stuff bits, CRC delimiter, ACK, EOF and IFS at the nominal rate; ESI, DLC,
+    data, stuff count, CRC (17 bits up to 16 bytes, else 21) with its fixed stuff bits and
+    the data's dynamic stuff bits at ``data_ratio`` nominal bits each (nominal/data rate,
+    1 without the bit rate switch)."""
+    arbitration = 1 + 11 + (20 if extended else 0) + 1 + 1 + 1 + 1 + 1
+    nominal = arbitration + (arbitration - 1) // 4 + 1 + 2 + 7 + 3
+    crc = 17 if length <= 16 else 21
+    dynamic = 1 + 4 + 8 * length
+    data = dynamic + (dynamic - 1) // 4 + 4 + crc + math.ceil((4 + crc) / 4)
+    return math.ceil(nominal + data * data_ratio)
+
+
+def message_bits(length: int, *, extended: bool, fd: bool = False, brs: bool = False,
+                 data_ratio: float | None = None) -> int | None:
+    """Bit times (nominal) of one frame as python-can describes it (``Message.dlc``: the
+    payload length in bytes, ``is_fd``, ``bitrate_switch``): a classic frame by
+    :func:`frame_bits`, a CAN FD frame by :func:`fd_frame_bits`, its data phase at the
+    nominal rate without the bit rate switch and at ``data_ratio`` (nominal/data rate) with
+    it. None: a frame with the bit rate switch and no ``data_ratio`` (its time on the bus
+    depends on a data rate nobody said)."""
+    if not fd:
+        return frame_bits(length, extended)
+    if brs and data_ratio is None:
+        return None
+    return fd_frame_bits(length, extended=extended, data_ratio=data_ratio if brs and data_ratio is not None else 1.0)
 
 
 @dataclass(frozen=True)

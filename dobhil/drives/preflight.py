@@ -36,6 +36,7 @@ import math
 import statistics
 import time
 from abc import ABC, abstractmethod
+from collections import Counter
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from enum import IntEnum
@@ -45,6 +46,7 @@ import can
 
 from dobhil.drives.bus_load import BusBudget, CycleFrame
 from dobhil.drives.bus_load import budget as make_budget
+from dobhil.drives.bus_load import fd_frame_bits
 from dobhil.drives.bus_load import frame_bits as wire_bits
 from dobhil.drives.profile import DriveProfile
 from dobhil.drives.socketcan_link import link_down_text, link_info, link_problems
@@ -311,6 +313,12 @@ class PreflightProbe(ABC):
         """The bus budget of a run at ``period`` on ``bitrate`` (None: no frames known)."""
         return make_budget(self.cycle_frames(period), period, bitrate, fewer=self.budget_fewer)
 
+    def data_bitrate(self) -> int | None:
+        """The data-phase bit rate of the protocol's CAN FD frames with the bit rate switch,
+        as its bus budget counts them (a run's log records it, so that its report can time
+        those frames on the bus); None: the protocol sends no such frames."""
+        return None
+
 
 # ---------------------------------------------------------------------------
 # Profile-only checks (no bus)
@@ -350,7 +358,10 @@ class Capture:
     nodes: dict[int, _NodeLog] = field(default_factory=dict)
     frames: int = 0
     error_frames: int = 0
-    bits: int = 0
+    bits: int = 0   # of the classic frames
+    #: the CAN FD frames by (payload length, extended id, bit rate switch): their time on the
+    #: bus depends on the data bit rate, known once the bus' bit rate is (:meth:`bits_at`)
+    fd_frames: Counter[tuple[int, bool, bool]] = field(default_factory=Counter)
     send_errors: list[str] = field(default_factory=list)
     read_error: str = ""   # the bus failed while listening (gone): listening ended there
     findings: list[Finding] = field(default_factory=list)  # the probe's, from what it asked
@@ -362,7 +373,10 @@ class Capture:
         """Count ``msg`` and log what the probe reads in it; the node it came from (None:
         not a frame the preflight measures)."""
         self.frames += 1
-        self.bits += frame_bits(msg)
+        if msg.is_fd:
+            self.fd_frames[msg.dlc, msg.is_extended_id, msg.bitrate_switch] += 1
+        else:
+            self.bits += frame_bits(msg)
         if msg.is_error_frame:
             self.error_frames += 1
             return None
@@ -378,6 +392,15 @@ class Capture:
         else:
             log.version_data = obs.data
         return obs.node
+
+
+    def bits_at(self, data_ratio: float | None) -> int:
+        """Bit times (nominal) of every frame heard: a CAN FD frame's data phase at
+        ``data_ratio`` (nominal/data bit rate) when it switched bit rate; None: no data rate
+        known, so at the nominal rate (the longest such a frame can take)."""
+        ratio = 1.0 if data_ratio is None else data_ratio
+        return self.bits + sum(n * fd_frame_bits(length, extended=ext, data_ratio=ratio if brs else 1.0)
+                               for (length, ext, brs), n in self.fd_frames.items())
 
 
 def frame_bits(msg: can.Message) -> int:
@@ -473,7 +496,9 @@ def run_preflight(
     # SYNC), or one 8-byte command frame when the protocol lists none
     command_bits = (bus_budget.loop_bits() if bus_budget is not None
                     else frame_bits(can.Message(dlc=8, is_extended_id=False))) / period
-    bus_report = BusReport(state, cap.frames, cap.error_frames, cap.bits / window, bitrate, command_bits)
+    data = probe.data_bitrate()
+    heard = cap.bits_at(bitrate / data if bitrate and data else None)
+    bus_report = BusReport(state, cap.frames, cap.error_frames, heard / window, bitrate, command_bits)
     # a bus that failed while listening ended the window there: rates over a window not
     # listened would be false ("1 frame in 60000 ms"), and the failure is the one cause
     node_found = ([] if cap.read_error else [cap.verdict] if cap.verdict is not None

@@ -35,6 +35,7 @@ _MESSAGE: Final = struct.Struct("<HIQQ")         # channel, sequence, log time, 
 _OP_MESSAGE: Final = 0x05
 #: Numbers in metadata the tools use as numbers: (record, key) -> type.
 _NUMERIC: Final = {("recording", "dropped"): int, ("recording", "written"): int, ("bus", "bitrate"): float,
+                   ("bus", "data_bitrate"): float,
                    ("run", "torque_limit"): float, ("run", "period"): float, ("run", "duration"): float}
 _STOP: Final = EventKind.STOP.name.lower()
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import pytest
 import yaml
 
 from dobhil.config.axes import load_axes
@@ -45,3 +46,25 @@ def test_two_moteus_axes_on_one_bus_count_their_fd_frames(tmp_path: Path) -> Non
     (bus,) = axes_budget(drives, 0.001)
     assert bus.budget.bits_per_cycle == 2 * (163 + 82) and bus.per_axis == (("a1", 245.0), ("a2", 245.0))
     assert not bus.over and not bus.refused
+
+
+def test_the_preflight_times_the_fd_frames_it_hears_as_the_budget_does() -> None:
+    """Ten 48-byte FD commands of another host with the bit rate switch, heard in a 50 ms
+    window at 1 Mbit/s: 163 bit times each (above), 3.26 % of the bus; counted as classic
+    frames of 48 bytes (560 bits) they read 11.2 %."""
+    import can
+
+    from dobhil.drives.preflight import run_preflight
+    channel = "moteus-preflight-fd-load"
+    profile = load_profile("moteus-r4.11")
+    bus, other = can.Bus(interface="virtual", channel=channel), can.Bus(interface="virtual", channel=channel)
+    try:
+        for _ in range(10):
+            other.send(can.Message(arbitration_id=0x8002, is_extended_id=True, is_fd=True, bitrate_switch=True,
+                                   data=bytes(48)))
+        report = run_preflight(bus, profile, period=1e-3, window=0.05, bitrate=1_000_000,
+                               probe=MoteusPreflight(profile))
+    finally:
+        bus.shutdown()
+        other.shutdown()
+    assert report.bus.frames == 10 and report.bus.load == pytest.approx(10 * 163 / 0.05 / 1e6)

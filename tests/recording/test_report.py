@@ -46,6 +46,25 @@ def test_frame_bits() -> None:
     assert frame_bits(8) == 47 + 64 + 24 and frame_bits(0) == 47 + 8
 
 
+def test_no_bus_load_from_fd_frames_that_switched_bit_rate_at_an_unrecorded_data_rate() -> None:
+    """1000 CAN FD frames of 48 bytes in 1 s at 1 Mbit/s: without the bit rate switch each
+    takes 59 + 518 bit times (tests/drives/test_moteus_budget.py), with it at 5 Mbit/s 163;
+    with it and no data bit rate in the log the time is unknown, and the report says so."""
+    from collections import Counter
+    from dobhil.run_report import bus_stats
+
+    def load(brs: bool, bus: dict[str, Any]) -> dict[str, Any]:
+        data = RunData(path="x", config=None, metadata={"bus": bus}, t=np.array([0.0, 1.0]),
+                       frames={"/can/tx": [48] * 1000},
+                       frame_kinds={"/can/tx": Counter({(48, True, True, brs): 1000})}, span_s=1.0)
+        return bus_stats(data)
+
+    assert load(False, {"bitrate": "1000000"})["bus_load"] == pytest.approx(0.577)
+    assert load(True, {"bitrate": "1000000", "data_bitrate": "5000000"})["bus_load"] == pytest.approx(0.163)
+    unknown = load(True, {"bitrate": "1000000"})
+    assert unknown["bus_load"] is None and "data bit rate" in unknown["bus_load_why"]
+
+
 def test_demo_then_report(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["demo", "--out", str(tmp_path), "--set", "loop.duration=0.8"]) == 0
     logs = list(tmp_path.glob("run-*.mcap"))

@@ -16,14 +16,13 @@ bit times, so the budget's load against the nominal rate is the time share of th
 
 from __future__ import annotations
 
-import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from types import MappingProxyType
 
 import can
 
-from dobhil.drives.bus_load import CycleFrame
+from dobhil.drives.bus_load import CycleFrame, fd_frame_bits
 from dobhil.drives.moteus.codec import Mode, Register, Resolution, arbitration_id, group_registers, pad, \
     read_subframe, split_id
 from dobhil.drives.moteus.states import fault_text, mode_text
@@ -46,20 +45,6 @@ PROBE_REGISTERS: Mapping[int, Resolution] = MappingProxyType({
     Register.FAULT: Resolution.INT8,
 })
 _MOTION_MODES = frozenset(range(Mode.PWM, Mode.BRAKE + 1)) - {Mode.TIMEOUT}
-
-
-def fd_frame_bits(length: int, *, extended: bool, data_ratio: float) -> int:
-    """Bit times (nominal) of a CAN FD data frame of ``length`` payload bytes with worst-case
-    stuffing (ISO 11898-1:2015): the arbitration phase (SOF, id, RRS/SRR, IDE, FDF, res,
-    BRS), its stuff bits, CRC delimiter, ACK, EOF and IFS at the nominal rate; ESI, DLC,
-    data, stuff count, CRC (17 bits up to 16 bytes, else 21) with its fixed stuff bits and
-    the data's dynamic stuff bits at ``data_ratio`` nominal bits each (nominal/data rate)."""
-    arbitration = 1 + 11 + (20 if extended else 0) + 1 + 1 + 1 + 1 + 1
-    nominal = arbitration + (arbitration - 1) // 4 + 1 + 2 + 7 + 3
-    crc = 17 if length <= 16 else 21
-    dynamic = 1 + 4 + 8 * length
-    data = dynamic + (dynamic - 1) // 4 + 4 + crc + math.ceil((4 + crc) / 4)
-    return math.ceil(nominal + data * data_ratio)
 
 
 @dataclass(frozen=True)
@@ -121,6 +106,11 @@ class MoteusPreflight(PreflightProbe):
     def status_name(self) -> str:
         return "replies"
 
+    def data_bitrate(self) -> int:
+        """The profile's ``bus.data_bitrate`` (what the bus is opened with), else the rate
+        the moteus documentation sets."""
+        return int(self.profile.bus.get("data_bitrate") or DATA_BITRATE)
+
     def cycle_frames(self, period: float) -> Sequence[CycleFrame]:
         """One command and one reply per loop period, FD at 1/5 Mbit/s (1/1 without BRS)."""
         profile = self.profile
@@ -129,7 +119,7 @@ class MoteusPreflight(PreflightProbe):
         command = CommandFrame(resolution=resolution(profile, "command_resolution"),
                                timeout=profile.watchdog_timeout, query=query)
         reply = len(pad(b"\x20" * _reply_length(query)))
-        ratio = NOMINAL_BITRATE / DATA_BITRATE if self.brs else 1.0
+        ratio = NOMINAL_BITRATE / self.data_bitrate() if self.brs else 1.0
         node, source, prefix = profile.node_id, self.source, self.prefix
         cmd_ext = arbitration_id(source, node, reply=True, prefix=prefix) > 0x7FF
         rep_ext = arbitration_id(node, source, reply=False, prefix=prefix) > 0x7FF
