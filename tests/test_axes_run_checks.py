@@ -232,3 +232,31 @@ def test_the_session_itself_refuses_such_a_lockstep_period_before_a_bus_opens(
     with pytest.raises(ConfigError, match=r"^axis j1: lockstep timing steps the emulated bus once per loop.period "
                                           r"= 0.002 s .* sends SYNC every 0.001 s \(feedback_period\)"):
         AxesSession(axes, emulate=True, lockstep=True, config_dir=tmp_path)
+
+
+@pytest.mark.parametrize(("profiles", "period", "refused", "why"), [
+    (("odrive-0.6", "odrive-0.6"), 0.002, "j1", "'odrive-0.6' has encoder estimates every 0.001 s (feedback_period) "
+                                                "and loop.period = 0.002 s"),
+    (("odrive-0.6", "moteus-r4.11"), 0.001, "j2", "'moteus-r4.11' has no feedback_period"),
+], ids=["same-profile", "moteus"])
+def test_feedback_timing_an_axis_cannot_keep_is_refused_naming_the_axis(
+        profiles: tuple[str, str], period: float, refused: str, why: str, tmp_path: Path,
+        monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]) -> None:
+    """Feedback timing runs a cycle per feedback frame of each axis: an axis whose profile
+    streams none, or at another period, is refused in one line naming the axis (two axes of
+    one profile are told apart by it), exit 2, no bus opened."""
+    def no_bus(*args: object, **kwargs: object) -> None:
+        raise AssertionError("a bus was opened for a refused timing")
+
+    monkeypatch.setattr("dobhil.runtime.axes_session.open_bus", no_bus)
+    data: dict[str, Any] = {"loop": {"period": period, "duration": 0.02, "timing": "feedback", "feedback_timeout": 0.5},
+                            "axes": [{"name": f"j{n}", "drive": {"profile": p, "node_id": n}}
+                                     for n, p in enumerate(profiles, start=1)]}
+    path = tmp_path / "axes.yaml"
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    code = main(["run", str(path), "--emulate", "--allow-unstable"])
+    captured = capsys.readouterr()
+    assert code == 2 and captured.out == "", captured.err
+    (line,) = captured.err.splitlines()
+    assert line.startswith(f"dobhil run: error: axis {refused}: loop.timing = feedback runs one cycle per feedback "
+                           f"frame, but drive profile {why}"), line

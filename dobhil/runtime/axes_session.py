@@ -135,7 +135,8 @@ class AxesSession:
     def _timing(self, lockstep: bool) -> Timing:
         """One timing for every axis (each axis' as a single-axis run resolves it; host
         when they differ)."""
-        timings = {resolve_timing(a.config, self.profiles[a.name], lockstep) for a in self.axes.axes}
+        timings = {resolve_timing(a.config, self.profiles[a.name], lockstep, f"axis {a.name}: ")
+                   for a in self.axes.axes}
         return timings.pop() if len(timings) == 1 else Timing.HOST
 
     def _group(self, cli_bus: str | None) -> list[BusGroup]:
@@ -188,7 +189,7 @@ class AxesSession:
             self._add(view)
             drive = make_drive(view, self.profiles[name], reset_faults=self.reset_faults, **clock)
             view.accept(drive.frame_ids)
-            check_feedback_streams(self.timing, drive)
+            check_feedback_streams(self.timing, drive, f"axis {name}: ")
             self.drives[name] = drive
 
     def _lockstep_emulators(self, group: BusGroup) -> list[EmulatedDrive]:

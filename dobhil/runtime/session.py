@@ -225,12 +225,14 @@ def check_cycles(settings: LoopSettings, prefix: str = "") -> None:
                           "cycles to count; allowed: fewer than 2**53")
 
 
-def resolve_timing(config: Config, profile: DriveProfile, lockstep: bool | None) -> Timing:
+def resolve_timing(config: Config, profile: DriveProfile, lockstep: bool | None, prefix: str = "") -> Timing:
     """``loop.timing`` (``realtime``: the old name of ``host``, with a FutureWarning: the
     warning for a config's user, shown by default, which a DeprecationWarning is not), or
     lockstep when asked;
     a real-time run of a lockstep config (``demo --realtime``) is feedback-synchronous.
-    Feedback timing needs the drive to stream feedback once per ``loop.period``."""
+    Feedback timing needs the drive to stream feedback once per ``loop.period``.
+    ``prefix``: before the error line (``axis NAME: `` in a several-axis run, whose axes
+    may share one profile)."""
     name = config.loop.timing
     if lockstep is None:
         lockstep = name == "lockstep"
@@ -243,26 +245,27 @@ def resolve_timing(config: Config, profile: DriveProfile, lockstep: bool | None)
     period, rate = config.loop.period, profile.feedback_period
     if rate is None:
         raise ConfigError(
-            f"loop.timing = feedback runs one cycle per feedback frame, but drive profile "
+            f"{prefix}loop.timing = feedback runs one cycle per feedback frame, but drive profile "
             f"{profile.name or profile.protocol!r} has no feedback_period (its feedback does not "
             f"stream); set loop.timing: host")
     if abs(rate - period) > 1e-9 * period:
         probe = preflight_probe(profile)
         frames = probe.motion_name() if probe is not None else "motion feedback"
         raise ConfigError(
-            f"loop.timing = feedback runs one cycle per feedback frame, but drive profile "
+            f"{prefix}loop.timing = feedback runs one cycle per feedback frame, but drive profile "
             f"{profile.name or profile.protocol!r} has {frames} every {rate:g} s (feedback_period) and "
             f"loop.period = {period:g} s; make them equal (on the drive too) or set "
             f"loop.timing: host")
     return Timing.FEEDBACK
 
 
-def check_feedback_streams(timing: Timing, drive: Drive) -> None:
+def check_feedback_streams(timing: Timing, drive: Drive, prefix: str = "") -> None:
     """A loop timed by feedback needs a drive that streams it on its own; one that only
-    answers the host each cycle (a SYNC the bus cannot send periodically) cannot start it."""
+    answers the host each cycle (a SYNC the bus cannot send periodically) cannot start it.
+    ``prefix``: before the error line (``axis NAME: ``)."""
     if timing is Timing.FEEDBACK and not drive.feedback_streams:
         raise ConfigError(
-            f"loop.timing = feedback runs one cycle per feedback frame, but node {drive.node_id} "
+            f"{prefix}loop.timing = feedback runs one cycle per feedback frame, but node {drive.node_id} "
             f"({drive.protocol}) only sends feedback when the host asks for it on this bus; "
             f"set loop.timing: host")
 
