@@ -132,6 +132,20 @@ def test_each_axis_is_measured_before_the_run(tmp_path: Path, odrives: tuple[str
     assert code in (0, 1)
 
 
+def test_each_axis_preflight_adds_every_axis_frames_of_its_bus_to_what_it_heard(tmp_path: Path) -> None:
+    """Three ODrive axes on one bus: the run adds three torque commands (135 bits each) per
+    period to what each axis' preflight heard, 40.5 % of 1 Mbit/s at 1 kHz, not its own one
+    (13.5 %): the per-axis "with the run's commands" matches the bus budget."""
+    from dobhil.cli.axes_check import measure_axes
+    path = axes_config(tmp_path, "odrive-0.6", (1, 2, 3))
+    axes = load_axes(path)
+    drives = axis_drives(axes, path.parent, "virtual:nobody-measured")
+    reports = measure_axes(axes, drives, 0.02, "virtual:nobody-measured")
+    assert [name for name, _, _ in reports] == ["j1", "j2", "j3"]
+    for _, _, report in reports:
+        assert report.bus.run_bits_per_s == pytest.approx(3 * 135 / 0.001)
+
+
 def test_no_preflight_skips_it(tmp_path: Path, odrives: tuple[str, list[EmulatedODrive]],
                                capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch) -> None:
     import dobhil.cli.axes_check as axes_check

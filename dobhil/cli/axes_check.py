@@ -63,6 +63,8 @@ def measure_axes(axes: Any, drives: Sequence[Any], window: float,
     """(axis, bus, preflight report) of every axis, each bus opened once for its axes and
     closed before the next (nothing enabled; ``dobhil run`` of a real bus calls it too);
     ``cancel`` (a stop request's ``reason``) cuts each measurement short."""
+    from dobhil.drives.axes import bus_budgets
+    from dobhil.drives.bus_load import frame_bits
     from dobhil.drives.preflight import run_preflight
     from dobhil.drives.registry import preflight_probe, protocol
     from dobhil.runtime.buses import open_bus, resolve_bus, shared_spec, shutdown_bus
@@ -72,6 +74,10 @@ def measure_axes(axes: Any, drives: Sequence[Any], window: float,
         # one bus opened for every drive on it (a CAN FD drive's fd whichever axis is first)
         spec = shared_spec([resolve_bus(config, d.profile, None if config.drive.interface else default_bus)
                             for config, d in on_bus])
+        # what the run adds on this bus is every axis' frames, not the measured axis' alone
+        # (one 8-byte command for an axis whose protocol lists none, as run_preflight counts it)
+        (budget,) = bus_budgets([d for _, d in on_bus], axes.period)
+        run_bits = budget.budget.loop_bits() + len(budget.unknown) * frame_bits(8)
         bus = open_bus(spec)
         try:
             for config, drive in on_bus:
@@ -79,7 +85,7 @@ def measure_axes(axes: Any, drives: Sequence[Any], window: float,
                 report = run_preflight(bus, drive.profile, period=config.loop.period,
                                        feedback_timeout=config.loop.feedback_timeout, window=window,
                                        bitrate=drive.bitrate, probe=preflight_probe(drive.profile),
-                                       cancel=cancel)
+                                       cancel=cancel, run_loop_bits=run_bits)
                 if cancel is not None and cancel():
                     return out
                 out.append((drive.name, spec.describe(), report))

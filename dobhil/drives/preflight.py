@@ -457,7 +457,7 @@ def run_preflight(
     window: float = DEFAULT_WINDOW, bitrate: int | None = None,
     clock: Callable[[], float] = time.monotonic,
     stamp: Callable[[can.Message], float] | None = None,
-    probe: PreflightProbe | None, cancel: Cancel | None = None,
+    probe: PreflightProbe | None, cancel: Cancel | None = None, run_loop_bits: float | None = None,
 ) -> PreflightReport:
     """Listen ``window`` s on ``bus`` (borrowed, not enabled, not shut down) and compare.
 
@@ -470,6 +470,10 @@ def run_preflight(
 
     ``cancel``: listening ends within WAIT_SLICE s of it returning a reason (SIGINT);
     the report then covers only what was heard (the caller stops anyway).
+
+    ``run_loop_bits``: the bits per loop period the whole run sends or triggers on this bus,
+    which the report adds to what it heard (a several-axis run: every axis' frames, each
+    axis' drive silent but for its stream while it is measured); None: this drive's own.
     """
     if not (math.isfinite(window) and window > 0):
         from dobhil.errors import ConfigError
@@ -494,8 +498,8 @@ def run_preflight(
     # what the run adds to what was heard: the frames it sends or triggers each loop period
     # (the budget's; ODrive: the torque command; CiA 402: SYNC, RPDO and the TPDOs answering
     # SYNC), or one 8-byte command frame when the protocol lists none
-    command_bits = (bus_budget.loop_bits() if bus_budget is not None
-                    else frame_bits(can.Message(dlc=8, is_extended_id=False))) / period
+    command_bits = (run_loop_bits if run_loop_bits is not None else bus_budget.loop_bits()
+                    if bus_budget is not None else frame_bits(can.Message(dlc=8, is_extended_id=False))) / period
     data = probe.data_bitrate()
     heard = cap.bits_at(bitrate / data if bitrate and data else None)
     bus_report = BusReport(state, cap.frames, cap.error_frames, heard / window, bitrate, command_bits)
