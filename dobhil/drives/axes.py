@@ -305,6 +305,8 @@ def _bus_budget(bus: str, drives: Sequence[AxisDrive], period: float,
     shared: dict[tuple[object, ...], CycleFrame] = {}
     per_axis: list[tuple[str, float]] = []
     unknown: list[str] = []
+    bitrates = [d.bitrate for d in drives if d.bitrate]
+    bitrate = bitrates[0] if bitrates else None
     for d in drives:
         found = probe(d.profile)
         own = list(found.cycle_frames(period)) if found is not None else []
@@ -317,12 +319,11 @@ def _bus_budget(bus: str, drives: Sequence[AxisDrive], period: float,
                 shared.setdefault((f.name, f.dlc, f.every, f.extended, f.or_every), f)
         # replace(), not a new CycleFrame: a protocol's subclass (CAN FD's bits) stays itself
         frames += [dataclasses.replace(f, name=f"{d.name}: {f.name}") for f in mine]
-        per_axis.append((d.name, sum(f.bits * f.per_cycle(period) for f in mine)))
+        per_axis.append((d.name, sum(f.bits_at(bitrate) * f.per_cycle(period) for f in mine)))
     frames += shared.values()
-    bitrates = [d.bitrate for d in drives if d.bitrate]
     fewer = fewer or "fewer axes on this bus (another bus for one: its drive.interface/drive.channel)"
-    budget = BusBudget(tuple(frames), period, bitrates[0] if bitrates else None, fewer)
-    shared_bits = sum(f.bits * f.per_cycle(period) for f in shared.values())
+    budget = BusBudget(tuple(frames), period, bitrate, fewer)
+    shared_bits = sum(f.bits_at(bitrate) * f.per_cycle(period) for f in shared.values())
     return AxesBusBudget(bus, budget, tuple(per_axis), shared_bits, tuple(unknown), _fd_instead(drives))
 
 

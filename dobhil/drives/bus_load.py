@@ -85,17 +85,23 @@ class CycleFrame:
         """Bits of one such frame on the wire."""
         return frame_bits(self.dlc, self.extended)
 
+    def bits_at(self, bitrate: float | None) -> int:
+        """Bits of one such frame in bit times of the nominal ``bitrate`` (None: unknown). A
+        classic frame's do not depend on it; a CAN FD frame's data phase, at a data rate of
+        its own, takes fewer of them the slower the nominal rate (a subclass says how)."""
+        return self.bits
+
     def per_cycle(self, period: float) -> float:
         """How many of this frame one loop period carries (a heartbeat's share: < 1)."""
         if self.every is not None:
             return period / self.every
         return 1.0 if self.or_every is None else max(1.0, period / self.or_every)
 
-    def describe(self, period: float) -> str:
+    def describe(self, period: float, bitrate: float | None = None) -> str:
         share = self.per_cycle(period)
         if math.isclose(share, 1.0, rel_tol=1e-9):
-            return f"{self.name} {self.bits}"
-        return f"{self.name} {self.bits} x {share:.3g}"
+            return f"{self.name} {self.bits_at(bitrate)}"
+        return f"{self.name} {self.bits_at(bitrate)} x {share:.3g}"
 
 
 @dataclass(frozen=True)
@@ -110,7 +116,7 @@ class BusBudget:
 
     @property
     def bits_per_cycle(self) -> float:
-        return sum(f.bits * f.per_cycle(self.period) for f in self.frames)
+        return sum(f.bits_at(self.bitrate) * f.per_cycle(self.period) for f in self.frames)
 
     @property
     def load(self) -> float | None:
@@ -124,7 +130,7 @@ class BusBudget:
     def line(self) -> str:
         """``bus budget: 391 bits per cycle (SYNC 55 + ...) = 39.1 % of 1 Mbit/s at 1 kHz``."""
         head = (f"bus budget: {self.bits_per_cycle:.0f} bits per cycle ("
-                + " + ".join(f.describe(self.period) for f in self.frames) + ")")
+                + " + ".join(f.describe(self.period, self.bitrate) for f in self.frames) + ")")
         if self.load is None:
             return f"{head} at {rate_text(1.0 / self.period, 'Hz')}; bit rate unknown (set drive.bitrate)"
         return (f"{head} = {self.load * 100:.1f} % of {rate_text(self.bitrate or 0, 'bit/s')} at "
@@ -161,10 +167,10 @@ class BusBudget:
     def loop_bits(self) -> float:
         """Bits per loop period of the frames the run sends or triggers (the ones it adds to
         a bus on which the drive's own periodic frames already stream)."""
-        return sum(f.bits * f.per_cycle(self.period) for f in self.frames if f.every is None)
+        return sum(f.bits_at(self.bitrate) * f.per_cycle(self.period) for f in self.frames if f.every is None)
 
     def _load_at(self, bitrate: float, period: float) -> float:
-        return sum(f.bits * f.per_cycle(period) for f in self.frames) / (bitrate * period)
+        return sum(f.bits_at(bitrate) * f.per_cycle(period) for f in self.frames) / (bitrate * period)
 
     def _shortest_period(self, bitrate: float, *, following: bool = False) -> float | None:
         """The shortest loop period whose budget is within MAX_BUDGET at ``bitrate``
@@ -179,8 +185,9 @@ class BusBudget:
             return f.every is None and (following or f.or_every is None or f.or_every > low)
         edges = [] if following else sorted({f.or_every for f in self.frames if f.every is None and f.or_every})
         for low, high in zip([0.0, *edges], [*edges, math.inf]):
-            per_loop = sum(f.bits for f in self.frames if slows(f, low))
-            per_second = sum(f.bits / (f.every or f.or_every or math.inf) for f in self.frames if not slows(f, low))
+            per_loop = sum(f.bits_at(bitrate) for f in self.frames if slows(f, low))
+            per_second = sum(f.bits_at(bitrate) / (f.every or f.or_every or math.inf) for f in self.frames
+                             if not slows(f, low))
             room = MAX_BUDGET * bitrate - per_second
             if room <= 0 or (per_loop <= 0 and low == 0.0):   # no period helps (or none is needed)
                 return None   # the later stretches only move frames from per loop to per second
@@ -192,7 +199,7 @@ class BusBudget:
     def as_dict(self) -> dict[str, object]:
         return {"bits_per_cycle": self.bits_per_cycle, "load": self.load, "bitrate": self.bitrate,
                 "period": self.period, "over": self.over,
-                "frames": [{"name": f.name, "bits": f.bits, "per_cycle": f.per_cycle(self.period)}
+                "frames": [{"name": f.name, "bits": f.bits_at(self.bitrate), "per_cycle": f.per_cycle(self.period)}
                            for f in self.frames]}
 
 

@@ -33,6 +33,11 @@ def test_the_run_budget_of_the_shipped_profile() -> None:
     assert [f.name for f in budget.frames] == ["moteus command", "reply"]
     assert [f.dlc for f in budget.frames] == [48, 20]   # 38 bytes padded to 48; a 20-byte reply
     assert budget.bits_per_cycle == 163 + 82 and not budget.over
+    # at 500 kbit/s nominal the 5 Mbit/s data phase takes 0.1 nominal bit times per bit, not
+    # 0.2: command 59 + 518 x 0.1 -> 111, reply 34 + 238 x 0.1 -> 58; 33.8 %, not 49 %
+    slow = MoteusPreflight(load_profile("moteus-r4.11")).budget(0.001, 500_000)
+    assert slow is not None and slow.bits_per_cycle == 111 + 58 and slow.load == pytest.approx(0.338)
+    assert "(moteus command 111 + reply 58)" in slow.line()
 
 
 def test_two_moteus_axes_on_one_bus_count_their_fd_frames(tmp_path: Path) -> None:
@@ -46,6 +51,10 @@ def test_two_moteus_axes_on_one_bus_count_their_fd_frames(tmp_path: Path) -> Non
     (bus,) = axes_budget(drives, 0.001)
     assert bus.budget.bits_per_cycle == 2 * (163 + 82) and bus.per_axis == (("a1", 245.0), ("a2", 245.0))
     assert not bus.over and not bus.refused
+    # the axes' bus at 500 kbit/s: each axis 111 + 58 (above), 67.6 %: within the budget
+    drives = axis_drives(load_axes(tmp_path / "axes.yaml", ["drive.bitrate=500000"]), tmp_path, "virtual:x")
+    (bus,) = axes_budget(drives, 0.001)
+    assert bus.per_axis == (("a1", 169.0), ("a2", 169.0)) and bus.load == pytest.approx(0.676) and not bus.refused
 
 
 def test_the_preflight_times_the_fd_frames_it_hears_as_the_budget_does() -> None:

@@ -53,10 +53,21 @@ class FdCycleFrame(CycleFrame):
     :attr:`bits` the frame's time in nominal bit times."""
 
     data_ratio: float = NOMINAL_BITRATE / DATA_BITRATE
+    #: the data phase's bit rate, which the frame switches to (None: no switch: the data
+    #: phase runs at the nominal rate, whatever it is)
+    data_bitrate: int | None = None
 
     @property
     def bits(self) -> int:
         return fd_frame_bits(self.dlc, extended=self.extended, data_ratio=self.data_ratio)
+
+    def bits_at(self, bitrate: float | None) -> int:
+        """At the nominal ``bitrate`` the data phase takes ``bitrate / data_bitrate`` nominal
+        bit times per bit (at 500 kbit/s and 5 Mbit/s half as many as at 1 Mbit/s); unknown:
+        :attr:`bits`, at the nominal rate the moteus documentation sets."""
+        if not bitrate or self.data_bitrate is None:
+            return self.bits
+        return fd_frame_bits(self.dlc, extended=self.extended, data_ratio=bitrate / self.data_bitrate)
 
 
 class MoteusPreflight(PreflightProbe):
@@ -123,8 +134,10 @@ class MoteusPreflight(PreflightProbe):
         node, source, prefix = profile.node_id, self.source, self.prefix
         cmd_ext = arbitration_id(source, node, reply=True, prefix=prefix) > 0x7FF
         rep_ext = arbitration_id(node, source, reply=False, prefix=prefix) > 0x7FF
-        return (FdCycleFrame("moteus command", len(command.payload), extended=cmd_ext, data_ratio=ratio),
-                FdCycleFrame("reply", reply, extended=rep_ext, data_ratio=ratio))
+        data = self.data_bitrate() if self.brs else None
+        return (FdCycleFrame("moteus command", len(command.payload), extended=cmd_ext, data_ratio=ratio,
+                             data_bitrate=data),
+                FdCycleFrame("reply", reply, extended=rep_ext, data_ratio=ratio, data_bitrate=data))
 
     # -- what the node said ---------------------------------------------------------
 
