@@ -31,7 +31,7 @@ from typing import IO, Any, BinaryIO, Final, cast
 
 import can
 
-from dobhil.canio.frames import is_frame_topic, topic_of
+from dobhil.canio.frames import frame_channels, is_frame_topic, topic_of
 from dobhil.errors import LogFileError, exception_line
 from dobhil.files import atomic_path, check_output, input_problem
 from dobhil.recording.reader import open_log
@@ -98,7 +98,7 @@ def export_can(mcap_path: str | os.PathLike[str], out: str | os.PathLike[str], f
         with atomic_path(out) as tmp, FORMATS[fmt][1](tmp) as writer:
             count = 0
             _start_at_earliest(writer, log, topics)
-            bus_channel = _bus_channels(log)
+            bus_channel = frame_channels(log.metadata, mcap_path)
             for topic, t, payload in log.iter_messages(topics):
                 msg = can_frame_message(payload, t)
                 if msg.channel is None:
@@ -111,24 +111,6 @@ def export_can(mcap_path: str | os.PathLike[str], out: str | os.PathLike[str], f
                 if progress is not None:
                     progress(1)
             return count
-
-
-def _bus_channels(log: Any) -> dict[str, str]:
-    """Frame topic -> the channel its bus was opened on (the ``bus`` metadata; a several-axis
-    log's ``bus/<bus>``, its topics from :func:`dobhil.recording.axes.bus_topics`: the topic's
-    prefix is the bus name made a topic, ``/bus/socketcan_can0`` for ``socketcan:can0``).
-    A sent frame is recorded with no channel (python-can sets none on a message it sends),
-    and each writer would put it on a channel of its own choosing -- candump ``vcan0``, ASC
-    and BLF channel 1 -- the sent frames of every bus of a several-bus run on one channel,
-    apart from the frames received on the same bus."""
-    from dobhil.recording.axes import bus_topics
-    out: dict[str, str] = {}
-    for bus, pair in bus_topics(log).items():
-        record = log.metadata.get(f"bus/{bus}") or log.metadata.get("bus", {})
-        channel = str(record.get("channel") or "")
-        if channel:
-            out.update(dict.fromkeys(pair, channel))
-    return out
 
 
 def _start_at_earliest(writer: can.io.generic.MessageWriter, log: Any, topics: list[str]) -> None:

@@ -7,6 +7,8 @@ written by the plugins is byte for byte what ``dobhil run --log`` writes.
 
 from __future__ import annotations
 
+import os
+from collections.abc import Mapping
 from typing import Final
 
 import can
@@ -38,4 +40,24 @@ def frame_message(data: bytes, log_time_ns: int, decoder: Decoder = decode) -> c
     return can_frame_message(decoder(data), log_time_ns)
 
 
-__all__ = ["FRAME_TOPICS", "FRAME_TOPIC_NAMES", "Topic", "frame_message", "is_frame_topic", "topic_of"]
+def frame_channels(metadata: Mapping[str, Mapping[str, str]], path: str | os.PathLike[str]) -> dict[str, str]:
+    """Frame topic -> the channel its bus was opened on, from a log's metadata (the ``bus``
+    record; a several-axis log's ``bus/<bus>``, its topics by
+    :func:`dobhil.recording.axes.metadata_layout`: the topic's prefix is the bus name made a
+    topic, ``/bus/socketcan_can0`` for ``socketcan:can0``). A sent frame is recorded with no
+    channel (python-can sets none on a message it sends), so a reader or writer would put it
+    on no channel or one of its own choosing -- candump ``vcan0``, ASC and BLF channel 1 --
+    the sent frames of every bus of a several-bus run on one channel, apart from the frames
+    received on the same bus. ``path`` names the log in an error."""
+    from dobhil.recording.axes import metadata_layout
+    out: dict[str, str] = {}
+    for bus, prefix in metadata_layout(metadata, path).buses.items():
+        record = metadata.get(f"bus/{bus}") or metadata.get("bus", {})
+        channel = str(record.get("channel") or "")
+        if channel:
+            out.update(dict.fromkeys((prefix + name for name in FRAME_TOPIC_NAMES), channel))
+    return out
+
+
+__all__ = ["FRAME_TOPICS", "FRAME_TOPIC_NAMES", "Topic", "frame_channels", "frame_message", "is_frame_topic",
+           "topic_of"]

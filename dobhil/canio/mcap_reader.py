@@ -1,10 +1,11 @@
 """``can.LogReader("run.mcap")``: python-can's log reader for dobhil recordings.
 
 Yields the frames of ``/can/rx`` (``is_rx=True``) and ``/can/tx`` (``is_rx=False``) in
-log-time order as :class:`can.Message` objects: bus timestamp in seconds, channel,
-identifier and every flag (extended, remote, error, FD, BRS, ESI), DLC and data. Other
-topics are not CAN frames and are skipped. This is what makes ``python -m can.logconvert
-run.mcap run.blf`` and ``python -m can.player run.mcap`` work.
+log-time order as :class:`can.Message` objects: bus timestamp in seconds, channel (a frame
+recorded without one, as python-can sends a frame, that of its bus in the log's metadata, as
+``dobhil log export --can`` writes it), identifier and every flag (extended, remote, error,
+FD, BRS, ESI), DLC and data. Other topics are not CAN frames and are skipped. This is what
+makes ``python -m can.logconvert run.mcap run.blf`` and ``python -m can.player run.mcap`` work.
 
 A finished file is read through its chunk index, chunk and data CRCs checked: damaged
 bytes are a ValueError naming the damage, never frames read silently. A file without a
@@ -32,10 +33,13 @@ from typing import IO, Any, BinaryIO, Final, cast
 
 import can
 from can.io.generic import BinaryIOMessageReader
-from mcap.reader import NonSeekingReader, make_reader
+from mcap.exceptions import McapError
+from mcap.reader import make_reader
+from mcap.records import Channel, Message, Metadata, Schema
+from mcap.stream_reader import StreamReader
 
-from dobhil.canio.frames import frame_message, is_frame_topic
-from dobhil.errors import exception_line
+from dobhil.canio.frames import frame_channels, frame_message, is_frame_topic
+from dobhil.errors import LogFileError, exception_line
 from dobhil.recording.encodings import Decoder
 from dobhil.recording.reader import MAGIC, decoder_for
 from dobhil.recording.schemas import SPECS_BY_SCHEMA
@@ -100,6 +104,7 @@ class McapReader(BinaryIOMessageReader):
             raise ValueError(f"MCAP reader: unknown option(s) {', '.join(sorted(kwargs))}; it takes none")
         self.name = os.fspath(file) if isinstance(file, (str, os.PathLike)) else str(getattr(file, "name", "MCAP"))
         self._decoders: dict[int, Decoder] = {}
+        self._bus_channels: dict[str, str] = {}
         super().__init__(file, mode="rb")
         try:
             head = self.file.read(len(MAGIC))
@@ -132,8 +137,10 @@ class McapReader(BinaryIOMessageReader):
 
     def __iter__(self) -> Iterator[can.Message]:
         try:
-            for log_time, data, decoder in self._records():
+            for topic, log_time, data, decoder in self._records():
                 msg = frame_message(data, log_time, decoder)
+                if msg.channel is None:
+                    msg.channel = self._bus_channels.get(topic)
                 self.frames_read += 1
                 yield msg
         except (KeyError, TypeError) as exc:
@@ -150,9 +157,17 @@ class McapReader(BinaryIOMessageReader):
             found = self._decoders[channel.id] = decoder_for(channel.message_encoding, spec, self.name, channel.topic)
         return found
 
-    def _records(self) -> Iterator[tuple[int, bytes, Decoder]]:
-        """(log time, data) of each frame message, chunk and data CRCs checked; indexed when
-        there is a summary."""
+    def _take_metadata(self, records: dict[str, dict[str, str]]) -> None:
+        """The channel of each frame topic's bus, from the log's metadata records (as ``dobhil
+        log export --can`` gives a sent frame, :func:`dobhil.canio.frames.frame_channels`)."""
+        try:
+            self._bus_channels = frame_channels(records, self.name)
+        except LogFileError:   # a layout it cannot read: the frames as recorded
+            self._bus_channels = {}
+
+    def _records(self) -> Iterator[tuple[str, int, bytes, Decoder]]:
+        """(topic, log time, data) of each frame message, chunk and data CRCs checked; indexed
+        when there is a summary."""
         reader = make_reader(cast(IO[bytes], self.file), validate_crcs=True)
         try:
             summary = reader.get_summary()
@@ -167,21 +182,37 @@ class McapReader(BinaryIOMessageReader):
             listed = ", ".join(sorted(topics)) or "none"
             raise ValueError(f"{self.name}: no CAN frames (no /can/rx or /can/tx topic; topics: {listed})")
         try:
+            self._take_metadata({m.name: m.metadata for m in reader.iter_metadata()})
             for schema, channel, message in reader.iter_messages(topics=frames, log_time_order=True):
-                yield message.log_time, message.data, self._decoder(schema, channel)
+                yield channel.topic, message.log_time, message.data, self._decoder(schema, channel)
         except Exception as exc:  # a CRC, zstd or lz4 error: the bytes are wrong
             raise ValueError(f"{self.name}: damaged after {self.frames_read} frames ({exception_line(exc)}); "
                              f"{self._recover} saves the intact chunks") from exc
 
-    def _scan(self) -> Iterator[tuple[int, bytes, Decoder]]:
-        """Front to back, for a file without chunk index; file order is the writer's order."""
+    def _scan(self) -> Iterator[tuple[str, int, bytes, Decoder]]:
+        """Front to back, for a file without chunk index; file order is the writer's order.
+        The metadata records (written before the first message, dobhil/recording/writer.py)
+        are taken as they come, as NonSeekingReader.iter_messages skips them."""
         self.file.seek(0)
-        reader = NonSeekingReader(cast(IO[bytes], self.file), validate_crcs=True)
-        stream = reader.iter_messages(log_time_order=False)
+        schemas: dict[int, Schema] = {}
+        channels: dict[int, Channel] = {}
+        metadata: dict[str, dict[str, str]] = {}
         try:
-            for schema, channel, message in stream:
-                if is_frame_topic(channel.topic):
-                    yield message.log_time, message.data, self._decoder(schema, channel)
+            for record in StreamReader(cast(IO[bytes], self.file), validate_crcs=True).records:
+                if isinstance(record, Metadata):
+                    metadata[record.name] = record.metadata
+                    self._take_metadata(metadata)
+                elif isinstance(record, Schema):
+                    schemas[record.id] = record
+                elif isinstance(record, Channel):
+                    channels[record.id] = record
+                elif isinstance(record, Message):
+                    channel = channels.get(record.channel_id)
+                    if channel is None:
+                        raise McapError(f"no channel record found with id {record.channel_id}")
+                    if is_frame_topic(channel.topic):
+                        yield (channel.topic, record.log_time, record.data,
+                               self._decoder(schemas.get(channel.schema_id), channel))
         except Exception as exc:
             raise ValueError(f"{self.name}: truncated or damaged after {self.frames_read} frames ({exc}); "
                              f"{self._recover} writes a complete copy") from exc

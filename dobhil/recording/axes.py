@@ -52,9 +52,16 @@ class Layout:
 
 def layout(log: LogFile) -> Layout:
     """The axes of ``log`` (a single-axis log: one axis named ``axis`` on its one bus)."""
-    record = log.metadata.get(AXES_METADATA)
+    return metadata_layout(log.metadata, log.path)
+
+
+def metadata_layout(metadata: Mapping[str, Mapping[str, str]], path: str | os.PathLike[str]) -> Layout:
+    """:func:`layout` of a log's metadata records (a reader that has no :class:`LogFile`, such
+    as python-can's ``can.LogReader`` plugin, dobhil/canio/mcap_reader.py); ``path`` names the
+    log in an error."""
+    record = metadata.get(AXES_METADATA)
     if record is None:
-        bus = str(log.metadata.get("bus", {}).get("channel", "") or "bus")
+        bus = str(metadata.get("bus", {}).get("channel", "") or "bus")
         return Layout((SINGLE_AXIS,), {SINGLE_AXIS: bus}, {bus: ""}, (), listed=False)
     try:
         names = json.loads(record["names"])
@@ -65,9 +72,9 @@ def layout(log: LogFile) -> Layout:
               and isinstance(bus_of, dict) and isinstance(buses, dict) and set(names) <= set(bus_of)
               and all(b in buses for b in bus_of.values()) and isinstance(couplings, list))
     except (KeyError, TypeError, ValueError) as exc:
-        raise LogFileError(f"{log.path}: invalid metadata {AXES_METADATA} ({exception_line(exc)})") from None
+        raise LogFileError(f"{os.fspath(path)}: invalid metadata {AXES_METADATA} ({exception_line(exc)})") from None
     if not ok:
-        raise LogFileError(f"{log.path}: invalid metadata {AXES_METADATA}: expected names, each axis' bus and "
+        raise LogFileError(f"{os.fspath(path)}: invalid metadata {AXES_METADATA}: expected names, each axis' bus and "
                            f"each bus' topic prefix, got {dict(record)}")
     return Layout(tuple(names), MappingProxyType(bus_of), MappingProxyType(buses), tuple(couplings))
 
@@ -205,4 +212,5 @@ def is_axes_log(path: str | os.PathLike[str] | Path | LogFile) -> bool:
 
 
 __all__ = ["AXIS_PREFIX", "AXIS_RECORDS", "BUS_PREFIX", "BUS_TOPICS", "AxisLog", "Layout", "axis_log", "axis_logs",
-           "axis_names", "bus_topics", "is_axes_log", "layout"]
+           "axis_names", "bus_topics", "is_axes_log", "layout",
+           "metadata_layout"]

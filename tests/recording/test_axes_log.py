@@ -210,6 +210,15 @@ def test_export_and_info_read_every_bus(recorded: tuple[Path, Path, Any], tmp_pa
     sent = Counter(m.channel for m in can.LogReader(tmp_path / "f.log") if not m.is_rx)
     assert sent == {log.metadata[f"bus/{b}"]["channel"]: c.message_count for b in ("can0", "can1")
                     for c in log.channels() if c.topic == f"/bus/{b}/can/tx"}
+    # and so does python-can's reader of the log itself, indexed and (a copy cut short, no
+    # summary) front to back: each sent frame on the channel of the bus it went on
+    assert Counter(m.channel for m in can.LogReader(path) if not m.is_rx) == sent
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(path.read_bytes()[:path.stat().st_size // 2])
+    front: list[can.Message] = []
+    with pytest.raises(ValueError, match="truncated"):
+        front.extend(can.LogReader(cut))
+    assert any(not m.is_rx for m in front) and {m.channel for m in front if not m.is_rx} <= set(sent)
     assert main(["log", "export", str(path), "--topic", "/axis/wrist/controller", "--format", "csv",
                  "-o", str(tmp_path / "w.csv")]) == 0
     assert len((tmp_path / "w.csv").read_text().splitlines()) == 301
