@@ -381,6 +381,11 @@ def _fork(ctl: socket.socket, msg: bytes, fds: list[int], pipes: dict[int, int],
     pipes[pid] = status_w
     try:
         socket.send_fds(ctl, [str(pid).encode()], [status_r])
+    except OSError:
+        # the caller is gone since it asked (a run killed while it starts): a normal end,
+        # no traceback on the terminal it shared; its closed end is read next, and the
+        # server exits as it does when the caller closes it
+        pass
     finally:
         os.close(status_r)
 

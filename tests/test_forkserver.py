@@ -6,6 +6,7 @@ code reported the ``subprocess`` way -- and the server comes and goes with its c
 from __future__ import annotations
 
 import os
+import pickle
 import resource
 import signal
 import socket
@@ -298,3 +299,21 @@ def test_a_ctrl_c_while_closing_kills_the_server_without_a_traceback(server: For
     server.close()
     assert proc.wait(30) is not None and proc.returncode is not None
     assert server.pid is None
+
+
+def test_a_caller_gone_before_the_answer_ends_the_server_quietly(tmp_path: Path) -> None:
+    """A run killed (``kill -9``) after asking for a child and before the answer: the server
+    forks the child, cannot answer, and exits 0 with nothing on the standard error it shares
+    with the run's terminal (not a BrokenPipeError traceback). The request is queued and the
+    caller's end closed before the server starts, so the answer always finds the caller gone."""
+    host, end = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+    with open(tmp_path / "stderr", "wb") as err:
+        request = ("os:getpid", (), dict(os.environ), os.getcwd(), forkserver._thread_state())
+        socket.send_fds(host, [pickle.dumps(request)], [err.fileno()])
+        host.close()
+        with end:
+            proc = subprocess.Popen([sys.executable, "-c", forkserver._BOOT, forkserver.ROOT, str(end.fileno())],
+                                    pass_fds=(end.fileno(),), stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+                                    stderr=err)
+        assert proc.wait(30) == 0
+    assert (tmp_path / "stderr").read_text() == ""
