@@ -3,7 +3,8 @@
 Yields the frames of ``/can/rx`` (``is_rx=True``) and ``/can/tx`` (``is_rx=False``) in
 log-time order as :class:`can.Message` objects: bus timestamp in seconds, channel (a frame
 recorded without one, as python-can sends a frame, that of its bus in the log's metadata, as
-``dobhil log export --can`` writes it), identifier and every flag (extended, remote, error,
+``dobhil log export --can`` writes it; one of digits as the number, as python-can's readers
+give a numbered channel), identifier and every flag (extended, remote, error,
 FD, BRS, ESI), DLC and data. Other topics are not CAN frames and are skipped. This is what
 makes ``python -m can.logconvert run.mcap run.blf`` and ``python -m can.player run.mcap`` work.
 
@@ -141,6 +142,12 @@ class McapReader(BinaryIOMessageReader):
                 msg = frame_message(data, log_time, decoder)
                 if msg.channel is None:
                     msg.channel = self._bus_channels.get(topic)
+                if isinstance(msg.channel, str) and msg.channel.isascii() and msg.channel.isdigit():
+                    # a number (Kvaser, Vector, IXXAT number their channels) is recorded as
+                    # text (the schema's channel is a string): read back as the number, as
+                    # python-can's own readers give it (can/io/canutils.py: a channel of
+                    # digits is an int; ASC and BLF store numbers only)
+                    msg.channel = int(msg.channel)
                 self.frames_read += 1
                 yield msg
         except (KeyError, TypeError) as exc:

@@ -30,13 +30,14 @@ DEMO = REPO / "configs" / "demo.yaml"
 T0 = 1_700_000_000.0
 BOUND = 30.0  # s: how long a loaded CI machine may take to start a process, not a measurement
 
-#: Every flag python-can has, classic and FD, both directions, with and without channel.
+#: Every flag python-can has, classic and FD, both directions, with and without channel (a
+#: name, or a number as Kvaser and Vector interfaces give).
 FRAMES = (
     can.Message(timestamp=T0, arbitration_id=0x123, data=bytes(range(8)), channel="can0"),
     can.Message(timestamp=T0 + 0.001, arbitration_id=0x1ABCDEF, is_extended_id=True, data=b"\x01\x02\x03",
                 is_rx=False, channel="can0"),
     can.Message(timestamp=T0 + 0.0015, arbitration_id=0x456, is_extended_id=False, is_remote_frame=True, dlc=6),
-    can.Message(timestamp=T0 + 0.002, arbitration_id=0x001, is_extended_id=False, data=b"", is_rx=False),
+    can.Message(timestamp=T0 + 0.002, arbitration_id=0x001, is_extended_id=False, data=b"", is_rx=False, channel=0),
     can.Message(timestamp=T0 + 0.003, arbitration_id=0x7FF, is_extended_id=False, is_fd=True, bitrate_switch=True,
                 data=bytes(range(12)), channel="vcan1"),
     can.Message(timestamp=T0 + 0.004, arbitration_id=0x18DAF110, is_extended_id=True, is_fd=True,
