@@ -23,6 +23,7 @@ import os
 import re
 import struct
 import zlib
+from datetime import datetime, timezone
 from collections.abc import Callable, Mapping
 from enum import IntEnum
 from pathlib import Path
@@ -125,11 +126,27 @@ def _start_at_earliest(writer: can.io.generic.MessageWriter, log: Any, topics: l
     if earliest is None:
         return
     if isinstance(writer, can.ASCWriter):
-        writer.log_event("dobhil log export", asc_start(earliest))
+        start = asc_start(earliest)
+        writer.log_event(f"{ASC_EXPORT_EVENT} (start {_utc_text(start)})", start)
     elif isinstance(writer, can.BLFWriter):
         writer.log_event("dobhil log export", earliest)
     elif isinstance(writer, can.CanutilsLogWriter):
         writer.last_timestamp = earliest
+
+
+#: The event an ASC export starts with. Its text names the start in UTC: an ASC header's date
+#: has no time zone, python-can's ASCWriter writes it in the local one and its ASCReader reads
+#: it in the local one of the machine that reads it (can/io/asc.py: ``datetime.fromtimestamp``,
+#: ``strptime(...).timestamp()``), so an export imported where the zone (``TZ``) differs, or
+#: within a daylight saving time change's repeated hour, would be off by the difference;
+#: :func:`import_can` takes the UTC start from this line instead.
+ASC_EXPORT_EVENT: Final = "dobhil log export"
+_ASC_EXPORT_LINE: Final = re.compile(rf"\s*(?P<offset>\d+\.\d+) {ASC_EXPORT_EVENT} \(start (?P<utc>[0-9T:.+-]+)\)\s*")
+
+
+def _utc_text(t: float) -> str:
+    """``t`` (a whole millisecond, :func:`asc_start`) in ISO 8601 UTC, to the millisecond."""
+    return datetime.fromtimestamp(t, timezone.utc).isoformat(timespec="milliseconds")
 
 
 def asc_start(earliest: float) -> float:
@@ -255,10 +272,13 @@ class _Lines:
     line ``check`` finds wrong; ``number`` is the line last read. ``gz``: the lines of a
     gzip file's uncompressed bytes, its stream stopping early a cut as well."""
 
-    def __init__(self, path: Path, check: Callable[[str], str | None] | None, gz: _Gunzipped | None = None) -> None:
-        self.path, self.check, self.gz = path, check, gz
+    def __init__(self, path: Path, check: Callable[[str], str | None] | None, gz: _Gunzipped | None = None,
+                 asc: bool = False) -> None:
+        self.path, self.check, self.gz, self.asc = path, check, gz, asc
         self.number = 0
         self.cut: str | None = None
+        #: an ASC export's start in UTC and its offset in the file (:data:`ASC_EXPORT_EVENT`)
+        self.asc_export: tuple[float, float] | None = None
         # the encoding python-can's TextIOMessageReader opens a path with
         encoding = locale.getpreferredencoding(False)
         self._file: IO[str] = (open(path, encoding=encoding) if gz is None
@@ -283,6 +303,11 @@ class _Lines:
         problem = self.check(line) if self.check is not None else None
         if problem is not None:
             raise LogFileError(f"{self.path}: line {self.number}: {problem}")
+        if self.asc and self.asc_export is None and (match := _ASC_EXPORT_LINE.fullmatch(line)):
+            try:
+                self.asc_export = datetime.fromisoformat(match["utc"]).timestamp(), float(match["offset"])
+            except ValueError:
+                pass   # not a time: the header's date, as for any ASC
         return line
 
     def close(self) -> None:
@@ -382,7 +407,8 @@ def _can_reader(path: Path) -> tuple[Any, _Lines | _BlfBytes | None]:
             reader = can.BLFReader(cast(BinaryIO, source))   # it calls read() and close() only
             source.check_header(reader)
             return reader, source
-        source = _Lines(path, candump_problem if text_reader is can.CanutilsLogReader else None, gz)
+        source = _Lines(path, candump_problem if text_reader is can.CanutilsLogReader else None, gz,
+                        asc=suffix == ".asc")
         return cast(Callable[..., Any], text_reader)(source, **absolute), source
     except Exception as exc:  # python-can readers raise what their parsers raise
         if source is not None:
@@ -419,6 +445,21 @@ def import_metadata(source: Path) -> dict[str, str]:
     return meta
 
 
+def _asc_shift(reader: Any, lines: _Lines | _BlfBytes | None) -> float:
+    """Seconds to add to the times of an ASC export read in another time zone than it was
+    written in (:data:`ASC_EXPORT_EVENT`): its UTC start less the start python-can's reader
+    took from the header (``start_time``, the header's date read as local time, plus the
+    event's offset), in whole seconds (a zone's offset; what is left is the header's
+    rounding). 0 for any other log."""
+    if not isinstance(lines, _Lines) or lines.asc_export is None:
+        return 0.0
+    start = getattr(reader, "start_time", None)
+    if not isinstance(start, float) or start == 0.0:   # relative times: no date to correct
+        return 0.0
+    utc, offset = lines.asc_export
+    return float(round(utc - (start + offset)))
+
+
 def import_can(canlog: str | os.PathLike[str], out: str | os.PathLike[str], *,
                progress: ProgressFn | None = None, warn: Callable[[str], None] | None = None) -> int:
     """Every complete frame of a python-can readable log into a new MCAP; the frame count.
@@ -428,10 +469,14 @@ def import_can(canlog: str | os.PathLike[str], out: str | os.PathLike[str], *,
     check_output(out, inputs=[source], suffix=".mcap", what="output", new=True)
     count, meta = 0, {"import": import_metadata(source)}
     reader, lines = _can_reader(source)
+    shift: float | None = None
     with reader, atomic_path(out) as tmp:
         log = LogWriter(open(tmp, "wb"), metadata=meta, fsync=False)
         try:
             for msg in reader:
+                if shift is None:
+                    shift = _asc_shift(reader, lines)
+                msg.timestamp += shift
                 problem = short_frame(msg)
                 if problem is not None:
                     where = f"line {lines.number}" if isinstance(lines, _Lines) else f"frame {count + 1}"

@@ -9,6 +9,10 @@ export of a run, read back by ``dobhil log import``, keeps its date.
 from __future__ import annotations
 
 import datetime
+import os
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import pytest
@@ -62,10 +66,35 @@ def test_real_time_sent_frames_carry_their_send_time_on_the_received_frames_cloc
     assert all(stamp >= recorded[0][1] / 1e9 - span - 1.0 for _, stamp in rx)
 
 
-def test_asc_export_then_import_keeps_the_date(lockstep_log: Path, tmp_path: Path) -> None:
+@contextmanager
+def time_zone(tz: str | None) -> Iterator[None]:
+    """The process' local time zone ``tz`` (a POSIX ``TZ`` string; None: as it is)."""
+    if tz is None:
+        yield
+        return
+    before = os.environ.get("TZ")
+    os.environ["TZ"] = tz
+    time.tzset()
+    try:
+        yield
+    finally:
+        if before is None:
+            del os.environ["TZ"]
+        else:
+            os.environ["TZ"] = before
+        time.tzset()
+
+
+#: An ASC header's date has no zone: exported in one (POSIX TZ strings, no zone database
+#: needed: CET, UTC+1) and imported in another (EST, UTC-5), the times stay the same.
+@pytest.mark.parametrize("zones", [(None, None), ("CET-1", "EST5")])
+def test_asc_export_then_import_keeps_the_date(lockstep_log: Path, tmp_path: Path,
+                                               zones: tuple[str | None, str | None]) -> None:
     asc, back = tmp_path / "run.asc", tmp_path / "back.mcap"
-    count = export_can(lockstep_log, asc, CanLogFormat.ASC)
-    assert import_can(asc, back) == count
+    with time_zone(zones[0]):
+        count = export_can(lockstep_log, asc, CanLogFormat.ASC)
+    with time_zone(zones[1]):
+        assert import_can(asc, back) == count
     original = sorted(stamp for _, _, stamp in frames(lockstep_log))
     imported = sorted(stamp for _, _, stamp in frames(back))
     year = datetime.datetime.fromtimestamp(original[0], tz=datetime.timezone.utc).year
