@@ -466,12 +466,22 @@ def _open(path: str, status: Connection, o: Open) -> LogWriter:
     return log
 
 
+def _file_id(path: str) -> tuple[int, int] | None:
+    """(device, inode) of the file at ``path``; None when there is none."""
+    try:
+        st = os.stat(path)
+    except OSError:
+        return None
+    return st.st_dev, st.st_ino
+
+
 def _serve(fd: int, status: Connection, path: str) -> Reply:
     """Read (polling: no write of the loop's wakes this process), write, hand chunks to the
     OS and fsync on time."""
     log: Any = None  # a LogWriter once OPEN (always the first message) came
     pending, (sync_every, write_every), next_sync, next_write = b"", (1.0, WRITE_INTERVAL), 0.0, 0.0
     os.set_blocking(fd, False)
+    reserved = _file_id(path)   # the empty file the parent created for the log (WriterProcess)
     try:
         while True:
             try:
@@ -480,8 +490,13 @@ def _serve(fd: int, status: Connection, path: str) -> Reply:
                 time.sleep(POLL)
                 chunk = None
             if chunk == b"":  # the parent went away without closing the log
-                if log is None:
-                    return Reply(int(Status.DONE))  # closed before a run started
+                if log is None:   # closed before a run started
+                    if reserved is not None and _file_id(path) == reserved and os.path.getsize(path) == 0:
+                        # the parent gone before it opened the log (a run killed while it starts):
+                        # its empty file removed, as its close() does, or the next run given
+                        # the same --log would refuse it as a recording that exists
+                        os.unlink(path)
+                    return Reply(int(Status.DONE))
                 log.finish(PARENT_EXITED, "the recording process ended without closing the log")
                 return Reply(int(Status.DONE), written=log.written, dropped=log.dropped)
             batches, used = unpack(pending + chunk) if chunk else ([], 0)

@@ -9,8 +9,10 @@ import threading
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
+from multiprocessing.connection import Connection
 from pathlib import Path
 from types import SimpleNamespace
+from typing import cast
 
 import can
 import pytest
@@ -324,6 +326,21 @@ def test_closed_before_open_leaves_no_file(tmp_path: Path) -> None:
     path = tmp_path / "run.mcap"
     writer = WriterProcess(path)
     writer.close()
+    assert not path.exists()
+
+
+def test_a_parent_gone_before_open_leaves_no_file(tmp_path: Path) -> None:
+    """A run killed (``kill -9``) while it starts, before it opened its log: the writer sees
+    the end of its pipe and removes the empty file its parent created, as close() does (left,
+    the next ``dobhil run --log`` of the path refuses it as a recording that exists)."""
+    path = tmp_path / "run.mcap"
+    path.touch()
+    data_r, data_w = os.pipe()
+    os.close(data_w)
+    try:
+        assert process._serve(data_r, cast(Connection, None), str(path)).status == process.Status.DONE
+    finally:
+        os.close(data_r)
     assert not path.exists()
 
 
