@@ -164,3 +164,29 @@ def test_a_recovered_log_with_a_gap_names_the_missing_cycles(recorded_long: Path
     assert lost > 0 and kept["duration_s"] < intact["duration_s"]
     for key in ("bus_load", "rx_frames_per_s"):
         assert abs(kept[key] / intact[key] - 1) < lost / 2, (key, kept[key], intact[key], lost)
+
+
+@pytest.mark.parametrize("verify", [[], ["--verify"]])
+def test_a_recovered_log_without_its_start_is_refused_in_one_line(recorded_long: Path, tmp_path: Path,
+                                                                    capsys: pytest.CaptureFixture[str],
+                                                                    verify: list[str]) -> None:
+    """Its first chunk damaged, the copy lost the initial feedback record (cycle -1) and the
+    first cycles: nothing can be re-run (every cycle after a gap depends on those lost), so
+    replay refuses it in one line, exit 2, rather than naming a gap after no cycle
+    (docs/recording.md); report reads what it kept."""
+    from dobhil.recording.recover import recover
+    with open(recorded_long, "rb") as f:
+        summary = make_reader(f).get_summary()
+    assert summary is not None
+    first = min(summary.chunk_indexes, key=lambda c: c.chunk_start_offset)
+    data = bytearray(recorded_long.read_bytes())
+    middle = first.chunk_start_offset + first.chunk_length // 2
+    data[middle:middle + 16] = bytes(b ^ 0xFF for b in data[middle:middle + 16])
+    bad, saved = tmp_path / "damaged.mcap", tmp_path / "saved.mcap"
+    bad.write_bytes(bytes(data))
+    recover(bad, saved)
+    capsys.readouterr()
+    assert main(["replay", str(saved), *verify]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "no initial feedback record (cycle -1)" in err
+    assert "lost with the start of this recovered log" in err and "Traceback" not in err
