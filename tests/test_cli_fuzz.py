@@ -410,3 +410,22 @@ def test_no_log_with_a_log_is_refused(tmp_path: Path, capsys: pytest.CaptureFixt
     assert capsys.readouterr().err == ("dobhil demo: error: --no-log with --log: give one (record the run to "
                                        "--log, or not at all)\n")
     assert not log.exists() and not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize(("argv", "prog"), [
+    (["analyze", "demo", "--bogus"], "dobhil analyze"),
+    (["report", "x.mcap", "--out", "r", "--axis", "a"], "dobhil report"),
+    (["log", "info", "x.mcap", "--bogus"], "dobhil log info"),
+    (["analyze", "demo", "extra"], "dobhil analyze"),
+])
+def test_an_unknown_argument_is_the_commands_own_one_line(argv: list[str], prog: str,
+                                                           capsys: pytest.CaptureFixture[str]) -> None:
+    """argparse hands a subcommand's unknown arguments up to the top parser: the line must
+    name the command whose ``--help`` lists what it takes, not ``dobhil`` alone (argparse's
+    usage error: a SystemExit of 2)."""
+    with pytest.raises(SystemExit) as info:
+        main(argv)
+    assert info.value.code == 2
+    out, err = capsys.readouterr()
+    extra = " ".join(argv[-2:] if argv[-2] == "--axis" else argv[-1:])
+    assert not out and err == f"{prog}: error: unrecognized arguments: {extra} ('{prog} --help' lists what it takes)\n"

@@ -70,6 +70,17 @@ class _Parser(argparse.ArgumentParser):
         _say(f"{self.prog}: error: {message}")
         raise SystemExit(EXIT_USAGE)
 
+    def parse_known_args(self, args: Sequence[str] | None = None,  # type: ignore[override]
+                         namespace: argparse.Namespace | None = None) -> tuple[argparse.Namespace, list[str]]:
+        """Arguments this parser does not know are its error, said under its own name
+        (``dobhil analyze: error: ...``). argparse hands a subcommand's unknown arguments up
+        to the top parser, whose error named ``dobhil`` alone: the user could not tell which
+        command's ``--help`` to read. No dobhil command passes arguments through."""
+        parsed, extras = super().parse_known_args(args, namespace)
+        if extras:
+            self.error(f"unrecognized arguments: {' '.join(extras)} ('{self.prog} --help' lists what it takes)")
+        return parsed, extras
+
 
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="dobhil", description=DESCRIPTION, epilog=EPILOG)
