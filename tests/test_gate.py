@@ -111,6 +111,7 @@ def test_the_demo_at_c_f_20_is_refused_with_the_largest_stable_gain() -> None:
     (["design.force_gain=7", "analysis.min_gain_margin=1.5"], ""),
     (["design.force_gain=2", "analysis.min_phase_margin=80"], "phase margin"),   # 71.4 deg
     (["design.force_gain=2", "analysis.min_gain_margin=20"], "gain margin"),     # 12.8 dB
+    (["environment.stiffness=0.01"], ""),   # 95.6 deg, not the 0 deg read at the integrator
 ])
 def test_a_margin_below_its_threshold_is_one_warning(sets: list[str], low: str) -> None:
     config, profile, _ = on_drive("demo", sets)
@@ -244,7 +245,10 @@ def test_the_phase_margin_is_the_one_at_the_crossover_nearest_180_deg(
      "design.dob_bandwidth=97.7593", "design.rtob_bandwidth=808.415", "design.force_gain=21.9758"],
     # one crossover, 97.55 deg at 17.2 rad/s (python-control: 76.7 deg at 230 rad/s, |C_f L| = 0.107)
     ["environment.stiffness=13247.5", "environment.damping=4.7723", "design.identified_inertia=0.0554472",
-     "design.dob_bandwidth=54.9982", "design.rtob_bandwidth=117.823", "design.force_gain=0.309156"]])
+     "design.dob_bandwidth=54.9982", "design.rtob_bandwidth=117.823", "design.force_gain=0.309156"],
+    # the integrator cancelled by a zero (K_env 0) or nearly (0.01): 95.59 deg at 312 rad/s, not a
+    # crossover read off rounding at 1e-11 rad/s (-92.7 deg; 0 deg)
+    ["environment.stiffness=0"], ["environment.stiffness=0.01"]])
 def test_analyze_prints_the_phase_margin_of_the_true_crossovers(sets: list[str]) -> None:
     """analyze's phase margin and gain crossover are those of the crossings of |C_f L| = 1
     on a dense grid (:func:`crossover_margins`), where python-control's ``stability_margins``

@@ -420,7 +420,7 @@ def phase_crossover(a0: Array, b: Array, c: Array, gain: Array | float, *,
     a0, b, c = balance(a0, b, c)
     poles = np.asarray(np.linalg.eigvals(a0), dtype=complex)
     zeros, num, _ = zeros_and_numerator(a0, b, c)
-    poles, _ = _snap_marginal(poles, sampled)
+    poles, marginal = _snap_marginal(poles, sampled)
     den = poly_from_roots(poles)
     roots = np.concatenate([poles, zeros], axis=-1)
     if sampled:
@@ -432,6 +432,7 @@ def phase_crossover(a0: Array, b: Array, c: Array, gain: Array | float, *,
     omegas = batched_roots(cross)
     real = np.abs(omegas.imag) <= 1e-6 * (1.0 + np.abs(omegas.real))
     w = np.where(real & (omegas.real >= 0), omegas.real, np.nan)
+    w = np.where(_at_marginal_pole(w, roots[..., :poles.shape[-1]] / w0[..., None], marginal), np.nan, w)
     with np.errstate(divide="ignore", invalid="ignore"):
         value = k * eval_poly(m, 1j * w) / eval_poly(d, 1j * w)
     margin = np.mod(np.degrees(np.angle(value)) + 180.0, 360.0)
@@ -444,6 +445,21 @@ def phase_crossover(a0: Array, b: Array, c: Array, gain: Array | float, *,
         crossover = 2.0 * np.arctan(crossover)
     found = np.any(np.isfinite(margin), axis=-1)
     return np.where(found, worst, np.inf), np.where(found, crossover, np.nan)
+
+
+def _at_marginal_pole(w: Array, poles: CArray, marginal: NDArray[np.bool_]) -> NDArray[np.bool_]:
+    """Which crossover candidates ``w`` (scaled, on the imaginary axis) lie within the
+    snapping tolerance of an open-loop pole on it (``poles`` scaled alike, ``marginal``
+    those on the axis). ``|L|`` is infinite at such a pole, so ``|gain L| = 1`` cannot hold
+    there; what the polynomial shows there is rounding: the integrator at s = 0 (z = 1)
+    cancelled, or nearly, by a zero at K_env = 0 or a very soft environment, where the
+    roots of ``|D|^2 - gain^2 |N|^2`` near 0 are noise of size 1e-15 or an imaginary pair
+    of 1e-7 with a real part of 1e-27, at which ``L`` read -180 deg: a phase margin of 0
+    (the stability gate's warning at K_env = 0.01 N m/rad) instead of the 95.6 deg of the
+    soft-environment limit (``tests/test_gate.py``)."""
+    at = np.where(marginal, np.abs(poles.imag), np.nan)
+    with np.errstate(invalid="ignore"):
+        return np.any(np.abs(w[..., :, None] - at[..., None, :]) <= MARGINAL_RTOL, axis=-1)
 
 
 def _abs_squared(p: CArray) -> Array:
