@@ -420,7 +420,7 @@ def phase_crossover(a0: Array, b: Array, c: Array, gain: Array | float, *,
     a0, b, c = balance(a0, b, c)
     poles = np.asarray(np.linalg.eigvals(a0), dtype=complex)
     zeros, num, _ = zeros_and_numerator(a0, b, c)
-    poles, marginal = _snap_marginal(poles, sampled)
+    poles, _ = _snap_marginal(poles, sampled)
     den = poly_from_roots(poles)
     roots = np.concatenate([poles, zeros], axis=-1)
     if sampled:
@@ -432,7 +432,7 @@ def phase_crossover(a0: Array, b: Array, c: Array, gain: Array | float, *,
     omegas = batched_roots(cross)
     real = np.abs(omegas.imag) <= 1e-6 * (1.0 + np.abs(omegas.real))
     w = np.where(real & (omegas.real >= 0), omegas.real, np.nan)
-    w = np.where(_at_marginal_pole(w, roots[..., :poles.shape[-1]] / w0[..., None], marginal), np.nan, w)
+    w = np.where(_off_crossover(a0, b, c, k, w * w0[..., None], sampled), np.nan, w)
     with np.errstate(divide="ignore", invalid="ignore"):
         value = k * eval_poly(m, 1j * w) / eval_poly(d, 1j * w)
     margin = np.mod(np.degrees(np.angle(value)) + 180.0, 360.0)
@@ -447,19 +447,43 @@ def phase_crossover(a0: Array, b: Array, c: Array, gain: Array | float, *,
     return np.where(found, worst, np.inf), np.where(found, crossover, np.nan)
 
 
-def _at_marginal_pole(w: Array, poles: CArray, marginal: NDArray[np.bool_]) -> NDArray[np.bool_]:
-    """Which crossover candidates ``w`` (scaled, on the imaginary axis) lie within the
-    snapping tolerance of an open-loop pole on it (``poles`` scaled alike, ``marginal``
-    those on the axis). ``|L|`` is infinite at such a pole, so ``|gain L| = 1`` cannot hold
-    there; what the polynomial shows there is rounding: the integrator at s = 0 (z = 1)
-    cancelled, or nearly, by a zero at K_env = 0 or a very soft environment, where the
-    roots of ``|D|^2 - gain^2 |N|^2`` near 0 are noise of size 1e-15 or an imaginary pair
-    of 1e-7 with a real part of 1e-27, at which ``L`` read -180 deg: a phase margin of 0
-    (the stability gate's warning at K_env = 0.01 N m/rad) instead of the 95.6 deg of the
-    soft-environment limit (``tests/test_gate.py``)."""
-    at = np.where(marginal, np.abs(poles.imag), np.nan)
+#: a crossover candidate where ``|gain L|`` read on the state space is further than this
+#: (relative) from 1 is a root of rounding, not a crossover: those are off by orders of
+#: magnitude (1e14, 1e-7), while a true crossover's root, even a double one where
+#: ``|gain L|`` touches 1, reads 1 to far better than this
+CROSSOVER_RTOL = 1e-2
+
+
+def _off_crossover(a: Array, b: Array, c: Array, gain: Array, w: Array, sampled: bool) -> NDArray[np.bool_]:
+    """Which candidates ``w`` (rad/s continuous; ``tan(wT / 2)`` sampled, the bilinear
+    map's) are no crossover: ``|gain C (xI - A)^-1 B|`` there, solved on the balanced
+    realisation itself and not on the polynomials of :func:`phase_crossover`, is not 1.
+
+    At K_env = 0 the loop's integrator (s = 0, z = 1) is cancelled by a zero, and at a
+    very soft environment nearly, by the environment's slow pole; eigenvalues resolve such
+    a double pole only to about 1e-8 (1 +- 1e-8j for the estimated velocity's loop). The
+    coefficients of ``|D|^2 - gain^2 |N|^2`` then carry rounding with roots near w = 0 --
+    noise of 1e-15, or an imaginary pair of 1e-7 whose real part of 1e-27 was taken --
+    where ``L`` read -180 deg: analyze printed a sampled phase margin of -92.7 deg at
+    7.9e-12 rad/s for the demo at K_env = 0 and 0 deg up to K_env = 0.03 N m/rad, and the
+    stability gate warned of a phase margin of 0 deg at K_env = 0.01, where ``|L|`` is in
+    truth about 1e14 and the crossover is 95.6 deg at 312 rad/s (``tests/test_gate.py``).
+    A singular ``xI - A`` is a pole: no crossover."""
     with np.errstate(invalid="ignore"):
-        return np.any(np.abs(w[..., :, None] - at[..., None, :]) <= MARGINAL_RTOL, axis=-1)
+        x = (1.0 + 1j * w) / (1.0 - 1j * w) if sampled else 1j * w
+    shifted = x[..., :, None, None] * np.eye(a.shape[-1]) - a[..., None, :, :]
+    rhs = np.broadcast_to(b[..., None, :, :], shifted.shape[:-1] + (b.shape[-1],))
+    try:
+        solved = np.linalg.solve(shifted, rhs)
+    except np.linalg.LinAlgError:   # one exactly at a pole: each alone, a singular one inf
+        solved = np.full(rhs.shape, np.inf, dtype=complex)
+        for i in np.ndindex(*shifted.shape[:-2]):
+            try:
+                solved[i] = np.linalg.solve(shifted[i], rhs[i])
+            except np.linalg.LinAlgError:
+                pass
+    value = np.abs(gain * (c[..., None, :, :] @ solved)[..., 0, 0])
+    return ~(np.abs(value - 1.0) <= CROSSOVER_RTOL)
 
 
 def _abs_squared(p: CArray) -> Array:
