@@ -211,13 +211,17 @@ def parse_uncertainty(spec: str) -> Uncertainty:
 
 def parse_margins(specs: Sequence[str]) -> Margins:
     """``gm=DB,pm=DEG,ms=DB,os=PCT,noise=X`` (any subset, repeatable); the rest keep their
-    defaults."""
+    defaults. A margin given twice is refused, as a key twice in --range / --uncertainty is:
+    which of two limits was meant is not for the command to guess."""
     values: dict[str, float] = {}
     for spec in specs:
         for item in filter(None, (s.strip() for s in spec.split(","))):
             name, sep, text = item.partition("=")
             if name not in ("gm", "pm", "ms", "os", "noise") or not sep:
                 raise ConfigError(f"--margin {item!r}: expected gm=DB, pm=DEG, ms=DB, os=PCT or noise=N_M")
+            if name in values:
+                raise ConfigError(f"--margin {name}: given more than once ({name}={values[name]:g}, {item}); "
+                                  "give each margin once")
             try:
                 values[name] = float(text)
             except ValueError:
@@ -259,14 +263,19 @@ def default_bounds(config: Config) -> Bounds:
 
 
 def parse_bounds(config: Config, specs: Sequence[str]) -> Bounds:
-    """The default bounds with ``KEY=LO:HI`` overrides (KEY a decision key, 0 < LO < HI)."""
+    """The default bounds with ``KEY=LO:HI`` overrides (KEY a decision key, 0 < LO < HI; each
+    key once, as in --range)."""
     bounds = default_bounds(config)
     lo, hi = dict(bounds.lo), dict(bounds.hi)
+    given: set[str] = set()
     for spec in specs:
         name, sep, text = spec.partition("=")
         name = name.strip()
         if not sep or name not in DECISION_KEYS:
             raise ConfigError(f"--bound {spec!r}: expected KEY=LO:HI with KEY one of {', '.join(DECISION_KEYS)}")
+        if name in given:
+            raise ConfigError(f"--bound {name}: given more than once; give each key once")
+        given.add(name)
         a, b = _numbers("--bound", spec, text)
         if a <= 0:
             raise ConfigError(f"--bound {spec!r}: LO must be > 0 (the search is logarithmic)")
