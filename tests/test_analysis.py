@@ -248,6 +248,12 @@ BAD_ANALYSIS = [
     (["sweep", FIG2A, "--vary", "k=nan:2:3"], "unknown config key"),
     (["sweep", FIG2A, "--vary", "design.force_gain=nan:2:3"], "finite"),
     (["sweep", FIG2A, "--vary", "design.force_gain=0:1e9:3"], "<= 1e+06"),
+    # keys the config's structure never reads: every row would be the same
+    (["sweep", FIG2A, "--vary", "design.disturbance_frequency=1:10:3"], "--set design.disturbance_model=sinusoid"),
+    (["sweep", FIG2A, "--set", "design.interaction_model=ramp", "--vary", "design.interaction_frequency=1:10:3"],
+     "(design.interaction_model is ramp, not sinusoid)"),
+    (["sweep", FIG2A, "--vary", "environment.stiffness=1:2:2", "--vary", "design.velocity_filter_bandwidth=1:9:2"],
+     "--vary design.velocity_filter_bandwidth: the loop does not use it (design.velocity_source is measured"),
     (["analyze", FIG2A, "--set", "design.input_delay=0.001"], "design.input_delay"),
 ]
 

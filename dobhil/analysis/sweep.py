@@ -19,7 +19,7 @@ from dobhil.config.schema import Config, key_fields
 from dobhil.errors import ConfigError
 from dobhil.realtime import one_blas_thread
 from dobhil.synthesis.loop import loop
-from dobhil.synthesis.params import PARAM_KEYS, params_from_config
+from dobhil.synthesis.params import PARAM_KEYS, params_from_config, unused_keys
 
 
 @dataclass(frozen=True)
@@ -154,6 +154,7 @@ def sweep(config: Config, axes: Sequence[Axis], *, sampled: bool, chunk: int = 4
     ``progress(n)``: n more points answered."""
     if len({a.key for a in axes}) != len(axes):
         raise ConfigError("--vary: each key may be varied once")
+    _check_used(config, axes)
     total = int(np.prod([a.values.size for a in axes]))
     if total > MAX_GRID_POINTS:
         raise ConfigError(f"--vary: the grid has {total} points; at most {MAX_GRID_POINTS}")
@@ -166,6 +167,18 @@ def sweep(config: Config, axes: Sequence[Axis], *, sampled: bool, chunk: int = 4
     shape = grids[0].shape
     stacked = [np.concatenate([r[j] for r in results]).reshape(shape) for j in range(4)]
     return SweepResult(tuple(axes), sampled, *stacked)
+
+
+def _check_used(config: Config, axes: Sequence[Axis]) -> None:
+    """A swept key the loop does not read with this config (:func:`unused_keys`) would give
+    the same row at every value, which reads as a key that does not matter; it is refused,
+    naming the choice that would make it matter."""
+    unused, flat = unused_keys(config), config.flat()
+    for a in axes:
+        if a.key in unused:
+            choice, wanted = unused[a.key]
+            raise ConfigError(f"--vary {a.key}: the loop does not use it ({choice} is {flat[choice]}, not {wanted}), "
+                              f"so every value would give the same row; --set {choice}={wanted} to sweep it")
 
 
 def _one_by_one(fn: Callable[[Chunk], ChunkAnswer], chunks: Sequence[Chunk],

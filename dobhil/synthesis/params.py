@@ -111,6 +111,24 @@ PARAM_KEYS: dict[str, str] = {
 }
 
 
+def unused_keys(config: Config) -> dict[str, tuple[str, str]]:
+    """The keys of :data:`PARAM_KEYS` the synthesis reads nowhere with this config's
+    structure, each with the structural key and the value that would make it read: a
+    model's frequency unless that model is the sinusoid
+    (:func:`dobhil.synthesis.models.signal_model`), the velocity filter's bandwidth unless
+    the velocity is estimated (:mod:`dobhil.synthesis.controller`). Varying one changes no
+    matrix of the loop."""
+    d = config.design
+    out: dict[str, tuple[str, str]] = {}
+    if d.disturbance_model != "sinusoid":
+        out["design.disturbance_frequency"] = ("design.disturbance_model", "sinusoid")
+    if d.interaction_model != "sinusoid":
+        out["design.interaction_frequency"] = ("design.interaction_model", "sinusoid")
+    if d.velocity_source != "estimated":
+        out["design.velocity_filter_bandwidth"] = ("design.velocity_source", "estimated")
+    return out
+
+
 def structure_from_config(config: Config) -> Structure:
     d = config.design
     return Structure(
