@@ -84,6 +84,7 @@ def run(args: argparse.Namespace) -> int:
     _check_outputs(args, files_read(config, args))
     ranges, uncertainties = _robust_keys(args)
     _check_uncertain_values(config, uncertainties)
+    _check_contact(config, ranges, uncertainties)
     margins, bounds = parse_margins(args.margin), parse_bounds(config, args.bound)
     _check_numbers(args, len(ranges), len(uncertainties))
     quanta = quantisation(config, Path(args.config))
@@ -136,6 +137,26 @@ def _check_uncertain_values(config: Config, uncertainties: Sequence[Uncertainty]
         if not isinstance(u, IntervalUncertainty) and float(flat[u.key]) == 0.0:
             raise ConfigError(f"--uncertainty {u.key}=±{u.fraction * 100:g}%: the config's {u.key} is 0, so "
                               f"±P % of it is no range; give --range {u.key}=LO:HI instead")
+
+
+def _check_contact(config: Config, ranges: Sequence[Range], uncertainties: Sequence[Uncertainty]) -> None:
+    """A point of the set at K_env = 0 has no design that is stable there: the position, no
+    longer held by a spring, drifts at every C_f (a closed-loop pole at z = 1 that no gain
+    moves; the stability gate does not judge such a loop, README "The stability gate"). The
+    search would run its generations to report that no design meets stability and to widen
+    --bound or relax --margin, which cannot help."""
+    key = "environment.stiffness"
+    drift = "at K_env = 0 the position drifts at every C_f, so no design is stable there"
+    for r in ranges:
+        if r.key == key and r.lo == 0.0:
+            raise ConfigError(f"--range {key}={r.lo:g}:{r.hi:g}: {drift}; start the range above 0")
+    for u in uncertainties:
+        if u.key == key and float(min(u.values(float(config.environment.stiffness)))) == 0.0:
+            raise ConfigError(f"--uncertainty-from: the {key} interval reaches 0: {drift}; give --range {key}=LO:HI "
+                              "with LO > 0 instead")
+    if key not in [r.key for r in ranges] + [u.key for u in uncertainties] and config.environment.stiffness == 0.0:
+        raise ConfigError(f"{key} is 0 in the config: {drift}; --set {key} above 0 or give --range {key}=LO:HI "
+                          "with LO > 0")
 
 
 def _check_numbers(args: argparse.Namespace, n_ranges: int, n_uncertain: int) -> None:

@@ -27,6 +27,9 @@ SMALL = ["paper/fig3", "--range", "environment.stiffness=1e3:1e5", "--grid", "6"
     (["--range", "environment.stiffness=1:2", "--uncertainty", "environment.stiffness=±10%"], "more than once"),
     (["--range", "environment.stiffness=1:2", "--uncertainty", "plant.viscous_friction=±50%"], "is 0, so"),
     (["--range", "environment.stiffness=1:2", "--margin", "gain=6"], "expected gm=DB"),
+    # K_env = 0: the position drifts at every C_f, no design to search for
+    (["--range", "environment.stiffness=0:1e3"], "drifts at every C_f, so no design is stable there"),
+    (["--range", "environment.damping=1:2", "--set", "environment.stiffness=0"], "environment.stiffness is 0"),
     (["--range", "environment.stiffness=1:2", "--margin", "pm=200"], "0 <= pm < 180"),
     (["--range", "environment.stiffness=1:2", "--margin", "gm=6,gm=7"], "--margin gm: given more than once"),
     (["--range", "environment.stiffness=1:2", "--margin", "os=10", "--margin", "pm=40,os=30"], "os=10, os=30"),
@@ -86,11 +89,12 @@ def test_a_constraint_no_design_meets_is_one_line_and_exit_1(capsys: pytest.Capt
 
 
 def test_a_margin_at_an_unstable_point_has_no_value(capsys: pytest.CaptureFixture[str]) -> None:
-    """K_env = 0 leaves the loop's position unobserved (a pole at z = 1): no design is stable
-    there, and the margins there are none, not the search's stand-ins (-100 dB, -180 deg,
-    100 dB) printed as if measured."""
-    code = main(["tune", "paper/fig3", "--range", "environment.stiffness=0:1e4", "--grid", "3",
-                 "--generations", "1", "--json"])
+    """C_f bounded to 500..1000 with fast observers on a stiff environment: no design in the
+    bounds is stable there, and the margins there are none, not the search's stand-ins
+    (-100 dB, -180 deg, 100 dB) printed as if measured."""
+    code = main(["tune", "paper/fig3", "--range", "environment.stiffness=1e4:1e5", "--grid", "3",
+                 "--generations", "1", "--json", "--bound", "design.force_gain=500:1000",
+                 "--bound", "design.dob_bandwidth=1000:1500", "--bound", "design.rtob_bandwidth=1000:1500"])
     constraints = json.loads(capsys.readouterr().out)["constraints"]
     assert code == 1 and not constraints["stability"]["ok"]
     for name in ("gain_margin", "phase_margin", "peak_sensitivity"):
