@@ -21,6 +21,7 @@ if TYPE_CHECKING:
     from dobhil.campaign.campaign import Campaign, Summary
     from dobhil.campaign.compare import Floors
     from dobhil.campaign.tally import Tally
+    from dobhil.config.schema import Config
 
 #: exit code when any run did not succeed (the table is still written)
 EXIT_SOME_FAILED = 1
@@ -139,10 +140,28 @@ def _check_config(campaign: Campaign) -> None:
     from dobhil.config import resolve_config
     from dobhil.runtime.session import RunSession
     spec = campaign.reference_spec()
-    with RunSession(spec.load(), emulate=True, lockstep=True, duration=spec.duration,
+    config = spec.load()
+    with RunSession(config, emulate=True, lockstep=True, duration=spec.duration,
                     config_dir=resolve_config(spec.config).parent):
         pass
     _check_drawn_period(campaign)
+    _check_drawn_read(campaign, config)
+
+
+def _check_drawn_read(campaign: Campaign, config: Config) -> None:
+    """A drawn key the controller never reads with this config's structure (a model's
+    frequency unless that model is the sinusoid, the velocity filter's bandwidth unless the
+    velocity is estimated: :func:`dobhil.synthesis.params.unused_keys`) is refused as the
+    keys a lockstep run never reads are (docs/montecarlo.md): every run would run the same
+    loop, and the table would show a spread of draws that changed nothing."""
+    from dobhil.synthesis.params import unused_keys
+    unused, flat = unused_keys(config), config.flat()
+    for v in campaign.varies:
+        if v.key in unused:
+            choice, wanted = unused[v.key]
+            raise ConfigError(f"--vary {v.text()}: the controller does not read {v.key} ({choice} is {flat[choice]}, "
+                              f"not {wanted}), so every draw would run the same loop; --set {choice}={wanted} to "
+                              "draw it")
 
 
 def _check_drawn_period(campaign: Campaign) -> None:

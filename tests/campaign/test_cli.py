@@ -53,6 +53,9 @@ ROOT = Path(__file__).resolve().parents[2]
      "--vary loop.period=uniform:0.001:0.002: each run is lockstep, whose bus sends a periodic frame only every "
      "whole number of loop periods, and drive profile 'epos4' sends SYNC every 0.001 s (feedback_period), which a "
      "drawn loop.period almost never divides; keep loop.period fixed (the config's 0.001 s runs)"),
+    # a key the controller reads only with another structure: every run would be the same loop
+    (["--vary", "design.velocity_filter_bandwidth=uniform:100:1000"],
+     "does not read design.velocity_filter_bandwidth (design.velocity_source is measured, not estimated)"),
 ])
 def test_bad_input_is_one_line_and_exit_2(extra: list[str], says: str, capsys: pytest.CaptureFixture[str]) -> None:
     args = ["montecarlo", "demo", "--runs", "3", *extra]
