@@ -210,6 +210,17 @@ def test_designs_that_crashed_are_answered(overrides: list[str],
     assert len(edges) == len(changes)
 
 
+def test_sweep_points_at_zero_stiffness_are_said_apart(capsys: pytest.CaptureFixture[str]) -> None:
+    """K_env = 0 has no stable C_f (the position drifts): the largest safe C_f is the other
+    points', not 0."""
+    assert main(["sweep", "demo", "--sampled", "--vary", "environment.stiffness=0:1e4:3"]) == 0
+    out = capsys.readouterr().out.splitlines()
+    assert out[1].startswith("1 point at environment.stiffness = 0: the position drifts at every C_f")
+    alone = sweep(load_config("demo"), [parse_vary("environment.stiffness=5e3:1e4:2")], sampled=True)
+    assert out[2] == f"largest C_f safe over the points with environment.stiffness > 0: " \
+                     f"{float(alone.max_stable_gain.min()):.6g}"
+
+
 def test_the_sweep_that_crashed_answers_every_point(capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["sweep", FIG2A, "--set", "design.rtob_bandwidth=2000", "--vary",
                  "environment.damping=0:100:11", "--vary", "design.dob_bandwidth=500:1000:3"]) == 0

@@ -16,7 +16,10 @@ from dobhil.cli.common import add_config_args, config_from_args, design_on_drive
 from dobhil.errors import ConfigError
 
 if TYPE_CHECKING:
+    import numpy as np
+
     from dobhil.analysis.sweep import ChunkMap, SweepResult
+    from dobhil.config.schema import Config
 
 Progress = Callable[[int], None]
 
@@ -60,7 +63,7 @@ def run(args: argparse.Namespace) -> int:
     with _chunk_map(args) as map_chunks:
         result = _run_with_progress(
             lambda cb: sweep(config, axes, sampled=args.sampled, progress=cb, map_chunks=map_chunks), total)
-    _summary(result)
+    _summary(result, _drifting(config, result))
     if args.out:
         _write_csv(result, args.out)
         print(f"wrote {args.out}")
@@ -122,11 +125,29 @@ def _run_with_progress(work: Callable[[Progress], SweepResult], total: int) -> S
         return work(shown.update)
 
 
-def _summary(result: SweepResult) -> None:
+def _drifting(config: Config, result: SweepResult) -> np.ndarray:
+    """The grid's points at K_env = 0 (swept there, or the config's): the position, held by
+    no spring, drifts at every C_f -- a pole at s = 0 / z = 1 no gain moves, so the exact map
+    has no stable C_f there (the stability gate does not judge such a loop, README "The
+    stability gate")."""
+    import numpy as np
+    key = "environment.stiffness"
+    keys = [a.key for a in result.axes]
+    if key in keys:
+        grids = np.meshgrid(*(a.values for a in result.axes), indexing="ij")
+        return np.asarray(grids[keys.index(key)] == 0.0)
+    return np.full(result.stable.shape, config.environment.stiffness == 0.0)
+
+
+def _summary(result: SweepResult, drifting: np.ndarray) -> None:
+    """The grid's counts and the largest C_f safe at every point; points at K_env = 0 have
+    none (``drifting``), so they are said apart and left out of it, else one such point
+    makes it 0 whatever the rest allow."""
     import numpy as np
     n = result.stable.size
-    finite = result.max_stable_gain[np.isfinite(result.max_stable_gain)]
-    n_unbounded = int(np.isinf(result.max_stable_gain).sum())
+    gains = result.max_stable_gain[~drifting]
+    finite = gains[np.isfinite(gains)]
+    n_unbounded = int(np.isinf(gains).sum())
     kind = "sampled" if result.sampled else "continuous"
     print(f"{n} points ({kind}): {int(result.stable.sum())} stable at their C_f, "
           f"{int(result.minimum_phase.sum())} minimum phase, "
@@ -135,10 +156,16 @@ def _summary(result: SweepResult) -> None:
     if result.unanswered:
         print(f"{result.unanswered} points could not be analysed (their matrices overflow or "
               "numpy cannot decompose them); they are left empty in --out")
+    drift = int(drifting.sum())
+    if drift:
+        print(f"{drift} point{'s' if drift > 1 else ''} at environment.stiffness = 0: the position drifts at every "
+              f"C_f (a pole at {'z = 1' if result.sampled else 's = 0'} no C_f moves), so none is stable there"
+              + ("; the largest safe C_f below is over the other points" if drift < n else ""))
+    where = "the whole grid" if not drift else "the points with environment.stiffness > 0"
     if finite.size:
-        print(f"largest C_f safe over the whole grid: {float(finite.min()):.6g}")
+        print(f"largest C_f safe over {where}: {float(finite.min()):.6g}")
     elif n_unbounded:
-        print("largest C_f safe over the whole grid: unbounded")
+        print(f"largest C_f safe over {where}: unbounded")
 
 
 def _write_csv(result: SweepResult, path: Path) -> None:
