@@ -29,6 +29,11 @@ EXIT_SOME_FAILED = 1
 #: --plot files in --out
 PLOTS = ("metrics.png", "vary.png")
 
+#: the largest --seed: every row carries it in the table's seed column, a 64-bit integer
+#: (dobhil.campaign.table.INTEGER; Parquet's int64), which a larger one overflowed after the
+#: whole campaign had run
+MAX_SEED = 2**63 - 1
+
 
 def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = sub.add_parser("montecarlo", help="N lockstep emulated runs over parameter distributions, on Dask",
@@ -88,8 +93,9 @@ def build_campaign(args: argparse.Namespace) -> tuple[Campaign, tuple[str, ...]]
     from dobhil.runtime.session import check_duration
     if args.runs is None or args.runs < 1:
         raise ConfigError(f"--runs {args.runs}: expected a whole number of runs >= 1")
-    if args.seed < 0:
-        raise ConfigError(f"--seed {args.seed}: expected a whole number >= 0")
+    if not 0 <= args.seed <= MAX_SEED:
+        raise ConfigError(f"--seed {args.seed}: expected a whole number from 0 to {MAX_SEED} (the table's seed "
+                          "column is a 64-bit integer)")
     check_duration(args.duration)
     axis = axis_keys(args, {"vary": "--vary"}) or ""
     varies = tuple(parse_vary(v) for v in args.vary)

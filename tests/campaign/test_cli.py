@@ -32,6 +32,9 @@ ROOT = Path(__file__).resolve().parents[2]
     (["--vary", "plant.inertia=uniform:0.1:1", "--set", "plant.inertia=-1"], "plant.inertia = -1"),
     (["--vary", "plant.inertia=uniform:0.1:1", "--plot"], "--plot writes its figures into --out"),
     (["--vary", "plant.inertia=uniform:0.1:1", "--workers", "0"], "--workers 0"),
+    (["--vary", "plant.inertia=uniform:0.1:1", "--seed", "-1"], "--seed -1: expected a whole number from 0 to"),
+    (["--vary", "plant.inertia=uniform:0.1:1", "--seed", str(2**63), "--format", "parquet"],
+     f"--seed {2**63}: expected a whole number from 0 to {2**63 - 1}"),
     # what every run, the reference first, would fail on: bad input before any run (1e15 s: loop.duration's ceiling)
     (["--vary", "plant.inertia=uniform:0.1:1", "--duration", "1e15"], "too many cycles"),
     (["--vary", "plant.inertia=uniform:0.1:1", "--set", "reference.kind=csv", "--set",
