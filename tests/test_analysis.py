@@ -182,7 +182,7 @@ def test_sweep_rejects_structural_keys(key: str, capsys: pytest.CaptureFixture[s
     assert "cannot be swept" in capsys.readouterr().err
     readme = (Path(__file__).parent.parent / "README.md").read_text()
     row = next(line for line in readme.splitlines() if line.startswith("| `dobhil sweep "))
-    assert "any other key -- `loop.period`, `design.delay_samples` and `design.input_delay` shape" in row
+    assert "any other config key -- `loop.period`, `design.delay_samples` and `design.input_delay` shape" in row
 
 
 # --- designs that fail the analysis, and bad analysis inputs
