@@ -109,7 +109,7 @@ def run(args: argparse.Namespace) -> int:
     if held_out is not None:
         info["validation"] = evidence.validation_info(result, *held_out)
     if args.out:
-        _write_overlay(result.overlay(), info, args.out)
+        _write_overlay(result.overlay(), info, args.out, _overlay_axis(args))
     if args.plot:
         for path in _figures(result, data, parts, args.plot) + evidence.frf_figures(frf, args.plot):
             sys.stderr.write(f"wrote {path}\n")
@@ -317,14 +317,30 @@ _OVERLAY_SOURCES = {"plant.inertia": "inertia", "plant.viscous_friction": "visco
                     "design.identified_inertia": "inertia"}
 
 
-def overlay_text(overlay: dict[str, Any], info: dict[str, Any]) -> str:
+def _overlay_axis(args: argparse.Namespace) -> str | None:
+    """The axis whose keys the overlay sets: ``--axis`` of a several-axis log (None: a
+    single-axis log, whose keys are the config's own)."""
+    if args.axis is None:
+        return None
+    from dobhil.recording.axes import is_axes_log
+    return args.axis if is_axes_log(args.log[0]) else None
+
+
+def overlay_text(overlay: dict[str, Any], info: dict[str, Any], axis: str | None = None) -> str:
     """The overlay as YAML a person can read: one ``key: value`` a line, each commented with its
     95 % interval, and what was not identifiable (and why) at the top. ``repr`` of a float is
-    valid YAML and round-trips exactly (tested)."""
+    valid YAML and round-trips exactly (tested). ``axis``: the keys are that axis' own,
+    ``axes.NAME.section.key`` -- a plain ``section.key`` given to a config that lists axes sets
+    every axis, and loses to a key the axis sets itself (:func:`dobhil.config.axes.load_axes`);
+    the ``identified:`` section keeps plain keys, as ``tune``/``montecarlo --axis NAME`` vary
+    them on that axis' config."""
     est = info["estimates"]
     lines = [f"# written by dobhil identify from {', '.join(info['files'])}; use with --set-file",
              "# design.identified_inertia is the identified inertia as the design's J_mi: keep your own rule "
              "with --set design.identified_inertia=... after --set-file"]
+    if axis is not None:
+        lines.append(f"# the keys of axis {axis}: use with a config that lists axes: (and --axis {axis} for "
+                     "tune and montecarlo)")
     lines += [f"# not identifiable: {name}: {e['why']}" for name, e in est.items() if not e["identifiable"]]
     for key in sorted(overlay):
         value = overlay[key]
@@ -335,15 +351,15 @@ def overlay_text(overlay: dict[str, Any], info: dict[str, Any]) -> str:
             whole = f"delay {e['value']:.6g} s, " if name == "delay" else ""
             note = f"  # {whole}95 % [{e['low']:.6g}, {e['high']:.6g}]"
         shown = repr(float(value)) if isinstance(value, float) else repr(int(value))
-        lines.append(f"{key}: {shown}{note}")
+        lines.append(f"{'' if axis is None else f'axes.{axis}.'}{key}: {shown}{note}")
     from dobhil.identify.intervals import section_text
     return "\n".join(lines) + "\n" + section_text(info)
 
 
-def _write_overlay(overlay: dict[str, Any], info: dict[str, Any], path: Path) -> None:
+def _write_overlay(overlay: dict[str, Any], info: dict[str, Any], path: Path, axis: str | None = None) -> None:
     from dobhil.files import atomic_path
     with atomic_path(path) as tmp:
-        tmp.write_text(overlay_text(overlay, info), encoding="utf-8")
+        tmp.write_text(overlay_text(overlay, info, axis), encoding="utf-8")
     sys.stderr.write(f"wrote {path}\n")
 
 

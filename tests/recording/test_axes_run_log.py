@@ -17,6 +17,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from dobhil.cli.main import main
+from dobhil.config.axes import load_axes
+from dobhil.identify.intervals import read_identified
 from dobhil.recording.axes import axis_log, layout
 from dobhil.recording.reader import open_log
 from dobhil.replay import replay_axes
@@ -204,10 +206,11 @@ def torque_log(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 
 @pytest.mark.parametrize(("name", "inertia"), [("left", 0.25), ("right", 0.3)])
-def test_identify_each_axis_of_a_several_axis_log(torque_log: Path, name: str, inertia: float,
+def test_identify_each_axis_of_a_several_axis_log(torque_log: Path, name: str, inertia: float, tmp_path: Path,
                                                   capsys: pytest.CaptureFixture[str]) -> None:
     capsys.readouterr()
-    assert main(["identify", str(torque_log), "--axis", name, "--json"]) == 0
+    overlay = tmp_path / f"{name}.yaml"
+    assert main(["identify", str(torque_log), "--axis", name, "--json", "--out", str(overlay)]) == 0
     info = json.loads(capsys.readouterr().out)
     assert info["axis"] == name and "note" not in info   # not coupled: nothing to say
     e = info["estimates"]["inertia"]
@@ -215,6 +218,16 @@ def test_identify_each_axis_of_a_several_axis_log(torque_log: Path, name: str, i
     # the other axis' inertia is outside this axis' interval: the fit read this axis' records
     other = 0.3 if inertia == 0.25 else 0.25
     assert not e["low"] <= other <= e["high"]
+    # the overlay sets this axis' keys only, also over a key the axis sets itself (right's
+    # plant.inertia): the other axis keeps its config's
+    config = tmp_path / "identify-axes.yaml"
+    config.write_text(IDENTIFY)
+    axes = load_axes(config, set_files=[overlay])
+    assert axes.axis(name).config.plant.inertia == e["value"]
+    assert axes.axis(name).config.design.identified_inertia == e["value"]
+    untouched = axes.axis("right" if name == "left" else "left").config
+    assert untouched.plant.inertia == other and untouched.design.identified_inertia == 0.125
+    assert read_identified(overlay, "--draw-from").keys[0] == "plant.inertia"   # what --axis NAME varies
 
 
 def test_the_axes_log_records_each_uncoupled_axis_stability_gate(torque_log: Path) -> None:
