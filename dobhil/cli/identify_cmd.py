@@ -85,6 +85,7 @@ def run(args: argparse.Namespace) -> int:
     for name in args.log:
         one = read_log(name, profile=profile, period=args.period, axis=args.axis)
         logs.append((one, tuple(parse_segment(s, one) for s in args.segment) or find_segments(one)))
+    _same_firmware(args.log)
     data, parts = join(logs)
     from dobhil.cli import identify_evidence as evidence
     contact = any(s.kind == "contact" for part in parts for s in part.segments)
@@ -121,6 +122,22 @@ def run(args: argparse.Namespace) -> int:
         if extra:
             print("\n".join(extra))
     return 0
+
+
+def _same_firmware(names: list[str]) -> None:
+    """Logs fitted together are one drive: of one firmware, as ``--validate`` asks of its log
+    (:func:`dobhil.cli.identify_evidence.read_validation`) -- another firmware may scale,
+    quantise or delay the torque and motion otherwise, and the fit shares one delay and one
+    plant between the logs. A log without a recorded drive (imported: decoded with --drive's
+    profile) has no firmware to differ."""
+    from dobhil.cli.identify_evidence import firmware_of
+    from dobhil.errors import ConfigError
+    first = firmware_of(names[0])
+    for name in names[1:]:
+        theirs = firmware_of(name)
+        if first is not None and theirs is not None and theirs != first:
+            raise ConfigError(f"{name}: drive firmware {theirs!r}, but {names[0]}'s is {first!r}; "
+                              "logs identified together need the same drive")
 
 
 def _closed_loop(args: argparse.Namespace, contact: bool) -> int:

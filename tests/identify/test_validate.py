@@ -126,6 +126,8 @@ def test_validation_log_of_another_drive(logs: dict[str, Path], tmp_path: Path,
     capsys.readouterr()
     _fails(capsys, ["identify", str(logs["free"]), "--validate", str(mit)], "validate on a log of the same drive")
     _fails(capsys, ["identify", str(logs["free"]), "--validate", str(old)], "drive firmware '0.5'")
+    # nor are the two fitted together, as one plant and one delay
+    _fails(capsys, ["identify", str(logs["free"]), str(old)], "drive firmware '0.5'")
     # a log at another period (the check itself: an emulated odrive run at another period skips cycles)
     fitted = read_log(logs["free"])
     args = argparse.Namespace(validate=str(logs["free"]), period=None, axis=None, drive=None)
