@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import math
 import os
+from statistics import NormalDist
 from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any, Final
@@ -66,7 +67,7 @@ def section_text(info: Mapping[str, Any]) -> str:
     if not names:
         return ""
     r = {(c["a"], c["b"]): c["r"] for c in info.get("correlations", [])}
-    sd = np.array([float(est[n]["stderr"]) for n in names])
+    sd = np.array([_spread(est[n]) if n != "contact_position" else float(est[n]["stderr"]) for n in names])
     corr = np.eye(len(names))
     for i, a in enumerate(names):
         for j, b in enumerate(names):
@@ -78,15 +79,33 @@ def section_text(info: Mapping[str, Any]) -> str:
              "--draw-from); --set-file skips it",
              "  level: 0.95",
              "  intervals:   # config key: estimate, 95 % interval lo..hi, standard error"]
-    for n in names:
+    for n, s in zip(names, sd):
         e = est[n]
         lines.append(f"    {CONFIG_KEYS[n]}: {{estimate: {float(e['value'])!r}, lo: {float(e['low'])!r}, "
-                     f"hi: {float(e['high'])!r}, stderr: {float(e['stderr'])!r}}}")
+                     f"hi: {float(e['high'])!r}, stderr: {float(s)!r}}}")
     lines.append("  covariance:   # of the estimates, rows and columns in the order of keys")
     lines.append(f"    keys: [{', '.join(CONFIG_KEYS[n] for n in names)}]")
     lines.append("    matrix:")
     lines += [f"      - [{', '.join(repr(float(x)) for x in row)}]" for row in cov]
     return "\n".join(lines) + "\n"
+
+
+#: the two-sided normal quantile of the overlay's 95 % intervals
+_Z: Final = NormalDist().inv_cdf(0.975)
+
+
+def _spread(e: Mapping[str, Any]) -> float:
+    """The standard error a draw of a physical key uses: the fit's, but for an interval cut at
+    the bound 0 (a friction or delay near 0: ``value - z s`` below it), whose high end is the
+    profile likelihood's (dobhil/identify/fit.py ``_profiled``), not ``value + z s``: there
+    ``(hi - value) / z``, so the normal truncated at 0 that ``montecarlo --draw-from`` draws
+    from puts its 95 % inside the interval the overlay gives, as a half-normal's 95 % point
+    is ``z s`` (an AK80-9 free run's Coulomb friction: interval [0, 3.2e-4], the fit's s
+    5.5e-4, with which over half the draws lay above the interval)."""
+    value, low, high, stderr = (float(e[k]) for k in ("value", "low", "high", "stderr"))
+    if low == 0.0 and value - _Z * stderr < 0.0 <= value <= high:
+        return (high - value) / _Z
+    return stderr
 
 
 def read_identified(path: str | os.PathLike[str], option: str) -> Identified:

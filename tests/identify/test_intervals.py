@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import scipy.stats
 
 from dobhil.campaign.draws import JointNormal, Kind, Vary, draw
 from dobhil.cli.identified_box import identified_box, joint_varies
@@ -41,10 +42,15 @@ def test_overlay_round_trip(identified: tuple[Path, dict]) -> None:
              "environment.stiffness": "stiffness", "environment.damping": "damping"}
     expected = [k for k, n in names.items() if info["estimates"][n]["identifiable"]]
     assert list(ident.keys) == expected and "plant.inertia" in expected
+    z = scipy.stats.norm.ppf(0.975)
     for i in ident.intervals:
         e = info["estimates"][names[i.key]]
         # repr of a float round-trips exactly through YAML
-        assert (i.estimate, i.lo, i.hi, i.stderr) == (e["value"], e["low"], e["high"], e["stderr"])
+        assert (i.estimate, i.lo, i.hi) == (e["value"], e["low"], e["high"])
+        # the standard error the fit gave, but at the bound 0 the interval's: its 95 % of the
+        # normal truncated there is the interval
+        cut = i.lo == 0.0 and e["value"] - z * e["stderr"] < 0.0
+        assert i.stderr == pytest.approx((i.hi - i.estimate) / z if cut else e["stderr"], rel=1e-12)
     # the covariance: the standard errors on its diagonal, the reported correlations off it
     sd = np.sqrt(np.diag(ident.covariance))
     assert np.allclose(sd, [i.stderr for i in ident.intervals], rtol=1e-12)
@@ -97,6 +103,27 @@ def test_joint_draws(identified: tuple[Path, dict], capsys: pytest.CaptureFixtur
     ref = ref[np.all(ref >= lower, axis=1)]
     assert np.all(np.abs(x.mean(axis=0) - ref.mean(axis=0)) < 4 * sd / math.sqrt(len(x)))
     assert np.allclose(np.corrcoef(x.T), np.corrcoef(ref.T), atol=0.06)
+
+
+def test_a_key_at_its_bound_is_drawn_inside_its_interval() -> None:
+    """A friction fitted at 0 has its interval's high end from the profile likelihood, here
+    well inside the linearised ``z s`` (an AK80-9 free run's Coulomb friction: [0, 3.2e-4],
+    s 5.5e-4): the covariance the draws use puts 95 % of the normal truncated at 0 inside the
+    interval, not over half of it above; a key inside its bounds keeps the fit's s."""
+    from dobhil.identify.intervals import section_text
+    est = {"inertia": {"value": 0.2485, "low": 0.24745, "high": 0.24957, "stderr": 5.39e-4, "identifiable": True},
+           "coulomb_friction": {"value": 5.9e-10, "low": 0.0, "high": 3.2e-4, "stderr": 5.49e-4,
+                                "identifiable": True}}
+    text = section_text({"estimates": est, "correlations": [{"a": "inertia", "b": "coulomb_friction", "r": -0.3}]})
+    import yaml
+    section = yaml.safe_load(text)["identified"]
+    assert section["intervals"]["plant.inertia"]["stderr"] == 5.39e-4
+    s = section["intervals"]["plant.coulomb_friction"]["stderr"]
+    cov = np.array(section["covariance"]["matrix"])
+    assert math.sqrt(cov[1, 1]) == pytest.approx(s, rel=1e-12)
+    assert cov[0, 1] / (5.39e-4 * s) == pytest.approx(-0.3, rel=1e-12)   # the correlation kept
+    # the 95 % point of the normal at 0 truncated there (a half-normal) is the interval's end
+    assert scipy.stats.halfnorm(scale=s).ppf(0.95) == pytest.approx(3.2e-4, rel=1e-5)
 
 
 def test_truncation_is_exact_rejection() -> None:
