@@ -66,6 +66,7 @@ def run(args: argparse.Namespace) -> int:
     from dobhil.identify.data import find_segments, join, parse_segment, read_log
     if args.period is not None and not (math.isfinite(args.period) and 0.0 < args.period <= MAX_PERIOD):
         raise ConfigError(f"--period {args.period:g}: expected a control period in seconds, > 0 and <= {MAX_PERIOD:g}")
+    _distinct_logs(args)
     if args.segment and len(args.log) > 1:
         raise ConfigError(f"--segment with {len(args.log)} logs: give segments for one LOG at a time "
                           "(without --segment each log's segments are found from its data)")
@@ -122,6 +123,26 @@ def run(args: argparse.Namespace) -> int:
         if extra:
             print("\n".join(extra))
     return 0
+
+
+def _distinct_logs(args: argparse.Namespace) -> None:
+    """Each log once: a log given twice would be fitted as two records of the same plant, its
+    noise counted twice (every interval too narrow by sqrt 2). The same file by another path
+    counts as the same (``os.path.samefile``); a missing one is refused later, by its reader."""
+    from dobhil.errors import ConfigError
+    for i, name in enumerate(args.log):
+        twin = next((s for s in args.log[:i] if _same_file(s, name)), None)
+        if twin is not None:
+            raise ConfigError(f"{name}: given twice (as {twin}); give each log once: a log fitted twice counts "
+                              "its noise twice")
+
+
+def _same_file(a: str, b: str) -> bool:
+    import os
+    try:
+        return os.path.samefile(a, b)
+    except OSError:
+        return False
 
 
 def _same_firmware(names: list[str]) -> None:

@@ -40,6 +40,9 @@ def test_identify_bad_input(logs: dict[str, Path], tmp_path: Path, capsys: pytes
     _fails(capsys, ["identify", str(logs["contact"]), "--period", "0.001"], "records its own period")
     _fails(capsys, ["identify", str(logs["free"]), str(logs["contact"]), "--segment", "0:0.4"], "one LOG at a time")
     _fails(capsys, ["identify", str(logs["free"]), str(logs["still"])], "still.mcap: the position never changes")
+    # one log twice (by another path too) would count its noise twice: intervals too narrow
+    twin = logs["free"].parent / "." / logs["free"].name
+    _fails(capsys, ["identify", str(logs["free"]), str(logs["contact"]), str(twin)], "given twice")
     garbage = tmp_path / "garbage.mcap"
     garbage.write_bytes(b"not an mcap file at all" * 10)
     _fails(capsys, ["identify", str(garbage)], "garbage.mcap")
