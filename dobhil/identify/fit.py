@@ -79,6 +79,9 @@ LEVEL = 0.95
 WIDEST = 0.5
 
 _ENVIRONMENT = ("contact_position", "stiffness", "damping")
+#: parameters whose search minimum is a search bound, not the plant's (a friction, a damping
+#: or a delay of 0 is a bound the truth cannot pass: its interval ends there)
+_SEARCH_FLOOR = ("inertia", "stiffness", "contact_position")
 #: MINPACK's forward-difference step is ``sqrt(epsfcn)`` relative: the fine stage ~3e-4,
 #: the coarse one ~1 % (see :func:`_staged`)
 _EPSFCN = 1e-7
@@ -770,6 +773,15 @@ def _estimates(minimizer: lmfit.Minimizer, result: lmfit.minimizer.MinimizerResu
             out[name] = _not(name, f"flat profile: the 95 % interval (+-{half:.3g}) is wider "
                                    f"than {WIDEST:g} of the value ({value:.3g})"
                                    + _partner(name, covariance))
+            continue
+        # the search's own bounds (every maximum, and the minimum of a parameter with no
+        # natural 0: _parameters) are no bound of the plant: an interval reaching past one
+        # says the record's answer may lie where the fit did not look, not a number
+        edge = p.max if high > p.max else (p.min if low < p.min and name in _SEARCH_FLOOR else None)
+        if edge is not None:
+            out[name] = _not(name, f"its 95 % interval (+-{half:.3g} about {value:.3g}) reaches past the bound "
+                                   f"of the fit's search ({edge:.3g}): the record's answer may lie where the "
+                                   "fit did not look")
             continue
         # at a bound (a friction or a delay that may be 0) the interval ends there: the
         # truth cannot lie beyond it (its high end then from the profile: _profiled);

@@ -200,6 +200,34 @@ def test_an_interval_that_would_leave_the_bounds_ends_at_the_bound() -> None:
     assert e.low <= 0.0 + 1e-9 and e.high < 0.01 * 3.0
 
 
+def test_an_interval_past_a_bound_of_the_search_is_no_number() -> None:
+    """The search's own bounds (an inertia or stiffness 20 times its start estimate, every
+    maximum) are no bound of the plant: a fit that ran to one (measured: a coupled axis whose
+    start estimate was 230 times low gave 0.0215 [0.0196, 0.0215], its search's maximum, for a
+    true 0.25) is not identifiable, saying so, while an interval cut at a friction's or
+    delay's 0 stays a number; one inside every bound is kept."""
+    from types import SimpleNamespace
+
+    import lmfit
+
+    from dobhil.identify.fit import _estimates
+    data, segments = joined([(np.sin(np.arange(200.0)), np.zeros(200), np.cos(np.arange(200.0)), "free")])
+    params = lmfit.Parameters()
+    params.add("inertia", value=0.0215, min=0.001, max=0.02151)
+    params.add("viscous_friction", value=1e-6, min=0.0, max=1.0)
+    params.add("coulomb_friction", value=0.01, min=0.0, max=1.0)
+    params.add("delay", value=2e-4, min=0.0, max=4e-3)
+    names = ["inertia", "viscous_friction", "coulomb_friction", "delay"]
+    sd = np.array([1e-3, 1e-3, 1e-4, 1e-5])
+    result = SimpleNamespace(params=params)
+    out = _estimates(None, result, (names, np.diag(sd ** 2)), data, segments)  # type: ignore[arg-type]
+    assert not out["inertia"].identifiable and "bound of the fit's search (0.0215" in out["inertia"].why
+    assert out["viscous_friction"].identifiable and out["viscous_friction"].low == 0.0   # a bound of the plant
+    assert out["coulomb_friction"].identifiable and out["delay"].identifiable
+    params["inertia"].set(max=1.0)
+    assert _estimates(None, result, (names, np.diag(sd ** 2)), data, segments)["inertia"].identifiable  # type: ignore[arg-type]
+
+
 @pytest.mark.parametrize("name", ["coulomb_friction", "delay"])
 def test_at_a_bound_the_high_end_is_the_profile_likelihood(name: str) -> None:
     """No Coulomb friction, no delay: each estimate sits near its bound 0, its interval
