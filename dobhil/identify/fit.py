@@ -346,6 +346,19 @@ def _parameters(start: dict[str, float], data: IdentData, segments: Sequence[Seg
     return p
 
 
+class _QuietMinimizer(lmfit.Minimizer):
+    """lmfit's Minimizer, its own standard errors taken without numpy's warning: of a
+    record that determines some direction only to rounding (a noise-free emulated run in
+    contact), lmfit's ``covar`` has a rounding-negative diagonal, and its ``np.sqrt`` warned
+    "invalid value encountered in sqrt" on the user's terminal. That standard error is then
+    NaN, which :func:`_first_step` passes over; the intervals are from the fit's own
+    covariance (:func:`_inverse_normal`), never from lmfit's."""
+
+    def _calculate_uncertainties_correlations(self) -> None:
+        with np.errstate(invalid="ignore"):
+            super()._calculate_uncertainties_correlations()
+
+
 class _Counted:
     """:func:`_residual`, telling ``progress`` of each evaluation (one simulation of every
     segment: the unit of the fit's work) and which stage of the fit asked for it."""
@@ -405,7 +418,7 @@ def _identify(data: IdentData, segments: tuple[Segment, ...], max_delay_samples:
                 params.add(_q0(i), value=q, min=q - count, max=q + count)
         fixed["prior_weight"] = _noise_guess(data, segments) / (count / math.sqrt(12.0))
     counted = _Counted(progress)
-    minimizer = lmfit.Minimizer(counted, params, fcn_args=(data, segments, fixed))
+    minimizer = _QuietMinimizer(counted, params, fcn_args=(data, segments, fixed))
     result, other = _staged(minimizer)
     counted.stage = "delay search"
     result = _search_delay(minimizer, result, data.period)

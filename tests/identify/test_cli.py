@@ -131,6 +131,23 @@ def test_set_file_that_is_no_overlay(content: bytes | None, says: str, tmp_path:
     assert SET_FILE_EXPECTED in err and "config file" not in err and "no such file" not in err, err
 
 
+def test_a_noise_free_contact_run_is_fitted_without_warnings(tmp_path: Path,
+                                                             capsys: pytest.CaptureFixture[str]) -> None:
+    """A noise-free pressed run determines some direction only to rounding: lmfit's own
+    covariance (which the fit does not use) had a negative variance there, and numpy's
+    "invalid value encountered in sqrt" reached the user's terminal, twice."""
+    import warnings
+    path = tmp_path / "pressed.mcap"
+    assert main(["run", "identify-contact", "--emulate", "--lockstep", "--log", str(path),
+                 "--set", "loop.duration=0.1"]) == 0
+    capsys.readouterr()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        assert main(["identify", str(path)]) == 0
+    err = capsys.readouterr().err
+    assert "warning" not in err and "sqrt" not in err, err
+
+
 def test_identify_free_run_end_to_end(logs: dict[str, Path], tmp_path: Path,
                                       capsys: pytest.CaptureFixture[str]) -> None:
     """A free-motion run: its one segment found, no environment numbers (not identifiable, said
