@@ -5,7 +5,8 @@ covariance -- what ``dobhil tune --uncertainty-from`` takes as its box and ``dob
 --draw-from`` draws from. ``--set-file`` skips the section (:func:`dobhil.config.load.read_set_file`).
 
 The covariance is the fit's ``s^2 (J^T J)^-1`` (:mod:`dobhil.identify.fit`), rebuilt from the
-standard errors and correlations the fit reports: ``C_ij = r_ij s_i s_j``.
+standard errors and correlations the fit reports: ``C_ij = r_ij s_i s_j``; a key whose interval
+is cut at its bound 0 has ``s`` from that interval instead (:func:`_spread`).
 """
 
 from __future__ import annotations
