@@ -47,6 +47,7 @@ What is fitted, and why so:
 from __future__ import annotations
 
 import math
+import warnings
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from types import MappingProxyType
@@ -346,19 +347,6 @@ def _parameters(start: dict[str, float], data: IdentData, segments: Sequence[Seg
     return p
 
 
-class _QuietMinimizer(lmfit.Minimizer):
-    """lmfit's Minimizer, its own standard errors taken without numpy's warning: of a
-    record that determines some direction only to rounding (a noise-free emulated run in
-    contact), lmfit's ``covar`` has a rounding-negative diagonal, and its ``np.sqrt`` warned
-    "invalid value encountered in sqrt" on the user's terminal. That standard error is then
-    NaN, which :func:`_first_step` passes over; the intervals are from the fit's own
-    covariance (:func:`_inverse_normal`), never from lmfit's."""
-
-    def _calculate_uncertainties_correlations(self) -> None:
-        with np.errstate(invalid="ignore"):
-            super()._calculate_uncertainties_correlations()
-
-
 class _Counted:
     """:func:`_residual`, telling ``progress`` of each evaluation (one simulation of every
     segment: the unit of the fit's work) and which stage of the fit asked for it."""
@@ -385,7 +373,16 @@ def identify(data: IdentData, segments: Sequence[Segment], *, max_delay_samples:
     trust-region step takes an SVD of the Jacobian, one row per sample (60001 x 9 for a
     minute of log) -- and a threaded OpenBLAS took 0.25 s for it on this 2-core machine
     under load, against 0.03 s on one thread (measured, ``scipy.linalg.svd``)."""
-    with one_blas_thread():
+    with one_blas_thread(), warnings.catch_warnings():
+        # lmfit takes its own standard errors after each leastsq fit (np.sqrt of its
+        # covariance's diagonal); of a record that determines some direction only to
+        # rounding (a noise-free emulated run in contact) that diagonal has a rounding-
+        # negative entry, and numpy warned "invalid value encountered in sqrt" on the
+        # user's terminal. That standard error is then NaN, which _first_step passes over;
+        # the intervals are from the fit's own covariance (_inverse_normal), never lmfit's.
+        # Only that warning, only from lmfit's modules, is silenced.
+        warnings.filterwarnings("ignore", message="invalid value encountered in sqrt", category=RuntimeWarning,
+                                module=r"lmfit\.")
         return _identify(data, tuple(segments), max_delay_samples, progress)
 
 
@@ -418,7 +415,7 @@ def _identify(data: IdentData, segments: tuple[Segment, ...], max_delay_samples:
                 params.add(_q0(i), value=q, min=q - count, max=q + count)
         fixed["prior_weight"] = _noise_guess(data, segments) / (count / math.sqrt(12.0))
     counted = _Counted(progress)
-    minimizer = _QuietMinimizer(counted, params, fcn_args=(data, segments, fixed))
+    minimizer = lmfit.Minimizer(counted, params, fcn_args=(data, segments, fixed))
     result, other = _staged(minimizer)
     counted.stage = "delay search"
     result = _search_delay(minimizer, result, data.period)
