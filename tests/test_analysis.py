@@ -358,3 +358,20 @@ def test_continuous_stability_margin_is_the_smallest_distance_to_minus_one(sets)
                              np.broadcast_to(open_loop.B, (w.size, *open_loop.B.shape)))
     dense = np.abs(1.0 + float(params.value("force_gain")) * (open_loop.C @ solved)[:, 0, 0])
     assert domain.margins["stability_margin"] == pytest.approx(dense.min(), rel=1e-3)
+
+
+def test_the_step_figure_of_a_loop_unstable_in_both_domains_says_so_without_warnings(tmp_path: Path) -> None:
+    """At K_env = 0 both domains are unstable (the position drifts): the step figure of
+    ``analyze --plot`` has no curve to put in a legend, which matplotlib warned about on the
+    user's terminal; each domain is said in words instead, one line apart, and no legend."""
+    import warnings
+
+    from dobhil.analysis.report import analyze
+    from dobhil.config import load_config
+    from dobhil.plotting.figures import step_figure
+    result = analyze(load_config("demo", ["environment.stiffness=0"]))
+    assert not result.continuous.stable and not result.discrete.stable
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        path = step_figure(result.continuous, result.discrete, tmp_path)
+    assert path == tmp_path / "step.png" and path.stat().st_size > 0

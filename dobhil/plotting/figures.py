@@ -101,6 +101,28 @@ def bode(axes: tuple[Axes, Axes], sys: control.LTI, label: str) -> None:
     axes[1].semilogx(w, ph, label=label)
 
 
+def step_figure(continuous: DomainAnalysis, discrete: DomainAnalysis, out: Path, title: str = "") -> Path:
+    """step.png: the unit step of tau_int^ref in both domains; an unstable one is said in
+    words where its curve would be (both unstable: the two lines, one above the other, and no
+    legend: matplotlib warns of a legend without curves, and the two words would overlap)."""
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(7, 4.5))
+    for d, domain, y in ((continuous, "continuous", 0.55), (discrete, "sampled", 0.45)):
+        if d.stable:
+            step_plot(ax, d, f"estimated tau_int ({domain})")
+        else:
+            ax.text(0.5, y, f"closed loop unstable ({domain})", transform=ax.transAxes, ha="center")
+    if continuous.stable:
+        ax.plot(continuous.step_time * 1e3, continuous.step_true, "--", label="true tau_int (continuous)")
+    ax.set_xlabel("time [ms]")
+    ax.set_ylabel("interaction torque / reference")
+    ax.set_title(f"Unit step of tau_int^ref {title}")
+    ax.grid(True, alpha=0.3)
+    if ax.get_legend_handles_labels()[0]:
+        ax.legend(fontsize=8)
+    return save(fig, out / "step.png")
+
+
 def analysis_figures(continuous: DomainAnalysis, discrete: DomainAnalysis, out: Path,
                      title: str = "") -> list[Path]:
     """root_locus.png, step.png and bode.png for a design, continuous beside sampled."""
@@ -111,17 +133,7 @@ def analysis_figures(continuous: DomainAnalysis, discrete: DomainAnalysis, out: 
     root_locus(ax[1], discrete, f"sampled, T = {discrete.sample_time:g} s")
     fig.suptitle(f"Root locus of 1 + C_f L {title}")
     paths.append(save(fig, out / "root_locus.png"))
-    fig, ax = plt.subplots(figsize=(7, 4.5))
-    step_plot(ax, continuous, "estimated tau_int (continuous)")
-    step_plot(ax, discrete, "estimated tau_int (sampled)")
-    if continuous.stable:
-        ax.plot(continuous.step_time * 1e3, continuous.step_true, "--", label="true tau_int (continuous)")
-    ax.set_xlabel("time [ms]")
-    ax.set_ylabel("interaction torque / reference")
-    ax.set_title(f"Unit step of tau_int^ref {title}")
-    ax.grid(True, alpha=0.3)
-    ax.legend(fontsize=8)
-    paths.append(save(fig, out / "step.png"))
+    paths.append(step_figure(continuous, discrete, out, title))
     fig, ax = plt.subplots(2, 1, figsize=(7, 6), sharex=True)
     cf = float(continuous.params.value("force_gain")) or 1.0
     bode((ax[0], ax[1]), cf * continuous.systems.system("open_loop"), "C_f L(s)")
