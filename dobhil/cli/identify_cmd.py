@@ -99,7 +99,7 @@ def run(args: argparse.Namespace) -> int:
     info = summary(result, data, parts)
     from dobhil.identify.closedloop import OPEN_LOOP
     info["method"] = OPEN_LOOP
-    notes = [gaps_note(one) for one, _ in logs if gaps_note(one)]
+    notes = [gaps_note(one) for one, _ in logs if gaps_note(one)] + [_seen_note(args)]
     if args.axis is not None:
         info["axis"] = args.axis
         notes.append(coupling_note(args.log, args.axis))
@@ -145,6 +145,19 @@ def _same_file(a: str, b: str) -> bool:
         return False
 
 
+def _seen_note(args: argparse.Namespace) -> str:
+    """A note when ``--validate`` names a log the fit read: its fit % and residual tests are
+    then on data the fit has seen, which validates nothing (a model that memorised the
+    noise would pass); said, not refused, as the figures are still the fit's on that log."""
+    if not args.validate:
+        return ""
+    seen = next((name for name in args.log if _same_file(name, args.validate)), None)
+    if seen is None:
+        return ""
+    return (f"--validate {args.validate} is the fitted log {seen}: the validation is on data the fit has seen, "
+            "not held out; validate on another run")
+
+
 def _same_firmware(names: list[str]) -> None:
     """Logs fitted together are one drive: of one firmware, as ``--validate`` asks of its log
     (:func:`dobhil.cli.identify_evidence.read_validation`) -- another firmware may scale,
@@ -178,6 +191,8 @@ def _closed_loop(args: argparse.Namespace, contact: bool) -> int:
     info["method"] = CLOSED_LOOP
     if args.axis is not None:
         info["axis"] = args.axis
+    if _seen_note(args):
+        info["note"] = _seen_note(args)
     if held_out is not None:
         from dobhil.cli.identify_evidence import loop_validation_info
         info["validation"] = loop_validation_info(result, held_out)

@@ -222,9 +222,12 @@ def test_validate_goes_with_the_closed_loop_fit(logs: dict[str, Path], tmp_path:
         assert info["method"] == CLOSED_LOOP
         assert info["validation"]["against"] == "reference"
         assert [f["signal"] for f in info["validation"]["fits"]] == ["velocity", "position"]
+        # the fitted log itself validates nothing: said
+        assert "validation is on data the fit has seen" in info["note"]
     assert main(["identify", str(logs["contact"]), "--validate", str(logs["free"]), "--json",
                  "--method", "open-loop"]) == 0
-    assert json.loads(capsys.readouterr().out)["validation"]["against"] == "input"
+    info = json.loads(capsys.readouterr().out)
+    assert info["validation"]["against"] == "input" and "note" not in info
     # a validation run of another drive, or firmware: refused in one line before the fit
     for profile, match in (("mini-cheetah", "validate on a log of the same drive"), ("odrive-0.5", "firmware '0.5'")):
         other = emulated_log(tmp_path / f"{profile}.mcap", f"drive.profile={profile}")
