@@ -94,6 +94,24 @@ def test_analyze_writes_plots(tmp_path, capsys: pytest.CaptureFixture[str]) -> N
         assert (tmp_path / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
+@pytest.mark.parametrize("overrides", [["design.identified_inertia=0.3"],    # a zero at +1171 rad/s
+                                       ["design.identified_inertia=1.0", "design.force_gain=2.0"]])  # unstable
+def test_root_locus_shows_the_right_half_plane_zero_and_unstable_poles(overrides: list[str]) -> None:
+    """The continuous root locus' axes reach every right-half-plane zero and closed-loop
+    pole: they are what bound C_f, and a plot cut short of them reads as a stable loop."""
+    from dobhil.paper import continuous
+    from dobhil.plotting.figures import _plt, root_locus
+    d = continuous(load_config("configs/paper/fig2c.yaml", overrides))
+    zeros = d.gains.zeros[~np.isnan(d.gains.zeros)]
+    rightmost = float(np.concatenate([zeros, d.closed_loop_poles]).real.max())
+    fig, ax = _plt().subplots()
+    try:
+        root_locus(ax, d)
+        assert rightmost > 0 and ax.get_xlim()[1] > rightmost
+    finally:
+        _plt().close(fig)
+
+
 def test_step_metrics_of_a_closed_loop_match_python_control(capsys: pytest.CaptureFixture[str]) -> None:
     import control
     out = run_json(capsys, "analyze", "configs/paper/fig3.yaml", "--json")["continuous"]["step"]

@@ -77,7 +77,10 @@ def _limits(ax: Axes, pts: np.ndarray, sampled: bool) -> None:
         ax.set_aspect("equal")
         return
     r = float(np.abs(pts).max()) * 1.3 or 1.0
-    ax.set_xlim(-r, 0.6 * r)
+    # the right half-plane is drawn narrower (a stable design has nothing there) but never
+    # so narrow that it cuts off a right-half-plane zero or an unstable closed-loop pole:
+    # those are what bound C_f (paper Fig. 2c), and a plot without them reads as stable
+    ax.set_xlim(-r, max(0.6 * r, 1.3 * float(pts.real.max())))
     ax.set_ylim(-r, r)
 
 
