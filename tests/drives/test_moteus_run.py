@@ -33,8 +33,8 @@ def test_the_demo_converges_and_replays_bit_for_bit(tmp_path: Path, capsys: pyte
     assert all(m.is_fd and m.bitrate_switch and m.is_extended_id for m in commands)
     assert all(m.is_fd and not m.is_extended_id for m in replies)
     # the report's measured load times the FD frames as the budget does (data phase at the
-    # recorded 5 Mbit/s): 245 bits per cycle at 1 kHz, 24.5 % of 1 Mbit/s, plus the enable's
-    # and stop's few frames; as classic frames they read 83 %
+    # recorded 5 Mbit/s): 245 bits per cycle at 1 kHz, 24.5 % of 1 Mbit/s (the enable's
+    # and stop's few frames are no cycle's); as classic frames they read 83 %
     from dobhil.run_report import bus_stats, load_run
     bus = bus_stats(load_run(log))
     assert bus["bus_load"] == pytest.approx(0.245, abs=0.01) and bus.get("data_bitrate") == 5e6

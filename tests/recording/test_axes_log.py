@@ -183,10 +183,13 @@ def test_report_per_axis_with_shared_timing_and_bus_load(recorded: tuple[Path, P
     assert list(summary["axes"]) == list(AXES)
     assert all(s["cycles"] == 300 and s["stop"] == "done" for s in summary["axes"].values())
     assert summary["loop_timing"]["cycles"] == 300 and summary["loop_timing"]["overruns"] == 0
-    counts = Counter(c.topic for c in open_log(path).channels() for _ in range(c.message_count))
     buses = summary["buses"]
     assert {b: v["axes"] for b, v in buses.items()} == {"can0": ["left", "right"], "can1": ["wrist"]}
-    for bus in buses:
+    for bus in buses:   # the bus' frames from its first axis' first cycle to its last (excluded)
+        cycles = [t for _, t, _ in open_log(path).iter_messages([f"/axis/{buses[bus]['axes'][0]}/controller"])]
+        counts = Counter(topic for topic, t, _ in open_log(path).iter_messages([f"/bus/{bus}/can/rx",
+                                                                                 f"/bus/{bus}/can/tx"])
+                         if cycles[0] <= t < cycles[-1])
         assert buses[bus]["rx_frames"] == counts[f"/bus/{bus}/can/rx"] > 0
         assert buses[bus]["tx_frames"] == counts[f"/bus/{bus}/can/tx"] > 0
         assert 0 < buses[bus]["bus_load"] < 1

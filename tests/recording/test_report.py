@@ -113,6 +113,11 @@ def test_report_without_truth_or_steps(tmp_path: Path, capsys: pytest.CaptureFix
     assert main(["report", str(path), "--out", str(out), "--json"]) == 0
     summary = json.loads(capsys.readouterr().out)
     assert summary["cycles"] == 200 and summary["stop"] == "done"
+    # the frames of the loop's cycles, over their time: one command a cycle at 1 kHz, the
+    # bus budget's 27.1 % (`dobhil check demo`), not diluted by the stop's 0.1 s of heartbeats
+    bus = summary["bus"]
+    assert bus["tx_frames_per_s"] == pytest.approx(1000) and bus["rx_frames_per_s"] == pytest.approx(1000, rel=0.02)
+    assert bus["bus_load"] == pytest.approx(0.271, abs=0.002)
     assert sorted(p.name for p in out.iterdir()) == sorted([*FIGURES, "left", "summary.json", "summary.txt"])
     assert [p.name for p in (out / "left").iterdir()] == ["notes.txt"]
 
