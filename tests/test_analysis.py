@@ -11,6 +11,7 @@ import pytest
 from dobhil.analysis.stability import gain_map, is_stable
 from dobhil.analysis.sweep import parse_vary, sweep
 from dobhil.cli.main import main
+from dobhil.plotting.figures import _plt
 from dobhil.config import load_config
 from dobhil.synthesis.loop import loop
 from dobhil.synthesis.params import params_from_config
@@ -158,6 +159,33 @@ def test_sweep_heatmap_of_two_keys_one_held_at_one_value(first: str, second: str
     from dobhil.plotting.sweep_plot import heatmap
     result = sweep(load_config(FIG2A), [parse_vary(first), parse_vary(second)], sampled=False)
     assert heatmap(result, tmp_path / "h.svg").read_text().startswith("<?xml")
+
+
+@pytest.mark.parametrize("varies", [["design.dob_bandwidth=log:10:1e4:8"],
+                                    ["design.dob_bandwidth=log:10:1e4:8", "design.rtob_bandwidth=log:10:1e4:3"]])
+def test_sweep_heatmap_marks_a_max_stable_gain_of_zero(varies: list[str], tmp_path: Path,
+                                                       monkeypatch: pytest.MonkeyPatch) -> None:
+    """A max stable C_f of 0 (unstable at small gains: the demo delayed 2 samples above
+    g_DOb ~ 1000 rad/s) has no place on the log scale: unmarked, its gap or blank cell would
+    read as the unbounded one the figure's labels name, the opposite."""
+    from dobhil.plotting import sweep_plot
+    figures = []
+    monkeypatch.setattr(sweep_plot, "save", lambda fig, path: figures.append(fig) or path)
+    result = sweep(load_config("configs/demo.yaml", ["design.delay_samples=2"]), [parse_vary(v) for v in varies],
+                   sampled=True)
+    zero = result.max_stable_gain == 0
+    assert zero.any() and (result.max_stable_gain > 0).any()
+    sweep_plot.heatmap(result, tmp_path / "h.png")
+    ax = figures[0].axes[0]
+    try:
+        if len(varies) == 1:
+            marks = [line for line in ax.get_lines() if "unstable at small C_f" in str(line.get_label())]
+            assert len(marks) == 1 and list(marks[0].get_xdata()) == list(result.axes[0].values[zero])
+        else:
+            assert "crossed: 0" in ax.get_title()
+            assert any(list(getattr(c, "hatches", None) or []) == ["xx"] for c in ax.collections)
+    finally:
+        _plt().close(figures[0])
 
 
 def test_paper_command_checks_every_claim(tmp_path, capsys: pytest.CaptureFixture[str]) -> None:  # type: ignore[no-untyped-def]

@@ -22,7 +22,14 @@ def heatmap(result: SweepResult, path: Path) -> Path:
     varied = [a for a in result.axes if a.values.size > 1]
     if len(result.axes) == 1 or len(varied) < 2:
         line = varied[0] if varied else result.axes[0]
-        ax.semilogy(line.values, np.where(np.isinf(k), np.nan, k).reshape(-1), "-o", ms=3)
+        # a max stable C_f of 0 (unstable at small gains) has no place on a log axis: a gap
+        # alone would read as "unbounded", the opposite; a cross on the bottom edge marks it
+        none = k.reshape(-1) == 0
+        ax.semilogy(line.values, np.where(np.isinf(k) | (k == 0), np.nan, k).reshape(-1), "-o", ms=3)
+        if none.any():
+            ax.plot(line.values[none], np.zeros(int(none.sum())), "x", ms=7, mew=1.5, color="tab:red",
+                    transform=ax.get_xaxis_transform(), clip_on=False, label="max stable C_f 0 (unstable at small C_f)")
+            ax.legend(fontsize=8, loc="best")
         held = [f"{a.key} = {a.values[0]:g}" for a in result.axes if a is not line]
         ax.set_xlabel(line.key + (f" ({', '.join(held)})" if held else ""))
         ax.set_ylabel("max stable C_f (gaps: unbounded)")
@@ -35,6 +42,10 @@ def heatmap(result: SweepResult, path: Path) -> Path:
         if unb.any():
             ax.contourf(y.values, x.values, unb.astype(float), levels=[0.5, 1.5], colors="none",
                         hatches=["//"])
+        none = k == 0   # unstable at small C_f: blank as an unbounded cell would be, so crossed
+        if none.any():
+            ax.contourf(y.values, x.values, none.astype(float), levels=[0.5, 1.5], colors="none",
+                        hatches=["xx"])
         if (result.interval_count > 1).any():
             ax.contour(y.values, x.values, (result.interval_count > 1).astype(float), levels=[0.5],
                        colors="red", linewidths=1.0)
@@ -47,8 +58,8 @@ def heatmap(result: SweepResult, path: Path) -> Path:
             ax.set_xscale("log")
         if _log_spaced(x.values):
             ax.set_yscale("log")
-    ax.set_title(f"Max stable force gain ({kind}); hatched: unbounded; white: stability at "
-                 f"the design C_f; red: conditionally stable", fontsize=9)
+    ax.set_title(f"Max stable force gain ({kind}); hatched: unbounded; crossed: 0; white: "
+                 f"stability at the design C_f; red: conditionally stable", fontsize=9)
     return save(fig, path)
 
 
