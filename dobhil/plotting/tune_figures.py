@@ -110,12 +110,17 @@ def worst_step(data: TunePlotData, path: Path) -> Path:
 
 def margins_figure(data: TunePlotData, path: Path) -> Path:
     """Each constraint's worst value as a fraction of its limit (>= 1: met, for lower
-    bounds; <= 1 for upper bounds: drawn as limit / value so that right of 1 is good)."""
+    bounds; <= 1 for upper bounds: drawn as limit / value so that right of 1 is good); a
+    margin with no value (the design unstable at its worst point) at 0, not met."""
     plt = _plt()
     fig, ax = plt.subplots(figsize=(8, 3.5))
     lower = {"gain_margin", "phase_margin"}
     names, ratios = [], []
     for name, value, limit in data.constraints:
+        if np.isnan(value):   # a margin at an unstable worst point: there is none, so not met
+            names.append(f"{name}\nnone (unstable) vs {limit:.3g}")   # (NaN would pass the cap
+            ratios.append(0.0)                                         # below as a full green bar)
+            continue
         ratio = value / limit if name in lower else limit / value if value else np.inf
         names.append(f"{name}\n{value:.3g} vs {limit:.3g}")
         ratios.append(min(ratio, 5.0) if np.isfinite(ratio) else 5.0)
