@@ -102,7 +102,10 @@ def force_figure(data: RecordedRun, predicted: np.ndarray | None, summary: Mappi
         _finish(ax, "interaction torque [N m]")
         if k == 1 and zoom:
             ax.set_xlim(*zoom)
-            _fit_y(ax, t, zoom, [data["tau_ref"], data["tau_int_hat"], data["tau_int_true"]])
+            # the prediction too: it is what the zoom compares the response with, and a peak
+            # of it above the measured one would be cut off
+            _fit_y(ax, t, zoom, [data["tau_ref"], data["tau_int_hat"], data["tau_int_true"],
+                                 *([] if predicted is None else [predicted])])
             ax.set_title("zoom on the largest reference step taken in contact", fontsize=9)
     axes[-1, 0].set_xlabel("time [s]")
     axes[0, 0].set_title(_title(data, names["force_title"]))

@@ -301,3 +301,23 @@ def test_the_report_lists_each_change_of_the_drives_state_in_its_protocols_words
     text = summary_text(analyse(data)[0])
     assert ("drive state at 0.003 s (cycle 3): fault; the drive's state 1 (IDLE), "
             "error 0x01000000 (WATCHDOG_TIMER_EXPIRED)") in text
+
+
+def test_the_force_zoom_keeps_the_predictions_peak(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The zoom on the step in contact fits its y axis to what it compares, the analysis'
+    prediction with it: a predicted peak above the measured response stays in view."""
+    from dobhil.plotting import report_figures
+    figures: list[Any] = []
+    monkeypatch.setattr(report_figures, "save", lambda fig, path: figures.append(fig) or path)
+    data = _contact_run([0.0] * 40, truth=False)
+    data.signals["tau_int_true"] = np.full(40, np.nan)
+    predicted = data["tau_int_hat"].copy()
+    predicted[8] = 2.0   # overshoots where the measured response does not
+    summary = {"steps": [{"time": 0.005, "start": 0.2, "end": 1.0, "metrics": {"settling_time": 0.01}}]}
+    report_figures.force_figure(data, predicted, summary, tmp_path / "force.png")
+    try:
+        zoom = figures[0].axes[1]
+        assert zoom.get_xlim()[0] <= 0.008 <= zoom.get_xlim()[1] and zoom.get_ylim()[1] > 2.0
+    finally:
+        import matplotlib.pyplot as plt
+        plt.close(figures[0])
