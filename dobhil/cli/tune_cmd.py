@@ -316,7 +316,8 @@ def _plots(args: argparse.Namespace, config: Config, result: TuneResult, base: B
         gm_db=result.metrics.gm_db[0], baseline_stable=base.stable,
         worst_at=dict(result.worst_at), tuned_step=force_step(config, tuned, result.worst_at, horizon),
         config_step=force_step(config, config_design, result.worst_at, horizon),
-        constraints=[(w.name, w.value, w.limit) for w in result.constraints if math.isfinite(w.limit)])
+        constraints=[(w.name, w.value, w.limit) for w in result.constraints if math.isfinite(w.limit)],
+        tuned_stable=result.metrics.stable[0])
     paths = tune_figures(data, args.plot)
     if not args.json:
         print("wrote " + ", ".join(str(p) for p in paths))

@@ -28,6 +28,8 @@ class TunePlotData:
     tuned_step: Step
     config_step: Step
     constraints: Sequence[tuple[str, float, float]]   # (name, worst value, limit)
+    #: the tuned design stable per point (where not, ``gm_db`` is the search's stand-in, no margin)
+    tuned_stable: np.ndarray | None = field(default=None, repr=False)
 
 
 def tune_figures(data: TunePlotData, directory: Path) -> list[Path]:
@@ -47,11 +49,20 @@ def stability_map(data: TunePlotData, path: Path) -> Path:
     from matplotlib.patches import Patch
     fig, ax = plt.subplots(figsize=(8, 6.4), layout="constrained")
     keys = data.keys[:2]
-    gm = np.where(np.isinf(data.gm_db), np.nan, data.gm_db)
+    # an unstable point has no gain margin: the search's stand-in there (-100 dB,
+    # dobhil.tune.evaluate.WORST) drawn as one read as a measured margin, and stretched the
+    # colour scale over the real ones; such a point is marked unstable instead
+    unstable = np.zeros(data.gm_db.shape, bool) if data.tuned_stable is None else ~np.asarray(data.tuned_stable)
+    gm = np.where(np.isinf(data.gm_db) | unstable, np.nan, data.gm_db)
     if len(keys) == 1:
         x = _axis_values(data, keys[0])
-        worst = [np.nanmin(gm[data.points[keys[0]] == v], initial=np.inf) for v in x]
+        at = [data.points[keys[0]] == v for v in x]
+        worst = [np.nan if unstable[m].any() else np.nanmin(gm[m], initial=np.inf) for m in at]
         ax.semilogx(x, worst, "-o", ms=3, label="tuned: worst gain margin")
+        bad = np.array([unstable[m].any() for m in at])
+        if bad.any():
+            ax.plot(x[bad], np.zeros(int(bad.sum())), "x", ms=8, mew=1.5, color="tab:red", clip_on=False,
+                    transform=ax.get_xaxis_transform(), label="tuned design unstable (no margin)")
         ax.set_xlabel(keys[0])
         ax.set_ylabel("gain margin [dB] (max stable C_f / C_f)")
         ax.axvline(data.worst_at[keys[0]], color="k", ls="--", label="worst objective")
@@ -59,9 +70,15 @@ def stability_map(data: TunePlotData, path: Path) -> Path:
     else:
         x, y = _axis_values(data, keys[0]), _axis_values(data, keys[1])
         grid, stable = _on_grid(data, keys, x, y, gm)
+        tuned_ok = _on_grid(data, keys, x, y, gm, ~unstable)[1]
+        grid = np.where(tuned_ok, grid, np.nan)   # a cell's worst is no margin where any point is unstable
         mesh = ax.pcolormesh(y, x, grid, shading="auto", cmap="viridis")
         fig.colorbar(mesh, ax=ax, label="tuned design: gain margin [dB] (worst over other keys)")
         handles = []
+        if not tuned_ok.all():
+            ax.contourf(y, x, (~tuned_ok).astype(float), levels=[0.5, 1.5], colors="none", hatches=["xx"])
+            handles.append(Patch(facecolor="none", edgecolor="black", hatch="xx",
+                                 label="the tuned design unstable (no margin)"))
         if not stable.all():   # hatched, not filled: the gain margin's colours stay readable
             ax.contourf(y, x, (~stable).astype(float), levels=[0.5, 1.5], colors="none", hatches=["//"])
             ax.contour(y, x, stable.astype(float), levels=[0.5], colors="red", linewidths=1.5)
@@ -79,14 +96,15 @@ def stability_map(data: TunePlotData, path: Path) -> Path:
 
 
 def _on_grid(data: TunePlotData, keys: tuple[str, ...], x: np.ndarray, y: np.ndarray,
-             gm: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(worst gain margin, config's design stable everywhere) per (x, y) cell."""
+             gm: np.ndarray, stable_at: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(worst gain margin, stable everywhere) per (x, y) cell: the config's design, or
+    ``stable_at`` per point when given."""
     ix = np.searchsorted(x, data.points[keys[0]])
     iy = np.searchsorted(y, data.points[keys[1]])
     grid = np.full((x.size, y.size), np.inf)
     stable = np.ones((x.size, y.size), bool)
     np.minimum.at(grid, (ix, iy), np.nan_to_num(gm, nan=np.inf))
-    np.logical_and.at(stable, (ix, iy), data.baseline_stable)
+    np.logical_and.at(stable, (ix, iy), data.baseline_stable if stable_at is None else stable_at)
     return np.where(np.isinf(grid), np.nan, grid), stable
 
 

@@ -36,3 +36,33 @@ def test_a_margin_with_no_value_is_drawn_not_met(tmp_path: Path, monkeypatch: py
     finally:
         import matplotlib.pyplot as plt
         plt.close(figures[0])
+
+
+@pytest.mark.parametrize("keys", [("environment.stiffness",), ("environment.stiffness", "environment.damping")])
+def test_the_stability_map_marks_the_tuned_designs_unstable_points(keys: tuple[str, ...], tmp_path: Path,
+                                                                   monkeypatch: pytest.MonkeyPatch) -> None:
+    """Where the tuned design is unstable its gain margin is the search's stand-in (-100 dB,
+    no measurement): not drawn as a margin (nor stretching the colour scale), but crossed."""
+    figures: list[Any] = []
+    monkeypatch.setattr(tune_figures, "save", lambda fig, path: figures.append(fig) or path)
+    stiffness = np.repeat([1e3, 1e4, 1e5], 2)
+    points = {"environment.stiffness": stiffness, "environment.damping": np.tile([10.0, 100.0], 3)}
+    stable = np.array([False, True, True, True, True, True])
+    data = tune_figures.TunePlotData(
+        keys=keys, points={k: points[k] for k in keys}, gm_db=np.where(stable, [0, 9.0, 12.0, 8.0, 10.0, 11.0], -100.0),
+        baseline_stable=np.ones(6, bool), worst_at={k: 1e4 for k in keys}, tuned_step=None, config_step=None,
+        constraints=[], tuned_stable=stable)
+    tune_figures.stability_map(data, tmp_path / "map.png")
+    ax = figures[0].axes[0]
+    try:
+        if len(keys) == 1:
+            lines = {str(line.get_label()): line for line in ax.get_lines()}
+            margin = np.asarray(lines["tuned: worst gain margin"].get_ydata(), float)
+            assert np.isnan(margin[0]) and list(margin[1:]) == [8.0, 10.0]
+            assert list(lines["tuned design unstable (no margin)"].get_xdata()) == [1e3]
+        else:
+            assert ax.collections[0].get_clim()[0] == pytest.approx(8.0)   # the mesh: no -100 dB
+            assert any(list(getattr(c, "hatches", None) or []) == ["xx"] for c in ax.collections)
+    finally:
+        import matplotlib.pyplot as plt
+        plt.close(figures[0])
