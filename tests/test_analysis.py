@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from typing import Any
 from pathlib import Path
 
 import numpy as np
@@ -111,6 +112,25 @@ def test_root_locus_shows_the_right_half_plane_zero_and_unstable_poles(overrides
         assert rightmost > 0 and ax.get_xlim()[1] > rightmost
     finally:
         _plt().close(fig)
+
+
+def test_the_step_figure_names_the_domain_whose_loop_is_unstable(tmp_path: Path,
+                                                                 monkeypatch: pytest.MonkeyPatch) -> None:
+    """The demo at C_f = 12: its continuous loop is stable, its sampled one (the runtime's)
+    not. Beside the continuous step, the note of no step says it is the sampled loop's."""
+    from dobhil.plotting import figures as plotting
+    drawn: list[Any] = []
+    monkeypatch.setattr(plotting, "save", lambda fig, path: drawn.append(fig) or path)
+    from dobhil.analysis.report import analyze_domain
+    params = params_from_config(load_config("demo", ["design.force_gain=12"]))
+    plotting.analysis_figures(analyze_domain(params, sampled=False), analyze_domain(params, sampled=True), tmp_path)
+    step = drawn[1].axes[0]
+    try:
+        assert [t.get_text() for t in step.texts] == ["estimated tau_int (sampled): closed loop unstable, no step"]
+        assert [str(line.get_label()) for line in step.get_lines()][0] == "estimated tau_int (continuous)"
+    finally:
+        for fig in drawn:
+            _plt().close(fig)
 
 
 def test_step_metrics_of_a_closed_loop_match_python_control(capsys: pytest.CaptureFixture[str]) -> None:
