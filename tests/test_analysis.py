@@ -201,6 +201,7 @@ def test_sweep_heatmap_marks_a_max_stable_gain_of_zero(varies: list[str], tmp_pa
         if len(varies) == 1:
             marks = [line for line in ax.get_lines() if "unstable at small C_f" in str(line.get_label())]
             assert len(marks) == 1 and list(marks[0].get_xdata()) == list(result.axes[0].values[zero])
+            assert ax.get_xscale() == "log"   # a log: axis: 10..1e4 rad/s, not 5 of 8 points in the left 5 %
         else:
             assert "crossed: 0" in ax.get_title()
             assert any(list(getattr(c, "hatches", None) or []) == ["xx"] for c in ax.collections)

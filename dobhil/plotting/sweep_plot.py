@@ -30,6 +30,8 @@ def heatmap(result: SweepResult, path: Path) -> Path:
             ax.plot(line.values[none], np.zeros(int(none.sum())), "x", ms=7, mew=1.5, color="tab:red",
                     transform=ax.get_xaxis_transform(), clip_on=False, label="max stable C_f 0 (unstable at small C_f)")
             ax.legend(fontsize=8, loc="best")
+        if _log_spaced(line.values):   # a log: axis as the map of two keys draws it: on a linear
+            ax.set_xscale("log")       # one its first decades crowd into the left edge
         held = [f"{a.key} = {a.values[0]:g}" for a in result.axes if a is not line]
         ax.set_xlabel(line.key + (f" ({', '.join(held)})" if held else ""))
         ax.set_ylabel("max stable C_f (gaps: unbounded)")
