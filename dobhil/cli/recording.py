@@ -74,6 +74,15 @@ def live_address(text: str | None, log: Path | None) -> LiveView | None:
     return LiveView(LiveServer, address.host, address.port)
 
 
+def _say_live(log: RunLog | AxesLog) -> None:
+    """The live view's URL on stderr once its port is known, an IPv6 host in brackets
+    (``ws://[::1]:8765``: RFC 3986 section 3.2.2; ``ws://::1:8765`` is no URL a client opens)."""
+    if log.live_port is not None and log.live is not None:
+        from dobhil.live.address import LiveAddress, shown
+        sys.stderr.write(f"live view: ws://{shown(LiveAddress(log.live.host, log.live_port))}\n")
+        sys.stderr.flush()
+
+
 def open_run_log(path: Path | None, *, live: LiveView | None = None, fsync: bool = True,
                  encoding: str = DEFAULT_ENCODING) -> RunLog | None:
     """A :class:`RunLog` for ``path`` (checked first: one line if it cannot be written), its
@@ -179,9 +188,7 @@ def begin(log: RunLog, session: RunSession, config_file: str | os.PathLike[str] 
                                                          plant.motor_torque, plant.interaction_torque)),
               drive=drive, own_ids=drive.frame_ids, codes=ProtocolCodes(session.profile),
               cancel=session.stop_request.reason)
-    if log.live_port is not None and log.live is not None:
-        sys.stderr.write(f"live view: ws://{log.live.host}:{log.live_port}\n")
-        sys.stderr.flush()
+    _say_live(log)
 
 
 def record_run(session: RunSession, log: RunLog | None, config_file: str | os.PathLike[str] | None = None, *,
@@ -368,9 +375,7 @@ def begin_axes(log: AxesLog, runs: Sequence[AxisRun], *, timing: Timing, period:
                                         ProtocolCodes(r.profile)) for r in runs},
               couplings=[{"a": c.a, "b": c.b, "stiffness": c.stiffness, "damping": c.damping} for c in couplings],
               cancel=cancel)
-    if log.live_port is not None and log.live is not None:
-        sys.stderr.write(f"live view: ws://{log.live.host}:{log.live_port}\n")
-        sys.stderr.flush()
+    _say_live(log)
 
 
 def end_axes(log: AxesLog, stop: Stop, disabled: Mapping[str, bool], axis: str = "",

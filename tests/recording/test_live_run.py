@@ -76,6 +76,20 @@ def test_live_that_cannot_listen_leaves_no_log_and_the_rerun_works(
     assert main(base) == 0 and path.is_file()
 
 
+@pytest.mark.parametrize("config", ["demo.yaml", "two-axis-demo.yaml"])
+def test_the_live_view_line_of_an_ipv6_host_is_a_url(tmp_path: Path, capsys: pytest.CaptureFixture[str],
+                                                     config: str) -> None:
+    """``--live [::1]:0`` prints ``ws://[::1]:PORT``, the host in brackets as in a URL (RFC 3986
+    section 3.2.2), for one axis and several: the line is what a user pastes into Foxglove."""
+    from urllib.parse import urlsplit
+    capsys.readouterr()
+    assert main(["run", str(ROOT / "configs" / config), "--emulate", "--lockstep", "--duration", "0.05",
+                 "--log", str(tmp_path / "a.mcap"), "--live", "[::1]:0"]) == 0
+    line = next(x for x in capsys.readouterr().err.splitlines() if x.startswith("live view:"))
+    url = urlsplit(line.split()[-1])
+    assert url.scheme == "ws" and url.hostname == "::1" and url.port, line
+
+
 def test_live_on_loopback_prints_no_exposure_warning(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     from dobhil.cli.recording import live_address
     capsys.readouterr()
