@@ -7,7 +7,7 @@ import sys
 import time
 from typing import Final
 
-from dobhil.live.address import exposure_warning, parse_live_address
+from dobhil.live.address import check_bindable, exposure_warning, parse_live_address
 from dobhil.live.playback import RecordedChannel, check_speed, load_channels, serve_recording
 from dobhil.live.server import LiveServer, import_sdk
 
@@ -23,6 +23,7 @@ def serve_command(path: str | os.PathLike[str], *, live: str, speed: float, loop
     import_sdk()
     notes: list[str] = []
     load_channels(path, on_note=notes.append)
+    check_bindable(address)  # an unknown host or a busy port: its one line, no exposure warning before it
     warning = exposure_warning(address)
     if warning is not None:
         print(f"warning: {warning}", file=sys.stderr, flush=True)

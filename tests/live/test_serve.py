@@ -104,6 +104,7 @@ def test_serve_delivers_recorded_topics_byte_for_byte(recorded: Path, serving: s
         (["RUN", "--speed", "1e300"], "from 0.001 to 1e+06"),
         (["RUN", "--live", "host:port"], "[HOST:]PORT"),
         (["RUN", "--live", "70000"], "out of range"),
+        (["RUN", "--live", "no-such-host.invalid:8799"], "not known"),  # no exposure warning before it
     ],
 )
 def test_bad_input_is_one_line_exit_2(tmp_path: Path, recorded: Path, args: list[str], what: str,
