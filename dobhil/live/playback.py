@@ -114,14 +114,20 @@ def load_channels(path: str | os.PathLike[str], on_note: Callable[[str], None] |
     """Validate a recording and return its channels; one LogFileError line if unusable.
     Serving plays what was recorded and never applies the config, so a newer dobhil's log
     (a recorded config with keys this version does not know) is served, ``on_note`` given
-    the note ``dobhil log info`` prints of it."""
+    the note ``dobhil log info`` prints of it. A recording with channels but no message (an
+    empty capture of ``can.Logger``, whose channels are registered up front) is refused
+    here, before the server listens, not once a client has come to watch it."""
     from dobhil.recording.reader import open_log, unknown_keys_note
 
     log = open_log(path, describe=True)
     if log.unknown_config and on_note is not None:
         on_note(unknown_keys_note(log.unknown_config))
     with open(path, "rb") as f:
-        return recorded_channels(path, f)
+        channels = recorded_channels(path, f)
+        f.seek(0)
+        if next(_guard(path, make_reader(f).iter_messages(log_time_order=False)), None) is None:
+            raise _fail(path, "no messages to serve")
+        return channels
 
 
 def _play_once(

@@ -16,6 +16,7 @@ from dobhil_forks import DobhilForks, Done
 from live_client import LiveClient, counts_at_least
 from mcap.reader import make_reader
 
+from dobhil.canio.mcap_writer import McapWriter
 from dobhil.recording.encodings import encoding
 from dobhil.recording.schemas import SPECS_BY_NAME
 
@@ -105,11 +106,13 @@ def test_serve_delivers_recorded_topics_byte_for_byte(recorded: Path, serving: s
         (["RUN", "--live", "host:port"], "[HOST:]PORT"),
         (["RUN", "--live", "70000"], "out of range"),
         (["RUN", "--live", "no-such-host.invalid:8799"], "not known"),  # no exposure warning before it
+        (["empty.mcap"], "no messages to serve"),  # refused before it listens, not once a client comes
     ],
 )
 def test_bad_input_is_one_line_exit_2(tmp_path: Path, recorded: Path, args: list[str], what: str,
                                       dobhil_forks: DobhilForks) -> None:
     (tmp_path / "not.mcap").write_text("hello")
+    McapWriter(tmp_path / "empty.mcap").stop()  # a capture of no frame: channels, no message
     args = [str(recorded) if a == "RUN" else str(tmp_path / a) if a.endswith(".mcap") else a for a in args]
     live = [] if "--live" in args else ["--live", "127.0.0.1:0"]
     proc = _dobhil(dobhil_forks, "log", "serve", *args, *live)
