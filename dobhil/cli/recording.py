@@ -55,8 +55,9 @@ def default_log_path(directory: Path, now: datetime | None = None) -> Path:
 
 def live_address(text: str | None, log: Path | None) -> LiveView | None:
     """``--live [HOST:]PORT`` checked before a run: the address (resolvable, free to listen on),
-    the SDK there, a log to serve it; one warning line when it is not a loopback address. The
-    live view the log's writer process serves (a :class:`~dobhil.live.LiveServer` there)."""
+    the SDK there, a log to serve it. The live view the log's writer process serves (a
+    :class:`~dobhil.live.LiveServer` there); the warning of an address beyond loopback is
+    :func:`_say_live`'s, once it listens: a run refused after this check shows nothing to anyone."""
     if text is None:
         return None
     from dobhil.errors import ConfigError
@@ -64,22 +65,25 @@ def live_address(text: str | None, log: Path | None) -> LiveView | None:
     from dobhil.live.server import import_sdk
     if log is None:
         raise ConfigError("--live needs a log (--log FILE.mcap): the live view is served by the log's writer")
-    from dobhil.live.address import check_bindable, exposure_warning
+    from dobhil.live.address import check_bindable
     address = parse_live_address(text)
     import_sdk()
     check_bindable(address)  # before the log exists: a refused address leaves no stub behind
-    warning = exposure_warning(address)
-    if warning is not None:
-        sys.stderr.write(f"warning: {warning}\n")
     return LiveView(LiveServer, address.host, address.port)
 
 
 def _say_live(log: RunLog | AxesLog) -> None:
     """The live view's URL on stderr once its port is known, an IPv6 host in brackets
-    (``ws://[::1]:8765``: RFC 3986 section 3.2.2; ``ws://::1:8765`` is no URL a client opens)."""
+    (``ws://[::1]:8765``: RFC 3986 section 3.2.2; ``ws://::1:8765`` is no URL a client opens),
+    after one warning line when the address is not a loopback one. Said once the server
+    listens, so a run refused before (an existing --log, say) is its one error line."""
     if log.live_port is not None and log.live is not None:
-        from dobhil.live.address import LiveAddress, shown
-        sys.stderr.write(f"live view: ws://{shown(LiveAddress(log.live.host, log.live_port))}\n")
+        from dobhil.live.address import LiveAddress, exposure_warning, shown
+        address = LiveAddress(log.live.host, log.live_port)
+        warning = exposure_warning(address)
+        if warning is not None:
+            sys.stderr.write(f"warning: {warning}\n")
+        sys.stderr.write(f"live view: ws://{shown(address)}\n")
         sys.stderr.flush()
 
 

@@ -98,19 +98,32 @@ def test_live_on_loopback_prints_no_exposure_warning(tmp_path: Path, capsys: pyt
     assert capsys.readouterr().err == ""
 
 
-def test_live_beyond_loopback_prints_one_warning_line(tmp_path: Path, capsys: pytest.CaptureFixture[str],
-                                                      monkeypatch: pytest.MonkeyPatch) -> None:
-    """The warning, without binding a public interface (the bind check is
-    stubbed; the address is only classified)."""
+def test_live_beyond_loopback_warns_once_it_listens_and_a_refused_run_does_not(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch) -> None:
+    """The warning, without binding a public interface (the bind check is stubbed, the
+    listening view is a stand-in): one line before the URL, naming the port the view got;
+    a run refused after the address check (its --log exists) says only why, in one line,
+    and warns of nothing it never showed."""
+    from types import SimpleNamespace
+
     import dobhil.live.address as address
+    from dobhil.cli.recording import _say_live
+    from dobhil.live import LiveServer
+    from dobhil.recording.writer import LiveView
     monkeypatch.setattr(address, "check_bindable", lambda _address: None)
-    from dobhil.cli.recording import live_address
+    existing = tmp_path / "a.mcap"
+    existing.write_bytes(b"recorded")
     capsys.readouterr()
-    view = live_address("0.0.0.0:8799", tmp_path / "a.mcap")
-    assert view is not None and (view.host, view.port) == ("0.0.0.0", 8799)
-    err = capsys.readouterr().err
-    assert err.count("\n") == 1 and err.startswith("warning: the live view on 0.0.0.0:8799 (every network interface)")
-    assert "anyone" in err and "read-only" in err
+    for config in ("demo.yaml", "two-axis-demo.yaml"):
+        assert main(["run", str(ROOT / "configs" / config), "--emulate", "--lockstep", "--duration", "0.05",
+                     "--log", str(existing), "--live", "0.0.0.0:8799"]) == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and "--log" in err and "warning" not in err, err
+    assert existing.read_bytes() == b"recorded"
+    _say_live(SimpleNamespace(live=LiveView(LiveServer, "0.0.0.0", 0), live_port=8799))  # type: ignore[arg-type]
+    warning, url = capsys.readouterr().err.splitlines()
+    assert warning.startswith("warning: the live view on 0.0.0.0:8799 (every network interface)")
+    assert "anyone" in warning and "read-only" in warning and url == "live view: ws://0.0.0.0:8799"
 
 
 def test_a_port_taken_after_the_check_still_leaves_no_log(tmp_path: Path, capsys: pytest.CaptureFixture[str],
