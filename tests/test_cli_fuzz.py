@@ -403,12 +403,19 @@ def test_an_empty_output_name_is_refused(argv: list[str], capsys: pytest.Capture
     assert err.count("\n") == 1 and "an empty name; give a file or directory name" in err, err
 
 
-def test_no_log_with_a_log_is_refused(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+@pytest.mark.parametrize(("option", "line"), [
+    ("--log", "--no-log with --log: give one (record the run to --log, or not at all)"),
+    # not "--live needs a log (--log FILE.mcap)": following that, --log is refused with --no-log
+    ("--live", "--no-log with --live: the live view is served by the log's writer; drop --no-log (the run is "
+               "then recorded to OUT/run-*.mcap) or --live"),
+])
+def test_no_log_with_a_log_is_refused(tmp_path: Path, capsys: pytest.CaptureFixture[str], option: str,
+                                      line: str) -> None:
     """Two options that contradict each other: one line, nothing run, nothing written."""
     log = tmp_path / "a.mcap"
-    assert main(["demo", "--no-log", "--log", str(log), "--out", str(tmp_path / "out")]) == 2
-    assert capsys.readouterr().err == ("dobhil demo: error: --no-log with --log: give one (record the run to "
-                                       "--log, or not at all)\n")
+    value = str(log) if option == "--log" else "127.0.0.1:0"
+    assert main(["demo", "--no-log", option, value, "--out", str(tmp_path / "out")]) == 2
+    assert capsys.readouterr().err == f"dobhil demo: error: {line}\n"
     assert not log.exists() and not (tmp_path / "out").exists()
 
 

@@ -54,6 +54,9 @@ def run(args: argparse.Namespace) -> int:
     from dobhil.errors import ConfigError
     if args.no_log and args.log is not None:
         raise ConfigError("--no-log with --log: give one (record the run to --log, or not at all)")
+    if args.no_log and args.live is not None:   # not "--live needs a log (--log ...)": --log is refused with it
+        raise ConfigError("--no-log with --live: the live view is served by the log's writer; drop --no-log "
+                          "(the run is then recorded to OUT/run-*.mcap) or --live")
     path = resolve_config(args.config) if args.config else demo_config_path()
     from dobhil.config.axes import has_axes
     if has_axes(path):   # several axes in one loop: a PNG per axis, one log of every axis
