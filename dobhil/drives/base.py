@@ -136,7 +136,7 @@ class DriveStatus:
 
     state: DriveState
     error_code: int = 0
-    watchdog_tripped: bool = False
+    watchdog_tripped: bool = False  # the watchdog expired while the drive was enabled (since its enable)
     last_heartbeat: float | None = None  # drive clock [s]
     detail: str = ""  # last fault / enable / disable-failure text, one line
     protocol_state: int = -1  # the drive's own state code (StateEvent.state)
@@ -305,6 +305,11 @@ class Drive(ABC):
         self._last_heartbeat: float | None = None
         self._detail = ""
         self._fault_event: StateEvent | None = None   # the state that faulted the drive
+        #: the drive's watchdog expired while it was enabled (since the last enable): what
+        #: DriveStatus.watchdog_tripped says. Not the last state frame's flag: a drive's
+        #: watchdog also runs disabled (an ODrive checks it in every axis state), so the
+        #: frame confirming a safe stop may carry the bit of an axis nobody feeds any more
+        self._watchdog_expired = False
         self._status_cache: DriveStatus | None = None
         #: the enable frames were handed to the bus at least once: from then on a drive
         #: never heard from may have enabled (its safe stop cannot call it NEVER_SEEN)
@@ -357,7 +362,7 @@ class Drive(ABC):
             self._status_cache = DriveStatus(
                 state=self._state,
                 error_code=last.error_code if last else 0,
-                watchdog_tripped=last.watchdog_tripped if last else False,
+                watchdog_tripped=self._watchdog_expired,
                 last_heartbeat=self._last_heartbeat,
                 detail=self._detail,
                 protocol_state=last.state if last else -1,
@@ -395,6 +400,7 @@ class Drive(ABC):
         deadline = self._clock() + wait
         self._set_state(DriveState.DISABLED, "")
         self._last_state = None
+        self._watchdog_expired = False
         self._prepare(deadline, cancel)
         # set before the send: a send that fails part-way may have put a frame on the bus
         self._enable_sent = True
@@ -841,6 +847,9 @@ class Drive(ABC):
         self._record_state(event)
         if self._state is not DriveState.ENABLED:
             return
+        if event.watchdog_tripped:
+            self._watchdog_expired = True
+            self._status_cache = None
         if event.error_code != 0 or not event.active:
             self._set_state(DriveState.FAULT, self._fault_text(event))
             self._fault_event = event

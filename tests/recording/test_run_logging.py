@@ -106,7 +106,7 @@ def test_a_shipped_config_name_attaches_its_file(tmp_path: Path, capsys: pytest.
     a path does."""
     from dobhil.cli.main import main
     path = tmp_path / "named.mcap"
-    assert main(["run", "demo", "--emulate", "--lockstep", "--set", "loop.duration=0.05", "--log", str(path)]) == 0
+    assert main(["run", "demo", "--emulate", "--lockstep", "--set", "loop.duration=0.1", "--log", str(path)]) == 0
     capsys.readouterr()
     attached = {name: data for name, _, data in open_log(path).attachments}
     assert set(attached) == {"demo.yaml", "config.resolved.yaml"}
@@ -118,6 +118,23 @@ def test_events_enable_disable_stop(run_log: Run) -> None:
     kinds = [e["kind"] for e in events]
     assert kinds[0] == "enable" and "disable" in kinds and kinds[-1] == "stop"
     assert events[-1]["reason"] == "done"
+
+
+def test_a_watchdog_that_expires_after_the_safe_stop_is_no_watchdog_event(tmp_path: Path,
+                                                                          capsys: pytest.CaptureFixture[str]) -> None:
+    """An ODrive checks its watchdog in every axis state: firmware 0.5 answers no heartbeat
+    request, so the safe stop waits for the cyclic heartbeat (every 0.1 s), which comes after
+    the 0.05 s watchdog of the axis nobody feeds any more and carries its bit. The run's log
+    recorded "drive watchdog expired" for every such run; the watchdog expired after the drive
+    was disabled, not while it was enabled (tests/drives/test_drive_emulated.py trips it then)."""
+    from dobhil.cli.main import main
+    path = tmp_path / "run.mcap"
+    assert main(["run", "demo", "--emulate", "--lockstep", "--set", "drive.profile=odrive-0.5",
+                 "--set", "loop.duration=0.1", "--log", str(path)]) == 0
+    capsys.readouterr()
+    events = [(p["kind"], p["reason"]) for _, _, p in open_log(path).iter_messages(["/events"])]
+    assert ("disable", "safe stop: confirmed") in events and events[-1] == ("stop", "done")
+    assert not [e for e in events if e[0] == "watchdog"], events
 
 
 @pytest.mark.parametrize("fmt", list(CanLogFormat), ids=lambda f: f.name.lower())
