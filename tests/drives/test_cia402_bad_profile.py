@@ -127,3 +127,19 @@ def test_a_file_that_is_not_an_eds_is_one_line_as_a_process(tmp_path: Path, comm
     assert done.returncode == EXIT_USAGE, done.stderr
     assert done.stderr.count("\n") == 1 and "Traceback" not in done.stderr
     assert re.search(EDS_SAYS["not INI"], done.stderr), done.stderr
+
+
+@pytest.mark.parametrize("node_id", ["profile", "--set"])
+@pytest.mark.parametrize("command", COMMANDS)
+def test_a_host_heartbeat_on_the_nodes_own_id_is_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str],
+                                                          command: str, node_id: str) -> None:
+    """A node watching the host hears it on 0x700 + host_node_id, its own heartbeat's id when
+    the two ids are one: ``check`` and ``analyze`` refuse it before any bus opens, as ``run``
+    does, whether the profile or the config's ``drive.node_id`` names the node."""
+    config = write_setup(tmp_path, consumer_heartbeat=0.05, host_node_id=5 if node_id == "profile" else 9)
+    if node_id == "--set":
+        data = yaml.safe_load(config.read_text())
+        data["drive"]["node_id"] = 9
+        config.write_text(yaml.safe_dump(data))
+    err = one_line_exit_2(command, config, capsys)
+    assert re.search(r"cia402.host_node_id: expected an id other than the node's \((5|9)\)", err), err

@@ -11,7 +11,8 @@ import math
 from types import MappingProxyType
 from typing import Any
 
-from dobhil.drives.profile import Rule, ProtocolRules
+from dobhil.drives.profile import DriveProfile, Rule, ProtocolRules
+from dobhil.errors import ConfigError
 
 __all__ = ["CIA402_RULES", "RATED_TORQUE_UNITS", "VELOCITY_UNITS"]
 
@@ -31,6 +32,19 @@ def _positive(limit: float) -> Any:
 
 def _one_of(values: tuple[str, ...]) -> str:
     return "one of " + ", ".join(repr(v) for v in values)
+
+
+def check_cia402_profile(profile: DriveProfile, source: str) -> None:
+    """The host's heartbeat against the node's id, once both passed their rules (and with a
+    config's ``drive.node_id`` in place of the profile's): a node watching the host
+    (``consumer_heartbeat`` > 0) hears it on 0x700 + ``host_node_id`` (CiA 301's heartbeat
+    COB-ID), which is the node's own heartbeat when the two ids are one. Checked here, where
+    the profile is read, so ``dobhil check``, ``analyze`` and ``emulate`` refuse it as ``dobhil
+    run`` does, before any bus opens."""
+    node, host = profile.node_id, int(profile.options["host_node_id"])
+    if host == node and float(profile.options["consumer_heartbeat"]) > 0:
+        raise ConfigError(f"{source}: cia402.host_node_id: expected an id other than the node's ({node}): "
+                          f"the host's heartbeat 0x{0x700 + node:03X} would be the node's own")
 
 
 CIA402_RULES = ProtocolRules(
@@ -64,4 +78,5 @@ CIA402_RULES = ProtocolRules(
         "node_id": Rule((int,), "an integer from 1 to 127 (CANopen node id)", lambda v: 1 <= v <= 127),
     }),
     requires=frozenset({"feedback_period"}),
+    check=check_cia402_profile,
 )
