@@ -748,6 +748,12 @@ class ForceLoop:
             self._cycle(k, k * period, fb, 0.0, start, False)
             self._emit(k, fb, False)
             k += 1
+        # the last command acts for its whole period before the stop, as in host timing
+        # (:meth:`_run_host` sleeps to the deadline after it): the run lasts n T of
+        # simulated time, not one period less
+        end = t0 + n * period
+        while clock() < end - tolerance:
+            drive.poll(end - clock())
 
     def _wait_frame(self, expected: float, deadline: float) -> Feedback | None:
         """Feedback timing: the next frame, expected at ``expected`` and given up at

@@ -144,6 +144,10 @@ def test_cycles_run_on_simulated_deadlines_with_one_period_of_delay() -> None:
         prev_u = sink.rows[k - 1][4]
         assert abs(unpack_reply(model, replies[k]).torque - prev_u) <= quantum
     assert [row[3].seq for row in sink.rows] == sorted({row[3].seq for row in sink.rows})   # all fresh
+    # the last command acts for its whole period, as in host timing: the run ends at t_n, the
+    # reply there (to the safe stop's first frame) carries the torque of cycle n-1
+    assert result.stop.time == pytest.approx(50 * T, abs=1e-9)
+    assert abs(unpack_reply(model, replies[50]).torque - sink.rows[-1][4]) <= quantum
 
 
 def _motion(model: Any, data: bytes) -> tuple[float, float]:
