@@ -319,6 +319,11 @@ class AxesLoop:
             for bus in self.buses:   # the commands to the emulators now, their answers read
                 bus.receive_pass(0.0)
             k += 1
+        if not step_first:
+            # the last commands act for their whole period before the stop, as a streaming
+            # axis' step before each cycle and host timing's sleep to the next deadline give
+            # them: the run lasts n T of simulated time, not one period less
+            self._step()
 
     def _step(self) -> None:
         """Every lockstep bus one step; then every axis reads what came for it."""

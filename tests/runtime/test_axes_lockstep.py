@@ -37,6 +37,8 @@ def test_each_axis_runs_as_alone(tmp_path: Path, protos: tuple[str, str]) -> Non
         assert single.stop.reason is StopReason.DONE, single.stop.line()
         mine = both.axes[axis.name]
         assert mine.cycles == single.cycles == both.cycles
+        # the last commands act for their whole period: both runs end on the same simulated instant
+        assert both.stop.time == pytest.approx(single.stop.time, abs=1e-9), (both.stop.line(), single.stop.line())
         for name in FIELDS:
             a, b = mine.trace[name], single.trace[name]
             assert a.shape == b.shape and np.array_equal(a, b, equal_nan=True), (axis.name, name)
