@@ -164,6 +164,18 @@ def test_no_cst_and_an_enabled_drive_refuse(node: tuple[str, canopen.LocalNode])
         "node 5 is in operation enabled (statusword 0x0637): another host may be driving it; disable it first"]
 
 
+@pytest.mark.parametrize("statusword", [0x0218, 0x021F], ids=["fault", "fault-reaction-active"])
+def test_a_node_in_fault_is_a_mismatch_the_reset_clears(node: tuple[str, canopen.LocalNode], statusword: int) -> None:
+    """The enable refuses a node in fault unless --reset-faults: the check says so, not 'ok'."""
+    channel, local = node
+    local.sdo[0x6041].raw = statusword
+    report = check(channel, profile(), window=0.05)
+    state = "fault" if statusword == 0x0218 else "fault reaction active"
+    assert not report.ok and not report.refuses and texts(report) == [
+        f"node 5 is in {state} (statusword 0x{statusword:04X}): dobhil run --reset-faults resets it "
+        "(controlword bit 7) once the cause is gone"]
+
+
 def test_the_heartbeat_setting_differs_a_note(node: tuple[str, canopen.LocalNode]) -> None:
     channel, local = node
     local.sdo[0x1017].raw = 0

@@ -31,7 +31,8 @@ NMT command sent:
 - producer heartbeat time 0x1017 against the profile's ``heartbeat_period`` (the drive's
   start-up writes it: a difference is a note; the period is measured while listening);
 - statusword 0x6041: a drive already in Operation enabled may be driven by another
-  host, and the run refuses (as ODrive's CLOSED_LOOP_CONTROL).
+  host, and the run refuses (as ODrive's CLOSED_LOOP_CONTROL); a drive in Fault (or Fault
+  reaction active) is a mismatch: the enable refuses it unless ``--reset-faults``.
 
 Listening for the rest of the window hears heartbeats (0x700 + id: NMT state, period),
 SDO replies and TPDOs (none before the drive's start-up: a TPDO answers SYNC, in NMT
@@ -339,10 +340,17 @@ class CiA402Preflight(PreflightProbe):
             out.append(Finding(Severity.NOTE,
                                f"node {node.node}'s producer heartbeat 0x1017 is {now}, the profile's "
                                f"heartbeat_period {expected * 1e3:g} ms: the drive's start-up writes it"))
-        if STATUSWORD in v and power_state(v[STATUSWORD]) is PowerState.OPERATION_ENABLED:
+        state = power_state(v[STATUSWORD]) if STATUSWORD in v else None
+        if state is PowerState.OPERATION_ENABLED:
             out.append(Finding(Severity.MISMATCH,
                                f"node {node.node} is in operation enabled (statusword 0x{v[STATUSWORD]:04X}): "
                                "another host may be driving it; disable it first", refuses_run=True))
+        elif state in (PowerState.FAULT, PowerState.FAULT_REACTION_ACTIVE):
+            # the enable refuses a node in fault unless --reset-faults (CiA402Drive): not a refusal
+            # of the preflight, as a moteus or MIT fault that the run can clear is not
+            out.append(Finding(Severity.MISMATCH,
+                               f"node {node.node} is in {state.text} (statusword 0x{v[STATUSWORD]:04X}): dobhil "
+                               "run --reset-faults resets it (controlword bit 7) once the cause is gone"))
         return out
 
     def _unit(self) -> str:
