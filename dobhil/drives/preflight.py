@@ -652,7 +652,9 @@ def _status_findings(probe: PreflightProbe, node: NodeReport, window: float, wan
     set_status = (f"set {probe.setting(Setting.STATUS_RATE)} = "
                   f"{probe.setting_value(Setting.STATUS_RATE, want_status)}")
     if status.period is None:
-        if window >= RESOLVE_PERIODS * want_status or status.count == 0:
+        # none heard says "off" only after a whole period of listening: a window shorter
+        # than the profile's period may fall between two frames of a drive that sends them
+        if window >= RESOLVE_PERIODS * want_status or (status.count == 0 and window >= want_status):
             now = "off" if status.count == 0 else f"1 frame in {_ms(window)}"
             out.append(Finding(Severity.MISMATCH, f"node {node.node} {probe.status_name()}: {set_status} "
                                                   f"(now {now})"))

@@ -124,6 +124,11 @@ def test_slow_heartbeat_and_missing_encoder_stream() -> None:
     report = lockstep_preflight(bare("odrive-0.6"), bare("odrive-0.6"), window=0.15)
     assert report.ok and texts(report, Severity.NOTE) == [
         "a 150 ms window cannot measure a 100 ms heartbeat: listen at least 0.3 s"]
+    # none heard in a window shorter than one period of the profile's heartbeat: not "off"
+    slow = bare("odrive-0.6", heartbeat_period=10.0)
+    report = lockstep_preflight(slow, slow, window=0.5)
+    assert report.ok and texts(report, Severity.NOTE) == [
+        "a 500 ms window cannot measure a 10000 ms heartbeat: listen at least 30 s"], report.lines()
     # a period the window cannot resolve at all (one frame)
     report = lockstep_preflight(bare("odrive-0.6", feedback_period=0.4), bare("odrive-0.6"), window=0.5)
     assert any("encoder_msg_rate_ms = 1 (now 1 frame in 500 ms)" in t for t in texts(report)), report.lines()
