@@ -38,3 +38,20 @@ def test_the_demo_converges_and_replays_bit_for_bit(tmp_path: Path, capsys: pyte
     from dobhil.run_report import bus_stats, load_run
     bus = bus_stats(load_run(log))
     assert bus["bus_load"] == pytest.approx(0.245, abs=0.01) and bus.get("data_bitrate") == 5e6
+
+
+def test_a_position_lost_on_its_rail_stops_with_the_stop_confirmed(tmp_path: Path,
+                                                                   capsys: pytest.CaptureFixture[str]) -> None:
+    """A position on the int8 rail (1.27 rev) is a drive fault, but the reply still carries
+    the mode register: the stop is confirmed by it (mode 0), no 'cut power' warning."""
+    import yaml
+    profile = yaml.safe_load((REPO / "drivers" / "moteus-r4.11.yaml").read_text())
+    profile["moteus"]["position_resolution"] = "int8"
+    (tmp_path / "int8.yaml").write_text(yaml.safe_dump(profile))
+    code = main(["run", str(REPO / "configs" / "moteus-demo.yaml"), "--emulate", "--lockstep", "--duration", "0.3",
+                 "--set", f"drive.profile={tmp_path / 'int8.yaml'}", "--set", "loop.mode=torque",
+                 "--set", "reference.offset=1.5", "--set", "plant.initial_position=7.9",
+                 "--set", "environment.contact_position=15", "--set", "loop.position_max=20"])
+    out, err = capsys.readouterr()
+    assert code == 1 and "stopped: drive_fault" in out and "position +1.27 rev: at the end of the queried" in out, out
+    assert "WARNING" not in err, err

@@ -162,7 +162,8 @@ class MoteusDrive(Drive):
         """The watchdog (register 0x027): with no command for ``watchdog_timeout`` s the
         controller enters mode 11, reported in the reply to the next frame."""
         timeout = self._profile.watchdog_timeout
-        if timeout <= 0 or (event is not None and event.state != Mode.TIMEOUT):
+        if timeout <= 0 or (event is not None and (event.state != Mode.TIMEOUT
+                                                   or event.error_code in (POSITION_LOST, BAD_REPLY))):
             return None
         return HostTimeout("watchdog", timeout)
 
@@ -202,7 +203,7 @@ class MoteusDrive(Drive):
             side = "NaN" if math.isnan(position) else f"{position:+g} rev"
             return (MotionEvent(0.0 if math.isnan(position) else position * _TAU, 0.0),
                     self._own_fault(POSITION_LOST, f"position {side}: at the end of the queried resolution's "
-                                    "range or invalid; use a wider moteus.position_resolution"))
+                                    "range or invalid; use a wider moteus.position_resolution", int(mode)))
         return (MotionEvent(position * _TAU, (0.0 if math.isnan(velocity) else velocity) * _TAU), state)
 
     # -- decoding -------------------------------------------------------------
@@ -223,6 +224,10 @@ class MoteusDrive(Drive):
             self._states[key] = event
         return event
 
-    def _own_fault(self, code: int, text: str) -> StateEvent:
+    def _own_fault(self, code: int, text: str, mode: int = -1) -> StateEvent:
+        """A reply the run cannot use. ``mode``: the reply's mode register where it was read
+        (a position lost on its rail leaves the mode valid): a stop it says STOPPED is
+        confirmed (:meth:`_is_disabled_confirmation`), not reported as a drive that may
+        still be enabled."""
         return StateEvent(active=False, error_code=code, watchdog_tripped=False, state_text="reply unusable",
-                          error_text=text)
+                          error_text=text, state=mode)
