@@ -20,6 +20,7 @@ from dobhil.errors import ConfigError
 if TYPE_CHECKING:
     from dobhil.campaign.campaign import Campaign, Summary
     from dobhil.campaign.compare import Floors
+    from dobhil.campaign.draws import Vary
     from dobhil.campaign.tally import Tally
     from dobhil.config.schema import Config
 
@@ -105,6 +106,7 @@ def build_campaign(args: argparse.Namespace) -> tuple[Campaign, tuple[str, ...]]
     if not varies:
         raise ConfigError("nothing to draw: give --vary KEY=DIST or --draw-from OVERLAY.yaml")
     _no_twice([v.key for v in varies])
+    _no_drawn_duration(varies, args.duration)
     config = _as_path(args.config)
     set_files = tuple(_as_path(f) for f in args.set_files)
     noise = _noise(config, set_files, axis)
@@ -118,6 +120,16 @@ def _no_twice(keys: Sequence[str]) -> None:
     twice = sorted({k for k in keys if keys.count(k) > 1})
     if twice:
         raise ConfigError(f"--vary {twice[0]} given twice; give each key one distribution")
+
+
+def _no_drawn_duration(varies: Sequence[Vary], duration: float | None) -> None:
+    """--duration sets every run's length over its config's loop.duration (as ``dobhil run
+    --duration`` does), so a drawn loop.duration would change no run while its column shows a
+    spread of lengths the runs never had."""
+    drawn = [v for v in varies if v.key == "loop.duration"]
+    if drawn and duration is not None:
+        raise ConfigError(f"--vary {drawn[0].text()} with --duration {duration:g}: --duration sets every run's "
+                          "length, so the drawn loop.duration would change nothing; drop one of them")
 
 
 def _as_path(name: str) -> str:

@@ -56,6 +56,10 @@ ROOT = Path(__file__).resolve().parents[2]
      "--vary loop.period=uniform:0.001:0.002: each run is lockstep, whose bus sends a periodic frame only every "
      "whole number of loop periods, and drive profile 'epos4' sends SYNC every 0.001 s (feedback_period), which a "
      "drawn loop.period almost never divides; keep loop.period fixed (the config's 0.001 s runs)"),
+    # --duration sets every run's length: a drawn loop.duration would be a column of lengths no run had
+    (["--vary", "loop.duration=uniform:0.6:0.7", "--duration", "0.05"],
+     "--vary loop.duration=uniform:0.6:0.7 with --duration 0.05: --duration sets every run's length, so the drawn "
+     "loop.duration would change nothing; drop one of them"),
     # a key the controller reads only with another structure: every run would be the same loop
     (["--vary", "design.velocity_filter_bandwidth=uniform:100:1000"],
      "does not read design.velocity_filter_bandwidth (design.velocity_source is measured, not estimated)"),
