@@ -133,7 +133,9 @@ def _check_key(name: str, item: str) -> bool:
     field = key_fields().get(name)
     allowed = numeric_keys()
     if field is None or name not in allowed:
-        what = "not a numeric config key" if field is not None else "unknown config key"
+        # a key of UNUSED is a number: saying it is none would send the user looking for a typo
+        what = ("a key a lockstep emulated run never reads" if name in UNUSED
+                else "not a numeric config key" if field is not None else "unknown config key")
         raise ConfigError(f"--vary {item!r}: {what} {name!r}; allowed: "
                           f"{', '.join(k for k in allowed if k not in RESERVED)}")
     return field.type in (int, "int")

@@ -55,7 +55,9 @@ def test_any_text_parses_or_is_one_config_error_line(text: str) -> None:
     ("plant.inertia=uniform:0:inf", "must be finite"),
     ("plant.inertia", "expected KEY=DIST"),
     ("sensor.seed=uniform:0:9", "set by the campaign"),
-    ("loop.spin=uniform:0:1", "not a numeric config key"),   # a lockstep run never reads it
+    # numbers a lockstep run never reads: not called "not numeric", which reads as a typo
+    ("loop.spin=uniform:0:1", "a key a lockstep emulated run never reads 'loop.spin'; allowed: plant.inertia"),
+    ("drive.latency=uniform:0:1", "a key a lockstep emulated run never reads 'drive.latency'"),
 ])
 def test_bad_vary_names_what_is_allowed(item: str, says: str) -> None:
     with pytest.raises(ConfigError, match=None) as err:
