@@ -250,7 +250,11 @@ def check_outputs(args: argparse.Namespace) -> Path | None:
 def header(campaign: Campaign, noise: tuple[str, ...], scheduler: str | None, workers: int | None) -> str:
     where = (f"scheduler {scheduler}" if scheduler else
              f"a local cluster of {_count(workers or os.cpu_count() or 1, 'worker process')}")
+    # a drawn loop.duration (refused with --duration) gives each run its own length: the
+    # config's would be no run's
+    drawn = next((v for v in campaign.varies if v.key == "loop.duration"), None)
     length = (f"{campaign.duration:g} s each" if campaign.duration is not None
+              else f"each its drawn loop.duration, {drawn.text().partition('=')[2]}" if drawn is not None
               else f"{_config_duration(campaign):g} s each, from loop.duration")
     said = (f"noise on: {', '.join(noise)} (the config had none; --set overrides)" if noise
             else "noise: the config's")

@@ -73,6 +73,21 @@ def test_bad_input_is_one_line_and_exit_2(extra: list[str], says: str, capsys: p
     assert err.count("\n") == 1 and says in err and err.startswith("dobhil montecarlo: error: ")
 
 
+@pytest.mark.parametrize(("vary", "duration", "length"), [
+    ("plant.inertia=uniform:0.2:0.3", 0.05, "(0.05 s each, lockstep"),
+    ("plant.inertia=uniform:0.2:0.3", None, "(1.2 s each, from loop.duration, lockstep"),
+    # each run its own length: the config's 1.2 s would be no run's
+    ("loop.duration=uniform:0.1:0.2", None, "(each its drawn loop.duration, uniform:0.1:0.2, lockstep"),
+])
+def test_the_header_gives_the_runs_length(vary: str, duration: float | None, length: str) -> None:
+    from dobhil.campaign.campaign import Campaign
+    from dobhil.campaign.draws import parse_vary
+    from dobhil.cli.montecarlo_cmd import header
+    campaign = Campaign(config="demo", set_files=(), overrides=(), varies=(parse_vary(vary),), runs=2, seed=0,
+                        duration=duration)
+    assert length in header(campaign, (), None, 1)
+
+
 def test_existing_results_are_not_overwritten(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     (tmp_path / "runs.csv").write_text("mine\n")
     assert main(["montecarlo", "demo", "--runs", "2", "--vary", "plant.inertia=uniform:0.2:0.3",
