@@ -7,6 +7,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import shlex
 import sys
 from pathlib import Path
@@ -270,19 +271,60 @@ def _print(args: argparse.Namespace, result: TuneResult, base: Baseline, margins
 
 
 def _write_config(args: argparse.Namespace, result: TuneResult) -> None:
-    from dobhil.config.load import parse_override, read_set_file, read_yaml, resolve_config
+    from dobhil.config.load import read_set_file, read_yaml, resolve_config
+    config_dir = resolve_config(args.config).parent
     if args.axis:   # the axis alone: a single-axis config of every key it runs with
-        _write_tuned(args, _sections(config_from_args(args).flat()), result)
+        _write_tuned(args, _anchor_files(_sections(config_from_args(args).flat()), config_dir, args.out), result)
         return
     source: dict[str, Any] = read_yaml(resolve_config(args.config))
     flat_overrides: dict[str, Any] = {}
     for extra in args.set_files:
         flat_overrides.update(read_set_file(extra))
-    flat_overrides.update(dict(parse_override(item) for item in args.overrides))
+    flat_overrides.update(dict(_override(item) for item in args.overrides))
     for key, value in flat_overrides.items():
         section, name = key.split(".", 1)
         source.setdefault(section, {})[name] = value
-    _write_tuned(args, source, result)
+    _write_tuned(args, _anchor_files(source, config_dir, args.out), result)
+
+
+def _override(item: str) -> tuple[str, Any]:
+    """A --set item as load_config reads it: a file typed on the command line is from the
+    working directory (dobhil.config.load.CWD_PATH_KEYS)."""
+    from dobhil.config.load import CWD_PATH_KEYS, parse_override
+    name, value = parse_override(item)
+    if name in CWD_PATH_KEYS and isinstance(value, str) and value:
+        value = os.path.abspath(value)
+    return name, value
+
+
+def _anchor_files(sections: dict[str, Any], config_dir: Path, out: Path) -> dict[str, Any]:
+    """``sections`` with the files the tuned run reads named so that they resolve from --out's
+    directory as they did from the input config's: a relative ``reference.file`` is taken from
+    the config's directory, and ``drive.profile`` from a ``drivers/`` near it (docs/config.md),
+    so written unchanged beside another directory they would name another file, or none (an
+    edited profile of ``dobhil init`` silently replaced by the shipped one)."""
+    from dobhil.config.load import CWD_PATH_KEYS
+    from dobhil.config.schema import Config
+    from dobhil.drives.load import drive_profile_file
+    out_dir = Path(out).resolve().parent
+    for key in CWD_PATH_KEYS:
+        section, name = key.split(".", 1)
+        values = sections.get(section)
+        if isinstance(values, dict) and isinstance(values.get(name), str) and values[name] \
+                and not os.path.isabs(values[name]):
+            values[name] = str((config_dir / values[name]).resolve())
+    drive = sections.get("drive")
+    profile = drive.get("profile") if isinstance(drive, dict) else None
+    profile = Config().drive.profile if profile is None else profile
+    if isinstance(profile, str) and profile:
+        here = drive_profile_file(profile, config_dir).resolve()
+        try:
+            there: Path | None = drive_profile_file(profile, out_dir).resolve()
+        except ConfigError:
+            there = None
+        if there != here:
+            sections.setdefault("drive", {})["profile"] = str(here)
+    return sections
 
 
 def _write_tuned(args: argparse.Namespace, source: dict[str, Any], result: TuneResult) -> None:

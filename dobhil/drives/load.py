@@ -103,6 +103,16 @@ def load_profile(
     return profile_from_mapping(data, source=source, directory=str(path.resolve().parent))
 
 
+def drive_profile_file(name: str, base_dir: Path) -> Path:
+    """The file :func:`load_drive_profile` reads for ``drive.profile = name`` in a config of
+    ``base_dir``: a YAML path from that directory, else the name looked up near it, else the
+    shipped profile; ConfigError when there is none."""
+    candidate = base_dir / name if not Path(name).is_absolute() else Path(name)
+    if candidate.suffix in (".yaml", ".yml") and _exists(candidate):
+        return candidate
+    return _resolve(name, None, base_dir)
+
+
 def load_drive_profile(config: Config, base_dir: Path | None = None) -> DriveProfile:
     """The profile ``drive.profile`` of ``config`` names: a YAML file relative to ``base_dir``
     (the config's directory) if there is one, else a profile name looked up near it; its node

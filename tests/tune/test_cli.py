@@ -69,6 +69,30 @@ def test_json_out_and_the_tuned_config(tmp_path: Path, capsys: pytest.CaptureFix
     assert main(["analyze", str(out)]) == 0
 
 
+def test_the_tuned_config_reads_the_files_the_tuned_one_did(tmp_path: Path,
+                                                            capsys: pytest.CaptureFixture[str]) -> None:
+    """A config of a dobhil init workspace names its reference file relative to its directory
+    and its profile by a name found in the workspace's drivers/: the tuned config, written
+    elsewhere, must still run with those two files, not fail or fall back to the shipped
+    profile."""
+    from dobhil.drives.load import load_drive_profile
+    from dobhil.drives.profile import default_drivers_dir
+    configs, drivers = tmp_path / "ws" / "configs", tmp_path / "ws" / "drivers"
+    configs.mkdir(parents=True)
+    drivers.mkdir()
+    (drivers / "odrive-0.6.yaml").write_text((default_drivers_dir() / "odrive-0.6.yaml").read_text())
+    (configs / "ref.csv").write_text("time,tau_ref\n0,0\n0.1,1\n")
+    (configs / "c.yaml").write_text("reference:\n  kind: csv\n  file: ref.csv\n")
+    out = tmp_path / "out" / "tuned.yaml"
+    out.parent.mkdir()
+    assert main(["tune", str(configs / "c.yaml"), "--range", "environment.stiffness=1e3:1e5", "--grid", "2",
+                 "--generations", "1", "--json", "--out", str(out)]) == 0
+    capsys.readouterr()
+    tuned = load_config(str(out))
+    assert Path(tuned.reference.file) == configs / "ref.csv"
+    assert Path(load_drive_profile(tuned, out.parent).directory) == drivers
+
+
 def test_the_same_seed_gives_the_same_design(capsys: pytest.CaptureFixture[str]) -> None:
     designs = []
     for seed in ("3", "3", "4"):
