@@ -68,7 +68,7 @@ from dobhil.drives.decode import recorded_profile
 from dobhil.errors import LogFileError, exception_line
 from dobhil.recording.axes import AxisLog, axis_log, axis_logs
 from dobhil.recording.codes import ProtocolCodes
-from dobhil.recording.reader import open_log
+from dobhil.recording.reader import LogFile, open_log
 from dobhil.recording.schemas import feedback_state
 
 Array = NDArray[np.float64]
@@ -122,6 +122,18 @@ class RunData:
         return self.signals[name]
 
 
+#: the topics of an axis a report reads (:func:`load_axis`)
+REPORT_TOPICS = ("/controller", "/drive/feedback", "/emulator/truth", "/loop", "/can/rx", "/can/tx", "/events")
+#: messages read between two progress updates
+PROGRESS_STEP = 1000
+
+
+def report_messages(log: LogFile) -> int:
+    """The messages a report of ``log`` reads (every axis' topics, its bus' frames once per
+    axis on it): the total its progress counts to."""
+    return sum(axis.message_count(REPORT_TOPICS) for axis in axis_logs(log))
+
+
 def load_run(path: str | os.PathLike[str], progress: ProgressFn | None = None, axis: str | None = None) -> RunData:
     """Read a dobhil run log (checked by :class:`~dobhil.recording.reader.LogFile`): its
     one axis, or ``axis`` of a several-axis log."""
@@ -137,7 +149,8 @@ def load_axis(log: AxisLog, progress: ProgressFn | None = None) -> RunData:
     per: dict[str, list[Any]] = {k: [] for k in ("controller", "feedback", "truth", "loop", "states", "can")}
     frame_times: dict[str, list[int]] = {"/can/rx": [], "/can/tx": []}
     events: list[dict[str, Any]] = []
-    topics = ("/controller", "/drive/feedback", "/emulator/truth", "/loop", "/can/rx", "/can/tx", "/events")
+    topics = REPORT_TOPICS
+    read = 0
     with log:
         log.require_topic("/controller")
         try:
@@ -145,8 +158,11 @@ def load_axis(log: AxisLog, progress: ProgressFn | None = None) -> RunData:
                 _take(topic, t, p, per, events)
                 if topic in frame_times and (own is None or p["arbitration_id"] in own):
                     frame_times[topic].append(t)
-                if progress is not None and i % 1000 == 999:
-                    progress(1000)
+                read = i + 1
+                if progress is not None and read % PROGRESS_STEP == 0:
+                    progress(PROGRESS_STEP)
+            if progress is not None and read % PROGRESS_STEP:   # the last ones: the count ends at the total
+                progress(read % PROGRESS_STEP)
         except (KeyError, TypeError, ValueError) as exc:
             raise LogFileError(f"{name}: a recorded message does not match its schema "
                                f"({exception_line(exc)})") from None

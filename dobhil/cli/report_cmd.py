@@ -78,12 +78,12 @@ def _remove_stale(out: Path, earlier: list[Path], written: list[Path]) -> int:
 
 def run(args: argparse.Namespace) -> int:
     from dobhil.cli.progress import progress
-    from dobhil.run_report import report, summary_text
+    from dobhil.run_report import report, report_messages, summary_text
     from dobhil.plotting.report_figures import report_figures
     from dobhil.recording.axes import is_axes_log, layout
     from dobhil.recording.reader import open_log
     with open_log(args.file) as log:
-        total = sum(c.message_count for c in log.channels())
+        total = report_messages(log)
         axes = layout(log).names if is_axes_log(log) else ()
     _check_out_dir(args.out, args.file, axes)
     earlier = [p for p in _earlier_figures(args.out) if not p.samefile(args.file)]   # never the input

@@ -158,6 +158,13 @@ class AxisLog:
             raise LogFileError(f"{self.path}: {where}no topic {topic!r}; available: "
                                f"{', '.join(self.topics()) or 'none'}")
 
+    def message_count(self, topics: Iterable[str]) -> int:
+        """How many messages :meth:`iter_messages` of ``topics`` yields, from the file's
+        statistics (0 for a file without them)."""
+        wanted = set(topics)
+        names = {t for t, n in self._names.items() if n in wanted}
+        return sum(c.message_count for c in self.file.channels() if c.topic in names)
+
     def iter_payloads(self, topics: Iterable[str] | None = None) -> Iterator[tuple[str, int, bytes]]:
         """(topic as this axis names it, log_time_ns, message bytes) in file order."""
         wanted = None if topics is None else set(topics)

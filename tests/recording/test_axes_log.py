@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 from collections import Counter
 from pathlib import Path
 from types import SimpleNamespace
@@ -177,7 +178,10 @@ def test_report_per_axis_with_shared_timing_and_bus_load(recorded: tuple[Path, P
     for name in ("force.png", "position.png", "summary.json"):
         (earlier / name).write_text("{}")
     assert main(["report", str(path), "--out", str(tmp_path / "r")]) == 0
-    assert "(removed 2 figures of the report it held before)" in capsys.readouterr().out
+    out, err = capsys.readouterr()
+    assert "(removed 2 figures of the report it held before)" in out
+    # every axis' messages counted, to the total (the bus' frames once per axis on it)
+    assert re.fullmatch(r"report: (\d+)/\1 messages \(100 %\), .*", err.splitlines()[-1])
     assert sorted(p.name for p in earlier.iterdir()) == sorted([*AXES, "summary.json", "summary.txt"])
     summary = json.loads((earlier / "summary.json").read_text())
     assert list(summary["axes"]) == list(AXES)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 from pathlib import Path
 from typing import Any
 
@@ -72,7 +73,9 @@ def test_demo_then_report(tmp_path: Path, capsys: pytest.CaptureFixture[str]) ->
     capsys.readouterr()
     out = tmp_path / "report"
     assert main(["report", str(logs[0]), "--out", str(out)]) == 0
-    text = capsys.readouterr().out
+    text, err = capsys.readouterr()
+    # the progress counts to its total: the messages the report reads (README, a line at the end)
+    assert re.fullmatch(r"report: (\d+)/\1 messages \(100 %\), .*", err.splitlines()[-1])
     assert "step at 0.600 s" in text and "bus:" in text
     for name in ("force", "tracking_error", "position", "commands", "loop_timing"):
         assert (out / f"{name}.png").stat().st_size > 10000
