@@ -235,6 +235,8 @@ def check_outputs(args: argparse.Namespace) -> Path | None:
     if args.out is None:
         if args.plot:
             raise ConfigError("--plot writes its figures into --out DIR; give --out")
+        if args.format != "csv":   # the default: nothing asked for; another would be silently not written
+            raise ConfigError(f"--format {args.format} writes the table into --out DIR; give --out")
         return None
     names = [table_name(args.format), "summary.json", *(PLOTS if args.plot else ())]
     out = check_output_dir(args.out, names, inputs=[args.config, *args.set_files], what="--out")

@@ -31,6 +31,8 @@ ROOT = Path(__file__).resolve().parents[2]
     (["--vary", "plant.inertia=uniform:0.1:1", "--duration", "-1"], "--duration -1.0"),
     (["--vary", "plant.inertia=uniform:0.1:1", "--set", "plant.inertia=-1"], "plant.inertia = -1"),
     (["--vary", "plant.inertia=uniform:0.1:1", "--plot"], "--plot writes its figures into --out"),
+    (["--vary", "plant.inertia=uniform:0.1:1", "--format", "parquet"],
+     "--format parquet writes the table into --out DIR; give --out"),
     (["--vary", "plant.inertia=uniform:0.1:1", "--workers", "0"], "--workers 0"),
     (["--vary", "plant.inertia=uniform:0.1:1", "--seed", "-1"], "--seed -1: expected a whole number from 0 to"),
     (["--vary", "plant.inertia=uniform:0.1:1", "--seed", str(2**63), "--format", "parquet"],
