@@ -3,8 +3,9 @@
 from __future__ import annotations
 
 import json
-from typing import Any
+import math
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -144,6 +145,17 @@ def test_step_metrics_of_a_closed_loop_match_python_control(capsys: pytest.Captu
     assert out["rise_time"] == pytest.approx(info["RiseTime"], rel=2e-2)
     assert out["settling_time"] == pytest.approx(info["SettlingTime"], rel=5e-2)
     assert abs(out["steady_state_error"]) < 1e-9
+
+
+@pytest.mark.parametrize(("horizon", "settling"), [(10.0, -math.log(0.02)), (2.0, None), (0.1, None)])
+def test_a_response_outside_the_band_at_the_horizon_has_no_settling_time(horizon: float,
+                                                                         settling: float | None) -> None:
+    """1 - exp(-t) enters the 2 % band at ln 50 = 3.91 s; over a shorter horizon
+    (analysis.step_duration) it has not settled, and the horizon's end is no settling time."""
+    from dobhil.analysis.metrics import step_metrics
+    t = np.linspace(0.0, horizon, 100_001)
+    m = step_metrics(t, 1.0 - np.exp(-t), final=1.0)
+    assert m.settling_time == (None if settling is None else pytest.approx(settling, abs=1e-3))
 
 
 @pytest.mark.parametrize("sampled", [False, True])

@@ -206,7 +206,9 @@ def _settling_time(t: Array, y: Array, final: float) -> float | None:
     if outside.size == 0:
         return float(t[0])
     i = int(outside[-1])
-    return float(t[min(i + 1, t.size - 1)])
+    if i == t.size - 1:   # still outside the band at the horizon: it has not settled within it, and
+        return None       # the horizon's end is no settling time (analysis.step_duration too short)
+    return float(t[i + 1])
 
 
 def system_stable(sys: control.StateSpace) -> bool:

@@ -165,7 +165,7 @@ def _step(t: Array, tau_true: Array, after: NDArray[np.bool_], start: float,
     tail = final_window(int(y.size))
     final = float(np.mean(y[-tail:]))
     m = step_metrics(t[after] - start, y, target=amplitude, final=final)
-    settled = _settled(y, final, tail) if m.settling_time is not None else None
+    settled = _settled(y, final, tail) if m.final_value is not None else None
     # a response that ends where it began has no 10-90 % of anything (step_metrics says 0)
     rise = m.rise_time if final != 0 else None
     return {"overshoot_pct": m.overshoot_pct, "rise_time": rise, "settled": settled,
