@@ -127,7 +127,7 @@ def _agree(mcap: dict[str, Any], capture: dict[str, Any], tolerance: dict[str, f
     spread = _z() / math.sqrt(2.0 * dof)
     for name, e in mcap["estimates"].items():
         c = capture["estimates"][name]
-        assert c["identifiable"] == e["identifiable"], (name, c, e)
+        assert c["identifiable"] == e["identifiable"], (name, c["why"], e["why"], c, e)
         if not e["identifiable"]:
             continue
         k = scale if name in ("inertia", "delay") else 1.0
