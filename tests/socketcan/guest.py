@@ -30,6 +30,12 @@ ACCEL = os.environ.get("DOBHIL_CANVM_ACCEL", "native")
 SLOW = ACCEL == "tcg"
 PERIOD = 10e-3 if SLOW else 1e-3
 BANDWIDTH = 40.0 if SLOW else None
+#: candump's own options in every capture: an 8 MiB socket receive buffer (SO_RCVBUFFORCE, root
+#: in the guest) instead of the kernel's ~200 KB default, which holds ~250 frames -- a quarter
+#: of a second of a 1 kHz CiA 402 bus; candump descheduled longer than that on a loaded TCG
+#: guest loses frames, and a frame the run logged then has no twin in the capture. ``-d``
+#: writes a DROPCOUNT line into the capture if it still happens (see :func:`candump_drops`).
+CANDUMP_OPTIONS = ("-r", str(8 << 20), "-d")
 #: bound for a process to print its first line or finish a short run under TCG (Python starts
 #: in ~8 s there): a bound, not a measurement
 START_TIMEOUT = 120.0
@@ -224,6 +230,12 @@ def read_candump(path: Path) -> list[Dumped]:
             hex_data = ""
         frames.append(Dumped(float(stamp), iface, int(ident, 16), bytes.fromhex(hex_data), is_fd))
     return frames
+
+
+def candump_drops(path: Path) -> list[str]:
+    """candump's DROPCOUNT lines in its capture (``-d``): frames the kernel dropped from its
+    socket's queue, which the capture therefore lacks."""
+    return [line for line in path.read_text(errors="replace").splitlines() if "DROPCOUNT" in line]
 
 
 def have(program: str) -> bool:

@@ -36,7 +36,7 @@ import numpy as np
 from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import maximum_bipartite_matching
 
-from .guest import START_TIMEOUT, Dumped, read_candump
+from .guest import CANDUMP_OPTIONS, START_TIMEOUT, Dumped, read_candump
 
 _names = itertools.count()
 #: the band of the prio qdisc the fault sits in (bands 1 and 2 carry everything else)
@@ -112,7 +112,7 @@ class Capture:
 
     def __enter__(self) -> Capture:
         with self.path.open("wb") as out:
-            self.proc = subprocess.Popen(["candump", "-L", *self.ifaces], stdout=out,
+            self.proc = subprocess.Popen(["candump", *CANDUMP_OPTIONS, "-L", *self.ifaces], stdout=out,
                                          stderr=subprocess.STDOUT)
         time.sleep(0.5)  # candump opened its sockets (it prints nothing until a frame)
         return self

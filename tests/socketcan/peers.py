@@ -21,7 +21,7 @@ from typing import Any
 import can
 import pytest
 
-from .guest import START_TIMEOUT, Dobhil, Proc, read_candump
+from .guest import CANDUMP_OPTIONS, START_TIMEOUT, Dobhil, Proc, read_candump
 
 
 @pytest.fixture(autouse=True)
@@ -35,7 +35,7 @@ def crashes_say_where(monkeypatch: pytest.MonkeyPatch) -> None:
 def start_candump(dobhil: Dobhil, iface: str) -> Proc:
     """``candump -l IFACE`` in the test's folder, once it has opened its log file (can-utils
     2020.11 names it ``candump-DATE_TIME.log`` and prints that it did)."""
-    proc = dobhil.start(f"candump-{iface}", ["-l", iface], program=["candump"])
+    proc = dobhil.start(f"candump-{iface}", [*CANDUMP_OPTIONS, "-l", iface], program=["candump"])
     proc.wait_for("Enabling Logfile")
     return proc
 

@@ -42,7 +42,7 @@ import numpy as np
 import pytest
 
 from .guest import (CONFIGS, DEMOS, REPO, REPORT_TIMEOUT, START_TIMEOUT, Dobhil, Dumped, Proc, guest_overlay,
-                    read_candump, summary_json)
+                    candump_drops, read_candump, summary_json)
 
 
 def _figures() -> ModuleType:
@@ -156,6 +156,7 @@ class StoppedRun:
     output: str
     log: Path
     report: dict[str, Any]          # dobhil report's summary.json of the log
+    drops: list[str]                # candump's DROPCOUNT lines: frames its capture lacks
 
 
 @pytest.fixture(scope="module")
@@ -179,7 +180,7 @@ def stopped_run(module_vcan: str, tmp_path_factory: pytest.TempPathFactory) -> I
         out = runner.run("report", ["report", str(log), "--out", str(work / "report")], timeout=REPORT_TIMEOUT)
         assert out.returncode == 0, out.text()
         yield StoppedRun(module_vcan, read_candump(dump), stopped, state, exited, summary_json(run), run.text(), log,
-                         json.loads((work / "report" / "summary.json").read_text()))
+                         json.loads((work / "report" / "summary.json").read_text()), candump_drops(dump))
     finally:
         runner.stop_all()
 
@@ -239,6 +240,7 @@ def test_log_stamps_are_candumps_and_so_is_each_sample_latency(stopped_run: Stop
     and its percentiles are candump's."""
     r = stopped_run
     assert r.report["dropped"] == 0, "the recorder dropped records: frames cannot be matched to cycles"
+    assert not r.drops, f"candump lost frames (its capture is no record to compare with): {r.drops}"
     twins = candump_twins(r.frames)
     rx = log_messages(r.log, "/can/rx")
     offsets = [p["timestamp"] - twin_of(twins, p).stamp for _, p in rx]

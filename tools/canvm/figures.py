@@ -243,7 +243,8 @@ def candump(path: Path, ifaces: Sequence[str]) -> Iterator[subprocess.Popen[byte
     """``candump -L IFACE...`` into ``path`` (its log format: the kernel's receive stamps,
     SO_TIMESTAMP, as ``candump -t a`` prints them) until the block ends."""
     with path.open("wb") as out:
-        proc = subprocess.Popen(["candump", "-L", *ifaces], stdout=out, stderr=subprocess.DEVNULL)
+        proc = subprocess.Popen(["candump", *_guest().CANDUMP_OPTIONS, "-L", *ifaces], stdout=out,
+                                stderr=subprocess.DEVNULL)
     try:
         yield proc
     finally:
