@@ -33,9 +33,11 @@ def shown(path: str | os.PathLike[str]) -> str:
     return os.fsencode(path).decode("utf-8", "backslashreplace")
 
 
-def _same(a: Path, b: Path) -> bool:
+def same_file(a: str | os.PathLike[str], b: str | os.PathLike[str]) -> bool:
+    """Whether ``a`` and ``b`` name one existing file (a link, another spelling of the path);
+    False where either is missing or cannot be looked at."""
     try:
-        return a.exists() and b.exists() and os.path.samefile(a, b)
+        return os.path.exists(a) and os.path.exists(b) and os.path.samefile(a, b)
     except OSError:
         return False
 
@@ -78,7 +80,7 @@ def _check_output(p: Path, inputs: list[str | os.PathLike[str]], suffix: str | I
             resolved = Path(source).resolve()
         except (OSError, RuntimeError):  # an unusable input: its own check says so
             continue
-        if _same(p, Path(source)) or p.resolve() == resolved:
+        if same_file(p, source) or p.resolve() == resolved:
             raise OutputError(f"{what} {p}: is an input of this command; refusing to overwrite it")
     suffixes = (suffix,) if isinstance(suffix, str) else tuple(suffix or ())
     if suffixes and p.suffix.lower() not in suffixes:

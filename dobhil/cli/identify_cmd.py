@@ -18,8 +18,10 @@ import math
 import sys
 from pathlib import Path
 from typing import Any
+
 from dobhil.cli.common import output_path
 from dobhil.config import key_fields
+from dobhil.files import same_file
 
 #: the longest --period: loop.period's own ceiling, read from its key (dobhil/config/schema.py)
 MAX_PERIOD: float = key_fields()["loop.period"].metadata["maximum"]
@@ -131,18 +133,10 @@ def _distinct_logs(args: argparse.Namespace) -> None:
     counts as the same (``os.path.samefile``); a missing one is refused later, by its reader."""
     from dobhil.errors import ConfigError
     for i, name in enumerate(args.log):
-        twin = next((s for s in args.log[:i] if _same_file(s, name)), None)
+        twin = next((s for s in args.log[:i] if same_file(s, name)), None)
         if twin is not None:
             raise ConfigError(f"{name}: given twice (as {twin}); give each log once: a log fitted twice counts "
                               "its noise twice")
-
-
-def _same_file(a: str, b: str) -> bool:
-    import os
-    try:
-        return os.path.samefile(a, b)
-    except OSError:
-        return False
 
 
 def _seen_note(args: argparse.Namespace) -> str:
@@ -151,7 +145,7 @@ def _seen_note(args: argparse.Namespace) -> str:
     noise would pass); said, not refused, as the figures are still the fit's on that log."""
     if not args.validate:
         return ""
-    seen = next((name for name in args.log if _same_file(name, args.validate)), None)
+    seen = next((name for name in args.log if same_file(name, args.validate)), None)
     if seen is None:
         return ""
     return (f"--validate {args.validate} is the fitted log {seen}: the validation is on data the fit has seen, "
