@@ -352,7 +352,8 @@ def axes_summary(session: AxesSession, result: AxesResult) -> dict[str, Any]:
         profile = session.profiles[name]
         per_axis[name] = {
             "protocol": profile.protocol, "node_id": profile.node_id,
-            "bus": next(g.name for g in session.groups if name in g.axes),
+            # the bus opened (an emulated run's private channel), as a single axis' summary says
+            "bus": next(g.spec.describe() for g in session.groups if name in g.axes),
             "cycles": part.cycles, "drive_disabled": part.disabled,
             "drive_warning": report.warning() if report is not None else "",
             "drive_note": report.note() if report is not None else "",

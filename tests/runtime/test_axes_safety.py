@@ -249,3 +249,5 @@ def test_foreign_frames_are_counted_unclaimed_in_the_summary(tmp_path: Path) -> 
     (unclaimed,) = info["frames_unclaimed"].values()
     assert unclaimed == flood.applied > 0
     assert [a["frames_lost"] for a in info["axes"].values()] == [0, 0]
+    # each axis names the bus it ran on: the emulator's private channel, not the configured one
+    assert [a["bus"].split(":")[0] for a in info["axes"].values()] == ["virtual", "virtual"], info["axes"]
