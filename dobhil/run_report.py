@@ -634,7 +634,7 @@ def analyse(data: RunData) -> tuple[dict[str, Any], Array | None]:
         steps = step_infos(data, contact)
         predicted, pred_info = prediction(data, contact, steps)
     summary: dict[str, Any] = {
-        "file": data.path, "cycles": int(data.t.size), "duration_s": float(data.t[-1]) if data.t.size else 0.0,
+        "file": data.path, "cycles": int(data.t.size), "duration_s": run_duration(data),
         "run": dict(data.metadata.get("run", {})),
         "stop": next((e["reason"] for e in reversed(data.events) if e.get("kind") == "stop"), None),
         "contact": {"source": contact.source,
@@ -653,6 +653,16 @@ def analyse(data: RunData) -> tuple[dict[str, Any], Array | None]:
         "drive_states": data.states,
     }
     return summary, predicted
+
+
+def run_duration(data: RunData) -> float:
+    """How long the run lasted [s]: its last cycle's time plus that cycle's period (N cycles
+    at period T are N T, as the run's stop line says: "ran 3 s" for 3000 cycles of 1 ms, not
+    the 2.999 s the last cycle starts at); without a recorded config, the last cycle's time."""
+    if not data.t.size:
+        return 0.0
+    period = data.config.loop.period if data.config is not None else 0.0
+    return float(data.t[-1]) + period
 
 
 def stability_gate(data: RunData) -> dict[str, Any] | None:
@@ -878,4 +888,4 @@ def axes_summary_text(s: Mapping[str, Any]) -> str:
 __all__ = ["LATENCY_TOLERANCE", "LOG_CLOCK", "SAMPLE_CLOCKS", "AxisReport", "Contact", "RunData", "StepInfo",
            "analyse", "axes_summary_text", "bus_stats", "contact_mask", "detect_steps", "gaps_within",
            "latency_clocks", "latency_stats", "load_axis", "load_run", "prediction", "report", "report_axes",
-           "shared_timing", "step_infos", "summary_text", "torque_mode"]
+           "run_duration", "shared_timing", "step_infos", "summary_text", "torque_mode"]

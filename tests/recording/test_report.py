@@ -116,6 +116,10 @@ def test_report_without_truth_or_steps(tmp_path: Path, capsys: pytest.CaptureFix
     assert main(["report", str(path), "--out", str(out), "--json"]) == 0
     summary = json.loads(capsys.readouterr().out)
     assert summary["cycles"] == 200 and summary["stop"] == "done"
+    # 200 cycles of 1 ms: the run lasted 0.2 s, as its stop line says ("ran 0.2 s"), not the
+    # last cycle's time (0.199 s)
+    assert summary["duration_s"] == pytest.approx(0.2)
+    assert "cycles: 200 (0.200 s)" in (out / "summary.txt").read_text()
     # the frames of the loop's cycles, over their time: one command a cycle at 1 kHz, the
     # bus budget's 27.1 % (`dobhil check demo`), not diluted by the stop's 0.1 s of heartbeats
     bus = summary["bus"]
