@@ -53,6 +53,7 @@ from __future__ import annotations
 
 import json
 import os
+from array import array
 from collections import Counter
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
@@ -103,11 +104,11 @@ class RunData:
     metadata: Mapping[str, Mapping[str, str]]
     t: Array
     signals: dict[str, Array] = field(default_factory=dict)
-    frames: dict[str, list[int]] = field(default_factory=dict)   # topic -> DLCs
+    frames: dict[str, NDArray[np.int64]] = field(default_factory=dict)   # topic -> DLCs
     #: topic -> how many frames of each (DLC, extended id, CAN FD, bit rate switch)
     frame_kinds: dict[str, Counter[tuple[int, bool, bool, bool]]] = field(default_factory=dict)
     span_s: float = 0.0   # first to last CAN frame, less a recovered log's gaps (:func:`gaps_within`)
-    frame_times: dict[str, list[int]] = field(default_factory=dict)  # topic -> log times [ns]
+    frame_times: dict[str, NDArray[np.int64]] = field(default_factory=dict)  # topic -> log times [ns]
     events: list[dict[str, Any]] = field(default_factory=list)
     #: each change of the drive's state (dobhil's and its own codes, with their names)
     states: list[dict[str, Any]] = field(default_factory=list)
@@ -140,14 +141,44 @@ def load_run(path: str | os.PathLike[str], progress: ProgressFn | None = None, a
     return load_axis(axis_log(open_log(path), axis), progress)
 
 
+class Columns:
+    """One topic's records as typed columns (:mod:`array`: 8 bytes a number), not a tuple of
+    Python objects per record (about 40 bytes a number, 180 a CAN frame): a report of a long
+    log holds each cycle's numbers once, the way its arrays will."""
+
+    def __init__(self, codes: str) -> None:
+        self.columns: list[array[Any]] = [array(code) for code in codes]
+
+    def add(self, *values: float) -> None:
+        for column, value in zip(self.columns, values):
+            column.append(value)
+
+    def __len__(self) -> int:
+        return len(self.columns[0])
+
+    def numpy(self, i: int) -> NDArray[Any]:
+        """Column ``i`` as an array on the same memory (no copy: a long log's columns are
+        the report's largest objects)."""
+        column = self.columns[i]
+        return np.frombuffer(column, dtype=column.typecode)
+
+
+#: the columns each topic's records keep (:func:`_take`): q an integer (cycle, log time), d a float
+_COLUMNS: Final = {"controller": "qq" + "d" * len(_CONTROLLER), "feedback": "qdd", "truth": "dddd",
+                   "loop": "qdddd", "can": "bqqq"}
+#: ``can`` records' topic column
+_CAN_TOPICS: Final = ("/can/rx", "/can/tx")
+
+
 def load_axis(log: AxisLog, progress: ProgressFn | None = None) -> RunData:
     """Read one axis of a checked log. The command latency's frames are the axis' drive's
     own (its ``frame_ids`` as recorded, where another axis shares its bus); the bus load
     counts every frame of the bus."""
     name = os.fspath(log.path)
     own = log.frame_ids
-    per: dict[str, list[Any]] = {k: [] for k in ("controller", "feedback", "truth", "loop", "states", "can")}
-    frame_times: dict[str, list[int]] = {"/can/rx": [], "/can/tx": []}
+    per: dict[str, Any] = {k: Columns(codes) for k, codes in _COLUMNS.items()}
+    per["states"] = []
+    frame_times = {topic: array("q") for topic in _CAN_TOPICS}
     events: list[dict[str, Any]] = []
     topics = REPORT_TOPICS
     read = 0
@@ -168,7 +199,7 @@ def load_axis(log: AxisLog, progress: ProgressFn | None = None) -> RunData:
                                f"({exception_line(exc)})") from None
         run = _assemble(name, log.config, log.metadata, per, events)
         run.states = drive_states(per["states"], _codes(log))
-    run.frame_times = frame_times
+    run.frame_times = {topic: np.frombuffer(times, dtype=np.int64) for topic, times in frame_times.items()}
     run.axis, run.bus, run.coupled_to = log.name, log.bus, log.coupled_to
     return run
 
@@ -195,37 +226,49 @@ def drive_states(changes: list[tuple[Any, ...]], codes: ProtocolCodes) -> list[d
     return out
 
 
-def _take(topic: str, t: int, p: dict[str, Any], per: dict[str, list[Any]], events: list[dict[str, Any]]) -> None:
+def _take(topic: str, t: int, p: dict[str, Any], per: dict[str, Any], events: list[dict[str, Any]]) -> None:
     if topic == "/controller":
-        per["controller"].append((p["cycle"], t, *(_f(p[k]) for k in _CONTROLLER)))
+        per["controller"].add(p["cycle"], t, *(_f(p[k]) for k in _CONTROLLER))
     elif topic == "/drive/feedback":
         states = per["states"]
         if not states or feedback_state(states[-1][2]) != feedback_state(p):
             states.append((t, p.get("cycle", -1), p))
         if p.get("cycle", 0) >= 0:
-            per["feedback"].append((p.get("cycle", len(per["feedback"])), _f(p["position"]), _f(p["velocity"])))
+            per["feedback"].add(p.get("cycle", len(per["feedback"])), _f(p["position"]), _f(p["velocity"]))
     elif topic == "/emulator/truth":
-        per["truth"].append((_f(p["q"]), _f(p["dq"]), _f(p["tau_motor"]), _f(p["tau_int"])))
+        per["truth"].add(_f(p["q"]), _f(p["dq"]), _f(p["tau_motor"]), _f(p["tau_int"]))
     elif topic == "/loop":
-        per["loop"].append((p["cycle"], _f(p["period_error"]), _f(p["exec_time"]), float(bool(p["overrun"])),
-                            _f(p.get("sample_latency"))))   # absent in logs before it
+        per["loop"].add(p["cycle"], _f(p["period_error"]), _f(p["exec_time"]), float(bool(p["overrun"])),
+                        _f(p.get("sample_latency")))   # absent in logs before it
     elif topic == "/events":
         events.append({**p, "log_time_ns": t})
-    else:
-        per["can"].append((topic, t, int(p["dlc"]), bool(p["is_extended_id"]), bool(p["is_fd"]),
-                           bool(p["bitrate_switch"])))
+    else:   # a frame's kind packed in one number: DLC, then extended id, CAN FD, bit rate switch
+        per["can"].add(_CAN_TOPICS.index(topic), t, int(p["dlc"]),
+                       bool(p["is_extended_id"]) | bool(p["is_fd"]) << 1 | bool(p["bitrate_switch"]) << 2)
 
 
 def _f(v: Any) -> float:
     return float("nan") if v is None else float(v)
 
 
-def _by_cycle(rows: list[tuple[Any, ...]], index: Mapping[int, int], n: int, width: int) -> Array:
-    out = np.full((n, width), np.nan)
-    for row in rows:
-        i = index.get(row[0])
-        if i is not None:
-            out[i] = row[1:]
+def _by_cycle(records: Columns, cycles: NDArray[np.int64]) -> Array:
+    """The records' values (every column after the first, their cycle) on the rows of
+    ``cycles`` (sorted; a cycle recorded twice: its last row), NaN where a cycle has none; of
+    a cycle recorded more than once, the last record."""
+    width = len(records.columns) - 1
+    out = np.full((cycles.size, width), np.nan)
+    keys = records.numpy(0)
+    row = np.searchsorted(cycles, keys, side="right") - 1
+    known = row >= 0
+    known[known] = cycles[row[known]] == keys[known]
+    rows = row[known]
+    if not rows.size:
+        return out
+    # the last record of each row, as the log has them in order (a later record wins)
+    _, first_from_end = np.unique(rows[::-1], return_index=True)
+    last = rows.size - 1 - first_from_end
+    values = np.column_stack([records.numpy(i)[known] for i in range(1, width + 1)])
+    out[rows[last]] = values[last]
     return out
 
 
@@ -246,8 +289,8 @@ def gaps_within(name: str, meta: Mapping[str, Mapping[str, str]], start: int, en
     return sum(max(0, min(b, end) - max(a, start)) for a, b in gaps)
 
 
-def _loop_frames(per: dict[str, list[Any]], stamps: NDArray[np.int64], period: float | None
-                 ) -> tuple[dict[str, list[int]], dict[str, Counter[tuple[int, bool, bool, bool]]], list[Any]]:
+def _loop_frames(can: Columns, stamps: NDArray[np.int64], period: float | None
+                 ) -> tuple[dict[str, NDArray[np.int64]], dict[str, Counter[tuple[int, bool, bool, bool]]], list[Any]]:
     """The CAN frames of the loop's cycles: DLCs and kinds per topic, and the window's
     bounds [ns]. From the first cycle's record to the last's (excluded): as many periods as
     cycles less one, each with one cycle's feedback and command whatever their phase
@@ -257,52 +300,54 @@ def _loop_frames(per: dict[str, list[Any]], stamps: NDArray[np.int64], period: f
     3-cycle run's 1 kHz commands read 120 frames/s and its load 15 % for the 27 % of the bus
     budget (``dobhil check``). Without a recorded config, every frame, from the first to
     the last."""
-    frames: dict[str, list[int]] = {"/can/rx": [], "/can/tx": []}
-    ext: dict[str, Counter[tuple[int, bool, bool, bool]]] = {"/can/rx": Counter(), "/can/tx": Counter()}
-    rows = per["can"]
+    topic, times, dlc, kind = (can.numpy(i) for i in range(4))
     bounds: list[Any]
     if period is not None:   # one cycle: an empty window, no rate rather than one of enabling and stop
         lo, hi = int(stamps[0]), int(stamps[-1])
-        rows = [r for r in rows if lo <= r[1] < hi]
+        inside = (times >= lo) & (times < hi)
         bounds = [lo, hi]
     else:
-        times = [r[1] for r in rows]
-        bounds = [min(times), max(times)] if times else [None, None]
-    for topic, _, dlc, extended, fd, brs in rows:
-        frames[topic].append(dlc)
-        ext[topic][dlc, extended, fd, brs] += 1
+        inside = np.ones(times.size, dtype=bool)
+        bounds = [int(times.min()), int(times.max())] if times.size else [None, None]
+    frames: dict[str, NDArray[np.int64]] = {}
+    ext: dict[str, Counter[tuple[int, bool, bool, bool]]] = {}
+    for code, name in enumerate(_CAN_TOPICS):
+        frames[name] = dlc[inside & (topic == code)]
+        kinds, counts = np.unique(frames[name] * 8 + kind[inside & (topic == code)], return_counts=True)
+        ext[name] = Counter({(int(k) // 8, bool(k & 1), bool(k & 2), bool(k & 4)): int(c)
+                             for k, c in zip(kinds, counts)})
     return frames, ext, bounds
 
 
 def _assemble(name: str, config: Config | None, meta: Mapping[str, Mapping[str, str]],
-              per: dict[str, list[Any]], events: list[dict[str, Any]]) -> RunData:
-    ctrl = sorted(per["controller"])
-    if not ctrl:
+              per: dict[str, Any], events: list[dict[str, Any]]) -> RunData:
+    records: Columns = per["controller"]
+    if not len(records):
         raise LogFileError(f"{name}: no /controller records (the run stopped before its first cycle)")
-    index = {row[0]: i for i, row in enumerate(ctrl)}
-    n = len(ctrl)
-    stamps = np.array([row[1] for row in ctrl], dtype=np.int64)
-    frames, ext, bounds = _loop_frames(per, stamps, None if config is None else config.loop.period)
+    cycle, stamp = records.numpy(0), records.numpy(1)
+    order = np.lexsort((stamp, cycle))   # by cycle, then log time
+    cycles, stamps = cycle[order], stamp[order]
+    n = cycles.size
+    frames, ext, bounds = _loop_frames(per["can"], stamps, None if config is None else config.loop.period)
     # time from cycle 0: a log recovered without its start (its first chunk damaged) begins
     # at a later cycle, which is that many periods into the run, not at 0 s
-    origin = stamps[0] - (round(ctrl[0][0] * config.loop.period * 1e9) if config is not None and ctrl[0][0] > 0
-                          else 0)
+    first = int(cycles[0])
+    origin = int(stamps[0]) - (round(first * config.loop.period * 1e9) if config is not None and first > 0 else 0)
     data = RunData(path=name, config=config, metadata=meta, t=(stamps - origin) / 1e9,
                    frames=frames, frame_kinds=ext, events=events,
                    span_s=0.0 if bounds[0] is None else
                    (bounds[1] - bounds[0] - gaps_within(name, meta, bounds[0], bounds[1])) / 1e9)
-    values = np.array([row[2:] for row in ctrl], dtype=float)
-    data.signals.update({k: values[:, i] for i, k in enumerate(_CONTROLLER)})
-    data.signals["cycle"] = np.array([row[0] for row in ctrl], dtype=float)
-    fb = _by_cycle(per["feedback"], index, n, 2)
+    data.signals.update({k: records.numpy(i + 2)[order] for i, k in enumerate(_CONTROLLER)})
+    data.signals["cycle"] = cycles.astype(float)
+    fb = _by_cycle(per["feedback"], cycles)
     data.signals.update(q=fb[:, 0], dq=fb[:, 1])
-    loop = _by_cycle(per["loop"], index, n, 4)
+    loop = _by_cycle(per["loop"], cycles)
     data.signals.update(period_error=loop[:, 0], exec_time=loop[:, 1], overrun=loop[:, 2],
                         sample_latency=loop[:, 3])
     truth = np.full((n, 4), np.nan)
-    if per["truth"]:
-        rows = np.array(per["truth"][:n], dtype=float)
-        truth[:rows.shape[0]] = rows
+    recorded = min(len(per["truth"]), n)   # in the log's order, one a cycle
+    for i in range(4):
+        truth[:recorded, i] = per["truth"].numpy(i)[:recorded]
     data.signals.update(q_true=truth[:, 0], dq_true=truth[:, 1], tau_motor=truth[:, 2], tau_int_true=truth[:, 3])
     return data
 
