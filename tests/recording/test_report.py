@@ -378,3 +378,32 @@ def test_a_report_keeps_each_frame_and_cycle_as_a_few_numbers_not_python_objects
         tracemalloc.stop()
     assert data.t.size == cycles and len(data.frames["/can/tx"]) == cycles - 1
     assert peak / cycles < 500, f"{peak / cycles:.0f} bytes a cycle"
+
+
+def test_the_shared_timing_of_axes_keeps_no_object_per_cycle() -> None:
+    """Two axes' timing (cycles 0..4999 and 1..5000: each cycle's worst of the axes there): the
+    per-cycle worst is gathered on arrays. Measured here with a list of floats per cycle: 260
+    bytes a cycle at the peak; on arrays 106 (the inputs are not counted)."""
+    import tracemalloc
+    from dobhil.run_report import shared_timing
+    n = 5000
+
+    def axis(first: int, exec_time: float, overrun_at: int) -> RunData:
+        overrun = np.zeros(n)
+        overrun[overrun_at] = 1.0
+        return RunData(path="x", config=None, metadata={}, t=np.arange(n) * 1e-3,
+                       signals={"cycle": np.arange(first, first + n, dtype=float), "exec_time": np.full(n, exec_time),
+                                "period_error": np.full(n, -2e-6), "overrun": overrun})
+
+    a, b = axis(0, 1e-4, 7), axis(1, 3e-4, 7)
+    b["exec_time"][0] = np.nan   # cycle 1: only a's time is known
+    tracemalloc.start()
+    try:
+        out = shared_timing([a, b])
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    assert out["cycles"] == n + 1 and out["overruns"] == 2
+    assert out["exec_time_max"] == pytest.approx(3e-4) and out["exec_time_p50"] == pytest.approx(3e-4)
+    assert out["period_error_max"] == pytest.approx(2e-6)
+    assert peak / n < 200, f"{peak / n:.0f} bytes a cycle"
