@@ -551,7 +551,7 @@ def latency_stats(data: RunData) -> dict[str, Any]:
     if rx.size == 0 or tx.size == 0:
         out["why"] = "no frames in both directions"
         return out
-    rx.sort()
+    rx = np.sort(rx)   # a copy: the run's frame times stay in the log's order
     last = np.searchsorted(rx, tx, side="right") - 1
     lat = (tx[last >= 0] - rx[last[last >= 0]]) / 1e9
     if period is not None:   # a command long after any feedback is not a cycle's answer

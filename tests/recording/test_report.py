@@ -154,6 +154,15 @@ def _latency_run(rx_ms: list[float], tx_ms: list[float], *, clock: str, input_de
                                 "/can/tx": [round(x * 1e6) for x in tx_ms]})
 
 
+def test_the_latency_leaves_the_runs_frame_times_as_read() -> None:
+    """The frame times a run was read into (arrays, :func:`dobhil.run_report.load_axis`) are
+    the log's: measuring the latency sorts a copy, not them."""
+    data = _latency_run([2.0, 0.0, 1.0], [0.3, 1.3, 2.3], clock="wall", input_delay=3e-4)
+    data.frame_times = {k: np.array(v, dtype=np.int64) for k, v in data.frame_times.items()}
+    assert latency_stats(data)["commands"] == 3
+    assert data.frame_times["/can/rx"].tolist() == [2_000_000, 0, 1_000_000]
+
+
 def test_latency_is_measured_against_the_assumed_input_delay() -> None:
     """Each command's latency is its log time since the last received frame; a command later
     than a period after any feedback is not a cycle's answer and is left out."""
