@@ -620,8 +620,11 @@ def _refine(minimizer: lmfit.Minimizer, result: lmfit.minimizer.MinimizerResult,
         if jac is None:                       # aborted: no Jacobian at its end
             break
         x = np.array([fit.params[n].value for n in names])
-        if _drifted(x0, x):
-            jac = _jacobian(minimizer, fit.params, names, _central(steps, x, lo, hi), lo, hi)
+        collapsed = _collapsed(x0, x, lo, hi)
+        if collapsed.any():
+            jac = np.array(jac, float)
+            jac[:, collapsed] = _columns(minimizer, fit.params, names, _central(steps, x, lo, hi), lo, hi,
+                                         np.flatnonzero(collapsed))
         inverse = _inverse_normal(np.asarray(jac, float))
         if inverse is None:
             return _Refined(params, r0, None)
@@ -684,27 +687,29 @@ def _whole_delay(minimizer: lmfit.Minimizer, refined: _Refined, period: float,
     return again if float(again.residual @ again.residual) < float(refined.residual @ refined.residual) else refined
 
 
-def _drifted(x0: np.ndarray, x: np.ndarray) -> bool:
-    """Whether scipy's Jacobian at ``x``, the end of a round that started at ``x0``, was taken
-    with steps off by more than a factor of 2 from the round's own (:func:`_relative_steps`):
-    scipy scales the relative ``diff_step`` by ``|x|`` where it evaluates the Jacobian, so a
-    value that moved far relative to itself -- a delay or a friction ending a hair above its
-    bound of 0 (3.9e-13 s from a start of 1e-10 s, measured) -- gets a step shrunk by the same
-    factor, far below the cost's roughness: its column came out ~0, the standard error of
-    a delay of 0 +-3.4 s, and the delay "not identifiable" in 3 of 12 windows of one free run
-    where its neighbours said 0 [0, 67 us]."""
-    start = np.maximum(np.abs(x0), 1e-10)
-    ratio = np.abs(x) / start
-    return bool(np.any((ratio < 0.5) | (ratio > 2.0)))
+def _collapsed(x0: np.ndarray, x: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """Which columns of scipy's Jacobian at ``x``, the end of a round that started at ``x0``,
+    were taken with a step collapsed far below the round's own (:func:`_relative_steps`): scipy scales
+    the relative ``diff_step`` by ``|x|`` where it evaluates the Jacobian, and a value that
+    ended within scipy's own 1e-10 of a bound (``make_strictly_feasible``) -- a delay or a
+    friction of 0 at 3.9e-13 s from a start of 1e-10 s, measured -- gets its step shrunk by
+    the same factor, far below the cost's roughness: its column came out ~0, the standard
+    error of a delay of 0 +-3.4 s, and the delay "not identifiable" in 3 of 12 windows of
+    one free run where its neighbours said 0 [0, 67 us]. A value that moved inside the
+    bounds keeps scipy's step, which the next round puts right."""
+    at_bound = ((x - lo <= 1e-10 * np.maximum(1.0, np.abs(lo)))
+                | (hi - x <= 1e-10 * np.maximum(1.0, np.abs(hi))))
+    shrunk = np.abs(x) < 0.5 * np.maximum(np.abs(x0), 1e-10)
+    return at_bound & shrunk
 
 
-def _jacobian(minimizer: lmfit.Minimizer, params: lmfit.Parameters, names: Sequence[str],
-              steps: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
-    """The Jacobian of the residual at ``params`` with the absolute ``steps``, by scipy's
+def _columns(minimizer: lmfit.Minimizer, params: lmfit.Parameters, names: Sequence[str],
+             steps: np.ndarray, lo: np.ndarray, hi: np.ndarray, which: np.ndarray) -> np.ndarray:
+    """Columns ``which`` of the residual's Jacobian at ``params`` with the absolute ``steps``, by scipy's
     '3-point' scheme: central where both sides fit within the bounds, else the one-sided
     three-point formula toward the wider side (as ``scipy.optimize.least_squares`` does at a
     bound). Written here because scipy's differencing (``_numdiff.approx_derivative``) is
-    private and takes relative steps only; see :func:`_drifted` for when it is needed."""
+    private and takes relative steps only; see :func:`_collapsed` for when it is needed."""
     def at(i: int, value: float) -> np.ndarray:
         trial = params.copy()
         trial[names[i]].set(value=value)
@@ -713,7 +718,8 @@ def _jacobian(minimizer: lmfit.Minimizer, params: lmfit.Parameters, names: Seque
     f0 = np.asarray(minimizer.userfcn(params, *minimizer.userargs), float)
     x = np.array([params[n].value for n in names])
     columns = []
-    for i, h in enumerate(steps):
+    for i in (int(j) for j in which):
+        h = float(steps[i])
         if x[i] - h >= lo[i] and x[i] + h <= hi[i]:
             columns.append((at(i, x[i] + h) - at(i, x[i] - h)) / (2.0 * h))
             continue
