@@ -94,6 +94,10 @@ SAFE_STOP_RETRY = 0.02
 #: keepalive interval of enable() when neither a watchdog nor a heartbeat period sets
 #: one: often enough to ask a drive for status, seldom enough to load no bus
 DEFAULT_KEEPALIVE = 0.1
+#: seconds between the status requests of a safe stop's confirmation wait
+#: (:meth:`Drive._status_request_frames`): a drive that takes a few ms to leave torque control
+#: answers the first request still in it, and the next one confirms
+STATUS_REQUEST_INTERVAL = 0.01
 #: frames a safe stop reads off the bus before its frames at most (a drive that cannot
 #: confirm its disable: what was queued answers none of them); a flooded bus cannot hold it
 DRAIN_LIMIT = 1000
@@ -562,6 +566,13 @@ class Drive(ABC):
     def _decode(self, msg: can.Message) -> Sequence[DriveEvent]:
         """Events in one received frame; () for frames not from this drive."""
 
+    def _status_request_frames(self) -> Sequence[can.Message]:
+        """Frames that ask the drive for a status frame now, sent every
+        STATUS_REQUEST_INTERVAL s while the safe stop waits for its confirmation (an ODrive
+        0.6 answers a heartbeat RTR): without them the wait lasts until the drive's next
+        cyclic status frame, up to a whole ``heartbeat_period``. Default: none."""
+        return ()
+
     def _keepalive_frames(self) -> Sequence[can.Message]:
         """Frames repeated while enable() waits: keep the drive's watchdog fed and ask
         for status. Default: a zero torque command."""
@@ -691,17 +702,29 @@ class Drive(ABC):
                               f"did not answer {self.disabled_state_text} ({seen}{why})")
 
     def _read_until(self, wait: float, cancel: Cancel | None, done: Callable[[can.Message], bool], *,
-                    silence: str) -> str:
+                    silence: str, requests: Sequence[can.Message] = ()) -> str:
         """Read frames for up to ``wait`` s until ``done(frame)``: "" then, else why not
         (``silence`` when the wait ended, the wait cancelled, the bus unreadable).
+        ``requests``: frames sent before the first read and every STATUS_REQUEST_INTERVAL s.
         Past the deadline only what is already queued is read. Never raises."""
-        frames = sliced_frames(self._bus.recv, self._clock, self._clock() + wait, cancel=cancel, drain=True)
+        between = partial(self._send_requests, requests) if requests else None
+        frames = sliced_frames(self._bus.recv, self._clock, self._clock() + wait, cancel=cancel, drain=True,
+                               between=between, every=STATUS_REQUEST_INTERVAL)
         try:
             return "" if any(done(msg) for msg in frames) else silence
         except WaitCancelled as exc:
             return f"confirmation wait cut short: {exc}"
         except Exception as exc:  # safety path: a bus that cannot be read confirms nothing
             return f"status not readable: {exc}"
+
+    def _send_requests(self, frames: Sequence[can.Message]) -> None:
+        """Status requests of a confirmation wait. Never raises: a request the bus refuses
+        leaves the wait to the drive's cyclic status frames."""
+        for frame in frames:
+            try:
+                self._bus.send(frame)
+            except Exception:  # safety path: the wait goes on without it
+                return
 
     def _await_first_answer(self, frames: tuple[FrameResult, ...], timeout: float | None,
                             cancel: Cancel | None) -> SafeStopReport:
@@ -746,7 +769,11 @@ class Drive(ABC):
             return False
 
         silence = f"no status frame within {wait:g} s"
-        why = self._read_until(wait, cancel, confirmed, silence=silence)
+        try:
+            requests = tuple(self._status_request_frames())
+        except Exception:  # safety path: a broken hook leaves the wait to the cyclic frames
+            requests = ()
+        why = self._read_until(wait, cancel, confirmed, silence=silence, requests=requests)
         if not why:
             return SafeStopReport(self.node_id, frames, Confirmation.CONFIRMED)
         if seen is not None and why == silence:

@@ -317,6 +317,20 @@ def test_lockstep_answers_rtr_requests(make_rig: Callable[..., Rig]) -> None:
         assert codec.decode_message(frame) == reply
 
 
+def test_lockstep_safe_stop_of_06_asks_for_its_heartbeat(make_rig: Callable[..., Rig]) -> None:
+    """A 0.6 drive answers a heartbeat RTR (the enable relies on it too): the safe stop asks
+    for the heartbeat that confirms IDLE instead of waiting for the cyclic one, which with
+    a 10 s heartbeat period came 10 s later (simulated time here)."""
+    rig = make_rig("lockstep", "odrive-0.6", heartbeat_period=10.0)
+    rig.drive.enable()
+    rig.run(0.005, torque=0.25)
+    start = rig.clock()
+    report = rig.drive.safe_stop()
+    assert report.safe, report.detail
+    assert rig.emu.axis_state is AxisState.IDLE
+    assert rig.clock() - start < 0.1
+
+
 # ---------------------------------------------------------------------------
 # Profiles and registry
 

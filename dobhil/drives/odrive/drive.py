@@ -3,7 +3,8 @@
 Enable: Set_Input_Torque(0) (feeds the watchdog), Clear_Errors,
 Set_Controller_Mode(TORQUE_CONTROL, PASSTHROUGH), Set_Input_Torque(0),
 Set_Axis_State(CLOSED_LOOP_CONTROL); confirmed by a heartbeat in CLOSED_LOOP_CONTROL with
-Axis_Error 0. Disable: Set_Input_Torque(0), Set_Axis_State(IDLE). Feedback: the cyclic
+Axis_Error 0. Disable: Set_Input_Torque(0), Set_Axis_State(IDLE); on 0.6 confirmed by the
+heartbeat it asks for by RTR, on 0.5 by the cyclic one. Feedback: the cyclic
 Get_Encoder_Estimates and Heartbeat frames (rates configured on the drive to match the
 profile). Layouts and error bits: :mod:`dobhil.drives.odrive.codec`.
 """
@@ -106,6 +107,14 @@ class ODriveDrive(Drive):
         if self._firmware is Firmware.V0_5:
             return (self._torque_frame(0.0),)
         return (self._torque_frame(0.0), self._encode(codec.Request(CmdId.HEARTBEAT)))
+
+    def _status_request_frames(self) -> Sequence[can.Message]:
+        """On 0.6 an RTR heartbeat request, as the enable's keepalive sends: the safe stop's
+        confirmation then comes within milliseconds, not at the next cyclic heartbeat (up
+        to ``heartbeat_period`` later). 0.5.6 ignores heartbeat RTRs: none."""
+        if self._firmware is Firmware.V0_5:
+            return ()
+        return (self._encode(codec.Request(CmdId.HEARTBEAT)),)
 
     @classmethod
     def preflight_probe(cls, profile: DriveProfile) -> PreflightProbe:
