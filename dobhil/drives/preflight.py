@@ -268,8 +268,13 @@ class PreflightProbe(ABC):
         """The drive-side name of a setting, e.g. ``<axis>.config.can.encoder_msg_rate_ms``."""
 
     def setting_value(self, which: Setting, value: float) -> str:
-        """A value in the setting's unit; default: periods in whole milliseconds."""
+        """A value in the setting's unit; default: periods in milliseconds."""
         return str(int(value)) if which is Setting.NODE_ID else f"{value * 1e3:g}"
+
+    def shortest_period(self, which: Setting) -> float:
+        """The shortest period [s] the drive-side rate setting ``which`` can take (0: any):
+        advice never asks the drive for a faster stream than this."""
+        return 0.0
 
     @abstractmethod
     def node_summary(self, node: NodeReport) -> str:
@@ -325,14 +330,20 @@ class PreflightProbe(ABC):
 
 
 def profile_rate_findings(profile: DriveProfile, period: float,
-                          frames: str = "motion feedback") -> list[Finding]:
+                          frames: str = "motion feedback", shortest: float = 0.0) -> list[Finding]:
     """The profile must promise feedback at least once per loop period; ``frames``: the
-    protocol's name of its feedback (its probe's :meth:`PreflightProbe.motion_name`)."""
+    protocol's name of its feedback (its probe's :meth:`PreflightProbe.motion_name`);
+    ``shortest``: the shortest feedback period the drive can be set to (its probe's
+    :meth:`PreflightProbe.shortest_period`; 0: any)."""
     if profile.feedback_period is not None and profile.feedback_period > period * (1 + 1e-9):
+        # a loop faster than any feedback the drive can send needs a slower loop, not a
+        # drive setting nobody can enter
+        fix = (f"set loop.period >= {shortest:g} s (a drive sends its {frames} at most every {shortest:g} s)"
+               if period < shortest * (1 - 1e-9) else "set its feedback_period (and the drive's) to the loop period")
         return [Finding(Severity.MISMATCH,
                         f"drive profile {profile.name or profile.protocol!r} has {frames} every "
                         f"{profile.feedback_period:g} s (feedback_period), slower than loop.period = "
-                        f"{period:g} s; set its feedback_period (and the drive's) to the loop period",
+                        f"{period:g} s; {fix}",
                         stale_feedback=True)]
     return []
 
@@ -507,7 +518,8 @@ def run_preflight(
     # listened would be false ("1 frame in 60000 ms"), and the failure is the one cause
     node_found = ([] if cap.read_error else [cap.verdict] if cap.verdict is not None
                   else _node_findings(probe, nodes, period, feedback_timeout, window))
-    findings = [*profile_rate_findings(profile, period, probe.motion_name()), *link_found,
+    findings = [*profile_rate_findings(profile, period, probe.motion_name(),
+                                       probe.shortest_period(Setting.MOTION_RATE)), *link_found,
                 *_bus_findings(bus_report, cap.send_errors, cap.read_error),
                 *budget_findings(bus_budget), *node_found, *cap.findings]
     return PreflightReport(profile.name or profile.protocol, profile.node_id, window, nodes,
@@ -623,8 +635,16 @@ def _motion_findings(probe: PreflightProbe, node: NodeReport, period: float, fee
     out: list[Finding] = []
     motion = node.motion
     want_motion = min(feedback_period, period)
+    shortest = probe.shortest_period(Setting.MOTION_RATE)
     set_motion = (f"set {probe.setting(Setting.MOTION_RATE)} = "
-                  f"{probe.setting_value(Setting.MOTION_RATE, want_motion)}")
+                  f"{probe.setting_value(Setting.MOTION_RATE, max(want_motion, shortest))}")
+    if want_motion < shortest * (1 - 1e-9):
+        # what the profile or the loop asks for is faster than the drive can send: the
+        # advice is the drive's fastest and the config's keys that must follow it
+        keys = "loop.period and feedback_period" if period < shortest * (1 - 1e-9) else "feedback_period"
+        set_config = f"{keys} >= {_ms(shortest)}, the drive's fastest"
+        fast_enough = motion.period is not None and motion.period <= shortest * PERIOD_TOLERANCE
+        set_motion = f"set {set_config}" if fast_enough else f"{set_motion}, and {set_config}"
     if motion.period is None:
         now = "off" if motion.count == 0 else f"1 frame in {_ms(window)}"
         out.append(Finding(Severity.MISMATCH, f"node {node.node} sends no cyclic {probe.motion_name()}: "

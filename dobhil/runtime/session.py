@@ -22,7 +22,7 @@ import can
 
 from dobhil.config.schema import Config
 from dobhil.drives.base import Drive
-from dobhil.drives.preflight import DEFAULT_WINDOW, PreflightReport, profile_rate_findings, run_preflight
+from dobhil.drives.preflight import DEFAULT_WINDOW, PreflightReport, Setting, profile_rate_findings, run_preflight
 from dobhil.drives.load import load_drive_profile
 from dobhil.drives.plugin import PeriodicSend
 from dobhil.drives.profile import DriveProfile
@@ -51,7 +51,9 @@ def check_rates(profile: DriveProfile, period: float, prefix: str = "") -> None:
     timeout on the host's frames must tolerate one every period (:func:`check_host_watch`).
     ``prefix``: before the error line (``axis NAME: `` in a several-axis run)."""
     probe = preflight_probe(profile)
-    for finding in profile_rate_findings(profile, period, probe.motion_name() if probe else "motion feedback"):
+    frames, shortest = (probe.motion_name(), probe.shortest_period(Setting.MOTION_RATE)) if probe else (
+        "motion feedback", 0.0)
+    for finding in profile_rate_findings(profile, period, frames, shortest):
         raise ConfigError(f"{prefix}{finding.text}")
     check_host_watch(profile, period, prefix)
 

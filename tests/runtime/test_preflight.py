@@ -446,11 +446,28 @@ def test_forced_preflight_in_lockstep_measures_simulated_time() -> None:
     assert result.stop.reason.name == "DONE"
 
 
+def test_odrive_advice_is_in_whole_milliseconds_the_drive_takes() -> None:
+    """An ODrive takes its rates in whole milliseconds (encoder_msg_rate_ms is an integer; 0
+    is off): a loop of 0.5 ms is told to run at the drive's fastest, 1 ms, never to set
+    encoder_msg_rate_ms = 0.5; a drive streaming every 4 ms for a 2.5 ms profile is told 2."""
+    report = lockstep_preflight(bare("odrive-0.6"), bare("odrive-0.6"), period=5e-4)
+    assert texts(report) == [
+        "drive profile 'odrive-0.6' has encoder estimates every 0.001 s (feedback_period), slower than "
+        "loop.period = 0.0005 s; set loop.period >= 0.001 s (a drive sends its encoder estimates at most "
+        "every 0.001 s)",
+        "set loop.period and feedback_period >= 1 ms, the drive's fastest (now 1 ms; loop.period 0.5 ms "
+        "would use each sample 2 times)"]
+    slow = lockstep_preflight(bare("odrive-0.6", feedback_period=4e-3), bare("odrive-0.6", feedback_period=2.5e-3),
+                              period=5e-3)
+    assert "set <axis>.config.can.encoder_msg_rate_ms = 2 (now 4 ms; the profile's feedback_period is 2.5 ms; " \
+        "each loop period still gets a fresh sample)" in texts(slow)
+
+
 def test_a_drive_slower_than_the_profile_but_fast_enough_for_the_loop_is_not_called_stale() -> None:
     """The profile promises 0.5 ms, the drive sends every 1 ms, the loop runs at 1 ms: a
     mismatch with the profile, but each period gets a fresh sample (no '1 times'), and the
     run is not refused."""
     report = lockstep_preflight(bare("odrive-0.6"), bare("odrive-0.6", feedback_period=5e-4))
-    (text,) = [t for t in texts(report) if "encoder_msg_rate_ms" in t]
+    (text,) = [t for t in texts(report) if "feedback_period >= 1 ms, the drive's fastest" in t]
     assert "each loop period still gets a fresh sample" in text and "times" not in text, text
     assert not report.refuses and report.lines()[-1].endswith("it prints them and runs")

@@ -21,6 +21,7 @@
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 
 import can
@@ -70,6 +71,17 @@ class ODrivePreflight(PreflightProbe):
 
     def setting(self, which: Setting) -> str:
         return f"<axis>.config.can.{_SETTINGS[self.firmware][which]}"
+
+    def setting_value(self, which: Setting, value: float) -> str:
+        """Rates in whole milliseconds, as the drive takes them (``encoder_msg_rate_ms`` is
+        an integer; 0 turns the stream off), rounded down: a faster stream still serves."""
+        if which is Setting.NODE_ID:
+            return str(int(value))
+        return str(max(1, math.floor(value * 1e3 + 1e-6)))
+
+    def shortest_period(self, which: Setting) -> float:
+        """1 ms: the shortest rate in whole milliseconds (0 is off)."""
+        return 0.0 if which is Setting.NODE_ID else 1e-3
 
     def motion_name(self) -> str:
         return "encoder estimates"
