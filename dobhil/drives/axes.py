@@ -321,7 +321,8 @@ def _bus_budget(bus: str, drives: Sequence[AxisDrive], period: float,
         frames += [dataclasses.replace(f, name=f"{d.name}: {f.name}") for f in mine]
         per_axis.append((d.name, sum(f.bits_at(bitrate) * f.per_cycle(period) for f in mine)))
     frames += shared.values()
-    fewer = fewer or "fewer axes on this bus (another bus for one: its drive.interface/drive.channel)"
+    if fewer is None:
+        fewer = "fewer axes on this bus (another bus for one: its drive.interface/drive.channel)"
     budget = BusBudget(tuple(frames), period, bitrate, fewer)
     shared_bits = sum(f.bits_at(bitrate) * f.per_cycle(period) for f in shared.values())
     return AxesBusBudget(bus, budget, tuple(per_axis), shared_bits, tuple(unknown), _fd_instead(drives))

@@ -111,7 +111,7 @@ class BusBudget:
     frames: tuple[CycleFrame, ...]
     period: float
     bitrate: int | None
-    #: what "fewer frames" means for this protocol, in the advice
+    #: what "fewer frames" means for this protocol, in the advice ("": no such way)
     fewer: str = "fewer axes on this bus"
 
     @property
@@ -148,7 +148,7 @@ class BusBudget:
         """The changes that bring the budget within :data:`MAX_BUDGET`: a standard bit rate
         that is enough, the shortest loop period that is, and :attr:`fewer`."""
         if not self.bitrate:
-            return [self.fewer]
+            return [self.fewer] if self.fewer else []
         ways = []
         faster = [b for b in STANDARD_BITRATES if b > self.bitrate and self._load_at(b, self.period) <= MAX_BUDGET]
         if faster:
@@ -161,7 +161,8 @@ class BusBudget:
         elif keys and (together := self._shortest_period(self.bitrate, following=True)) is not None:
             # the frames that run at their own period whatever the loop hold the bus: slow both
             ways.append(f"a slower loop (loop.period and {' and '.join(keys)} >= {together * 1e3:.3g} ms)")
-        ways.append(self.fewer)
+        if self.fewer:
+            ways.append(self.fewer)
         return ways
 
     def loop_bits(self) -> float:

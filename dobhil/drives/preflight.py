@@ -299,8 +299,10 @@ class PreflightProbe(ABC):
     #: the measured stream periods are compared with the profile (False: the protocol's
     #: start-up sets them itself and its probe reads and compares the settings instead)
     checks_rates: bool = True
-    #: what "fewer frames" means in the bus budget's advice
-    budget_fewer: str = "fewer axes on this bus"
+    #: what one drive of the protocol can change to put fewer frames on the bus, in the advice
+    #: of its own budget (a run or check of that one drive: the budget counts its frames
+    #: only, so fewer axes would change nothing); "" when nothing but the other ways helps
+    budget_fewer: str = ""
 
     def listen(self, bus: can.BusABC, window: float, clock: Callable[[], float],
                stamp: Callable[[can.Message], float], cancel: Cancel | None) -> Capture:

@@ -101,7 +101,8 @@ def test_odrive_factory_bitrate_is_over_budget() -> None:
     assert b is not None
     assert b.advice() == ("bus budget 109 % of 250 kbit/s at 1 kHz is over 70 %: use a higher bit rate "
                           "(500 kbit/s on the drive and the interface: 54 %), or a slower loop "
-                          "(loop.period >= 3.5 ms), or fewer axes on this bus")
+                          "(loop.period >= 3.5 ms), or a slower loop and encoder stream together (loop.period "
+                          "and feedback_period, <axis>.config.can.encoder_msg_rate_ms to match)")
 
 
 def test_unknown_bitrate_and_no_frames() -> None:
@@ -140,15 +141,16 @@ def test_analyze_and_an_emulated_run_say_the_budget(capsys: pytest.CaptureFixtur
     err = capsys.readouterr().err
     assert err.splitlines() == ["dobhil run: note (not refused: the run goes on): bus budget 90 % of 300 kbit/s "
                                 "at 1 kHz is over 70 %: use a higher bit rate (500 kbit/s on the drive and the "
-                                "interface: 54 %), or a slower loop (loop.period >= 1.84 ms), or fewer axes on "
-                                "this bus"]
+                                "interface: 54 %), or a slower loop (loop.period >= 1.84 ms), or a slower loop "
+                                "and encoder stream together (loop.period and feedback_period, "
+                                "<axis>.config.can.encoder_msg_rate_ms to match)"]
 
 
 # 270 bits per cycle (MIT command 135 + reply 135) at 100 kHz on 1 Mbit/s (10 bits per cycle): 2700 %
 MIT_OVER = ["--set", "loop.period=1e-5"]
 MIT_REFUSAL = ("error: bus socketcan:can0: drive profile 'ak80-9' (node 1) needs 270 bits per cycle, 2700 % of "
                "1 Mbit/s at 100 kHz: more than the bus carries in one period; use a slower loop "
-               "(loop.period >= 0.39 ms), or fewer motors on this bus, or drives on CAN FD (protocol moteus)")
+               "(loop.period >= 0.39 ms), or drives on CAN FD (protocol moteus)")
 
 
 @pytest.mark.parametrize("argv", [["run", "--emulate"], ["run", "--emulate", "--lockstep"], ["check"]])

@@ -111,7 +111,7 @@ class CiA402Preflight(PreflightProbe):
     """Reads the node's objects by SDO, then listens for the rest of the window."""
 
     checks_rates = False  # the start-up writes 0x1006/0x1017 itself; TPDOs only follow SYNC
-    budget_fewer = "fewer axes or TPDOs on this bus"
+    budget_fewer = "fewer TPDOs"
 
     def __init__(self, profile: DriveProfile) -> None:
         super().__init__(profile)

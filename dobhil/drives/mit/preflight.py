@@ -85,7 +85,6 @@ class MitPreflight(PreflightProbe):
     ranges), then listens for the rest of the window."""
 
     checks_rates = False   # nothing streams: every reply answers a frame
-    budget_fewer = "fewer motors on this bus"
 
     def __init__(self, profile: DriveProfile) -> None:
         super().__init__(profile)

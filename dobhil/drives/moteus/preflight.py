@@ -72,7 +72,7 @@ class FdCycleFrame(CycleFrame):
 
 class MoteusPreflight(PreflightProbe):
     checks_rates = False   # nothing streams: each reply answers a frame
-    budget_fewer = "fewer controllers on this bus, or narrower query resolutions"
+    budget_fewer = "narrower query resolutions"
 
     def __init__(self, profile: DriveProfile) -> None:
         super().__init__(profile)

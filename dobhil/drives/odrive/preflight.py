@@ -51,6 +51,11 @@ def heartbeat_family(data: bytes) -> Firmware | None:
 
 
 class ODrivePreflight(PreflightProbe):
+    #: the encoder estimates stream every feedback_period whatever the loop does, and a loop
+    #: needs one per period: fewer frames means both slower
+    budget_fewer = ("a slower loop and encoder stream together (loop.period and feedback_period, "
+                    "<axis>.config.can.encoder_msg_rate_ms to match)")
+
     def __init__(self, profile: DriveProfile) -> None:
         super().__init__(profile)
         self.firmware = Firmware.parse(profile.firmware)
