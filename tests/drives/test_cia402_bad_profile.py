@@ -143,3 +143,21 @@ def test_a_host_heartbeat_on_the_nodes_own_id_is_one_line(tmp_path: Path, capsys
         config.write_text(yaml.safe_dump(data))
     err = one_line_exit_2(command, config, capsys)
     assert re.search(r"cia402.host_node_id: expected an id other than the node's \((5|9)\)", err), err
+
+
+@pytest.mark.parametrize("command", COMMANDS)
+def test_an_enable_timeout_shorter_than_the_power_state_machine_is_one_line(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str], command: str) -> None:
+    """The enable waits for the first statusword and then one SYNC per transition of the
+    power state machine (shutdown, switch on, enable operation): 4 SYNC periods at the
+    least. enable_timeout 1 ms with a 1 ms SYNC never enabled (and was accepted); 3 ms
+    neither, 4 ms does (the emulated node, lockstep)."""
+    config = write_setup(tmp_path)
+    profile_path = tmp_path / "node.yaml"
+    profile = yaml.safe_load(profile_path.read_text())
+    profile_path.write_text(yaml.safe_dump({**profile, "enable_timeout": 0.003}))
+    err = one_line_exit_2(command, config, capsys)
+    assert re.search(r"enable_timeout: expected at least 4 SYNC periods .*0\.004 s.*got 0\.003", err), err
+    if command == "run":
+        profile_path.write_text(yaml.safe_dump({**profile, "enable_timeout": 0.004}))
+        assert main([part.format(config=config) for part in COMMANDS[command]]) == 0

@@ -24,6 +24,10 @@ VELOCITY_UNITS = ("rpm", "increments_per_s", "milli_rpm")
 MAX_RPDO, MAX_TPDO = 4, 3
 #: SDO answers: a node answers within milliseconds; 10 s is a unit mistake
 MAX_SDO_TIMEOUT = 10.0
+#: SYNC periods the enable needs at the least: the first statusword (a TPDO answers a SYNC),
+#: then one for each of the power state machine's transitions shutdown, switch on and enable
+#: operation (CiA 402; each controlword is answered by the statusword of a later SYNC)
+ENABLE_SYNCS = 4
 
 
 def _positive(limit: float) -> Any:
@@ -35,12 +39,18 @@ def _one_of(values: tuple[str, ...]) -> str:
 
 
 def check_cia402_profile(profile: DriveProfile, source: str) -> None:
-    """The host's heartbeat against the node's id, once both passed their rules (and with a
-    config's ``drive.node_id`` in place of the profile's): a node watching the host
+    """Cross-key checks, once every key passed its rule (and with a config's
+    ``drive.node_id`` in place of the profile's): an ``enable_timeout`` shorter than
+    :data:`ENABLE_SYNCS` SYNC periods never enables; a node watching the host
     (``consumer_heartbeat`` > 0) hears it on 0x700 + ``host_node_id`` (CiA 301's heartbeat
     COB-ID), which is the node's own heartbeat when the two ids are one. Checked here, where
     the profile is read, so ``dobhil check``, ``analyze`` and ``emulate`` refuse it as ``dobhil
     run`` does, before any bus opens."""
+    sync = profile.feedback_period or 0.0
+    if profile.enable_timeout < ENABLE_SYNCS * sync * (1 - 1e-9):
+        raise ConfigError(f"{source}: enable_timeout: expected at least {ENABLE_SYNCS} SYNC periods "
+                          f"({ENABLE_SYNCS * sync:g} s: the first statusword, then one per transition of the "
+                          f"power state machine), got {profile.enable_timeout:g}")
     node, host = profile.node_id, int(profile.options["host_node_id"])
     if host == node and float(profile.options["consumer_heartbeat"]) > 0:
         raise ConfigError(f"{source}: cia402.host_node_id: expected an id other than the node's ({node}): "
