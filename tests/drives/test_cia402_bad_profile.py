@@ -161,3 +161,12 @@ def test_an_enable_timeout_shorter_than_the_power_state_machine_is_one_line(
     if command == "run":
         profile_path.write_text(yaml.safe_dump({**profile, "enable_timeout": 0.004}))
         assert main([part.format(config=config) for part in COMMANDS[command]]) == 0
+
+
+@pytest.mark.parametrize("command", COMMANDS)
+def test_a_consumer_heartbeat_0x1016_cannot_hold_is_one_line(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str], command: str) -> None:
+    """0x1016 holds the consumer time in whole milliseconds: 4.4 ms went to the node as 4 ms,
+    a watch shorter than the one the host's period check and heartbeat were made for."""
+    err = one_line_exit_2(command, write_setup(tmp_path, consumer_heartbeat=0.0044), capsys)
+    assert re.search(r"cia402.consumer_heartbeat: expected 0 \(off\) or a whole number of milliseconds", err), err

@@ -34,6 +34,10 @@ def _positive(limit: float) -> Any:
     return lambda v: math.isfinite(v) and 0 < v <= limit
 
 
+def _whole_ms(seconds: float) -> bool:
+    return abs(seconds * 1e3 - round(seconds * 1e3)) < 1e-6
+
+
 def _one_of(values: tuple[str, ...]) -> str:
     return "one of " + ", ".join(repr(v) for v in values)
 
@@ -78,9 +82,12 @@ CIA402_RULES = ProtocolRules(
                      lambda v: 1 <= v <= MAX_TPDO, default=1),
         "sdo_timeout": Rule((int, float), f"a number > 0 and <= {MAX_SDO_TIMEOUT:g} s",
                             _positive(MAX_SDO_TIMEOUT), default=0.3),
-        "consumer_heartbeat": Rule((int, float), "0 (off) or a number from 0.004 to 60 s (the node's "
-                                   "heartbeat consumer time 0x1016 on the host)",
-                                   lambda v: math.isfinite(v) and (v == 0 or 4e-3 <= v <= 60.0), default=0.0),
+        # 0x1016 holds the time in whole ms: any other value would reach the node rounded,
+        # up to 0.5 ms shorter than the watch the host's checks and heartbeat are made for
+        "consumer_heartbeat": Rule((int, float), "0 (off) or a whole number of milliseconds from 0.004 to 60 s "
+                                   "(the node's heartbeat consumer time 0x1016 on the host, in ms)",
+                                   lambda v: math.isfinite(v) and (v == 0 or (4e-3 <= v <= 60.0 and _whole_ms(v))),
+                                   default=0.0),
         "host_node_id": Rule((int,), "an integer from 1 to 127 (the node id of the host's heartbeat "
                              "0x700 + id, for consumer_heartbeat)", lambda v: 1 <= v <= 127, default=127),
     }),
