@@ -245,8 +245,10 @@ class DriveConfig:
     channel: str = key("", "python-can channel (with drive.interface)")
     node_id: int = key(-1, "CAN node id of the drive (-1: the drive profile's node_id); checked "
                        "against the profile's protocol like the profile's own", minimum=-1)
-    bitrate: int = key(1_000_000, "CAN bitrate (0: leave to the interface)", unit="bit/s",
-                       check=Check.NONNEGATIVE)
+    # the nominal rate: classic CAN and CAN FD's arbitration phase run at most 1 Mbit/s (ISO
+    # 11898-1); a CAN FD data phase is the profile's bus.data_bitrate
+    bitrate: int = key(1_000_000, "CAN nominal bitrate (0: leave to the interface)", unit="bit/s",
+                       check=Check.NONNEGATIVE, maximum=1_000_000)
     latency: float = key(0.0, "emulated bus latency (real-time emulation)", unit="s",
                          check=Check.NONNEGATIVE)
     jitter: float = key(0.0, "emulated bus latency jitter, standard deviation", unit="s",

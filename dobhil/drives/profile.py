@@ -53,17 +53,19 @@ REQUIRED: Final = _Required()
 _EMPTY: Mapping[str, Any] = MappingProxyType({})
 
 
-#: the bit rates a profile's ``bus`` may give python-can, and their ceiling (CAN FD data
-#: phases run at up to 8-12 Mbit/s; twice that leaves room, and catches a typo's 1e300)
-_BUS_RATES = ("bitrate", "data_bitrate")
+#: the bit rates a profile's ``bus`` may give python-can and their ceilings: the nominal rate
+#: (classic CAN, and CAN FD's arbitration phase) is at most 1 Mbit/s (ISO 11898-1); a CAN FD
+#: data phase runs at up to 8-12 Mbit/s, and twice that leaves room and catches a typo's 1e300
+MAX_NOMINAL_RATE = 1_000_000
 MAX_BUS_RATE = 25_000_000
+_BUS_RATES = {"bitrate": MAX_NOMINAL_RATE, "data_bitrate": MAX_BUS_RATE}
 
 
 def _bus_arguments(value: Mapping[Any, Any]) -> bool:
     """Text keys; a bit rate, where given, a whole number of bit/s the interface can take
     (a rate of "abc" or -5 would reach the interface's constructor, or the bus budget)."""
     return all(isinstance(k, str) for k in value) and all(
-        type(value[r]) is int and 1 <= value[r] <= MAX_BUS_RATE for r in _BUS_RATES if r in value)
+        type(value[r]) is int and 1 <= value[r] <= top for r, top in _BUS_RATES.items() if r in value)
 
 
 @dataclass(frozen=True)
@@ -187,8 +189,9 @@ COMMON_RULES: Mapping[str, Rule] = MappingProxyType({
                              lambda v: math.isfinite(v) and (v == 0 or MIN_HEARTBEAT <= v <= MAX_WAIT), 0.0),
     "enable_timeout": Rule.number(MIN_HEARTBEAT, MAX_WAIT, "s"),
     "command_delay_periods": Rule.integer(0, MAX_COMMAND_DELAY, default=None),
-    "bus": Rule((dict,), f"a mapping of can.Bus keyword arguments (its {', '.join(_BUS_RATES)}: whole "
-                f"numbers from 1 to {MAX_BUS_RATE:g} bit/s)", _bus_arguments, _EMPTY),
+    "bus": Rule((dict,), f"a mapping of can.Bus keyword arguments (its bitrate: a whole number from 1 to "
+                f"{MAX_NOMINAL_RATE} bit/s, the nominal rate of classic CAN and CAN FD; its data_bitrate: a "
+                f"whole number from 1 to {MAX_BUS_RATE} bit/s)", _bus_arguments, _EMPTY),
     "name": Rule((str,), "a string", lambda v: True, ""),
 })
 

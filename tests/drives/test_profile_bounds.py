@@ -112,12 +112,31 @@ def test_hostile_profile_values_are_one_line_and_exit_2(tmp_path: Path, key: str
     assert lines[0].startswith(f"dobhil {command}: error: {path}: {key}: expected "), lines[0]
 
 
-@pytest.mark.parametrize("rate", ["abc", -5, 0, 1.5, 1e300, True, 10**9])
+BUS_RATES_ALLOWED = (r"bus: expected a mapping of can.Bus keyword arguments \(its bitrate: a whole number "
+                     r"from 1 to 1000000 bit/s, the nominal rate of classic CAN and CAN FD; its data_bitrate: "
+                     r"a whole number from 1 to 25000000 bit/s\), got ")
+
+
+@pytest.mark.parametrize(("rate", "top"), [("abc", 0), (-5, 0), (0, 0), (1.5, 0), (1e300, 0), (True, 0),
+                                           (10**9, 0), (2_000_000, 5_000_000)])
 @pytest.mark.parametrize("key", ["bitrate", "data_bitrate"])
-def test_a_bus_bit_rate_is_a_whole_number_of_bit_per_s(key: str, rate: Any) -> None:
-    """The profile's ``bus`` goes to can.Bus as it is; its rates are checked here first."""
-    with pytest.raises(ConfigError, match=r"bus: expected a mapping of can.Bus keyword arguments \(its bitrate, "
-                                          r"data_bitrate: whole numbers from 1 to 2.5e\+07 bit/s\), got "):
+def test_a_bus_bit_rate_is_a_whole_number_of_bit_per_s(key: str, rate: Any, top: int) -> None:
+    """The profile's ``bus`` goes to can.Bus as it is; its rates are checked here first. The
+    nominal rate (``bitrate``) of classic CAN and of CAN FD's arbitration phase is at most
+    1 Mbit/s (ISO 11898-1); only a CAN FD data phase (``data_bitrate``) runs faster."""
+    if key == "data_bitrate" and rate == 2_000_000:
+        rate = 30_000_000
+    with pytest.raises(ConfigError, match=BUS_RATES_ALLOWED):
         profile_from_mapping({**SHIPPED, "bus": {**SHIPPED["bus"], key: rate}}, source="p.yaml")
-    good = profile_from_mapping({**SHIPPED, "bus": {**SHIPPED["bus"], key: 5_000_000}}, source="p.yaml")
-    assert good.bus[key] == 5_000_000
+    good = 1_000_000 if key == "bitrate" else 5_000_000
+    assert profile_from_mapping({**SHIPPED, "bus": {**SHIPPED["bus"], key: good}}, source="p.yaml").bus[key] == good
+
+
+@pytest.mark.parametrize("command", [["analyze"], ["run", "--emulate", "--lockstep", "--duration", "0.01"]])
+def test_a_config_bit_rate_no_bus_runs_at_is_one_line(command: list[str], capsys: pytest.CaptureFixture[str]) -> None:
+    """drive.bitrate is the nominal rate: 1e9 bit/s was accepted (a budget of 0.0 % of
+    1000 Mbit/s); above 1 Mbit/s it is refused in one line naming the allowed range."""
+    from dobhil.cli.main import main
+    assert main([command[0], "demo", *command[1:], "--set", "drive.bitrate=1000000000"]) == 2
+    err = capsys.readouterr().err.splitlines()
+    assert len(err) == 1 and "drive.bitrate = 1000000000: out of range; allowed: >= 0 and <= 1e+06 bit/s" in err[0], err
