@@ -164,7 +164,7 @@ def _same_firmware(names: list[str]) -> None:
     for name in names[1:]:
         theirs = firmware_of(name)
         if first is not None and theirs is not None and theirs != first:
-            raise ConfigError(f"{name}: drive firmware {theirs!r}, but {names[0]}'s is {first!r}; "
+            raise ConfigError(f"{name}: drive {theirs}, but {names[0]}'s is {first}; "
                               "logs identified together need the same drive")
 
 
@@ -227,8 +227,8 @@ def _loop_validation_record(args: argparse.Namespace, fitted: Any, contact: bool
     from dobhil.cli.identify_evidence import firmware_of
     firmware, fitted_firmware = firmware_of(name), firmware_of(args.log[0])
     if firmware is not None and fitted_firmware is not None and firmware != fitted_firmware:
-        raise ConfigError(f"--validate {name}: drive firmware {firmware!r}, but the fitted log's is "
-                          f"{fitted_firmware!r}; "
+        raise ConfigError(f"--validate {name}: drive {firmware}, but the fitted log's is "
+                          f"{fitted_firmware}; "
                           "validate on a log of the same drive")
     if not math.isclose(record.model.period, fitted.model.period, rel_tol=1e-9):
         raise ConfigError(f"--validate {name}: period {record.model.period:g} s, but the fitted log has "

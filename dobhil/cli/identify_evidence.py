@@ -49,7 +49,7 @@ def read_validation(args: argparse.Namespace, fitted: Any, contact: bool = True)
                           "validate on a log of the same drive and loop period")
     mine, theirs = _firmware(name), _firmware(args.log[0])
     if mine is not None and theirs is not None and mine != theirs:
-        raise ConfigError(f"--validate {name}: drive firmware {mine!r}, but the fitted logs' is {theirs!r}; "
+        raise ConfigError(f"--validate {name}: drive {mine}, but the fitted logs' is {theirs}; "
                           "validate on a log of the same drive")
     segments = find_segments(data)
     if contact:
@@ -62,7 +62,8 @@ def read_validation(args: argparse.Namespace, fitted: Any, contact: bool = True)
 
 
 def firmware_of(path: str) -> str | None:
-    """The recorded drive's firmware (None: a log without a recorded drive, an imported one)."""
+    """The recorded drive's identity, its firmware and what else its protocol needs to tell
+    drives apart (``firmware '0.6'``; None: a log without a recorded drive, an imported one)."""
     return _firmware(path)
 
 
@@ -72,16 +73,26 @@ def _profile(name: str) -> Any:
 
 
 def _firmware(path: str) -> str | None:
-    """The recorded drive's firmware (None: a log without a recorded drive, an imported one)."""
+    """The recorded drive's identity (:meth:`~dobhil.drives.plugin.DriveProtocol.drive_identity`;
+    None: a log without a recorded drive, an imported one)."""
     import json
 
+    from dobhil.drives.decode import recorded_profile
+    from dobhil.drives.registry import protocol
+    from dobhil.errors import DobhilError
     from dobhil.recording.reader import open_log
     if not path or not os.path.isfile(path):
         return None
     with open_log(path) as log:
         drive = log.metadata.get("drive") or {}
         raw = drive.get("firmware")
-    return None if raw is None else str(json.loads(raw))
+    if raw is None:
+        return None
+    try:
+        recorded = recorded_profile(drive, path)
+        return protocol(recorded.protocol).drive_identity(recorded)
+    except DobhilError:   # a profile this version cannot read: its firmware is all it can tell
+        return f"firmware {str(json.loads(raw))!r}"
 
 
 def validation_info(result: Any, data: Any, segments: Any, skipped: int = 0) -> dict[str, Any]:

@@ -190,6 +190,12 @@ class DriveProtocol(ABC):
         would: ConfigError, one line. Default: the profile names no file."""
         return None
 
+    def drive_identity(self, profile: DriveProfile) -> str:
+        """What tells ``profile``'s drive apart from another of this protocol whose frames
+        decode, scale or delay otherwise, in words (``firmware '0.6'``): logs of two
+        identities are not one drive (``dobhil identify``). Default: the firmware."""
+        return f"firmware {profile.firmware!r}"
+
     def state_name(self, profile: DriveProfile, code: int) -> str:
         """The drive's own state code (``DriveStatus.state``, the log's ``protocol_state``)
         in the protocol's words for ``profile``'s drive; ``str(code)`` when it names none."""

@@ -159,3 +159,30 @@ def test_a_pressed_record_validates_with_the_sum_it_determines(tmp_path: Path,
     frf, = info["frf"]
     assert frf["output"] == "velocity" and frf["model_inside"] >= 0.9 * frf["lines"], frf["model_inside"]
     assert frf["delay_phase_slope"]["low"] <= 0.0 <= frf["delay_phase_slope"]["high"], frf["delay_phase_slope"]
+
+
+
+def test_logs_of_two_motor_models_of_one_firmware_name_are_not_one_drive(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A Damiao DM4310 and a DM8009 both run firmware "factory" but their codecs span other
+    ranges (10 against 54 N m of torque): their logs are not one drive, and were fitted
+    together before. Each log here is its recorded drive metadata, as a run writes it
+    (``drive_metadata``); the line names both models."""
+    from contextlib import nullcontext
+
+    from dobhil.cli.identify_cmd import _same_firmware
+    from dobhil.cli.recording import drive_metadata
+    from dobhil.drives import load_profile
+    from dobhil.recording import reader
+
+    logs = {}
+    for model in ("dm4310", "dm8009", "dm4310-again"):
+        logs[model] = tmp_path / f"{model}.mcap"
+        logs[model].write_bytes(b"")
+    metadata = {str(path): {"drive": drive_metadata(load_profile(model.split("-")[0]))} for model, path in logs.items()}
+    monkeypatch.setattr(reader, "open_log", lambda path: nullcontext(argparse.Namespace(metadata=metadata[str(path)])))
+    _same_firmware([str(logs["dm4310"]), str(logs["dm4310-again"])])
+    said = (r"dm8009.mcap: drive damiao DM8009 \(firmware 'factory'\), but .*dm4310.mcap's is damiao DM4310 "
+            r"\(firmware 'factory'\); logs identified together need")
+    with pytest.raises(ConfigError, match=said):
+        _same_firmware([str(logs["dm4310"]), str(logs["dm8009"])])

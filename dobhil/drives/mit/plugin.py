@@ -72,6 +72,12 @@ class MitProtocol(DriveProtocol):
                                 where=f"the model table's row {row}",
                                 remedy="a motor set to a longer one, with a row of its own (mit.models)")
 
+    def drive_identity(self, profile: DriveProfile) -> str:
+        """The model row (vendor, model, firmware): one firmware name serves many models
+        whose codec ranges differ (every Damiao row is firmware "factory")."""
+        opts = profile.options
+        return f"{opts.get('vendor')} {opts.get('model')} (firmware {profile.firmware!r})"
+
     def set_zero(self, bus: can.BusABC, profile: DriveProfile, *, clock: Callable[[], float],
                  cancel: Cancel | None = None) -> ZeroResult:
         """Set zero (0xFE), wait ``mit.zero_silence``, read the position back
