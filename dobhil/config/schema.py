@@ -172,7 +172,8 @@ class LoopConfig:
                               check=Check.POSITIVE)
     position_min: float = key(-100.0, "lowest allowed position", unit="rad")
     position_max: float = key(100.0, "highest allowed position", unit="rad")
-    velocity_limit: float = key(100.0, "largest allowed |velocity|", unit="rad/s",
+    velocity_limit: float = key(100.0, "largest allowed |velocity| (the drive profile's velocity_limit where lower)",
+                                unit="rad/s",
                                 check=Check.POSITIVE)
     timing: str = key("feedback", "how the loop is clocked: feedback (each cycle triggered by "
                       "the drive's feedback frame), host (host-clock deadlines; realtime: its old "

@@ -102,7 +102,8 @@ class AxesSession:
         if self.timing is Timing.LOCKSTEP:   # one lockstep bus per bus group, stepped at the axes' period
             for a in axes.axes:
                 check_lockstep(self.profiles[a.name], axes.period, f"axis {a.name}: ")
-        self.settings = {a.name: loop_settings(a.config, self.timing, duration) for a in axes.axes}
+        self.settings = {a.name: loop_settings(a.config, self.timing, duration, self.profiles[a.name])
+                         for a in axes.axes}
         for name, settings in self.settings.items():
             check_cycles(settings, f"axis {name}: ")
         self.controllers = {a.name: build_controller(a.config, self.profiles[a.name]) for a in axes.axes}

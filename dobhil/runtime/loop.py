@@ -160,6 +160,8 @@ class Limits:
     position_min: float
     position_max: float
     velocity_limit: float
+    #: the key the velocity limit is from, for the stop line ("" : loop.velocity_limit)
+    velocity_key: str = ""
 
 
 #: default ``loop.spin``: seconds spun on the clock before a host-timing deadline
@@ -899,7 +901,8 @@ class ForceLoop:
                         f"[{lim.position_min:g}, {lim.position_max:g}]")
         if abs(dq) > lim.velocity_limit:
             raise _Halt(StopReason.VELOCITY_LIMIT,
-                        f"|dq| = {abs(dq):.6g} rad/s above {lim.velocity_limit:g}")
+                        f"|dq| = {abs(dq):.6g} rad/s above {lim.velocity_limit:g}"
+                        + (f" ({lim.velocity_key})" if lim.velocity_key else ""))
 
     def _store(self, k: int, t: float, q: float, dq: float, out: ControlOutput,
                period_error: float, exec_time: float, latency: float, sample_latency: float) -> None:

@@ -173,11 +173,20 @@ def build_controller(config: Config, profile: DriveProfile) -> ForceController:
                            open_loop=config.loop.mode == "torque")
 
 
-def loop_settings(config: Config, timing: Timing, duration: float | None) -> LoopSettings:
+def loop_settings(config: Config, timing: Timing, duration: float | None, profile: DriveProfile) -> LoopSettings:
+    """The loop's settings; its velocity bound is the lower of ``loop.velocity_limit`` and the
+    drive profile's ``velocity_limit``, as its torque bound is of the two torque limits: a
+    drive whose reading saturates (an MIT motor's at its range's v_max) never reports a
+    speed above its range, so only a bound below it can stop an overspeed."""
     lp = config.loop
+    # named in the stop line when it is the profile's: the config's loop.velocity_limit was higher
+    if lp.velocity_limit <= profile.velocity_limit:
+        velocity = Limits(lp.position_min, lp.position_max, lp.velocity_limit)
+    else:
+        velocity = Limits(lp.position_min, lp.position_max, profile.velocity_limit,
+                          f"the drive profile's velocity_limit, below loop.velocity_limit {lp.velocity_limit:g}")
     return LoopSettings(period=lp.period, duration=duration or lp.duration,
-                        feedback_timeout=lp.feedback_timeout, timing=timing,
-                        limits=Limits(lp.position_min, lp.position_max, lp.velocity_limit),
+                        feedback_timeout=lp.feedback_timeout, timing=timing, limits=velocity,
                         spin=lp.spin, watch=watch_settings(config))
 
 
@@ -314,7 +323,7 @@ class RunSession:
         if self.timing is Timing.LOCKSTEP:
             check_lockstep(self.profile, config.loop.period)
             check_lockstep_feedback(self.profile, config.loop.period)
-        self.settings = loop_settings(config, self.timing, duration)
+        self.settings = loop_settings(config, self.timing, duration, self.profile)
         check_cycles(self.settings)
         self.controller = build_controller(config, self.profile)
         self.reference = make_reference(config.reference, config_dir,

@@ -216,7 +216,7 @@ def test_node_fault_stops_a_run_as_drive_fault(make_rig: Callable[..., Rig]) -> 
     rig = make_rig(inertia=config.plant.inertia)
     loop = ForceLoop(drive=rig.drive, controller=build_controller(config, rig.drive.profile),
                      reference=make_reference(config.reference, None, duration=0.5),
-                     settings=loop_settings(config, Timing.LOCKSTEP, None), clock=rig.bus.clock,
+                     settings=loop_settings(config, Timing.LOCKSTEP, None, rig.drive.profile), clock=rig.bus.clock,
                      sink=FaultAtCycle(rig.node, 100, 0x7500))
     result = loop.run()
     assert result.stop.reason is StopReason.DRIVE_FAULT, result.stop.line()

@@ -360,3 +360,20 @@ def test_the_unwrap_tracks_any_motion_slower_than_half_a_wrap_per_reply(start: f
         if first is None:
             first = q - drive.feedback.position   # whole wraps the first reading cannot show
         assert abs(drive.feedback.position + first - q) < 2 * model.quanta.position
+
+
+def test_the_profiles_velocity_limit_stops_a_run_before_the_reading_clamps(
+        capsys: pytest.CaptureFixture[str]) -> None:
+    """A DM4310's velocity reading saturates at its range's v_max (30 rad/s): the run's bound
+    is the lower of loop.velocity_limit and the profile's velocity_limit (25 rad/s, below
+    v_max). With loop.velocity_limit 100 alone the reading never passed it: an open-loop run
+    spun the free motor to about 50 rad/s and ended 'done'."""
+    from dobhil.cli.main import main
+    code = main(["run", "mit-demo", "--emulate", "--lockstep", "--duration", "0.05",
+                 "--set", "drive.profile=dm4310", "--set", "loop.mode=torque", "--set", "reference.offset=1",
+                 "--set", "reference.amplitude=0", "--set", "environment.contact_position=1000",
+                 "--set", "loop.position_max=1000", "--set", "loop.position_min=-1000",
+                 "--set", "loop.velocity_limit=100", "--set", "plant.inertia=0.001"])
+    out = capsys.readouterr().out
+    assert code == 1 and "stopped: velocity_limit" in out, out
+    assert "above 25 (the drive profile's velocity_limit, below loop.velocity_limit 100)" in out, out

@@ -114,7 +114,7 @@ def _run(duration: float) -> tuple[Any, _Log, _Sink, Plant]:
         sink = _Sink(lock.clock)
         loop = ForceLoop(drive=drive, controller=build_controller(config, profile),
                          reference=make_reference(config.reference, None, duration=duration),
-                         settings=loop_settings(config, Timing.LOCKSTEP, duration), clock=lock.clock,
+                         settings=loop_settings(config, Timing.LOCKSTEP, duration, profile), clock=lock.clock,
                          truth=lambda: (plant.interaction_torque, plant.true_position), sink=sink)
         result = loop.run()
     finally:
