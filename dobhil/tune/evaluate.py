@@ -201,7 +201,10 @@ def _step(a_cl: Array, b_ref: Array, c_out: Array, period: float, horizon: int,
     if not stable.any():
         return out, over
     ys, final = simulate_step(a_cl[stable], b_ref[stable][..., 0], c_out[stable][..., 0, :], horizon)
-    out[stable] = (_crossing(ys, 0.9 * final) - _crossing(ys, 0.1 * final)) * period
+    # a step that reaches neither 10 % nor 90 % would give inf - inf = NaN, which no
+    # comparison ranks: it has not risen, so its rise time is infinite
+    rise90 = _crossing(ys, 0.9 * final)
+    out[stable] = np.where(np.isfinite(rise90), (rise90 - _crossing(ys, 0.1 * final)) * period, np.inf)
     with np.errstate(divide="ignore", invalid="ignore"):
         peak = np.where(final >= 0, ys.max(axis=-1), ys.min(axis=-1))
         over[stable] = np.where(final != 0, np.maximum(0.0, (peak - final) / final * 100.0), np.inf)

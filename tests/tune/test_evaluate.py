@@ -54,3 +54,14 @@ def test_a_batch_equals_its_points_one_by_one() -> None:
             one = evaluate(config, designs[i:i + 1], {k: v[j:j + 1] for k, v in points.items()}, horizon=60)
             for name in ("radius", "gm_db", "pm_deg", "ms_db", "rise_time", "overshoot", "bandwidth"):
                 np.testing.assert_allclose(getattr(batch, name)[i, j], getattr(one, name)[0, 0], rtol=1e-9)
+
+
+def test_a_step_that_never_reaches_10_percent_has_an_infinite_rise_time() -> None:
+    """Observers at 1.5 rad/s and C_f 0.0012: stable, but the force creeps to below 10 % of
+    its final value in 0.2 s. Its rise time is infinite (the optimiser's worst), not NaN,
+    which the search's comparisons cannot rank and the worst-case max would pick."""
+    config = load_config("paper/fig3")
+    m = evaluate(config, np.array([[1.39, 1.51, 0.248, 0.00124]]), {"environment.stiffness": np.array([1e3])},
+                 horizon=201)
+    assert m.stable[0, 0]
+    assert m.rise_time[0, 0] == np.inf
