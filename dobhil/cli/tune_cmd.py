@@ -106,7 +106,7 @@ def run(args: argparse.Namespace) -> int:
         _plots(args, config, result, base, horizon)
     if not result.feasible:
         from dobhil.tune.report import infeasible_line
-        print(f"dobhil tune: {infeasible_line(result)}", file=sys.stderr)
+        print(f"dobhil tune: {infeasible_line(result, (horizon - 1) * config.loop.period)}", file=sys.stderr)
         return EXIT_INFEASIBLE
     return 0
 

@@ -201,20 +201,32 @@ def _tune(config: Config, ranges: list[Range], uncertainties: list[Uncertainty],
         generations += nit
         m = evaluate(config, best[None, :], fine.points, horizon=horizon, quanta=quanta,
                      bandwidth=objective.name == "bandwidth")
-        broken = _broken_points(m, margins)
+        broken = _broken_points(m, margins, objective)
         if not broken.size or round_ == ROUNDS:
             break
         points = points.extended({k: v[broken] for k, v in fine.points.items()})
     return _result(best, m, fine, margins, objective, round_, points.size, generations)
 
 
-def _broken_points(m: Metrics, margins: Margins) -> np.ndarray:
-    """Indices of the fine grid's worst point of each constraint that does not hold."""
+def rises(objective: Objective, worst: float) -> bool:
+    """Whether the worst-case step rises: a rise time is minimised, and one that is infinite
+    (the force never reaches 90 % within the simulated horizon) is no design however well
+    its margins hold -- a loop that slow meets every margin trivially."""
+    return objective.name != "rise_time" or math.isfinite(worst)
+
+
+def _broken_points(m: Metrics, margins: Margins, objective: Objective) -> np.ndarray:
+    """Indices of the fine grid's worst point of each constraint that does not hold (and of
+    the slowest step when it does not rise, :func:`rises`)."""
     per_point = [1.0 - 1e-9 - m.radius[0], m.gm_db[0] - margins.gm_db, m.pm_deg[0] - margins.pm_deg,
                  margins.ms_db - m.ms_db[0], margins.overshoot_pct - m.overshoot[0]]
     if margins.noise is not None and m.noise is not None:
         per_point.append(margins.noise - m.noise[0])
-    return np.unique([int(np.argmin(v)) for v in per_point if np.min(v) < 0]).astype(int)
+    broken = [int(np.argmin(v)) for v in per_point if np.min(v) < 0]
+    worst, where = objective.worst(m)
+    if not rises(objective, float(worst[0])):
+        broken.append(int(where[0]))
+    return np.unique(broken).astype(int)
 
 
 def _result(best: np.ndarray, m: Metrics, fine: RobustSet, margins: Margins, objective: Objective,
@@ -223,7 +235,8 @@ def _result(best: np.ndarray, m: Metrics, fine: RobustSet, margins: Margins, obj
     held = worsts(m, fine, margins)
     return TuneResult(design=dict(zip(DECISION_KEYS, map(float, best))), objective=objective.name,
                       worst_objective=float(worst[0]), worst_at=fine.point(int(where[0])),
-                      constraints=held, feasible=all(w.ok for w in held), grid_points=fine.size,
+                      constraints=held, feasible=all(w.ok for w in held) and rises(objective, float(worst[0])),
+                      grid_points=fine.size,
                       rounds=rounds, set_points=set_points, generations=generations, metrics=m,
                       grid=fine)
 

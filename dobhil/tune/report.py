@@ -146,9 +146,15 @@ def as_json(result: TuneResult, base: Baseline, margins: Margins) -> dict[str, A
     }
 
 
-def infeasible_line(result: TuneResult) -> str:
-    """The first constraint the chosen design (the least violating one found) does not meet."""
-    w = next(w for w in result.constraints if not w.ok)
+def infeasible_line(result: TuneResult, step_duration: float) -> str:
+    """The first constraint the chosen design (the least violating one found) does not meet,
+    or, when it meets them all, that its force step does not rise within ``step_duration``
+    seconds (the simulated horizon) somewhere."""
+    w = next((w for w in result.constraints if not w.ok), None)
+    if w is None:
+        return (f"no design within the bounds makes the force step reach 90 % of its final value within "
+                f"{step_duration:g} s (analysis.step_duration) at every point: the best found does not at "
+                f"{_at(result.worst_at)} (widen --bound, or a longer analysis.step_duration)")
     label, what, unit, op = CONSTRAINT_TEXT[w.name]
     return (f"no design within the bounds meets {label} {op} {w.limit:g}{unit} at every point: the best "
             f"found has {w.value:.4g}{unit} at {_at(w.point)} (widen --bound or relax --margin)")

@@ -149,3 +149,19 @@ def test_a_quantising_profile_says_its_noise_even_unbounded(capsys: pytest.Captu
     assert noise["ok"] and noise["limit"] is None and noise["value"] > 0 and not noise["active"]
     assert main(["tune", *args]) == 0
     assert "(not bounded: --margin noise=X)" in capsys.readouterr().out
+
+
+def test_a_design_whose_step_never_rises_is_not_feasible(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Bounds that allow only creeping observers and a tiny C_f: every margin holds, but the
+    force step does not reach 90 % within the simulated horizon at any point (rise time
+    inf). That is no tuned design: exit 1, no --out, one line saying why."""
+    out = tmp_path / "tuned.yaml"
+    code = main(["tune", "paper/fig3", "--range", "environment.stiffness=1e3:1e4", "--grid", "2",
+                 "--generations", "1", "--json", "--out", str(out), "--bound", "design.force_gain=0.001:0.002",
+                 "--bound", "design.dob_bandwidth=1:2", "--bound", "design.rtob_bandwidth=1:2"])
+    captured = capsys.readouterr()
+    report = json.loads(captured.out)
+    assert all(c["ok"] for c in report["constraints"].values()) and report["worst_objective"] is None
+    assert code == 1 and not report["feasible"] and not out.exists()
+    said = [line for line in captured.err.splitlines() if line.startswith("dobhil tune: ")]
+    assert len(said) == 1 and "90 %" in said[0] and "analysis.step_duration" in said[0], said
