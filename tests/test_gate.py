@@ -140,6 +140,21 @@ def test_a_design_without_a_force_loop_to_judge_is_a_note_never_a_refusal(sets: 
     assert verdict.warning() is None
 
 
+@pytest.mark.parametrize("sampled", [False, True])
+@pytest.mark.parametrize("stiffness", ["1e-9", "1e-6"])
+def test_a_pole_within_the_resolution_of_the_boundary_is_a_note_not_a_refusal(stiffness: str, sampled: bool) -> None:
+    """K_env 1e-9 N m/rad with D_env 50: the position's pole is at s = -K/D = -2e-11 (|z| =
+    1 - 2e-14), inside the analysis' resolution of the boundary, so stable and unstable cannot
+    be told apart there, as at K_env = 0. It was refused as UNSTABLE with "no force gain is
+    stable: change the observers' bandwidths or the delay", which no bandwidth or delay fixes."""
+    config, profile, _ = on_drive("demo", [f"environment.stiffness={stiffness}"])
+    verdict = assess(config, profile, sampled=sampled)
+    assert verdict.status is GateStatus.NOT_COMPUTED and not verdict.refuses
+    note = verdict.note()
+    assert note is not None and "resolution" in note and f"K_env {float(stiffness):g}" in note, note
+    assert "bandwidth" not in note
+
+
 @pytest.mark.parametrize("name", shipped_configs())
 def test_no_shipped_config_is_refused_or_warned(name: str) -> None:
     """Each axis no coupling joins through the single-axis gate, each coupled group through
