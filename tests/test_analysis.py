@@ -84,6 +84,7 @@ def test_analyze_json_max_stable_gain_of_fig2(case: str, bounded: bool,
         assert {"open_loop", "closed_loop", "max_stable_force_gain", "stable_force_gain_intervals",
                 "margins", "step"} <= set(d)
         assert {"poles", "zeros", "relative_degree", "minimum_phase"} <= set(d["open_loop"])
+        assert d["closed_loop"]["position_drifts"] is False
         assert {"overshoot_pct", "rise_time", "settling_time", "steady_state_error"} <= set(d["step"])
     assert out["discrete"]["sample_time"] == 0.001 and out["discrete"]["delay_samples"] == 0
     if bounded:
@@ -454,3 +455,24 @@ def test_the_step_figure_of_a_loop_unstable_in_both_domains_says_so_without_warn
         warnings.simplefilter("error")
         path = step_figure(result.continuous, result.discrete, tmp_path)
     assert path == tmp_path / "step.png" and path.stat().st_size > 0
+
+
+def test_analyze_at_zero_stiffness_says_the_position_drifts_not_a_gain_margin() -> None:
+    """K_env = 0: a closed-loop pole at s = 0 / z = 1 that no C_f moves. The sampled loop
+    printed "max stable C_f: 0" and, beside it, a gain margin of 15.08 dB: neither says what
+    is true, that the position drifts at every C_f (as the sweep and the gate say)."""
+    from dobhil.analysis.report import analyze, as_json, as_text
+    result = analyze(load_config("paper/fig3", ["environment.stiffness=0"]))
+    report = as_json(result)
+    for domain in ("continuous", "discrete"):
+        d = report[domain]
+        assert d["closed_loop"]["position_drifts"] and not d["closed_loop"]["stable"]
+        assert d["margins"]["gain_margin_db"] is None and d["margins"]["gain_margin"] is None
+    text = as_text(result)
+    assert "max stable C_f: 0" not in text and "gain 15.08 dB" not in text
+    assert text.count("the position drifts at every C_f") == 2
+    from dobhil.plotting.figures import root_locus
+    fig, ax = _plt().subplots()
+    root_locus(ax, result.discrete)   # the root locus' title said "max stable C_f = 0"
+    assert ax.get_title() == "K_env = 0: the position drifts at every C_f"
+    _plt().close(fig)

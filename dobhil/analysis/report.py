@@ -41,6 +41,9 @@ class DomainAnalysis:
     step_estimate: np.ndarray = field(repr=False)
     step_true: np.ndarray = field(repr=False)
     observers: dict[str, EffectiveObserver] = field(default_factory=dict)
+    #: K_env = 0: the position, held by no spring, drifts at every C_f (a closed-loop pole at
+    #: s = 0 / z = 1 no gain moves), so no C_f is stable and no gain margin is one
+    position_drifts: bool = False
 
     @property
     def sample_time(self) -> float | None:
@@ -87,6 +90,7 @@ def analyze_domain(params: Params, *, sampled: bool, duration: float = 0.0) -> D
     cl_poles = np.asarray(np.linalg.eigvals(systems.closed.a), dtype=complex)
     stable = bool(is_stable(cl_poles[None], sampled)[0])
     closed, force = systems.system("closed_loop"), systems.system("force")
+    drifts = bool(np.all(params.value("stiffness") == 0.0))
     if stable:
         t, (y_hat, y_true) = step_responses([closed, force], duration)
     else:
@@ -94,23 +98,27 @@ def analyze_domain(params: Params, *, sampled: bool, duration: float = 0.0) -> D
     return DomainAnalysis(
         sampled=sampled, params=params, systems=systems, gains=gains,
         closed_loop_poles=cl_poles, stable=stable,
-        margins=margins(systems.system("open_loop"), float(params.value("force_gain")), gains),
+        margins=margins(systems.system("open_loop"), float(params.value("force_gain")), gains, drifts),
         step=step_metrics(t, y_hat, stable=stable, final=_dc(closed) if stable else None),
         step_force=step_metrics(t, y_true, stable=stable, final=_dc(force) if stable else None),
         step_time=t, step_estimate=y_hat, step_true=y_true,
         observers=effective_observers(sampled_controller(params) if sampled
-                                      else continuous_controller(params)))
+                                      else continuous_controller(params)),
+        position_drifts=drifts)
 
 
 def _dc(sys: control.StateSpace) -> float:
     return float(np.real(control.dcgain(sys)))
 
 
-def margins(open_loop: control.StateSpace, force_gain: float, gains: GainMap) -> dict[str, float | None]:
+def margins(open_loop: control.StateSpace, force_gain: float, gains: GainMap,
+            drifts: bool = False) -> dict[str, float | None]:
     """Gain and phase margins of the loop ``C_f L``: the stability margin (smallest
     ``|1 + C_f L|``) from python-control, at most 1 for a continuous loop, the phase margin
     from the exact crossovers (:func:`_phase_margin`), the gain margin from the exact gain
-    map (:func:`_gain_margin`)."""
+    map (:func:`_gain_margin`). ``drifts`` (K_env = 0): no gain margin -- the loop is
+    unstable at every C_f, and the map's crossing gains (15.08 dB on paper/fig3's sampled
+    loop) are the other poles', not a distance to instability."""
     if force_gain <= 0:
         return {k: None for k in ("gain_margin", "gain_margin_db", "phase_margin_deg",
                                   "phase_crossover_freq", "gain_crossover_freq",
@@ -124,7 +132,7 @@ def margins(open_loop: control.StateSpace, force_gain: float, gains: GainMap) ->
         # distance to -1 is at most 1 (the peak sensitivity at least 0 dB). It gave 1.26
         # for the demo's continuous loop and none (inf) where there is no stationary point.
         sm = min(float(sm), 1.0)
-    gm, wpc = _gain_margin(open_loop, force_gain, gains)
+    gm, wpc = (math.nan, math.nan) if drifts else _gain_margin(open_loop, force_gain, gains)
     pm, wgc = _phase_margin(open_loop, force_gain)
     return {"gain_margin": _finite(gm),
             "gain_margin_db": _finite(20 * math.log10(gm)) if gm and gm > 0 and math.isfinite(gm) else None,
@@ -226,7 +234,8 @@ def domain_json(d: DomainAnalysis) -> dict[str, Any]:
                       "relative_degree": int(g.relative_degree),
                       "minimum_phase": bool(g.minimum_phase)},
         "closed_loop": {"force_gain": float(d.params.value("force_gain")),
-                        "poles": _pairs(d.closed_loop_poles), "stable": d.stable},
+                        "poles": _pairs(d.closed_loop_poles), "stable": d.stable,
+                        "position_drifts": d.position_drifts},
         "max_stable_force_gain": None if math.isinf(kmax) else kmax,
         "stable_force_gain_intervals": [[lo, None if math.isinf(hi) else hi]
                                         for lo, hi in g.intervals()],
@@ -259,14 +268,20 @@ def _domain_text(name: str, d: dict[str, Any]) -> list[str]:
     intervals = ", ".join(f"({lo:.4g}, {'inf' if hi is None else f'{hi:.4g}'})"
                           for lo, hi in d["stable_force_gain_intervals"]) or "none"
     m = d["margins"]
+    if cl["position_drifts"]:   # no C_f is stable: the figures of the gain map would mislead
+        pole = "z = 1" if "sample_time" in d else "s = 0"
+        gains = (f"  max stable C_f: none: at environment.stiffness = 0 the position drifts at every C_f (a "
+                 f"closed-loop pole at {pole} no C_f moves)")
+    else:
+        gains = (f"  max stable C_f: {'unbounded' if kmax is None else f'{kmax:.6g}'}; "
+                 f"stable C_f intervals: {intervals}")
     return [
         f"{name}:",
         f"  open loop L: relative degree {ol['relative_degree']}, "
         f"{'minimum phase' if ol['minimum_phase'] else 'NON-minimum phase'}; "
         f"zeros {', '.join(_complex_str(z) for z in ol['zeros']) or 'none'}",
         f"  closed loop at C_f = {cl['force_gain']:.4g}: {'stable' if cl['stable'] else 'UNSTABLE'}",
-        f"  max stable C_f: {'unbounded' if kmax is None else f'{kmax:.6g}'}; "
-        f"stable C_f intervals: {intervals}",
+        gains,
         f"  margins: gain {_fmt(m['gain_margin_db'], ' dB')}, phase {_fmt(m['phase_margin_deg'], ' deg')}",
         f"  step (tau_int^): overshoot {_fmt(st['overshoot_pct'], ' %')}, rise {_fmt(st['rise_time'], ' s')}, "
         f"settling {_fmt(st['settling_time'], ' s')}, steady-state error {_fmt(st['steady_state_error'])}",
