@@ -272,7 +272,10 @@ def worsts(m: Metrics, fine: RobustSet, margins: Margins,
         v = float(values[i])
         if name in _STABLE_ONLY and not m.stable[0][i]:
             v = math.nan   # not the evaluation's stand-in (WORST): the loop has no margin there
-        ok = v >= limit if lower else (v < limit if name == "stability" else v <= limit)
+        # stability is the analysis' verdict (every pole inside 1 - STABILITY_TOL): a pole a
+        # hair below 1 is no stable loop, and the margins there are none
+        ok = (bool(m.stable[0][inside].all()) if name == "stability" else
+              v >= limit if lower else v <= limit)
         active = math.isfinite(limit) and abs(v - limit) <= ACTIVE_FRACTION * max(abs(limit), 1.0)
         out.append(Worst(name, v, limit, fine.point(i), ok, active and name != "stability"))
     return tuple(out)

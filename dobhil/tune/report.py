@@ -73,10 +73,17 @@ def objective_text(name: str, value: float) -> str:
     return f"{value:.4g} rad/s"
 
 
+def _value(w: Worst) -> str:
+    unit = CONSTRAINT_TEXT[w.name][2]
+    if w.name == "stability" and f"{w.value:.4g}" == "1":   # not "1 (need < 1)": say how near
+        return f"{w.value:.15g}"
+    return ("unbounded" if math.isinf(w.value) else "none (unstable there)" if math.isnan(w.value)
+            else f"{w.value:.4g}{unit}")
+
+
 def _constraint_line(w: Worst) -> str:
     label, what, unit, op = CONSTRAINT_TEXT[w.name]
-    value = ("unbounded" if math.isinf(w.value) else "none (unstable there)" if math.isnan(w.value)
-             else f"{w.value:.4g}{unit}")
+    value = _value(w)
     if math.isinf(w.limit):   # reported, not a constraint (the noise without --margin noise=X)
         return f"  {label}: {(what + ' ') if what else ''}{value} at {_at(w.point)} (not bounded: --margin noise=X)"
     flags = ("ok" if w.ok else "NOT MET") + (", active" if w.active else "")
@@ -157,7 +164,7 @@ def infeasible_line(result: TuneResult, step_duration: float) -> str:
                 f"{_at(result.worst_at)} (widen --bound, or a longer analysis.step_duration)")
     label, what, unit, op = CONSTRAINT_TEXT[w.name]
     return (f"no design within the bounds meets {label} {op} {w.limit:g}{unit} at every point: the best "
-            f"found has {w.value:.4g}{unit} at {_at(w.point)} (widen --bound or relax --margin)")
+            f"found has {_value(w)} at {_at(w.point)} (widen --bound or relax --margin)")
 
 
 def tuned_yaml(source: Mapping[str, Any], result: TuneResult, command: str) -> str:

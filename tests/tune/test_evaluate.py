@@ -65,3 +65,18 @@ def test_a_step_that_never_reaches_10_percent_has_an_infinite_rise_time() -> Non
                  horizon=201)
     assert m.stable[0, 0]
     assert m.rise_time[0, 0] == np.inf
+
+
+def test_a_point_unstable_within_the_tolerance_fails_the_stability_constraint() -> None:
+    """K_env 1e-9 N m/rad: the largest |pole| is 1 - 2e-14, below 1 but inside the analysis'
+    tolerance, so the point is unstable (no margins there). The stability constraint said "ok"
+    beside margins that were "none (unstable there)", and the one line of an infeasible
+    search named the gain margin ("nan dB") instead of stability."""
+    from dobhil.tune.optimise import worsts
+    from dobhil.tune.problem import Margins, RobustSet
+    config = load_config("paper/fig3")
+    points = {"environment.stiffness": np.array([1e-9, 1e3])}
+    m = evaluate(config, np.array([[500.0, 500.0, 0.25, 2.0]]), points, horizon=20)
+    assert not m.stable[0, 0] and m.radius[0, 0] < 1.0
+    held = {w.name: w for w in worsts(m, RobustSet(("environment.stiffness",), points), Margins())}
+    assert not held["stability"].ok and held["stability"].point == {"environment.stiffness": 1e-9}
