@@ -266,13 +266,17 @@ def _unstable_t(a0: Array, delta: Array, t_cross: float, t_end: float) -> float:
 
 def certify_continuous(config: Config, box: Box, *, gain_margin: bool = True) -> ContinuousCertificate:
     """Certified (every edge stable) or refuted at a point where an eigenvalue of the
-    loop has Re > 0; with the gain margin over the box when certified."""
+    loop has Re > 0; with the gain margin over the box when certified. An edge not shown
+    stable whose most unstable point has no eigenvalue right of the axis (a pole within the
+    tolerance of :func:`~dobhil.analysis.stability.is_stable` left of it: the position's, at
+    s = -K_env / D_env, of a box from K_env 1e-5) is undecided there: no refutation."""
     answers = tuple(answer_edge(config, e) for e in edges(box))
     failed = [a for a in answers if not a.stable]
     if failed:
         worst, abscissa = _worst_witness(config, failed)
         bounds = tuple(a.edge.point(a.crossing) for a in failed if a.crossing is not None)
-        return ContinuousCertificate(Verdict.REFUTED, box, answers, worst.edge.point(_t(worst.witness)),
+        verdict = Verdict.REFUTED if abscissa >= 0 else Verdict.UNDECIDED
+        return ContinuousCertificate(verdict, box, answers, worst.edge.point(_t(worst.witness)),
                                      abscissa, bounds)
     margin = gain_margin_over_box(config, box) if gain_margin else None
     return ContinuousCertificate(Verdict.CERTIFIED, box, answers, gain_margin=margin)

@@ -79,7 +79,7 @@ def _answered(config: Config, box: Box, loops: str, refinements: int) -> dict[st
 def certify(config: Config, box: Box, *, loops: str = "both", refinements: int | None = None) -> dict[str, Any]:
     """The certificates asked for, as one JSON-able mapping (also what ``dobhil tune`` prints);
     ``refinements`` None: the sampled certificate's default budget."""
-    from dobhil.analysis.certify import certify_continuous
+    from dobhil.analysis.certify import Verdict, certify_continuous
     from dobhil.analysis.certify_sampled import DEFAULT_REFINEMENTS, certify_sampled
     refinements = DEFAULT_REFINEMENTS if refinements is None else refinements
     out: dict[str, Any] = {"box": {k: [lo, hi] for k, lo, hi in zip(box.keys, box.lo, box.hi)},
@@ -91,7 +91,7 @@ def certify(config: Config, box: Box, *, loops: str = "both", refinements: int |
     if loops in ("both", "continuous"):
         cont = certify_continuous(config, box)
         out["continuous"] = _continuous(cont)
-        if cont.point is not None:
+        if cont.point is not None and cont.verdict is Verdict.REFUTED:
             refuting["continuous"] = cont.point
         elif cont.gain_margin is not None and cont.gain_margin.worst_at:
             starts.append(cont.gain_margin.worst_at)
@@ -169,6 +169,10 @@ def _continuous_text(c: Mapping[str, Any]) -> str:
         return (f"refuted at {_point_text(c['point'])} (max Re(s) = {c['spectral_abscissa']:+.4g} 1/s; "
                 f"{c['edges_unstable']} of {c['edges']} edges unstable" + "".join(
                     f"; an edge leaves stability at {_point_text(b)}" for b in c["boundaries"]) + ")")
+    if c["verdict"] == "undecided":
+        return (f"undecided at {_point_text(c['point'])} (max Re(s) = {c['spectral_abscissa']:+.4g} 1/s: a pole "
+                f"within the analysis' tolerance of the axis, shown neither stable nor unstable; "
+                f"{c['edges_unstable']} of {c['edges']} edges not shown stable)")
     gm = c["gain_margin"]
     up = "unbounded" if gm["up"] is None else f"x{gm['up']:.4g} (at {_point_text(gm['up_at'])})"
     down = "unbounded" if gm["down"] is None else f"/{gm['down']:.4g} (at {_point_text(gm['down_at'])})"

@@ -263,3 +263,17 @@ def test_the_lyapunov_bound_never_closes_on_an_interval_with_an_unstable_member(
     assert np.max(np.abs(np.linalg.eigvals(built + 0.15 * np.eye(3)))) >= 1.0
     assert not lyapunov_closes(iv.IMat(built, 0.15 * np.eye(3)))
     assert lyapunov_closes(iv.IMat(built, 0.01 * np.eye(3)))
+
+
+def test_a_pole_within_the_resolution_of_the_axis_refutes_nothing() -> None:
+    """K_env from 1e-5 N m/rad (D_env 50): the position's pole is at s = -K/D = -2e-7 1/s,
+    left of the axis but inside the analysis' tolerance of it. That was "refuted at
+    environment.stiffness=1e-05 (max Re(s) = -2e-07 1/s)": a refutation with no eigenvalue
+    right of the axis. Neither shown stable nor unstable, it is undecided, named there."""
+    from dobhil.cli.certify_cmd import _continuous, _continuous_text
+    cert = certify_continuous(fig3(), Box(("environment.stiffness",), (1e-5,), (1e3,)))
+    assert cert.verdict is Verdict.UNDECIDED
+    assert cert.point == {"environment.stiffness": 1e-5}
+    assert cert.spectral_abscissa is not None and cert.spectral_abscissa < 0
+    text = _continuous_text(_continuous(cert))
+    assert text.startswith("undecided at environment.stiffness=1e-05 (max Re(s) = -2e-07 1/s") and "refuted" not in text
