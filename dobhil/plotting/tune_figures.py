@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
+from dobhil.analysis.stability import STABILITY_TOL
 from dobhil.plotting.figures import _plt, save
 
 Step = tuple[np.ndarray, np.ndarray] | None
@@ -139,7 +140,9 @@ def margins_figure(data: TunePlotData, path: Path) -> Path:
             names.append(f"{name}\nnone (unstable) vs {limit:.3g}")   # (NaN would pass the cap
             ratios.append(0.0)                                         # below as a full green bar)
             continue
-        ratio = value / limit if name in lower else limit / value if value else np.inf
+        # stable only inside 1 - STABILITY_TOL, as the text judges it
+        limit_at = limit - STABILITY_TOL if name == "stability" else limit
+        ratio = value / limit if name in lower else limit_at / value if value else np.inf
         names.append(f"{name}\n{value:.3g} vs {limit:.3g}")
         ratios.append(min(ratio, 5.0) if np.isfinite(ratio) else 5.0)
     colors = ["tab:green" if r >= 1 else "tab:red" for r in ratios]

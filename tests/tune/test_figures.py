@@ -66,3 +66,21 @@ def test_the_stability_map_marks_the_tuned_designs_unstable_points(keys: tuple[s
     finally:
         import matplotlib.pyplot as plt
         plt.close(figures[0])
+
+
+def test_a_pole_a_hair_below_1_is_drawn_unstable(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Largest |pole| 1 - 2e-14 (K_env 1e-9 N m/rad): unstable by the analysis' tolerance, as
+    the text's "stability: ... NOT MET" says; its bar was green, right of 1."""
+    figures: list[Any] = []
+    monkeypatch.setattr(tune_figures, "save", lambda fig, path: figures.append(fig) or path)
+    data = tune_figures.TunePlotData(
+        keys=("environment.stiffness",), points={"environment.stiffness": np.array([1e-9])}, gm_db=np.array([6.0]),
+        baseline_stable=np.array([False]), worst_at={"environment.stiffness": 1e-9}, tuned_step=None,
+        config_step=None, constraints=[("stability", 1.0 - 2e-14, 1.0)])
+    tune_figures.margins_figure(data, tmp_path / "margins.png")
+    try:
+        (bar,) = figures[0].axes[0].patches
+        assert bar.get_facecolor() == to_rgba("tab:red")
+    finally:
+        import matplotlib.pyplot as plt
+        plt.close(figures[0])
