@@ -11,6 +11,7 @@ from typing import Any
 import numpy as np
 import yaml
 
+from dobhil.analysis.stability import STABILITY_TOL
 from dobhil.tune.evaluate import Metrics
 from dobhil.tune.optimise import Objective, TuneResult, Worst
 from dobhil.tune.problem import DECISION_KEYS, Margins, Range, RobustSet, Uncertainty
@@ -162,6 +163,13 @@ def infeasible_line(result: TuneResult, step_duration: float) -> str:
         return (f"no design within the bounds makes the force step reach 90 % of its final value within "
                 f"{step_duration:g} s (analysis.step_duration) at every point: the best found does not at "
                 f"{_at(result.worst_at)} (widen --bound, or a longer analysis.step_duration)")
+    if w.name == "stability" and abs(w.value - 1.0) <= STABILITY_TOL:
+        # a pole on the unit circle within round-off: no bound or margin moves it (the position,
+        # held by too soft an environment, drifts as at K_env = 0)
+        return (f"no design within the bounds is shown stable at {_at(w.point)}: its largest |pole| {_value(w)} "
+                f"is within the analysis' resolution of the unit circle ({STABILITY_TOL:g}), where no design "
+                f"can be judged (an environment this soft holds the position about as little as K_env = 0); "
+                f"leave such points out of the set")
     label, what, unit, op = CONSTRAINT_TEXT[w.name]
     return (f"no design within the bounds meets {label} {op} {w.limit:g}{unit} at every point: the best "
             f"found has {_value(w)} at {_at(w.point)} (widen --bound or relax --margin)")

@@ -165,3 +165,22 @@ def test_a_design_whose_step_never_rises_is_not_feasible(tmp_path: Path, capsys:
     assert code == 1 and not report["feasible"] and not out.exists()
     said = [line for line in captured.err.splitlines() if line.startswith("dobhil tune: ")]
     assert len(said) == 1 and "90 %" in said[0] and "analysis.step_duration" in said[0], said
+
+
+
+def test_a_point_too_soft_to_judge_is_named_not_widen_the_bounds() -> None:
+    """A stiffness range from 1e-9 N m/rad (D_env 50): there the position's pole is at
+    |z| = 1 - 2e-14, inside the analysis' resolution of the unit circle, for every design
+    (``dobhil tune paper/fig3 --range environment.stiffness=1e-9:1e3``). Widening --bound or
+    relaxing --margin, what the line advised, cannot help; it says what is wrong there."""
+    import math
+    from dobhil.tune.optimise import TuneResult, Worst
+    from dobhil.tune.report import infeasible_line
+    at = {"environment.stiffness": 1e-9}
+    stability = Worst("stability", 1.0 - 2e-14, 1.0, at, False, False)
+    result = TuneResult(design={}, objective="rise_time", worst_objective=math.inf, worst_at=at,
+                        constraints=(stability,), feasible=False, grid_points=2, rounds=3, set_points=2,
+                        generations=3, metrics=None, grid=None)  # type: ignore[arg-type]
+    line = infeasible_line(result, 0.1)
+    assert "environment.stiffness=1e-09" in line and "resolution" in line and "--bound" not in line, line
+    assert "0.99999999999998" in line
