@@ -457,12 +457,14 @@ def test_the_step_figure_of_a_loop_unstable_in_both_domains_says_so_without_warn
     assert path == tmp_path / "step.png" and path.stat().st_size > 0
 
 
-def test_analyze_at_zero_stiffness_says_the_position_drifts_not_a_gain_margin() -> None:
-    """K_env = 0: a closed-loop pole at s = 0 / z = 1 that no C_f moves. The sampled loop
-    printed "max stable C_f: 0" and, beside it, a gain margin of 15.08 dB: neither says what
-    is true, that the position drifts at every C_f (as the sweep and the gate say)."""
+@pytest.mark.parametrize("stiffness", ["0", "1e-9"])
+def test_analyze_at_zero_stiffness_says_the_position_drifts_not_a_gain_margin(stiffness: str) -> None:
+    """K_env = 0: a closed-loop pole at s = 0 / z = 1 that no C_f moves (at 1e-9 N m/rad
+    within the analysis' resolution of it). The sampled loop printed "max stable C_f: 0" and,
+    beside it, a gain margin of 15.08 dB: neither says what is true, that the position drifts
+    at every C_f (as the sweep and the gate say)."""
     from dobhil.analysis.report import analyze, as_json, as_text
-    result = analyze(load_config("paper/fig3", ["environment.stiffness=0"]))
+    result = analyze(load_config("paper/fig3", [f"environment.stiffness={stiffness}"]))
     report = as_json(result)
     for domain in ("continuous", "discrete"):
         d = report[domain]

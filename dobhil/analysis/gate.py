@@ -28,7 +28,7 @@ from typing import Any, TypeVar
 
 import numpy as np
 
-from dobhil.analysis.stability import STABILITY_TOL, gain_map, is_stable, phase_margin
+from dobhil.analysis.stability import gain_map, is_position_drift, is_stable, phase_margin, unresolved_pole
 from dobhil.config.schema import Config
 from dobhil.drives.profile import DriveProfile
 from dobhil.drives.timing import effective_config
@@ -293,28 +293,17 @@ def _judged(base: GateVerdict, config: Config, sampled: bool) -> GateVerdict:
 def on_the_boundary(poles: np.ndarray, sampled: bool, config: Config) -> str:
     """Why closed-loop ``poles`` that :func:`is_stable` calls unstable cannot be judged ("" when
     one lies clearly outside): every pole outside the stable region is within the analysis'
-    resolution (:data:`~dobhil.analysis.stability.STABILITY_TOL`) of its boundary, where
-    round-off decides the side. A soft environment puts the position's pole there: at s about
-    -K_env / D_env, -2e-11 1/s for K_env 1e-9 N m/rad and D_env 50, which drifts as at
-    K_env = 0 (:func:`not_applicable`); no force gain, bandwidth or delay moves it."""
-    if sampled:
-        distance = np.abs(poles) - 1.0
-        edge = poles[int(np.argmax(distance))]
-        if np.max(distance) > STABILITY_TOL:
-            return ""
-        where = f"|z| = 1 {'+' if abs(edge) >= 1 else '-'} {abs(abs(edge) - 1.0):.3g}"
-    else:
-        scale = max(float(np.max(np.abs(poles), initial=0.0)), 1.0)
-        edge = poles[int(np.argmax(poles.real))]
-        if edge.real > STABILITY_TOL * scale:
-            return ""
-        where = f"Re(s) = {edge.real:.3g} 1/s"
+    resolution of its boundary (:func:`~dobhil.analysis.stability.unresolved_pole`). A soft
+    environment puts the position's pole there, which drifts as at K_env = 0
+    (:func:`not_applicable`); no force gain, bandwidth or delay moves it."""
+    edge = unresolved_pole(poles, sampled)
+    if edge is None:
+        return ""
+    where = (f"|z| = 1 {'+' if abs(edge) >= 1 else '-'} {abs(abs(edge) - 1.0):.3g}" if sampled
+             else f"Re(s) = {edge.real:.3g} 1/s")
     env = config.environment
-    # the drift of the position is a real pole at z = 1 (s = 0); any other on the boundary is
-    # the force gain at an edge of its stable interval
-    drift = abs(edge - 1.0) if sampled else abs(edge)
     why = (f"the position, held by K_env {env.stiffness:g} N m/rad and D_env {env.damping:g} N m s/rad, "
-           "drifts about as freely as at environment.stiffness = 0" if drift <= 1e-6 else
+           "drifts about as freely as at environment.stiffness = 0" if is_position_drift(edge, sampled) else
            f"C_f = {config.design.force_gain:g} is at an edge of a stable interval")
     return (f"a closed-loop pole lies on the stability boundary within the analysis' resolution ({where}), "
             f"so the analysis cannot tell stable from unstable: {why}")

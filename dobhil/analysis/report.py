@@ -16,7 +16,8 @@ import numpy as np
 
 from dobhil.analysis.effective import EffectiveObserver, effective_observers
 from dobhil.analysis.metrics import StepMetrics, step_metrics, step_responses
-from dobhil.analysis.stability import GainMap, answered, gain_map, is_stable, phase_crossover
+from dobhil.analysis.stability import (GainMap, answered, gain_map, is_position_drift, is_stable, phase_crossover,
+                                       unresolved_pole)
 from dobhil.analysis.transfer import LoopSystems
 from dobhil.config.schema import Config
 from dobhil.errors import AnalysisError, ConfigError
@@ -42,7 +43,8 @@ class DomainAnalysis:
     step_true: np.ndarray = field(repr=False)
     observers: dict[str, EffectiveObserver] = field(default_factory=dict)
     #: K_env = 0: the position, held by no spring, drifts at every C_f (a closed-loop pole at
-    #: s = 0 / z = 1 no gain moves), so no C_f is stable and no gain margin is one
+    #: s = 0 / z = 1 no gain moves), so no C_f is stable and no gain margin is one; also a K_env
+    #: so small that this pole is within the analysis' resolution of the boundary (1e-9 N m/rad)
     position_drifts: bool = False
 
     @property
@@ -90,7 +92,9 @@ def analyze_domain(params: Params, *, sampled: bool, duration: float = 0.0) -> D
     cl_poles = np.asarray(np.linalg.eigvals(systems.closed.a), dtype=complex)
     stable = bool(is_stable(cl_poles[None], sampled)[0])
     closed, force = systems.system("closed_loop"), systems.system("force")
-    drifts = bool(np.all(params.value("stiffness") == 0.0))
+    # K_env = 0, or so small that the position's pole is within the resolution of the boundary
+    edge = None if stable else unresolved_pole(cl_poles, sampled)
+    drifts = bool(np.all(params.value("stiffness") == 0.0)) or (edge is not None and is_position_drift(edge, sampled))
     if stable:
         t, (y_hat, y_true) = step_responses([closed, force], duration)
     else:
@@ -270,8 +274,8 @@ def _domain_text(name: str, d: dict[str, Any]) -> list[str]:
     m = d["margins"]
     if cl["position_drifts"]:   # no C_f is stable: the figures of the gain map would mislead
         pole = "z = 1" if "sample_time" in d else "s = 0"
-        gains = (f"  max stable C_f: none: at environment.stiffness = 0 the position drifts at every C_f (a "
-                 f"closed-loop pole at {pole} no C_f moves)")
+        gains = (f"  max stable C_f: none: the position drifts at every C_f (a closed-loop pole at {pole}, within "
+                 "the analysis' resolution, that no C_f moves: environment.stiffness is 0 or too small to hold it)")
     else:
         gains = (f"  max stable C_f: {'unbounded' if kmax is None else f'{kmax:.6g}'}; "
                  f"stable C_f intervals: {intervals}")

@@ -83,6 +83,27 @@ def is_stable(poles: CArray, sampled: bool) -> NDArray[np.bool_]:
     return np.all(p.real < -STABILITY_TOL * scale[..., None], axis=-1)
 
 
+def unresolved_pole(poles: CArray, sampled: bool) -> complex | None:
+    """The outermost of one loop's ``poles`` when no pole lies clearly outside the stable
+    region, only within :data:`STABILITY_TOL` of its boundary, where round-off decides the
+    side and :func:`is_stable` cannot tell (None: one lies clearly outside, or none near).
+    A soft environment puts the position's pole there: s about -K_env / D_env, -2e-11 1/s at
+    K_env 1e-9 N m/rad and D_env 50."""
+    p = np.asarray(poles, complex)
+    if sampled:
+        edge = p[int(np.argmax(np.abs(p)))]
+        return complex(edge) if abs(abs(edge) - 1.0) <= STABILITY_TOL else None
+    scale = max(float(np.max(np.abs(p), initial=0.0)), 1.0)
+    edge = p[int(np.argmax(p.real))]
+    return complex(edge) if abs(edge.real) <= STABILITY_TOL * scale else None
+
+
+def is_position_drift(pole: complex, sampled: bool) -> bool:
+    """Whether a pole of :func:`unresolved_pole` is the position's drift (a real pole at
+    z = 1 / s = 0) rather than the force gain at an edge of a stable interval."""
+    return abs(pole - (1.0 if sampled else 0.0)) <= 1e-6
+
+
 def gain_map(a0: Array, b: Array, c: Array, *, sampled: bool) -> GainMap:
     """Poles, zeros, crossings and stable gain intervals of ``A0 - k B C`` for k > 0."""
     a0, b, c = balance(a0, b, c)
