@@ -301,6 +301,18 @@ def test_sweep_points_at_zero_stiffness_are_said_apart(capsys: pytest.CaptureFix
                      f"{float(alone.max_stable_gain.min()):.6g}"
 
 
+
+def test_sweep_points_too_soft_to_resolve_are_said_apart(capsys: pytest.CaptureFixture[str]) -> None:
+    """K_env 1e-9 N m/rad: the position's pole is within the analysis' resolution of z = 1,
+    as good as K_env = 0. The sweep said "largest C_f safe over the whole grid: 0" because of
+    that one point; it is said apart as a point at 0 is."""
+    assert main(["sweep", "demo", "--sampled", "--vary", "environment.stiffness=log:1e-9:1e4:3"]) == 0
+    out = capsys.readouterr().out.splitlines()
+    assert out[1].startswith("1 point where environment.stiffness is 0 or too small to hold the position"), out
+    alone = sweep(load_config("demo"), [parse_vary("environment.stiffness=log:1e-9:1e4:3")], sampled=True)
+    assert out[2] == f"largest C_f safe over the other points: {float(alone.max_stable_gain[1:].min()):.6g}"
+    assert not alone.drifting[1:].any() and alone.drifting[0]
+
 def test_the_sweep_that_crashed_answers_every_point(capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["sweep", FIG2A, "--set", "design.rtob_bandwidth=2000", "--vary",
                  "environment.damping=0:100:11", "--vary", "design.dob_bandwidth=500:1000:3"]) == 0

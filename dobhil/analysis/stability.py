@@ -83,6 +83,23 @@ def is_stable(poles: CArray, sampled: bool) -> NDArray[np.bool_]:
     return np.all(p.real < -STABILITY_TOL * scale[..., None], axis=-1)
 
 
+def drifts(poles: CArray, sampled: bool) -> NDArray[np.bool_]:
+    """Per loop of a batch (poles: batch + (n,)): not stable only by the position's pole at
+    z = 1 / s = 0, within the analysis' resolution (:func:`unresolved_pole` and
+    :func:`is_position_drift` for every loop at once): K_env = 0, or so small it holds the
+    position as little."""
+    p = np.asarray(poles, complex)
+    if sampled:
+        i = np.argmax(np.abs(p), axis=-1)
+        edge = np.take_along_axis(p, i[..., None], -1)[..., 0]
+        near = np.abs(np.abs(edge) - 1.0) <= STABILITY_TOL
+        return near & (np.abs(edge - 1.0) <= 1e-6)
+    scale = np.maximum(np.max(np.abs(p), axis=-1, initial=0.0), 1.0)
+    i = np.argmax(p.real, axis=-1)
+    edge = np.take_along_axis(p, i[..., None], -1)[..., 0]
+    return (np.abs(edge.real) <= STABILITY_TOL * scale) & (np.abs(edge) <= 1e-6)
+
+
 def unresolved_pole(poles: CArray, sampled: bool) -> complex | None:
     """The outermost of one loop's ``poles`` when no pole lies clearly outside the stable
     region, only within :data:`STABILITY_TOL` of its boundary, where round-off decides the

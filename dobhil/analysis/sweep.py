@@ -14,7 +14,7 @@ from functools import partial
 
 import numpy as np
 
-from dobhil.analysis.stability import gain_map, is_stable
+from dobhil.analysis.stability import drifts, gain_map, is_stable
 from dobhil.config.schema import Config, key_fields
 from dobhil.errors import ConfigError
 from dobhil.realtime import one_blas_thread
@@ -36,6 +36,9 @@ class SweepResult:
     minimum_phase: np.ndarray
     max_stable_gain: np.ndarray     # inf when unbounded, NaN where the point was not answered
     interval_count: np.ndarray      # number of stable C_f intervals (>1: conditionally stable)
+    #: unstable at C_f only by the position's pole at z = 1 / s = 0 (K_env = 0, or so small that
+    #: this pole is within the analysis' resolution): no C_f is stable there
+    drifting: np.ndarray
 
     @property
     def shape(self) -> tuple[int, ...]:
@@ -139,7 +142,7 @@ def _check_axis(name: str, values: np.ndarray) -> None:
 
 #: a chunk of the grid: each swept key's values at the chunk's points
 Chunk = dict[str, np.ndarray]
-#: a chunk's answer: stable, minimum phase, max stable gain, interval count (one value per point)
+#: a chunk's answer: stable, minimum phase, max stable gain, interval count, drifting (one value per point)
 ChunkAnswer = tuple[np.ndarray, ...]
 #: runs ``fn`` on every chunk, the answers in the order of the chunks, ``done(1)`` after each
 #: (e.g. as Dask tasks: the CLI's ``--scheduler``); this module knows no scheduler
@@ -165,7 +168,7 @@ def sweep(config: Config, axes: Sequence[Axis], *, sampled: bool, chunk: int = 4
     results = (map_chunks or _one_by_one)(partial(sweep_chunk, config, sampled), chunks,
                                           _points_done(progress, chunk, total))
     shape = grids[0].shape
-    stacked = [np.concatenate([r[j] for r in results]).reshape(shape) for j in range(4)]
+    stacked = [np.concatenate([r[j] for r in results]).reshape(shape) for j in range(5)]
     return SweepResult(tuple(axes), sampled, *stacked)
 
 
@@ -230,6 +233,7 @@ def _answer(a: np.ndarray, b: np.ndarray, c: np.ndarray, cf: np.ndarray, ok: np.
     minimum_phase = np.zeros(n, bool)
     kmax = np.full(n, np.nan)
     count = np.zeros(n, int)
+    drifting = np.zeros(n, bool)
     idx = np.nonzero(ok)[0]
     try:
         parts = [(idx, _points(a[idx], b[idx], c[idx], cf[idx], sampled))] if idx.size else []
@@ -241,15 +245,15 @@ def _answer(a: np.ndarray, b: np.ndarray, c: np.ndarray, cf: np.ndarray, ok: np.
                                                      cf[i:i + 1], sampled)))
             except (np.linalg.LinAlgError, ValueError):
                 continue
-    for where, (st, mp, km, cnt) in parts:
-        stable[where], minimum_phase[where], kmax[where], count[where] = st, mp, km, cnt
-    return stable, minimum_phase, kmax, count
+    for where, (st, mp, km, cnt, dr) in parts:
+        stable[where], minimum_phase[where], kmax[where], count[where], drifting[where] = st, mp, km, cnt, dr
+    return stable, minimum_phase, kmax, count, drifting
 
 
 def _points(a: np.ndarray, b: np.ndarray, c: np.ndarray, cf: np.ndarray,
             sampled: bool) -> tuple[np.ndarray, ...]:
     gm = gain_map(a, b, c, sampled=sampled)
-    stable = is_stable(np.asarray(np.linalg.eigvals(a - cf[:, None, None] * (b @ c)), dtype=complex),
-                       sampled)
+    poles = np.asarray(np.linalg.eigvals(a - cf[:, None, None] * (b @ c)), dtype=complex)
+    stable = is_stable(poles, sampled)
     count = np.sum(~np.isnan(gm.interval_lo), axis=-1)
-    return stable, gm.minimum_phase, gm.max_stable_gain, count
+    return stable, gm.minimum_phase, gm.max_stable_gain, count, ~stable & drifts(poles, sampled)

@@ -63,7 +63,7 @@ def run(args: argparse.Namespace) -> int:
     with _chunk_map(args) as map_chunks:
         result = _run_with_progress(
             lambda cb: sweep(config, axes, sampled=args.sampled, progress=cb, map_chunks=map_chunks), total)
-    _summary(result, _drifting(config, result))
+    _summary(result, _drifting(config, result), result.drifting)
     if args.out:
         _write_csv(result, args.out)
         print(f"wrote {args.out}")
@@ -139,11 +139,13 @@ def _drifting(config: Config, result: SweepResult) -> np.ndarray:
     return np.full(result.stable.shape, config.environment.stiffness == 0.0)
 
 
-def _summary(result: SweepResult, drifting: np.ndarray) -> None:
-    """The grid's counts and the largest C_f safe at every point; points at K_env = 0 have
-    none (``drifting``), so they are said apart and left out of it, else one such point
-    makes it 0 whatever the rest allow."""
+def _summary(result: SweepResult, at_zero: np.ndarray, unresolved: np.ndarray) -> None:
+    """The grid's counts and the largest C_f safe at every point; points at K_env = 0
+    (``at_zero``) have none, nor those where the stiffness is so small that the position's
+    pole is within the analysis' resolution of the boundary (``unresolved``), so they are
+    said apart and left out of it, else one such point makes it 0 whatever the rest allow."""
     import numpy as np
+    drifting = at_zero | unresolved
     n = result.stable.size
     gains = result.max_stable_gain[~drifting]
     finite = gains[np.isfinite(gains)]
@@ -157,11 +159,17 @@ def _summary(result: SweepResult, drifting: np.ndarray) -> None:
         print(f"{result.unanswered} points could not be analysed (their matrices overflow or "
               "numpy cannot decompose them); they are left empty in --out")
     drift = int(drifting.sum())
+    pole = "z = 1" if result.sampled else "s = 0"
+    only_zero = not (unresolved & ~at_zero).any()
     if drift:
-        print(f"{drift} point{'s' if drift > 1 else ''} at environment.stiffness = 0: the position drifts at every "
-              f"C_f (a pole at {'z = 1' if result.sampled else 's = 0'} no C_f moves), so none is stable there"
+        where_ = ("at environment.stiffness = 0" if only_zero else
+                  "where environment.stiffness is 0 or too small to hold the position")
+        within = "" if only_zero else ", or one within the analysis' resolution of it,"
+        print(f"{drift} point{'s' if drift > 1 else ''} {where_}: the position drifts at every "
+              f"C_f (a pole at {pole}{within} no C_f moves), so none is stable there"
               + ("; the largest safe C_f below is over the other points" if drift < n else ""))
-    where = "the whole grid" if not drift else "the points with environment.stiffness > 0"
+    where = ("the whole grid" if not drift else "the points with environment.stiffness > 0" if only_zero
+             else "the other points")
     if finite.size:
         print(f"largest C_f safe over {where}: {float(finite.min()):.6g}")
     elif n_unbounded:

@@ -23,7 +23,7 @@ VARY = ["plant.inertia=log:1e-300:1:8", "design.dob_bandwidth=log:1:1e7:5"]
 
 
 def assert_identical(a: SweepResult, b: SweepResult) -> None:
-    for name in ("stable", "minimum_phase", "max_stable_gain", "interval_count"):
+    for name in ("stable", "minimum_phase", "max_stable_gain", "interval_count", "drifting"):
         x, y = getattr(a, name), getattr(b, name)
         assert x.dtype == y.dtype and x.shape == y.shape, name
         assert np.array_equal(x, y, equal_nan=x.dtype.kind == "f"), name
