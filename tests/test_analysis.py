@@ -313,6 +313,18 @@ def test_sweep_points_too_soft_to_resolve_are_said_apart(capsys: pytest.CaptureF
     assert out[2] == f"largest C_f safe over the other points: {float(alone.max_stable_gain[1:].min()):.6g}"
     assert not alone.drifting[1:].any() and alone.drifting[0]
 
+
+def test_the_open_loop_at_c_f_0_does_not_drift() -> None:
+    """At C_f = 0 the closed loop is the open loop, whose integrator sits at s = 0 / z = 1: no
+    drift of the position (K_env 1e4 holds it), and the stable C_f reach from 0 is said."""
+    from dobhil.analysis.report import analyze_domain
+    from dobhil.synthesis.params import params_from_config
+    config = load_config("demo", ["design.force_gain=0"])
+    for sampled in (False, True):
+        assert not analyze_domain(params_from_config(config), sampled=sampled).position_drifts
+    result = sweep(load_config("demo"), [parse_vary("design.force_gain=0:10:3")], sampled=True)
+    assert not result.drifting.any()
+
 def test_the_sweep_that_crashed_answers_every_point(capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["sweep", FIG2A, "--set", "design.rtob_bandwidth=2000", "--vary",
                  "environment.damping=0:100:11", "--vary", "design.dob_bandwidth=500:1000:3"]) == 0

@@ -93,7 +93,8 @@ def analyze_domain(params: Params, *, sampled: bool, duration: float = 0.0) -> D
     stable = bool(is_stable(cl_poles[None], sampled)[0])
     closed, force = systems.system("closed_loop"), systems.system("force")
     # K_env = 0, or so small that the position's pole is within the resolution of the boundary
-    edge = None if stable else unresolved_pole(cl_poles, sampled)
+    # (at C_f = 0 the loop is the open loop, whose integrator is there: no drift)
+    edge = None if stable or float(params.value("force_gain")) <= 0 else unresolved_pole(cl_poles, sampled)
     drifts = bool(np.all(params.value("stiffness") == 0.0)) or (edge is not None and is_position_drift(edge, sampled))
     if stable:
         t, (y_hat, y_true) = step_responses([closed, force], duration)

@@ -256,4 +256,5 @@ def _points(a: np.ndarray, b: np.ndarray, c: np.ndarray, cf: np.ndarray,
     poles = np.asarray(np.linalg.eigvals(a - cf[:, None, None] * (b @ c)), dtype=complex)
     stable = is_stable(poles, sampled)
     count = np.sum(~np.isnan(gm.interval_lo), axis=-1)
-    return stable, gm.minimum_phase, gm.max_stable_gain, count, ~stable & drifts(poles, sampled)
+    # at C_f = 0 the loop is the open loop, whose integrator is on the boundary: no drift
+    return stable, gm.minimum_phase, gm.max_stable_gain, count, ~stable & (cf > 0) & drifts(poles, sampled)
