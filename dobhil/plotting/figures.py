@@ -60,7 +60,7 @@ def root_locus(ax: Axes, d: DomainAnalysis, title: str = "") -> None:
     ax.plot(d.closed_loop_poles.real, d.closed_loop_poles.imag, "s", ms=5, color="tab:green",
             label=f"poles at C_f = {cf:g}")
     kmax = float(g.max_stable_gain)
-    sub = ("K_env = 0: the position drifts at every C_f" if d.position_drifts
+    sub = ("the position drifts at every C_f (K_env 0 or too small to hold it)" if d.position_drifts
            else "unbounded C_f" if np.isinf(kmax) else f"max stable C_f = {kmax:.4g}")
     ax.set_title(f"{title}\n{sub}" if title else sub, fontsize=9)
     ax.set_xlabel("Re(z)" if d.sampled else "Re(s) [rad/s]")
