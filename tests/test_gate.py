@@ -155,6 +155,18 @@ def test_a_pole_within_the_resolution_of_the_boundary_is_a_note_not_a_refusal(st
     assert "bandwidth" not in note
 
 
+def test_a_drift_within_a_wide_loops_resolution_is_named_a_drift() -> None:
+    """Observers at 5e4 rad/s widen the continuous resolution to 1e-9 x 5e4 = 5e-5 1/s: the
+    position's pole at -K/D = -2e-6 1/s (K_env 1e-4) is inside it. It is the drift, a real
+    pole; it was named "C_f = 2 is at an edge of a stable interval", and analyze did not say
+    the position drifts."""
+    config = load_config("paper/fig3", ["environment.stiffness=1e-4", "design.dob_bandwidth=5e4",
+                                        "design.rtob_bandwidth=5e4"])
+    note = assess(config, sampled=False).note()
+    assert note is not None and "drifts" in note and "edge of a stable interval" not in note, note
+    assert analyze_domain(params_from_config(config), sampled=False).position_drifts
+
+
 @pytest.mark.parametrize("name", shipped_configs())
 def test_no_shipped_config_is_refused_or_warned(name: str) -> None:
     """Each axis no coupling joins through the single-axis gate, each coupled group through

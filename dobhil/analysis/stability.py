@@ -83,6 +83,11 @@ def is_stable(poles: CArray, sampled: bool) -> NDArray[np.bool_]:
     return np.all(p.real < -STABILITY_TOL * scale[..., None], axis=-1)
 
 
+#: how near z = 1 (sampled), or how near the real axis (continuous: its real part is within
+#: the resolution already), a pole of :func:`unresolved_pole` is the position's drift
+DRIFT_ATOL = 1e-6
+
+
 def drifts(poles: CArray, sampled: bool) -> NDArray[np.bool_]:
     """Per loop of a batch (poles: batch + (n,)): not stable only by the position's pole at
     z = 1 / s = 0, within the analysis' resolution (:func:`unresolved_pole` and
@@ -93,11 +98,11 @@ def drifts(poles: CArray, sampled: bool) -> NDArray[np.bool_]:
         i = np.argmax(np.abs(p), axis=-1)
         edge = np.take_along_axis(p, i[..., None], -1)[..., 0]
         near = np.abs(np.abs(edge) - 1.0) <= STABILITY_TOL
-        return near & (np.abs(edge - 1.0) <= 1e-6)
+        return near & (np.abs(edge - 1.0) <= DRIFT_ATOL)
     scale = np.maximum(np.max(np.abs(p), axis=-1, initial=0.0), 1.0)
     i = np.argmax(p.real, axis=-1)
     edge = np.take_along_axis(p, i[..., None], -1)[..., 0]
-    return (np.abs(edge.real) <= STABILITY_TOL * scale) & (np.abs(edge) <= 1e-6)
+    return (np.abs(edge.real) <= STABILITY_TOL * scale) & (np.abs(edge.imag) <= DRIFT_ATOL)
 
 
 def unresolved_pole(poles: CArray, sampled: bool) -> complex | None:
@@ -117,8 +122,9 @@ def unresolved_pole(poles: CArray, sampled: bool) -> complex | None:
 
 def is_position_drift(pole: complex, sampled: bool) -> bool:
     """Whether a pole of :func:`unresolved_pole` is the position's drift (a real pole at
-    z = 1 / s = 0) rather than the force gain at an edge of a stable interval."""
-    return abs(pole - (1.0 if sampled else 0.0)) <= 1e-6
+    z = 1 / s = 0) rather than the force gain at an edge of a stable interval (a pole
+    crossing at a frequency)."""
+    return abs(pole - 1.0) <= DRIFT_ATOL if sampled else abs(pole.imag) <= DRIFT_ATOL
 
 
 def gain_map(a0: Array, b: Array, c: Array, *, sampled: bool) -> GainMap:
