@@ -176,8 +176,8 @@ def build_controller(config: Config, profile: DriveProfile) -> ForceController:
 def loop_settings(config: Config, timing: Timing, duration: float | None, profile: DriveProfile) -> LoopSettings:
     """The loop's settings; its velocity bound is the lower of ``loop.velocity_limit`` and the
     drive profile's ``velocity_limit``, as its torque bound is of the two torque limits: a
-    drive whose reading saturates (an MIT motor's at its range's v_max) never reports a
-    speed above its range, so only a bound below it can stop an overspeed."""
+    drive whose reading saturates at the end of its codec's range never reports a speed
+    above it, so only a bound below it can stop an overspeed."""
     lp = config.loop
     # named in the stop line when it is the profile's: the config's loop.velocity_limit was higher
     if lp.velocity_limit <= profile.velocity_limit:
