@@ -21,7 +21,7 @@ from mcap.exceptions import McapError
 from mcap.reader import McapReader, make_reader
 
 from dobhil.errors import ConfigError, LogFileError
-from dobhil.live.server import LiveServer
+from dobhil.live.server import LiveChannel, LiveServer
 
 _DAMAGED: Final = (McapError, struct.error, EOFError, ValueError, KeyError)
 #: Shorter waits are not slept: the next message goes out at once (pace is kept on average).
@@ -37,6 +37,10 @@ class RecordedChannel:
     schema_data: bytes
     message_encoding: str = "json"
     schema_encoding: str = "jsonschema"
+
+    def live(self) -> LiveChannel:
+        """The channel as :class:`LiveServer` advertises it."""
+        return LiveChannel(self.topic, self.schema_name, self.schema_data, self.message_encoding, self.schema_encoding)
 
 
 #: (message encoding, schema encoding) the live view serves, as dobhil writes them
@@ -166,7 +170,9 @@ def serve_recording(
     clock: Callable[[], float] = time.monotonic,
     sleep: Callable[[float], None] = time.sleep,
 ) -> PlaybackReport:
-    """Advertise the recording's channels on ``server`` and play its messages.
+    """Advertise the recording's channels on ``server`` (those it does not have yet; give
+    them to :class:`LiveServer` as ``channels`` so a client connected early is not refused
+    them) and play its messages.
 
     With ``wait_for_client`` the playback starts when a client first subscribes
     (Foxglove subscribes when its panels load), ``settle_s`` after the first
@@ -179,8 +185,9 @@ def serve_recording(
     with open(path, "rb") as f:
         channels = recorded_channels(path, f)
         for c in channels:
-            server.add_channel(c.topic, schema_name=c.schema_name, json_schema=c.schema_data,
-                               message_encoding=c.message_encoding, schema_encoding=c.schema_encoding)
+            if c.topic not in server.topics:  # those given to the server up front are advertised
+                server.add_channel(c.topic, schema_name=c.schema_name, json_schema=c.schema_data,
+                                   message_encoding=c.message_encoding, schema_encoding=c.schema_encoding)
         if on_ready is not None:
             on_ready(channels)
         if wait_for_client:

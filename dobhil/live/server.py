@@ -24,9 +24,9 @@ import json
 import threading
 import time
 from collections import deque
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping
 from types import TracebackType
-from typing import Any, Final
+from typing import Any, Final, NamedTuple
 
 from dobhil.errors import ConfigError, DobhilError
 from dobhil.live.address import DEFAULT_HOST
@@ -83,8 +83,22 @@ class _Subscriptions:
 _Pending = tuple[Any, bytes, int]
 
 
+class LiveChannel(NamedTuple):
+    """A channel to advertise (the arguments of :meth:`LiveServer.add_channel`)."""
+
+    topic: str
+    schema_name: str
+    schema: Mapping[str, Any] | bytes
+    message_encoding: str = "json"
+    schema_encoding: str = "jsonschema"
+
+
 class LiveServer:
     """Serves channels to Foxglove clients; :meth:`publish` never blocks.
+
+    Give the channels known up front as ``channels``: they are advertised before the server
+    listens, so no client can be refused a subscription to one of them (see ``__init__``);
+    a channel added later by :meth:`add_channel` races a client already connected.
 
     Publish from one thread (e.g. the recorder's writer thread); the counters are
     exact for a single publishing thread.
@@ -103,12 +117,25 @@ class LiveServer:
         name: str = "dobhil",
         max_pending: int = 65536,
         backlog: int = 1024,
+        channels: Iterable[LiveChannel] = (),
     ) -> None:
         if max_pending < 1 or backlog < 1:
             raise ConfigError(f"max_pending and backlog must be >= 1, got {max_pending} and {backlog}")
         self._sdk = import_sdk()
         self._context = self._sdk.Context()
         self._subscriptions = _Subscriptions()
+        self._channels: dict[str, Any] = {}
+        self._closing = False
+        # Before the server listens: foxglove-sdk (0.30.3, connected_client.rs advertise_channels)
+        # sends the advertisement of a channel added while a client is connected before it
+        # records the channel as that client's, and refuses a subscription that comes back in
+        # between ("Unknown channel ID"): a Foxglove left open on the address, which connects
+        # the moment something listens, was refused about one try in four and `log serve`
+        # waited for it forever. A client that connects later is told of these channels
+        # before its messages are read (server.rs register_client_and_advertise).
+        for c in channels:
+            self.add_channel(c.topic, schema_name=c.schema_name, json_schema=c.schema,
+                             message_encoding=c.message_encoding, schema_encoding=c.schema_encoding)
         try:
             self._server = self._sdk.start_server(
                 name=name,
@@ -126,7 +153,6 @@ class LiveServer:
         self.host = host
         self.port: int = self._server.port
         self._max_pending = max_pending
-        self._channels: dict[str, Any] = {}
         self._pending: deque[_Pending] = deque()
         self._wake = threading.Event()
         self._drop_lock = threading.Lock()
@@ -134,7 +160,6 @@ class LiveServer:
         self._sent = 0
         self._accepted = 0
         self._failed = 0
-        self._closing = False
         self._closed = False
         self._close_lock = threading.Lock()
         self._sender = threading.Thread(target=self._send_loop, name="dobhil-live-sender", daemon=True)
@@ -155,6 +180,11 @@ class LiveServer:
     def sent(self) -> int:
         """Messages handed to the SDK for every subscribed client."""
         return self._sent
+
+    @property
+    def topics(self) -> tuple[str, ...]:
+        """Topics of the advertised channels, in the order added."""
+        return tuple(self._channels)
 
     @property
     def subscriptions(self) -> int:
@@ -274,6 +304,7 @@ class LiveServer:
 __all__ = [
     "INSTALL_HINT",
     "SUBPROTOCOL",
+    "LiveChannel",
     "LiveChannelError",
     "LiveServer",
     "LiveServerError",

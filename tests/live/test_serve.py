@@ -5,16 +5,21 @@ from __future__ import annotations
 import base64
 
 import signal
+import socket
 import subprocess
 import sys
+import threading
+import time
 from collections.abc import Iterator
 from pathlib import Path
 
+import can
 import jsonschema
 import pytest
 from dobhil_forks import DobhilForks, Done
 from live_client import LiveClient, counts_at_least
 from mcap.reader import make_reader
+from websockets.exceptions import InvalidHandshake
 
 from dobhil.canio.mcap_writer import McapWriter
 from dobhil.recording.encodings import encoding
@@ -206,3 +211,63 @@ def test_a_log_of_a_newer_dobhil_is_served_with_the_note_of_log_info(recorded: P
     assert proc.returncode == 0, err
     assert [(r.log_time_ns, r.payload) for r in received] == expected
     assert [line for line in err.splitlines() if "note" in line] == [f"dobhil log: note: {note}"], err
+
+
+def _free_port() -> int:
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return int(probe.getsockname()[1])
+
+
+def _early_client(port: int, topics: tuple[str, ...], out: list[object]) -> None:
+    """What Foxglove does when it is left open on the address: connect as soon as something
+    listens, subscribe to each topic the moment it is advertised. ``out`` gets the client's
+    error statuses and the topics it received, or the exception."""
+    deadline = time.monotonic() + 20
+    while True:
+        try:
+            client = LiveClient(f"ws://127.0.0.1:{port}", open_timeout=2)
+            break
+        except (OSError, InvalidHandshake):  # not listening yet (or check_bindable's probe)
+            if time.monotonic() > deadline:
+                raise
+            time.sleep(0.001)
+    try:
+        with client:
+            client.subscribe(topics)
+            got = client.collect(counts_at_least({t: 1 for t in topics}), timeout=5)
+            out.append(([t for t in client.texts if t.get("op") == "status"], {r.topic for r in got}))
+    except Exception as exc:  # the test reports it
+        out.append(exc)
+
+
+def test_a_client_connected_before_the_channels_are_advertised_is_served(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch) -> None:
+    """A Foxglove left open on the address connects the moment the server listens. foxglove-sdk
+    (0.30.3) sends a channel added while a client is connected before it knows the channel as
+    that client's: a subscription that comes back at once is refused ("Unknown channel ID"),
+    the client believes itself subscribed and serve waited forever for it (seen 5 in 20 tries).
+    The channels are advertised before the server listens: every try is served."""
+    from dobhil.live import cli
+    path = tmp_path / "frames.mcap"
+    writer = McapWriter(path)
+    for i in range(3):
+        writer.on_message_received(can.Message(timestamp=1.0 + i * 1e-3, arbitration_id=0x10 + i, data=[i],
+                                               is_rx=bool(i % 2)))
+    writer.stop()
+    monkeypatch.setattr(cli, "_GRACE_S", 0.0)
+    monkeypatch.setattr(cli, "_SETTLE_S", 0.0)
+    topics = ("/can/rx", "/can/tx")
+    for _ in range(25):
+        port, out = _free_port(), []
+        client = threading.Thread(target=_early_client, args=(port, topics, out), daemon=True)
+        client.start()
+        served = threading.Thread(target=cli.serve_command, args=(path,),
+                                  kwargs={"live": f"127.0.0.1:{port}", "speed": 1e6, "loop": False}, daemon=True)
+        served.start()
+        client.join(30)
+        served.join(10)
+        assert out and not isinstance(out[0], Exception), out
+        assert out[0] == ([], set(topics))
+        assert not served.is_alive(), "serve still waits for a subscriber"
+    capsys.readouterr()
