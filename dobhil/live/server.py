@@ -96,7 +96,8 @@ class LiveChannel(NamedTuple):
 class LiveServer:
     """Serves channels to Foxglove clients; :meth:`publish` never blocks.
 
-    Give the channels known up front as ``channels``: they are advertised before the server
+    Give the channels known up front as ``channels`` (:class:`LiveChannel`, or tuples of its
+    fields): they are advertised before the server
     listens, so no client can be refused a subscription to one of them (see ``__init__``);
     a channel added later by :meth:`add_channel` races a client already connected.
 
@@ -117,7 +118,7 @@ class LiveServer:
         name: str = "dobhil",
         max_pending: int = 65536,
         backlog: int = 1024,
-        channels: Iterable[LiveChannel] = (),
+        channels: Iterable[LiveChannel | tuple[Any, ...]] = (),
     ) -> None:
         if max_pending < 1 or backlog < 1:
             raise ConfigError(f"max_pending and backlog must be >= 1, got {max_pending} and {backlog}")
@@ -133,7 +134,7 @@ class LiveServer:
         # the moment something listens, was refused about one try in four and `log serve`
         # waited for it forever. A client that connects later is told of these channels
         # before its messages are read (server.rs register_client_and_advertise).
-        for c in channels:
+        for c in (LiveChannel(*fields) for fields in channels):
             self.add_channel(c.topic, schema_name=c.schema_name, json_schema=c.schema,
                              message_encoding=c.message_encoding, schema_encoding=c.schema_encoding)
         try:

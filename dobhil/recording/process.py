@@ -459,8 +459,8 @@ def _open(path: str, status: Connection, o: Open) -> LogWriter:
     live = o.live
     port = None
     if live is not None:
-        server = live.serve(host=live.host, port=live.port)
-        log.add_output(server)
+        server = live.serve(host=live.host, port=live.port, channels=log.output_channels())
+        log.add_output(server, announced=True)
         port = server.port
     status.send_bytes(pickle.dumps(Reply(int(Status.READY), port=port)))
     return log

@@ -57,7 +57,8 @@ class LiveOutput(Output, Protocol):
 
 @dataclass(frozen=True)
 class LiveView:
-    """The live view a writer process serves: ``serve(host=host, port=port)`` makes its output.
+    """The live view a writer process serves: ``serve(host=host, port=port, channels=...)`` makes
+    its output, given the log's :meth:`LogWriter.output_channels` to advertise before it listens.
 
     The caller names ``serve`` (``dobhil.live.LiveServer``): the live view is above the
     recording, which so never imports it. It crosses to the writer process pickled, ``serve``
@@ -142,13 +143,19 @@ class LogWriter:
             if prefix + TOPIC_SPECS[topic].name not in self._channels:
                 self._register(prefix + TOPIC_SPECS[topic].name, topic)
 
-    def add_output(self, output: Output) -> None:
-        """Send every message to ``output`` as well, every topic of the table announced now
-        (under each lane's prefix)."""
-        for lane in self.lanes:
-            for name, topic in lane.names():
-                spec = TOPIC_SPECS[topic]
-                output.add_channel(name, schema_name=spec.schema_name, json_schema=spec.json_schema())
+    def output_channels(self) -> tuple[tuple[str, str, dict[str, Any]], ...]:
+        """(topic, schema name, JSON schema) of each channel an output is told of: every topic
+        of the table under each lane's prefix."""
+        return tuple((name, TOPIC_SPECS[topic].schema_name, TOPIC_SPECS[topic].json_schema())
+                     for lane in self.lanes for name, topic in lane.names())
+
+    def add_output(self, output: Output, *, announced: bool = False) -> None:
+        """Send every message to ``output`` as well, its channels (:meth:`output_channels`)
+        announced now unless ``announced`` (given to it when it was made: a live view
+        advertises them before it listens, so no client connected early is refused one)."""
+        if not announced:
+            for name, schema_name, schema in self.output_channels():
+                output.add_channel(name, schema_name=schema_name, json_schema=schema)
         self._outputs.append(output)
         self._live_views = self._live_views or lane_views(self.lanes)
 
