@@ -205,5 +205,6 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     srv.add_argument("file")
     srv.add_argument("--live", default="8765", metavar="[HOST:]PORT", help="listen address (default 127.0.0.1:8765)")
     srv.add_argument("--speed", type=float, default=1.0, help="factor of the recorded pace (default 1)")
-    srv.add_argument("--loop", action="store_true", help="start over at the end until Ctrl-C")
+    srv.add_argument("--loop", action="store_true", help="start over at the end until Ctrl-C "
+                     "(a pass lasts 0.5 s at least: a recording of one instant is sent twice a second)")
     srv.set_defaults(func=_cmd_serve)

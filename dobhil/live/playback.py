@@ -60,6 +60,10 @@ class PlaybackReport:
 #: ``time.sleep`` overflows), or every message would go out at once anyway.
 MIN_SPEED: Final = 1e-3
 MAX_SPEED: Final = 1e6
+#: Shortest pass of ``--loop``: a recording whose messages share one log time (or span a
+#: microsecond) played in no time, and the loop started over at once, about 1000 passes a
+#: second each telling every client to reset. The next pass waits for the rest of this.
+MIN_LOOP_PERIOD_S: Final = 0.5
 
 
 def check_speed(speed: float) -> float:
@@ -178,7 +182,7 @@ def serve_recording(
     (Foxglove subscribes when its panels load), ``settle_s`` after the first
     subscription so the client can subscribe the rest; ``on_ready`` is called once the
     channels are advertised, before waiting. With ``loop`` it starts over (telling
-    clients to reset) until interrupted.
+    clients to reset) until interrupted, a pass lasting :data:`MIN_LOOP_PERIOD_S` at least.
     """
     check_speed(speed)
     load_channels(path)
@@ -198,6 +202,7 @@ def serve_recording(
         while True:
             if passes:
                 server.new_session()
+            began = clock()
             count = _play_once(path, f, server, speed, clock, sleep)
             if count == 0:
                 raise _fail(path, "no messages to serve")
@@ -205,7 +210,11 @@ def serve_recording(
             published += count
             if not loop:
                 break
+            rest = began + MIN_LOOP_PERIOD_S - clock()
+            if rest > 0:
+                sleep(rest)
     return PlaybackReport(passes, published, clock() - started)
 
 
-__all__ = ["PlaybackReport", "RecordedChannel", "check_speed", "load_channels", "recorded_channels", "serve_recording"]
+__all__ = ["MIN_LOOP_PERIOD_S", "PlaybackReport",
+           "RecordedChannel", "check_speed", "load_channels", "recorded_channels", "serve_recording"]
