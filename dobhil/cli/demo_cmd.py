@@ -34,13 +34,17 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p.add_argument("--log", type=output_path, metavar="FILE.mcap",
                    help="MCAP recording (default: OUT/run-YYYYmmdd-HHMMSS.mcap)")
     p.add_argument("--no-log", action="store_true", help="do not record the run")
-    p.add_argument("--live", metavar="[HOST:]PORT", help="serve the run to Foxglove over WebSocket as well")
+    p.add_argument("--live", metavar="[HOST:]PORT",
+                   help="then play the recorded run to Foxglove over WebSocket at its pace, as `dobhil log serve` "
+                        "does: prints the address and waits for a client to subscribe (Ctrl-C to stop); the "
+                        "demo lasts about a second, over before Foxglove could connect (127.0.0.1 unless a host "
+                        "is given; needs the [live] extra)")
     add_gate_args(p)
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
-    from dobhil.cli.recording import abort, default_log_path, live_address, log_summary, open_run_log, record_run
+    from dobhil.cli.recording import abort, default_log_path, log_summary, open_run_log, record_run
     from dobhil.cli.run_cmd import EXIT_STOPPED, log_hooks, report
     from dobhil.cli.stability_gate import gate_metadata, stability_gate
     from dobhil.config import load_config
@@ -57,6 +61,8 @@ def run(args: argparse.Namespace) -> int:
     if args.no_log and args.live is not None:   # not "--live needs a log (--log ...)": --log is refused with it
         raise ConfigError("--no-log with --live: the live view is served by the log's writer; drop --no-log "
                           "(the run is then recorded to OUT/run-*.mcap) or --live")
+    if args.live is not None:   # the address and the extra checked before the run, served after it
+        _check_live(args.live)
     path = resolve_config(args.config) if args.config else demo_config_path()
     from dobhil.config.axes import has_axes
     if has_axes(path):   # several axes in one loop: a PNG per axis, one log of every axis
@@ -64,9 +70,10 @@ def run(args: argparse.Namespace) -> int:
         args.config = str(path)
         axes_log = None if args.no_log else (args.log or default_log_path(args.out))
         code = run_axes(args, prog="dobhil demo", emulate=True, lockstep=not args.realtime,
-                        plot=args.out / "demo_run.png", log=axes_log, live=args.live)
+                        plot=args.out / "demo_run.png", log=axes_log)
         if axes_log is not None:
             print(f"next: dobhil report {axes_log} --out {args.out / 'report'}")
+            _play_live(axes_log, args.live)
         return code
     config = load_config(path, args.overrides, args.set_files)
     png = check_output(args.out / "demo_run.png", inputs=[path], what="--out")
@@ -74,7 +81,7 @@ def run(args: argparse.Namespace) -> int:
         check_lockstep_run(load_drive_profile(config, path.parent), config.loop.period)
     gate = stability_gate(config, path, allow_unstable=args.allow_unstable, prog="dobhil demo")
     log_path = None if args.no_log else (args.log or default_log_path(args.out))
-    log = open_run_log(log_path, live=live_address(args.live, log_path))
+    log = open_run_log(log_path)
     try:
         with stop_on_signals(StopRequest()) as request, \
                 RunSession(config, emulate=True, lockstep=not args.realtime, config_dir=path.parent,
@@ -91,4 +98,28 @@ def run(args: argparse.Namespace) -> int:
     print(f"wrote {run_figure(result.trace, png, demo_title(session.profile, config.loop.period))}")
     if log is not None:
         print(f"next: dobhil report {log.path} --out {args.out / 'report'}")
+        _play_live(log.path, args.live)
     return 0 if result.stop.reason.name == "DONE" else EXIT_STOPPED
+
+
+def _check_live(live: str) -> None:
+    """One line (exit 2) before the run if ``--live`` cannot be served: a bad or busy address,
+    no foxglove-sdk."""
+    from dobhil.live.address import check_bindable, parse_live_address
+    from dobhil.live.server import import_sdk
+    address = parse_live_address(live)
+    import_sdk()
+    check_bindable(address)
+
+
+def _play_live(log: Path, live: str | None) -> None:
+    """``--live``: the recorded run played to Foxglove once a client subscribes. A demo lasts
+    about a second (a fraction of it in lockstep): served while it ran, it was over before a
+    person could open the connection. Ctrl-C ends the live view, not the demo's exit code."""
+    if live is None:
+        return
+    from dobhil.live.cli import serve_command
+    try:
+        serve_command(log, live=live, speed=1.0, loop=False)
+    except KeyboardInterrupt:
+        print("live view: stopped", flush=True)

@@ -171,3 +171,45 @@ def test_a_client_receives_every_axis_and_the_shared_bus_of_a_several_axis_run(t
     assert {r.topic for r in received} >= set(wanted)
     recorded = open_log(path).info()
     assert recorded.stop_reason == "signal" and recorded.metadata["recording"]["live_dropped"] == "0"
+
+
+def test_demo_live_waits_for_a_client_and_plays_it_the_run(tmp_path: Path, capsys: pytest.CaptureFixture[str],
+                                                          monkeypatch: pytest.MonkeyPatch) -> None:
+    """``dobhil demo --live``: a lockstep demo lasts a fraction of a second, over before anyone
+    can open Foxglove (it was: the live view listened for 0.1 s and the demo ended). It runs,
+    then plays its log at the recorded pace once a client subscribes, as ``log serve`` does."""
+    import socket
+    import threading
+    import time
+
+    from websockets.exceptions import InvalidHandshake
+
+    from dobhil.live import cli as live_cli
+    monkeypatch.setattr(live_cli, "_GRACE_S", 0.0)
+    monkeypatch.setattr(live_cli, "_SETTLE_S", 0.0)
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        port = probe.getsockname()[1]
+    got: list[object] = []
+
+    def watch() -> None:  # a person opening Foxglove some time after the demo started
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline:
+            try:
+                with LiveClient(f"ws://127.0.0.1:{port}", open_timeout=2) as client:
+                    client.subscribe(["/controller"])
+                    got.extend(client.collect(counts_at_least({"/controller": 50}), timeout=20))
+                    return
+            except (OSError, InvalidHandshake):  # not listening yet, or the address check's probe
+                time.sleep(0.05)
+
+    client = threading.Thread(target=watch, daemon=True)
+    client.start()
+    log = tmp_path / "demo.mcap"
+    code = main(["demo", "--out", str(tmp_path), "--log", str(log), "--set", "loop.duration=0.1",
+                 "--live", f"127.0.0.1:{port}"])
+    client.join(5)
+    out = capsys.readouterr().out
+    assert code == 0, out
+    assert len(got) >= 50, out
+    assert f"serving {log} on ws://127.0.0.1:{port}" in out and "waiting for a client" in out
