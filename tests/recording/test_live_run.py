@@ -185,8 +185,7 @@ def test_demo_live_waits_for_a_client_and_plays_it_the_run(tmp_path: Path, capsy
     from websockets.exceptions import InvalidHandshake
 
     from dobhil.live import cli as live_cli
-    monkeypatch.setattr(live_cli, "_GRACE_S", 0.0)
-    monkeypatch.setattr(live_cli, "_SETTLE_S", 0.0)
+    monkeypatch.setattr(live_cli, "_SETTLE_S", 0.0)  # the client subscribes one topic
     with socket.socket() as probe:
         probe.bind(("127.0.0.1", 0))
         port = probe.getsockname()[1]
