@@ -115,10 +115,15 @@ def _check_live(live: str) -> None:
 def _play_live(log: Path, live: str | None) -> None:
     """``--live``: the recorded run played to Foxglove once a client subscribes. A demo lasts
     about a second (a fraction of it in lockstep): served while it ran, it was over before a
-    person could open the connection. Ctrl-C ends the live view, not the demo's exit code."""
+    person could open the connection. Ctrl-C ends the live view, not the demo's exit code; a
+    run Ctrl-C stopped is not played (whoever pressed it wants the demo to end, not to wait)."""
     if live is None:
         return
     from dobhil.live.cli import serve_command
+    from dobhil.recording.reader import open_log
+    from dobhil.runtime.stop import StopReason
+    if open_log(log).info().stop_reason == StopReason.SIGNAL.name.lower():
+        return
     try:
         serve_command(log, live=live, speed=1.0, loop=False)
     except KeyboardInterrupt:

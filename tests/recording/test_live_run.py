@@ -212,3 +212,19 @@ def test_demo_live_waits_for_a_client_and_plays_it_the_run(tmp_path: Path, capsy
     assert code == 0, out
     assert len(got) >= 50, out
     assert f"serving {log} on ws://127.0.0.1:{port}" in out and "waiting for a client" in out
+
+
+def test_demo_live_stopped_by_ctrl_c_does_not_wait_for_a_client(tmp_path: Path,
+                                                                 monkeypatch: pytest.MonkeyPatch) -> None:
+    """Ctrl-C during the demo's run stops the demo: its log (stop reason ``signal``) is not
+    then played to a client it would wait for (a second Ctrl-C); any other end is."""
+    import dobhil.live.cli as live_cli
+    from dobhil.cli.demo_cmd import _play_live
+    from dobhil.recording.writer import LogWriter
+    served: list[Path] = []
+    monkeypatch.setattr(live_cli, "serve_command", lambda path, **_: served.append(path))
+    for reason in ("signal", "unstable", "done"):
+        log = tmp_path / f"{reason}.mcap"
+        LogWriter(open(log, "wb"), metadata={}, fsync=False).finish(reason)
+        _play_live(log, "127.0.0.1:0")
+    assert served == [tmp_path / "unstable.mcap", tmp_path / "done.mcap"]
