@@ -406,7 +406,7 @@ def test_an_empty_output_name_is_refused(argv: list[str], capsys: pytest.Capture
 @pytest.mark.parametrize(("option", "line"), [
     ("--log", "--no-log with --log: give one (record the run to --log, or not at all)"),
     # not "--live needs a log (--log FILE.mcap)": following that, --log is refused with --no-log
-    ("--live", "--no-log with --live: the live view is served by the log's writer; drop --no-log (the run is "
+    ("--live", "--no-log with --live: the live view plays the run's log; drop --no-log (the run is "
                "then recorded to OUT/run-*.mcap) or --live"),
 ])
 def test_no_log_with_a_log_is_refused(tmp_path: Path, capsys: pytest.CaptureFixture[str], option: str,

@@ -59,7 +59,7 @@ def run(args: argparse.Namespace) -> int:
     if args.no_log and args.log is not None:
         raise ConfigError("--no-log with --log: give one (record the run to --log, or not at all)")
     if args.no_log and args.live is not None:   # not "--live needs a log (--log ...)": --log is refused with it
-        raise ConfigError("--no-log with --live: the live view is served by the log's writer; drop --no-log "
+        raise ConfigError("--no-log with --live: the live view plays the run's log; drop --no-log "
                           "(the run is then recorded to OUT/run-*.mcap) or --live")
     if args.live is not None:   # the address and the extra checked before the run, served after it
         _check_live(args.live)
