@@ -56,6 +56,18 @@ def test_a_path_is_always_a_path(tmp_path: Path, monkeypatch: pytest.MonkeyPatch
         load_config("configs/demo.yaml")  # not here, and not a name
 
 
+def test_a_directory_named_like_a_shipped_config_is_no_config(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """``dobhil demo --out demo`` makes a folder ``demo``; the next ``dobhil demo`` there said
+    "config file demo is a directory, not a file". A folder is never a config: the name is the
+    shipped one; a folder of no shipped name is still refused as one."""
+    monkeypatch.chdir(tmp_path)
+    Path("demo").mkdir()
+    Path("mine").mkdir()
+    assert resolve_config("demo") == configs_dir() / "demo.yaml"
+    with pytest.raises(ConfigError, match="is a directory"):
+        load_config("mine")
+
+
 def test_an_unknown_config_is_one_line_listing_the_shipped_names(
         tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]) -> None:
     monkeypatch.chdir(tmp_path)

@@ -45,15 +45,16 @@ def load_config(path: str | Path | None = None, overrides: Iterable[str] = (),
 def resolve_config(path: str | Path) -> Path:
     """The file of a config given as a path or as a shipped name (``demo``, ``paper/fig2c``).
 
-    An existing path is always that file; otherwise a shipped config of that name; otherwise
-    ConfigError listing the shipped names.
+    An existing file is always that file; otherwise a shipped config of that name; otherwise
+    ConfigError listing the shipped names. A directory is no config: one named like a shipped
+    config (``dobhil demo --out demo`` writes one) leaves the name to the shipped file.
     """
     if not str(path).strip():
         raise ConfigError(f"config {str(path)!r}: empty; expected a YAML file or a shipped config name: "
                           f"{', '.join(shipped_configs())}")
     p = Path(path)
     try:
-        if p.exists():
+        if p.exists() and not (p.is_dir() and shipped_file(configs_dir(), str(path)) is not None):
             return p
     except (OSError, ValueError) as exc:  # a name too long for the file system, a NUL byte
         raise ConfigError(f"config {_show(str(path))}: not a usable file name "
