@@ -25,7 +25,7 @@ import numpy as np
 
 from dobhil.analysis.certify import Box, params_at
 from dobhil.analysis.disk_margin import DiskMargin, disk_margin
-from dobhil.analysis.stability import is_stable
+from dobhil.analysis.stability import is_stable, unresolved_pole
 from dobhil.config.schema import Config
 from dobhil.synthesis.loop import loop
 
@@ -52,12 +52,24 @@ class WorstDisk:
     points: int                   # disk margins evaluated
 
 
+def _poles(config: Config, point: Mapping[str, float], sampled: bool) -> np.ndarray:
+    with np.errstate(all="ignore"):
+        return np.linalg.eigvals(loop(params_at(config, point), sampled=sampled).a).astype(complex)
+
+
+def unresolved_at(config: Config, point: Mapping[str, float], sampled: bool) -> bool:
+    """Whether the loop at ``point`` is not stable only by poles within the analysis'
+    resolution of the stability boundary (:func:`~dobhil.analysis.stability.unresolved_pole`):
+    shown neither stable nor unstable, as the certificates say of such a point."""
+    poles = _poles(config, point, sampled)
+    return bool(np.all(np.isfinite(poles))) and unresolved_pole(poles, sampled) is not None
+
+
 def disk_margin_at(config: Config, point: Mapping[str, float], sampled: bool) -> DiskMargin | None:
     """The balanced disk margin of the loop at ``point`` (box keys -> values), None where
-    that loop is unstable."""
+    that loop is not stable (:func:`unresolved_at` tells whether it is unstable)."""
     params = params_at(config, point)
-    with np.errstate(all="ignore"):
-        poles = np.linalg.eigvals(loop(params, sampled=sampled).a).astype(complex)
+    poles = _poles(config, point, sampled)
     if not np.all(np.isfinite(poles)) or not bool(is_stable(poles[None], sampled)[0]):
         return None
     a, b, c, _ = loop(params, sampled=sampled, force_gain=0.0).siso("tau_per", "tau_int_hat")

@@ -136,6 +136,9 @@ def _disk(config: Config, box: Box, sampled: bool, refuting: Mapping[str, float]
         point, margin, points = worst.point, worst.margin, worst.points
         where = f"the smallest of {points} points searched; not a bound"
     out: dict[str, Any] = {"at": point, "where": where, "points": points, "stable": margin is not None}
+    if margin is None:   # unstable, or a pole the analysis cannot place on either side
+        from dobhil.analysis.worst_disk import unresolved_at
+        out["unresolved"] = unresolved_at(config, point, sampled)
     if margin is not None:
         out.update(alpha=_num(margin.alpha), gain_db=_num(margin.gain_db), phase_deg=margin.phase_deg,
                    frequency=margin.frequency)
@@ -155,7 +158,10 @@ def text_lines(answer: Mapping[str, Any]) -> list[str]:
         lines.append("sampled loop (interval enclosure + Lyapunov bound): " + _sampled_text(answer["sampled"]))
     for name, dm in answer["disk_margin"].items():
         at = f"{_point_text(dm['at'])} ({dm['where']})"
-        if not dm["stable"]:
+        if not dm["stable"] and dm.get("unresolved"):
+            lines.append(f"disk margin ({name}) at {at}: none: a pole lies within the analysis' resolution of the "
+                         "stability boundary there, shown neither stable nor unstable")
+        elif not dm["stable"]:
             lines.append(f"disk margin ({name}) at {at}: the loop is unstable there")
         else:
             gain = "inf" if dm["gain_db"] is None else f"{dm['gain_db']:.3g}"

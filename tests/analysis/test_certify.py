@@ -277,3 +277,17 @@ def test_a_pole_within_the_resolution_of_the_axis_refutes_nothing() -> None:
     assert cert.spectral_abscissa is not None and cert.spectral_abscissa < 0
     text = _continuous_text(_continuous(cert))
     assert text.startswith("undecided at environment.stiffness=1e-05 (max Re(s) = -2e-07 1/s") and "refuted" not in text
+
+
+@pytest.mark.parametrize("sampled", [False, True])
+def test_the_disk_margin_of_such_a_point_is_not_called_unstable(sampled: bool) -> None:
+    """The same point: the certificate says undecided, so its disk-margin line must not say
+    "the loop is unstable there" (it did); a clearly unstable point still does."""
+    from dobhil.cli.certify_cmd import _disk, text_lines
+    box = Box(("environment.stiffness",), (1e-5,), (1e3,))
+    soft = _disk(fig3(), box, sampled, {"environment.stiffness": 1e-5}, [])
+    stiff = _disk(fig3(), box, sampled, {"environment.stiffness": 1e5, "environment.damping": 10.0}, [])
+    assert not soft["stable"] and soft["unresolved"] and not stiff["stable"] and not stiff["unresolved"]
+    lines = text_lines({"box": {"environment.stiffness": (1e-5, 1e3)}, "disk_margin": {"d": soft, "e": stiff}})
+    assert "neither stable nor unstable" in lines[1] and "unstable there" not in lines[1], lines
+    assert lines[2].endswith("the loop is unstable there"), lines
