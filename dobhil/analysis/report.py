@@ -231,7 +231,10 @@ def _pairs(values: np.ndarray) -> list[list[float]]:
     return [[float(z.real), float(z.imag)] for z in sorted(v, key=lambda z: (z.real, z.imag))]
 
 
-def domain_json(d: DomainAnalysis) -> dict[str, Any]:
+def domain_json(d: DomainAnalysis, with_sensitivities: bool = True) -> dict[str, Any]:
+    """The domain's report; ``with_sensitivities=False`` leaves out ``sensitivities``, the
+    costly part (an 800-point frequency response each: most of an analysis' time), for
+    :func:`as_text`, which shows none of them."""
     g = d.gains
     kmax = float(g.max_stable_gain)
     out: dict[str, Any] = {
@@ -247,7 +250,7 @@ def domain_json(d: DomainAnalysis) -> dict[str, Any]:
         "margins": d.margins,
         "step": {k: v for k, v in d.step.as_dict().items()},
         "step_true_force": d.step_force.as_dict(),
-        "sensitivities": sensitivities(d),
+        **({"sensitivities": sensitivities(d)} if with_sensitivities else {}),
         "observers": {k: v.as_dict() for k, v in d.observers.items()},
     }
     if d.sampled:
@@ -259,8 +262,9 @@ def domain_json(d: DomainAnalysis) -> dict[str, Any]:
     return out
 
 
-def as_json(a: Analysis) -> dict[str, Any]:
-    return {"continuous": domain_json(a.continuous), "discrete": domain_json(a.discrete)}
+def as_json(a: Analysis, with_sensitivities: bool = True) -> dict[str, Any]:
+    return {"continuous": domain_json(a.continuous, with_sensitivities),
+            "discrete": domain_json(a.discrete, with_sensitivities)}
 
 
 def _fmt(x: float | None, unit: str = "", digits: int = 4) -> str:
@@ -311,7 +315,7 @@ def _complex_str(z: list[float]) -> str:
 
 
 def as_text(a: Analysis) -> str:
-    j = as_json(a)
+    j = as_json(a, with_sensitivities=False)   # the text shows no sensitivity
     ts = j["discrete"]["sample_time"]
     lines = _domain_text("continuous (paper)", j["continuous"])
     dj = j["discrete"]

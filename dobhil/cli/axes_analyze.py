@@ -114,7 +114,8 @@ def _single(config: Any, args: argparse.Namespace, name: str) -> tuple[dict[str,
         paths = analysis_figures(result.continuous, result.discrete, args.plot / name,
                                  f"({Path(args.config).stem}, axis {name})")
         lines.append("  wrote " + ", ".join(str(p) for p in paths))
-    return as_json(result), "\n".join(lines)
+    # the JSON only where it is printed: its sensitivities are most of the analysis' cost
+    return (as_json(result) if args.json else {}), "\n".join(lines)
 
 
 def _coupled(axes: Axes, designs: list[Any], args: argparse.Namespace) -> tuple[dict[str, Any], str]:
