@@ -11,6 +11,7 @@ those standard deviations.
 
 from __future__ import annotations
 
+import functools
 import math
 from collections import deque
 from dataclasses import dataclass
@@ -135,6 +136,24 @@ def test_ak80_9_steps_and_zero_torque_bias() -> None:
     assert model.torque_bias == zero
 
 
+@functools.cache
+def _moving_servo(n: int, period: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """``n`` samples of a servo's position and velocity, seeded, moving across many steps per
+    sample (the regime the white-noise model describes), and what the codec decodes of each
+    (:func:`_quantise`). Made once per test process: the codec's 240000 scalar calls were
+    most of each observer-noise case's time, and both velocity sources read the same
+    signals (read-only, so no case can change them for the other)."""
+    rng = np.random.default_rng(18)
+    t = np.arange(n) * period
+    ph = rng.uniform(0, 2 * np.pi, 4)
+    q = 10.0 * np.sin(2 * np.pi * 1.37 * t + ph[0]) + 0.5 * np.sin(2 * np.pi * 17.3 * t + ph[1])
+    dq = 40.0 * np.sin(2 * np.pi * 3.1 * t + ph[2]) + 3.0 * np.sin(2 * np.pi * 47.7 * t + ph[3])
+    signals = (q, dq, _quantise(q, "position"), _quantise(dq, "velocity"))
+    for signal in signals:
+        signal.setflags(write=False)
+    return signals
+
+
 @pytest.mark.parametrize("velocity_source", ["measured", "estimated"])
 def test_observer_noise_matches_a_simulation_fed_with_quantised_signals(velocity_source: str) -> None:
     """The sampled observer run on the codec's decoded position and velocity of a moving
@@ -144,15 +163,9 @@ def test_observer_noise_matches_a_simulation_fed_with_quantised_signals(velocity
     ctrl = sampled_controller(params_from_config(config))
     figures = noise_figures(params_from_config(config), STEPS)
     n, warm = 60_000, 500
-    rng = np.random.default_rng(18)
-    t = np.arange(n) * config.loop.period
-    ph = rng.uniform(0, 2 * np.pi, 4)
-    # moving across many steps per sample (the regime the white-noise model describes)
-    q = 10.0 * np.sin(2 * np.pi * 1.37 * t + ph[0]) + 0.5 * np.sin(2 * np.pi * 17.3 * t + ph[1])
-    dq = 40.0 * np.sin(2 * np.pi * 3.1 * t + ph[2]) + 3.0 * np.sin(2 * np.pi * 47.7 * t + ph[3])
+    q, dq, q_quant, dq_quant = _moving_servo(n, config.loop.period)
     y_true = np.stack([q, dq], axis=1)[:, :ctrl.b_y.shape[1]]
-    y_quant = np.stack([_quantise(q, "position"), _quantise(dq, "velocity")],
-                       axis=1)[:, :ctrl.b_y.shape[1]]
+    y_quant = np.stack([q_quant, dq_quant], axis=1)[:, :ctrl.b_y.shape[1]]
     err = y_quant - y_true
     # the firmware truncates (up to its single precision's rounding of the decoded value)
     assert np.all(err <= 4 * np.finfo(np.float32).eps * np.array([12.5, 50.0])[:err.shape[1]])
