@@ -203,11 +203,28 @@ def _wait_for_recorded(path: Path, proc: subprocess.Popen[bytes], scratch: Path,
 
 
 def _group_alive(pgid: int) -> bool:
-    try:
-        os.killpg(pgid, 0)
-    except ProcessLookupError:
-        return False
-    return True
+    """A member of the process group is still running. One that has exited but is not reaped
+    yet (a zombie: the killed run's children are reaped by the machine's init, measured here to
+    take up to 2 s) has finished its work, the file included, and counts as gone; read from
+    /proc (Linux), else any member that can still be signalled counts."""
+    proc = Path("/proc")
+    if not (proc / "self" / "stat").is_file():
+        try:
+            os.killpg(pgid, 0)
+        except ProcessLookupError:
+            return False
+        return True
+    for stat in proc.glob("[0-9]*/stat"):
+        try:
+            text = stat.read_text()
+        except OSError:   # gone while we looked
+            continue
+        # after the command's closing parenthesis (the command may hold any character):
+        # the state, the parent's pid, the process group
+        state, _, group = text[text.rindex(")") + 2:].split()[:3]
+        if int(group) == pgid and state != "Z":
+            return True
+    return False
 
 
 def _wait_for_group_exit(pgid: int) -> None:
