@@ -235,6 +235,16 @@ def _lockstep_run(tmp_path: Path) -> tuple[Any, RunLog, Path]:
     return config, log, path
 
 
+def _short_stall_once_ended(session: Any, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Once the run's loop has ended -- every wait a SIGINT cuts short is over, the stop
+    decided -- the log's end gives a still writer up after STALL s instead of the shipped
+    STALL_TIMEOUT (5 s, waited for nothing): the tests that call this check that the writer
+    is given up and said so, not the bound (which test_lockstep_writer_stopped_stops_the_run
+    checks). Earlier, the shorter bound could fire before the SIGINT a test waits to send."""
+    if wait_until(lambda: session.loop is not None and session.loop.ended is not None, FROZEN_TEST_TIMEOUT / 2):
+        monkeypatch.setattr(process, "STALL_TIMEOUT", STALL)
+
+
 @pytest.mark.timeout(FROZEN_TEST_TIMEOUT)
 def test_lockstep_writer_stopped_stops_the_run(tmp_path: Path, short_stall: float) -> None:
     """Lockstep waits for the writer (nothing lost), but not for ever: a writer that takes
@@ -260,7 +270,7 @@ def test_lockstep_writer_stopped_stops_the_run(tmp_path: Path, short_stall: floa
 
 
 @pytest.mark.timeout(FROZEN_TEST_TIMEOUT)
-def test_lockstep_sigint_while_waiting_for_a_stopped_writer(tmp_path: Path) -> None:
+def test_lockstep_sigint_while_waiting_for_a_stopped_writer(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """A SIGINT while the lockstep loop waits on a stopped writer stops the run at once
     (``signal``, the safe stop), not at the writer's stall bound; the log's end then gives the
     writer up (killed, said once) and the run keeps its own stop."""
@@ -275,6 +285,7 @@ def test_lockstep_sigint_while_waiting_for_a_stopped_writer(tmp_path: Path) -> N
         if wait_until(lambda: sink.stopped_at is not None and time.monotonic() - sink.last > 0.5,
                       FROZEN_TEST_TIMEOUT / 2):
             os.kill(os.getpid(), signal.SIGINT)
+            _short_stall_once_ended(session, monkeypatch)
 
     with never_left_stopped(stopped), stop_on_signals(StopRequest()) as request:
         with RunSession(config, emulate=True, lockstep=True, stop_request=request, **hooks) as session, \
@@ -412,6 +423,7 @@ def test_axes_lockstep_sigint_while_waiting_for_a_stopped_writer(
             os.kill(log.writer_pid, signal.SIGSTOP)
             if wait_until(_pipe_still(log), FROZEN_TEST_TIMEOUT / 2):
                 os.kill(os.getpid(), signal.SIGINT)
+                _short_stall_once_ended(session, monkeypatch)
         threading.Thread(target=act, daemon=True).start()
         return real(session, log, *args, **kwargs)
 
@@ -428,4 +440,4 @@ def test_axes_lockstep_sigint_while_waiting_for_a_stopped_writer(
     assert "stopped: signal" in text and "received SIGINT" in text, text
     assert "WARNING" not in err, text
     lines = [line for line in err.splitlines() if "not finished" in line]
-    assert len(lines) == 1 and f"nothing for {STALL_TIMEOUT:g} s (stopped" in lines[0], text
+    assert len(lines) == 1 and f"nothing for {STALL:g} s (stopped" in lines[0], text   # the bound then in force
