@@ -45,6 +45,8 @@ import canopen
 from can.broadcastmanager import CyclicSendTaskABC
 from canopen.pdo import PdoMap
 
+from dobhil.drives.waits import WAIT_SLICE
+
 __all__ = ["EDS", "RIG_UNITS", "HostSyncPumpBus", "NodeState", "PumpBus", "PumpedNetwork", "TestNode402",
            "next_state", "with_rig_units"]
 
@@ -224,6 +226,7 @@ class TestNode402:
     def start(self) -> None:
         """Real time: canopen's notifier thread reads the node's bus."""
         self.simulated = False
+        self.network.NOTIFIER_CYCLE = WAIT_SLICE   # the thread stops within a slice at close, not 1 s
         self.network.connect()
         self.boot()
 

@@ -41,6 +41,7 @@ from canopen.profiles.p402 import BaseNode402
 
 from dobhil.config import load_config
 from dobhil.drives import load_profile
+from dobhil.drives.waits import WAIT_SLICE
 
 from .cia402_node import EDS, TestNode402, with_rig_units
 
@@ -128,6 +129,7 @@ def master(request: pytest.FixtureRequest) -> Iterator[tuple[BaseNode402, canope
     channel = f"basenode402-{next(_CHANNELS)}"
     target = TARGETS[request.param](channel)
     network = canopen.Network()
+    network.NOTIFIER_CYCLE = WAIT_SLICE   # its reader thread stops within a slice at disconnect, not its 1 s default
     try:
         # as canopen's documentation shows: a BaseNode402 from the EDS, added to a network
         node = BaseNode402(target.node_id, str(EDS))

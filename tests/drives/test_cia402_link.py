@@ -120,6 +120,7 @@ def test_against_canopens_own_sdo_server() -> None:
     node; the link reads, writes and maps a PDO over a virtual bus."""
     channel = f"cia402-link-{uuid.uuid4().hex}"
     server = canopen.Network()
+    server.NOTIFIER_CYCLE = WAIT_SLICE   # its reader thread stops within a slice at disconnect, not its 1 s default
     server.connect(interface="virtual", channel=channel)
     host = can.Bus(interface="virtual", channel=channel)
     try:

@@ -16,6 +16,7 @@ import pytest
 from dobhil.data import drivers_dir
 from dobhil.drives.cia402.codec import PowerState
 from dobhil.drives.cia402.emulator import EmulatedCiA402
+from dobhil.drives.waits import WAIT_SLICE
 from dobhil.emulator.plant import Plant
 from dobhil.drives.emulated import private_virtual_channel
 
@@ -32,6 +33,8 @@ class Client:
                                   cia402_profile(feedback_period=0.002), Plant(inertia=0.01))
         self.emu.start()
         self.network = canopen.Network()
+        # its reader thread stops within a slice at disconnect, not its 1 s default
+        self.network.NOTIFIER_CYCLE = WAIT_SLICE
         self.network.connect(interface="virtual", channel=channel)
         self.node = canopen.BaseNode402(NODE, EDS)
         self.network.add_node(self.node)

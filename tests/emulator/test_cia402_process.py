@@ -20,6 +20,7 @@ from dobhil.cli.main import main
 from dobhil.config import load_config
 from dobhil.data import drivers_dir
 from dobhil.drives.cia402.codec import PowerState
+from dobhil.drives.waits import WAIT_SLICE
 from dobhil.emulator.process import EmulatorProcess, EmulatorSpec
 from dobhil.drives.emulated import private_virtual_channel
 
@@ -110,6 +111,7 @@ def test_canopens_client_drives_the_node_behind_a_dobhil_bus() -> None:
     # canopen connects to the bus by name, as to any python-can interface; its SYNC producer
     # (python-can send_periodic) is sent by the emulator's process itself
     network = canopen.Network()
+    network.NOTIFIER_CYCLE = WAIT_SLICE   # its reader thread stops within a slice at disconnect, not its 1 s default
     network.connect(interface="dobhil", channel="cia402-demo")
     try:
         node = canopen.BaseNode402(NODE, str(drivers_dir() / "cia402-emulated.eds"))
