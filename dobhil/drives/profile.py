@@ -63,9 +63,15 @@ _BUS_RATES = {"bitrate": MAX_NOMINAL_RATE, "data_bitrate": MAX_BUS_RATE}
 
 def _bus_arguments(value: Mapping[Any, Any]) -> bool:
     """Text keys; a bit rate, where given, a whole number of bit/s the interface can take
-    (a rate of "abc" or -5 would reach the interface's constructor, or the bus budget)."""
-    return all(isinstance(k, str) for k in value) and all(
+    (a rate of "abc" or -5 would reach the interface's constructor, or the bus budget); a
+    CAN FD data phase no slower than the nominal one (ISO 11898-1: bit rate switching only
+    speeds the data phase up; a slower one would make the bus budget count FD frames as
+    longer than the same classic ones)."""
+    rates_ok = all(isinstance(k, str) for k in value) and all(
         type(value[r]) is int and 1 <= value[r] <= top for r, top in _BUS_RATES.items() if r in value)
+    if not rates_ok or "data_bitrate" not in value:
+        return rates_ok
+    return bool(value["data_bitrate"] >= value.get("bitrate", 0))
 
 
 @dataclass(frozen=True)
@@ -191,7 +197,7 @@ COMMON_RULES: Mapping[str, Rule] = MappingProxyType({
     "command_delay_periods": Rule.integer(0, MAX_COMMAND_DELAY, default=None),
     "bus": Rule((dict,), f"a mapping of can.Bus keyword arguments (its bitrate: a whole number from 1 to "
                 f"{MAX_NOMINAL_RATE} bit/s, the nominal rate of classic CAN and CAN FD; its data_bitrate: a "
-                f"whole number from 1 to {MAX_BUS_RATE} bit/s)", _bus_arguments, _EMPTY),
+                f"whole number from 1 to {MAX_BUS_RATE} bit/s, at least its bitrate)", _bus_arguments, _EMPTY),
     "name": Rule((str,), "a string", lambda v: True, ""),
 })
 

@@ -114,7 +114,7 @@ def test_hostile_profile_values_are_one_line_and_exit_2(tmp_path: Path, key: str
 
 BUS_RATES_ALLOWED = (r"bus: expected a mapping of can.Bus keyword arguments \(its bitrate: a whole number "
                      r"from 1 to 1000000 bit/s, the nominal rate of classic CAN and CAN FD; its data_bitrate: "
-                     r"a whole number from 1 to 25000000 bit/s\), got ")
+                     r"a whole number from 1 to 25000000 bit/s, at least its bitrate\), got ")
 
 
 @pytest.mark.parametrize(("rate", "top"), [("abc", 0), (-5, 0), (0, 0), (1.5, 0), (1e300, 0), (True, 0),
@@ -130,6 +130,15 @@ def test_a_bus_bit_rate_is_a_whole_number_of_bit_per_s(key: str, rate: Any, top:
         profile_from_mapping({**SHIPPED, "bus": {**SHIPPED["bus"], key: rate}}, source="p.yaml")
     good = 1_000_000 if key == "bitrate" else 5_000_000
     assert profile_from_mapping({**SHIPPED, "bus": {**SHIPPED["bus"], key: good}}, source="p.yaml").bus[key] == good
+
+
+def test_a_can_fd_data_phase_slower_than_the_nominal_one_is_refused() -> None:
+    """Bit rate switching only speeds the data phase up (ISO 11898-1): a data_bitrate below
+    the bitrate was accepted, and the bus budget then counted FD frames longer than classic ones."""
+    with pytest.raises(ConfigError, match=BUS_RATES_ALLOWED):
+        profile_from_mapping({**SHIPPED, "bus": {"bitrate": 1_000_000, "data_bitrate": 500_000}}, source="p.yaml")
+    equal = profile_from_mapping({**SHIPPED, "bus": {"bitrate": 500_000, "data_bitrate": 500_000}}, source="p.yaml")
+    assert equal.bus["data_bitrate"] == 500_000
 
 
 @pytest.mark.parametrize("command", [["analyze"], ["run", "--emulate", "--lockstep", "--duration", "0.01"]])
