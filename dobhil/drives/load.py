@@ -107,10 +107,15 @@ def drive_profile_file(name: str, base_dir: Path) -> Path:
     """The file :func:`load_drive_profile` reads for ``drive.profile = name`` in a config of
     ``base_dir``: a YAML path from that directory, else the name looked up near it, else the
     shipped profile; ConfigError when there is none."""
-    candidate = base_dir / name if not Path(name).is_absolute() else Path(name)
-    if candidate.suffix in (".yaml", ".yml") and _exists(candidate):
-        return candidate
-    return _resolve(name, None, base_dir)
+    found = _yaml_path(name, base_dir)
+    return found if found is not None else _resolve(name, None, base_dir)
+
+
+def _yaml_path(name: str, base_dir: Path | None) -> Path | None:
+    """``name`` as an existing YAML file, relative to ``base_dir`` unless absolute; None when
+    it is none (then a profile name, looked up by :func:`_resolve`)."""
+    candidate = base_dir / name if base_dir and not Path(name).is_absolute() else Path(name)
+    return candidate if candidate.suffix in (".yaml", ".yml") and _exists(candidate) else None
 
 
 def load_drive_profile(config: Config, base_dir: Path | None = None) -> DriveProfile:
@@ -118,7 +123,6 @@ def load_drive_profile(config: Config, base_dir: Path | None = None) -> DrivePro
     (the config's directory) if there is one, else a profile name looked up near it; its node
     id replaced by ``drive.node_id`` unless that is -1."""
     name = config.drive.profile
-    candidate = (base_dir / name) if base_dir and not Path(name).is_absolute() else Path(name)
+    found = _yaml_path(name, base_dir)
     node_id = config.drive.node_id if config.drive.node_id >= 0 else None
-    return load_profile(str(candidate) if candidate.suffix in (".yaml", ".yml") and candidate.exists()
-                        else name, near=base_dir, node_id=node_id)
+    return load_profile(str(found) if found is not None else name, near=base_dir, node_id=node_id)
