@@ -19,7 +19,7 @@ from dobhil.config.schema import Config, key_fields
 from dobhil.errors import ConfigError
 from dobhil.realtime import one_blas_thread
 from dobhil.synthesis.loop import loop
-from dobhil.synthesis.params import PARAM_KEYS, params_from_config, unused_keys
+from dobhil.synthesis.params import PARAM_KEYS, first_unused, params_from_config
 
 
 @dataclass(frozen=True)
@@ -176,12 +176,10 @@ def _check_used(config: Config, axes: Sequence[Axis]) -> None:
     """A swept key the loop does not read with this config (:func:`unused_keys`) would give
     the same row at every value, which reads as a key that does not matter; it is refused,
     naming the choice that would make it matter."""
-    unused, flat = unused_keys(config), config.flat()
-    for a in axes:
-        if a.key in unused:
-            choice, wanted = unused[a.key]
-            raise ConfigError(f"--vary {a.key}: the loop does not use it ({choice} is {flat[choice]}, not {wanted}), "
-                              f"so every value would give the same row; --set {choice}={wanted} to sweep it")
+    u = first_unused(config, (a.key for a in axes))
+    if u is not None:
+        raise ConfigError(f"--vary {u.key}: the loop does not use it ({u.choice} is {u.value}, not {u.wanted}), "
+                          f"so every value would give the same row; --set {u.choice}={u.wanted} to sweep it")
 
 
 def _one_by_one(fn: Callable[[Chunk], ChunkAnswer], chunks: Sequence[Chunk],

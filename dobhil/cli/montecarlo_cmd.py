@@ -172,14 +172,13 @@ def _check_drawn_read(campaign: Campaign, config: Config) -> None:
     velocity is estimated: :func:`dobhil.synthesis.params.unused_keys`) is refused as the
     keys a lockstep run never reads are (docs/montecarlo.md): every run would run the same
     loop, and the table would show a spread of draws that changed nothing."""
-    from dobhil.synthesis.params import unused_keys
-    unused, flat = unused_keys(config), config.flat()
-    for v in campaign.varies:
-        if v.key in unused:
-            choice, wanted = unused[v.key]
-            raise ConfigError(f"--vary {v.text()}: the controller does not read {v.key} ({choice} is {flat[choice]}, "
-                              f"not {wanted}), so every draw would run the same loop; --set {choice}={wanted} to "
-                              "draw it")
+    from dobhil.synthesis.params import first_unused
+    u = first_unused(config, (v.key for v in campaign.varies))
+    if u is not None:
+        text = next(v.text() for v in campaign.varies if v.key == u.key)
+        raise ConfigError(f"--vary {text}: the controller does not read {u.key} ({u.choice} is {u.value}, "
+                          f"not {u.wanted}), so every draw would run the same loop; --set {u.choice}={u.wanted} to "
+                          "draw it")
 
 
 def _check_drawn_period(campaign: Campaign) -> None:

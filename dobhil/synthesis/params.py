@@ -9,6 +9,7 @@ kinds, velocity source, delay length, discretisation) are shared by the batch.
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Iterable
 from dataclasses import dataclass
 from enum import IntEnum
 from typing import Any
@@ -127,6 +128,28 @@ def unused_keys(config: Config) -> dict[str, tuple[str, str]]:
     if d.velocity_source != "estimated":
         out["design.velocity_filter_bandwidth"] = ("design.velocity_source", "estimated")
     return out
+
+
+@dataclass(frozen=True)
+class UnusedKey:
+    """A key varied where the loop does not read it (:func:`unused_keys`): the structural
+    key that decides it, its value in the config, and the value that would make it read."""
+
+    key: str
+    choice: str
+    value: object
+    wanted: str
+
+
+def first_unused(config: Config, keys: Iterable[str]) -> UnusedKey | None:
+    """The first of ``keys`` the loop does not read with ``config``'s structure, or None: a
+    sweep or a campaign varying it would give the same loop at every value."""
+    unused = unused_keys(config)
+    for key in keys:
+        if key in unused:
+            choice, wanted = unused[key]
+            return UnusedKey(key, choice, config.flat()[choice], wanted)
+    return None
 
 
 def structure_from_config(config: Config) -> Structure:
