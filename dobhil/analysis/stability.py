@@ -88,21 +88,31 @@ def is_stable(poles: CArray, sampled: bool) -> NDArray[np.bool_]:
 DRIFT_ATOL = 1e-6
 
 
+def _outermost(poles: CArray, sampled: bool) -> tuple[CArray, NDArray[np.bool_]]:
+    """Per loop of a batch (poles: batch + (n,)): the pole nearest the outside of the stable
+    region (largest |z|, or largest Re(s)), and whether it lies within :data:`STABILITY_TOL`
+    of the boundary (scaled as :func:`is_stable` scales it)."""
+    p = np.asarray(poles, complex)
+    if sampled:
+        edge = np.take_along_axis(p, np.argmax(np.abs(p), axis=-1)[..., None], -1)[..., 0]
+        return edge, np.abs(np.abs(edge) - 1.0) <= STABILITY_TOL
+    scale = np.maximum(np.max(np.abs(p), axis=-1, initial=0.0), 1.0)
+    edge = np.take_along_axis(p, np.argmax(p.real, axis=-1)[..., None], -1)[..., 0]
+    return edge, np.abs(edge.real) <= STABILITY_TOL * scale
+
+
+def _at_drift(edge: CArray, sampled: bool) -> NDArray[np.bool_]:
+    """Whether poles are the position's drift: real, at z = 1 / s = 0 (within DRIFT_ATOL)."""
+    return np.asarray(np.abs(edge - 1.0) <= DRIFT_ATOL if sampled else np.abs(np.imag(edge)) <= DRIFT_ATOL)
+
+
 def drifts(poles: CArray, sampled: bool) -> NDArray[np.bool_]:
     """Per loop of a batch (poles: batch + (n,)): not stable only by the position's pole at
     z = 1 / s = 0, within the analysis' resolution (:func:`unresolved_pole` and
     :func:`is_position_drift` for every loop at once): K_env = 0, or so small it holds the
     position as little."""
-    p = np.asarray(poles, complex)
-    if sampled:
-        i = np.argmax(np.abs(p), axis=-1)
-        edge = np.take_along_axis(p, i[..., None], -1)[..., 0]
-        near = np.abs(np.abs(edge) - 1.0) <= STABILITY_TOL
-        return near & (np.abs(edge - 1.0) <= DRIFT_ATOL)
-    scale = np.maximum(np.max(np.abs(p), axis=-1, initial=0.0), 1.0)
-    i = np.argmax(p.real, axis=-1)
-    edge = np.take_along_axis(p, i[..., None], -1)[..., 0]
-    return (np.abs(edge.real) <= STABILITY_TOL * scale) & (np.abs(edge.imag) <= DRIFT_ATOL)
+    edge, near = _outermost(poles, sampled)
+    return near & _at_drift(edge, sampled)
 
 
 def unresolved_pole(poles: CArray, sampled: bool) -> complex | None:
@@ -111,20 +121,15 @@ def unresolved_pole(poles: CArray, sampled: bool) -> complex | None:
     side and :func:`is_stable` cannot tell (None: one lies clearly outside, or none near).
     A soft environment puts the position's pole there: s about -K_env / D_env, -2e-11 1/s at
     K_env 1e-9 N m/rad and D_env 50."""
-    p = np.asarray(poles, complex)
-    if sampled:
-        edge = p[int(np.argmax(np.abs(p)))]
-        return complex(edge) if abs(abs(edge) - 1.0) <= STABILITY_TOL else None
-    scale = max(float(np.max(np.abs(p), initial=0.0)), 1.0)
-    edge = p[int(np.argmax(p.real))]
-    return complex(edge) if abs(edge.real) <= STABILITY_TOL * scale else None
+    edge, near = _outermost(np.asarray(poles, complex)[None], sampled)
+    return complex(edge[0]) if near[0] else None
 
 
 def is_position_drift(pole: complex, sampled: bool) -> bool:
     """Whether a pole of :func:`unresolved_pole` is the position's drift (a real pole at
     z = 1 / s = 0) rather than the force gain at an edge of a stable interval (a pole
     crossing at a frequency)."""
-    return abs(pole - 1.0) <= DRIFT_ATOL if sampled else abs(pole.imag) <= DRIFT_ATOL
+    return bool(_at_drift(np.asarray(pole, complex), sampled))
 
 
 def gain_map(a0: Array, b: Array, c: Array, *, sampled: bool) -> GainMap:
