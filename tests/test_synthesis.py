@@ -184,3 +184,26 @@ def test_torque_model_basis_is_well_conditioned(model: str, ratio: float) -> Non
     k = obs.order
     np.testing.assert_allclose(np.poly(obs.a) / g ** np.arange(k + 1), np.poly(np.full(k, -1.0)),
                                rtol=0, atol=1e-12)
+
+
+def test_balancing_iterates_only_the_designs_not_yet_settled(monkeypatch: pytest.MonkeyPatch) -> None:
+    """[[0, 4], [1, 0]] never settles (both states' factors overshoot: 2 and 1/2, then
+    1/2 and 2, ...); in a batch with 999 designs that settle at once, the others are
+    scaled as alone and are not scaled 12 times along with it (a sweep's batch has a few
+    hundred such designs among thousands)."""
+    from dobhil.synthesis import numerics
+    cycling = np.array([[0.0, 4.0], [1.0, 0.0]])
+    settled = np.array([[-1.0, 2.0], [2.0, -3.0]])
+    batch = np.concatenate([np.broadcast_to(settled, (999, 2, 2)), cycling[None]])
+    alone = [numerics.balance_scaling(m) for m in (settled, cycling)]
+    ratios = [0]
+    log2 = np.log2
+
+    def counted(x: np.ndarray) -> np.ndarray:
+        ratios[0] += np.size(x)
+        return log2(x)
+    monkeypatch.setattr(numerics.np, "log2", counted)
+    scale = numerics.balance_scaling(batch)
+    assert np.array_equal(scale[:999], np.broadcast_to(alone[0], (999, 2)))
+    assert np.array_equal(scale[999], alone[1])
+    assert ratios[0] <= (999 + 12) * 2       # the settled ones once, the cycling one 12 times
