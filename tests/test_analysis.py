@@ -61,6 +61,25 @@ def test_stable_gain_intervals_agree_with_a_dense_gain_scan(overrides: list[str]
             assert st.tolist() == [True, False]
 
 
+def test_a_crossing_the_roots_place_exactly_costs_two_eigenvalue_problems(monkeypatch: pytest.MonkeyPatch) -> None:
+    """L = 1 / (s (s + 1) (s + 2)): s^3 + 3 s^2 + 2 s + k crosses the axis at k = 6 exactly.
+    Given 6, polishing brackets it at once (two eigenvalue problems, not the bracket and
+    iterations: 6 and more); given 6 (1 + 1e-4), it still finds 6."""
+    from dobhil.analysis import stability
+    a0 = np.array([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [0.0, -2.0, -3.0]])[None]
+    bc = np.outer([0.0, 0.0, 1.0], [1.0, 0.0, 0.0])[None]
+    solved = [0]
+    margin = stability._spectral_margin
+
+    def counted(a: np.ndarray, sampled: bool) -> np.ndarray:
+        solved[0] += a.shape[0]
+        return margin(a, sampled)
+    monkeypatch.setattr(stability, "_spectral_margin", counted)
+    exact = stability._polish(a0, bc, np.array([[6.0, np.nan]]), sampled=False)
+    assert solved[0] == 2 and exact[0, 0] == pytest.approx(6.0, rel=1e-13) and np.isnan(exact[0, 1])
+    assert stability._polish(a0, bc, np.array([[6.0006]]), sampled=False)[0, 0] == pytest.approx(6.0, rel=1e-12)
+
+
 def test_conditionally_stable_design_is_reported_with_both_intervals() -> None:
     a, b, c = open_loop(CASES[3][0], False)
     g = gain_map(a, b, c, sampled=False)

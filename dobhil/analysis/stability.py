@@ -355,8 +355,12 @@ def _verify(a0: Array, bc: Array, crossings: Array, sampled: bool,
     return out, None
 
 
-#: relative half-widths tried, in turn, to bracket each crossing for polishing
-POLISH_BRACKETS = (1e-6, 1e-3, 0.03, 0.2)
+#: relative half-widths tried, in turn, to bracket each crossing for polishing. The first
+#: bracket is narrower than the iterations' end width (1e-13, with room for the rounding of
+#: its ends): where the polynomial roots are already that close (19 of 20 crossings of a
+#: sweep of configs/paper/fig2b.yaml), it is the answer and costs two eigenvalue problems,
+#: not the six or more of a wider bracket and its iterations
+POLISH_BRACKETS = (4e-14, 1e-6, 1e-3, 0.03, 0.2)
 POLISH_ITERATIONS = 30
 
 
@@ -366,38 +370,49 @@ def _polish(a0: Array, bc: Array, crossings: Array, sampled: bool) -> Array:
     crossings of all designs at once. The polynomial roots locate a crossing to
     rounding only when the poles are well separated; with clusters near z = 1 (small
     g T) they can be percent off, the eigenvalues stay right to ~1e-12."""
-    k = crossings
+    # only the finite crossings, each with its own matrices: the brackets and the iterations
+    # solve for these and no others (most crossings settle in a few steps, a few take all)
+    at = np.nonzero(np.isfinite(crossings))
+    k = crossings[at]
+    a_k = np.broadcast_to(a0[at[:-1]], k.shape + a0.shape[-2:])    # one design: no batch index
+    bc_k = np.broadcast_to(bc[at[:-1]], k.shape + bc.shape[-2:])
+
+    def margins(x: Array, which: NDArray[np.intp]) -> Array:
+        return _spectral_margin(a_k[which] - x[:, None, None] * bc_k[which], sampled)
     lo, hi = np.full(k.shape, np.nan), np.full(k.shape, np.nan)
     f_lo, f_hi = np.full(k.shape, np.nan), np.full(k.shape, np.nan)
-    todo = np.isfinite(k)
+    todo = np.arange(k.size)
     for delta in POLISH_BRACKETS:
-        if not todo.any():
+        if not todo.size:
             break
-        k0, k1 = np.where(todo, k * (1 - delta), np.nan), np.where(todo, k * (1 + delta), np.nan)
-        m0, m1 = _margins_at(a0, bc, k0, sampled), _margins_at(a0, bc, k1, sampled)
-        found = todo & (m0 * m1 < 0)
-        lo, hi = np.where(found, k0, lo), np.where(found, k1, hi)
-        f_lo, f_hi = np.where(found, m0, f_lo), np.where(found, m1, f_hi)
-        todo &= ~found
-    active = np.isfinite(lo)
+        k0, k1 = k[todo] * (1 - delta), k[todo] * (1 + delta)
+        m0, m1 = margins(k0, todo), margins(k1, todo)
+        found = m0 * m1 < 0
+        t = todo[found]
+        lo[t], hi[t], f_lo[t], f_hi[t] = k0[found], k1[found], m0[found], m1[found]
+        todo = todo[~found]
+    active = np.nonzero(np.isfinite(lo) & ((hi - lo) > 1e-13 * hi))[0]   # a first bracket may be done
     side = np.zeros(k.shape, int)
     for _ in range(POLISH_ITERATIONS):
-        if not active.any():
+        if not active.size:
             break
+        lo_a, hi_a, flo_a, fhi_a, side_a = lo[active], hi[active], f_lo[active], f_hi[active], side[active]
         with np.errstate(invalid="ignore", divide="ignore"):
-            x = np.where(active, (lo * f_hi - hi * f_lo) / (f_hi - f_lo), np.nan)
-        x = np.where(active & ~((x > lo) & (x < hi)), 0.5 * (lo + hi), x)
-        fx = _margins_at(a0, bc, x, sampled)
-        left = active & (fx * f_lo > 0)            # root in [x, hi]
-        right = active & ~left                     # root in [lo, x]
-        lo, f_lo = np.where(left, x, lo), np.where(left, fx, f_lo)
-        hi, f_hi = np.where(right, x, hi), np.where(right, fx, f_hi)
+            x = (lo_a * fhi_a - hi_a * flo_a) / (fhi_a - flo_a)
+        x = np.where(~((x > lo_a) & (x < hi_a)), 0.5 * (lo_a + hi_a), x)
+        fx = margins(x, active)
+        left = fx * flo_a > 0                      # root in [x, hi]
+        right = ~left                              # root in [lo, x]
+        lo_a, flo_a = np.where(left, x, lo_a), np.where(left, fx, flo_a)
+        hi_a, fhi_a = np.where(right, x, hi_a), np.where(right, fx, fhi_a)
         # Illinois: halve the stale end's value when the same end moves twice
-        f_hi = np.where(left & (side == 1), 0.5 * f_hi, f_hi)
-        f_lo = np.where(right & (side == -1), 0.5 * f_lo, f_lo)
-        side = np.where(left, 1, np.where(right, -1, side))
-        active &= (hi - lo) > 1e-13 * hi
-    polished = np.where(np.isfinite(lo), 0.5 * (lo + hi), k)
+        fhi_a = np.where(left & (side_a == 1), 0.5 * fhi_a, fhi_a)
+        flo_a = np.where(right & (side_a == -1), 0.5 * flo_a, flo_a)
+        lo[active], hi[active], f_lo[active], f_hi[active] = lo_a, hi_a, flo_a, fhi_a
+        side[active] = np.where(left, 1, -1)
+        active = active[(hi_a - lo_a) > 1e-13 * hi_a]
+    polished = crossings.copy()
+    polished[at] = np.where(np.isfinite(lo), 0.5 * (lo + hi), k)
     return np.sort(polished, axis=-1)
 
 
