@@ -207,3 +207,28 @@ def test_balancing_iterates_only_the_designs_not_yet_settled(monkeypatch: pytest
     assert np.array_equal(scale[:999], np.broadcast_to(alone[0], (999, 2)))
     assert np.array_equal(scale[999], alone[1])
     assert ratios[0] <= (999 + 12) * 2       # the settled ones once, the cycling one 12 times
+
+
+def test_a_sampled_grid_exponentiates_each_distinct_matrix_once(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A J_i x K_env grid's controller varies with J_i only and its plant with K_env only:
+    6 x 5 designs need the controller's two exponentials for at most 6 and the plant's two
+    for at most 5, not 4 x 30 -- and give, bit for bit, the matrices of each design built
+    alone."""
+    import scipy.linalg
+    ji, k = np.meshgrid(np.linspace(0.1, 0.6, 6), np.geomspace(1e2, 1e5, 5), indexing="ij")
+    cfg = load_config("configs/paper/fig2b.yaml")
+    alone = [loop(params_from_config(cfg, design__identified_inertia=float(j), environment__stiffness=float(s)),
+                  sampled=True, force_gain=0.0).siso("tau_per", "tau_int_hat")[:3]
+             for j, s in zip(ji.reshape(-1), k.reshape(-1))]
+    exponentiated = [0]
+    expm = scipy.linalg.expm
+
+    def counted(block: np.ndarray) -> np.ndarray:
+        exponentiated[0] += int(np.prod(block.shape[:-2]))
+        return expm(block)
+    monkeypatch.setattr(scipy.linalg, "expm", counted)
+    params = params_from_config(cfg, design__identified_inertia=ji.reshape(-1), environment__stiffness=k.reshape(-1))
+    grid = loop(params, sampled=True, force_gain=0.0).siso("tau_per", "tau_int_hat")[:3]
+    assert exponentiated[0] <= 2 * 6 + 2 * 5
+    for i, one in enumerate(alone):
+        assert all(g[i].tobytes() == m.tobytes() for g, m in zip(grid, one))
