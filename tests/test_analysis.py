@@ -80,6 +80,27 @@ def test_a_crossing_the_roots_place_exactly_costs_two_eigenvalue_problems(monkey
     assert stability._polish(a0, bc, np.array([[6.0006]]), sampled=False)[0, 0] == pytest.approx(6.0, rel=1e-12)
 
 
+def test_the_crossings_polynomial_is_solved_at_half_its_degree(monkeypatch: pytest.MonkeyPatch) -> None:
+    """L = (s^2 - s + 4) / (s (s + 1) (s + 2)): the characteristic polynomial
+    s^3 + (3 + k) s^2 + (2 - k) s + 4 k has roots on the axis at k = 1 (s = +-j) only.
+    Im(D(jw) conj(N(jw))) is odd, of degree 5: its roots come from a polynomial in w^2 of
+    degree 2, not from a 5 x 5 companion matrix (the map's largest eigenvalue problem
+    before; now the 3 x 3 loop's)."""
+    a0 = np.array([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [0.0, -2.0, -3.0]])
+    b, c = np.array([[0.0], [0.0], [1.0]]), np.array([[4.0, -1.0, 1.0]])
+    sizes = []
+    eigvals = np.linalg.eigvals
+
+    def recorded(m: np.ndarray) -> np.ndarray:
+        sizes.append(m.shape[-1])
+        return eigvals(m)
+    monkeypatch.setattr(np.linalg, "eigvals", recorded)
+    g = gain_map(a0, b, c, sampled=False)
+    assert max(sizes) == 3
+    assert [float(k) for k in g.crossings if np.isfinite(k)] == [pytest.approx(1.0, rel=1e-13)]
+    assert g.intervals() == [(0.0, pytest.approx(1.0, rel=1e-13))]
+
+
 def test_conditionally_stable_design_is_reported_with_both_intervals() -> None:
     a, b, c = open_loop(CASES[3][0], False)
     g = gain_map(a, b, c, sampled=False)
