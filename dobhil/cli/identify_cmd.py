@@ -344,13 +344,22 @@ def _print(info: dict[str, Any]) -> None:
         print(f"note: {info['note']}")
     for name, e in info["estimates"].items():
         if e["identifiable"]:
-            print(f"  {name:<18} {e['value']:.6g}  95 % [{e['low']:.6g}, {e['high']:.6g}]  stderr {e['stderr']:.3g}")
+            unit = f" {_UNITS[name]}" if _UNITS.get(name) else ""   # of the value, its interval and error
+            print(f"  {name:<18} {e['value']:.6g}{unit}  95 % [{e['low']:.6g}, {e['high']:.6g}]  "
+                  f"stderr {e['stderr']:.3g}")
         else:
             print(f"  {name:<18} not identifiable: {e['why']}")
     r = info["residual"]
-    print(f"residual RMS {_num(r['rms'], '.4g')}, whiteness p = {_num(r['whiteness_p'], '.3g')}")
+    rms = _num(r["rms"], ".4g")
+    print(f"residual RMS {rms}{'' if r['rms'] is None else ' rad/s'}, whiteness p = {_num(r['whiteness_p'], '.3g')}")
     if r["warning"]:
         print(f"warning: {r['warning']}")
+
+
+#: the unit of each estimate as printed (the config keys' units, docs/config.md); the torque
+#: gain is a ratio
+_UNITS = {"inertia": "kg m^2", "viscous_friction": "N m s/rad", "coulomb_friction": "N m", "torque_gain": "",
+          "contact_position": "rad", "stiffness": "N m/rad", "damping": "N m s/rad", "delay": "s"}
 
 
 def _num(value: float | None, spec: str) -> str:

@@ -195,3 +195,25 @@ def test_identify_free_run_end_to_end(logs: dict[str, Path], tmp_path: Path,
     assert main(["analyze", "demo", "--set-file", str(out), "--json"]) == 0
     capsys.readouterr()
     assert sorted(p.name for p in plots.iterdir()) == ["identify_segment_0.png"]
+
+
+def test_identify_prints_each_estimate_with_its_unit(capsys: pytest.CaptureFixture[str]) -> None:
+    """The printed estimates and the residual RMS carry their units (an inertia of 0.3 and a
+    delay of 0.00026 read alike without them)."""
+    from dobhil.cli.identify_cmd import _print
+    def est(value: float) -> dict[str, object]:
+        return {"value": value, "low": 0.9 * value, "high": 1.1 * value, "stderr": 0.05 * value,
+                "identifiable": True, "why": ""}
+    estimates = {"inertia": est(0.3), "viscous_friction": est(0.05), "coulomb_friction": est(0.01),
+                 "contact_position": est(2e-6), "stiffness": est(15000.0), "damping": est(60.0),
+                 "delay": est(2.6e-4),
+                 "torque_gain": {"identifiable": False, "why": "held at 1"}}
+    _print({"files": ["a.mcap"], "file": "a.mcap", "protocol": "odrive", "samples": 100, "period": 0.001,
+            "segments": [{"file": "a.mcap", "kind": "contact", "t0": 0.0, "t1": 0.1}], "estimates": estimates,
+            "residual": {"rms": 0.001, "whiteness_p": 0.5, "warning": ""}})
+    lines = {line.split()[0]: line for line in capsys.readouterr().out.splitlines()}
+    units = {"inertia": "kg m^2", "viscous_friction": "N m s/rad", "coulomb_friction": "N m",
+             "contact_position": "rad", "stiffness": "N m/rad", "damping": "N m s/rad", "delay": "s"}
+    for name, unit in units.items():
+        assert f"{estimates[name]['value']:.6g} {unit}  95 %" in lines[name], lines[name]
+    assert "residual RMS 0.001 rad/s," in lines["residual"]
