@@ -554,16 +554,27 @@ def _fold_friction(values: dict[str, float], sd: Array, cov: Array) -> bool:
     """Whether the record determines only ``viscous_friction + damping`` (their estimates'
     correlation below -:data:`_SUM_CORRELATION`, ``cov`` in the parameters' own units); if so
     the sum is reported as the damping, with its standard error
-    ``sqrt(var_b + var_D + 2 cov_bD)``, and the friction held at 0 (``values`` and ``sd``
-    changed in place): a linear combination the data fix, rather than two numbers the fit
+    ``sqrt(var_b + var_D + 2 cov_bD)``, and the friction held at 0 (``values``, ``sd`` and
+    ``cov`` changed in place): a linear combination the data fix, rather than two numbers the fit
     traded against each other along a flat valley (measured: b 13.4 and D 46.6 for a true
-    0.05 and 60 on the pressed run of tests/identify/test_closedloop.py)."""
+    0.05 and 60 on the pressed run of tests/identify/test_closedloop.py).
+
+    The covariance becomes the sum's, ``T cov T^T`` with ``T`` adding the friction's row to the
+    damping's, and the friction's row and column NaN (held): the correlations reported and the
+    overlay's covariance (what ``dobhil montecarlo --draw-from`` draws from) are then of the
+    damping reported, not of D alone, which moves against b (on docs/identify.md section 5's
+    force1.mcap D alone is correlated -0.40 with the inertia, -0.62 with the contact position
+    and +0.69 with the delay; the sum -0.05, -0.02 and +0.29)."""
     var_b, var_d, c = cov[_FRICTION, _FRICTION], cov[_DAMPING, _DAMPING], cov[_FRICTION, _DAMPING]
     if not (np.isfinite(c) and var_b > 0.0 and var_d > 0.0) or c / math.sqrt(var_b * var_d) > -_SUM_CORRELATION:
         return False
     values["damping"] += values["viscous_friction"]
     values["viscous_friction"] = 0.0
-    sd[_DAMPING] = math.sqrt(max(var_b + var_d + 2.0 * c, 0.0))
+    cov[_DAMPING, :] += cov[_FRICTION, :]
+    cov[:, _DAMPING] += cov[:, _FRICTION]
+    cov[_FRICTION, :] = cov[:, _FRICTION] = math.nan
+    cov[_DAMPING, _DAMPING] = max(var_b + var_d + 2.0 * c, 0.0)
+    sd[_DAMPING] = math.sqrt(cov[_DAMPING, _DAMPING])
     return True
 
 

@@ -329,3 +329,31 @@ def test_the_profile_interval_of_a_linear_model_is_its_exact_interval(monkeypatc
             end = profile.end(k, best[k] + sign * 2.0 * half)
             assert end == pytest.approx(best[k] + sign * half, rel=0, abs=0.02 * half), (k, sign)
             assert profile.held_cost(k, end) - profile.best == pytest.approx(rise, rel=0.05)
+
+
+def test_the_folded_damping_carries_the_sums_covariance() -> None:
+    """Where b and D_env are told only as their sum, the damping reported is the sum, and so
+    are its correlations (and the overlay's covariance, montecarlo --draw-from's normal): those
+    of D alone, which moves against b, are another quantity's. Here D alone is correlated
+    -0.5 with the inertia and the sum 0."""
+    from dobhil.identify.closedloop import _VARIED, _correlations, _fold_friction
+    n = len(_VARIED)
+    j, b, d = _VARIED.index("inertia"), _VARIED.index("viscous_friction"), _VARIED.index("damping")
+    cov = np.eye(n)
+    cov[b, b] = cov[d, d] = 100.0
+    cov[b, d] = cov[d, b] = -99.9   # correlation -0.999
+    cov[j, d] = cov[d, j] = -5.0    # the inertia with D alone: -0.5
+    cov[j, b] = cov[b, j] = 5.0     # and with b: +0.5, so with b + D: 0
+    t = np.eye(n)
+    t[d, b] = 1.0                   # D' = b + D
+    summed = t @ cov @ t.T
+    values = {name: 1.0 for name in _VARIED}
+    sd = np.sqrt(np.diag(cov))
+    assert _fold_friction(values, sd, cov)
+    assert (values["viscous_friction"], values["damping"]) == (0.0, 2.0)
+    assert sd[d] == pytest.approx(np.sqrt(summed[d, d]), rel=1e-12)
+    keep = [i for i in range(n) if i != b]
+    assert np.allclose(cov[np.ix_(keep, keep)], summed[np.ix_(keep, keep)], rtol=1e-12, atol=1e-12)
+    r = _correlations(cov)
+    assert r[("inertia", "damping")] == pytest.approx(0.0, abs=1e-12)
+    assert not any("viscous_friction" in pair for pair in r)   # held at 0: no correlation
