@@ -12,10 +12,11 @@ from typing import Any
 from dobhil.tune.problem import IntervalUncertainty, Uncertainty
 
 
-def identified_box(path: str) -> list[Uncertainty]:
+def identified_box(path: str, notes: list[str] | None = None) -> list[Uncertainty]:
     """Each identified key the tuned loop depends on as an :class:`IntervalUncertainty`; the
     keys and bounds taken, and the keys left out (the linear loop has no Coulomb friction or
-    contact position), in one line on stderr."""
+    contact position), in one line on stderr -- or appended to ``notes``, for the command to
+    print once its other inputs are checked (a refusal after it stays one line)."""
     from dobhil.identify.intervals import read_identified
     from dobhil.synthesis.params import PARAM_KEYS
     from dobhil.tune.problem import UNCERTAIN_PREFIXES
@@ -33,9 +34,15 @@ def identified_box(path: str) -> list[Uncertainty]:
                               for i in used]
     shown = ", ".join(f"{i.key} [{i.lo:.6g}, {i.hi:.6g}]" for i in used)
     note = f"; left out (not in the linear loop): {', '.join(left)}" if left else ""
-    print(f"tune: uncertainty box from {path} ({identified.level * 100:g} % intervals): {shown}{note}",
-          file=sys.stderr)
+    _say(f"tune: uncertainty box from {path} ({identified.level * 100:g} % intervals): {shown}{note}", notes)
     return box
+
+
+def _say(line: str, notes: list[str] | None) -> None:
+    if notes is None:
+        print(line, file=sys.stderr)
+    else:
+        notes.append(line)
 
 
 #: keys a physical quantity keeps at or above 0 (a draw below is drawn again); the contact
@@ -47,9 +54,10 @@ _NONNEGATIVE = ("plant.inertia", "plant.viscous_friction", "plant.coulomb_fricti
 MIN_ACCEPTANCE = 0.01
 
 
-def joint_varies(path: str) -> tuple[Any, ...]:
+def joint_varies(path: str, notes: list[str] | None = None) -> tuple[Any, ...]:
     """The overlay's identified keys as one joint normal (estimates and covariance) truncated to
-    physical values, a :class:`~dobhil.campaign.draws.Vary` per key; how, in one line on stderr."""
+    physical values, a :class:`~dobhil.campaign.draws.Vary` per key; how, in one line on stderr
+    (or appended to ``notes``, as :func:`identified_box` does)."""
     from dobhil.campaign.draws import JointNormal, Kind, Vary
     from dobhil.errors import ConfigError
     from dobhil.identify.intervals import read_identified
@@ -63,9 +71,9 @@ def joint_varies(path: str) -> tuple[Any, ...]:
         raise ConfigError(f"--draw-from {path}: only {accepted:.2%} of its normal draws are physical (>= 0); the "
                           "truncation would be the distribution -- vary these keys with --vary instead")
     bounded = [k for k, lo in zip(identified.keys, lower) if lo == 0.0]
-    print(f"montecarlo: drawing {', '.join(identified.keys)} jointly from {path}: normal with the fitted estimates "
-          f"and covariance, truncated to >= 0 for {', '.join(bounded) or 'none'} by redrawing the whole vector "
-          f"(exact truncation; {accepted:.2%} of draws accepted)", file=sys.stderr)
+    _say(f"montecarlo: drawing {', '.join(identified.keys)} jointly from {path}: normal with the fitted estimates "
+         f"and covariance, truncated to >= 0 for {', '.join(bounded) or 'none'} by redrawing the whole vector "
+         f"(exact truncation; {accepted:.2%} of draws accepted)", notes)
     sd = [i.stderr for i in identified.intervals]
     return tuple(Vary(k, Kind.JOINT_NORMAL, m, s, False, joint)
                  for k, m, s in zip(identified.keys, joint.mean, sd))

@@ -67,11 +67,13 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
 def run(args: argparse.Namespace) -> int:
     """The runs stream: each spec drawn when the cluster has room for it, each row into the
     table and the tally as it comes (in run order), so memory does not grow with --runs."""
-    campaign, noise = build_campaign(args)
+    drawn: list[str] = []
+    campaign, noise = build_campaign(args, drawn)
     scheduler, workers, note = check_execution(args)
     out_dir = check_outputs(args)
-    if note:   # once every input is checked: bad input stays its one line
-        print(f"montecarlo: {note}", file=sys.stderr, flush=True)
+    # once every input is checked: bad input stays its one line
+    for line in [*drawn, *([f"montecarlo: {note}"] if note else [])]:
+        print(line, file=sys.stderr, flush=True)
     started = time.perf_counter()
     with table(out_dir, args, campaign) as write:
         reference, tally = execute(campaign, scheduler, workers, header(campaign, noise, scheduler, workers), write)
@@ -86,9 +88,10 @@ def run(args: argparse.Namespace) -> int:
 
 # -- input ------------------------------------------------------------------
 
-def build_campaign(args: argparse.Namespace) -> tuple[Campaign, tuple[str, ...]]:
+def build_campaign(args: argparse.Namespace, notes: list[str]) -> tuple[Campaign, tuple[str, ...]]:
     """The campaign asked for, every input checked (ConfigError before anything starts); and
-    the noise overrides the campaign added (none when the config has noise)."""
+    the noise overrides the campaign added (none when the config has noise); what --draw-from
+    draws, appended to ``notes`` for the caller to print."""
     from dobhil.campaign.campaign import Campaign
     from dobhil.campaign.draws import parse_vary
     from dobhil.runtime.session import check_duration
@@ -102,7 +105,7 @@ def build_campaign(args: argparse.Namespace) -> tuple[Campaign, tuple[str, ...]]
     varies = tuple(parse_vary(v) for v in args.vary)
     if args.draw_from:
         from dobhil.cli.identified_box import joint_varies
-        varies += joint_varies(args.draw_from)
+        varies += joint_varies(args.draw_from, notes)
     if not varies:
         raise ConfigError("nothing to draw: give --vary KEY=DIST or --draw-from OVERLAY.yaml")
     _no_twice([v.key for v in varies])

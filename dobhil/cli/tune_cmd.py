@@ -83,7 +83,8 @@ def run(args: argparse.Namespace) -> int:
     axis_keys(args, {"ranges": "--range", "uncertainty": "--uncertainty", "bound": "--bound"})
     config = design_on_drive(config_from_args(args), args, sys.stderr if args.json else None)
     _check_outputs(args, files_read(config, args))
-    ranges, uncertainties = _robust_keys(args)
+    notes: list[str] = []   # said once every input is checked: a refusal stays its one line
+    ranges, uncertainties = _robust_keys(args, notes)
     _check_uncertain_values(config, uncertainties)
     _check_contact(config, ranges, uncertainties)
     margins, bounds = parse_margins(args.margin), parse_bounds(config, args.bound)
@@ -93,6 +94,8 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError("--margin noise: nothing quantises here (the drive profile has no codec model "
                           "and sensor.encoder_resolution is 0)")
     objective = Objective(args.objective)
+    for line in notes:
+        print(line, file=sys.stderr)
     horizon = _horizon(config)
     result = _with_progress(lambda cb: tune(config, ranges, uncertainties, bounds, margins, objective,
                                             seed=args.seed, grid=args.grid, horizon=horizon, quanta=quanta,
@@ -111,13 +114,13 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _robust_keys(args: argparse.Namespace) -> tuple[list[Range], list[Uncertainty]]:
+def _robust_keys(args: argparse.Namespace, notes: list[str]) -> tuple[list[Range], list[Uncertainty]]:
     from dobhil.tune.problem import parse_range, parse_uncertainty
     ranges = [parse_range(s) for s in args.ranges]
     uncertainties = [parse_uncertainty(s) for s in args.uncertainty]
     if args.uncertainty_from:
         from dobhil.cli.identified_box import identified_box
-        uncertainties += identified_box(args.uncertainty_from)
+        uncertainties += identified_box(args.uncertainty_from, notes)
     if not ranges and not uncertainties:
         raise ConfigError("no robust set: give --range KEY=LO:HI, --uncertainty KEY=±P% or --uncertainty-from "
                           "OVERLAY.yaml")

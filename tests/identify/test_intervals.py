@@ -216,3 +216,25 @@ def test_the_certificate_of_tune_is_over_the_identified_box(tmp_path: Path,
     answer, _ = tuned_certificate(load_config("demo"), {}, [], box)
     assert answer is not None and answer["box"] == {"plant.inertia": [0.28, 0.34],
                                                     "plant.viscous_friction": [0.0, 0.004]}
+
+
+@pytest.mark.parametrize("argv", [
+    ["tune", "demo", "--uncertainty-from", "{o}", "--range", "environment.stiffness=1e3:2e3"],
+    ["tune", "demo", "--uncertainty-from", "{o}", "--bound", "design.force_gain=-1:2"],
+    ["tune", "demo", "--uncertainty-from", "{o}", "--margin", "gm=abc"],
+    ["montecarlo", "demo", "--runs", "2", "--draw-from", "{o}", "--workers", "0"],
+    ["montecarlo", "demo", "--runs", "2", "--draw-from", "{o}", "--vary", "plant.inertia=normal:0.3:0.01"],
+    ["montecarlo", "demo", "--runs", "2", "--draw-from", "{o}", "--out", "{o}"],
+])
+def test_bad_input_beside_an_overlay_is_one_line(argv: list[str], tmp_path: Path,
+                                                 capsys: pytest.CaptureFixture[str]) -> None:
+    """The line saying which box or draw an overlay gives comes once every input is checked:
+    a refusal after the overlay was read stays its one line (it printed the box first)."""
+    path = tmp_path / "o.yaml"
+    path.write_text("identified:\n  intervals:\n    plant.inertia: {estimate: 0.25, lo: 0.2, hi: 0.3, stderr: 0.02}\n"
+                    "    environment.stiffness: {estimate: 1.0e4, lo: 9.0e3, hi: 1.1e4, stderr: 500}\n"
+                    "  covariance: {keys: [plant.inertia, environment.stiffness], "
+                    "matrix: [[0.0004, 0.0], [0.0, 250000.0]]}\n")
+    assert main([a.format(o=path) for a in argv]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith(f"dobhil {argv[0]}: error: "), err
