@@ -215,6 +215,13 @@ def _loop_validation_record(args: argparse.Namespace, fitted: Any, contact: bool
     from dobhil.identify.data import find_segments, read_log
     from dobhil.runtime.session import build_controller
     name = args.validate
+    from dobhil.identify.choose import recorded_mode
+    if Path(name).is_file() and recorded_mode(name, args.axis) is None:
+        # its loop is what the validation simulates: a log without its controller (a CAN log
+        # imported) cannot be, but the open-loop fit validates on its frames
+        raise ConfigError(f"--validate {name}: has no recorded controller (a CAN log imported?), and a closed-loop "
+                          "fit is validated by simulating the validation run's own loop; validate on a run "
+                          "recorded by dobhil, or fit with --method open-loop (and --drive NAME to decode its frames)")
     record = closed_loop_record(name, build_controller, axis=args.axis)
     if not contact and any(s.kind == "contact" for s in find_segments(read_log(name, axis=args.axis))):
         raise ConfigError(f"--validate {name}: reaches its environment, but the fitted run never did, so the fit "

@@ -88,6 +88,11 @@ def test_closed_loop_refuses_what_it_cannot_fit(logs: dict[str, Path], tmp_path:
     assert main(["identify", str(imported), "--drive", "odrive-0.6", "--method", "closed-loop"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "no recorded controller" in err[0]
+    # a closed-loop fit validated on a CAN log: the refusal names --validate and the way out
+    # (it said "closed-loop identification needs the recorded controller", of the log validated)
+    assert main(["identify", str(logs["contact"]), "--validate", str(imported)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and f"--validate {imported}" in err[0] and "--method open-loop" in err[0], err
 
 
 def test_a_noise_free_emulated_run_is_fitted_to_its_truth(logs: dict[str, Path],
