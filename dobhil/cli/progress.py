@@ -106,7 +106,8 @@ class Progress:
         return LINE_PARTS * max(0, done) // (self.total or 1)
 
     def text(self, now: float) -> str:
-        """``desc: 120/1000 runs (12 %), 9.8 runs/s, 1 min 30 s left; note``."""
+        """``desc: 120/1000 runs (12 %), 9.8 runs/s, 1 min 30 s left; note`` (the first line
+        without the rate and the time left)."""
         elapsed = now - self.started
         rate = self.done / elapsed if elapsed > 0 else math.nan
         units = self.unit if self.done == 1 else self.unit + "s"
@@ -115,7 +116,9 @@ class Progress:
         else:
             head = f"{self.desc}: {self.done} {units}"
         parts = [head, f"{duration_text(elapsed)} elapsed"]
-        if math.isfinite(rate) and rate > 0:
+        # the first line's one step timed mostly the start-up (imports, compilation, opening
+        # files): a rate from it, and the time left, were off by orders of magnitude
+        if self._said >= 0 and math.isfinite(rate) and rate > 0:
             parts.append(f"{rate:.3g} {self.unit}s/s")
             if self.total and self.done < self.total:
                 parts.append(f"about {duration_text((self.total - self.done) / rate)} left")
