@@ -161,3 +161,19 @@ def test_coulomb_friction_read_against_the_simulation() -> None:
     assert linear.delay is None or linear.delay.high - linear.delay.low > 10 * (sim.delay.high - sim.delay.low)
     assert np.count_nonzero(sim.measured.within(sim.model)) >= 0.85 * len(LINES)
     assert np.count_nonzero(linear.measured.within(linear.model)) < 0.5 * len(LINES)
+
+
+@pytest.mark.parametrize("noise", [5.0, 10.0])
+def test_the_95_percent_band_holds_the_truth_at_low_coherence(noise: float) -> None:
+    """White noise through a unit gain with output noise that leaves a coherence of 0.05-0.08
+    (a chirp's bins beyond its band look so): the band holds the true response (gain 1,
+    phase 0) at about 95 % of the bins of 20 records. The phase band q eps cut at pi held it
+    at 88 % and 81 %: the error's disc holds 0 there, and every phase is possible."""
+    inside = []
+    for seed in range(20):
+        rng = np.random.default_rng(seed)
+        u = rng.standard_normal(4096)
+        y = u + noise * rng.standard_normal(4096)
+        frf = welch_frf(u, y, PERIOD, block=512)
+        inside.append(np.mean(frf.within(np.ones(len(frf.frequency)))))
+    assert np.mean(inside) >= 0.93, np.mean(inside)
