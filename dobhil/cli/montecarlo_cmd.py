@@ -112,7 +112,7 @@ def build_campaign(args: argparse.Namespace, notes: list[str]) -> tuple[Campaign
     _no_drawn_duration(varies, args.duration)
     config = _as_path(args.config)
     set_files = tuple(_as_path(f) for f in args.set_files)
-    noise = _noise(config, set_files, axis)
+    noise = _noise(config, set_files, axis, tuple(args.overrides))
     campaign = Campaign(config=config, set_files=set_files, overrides=(*noise, *args.overrides),
                         varies=varies, runs=args.runs, seed=args.seed, duration=args.duration, axis=axis)
     _check_config(campaign)
@@ -141,15 +141,19 @@ def _as_path(name: str) -> str:
     return os.path.abspath(name) if Path(name).is_file() else name
 
 
-def _noise(config: str, set_files: tuple[str, ...], axis: str) -> tuple[str, ...]:
+def _noise(config: str, set_files: tuple[str, ...], axis: str, overrides: tuple[str, ...] = ()) -> tuple[str, ...]:
     """The campaign's noise defaults when the config (with its --set-file) has neither noise
-    nor quantisation; --set items come after them, so they override (an axis' keys: as its own)."""
+    nor quantisation; --set items come after them, so they override (an axis' keys: as its own).
+    A default whose key a --set item sets is left out: never used, it would be said to be on
+    (the header, each worst run's command)."""
     from dobhil.campaign.campaign import NOISE_DEFAULTS
     from dobhil.campaign.runner import load_run_config
     sensor = load_run_config(config, (), set_files, axis).sensor
     if sensor.velocity_noise or sensor.encoder_resolution:
         return ()
-    return tuple(f"axes.{axis}.{item}" for item in NOISE_DEFAULTS) if axis else NOISE_DEFAULTS
+    defaults = tuple(f"axes.{axis}.{item}" for item in NOISE_DEFAULTS) if axis else NOISE_DEFAULTS
+    given = {item.partition("=")[0].strip() for item in overrides}
+    return tuple(item for item in defaults if item.partition("=")[0] not in given)
 
 
 def _check_config(campaign: Campaign) -> None:

@@ -314,3 +314,23 @@ def test_the_summary_counts_says_the_reference_and_flags(tmp_path: Path, capsys:
     for c in summary["comparisons"]:
         line = next(line for line in text.splitlines() if line.startswith(f"  {c['metric']}: p5 "))
         assert f"reference {c['reference']:.4g}" in line and line.endswith(": WORSE than the reference") == c["worse"]
+
+
+def test_the_noise_defaults_a_set_overrides_are_not_said_to_be_on() -> None:
+    """The campaign's noise defaults come before --set, which overrides them: a default whose
+    key the user sets is never used, and the header said "noise on: sensor.encoder_resolution=16384,
+    sensor.velocity_noise=0.01" for a campaign run with --set sensor.encoder_resolution=1048576
+    --set sensor.velocity_noise=0.001 (each worst run's command then carried both values)."""
+    from dobhil.cli.main import build_parser
+    from dobhil.cli.montecarlo_cmd import build_campaign
+
+    def noise(*sets: str) -> tuple[str, ...]:
+        argv = ["montecarlo", "demo", "--runs", "2", "--vary", "plant.inertia=normal:0.25:0.01"]
+        args = build_parser().parse_args([*argv, *(a for item in sets for a in ("--set", item))])
+        campaign, said = build_campaign(args, [])
+        assert campaign.overrides == (*said, *sets)
+        return said
+    assert noise() == ("sensor.encoder_resolution=16384", "sensor.velocity_noise=0.01")
+    assert noise("sensor.velocity_noise=0.001") == ("sensor.encoder_resolution=16384",)
+    both = ("sensor.encoder_resolution=1048576", "sensor.velocity_noise=0.001")
+    assert noise(*both) == ()
