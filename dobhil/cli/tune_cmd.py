@@ -128,6 +128,15 @@ def _robust_keys(args: argparse.Namespace, notes: list[str]) -> tuple[list[Range
     for k in keys:
         if keys.count(k) > 1:
             raise ConfigError(f"{k}: given more than once in --range / --uncertainty; give each key once")
+    if args.uncertainty_from and notes:
+        # a loop key the overlay did not identify (a pressed record tells the friction and
+        # the damping only as their sum) and no --range gives is held at the config's value:
+        # the box does not hold its truth, and its line says so beside the keys it took
+        from dobhil.synthesis.params import PARAM_KEYS
+        from dobhil.tune.problem import UNCERTAIN_PREFIXES
+        held = [k for k in PARAM_KEYS if k.startswith(UNCERTAIN_PREFIXES) and k not in keys]
+        if held:
+            notes[-1] += f"; not identified, at the config's value: {', '.join(held)}"
     return ranges, uncertainties
 
 
