@@ -351,7 +351,7 @@ def _print(info: dict[str, Any]) -> None:
         print(f"note: {info['note']}")
     for name, e in info["estimates"].items():
         if e["identifiable"]:
-            unit = f" {_UNITS[name]}" if _UNITS.get(name) else ""   # of the value, its interval and error
+            unit = f" {_unit(name)}" if _unit(name) else ""   # of the value, its interval and error
             print(f"  {name:<18} {e['value']:.6g}{unit}  95 % [{e['low']:.6g}, {e['high']:.6g}]  "
                   f"stderr {e['stderr']:.3g}")
         else:
@@ -363,10 +363,14 @@ def _print(info: dict[str, Any]) -> None:
         print(f"warning: {r['warning']}")
 
 
-#: the unit of each estimate as printed (the config keys' units, docs/config.md); the torque
-#: gain is a ratio
-_UNITS = {"inertia": "kg m^2", "viscous_friction": "N m s/rad", "coulomb_friction": "N m", "torque_gain": "",
-          "contact_position": "rad", "stiffness": "N m/rad", "damping": "N m s/rad", "delay": "s"}
+def _unit(name: str) -> str:
+    """The unit an estimate is printed in: its config key's (docs/config.md), the delay's
+    seconds; the torque gain is a ratio."""
+    from dobhil.identify.intervals import CONFIG_KEYS
+    if name == "delay":
+        return "s"
+    key = CONFIG_KEYS.get(name)
+    return str(key_fields()[key].metadata["unit"]) if key else ""
 
 
 def _num(value: float | None, spec: str) -> str:

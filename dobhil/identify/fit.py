@@ -58,6 +58,7 @@ import numpy as np
 import scipy.stats
 
 from dobhil.identify.data import IdentData, Segment, contact_mask
+from dobhil.identify.intervals import CONFIG_KEYS
 from dobhil.identify.model import ModelValues, simulate_torque, split_delay
 from dobhil.realtime import one_blas_thread
 
@@ -143,12 +144,8 @@ class IdentResult:
     def overlay(self) -> dict[str, Any]:
         """The config overlay of the identifiable values: ``plant.*``, ``environment.*``,
         ``design.delay_samples``/``design.input_delay`` and ``design.identified_inertia``."""
-        keys = {"inertia": "plant.inertia", "viscous_friction": "plant.viscous_friction",
-                "coulomb_friction": "plant.coulomb_friction",
-                "contact_position": "environment.contact_position",
-                "stiffness": "environment.stiffness", "damping": "environment.damping"}
         out: dict[str, Any] = {}
-        for name, key in keys.items():
+        for name, key in CONFIG_KEYS.items():
             e = self.estimates[name]
             if e.identifiable:
                 out[key] = e.value
