@@ -96,6 +96,8 @@ scalar arithmetic only.
 from __future__ import annotations
 
 import math
+import threading
+from collections import OrderedDict
 from dataclasses import dataclass
 from enum import IntEnum
 
@@ -147,6 +149,11 @@ class Propagator:
     @classmethod
     def of(cls, a: np.ndarray, b: np.ndarray, h: float) -> Propagator:
         phi, gamma = discretize(a, b, h, Discretization.ZOH)
+        return cls.of_zoh(phi, gamma)
+
+    @classmethod
+    def of_zoh(cls, phi: np.ndarray, gamma: np.ndarray) -> Propagator:
+        """The propagator of one mode's ZOH ``phi`` (2x2), ``gamma`` (2x1)."""
         return cls(float(phi[0, 0]), float(phi[0, 1]), float(phi[1, 0]), float(phi[1, 1]),
                    float(gamma[0, 0]), float(gamma[1, 0]))
 
@@ -375,6 +382,14 @@ class Plant:
         ``dt`` seconds (computed once per ``dt``, then cached)."""
         return self._load(dt)
 
+    def matrices_of(self, dts: tuple[float, ...] | list[float]) -> list[StepMatrices]:
+        """:meth:`matrices` of each of ``dts``, those not cached computed together (one
+        batched exponential, :func:`_propagators`): the same numbers."""
+        missing = list(dict.fromkeys(dt for dt in dts if dt not in self._cache))
+        if missing:
+            self._compute(missing)
+        return [self._load(dt) for dt in dts]
+
     def prepare(self, dt: float) -> None:
         """Compute the ZOH matrices of ``dt`` now (the first :meth:`step` of a new ``dt``
         otherwise does it: four matrix exponentials, tens of ms on a loaded machine)."""
@@ -535,25 +550,36 @@ class Plant:
 
     def _load(self, dt: float) -> StepMatrices:
         """The ZOH matrices for ``dt`` (cached)."""
-        if not dt > 0.0:
-            raise ValueError(f"dt: expected > 0 s, got {dt}")
         zoh = self._cache.get(dt)
         if zoh is None:
-            if len(self._cache) >= _CACHE_SIZE:
-                self._cache.clear()
-            h = dt / self.substeps
-            vs = (self.stiction_velocity if self.stiction_velocity is not None
-                  else 2.0 * (self.coulomb_friction + self.stribeck_friction) * h / self.inertia)
-            k, d = self.stiffness, self.damping
-            relax = math.exp(-k * h / d) if d > 0.0 else (0.0 if k > 0.0 else 1.0)
-            zoh = StepMatrices(free=Propagator.of(self._a_free, self._b_free, dt),
-                        contact=Propagator.of(self._a_contact, self._b_contact, dt),
-                        free_sub=Propagator.of(self._a_free, self._b_free, h),
-                        contact_sub=Propagator.of(self._a_contact, self._b_contact, h),
-                        h=h, stiction=vs, relax=relax)
-            self._cache[dt] = zoh
+            zoh = self._compute([dt])[0]
         self._dt, self._zoh = dt, zoh
         return zoh
+
+    def _compute(self, dts: list[float]) -> list[StepMatrices]:
+        """The ZOH matrices of each of ``dts`` (each > 0), cached: the free and contact
+        modes over the call and over one sub-step, all in one batched exponential."""
+        for dt in dts:
+            if not dt > 0.0:
+                raise ValueError(f"dt: expected > 0 s, got {dt}")
+        if len(self._cache) + len(dts) > _CACHE_SIZE:
+            self._cache.clear()
+        subs = [dt / self.substeps for dt in dts]
+        # rows per dt: free over dt, contact over dt, free over h, contact over h
+        modes = ((self._a_free, self._b_free), (self._a_contact, self._b_contact))
+        props = _propagators([(a, b, span) for dt, h in zip(dts, subs) for span in (dt, h) for a, b in modes])
+        k, d = self.stiffness, self.damping
+        out = []
+        for i, (dt, h) in enumerate(zip(dts, subs)):
+            vs = (self.stiction_velocity if self.stiction_velocity is not None
+                  else 2.0 * (self.coulomb_friction + self.stribeck_friction) * h / self.inertia)
+            relax = math.exp(-k * h / d) if d > 0.0 else (0.0 if k > 0.0 else 1.0)
+            free, contact, free_sub, contact_sub = props[4 * i: 4 * i + 4]
+            zoh = StepMatrices(free=free, contact=contact, free_sub=free_sub, contact_sub=contact_sub,
+                               h=h, stiction=vs, relax=relax)
+            self._cache[dt] = zoh
+            out.append(zoh)
+        return out
 
     # -- sensors --------------------------------------------------------------
 
@@ -575,6 +601,45 @@ class Plant:
             i = 0
         self._noise_index = i + 1
         return self._noise[i]
+
+
+#: the propagators of recent modes and spans, shared by every Plant (:func:`_propagators`)
+_PROPAGATORS: OrderedDict[tuple[bytes, bytes, float], Propagator] = OrderedDict()
+_PROPAGATORS_LOCK = threading.Lock()
+#: how many :data:`_PROPAGATORS` keeps, least recently used dropped first (measured: a
+#: closed-loop fit of a 4 s force run asked 10704, of which 6020 distinct; 64 kept found
+#: 42 % of them, all of them 44 %)
+_PROPAGATORS_SIZE = 256
+
+
+def _propagators(rows: list[tuple[np.ndarray, np.ndarray, float]]) -> list[Propagator]:
+    """The ZOH :class:`Propagator` of each ``(A, B, span)``: those seen recently from a
+    process-wide cache, the rest by one batched :func:`discretize` (``scipy.linalg.expm``
+    runs its algorithm on each matrix of a stack alone: each is bit for bit the one a call
+    of its own gives). Why: the identification builds a Plant for every candidate it
+    simulates, and the matrix exponentials were most of a simulation of a few thousand
+    samples; a candidate that moves only the environment (or only the servo) keeps the
+    other mode's propagators, and a central difference returns to the point it left."""
+    keys = [(a.tobytes(), b.tobytes(), float(span)) for a, b, span in rows]
+    found: dict[tuple[bytes, bytes, float], Propagator] = {}
+    with _PROPAGATORS_LOCK:
+        for key in keys:
+            prop = _PROPAGATORS.get(key)
+            if prop is not None:
+                _PROPAGATORS.move_to_end(key)
+                found[key] = prop
+    todo = {key: row for key, row in zip(keys, rows) if key not in found}
+    if todo:
+        picked = list(todo.values())
+        phi, gamma = discretize(np.stack([a for a, _, _ in picked]), np.stack([b for _, b, _ in picked]),
+                                np.array([span for _, _, span in picked]).reshape(-1, 1, 1), Discretization.ZOH)
+        new = {key: Propagator.of_zoh(phi[i], gamma[i]) for i, key in enumerate(todo)}
+        found.update(new)
+        with _PROPAGATORS_LOCK:
+            _PROPAGATORS.update(new)
+            while len(_PROPAGATORS) > _PROPAGATORS_SIZE:
+                _PROPAGATORS.popitem(last=False)
+    return [found[key] for key in keys]
 
 
 def coulomb_substeps(e: float, dq: float, w0: float, substeps: int, vs: float, fc: float,

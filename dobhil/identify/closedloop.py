@@ -303,7 +303,7 @@ def _simulate_loop(plant_class: Any, values: Mapping[str, float], record: LoopRe
                   stiffness=k_env, damping=d_env, substeps=_SUBSTEPS)
     whole, fraction = split_delay(float(values.get("delay", 0.0)), m.period)
     durations = [fraction, m.period - fraction] if fraction > 1e-12 else [m.period]
-    mats = [plant.matrices(h) for h in durations]
+    mats = plant.matrices_of(durations)
     props = np.array([_rows(z.contact, z.free) for z in mats])
     subs = np.array([_rows(z.contact_sub, z.free_sub) for z in mats])
     out = np.empty((record.samples, 3))

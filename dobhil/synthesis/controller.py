@@ -253,9 +253,10 @@ def _polynomial_hold(cont: ControllerSS, period: float, order: int) -> Controlle
                         measures_velocity=cont.measures_velocity)
 
 
-def discretize(a: Array, b: Array, period: float,
+def discretize(a: Array, b: Array, period: float | Array,
                method: Discretization = Discretization.ZOH) -> tuple[Array, Array]:
-    """(Phi, Gamma) of ``x' = A x + B w`` with ``w`` held over ``period`` (batched)."""
+    """(Phi, Gamma) of ``x' = A x + B w`` with ``w`` held over ``period`` (batched; a
+    ``period`` of shape ``(..., 1, 1)``: one per matrix of the batch)."""
     n, p = a.shape[-1], b.shape[-1]
     if method is Discretization.EULER:
         return np.eye(n) + a * period, b * period
