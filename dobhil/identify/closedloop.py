@@ -322,6 +322,12 @@ def validate_loop(values: Mapping[str, float], record: LoopRecord) -> Any:
     run, the residual's whiteness and its cross-correlation with the reference. The true
     initial position, within half an encoder count of the recorded one, is fitted to the first
     samples' velocity, as the fit does (a nuisance: the start of a run is no state the fit saw)."""
+    from dobhil.realtime import one_blas_thread
+    with one_blas_thread():     # as the fit (identify_closed_loop): small products on one thread
+        return _validate_loop(values, record)
+
+
+def _validate_loop(values: Mapping[str, float], record: LoopRecord) -> Any:
     from dobhil.identify.validate import SignalFit, nrmse_fit, residual_tests
     start = dict(values)
     half = record.model.count / 2.0
@@ -489,7 +495,20 @@ def identify_closed_loop(record: LoopRecord, *, contact: bool = True,
     (Coulomb friction and the torque gain reported not identifiable: held at 0 and 1).
     ``contact`` False: a run that never reached its environment (no contact segment found,
     :func:`dobhil.identify.data.find_segments`): the servo alone is fitted, the environment
-    reported not identifiable."""
+    reported not identifiable.
+
+    BLAS runs on one thread throughout (:func:`dobhil.realtime.one_blas_thread`, as the
+    open-loop fit does): the trust region's SVDs and the Jacobian's products are of a few
+    columns, and a threaded OpenBLAS woke its pool for each (measured on the 2-core machine
+    under load: seeds 0-3 of tests/identify/test_closedloop.py's record took 9.0-9.6 s of
+    CPU with the default pool, 2.6-2.8 s on one thread; the same estimates bit for bit)."""
+    from dobhil.realtime import one_blas_thread
+    with one_blas_thread():
+        return _identify_closed_loop(record, contact, progress)
+
+
+def _identify_closed_loop(record: LoopRecord, contact: bool,
+                          progress: Callable[[str], object] | None) -> IdentResult:
     start = _x0(record)
     scale = np.array([abs(start[n]) or 1.0 for n in _VARIED])
     scale[4] = max(abs(start["contact_position"]), 1e-3)

@@ -362,3 +362,37 @@ def test_the_folded_damping_carries_the_sums_covariance() -> None:
     r = _correlations(cov)
     assert r[("inertia", "damping")] == pytest.approx(0.0, abs=1e-12)
     assert not any("viscous_friction" in pair for pair in r)   # held at 0: no correlation
+
+
+class _Seen(Exception):
+    """Raised by a spy once it has seen what it looks for: the rest of the fit is not needed."""
+
+
+def test_the_closed_loop_fit_and_validation_run_blas_on_one_thread(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The whole fit runs BLAS on one thread, not only its simulations: its trust region's
+    SVDs and products too (dobhil/identify/closedloop.py, identify_closed_loop: a threaded
+    OpenBLAS made a fit ~3x dearer), and so does the validation; the pool is restored after.
+    Two threads set here, so the test means something whatever OPENBLAS_NUM_THREADS says;
+    each spy stops its call at the first point it sees."""
+    from threadpoolctl import threadpool_info, threadpool_limits
+
+    from dobhil.identify import closedloop as cl
+    from dobhil.identify import validate
+
+    def threads() -> set[int]:
+        return {lib["num_threads"] for lib in threadpool_info() if lib["user_api"] == "blas"}
+    seen: list[set[int]] = []
+
+    def spy(*_: object, **__: object) -> None:
+        seen.append(threads())
+        raise _Seen
+    run = record(Hidden(), 0, chirp(300, 1, 60, 1.0, 0.9), "design.identified_inertia=0.125")
+    monkeypatch.setattr(cl, "_x0", spy)
+    monkeypatch.setattr(validate, "residual_tests", spy)
+    with threadpool_limits(limits=2, user_api="blas"):
+        with pytest.raises(_Seen):
+            identify_closed_loop(run)
+        with pytest.raises(_Seen):
+            validate_loop(TRUTH, run)
+        assert threads() == {2}
+    assert seen == [{1}, {1}]
