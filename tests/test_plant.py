@@ -11,7 +11,7 @@ import pytest
 from scipy.integrate import solve_ivp
 
 from dobhil.config.schema import Config, EnvironmentConfig, PlantConfig, SensorConfig
-from dobhil.emulator.plant import DisturbanceKind, Plant, PlantTruth, Propagator
+from dobhil.emulator.plant import DisturbanceKind, Plant, PlantTruth, Propagator, mode_propagators
 from dobhil.synthesis.controller import discretize
 from dobhil.synthesis.loop import plant_of
 from dobhil.synthesis.models import plant_matrices
@@ -310,11 +310,12 @@ def test_matrices_are_what_step_uses() -> None:
     assert m.stiction == 2 * 0.1 * (DT / 10) / plant.inertia
 
 
-def test_matrices_batched_and_shared_are_each_ones_own_bit_for_bit() -> None:
-    """Plant.matrices_of computes several calls' propagators in one batched exponential and
-    every Plant shares the recent ones (dobhil/emulator/plant.py, _propagators): each is
-    still Propagator.of of its own mode and span, exactly -- a fresh plant, one that shares
-    the free mode (another environment), one whose mode differs in the last bit only."""
+def test_propagators_batched_and_shared_are_each_ones_own_bit_for_bit() -> None:
+    """A plant's propagators are computed in one batched exponential and the recent ones are
+    shared between plants (dobhil/emulator/plant.py, _propagators), and mode_propagators
+    gives them without a Plant: each is still Propagator.of of its own mode and span,
+    exactly -- a fresh plant, one that shares the free mode (another environment), one whose
+    inertia differs by 1e-12."""
     def own(plant: Plant, dt: float) -> list[Propagator]:
         h = dt / plant.substeps
         return [Propagator.of(plant._a_free, plant._b_free, dt), Propagator.of(plant._a_contact, plant._b_contact, dt),
@@ -322,11 +323,12 @@ def test_matrices_batched_and_shared_are_each_ones_own_bit_for_bit() -> None:
     j = 0.3123456789     # not the inertia of another test: each plant's first call computes
     plants = [Plant(inertia=j, viscous_friction=0.05, stiffness=k, damping=60.0) for k in (15000.0, 9000.0)]
     plants.append(Plant(inertia=j * (1 + 1e-12), viscous_friction=0.05, stiffness=9000.0, damping=60.0))
+    dts = [7e-4, 3e-4]
     for plant in plants:
-        dts = [7e-4, 3e-4, 7e-4]
-        for dt, m in zip(dts, plant.matrices_of(dts)):
-            assert [m.free, m.contact, m.free_sub, m.contact_sub] == own(plant, dt), (plant.inertia, dt)
-            assert m is plant.matrices(dt)
+        alone = mode_propagators(plant.inertia, plant.viscous_friction, plant.stiffness, plant.damping, dts)
+        for dt, props in zip(dts, alone):
+            m = plant.matrices(dt)
+            assert [m.free, m.contact, m.free_sub, m.contact_sub] == own(plant, dt) == list(props), (plant.inertia, dt)
     assert plants[0].matrices(7e-4).free is plants[1].matrices(7e-4).free      # shared
     assert plants[1].matrices(7e-4).free != plants[2].matrices(7e-4).free      # its own
 

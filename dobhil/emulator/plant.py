@@ -109,7 +109,7 @@ from dobhil.synthesis.models import plant_matrices, servo_matrices
 from dobhil.synthesis.params import Discretization
 
 __all__ = ["DisturbanceKind", "Plant", "PlantTruth", "Propagator", "StepMatrices",
-           "coulomb_substeps"]
+           "coulomb_substeps", "mode_propagators"]
 
 _NOISE_BLOCK = 1024    # velocity noise is drawn in blocks of this many samples
 _CACHE_SIZE = 64       # distinct dt values whose ZOH matrices are kept
@@ -382,14 +382,6 @@ class Plant:
         ``dt`` seconds (computed once per ``dt``, then cached)."""
         return self._load(dt)
 
-    def matrices_of(self, dts: tuple[float, ...] | list[float]) -> list[StepMatrices]:
-        """:meth:`matrices` of each of ``dts``, those not cached computed together (one
-        batched exponential, :func:`_propagators`): the same numbers."""
-        missing = list(dict.fromkeys(dt for dt in dts if dt not in self._cache))
-        if missing:
-            self._compute(missing)
-        return [self._load(dt) for dt in dts]
-
     def prepare(self, dt: float) -> None:
         """Compute the ZOH matrices of ``dt`` now (the first :meth:`step` of a new ``dt``
         otherwise does it: four matrix exponentials, tens of ms on a loaded machine)."""
@@ -610,6 +602,26 @@ _PROPAGATORS_LOCK = threading.Lock()
 #: closed-loop fit of a 4 s force run asked 10704, of which 6020 distinct; 64 kept found
 #: 42 % of them, all of them 44 %)
 _PROPAGATORS_SIZE = 256
+
+
+#: one call's propagators: free and contact over the call, free and contact over a sub-step
+CallPropagators = tuple[Propagator, Propagator, Propagator, Propagator]
+
+
+def mode_propagators(inertia: float, viscous_friction: float, stiffness: float, damping: float,
+                     dts: list[float], substeps: int = 10) -> list[CallPropagators]:
+    """Per call of each of ``dts``: the ZOH ``(free, contact, free_sub, contact_sub)`` of an
+    uncoupled plant of these parameters -- the numbers of ``Plant(...).matrices(dt)``
+    (the same matrices through :func:`_propagators`), without a Plant's set-up (its state,
+    its noise generator: a quarter of a simulation in
+    :func:`dobhil.identify.closedloop.simulate_loop`, which needs only these)."""
+    if not inertia > 0:
+        raise ValueError(f"inertia: expected > 0 kg m^2, got {inertia}")
+    a_free, b_free = servo_matrices(float(inertia), float(viscous_friction))
+    a_contact, b_contact, _ = plant_matrices(float(inertia), float(viscous_friction), float(stiffness), float(damping))
+    modes = ((a_free, b_free), (a_contact, b_contact))
+    props = _propagators([(a, b, span) for dt in dts for span in (dt, dt / substeps) for a, b in modes])
+    return [(props[4 * i], props[4 * i + 1], props[4 * i + 2], props[4 * i + 3]) for i in range(len(dts))]
 
 
 def _propagators(rows: list[tuple[np.ndarray, np.ndarray, float]]) -> list[Propagator]:

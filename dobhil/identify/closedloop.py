@@ -19,7 +19,8 @@ What the simulation knows of the runtime:
 - the sensor: the position it feeds the controller quantised to the recorded
   ``sensor.encoder_resolution`` (the emulator's rounding, :class:`dobhil.emulator.plant.Plant`);
   the velocity noise is not simulated (it is what the fit must not follow);
-- the plant: the emulator's ZOH propagators (:meth:`Plant.matrices`, contact and free modes,
+- the plant: the emulator's ZOH propagators (:meth:`Plant.matrices`' numbers,
+  :func:`dobhil.emulator.plant.mode_propagators`, contact and free modes,
   sub-stepped where the mode changes within a call), the motor's torque clamp
   (``plant.torque_limit``), the command applied ``delay`` after the sample it was computed
   from (whole periods and a fraction, as :mod:`dobhil.identify.model`). Coulomb friction is
@@ -45,6 +46,7 @@ import math
 import threading
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, replace
+from functools import cached_property
 from types import MappingProxyType
 from typing import Any
 
@@ -133,6 +135,12 @@ class LoopRecord:
     @property
     def samples(self) -> int:
         return int(self.reference.size)
+
+    @cached_property
+    def initial_state(self) -> Array:
+        """The controller's state at the start (:meth:`LoopModel.initial_state` of the
+        initial feedback): the same for every simulation of the record, so solved once."""
+        return self.model.initial_state(*self.initial)
 
 
 def closed_loop_record(path: str, build: Callable[[Any, Any], Any], *,
@@ -286,29 +294,29 @@ def simulate_loop(values: Mapping[str, float], record: LoopRecord) -> Array:
     """The closed loop of ``record``'s controller with the plant ``values`` (names of
     :data:`FITTED`; missing: 0, no environment), driven by its reference from its initial
     feedback: ``(samples, 3)`` true position, true velocity, torque sent."""
-    from dobhil.emulator.plant import Plant
     from dobhil.realtime import one_blas_thread
     with one_blas_thread():     # 2x2 matrix exponentials: ~15x slower on threaded BLAS (measured)
-        return _simulate_loop(Plant, values, record)
+        return _simulate_loop(values, record)
 
 
-def _simulate_loop(plant_class: Any, values: Mapping[str, float], record: LoopRecord) -> Array:
+def _simulate_loop(values: Mapping[str, float], record: LoopRecord) -> Array:
+    from dobhil.emulator.plant import mode_propagators
     m = record.model
     k_env, d_env = float(values.get("stiffness", 0.0)), float(values.get("damping", 0.0))
     qc = float(values.get("contact_position", math.inf))
     q0 = float(values.get("initial_position", record.initial[0]))
     if not math.isfinite(qc):
         qc, k_env, d_env = q0 - 1.0, 0.0, 0.0
-    plant = plant_class(inertia=float(values["inertia"]), viscous_friction=float(values.get("viscous_friction", 0.0)),
-                  stiffness=k_env, damping=d_env, substeps=_SUBSTEPS)
     whole, fraction = split_delay(float(values.get("delay", 0.0)), m.period)
     durations = [fraction, m.period - fraction] if fraction > 1e-12 else [m.period]
-    mats = plant.matrices_of(durations)
-    props = np.array([_rows(z.contact, z.free) for z in mats])
-    subs = np.array([_rows(z.contact_sub, z.free_sub) for z in mats])
+    # the Plant's own propagators (Plant(...).matrices of each call), without a Plant's set-up
+    mats = mode_propagators(float(values["inertia"]), float(values.get("viscous_friction", 0.0)), k_env, d_env,
+                            durations, _SUBSTEPS)
+    props = np.array([_rows(contact, free) for free, contact, _, _ in mats])
+    subs = np.array([_rows(contact_sub, free_sub) for _, _, free_sub, contact_sub in mats])
     out = np.empty((record.samples, 3))
     _compiled()(np.ascontiguousarray(record.reference, float), q0, 0.0,
-                m.initial_state(*record.initial), m.a, m.b_y, m.b_u, m.c, m.d_y, m.force_gain,
+                record.initial_state, m.a, m.b_y, m.b_u, m.c, m.d_y, m.force_gain,
                 m.torque_limit, m.plant_limit, m.open_loop, m.count, qc, whole,
                 np.array(durations), props, subs, _SUBSTEPS, out)
     return out
