@@ -41,9 +41,11 @@ from pathlib import Path
 from types import TracebackType
 
 #: imported once by the server: what the pages' commands (analyze, identify, run, compare,
-#: certify) import at their start
+#: certify) import at their start -- and numba, which every identify imports at its first
+#: simulation (dobhil/identify/model.py, closedloop.py: 0.09 s of CPU each time, measured;
+#: docs/identify.md runs eleven)
 WARM = ("dobhil.cli.main", "dobhil.analysis.report", "dobhil.identify", "matplotlib.pyplot",
-        "scipy.optimize", "scipy.signal")
+        "scipy.optimize", "scipy.signal", "numba")
 
 
 @dataclass(frozen=True)
