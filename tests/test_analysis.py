@@ -405,7 +405,17 @@ BAD_ANALYSIS = [
     (["analyze", FIG2A, "--set", "analysis.step_duration=1e-320"], "analysis.step_duration"),
     (["analyze", FIG2A, "--set", "analysis.step_duration=1847"], "samples"),
     (["analyze", FIG2A, "--set", "design.force_gain=" + "1" + "0" * 399], "400 digits"),
-    (["analyze", FIG2A, "--set", "plant.inertia=1e-300"], "cannot answer"),
+    # within > 0 and still past what the matrices hold (1/J_m overflows; exp(-g T) rounds to 1):
+    # the key's floor names the key, on every command that loads a config or takes its range
+    (["analyze", FIG2A, "--set", "plant.inertia=1e-300"],
+     "plant.inertia = 1e-300: out of range; allowed: >= 1e-12 and <= 1e+06 kg m^2"),
+    (["analyze", FIG2A, "--set", "design.dob_bandwidth=1e-15"],
+     "design.dob_bandwidth = 1e-15: out of range; allowed: >= 0.001 and <= 1e+07 rad/s"),
+    (["run", FIG2A, "--emulate", "--lockstep", "--set", "plant.inertia=1e-300"], "plant.inertia = 1e-300: out of"),
+    (["sweep", FIG2A, "--vary", "plant.inertia=log:1e-300:1:3"], "--vary plant.inertia = 1e-300: out of range"),
+    (["tune", FIG2A, "--range", "plant.inertia=1e-300:1"], "--range plant.inertia = 1e-300: out of range"),
+    (["tune", FIG2A, "--range", "plant.inertia=0.2:0.3", "--bound", "design.rtob_bandwidth=1e-9:1"],
+     "--bound design.rtob_bandwidth = 1e-09: out of range"),
     (["sweep", FIG2A, "--vary", "k=nan:2:3"], "unknown config key"),
     (["sweep", FIG2A, "--vary", "design.force_gain=nan:2:3"], "finite"),
     (["sweep", FIG2A, "--vary", "design.force_gain=0:1e9:3"], "<= 1e+06"),
@@ -425,6 +435,18 @@ def test_bad_analysis_input_is_one_line_and_exit_2(argv: list[str], message: str
     assert main(argv) == 2
     err = capsys.readouterr().err
     assert message in err and err.count("\n") == 1 and "Traceback" not in err
+
+
+def test_a_design_past_the_keys_ranges_is_one_line_not_a_numpy_error() -> None:
+    """Built past load_config's checks (as no command can any more): the analysis still says
+    it cannot answer in one line, not numpy's error."""
+    import dataclasses
+
+    from dobhil.analysis.report import analyze
+    from dobhil.errors import AnalysisError
+    config = load_config(FIG2A)
+    with pytest.raises(AnalysisError, match="the continuous analysis cannot answer this design"):
+        analyze(dataclasses.replace(config, plant=dataclasses.replace(config.plant, inertia=1e-300)))
 
 
 VARY_FORMS = "allowed: KEY=START:STOP:NUM or KEY=log:START:STOP:NUM"

@@ -31,7 +31,7 @@ import numpy as np
 
 from dobhil.analysis.stability import gain_map, is_stable
 from dobhil.config import key_fields
-from dobhil.config.schema import Config, check_maximum
+from dobhil.config.schema import Config, check_maximum, check_minimum
 from dobhil.errors import AnalysisError, ConfigError
 from dobhil.synthesis.loop import loop
 from dobhil.synthesis.params import Array, Params, params_from_config
@@ -103,9 +103,10 @@ def parse_range(spec: str) -> tuple[str, float, float]:
                           "coefficient: the edge theorem needs one degree over the box)")
     if lo < LOWER_LIMITS[key]:
         raise ConfigError(f"--range {spec!r}: {key} must be >= 0")
-    # the config's own ceiling on the key, as --set has it: past it the polynomial's
-    # coefficients overflow and no answer could be trusted
-    problem = check_maximum(f"--range {key}", hi, key_fields()[key].metadata)
+    # the config's own ceiling and floor on the key, as --set has them: past them the
+    # polynomial's coefficients overflow and no answer could be trusted
+    meta = key_fields()[key].metadata
+    problem = check_maximum(f"--range {key}", hi, meta) or check_minimum(f"--range {key}", lo, meta)
     if problem is not None:
         raise ConfigError(problem)
     return key, lo, hi

@@ -128,9 +128,10 @@ MAX_GRID_POINTS = 5_000_000
 
 
 def _check_axis(name: str, values: np.ndarray) -> None:
-    from dobhil.config.schema import Check, check_maximum
+    from dobhil.config.schema import Check, check_maximum, check_minimum
     meta = key_fields()[name].metadata
-    problem = check_maximum(f"--vary {name}", float(values.max()), meta)
+    problem = (check_maximum(f"--vary {name}", float(values.max()), meta)
+               or check_minimum(f"--vary {name}", float(values.min()), meta))
     if problem is not None:
         raise ConfigError(problem)
     check = meta["check"]

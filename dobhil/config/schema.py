@@ -30,10 +30,14 @@ def key(default: Any, doc: str, *, unit: str = "", check: Check = Check.ANY,
 
     ``structural`` keys change the shape of the synthesised matrices (model
     kinds, delay length) and cannot be swept. ``maximum``: the largest physically
-    meaningful value (checked by :func:`check_maximum`). ``minimum``: the smallest value
-    of a key whose ``check`` is :attr:`Check.ANY` (a count from 0 with -1 for "none", e.g.
-    ``loop.cpu_affinity``; checked by :func:`check_minimum`).
+    meaningful value (checked by :func:`check_maximum`). ``minimum``: the smallest value:
+    of a key whose ``check`` is :attr:`Check.ANY`, a count from 0 with -1 for "none" (e.g.
+    ``loop.cpu_affinity``); of a positive key, the smallest physically meaningful value
+    (below it the loop's matrices overflow or turn singular while the key looks valid);
+    both checked by :func:`check_minimum`.
     """
+    if minimum is not None and check is not Check.ANY:
+        doc = f"{doc}; at least {minimum:g}"
     if maximum is not None:
         doc = f"{doc}; at most {maximum:g}"
     meta = {"doc": doc, "unit": unit, "check": check, "choices": choices,
@@ -63,13 +67,26 @@ def check_maximum(name: str, value: float, meta: Any) -> str | None:
 
 
 def check_minimum(name: str, value: float, meta: Any) -> str | None:
-    """The one-line complaint when ``value`` is below the key's ``minimum`` (else None); it
-    ends with the key's documentation, which says what the smallest value stands for."""
+    """The one-line complaint when ``value`` is below the key's ``minimum`` (else None); a
+    key of :attr:`Check.ANY`'s ends with the key's documentation, which says what the
+    smallest value stands for."""
     low = meta.get("minimum")
     if low is None or value >= low:
         return None
     unit = f" {meta['unit']}" if meta.get("unit") else ""
-    return f"{name} = {value!r}: out of range; allowed: {allowed_range(meta)}{unit}; {meta['doc']}"
+    line = f"{name} = {value!r}: out of range; allowed: {allowed_range(meta)}{unit}"
+    return f"{line}; {meta['doc']}" if meta["check"] is Check.ANY else line
+
+
+#: the smallest inertia a servo has (kg m^2): two decades below the rotors of the smallest
+#: micro-motors (2 to 4 mm across: about 1e-10 kg m^2, 0.001 g cm^2); far below it 1/J_m
+#: overflows the loop's matrices (at 1e-300, as it did before this floor)
+MIN_INERTIA = 1e-12
+#: the smallest filter or observer bandwidth (rad/s): a time constant of 1000 s, longer than
+#: any run, and the low end of tune's default search at the longest loop.period (0.01 / 10 s,
+#: dobhil/tune/problem.py); far below it the sampled observer's pole exp(-g T) rounds to 1
+#: and its matrices turn singular (1e-15 rad/s at T = 1 ms)
+MIN_BANDWIDTH = 1e-3
 
 
 @dataclass(frozen=True)
@@ -77,7 +94,7 @@ class PlantConfig:
     """The exact servo (the emulator's plant; J_m, b_m of the paper)."""
 
     inertia: float = key(0.25, "exact inertia J_m", unit="kg m^2", check=Check.POSITIVE,
-                          maximum=1e6)
+                          minimum=MIN_INERTIA, maximum=1e6)
     viscous_friction: float = key(0.0, "exact viscous friction b_m", unit="N m s/rad",
                                   check=Check.NONNEGATIVE, maximum=1e7)
     coulomb_friction: float = key(0.0, "Coulomb friction (emulator only, unmodelled by the analysis)",
@@ -129,9 +146,9 @@ class DesignConfig:
     identified_friction: float = key(0.0, "identified viscous friction b_mi of the RTOb",
                                      unit="N m s/rad", check=Check.NONNEGATIVE, maximum=1e7)
     dob_bandwidth: float = key(500.0, "DOb bandwidth g_DOb", unit="rad/s", check=Check.POSITIVE,
-                               maximum=1e7)
+                               minimum=MIN_BANDWIDTH, maximum=1e7)
     rtob_bandwidth: float = key(500.0, "RTOb bandwidth g_RTOb", unit="rad/s",
-                                check=Check.POSITIVE, maximum=1e7)
+                                check=Check.POSITIVE, minimum=MIN_BANDWIDTH, maximum=1e7)
     force_gain: float = key(2.0, "proportional force gain C_f", check=Check.NONNEGATIVE,
                             maximum=1e6)
     disturbance_model: str = key("constant", "disturbance model (A_D, C_D) of the DOb",
@@ -146,7 +163,7 @@ class DesignConfig:
                                choices=("measured", "estimated"))
     velocity_filter_bandwidth: float = key(2000.0, "bandwidth g_v of the velocity estimate "
                                            "g_v s/(s+g_v) q", unit="rad/s", check=Check.POSITIVE,
-                                           maximum=1e8)
+                                           minimum=MIN_BANDWIDTH, maximum=1e8)
     delay_samples: int = key(0, "transport delay of the torque command in whole samples",
                              check=Check.NONNEGATIVE, structural=True, maximum=20)
     discretization: str = key("parabolic", "how the controller is sampled: torque by zero-order "

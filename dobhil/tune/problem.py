@@ -166,9 +166,9 @@ def _numbers(option: str, spec: str, text: str) -> tuple[float, float]:
 
 def _check_values(option: str, name: str, lo: float, hi: float) -> None:
     """The config's own constraint on the key, at both ends."""
-    from dobhil.config.schema import Check, check_maximum
+    from dobhil.config.schema import Check, check_maximum, check_minimum
     meta = key_fields()[name].metadata
-    problem = check_maximum(f"{option} {name}", hi, meta)
+    problem = check_maximum(f"{option} {name}", hi, meta) or check_minimum(f"{option} {name}", lo, meta)
     if problem is not None:
         raise ConfigError(problem)
     if meta["check"] is Check.POSITIVE and lo <= 0:

@@ -93,14 +93,26 @@ def test_the_disk_margin_is_the_smallest_a_dense_scan_finds(
     (["--range", "environment.stiffness=1:2", "--set", "nothing.here=1"], "nothing.here"),
     # past the key's ceiling (the config's, as --set has it): the coefficients would overflow
     (["--range", "environment.stiffness=1e3:1e20"], "allowed: >= 0 and <= 1e+10"),
-    (["--range", "plant.inertia=0.2:1e20"], "allowed: > 0 and <= 1e+06"),
-    # within the ranges and still not finite: one line, as analyze says of such a design
-    (["--range", "plant.inertia=1e-300:1e-299", "--refinements", "10"], "the certificate cannot answer this box"),
+    (["--range", "plant.inertia=0.2:1e20"], "allowed: >= 1e-12 and <= 1e+06"),
+    # within > 0 and past the key's floor, where the coefficients overflow: the floor's line
+    (["--range", "plant.inertia=1e-300:1e-299", "--refinements", "10"],
+     "--range plant.inertia = 1e-300: out of range; allowed: >= 1e-12 and <= 1e+06 kg m^2"),
 ])
 def test_bad_input_is_one_line_and_exit_2(args: list[str], says: str, capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["certify", "paper/fig3", *args]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and err.startswith("dobhil certify: error: ") and says in err
+
+
+def test_a_box_past_the_keys_ranges_is_one_line_not_a_numpy_error() -> None:
+    """Built past parse_range's checks (as no command can any more): one line saying the
+    certificate cannot answer, not numpy's error."""
+    from dobhil.analysis.certify import Box
+    from dobhil.cli.certify_cmd import _answered
+    from dobhil.config import load_config
+    from dobhil.errors import AnalysisError
+    with pytest.raises(AnalysisError, match="the certificate cannot answer this box"):
+        _answered(load_config("paper/fig3"), Box(("plant.inertia",), (1e-300,), (1e-299,)), "both", 10)
 
 
 def test_tune_reports_the_certificate_of_its_design_over_its_box(capsys: pytest.CaptureFixture[str]) -> None:
