@@ -412,6 +412,9 @@ BAD_ANALYSIS = [
     (["analyze", FIG2A, "--set", "design.dob_bandwidth=1e-15"],
      "design.dob_bandwidth = 1e-15: out of range; allowed: >= 0.001 and <= 1e+07 rad/s"),
     (["run", FIG2A, "--emulate", "--lockstep", "--set", "plant.inertia=1e-300"], "plant.inertia = 1e-300: out of"),
+    # a period no CAN bus carries one frame in (accepted before with a bus-budget note only)
+    (["analyze", FIG2A, "--set", "loop.period=1e-12"],
+     "loop.period = 1e-12: out of range; allowed: >= 3.4e-05 and <= 10 s"),
     (["sweep", FIG2A, "--vary", "plant.inertia=log:1e-300:1:3"], "--vary plant.inertia = 1e-300: out of range"),
     (["tune", FIG2A, "--range", "plant.inertia=1e-300:1"], "--range plant.inertia = 1e-300: out of range"),
     (["tune", FIG2A, "--range", "plant.inertia=0.2:0.3", "--bound", "design.rtob_bandwidth=1e-9:1"],

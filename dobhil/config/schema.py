@@ -88,6 +88,14 @@ MIN_INERTIA = 1e-12
 #: and its matrices turn singular (1e-15 rad/s at T = 1 ms)
 MIN_BANDWIDTH = 1e-3
 
+#: the shortest control period (s): the time the shortest frame takes on the fastest CAN bus,
+#: so that a period can carry at least its torque command. A CAN FD frame of no data, its data
+#: phase taken as instant, is 34 bits at the nominal rate (arbitration 17 and its 4 stuff
+#: bits, CRC delimiter, ACK, EOF, IFS: fd_frame_bits in dobhil/drives/bus_load.py); the
+#: nominal rate is at most 1 Mbit/s (ISO 11898-1; drive.bitrate's ceiling). The sampled
+#: model resolves it: exp(-g T) of the slowest bandwidth is 1 - 3.4e-8, of the fastest 0.
+MIN_PERIOD = 34e-6
+
 
 @dataclass(frozen=True)
 class PlantConfig:
@@ -180,8 +188,8 @@ class DesignConfig:
 class LoopConfig:
     """The runtime loop."""
 
-    period: float = key(1.0e-3, "control period T_s", unit="s", check=Check.POSITIVE,
-                        maximum=10.0)
+    period: float = key(1.0e-3, "control period T_s (no shorter than one CAN frame takes at 1 Mbit/s)",
+                        unit="s", check=Check.POSITIVE, minimum=MIN_PERIOD, maximum=10.0)
     duration: float = key(1.0, "run duration", unit="s", check=Check.POSITIVE)
     feedback_timeout: float = key(5.0e-3, "no fresh feedback for this long stops the run",
                                   unit="s", check=Check.POSITIVE)

@@ -146,10 +146,10 @@ def test_analyze_and_an_emulated_run_say_the_budget(capsys: pytest.CaptureFixtur
                                 "<axis>.config.can.encoder_msg_rate_ms to match)"]
 
 
-# 270 bits per cycle (MIT command 135 + reply 135) at 100 kHz on 1 Mbit/s (10 bits per cycle): 2700 %
-MIT_OVER = ["--set", "loop.period=1e-5"]
-MIT_REFUSAL = ("error: bus socketcan:can0: drive profile 'ak80-9' (node 1) needs 270 bits per cycle, 2700 % of "
-               "1 Mbit/s at 100 kHz: more than the bus carries in one period; use a slower loop "
+# 270 bits per cycle (MIT command 135 + reply 135) at 20 kHz on 1 Mbit/s (50 bits per cycle): 540 %
+MIT_OVER = ["--set", "loop.period=5e-5"]
+MIT_REFUSAL = ("error: bus socketcan:can0: drive profile 'ak80-9' (node 1) needs 270 bits per cycle, 540 % of "
+               "1 Mbit/s at 20 kHz: more than the bus carries in one period; use a slower loop "
                "(loop.period >= 0.39 ms), or drives on CAN FD (protocol moteus)")
 
 
@@ -256,3 +256,13 @@ def test_the_cia402_probe_counts_its_sync_and_tpdos_at_the_sync_period() -> None
     assert probe is not None
     b = probe.budget(2e-3, 1_000_000)
     assert b is not None and b.bits_per_cycle == pytest.approx(95 + 2 * 295 + 65 * 2 / 100 + 65 * 2 / 25)
+
+
+def test_the_shortest_loop_period_is_the_shortest_frame_on_the_fastest_bus() -> None:
+    """loop.period's floor (dobhil/config/schema.py) is one CAN FD frame of no data, its data
+    phase instant, at 1 Mbit/s (drive.bitrate's ceiling): the bits the budget counts."""
+    from dobhil.config.schema import MIN_PERIOD, key_fields
+    from dobhil.drives.bus_load import fd_frame_bits
+    ceiling = key_fields()["drive.bitrate"].metadata["maximum"]
+    assert MIN_PERIOD == fd_frame_bits(0, extended=False, data_ratio=0.0) / ceiling
+    assert key_fields()["loop.period"].metadata["minimum"] == MIN_PERIOD
