@@ -372,6 +372,16 @@ def test_the_sweep_that_crashed_answers_every_point(capsys: pytest.CaptureFixtur
     assert out.startswith("33 points") and "could not be analysed" not in out
 
 
+def test_a_one_point_sweep_says_point_not_points(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["sweep", FIG2A, "--vary", "design.force_gain=1:1:1"]) == 0
+    assert capsys.readouterr().out.startswith("1 point (continuous): 1 stable at its C_f, 1 minimum phase")
+    # one point left unanswered (built past --vary's floor, as no command can): said in the singular too
+    from dobhil.analysis.sweep import Axis
+    from dobhil.cli.sweep_cmd import _summary
+    result = sweep(load_config(FIG2A), [Axis("plant.inertia", np.array([1e-300, 0.25]))], sampled=False)
+    _summary(result, np.zeros(2, bool), np.zeros(2, bool))
+    assert "\n1 point could not be analysed (its matrices overflow or numpy cannot decompose them); it is left " \
+           "empty in --out\n" in capsys.readouterr().out
 def test_the_integrator_is_no_unstable_sliver(capsys: pytest.CaptureFixture[str]) -> None:
     args = ["design.identified_inertia=1.0", "design.dob_bandwidth=70", "environment.stiffness=232",
             "loop.period=0.00018", "design.force_gain=0.1", "design.discretization=zoh"]

@@ -151,13 +151,16 @@ def _summary(result: SweepResult, at_zero: np.ndarray, unresolved: np.ndarray) -
     finite = gains[np.isfinite(gains)]
     n_unbounded = int(np.isinf(gains).sum())
     kind = "sampled" if result.sampled else "continuous"
-    print(f"{n} points ({kind}): {int(result.stable.sum())} stable at their C_f, "
+    print(f"{n} point{'s' if n != 1 else ''} ({kind}): {int(result.stable.sum())} stable at "
+          f"{'their' if n != 1 else 'its'} C_f, "
           f"{int(result.minimum_phase.sum())} minimum phase, "
           f"{n_unbounded} with unbounded C_f, "
           f"{int((result.interval_count > 1).sum())} conditionally stable")
     if result.unanswered:
-        print(f"{result.unanswered} points could not be analysed (their matrices overflow or "
-              "numpy cannot decompose them); they are left empty in --out")
+        one = result.unanswered == 1
+        print(f"{result.unanswered} point{'' if one else 's'} could not be analysed "
+              f"({'its' if one else 'their'} matrices overflow or numpy cannot decompose them); "
+              f"{'it is' if one else 'they are'} left empty in --out")
     drift = int(drifting.sum())
     pole = "z = 1" if result.sampled else "s = 0"
     only_zero = not (unresolved & ~at_zero).any()
