@@ -416,3 +416,39 @@ def test_the_shared_timing_of_axes_keeps_no_object_per_cycle() -> None:
     assert out["exec_time_max"] == pytest.approx(3e-4) and out["exec_time_p50"] == pytest.approx(3e-4)
     assert out["period_error_max"] == pytest.approx(2e-6)
     assert peak / n < 200, f"{peak / n:.0f} bytes a cycle"
+
+
+def _labelled_figure() -> Any:
+    """A report-like figure: two panels, titles, labels, a legend placed at draw time, a suptitle."""
+    from dobhil.plotting.figures import _plt
+    fig, ax = _plt().subplots(2, 1, figsize=(6, 4))
+    t = np.linspace(0.0, 2.0, 400)
+    for a, scale in zip(ax, (1.0, 1e-3)):
+        a.plot(t, scale * np.sin(7 * t), label="$\\hat\\tau_{int}$ (RTOb)")
+        a.plot(t, scale * np.cos(3 * t), label="reference $\\tau^{ref}_{int}$")
+        a.set_ylabel("interaction torque [N m]")
+        a.legend(loc="best", fontsize=8)
+    ax[1].set_xlabel("time [s]")
+    ax[0].set_title("Force response (lockstep; C_f = 2)")
+    fig.suptitle("a suptitle wider than the axes, to be kept whole by the crop")
+    return fig
+
+
+def test_a_saved_figure_is_drawn_once_and_cropped_as_a_tight_bbox_would(tmp_path: Path,
+                                                                         monkeypatch: pytest.MonkeyPatch) -> None:
+    """``save`` measures the tight box itself: one draw of the figure, not matplotlib's dry draw
+    and then the real one (a third of a report's figure time), and the same pixels as
+    ``bbox_inches="tight"`` -- no label, title or legend cut."""
+    import matplotlib.image
+    from matplotlib.figure import Figure
+
+    from dobhil.plotting.figures import save
+    reference = _labelled_figure()
+    reference.savefig(tmp_path / "tight.png", dpi=150, bbox_inches="tight")
+    draws: list[object] = []
+    drawn = Figure.draw
+    monkeypatch.setattr(Figure, "draw", lambda fig, renderer: draws.append(fig) or drawn(fig, renderer))
+    save(_labelled_figure(), tmp_path / "saved.png")
+    assert len(draws) == 1
+    saved, tight = (matplotlib.image.imread(tmp_path / f"{name}.png") for name in ("saved", "tight"))
+    assert saved.shape == tight.shape and np.array_equal(saved, tight)
