@@ -5,10 +5,13 @@ labels' drawn widths: long labels (``0.9825``, ``0.9850``, ... on a narrow histo
 or overlap. :func:`fit_ticks` lays the figure out, measures every tick label
 (``Text.get_window_extent`` with the canvas' renderer) and asks an axis with touching labels
 for fewer ticks until none touch; :func:`overlapping_tick_labels` is the measurement alone,
-on a real draw. The layout of :func:`fit_ticks` is ``Figure.draw_without_rendering``
-(matplotlib's own way to size text before a draw): the ticks and their labels placed and
-measured as a draw places them, nothing rasterised (a campaign's histogram page: 0.34-0.37 s
-of CPU against 0.48-0.57 s for a draw, measured here).
+on a real draw. The layout of :func:`fit_ticks` runs what a draw runs before it draws:
+the figure's layout engine (constrained layout: the axes' positions from their labels'
+sizes), each axes' aspect, and each axis' ticks and labels placed (``Axis.get_tightbbox``
+places them as ``Axis.draw`` does) -- the labels measured where a draw puts them, no artist
+drawn (``Figure.draw_without_rendering`` also walks every bar and line: the fit of 12
+campaign pages took 2.90-3.20 s of CPU against 3.52-3.63 s with it, the same ticks on 60
+pages, measured here).
 """
 
 from __future__ import annotations
@@ -38,9 +41,17 @@ def _shown_labels(axis: Axis) -> list[Any]:
 
 
 def _laid_out(fig: Figure) -> Any:
-    """``fig`` laid out as a draw would (see the module docstring); the canvas' renderer."""
-    fig.draw_without_rendering()
-    return fig.canvas.get_renderer()  # type: ignore[attr-defined]
+    """``fig`` laid out as a draw would, without drawing it (see the module docstring); the
+    canvas' renderer."""
+    renderer = fig.canvas.get_renderer()  # type: ignore[attr-defined]
+    engine = fig.get_layout_engine()
+    if engine is not None:
+        engine.execute(fig)
+    for ax in fig.axes:
+        ax.apply_aspect()
+        for axis in (ax.xaxis, ax.yaxis):
+            axis.get_tightbbox(renderer)
+    return renderer
 
 
 def _axis_overlaps(axis: Axis, renderer: Any) -> list[tuple[str, str]]:

@@ -76,5 +76,30 @@ def test_the_measurement_sees_touching_labels() -> None:
         close(fig)
 
 
+def test_the_fit_lays_the_figure_out_without_drawing_it(monkeypatch: pytest.MonkeyPatch) -> None:
+    """fit_ticks measures on the layout a draw makes (the labels' overlap is checked on a real
+    draw afterwards) but draws no artist itself: each re-layout is the layout engine's and the
+    axes' tick placement, not a whole draw of every bar and line."""
+    import matplotlib.pyplot as plt
+    from matplotlib.figure import Figure
+
+    from dobhil.plotting.ticks import fit_ticks
+    fig, ax = plt.subplots(figsize=(2.4, 2), layout="constrained")
+    ax.hist(np.linspace(0.98250, 0.99950, 50), bins=20)
+    ax.set_xticks(np.linspace(0.98250, 0.99950, 12))   # labels forced onto one another
+    ax.ticklabel_format(axis="x", useOffset=False)
+    try:
+        before = overlapping_tick_labels(fig)
+        draws: list[object] = []
+        drawn = Figure.draw
+        monkeypatch.setattr(Figure, "draw", lambda f, renderer: draws.append(f) or drawn(f, renderer))
+        fit_ticks(fig)
+        assert draws == []
+        monkeypatch.undo()
+        assert before and overlapping_tick_labels(fig) == []   # it had labels to thin, and thinned them
+    finally:
+        close(fig)
+
+
 if __name__ == "__main__":   # pragma: no cover
     pytest.main([__file__])
