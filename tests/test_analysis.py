@@ -262,6 +262,28 @@ def test_sweep_heatmap_marks_a_max_stable_gain_of_zero(varies: list[str], tmp_pa
         _plt().close(figures[0])
 
 
+@pytest.mark.parametrize("vary", ["environment.stiffness=log:1e2:1e6:6", "design.force_gain=1:1:1"])
+def test_a_swept_line_shows_its_whole_range_and_marks_unbounded_points(vary: str, tmp_path: Path,
+                                                                       monkeypatch: pytest.MonkeyPatch) -> None:
+    """An unbounded max stable C_f has no place on the log axis: its gap alone left the x axis on
+    the finite points (1e2..1e6 drawn as 4.6e5..1e6), or, all unbounded, on -0.05..0.05 around
+    no swept value; a mark on the top edge keeps each in the picture."""
+    from dobhil.plotting import sweep_plot
+    figures = []
+    monkeypatch.setattr(sweep_plot, "save", lambda fig, path: figures.append(fig) or path)
+    result = sweep(load_config("demo"), [parse_vary(vary)], sampled=False)
+    unbounded = np.isinf(result.max_stable_gain)
+    assert unbounded.any()
+    sweep_plot.heatmap(result, tmp_path / "h.png")
+    ax = figures[0].axes[0]
+    try:
+        values = result.axes[0].values
+        lo, hi = ax.get_xlim()
+        assert lo <= values.min() and values.max() <= hi
+        marks = [line for line in ax.get_lines() if "unbounded" in str(line.get_label())]
+        assert len(marks) == 1 and list(marks[0].get_xdata()) == list(values[unbounded])
+    finally:
+        _plt().close(figures[0])
 def test_paper_command_checks_every_claim(tmp_path, capsys: pytest.CaptureFixture[str]) -> None:  # type: ignore[no-untyped-def]
     assert main(["paper", "--out", str(tmp_path)]) == 0
     out = capsys.readouterr().out

@@ -29,6 +29,14 @@ def heatmap(result: SweepResult, path: Path) -> Path:
         if none.any():
             ax.plot(line.values[none], np.zeros(int(none.sum())), "x", ms=7, mew=1.5, color="tab:red",
                     transform=ax.get_xaxis_transform(), clip_on=False, label="max stable C_f 0 (unstable at small C_f)")
+        # an unbounded C_f has no place on the axis either: its gap alone left the x axis on the
+        # finite points only (or, all unbounded, on matplotlib's default -0.05..0.05), the swept
+        # range out of sight; a triangle on the top edge marks it, in the swept range
+        unbounded = np.isinf(k.reshape(-1))
+        if unbounded.any():
+            ax.plot(line.values[unbounded], np.ones(int(unbounded.sum())), "^", ms=7, color="tab:green",
+                    transform=ax.get_xaxis_transform(), clip_on=False, label="unbounded max stable C_f")
+        if none.any() or unbounded.any():
             ax.legend(fontsize=8, loc="best")
         if _log_spaced(line.values):   # a log: axis as the map of two keys draws it: on a linear
             ax.set_xscale("log")       # one its first decades crowd into the left edge
