@@ -12,6 +12,7 @@ import re
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from types import MappingProxyType
+from typing import ClassVar
 
 import numpy as np
 
@@ -59,6 +60,8 @@ class Uncertainty:
 
     key: str
     fraction: float
+    #: the option that gives it, as a refusal names it
+    option: ClassVar[str] = "--uncertainty"
 
     def values(self, centre: float) -> np.ndarray:
         """Its ends and centre: the box's corners and middle are where margins are checked."""
@@ -77,6 +80,7 @@ class IntervalUncertainty(Uncertainty):
     lo: float = 0.0
     hi: float = 0.0
     estimate: float = 0.0
+    option: ClassVar[str] = "--uncertainty-from"
 
     def values(self, centre: float) -> np.ndarray:
         return np.array([self.lo, self.estimate, self.hi])
@@ -134,7 +138,12 @@ def robust_set(config: Config, ranges: Sequence[Range], uncertainties: Sequence[
                count: int) -> RobustSet:
     """``count`` values per range key times the uncertainty box (3 values per key)."""
     flat = config.flat()
-    axes = [r.values(count) for r in ranges] + [u.values(float(flat[u.key])) for u in uncertainties]
+    boxes = [u.values(float(flat[u.key])) for u in uncertainties]
+    for u, ends in zip(uncertainties, boxes):
+        # the box's ends are values of the key, as --range's are: within its floor and ceiling
+        # (an inertia ±99.99999999999999 % ends at 3e-17 kg m^2, where the matrices overflow)
+        _check_values(u.option, u.key, float(ends.min()), float(ends.max()))
+    axes = [r.values(count) for r in ranges] + boxes
     keys = tuple(r.key for r in ranges) + tuple(u.key for u in uncertainties)
     grid = list(itertools.product(*axes)) if axes else [()]
     columns = np.array(grid, dtype=float).reshape(len(grid), len(keys)).T

@@ -27,6 +27,12 @@ SMALL = ["paper/fig3", "--range", "environment.stiffness=1e3:1e5", "--grid", "6"
     (["--range", "environment.stiffness=1:2", "--uncertainty", "environment.stiffness=±10%"], "more than once"),
     (["--range", "environment.stiffness=1:2", "--uncertainty", "plant.viscous_friction=±50%"], "is 0, so"),
     (["--range", "environment.stiffness=1:2", "--margin", "gain=6"], "expected gm=DB"),
+    # the box's ends are values of the key: past its floor the matrices overflow (an internal
+    # error, SVD did not converge), past its ceiling the value is physically meaningless
+    (["--range", "environment.stiffness=1:2", "--uncertainty", "plant.inertia=±99.99999999999999%"],
+     "--uncertainty plant.inertia = 2.7755575615628914e-17: out of range; allowed: >= 1e-12 and <= 1e+06 kg m^2"),
+    (["--range", "environment.damping=1:2", "--set", "environment.stiffness=1e10", "--uncertainty",
+      "environment.stiffness=±50%"], "--uncertainty environment.stiffness = 15000000000.0: out of range"),
     # K_env = 0: the position drifts at every C_f, no design to search for
     (["--range", "environment.stiffness=0:1e3"], "drifts at every C_f, so no design is stable there"),
     (["--range", "environment.damping=1:2", "--set", "environment.stiffness=0"], "environment.stiffness is 0"),
