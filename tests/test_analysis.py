@@ -578,6 +578,25 @@ def test_the_step_figure_of_a_loop_unstable_in_both_domains_says_so_without_warn
     assert path == tmp_path / "step.png" and path.stat().st_size > 0
 
 
+def test_the_bode_of_a_loop_slower_than_pi_seconds_stays_below_nyquist() -> None:
+    """loop.period = 10 s (allowed, at most 10): the Nyquist frequency is 0.314 rad/s, and a
+    grid from 1 rad/s down to it drew an aliased curve above Nyquist (python-control warned
+    on the user's terminal: "evaluation above Nyquist frequency")."""
+    import warnings
+
+    import control
+
+    from dobhil.plotting.figures import bode
+    fig, axes = _plt().subplots(2, 1)
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            bode((axes[0], axes[1]), control.tf([1.0], [1.0, -0.5], dt=10.0), "C_f L(z)")
+        w = axes[0].get_lines()[0].get_xdata()
+        assert w.max() < np.pi / 10.0 and w.min() < w.max()
+    finally:
+        _plt().close(fig)
+
 @pytest.mark.parametrize("stiffness", ["0", "1e-9"])
 def test_analyze_at_zero_stiffness_says_the_position_drifts_not_a_gain_margin(stiffness: str) -> None:
     """K_env = 0: a closed-loop pole at s = 0 / z = 1 that no C_f moves (at 1e-9 N m/rad

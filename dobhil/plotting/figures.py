@@ -120,7 +120,11 @@ def step_plot(ax: Axes, d: DomainAnalysis, label: str = "") -> None:
 def bode(axes: tuple[Axes, Axes], sys: control.LTI, label: str) -> None:
     import control
     nyq = np.pi / sys.dt if sys.dt else 1e5
-    w = np.logspace(0, np.log10(nyq * 0.999), 600)
+    # from 1 rad/s up; a sampled loop whose Nyquist frequency is below that (loop.period above
+    # pi s) from three decades below it: a grid from 1 rad/s ran down through frequencies above
+    # Nyquist (python-control's warning, and an aliased curve)
+    top = nyq * 0.999
+    w = np.logspace(0 if top > 1.0 else np.log10(top) - 3, np.log10(top), 600)
     resp = control.frequency_response(sys, w)
     mag = np.abs(np.asarray(resp.complex).reshape(-1))
     ph = np.unwrap(np.angle(np.asarray(resp.complex).reshape(-1))) * 180 / np.pi
