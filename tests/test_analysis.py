@@ -234,6 +234,25 @@ def test_sweep_heatmap_of_two_keys_one_held_at_one_value(first: str, second: str
     assert heatmap(result, tmp_path / "h.svg").read_text().startswith("<?xml")
 
 
+def test_a_key_held_at_one_value_given_twice_draws_the_line_not_an_empty_map(tmp_path: Path,
+                                                                          monkeypatch: pytest.MonkeyPatch) -> None:
+    """``design.force_gain=1:1:2`` holds C_f at 1 (two equal values): as an axis of the map its
+    cells had no height, an empty picture; it is held, as NUM 1 is, and the line drawn over
+    the other key."""
+    from dobhil.plotting import sweep_plot
+    figures = []
+    monkeypatch.setattr(sweep_plot, "save", lambda fig, path: figures.append(fig) or path)
+    varies = ["design.force_gain=1:1:2", "environment.damping=10:20:3"]
+    result = sweep(load_config(FIG2A), [parse_vary(v) for v in varies], sampled=True)
+    sweep_plot.heatmap(result, tmp_path / "h.png")
+    ax = figures[0].axes[0]
+    try:
+        lines = [line for line in ax.get_lines() if list(line.get_xdata()) == [10.0, 15.0, 20.0]]
+        assert len(lines) == 1 and np.allclose(lines[0].get_ydata(), result.max_stable_gain[0])
+        assert "(design.force_gain = 1)" in ax.get_xlabel()
+    finally:
+        _plt().close(figures[0])
+
 @pytest.mark.parametrize("varies", [["design.dob_bandwidth=log:10:1e4:8"],
                                     ["design.dob_bandwidth=log:10:1e4:8", "design.rtob_bandwidth=log:10:1e4:3"]])
 def test_sweep_heatmap_marks_a_max_stable_gain_of_zero(varies: list[str], tmp_path: Path,

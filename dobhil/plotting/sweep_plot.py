@@ -17,11 +17,15 @@ def heatmap(result: SweepResult, path: Path) -> Path:
     finite = k[np.isfinite(k) & (k > 0)]
     fig, ax = plt.subplots(figsize=(8, 6))
     kind = "sampled" if result.sampled else "continuous"
-    # a key held at one value (NUM 1) is no axis of the picture: the contours need two values
-    # of each key, so two keys of which one is held draw the line over the other one
-    varied = [a for a in result.axes if a.values.size > 1]
+    # a key held at one value (NUM 1, or START = STOP) is no axis of the picture: the contours
+    # need two values of each key, so two keys of which one is held draw the line over the
+    # other one (a held key given NUM > 1 repeats its points: its first is drawn; as an axis of
+    # the map its cells had no height, an empty picture)
+    varied = [a for a in result.axes if np.unique(a.values).size > 1]
     if len(result.axes) == 1 or len(varied) < 2:
         line = varied[0] if varied else result.axes[0]
+        at = next(i for i, a in enumerate(result.axes) if a is line)
+        k = k[tuple(slice(None) if i == at else 0 for i in range(k.ndim))]
         # a max stable C_f of 0 (unstable at small gains) has no place on a log axis: a gap
         # alone would read as "unbounded", the opposite; a cross on the bottom edge marks it
         none = k.reshape(-1) == 0
