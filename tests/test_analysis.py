@@ -234,6 +234,22 @@ def test_sweep_heatmap_of_two_keys_one_held_at_one_value(first: str, second: str
     assert heatmap(result, tmp_path / "h.svg").read_text().startswith("<?xml")
 
 
+def test_a_map_with_no_finite_max_stable_gain_has_no_colour_bar(tmp_path: Path,
+                                                                monkeypatch: pytest.MonkeyPatch) -> None:
+    """Every point unbounded (the demo's continuous loop over C_f and D_env): nothing is
+    coloured, and a colour bar said "max stable C_f" from -0.1 to 0.1, values no point has."""
+    from dobhil.plotting import sweep_plot
+    figures = []
+    monkeypatch.setattr(sweep_plot, "save", lambda fig, path: figures.append(fig) or path)
+    varies = ["design.force_gain=1:10:3", "environment.damping=10:50:3"]
+    result = sweep(load_config("demo"), [parse_vary(v) for v in varies], sampled=False)
+    assert np.isinf(result.max_stable_gain).all()
+    sweep_plot.heatmap(result, tmp_path / "h.png")
+    try:
+        assert len(figures[0].axes) == 1   # the map alone
+    finally:
+        _plt().close(figures[0])
+
 def test_a_key_held_at_one_value_given_twice_draws_the_line_not_an_empty_map(tmp_path: Path,
                                                                           monkeypatch: pytest.MonkeyPatch) -> None:
     """``design.force_gain=1:1:2`` holds C_f at 1 (two equal values): as an axis of the map its

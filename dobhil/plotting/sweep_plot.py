@@ -65,7 +65,8 @@ def heatmap(result: SweepResult, path: Path) -> Path:
                        colors="red", linewidths=1.0)
         ax.contour(y.values, x.values, result.stable.astype(float), levels=[0.5], colors="white",
                    linewidths=1.5)
-        fig.colorbar(mesh, ax=ax, label="max stable C_f")
+        if finite.size:   # no point coloured (all unbounded or 0): a colour bar would show -0.1..0.1
+            fig.colorbar(mesh, ax=ax, label="max stable C_f")
         ax.set_xlabel(y.key)
         ax.set_ylabel(x.key)
         if _log_spaced(y.values):
