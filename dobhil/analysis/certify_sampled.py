@@ -140,12 +140,17 @@ def lyapunov_closes(enclosure: iv.IMat) -> NDArray[np.bool_]:
     """Step 2 of the module's argument on each enclosure ``A_m +- R`` (batched): with
     ``P = L L^T`` from the Lyapunov equation of ``A_m / r`` (r halfway between the spectral
     radius and 1), ``||A_m||_P + || |L^T| R |L^-T| ||_2 < 1`` closes the sub-box."""
-    s = balance_scaling(enclosure.mid)
+    # a sub-box too wide for its enclosure to stay finite (the exponential of an interval matrix
+    # over a box of friction 0..1e7 overflows) does not close: it is halved again, and the budget
+    # ends undecided (numpy's SVD failed on it: "the certificate cannot answer this box")
+    finite = np.all(np.isfinite(enclosure.mid) & np.isfinite(enclosure.rad), axis=(-2, -1))
+    mid = np.where(finite[..., None, None], enclosure.mid, 0.0)
+    s = balance_scaling(mid)
     f = s[..., None, :] / s[..., :, None]
-    a, r = enclosure.mid * f, enclosure.rad * f
+    a, r = mid * f, np.where(finite[..., None, None], enclosure.rad, 0.0) * f
     n = a.shape[-1]
     rho = np.max(np.abs(np.linalg.eigvals(a)), axis=-1)
-    ok = rho < 1.0
+    ok = finite & (rho < 1.0)
     m = a.swapaxes(-1, -2) / np.where(ok, 0.5 * (1.0 + rho), 1.0)[..., None, None]
     # X - M X M^T = I, row-major vec: (I - kron(M, M)) vec X = vec I
     kron = np.einsum("...ij,...kl->...ikjl", m, m).reshape(m.shape[:-2] + (n * n, n * n))

@@ -291,3 +291,15 @@ def test_the_disk_margin_of_such_a_point_is_not_called_unstable(sampled: bool) -
     lines = text_lines({"box": {"environment.stiffness": (1e-5, 1e3)}, "disk_margin": {"d": soft, "e": stiff}})
     assert "neither stable nor unstable" in lines[1] and "unstable there" not in lines[1], lines
     assert lines[2].endswith("the loop is unstable there"), lines
+
+
+def test_an_enclosure_too_wide_to_stay_finite_does_not_close_and_the_box_is_undecided() -> None:
+    """A box within the keys' ranges whose interval exponential overflows (friction 0..1e7 on
+    the demo: entries up to 4e7 1/s over a period) does not close, so the budget ends
+    undecided; numpy's SVD failed on its infinite radius, and certify said it "cannot answer
+    this box ... check that it is within the keys' ranges", which it is."""
+    stable = np.array([[0.5, 0.0], [0.0, 0.5]])
+    wide = iv.IMat(np.stack([stable, stable]), np.stack([np.zeros((2, 2)), np.full((2, 2), np.inf)]))
+    assert lyapunov_closes(wide).tolist() == [True, False]
+    cert = certify_sampled(load_config("demo"), box_from_specs(["plant.viscous_friction=0:1e7"]), refinements=4)
+    assert cert.verdict is Verdict.UNDECIDED
