@@ -14,7 +14,7 @@ from enum import IntEnum
 
 import numpy as np
 
-from dobhil.config.schema import key_fields
+from dobhil.config.schema import key_fields, span_problem
 from dobhil.errors import ConfigError
 
 
@@ -122,6 +122,7 @@ def parse_vary(item: str) -> Vary:
     kind = kinds[kind_text]
     a, b = _two_numbers(item, numbers, SPELLING[kind][1])
     _check_parameters(item, kind, a, b)
+    _check_support(item, name, kind, a, b)
     return Vary(name, kind, a, b, integer)
 
 
@@ -162,6 +163,17 @@ def _check_parameters(item: str, kind: Kind, a: float, b: float) -> None:
         raise ConfigError(f"--vary {item!r}: an empty range; HI must be above LO")
     if kind is Kind.LOGUNIFORM and not a > 0:
         raise ConfigError(f"--vary {item!r}: loguniform needs LO > 0")
+
+
+def _check_support(item: str, name: str, kind: Kind, a: float, b: float) -> None:
+    """A uniform or loguniform range must lie within the key's allowed values, a normal's
+    mean too: else every run (or the typical one) would fail on its own config error, one
+    row at a time, instead of the campaign refusing once. A normal's tails may still reach
+    past a bound; such a run fails alone, its row says why."""
+    lo, hi = (a, a) if kind is Kind.NORMAL else (a, b)
+    problem = span_problem(name, lo, hi, key_fields()[name].metadata)
+    if problem is not None:
+        raise ConfigError(f"--vary {item!r}: {problem}")
 
 
 def child(seed: int, index: int) -> np.random.SeedSequence:

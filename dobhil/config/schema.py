@@ -78,6 +78,21 @@ def check_minimum(name: str, value: float, meta: Any) -> str | None:
     return f"{line}; {meta['doc']}" if meta["check"] is Check.ANY else line
 
 
+def span_problem(label: str, lo: float, hi: float, meta: Any) -> str | None:
+    """The one-line complaint when values from ``lo`` to ``hi`` are not all allowed for the
+    key (its ceiling, floor and sign; ``label`` names the option and key), else None: the
+    one check of a range of values that ``sweep --vary``, ``tune --range``/``--bound`` and
+    a campaign's distributions each take."""
+    problem = check_maximum(label, hi, meta) or check_minimum(label, lo, meta)
+    if problem is not None:
+        return problem
+    if meta["check"] is Check.POSITIVE and not lo > 0:
+        return f"{label}: every value must be > 0 (got {lo:g})"
+    if meta["check"] is Check.NONNEGATIVE and not lo >= 0:
+        return f"{label}: every value must be >= 0 (got {lo:g})"
+    return None
+
+
 #: the smallest inertia a servo has (kg m^2): two decades below the rotors of the smallest
 #: micro-motors (2 to 4 mm across: about 1e-10 kg m^2, 0.001 g cm^2); far below it 1/J_m
 #: overflows the loop's matrices (at 1e-300, as it did before this floor)

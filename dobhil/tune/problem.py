@@ -175,15 +175,10 @@ def _numbers(option: str, spec: str, text: str) -> tuple[float, float]:
 
 def _check_values(option: str, name: str, lo: float, hi: float) -> None:
     """The config's own constraint on the key, at both ends."""
-    from dobhil.config.schema import Check, check_maximum, check_minimum
-    meta = key_fields()[name].metadata
-    problem = check_maximum(f"{option} {name}", hi, meta) or check_minimum(f"{option} {name}", lo, meta)
+    from dobhil.config.schema import span_problem
+    problem = span_problem(f"{option} {name}", lo, hi, key_fields()[name].metadata)
     if problem is not None:
         raise ConfigError(problem)
-    if meta["check"] is Check.POSITIVE and lo <= 0:
-        raise ConfigError(f"{option} {name}: LO must be > 0 (got {lo:g})")
-    if meta["check"] is Check.NONNEGATIVE and lo < 0:
-        raise ConfigError(f"{option} {name}: LO must be >= 0 (got {lo:g})")
 
 
 def parse_range(spec: str) -> Range:

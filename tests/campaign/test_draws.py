@@ -10,6 +10,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from dobhil.config.schema import key_fields
 from dobhil.campaign.draws import ALLOWED, Kind, Vary, child, draw, numeric_keys, parse_vary
 from dobhil.errors import ConfigError
 
@@ -21,6 +22,10 @@ finite = st.floats(allow_nan=False, allow_infinity=False, min_value=-1e12, max_v
 def test_a_well_formed_dist_parses_or_says_what_is_wrong(kind: str, a: float, b: float) -> None:
     item = f"plant.inertia={kind}:{a!r}:{b!r}"
     valid = (b >= 0 if kind == "normal" else b > a) and (kind != "loguniform" or a > 0)
+    # and the values it draws allowed for the key (a normal: its mean)
+    meta = key_fields()["plant.inertia"].metadata
+    lo, hi = (a, a) if kind == "normal" else (a, b)
+    valid = valid and meta["minimum"] <= lo and hi <= meta["maximum"]
     if valid:
         v = parse_vary(item)
         assert (v.key, v.a, v.b, v.kind.name.lower()) == ("plant.inertia", a, b, kind)
@@ -55,6 +60,10 @@ def test_any_text_parses_or_is_one_config_error_line(text: str) -> None:
     ("plant.inertia=uniform:0:inf", "must be finite"),
     ("plant.inertia", "expected KEY=DIST"),
     ("sensor.seed=uniform:0:9", "set by the campaign"),
+    # values the key does not allow: every run would fail alone, refused once instead
+    ("plant.inertia=uniform:1e-13:2e-13", "plant.inertia = 1e-13: out of range; allowed: >= 1e-12"),
+    ("plant.inertia=loguniform:0.1:1e7", "plant.inertia = 10000000.0: out of range"),
+    ("environment.stiffness=normal:-5:1", "environment.stiffness: every value must be >= 0 (got -5)"),
     # numbers a lockstep run never reads: not called "not numeric", which reads as a typo
     ("loop.spin=uniform:0:1", "a key a lockstep emulated run never reads 'loop.spin'; allowed: plant.inertia"),
     ("drive.latency=uniform:0:1", "a key a lockstep emulated run never reads 'drive.latency'"),
