@@ -653,3 +653,28 @@ def test_analyze_at_zero_stiffness_says_the_position_drifts_not_a_gain_margin(st
     root_locus(ax, result.discrete)   # the root locus' title said "max stable C_f = 0"
     assert ax.get_title() == "the position drifts at every C_f (K_env 0 or too small to hold it)"
     _plt().close(fig)
+
+
+def test_points_where_the_position_drifts_have_no_stable_c_f(tmp_path: Path) -> None:
+    """At K_env = 0 no C_f is stable (the summary and analyze's text say so); the gain map
+    alone, at a pole that stays at z = 1 within rounding, read 5.09 or 0 by the damping (the
+    estimated velocity's demo: 5.09 at D_env 100/11, 0 at 0 and 200/11). The CSV, the result
+    and analyze --json say none: 0, no interval, and that the position drifts."""
+    sets = ["--set", "design.velocity_source=estimated"]
+    csv_path = tmp_path / "s.csv"
+    assert main(["sweep", "demo", *sets, "--sampled", "--vary", "environment.stiffness=0:0:1",
+                 "--vary", f"environment.damping=0:{200 / 11!r}:3",
+                 "--out", str(csv_path)]) == 0
+    rows = csv_path.read_text().splitlines()
+    assert rows[0].split(",")[-1] == "position_drifts"
+    assert all(r.split(",")[-3:] == ["0.0", "0", "True"] for r in rows[1:]), rows
+    config = load_config("demo", ["design.velocity_source=estimated", "design.force_gain=0"])
+    result = sweep(config, [parse_vary("environment.stiffness=0:0:1"), parse_vary("environment.damping=0:10:3")],
+                   sampled=True)
+    assert result.drifting.all() and not result.max_stable_gain.any() and not result.interval_count.any()
+    from dobhil.analysis.report import analyze_domain, domain_json
+    config = load_config("demo", ["design.velocity_source=estimated", "environment.stiffness=0",
+                                  f"environment.damping={100 / 11!r}"])
+    domain = domain_json(analyze_domain(params_from_config(config), sampled=True), with_sensitivities=False)
+    assert domain["closed_loop"]["position_drifts"]   # what analyze --json prints for the sampled loop
+    assert domain["max_stable_force_gain"] == 0.0 and domain["stable_force_gain_intervals"] == []

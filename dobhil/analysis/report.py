@@ -236,7 +236,11 @@ def domain_json(d: DomainAnalysis, with_sensitivities: bool = True) -> dict[str,
     costly part (an 800-point frequency response each: most of an analysis' time), for
     :func:`as_text`, which shows none of them."""
     g = d.gains
-    kmax = float(g.max_stable_gain)
+    # the position drifts: no C_f is stable (as the text says); the map's own figures there are
+    # decided by which side of the boundary rounding puts the position's pole (5.09 or 0 for the
+    # estimated velocity's demo at K_env = 0, by the damping), as dobhil sweep's are not
+    kmax = 0.0 if d.position_drifts else float(g.max_stable_gain)
+    intervals = [] if d.position_drifts else g.intervals()
     out: dict[str, Any] = {
         "open_loop": {"poles": _pairs(g.poles), "zeros": _pairs(g.zeros),
                       "relative_degree": int(g.relative_degree),
@@ -246,7 +250,7 @@ def domain_json(d: DomainAnalysis, with_sensitivities: bool = True) -> dict[str,
                         "position_drifts": d.position_drifts},
         "max_stable_force_gain": None if math.isinf(kmax) else kmax,
         "stable_force_gain_intervals": [[lo, None if math.isinf(hi) else hi]
-                                        for lo, hi in g.intervals()],
+                                        for lo, hi in intervals],
         "margins": d.margins,
         "step": {k: v for k, v in d.step.as_dict().items()},
         "step_true_force": d.step_force.as_dict(),

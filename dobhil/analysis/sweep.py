@@ -34,10 +34,11 @@ class SweepResult:
     sampled: bool
     stable: np.ndarray              # at the design's C_f (or the swept one)
     minimum_phase: np.ndarray
-    max_stable_gain: np.ndarray     # inf when unbounded, NaN where the point was not answered
+    #: inf when unbounded, NaN where the point was not answered, 0 where none is (and where drifting)
+    max_stable_gain: np.ndarray
     interval_count: np.ndarray      # number of stable C_f intervals (>1: conditionally stable)
-    #: unstable at C_f only by the position's pole at z = 1 / s = 0 (K_env = 0, or so small that
-    #: this pole is within the analysis' resolution): no C_f is stable there
+    #: K_env = 0, or unstable at C_f only by the position's pole at z = 1 / s = 0 (K_env so
+    #: small that this pole is within the analysis' resolution): no C_f is stable there
     drifting: np.ndarray
 
     @property
@@ -57,7 +58,8 @@ class SweepResult:
             row.update(stable=bool(self.stable[idx]) if answered else None,
                        minimum_phase=bool(self.minimum_phase[idx]) if answered else None,
                        max_stable_force_gain=None if np.isinf(k) or not answered else k,
-                       stable_intervals=int(self.interval_count[idx]) if answered else None)
+                       stable_intervals=int(self.interval_count[idx]) if answered else None,
+                       position_drifts=bool(self.drifting[idx]) if answered else None)
             out.append(row)
         return out
 
@@ -215,7 +217,16 @@ def sweep_chunk(config: Config, sampled: bool, values: Chunk) -> ChunkAnswer:
         cf = params.value("force_gain")
         ok = np.all(np.isfinite(a), axis=(-2, -1)) & np.all(np.isfinite(b * c.swapaxes(-1, -2)),
                                                              axis=(-2, -1))
-        return _answer(a, b, c, cf, ok, sampled)
+        stable, minimum_phase, kmax, count, drifting = _answer(a, b, c, cf, ok, sampled)
+    # K_env = 0: the position's pole stays at z = 1 / s = 0 at every C_f (as analyze says, even
+    # at C_f = 0); the gain map's intervals there are decided by which side of the boundary
+    # rounding puts that pole (the estimated velocity's demo read 5.09 or 0 by the damping),
+    # so a drifting point has no stable C_f: 0, no interval
+    drifting = drifting | (params.value("stiffness") == 0.0)
+    answered = ~np.isnan(kmax)
+    kmax = np.where(drifting & answered, 0.0, kmax)
+    count = np.where(drifting, 0, count)
+    return stable, minimum_phase, kmax, count, drifting & answered
 
 
 def _answer(a: np.ndarray, b: np.ndarray, c: np.ndarray, cf: np.ndarray, ok: np.ndarray,

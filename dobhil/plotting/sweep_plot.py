@@ -26,13 +26,15 @@ def heatmap(result: SweepResult, path: Path) -> Path:
         line = varied[0] if varied else result.axes[0]
         at = next(i for i, a in enumerate(result.axes) if a is line)
         k = k[tuple(slice(None) if i == at else 0 for i in range(k.ndim))]
-        # a max stable C_f of 0 (unstable at small gains) has no place on a log axis: a gap
-        # alone would read as "unbounded", the opposite; a cross on the bottom edge marks it
+        # a max stable C_f of 0 (unstable at small gains, or a drifting position) has no place on a
+        # log axis: a gap alone would read as "unbounded", the opposite; a cross on the bottom
+        # edge marks it
         none = k.reshape(-1) == 0
         ax.semilogy(line.values, np.where(np.isinf(k) | (k == 0), np.nan, k).reshape(-1), "-o", ms=3)
         if none.any():
             ax.plot(line.values[none], np.zeros(int(none.sum())), "x", ms=7, mew=1.5, color="tab:red",
-                    transform=ax.get_xaxis_transform(), clip_on=False, label="max stable C_f 0 (unstable at small C_f)")
+                    transform=ax.get_xaxis_transform(), clip_on=False,
+                    label="max stable C_f 0 (unstable at small C_f, or the position drifts)")
         # an unbounded C_f has no place on the axis either: its gap alone left the x axis on the
         # finite points only (or, all unbounded, on matplotlib's default -0.05..0.05), the swept
         # range out of sight; a triangle on the top edge marks it, in the swept range
