@@ -62,6 +62,13 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    # each log read once, however many of the steps below take its path
+    from dobhil.recording.reader import opened_once
+    with opened_once():
+        return _run(args)
+
+
+def _run(args: argparse.Namespace) -> int:
     from dobhil.drives.load import load_profile
     from dobhil.errors import ConfigError
     from dobhil.files import check_output, check_output_dir

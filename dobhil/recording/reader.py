@@ -13,6 +13,8 @@ import os
 import struct
 import zlib
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
+from contextlib import contextmanager
+from contextvars import ContextVar
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 from types import MappingProxyType
@@ -499,9 +501,44 @@ def _chunk_messages(records: bytes, wanted: Mapping[int, str]) -> Iterator[tuple
         pos = body + length
 
 
-open_log = LogFile
+#: the logs opened within :func:`opened_once`: (path, describe) -> ((size, mtime), the log)
+_OPENED: ContextVar[dict[tuple[str, bool], tuple[tuple[int, int], LogFile]] | None] = ContextVar(
+    "dobhil_opened_logs", default=None)
+
+
+@contextmanager
+def opened_once() -> Iterator[None]:
+    """Within it, :func:`open_log` of a path it opened before (the file unchanged: its size
+    and modification time) gives that :class:`LogFile` again. Opening reads and checks the
+    whole file (20-50 ms a 10 s run), and a command whose steps each take a path -- ``dobhil
+    identify``: its method, its axes, its data, its drive's firmware, ``--validate``'s log --
+    would otherwise read the same log several times over. A LogFile holds nothing open and is
+    not changed by its reads, so one serves them all."""
+    token = _OPENED.set({})
+    try:
+        yield
+    finally:
+        _OPENED.reset(token)
+
+
+def open_log(path: str | os.PathLike[str], *, describe: bool = False) -> LogFile:
+    """:class:`LogFile` of ``path``; within :func:`opened_once`, the one opened there before."""
+    opened = _OPENED.get()
+    if opened is None:
+        return LogFile(path, describe=describe)
+    try:
+        st = os.stat(path)
+    except OSError:   # LogFile says what is wrong with it, in one line
+        return LogFile(path, describe=describe)
+    key, stamp = (os.fspath(path), describe), (st.st_size, st.st_mtime_ns)
+    seen = opened.get(key)
+    if seen is not None and seen[0] == stamp:
+        return seen[1]
+    log = LogFile(path, describe=describe)
+    opened[key] = (stamp, log)
+    return log
 
 
 __all__ = ["MAGIC", "ChannelInfo", "LogFile", "LogInfo", "axis_config_records", "check_library", "check_mcap_head",
-           "decoder_for", "encoding_for", "open_log", "recorded_config", "summary_intact", "unknown_config_keys",
-           "unknown_keys_note", "unknown_keys_problem"]
+           "decoder_for", "encoding_for", "open_log", "opened_once", "recorded_config", "summary_intact",
+           "unknown_config_keys", "unknown_keys_note", "unknown_keys_problem"]

@@ -217,3 +217,32 @@ def test_identify_prints_each_estimate_with_its_unit(capsys: pytest.CaptureFixtu
     for name, unit in units.items():
         assert f"{estimates[name]['value']:.6g} {unit}  95 %" in lines[name], lines[name]
     assert "residual RMS 0.001 rad/s," in lines["residual"]
+
+
+class _FitReached(BaseException):
+    """Raised in place of the fit: everything read before it has been read (not an
+    Exception, which the CLI would report as a bug)."""
+
+
+@pytest.mark.parametrize(("method", "fit"), [("open-loop", "dobhil.identify.fit.identify"),
+                                             ("auto", "dobhil.identify.closedloop.identify_closed_loop")])
+def test_identify_opens_each_log_once(method: str, fit: str, logs: dict[str, Path],
+                                      monkeypatch: pytest.MonkeyPatch) -> None:
+    """Opening a log reads and checks the whole file (20-50 ms a 10 s run); identify asked for
+    the same log 4 to 7 times before its fit (its method, its axes, its data, its drive's
+    firmware, --validate's), each a new LogFile: now one per file."""
+    from dobhil.recording import reader
+
+    def stop(*args: object, **kwargs: object) -> None:
+        raise _FitReached
+    monkeypatch.setattr(fit, stop)
+    opened: list[str] = []
+    init = reader.LogFile.__init__
+
+    def counted(self: reader.LogFile, path: str, **kwargs: bool) -> None:
+        opened.append(str(path))
+        init(self, path, **kwargs)
+    monkeypatch.setattr(reader.LogFile, "__init__", counted)
+    with pytest.raises(_FitReached):
+        main(["identify", str(logs["contact"]), "--method", method, "--validate", str(logs["contact"])])
+    assert opened == [str(logs["contact"])]
