@@ -39,7 +39,8 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
                    "a dobhil log must have been recorded with its protocol")
     p.add_argument("--period", type=float, metavar="SECONDS",
                    help="a CAN log's control period (default: the period its motion frames' stamps scatter around, "
-                   "late ones left out: their least-squares slope, snapped to a whole microsecond when near)")
+                   "late ones left out: their least-squares slope, snapped to a whole microsecond when near); "
+                   "one the stamps contradict (beyond 2e-4 of it and their scatter) is refused")
     p.add_argument("--axis", metavar="NAME",
                    help="the axis of a log of several axes to identify (its records and its bus' frames; "
                    "a coupled axis' environment is its coupling plus its own)")

@@ -213,11 +213,14 @@ def _from_frames(log: object, name: str, profile: DriveProfile | None, period: f
     lattice = frame_lattice(np.array([m[0] for m in motion]))
     if period is None:
         period = lattice.period   # the round period the stamps scatter around
-    elif math.isfinite(lattice.period) and lattice.period > 0.0 and not (
-            0.5 * lattice.period <= period <= 2.0 * lattice.period):
-        # a period the frames contradict would put every sample at the wrong time
-        raise ConfigError(f"--period {period:g}: {name}'s motion frames come every {lattice.period:g} s; "
-                          "give the period they scatter around (within a factor of 2), or leave it out")
+    elif math.isfinite(lattice.period) and lattice.period > 0.0 and not lattice.agrees(period):
+        # refused, not warned: the samples keep their deadlines whatever the period, so another
+        # one only rescales time -- the inertia with its square, the delay and friction with it
+        # -- and an overlay carries that to the next run; the stamps tell the period to a host
+        # clock's skew (SNAP), a period outside that is a typo or a clock the log cannot vouch for
+        raise ConfigError(f"--period {period:g}: {name}'s motion frames come every {lattice.period:g} s "
+                          f"(their stamps allow {lattice.slope - lattice.spread:.7g} to "
+                          f"{lattice.slope + lattice.spread:.7g} s); leave --period out or give one in that range")
     if not (math.isfinite(period) and period > 0.0):
         raise ConfigError(f"{name}: no control period (the motion frames' timestamps do not increase); "
                           "give it with --period SECONDS")

@@ -30,6 +30,7 @@ below SNAP; a loop period that is not whole -- 333.33 us -- keeps the slope itse
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -63,6 +64,15 @@ class Lattice:
     period: float
     how: str
     number: NDArray[np.int64]
+    #: the fitted slope [s] and how far from it a period still agrees with the stamps:
+    #: :data:`SNAP` of it (a host clock's skew) plus three of its standard errors (the jitter)
+    slope: float = float("nan")
+    spread: float = float("inf")
+
+    def agrees(self, period: float) -> bool:
+        """Whether the stamps could have been taken of a loop running at ``period`` [s] (the
+        test that snaps the slope to a whole microsecond; any period when they tell none)."""
+        return not math.isfinite(self.slope) or abs(period - self.slope) <= self.spread
 
 
 def nominal_period(stamps: NDArray[np.float64]) -> tuple[float, str]:
@@ -98,9 +108,10 @@ def frame_lattice(stamps: NDArray[np.float64]) -> Lattice:
     number = _numbers(t, slope, offset)
     number -= number[0]
     whole = round(slope * 1e6) * 1e-6
-    if whole > 0.0 and abs(whole - slope) <= SNAP * slope + 3.0 * stderr:
-        return Lattice(whole, "nominal", number)
-    return Lattice(slope, "mean", number)
+    spread = SNAP * slope + 3.0 * stderr
+    if whole > 0.0 and abs(whole - slope) <= spread:
+        return Lattice(whole, "nominal", number, slope, spread)
+    return Lattice(slope, "mean", number, slope, spread)
 
 
 def _quietest(spacing: NDArray[np.float64], median: float, frames: int) -> int:

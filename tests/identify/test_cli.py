@@ -53,6 +53,10 @@ def test_identify_bad_input(logs: dict[str, Path], tmp_path: Path, capsys: pytes
     _fails(capsys, ["identify", str(tmp_path / "c.mcap")], "--drive")
     _fails(capsys, ["identify", str(tmp_path / "c.mcap"), "--drive", "mini-cheetah"], "another protocol")
     _fails(capsys, ["identify", str(tmp_path / "c.mcap"), "--drive", "odrive-0.6", "--period", "0"], "--period")
+    # a period the stamps contradict scales the inertia with its square (0.002 on this 1 ms log: J doubled)
+    for wrong in ("0.002", "0.0005", "0.00101"):
+        _fails(capsys, ["identify", str(tmp_path / "c.mcap"), "--drive", "odrive-0.6", "--period", wrong],
+               "c.mcap's motion frames come every 0.001 s")
 
 
 def _forces(path: Path) -> dict[int, float]:
