@@ -447,4 +447,6 @@ def compare(args: argparse.Namespace) -> int:
         which = f"axis {args.axis}: " if args.axis is not None else ""
         print(f"{which}compared {info['cycles']} cycles: force (tau_int_hat) RMS difference {info['rms']:.6g} N m, "
               f"max |difference| {info['max_abs']:.6g} N m")
+        if info["note"]:
+            print(f"note: {info['note']}")
     return 0

@@ -77,6 +77,27 @@ def test_compare(logs: dict[str, Path], capsys: pytest.CaptureFixture[str]) -> N
     assert info["rms"] > 0.0
 
 
+def test_compare_notes_different_references_and_lengths(logs: dict[str, Path], tmp_path: Path,
+                                                        capsys: pytest.CaptureFixture[str]) -> None:
+    """A shorter run of the same config, or a run of another reference, compares over what
+    both have: one line says which differ and how, or the RMS reads as a model's misfit."""
+    from tests.identify.conftest import emulated_log
+    short = emulated_log(tmp_path / "short.mcap", duration=0.2)
+    capsys.readouterr()
+    assert main(["compare", str(logs["contact"]), str(logs["contact"])]) == 0
+    assert len(capsys.readouterr().out.splitlines()) == 1
+    assert main(["compare", str(logs["contact"]), str(short)]) == 0
+    out = capsys.readouterr().out.splitlines()
+    assert len(out) == 2 and out[1].startswith("note: ") and "500 cycles" in out[1] and "200" in out[1], out
+    assert "reference" not in out[1], out
+    assert main(["compare", str(logs["contact"]), str(logs["free"]), "--json"]) == 0
+    info = json.loads(capsys.readouterr().out)
+    note = info["note"]
+    assert "reference.kind step vs chirp" in note and "reference.amplitude 0.8 vs 0.2" in note, note
+    assert main(["compare", str(logs["contact"]), str(short), "--json"]) == 0
+    assert "reference" not in json.loads(capsys.readouterr().out)["note"]
+
+
 def _analyze(capsys: pytest.CaptureFixture[str], *extra: str) -> dict[str, object]:
     assert main(["analyze", "demo", "--json", *extra]) == 0
     return json.loads(capsys.readouterr().out)  # type: ignore[no-any-return]
