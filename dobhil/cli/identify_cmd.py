@@ -16,12 +16,16 @@ import argparse
 import json
 import math
 import sys
+from collections.abc import Mapping
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from dobhil.cli.common import output_path
 from dobhil.config import key_fields
 from dobhil.files import same_file
+
+if TYPE_CHECKING:
+    from dobhil.identify.fit import IdentResult
 
 #: the longest --period: loop.period's own ceiling, read from its key (dobhil/config/schema.py)
 MAX_PERIOD: float = key_fields()["loop.period"].metadata["maximum"]
@@ -121,7 +125,7 @@ def _run(args: argparse.Namespace) -> int:
     if held_out is not None:
         info["validation"] = evidence.validation_info(result, *held_out)
     if args.out:
-        _write_overlay(result.overlay(), info, args.out, _overlay_axis(args))
+        _write_overlay(result, data.recorded, info, args.out, _overlay_axis(args))
     if args.plot:
         for path in _figures(result, data, parts, args.plot) + evidence.frf_figures(frf, args.plot):
             sys.stderr.write(f"wrote {path}\n")
@@ -199,7 +203,7 @@ def _closed_loop(args: argparse.Namespace, contact: bool) -> int:
         from dobhil.cli.identify_evidence import loop_validation_info
         info["validation"] = loop_validation_info(result, held_out)
     if args.out:
-        _write_overlay(result.overlay(), info, args.out)
+        _write_overlay(result, record.recorded, info, args.out)
     if args.plot:
         sys.stderr.write(f"wrote {_closed_loop_figure(result, record, args.plot)}\n")
     if args.json:
@@ -401,7 +405,22 @@ def _overlay_axis(args: argparse.Namespace) -> str | None:
     return args.axis if is_axes_log(args.log[0]) else None
 
 
-def overlay_text(overlay: dict[str, Any], info: dict[str, Any], axis: str | None = None) -> str:
+def damping_note(result: IdentResult, recorded: Mapping[str, float]) -> str:
+    """What the overlay's damping is when the record determines only friction plus damping
+    (:meth:`~dobhil.identify.fit.IdentResult.overlay`), '' otherwise."""
+    total = result.damping_sum()
+    if total is None:
+        return ""
+    friction = recorded.get("plant.viscous_friction")
+    if friction is None:
+        return (f"environment.damping is the fitted sum of friction and damping ({total:.6g}): the record "
+                "does not separate them, and the config's plant.viscous_friction adds to it in contact")
+    return (f"environment.damping is the fitted sum of friction and damping ({total:.6g}) less the recorded "
+            f"plant.viscous_friction ({friction:.6g}): the record does not separate them; the config's friction "
+            "stays, so the loop in contact has the sum")
+
+
+def overlay_text(overlay: dict[str, Any], info: dict[str, Any], axis: str | None = None, note: str = "") -> str:
     """The overlay as YAML a person can read: one ``key: value`` a line, each commented with its
     95 % interval, and what was not identifiable (and why) at the top. ``repr`` of a float is
     valid YAML and round-trips exactly (tested). ``axis``: the keys are that axis' own,
@@ -417,6 +436,8 @@ def overlay_text(overlay: dict[str, Any], info: dict[str, Any], axis: str | None
         lines.append(f"# the keys of axis {axis}: use with a config that lists axes: (and --axis {axis} for "
                      "tune and montecarlo)")
     lines += [f"# not identifiable: {name}: {e['why']}" for name, e in est.items() if not e["identifiable"]]
+    if note:
+        lines.append(f"# {note}")
     for key in sorted(overlay):
         value = overlay[key]
         name = "delay" if key in ("design.delay_samples", "design.input_delay") else _OVERLAY_SOURCES.get(key)
@@ -431,11 +452,16 @@ def overlay_text(overlay: dict[str, Any], info: dict[str, Any], axis: str | None
     return "\n".join(lines) + "\n" + section_text(info)
 
 
-def _write_overlay(overlay: dict[str, Any], info: dict[str, Any], path: Path, axis: str | None = None) -> None:
+def _write_overlay(result: IdentResult, recorded: Mapping[str, float], info: dict[str, Any], path: Path,
+                   axis: str | None = None) -> None:
     from dobhil.files import atomic_path
+    note = damping_note(result, recorded)
     with atomic_path(path) as tmp:
-        tmp.write_text(overlay_text(overlay, info, axis), encoding="utf-8")
+        tmp.write_text(overlay_text(result.overlay(recorded.get("plant.viscous_friction")), info, axis, note),
+                       encoding="utf-8")
     sys.stderr.write(f"wrote {path}\n")
+    if note:
+        sys.stderr.write(f"note: {note}\n")
 
 
 def compare(args: argparse.Namespace) -> int:

@@ -141,14 +141,47 @@ class IdentResult:
     #: it simulated, which its validation and figure simulate again; empty: not recorded)
     fitted: Mapping[str, float] = field(default_factory=dict)
 
-    def overlay(self) -> dict[str, Any]:
+    def damping_sum(self) -> float | None:
+        """The servo's viscous friction plus the environment's damping the fit ended at, when
+        the record determines only that sum: every segment in contact, the damping
+        identifiable and the friction not (both act on the one velocity while the servo is
+        pressed: the closed-loop fit folds them, ``dobhil.identify.closedloop._fold_friction``;
+        the open-loop fit finds the friction's profile flat along the damping); else None. A
+        contact segment that also moves free with the friction still flat gets the same sum:
+        the friction's share of it is then within that flat interval."""
+        b, d = self.estimates["viscous_friction"], self.estimates["damping"]
+        if (b.identifiable or not d.identifiable or not self.segments
+                or any(s.kind != "contact" for s in self.segments)
+                or "viscous_friction" not in self.fitted or "damping" not in self.fitted):
+            return None
+        return float(self.fitted["viscous_friction"] + self.fitted["damping"])
+
+    def overlay(self, friction: float | None = None) -> dict[str, Any]:
         """The config overlay of the identifiable values: ``plant.*``, ``environment.*``,
-        ``design.delay_samples``/``design.input_delay`` and ``design.identified_inertia``."""
+        ``design.delay_samples``/``design.input_delay`` and ``design.identified_inertia``.
+
+        Where the record determines only friction plus damping (:meth:`damping_sum`) the
+        friction is left out -- the config's own stays -- and the damping written is the sum
+        less ``friction`` (the recorded config's ``plant.viscous_friction``; None: not known,
+        the sum), at least 0: in contact the loop then has the fitted total damping, as a
+        config of the recorded run's friction plus the written damping, and in free motion
+        the friction the config had. Why not the fitted friction and damping each: the record
+        fixes only their sum, the split is where the fit stopped along a flat valley
+        (docs/identify.md section 5's force1.mcap, open loop: b 7.16 and D 52.65 for a true
+        0.05 and 60), and a b of 7 is wrong wherever the servo moves free. Why not the damping
+        estimate alone: the config's friction, not the fitted one, is then added to it, and the
+        loop in contact lacks the rest (measured: force1.mcap's open-loop D alone, run with that
+        section's chirp and seed 1, stopped ``unstable`` at cycle 2858 of 3000; the sum written
+        as here ran the 3000). The overlay is for a config of the recorded friction (the run's
+        own, on a real drive); another friction moves the contact's total by the difference."""
         out: dict[str, Any] = {}
         for name, key in CONFIG_KEYS.items():
             e = self.estimates[name]
             if e.identifiable:
                 out[key] = e.value
+        total = self.damping_sum()
+        if total is not None:
+            out["environment.damping"] = max(total - (friction or 0.0), 0.0)
         if self.estimates["inertia"].identifiable:
             out["design.identified_inertia"] = self.estimates["inertia"].value
         delay = self.estimates["delay"]

@@ -440,3 +440,33 @@ def test_a_parameter_not_identifiable_names_its_partner_beyond_0_9(r: float, nam
                        "the record does not separate them"
     else:
         assert line == ""
+
+
+def _pressed_result(kind: str = "contact") -> IdentResult:
+    """A fit's result as a pressed record gives it: the damping identifiable, the friction
+    not (only their sum is determined), fitted b 7 and D 53 (the split along the valley)."""
+    from dobhil.identify.fit import Estimate, Residual
+    nan = math.nan
+    est = {n: Estimate(n, 1.0, 0.01, 0.98, 1.02, True, "") for n in PARAMETERS}
+    est["viscous_friction"] = Estimate("viscous_friction", nan, nan, nan, nan, False, "flat profile")
+    est["damping"] = Estimate("damping", 53.0, 4.0, 45.0, 61.0, True, "")
+    return IdentResult(estimates=est, correlations={}, residual=Residual(1e-3, 0.5, False, ""),
+                       segments=(Segment(0, 100, kind),), period=PERIOD,
+                       fitted={"viscous_friction": 7.0, "damping": 53.0, "inertia": 1.0})
+
+
+def test_a_pressed_records_overlay_gives_the_loop_the_fitted_sum_of_friction_and_damping() -> None:
+    """Only b + D is determined: the overlay leaves the friction to the config and writes
+    the damping that makes the recorded config's friction plus it the fitted sum (60), so the
+    loop in contact has the damping the record showed, and says so in a comment line."""
+    result = _pressed_result()
+    assert result.overlay()["environment.damping"] == pytest.approx(60.0)   # the friction not known
+    overlay = result.overlay(0.05)
+    assert "plant.viscous_friction" not in overlay
+    assert overlay["environment.damping"] == pytest.approx(60.0 - 0.05)
+    assert result.overlay(100.0)["environment.damping"] == 0.0
+    from dobhil.cli.identify_cmd import damping_note
+    assert "less the recorded plant.viscous_friction (0.05)" in damping_note(result, {"plant.viscous_friction": 0.05})
+    # a record with free motion separates them: nothing folded, nothing said
+    free = _pressed_result("free")
+    assert free.overlay(0.05)["environment.damping"] == 53.0 and damping_note(free, {}) == ""
