@@ -25,6 +25,7 @@ from dobhil.recording.recover import recover
 from dobhil.recording.runlog import RunLog
 from dobhil.runtime.session import RunSession
 from tests.recording.helpers import decode_message
+from tests.runtime.helpers import write_profile
 
 ROOT = Path(__file__).resolve().parents[2]
 DEMO = ROOT / "configs" / "demo.yaml"
@@ -150,10 +151,15 @@ def test_can_export_of_a_run_reads_back(run_log: Run, tmp_path: Path,
 
 
 def _start_realtime_run(path: Path, duration: float) -> subprocess.Popen[bytes]:
-    """``dobhil run --log`` in its own process group (the group a terminal's Ctrl-C hits)."""
-    return _start_run(path, "--duration", str(duration),
-                      # a recording test, not a timing one: tolerate a loaded machine
-                      "--set", "loop.feedback_timeout=0.2")
+    """``dobhil run --log`` in its own process group (the group a terminal's Ctrl-C hits),
+    real time: the emulated drive is a process of that group too. A signal test, not a
+    timing one: a loaded machine can starve a real-time run into stopping on its own
+    (``host_too_slow``: the drive's watchdog or the feedback timeout expired while the host
+    was not scheduled), and a run that stopped before the signal tests nothing. So nothing
+    starvation trips is armed: no drive watchdog, no feedback timeout shorter than the run."""
+    profile = write_profile(path.parent, "odrive-0.6", watchdog_timeout=0)
+    return _start_run(path, "--duration", str(duration), "--set", f"drive.profile={profile}",
+                      "--set", f"loop.feedback_timeout={duration}")
 
 
 def _start_lockstep_run(path: Path) -> subprocess.Popen[bytes]:
