@@ -304,12 +304,33 @@ def test_check_and_run_against_a_factory_drive(emulated: tuple[str, EmulatedODri
     assert emu.axis_state is AxisState.IDLE and emu.control_mode == ControlMode.POSITION_CONTROL
 
 
+#: commands of one check at most, against an emulator thread that keeps its settings only
+#: while it is run: one that failed while it skipped ticks (``EmulatedDrive.overruns``, its own
+#: count: a tick more than 10 periods late is skipped, its frames never sent) may have heard a
+#: drive slower than its settings -- rightly -- and is made again. (A run in this process
+#: starves it too: the loop holds the interpreter while it spins for each frame.)
+STARVED_COMMANDS = 3
+
+
+def unstarved(emu: EmulatedODrive, command: list[str], capsys: pytest.CaptureFixture[str]) -> tuple[int, str, str]:
+    """``main(command)``, made again while it failed and the emulator thread skipped ticks
+    during it (up to :data:`STARVED_COMMANDS`): the last one's exit code, standard output and
+    error."""
+    for _ in range(STARVED_COMMANDS):
+        skipped = emu.overruns
+        code = main(command)
+        out, err = capsys.readouterr()
+        if code == 0 or emu.overruns == skipped:
+            break
+    return code, out, err
+
+
 @pytest.mark.parametrize("emulated", ["odrive-0.6"], indirect=True)
 def test_check_passes_with_matching_settings(emulated: tuple[str, EmulatedODrive],
                                              capsys: pytest.CaptureFixture[str]) -> None:
-    channel, _ = emulated
-    code = main(["check", str(DEMO), "--bus", f"virtual:{channel}", "--set", REALTIME_SLACK[0]])
-    out = capsys.readouterr().out
+    channel, emu = emulated
+    code, out, _ = unstarved(emu, ["check", str(DEMO), "--bus", f"virtual:{channel}", "--set", REALTIME_SLACK[0]],
+                             capsys)
     assert code == 0, out
     assert out.splitlines()[-1] == "preflight: ok"
     assert "node 3: encoder estimates every" in out and "firmware 0.6.10 (Get_Version)" in out
@@ -322,14 +343,14 @@ def test_run_passes_preflight_and_runs(tmp_path: Path, capsys: pytest.CaptureFix
                          Plant.from_config(demo_config()))
     emu.start()
     try:
-        code = main(["run", str(DEMO), "--bus", f"virtual:{channel}", "--duration", "0.1",
-                     "--set", f"drive.profile={profile_path}", "--set", REALTIME_SLACK[0]])
+        code, out, err = unstarved(emu, ["run", str(DEMO), "--bus", f"virtual:{channel}", "--duration", "0.1",
+                                         "--set", f"drive.profile={profile_path}", "--set", REALTIME_SLACK[0]],
+                                   capsys)
     finally:
         emu.close()
-    captured = capsys.readouterr()
-    assert "dobhil run: preflight: node 3: encoder estimates every" in captured.err, captured.err
-    assert code == 0, captured.err + captured.out
-    assert "stopped: done" in captured.out, captured.out
+    assert "dobhil run: preflight: node 3: encoder estimates every" in err, err
+    assert code == 0, err + out
+    assert "stopped: done" in out, out
 
 
 def test_session_preflight_refuses_before_enable(tmp_path: Path) -> None:
