@@ -91,6 +91,10 @@ HEARTBEAT_MISSES = 3
 #: wall-clock seconds a safe-stop frame is retried while the bus refuses it (ENOBUFS:
 #: a full transmit queue drains within a few frame times)
 SAFE_STOP_RETRY = 0.02
+#: attempts a refused safe-stop frame gets at least, however long they take: a host the
+#: machine did not run for the whole SAFE_STOP_RETRY window would else give up after one
+#: retry, just when the queue has had time to drain
+SAFE_STOP_ATTEMPTS = 3
 #: keepalive interval of enable() when neither a watchdog nor a heartbeat period sets
 #: one: often enough to ask a drive for status, seldom enough to load no bus
 DEFAULT_KEEPALIVE = 0.1
@@ -170,8 +174,8 @@ class Confirmation(IntEnum):
 @dataclass(frozen=True, slots=True)
 class FrameResult:
     """One safe-stop frame: what it was, whether it went out, why not, and how many of its
-    attempts the bus refused (retried for :data:`SAFE_STOP_RETRY` s: a full transmit queue
-    that drains meanwhile takes it)."""
+    attempts the bus refused (retried for :data:`SAFE_STOP_RETRY` s and at least
+    :data:`SAFE_STOP_ATTEMPTS` times: a full transmit queue that drains meanwhile takes it)."""
 
     what: str   # e.g. "zero torque", "IDLE"
     sent: bool
@@ -642,8 +646,8 @@ class Drive(ABC):
             raise self._read_error(exc) from exc
 
     def _send_safely(self, what: str, make: Callable[[], can.Message]) -> FrameResult:
-        """One safe-stop frame, retried for up to SAFE_STOP_RETRY s of wall time while
-        the bus refuses it. Never raises."""
+        """One safe-stop frame, retried while the bus refuses it, for up to SAFE_STOP_RETRY s
+        of wall time and at least SAFE_STOP_ATTEMPTS attempts. Never raises."""
         give_up = time.monotonic() + SAFE_STOP_RETRY
         refused = 0
         while True:
@@ -653,7 +657,7 @@ class Drive(ABC):
             except Exception as exc:  # safety path: every frame gets its own attempt
                 refused += 1
                 error = exception_line(exc, named=False)
-                if time.monotonic() >= give_up:
+                if refused >= SAFE_STOP_ATTEMPTS and time.monotonic() >= give_up:
                     return FrameResult(what, False, error, refused)
                 time.sleep(0.001)
 

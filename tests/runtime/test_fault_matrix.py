@@ -20,13 +20,16 @@ from __future__ import annotations
 import dataclasses
 import os
 import signal
+import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import pytest
 
 from dobhil.config import Config
+from dobhil.drives import base as drive_base
 from dobhil.drives.base import Confirmation, Feedback, SafeStopReport
 from dobhil.drives.odrive import codec
 from dobhil.drives.odrive.codec import AxisState, CmdId, CmdId05, CmdId06, Firmware
@@ -265,6 +268,39 @@ def test_transient_enobufs_is_retried_in_the_safe_stop() -> None:
         assert refuse.applied == 2
         assert result.safe_stop is not None and result.safe_stop.sent
         assert [f.refused for f in result.safe_stop.frames] == [1, 0]
+        assert_stopped_safely(session, sniffer, result.stop, StopReason.BUS_ERROR)
+
+
+class _StarvedTime:
+    """``time`` for dobhil.drives.base as a busy machine gives it: each sleep, however
+    short, ends 30 ms later (the process was not run meanwhile)."""
+
+    def __init__(self) -> None:
+        self.lost = 0.0
+
+    def monotonic(self) -> float:
+        return time.monotonic() + self.lost
+
+    def sleep(self, seconds: float) -> None:
+        self.lost += 0.03
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(time, name)
+
+
+def test_a_starved_safe_stop_still_retries_a_refused_frame(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The bus refuses the torque frame and twice the safe stop's zero torque, on a host the
+    machine does not run for 30 ms at each wait between attempts: the SAFE_STOP_RETRY window
+    is gone after one retry, yet the zero torque is tried again until it goes out -- a
+    starved host's attempts, not the window alone, decide when to give up."""
+    monkeypatch.setattr(drive_base, "time", _StarvedTime())
+    config = matrix_config(Path(), "lockstep")
+    refuse = RefuseSend(at=AT, count=3, ids={TORQUE})
+    with RunSession(config, emulate=True, lockstep=True, bus_wrapper=faulty(refuse)) as session, \
+            Sniffer(session.bus_spec.channel) as sniffer:
+        result = session.run()
+        assert result.safe_stop is not None and result.safe_stop.sent, result.safe_stop
+        assert [f.refused for f in result.safe_stop.frames] == [2, 0]
         assert_stopped_safely(session, sniffer, result.stop, StopReason.BUS_ERROR)
 
 
