@@ -311,6 +311,16 @@ class Drive(ABC):
         self._seq = 0
         self._last_state: StateEvent | None = None
         self._last_heartbeat: float | None = None
+        #: (drive clock) when the host last finished reading the bus: :meth:`poll`'s end,
+        #: or the enable; ``_unread``: from the one before to it
+        self._read_at = -math.inf
+        self._unread = 0.0
+        #: the host's gaps between reads since the last fresh motion frame, as (gap [s], its
+        #: end on the drive clock), each longer than every later one (:meth:`since_back`)
+        self._gaps: list[tuple[float, float]] = []
+        #: (drive clock) the first read after the host was away longer than the watch,
+        #: during a heartbeat silence; None when there is no such silence
+        self._back_at: float | None = None
         self._detail = ""
         self._fault_event: StateEvent | None = None   # the state that faulted the drive
         #: the drive's watchdog expired while it was enabled (since the last enable): what
@@ -415,6 +425,8 @@ class Drive(ABC):
         self._send_all(self._enable_start(), "enable")
         if self._await_enabled(deadline, cancel):
             self._set_state(DriveState.ENABLED, "")
+            self._read_at, self._unread, self._back_at = self._clock(), 0.0, None
+            self._gaps.clear()
             return
         raise DriveTimeoutError(self._enable_timeout_text(wait))
 
@@ -491,23 +503,60 @@ class Drive(ABC):
             fresh = self._wait_for_motion(self._clock() + timeout)
             if fresh:
                 self._drain()
+        now = self._clock()
+        self._unread, self._read_at = now - self._read_at, now
+        gaps = self._gaps
+        if fresh:
+            gaps.clear()
+        else:   # (a later gap as long hides an earlier one: the later return is what counts)
+            while gaps and gaps[-1][0] <= self._unread:
+                gaps.pop()
+            gaps.append((self._unread, now))
         if self._state is DriveState.ENABLED:
-            self._check_heartbeat()
+            self._check_heartbeat(now)
         if self._state is DriveState.FAULT:
             raise DriveFaultError(self._detail)
         return self._feedback if fresh else None
 
-    def _check_heartbeat(self) -> None:
-        """A drive whose status frames stop is a fault, even if motion frames still come."""
+    def since_back(self, gap: float) -> float:
+        """[s] How long ago the host came back from going ``gap`` s or longer without
+        reading the bus, since the last :meth:`poll` that read fresh motion feedback; inf
+        if it did not. A gap between reads runs from the end of one poll to the end of
+        the next, that poll's own wait included: about the loop's period while the host
+        keeps up, longer when its process was stopped or not run. A silence of the drive
+        over a span the host did not read is not yet the drive's -- what was sent meanwhile
+        may still be on its way (a python-can-remote hub forwards it late) -- so a caller
+        timing the feedback counts its timeout from this return."""
+        for length, end in reversed(self._gaps):
+            if length >= gap:
+                return self._clock() - end
+        return math.inf
+
+    def _check_heartbeat(self, now: float) -> None:
+        """A drive whose status frames stop is a fault, even if motion frames still come.
+
+        The watch is HEARTBEAT_MISSES periods of silence. When the host itself read
+        nothing for that long (its process was stopped or not run), the
+        frames the drive sent meanwhile may still be on their way -- a python-can-remote
+        hub or a busy kernel forwards them late -- so the silence is the drive's only once
+        it has lasted the watch again from the host's first read back (the drive's status
+        then, its watchdog's expiry say, is what the host reports). Nothing here waits."""
         rate = self._profile.heartbeat_period
         last = self._last_heartbeat
         if last is None or rate is None or rate <= 0:
             return  # no heartbeat watched
-        silent = self._clock() - last
-        if silent > HEARTBEAT_MISSES * rate:
-            self._set_state(DriveState.FAULT,
-                            f"no heartbeat from node {self.node_id} for {silent:.3f} s "
-                            f"(expected every {rate:g} s)")
+        watch = HEARTBEAT_MISSES * rate
+        silent = now - last
+        if silent <= watch:
+            self._back_at = None
+            return
+        if self._back_at is None and self._unread > watch:
+            self._back_at = now
+        if self._back_at is not None and now - self._back_at <= watch:
+            return
+        self._set_state(DriveState.FAULT,
+                        f"no heartbeat from node {self.node_id} for {silent:.3f} s "
+                        f"(expected every {rate:g} s)")
 
     @property
     def confirms_disable(self) -> bool:

@@ -428,7 +428,8 @@ class AxesLoop:
             axis.loop._rate.frame(fb.rx_time, frames)
             axis.last_seq, axis.last_fresh, axis.fb = fb.seq, wake, fb
             return frames - 1
-        if wake - axis.last_fresh > axis.timeout:
+        if min(wake - axis.last_fresh, axis.loop.drive.since_back(axis.timeout)) > axis.timeout:
+            # (from the host's return when it read nothing for the timeout: Drive.since_back)
             axis.loop._check_stop_request()
             raise axis.loop._silent(f"no fresh feedback for {wake - axis.last_fresh:.4f} s "
                                     f"(limit {axis.timeout:g} s)", wake - axis.last_fresh)
@@ -462,7 +463,8 @@ class AxesLoop:
                 axis.loop._rate.frame(fb.rx_time, fb.seq - axis.last_seq)
             axis.last_seq = fb.seq
             axis.fb = fb
-        elif wake - axis.last_fresh > axis.timeout:
+        elif min(wake - axis.last_fresh, axis.loop.drive.since_back(axis.timeout)) > axis.timeout:
+            # (from the host's return when it read nothing for the timeout: Drive.since_back)
             raise axis.loop._silent(f"no fresh feedback for {wake - axis.last_fresh:.4f} s "
                                     f"(limit {axis.timeout:g} s)", wake - axis.last_fresh)
 

@@ -678,6 +678,10 @@ class ForceLoop:
         while k < n:
             fb = self._wait_frame(last_wake + period, last_wake + timeout) if timed and \
                 last_wake == last_wake else poll(timeout)
+            if fb is None and timed and self.drive.since_back(timeout) < timeout:
+                # the host read nothing for the whole timeout (its process stopped): what the
+                # drive sent meanwhile may still be on its way; the timeout from its return
+                fb = self._poll_or_stop(clock() + timeout - self.drive.since_back(timeout))
             wake = clock()
             start = time.perf_counter()
             if fb is None:
@@ -814,7 +818,10 @@ class ForceLoop:
                 if watch_rate:
                     self._rate.frame(fb.rx_time, fb.seq - last_seq)
                 last_seq = fb.seq
-            elif wake - last_fresh > timeout:
+            elif min(wake - last_fresh, self.drive.since_back(timeout)) > timeout:
+                # (counted from the host's return when it read nothing for the whole
+                # timeout, its process stopped: what the drive sent meanwhile may still
+                # be on its way)
                 raise self._silent(f"no fresh feedback for {wake - last_fresh:.4f} s (limit {timeout:g} s)",
                                    wake - last_fresh)
             fb = fb or self.drive.feedback

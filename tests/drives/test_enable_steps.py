@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import itertools
+import math
 from collections.abc import Iterator, Sequence
 
 import can
@@ -157,12 +158,74 @@ def test_without_a_heartbeat_period_no_heartbeat_is_watched(buses: tuple[can.Bus
 
 
 def test_with_a_heartbeat_period_silence_is_a_fault(buses: tuple[can.BusABC, can.BusABC]) -> None:
+    """The host reads every 10 ms; the drive's status frames stop after the enable."""
     host, node = buses
     clock = Clock()
     drive = SteppedDrive(host, dataclasses.replace(PROFILE, heartbeat_period=0.1), clock=clock)
     state(node, 3)
     drive.enable()
-    clock.now += 0.31   # more than three heartbeat periods
+    for _ in range(29):
+        clock.now += 0.01
+        drive.poll(0.0)
+    clock.now += 0.021   # more than three heartbeat periods
+    with pytest.raises(DriveFaultError, match=r"no heartbeat from node 5 for 0\.311 s"):
+        drive.poll(0.0)
+
+
+def _silent_while_away(buses: tuple[can.BusABC, can.BusABC]) -> tuple[SteppedDrive, Clock]:
+    """A drive enabled, then a host that read nothing for 0.5 s (its process stopped),
+    its heartbeat watch 0.3 s (three periods of 0.1 s)."""
+    host, node = buses
+    clock = Clock()
+    drive = SteppedDrive(host, dataclasses.replace(PROFILE, heartbeat_period=0.1), clock=clock)
+    state(node, 3)
+    drive.enable()
+    drive.poll(0.0)
+    clock.now += 0.5
+    return drive, clock
+
+
+def test_a_silence_while_the_host_was_away_waits_for_what_is_on_its_way(
+        buses: tuple[can.BusABC, can.BusABC]) -> None:
+    """Back after 0.5 s, the host has read no status frame for 0.5 s: the frames the drive
+    sent meanwhile may still be on their way (a hub forwards them late), so no fault yet;
+    the state they bring (a fault of the drive's: what stopped it) is what the host reports."""
+    drive, clock = _silent_while_away(buses)
+    _host, node = buses
+    assert drive.poll(0.0) is None and drive.status.state is DriveState.ENABLED
+    clock.now += 0.02
+    state(node, 9)   # late: the drive faulted while the host was away
+    with pytest.raises(DriveFaultError, match="state 9"):
+        drive.poll(0.0)
+
+
+def test_a_silence_lasting_the_watch_after_the_host_is_back_is_the_drives(
+        buses: tuple[can.BusABC, can.BusABC]) -> None:
+    drive, clock = _silent_while_away(buses)
+    back = clock.now
+    for i in range(30):   # 0.29 s of reading from the host's return: still the watch
+        clock.now = back + i * 0.01
+        drive.poll(0.0)
+    assert drive.status.state is DriveState.ENABLED
+    clock.now = back + 0.301
+    with pytest.raises(DriveFaultError, match=r"no heartbeat from node 5 for 0\.801 s"):
+        drive.poll(0.0)
+
+
+def test_a_heartbeat_after_the_host_is_back_ends_the_silence(buses: tuple[can.BusABC, can.BusABC]) -> None:
+    """A heartbeat read after the return ends the silence: the next one, host away
+    again, is judged from scratch (the watch again from the next return)."""
+    drive, clock = _silent_while_away(buses)
+    _host, node = buses
+    drive.poll(0.0)
+    clock.now += 0.05
+    state(node, 3)
+    drive.poll(0.0)
+    clock.now += 0.5   # away again, from the heartbeat
+    drive.poll(0.0)
+    clock.now += 0.2
+    assert drive.poll(0.0) is None and drive.status.state is DriveState.ENABLED
+    clock.now += 0.11
     with pytest.raises(DriveFaultError, match="no heartbeat from node 5"):
         drive.poll(0.0)
 
@@ -301,3 +364,26 @@ def test_an_answered_unconfirmable_disable_is_a_note_only_at_a_planned_end(
     else:
         assert report.note() == "" and report.warning() == f"drive may still be enabled: node 5 {account}; cut power"
     assert drive.status.state is DriveState.DISABLED and "disable of node 5 cannot be confirmed" in drive.status.detail
+
+
+def test_since_back_is_the_host_s_return_from_its_last_gap_that_long(buses: tuple[can.BusABC, can.BusABC]) -> None:
+    """``since_back(gap)``: how long ago the host came back from its latest gap of ``gap``
+    s or longer between reads, since the last fresh motion frame (inf: none)."""
+    host, node = buses
+    clock = Clock()
+    drive = SteppedDrive(host, PROFILE, clock=clock)
+    state(node, 3)
+    drive.enable()
+    assert drive.since_back(0.0) == math.inf   # nothing read since the enable
+    clock.now += 0.5   # away
+    drive.poll(0.0)
+    clock.now += 0.01
+    drive.poll(0.0)
+    clock.now += 0.2   # away again, shorter
+    drive.poll(0.0)
+    clock.now += 0.03
+    assert math.isclose(drive.since_back(0.4), 0.24) and math.isclose(drive.since_back(0.1), 0.03)
+    assert math.isclose(drive.since_back(0.01), 0.03) and drive.since_back(0.6) == math.inf
+    node.send(can.Message(arbitration_id=MOTION_ID, data=b"\x00", is_extended_id=False))
+    assert drive.poll(0.0) is not None   # fresh feedback: the gaps before it no longer count
+    assert drive.since_back(0.0) == math.inf

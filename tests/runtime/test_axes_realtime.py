@@ -230,3 +230,39 @@ def test_sigint_is_one_stop_line_and_the_single_axis_exit_code(tmp_path: Path) -
                                                   "--set", f"drive.profile={single}")
     assert "stopped: signal" in single_out, single_out
     assert code == single_code == EXIT_STOPPED, (code, single_code)
+
+
+@pytest.mark.parametrize("timing", ["feedback", "host"])
+def test_a_silence_while_the_host_was_stopped_is_timed_from_its_return(tmp_path: Path, timing: str) -> None:
+    """Two ODrive axes, no drive watchdog: the loop's thread stalls after cycle 100 for the
+    feedback timeout and 0.1 s, and what the drives sent meanwhile reaches it 0.1 s after it
+    goes on (a hub forwarding late). Each axis' feedback timeout counts from the host's
+    return (Drive.since_back): the frames come, the run ends done."""
+    from .test_blame import LateBus
+    from .test_safety import Recorder
+
+    data = yaml.safe_load((DRIVERS / "odrive-0.6.yaml").read_text(encoding="utf-8"))
+    data.update(watchdog_timeout=0.0, enable_timeout=2.0)
+    profile = tmp_path / "odrive-0.6-unwatched.yaml"
+    profile.write_text(yaml.safe_dump(data), encoding="utf-8")
+    axes = load_two(tmp_path, ("odrive", "odrive"), f"loop.timing={timing}", f"loop.feedback_timeout={TIMEOUT}",
+                    f"loop.duration={DURATION}",
+                    *[f"axes.{name}.drive.profile={profile}" for name in ("left", "right")])
+    stall = TIMEOUT + 0.1
+    buses: list[LateBus] = []
+
+    def wrap(bus: Any, _name: str) -> Any:
+        buses.append(LateBus(bus))
+        return buses[-1]
+
+    def stalled() -> None:
+        for bus in buses:
+            bus.held_until = time.perf_counter() + stall + 0.1
+        time.sleep(stall)
+
+    sink = Recorder(at=100, action=stalled)
+    with AxesSession(axes, emulate=True, lockstep=False, config_dir=CONFIGS, sinks={"left": sink},
+                     bus_wrapper=wrap) as session:
+        result = session.run()
+    assert sink.fired_at >= 0 and buses
+    assert result.stop.reason is StopReason.DONE, result.stop.line()

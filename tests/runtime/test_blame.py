@@ -28,6 +28,7 @@ from pathlib import Path
 from typing import Any
 
 import can
+import pytest
 import yaml
 from hypothesis import example, given, settings
 from hypothesis import strategies as st
@@ -44,7 +45,7 @@ from dobhil.runtime.stop import StopReason
 
 from .helpers import DEMO, DRIVERS, NODE, REPO, STEP_FROM_ZERO, damiao_with_timeout, demo_config, wait_until, \
     write_profile
-from .hub import child_env, stop_process, wait_for_emulator
+from .hub import child_env, hub_process, stop_process, wait_for_emulator
 from .test_cross_process import start_emulate
 from .test_safety import Recorder
 
@@ -280,9 +281,35 @@ def test_a_stopped_run_process_is_the_host_across_processes(tmp_path: Path, hub:
     stopped (SIGSTOP) until the emulator's heartbeat says its watchdog fired, then
     continued. The run stops host_too_slow with a gap of at least the time it was stopped
     (measured by this test)."""
-    url = f"ws://127.0.0.1:{hub}/"
+    _stopped_run_is_the_host(tmp_path, hub, heartbeat=0.05)
+
+
+def test_a_stopped_run_waits_for_the_frames_sent_while_it_was_stopped(tmp_path: Path) -> None:
+    """As above with a hub that forwards late: the hub is stopped with the run, for 0.6 s
+    (the watchdog's 0.25 s and two heartbeat periods of 0.1 s, and some: the emulator's
+    watchdog fires, and a heartbeat says so, while the hub holds its frames), then the
+    run is continued, and the hub 0.1 s later. The heartbeats sent meanwhile reach the run
+    late, its heartbeat watch (three periods) from the last heartbeat it read long passed:
+    the silence is not the drive's, the run waits the watch again from its return, reads
+    the watchdog's expiry and stops host_too_slow (calling the silence the drive's, it
+    stopped drive_fault: "no heartbeat from node 3")."""
+    with hub_process(tmp_path) as (hub, port):
+        _stopped_run_is_the_host(tmp_path, port, heartbeat=0.1, hub=hub)
+
+
+#: how long the hub and the run are stopped together, and the hub held after the run goes
+#: on (test_a_stopped_run_waits_for_the_frames_sent_while_it_was_stopped)
+HUB_STOPPED, HUB_LATE = 0.6, 0.1
+
+
+def _stopped_run_is_the_host(tmp_path: Path, port: int, *, heartbeat: float,
+                             hub: subprocess.Popen[bytes] | None = None) -> None:
+    """The run stopped until its drive's watchdog fired: by the emulator's word on the
+    hub, or (``hub`` stopped with it) HUB_STOPPED s; then continued, the hub HUB_LATE s
+    later."""
+    url = f"ws://127.0.0.1:{port}/"
     watchdog = 0.25
-    profile = write_profile(tmp_path, "odrive-0.6", feedback_period=5e-3, heartbeat_period=0.05,
+    profile = write_profile(tmp_path, "odrive-0.6", feedback_period=5e-3, heartbeat_period=heartbeat,
                             watchdog_timeout=watchdog, enable_timeout=5.0)
     overrides = [f"drive.profile={profile}", "loop.period=5e-3", *SLACK,
                  "design.dob_bandwidth=100", "design.rtob_bandwidth=100", *STEP_FROM_ZERO,
@@ -303,12 +330,24 @@ def test_a_stopped_run_process_is_the_host_across_processes(tmp_path: Path, hub:
             assert run.poll() is None and time.monotonic() < deadline, run.communicate()
             msg = sniffer.recv(0.5)
             seen += msg is not None and msg.arbitration_id == TORQUE_ID
-        os.kill(run.pid, signal.SIGSTOP)
-        begin = time.monotonic()
-        fired = watchdog_fired(sniffer, WATCH_BOUND)
-        stopped = time.monotonic() - begin
-        assert fired, "the emulator's heartbeat never said its watchdog fired"
-        os.kill(run.pid, signal.SIGCONT)
+        if hub is None:
+            os.kill(run.pid, signal.SIGSTOP)
+            begin = time.monotonic()
+            fired = watchdog_fired(sniffer, WATCH_BOUND)
+            stopped = time.monotonic() - begin
+            assert fired, "the emulator's heartbeat never said its watchdog fired"
+            os.kill(run.pid, signal.SIGCONT)
+        else:
+            os.kill(hub.pid, signal.SIGSTOP)
+            try:
+                os.kill(run.pid, signal.SIGSTOP)
+                begin = time.monotonic()
+                time.sleep(HUB_STOPPED)
+                os.kill(run.pid, signal.SIGCONT)
+                stopped = time.monotonic() - begin
+                time.sleep(HUB_LATE)
+            finally:
+                os.kill(hub.pid, signal.SIGCONT)
         stdout, stderr = run.communicate(timeout=60)
     finally:
         if sniffer is not None:
@@ -325,6 +364,60 @@ def test_a_stopped_run_process_is_the_host_across_processes(tmp_path: Path, hub:
     assert found is not None and int(found.group(1)) >= math.floor(stopped * 1e3), (detail, stopped)
     assert info["drive_disabled"] is True
     assert LOCKSTEP_HINT not in stderr.decode()   # not emulated by this run: no --lockstep advice
+
+
+class LateBus(can.BusABC):
+    """A bus that hands the host nothing received until ``held_until`` (perf_counter),
+    then all it queued meanwhile: a hub forwarding late."""
+
+    def __init__(self, inner: can.BusABC) -> None:
+        super().__init__(channel=inner.channel_info)
+        self.inner = inner
+        self.held_until = -math.inf
+        self.channel_info = f"late over {inner.channel_info}"
+
+    def send(self, msg: can.Message, timeout: float | None = None) -> None:
+        self.inner.send(msg, timeout)
+
+    def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
+        wait = self.held_until - time.perf_counter()
+        if wait > 0:
+            time.sleep(wait if timeout is None else min(wait, timeout))
+            return None, False
+        return self.inner.recv(timeout), False
+
+    def shutdown(self) -> None:
+        self.inner.shutdown()
+        super().shutdown()
+
+
+@pytest.mark.parametrize("timing", ["feedback", "host"])
+def test_a_silence_while_the_host_was_stopped_is_timed_from_its_return(tmp_path: Path, timing: str) -> None:
+    """The loop's thread stalls after cycle 100 for its feedback timeout and 0.1 s (no
+    drive watchdog: nothing fires), and what the drive sent meanwhile reaches it only
+    0.1 s after it goes on (a hub forwarding late). The silence began while the host read
+    nothing: its feedback timeout and the drive's heartbeat watch count from its return,
+    the frames come, the run ends done (timed from the last fresh frame it stopped
+    feedback_timeout, or drive_fault: "no heartbeat")."""
+    profile = write_profile(tmp_path, "odrive-0.6", watchdog_timeout=0.0, enable_timeout=2.0)
+    config = demo_config(f"drive.profile={profile}", *STEP_FROM_ZERO, "loop.duration=1.5",
+                         f"loop.timing={timing}", *SLACK)
+    stall = config.loop.feedback_timeout + 0.1
+    buses: list[LateBus] = []
+
+    def wrap(bus: can.BusABC) -> can.BusABC:
+        buses.append(LateBus(bus))
+        return buses[-1]
+
+    def stalled() -> None:
+        buses[0].held_until = time.perf_counter() + stall + 0.1
+        time.sleep(stall)
+
+    sink = Recorder(at=100, action=stalled)
+    with RunSession(config, emulate=True, lockstep=False, sink=sink, bus_wrapper=wrap) as session:
+        result = session.run()
+    assert sink.fired_at >= 0 and len(buses) == 1
+    assert result.stop.reason is StopReason.DONE, result.stop.line()
 
 
 # -- the measure itself ------------------------------------------------------------------------
