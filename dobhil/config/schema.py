@@ -95,7 +95,7 @@ def span_problem(label: str, lo: float, hi: float, meta: Any) -> str | None:
 
 #: the smallest inertia a servo has (kg m^2): two decades below the rotors of the smallest
 #: micro-motors (2 to 4 mm across: about 1e-10 kg m^2, 0.001 g cm^2); far below it 1/J_m
-#: overflows the loop's matrices (at 1e-300, as it did before this floor)
+#: overflows the loop's matrices (1/J_m is inf at J_m = 1e-300)
 MIN_INERTIA = 1e-12
 #: the smallest filter or observer bandwidth (rad/s): a time constant of 1000 s, longer than
 #: any run, and the low end of tune's default search at the longest loop.period (0.01 / 10 s,
