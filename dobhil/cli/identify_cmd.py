@@ -452,12 +452,26 @@ def overlay_text(overlay: dict[str, Any], info: dict[str, Any], axis: str | None
     return "\n".join(lines) + "\n" + section_text(info)
 
 
+def _less_friction(info: dict[str, Any], result: IdentResult, friction: float | None) -> dict[str, Any]:
+    """``info`` with the damping's estimate and interval less the recorded ``friction`` where
+    the overlay writes the fitted sum of friction and damping less it (:func:`damping_note`):
+    the overlay's comments and its ``identified:`` section (the box ``dobhil tune
+    --uncertainty-from`` takes) then hold the value the overlay sets, not the sum."""
+    if result.damping_sum() is None or not friction or not info["estimates"]["damping"]["identifiable"]:
+        return info
+    damping = dict(info["estimates"]["damping"])
+    for key in ("value", "low", "high"):
+        damping[key] = max(float(damping[key]) - friction, 0.0)
+    return {**info, "estimates": {**info["estimates"], "damping": damping}}
+
+
 def _write_overlay(result: IdentResult, recorded: Mapping[str, float], info: dict[str, Any], path: Path,
                    axis: str | None = None) -> None:
     from dobhil.files import atomic_path
     note = damping_note(result, recorded)
+    friction = recorded.get("plant.viscous_friction")
     with atomic_path(path) as tmp:
-        tmp.write_text(overlay_text(result.overlay(recorded.get("plant.viscous_friction")), info, axis, note),
+        tmp.write_text(overlay_text(result.overlay(friction), _less_friction(info, result, friction), axis, note),
                        encoding="utf-8")
     sys.stderr.write(f"wrote {path}\n")
     if note:

@@ -470,6 +470,7 @@ def _identify(data: IdentData, segments: tuple[Segment, ...], max_delay_samples:
     counted.stage = "intervals"
     estimates = _estimates(minimizer, result, covariance, data, segments, rivals)
     estimates = _profiled(minimizer, result, estimates, velocity_residual, data, segments)
+    estimates, covariance = _fold_damping(estimates, covariance, result.params.valuesdict(), segments)
     fitted = [k for k in PARAMETERS if estimates[k].identifiable]
     correlations: dict[tuple[str, str], float] = {}
     if covariance is not None:
@@ -965,6 +966,45 @@ def _profile_cost(minimizer: lmfit.Minimizer, params: lmfit.Parameters, name: st
 #: record determines; tests/identify/test_misfit.py, and the rule itself in
 #: tests/identify/test_fit.py)
 _CONFOUNDED = 0.9
+
+
+def _fold_damping(estimates: dict[str, Estimate], covariance: tuple[list[str], np.ndarray] | None,
+                  values: Mapping[str, float], segments: Sequence[Segment]
+                  ) -> tuple[dict[str, Estimate], tuple[list[str], np.ndarray] | None]:
+    """On a record pressed all along whose friction is not identifiable and whose damping
+    is (:meth:`IdentResult.damping_sum`: both act on the one velocity, the profile of the
+    friction flat along the damping), the damping reported is their sum ``b + D_env``, with
+    the linearised interval of its standard error ``sqrt(var_b + var_D + 2 cov_bD)``, and the
+    covariance the sum's (``T cov T^T``, ``T`` adding the friction's row to the damping's;
+    the friction's row and column NaN), as the closed-loop fit reports it
+    (dobhil/identify/closedloop.py, ``_fold_friction``): the overlay writes that sum as
+    ``environment.damping`` (less the recorded friction), so its interval, correlations and
+    the ``identified:`` section's box are the sum's, not those of D alone, which the fit
+    traded against the friction (docs/identify.md section 5's force1.mcap: D 52.65 in
+    [29.9, 60.4] for the sum 59.81 written). Anything else: unchanged."""
+    b, d = estimates["viscous_friction"], estimates["damping"]
+    if (b.identifiable or not d.identifiable or covariance is None or not segments
+            or any(s.kind != "contact" for s in segments)):
+        return estimates, covariance
+    names, cov = covariance
+    if "viscous_friction" not in names or "damping" not in names:
+        return estimates, covariance
+    i, j = names.index("viscous_friction"), names.index("damping")
+    var = float(cov[i, i] + cov[j, j] + 2.0 * cov[i, j])
+    if not (math.isfinite(var) and var > 0.0):
+        return estimates, covariance
+    value, s = float(values["viscous_friction"] + values["damping"]), math.sqrt(var)
+    z = float(scipy.stats.norm.ppf(0.5 + LEVEL / 2))
+    folded = dict(estimates)
+    folded["damping"] = Estimate("damping", value, s, max(value - z * s, 0.0), value + z * s, True, "",
+                                 method="linearised")
+    folded["viscous_friction"] = _not("viscous_friction", f"{b.why}; the damping reported is their sum")
+    out = np.array(cov, float)
+    out[j, :] += out[i, :]
+    out[:, j] += out[:, i]
+    out[j, j] = var
+    out[i, :] = out[:, i] = math.nan
+    return folded, (names, out)
 
 
 def _partner(name: str, covariance: tuple[list[str], np.ndarray] | None) -> str:

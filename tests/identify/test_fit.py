@@ -470,3 +470,29 @@ def test_a_pressed_records_overlay_gives_the_loop_the_fitted_sum_of_friction_and
     # a record with free motion separates them: nothing folded, nothing said
     free = _pressed_result("free")
     assert free.overlay(0.05)["environment.damping"] == 53.0 and damping_note(free, {}) == ""
+
+
+def test_a_pressed_record_reports_the_sum_of_friction_and_damping_with_the_sums_interval() -> None:
+    """Pressed all along, the friction not identifiable: the damping reported is the fitted
+    b + D_env (what the overlay writes) with the sum's interval, which holds the true sum,
+    and the overlay's comment and ``identified:`` box hold the value the overlay sets (the
+    sum less the recorded friction), not D alone (docs/identify.md section 5's force1.mcap:
+    D 52.65 in [29.9, 60.4] boxed for a written 59.76)."""
+    import yaml
+
+    from dobhil.cli.identify_cmd import _less_friction, overlay_text, summary
+    from dobhil.identify.data import Part
+    data, segments = record(TRUTH, seed=9, free_s=0.0)
+    result = identify(data, segments)
+    e = result.estimates
+    assert not e["viscous_friction"].identifiable and "the damping reported is their sum" in e["viscous_friction"].why
+    total = result.damping_sum()
+    assert total is not None and e["damping"].value == total
+    assert e["damping"].low <= TRUTH.viscous_friction + TRUTH.damping <= e["damping"].high, e["damping"]
+    info = summary(result, data, (Part("pressed.mcap", 0, len(data.t), result.segments),))
+    friction = 0.5
+    text = overlay_text(result.overlay(friction), _less_friction(info, result, friction))
+    written = yaml.safe_load(text)
+    box = written["identified"]["intervals"]["environment.damping"]
+    assert box["estimate"] == written["environment.damping"] == pytest.approx(total - friction)
+    assert box["lo"] == pytest.approx(e["damping"].low - friction) and box["stderr"] == e["damping"].stderr
