@@ -238,7 +238,7 @@ def test_a_silence_while_the_host_was_stopped_is_timed_from_its_return(tmp_path:
     feedback timeout and 0.1 s, and what the drives sent meanwhile reaches it 0.1 s after it
     goes on (a hub forwarding late). Each axis' feedback timeout counts from the host's
     return (Drive.since_back): the frames come, the run ends done."""
-    from .test_blame import LateBus
+    from .test_blame import STARVED_RUNS, LateBus
     from .test_safety import Recorder
 
     data = yaml.safe_load((DRIVERS / "odrive-0.6.yaml").read_text(encoding="utf-8"))
@@ -249,20 +249,23 @@ def test_a_silence_while_the_host_was_stopped_is_timed_from_its_return(tmp_path:
                     f"loop.duration={DURATION}",
                     *[f"axes.{name}.drive.profile={profile}" for name in ("left", "right")])
     stall = TIMEOUT + 0.1
-    buses: list[LateBus] = []
+    for _ in range(STARVED_RUNS):   # a run the machine starved says so (host_too_slow): again
+        buses: list[LateBus] = []
 
-    def wrap(bus: Any, _name: str) -> Any:
-        buses.append(LateBus(bus))
-        return buses[-1]
+        def wrap(bus: Any, _name: str, buses: list[LateBus] = buses) -> Any:
+            buses.append(LateBus(bus))
+            return buses[-1]
 
-    def stalled() -> None:
-        for bus in buses:
-            bus.held_until = time.perf_counter() + stall + 0.1
-        time.sleep(stall)
+        def stalled(buses: list[LateBus] = buses) -> None:
+            for bus in buses:
+                bus.held_until = time.perf_counter() + stall + 0.1
+            time.sleep(stall)
 
-    sink = Recorder(at=100, action=stalled)
-    with AxesSession(axes, emulate=True, lockstep=False, config_dir=CONFIGS, sinks={"left": sink},
-                     bus_wrapper=wrap) as session:
-        result = session.run()
+        sink = Recorder(at=100, action=stalled)
+        with AxesSession(axes, emulate=True, lockstep=False, config_dir=CONFIGS, sinks={"left": sink},
+                         bus_wrapper=wrap) as session:
+            result = session.run()
+        if result.stop.reason is not StopReason.HOST_TOO_SLOW:
+            break
     assert sink.fired_at >= 0 and buses
     assert result.stop.reason is StopReason.DONE, result.stop.line()

@@ -54,6 +54,9 @@ TORQUE_ID = codec.arbitration_id(NODE, CmdId.SET_INPUT_TORQUE)
 GAP = re.compile(r"no command from the host for (\d+) ms")
 #: how long a stall waits for the drive's watch at most: a bound, not a measurement
 WATCH_BOUND = 30.0
+#: runs of a check that must not be starved at most: a run the machine starved says so
+#: (``host_too_slow``) and is made again (the rule of tests/drives/test_drive_suite.py)
+STARVED_RUNS = 3
 #: a feedback timeout five times the drives' watches here: on a machine loaded enough to
 #: starve the emulated drive for half of it (a host_too_slow of another kind), nothing
 #: here would be measured
@@ -403,19 +406,22 @@ def test_a_silence_while_the_host_was_stopped_is_timed_from_its_return(tmp_path:
     config = demo_config(f"drive.profile={profile}", *STEP_FROM_ZERO, "loop.duration=1.5",
                          f"loop.timing={timing}", *SLACK)
     stall = config.loop.feedback_timeout + 0.1
-    buses: list[LateBus] = []
+    for _ in range(STARVED_RUNS):   # a run the machine starved says so (host_too_slow): again
+        buses: list[LateBus] = []
 
-    def wrap(bus: can.BusABC) -> can.BusABC:
-        buses.append(LateBus(bus))
-        return buses[-1]
+        def wrap(bus: can.BusABC, buses: list[LateBus] = buses) -> can.BusABC:
+            buses.append(LateBus(bus))
+            return buses[-1]
 
-    def stalled() -> None:
-        buses[0].held_until = time.perf_counter() + stall + 0.1
-        time.sleep(stall)
+        def stalled(buses: list[LateBus] = buses) -> None:
+            buses[0].held_until = time.perf_counter() + stall + 0.1
+            time.sleep(stall)
 
-    sink = Recorder(at=100, action=stalled)
-    with RunSession(config, emulate=True, lockstep=False, sink=sink, bus_wrapper=wrap) as session:
-        result = session.run()
+        sink = Recorder(at=100, action=stalled)
+        with RunSession(config, emulate=True, lockstep=False, sink=sink, bus_wrapper=wrap) as session:
+            result = session.run()
+        if result.stop.reason is not StopReason.HOST_TOO_SLOW:
+            break
     assert sink.fired_at >= 0 and len(buses) == 1
     assert result.stop.reason is StopReason.DONE, result.stop.line()
 
