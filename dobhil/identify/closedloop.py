@@ -55,7 +55,7 @@ import scipy.optimize
 import scipy.stats
 from numpy.typing import NDArray
 
-from dobhil.identify.fit import LEVEL, NOISE_FLOOR, WIDEST, Estimate, IdentResult, _whiteness
+from dobhil.identify.fit import LEVEL, NOISE_FLOOR, WIDEST, Estimate, IdentResult, _whiteness, fold_covariance
 from dobhil.identify.data import Segment
 from dobhil.identify.model import split_delay
 
@@ -597,10 +597,7 @@ def _fold_friction(values: dict[str, float], sd: Array, cov: Array) -> bool:
         return False
     values["damping"] += values["viscous_friction"]
     values["viscous_friction"] = 0.0
-    cov[_DAMPING, :] += cov[_FRICTION, :]
-    cov[:, _DAMPING] += cov[:, _FRICTION]
-    cov[_FRICTION, :] = cov[:, _FRICTION] = math.nan
-    cov[_DAMPING, _DAMPING] = max(var_b + var_d + 2.0 * c, 0.0)
+    fold_covariance(cov, _FRICTION, _DAMPING)
     sd[_DAMPING] = math.sqrt(cov[_DAMPING, _DAMPING])
     return True
 

@@ -990,7 +990,8 @@ def _fold_damping(estimates: dict[str, Estimate], covariance: tuple[list[str], n
     if "viscous_friction" not in names or "damping" not in names:
         return estimates, covariance
     i, j = names.index("viscous_friction"), names.index("damping")
-    var = float(cov[i, i] + cov[j, j] + 2.0 * cov[i, j])
+    out = np.array(cov, float)
+    var = fold_covariance(out, i, j)
     if not (math.isfinite(var) and var > 0.0):
         return estimates, covariance
     value, s = float(values["viscous_friction"] + values["damping"]), math.sqrt(var)
@@ -999,12 +1000,21 @@ def _fold_damping(estimates: dict[str, Estimate], covariance: tuple[list[str], n
     folded["damping"] = Estimate("damping", value, s, max(value - z * s, 0.0), value + z * s, True, "",
                                  method="linearised")
     folded["viscous_friction"] = _not("viscous_friction", f"{b.why}; the damping reported is their sum")
-    out = np.array(cov, float)
-    out[j, :] += out[i, :]
-    out[:, j] += out[:, i]
-    out[j, j] = var
-    out[i, :] = out[:, i] = math.nan
     return folded, (names, out)
+
+
+def fold_covariance(cov: np.ndarray, source: int, into: int) -> float:
+    """Make ``cov`` (in place) the covariance with parameter ``into`` replaced by the sum
+    of ``source`` and ``into`` -- ``T cov T^T``, ``T`` adding row ``source`` to row ``into``
+    -- and ``source`` held (its row and column NaN); returns the sum's variance
+    ``var_s + var_i + 2 cov_si`` (its diagonal entry, at least 0 there). Shared by both fits'
+    folding of a pressed record's friction into its damping."""
+    var = float(cov[source, source] + cov[into, into] + 2.0 * cov[source, into])
+    cov[into, :] += cov[source, :]
+    cov[:, into] += cov[:, source]
+    cov[source, :] = cov[:, source] = math.nan
+    cov[into, into] = max(var, 0.0)
+    return var
 
 
 def _partner(name: str, covariance: tuple[list[str], np.ndarray] | None) -> str:

@@ -678,10 +678,10 @@ class ForceLoop:
         while k < n:
             fb = self._wait_frame(last_wake + period, last_wake + timeout) if timed and \
                 last_wake == last_wake else poll(timeout)
-            if fb is None and timed and self.drive.since_back(timeout) < timeout:
+            if fb is None and timed and (back := self.drive.since_back(timeout)) < timeout:
                 # the host read nothing for the whole timeout (its process stopped): what the
                 # drive sent meanwhile may still be on its way; the timeout from its return
-                fb = self._poll_or_stop(clock() + timeout - self.drive.since_back(timeout))
+                fb = self._poll_or_stop(clock() + timeout - back)
             wake = clock()
             start = time.perf_counter()
             if fb is None:
