@@ -1,7 +1,8 @@
 """``can.LogReader("run.mcap")``: python-can's log reader for dobhil recordings.
 
-Yields the frames of ``/can/rx`` (``is_rx=True``) and ``/can/tx`` (``is_rx=False``) in
-log-time order as :class:`can.Message` objects: bus timestamp in seconds, channel (a frame
+Yields the frames of ``/can/rx`` (``is_rx=True``) and ``/can/tx`` (``is_rx=False``), those
+a log of the cycle layout holds in its ``/cycle`` messages (:mod:`dobhil.recording.cycles`)
+included, in log-time order as :class:`can.Message` objects: bus timestamp in seconds, channel (a frame
 recorded without one, as python-can sends a frame, that of its bus in the log's metadata, as
 ``dobhil log export --can`` writes it; one of digits as the number, as python-can's readers
 give a numbered channel), identifier and every flag (extended, remote, error,
@@ -42,8 +43,10 @@ from mcap.stream_reader import StreamReader
 from dobhil.canio.frames import frame_channels, frame_message, is_frame_topic
 from dobhil.errors import LogFileError, exception_line
 from dobhil.recording.encodings import Decoder
+from dobhil.recording.cycles import unfold
+from dobhil.recording.layouts import CYCLE_SCHEMA, CYCLE_TOPIC
 from dobhil.recording.reader import MAGIC, decoder_for
-from dobhil.recording.schemas import SPECS_BY_SCHEMA
+from dobhil.recording.schemas import SPECS_BY_SCHEMA, TOPIC_SPECS, Topic
 
 #: (device, inode) of the files McapReaders of this process have open: the writer refuses
 #: them (``can.logconvert run.mcap run.mcap`` would otherwise destroy its input).
@@ -95,6 +98,15 @@ def _decompressed_copy(stream: gzip.GzipFile) -> BinaryIO:
     finally:
         stream.close()
     return copy
+
+
+#: topic number -> name of the frame topics a cycle message holds
+_FRAME_TOPICS: Final = {int(t): TOPIC_SPECS[t].name for t in (Topic.CAN_RX, Topic.CAN_TX)}
+
+
+def _is_cycle(schema: Any, channel: Any) -> bool:
+    """Whether ``channel`` holds cycle messages (dobhil/recording/cycles.py)."""
+    return schema is not None and schema.name == CYCLE_SCHEMA and channel.topic.endswith(CYCLE_TOPIC)
 
 
 class McapReader(BinaryIOMessageReader):
@@ -164,6 +176,18 @@ class McapReader(BinaryIOMessageReader):
             found = self._decoders[channel.id] = decoder_for(channel.message_encoding, spec, self.name, channel.topic)
         return found
 
+    def _unfolded(self, topic: str, log_time: int, data: bytes) -> Iterator[tuple[str, int, bytes, Decoder]]:
+        """The frames a cycle message on ``topic`` holds, as :meth:`_records` gives frames."""
+        prefix = topic[:-len(CYCLE_TOPIC)]
+        for number, at, part in unfold(data, log_time):
+            if number in _FRAME_TOPICS:
+                name = prefix + _FRAME_TOPICS[number]
+                decoder = self._decoders.get(-number)
+                if decoder is None:
+                    decoder = self._decoders[-number] = decoder_for("protobuf", SPECS_BY_SCHEMA["dobhil.CanFrame"],
+                                                                    self.name, name)
+                yield name, at, part, decoder
+
     def _take_metadata(self, records: dict[str, dict[str, str]]) -> None:
         """The channel of each frame topic's bus, from the log's metadata records (as ``dobhil
         log export --can`` gives a sent frame, :func:`dobhil.canio.frames.frame_channels`)."""
@@ -184,14 +208,18 @@ class McapReader(BinaryIOMessageReader):
             yield from self._scan()
             return
         topics = {c.topic for c in summary.channels.values()}
+        cycles = {c.topic for c in summary.channels.values() if _is_cycle(summary.schemas.get(c.schema_id), c)}
         frames = [t for t in topics if is_frame_topic(t)]
-        if not frames:
+        if not frames and not cycles:
             listed = ", ".join(sorted(topics)) or "none"
             raise ValueError(f"{self.name}: no CAN frames (no /can/rx or /can/tx topic; topics: {listed})")
         try:
             self._take_metadata({m.name: m.metadata for m in reader.iter_metadata()})
-            for schema, channel, message in reader.iter_messages(topics=frames, log_time_order=True):
-                yield channel.topic, message.log_time, message.data, self._decoder(schema, channel)
+            for schema, channel, message in reader.iter_messages(topics=[*frames, *cycles], log_time_order=True):
+                if channel.topic in cycles:
+                    yield from self._unfolded(channel.topic, message.log_time, message.data)
+                else:
+                    yield channel.topic, message.log_time, message.data, self._decoder(schema, channel)
         except Exception as exc:  # a CRC, zstd or lz4 error: the bytes are wrong
             raise ValueError(f"{self.name}: damaged after {self.frames_read} frames ({exception_line(exc)}); "
                              f"{self._recover} saves the intact chunks") from exc
@@ -220,6 +248,8 @@ class McapReader(BinaryIOMessageReader):
                     if is_frame_topic(channel.topic):
                         yield (channel.topic, record.log_time, record.data,
                                self._decoder(schemas.get(channel.schema_id), channel))
+                    elif _is_cycle(schemas.get(channel.schema_id), channel):
+                        yield from self._unfolded(channel.topic, record.log_time, record.data)
         except Exception as exc:
             raise ValueError(f"{self.name}: truncated or damaged after {self.frames_read} frames ({exc}); "
                              f"{self._recover} writes a complete copy") from exc

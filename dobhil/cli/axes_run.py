@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from dobhil.cli.common import EXIT_STOPPED
+from dobhil.recording.layouts import DEFAULT_LAYOUT
 from dobhil.cli.recording import AxisRun, begin_axes, end_axes, log_summary
 from dobhil.recording.axeslog import axis_record
 
@@ -52,7 +53,8 @@ def run_axes(args: argparse.Namespace, *, prog: str, emulate: bool, lockstep: bo
     if gates is None:
         return EXIT_STOPPED
     gate_records = axes_gate_metadata(gates, allow_unstable=args.allow_unstable)
-    recorder = open_axes_log(log, axes.names, live=live_address(live, log))
+    recorder = open_axes_log(log, axes.names, live=live_address(live, log),
+                             layout=getattr(args, "log_layout", DEFAULT_LAYOUT))
     if recorder is not None and recorder.writer_pid is not None:
         # the writer below the loop (nice +10): it is lossy in real time and may lag
         from dobhil.realtime import WRITER_PRIORITY_DROP, lower_priority

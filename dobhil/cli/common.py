@@ -8,6 +8,7 @@ from pathlib import Path
 from typing import TextIO
 
 from dobhil.config import Config, load_config, resolve_config
+from dobhil.recording.layouts import DEFAULT_LAYOUT, LAYOUTS
 
 #: exit code of a run that ended in a safety stop (not bad input)
 EXIT_STOPPED = 1
@@ -77,3 +78,11 @@ def files_read(config: Config, args: argparse.Namespace) -> list[Path]:
         if config_dir is not None and not Path(name).is_absolute():
             files.append(config_dir / name)
     return files
+
+
+def add_log_layout_arg(parser: argparse.ArgumentParser) -> None:
+    """``--log-layout``: how ``--log`` lays out its messages (docs/recording.md)."""
+    parser.add_argument("--log-layout", choices=LAYOUTS, default=DEFAULT_LAYOUT,
+                        help="topics: a message per topic per cycle and per CAN frame (default; Foxglove shows "
+                             "each topic); cycle: one /cycle message per control cycle holding them, about a "
+                             "third of the bytes (docs/recording.md)")

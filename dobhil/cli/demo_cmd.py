@@ -8,7 +8,7 @@ import argparse
 from pathlib import Path
 from typing import Any
 
-from dobhil.cli.common import add_config_args, output_path
+from dobhil.cli.common import add_config_args, add_log_layout_arg, output_path
 from dobhil.cli.stability_gate import add_gate_args
 
 
@@ -34,6 +34,7 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p.add_argument("--log", type=output_path, metavar="FILE.mcap",
                    help="MCAP recording (default: OUT/run-YYYYmmdd-HHMMSS.mcap)")
     p.add_argument("--no-log", action="store_true", help="do not record the run")
+    add_log_layout_arg(p)
     p.add_argument("--live", metavar="[HOST:]PORT",
                    help="then play the recorded run to Foxglove over WebSocket at its pace, as `dobhil log serve` "
                         "does: prints the address and waits for a client to subscribe (Ctrl-C to stop); the "
@@ -81,7 +82,7 @@ def run(args: argparse.Namespace) -> int:
         check_lockstep_run(load_drive_profile(config, path.parent), config.loop.period)
     gate = stability_gate(config, path, allow_unstable=args.allow_unstable, prog="dobhil demo")
     log_path = None if args.no_log else (args.log or default_log_path(args.out))
-    log = open_run_log(log_path)
+    log = open_run_log(log_path, layout=args.log_layout)
     try:
         with stop_on_signals(StopRequest()) as request, \
                 RunSession(config, emulate=True, lockstep=not args.realtime, config_dir=path.parent,

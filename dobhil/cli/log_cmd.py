@@ -76,6 +76,9 @@ def _info_lines(info: Any) -> Iterator[str]:
     yield f"time:       {_stamp(info.start_ns)} .. {_stamp(info.end_ns)} ({info.duration_s:.3f} s)"
     yield f"stop:       {info.stop_reason or '-'}"
     yield f"encoding:   {info.encoding or '-'}"
+    if info.layout != "topics":   # /cycle holds the cycle's topics: what a reader of the file sees them as
+        yield (f"layout:     {info.layout} (each /cycle message holds a control cycle's /loop, /controller, "
+               "/drive/*, /emulator/truth and the CAN frames after it)")
     axes = info.metadata.get("axes")
     if axes:  # a several-axis log: each axis with its bus (its topics under /axis/<name>)
         bus_of = json.loads(axes.get("bus_of", "{}"))

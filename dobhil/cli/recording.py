@@ -29,6 +29,7 @@ from dobhil.files import check_new_output
 from dobhil.recording.axeslog import AxesLog, AxisDrive, axis_record, bus_record
 from dobhil.recording.codes import ProtocolCodes
 from dobhil.recording.encodings import DEFAULT_ENCODING
+from dobhil.recording.layouts import DEFAULT_LAYOUT
 from dobhil.recording.process import WriterProcess
 from dobhil.recording.runlog import RunLog
 from dobhil.recording.schemas import EventKind
@@ -88,14 +89,15 @@ def _say_live(log: RunLog | AxesLog) -> None:
 
 
 def open_run_log(path: Path | None, *, live: LiveView | None = None, fsync: bool = True,
-                 encoding: str = DEFAULT_ENCODING) -> RunLog | None:
+                 encoding: str = DEFAULT_ENCODING, layout: str = DEFAULT_LAYOUT) -> RunLog | None:
     """A :class:`RunLog` for ``path`` (checked first: one line if it cannot be written), its
-    messages in ``encoding`` (``dobhil.recording.encodings``)."""
+    messages in ``encoding`` (``dobhil.recording.encodings``) laid out as ``layout``
+    (``dobhil.recording.cycles``)."""
     if path is None:
         return None
     check_new_output(path, suffix=".mcap", what="--log")
     path.parent.mkdir(parents=True, exist_ok=True)
-    return RunLog(WriterProcess(path, fsync=fsync, encoding=encoding), live=live)
+    return RunLog(WriterProcess(path, fsync=fsync, encoding=encoding, layout=layout), live=live)
 
 
 def versions() -> dict[str, str]:
@@ -308,14 +310,14 @@ class AxisRun:
 
 
 def open_axes_log(path: Path | None, names: Sequence[str], *, live: LiveView | None = None,
-                  fsync: bool = True) -> AxesLog | None:
+                  fsync: bool = True, layout: str = DEFAULT_LAYOUT) -> AxesLog | None:
     """An :class:`~dobhil.recording.axeslog.AxesLog` of the axes ``names`` for ``path``
     (checked first: one line if it cannot be written)."""
     if path is None:
         return None
     check_new_output(path, suffix=".mcap", what="--log")
     path.parent.mkdir(parents=True, exist_ok=True)
-    return AxesLog.open(path, names, live=live, fsync=fsync)
+    return AxesLog.open(path, names, live=live, fsync=fsync, layout=layout)
 
 
 def axes_metadata(runs: Sequence[AxisRun], *, timing: Timing, period: float, duration: float,

@@ -10,7 +10,7 @@ from collections.abc import Callable
 from typing import Any
 
 from dobhil.cli.axis_option import add_axis_arg, select_axis
-from dobhil.cli.common import EXIT_STOPPED, add_config_args, config_from_args, output_path
+from dobhil.cli.common import EXIT_STOPPED, add_config_args, add_log_layout_arg, config_from_args, output_path
 from dobhil.cli.preflight_lines import report_preflight, tell_refusal
 from dobhil.cli.stop_lines import flush_stdout, say_last, say_safe_stop, stop_said
 from dobhil.cli.stability_gate import add_gate_args
@@ -30,6 +30,7 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p.add_argument("--plot", type=output_path, metavar="FILE.png", help="plot reference and interaction torque")
     p.add_argument("--log", type=output_path, metavar="FILE.mcap",
                    help="record the run to MCAP (see docs/recording.md)")
+    add_log_layout_arg(p)
     p.add_argument("--no-preflight", action="store_true",
                    help="do not measure the drive before enabling it (see dobhil check; "
                         "always skipped with --emulate, whose emulator is built from the profile)")
@@ -90,7 +91,7 @@ def run_checked(args: argparse.Namespace) -> int:
         check_lockstep_run(load_drive_profile(config, resolve_config(args.config).parent), config.loop.period)
     # before any bus or log file: an unstable design is refused with nothing opened
     gate = stability_gate(config, args.config, allow_unstable=args.allow_unstable, prog="dobhil run")
-    log = open_run_log(args.log, live=live_address(args.live, args.log))
+    log = open_run_log(args.log, live=live_address(args.live, args.log), layout=args.log_layout)
     lower_writer(log)
     session: Any = None
     try:

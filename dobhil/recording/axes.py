@@ -163,7 +163,7 @@ class AxisLog:
         statistics (0 for a file without them)."""
         wanted = set(topics)
         names = {t for t, n in self._names.items() if n in wanted}
-        return sum(c.message_count for c in self.file.channels() if c.topic in names)
+        return sum(count for topic, count in self.file.message_counts().items() if topic in names)
 
     def iter_payloads(self, topics: Iterable[str] | None = None) -> Iterator[tuple[str, int, bytes]]:
         """(topic as this axis names it, log_time_ns, message bytes) in file order."""

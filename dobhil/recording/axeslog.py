@@ -33,6 +33,7 @@ import can
 
 from dobhil.errors import RecorderError
 from dobhil.recording.codes import ProtocolCodes
+from dobhil.recording.layouts import DEFAULT_LAYOUT
 from dobhil.recording.process import WriterProcess
 from dobhil.recording.runlog import LaneSink, RunLog
 from dobhil.recording.schemas import EventKind, Topic
@@ -105,11 +106,11 @@ class AxesLog:
 
     @classmethod
     def open(cls, path: str | os.PathLike[str], axes: Iterable[str], *, live: LiveView | None = None,
-             fsync: bool = True) -> AxesLog:
+             fsync: bool = True, layout: str = DEFAULT_LAYOUT) -> AxesLog:
         """A log of the axes named ``axes`` (in the loop's order) to the new file ``path``
         (created now; its writer process started, not yet open)."""
         names = tuple(axes)
-        return cls(WriterProcess(Path(path), fsync=fsync), names, live=live)
+        return cls(WriterProcess(Path(path), fsync=fsync, layout=layout), names, live=live)
 
     @property
     def path(self) -> Path:

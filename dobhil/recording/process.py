@@ -30,6 +30,7 @@ from dobhil.errors import RecorderError, exception_line
 from dobhil.recording.codes import ProtocolCodes
 from dobhil.recording.encodings import DEFAULT_ENCODING, encoding as find_encoding
 from dobhil.recording.packed import unpacked_batch
+from dobhil.recording.layouts import DEFAULT_LAYOUT, LAYOUTS
 from dobhil.recording.writer import Lane, LiveView, LogWriter, RecordMode
 
 #: Seconds ``close`` waits for the writer process to finish the file, at most, however busy it is.
@@ -96,6 +97,7 @@ class Open(NamedTuple):
     codes: ProtocolCodes | None = None  # names the drive's codes on /drive/feedback
     lanes: tuple[Lane, ...] = ()  # the topic prefix and codes per lane (LogWriter); () one lane
     encoding: str = DEFAULT_ENCODING  # of the messages (dobhil.recording.encodings)
+    layout: str = DEFAULT_LAYOUT  # a message per topic or per cycle (dobhil.recording.cycles)
 
 
 class Stop(NamedTuple):
@@ -147,9 +149,13 @@ class WriterProcess:
     """A writer process recording to ``path``; the file is created here (a bad path raises)."""
 
     def __init__(self, path: str | os.PathLike[str], *, flush_interval: float = 1.0, fsync: bool = True,
-                 write_interval: float = WRITE_INTERVAL, encoding: str = DEFAULT_ENCODING) -> None:
+                 write_interval: float = WRITE_INTERVAL, encoding: str = DEFAULT_ENCODING,
+                 layout: str = DEFAULT_LAYOUT) -> None:
         self.path = Path(path)
         self.encoding = find_encoding(encoding).name  # an unknown one refused here, not in the child
+        if layout not in LAYOUTS:
+            raise ValueError(f"unknown log layout {layout!r}; expected one of {', '.join(LAYOUTS)}")
+        self.layout = layout
         self.mode = RecordMode.BACKPRESSURE
         self.opened = self._closed = False
         self.dropped = self.written = 0
@@ -177,7 +183,7 @@ class WriterProcess:
         meta = {str(n): {str(k): str(v) for k, v in r.items()} for n, r in metadata.items()}
         files = [(str(n), str(m), bytes(d)) for n, m, d in attachments]
         self._send(encode([Open(Control.OPEN, int(self.mode), *self._interval, self._fsync, meta, files, live,
-                                codes, tuple(Lane(*lane) for lane in lanes), self.encoding)]), None)
+                                codes, tuple(Lane(*lane) for lane in lanes), self.encoding, self.layout)]), None)
         message: Reply | None = _read_status(self._status, JOIN_TIMEOUT)
         if message is None or message.status != Status.READY:
             self._closed = True
@@ -455,7 +461,7 @@ def _open(path: str, status: Connection, o: Open) -> LogWriter:
         if codes is not None:
             codes.prepare()
     log = LogWriter(open(path, "wb"), metadata=o.metadata, attachments=o.attachments, mode=RecordMode(o.mode),
-                    fsync=o.fsync, codes=o.codes, lanes=o.lanes, encoding=o.encoding)
+                    fsync=o.fsync, codes=o.codes, lanes=o.lanes, encoding=o.encoding, layout=o.layout)
     live = o.live
     port = None
     if live is not None:

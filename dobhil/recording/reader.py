@@ -28,7 +28,8 @@ from dobhil import __version__
 from dobhil.errors import LogFileError, exception_line
 from dobhil.files import input_problem
 from dobhil.recording.encodings import Decoder, Encoding, RowDecoder, encoding
-from dobhil.recording.schemas import SPECS_BY_SCHEMA, EventKind
+from dobhil.recording.layouts import CYCLE_SCHEMA, CYCLE_TOPIC
+from dobhil.recording.schemas import SPECS_BY_SCHEMA, EventKind, Topic
 from dobhil.recording.writer import RECORDING_METADATA
 
 MAGIC: Final = b"\x89MCAP0\r\n"
@@ -40,6 +41,7 @@ _NUMERIC: Final = {("recording", "dropped"): int, ("recording", "written"): int,
                    ("bus", "data_bitrate"): float,
                    ("run", "torque_limit"): float, ("run", "period"): float, ("run", "duration"): float}
 _STOP: Final = EventKind.STOP.name.lower()
+_FRAME_NUMBERS: Final = (int(Topic.CAN_RX), int(Topic.CAN_TX))
 
 @dataclass(frozen=True)
 class ChannelInfo:
@@ -63,6 +65,7 @@ class LogInfo:
     stop_reason: str | None
     dropped: int | None
     encoding: str = ""  # the channels' message encodings, e.g. "protobuf" ("json": before 0.2)
+    layout: str = "topics"  # or "cycle": a message per control cycle (dobhil/recording/cycles.py)
     #: config record -> its keys this version does not know (:attr:`LogFile.unknown_config`)
     unknown_config_keys: Mapping[str, tuple[str, ...]] = field(default_factory=dict)
 
@@ -330,7 +333,53 @@ class LogFile:
             name: keys for name, record in self.metadata.items()
             if (name == "config" or name.startswith("axis/") and name.endswith("/config"))
             and (keys := unknown_config_keys(record))}
+        #: cycle channel (the cycle layout, dobhil/recording/cycles.py) -> topic number -> the
+        #: channel its messages are read as: a channel of the file on that topic, else one of
+        #: :attr:`folded_channels`, which only this reader knows of
+        self.cycle_channels: dict[int, dict[int, int]] = {}
+        self.folded_channels: set[int] = set()
+        held = self._folded_counts()
+        for cid, channel in list(self.channel_records.items()):
+            schema = self.schemas.get(channel.schema_id)
+            if schema is not None and schema.name == CYCLE_SCHEMA and channel.topic.endswith(CYCLE_TOPIC):
+                self.cycle_channels[cid] = self._unfolded(channel.topic[:-len(CYCLE_TOPIC)], held)
         self.config: Any = _validate_metadata(path, self.metadata, self.library, describe=describe)
+
+    def _folded_counts(self) -> dict[str, int] | None:
+        """Topic -> messages the writer put in cycle messages (its ``recording`` summary's
+        ``folded``); None when the file has no such count (no summary: a recovered file)."""
+        try:
+            folded = json.loads(self.metadata.get(RECORDING_METADATA, {})["folded"])
+        except (KeyError, ValueError):
+            return None
+        if not isinstance(folded, dict):
+            return None
+        return {str(k): v for k, v in folded.items() if isinstance(v, int) and v > 0}
+
+    def _unfolded(self, prefix: str, held: Mapping[str, int] | None) -> dict[int, int]:
+        """Topic number -> channel of each topic a cycle channel under ``prefix`` holds (made
+        up, with its protobuf schema, when the file has none on that topic): those the writer
+        counted in ``held`` (None: not known, every topic a cycle message can hold)."""
+        from dobhil.recording.cycles import FOLDED
+        from dobhil.recording.encodings.protobuf import file_descriptor_set
+        from dobhil.recording.schemas import TOPIC_SPECS
+        out: dict[int, int] = {}
+        by_topic = {c.topic: cid for cid, c in self.channel_records.items()}
+        for topic in FOLDED:
+            spec, name = TOPIC_SPECS[topic], prefix + TOPIC_SPECS[topic].name
+            if held is not None and name not in held:
+                continue
+            cid = by_topic.get(name)
+            if cid is None:
+                cid = max(self.channel_records, default=0) + 1
+                sid = max(self.schemas, default=0) + 1
+                self.schemas[sid] = Schema(id=sid, name=spec.schema_name, encoding="protobuf",
+                                           data=file_descriptor_set(spec))
+                self.channel_records[cid] = Channel(id=cid, topic=name, message_encoding="protobuf", metadata={},
+                                                    schema_id=sid)
+                self.folded_channels.add(cid)
+            out[int(topic)] = cid
+        return out
 
     def __enter__(self) -> LogFile:  # nothing is held open between reads: ``with`` only reads well
         return self
@@ -339,12 +388,48 @@ class LogFile:
         pass
 
     def channels(self) -> tuple[ChannelInfo, ...]:
+        """The channels of the file (a cycle channel's topics are not channels of their own)."""
         counts = self.statistics.channel_message_counts if self.statistics is not None else {}
         return tuple(ChannelInfo(c.topic, getattr(self.schemas.get(c.schema_id), "name", ""), c.message_encoding,
-                                 counts.get(c.id, 0)) for c in self.channel_records.values())
+                                 counts.get(c.id, 0)) for c in self.channel_records.values()
+                     if c.id not in self.folded_channels)
+
+    def message_counts(self) -> dict[str, int]:
+        """Topic -> messages a reader gets of it: the file's statistics, and for the topics
+        cycle messages hold the writer's count of what it put in them (its ``recording``
+        summary's ``folded``; in a file without that summary, :meth:`_guessed_folded`)."""
+        topics = set(self.topics())
+        out = {c.topic: c.message_count for c in self.channels() if c.topic in topics}
+        if not self.cycle_channels:
+            return out
+        folded = self._folded_counts()
+        if folded is None:   # no summary (a recovered file): a guess, one per cycle message
+            folded = self._guessed_folded()
+        for topic, count in folded.items():
+            out[topic] = out.get(topic, 0) + count
+        return out
+
+    def _guessed_folded(self) -> dict[str, int]:
+        """Topic -> messages its cycle messages hold, when the writer's count is lost: each
+        signal topic once per cycle message (its frames not counted)."""
+        statistics = self.statistics.channel_message_counts if self.statistics is not None else {}
+        out: dict[str, int] = {}
+        for cycle, held in self.cycle_channels.items():
+            for number, cid in held.items():
+                if number not in _FRAME_NUMBERS:   # how many frames each cycle held is not known
+                    topic = self.channel_records[cid].topic
+                    out[topic] = out.get(topic, 0) + statistics.get(cycle, 0)
+        return out
+
+    @property
+    def layout(self) -> str:
+        """``cycle`` when the file holds cycle messages (dobhil/recording/cycles.py), else ``topics``."""
+        return "cycle" if self.cycle_channels else "topics"
 
     def topics(self) -> tuple[str, ...]:
-        return tuple(c.topic for c in self.channel_records.values())
+        """Every topic a reader gets messages of (a cycle channel's own topic is not one: its
+        messages are read as the topics they hold)."""
+        return tuple(c.topic for cid, c in self.channel_records.items() if cid not in self.cycle_channels)
 
     def require_topic(self, topic: str) -> None:
         if topic not in self.topics():
@@ -358,7 +443,8 @@ class LogFile:
 
     def encodings(self) -> tuple[str, ...]:
         """The message encodings of its channels, each once."""
-        return tuple(dict.fromkeys(c.message_encoding for c in self.channel_records.values()))
+        return tuple(dict.fromkeys(c.message_encoding for c in self.channel_records.values()
+                                   if c.id not in self.folded_channels))
 
     def schema_properties(self, topic: str) -> tuple[str, ...]:
         """Field names of a topic's schema as stored in the file (a JSON schema's properties,
@@ -389,8 +475,14 @@ class LogFile:
             yield topic, t, data
 
     def _iter_raw(self, topics: Iterable[str] | None = None) -> Iterator[tuple[int, str, int, bytes]]:
-        """(channel id, topic, log_time_ns, message bytes) in file order."""
-        wanted = {cid: c.topic for cid, c in self.channel_records.items() if topics is None or c.topic in set(topics)}
+        """(channel id, topic, log_time_ns, message bytes) in file order; a cycle message's
+        messages each as its own, in the order written."""
+        chosen = None if topics is None else set(topics)
+        wanted = {cid: c.topic for cid, c in self.channel_records.items()
+                  if (chosen is None or c.topic in chosen) and cid not in self.cycle_channels}
+        folded = {cycle: {number: (cid, wanted[cid]) for number, cid in held.items() if cid in wanted}
+                  for cycle, held in self.cycle_channels.items()}
+        folded = {cycle: held for cycle, held in folded.items() if held}
         with open(self.path, "rb") as f:
             for offset, size in self.chunks:
                 try:
@@ -401,7 +493,29 @@ class LogFile:
                     data = get_chunk_data_stream(chunk, validate_crc=True)[0].read(size)
                 except Exception as exc:
                     raise _fail(self.path, f"damaged at byte {offset} ({exception_line(exc)})") from exc
-                yield from _chunk_messages(data, wanted)
+                if folded:
+                    yield from self._unfold(_chunk_messages(data, {**wanted, **dict.fromkeys(folded, "")}), folded)
+                else:
+                    yield from _chunk_messages(data, wanted)
+
+    def _unfold(self, raw: Iterator[tuple[int, str, int, bytes]], folded: Mapping[int, Mapping[int, tuple[int, str]]]
+                ) -> Iterator[tuple[int, str, int, bytes]]:
+        """``raw`` with each message of a channel in ``folded`` (a cycle channel: topic number
+        -> the channel and topic its messages are read as) split into the messages it holds."""
+        from dobhil.recording.cycles import unfold
+        for cid, topic, t, data in raw:
+            held = folded.get(cid)
+            if held is None:
+                yield cid, topic, t, data
+                continue
+            try:
+                for number, at, part in unfold(data, t):
+                    target = held.get(number)
+                    if target is not None:
+                        yield target[0], target[1], at, part
+            except ValueError as exc:
+                raise _fail(self.path, f"a {self.channel_records[cid].topic} message at log time {t} is not "
+                                       f"a dobhil.Cycle message ({exc})") from None
 
     def iter_messages(self, topics: Iterable[str] | None = None) -> Iterator[tuple[str, int, dict[str, Any]]]:
         """(topic, log_time_ns, payload dict) in file order, whatever the encoding (the same
@@ -457,7 +571,7 @@ class LogFile:
                        stats.message_start_time if stats else 0, stats.message_end_time if stats else 0,
                        MappingProxyType(self.metadata), tuple(a for a, _, _ in self.attachments), self.stop_reason(),
                        None if dropped is None else int(dropped), ", ".join(self.encodings()),
-                       dict(self.unknown_config))
+                       self.layout, dict(self.unknown_config))
 
 
 def _axis_names(metadata: Mapping[str, Mapping[str, str]]) -> list[str]:

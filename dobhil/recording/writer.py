@@ -7,6 +7,7 @@ message to a second output (the live view) too. No python-can, no numpy: it star
 
 from __future__ import annotations
 
+import json
 import os
 import time
 from collections.abc import Callable, Iterable, Mapping, Sequence
@@ -19,7 +20,9 @@ from mcap.writer import CompressionType, Writer
 from dobhil import __version__
 from dobhil.recording.codes import ProtocolCodes
 from dobhil.recording.encodings import DEFAULT_ENCODING, Encoding, encoding
-from dobhil.recording.schemas import LANE_MASK, TOPIC_SPECS, EventKind, Topic, event_record, lane_kind, named, views
+from dobhil.recording.layouts import CYCLE_SCHEMA, CYCLE_TOPIC, DEFAULT_LAYOUT, LAYOUTS
+from dobhil.recording.schemas import (CYCLE, LANE_MASK, LANE_STRIDE, TOPIC_SPECS, EventKind, Topic, event_record,
+                                      lane_kind, named, views)
 
 #: Chunks end at this size or at every flush, whichever comes first.
 CHUNK_SIZE: Final = 256 * 1024
@@ -70,6 +73,7 @@ class LiveView:
 
 
 _EVENTS, _LOSS = int(Topic.EVENTS), int(EventKind.LOSS)
+_FRAME_KINDS: Final = frozenset((int(Topic.CAN_RX), int(Topic.CAN_TX)))
 _encoding = encoding
 class Lane(NamedTuple):
     """One lane of a log (a record's lane is in its kind:
@@ -106,20 +110,35 @@ def lane_views(lanes: Sequence[Lane], encoding: Encoding | None = None) -> dict[
 
 class LogWriter:
     """Writes records to ``file`` (owned: closed by :meth:`finish` or :meth:`close`), each
-    message in ``encoding`` (a name of :data:`~dobhil.recording.encodings.ENCODINGS`); the
-    other outputs (the live view) get JSON. Not thread-safe: one thread (or process) writes."""
+    message in ``encoding`` (a name of :data:`~dobhil.recording.encodings.ENCODINGS`), laid
+    out as ``layout`` (:data:`~dobhil.recording.cycles.LAYOUTS`: a message per topic, or one
+    per control cycle, :mod:`dobhil.recording.cycles`, protobuf only); the other outputs (the
+    live view) get JSON, a message per topic. Not thread-safe: one thread (or process) writes."""
 
     def __init__(self, file: BinaryIO, *, metadata: Mapping[str, Mapping[str, Any]],
                  attachments: Iterable[Sequence[Any]] = (), mode: RecordMode = RecordMode.BACKPRESSURE,
                  fsync: bool = True, library: str = LIBRARY, compression: CompressionType = COMPRESSION,
                  chunk_size: int = CHUNK_SIZE, codes: ProtocolCodes | None = None,
-                 lanes: Sequence[Lane] = (), encoding: str = DEFAULT_ENCODING) -> None:
+                 lanes: Sequence[Lane] = (), encoding: str = DEFAULT_ENCODING,
+                 layout: str = DEFAULT_LAYOUT) -> None:
+        if layout not in LAYOUTS:
+            raise ValueError(f"unknown log layout {layout!r}; expected one of {', '.join(LAYOUTS)}")
         self.file = file
         #: the topic prefix and codes of each lane (:data:`Lane`); one lane without prefix,
         #: its drive's codes named by ``codes``, unless given
         self.lanes: tuple[Lane, ...] = tuple(Lane(*lane) for lane in lanes) or (Lane("", codes),)
         self.encoding: Encoding = _encoding(encoding)
+        if layout == "cycle" and self.encoding.name != "protobuf":
+            raise ValueError(f"the cycle layout is protobuf's; not {self.encoding.name}")
+        self.layout = layout
+        if layout == "cycle":   # imported when asked, as an encoding is
+            from dobhil.recording import cycles
+            self._cycles = cycles
         self._views = lane_views(self.lanes, self.encoding)
+        #: the cycle message being filled (cycle layout): its lane, log time and fields
+        self._cycle: tuple[int, int, list[bytes]] | None = None
+        #: topic -> messages written inside cycle messages (the summary's ``folded``)
+        self.folded: dict[str, int] = {}
         self._live_views: dict[int, tuple[_LaneView, ...]] = {}  # JSON, once an output is added
         self.mode = RecordMode(mode)
         self.fsync = fsync
@@ -161,6 +180,9 @@ class LogWriter:
 
     def write(self, records: Iterable[Sequence[Any]]) -> None:
         """Encode and write records (flat tuples of the topic table, named here), in order."""
+        if self.layout == "cycle":
+            self._write_cycles(records)
+            return
         add, channels, outputs = self._mcap.add_message, self._channels, self._outputs
         written, last = self.written, self.last_log_ns
         views_of = self._views
@@ -177,6 +199,59 @@ class LogWriter:
             last = max(last, t)
         self.written, self.last_log_ns = written, last
 
+    def _write_cycles(self, records: Iterable[Sequence[Any]]) -> None:
+        """:meth:`write` in the cycle layout: a cycle record's messages, and the frames of its
+        lane that follow it, become fields of one message (written when the next record that
+        is neither comes, or at :meth:`flush`); everything else is written as in the topics
+        layout. ``written`` counts the messages folded, as the topics layout would."""
+        views_of, outputs, cycles, folded = self._views, self._outputs, self._cycles, self.folded
+        for record in map(named, records):
+            kind, t, n = record.kind, record.log_time_ns, len(record)
+            base, lane = kind & LANE_MASK, kind // LANE_STRIDE
+            pending = self._cycle
+            if base == CYCLE:
+                self._end_cycle()
+                parts = []
+                for name, topic, encode, needs in views_of[kind]:
+                    if n >= needs:
+                        parts.append(cycles.signal_part(topic, encode(record)))
+                        folded[name] = folded.get(name, 0) + 1
+                self._cycle = (lane, t, parts)
+                self.written += len(parts)
+            elif base in _FRAME_KINDS and pending is not None and pending[0] == lane:
+                (name, topic, encode, _), = views_of[kind]
+                pending[2].append(cycles.frame_part(topic, encode(record), t - pending[1]))
+                folded[name] = folded.get(name, 0) + 1
+                self.written += 1
+            else:
+                self._end_cycle()
+                if base == _EVENTS and record.event == _LOSS:
+                    self.dropped += record.lost
+                for name, topic, encode, needs in views_of[kind]:
+                    if n >= needs:
+                        self._mcap.add_message(self._channels.get(name) or self._register(name, topic), t,
+                                               encode(record), t)
+                        self.written += 1
+            if outputs:
+                self._publish(record, n)
+            self.last_log_ns = max(self.last_log_ns, t)
+
+    def _end_cycle(self) -> None:
+        """Write the cycle message being filled, if any (cycle layout)."""
+        if self._cycle is None:
+            return
+        lane, t, parts = self._cycle
+        self._cycle = None
+        name = self.lanes[lane].prefix + CYCLE_TOPIC
+        channel = self._channels.get(name)
+        if channel is None:
+            schema = self._schemas.get(CYCLE_SCHEMA)
+            if schema is None:
+                schema = self._schemas[CYCLE_SCHEMA] = self._mcap.register_schema(CYCLE_SCHEMA, "protobuf",
+                                                                                 self._cycles.cycle_schema())
+            channel = self._channels[name] = self._mcap.register_channel(name, "protobuf", schema)
+        self._mcap.add_message(channel, t, b"".join(parts), t)
+
     def _publish(self, record: Any, n: int) -> None:
         """``record``'s messages, in JSON, to every other output."""
         for name, _, encode, needs in self._live_views[record.kind]:
@@ -188,6 +263,7 @@ class LogWriter:
     def flush(self, sync: bool = True) -> None:
         """End the chunk and hand it to the OS (a killed process then loses nothing older);
         with ``sync`` (and ``fsync``) also fsync (a power loss then loses nothing older)."""
+        self._end_cycle()
         self._mcap.flush()  # flushes the file object too
         if sync and self.fsync:
             os.fsync(self.file.fileno())
@@ -199,8 +275,11 @@ class LogWriter:
             self._mcap.add_metadata(name, dict(record))
         if stop_reason is not None:
             self.write([event_record(EventKind.STOP, self.last_log_ns or time.time_ns(), stop_reason, detail)])
+        self._end_cycle()
         summary = {"mode": self.mode.name.lower(), "written": str(self.written), "dropped": str(self.dropped),
                    "stop_reason": stop_reason or ""}
+        if self.folded:   # what a reader counts each topic's messages with (the statistics count /cycle's)
+            summary["folded"] = json.dumps(self.folded, separators=(",", ":"))
         if self._outputs:
             summary["live_dropped"] = str(sum(out.dropped for out in self._outputs))
         self._mcap.add_metadata(RECORDING_METADATA, summary)

@@ -33,12 +33,12 @@ TOPICS = {"/can/rx", "/can/tx", "/drive/feedback", "/drive/command", "/controlle
           "/emulator/truth", "/events"}
 
 
-def logged_lockstep_run(path: Path, duration: float = 0.3,
-                        encoding: str = "protobuf") -> tuple[list[can.Message], int, int]:
-    """A lockstep demo run recorded to ``path`` (messages in ``encoding``); every frame a
-    sniffer saw, the cycles and the frames the emulated drive sent."""
+def logged_lockstep_run(path: Path, duration: float = 0.3, encoding: str = "protobuf",
+                        layout: str = "topics") -> tuple[list[can.Message], int, int]:
+    """A lockstep demo run recorded to ``path`` (messages in ``encoding``, laid out as
+    ``layout``); every frame a sniffer saw, the cycles and the frames the emulated drive sent."""
     config = load_config(DEMO, [f"loop.duration={duration}"])
-    log = RunLog(WriterProcess(path, fsync=False, encoding=encoding))
+    log = RunLog(WriterProcess(path, fsync=False, encoding=encoding, layout=layout))
     with RunSession(config, emulate=True, lockstep=True, sink=log, bus_wrapper=log.wrap_bus) as session:
         sniffer = can.Bus(interface="virtual", channel=session.bus_spec.channel)
         try:

@@ -56,6 +56,7 @@ class ProtoType(IntEnum):
     DOUBLE = 1
     BOOL = 8
     STRING = 9
+    MESSAGE = 11
     BYTES = 12
     SFIXED64 = 16
 
@@ -110,15 +111,19 @@ def _field_descriptor(number: int, name: str, kind: FieldKind) -> bytes:
             + tag(4, Wire.VARINT) + varint(_LABEL_OPTIONAL) + tag(5, Wire.VARINT) + varint(_KINDS[kind].type))
 
 
-def file_descriptor_set(spec: TopicSpec) -> bytes:
-    """The serialized ``FileDescriptorSet`` of ``spec``'s message: one file (name 1, package 2,
-    message_type 4, syntax 12) with one ``DescriptorProto`` (name 1, field 2)."""
-    package, _, message = spec.schema_name.rpartition(".")
+def descriptor_proto(spec: TopicSpec) -> bytes:
+    """The ``DescriptorProto`` (name 1, field 2) of ``spec``'s message."""
     fields = b"".join(_ld(tag(2, Wire.LEN), _field_descriptor(i, f.name, f.kind))
                       for i, f in enumerate(spec.fields, 1))
-    descriptor = _lds(tag(1, Wire.LEN), message) + fields
+    return _lds(tag(1, Wire.LEN), spec.schema_name.rpartition(".")[2]) + fields
+
+
+def file_descriptor_set(spec: TopicSpec) -> bytes:
+    """The serialized ``FileDescriptorSet`` of ``spec``'s message: one file (name 1, package 2,
+    message_type 4, syntax 12) with one ``DescriptorProto`` (:func:`descriptor_proto`)."""
+    package, _, message = spec.schema_name.rpartition(".")
     file = (_lds(tag(1, Wire.LEN), f"{package}/{message}.proto") + _lds(tag(2, Wire.LEN), package)
-            + _ld(tag(4, Wire.LEN), descriptor) + _lds(tag(12, Wire.LEN), "proto3"))
+            + _ld(tag(4, Wire.LEN), descriptor_proto(spec)) + _lds(tag(12, Wire.LEN), "proto3"))
     return _ld(tag(1, Wire.LEN), file)
 
 
@@ -506,5 +511,6 @@ class ProtobufEncoding:
 
 ENCODING: Final = ProtobufEncoding()
 
-__all__ = ["ENCODING", "ProtoType", "ProtobufEncoding", "Wire", "descriptor_fields", "fields_on_wire",
-           "file_descriptor_set", "frame_packer", "packer", "row_unpacker", "tag", "unpacker", "varint"]
+__all__ = ["ENCODING", "ProtoType", "ProtobufEncoding", "Wire", "descriptor_fields", "descriptor_proto",
+           "fields_on_wire", "file_descriptor_set", "frame_packer", "packer", "row_unpacker", "tag", "unpacker",
+           "varint"]
