@@ -95,6 +95,11 @@ TARGETS_MAX: dict[str, float] = {
     # less writer CPU per cycle
     "log_bytes_per_cycle_vs_json": 0.33,
     "writer_cpu_vs_json": 1.0,
+    # the same of the cycle layout (one message per control cycle, dobhil run --log-layout
+    # cycle), in lockstep and in real time
+    "log_bytes_per_cycle_cycle_layout_vs_json": 0.33,
+    "log_bytes_per_cycle_realtime_cycle_layout_vs_json": 0.33,
+    "writer_cpu_cycle_layout_vs_json": 1.0,
     "rt_logged_vs_unlogged_overrun_ratio": 1.2,
     "rt_vs_bare_period_error_p99_ratio": 2.0,
     # 3 ODrive axes at 1 kHz in real time in one loop: at most 1.5x the single axis' overruns
@@ -550,61 +555,78 @@ def _recorder_msgs_per_s(recorded: Path) -> float:
 
 #: the log encodings compared: dobhil's and the JSON it wrote before
 LOG_ENCODINGS = ("protobuf", "json")
+#: the log formats measured: name -> (encoding, layout); ``cycle``: protobuf, one message
+#: per control cycle (dobhil/recording/cycles.py, ``dobhil run --log-layout cycle``)
+LOG_FORMATS: dict[str, tuple[str, str]] = {"protobuf": ("protobuf", "topics"), "json": ("json", "topics"),
+                                           "cycle": ("protobuf", "cycle")}
 
 
-def _encoded_run(duration: float, path: Path, encoding: str) -> tuple[float, float]:
-    """(file bytes, message bytes before compression) per cycle of a lockstep demo run
-    recorded in ``encoding``; NaN (and a line) when it did not last its duration."""
+def _encoded_run(duration: float, path: Path, form: str, lockstep: bool = True) -> tuple[float, float]:
+    """(file bytes, message bytes before compression) per cycle of a demo run (lockstep, or
+    in real time) recorded in the log format ``form`` (:data:`LOG_FORMATS`); NaN (and a
+    line) when it did not last its duration."""
     from dobhil.cli.recording import open_run_log, record_run
     from dobhil.recording.reader import open_log
     from dobhil.runtime.session import RunSession
+    encoding, layout = LOG_FORMATS[form]
     config = load_config(ROOT / "configs/demo.yaml", [f"loop.duration={duration}"])
     path.unlink(missing_ok=True)
-    log = open_run_log(path, fsync=False, encoding=encoding)
+    log = open_run_log(path, fsync=False, encoding=encoding, layout=layout)
     assert log is not None
-    with RunSession(config, emulate=True, lockstep=True, sink=log, bus_wrapper=log.wrap_bus) as session:
+    with RunSession(config, emulate=True, lockstep=lockstep, sink=log, bus_wrapper=log.wrap_bus) as session:
         result = record_run(session, log)
-    if not _ran_whole(result, duration, f"lockstep run logged in {encoding}"):
+    timing = "lockstep" if lockstep else "real-time"
+    if not _ran_whole(result, duration, f"{timing} run logged as {form}"):
         return math.nan, math.nan
     payload = sum(len(data) for _, _, data in open_log(path).iter_payloads())
     return path.stat().st_size / result.cycles, payload / result.cycles
 
 
-def _writer_cpu_us(records: list[tuple[Any, ...]], encoding: str, path: Path) -> float:
-    """CPU seconds (this process) LogWriter spends encoding and writing ``records``, in us."""
+def _writer_cpu_us(records: list[tuple[Any, ...]], form: str, path: Path) -> float:
+    """CPU seconds (this process) LogWriter spends encoding and writing ``records`` in the
+    log format ``form``, in us."""
     from dobhil.recording.writer import LogWriter
+    encoding, layout = LOG_FORMATS[form]
     t0 = time.process_time()
-    log = LogWriter(open(path, "wb"), metadata={}, fsync=False, encoding=encoding)
+    log = LogWriter(open(path, "wb"), metadata={}, fsync=False, encoding=encoding, layout=layout)
     log.write(records)
     log.finish(None)
     return (time.process_time() - t0) * 1e6
 
 
-def bench_log_encoding(pairs: int = 3, seconds: float = 4.0, cycles: int = 20000) -> dict[str, float]:
-    """The log's size and its writer's CPU per control cycle, protobuf (what dobhil writes)
-    against JSON (what it wrote before), interleaved, each side warmed up first.
+def bench_log_encoding(pairs: int = 3, seconds: float = 4.0, cycles: int = 20000,
+                       realtime_seconds: float = 4.0) -> dict[str, float]:
+    """The log's size and its writer's CPU per control cycle in each format of
+    :data:`LOG_FORMATS` -- protobuf (what dobhil writes), JSON (what it wrote before), the
+    cycle layout -- interleaved (the order turned each round), each warmed up first.
 
     ``log_bytes_per_cycle`` (file bytes, zstd chunks and MCAP's indexes included) is the
     median of ``pairs`` recordings of one lockstep demo run (deterministic: the same records
-    both ways), each checked to have lasted; ``log_payload_bytes_per_cycle_vs_json`` the
-    messages' own bytes before compression. ``writer_cpu_us_per_cycle``: the writer's CPU
-    (LogWriter in this process: encoding, chunking, zstd) per cycle of ``cycles`` run-like
-    cycles (a frame received, the cycle's five messages, a frame sent), median of ``pairs``.
-    ``replay_protobuf_vs_json``: :func:`replay_by_encoding` of one such run recorded both ways."""
-    sizes: dict[str, list[tuple[float, float]]] = {e: [] for e in LOG_ENCODINGS}
-    cpu: dict[str, list[float]] = {e: [] for e in LOG_ENCODINGS}
+    every way), each checked to have lasted; ``log_payload_bytes_per_cycle_vs_json`` the
+    messages' own bytes before compression. The ``_realtime`` keys: the same of a
+    ``realtime_seconds`` real-time run (wall-clock stamps and timings: more to compress).
+    ``writer_cpu_us_per_cycle``: the writer's CPU (LogWriter in this process: encoding,
+    chunking, zstd) per cycle of ``cycles`` run-like cycles (a frame received, the cycle's
+    five messages, a frame sent), median of ``pairs``. ``replay_protobuf_vs_json``:
+    :func:`replay_by_encoding` of one such run recorded both ways."""
+    forms = tuple(LOG_FORMATS)
+    sizes: dict[str, list[tuple[float, float]]] = {f: [] for f in forms}
+    realtime: dict[str, list[tuple[float, float]]] = {f: [] for f in forms}
+    cpu: dict[str, list[float]] = {f: [] for f in forms}
     records = _bench_records(cycles)
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / "encoded.mcap"
-        for encoding in LOG_ENCODINGS:   # warm-up, not counted: imports, the writer's first start
-            _encoded_run(0.5, path, encoding)
-            _writer_cpu_us(records[:3000], encoding, path)
+        for form in forms:   # warm-up, not counted: imports, the writer's first start
+            _encoded_run(0.5, path, form)
+            _writer_cpu_us(records[:3000], form, path)
         for i in range(pairs):
-            for encoding in LOG_ENCODINGS if i % 2 == 0 else LOG_ENCODINGS[::-1]:
-                sizes[encoding].append(_encoded_run(seconds, path, encoding))
-                cpu[encoding].append(_writer_cpu_us(records, encoding, path) / cycles)
+            for form in forms[i % len(forms):] + forms[:i % len(forms)]:
+                sizes[form].append(_encoded_run(seconds, path, form))
+                cpu[form].append(_writer_cpu_us(records, form, path) / cycles)
+                if realtime_seconds > 0:
+                    realtime[form].append(_encoded_run(realtime_seconds, path, form, lockstep=False))
         replayed = replay_by_encoding(seconds, Path(tmp))
-    return {**log_encoding_figures(sizes, cpu), **replayed}
+    return {**log_encoding_figures(sizes, cpu, realtime), **replayed}
 
 
 #: replay rounds of :func:`replay_by_encoding` (a 4 s log replays in ~0.15 s of CPU): best of 15
@@ -614,26 +636,30 @@ REPLAY_REPEAT = 15
 def replay_by_encoding(seconds: float, folder: Path, repeat: int = REPLAY_REPEAT, *,
                        clock: Callable[[], float] = time.process_time) -> dict[str, float]:
     """``replay()`` (the file read, decoded and the controller re-run, as ``dobhil replay``)
-    of one lockstep demo run recorded in protobuf and in JSON (deterministic: the same
-    records), each side warmed, then ``repeat`` interleaved rounds, best of each. Timed in
-    CPU time of this process (``time.process_time``): replay is one thread, and a shared
-    machine's other jobs are not counted against either side. Each replay checked bit for
-    bit against its recording (:func:`_replayed`). ``replay_protobuf_vs_json``: JSON's time
-    over protobuf's (above 1: protobuf replays faster); NaN when a run did not last its
-    duration."""
-    paths = {e: folder / f"replay-{e}.mcap" for e in LOG_ENCODINGS}
-    recorded = [_encoded_run(seconds, paths[e], e)[0] for e in LOG_ENCODINGS]   # NaN: did not last
+    of one lockstep demo run recorded in each log format of :data:`LOG_FORMATS`
+    (deterministic: the same records), each side warmed, then ``repeat`` interleaved rounds,
+    best of each. Timed in CPU time of this process (``time.process_time``): replay is one
+    thread, and a shared machine's other jobs are not counted against either side. Each
+    replay checked bit for bit against its recording (:func:`_replayed`).
+    ``replay_protobuf_vs_json``: JSON's time over protobuf's (above 1: protobuf replays
+    faster); ``replay_cycle_layout_vs_topics``: the topics layout's time over the cycle
+    layout's (below 1: a cycle log replays slower); NaN when a run did not last its duration."""
+    forms = tuple(LOG_FORMATS)
+    paths = {f: folder / f"replay-{f}.mcap" for f in forms}
+    recorded = [_encoded_run(seconds, paths[f], f)[0] for f in forms]   # NaN: did not last
     if any(math.isnan(v) for v in recorded):
-        return {"replay_protobuf_vs_json": math.nan}
+        return {"replay_protobuf_vs_json": math.nan, "replay_cycle_layout_vs_topics": math.nan}
     cycles: dict[str, int] = {}
 
-    def run(encoding: str) -> None:
-        cycles[encoding] = _replayed(paths[encoding])
-    sides = [Side(e, lambda e=e: run(e), lambda e=e: run(e)) for e in LOG_ENCODINGS]
+    def run(form: str) -> None:
+        cycles[form] = _replayed(paths[form])
+    sides = [Side(f, lambda f=f: run(f), lambda f=f: run(f)) for f in forms]
     times = interleaved(sides, repeat, clock=clock)
     return {"replay_cycles_per_cpu_s": cycles["protobuf"] / times.best("protobuf"),
             "replay_cycles_per_cpu_s_json": cycles["json"] / times.best("json"),
-            "replay_protobuf_vs_json": times.best("json") / times.best("protobuf")}
+            "replay_cycles_per_cpu_s_cycle_layout": cycles["cycle"] / times.best("cycle"),
+            "replay_protobuf_vs_json": times.best("json") / times.best("protobuf"),
+            "replay_cycle_layout_vs_topics": times.best("protobuf") / times.best("cycle")}
 
 
 def _replayed(path: Path) -> int:
@@ -646,19 +672,33 @@ def _replayed(path: Path) -> int:
     return result.recording.cycles
 
 
-def log_encoding_figures(sizes: dict[str, list[tuple[float, float]]], cpu: dict[str, list[float]]) -> dict[str, float]:
+def log_encoding_figures(sizes: dict[str, list[tuple[float, float]]], cpu: dict[str, list[float]],
+                         realtime: dict[str, list[tuple[float, float]]] | None = None) -> dict[str, float]:
     """The keys of :func:`bench_log_encoding` from its measured (file, payload) bytes per
-    cycle and CPU per cycle of each encoding; a run that did not last (NaN) fails them."""
+    cycle and CPU per cycle of each format (``realtime``: the real-time runs' bytes, none
+    measured when empty); a run that did not last (NaN) fails them."""
     def median(values: list[float]) -> float:
         return float("nan") if any(math.isnan(v) for v in values) else _median_or_nan(values)
-    file = {e: median([f for f, _ in sizes[e]]) for e in LOG_ENCODINGS}
-    payload = {e: median([p for _, p in sizes[e]]) for e in LOG_ENCODINGS}
-    used = {e: median(cpu[e]) for e in LOG_ENCODINGS}
-    return {"log_bytes_per_cycle": file["protobuf"], "log_bytes_per_cycle_json": file["json"],
-            "log_bytes_per_cycle_vs_json": file["protobuf"] / file["json"],
-            "log_payload_bytes_per_cycle_vs_json": payload["protobuf"] / payload["json"],
-            "writer_cpu_us_per_cycle": used["protobuf"], "writer_cpu_us_per_cycle_json": used["json"],
-            "writer_cpu_vs_json": used["protobuf"] / used["json"]}
+    file = {f: median([b for b, _ in sizes[f]]) for f in sizes}
+    payload = {f: median([p for _, p in sizes[f]]) for f in sizes}
+    used = {f: median(cpu[f]) for f in cpu}
+    out = {"log_bytes_per_cycle": file["protobuf"], "log_bytes_per_cycle_json": file["json"],
+           "log_bytes_per_cycle_vs_json": file["protobuf"] / file["json"],
+           "log_payload_bytes_per_cycle_vs_json": payload["protobuf"] / payload["json"],
+           "writer_cpu_us_per_cycle": used["protobuf"], "writer_cpu_us_per_cycle_json": used["json"],
+           "writer_cpu_vs_json": used["protobuf"] / used["json"]}
+    if "cycle" in file:
+        out.update({"log_bytes_per_cycle_cycle_layout": file["cycle"],
+                    "log_bytes_per_cycle_cycle_layout_vs_json": file["cycle"] / file["json"],
+                    "writer_cpu_us_per_cycle_cycle_layout": used["cycle"],
+                    "writer_cpu_cycle_layout_vs_json": used["cycle"] / used["json"]})
+    if realtime and all(realtime.get(f) for f in ("protobuf", "json", "cycle")):
+        rt = {f: median([b for b, _ in realtime[f]]) for f in ("protobuf", "json", "cycle")}
+        out.update({"log_bytes_per_cycle_realtime_json": rt["json"],
+                    "log_bytes_per_cycle_realtime_vs_json": rt["protobuf"] / rt["json"],
+                    "log_bytes_per_cycle_realtime_cycle_layout": rt["cycle"],
+                    "log_bytes_per_cycle_realtime_cycle_layout_vs_json": rt["cycle"] / rt["json"]})
+    return out
 
 
 def _replay_cycles_per_s(recorded: Path) -> float:

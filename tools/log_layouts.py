@@ -18,8 +18,10 @@ log's own messages, unchanged, with the ``mcap`` package's writer and dobhil's c
 - ``all_merged``: the frames of the cycle folded into that one message too.
 
 A message belongs to the cycle whose period its log time falls in (the run's
-``loop.period`` from the log's metadata). The merged layouts are what a format with fewer
-messages would cost, not a format dobhil reads.
+``loop.period`` from the log's metadata). ``all_merged`` is near what ``dobhil run
+--log-layout cycle`` writes (``dobhil/recording/cycles.py``, which also keeps each frame's
+log time and leaves the frames before the first cycle on their topics); ``signals_merged``
+is no layout dobhil writes.
 
     python tools/log_layouts.py run.mcap            # a line per layout
     python tools/log_layouts.py run.mcap --json
