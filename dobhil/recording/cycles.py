@@ -33,7 +33,8 @@ from __future__ import annotations
 from collections.abc import Iterator, Sequence
 from typing import Final
 
-from dobhil.recording.encodings.protobuf import ProtoType, Wire, descriptor_proto, fields_on_wire, tag, varint
+from dobhil.recording.encodings.protobuf import (ProtoType, Wire, descriptor_proto, fields_on_wire, read_varint,
+                                                 tag, varint)
 from dobhil.recording.layouts import CYCLE_SCHEMA, CYCLE_TOPIC
 from dobhil.recording.schemas import TOPIC_SPECS, Topic
 #: The topics a cycle message holds, by field number (= the topic's number).
@@ -100,22 +101,10 @@ def frame_part(topic: Topic, data: bytes, offset_ns: int) -> bytes:
 
 
 def _varint(data: bytes, pos: int) -> tuple[int, int]:
-    """The varint at ``pos`` and the position after it (one byte: the common case, first)."""
-    b = data[pos] if pos < len(data) else -1
-    if 0 <= b < 0x80:
-        return b, pos + 1
-    n = shift = 0
-    while True:
-        if pos >= len(data):
-            raise ValueError("a varint runs past the end of the message")
-        b = data[pos]
-        pos += 1
-        n |= (b & 0x7F) << shift
-        if b < 0x80:
-            return n, pos
-        shift += 7
-        if shift > 63:
-            raise ValueError("a varint longer than 10 bytes")
+    """The varint at ``pos`` and the position after it (one byte, the common case, first)."""
+    if pos < len(data) and data[pos] < 0x80:
+        return data[pos], pos + 1
+    return read_varint(data, pos)
 
 
 def _frame(entry: bytes) -> tuple[int, bytes]:

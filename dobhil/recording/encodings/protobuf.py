@@ -212,7 +212,8 @@ def frame_packer(spec: TopicSpec) -> Encoder | None:
     return encode
 
 
-def _read_varint(data: bytes, pos: int) -> tuple[int, int]:
+def read_varint(data: bytes, pos: int) -> tuple[int, int]:
+    """The varint at ``pos`` and the position after it; ValueError past the end or too long."""
     n = shift = 0
     while True:
         if pos >= len(data):
@@ -235,13 +236,13 @@ def fields_on_wire(data: bytes, pos: int = 0) -> Iterator[tuple[int, Wire, Any]]
     raw bytes (fixed width, length-delimited)."""
     end = len(data)
     while pos < end:
-        key, pos = _read_varint(data, pos)
+        key, pos = read_varint(data, pos)
         number, wire = key >> 3, key & 7
         value: Any
         if wire == Wire.VARINT:
-            value, pos = _read_varint(data, pos)
+            value, pos = read_varint(data, pos)
         elif wire in (Wire.I64, Wire.I32, Wire.LEN):
-            size, pos = _read_varint(data, pos) if wire == Wire.LEN else (_SIZES[Wire(wire)], pos)
+            size, pos = read_varint(data, pos) if wire == Wire.LEN else (_SIZES[Wire(wire)], pos)
             value, pos = bytes(data[pos:pos + size]), pos + size
             if pos > end:
                 raise ValueError(f"field {number} runs past the end of the message")
@@ -512,5 +513,5 @@ class ProtobufEncoding:
 ENCODING: Final = ProtobufEncoding()
 
 __all__ = ["ENCODING", "ProtoType", "ProtobufEncoding", "Wire", "descriptor_fields", "descriptor_proto",
-           "fields_on_wire", "file_descriptor_set", "frame_packer", "packer", "row_unpacker", "tag", "unpacker",
-           "varint"]
+           "fields_on_wire", "file_descriptor_set", "frame_packer", "packer", "read_varint", "row_unpacker", "tag",
+           "unpacker", "varint"]
