@@ -68,7 +68,8 @@ def _short(topic: Topic) -> str:
     return TOPIC_SPECS[topic].schema_name.rpartition(".")[2]
 
 
-def _field_name(topic: Topic) -> str:
+def field_name(topic: Topic) -> str:
+    """The field of a cycle message that holds ``topic``'s messages (``/drive/feedback`` -> ``drive_feedback``)."""
     return {Topic.CAN_RX: "rx", Topic.CAN_TX: "tx"}.get(topic) or TOPIC_SPECS[topic].name.strip("/").replace("/", "_")
 
 
@@ -80,7 +81,7 @@ def cycle_schema() -> bytes:
     frame = _message("CycleFrame", [_field(1, "log_time_offset_ns", _SINT64),
                                     _field(2, "frame", ProtoType.MESSAGE, type_name=".dobhil.CanFrame")])
     cycle = _message("Cycle", [
-        _field(int(t), _field_name(t), ProtoType.MESSAGE,
+        _field(int(t), field_name(t), ProtoType.MESSAGE,
                _LABEL_REPEATED if t in _FRAMES else _LABEL_OPTIONAL,
                ".dobhil.CycleFrame" if t in _FRAMES else f".dobhil.{_short(t)}") for t in FOLDED])
     messages = b"".join(_ld(tag(4, Wire.LEN), m) for m in (*inner.values(), frame, cycle))
@@ -152,4 +153,4 @@ def unfold(data: bytes, log_time_ns: int) -> Iterator[tuple[Topic, int, bytes]]:
         pos = stop
 
 
-__all__ = ["CYCLE_SCHEMA", "CYCLE_TOPIC", "FOLDED", "cycle_schema", "frame_part", "signal_part", "unfold"]
+__all__ = ["CYCLE_SCHEMA", "CYCLE_TOPIC", "FOLDED", "cycle_schema", "field_name", "frame_part", "signal_part", "unfold"]

@@ -452,3 +452,30 @@ def test_a_saved_figure_is_drawn_once_and_cropped_as_a_tight_bbox_would(tmp_path
     assert len(draws) == 1
     saved, tight = (matplotlib.image.imread(tmp_path / f"{name}.png") for name in ("saved", "tight"))
     assert saved.shape == tight.shape and np.array_equal(saved, tight)
+
+
+def test_the_cycle_layouts_foxglove_file_names_the_same_fields_in_cycle_messages() -> None:
+    """tools/foxglove-layout-cycle.json is tools/foxglove-layout.json on the cycle layout's
+    paths (as tools/foxglove_layout_cycle.py writes it), and each path is a field of
+    dobhil.Cycle as the protobuf library reads its schema (Foxglove reads it so)."""
+    import subprocess
+    import sys
+    from google.protobuf import descriptor_pb2, descriptor_pool
+    from dobhil.recording.cycles import cycle_schema
+    root = Path(__file__).resolve().parents[2]
+    tool = root / "tools" / "foxglove_layout_cycle.py"
+    assert subprocess.run([sys.executable, str(tool), "--check"], check=False).returncode == 0
+    pool = descriptor_pool.DescriptorPool()
+    for file in descriptor_pb2.FileDescriptorSet.FromString(cycle_schema()).file:
+        pool.Add(file)
+    layout = json.loads((root / "tools" / "foxglove-layout-cycle.json").read_text())
+    paths = [p["value"] for k, c in layout["configById"].items() if k.startswith(("Plot!", "StateTransitions!"))
+             for p in c["paths"]]
+    assert len(paths) == 12 and all(p.startswith("/cycle.") for p in paths)
+    for path in paths:
+        message = pool.FindMessageTypeByName("dobhil.Cycle")
+        *fields, last = path.split(".")[1:]
+        for name in fields:
+            message = message.fields_by_name[name].message_type
+        assert last in message.fields_by_name, path
+    assert layout["configById"]["RawMessages!events"]["topicPath"] == "/events"
