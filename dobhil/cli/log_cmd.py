@@ -5,6 +5,7 @@
 - ``dobhil log export FILE --topic T --format csv [-o OUT]``
 - ``dobhil log export FILE --can --format candump|asc|blf [-o OUT]``
 - ``dobhil log import CANLOG -o FILE.mcap``
+- ``dobhil log convert FILE --layout topics|cycle [-o OUT]``  (default OUT: ``FILE.LAYOUT.mcap``)
 - ``dobhil log serve FILE [--live [HOST:]PORT] [--speed X] [--loop]``  (Foxglove live view)
 
 Bad input ends in one :class:`~dobhil.errors.LogFileError` line (exit 2); an output that
@@ -29,6 +30,7 @@ from typing import Any
 
 from dobhil.errors import LogFileError
 from dobhil.cli.common import output_path
+from dobhil.recording.layouts import LAYOUTS
 
 Progress = Callable[[int], None]
 
@@ -51,7 +53,7 @@ def _total(path: str, exported: Callable[[str], bool]) -> tuple[int, str]:
 
     with open_log(path, describe=True) as log:
         note = unknown_keys_note(log.unknown_config) if log.unknown_config else ""
-        return sum(c.message_count for c in log.channels() if exported(c.topic)), note
+        return sum(n for topic, n in log.message_counts().items() if exported(topic)), note
 
 
 def _say_note(note: str) -> None:
@@ -174,6 +176,19 @@ def _cmd_import(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_convert(args: argparse.Namespace) -> int:
+    from dobhil.recording.reader import open_log
+    from dobhil.recording.relayout import relayout
+
+    with open_log(args.file, describe=True) as log:
+        total = sum(log.message_counts().values())
+    with _progress("convert", total) as update:
+        done = relayout(args.file, args.layout, args.output, progress=update)
+    print(f"wrote {done.messages} messages in the {done.layout} layout to {done.output} "
+          f"({done.written} MCAP messages)")
+    return 0
+
+
 def _cmd_serve(args: argparse.Namespace) -> int:
     from dobhil.live.cli import serve_command
 
@@ -204,6 +219,13 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     imp.add_argument("canlog")
     imp.add_argument("-o", "--output", type=output_path, required=True, help="MCAP file to write")
     imp.set_defaults(func=_cmd_import)
+    conv = sub.add_parser("convert", help="copy a recording in the other layout (a message per topic, or per cycle)")
+    conv.add_argument("file")
+    conv.add_argument("--layout", required=True, choices=LAYOUTS,
+                      help="topics: a message per topic (what tools reading topics by name need); cycle: a "
+                           "message per control cycle, about a third of the bytes (docs/recording.md)")
+    conv.add_argument("-o", "--output", type=output_path, help="output (default FILE.LAYOUT.mcap)")
+    conv.set_defaults(func=_cmd_convert)
     srv = sub.add_parser("serve", help="play a recording to Foxglove over WebSocket at its recorded pace")
     srv.add_argument("file")
     srv.add_argument("--live", default="8765", metavar="[HOST:]PORT", help="listen address (default 127.0.0.1:8765)")

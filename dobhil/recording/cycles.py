@@ -31,6 +31,7 @@ messages. A third of the bytes per cycle of the JSON logs dobhil wrote before 0.
 from __future__ import annotations
 
 from collections.abc import Iterator, Sequence
+from functools import lru_cache
 from typing import Final
 
 from dobhil.recording.encodings.protobuf import (ProtoType, Wire, descriptor_proto, fields_on_wire, read_varint,
@@ -73,6 +74,7 @@ def field_name(topic: Topic) -> str:
     return {Topic.CAN_RX: "rx", Topic.CAN_TX: "tx"}.get(topic) or TOPIC_SPECS[topic].name.strip("/").replace("/", "_")
 
 
+@lru_cache(maxsize=1)
 def cycle_schema() -> bytes:
     """The serialized ``FileDescriptorSet`` of ``dobhil.Cycle``: one file holding it, the
     message of each topic it folds (as :func:`~dobhil.recording.encodings.protobuf.
