@@ -94,6 +94,10 @@ def _info_lines(info: Any) -> Iterator[str]:
     width = _topic_width(c.topic for c in info.channels)
     for c in info.channels:
         yield f"  {c.topic:<{width}} {c.message_count:>10}  {c.schema_name} ({c.message_encoding})"
+    if info.folded:   # the cycle layout: what its /cycle messages hold, as a reader gets them
+        yield "in cycle messages:"
+        for topic, count in info.folded.items():
+            yield f"  {topic:<{width}} {count:>10}"
     for name, record in info.metadata.items():
         yield f"metadata {name}:"
         yield from (f"  {k} = {v}" for k, v in record.items())

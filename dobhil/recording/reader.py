@@ -68,6 +68,9 @@ class LogInfo:
     layout: str = "topics"  # or "cycle": a message per control cycle (dobhil/recording/cycles.py)
     #: config record -> its keys this version does not know (:attr:`LogFile.unknown_config`)
     unknown_config_keys: Mapping[str, tuple[str, ...]] = field(default_factory=dict)
+    #: topic -> messages the cycle messages hold of it (the cycle layout; a guess in a
+    #: recovered file, :meth:`LogFile.message_counts`)
+    folded: Mapping[str, int] = field(default_factory=dict)
 
     @property
     def duration_s(self) -> float:
@@ -76,7 +79,8 @@ class LogInfo:
     def to_dict(self) -> dict[str, Any]:
         return {**{f.name: getattr(self, f.name) for f in fields(self)}, "channels": [asdict(c) for c in self.channels],
                 "metadata": {k: dict(v) for k, v in self.metadata.items()}, "duration_s": self.duration_s,
-                "unknown_config_keys": {k: list(v) for k, v in self.unknown_config_keys.items()}}
+                "unknown_config_keys": {k: list(v) for k, v in self.unknown_config_keys.items()},
+                "folded": dict(self.folded)}
 
 
 def _fail(path: str | os.PathLike[str], what: str) -> LogFileError:
@@ -571,7 +575,13 @@ class LogFile:
                        stats.message_start_time if stats else 0, stats.message_end_time if stats else 0,
                        MappingProxyType(self.metadata), tuple(a for a, _, _ in self.attachments), self.stop_reason(),
                        None if dropped is None else int(dropped), ", ".join(self.encodings()),
-                       self.layout, dict(self.unknown_config))
+                       self.layout, dict(self.unknown_config), self._held_counts(channels))
+
+    def _held_counts(self, channels: Sequence[ChannelInfo]) -> dict[str, int]:
+        """Topic -> messages the cycle messages hold of it: what a reader counts beyond the
+        file's own channels."""
+        own = {c.topic: c.message_count for c in channels}
+        return {t: n - own.get(t, 0) for t, n in self.message_counts().items() if n > own.get(t, 0)}
 
 
 def _axis_names(metadata: Mapping[str, Mapping[str, str]]) -> list[str]:

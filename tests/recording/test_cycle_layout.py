@@ -241,6 +241,11 @@ def test_replay_verifies_and_log_info_says_the_layout(runs: dict[str, Path], cap
     assert main(["log", "info", str(runs["cycle"])]) == 0
     out = capsys.readouterr().out
     assert "layout:     cycle" in out and "dobhil.Cycle (protobuf)" in out
+    held = out.split("in cycle messages:\n")[1].split("metadata")[0].split()
+    counts, own = open_log(runs["topics"]).message_counts(), open_log(runs["cycle"]).channels()
+    for topic, count in zip(held[::2], map(int, held[1::2])):   # with the messages outside cycles: all
+        assert count + sum(c.message_count for c in own if c.topic == topic) == counts[topic]
+    assert {"/loop", "/controller", "/can/rx", "/can/tx"} <= set(held[::2])
 
 
 def test_an_unknown_layout_is_one_line(capsys: pytest.CaptureFixture[str]) -> None:
