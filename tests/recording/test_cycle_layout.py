@@ -270,3 +270,20 @@ def test_a_cut_cycle_log_is_recovered_read_and_replayed(runs: dict[str, Path], t
     assert 100 < cycles < 1400   # the intact chunks: some, not all
     assert saved.message_counts()["/loop"] == cycles == len(list(saved.iter_messages(["/loop"])))
     assert main(["replay", str(tmp_path / "saved.mcap"), "--verify"]) == 0
+
+
+@pytest.mark.parametrize(("config", "cycles"), [("configs/demo.yaml", ["/cycle"]),
+                                                ("configs/two-axis-demo.yaml", ["/axis/left/cycle",
+                                                                                "/axis/right/cycle"])])
+def test_dobhil_run_writes_the_layout_it_is_asked_for(config: str, cycles: list[str], tmp_path: Path,
+                                                      capsys: pytest.CaptureFixture[str]) -> None:
+    """``dobhil run --log-layout cycle``, one axis or several (a cycle channel per axis; the
+    bus' frames, in a lane without cycles, on their own topics): replayed bit for bit."""
+    path = tmp_path / "run.mcap"
+    assert main(["run", config, "--emulate", "--lockstep", "--duration", "0.2", "--log", str(path),
+                 "--log-layout", "cycle"]) == 0
+    log = open_log(path)
+    assert sorted(c.topic for c in log.channels() if c.schema_name == "dobhil.Cycle") == sorted(cycles)
+    assert all(c.message_count == 200 for c in log.channels() if c.schema_name == "dobhil.Cycle")
+    capsys.readouterr()
+    assert main(["replay", str(path), "--verify"]) == 0
