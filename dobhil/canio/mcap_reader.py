@@ -117,6 +117,7 @@ class McapReader(BinaryIOMessageReader):
             raise ValueError(f"MCAP reader: unknown option(s) {', '.join(sorted(kwargs))}; it takes none")
         self.name = os.fspath(file) if isinstance(file, (str, os.PathLike)) else str(getattr(file, "name", "MCAP"))
         self._decoders: dict[int, Decoder] = {}
+        self._cycle_frames: Decoder | None = None   # the frames a cycle message holds (made once)
         self._bus_channels: dict[str, str] = {}
         super().__init__(file, mode="rb")
         try:
@@ -182,11 +183,9 @@ class McapReader(BinaryIOMessageReader):
         for number, at, part in unfold(data, log_time):
             if number in _FRAME_TOPICS:
                 name = prefix + _FRAME_TOPICS[number]
-                decoder = self._decoders.get(-number)
-                if decoder is None:
-                    decoder = self._decoders[-number] = decoder_for("protobuf", SPECS_BY_SCHEMA["dobhil.CanFrame"],
-                                                                    self.name, name)
-                yield name, at, part, decoder
+                if self._cycle_frames is None:   # both frame topics' messages are dobhil.CanFrame
+                    self._cycle_frames = decoder_for("protobuf", SPECS_BY_SCHEMA["dobhil.CanFrame"], self.name, name)
+                yield name, at, part, self._cycle_frames
 
     def _take_metadata(self, records: dict[str, dict[str, str]]) -> None:
         """The channel of each frame topic's bus, from the log's metadata records (as ``dobhil

@@ -21,6 +21,7 @@ import os
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+
 from mcap.writer import Writer
 
 from dobhil.errors import LogFileError
@@ -82,10 +83,12 @@ class _Out:
         return found
 
     def add(self, topic: str, t: int, data: bytes, source_channel: int) -> None:
-        channel = self.log.channel_records[source_channel]
-        schema = self.log.schemas.get(channel.schema_id)
-        cid = self.channel(topic, schema.name if schema else "", schema.encoding if schema else "",
-                           bytes(schema.data) if schema else b"", channel.message_encoding)
+        cid = self.channels.get(topic)
+        if cid is None:   # the source's schema of it, looked up once per topic
+            channel = self.log.channel_records[source_channel]
+            schema = self.log.schemas.get(channel.schema_id)
+            cid = self.channel(topic, schema.name if schema else "", schema.encoding if schema else "",
+                               bytes(schema.data) if schema else b"", channel.message_encoding)
         self.writer.add_message(cid, log_time=t, data=data, publish_time=t)
         self.written += 1
 

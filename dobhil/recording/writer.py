@@ -182,7 +182,11 @@ class LogWriter:
         """Encode and write records (flat tuples of the topic table, named here), in order."""
         if self.layout == "cycle":
             self._write_cycles(records)
-            return
+        else:
+            self._write_topics(records)
+
+    def _write_topics(self, records: Iterable[Sequence[Any]]) -> None:
+        """:meth:`write` in the topics layout: each record's messages, one per topic."""
         add, channels, outputs = self._mcap.add_message, self._channels, self._outputs
         written, last = self.written, self.last_log_ns
         views_of = self._views
@@ -202,8 +206,8 @@ class LogWriter:
     def _write_cycles(self, records: Iterable[Sequence[Any]]) -> None:
         """:meth:`write` in the cycle layout: a cycle record's messages, and the frames of its
         lane that follow it, become fields of one message (written when the next record that
-        is neither comes, or at :meth:`flush`); everything else is written as in the topics
-        layout. ``written`` counts the messages folded, as the topics layout would."""
+        is neither comes, or at :meth:`flush`); everything else goes to :meth:`_write_topics`.
+        ``written`` counts the messages folded, as the topics layout would."""
         views_of, outputs, cycles, folded = self._views, self._outputs, self._cycles, self.folded
         for record in map(named, records):
             kind, t, n = record.kind, record.log_time_ns, len(record)
@@ -225,13 +229,8 @@ class LogWriter:
                 self.written += 1
             else:
                 self._end_cycle()
-                if base == _EVENTS and record.event == _LOSS:
-                    self.dropped += record.lost
-                for name, topic, encode, needs in views_of[kind]:
-                    if n >= needs:
-                        self._mcap.add_message(self._channels.get(name) or self._register(name, topic), t,
-                                               encode(record), t)
-                        self.written += 1
+                self._write_topics((record,))   # its messages, the live view's, the last log time
+                continue
             if outputs:
                 self._publish(record, n)
             self.last_log_ns = max(self.last_log_ns, t)
