@@ -1,10 +1,11 @@
 #!/usr/bin/env python3
-"""Writes ``tools/foxglove-layout-cycle.json``: ``tools/foxglove-layout.json`` (the topics
-layout's paths, ``/controller.tau_int_hat``) for logs recorded with ``--log-layout cycle``,
-whose cycle topics are fields of one ``/cycle`` message (``/cycle.controller.tau_int_hat``;
-docs/recording.md, Layouts). The topics layout's file is the one edited by hand; this one
-is made from it, so the two show the same panels (``tests/recording/test_report.py``
-checks that the shipped file is what this writes).
+"""Writes ``tools/foxglove-layout.json``, the Foxglove layout for logs in the cycle layout
+(the default; ``--log-layout cycle``), whose cycle topics are fields of one ``/cycle``
+message (``/cycle.controller.tau_int_hat``; docs/recording.md, Layouts), from
+``tools/foxglove-layout-topics.json`` (the topics layout's paths, ``/controller.tau_int_hat``).
+The topics layout's file is the one edited by hand (a path there is a topic and a field, as
+Foxglove's panels name them); this one is made from it, so the two show the same panels
+(``tests/recording/test_report.py`` checks that the shipped file is what this writes).
 
     python tools/foxglove_layout_cycle.py          # rewrites the file
     python tools/foxglove_layout_cycle.py --check  # exit 1 when the shipped file differs
@@ -25,8 +26,8 @@ from dobhil.recording.cycles import FOLDED, field_name  # noqa: E402
 from dobhil.recording.layouts import CYCLE_TOPIC  # noqa: E402
 from dobhil.recording.schemas import TOPIC_SPECS  # noqa: E402
 
-SOURCE = ROOT / "tools" / "foxglove-layout.json"
-TARGET = ROOT / "tools" / "foxglove-layout-cycle.json"
+SOURCE = ROOT / "tools" / "foxglove-layout-topics.json"
+TARGET = ROOT / "tools" / "foxglove-layout.json"
 
 
 def cycle_path(path: str) -> str:

@@ -83,6 +83,6 @@ def files_read(config: Config, args: argparse.Namespace) -> list[Path]:
 def add_log_layout_arg(parser: argparse.ArgumentParser) -> None:
     """``--log-layout``: how ``--log`` lays out its messages (docs/recording.md)."""
     parser.add_argument("--log-layout", choices=LAYOUTS, default=DEFAULT_LAYOUT,
-                        help="topics: a message per topic per cycle and per CAN frame (default; Foxglove shows "
-                             "each topic); cycle: one /cycle message per control cycle holding them, about a "
-                             "third of the bytes (docs/recording.md)")
+                        help="cycle: one /cycle message per control cycle holding its topics and CAN frames "
+                             "(default); topics: a message per topic per cycle and per CAN frame, for tools "
+                             "that read topics by name, about three times the bytes (docs/recording.md)")

@@ -23,6 +23,7 @@ from websockets.exceptions import ConnectionClosed, InvalidHandshake
 
 from dobhil.canio.mcap_writer import McapWriter
 from dobhil.recording.encodings import encoding
+from dobhil.recording.reader import open_log
 from dobhil.recording.schemas import SPECS_BY_NAME
 
 REPO = Path(__file__).resolve().parents[2]
@@ -34,13 +35,18 @@ def _dobhil(forks: DobhilForks, *args: str, timeout: float = 180) -> Done:
     return forks.run(list(args), Path.cwd(), timeout=timeout)
 
 
-@pytest.fixture(scope="module")
-def recorded(tmp_path_factory: pytest.TempPathFactory, dobhil_forks: DobhilForks) -> Path:
-    path = tmp_path_factory.mktemp("serve") / "run.mcap"
-    proc = _dobhil(dobhil_forks, "run", str(REPO / "configs" / "demo.yaml"), "--emulate", "--lockstep",
-                   "--duration", "0.5", "--log", str(path))
+def _record(forks: DobhilForks, path: Path, *layout: str) -> Path:
+    """A 0.5 s lockstep demo run logged to ``path`` (``layout``: ``--log-layout ...`` or none)."""
+    proc = _dobhil(forks, "run", str(REPO / "configs" / "demo.yaml"), "--emulate", "--lockstep",
+                   "--duration", "0.5", "--log", str(path), *layout)
     assert proc.returncode == 0, proc.stderr
     return path
+
+
+@pytest.fixture(scope="module")
+def recorded(tmp_path_factory: pytest.TempPathFactory, dobhil_forks: DobhilForks) -> Path:
+    """A log in the topics layout: a message per topic, each served as its own."""
+    return _record(dobhil_forks, tmp_path_factory.mktemp("serve") / "run.mcap", "--log-layout", "topics")
 
 
 def _recorded_messages(path: Path, topic: str) -> list[tuple[int, bytes]]:
@@ -56,12 +62,42 @@ def _recorded_schemas(path: Path) -> dict[str, tuple[str, bytes]]:
             for c in summary.channels.values()}
 
 
-@pytest.fixture
-def serving(recorded: Path) -> Iterator[subprocess.Popen[str]]:
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "dobhil", "log", "serve", str(recorded), "--live", "127.0.0.1:0", "--speed", "0.25"],
+def _serve(path: Path) -> subprocess.Popen[str]:
+    return subprocess.Popen(
+        [sys.executable, "-m", "dobhil", "log", "serve", str(path), "--live", "127.0.0.1:0", "--speed", "0.25"],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
     )
+
+
+def test_a_log_in_the_default_cycle_layout_is_served_as_recorded(tmp_path: Path, dobhil_forks: DobhilForks) -> None:
+    """A log in the default layout (cycle): its own channels advertised with their schemas,
+    each ``/cycle`` message (what Foxglove decodes by ``dobhil.Cycle``) delivered as recorded."""
+    path = _record(dobhil_forks, tmp_path / "run.mcap")
+    assert open_log(path).layout == "cycle"
+    expected = _recorded_messages(path, "/cycle")
+    schemas = _recorded_schemas(path)
+    serving = _serve(path)
+    try:
+        assert serving.stdout is not None
+        url = serving.stdout.readline().split(" on ", 1)[1].split()[0]
+        with LiveClient(url) as client:
+            client.subscribe(["/cycle"])
+            received = client.collect(counts_at_least({"/cycle": len(expected)}), timeout=120)
+            advertised = dict(client.advertised)
+        out, err = serving.communicate(timeout=60)
+    finally:
+        if serving.poll() is None:
+            serving.kill()
+            serving.communicate(timeout=30)
+    assert serving.returncode == 0, err
+    assert {t: (c["schemaName"], base64.b64decode(c["schema"])) for t, c in advertised.items()} == schemas
+    assert [(r.log_time_ns, r.payload) for r in received if r.topic == "/cycle"] == expected
+    assert "dropped 0" in out.strip().splitlines()[-1], out
+
+
+@pytest.fixture
+def serving(recorded: Path) -> Iterator[subprocess.Popen[str]]:
+    proc = _serve(recorded)
     try:
         yield proc
     finally:

@@ -22,6 +22,13 @@ def write_log(path: Path, records: Iterable[Sequence[Any]], *, metadata: Mapping
     return path
 
 
+def topic_counts(path: Path | str) -> dict[str, int]:
+    """Topic -> messages a reader of ``path`` gets (either layout: a cycle message's topics
+    counted as the topics layout would hold them; :meth:`LogFile.message_counts`)."""
+    from dobhil.recording.reader import open_log
+    return open_log(path).message_counts()
+
+
 def frame(msg: can.Message, direction: Topic, t: int) -> tuple[Any, ...]:
     return can_frame_record(msg, direction, t)
 

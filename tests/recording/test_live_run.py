@@ -196,8 +196,8 @@ def test_demo_live_waits_for_a_client_and_plays_it_the_run(tmp_path: Path, capsy
         while time.monotonic() < deadline:
             try:
                 with LiveClient(f"ws://127.0.0.1:{port}", open_timeout=2) as client:
-                    client.subscribe(["/controller"])
-                    got.extend(client.collect(counts_at_least({"/controller": 50}), timeout=20))
+                    client.subscribe(["/cycle"])   # the default layout's one message per cycle
+                    got.extend(client.collect(counts_at_least({"/cycle": 50}), timeout=20))
                     return
             except (OSError, InvalidHandshake):  # not listening yet, or the address check's probe
                 time.sleep(0.05)

@@ -21,7 +21,7 @@ from dobhil.cli.main import main
 from dobhil.recording.reader import open_log
 from dobhil.recording.recover import recover
 from dobhil.recording.schemas import SPECS_BY_SCHEMA
-from tests.recording.helpers import decode_message
+from tests.recording.helpers import decode_message, topic_counts
 from tests.recording.test_run_logging import logged_lockstep_run
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -294,8 +294,9 @@ def test_unwritable_outputs_are_refused_before_the_run(tmp_path: Path, capsys: p
 
 def test_every_payload_of_a_demo_run_matches_its_json_schema(tmp_path: Path) -> None:
     """Each message, read as protobuf by its schema, is the payload its topic's JSON schema
-    documents (the table's types, the choices of its text fields)."""
-    assert main(["demo", "--out", str(tmp_path), "--set", "loop.duration=0.5"]) == 0
+    documents (the table's types, the choices of its text fields). In the topics layout, one
+    message per topic; a cycle message holds the same bytes (tests/recording/test_cycle_layout.py)."""
+    assert main(["demo", "--out", str(tmp_path), "--set", "loop.duration=0.5", "--log-layout", "topics"]) == 0
     (path,) = tmp_path.glob("run-*.mcap")
     with open(path, "rb") as f:
         reader = make_reader(f)
@@ -329,8 +330,8 @@ def test_disk_full_during_a_run_stops_it_with_recorder_failed(tmp_path: Path) ->
     cycles = int(proc.stdout.split()[0])
     assert 0 < cycles < 30_000  # the run stopped early, safely (the stop line says the drive was disabled)
     assert "WARNING" not in proc.stdout
-    report = recover(path, tmp_path / "saved.mcap")
-    assert dict(report.counts)["/controller"] > 100
+    recover(path, tmp_path / "saved.mcap")
+    assert topic_counts(tmp_path / "saved.mcap")["/controller"] > 100
 
 
 RSS = """

@@ -132,7 +132,7 @@ def test_report_without_truth_or_steps(tmp_path: Path, capsys: pytest.CaptureFix
 def test_foxglove_layout_names_recorded_fields() -> None:
     from dobhil.recording.schemas import SPECS_BY_NAME
     root = Path(__file__).resolve().parents[2]
-    layout = json.loads((root / "tools" / "foxglove-layout.json").read_text())
+    layout = json.loads((root / "tools" / "foxglove-layout-topics.json").read_text())
     assert {"configById", "layout", "globalVariables", "userNodes"} <= set(layout)
     paths = [p["value"] for k, c in layout["configById"].items() if k.startswith(("Plot!", "StateTransitions!"))
              for p in c["paths"]]
@@ -455,7 +455,7 @@ def test_a_saved_figure_is_drawn_once_and_cropped_as_a_tight_bbox_would(tmp_path
 
 
 def test_the_cycle_layouts_foxglove_file_names_the_same_fields_in_cycle_messages() -> None:
-    """tools/foxglove-layout-cycle.json is tools/foxglove-layout.json on the cycle layout's
+    """tools/foxglove-layout.json is tools/foxglove-layout-topics.json on the cycle layout's
     paths (as tools/foxglove_layout_cycle.py writes it), and each path is a field of
     dobhil.Cycle as the protobuf library reads its schema (Foxglove reads it so)."""
     import subprocess
@@ -468,7 +468,7 @@ def test_the_cycle_layouts_foxglove_file_names_the_same_fields_in_cycle_messages
     pool = descriptor_pool.DescriptorPool()
     for file in descriptor_pb2.FileDescriptorSet.FromString(cycle_schema()).file:
         pool.Add(file)
-    layout = json.loads((root / "tools" / "foxglove-layout-cycle.json").read_text())
+    layout = json.loads((root / "tools" / "foxglove-layout.json").read_text())
     paths = [p["value"] for k, c in layout["configById"].items() if k.startswith(("Plot!", "StateTransitions!"))
              for p in c["paths"]]
     assert len(paths) == 12 and all(p.startswith("/cycle.") for p in paths)

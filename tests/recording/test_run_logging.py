@@ -24,7 +24,7 @@ from dobhil.recording.reader import open_log
 from dobhil.recording.recover import recover
 from dobhil.recording.runlog import RunLog
 from dobhil.runtime.session import RunSession
-from tests.recording.helpers import decode_message
+from tests.recording.helpers import decode_message, topic_counts
 from tests.runtime.helpers import write_profile
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -198,7 +198,7 @@ def _wait_for_recorded(path: Path, proc: subprocess.Popen[bytes], scratch: Path,
             copy = scratch / "partial.mcap"
             copy.write_bytes(path.read_bytes())
             try:
-                seen = dict(recover(copy, scratch / "partial-recovered.mcap").counts).get("/controller", 0)
+                seen = topic_counts(recover(copy, scratch / "partial-recovered.mcap").output).get("/controller", 0)
             except LogFileError:   # not even the header yet
                 seen = 0
             (scratch / "partial-recovered.mcap").unlink(missing_ok=True)
@@ -260,7 +260,7 @@ def test_ctrl_c_to_the_process_group_leaves_a_complete_file_with_stop_signal(tmp
     _wait_for_group_exit(proc.pid)
     info = open_log(path).info()
     assert info.stop_reason == "signal"
-    counts = {c.topic: c.message_count for c in info.channels}
+    counts = topic_counts(path)
     assert counts["/controller"] > 100 and counts["/can/rx"] > 100
     assert info.metadata["recording"]["mode"] == "lossy"
     events = [p for _, _, p in open_log(path).iter_messages(["/events"])]
@@ -278,11 +278,11 @@ def test_sigkill_of_the_run_the_writer_finishes_the_file(tmp_path: Path) -> None
     _wait_for_group_exit(proc.pid)
     info = open_log(path).info()
     assert info.stop_reason == PARENT_EXITED
-    counts = {c.topic: c.message_count for c in info.channels}
+    counts = topic_counts(path)
     # everything the loop handed over: at least what was already on disk before the kill
     assert counts["/controller"] >= on_disk
     report = recover(path, tmp_path / "rec.mcap")
-    assert report.complete and dict(report.counts)["/controller"] == counts["/controller"]
+    assert report.complete and topic_counts(report.output)["/controller"] == counts["/controller"]
 
 
 def test_sigkill_of_run_and_writer_leaves_a_recoverable_file(tmp_path: Path) -> None:
@@ -296,7 +296,7 @@ def test_sigkill_of_run_and_writer_leaves_a_recoverable_file(tmp_path: Path) -> 
     _wait_for_group_exit(proc.pid)
     assert not open_log_ok(path)
     report = recover(path, tmp_path / "rec.mcap")
-    counts = dict(report.counts)
+    counts = topic_counts(report.output)
     # at least every record that was in the file before the kill: a kill loses none of it
     assert not report.complete and counts.get("/controller", 0) >= on_disk
     assert open_log(tmp_path / "rec.mcap").info().message_count == report.message_count

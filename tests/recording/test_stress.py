@@ -128,7 +128,7 @@ def test_a_bus_flood_sheds_foreign_frames_and_keeps_every_record_of_the_loop(tmp
             for bus in joined:
                 bus.shutdown()
     with open_log(path) as recorded:
-        counts = {c.topic: c.message_count for c in recorded.info().channels}
+        counts = recorded.message_counts()
         rx = [p["arbitration_id"] for _, _, p in recorded.iter_messages(["/can/rx"])]
         tx = [p["arbitration_id"] for _, _, p in recorded.iter_messages(["/can/tx"])]
         seq = max(p["seq"] for _, _, p in recorded.iter_messages(["/drive/feedback"]))
