@@ -155,4 +155,14 @@ def unfold(data: bytes, log_time_ns: int) -> Iterator[tuple[Topic, int, bytes]]:
         pos = stop
 
 
-__all__ = ["CYCLE_SCHEMA", "CYCLE_TOPIC", "FOLDED", "cycle_schema", "field_name", "frame_part", "signal_part", "unfold"]
+def held(data: bytes) -> dict[Topic, int]:
+    """Topic -> messages a cycle message holds (its frames each counted); ValueError when it
+    is not one (:func:`unfold`)."""
+    out: dict[Topic, int] = {}
+    for topic, _, _ in unfold(data, 0):
+        out[topic] = out.get(topic, 0) + 1
+    return out
+
+
+__all__ = ["CYCLE_SCHEMA", "CYCLE_TOPIC", "FOLDED", "cycle_schema", "field_name", "frame_part", "held",
+           "signal_part", "unfold"]

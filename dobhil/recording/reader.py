@@ -33,6 +33,9 @@ from dobhil.recording.schemas import SPECS_BY_SCHEMA, EventKind, Topic
 from dobhil.recording.writer import RECORDING_METADATA
 
 MAGIC: Final = b"\x89MCAP0\r\n"
+#: Name of the metadata record a recovered log gets (dobhil/recording/recover.py): what it
+#: lost and where, and what its cycle messages hold.
+RECOVER_METADATA: Final = "recover"
 _RECORD: Final = struct.Struct("<BQ")            # opcode, length
 _MESSAGE: Final = struct.Struct("<HIQQ")         # channel, sequence, log time, publish time
 _OP_MESSAGE: Final = 0x05
@@ -68,8 +71,8 @@ class LogInfo:
     layout: str = "topics"  # or "cycle": a message per control cycle (dobhil/recording/cycles.py)
     #: config record -> its keys this version does not know (:attr:`LogFile.unknown_config`)
     unknown_config_keys: Mapping[str, tuple[str, ...]] = field(default_factory=dict)
-    #: topic -> messages the cycle messages hold of it (the cycle layout; a guess in a
-    #: recovered file, :meth:`LogFile.message_counts`)
+    #: topic -> messages the cycle messages hold of it (the cycle layout; the writer's count,
+    #: or recover's, :meth:`LogFile.message_counts`)
     folded: Mapping[str, int] = field(default_factory=dict)
 
     @property
@@ -351,10 +354,15 @@ class LogFile:
 
     def _folded_counts(self) -> dict[str, int] | None:
         """Topic -> messages the writer put in cycle messages (its ``recording`` summary's
-        ``folded``); None when the file has no such count (no summary: a recovered file)."""
-        try:
-            folded = json.loads(self.metadata.get(RECORDING_METADATA, {})["folded"])
-        except (KeyError, ValueError):
+        ``folded``, or in a recovered file the count ``recover`` made of what it copied);
+        None when the file has neither."""
+        for record in (RECORDING_METADATA, RECOVER_METADATA):
+            try:
+                folded = json.loads(self.metadata.get(record, {})["folded"])
+                break
+            except (KeyError, ValueError):
+                continue
+        else:
             return None
         if not isinstance(folded, dict):
             return None
@@ -401,13 +409,14 @@ class LogFile:
     def message_counts(self) -> dict[str, int]:
         """Topic -> messages a reader gets of it: the file's statistics, and for the topics
         cycle messages hold the writer's count of what it put in them (its ``recording``
-        summary's ``folded``; in a file without that summary, :meth:`_guessed_folded`)."""
+        summary's ``folded``; in a recovered file, recover's count of what it copied; in a
+        file with neither, :meth:`_guessed_folded`)."""
         topics = set(self.topics())
         out = {c.topic: c.message_count for c in self.channels() if c.topic in topics}
         if not self.cycle_channels:
             return out
         folded = self._folded_counts()
-        if folded is None:   # no summary (a recovered file): a guess, one per cycle message
+        if folded is None:   # no count (a file recovered before recover counted them): a guess
             folded = self._guessed_folded()
         for topic, count in folded.items():
             out[topic] = out.get(topic, 0) + count
@@ -663,6 +672,6 @@ def open_log(path: str | os.PathLike[str], *, describe: bool = False) -> LogFile
     return log
 
 
-__all__ = ["MAGIC", "ChannelInfo", "LogFile", "LogInfo", "axis_config_records", "check_library", "check_mcap_head",
-           "decoder_for", "encoding_for", "open_log", "opened_once", "recorded_config", "summary_intact",
-           "unknown_config_keys", "unknown_keys_note", "unknown_keys_problem"]
+__all__ = ["MAGIC", "RECOVER_METADATA", "ChannelInfo", "LogFile", "LogInfo", "axis_config_records", "check_library",
+           "check_mcap_head", "decoder_for", "encoding_for", "open_log", "opened_once", "recorded_config",
+           "summary_intact", "unknown_config_keys", "unknown_keys_note", "unknown_keys_problem"]

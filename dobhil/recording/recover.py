@@ -35,13 +35,14 @@ from mcap.writer import Writer
 
 from dobhil.errors import LogFileError
 from dobhil.files import atomic_path, check_output
-from dobhil.recording.reader import MAGIC, check_library, check_mcap_head, summary_intact
+from dobhil.recording import cycles
+from dobhil.recording.layouts import CYCLE_SCHEMA, CYCLE_TOPIC
+from dobhil.recording.reader import MAGIC, RECOVER_METADATA, check_library, check_mcap_head, summary_intact
+from dobhil.recording.schemas import TOPIC_SPECS
 from dobhil.recording.writer import CHUNK_SIZE, COMPRESSION, LIBRARY
 
 ProgressFn = Callable[[int], None]
 
-#: Name of the metadata record a recovered log gets: what it lost and where.
-RECOVER_METADATA: Final = "recover"
 #: Opcode -> reader of the record's body (the ``mcap`` package's record classes).
 _READERS: Final[Mapping[int, Callable[[ReadDataStream], McapRecord]]] = {
     Opcode.HEADER: Header.read, Opcode.FOOTER: Footer.read, Opcode.SCHEMA: Schema.read,
@@ -209,6 +210,10 @@ class _Copier:
     counting: int | None = None           # the skipped chunk the message indexes that follow count for
     complete: bool = False
     earlier: list[list[int | None]] = field(default_factory=list)   # gaps of a source recovered before
+    #: a cycle channel's id in the source -> its lane's prefix (``/axis/left``; "" for one axis)
+    cycle_lanes: dict[int, str] = field(default_factory=dict)
+    #: topic -> messages the copied cycle messages hold (what the writer's lost summary counted)
+    folded: dict[str, int] = field(default_factory=dict)
 
     def skip(self, entry: Skipped) -> None:
         self.skipped.append(replace(entry, after_ns=self.last_ns))
@@ -257,6 +262,8 @@ class _Copier:
         self.channels[channel.id] = (self.writer.register_channel(
             channel.topic, channel.message_encoding, self.ids.get(channel.schema_id, 0), channel.metadata),
             channel.topic)
+        if schema is not None and schema.name == CYCLE_SCHEMA and channel.topic.endswith(CYCLE_TOPIC):
+            self.cycle_lanes[channel.id] = channel.topic[:-len(CYCLE_TOPIC)]
 
     def _message(self, message: Message) -> None:
         if message.channel_id not in self.channels:
@@ -268,6 +275,9 @@ class _Copier:
         channel, topic = self.channels[message.channel_id]
         self.writer.add_message(channel, message.log_time, message.data, message.publish_time, message.sequence)
         self.counts[topic] = self.counts.get(topic, 0) + 1
+        lane = self.cycle_lanes.get(message.channel_id)
+        if lane is not None:
+            self._fold(lane, message.data)
         first, last = self.times or (message.log_time, message.log_time)
         self.times = (min(first, message.log_time), max(last, message.log_time))
         self.last_ns = message.log_time
@@ -276,6 +286,17 @@ class _Copier:
         self.open_gaps.clear()
         if self.progress is not None:
             self.progress(1)
+
+    def _fold(self, lane: str, data: bytes) -> None:
+        """Count what a cycle message holds (as the writer's summary did, lost with the end);
+        a message that is no cycle is copied as it is and left to the reader to refuse."""
+        try:
+            held = cycles.held(data)
+        except ValueError:
+            return
+        for topic, n in held.items():
+            name = lane + TOPIC_SPECS[topic].name
+            self.folded[name] = self.folded.get(name, 0) + n
 
     def gaps(self) -> list[list[int | None]]:
         """[after, before] log times of each skipped stretch that held messages (or may have),
@@ -359,7 +380,8 @@ def recover(path: str | os.PathLike[str], out: str | os.PathLike[str] | None = N
                 "source": os.path.basename(os.fspath(path)), "messages": str(sum(copier.counts.values())),
                 "skipped": json.dumps([[s.offset, s.length, s.what] for s in copier.skipped]),
                 "gaps": json.dumps(copier.gaps()), "undefined": str(sum(copier.undefined.values())),
-                "stopped": why or ("footer reached" if copier.complete else "end of data")})
+                "stopped": why or ("footer reached" if copier.complete else "end of data"),
+                **({"folded": json.dumps(copier.folded, separators=(",", ":"))} if copier.folded else {})})
             writer.finish()
     first, last = copier.times or (0, 0)
     return RecoveryReport(source=os.fspath(path), output=os.fspath(target), counts=tuple(sorted(copier.counts.items())),

@@ -260,7 +260,8 @@ def test_an_unknown_layout_is_one_line(capsys: pytest.CaptureFixture[str]) -> No
 def test_a_cut_cycle_log_is_recovered_read_and_replayed(runs: dict[str, Path], tmp_path: Path) -> None:
     """A cycle log cut inside its data (a writer killed): ``recover`` keeps the intact
     chunks' cycle messages, read back as their topics, replayed bit for bit; the topics'
-    counts, the writer's summary lost with the end, are a guess of one per cycle message."""
+    counts, the writer's summary lost with the end, are recover's count of what the copied
+    cycle messages hold, frames included: exactly what a reader gets."""
     from dobhil.recording.recover import recover
     data = runs["cycle"].read_bytes()
     cut = tmp_path / "cut.mcap"
@@ -270,7 +271,14 @@ def test_a_cut_cycle_log_is_recovered_read_and_replayed(runs: dict[str, Path], t
     cycles = next(c.message_count for c in saved.channels() if c.topic == "/cycle")
     assert 100 < cycles < 1400   # the intact chunks: some, not all
     assert saved.message_counts()["/loop"] == cycles == len(list(saved.iter_messages(["/loop"])))
+    read: dict[str, int] = {}
+    for topic, _, _ in saved.iter_payloads():
+        read[topic] = read.get(topic, 0) + 1
+    assert saved.message_counts() == read and read["/can/rx"] > cycles   # the frames counted too
     assert main(["replay", str(tmp_path / "saved.mcap"), "--verify"]) == 0
+    again = tmp_path / "again.mcap"   # a recovered file recovered: counted anew, not added up
+    recover(saved.path, again)
+    assert open_log(again).message_counts() == read
 
 
 @pytest.mark.parametrize(("config", "cycles"), [("configs/demo.yaml", ["/cycle"]),
