@@ -951,7 +951,8 @@ sys.path.insert(0, sys.argv[2])
 from live_client import LiveClient
 with LiveClient(sys.argv[1]) as client:
     topics = ["/can/rx", "/can/tx", "/drive/feedback", "/drive/command", "/controller", "/loop", "/emulator/truth"]
-    client.subscribe(topics)
+    client.wait_for_channels(topics)   # advertised at once: the cycle layout's /cycle with them
+    client.subscribe(topics + [t for t in client.channels if t.endswith("/cycle")])
     print("subscribed", flush=True)
     try:
         client.drain(quiet=5.0)
@@ -962,7 +963,8 @@ with LiveClient(sys.argv[1]) as client:
 
 def _live_run(duration: float, path: Path, live: bool) -> float:
     """Cycles/s of a logged lockstep demo run, with ``live``: served to a client subscribed to
-    every topic (a separate process, so its work is not this process's)."""
+    every topic and, in the cycle layout, to ``/cycle`` (a separate process, so its work is
+    not this process's)."""
     import subprocess
 
     from dobhil.cli.recording import open_run_log, record_run

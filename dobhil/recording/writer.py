@@ -44,7 +44,8 @@ class RecordMode(IntEnum):
 class Output(Protocol):
     """A second output of every message (the live view)."""
 
-    def add_channel(self, topic: str, *, schema_name: str, json_schema: dict[str, Any]) -> None: ...
+    def add_channel(self, topic: str, *, schema_name: str, json_schema: dict[str, Any] | bytes,
+                    message_encoding: str = "json", schema_encoding: str = "jsonschema") -> None: ...
     def publish(self, topic: str, payload: bytes, log_time_ns: int) -> None: ...
     def close(self) -> None: ...
     @property
@@ -162,19 +163,27 @@ class LogWriter:
             if prefix + TOPIC_SPECS[topic].name not in self._channels:
                 self._register(prefix + TOPIC_SPECS[topic].name, topic)
 
-    def output_channels(self) -> tuple[tuple[str, str, dict[str, Any]], ...]:
-        """(topic, schema name, JSON schema) of each channel an output is told of: every topic
-        of the table under each lane's prefix."""
-        return tuple((name, TOPIC_SPECS[topic].schema_name, TOPIC_SPECS[topic].json_schema())
-                     for lane in self.lanes for name, topic in lane.names())
+    def output_channels(self) -> tuple[tuple[str, str, dict[str, Any] | bytes, str, str], ...]:
+        """(topic, schema name, schema, message encoding, schema encoding) of each channel an
+        output is told of: every topic of the table under each lane's prefix, in JSON, and in
+        the cycle layout each lane's cycle channel as the file has it (protobuf): an output
+        gets the cycle messages the file gets, and the records no cycle holds as JSON."""
+        out: list[tuple[str, str, dict[str, Any] | bytes, str, str]] = []
+        if self.layout == "cycle":
+            out += [(lane.prefix + CYCLE_TOPIC, CYCLE_SCHEMA, self._cycles.cycle_schema(), "protobuf", "protobuf")
+                    for lane in self.lanes if not lane.topics or Topic.CONTROLLER in lane.topics]
+        out += [(name, TOPIC_SPECS[topic].schema_name, TOPIC_SPECS[topic].json_schema(), "json", "jsonschema")
+                for lane in self.lanes for name, topic in lane.names()]
+        return tuple(out)
 
     def add_output(self, output: Output, *, announced: bool = False) -> None:
         """Send every message to ``output`` as well, its channels (:meth:`output_channels`)
         announced now unless ``announced`` (given to it when it was made: a live view
         advertises them before it listens, so no client connected early is refused one)."""
         if not announced:
-            for name, schema_name, schema in self.output_channels():
-                output.add_channel(name, schema_name=schema_name, json_schema=schema)
+            for name, schema_name, schema, message_encoding, schema_encoding in self.output_channels():
+                output.add_channel(name, schema_name=schema_name, json_schema=schema,
+                                   message_encoding=message_encoding, schema_encoding=schema_encoding)
         self._outputs.append(output)
         self._live_views = self._live_views or lane_views(self.lanes)
 
@@ -208,7 +217,7 @@ class LogWriter:
         lane that follow it, become fields of one message (written when the next record that
         is neither comes, or at :meth:`flush`); everything else goes to :meth:`_write_topics`.
         ``written`` counts the messages folded, as the topics layout would."""
-        views_of, outputs, cycles, folded = self._views, self._outputs, self._cycles, self.folded
+        views_of, cycles, folded = self._views, self._cycles, self.folded
         for record in map(named, records):
             kind, t, n = record.kind, record.log_time_ns, len(record)
             base, lane = kind & LANE_MASK, kind // LANE_STRIDE
@@ -231,9 +240,7 @@ class LogWriter:
                 self._end_cycle()
                 self._write_topics((record,))   # its messages, the live view's, the last log time
                 continue
-            if outputs:
-                self._publish(record, n)
-            self.last_log_ns = max(self.last_log_ns, t)
+            self.last_log_ns = max(self.last_log_ns, t)   # outputs get the cycle message (_end_cycle)
 
     def _end_cycle(self) -> None:
         """Write the cycle message being filled, if any (cycle layout)."""
@@ -249,7 +256,10 @@ class LogWriter:
                 schema = self._schemas[CYCLE_SCHEMA] = self._mcap.register_schema(CYCLE_SCHEMA, "protobuf",
                                                                                  self._cycles.cycle_schema())
             channel = self._channels[name] = self._mcap.register_channel(name, "protobuf", schema)
-        self._mcap.add_message(channel, t, b"".join(parts), t)
+        data = b"".join(parts)
+        self._mcap.add_message(channel, t, data, t)
+        for out in self._outputs:   # the file's bytes: no second encoding for the live view
+            out.publish(name, data, t)
 
     def _publish(self, record: Any, n: int) -> None:
         """``record``'s messages, in JSON, to every other output."""

@@ -11,14 +11,15 @@ from typing import Any
 class FileOutput:
     """An ``Output`` listening on ``port`` (it only says so) that writes one line a call."""
 
-    def __init__(self, *, host: str, port: int, channels: Iterable[tuple[str, str, Any]] = ()) -> None:
+    def __init__(self, *, host: str, port: int, channels: Iterable[tuple[Any, ...]] = ()) -> None:
         self.port, self.dropped = port, 0
         self._file = open(host, "a")
-        for topic, schema_name, _ in channels:  # advertised before it listens
+        for topic, schema_name, *_ in channels:  # advertised before it listens
             self._file.write(f"channel {topic} {schema_name}\n")
         self._file.write("listening\n")
 
-    def add_channel(self, topic: str, *, schema_name: str, json_schema: dict[str, Any]) -> None:
+    def add_channel(self, topic: str, *, schema_name: str, json_schema: dict[str, Any] | bytes,
+                    message_encoding: str = "json", schema_encoding: str = "jsonschema") -> None:
         self._file.write(f"channel {topic} {schema_name}\n")
 
     def publish(self, topic: str, payload: bytes, log_time_ns: int) -> None:

@@ -586,7 +586,8 @@ class _Output:
         self.published: list[str] = []
         self.dropped = 0
 
-    def add_channel(self, topic: str, *, schema_name: str, json_schema: dict[str, Any]) -> None:
+    def add_channel(self, topic: str, *, schema_name: str, json_schema: dict[str, Any] | bytes,
+                    message_encoding: str = "json", schema_encoding: str = "jsonschema") -> None:
         self.channels.append(topic)
 
     def publish(self, topic: str, payload: bytes, log_time_ns: int) -> None:
@@ -611,8 +612,9 @@ def test_the_live_view_is_told_each_lanes_own_topics(tmp_path: Path) -> None:
     writer = LogWriter(open(tmp_path / "l.mcap", "wb"), metadata={}, fsync=False, lanes=lanes)
     out = _Output()
     writer.add_output(out)
-    assert out.channels == ["/events", *(f"/axis/p{t}" for t in ("/drive/feedback", "/drive/command", "/controller",
-                                                                 "/loop", "/emulator/truth", "/events")),
+    # the axis' cycle messages as the file has them (the default layout), then every topic
+    axis = ("/drive/feedback", "/drive/command", "/controller", "/loop", "/emulator/truth", "/events")
+    assert out.channels == ["/axis/p/cycle", "/events", *(f"/axis/p{t}" for t in axis),
                             "/bus/one/can/rx", "/bus/one/can/tx"]
     writer.write([(lane_kind(Topic.CAN_TX, 2), 1, 5, False, False, False, False, False, False, 0, b"", 0.0, "")])
     assert out.published == ["/bus/one/can/tx"]

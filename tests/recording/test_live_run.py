@@ -15,13 +15,17 @@ pytest.importorskip("websockets")
 from live_client import LiveClient, counts_at_least
 
 from dobhil.cli.main import main
-from dobhil.recording.reader import open_log
+from dobhil.recording.cycles import unfold
+from dobhil.recording.reader import decoder_for, open_log
+from dobhil.recording.schemas import SPECS_BY_NAME, Topic
 
 ROOT = Path(__file__).resolve().parents[2]
 DEMO = ROOT / "configs" / "demo.yaml"
 
 
 def test_a_client_receives_controller_and_can_rx_during_a_lockstep_run(tmp_path: Path) -> None:
+    """The default (cycle) layout: the live view gets the file's ``/cycle`` messages, each
+    holding the cycle's ``/controller`` and the frames received after it, in order."""
     path = tmp_path / "live.mcap"
     proc = subprocess.Popen([sys.executable, "-m", "dobhil", "run", str(DEMO), "--emulate", "--lockstep",
                              "--duration", "600", "--log", str(path), "--live", "127.0.0.1:0"],
@@ -32,15 +36,20 @@ def test_a_client_receives_controller_and_can_rx_during_a_lockstep_run(tmp_path:
         line = proc.stderr.readline()
         assert line.startswith("live view: ws://127.0.0.1:"), line + proc.stderr.read()
         with LiveClient(line.split()[-1]) as client:
-            client.subscribe(["/controller", "/can/rx"])
-            received = client.collect(counts_at_least({"/controller": 50, "/can/rx": 50}), timeout=60)
+            client.subscribe(["/cycle"])
+            received = client.collect(counts_at_least({"/cycle": 50}), timeout=60)
+            advertised = dict(client.advertised)
         assert proc.poll() is None  # received during the run
     finally:
         proc.send_signal(signal.SIGINT)
         out, err = proc.communicate(timeout=60)
     assert proc.returncode == 1 and "stopped: signal" in out, err
-    cycles = [int(r.payload.split(b'"cycle":')[1].split(b"}")[0]) for r in received if r.topic == "/controller"]
-    assert cycles == sorted(cycles)  # in order
+    assert (advertised["/cycle"]["encoding"], advertised["/cycle"]["schemaName"]) == ("protobuf", "dobhil.Cycle")
+    controller = decoder_for("protobuf", SPECS_BY_NAME["/controller"], "live", "/controller")
+    held = [list(unfold(r.payload, r.log_time_ns)) for r in received if r.topic == "/cycle"]
+    cycles = [controller(data)["cycle"] for parts in held for topic, _, data in parts if topic is Topic.CONTROLLER]
+    assert len(cycles) == len(held) >= 50 and cycles == sorted(cycles)  # one a message, in order
+    assert sum(topic is Topic.CAN_RX for parts in held for topic, _, _ in parts) >= 50   # the frames with them
     recorded = open_log(path).info()
     assert recorded.stop_reason == "signal" and recorded.metadata["recording"]["live_dropped"] == "0"
 
@@ -155,7 +164,7 @@ def test_a_client_receives_every_axis_and_the_shared_bus_of_a_several_axis_run(t
                              "--emulate", "--duration", "600", "--log", str(path), "--live", "127.0.0.1:0"],
                             env={**os.environ, "PYTHONPATH": str(ROOT)}, stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True)
-    wanted = {"/axis/left/controller": 50, "/axis/right/controller": 50, "/bus/socketcan_can0/can/rx": 50}
+    wanted = {"/axis/left/cycle": 50, "/axis/right/cycle": 50, "/bus/socketcan_can0/can/rx": 50}
     try:
         assert proc.stderr is not None
         line = proc.stderr.readline()

@@ -206,8 +206,11 @@ def test_the_writer_process_serves_the_live_view_it_is_given(tmp_path: Path) -> 
     # advertised before it listens: a Foxglove connected at once was refused a channel added
     # after (tests/live/test_serve.py: foxglove-sdk's race)
     assert lines.index("channel /controller dobhil.Controller") < lines.index("listening")
-    assert [line for line in lines if line.startswith("/controller ")] == [
-        f"/controller {1_000_000_000 + k * 1_000_000}" for k in range(3)]
+    assert lines.index("channel /cycle dobhil.Cycle") < lines.index("listening")
+    # the default layout: each cycle's message as the file has it, not its topics apart
+    assert [line for line in lines if line.startswith("/cycle ")] == [
+        f"/cycle {1_000_000_000 + k * 1_000_000}" for k in range(3)]
+    assert not [line for line in lines if line.startswith("/controller ")]
 
 
 def test_backpressure_blocks_while_the_writer_lags_and_loses_nothing(tmp_path: Path) -> None:
