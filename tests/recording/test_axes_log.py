@@ -621,3 +621,8 @@ def test_the_live_view_is_told_each_lanes_own_topics(tmp_path: Path) -> None:
     with pytest.raises(KeyError):
         writer.write([(lane_kind(Topic.CAN_TX, 1), 2, 5, False, False, False, False, False, False, 0, b"", 0.0, "")])
     writer.finish(None)
+    topics = LogWriter(open(tmp_path / "t.mcap", "wb"), metadata={}, fsync=False, lanes=lanes, layout="topics")
+    out = _Output()
+    topics.add_output(out)   # the topics layout: every topic, no cycle channel
+    assert out.channels == ["/events", *(f"/axis/p{t}" for t in axis), "/bus/one/can/rx", "/bus/one/can/tx"]
+    topics.finish(None)
