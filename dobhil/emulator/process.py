@@ -273,6 +273,7 @@ class EmulatorProcess:
             finally:
                 child_end.close()   # the child's copy is its own: ours would hide its end
             self._wait_ready(start_timeout)
+            self._read_first_blocks(time.monotonic() + start_timeout)
         except BaseException:
             self.close()
             raise
@@ -322,6 +323,17 @@ class EmulatorProcess:
         if record[0] == RecordKind.FAILED:
             raise BusError(f"emulated drive did not start: {text}")
         self.bus.peer_text = text
+
+    def _read_first_blocks(self, deadline: float) -> None:
+        """Read each node's first block once, consistently: the child published it before
+        READY, but until a read succeeds :meth:`snapshot` answers with the blank block of shared
+        memory (a protocol state of 0, not the one the drive is in). A child preempted in the
+        middle of a write (a busy machine) is given the CPU until it finishes."""
+        for index in range(len(self._last)):
+            while self.snapshot(index)[Slot.SEQ] == 0.0:
+                if time.monotonic() > deadline:
+                    raise BusError(f"emulated drive {self.names[index]!r} published no status block")
+                time.sleep(0.001)
 
     def _gone(self) -> str:
         process = self._process
