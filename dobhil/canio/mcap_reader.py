@@ -44,7 +44,7 @@ from dobhil.canio.frames import frame_channels, frame_message, is_frame_topic
 from dobhil.errors import LogFileError, exception_line
 from dobhil.recording.encodings import Decoder
 from dobhil.recording.cycles import unfold
-from dobhil.recording.layouts import CYCLE_SCHEMA, CYCLE_TOPIC
+from dobhil.recording.layouts import cycle_lane
 from dobhil.recording.reader import MAGIC, decoder_for
 from dobhil.recording.schemas import SPECS_BY_SCHEMA, TOPIC_SPECS, Topic
 
@@ -104,9 +104,9 @@ def _decompressed_copy(stream: gzip.GzipFile) -> BinaryIO:
 _FRAME_TOPICS: Final = {int(t): TOPIC_SPECS[t].name for t in (Topic.CAN_RX, Topic.CAN_TX)}
 
 
-def _is_cycle(schema: Any, channel: Any) -> bool:
-    """Whether ``channel`` holds cycle messages (dobhil/recording/cycles.py)."""
-    return schema is not None and schema.name == CYCLE_SCHEMA and channel.topic.endswith(CYCLE_TOPIC)
+def _cycle_lane(schema: Any, channel: Any) -> str | None:
+    """The lane prefix of a channel of cycle messages (dobhil/recording/cycles.py), else None."""
+    return cycle_lane(schema.name if schema is not None else None, channel.topic)
 
 
 class McapReader(BinaryIOMessageReader):
@@ -177,9 +177,8 @@ class McapReader(BinaryIOMessageReader):
             found = self._decoders[channel.id] = decoder_for(channel.message_encoding, spec, self.name, channel.topic)
         return found
 
-    def _unfolded(self, topic: str, log_time: int, data: bytes) -> Iterator[tuple[str, int, bytes, Decoder]]:
-        """The frames a cycle message on ``topic`` holds, as :meth:`_records` gives frames."""
-        prefix = topic[:-len(CYCLE_TOPIC)]
+    def _unfolded(self, prefix: str, log_time: int, data: bytes) -> Iterator[tuple[str, int, bytes, Decoder]]:
+        """The frames a cycle message of lane ``prefix`` holds, as :meth:`_records` gives frames."""
         for number, at, part in unfold(data, log_time):
             if number in _FRAME_TOPICS:
                 name = prefix + _FRAME_TOPICS[number]
@@ -207,7 +206,8 @@ class McapReader(BinaryIOMessageReader):
             yield from self._scan()
             return
         topics = {c.topic for c in summary.channels.values()}
-        cycles = {c.topic for c in summary.channels.values() if _is_cycle(summary.schemas.get(c.schema_id), c)}
+        cycles = {c.topic: lane for c in summary.channels.values()
+                  if (lane := _cycle_lane(summary.schemas.get(c.schema_id), c)) is not None}
         frames = [t for t in topics if is_frame_topic(t)]
         if not frames and not cycles:
             listed = ", ".join(sorted(topics)) or "none"
@@ -216,7 +216,7 @@ class McapReader(BinaryIOMessageReader):
             self._take_metadata({m.name: m.metadata for m in reader.iter_metadata()})
             for schema, channel, message in reader.iter_messages(topics=[*frames, *cycles], log_time_order=True):
                 if channel.topic in cycles:
-                    yield from self._unfolded(channel.topic, message.log_time, message.data)
+                    yield from self._unfolded(cycles[channel.topic], message.log_time, message.data)
                 else:
                     yield channel.topic, message.log_time, message.data, self._decoder(schema, channel)
         except Exception as exc:  # a CRC, zstd or lz4 error: the bytes are wrong
@@ -247,8 +247,8 @@ class McapReader(BinaryIOMessageReader):
                     if is_frame_topic(channel.topic):
                         yield (channel.topic, record.log_time, record.data,
                                self._decoder(schemas.get(channel.schema_id), channel))
-                    elif _is_cycle(schemas.get(channel.schema_id), channel):
-                        yield from self._unfolded(channel.topic, record.log_time, record.data)
+                    elif (lane := _cycle_lane(schemas.get(channel.schema_id), channel)) is not None:
+                        yield from self._unfolded(lane, record.log_time, record.data)
         except Exception as exc:
             raise ValueError(f"{self.name}: truncated or damaged after {self.frames_read} frames ({exc}); "
                              f"{self._recover} writes a complete copy") from exc

@@ -18,4 +18,14 @@ DEFAULT_LAYOUT: Final = "cycle"
 CYCLE_TOPIC: Final = "/cycle"
 CYCLE_SCHEMA: Final = "dobhil.Cycle"
 
-__all__ = ["CYCLE_SCHEMA", "CYCLE_TOPIC", "DEFAULT_LAYOUT", "LAYOUTS"]
+
+
+def cycle_lane(schema_name: str | None, topic: str) -> str | None:
+    """The lane prefix (``""``, ``/axis/<name>``) of a channel holding cycle messages, or
+    None for any other channel: one test for the writer's, the readers' and recover's views."""
+    if schema_name == CYCLE_SCHEMA and topic.endswith(CYCLE_TOPIC):
+        return topic[:-len(CYCLE_TOPIC)]
+    return None
+
+
+__all__ = ["CYCLE_SCHEMA", "CYCLE_TOPIC", "DEFAULT_LAYOUT", "LAYOUTS", "cycle_lane"]

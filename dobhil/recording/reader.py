@@ -28,7 +28,7 @@ from dobhil import __version__
 from dobhil.errors import LogFileError, exception_line
 from dobhil.files import input_problem
 from dobhil.recording.encodings import Decoder, Encoding, RowDecoder, encoding
-from dobhil.recording.layouts import CYCLE_SCHEMA, CYCLE_TOPIC
+from dobhil.recording.layouts import cycle_lane
 from dobhil.recording.schemas import SPECS_BY_SCHEMA, EventKind, Topic
 from dobhil.recording.writer import RECORDING_METADATA
 
@@ -348,8 +348,9 @@ class LogFile:
         held = self._folded_counts()
         for cid, channel in list(self.channel_records.items()):
             schema = self.schemas.get(channel.schema_id)
-            if schema is not None and schema.name == CYCLE_SCHEMA and channel.topic.endswith(CYCLE_TOPIC):
-                self.cycle_channels[cid] = self._unfolded(channel.topic[:-len(CYCLE_TOPIC)], held)
+            lane = cycle_lane(schema.name if schema is not None else None, channel.topic)
+            if lane is not None:
+                self.cycle_channels[cid] = self._unfolded(lane, held)
         self.config: Any = _validate_metadata(path, self.metadata, self.library, describe=describe)
 
     def _folded_counts(self) -> dict[str, int] | None:

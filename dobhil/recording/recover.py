@@ -36,7 +36,7 @@ from mcap.writer import Writer
 from dobhil.errors import LogFileError
 from dobhil.files import atomic_path, check_output
 from dobhil.recording import cycles
-from dobhil.recording.layouts import CYCLE_SCHEMA, CYCLE_TOPIC
+from dobhil.recording.layouts import cycle_lane
 from dobhil.recording.reader import MAGIC, RECOVER_METADATA, check_library, check_mcap_head, summary_intact
 from dobhil.recording.schemas import TOPIC_SPECS
 from dobhil.recording.writer import CHUNK_SIZE, COMPRESSION, LIBRARY
@@ -262,8 +262,9 @@ class _Copier:
         self.channels[channel.id] = (self.writer.register_channel(
             channel.topic, channel.message_encoding, self.ids.get(channel.schema_id, 0), channel.metadata),
             channel.topic)
-        if schema is not None and schema.name == CYCLE_SCHEMA and channel.topic.endswith(CYCLE_TOPIC):
-            self.cycle_lanes[channel.id] = channel.topic[:-len(CYCLE_TOPIC)]
+        lane = cycle_lane(schema.name if schema is not None else None, channel.topic)
+        if lane is not None:
+            self.cycle_lanes[channel.id] = lane
 
     def _message(self, message: Message) -> None:
         if message.channel_id not in self.channels:
