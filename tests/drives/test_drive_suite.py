@@ -623,6 +623,21 @@ def _located(protocol: Protocol) -> dict[str, Any]:
     return {"cia402": {**section, "eds": str(DRIVERS / section["eds"])}}
 
 
+#: [s] a real-time drive's wait for a disable answer that never comes, where that wait is its
+#: enable wait (no heartbeat to time it: MIT, moteus; dobhil/drives/base.py): the shipped
+#: profiles' 0.5 s and a margin, not the 2 s :func:`realtime_profile` gives an enable on a
+#: loaded machine -- a test that waits the silence out waits this long for nothing
+SILENCE_WAIT = 0.6
+
+
+def silence_waited(protocol: Protocol, timing: str) -> dict[str, Any]:
+    """The profile changes of a test whose drive never answers the disable: the wait
+    :data:`SILENCE_WAIT` where the enable wait is the disable's (real time only)."""
+    if timing != "realtime" or load_profile(protocol.name).heartbeat_period:
+        return {}
+    return {"enable_timeout": SILENCE_WAIT}
+
+
 def suite_config(tmp_path: Path, protocol: Protocol, timing: str, *overrides: str,
                  step: bool = True, **profile_changes: Any) -> Config:
     """The analysed loop (``step``: contact from the start, 1 N m step; else the demo's
@@ -764,7 +779,12 @@ def test_run_that_lasts_its_duration_stops_safely(tmp_path: Path, protocol: Prot
     result = out.result
     counts = (result.cycles, result.skipped, result.overruns)
     assert result.cycles > 0 and result.cycles + result.skipped == 400, counts
-    assert (result.skipped == 0) == (result.overruns == 0) and result.skipped >= result.overruns, counts
+    # a skip comes only after an overrun, and each overrun skips at least one deadline or
+    # frame, but the run's last cycle: late, it has no deadline left to skip
+    flags = result.trace["overrun"]
+    last_late = len(flags) == 400 and flags[-1] == 1.0
+    assert result.overruns > 0 or result.skipped == 0, counts
+    assert result.skipped >= result.overruns - last_late, (counts, last_late)
     if timing == "lockstep":
         assert result.cycles == 400
 
@@ -774,7 +794,7 @@ def test_feedback_timeout_when_the_drive_goes_silent(tmp_path: Path, protocol: P
     """Feedback timing stops in the cycle that waited in vain; host timing (MIT) runs on
     with the last feedback until it is older than ``loop.feedback_timeout``. An MIT reply
     is the motor's status too: silenced, nothing can confirm the exit either."""
-    config = suite_config(tmp_path, protocol, timing)
+    config = suite_config(tmp_path, protocol, timing, **silence_waited(protocol, timing))
     out = run(config, protocol, timing, armed=lambda: [SilenceAfter(frames=0, ids=protocol.feedback_ids)])
     silence = out.faults[0]
     assert_stopped_safely(out, protocol, StopReason.FEEDBACK_TIMEOUT, ["no fresh feedback"],
@@ -796,7 +816,8 @@ def test_fault_the_protocols_way_is_a_drive_fault(tmp_path: Path, protocol: Prot
 
 def test_unconfirmed_safe_stop_says_so_loudly(tmp_path: Path, protocol: Protocol,
                                               timing: str) -> None:
-    config = suite_config(tmp_path, protocol, timing, **protocol.profile_changes)
+    config = suite_config(tmp_path, protocol, timing, **protocol.profile_changes,
+                          **silence_waited(protocol, timing))
     out = run(config, protocol, timing, protocol.lose_disable, settle=False)
     report = out.result.safe_stop
     assert out.result.stop.reason is StopReason.DONE
