@@ -44,8 +44,13 @@ from types import TracebackType
 #: certify) import at their start -- and numba, which every identify imports at its first
 #: simulation (dobhil/identify/model.py, closedloop.py: 0.09 s of CPU each time, measured;
 #: docs/identify.md runs eleven)
+#: Also what a run and an identify import only once they start (python-can and its log
+#: formats, the runtime, lmfit and the fits): 0.3-0.5 s of CPU in each such command, measured
+#: by diffing ``sys.modules`` around a forked ``run``/``identify``.
 WARM = ("dobhil.cli.main", "dobhil.analysis.report", "dobhil.identify", "matplotlib.pyplot",
-        "scipy.optimize", "scipy.signal", "numba")
+        "scipy.optimize", "scipy.signal", "numba", "dobhil.cli.recording", "dobhil.runtime.session",
+        "dobhil.recording.reader", "dobhil.identify.fit", "dobhil.identify.closedloop",
+        "dobhil.identify.choose", "dobhil.identify.intervals", "dobhil.identify.compare", "lmfit")
 
 
 @dataclass(frozen=True)
@@ -126,6 +131,9 @@ def _serve() -> None:
         importlib.import_module(name)
     from dobhil.cli.main import build_parser
     build_parser()   # imports every subcommand's module
+    from dobhil.drives.registry import PROTOCOL_CLASSES
+    for module, _ in PROTOCOL_CLASSES.values():   # the built-in drives a run loads by name
+        importlib.import_module(module)
     # a thread would not be in the child (os.fork copies the calling thread only)
     assert threading.active_count() == 1, threading.enumerate()
     replies = os.fdopen(os.dup(1), "w")
