@@ -266,7 +266,10 @@ def _early_client(port: int, topic: str, out: list[object]) -> None:
         try:
             client = LiveClient(f"ws://127.0.0.1:{port}", open_timeout=2)
             break
-        except (OSError, InvalidHandshake):  # not listening yet (or check_bindable's probe)
+        # not listening yet, or check_bindable's probe: it listens and closes at once, and a
+        # connection that reached it is refused in the handshake or reset before it (websockets
+        # raises ConnectionClosedError then; seen once in a loaded run) -- Foxglove tries again
+        except (OSError, InvalidHandshake, ConnectionClosed):
             if time.monotonic() > deadline:
                 raise
             time.sleep(0.001)
