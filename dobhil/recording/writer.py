@@ -170,8 +170,9 @@ class LogWriter:
         gets the cycle messages the file gets, and the records no cycle holds as JSON."""
         out: list[tuple[str, str, dict[str, Any] | bytes, str, str]] = []
         if self.layout == "cycle":
+            # the lanes whose cycle records have messages: those :meth:`_write_cycles` folds
             out += [(lane.prefix + CYCLE_TOPIC, CYCLE_SCHEMA, self._cycles.cycle_schema(), "protobuf", "protobuf")
-                    for lane in self.lanes if not lane.topics or Topic.CONTROLLER in lane.topics]
+                    for i, lane in enumerate(self.lanes) if lane_kind(CYCLE, i) in self._views]
         out += [(name, TOPIC_SPECS[topic].schema_name, TOPIC_SPECS[topic].json_schema(), "json", "jsonschema")
                 for lane in self.lanes for name, topic in lane.names()]
         return tuple(out)
