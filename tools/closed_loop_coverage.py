@@ -40,6 +40,8 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seeds", type=seeds, default=range(0, 50), help="LO:HI (default 0:50)")
     parser.add_argument("--samples", type=int, default=4000, help="cycles per record (default 4000)")
+    parser.add_argument("--noise", type=float, default=Hidden.velocity_noise,
+                        help=f"velocity noise [rad/s] (default {Hidden.velocity_noise})")
     args = parser.parse_args()
     z: dict[str, list[float]] = {k: [] for k in TRUTH}
     err: dict[str, list[float]] = {k: [] for k in TRUTH}
@@ -47,7 +49,8 @@ def main() -> int:
     held = dict.fromkeys(TRUTH, 0)
     cpu = 0.0
     for seed in args.seeds:
-        run = record(Hidden(), seed, chirp(args.samples, 1, 60, 1.0, 0.9), "design.identified_inertia=0.125")
+        run = record(Hidden(velocity_noise=args.noise), seed, chirp(args.samples, 1, 60, 1.0, 0.9),
+                     "design.identified_inertia=0.125")
         t0 = time.process_time()
         estimates = identify_closed_loop(run).estimates
         cpu += time.process_time() - t0
