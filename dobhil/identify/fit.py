@@ -113,7 +113,9 @@ class Estimate:
     #: exp(z stderr / value), the closed-loop fit's inertia, stiffness and damping,
     #: dobhil.identify.closedloop._interval) or "profile" (a parameter whose linearised
     #: interval leaves its bound: the profile likelihood, see _profile_high; in the
-    #: closed-loop fit the delay's both ends, dobhil.identify.closedloop._Profile)
+    #: closed-loop fit the delay's both ends, dobhil.identify.closedloop._Profile) or "hull"
+    #: (the closed-loop fit's inertia, stiffness and damping: the hull of the
+    #: log-linearised and the profile interval, dobhil.identify.closedloop._profiled)
     method: str = "linearised"
 
 
