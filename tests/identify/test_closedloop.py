@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -302,21 +303,17 @@ def test_scale_parameters_get_their_interval_on_the_log_scale() -> None:
     assert capped["stiffness"].high == 16000.0
 
 
-def test_the_profile_interval_of_a_linear_model_is_its_exact_interval(monkeypatch: pytest.MonkeyPatch) -> None:
-    """The profile likelihood's end (dobhil/identify/closedloop.py, _Profile) on a model linear
-    in its parameters, ``velocity = A theta + noise``, where the profile is exactly quadratic:
-    each end lies ``sqrt(chi2_1(0.95) s^2 [(A^T A)^-1]_kk)`` from the least-squares estimate
-    (Bates and Watts 1988, section 6.1), and the held cost there rises by that threshold."""
-    import scipy.stats
+def _linear_problem(monkeypatch: pytest.MonkeyPatch, seed: int) -> tuple[Any, np.ndarray, np.ndarray, np.ndarray]:
+    """The closed-loop fit's problem on a model linear in its parameters, ``velocity = A theta
+    + noise`` (the simulation replaced): the problem, ``A``, the velocity and the least-squares
+    ``theta``. The columns are correlated: a held parameter's end depends on refitting the others."""
     from types import SimpleNamespace
 
     from dobhil.identify import closedloop as cl
-    rng = np.random.default_rng(3)
+    rng = np.random.default_rng(seed)
     n, p = 400, len(cl._VARIED)
-    # correlated columns: a held parameter's end depends on refitting the others
     a = rng.normal(size=(n, p)) + 2.0 * rng.normal(size=(n, 1))
-    theta = rng.uniform(1.0, 2.0, size=p)
-    y = a @ theta + 0.3 * rng.normal(size=n)
+    y = a @ rng.uniform(1.0, 2.0, size=p) + 0.3 * rng.normal(size=n)
 
     def linear(values: dict[str, float], _: object) -> np.ndarray:
         out = np.zeros((n, 3))
@@ -325,7 +322,19 @@ def test_the_profile_interval_of_a_linear_model_is_its_exact_interval(monkeypatc
     monkeypatch.setattr(cl, "simulate_loop", linear)
     rec = SimpleNamespace(velocity=y, torque=np.zeros(n), samples=n)
     problem = cl._Problem(rec, np.ones(p), np.arange(p), None)  # type: ignore[arg-type]
-    best = np.linalg.lstsq(a, y, rcond=None)[0]
+    return problem, a, y, np.linalg.lstsq(a, y, rcond=None)[0]
+
+
+def test_the_profile_interval_of_a_linear_model_is_its_exact_interval(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The profile likelihood's end (dobhil/identify/closedloop.py, _Profile) on a model linear
+    in its parameters, ``velocity = A theta + noise``, where the profile is exactly quadratic:
+    each end lies ``sqrt(chi2_1(0.95) s^2 [(A^T A)^-1]_kk)`` from the least-squares estimate
+    (Bates and Watts 1988, section 6.1), and the held cost there rises by that threshold."""
+    import scipy.stats
+
+    from dobhil.identify import closedloop as cl
+    problem, a, y, best = _linear_problem(monkeypatch, 3)
+    n, p = a.shape
     lo, hi = np.full(p, -10.0), np.full(p, 10.0)
     profile = cl._Profile(problem, best, lo, hi, problem(best), n)
     r = y - a @ best
@@ -406,22 +415,9 @@ def test_a_profile_refit_below_the_fit_is_kept_to_fit_again(monkeypatch: pytest.
     parameter at its least-squares value, a cost lower than the point's; that refit's
     parameters (all of them, the held one in its place) are kept for the fit to start again
     from, the lowest of several. At the least-squares point itself no refit is lower."""
-    from types import SimpleNamespace
-
     from dobhil.identify import closedloop as cl
-    rng = np.random.default_rng(4)
-    n, p = 400, len(cl._VARIED)
-    a = rng.normal(size=(n, p)) + 2.0 * rng.normal(size=(n, 1))
-    y = a @ rng.uniform(1.0, 2.0, size=p) + 0.3 * rng.normal(size=n)
-
-    def linear(values: dict[str, float], _: object) -> np.ndarray:
-        out = np.zeros((n, 3))
-        out[:, 1] = a @ np.array([values[v] for v in cl._VARIED])
-        return out
-    monkeypatch.setattr(cl, "simulate_loop", linear)
-    rec = SimpleNamespace(velocity=y, torque=np.zeros(n), samples=n)
-    problem = cl._Problem(rec, np.ones(p), np.arange(p), None)  # type: ignore[arg-type]
-    best = np.linalg.lstsq(a, y, rcond=None)[0]
+    problem, a, _, best = _linear_problem(monkeypatch, 4)
+    n, p = a.shape
     lo, hi = np.full(p, -10.0), np.full(p, 10.0)
     at_best = cl._Profile(problem, best, lo, hi, problem(best), n)
     at_best.held_cost(0, best[0] + 0.01)
