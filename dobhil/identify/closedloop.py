@@ -727,9 +727,10 @@ def _profiled(estimates: dict[str, Estimate], profile: _Profile, values: Mapping
     (docs/identify.md, "Coverage"): neither interval covers the other's records. On the
     4 s records at 0.05 rad/s of noise the log-linearised intervals held J, K, D in 45, 44, 44
     of 50 and the profile's in 43, 39, 44; on 16 s records at 0.01 rad/s, where the errors
-    are within 2 %, the log-linearised held 44, 50, 43 and the profile's 47, 48, 46. The hull
-    held 45, 43 (3 of 50 too wide), 45 and 48, 50, 46: where the two disagree the cost is not
-    quadratic over the interval and neither approximation is the better one."""
+    are within 2 %, the log-linearised held 44, 50, 43 and the profile's 47, 48, 46. Where the
+    two disagree the cost is not quadratic over the interval and neither approximation is the
+    better one. The hull, judged as here and with a fit that stopped short fitted again
+    (:data:`_LOWER`), held 46, 46, 45 and 48, 50, 46."""
     z = float(scipy.stats.norm.ppf(0.5 + LEVEL / 2))
     out = dict(estimates)
     position = {int(i): j for j, i in enumerate(vary)}
