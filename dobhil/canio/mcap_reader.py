@@ -104,11 +104,6 @@ def _decompressed_copy(stream: gzip.GzipFile) -> BinaryIO:
 _FRAME_TOPICS: Final = {int(t): TOPIC_SPECS[t].name for t in (Topic.CAN_RX, Topic.CAN_TX)}
 
 
-def _cycle_lane(schema: Any, channel: Any) -> str | None:
-    """The lane prefix of a channel of cycle messages (dobhil/recording/cycles.py), else None."""
-    return cycle_lane(schema.name if schema is not None else None, channel.topic)
-
-
 class McapReader(BinaryIOMessageReader):
     """Reads the CAN frames of an MCAP file (path or seekable binary file object)."""
 
@@ -207,7 +202,7 @@ class McapReader(BinaryIOMessageReader):
             return
         topics = {c.topic for c in summary.channels.values()}
         cycles = {c.topic: lane for c in summary.channels.values()
-                  if (lane := _cycle_lane(summary.schemas.get(c.schema_id), c)) is not None}
+                  if (lane := cycle_lane(summary.schemas.get(c.schema_id), c)) is not None}
         frames = [t for t in topics if is_frame_topic(t)]
         if not frames and not cycles:
             listed = ", ".join(sorted(topics)) or "none"
@@ -247,7 +242,7 @@ class McapReader(BinaryIOMessageReader):
                     if is_frame_topic(channel.topic):
                         yield (channel.topic, record.log_time, record.data,
                                self._decoder(schemas.get(channel.schema_id), channel))
-                    elif (lane := _cycle_lane(schemas.get(channel.schema_id), channel)) is not None:
+                    elif (lane := cycle_lane(schemas.get(channel.schema_id), channel)) is not None:
                         yield from self._unfolded(lane, record.log_time, record.data)
         except Exception as exc:
             raise ValueError(f"{self.name}: truncated or damaged after {self.frames_read} frames ({exc}); "

@@ -10,7 +10,10 @@ names only, so the command line offers them without importing the recording.
 
 from __future__ import annotations
 
-from typing import Final
+from typing import TYPE_CHECKING, Final
+
+if TYPE_CHECKING:   # only for the annotations: this module imports nothing of the recording
+    from mcap.records import Channel, Schema
 
 LAYOUTS: Final = ("topics", "cycle")
 DEFAULT_LAYOUT: Final = "cycle"
@@ -20,11 +23,12 @@ CYCLE_SCHEMA: Final = "dobhil.Cycle"
 
 
 
-def cycle_lane(schema_name: str | None, topic: str) -> str | None:
+def cycle_lane(schema: Schema | None, channel: Channel) -> str | None:
     """The lane prefix (``""``, ``/axis/<name>``) of a channel holding cycle messages, or
-    None for any other channel: one test for the writer's, the readers' and recover's views."""
-    if schema_name == CYCLE_SCHEMA and topic.endswith(CYCLE_TOPIC):
-        return topic[:-len(CYCLE_TOPIC)]
+    None for any other channel (``schema``: the channel's, None when it has none): one test
+    for the readers' and recover's views."""
+    if schema is not None and schema.name == CYCLE_SCHEMA and channel.topic.endswith(CYCLE_TOPIC):
+        return channel.topic[:-len(CYCLE_TOPIC)]
     return None
 
 

@@ -348,7 +348,7 @@ class LogFile:
         held = self._folded_counts()
         for cid, channel in list(self.channel_records.items()):
             schema = self.schemas.get(channel.schema_id)
-            lane = cycle_lane(schema.name if schema is not None else None, channel.topic)
+            lane = cycle_lane(schema, channel)
             if lane is not None:
                 self.cycle_channels[cid] = self._unfolded(lane, held)
         self.config: Any = _validate_metadata(path, self.metadata, self.library, describe=describe)

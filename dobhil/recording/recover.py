@@ -262,7 +262,7 @@ class _Copier:
         self.channels[channel.id] = (self.writer.register_channel(
             channel.topic, channel.message_encoding, self.ids.get(channel.schema_id, 0), channel.metadata),
             channel.topic)
-        lane = cycle_lane(schema.name if schema is not None else None, channel.topic)
+        lane = cycle_lane(schema, channel)
         if lane is not None:
             self.cycle_lanes[channel.id] = lane
 
