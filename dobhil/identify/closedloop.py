@@ -747,14 +747,11 @@ def _profiled(estimates: dict[str, Estimate], profile: _Profile, values: Mapping
         beyond = hull and e.identifiable
         low = profile.end(k, down / s, beyond=beyond) * s
         high = profile.end(k, up / s, beyond=beyond) * s
-        if hull:
-            if e.identifiable:
-                low, high = min(low, e.low), max(high, e.high)
-            wide = not low > 0.0 or 0.5 * math.log(high / low) > WIDEST
-            half = max(high - value, value - low)
-        else:
-            half = max(high - value, value - low)
-            wide = half > WIDEST * abs(value) + _floors(record).get(name, 0.0)
+        if hull and e.identifiable:
+            low, high = min(low, e.low), max(high, e.high)
+        half = max(high - value, value - low)
+        wide = (not low > 0.0 or 0.5 * math.log(high / low) > WIDEST if hull
+                else half > WIDEST * abs(value) + _floors(record).get(name, 0.0))
         if wide:
             out[name] = Estimate(name, math.nan, math.nan, math.nan, math.nan, False,
                                  f"flat profile: the 95 % profile interval (+-{half:.3g}) is too "
